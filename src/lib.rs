@@ -1,0 +1,3 @@
+//! mbgate: a Modbus/TCP gateway to serial devices (design.md).
+
+pub mod config;
