@@ -1,0 +1,10 @@
+//! Pure frame code: bytes in, frames out. No tokio, no I/O, so every piece here can be
+//! unit-tested, property-tested and fuzzed on its own (design.md §5).
+
+pub mod hex;
+pub mod mbap;
+pub mod pdu;
+pub mod resync;
+
+pub use mbap::{Adu, StrictError};
+pub use resync::{Judge, ReplyJudge, Resync};

@@ -1,0 +1,321 @@
+//! The resynchronising MBAP decoder for the serial side (design.md §2).
+//!
+//! The CIE-M10's serial Modbus/TCP mode puts bare MBAP frames on RS232 with no checksum
+//! and no framing gaps, and the line can lose bytes (protocol.md §3). The length field
+//! is the only delimiter, so the decoder:
+//!
+//! - accepts a candidate header only if it is plausible (protocol id 0, length 2..=254,
+//!   a function code that can exist) and otherwise drops one byte and looks again;
+//! - on a complete candidate that the [`Judge`] rejects (wrong shape, or matching no
+//!   request), drops one byte and rescans: the next real frame may start inside it;
+//! - discards a partial candidate once the line has been quiet for the frame gap (the
+//!   caller says so with `quiet`), one byte at a time, so frames inside it are found;
+//! - counts every byte it drops.
+//!
+//! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
+//! gives the same frames.
+
+use super::mbap::{self, Adu, FrameRef, MAX_LENGTH, MIN_LENGTH, PREFIX_LEN};
+use super::pdu;
+use bytes::BytesMut;
+
+/// Decides what a frame on the line may be. The relay's judge knows the outstanding
+/// requests; [`ReplyJudge`] knows only what any reply must look like.
+pub trait Judge {
+    /// Could a frame with this function code be on the line at all?
+    fn plausible_function(&self, code: u8) -> bool;
+    /// Is this complete, length-consistent candidate a frame to hand on?
+    fn accept(&self, frame: FrameRef<'_>) -> bool;
+}
+
+/// Accepts any well-formed reply to a public function code (design.md §2 shape check).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct ReplyJudge;
+
+impl Judge for ReplyJudge {
+    fn plausible_function(&self, code: u8) -> bool {
+        pdu::is_reply_function(code)
+    }
+
+    fn accept(&self, frame: FrameRef<'_>) -> bool {
+        pdu::reply_well_formed(frame.pdu())
+    }
+}
+
+/// What the decoder has done so far.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct ResyncStats {
+    pub frames: u64,
+    pub dropped_bytes: u64,
+}
+
+/// The decoder. Feed it with [`push`](Resync::push), take frames with
+/// [`next_frame`](Resync::next_frame).
+#[derive(Debug, Default)]
+pub struct Resync {
+    buf: BytesMut,
+    stats: ResyncStats,
+}
+
+enum Candidate {
+    /// The bytes at the front cannot start a frame.
+    Implausible,
+    /// They may start one; more bytes are needed.
+    Incomplete,
+    /// A whole candidate frame of this many bytes is at the front.
+    Complete(usize),
+}
+
+/// Judges the header at the front of `buf` with whatever bytes of it have arrived, so
+/// garbage is dropped as soon as it shows, not when a whole header is in.
+fn candidate(buf: &[u8], judge: &impl Judge) -> Candidate {
+    let n = buf.len();
+    // Protocol id (bytes 2, 3) is 0; the length (bytes 4, 5) is 2..=254, so byte 4 is 0.
+    if buf.iter().take(5).skip(2).any(|&b| b != 0) {
+        return Candidate::Implausible;
+    }
+    if n > 5 && !(MIN_LENGTH..=MAX_LENGTH).contains(&u16::from(buf[5])) {
+        return Candidate::Implausible;
+    }
+    if n > 7 && !judge.plausible_function(buf[7]) {
+        return Candidate::Implausible;
+    }
+    if n < PREFIX_LEN {
+        return Candidate::Incomplete;
+    }
+    let total = PREFIX_LEN + usize::from(buf[5]);
+    if n < total {
+        Candidate::Incomplete
+    } else {
+        Candidate::Complete(total)
+    }
+}
+
+impl Resync {
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    /// Appends bytes read from the line.
+    pub fn push(&mut self, bytes: &[u8]) {
+        self.buf.extend_from_slice(bytes);
+    }
+
+    /// Bytes held that are not yet part of a delivered frame.
+    pub fn buffered(&self) -> usize {
+        self.buf.len()
+    }
+
+    pub fn stats(&self) -> ResyncStats {
+        self.stats
+    }
+
+    /// Forgets every buffered byte (the port was closed or reopened); they count as
+    /// dropped.
+    pub fn clear(&mut self) {
+        self.stats.dropped_bytes += self.buf.len() as u64;
+        self.buf.clear();
+    }
+
+    fn drop_one(&mut self) {
+        mbap::skip(&mut self.buf, 1);
+        self.stats.dropped_bytes += 1;
+    }
+
+    /// The next frame the judge accepts, or `None` when more bytes are needed.
+    ///
+    /// `quiet` says the line has given no byte for the frame gap: a partial candidate
+    /// will never complete, so it is discarded byte by byte and the rest rescanned.
+    /// After a call with `quiet` that returns `None`, the buffer is empty.
+    pub fn next_frame(&mut self, judge: &impl Judge, quiet: bool) -> Option<Adu> {
+        loop {
+            match candidate(&self.buf, judge) {
+                Candidate::Implausible => self.drop_one(),
+                Candidate::Incomplete if quiet && !self.buf.is_empty() => self.drop_one(),
+                Candidate::Incomplete => return None,
+                Candidate::Complete(total) => {
+                    if judge.accept(FrameRef::new(&self.buf[..total])) {
+                        self.stats.frames += 1;
+                        return Some(Adu::from_frame(self.buf.split_to(total).freeze()));
+                    }
+                    self.drop_one();
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn bytes(s: &str) -> Vec<u8> {
+        s.split_whitespace()
+            .map(|h| u8::from_str_radix(h, 16).unwrap())
+            .collect()
+    }
+
+    /// Replies of several shapes, the CIE-M10's among them (protocol.md §3).
+    fn replies() -> Vec<Vec<u8>> {
+        vec![
+            bytes("00 01 00 00 00 05 01 03 02 00 FF"),
+            bytes("00 02 00 00 00 06 01 10 00 08 00 01"),
+            bytes("00 03 00 00 00 03 01 83 02"),
+            bytes("00 04 00 00 00 06 11 01 03 CD 6B 05"),
+            bytes("00 05 00 00 00 09 01 03 06 00 01 00 02 00 03"),
+        ]
+    }
+
+    /// Feeds the chunks, then declares the line quiet, collecting every frame.
+    fn decode(chunks: &[&[u8]]) -> (Vec<Vec<u8>>, ResyncStats) {
+        let mut d = Resync::new();
+        let mut out = Vec::new();
+        for chunk in chunks {
+            d.push(chunk);
+            while let Some(f) = d.next_frame(&ReplyJudge, false) {
+                out.push(f.as_bytes().to_vec());
+            }
+        }
+        while let Some(f) = d.next_frame(&ReplyJudge, true) {
+            out.push(f.as_bytes().to_vec());
+        }
+        assert_eq!(d.buffered(), 0, "quiet leaves nothing behind");
+        (out, d.stats())
+    }
+
+    #[test]
+    fn clean_stream_at_every_split_offset() {
+        let all: Vec<u8> = replies().concat();
+        for cut in 0..=all.len() {
+            let (frames, stats) = decode(&[&all[..cut], &all[cut..]]);
+            assert_eq!(frames, replies(), "split at {cut}");
+            assert_eq!(stats.dropped_bytes, 0);
+        }
+    }
+
+    #[test]
+    fn clean_stream_at_every_pair_of_split_offsets() {
+        let all: Vec<u8> = replies().concat();
+        for a in 0..=all.len() {
+            for b in a..=all.len() {
+                let (frames, _) = decode(&[&all[..a], &all[a..b], &all[b..]]);
+                assert_eq!(frames, replies(), "split at {a} and {b}");
+            }
+        }
+    }
+
+    #[test]
+    fn one_byte_at_a_time() {
+        let all: Vec<u8> = replies().concat();
+        let chunks: Vec<&[u8]> = all.chunks(1).collect();
+        assert_eq!(decode(&chunks).0, replies());
+    }
+
+    #[test]
+    fn garbage_before_and_between_frames() {
+        let r = replies();
+        let garbage = bytes("FF 13 00 00 7E 00 00 00 00 01 00 00 00 FF");
+        let mut all = garbage.clone();
+        for f in &r {
+            all.extend(f);
+            all.extend(&garbage);
+        }
+        for cut in 0..=all.len() {
+            let (frames, stats) = decode(&[&all[..cut], &all[cut..]]);
+            assert_eq!(frames, r, "split at {cut}");
+            assert_eq!(stats.dropped_bytes, (garbage.len() * (r.len() + 1)) as u64);
+        }
+    }
+
+    #[test]
+    fn garbage_inside_a_header_loses_only_that_frame() {
+        let r = replies();
+        let mut broken = r[1].clone();
+        broken.insert(3, 0x55); // inside the protocol id
+        let all = [r[0].clone(), broken.clone(), r[2].clone(), r[3].clone()].concat();
+        for cut in 0..=all.len() {
+            let (frames, stats) = decode(&[&all[..cut], &all[cut..]]);
+            assert_eq!(frames, vec![r[0].clone(), r[2].clone(), r[3].clone()]);
+            assert_eq!(stats.dropped_bytes, broken.len() as u64);
+        }
+    }
+
+    #[test]
+    fn garbage_inside_a_reply_that_breaks_its_shape() {
+        let r = replies();
+        // Noise on the byte count of the FC 03 reply: it no longer fits the length.
+        let mut broken = r[4].clone();
+        broken[8] = 0x05;
+        let all = [r[0].clone(), broken, r[2].clone()].concat();
+        let (frames, _) = decode(&[&all]);
+        assert_eq!(frames, vec![r[0].clone(), r[2].clone()]);
+    }
+
+    #[test]
+    fn a_lost_header_byte_loses_only_that_frame() {
+        let r = replies();
+        for lost in 0..7 {
+            let mut broken = r[1].clone();
+            broken.remove(lost);
+            let all = [r[0].clone(), broken, r[2].clone(), r[3].clone()].concat();
+            let (frames, _) = decode(&[&all]);
+            assert_eq!(
+                frames,
+                vec![r[0].clone(), r[2].clone(), r[3].clone()],
+                "lost byte {lost}"
+            );
+        }
+    }
+
+    #[test]
+    fn a_frame_inside_a_plausible_long_candidate_is_found_after_the_gap() {
+        // Garbage that looks like the start of a 254-byte frame, then a real reply.
+        let fake = bytes("00 09 00 00 00 FE 01 03");
+        let real = replies()[0].clone();
+        let mut d = Resync::new();
+        d.push(&fake);
+        d.push(&real);
+        assert_eq!(d.next_frame(&ReplyJudge, false), None, "waits for more");
+        let f = d.next_frame(&ReplyJudge, true).expect("found once quiet");
+        assert_eq!(f.as_bytes(), &real[..]);
+        assert_eq!(d.stats().dropped_bytes, fake.len() as u64);
+    }
+
+    #[test]
+    fn a_truncated_frame_is_dropped_when_quiet() {
+        let r = replies();
+        let (frames, stats) = decode(&[&r[0][..8]]);
+        assert!(frames.is_empty());
+        assert_eq!(stats.dropped_bytes, 8);
+    }
+
+    #[test]
+    fn clear_counts_what_it_forgets() {
+        let mut d = Resync::new();
+        d.push(&replies()[0][..5]);
+        d.clear();
+        assert_eq!(d.buffered(), 0);
+        assert_eq!(d.stats().dropped_bytes, 5);
+    }
+
+    struct OnlyTid(u16);
+    impl Judge for OnlyTid {
+        fn plausible_function(&self, code: u8) -> bool {
+            pdu::is_reply_function(code)
+        }
+        fn accept(&self, frame: FrameRef<'_>) -> bool {
+            frame.tid() == self.0
+        }
+    }
+
+    #[test]
+    fn the_judge_decides() {
+        let r = replies();
+        let all = r.concat();
+        let mut d = Resync::new();
+        d.push(&all);
+        let f = d.next_frame(&OnlyTid(3), true).unwrap();
+        assert_eq!(f.as_bytes(), &r[2][..]);
+        assert_eq!(d.next_frame(&OnlyTid(3), true), None);
+    }
+}
