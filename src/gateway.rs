@@ -1,0 +1,84 @@
+//! The gateway as a whole: bind, start the relay and the listener, and shut down
+//! cleanly (design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded).
+
+use crate::config::Config;
+use crate::relay::Relay;
+use crate::stats::Stats;
+use crate::tcp;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::net::TcpListener;
+use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
+use tracing::{info, warn};
+
+#[derive(Debug, thiserror::Error)]
+pub enum GatewayError {
+    #[error("cannot listen on {addr}: {source}")]
+    Bind {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+}
+
+/// Runs the gateway until `shutdown` is cancelled, then drains and returns the totals.
+/// `on_listening` is told the bound address (port 0 becomes a real port) once masters
+/// can connect.
+pub async fn run(
+    cfg: Config,
+    shutdown: CancellationToken,
+    on_listening: impl FnOnce(SocketAddr),
+) -> Result<Arc<Stats>, GatewayError> {
+    let addr = cfg.tcp.listen;
+    let listener = TcpListener::bind(addr)
+        .await
+        .map_err(|source| GatewayError::Bind { addr, source })?;
+    let local = listener
+        .local_addr()
+        .map_err(|source| GatewayError::Bind { addr, source })?;
+    let cfg = Arc::new(cfg);
+    let stats = Arc::new(Stats::default());
+
+    let (relay, handle) = Relay::new(
+        cfg.relay.clone(),
+        cfg.serial.clone(),
+        cfg.log.traffic,
+        stats.clone(),
+        shutdown.clone(),
+    );
+    let relay_task = tokio::spawn(relay.run());
+
+    let tracker = TaskTracker::new();
+    info!(listen = %local, serial = %cfg.serial.path, "listening on {local}");
+    on_listening(local);
+    tcp::accept_loop(
+        listener,
+        cfg.clone(),
+        handle,
+        stats.clone(),
+        shutdown.clone(),
+        tracker.clone(),
+    )
+    .await;
+
+    // Shutdown: the listener is closed; connections stop reading and the relay answers
+    // what is queued (0x0A) and waits for what is on the line.
+    info!("shutting down: draining in-flight requests");
+    tracker.close();
+    let relay_cfg = &cfg.relay;
+    let bound = Duration::from_millis(
+        relay_cfg.response_timeout_ms * u64::from(relay_cfg.retries + 1) + 2000,
+    );
+    if tokio::time::timeout(bound, async {
+        let _ = relay_task.await;
+        tracker.wait().await;
+    })
+    .await
+    .is_err()
+    {
+        warn!("drain did not finish in {bound:?}; exiting anyway");
+    }
+    info!(%stats, "stopped");
+    Ok(stats)
+}

@@ -1,0 +1,107 @@
+//! Opening the serial port (design.md §4 `[serial]`, issue "The bridge": serial side).
+//!
+//! Baud, data bits, parity, stop bits and flow control come from the configuration;
+//! RTS/CTS is the default because the CIE-M10 manual asks for it (protocol.md §3). A
+//! freshly opened port can hold stale bytes, so it is flushed before use. Modem-line
+//! calls fail with ENOTTY on a pty; nothing here treats that as fatal.
+
+use crate::config::{FlowControl, Parity, SerialConfig};
+use std::time::Duration;
+use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
+
+/// Opens and configures the port, then clears whatever it held.
+pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
+    let builder = tokio_serial::new(&cfg.path, cfg.baud_rate)
+        .data_bits(match cfg.data_bits {
+            7 => tokio_serial::DataBits::Seven,
+            _ => tokio_serial::DataBits::Eight,
+        })
+        .parity(match cfg.parity {
+            Parity::None => tokio_serial::Parity::None,
+            Parity::Even => tokio_serial::Parity::Even,
+            Parity::Odd => tokio_serial::Parity::Odd,
+        })
+        .stop_bits(match cfg.stop_bits {
+            2 => tokio_serial::StopBits::Two,
+            _ => tokio_serial::StopBits::One,
+        })
+        .flow_control(match cfg.flow_control {
+            FlowControl::Hardware => tokio_serial::FlowControl::Hardware,
+            FlowControl::Software => tokio_serial::FlowControl::Software,
+            FlowControl::None => tokio_serial::FlowControl::None,
+        });
+    let port = SerialStream::open(&builder)?;
+    if let Err(e) = port.clear(ClearBuffer::All) {
+        tracing::debug!(path = %cfg.path, "could not clear stale bytes: {e}");
+    }
+    Ok(port)
+}
+
+/// Bits on the wire for one character: start, data, parity, stop.
+pub fn bits_per_char(cfg: &SerialConfig) -> u32 {
+    1 + u32::from(cfg.data_bits)
+        + u32::from(cfg.parity != Parity::None)
+        + u32::from(cfg.stop_bits)
+}
+
+/// How long `bytes` take on the wire at the configured rate.
+pub fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
+    let bits = bytes as u64 * u64::from(bits_per_char(cfg));
+    Duration::from_micros(bits * 1_000_000 / u64::from(cfg.baud_rate.max(1)))
+}
+
+/// Delays between attempts to (re)open a port: doubling from `min` up to `max`.
+#[derive(Debug, Clone)]
+pub struct Backoff {
+    min: Duration,
+    max: Duration,
+    next: Duration,
+}
+
+impl Backoff {
+    pub fn new(min: Duration, max: Duration) -> Self {
+        Self { min, max, next: min }
+    }
+
+    /// The delay before the next attempt; each call doubles the one after.
+    pub fn next_delay(&mut self) -> Duration {
+        let d = self.next;
+        self.next = (self.next * 2).min(self.max);
+        d
+    }
+
+    pub fn reset(&mut self) {
+        self.next = self.min;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_up_to_max_and_resets() {
+        let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(500));
+        let got: Vec<u64> = (0..5).map(|_| b.next_delay().as_millis() as u64).collect();
+        assert_eq!(got, [100, 200, 400, 500, 500]);
+        b.reset();
+        assert_eq!(b.next_delay(), Duration::from_millis(100));
+    }
+
+    #[test]
+    fn wire_time_at_19200_8n1() {
+        let cfg = SerialConfig::default();
+        assert_eq!(bits_per_char(&cfg), 10);
+        // 12 bytes x 10 bits / 19200 bit/s = 6.25 ms
+        assert_eq!(wire_time(&cfg, 12), Duration::from_micros(6250));
+    }
+
+    #[test]
+    fn a_missing_port_is_an_error_not_a_panic() {
+        let cfg = SerialConfig {
+            path: "/nonexistent/ttyUSB9".into(),
+            ..SerialConfig::default()
+        };
+        assert!(open(&cfg).is_err());
+    }
+}

@@ -1,0 +1,63 @@
+//! Counters the gateway keeps (design.md §1: dropped and late frames are counted).
+
+use std::fmt;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+macro_rules! counters {
+    ($($name:ident: $doc:literal),* $(,)?) => {
+        /// Running totals since start. Written by their owning task, read by anyone.
+        #[derive(Debug, Default)]
+        pub struct Stats {
+            $(#[doc = $doc] pub $name: AtomicU64,)*
+        }
+
+        impl fmt::Display for Stats {
+            fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+                let mut first = true;
+                $(
+                    if !first { f.write_str(" ")?; }
+                    first = false;
+                    write!(f, "{}={}", stringify!($name), self.$name.load(Ordering::Relaxed))?;
+                )*
+                let _ = first;
+                Ok(())
+            }
+        }
+    };
+}
+
+counters! {
+    connections: "TCP connections accepted.",
+    connections_refused: "TCP connections closed at once: `max_connections` reached.",
+    protocol_violations: "Connections closed for a frame that failed the strict MBAP checks.",
+    requests: "Requests handed to the relay.",
+    replies: "Device replies delivered to masters.",
+    timeouts: "Requests answered 0x0B: no reply in time.",
+    unavailable: "Requests answered 0x0A: no serial port, or shutting down.",
+    busy: "Requests answered 0x06: the queue was full.",
+    exceptions_other: "Other exceptions the gateway answered itself.",
+    bad_requests: "Requests answered locally because their PDU broke protocol limits.",
+    retries: "Requests resent after a timeout.",
+    late_replies: "Replies that came after their request timed out: dropped.",
+    notifications_dropped: "Frames answering no request, dropped (`notifications = drop`).",
+    notifications_broadcast: "Frames answering no request, broadcast to every master.",
+    notifications_missed: "Broadcasts a master missed because it was not reading.",
+    dropped_bytes: "Serial bytes the decoder discarded while resynchronising.",
+    serial_bytes_in: "Bytes read from the serial port.",
+    serial_bytes_out: "Bytes written to the serial port.",
+    serial_opens: "Times the serial port was opened.",
+}
+
+impl Stats {
+    pub fn add(&self, counter: &AtomicU64, n: u64) {
+        counter.fetch_add(n, Ordering::Relaxed);
+    }
+
+    pub fn set(&self, counter: &AtomicU64, n: u64) {
+        counter.store(n, Ordering::Relaxed);
+    }
+
+    pub fn get(counter: &AtomicU64) -> u64 {
+        counter.load(Ordering::Relaxed)
+    }
+}

@@ -1,0 +1,150 @@
+//! Serial-side transaction ids (design.md §1 step 3).
+//!
+//! Every request on the line gets a fresh id that no outstanding request uses, never
+//! 0x0000 (the CIE-M10's own change notifications may use it). Ids of requests that
+//! timed out stay reserved for a while, so a late answer is recognised as ours and
+//! dropped (design.md §1 steps 5 and 6) instead of being taken for a notification.
+
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// How many timed-out ids are remembered at most.
+pub const RETIRED_MAX: usize = 1024;
+/// How long a timed-out id is remembered.
+pub const RETIRED_FOR: Duration = Duration::from_secs(60);
+
+#[derive(Debug)]
+pub struct Tids {
+    next: u16,
+    /// One bit per id: in flight or retired.
+    reserved: Box<[u64; 1024]>,
+    retired: VecDeque<(u16, Instant)>,
+}
+
+impl Default for Tids {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Tids {
+    pub fn new() -> Self {
+        Self {
+            next: 1,
+            reserved: Box::new([0; 1024]),
+            retired: VecDeque::new(),
+        }
+    }
+
+    fn is_reserved(&self, tid: u16) -> bool {
+        self.reserved[usize::from(tid >> 6)] & (1 << (tid & 63)) != 0
+    }
+
+    fn set(&mut self, tid: u16, on: bool) {
+        let word = &mut self.reserved[usize::from(tid >> 6)];
+        if on {
+            *word |= 1 << (tid & 63);
+        } else {
+            *word &= !(1 << (tid & 63));
+        }
+    }
+
+    fn expire(&mut self, now: Instant) {
+        while let Some(&(tid, at)) = self.retired.front() {
+            if self.retired.len() <= RETIRED_MAX && now.duration_since(at) < RETIRED_FOR {
+                break;
+            }
+            self.retired.pop_front();
+            self.set(tid, false);
+        }
+    }
+
+    /// A fresh id: not 0, not in flight, not retired. At most 255 are in flight and
+    /// [`RETIRED_MAX`] retired, so one is always found.
+    pub fn allocate(&mut self, now: Instant) -> u16 {
+        self.expire(now);
+        loop {
+            let tid = self.next;
+            self.next = self.next.checked_add(1).unwrap_or(1);
+            if !self.is_reserved(tid) {
+                self.set(tid, true);
+                return tid;
+            }
+        }
+    }
+
+    /// The request was answered: its id may be used again.
+    pub fn release(&mut self, tid: u16) {
+        self.set(tid, false);
+    }
+
+    /// The request timed out or was abandoned: an answer with this id is late.
+    pub fn retire(&mut self, tid: u16, now: Instant) {
+        self.retired.push_back((tid, now));
+        self.expire(now);
+    }
+
+    /// Was this id given to a request that is no longer in flight? Only meaningful for
+    /// ids the caller has already found not to be in flight.
+    pub fn is_retired(&self, tid: u16) -> bool {
+        tid != 0 && self.is_reserved(tid)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn never_zero_never_reused_while_reserved() {
+        let now = Instant::now();
+        let mut t = Tids::new();
+        let mut held = Vec::new();
+        for _ in 0..70_000u32 {
+            let tid = t.allocate(now);
+            assert_ne!(tid, 0);
+            held.push(tid);
+            if held.len() > 200 {
+                t.release(held.remove(0));
+            }
+        }
+        let mut sorted = held.clone();
+        sorted.sort_unstable();
+        sorted.dedup();
+        assert_eq!(sorted.len(), held.len(), "in-flight ids are distinct");
+    }
+
+    #[test]
+    fn retired_ids_are_late_and_skipped() {
+        let now = Instant::now();
+        let mut t = Tids::new();
+        let a = t.allocate(now);
+        t.retire(a, now);
+        assert!(t.is_retired(a));
+        assert!(!t.is_retired(0));
+        // Wrap all the way round: `a` is not handed out again while retired.
+        for _ in 0..65_540u32 {
+            let tid = t.allocate(now);
+            assert_ne!(tid, a);
+            t.release(tid);
+        }
+        // After RETIRED_FOR it is free again.
+        let later = now + RETIRED_FOR + Duration::from_secs(1);
+        t.allocate(later);
+        assert!(!t.is_retired(a));
+    }
+
+    #[test]
+    fn retired_set_is_bounded() {
+        let now = Instant::now();
+        let mut t = Tids::new();
+        let first = t.allocate(now);
+        t.retire(first, now);
+        for _ in 0..RETIRED_MAX {
+            let tid = t.allocate(now);
+            t.retire(tid, now);
+        }
+        assert!(!t.is_retired(first), "oldest forgotten past the bound");
+        assert!(t.retired.len() <= RETIRED_MAX);
+    }
+}

@@ -1,0 +1,66 @@
+#!/usr/bin/env python3
+"""pymodbus' own ModbusSerialServer with the socket (MBAP) framer: the stock device the
+issue names for the byte-exact CIE-M10 examples and the ordinary-client test.
+
+    stock_server.py --port PATH [--size 200] [--baud 19200]
+
+One unit (id 1; pymodbus answers other ids with exception 04). Same data as device.py:
+holding register 0 = 0x00FF (the CIE-M10 inputs 0..7 ON), holding register i = 1000 + i,
+input register i = 2000 + i, coil i ON when i % 3 == 0, discrete input i ON when
+i % 2 == 0. Prints READY on stdout once serving. It handles one request at a time and
+does not resynchronise after garbage (see DEVELOPERS.md), so the gateway must feed it
+one frame at a time, which it does with max_in_flight = 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+
+from pymodbus import FramerType
+from pymodbus.datastore import (
+    ModbusDeviceContext,
+    ModbusSequentialDataBlock,
+    ModbusServerContext,
+)
+from pymodbus.server import ModbusSerialServer
+
+
+def context(size: int) -> ModbusServerContext:
+    # ModbusSequentialDataBlock(1, ...) puts PDU address 0 at values[0].
+    device = ModbusDeviceContext(
+        co=ModbusSequentialDataBlock(1, [i % 3 == 0 for i in range(size)]),
+        di=ModbusSequentialDataBlock(1, [i % 2 == 0 for i in range(size)]),
+        hr=ModbusSequentialDataBlock(1, [0x00FF] + [1000 + i for i in range(1, size)]),
+        ir=ModbusSequentialDataBlock(1, [2000 + i for i in range(size)]),
+    )
+    return ModbusServerContext(devices={1: device}, single=False)
+
+
+async def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--port", required=True)
+    ap.add_argument("--size", type=int, default=200)
+    ap.add_argument("--baud", type=int, default=19200)
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
+
+    server = ModbusSerialServer(
+        context(args.size), framer=FramerType.SOCKET, port=args.port, baudrate=args.baud
+    )
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await server.serve_forever(background=True)
+    print("READY", flush=True)
+    await stop.wait()
+    await server.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(asyncio.run(main()))
