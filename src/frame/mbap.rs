@@ -31,7 +31,7 @@ impl Adu {
     /// If the bytes are shorter than a header or the length field disagrees: callers
     /// only pass frames that a decoder has delimited.
     pub fn from_frame(bytes: Bytes) -> Self {
-        assert!(bytes.len() >= HEADER_LEN + 1, "frame shorter than a header");
+        assert!(bytes.len() > HEADER_LEN, "frame shorter than a header");
         assert_eq!(
             usize::from(u16::from_be_bytes([bytes[4], bytes[5]])) + PREFIX_LEN,
             bytes.len(),
