@@ -1,0 +1,517 @@
+//! Real peers for the end-to-end tests: socat pty pairs, the mbgate binary, pymodbus
+//! processes, a scriptable raw device on a pty, and a raw TCP master.
+#![allow(dead_code)]
+
+use mbgate::frame::mbap::decode_strict;
+use mbgate::frame::Adu;
+use std::io::{BufRead, BufReader, ErrorKind, Read, Write};
+use std::net::{SocketAddr, TcpStream};
+use std::os::unix::fs::OpenOptionsExt;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, ExitStatus, Stdio};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{mpsc, Arc, Mutex};
+use std::thread::{self, JoinHandle};
+use std::time::{Duration, Instant};
+
+pub fn repo() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+}
+
+/// The venv interpreter with the pinned pymodbus (`scripts/test` creates it).
+pub fn python() -> PathBuf {
+    let p = std::env::var_os("MBGATE_PYTHON")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| repo().join(".venv/bin/python"));
+    assert!(
+        p.exists(),
+        "{} not found: run scripts/test, which creates the venv with the pinned pymodbus",
+        p.display()
+    );
+    p
+}
+
+/// `"00 01 FF"` → bytes.
+pub fn hex(s: &str) -> Vec<u8> {
+    let s: String = s.split_whitespace().collect();
+    (0..s.len())
+        .step_by(2)
+        .map(|i| u8::from_str_radix(&s[i..i + 2], 16).expect("hex"))
+        .collect()
+}
+
+pub fn tempdir() -> tempfile::TempDir {
+    tempfile::Builder::new()
+        .prefix("mbgate-test-")
+        .tempdir()
+        .expect("temp dir")
+}
+
+fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
+    let start = Instant::now();
+    while !ok() {
+        assert!(start.elapsed() < timeout, "timed out waiting for {what}");
+        thread::sleep(Duration::from_millis(10));
+    }
+}
+
+fn terminate(child: &mut Child) {
+    let _ = Command::new("kill")
+        .arg("-TERM")
+        .arg(child.id().to_string())
+        .status();
+}
+
+// ---------------------------------------------------------------------------------
+// socat
+
+/// A virtual serial cable: `gw` is the gateway's end, `dev` the device's.
+pub struct Socat {
+    child: Option<Child>,
+    pub gw: PathBuf,
+    pub dev: PathBuf,
+}
+
+impl Socat {
+    pub fn start(dir: &Path) -> Socat {
+        let mut s = Socat {
+            child: None,
+            gw: dir.join("gw"),
+            dev: dir.join("dev"),
+        };
+        s.restart();
+        s
+    }
+
+    pub fn restart(&mut self) {
+        self.stop();
+        let child = Command::new("socat")
+            .arg(format!("pty,raw,echo=0,link={}", self.gw.display()))
+            .arg(format!("pty,raw,echo=0,link={}", self.dev.display()))
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("socat (apt-get install socat; scripts/test does)");
+        self.child = Some(child);
+        let (gw, dev) = (self.gw.clone(), self.dev.clone());
+        wait_for("socat links", Duration::from_secs(5), || {
+            gw.exists() && dev.exists()
+        });
+    }
+
+    /// Pulls the cable: socat exits and both ptys vanish.
+    pub fn stop(&mut self) {
+        if let Some(mut c) = self.child.take() {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+        let _ = std::fs::remove_file(&self.gw);
+        let _ = std::fs::remove_file(&self.dev);
+    }
+}
+
+impl Drop for Socat {
+    fn drop(&mut self) {
+        self.stop();
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// The gateway
+
+/// Builds a configuration file: listen on 127.0.0.1:0, the given serial path, and
+/// extra `key = value` lines per section.
+#[derive(Clone)]
+pub struct Cfg {
+    serial: Vec<String>,
+    tcp: Vec<String>,
+    relay: Vec<String>,
+    log: Vec<String>,
+}
+
+impl Cfg {
+    pub fn new(serial_path: &Path) -> Cfg {
+        Cfg {
+            serial: vec![format!("path = {:?}", serial_path.display().to_string())],
+            tcp: vec!["listen = \"127.0.0.1:0\"".into()],
+            relay: vec![],
+            log: vec!["level = \"debug\"".into()],
+        }
+    }
+    pub fn serial(mut self, line: &str) -> Cfg {
+        self.serial.push(line.into());
+        self
+    }
+    pub fn tcp(mut self, line: &str) -> Cfg {
+        self.tcp.push(line.into());
+        self
+    }
+    pub fn relay(mut self, line: &str) -> Cfg {
+        self.relay.push(line.into());
+        self
+    }
+    pub fn log(mut self, line: &str) -> Cfg {
+        self.log.push(line.into());
+        self
+    }
+    pub fn render(&self) -> String {
+        let mut s = String::new();
+        for (name, lines) in [
+            ("serial", &self.serial),
+            ("tcp", &self.tcp),
+            ("relay", &self.relay),
+            ("log", &self.log),
+        ] {
+            s += &format!("[{name}]\n{}\n\n", lines.join("\n"));
+        }
+        s
+    }
+}
+
+pub struct Gateway {
+    child: Child,
+    pub addr: SocketAddr,
+    log: Arc<Mutex<String>>,
+    reader: Option<JoinHandle<()>>,
+}
+
+impl Gateway {
+    pub fn start(cfg: &Cfg, dir: &Path) -> Gateway {
+        let file = dir.join("mbgate.toml");
+        std::fs::write(&file, cfg.render()).expect("write config");
+        let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
+            .arg("run")
+            .arg("--config")
+            .arg(&file)
+            .env_remove("RUST_LOG")
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::piped())
+            .spawn()
+            .expect("start mbgate");
+        let log = Arc::new(Mutex::new(String::new()));
+        let (tx, rx) = mpsc::channel();
+        let stderr = child.stderr.take().expect("stderr");
+        let sink = log.clone();
+        let reader = thread::spawn(move || {
+            for line in BufReader::new(stderr).lines() {
+                let Ok(line) = line else { break };
+                if let Some(rest) = line.split("listening on ").nth(1) {
+                    let addr = rest.split_whitespace().next().unwrap_or("").to_string();
+                    let _ = tx.send(addr);
+                }
+                let mut l = sink.lock().unwrap();
+                l.push_str(&line);
+                l.push('\n');
+            }
+        });
+        let addr = rx
+            .recv_timeout(Duration::from_secs(10))
+            .unwrap_or_else(|_| panic!("mbgate did not start listening: {}", log.lock().unwrap()));
+        Gateway {
+            child,
+            addr: addr.parse().expect("listen address"),
+            log,
+            reader: Some(reader),
+        }
+    }
+
+    pub fn log(&self) -> String {
+        self.log.lock().unwrap().clone()
+    }
+
+    /// Waits until the log contains `needle`.
+    pub fn wait_log(&self, needle: &str, timeout: Duration) {
+        let log = self.log.clone();
+        let start = Instant::now();
+        while !log.lock().unwrap().contains(needle) {
+            assert!(
+                start.elapsed() < timeout,
+                "log never showed {needle:?}:\n{}",
+                self.log()
+            );
+            thread::sleep(Duration::from_millis(10));
+        }
+    }
+
+    pub fn connect(&self) -> TcpStream {
+        let s = TcpStream::connect(self.addr).expect("connect to mbgate");
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        s.set_nodelay(true).unwrap();
+        s
+    }
+
+    /// SIGTERM, then waits (bounded) for the exit; the log is complete afterwards.
+    pub fn terminate(&mut self, within: Duration) -> ExitStatus {
+        terminate(&mut self.child);
+        let start = Instant::now();
+        loop {
+            if let Some(status) = self.child.try_wait().unwrap() {
+                if let Some(r) = self.reader.take() {
+                    let _ = r.join();
+                }
+                return status;
+            }
+            assert!(
+                start.elapsed() < within,
+                "mbgate did not exit within {within:?} of SIGTERM:\n{}",
+                self.log()
+            );
+            thread::sleep(Duration::from_millis(10));
+        }
+    }
+}
+
+impl Drop for Gateway {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// Python peers
+
+pub struct Py {
+    child: Child,
+}
+
+impl Py {
+    /// Runs `tests/py/<script>` and waits for it to print READY.
+    pub fn start(script: &str, args: &[&str]) -> Py {
+        let mut child = Command::new(python())
+            .arg(repo().join("tests/py").join(script))
+            .args(args)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("start python");
+        let mut out = BufReader::new(child.stdout.take().unwrap());
+        let (tx, rx) = mpsc::channel();
+        thread::spawn(move || {
+            let mut line = String::new();
+            let _ = out.read_line(&mut line);
+            let _ = tx.send(line);
+            // Keep draining so the child never blocks on a full pipe.
+            let _ = std::io::copy(&mut out, &mut std::io::sink());
+        });
+        let line = rx.recv_timeout(Duration::from_secs(20)).unwrap_or_default();
+        assert_eq!(line.trim(), "READY", "{script} did not start");
+        Py { child }
+    }
+
+    /// Runs a script to completion: (exit status, stdout).
+    pub fn run(script: &str, args: &[&str]) -> (ExitStatus, String) {
+        let out = Command::new(python())
+            .arg(repo().join("tests/py").join(script))
+            .args(args)
+            .stderr(Stdio::inherit())
+            .output()
+            .expect("run python");
+        (out.status, String::from_utf8_lossy(&out.stdout).into_owned())
+    }
+}
+
+impl Drop for Py {
+    fn drop(&mut self) {
+        terminate(&mut self.child);
+        let start = Instant::now();
+        while start.elapsed() < Duration::from_secs(3) {
+            if let Ok(Some(_)) = self.child.try_wait() {
+                return;
+            }
+            thread::sleep(Duration::from_millis(10));
+        }
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// A raw device on the pty, scripted by the test
+
+/// What the raw device does with each request it receives.
+pub type Handler = Box<dyn FnMut(&Adu) -> Vec<u8> + Send>;
+
+/// A device on the `dev` end of a socat pair that decodes MBAP requests and writes
+/// whatever the handler returns (nothing = no answer). Every request is recorded.
+pub struct RawDevice {
+    stop: Arc<AtomicBool>,
+    file: std::fs::File,
+    pub seen: Arc<Mutex<Vec<Adu>>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl RawDevice {
+    pub fn start(path: &Path, mut handler: Handler) -> RawDevice {
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
+            .open(path)
+            .expect("open device pty");
+        let mut rd = file.try_clone().unwrap();
+        let mut wr = file.try_clone().unwrap();
+        let stop = Arc::new(AtomicBool::new(false));
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let (stop2, seen2) = (stop.clone(), seen.clone());
+        let thread = thread::spawn(move || {
+            let mut buf = bytes::BytesMut::new();
+            let mut chunk = [0u8; 1024];
+            while !stop2.load(Ordering::Relaxed) {
+                match rd.read(&mut chunk) {
+                    Ok(0) => break,
+                    Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                    Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                        thread::sleep(Duration::from_millis(1));
+                        continue;
+                    }
+                    Err(_) => break,
+                }
+                while let Ok(Some(req)) = decode_strict(&mut buf) {
+                    seen2.lock().unwrap().push(req.clone());
+                    let reply = handler(&req);
+                    if !reply.is_empty() && write_all_nb(&mut wr, &reply).is_err() {
+                        return;
+                    }
+                }
+            }
+        });
+        RawDevice {
+            stop,
+            file,
+            seen,
+            thread: Some(thread),
+        }
+    }
+
+    /// Writes bytes on the line by itself (a notification, noise).
+    pub fn inject(&mut self, bytes: &[u8]) {
+        write_all_nb(&mut self.file, bytes).expect("inject");
+    }
+
+    pub fn requests(&self) -> Vec<Adu> {
+        self.seen.lock().unwrap().clone()
+    }
+}
+
+fn write_all_nb(f: &mut std::fs::File, mut bytes: &[u8]) -> std::io::Result<()> {
+    while !bytes.is_empty() {
+        match f.write(bytes) {
+            Ok(n) => bytes = &bytes[n..],
+            Err(e) if e.kind() == ErrorKind::WouldBlock => thread::sleep(Duration::from_millis(1)),
+            Err(e) => return Err(e),
+        }
+    }
+    Ok(())
+}
+
+impl Drop for RawDevice {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// A register map answering FC 03 and FC 16 for the listed units, like the CIE-M10
+/// (protocol.md §3) but with room for many registers; other units get no answer.
+pub fn register_device(units: &[u8], delay: Duration) -> Handler {
+    let units = units.to_vec();
+    let mut regs = std::collections::HashMap::<(u8, u16), u16>::new();
+    Box::new(move |req: &Adu| {
+        if !units.contains(&req.unit()) {
+            return vec![];
+        }
+        thread::sleep(delay);
+        let p = req.pdu();
+        let word = |i: usize| u16::from_be_bytes([p[i], p[i + 1]]);
+        let reply_pdu = match p[0] {
+            0x03 => {
+                let (addr, qty) = (word(1), word(3));
+                let mut v = vec![0x03, (qty * 2) as u8];
+                for a in addr..addr + qty {
+                    let val = regs.get(&(req.unit(), a)).copied().unwrap_or(a);
+                    v.extend_from_slice(&val.to_be_bytes());
+                }
+                v
+            }
+            0x10 => {
+                let (addr, qty) = (word(1), word(3));
+                for i in 0..qty {
+                    regs.insert((req.unit(), addr + i), word(6 + 2 * i as usize));
+                }
+                p[..5].to_vec()
+            }
+            f => vec![f | 0x80, 0x01],
+        };
+        Adu::build(req.tid(), req.unit(), &reply_pdu)
+            .as_bytes()
+            .to_vec()
+    })
+}
+
+// ---------------------------------------------------------------------------------
+// A raw TCP master
+
+/// Reads one MBAP frame (header, then as many bytes as its length says).
+pub fn read_frame(s: &mut TcpStream) -> Vec<u8> {
+    let mut head = [0u8; 6];
+    s.read_exact(&mut head).expect("read MBAP header");
+    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
+    let mut rest = vec![0u8; len];
+    s.read_exact(&mut rest).expect("read MBAP body");
+    [head.to_vec(), rest].concat()
+}
+
+/// Sends a request and reads one frame back.
+pub fn transact(s: &mut TcpStream, req: &[u8]) -> Vec<u8> {
+    s.write_all(req).expect("send request");
+    read_frame(s)
+}
+
+/// FC 03 read of `qty` registers at `addr`.
+pub fn read_req(tid: u16, unit: u8, addr: u16, qty: u16) -> Vec<u8> {
+    let mut pdu = vec![0x03];
+    pdu.extend_from_slice(&addr.to_be_bytes());
+    pdu.extend_from_slice(&qty.to_be_bytes());
+    Adu::build(tid, unit, &pdu).as_bytes().to_vec()
+}
+
+/// FC 16 write of `values` at `addr`.
+pub fn write_req(tid: u16, unit: u8, addr: u16, values: &[u16]) -> Vec<u8> {
+    let mut pdu = vec![0x10];
+    pdu.extend_from_slice(&addr.to_be_bytes());
+    pdu.extend_from_slice(&(values.len() as u16).to_be_bytes());
+    pdu.push((values.len() * 2) as u8);
+    for v in values {
+        pdu.extend_from_slice(&v.to_be_bytes());
+    }
+    Adu::build(tid, unit, &pdu).as_bytes().to_vec()
+}
+
+/// The reply a register read should get.
+pub fn read_reply(tid: u16, unit: u8, values: &[u16]) -> Vec<u8> {
+    let mut pdu = vec![0x03, (values.len() * 2) as u8];
+    for v in values {
+        pdu.extend_from_slice(&v.to_be_bytes());
+    }
+    Adu::build(tid, unit, &pdu).as_bytes().to_vec()
+}
+
+/// Has the gateway closed this connection (EOF or reset) within `within`?
+pub fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
+    s.set_read_timeout(Some(within)).unwrap();
+    let mut b = [0u8; 1];
+    match s.read(&mut b) {
+        Ok(0) => true,
+        Ok(_) => false,
+        Err(e) => matches!(
+            e.kind(),
+            ErrorKind::ConnectionReset | ErrorKind::ConnectionAborted | ErrorKind::BrokenPipe
+        ),
+    }
+}
