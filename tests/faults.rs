@@ -1,0 +1,370 @@
+//! End to end with a scripted raw device on the pty: a device that never answers, a
+//! cable that is pulled, notifications, hostile masters, full queues, late replies,
+//! retries, limits and shutdown (issue "The bridge", items 4-7, and design.md §1, §3).
+
+mod common;
+use common::*;
+use std::io::Write;
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+struct Rig {
+    dir: tempfile::TempDir,
+    socat: Socat,
+    gw: Gateway,
+}
+
+fn rig(cfg: impl FnOnce(Cfg) -> Cfg) -> Rig {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw)), dir.path());
+    Rig { dir, socat, gw }
+}
+
+fn exception(tid: u16, unit: u8, function: u8, code: u8) -> Vec<u8> {
+    mbgate::frame::Adu::exception(tid, unit, function, code)
+        .as_bytes()
+        .to_vec()
+}
+
+/// Item 4: a unit that never answers gets 0x0B after `response_timeout_ms`; another
+/// master is served meanwhile and afterwards.
+#[test]
+fn silent_device_gives_0x0b_and_others_keep_being_served() {
+    let r = rig(|c| c.relay("response_timeout_ms = 300"));
+    let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut a = r.gw.connect();
+    let mut b = r.gw.connect();
+    assert_eq!(transact(&mut b, &read_req(1, 1, 5, 1)), read_reply(1, 1, &[5]));
+
+    let start = Instant::now();
+    a.write_all(&read_req(7, 2, 0, 1)).unwrap();
+    // While unit 2 is silent, b's request waits its turn (max_in_flight = 1), then is
+    // answered.
+    assert_eq!(transact(&mut b, &read_req(2, 1, 6, 1)), read_reply(2, 1, &[6]));
+    assert_eq!(read_frame(&mut a), exception(7, 2, 0x03, 0x0B));
+    let waited = start.elapsed();
+    assert!(waited >= Duration::from_millis(300), "0x0B too early: {waited:?}");
+    assert!(waited < Duration::from_secs(3), "0x0B too late: {waited:?}");
+
+    assert_eq!(transact(&mut b, &read_req(3, 1, 7, 1)), read_reply(3, 1, &[7]));
+    assert_eq!(transact(&mut a, &read_req(8, 1, 9, 1)), read_reply(8, 1, &[9]));
+}
+
+/// Item 5: the serial end disappears and comes back. Requests meanwhile get 0x0A or
+/// 0x0B promptly; service resumes without restarting mbgate; masters stay connected.
+#[test]
+fn serial_end_disappears_and_comes_back() {
+    let mut r = rig(|c| c.relay("response_timeout_ms = 500"));
+    let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut m = r.gw.connect();
+    assert_eq!(transact(&mut m, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+
+    r.socat.stop();
+    drop(dev);
+    r.gw.wait_log("serial port lost", Duration::from_secs(5));
+    for tid in 10..15u16 {
+        let start = Instant::now();
+        let got = transact(&mut m, &read_req(tid, 1, 1, 1));
+        assert!(
+            got == exception(tid, 1, 3, 0x0A) || got == exception(tid, 1, 3, 0x0B),
+            "unexpected {got:02X?}"
+        );
+        assert!(start.elapsed() < Duration::from_secs(2), "not prompt");
+    }
+
+    r.socat.restart();
+    let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let start = Instant::now();
+    let mut tid = 100u16;
+    loop {
+        tid += 1;
+        let got = transact(&mut m, &read_req(tid, 1, 42, 1));
+        if got == read_reply(tid, 1, &[42]) {
+            break;
+        }
+        assert!(
+            got == exception(tid, 1, 3, 0x0A) || got == exception(tid, 1, 3, 0x0B),
+            "unexpected {got:02X?}"
+        );
+        assert!(start.elapsed() < Duration::from_secs(10), "service did not resume");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    // Same TCP connection throughout.
+    assert_eq!(transact(&mut m, &read_req(999, 1, 43, 1)), read_reply(999, 1, &[43]));
+}
+
+/// A serial port that does not exist at start is not fatal: 0x0A at once, and service
+/// starts when the port appears.
+#[test]
+fn missing_port_at_start_answers_0x0a_then_serves() {
+    let dir = tempdir();
+    let gw_path = dir.path().join("gw");
+    let gw = Gateway::start(&Cfg::new(&gw_path), dir.path());
+    let mut m = gw.connect();
+    let start = Instant::now();
+    assert_eq!(transact(&mut m, &read_req(5, 1, 0, 1)), exception(5, 1, 3, 0x0A));
+    assert!(start.elapsed() < Duration::from_secs(1), "0x0A is not immediate");
+
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let start = Instant::now();
+    loop {
+        let got = transact(&mut m, &read_req(6, 1, 3, 1));
+        if got == read_reply(6, 1, &[3]) {
+            break;
+        }
+        assert_eq!(got, exception(6, 1, 3, 0x0A));
+        assert!(start.elapsed() < Duration::from_secs(10), "port never opened");
+        std::thread::sleep(Duration::from_millis(100));
+    }
+}
+
+const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
+
+/// Item 6, broadcast: an unsolicited frame from the device reaches every master.
+#[test]
+fn notification_broadcast_reaches_every_master() {
+    let r = rig(|c| c.relay("notifications = \"broadcast\""));
+    let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut masters: Vec<_> = (0..3).map(|_| r.gw.connect()).collect();
+    for (i, m) in masters.iter_mut().enumerate() {
+        let tid = i as u16 + 1;
+        assert_eq!(transact(m, &read_req(tid, 1, 0, 1)), read_reply(tid, 1, &[0]));
+    }
+    dev.inject(&hex(NOTIFICATION));
+    for m in &mut masters {
+        assert_eq!(read_frame(m), hex(NOTIFICATION));
+    }
+    // A malformed one (byte count disagrees with the length) goes to nobody.
+    dev.inject(&hex("00 00 00 00 00 05 01 03 04 00 0F"));
+    std::thread::sleep(Duration::from_millis(200));
+    for (i, m) in masters.iter_mut().enumerate() {
+        let tid = 50 + i as u16;
+        assert_eq!(transact(m, &read_req(tid, 1, 4, 1)), read_reply(tid, 1, &[4]));
+    }
+}
+
+/// Item 6, drop (the default): the same frame reaches no master.
+#[test]
+fn notification_dropped_by_default() {
+    let r = rig(|c| c);
+    let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut masters: Vec<_> = (0..3).map(|_| r.gw.connect()).collect();
+    for (i, m) in masters.iter_mut().enumerate() {
+        let tid = i as u16 + 1;
+        assert_eq!(transact(m, &read_req(tid, 1, 0, 1)), read_reply(tid, 1, &[0]));
+    }
+    dev.inject(&hex(NOTIFICATION));
+    r.gw.wait_log("unsolicited frame dropped", Duration::from_secs(2));
+    for (i, m) in masters.iter_mut().enumerate() {
+        // The next frame each master sees is its own reply, not the notification.
+        let tid = 10 + i as u16;
+        assert_eq!(transact(m, &read_req(tid, 1, 2, 1)), read_reply(tid, 1, &[2]));
+    }
+}
+
+/// Item 7: bad TCP input closes only that connection; another master is unaffected.
+#[test]
+fn bad_tcp_input_closes_only_that_connection() {
+    let r = rig(|c| c);
+    let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut good = r.gw.connect();
+    assert_eq!(transact(&mut good, &read_req(1, 1, 0, 1)), read_reply(1, 1, &[0]));
+
+    // Seeded pseudo-random bytes whose protocol id is not 0.
+    let mut x: u32 = 0x2545_F491;
+    let mut random: Vec<u8> = (0..64)
+        .map(|_| {
+            x ^= x << 13;
+            x ^= x >> 17;
+            x ^= x << 5;
+            x as u8
+        })
+        .collect();
+    random[2] |= 0x01;
+    let mut with_300 = hex("00 01 00 00 01 2C 01 03");
+    with_300.extend(vec![0u8; 298]);
+    let bad: [(&str, Vec<u8>); 4] = [
+        ("protocol id 1", hex("00 01 00 01 00 06 01 03 00 00 00 01")),
+        ("length 0", hex("00 01 00 00 00 00")),
+        ("length 300", with_300),
+        ("random bytes", random),
+    ];
+    for (i, (what, bytes)) in bad.iter().enumerate() {
+        let mut m = r.gw.connect();
+        m.write_all(bytes).unwrap();
+        assert!(is_closed(&mut m, Duration::from_secs(3)), "{what}: not closed");
+        let tid = 100 + i as u16;
+        assert_eq!(
+            transact(&mut good, &read_req(tid, 1, 9, 1)),
+            read_reply(tid, 1, &[9]),
+            "{what}: the other master was affected"
+        );
+    }
+    assert!(r.gw.log().contains("protocol violation"));
+    // None of it reached the line.
+    assert_eq!(dev.requests().len(), 5);
+}
+
+/// A request outside protocol limits is answered by the gateway (exception 03), and
+/// never reaches the line.
+#[test]
+fn request_outside_protocol_limits_is_answered_locally() {
+    let r = rig(|c| c);
+    let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut m = r.gw.connect();
+    // FC 03 for 0 registers, and for 126.
+    assert_eq!(transact(&mut m, &read_req(1, 1, 0, 0)), exception(1, 1, 3, 0x03));
+    assert_eq!(transact(&mut m, &read_req(2, 1, 0, 126)), exception(2, 1, 3, 0x03));
+    assert_eq!(transact(&mut m, &read_req(3, 1, 0, 1)), read_reply(3, 1, &[0]));
+    assert_eq!(dev.requests().len(), 1);
+}
+
+/// A full queue answers 0x06 at once; what was accepted is still answered.
+#[test]
+fn full_queue_answers_0x06() {
+    let r = rig(|c| c.relay("queue_depth = 1").relay("response_timeout_ms = 2000"));
+    let _dev = RawDevice::start(
+        &r.socat.dev,
+        register_device(&[1], Duration::from_millis(300)),
+    );
+    let mut m = r.gw.connect();
+    let burst: Vec<u8> = (1..=4u16).flat_map(|t| read_req(t, 1, t, 1)).collect();
+    m.write_all(&burst).unwrap();
+    let got: Vec<Vec<u8>> = (0..4).map(|_| read_frame(&mut m)).collect();
+    // One in flight, one queued, two turned away at once.
+    assert_eq!(got[0], exception(3, 1, 3, 0x06));
+    assert_eq!(got[1], exception(4, 1, 3, 0x06));
+    assert_eq!(got[2], read_reply(1, 1, &[1]));
+    assert_eq!(got[3], read_reply(2, 1, &[2]));
+}
+
+/// A reply that comes after its request timed out is dropped and counted, never given
+/// to anyone, not even with broadcast on; the next request is answered correctly.
+#[test]
+fn late_reply_is_never_delivered() {
+    let mut r = rig(|c| {
+        c.relay("response_timeout_ms = 200")
+            .relay("notifications = \"broadcast\"")
+    });
+    let calls = Arc::new(AtomicUsize::new(0));
+    let mut inner = register_device(&[1], Duration::ZERO);
+    let c2 = calls.clone();
+    let _dev = RawDevice::start(
+        &r.socat.dev,
+        Box::new(move |req| {
+            if c2.fetch_add(1, Ordering::SeqCst) == 0 {
+                std::thread::sleep(Duration::from_millis(600));
+            }
+            inner(req)
+        }),
+    );
+    let mut a = r.gw.connect();
+    let mut b = r.gw.connect();
+    assert_eq!(transact(&mut a, &read_req(1, 1, 11, 1)), exception(1, 1, 3, 0x0B));
+    r.gw.wait_log("late reply dropped", Duration::from_secs(3));
+    assert_eq!(transact(&mut a, &read_req(2, 1, 12, 1)), read_reply(2, 1, &[12]));
+    // b's first frame is its own reply: the late one was not broadcast.
+    assert_eq!(transact(&mut b, &read_req(3, 1, 13, 1)), read_reply(3, 1, &[13]));
+    assert_eq!(r.gw.terminate(Duration::from_secs(5)).code(), Some(0));
+    let log = r.gw.log();
+    assert!(log.contains("late_replies=1"), "{log}");
+    assert!(log.contains("notifications_broadcast=0"), "{log}");
+}
+
+/// `retries` resends reads after a timeout; writes are not resent without
+/// `retry_writes`.
+#[test]
+fn retries_resend_reads_but_not_writes() {
+    let r = rig(|c| c.relay("response_timeout_ms = 200").relay("retries = 1"));
+    let calls = Arc::new(AtomicUsize::new(0));
+    let mut inner = register_device(&[1], Duration::ZERO);
+    let c2 = calls.clone();
+    let dev = RawDevice::start(
+        &r.socat.dev,
+        Box::new(move |req| {
+            // Ignore the first read and the first write.
+            match c2.fetch_add(1, Ordering::SeqCst) {
+                0 | 2 => vec![],
+                _ => inner(req),
+            }
+        }),
+    );
+    let mut m = r.gw.connect();
+    assert_eq!(transact(&mut m, &read_req(1, 1, 20, 1)), read_reply(1, 1, &[20]));
+    assert_eq!(
+        transact(&mut m, &write_req(2, 1, 20, &[5])),
+        exception(2, 1, 0x10, 0x0B)
+    );
+    std::thread::sleep(Duration::from_millis(300));
+    let seen = dev.requests();
+    assert_eq!(seen.len(), 3, "read twice, write once: {seen:?}");
+    assert_ne!(seen[0].tid(), seen[1].tid(), "a resend gets a fresh id");
+    assert!(seen.iter().all(|s| s.tid() != 0), "serial ids are never 0");
+}
+
+/// `max_connections`: the next connection is closed at once and logged; the others
+/// keep working.
+#[test]
+fn max_connections_enforced() {
+    let r = rig(|c| c.tcp("max_connections = 2"));
+    let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut a = r.gw.connect();
+    let mut b = r.gw.connect();
+    assert_eq!(transact(&mut a, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    assert_eq!(transact(&mut b, &read_req(1, 1, 2, 1)), read_reply(1, 1, &[2]));
+    let mut c = r.gw.connect();
+    assert!(is_closed(&mut c, Duration::from_secs(3)));
+    r.gw.wait_log("max_connections reached", Duration::from_secs(2));
+    assert_eq!(transact(&mut a, &read_req(2, 1, 3, 1)), read_reply(2, 1, &[3]));
+    // A slot frees when a master leaves.
+    drop(b);
+    std::thread::sleep(Duration::from_millis(200));
+    let mut d = r.gw.connect();
+    assert_eq!(transact(&mut d, &read_req(3, 1, 4, 1)), read_reply(3, 1, &[4]));
+}
+
+/// `idle_timeout_ms`: a master that sends nothing is closed; a busy one is not.
+#[test]
+fn idle_masters_are_closed() {
+    let r = rig(|c| c.tcp("idle_timeout_ms = 400"));
+    let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut idle = r.gw.connect();
+    let mut busy = r.gw.connect();
+    assert_eq!(transact(&mut idle, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    let start = Instant::now();
+    for t in 0..8u16 {
+        assert_eq!(transact(&mut busy, &read_req(t, 1, t, 1)), read_reply(t, 1, &[t]));
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    assert!(is_closed(&mut idle, Duration::from_secs(3)));
+    assert!(start.elapsed() >= Duration::from_millis(300));
+    assert_eq!(transact(&mut busy, &read_req(9, 1, 9, 1)), read_reply(9, 1, &[9]));
+}
+
+/// SIGTERM: stop accepting, answer what is queued 0x0A, finish what is on the line,
+/// exit 0 within the response timeout.
+#[test]
+fn sigterm_drains_in_flight_and_exits_0() {
+    let mut r = rig(|c| c.relay("response_timeout_ms = 2000"));
+    let _dev = RawDevice::start(
+        &r.socat.dev,
+        register_device(&[1], Duration::from_millis(500)),
+    );
+    let mut m = r.gw.connect();
+    let burst: Vec<u8> = [read_req(1, 1, 31, 1), read_req(2, 1, 32, 1)].concat();
+    m.write_all(&burst).unwrap();
+    std::thread::sleep(Duration::from_millis(150));
+    let addr = r.gw.addr;
+    let start = Instant::now();
+    let status = r.gw.terminate(Duration::from_secs(5));
+    assert_eq!(status.code(), Some(0));
+    assert!(start.elapsed() < Duration::from_millis(2000 + 1000));
+    let mut got = vec![read_frame(&mut m), read_frame(&mut m)];
+    got.sort();
+    assert_eq!(got, vec![read_reply(1, 1, &[31]), exception(2, 1, 3, 0x0A)]);
+    assert!(std::net::TcpStream::connect(addr).is_err(), "still accepting");
+    let _ = &r.dir;
+}
