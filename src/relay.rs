@@ -14,7 +14,7 @@ use crate::frame::{Adu, Judge, Resync};
 use crate::serial::{self, Backoff};
 use crate::stats::Stats;
 use crate::tids::Tids;
-use bytes::{Buf, BytesMut};
+use bytes::Bytes;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;
@@ -136,7 +136,7 @@ pub struct Relay {
     port: Port,
     backoff: Backoff,
     port_warned: bool,
-    out: BytesMut,
+    out: Outgoing,
     stats: Arc<Stats>,
     shutdown: CancellationToken,
     draining: bool,
@@ -169,7 +169,7 @@ impl Relay {
             port: Port::Closed { retry_at: now },
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
             port_warned: false,
-            out: BytesMut::new(),
+            out: Outgoing::default(),
             stats,
             shutdown,
             draining: false,
@@ -193,7 +193,7 @@ impl Relay {
                 Port::Open { rd, wr } => tokio::select! {
                     cmd = self.rx.recv() => Event::Command(cmd),
                     r = rd.read(&mut rbuf) => Event::Read(r),
-                    w = wr.write(&self.out), if !self.out.is_empty() => Event::Wrote(w),
+                    w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
@@ -390,7 +390,7 @@ impl Relay {
         if self.traffic {
             debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn, "{}", Hex(frame.as_bytes()));
         }
-        self.out.extend_from_slice(frame.as_bytes());
+        self.out.push(tid, frame.into_bytes());
         // The response time counts from when the request has left: behind whatever is
         // still waiting to be written.
         let deadline = now
@@ -464,6 +464,11 @@ impl Relay {
             }
             let f = self.in_flight.swap_remove(i);
             self.tids.retire(f.tid, now.into_std());
+            if self.out.withdraw(f.tid) {
+                // Flow control held it back (CTS low) the whole time: it never left,
+                // and must not act on the device after the master was told 0x0B.
+                warn!(conn = f.req.conn, "request could not be written in time (is CTS held low?)");
+            }
             let function = f.req.adu.function();
             let may_retry = pdu::is_read(function) || self.cfg.retry_writes;
             if may_retry && f.req.attempts < self.cfg.retries && self.is_open() {
@@ -505,4 +510,93 @@ enum Event {
     Wrote(std::io::Result<usize>),
     Timer,
     Shutdown,
+}
+
+/// Frames waiting to be written to the port, in order. A frame not yet begun can be
+/// withdrawn; one partly written is finished, so the device's parser stays in step.
+#[derive(Debug, Default)]
+struct Outgoing {
+    frames: VecDeque<(u16, Bytes)>,
+    /// Bytes of the front frame already written.
+    written: usize,
+    len: usize,
+}
+
+impl Outgoing {
+    fn push(&mut self, tid: u16, frame: Bytes) {
+        self.len += frame.len();
+        self.frames.push_back((tid, frame));
+    }
+
+    fn is_empty(&self) -> bool {
+        self.frames.is_empty()
+    }
+
+    /// Bytes still to write.
+    fn len(&self) -> usize {
+        self.len
+    }
+
+    /// The unwritten rest of the front frame.
+    fn pending(&self) -> &[u8] {
+        self.frames
+            .front()
+            .map_or(&[][..], |(_, f)| &f[self.written..])
+    }
+
+    fn advance(&mut self, n: usize) {
+        self.written += n;
+        self.len -= n;
+        if let Some((_, f)) = self.frames.front() {
+            if self.written >= f.len() {
+                self.frames.pop_front();
+                self.written = 0;
+            }
+        }
+    }
+
+    /// Removes the frame for `tid` if none of it has been written.
+    fn withdraw(&mut self, tid: u16) -> bool {
+        let Some(i) = self.frames.iter().position(|(t, _)| *t == tid) else {
+            return false;
+        };
+        if i == 0 && self.written > 0 {
+            return false;
+        }
+        let (_, f) = self.frames.remove(i).expect("index found above");
+        self.len -= f.len();
+        true
+    }
+
+    fn clear(&mut self) {
+        self.frames.clear();
+        self.written = 0;
+        self.len = 0;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Outgoing;
+    use bytes::Bytes;
+
+    #[test]
+    fn outgoing_writes_in_order_and_withdraws_only_unstarted_frames() {
+        let mut o = Outgoing::default();
+        o.push(1, Bytes::from_static(b"abc"));
+        o.push(2, Bytes::from_static(b"de"));
+        o.push(3, Bytes::from_static(b"f"));
+        assert_eq!(o.len(), 6);
+        o.advance(2);
+        assert_eq!(o.pending(), b"c");
+        assert!(!o.withdraw(1), "partly written: finished, not withdrawn");
+        assert!(o.withdraw(2));
+        assert_eq!(o.len(), 2);
+        o.advance(1);
+        assert_eq!(o.pending(), b"f");
+        o.advance(1);
+        assert!(o.is_empty());
+        assert_eq!(o.len(), 0);
+        assert!(!o.withdraw(3));
+    }
 }

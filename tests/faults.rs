@@ -368,3 +368,31 @@ fn sigterm_drains_in_flight_and_exits_0() {
     assert!(std::net::TcpStream::connect(addr).is_err(), "still accepting");
     let _ = &r.dir;
 }
+
+/// Flow control holds a request back past its timeout (here XOFF with
+/// `flow_control = "software"`, which a pty honours; RTS/CTS behaves the same on real
+/// ports): the master gets 0x0B, and the request is withdrawn, so it never reaches the
+/// device after the master was told it failed. Service resumes on XON.
+#[test]
+fn request_held_back_by_flow_control_is_withdrawn_on_timeout() {
+    let r = rig(|c| {
+        c.serial("flow_control = \"software\"")
+            .relay("response_timeout_ms = 300")
+    });
+    let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut m = r.gw.connect();
+    assert_eq!(transact(&mut m, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+
+    dev.inject(&[0x13]); // XOFF
+    std::thread::sleep(Duration::from_millis(100));
+    assert_eq!(
+        transact(&mut m, &write_req(2, 1, 7, &[0xDEAD])),
+        exception(2, 1, 0x10, 0x0B)
+    );
+    r.gw.wait_log("could not be written in time", Duration::from_secs(2));
+    dev.inject(&[0x11]); // XON
+    assert_eq!(transact(&mut m, &read_req(3, 1, 7, 1)), read_reply(3, 1, &[7]));
+    let seen = dev.requests();
+    assert_eq!(seen.len(), 2, "the withdrawn write never reached the device: {seen:?}");
+    assert!(seen.iter().all(|r| r.function() == 0x03));
+}
