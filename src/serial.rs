@@ -9,27 +9,46 @@ use crate::config::{FlowControl, Parity, SerialConfig};
 use std::time::Duration;
 use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
 
-/// Opens and configures the port, then clears whatever it held.
-pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
-    let builder = tokio_serial::new(&cfg.path, cfg.baud_rate)
-        .data_bits(match cfg.data_bits {
+/// The `[serial]` settings in tokio-serial's terms: data bits, parity, stop bits, flow
+/// control.
+pub fn line_settings(
+    cfg: &SerialConfig,
+) -> (
+    tokio_serial::DataBits,
+    tokio_serial::Parity,
+    tokio_serial::StopBits,
+    tokio_serial::FlowControl,
+) {
+    (
+        match cfg.data_bits {
             7 => tokio_serial::DataBits::Seven,
             _ => tokio_serial::DataBits::Eight,
-        })
-        .parity(match cfg.parity {
+        },
+        match cfg.parity {
             Parity::None => tokio_serial::Parity::None,
             Parity::Even => tokio_serial::Parity::Even,
             Parity::Odd => tokio_serial::Parity::Odd,
-        })
-        .stop_bits(match cfg.stop_bits {
+        },
+        match cfg.stop_bits {
             2 => tokio_serial::StopBits::Two,
             _ => tokio_serial::StopBits::One,
-        })
-        .flow_control(match cfg.flow_control {
+        },
+        match cfg.flow_control {
             FlowControl::Hardware => tokio_serial::FlowControl::Hardware,
             FlowControl::Software => tokio_serial::FlowControl::Software,
             FlowControl::None => tokio_serial::FlowControl::None,
-        });
+        },
+    )
+}
+
+/// Opens and configures the port, then clears whatever it held.
+pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
+    let (data_bits, parity, stop_bits, flow_control) = line_settings(cfg);
+    let builder = tokio_serial::new(&cfg.path, cfg.baud_rate)
+        .data_bits(data_bits)
+        .parity(parity)
+        .stop_bits(stop_bits)
+        .flow_control(flow_control);
     let port = SerialStream::open(&builder)?;
     if let Err(e) = port.clear(ClearBuffer::All) {
         tracing::debug!(path = %cfg.path, "could not clear stale bytes: {e}");
@@ -94,6 +113,35 @@ mod tests {
         assert_eq!(bits_per_char(&cfg), 10);
         // 12 bytes x 10 bits / 19200 bit/s = 6.25 ms
         assert_eq!(wire_time(&cfg, 12), Duration::from_micros(6250));
+    }
+
+    #[test]
+    fn line_settings_follow_the_config() {
+        use tokio_serial::{DataBits, FlowControl as F, Parity as P, StopBits};
+        let cfg = SerialConfig {
+            data_bits: 7,
+            parity: Parity::Even,
+            stop_bits: 2,
+            flow_control: FlowControl::Software,
+            ..SerialConfig::default()
+        };
+        assert_eq!(
+            line_settings(&cfg),
+            (DataBits::Seven, P::Even, StopBits::Two, F::Software)
+        );
+        let cfg = SerialConfig {
+            parity: Parity::Odd,
+            ..SerialConfig::default()
+        };
+        assert_eq!(
+            line_settings(&cfg),
+            (DataBits::Eight, P::Odd, StopBits::One, F::Hardware)
+        );
+        assert_eq!(
+            line_settings(&SerialConfig::default()).1,
+            P::None,
+            "8N1 with RTS/CTS by default"
+        );
     }
 
     #[test]
