@@ -2,9 +2,9 @@
 
 pub mod config;
 pub mod frame;
+pub mod gateway;
 pub mod relay;
 pub mod serial;
 pub mod stats;
-pub mod tids;
-pub mod gateway;
 pub mod tcp;
+pub mod tids;

@@ -227,8 +227,10 @@ impl Relay {
             self.take_frames(now);
             self.expire(now);
         }
-        self.stats
-            .set(&self.stats.dropped_bytes, self.decoder.stats().dropped_bytes);
+        self.stats.set(
+            &self.stats.dropped_bytes,
+            self.decoder.stats().dropped_bytes,
+        );
         debug!("relay stopped");
     }
 
@@ -308,7 +310,11 @@ impl Relay {
 
     fn start_draining(&mut self) {
         if !self.draining {
-            debug!(in_flight = self.in_flight.len(), queued = self.queued, "relay draining");
+            debug!(
+                in_flight = self.in_flight.len(),
+                queued = self.queued,
+                "relay draining"
+            );
             self.draining = true;
             self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
         }
@@ -410,8 +416,10 @@ impl Relay {
             };
             self.on_frame(frame);
         }
-        self.stats
-            .set(&self.stats.dropped_bytes, self.decoder.stats().dropped_bytes);
+        self.stats.set(
+            &self.stats.dropped_bytes,
+            self.decoder.stats().dropped_bytes,
+        );
     }
 
     fn on_frame(&mut self, frame: Adu) {
@@ -467,18 +475,29 @@ impl Relay {
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
-                warn!(conn = f.req.conn, "request could not be written in time (is CTS held low?)");
+                warn!(
+                    conn = f.req.conn,
+                    "request could not be written in time (is CTS held low?)"
+                );
             }
             let function = f.req.adu.function();
             let may_retry = pdu::is_read(function) || self.cfg.retry_writes;
             if may_retry && f.req.attempts < self.cfg.retries && self.is_open() {
-                debug!(conn = f.req.conn, attempt = f.req.attempts + 1, "no reply; resending");
+                debug!(
+                    conn = f.req.conn,
+                    attempt = f.req.attempts + 1,
+                    "no reply; resending"
+                );
                 self.stats.add(&self.stats.retries, 1);
                 let mut req = f.req;
                 req.attempts += 1;
                 self.send(req, now);
             } else {
-                debug!(conn = f.req.conn, tid = f.req.adu.tid(), "no reply in time: 0x0B");
+                debug!(
+                    conn = f.req.conn,
+                    tid = f.req.adu.tid(),
+                    "no reply in time: 0x0B"
+                );
                 self.stats.add(&self.stats.timeouts, 1);
                 self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
             }

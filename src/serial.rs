@@ -58,9 +58,7 @@ pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
 
 /// Bits on the wire for one character: start, data, parity, stop.
 pub fn bits_per_char(cfg: &SerialConfig) -> u32 {
-    1 + u32::from(cfg.data_bits)
-        + u32::from(cfg.parity != Parity::None)
-        + u32::from(cfg.stop_bits)
+    1 + u32::from(cfg.data_bits) + u32::from(cfg.parity != Parity::None) + u32::from(cfg.stop_bits)
 }
 
 /// How long `bytes` take on the wire at the configured rate.
@@ -79,7 +77,11 @@ pub struct Backoff {
 
 impl Backoff {
     pub fn new(min: Duration, max: Duration) -> Self {
-        Self { min, max, next: min }
+        Self {
+            min,
+            max,
+            next: min,
+        }
     }
 
     /// The delay before the next attempt; each call doubles the one after.

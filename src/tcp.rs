@@ -198,7 +198,10 @@ impl Connection {
         };
         if let Err(code) = pdu::check_request(adu.pdu()) {
             self.stats.add(&self.stats.bad_requests, 1);
-            debug!(conn = self.id, "request outside protocol limits: exception {code:#04x}");
+            debug!(
+                conn = self.id,
+                "request outside protocol limits: exception {code:#04x}"
+            );
             local(code, permit);
             return;
         }

@@ -18,10 +18,7 @@ struct Bench {
 fn bench(extra: impl FnOnce(Cfg) -> Cfg) -> Bench {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let device = Py::start(
-        "stock_server.py",
-        &["--port", socat.dev.to_str().unwrap()],
-    );
+    let device = Py::start("stock_server.py", &["--port", socat.dev.to_str().unwrap()]);
     let gw = Gateway::start(&extra(Cfg::new(&socat.gw)), dir.path());
     Bench {
         _dir: dir,
@@ -67,7 +64,10 @@ fn cie_m10_examples_byte_exact() {
     );
     let log = b.gw.log();
     assert!(log.contains("dir=\"gw->serial\""), "{log}");
-    assert!(log.contains("BE EF 00 00 00 05 01 03 02 00 11 dir=\"gw->master\""), "{log}");
+    assert!(
+        log.contains("BE EF 00 00 00 05 01 03 02 00 11 dir=\"gw->master\""),
+        "{log}"
+    );
 }
 
 /// Eight masters at once, all using transaction id 0 like CIE-M10 clients: each reads

@@ -36,20 +36,35 @@ fn silent_device_gives_0x0b_and_others_keep_being_served() {
     let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut a = r.gw.connect();
     let mut b = r.gw.connect();
-    assert_eq!(transact(&mut b, &read_req(1, 1, 5, 1)), read_reply(1, 1, &[5]));
+    assert_eq!(
+        transact(&mut b, &read_req(1, 1, 5, 1)),
+        read_reply(1, 1, &[5])
+    );
 
     let start = Instant::now();
     a.write_all(&read_req(7, 2, 0, 1)).unwrap();
     // While unit 2 is silent, b's request waits its turn (max_in_flight = 1), then is
     // answered.
-    assert_eq!(transact(&mut b, &read_req(2, 1, 6, 1)), read_reply(2, 1, &[6]));
+    assert_eq!(
+        transact(&mut b, &read_req(2, 1, 6, 1)),
+        read_reply(2, 1, &[6])
+    );
     assert_eq!(read_frame(&mut a), exception(7, 2, 0x03, 0x0B));
     let waited = start.elapsed();
-    assert!(waited >= Duration::from_millis(300), "0x0B too early: {waited:?}");
+    assert!(
+        waited >= Duration::from_millis(300),
+        "0x0B too early: {waited:?}"
+    );
     assert!(waited < Duration::from_secs(3), "0x0B too late: {waited:?}");
 
-    assert_eq!(transact(&mut b, &read_req(3, 1, 7, 1)), read_reply(3, 1, &[7]));
-    assert_eq!(transact(&mut a, &read_req(8, 1, 9, 1)), read_reply(8, 1, &[9]));
+    assert_eq!(
+        transact(&mut b, &read_req(3, 1, 7, 1)),
+        read_reply(3, 1, &[7])
+    );
+    assert_eq!(
+        transact(&mut a, &read_req(8, 1, 9, 1)),
+        read_reply(8, 1, &[9])
+    );
 }
 
 /// Item 5: the serial end disappears and comes back. Requests meanwhile get 0x0A or
@@ -59,7 +74,10 @@ fn serial_end_disappears_and_comes_back() {
     let mut r = rig(|c| c.relay("response_timeout_ms = 500"));
     let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut m = r.gw.connect();
-    assert_eq!(transact(&mut m, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 1, 1)),
+        read_reply(1, 1, &[1])
+    );
 
     r.socat.stop();
     drop(dev);
@@ -88,11 +106,17 @@ fn serial_end_disappears_and_comes_back() {
             got == exception(tid, 1, 3, 0x0A) || got == exception(tid, 1, 3, 0x0B),
             "unexpected {got:02X?}"
         );
-        assert!(start.elapsed() < Duration::from_secs(10), "service did not resume");
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "service did not resume"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     // Same TCP connection throughout.
-    assert_eq!(transact(&mut m, &read_req(999, 1, 43, 1)), read_reply(999, 1, &[43]));
+    assert_eq!(
+        transact(&mut m, &read_req(999, 1, 43, 1)),
+        read_reply(999, 1, &[43])
+    );
 }
 
 /// A serial port that does not exist at start is not fatal: 0x0A at once, and service
@@ -104,8 +128,14 @@ fn missing_port_at_start_answers_0x0a_then_serves() {
     let gw = Gateway::start(&Cfg::new(&gw_path), dir.path());
     let mut m = gw.connect();
     let start = Instant::now();
-    assert_eq!(transact(&mut m, &read_req(5, 1, 0, 1)), exception(5, 1, 3, 0x0A));
-    assert!(start.elapsed() < Duration::from_secs(1), "0x0A is not immediate");
+    assert_eq!(
+        transact(&mut m, &read_req(5, 1, 0, 1)),
+        exception(5, 1, 3, 0x0A)
+    );
+    assert!(
+        start.elapsed() < Duration::from_secs(1),
+        "0x0A is not immediate"
+    );
 
     let socat = Socat::start(dir.path());
     let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
@@ -116,7 +146,10 @@ fn missing_port_at_start_answers_0x0a_then_serves() {
             break;
         }
         assert_eq!(got, exception(6, 1, 3, 0x0A));
-        assert!(start.elapsed() < Duration::from_secs(10), "port never opened");
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "port never opened"
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
 }
@@ -131,7 +164,10 @@ fn notification_broadcast_reaches_every_master() {
     let mut masters: Vec<_> = (0..3).map(|_| r.gw.connect()).collect();
     for (i, m) in masters.iter_mut().enumerate() {
         let tid = i as u16 + 1;
-        assert_eq!(transact(m, &read_req(tid, 1, 0, 1)), read_reply(tid, 1, &[0]));
+        assert_eq!(
+            transact(m, &read_req(tid, 1, 0, 1)),
+            read_reply(tid, 1, &[0])
+        );
     }
     dev.inject(&hex(NOTIFICATION));
     for m in &mut masters {
@@ -142,7 +178,10 @@ fn notification_broadcast_reaches_every_master() {
     std::thread::sleep(Duration::from_millis(200));
     for (i, m) in masters.iter_mut().enumerate() {
         let tid = 50 + i as u16;
-        assert_eq!(transact(m, &read_req(tid, 1, 4, 1)), read_reply(tid, 1, &[4]));
+        assert_eq!(
+            transact(m, &read_req(tid, 1, 4, 1)),
+            read_reply(tid, 1, &[4])
+        );
     }
 }
 
@@ -154,14 +193,20 @@ fn notification_dropped_by_default() {
     let mut masters: Vec<_> = (0..3).map(|_| r.gw.connect()).collect();
     for (i, m) in masters.iter_mut().enumerate() {
         let tid = i as u16 + 1;
-        assert_eq!(transact(m, &read_req(tid, 1, 0, 1)), read_reply(tid, 1, &[0]));
+        assert_eq!(
+            transact(m, &read_req(tid, 1, 0, 1)),
+            read_reply(tid, 1, &[0])
+        );
     }
     dev.inject(&hex(NOTIFICATION));
     r.gw.wait_log("unsolicited frame dropped", Duration::from_secs(2));
     for (i, m) in masters.iter_mut().enumerate() {
         // The next frame each master sees is its own reply, not the notification.
         let tid = 10 + i as u16;
-        assert_eq!(transact(m, &read_req(tid, 1, 2, 1)), read_reply(tid, 1, &[2]));
+        assert_eq!(
+            transact(m, &read_req(tid, 1, 2, 1)),
+            read_reply(tid, 1, &[2])
+        );
     }
 }
 
@@ -171,7 +216,10 @@ fn bad_tcp_input_closes_only_that_connection() {
     let r = rig(|c| c);
     let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut good = r.gw.connect();
-    assert_eq!(transact(&mut good, &read_req(1, 1, 0, 1)), read_reply(1, 1, &[0]));
+    assert_eq!(
+        transact(&mut good, &read_req(1, 1, 0, 1)),
+        read_reply(1, 1, &[0])
+    );
 
     // Seeded pseudo-random bytes whose protocol id is not 0.
     let mut x: u32 = 0x2545_F491;
@@ -195,7 +243,10 @@ fn bad_tcp_input_closes_only_that_connection() {
     for (i, (what, bytes)) in bad.iter().enumerate() {
         let mut m = r.gw.connect();
         m.write_all(bytes).unwrap();
-        assert!(is_closed(&mut m, Duration::from_secs(3)), "{what}: not closed");
+        assert!(
+            is_closed(&mut m, Duration::from_secs(3)),
+            "{what}: not closed"
+        );
         let tid = 100 + i as u16;
         assert_eq!(
             transact(&mut good, &read_req(tid, 1, 9, 1)),
@@ -216,16 +267,28 @@ fn request_outside_protocol_limits_is_answered_locally() {
     let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut m = r.gw.connect();
     // FC 03 for 0 registers, and for 126.
-    assert_eq!(transact(&mut m, &read_req(1, 1, 0, 0)), exception(1, 1, 3, 0x03));
-    assert_eq!(transact(&mut m, &read_req(2, 1, 0, 126)), exception(2, 1, 3, 0x03));
-    assert_eq!(transact(&mut m, &read_req(3, 1, 0, 1)), read_reply(3, 1, &[0]));
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 0, 0)),
+        exception(1, 1, 3, 0x03)
+    );
+    assert_eq!(
+        transact(&mut m, &read_req(2, 1, 0, 126)),
+        exception(2, 1, 3, 0x03)
+    );
+    assert_eq!(
+        transact(&mut m, &read_req(3, 1, 0, 1)),
+        read_reply(3, 1, &[0])
+    );
     assert_eq!(dev.requests().len(), 1);
 }
 
 /// A full queue answers 0x06 at once; what was accepted is still answered.
 #[test]
 fn full_queue_answers_0x06() {
-    let r = rig(|c| c.relay("queue_depth = 1").relay("response_timeout_ms = 2000"));
+    let r = rig(|c| {
+        c.relay("queue_depth = 1")
+            .relay("response_timeout_ms = 2000")
+    });
     let _dev = RawDevice::start(
         &r.socat.dev,
         register_device(&[1], Duration::from_millis(300)),
@@ -263,11 +326,20 @@ fn late_reply_is_never_delivered() {
     );
     let mut a = r.gw.connect();
     let mut b = r.gw.connect();
-    assert_eq!(transact(&mut a, &read_req(1, 1, 11, 1)), exception(1, 1, 3, 0x0B));
+    assert_eq!(
+        transact(&mut a, &read_req(1, 1, 11, 1)),
+        exception(1, 1, 3, 0x0B)
+    );
     r.gw.wait_log("late reply dropped", Duration::from_secs(3));
-    assert_eq!(transact(&mut a, &read_req(2, 1, 12, 1)), read_reply(2, 1, &[12]));
+    assert_eq!(
+        transact(&mut a, &read_req(2, 1, 12, 1)),
+        read_reply(2, 1, &[12])
+    );
     // b's first frame is its own reply: the late one was not broadcast.
-    assert_eq!(transact(&mut b, &read_req(3, 1, 13, 1)), read_reply(3, 1, &[13]));
+    assert_eq!(
+        transact(&mut b, &read_req(3, 1, 13, 1)),
+        read_reply(3, 1, &[13])
+    );
     assert_eq!(r.gw.terminate(Duration::from_secs(5)).code(), Some(0));
     let log = r.gw.log();
     assert!(log.contains("late_replies=1"), "{log}");
@@ -293,7 +365,10 @@ fn retries_resend_reads_but_not_writes() {
         }),
     );
     let mut m = r.gw.connect();
-    assert_eq!(transact(&mut m, &read_req(1, 1, 20, 1)), read_reply(1, 1, &[20]));
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 20, 1)),
+        read_reply(1, 1, &[20])
+    );
     assert_eq!(
         transact(&mut m, &write_req(2, 1, 20, &[5])),
         exception(2, 1, 0x10, 0x0B)
@@ -313,17 +388,29 @@ fn max_connections_enforced() {
     let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut a = r.gw.connect();
     let mut b = r.gw.connect();
-    assert_eq!(transact(&mut a, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
-    assert_eq!(transact(&mut b, &read_req(1, 1, 2, 1)), read_reply(1, 1, &[2]));
+    assert_eq!(
+        transact(&mut a, &read_req(1, 1, 1, 1)),
+        read_reply(1, 1, &[1])
+    );
+    assert_eq!(
+        transact(&mut b, &read_req(1, 1, 2, 1)),
+        read_reply(1, 1, &[2])
+    );
     let mut c = r.gw.connect();
     assert!(is_closed(&mut c, Duration::from_secs(3)));
     r.gw.wait_log("max_connections reached", Duration::from_secs(2));
-    assert_eq!(transact(&mut a, &read_req(2, 1, 3, 1)), read_reply(2, 1, &[3]));
+    assert_eq!(
+        transact(&mut a, &read_req(2, 1, 3, 1)),
+        read_reply(2, 1, &[3])
+    );
     // A slot frees when a master leaves.
     drop(b);
     std::thread::sleep(Duration::from_millis(200));
     let mut d = r.gw.connect();
-    assert_eq!(transact(&mut d, &read_req(3, 1, 4, 1)), read_reply(3, 1, &[4]));
+    assert_eq!(
+        transact(&mut d, &read_req(3, 1, 4, 1)),
+        read_reply(3, 1, &[4])
+    );
 }
 
 /// `idle_timeout_ms`: a master that sends nothing is closed; a busy one is not.
@@ -333,15 +420,24 @@ fn idle_masters_are_closed() {
     let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut idle = r.gw.connect();
     let mut busy = r.gw.connect();
-    assert_eq!(transact(&mut idle, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    assert_eq!(
+        transact(&mut idle, &read_req(1, 1, 1, 1)),
+        read_reply(1, 1, &[1])
+    );
     let start = Instant::now();
     for t in 0..8u16 {
-        assert_eq!(transact(&mut busy, &read_req(t, 1, t, 1)), read_reply(t, 1, &[t]));
+        assert_eq!(
+            transact(&mut busy, &read_req(t, 1, t, 1)),
+            read_reply(t, 1, &[t])
+        );
         std::thread::sleep(Duration::from_millis(100));
     }
     assert!(is_closed(&mut idle, Duration::from_secs(3)));
     assert!(start.elapsed() >= Duration::from_millis(300));
-    assert_eq!(transact(&mut busy, &read_req(9, 1, 9, 1)), read_reply(9, 1, &[9]));
+    assert_eq!(
+        transact(&mut busy, &read_req(9, 1, 9, 1)),
+        read_reply(9, 1, &[9])
+    );
 }
 
 /// SIGTERM: stop accepting, answer what is queued 0x0A, finish what is on the line,
@@ -365,7 +461,10 @@ fn sigterm_drains_in_flight_and_exits_0() {
     let mut got = vec![read_frame(&mut m), read_frame(&mut m)];
     got.sort();
     assert_eq!(got, vec![read_reply(1, 1, &[31]), exception(2, 1, 3, 0x0A)]);
-    assert!(std::net::TcpStream::connect(addr).is_err(), "still accepting");
+    assert!(
+        std::net::TcpStream::connect(addr).is_err(),
+        "still accepting"
+    );
     let _ = &r.dir;
 }
 
@@ -381,7 +480,10 @@ fn request_held_back_by_flow_control_is_withdrawn_on_timeout() {
     });
     let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut m = r.gw.connect();
-    assert_eq!(transact(&mut m, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 1, 1)),
+        read_reply(1, 1, &[1])
+    );
 
     dev.inject(&[0x13]); // XOFF
     std::thread::sleep(Duration::from_millis(100));
@@ -391,8 +493,15 @@ fn request_held_back_by_flow_control_is_withdrawn_on_timeout() {
     );
     r.gw.wait_log("could not be written in time", Duration::from_secs(2));
     dev.inject(&[0x11]); // XON
-    assert_eq!(transact(&mut m, &read_req(3, 1, 7, 1)), read_reply(3, 1, &[7]));
+    assert_eq!(
+        transact(&mut m, &read_req(3, 1, 7, 1)),
+        read_reply(3, 1, &[7])
+    );
     let seen = dev.requests();
-    assert_eq!(seen.len(), 2, "the withdrawn write never reached the device: {seen:?}");
+    assert_eq!(
+        seen.len(),
+        2,
+        "the withdrawn write never reached the device: {seen:?}"
+    );
     assert!(seen.iter().all(|r| r.function() == 0x03));
 }

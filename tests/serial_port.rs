@@ -70,7 +70,11 @@ fn settings_reach_termios() {
             "{what}"
         );
         // Raw: no echo, no line editing, no CR/NL mangling of binary frames.
-        assert_eq!(t.c_lflag & (libc::ICANON | libc::ECHO | libc::ISIG), 0, "{what}");
+        assert_eq!(
+            t.c_lflag & (libc::ICANON | libc::ECHO | libc::ISIG),
+            0,
+            "{what}"
+        );
         assert_eq!(t.c_iflag & (libc::ICRNL | libc::INLCR), 0, "{what}");
         assert_eq!(t.c_oflag & libc::OPOST, 0, "{what}");
     }
@@ -96,7 +100,8 @@ fn stale_bytes_are_cleared_on_open() {
         .write(true)
         .open(&socat.dev)
         .unwrap();
-    dev.write_all(&hex("00 05 00 00 00 06 01 03 DE AD")).unwrap();
+    dev.write_all(&hex("00 05 00 00 00 06 01 03 DE AD"))
+        .unwrap();
     let start = std::time::Instant::now();
     while bytes_waiting(first.as_raw_fd()) < 10 {
         assert!(start.elapsed().as_secs() < 5, "stale bytes never arrived");
@@ -104,5 +109,9 @@ fn stale_bytes_are_cleared_on_open() {
     }
     drop(first);
     let port = mbgate::serial::open(&cfg).expect("reopen pty");
-    assert_eq!(bytes_waiting(port.as_raw_fd()), 0, "stale bytes survived the open");
+    assert_eq!(
+        bytes_waiting(port.as_raw_fd()),
+        0,
+        "stale bytes survived the open"
+    );
 }

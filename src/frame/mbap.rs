@@ -237,7 +237,10 @@ mod tests {
     #[test]
     fn build_and_rewrite() {
         let adu = Adu::build(0x1234, 0x11, &bytes("03 00 6B 00 03"));
-        assert_eq!(adu.as_bytes(), &bytes("12 34 00 00 00 06 11 03 00 6B 00 03")[..]);
+        assert_eq!(
+            adu.as_bytes(),
+            &bytes("12 34 00 00 00 06 11 03 00 6B 00 03")[..]
+        );
         assert_eq!(
             adu.with_tid(1).as_bytes(),
             &bytes("00 01 00 00 00 06 11 03 00 6B 00 03")[..]

@@ -148,8 +148,9 @@ pub fn check_request(pdu: &[u8]) -> Result<(), u8> {
                     && n == 10 + count
             }
         }
-        READ_EXCEPTION_STATUS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG
-        | REPORT_SERVER_ID => n == 1,
+        READ_EXCEPTION_STATUS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG | REPORT_SERVER_ID => {
+            n == 1
+        }
         _ => true,
     };
     if ok {
@@ -173,9 +174,7 @@ pub fn reply_well_formed(reply: &[u8]) -> bool {
         return false;
     };
     if code & 0x80 != 0 {
-        return is_public_function(code & 0x7F)
-            && reply.len() == 2
-            && is_exception_code(reply[1]);
+        return is_public_function(code & 0x7F) && reply.len() == 2 && is_exception_code(reply[1]);
     }
     match code {
         READ_COILS | READ_DISCRETE_INPUTS => counted(reply).is_some_and(|c| c >= 1),
@@ -183,9 +182,7 @@ pub fn reply_well_formed(reply: &[u8]) -> bool {
             counted(reply).is_some_and(|c| c >= 2 && c % 2 == 0)
         }
         WRITE_SINGLE_COIL => reply.len() == 5 && matches!(word(reply, 3), 0xFF00 | 0x0000),
-        WRITE_SINGLE_REGISTER | WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => {
-            reply.len() == 5
-        }
+        WRITE_SINGLE_REGISTER | WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => reply.len() == 5,
         MASK_WRITE_REGISTER => reply.len() == 7,
         READ_EXCEPTION_STATUS => reply.len() == 2,
         GET_COMM_EVENT_COUNTER => reply.len() == 5,
@@ -214,9 +211,7 @@ pub fn reply_matches(request: &[u8], reply: &[u8]) -> bool {
     // `check_request` has passed for every request the relay sends, so the fields
     // read below exist.
     match asked {
-        READ_COILS | READ_DISCRETE_INPUTS => {
-            counted(reply) == Some(word(request, 3).div_ceil(8))
-        }
+        READ_COILS | READ_DISCRETE_INPUTS => counted(reply) == Some(word(request, 3).div_ceil(8)),
         READ_HOLDING_REGISTERS | READ_INPUT_REGISTERS | READ_WRITE_MULTIPLE_REGISTERS => {
             counted(reply) == Some(2 * word(request, 3))
         }

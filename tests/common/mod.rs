@@ -310,7 +310,10 @@ impl Py {
             .stderr(Stdio::inherit())
             .output()
             .expect("run python");
-        (out.status, String::from_utf8_lossy(&out.stdout).into_owned())
+        (
+            out.status,
+            String::from_utf8_lossy(&out.stdout).into_owned(),
+        )
     }
 }
 
