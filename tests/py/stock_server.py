@@ -4,7 +4,7 @@ issue names for the byte-exact CIE-M10 examples and the ordinary-client test.
 
     stock_server.py --port PATH [--size 200] [--baud 19200]
 
-One unit (id 1; pymodbus answers other ids with exception 04). Same data as device.py:
+One unit (id 1; pymodbus answers other ids with exception 04). Data (PDU addresses, 0-based):
 holding register 0 = 0x00FF (the CIE-M10 inputs 0..7 ON), holding register i = 1000 + i,
 input register i = 2000 + i, coil i ON when i % 3 == 0, discrete input i ON when
 i % 2 == 0. Prints READY on stdout once serving. It handles one request at a time and

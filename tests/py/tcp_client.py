@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
-"""An ordinary Modbus/TCP user (pymodbus AsyncModbusTcpClient) against mbgate + device.py.
+"""An ordinary Modbus/TCP user (pymodbus AsyncModbusTcpClient) against mbgate + stock_server.py.
 
     tcp_client.py --host 127.0.0.1 --port N [--unit 1] [--timeout 3]
 
-Expects the device behind the gateway to be tests/py/device.py with its defaults
+Expects the device behind the gateway to be tests/py/stock_server.py with its defaults
 (size 200, fresh state). Runs every step below, prints one JSON object on stdout
 ({"ok": bool, "steps": [{"step", "ok", "got", "expected"|"error"}, ...]}) and exits 0
 only if every expectation held; otherwise exits 1 and names each failing step on
