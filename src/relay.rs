@@ -140,6 +140,8 @@ pub struct Relay {
     stats: Arc<Stats>,
     shutdown: CancellationToken,
     draining: bool,
+    /// False once every [`RelayHandle`] is gone: `recv` would return at once forever.
+    commands_open: bool,
 }
 
 impl Relay {
@@ -173,6 +175,7 @@ impl Relay {
             stats,
             shutdown,
             draining: false,
+            commands_open: true,
         };
         (relay, RelayHandle { tx })
     }
@@ -191,14 +194,14 @@ impl Relay {
             let wake = self.next_wake(now);
             let event = match &mut self.port {
                 Port::Open { rd, wr } => tokio::select! {
-                    cmd = self.rx.recv() => Event::Command(cmd),
+                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     r = rd.read(&mut rbuf) => Event::Read(r),
                     w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
                 Port::Closed { .. } => tokio::select! {
-                    cmd = self.rx.recv() => Event::Command(cmd),
+                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
@@ -206,7 +209,11 @@ impl Relay {
             let now = Instant::now();
             match event {
                 Event::Command(Some(cmd)) => self.on_command(cmd),
-                Event::Command(None) | Event::Shutdown => self.start_draining(),
+                Event::Command(None) => {
+                    self.commands_open = false;
+                    self.start_draining();
+                }
+                Event::Shutdown => self.start_draining(),
                 Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
                 Event::Read(Ok(n)) => {
                     if self.traffic {

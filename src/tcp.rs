@@ -216,12 +216,27 @@ impl Connection {
         }
     }
 
+    /// Writes what the relay sends. A master that stops reading its replies for
+    /// `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
     async fn write_loop(&self, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<Outbound>) {
+        let stall = Duration::from_millis(self.cfg.tcp.idle_timeout_ms);
         while let Some(out) = rx.recv().await {
             if self.cfg.log.traffic {
                 debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
             }
-            if let Err(e) = wr.write_all(out.adu.as_bytes()).await {
+            let write = wr.write_all(out.adu.as_bytes());
+            let result = if stall.is_zero() {
+                write.await
+            } else {
+                match tokio::time::timeout(stall, write).await {
+                    Ok(r) => r,
+                    Err(_) => {
+                        info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
+                        return;
+                    }
+                }
+            };
+            if let Err(e) = result {
                 debug!(conn = self.id, "write failed: {e}");
                 return;
             }

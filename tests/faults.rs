@@ -505,3 +505,88 @@ fn request_held_back_by_flow_control_is_withdrawn_on_timeout() {
     );
     assert!(seen.iter().all(|r| r.function() == 0x03));
 }
+
+/// Pipelining past `max_pending_per_connection` is held back by TCP, not refused: every
+/// request is answered, in order.
+#[test]
+fn pipelining_past_the_per_connection_limit_is_backpressure_not_refusal() {
+    let r = rig(|c| c.relay("max_pending_per_connection = 2"));
+    let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut m = r.gw.connect();
+    let burst: Vec<u8> = (1..=12u16).flat_map(|t| read_req(t, 1, t, 1)).collect();
+    m.write_all(&burst).unwrap();
+    for t in 1..=12u16 {
+        assert_eq!(read_frame(&mut m), read_reply(t, 1, &[t]));
+    }
+    assert_eq!(dev.requests().len(), 12);
+}
+
+/// Round-robin: a master that pipelines 16 requests does not make another master wait
+/// behind all of them.
+#[test]
+fn round_robin_across_connections() {
+    let r = rig(|c| c);
+    let dev = RawDevice::start(
+        &r.socat.dev,
+        register_device(&[1], Duration::from_millis(20)),
+    );
+    let mut busy = r.gw.connect();
+    let mut other = r.gw.connect();
+    let burst: Vec<u8> = (1..=16u16).flat_map(|t| read_req(t, 1, t, 1)).collect();
+    busy.write_all(&burst).unwrap();
+    std::thread::sleep(Duration::from_millis(30));
+    assert_eq!(
+        transact(&mut other, &read_req(99, 1, 99, 1)),
+        read_reply(99, 1, &[99])
+    );
+    for t in 1..=16u16 {
+        assert_eq!(read_frame(&mut busy), read_reply(t, 1, &[t]));
+    }
+    // On the line, the other master's request went right after the one in flight and
+    // the next one queued, not after all sixteen.
+    let order: Vec<u16> = dev
+        .requests()
+        .iter()
+        .map(|a| u16::from_be_bytes([a.pdu()[1], a.pdu()[2]]))
+        .collect();
+    let pos = order.iter().position(|&a| a == 99).unwrap();
+    assert!(pos <= 3, "served at position {pos}: {order:?}");
+}
+
+/// `max_in_flight = 4` with a device that takes four requests before answering, and
+/// answers them in reverse order: each reply still reaches its master with its own id.
+#[test]
+fn max_in_flight_pipelines_and_matches_replies_out_of_order() {
+    let r = rig(|c| c.relay("max_in_flight = 4"));
+    let mut batch: Vec<Vec<u8>> = Vec::new();
+    let mut inner = register_device(&[1], Duration::ZERO);
+    let dev = RawDevice::start(
+        &r.socat.dev,
+        Box::new(move |req| {
+            batch.push(inner(req));
+            if batch.len() < 4 {
+                return vec![];
+            }
+            batch.drain(..).rev().flatten().collect()
+        }),
+    );
+    let mut a = r.gw.connect();
+    let mut b = r.gw.connect();
+    let burst_a: Vec<u8> = (1..=4u16).flat_map(|t| read_req(t, 1, 10 + t, 1)).collect();
+    let burst_b: Vec<u8> = (1..=4u16).flat_map(|t| read_req(t, 1, 20 + t, 1)).collect();
+    a.write_all(&burst_a).unwrap();
+    b.write_all(&burst_b).unwrap();
+    let mut got_a: Vec<_> = (0..4).map(|_| read_frame(&mut a)).collect();
+    let mut got_b: Vec<_> = (0..4).map(|_| read_frame(&mut b)).collect();
+    got_a.sort();
+    got_b.sort();
+    let want =
+        |base: u16| -> Vec<Vec<u8>> { (1..=4u16).map(|t| read_reply(t, 1, &[base + t])).collect() };
+    assert_eq!(got_a, want(10));
+    assert_eq!(got_b, want(20));
+    // Eight requests on the line with eight distinct serial ids.
+    let mut ids: Vec<u16> = dev.requests().iter().map(|r| r.tid()).collect();
+    ids.sort_unstable();
+    ids.dedup();
+    assert_eq!(ids.len(), 8);
+}

@@ -41,6 +41,18 @@ impl Adu {
     }
 
     /// Builds a frame from its parts. `pdu` must be 1..=253 bytes.
+    ///
+    /// Seed 001's example: RTU `11 03 006B 0003` as Modbus/TCP.
+    ///
+    /// ```
+    /// use mbgate::frame::Adu;
+    /// let adu = Adu::build(0x0001, 0x11, &[0x03, 0x00, 0x6B, 0x00, 0x03]);
+    /// assert_eq!(
+    ///     adu.as_bytes(),
+    ///     &[0x00, 0x01, 0x00, 0x00, 0x00, 0x06, 0x11, 0x03, 0x00, 0x6B, 0x00, 0x03]
+    /// );
+    /// assert_eq!(adu.with_tid(0x1234).tid(), 0x1234);
+    /// ```
     pub fn build(tid: u16, unit: u8, pdu: &[u8]) -> Self {
         assert!(
             !pdu.is_empty() && pdu.len() < MAX_LENGTH as usize,

@@ -14,6 +14,18 @@
 //!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
+//!
+//! ```
+//! use mbgate::frame::{ReplyJudge, Resync};
+//! let mut d = Resync::new();
+//! // Noise, then the CIE-M10's read response (protocol.md §3) in two pieces.
+//! d.push(&[0xFF, 0x13, 0x00, 0x00, 0x00, 0x00, 0x00, 0x05]);
+//! assert!(d.next_frame(&ReplyJudge, false).is_none());
+//! d.push(&[0x01, 0x03, 0x02, 0x00, 0xFF]);
+//! let frame = d.next_frame(&ReplyJudge, false).unwrap();
+//! assert_eq!(frame.pdu(), &[0x03, 0x02, 0x00, 0xFF]);
+//! assert_eq!(d.stats().dropped_bytes, 2);
+//! ```
 
 use super::mbap::{self, Adu, FrameRef, MAX_LENGTH, MIN_LENGTH, PREFIX_LEN};
 use super::pdu;
