@@ -56,8 +56,4 @@ impl Stats {
     pub fn set(&self, counter: &AtomicU64, n: u64) {
         counter.store(n, Ordering::Relaxed);
     }
-
-    pub fn get(counter: &AtomicU64) -> u64 {
-        counter.load(Ordering::Relaxed)
-    }
 }

@@ -154,6 +154,20 @@ fn missing_port_at_start_answers_0x0a_then_serves() {
     }
 }
 
+/// `n` masters, each served once, so the relay knows them all.
+fn served_masters(gw: &Gateway, n: u16) -> Vec<std::net::TcpStream> {
+    (1..=n)
+        .map(|tid| {
+            let mut m = gw.connect();
+            assert_eq!(
+                transact(&mut m, &read_req(tid, 1, 0, 1)),
+                read_reply(tid, 1, &[0])
+            );
+            m
+        })
+        .collect()
+}
+
 const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
 
 /// Item 6, broadcast: an unsolicited frame from the device reaches every master.
@@ -161,14 +175,7 @@ const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
 fn notification_broadcast_reaches_every_master() {
     let r = rig(|c| c.relay("notifications = \"broadcast\""));
     let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
-    let mut masters: Vec<_> = (0..3).map(|_| r.gw.connect()).collect();
-    for (i, m) in masters.iter_mut().enumerate() {
-        let tid = i as u16 + 1;
-        assert_eq!(
-            transact(m, &read_req(tid, 1, 0, 1)),
-            read_reply(tid, 1, &[0])
-        );
-    }
+    let mut masters = served_masters(&r.gw, 3);
     dev.inject(&hex(NOTIFICATION));
     for m in &mut masters {
         assert_eq!(read_frame(m), hex(NOTIFICATION));
@@ -190,14 +197,7 @@ fn notification_broadcast_reaches_every_master() {
 fn notification_dropped_by_default() {
     let r = rig(|c| c);
     let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
-    let mut masters: Vec<_> = (0..3).map(|_| r.gw.connect()).collect();
-    for (i, m) in masters.iter_mut().enumerate() {
-        let tid = i as u16 + 1;
-        assert_eq!(
-            transact(m, &read_req(tid, 1, 0, 1)),
-            read_reply(tid, 1, &[0])
-        );
-    }
+    let mut masters = served_masters(&r.gw, 3);
     dev.inject(&hex(NOTIFICATION));
     r.gw.wait_log("unsolicited frame dropped", Duration::from_secs(2));
     for (i, m) in masters.iter_mut().enumerate() {

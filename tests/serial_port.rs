@@ -27,12 +27,17 @@ fn bytes_waiting(fd: i32) -> i32 {
     n
 }
 
-#[test]
-fn settings_reach_termios() {
-    let rt = tokio::runtime::Builder::new_current_thread()
+/// tokio-serial registers the port with a reactor: open it inside a runtime.
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .unwrap();
+        .unwrap()
+}
+
+#[test]
+fn settings_reach_termios() {
+    let rt = runtime();
     let _guard = rt.enter();
     let dir = tempdir();
     let socat = Socat::start(dir.path());
@@ -82,10 +87,7 @@ fn settings_reach_termios() {
 
 #[test]
 fn stale_bytes_are_cleared_on_open() {
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .unwrap();
+    let rt = runtime();
     let _guard = rt.enter();
     let dir = tempdir();
     let socat = Socat::start(dir.path());

@@ -23,6 +23,14 @@ impl fmt::Debug for Hex<'_> {
     }
 }
 
+/// `"00 01 FF"` → bytes, for tests written the way protocol.md writes frames.
+#[cfg(test)]
+pub(crate) fn parse(s: &str) -> Vec<u8> {
+    s.split_whitespace()
+        .map(|h| u8::from_str_radix(h, 16).expect("hex byte"))
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::Hex;

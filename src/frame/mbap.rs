@@ -190,12 +190,7 @@ pub(crate) fn skip(buf: &mut BytesMut, n: usize) {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn bytes(s: &str) -> Vec<u8> {
-        s.split_whitespace()
-            .map(|h| u8::from_str_radix(h, 16).unwrap())
-            .collect()
-    }
+    use crate::frame::hex::parse as bytes;
 
     #[test]
     fn decodes_the_cie_m10_read_request() {

@@ -160,12 +160,7 @@ impl Resync {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn bytes(s: &str) -> Vec<u8> {
-        s.split_whitespace()
-            .map(|h| u8::from_str_radix(h, 16).unwrap())
-            .collect()
-    }
+    use crate::frame::hex::parse as bytes;
 
     /// Replies of several shapes, the CIE-M10's among them (protocol.md §3).
     fn replies() -> Vec<Vec<u8>> {
