@@ -23,13 +23,8 @@ pub enum GatewayError {
 }
 
 /// Runs the gateway until `shutdown` is cancelled, then drains and returns the totals.
-/// `on_listening` is told the bound address (port 0 becomes a real port) once masters
-/// can connect.
-pub async fn run(
-    cfg: Config,
-    shutdown: CancellationToken,
-    on_listening: impl FnOnce(SocketAddr),
-) -> Result<Arc<Stats>, GatewayError> {
+/// The bound address is logged as `listening on ADDR` (port 0 becomes a real port).
+pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>, GatewayError> {
     let addr = cfg.tcp.listen;
     let listener = TcpListener::bind(addr)
         .await
@@ -51,7 +46,6 @@ pub async fn run(
 
     let tracker = TaskTracker::new();
     info!(listen = %local, serial = %cfg.serial.path, "listening on {local}");
-    on_listening(local);
     tcp::accept_loop(
         listener,
         cfg.clone(),

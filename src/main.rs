@@ -108,7 +108,7 @@ fn run(cfg: Config) -> anyhow::Result<()> {
     rt.block_on(async {
         let shutdown = CancellationToken::new();
         tokio::spawn(watch_signals(shutdown.clone()));
-        mbgate::gateway::run(cfg, shutdown, |_| {}).await?;
+        mbgate::gateway::run(cfg, shutdown).await?;
         Ok(())
     })
 }
