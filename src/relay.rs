@@ -234,10 +234,6 @@ impl Relay {
             self.take_frames(now);
             self.expire(now);
         }
-        self.stats.set(
-            &self.stats.dropped_bytes,
-            self.decoder.stats().dropped_bytes,
-        );
         debug!("relay stopped");
     }
 
