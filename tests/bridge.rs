@@ -58,16 +58,14 @@ fn cie_m10_examples_byte_exact() {
         hex("43 21 00 00 00 03 01 90 02")
     );
     // log.traffic: every frame in both directions, as hex, with its direction.
-    b.gw.wait_log(
+    for line in [
         "00 00 00 00 00 09 01 10 00 08 00 01 02 00 11 dir=\"master->gw\" conn=1",
-        std::time::Duration::from_secs(2),
-    );
-    let log = b.gw.log();
-    assert!(log.contains("dir=\"gw->serial\""), "{log}");
-    assert!(
-        log.contains("BE EF 00 00 00 05 01 03 02 00 11 dir=\"gw->master\""),
-        "{log}"
-    );
+        "00 02 00 00 00 09 01 10 00 08 00 01 02 00 11 dir=\"gw->serial\" conn=1",
+        "00 02 00 00 00 06 01 10 00 08 00 01 dir=\"serial->gw\"",
+        "BE EF 00 00 00 05 01 03 02 00 11 dir=\"gw->master\" conn=1",
+    ] {
+        b.gw.wait_log(line, std::time::Duration::from_secs(2));
+    }
 }
 
 /// Eight masters at once, all using transaction id 0 like CIE-M10 clients: each reads

@@ -254,7 +254,7 @@ fn bad_tcp_input_closes_only_that_connection() {
             "{what}: the other master was affected"
         );
     }
-    assert!(r.gw.log().contains("protocol violation"));
+    r.gw.wait_log("protocol violation", Duration::from_secs(2));
     // None of it reached the line.
     assert_eq!(dev.requests().len(), 5);
 }
