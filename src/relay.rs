@@ -417,7 +417,7 @@ impl Relay {
             let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
                 break;
             };
-            self.on_frame(frame);
+            self.on_frame(frame, now);
         }
         self.stats.set(
             &self.stats.dropped_bytes,
@@ -425,18 +425,23 @@ impl Relay {
         );
     }
 
-    fn on_frame(&mut self, frame: Adu) {
+    fn on_frame(&mut self, frame: Adu, now: Instant) {
         let tid = frame.tid();
         if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
             // The judge has checked unit, function code and shape against this request.
             let f = self.in_flight.swap_remove(i);
-            self.tids.release(tid);
+            // Kept reserved a while: a second answer with this id is recognised as
+            // ours and dropped, never broadcast.
+            self.tids.retire(tid, now.into_std());
             self.stats.add(&self.stats.replies, 1);
             let reply = frame.with_tid(f.req.adu.tid());
             self.deliver(f.req.conn, reply, Some(f.req.permit));
         } else if self.tids.is_retired(tid) {
             self.stats.add(&self.stats.late_replies, 1);
-            debug!(tid, "late reply dropped: {:?}", frame);
+            debug!(
+                tid,
+                "late reply dropped (its request timed out or was answered already): {:?}", frame
+            );
         } else {
             match self.cfg.notifications {
                 Notifications::Drop => {

@@ -38,7 +38,7 @@ counters! {
     exceptions_other: "Other exceptions the gateway answered itself.",
     bad_requests: "Requests answered locally because their PDU broke protocol limits.",
     retries: "Requests resent after a timeout.",
-    late_replies: "Replies that came after their request timed out: dropped.",
+    late_replies: "Replies to a request no longer outstanding (timed out, or answered already): dropped.",
     notifications_dropped: "Frames answering no request, dropped (`notifications = drop`).",
     notifications_broadcast: "Frames answering no request, broadcast to every master.",
     notifications_missed: "Broadcasts a master missed because it was not reading.",

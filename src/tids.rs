@@ -1,16 +1,17 @@
 //! Serial-side transaction ids (design.md §1 step 3).
 //!
 //! Every request on the line gets a fresh id that no outstanding request uses, never
-//! 0x0000 (the CIE-M10's own change notifications may use it). Ids of requests that
-//! timed out stay reserved for a while, so a late answer is recognised as ours and
-//! dropped (design.md §1 steps 5 and 6) instead of being taken for a notification.
+//! 0x0000 (the CIE-M10's own change notifications may use it). Ids of finished requests
+//! (answered, timed out or abandoned) stay reserved for a while, so a late or duplicate
+//! answer is recognised as ours and dropped (design.md §1 steps 5 and 6) instead of
+//! being taken for a notification.
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
-/// How many timed-out ids are remembered at most.
+/// How many finished ids are remembered at most.
 pub const RETIRED_MAX: usize = 1024;
-/// How long a timed-out id is remembered.
+/// How long a finished id is remembered.
 pub const RETIRED_FOR: Duration = Duration::from_secs(60);
 
 #[derive(Debug)]
@@ -73,12 +74,8 @@ impl Tids {
         }
     }
 
-    /// The request was answered: its id may be used again.
-    pub fn release(&mut self, tid: u16) {
-        self.set(tid, false);
-    }
-
-    /// The request timed out or was abandoned: an answer with this id is late.
+    /// The request is finished (answered, timed out or abandoned): an answer with this
+    /// id from now on is late or a duplicate.
     pub fn retire(&mut self, tid: u16, now: Instant) {
         self.retired.push_back((tid, now));
         self.expire(now);
@@ -105,7 +102,7 @@ mod tests {
             assert_ne!(tid, 0);
             held.push(tid);
             if held.len() > 200 {
-                t.release(held.remove(0));
+                t.retire(held.remove(0), now);
             }
         }
         let mut sorted = held.clone();
@@ -122,12 +119,15 @@ mod tests {
         t.retire(a, now);
         assert!(t.is_retired(a));
         assert!(!t.is_retired(0));
-        // Wrap all the way round: `a` is not handed out again while retired.
-        for _ in 0..65_540u32 {
+        // Round the whole id space, finishing every request: `a` is skipped while it
+        // is among the last RETIRED_MAX finished.
+        for _ in 0..RETIRED_MAX - 1 {
+            t.next = t.next.wrapping_add(63).max(1);
             let tid = t.allocate(now);
             assert_ne!(tid, a);
-            t.release(tid);
+            t.retire(tid, now);
         }
+        assert!(t.is_retired(a));
         // After RETIRED_FOR it is free again.
         let later = now + RETIRED_FOR + Duration::from_secs(1);
         t.allocate(later);

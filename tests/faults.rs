@@ -590,3 +590,22 @@ fn max_in_flight_pipelines_and_matches_replies_out_of_order() {
     ids.dedup();
     assert_eq!(ids.len(), 8);
 }
+
+/// A device that answers twice: the second answer is recognised as one to mbgate's own
+/// request and dropped, not broadcast to the other masters as a notification.
+#[test]
+fn duplicate_reply_is_not_broadcast() {
+    let r = rig(|c| c.relay("notifications = \"broadcast\""));
+    let mut inner = register_device(&[1], Duration::ZERO);
+    let _dev = RawDevice::start(&r.socat.dev, Box::new(move |req| inner(req).repeat(2)));
+    let mut masters = served_masters(&r.gw, 2);
+    r.gw.wait_log("late reply dropped", Duration::from_secs(2));
+    // Each master's next frame is its own reply.
+    for (i, m) in masters.iter_mut().enumerate() {
+        let tid = 40 + i as u16;
+        assert_eq!(
+            transact(m, &read_req(tid, 1, 8, 1)),
+            read_reply(tid, 1, &[8])
+        );
+    }
+}
