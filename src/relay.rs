@@ -506,7 +506,6 @@ impl Relay {
                     tid = f.req.adu.tid(),
                     "no reply in time: 0x0B"
                 );
-                self.stats.add(&self.stats.timeouts, 1);
                 self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
             }
         }
@@ -516,7 +515,8 @@ impl Relay {
         let counter = match code {
             exception::GATEWAY_PATH_UNAVAILABLE => &self.stats.unavailable,
             exception::SERVER_DEVICE_BUSY => &self.stats.busy,
-            _ => &self.stats.exceptions_other,
+            // GATEWAY_TARGET_FAILED: the only other code the relay answers itself.
+            _ => &self.stats.timeouts,
         };
         self.stats.add(counter, 1);
         let adu = Adu::exception(req.adu.tid(), req.adu.unit(), req.adu.function(), code);
