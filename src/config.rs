@@ -163,6 +163,14 @@ impl Default for RelayConfig {
     }
 }
 
+impl RelayConfig {
+    /// The longest the relay takes to answer a request that is on the line: the
+    /// response timeout of every attempt (design.md §1 step 5).
+    pub fn answer_within(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
+    }
+}
+
 impl Default for LogConfig {
     fn default() -> Self {
         Self {

@@ -60,10 +60,7 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
     // what is queued (0x0A) and waits for what is on the line.
     info!("shutting down: draining in-flight requests");
     tracker.close();
-    let relay_cfg = &cfg.relay;
-    let bound = Duration::from_millis(
-        relay_cfg.response_timeout_ms * u64::from(relay_cfg.retries + 1) + 2000,
-    );
+    let bound = cfg.relay.answer_within() + Duration::from_secs(2);
     if tokio::time::timeout(bound, async {
         let _ = relay_task.await;
         tracker.wait().await;

@@ -118,10 +118,7 @@ impl Connection {
                 // are back, nothing is owed. The relay answers each one within the
                 // response timeout (and its retries), so this is bounded; the bound
                 // below only guards against a master that never reads.
-                let relay = &self.cfg.relay;
-                let bound = Duration::from_millis(
-                    relay.response_timeout_ms * u64::from(relay.retries + 1) + 1000,
-                );
+                let bound = self.cfg.relay.answer_within() + Duration::from_secs(1);
                 let all = permits.acquire_many(max_pending as u32);
                 tokio::select! {
                     _ = tokio::time::timeout(bound, all) => {}
