@@ -168,6 +168,17 @@ fn served_masters(gw: &Gateway, n: u16) -> Vec<std::net::TcpStream> {
         .collect()
 }
 
+/// Each master's next frame is the reply to its own read of `addr` (and so not a
+/// notification or someone else's answer).
+fn each_gets_its_own_reply(masters: &mut [std::net::TcpStream], first_tid: u16, addr: u16) {
+    for (tid, m) in (first_tid..).zip(masters.iter_mut()) {
+        assert_eq!(
+            transact(m, &read_req(tid, 1, addr, 1)),
+            read_reply(tid, 1, &[addr])
+        );
+    }
+}
+
 const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
 
 /// Item 6, broadcast: an unsolicited frame from the device reaches every master.
@@ -183,13 +194,7 @@ fn notification_broadcast_reaches_every_master() {
     // A malformed one (byte count disagrees with the length) goes to nobody.
     dev.inject(&hex("00 00 00 00 00 05 01 03 04 00 0F"));
     std::thread::sleep(Duration::from_millis(200));
-    for (i, m) in masters.iter_mut().enumerate() {
-        let tid = 50 + i as u16;
-        assert_eq!(
-            transact(m, &read_req(tid, 1, 4, 1)),
-            read_reply(tid, 1, &[4])
-        );
-    }
+    each_gets_its_own_reply(&mut masters, 50, 4);
 }
 
 /// Item 6, drop (the default): the same frame reaches no master.
@@ -200,14 +205,7 @@ fn notification_dropped_by_default() {
     let mut masters = served_masters(&r.gw, 3);
     dev.inject(&hex(NOTIFICATION));
     r.gw.wait_log("unsolicited frame dropped", Duration::from_secs(2));
-    for (i, m) in masters.iter_mut().enumerate() {
-        // The next frame each master sees is its own reply, not the notification.
-        let tid = 10 + i as u16;
-        assert_eq!(
-            transact(m, &read_req(tid, 1, 2, 1)),
-            read_reply(tid, 1, &[2])
-        );
-    }
+    each_gets_its_own_reply(&mut masters, 10, 2);
 }
 
 /// Item 7: bad TCP input closes only that connection; another master is unaffected.
@@ -342,6 +340,10 @@ fn late_reply_is_never_delivered() {
     );
     assert_eq!(r.gw.terminate(Duration::from_secs(5)).code(), Some(0));
     let log = r.gw.log();
+    assert!(
+        log.contains("timeouts=1 unavailable=0 busy=0 bad_requests=0"),
+        "{log}"
+    );
     assert!(log.contains("late_replies=1"), "{log}");
     assert!(log.contains("notifications_broadcast=0"), "{log}");
 }
@@ -601,11 +603,5 @@ fn duplicate_reply_is_not_broadcast() {
     let mut masters = served_masters(&r.gw, 2);
     r.gw.wait_log("late reply dropped", Duration::from_secs(2));
     // Each master's next frame is its own reply.
-    for (i, m) in masters.iter_mut().enumerate() {
-        let tid = 40 + i as u16;
-        assert_eq!(
-            transact(m, &read_req(tid, 1, 8, 1)),
-            read_reply(tid, 1, &[8])
-        );
-    }
+    each_gets_its_own_reply(&mut masters, 40, 8);
 }
