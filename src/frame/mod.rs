@@ -4,7 +4,8 @@
 pub mod hex;
 pub mod mbap;
 pub mod pdu;
+pub mod request;
 pub mod resync;
 
 pub use mbap::{Adu, StrictError};
-pub use resync::{Judge, ReplyJudge, Resync};
+pub use resync::{Judge, ReplyJudge, RequestJudge, Resync};

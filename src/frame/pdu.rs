@@ -160,6 +160,33 @@ pub fn check_request(pdu: &[u8]) -> Result<(), u8> {
     }
 }
 
+/// Is this request PDU consistent with itself: the size its function code calls for,
+/// and byte-count fields that cover the rest (protocol.md §1 table)? Values are not
+/// checked (a device answers 03 for those), and unknown function codes pass (a device
+/// answers 01). The simulator's decoder uses this to delimit requests on a lossy line.
+pub fn request_well_formed(pdu: &[u8]) -> bool {
+    let Some(&code) = pdu.first() else {
+        return false;
+    };
+    let n = pdu.len();
+    match code {
+        0 | 0x80..=0xFF => false,
+        READ_COILS
+        | READ_DISCRETE_INPUTS
+        | READ_HOLDING_REGISTERS
+        | READ_INPUT_REGISTERS
+        | WRITE_SINGLE_COIL
+        | WRITE_SINGLE_REGISTER => n == 5,
+        WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => n >= 6 && n == 6 + usize::from(pdu[5]),
+        MASK_WRITE_REGISTER => n == 7,
+        READ_WRITE_MULTIPLE_REGISTERS => n >= 10 && n == 10 + usize::from(pdu[9]),
+        READ_EXCEPTION_STATUS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG | REPORT_SERVER_ID => {
+            n == 1
+        }
+        _ => true,
+    }
+}
+
 /// A reply whose byte-count field is its second byte and covers the rest.
 fn counted(reply: &[u8]) -> Option<usize> {
     let count = usize::from(*reply.get(1)?);
@@ -269,6 +296,28 @@ mod tests {
         assert!(!reply_matches(&[1, 0, 19, 0, 19], &[1, 2, 0xCD, 0x6B]));
         assert!(reply_matches(&[6, 0, 1, 0, 3], &[6, 0, 1, 0, 3]));
         assert!(!reply_matches(&[6, 0, 1, 0, 3], &[6, 0, 1, 0, 4]));
+    }
+
+    #[test]
+    fn well_formed_requests() {
+        assert!(request_well_formed(&[3, 0, 0, 0, 1]));
+        assert!(
+            request_well_formed(&[3, 0, 0, 0, 0]),
+            "values are the device's business"
+        );
+        assert!(!request_well_formed(&[3, 0, 0, 0]));
+        assert!(request_well_formed(&[0x10, 0, 8, 0, 1, 2, 0, 0x11]));
+        assert!(!request_well_formed(&[0x10, 0, 8, 0, 1, 2, 0]));
+        assert!(request_well_formed(&[0x10, 0, 8, 0, 9, 2, 0, 0x11]));
+        assert!(request_well_formed(&[
+            0x17, 0, 0, 0, 2, 0, 5, 0, 1, 2, 0, 9
+        ]));
+        assert!(!request_well_formed(&[
+            0x17, 0, 0, 0, 2, 0, 5, 0, 1, 4, 0, 9
+        ]));
+        assert!(request_well_formed(&[0x41, 1, 2, 3]));
+        assert!(!request_well_formed(&[0x83, 2]));
+        assert!(!request_well_formed(&[]));
     }
 
     #[test]

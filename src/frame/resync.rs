@@ -54,6 +54,21 @@ impl Judge for ReplyJudge {
     }
 }
 
+/// Accepts any self-consistent request (the simulator's side of the line): a function
+/// code without the exception bit and the size it calls for ([`pdu::request_well_formed`]).
+#[derive(Debug, Default, Clone, Copy)]
+pub struct RequestJudge;
+
+impl Judge for RequestJudge {
+    fn plausible_function(&self, code: u8) -> bool {
+        (1..0x80).contains(&code)
+    }
+
+    fn accept(&self, frame: FrameRef<'_>) -> bool {
+        pdu::request_well_formed(frame.pdu())
+    }
+}
+
 /// What the decoder has done so far.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct ResyncStats {
