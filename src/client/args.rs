@@ -1,0 +1,378 @@
+//! The master's command line (issue 3): where requests go and what they ask, as the
+//! request PDUs of protocol.md §1.
+
+use super::link::Link;
+use crate::config::{FlowControl, Framing, Parity, SerialConfig};
+use crate::frame::request::Request;
+
+/// Where requests go, and how they are sent (shared by `read` and `write`).
+#[derive(Debug, Clone, clap::Args)]
+pub struct CommonArgs {
+    /// Gateway or Modbus/TCP device, HOST[:PORT] (port 502 if left out)
+    /// [default: 127.0.0.1:502]
+    #[arg(long, value_name = "HOST:PORT", conflicts_with = "serial")]
+    pub tcp: Option<String>,
+    /// Ask a device directly on this serial port, in MBAP framing (the CIE-M10 serial
+    /// Modbus/TCP mode: whole MBAP frames on the line, no CRC)
+    #[arg(long, value_name = "PATH")]
+    pub serial: Option<String>,
+    /// Serial speed in bit/s [default: 19200]
+    #[arg(long, value_name = "N", requires = "serial",
+          value_parser = clap::value_parser!(u32).range(50..=4_000_000))]
+    pub baud: Option<u32>,
+    /// Serial data bits, 7 or 8 [default: 8]
+    #[arg(long, value_name = "N", requires = "serial",
+          value_parser = clap::value_parser!(u8).range(7..=8))]
+    pub data_bits: Option<u8>,
+    /// Serial parity [default: none]
+    #[arg(long, value_enum, requires = "serial")]
+    pub parity: Option<Parity>,
+    /// Serial stop bits, 1 or 2 [default: 1]
+    #[arg(long, value_name = "N", requires = "serial",
+          value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub stop_bits: Option<u8>,
+    /// Serial flow control [default: hardware (RTS/CTS)]
+    #[arg(long, value_enum, requires = "serial")]
+    pub flow_control: Option<FlowControl>,
+    /// Unit id (slave address), 0..=255
+    #[arg(long, short = 'u', value_name = "N", default_value_t = 1)]
+    pub unit: u8,
+    /// Give up on a reply after this long (a gateway answers 0x0B after its own
+    /// response timeout, 1000 ms by default, so wait longer than that)
+    #[arg(long, value_name = "MS", default_value_t = 2000,
+          value_parser = clap::value_parser!(u64).range(1..=600_000))]
+    pub timeout_ms: u64,
+    /// Repeat every MS milliseconds until Ctrl-C (or --count), printing each result
+    /// with a timestamp
+    #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..))]
+    pub poll: Option<u64>,
+    /// With --poll: stop after N requests
+    #[arg(long, value_name = "N", requires = "poll",
+          value_parser = clap::value_parser!(u64).range(1..))]
+    pub count: Option<u64>,
+    /// Print both frames (request and reply) as hex
+    #[arg(long, short = 'v')]
+    pub verbose: bool,
+}
+
+/// The tables a master reads (protocol.md §1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ReadTable {
+    /// FC 01 read coils
+    #[value(alias = "coil")]
+    Coils,
+    /// FC 02 read discrete inputs
+    #[value(alias = "discrete-inputs", alias = "di")]
+    Discrete,
+    /// FC 03 read holding registers
+    #[value(alias = "holding-registers", alias = "hr")]
+    Holding,
+    /// FC 04 read input registers
+    #[value(alias = "input-registers", alias = "ir")]
+    Input,
+}
+
+/// `mbgate read`: FC 01, 02, 03 or 04.
+#[derive(Debug, Clone, clap::Args)]
+pub struct ReadArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// What to read
+    #[arg(value_enum)]
+    pub table: ReadTable,
+    /// First address: the 0-based PDU address, decimal or 0x hex (register "40108" is
+    /// 107)
+    #[arg(value_parser = parse_u16)]
+    pub addr: u16,
+    /// How many: 1..=2000 bits or 1..=125 registers
+    #[arg(value_name = "COUNT", value_parser = parse_u16, default_value = "1")]
+    pub quantity: u16,
+}
+
+/// The tables a master writes (protocol.md §1).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum WriteTable {
+    /// FC 05 for one value, FC 0F for several
+    #[value(alias = "coil")]
+    Coils,
+    /// Holding registers: FC 06 for one value, FC 10 for several, FC 17 with --read
+    #[value(alias = "register", alias = "holding")]
+    Registers,
+}
+
+/// `mbgate write`: FC 05, 06, 0F, 10 or 17.
+#[derive(Debug, Clone, clap::Args)]
+pub struct WriteArgs {
+    #[command(flatten)]
+    pub common: CommonArgs,
+    /// What to write
+    #[arg(value_enum)]
+    pub table: WriteTable,
+    /// First address: the 0-based PDU address, decimal or 0x hex
+    #[arg(value_parser = parse_u16)]
+    pub addr: u16,
+    /// Values from ADDR on. Coils: 1, 0, on, off, true, false. Registers: 0..=65535
+    /// decimal or 0x hex, or -32768..=-1 (sent as two's complement)
+    #[arg(required = true, num_args = 1.., allow_negative_numbers = true)]
+    pub values: Vec<String>,
+    /// Use FC 0F / 10 even for a single value
+    #[arg(long)]
+    pub multiple: bool,
+    /// FC 17 (registers only): in the same transaction, after the write, read COUNT
+    /// registers at ADDR and print them
+    #[arg(long, num_args = 2, value_names = ["ADDR", "COUNT"], value_parser = parse_u16,
+          conflicts_with = "multiple")]
+    pub read: Option<Vec<u16>>,
+}
+
+/// `123` or `0x7B`.
+fn parse_u16(s: &str) -> Result<u16, String> {
+    match crate::number::parse(s) {
+        Some(v) if (0..=0xFFFF).contains(&v) => Ok(v as u16),
+        _ => Err(format!("expected 0..=65535, decimal or 0x hex, got '{s}'")),
+    }
+}
+
+/// A register value: 0..=65535, or -32768..=-1 as its two's complement.
+fn parse_register(s: &str) -> Result<u16, String> {
+    match crate::number::parse(s) {
+        Some(v) if (0..=0xFFFF).contains(&v) => Ok(v as u16),
+        Some(v) if (-0x8000..0).contains(&v) => Ok(v as i16 as u16),
+        _ => Err(format!(
+            "register value '{s}': expected 0..=65535 (decimal or 0x hex) or -32768..=-1"
+        )),
+    }
+}
+
+fn parse_coil(s: &str) -> Result<bool, String> {
+    match s.to_ascii_lowercase().as_str() {
+        "1" | "on" | "true" => Ok(true),
+        "0" | "off" | "false" => Ok(false),
+        _ => Err(format!(
+            "coil value '{s}': expected 1, 0, on, off, true or false"
+        )),
+    }
+}
+
+impl ReadArgs {
+    /// The request these arguments ask for (protocol.md §1 table, FC 01..04).
+    pub fn request(&self) -> Request {
+        let (addr, qty) = (self.addr, self.quantity);
+        match self.table {
+            ReadTable::Coils => Request::ReadCoils { addr, qty },
+            ReadTable::Discrete => Request::ReadDiscreteInputs { addr, qty },
+            ReadTable::Holding => Request::ReadHoldingRegisters { addr, qty },
+            ReadTable::Input => Request::ReadInputRegisters { addr, qty },
+        }
+    }
+}
+
+impl WriteArgs {
+    /// The request these arguments ask for (protocol.md §1 table, FC 05, 06, 0F, 10,
+    /// 17), or why there is none.
+    pub fn request(&self) -> Result<Request, String> {
+        let addr = self.addr;
+        let single = self.values.len() == 1 && !self.multiple;
+        match self.table {
+            WriteTable::Coils => {
+                if self.read.is_some() {
+                    return Err("--read (FC 17) works with registers only".into());
+                }
+                let values = self
+                    .values
+                    .iter()
+                    .map(|v| parse_coil(v))
+                    .collect::<Result<Vec<_>, _>>()?;
+                Ok(if single {
+                    Request::WriteSingleCoil {
+                        addr,
+                        value: values[0],
+                    }
+                } else {
+                    Request::WriteMultipleCoils { addr, values }
+                })
+            }
+            WriteTable::Registers => {
+                let values = self
+                    .values
+                    .iter()
+                    .map(|v| parse_register(v))
+                    .collect::<Result<Vec<_>, _>>()?;
+                Ok(match &self.read {
+                    Some(read) => Request::ReadWriteMultipleRegisters {
+                        read_addr: read[0],
+                        read_qty: read[1],
+                        write_addr: addr,
+                        values,
+                    },
+                    None if single => Request::WriteSingleRegister {
+                        addr,
+                        value: values[0],
+                    },
+                    None => Request::WriteMultipleRegisters { addr, values },
+                })
+            }
+        }
+    }
+}
+
+impl CommonArgs {
+    /// The link these arguments name: `--serial` if given, else `--tcp` (default
+    /// 127.0.0.1:502).
+    pub fn link(&self) -> Link {
+        match &self.serial {
+            Some(path) => {
+                let d = SerialConfig::default();
+                Link::serial(SerialConfig {
+                    path: path.clone(),
+                    baud_rate: self.baud.unwrap_or(d.baud_rate),
+                    data_bits: self.data_bits.unwrap_or(d.data_bits),
+                    parity: self.parity.unwrap_or(d.parity),
+                    stop_bits: self.stop_bits.unwrap_or(d.stop_bits),
+                    flow_control: self.flow_control.unwrap_or(d.flow_control),
+                    framing: Framing::Mbap,
+                })
+            }
+            None => {
+                let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
+                Link::tcp(addr)
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The argument definitions are consistent (clap's own checks), and parse the
+    /// forms the README documents.
+    #[test]
+    fn command_lines() {
+        use clap::{Args, FromArgMatches};
+        let read = ReadArgs::augment_args(clap::Command::new("read"));
+        read.clone().debug_assert();
+        let write = WriteArgs::augment_args(clap::Command::new("write"));
+        write.clone().debug_assert();
+        let parse_read = |args: &[&str]| {
+            let m = read.clone().try_get_matches_from(args)?;
+            ReadArgs::from_arg_matches(&m)
+        };
+        let parse_write = |args: &[&str]| {
+            let m = write.clone().try_get_matches_from(args)?;
+            WriteArgs::from_arg_matches(&m)
+        };
+        let r = parse_read(&["read", "holding", "0x6B", "3", "--unit", "17"]).unwrap();
+        assert_eq!(
+            r.request(),
+            Request::ReadHoldingRegisters { addr: 107, qty: 3 }
+        );
+        assert_eq!(r.common.unit, 17);
+        let r = parse_read(&[
+            "read", "-v", "coil", "5", "--serial", "/dev/x", "--baud", "9600",
+        ])
+        .unwrap();
+        assert_eq!(r.request(), Request::ReadCoils { addr: 5, qty: 1 });
+        assert!(matches!(r.common.link(), Link::Serial { cfg, .. } if cfg.baud_rate == 9600));
+        assert!(
+            parse_read(&["read", "holding", "0", "--baud", "9600"]).is_err(),
+            "serial only"
+        );
+        assert!(
+            parse_read(&["read", "holding", "0", "--count", "3"]).is_err(),
+            "needs --poll"
+        );
+        assert!(parse_read(&["read", "holding", "0", "--tcp", "h", "--serial", "p"]).is_err());
+        assert!(parse_read(&["read", "registers", "0"]).is_err());
+
+        let w = parse_write(&["write", "registers", "20", "7", "8", "-1"]).unwrap();
+        assert_eq!(
+            w.request(),
+            Ok(Request::WriteMultipleRegisters {
+                addr: 20,
+                values: vec![7, 8, 0xFFFF]
+            })
+        );
+        let w = parse_write(&["write", "register", "8", "0x11"]).unwrap();
+        assert_eq!(
+            w.request(),
+            Ok(Request::WriteSingleRegister {
+                addr: 8,
+                value: 0x11
+            })
+        );
+        let w = parse_write(&["write", "register", "8", "0x11", "--multiple"]).unwrap();
+        assert_eq!(
+            w.request(),
+            Ok(Request::WriteMultipleRegisters {
+                addr: 8,
+                values: vec![0x11]
+            })
+        );
+        let w = parse_write(&["write", "coil", "5", "on"]).unwrap();
+        assert_eq!(
+            w.request(),
+            Ok(Request::WriteSingleCoil {
+                addr: 5,
+                value: true
+            })
+        );
+        let w = parse_write(&["write", "coils", "10", "1", "off", "true"]).unwrap();
+        assert_eq!(
+            w.request(),
+            Ok(Request::WriteMultipleCoils {
+                addr: 10,
+                values: vec![true, false, true]
+            })
+        );
+        let w = parse_write(&["write", "registers", "40", "1", "2", "--read", "39", "4"]).unwrap();
+        assert_eq!(
+            w.request(),
+            Ok(Request::ReadWriteMultipleRegisters {
+                read_addr: 39,
+                read_qty: 4,
+                write_addr: 40,
+                values: vec![1, 2]
+            })
+        );
+        let w = parse_write(&["write", "coils", "1", "1", "--read", "0", "1"]).unwrap();
+        assert!(w.request().is_err());
+        let w = parse_write(&["write", "coil", "1", "2"]).unwrap();
+        assert!(w.request().is_err());
+        assert!(
+            parse_write(&["write", "coil", "1"]).is_err(),
+            "a value is required"
+        );
+    }
+
+    #[test]
+    fn numbers() {
+        assert_eq!(parse_u16("107"), Ok(107));
+        assert_eq!(parse_u16("0x6B"), Ok(107));
+        assert_eq!(parse_u16("0XFFFF"), Ok(0xFFFF));
+        assert!(parse_u16("65536").is_err());
+        assert!(parse_u16("-1").is_err());
+        assert!(parse_u16("1e3").is_err());
+        assert!(parse_u16("").is_err());
+        assert_eq!(parse_register("-1"), Ok(0xFFFF));
+        assert_eq!(parse_register("-32768"), Ok(0x8000));
+        assert!(parse_register("-32769").is_err());
+        assert_eq!(parse_register("0x0011"), Ok(0x11));
+        assert_eq!(parse_register("65535"), Ok(0xFFFF));
+        assert!(parse_register("+5").is_err());
+        assert_eq!(parse_coil("ON"), Ok(true));
+        assert_eq!(parse_coil("false"), Ok(false));
+        assert!(parse_coil("2").is_err());
+    }
+
+    #[test]
+    fn tcp_addresses_get_port_502() {
+        let name = |s: &str| Link::tcp(s).name().to_string();
+        assert_eq!(name("10.0.0.5"), "10.0.0.5:502");
+        assert_eq!(name("10.0.0.5:5020"), "10.0.0.5:5020");
+        assert_eq!(name("plc.local"), "plc.local:502");
+        assert_eq!(name("plc.local:1502"), "plc.local:1502");
+        assert_eq!(name("::1"), "[::1]:502");
+        assert_eq!(name("[::1]:5020"), "[::1]:5020");
+    }
+}

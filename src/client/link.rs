@@ -1,0 +1,423 @@
+//! The master's transport (issue 3): one request at a time to a gateway over TCP
+//! (strict decoder, design.md §1 step 1) or to a device on a serial port (the
+//! resynchronising decoder of design.md §2, judging by transaction id and shape).
+
+use crate::config::SerialConfig;
+use crate::frame::mbap::{decode_strict, FrameRef};
+use crate::frame::request::{self, decode_reply, Reply};
+use crate::frame::{pdu, Adu, Judge, Resync, StrictError};
+use bytes::BytesMut;
+use std::io;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::time::{timeout_at, Instant};
+use tokio_serial::SerialStream;
+
+/// Silence after which a partial frame on the serial line is discarded (design.md §2;
+/// the gateway's default `relay.frame_gap_ms`).
+const FRAME_GAP: Duration = Duration::from_millis(50);
+
+/// The default TCP port of Modbus/TCP (protocol.md §3).
+const MODBUS_PORT: u16 = 502;
+
+/// Why a request got no usable answer (exit code 1).
+#[derive(Debug, thiserror::Error)]
+pub enum ClientError {
+    #[error("cannot connect to {addr}: {source}")]
+    Connect { addr: String, source: io::Error },
+    #[error("no connection to {addr} within {ms} ms")]
+    ConnectTimeout { addr: String, ms: u64 },
+    #[error("cannot open {path}: {source}")]
+    Open {
+        path: String,
+        source: tokio_serial::Error,
+    },
+    #[error("no reply from {target} within {ms} ms")]
+    Timeout { target: String, ms: u64 },
+    #[error("{target}: {what}: {source}")]
+    Io {
+        target: String,
+        what: &'static str,
+        source: io::Error,
+    },
+    #[error("{target} closed the connection")]
+    Closed { target: String },
+    #[error("{target} sent a frame that is not Modbus/TCP: {source}")]
+    Protocol { target: String, source: StrictError },
+    #[error("{target} answered transaction {tid:#06x} with unit {unit}, not {asked}")]
+    WrongUnit {
+        target: String,
+        tid: u16,
+        unit: u8,
+        asked: u8,
+    },
+    #[error("{target}: {source}")]
+    Mismatch {
+        target: String,
+        source: request::Mismatch,
+    },
+}
+
+/// The way to the device: a TCP connection (opened on first use, reopened after an
+/// error) or a serial port (likewise).
+#[derive(Debug)]
+pub enum Link {
+    Tcp {
+        addr: String,
+        stream: Option<TcpStream>,
+        buf: BytesMut,
+    },
+    Serial {
+        cfg: SerialConfig,
+        port: Option<SerialStream>,
+        decoder: Resync,
+    },
+}
+
+impl Link {
+    /// `HOST[:PORT]`; port 502 if left out.
+    pub fn tcp(addr: &str) -> Link {
+        let has_port = addr.parse::<std::net::SocketAddr>().is_ok()
+            || addr.rsplit_once(':').is_some_and(|(host, port)| {
+                !host.is_empty() && !host.ends_with(':') && port.parse::<u16>().is_ok()
+            });
+        let addr = if has_port {
+            addr.to_string()
+        } else if addr.contains(':') && !addr.starts_with('[') {
+            format!("[{addr}]:{MODBUS_PORT}")
+        } else {
+            format!("{addr}:{MODBUS_PORT}")
+        };
+        Link::Tcp {
+            addr,
+            stream: None,
+            buf: BytesMut::new(),
+        }
+    }
+
+    pub fn serial(cfg: SerialConfig) -> Link {
+        Link::Serial {
+            cfg,
+            port: None,
+            decoder: Resync::new(),
+        }
+    }
+
+    /// What error messages call it: the address or the port's path.
+    pub fn name(&self) -> &str {
+        match self {
+            Link::Tcp { addr, .. } => addr,
+            Link::Serial { cfg, .. } => &cfg.path,
+        }
+    }
+
+    /// Forgets the connection or port; the next request opens it again.
+    fn close(&mut self) {
+        match self {
+            Link::Tcp { stream, buf, .. } => {
+                *stream = None;
+                buf.clear();
+            }
+            Link::Serial { port, decoder, .. } => {
+                *port = None;
+                decoder.clear();
+            }
+        }
+    }
+}
+
+/// Accepts only the answer to one request (design.md §1 step 4): its transaction id,
+/// its unit id, its function code (or exception) and the shape it calls for.
+struct ReplyTo<'a>(&'a Adu);
+
+impl Judge for ReplyTo<'_> {
+    fn plausible_function(&self, code: u8) -> bool {
+        pdu::is_reply_function(code) || code & 0x7F == self.0.function()
+    }
+
+    fn accept(&self, frame: FrameRef<'_>) -> bool {
+        frame.tid() == self.0.tid()
+            && frame.unit() == self.0.unit()
+            && pdu::reply_matches(self.0.pdu(), frame.pdu())
+    }
+}
+
+/// One answered request.
+#[derive(Debug, Clone)]
+pub struct Exchange {
+    /// The reply frame.
+    pub reply: Adu,
+    /// What it says.
+    pub decoded: Reply,
+    /// From the first byte written to the reply decoded.
+    pub round_trip: Duration,
+    /// TCP: whole frames that answered something else (another transaction id).
+    pub ignored: Vec<Adu>,
+    /// Serial: bytes the resynchronising decoder dropped while waiting.
+    pub dropped_bytes: u64,
+}
+
+/// What a link hands back before decoding.
+struct Received {
+    reply: Adu,
+    round_trip: Duration,
+    ignored: Vec<Adu>,
+    dropped_bytes: u64,
+}
+
+/// A Modbus master on one link: numbers the requests (transaction ids 1, 2, ...,
+/// never 0x0000, which the device's own change notifications may use: design.md §1
+/// step 3) and waits for each answer, bounded by the timeout.
+#[derive(Debug)]
+pub struct Master {
+    link: Link,
+    timeout: Duration,
+    next_tid: u16,
+}
+
+impl Master {
+    pub fn new(link: Link, timeout: Duration) -> Master {
+        Master {
+            link,
+            timeout,
+            next_tid: 1,
+        }
+    }
+
+    pub fn link(&self) -> &Link {
+        &self.link
+    }
+
+    /// The transaction id for the next request; each call gives a new one.
+    pub fn next_tid(&mut self) -> u16 {
+        let tid = self.next_tid;
+        self.next_tid = self.next_tid.checked_add(1).unwrap_or(1);
+        tid
+    }
+
+    /// Sends `request` and waits, at most the timeout in all (connecting or opening
+    /// included), for its answer. After an I/O or protocol error the link is closed,
+    /// to be reopened by the next request; after a timeout it is kept (a late answer
+    /// is recognised by its transaction id and ignored).
+    pub async fn transact(&mut self, request: &Adu) -> Result<Exchange, ClientError> {
+        let deadline = Instant::now() + self.timeout;
+        let ms = self.timeout.as_millis() as u64;
+        let received = match &mut self.link {
+            Link::Tcp { addr, stream, buf } => {
+                tcp_exchange(addr, stream, buf, request, deadline, ms).await
+            }
+            Link::Serial { cfg, port, decoder } => {
+                serial_exchange(cfg, port, decoder, request, deadline, ms).await
+            }
+        };
+        // Over TCP a frame with our transaction id may still answer something else;
+        // on the serial line the judge has already checked (design.md §1 step 4).
+        let result = received.and_then(|r| match decode_reply(request.pdu(), r.reply.pdu()) {
+            Ok(decoded) => Ok(Exchange {
+                reply: r.reply,
+                decoded,
+                round_trip: r.round_trip,
+                ignored: r.ignored,
+                dropped_bytes: r.dropped_bytes,
+            }),
+            Err(source) => Err(ClientError::Mismatch {
+                target: self.link.name().to_string(),
+                source,
+            }),
+        });
+        if matches!(
+            result,
+            Err(ClientError::Io { .. }
+                | ClientError::Closed { .. }
+                | ClientError::Protocol { .. }
+                | ClientError::WrongUnit { .. }
+                | ClientError::Mismatch { .. })
+        ) {
+            self.link.close();
+        }
+        result
+    }
+}
+
+async fn tcp_exchange(
+    addr: &str,
+    stream: &mut Option<TcpStream>,
+    buf: &mut BytesMut,
+    request: &Adu,
+    deadline: Instant,
+    ms: u64,
+) -> Result<Received, ClientError> {
+    let target = || addr.to_string();
+    if stream.is_none() {
+        let s = match timeout_at(deadline, TcpStream::connect(addr)).await {
+            Err(_) => return Err(ClientError::ConnectTimeout { addr: target(), ms }),
+            Ok(Err(source)) => {
+                return Err(ClientError::Connect {
+                    addr: target(),
+                    source,
+                })
+            }
+            Ok(Ok(s)) => s,
+        };
+        let _ = s.set_nodelay(true);
+        buf.clear();
+        *stream = Some(s);
+    }
+    let s = stream.as_mut().expect("connected above");
+    let start = Instant::now();
+    let io = |what, source| ClientError::Io {
+        target: target(),
+        what,
+        source,
+    };
+    let mut ignored = Vec::new();
+    let wait = async {
+        s.write_all(request.as_bytes())
+            .await
+            .map_err(|e| io("sending", e))?;
+        loop {
+            while let Some(frame) = decode_strict(buf).map_err(|source| ClientError::Protocol {
+                target: target(),
+                source,
+            })? {
+                if frame.tid() != request.tid() {
+                    ignored.push(frame);
+                    continue;
+                }
+                if frame.unit() != request.unit() {
+                    return Err(ClientError::WrongUnit {
+                        target: target(),
+                        tid: frame.tid(),
+                        unit: frame.unit(),
+                        asked: request.unit(),
+                    });
+                }
+                return Ok(frame);
+            }
+            if s.read_buf(buf).await.map_err(|e| io("receiving", e))? == 0 {
+                return Err(ClientError::Closed { target: target() });
+            }
+        }
+    };
+    match timeout_at(deadline, wait).await {
+        Err(_) => Err(ClientError::Timeout {
+            target: target(),
+            ms,
+        }),
+        Ok(result) => result.map(|reply| Received {
+            reply,
+            round_trip: start.elapsed(),
+            ignored,
+            dropped_bytes: 0,
+        }),
+    }
+}
+
+async fn serial_exchange(
+    cfg: &SerialConfig,
+    port: &mut Option<SerialStream>,
+    decoder: &mut Resync,
+    request: &Adu,
+    deadline: Instant,
+    ms: u64,
+) -> Result<Received, ClientError> {
+    let target = || cfg.path.clone();
+    if port.is_none() {
+        let p = crate::serial::open(cfg).map_err(|source| ClientError::Open {
+            path: target(),
+            source,
+        })?;
+        decoder.clear();
+        *port = Some(p);
+    }
+    let p = port.as_mut().expect("opened above");
+    let judge = ReplyTo(request);
+    let dropped_before = decoder.stats().dropped_bytes;
+    let start = Instant::now();
+    let io = |what, source| ClientError::Io {
+        target: target(),
+        what,
+        source,
+    };
+    let wait = async {
+        p.write_all(request.as_bytes())
+            .await
+            .map_err(|e| io("sending", e))?;
+        let mut chunk = [0u8; 512];
+        let mut last_byte = Instant::now();
+        let mut quiet = false;
+        loop {
+            if let Some(frame) = decoder.next_frame(&judge, quiet) {
+                return Ok(frame);
+            }
+            // A partial candidate waits for more bytes until the frame gap; then it is
+            // discarded and the rest rescanned (design.md §2).
+            let read = if decoder.buffered() > 0 {
+                match timeout_at(last_byte + FRAME_GAP, p.read(&mut chunk)).await {
+                    Ok(r) => r,
+                    Err(_) => {
+                        quiet = true;
+                        continue;
+                    }
+                }
+            } else {
+                p.read(&mut chunk).await
+            };
+            match read.map_err(|e| io("receiving", e))? {
+                0 => return Err(ClientError::Closed { target: target() }),
+                n => {
+                    decoder.push(&chunk[..n]);
+                    last_byte = Instant::now();
+                    quiet = false;
+                }
+            }
+        }
+    };
+    let result = timeout_at(deadline, wait).await;
+    let dropped_bytes = decoder.stats().dropped_bytes - dropped_before;
+    match result {
+        Err(_) => Err(ClientError::Timeout {
+            target: target(),
+            ms,
+        }),
+        Ok(result) => result.map(|reply| Received {
+            reply,
+            round_trip: start.elapsed(),
+            ignored: Vec::new(),
+            dropped_bytes,
+        }),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn transaction_ids_skip_zero() {
+        let mut m = Master::new(Link::tcp("127.0.0.1"), Duration::from_secs(1));
+        assert_eq!(m.next_tid(), 1);
+        assert_eq!(m.next_tid(), 2);
+        m.next_tid = 0xFFFF;
+        assert_eq!(m.next_tid(), 0xFFFF);
+        assert_eq!(m.next_tid(), 1);
+    }
+
+    #[test]
+    fn judge_takes_only_the_answer_to_its_request() {
+        let req = Adu::build(7, 1, &[3, 0, 0, 0, 1]);
+        let mut d = Resync::new();
+        // A late answer (tid 6), another unit's, a wrong shape, then ours.
+        for f in [
+            Adu::build(6, 1, &[3, 2, 0, 1]),
+            Adu::build(7, 2, &[3, 2, 0, 2]),
+            Adu::build(7, 1, &[3, 4, 0, 3, 0, 3]),
+            Adu::build(7, 1, &[3, 2, 0, 0xFF]),
+        ] {
+            d.push(f.as_bytes());
+        }
+        let got = d.next_frame(&ReplyTo(&req), false).unwrap();
+        assert_eq!(got.pdu(), &[3, 2, 0, 0xFF]);
+    }
+}

@@ -1,0 +1,299 @@
+//! The master client of issue 3: `mbgate read` and `mbgate write` answer the field
+//! engineer's first question, "does the device answer?".
+//!
+//! One request of the common function codes (01, 02, 03, 04, 05, 06, 0F, 10, 17;
+//! protocol.md §1) goes to a gateway over Modbus/TCP, or straight to a device on a
+//! serial port in the CIE-M10's serial Modbus/TCP mode (whole MBAP frames on the line,
+//! no CRC; protocol.md §3). The decoded reply or exception is printed; `--poll` repeats
+//! it, `-v` shows both frames as hex.
+//!
+//! - Over TCP, replies are delimited by the strict decoder (design.md §1 step 1); a
+//!   frame with another transaction id (a late answer to an earlier poll) is ignored.
+//! - On a serial line, which can lose bytes (protocol.md §3), replies are found by the
+//!   resynchronising decoder (design.md §2) with a judge that accepts only the answer
+//!   to the outstanding request: its transaction id, its unit id and the shape the
+//!   request calls for.
+//!
+//! Exit codes, for scripts: 0 a normal response, 3 an exception response, 1 no answer
+//! (timeout, connection refused, port missing, a reply that answers something else),
+//! 2 bad arguments.
+
+mod args;
+mod link;
+
+pub use args::{CommonArgs, ReadArgs, ReadTable, WriteArgs, WriteTable};
+pub use link::{ClientError, Exchange, Link, Master};
+
+use crate::frame::hex::Hex;
+use crate::frame::request::{exception_name, Reply, Request};
+use crate::frame::Adu;
+use std::io;
+use std::process::ExitCode;
+use std::time::{Duration, SystemTime};
+
+/// A normal response.
+pub const EXIT_OK: u8 = 0;
+/// No answer: timeout, connection refused, port missing, or no valid reply.
+pub const EXIT_NO_ANSWER: u8 = 1;
+/// Bad arguments (clap uses 2 too).
+pub const EXIT_USAGE: u8 = 2;
+/// The device (or the gateway) answered with an exception.
+pub const EXIT_EXCEPTION: u8 = 3;
+
+/// `mbgate read`: exit code 0, 1, 2 or 3 (module docs).
+pub fn read_main(args: ReadArgs) -> ExitCode {
+    let request = args.request();
+    run(&args.common, request)
+}
+
+/// `mbgate write`: exit code 0, 1, 2 or 3 (module docs).
+pub fn write_main(args: WriteArgs) -> ExitCode {
+    match args.request() {
+        Ok(request) => run(&args.common, request),
+        Err(e) => usage(&e),
+    }
+}
+
+fn usage(message: &str) -> ExitCode {
+    eprintln!("mbgate: {message}");
+    ExitCode::from(EXIT_USAGE)
+}
+
+fn run(common: &CommonArgs, request: Request) -> ExitCode {
+    let pdu = match request.pdu() {
+        Ok(pdu) => pdu,
+        Err(e) => return usage(&e.to_string()),
+    };
+    let rt = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("mbgate: starting the runtime: {e}");
+            return ExitCode::from(EXIT_NO_ANSWER);
+        }
+    };
+    ExitCode::from(rt.block_on(session(common, &pdu)))
+}
+
+/// A line on stdout; a closed stdout (`| head`) is not an error worth a panic.
+fn say(line: std::fmt::Arguments<'_>) {
+    use std::io::Write as _;
+    let _ = writeln!(io::stdout(), "{line}");
+}
+
+/// Round trips of a polling session, for the summary.
+#[derive(Default)]
+struct Tally {
+    polls: u64,
+    replies: u64,
+    exceptions: u64,
+    failures: u64,
+    min: Option<Duration>,
+    max: Duration,
+    sum: Duration,
+}
+
+impl Tally {
+    fn add(&mut self, code: u8, rtt: Option<Duration>) {
+        self.polls += 1;
+        match code {
+            EXIT_OK => self.replies += 1,
+            EXIT_EXCEPTION => self.exceptions += 1,
+            _ => self.failures += 1,
+        }
+        if let Some(rtt) = rtt {
+            self.min = Some(self.min.map_or(rtt, |m| m.min(rtt)));
+            self.max = self.max.max(rtt);
+            self.sum += rtt;
+        }
+    }
+
+    fn summary(&self) -> String {
+        let mut s = format!(
+            "--- {} requests: {} replies, {} exceptions, {} unanswered",
+            self.polls, self.replies, self.exceptions, self.failures
+        );
+        let answered = self.replies + self.exceptions;
+        if let (Some(min), true) = (self.min, answered > 0) {
+            s += &format!(
+                "; round trip min/avg/max {}/{}/{} ms",
+                millis(min),
+                millis(self.sum / answered as u32),
+                millis(self.max)
+            );
+        }
+        s
+    }
+}
+
+fn millis(d: Duration) -> String {
+    format!("{:.1}", d.as_secs_f64() * 1000.0)
+}
+
+/// One request, or one per `--poll` period until `--count` or Ctrl-C. Returns the exit
+/// code of the last request.
+async fn session(common: &CommonArgs, pdu: &[u8]) -> u8 {
+    let mut master = Master::new(common.link(), Duration::from_millis(common.timeout_ms));
+    let Some(period) = common.poll else {
+        return once(&mut master, common, pdu, None).await.0;
+    };
+    let mut ticker = tokio::time::interval(Duration::from_millis(period));
+    ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    let ctrl_c = tokio::signal::ctrl_c();
+    tokio::pin!(ctrl_c);
+    let mut tally = Tally::default();
+    let mut last = EXIT_NO_ANSWER;
+    while common.count.is_none_or(|n| tally.polls < n) {
+        tokio::select! {
+            _ = ticker.tick() => {}
+            _ = &mut ctrl_c => break,
+        }
+        let stamp = SystemTime::now();
+        tokio::select! {
+            (code, rtt) = once(&mut master, common, pdu, Some(stamp)) => {
+                tally.add(code, rtt);
+                last = code;
+            }
+            _ = &mut ctrl_c => break,
+        }
+    }
+    say(format_args!("{}", tally.summary()));
+    last
+}
+
+/// Sends one request and prints the outcome: with `-v` both frames, then a status line
+/// (timestamped when polling), then the values. Returns the exit code and the round
+/// trip, if answered.
+async fn once(
+    master: &mut Master,
+    common: &CommonArgs,
+    pdu: &[u8],
+    stamp: Option<SystemTime>,
+) -> (u8, Option<Duration>) {
+    let request = Adu::build(master.next_tid(), common.unit, pdu);
+    let outcome = master.transact(&request).await;
+    let prefix = stamp
+        .map(|t| format!("{} ", utc_stamp(t)))
+        .unwrap_or_default();
+    let tx = || {
+        if common.verbose {
+            say(format_args!("tx {}", Hex(request.as_bytes())));
+        }
+    };
+    let x = match outcome {
+        Ok(x) => x,
+        Err(e) => {
+            if stamp.is_some() {
+                say(format_args!("{prefix}{e}"));
+            } else {
+                eprintln!("mbgate: {e}");
+            }
+            tx();
+            return (EXIT_NO_ANSWER, None);
+        }
+    };
+    let rtt = millis(x.round_trip);
+    let code = match x.decoded {
+        Reply::Exception { function, code } => {
+            say(format_args!(
+                "{prefix}exception 0x{code:02X} {} (fc 0x{function:02X}) in {rtt} ms",
+                exception_name(code)
+            ));
+            EXIT_EXCEPTION
+        }
+        _ => {
+            say(format_args!("{prefix}reply in {rtt} ms"));
+            EXIT_OK
+        }
+    };
+    tx();
+    if common.verbose {
+        for f in &x.ignored {
+            say(format_args!(
+                "rx {} (transaction id {:#06x} is not ours: ignored)",
+                Hex(f.as_bytes()),
+                f.tid()
+            ));
+        }
+        if x.dropped_bytes > 0 {
+            say(format_args!(
+                "rx skipped {} bytes that were not the reply",
+                x.dropped_bytes
+            ));
+        }
+        say(format_args!("rx {}", Hex(x.reply.as_bytes())));
+    }
+    for line in value_lines(&x.decoded) {
+        say(format_args!("{line}"));
+    }
+    (code, Some(x.round_trip))
+}
+
+/// `ADDR: VALUE (0xHEX)` for registers, `ADDR: 1` / `ADDR: 0` for bits, one a line.
+fn value_lines(reply: &Reply) -> Vec<String> {
+    let register = |addr: u16, v: u16| format!("{addr}: {v} (0x{v:04X})");
+    let bit = |addr: u16, b: bool| format!("{addr}: {}", u8::from(b));
+    match reply {
+        Reply::Bits { addr, values } => values
+            .iter()
+            .zip(*addr..=u16::MAX)
+            .map(|(&b, a)| bit(a, b))
+            .collect(),
+        Reply::Registers { addr, values } => values
+            .iter()
+            .zip(*addr..=u16::MAX)
+            .map(|(&v, a)| register(a, v))
+            .collect(),
+        Reply::WroteCoil { addr, value } => vec![bit(*addr, *value)],
+        Reply::WroteRegister { addr, value } => vec![register(*addr, *value)],
+        Reply::WroteMany { addr, qty } => {
+            let last = u32::from(*addr) + u32::from(*qty).max(1) - 1;
+            vec![format!("wrote {qty} at {addr}..{last}")]
+        }
+        Reply::Raw { data } => vec![format!("data {}", Hex(data))],
+        Reply::Exception { .. } => Vec::new(),
+    }
+}
+
+/// `2025-06-01T10:00:00.123Z`: UTC, millisecond resolution.
+fn utc_stamp(t: SystemTime) -> String {
+    humantime::format_rfc3339_millis(t).to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::UNIX_EPOCH;
+
+    #[test]
+    fn value_lines_format() {
+        assert_eq!(
+            value_lines(&Reply::Registers {
+                addr: 0,
+                values: vec![0xFF, 1001]
+            }),
+            ["0: 255 (0x00FF)", "1: 1001 (0x03E9)"]
+        );
+        assert_eq!(
+            value_lines(&Reply::Bits {
+                addr: 20,
+                values: vec![true, false]
+            }),
+            ["20: 1", "21: 0"]
+        );
+        assert_eq!(
+            value_lines(&Reply::WroteMany { addr: 20, qty: 3 }),
+            ["wrote 3 at 20..22"]
+        );
+    }
+
+    #[test]
+    fn timestamps() {
+        assert_eq!(utc_stamp(UNIX_EPOCH), "1970-01-01T00:00:00.000Z");
+        // 2024-02-29T12:34:56.789Z
+        let t = UNIX_EPOCH + Duration::from_millis(1_709_210_096_789);
+        assert_eq!(utc_stamp(t), "2024-02-29T12:34:56.789Z");
+    }
+}
