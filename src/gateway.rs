@@ -25,10 +25,25 @@ pub enum GatewayError {
 /// Runs the gateway until `shutdown` is cancelled, then drains and returns the totals.
 /// The bound address is logged as `listening on ADDR` (port 0 becomes a real port).
 pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>, GatewayError> {
+    let listener = bind(&cfg).await?;
+    serve(listener, cfg, shutdown).await
+}
+
+/// Binds `tcp.listen`.
+pub async fn bind(cfg: &Config) -> Result<TcpListener, GatewayError> {
     let addr = cfg.tcp.listen;
-    let listener = TcpListener::bind(addr)
+    TcpListener::bind(addr)
         .await
-        .map_err(|source| GatewayError::Bind { addr, source })?;
+        .map_err(|source| GatewayError::Bind { addr, source })
+}
+
+/// [`run`] on a listener already bound (`mbgate demo` prints its address first).
+pub async fn serve(
+    listener: TcpListener,
+    cfg: Config,
+    shutdown: CancellationToken,
+) -> Result<Arc<Stats>, GatewayError> {
+    let addr = cfg.tcp.listen;
     let local = listener
         .local_addr()
         .map_err(|source| GatewayError::Bind { addr, source })?;

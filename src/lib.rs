@@ -2,11 +2,13 @@
 
 pub mod client;
 pub mod config;
+pub mod demo;
 pub mod frame;
 pub mod gateway;
 pub mod number;
 pub mod relay;
 pub mod serial;
+pub mod sim;
 pub mod stats;
 pub mod tcp;
 pub mod tids;

@@ -46,6 +46,13 @@ enum Command {
     /// To a gateway (--tcp) or a device on a serial port (--serial). Exit code 0 on a
     /// reply, 3 on an exception, 1 on no answer, 2 on bad arguments.
     Write(mbgate::client::WriteArgs),
+    /// A simulated device on a serial port or pty (a CIE-M10, or generic devices).
+    ///
+    /// With a console when stdin is a terminal (`help` lists its commands); headless
+    /// otherwise, logging each packet.
+    Sim(mbgate::sim::options::SimArgs),
+    /// No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process.
+    Demo(mbgate::demo::DemoArgs),
 }
 
 /// Exit code for a bad configuration or bad arguments (design.md §3; clap uses 2 too).
@@ -56,6 +63,8 @@ fn main() -> ExitCode {
     match cli.command {
         Command::Read(args) => mbgate::client::read_main(args),
         Command::Write(args) => mbgate::client::write_main(args),
+        Command::Sim(args) => sim(args),
+        Command::Demo(args) => demo(args),
         Command::CheckConfig { file, overrides } => match effective(Some(file), &overrides) {
             Ok(cfg) => {
                 print!("{}", config::to_toml(&cfg));
@@ -96,11 +105,15 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
 }
 
 fn init_tracing(cfg: &Config) {
+    init_tracing_at(&cfg.log.level, cfg.log.traffic);
+}
+
+fn init_tracing_at(level: &str, traffic: bool) {
     let mut filter = match std::env::var("RUST_LOG") {
         Ok(s) if !s.is_empty() => EnvFilter::new(s),
-        _ => EnvFilter::new(&cfg.log.level),
+        _ => EnvFilter::new(level),
     };
-    if cfg.log.traffic {
+    if traffic {
         filter = filter.add_directive("mbgate::traffic=debug".parse().expect("valid directive"));
     }
     tracing_subscriber::fmt()
@@ -124,6 +137,87 @@ fn run(cfg: Config) -> anyhow::Result<()> {
         mbgate::gateway::run(cfg, shutdown).await?;
         Ok(())
     })
+}
+
+/// The simulator's log level: as asked, else `info` headless and `warn` under the
+/// console, so packets do not scroll over the prompt.
+fn sim_level(device: &mbgate::sim::options::DeviceArgs) -> (String, bool) {
+    let console = !device.headless && std::io::IsTerminal::is_terminal(&std::io::stdin());
+    let level = device
+        .log_level
+        .clone()
+        .unwrap_or_else(|| if console { "warn" } else { "info" }.into());
+    (level, console)
+}
+
+fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the runtime")
+}
+
+/// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
+fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
+    use mbgate::sim::serve::{self, Port};
+    let settings = match args.device.settings() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("mbgate: {e}");
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    };
+    let (level, console) = sim_level(&args.device);
+    init_tracing_at(&level, false);
+    let result = runtime().and_then(|rt| {
+        rt.block_on(async {
+            let shutdown = CancellationToken::new();
+            tokio::spawn(watch_signals(shutdown.clone()));
+            let commands = mbgate::sim::terminal::start(console);
+            serve::run(
+                settings,
+                Port::Path(args.serial_config()),
+                commands,
+                shutdown,
+            )
+            .await?;
+            Ok(())
+        })
+    });
+    finish(result)
+}
+
+/// `mbgate demo`.
+fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
+    let settings = match args.device.settings() {
+        Ok(s) => s,
+        Err(e) => {
+            eprintln!("mbgate: {e}");
+            return ExitCode::from(EXIT_CONFIG);
+        }
+    };
+    let (level, console) = sim_level(&args.device);
+    init_tracing_at(&level, args.traffic);
+    let result = runtime().and_then(|rt| {
+        rt.block_on(async {
+            let shutdown = CancellationToken::new();
+            tokio::spawn(watch_signals(shutdown.clone()));
+            let commands = mbgate::sim::terminal::start(console);
+            mbgate::demo::run(&args, settings, commands, shutdown).await?;
+            Ok(())
+        })
+    });
+    finish(result)
+}
+
+fn finish(result: anyhow::Result<()>) -> ExitCode {
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("mbgate: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
 }
 
 /// SIGTERM (systemd stop) or SIGINT (Ctrl-C) starts a graceful shutdown.

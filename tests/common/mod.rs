@@ -2,6 +2,8 @@
 //! processes, a scriptable raw device on a pty, and a raw TCP master.
 #![allow(dead_code)]
 
+pub mod sim;
+
 use mbgate::frame::mbap::decode_strict;
 use mbgate::frame::Adu;
 use std::io::{BufRead, BufReader, ErrorKind, Read, Write};

@@ -1,0 +1,249 @@
+//! The simulator's console (protocol.md §4: seed 003's slave menu, as commands): add,
+//! remove and list devices, set inputs and values, show and clear the packet log,
+//! clear the screen, quit. Parsing only; the simulator carries the commands out.
+
+use std::fmt;
+
+/// A table of the generic profile's devices.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Table {
+    Coils,
+    Discrete,
+    Holding,
+    Input,
+}
+
+impl Table {
+    fn parse(s: &str) -> Result<Self, String> {
+        Ok(match s {
+            "coil" | "coils" | "co" => Table::Coils,
+            "discrete" | "di" => Table::Discrete,
+            "holding" | "hr" => Table::Holding,
+            "input" | "ir" => Table::Input,
+            _ => {
+                return Err(format!(
+                    "unknown table `{s}`: coils, discrete, holding or input"
+                ))
+            }
+        })
+    }
+}
+
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Command {
+    Help,
+    /// List the devices and their state.
+    List,
+    /// Add a device (generic profile): unit, coils, registers.
+    Add {
+        unit: u8,
+        bits: Option<usize>,
+        registers: Option<usize>,
+    },
+    Remove {
+        unit: u8,
+    },
+    /// Set one input port of the CIE-M10 on or off.
+    Input {
+        port: u8,
+        on: bool,
+    },
+    /// Set all eight input ports of the CIE-M10.
+    Inputs(u8),
+    /// Set a value in a generic device's table.
+    Set {
+        unit: u8,
+        table: Table,
+        address: u16,
+        value: u16,
+    },
+    /// Show the last `n` packets (all when `None`).
+    Log(Option<usize>),
+    ClearLog,
+    ClearScreen,
+    Quit,
+}
+
+pub const HELP: &str = "\
+commands:
+  list                          devices and their state
+  add UNIT [COILS [REGISTERS]]  add a device (generic; at least 10 of each)
+  remove UNIT                   remove a device (generic)
+  input PORT on|off             set one input port 0..7 (cie-m10)
+  inputs VALUE                  set all eight input ports, e.g. 0xFF or 0b1010 (cie-m10)
+  set UNIT TABLE ADDR VALUE     set coils|discrete|holding|input ADDR (generic)
+  log [N]                       the packet log (the last N packets)
+  clear-log                     empty the packet log
+  clear                         clear the screen
+  quit | q                      stop the simulator";
+
+fn bounded<T: TryFrom<i64>>(s: &str, what: &str) -> Result<T, String> {
+    let n = crate::number::parse(s).ok_or_else(|| format!("not a number: `{s}`"))?;
+    T::try_from(n).map_err(|_| format!("{what} out of range: {s}"))
+}
+
+fn on_off(s: &str) -> Result<bool, String> {
+    match s {
+        "on" | "1" | "true" => Ok(true),
+        "off" | "0" | "false" => Ok(false),
+        _ => Err(format!("expected on or off, not `{s}`")),
+    }
+}
+
+impl Command {
+    /// One console line; `Ok(None)` for an empty line.
+    pub fn parse(line: &str) -> Result<Option<Command>, String> {
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let Some((&first, args)) = words.split_first() else {
+            return Ok(None);
+        };
+        let want = |n: std::ops::RangeInclusive<usize>, usage: &str| {
+            if n.contains(&args.len()) {
+                Ok(())
+            } else {
+                Err(format!("usage: {usage}"))
+            }
+        };
+        let cmd = match first.to_ascii_lowercase().as_str() {
+            "help" | "h" | "?" => Command::Help,
+            "list" | "ls" | "l" => Command::List,
+            "add" => {
+                want(1..=3, "add UNIT [COILS [REGISTERS]]")?;
+                Command::Add {
+                    unit: bounded(args[0], "unit")?,
+                    bits: args.get(1).map(|s| bounded(s, "coils")).transpose()?,
+                    registers: args.get(2).map(|s| bounded(s, "registers")).transpose()?,
+                }
+            }
+            "remove" | "rm" => {
+                want(1..=1, "remove UNIT")?;
+                Command::Remove {
+                    unit: bounded(args[0], "unit")?,
+                }
+            }
+            "input" => {
+                want(2..=2, "input PORT on|off")?;
+                let port: u8 = bounded(args[0], "port")?;
+                if port > 7 {
+                    return Err(format!("port out of range: {port} (0..7)"));
+                }
+                Command::Input {
+                    port,
+                    on: on_off(args[1])?,
+                }
+            }
+            "inputs" => {
+                want(1..=1, "inputs VALUE")?;
+                Command::Inputs(bounded(args[0], "inputs")?)
+            }
+            "set" => {
+                want(4..=4, "set UNIT TABLE ADDR VALUE")?;
+                let table = Table::parse(args[1])?;
+                let value = match table {
+                    Table::Coils | Table::Discrete => u16::from(on_off(args[3])?),
+                    _ => bounded(args[3], "value")?,
+                };
+                Command::Set {
+                    unit: bounded(args[0], "unit")?,
+                    table,
+                    address: bounded(args[2], "address")?,
+                    value,
+                }
+            }
+            "log" => {
+                want(0..=1, "log [N]")?;
+                Command::Log(args.first().map(|s| bounded(s, "count")).transpose()?)
+            }
+            "clear-log" | "clearlog" => Command::ClearLog,
+            "clear" | "cls" => Command::ClearScreen,
+            "quit" | "q" | "exit" => Command::Quit,
+            other => return Err(format!("unknown command `{other}`; `help` lists them")),
+        };
+        Ok(Some(cmd))
+    }
+}
+
+impl fmt::Display for Table {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Table::Coils => "coils",
+            Table::Discrete => "discrete",
+            Table::Holding => "holding",
+            Table::Input => "input",
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_seed_menu_as_commands() {
+        let p = |s| Command::parse(s).unwrap().unwrap();
+        assert_eq!(
+            p("add 2 10 10"),
+            Command::Add {
+                unit: 2,
+                bits: Some(10),
+                registers: Some(10)
+            }
+        );
+        assert_eq!(
+            p("add 3"),
+            Command::Add {
+                unit: 3,
+                bits: None,
+                registers: None
+            }
+        );
+        assert_eq!(p("remove 2"), Command::Remove { unit: 2 });
+        assert_eq!(p("list"), Command::List);
+        assert_eq!(p("log"), Command::Log(None));
+        assert_eq!(p("log 5"), Command::Log(Some(5)));
+        assert_eq!(p("clear-log"), Command::ClearLog);
+        assert_eq!(p("Clear"), Command::ClearScreen);
+        assert_eq!(p("Q"), Command::Quit);
+        assert_eq!(p("input 4 on"), Command::Input { port: 4, on: true });
+        assert_eq!(p("inputs 0b00010001"), Command::Inputs(0x11));
+        assert_eq!(p("inputs 0xFF"), Command::Inputs(0xFF));
+        assert_eq!(
+            p("set 1 holding 0x10 65535"),
+            Command::Set {
+                unit: 1,
+                table: Table::Holding,
+                address: 16,
+                value: 65535
+            }
+        );
+        assert_eq!(
+            p("set 1 coils 3 on"),
+            Command::Set {
+                unit: 1,
+                table: Table::Coils,
+                address: 3,
+                value: 1
+            }
+        );
+        assert_eq!(Command::parse("   ").unwrap(), None);
+    }
+
+    #[test]
+    fn errors_say_what_is_wrong() {
+        let e = |s| Command::parse(s).unwrap_err();
+        assert_eq!(e("add"), "usage: add UNIT [COILS [REGISTERS]]");
+        assert_eq!(e("add 300"), "unit out of range: 300");
+        assert_eq!(e("input 8 on"), "port out of range: 8 (0..7)");
+        assert_eq!(e("input 1 maybe"), "expected on or off, not `maybe`");
+        assert_eq!(e("inputs 0x100"), "inputs out of range: 0x100");
+        assert_eq!(
+            e("set 1 foo 0 1"),
+            "unknown table `foo`: coils, discrete, holding or input"
+        );
+        assert_eq!(
+            e("frobnicate"),
+            "unknown command `frobnicate`; `help` lists them"
+        );
+        assert_eq!(e("log x"), "not a number: `x`");
+    }
+}

@@ -1,0 +1,358 @@
+//! The device simulator (issue 3; design.md §3 `mbgate sim`, protocol.md §3 and §4): a
+//! simulated device on a serial port or pty, speaking the gateway's framing, so nobody
+//! needs a CIE-M10 on their desk.
+//!
+//! - [`cie_m10`] and [`generic`] are the device profiles (pure: PDU in, PDU out);
+//! - [`line`] is the line model: seeded loss and noise, and a UART's pace;
+//! - [`console`] parses the console's commands, [`packets`] keeps the packet log;
+//! - [`serve`] is the task that owns the port, [`terminal`] the console's thread;
+//! - [`options`] is the command line.
+
+pub mod cie_m10;
+pub mod console;
+pub mod generic;
+pub mod line;
+pub mod options;
+pub mod packets;
+pub mod serve;
+pub mod terminal;
+
+use console::{Command, Table};
+use packets::PacketLog;
+
+/// What a device does with one request: a reply PDU (or silence, for a unit id that is
+/// not there), and an unsolicited notification PDU that the request caused.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Answer {
+    pub reply: Option<Vec<u8>>,
+    pub notification: Option<Vec<u8>>,
+}
+
+impl Answer {
+    pub fn silent() -> Self {
+        Self::default()
+    }
+
+    pub fn reply(pdu: Vec<u8>) -> Self {
+        Self {
+            reply: Some(pdu),
+            notification: None,
+        }
+    }
+}
+
+/// An exception response PDU (protocol.md §1).
+pub fn exception_pdu(function: u8, code: u8) -> Vec<u8> {
+    vec![function | 0x80, code]
+}
+
+/// Which device the simulator is.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Profile {
+    CieM10(cie_m10::CieM10),
+    Generic(generic::Generic),
+}
+
+/// The simulated device: its profile's state, the packet log, and what it needs to
+/// create devices from the console.
+#[derive(Debug)]
+pub struct Device {
+    pub profile: Profile,
+    pub log: PacketLog,
+    /// Supplies the random discrete inputs of new generic devices (seeded).
+    rng: fastrand::Rng,
+    /// Sizes of a device added without them.
+    pub default_bits: usize,
+    pub default_registers: usize,
+}
+
+/// What a console command produced.
+#[derive(Debug, Default)]
+pub struct Outcome {
+    /// Text for the console.
+    pub text: String,
+    /// A notification PDU to send (the inputs changed).
+    pub notification: Option<Vec<u8>>,
+    pub quit: bool,
+}
+
+impl Outcome {
+    fn text(text: impl Into<String>) -> Self {
+        Self {
+            text: text.into(),
+            ..Self::default()
+        }
+    }
+}
+
+/// The creation date and time of a device made now (UTC).
+pub fn now_civil() -> [u16; 6] {
+    generic::civil_time(std::time::SystemTime::now())
+}
+
+impl Device {
+    pub fn new(profile: Profile, seed: u64) -> Self {
+        Self {
+            profile,
+            log: PacketLog::default(),
+            rng: fastrand::Rng::with_seed(seed),
+            default_bits: generic::MIN_SIZE,
+            default_registers: generic::MIN_SIZE,
+        }
+    }
+
+    /// A generic profile with a device on each of `units`, seed 003's way.
+    pub fn generic(units: &[u8], bits: usize, registers: usize, seed: u64) -> Self {
+        let mut d = Self::new(Profile::Generic(generic::Generic::default()), seed);
+        d.default_bits = bits;
+        d.default_registers = registers;
+        for &unit in units {
+            d.add(unit, bits, registers);
+        }
+        d
+    }
+
+    fn add(&mut self, unit: u8, bits: usize, registers: usize) {
+        let bank = generic::Bank::new(bits, registers, now_civil(), &mut self.rng);
+        if let Profile::Generic(g) = &mut self.profile {
+            g.units.insert(unit, bank);
+        }
+    }
+
+    /// Answers one request PDU for `unit`.
+    pub fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
+        match &mut self.profile {
+            Profile::CieM10(d) => d.answer(unit, pdu),
+            Profile::Generic(g) => g.answer(unit, pdu),
+        }
+    }
+
+    /// The unit id notifications come from, if the profile sends any.
+    pub fn notifying_unit(&self) -> Option<u8> {
+        match &self.profile {
+            Profile::CieM10(d) => Some(d.unit),
+            Profile::Generic(_) => None,
+        }
+    }
+
+    /// The scheduled input change (`--toggle-ms`): the CIE-M10's inputs count up by one,
+    /// so every port changes in turn. Returns the notification, if any.
+    pub fn toggle(&mut self) -> Option<Vec<u8>> {
+        match &mut self.profile {
+            Profile::CieM10(d) => {
+                let next = d.inputs.wrapping_add(1);
+                d.set_inputs(next);
+                d.notification()
+            }
+            Profile::Generic(_) => None,
+        }
+    }
+
+    /// Carries out a console command.
+    pub fn execute(&mut self, cmd: Command) -> Outcome {
+        match cmd {
+            Command::Help => Outcome::text(console::HELP),
+            Command::List => Outcome::text(self.list()),
+            Command::Log(n) => Outcome::text(self.log.render(n).trim_end().to_string()),
+            Command::ClearLog => {
+                let n = self.log.len();
+                self.log.clear();
+                Outcome::text(format!("cleared {n} packets"))
+            }
+            Command::ClearScreen => Outcome::text("\x1b[2J\x1b[H"),
+            Command::Quit => Outcome {
+                quit: true,
+                ..Outcome::text("bye")
+            },
+            Command::Add {
+                unit,
+                bits,
+                registers,
+            } => self.console_add(unit, bits, registers),
+            Command::Remove { unit } => match &mut self.profile {
+                Profile::Generic(g) => match g.units.remove(&unit) {
+                    Some(_) => Outcome::text(format!("removed unit {unit}")),
+                    None => Outcome::text(format!("no unit {unit}")),
+                },
+                Profile::CieM10(_) => Outcome::text("the cie-m10 profile is one device"),
+            },
+            Command::Input { port, on } => self.cie_inputs(|inputs| {
+                if on {
+                    inputs | 1 << port
+                } else {
+                    inputs & !(1 << port)
+                }
+            }),
+            Command::Inputs(v) => self.cie_inputs(|_| v),
+            Command::Set {
+                unit,
+                table,
+                address,
+                value,
+            } => self.set(unit, table, address, value),
+        }
+    }
+
+    fn console_add(&mut self, unit: u8, bits: Option<usize>, registers: Option<usize>) -> Outcome {
+        let Profile::Generic(g) = &self.profile else {
+            return Outcome::text("the cie-m10 profile is one device; use --profile generic");
+        };
+        let bits = bits.unwrap_or(self.default_bits);
+        let registers = registers.unwrap_or(self.default_registers);
+        let sizes = generic::MIN_SIZE..=generic::MAX_SIZE;
+        if !(1..=247).contains(&unit) {
+            return Outcome::text(format!("unit must be 1..247, not {unit}"));
+        }
+        if !sizes.contains(&bits) || !sizes.contains(&registers) {
+            return Outcome::text(format!(
+                "coils and registers must be {}..{}",
+                generic::MIN_SIZE,
+                generic::MAX_SIZE
+            ));
+        }
+        if g.units.contains_key(&unit) {
+            return Outcome::text(format!("unit {unit} exists; remove it first"));
+        }
+        self.add(unit, bits, registers);
+        Outcome::text(format!(
+            "added unit {unit}: {bits} coils, {registers} registers"
+        ))
+    }
+
+    fn cie_inputs(&mut self, f: impl FnOnce(u8) -> u8) -> Outcome {
+        let Profile::CieM10(d) = &mut self.profile else {
+            return Outcome::text(
+                "inputs are the cie-m10 profile's; use `set` for generic devices",
+            );
+        };
+        let changed = d.set_inputs(f(d.inputs));
+        Outcome {
+            text: format!("inputs {:08b}", d.inputs),
+            notification: changed.then(|| d.notification()).flatten(),
+            quit: false,
+        }
+    }
+
+    fn set(&mut self, unit: u8, table: Table, address: u16, value: u16) -> Outcome {
+        let Profile::Generic(g) = &mut self.profile else {
+            return Outcome::text("`set` is for generic devices; use `input` or `inputs`");
+        };
+        let Some(bank) = g.units.get_mut(&unit) else {
+            return Outcome::text(format!("no unit {unit}"));
+        };
+        let a = usize::from(address);
+        let ok = match table {
+            Table::Coils => bank.coils.get_mut(a).map(|s| *s = value != 0),
+            Table::Discrete => bank.discrete.get_mut(a).map(|s| *s = value != 0),
+            Table::Holding => bank.holding.get_mut(a).map(|s| *s = value),
+            Table::Input => bank.input.get_mut(a).map(|s| *s = value),
+        };
+        match ok {
+            Some(()) => Outcome::text(format!("unit {unit} {table} {address} = {value}")),
+            None => Outcome::text(format!("unit {unit} has no {table} {address}")),
+        }
+    }
+
+    fn list(&self) -> String {
+        match &self.profile {
+            Profile::CieM10(d) => {
+                format!(
+                "cie-m10 unit {}: inputs {:08b} at register {}, outputs {:08b} at register {}{}{}",
+                d.unit,
+                d.inputs,
+                d.input_address,
+                d.outputs,
+                d.output_address,
+                if d.loopback { ", inputs wired to outputs" } else { "" },
+                if d.notify { ", change notification on" } else { "" },
+            )
+            }
+            Profile::Generic(g) if g.units.is_empty() => "no devices".into(),
+            Profile::Generic(g) => g
+                .units
+                .iter()
+                .map(|(unit, bank)| format!("unit {unit}: {bank}"))
+                .collect::<Vec<_>>()
+                .join("\n"),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn run(d: &mut Device, line: &str) -> Outcome {
+        d.execute(Command::parse(line).unwrap().unwrap())
+    }
+
+    #[test]
+    fn console_manages_generic_devices() {
+        let mut d = Device::generic(&[1], 10, 10, 3);
+        assert_eq!(
+            run(&mut d, "add 2 20 30").text,
+            "added unit 2: 20 coils, 30 registers"
+        );
+        assert_eq!(run(&mut d, "add 2").text, "unit 2 exists; remove it first");
+        assert_eq!(
+            run(&mut d, "add 3 5").text,
+            "coils and registers must be 10..65536"
+        );
+        let list = run(&mut d, "list").text;
+        assert!(list.contains("unit 1: 10 coils, 10 registers"), "{list}");
+        assert!(list.contains("unit 2: 20 coils, 30 registers"), "{list}");
+        assert_eq!(
+            run(&mut d, "set 2 holding 29 7").text,
+            "unit 2 holding 29 = 7"
+        );
+        assert_eq!(
+            run(&mut d, "set 2 holding 30 7").text,
+            "unit 2 has no holding 30"
+        );
+        assert_eq!(d.answer(2, &[3, 0, 29, 0, 1]).reply, Some(vec![3, 2, 0, 7]));
+        assert_eq!(run(&mut d, "remove 2").text, "removed unit 2");
+        assert_eq!(d.answer(2, &[3, 0, 29, 0, 1]), Answer::silent());
+        assert!(run(&mut d, "quit").quit);
+    }
+
+    #[test]
+    fn console_sets_cie_m10_inputs_and_notifies() {
+        let mut d = Device::new(
+            Profile::CieM10(cie_m10::CieM10 {
+                notify: true,
+                ..Default::default()
+            }),
+            0,
+        );
+        let o = run(&mut d, "input 0 on");
+        assert_eq!(o.text, "inputs 00000001");
+        assert_eq!(o.notification, Some(vec![3, 2, 0, 1]));
+        assert_eq!(
+            run(&mut d, "input 0 on").notification,
+            None,
+            "no change, no notification"
+        );
+        assert_eq!(
+            run(&mut d, "inputs 0xF0").notification,
+            Some(vec![3, 2, 0, 0xF0])
+        );
+        assert_eq!(d.toggle(), Some(vec![3, 2, 0, 0xF1]));
+        assert_eq!(
+            run(&mut d, "add 2").text,
+            "the cie-m10 profile is one device; use --profile generic"
+        );
+    }
+
+    #[test]
+    fn same_seed_same_discrete_inputs() {
+        let a = Device::generic(&[1, 2], 64, 10, 42);
+        let b = Device::generic(&[1, 2], 64, 10, 42);
+        let (Profile::Generic(a), Profile::Generic(b)) = (&a.profile, &b.profile) else {
+            unreachable!()
+        };
+        assert_eq!(a.units[&2].discrete, b.units[&2].discrete);
+        assert!(
+            a.units[&1].discrete.iter().any(|&x| x) && a.units[&1].discrete.iter().any(|&x| !x)
+        );
+    }
+}

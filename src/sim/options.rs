@@ -1,0 +1,360 @@
+//! The simulator's command line (issue 3, `mbgate sim`; shared with `mbgate demo`) and
+//! its validation into [`Settings`].
+
+use super::cie_m10::CieM10;
+use super::line::Faults;
+use super::{generic, Device, Profile};
+use crate::config::{FlowControl, Parity, SerialConfig};
+use std::path::PathBuf;
+use std::time::Duration;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ProfileName {
+    /// The Sollae CIE-M10/H10 of protocol.md §3: 8 inputs, 8 outputs, FC 03 and 16.
+    #[value(name = "cie-m10")]
+    CieM10,
+    /// Devices by unit id with all four tables, FC 01-06, 0F, 10, 17.
+    Generic,
+}
+
+/// Which direction the line faults hit.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum FaultDirection {
+    Both,
+    /// Bytes the gateway sends to the device.
+    ToDevice,
+    /// Bytes the device sends to the gateway.
+    FromDevice,
+}
+
+/// The device and line options, common to `sim` and `demo`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct DeviceArgs {
+    /// The simulated device.
+    #[arg(long, value_enum, default_value_t = ProfileName::CieM10)]
+    pub profile: ProfileName,
+
+    /// cie-m10: the unit id it answers.
+    #[arg(long, default_value_t = 1, help_heading = "cie-m10 profile")]
+    pub unit: u8,
+    /// cie-m10: register of the 8 input ports.
+    #[arg(
+        long,
+        default_value_t = 0,
+        value_name = "REGISTER",
+        help_heading = "cie-m10 profile"
+    )]
+    pub input_address: u16,
+    /// cie-m10: register of the 8 output ports.
+    #[arg(
+        long,
+        default_value_t = 8,
+        value_name = "REGISTER",
+        help_heading = "cie-m10 profile"
+    )]
+    pub output_address: u16,
+    /// cie-m10: wire each output to its input, so inputs follow the outputs.
+    #[arg(long, help_heading = "cie-m10 profile")]
+    pub loopback: bool,
+    /// cie-m10: input port change notification, an unsolicited FC 03 response
+    /// (transaction id 0) whenever an input changes.
+    #[arg(long, help_heading = "cie-m10 profile")]
+    pub notify: bool,
+    /// cie-m10: change the inputs on a schedule (they count up by one every MS).
+    #[arg(long, value_name = "MS", help_heading = "cie-m10 profile")]
+    pub toggle_ms: Option<u64>,
+
+    /// generic: unit ids of the devices, comma separated.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "1",
+        value_name = "UNITS",
+        help_heading = "generic profile"
+    )]
+    pub units: Vec<u8>,
+    /// generic: coils and discrete inputs per device (at least 10).
+    #[arg(long, default_value_t = generic::MIN_SIZE, value_name = "N", help_heading = "generic profile")]
+    pub coils: usize,
+    /// generic: holding and input registers per device (at least 10).
+    #[arg(long, default_value_t = generic::MIN_SIZE, value_name = "N", help_heading = "generic profile")]
+    pub registers: usize,
+
+    /// Pace output at this many bits a second (10 bits a byte), as a UART would; on a
+    /// real serial port it sets the port's speed and the UART does the pacing.
+    #[arg(long, value_name = "BAUD", help_heading = "line model")]
+    pub baud: Option<u32>,
+    /// Wait this long before answering each request.
+    #[arg(
+        long,
+        default_value_t = 0,
+        value_name = "MS",
+        help_heading = "line model"
+    )]
+    pub delay_ms: u64,
+    /// Lose each byte with this probability (0..1).
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        value_name = "P",
+        help_heading = "line model"
+    )]
+    pub drop: f64,
+    /// Insert a random byte before each byte with this probability (0..1).
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        value_name = "P",
+        help_heading = "line model"
+    )]
+    pub noise: f64,
+    /// Which direction --drop and --noise hit.
+    #[arg(long, value_enum, default_value_t = FaultDirection::Both, help_heading = "line model")]
+    pub faults: FaultDirection,
+    /// Seed of the line faults and of random inputs: the same seed loses the same bytes.
+    /// Without it, one is chosen and logged.
+    #[arg(long, help_heading = "line model")]
+    pub seed: Option<u64>,
+    /// Answer requests that arrive back to back (pipelined) in turn; without it, a
+    /// request that arrives while the device is busy is ignored, as on the real device.
+    #[arg(long, help_heading = "line model")]
+    pub pipeline: bool,
+    /// A partial request is discarded after this much silence.
+    #[arg(
+        long,
+        default_value_t = 50,
+        value_name = "MS",
+        help_heading = "line model"
+    )]
+    pub frame_gap_ms: u64,
+
+    /// Log level (RUST_LOG overrides). Each packet is logged at info.
+    #[arg(long, value_name = "LEVEL")]
+    pub log_level: Option<String>,
+    /// No console even when stdin is a terminal.
+    #[arg(long)]
+    pub headless: bool,
+}
+
+/// `mbgate sim`: the device options and the serial port.
+#[derive(Debug, Clone, clap::Args)]
+pub struct SimArgs {
+    /// The serial port or pty (e.g. one end of a socat pair).
+    #[arg(long, value_name = "PATH")]
+    pub serial: PathBuf,
+    /// 7 or 8.
+    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(7..=8), help_heading = "serial port")]
+    pub data_bits: u8,
+    #[arg(long, value_enum, default_value_t = Parity::None, help_heading = "serial port")]
+    pub parity: Parity,
+    /// 1 or 2.
+    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2), help_heading = "serial port")]
+    pub stop_bits: u8,
+    #[arg(long, value_enum, default_value_t = FlowControl::Hardware, help_heading = "serial port")]
+    pub flow_control: FlowControl,
+    #[command(flatten)]
+    pub device: DeviceArgs,
+}
+
+impl SimArgs {
+    /// The port settings (the speed is `--baud`, 19200 without it).
+    pub fn serial_config(&self) -> SerialConfig {
+        SerialConfig {
+            path: self.serial.to_string_lossy().into_owned(),
+            baud_rate: self.device.baud.unwrap_or(19_200),
+            data_bits: self.data_bits,
+            parity: self.parity,
+            stop_bits: self.stop_bits,
+            flow_control: self.flow_control,
+            ..SerialConfig::default()
+        }
+    }
+}
+
+/// Validated simulator settings.
+#[derive(Debug)]
+pub struct Settings {
+    pub device: Device,
+    pub baud: Option<u32>,
+    pub delay: Duration,
+    pub rx_faults: Faults,
+    pub tx_faults: Faults,
+    pub seed: u64,
+    pub pipeline: bool,
+    pub frame_gap: Duration,
+    pub toggle: Option<Duration>,
+}
+
+/// Options that belong to the other profile are refused rather than ignored.
+fn only_for(profile: &str, set: &[(&str, bool)]) -> Result<(), String> {
+    match set.iter().find(|(_, given)| *given) {
+        Some((flag, _)) => Err(format!("{flag} applies to the {profile} profile only")),
+        None => Ok(()),
+    }
+}
+
+impl DeviceArgs {
+    pub fn settings(&self) -> Result<Settings, String> {
+        for (flag, p) in [("--drop", self.drop), ("--noise", self.noise)] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(format!("{flag} is a probability, 0 to 1; not {p}"));
+            }
+        }
+        if self.baud == Some(0) {
+            return Err("--baud must be positive".into());
+        }
+        if self.frame_gap_ms == 0 {
+            return Err("--frame-gap-ms must be positive".into());
+        }
+        if self.toggle_ms == Some(0) {
+            return Err("--toggle-ms must be positive".into());
+        }
+        let seed = self.seed.unwrap_or_else(|| {
+            std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .map_or(1, |d| d.as_nanos() as u64)
+        });
+        let device = match self.profile {
+            ProfileName::CieM10 => {
+                only_for(
+                    "generic",
+                    &[
+                        ("--units", self.units != [1]),
+                        ("--coils", self.coils != generic::MIN_SIZE),
+                        ("--registers", self.registers != generic::MIN_SIZE),
+                    ],
+                )?;
+                if self.input_address == self.output_address {
+                    return Err(format!(
+                        "--input-address and --output-address are both {}",
+                        self.input_address
+                    ));
+                }
+                Device::new(
+                    Profile::CieM10(CieM10 {
+                        unit: self.unit,
+                        input_address: self.input_address,
+                        output_address: self.output_address,
+                        loopback: self.loopback,
+                        notify: self.notify,
+                        ..CieM10::default()
+                    }),
+                    seed,
+                )
+            }
+            ProfileName::Generic => {
+                only_for(
+                    "cie-m10",
+                    &[
+                        ("--unit", self.unit != 1),
+                        ("--input-address", self.input_address != 0),
+                        ("--output-address", self.output_address != 8),
+                        ("--loopback", self.loopback),
+                        ("--notify", self.notify),
+                        ("--toggle-ms", self.toggle_ms.is_some()),
+                    ],
+                )?;
+                if let Some(u) = self.units.iter().find(|u| !(1..=247).contains(*u)) {
+                    return Err(format!("--units: unit ids are 1..247, not {u}"));
+                }
+                for (flag, n) in [("--coils", self.coils), ("--registers", self.registers)] {
+                    if !(generic::MIN_SIZE..=generic::MAX_SIZE).contains(&n) {
+                        return Err(format!(
+                            "{flag} must be {}..{}, not {n}",
+                            generic::MIN_SIZE,
+                            generic::MAX_SIZE
+                        ));
+                    }
+                }
+                Device::generic(
+                    &self.units,
+                    self.coils,
+                    self.registers,
+                    seed.wrapping_add(2),
+                )
+            }
+        };
+        let faulty = |hit: bool, salt: u64| {
+            if hit {
+                Faults::new(self.drop, self.noise, seed ^ salt)
+            } else {
+                Faults::none()
+            }
+        };
+        Ok(Settings {
+            device,
+            baud: self.baud,
+            delay: Duration::from_millis(self.delay_ms),
+            rx_faults: faulty(self.faults != FaultDirection::FromDevice, 0),
+            tx_faults: faulty(
+                self.faults != FaultDirection::ToDevice,
+                0x9E37_79B9_7F4A_7C15,
+            ),
+            seed,
+            pipeline: self.pipeline,
+            frame_gap: Duration::from_millis(self.frame_gap_ms),
+            toggle: self.toggle_ms.map(Duration::from_millis),
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct T {
+        #[command(flatten)]
+        d: DeviceArgs,
+    }
+
+    fn settings(args: &[&str]) -> Result<Settings, String> {
+        T::try_parse_from(std::iter::once("t").chain(args.iter().copied()))
+            .map_err(|e| e.to_string())?
+            .d
+            .settings()
+    }
+
+    #[test]
+    fn refuses_what_does_not_apply() {
+        assert_eq!(
+            settings(&["--units", "1,2"]).unwrap_err(),
+            "--units applies to the generic profile only"
+        );
+        assert_eq!(
+            settings(&["--profile", "generic", "--notify"]).unwrap_err(),
+            "--notify applies to the cie-m10 profile only"
+        );
+        assert_eq!(
+            settings(&["--drop", "1.5"]).unwrap_err(),
+            "--drop is a probability, 0 to 1; not 1.5"
+        );
+        assert_eq!(
+            settings(&["--profile", "generic", "--coils", "9"]).unwrap_err(),
+            "--coils must be 10..65536, not 9"
+        );
+        assert_eq!(
+            settings(&["--output-address", "0"]).unwrap_err(),
+            "--input-address and --output-address are both 0"
+        );
+        assert!(settings(&[
+            "--profile",
+            "generic",
+            "--units",
+            "1,2,247",
+            "--registers",
+            "100"
+        ])
+        .is_ok());
+    }
+
+    #[test]
+    fn faults_hit_the_chosen_direction() {
+        let s = settings(&["--drop", "0.1", "--faults", "from-device", "--seed", "5"]).unwrap();
+        assert!(!s.rx_faults.is_active() && s.tx_faults.is_active());
+        assert_eq!(s.seed, 5);
+        let s = settings(&["--noise", "0.1", "--faults", "to-device"]).unwrap();
+        assert!(s.rx_faults.is_active() && !s.tx_faults.is_active());
+    }
+}

@@ -1,0 +1,120 @@
+//! The simulator's packet log (protocol.md §4: the slave "shows and clears a log of
+//! request and response packets"). Bounded: the oldest entries go first.
+
+use crate::frame::hex::Hex;
+use std::collections::VecDeque;
+use std::fmt;
+use std::time::Instant;
+
+/// Entries kept; older ones are forgotten.
+pub const CAPACITY: usize = 1000;
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Direction {
+    /// A request the simulator received.
+    Rx,
+    /// A reply or notification it sent.
+    Tx,
+}
+
+#[derive(Debug, Clone)]
+pub struct Entry {
+    pub at: Instant,
+    pub direction: Direction,
+    pub bytes: Vec<u8>,
+    /// What happened to it: "reply", "ignored: busy", "notification", ...
+    pub note: &'static str,
+}
+
+#[derive(Debug)]
+pub struct PacketLog {
+    start: Instant,
+    entries: VecDeque<Entry>,
+    /// Entries ever recorded, including forgotten ones.
+    pub total: u64,
+}
+
+impl Default for PacketLog {
+    fn default() -> Self {
+        Self {
+            start: Instant::now(),
+            entries: VecDeque::new(),
+            total: 0,
+        }
+    }
+}
+
+impl PacketLog {
+    pub fn record(&mut self, direction: Direction, bytes: &[u8], note: &'static str) {
+        if self.entries.len() == CAPACITY {
+            self.entries.pop_front();
+        }
+        self.entries.push_back(Entry {
+            at: Instant::now(),
+            direction,
+            bytes: bytes.to_vec(),
+            note,
+        });
+        self.total += 1;
+    }
+
+    pub fn clear(&mut self) {
+        self.entries.clear();
+    }
+
+    pub fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    /// The last `n` entries (all when `None`), one a line.
+    pub fn render(&self, n: Option<usize>) -> String {
+        let skip = n.map_or(0, |n| self.entries.len().saturating_sub(n));
+        let mut out = String::new();
+        for e in self.entries.iter().skip(skip) {
+            out.push_str(&format!("{}\n", Line(self.start, e)));
+        }
+        if out.is_empty() {
+            out.push_str("(no packets)\n");
+        }
+        out
+    }
+}
+
+struct Line<'a>(Instant, &'a Entry);
+
+impl fmt::Display for Line<'_> {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        let Line(start, e) = self;
+        let t = e.at.saturating_duration_since(*start).as_secs_f64();
+        let dir = match e.direction {
+            Direction::Rx => "rx",
+            Direction::Tx => "tx",
+        };
+        write!(f, "{t:10.3} {dir} {} ({})", Hex(&e.bytes), e.note)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bounded_and_rendered() {
+        let mut log = PacketLog::default();
+        assert_eq!(log.render(None), "(no packets)\n");
+        for i in 0..(CAPACITY + 5) {
+            log.record(Direction::Rx, &[i as u8], "request");
+        }
+        assert_eq!((log.len(), log.total), (CAPACITY, CAPACITY as u64 + 5));
+        let last = log.render(Some(2));
+        let lines: Vec<&str> = last.lines().collect();
+        assert_eq!(lines.len(), 2);
+        assert!(lines[1].ends_with("rx EC (request)"), "{}", lines[1]);
+        log.clear();
+        assert!(log.is_empty());
+    }
+}

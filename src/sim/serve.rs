@@ -1,0 +1,344 @@
+//! The simulator's task: it owns the port, decodes requests with the gateway's own
+//! resynchronising decoder (design.md §2), answers them through the device profile,
+//! and sends replies and notifications through the line model. The console talks to
+//! it over a channel.
+
+use super::console::Command;
+use super::line::{Faults, Pacer};
+use super::options::Settings;
+use super::packets::Direction;
+use super::Device;
+use crate::config::SerialConfig;
+use crate::frame::hex::Hex;
+use crate::frame::{Adu, RequestJudge, Resync};
+use crate::serial::{self, Backoff};
+use std::collections::VecDeque;
+use std::path::Path;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::{mpsc, oneshot};
+use tokio::time::{sleep_until, Instant};
+use tokio_serial::SerialStream;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+/// A console command and where its answer goes.
+#[derive(Debug)]
+pub struct ConsoleRequest {
+    pub command: Command,
+    pub reply: oneshot::Sender<String>,
+}
+
+/// Where the simulated device sits.
+#[derive(Debug)]
+pub enum Port {
+    /// A serial port or pty by path, reopened with backoff when it goes away.
+    Path(SerialConfig),
+    /// An open pty end (`mbgate demo`); losing it ends the simulator.
+    Stream(SerialStream),
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("the simulator's port was lost: {0}")]
+    Lost(std::io::Error),
+}
+
+/// Is this path a pseudo-terminal? A pty has no byte rate of its own, so the simulator
+/// paces it; a real UART paces itself.
+pub fn is_pty(path: &Path) -> bool {
+    std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts"))
+}
+
+/// A frame waiting for the instant its last byte has left the simulated UART.
+#[derive(Debug)]
+struct Outgoing {
+    due: Instant,
+    frame: Adu,
+    note: &'static str,
+}
+
+/// How a session on one open port ended.
+enum End {
+    Shutdown,
+    Lost(std::io::Error),
+}
+
+struct Sim {
+    device: Device,
+    delay: Duration,
+    pipeline: bool,
+    frame_gap: Duration,
+    rx_faults: Faults,
+    tx_faults: Faults,
+    rx_pace: Pacer,
+    tx_pace: Pacer,
+    decoder: Resync,
+    out: VecDeque<Outgoing>,
+    /// Without `--pipeline`, the device is busy until its reply has left.
+    busy_until: Option<Instant>,
+    last_rx: Instant,
+    serving: bool,
+}
+
+/// Runs the simulator until `shutdown` (or the console's `quit`).
+pub async fn run(
+    settings: Settings,
+    port: Port,
+    mut commands: mpsc::Receiver<ConsoleRequest>,
+    shutdown: CancellationToken,
+) -> Result<(), SimError> {
+    let paced = match &port {
+        Port::Path(cfg) => is_pty(Path::new(&cfg.path)),
+        Port::Stream(_) => true,
+    };
+    let baud = settings.baud.filter(|_| paced);
+    if settings.baud.is_some() && !paced {
+        debug!("a real serial port: the UART paces the bytes");
+    }
+    let mut sim = Sim {
+        device: settings.device,
+        delay: settings.delay,
+        pipeline: settings.pipeline,
+        frame_gap: settings.frame_gap,
+        rx_faults: settings.rx_faults,
+        tx_faults: settings.tx_faults,
+        rx_pace: Pacer::new(baud, 10),
+        tx_pace: Pacer::new(baud, 10),
+        decoder: Resync::new(),
+        out: VecDeque::new(),
+        busy_until: None,
+        last_rx: Instant::now(),
+        serving: false,
+    };
+    if sim.rx_faults.is_active() || sim.tx_faults.is_active() {
+        info!(
+            "line faults: drop {}, noise {}, to the device {}, from the device {}; --seed {} repeats them",
+            sim.rx_faults.drop.max(sim.tx_faults.drop),
+            sim.rx_faults.noise.max(sim.tx_faults.noise),
+            if sim.rx_faults.is_active() { "yes" } else { "no" },
+            if sim.tx_faults.is_active() { "yes" } else { "no" },
+            settings.seed
+        );
+    }
+    let toggle = settings.toggle;
+    let mut ticks = toggle.map(|period| {
+        let mut i = tokio::time::interval_at(Instant::now() + period, period);
+        i.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+        i
+    });
+
+    match port {
+        Port::Stream(mut stream) => {
+            info!("simulating {} on a pty", sim.describe());
+            match sim
+                .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
+                .await
+            {
+                End::Shutdown => Ok(()),
+                End::Lost(e) => Err(SimError::Lost(e)),
+            }
+        }
+        Port::Path(cfg) => {
+            let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
+            let mut reported = false;
+            loop {
+                match serial::open(&cfg) {
+                    Ok(mut stream) => {
+                        backoff.reset();
+                        reported = false;
+                        info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
+                        match sim
+                            .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
+                            .await
+                        {
+                            End::Shutdown => return Ok(()),
+                            End::Lost(e) => {
+                                warn!(serial = %cfg.path, "port lost ({e}); reopening");
+                            }
+                        }
+                    }
+                    Err(e) if !reported => {
+                        warn!(serial = %cfg.path, "cannot open the port ({e}); retrying");
+                        reported = true;
+                    }
+                    Err(e) => debug!(serial = %cfg.path, "cannot open the port: {e}"),
+                }
+                let until = Instant::now() + backoff.next_delay();
+                loop {
+                    tokio::select! {
+                        _ = shutdown.cancelled() => return Ok(()),
+                        _ = sleep_until(until) => break,
+                        Some(req) = commands.recv() => sim.command(req, &shutdown),
+                    }
+                }
+            }
+        }
+    }
+}
+
+impl Sim {
+    fn describe(&self) -> String {
+        use super::Profile;
+        let profile = match &self.device.profile {
+            Profile::CieM10(d) => format!("a CIE-M10 (unit {})", d.unit),
+            Profile::Generic(g) => {
+                let units: Vec<String> = g.units.keys().map(u8::to_string).collect();
+                format!("generic devices (units {})", units.join(","))
+            }
+        };
+        let pace = if self.tx_pace.char_time().is_zero() {
+            String::new()
+        } else {
+            format!(", {} µs a byte", self.tx_pace.char_time().as_micros())
+        };
+        format!("{profile}{pace}")
+    }
+
+    async fn serve(
+        &mut self,
+        port: &mut SerialStream,
+        commands: &mut mpsc::Receiver<ConsoleRequest>,
+        mut ticks: Option<&mut tokio::time::Interval>,
+        shutdown: &CancellationToken,
+    ) -> End {
+        self.serving = true;
+        let mut buf = vec![0u8; 4096];
+        let end = loop {
+            let due = self.out.front().map(|o| o.due);
+            let gap_end = self.last_rx + self.frame_gap;
+            let partial = self.decoder.buffered() > 0;
+            tokio::select! {
+                biased;
+                _ = shutdown.cancelled() => break End::Shutdown,
+                _ = sleep_until(due.unwrap_or_else(Instant::now)), if due.is_some() => {
+                    if let Err(e) = self.send_due(port).await {
+                        break End::Lost(e);
+                    }
+                }
+                r = AsyncReadExt::read(port, &mut buf) => match r {
+                    Ok(0) => break End::Lost(std::io::ErrorKind::UnexpectedEof.into()),
+                    Ok(n) => self.received(&buf[..n], Instant::now()),
+                    Err(e) => break End::Lost(e),
+                },
+                _ = sleep_until(gap_end), if partial => self.quiet(),
+                Some(req) = commands.recv() => self.command(req, shutdown),
+                _ = async { ticks.as_mut().expect("guarded").tick().await }, if ticks.is_some() => {
+                    if let Some(pdu) = self.device.toggle() {
+                        self.notify(pdu);
+                    }
+                }
+            }
+        };
+        // What was received or queued on this port is gone with it.
+        self.serving = false;
+        self.decoder.clear();
+        self.out.clear();
+        self.busy_until = None;
+        end
+    }
+
+    /// Bytes from the line at `now`, through the line model, into the decoder.
+    fn received(&mut self, raw: &[u8], now: Instant) {
+        let mut bytes = Vec::with_capacity(raw.len());
+        self.rx_faults.apply(raw, &mut bytes);
+        // On a UART the last of these bytes would arrive this much later.
+        let arrived = self.rx_pace.finish(now.into_std(), raw.len()).into();
+        self.last_rx = now;
+        self.decoder.push(&bytes);
+        while let Some(frame) = self.decoder.next_frame(&RequestJudge, false) {
+            self.request(frame, arrived);
+        }
+    }
+
+    /// The line went quiet: a partial request will never complete.
+    fn quiet(&mut self) {
+        let before = self.decoder.stats().dropped_bytes;
+        let arrived = Instant::now();
+        while let Some(frame) = self.decoder.next_frame(&RequestJudge, true) {
+            self.request(frame, arrived);
+        }
+        let dropped = self.decoder.stats().dropped_bytes - before;
+        if dropped > 0 {
+            debug!("discarded {dropped} bytes that made no request");
+        }
+    }
+
+    fn request(&mut self, frame: Adu, arrived: Instant) {
+        if !self.pipeline && self.busy_until.is_some_and(|b| b > arrived) {
+            info!("rx {} (ignored: busy)", Hex(frame.as_bytes()));
+            self.device
+                .log
+                .record(Direction::Rx, frame.as_bytes(), "ignored: busy");
+            return;
+        }
+        let answer = self.device.answer(frame.unit(), frame.pdu());
+        let note = if answer.reply.is_some() {
+            "request"
+        } else {
+            "no such unit: silent"
+        };
+        info!("rx {} ({note})", Hex(frame.as_bytes()));
+        self.device
+            .log
+            .record(Direction::Rx, frame.as_bytes(), note);
+        if let Some(pdu) = answer.reply {
+            let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
+            let due = self
+                .tx_pace
+                .finish((arrived + self.delay).into_std(), reply.as_bytes().len());
+            self.busy_until = Some(due.into());
+            self.out.push_back(Outgoing {
+                due: due.into(),
+                frame: reply,
+                note: "reply",
+            });
+        }
+        if let Some(pdu) = answer.notification {
+            self.notify(pdu);
+        }
+    }
+
+    /// Queues an input change notification (protocol.md §3): transaction id 0, which
+    /// no gateway request carries.
+    fn notify(&mut self, pdu: Vec<u8>) {
+        let (Some(unit), true) = (self.device.notifying_unit(), self.serving) else {
+            return;
+        };
+        let frame = Adu::build(0, unit, &pdu);
+        let due = self
+            .tx_pace
+            .finish(std::time::Instant::now(), frame.as_bytes().len());
+        self.out.push_back(Outgoing {
+            due: due.into(),
+            frame,
+            note: "notification",
+        });
+    }
+
+    /// Writes every frame whose time has come, through the line model.
+    async fn send_due(&mut self, port: &mut SerialStream) -> std::io::Result<()> {
+        let now = Instant::now();
+        let mut bytes = Vec::new();
+        while self.out.front().is_some_and(|o| o.due <= now) {
+            let o = self.out.pop_front().expect("checked");
+            info!("tx {} ({})", Hex(o.frame.as_bytes()), o.note);
+            self.device
+                .log
+                .record(Direction::Tx, o.frame.as_bytes(), o.note);
+            self.tx_faults.apply(o.frame.as_bytes(), &mut bytes);
+        }
+        AsyncWriteExt::write_all(port, &bytes).await
+    }
+
+    fn command(&mut self, req: ConsoleRequest, shutdown: &CancellationToken) {
+        let outcome = self.device.execute(req.command);
+        if let Some(pdu) = outcome.notification {
+            self.notify(pdu);
+        }
+        let _ = req.reply.send(outcome.text);
+        if outcome.quit {
+            shutdown.cancel();
+        }
+    }
+}

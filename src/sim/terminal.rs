@@ -1,0 +1,61 @@
+//! The console on a terminal (issue 3: "Console when stdin is a terminal"): a thread
+//! reads lines, the simulator task carries them out and answers over a channel. A
+//! thread, not a tokio task, because a blocking read of stdin cannot be cancelled and
+//! would hold up the runtime's shutdown.
+
+use super::console::Command;
+use super::serve::ConsoleRequest;
+use std::io::{BufRead, Write};
+use tokio::sync::{mpsc, oneshot};
+
+/// Starts the console if stdin is a terminal; the receiver gets its commands (it stays
+/// empty when there is no terminal).
+pub fn start(enabled: bool) -> mpsc::Receiver<ConsoleRequest> {
+    let (tx, rx) = mpsc::channel(4);
+    if enabled && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
+        println!("mbgate sim console; `help` lists the commands");
+        std::thread::spawn(move || read_lines(tx));
+    } else {
+        // Keep the sender alive so the receiver simply never yields.
+        std::mem::forget(tx);
+    }
+    rx
+}
+
+fn prompt() {
+    print!("sim> ");
+    let _ = std::io::stdout().flush();
+}
+
+fn read_lines(tx: mpsc::Sender<ConsoleRequest>) {
+    prompt();
+    let stdin = std::io::stdin();
+    for line in stdin.lock().lines() {
+        let Ok(line) = line else { break };
+        match Command::parse(&line) {
+            Ok(None) => {}
+            Ok(Some(command)) => {
+                let quit = command == Command::Quit;
+                let (reply, answer) = oneshot::channel();
+                if tx.blocking_send(ConsoleRequest { command, reply }).is_err() {
+                    return;
+                }
+                match answer.blocking_recv() {
+                    Ok(text) => println!("{text}"),
+                    Err(_) => return,
+                }
+                if quit {
+                    return;
+                }
+            }
+            Err(e) => println!("{e}"),
+        }
+        prompt();
+    }
+    // End of input (Ctrl-D) quits, as `quit` does.
+    let (reply, _answer) = oneshot::channel();
+    let _ = tx.blocking_send(ConsoleRequest {
+        command: Command::Quit,
+        reply,
+    });
+}

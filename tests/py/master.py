@@ -1,0 +1,61 @@
+#!/usr/bin/env python3
+"""A pymodbus Modbus/TCP master that runs the steps it is given and reports what came back.
+
+    master.py --port N [--host 127.0.0.1] [--timeout 3] STEPS_JSON
+
+STEPS_JSON is a list of [method, args, kwargs] for pymodbus' ModbusTcpClient, e.g.
+[["read_holding_registers", [0], {"count": 2, "device_id": 1}]]. Prints one JSON list,
+one entry per step: {"exception": code} for an exception response, {"registers": [...]},
+{"bits": [...]} (as pymodbus returns them, padded to whole bytes), {"address": a,
+"count": n} or {"address": a, "value": v} for writes, {"error": "..."} for no answer.
+The test that runs it holds the expectations.
+"""
+
+import argparse
+import json
+import logging
+import sys
+
+from pymodbus.client import ModbusTcpClient
+from pymodbus.exceptions import ModbusException
+
+
+def outcome(rr):
+    if rr.isError():
+        return {"exception": rr.exception_code}
+    out = {}
+    if getattr(rr, "registers", None):
+        out["registers"] = list(rr.registers)
+    if getattr(rr, "bits", None):
+        out["bits"] = [bool(b) for b in rr.bits]
+    for key in ("address", "count"):
+        if hasattr(rr, key) and rr.function_code in (5, 6, 15, 16):
+            out[key] = getattr(rr, key)
+    return out
+
+
+def main() -> int:
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    p = argparse.ArgumentParser()
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, required=True)
+    p.add_argument("--timeout", type=float, default=3.0)
+    p.add_argument("steps")
+    a = p.parse_args()
+    client = ModbusTcpClient(a.host, port=a.port, timeout=a.timeout, retries=0)
+    if not client.connect():
+        print(json.dumps([{"error": "connect failed"}]))
+        return 1
+    results = []
+    for method, args, kwargs in json.loads(a.steps):
+        try:
+            results.append(outcome(getattr(client, method)(*args, **kwargs)))
+        except ModbusException as exc:
+            results.append({"error": f"{type(exc).__name__}: {exc}"})
+    client.close()
+    print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
