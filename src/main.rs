@@ -160,54 +160,58 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
 fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     use mbgate::sim::serve::{self, Port};
-    let settings = match args.device.settings() {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("mbgate: {e}");
-            return ExitCode::from(EXIT_CONFIG);
-        }
-    };
-    let (level, console) = sim_level(&args.device);
-    init_tracing_at(&level, false);
-    let result = runtime().and_then(|rt| {
-        rt.block_on(async {
-            let shutdown = CancellationToken::new();
-            tokio::spawn(watch_signals(shutdown.clone()));
-            let commands = mbgate::sim::terminal::start(console);
-            serve::run(
-                settings,
-                Port::Path(args.serial_config()),
-                commands,
-                shutdown,
-            )
-            .await?;
+    let port = Port::Path(args.serial_config());
+    simulate(
+        &args.device,
+        false,
+        |settings, commands, shutdown| async move {
+            serve::run(settings, port, commands, shutdown).await?;
             Ok(())
-        })
-    });
-    finish(result)
+        },
+    )
 }
 
 /// `mbgate demo`.
 fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
-    let settings = match args.device.settings() {
+    let device = args.device.clone();
+    simulate(
+        &device,
+        args.traffic,
+        |settings, commands, shutdown| async move {
+            mbgate::demo::run(&args, settings, commands, shutdown).await?;
+            Ok(())
+        },
+    )
+}
+
+/// What `sim` and `demo` share: the device options (exit 2 when bad), tracing, the
+/// runtime, the signals and the console; `body` runs the simulator.
+fn simulate<F, Fut>(device: &mbgate::sim::options::DeviceArgs, traffic: bool, body: F) -> ExitCode
+where
+    F: FnOnce(
+        mbgate::sim::options::Settings,
+        tokio::sync::mpsc::Receiver<mbgate::sim::serve::ConsoleRequest>,
+        CancellationToken,
+    ) -> Fut,
+    Fut: std::future::Future<Output = anyhow::Result<()>>,
+{
+    let settings = match device.settings() {
         Ok(s) => s,
         Err(e) => {
             eprintln!("mbgate: {e}");
             return ExitCode::from(EXIT_CONFIG);
         }
     };
-    let (level, console) = sim_level(&args.device);
-    init_tracing_at(&level, args.traffic);
-    let result = runtime().and_then(|rt| {
+    let (level, console) = sim_level(device);
+    init_tracing_at(&level, traffic);
+    finish(runtime().and_then(|rt| {
         rt.block_on(async {
             let shutdown = CancellationToken::new();
             tokio::spawn(watch_signals(shutdown.clone()));
             let commands = mbgate::sim::terminal::start(console);
-            mbgate::demo::run(&args, settings, commands, shutdown).await?;
-            Ok(())
+            body(settings, commands, shutdown).await
         })
-    });
-    finish(result)
+    }))
 }
 
 fn finish(result: anyhow::Result<()>) -> ExitCode {

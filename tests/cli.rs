@@ -3,30 +3,13 @@
 
 mod common;
 use common::*;
-use std::process::{Command, Output};
-
-fn mbgate(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_mbgate"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .output()
-        .expect("run mbgate")
-}
-
-fn stderr(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stderr).into_owned()
-}
-
-fn stdout(o: &Output) -> String {
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
 
 #[test]
 fn check_config_prints_the_effective_configuration() {
     let example = repo().join("config/mbgate.toml");
     let o = mbgate(&["check-config", example.to_str().unwrap()]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let printed = stdout(&o);
+    assert!((o.code == 0), "{}", o.stderr);
+    let printed = o.stdout;
     let cfg = mbgate::config::parse(&printed, "stdout").expect("output parses back");
     assert_eq!(cfg, mbgate::config::Config::default());
     assert!(printed.contains("[serial]\npath = \"/dev/ttyUSB0\"\nbaud_rate = 19200\n"));
@@ -44,8 +27,8 @@ fn check_config_prints_the_effective_configuration() {
         "--max-in-flight",
         "4",
     ]);
-    assert!(o.status.success(), "{}", stderr(&o));
-    let cfg = mbgate::config::parse(&stdout(&o), "stdout").unwrap();
+    assert!((o.code == 0), "{}", o.stderr);
+    let cfg = mbgate::config::parse(&o.stdout, "stdout").unwrap();
     assert_eq!(cfg.serial.baud_rate, 9600);
     assert_eq!(cfg.serial.path, "/dev/ttyAMA0");
     assert_eq!(
@@ -84,8 +67,8 @@ fn bad_configuration_exits_2_naming_file_line_and_key() {
         let path = file.to_str().unwrap();
         for cmd in [&["check-config", path][..], &["run", "--config", path][..]] {
             let o = mbgate(cmd);
-            assert_eq!(o.status.code(), Some(2), "{cmd:?}: {}", stderr(&o));
-            let msg = stderr(&o);
+            assert_eq!(Some(o.code), Some(2), "{cmd:?}: {}", o.stderr);
+            let msg = o.stderr;
             assert!(
                 msg.contains(&format!("{path}{want}")),
                 "{cmd:?}: expected {path}{want} in: {msg}"
@@ -97,19 +80,21 @@ fn bad_configuration_exits_2_naming_file_line_and_key() {
 #[test]
 fn unreadable_file_and_bad_flags_exit_2() {
     let o = mbgate(&["run", "--config", "/nonexistent/mbgate.toml"]);
-    assert_eq!(o.status.code(), Some(2));
-    assert!(stderr(&o).contains("/nonexistent/mbgate.toml: cannot read"));
+    assert_eq!(Some(o.code), Some(2));
+    assert!(o.stderr.contains("/nonexistent/mbgate.toml: cannot read"));
 
     let o = mbgate(&["run", "--baud", "10"]);
-    assert_eq!(o.status.code(), Some(2));
-    assert!(stderr(&o).contains("--baud: must be between 50 and 4000000, got 10"));
+    assert_eq!(Some(o.code), Some(2));
+    assert!(o
+        .stderr
+        .contains("--baud: must be between 50 and 4000000, got 10"));
 
     let o = mbgate(&["run", "--listen", "nowhere"]);
-    assert_eq!(o.status.code(), Some(2));
-    assert!(stderr(&o).contains("expected an address like 0.0.0.0:502"));
+    assert_eq!(Some(o.code), Some(2));
+    assert!(o.stderr.contains("expected an address like 0.0.0.0:502"));
 
     let o = mbgate(&["run", "--no-such-flag"]);
-    assert_eq!(o.status.code(), Some(2));
+    assert_eq!(Some(o.code), Some(2));
 }
 
 #[test]
@@ -117,10 +102,10 @@ fn a_listen_address_in_use_is_a_clear_runtime_error() {
     let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
     let addr = taken.local_addr().unwrap().to_string();
     let o = mbgate(&["run", "--listen", &addr, "--serial", "/nonexistent/tty"]);
-    assert_eq!(o.status.code(), Some(1));
+    assert_eq!(Some(o.code), Some(1));
     assert!(
-        stderr(&o).contains(&format!("cannot listen on {addr}")),
+        o.stderr.contains(&format!("cannot listen on {addr}")),
         "{}",
-        stderr(&o)
+        o.stderr
     );
 }

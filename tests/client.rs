@@ -13,71 +13,8 @@ use mbgate::frame::Adu;
 use std::io::{Read, Write};
 use std::net::{SocketAddr, TcpListener};
 use std::path::Path;
-use std::process::{Command, Stdio};
 use std::thread;
-use std::time::{Duration, Instant};
-
-/// What one run of the binary did.
-struct Run {
-    code: i32,
-    stdout: String,
-    stderr: String,
-    elapsed: Duration,
-}
-
-impl Run {
-    fn lines(&self) -> Vec<&str> {
-        self.stdout.lines().collect()
-    }
-}
-
-/// Runs `mbgate ARGS`, bounded: a run that takes more than 30 s is killed and fails.
-fn mbgate(args: &[&str]) -> Run {
-    let start = Instant::now();
-    let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("run mbgate");
-    let drain = |mut r: Box<dyn Read + Send>| {
-        thread::spawn(move || {
-            let mut s = String::new();
-            let _ = r.read_to_string(&mut s);
-            s
-        })
-    };
-    let out = drain(Box::new(child.stdout.take().unwrap()));
-    let err = drain(Box::new(child.stderr.take().unwrap()));
-    let status = loop {
-        if let Some(status) = child.try_wait().unwrap() {
-            break status;
-        }
-        if start.elapsed() > Duration::from_secs(30) {
-            let _ = child.kill();
-            let _ = child.wait();
-            panic!("mbgate {args:?} did not finish within 30 s");
-        }
-        thread::sleep(Duration::from_millis(5));
-    };
-    let run = Run {
-        code: status.code().expect("exit code, not a signal"),
-        stdout: out.join().unwrap(),
-        stderr: err.join().unwrap(),
-        elapsed: start.elapsed(),
-    };
-    eprintln!(
-        "$ mbgate {}\n{}{}(exit {}, {:?})",
-        args.join(" "),
-        run.stdout,
-        run.stderr,
-        run.code,
-        run.elapsed
-    );
-    run
-}
+use std::time::Duration;
 
 /// `target` + `args`.
 fn with<'a>(target: &[&'a str], args: &[&'a str]) -> Vec<&'a str> {

@@ -3,7 +3,7 @@
 //! the gateway, and a terminal for the console.
 
 mod common;
-use common::sim::{sim, Proc, RawLine};
+use common::sim::{sim, RawLine};
 use common::*;
 use std::time::{Duration, Instant};
 
@@ -410,22 +410,16 @@ fn console_commands_on_a_terminal() {
 /// Bad simulator options exit 2 and say what is wrong.
 #[test]
 fn bad_options_exit_2() {
-    let run = |args: &[&str]| {
-        std::process::Command::new(env!("CARGO_BIN_EXE_mbgate"))
-            .args(args)
-            .output()
-            .unwrap()
-    };
-    let out = run(&["sim", "--serial", "/dev/null", "--drop", "2"]);
-    assert_eq!(out.status.code(), Some(2));
+    let out = mbgate(&["sim", "--serial", "/dev/null", "--drop", "2"]);
+    assert_eq!(Some(out.code), Some(2));
     assert_eq!(
-        String::from_utf8_lossy(&out.stderr).trim(),
+        out.stderr.trim(),
         "mbgate: --drop is a probability, 0 to 1; not 2"
     );
-    let out = run(&["demo", "--profile", "generic", "--loopback"]);
-    assert_eq!(out.status.code(), Some(2));
+    let out = mbgate(&["demo", "--profile", "generic", "--loopback"]);
+    assert_eq!(Some(out.code), Some(2));
     assert_eq!(
-        String::from_utf8_lossy(&out.stderr).trim(),
+        out.stderr.trim(),
         "mbgate: --loopback applies to the cie-m10 profile only"
     );
 }

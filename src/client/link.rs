@@ -300,18 +300,8 @@ async fn tcp_exchange(
             }
         }
     };
-    match timeout_at(deadline, wait).await {
-        Err(_) => Err(ClientError::Timeout {
-            target: target(),
-            ms,
-        }),
-        Ok(result) => result.map(|reply| Received {
-            reply,
-            round_trip: start.elapsed(),
-            ignored,
-            dropped_bytes: 0,
-        }),
-    }
+    let result = timeout_at(deadline, wait).await;
+    received(result, target, ms, start, ignored, 0)
 }
 
 async fn serial_exchange(
@@ -376,6 +366,18 @@ async fn serial_exchange(
     };
     let result = timeout_at(deadline, wait).await;
     let dropped_bytes = decoder.stats().dropped_bytes - dropped_before;
+    received(result, target, ms, start, Vec::new(), dropped_bytes)
+}
+
+/// The exchange's outcome: the reply with what was seen on the way, or a timeout.
+fn received(
+    result: Result<Result<Adu, ClientError>, tokio::time::error::Elapsed>,
+    target: impl Fn() -> String,
+    ms: u64,
+    start: Instant,
+    ignored: Vec<Adu>,
+    dropped_bytes: u64,
+) -> Result<Received, ClientError> {
     match result {
         Err(_) => Err(ClientError::Timeout {
             target: target(),
@@ -384,7 +386,7 @@ async fn serial_exchange(
         Ok(result) => result.map(|reply| Received {
             reply,
             round_trip: start.elapsed(),
-            ignored: Vec::new(),
+            ignored,
             dropped_bytes,
         }),
     }

@@ -65,6 +65,76 @@ fn terminate(child: &mut Child) {
 }
 
 // ---------------------------------------------------------------------------------
+// One run of the binary to completion
+
+/// What one run of the binary did.
+pub struct Run {
+    pub code: i32,
+    pub stdout: String,
+    pub stderr: String,
+    pub elapsed: Duration,
+}
+
+impl Run {
+    pub fn lines(&self) -> Vec<&str> {
+        self.stdout.lines().collect()
+    }
+}
+
+/// `mbgate ARGS` as a child: no stdin, stdout and stderr piped, RUST_LOG unset.
+fn spawn_mbgate(args: &[&str]) -> Child {
+    Command::new(env!("CARGO_BIN_EXE_mbgate"))
+        .args(args)
+        .env_remove("RUST_LOG")
+        .stdin(Stdio::null())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("run mbgate")
+}
+
+/// Runs `mbgate ARGS`, bounded: a run that takes more than 30 s is killed and fails.
+pub fn mbgate(args: &[&str]) -> Run {
+    let start = Instant::now();
+    let mut child = spawn_mbgate(args);
+    let drain = |mut r: Box<dyn Read + Send>| {
+        thread::spawn(move || {
+            let mut s = String::new();
+            let _ = r.read_to_string(&mut s);
+            s
+        })
+    };
+    let out = drain(Box::new(child.stdout.take().unwrap()));
+    let err = drain(Box::new(child.stderr.take().unwrap()));
+    let status = loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            break status;
+        }
+        if start.elapsed() > Duration::from_secs(30) {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!("mbgate {args:?} did not finish within 30 s");
+        }
+        thread::sleep(Duration::from_millis(5));
+    };
+    let run = Run {
+        code: status.code().expect("exit code, not a signal"),
+        stdout: out.join().unwrap(),
+        stderr: err.join().unwrap(),
+        elapsed: start.elapsed(),
+    };
+    eprintln!(
+        "$ mbgate {}\n{}{}(exit {}, {:?})",
+        args.join(" "),
+        run.stdout,
+        run.stderr,
+        run.code,
+        run.elapsed
+    );
+    run
+}
+
+// ---------------------------------------------------------------------------------
 // socat
 
 /// A virtual serial cable: `gw` is the gateway's end, `dev` the device's.
@@ -171,63 +241,56 @@ impl Cfg {
     }
 }
 
-pub struct Gateway {
+/// An `mbgate` subcommand running as a child, stderr captured as its log.
+pub struct Proc {
     child: Child,
-    pub addr: SocketAddr,
     log: Arc<Mutex<String>>,
     reader: Option<JoinHandle<()>>,
+    pub stdout: Arc<Mutex<String>>,
 }
 
-impl Gateway {
-    pub fn start(cfg: &Cfg, dir: &Path) -> Gateway {
-        let file = dir.join("mbgate.toml");
-        std::fs::write(&file, cfg.render()).expect("write config");
-        let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
-            .arg("run")
-            .arg("--config")
-            .arg(&file)
-            .env_remove("RUST_LOG")
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("start mbgate");
+impl Proc {
+    /// Starts `mbgate ARGS` and waits until its log shows `ready`.
+    pub fn start(args: &[&str], ready: &str) -> Proc {
+        let mut child = spawn_mbgate(args);
         let log = Arc::new(Mutex::new(String::new()));
-        let (tx, rx) = mpsc::channel();
-        let stderr = child.stderr.take().expect("stderr");
+        let stdout = Arc::new(Mutex::new(String::new()));
+        let (err, out) = (child.stderr.take().unwrap(), child.stdout.take().unwrap());
         let sink = log.clone();
         let reader = thread::spawn(move || {
-            for line in BufReader::new(stderr).lines() {
+            for line in BufReader::new(err).lines() {
                 let Ok(line) = line else { break };
-                if let Some(rest) = line.split("listening on ").nth(1) {
-                    let addr = rest.split_whitespace().next().unwrap_or("").to_string();
-                    let _ = tx.send(addr);
-                }
                 let mut l = sink.lock().unwrap();
                 l.push_str(&line);
                 l.push('\n');
             }
         });
-        let addr = rx
-            .recv_timeout(Duration::from_secs(10))
-            .unwrap_or_else(|_| panic!("mbgate did not start listening: {}", log.lock().unwrap()));
-        Gateway {
+        let sink = stdout.clone();
+        thread::spawn(move || {
+            for line in BufReader::new(out).lines() {
+                let Ok(line) = line else { break };
+                let mut l = sink.lock().unwrap();
+                l.push_str(&line);
+                l.push('\n');
+            }
+        });
+        let p = Proc {
             child,
-            addr: addr.parse().expect("listen address"),
             log,
             reader: Some(reader),
-        }
+            stdout,
+        };
+        p.wait_log(ready, Duration::from_secs(10));
+        p
     }
 
     pub fn log(&self) -> String {
         self.log.lock().unwrap().clone()
     }
 
-    /// Waits until the log contains `needle`.
     pub fn wait_log(&self, needle: &str, timeout: Duration) {
-        let log = self.log.clone();
         let start = Instant::now();
-        while !log.lock().unwrap().contains(needle) {
+        while !self.log().contains(needle) {
             assert!(
                 start.elapsed() < timeout,
                 "log never showed {needle:?}:\n{}",
@@ -237,14 +300,7 @@ impl Gateway {
         }
     }
 
-    pub fn connect(&self) -> TcpStream {
-        let s = TcpStream::connect(self.addr).expect("connect to mbgate");
-        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-        s.set_nodelay(true).unwrap();
-        s
-    }
-
-    /// SIGTERM, then waits (bounded) for the exit; the log is complete afterwards.
+    /// SIGTERM, then waits (bounded) for the exit.
     pub fn terminate(&mut self, within: Duration) -> ExitStatus {
         terminate(&mut self.child);
         let start = Instant::now();
@@ -257,7 +313,7 @@ impl Gateway {
             }
             assert!(
                 start.elapsed() < within,
-                "mbgate did not exit within {within:?} of SIGTERM:\n{}",
+                "no exit within {within:?}:\n{}",
                 self.log()
             );
             thread::sleep(Duration::from_millis(10));
@@ -265,10 +321,57 @@ impl Gateway {
     }
 }
 
-impl Drop for Gateway {
+impl Drop for Proc {
     fn drop(&mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
+    }
+}
+
+/// `mbgate run` with a configuration file, on 127.0.0.1 port 0: `addr` is the port it
+/// got.
+pub struct Gateway {
+    pub proc: Proc,
+    pub addr: SocketAddr,
+}
+
+impl Gateway {
+    pub fn start(cfg: &Cfg, dir: &Path) -> Gateway {
+        let file = dir.join("mbgate.toml");
+        std::fs::write(&file, cfg.render()).expect("write config");
+        let proc = Proc::start(
+            &["run", "--config", file.to_str().unwrap()],
+            "listening on ",
+        );
+        let log = proc.log();
+        let addr = log
+            .split("listening on ")
+            .nth(1)
+            .and_then(|rest| rest.split_whitespace().next())
+            .and_then(|a| a.parse().ok())
+            .unwrap_or_else(|| panic!("no listen address in the log:\n{log}"));
+        Gateway { proc, addr }
+    }
+
+    pub fn log(&self) -> String {
+        self.proc.log()
+    }
+
+    /// Waits until the log contains `needle`.
+    pub fn wait_log(&self, needle: &str, timeout: Duration) {
+        self.proc.wait_log(needle, timeout)
+    }
+
+    pub fn connect(&self) -> TcpStream {
+        let s = TcpStream::connect(self.addr).expect("connect to mbgate");
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        s.set_nodelay(true).unwrap();
+        s
+    }
+
+    /// SIGTERM, then waits (bounded) for the exit; the log is complete afterwards.
+    pub fn terminate(&mut self, within: Duration) -> ExitStatus {
+        self.proc.terminate(within)
     }
 }
 

@@ -1,110 +1,11 @@
-//! Peers for the simulator's tests: an `mbgate` child process whose log is captured
-//! (`mbgate sim`, `mbgate demo`), and a raw master on a pty.
+//! Peers for the simulator's tests: `mbgate sim` as a child, and a raw master on a pty.
 
-use std::io::{BufRead, BufReader, ErrorKind, Read, Write};
+use super::Proc;
+use std::io::{ErrorKind, Read, Write};
 use std::os::unix::fs::OpenOptionsExt;
 use std::path::Path;
-use std::process::{Child, Command, ExitStatus, Stdio};
-use std::sync::{Arc, Mutex};
-use std::thread::{self, JoinHandle};
+use std::thread;
 use std::time::{Duration, Instant};
-
-/// An `mbgate` subcommand running as a child, stderr captured as its log.
-pub struct Proc {
-    child: Child,
-    log: Arc<Mutex<String>>,
-    reader: Option<JoinHandle<()>>,
-    pub stdout: Arc<Mutex<String>>,
-}
-
-impl Proc {
-    /// Starts `mbgate ARGS` and waits until its log shows `ready`.
-    pub fn start(args: &[&str], ready: &str) -> Proc {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
-            .args(args)
-            .env_remove("RUST_LOG")
-            .stdin(Stdio::null())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .expect("start mbgate");
-        let log = Arc::new(Mutex::new(String::new()));
-        let stdout = Arc::new(Mutex::new(String::new()));
-        let (err, out) = (child.stderr.take().unwrap(), child.stdout.take().unwrap());
-        let sink = log.clone();
-        let reader = thread::spawn(move || {
-            for line in BufReader::new(err).lines() {
-                let Ok(line) = line else { break };
-                let mut l = sink.lock().unwrap();
-                l.push_str(&line);
-                l.push('\n');
-            }
-        });
-        let sink = stdout.clone();
-        thread::spawn(move || {
-            for line in BufReader::new(out).lines() {
-                let Ok(line) = line else { break };
-                let mut l = sink.lock().unwrap();
-                l.push_str(&line);
-                l.push('\n');
-            }
-        });
-        let p = Proc {
-            child,
-            log,
-            reader: Some(reader),
-            stdout,
-        };
-        p.wait_log(ready, Duration::from_secs(10));
-        p
-    }
-
-    pub fn log(&self) -> String {
-        self.log.lock().unwrap().clone()
-    }
-
-    pub fn wait_log(&self, needle: &str, timeout: Duration) {
-        let start = Instant::now();
-        while !self.log().contains(needle) {
-            assert!(
-                start.elapsed() < timeout,
-                "log never showed {needle:?}:\n{}",
-                self.log()
-            );
-            thread::sleep(Duration::from_millis(10));
-        }
-    }
-
-    /// SIGTERM, then waits (bounded) for the exit.
-    pub fn terminate(&mut self, within: Duration) -> ExitStatus {
-        let _ = Command::new("kill")
-            .arg("-TERM")
-            .arg(self.child.id().to_string())
-            .status();
-        let start = Instant::now();
-        loop {
-            if let Some(status) = self.child.try_wait().unwrap() {
-                if let Some(r) = self.reader.take() {
-                    let _ = r.join();
-                }
-                return status;
-            }
-            assert!(
-                start.elapsed() < within,
-                "no exit within {within:?}:\n{}",
-                self.log()
-            );
-            thread::sleep(Duration::from_millis(10));
-        }
-    }
-}
-
-impl Drop for Proc {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
 
 /// `mbgate sim --serial PATH ARGS`, started once it has the port open.
 pub fn sim(path: &Path, args: &[&str]) -> Proc {
