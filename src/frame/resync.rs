@@ -10,7 +10,17 @@
 //!   request), drops one byte and rescans: the next real frame may start inside it;
 //! - discards a partial candidate once the line has been quiet for the frame gap (the
 //!   caller says so with `quiet`), one byte at a time, so frames inside it are found;
-//! - counts every byte it drops.
+//! - counts every byte it drops;
+//! - when the judge asks for it, holds a complete frame until it is confirmed
+//!   ([`Judge::confirm`]): a frame that lost a byte completes itself with the first
+//!   byte of whatever follows, and its length and byte-count fields still agree, so
+//!   only what comes after it can expose it. A held frame is handed on when the bytes
+//!   after it form a whole frame the judge accepts, or when the line goes quiet with
+//!   nothing after it (or only the plausible start of a frame that never completed).
+//!   When the bytes after it cannot start a frame, it is refuted and dropped whole:
+//!   either it borrowed bytes from what follows, or what follows lost bytes, and a
+//!   frame found by rescanning inside it could only be a shifted copy of the next one
+//!   with another transaction id (issue 4).
 //!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
@@ -38,6 +48,12 @@ pub trait Judge {
     fn plausible_function(&self, code: u8) -> bool;
     /// Is this complete, length-consistent candidate a frame to hand on?
     fn accept(&self, frame: FrameRef<'_>) -> bool;
+    /// Must this accepted frame wait for confirmation by what follows it, or by a quiet
+    /// line? Judges that know nothing can follow (one request outstanding, no
+    /// unsolicited frames) say no and get frames without the wait.
+    fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        false
+    }
 }
 
 /// Accepts any well-formed reply to a public function code (design.md §2 shape check).
@@ -74,6 +90,8 @@ impl Judge for RequestJudge {
 pub struct ResyncStats {
     pub frames: u64,
     pub dropped_bytes: u64,
+    /// Accepted frames that the bytes after them refuted.
+    pub refuted: u64,
 }
 
 /// The decoder. Feed it with [`push`](Resync::push), take frames with
@@ -91,6 +109,16 @@ enum Candidate {
     Incomplete,
     /// A whole candidate frame of this many bytes is at the front.
     Complete(usize),
+}
+
+/// What the bytes after a held frame say about it.
+enum Follower {
+    /// A whole frame the judge accepts: the held frame ended where a frame begins.
+    Confirms,
+    /// Nothing yet, or the plausible start of a frame: wait for more, or for quiet.
+    Pending,
+    /// They cannot start a frame, or form one the judge rejects.
+    Refutes,
 }
 
 /// Judges the header at the front of `buf` with whatever bytes of it have arrived, so
@@ -149,6 +177,20 @@ impl Resync {
         self.stats.dropped_bytes += 1;
     }
 
+    /// What the bytes after the `held` bytes at the front say about them.
+    fn follower(&self, held: usize, judge: &impl Judge) -> Follower {
+        let rest = &self.buf[held..];
+        if rest.is_empty() {
+            return Follower::Pending;
+        }
+        match candidate(rest, judge) {
+            Candidate::Implausible => Follower::Refutes,
+            Candidate::Incomplete => Follower::Pending,
+            Candidate::Complete(n) if judge.accept(FrameRef::new(&rest[..n])) => Follower::Confirms,
+            Candidate::Complete(_) => Follower::Refutes,
+        }
+    }
+
     /// The next frame the judge accepts, or `None` when more bytes are needed.
     ///
     /// `quiet` says the line has given no byte for the frame gap: a partial candidate
@@ -161,11 +203,28 @@ impl Resync {
                 Candidate::Incomplete if quiet && !self.buf.is_empty() => self.drop_one(),
                 Candidate::Incomplete => return None,
                 Candidate::Complete(total) => {
-                    if judge.accept(FrameRef::new(&self.buf[..total])) {
-                        self.stats.frames += 1;
-                        return Some(Adu::from_frame(self.buf.split_to(total).freeze()));
+                    let frame = FrameRef::new(&self.buf[..total]);
+                    if !judge.accept(frame) {
+                        self.drop_one();
+                        continue;
                     }
-                    self.drop_one();
+                    if judge.confirm(frame) {
+                        match self.follower(total, judge) {
+                            Follower::Confirms => {}
+                            Follower::Pending if quiet => {}
+                            Follower::Pending => return None,
+                            Follower::Refutes => {
+                                // Skipped whole: a frame found inside it could only be
+                                // a shifted copy of what follows (issue 4).
+                                self.stats.refuted += 1;
+                                mbap::skip(&mut self.buf, total);
+                                self.stats.dropped_bytes += total as u64;
+                                continue;
+                            }
+                        }
+                    }
+                    self.stats.frames += 1;
+                    return Some(Adu::from_frame(self.buf.split_to(total).freeze()));
                 }
             }
         }
@@ -175,7 +234,7 @@ impl Resync {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::hex::parse as bytes;
+    use crate::frame::hex::{parse as bytes, Hex};
 
     /// Replies of several shapes, the CIE-M10's among them (protocol.md §3).
     fn replies() -> Vec<Vec<u8>> {
@@ -318,6 +377,103 @@ mod tests {
         d.clear();
         assert_eq!(d.buffered(), 0);
         assert_eq!(d.stats().dropped_bytes, 5);
+    }
+
+    /// The shape check of [`ReplyJudge`], with every frame held for confirmation.
+    struct Strict;
+    impl Judge for Strict {
+        fn plausible_function(&self, code: u8) -> bool {
+            ReplyJudge.plausible_function(code)
+        }
+        fn accept(&self, frame: FrameRef<'_>) -> bool {
+            ReplyJudge.accept(frame)
+        }
+        fn confirm(&self, _: FrameRef<'_>) -> bool {
+            true
+        }
+    }
+
+    fn decode_with(judge: &impl Judge, chunks: &[&[u8]]) -> Vec<Vec<u8>> {
+        let mut d = Resync::new();
+        let mut out = Vec::new();
+        for chunk in chunks {
+            d.push(chunk);
+            while let Some(f) = d.next_frame(judge, false) {
+                out.push(f.as_bytes().to_vec());
+            }
+        }
+        while let Some(f) = d.next_frame(judge, true) {
+            out.push(f.as_bytes().to_vec());
+        }
+        out
+    }
+
+    #[test]
+    fn a_reply_that_lost_a_byte_is_refuted_by_what_follows() {
+        // The FC 03 reply loses its last data byte and completes itself with the
+        // first byte of the next reply: shape and length still agree.
+        let r = replies();
+        let mut broken = r[4].clone();
+        broken.remove(10);
+        let all = [broken.clone(), r[0].clone(), r[1].clone()].concat();
+        let lenient = decode_with(&ReplyJudge, &[&all]);
+        assert_eq!(
+            lenient[0],
+            [&broken[..], &r[0][..1]].concat(),
+            "delivered wrong"
+        );
+        let strict = decode_with(&Strict, &[&all]);
+        assert!(!strict.contains(&lenient[0]), "never delivered when held");
+        assert_eq!(strict.last(), Some(&r[1]));
+    }
+
+    #[test]
+    fn a_held_frame_waits_for_what_follows_or_for_quiet() {
+        let r = replies();
+        let mut d = Resync::new();
+        d.push(&r[0]);
+        assert_eq!(d.next_frame(&Strict, false), None, "nothing after it yet");
+        d.push(&r[1][..7]);
+        assert_eq!(d.next_frame(&Strict, false), None, "only a header after it");
+        d.push(&r[1][7..]);
+        assert_eq!(d.next_frame(&Strict, false).unwrap().as_bytes(), &r[0][..]);
+        assert_eq!(d.next_frame(&Strict, false), None, "the last one waits");
+        assert_eq!(d.next_frame(&Strict, true).unwrap().as_bytes(), &r[1][..]);
+        // A plausible start that never completes does not hold it forever.
+        d.push(&r[2]);
+        d.push(&r[3][..4]);
+        assert_eq!(d.next_frame(&Strict, false), None);
+        assert_eq!(d.next_frame(&Strict, true).unwrap().as_bytes(), &r[2][..]);
+        assert_eq!(d.next_frame(&Strict, true), None);
+        assert_eq!(d.buffered(), 0);
+    }
+
+    /// Every single lost byte of every reply, before every other reply: a held frame
+    /// is never one that was not sent.
+    #[test]
+    fn loss_of_any_one_byte_never_yields_a_frame_that_was_not_sent() {
+        let r = replies();
+        for (i, victim) in r.iter().enumerate() {
+            for lost in 0..victim.len() {
+                let mut broken = victim.clone();
+                broken.remove(lost);
+                let rest: Vec<Vec<u8>> = r
+                    .iter()
+                    .cycle()
+                    .skip(i + 1)
+                    .take(r.len())
+                    .cloned()
+                    .collect();
+                let all = [vec![broken], rest.clone()].concat().concat();
+                for f in decode_with(&Strict, &[&all]) {
+                    assert!(
+                        r.contains(&f),
+                        "lost byte {lost} of reply {i}: {:?}",
+                        Hex(&f)
+                    );
+                }
+            }
+        }
     }
 
     struct OnlyTid(u16);
