@@ -3,6 +3,7 @@
 pub mod config;
 pub mod frame;
 pub mod gateway;
+pub mod notify;
 pub mod relay;
 pub mod serial;
 pub mod stats;

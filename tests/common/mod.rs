@@ -176,23 +176,67 @@ pub struct Gateway {
     reader: Option<JoinHandle<()>>,
 }
 
+/// How the gateway process is started, beyond its configuration: the environment
+/// systemd would give it. By default none of it (the variables are removed).
+#[derive(Default)]
+pub struct Launch {
+    env: Vec<(&'static str, String)>,
+    journal_stream: bool,
+}
+
+/// The variables systemd sets that change how mbgate behaves.
+const SERVICE_ENV: [&str; 5] = [
+    "RUST_LOG",
+    "NOTIFY_SOCKET",
+    "WATCHDOG_USEC",
+    "WATCHDOG_PID",
+    "JOURNAL_STREAM",
+];
+
+impl Launch {
+    pub fn env(mut self, key: &'static str, value: impl Into<String>) -> Launch {
+        self.env.push((key, value.into()));
+        self
+    }
+
+    /// Sets JOURNAL_STREAM to the `dev:inode` of the gateway's stderr, as systemd
+    /// does when the unit's output goes to the journal.
+    pub fn journal_stream(mut self) -> Launch {
+        self.journal_stream = true;
+        self
+    }
+}
+
 impl Gateway {
     pub fn start(cfg: &Cfg, dir: &Path) -> Gateway {
+        Gateway::launch(cfg, dir, Launch::default())
+    }
+
+    pub fn launch(cfg: &Cfg, dir: &Path, launch: Launch) -> Gateway {
+        use std::os::unix::fs::MetadataExt;
         let file = dir.join("mbgate.toml");
         std::fs::write(&file, cfg.render()).expect("write config");
-        let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
-            .arg("run")
-            .arg("--config")
-            .arg(&file)
-            .env_remove("RUST_LOG")
+        let (stderr, writer) = std::io::pipe().expect("pipe");
+        let writer = std::fs::File::from(std::os::fd::OwnedFd::from(writer));
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mbgate"));
+        cmd.arg("run").arg("--config").arg(&file);
+        for key in SERVICE_ENV {
+            cmd.env_remove(key);
+        }
+        if launch.journal_stream {
+            let st = writer.metadata().expect("fstat the stderr pipe");
+            cmd.env("JOURNAL_STREAM", format!("{}:{}", st.dev(), st.ino()));
+        }
+        cmd.envs(launch.env.iter().map(|(k, v)| (k, v)));
+        let child = cmd
             .stdin(Stdio::null())
             .stdout(Stdio::null())
-            .stderr(Stdio::piped())
+            .stderr(writer)
             .spawn()
             .expect("start mbgate");
+        drop(cmd);
         let log = Arc::new(Mutex::new(String::new()));
         let (tx, rx) = mpsc::channel();
-        let stderr = child.stderr.take().expect("stderr");
         let sink = log.clone();
         let reader = thread::spawn(move || {
             for line in BufReader::new(stderr).lines() {
