@@ -3,6 +3,7 @@
 pub mod config;
 pub mod frame;
 pub mod gateway;
+pub mod logging;
 pub mod notify;
 pub mod relay;
 pub mod serial;

@@ -205,6 +205,32 @@ impl Launch {
         self.journal_stream = true;
         self
     }
+
+    /// `mbgate ARGS` in this environment, stdin and stdout closed, stderr on a pipe
+    /// whose read end comes back. Drop the command once spawned, so the pipe closes
+    /// when mbgate exits.
+    pub fn command<S: AsRef<std::ffi::OsStr>>(
+        &self,
+        args: impl IntoIterator<Item = S>,
+    ) -> (Command, std::io::PipeReader) {
+        use std::os::unix::fs::MetadataExt;
+        let (stderr, writer) = std::io::pipe().expect("pipe");
+        let writer = std::fs::File::from(std::os::fd::OwnedFd::from(writer));
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mbgate"));
+        cmd.args(args);
+        for key in SERVICE_ENV {
+            cmd.env_remove(key);
+        }
+        if self.journal_stream {
+            let st = writer.metadata().expect("fstat the stderr pipe");
+            cmd.env("JOURNAL_STREAM", format!("{}:{}", st.dev(), st.ino()));
+        }
+        cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
+        cmd.stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(writer);
+        (cmd, stderr)
+    }
 }
 
 impl Gateway {
@@ -213,27 +239,11 @@ impl Gateway {
     }
 
     pub fn launch(cfg: &Cfg, dir: &Path, launch: Launch) -> Gateway {
-        use std::os::unix::fs::MetadataExt;
         let file = dir.join("mbgate.toml");
         std::fs::write(&file, cfg.render()).expect("write config");
-        let (stderr, writer) = std::io::pipe().expect("pipe");
-        let writer = std::fs::File::from(std::os::fd::OwnedFd::from(writer));
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mbgate"));
-        cmd.arg("run").arg("--config").arg(&file);
-        for key in SERVICE_ENV {
-            cmd.env_remove(key);
-        }
-        if launch.journal_stream {
-            let st = writer.metadata().expect("fstat the stderr pipe");
-            cmd.env("JOURNAL_STREAM", format!("{}:{}", st.dev(), st.ino()));
-        }
-        cmd.envs(launch.env.iter().map(|(k, v)| (k, v)));
-        let child = cmd
-            .stdin(Stdio::null())
-            .stdout(Stdio::null())
-            .stderr(writer)
-            .spawn()
-            .expect("start mbgate");
+        let args = ["run".as_ref(), "--config".as_ref(), file.as_os_str()];
+        let (mut cmd, stderr) = launch.command::<&std::ffi::OsStr>(args);
+        let child = cmd.spawn().expect("start mbgate");
         drop(cmd);
         let log = Arc::new(Mutex::new(String::new()));
         let (tx, rx) = mpsc::channel();
