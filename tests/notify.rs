@@ -57,19 +57,10 @@ impl Manager {
             .position(|(_, m)| m.lines().any(|l| l == line))
     }
 
+    /// Index of the first message with `line`, once there is one.
     fn wait_for(&self, line: &str, timeout: Duration) -> usize {
-        let start = Instant::now();
-        loop {
-            if let Some(i) = self.first(line) {
-                return i;
-            }
-            assert!(
-                start.elapsed() < timeout,
-                "never got {line}: {:?}",
-                self.messages()
-            );
-            thread::sleep(Duration::from_millis(10));
-        }
+        wait_for(line, timeout, || self.first(line).is_some());
+        self.first(line).expect("seen")
     }
 }
 
