@@ -1,7 +1,9 @@
 //! The gateway as a whole: bind, start the relay and the listener, and shut down
-//! cleanly (design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded).
+//! cleanly (design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
+//! systemd when it is ready and when it stops (see [`crate::notify`]).
 
 use crate::config::Config;
+use crate::notify;
 use crate::relay::Relay;
 use crate::stats::Stats;
 use crate::tcp;
@@ -57,10 +59,13 @@ pub async fn serve(
         stats.clone(),
         shutdown.clone(),
     );
+    let relay = relay.with_watchdog(notify::watchdog_interval());
+    info!(listen = %local, serial = %cfg.serial.path, "listening on {local}");
+    // Before the relay first runs, so READY=1 precedes its first WATCHDOG=1.
+    notify::ready(&format!("listening on {local}, serial {}", cfg.serial.path));
     let relay_task = tokio::spawn(relay.run());
 
     let tracker = TaskTracker::new();
-    info!(listen = %local, serial = %cfg.serial.path, "listening on {local}");
     tcp::accept_loop(
         listener,
         cfg.clone(),
@@ -73,9 +78,11 @@ pub async fn serve(
 
     // Shutdown: the listener is closed; connections stop reading and the relay answers
     // what is queued (0x0A) and waits for what is on the line.
-    info!("shutting down: draining in-flight requests");
-    tracker.close();
     let bound = cfg.relay.answer_within() + Duration::from_secs(2);
+    info!("shutting down: draining in-flight requests");
+    // systemd waits for the drain, and a second more for the exit itself.
+    notify::stopping(bound + Duration::from_secs(1));
+    tracker.close();
     if tokio::time::timeout(bound, async {
         let _ = relay_task.await;
         tracker.wait().await;

@@ -5,6 +5,8 @@ pub mod config;
 pub mod demo;
 pub mod frame;
 pub mod gateway;
+pub mod logging;
+pub mod notify;
 pub mod number;
 pub mod relay;
 pub mod serial;

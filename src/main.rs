@@ -7,7 +7,6 @@ use mbgate::config::{self, Config, Overrides};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tokio_util::sync::CancellationToken;
-use tracing_subscriber::EnvFilter;
 
 /// Modbus/TCP to serial gateway for the Sollae ezTCP CIE-M10/H10 "serial Modbus/TCP"
 /// mode: many TCP masters, one serial device.
@@ -76,17 +75,19 @@ fn main() -> ExitCode {
             }
         },
         Command::Run { config, overrides } => {
+            // Under journald these lines get the error priority too.
+            let prefix = mbgate::logging::error_prefix();
             let cfg = match effective(config, &overrides) {
                 Ok(cfg) => cfg,
                 Err(e) => {
-                    eprintln!("mbgate: {e}");
+                    eprintln!("{prefix}mbgate: {e}");
                     return ExitCode::from(EXIT_CONFIG);
                 }
             };
             match run(cfg) {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
-                    eprintln!("mbgate: {e:#}");
+                    eprintln!("{prefix}mbgate: {e:#}");
                     ExitCode::FAILURE
                 }
             }
@@ -104,27 +105,8 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
     Ok(cfg)
 }
 
-fn init_tracing(cfg: &Config) {
-    init_tracing_at(&cfg.log.level, cfg.log.traffic);
-}
-
-fn init_tracing_at(level: &str, traffic: bool) {
-    let mut filter = match std::env::var("RUST_LOG") {
-        Ok(s) if !s.is_empty() => EnvFilter::new(s),
-        _ => EnvFilter::new(level),
-    };
-    if traffic {
-        filter = filter.add_directive("mbgate::traffic=debug".parse().expect("valid directive"));
-    }
-    tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr)
-        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
-        .init();
-}
-
 fn run(cfg: Config) -> anyhow::Result<()> {
-    init_tracing(&cfg);
+    mbgate::logging::init(&cfg.log);
     // One thread: the serial line is the bottleneck, and a single-threaded runtime has
     // the smallest footprint and no cross-thread wake-ups on the reply path.
     let rt = tokio::runtime::Builder::new_current_thread()
@@ -203,12 +185,12 @@ where
         }
     };
     let (level, console) = sim_level(device);
-    init_tracing_at(&level, traffic);
+    mbgate::logging::init(&mbgate::config::LogConfig { level, traffic });
     finish(runtime().and_then(|rt| {
         rt.block_on(async {
             let shutdown = CancellationToken::new();
             tokio::spawn(watch_signals(shutdown.clone()));
-            let commands = mbgate::sim::terminal::start(console);
+            let commands = mbgate::sim::terminal::start(console, shutdown.clone());
             body(settings, commands, shutdown).await
         })
     }))

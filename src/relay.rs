@@ -3,14 +3,15 @@
 //! Connections talk to it over a channel ([`RelayHandle`]); it owns the port, the
 //! queues, the in-flight table and the decoder, so nothing here is locked. One loop
 //! waits on: commands from connections, bytes from the port, room to write to the
-//! port, the nearest timer (a response deadline, the frame gap, the next reopen), and
-//! shutdown.
+//! port, the nearest timer (a response deadline, the frame gap, the next reopen, the
+//! next systemd watchdog ping), and shutdown.
 
 use crate::config::{Notifications, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::FrameRef;
 use crate::frame::pdu::{self, exception};
 use crate::frame::{Adu, Judge, Resync};
+use crate::notify;
 use crate::serial::{self, Backoff};
 use crate::stats::Stats;
 use crate::tids::Tids;
@@ -142,6 +143,14 @@ pub struct Relay {
     draining: bool,
     /// False once every [`RelayHandle`] is gone: `recv` would return at once forever.
     commands_open: bool,
+    watchdog: Option<Watchdog>,
+}
+
+/// systemd's watchdog, pinged from the relay's own loop: if the loop wedges, the pings
+/// stop and systemd restarts the gateway.
+struct Watchdog {
+    every: Duration,
+    next: Instant,
 }
 
 impl Relay {
@@ -176,8 +185,19 @@ impl Relay {
             shutdown,
             draining: false,
             commands_open: true,
+            watchdog: None,
         };
         (relay, RelayHandle { tx })
+    }
+
+    /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
+    /// `None` means no watchdog and no timer for it, so an idle relay sleeps.
+    pub fn with_watchdog(mut self, every: Option<Duration>) -> Self {
+        self.watchdog = every.map(|every| Watchdog {
+            every,
+            next: Instant::now(),
+        });
+        self
     }
 
     /// Runs until shutdown has been asked for and every request on the line has been
@@ -186,6 +206,7 @@ impl Relay {
         let mut rbuf = vec![0u8; 4096];
         loop {
             let now = Instant::now();
+            self.pet_watchdog(now);
             self.open_if_due(now);
             self.dispatch(now);
             if self.draining && self.in_flight.is_empty() {
@@ -248,7 +269,19 @@ impl Relay {
         if let Port::Closed { retry_at } = self.port {
             wake = wake.min(retry_at);
         }
+        if let Some(w) = &self.watchdog {
+            wake = wake.min(w.next);
+        }
         wake
+    }
+
+    fn pet_watchdog(&mut self, now: Instant) {
+        if let Some(w) = &mut self.watchdog {
+            if now >= w.next {
+                notify::watchdog();
+                w.next = now + w.every;
+            }
+        }
     }
 
     fn gap(&self) -> Duration {

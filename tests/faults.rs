@@ -470,6 +470,30 @@ fn sigterm_drains_in_flight_and_exits_0() {
     let _ = &r.dir;
 }
 
+/// SIGTERM while the device is silent: the drain waits no longer than the response
+/// timeout, the master gets 0x0B for the request on the line, and the exit is 0 (what
+/// systemd's stop sees, within the unit's TimeoutStopSec).
+#[test]
+fn sigterm_with_a_silent_device_exits_0_within_the_response_timeout() {
+    let mut r = rig(|c| c.relay("response_timeout_ms = 1000"));
+    let dev = RawDevice::start(&r.socat.dev, Box::new(|_| vec![]));
+    let mut m = r.gw.connect();
+    m.write_all(&read_req(5, 1, 0, 1)).unwrap();
+    while dev.requests().is_empty() {
+        std::thread::sleep(Duration::from_millis(5));
+    }
+    let start = Instant::now();
+    let status = r.gw.terminate(Duration::from_secs(5));
+    let took = start.elapsed();
+    assert_eq!(status.code(), Some(0));
+    assert!(
+        took < Duration::from_millis(1000 + 300),
+        "exit took {took:?}: {}",
+        r.gw.log()
+    );
+    assert_eq!(read_frame(&mut m), exception(5, 1, 3, 0x0B));
+}
+
 /// Flow control holds a request back past its timeout (here XOFF with
 /// `flow_control = "software"`, which a pty honours; RTS/CTS behaves the same on real
 /// ports): the master gets 0x0B, and the request is withdrawn, so it never reaches the

@@ -169,7 +169,7 @@ pub async fn run(
                     tokio::select! {
                         _ = shutdown.cancelled() => return Ok(()),
                         _ = sleep_until(until) => break,
-                        Some(req) = commands.recv() => sim.command(req, &shutdown),
+                        Some(req) = commands.recv() => sim.command(req),
                     }
                 }
             }
@@ -222,7 +222,7 @@ impl Sim {
                     Err(e) => break End::Lost(e),
                 },
                 _ = sleep_until(gap_end), if partial => self.quiet(),
-                Some(req) = commands.recv() => self.command(req, shutdown),
+                Some(req) = commands.recv() => self.command(req),
                 _ = async { ticks.as_mut().expect("guarded").tick().await }, if ticks.is_some() => {
                     if let Some(pdu) = self.device.toggle() {
                         self.notify(pdu);
@@ -331,14 +331,12 @@ impl Sim {
         AsyncWriteExt::write_all(port, &bytes).await
     }
 
-    fn command(&mut self, req: ConsoleRequest, shutdown: &CancellationToken) {
+    fn command(&mut self, req: ConsoleRequest) {
         let outcome = self.device.execute(req.command);
         if let Some(pdu) = outcome.notification {
             self.notify(pdu);
         }
+        // On `quit` the console cancels the shutdown token once it has printed this.
         let _ = req.reply.send(outcome.text);
-        if outcome.quit {
-            shutdown.cancel();
-        }
     }
 }

@@ -7,14 +7,19 @@ use super::console::Command;
 use super::serve::ConsoleRequest;
 use std::io::{BufRead, Write};
 use tokio::sync::{mpsc, oneshot};
+use tokio_util::sync::CancellationToken;
 
 /// Starts the console if stdin is a terminal; the receiver gets its commands (it stays
-/// empty when there is no terminal).
-pub fn start(enabled: bool) -> mpsc::Receiver<ConsoleRequest> {
+/// empty when there is no terminal). `quit`, or the end of input, cancels `shutdown`
+/// once the answer is printed.
+pub fn start(enabled: bool, shutdown: CancellationToken) -> mpsc::Receiver<ConsoleRequest> {
     let (tx, rx) = mpsc::channel(4);
     if enabled && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
         println!("mbgate sim console; `help` lists the commands");
-        std::thread::spawn(move || read_lines(tx));
+        std::thread::spawn(move || {
+            read_lines(tx);
+            shutdown.cancel();
+        });
     } else {
         // Keep the sender alive so the receiver simply never yields.
         std::mem::forget(tx);
@@ -53,9 +58,4 @@ fn read_lines(tx: mpsc::Sender<ConsoleRequest>) {
         prompt();
     }
     // End of input (Ctrl-D) quits, as `quit` does.
-    let (reply, _answer) = oneshot::channel();
-    let _ = tx.blocking_send(ConsoleRequest {
-        command: Command::Quit,
-        reply,
-    });
 }

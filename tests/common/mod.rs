@@ -49,7 +49,8 @@ pub fn tempdir() -> tempfile::TempDir {
         .expect("temp dir")
 }
 
-fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
+/// Polls `ok` every 10 ms until it holds; fails the test after `timeout`.
+pub fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
     let start = Instant::now();
     while !ok() {
         assert!(start.elapsed() < timeout, "timed out waiting for {what}");
@@ -81,22 +82,12 @@ impl Run {
     }
 }
 
-/// `mbgate ARGS` as a child: no stdin, stdout and stderr piped, RUST_LOG unset.
-fn spawn_mbgate(args: &[&str]) -> Child {
-    Command::new(env!("CARGO_BIN_EXE_mbgate"))
-        .args(args)
-        .env_remove("RUST_LOG")
-        .stdin(Stdio::null())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::piped())
-        .spawn()
-        .expect("run mbgate")
-}
-
 /// Runs `mbgate ARGS`, bounded: a run that takes more than 30 s is killed and fails.
 pub fn mbgate(args: &[&str]) -> Run {
     let start = Instant::now();
-    let mut child = spawn_mbgate(args);
+    let (mut cmd, stderr) = Launch::default().command(args);
+    let mut child = cmd.spawn().expect("run mbgate");
+    drop(cmd);
     let drain = |mut r: Box<dyn Read + Send>| {
         thread::spawn(move || {
             let mut s = String::new();
@@ -105,7 +96,7 @@ pub fn mbgate(args: &[&str]) -> Run {
         })
     };
     let out = drain(Box::new(child.stdout.take().unwrap()));
-    let err = drain(Box::new(child.stderr.take().unwrap()));
+    let err = drain(Box::new(stderr));
     let status = loop {
         if let Some(status) = child.try_wait().unwrap() {
             break status;
@@ -249,13 +240,77 @@ pub struct Proc {
     pub stdout: Arc<Mutex<String>>,
 }
 
+/// How an `mbgate` process is started, beyond its arguments: the environment
+/// systemd would give it. By default none of it (the variables are removed).
+#[derive(Default)]
+pub struct Launch {
+    env: Vec<(&'static str, String)>,
+    journal_stream: bool,
+}
+
+/// The variables systemd sets that change how mbgate behaves.
+const SERVICE_ENV: [&str; 5] = [
+    "RUST_LOG",
+    "NOTIFY_SOCKET",
+    "WATCHDOG_USEC",
+    "WATCHDOG_PID",
+    "JOURNAL_STREAM",
+];
+
+impl Launch {
+    pub fn env(mut self, key: &'static str, value: impl Into<String>) -> Launch {
+        self.env.push((key, value.into()));
+        self
+    }
+
+    /// Sets JOURNAL_STREAM to the `dev:inode` of the gateway's stderr, as systemd
+    /// does when the unit's output goes to the journal.
+    pub fn journal_stream(mut self) -> Launch {
+        self.journal_stream = true;
+        self
+    }
+
+    /// `mbgate ARGS` in this environment, stdin closed, stdout piped, stderr on a pipe
+    /// whose read end comes back. Drop the command once spawned, so the pipe closes
+    /// when mbgate exits.
+    pub fn command<S: AsRef<std::ffi::OsStr>>(
+        &self,
+        args: impl IntoIterator<Item = S>,
+    ) -> (Command, std::io::PipeReader) {
+        use std::os::unix::fs::MetadataExt;
+        let (stderr, writer) = std::io::pipe().expect("pipe");
+        let writer = std::fs::File::from(std::os::fd::OwnedFd::from(writer));
+        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mbgate"));
+        cmd.args(args);
+        for key in SERVICE_ENV {
+            cmd.env_remove(key);
+        }
+        if self.journal_stream {
+            let st = writer.metadata().expect("fstat the stderr pipe");
+            cmd.env("JOURNAL_STREAM", format!("{}:{}", st.dev(), st.ino()));
+        }
+        cmd.envs(self.env.iter().map(|(k, v)| (k, v)));
+        cmd.stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(writer);
+        (cmd, stderr)
+    }
+}
+
 impl Proc {
     /// Starts `mbgate ARGS` and waits until its log shows `ready`.
     pub fn start(args: &[&str], ready: &str) -> Proc {
-        let mut child = spawn_mbgate(args);
+        Proc::launch(args, ready, &Launch::default())
+    }
+
+    /// [`Proc::start`] in the environment `launch` describes.
+    pub fn launch(args: &[&str], ready: &str, launch: &Launch) -> Proc {
+        let (mut cmd, err) = launch.command(args);
+        let mut child = cmd.spawn().expect("start mbgate");
+        drop(cmd);
         let log = Arc::new(Mutex::new(String::new()));
         let stdout = Arc::new(Mutex::new(String::new()));
-        let (err, out) = (child.stderr.take().unwrap(), child.stdout.take().unwrap());
+        let out = child.stdout.take().unwrap();
         let sink = log.clone();
         let reader = thread::spawn(move || {
             for line in BufReader::new(err).lines() {
@@ -337,12 +392,14 @@ pub struct Gateway {
 
 impl Gateway {
     pub fn start(cfg: &Cfg, dir: &Path) -> Gateway {
+        Gateway::launch(cfg, dir, Launch::default())
+    }
+
+    pub fn launch(cfg: &Cfg, dir: &Path, launch: Launch) -> Gateway {
         let file = dir.join("mbgate.toml");
         std::fs::write(&file, cfg.render()).expect("write config");
-        let proc = Proc::start(
-            &["run", "--config", file.to_str().unwrap()],
-            "listening on ",
-        );
+        let args = ["run", "--config", file.to_str().unwrap()];
+        let proc = Proc::launch(&args, "listening on ", &launch);
         let log = proc.log();
         let addr = log
             .split("listening on ")
