@@ -14,7 +14,7 @@ use crate::frame::{Adu, Judge, Resync};
 use crate::notify;
 use crate::serial::{self, Backoff};
 use crate::stats::Stats;
-use crate::tids::Tids;
+use crate::tids::{self, Tids};
 use bytes::Bytes;
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
@@ -99,6 +99,10 @@ enum Port {
 /// The relay's view of which frames on the line it can use (design.md §1 step 4, §2).
 struct RelayJudge<'a> {
     in_flight: &'a [InFlight],
+    tids: &'a Tids,
+    /// Hold frames until what follows them confirms them (issue 4): when another frame
+    /// may follow, a reply that lost a byte could complete itself with its first byte.
+    strict: bool,
 }
 
 impl Judge for RelayJudge<'_> {
@@ -115,8 +119,22 @@ impl Judge for RelayJudge<'_> {
             Some(f) => {
                 f.req.adu.unit() == frame.unit() && pdu::reply_matches(f.req.adu.pdu(), frame.pdu())
             }
-            None => pdu::reply_well_formed(frame.pdu()),
+            // Not an answer to anything on the line: a device notification (id 0), or a
+            // late answer (a retired id), to be dropped as such. Any other id is not
+            // ours: a reply shifted by a lost byte carries its own low byte after a
+            // stranger's high byte (tids.rs), so ids sharing a low byte with one in
+            // flight are refused even when retired.
+            None => {
+                let tid = frame.tid();
+                (tid == 0 || self.tids.is_retired(tid))
+                    && pdu::reply_well_formed(frame.pdu())
+                    && !self.in_flight.iter().any(|f| f.tid & 0xFF == tid & 0xFF)
+            }
         }
+    }
+
+    fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        self.strict
     }
 }
 
@@ -134,6 +152,9 @@ pub struct Relay {
     tids: Tids,
     decoder: Resync,
     last_byte: Instant,
+    /// Until then another frame may follow any reply (a late reply, a notification),
+    /// so replies are held for confirmation.
+    followers_until: Instant,
     port: Port,
     backoff: Backoff,
     port_warned: bool,
@@ -177,6 +198,7 @@ impl Relay {
             tids: Tids::new(),
             decoder: Resync::new(),
             last_byte: now,
+            followers_until: now,
             port: Port::Closed { retry_at: now },
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
             port_warned: false,
@@ -441,21 +463,42 @@ impl Relay {
         self.in_flight.push(InFlight { tid, deadline, req });
     }
 
+    /// Can a frame other than the reply to the one request on the line arrive? Then
+    /// replies wait for confirmation (issue 4). It can when several requests are on the
+    /// line, when the device sends notifications, and for a while after a request timed
+    /// out (its reply may still come), an unsolicited frame was seen, or the line
+    /// carried garbage (noise that can land inside a reply).
+    fn followers_possible(&self, now: Instant) -> bool {
+        self.in_flight.len() > 1
+            || self.cfg.notifications == Notifications::Broadcast
+            || now < self.followers_until
+    }
+
+    /// Another frame may follow replies for a while (see [`Self::followers_possible`]).
+    fn expect_followers(&mut self, now: Instant) {
+        self.followers_until = now + tids::RETIRED_FOR;
+    }
+
     fn take_frames(&mut self, now: Instant) {
         let quiet = now >= self.last_byte + self.gap();
         loop {
             let judge = RelayJudge {
                 in_flight: &self.in_flight,
+                tids: &self.tids,
+                strict: self.followers_possible(now),
             };
             let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
                 break;
             };
             self.on_frame(frame, now);
         }
-        self.stats.set(
-            &self.stats.dropped_bytes,
-            self.decoder.stats().dropped_bytes,
-        );
+        let decoded = self.decoder.stats();
+        if decoded.dropped_bytes > self.stats.get(&self.stats.dropped_bytes) {
+            self.expect_followers(now);
+        }
+        self.stats
+            .set(&self.stats.dropped_bytes, decoded.dropped_bytes);
+        self.stats.set(&self.stats.refuted_frames, decoded.refuted);
     }
 
     fn on_frame(&mut self, frame: Adu, now: Instant) {
@@ -470,12 +513,14 @@ impl Relay {
             let reply = frame.with_tid(f.req.adu.tid());
             self.deliver(f.req.conn, reply, Some(f.req.permit));
         } else if self.tids.is_retired(tid) {
+            self.expect_followers(now);
             self.stats.add(&self.stats.late_replies, 1);
             debug!(
                 tid,
                 "late reply dropped (its request timed out or was answered already): {:?}", frame
             );
         } else {
+            self.expect_followers(now);
             match self.cfg.notifications {
                 Notifications::Drop => {
                     self.stats.add(&self.stats.notifications_dropped, 1);
@@ -513,6 +558,7 @@ impl Relay {
             }
             let f = self.in_flight.swap_remove(i);
             self.tids.retire(f.tid, now.into_std());
+            self.expect_followers(now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.

@@ -42,6 +42,7 @@ counters! {
     notifications_broadcast: "Frames answering no request, broadcast to every master.",
     notifications_missed: "Broadcasts a master missed because it was not reading.",
     dropped_bytes: "Serial bytes the decoder discarded while resynchronising.",
+    refuted_frames: "Replies that what followed them showed to have lost bytes: dropped.",
     serial_bytes_in: "Bytes read from the serial port.",
     serial_bytes_out: "Bytes written to the serial port.",
     serial_opens: "Times the serial port was opened.",
@@ -50,6 +51,10 @@ counters! {
 impl Stats {
     pub fn add(&self, counter: &AtomicU64, n: u64) {
         counter.fetch_add(n, Ordering::Relaxed);
+    }
+
+    pub fn get(&self, counter: &AtomicU64) -> u64 {
+        counter.load(Ordering::Relaxed)
     }
 
     pub fn set(&self, counter: &AtomicU64, n: u64) {

@@ -5,6 +5,11 @@
 //! (answered, timed out or abandoned) stay reserved for a while, so a late or duplicate
 //! answer is recognised as ours and dropped (design.md §1 steps 5 and 6) instead of
 //! being taken for a notification.
+//!
+//! No two ids in flight share a low byte. A reply that lost its first byte (the id's
+//! high byte) and borrowed the byte before it is a copy of that reply with another
+//! high byte; with distinct low bytes that copy can never pass for the answer to
+//! another request on the line (issue 4).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -20,6 +25,8 @@ pub struct Tids {
     /// One bit per id: in flight or retired.
     reserved: Box<[u64; 1024]>,
     retired: VecDeque<(u16, Instant)>,
+    /// Ids in flight by low byte.
+    live_low: Box<[u8; 256]>,
 }
 
 impl Default for Tids {
@@ -34,6 +41,7 @@ impl Tids {
             next: 1,
             reserved: Box::new([0; 1024]),
             retired: VecDeque::new(),
+            live_low: Box::new([0; 256]),
         }
     }
 
@@ -60,15 +68,19 @@ impl Tids {
         }
     }
 
-    /// A fresh id: not 0, not in flight, not retired. At most 255 are in flight and
+    /// A fresh id: not in flight, not retired, no low byte shared with an id in flight,
+    /// and never a low byte of 0 (so never 0x0000, the id the CIE-M10's notifications
+    /// may carry, nor a shifted copy of one). At most 255 are in flight and
     /// [`RETIRED_MAX`] retired, so one is always found.
     pub fn allocate(&mut self, now: Instant) -> u16 {
         self.expire(now);
         loop {
             let tid = self.next;
             self.next = self.next.checked_add(1).unwrap_or(1);
-            if !self.is_reserved(tid) {
+            let low = tid & 0xFF;
+            if low != 0 && !self.is_reserved(tid) && self.live_low[usize::from(low)] == 0 {
                 self.set(tid, true);
+                self.live_low[usize::from(tid & 0xFF)] += 1;
                 return tid;
             }
         }
@@ -77,6 +89,8 @@ impl Tids {
     /// The request is finished (answered, timed out or abandoned): an answer with this
     /// id from now on is late or a duplicate.
     pub fn retire(&mut self, tid: u16, now: Instant) {
+        let live = &mut self.live_low[usize::from(tid & 0xFF)];
+        *live = live.saturating_sub(1);
         self.retired.push_back((tid, now));
         self.expire(now);
     }
@@ -99,7 +113,7 @@ mod tests {
         let mut held = Vec::new();
         for _ in 0..70_000u32 {
             let tid = t.allocate(now);
-            assert_ne!(tid, 0);
+            assert_ne!(tid & 0xFF, 0);
             held.push(tid);
             if held.len() > 200 {
                 t.retire(held.remove(0), now);
@@ -109,6 +123,10 @@ mod tests {
         sorted.sort_unstable();
         sorted.dedup();
         assert_eq!(sorted.len(), held.len(), "in-flight ids are distinct");
+        let mut lows: Vec<u16> = held.iter().map(|t| t & 0xFF).collect();
+        lows.sort_unstable();
+        lows.dedup();
+        assert_eq!(lows.len(), held.len(), "and so are their low bytes");
     }
 
     #[test]

@@ -16,8 +16,8 @@
 //!   byte of whatever follows, and its length and byte-count fields still agree, so
 //!   only what comes after it can expose it. A held frame is handed on when the bytes
 //!   after it form a whole frame the judge accepts, or when the line goes quiet with
-//!   nothing after it (or only the plausible start of a frame that never completed).
-//!   When the bytes after it cannot start a frame, it is refuted and dropped whole:
+//!   nothing after it. When the bytes after it cannot start a frame, or start one
+//!   that never completes before the line goes quiet, it is refuted and dropped whole:
 //!   either it borrowed bytes from what follows, or what follows lost bytes, and a
 //!   frame found by rescanning inside it could only be a shifted copy of the next one
 //!   with another transaction id (issue 4).
@@ -72,8 +72,12 @@ impl Judge for ReplyJudge {
 
 /// Accepts any self-consistent request (the simulator's side of the line): a function
 /// code without the exception bit and the size it calls for ([`pdu::request_well_formed`]).
+/// With `confirm`, requests wait for what follows them or a quiet line, for a device
+/// that takes requests back to back.
 #[derive(Debug, Default, Clone, Copy)]
-pub struct RequestJudge;
+pub struct RequestJudge {
+    pub confirm: bool,
+}
 
 impl Judge for RequestJudge {
     fn plausible_function(&self, code: u8) -> bool {
@@ -82,6 +86,10 @@ impl Judge for RequestJudge {
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
         pdu::request_well_formed(frame.pdu())
+    }
+
+    fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        self.confirm
     }
 }
 
@@ -115,7 +123,11 @@ enum Candidate {
 enum Follower {
     /// A whole frame the judge accepts: the held frame ended where a frame begins.
     Confirms,
-    /// Nothing yet, or the plausible start of a frame: wait for more, or for quiet.
+    /// Nothing yet: wait for more, or for quiet, which confirms.
+    Nothing,
+    /// The plausible start of a frame: wait for more. Quiet refutes: a frame that
+    /// never completes is the tail of a frame that gained a byte (noise) or the start
+    /// of one that lost bytes; either way the held frame is not to be trusted.
     Pending,
     /// They cannot start a frame, or form one the judge rejects.
     Refutes,
@@ -181,7 +193,7 @@ impl Resync {
     fn follower(&self, held: usize, judge: &impl Judge) -> Follower {
         let rest = &self.buf[held..];
         if rest.is_empty() {
-            return Follower::Pending;
+            return Follower::Nothing;
         }
         match candidate(rest, judge) {
             Candidate::Implausible => Follower::Refutes,
@@ -209,11 +221,10 @@ impl Resync {
                         continue;
                     }
                     if judge.confirm(frame) {
-                        match self.follower(total, judge) {
-                            Follower::Confirms => {}
-                            Follower::Pending if quiet => {}
-                            Follower::Pending => return None,
-                            Follower::Refutes => {
+                        match (self.follower(total, judge), quiet) {
+                            (Follower::Confirms, _) | (Follower::Nothing, true) => {}
+                            (Follower::Nothing | Follower::Pending, false) => return None,
+                            (Follower::Pending, true) | (Follower::Refutes, _) => {
                                 // Skipped whole: a frame found inside it could only be
                                 // a shifted copy of what follows (issue 4).
                                 self.stats.refuted += 1;
@@ -439,13 +450,22 @@ mod tests {
         assert_eq!(d.next_frame(&Strict, false).unwrap().as_bytes(), &r[0][..]);
         assert_eq!(d.next_frame(&Strict, false), None, "the last one waits");
         assert_eq!(d.next_frame(&Strict, true).unwrap().as_bytes(), &r[1][..]);
-        // A plausible start that never completes does not hold it forever.
+        // A plausible start that never completes refutes it once the line is quiet:
+        // this is how a frame that gained a noise byte ends.
         d.push(&r[2]);
         d.push(&r[3][..4]);
         assert_eq!(d.next_frame(&Strict, false), None);
-        assert_eq!(d.next_frame(&Strict, true).unwrap().as_bytes(), &r[2][..]);
         assert_eq!(d.next_frame(&Strict, true), None);
         assert_eq!(d.buffered(), 0);
+        assert_eq!(d.stats().refuted, 1);
+        // A noise byte inside a reply: it ends a byte early, and its own last byte
+        // is left over.
+        let mut noisy = r[4].clone();
+        noisy.insert(9, 0x5A);
+        d.push(&noisy);
+        assert_eq!(d.next_frame(&Strict, false), None);
+        assert_eq!(d.next_frame(&Strict, true), None);
+        assert_eq!(d.stats().refuted, 2);
     }
 
     /// Every single lost byte of every reply, before every other reply: a held frame

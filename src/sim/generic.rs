@@ -50,6 +50,15 @@ impl Bank {
     }
 }
 
+impl Bank {
+    /// Holding register N holds N.
+    pub fn fill_holding_with_addresses(&mut self) {
+        for (a, v) in self.holding.iter_mut().enumerate() {
+            *v = a as u16;
+        }
+    }
+}
+
 impl fmt::Display for Bank {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let bits = |v: &[bool]| -> String {

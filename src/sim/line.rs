@@ -100,6 +100,55 @@ impl Pacer {
     }
 }
 
+/// How the simulator hands a frame to the line (issue 4, "Chunking"): whole, one byte
+/// at a time, or in random bursts, with a gap before each piece after the first.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum ChunkMode {
+    Whole,
+    Bytes,
+    Random,
+}
+
+/// Splits frames into pieces and gaps, seeded.
+#[derive(Debug, Clone)]
+pub struct Chunker {
+    mode: ChunkMode,
+    gap: Duration,
+    rng: fastrand::Rng,
+}
+
+impl Chunker {
+    pub fn new(mode: ChunkMode, gap: Duration, seed: u64) -> Self {
+        Self {
+            mode,
+            gap,
+            rng: fastrand::Rng::with_seed(seed),
+        }
+    }
+
+    /// The pieces of a `len`-byte frame: (bytes, gap before the piece).
+    pub fn pieces(&mut self, len: usize) -> Vec<(usize, Duration)> {
+        let mut out = Vec::new();
+        let mut left = len;
+        while left > 0 {
+            let n = match self.mode {
+                ChunkMode::Whole => left,
+                ChunkMode::Bytes => 1,
+                ChunkMode::Random => self.rng.usize(1..=left.min(8)),
+            };
+            let gap = match (out.is_empty(), self.mode) {
+                (true, _) | (_, ChunkMode::Whole) => Duration::ZERO,
+                (false, ChunkMode::Bytes) => self.gap,
+                // Between half the gap and the whole of it.
+                (false, ChunkMode::Random) => self.gap / 2 + self.gap.mul_f64(self.rng.f64() / 2.0),
+            };
+            out.push((n, gap));
+            left -= n;
+        }
+        out
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -148,6 +197,26 @@ mod tests {
     fn no_faults_is_the_identity() {
         let mut f = Faults::none();
         assert_eq!(run(&mut f, &[b"abc", b"def"]), b"abcdef");
+    }
+
+    #[test]
+    fn chunks_cover_the_frame_with_gaps_under_the_limit() {
+        let gap = Duration::from_millis(40);
+        let mut c = Chunker::new(ChunkMode::Random, gap, 3);
+        for len in [1, 11, 260] {
+            let p = c.pieces(len);
+            assert_eq!(p.iter().map(|(n, _)| n).sum::<usize>(), len);
+            assert_eq!(p[0].1, Duration::ZERO);
+            assert!(p[1..]
+                .iter()
+                .all(|&(n, g)| (1..=8).contains(&n) && g >= gap / 2 && g <= gap));
+        }
+        let p = Chunker::new(ChunkMode::Bytes, gap, 0).pieces(3);
+        assert_eq!(p, [(1, Duration::ZERO), (1, gap), (1, gap)]);
+        assert_eq!(
+            Chunker::new(ChunkMode::Whole, gap, 0).pieces(9),
+            [(9, Duration::ZERO)]
+        );
     }
 
     #[test]

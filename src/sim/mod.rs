@@ -64,6 +64,13 @@ pub struct Device {
     /// Sizes of a device added without them.
     pub default_bits: usize,
     pub default_registers: usize,
+    /// Generic devices' holding registers start at their own address (`--fill
+    /// address`), so a reader can tell every value.
+    fill_address: bool,
+    /// Generic devices send an unsolicited frame on each scheduled change (`--notify`).
+    generic_notify: bool,
+    /// The generic profile's scheduled changes so far.
+    ticks: u16,
 }
 
 /// What a console command produced.
@@ -98,7 +105,27 @@ impl Device {
             rng: fastrand::Rng::with_seed(seed),
             default_bits: generic::MIN_SIZE,
             default_registers: generic::MIN_SIZE,
+            fill_address: false,
+            generic_notify: false,
+            ticks: 0,
         }
+    }
+
+    /// Holding registers start at their own address, in every generic device now and
+    /// added later.
+    pub fn fill_holding_with_addresses(&mut self) {
+        self.fill_address = true;
+        if let Profile::Generic(g) = &mut self.profile {
+            for bank in g.units.values_mut() {
+                bank.fill_holding_with_addresses();
+            }
+        }
+    }
+
+    /// Generic devices notify each scheduled change: an unsolicited FC 03 response
+    /// from the first unit, transaction id 0, carrying the count of changes.
+    pub fn notify_generic(&mut self) {
+        self.generic_notify = true;
     }
 
     /// A generic profile with a device on each of `units`, seed 003's way.
@@ -113,7 +140,10 @@ impl Device {
     }
 
     fn add(&mut self, unit: u8, bits: usize, registers: usize) {
-        let bank = generic::Bank::new(bits, registers, now_civil(), &mut self.rng);
+        let mut bank = generic::Bank::new(bits, registers, now_civil(), &mut self.rng);
+        if self.fill_address {
+            bank.fill_holding_with_addresses();
+        }
         if let Profile::Generic(g) = &mut self.profile {
             g.units.insert(unit, bank);
         }
@@ -131,12 +161,14 @@ impl Device {
     pub fn notifying_unit(&self) -> Option<u8> {
         match &self.profile {
             Profile::CieM10(d) => Some(d.unit),
+            Profile::Generic(g) if self.generic_notify => g.units.keys().next().copied(),
             Profile::Generic(_) => None,
         }
     }
 
     /// The scheduled input change (`--toggle-ms`): the CIE-M10's inputs count up by one,
-    /// so every port changes in turn. Returns the notification, if any.
+    /// so every port changes in turn; the generic profile counts. Returns the
+    /// notification, if any.
     pub fn toggle(&mut self) -> Option<Vec<u8>> {
         match &mut self.profile {
             Profile::CieM10(d) => {
@@ -144,7 +176,11 @@ impl Device {
                 d.set_inputs(next);
                 d.notification()
             }
-            Profile::Generic(_) => None,
+            Profile::Generic(_) => {
+                self.ticks = self.ticks.wrapping_add(1);
+                let [hi, lo] = self.ticks.to_be_bytes();
+                self.generic_notify.then(|| vec![3, 2, hi, lo])
+            }
         }
     }
 

@@ -2,7 +2,7 @@
 //! its validation into [`Settings`].
 
 use super::cie_m10::CieM10;
-use super::line::Faults;
+use super::line::{ChunkMode, Chunker, Faults};
 use super::{generic, Device, Profile};
 use crate::config::{FlowControl, Parity, SerialConfig};
 use std::path::PathBuf;
@@ -15,6 +15,13 @@ pub enum ProfileName {
     CieM10,
     /// Devices by unit id with all four tables, FC 01-06, 0F, 10, 17.
     Generic,
+}
+
+/// What generic devices' holding registers start at.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Fill {
+    Zero,
+    Address,
 }
 
 /// Which direction the line faults hit.
@@ -56,11 +63,13 @@ pub struct DeviceArgs {
     /// cie-m10: wire each output to its input, so inputs follow the outputs.
     #[arg(long, help_heading = "cie-m10 profile")]
     pub loopback: bool,
-    /// cie-m10: input port change notification, an unsolicited FC 03 response
-    /// (transaction id 0) whenever an input changes.
+    /// Input port change notification, an unsolicited FC 03 response (transaction id
+    /// 0) whenever an input changes (cie-m10), or on each scheduled change (generic:
+    /// from the first unit, carrying the count of changes).
     #[arg(long, help_heading = "cie-m10 profile")]
     pub notify: bool,
-    /// cie-m10: change the inputs on a schedule (they count up by one every MS).
+    /// Change the inputs on a schedule: they count up by one every MS (cie-m10); the
+    /// generic profile counts the changes.
     #[arg(long, value_name = "MS", help_heading = "cie-m10 profile")]
     pub toggle_ms: Option<u64>,
 
@@ -73,6 +82,10 @@ pub struct DeviceArgs {
         help_heading = "generic profile"
     )]
     pub units: Vec<u8>,
+    /// generic: holding registers start at zero, or each at its own address (so a
+    /// reader can check every value it gets).
+    #[arg(long, value_enum, default_value_t = Fill::Zero, help_heading = "generic profile")]
+    pub fill: Fill,
     /// generic: coils and discrete inputs per device (at least 10).
     #[arg(long, default_value_t = generic::MIN_SIZE, value_name = "N", help_heading = "generic profile")]
     pub coils: usize,
@@ -119,6 +132,19 @@ pub struct DeviceArgs {
     /// request that arrives while the device is busy is ignored, as on the real device.
     #[arg(long, help_heading = "line model")]
     pub pipeline: bool,
+    /// Hand each frame to the line whole, one byte at a time, or in random bursts of
+    /// 1 to 8 bytes, with --chunk-gap-ms between the pieces.
+    #[arg(long, value_enum, default_value_t = ChunkMode::Whole, help_heading = "line model")]
+    pub chunks: ChunkMode,
+    /// The gap between pieces: exactly this one byte at a time, between half of it and
+    /// all of it in random bursts.
+    #[arg(
+        long,
+        default_value_t = 0,
+        value_name = "MS",
+        help_heading = "line model"
+    )]
+    pub chunk_gap_ms: u64,
     /// A partial request is discarded after this much silence.
     #[arg(
         long,
@@ -183,6 +209,7 @@ pub struct Settings {
     pub pipeline: bool,
     pub frame_gap: Duration,
     pub toggle: Option<Duration>,
+    pub chunker: Chunker,
 }
 
 /// Options that belong to the other profile are refused rather than ignored.
@@ -222,6 +249,7 @@ impl DeviceArgs {
                         ("--units", self.units != [1]),
                         ("--coils", self.coils != generic::MIN_SIZE),
                         ("--registers", self.registers != generic::MIN_SIZE),
+                        ("--fill", self.fill != Fill::Zero),
                     ],
                 )?;
                 if self.input_address == self.output_address {
@@ -250,8 +278,6 @@ impl DeviceArgs {
                         ("--input-address", self.input_address != 0),
                         ("--output-address", self.output_address != 8),
                         ("--loopback", self.loopback),
-                        ("--notify", self.notify),
-                        ("--toggle-ms", self.toggle_ms.is_some()),
                     ],
                 )?;
                 if let Some(u) = self.units.iter().find(|u| !(1..=247).contains(*u)) {
@@ -266,12 +292,19 @@ impl DeviceArgs {
                         ));
                     }
                 }
-                Device::generic(
+                let mut d = Device::generic(
                     &self.units,
                     self.coils,
                     self.registers,
                     seed.wrapping_add(2),
-                )
+                );
+                if self.fill == Fill::Address {
+                    d.fill_holding_with_addresses();
+                }
+                if self.notify {
+                    d.notify_generic();
+                }
+                d
             }
         };
         let faulty = |hit: bool, salt: u64| {
@@ -294,6 +327,11 @@ impl DeviceArgs {
             pipeline: self.pipeline,
             frame_gap: Duration::from_millis(self.frame_gap_ms),
             toggle: self.toggle_ms.map(Duration::from_millis),
+            chunker: Chunker::new(
+                self.chunks,
+                Duration::from_millis(self.chunk_gap_ms),
+                seed ^ 0x5EED,
+            ),
         })
     }
 }
@@ -323,8 +361,8 @@ mod tests {
             "--units applies to the generic profile only"
         );
         assert_eq!(
-            settings(&["--profile", "generic", "--notify"]).unwrap_err(),
-            "--notify applies to the cie-m10 profile only"
+            settings(&["--profile", "generic", "--loopback"]).unwrap_err(),
+            "--loopback applies to the cie-m10 profile only"
         );
         assert_eq!(
             settings(&["--drop", "1.5"]).unwrap_err(),

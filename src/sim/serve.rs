@@ -4,7 +4,7 @@
 //! it over a channel.
 
 use super::console::Command;
-use super::line::{Faults, Pacer};
+use super::line::{Chunker, Faults, Pacer};
 use super::options::Settings;
 use super::packets::Direction;
 use super::Device;
@@ -50,12 +50,14 @@ pub fn is_pty(path: &Path) -> bool {
     std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts"))
 }
 
-/// A frame waiting for the instant its last byte has left the simulated UART.
+/// A frame, or a piece of one, waiting for the instant its last byte has left the
+/// simulated UART.
 #[derive(Debug)]
 struct Outgoing {
     due: Instant,
-    frame: Adu,
-    note: &'static str,
+    bytes: bytes::Bytes,
+    /// The whole frame and what it is, on its first piece (for the log).
+    frame: Option<(Adu, &'static str)>,
 }
 
 /// How a session on one open port ended.
@@ -73,6 +75,7 @@ struct Sim {
     tx_faults: Faults,
     rx_pace: Pacer,
     tx_pace: Pacer,
+    chunker: Chunker,
     decoder: Resync,
     out: VecDeque<Outgoing>,
     /// Without `--pipeline`, the device is busy until its reply has left.
@@ -105,6 +108,7 @@ pub async fn run(
         tx_faults: settings.tx_faults,
         rx_pace: Pacer::new(baud, 10),
         tx_pace: Pacer::new(baud, 10),
+        chunker: settings.chunker,
         decoder: Resync::new(),
         out: VecDeque::new(),
         busy_until: None,
@@ -238,6 +242,14 @@ impl Sim {
         end
     }
 
+    /// A device that takes requests back to back must know where one ends: each is
+    /// confirmed by the next or by a quiet line (issue 4). One at a time needs no wait.
+    fn judge(&self) -> RequestJudge {
+        RequestJudge {
+            confirm: self.pipeline,
+        }
+    }
+
     /// Bytes from the line at `now`, through the line model, into the decoder.
     fn received(&mut self, raw: &[u8], now: Instant) {
         let mut bytes = Vec::with_capacity(raw.len());
@@ -246,7 +258,8 @@ impl Sim {
         let arrived = self.rx_pace.finish(now.into_std(), raw.len()).into();
         self.last_rx = now;
         self.decoder.push(&bytes);
-        while let Some(frame) = self.decoder.next_frame(&RequestJudge, false) {
+        let judge = self.judge();
+        while let Some(frame) = self.decoder.next_frame(&judge, false) {
             self.request(frame, arrived);
         }
     }
@@ -255,7 +268,8 @@ impl Sim {
     fn quiet(&mut self) {
         let before = self.decoder.stats().dropped_bytes;
         let arrived = Instant::now();
-        while let Some(frame) = self.decoder.next_frame(&RequestJudge, true) {
+        let judge = self.judge();
+        while let Some(frame) = self.decoder.next_frame(&judge, true) {
             self.request(frame, arrived);
         }
         let dropped = self.decoder.stats().dropped_bytes - before;
@@ -266,7 +280,7 @@ impl Sim {
 
     fn request(&mut self, frame: Adu, arrived: Instant) {
         if !self.pipeline && self.busy_until.is_some_and(|b| b > arrived) {
-            info!("rx {} (ignored: busy)", Hex(frame.as_bytes()));
+            info!(target: "mbgate::sim::packets", "rx {} (ignored: busy)", Hex(frame.as_bytes()));
             self.device
                 .log
                 .record(Direction::Rx, frame.as_bytes(), "ignored: busy");
@@ -278,21 +292,14 @@ impl Sim {
         } else {
             "no such unit: silent"
         };
-        info!("rx {} ({note})", Hex(frame.as_bytes()));
+        info!(target: "mbgate::sim::packets", "rx {} ({note})", Hex(frame.as_bytes()));
         self.device
             .log
             .record(Direction::Rx, frame.as_bytes(), note);
         if let Some(pdu) = answer.reply {
             let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
-            let due = self
-                .tx_pace
-                .finish((arrived + self.delay).into_std(), reply.as_bytes().len());
-            self.busy_until = Some(due.into());
-            self.out.push_back(Outgoing {
-                due: due.into(),
-                frame: reply,
-                note: "reply",
-            });
+            let done = self.queue(arrived + self.delay, reply, "reply");
+            self.busy_until = Some(done);
         }
         if let Some(pdu) = answer.notification {
             self.notify(pdu);
@@ -306,14 +313,25 @@ impl Sim {
             return;
         };
         let frame = Adu::build(0, unit, &pdu);
-        let due = self
-            .tx_pace
-            .finish(std::time::Instant::now(), frame.as_bytes().len());
-        self.out.push_back(Outgoing {
-            due: due.into(),
-            frame,
-            note: "notification",
-        });
+        self.queue(Instant::now(), frame, "notification");
+    }
+
+    /// Queues a frame ready at `ready` in its pieces, paced; the instant its last byte
+    /// has left.
+    fn queue(&mut self, ready: Instant, frame: Adu, note: &'static str) -> Instant {
+        let bytes = frame.clone().into_bytes();
+        let mut first = Some((frame, note));
+        let (mut at, mut due) = (0, ready);
+        for (n, gap) in self.chunker.pieces(bytes.len()) {
+            due = self.tx_pace.finish((due + gap).into_std(), n).into();
+            self.out.push_back(Outgoing {
+                due,
+                bytes: bytes.slice(at..at + n),
+                frame: first.take(),
+            });
+            at += n;
+        }
+        due
     }
 
     /// Writes every frame whose time has come, through the line model.
@@ -322,11 +340,13 @@ impl Sim {
         let mut bytes = Vec::new();
         while self.out.front().is_some_and(|o| o.due <= now) {
             let o = self.out.pop_front().expect("checked");
-            info!("tx {} ({})", Hex(o.frame.as_bytes()), o.note);
-            self.device
-                .log
-                .record(Direction::Tx, o.frame.as_bytes(), o.note);
-            self.tx_faults.apply(o.frame.as_bytes(), &mut bytes);
+            if let Some((frame, note)) = o.frame {
+                info!(target: "mbgate::sim::packets", "tx {} ({note})", Hex(frame.as_bytes()));
+                self.device
+                    .log
+                    .record(Direction::Tx, frame.as_bytes(), note);
+            }
+            self.tx_faults.apply(&o.bytes, &mut bytes);
         }
         AsyncWriteExt::write_all(port, &bytes).await
     }

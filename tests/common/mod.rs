@@ -680,3 +680,18 @@ pub fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
         ),
     }
 }
+
+impl Proc {
+    /// The child's process id (for /proc/PID: memory, state).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+}
+
+impl Cfg {
+    /// Logs at info, not debug: for runs of thousands of requests.
+    pub fn quiet(mut self) -> Cfg {
+        self.log = vec!["level = \"info\"".into()];
+        self
+    }
+}
