@@ -31,11 +31,10 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
     serve(listener, cfg, shutdown).await
 }
 
-/// Binds `tcp.listen`.
+/// Binds `tcp.listen` (see [`tcp::listen`]).
 pub async fn bind(cfg: &Config) -> Result<TcpListener, GatewayError> {
     let addr = cfg.tcp.listen;
-    TcpListener::bind(addr)
-        .await
+    tcp::listen(addr, cfg.relay.max_pending_per_connection)
         .map_err(|source| GatewayError::Bind { addr, source })
 }
 

@@ -4,7 +4,7 @@
 
 use crate::config::Config;
 use crate::frame::hex::Hex;
-use crate::frame::mbap::decode_strict;
+use crate::frame::mbap::{decode_strict, MAX_ADU};
 use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
 use crate::relay::{Command, ConnId, Outbound, RelayHandle, NOTIFICATION_SLACK};
@@ -15,12 +15,33 @@ use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::net::{TcpListener, TcpSocket, TcpStream};
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
+
+/// Binds the masters' listener. Every connection it accepts inherits its send buffer,
+/// capped here at room for all the replies mbgate can owe one master (the kernel
+/// doubles the figure). Left to itself Linux grows a send buffer up to `tcp_wmem`
+/// (4 MiB by default): a master that never reads would pin that much kernel memory,
+/// and thousands of replies would queue for it before its writer stalled and
+/// `idle_timeout_ms` could close it. The serial line, not this buffer, bounds the
+/// rate of replies, so a master that reads loses nothing by it.
+pub fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<TcpListener> {
+    let socket = if addr.is_ipv4() {
+        TcpSocket::new_v4()?
+    } else {
+        TcpSocket::new_v6()?
+    };
+    // As `TcpListener::bind` does.
+    socket.set_reuseaddr(true)?;
+    let room = (max_pending + NOTIFICATION_SLACK) * MAX_ADU;
+    socket.set_send_buffer_size(u32::try_from(room).unwrap_or(u32::MAX))?;
+    socket.bind(addr)?;
+    socket.listen(1024)
+}
 
 /// Accepts masters until shutdown. A connection past `max_connections` is closed at
 /// once and logged; the others each get a task on `tracker`.
@@ -167,8 +188,10 @@ impl Connection {
                         }
                     },
                     _ = tokio::time::sleep_until(idle_deadline), if !idle.is_zero() => {
-                        // Idle means no request for the period and none unanswered.
-                        if permits.available_permits() + 1 == max_pending && buf.is_empty() {
+                        // Idle means no byte for the period and no reply owed. A partial
+                        // frame that stopped growing is idle too: a master gone mid-frame
+                        // must not hold its connection slot for ever.
+                        if permits.available_permits() + 1 == max_pending {
                             info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
                             return End::Closed;
                         }
