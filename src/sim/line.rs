@@ -1,4 +1,5 @@
-//! The simulator's line model (issue 3, "Line model"): bytes lost and garbage injected,
+//! The simulator's line model (issue 3, "Line model"): bytes lost, garbage injected in
+//! bursts and bytes replaced,
 //! seeded so the same seed loses the same bytes, and the pace of a real UART, which a
 //! pty does not have.
 
@@ -10,12 +11,15 @@ use std::time::{Duration, Instant};
 pub struct Faults {
     /// Chance that a byte is lost.
     pub drop: f64,
-    /// Chance that a garbage byte is inserted before a byte.
+    /// Chance that a burst of 1 to 8 garbage bytes is inserted before a byte.
     pub noise: f64,
+    /// Chance that a byte is replaced by another (a bit error).
+    pub corrupt: f64,
     rng: fastrand::Rng,
-    /// Bytes lost and inserted so far.
+    /// Bytes lost, inserted and replaced so far.
     pub dropped: u64,
     pub inserted: u64,
+    pub corrupted: u64,
 }
 
 impl Faults {
@@ -23,10 +27,18 @@ impl Faults {
         Self {
             drop,
             noise,
+            corrupt: 0.0,
             rng: fastrand::Rng::with_seed(seed),
             dropped: 0,
             inserted: 0,
+            corrupted: 0,
         }
+    }
+
+    /// Replaces bytes too, with probability `p` each.
+    pub fn with_corrupt(mut self, p: f64) -> Self {
+        self.corrupt = p;
+        self
     }
 
     /// No faults at all.
@@ -35,7 +47,7 @@ impl Faults {
     }
 
     pub fn is_active(&self) -> bool {
-        self.drop > 0.0 || self.noise > 0.0
+        self.drop > 0.0 || self.noise > 0.0 || self.corrupt > 0.0
     }
 
     /// Passes `bytes` through the faulty line, appending what comes out to `out`.
@@ -45,16 +57,22 @@ impl Faults {
             return;
         }
         for &b in bytes {
-            // Always two draws per byte (and one more for a garbage byte), so the
-            // stream of decisions depends on the byte count alone.
+            // Always three draws per byte (and more for garbage), so the stream of
+            // decisions depends on the byte count alone.
             let noise = self.rng.f64() < self.noise;
             let lost = self.rng.f64() < self.drop;
+            let corrupt = self.rng.f64() < self.corrupt;
             if noise {
-                out.push(self.rng.u8(..));
-                self.inserted += 1;
+                for _ in 0..self.rng.usize(1..=8) {
+                    out.push(self.rng.u8(..));
+                    self.inserted += 1;
+                }
             }
             if lost {
                 self.dropped += 1;
+            } else if corrupt {
+                out.push(b ^ self.rng.u8(1..));
+                self.corrupted += 1;
             } else {
                 out.push(b);
             }
@@ -186,10 +204,16 @@ mod tests {
         let mut f = Faults::new(0.0, 0.001, 1);
         let out = run(&mut f, &[&data]);
         assert_eq!(out.len() as u64, 100_000 + f.inserted);
+        // About 100 bursts of 4.5 bytes.
+        assert!((300..600).contains(&f.inserted), "bursts: {}", f.inserted);
+        let mut f = Faults::new(0.0, 0.0, 1).with_corrupt(0.01);
+        let out = run(&mut f, &[&data]);
+        let changed = out.iter().filter(|&&b| b != 0x55).count() as u64;
+        assert_eq!((out.len() as u64, changed), (100_000, f.corrupted));
         assert!(
-            (60..140).contains(&f.inserted),
-            "about 0.1 % inserted: {}",
-            f.inserted
+            (800..1200).contains(&f.corrupted),
+            "about 1 %: {}",
+            f.corrupted
         );
     }
 

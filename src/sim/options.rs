@@ -113,7 +113,8 @@ pub struct DeviceArgs {
         help_heading = "line model"
     )]
     pub drop: f64,
-    /// Insert a random byte before each byte with this probability (0..1).
+    /// Insert a burst of 1 to 8 random bytes before each byte with this probability
+    /// (0..1).
     #[arg(
         long,
         default_value_t = 0.0,
@@ -121,7 +122,16 @@ pub struct DeviceArgs {
         help_heading = "line model"
     )]
     pub noise: f64,
-    /// Which direction --drop and --noise hit.
+    /// Replace each byte by another with this probability (0..1): a bit error, which
+    /// MBAP has no checksum to catch.
+    #[arg(
+        long,
+        default_value_t = 0.0,
+        value_name = "P",
+        help_heading = "line model"
+    )]
+    pub corrupt: f64,
+    /// Which direction --drop, --noise and --corrupt hit.
     #[arg(long, value_enum, default_value_t = FaultDirection::Both, help_heading = "line model")]
     pub faults: FaultDirection,
     /// Seed of the line faults and of random inputs: the same seed loses the same bytes.
@@ -222,7 +232,11 @@ fn only_for(profile: &str, set: &[(&str, bool)]) -> Result<(), String> {
 
 impl DeviceArgs {
     pub fn settings(&self) -> Result<Settings, String> {
-        for (flag, p) in [("--drop", self.drop), ("--noise", self.noise)] {
+        for (flag, p) in [
+            ("--drop", self.drop),
+            ("--noise", self.noise),
+            ("--corrupt", self.corrupt),
+        ] {
             if !(0.0..=1.0).contains(&p) {
                 return Err(format!("{flag} is a probability, 0 to 1; not {p}"));
             }
@@ -309,7 +323,7 @@ impl DeviceArgs {
         };
         let faulty = |hit: bool, salt: u64| {
             if hit {
-                Faults::new(self.drop, self.noise, seed ^ salt)
+                Faults::new(self.drop, self.noise, seed ^ salt).with_corrupt(self.corrupt)
             } else {
                 Faults::none()
             }
