@@ -50,43 +50,6 @@ fn rig(cfg: impl FnOnce(Cfg) -> Cfg) -> Rig {
 // ---------------------------------------------------------------------------------
 // Memory and counters of the gateway process
 
-#[derive(Debug, Clone, Copy)]
-struct Mem {
-    rss_kib: u64,
-    hwm_kib: u64,
-}
-
-/// VmRSS and VmHWM of the gateway; fails the test if the process has exited.
-fn mem(gw: &Gateway) -> Mem {
-    let pid = gw.proc.pid();
-    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
-        .unwrap_or_else(|e| panic!("the gateway is gone ({e}):\n{}", gw.log()));
-    let field = |name: &str| -> String {
-        status
-            .lines()
-            .find_map(|l| l.strip_prefix(name))
-            .unwrap_or_else(|| panic!("no {name} in /proc/{pid}/status"))
-            .trim()
-            .to_string()
-    };
-    assert!(
-        !field("State:").starts_with('Z'),
-        "the gateway exited:\n{}",
-        gw.log()
-    );
-    let kib = |name: &str| -> u64 {
-        let v = field(name);
-        v.trim_end_matches("kB")
-            .trim()
-            .parse()
-            .expect("a size in kB")
-    };
-    Mem {
-        rss_kib: kib("VmRSS:"),
-        hwm_kib: kib("VmHWM:"),
-    }
-}
-
 /// A master serves a few requests (so the allocator has its working set), then the
 /// gateway's memory is read: the level an attack is measured against.
 fn baseline(gw: &Gateway) -> Mem {

@@ -92,7 +92,7 @@ impl Scenario {
             in_flight,
             notifications: false,
             masters: 4,
-            requests: 400,
+            requests: 200,
             sim_args: vec![],
             response_timeout_ms: RESPONSE_TIMEOUT_MS,
             seed: 7,
@@ -550,7 +550,7 @@ fn replies_in_pieces_all_arrive_correct() {
 /// 1 % wrong, and bit errors are shown to get through, as the README warns.
 #[test]
 fn noise_is_mostly_refused() {
-    let n = if long() { 10_000 } else { 400 };
+    let n = if long() { 10_000 } else { 200 };
     let mut scenarios = Vec::new();
     for in_flight in [1, 4] {
         let mut sc = Scenario::new(Device::Sim, Direction::FromDevice, 0.0, in_flight);
@@ -575,4 +575,107 @@ fn noise_is_mostly_refused() {
     let (o, stats) = run(&bit_errors);
     println!("{}", row(&bit_errors, &o, &stats, start.elapsed()));
     assert!(o.wrong > 0, "bit errors in data bytes get through: {o:?}");
+}
+
+/// Fault 5: the serial side unplugged and plugged back 20 times (socat stopped and
+/// restarted) while 4 masters poll: mbgate does not restart, no master loses its
+/// connection or gets a wrong reply, every request is answered (a reply, 0x0A while
+/// the port is gone, or 0x0B), service resumes each time, memory stays flat.
+#[test]
+fn unplug_and_replug_under_load() {
+    let dir = tempdir();
+    let mut socat = Socat::start(dir.path());
+    let _dev = sim(
+        &socat.dev,
+        &[
+            "--profile",
+            "generic",
+            "--registers",
+            "100",
+            "--fill",
+            "address",
+            "--log-level",
+            "info,mbgate::sim::packets=off",
+        ],
+    );
+    let cfg = Cfg::new(&socat.gw)
+        .quiet()
+        .relay(&format!("response_timeout_ms = {RESPONSE_TIMEOUT_MS}"))
+        .relay(&format!("frame_gap_ms = {FRAME_GAP_MS}"));
+    let mut gw = Gateway::start(&cfg, dir.path());
+    let stop = Arc::new(AtomicBool::new(false));
+    let answered = Arc::new(std::sync::atomic::AtomicU64::new(0));
+    let addr = gw.addr;
+    let masters: Vec<_> = (0..4)
+        .map(|m| {
+            let (stop, answered) = (stop.clone(), answered.clone());
+            thread::spawn(move || {
+                let mut s = TcpStream::connect(addr).unwrap();
+                s.set_read_timeout(Some(answer_bound(4, RESPONSE_TIMEOUT_MS)))
+                    .unwrap();
+                let (mut ok, mut failed, mut wrong) = (0u64, 0u64, Vec::new());
+                for i in 0..100_000usize {
+                    if stop.load(Ordering::Relaxed) {
+                        break;
+                    }
+                    let tid = 1 + (i % 60_000) as u16;
+                    let a = (20 * m + i % 16) as u16;
+                    let req = read_req(tid, 1, a, 2);
+                    s.write_all(&req).expect("the connection stays up");
+                    let got = read_frame_within(&mut s).expect("an answer, in time");
+                    if got == read_reply(tid, 1, &[a, a + 1]) {
+                        ok += 1;
+                        answered.fetch_add(1, Ordering::Relaxed);
+                    } else if got[..8] == [&req[..4], &[0, 3, 1, 0x83]].concat()[..]
+                        && matches!(got[8], 0x0A | 0x0B)
+                    {
+                        failed += 1;
+                    } else if wrong.len() < 3 {
+                        wrong.push(hexs(&got));
+                    }
+                }
+                (ok, failed, wrong)
+            })
+        })
+        .collect();
+    let served = |n: u64| {
+        let start = Instant::now();
+        while answered.load(Ordering::Relaxed) < n {
+            assert!(
+                start.elapsed() < Duration::from_secs(10),
+                "service did not resume:\n{}",
+                gw.log()
+            );
+            thread::sleep(Duration::from_millis(5));
+        }
+    };
+    served(200);
+    let before = mem(&gw);
+    for _ in 0..20 {
+        socat.restart();
+        // Each time, service resumes: 20 more replies after the cable is back.
+        served(answered.load(Ordering::Relaxed) + 20);
+    }
+    let after = mem(&gw);
+    stop.store(true, Ordering::Relaxed);
+    let mut failures = 0;
+    for h in masters {
+        let (ok, failed, wrong) = h.join().expect("master");
+        assert!(wrong.is_empty(), "wrong replies: {wrong:?}");
+        assert!(ok > 0);
+        failures += failed;
+    }
+    println!(
+        "20 replugs: {} answered, {failures} 0x0A/0x0B; RSS {} -> {} KiB, peak {} KiB",
+        answered.load(Ordering::Relaxed),
+        before.rss_kib,
+        after.rss_kib,
+        after.hwm_kib
+    );
+    assert!(
+        after.rss_kib <= before.rss_kib + 1024,
+        "memory stays flat: {before:?} -> {after:?}"
+    );
+    assert!(gw.terminate(Duration::from_secs(5)).success());
+    assert!(stat(&gw.log(), "serial_opens") >= 21, "{}", gw.log());
 }

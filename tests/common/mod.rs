@@ -695,3 +695,40 @@ impl Cfg {
         self
     }
 }
+
+#[derive(Debug, Clone, Copy)]
+pub struct Mem {
+    pub rss_kib: u64,
+    pub hwm_kib: u64,
+}
+
+/// VmRSS and VmHWM of the gateway; fails the test if the process has exited.
+pub fn mem(gw: &Gateway) -> Mem {
+    let pid = gw.proc.pid();
+    let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
+        .unwrap_or_else(|e| panic!("the gateway is gone ({e}):\n{}", gw.log()));
+    let field = |name: &str| -> String {
+        status
+            .lines()
+            .find_map(|l| l.strip_prefix(name))
+            .unwrap_or_else(|| panic!("no {name} in /proc/{pid}/status"))
+            .trim()
+            .to_string()
+    };
+    assert!(
+        !field("State:").starts_with('Z'),
+        "the gateway exited:\n{}",
+        gw.log()
+    );
+    let kib = |name: &str| -> u64 {
+        let v = field(name);
+        v.trim_end_matches("kB")
+            .trim()
+            .parse()
+            .expect("a size in kB")
+    };
+    Mem {
+        rss_kib: kib("VmRSS:"),
+        hwm_kib: kib("VmHWM:"),
+    }
+}
