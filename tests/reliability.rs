@@ -477,8 +477,13 @@ fn check(scenarios: &[Scenario], wrong_allowed: bool) {
 /// (one, four), and pymodbus behind a lossy link (one at a time: it drops pipelined
 /// requests).
 fn matrix(requests: usize) -> Vec<Scenario> {
+    // MBGATE_LONG_LOSS=0.01 runs one rate (the rates run side by side that way).
+    let rates: Vec<f64> = match std::env::var("MBGATE_LONG_LOSS") {
+        Ok(list) => list.split(',').map(|r| r.parse().expect("a loss rate")).collect(),
+        Err(_) => vec![0.001, 0.01, 0.05],
+    };
     let mut out = Vec::new();
-    for drop in [0.001, 0.01, 0.05] {
+    for drop in rates {
         for (device, direction, in_flight, notifications) in [
             (Device::Sim, Direction::FromDevice, 1, false),
             (Device::Sim, Direction::FromDevice, 4, false),
