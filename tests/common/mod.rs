@@ -227,6 +227,11 @@ impl Cfg {
         self.log.push(line.into());
         self
     }
+    /// Replaces the log level (`debug` unless set).
+    pub fn log_level(mut self, level: &str) -> Cfg {
+        self.log[0] = format!("level = {level:?}");
+        self
+    }
     pub fn render(&self) -> String {
         let mut s = String::new();
         for (name, lines) in [
@@ -245,6 +250,8 @@ impl Cfg {
 pub struct Proc {
     child: Child,
     log: Arc<Mutex<String>>,
+    /// From spawning to the first log line that showed `ready`.
+    ready_after: Arc<Mutex<Option<Duration>>>,
     reader: Option<JoinHandle<()>>,
     pub stdout: Arc<Mutex<String>>,
 }
@@ -252,14 +259,20 @@ pub struct Proc {
 impl Proc {
     /// Starts `mbgate ARGS` and waits until its log shows `ready`.
     pub fn start(args: &[&str], ready: &str) -> Proc {
+        let spawned = Instant::now();
         let mut child = spawn_mbgate(args);
         let log = Arc::new(Mutex::new(String::new()));
         let stdout = Arc::new(Mutex::new(String::new()));
+        let ready_after = Arc::new(Mutex::new(None));
         let (err, out) = (child.stderr.take().unwrap(), child.stdout.take().unwrap());
         let sink = log.clone();
+        let (seen, needle) = (ready_after.clone(), ready.to_string());
         let reader = thread::spawn(move || {
             for line in BufReader::new(err).lines() {
                 let Ok(line) = line else { break };
+                if line.contains(&needle) {
+                    seen.lock().unwrap().get_or_insert(spawned.elapsed());
+                }
                 let mut l = sink.lock().unwrap();
                 l.push_str(&line);
                 l.push('\n');
@@ -277,6 +290,7 @@ impl Proc {
         let p = Proc {
             child,
             log,
+            ready_after,
             reader: Some(reader),
             stdout,
         };
@@ -286,6 +300,15 @@ impl Proc {
 
     pub fn log(&self) -> String {
         self.log.lock().unwrap().clone()
+    }
+
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// How long after spawning the `ready` line of [`Proc::start`] was read.
+    pub fn ready_after(&self) -> Duration {
+        self.ready_after.lock().unwrap().expect("started")
     }
 
     pub fn wait_log(&self, needle: &str, timeout: Duration) {
