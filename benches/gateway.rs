@@ -147,7 +147,7 @@ fn loadavg() -> String {
 }
 
 fn us(d: Duration) -> String {
-    format!("{:.0} µs", d.as_secs_f64() * 1e6)
+    format!("{:.1} µs", d.as_secs_f64() * 1e6)
 }
 
 fn ms(d: Duration) -> String {
@@ -305,9 +305,19 @@ fn latency(r: &mut Report) {
     let gw = line.gateway(&[], &[]);
     let mut s = connect(&gw);
     let mut through = Vec::new();
+    let cpu0 = cpu_ns(gw.proc.pid());
     for qty in [1, 10] {
         through.push(samples(WARM, N, |tid| tcp_read(&mut s, tid, qty)));
     }
+    // What mbgate itself spends on a transaction, against what it adds to one.
+    let per = Duration::from_nanos(cpu_ns(gw.proc.pid()) - cpu0) / (2 * (WARM + N)) as u32;
+    r.row(
+        "latency",
+        "mbgate CPU time per transaction (schedstat)",
+        us(per),
+        "(reported)",
+        None,
+    );
     let mut t = String::from("| registers | path | p50 | p99 | max |\n|---|---|---|---|---|\n");
     for (i, qty) in [1u16, 10].into_iter().enumerate() {
         let (d, p, g) = (spread(&direct[i]), spread(&piped[i]), spread(&through[i]));
