@@ -374,7 +374,7 @@ fn run(sc: &Scenario) -> (Outcome, String) {
         }
     }
     let cfg = Cfg::new(&gw_path)
-        .quiet()
+        .log_level("info")
         .relay(&format!("response_timeout_ms = {}", sc.response_timeout_ms))
         .relay(&format!("frame_gap_ms = {FRAME_GAP_MS}"))
         .relay(&format!("max_in_flight = {}", sc.in_flight))
@@ -479,7 +479,10 @@ fn check(scenarios: &[Scenario], wrong_allowed: bool) {
 fn matrix(requests: usize) -> Vec<Scenario> {
     // MBGATE_LONG_LOSS=0.01 runs one rate (the rates run side by side that way).
     let rates: Vec<f64> = match std::env::var("MBGATE_LONG_LOSS") {
-        Ok(list) => list.split(',').map(|r| r.parse().expect("a loss rate")).collect(),
+        Ok(list) => list
+            .split(',')
+            .map(|r| r.parse().expect("a loss rate"))
+            .collect(),
         Err(_) => vec![0.001, 0.01, 0.05],
     };
     let mut out = Vec::new();
@@ -604,7 +607,7 @@ fn unplug_and_replug_under_load() {
         ],
     );
     let cfg = Cfg::new(&socat.gw)
-        .quiet()
+        .log_level("info")
         .relay(&format!("response_timeout_ms = {RESPONSE_TIMEOUT_MS}"))
         .relay(&format!("frame_gap_ms = {FRAME_GAP_MS}"));
     let mut gw = Gateway::start(&cfg, dir.path());

@@ -60,6 +60,24 @@ struct Outgoing {
     frame: Option<(Adu, &'static str)>,
 }
 
+/// Waits until `due`, to within the OS's timer slack. Tokio's timer counts whole
+/// milliseconds and rounds a deadline up, which would put up to 1 ms between the
+/// instant a reply's last byte has left the simulated UART and its sending (half a
+/// transaction at 115 200 baud, and a millisecond on every unpaced reply). So the
+/// timer wakes the simulator a millisecond early and a blocking-pool thread sleeps
+/// the rest: the simulator's own thread stays free to read, so requests that come
+/// meanwhile are dated when they come. A `due` already past returns at once.
+async fn until_precisely(due: Instant) {
+    const TICK: Duration = Duration::from_millis(1);
+    if due > Instant::now() + TICK {
+        sleep_until(due - TICK).await;
+    }
+    let rest = due.saturating_duration_since(Instant::now());
+    if !rest.is_zero() {
+        let _ = tokio::task::spawn_blocking(move || std::thread::sleep(rest)).await;
+    }
+}
+
 /// How a session on one open port ended.
 enum End {
     Shutdown,
@@ -215,7 +233,7 @@ impl Sim {
             tokio::select! {
                 biased;
                 _ = shutdown.cancelled() => break End::Shutdown,
-                _ = sleep_until(due.unwrap_or_else(Instant::now)), if due.is_some() => {
+                _ = until_precisely(due.unwrap_or_else(Instant::now)), if due.is_some() => {
                     if let Err(e) = self.send_due(port).await {
                         break End::Lost(e);
                     }

@@ -218,6 +218,11 @@ impl Cfg {
         self.log.push(line.into());
         self
     }
+    /// Replaces the log level (`debug` unless set).
+    pub fn log_level(mut self, level: &str) -> Cfg {
+        self.log[0] = format!("level = {level:?}");
+        self
+    }
     pub fn render(&self) -> String {
         let mut s = String::new();
         for (name, lines) in [
@@ -236,6 +241,8 @@ impl Cfg {
 pub struct Proc {
     child: Child,
     log: Arc<Mutex<String>>,
+    /// From spawning to the first log line that showed `ready`.
+    ready_after: Arc<Mutex<Option<Duration>>>,
     reader: Option<JoinHandle<()>>,
     pub stdout: Arc<Mutex<String>>,
 }
@@ -305,16 +312,22 @@ impl Proc {
 
     /// [`Proc::start`] in the environment `launch` describes.
     pub fn launch(args: &[&str], ready: &str, launch: &Launch) -> Proc {
+        let spawned = Instant::now();
         let (mut cmd, err) = launch.command(args);
         let mut child = cmd.spawn().expect("start mbgate");
         drop(cmd);
         let log = Arc::new(Mutex::new(String::new()));
         let stdout = Arc::new(Mutex::new(String::new()));
+        let ready_after = Arc::new(Mutex::new(None));
         let out = child.stdout.take().unwrap();
         let sink = log.clone();
+        let (seen, needle) = (ready_after.clone(), ready.to_string());
         let reader = thread::spawn(move || {
             for line in BufReader::new(err).lines() {
                 let Ok(line) = line else { break };
+                if line.contains(&needle) {
+                    seen.lock().unwrap().get_or_insert(spawned.elapsed());
+                }
                 let mut l = sink.lock().unwrap();
                 l.push_str(&line);
                 l.push('\n');
@@ -332,6 +345,7 @@ impl Proc {
         let p = Proc {
             child,
             log,
+            ready_after,
             reader: Some(reader),
             stdout,
         };
@@ -341,6 +355,16 @@ impl Proc {
 
     pub fn log(&self) -> String {
         self.log.lock().unwrap().clone()
+    }
+
+    /// The child's process id (for /proc/PID: memory, state).
+    pub fn pid(&self) -> u32 {
+        self.child.id()
+    }
+
+    /// How long after spawning the `ready` line of [`Proc::start`] was read.
+    pub fn ready_after(&self) -> Duration {
+        self.ready_after.lock().unwrap().expect("started")
     }
 
     pub fn wait_log(&self, needle: &str, timeout: Duration) {
@@ -678,21 +702,6 @@ pub fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
             e.kind(),
             ErrorKind::ConnectionReset | ErrorKind::ConnectionAborted | ErrorKind::BrokenPipe
         ),
-    }
-}
-
-impl Proc {
-    /// The child's process id (for /proc/PID: memory, state).
-    pub fn pid(&self) -> u32 {
-        self.child.id()
-    }
-}
-
-impl Cfg {
-    /// Logs at info, not debug: for runs of thousands of requests.
-    pub fn quiet(mut self) -> Cfg {
-        self.log = vec!["level = \"info\"".into()];
-        self
     }
 }
 

@@ -3,6 +3,7 @@
 use super::Proc;
 use std::io::{ErrorKind, Read, Write};
 use std::os::unix::fs::OpenOptionsExt;
+use std::os::unix::io::AsRawFd;
 use std::path::Path;
 use std::thread;
 use std::time::{Duration, Instant};
@@ -75,15 +76,32 @@ impl RawLine {
                     last = Instant::now();
                 }
                 Err(e) if e.kind() == ErrorKind::WouldBlock => {
-                    if quiet.is_some_and(|q| last.elapsed() >= q) {
-                        break;
+                    let mut wait = limit.saturating_sub(start.elapsed());
+                    if let Some(q) = quiet {
+                        if last.elapsed() >= q {
+                            break;
+                        }
+                        wait = wait.min(q - last.elapsed());
                     }
-                    thread::sleep(Duration::from_millis(1));
+                    self.wait_readable(wait);
                 }
                 Err(e) => panic!("read from pty: {e}"),
             }
         }
         got
+    }
+
+    /// Blocks until the pty has bytes to read or `wait` has passed, so a reply is
+    /// seen as soon as it comes (the benchmarks time replies with this).
+    fn wait_readable(&self, wait: Duration) {
+        let mut fd = libc::pollfd {
+            fd: self.file.as_raw_fd(),
+            events: libc::POLLIN,
+            revents: 0,
+        };
+        let ms = wait.as_millis().clamp(1, i32::MAX as u128) as i32;
+        // SAFETY: one valid pollfd for the duration of the call.
+        unsafe { libc::poll(&mut fd, 1, ms) };
     }
 
     /// Sends a request and reads one reply of the expected size.

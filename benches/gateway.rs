@@ -1,0 +1,932 @@
+//! The gateway benchmarks (issue 5): added latency, wire efficiency, fairness and
+//! footprint, measured side by side in one run against the device simulator on socat
+//! pty pairs, and printed as Markdown.
+//!
+//! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
+//! `fairness`, `footprint` (all when none is named). `scripts/bench` runs this and
+//! `benches/decoder.rs` and writes the tables into docs/performance.md. With
+//! `MBGATE_BENCH_MD=FILE` the tables are also written to FILE.
+//!
+//! Everything listens on 127.0.0.1 port 0; every load loop is bounded in count and
+//! time. The masters run in this process (blocking sockets, one thread each); the
+//! gateway (`mbgate run`) and the simulator (`mbgate sim`) are the release binaries.
+
+#[path = "../tests/common/mod.rs"]
+mod common;
+
+use common::sim::RawLine;
+use common::{read_frame, read_req, tempdir, Cfg, Gateway, Proc, Socat};
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::net::TcpStream;
+use std::path::Path;
+use std::sync::{Arc, Barrier};
+use std::thread;
+use std::time::{Duration, Instant};
+
+/// Request bytes of an FC 03 read (MBAP): header 7 + function, address, quantity.
+const REQ: usize = 12;
+
+/// Reply bytes of an FC 03 read of `qty` registers (MBAP).
+fn reply_len(qty: u16) -> usize {
+    9 + 2 * usize::from(qty)
+}
+
+/// Upper bound on transactions in any one load loop, whatever its time budget.
+const MAX_TRANSACTIONS: usize = 200_000;
+
+fn main() {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .collect();
+    let all = ["latency", "wire", "fairness", "footprint"];
+    if let Some(bad) = args.iter().find(|a| !all.contains(&a.as_str())) {
+        eprintln!("unknown scenario {bad:?}; scenarios: {}", all.join(", "));
+        std::process::exit(2);
+    }
+    let wanted = |s: &str| args.is_empty() || args.iter().any(|a| a == s);
+    let mut r = Report::default();
+    let load_before = loadavg();
+    if wanted("latency") {
+        latency(&mut r);
+    }
+    if wanted("wire") {
+        wire(&mut r);
+    }
+    if wanted("fairness") {
+        fairness(&mut r);
+    }
+    if wanted("footprint") {
+        footprint(&mut r);
+    }
+    let md = r.render(&load_before, &loadavg());
+    println!("{md}");
+    if let Some(path) = std::env::var_os("MBGATE_BENCH_MD") {
+        std::fs::write(&path, &md).expect("write MBGATE_BENCH_MD");
+    }
+}
+
+// ---------------------------------------------------------------------------------
+// The report
+
+#[derive(Default)]
+struct Report {
+    rows: Vec<Row>,
+    details: String,
+}
+
+struct Row {
+    measure: String,
+    figure: String,
+    target: String,
+    met: Option<bool>,
+    scenario: &'static str,
+}
+
+impl Report {
+    fn row(
+        &mut self,
+        scenario: &'static str,
+        measure: &str,
+        figure: String,
+        target: &str,
+        met: Option<bool>,
+    ) {
+        eprintln!("  {measure}: {figure} (target {target})");
+        self.rows.push(Row {
+            measure: measure.into(),
+            figure,
+            target: target.into(),
+            met,
+            scenario,
+        });
+    }
+
+    fn detail(&mut self, title: &str, command: &str, table: &str) {
+        let _ = write!(self.details, "#### {title}\n\n`{command}`\n\n{table}\n");
+    }
+
+    fn render(&self, load_before: &str, load_after: &str) -> String {
+        let mut s = String::new();
+        let _ = writeln!(
+            s,
+            "Load average (1, 5, 15 min) at start: {load_before}; at end: {load_after}.\n"
+        );
+        s += "| measure | figure | target | met | command |\n|---|---|---|---|---|\n";
+        for r in &self.rows {
+            let met = match r.met {
+                Some(true) => "yes",
+                Some(false) => "**no**",
+                None => "-",
+            };
+            let _ = writeln!(
+                s,
+                "| {} | {} | {} | {} | `{}` |",
+                r.measure,
+                r.figure,
+                r.target,
+                met,
+                command(r.scenario)
+            );
+        }
+        s += "\n";
+        s += &self.details;
+        s
+    }
+}
+
+fn command(scenario: &str) -> String {
+    format!("cargo bench --bench gateway -- {scenario}")
+}
+
+fn loadavg() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .map(|l| l.split_whitespace().take(3).collect::<Vec<_>>().join(" "))
+        .unwrap_or_else(|_| "?".into())
+}
+
+fn us(d: Duration) -> String {
+    format!("{:.1} µs", d.as_secs_f64() * 1e6)
+}
+
+fn ms(d: Duration) -> String {
+    format!("{:.2} ms", d.as_secs_f64() * 1e3)
+}
+
+fn pct(x: f64) -> String {
+    format!("{:.1} %", x * 100.0)
+}
+
+/// p50, p99 and max of some durations.
+#[derive(Clone, Copy)]
+struct Spread {
+    p50: Duration,
+    p99: Duration,
+    max: Duration,
+}
+
+fn spread(samples: &[Duration]) -> Spread {
+    assert!(!samples.is_empty(), "no samples");
+    let mut v = samples.to_vec();
+    v.sort();
+    let at = |q: f64| v[((v.len() - 1) as f64 * q).round() as usize];
+    Spread {
+        p50: at(0.50),
+        p99: at(0.99),
+        max: v[v.len() - 1],
+    }
+}
+
+/// The signed difference b - a, in µs.
+fn diff_us(a: Duration, b: Duration) -> f64 {
+    (b.as_secs_f64() - a.as_secs_f64()) * 1e6
+}
+
+// ---------------------------------------------------------------------------------
+// Peers
+
+/// A pty pair and a quiet simulator on its device end: no per-packet log, started
+/// once it answers a read from the gateway's end.
+struct Line {
+    dir: tempfile::TempDir,
+    socat: Socat,
+    _sim: Proc,
+}
+
+impl Line {
+    fn start(sim_args: &[&str]) -> Line {
+        let dir = tempdir();
+        let socat = Socat::start(dir.path());
+        let mut args = vec!["--profile", "generic", "--log-level", "warn"];
+        args.extend_from_slice(sim_args);
+        // No log line to wait for ("" is there at once): the probe below decides.
+        let dev = socat.dev.to_str().unwrap();
+        let all: Vec<&str> = ["sim", "--serial", dev].into_iter().chain(args).collect();
+        let s = Proc::start(&all, "");
+        let mut probe = RawLine::open(&socat.gw);
+        let start = Instant::now();
+        while probe.transact(&read_req(1, 1, 0, 1), reply_len(1)).len() < reply_len(1) {
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "the simulator never answered"
+            );
+        }
+        Line {
+            dir,
+            socat,
+            _sim: s,
+        }
+    }
+
+    fn raw(&self) -> RawLine {
+        RawLine::open(&self.socat.gw)
+    }
+
+    /// `mbgate run` on this line: log at info, and the given `[relay]`/`[tcp]` lines.
+    fn gateway(&self, relay: &[&str], tcp: &[&str]) -> Gateway {
+        let mut cfg = Cfg::new(&self.socat.gw).log_level("info");
+        for l in relay {
+            cfg = cfg.relay(l);
+        }
+        for l in tcp {
+            cfg = cfg.tcp(l);
+        }
+        Gateway::start(&cfg, self.dir.path())
+    }
+}
+
+fn connect(gw: &Gateway) -> TcpStream {
+    let s = gw.connect();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    s
+}
+
+/// One FC 03 round trip through the gateway; panics unless it is the normal reply.
+fn tcp_read(s: &mut TcpStream, tid: u16, qty: u16) -> Duration {
+    let req = read_req(tid, 1, 0, qty);
+    let t = Instant::now();
+    s.write_all(&req).expect("send");
+    let reply = read_frame(s);
+    let took = t.elapsed();
+    assert_eq!(
+        (reply.len(), reply[7]),
+        (reply_len(qty), 0x03),
+        "not a normal reply: {reply:02X?}"
+    );
+    took
+}
+
+/// One FC 03 round trip straight to the simulator on the pty.
+fn raw_read(m: &mut RawLine, tid: u16, qty: u16) -> Duration {
+    let req = read_req(tid, 1, 0, qty);
+    let t = Instant::now();
+    let reply = m.transact(&req, reply_len(qty));
+    let took = t.elapsed();
+    assert_eq!(reply.len(), reply_len(qty), "short reply: {reply:02X?}");
+    took
+}
+
+/// Runs `f` `n` times after `warm` unrecorded runs.
+fn samples(warm: usize, n: usize, mut f: impl FnMut(u16) -> Duration) -> Vec<Duration> {
+    for i in 0..warm {
+        f(i as u16);
+    }
+    (0..n).map(|i| f(i as u16)).collect()
+}
+
+// ---------------------------------------------------------------------------------
+// 1. Added latency
+
+fn latency(r: &mut Report) {
+    eprintln!("latency: FC 03 straight to the simulator, then through mbgate");
+    const WARM: usize = 200;
+    const N: usize = 2000;
+    // The three paths take turns, ROUNDS times, so a change in the machine's load
+    // during the run falls on all of them alike.
+    const ROUNDS: usize = 4;
+    let line = Line::start(&[]);
+    let (mut direct, mut piped, mut through) = (vec![vec![]; 2], vec![vec![]; 2], vec![vec![]; 2]);
+    let (mut cpu, mut transactions) = (0, 0);
+    for _ in 0..ROUNDS {
+        let mut m = line.raw();
+        for (i, qty) in [1, 10].into_iter().enumerate() {
+            direct[i].extend(samples(WARM, N / ROUNDS, |tid| raw_read(&mut m, tid, qty)));
+        }
+        drop(m);
+        let (mut pipe, addr) = socat_pipe(&line.socat.gw);
+        let mut s = TcpStream::connect(addr).expect("connect to socat");
+        s.set_nodelay(true).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        for (i, qty) in [1, 10].into_iter().enumerate() {
+            piped[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, qty)));
+        }
+        let _ = pipe.kill();
+        let _ = pipe.wait();
+        let mut gw = line.gateway(&[], &[]);
+        let mut s = connect(&gw);
+        let cpu0 = cpu_ns(gw.proc.pid());
+        for (i, qty) in [1, 10].into_iter().enumerate() {
+            through[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, qty)));
+        }
+        cpu += cpu_ns(gw.proc.pid()) - cpu0;
+        transactions += 2 * (WARM + N / ROUNDS);
+        gw.terminate(Duration::from_secs(5));
+    }
+    // What mbgate itself spends on a transaction, against what it adds to one.
+    let per = Duration::from_nanos(cpu) / transactions as u32;
+    r.row(
+        "latency",
+        "mbgate CPU time per transaction (schedstat)",
+        us(per),
+        "(reported)",
+        None,
+    );
+    let mut t = String::from("| registers | path | p50 | p99 | max |\n|---|---|---|---|---|\n");
+    for (i, qty) in [1u16, 10].into_iter().enumerate() {
+        let (d, p, g) = (spread(&direct[i]), spread(&piped[i]), spread(&through[i]));
+        for (path, x) in [
+            ("pty → sim (direct)", d),
+            ("TCP → socat (a bare byte pipe) → pty → sim", p),
+            ("TCP → mbgate → pty → sim", g),
+        ] {
+            let _ = writeln!(
+                t,
+                "| {qty} | {path} | {} | {} | {} |",
+                us(x.p50),
+                us(x.p99),
+                us(x.max)
+            );
+        }
+        let (a50, a99) = (diff_us(d.p50, g.p50), diff_us(d.p99, g.p99));
+        let _ = writeln!(
+            t,
+            "| {qty} | added by the byte pipe | {:.0} µs | {:.0} µs | |",
+            diff_us(d.p50, p.p50),
+            diff_us(d.p99, p.p99)
+        );
+        let _ = writeln!(
+            t,
+            "| {qty} | **added by mbgate** | **{a50:.0} µs** | **{a99:.0} µs** | |"
+        );
+        for (q, added, before, after, target) in [
+            ("p50", a50, d.p50, g.p50, 50.0),
+            ("p99", a99, d.p99, g.p99, 200.0),
+        ] {
+            r.row(
+                "latency",
+                &format!("added latency {q}, FC 03 × {qty}"),
+                format!("{added:.0} µs ({} → {})", us(before), us(after)),
+                &format!("≤ {target:.0} µs"),
+                Some(added <= target),
+            );
+        }
+    }
+    r.detail(
+        &format!("Added latency ({N} samples a path and size, in {ROUNDS} rounds in which the paths take turns, each after {WARM} warm-up; simulator unpaced, no delay; every path crosses the one socat hop of the pty pair)"),
+        &command("latency"),
+        &t,
+    );
+}
+
+/// `socat TCP-LISTEN:0 FILE:PTY`: the least any TCP-to-serial process can add (a
+/// byte pipe, no framing), as a second baseline. Returns it and its address.
+fn socat_pipe(pty: &Path) -> (std::process::Child, std::net::SocketAddr) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new("socat")
+        .args(["-d", "-d", "TCP-LISTEN:0,bind=127.0.0.1"])
+        .arg(format!("FILE:{},raw,echo=0", pty.display()))
+        .stdin(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("socat");
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    // "... listening on AF=2 127.0.0.1:PORT"; stderr closes if socat fails.
+    let addr = lines
+        .by_ref()
+        .map_while(Result::ok)
+        .find_map(|l| {
+            l.split("listening on AF=2 ")
+                .nth(1)
+                .and_then(|a| a.trim().parse().ok())
+        })
+        .expect("socat's listening address");
+    thread::spawn(move || lines.for_each(drop));
+    (child, addr)
+}
+
+// ---------------------------------------------------------------------------------
+// 2. Wire efficiency
+
+/// Transactions per second the wire allows: half duplex (one outstanding: request
+/// then reply) or full duplex (pipelined: the longer direction limits).
+fn wire_limit(baud: u32, qty: u16, full_duplex: bool) -> f64 {
+    let bytes = if full_duplex {
+        REQ.max(reply_len(qty))
+    } else {
+        REQ + reply_len(qty)
+    };
+    f64::from(baud) / 10.0 / bytes as f64
+}
+
+/// Keeps `window` FC 03 reads outstanding (1 = polling) for `budget`, through
+/// `send`/`recv` (which returns how many replies it read); returns transactions per
+/// second between the last warm-up reply and the last reply before the deadline.
+fn throughput(
+    window: usize,
+    qty: u16,
+    budget: Duration,
+    mut send: impl FnMut(&[u8]),
+    mut recv: impl FnMut() -> usize,
+) -> f64 {
+    const WARM: usize = 8;
+    let mut tid = 0u16;
+    let mut request = || {
+        tid = tid.wrapping_add(1);
+        read_req(tid, 1, 0, qty)
+    };
+    for _ in 0..window {
+        send(&request());
+    }
+    let mut done = 0usize;
+    let (mut start, mut last, mut counted) = (Instant::now(), Instant::now(), 0usize);
+    let deadline = Instant::now() + budget;
+    let mut sent = window;
+    loop {
+        let n = recv();
+        for _ in 0..n {
+            done += 1;
+            let now = Instant::now();
+            if done == WARM {
+                start = now;
+            } else if done > WARM && now <= deadline {
+                (last, counted) = (now, counted + 1);
+            }
+            if now < deadline && sent < MAX_TRANSACTIONS {
+                send(&request());
+                sent += 1;
+            }
+        }
+        if done == sent {
+            break;
+        }
+    }
+    // Replies after the deadline (the pipeline draining) are not counted.
+    counted as f64 / (last - start).as_secs_f64()
+}
+
+/// Polls (or pipelines) through the gateway.
+fn tcp_throughput(s: &mut TcpStream, window: usize, qty: u16, budget: Duration) -> f64 {
+    let mut rd = s.try_clone().unwrap();
+    throughput(
+        window,
+        qty,
+        budget,
+        |req| s.write_all(req).expect("send"),
+        || {
+            let reply = read_frame(&mut rd);
+            assert_eq!(
+                reply.len(),
+                reply_len(qty),
+                "not a normal reply: {reply:02X?}"
+            );
+            1
+        },
+    )
+}
+
+/// Polls (or pipelines) straight to the simulator on the pty.
+fn raw_throughput(m: &mut RawLine, window: usize, qty: u16, budget: Duration) -> f64 {
+    let m = std::cell::RefCell::new(m);
+    let mut bytes = 0usize;
+    let len = reply_len(qty);
+    throughput(
+        window,
+        qty,
+        budget,
+        |req| m.borrow_mut().send(req),
+        || {
+            let got = m.borrow_mut().recv(1, Duration::from_secs(5)).len();
+            assert!(got > 0, "the simulator stopped answering");
+            let before = bytes / len;
+            bytes += got;
+            bytes / len - before
+        },
+    )
+}
+
+fn wire(r: &mut Report) {
+    const BUDGET: Duration = Duration::from_secs(3);
+    let mut t = String::from(
+        "| baud | max_in_flight (window) | registers | wire limit | direct to the simulator | through mbgate | mbgate / limit |\n|---|---|---|---|---|---|---|\n",
+    );
+    for baud in [9600u32, 19200, 115200] {
+        for (pipelined, in_flight, window) in [(false, 1, 1), (true, 4, 8)] {
+            eprintln!(
+                "wire: {baud} baud, {}",
+                if pipelined { "pipelined" } else { "polling" }
+            );
+            let b = baud.to_string();
+            let mut sim_args = vec!["--baud", b.as_str()];
+            if pipelined {
+                sim_args.push("--pipeline");
+            }
+            let line = Line::start(&sim_args);
+            let direct: Vec<f64> = {
+                let mut m = line.raw();
+                [1, 10]
+                    .iter()
+                    .map(|&q| raw_throughput(&mut m, window.min(in_flight), q, BUDGET))
+                    .collect()
+            };
+            let inf = format!("max_in_flight = {in_flight}");
+            let gw = line.gateway(&[&inf], &[]);
+            let mut s = connect(&gw);
+            for (i, qty) in [1u16, 10].into_iter().enumerate() {
+                let got = tcp_throughput(&mut s, window, qty, BUDGET);
+                let limit = wire_limit(baud, qty, pipelined);
+                let eff = got / limit;
+                let _ = writeln!(
+                    t,
+                    "| {baud} | {in_flight} ({window}) | {qty} | {limit:.1}/s | {:.1}/s ({}) | {got:.1}/s | **{}** |",
+                    direct[i],
+                    pct(direct[i] / limit),
+                    pct(eff)
+                );
+                let (target, ok) = if pipelined {
+                    ("≥ 95 % of full duplex", eff >= 0.95)
+                } else {
+                    ("≥ 97 % of half duplex", eff >= 0.97)
+                };
+                r.row(
+                    "wire",
+                    &format!(
+                        "wire efficiency {baud} baud, max_in_flight {in_flight}, FC 03 × {qty}"
+                    ),
+                    format!("{} ({got:.1} of {limit:.1}/s)", pct(eff)),
+                    target,
+                    Some(ok),
+                );
+            }
+        }
+    }
+    r.detail(
+        "Wire efficiency (simulator paces 10 bits a byte each way; one master, 3 s a point after 8 warm-up transactions)",
+        &command("wire"),
+        &t,
+    );
+}
+
+// ---------------------------------------------------------------------------------
+// 3. Fairness
+
+/// What one polling master saw inside the measuring window.
+#[derive(Default)]
+struct Seen {
+    latencies: Vec<Duration>,
+}
+
+/// `n` masters poll FC 03 × 1 through the gateway at once. The window opens after
+/// `warm` and closes at `warm + window`; a transaction counts if it was sent and
+/// answered inside it.
+fn poll_together(gw: &Gateway, n: usize, warm: Duration, window: Duration) -> Vec<Seen> {
+    let barrier = Arc::new(Barrier::new(n + 1));
+    let addr = gw.addr;
+    let masters: Vec<_> = (0..n)
+        .map(|_| {
+            let barrier = barrier.clone();
+            let mut s = TcpStream::connect(addr).expect("connect");
+            s.set_nodelay(true).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+            thread::spawn(move || {
+                barrier.wait();
+                let t0 = Instant::now();
+                let (open, close) = (t0 + warm, t0 + warm + window);
+                let mut seen = Seen::default();
+                let mut tid = 0u16;
+                for _ in 0..MAX_TRANSACTIONS {
+                    let sent = Instant::now();
+                    if sent >= close {
+                        break;
+                    }
+                    tid = tid.wrapping_add(1);
+                    let took = tcp_read(&mut s, tid, 1);
+                    if sent >= open && sent + took <= close {
+                        seen.latencies.push(took);
+                    }
+                }
+                seen
+            })
+        })
+        .collect();
+    barrier.wait();
+    masters.into_iter().map(|m| m.join().unwrap()).collect()
+}
+
+/// Keeps 16 requests outstanding on its own connection until `stop`.
+fn pipeliner(gw: &Gateway, stop: Instant) -> thread::JoinHandle<usize> {
+    let mut s = connect(gw);
+    thread::spawn(move || {
+        let mut rd = s.try_clone().unwrap();
+        let mut n = 0;
+        throughput(
+            16,
+            1,
+            stop.saturating_duration_since(Instant::now()),
+            |req| s.write_all(req).expect("send"),
+            || {
+                read_frame(&mut rd);
+                n += 1;
+                1
+            },
+        );
+        n
+    })
+}
+
+fn fairness(r: &mut Report) {
+    const BAUD: u32 = 115_200;
+    eprintln!("fairness: 1, 10, 100 masters polling at {BAUD} baud");
+    let line = Line::start(&["--baud", "115200"]);
+    // Room for every master and every pipelined request: no 0x06, no refusals.
+    let gw = line.gateway(&["queue_depth = 256"], &["max_connections = 128"]);
+    let wire_t = Duration::from_secs_f64(1.0 / wire_limit(BAUD, 1, false));
+    let mut t = String::from(
+        "| masters | window | throughput | of wire limit | share min / max of mean | p50 | p99 | p99 / (masters × T₁) |\n|---|---|---|---|---|---|---|---|\n",
+    );
+    let mut t1 = None;
+    for n in [1usize, 10, 100] {
+        // About 30 rounds of every master, at least 3 s.
+        let window = (wire_t * (30 * n) as u32).max(Duration::from_secs(3));
+        let seen = poll_together(&gw, n, Duration::from_millis(500), window);
+        let counts: Vec<usize> = seen.iter().map(|s| s.latencies.len()).collect();
+        let total: usize = counts.iter().sum();
+        let mean = total as f64 / n as f64;
+        let (lo, hi) = (
+            *counts.iter().min().unwrap() as f64 / mean,
+            *counts.iter().max().unwrap() as f64 / mean,
+        );
+        let all: Vec<Duration> = seen.into_iter().flat_map(|s| s.latencies).collect();
+        let sp = spread(&all);
+        // One transaction time: a single master's median, measured here first.
+        let t1 = *t1.get_or_insert(sp.p50);
+        let rate = total as f64 / window.as_secs_f64();
+        let of_wire = rate / wire_limit(BAUD, 1, false);
+        let bound = t1 * n as u32;
+        let ratio = sp.p99.as_secs_f64() / bound.as_secs_f64();
+        let _ = writeln!(
+            t,
+            "| {n} | {:.1} s | {rate:.1}/s | {} | {:.3} / {:.3} | {} | {} | {ratio:.3} |",
+            window.as_secs_f64(),
+            pct(of_wire),
+            lo,
+            hi,
+            ms(sp.p50),
+            ms(sp.p99),
+        );
+        r.row(
+            "fairness",
+            &format!("{n} masters: throughput"),
+            format!(
+                "{rate:.1}/s = {} of the wire limit, {} of one master's",
+                pct(of_wire),
+                pct(rate * t1.as_secs_f64())
+            ),
+            "at the wire limit",
+            None,
+        );
+        if n > 1 {
+            let worst = (1.0 - lo).max(hi - 1.0);
+            r.row(
+                "fairness",
+                &format!("{n} masters: each master's share"),
+                format!("within {} of the mean", pct(worst)),
+                "within 10 %",
+                Some(worst <= 0.10),
+            );
+        }
+        r.row(
+            "fairness",
+            &format!("{n} masters: p99 latency"),
+            format!("{} = {ratio:.3} × ({n} × T₁ = {})", ms(sp.p99), ms(bound)),
+            "≤ 1.2 × masters × T₁",
+            Some(ratio <= 1.2),
+        );
+    }
+    let t1 = t1.expect("measured");
+
+    // A pipelining master beside a polling one.
+    eprintln!("fairness: a poller alone, then beside a master pipelining 16");
+    let budget = Duration::from_secs(4);
+    let alone = spread(&poll_together(&gw, 1, Duration::from_millis(300), budget)[0].latencies);
+    let stop = Instant::now() + budget + Duration::from_millis(600);
+    let p = pipeliner(&gw, stop);
+    let beside = poll_together(&gw, 1, Duration::from_millis(300), budget);
+    let piped = p.join().unwrap();
+    let beside = spread(&beside[0].latencies);
+    let extra = beside.p99.saturating_sub(alone.p99);
+    let _ = writeln!(
+        t,
+        "\nPoller alone: p50 {}, p99 {}; beside a master pipelining 16 ({piped} replies to it): p50 {}, p99 {} (+{} = {:.2} T₁). T₁ = {} (wire time {}).",
+        ms(alone.p50),
+        ms(alone.p99),
+        ms(beside.p50),
+        ms(beside.p99),
+        ms(extra),
+        extra.as_secs_f64() / t1.as_secs_f64(),
+        ms(t1),
+        ms(wire_t),
+    );
+    r.row(
+        "fairness",
+        "poller's p99 beside a master pipelining 16",
+        format!(
+            "{} vs {} alone (+{:.2} T₁)",
+            ms(beside.p99),
+            ms(alone.p99),
+            extra.as_secs_f64() / t1.as_secs_f64()
+        ),
+        "≤ alone + 2 T₁",
+        Some(extra <= t1 * 2),
+    );
+    peak_rss_row(
+        r,
+        "fairness",
+        "peak RSS of mbgate after these runs (100 masters polling at most)",
+        proc_status(gw.proc.pid(), "VmHWM"),
+    );
+    r.detail(
+        &format!("Fairness ({BAUD} baud, max_in_flight 1, queue_depth 256, max_connections 128; FC 03 × 1; T₁ = one master's median transaction time = {}, wire time {})", ms(t1), ms(wire_t)),
+        &command("fairness"),
+        &t,
+    );
+}
+
+// ---------------------------------------------------------------------------------
+// 4. Footprint
+
+/// A `kB` field of /proc/PID/status.
+fn proc_status(pid: u32, key: &str) -> u64 {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("status");
+    s.lines()
+        .find_map(|l| l.strip_prefix(&format!("{key}:")))
+        .and_then(|v| v.split_whitespace().next())
+        .and_then(|v| v.parse().ok())
+        .unwrap_or_else(|| panic!("no {key} in /proc/{pid}/status"))
+}
+
+/// The peak-RSS target: at most 8 MiB (`kb` from VmHWM).
+fn peak_rss_row(r: &mut Report, scenario: &'static str, measure: &str, kb: u64) {
+    r.row(
+        scenario,
+        measure,
+        format!("{:.2} MiB", kb as f64 / 1024.0),
+        "≤ 8 MiB",
+        Some(kb <= 8 * 1024),
+    );
+}
+
+/// utime + stime of a process, in clock ticks (/proc/PID/stat fields 14 and 15).
+fn cpu_ticks(pid: u32) -> u64 {
+    let s = std::fs::read_to_string(format!("/proc/{pid}/stat")).expect("stat");
+    // The command name may hold spaces; the fields after it are plain.
+    let rest = &s[s.rfind(')').expect("comm") + 2..];
+    let f: Vec<u64> = rest
+        .split_whitespace()
+        .map(|x| x.parse().unwrap_or(0))
+        .collect();
+    // rest starts at field 3 (state): field k is f[k - 3].
+    f[14 - 3] + f[15 - 3]
+}
+
+/// Time on a CPU of all of a process's threads, in ns (/proc/PID/task/*/schedstat).
+fn cpu_ns(pid: u32) -> u64 {
+    std::fs::read_dir(format!("/proc/{pid}/task"))
+        .expect("tasks")
+        .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok())
+        .filter_map(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+        .sum()
+}
+
+fn clock_ticks_per_second() -> u64 {
+    // SAFETY: sysconf has no preconditions.
+    (unsafe { libc::sysconf(libc::_SC_CLK_TCK) }).max(1) as u64
+}
+
+fn file_size(path: &Path) -> u64 {
+    std::fs::metadata(path).map(|m| m.len()).unwrap_or(0)
+}
+
+fn footprint(r: &mut Report) {
+    eprintln!("footprint: start-up, idle CPU with 10 masters, RSS with 100");
+    let line = Line::start(&[]);
+    let mut t = String::from("| what | figure |\n|---|---|\n");
+
+    // Time from spawn to the `listening on` line, five starts.
+    let mut starts = Vec::new();
+    for _ in 0..5 {
+        let mut gw = line.gateway(&[], &[]);
+        starts.push(gw.proc.ready_after());
+        gw.terminate(Duration::from_secs(5));
+    }
+    let st = spread(&starts);
+    let _ = writeln!(
+        t,
+        "| start to `listening on`, 5 starts | median {}, max {} |",
+        ms(st.p50),
+        ms(st.max)
+    );
+    r.row(
+        "footprint",
+        "start to listening (median of 5)",
+        ms(st.p50),
+        "(reported)",
+        None,
+    );
+
+    let gw = line.gateway(&["queue_depth = 256"], &["max_connections = 128"]);
+    let pid = gw.proc.pid();
+    let rss_start = proc_status(pid, "VmRSS");
+    let mut masters: Vec<TcpStream> = (0..10).map(|_| connect(&gw)).collect();
+    for (i, m) in masters.iter_mut().enumerate() {
+        tcp_read(m, i as u16, 1);
+    }
+    // Idle: 10 masters connected, nothing asked, for 10 s.
+    let (ticks0, ns0, sw0) = (
+        cpu_ticks(pid),
+        cpu_ns(pid),
+        proc_status(pid, "voluntary_ctxt_switches"),
+    );
+    thread::sleep(Duration::from_secs(10));
+    let (ticks1, ns1, sw1) = (
+        cpu_ticks(pid),
+        cpu_ns(pid),
+        proc_status(pid, "voluntary_ctxt_switches"),
+    );
+    let hz = clock_ticks_per_second();
+    let idle_ms = (ticks1 - ticks0) as f64 * 1000.0 / hz as f64;
+    let idle_exact = Duration::from_nanos(ns1 - ns0);
+    let _ = writeln!(
+        t,
+        "| CPU while idle, 10 masters connected, 10 s | utime+stime {} ticks ({idle_ms:.0} ms at {hz} ticks/s); schedstat {}; {} voluntary context switches |",
+        ticks1 - ticks0,
+        ms(idle_exact),
+        sw1 - sw0
+    );
+    r.row(
+        "footprint",
+        "CPU while idle, 10 masters connected, 10 s",
+        format!(
+            "{} (schedstat), {} ticks, {} wake-ups",
+            ms(idle_exact),
+            ticks1 - ticks0,
+            sw1 - sw0
+        ),
+        "< 10 ms",
+        Some(idle_exact < Duration::from_millis(10) && idle_ms < 10.0),
+    );
+
+    // 100 masters connected, each has had a reply.
+    masters.extend((10..100).map(|_| connect(&gw)));
+    let barrier = Arc::new(Barrier::new(masters.len()));
+    let masters: Vec<TcpStream> = masters
+        .into_iter()
+        .enumerate()
+        .map(|(i, mut m)| {
+            let b = barrier.clone();
+            thread::spawn(move || {
+                b.wait();
+                tcp_read(&mut m, i as u16, 10);
+                m
+            })
+        })
+        .collect::<Vec<_>>()
+        .into_iter()
+        .map(|h| h.join().unwrap())
+        .collect();
+    let (rss, hwm, threads) = (
+        proc_status(pid, "VmRSS"),
+        proc_status(pid, "VmHWM"),
+        proc_status(pid, "Threads"),
+    );
+    let _ = writeln!(
+        t,
+        "| RSS: at start / with 100 masters connected / peak (VmHWM) | {rss_start} kB / {rss} kB / {hwm} kB ({threads} threads) |"
+    );
+    peak_rss_row(
+        r,
+        "footprint",
+        "peak RSS with 100 connected masters (VmHWM)",
+        hwm,
+    );
+    drop(masters);
+
+    let bin = Path::new(env!("CARGO_BIN_EXE_mbgate"));
+    let size = file_size(bin);
+    let stripped = std::env::temp_dir().join(format!("mbgate-stripped-{}", std::process::id()));
+    let stripped_size = std::process::Command::new("strip")
+        .arg("-o")
+        .arg(&stripped)
+        .arg(bin)
+        .status()
+        .ok()
+        .filter(|s| s.success())
+        .map(|_| file_size(&stripped));
+    let _ = std::fs::remove_file(&stripped);
+    let stripped_text = stripped_size.map_or("strip not found".into(), |s| {
+        format!("{:.2} MiB stripped", s as f64 / 1048576.0)
+    });
+    let _ = writeln!(
+        t,
+        "| release binary `target/release/mbgate` | {size} bytes ({:.2} MiB); {stripped_text} |",
+        size as f64 / 1048576.0
+    );
+    r.row(
+        "footprint",
+        "release binary size",
+        format!("{:.2} MiB ({stripped_text})", size as f64 / 1048576.0),
+        "(reported)",
+        None,
+    );
+    r.detail("Footprint (the mbgate process: /proc/PID/status, /proc/PID/stat, /proc/PID/task/*/schedstat)", &command("footprint"), &t);
+}
