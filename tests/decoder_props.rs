@@ -4,7 +4,7 @@
 
 use mbgate::frame::mbap::FrameRef;
 use mbgate::frame::pdu;
-use mbgate::frame::{Adu, Judge, ReplyJudge, Resync};
+use mbgate::frame::{Adu, Confirmed, Judge, ReplyJudge, Resync};
 use proptest::prelude::*;
 
 /// A well-formed reply: FC 03 with N registers, an FC 16 echo, or an exception.
@@ -40,19 +40,7 @@ fn reply() -> impl Strategy<Value = Adu> {
 
 /// [`ReplyJudge`]'s shape check, with every frame held until what follows confirms it
 /// or the line goes quiet (issue 4).
-struct Strict;
-
-impl Judge for Strict {
-    fn plausible_function(&self, code: u8) -> bool {
-        ReplyJudge.plausible_function(code)
-    }
-    fn accept(&self, frame: FrameRef<'_>) -> bool {
-        ReplyJudge.accept(frame)
-    }
-    fn confirm(&self, _: FrameRef<'_>) -> bool {
-        true
-    }
-}
+const STRICT: Confirmed<ReplyJudge> = Confirmed(ReplyJudge);
 
 /// What the relay knows (design.md §1 step 4): the requests on the line, each with its
 /// own transaction id, no two sharing a low byte (as the relay allocates them). A
@@ -121,7 +109,7 @@ proptest! {
     ) {
         let stream: Vec<u8> = frames.iter().flat_map(|f| f.as_bytes().to_vec()).collect();
         prop_assert_eq!(decode_chunked(&stream, &cuts), frames.clone());
-        prop_assert_eq!(decode_chunked_with(&Strict, &stream, &cuts), frames);
+        prop_assert_eq!(decode_chunked_with(&STRICT, &stream, &cuts), frames);
     }
 
     /// Issue 4: bytes lost anywhere, at any chunking, never make a frame that was not

@@ -34,6 +34,19 @@ fn answer_bound(masters: usize, timeout_ms: u64) -> Duration {
         + ANSWER_SLACK
 }
 
+/// The simulated device of these runs: generic, holding register N holding N, and
+/// no log line per packet.
+const SIM_DEVICE: &[&str] = &[
+    "--profile",
+    "generic",
+    "--registers",
+    "100",
+    "--fill",
+    "address",
+    "--log-level",
+    "info,mbgate::sim::packets=off",
+];
+
 fn long() -> bool {
     std::env::var_os("MBGATE_LONG").is_some()
 }
@@ -328,17 +341,10 @@ fn run(sc: &Scenario) -> (Outcome, String) {
         Device::Sim => {
             let (drop, noise, corrupt) = (pct(sc.drop), pct(sc.noise), pct(sc.corrupt));
             let seed = sc.seed.to_string();
-            let mut args = vec![
-                "--profile",
-                "generic",
-                "--registers",
-                "100",
-                "--fill",
-                "address",
+            let mut args = SIM_DEVICE.to_vec();
+            args.extend([
                 "--frame-gap-ms",
                 "10",
-                "--log-level",
-                "info,mbgate::sim::packets=off",
                 "--seed",
                 &seed,
                 "--drop",
@@ -353,7 +359,7 @@ fn run(sc: &Scenario) -> (Outcome, String) {
                 } else {
                     "from-device"
                 },
-            ];
+            ]);
             if sc.in_flight > 1 {
                 args.push("--pipeline");
             }
@@ -593,19 +599,7 @@ fn noise_is_mostly_refused() {
 fn unplug_and_replug_under_load() {
     let dir = tempdir();
     let mut socat = Socat::start(dir.path());
-    let _dev = sim(
-        &socat.dev,
-        &[
-            "--profile",
-            "generic",
-            "--registers",
-            "100",
-            "--fill",
-            "address",
-            "--log-level",
-            "info,mbgate::sim::packets=off",
-        ],
-    );
+    let _dev = sim(&socat.dev, SIM_DEVICE);
     let cfg = Cfg::new(&socat.gw)
         .log_level("info")
         .relay(&format!("response_timeout_ms = {RESPONSE_TIMEOUT_MS}"))

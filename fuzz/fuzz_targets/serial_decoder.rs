@@ -6,22 +6,9 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use mbgate::frame::mbap::FrameRef;
-use mbgate::frame::{pdu, Adu, Judge, ReplyJudge, Resync};
+use mbgate::frame::{pdu, Adu, Confirmed, Judge, ReplyJudge, Resync};
 
-struct Strict;
-
-impl Judge for Strict {
-    fn plausible_function(&self, code: u8) -> bool {
-        ReplyJudge.plausible_function(code)
-    }
-    fn accept(&self, frame: FrameRef<'_>) -> bool {
-        ReplyJudge.accept(frame)
-    }
-    fn confirm(&self, _: FrameRef<'_>) -> bool {
-        true
-    }
-}
+const STRICT: Confirmed<ReplyJudge> = Confirmed(ReplyJudge);
 
 /// Feeds `data` in chunks cut where `cuts` says, then declares the line quiet.
 fn decode(judge: &impl Judge, data: &[u8], cuts: &[u8]) -> (Vec<Adu>, u64) {
@@ -67,10 +54,10 @@ fuzz_target!(|input: (Vec<u8>, Vec<u8>)| {
         decode(&ReplyJudge, &data, &[]).0,
         "chunking changes nothing"
     );
-    let (strict, _) = decode(&Strict, &data, &cuts);
+    let (strict, _) = decode(&STRICT, &data, &cuts);
     assert_eq!(
         strict,
-        decode(&Strict, &data, &[]).0,
+        decode(&STRICT, &data, &[]).0,
         "chunking changes nothing"
     );
     // Confirmation only ever holds back: it yields a subsequence of what the lenient

@@ -8,4 +8,4 @@ pub mod request;
 pub mod resync;
 
 pub use mbap::{Adu, StrictError};
-pub use resync::{Judge, ReplyJudge, RequestJudge, Resync};
+pub use resync::{Confirmed, Judge, ReplyJudge, RequestJudge, Resync};

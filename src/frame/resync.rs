@@ -93,6 +93,24 @@ impl Judge for RequestJudge {
     }
 }
 
+/// Another judge's decisions, with every frame held for confirmation.
+#[derive(Debug, Default, Clone, Copy)]
+pub struct Confirmed<J>(pub J);
+
+impl<J: Judge> Judge for Confirmed<J> {
+    fn plausible_function(&self, code: u8) -> bool {
+        self.0.plausible_function(code)
+    }
+
+    fn accept(&self, frame: FrameRef<'_>) -> bool {
+        self.0.accept(frame)
+    }
+
+    fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        true
+    }
+}
+
 /// What the decoder has done so far.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct ResyncStats {
@@ -391,18 +409,7 @@ mod tests {
     }
 
     /// The shape check of [`ReplyJudge`], with every frame held for confirmation.
-    struct Strict;
-    impl Judge for Strict {
-        fn plausible_function(&self, code: u8) -> bool {
-            ReplyJudge.plausible_function(code)
-        }
-        fn accept(&self, frame: FrameRef<'_>) -> bool {
-            ReplyJudge.accept(frame)
-        }
-        fn confirm(&self, _: FrameRef<'_>) -> bool {
-            true
-        }
-    }
+    const STRICT: Confirmed<ReplyJudge> = Confirmed(ReplyJudge);
 
     fn decode_with(judge: &impl Judge, chunks: &[&[u8]]) -> Vec<Vec<u8>> {
         let mut d = Resync::new();
@@ -433,7 +440,7 @@ mod tests {
             [&broken[..], &r[0][..1]].concat(),
             "delivered wrong"
         );
-        let strict = decode_with(&Strict, &[&all]);
+        let strict = decode_with(&STRICT, &[&all]);
         assert!(!strict.contains(&lenient[0]), "never delivered when held");
         assert_eq!(strict.last(), Some(&r[1]));
     }
@@ -443,19 +450,19 @@ mod tests {
         let r = replies();
         let mut d = Resync::new();
         d.push(&r[0]);
-        assert_eq!(d.next_frame(&Strict, false), None, "nothing after it yet");
+        assert_eq!(d.next_frame(&STRICT, false), None, "nothing after it yet");
         d.push(&r[1][..7]);
-        assert_eq!(d.next_frame(&Strict, false), None, "only a header after it");
+        assert_eq!(d.next_frame(&STRICT, false), None, "only a header after it");
         d.push(&r[1][7..]);
-        assert_eq!(d.next_frame(&Strict, false).unwrap().as_bytes(), &r[0][..]);
-        assert_eq!(d.next_frame(&Strict, false), None, "the last one waits");
-        assert_eq!(d.next_frame(&Strict, true).unwrap().as_bytes(), &r[1][..]);
+        assert_eq!(d.next_frame(&STRICT, false).unwrap().as_bytes(), &r[0][..]);
+        assert_eq!(d.next_frame(&STRICT, false), None, "the last one waits");
+        assert_eq!(d.next_frame(&STRICT, true).unwrap().as_bytes(), &r[1][..]);
         // A plausible start that never completes refutes it once the line is quiet:
         // this is how a frame that gained a noise byte ends.
         d.push(&r[2]);
         d.push(&r[3][..4]);
-        assert_eq!(d.next_frame(&Strict, false), None);
-        assert_eq!(d.next_frame(&Strict, true), None);
+        assert_eq!(d.next_frame(&STRICT, false), None);
+        assert_eq!(d.next_frame(&STRICT, true), None);
         assert_eq!(d.buffered(), 0);
         assert_eq!(d.stats().refuted, 1);
         // A noise byte inside a reply: it ends a byte early, and its own last byte
@@ -463,8 +470,8 @@ mod tests {
         let mut noisy = r[4].clone();
         noisy.insert(9, 0x5A);
         d.push(&noisy);
-        assert_eq!(d.next_frame(&Strict, false), None);
-        assert_eq!(d.next_frame(&Strict, true), None);
+        assert_eq!(d.next_frame(&STRICT, false), None);
+        assert_eq!(d.next_frame(&STRICT, true), None);
         assert_eq!(d.stats().refuted, 2);
     }
 
@@ -485,7 +492,7 @@ mod tests {
                     .cloned()
                     .collect();
                 let all = [vec![broken], rest.clone()].concat().concat();
-                for f in decode_with(&Strict, &[&all]) {
+                for f in decode_with(&STRICT, &[&all]) {
                     assert!(
                         r.contains(&f),
                         "lost byte {lost} of reply {i}: {:?}",
