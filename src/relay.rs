@@ -236,9 +236,12 @@ impl Relay {
             }
             let wake = self.next_wake(now);
             let event = match &mut self.port {
+                // Biased, bytes first: a timer that finds bytes waiting must not take
+                // the line for quiet (a held reply would be refuted, a frame cut).
                 Port::Open { rd, wr } => tokio::select! {
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
+                    biased;
                     r = rd.read(&mut rbuf) => Event::Read(r),
+                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
