@@ -147,6 +147,9 @@ pub struct Relay {
     queues: HashMap<ConnId, VecDeque<Pending>>,
     /// Connections with queued requests, in round-robin order.
     ring: VecDeque<ConnId>,
+    /// The connection whose request went on the line last: a connection that starts
+    /// waiting goes ahead of it, since it has just had its turn.
+    last_served: Option<ConnId>,
     queued: usize,
     in_flight: Vec<InFlight>,
     tids: Tids,
@@ -193,6 +196,7 @@ impl Relay {
             conns: HashMap::new(),
             queues: HashMap::new(),
             ring: VecDeque::new(),
+            last_served: None,
             queued: 0,
             in_flight: Vec::new(),
             tids: Tids::new(),
@@ -408,7 +412,14 @@ impl Relay {
                 } else {
                     let q = self.queues.entry(conn).or_default();
                     if q.is_empty() {
-                        self.ring.push_back(conn);
+                        // Round-robin from its arrival: behind every connection still
+                        // waiting for a turn, ahead of the one just served.
+                        match self.ring.back() {
+                            Some(&back) if Some(back) == self.last_served => {
+                                self.ring.insert(self.ring.len() - 1, conn)
+                            }
+                            _ => self.ring.push_back(conn),
+                        }
                     }
                     q.push_back(req);
                     self.queued += 1;
@@ -447,6 +458,7 @@ impl Relay {
                 self.ring.push_back(conn);
             }
             self.queued -= 1;
+            self.last_served = Some(conn);
             self.send(req, now);
         }
     }
