@@ -142,6 +142,11 @@ pub struct DeviceArgs {
     /// request that arrives while the device is busy is ignored, as on the real device.
     #[arg(long, help_heading = "line model")]
     pub pipeline: bool,
+    /// Hold each request until the bytes after it start another, or the line goes
+    /// quiet, so a request that lost a byte is never executed with the next one's
+    /// first byte. Costs up to --frame-gap-ms whenever the gateway pauses its pipeline.
+    #[arg(long, help_heading = "line model")]
+    pub confirm_requests: bool,
     /// Hand each frame to the line whole, one byte at a time, or in random bursts of
     /// 1 to 8 bytes, with --chunk-gap-ms between the pieces.
     #[arg(long, value_enum, default_value_t = ChunkMode::Whole, help_heading = "line model")]
@@ -217,6 +222,7 @@ pub struct Settings {
     pub tx_faults: Faults,
     pub seed: u64,
     pub pipeline: bool,
+    pub confirm_requests: bool,
     pub frame_gap: Duration,
     pub toggle: Option<Duration>,
     pub chunker: Chunker,
@@ -339,6 +345,7 @@ impl DeviceArgs {
             ),
             seed,
             pipeline: self.pipeline,
+            confirm_requests: self.confirm_requests,
             frame_gap: Duration::from_millis(self.frame_gap_ms),
             toggle: self.toggle_ms.map(Duration::from_millis),
             chunker: Chunker::new(

@@ -88,6 +88,7 @@ struct Sim {
     device: Device,
     delay: Duration,
     pipeline: bool,
+    confirm_requests: bool,
     frame_gap: Duration,
     rx_faults: Faults,
     tx_faults: Faults,
@@ -121,6 +122,7 @@ pub async fn run(
         device: settings.device,
         delay: settings.delay,
         pipeline: settings.pipeline,
+        confirm_requests: settings.confirm_requests,
         frame_gap: settings.frame_gap,
         rx_faults: settings.rx_faults,
         tx_faults: settings.tx_faults,
@@ -260,11 +262,12 @@ impl Sim {
         end
     }
 
-    /// A device that takes requests back to back must know where one ends: each is
-    /// confirmed by the next or by a quiet line (issue 4). One at a time needs no wait.
+    /// With `--confirm-requests`, each request is confirmed by the next or by a quiet
+    /// line (issue 4): a device that takes requests back to back must know where a
+    /// damaged one ends.
     fn judge(&self) -> RequestJudge {
         RequestJudge {
-            confirm: self.pipeline,
+            confirm: self.confirm_requests,
         }
     }
 
