@@ -47,6 +47,9 @@ pub enum Decoded {
     Frame { unit: u8, pdu: Vec<u8> },
     /// This many bytes made a frame whose check failed, or could not be one.
     Corrupt(usize),
+    /// This many bytes came before a frame's start (ASCII: before a colon): noise,
+    /// not a damaged frame.
+    Noise(usize),
 }
 
 /// The incremental decoder: bytes in with [`push`](Decoder::push), frames out with
@@ -123,8 +126,13 @@ impl Decoder {
         match ascii::scan(&self.buf) {
             ascii::Scan::More => None,
             ascii::Scan::Garbage(n) => {
+                let cut_short = self.buf[0] == b':';
                 self.buf.drain(..n);
-                Some(Decoded::Corrupt(n))
+                Some(if cut_short {
+                    Decoded::Corrupt(n)
+                } else {
+                    Decoded::Noise(n)
+                })
             }
             ascii::Scan::Frame(n) => {
                 let frame: Vec<u8> = self.buf.drain(..n).collect();
@@ -200,7 +208,7 @@ mod tests {
         let f = ascii::encode(1, &[3, 0, 0, 0, 1]);
         d.push(b"zz");
         d.push(&f[..5]);
-        assert_eq!(d.next(Expect::Request, false), Some(Decoded::Corrupt(2)));
+        assert_eq!(d.next(Expect::Request, false), Some(Decoded::Noise(2)));
         assert_eq!(
             d.next(Expect::Request, true),
             None,
@@ -209,5 +217,7 @@ mod tests {
         d.push(&f[5..]);
         assert_eq!(d.next(Expect::Request, false), frame(1, &[3, 0, 0, 0, 1]));
         assert_eq!(d.next(Expect::Request, false), None);
+        d.push(b":0103:");
+        assert_eq!(d.next(Expect::Request, false), Some(Decoded::Corrupt(5)));
     }
 }
