@@ -741,3 +741,127 @@ pub fn mem(gw: &Gateway) -> Mem {
         hwm_kib: kib("VmHWM:"),
     }
 }
+
+// ---------------------------------------------------------------------------------
+// A raw RTU device on the pty, scripted by the test
+
+/// What the raw RTU device does with each request frame (address to CRC, as received).
+pub type RtuHandler = Box<dyn FnMut(&[u8]) -> Vec<u8> + Send>;
+
+/// A device on the `dev` end of a socat pair that reads RTU frames (cut at the length
+/// their function code calls for, or after 20 ms of silence), records each exactly as
+/// it came, and writes whatever the handler returns (nothing = no answer).
+pub struct RawRtuDevice {
+    stop: Arc<AtomicBool>,
+    pub seen: Arc<Mutex<Vec<Vec<u8>>>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl RawRtuDevice {
+    pub fn start(path: &Path, mut handler: RtuHandler) -> RawRtuDevice {
+        use mbgate::frame::rtu::{request_length, Length};
+        let file = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
+            .open(path)
+            .expect("open device pty");
+        let mut rd = file.try_clone().unwrap();
+        let mut wr = file;
+        let stop = Arc::new(AtomicBool::new(false));
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let (stop2, seen2) = (stop.clone(), seen.clone());
+        let thread = thread::spawn(move || {
+            let mut buf: Vec<u8> = Vec::new();
+            let mut chunk = [0u8; 1024];
+            let mut last = Instant::now();
+            while !stop2.load(Ordering::Relaxed) {
+                match rd.read(&mut chunk) {
+                    Ok(0) => break,
+                    Ok(n) => {
+                        buf.extend_from_slice(&chunk[..n]);
+                        last = Instant::now();
+                    }
+                    Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                        thread::sleep(Duration::from_millis(1));
+                    }
+                    Err(_) => break,
+                }
+                loop {
+                    let quiet = !buf.is_empty() && last.elapsed() >= Duration::from_millis(20);
+                    let n = match request_length(&buf) {
+                        Length::Exactly(n) if buf.len() >= n => n,
+                        _ if quiet => buf.len(),
+                        _ => break,
+                    };
+                    let frame: Vec<u8> = buf.drain(..n).collect();
+                    seen2.lock().unwrap().push(frame.clone());
+                    let reply = handler(&frame);
+                    if !reply.is_empty() && write_all_nb(&mut wr, &reply).is_err() {
+                        return;
+                    }
+                }
+            }
+        });
+        RawRtuDevice {
+            stop,
+            seen,
+            thread: Some(thread),
+        }
+    }
+
+    pub fn requests(&self) -> Vec<Vec<u8>> {
+        self.seen.lock().unwrap().clone()
+    }
+}
+
+impl Drop for RawRtuDevice {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// A register map like [`register_device`], for RTU: FC 03 reads register `a` as `a`
+/// (or what was written), FC 06 and 16 write; units not listed get no answer; a
+/// frame whose CRC is wrong gets none either, as on a bus.
+pub fn rtu_register_device(units: &[u8]) -> RtuHandler {
+    use mbgate::frame::rtu;
+    let units = units.to_vec();
+    let mut regs = std::collections::HashMap::<(u8, u16), u16>::new();
+    Box::new(move |frame: &[u8]| {
+        let Some((unit, p)) = rtu::decode(frame) else {
+            return vec![];
+        };
+        if !units.contains(&unit) {
+            return vec![];
+        }
+        let word = |i: usize| u16::from_be_bytes([p[i], p[i + 1]]);
+        let reply = match p[0] {
+            0x03 => {
+                let (addr, qty) = (word(1), word(3));
+                let mut v = vec![0x03, (qty * 2) as u8];
+                for a in addr..addr + qty {
+                    let val = regs.get(&(unit, a)).copied().unwrap_or(a);
+                    v.extend_from_slice(&val.to_be_bytes());
+                }
+                v
+            }
+            0x06 => {
+                regs.insert((unit, word(1)), word(3));
+                p.to_vec()
+            }
+            0x10 => {
+                let (addr, qty) = (word(1), word(3));
+                for i in 0..qty {
+                    regs.insert((unit, addr + i), word(6 + 2 * i as usize));
+                }
+                p[..5].to_vec()
+            }
+            f => vec![f | 0x80, 0x01],
+        };
+        rtu::encode(unit, &reply)
+    })
+}
