@@ -53,22 +53,20 @@ fn run_tcp_client(gw: &Gateway) {
 /// (tests/py/tcp_client.py), through `mbgate run` with `framing = "rtu"`.
 #[test]
 fn rtu_pymodbus_device_every_common_function_code() {
-    let b = pymodbus_bench("rtu", &[], |c| c.log("traffic = true"));
-    run_tcp_client(&b.gw);
-    // The FC 03 read of registers 0..4 left as RTU, CRC and all.
-    let want = Hex(&rtu::encode(1, &[0x03, 0, 0, 0, 5]));
-    b.gw.wait_log(
-        &format!("{want} dir=\"gw->serial\""),
-        Duration::from_secs(2),
-    );
+    every_common_function_code("rtu", rtu::encode);
 }
 
 /// The same with pymodbus' ASCII server and `framing = "ascii"`.
 #[test]
 fn ascii_pymodbus_device_every_common_function_code() {
-    let b = pymodbus_bench("ascii", &[], |c| c.log("traffic = true"));
+    every_common_function_code("ascii", ascii::encode);
+}
+
+fn every_common_function_code(framer: &str, encode: fn(u8, &[u8]) -> Vec<u8>) {
+    let b = pymodbus_bench(framer, &[], |c| c.log("traffic = true"));
     run_tcp_client(&b.gw);
-    let want = Hex(&ascii::encode(1, &[0x03, 0, 0, 0, 5]));
+    // The FC 03 read of registers 0..4 left in this framing, check and all.
+    let want = Hex(&encode(1, &[0x03, 0, 0, 0, 5]));
     b.gw.wait_log(
         &format!("{want} dir=\"gw->serial\""),
         Duration::from_secs(2),
