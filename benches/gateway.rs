@@ -3,7 +3,7 @@
 //! pty pairs, and printed as Markdown.
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
-//! `fairness`, `footprint` (all when none is named). `scripts/bench` runs this and
+//! `fairness`, `footprint`, `rtu` (all when none is named). `scripts/bench` runs this and
 //! `benches/decoder.rs` and writes the tables into docs/performance.md. With
 //! `MBGATE_BENCH_MD=FILE` the tables are also written to FILE.
 //!
@@ -40,7 +40,7 @@ fn main() {
         .skip(1)
         .filter(|a| a != "--bench")
         .collect();
-    let all = ["latency", "wire", "fairness", "footprint"];
+    let all = ["latency", "wire", "fairness", "footprint", "rtu"];
     if let Some(bad) = args.iter().find(|a| !all.contains(&a.as_str())) {
         eprintln!("unknown scenario {bad:?}; scenarios: {}", all.join(", "));
         std::process::exit(2);
@@ -59,6 +59,9 @@ fn main() {
     }
     if wanted("footprint") {
         footprint(&mut r);
+    }
+    if wanted("rtu") {
+        rtu(&mut r);
     }
     let md = r.render(&load_before, &loadavg());
     println!("{md}");
@@ -196,6 +199,11 @@ struct Line {
 
 impl Line {
     fn start(sim_args: &[&str]) -> Line {
+        Line::start_probed(sim_args, &read_req(1, 1, 0, 1), reply_len(1))
+    }
+
+    /// [`Line::start`], the simulator probed with `probe`, answered in `answer` bytes.
+    fn start_probed(sim_args: &[&str], probe_req: &[u8], answer: usize) -> Line {
         let dir = tempdir();
         let socat = Socat::start(dir.path());
         let mut args = vec!["--profile", "generic", "--log-level", "warn"];
@@ -206,7 +214,7 @@ impl Line {
         let s = Proc::start(&all, "");
         let mut probe = RawLine::open(&socat.gw);
         let start = Instant::now();
-        while probe.transact(&read_req(1, 1, 0, 1), reply_len(1)).len() < reply_len(1) {
+        while probe.transact(probe_req, answer).len() < answer {
             assert!(
                 start.elapsed() < Duration::from_secs(20),
                 "the simulator never answered"
@@ -225,7 +233,12 @@ impl Line {
 
     /// `mbgate run` on this line: log at info, and the given `[relay]`/`[tcp]` lines.
     fn gateway(&self, relay: &[&str], tcp: &[&str]) -> Gateway {
-        let mut cfg = Cfg::new(&self.socat.gw).log_level("info");
+        self.gateway_with(Cfg::new(&self.socat.gw), relay, tcp)
+    }
+
+    /// [`Line::gateway`] from a configuration with `[serial]` lines of its own.
+    fn gateway_with(&self, cfg: Cfg, relay: &[&str], tcp: &[&str]) -> Gateway {
+        let mut cfg = cfg.log_level("info");
         for l in relay {
             cfg = cfg.relay(l);
         }
@@ -929,4 +942,99 @@ fn footprint(r: &mut Report) {
         None,
     );
     r.detail("Footprint (the mbgate process: /proc/PID/status, /proc/PID/stat, /proc/PID/task/*/schedstat)", &command("footprint"), &t);
+}
+
+// ---------------------------------------------------------------------------------
+// 5. RTU
+
+/// RTU bytes of an FC 03 read: address, function, address, quantity, CRC.
+const RTU_REQ: usize = 8;
+
+/// RTU bytes of the reply to an FC 03 read of `qty` registers: address, function, byte
+/// count, 2 × qty, CRC.
+fn rtu_reply_len(qty: u16) -> usize {
+    5 + 2 * usize::from(qty)
+}
+
+/// One master polls FC 03 through `mbgate run --framing rtu` at 9600 baud against the
+/// simulator (`--framing rtu --baud 9600`): transactions per second against the wire
+/// limit, and the gateway's CPU time meanwhile (utime + stime from /proc/PID/stat, and
+/// schedstat), which a busy-waiting gateway would drive towards a whole core.
+fn rtu(r: &mut Report) {
+    const BAUD: u32 = 9600;
+    const CPU_BUDGET: Duration = Duration::from_secs(10);
+    const BUDGET: Duration = Duration::from_secs(3);
+    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
+    let line = Line::start_probed(
+        &["--framing", "rtu", "--baud", "9600"],
+        &probe,
+        rtu_reply_len(1),
+    );
+    let cfg = Cfg::new(&line.socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .serial(&format!("baud_rate = {BAUD}"));
+    let gw = line.gateway_with(cfg, &[], &[]);
+    let pid = gw.proc.pid();
+    let mut s = connect(&gw);
+    let char_time = 10.0 / f64::from(BAUD);
+    // 3.5 character times, the gap mbgate leaves before each request.
+    let t35 = 3.5 * char_time;
+    let mut t = String::from(
+        "| registers | wire limit (no gaps) | limit with the 3.5-character gap before each request | through mbgate | mbgate / limit (no gaps) | mbgate / limit (with gap) |\n|---|---|---|---|---|---|\n",
+    );
+    let mut cpu_row = String::new();
+    for qty in [1u16, 10] {
+        let bytes = (RTU_REQ + rtu_reply_len(qty)) as f64;
+        let limit = 1.0 / (bytes * char_time);
+        let limit_gap = 1.0 / (bytes * char_time + t35);
+        let budget = if qty == 1 { CPU_BUDGET } else { BUDGET };
+        eprintln!("rtu: {BAUD} baud, FC 03 × {qty}, {budget:?}");
+        let (ticks0, ns0) = (cpu_ticks(pid), cpu_ns(pid));
+        let got = tcp_throughput(&mut s, 1, qty, budget);
+        let (ticks1, ns1) = (cpu_ticks(pid), cpu_ns(pid));
+        let _ = writeln!(
+            t,
+            "| {qty} | {limit:.1}/s | {limit_gap:.1}/s | {got:.1}/s | {} | **{}** |",
+            pct(got / limit),
+            pct(got / limit_gap)
+        );
+        r.row(
+            "rtu",
+            &format!("RTU throughput {BAUD} baud, one master polling FC 03 × {qty}"),
+            format!(
+                "{got:.1}/s = {} of the wire limit with the 3.5-character gap ({limit_gap:.1}/s), {} without ({limit:.1}/s)",
+                pct(got / limit_gap),
+                pct(got / limit)
+            ),
+            "(reported)",
+            None,
+        );
+        if qty == 1 {
+            let hz = clock_ticks_per_second();
+            let busy = (ticks1 - ticks0) as f64 / hz as f64;
+            let share = busy / budget.as_secs_f64();
+            let exact = (ns1 - ns0) as f64 / 1e9 / budget.as_secs_f64();
+            cpu_row = format!(
+                "utime+stime {} ticks in {} s = {} of a core (schedstat {})",
+                ticks1 - ticks0,
+                budget.as_secs(),
+                pct(share),
+                pct(exact)
+            );
+            r.row(
+                "rtu",
+                &format!("mbgate CPU, one master polling as fast as it can, RTU {BAUD} baud"),
+                format!("{} of a core (schedstat {})", pct(share), pct(exact)),
+                "< 5 % of a core",
+                Some(share < 0.05),
+            );
+        }
+    }
+    let _ = writeln!(t, "\nCPU while polling FC 03 × 1 for 10 s: {cpu_row}.");
+    r.detail(
+        "RTU (the simulator with --framing rtu --baud 9600 paces 10 bits a byte each way; the wire limit counts request and reply bytes at 10 bits a byte, and the second limit adds the 3.5 character times mbgate waits before each request)",
+        &command("rtu"),
+        &t,
+    );
 }

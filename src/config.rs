@@ -54,6 +54,20 @@ pub enum FlowControl {
 pub enum Framing {
     /// CIE-M10 serial Modbus/TCP: whole MBAP frames on the line (protocol.md §3).
     Mbap,
+    /// Modbus RTU: unit, PDU, CRC-16; one transaction at a time.
+    Rtu,
+    /// Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time.
+    Ascii,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
+#[serde(rename_all = "lowercase")]
+#[value(rename_all = "lower")]
+pub enum BroadcastReply {
+    /// The master gets nothing back (as on the bus).
+    None,
+    /// The master gets the reply the device would have given (mbusd's replyonbroadcast).
+    Echo,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, clap::ValueEnum)]
@@ -82,6 +96,18 @@ pub struct SerialConfig {
     pub stop_bits: u8,
     pub flow_control: FlowControl,
     pub framing: Framing,
+    /// RTU: the least silence that ends a frame of unknown shape, whatever 3.5
+    /// character times come to (a USB adapter delivers bytes in bursts).
+    #[serde(deserialize_with = "de_key::silence_floor_ms")]
+    pub silence_floor_ms: u64,
+    /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter.
+    pub rs485: bool,
+    #[serde(deserialize_with = "de_key::rs485_delay_ms")]
+    pub rs485_delay_before_send_ms: u32,
+    #[serde(deserialize_with = "de_key::rs485_delay_ms")]
+    pub rs485_delay_after_send_ms: u32,
+    /// The adapter echoes what is sent: read it back and discard it.
+    pub echo: bool,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -113,6 +139,18 @@ pub struct RelayConfig {
     pub retries: u32,
     pub retry_writes: bool,
     pub notifications: Notifications,
+    /// RTU/ASCII: the line stays quiet this long after a broadcast (unit 0).
+    #[serde(deserialize_with = "de_key::broadcast_delay_ms")]
+    pub broadcast_delay_ms: u64,
+    pub broadcast_reply: BroadcastReply,
+    /// RTU/ASCII: back off a unit that timed out `unit_backoff_after` times in a row.
+    pub unit_backoff: bool,
+    #[serde(deserialize_with = "de_key::unit_backoff_after")]
+    pub unit_backoff_after: u32,
+    #[serde(deserialize_with = "de_key::unit_backoff_ms")]
+    pub unit_backoff_ms: u64,
+    #[serde(deserialize_with = "de_key::unit_backoff_ms")]
+    pub unit_backoff_max_ms: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -134,6 +172,11 @@ impl Default for SerialConfig {
             stop_bits: 1,
             flow_control: FlowControl::Hardware,
             framing: Framing::Mbap,
+            silence_floor_ms: 20,
+            rs485: false,
+            rs485_delay_before_send_ms: 0,
+            rs485_delay_after_send_ms: 0,
+            echo: false,
         }
     }
 }
@@ -159,6 +202,12 @@ impl Default for RelayConfig {
             retries: 0,
             retry_writes: false,
             notifications: Notifications::Drop,
+            broadcast_delay_ms: 100,
+            broadcast_reply: BroadcastReply::None,
+            unit_backoff: true,
+            unit_backoff_after: 3,
+            unit_backoff_ms: 1000,
+            unit_backoff_max_ms: 30_000,
         }
     }
 }
@@ -358,6 +407,7 @@ fn allowed_values(key: &str) -> Option<Vec<String>> {
         "serial.flow_control" => names::<FlowControl>(),
         "serial.framing" => names::<Framing>(),
         "relay.notifications" => names::<Notifications>(),
+        "relay.broadcast_reply" => names::<BroadcastReply>(),
         _ => return None,
     })
 }
@@ -486,6 +536,11 @@ const MAX_IN_FLIGHT: Limit = Limit::range(1, 255);
 const MAX_PENDING_PER_CONNECTION: Limit = Limit::range(1, 1024);
 const QUEUE_DEPTH: Limit = Limit::range(1, 65_536);
 const RETRIES: Limit = Limit::range(0, 10);
+const SILENCE_FLOOR_MS: Limit = Limit::range(0, 1000);
+const RS485_DELAY_MS: Limit = Limit::range(0, 1000);
+const BROADCAST_DELAY_MS: Limit = Limit::range(0, 60_000);
+const UNIT_BACKOFF_AFTER: Limit = Limit::range(1, 100);
+const UNIT_BACKOFF_MS: Limit = Limit::range(1, 3_600_000);
 
 fn check_serial_path(path: &str) -> Result<(), String> {
     if path.trim().is_empty() {
@@ -569,6 +624,11 @@ mod de_key {
         max_pending_per_connection: usize = MAX_PENDING_PER_CONNECTION;
         queue_depth: usize = QUEUE_DEPTH;
         retries: u32 = RETRIES;
+        silence_floor_ms: u64 = SILENCE_FLOOR_MS;
+        rs485_delay_ms: u32 = RS485_DELAY_MS;
+        broadcast_delay_ms: u64 = BROADCAST_DELAY_MS;
+        unit_backoff_after: u32 = UNIT_BACKOFF_AFTER;
+        unit_backoff_ms: u64 = UNIT_BACKOFF_MS;
     }
 
     pub(super) fn serial_path<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
@@ -641,6 +701,34 @@ pub struct Overrides {
     /// Serial framing [serial.framing]
     #[arg(long, value_enum)]
     pub framing: Option<Framing>,
+    /// RTU: least silence that ends a frame of unknown shape, 0..=1000 ms
+    /// [serial.silence_floor_ms]
+    #[arg(long, value_name = "MS")]
+    pub silence_floor_ms: Option<u64>,
+    /// Turn on the kernel's RS-485 mode (TIOCSRS485) [serial.rs485]
+    #[arg(
+        long,
+        value_name = "BOOL",
+        num_args = 0..=1,
+        require_equals = true,
+        default_missing_value = "true"
+    )]
+    pub rs485: Option<bool>,
+    /// RS-485: RTS delay before sending, 0..=1000 ms [serial.rs485_delay_before_send_ms]
+    #[arg(long, value_name = "MS")]
+    pub rs485_delay_before_send_ms: Option<u32>,
+    /// RS-485: RTS delay after sending, 0..=1000 ms [serial.rs485_delay_after_send_ms]
+    #[arg(long, value_name = "MS")]
+    pub rs485_delay_after_send_ms: Option<u32>,
+    /// The adapter echoes what is sent: read it back and discard it [serial.echo]
+    #[arg(
+        long,
+        value_name = "BOOL",
+        num_args = 0..=1,
+        require_equals = true,
+        default_missing_value = "true"
+    )]
+    pub echo: Option<bool>,
     /// Time to wait for the device's reply, 1..=600000 ms [relay.response_timeout_ms]
     #[arg(long, value_name = "MS")]
     pub response_timeout_ms: Option<u64>,
@@ -679,6 +767,31 @@ pub struct Overrides {
     /// What to do with device frames that answer no request [relay.notifications]
     #[arg(long, value_enum)]
     pub notifications: Option<Notifications>,
+    /// RTU/ASCII: quiet time after a broadcast (unit 0), 0..=60000 ms
+    /// [relay.broadcast_delay_ms]
+    #[arg(long, value_name = "MS")]
+    pub broadcast_delay_ms: Option<u64>,
+    /// RTU/ASCII: what a master gets for a broadcast [relay.broadcast_reply]
+    #[arg(long, value_enum)]
+    pub broadcast_reply: Option<BroadcastReply>,
+    /// RTU/ASCII: back off units that keep timing out [relay.unit_backoff]
+    #[arg(
+        long,
+        value_name = "BOOL",
+        num_args = 0..=1,
+        require_equals = true,
+        default_missing_value = "true"
+    )]
+    pub unit_backoff: Option<bool>,
+    /// Timeouts in a row that back a unit off, 1..=100 [relay.unit_backoff_after]
+    #[arg(long, value_name = "N")]
+    pub unit_backoff_after: Option<u32>,
+    /// First back-off interval, 1..=3600000 ms [relay.unit_backoff_ms]
+    #[arg(long, value_name = "MS")]
+    pub unit_backoff_ms: Option<u64>,
+    /// Longest back-off interval, 1..=3600000 ms [relay.unit_backoff_max_ms]
+    #[arg(long, value_name = "MS")]
+    pub unit_backoff_max_ms: Option<u64>,
     /// Log level [log.level]
     #[arg(long, value_name = "LEVEL", value_parser = LOG_LEVELS)]
     pub log_level: Option<String>,
@@ -740,6 +853,23 @@ impl Overrides {
         if let Some(v) = self.framing {
             c.serial.framing = v;
         }
+        if let Some(v) = self.silence_floor_ms {
+            c.serial.silence_floor_ms = int("--silence-floor-ms", v, SILENCE_FLOOR_MS)?;
+        }
+        if let Some(v) = self.rs485 {
+            c.serial.rs485 = v;
+        }
+        if let Some(v) = self.rs485_delay_before_send_ms {
+            c.serial.rs485_delay_before_send_ms =
+                int("--rs485-delay-before-send-ms", v, RS485_DELAY_MS)?;
+        }
+        if let Some(v) = self.rs485_delay_after_send_ms {
+            c.serial.rs485_delay_after_send_ms =
+                int("--rs485-delay-after-send-ms", v, RS485_DELAY_MS)?;
+        }
+        if let Some(v) = self.echo {
+            c.serial.echo = v;
+        }
         if let Some(v) = self.response_timeout_ms {
             c.relay.response_timeout_ms = int("--response-timeout-ms", v, RESPONSE_TIMEOUT_MS)?;
         }
@@ -773,6 +903,24 @@ impl Overrides {
         }
         if let Some(v) = self.notifications {
             c.relay.notifications = v;
+        }
+        if let Some(v) = self.broadcast_delay_ms {
+            c.relay.broadcast_delay_ms = int("--broadcast-delay-ms", v, BROADCAST_DELAY_MS)?;
+        }
+        if let Some(v) = self.broadcast_reply {
+            c.relay.broadcast_reply = v;
+        }
+        if let Some(v) = self.unit_backoff {
+            c.relay.unit_backoff = v;
+        }
+        if let Some(v) = self.unit_backoff_after {
+            c.relay.unit_backoff_after = int("--unit-backoff-after", v, UNIT_BACKOFF_AFTER)?;
+        }
+        if let Some(v) = self.unit_backoff_ms {
+            c.relay.unit_backoff_ms = int("--unit-backoff-ms", v, UNIT_BACKOFF_MS)?;
+        }
+        if let Some(v) = self.unit_backoff_max_ms {
+            c.relay.unit_backoff_max_ms = int("--unit-backoff-max-ms", v, UNIT_BACKOFF_MS)?;
         }
         if let Some(level) = &self.log_level {
             check_log_level(level).map_err(|m| bad("--log-level", m))?;
@@ -838,6 +986,16 @@ mod tests {
         assert_eq!(c.relay.retries, 0);
         assert!(!c.relay.retry_writes);
         assert_eq!(c.relay.notifications, Notifications::Drop);
+        assert_eq!(c.serial.silence_floor_ms, 20);
+        assert!(!c.serial.rs485 && !c.serial.echo);
+        assert_eq!(c.relay.broadcast_delay_ms, 100);
+        assert_eq!(c.relay.broadcast_reply, BroadcastReply::None);
+        assert!(c.relay.unit_backoff);
+        assert_eq!(c.relay.unit_backoff_after, 3);
+        assert_eq!(
+            (c.relay.unit_backoff_ms, c.relay.unit_backoff_max_ms),
+            (1000, 30_000)
+        );
         assert_eq!(c.log.level, "info");
         assert!(!c.log.traffic);
     }
@@ -926,7 +1084,8 @@ mod tests {
             2,
             "serial.baudrate",
             "unknown key; expected one of path, baud_rate, data_bits, parity, stop_bits, \
-             flow_control, framing (did you mean `baud_rate`?)",
+             flow_control, framing, silence_floor_ms, rs485, rs485_delay_before_send_ms, \
+             rs485_delay_after_send_ms, echo (did you mean `baud_rate`?)",
         );
         assert_err(
             "[tcp]\nlisten = \"0.0.0.0:502\"\n\nmax_conections = 3\n",
@@ -1029,10 +1188,10 @@ mod tests {
             "expected one of hardware, software, none",
         );
         assert_err(
-            "[serial]\nframing = \"rtu\"\n",
+            "[serial]\nframing = \"tcp\"\n",
             2,
             "serial.framing",
-            "invalid value \"rtu\"",
+            "invalid value \"tcp\"; expected one of mbap, rtu, ascii",
         );
         assert_err(
             "[relay]\nnotifications = \"all\"\n",
@@ -1138,6 +1297,36 @@ mod tests {
             ("relay", "retries", "11", "must be between 0 and 10"),
             ("relay", "retries", "-1", "must be between 0 and 10"),
             (
+                "serial",
+                "silence_floor_ms",
+                "1001",
+                "must be between 0 and 1000",
+            ),
+            (
+                "serial",
+                "rs485_delay_before_send_ms",
+                "-1",
+                "must be between 0 and 1000",
+            ),
+            (
+                "relay",
+                "broadcast_delay_ms",
+                "60001",
+                "must be between 0 and 60000",
+            ),
+            (
+                "relay",
+                "unit_backoff_after",
+                "0",
+                "must be between 1 and 100",
+            ),
+            (
+                "relay",
+                "unit_backoff_max_ms",
+                "0",
+                "must be between 1 and 3600000",
+            ),
+            (
                 "log",
                 "level",
                 "\"verbose\"",
@@ -1215,7 +1404,12 @@ mod tests {
                 parity: Parity::Odd,
                 stop_bits: 2,
                 flow_control: FlowControl::Software,
-                framing: Framing::Mbap,
+                framing: Framing::Rtu,
+                silence_floor_ms: 0,
+                rs485: true,
+                rs485_delay_before_send_ms: 2,
+                rs485_delay_after_send_ms: 1000,
+                echo: true,
             },
             tcp: TcpConfig {
                 listen: "[::]:1502".parse().unwrap(),
@@ -1231,6 +1425,12 @@ mod tests {
                 retries: 10,
                 retry_writes: true,
                 notifications: Notifications::Broadcast,
+                broadcast_delay_ms: 0,
+                broadcast_reply: BroadcastReply::Echo,
+                unit_backoff: false,
+                unit_backoff_after: 100,
+                unit_backoff_ms: 1,
+                unit_backoff_max_ms: 3_600_000,
             },
             log: LogConfig {
                 level: "trace".into(),
@@ -1269,6 +1469,11 @@ mod tests {
             stop_bits: Some(want.serial.stop_bits),
             flow_control: Some(want.serial.flow_control),
             framing: Some(want.serial.framing),
+            silence_floor_ms: Some(want.serial.silence_floor_ms),
+            rs485: Some(want.serial.rs485),
+            rs485_delay_before_send_ms: Some(want.serial.rs485_delay_before_send_ms),
+            rs485_delay_after_send_ms: Some(want.serial.rs485_delay_after_send_ms),
+            echo: Some(want.serial.echo),
             response_timeout_ms: Some(want.relay.response_timeout_ms),
             frame_gap_ms: Some(want.relay.frame_gap_ms),
             max_in_flight: Some(want.relay.max_in_flight),
@@ -1279,6 +1484,12 @@ mod tests {
             retries: Some(want.relay.retries),
             retry_writes: Some(want.relay.retry_writes),
             notifications: Some(want.relay.notifications),
+            broadcast_delay_ms: Some(want.relay.broadcast_delay_ms),
+            broadcast_reply: Some(want.relay.broadcast_reply),
+            unit_backoff: Some(want.relay.unit_backoff),
+            unit_backoff_after: Some(want.relay.unit_backoff_after),
+            unit_backoff_ms: Some(want.relay.unit_backoff_ms),
+            unit_backoff_max_ms: Some(want.relay.unit_backoff_max_ms),
             log_level: Some(want.log.level.clone()),
             traffic: Some(want.log.traffic),
         };
@@ -1382,7 +1593,13 @@ mod tests {
             "--flow-control",
             "none",
             "--framing",
-            "mbap",
+            "rtu",
+            "--rs485",
+            "--echo=false",
+            "--broadcast-reply",
+            "echo",
+            "--unit-backoff-after",
+            "5",
             "--response-timeout-ms",
             "500",
             "--frame-gap-ms",
@@ -1411,7 +1628,10 @@ mod tests {
         assert_eq!(o.listen, Some("127.0.0.1:1502".parse().unwrap()));
         assert_eq!(o.parity, Some(Parity::Even));
         assert_eq!(o.flow_control, Some(FlowControl::None));
-        assert_eq!(o.framing, Some(Framing::Mbap));
+        assert_eq!(o.framing, Some(Framing::Rtu));
+        assert_eq!((o.rs485, o.echo), (Some(true), Some(false)));
+        assert_eq!(o.broadcast_reply, Some(BroadcastReply::Echo));
+        assert_eq!(o.unit_backoff_after, Some(5));
         assert_eq!(o.notifications, Some(Notifications::Broadcast));
         assert_eq!(o.retry_writes, Some(true));
         assert_eq!(o.traffic, Some(true));

@@ -2,7 +2,7 @@
 //! cleanly (design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see [`crate::notify`]).
 
-use crate::config::Config;
+use crate::config::{Config, Framing, Notifications};
 use crate::notify;
 use crate::relay::Relay;
 use crate::stats::Stats;
@@ -48,6 +48,7 @@ pub async fn serve(
     let local = listener
         .local_addr()
         .map_err(|source| GatewayError::Bind { addr, source })?;
+    warn_inapplicable(&cfg);
     let cfg = Arc::new(cfg);
     let stats = Arc::new(Stats::default());
 
@@ -93,4 +94,22 @@ pub async fn serve(
     }
     info!(%stats, "stopped");
     Ok(stats)
+}
+
+/// Keys that an RTU or ASCII line cannot honour: said once at start, not refused, so a
+/// file written for MBAP keeps working when only the framing changes.
+fn warn_inapplicable(cfg: &Config) {
+    if cfg.serial.framing == Framing::Mbap {
+        return;
+    }
+    let framing = format!("{:?}", cfg.serial.framing).to_lowercase();
+    if cfg.relay.max_in_flight > 1 {
+        warn!(
+            max_in_flight = cfg.relay.max_in_flight,
+            "framing = {framing} has no transaction id: one request at a time (max_in_flight taken as 1)"
+        );
+    }
+    if cfg.relay.notifications == Notifications::Broadcast {
+        warn!("framing = {framing}: a frame that answers no request is dropped; notifications = broadcast does not apply");
+    }
 }

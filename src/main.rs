@@ -145,6 +145,7 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     let port = Port::Path(args.serial_config());
     simulate(
         &args.device,
+        args.settings(),
         false,
         |settings, commands, shutdown| async move {
             serve::run(settings, port, commands, shutdown).await?;
@@ -158,6 +159,7 @@ fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
     let device = args.device.clone();
     simulate(
         &device,
+        device.settings(),
         args.traffic,
         |settings, commands, shutdown| async move {
             mbgate::demo::run(&args, settings, commands, shutdown).await?;
@@ -168,7 +170,12 @@ fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
 
 /// What `sim` and `demo` share: the device options (exit 2 when bad), tracing, the
 /// runtime, the signals and the console; `body` runs the simulator.
-fn simulate<F, Fut>(device: &mbgate::sim::options::DeviceArgs, traffic: bool, body: F) -> ExitCode
+fn simulate<F, Fut>(
+    device: &mbgate::sim::options::DeviceArgs,
+    settings: Result<mbgate::sim::options::Settings, String>,
+    traffic: bool,
+    body: F,
+) -> ExitCode
 where
     F: FnOnce(
         mbgate::sim::options::Settings,
@@ -177,7 +184,7 @@ where
     ) -> Fut,
     Fut: std::future::Future<Output = anyhow::Result<()>>,
 {
-    let settings = match device.settings() {
+    let settings = match settings {
         Ok(s) => s,
         Err(e) => {
             eprintln!("mbgate: {e}");

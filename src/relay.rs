@@ -3,20 +3,27 @@
 //! Connections talk to it over a channel ([`RelayHandle`]); it owns the port, the
 //! queues, the in-flight table and the decoder, so nothing here is locked. One loop
 //! waits on: commands from connections, bytes from the port, room to write to the
-//! port, the nearest timer (a response deadline, the frame gap, the next reopen, the
-//! next systemd watchdog ping), and shutdown.
+//! port, the end of a write (`tcdrain`, RTU/ASCII), the nearest timer (a response
+//! deadline, the frame gap or silence, the inter-frame gap, the next reopen, the next
+//! systemd watchdog ping), and shutdown.
+//!
+//! What differs between framings (MBAP, RTU, ASCII) is behind [`line::Line`]; the
+//! queues, round-robin, timeouts, retries, unit backoff and exceptions are here, for
+//! all of them.
 
-use crate::config::{Notifications, RelayConfig, SerialConfig};
+mod line;
+
+use crate::config::{BroadcastReply, Notifications, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
-use crate::frame::mbap::FrameRef;
 use crate::frame::pdu::{self, exception};
-use crate::frame::{Adu, Judge, Resync};
+use crate::frame::Adu;
 use crate::notify;
 use crate::serial::{self, Backoff};
 use crate::stats::Stats;
-use crate::tids::{self, Tids};
 use bytes::Bytes;
+use line::{Line, Seen, Unsolicited};
 use std::collections::{HashMap, VecDeque};
+use std::os::fd::{AsRawFd, RawFd};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt, ReadHalf, WriteHalf};
@@ -90,52 +97,21 @@ enum Port {
     Open {
         rd: ReadHalf<SerialStream>,
         wr: WriteHalf<SerialStream>,
+        /// The port's descriptor, for `tcdrain` (valid while `rd` and `wr` live).
+        fd: RawFd,
     },
     Closed {
         retry_at: Instant,
     },
 }
 
-/// The relay's view of which frames on the line it can use (design.md §1 step 4, §2).
-struct RelayJudge<'a> {
-    in_flight: &'a [InFlight],
-    tids: &'a Tids,
-    /// Hold frames until what follows them confirms them (issue 4): when another frame
-    /// may follow, a reply that lost a byte could complete itself with its first byte.
-    strict: bool,
-}
-
-impl Judge for RelayJudge<'_> {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code)
-            || self
-                .in_flight
-                .iter()
-                .any(|f| f.req.adu.function() == code & 0x7F)
-    }
-
-    fn accept(&self, frame: FrameRef<'_>) -> bool {
-        match self.in_flight.iter().find(|f| f.tid == frame.tid()) {
-            Some(f) => {
-                f.req.adu.unit() == frame.unit() && pdu::reply_matches(f.req.adu.pdu(), frame.pdu())
-            }
-            // Not an answer to anything on the line: a device notification (id 0), or a
-            // late answer (a retired id), to be dropped as such. Any other id is not
-            // ours: a reply shifted by a lost byte carries its own low byte after a
-            // stranger's high byte (tids.rs), so ids sharing a low byte with one in
-            // flight are refused even when retired.
-            None => {
-                let tid = frame.tid();
-                (tid == 0 || self.tids.is_retired(tid))
-                    && pdu::reply_well_formed(frame.pdu())
-                    && !self.in_flight.iter().any(|f| f.tid & 0xFF == tid & 0xFF)
-            }
-        }
-    }
-
-    fn confirm(&self, _frame: FrameRef<'_>) -> bool {
-        self.strict
-    }
+/// Why a request on the line failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Failure {
+    /// No reply in time.
+    Timeout,
+    /// A reply whose CRC or LRC failed, or that did not answer it (RTU/ASCII).
+    Corrupt,
 }
 
 pub struct Relay {
@@ -151,13 +127,13 @@ pub struct Relay {
     /// waiting goes ahead of it, since it has just had its turn.
     last_served: Option<ConnId>,
     queued: usize,
+    /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
+    retry: VecDeque<Pending>,
     in_flight: Vec<InFlight>,
-    tids: Tids,
-    decoder: Resync,
-    last_byte: Instant,
-    /// Until then another frame may follow any reply (a late reply, a notification),
-    /// so replies are held for confirmation.
-    followers_until: Instant,
+    line: Line,
+    /// `tcdrain` of the last write, running on the blocking pool (RTU/ASCII).
+    drain: Option<tokio::task::JoinHandle<std::io::Result<()>>>,
+    units: Units,
     port: Port,
     backoff: Backoff,
     port_warned: bool,
@@ -188,6 +164,10 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
+        let line = Line::new(&cfg, &serial, now);
+        // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
+        // an MBAP line, would gain the others nothing.
+        let units = Units::new(&cfg, cfg.unit_backoff && line.is_serial());
         let relay = Relay {
             cfg,
             serial,
@@ -198,11 +178,11 @@ impl Relay {
             ring: VecDeque::new(),
             last_served: None,
             queued: 0,
+            retry: VecDeque::new(),
             in_flight: Vec::new(),
-            tids: Tids::new(),
-            decoder: Resync::new(),
-            last_byte: now,
-            followers_until: now,
+            line,
+            drain: None,
+            units,
             port: Port::Closed { retry_at: now },
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
             port_warned: false,
@@ -242,11 +222,12 @@ impl Relay {
             let event = match &mut self.port {
                 // Biased, bytes first: a timer that finds bytes waiting must not take
                 // the line for quiet (a held reply would be refuted, a frame cut).
-                Port::Open { rd, wr } => tokio::select! {
+                Port::Open { rd, wr, .. } => tokio::select! {
                     biased;
                     r = rd.read(&mut rbuf) => Event::Read(r),
                     cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
+                    d = async { self.drain.as_mut().expect("guarded").await }, if self.drain.is_some() => Event::Drained(d),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
@@ -270,15 +251,24 @@ impl Relay {
                         debug!(target: "mbgate::traffic", dir = "serial->gw", "{}", Hex(&rbuf[..n]));
                     }
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
-                    self.decoder.push(&rbuf[..n]);
-                    self.last_byte = now;
+                    self.line.received(&rbuf[..n], now, &self.stats);
                 }
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
                 Event::Wrote(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_out, n as u64);
                     self.out.advance(n);
+                    if self.out.is_empty() && self.line.is_serial() {
+                        self.start_drain(now);
+                    }
                 }
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
+                Event::Drained(r) => {
+                    self.drain = None;
+                    if let Ok(Err(e)) | Err(e) = r.map_err(std::io::Error::other) {
+                        debug!("tcdrain: {e}");
+                    }
+                    self.drained(now);
+                }
                 Event::Timer => {}
             }
             self.take_frames(now);
@@ -292,8 +282,9 @@ impl Relay {
         for f in &self.in_flight {
             wake = wake.min(f.deadline);
         }
-        if self.decoder.buffered() > 0 {
-            wake = wake.min(self.last_byte + self.gap());
+        let waiting = !self.ring.is_empty() || !self.retry.is_empty();
+        if let Some(w) = self.line.next_wake(now, waiting) {
+            wake = wake.min(w);
         }
         if let Port::Closed { retry_at } = self.port {
             wake = wake.min(retry_at);
@@ -313,10 +304,6 @@ impl Relay {
         }
     }
 
-    fn gap(&self) -> Duration {
-        Duration::from_millis(self.cfg.frame_gap_ms)
-    }
-
     fn is_open(&self) -> bool {
         matches!(self.port, Port::Open { .. })
     }
@@ -331,11 +318,12 @@ impl Relay {
         match serial::open(&self.serial) {
             Ok(port) => {
                 info!(path = %self.serial.path, baud = self.serial.baud_rate, "serial port open");
+                let fd = port.as_raw_fd();
                 let (rd, wr) = tokio::io::split(port);
-                self.port = Port::Open { rd, wr };
+                self.port = Port::Open { rd, wr, fd };
                 self.backoff.reset();
                 self.port_warned = false;
-                self.decoder.clear();
+                self.line.clear(&self.stats);
                 self.stats.add(&self.stats.serial_opens, 1);
             }
             Err(e) => {
@@ -364,10 +352,13 @@ impl Relay {
             retry_at: now + self.backoff.next_delay(),
         };
         self.port_warned = true;
-        self.decoder.clear();
+        self.line.clear(&self.stats);
         self.out.clear();
+        if let Some(d) = self.drain.take() {
+            d.abort();
+        }
         for f in std::mem::take(&mut self.in_flight) {
-            self.tids.retire(f.tid, now.into_std());
+            self.line.retire(f.tid, now);
             self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
         }
         self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
@@ -392,6 +383,7 @@ impl Relay {
             }
             Command::Detach { conn } => {
                 self.conns.remove(&conn);
+                self.retry.retain(|r| r.conn != conn);
                 if let Some(q) = self.queues.remove(&conn) {
                     self.queued -= q.len();
                     self.ring.retain(|&c| c != conn);
@@ -407,6 +399,8 @@ impl Relay {
                 };
                 if self.draining || !self.is_open() {
                     self.answer_exception(req, exception::GATEWAY_PATH_UNAVAILABLE);
+                } else if self.units.backed_off(req.adu.unit(), Instant::now()) {
+                    self.answer_backed_off(req);
                 } else if self.queued >= self.cfg.queue_depth {
                     self.answer_exception(req, exception::SERVER_DEVICE_BUSY);
                 } else {
@@ -428,10 +422,13 @@ impl Relay {
         }
     }
 
-    /// Answers every queued request with `code`.
+    /// Answers every queued request (and every one waiting to be resent) with `code`.
     fn flush_queue(&mut self, code: u8) {
         self.ring.clear();
         self.queued = 0;
+        for req in std::mem::take(&mut self.retry) {
+            self.answer_exception(req, code);
+        }
         for (_, q) in std::mem::take(&mut self.queues) {
             for req in q {
                 self.answer_exception(req, code);
@@ -439,13 +436,14 @@ impl Relay {
         }
     }
 
-    /// Puts queued requests on the line, round-robin across connections, while fewer
-    /// than `max_in_flight` are outstanding.
-    fn dispatch(&mut self, now: Instant) {
-        while self.in_flight.len() < self.cfg.max_in_flight && self.is_open() {
-            let Some(conn) = self.ring.pop_front() else {
-                break;
-            };
+    /// The next request to put on the line: a resend first, then round-robin across
+    /// connections.
+    fn next_request(&mut self) -> Option<Pending> {
+        if let Some(req) = self.retry.pop_front() {
+            return Some(req);
+        }
+        loop {
+            let conn = self.ring.pop_front()?;
             let Some(q) = self.queues.get_mut(&conn) else {
                 continue;
             };
@@ -459,90 +457,135 @@ impl Relay {
             }
             self.queued -= 1;
             self.last_served = Some(conn);
+            return Some(req);
+        }
+    }
+
+    /// Puts queued requests on the line while it has room: fewer than `max_in_flight`
+    /// outstanding (MBAP), or none outstanding and the inter-frame gap passed
+    /// (RTU/ASCII). A request for a backed-off unit is answered at once instead.
+    fn dispatch(&mut self, now: Instant) {
+        while self.is_open()
+            && self
+                .line
+                .has_room(self.in_flight.len(), self.tx_busy(), now)
+        {
+            let Some(req) = self.next_request() else {
+                break;
+            };
+            if self.units.backed_off(req.adu.unit(), now) {
+                self.answer_backed_off(req);
+                continue;
+            }
             self.send(req, now);
         }
     }
 
+    /// Bytes are still being written, or have not yet left the port.
+    fn tx_busy(&self) -> bool {
+        !self.out.is_empty() || self.drain.is_some()
+    }
+
     fn send(&mut self, req: Pending, now: Instant) {
-        let tid = self.tids.allocate(now.into_std());
-        let frame = req.adu.with_tid(tid);
+        let tid = self.line.allocate(now);
+        let bytes = self.line.encode(&req.adu, tid, now);
         if self.traffic {
-            debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn, "{}", Hex(frame.as_bytes()));
+            debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn, "{}", Hex(&bytes));
         }
-        self.out.push(tid, frame.into_bytes());
+        self.out.push(tid, bytes);
+        if self.line.is_broadcast(&req.adu) {
+            self.broadcast_sent(req);
+            return;
+        }
         // The response time counts from when the request has left: behind whatever is
-        // still waiting to be written.
+        // still waiting to be written (RTU/ASCII: restarted when the port has drained).
         let deadline = now
             + serial::wire_time(&self.serial, self.out.len())
             + Duration::from_millis(self.cfg.response_timeout_ms);
         self.in_flight.push(InFlight { tid, deadline, req });
     }
 
-    /// Can a frame other than the reply to the one request on the line arrive? Then
-    /// replies wait for confirmation (issue 4). It can when several requests are on the
-    /// line, when the device sends notifications, and for a while after a request timed
-    /// out (its reply may still come), an unsolicited frame was seen, or the line
-    /// carried garbage (noise that can land inside a reply).
-    fn followers_possible(&self, now: Instant) -> bool {
-        self.in_flight.len() > 1
-            || self.cfg.notifications == Notifications::Broadcast
-            || now < self.followers_until
+    /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
+    /// gets nothing, or the answer a device would have given (`broadcast_reply`).
+    fn broadcast_sent(&mut self, req: Pending) {
+        self.stats.add(&self.stats.broadcasts, 1);
+        match self.cfg.broadcast_reply {
+            // The permit goes with the request: the master may send another.
+            BroadcastReply::None => drop(req),
+            BroadcastReply::Echo => {
+                let adu = Adu::build(req.adu.tid(), 0, &pdu::write_echo(req.adu.pdu()));
+                self.deliver(req.conn, adu, Some(req.permit));
+            }
+        }
     }
 
-    /// Another frame may follow replies for a while (see [`Self::followers_possible`]).
-    fn expect_followers(&mut self, now: Instant) {
-        self.followers_until = now + tids::RETIRED_FOR;
+    /// Waits for the bytes written to leave the port, off the runtime's thread, so the
+    /// reply timer and the inter-frame gap start from the last byte on the wire.
+    fn start_drain(&mut self, now: Instant) {
+        let Port::Open { fd, .. } = &self.port else {
+            return;
+        };
+        match serial::drain(*fd) {
+            Ok(handle) => self.drain = Some(handle),
+            Err(e) => {
+                debug!("tcdrain unavailable ({e}): timing from the write");
+                self.drained(now);
+            }
+        }
+    }
+
+    fn drained(&mut self, now: Instant) {
+        let left = self.line.drained(&self.serial, now);
+        let timeout = Duration::from_millis(self.cfg.response_timeout_ms);
+        for f in &mut self.in_flight {
+            f.deadline = left + timeout;
+        }
     }
 
     fn take_frames(&mut self, now: Instant) {
-        let quiet = now >= self.last_byte + self.gap();
-        loop {
-            let judge = RelayJudge {
-                in_flight: &self.in_flight,
-                tids: &self.tids,
-                strict: self.followers_possible(now),
-            };
-            let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
-                break;
-            };
-            self.on_frame(frame, now);
+        for seen in self.line.frames(&self.in_flight, now, &self.stats) {
+            match seen {
+                Seen::Frame(frame) => self.on_frame(frame, now),
+                Seen::Corrupt(tid) => {
+                    if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
+                        let f = self.in_flight.swap_remove(i);
+                        self.failed(f, Failure::Corrupt, now);
+                    }
+                }
+            }
         }
-        let decoded = self.decoder.stats();
-        if decoded.dropped_bytes > self.stats.get(&self.stats.dropped_bytes) {
-            self.expect_followers(now);
-        }
-        self.stats
-            .set(&self.stats.dropped_bytes, decoded.dropped_bytes);
-        self.stats.set(&self.stats.refuted_frames, decoded.refuted);
     }
 
     fn on_frame(&mut self, frame: Adu, now: Instant) {
         let tid = frame.tid();
         if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
-            // The judge has checked unit, function code and shape against this request.
+            // The line has checked unit, function code and shape against this request.
             let f = self.in_flight.swap_remove(i);
             // Kept reserved a while: a second answer with this id is recognised as
             // ours and dropped, never broadcast.
-            self.tids.retire(tid, now.into_std());
+            self.line.retire(tid, now);
+            self.units.answered(f.req.adu.unit());
             self.stats.add(&self.stats.replies, 1);
             let reply = frame.with_tid(f.req.adu.tid());
             self.deliver(f.req.conn, reply, Some(f.req.permit));
-        } else if self.tids.is_retired(tid) {
-            self.expect_followers(now);
-            self.stats.add(&self.stats.late_replies, 1);
-            debug!(
-                tid,
-                "late reply dropped (its request timed out or was answered already): {:?}", frame
-            );
-        } else {
-            self.expect_followers(now);
-            match self.cfg.notifications {
+            return;
+        }
+        match self.line.unsolicited(tid, now) {
+            Unsolicited::Late => {
+                self.stats.add(&self.stats.late_replies, 1);
+                debug!(
+                    tid,
+                    "late reply dropped (its request timed out or was answered already): {:?}",
+                    frame
+                );
+            }
+            Unsolicited::Notification => match self.cfg.notifications {
                 Notifications::Drop => {
                     self.stats.add(&self.stats.notifications_dropped, 1);
                     debug!("unsolicited frame dropped: {:?}", frame);
                 }
                 Notifications::Broadcast => self.broadcast(frame),
-            }
+            },
         }
     }
 
@@ -572,8 +615,7 @@ impl Relay {
                 continue;
             }
             let f = self.in_flight.swap_remove(i);
-            self.tids.retire(f.tid, now.into_std());
-            self.expect_followers(now);
+            self.line.timed_out(now, &self.stats);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
@@ -582,27 +624,92 @@ impl Relay {
                     "request could not be written in time (is CTS held low?)"
                 );
             }
-            let function = f.req.adu.function();
-            let may_retry = pdu::is_read(function) || self.cfg.retry_writes;
-            if may_retry && f.req.attempts < self.cfg.retries && self.is_open() {
-                debug!(
-                    conn = f.req.conn,
-                    attempt = f.req.attempts + 1,
-                    "no reply; resending"
-                );
-                self.stats.add(&self.stats.retries, 1);
-                let mut req = f.req;
-                req.attempts += 1;
-                self.send(req, now);
-            } else {
-                debug!(
-                    conn = f.req.conn,
-                    tid = f.req.adu.tid(),
-                    "no reply in time: 0x0B"
+            self.failed(f, Failure::Timeout, now);
+        }
+    }
+
+    /// A request on the line got no usable reply: resent if it may be (reads, or any
+    /// request with `retry_writes`, up to `retries` times), else answered 0x0B. A
+    /// timeout counts against its unit (a unit that keeps timing out is backed off).
+    fn failed(&mut self, f: InFlight, why: Failure, now: Instant) {
+        self.line.retire(f.tid, now);
+        let unit = f.req.adu.unit();
+        if why == Failure::Timeout {
+            if let Some(interval) = self.units.timed_out(unit, now) {
+                warn!(
+                    unit,
+                    "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
                 );
                 self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+                self.sweep_backed_off(unit);
+                return;
             }
         }
+        let function = f.req.adu.function();
+        let may_retry = pdu::is_read(function) || self.cfg.retry_writes;
+        if may_retry && f.req.attempts < self.cfg.retries && self.is_open() {
+            debug!(
+                conn = f.req.conn,
+                attempt = f.req.attempts + 1,
+                "{}; resending",
+                match why {
+                    Failure::Timeout => "no reply",
+                    Failure::Corrupt => "a bad reply",
+                }
+            );
+            self.stats.add(&self.stats.retries, 1);
+            let mut req = f.req;
+            req.attempts += 1;
+            self.retry.push_back(req);
+        } else {
+            debug!(
+                conn = f.req.conn,
+                tid = f.req.adu.tid(),
+                "{}: 0x0B",
+                match why {
+                    Failure::Timeout => "no reply in time",
+                    Failure::Corrupt => "no good reply",
+                }
+            );
+            self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+        }
+    }
+
+    /// A unit was just backed off: its waiting requests are answered now, so they never
+    /// take the line from the healthy units.
+    fn sweep_backed_off(&mut self, unit: u8) {
+        let mut swept = Vec::new();
+        for q in self.queues.values_mut() {
+            let (gone, kept): (VecDeque<Pending>, VecDeque<Pending>) = std::mem::take(q)
+                .into_iter()
+                .partition(|r| r.adu.unit() == unit);
+            *q = kept;
+            swept.extend(gone);
+        }
+        self.queued -= swept.len();
+        self.queues.retain(|_, q| !q.is_empty());
+        let queues = &self.queues;
+        self.ring.retain(|c| queues.contains_key(c));
+        let (gone, kept) = std::mem::take(&mut self.retry)
+            .into_iter()
+            .partition(|r| r.adu.unit() == unit);
+        self.retry = kept;
+        swept.extend::<VecDeque<Pending>>(gone);
+        for req in swept {
+            self.answer_backed_off(req);
+        }
+    }
+
+    /// 0x0B at once for a backed-off unit, counted apart from timeouts.
+    fn answer_backed_off(&self, req: Pending) {
+        self.stats.add(&self.stats.backed_off, 1);
+        let adu = Adu::exception(
+            req.adu.tid(),
+            req.adu.unit(),
+            req.adu.function(),
+            exception::GATEWAY_TARGET_FAILED,
+        );
+        self.deliver(req.conn, adu, Some(req.permit));
     }
 
     fn answer_exception(&self, req: Pending, code: u8) {
@@ -629,8 +736,69 @@ enum Event {
     Command(Option<Command>),
     Read(std::io::Result<usize>),
     Wrote(std::io::Result<usize>),
+    Drained(Result<std::io::Result<()>, tokio::task::JoinError>),
     Timer,
     Shutdown,
+}
+
+/// Per-unit health on an RTU/ASCII bus: a unit that timed out `after` times in a row
+/// is backed off for an interval that doubles (from `min` up to `max`) each time a
+/// probe fails; a reply forgets it all.
+struct Units {
+    enabled: bool,
+    after: u32,
+    min: Duration,
+    max: Duration,
+    health: HashMap<u8, Health>,
+}
+
+#[derive(Debug, Default)]
+struct Health {
+    /// Timeouts in a row.
+    timeouts: u32,
+    /// The current back-off interval, once backed off.
+    interval: Option<Duration>,
+    until: Option<Instant>,
+}
+
+impl Units {
+    fn new(cfg: &RelayConfig, enabled: bool) -> Self {
+        let max = Duration::from_millis(cfg.unit_backoff_max_ms);
+        Self {
+            enabled,
+            after: cfg.unit_backoff_after,
+            min: Duration::from_millis(cfg.unit_backoff_ms).min(max),
+            max,
+            health: HashMap::new(),
+        }
+    }
+
+    fn backed_off(&self, unit: u8, now: Instant) -> bool {
+        self.health
+            .get(&unit)
+            .and_then(|h| h.until)
+            .is_some_and(|until| now < until)
+    }
+
+    /// A request to `unit` timed out; the interval it is now backed off for, if it is.
+    fn timed_out(&mut self, unit: u8, now: Instant) -> Option<Duration> {
+        if !self.enabled || unit == 0 {
+            return None;
+        }
+        let h = self.health.entry(unit).or_default();
+        h.timeouts += 1;
+        if h.timeouts < self.after {
+            return None;
+        }
+        let interval = h.interval.map_or(self.min, |i| (i * 2).min(self.max));
+        h.interval = Some(interval);
+        h.until = Some(now + interval);
+        Some(interval)
+    }
+
+    fn answered(&mut self, unit: u8) {
+        self.health.remove(&unit);
+    }
 }
 
 /// Frames waiting to be written to the port, in order. A frame not yet begun can be
@@ -698,8 +866,44 @@ impl Outgoing {
 
 #[cfg(test)]
 mod tests {
-    use super::Outgoing;
+    use super::{Outgoing, Units};
+    use crate::config::RelayConfig;
     use bytes::Bytes;
+    use std::time::Duration;
+    use tokio::time::Instant;
+
+    #[test]
+    fn units_back_off_after_n_timeouts_doubling_up_to_max() {
+        let cfg = RelayConfig {
+            unit_backoff_after: 2,
+            unit_backoff_ms: 100,
+            unit_backoff_max_ms: 300,
+            ..RelayConfig::default()
+        };
+        let mut u = Units::new(&cfg, true);
+        let t0 = Instant::now();
+        assert_eq!(u.timed_out(5, t0), None);
+        assert!(!u.backed_off(5, t0));
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(100)));
+        assert!(u.backed_off(5, t0 + Duration::from_millis(99)));
+        assert!(
+            !u.backed_off(5, t0 + Duration::from_millis(100)),
+            "probed after"
+        );
+        assert!(!u.backed_off(6, t0), "other units are not touched");
+        // Failed probes double the interval, up to the max.
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(200)));
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
+        // A reply forgets it all.
+        u.answered(5);
+        assert!(!u.backed_off(5, t0));
+        assert_eq!(u.timed_out(5, t0), None);
+        // Broadcasts and a disabled backoff never back off.
+        assert_eq!(u.timed_out(0, t0), None);
+        let mut off = Units::new(&cfg, false);
+        assert_eq!((off.timed_out(5, t0), off.timed_out(5, t0)), (None, None));
+    }
 
     #[test]
     fn outgoing_writes_in_order_and_withdraws_only_unstarted_frames() {

@@ -6,6 +6,8 @@
 //! calls fail with ENOTTY on a pty; nothing here treats that as fatal.
 
 use crate::config::{FlowControl, Parity, SerialConfig};
+use std::os::fd::{AsRawFd, BorrowedFd, RawFd};
+use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
 
@@ -53,7 +55,71 @@ pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
     if let Err(e) = port.clear(ClearBuffer::All) {
         tracing::debug!(path = %cfg.path, "could not clear stale bytes: {e}");
     }
+    if cfg.rs485 {
+        match set_rs485(port.as_raw_fd(), cfg) {
+            Ok(()) => tracing::info!(path = %cfg.path, "RS-485 mode on"),
+            // Once: a port that cannot do it cannot after a reopen either.
+            Err(e) if !RS485_WARNED.swap(true, Ordering::Relaxed) => tracing::warn!(
+                path = %cfg.path,
+                "rs485 = true, but the port does not support RS-485 mode ({e}); \
+                 using it as it is (an adapter that switches by itself needs nothing more)"
+            ),
+            Err(e) => tracing::debug!(path = %cfg.path, "RS-485 mode: {e}"),
+        }
+    }
     Ok(port)
+}
+
+static RS485_WARNED: AtomicBool = AtomicBool::new(false);
+
+/// The kernel's `struct serial_rs485` (linux/serial.h); libc does not define it.
+#[repr(C)]
+#[derive(Debug, Default)]
+struct SerialRs485 {
+    flags: u32,
+    /// Milliseconds.
+    delay_rts_before_send: u32,
+    /// Milliseconds.
+    delay_rts_after_send: u32,
+    padding: [u32; 5],
+}
+
+const SER_RS485_ENABLED: u32 = 1 << 0;
+const SER_RS485_RTS_ON_SEND: u32 = 1 << 1;
+
+/// Turns on the driver's RS-485 mode (TIOCSRS485): RTS high while sending, low after,
+/// with the configured delays. A pty or a plain UART driver refuses (ENOTTY, EINVAL).
+fn set_rs485(fd: RawFd, cfg: &SerialConfig) -> std::io::Result<()> {
+    let conf = SerialRs485 {
+        flags: SER_RS485_ENABLED | SER_RS485_RTS_ON_SEND,
+        delay_rts_before_send: cfg.rs485_delay_before_send_ms,
+        delay_rts_after_send: cfg.rs485_delay_after_send_ms,
+        ..SerialRs485::default()
+    };
+    // SAFETY: TIOCSRS485 reads one `struct serial_rs485`, which `conf` is, for the
+    // duration of the call; `fd` is the open port.
+    let r = unsafe { libc::ioctl(fd, libc::TIOCSRS485 as _, &conf as *const SerialRs485) };
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
+/// Waits on the blocking pool until everything written to the port `fd` has left it
+/// (`tcdrain`), without holding the runtime's thread. Works on a duplicate of the
+/// descriptor, so closing the port meanwhile cannot make it touch another file.
+pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Result<()>>> {
+    // SAFETY: `fd` is the open port, borrowed only to duplicate it.
+    let owned = unsafe { BorrowedFd::borrow_raw(fd) }.try_clone_to_owned()?;
+    Ok(tokio::task::spawn_blocking(move || {
+        // SAFETY: a valid descriptor, ours until `owned` drops after the call.
+        if unsafe { libc::tcdrain(owned.as_raw_fd()) } == 0 {
+            Ok(())
+        } else {
+            Err(std::io::Error::last_os_error())
+        }
+    }))
 }
 
 /// Bits on the wire for one character: start, data, parity, stop.

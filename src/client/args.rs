@@ -231,6 +231,7 @@ impl CommonArgs {
                     stop_bits: self.stop_bits.unwrap_or(d.stop_bits),
                     flow_control: self.flow_control.unwrap_or(d.flow_control),
                     framing: Framing::Mbap,
+                    ..d
                 })
             }
             None => {

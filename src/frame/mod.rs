@@ -1,11 +1,14 @@
 //! Pure frame code: bytes in, frames out. No tokio, no I/O, so every piece here can be
 //! unit-tested, property-tested and fuzzed on its own (design.md §5).
 
+pub mod ascii;
 pub mod hex;
 pub mod mbap;
 pub mod pdu;
 pub mod request;
 pub mod resync;
+pub mod rtu;
+pub mod serial;
 
 pub use mbap::{Adu, StrictError};
 pub use resync::{Confirmed, Judge, ReplyJudge, RequestJudge, Resync};

@@ -250,6 +250,18 @@ pub fn reply_matches(request: &[u8], reply: &[u8]) -> bool {
     }
 }
 
+/// The answer a device gives to a write request, made from the request itself: FC 05,
+/// 06 and 16 echo it whole; 0F and 10 echo address and quantity. Other requests are
+/// echoed whole. (What a master gets for a broadcast with `broadcast_reply = "echo"`.)
+pub fn write_echo(request: &[u8]) -> Vec<u8> {
+    match request.first() {
+        Some(&(WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS)) if request.len() >= 5 => {
+            request[..5].to_vec()
+        }
+        _ => request.to_vec(),
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -302,6 +314,14 @@ mod tests {
         assert!(!reply_matches(&[1], &[1, 1, 0]));
         assert!(!reply_matches(&[0x10, 0, 1], &[0x10, 0, 1, 0, 1]));
         assert!(!reply_matches(&[3, 0], &[0x83, 2]));
+    }
+
+    #[test]
+    fn write_echoes() {
+        assert_eq!(write_echo(&[6, 0, 1, 0, 3]), [6, 0, 1, 0, 3]);
+        let write = [0x10, 0, 8, 0, 1, 2, 0, 0x11];
+        assert_eq!(write_echo(&write), [0x10, 0, 8, 0, 1]);
+        assert!(reply_matches(&write, &write_echo(&write)));
     }
 
     #[test]

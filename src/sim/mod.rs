@@ -157,6 +157,23 @@ impl Device {
         }
     }
 
+    /// A broadcast request (unit 0 on an RTU/ASCII bus): every device acts on it, none
+    /// answers.
+    pub fn broadcast(&mut self, pdu: &[u8]) {
+        match &mut self.profile {
+            Profile::CieM10(d) => {
+                let unit = d.unit;
+                d.answer(unit, pdu);
+            }
+            Profile::Generic(g) => {
+                let units: Vec<u8> = g.units.keys().copied().collect();
+                for unit in units {
+                    g.answer(unit, pdu);
+                }
+            }
+        }
+    }
+
     /// The unit id notifications come from, if the profile sends any.
     pub fn notifying_unit(&self) -> Option<u8> {
         match &self.profile {

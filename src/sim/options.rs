@@ -4,7 +4,7 @@
 use super::cie_m10::CieM10;
 use super::line::{ChunkMode, Chunker, Faults};
 use super::{generic, Device, Profile};
-use crate::config::{FlowControl, Parity, SerialConfig};
+use crate::config::{FlowControl, Framing, Parity, SerialConfig};
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -193,8 +193,28 @@ pub struct SimArgs {
     pub stop_bits: u8,
     #[arg(long, value_enum, default_value_t = FlowControl::Hardware, help_heading = "serial port")]
     pub flow_control: FlowControl,
+    /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
+    /// (generic profile only).
+    #[arg(long, value_enum, default_value_t = Framing::Mbap, help_heading = "serial port")]
+    pub framing: Framing,
     #[command(flatten)]
     pub device: DeviceArgs,
+}
+
+impl SimArgs {
+    /// The device and line settings, with this port's framing.
+    pub fn settings(&self) -> Result<Settings, String> {
+        if self.framing != Framing::Mbap && self.device.profile == ProfileName::CieM10 {
+            return Err(
+                "--framing rtu and ascii need --profile generic (the CIE-M10's serial \
+                 Modbus/TCP mode carries MBAP frames)"
+                    .into(),
+            );
+        }
+        let mut s = self.device.settings()?;
+        s.framing = self.framing;
+        Ok(s)
+    }
 }
 
 impl SimArgs {
@@ -216,6 +236,8 @@ impl SimArgs {
 #[derive(Debug)]
 pub struct Settings {
     pub device: Device,
+    /// How frames are carried: MBAP unless `mbgate sim --framing` says otherwise.
+    pub framing: Framing,
     pub baud: Option<u32>,
     pub delay: Duration,
     pub rx_faults: Faults,
@@ -336,6 +358,7 @@ impl DeviceArgs {
         };
         Ok(Settings {
             device,
+            framing: Framing::Mbap,
             baud: self.baud,
             delay: Duration::from_millis(self.delay_ms),
             rx_faults: faulty(self.faults != FaultDirection::FromDevice, 0),

@@ -8,8 +8,9 @@ use super::line::{Chunker, Faults, Pacer};
 use super::options::Settings;
 use super::packets::Direction;
 use super::Device;
-use crate::config::SerialConfig;
+use crate::config::{Framing, SerialConfig};
 use crate::frame::hex::Hex;
+use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
 use crate::frame::{Adu, RequestJudge, Resync};
 use crate::serial::{self, Backoff};
 use std::collections::VecDeque;
@@ -56,8 +57,8 @@ pub fn is_pty(path: &Path) -> bool {
 struct Outgoing {
     due: Instant,
     bytes: bytes::Bytes,
-    /// The whole frame and what it is, on its first piece (for the log).
-    frame: Option<(Adu, &'static str)>,
+    /// The whole frame as sent and what it is, on its first piece (for the log).
+    frame: Option<(bytes::Bytes, &'static str)>,
 }
 
 /// Waits until `due`, to within the OS's timer slack. Tokio's timer counts whole
@@ -95,7 +96,7 @@ struct Sim {
     rx_pace: Pacer,
     tx_pace: Pacer,
     chunker: Chunker,
-    decoder: Resync,
+    decoder: Requests,
     out: VecDeque<Outgoing>,
     /// Without `--pipeline`, the device is busy until its reply has left.
     busy_until: Option<Instant>,
@@ -129,7 +130,7 @@ pub async fn run(
         rx_pace: Pacer::new(baud, 10),
         tx_pace: Pacer::new(baud, 10),
         chunker: settings.chunker,
-        decoder: Resync::new(),
+        decoder: Requests::new(settings.framing),
         out: VecDeque::new(),
         busy_until: None,
         last_rx: Instant::now(),
@@ -287,13 +288,13 @@ impl Sim {
 
     /// The line went quiet: a partial request will never complete.
     fn quiet(&mut self) {
-        let before = self.decoder.stats().dropped_bytes;
+        let before = self.decoder.dropped();
         let arrived = Instant::now();
         let judge = self.judge();
         while let Some(frame) = self.decoder.next_frame(&judge, true) {
             self.request(frame, arrived);
         }
-        let dropped = self.decoder.stats().dropped_bytes - before;
+        let dropped = self.decoder.dropped() - before;
         if dropped > 0 {
             debug!("discarded {dropped} bytes that made no request");
         }
@@ -307,16 +308,23 @@ impl Sim {
                 .record(Direction::Rx, frame.as_bytes(), "ignored: busy");
             return;
         }
+        if frame.unit() == 0 && self.decoder.codec().is_some() {
+            // A broadcast on an RTU/ASCII bus: every device acts, none answers.
+            info!(target: "mbgate::sim::packets", "rx {} (broadcast)", Hex(&self.wire(&frame)));
+            let wire = self.wire(&frame);
+            self.device.log.record(Direction::Rx, &wire, "broadcast");
+            self.device.broadcast(frame.pdu());
+            return;
+        }
         let answer = self.device.answer(frame.unit(), frame.pdu());
         let note = if answer.reply.is_some() {
             "request"
         } else {
             "no such unit: silent"
         };
-        info!(target: "mbgate::sim::packets", "rx {} ({note})", Hex(frame.as_bytes()));
-        self.device
-            .log
-            .record(Direction::Rx, frame.as_bytes(), note);
+        let wire = self.wire(&frame);
+        info!(target: "mbgate::sim::packets", "rx {} ({note})", Hex(&wire));
+        self.device.log.record(Direction::Rx, &wire, note);
         if let Some(pdu) = answer.reply {
             let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
             let done = self.queue(arrived + self.delay, reply, "reply");
@@ -340,8 +348,8 @@ impl Sim {
     /// Queues a frame ready at `ready` in its pieces, paced; the instant its last byte
     /// has left.
     fn queue(&mut self, ready: Instant, frame: Adu, note: &'static str) -> Instant {
-        let bytes = frame.clone().into_bytes();
-        let mut first = Some((frame, note));
+        let bytes = bytes::Bytes::from(self.wire(&frame));
+        let mut first = Some((bytes.clone(), note));
         let (mut at, mut due) = (0, ready);
         for (n, gap) in self.chunker.pieces(bytes.len()) {
             due = self.tx_pace.finish((due + gap).into_std(), n).into();
@@ -362,14 +370,20 @@ impl Sim {
         while self.out.front().is_some_and(|o| o.due <= now) {
             let o = self.out.pop_front().expect("checked");
             if let Some((frame, note)) = o.frame {
-                info!(target: "mbgate::sim::packets", "tx {} ({note})", Hex(frame.as_bytes()));
-                self.device
-                    .log
-                    .record(Direction::Tx, frame.as_bytes(), note);
+                info!(target: "mbgate::sim::packets", "tx {} ({note})", Hex(&frame));
+                self.device.log.record(Direction::Tx, &frame, note);
             }
             self.tx_faults.apply(&o.bytes, &mut bytes);
         }
         AsyncWriteExt::write_all(port, &bytes).await
+    }
+
+    /// A frame as this line carries it: MBAP as is, RTU or ASCII from its unit and PDU.
+    fn wire(&self, frame: &Adu) -> Vec<u8> {
+        match self.decoder.codec() {
+            None => frame.as_bytes().to_vec(),
+            Some(codec) => codec.encode(frame.unit(), frame.pdu()),
+        }
     }
 
     fn command(&mut self, req: ConsoleRequest) {
@@ -379,5 +393,82 @@ impl Sim {
         }
         // On `quit` the console cancels the shutdown token once it has printed this.
         let _ = req.reply.send(outcome.text);
+    }
+}
+
+/// The simulator's request decoder for its framing: MBAP with the gateway's
+/// resynchronising decoder, RTU and ASCII with their CRC or LRC. Requests come out as
+/// [`Adu`]s (transaction id 0 for RTU and ASCII, which have none).
+#[derive(Debug)]
+enum Requests {
+    Mbap(Resync),
+    Serial { decoder: Decoder, dropped: u64 },
+}
+
+impl Requests {
+    fn new(framing: Framing) -> Self {
+        match framing {
+            Framing::Mbap => Requests::Mbap(Resync::new()),
+            Framing::Rtu => Self::serial(Codec::Rtu),
+            Framing::Ascii => Self::serial(Codec::Ascii),
+        }
+    }
+
+    fn serial(codec: Codec) -> Self {
+        Requests::Serial {
+            decoder: Decoder::new(codec),
+            dropped: 0,
+        }
+    }
+
+    fn codec(&self) -> Option<Codec> {
+        match self {
+            Requests::Mbap(_) => None,
+            Requests::Serial { decoder, .. } => Some(decoder.codec()),
+        }
+    }
+
+    fn push(&mut self, bytes: &[u8]) {
+        match self {
+            Requests::Mbap(d) => d.push(bytes),
+            Requests::Serial { decoder, .. } => decoder.push(bytes),
+        }
+    }
+
+    fn buffered(&self) -> usize {
+        match self {
+            Requests::Mbap(d) => d.buffered(),
+            Requests::Serial { decoder, .. } => decoder.buffered(),
+        }
+    }
+
+    fn clear(&mut self) {
+        match self {
+            Requests::Mbap(d) => d.clear(),
+            Requests::Serial { decoder, dropped } => *dropped += decoder.clear() as u64,
+        }
+    }
+
+    /// Bytes dropped so far: garbage, and RTU/ASCII frames whose check failed.
+    fn dropped(&self) -> u64 {
+        match self {
+            Requests::Mbap(d) => d.stats().dropped_bytes,
+            Requests::Serial { dropped, .. } => *dropped,
+        }
+    }
+
+    fn next_frame(&mut self, judge: &RequestJudge, quiet: bool) -> Option<Adu> {
+        match self {
+            Requests::Mbap(d) => d.next_frame(judge, quiet),
+            Requests::Serial { decoder, dropped } => loop {
+                match decoder.next(Expect::Request, quiet)? {
+                    Decoded::Frame { unit, pdu } if !pdu.is_empty() && pdu.len() < 254 => {
+                        return Some(Adu::build(0, unit, &pdu));
+                    }
+                    Decoded::Frame { pdu, .. } => *dropped += pdu.len() as u64 + 1,
+                    Decoded::Corrupt(n) | Decoded::Noise(n) => *dropped += n as u64,
+                }
+            },
+        }
     }
 }

@@ -533,40 +533,66 @@ pub struct RawDevice {
     thread: Option<JoinHandle<()>>,
 }
 
+/// Opens a pty end for raw, non-blocking reads and writes.
+pub fn open_pty(path: &Path) -> std::fs::File {
+    std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
+        .open(path)
+        .unwrap_or_else(|e| panic!("open pty {}: {e}", path.display()))
+}
+
+/// A thread that reads `file` until `stop`, handing `step` the bytes read (none when
+/// nothing came for a millisecond), the time since the last byte, and the file to
+/// answer on; `step` returns false to end.
+fn pump(
+    file: &std::fs::File,
+    stop: Arc<AtomicBool>,
+    mut step: impl FnMut(&[u8], Duration, &mut std::fs::File) -> bool + Send + 'static,
+) -> JoinHandle<()> {
+    let mut rd = file.try_clone().unwrap();
+    let mut wr = file.try_clone().unwrap();
+    thread::spawn(move || {
+        let mut chunk = [0u8; 1024];
+        let mut last = Instant::now();
+        while !stop.load(Ordering::Relaxed) {
+            let n = match rd.read(&mut chunk) {
+                Ok(0) => break,
+                Ok(n) => {
+                    last = Instant::now();
+                    n
+                }
+                Err(e) if e.kind() == ErrorKind::WouldBlock => {
+                    thread::sleep(Duration::from_millis(1));
+                    0
+                }
+                Err(_) => break,
+            };
+            if !step(&chunk[..n], last.elapsed(), &mut wr) {
+                break;
+            }
+        }
+    })
+}
+
 impl RawDevice {
     pub fn start(path: &Path, mut handler: Handler) -> RawDevice {
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
-            .open(path)
-            .expect("open device pty");
-        let mut rd = file.try_clone().unwrap();
-        let mut wr = file.try_clone().unwrap();
+        let file = open_pty(path);
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
-        let (stop2, seen2) = (stop.clone(), seen.clone());
-        let thread = thread::spawn(move || {
-            let mut buf = bytes::BytesMut::new();
-            let mut chunk = [0u8; 1024];
-            while !stop2.load(Ordering::Relaxed) {
-                match rd.read(&mut chunk) {
-                    Ok(0) => break,
-                    Ok(n) => buf.extend_from_slice(&chunk[..n]),
-                    Err(e) if e.kind() == ErrorKind::WouldBlock => {
-                        thread::sleep(Duration::from_millis(1));
-                        continue;
-                    }
-                    Err(_) => break,
-                }
-                while let Ok(Some(req)) = decode_strict(&mut buf) {
-                    seen2.lock().unwrap().push(req.clone());
-                    let reply = handler(&req);
-                    if !reply.is_empty() && write_all_nb(&mut wr, &reply).is_err() {
-                        return;
-                    }
+        let seen2 = seen.clone();
+        let mut buf = bytes::BytesMut::new();
+        let thread = pump(&file, stop.clone(), move |chunk, _, wr| {
+            buf.extend_from_slice(chunk);
+            while let Ok(Some(req)) = decode_strict(&mut buf) {
+                seen2.lock().unwrap().push(req.clone());
+                let reply = handler(&req);
+                if !reply.is_empty() && write_all_nb(wr, &reply).is_err() {
+                    return false;
                 }
             }
+            true
         });
         RawDevice {
             stop,
@@ -610,37 +636,53 @@ impl Drop for RawDevice {
 /// (protocol.md §3) but with room for many registers; other units get no answer.
 pub fn register_device(units: &[u8], delay: Duration) -> Handler {
     let units = units.to_vec();
-    let mut regs = std::collections::HashMap::<(u8, u16), u16>::new();
+    let mut regs = Registers::default();
     Box::new(move |req: &Adu| {
         if !units.contains(&req.unit()) {
             return vec![];
         }
         thread::sleep(delay);
-        let p = req.pdu();
-        let word = |i: usize| u16::from_be_bytes([p[i], p[i + 1]]);
-        let reply_pdu = match p[0] {
-            0x03 => {
-                let (addr, qty) = (word(1), word(3));
-                let mut v = vec![0x03, (qty * 2) as u8];
-                for a in addr..addr + qty {
-                    let val = regs.get(&(req.unit(), a)).copied().unwrap_or(a);
-                    v.extend_from_slice(&val.to_be_bytes());
-                }
-                v
-            }
-            0x10 => {
-                let (addr, qty) = (word(1), word(3));
-                for i in 0..qty {
-                    regs.insert((req.unit(), addr + i), word(6 + 2 * i as usize));
-                }
-                p[..5].to_vec()
-            }
-            f => vec![f | 0x80, 0x01],
-        };
+        let reply_pdu = regs.answer(req.unit(), req.pdu(), false);
         Adu::build(req.tid(), req.unit(), &reply_pdu)
             .as_bytes()
             .to_vec()
     })
+}
+
+/// The register map of [`register_device`] and [`rtu_register_device`]: register `a`
+/// reads as `a` until written.
+#[derive(Default)]
+pub struct Registers(std::collections::HashMap<(u8, u16), u16>);
+
+impl Registers {
+    /// The reply PDU to a request PDU: FC 03 and 16, and FC 06 when `single` is set;
+    /// exception 01 for anything else.
+    pub fn answer(&mut self, unit: u8, p: &[u8], single: bool) -> Vec<u8> {
+        let word = |i: usize| u16::from_be_bytes([p[i], p[i + 1]]);
+        match p[0] {
+            0x03 => {
+                let (addr, qty) = (word(1), word(3));
+                let mut v = vec![0x03, (qty * 2) as u8];
+                for a in addr..addr + qty {
+                    let val = self.0.get(&(unit, a)).copied().unwrap_or(a);
+                    v.extend_from_slice(&val.to_be_bytes());
+                }
+                v
+            }
+            0x06 if single => {
+                self.0.insert((unit, word(1)), word(3));
+                p.to_vec()
+            }
+            0x10 => {
+                let (addr, qty) = (word(1), word(3));
+                for i in 0..qty {
+                    self.0.insert((unit, addr + i), word(6 + 2 * i as usize));
+                }
+                p[..5].to_vec()
+            }
+            f => vec![f | 0x80, 0x01],
+        }
+    }
 }
 
 // ---------------------------------------------------------------------------------
@@ -740,4 +782,78 @@ pub fn mem(gw: &Gateway) -> Mem {
         rss_kib: kib("VmRSS:"),
         hwm_kib: kib("VmHWM:"),
     }
+}
+
+// ---------------------------------------------------------------------------------
+// A raw RTU device on the pty, scripted by the test
+
+/// What the raw RTU device does with each request frame (address to CRC, as received).
+pub type RtuHandler = Box<dyn FnMut(&[u8]) -> Vec<u8> + Send>;
+
+/// A device on the `dev` end of a socat pair that reads RTU frames (cut at the length
+/// their function code calls for, or after 20 ms of silence), records each exactly as
+/// it came, and writes whatever the handler returns (nothing = no answer).
+pub struct RawRtuDevice {
+    stop: Arc<AtomicBool>,
+    pub seen: Arc<Mutex<Vec<Vec<u8>>>>,
+    thread: Option<JoinHandle<()>>,
+}
+
+impl RawRtuDevice {
+    pub fn start(path: &Path, mut handler: RtuHandler) -> RawRtuDevice {
+        use mbgate::frame::rtu::{request_length, Length};
+        let file = open_pty(path);
+        let stop = Arc::new(AtomicBool::new(false));
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let seen2 = seen.clone();
+        let mut buf: Vec<u8> = Vec::new();
+        let thread = pump(&file, stop.clone(), move |chunk, idle, wr| {
+            buf.extend_from_slice(chunk);
+            loop {
+                let quiet = idle >= Duration::from_millis(20);
+                let n = match request_length(&buf) {
+                    Length::Exactly(n) if buf.len() >= n => n,
+                    _ if quiet && !buf.is_empty() => buf.len(),
+                    _ => return true,
+                };
+                let frame: Vec<u8> = buf.drain(..n).collect();
+                seen2.lock().unwrap().push(frame.clone());
+                let reply = handler(&frame);
+                if !reply.is_empty() && write_all_nb(wr, &reply).is_err() {
+                    return false;
+                }
+            }
+        });
+        RawRtuDevice {
+            stop,
+            seen,
+            thread: Some(thread),
+        }
+    }
+
+    pub fn requests(&self) -> Vec<Vec<u8>> {
+        self.seen.lock().unwrap().clone()
+    }
+}
+
+impl Drop for RawRtuDevice {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+        if let Some(t) = self.thread.take() {
+            let _ = t.join();
+        }
+    }
+}
+
+/// A register map like [`register_device`], for RTU: FC 03 reads register `a` as `a`
+/// (or what was written), FC 06 and 16 write; units not listed get no answer; a
+/// frame whose CRC is wrong gets none either, as on a bus.
+pub fn rtu_register_device(units: &[u8]) -> RtuHandler {
+    use mbgate::frame::rtu;
+    let units = units.to_vec();
+    let mut regs = Registers::default();
+    Box::new(move |frame: &[u8]| match rtu::decode(frame) {
+        Some((unit, p)) if units.contains(&unit) => rtu::encode(unit, &regs.answer(unit, p, true)),
+        _ => vec![],
+    })
 }

@@ -2,7 +2,6 @@
 
 use super::Proc;
 use std::io::{ErrorKind, Read, Write};
-use std::os::unix::fs::OpenOptionsExt;
 use std::os::unix::io::AsRawFd;
 use std::path::Path;
 use std::thread;
@@ -27,13 +26,9 @@ pub struct RawLine {
 
 impl RawLine {
     pub fn open(path: &Path) -> RawLine {
-        let file = std::fs::OpenOptions::new()
-            .read(true)
-            .write(true)
-            .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
-            .open(path)
-            .expect("open pty");
-        RawLine { file }
+        RawLine {
+            file: super::open_pty(path),
+        }
     }
 
     pub fn send(&mut self, mut bytes: &[u8]) {

@@ -7,7 +7,8 @@ STEPS_JSON is a list of [method, args, kwargs] for pymodbus' ModbusTcpClient, e.
 [["read_holding_registers", [0], {"count": 2, "device_id": 1}]]. Prints one JSON list,
 one entry per step: {"exception": code} for an exception response, {"registers": [...]},
 {"bits": [...]} (as pymodbus returns them, padded to whole bytes), {"address": a,
-"count": n} or {"address": a, "value": v} for writes, {"error": "..."} for no answer.
+"count": n} or {"address": a, "value": v} for writes, {"error": "..."} for no answer,
+{"sent": true} for a request sent with no_response_expected.
 The test that runs it holds the expectations.
 """
 
@@ -21,6 +22,8 @@ from pymodbus.exceptions import ModbusException
 
 
 def outcome(rr):
+    if rr is None:  # no_response_expected=True: sent, nothing awaited
+        return {"sent": True}
     if rr.isError():
         return {"exception": rr.exception_code}
     out = {}

@@ -1,8 +1,13 @@
 #!/usr/bin/env python3
 """pymodbus' own ModbusSerialServer with the socket (MBAP) framer: the stock device the
-issue names for the byte-exact CIE-M10 examples and the ordinary-client test.
+issue names for the byte-exact CIE-M10 examples and the ordinary-client test; with
+--framer rtu or ascii, the stock RTU or ASCII device (issue 7).
 
-    stock_server.py --port PATH [--size 200] [--baud 19200]
+    stock_server.py --port PATH [--size 200] [--baud 19200] [--framer socket|rtu|ascii]
+                    [--broadcast]
+
+--broadcast: unit 0 is a broadcast (pymodbus' broadcast_enable): writes act on every
+unit, and nothing is answered.
 
 One unit (id 1; pymodbus answers other ids with exception 04). Data (PDU addresses, 0-based):
 holding register 0 = 0x00FF (the CIE-M10 inputs 0..7 ON), holding register i = 1000 + i,
@@ -45,11 +50,18 @@ async def main() -> int:
     ap.add_argument("--port", required=True)
     ap.add_argument("--size", type=int, default=200)
     ap.add_argument("--baud", type=int, default=19200)
+    ap.add_argument("--framer", choices=["socket", "rtu", "ascii"], default="socket")
+    ap.add_argument("--broadcast", action="store_true")
     args = ap.parse_args()
+    framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU, "ascii": FramerType.ASCII}[args.framer]
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
 
     server = ModbusSerialServer(
-        context(args.size), framer=FramerType.SOCKET, port=args.port, baudrate=args.baud
+        context(args.size),
+        framer=framer,
+        port=args.port,
+        baudrate=args.baud,
+        broadcast_enable=args.broadcast,
     )
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()

@@ -1,0 +1,407 @@
+//! RTU and ASCII framing end to end (issue 7): the real binary with `framing = "rtu"`
+//! or `"ascii"`, socat pty pairs, pymodbus' `ModbusSerialServer` with the RTU and the
+//! ASCII framer as the device, pymodbus TCP clients and raw bytes as the masters.
+//! Everything on 127.0.0.1; every loop bounded in count and time.
+
+mod common;
+use common::sim::{sim, RawLine};
+use common::*;
+use mbgate::frame::{ascii, rtu};
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::thread;
+use std::time::{Duration, Instant};
+
+struct Bench {
+    _dir: tempfile::TempDir,
+    _socat: Socat,
+    _device: Py,
+    gw: Gateway,
+}
+
+/// socat, pymodbus' serial server with `framer` on one end, mbgate on the other.
+fn pymodbus_bench(framer: &str, device_args: &[&str], extra: impl FnOnce(Cfg) -> Cfg) -> Bench {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let mut args = vec!["--port", socat.dev.to_str().unwrap(), "--framer", framer];
+    args.extend_from_slice(device_args);
+    let device = Py::start("stock_server.py", &args);
+    let cfg = Cfg::new(&socat.gw)
+        .serial(&format!("framing = {framer:?}"))
+        .serial("flow_control = \"none\"");
+    let gw = Gateway::start(&extra(cfg), dir.path());
+    Bench {
+        _dir: dir,
+        _socat: socat,
+        _device: device,
+        gw,
+    }
+}
+
+fn run_tcp_client(gw: &Gateway) {
+    let port = gw.addr.port().to_string();
+    let (status, out) = Py::run("tcp_client.py", &["--host", "127.0.0.1", "--port", &port]);
+    assert!(
+        status.success() && out.contains("\"ok\": true"),
+        "tcp_client.py failed: {out}\n{}",
+        gw.log()
+    );
+}
+
+/// pymodbus' RTU server as the device, pymodbus' TCP client as the master: FC 01, 02,
+/// 03, 04, 05, 06, 0F, 10, 17 and an exception (83 02), each checked for its values
+/// (tests/py/tcp_client.py), through `mbgate run` with `framing = "rtu"`.
+#[test]
+fn rtu_pymodbus_device_every_common_function_code() {
+    every_common_function_code("rtu", rtu::encode);
+}
+
+/// The same with pymodbus' ASCII server and `framing = "ascii"`.
+#[test]
+fn ascii_pymodbus_device_every_common_function_code() {
+    every_common_function_code("ascii", ascii::encode);
+}
+
+fn every_common_function_code(framer: &str, encode: fn(u8, &[u8]) -> Vec<u8>) {
+    let b = pymodbus_bench(framer, &[], |c| c.log("traffic = true"));
+    run_tcp_client(&b.gw);
+    // The FC 03 read of registers 0..4 left in this framing, check and all.
+    let want = Hex(&encode(1, &[0x03, 0, 0, 0, 5]));
+    b.gw.wait_log(
+        &format!("{want} dir=\"gw->serial\""),
+        Duration::from_secs(2),
+    );
+}
+
+struct Hex<'a>(&'a [u8]);
+
+impl std::fmt::Display for Hex<'_> {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}", mbgate::frame::hex::Hex(self.0))
+    }
+}
+
+struct RawBench {
+    _dir: tempfile::TempDir,
+    _socat: Socat,
+    device: RawRtuDevice,
+    gw: Gateway,
+}
+
+fn raw_bench(handler: RtuHandler, extra: impl FnOnce(Cfg) -> Cfg) -> RawBench {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let device = RawRtuDevice::start(&socat.dev, handler);
+    let cfg = Cfg::new(&socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"");
+    let gw = Gateway::start(&extra(cfg), dir.path());
+    RawBench {
+        _dir: dir,
+        _socat: socat,
+        device,
+        gw,
+    }
+}
+
+/// Seed 001: TCP `0001 0000 0006 11 03 006B 0003` leaves mbgate as RTU
+/// `11 03 00 6B 00 03 76 87`, and the RTU reply goes back with the master's id.
+#[test]
+fn seed_001_example_byte_exact() {
+    let b = raw_bench(rtu_register_device(&[0x11]), |c| c);
+    let mut m = b.gw.connect();
+    let reply = transact(&mut m, &hex("0001 0000 0006 11 03 006B 0003"));
+    assert_eq!(b.device.requests(), [hex("11 03 00 6B 00 03 76 87")]);
+    assert_eq!(reply, hex("0001 0000 0009 11 03 06 006B 006C 006D"));
+}
+
+/// A reply with a bad CRC is resent for reads (`retries`), never for writes.
+#[test]
+fn bad_crc_is_retried_for_reads_only() {
+    let mut good = rtu_register_device(&[1]);
+    let mut answered = 0;
+    let handler: RtuHandler = Box::new(move |frame: &[u8]| {
+        let mut reply = good(frame);
+        answered += 1;
+        // The first answer to each request is damaged on the line.
+        if answered % 2 == 1 {
+            *reply.last_mut().unwrap() ^= 0x5A;
+        }
+        reply
+    });
+    let b = raw_bench(handler, |c| {
+        c.relay("retries = 1").relay("response_timeout_ms = 500")
+    });
+    let mut m = b.gw.connect();
+    let start = Instant::now();
+    assert_eq!(
+        transact(&mut m, &read_req(7, 1, 40, 2)),
+        read_reply(7, 1, &[40, 41])
+    );
+    assert!(
+        start.elapsed() < Duration::from_millis(450),
+        "a bad CRC is known at once, not after the timeout: {:?}",
+        start.elapsed()
+    );
+    let sent = b.device.requests();
+    assert_eq!(sent.len(), 2, "the read went twice");
+    assert_eq!(sent[0], sent[1]);
+    // A write whose answer is damaged: not resent; the master is told 0x0B.
+    let write = request(1, &[0x06, 0, 9, 0x12, 0x34]);
+    assert_eq!(transact(&mut m, &write), hex("0008 0000 0003 01 86 0B"));
+    assert_eq!(b.device.requests().len(), 3, "the write went once");
+}
+
+/// A request with transaction id 8.
+fn request(unit: u8, pdu: &[u8]) -> Vec<u8> {
+    mbgate::frame::Adu::build(8, unit, pdu).as_bytes().to_vec()
+}
+
+/// Broadcast (unit 0) with pymodbus' RTU server: the write acts on the device, the
+/// master gets nothing (`broadcast_reply = "none"`), and the line is left quiet for
+/// `broadcast_delay_ms` before the next request.
+#[test]
+fn broadcast_acts_on_the_device_and_gets_no_reply() {
+    let b = pymodbus_bench("rtu", &["--broadcast"], |c| {
+        c.relay("broadcast_delay_ms = 150")
+    });
+    let port = b.gw.addr.port().to_string();
+    let steps = r#"[["write_register", [30, 4321], {"device_id": 0, "no_response_expected": true}],
+                    ["read_holding_registers", [30], {"count": 1, "device_id": 1}]]"#;
+    let (status, out) = Py::run("master.py", &["--port", &port, steps]);
+    assert!(status.success(), "{out}");
+    assert_eq!(
+        out.trim(),
+        r#"[{"sent": true}, {"registers": [4321]}]"#,
+        "{}",
+        b.gw.log()
+    );
+    // From a raw master: nothing comes back for a broadcast, and the next request waits
+    // for the turnaround delay.
+    let mut m = b.gw.connect();
+    m.write_all(&request(0, &[0x06, 0, 31, 0, 5])).unwrap();
+    let sent = Instant::now();
+    let reply = transact(&mut m, &read_req(9, 1, 31, 1));
+    assert_eq!(reply, read_reply(9, 1, &[5]), "the broadcast got no reply");
+    assert!(
+        sent.elapsed() >= Duration::from_millis(150),
+        "turnaround delay kept: {:?}",
+        sent.elapsed()
+    );
+}
+
+/// `broadcast_reply = "echo"`: the master gets the answer a device would have given.
+#[test]
+fn broadcast_echo_answers_the_master() {
+    let b = raw_bench(rtu_register_device(&[1]), |c| {
+        c.relay("broadcast_reply = \"echo\"")
+    });
+    let mut m = b.gw.connect();
+    let write = mbgate::frame::Adu::build(0x77, 0, &[0x10, 0, 2, 0, 1, 2, 0, 9]);
+    let reply = transact(&mut m, write.as_bytes());
+    assert_eq!(reply, hex("0077 0000 0006 00 10 0002 0001"));
+    wait_for("the broadcast on the line", Duration::from_secs(2), || {
+        !b.device.requests().is_empty()
+    });
+    assert_eq!(
+        b.device.requests(),
+        [rtu::encode(0, &[0x10, 0, 2, 0, 1, 2, 0, 9])]
+    );
+}
+
+/// A dead unit beside a healthy one on the same line: once the dead one is backed
+/// off, its requests are answered 0x0B at once and the healthy unit's latency stays
+/// within one response timeout of what it is alone.
+#[test]
+fn dead_unit_is_backed_off_and_does_not_slow_the_healthy_one() {
+    const TIMEOUT_MS: u64 = 200;
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _device = sim(
+        &socat.dev,
+        &[
+            "--framing",
+            "rtu",
+            "--profile",
+            "generic",
+            "--units",
+            "1",
+            "--baud",
+            "19200",
+            "--headless",
+        ],
+    );
+    let cfg = Cfg::new(&socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .relay(&format!("response_timeout_ms = {TIMEOUT_MS}"))
+        .relay("unit_backoff_after = 2")
+        .relay("unit_backoff_ms = 1000")
+        .relay("unit_backoff_max_ms = 4000");
+    let mut gw = Gateway::start(&cfg, dir.path());
+    let addr = gw.addr;
+
+    let poll = |s: &mut TcpStream, n: usize| -> Vec<Duration> {
+        (0..n)
+            .map(|i| {
+                let t = Instant::now();
+                let reply = transact(s, &read_req(i as u16, 1, 0, 1));
+                assert_eq!(reply, read_reply(i as u16, 1, &[0]));
+                t.elapsed()
+            })
+            .collect()
+    };
+    let mut healthy = gw.connect();
+    poll(&mut healthy, 5);
+    let solo = spread(poll(&mut healthy, 60));
+
+    // The dead unit's master asks as fast as it is answered, for 3 s.
+    let dead = thread::spawn(move || {
+        let mut s = TcpStream::connect(addr).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let mut fast = 0;
+        let mut slow = 0;
+        let stop = Instant::now() + Duration::from_secs(3);
+        for i in 0..100_000u32 {
+            if Instant::now() >= stop {
+                break;
+            }
+            let t = Instant::now();
+            let reply = transact(&mut s, &read_req(i as u16, 2, 0, 1));
+            assert_eq!(reply, hex(&format!("{:04X} 0000 0003 02 83 0B", i as u16)));
+            if t.elapsed() < Duration::from_millis(TIMEOUT_MS / 2) {
+                fast += 1;
+            } else {
+                slow += 1;
+            }
+        }
+        (fast, slow)
+    });
+    thread::sleep(Duration::from_millis(2 * TIMEOUT_MS + 100));
+    let mut samples = Vec::new();
+    let stop = Instant::now() + Duration::from_millis(2500);
+    while Instant::now() < stop && samples.len() < 10_000 {
+        samples.extend(poll(&mut healthy, 1));
+    }
+    let beside = spread(samples);
+    let (fast, slow) = dead.join().unwrap();
+    eprintln!(
+        "healthy alone: p50 {:?} max {:?}; beside a dead unit: p50 {:?} max {:?} ({} polls); \
+         dead unit: {fast} answered 0x0B at once, {slow} after a timeout",
+        solo.p50, solo.max, beside.p50, beside.max, beside.n
+    );
+    let one = Duration::from_millis(TIMEOUT_MS);
+    assert!(beside.p50 <= solo.p50 + one, "p50 {:?}", beside.p50);
+    assert!(
+        beside.max <= solo.max + one + Duration::from_millis(50),
+        "max {:?}",
+        beside.max
+    );
+    assert!(
+        slow <= 6,
+        "the dead unit timed out {slow} times: not backed off"
+    );
+    assert!(fast >= 20, "only {fast} fast 0x0B answers");
+    gw.terminate(Duration::from_secs(5));
+    assert!(gw.log().contains("unit backed off"), "{}", gw.log());
+}
+
+struct Spread {
+    p50: Duration,
+    max: Duration,
+    n: usize,
+}
+
+fn spread(mut v: Vec<Duration>) -> Spread {
+    v.sort();
+    Spread {
+        p50: v[v.len() / 2],
+        max: *v.last().unwrap(),
+        n: v.len(),
+    }
+}
+
+/// `rs485 = true` on a pty, which cannot do it: a warning, and the gateway serves.
+#[test]
+fn rs485_on_a_port_without_it_warns_and_serves() {
+    let b = raw_bench(rtu_register_device(&[1]), |c| {
+        c.serial("rs485 = true")
+            .serial("rs485_delay_before_send_ms = 1")
+    });
+    let mut m = b.gw.connect();
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 3, 1)),
+        read_reply(1, 1, &[3])
+    );
+    b.gw.wait_log("does not support RS-485 mode", Duration::from_secs(2));
+}
+
+/// `echo = true`: an adapter that echoes every byte sent; the echo is read back and
+/// discarded, the reply after it is the master's.
+#[test]
+fn local_echo_is_suppressed() {
+    let mut device = rtu_register_device(&[1]);
+    let echoing: RtuHandler =
+        Box::new(move |frame: &[u8]| [frame.to_vec(), device(frame)].concat());
+    let b = raw_bench(echoing, |c| c.serial("echo = true"));
+    let mut m = b.gw.connect();
+    for i in 0..5u16 {
+        assert_eq!(
+            transact(&mut m, &read_req(i, 1, 10 + i, 2)),
+            read_reply(i, 1, &[10 + i, 11 + i])
+        );
+    }
+}
+
+/// `mbgate sim --framing rtu` and `--framing ascii`: requests decoded by CRC or LRC,
+/// answered in the same framing, byte for byte.
+#[test]
+fn simulator_speaks_rtu_and_ascii() {
+    for (framing, encode) in [
+        ("rtu", rtu::encode as fn(u8, &[u8]) -> Vec<u8>),
+        ("ascii", ascii::encode),
+    ] {
+        let dir = tempdir();
+        let socat = Socat::start(dir.path());
+        let _sim = sim(
+            &socat.dev,
+            &[
+                "--framing",
+                framing,
+                "--profile",
+                "generic",
+                "--units",
+                "1,2",
+                "--fill",
+                "address",
+                "--headless",
+            ],
+        );
+        let mut line = RawLine::open(&socat.gw);
+        let want = encode(2, &[0x03, 4, 0, 7, 0, 8]);
+        let got = line.transact(&encode(2, &[0x03, 0, 7, 0, 2]), want.len());
+        assert_eq!(got, want, "{framing}");
+        // A damaged request gets no answer; the next good one does.
+        let mut bad = encode(1, &[0x06, 0, 1, 0, 5]);
+        bad[3] ^= 0x01;
+        line.send(&bad);
+        let want = encode(1, &[0x06, 0, 1, 0, 5]);
+        let got = line.transact(&want, want.len());
+        assert_eq!(got, want, "{framing}: the write after a damaged one");
+        // Through the gateway.
+        drop(line);
+        let cfg = Cfg::new(&socat.gw)
+            .serial(&format!("framing = {framing:?}"))
+            .serial("flow_control = \"none\"");
+        let gw = Gateway::start(&cfg, dir.path());
+        let mut m = gw.connect();
+        assert_eq!(
+            transact(&mut m, &read_req(3, 1, 1, 2)),
+            read_reply(3, 1, &[5, 2]),
+            "{framing}"
+        );
+        let mut buf = [0u8; 1];
+        m.set_read_timeout(Some(Duration::from_millis(50))).unwrap();
+        assert!(m.read(&mut buf).is_err(), "one reply only");
+    }
+}
