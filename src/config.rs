@@ -832,102 +832,58 @@ impl Overrides {
             check_serial_path(path).map_err(|m| bad("--serial", m))?;
             c.serial.path = path.clone();
         }
-        if let Some(v) = self.listen {
-            c.tcp.listen = v;
+        // A flag given replaces the key as it is; a number is checked against the
+        // key's range first, and the error names the flag.
+        macro_rules! set {
+            ($($section:ident.$key:ident = $flag:ident;)*) => {
+                $(if let Some(v) = self.$flag {
+                    c.$section.$key = v;
+                })*
+            };
         }
-        if let Some(v) = self.baud {
-            c.serial.baud_rate = int("--baud", v, BAUD_RATE)?;
+        macro_rules! set_checked {
+            ($($section:ident.$key:ident = $flag:ident, $name:literal, $limit:ident;)*) => {
+                $(if let Some(v) = self.$flag {
+                    c.$section.$key = int($name, v, $limit)?;
+                })*
+            };
         }
-        if let Some(v) = self.data_bits {
-            c.serial.data_bits = int("--data-bits", v, DATA_BITS)?;
+        set! {
+            tcp.listen = listen;
+            serial.parity = parity;
+            serial.flow_control = flow_control;
+            serial.framing = framing;
+            serial.rs485 = rs485;
+            serial.echo = echo;
+            relay.retry_writes = retry_writes;
+            relay.notifications = notifications;
+            relay.broadcast_reply = broadcast_reply;
+            relay.unit_backoff = unit_backoff;
+            log.traffic = traffic;
         }
-        if let Some(v) = self.parity {
-            c.serial.parity = v;
-        }
-        if let Some(v) = self.stop_bits {
-            c.serial.stop_bits = int("--stop-bits", v, STOP_BITS)?;
-        }
-        if let Some(v) = self.flow_control {
-            c.serial.flow_control = v;
-        }
-        if let Some(v) = self.framing {
-            c.serial.framing = v;
-        }
-        if let Some(v) = self.silence_floor_ms {
-            c.serial.silence_floor_ms = int("--silence-floor-ms", v, SILENCE_FLOOR_MS)?;
-        }
-        if let Some(v) = self.rs485 {
-            c.serial.rs485 = v;
-        }
-        if let Some(v) = self.rs485_delay_before_send_ms {
-            c.serial.rs485_delay_before_send_ms =
-                int("--rs485-delay-before-send-ms", v, RS485_DELAY_MS)?;
-        }
-        if let Some(v) = self.rs485_delay_after_send_ms {
-            c.serial.rs485_delay_after_send_ms =
-                int("--rs485-delay-after-send-ms", v, RS485_DELAY_MS)?;
-        }
-        if let Some(v) = self.echo {
-            c.serial.echo = v;
-        }
-        if let Some(v) = self.response_timeout_ms {
-            c.relay.response_timeout_ms = int("--response-timeout-ms", v, RESPONSE_TIMEOUT_MS)?;
-        }
-        if let Some(v) = self.frame_gap_ms {
-            c.relay.frame_gap_ms = int("--frame-gap-ms", v, FRAME_GAP_MS)?;
-        }
-        if let Some(v) = self.max_in_flight {
-            c.relay.max_in_flight = int("--max-in-flight", v, MAX_IN_FLIGHT)?;
-        }
-        if let Some(v) = self.max_pending_per_connection {
-            c.relay.max_pending_per_connection = int(
-                "--max-pending-per-connection",
-                v,
-                MAX_PENDING_PER_CONNECTION,
-            )?;
-        }
-        if let Some(v) = self.queue_depth {
-            c.relay.queue_depth = int("--queue-depth", v, QUEUE_DEPTH)?;
-        }
-        if let Some(v) = self.max_connections {
-            c.tcp.max_connections = int("--max-connections", v, MAX_CONNECTIONS)?;
-        }
-        if let Some(v) = self.idle_timeout_ms {
-            c.tcp.idle_timeout_ms = int("--idle-timeout-ms", v, IDLE_TIMEOUT_MS)?;
-        }
-        if let Some(v) = self.retries {
-            c.relay.retries = int("--retries", v, RETRIES)?;
-        }
-        if let Some(v) = self.retry_writes {
-            c.relay.retry_writes = v;
-        }
-        if let Some(v) = self.notifications {
-            c.relay.notifications = v;
-        }
-        if let Some(v) = self.broadcast_delay_ms {
-            c.relay.broadcast_delay_ms = int("--broadcast-delay-ms", v, BROADCAST_DELAY_MS)?;
-        }
-        if let Some(v) = self.broadcast_reply {
-            c.relay.broadcast_reply = v;
-        }
-        if let Some(v) = self.unit_backoff {
-            c.relay.unit_backoff = v;
-        }
-        if let Some(v) = self.unit_backoff_after {
-            c.relay.unit_backoff_after = int("--unit-backoff-after", v, UNIT_BACKOFF_AFTER)?;
-        }
-        if let Some(v) = self.unit_backoff_ms {
-            c.relay.unit_backoff_ms = int("--unit-backoff-ms", v, UNIT_BACKOFF_MS)?;
-        }
-        if let Some(v) = self.unit_backoff_max_ms {
-            c.relay.unit_backoff_max_ms = int("--unit-backoff-max-ms", v, UNIT_BACKOFF_MS)?;
+        set_checked! {
+            serial.baud_rate = baud, "--baud", BAUD_RATE;
+            serial.data_bits = data_bits, "--data-bits", DATA_BITS;
+            serial.stop_bits = stop_bits, "--stop-bits", STOP_BITS;
+            serial.silence_floor_ms = silence_floor_ms, "--silence-floor-ms", SILENCE_FLOOR_MS;
+            serial.rs485_delay_before_send_ms = rs485_delay_before_send_ms, "--rs485-delay-before-send-ms", RS485_DELAY_MS;
+            serial.rs485_delay_after_send_ms = rs485_delay_after_send_ms, "--rs485-delay-after-send-ms", RS485_DELAY_MS;
+            relay.response_timeout_ms = response_timeout_ms, "--response-timeout-ms", RESPONSE_TIMEOUT_MS;
+            relay.frame_gap_ms = frame_gap_ms, "--frame-gap-ms", FRAME_GAP_MS;
+            relay.max_in_flight = max_in_flight, "--max-in-flight", MAX_IN_FLIGHT;
+            relay.max_pending_per_connection = max_pending_per_connection, "--max-pending-per-connection", MAX_PENDING_PER_CONNECTION;
+            relay.queue_depth = queue_depth, "--queue-depth", QUEUE_DEPTH;
+            tcp.max_connections = max_connections, "--max-connections", MAX_CONNECTIONS;
+            tcp.idle_timeout_ms = idle_timeout_ms, "--idle-timeout-ms", IDLE_TIMEOUT_MS;
+            relay.retries = retries, "--retries", RETRIES;
+            relay.broadcast_delay_ms = broadcast_delay_ms, "--broadcast-delay-ms", BROADCAST_DELAY_MS;
+            relay.unit_backoff_after = unit_backoff_after, "--unit-backoff-after", UNIT_BACKOFF_AFTER;
+            relay.unit_backoff_ms = unit_backoff_ms, "--unit-backoff-ms", UNIT_BACKOFF_MS;
+            relay.unit_backoff_max_ms = unit_backoff_max_ms, "--unit-backoff-max-ms", UNIT_BACKOFF_MS;
         }
         if let Some(level) = &self.log_level {
             check_log_level(level).map_err(|m| bad("--log-level", m))?;
             c.log.level = level.clone();
-        }
-        if let Some(v) = self.traffic {
-            c.log.traffic = v;
         }
         *cfg = c;
         Ok(())
