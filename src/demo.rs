@@ -48,9 +48,6 @@ impl DemoArgs {
         if self.device.notify {
             cfg.relay.notifications = Notifications::Broadcast;
         }
-        if let Some(level) = &self.device.log_level {
-            cfg.log.level = level.clone();
-        }
         cfg
     }
 }

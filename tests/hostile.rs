@@ -12,7 +12,6 @@
 
 mod common;
 use common::*;
-use std::collections::HashMap;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, TcpStream};
 use std::os::fd::AsRawFd;
@@ -82,25 +81,6 @@ fn assert_memory_bounded(what: &str, gw: &Gateway, before: Mem) {
         before.rss_kib,
         now.rss_kib
     );
-}
-
-/// SIGTERM; the gateway must exit 0. Returns the counters it logs on exit.
-fn stop(gw: &mut Gateway) -> HashMap<String, u64> {
-    let status = gw.terminate(Duration::from_secs(10));
-    let log = gw.log();
-    assert!(status.success(), "exit {status:?}:\n{log}");
-    let line = log
-        .lines()
-        .rev()
-        .find(|l| l.contains("stopped") && l.contains("connections_refused="))
-        .unwrap_or_else(|| panic!("no counters in the log:\n{log}"));
-    line.split_whitespace()
-        .filter_map(|token| {
-            let (key, value) = token.rsplit_once('=')?;
-            let key = key.rsplit('=').next()?;
-            Some((key.to_string(), value.parse().ok()?))
-        })
-        .collect()
 }
 
 fn count(log: &str, needle: &str) -> usize {
@@ -337,7 +317,7 @@ fn malformed_and_random_mbap_closes_only_that_connection_at_once() {
         read_reply(7, 1, &[8])
     );
     drop(m);
-    let stats = stop(&mut r.gw);
+    let stats = r.gw.stop();
     assert_eq!(stats["protocol_violations"], bad.len() as u64);
     // Only whole, valid requests went to the line: the baseline's, the well-behaved
     // master's, the valid ones before a bad one, and the last one.
@@ -500,7 +480,7 @@ fn connection_storm_against_max_connections() {
     assert_memory_bounded("storm", &r.gw, before);
     let logged = count(&r.gw.log(), "max_connections reached") as u64;
     drop(fresh);
-    let stats = stop(&mut r.gw);
+    let stats = r.gw.stop();
     eprintln!(
         "storm: accepted {}, refused {}",
         stats["connections"], stats["connections_refused"]
@@ -580,7 +560,7 @@ fn resets_mid_request_leak_nothing() {
     }
     assert_memory_bounded("resets", &r.gw, before);
     drop(masters);
-    let stats = stop(&mut r.gw);
+    let stats = r.gw.stop();
     assert_eq!(stats["busy"], 0);
     assert_eq!(stats["timeouts"], 0);
 }
@@ -648,5 +628,5 @@ fn master_that_never_reads_is_closed_and_stalls_no_one() {
     );
     assert_memory_bounded("never reads", &r.gw, before);
     drop(m);
-    stop(&mut r.gw);
+    r.gw.stop();
 }

@@ -12,10 +12,11 @@ mod common;
 use common::sim::sim;
 use common::*;
 use mbgate::sim::line::Faults;
+use std::collections::HashMap;
 use std::fmt;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{SocketAddr, TcpStream};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread;
@@ -264,7 +265,7 @@ fn master(addr: SocketAddr, m: usize, n: usize, device: Device, bound: Duration)
         let start = Instant::now();
         s.write_all(&req).expect("send");
         let got = loop {
-            let frame = read_frame_within(&mut s);
+            let frame = try_read_frame(&mut s);
             let Some(frame) = frame else {
                 panic!(
                     "master {m}: no answer at all within {bound:?} to {}",
@@ -313,32 +314,15 @@ fn master(addr: SocketAddr, m: usize, n: usize, device: Device, bound: Duration)
     o
 }
 
-fn read_frame_within(s: &mut TcpStream) -> Option<Vec<u8>> {
-    let mut head = [0u8; 6];
-    s.read_exact(&mut head).ok()?;
-    let len = u16::from_be_bytes([head[4], head[5]]) as usize;
-    let mut rest = vec![0u8; len];
-    s.read_exact(&mut rest).ok()?;
-    Some([head.to_vec(), rest].concat())
-}
-
-fn hexs(b: &[u8]) -> String {
-    b.iter()
-        .map(|x| format!("{x:02X}"))
-        .collect::<Vec<_>>()
-        .join(" ")
-}
-
 fn pct(p: f64) -> String {
     format!("{p}")
 }
 
 /// Runs a scenario: the device, the gateway, the masters in parallel.
-fn run(sc: &Scenario) -> (Outcome, String) {
+fn run(sc: &Scenario) -> (Outcome, HashMap<String, u64>) {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
     let mut keep: Vec<Box<dyn std::any::Any>> = Vec::new();
-    let gw_path: PathBuf = socat.gw.clone();
     match sc.device {
         Device::Sim => {
             let (drop, noise, corrupt) = (pct(sc.drop), pct(sc.noise), pct(sc.corrupt));
@@ -374,7 +358,9 @@ fn run(sc: &Scenario) -> (Outcome, String) {
             keep.push(Box::new(sim(&socat.dev, &args)));
         }
         Device::Pymodbus => {
-            let far = Socat::start(&dir.path().join("far").tap_mkdir());
+            let far_dir = dir.path().join("far");
+            std::fs::create_dir_all(&far_dir).unwrap();
+            let far = Socat::start(&far_dir);
             let link =
                 LossyLink::start(&socat.dev, &far.gw, Faults::new(sc.drop, sc.noise, sc.seed));
             let py = Py::start("stock_server.py", &["--port", far.dev.to_str().unwrap()]);
@@ -383,7 +369,7 @@ fn run(sc: &Scenario) -> (Outcome, String) {
             keep.push(Box::new(far));
         }
     }
-    let cfg = Cfg::new(&gw_path)
+    let cfg = Cfg::new(&socat.gw)
         .log_level("info")
         .relay(&format!("response_timeout_ms = {}", sc.response_timeout_ms))
         .relay(&format!("frame_gap_ms = {}", sc.frame_gap_ms))
@@ -404,39 +390,12 @@ fn run(sc: &Scenario) -> (Outcome, String) {
     for h in handles {
         total.merge(h.join().expect("master"));
     }
-    assert!(gw.terminate(Duration::from_secs(5)).success());
-    let log = gw.log();
-    let stats = log
-        .lines()
-        .rev()
-        .find(|l| l.contains("stopped"))
-        .and_then(|l| l.split("stats=").nth(1))
-        .unwrap_or("")
-        .to_string();
+    let stats = gw.stop();
     drop(keep);
     (total, stats)
 }
 
-trait TapMkdir {
-    fn tap_mkdir(self) -> Self;
-}
-
-impl TapMkdir for PathBuf {
-    fn tap_mkdir(self) -> Self {
-        std::fs::create_dir_all(&self).unwrap();
-        self
-    }
-}
-
-fn stat(stats: &str, name: &str) -> u64 {
-    stats
-        .split_whitespace()
-        .find_map(|kv| kv.strip_prefix(&format!("{name}=")))
-        .and_then(|v| v.parse().ok())
-        .unwrap_or(0)
-}
-
-fn row(sc: &Scenario, o: &Outcome, stats: &str, took: Duration) -> String {
+fn row(sc: &Scenario, o: &Outcome, stats: &HashMap<String, u64>, took: Duration) -> String {
     format!(
         "| {sc} | {} | {} | {} | **{}** | {} | {} ms | {} | {} | {:.1} s |",
         o.requests,
@@ -445,7 +404,7 @@ fn row(sc: &Scenario, o: &Outcome, stats: &str, took: Duration) -> String {
         o.wrong,
         o.longest_run,
         o.slowest.as_millis(),
-        stat(stats, "refuted_frames"),
+        stats["refuted_frames"],
         o.notifications,
         took.as_secs_f64()
     )
@@ -637,7 +596,7 @@ fn unplug_and_replug_under_load() {
                     let a = (20 * m + i % 16) as u16;
                     let req = read_req(tid, 1, a, 2);
                     s.write_all(&req).expect("the connection stays up");
-                    let got = read_frame_within(&mut s).expect("an answer, in time");
+                    let got = try_read_frame(&mut s).expect("an answer, in time");
                     if got == read_reply(tid, 1, &[a, a + 1]) {
                         ok += 1;
                         answered.fetch_add(1, Ordering::Relaxed);
@@ -691,6 +650,5 @@ fn unplug_and_replug_under_load() {
         after.rss_kib <= before.rss_kib + 1024,
         "memory stays flat: {before:?} -> {after:?}"
     );
-    assert!(gw.terminate(Duration::from_secs(5)).success());
-    assert!(stat(&gw.log(), "serial_opens") >= 21, "{}", gw.log());
+    assert!(gw.stop()["serial_opens"] >= 21, "{}", gw.log());
 }

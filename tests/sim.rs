@@ -9,13 +9,6 @@ use std::time::{Duration, Instant};
 
 const QUIET: Duration = Duration::from_millis(200);
 
-fn hexs(b: &[u8]) -> String {
-    b.iter()
-        .map(|x| format!("{x:02X}"))
-        .collect::<Vec<_>>()
-        .join(" ")
-}
-
 /// Every byte-exact example of protocol.md §3 against the `cie-m10` profile, from a
 /// raw master on the other end of the pty pair: MBAP header included, transaction id
 /// echoed, notifications as the seed describes them.

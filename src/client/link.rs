@@ -2,7 +2,7 @@
 //! (strict decoder, design.md §1 step 1) or to a device on a serial port (the
 //! resynchronising decoder of design.md §2, judging by transaction id and shape).
 
-use crate::config::SerialConfig;
+use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::mbap::{decode_strict, FrameRef};
 use crate::frame::request::{self, decode_reply, Reply};
 use crate::frame::{pdu, Adu, Judge, Resync, StrictError};
@@ -13,10 +13,6 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 use tokio_serial::SerialStream;
-
-/// Silence after which a partial frame on the serial line is discarded (design.md §2;
-/// the gateway's default `relay.frame_gap_ms`).
-const FRAME_GAP: Duration = Duration::from_millis(50);
 
 /// The default TCP port of Modbus/TCP (protocol.md §3).
 const MODBUS_PORT: u16 = 502;
@@ -335,6 +331,9 @@ async fn serial_exchange(
             .await
             .map_err(|e| io("sending", e))?;
         let mut chunk = [0u8; 512];
+        // Silence after which a partial frame is discarded (design.md §2): the
+        // gateway's default `relay.frame_gap_ms`.
+        let frame_gap = Duration::from_millis(RelayConfig::default().frame_gap_ms);
         let mut last_byte = Instant::now();
         let mut quiet = false;
         loop {
@@ -344,7 +343,7 @@ async fn serial_exchange(
             // A partial candidate waits for more bytes until the frame gap; then it is
             // discarded and the rest rescanned (design.md §2).
             let read = if decoder.buffered() > 0 {
-                match timeout_at(last_byte + FRAME_GAP, p.read(&mut chunk)).await {
+                match timeout_at(last_byte + frame_gap, p.read(&mut chunk)).await {
                     Ok(r) => r,
                     Err(_) => {
                         quiet = true;

@@ -454,6 +454,25 @@ impl Gateway {
     pub fn terminate(&mut self, within: Duration) -> ExitStatus {
         self.proc.terminate(within)
     }
+
+    /// SIGTERM; the gateway must exit 0. Returns the counters it logs on exit.
+    pub fn stop(&mut self) -> std::collections::HashMap<String, u64> {
+        let status = self.terminate(Duration::from_secs(10));
+        let log = self.log();
+        assert!(status.success(), "exit {status:?}:\n{log}");
+        let line = log
+            .lines()
+            .rev()
+            .find(|l| l.contains("stopped") && l.contains("connections_refused="))
+            .unwrap_or_else(|| panic!("no counters in the log:\n{log}"));
+        line.split_whitespace()
+            .filter_map(|token| {
+                let (key, value) = token.rsplit_once('=')?;
+                let key = key.rsplit('=').next()?;
+                Some((key.to_string(), value.parse().ok()?))
+            })
+            .collect()
+    }
 }
 
 // ---------------------------------------------------------------------------------
@@ -690,12 +709,22 @@ impl Registers {
 
 /// Reads one MBAP frame (header, then as many bytes as its length says).
 pub fn read_frame(s: &mut TcpStream) -> Vec<u8> {
+    try_read_frame(s).expect("read an MBAP frame")
+}
+
+/// [`read_frame`], or `None` when the stream ends or its read timeout passes first.
+pub fn try_read_frame(s: &mut TcpStream) -> Option<Vec<u8>> {
     let mut head = [0u8; 6];
-    s.read_exact(&mut head).expect("read MBAP header");
+    s.read_exact(&mut head).ok()?;
     let len = u16::from_be_bytes([head[4], head[5]]) as usize;
     let mut rest = vec![0u8; len];
-    s.read_exact(&mut rest).expect("read MBAP body");
-    [head.to_vec(), rest].concat()
+    s.read_exact(&mut rest).ok()?;
+    Some([head.to_vec(), rest].concat())
+}
+
+/// Bytes as protocol.md writes them: `00 01 FF`.
+pub fn hexs(b: &[u8]) -> String {
+    mbgate::frame::hex::Hex(b).to_string()
 }
 
 /// Sends a request and reads one frame back.
