@@ -1,4 +1,4 @@
-//! `mbgate demo` (design.md §3, issue 3): no hardware. A pty pair made in-process, the
+//! `mbgate demo` (design.md §3): no hardware. A pty pair made in-process, the
 //! simulated device on one end, the gateway on the other, and instructions on how to
 //! connect. This is the README's "run it" command on a machine without a device.
 
@@ -12,11 +12,17 @@ use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
 use tokio_util::sync::CancellationToken;
 
+/// Where the demo listens unless told: the port pymodbus' examples use too, so on a
+/// clash the demo takes a free one instead.
+pub const DEFAULT_LISTEN: SocketAddr =
+    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 5020);
+
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
-    /// Where Modbus/TCP masters connect.
-    #[arg(long, default_value = "127.0.0.1:5020", value_name = "ADDR")]
-    pub listen: SocketAddr,
+    /// Where Modbus/TCP masters connect [default: 127.0.0.1:5020, or a free port when
+    /// another program holds 5020]
+    #[arg(long, value_name = "ADDR")]
+    pub listen: Option<SocketAddr>,
     /// Log every frame the gateway relays, both directions, as hex.
     #[arg(long)]
     pub traffic: bool,
@@ -43,7 +49,7 @@ impl DemoArgs {
         let mut cfg = Config::default();
         cfg.serial.path = pty;
         cfg.serial.flow_control = FlowControl::None;
-        cfg.tcp.listen = self.listen;
+        cfg.tcp.listen = self.listen.unwrap_or(DEFAULT_LISTEN);
         cfg.log.traffic = self.traffic;
         if self.device.notify {
             cfg.relay.notifications = Notifications::Broadcast;
@@ -52,8 +58,9 @@ impl DemoArgs {
     }
 }
 
-/// How to talk to the demo, printed once the gateway listens.
-fn instructions(settings: &Settings, pty: &str, at: SocketAddr) -> String {
+/// How to talk to the demo, printed once the gateway listens; `me` is how to run this
+/// very binary from the user's shell ([`crate::invocation::command`]).
+fn instructions(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> String {
     let device = match &settings.device.profile {
         Profile::CieM10(d) => {
             let unit = if d.unit == 1 {
@@ -63,41 +70,66 @@ fn instructions(settings: &Settings, pty: &str, at: SocketAddr) -> String {
             };
             format!(
                 "a simulated CIE-M10 (unit {}) on {pty}\n\n\
-                 read the 8 inputs (FC 03):     mbgate read --tcp {at}{unit} holding {}\n\
-                 drive outputs 0 and 4 (FC 16): mbgate write --tcp {at}{unit} holding {} 0x11 --multiple\n\
-                 read the outputs back:         mbgate read --tcp {at}{unit} holding {}\n",
+                 read the 8 inputs (FC 03):     {me} read --tcp {at}{unit} holding-registers {}\n\
+                 drive outputs 0 and 4 (FC 16): {me} write --tcp {at}{unit} holding-registers {} 0x11 --multiple\n\
+                 read the outputs back:         {me} read --tcp {at}{unit} holding-registers {}\n",
                 d.unit, d.input_address, d.output_address, d.output_address,
             )
         }
         Profile::Generic(g) => {
             let units: Vec<String> = g.units.keys().map(u8::to_string).collect();
+            let first = g.units.keys().next().copied().unwrap_or(1);
+            let unit = if first == 1 {
+                String::new()
+            } else {
+                format!(" --unit {first}")
+            };
+            let devices = match units.as_slice() {
+                [one] => format!("a simulated device (unit {one})"),
+                many => format!("simulated devices (units {})", many.join(", ")),
+            };
             format!(
-                "simulated devices (units {}) on {pty}\n\n\
-                 read holding registers:  mbgate read --tcp {at} holding 0 10\n\
-                 write a coil:            mbgate write --tcp {at} coils 0 on\n",
-                units.join(","),
+                "{devices} on {pty}\n\n\
+                 read holding registers:  {me} read --tcp {at}{unit} holding-registers 0 10\n\
+                 write a coil:            {me} write --tcp {at}{unit} coils 0 on\n",
             )
         }
     };
     format!("mbgate demo: {device}\nAny Modbus/TCP master can connect to {at}. Ctrl-C stops.\n")
 }
 
-/// Runs the demo until `shutdown`.
+/// Runs the demo until `shutdown`; the gateway's counters at the end. `banner_shown`
+/// hears once the instructions are printed (the console waits for them).
 pub async fn run(
     args: &DemoArgs,
     settings: Settings,
     commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
-) -> Result<(), DemoError> {
+    banner_shown: std::sync::mpsc::Sender<()>,
+) -> Result<std::sync::Arc<crate::stats::Stats>, DemoError> {
     let (device_end, gateway_end) = SerialStream::pair()?;
     let pty = gateway_end.name().ok_or(DemoError::Unnamed)?;
-    let cfg = args.gateway_config(pty.clone());
-    let listener = gateway::bind(&cfg).await?;
-    let at = listener.local_addr().map_err(|source| GatewayError::Bind {
+    let mut cfg = args.gateway_config(pty.clone());
+    let listener = match gateway::bind(&cfg).await {
+        Err(GatewayError::Bind { error, .. })
+            if args.listen.is_none() && error.kind() == std::io::ErrorKind::AddrInUse =>
+        {
+            cfg.tcp.listen = SocketAddr::new(DEFAULT_LISTEN.ip(), 0);
+            let listener = gateway::bind(&cfg).await?;
+            println!(
+                "mbgate demo: another program holds {DEFAULT_LISTEN}; using a free port instead"
+            );
+            listener
+        }
+        bound => bound?,
+    };
+    let at = listener.local_addr().map_err(|error| GatewayError::Bind {
         addr: cfg.tcp.listen,
-        source,
+        error,
     })?;
-    print!("{}", instructions(&settings, &pty, at));
+    let me = crate::invocation::command();
+    print!("{}", instructions(&settings, &pty, at, &me));
+    let _ = banner_shown.send(());
     let sim = tokio::spawn(serve::run(
         settings,
         Port::Stream(device_end),
@@ -110,7 +142,7 @@ pub async fn run(
     // The gateway's end stays open until both are done, so the device end never
     // sees the pty hang up.
     drop(gateway_end);
-    served?;
+    let stats = served?;
     simulated?;
-    Ok(())
+    Ok(stats)
 }

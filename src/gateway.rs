@@ -17,11 +17,33 @@ use tracing::{info, warn};
 
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
-    #[error("cannot listen on {addr}: {source}")]
+    /// The cause is part of the message, with what to do about it, and deliberately
+    /// not a `source`: printed as a chain it would appear twice.
+    #[error("cannot listen on {addr}: {error}{}", bind_hint(.error, *.addr))]
     Bind {
         addr: SocketAddr,
-        source: std::io::Error,
+        error: std::io::Error,
     },
+}
+
+/// What a user can do about a failed bind, for the two failures people meet first.
+fn bind_hint(error: &std::io::Error, addr: SocketAddr) -> String {
+    match error.kind() {
+        std::io::ErrorKind::AddrInUse => {
+            let other = SocketAddr::new(addr.ip(), addr.port().wrapping_add(1).max(1024));
+            format!(
+                " (another process holds port {}: stop it, or choose another port, \
+                 e.g. --listen {other})",
+                addr.port()
+            )
+        }
+        std::io::ErrorKind::PermissionDenied if addr.port() < 1024 => format!(
+            " (ports below 1024 need root or the CAP_NET_BIND_SERVICE capability, which the \
+             systemd units grant; or choose a port above 1023, e.g. --listen {})",
+            SocketAddr::new(addr.ip(), 5020)
+        ),
+        _ => String::new(),
+    }
 }
 
 /// Runs the gateway until `shutdown` is cancelled, then drains and returns the totals.
@@ -35,7 +57,7 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
 pub async fn bind(cfg: &Config) -> Result<TcpListener, GatewayError> {
     let addr = cfg.tcp.listen;
     tcp::listen(addr, cfg.relay.max_pending_per_connection)
-        .map_err(|source| GatewayError::Bind { addr, source })
+        .map_err(|error| GatewayError::Bind { addr, error })
 }
 
 /// [`run`] on a listener already bound (`mbgate demo` prints its address first).
@@ -47,7 +69,7 @@ pub async fn serve(
     let addr = cfg.tcp.listen;
     let local = listener
         .local_addr()
-        .map_err(|source| GatewayError::Bind { addr, source })?;
+        .map_err(|error| GatewayError::Bind { addr, error })?;
     warn_inapplicable(&cfg);
     let cfg = Arc::new(cfg);
     let stats = Arc::new(Stats::default());
@@ -60,7 +82,7 @@ pub async fn serve(
         shutdown.clone(),
     );
     let relay = relay.with_watchdog(notify::watchdog_interval());
-    info!(listen = %local, serial = %cfg.serial.path, "listening on {local}");
+    info!(serial = %cfg.serial.path, "listening on {local}");
     // Before the relay first runs, so READY=1 precedes its first WATCHDOG=1.
     notify::ready(&format!("listening on {local}, serial {}", cfg.serial.path));
     let relay_task = tokio::spawn(relay.run());

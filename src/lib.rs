@@ -5,6 +5,7 @@ pub mod config;
 pub mod demo;
 pub mod frame;
 pub mod gateway;
+pub mod invocation;
 pub mod logging;
 pub mod notify;
 pub mod number;

@@ -147,6 +147,7 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
         &args.device,
         args.settings(),
         false,
+        None,
         |settings, commands, shutdown| async move {
             serve::run(settings, port, commands, shutdown).await?;
             Ok(())
@@ -157,23 +158,34 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
 /// `mbgate demo`.
 fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
     let device = args.device.clone();
+    let (_, console) = sim_level(&device);
+    let (banner_shown, after_banner) = std::sync::mpsc::channel();
     simulate(
         &device,
         device.settings(),
         args.traffic,
+        Some(after_banner),
         |settings, commands, shutdown| async move {
-            mbgate::demo::run(&args, settings, commands, shutdown).await?;
+            let stats =
+                mbgate::demo::run(&args, settings, commands, shutdown, banner_shown).await?;
+            // Under the console the log shows warnings only: the counters the log
+            // gives at every stop are printed here instead.
+            if console {
+                println!("mbgate demo stopped: {stats}");
+            }
             Ok(())
         },
     )
 }
 
 /// What `sim` and `demo` share: the device options (exit 2 when bad), tracing, the
-/// runtime, the signals and the console; `body` runs the simulator.
+/// runtime, the signals and the console (shown once `console_after` says so, if given);
+/// `body` runs the simulator.
 fn simulate<F, Fut>(
     device: &mbgate::sim::options::DeviceArgs,
     settings: Result<mbgate::sim::options::Settings, String>,
     traffic: bool,
+    console_after: Option<std::sync::mpsc::Receiver<()>>,
     body: F,
 ) -> ExitCode
 where
@@ -197,7 +209,16 @@ where
         rt.block_on(async {
             let shutdown = CancellationToken::new();
             tokio::spawn(watch_signals(shutdown.clone()));
-            let commands = mbgate::sim::terminal::start(console, shutdown.clone());
+            let commands = mbgate::sim::terminal::start(console, shutdown.clone(), console_after);
+            if console {
+                // Ctrl-C leaves the cursor after `sim> `: end that line, so what
+                // follows (and the shell's prompt) starts on its own.
+                let ended = shutdown.clone();
+                tokio::spawn(async move {
+                    ended.cancelled().await;
+                    println!();
+                });
+            }
             body(settings, commands, shutdown).await
         })
     }))
@@ -213,19 +234,24 @@ fn finish(result: anyhow::Result<()>) -> ExitCode {
     }
 }
 
-/// SIGTERM (systemd stop) or SIGINT (Ctrl-C) starts a graceful shutdown.
-async fn watch_signals(shutdown: CancellationToken) {
+/// SIGTERM (systemd stop) or SIGINT (Ctrl-C) starts a graceful shutdown. The handlers
+/// are installed before this returns, so a signal that comes at once is not fatal; the
+/// future it returns waits for one.
+fn watch_signals(shutdown: CancellationToken) -> impl std::future::Future<Output = ()> {
     use tokio::signal::unix::{signal, SignalKind};
-    let (Ok(mut term), Ok(mut int)) = (
+    let handlers = (
         signal(SignalKind::terminate()),
         signal(SignalKind::interrupt()),
-    ) else {
-        tracing::error!("cannot install signal handlers");
-        return;
-    };
-    tokio::select! {
-        _ = term.recv() => tracing::info!("SIGTERM received"),
-        _ = int.recv() => tracing::info!("SIGINT received"),
+    );
+    async move {
+        let (Ok(mut term), Ok(mut int)) = handlers else {
+            tracing::error!("cannot install signal handlers");
+            return;
+        };
+        tokio::select! {
+            _ = term.recv() => tracing::info!("SIGTERM received"),
+            _ = int.recv() => tracing::info!("SIGINT received"),
+        }
+        shutdown.cancel();
     }
-    shutdown.cancel();
 }

@@ -333,7 +333,8 @@ impl Relay {
                 } else {
                     warn!(
                         path = %self.serial.path,
-                        "serial port unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
+                        "serial port unavailable: {e}{}; retrying with backoff, answering 0x0A meanwhile",
+                        serial::held_by(&self.serial.path)
                     );
                     self.port_warned = true;
                 }

@@ -43,6 +43,49 @@ pub fn line_settings(
     )
 }
 
+/// The processes other than this one that have `path` open, as `PID (name)`, found
+/// the way `fuser` finds them: through the links in `/proc/*/fd`. Processes of other
+/// users are invisible without privilege, so an empty list proves nothing.
+pub fn holders(path: &str) -> Vec<String> {
+    let Ok(target) = std::fs::canonicalize(path) else {
+        return Vec::new();
+    };
+    let me = std::process::id().to_string();
+    let Ok(procs) = std::fs::read_dir("/proc") else {
+        return Vec::new();
+    };
+    let mut found = Vec::new();
+    for entry in procs.flatten() {
+        let pid = entry.file_name().to_string_lossy().into_owned();
+        if pid == me || !pid.bytes().all(|b| b.is_ascii_digit()) {
+            continue;
+        }
+        let Ok(fds) = std::fs::read_dir(entry.path().join("fd")) else {
+            continue;
+        };
+        let holds = fds
+            .flatten()
+            .any(|fd| std::fs::read_link(fd.path()).is_ok_and(|l| l == target));
+        if holds {
+            let name = std::fs::read_to_string(entry.path().join("comm")).unwrap_or_default();
+            found.push(format!("{pid} ({})", name.trim()));
+        }
+    }
+    found
+}
+
+/// Why a port may not open, for the user: who holds it, when someone visible does.
+pub fn held_by(path: &str) -> String {
+    match holders(path).as_slice() {
+        [] => String::new(),
+        pids => format!(
+            " (held by process {}: another mbgate, ModemManager or a terminal program \
+             keeps the port open)",
+            pids.join(", ")
+        ),
+    }
+}
+
 /// Opens and configures the port, then clears whatever it held.
 pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
     let (data_bits, parity, stop_bits, flow_control) = line_settings(cfg);
@@ -219,5 +262,25 @@ mod tests {
             ..SerialConfig::default()
         };
         assert!(open(&cfg).is_err());
+    }
+
+    #[test]
+    fn holders_names_the_process_that_has_the_port_open() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("ttyFAKE");
+        std::fs::write(&path, b"").unwrap();
+        let path = path.to_str().unwrap().to_string();
+        assert_eq!(held_by(&path), "", "nobody holds it yet");
+        let mut sleeper = std::process::Command::new("sleep")
+            .arg("30")
+            .stdin(std::fs::File::open(&path).unwrap())
+            .spawn()
+            .unwrap();
+        let pid = sleeper.id();
+        let held = held_by(&path);
+        sleeper.kill().unwrap();
+        sleeper.wait().unwrap();
+        assert!(held.contains(&format!("process {pid} (sleep)")), "{held}");
+        assert!(held.contains("ModemManager"), "{held}");
     }
 }

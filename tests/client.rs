@@ -112,7 +112,7 @@ fn every_function_code(target: &[&str]) {
         &m(&["write", "-v", "coils", "10", "1", "true", "off"]),
         "00 01 00 00 00 08 01 0F 00 0A 00 03 01 03",
         "00 01 00 00 00 06 01 0F 00 0A 00 03",
-        &["wrote 3 at 10..12"],
+        &["wrote 3 coils at 10..=12"],
     );
     assert_values(
         &m(&["read", "coils", "9", "5"]),
@@ -124,7 +124,7 @@ fn every_function_code(target: &[&str]) {
         &m(&["write", "-v", "registers", "20", "7", "8", "-1"]),
         "00 01 00 00 00 0D 01 10 00 14 00 03 06 00 07 00 08 FF FF",
         "00 01 00 00 00 06 01 10 00 14 00 03",
-        &["wrote 3 at 20..22"],
+        &["wrote 3 registers at 20..=22"],
     );
     assert_values(
         &m(&["read", "holding", "20", "4"]),
@@ -140,7 +140,7 @@ fn every_function_code(target: &[&str]) {
         &m(&["write", "-v", "--multiple", "register", "30", "5"]),
         "00 01 00 00 00 09 01 10 00 1E 00 01 02 00 05",
         "00 01 00 00 00 06 01 10 00 1E 00 01",
-        &["wrote 1 at 30..30"],
+        &["wrote 1 register at 30"],
     );
     assert_values(&m(&["read", "holding", "30"]), &["30: 5 (0x0005)"]);
 

@@ -260,7 +260,7 @@ fn demo_serves_pymodbus() {
     );
     let stdout = d.stdout.lock().unwrap().clone();
     assert!(
-        stdout.contains(&format!("mbgate read --tcp {addr} holding 0")),
+        stdout.contains(&format!(" read --tcp {addr} holding-registers 0")),
         "the demo says how to connect:\n{stdout}"
     );
     assert!(d.terminate(Duration::from_secs(5)).success());

@@ -44,7 +44,7 @@ pub struct CommonArgs {
     pub timeout_ms: u64,
     /// Repeat every MS milliseconds until Ctrl-C (or --count), printing each result
     /// with a timestamp
-    #[arg(long, value_name = "MS", value_parser = clap::value_parser!(u64).range(1..))]
+    #[arg(long, value_name = "MS", value_parser = parse_poll)]
     pub poll: Option<u64>,
     /// With --poll: stop after N requests
     #[arg(long, value_name = "N", requires = "poll",
@@ -58,17 +58,17 @@ pub struct CommonArgs {
 /// The tables a master reads (protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ReadTable {
-    /// FC 01 read coils
+    /// FC 01 read coils (also: coil)
     #[value(alias = "coil")]
     Coils,
-    /// FC 02 read discrete inputs
-    #[value(alias = "discrete-inputs", alias = "di")]
+    /// FC 02 read discrete inputs (also: discrete, di)
+    #[value(name = "discrete-inputs", alias = "discrete", alias = "di")]
     Discrete,
-    /// FC 03 read holding registers
-    #[value(alias = "holding-registers", alias = "hr")]
+    /// FC 03 read holding registers (also: holding, hr)
+    #[value(name = "holding-registers", alias = "holding", alias = "hr")]
     Holding,
-    /// FC 04 read input registers
-    #[value(alias = "input-registers", alias = "ir")]
+    /// FC 04 read input registers (also: input, ir)
+    #[value(name = "input-registers", alias = "input", alias = "ir")]
     Input,
 }
 
@@ -92,11 +92,18 @@ pub struct ReadArgs {
 /// The tables a master writes (protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum WriteTable {
-    /// FC 05 for one value, FC 0F for several
+    /// FC 05 for one value, FC 0F for several (also: coil)
     #[value(alias = "coil")]
     Coils,
-    /// Holding registers: FC 06 for one value, FC 10 for several, FC 17 with --read
-    #[value(alias = "register", alias = "holding")]
+    /// FC 06 for one value, FC 10 for several, FC 17 with --read (also: holding,
+    /// hr, registers, register)
+    #[value(
+        name = "holding-registers",
+        alias = "holding",
+        alias = "hr",
+        alias = "registers",
+        alias = "register"
+    )]
     Registers,
 }
 
@@ -123,6 +130,17 @@ pub struct WriteArgs {
     #[arg(long, num_args = 2, value_names = ["ADDR", "COUNT"], value_parser = parse_u16,
           conflicts_with = "multiple")]
     pub read: Option<Vec<u16>>,
+}
+
+/// A poll interval: at least 1 ms; a line answers in milliseconds, so 100..=1000 is
+/// what polling usually wants.
+fn parse_poll(s: &str) -> Result<u64, String> {
+    match s.parse::<u64>() {
+        Ok(ms) if ms >= 1 => Ok(ms),
+        _ => Err(format!(
+            "'{s}' is not a poll interval: give milliseconds, at least 1 (e.g. --poll 1000 for once a second)"
+        )),
+    }
 }
 
 /// `123` or `0x7B`.

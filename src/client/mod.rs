@@ -248,9 +248,20 @@ fn value_lines(reply: &Reply) -> Vec<String> {
             .collect(),
         Reply::WroteCoil { addr, value } => vec![bit(*addr, *value)],
         Reply::WroteRegister { addr, value } => vec![register(*addr, *value)],
-        Reply::WroteMany { addr, qty } => {
+        Reply::WroteMany { addr, qty, coils } => {
+            let what = match (coils, qty) {
+                (true, 1) => "coil",
+                (true, _) => "coils",
+                (false, 1) => "register",
+                (false, _) => "registers",
+            };
             let last = u32::from(*addr) + u32::from(*qty).max(1) - 1;
-            vec![format!("wrote {qty} at {addr}..{last}")]
+            let at = if *qty <= 1 {
+                format!("at {addr}")
+            } else {
+                format!("at {addr}..={last}")
+            };
+            vec![format!("wrote {qty} {what} {at}")]
         }
         Reply::Raw { data } => vec![format!("data {}", Hex(data))],
         Reply::Exception { .. } => Vec::new(),
@@ -283,10 +294,10 @@ mod tests {
             }),
             ["20: 1", "21: 0"]
         );
-        assert_eq!(
-            value_lines(&Reply::WroteMany { addr: 20, qty: 3 }),
-            ["wrote 3 at 20..22"]
-        );
+        let wrote = |addr, qty, coils| value_lines(&Reply::WroteMany { addr, qty, coils });
+        assert_eq!(wrote(20, 3, false), ["wrote 3 registers at 20..=22"]);
+        assert_eq!(wrote(8, 1, false), ["wrote 1 register at 8"]);
+        assert_eq!(wrote(0, 10, true), ["wrote 10 coils at 0..=9"]);
     }
 
     #[test]

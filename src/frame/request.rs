@@ -211,8 +211,8 @@ pub enum Reply {
     WroteCoil { addr: u16, value: bool },
     /// FC 06: the echo of the register written.
     WroteRegister { addr: u16, value: u16 },
-    /// FC 0F, 10: where and how many were written.
-    WroteMany { addr: u16, qty: u16 },
+    /// FC 0F (`coils`) or 10: where and how many were written.
+    WroteMany { addr: u16, qty: u16, coils: bool },
     /// Any other function code (no decoding known): the reply PDU's data.
     Raw { data: Vec<u8> },
     /// Exception response: function code | 0x80, then the code (protocol.md §1).
@@ -270,6 +270,7 @@ pub fn decode_reply(request: &[u8], reply: &[u8]) -> Result<Reply, Mismatch> {
         fc::WRITE_MULTIPLE_COILS | fc::WRITE_MULTIPLE_REGISTERS => Reply::WroteMany {
             addr: word(reply, 1),
             qty: word(reply, 3),
+            coils: reply[0] == fc::WRITE_MULTIPLE_COILS,
         },
         _ => Reply::Raw {
             data: reply[1..].to_vec(),
@@ -400,7 +401,11 @@ mod tests {
         let reply = bytes("00 00 00 00 00 06 01 10 00 08 00 01");
         assert_eq!(
             decode_reply(&req, &reply[7..]).unwrap(),
-            Reply::WroteMany { addr: 8, qty: 1 }
+            Reply::WroteMany {
+                addr: 8,
+                qty: 1,
+                coils: false
+            }
         );
         // The exceptions.
         assert_eq!(
@@ -472,7 +477,11 @@ mod tests {
         assert_eq!(req, bytes("0F 00 13 00 0A 02 CD 01"));
         assert_eq!(
             decode_reply(&req, &bytes("0F 00 13 00 0A")).unwrap(),
-            Reply::WroteMany { addr: 19, qty: 10 }
+            Reply::WroteMany {
+                addr: 19,
+                qty: 10,
+                coils: true
+            }
         );
         assert!(decode_reply(&req, &bytes("0F 00 13 00 09")).is_err());
     }

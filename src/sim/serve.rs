@@ -209,7 +209,10 @@ impl Sim {
             Profile::CieM10(d) => format!("a CIE-M10 (unit {})", d.unit),
             Profile::Generic(g) => {
                 let units: Vec<String> = g.units.keys().map(u8::to_string).collect();
-                format!("generic devices (units {})", units.join(","))
+                match units.as_slice() {
+                    [one] => format!("a generic device (unit {one})"),
+                    many => format!("generic devices (units {})", many.join(", ")),
+                }
             }
         };
         let pace = if self.tx_pace.char_time().is_zero() {

@@ -11,12 +11,20 @@ use tokio_util::sync::CancellationToken;
 
 /// Starts the console if stdin is a terminal; the receiver gets its commands (it stays
 /// empty when there is no terminal). `quit`, or the end of input, cancels `shutdown`
-/// once the answer is printed.
-pub fn start(enabled: bool, shutdown: CancellationToken) -> mpsc::Receiver<ConsoleRequest> {
+/// once the answer is printed. With `after`, the console shows itself only once that
+/// says so (or is dropped): the demo's banner comes first, not after a prompt.
+pub fn start(
+    enabled: bool,
+    shutdown: CancellationToken,
+    after: Option<std::sync::mpsc::Receiver<()>>,
+) -> mpsc::Receiver<ConsoleRequest> {
     let (tx, rx) = mpsc::channel(4);
     if enabled && std::io::IsTerminal::is_terminal(&std::io::stdin()) {
-        println!("mbgate sim console; `help` lists the commands");
         std::thread::spawn(move || {
+            if let Some(after) = after {
+                let _ = after.recv();
+            }
+            println!("mbgate sim console; `help` lists the commands");
             read_lines(tx);
             shutdown.cancel();
         });

@@ -559,7 +559,10 @@ pub fn open_pty(path: &Path) -> std::fs::File {
         .write(true)
         .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
         .open(path)
-        .unwrap_or_else(|e| panic!("open pty {}: {e}", path.display()))
+        .unwrap_or_else(|e| {
+            let held = mbgate::serial::held_by(&path.to_string_lossy());
+            panic!("open pty {}: {e}{held}", path.display())
+        })
 }
 
 /// A thread that reads `file` until `stop`, handing `step` the bytes read (none when

@@ -1,0 +1,179 @@
+//! End to end: what a new user meets first. The demo's printed commands run as
+//! printed, the demo finds a free port when 5020 is taken, and a failed bind says its
+//! cause once, with what to do.
+
+mod common;
+
+use common::{mbgate, wait_for, Proc, Py};
+use std::net::TcpListener;
+use std::process::Command;
+use std::time::Duration;
+
+/// The command lines in the demo's banner (`what:   COMMAND`).
+fn printed_commands(banner: &str) -> Vec<String> {
+    banner
+        .lines()
+        .filter(|l| l.contains(" read --tcp ") || l.contains(" write --tcp "))
+        .map(|l| {
+            l.split_once(':')
+                .expect("label: command")
+                .1
+                .trim()
+                .to_string()
+        })
+        .collect()
+}
+
+/// Runs a printed line as a user would paste it: through a shell, in the directory
+/// the demo was started from.
+fn paste(line: &str) -> (i32, String) {
+    let out = Command::new("sh")
+        .arg("-c")
+        .arg(line)
+        .current_dir(common::repo())
+        .output()
+        .expect("sh");
+    let text = format!(
+        "{}{}",
+        String::from_utf8_lossy(&out.stdout),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    eprintln!("$ {line}\n{text}");
+    (out.status.code().unwrap_or(-1), text)
+}
+
+#[test]
+fn the_demo_prints_commands_that_run_as_printed() {
+    let mut d = Proc::start(&["demo", "--listen", "127.0.0.1:0"], "listening on ");
+    wait_for("the banner", Duration::from_secs(5), || {
+        printed_commands(&d.stdout.lock().unwrap()).len() == 3
+    });
+    let banner = d.stdout.lock().unwrap().clone();
+    let commands = printed_commands(&banner);
+    assert!(
+        !commands[0].starts_with("mbgate "),
+        "mbgate is not on PATH in a test, so the banner names the binary:\n{banner}"
+    );
+    // Read the inputs, drive outputs 0 and 4, read the outputs back.
+    let (code, out) = paste(&commands[0]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("0: "), "{out}");
+    let (code, out) = paste(&commands[1]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("wrote 1 register at 8"), "{out}");
+    let (code, out) = paste(&commands[2]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("8: 17 (0x0011)"), "{out}");
+    assert!(d.terminate(Duration::from_secs(5)).success());
+}
+
+#[test]
+fn the_demo_takes_a_free_port_when_5020_is_taken() {
+    // Whoever holds 5020 (this test, or another program on the machine), the demo must
+    // not fail on it.
+    let _held = TcpListener::bind("127.0.0.1:5020");
+    let mut d = Proc::start(&["demo"], "listening on ");
+    let log = d.log();
+    let at = log
+        .split("listening on ")
+        .nth(1)
+        .and_then(|r| r.split_whitespace().next())
+        .expect("listen address")
+        .to_string();
+    assert_ne!(at, "127.0.0.1:5020", "{log}");
+    wait_for("the banner", Duration::from_secs(5), || {
+        d.stdout.lock().unwrap().contains(&at)
+    });
+    let banner = d.stdout.lock().unwrap().clone();
+    assert!(
+        banner.contains("another program holds 127.0.0.1:5020; using a free port instead"),
+        "{banner}"
+    );
+    assert!(d.terminate(Duration::from_secs(5)).success());
+}
+
+#[test]
+fn a_port_in_use_is_said_once_with_what_to_do() {
+    let held = TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = held.local_addr().unwrap().port();
+    let at = format!("127.0.0.1:{port}");
+    for args in [
+        vec!["run", "--serial", "/nonexistent/tty", "--listen", &at],
+        vec!["demo", "--listen", &at],
+    ] {
+        let out = mbgate(&args);
+        assert_eq!(out.code, 1, "{args:?}");
+        let cause = "Address already in use";
+        assert_eq!(out.stderr.matches(cause).count(), 1, "{}", out.stderr);
+        let next = format!("--listen 127.0.0.1:{}", port.wrapping_add(1).max(1024));
+        assert!(out.stderr.contains(&next), "{}", out.stderr);
+        assert!(
+            out.stderr.contains("another process holds port"),
+            "{}",
+            out.stderr
+        );
+    }
+}
+
+/// A port below 1024 without privilege: the hint names the capability. Run as an
+/// unprivileged user when the tests run as root (CI does).
+#[test]
+fn a_privileged_port_says_how_to_get_it() {
+    let unprivileged_from: u16 =
+        std::fs::read_to_string("/proc/sys/net/ipv4/ip_unprivileged_port_start")
+            .ok()
+            .and_then(|s| s.trim().parse().ok())
+            .unwrap_or(1024);
+    if unprivileged_from <= 502 {
+        eprintln!("this kernel lets anyone bind port 502 (ip_unprivileged_port_start = {unprivileged_from}): nothing to check");
+        return;
+    }
+    let bin = env!("CARGO_BIN_EXE_mbgate");
+    let args = [
+        "run",
+        "--serial",
+        "/nonexistent/tty",
+        "--listen",
+        "127.0.0.1:502",
+    ];
+    let out = if nix_is_root() {
+        Command::new("setpriv")
+            .args(["--reuid=65534", "--regid=65534", "--clear-groups", bin])
+            .args(args)
+            .output()
+    } else {
+        Command::new(bin).args(args).output()
+    }
+    .expect("run mbgate");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    eprintln!("{stderr}");
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    assert_eq!(stderr.matches("Permission denied").count(), 1, "{stderr}");
+    assert!(stderr.contains("CAP_NET_BIND_SERVICE"), "{stderr}");
+    assert!(stderr.contains("--listen 127.0.0.1:5020"), "{stderr}");
+}
+
+fn nix_is_root() -> bool {
+    // SAFETY: getuid has no preconditions and cannot fail.
+    unsafe { libc::getuid() == 0 }
+}
+
+/// Ctrl-C in the demo's console: what follows starts on a line of its own (not after
+/// `sim> `), the counters are shown, and the exit is clean.
+#[test]
+fn ctrl_c_in_the_demo_console_ends_the_line_and_shows_the_counters() {
+    let (status, out) = Py::run("demo_console.py", &[env!("CARGO_BIN_EXE_mbgate")]);
+    assert!(status.success(), "demo_console.py:\n{out}");
+    let mut lines = out.lines();
+    let shown = lines.next().unwrap_or_default();
+    assert!(
+        shown.starts_with("'\\r\\n") || shown.starts_with("'^C\\r\\n"),
+        "the line after the prompt is ended first: {shown}"
+    );
+    assert!(
+        shown.contains("mbgate demo stopped: connections=0"),
+        "{shown}"
+    );
+    assert!(shown.contains("requests=0"), "{shown}");
+    assert_eq!(lines.next(), Some("exit 0"), "{out}");
+}
