@@ -51,7 +51,7 @@ pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
         .parity(parity)
         .stop_bits(stop_bits)
         .flow_control(flow_control);
-    let port = SerialStream::open(&builder)?;
+    let port = SerialStream::open(&builder).map_err(held_elsewhere)?;
     if let Err(e) = port.clear(ClearBuffer::All) {
         tracing::debug!(path = %cfg.path, "could not clear stale bytes: {e}");
     }
@@ -71,6 +71,21 @@ pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
 }
 
 static RS485_WARNED: AtomicBool = AtomicBool::new(false);
+
+/// The port is opened exclusively (TIOCEXCL and an exclusive flock), so "busy" means
+/// another process has it open: say so, since "Device or resource busy" alone sends
+/// the operator looking at the device.
+fn held_elsewhere(e: tokio_serial::Error) -> tokio_serial::Error {
+    if e.kind != tokio_serial::ErrorKind::NoDevice {
+        return e;
+    }
+    let what = format!(
+        "{}: another process holds the port (a second mbgate for the same port, \
+         a terminal program, ModemManager?)",
+        e.description
+    );
+    tokio_serial::Error::new(e.kind, what)
+}
 
 /// The kernel's `struct serial_rs485` (linux/serial.h); libc does not define it.
 #[repr(C)]
