@@ -8,6 +8,7 @@ pub mod gateway;
 pub mod logging;
 pub mod notify;
 pub mod number;
+pub mod outbox;
 pub mod relay;
 pub mod serial;
 pub mod sim;
