@@ -103,31 +103,43 @@ pub async fn accept_loop(
 
 /// accept() failing, mostly for want of file descriptors (EMFILE, ENFILE): the
 /// master that could not be taken stays in the listen backlog, so the listener stays
-/// ready and an immediate retry fails again. Retries back off (10 ms doubling to 1 s)
-/// and the operator is warned once per spell, not at every attempt; the first accept
-/// that succeeds ends the spell.
+/// ready and an immediate retry fails again (and at the limit accept fails even with
+/// no master waiting). Retries back off, 10 ms doubling to 1 s, until one succeeds.
+/// The operator is warned at the first failure, then at most once a minute: a gateway
+/// that hovers at its limit fails again after each master it takes.
 struct AcceptFailures {
     backoff: Backoff,
-    /// Failures in the current spell.
+    /// Failures since the last accept that succeeded.
     count: u64,
+    /// Whether this spell of failures was warned about.
+    warned: bool,
+    last_warning: Option<Instant>,
 }
+
+/// The least time between two warnings about failing accepts.
+const ACCEPT_WARNING_EVERY: Duration = Duration::from_secs(60);
 
 impl Default for AcceptFailures {
     fn default() -> Self {
         Self {
             backoff: Backoff::new(Duration::from_millis(10), Duration::from_secs(1)),
             count: 0,
+            warned: false,
+            last_warning: None,
         }
     }
 }
 
 impl AcceptFailures {
-    /// Logs the failure (a warning for the first of a spell) and returns how long to
-    /// wait before the next attempt.
+    /// Logs the failure and returns how long to wait before the next attempt.
     fn failed(&mut self, e: &std::io::Error) -> Duration {
         self.count += 1;
         let delay = self.backoff.next_delay();
-        if self.count == 1 {
+        let now = Instant::now();
+        let due = self
+            .last_warning
+            .is_none_or(|t| now.duration_since(t) >= ACCEPT_WARNING_EVERY);
+        if self.count == 1 && due {
             let hint = match e.raw_os_error() {
                 Some(libc::EMFILE) => {
                     ": mbgate is out of file descriptors (raise its limit, LimitNOFILE= \
@@ -136,7 +148,9 @@ impl AcceptFailures {
                 Some(libc::ENFILE) => ": the system is out of file descriptors",
                 _ => "",
             };
-            warn!("accept failed: {e}{hint}; retrying with backoff up to 1 s, said once until it succeeds");
+            warn!("accept failed: {e}{hint}; retrying with backoff up to 1 s (said at most once a minute)");
+            self.warned = true;
+            self.last_warning = Some(now);
         } else {
             debug!(failures = self.count, "accept failed again: {e}");
         }
@@ -144,14 +158,20 @@ impl AcceptFailures {
     }
 
     fn recovered(&mut self) {
-        if self.count > 0 {
+        if self.count == 0 {
+            return;
+        }
+        if self.warned {
             info!(
                 failures = self.count,
                 "accepting connections again after {} failed attempts", self.count
             );
-            self.count = 0;
-            self.backoff.reset();
+        } else {
+            debug!(failures = self.count, "accepting connections again");
         }
+        self.count = 0;
+        self.warned = false;
+        self.backoff.reset();
     }
 }
 
