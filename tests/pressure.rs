@@ -113,6 +113,7 @@ fn idle_clock_starts_at_the_last_reply() {
         after >= Duration::from_millis(450) && after < Duration::from_millis(1500),
         "closed {after:?} after the last reply"
     );
+    r.gw.wait_log("idle timeout", Duration::from_secs(1));
     assert_eq!(count(&r.gw.log(), "idle timeout"), 1);
 }
 
