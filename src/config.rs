@@ -1500,10 +1500,15 @@ mod tests {
         }
         // Flags that move both keys together are fine.
         let mut cfg = Config::default();
-        cli(&["--max-pending-per-connection", "100", "--queue-depth", "100"])
-            .unwrap()
-            .apply(&mut cfg)
-            .unwrap();
+        cli(&[
+            "--max-pending-per-connection",
+            "100",
+            "--queue-depth",
+            "100",
+        ])
+        .unwrap()
+        .apply(&mut cfg)
+        .unwrap();
         assert_eq!(cfg.relay.queue_depth, 100);
     }
 

@@ -290,7 +290,11 @@ mod tests {
         drop(t1);
         t2.answer(adu(2));
         assert!(outbox.notifier().notify(adu(0x99)));
-        assert_eq!(next_tid(&mut inbox).await, 0x99, "a notification waits for nothing");
+        assert_eq!(
+            next_tid(&mut inbox).await,
+            0x99,
+            "a notification waits for nothing"
+        );
         t0.answer(adu(0));
         assert_eq!(next_tid(&mut inbox).await, 0);
         assert_eq!(next_tid(&mut inbox).await, 2);
@@ -325,7 +329,11 @@ mod tests {
         let (mut outbox, mut inbox) = Outbox::new(2);
         let notifier = outbox.notifier();
         let sent = (0..100).filter(|i| notifier.notify(adu(*i))).count();
-        assert_eq!(sent, NOTIFICATION_SLACK + 2, "a master not reading misses the rest");
+        assert_eq!(
+            sent,
+            NOTIFICATION_SLACK + 2,
+            "a master not reading misses the rest"
+        );
         // The writer catches up; replies still find their room.
         for _ in 0..sent {
             inbox.next().await.unwrap();

@@ -1,6 +1,7 @@
 //! The TCP side (design.md §1 steps 1-2, §4 `[tcp]`): the listener with its connection
 //! limit, and one task per master that reads strictly checked MBAP requests and writes
-//! back whatever the relay sends it.
+//! back their replies in the order of the requests, with the device's notifications
+//! (the path back is [`crate::outbox`]).
 
 use crate::config::Config;
 use crate::frame::hex::Hex;

@@ -297,16 +297,25 @@ fn full_queue_answers_0x06() {
     // a: one on the line, one queued; b: one queued (the queue is full), one refused.
     a.write_all(&[read_req(1, 1, 1, 1), read_req(2, 1, 2, 1)].concat())
         .unwrap();
-    wait_for("a's first request on the line", Duration::from_secs(2), || {
-        dev.requests().len() == 1
-    });
+    wait_for(
+        "a's first request on the line",
+        Duration::from_secs(2),
+        || dev.requests().len() == 1,
+    );
     b.write_all(&[read_req(3, 1, 3, 1), read_req(4, 1, 4, 1)].concat())
         .unwrap();
     std::thread::sleep(Duration::from_millis(50));
     // c holds nothing, but no master holds two more than it: turned away at once.
     let start = Instant::now();
-    assert_eq!(transact(&mut c, &read_req(5, 1, 5, 1)), exception(5, 1, 3, 0x06));
-    assert!(start.elapsed() < Duration::from_millis(200), "{:?}", start.elapsed());
+    assert_eq!(
+        transact(&mut c, &read_req(5, 1, 5, 1)),
+        exception(5, 1, 3, 0x06)
+    );
+    assert!(
+        start.elapsed() < Duration::from_millis(200),
+        "{:?}",
+        start.elapsed()
+    );
     assert_eq!(read_frame(&mut a), read_reply(1, 1, &[1]));
     assert_eq!(read_frame(&mut a), read_reply(2, 1, &[2]));
     assert_eq!(read_frame(&mut b), read_reply(3, 1, &[3]));

@@ -48,12 +48,16 @@ fn registers(delay: Duration) -> Handler {
     Box::new(move |req: &Adu| {
         thread::sleep(delay);
         let reply = regs.answer(req.unit(), req.pdu(), true);
-        Adu::build(req.tid(), req.unit(), &reply).as_bytes().to_vec()
+        Adu::build(req.tid(), req.unit(), &reply)
+            .as_bytes()
+            .to_vec()
     })
 }
 
 fn exception(tid: u16, unit: u8, function: u8, code: u8) -> Vec<u8> {
-    Adu::exception(tid, unit, function, code).as_bytes().to_vec()
+    Adu::exception(tid, unit, function, code)
+        .as_bytes()
+        .to_vec()
 }
 
 /// FC 06: write `value` to register `addr`.
@@ -200,7 +204,11 @@ fn polite(m: &mut TcpStream, period: Duration) -> (u32, u32) {
         if got == exception(n, 1, 3, 0x06) {
             busy += 1;
         } else {
-            assert_eq!(got, read_reply(n, 1, &[addr, addr + 1]), "the polite master");
+            assert_eq!(
+                got,
+                read_reply(n, 1, &[addr, addr + 1]),
+                "the polite master"
+            );
             answered += 1;
         }
         n = n.wrapping_add(1);
@@ -260,7 +268,10 @@ fn half_closed_master_gets_its_reply_then_the_close() {
         m.write_all(&req).unwrap();
         m.shutdown(Shutdown::Write).unwrap();
         assert_eq!(try_read_frame(&mut m), Some(req), "write {i}: no reply");
-        assert!(is_closed(&mut m, Duration::from_secs(2)), "write {i}: not closed");
+        assert!(
+            is_closed(&mut m, Duration::from_secs(2)),
+            "write {i}: not closed"
+        );
         let mut check = r.gw.connect();
         assert_eq!(
             transact(&mut check, &read_req(9, 1, 7, 1)),
@@ -381,7 +392,11 @@ fn contradictory_settings_are_refused_naming_both_keys() {
             vec!["check-config", path],
             vec!["run", "--config", path],
             [&["check-config", empty][..], flags].concat(),
-            [&["run", "--config", empty, "--serial", "/nonexistent/tty"][..], flags].concat(),
+            [
+                &["run", "--config", empty, "--serial", "/nonexistent/tty"][..],
+                flags,
+            ]
+            .concat(),
         ] {
             let o = mbgate(&args);
             assert_eq!(o.code, 2, "{args:?}: {}", o.stderr);
@@ -408,24 +423,32 @@ fn contradictory_settings_are_refused_naming_both_keys() {
 fn sigusr1_logs_the_counters_and_sigusr2_is_ignored() {
     let mut r = rig_with(|c| c.log_level("info"), registers(Duration::ZERO));
     let mut m = r.gw.connect();
-    assert_eq!(transact(&mut m, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 1, 1)),
+        read_reply(1, 1, &[1])
+    );
     signal(&r.gw, "USR1");
     r.gw.wait_log("counters (SIGUSR1)", Duration::from_secs(2));
-    let line = r
-        .gw
-        .log()
-        .lines()
-        .find(|l| l.contains("counters (SIGUSR1)"))
-        .unwrap()
-        .to_string();
-    assert!(line.contains("INFO") && line.contains(" requests=1 replies=1 "), "{line}");
+    let line =
+        r.gw.log()
+            .lines()
+            .find(|l| l.contains("counters (SIGUSR1)"))
+            .unwrap()
+            .to_string();
+    assert!(
+        line.contains("INFO") && line.contains(" requests=1 replies=1 "),
+        "{line}"
+    );
     signal(&r.gw, "USR2");
     signal(&r.gw, "USR1");
     wait_for("a second report", Duration::from_secs(2), || {
         count(&r.gw.log(), "counters (SIGUSR1)") == 2
     });
     // Still serving, on the same connection.
-    assert_eq!(transact(&mut m, &read_req(2, 1, 2, 1)), read_reply(2, 1, &[2]));
+    assert_eq!(
+        transact(&mut m, &read_req(2, 1, 2, 1)),
+        read_reply(2, 1, &[2])
+    );
     drop(m);
     let stats = r.gw.stop();
     assert_eq!(stats["requests"], 2);
@@ -470,7 +493,10 @@ fn out_of_file_descriptors_warns_once_and_recovers() {
     let mut held: Vec<TcpStream> = (0..2u16)
         .map(|i| {
             let mut m = r.gw.connect();
-            assert_eq!(transact(&mut m, &read_req(i, 1, i, 1)), read_reply(i, 1, &[i]));
+            assert_eq!(
+                transact(&mut m, &read_req(i, 1, i, 1)),
+                read_reply(i, 1, &[i])
+            );
             m
         })
         .collect();
@@ -503,7 +529,10 @@ fn out_of_file_descriptors_warns_once_and_recovers() {
         .set_read_timeout(Some(Duration::from_secs(5)))
         .unwrap();
     assert_eq!(read_frame(&mut waiting), read_reply(7, 1, &[7]));
-    eprintln!("out of fds: served {:?} after a master left", start.elapsed());
+    eprintln!(
+        "out of fds: served {:?} after a master left",
+        start.elapsed()
+    );
     assert!(start.elapsed() < Duration::from_millis(2500));
     r.gw.wait_log("accepting connections again", Duration::from_secs(1));
     assert_eq!(
@@ -523,7 +552,10 @@ fn out_of_file_descriptors_warns_once_and_recovers() {
 fn a_serial_port_held_by_another_process_is_named_so() {
     let r = rig_with(|c| c, registers(Duration::ZERO));
     let mut first = r.gw.connect();
-    assert_eq!(transact(&mut first, &read_req(1, 1, 1, 1)), read_reply(1, 1, &[1]));
+    assert_eq!(
+        transact(&mut first, &read_req(1, 1, 1, 1)),
+        read_reply(1, 1, &[1])
+    );
 
     let dir2 = tempdir();
     let second = Gateway::start(&Cfg::new(&r.socat.gw), dir2.path());
@@ -536,8 +568,15 @@ fn a_serial_port_held_by_another_process_is_named_so() {
     // Retrying with backoff (0.1 s doubling), warned once.
     thread::sleep(Duration::from_millis(800));
     let log = second.log();
-    assert_eq!(count(&log, "another process holds the port"), 1 + count(&log, "still unavailable"), "{log}");
+    assert_eq!(
+        count(&log, "another process holds the port"),
+        1 + count(&log, "still unavailable"),
+        "{log}"
+    );
     assert!(count(&log, "still unavailable") >= 2, "{log}");
     assert_eq!(count(&log, "WARN"), 1, "{log}");
-    assert_eq!(transact(&mut first, &read_req(3, 1, 3, 1)), read_reply(3, 1, &[3]));
+    assert_eq!(
+        transact(&mut first, &read_req(3, 1, 3, 1)),
+        read_reply(3, 1, &[3])
+    );
 }
