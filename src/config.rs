@@ -218,6 +218,73 @@ impl RelayConfig {
     pub fn answer_within(&self) -> std::time::Duration {
         std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
     }
+
+    /// The first pair of keys whose values contradict each other, if any.
+    fn conflict(&self) -> Option<Conflict> {
+        let pairs = [
+            Conflict {
+                key: "relay.max_pending_per_connection",
+                flag: "--max-pending-per-connection",
+                value: self.max_pending_per_connection as u64,
+                other: "relay.queue_depth",
+                other_flag: "--queue-depth",
+                limit: self.queue_depth as u64,
+                why: "one master could pipeline more than the whole queue holds",
+            },
+            Conflict {
+                key: "relay.unit_backoff_ms",
+                flag: "--unit-backoff-ms",
+                value: self.unit_backoff_ms,
+                other: "relay.unit_backoff_max_ms",
+                other_flag: "--unit-backoff-max-ms",
+                limit: self.unit_backoff_max_ms,
+                why: "the first backoff would be longer than the longest",
+            },
+        ];
+        pairs.into_iter().find(|c| c.value > c.limit)
+    }
+}
+
+/// Two keys that contradict each other: `key` must not exceed `other`. Refused rather
+/// than one silently capped, since the operator meant one of them and mbgate cannot
+/// tell which.
+struct Conflict {
+    key: &'static str,
+    flag: &'static str,
+    value: u64,
+    other: &'static str,
+    other_flag: &'static str,
+    limit: u64,
+    why: &'static str,
+}
+
+impl Conflict {
+    fn message(&self) -> String {
+        format!(
+            "must not exceed {} ({}), got {}: {}",
+            self.other, self.limit, self.value, self.why
+        )
+    }
+
+    /// The error for a file: at the value of `key` if the file sets it, else at the
+    /// value of `other`.
+    fn in_file(&self, text: &str, origin: &str) -> ConfigError {
+        let at = value_span(text, self.key).or_else(|| value_span(text, self.other));
+        let (line, column) = match at {
+            Some(start) => {
+                let (l, c) = line_col(text, start);
+                (Some(l), Some(c))
+            }
+            None => (None, None),
+        };
+        ConfigError::Invalid {
+            origin: origin.to_owned(),
+            line,
+            column,
+            key: self.key.to_owned(),
+            message: self.message(),
+        }
+    }
 }
 
 impl Default for LogConfig {
@@ -311,10 +378,26 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
 /// (normally the file name).
 pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
     let de = toml::Deserializer::parse(text).map_err(|e| syntax_error(text, origin, &e))?;
-    serde_path_to_error::deserialize(de).map_err(|e| {
+    let cfg: Config = serde_path_to_error::deserialize(de).map_err(|e| {
         let key = e.path().to_string();
         invalid_error(text, origin, key, e.inner())
-    })
+    })?;
+    match cfg.relay.conflict() {
+        Some(c) => Err(c.in_file(text, origin)),
+        None => Ok(cfg),
+    }
+}
+
+/// Where the value of a dotted key (`relay.queue_depth`) starts in `text`, if the text
+/// sets it (in a section, as a dotted key or in an inline table alike).
+fn value_span(text: &str, key: &str) -> Option<usize> {
+    let table = toml::de::DeTable::parse(text).ok()?;
+    let mut parts = key.split('.');
+    let mut value = table.get_ref().get(parts.next()?)?;
+    for part in parts {
+        value = value.get_ref().get(part)?;
+    }
+    Some(value.span().start)
 }
 
 fn syntax_error(text: &str, origin: &str, err: &toml::de::Error) -> ConfigError {
@@ -807,6 +890,17 @@ pub struct Overrides {
 }
 
 impl Overrides {
+    /// Whether one of the flags that can contradict another was given.
+    fn given(&self, flag: &str) -> bool {
+        match flag {
+            "--max-pending-per-connection" => self.max_pending_per_connection.is_some(),
+            "--queue-depth" => self.queue_depth.is_some(),
+            "--unit-backoff-ms" => self.unit_backoff_ms.is_some(),
+            "--unit-backoff-max-ms" => self.unit_backoff_max_ms.is_some(),
+            _ => false,
+        }
+    }
+
     /// Apply every flag that was given to `cfg`, checking the same ranges as the file.
     /// On error `cfg` is left unchanged and the message names the flag.
     pub fn apply(&self, cfg: &mut Config) -> Result<(), ConfigError> {
@@ -884,6 +978,19 @@ impl Overrides {
         if let Some(level) = &self.log_level {
             check_log_level(level).map_err(|m| bad("--log-level", m))?;
             c.log.level = level.clone();
+        }
+        // The file was consistent on its own, so a flag made the contradiction.
+        if let Some(conflict) = c.relay.conflict() {
+            // Name the flag that was given (the first key's when both were).
+            let flag = if self.given(conflict.other_flag) && !self.given(conflict.flag) {
+                conflict.other_flag
+            } else {
+                conflict.flag
+            };
+            return Err(bad(
+                flag,
+                format!("{} {}", conflict.key, conflict.message()),
+            ));
         }
         *cfg = c;
         Ok(())
@@ -1320,6 +1427,89 @@ mod tests {
                 .baud_rate,
             4_000_000
         );
+    }
+
+    #[test]
+    fn contradictory_keys_are_refused_naming_both() {
+        // The position is that of the first key's value when the file sets it, else
+        // that of the other's; dotted keys and inline tables are found too.
+        let cases = [
+            (
+                "[relay]\nmax_pending_per_connection = 100\n",
+                "config/test.toml:2:30: relay.max_pending_per_connection: \
+                 must not exceed relay.queue_depth (64), got 100: \
+                 one master could pipeline more than the whole queue holds",
+            ),
+            (
+                "[relay]\nretries = 1\nqueue_depth = 8\n",
+                "config/test.toml:3:15: relay.max_pending_per_connection: \
+                 must not exceed relay.queue_depth (8), got 16",
+            ),
+            (
+                "relay.unit_backoff_ms = 5000\nrelay.unit_backoff_max_ms = 10\n",
+                "config/test.toml:1:25: relay.unit_backoff_ms: \
+                 must not exceed relay.unit_backoff_max_ms (10), got 5000: \
+                 the first backoff would be longer than the longest",
+            ),
+            (
+                "relay = { unit_backoff_max_ms = 999 }\n",
+                "config/test.toml:1:33: relay.unit_backoff_ms: \
+                 must not exceed relay.unit_backoff_max_ms (999), got 1000",
+            ),
+        ];
+        for (text, want) in cases {
+            let e = err(text);
+            assert!(e.starts_with(want), "{e:?} should start with {want:?}");
+        }
+        // Equal is fine.
+        let c = parse(
+            "[relay]\nmax_pending_per_connection = 64\nunit_backoff_ms = 30000\n",
+            F,
+        )
+        .unwrap();
+        assert_eq!(c.relay.max_pending_per_connection, c.relay.queue_depth);
+
+        // A flag that makes the contradiction is named, with both keys.
+        let cases: [(&[&str], &str); 4] = [
+            (
+                &["--max-pending-per-connection", "100"],
+                "--max-pending-per-connection: relay.max_pending_per_connection \
+                 must not exceed relay.queue_depth (64), got 100",
+            ),
+            (
+                &["--queue-depth", "8"],
+                "--queue-depth: relay.max_pending_per_connection \
+                 must not exceed relay.queue_depth (8), got 16",
+            ),
+            (
+                &["--unit-backoff-max-ms", "10"],
+                "--unit-backoff-max-ms: relay.unit_backoff_ms \
+                 must not exceed relay.unit_backoff_max_ms (10), got 1000",
+            ),
+            (
+                &["--unit-backoff-ms", "5000", "--unit-backoff-max-ms", "10"],
+                "--unit-backoff-ms: relay.unit_backoff_ms \
+                 must not exceed relay.unit_backoff_max_ms (10), got 5000",
+            ),
+        ];
+        for (args, want) in cases {
+            let mut cfg = Config::default();
+            let e = cli(args).unwrap().apply(&mut cfg).unwrap_err().to_string();
+            assert!(e.starts_with(want), "{e:?} should start with {want:?}");
+            assert_eq!(cfg, Config::default(), "a failed apply must not change cfg");
+        }
+        // Flags that move both keys together are fine.
+        let mut cfg = Config::default();
+        cli(&[
+            "--max-pending-per-connection",
+            "100",
+            "--queue-depth",
+            "100",
+        ])
+        .unwrap()
+        .apply(&mut cfg)
+        .unwrap();
+        assert_eq!(cfg.relay.queue_depth, 100);
     }
 
     #[test]

@@ -13,7 +13,7 @@ use std::time::Duration;
 use tokio::net::TcpListener;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
-use tracing::{info, warn};
+use tracing::{debug, info, warn};
 
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
@@ -82,10 +82,15 @@ pub async fn serve(
         shutdown.clone(),
     );
     let relay = relay.with_watchdog(notify::watchdog_interval());
+    // Before "listening on": from then on a signal finds its handler.
+    let signals = user_signals();
     info!(serial = %cfg.serial.path, "listening on {local}");
     // Before the relay first runs, so READY=1 precedes its first WATCHDOG=1.
     notify::ready(&format!("listening on {local}, serial {}", cfg.serial.path));
     let relay_task = tokio::spawn(relay.run());
+    if let Some(signals) = signals {
+        tokio::spawn(report_on_signal(signals, stats.clone(), shutdown.clone()));
+    }
 
     let tracker = TaskTracker::new();
     tcp::accept_loop(
@@ -116,6 +121,41 @@ pub async fn serve(
     }
     info!(%stats, "stopped");
     Ok(stats)
+}
+
+type UserSignals = (tokio::signal::unix::Signal, tokio::signal::unix::Signal);
+
+/// Handlers for SIGUSR1 and SIGUSR2. Left at their defaults both would end the process
+/// at once, without the drain: a stray `kill -USR1` must not cost the masters their
+/// replies. Once installed they stay for the life of the process.
+fn user_signals() -> Option<UserSignals> {
+    use tokio::signal::unix::{signal, SignalKind};
+    match (
+        signal(SignalKind::user_defined1()),
+        signal(SignalKind::user_defined2()),
+    ) {
+        (Ok(usr1), Ok(usr2)) => Some((usr1, usr2)),
+        _ => {
+            warn!("cannot install the SIGUSR1/SIGUSR2 handlers");
+            None
+        }
+    }
+}
+
+/// SIGUSR1 logs the counters now (at info, as on exit) and the gateway carries on;
+/// SIGUSR2 is ignored.
+async fn report_on_signal(
+    (mut usr1, mut usr2): UserSignals,
+    stats: Arc<Stats>,
+    shutdown: CancellationToken,
+) {
+    loop {
+        tokio::select! {
+            _ = usr1.recv() => info!(%stats, "counters (SIGUSR1)"),
+            _ = usr2.recv() => debug!("SIGUSR2 ignored"),
+            _ = shutdown.cancelled() => return,
+        }
+    }
 }
 
 /// Keys that an RTU or ASCII line cannot honour: said once at start, not refused, so a

@@ -9,6 +9,7 @@ pub mod invocation;
 pub mod logging;
 pub mod notify;
 pub mod number;
+pub mod outbox;
 pub mod relay;
 pub mod serial;
 pub mod sim;

@@ -18,6 +18,7 @@ use crate::frame::hex::Hex;
 use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
 use crate::notify;
+use crate::outbox::{Notifier, Ticket};
 use crate::serial::{self, Backoff};
 use crate::stats::Stats;
 use bytes::Bytes;
@@ -27,7 +28,7 @@ use std::os::fd::{AsRawFd, RawFd};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt, ReadHalf, WriteHalf};
-use tokio::sync::{mpsc, OwnedSemaphorePermit};
+use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_serial::SerialStream;
 use tokio_util::sync::CancellationToken;
@@ -36,34 +37,19 @@ use tracing::{debug, info, warn};
 /// Identifies one master's TCP connection.
 pub type ConnId = u64;
 
-/// Room kept in each connection's channel for notifications, beyond its replies.
-pub const NOTIFICATION_SLACK: usize = 16;
-
-/// A frame on its way to one master. The permit, when present, is the master's
-/// pipelining slot (`max_pending_per_connection`): it is freed once the frame is
-/// written.
-#[derive(Debug)]
-pub struct Outbound {
-    pub adu: Adu,
-    pub permit: Option<OwnedSemaphorePermit>,
-}
-
 /// What connections tell the relay.
 #[derive(Debug)]
 pub enum Command {
-    /// A master connected; its frames go to `tx`, whose capacity is
-    /// `max_pending_per_connection + NOTIFICATION_SLACK`.
-    Attach {
-        conn: ConnId,
-        tx: mpsc::Sender<Outbound>,
-    },
+    /// A master connected; notifications reach it through `notifier`.
+    Attach { conn: ConnId, notifier: Notifier },
     /// It went away: its queued requests are dropped, its late replies discarded.
     Detach { conn: ConnId },
-    /// A request that passed the strict checks, with the master's own transaction id.
+    /// A request that passed the strict checks, with the master's own transaction id;
+    /// its answer goes back through `ticket`, in the master's order.
     Request {
         conn: ConnId,
         adu: Adu,
-        permit: OwnedSemaphorePermit,
+        ticket: Ticket,
     },
 }
 
@@ -83,7 +69,7 @@ impl RelayHandle {
 struct Pending {
     conn: ConnId,
     adu: Adu,
-    permit: OwnedSemaphorePermit,
+    ticket: Ticket,
     attempts: u32,
 }
 
@@ -119,7 +105,7 @@ pub struct Relay {
     serial: SerialConfig,
     traffic: bool,
     rx: mpsc::UnboundedReceiver<Command>,
-    conns: HashMap<ConnId, mpsc::Sender<Outbound>>,
+    conns: HashMap<ConnId, Notifier>,
     queues: HashMap<ConnId, VecDeque<Pending>>,
     /// Connections with queued requests, in round-robin order.
     ring: VecDeque<ConnId>,
@@ -333,8 +319,7 @@ impl Relay {
                 } else {
                     warn!(
                         path = %self.serial.path,
-                        "serial port unavailable: {e}{}; retrying with backoff, answering 0x0A meanwhile",
-                        serial::held_by(&self.serial.path)
+                        "serial port unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
                     );
                     self.port_warned = true;
                 }
@@ -379,8 +364,8 @@ impl Relay {
 
     fn on_command(&mut self, cmd: Command) {
         match cmd {
-            Command::Attach { conn, tx } => {
-                self.conns.insert(conn, tx);
+            Command::Attach { conn, notifier } => {
+                self.conns.insert(conn, notifier);
             }
             Command::Detach { conn } => {
                 self.conns.remove(&conn);
@@ -390,19 +375,19 @@ impl Relay {
                     self.ring.retain(|&c| c != conn);
                 }
             }
-            Command::Request { conn, adu, permit } => {
+            Command::Request { conn, adu, ticket } => {
                 self.stats.add(&self.stats.requests, 1);
                 let req = Pending {
                     conn,
                     adu,
-                    permit,
+                    ticket,
                     attempts: 0,
                 };
                 if self.draining || !self.is_open() {
                     self.answer_exception(req, exception::GATEWAY_PATH_UNAVAILABLE);
                 } else if self.units.backed_off(req.adu.unit(), Instant::now()) {
                     self.answer_backed_off(req);
-                } else if self.queued >= self.cfg.queue_depth {
+                } else if self.queued >= self.cfg.queue_depth && !self.make_room(conn) {
                     self.answer_exception(req, exception::SERVER_DEVICE_BUSY);
                 } else {
                     let q = self.queues.entry(conn).or_default();
@@ -421,6 +406,32 @@ impl Relay {
                 }
             }
         }
+    }
+
+    /// The queue is full and `conn` has a request for it: the 0x06 falls on the master
+    /// holding the most of the queue. If one holds at least two more waiting requests
+    /// than `conn` does, its newest is answered 0x06 and `conn`'s takes the room (true);
+    /// else `conn` holds as many as any, and its own request is the one refused (false).
+    /// So a master can always have its share of the queue waiting (`queue_depth`
+    /// divided by the masters that want it), however fast the others resend: a master
+    /// holding less than its share means another holds more.
+    fn make_room(&mut self, conn: ConnId) -> bool {
+        let mine = self.queues.get(&conn).map_or(0, VecDeque::len);
+        let Some((&heaviest, q)) = self.queues.iter_mut().max_by_key(|(_, q)| q.len()) else {
+            return false;
+        };
+        if q.len() < mine + 2 {
+            return false;
+        }
+        // Its newest: the one it sent last, and the last it would have been served.
+        let refused = q.pop_back().expect("holds at least two");
+        self.queued -= 1;
+        debug!(
+            conn = heaviest,
+            "queue full: 0x06 to the master holding the most of it, for conn {conn}"
+        );
+        self.answer_exception(refused, exception::SERVER_DEVICE_BUSY);
+        true
     }
 
     /// Answers every queued request (and every one waiting to be resent) with `code`.
@@ -511,11 +522,12 @@ impl Relay {
     fn broadcast_sent(&mut self, req: Pending) {
         self.stats.add(&self.stats.broadcasts, 1);
         match self.cfg.broadcast_reply {
-            // The permit goes with the request: the master may send another.
+            // The ticket goes unanswered: the master may send another, and its
+            // replies behind this one are not held up.
             BroadcastReply::None => drop(req),
             BroadcastReply::Echo => {
                 let adu = Adu::build(req.adu.tid(), 0, &pdu::write_echo(req.adu.pdu()));
-                self.deliver(req.conn, adu, Some(req.permit));
+                self.deliver(req, adu);
             }
         }
     }
@@ -568,7 +580,7 @@ impl Relay {
             self.units.answered(f.req.adu.unit());
             self.stats.add(&self.stats.replies, 1);
             let reply = frame.with_tid(f.req.adu.tid());
-            self.deliver(f.req.conn, reply, Some(f.req.permit));
+            self.deliver(f.req, reply);
             return;
         }
         match self.line.unsolicited(tid, now) {
@@ -591,18 +603,11 @@ impl Relay {
     }
 
     /// Sends a device notification to every master with room for it; a master whose
-    /// channel holds only room for its own replies misses it (counted).
+    /// spare room is used up (it is not reading) misses it (counted).
     fn broadcast(&self, frame: Adu) {
         self.stats.add(&self.stats.notifications_broadcast, 1);
-        for tx in self.conns.values() {
-            let sent = tx.capacity() > self.cfg.max_pending_per_connection
-                && tx
-                    .try_send(Outbound {
-                        adu: frame.clone(),
-                        permit: None,
-                    })
-                    .is_ok();
-            if !sent {
+        for notifier in self.conns.values() {
+            if !notifier.notify(frame.clone()) {
                 self.stats.add(&self.stats.notifications_missed, 1);
             }
         }
@@ -710,7 +715,7 @@ impl Relay {
             req.adu.function(),
             exception::GATEWAY_TARGET_FAILED,
         );
-        self.deliver(req.conn, adu, Some(req.permit));
+        self.deliver(req, adu);
     }
 
     fn answer_exception(&self, req: Pending, code: u8) {
@@ -722,14 +727,12 @@ impl Relay {
         };
         self.stats.add(counter, 1);
         let adu = Adu::exception(req.adu.tid(), req.adu.unit(), req.adu.function(), code);
-        self.deliver(req.conn, adu, Some(req.permit));
+        self.deliver(req, adu);
     }
 
-    fn deliver(&self, conn: ConnId, adu: Adu, permit: Option<OwnedSemaphorePermit>) {
-        if let Some(tx) = self.conns.get(&conn) {
-            // Capacity covers every permit, so this only fails if the master is gone.
-            let _ = tx.try_send(Outbound { adu, permit });
-        }
+    /// The answer to `req`, to its master, after its answers to earlier requests.
+    fn deliver(&self, req: Pending, adu: Adu) {
+        req.ticket.answer(adu);
     }
 }
 

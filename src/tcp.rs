@@ -1,13 +1,16 @@
 //! The TCP side (design.md §1 steps 1-2, §4 `[tcp]`): the listener with its connection
 //! limit, and one task per master that reads strictly checked MBAP requests and writes
-//! back whatever the relay sends it.
+//! back their replies in the order of the requests, with the device's notifications
+//! (the path back is [`crate::outbox`]).
 
 use crate::config::Config;
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
 use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
-use crate::relay::{Command, ConnId, Outbound, RelayHandle, NOTIFICATION_SLACK};
+use crate::outbox::{self, Inbox, Outbox, Ticket};
+use crate::relay::{Command, ConnId, RelayHandle};
+use crate::serial::Backoff;
 use crate::stats::Stats;
 use bytes::BytesMut;
 use std::net::SocketAddr;
@@ -16,7 +19,7 @@ use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
-use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
+use tokio::sync::Semaphore;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
@@ -37,7 +40,7 @@ pub fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<TcpListen
     };
     // As `TcpListener::bind` does.
     socket.set_reuseaddr(true)?;
-    let room = (max_pending + NOTIFICATION_SLACK) * MAX_ADU;
+    let room = outbox::capacity(max_pending) * MAX_ADU;
     socket.set_send_buffer_size(u32::try_from(room).unwrap_or(u32::MAX))?;
     socket.bind(addr)?;
     socket.listen(1024)
@@ -55,6 +58,7 @@ pub async fn accept_loop(
 ) {
     let limit = Arc::new(Semaphore::new(cfg.tcp.max_connections));
     let mut next_id: ConnId = 0;
+    let mut failing = AcceptFailures::default();
     loop {
         let accepted = tokio::select! {
             _ = shutdown.cancelled() => break,
@@ -63,12 +67,14 @@ pub async fn accept_loop(
         let (stream, peer) = match accepted {
             Ok(a) => a,
             Err(e) => {
-                // Out of file descriptors and the like: do not spin.
-                warn!("accept failed: {e}");
-                tokio::time::sleep(Duration::from_millis(100)).await;
-                continue;
+                let delay = failing.failed(&e);
+                tokio::select! {
+                    _ = shutdown.cancelled() => break,
+                    _ = tokio::time::sleep(delay) => continue,
+                }
             }
         };
+        failing.recovered();
         let Ok(slot) = limit.clone().try_acquire_owned() else {
             stats.add(&stats.connections_refused, 1);
             warn!(%peer, max = cfg.tcp.max_connections, "connection refused: max_connections reached");
@@ -96,6 +102,80 @@ pub async fn accept_loop(
     debug!("listener closed");
 }
 
+/// accept() failing, mostly for want of file descriptors (EMFILE, ENFILE): the
+/// master that could not be taken stays in the listen backlog, so the listener stays
+/// ready and an immediate retry fails again (and at the limit accept fails even with
+/// no master waiting). Retries back off, 10 ms doubling to 1 s, until one succeeds.
+/// The operator is warned at the first failure, then at most once a minute: a gateway
+/// that hovers at its limit fails again after each master it takes.
+struct AcceptFailures {
+    backoff: Backoff,
+    /// Failures since the last accept that succeeded.
+    count: u64,
+    /// Whether this spell of failures was warned about.
+    warned: bool,
+    last_warning: Option<Instant>,
+}
+
+/// The least time between two warnings about failing accepts.
+const ACCEPT_WARNING_EVERY: Duration = Duration::from_secs(60);
+
+impl Default for AcceptFailures {
+    fn default() -> Self {
+        Self {
+            backoff: Backoff::new(Duration::from_millis(10), Duration::from_secs(1)),
+            count: 0,
+            warned: false,
+            last_warning: None,
+        }
+    }
+}
+
+impl AcceptFailures {
+    /// Logs the failure and returns how long to wait before the next attempt.
+    fn failed(&mut self, e: &std::io::Error) -> Duration {
+        self.count += 1;
+        let delay = self.backoff.next_delay();
+        let now = Instant::now();
+        let due = self
+            .last_warning
+            .is_none_or(|t| now.duration_since(t) >= ACCEPT_WARNING_EVERY);
+        if self.count == 1 && due {
+            let hint = match e.raw_os_error() {
+                Some(libc::EMFILE) => {
+                    ": mbgate is out of file descriptors (raise its limit, LimitNOFILE= \
+                     under systemd, or lower tcp.max_connections)"
+                }
+                Some(libc::ENFILE) => ": the system is out of file descriptors",
+                _ => "",
+            };
+            warn!("accept failed: {e}{hint}; retrying with backoff up to 1 s (said at most once a minute)");
+            self.warned = true;
+            self.last_warning = Some(now);
+        } else {
+            debug!(failures = self.count, "accept failed again: {e}");
+        }
+        delay
+    }
+
+    fn recovered(&mut self) {
+        if self.count == 0 {
+            return;
+        }
+        if self.warned {
+            info!(
+                failures = self.count,
+                "accepting connections again after {} failed attempts", self.count
+            );
+        } else {
+            debug!(failures = self.count, "accepting connections again");
+        }
+        self.count = 0;
+        self.warned = false;
+        self.backoff.reset();
+    }
+}
+
 struct Connection {
     id: ConnId,
     peer: SocketAddr,
@@ -107,43 +187,46 @@ struct Connection {
 
 /// Why a connection's reader stopped.
 enum End {
-    /// The master closed, the socket failed, or it was idle too long: close now.
+    /// The socket failed, the master broke the protocol, or it was idle too long:
+    /// close now.
     Closed,
-    /// Shutdown: stop reading, but write the replies still owed first.
-    Drain,
+    /// No more requests will be read (the master shut down its sending side, or the
+    /// gateway is shutting down): write the replies still owed, then close.
+    Finish,
 }
 
 impl Connection {
     async fn run(self, stream: TcpStream) {
         info!(conn = self.id, peer = %self.peer, "master connected");
-        let max_pending = self.cfg.relay.max_pending_per_connection;
         let (rd, wr) = stream.into_split();
-        let (tx, rx) = mpsc::channel(max_pending + NOTIFICATION_SLACK);
-        let permits = Arc::new(Semaphore::new(max_pending));
+        let (mut outbox, inbox) = Outbox::new(self.cfg.relay.max_pending_per_connection);
         let attached = self
             .relay
             .send(Command::Attach {
                 conn: self.id,
-                tx: tx.clone(),
+                notifier: outbox.notifier(),
             })
             .is_ok();
         if attached {
-            let writer = self.write_loop(wr, rx);
+            let writer = self.write_loop(wr, inbox);
             tokio::pin!(writer);
             let end = tokio::select! {
-                end = self.read_loop(rd, &tx, &permits) => end,
+                end = self.read_loop(rd, &mut outbox) => end,
                 _ = &mut writer => End::Closed,
             };
-            if let End::Drain = end {
-                // Every request holds a permit until its answer is written: when all
-                // are back, nothing is owed. The relay answers each one within the
-                // response timeout (and its retries), so this is bounded; the bound
-                // below only guards against a master that never reads.
+            if let End::Finish = end {
+                // The relay answers every request it was given: at once when the
+                // gateway shuts down (what is on the line within the response timeout
+                // and its retries), else in its turn. Only shutdown bounds the wait
+                // here; a master that stops reading meanwhile is closed by the writer.
                 let bound = self.cfg.relay.answer_within() + Duration::from_secs(1);
-                let all = permits.acquire_many(max_pending as u32);
                 tokio::select! {
-                    _ = tokio::time::timeout(bound, all) => {}
+                    _ = outbox.settled() => {}
                     _ = &mut writer => {}
+                    _ = async {
+                        self.shutdown.cancelled().await;
+                        tokio::time::sleep(bound).await;
+                    } => {}
                 }
             }
         }
@@ -151,70 +234,80 @@ impl Connection {
         info!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
-    async fn read_loop(
-        &self,
-        mut rd: OwnedReadHalf,
-        tx: &mpsc::Sender<Outbound>,
-        permits: &Arc<Semaphore>,
-    ) -> End {
-        let max_pending = self.cfg.relay.max_pending_per_connection;
+    async fn read_loop(&self, mut rd: OwnedReadHalf, outbox: &mut Outbox) -> End {
         let idle = Duration::from_millis(self.cfg.tcp.idle_timeout_ms);
-        let mut idle_deadline = Instant::now() + idle;
+        let mut last_read = Instant::now();
+        let mut wake = last_read + idle;
         let mut buf = BytesMut::with_capacity(512);
         loop {
-            // One pipelining slot per request: with none free, stop reading and let
-            // TCP push back on the master.
-            let permit = tokio::select! {
-                p = permits.clone().acquire_owned() => p.expect("semaphore never closed"),
-                _ = self.shutdown.cancelled() => return End::Drain,
-            };
-            let adu = loop {
-                match decode_strict(&mut buf) {
-                    Ok(Some(adu)) => break adu,
-                    Ok(None) => {}
+            match decode_strict(&mut buf) {
+                Ok(Some(adu)) => {
+                    // One pipelining slot per request: with none free, stop reading
+                    // and let TCP push back on the master.
+                    let ticket = tokio::select! {
+                        t = outbox.ticket() => t,
+                        _ = self.shutdown.cancelled() => return End::Finish,
+                    };
+                    if self.cfg.log.traffic {
+                        debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
+                    }
+                    self.submit(adu, ticket);
+                    continue;
+                }
+                Ok(None) => {}
+                Err(e) => {
+                    self.stats.add(&self.stats.protocol_violations, 1);
+                    warn!(conn = self.id, peer = %self.peer, "protocol violation: {e}; closing the connection");
+                    return End::Closed;
+                }
+            }
+            tokio::select! {
+                r = rd.read_buf(&mut buf) => match r {
+                    Ok(0) => {
+                        // A shutdown of the master's sending side (`shutdown(SHUT_WR)`,
+                        // `nc -N`): no more requests, but it still awaits its replies.
+                        debug!(
+                            conn = self.id,
+                            owed = outbox.owed(),
+                            partial = buf.len(),
+                            "master closed its sending side; writing the replies owed, then closing"
+                        );
+                        return End::Finish;
+                    }
+                    Ok(_) => last_read = Instant::now(),
                     Err(e) => {
-                        self.stats.add(&self.stats.protocol_violations, 1);
-                        warn!(conn = self.id, peer = %self.peer, "protocol violation: {e}; closing the connection");
+                        debug!(conn = self.id, "read failed: {e}");
                         return End::Closed;
                     }
-                }
-                tokio::select! {
-                    r = rd.read_buf(&mut buf) => match r {
-                        Ok(0) => return End::Closed,
-                        Ok(_) => idle_deadline = Instant::now() + idle,
-                        Err(e) => {
-                            debug!(conn = self.id, "read failed: {e}");
-                            return End::Closed;
-                        }
-                    },
-                    _ = tokio::time::sleep_until(idle_deadline), if !idle.is_zero() => {
-                        // Idle means no byte for the period and no reply owed. A partial
-                        // frame that stopped growing is idle too: a master gone mid-frame
-                        // must not hold its connection slot for ever.
-                        if permits.available_permits() + 1 == max_pending {
-                            info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
-                            return End::Closed;
-                        }
-                        idle_deadline = Instant::now() + idle;
+                },
+                _ = tokio::time::sleep_until(wake), if !idle.is_zero() => {
+                    // Idle means the master owes nothing and is owed nothing: the clock
+                    // runs from its last byte or its last reply, whichever is later,
+                    // and only while no request of its is unanswered. A partial frame
+                    // that stopped growing is idle too: a master gone mid-frame must
+                    // not hold its connection slot for ever.
+                    let now = Instant::now();
+                    let since = last_read.max(outbox.last_settled());
+                    if outbox.owed() {
+                        wake = now + idle;
+                    } else if now >= since + idle {
+                        info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
+                        return End::Closed;
+                    } else {
+                        wake = since + idle;
                     }
-                    _ = self.shutdown.cancelled() => return End::Drain,
                 }
-            };
-            if self.cfg.log.traffic {
-                debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
+                _ = self.shutdown.cancelled() => return End::Finish,
             }
-            self.submit(adu, permit, tx);
         }
     }
 
     /// Hands a request to the relay, or answers it here when it cannot go on the line.
-    fn submit(&self, adu: Adu, permit: OwnedSemaphorePermit, tx: &mpsc::Sender<Outbound>) {
-        let local = |code: u8, permit| {
-            let e = Adu::exception(adu.tid(), adu.unit(), adu.function(), code);
-            let _ = tx.try_send(Outbound {
-                adu: e,
-                permit: Some(permit),
-            });
+    /// Either way the answer goes through its ticket, so it keeps its place in the
+    /// master's order.
+    fn submit(&self, adu: Adu, ticket: Ticket) {
+        let local = |adu: &Adu, code: u8, ticket: Ticket| {
+            ticket.answer(Adu::exception(adu.tid(), adu.unit(), adu.function(), code));
         };
         if let Err(code) = pdu::check_request(adu.pdu()) {
             self.stats.add(&self.stats.bad_requests, 1);
@@ -222,25 +315,26 @@ impl Connection {
                 conn = self.id,
                 "request outside protocol limits: exception {code:#04x}"
             );
-            local(code, permit);
+            local(&adu, code, ticket);
             return;
         }
         let cmd = Command::Request {
             conn: self.id,
-            adu: adu.clone(),
-            permit,
+            adu,
+            ticket,
         };
-        if let Err(Command::Request { permit, .. }) = self.relay.send(cmd) {
+        if let Err(Command::Request { adu, ticket, .. }) = self.relay.send(cmd) {
             self.stats.add(&self.stats.unavailable, 1);
-            local(exception::GATEWAY_PATH_UNAVAILABLE, permit);
+            local(&adu, exception::GATEWAY_PATH_UNAVAILABLE, ticket);
         }
     }
 
-    /// Writes what the relay sends. A master that stops reading its replies for
-    /// `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
-    async fn write_loop(&self, mut wr: OwnedWriteHalf, mut rx: mpsc::Receiver<Outbound>) {
+    /// Writes the master's replies in the order of its requests, and notifications as
+    /// they come. A master that stops reading its replies for `idle_timeout_ms` is
+    /// closed, so it cannot hold a connection slot for ever.
+    async fn write_loop(&self, mut wr: OwnedWriteHalf, mut inbox: Inbox) {
         let stall = Duration::from_millis(self.cfg.tcp.idle_timeout_ms);
-        while let Some(out) = rx.recv().await {
+        while let Some(out) = inbox.next().await {
             if self.cfg.log.traffic {
                 debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
             }
@@ -260,7 +354,8 @@ impl Connection {
                 debug!(conn = self.id, "write failed: {e}");
                 return;
             }
-            // `out.permit` drops here: the master's slot is free again.
+            // `out` drops here: a reply's pipelining slot is free again, and the idle
+            // clock starts from now.
         }
     }
 }

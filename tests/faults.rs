@@ -280,26 +280,47 @@ fn request_outside_protocol_limits_is_answered_locally() {
     assert_eq!(dev.requests().len(), 1);
 }
 
-/// A full queue answers 0x06 at once; what was accepted is still answered.
+/// A full queue answers 0x06 at once; what was accepted is still answered. Each
+/// master's replies come in the order of its requests, a 0x06 included.
 #[test]
 fn full_queue_answers_0x06() {
     let r = rig(|c| {
-        c.relay("queue_depth = 1")
+        c.relay("queue_depth = 2")
+            .relay("max_pending_per_connection = 2")
             .relay("response_timeout_ms = 2000")
     });
-    let _dev = RawDevice::start(
+    let dev = RawDevice::start(
         &r.socat.dev,
         register_device(&[1], Duration::from_millis(300)),
     );
-    let mut m = r.gw.connect();
-    let burst: Vec<u8> = (1..=4u16).flat_map(|t| read_req(t, 1, t, 1)).collect();
-    m.write_all(&burst).unwrap();
-    let got: Vec<Vec<u8>> = (0..4).map(|_| read_frame(&mut m)).collect();
-    // One in flight, one queued, two turned away at once.
-    assert_eq!(got[0], exception(3, 1, 3, 0x06));
-    assert_eq!(got[1], exception(4, 1, 3, 0x06));
-    assert_eq!(got[2], read_reply(1, 1, &[1]));
-    assert_eq!(got[3], read_reply(2, 1, &[2]));
+    let (mut a, mut b, mut c) = (r.gw.connect(), r.gw.connect(), r.gw.connect());
+    // a: one on the line, one queued; b: one queued (the queue is full), one refused.
+    a.write_all(&[read_req(1, 1, 1, 1), read_req(2, 1, 2, 1)].concat())
+        .unwrap();
+    wait_for(
+        "a's first request on the line",
+        Duration::from_secs(2),
+        || dev.requests().len() == 1,
+    );
+    b.write_all(&[read_req(3, 1, 3, 1), read_req(4, 1, 4, 1)].concat())
+        .unwrap();
+    std::thread::sleep(Duration::from_millis(50));
+    // c holds nothing, but no master holds two more than it: turned away at once.
+    let start = Instant::now();
+    assert_eq!(
+        transact(&mut c, &read_req(5, 1, 5, 1)),
+        exception(5, 1, 3, 0x06)
+    );
+    assert!(
+        start.elapsed() < Duration::from_millis(200),
+        "{:?}",
+        start.elapsed()
+    );
+    assert_eq!(read_frame(&mut a), read_reply(1, 1, &[1]));
+    assert_eq!(read_frame(&mut a), read_reply(2, 1, &[2]));
+    assert_eq!(read_frame(&mut b), read_reply(3, 1, &[3]));
+    assert_eq!(read_frame(&mut b), exception(4, 1, 3, 0x06));
+    assert_eq!(dev.requests().len(), 3);
 }
 
 /// A reply that comes after its request timed out is dropped and counted, never given

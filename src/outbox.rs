@@ -1,0 +1,353 @@
+//! One master's way back: the pipelining slots it may hold, its replies written in the
+//! order of its requests, and room for device notifications beside them (README "What
+//! it does": masters, replies, notifications).
+//!
+//! Every invariant of that path lives here, so the connection (src/tcp.rs) and the
+//! relay (src/relay.rs) need not agree through comments:
+//!
+//! - A request read from the master gets a [`Ticket`] before it goes anywhere: a
+//!   pipelining slot (`max_pending_per_connection` of them), a sequence number in read
+//!   order, and a place reserved in the channel to the writer. So its answer can always
+//!   be sent, by the relay or by the connection itself, and never waits for room.
+//! - Whoever answers consumes the ticket ([`Ticket::answer`]); a ticket dropped
+//!   unanswered (a broadcast with no reply, a request dropped with its master) still
+//!   tells the writer, so no later reply waits for it.
+//! - The writer ([`Inbox`]) releases replies in sequence: a reply that comes early
+//!   (answered by the gateway at once, or by a device that answers out of order) waits
+//!   for the ones before it. A master that pipelines with one transaction id, as many
+//!   do with 0, pairs every reply with its request.
+//! - The slot is free again only once the reply has been written, so a master never
+//!   has more than `max_pending_per_connection` requests unanswered, counting replies
+//!   waiting for their turn.
+//! - Notifications ([`Notifier`]) take no slot and no sequence number: they are written
+//!   as they come, between replies, and never hold one up; they use only the channel's
+//!   spare room, so a master that does not read misses them (counted by the relay) and
+//!   never loses a reply for them.
+
+use crate::frame::Adu;
+use std::collections::BTreeMap;
+use std::fmt;
+use std::sync::{Arc, Mutex};
+use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
+use tokio::time::Instant;
+
+/// Room in each connection's channel for notifications, beyond its replies.
+const NOTIFICATION_SLACK: usize = 16;
+
+/// The most frames the gateway holds for one master at once, with
+/// `max_pending` requests pipelined: its replies and the notifications beside them.
+pub fn capacity(max_pending: usize) -> usize {
+    max_pending + NOTIFICATION_SLACK
+}
+
+/// What travels to the writer.
+enum Message {
+    /// The answer to request `seq`, or `None` when it has none (e.g. a broadcast).
+    Reply {
+        seq: u64,
+        adu: Option<Adu>,
+        slot: Slot,
+    },
+    Notification(Adu),
+}
+
+/// A pipelining slot in use. Dropping it frees the slot and restarts the idle clock.
+struct Slot {
+    _permit: OwnedSemaphorePermit,
+    shared: Arc<Shared>,
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        *self.shared.settled.lock().expect("never poisoned") = Instant::now();
+    }
+}
+
+struct Shared {
+    slots: Arc<Semaphore>,
+    max_pending: usize,
+    /// When a slot was last freed: a reply written, or a request finished without one.
+    settled: Mutex<Instant>,
+}
+
+/// The connection's side: hands out tickets in read order.
+pub struct Outbox {
+    tx: mpsc::Sender<Message>,
+    shared: Arc<Shared>,
+    next_seq: u64,
+}
+
+impl Outbox {
+    /// An outbox for a master that may pipeline `max_pending` requests, and the inbox
+    /// its writer reads.
+    pub fn new(max_pending: usize) -> (Outbox, Inbox) {
+        let (tx, rx) = mpsc::channel(capacity(max_pending));
+        let shared = Arc::new(Shared {
+            slots: Arc::new(Semaphore::new(max_pending)),
+            max_pending,
+            settled: Mutex::new(Instant::now()),
+        });
+        let outbox = Outbox {
+            tx,
+            shared,
+            next_seq: 0,
+        };
+        let inbox = Inbox {
+            rx,
+            next: 0,
+            held: BTreeMap::new(),
+        };
+        (outbox, inbox)
+    }
+
+    /// A ticket for the next request read, once the master has a pipelining slot free.
+    /// Cancel-safe: a ticket not handed out takes no sequence number.
+    pub async fn ticket(&mut self) -> Ticket {
+        let permit = self
+            .shared
+            .slots
+            .clone()
+            .acquire_owned()
+            .await
+            .expect("the semaphore is never closed");
+        // Reserved replies never exceed `max_pending` and notifications take only what
+        // is free, so this waits only while the writer is behind on notifications.
+        let reserved = self
+            .tx
+            .clone()
+            .reserve_owned()
+            .await
+            .expect("the inbox lives as long as the connection");
+        let seq = self.next_seq;
+        self.next_seq += 1;
+        Ticket {
+            seq,
+            reserved: Some(reserved),
+            slot: Some(Slot {
+                _permit: permit,
+                shared: self.shared.clone(),
+            }),
+        }
+    }
+
+    /// What the relay uses to send this master notifications.
+    pub fn notifier(&self) -> Notifier {
+        Notifier {
+            tx: self.tx.clone(),
+        }
+    }
+
+    /// Some request of this master is not yet answered (or its reply not yet written).
+    pub fn owed(&self) -> bool {
+        self.shared.slots.available_permits() < self.shared.max_pending
+    }
+
+    /// When the master was last answered: its last reply written, or its last request
+    /// finished without one. The start of the connection if neither yet.
+    pub fn last_settled(&self) -> Instant {
+        *self.shared.settled.lock().expect("never poisoned")
+    }
+
+    /// Returns once every ticket handed out has been answered and its reply written.
+    pub async fn settled(&self) {
+        let all = u32::try_from(self.shared.max_pending).unwrap_or(u32::MAX);
+        let _ = self.shared.slots.acquire_many(all).await;
+    }
+}
+
+/// One request's claim on its master's way back. Answer it once; dropping it
+/// unanswered says "no reply" so the requests behind it are not held up.
+pub struct Ticket {
+    seq: u64,
+    reserved: Option<mpsc::OwnedPermit<Message>>,
+    slot: Option<Slot>,
+}
+
+impl Ticket {
+    /// Sends the reply to this request; it is written after the replies to every
+    /// earlier request of the same master. Never waits and never fails: the room was
+    /// reserved with the ticket (a master already gone simply never sees it).
+    pub fn answer(mut self, adu: Adu) {
+        self.send(Some(adu));
+    }
+
+    fn send(&mut self, adu: Option<Adu>) {
+        if let (Some(reserved), Some(slot)) = (self.reserved.take(), self.slot.take()) {
+            reserved.send(Message::Reply {
+                seq: self.seq,
+                adu,
+                slot,
+            });
+        }
+    }
+}
+
+impl Drop for Ticket {
+    fn drop(&mut self) {
+        self.send(None);
+    }
+}
+
+impl fmt::Debug for Ticket {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.debug_struct("Ticket").field("seq", &self.seq).finish()
+    }
+}
+
+/// The relay's handle for one master's notifications.
+#[derive(Clone)]
+pub struct Notifier {
+    tx: mpsc::Sender<Message>,
+}
+
+impl Notifier {
+    /// Queues a notification for the master, unless its spare room is used up (it is
+    /// not reading) or it is gone: then false, and it misses this one.
+    pub fn notify(&self, adu: Adu) -> bool {
+        self.tx.try_send(Message::Notification(adu)).is_ok()
+    }
+}
+
+impl fmt::Debug for Notifier {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("Notifier")
+    }
+}
+
+/// The writer's side: frames in the order they must go out.
+pub struct Inbox {
+    rx: mpsc::Receiver<Message>,
+    /// The sequence number of the next reply to write.
+    next: u64,
+    /// Replies that came before their turn.
+    held: BTreeMap<u64, (Option<Adu>, Slot)>,
+}
+
+/// A frame to write. Drop it once written: a reply's pipelining slot is freed then.
+pub struct Outgoing {
+    pub adu: Adu,
+    _slot: Option<Slot>,
+}
+
+impl Inbox {
+    /// The next frame to write: a notification as soon as it comes, a reply once every
+    /// earlier request of this master has been answered. `None` once nothing more can
+    /// come. Cancel-safe.
+    pub async fn next(&mut self) -> Option<Outgoing> {
+        loop {
+            if let Some((adu, slot)) = self.held.remove(&self.next) {
+                self.next += 1;
+                match adu {
+                    Some(adu) => {
+                        return Some(Outgoing {
+                            adu,
+                            _slot: Some(slot),
+                        })
+                    }
+                    // No reply to write: the slot is free now.
+                    None => continue,
+                }
+            }
+            match self.rx.recv().await? {
+                Message::Notification(adu) => return Some(Outgoing { adu, _slot: None }),
+                Message::Reply { seq, adu, slot } => {
+                    self.held.insert(seq, (adu, slot));
+                }
+            }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    fn adu(tid: u16) -> Adu {
+        Adu::build(tid, 1, &[0x03, 0x02, 0x00, tid as u8])
+    }
+
+    async fn next_tid(inbox: &mut Inbox) -> u16 {
+        let out = tokio::time::timeout(Duration::from_secs(1), inbox.next())
+            .await
+            .expect("a frame")
+            .expect("open");
+        out.adu.tid()
+    }
+
+    #[tokio::test]
+    async fn replies_go_out_in_request_order_and_notifications_at_once() {
+        let (mut outbox, mut inbox) = Outbox::new(4);
+        let (t0, t1, t2, t3) = (
+            outbox.ticket().await,
+            outbox.ticket().await,
+            outbox.ticket().await,
+            outbox.ticket().await,
+        );
+        assert!(outbox.owed());
+        // Answered last to first; the second has no reply at all.
+        t3.answer(adu(3));
+        drop(t1);
+        t2.answer(adu(2));
+        assert!(outbox.notifier().notify(adu(0x99)));
+        assert_eq!(
+            next_tid(&mut inbox).await,
+            0x99,
+            "a notification waits for nothing"
+        );
+        t0.answer(adu(0));
+        assert_eq!(next_tid(&mut inbox).await, 0);
+        assert_eq!(next_tid(&mut inbox).await, 2);
+        assert_eq!(next_tid(&mut inbox).await, 3);
+        assert!(!outbox.owed(), "every slot free once written");
+        tokio::time::timeout(Duration::from_secs(1), outbox.settled())
+            .await
+            .expect("settled");
+    }
+
+    #[tokio::test]
+    async fn a_slot_is_free_only_once_its_reply_is_written() {
+        let (mut outbox, mut inbox) = Outbox::new(1);
+        let t = outbox.ticket().await;
+        t.answer(adu(1));
+        // Answered, not yet written: the master may not send another yet.
+        let waiting = tokio::time::timeout(Duration::from_millis(50), outbox.ticket()).await;
+        assert!(waiting.is_err());
+        let before = outbox.last_settled();
+        let out = inbox.next().await.unwrap();
+        assert!(outbox.owed());
+        drop(out);
+        assert!(!outbox.owed());
+        assert!(outbox.last_settled() >= before);
+        let _t = tokio::time::timeout(Duration::from_millis(50), outbox.ticket())
+            .await
+            .expect("a slot again");
+    }
+
+    #[tokio::test]
+    async fn notifications_use_only_spare_room() {
+        let (mut outbox, mut inbox) = Outbox::new(2);
+        let notifier = outbox.notifier();
+        let sent = (0..100).filter(|i| notifier.notify(adu(*i))).count();
+        assert_eq!(
+            sent,
+            NOTIFICATION_SLACK + 2,
+            "a master not reading misses the rest"
+        );
+        // The writer catches up; replies still find their room.
+        for _ in 0..sent {
+            inbox.next().await.unwrap();
+        }
+        let a = outbox.ticket().await;
+        let b = outbox.ticket().await;
+        let flood = (0..100).filter(|i| notifier.notify(adu(*i))).count();
+        assert_eq!(flood, NOTIFICATION_SLACK, "the tickets' room is theirs");
+        b.answer(adu(0xB));
+        a.answer(adu(0xA));
+        for _ in 0..flood {
+            assert!(next_tid(&mut inbox).await < 100);
+        }
+        assert_eq!(next_tid(&mut inbox).await, 0xA);
+        assert_eq!(next_tid(&mut inbox).await, 0xB);
+    }
+}
