@@ -234,23 +234,27 @@ fn finish(result: anyhow::Result<()>) -> ExitCode {
     }
 }
 
-/// SIGTERM (systemd stop) or SIGINT (Ctrl-C) starts a graceful shutdown. The handlers
-/// are installed before this returns, so a signal that comes at once is not fatal; the
+/// SIGTERM (systemd stop), SIGINT (Ctrl-C) or SIGHUP (a closed terminal, or a reload
+/// asked for, which mbgate does not have: its default action would end the process
+/// and lose what is on the line) starts a graceful shutdown. The handlers are
+/// installed before this returns, so a signal that comes at once is not fatal; the
 /// future it returns waits for one.
 fn watch_signals(shutdown: CancellationToken) -> impl std::future::Future<Output = ()> {
     use tokio::signal::unix::{signal, SignalKind};
     let handlers = (
         signal(SignalKind::terminate()),
         signal(SignalKind::interrupt()),
+        signal(SignalKind::hangup()),
     );
     async move {
-        let (Ok(mut term), Ok(mut int)) = handlers else {
+        let (Ok(mut term), Ok(mut int), Ok(mut hup)) = handlers else {
             tracing::error!("cannot install signal handlers");
             return;
         };
         tokio::select! {
             _ = term.recv() => tracing::info!("SIGTERM received"),
             _ = int.recv() => tracing::info!("SIGINT received"),
+            _ = hup.recv() => tracing::info!("SIGHUP received (there is no reload: restart to read the configuration again); stopping"),
         }
         shutdown.cancel();
     }

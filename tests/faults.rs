@@ -491,6 +491,30 @@ fn sigterm_drains_in_flight_and_exits_0() {
     let _ = &r.dir;
 }
 
+/// SIGHUP (there is no reload): a clean stop, exactly as SIGTERM, never one that loses
+/// the request on the line.
+#[test]
+fn sighup_drains_in_flight_as_sigterm_does() {
+    let mut r = rig(|c| c.relay("response_timeout_ms = 2000"));
+    let _dev = RawDevice::start(
+        &r.socat.dev,
+        register_device(&[1], Duration::from_millis(500)),
+    );
+    let mut m = r.gw.connect();
+    m.write_all(&read_req(7, 1, 41, 1)).unwrap();
+    std::thread::sleep(Duration::from_millis(150));
+    let status = r.gw.proc.stop_with("HUP", Duration::from_secs(5));
+    assert_eq!(status.code(), Some(0), "{}", r.gw.log());
+    assert_eq!(read_frame(&mut m), read_reply(7, 1, &[41]));
+    let log = r.gw.log();
+    assert!(log.contains("SIGHUP received"), "{log}");
+    assert!(
+        log.contains("requests=1 replies=1"),
+        "the counters at the stop:\n{log}"
+    );
+    let _ = &r.dir;
+}
+
 /// SIGTERM while the device is silent: the drain waits no longer than the response
 /// timeout, the master gets 0x0B for the request on the line, and the exit is 0 (what
 /// systemd's stop sees, within the unit's TimeoutStopSec).

@@ -59,8 +59,12 @@ pub fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
 }
 
 fn terminate(child: &mut Child) {
+    signal(child, "TERM");
+}
+
+fn signal(child: &mut Child, name: &str) {
     let _ = Command::new("kill")
-        .arg("-TERM")
+        .arg(format!("-{name}"))
         .arg(child.id().to_string())
         .status();
 }
@@ -381,7 +385,12 @@ impl Proc {
 
     /// SIGTERM, then waits (bounded) for the exit.
     pub fn terminate(&mut self, within: Duration) -> ExitStatus {
-        terminate(&mut self.child);
+        self.stop_with("TERM", within)
+    }
+
+    /// Sends the signal `name` (`kill -NAME`) and waits for the exit, at most `within`.
+    pub fn stop_with(&mut self, name: &str, within: Duration) -> ExitStatus {
+        signal(&mut self.child, name);
         let start = Instant::now();
         loop {
             if let Some(status) = self.child.try_wait().unwrap() {
