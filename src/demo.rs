@@ -26,6 +26,10 @@ pub struct DemoArgs {
     /// Log every frame the gateway relays, both directions, as hex.
     #[arg(long)]
     pub traffic: bool,
+    /// Pace the simulated device's output at this many bits a second (10 bits a byte),
+    /// as a UART would.
+    #[arg(long, value_name = "BAUD", help_heading = "line model")]
+    pub baud: Option<u32>,
     #[command(flatten)]
     pub device: DeviceArgs,
 }
@@ -43,6 +47,16 @@ pub enum DemoError {
 }
 
 impl DemoArgs {
+    /// The simulated device's settings, paced at `--baud` if given.
+    pub fn settings(&self) -> Result<Settings, String> {
+        if self.baud == Some(0) {
+            return Err("--baud must be positive".into());
+        }
+        let mut s = self.device.settings()?;
+        s.baud = self.baud;
+        Ok(s)
+    }
+
     /// The gateway's configuration: defaults, the pty, the listen address; device
     /// notifications reach every master when the simulator sends them.
     pub fn gateway_config(&self, pty: String) -> Config {

@@ -158,20 +158,34 @@ async fn report_on_signal(
     }
 }
 
-/// Keys that an RTU or ASCII line cannot honour: said once at start, not refused, so a
-/// file written for MBAP keeps working when only the framing changes.
+/// What the configuration cannot honour on this line ([`warnings`]), said once at start.
 fn warn_inapplicable(cfg: &Config) {
-    if cfg.serial.framing == Framing::Mbap {
-        return;
+    for warning in warnings(cfg) {
+        warn!("{warning}");
     }
-    let framing = format!("{:?}", cfg.serial.framing).to_lowercase();
+}
+
+/// Settings an RTU or ASCII line cannot honour: said at start (and by `mbgate
+/// check-config`), not refused, so a file written for MBAP keeps working when only the
+/// framing changes.
+pub fn warnings(cfg: &Config) -> Vec<String> {
+    let framing = cfg.serial.framing.name();
+    let mut said = Vec::new();
+    if cfg.serial.framing == Framing::Mbap {
+        return said;
+    }
     if cfg.relay.max_in_flight > 1 {
-        warn!(
-            max_in_flight = cfg.relay.max_in_flight,
-            "framing = {framing} has no transaction id: one request at a time (max_in_flight taken as 1)"
-        );
+        said.push(format!(
+            "framing = {framing} has no transaction id: one request at a time \
+             (max_in_flight = {} taken as 1)",
+            cfg.relay.max_in_flight
+        ));
     }
     if cfg.relay.notifications == Notifications::Broadcast {
-        warn!("framing = {framing}: a frame that answers no request is dropped; notifications = broadcast does not apply");
+        said.push(format!(
+            "framing = {framing}: a frame that answers no request is dropped; \
+             notifications = broadcast does not apply"
+        ));
     }
+    said
 }

@@ -1,5 +1,6 @@
 //! mbgate: a Modbus/TCP gateway to serial devices (design.md).
 
+pub mod cli_overrides;
 pub mod client;
 pub mod config;
 pub mod demo;

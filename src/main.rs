@@ -3,13 +3,14 @@
 
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
-use mbgate::config::{self, Config, Overrides};
+use mbgate::cli_overrides::Overrides;
+use mbgate::config::{self, Config};
 use std::path::PathBuf;
 use std::process::ExitCode;
 use tokio_util::sync::CancellationToken;
 
-/// Modbus/TCP to serial gateway for the Sollae ezTCP CIE-M10/H10 "serial Modbus/TCP"
-/// mode: many TCP masters, one serial device.
+/// Modbus/TCP to serial gateway for MBAP (Sollae ezTCP CIE-M10/H10 serial Modbus/TCP
+/// mode), Modbus RTU and Modbus ASCII devices: many TCP masters, one serial line.
 #[derive(Debug, Parser)]
 #[command(name = "mbgate", version, about)]
 struct Cli {
@@ -27,10 +28,14 @@ enum Command {
         #[command(flatten)]
         overrides: Overrides,
     },
-    /// Validate a configuration file and print the effective configuration.
+    /// Validate a configuration file and print the effective configuration, and on
+    /// stderr the warnings `run` would give.
     CheckConfig {
         /// The file to check.
         file: PathBuf,
+        /// Print it as one [[line]] and one [[listen]] (docs/design.md §4.1)
+        #[arg(long)]
+        lines: bool,
         #[command(flatten)]
         overrides: Overrides,
     },
@@ -64,9 +69,21 @@ fn main() -> ExitCode {
         Command::Write(args) => mbgate::client::write_main(args),
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
-        Command::CheckConfig { file, overrides } => match effective(Some(file), &overrides) {
+        Command::CheckConfig {
+            file,
+            lines,
+            overrides,
+        } => match effective(Some(file), &overrides) {
             Ok(cfg) => {
-                print!("{}", config::to_toml(&cfg));
+                let print = if lines {
+                    config::to_toml_lines
+                } else {
+                    config::to_toml
+                };
+                print!("{}", print(&cfg));
+                for warning in mbgate::gateway::warnings(&cfg) {
+                    eprintln!("mbgate: warning: {warning}");
+                }
                 ExitCode::SUCCESS
             }
             Err(e) => {
@@ -142,13 +159,15 @@ fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
 fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     use mbgate::sim::serve::{self, Port};
-    let port = Port::Path(args.serial_config());
+    // Checked by `settings()` too, whose error is the one reported.
+    let port = args.serial_config();
     simulate(
         &args.device,
         args.settings(),
         false,
         None,
         |settings, commands, shutdown| async move {
+            let port = Port::Path(port.map_err(anyhow::Error::msg)?);
             serve::run(settings, port, commands, shutdown).await?;
             Ok(())
         },
@@ -162,7 +181,7 @@ fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
     let (banner_shown, after_banner) = std::sync::mpsc::channel();
     simulate(
         &device,
-        device.settings(),
+        args.settings(),
         args.traffic,
         Some(after_banner),
         |settings, commands, shutdown| async move {

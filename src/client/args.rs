@@ -2,11 +2,13 @@
 //! request PDUs of protocol.md §1.
 
 use super::link::Link;
-use crate::config::{FlowControl, Framing, Parity, SerialConfig};
+use crate::cli_overrides::{PortFlags, PORT_GROUP};
+use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
 
 /// Where requests go, and how they are sent (shared by `read` and `write`).
 #[derive(Debug, Clone, clap::Args)]
+#[command(mut_group(PORT_GROUP, |g| g.requires("serial")))]
 pub struct CommonArgs {
     /// Gateway or Modbus/TCP device, HOST[:PORT] (port 502 if left out)
     /// [default: 127.0.0.1:502]
@@ -16,24 +18,9 @@ pub struct CommonArgs {
     /// Modbus/TCP mode: whole MBAP frames on the line, no CRC)
     #[arg(long, value_name = "PATH")]
     pub serial: Option<String>,
-    /// Serial speed in bit/s [default: 19200]
-    #[arg(long, value_name = "N", requires = "serial",
-          value_parser = clap::value_parser!(u32).range(50..=4_000_000))]
-    pub baud: Option<u32>,
-    /// Serial data bits, 7 or 8 [default: 8]
-    #[arg(long, value_name = "N", requires = "serial",
-          value_parser = clap::value_parser!(u8).range(7..=8))]
-    pub data_bits: Option<u8>,
-    /// Serial parity [default: none]
-    #[arg(long, value_enum, requires = "serial")]
-    pub parity: Option<Parity>,
-    /// Serial stop bits, 1 or 2 [default: 1]
-    #[arg(long, value_name = "N", requires = "serial",
-          value_parser = clap::value_parser!(u8).range(1..=2))]
-    pub stop_bits: Option<u8>,
-    /// Serial flow control [default: hardware (RTS/CTS)]
-    #[arg(long, value_enum, requires = "serial")]
-    pub flow_control: Option<FlowControl>,
+    /// The serial port's settings (with --serial only), as `mbgate run` takes them.
+    #[command(flatten)]
+    pub port: PortFlags,
     /// Unit id (slave address), 0..=255
     #[arg(long, short = 'u', value_name = "N", default_value_t = 1)]
     pub unit: u8,
@@ -236,27 +223,20 @@ impl WriteArgs {
 
 impl CommonArgs {
     /// The link these arguments name: `--serial` if given, else `--tcp` (default
-    /// 127.0.0.1:502).
-    pub fn link(&self) -> Link {
-        match &self.serial {
-            Some(path) => {
-                let d = SerialConfig::default();
-                Link::serial(SerialConfig {
-                    path: path.clone(),
-                    baud_rate: self.baud.unwrap_or(d.baud_rate),
-                    data_bits: self.data_bits.unwrap_or(d.data_bits),
-                    parity: self.parity.unwrap_or(d.parity),
-                    stop_bits: self.stop_bits.unwrap_or(d.stop_bits),
-                    flow_control: self.flow_control.unwrap_or(d.flow_control),
-                    framing: Framing::Mbap,
-                    ..d
-                })
-            }
-            None => {
-                let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
-                Link::tcp(addr)
-            }
-        }
+    /// 127.0.0.1:502); or why the serial port's settings are refused.
+    pub fn link(&self) -> Result<Link, String> {
+        let Some(path) = &self.serial else {
+            return Ok(Link::tcp(self.tcp.as_deref().unwrap_or("127.0.0.1")));
+        };
+        let mut cfg = SerialConfig {
+            path: path.clone(),
+            framing: Framing::Mbap,
+            ..SerialConfig::default()
+        };
+        self.port
+            .apply_serial(&mut cfg)
+            .map_err(|e| e.to_string())?;
+        Ok(Link::serial(cfg))
     }
 }
 
@@ -292,7 +272,9 @@ mod tests {
         ])
         .unwrap();
         assert_eq!(r.request(), Request::ReadCoils { addr: 5, qty: 1 });
-        assert!(matches!(r.common.link(), Link::Serial { cfg, .. } if cfg.baud_rate == 9600));
+        assert!(
+            matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.baud_rate == 9600)
+        );
         assert!(
             parse_read(&["read", "holding", "0", "--baud", "9600"]).is_err(),
             "serial only"

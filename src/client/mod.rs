@@ -64,6 +64,10 @@ fn run(common: &CommonArgs, request: Request) -> ExitCode {
         Ok(pdu) => pdu,
         Err(e) => return usage(&e.to_string()),
     };
+    let link = match common.link() {
+        Ok(link) => link,
+        Err(e) => return usage(&e),
+    };
     let rt = match tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -74,7 +78,7 @@ fn run(common: &CommonArgs, request: Request) -> ExitCode {
             return ExitCode::from(EXIT_NO_ANSWER);
         }
     };
-    ExitCode::from(rt.block_on(session(common, &pdu)))
+    ExitCode::from(rt.block_on(session(common, link, &pdu)))
 }
 
 /// A line on stdout; a closed stdout (`| head`) is not an error worth a panic.
@@ -134,8 +138,8 @@ fn millis(d: Duration) -> String {
 
 /// One request, or one per `--poll` period until `--count` or Ctrl-C. Returns the exit
 /// code of the last request.
-async fn session(common: &CommonArgs, pdu: &[u8]) -> u8 {
-    let mut master = Master::new(common.link(), Duration::from_millis(common.timeout_ms));
+async fn session(common: &CommonArgs, link: Link, pdu: &[u8]) -> u8 {
+    let mut master = Master::new(link, Duration::from_millis(common.timeout_ms));
     let Some(period) = common.poll else {
         return once(&mut master, common, pdu, None).await.0;
     };

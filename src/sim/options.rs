@@ -4,7 +4,8 @@
 use super::cie_m10::CieM10;
 use super::line::{ChunkMode, Chunker, Faults};
 use super::{generic, Device, Profile};
-use crate::config::{FlowControl, Framing, Parity, SerialConfig};
+use crate::cli_overrides::{choice, PortFlags};
+use crate::config::{Framing, SerialConfig};
 use std::path::PathBuf;
 use std::time::Duration;
 
@@ -93,10 +94,6 @@ pub struct DeviceArgs {
     #[arg(long, default_value_t = generic::MIN_SIZE, value_name = "N", help_heading = "generic profile")]
     pub registers: usize,
 
-    /// Pace output at this many bits a second (10 bits a byte), as a UART would; on a
-    /// real serial port it sets the port's speed and the UART does the pacing.
-    #[arg(long, value_name = "BAUD", help_heading = "line model")]
-    pub baud: Option<u32>,
     /// Wait this long before answering each request.
     #[arg(
         long,
@@ -183,26 +180,22 @@ pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
     #[arg(long, value_name = "PATH")]
     pub serial: PathBuf,
-    /// 7 or 8.
-    #[arg(long, default_value_t = 8, value_parser = clap::value_parser!(u8).range(7..=8), help_heading = "serial port")]
-    pub data_bits: u8,
-    #[arg(long, value_enum, default_value_t = Parity::None, help_heading = "serial port")]
-    pub parity: Parity,
-    /// 1 or 2.
-    #[arg(long, default_value_t = 1, value_parser = clap::value_parser!(u8).range(1..=2), help_heading = "serial port")]
-    pub stop_bits: u8,
-    #[arg(long, value_enum, default_value_t = FlowControl::Hardware, help_heading = "serial port")]
-    pub flow_control: FlowControl,
-    /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
-    /// (generic profile only).
-    #[arg(long, value_enum, default_value_t = Framing::Mbap, help_heading = "serial port")]
-    pub framing: Framing,
+    // Before the port's flags: their heading would carry over onto these.
     #[command(flatten)]
     pub device: DeviceArgs,
+    /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
+    /// output as a UART would (10 bits a byte); on a real port the UART does.
+    #[command(flatten, next_help_heading = "serial port")]
+    pub port: PortFlags,
+    /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
+    /// (generic profile only).
+    #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap", help_heading = "serial port")]
+    pub framing: Framing,
 }
 
 impl SimArgs {
-    /// The device and line settings, with this port's framing.
+    /// The device and line settings, with this port's framing and, when given, its
+    /// speed as the pace.
     pub fn settings(&self) -> Result<Settings, String> {
         if self.framing != Framing::Mbap && self.device.profile == ProfileName::CieM10 {
             return Err(
@@ -211,24 +204,24 @@ impl SimArgs {
                     .into(),
             );
         }
+        let port = self.serial_config()?;
         let mut s = self.device.settings()?;
         s.framing = self.framing;
+        s.baud = self.port.given("baud").then_some(port.baud_rate);
         Ok(s)
     }
-}
 
-impl SimArgs {
-    /// The port settings (the speed is `--baud`, 19200 without it).
-    pub fn serial_config(&self) -> SerialConfig {
-        SerialConfig {
+    /// The port settings: the defaults of `[serial]` and the flags given.
+    pub fn serial_config(&self) -> Result<SerialConfig, String> {
+        let mut cfg = SerialConfig {
             path: self.serial.to_string_lossy().into_owned(),
-            baud_rate: self.device.baud.unwrap_or(19_200),
-            data_bits: self.data_bits,
-            parity: self.parity,
-            stop_bits: self.stop_bits,
-            flow_control: self.flow_control,
+            framing: self.framing,
             ..SerialConfig::default()
-        }
+        };
+        self.port
+            .apply_serial(&mut cfg)
+            .map_err(|e| e.to_string())?;
+        Ok(cfg)
     }
 }
 
@@ -268,9 +261,6 @@ impl DeviceArgs {
             if !(0.0..=1.0).contains(&p) {
                 return Err(format!("{flag} is a probability, 0 to 1; not {p}"));
             }
-        }
-        if self.baud == Some(0) {
-            return Err("--baud must be positive".into());
         }
         if self.frame_gap_ms == 0 {
             return Err("--frame-gap-ms must be positive".into());
@@ -359,7 +349,7 @@ impl DeviceArgs {
         Ok(Settings {
             device,
             framing: Framing::Mbap,
-            baud: self.baud,
+            baud: None,
             delay: Duration::from_millis(self.delay_ms),
             rx_faults: faulty(self.faults != FaultDirection::FromDevice, 0),
             tx_faults: faulty(

@@ -1,0 +1,363 @@
+//! Reading a configuration file. toml parses it with the position of every key and
+//! value (`DeTable`); each key is looked up in [`KEYS`] and checked there, so every
+//! error names the file, the line and column, and the full key, e.g.
+//! `config/x.toml:7:13: serial.baud_rate: must be between 50 and 4000000, got 10`.
+//! Both forms of docs/design.md §4 are read: `[serial]` `[tcp]` `[relay]`, and
+//! `[[line]]` `[[listen]]` (§4.1), of which mbgate runs one line and one listener.
+
+use super::{Check, Config, Key, Raw, Setting, KEYS};
+use std::borrow::Cow;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+use toml::de::{DeTable, DeValue};
+use toml::Spanned;
+
+/// Why a configuration was rejected. The `Display` text is the whole message for the
+/// operator: it names the file, the line and column, and the key (or the flag).
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    /// The file could not be read (missing, permissions, not UTF-8...).
+    #[error("{}: cannot read the configuration file: {source}", path.display())]
+    Read {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    /// The text is not valid TOML, or a key is unknown, has the wrong type or a value
+    /// out of range. `line`/`column` (1-based) point at the value, or at the key for an
+    /// unknown key; `key` is the full dotted key (`serial.baud_rate`) when it can be told.
+    #[error("{origin}:{line}:{column}: {}{message}", key_prefix(.key))]
+    Invalid {
+        origin: String,
+        line: usize,
+        column: usize,
+        key: Option<String>,
+        message: String,
+    },
+    /// A command-line override is out of range; `flag` is e.g. `--baud`.
+    #[error("{flag}: {message}")]
+    Override { flag: String, message: String },
+}
+
+fn key_prefix(key: &Option<String>) -> String {
+    key.as_ref().map(|k| format!("{k}: ")).unwrap_or_default()
+}
+
+/// Read and validate the configuration file at `path`. Error messages use `path` as
+/// given (relative paths stay relative).
+pub fn load(path: &Path) -> Result<Config, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        path: path.to_path_buf(),
+        source,
+    })?;
+    parse(&text, &path.display().to_string())
+}
+
+/// Parse and validate configuration text. `origin` names the text in error messages
+/// (normally the file name).
+pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
+    let root = DeTable::parse(text).map_err(|e| syntax_error(text, origin, &e))?;
+    Reader {
+        text,
+        origin,
+        at: HashMap::new(),
+        units: HashMap::new(),
+    }
+    .read(root.get_ref())
+}
+
+/// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
+const TOP: [&str; 6] = ["serial", "tcp", "relay", "log", "line", "listen"];
+/// The keys of a `[[line]]` table.
+const LINE: [&str; 3] = ["units", "serial", "relay"];
+/// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
+pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
+
+/// What a table calls key `name` of [`KEYS`], given its pairs of (in the file, in
+/// [`KEYS`]).
+pub(super) fn renamed<'a>(rename: &[(&'a str, &'a str)], name: &'a str) -> &'a str {
+    let found = rename.iter().find(|(_, key)| *key == name);
+    found.map_or(name, |(file, _)| file)
+}
+
+type Entry<'a, 'i> = (&'a Spanned<Cow<'i, str>>, &'a Spanned<DeValue<'i>>);
+
+/// A table's entries in the order of the file (`DeTable` keeps them sorted by name).
+fn entries<'a, 'i>(table: &'a DeTable<'i>) -> Vec<Entry<'a, 'i>> {
+    let mut all: Vec<_> = table.iter().collect();
+    all.sort_by_key(|(k, _)| k.span().start);
+    all
+}
+
+/// A TOML value as the checks see it.
+fn raw(v: &DeValue) -> Raw {
+    match v {
+        DeValue::Integer(i) => {
+            // Beyond i128 (far beyond any range): saturated, which keeps the sign.
+            let negative = i.as_str().starts_with('-');
+            let beyond = if negative { i128::MIN } else { i128::MAX };
+            Raw::Int(i128::from_str_radix(i.as_str(), i.radix()).unwrap_or(beyond))
+        }
+        DeValue::Boolean(b) => Raw::Bool(*b),
+        DeValue::String(s) => Raw::Str(s.to_string()),
+        DeValue::Float(f) => Raw::Other(format!("floating point `{}`", f.as_str())),
+        DeValue::Datetime(d) => Raw::Other(format!("datetime `{d}`")),
+        DeValue::Array(_) => Raw::Other("array".into()),
+        DeValue::Table(_) => Raw::Other("table".into()),
+    }
+}
+
+struct Reader<'t> {
+    text: &'t str,
+    origin: &'t str,
+    /// Where the value of each full key read so far starts.
+    at: HashMap<String, usize>,
+    /// The `[[line]]` each unit id was given to.
+    units: HashMap<u8, String>,
+}
+
+/// One `[[line]]`: where it starts, its `[serial]` and `[relay]`, whether it has units.
+type Line = (usize, Config, bool);
+
+impl Reader<'_> {
+    fn fail<T>(&self, at: usize, key: &str, message: impl Into<String>) -> Result<T, ConfigError> {
+        let (line, column) = line_col(self.text, at);
+        Err(ConfigError::Invalid {
+            origin: self.origin.to_owned(),
+            line,
+            column,
+            key: Some(key.to_owned()),
+            message: message.into(),
+        })
+    }
+
+    fn unknown<T>(
+        &self,
+        k: &Spanned<Cow<str>>,
+        key: &str,
+        expected: &[&str],
+    ) -> Result<T, ConfigError> {
+        let mut m = format!("unknown key; expected one of {}", expected.join(", "));
+        if let Some(s) = suggest(k.get_ref(), expected) {
+            m += &format!(" (did you mean `{s}`?)");
+        }
+        self.fail(k.span().start, key, m)
+    }
+
+    fn read(mut self, root: &DeTable) -> Result<Config, ConfigError> {
+        let mut cfg = Config::default();
+        let (mut lines, mut listeners) = (Vec::new(), Vec::new());
+        for (k, v) in entries(root) {
+            let (name, at) = (k.get_ref().as_ref(), k.span().start);
+            let replaced = match name {
+                "line" => ["serial", "relay"]
+                    .into_iter()
+                    .find(|s| root.get(*s).is_some()),
+                "listen" => root.get("tcp").map(|_| "tcp"),
+                _ if TOP.contains(&name) => {
+                    self.section(&mut cfg, name, v, name, &[])?;
+                    continue;
+                }
+                _ => return self.unknown(k, name, &TOP),
+            };
+            if let Some(old) = replaced {
+                let m = format!("[[{name}]] replaces [{old}]: write one form or the other");
+                return self.fail(at, name, m);
+            }
+            let DeValue::Array(tables) = v.get_ref() else {
+                return self.fail(v.span().start, name, format!("expected [[{name}]] tables"));
+            };
+            for (i, t) in tables.iter().enumerate() {
+                let path = format!("{name}[{i}]");
+                if name == "line" {
+                    lines.push(self.line(t, &path)?);
+                } else {
+                    let mut listener = Config::default();
+                    self.section(&mut listener, "tcp", t, &path, LISTEN_RENAMED)?;
+                    listeners.push((t.span().start, listener.tcp));
+                }
+            }
+        }
+        if let Some((at, _)) = listeners.get(1) {
+            let m = "a second [[listen]]: several listeners are not yet supported";
+            return self.fail(
+                *at,
+                "listen[1]",
+                format!("{m} (mbgate listens on one address)"),
+            );
+        }
+        if let Some((_, tcp)) = listeners.pop() {
+            cfg.tcp = tcp;
+        }
+        match &lines[..] {
+            [] => self.conflict(&cfg, "")?,
+            [(_, line, false)] => {
+                (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone())
+            }
+            [_] => {
+                let m = "routing by unit is not yet supported: the one line serves every unit";
+                let key = "line[0].units";
+                return self.fail(self.at[key], key, format!("{m} (leave units out)"));
+            }
+            [..] => {
+                if let Some(i) = lines.iter().position(|(_, _, units)| !units) {
+                    let m = "missing: with several lines, each says which unit ids it serves";
+                    return self.fail(lines[i].0, &format!("line[{i}].units"), m);
+                }
+                let m = "a second [[line]]: several lines are not yet supported";
+                return self.fail(lines[1].0, "line[1]", format!("{m} (mbgate runs one line)"));
+            }
+        }
+        Ok(cfg)
+    }
+
+    /// Reads the keys of `section` (of [`KEYS`]) from `v` into `cfg`; `path` is what
+    /// messages call the table, `rename` the keys it calls otherwise.
+    fn section(
+        &mut self,
+        cfg: &mut Config,
+        section: &str,
+        v: &Spanned<DeValue>,
+        path: &str,
+        rename: &[(&str, &str)],
+    ) -> Result<(), ConfigError> {
+        let DeValue::Table(table) = v.get_ref() else {
+            let m = raw(v.get_ref()).invalid("a table ([section])");
+            return self.fail(v.span().start, path, m);
+        };
+        let keys: Vec<&Key> = KEYS.iter().filter(|k| k.section == section).collect();
+        let names: Vec<&str> = keys.iter().map(|k| renamed(rename, k.name)).collect();
+        for (k, v) in entries(table) {
+            let full = format!("{path}.{}", k.get_ref());
+            let Some(i) = names.iter().position(|n| n == k.get_ref()) else {
+                return self.unknown(k, &full, &names);
+            };
+            let at = v.span().start;
+            if let Err(m) = (keys[i].set)(cfg, &raw(v.get_ref())) {
+                return self.fail(at, &full, m);
+            }
+            self.at.insert(full, at);
+        }
+        Ok(())
+    }
+
+    fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {
+        let DeValue::Table(table) = v.get_ref() else {
+            let m = raw(v.get_ref()).invalid("a table ([[line]])");
+            return self.fail(v.span().start, path, m);
+        };
+        let (mut line, mut units) = (Config::default(), false);
+        for (k, item) in entries(table) {
+            let full = format!("{path}.{}", k.get_ref());
+            match k.get_ref().as_ref() {
+                "units" => units = self.units(item, &full)?,
+                name @ ("serial" | "relay") => self.section(&mut line, name, item, &full, &[])?,
+                _ => return self.unknown(k, &full, &LINE),
+            }
+        }
+        self.conflict(&line, &format!("{path}."))?;
+        Ok((v.span().start, line, units))
+    }
+
+    /// `units = [1, 2, ...]`: unit ids, each on one line only.
+    fn units(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<bool, ConfigError> {
+        let at = v.span().start;
+        self.at.insert(path.to_owned(), at);
+        let ids = match v.get_ref() {
+            DeValue::Array(ids) if ids.is_empty() => {
+                return self.fail(at, path, "must list at least one unit id")
+            }
+            DeValue::Array(ids) => ids,
+            other => return self.fail(at, path, raw(other).invalid("an array of unit ids")),
+        };
+        for id in ids.iter() {
+            let at = id.span().start;
+            let unit = u8::read(&raw(id.get_ref()), &Check::Range(1, 255, None));
+            let unit = unit.or_else(|m| self.fail(at, path, m))?;
+            if let Some(other) = self.units.insert(unit, path.to_owned()) {
+                return self.fail(at, path, format!("unit {unit} is also in {other}"));
+            }
+        }
+        Ok(true)
+    }
+
+    /// Refuses two keys that contradict each other, at the value of the first if the
+    /// file sets it, else at the other's; `table` is the path of their section's table.
+    fn conflict(&self, cfg: &Config, table: &str) -> Result<(), ConfigError> {
+        let Some(c) = cfg.conflict() else {
+            return Ok(());
+        };
+        let prefix = format!("{table}{}.", c.key.section);
+        let key = format!("{prefix}{}", c.key.name);
+        let other = format!("{prefix}{}", c.other.name);
+        // One of them is in the file: the defaults never contradict each other.
+        let at = self.at.get(&key).or(self.at.get(&other)).copied();
+        self.fail(at.unwrap_or(0), &key, c.message(&prefix))
+    }
+}
+
+fn syntax_error(text: &str, origin: &str, err: &toml::de::Error) -> ConfigError {
+    let (line, column) = err.span().map_or((1, 1), |s| line_col(text, s.start));
+    let message = err.message().trim().replace('\n', "; ");
+    ConfigError::Invalid {
+        origin: origin.to_owned(),
+        line,
+        column,
+        key: key_on_line(text, line),
+        message: format!("TOML syntax error: {message}"),
+    }
+}
+
+/// 1-based line and column (in characters) of byte `offset` in `text`.
+fn line_col(text: &str, offset: usize) -> (usize, usize) {
+    let mut offset = offset.min(text.len());
+    while !text.is_char_boundary(offset) {
+        offset -= 1;
+    }
+    let before = &text[..offset];
+    let line = before.matches('\n').count() + 1;
+    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
+    (line, before[line_start..].chars().count() + 1)
+}
+
+/// The expected name closest to a misspelt `name`, if one is close enough.
+fn suggest<'a>(name: &str, expected: &[&'a str]) -> Option<&'a str> {
+    let norm = |s: &str| -> String {
+        s.chars()
+            .filter(|c| *c != '_' && *c != '-')
+            .flat_map(char::to_lowercase)
+            .collect()
+    };
+    let n = norm(name);
+    expected
+        .iter()
+        .map(|e| (strsim::levenshtein(&n, &norm(e)), *e))
+        .filter(|(d, e)| *d <= 2.max(e.len() / 4))
+        .min_by_key(|(d, _)| *d)
+        .map(|(_, e)| e)
+}
+
+/// Best-effort name of the key on a line of a file that failed to parse (there is no
+/// table to ask): `section.key` for `key = ...`, `section` for `[section]`.
+fn key_on_line(text: &str, line: usize) -> Option<String> {
+    fn bare(s: &str) -> bool {
+        !s.is_empty()
+            && s.chars()
+                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))
+    }
+    fn header(l: &str) -> Option<&str> {
+        let inner = l.trim().strip_prefix('[')?;
+        let name = inner[..inner.find(']')?].trim();
+        (!inner.starts_with('[') && bare(name)).then_some(name)
+    }
+    let lines: Vec<&str> = text.split('\n').collect();
+    let current = lines.get(line.checked_sub(1)?)?;
+    if current.trim_start().starts_with('[') {
+        return header(current).map(str::to_owned);
+    }
+    let section = lines[..line - 1].iter().rev().find_map(|l| header(l));
+    let key = current[..current.find('=')?].trim();
+    bare(key).then(|| match section {
+        Some(s) => format!("{s}.{key}"),
+        None => key.to_owned(),
+    })
+}

@@ -1,0 +1,436 @@
+//! The configuration model of docs/design.md §4: every setting declared once, below.
+//!
+//! Each setting is one line of [`settings!`]: key, type, default, allowed values, flag
+//! and help. From it come the section structs and their defaults, and [`KEYS`], which
+//! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
+//! the tests holding the README and `config/mbgate.toml` to it all read. A value is
+//! checked the same way from the file or a flag. A new setting is one line here plus
+//! what it does.
+
+mod file;
+
+pub use file::{load, parse, ConfigError};
+use std::net::SocketAddr;
+use Check::{Any, NonEmpty, OneOf, Range};
+
+/// Declares enums whose values are lower-case words in the file and on the command
+/// line; each variant's doc line is its help.
+macro_rules! choices {
+    ($($(#[doc = $doc:literal])* $Enum:ident {
+        $($(#[doc = $vdoc:literal])* $V:ident = $name:literal,)*
+    })*) => {$(
+        $(#[doc = $doc])*
+        #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+        pub enum $Enum { $($(#[doc = $vdoc])* $V,)* }
+
+        impl $Enum {
+            /// The word for this value in the file.
+            pub fn name(self) -> &'static str {
+                match self { $(Self::$V => $name,)* }
+            }
+        }
+
+        impl Setting for $Enum {
+            const KIND: Kind = Kind::Choice(&[$(($name, concat!("", $($vdoc),*))),*]);
+            fn read(raw: &Raw, _: &Check) -> Result<Self, String> {
+                let names = [$($name),*].join(", ");
+                match raw {
+                    $(Raw::Str(s) if s == $name => Ok(Self::$V),)*
+                    Raw::Str(s) => Err(format!("invalid value {s:?}; expected one of {names}")),
+                    _ => Err(format!("expected a string, one of {names}")),
+                }
+            }
+            fn print(&self) -> String {
+                format!("\"{}\"", self.name())
+            }
+        }
+    )*};
+}
+
+choices! {
+    Parity { None = "none", Even = "even", Odd = "odd", }
+    FlowControl {
+        /// RTS/CTS, as the device manual advises
+        Hardware = "hardware",
+        /// XON/XOFF
+        Software = "software",
+        None = "none",
+    }
+    /// How Modbus frames are carried on the line (docs/protocol.md).
+    Framing {
+        /// CIE-M10 serial Modbus/TCP: whole MBAP frames on the line (docs/protocol.md §3)
+        Mbap = "mbap",
+        /// Modbus RTU: unit, PDU, CRC-16; one transaction at a time
+        Rtu = "rtu",
+        /// Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time
+        Ascii = "ascii",
+    }
+    BroadcastReply {
+        /// The master gets nothing back (as on the bus)
+        None = "none",
+        /// The master gets the reply the device would have given
+        Echo = "echo",
+    }
+    Notifications {
+        /// Frames from the device that answer no request are dropped and counted
+        Drop = "drop",
+        /// Well-formed unsolicited frames go to every connected master
+        Broadcast = "broadcast",
+    }
+}
+
+/// The values `log.level` accepts.
+pub const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
+
+/// Declares the sections and their settings: `key: type = default, check, "flag"
+/// "VALUE_NAME" [port] [, at_most other: "why"];` under the key's one line of help.
+/// `port` marks the serial port settings that `mbgate sim` and the client take as flags
+/// too; `at_most` refuses a value above that of another key of the section.
+macro_rules! settings {
+    ($($(#[doc = $sdoc:literal])* [$section:ident] $Struct:ident {$(
+        $(#[doc = $doc:literal])*
+        $key:ident: $ty:ty = $default:expr, $check:expr, $flag:literal $vname:literal $($port:ident)?
+            $(, at_most $other:ident: $why:literal)?;
+    )*})*) => {
+        $(
+            $(#[doc = $sdoc])*
+            #[derive(Debug, Clone, PartialEq)]
+            pub struct $Struct { $($(#[doc = $doc])* pub $key: $ty,)* }
+
+            impl Default for $Struct {
+                fn default() -> Self {
+                    Self { $($key: $default,)* }
+                }
+            }
+        )*
+
+        /// The whole file (docs/design.md §4): every section and key is optional.
+        #[derive(Debug, Clone, PartialEq, Default)]
+        pub struct Config { $(pub $section: $Struct,)* }
+
+        /// Every setting, in the order of the file.
+        pub static KEYS: &[Key] = &[$($(Key {
+            section: stringify!($section),
+            name: stringify!($key),
+            flag: $flag,
+            value_name: $vname,
+            help: concat!("", $($doc),*),
+            check: $check,
+            kind: <$ty as Setting>::KIND,
+            port: settings!(@port $($port)?),
+            at_most: settings!(@at_most $($other $why)?),
+            set: |c, raw| {
+                c.$section.$key = Setting::read(raw, &$check)?;
+                Ok(())
+            },
+            get: |c| c.$section.$key.print(),
+        },)*)*];
+    };
+    (@port) => { false };
+    (@port port) => { true };
+    (@at_most) => { None };
+    (@at_most $other:ident $why:literal) => { Some((stringify!($other), $why)) };
+}
+
+settings! {
+    /// The serial line to the device.
+    [serial] SerialConfig {
+        /// Serial device of the Modbus device
+        path: String = "/dev/ttyUSB0".into(), NonEmpty("the serial device, e.g. /dev/ttyUSB0"), "serial" "PATH";
+        /// Serial speed in bit/s
+        baud_rate: u32 = 19_200, Range(50, 4_000_000, None), "baud" "N" port;
+        /// Data bits
+        data_bits: u8 = 8, Range(7, 8, Some("7 or 8")), "data-bits" "N" port;
+        /// Parity
+        parity: Parity = Parity::None, Any, "parity" "PARITY" port;
+        /// Stop bits
+        stop_bits: u8 = 1, Range(1, 2, Some("1 or 2")), "stop-bits" "N" port;
+        /// Serial flow control
+        flow_control: FlowControl = FlowControl::Hardware, Any, "flow-control" "FLOW_CONTROL" port;
+        /// Serial framing
+        framing: Framing = Framing::Mbap, Any, "framing" "FRAMING";
+        /// RTU: least silence that ends a frame of unknown shape
+        silence_floor_ms: u64 = 20, Range(0, 1000, None), "silence-floor-ms" "MS";
+        /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter
+        rs485: bool = false, Any, "rs485" "BOOL";
+        /// RS-485: RTS delay before sending
+        rs485_delay_before_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-before-send-ms" "MS";
+        /// RS-485: RTS delay after sending
+        rs485_delay_after_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-after-send-ms" "MS";
+        /// The adapter echoes what is sent: read it back and discard it
+        echo: bool = false, Any, "echo" "BOOL";
+    }
+    /// Where Modbus/TCP masters connect.
+    [tcp] TcpConfig {
+        /// TCP address to listen on for Modbus/TCP masters
+        listen: SocketAddr = SocketAddr::from(([0, 0, 0, 0], 502)), Any, "listen" "ADDR";
+        /// Simultaneous master connections
+        max_connections: usize = 32, Range(1, 4096, None), "max-connections" "N";
+        /// Close a master connection idle this long
+        idle_timeout_ms: u64 = 60_000, Range(0, u64::MAX as i128, Some("0 (never) or a number of milliseconds")), "idle-timeout-ms" "MS";
+    }
+    /// How requests are queued, sent and answered on the line.
+    [relay] RelayConfig {
+        /// Time to wait for the device's reply
+        response_timeout_ms: u64 = 1000, Range(1, 600_000, None), "response-timeout-ms" "MS";
+        /// Silence after which a partial serial frame is discarded
+        frame_gap_ms: u64 = 50, Range(1, 60_000, None), "frame-gap-ms" "MS";
+        /// Requests outstanding on the serial line at once
+        max_in_flight: usize = 1, Range(1, 255, None), "max-in-flight" "N";
+        /// Queued requests per master connection
+        max_pending_per_connection: usize = 16, Range(1, 1024, None), "max-pending-per-connection" "N",
+            at_most queue_depth: "one master could pipeline more than the whole queue holds";
+        /// Total queued requests
+        queue_depth: usize = 64, Range(1, 65_536, None), "queue-depth" "N";
+        /// Resends after a timeout (reads only unless --retry-writes)
+        retries: u32 = 0, Range(0, 10, None), "retries" "N";
+        /// Also resend writes after a timeout (a resent write may act twice)
+        retry_writes: bool = false, Any, "retry-writes" "BOOL";
+        /// What to do with device frames that answer no request
+        notifications: Notifications = Notifications::Drop, Any, "notifications" "NOTIFICATIONS";
+        /// RTU/ASCII: quiet time after a broadcast (unit 0)
+        broadcast_delay_ms: u64 = 100, Range(0, 60_000, None), "broadcast-delay-ms" "MS";
+        /// RTU/ASCII: what a master gets for a broadcast
+        broadcast_reply: BroadcastReply = BroadcastReply::None, Any, "broadcast-reply" "BROADCAST_REPLY";
+        /// RTU/ASCII: back off units that keep timing out
+        unit_backoff: bool = true, Any, "unit-backoff" "BOOL";
+        /// Timeouts in a row that back a unit off
+        unit_backoff_after: u32 = 3, Range(1, 100, None), "unit-backoff-after" "N";
+        /// First back-off interval
+        unit_backoff_ms: u64 = 1000, Range(1, 3_600_000, None), "unit-backoff-ms" "MS",
+            at_most unit_backoff_max_ms: "the first backoff would be longer than the longest";
+        /// Longest back-off interval
+        unit_backoff_max_ms: u64 = 30_000, Range(1, 3_600_000, None), "unit-backoff-max-ms" "MS";
+    }
+    /// What is logged.
+    [log] LogConfig {
+        /// Log level (RUST_LOG overrides)
+        level: String = "info".into(), OneOf(&LOG_LEVELS), "log-level" "LEVEL";
+        /// Log every frame, both directions, as hex at debug level
+        traffic: bool = false, Any, "traffic" "BOOL";
+    }
+}
+
+/// One setting as declared in [`settings!`].
+#[derive(Debug)]
+pub struct Key {
+    pub section: &'static str,
+    pub name: &'static str,
+    /// The long flag without its dashes: `baud` for `--baud`.
+    pub flag: &'static str,
+    pub value_name: &'static str,
+    /// One line (with a leading space, as doc comments have it).
+    pub help: &'static str,
+    pub check: Check,
+    pub kind: Kind,
+    /// A serial port setting that `mbgate sim` and the client take as flags too.
+    pub port: bool,
+    /// The key of the section this one must not exceed, and why.
+    pub at_most: Option<(&'static str, &'static str)>,
+    /// Checks a value and sets this key in a configuration; the error says why,
+    /// without the key.
+    pub set: fn(&mut Config, &Raw) -> Result<(), String>,
+    /// The value of this key in a configuration, as written in a TOML file.
+    pub get: fn(&Config) -> String,
+}
+
+/// What a key's value is, for parsing flags and for messages.
+#[derive(Debug, Clone, Copy)]
+pub enum Kind {
+    Int,
+    Bool,
+    Str,
+    /// An address like 0.0.0.0:502.
+    Addr,
+    /// One of these words, each with its help.
+    Choice(&'static [(&'static str, &'static str)]),
+}
+
+/// What values a key accepts beyond its type.
+#[derive(Debug, Clone, Copy)]
+pub enum Check {
+    Any,
+    /// An inclusive integer range, and how to say it when not "between MIN and MAX".
+    Range(i128, i128, Option<&'static str>),
+    /// Not blank; the text says what belongs there.
+    NonEmpty(&'static str),
+    /// One of these words.
+    OneOf(&'static [&'static str]),
+}
+
+impl Check {
+    fn int(&self, v: i128) -> Result<(), String> {
+        match *self {
+            Check::Range(min, max, said) if v < min || v > max => Err(match said {
+                Some(said) => format!("must be {said}, got {v}"),
+                None => format!("must be between {min} and {max}, got {v}"),
+            }),
+            _ => Ok(()),
+        }
+    }
+
+    fn str(&self, s: &str) -> Result<(), String> {
+        match *self {
+            Check::NonEmpty(what) if s.trim().is_empty() => {
+                Err(format!("must not be empty ({what})"))
+            }
+            Check::OneOf(words) if !words.contains(&s) => {
+                Err(format!("must be one of {}, got {s:?}", words.join(", ")))
+            }
+            _ => Ok(()),
+        }
+    }
+}
+
+/// A value as found in the file or given as a flag, before it is checked.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Raw {
+    Int(i128),
+    Bool(bool),
+    Str(String),
+    /// Any other TOML value, as described in messages (`floating point `1.5``).
+    Other(String),
+}
+
+impl Raw {
+    fn invalid(&self, expected: &str) -> String {
+        let found = match self {
+            Raw::Int(v) => format!("integer `{v}`"),
+            Raw::Bool(b) => format!("boolean `{b}`"),
+            Raw::Str(s) => format!("string {s:?}"),
+            Raw::Other(what) => what.clone(),
+        };
+        format!("invalid type: {found}, expected {expected}")
+    }
+}
+
+/// A type a setting can have.
+pub trait Setting: Sized {
+    const KIND: Kind;
+    /// The value `raw` stands for, if it has the right type and passes `check`.
+    fn read(raw: &Raw, check: &Check) -> Result<Self, String>;
+    /// As written in a TOML file.
+    fn print(&self) -> String;
+}
+
+/// `types: kind, |raw, check| read, |value| print` implements [`Setting`] for `types`.
+macro_rules! setting {
+    ($($t:ty),*: $kind:ident, |$raw:ident, $check:ident| $read:expr, |$v:ident| $print:expr) => {$(
+        impl Setting for $t {
+            const KIND: Kind = Kind::$kind;
+            fn read($raw: &Raw, $check: &Check) -> Result<Self, String> { $read }
+            fn print(&self) -> String { let $v = self; $print }
+        }
+    )*};
+}
+
+setting! { u8, u32, u64, usize: Int, |raw, check| match *raw {
+    Raw::Int(v) => check.int(v).and(Self::try_from(v).map_err(|_| format!("{v} is too large"))),
+    _ => Err(raw.invalid("an integer")),
+}, |v| v.to_string() }
+setting! { bool: Bool, |raw, _check| match *raw {
+    Raw::Bool(b) => Ok(b),
+    _ => Err(raw.invalid("a boolean")),
+}, |v| v.to_string() }
+setting! { String: Str, |raw, check| match raw {
+    Raw::Str(s) => check.str(s).map(|()| s.clone()),
+    _ => Err(raw.invalid("a string")),
+}, |v| toml::Value::String(v.clone()).to_string() }
+setting! { SocketAddr: Addr, |raw, _check| match raw {
+    Raw::Str(s) => parse_listen(s),
+    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+}, |v| format!("\"{v}\"") }
+
+const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
+
+/// Parses a `tcp.listen` / `--listen` value.
+pub fn parse_listen(s: &str) -> Result<SocketAddr, String> {
+    s.trim()
+        .parse()
+        .map_err(|_| format!("expected {LISTEN_EXPECTED}, got {s:?}"))
+}
+
+impl RelayConfig {
+    /// The longest the relay takes to answer a request that is on the line: the
+    /// response timeout of every attempt (docs/design.md §1 step 5).
+    pub fn answer_within(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
+    }
+}
+
+/// A key above the key it must not exceed (`at_most` in [`settings!`]).
+pub struct Conflict {
+    pub key: &'static Key,
+    pub other: &'static Key,
+    value: i128,
+    limit: i128,
+    why: &'static str,
+}
+
+impl Conflict {
+    /// The message, with the section's keys under `prefix` (`relay.`).
+    pub fn message(&self, prefix: &str) -> String {
+        let (other, limit, value, why) = (self.other.name, self.limit, self.value, self.why);
+        format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
+    }
+}
+
+impl Config {
+    /// The first pair of keys whose values contradict each other, if any. Refused
+    /// rather than one silently capped: the operator meant one of them and mbgate
+    /// cannot tell which.
+    pub fn conflict(&self) -> Option<Conflict> {
+        KEYS.iter().find_map(|key| {
+            let (other, why) = key.at_most?;
+            let other = KEYS
+                .iter()
+                .find(|k| k.section == key.section && k.name == other)?;
+            let number = |k: &Key| (k.get)(self).parse::<i128>().ok();
+            let (value, limit) = (number(key)?, number(other)?);
+            let c = Conflict {
+                key,
+                other,
+                value,
+                limit,
+                why,
+            };
+            (value > limit).then_some(c)
+        })
+    }
+}
+
+/// The configuration as TOML, sections and keys in the order of docs/design.md §4
+/// (`mbgate check-config`). `parse(&to_toml(cfg), ..)` gives back `cfg`.
+pub fn to_toml(cfg: &Config) -> String {
+    let old = ["serial", "tcp", "relay", "log"].map(|s| (s, format!("[{s}]")));
+    print(cfg, &old)
+}
+
+/// The same configuration in the form of docs/design.md §4.1: one `[[line]]` (with its
+/// `serial` and `relay` tables) and one `[[listen]]`.
+pub fn to_toml_lines(cfg: &Config) -> String {
+    let tables = [
+        ("serial", "[[line]]\n\n[line.serial]"),
+        ("relay", "[line.relay]"),
+        ("tcp", "[[listen]]"),
+        ("log", "[log]"),
+    ];
+    print(cfg, &tables.map(|(s, header)| (s, header.to_owned())))
+}
+
+/// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as
+/// that table calls them).
+fn print(cfg: &Config, tables: &[(&str, String)]) -> String {
+    let mut out = Vec::new();
+    for (section, header) in tables {
+        let listen = header == "[[listen]]";
+        let rename = if listen { file::LISTEN_RENAMED } else { &[] };
+        let mut table = format!("{header}\n");
+        for key in KEYS.iter().filter(|k| k.section == *section) {
+            let value = (key.get)(cfg);
+            table += &format!("{} = {value}\n", file::renamed(rename, key.name));
+        }
+        out.push(table);
+    }
+    out.join("\n")
+}

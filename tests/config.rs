@@ -1,0 +1,791 @@
+//! The configuration contract (docs/design.md §4): defaults, every error message with
+//! its file, line, column and key, the command-line flags over the file, and the
+//! README's table and config/mbgate.toml held to the declarations.
+
+use clap::Parser;
+use mbgate::cli_overrides::Overrides;
+use mbgate::config::*;
+use std::path::Path;
+
+const F: &str = "config/test.toml";
+
+fn err(text: &str) -> String {
+    parse(text, F).expect_err("should be rejected").to_string()
+}
+
+/// The message names the file, the line and the key.
+#[track_caller]
+fn assert_err(text: &str, line: usize, key: &str, contains: &str) {
+    let e = err(text);
+    let at = format!("{F}:{line}:");
+    assert!(e.starts_with(&at), "{e:?} should start with {at:?}");
+    assert!(e.contains(&format!(": {key}: ")), "{e:?} should name {key}");
+    assert!(e.contains(contains), "{e:?} should contain {contains:?}");
+}
+
+#[test]
+fn defaults_are_design_md() {
+    let c = Config::default();
+    assert_eq!(c.serial.path, "/dev/ttyUSB0");
+    assert_eq!(c.serial.baud_rate, 19200);
+    assert_eq!(c.serial.data_bits, 8);
+    assert_eq!(c.serial.parity, Parity::None);
+    assert_eq!(c.serial.stop_bits, 1);
+    assert_eq!(c.serial.flow_control, FlowControl::Hardware);
+    assert_eq!(c.serial.framing, Framing::Mbap);
+    assert_eq!(c.tcp.listen, "0.0.0.0:502".parse().unwrap());
+    assert_eq!(c.tcp.max_connections, 32);
+    assert_eq!(c.tcp.idle_timeout_ms, 60_000);
+    assert_eq!(c.relay.response_timeout_ms, 1000);
+    assert_eq!(c.relay.frame_gap_ms, 50);
+    assert_eq!(c.relay.max_in_flight, 1);
+    assert_eq!(c.relay.max_pending_per_connection, 16);
+    assert_eq!(c.relay.queue_depth, 64);
+    assert_eq!(c.relay.retries, 0);
+    assert!(!c.relay.retry_writes);
+    assert_eq!(c.relay.notifications, Notifications::Drop);
+    assert_eq!(c.serial.silence_floor_ms, 20);
+    assert!(!c.serial.rs485 && !c.serial.echo);
+    assert_eq!(c.relay.broadcast_delay_ms, 100);
+    assert_eq!(c.relay.broadcast_reply, BroadcastReply::None);
+    assert!(c.relay.unit_backoff);
+    assert_eq!(c.relay.unit_backoff_after, 3);
+    assert_eq!(
+        (c.relay.unit_backoff_ms, c.relay.unit_backoff_max_ms),
+        (1000, 30_000)
+    );
+    assert_eq!(c.log.level, "info");
+    assert!(!c.log.traffic);
+}
+
+#[test]
+fn empty_file_is_defaults() {
+    assert_eq!(parse("", F).unwrap(), Config::default());
+    assert_eq!(parse("\n# nothing\n\n", F).unwrap(), Config::default());
+    assert_eq!(
+        parse("[serial]\n[tcp]\n[relay]\n[log]\n", F).unwrap(),
+        Config::default()
+    );
+}
+
+#[test]
+fn shipped_file_is_defaults() {
+    let text = include_str!("../config/mbgate.toml");
+    assert_eq!(
+        parse(text, "config/mbgate.toml").unwrap(),
+        Config::default()
+    );
+    // Every key is spelled out in the shipped file.
+    let printed = to_toml(&Config::default());
+    for line in printed.lines().filter(|l| l.contains(" = ")) {
+        let key = line.split(" = ").next().unwrap();
+        assert!(
+            text.lines().any(|l| l.starts_with(&format!("{key} = "))),
+            "{key} missing from config/mbgate.toml"
+        );
+    }
+}
+
+#[test]
+fn partial_section_keeps_other_defaults() {
+    let c = parse(
+        "[serial]\nbaud_rate = 9600\nparity = \"even\"\n[relay]\nnotifications = \"broadcast\"\n",
+        F,
+    )
+    .unwrap();
+    let mut want = Config::default();
+    want.serial.baud_rate = 9600;
+    want.serial.parity = Parity::Even;
+    want.relay.notifications = Notifications::Broadcast;
+    assert_eq!(c, want);
+}
+
+#[test]
+fn dotted_keys_and_inline_tables_work() {
+    let c = parse(
+        "serial.baud_rate = 9600\ntcp = { max_connections = 4 }\n",
+        F,
+    )
+    .unwrap();
+    assert_eq!(c.serial.baud_rate, 9600);
+    assert_eq!(c.tcp.max_connections, 4);
+}
+
+#[test]
+fn syntax_error_names_file_line_column() {
+    let e = err("[serial]\nbaud_rate = 19200\npath = \"/dev/ttyS0\n");
+    assert!(e.starts_with(&format!("{F}:3:")), "{e}");
+    assert!(e.contains("serial.path: TOML syntax error"), "{e}");
+
+    let e = err("[serial]\n\n\nbaud_rate = = 5\n");
+    assert!(
+        e.starts_with(&format!("{F}:4:13: serial.baud_rate: ")),
+        "{e}"
+    );
+
+    let e = err("[serial\n");
+    assert!(e.starts_with(&format!("{F}:1:")), "{e}");
+    assert!(e.contains("TOML syntax error"), "{e}");
+}
+
+#[test]
+fn duplicate_key_is_an_error() {
+    let e = err("[tcp]\nmax_connections = 3\nmax_connections = 4\n");
+    assert!(e.starts_with(&format!("{F}:3:")), "{e}");
+    assert!(e.contains("tcp.max_connections"), "{e}");
+}
+
+#[test]
+fn unknown_key_in_each_section() {
+    assert_err(
+        "[serial]\nbaudrate = 9600\n",
+        2,
+        "serial.baudrate",
+        "unknown key; expected one of path, baud_rate, data_bits, parity, stop_bits, \
+         flow_control, framing, silence_floor_ms, rs485, rs485_delay_before_send_ms, \
+         rs485_delay_after_send_ms, echo (did you mean `baud_rate`?)",
+    );
+    assert_err(
+        "[tcp]\nlisten = \"0.0.0.0:502\"\n\nmax_conections = 3\n",
+        4,
+        "tcp.max_conections",
+        "unknown key; expected one of listen, max_connections, idle_timeout_ms",
+    );
+    assert_err(
+        "[relay]\ntimeout_ms = 3\n",
+        2,
+        "relay.timeout_ms",
+        "unknown key; expected one of response_timeout_ms,",
+    );
+    assert_err(
+        "[log]\nlevel = \"info\"\ncolour = true\n",
+        3,
+        "log.colour",
+        "unknown key; expected one of level, traffic",
+    );
+    assert_err(
+        "[serial]\n[modbus]\nunit = 1\n",
+        2,
+        "modbus",
+        "unknown key; expected one of serial, tcp, relay, log",
+    );
+    assert_err(
+        "[serial]\n[tcp]\n[relay]\n[log]\n[logs]\n",
+        5,
+        "logs",
+        "(did you mean `log`?)",
+    );
+}
+
+#[test]
+fn unknown_key_column_points_at_key() {
+    let e = err("[serial]\n  baudrate = 9600\n");
+    assert!(e.starts_with(&format!("{F}:2:3: serial.baudrate: ")), "{e}");
+}
+
+#[test]
+fn wrong_types() {
+    assert_err(
+        "[serial]\nbaud_rate = \"fast\"\n",
+        2,
+        "serial.baud_rate",
+        "invalid type: string \"fast\", expected an integer",
+    );
+    assert_err(
+        "[serial]\npath = 5\n",
+        2,
+        "serial.path",
+        "expected a string",
+    );
+    assert_err(
+        "[relay]\nretry_writes = \"yes\"\n",
+        2,
+        "relay.retry_writes",
+        "invalid type",
+    );
+    assert_err("[tcp]\nlisten = 502\n", 2, "tcp.listen", "0.0.0.0:502");
+    assert_err("[log]\ntraffic = 1\n", 2, "log.traffic", "invalid type");
+    assert_err(
+        "[relay]\nframe_gap_ms = 1.5\n",
+        2,
+        "relay.frame_gap_ms",
+        "integer",
+    );
+    assert_err(
+        "serial = 5\n",
+        1,
+        "serial",
+        "invalid type: integer `5`, expected a table ([section])",
+    );
+    assert_err(
+        "[serial]\nparity = 1\n",
+        2,
+        "serial.parity",
+        "expected a string, one of none, even, odd",
+    );
+    assert_err(
+        "[relay]\nqueue_depth = 99999999999999999999\n",
+        2,
+        "relay.queue_depth",
+        "must be between 1 and 65536",
+    );
+}
+
+#[test]
+fn bad_enum_values() {
+    assert_err(
+        "[serial]\nparity = \"mark\"\n",
+        2,
+        "serial.parity",
+        "invalid value \"mark\"; expected one of none, even, odd",
+    );
+    assert_err(
+        "[serial]\nflow_control = \"rts\"\n",
+        2,
+        "serial.flow_control",
+        "expected one of hardware, software, none",
+    );
+    assert_err(
+        "[serial]\nframing = \"tcp\"\n",
+        2,
+        "serial.framing",
+        "invalid value \"tcp\"; expected one of mbap, rtu, ascii",
+    );
+    assert_err(
+        "[relay]\nnotifications = \"all\"\n",
+        2,
+        "relay.notifications",
+        "expected one of drop, broadcast",
+    );
+    assert_err(
+        "[serial]\nparity = \"Even\"\n",
+        2,
+        "serial.parity",
+        "invalid value",
+    );
+}
+
+#[test]
+fn range_violations() {
+    let cases: &[(&str, &str, &str, &str)] = &[
+        (
+            "serial",
+            "baud_rate",
+            "49",
+            "must be between 50 and 4000000, got 49",
+        ),
+        (
+            "serial",
+            "baud_rate",
+            "4000001",
+            "must be between 50 and 4000000",
+        ),
+        (
+            "serial",
+            "baud_rate",
+            "-1",
+            "must be between 50 and 4000000, got -1",
+        ),
+        ("serial", "data_bits", "6", "must be 7 or 8, got 6"),
+        ("serial", "data_bits", "300", "must be 7 or 8, got 300"),
+        ("serial", "stop_bits", "0", "must be 1 or 2"),
+        ("serial", "stop_bits", "3", "must be 1 or 2"),
+        ("serial", "path", "\"\"", "must not be empty"),
+        ("serial", "path", "\"  \"", "must not be empty"),
+        (
+            "tcp",
+            "listen",
+            "\"0.0.0.0\"",
+            "expected an address like 0.0.0.0:502",
+        ),
+        (
+            "tcp",
+            "listen",
+            "\"localhost:502\"",
+            "expected an address like",
+        ),
+        ("tcp", "max_connections", "0", "must be between 1 and 4096"),
+        (
+            "tcp",
+            "max_connections",
+            "4097",
+            "must be between 1 and 4096",
+        ),
+        ("tcp", "idle_timeout_ms", "-5", "must be 0 (never)"),
+        (
+            "relay",
+            "response_timeout_ms",
+            "0",
+            "must be between 1 and 600000",
+        ),
+        (
+            "relay",
+            "response_timeout_ms",
+            "600001",
+            "must be between 1 and 600000",
+        ),
+        ("relay", "frame_gap_ms", "0", "must be between 1 and 60000"),
+        (
+            "relay",
+            "frame_gap_ms",
+            "60001",
+            "must be between 1 and 60000",
+        ),
+        ("relay", "max_in_flight", "0", "must be between 1 and 255"),
+        ("relay", "max_in_flight", "256", "must be between 1 and 255"),
+        (
+            "relay",
+            "max_pending_per_connection",
+            "0",
+            "must be between 1 and 1024",
+        ),
+        (
+            "relay",
+            "max_pending_per_connection",
+            "1025",
+            "must be between 1 and 1024",
+        ),
+        ("relay", "queue_depth", "0", "must be between 1 and 65536"),
+        (
+            "relay",
+            "queue_depth",
+            "65537",
+            "must be between 1 and 65536",
+        ),
+        ("relay", "retries", "11", "must be between 0 and 10"),
+        ("relay", "retries", "-1", "must be between 0 and 10"),
+        (
+            "serial",
+            "silence_floor_ms",
+            "1001",
+            "must be between 0 and 1000",
+        ),
+        (
+            "serial",
+            "rs485_delay_before_send_ms",
+            "-1",
+            "must be between 0 and 1000",
+        ),
+        (
+            "relay",
+            "broadcast_delay_ms",
+            "60001",
+            "must be between 0 and 60000",
+        ),
+        (
+            "relay",
+            "unit_backoff_after",
+            "0",
+            "must be between 1 and 100",
+        ),
+        (
+            "relay",
+            "unit_backoff_max_ms",
+            "0",
+            "must be between 1 and 3600000",
+        ),
+        (
+            "log",
+            "level",
+            "\"verbose\"",
+            "must be one of trace, debug, info, warn, error",
+        ),
+        ("log", "level", "\"INFO\"", "must be one of"),
+    ];
+    for (section, key, value, msg) in cases {
+        // Put the bad key on line 3, column 13 (after a comment line).
+        let pad = " ".repeat(12 - key.len().min(12));
+        let text = format!("[{section}]\n# comment\n{pad}{key} = {value}\n");
+        let col = pad.len() + key.len() + 4;
+        let e = err(&text);
+        let want = format!("{F}:3:{col}: {section}.{key}: {msg}");
+        assert!(e.starts_with(&want), "{e:?} should start with {want:?}");
+    }
+}
+
+#[test]
+fn range_edges_are_accepted() {
+    let text = "[serial]\nbaud_rate = 50\ndata_bits = 7\nstop_bits = 2\n\
+                [tcp]\nlisten = \"[::1]:1502\"\nmax_connections = 4096\nidle_timeout_ms = 0\n\
+                [relay]\nresponse_timeout_ms = 600000\nframe_gap_ms = 1\nmax_in_flight = 255\n\
+                max_pending_per_connection = 1024\nqueue_depth = 65536\nretries = 10\n\
+                [log]\nlevel = \"trace\"\n";
+    let c = parse(text, F).unwrap();
+    assert_eq!(c.serial.baud_rate, 50);
+    assert_eq!(c.tcp.listen, "[::1]:1502".parse().unwrap());
+    assert_eq!(c.relay.queue_depth, 65536);
+    assert_eq!(c.relay.retries, 10);
+    assert_eq!(
+        parse("[serial]\nbaud_rate = 4000000\n", F)
+            .unwrap()
+            .serial
+            .baud_rate,
+        4_000_000
+    );
+}
+
+#[test]
+fn contradictory_keys_are_refused_naming_both() {
+    // The position is that of the first key's value when the file sets it, else
+    // that of the other's; dotted keys and inline tables are found too.
+    let cases = [
+        (
+            "[relay]\nmax_pending_per_connection = 100\n",
+            "config/test.toml:2:30: relay.max_pending_per_connection: \
+             must not exceed relay.queue_depth (64), got 100: \
+             one master could pipeline more than the whole queue holds",
+        ),
+        (
+            "[relay]\nretries = 1\nqueue_depth = 8\n",
+            "config/test.toml:3:15: relay.max_pending_per_connection: \
+             must not exceed relay.queue_depth (8), got 16",
+        ),
+        (
+            "relay.unit_backoff_ms = 5000\nrelay.unit_backoff_max_ms = 10\n",
+            "config/test.toml:1:25: relay.unit_backoff_ms: \
+             must not exceed relay.unit_backoff_max_ms (10), got 5000: \
+             the first backoff would be longer than the longest",
+        ),
+        (
+            "relay = { unit_backoff_max_ms = 999 }\n",
+            "config/test.toml:1:33: relay.unit_backoff_ms: \
+             must not exceed relay.unit_backoff_max_ms (999), got 1000",
+        ),
+    ];
+    for (text, want) in cases {
+        let e = err(text);
+        assert!(e.starts_with(want), "{e:?} should start with {want:?}");
+    }
+    // Equal is fine.
+    let c = parse(
+        "[relay]\nmax_pending_per_connection = 64\nunit_backoff_ms = 30000\n",
+        F,
+    )
+    .unwrap();
+    assert_eq!(c.relay.max_pending_per_connection, c.relay.queue_depth);
+
+    // A flag that makes the contradiction is named, with both keys.
+    let cases: [(&[&str], &str); 4] = [
+        (
+            &["--max-pending-per-connection", "100"],
+            "--max-pending-per-connection: relay.max_pending_per_connection \
+             must not exceed relay.queue_depth (64), got 100",
+        ),
+        (
+            &["--queue-depth", "8"],
+            "--queue-depth: relay.max_pending_per_connection \
+             must not exceed relay.queue_depth (8), got 16",
+        ),
+        (
+            &["--unit-backoff-max-ms", "10"],
+            "--unit-backoff-max-ms: relay.unit_backoff_ms \
+             must not exceed relay.unit_backoff_max_ms (10), got 1000",
+        ),
+        (
+            &["--unit-backoff-ms", "5000", "--unit-backoff-max-ms", "10"],
+            "--unit-backoff-ms: relay.unit_backoff_ms \
+             must not exceed relay.unit_backoff_max_ms (10), got 5000",
+        ),
+    ];
+    for (args, want) in cases {
+        let mut cfg = Config::default();
+        let e = cli(args).unwrap().apply(&mut cfg).unwrap_err().to_string();
+        assert!(e.starts_with(want), "{e:?} should start with {want:?}");
+        assert_eq!(cfg, Config::default(), "a failed apply must not change cfg");
+    }
+    // Flags that move both keys together are fine.
+    let mut cfg = Config::default();
+    cli(&[
+        "--max-pending-per-connection",
+        "100",
+        "--queue-depth",
+        "100",
+    ])
+    .unwrap()
+    .apply(&mut cfg)
+    .unwrap();
+    assert_eq!(cfg.relay.queue_depth, 100);
+}
+
+#[test]
+fn load_names_file_and_os_error() {
+    let e = load(Path::new("/nonexistent/mbgate.toml")).unwrap_err();
+    let msg = e.to_string();
+    assert!(msg.starts_with("/nonexistent/mbgate.toml: "), "{msg}");
+    assert!(msg.contains("No such file or directory"), "{msg}");
+    assert!(matches!(e, ConfigError::Read { .. }));
+}
+
+#[test]
+fn load_reads_file_and_reports_its_name() {
+    let dir = std::env::temp_dir().join(format!("mbgate-config-test-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let good = dir.join("good.toml");
+    std::fs::write(&good, "[serial]\npath = \"/dev/ttyAMA0\"\n").unwrap();
+    assert_eq!(load(&good).unwrap().serial.path, "/dev/ttyAMA0");
+    let bad = dir.join("bad.toml");
+    std::fs::write(&bad, "[serial]\n\n\n\n\n\nbaud_rate = 10\n").unwrap();
+    let msg = load(&bad).unwrap_err().to_string();
+    assert_eq!(
+        msg,
+        format!(
+            "{}:7:13: serial.baud_rate: must be between 50 and 4000000, got 10",
+            bad.display()
+        )
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+fn non_default() -> Config {
+    Config {
+        serial: SerialConfig {
+            path: "/dev/serial/by-id/usb-FTDI \"quoted\" \\ name".into(),
+            baud_rate: 115_200,
+            data_bits: 7,
+            parity: Parity::Odd,
+            stop_bits: 2,
+            flow_control: FlowControl::Software,
+            framing: Framing::Rtu,
+            silence_floor_ms: 0,
+            rs485: true,
+            rs485_delay_before_send_ms: 2,
+            rs485_delay_after_send_ms: 1000,
+            echo: true,
+        },
+        tcp: TcpConfig {
+            listen: "[::]:1502".parse().unwrap(),
+            max_connections: 4096,
+            idle_timeout_ms: 0,
+        },
+        relay: RelayConfig {
+            response_timeout_ms: 600_000,
+            frame_gap_ms: 1,
+            max_in_flight: 255,
+            max_pending_per_connection: 1,
+            queue_depth: 65_536,
+            retries: 10,
+            retry_writes: true,
+            notifications: Notifications::Broadcast,
+            broadcast_delay_ms: 0,
+            broadcast_reply: BroadcastReply::Echo,
+            unit_backoff: false,
+            unit_backoff_after: 100,
+            unit_backoff_ms: 1,
+            unit_backoff_max_ms: 3_600_000,
+        },
+        log: LogConfig {
+            level: "trace".into(),
+            traffic: true,
+        },
+    }
+}
+
+#[test]
+fn round_trip() {
+    for cfg in [Config::default(), non_default()] {
+        let text = to_toml(&cfg);
+        assert_eq!(parse(&text, "printed").unwrap(), cfg, "{text}");
+    }
+}
+
+#[test]
+fn printed_layout_follows_design_md() {
+    let text = to_toml(&Config::default());
+    let headers: Vec<&str> = text.lines().filter(|l| l.starts_with('[')).collect();
+    assert_eq!(headers, ["[serial]", "[tcp]", "[relay]", "[log]"]);
+    assert!(text.contains("[serial]\npath = \"/dev/ttyUSB0\"\nbaud_rate = 19200\n"));
+    assert!(text.contains("listen = \"0.0.0.0:502\"\n"));
+    assert!(text.contains("parity = \"none\"\n"));
+}
+
+/// A key's value in `cfg` as typed after its flag.
+fn flag_value(key: &Key, cfg: &Config) -> String {
+    let table: toml::Table = toml::from_str(&format!("v = {}", (key.get)(cfg))).unwrap();
+    match &table["v"] {
+        toml::Value::String(s) => s.clone(),
+        v => v.to_string(),
+    }
+}
+
+#[test]
+fn overrides_apply_every_field() {
+    // One flag a declared key, each given the value `non_default` has.
+    let want = non_default();
+    let args: Vec<String> = KEYS
+        .iter()
+        .map(|k| format!("--{}={}", k.flag, flag_value(k, &want)))
+        .collect();
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    let o = cli(&args).unwrap();
+    let mut cfg = Config::default();
+    o.apply(&mut cfg).unwrap();
+    assert_eq!(cfg, want);
+
+    // No flags: nothing changes.
+    let mut cfg = want.clone();
+    Overrides::default().apply(&mut cfg).unwrap();
+    assert_eq!(cfg, want);
+}
+
+#[test]
+fn overrides_validate_and_name_the_flag() {
+    // As typed on the command line. (`--log-level` is refused by clap itself, see
+    // below; `apply` checks it too for callers that build `Overrides` in code.)
+    let cases: [(&[&str], &str); 11] = [
+        (
+            &["--baud", "10"],
+            "--baud: must be between 50 and 4000000, got 10",
+        ),
+        (&["--data-bits", "9"], "--data-bits: must be 7 or 8, got 9"),
+        (&["--stop-bits", "0"], "--stop-bits: must be 1 or 2, got 0"),
+        (&["--serial", ""], "--serial: must not be empty"),
+        (
+            &["--response-timeout-ms", "0"],
+            "--response-timeout-ms: must be between 1 and 600000, got 0",
+        ),
+        (
+            &["--frame-gap-ms", "60001"],
+            "--frame-gap-ms: must be between 1 and 60000",
+        ),
+        (
+            &["--max-in-flight", "256"],
+            "--max-in-flight: must be between 1 and 255",
+        ),
+        (
+            &["--max-pending-per-connection", "0"],
+            "--max-pending-per-connection: must be between 1 and 1024",
+        ),
+        (
+            &["--queue-depth", "70000"],
+            "--queue-depth: must be between 1 and 65536",
+        ),
+        (
+            &["--max-connections", "0"],
+            "--max-connections: must be between 1 and 4096",
+        ),
+        (&["--retries", "11"], "--retries: must be between 0 and 10"),
+    ];
+    for (args, want) in cases {
+        let mut cfg = Config::default();
+        let e = cli(args).unwrap().apply(&mut cfg).unwrap_err().to_string();
+        assert!(e.starts_with(want), "{e:?} should start with {want:?}");
+        assert_eq!(cfg, Config::default(), "a failed apply must not change cfg");
+    }
+    let mut level = Overrides::default();
+    assert!(level.set("log-level", Raw::Str("loud".into())));
+    let e = level.apply(&mut Config::default()).unwrap_err().to_string();
+    assert!(e.starts_with("--log-level: must be one of trace, debug, info, warn, error"));
+    // A later bad flag leaves earlier good ones unapplied too.
+    let mut cfg = Config::default();
+    let o = cli(&["--baud", "9600", "--retries", "99"]).unwrap();
+    assert!(o.apply(&mut cfg).is_err());
+    assert_eq!(cfg, Config::default());
+}
+
+#[derive(Parser, Debug)]
+struct Cli {
+    #[command(flatten)]
+    overrides: Overrides,
+}
+
+fn cli(args: &[&str]) -> Result<Overrides, clap::Error> {
+    Cli::try_parse_from(std::iter::once("mbgate").chain(args.iter().copied())).map(|c| c.overrides)
+}
+
+#[test]
+fn command_line_flags_parse() {
+    let o = cli(&[
+        "--serial",
+        "/dev/ttyS1",
+        "--listen",
+        "127.0.0.1:1502",
+        "--baud",
+        "9600",
+        "--data-bits",
+        "7",
+        "--parity",
+        "even",
+        "--stop-bits",
+        "2",
+        "--flow-control",
+        "none",
+        "--framing",
+        "rtu",
+        "--rs485",
+        "--echo=false",
+        "--broadcast-reply",
+        "echo",
+        "--unit-backoff-after",
+        "5",
+        "--response-timeout-ms",
+        "500",
+        "--frame-gap-ms",
+        "20",
+        "--max-in-flight",
+        "2",
+        "--max-pending-per-connection",
+        "4",
+        "--queue-depth",
+        "8",
+        "--max-connections",
+        "3",
+        "--idle-timeout-ms",
+        "0",
+        "--retries",
+        "1",
+        "--retry-writes",
+        "--notifications",
+        "broadcast",
+        "--log-level",
+        "debug",
+        "--traffic",
+    ])
+    .unwrap();
+    let mut cfg = Config::default();
+    o.apply(&mut cfg).unwrap();
+    assert_eq!(cfg.serial.path, "/dev/ttyS1");
+    assert_eq!(cfg.tcp.listen, "127.0.0.1:1502".parse().unwrap());
+    assert_eq!(cfg.serial.parity, Parity::Even);
+    assert_eq!(cfg.serial.flow_control, FlowControl::None);
+    assert_eq!(cfg.serial.framing, Framing::Rtu);
+    assert_eq!((cfg.serial.rs485, cfg.serial.echo), (true, false));
+    assert_eq!(cfg.relay.broadcast_reply, BroadcastReply::Echo);
+    assert_eq!(cfg.relay.unit_backoff_after, 5);
+    assert_eq!(cfg.relay.notifications, Notifications::Broadcast);
+    assert!(cfg.relay.retry_writes);
+    assert!(cfg.log.traffic);
+    assert_eq!(cfg.log.level, "debug");
+    assert_eq!(cfg.serial.baud_rate, 9600);
+    assert_eq!(cfg.relay.max_pending_per_connection, 4);
+    assert_eq!(cfg.tcp.idle_timeout_ms, 0);
+
+    assert_eq!(cli(&[]).unwrap(), Overrides::default());
+    let o = cli(&["--traffic=false", "--retry-writes=false"]).unwrap();
+    assert!(o.given("traffic") && o.given("retry-writes"));
+    let mut cfg = Config::default();
+    cfg.log.traffic = true;
+    cfg.relay.retry_writes = true;
+    o.apply(&mut cfg).unwrap();
+    assert_eq!((cfg.log.traffic, cfg.relay.retry_writes), (false, false));
+}
+
+#[test]
+fn command_line_rejects_bad_values_naming_the_flag() {
+    for (args, flag) in [
+        (&["--parity", "mark"][..], "--parity"),
+        (&["--listen", "0.0.0.0"][..], "--listen"),
+        (&["--baud", "fast"][..], "--baud"),
+        (&["--log-level", "loud"][..], "--log-level"),
+        (&["--traffic=maybe"][..], "--traffic"),
+    ] {
+        let e = cli(args).unwrap_err();
+        let msg = e.to_string();
+        assert!(msg.contains(flag), "{msg}");
+        assert_eq!(e.exit_code(), 2);
+    }
+    let msg = cli(&["--listen", "0.0.0.0"]).unwrap_err().to_string();
+    assert!(
+        msg.contains("expected an address like 0.0.0.0:502"),
+        "{msg}"
+    );
+}
