@@ -3,6 +3,7 @@
 
 mod common;
 use common::*;
+use std::time::Duration;
 
 #[test]
 fn check_config_prints_the_effective_configuration() {
@@ -107,5 +108,81 @@ fn a_listen_address_in_use_is_a_clear_runtime_error() {
         o.stderr.contains(&format!("cannot listen on {addr}")),
         "{}",
         o.stderr
+    );
+}
+
+/// `run --help` shows, for every flag, its key and its default.
+#[test]
+fn run_help_shows_each_flag_s_key_and_default() {
+    let o = mbgate(&["run", "--help"]);
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    // Each flag's block starts on a line of its own, indented six spaces.
+    let blocks: Vec<String> = o
+        .stdout
+        .split("\n      --")
+        .map(|b| b.split_whitespace().collect::<Vec<_>>().join(" "))
+        .collect();
+    for key in mbgate::config::KEYS {
+        let default = (key.get)(&mbgate::config::Config::default());
+        let (flag, section, name) = (key.flag, key.section, key.name);
+        let block = blocks
+            .iter()
+            .find(|b| b.starts_with(&format!("{flag} ")) || b.starts_with(&format!("{flag}[=")))
+            .unwrap_or_else(|| panic!("--{flag} missing from:\n{}", o.stdout));
+        let shown = format!(
+            "[{section}.{name}] [default: {}]",
+            default.trim_matches('"')
+        );
+        assert!(block.contains(&shown), "--{block}\nshould show {shown}");
+    }
+    let top = mbgate(&["--help"]).stdout;
+    for device in ["MBAP", "RTU", "ASCII", "CIE-M10"] {
+        assert!(
+            top.contains(device),
+            "mbgate --help should name {device}: {top}"
+        );
+        assert!(env!("CARGO_PKG_DESCRIPTION").contains(device));
+    }
+}
+
+/// `check-config` says on stderr what `run` would warn about at start, word for word,
+/// and still exits 0; `--lines` prints the `[[line]]`/`[[listen]]` form.
+#[test]
+fn check_config_warns_as_run_does() {
+    let dir = tempdir();
+    let file = dir.path().join("rtu.toml");
+    let text = "[serial]\npath = \"/nonexistent/tty\"\nframing = \"rtu\"\n\
+                [tcp]\nlisten = \"127.0.0.1:0\"\n\
+                [relay]\nmax_in_flight = 4\nnotifications = \"broadcast\"\n";
+    std::fs::write(&file, text).unwrap();
+    let path = file.to_str().unwrap();
+    let checked = mbgate(&["check-config", path]);
+    assert_eq!(checked.code, 0, "{}", checked.stderr);
+    let warnings: Vec<&str> = checked.stderr.lines().collect();
+    assert_eq!(warnings.len(), 2, "{}", checked.stderr);
+    let mut run = Proc::start(&["run", "--config", path], "listening on");
+    run.terminate(Duration::from_secs(5));
+    for warning in warnings {
+        let said = warning.strip_prefix("mbgate: warning: ").unwrap();
+        assert!(said.contains("framing = rtu"), "{said}");
+        assert!(
+            run.log().contains(said),
+            "run should say {said:?}:\n{}",
+            run.log()
+        );
+    }
+    // An MBAP line has nothing to warn about.
+    let quiet = mbgate(&["check-config", path, "--framing", "mbap"]);
+    assert_eq!((quiet.code, quiet.stderr.as_str()), (0, ""));
+
+    let lines = mbgate(&["check-config", path, "--lines"]);
+    assert_eq!(lines.code, 0, "{}", lines.stderr);
+    assert!(lines.stdout.starts_with("[[line]]\n"), "{}", lines.stdout);
+    assert!(lines
+        .stdout
+        .contains("[[listen]]\naddress = \"127.0.0.1:0\"\n"));
+    assert_eq!(
+        mbgate::config::parse(&lines.stdout, "stdout").unwrap(),
+        mbgate::config::load(&file).unwrap()
     );
 }

@@ -243,6 +243,7 @@ impl CommonArgs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::{FlowControl, Parity};
 
     /// The argument definitions are consistent (clap's own checks), and parse the
     /// forms the README documents.
@@ -343,6 +344,44 @@ mod tests {
         assert!(
             parse_write(&["write", "coil", "1"]).is_err(),
             "a value is required"
+        );
+    }
+
+    /// `--serial` takes `mbgate run`'s port flags, with their ranges; they need it.
+    #[test]
+    fn serial_port_flags() {
+        use clap::{Args, FromArgMatches};
+        let cmd = ReadArgs::augment_args(clap::Command::new("read"));
+        let common = |args: &[&str]| {
+            let line = ["read", "holding", "0", "--serial", "/dev/ttyS9"];
+            let m = cmd
+                .clone()
+                .try_get_matches_from(line.iter().chain(args))
+                .unwrap();
+            ReadArgs::from_arg_matches(&m).unwrap().common
+        };
+        let args = [
+            "--parity",
+            "odd",
+            "--stop-bits",
+            "2",
+            "--flow-control",
+            "none",
+        ];
+        let Ok(Link::Serial { cfg, .. }) = common(&args).link() else {
+            panic!("a serial link");
+        };
+        assert_eq!((cfg.parity, cfg.stop_bits), (Parity::Odd, 2));
+        assert_eq!(
+            (cfg.flow_control, cfg.baud_rate),
+            (FlowControl::None, 19_200)
+        );
+        let bad = common(&["--stop-bits", "3"]).link().unwrap_err();
+        assert_eq!(bad, "--stop-bits: must be 1 or 2, got 3");
+        let line = ["read", "holding", "0", "--parity", "odd"];
+        assert!(
+            cmd.clone().try_get_matches_from(line).is_err(),
+            "needs --serial"
         );
     }
 

@@ -373,6 +373,7 @@ impl DeviceArgs {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::Parity;
     use clap::Parser;
 
     #[derive(Parser)]
@@ -419,6 +420,36 @@ mod tests {
             "100"
         ])
         .is_ok());
+    }
+
+    /// The port takes `mbgate run`'s flags, ranges and defaults; `--baud` also paces.
+    #[test]
+    fn the_port_takes_run_s_flags() {
+        #[derive(Parser)]
+        struct S {
+            #[command(flatten)]
+            s: SimArgs,
+        }
+        let sim = |args: &[&str]| {
+            let line = ["t", "--serial", "/dev/ttyS9", "--profile", "generic"];
+            S::try_parse_from(line.iter().chain(args)).unwrap().s
+        };
+        let s = sim(&["--baud", "9600", "--parity", "even", "--framing", "rtu"]);
+        let port = s.serial_config().unwrap();
+        assert_eq!((port.path.as_str(), port.baud_rate), ("/dev/ttyS9", 9600));
+        assert_eq!((port.parity, port.framing), (Parity::Even, Framing::Rtu));
+        assert_eq!(s.settings().unwrap().baud, Some(9600));
+        let s = sim(&[]);
+        assert_eq!(
+            s.serial_config().unwrap(),
+            SerialConfig {
+                path: "/dev/ttyS9".into(),
+                ..SerialConfig::default()
+            }
+        );
+        assert_eq!(s.settings().unwrap().baud, None, "no --baud, no pacing");
+        let bad = sim(&["--data-bits", "9"]).settings().unwrap_err();
+        assert_eq!(bad, "--data-bits: must be 7 or 8, got 9");
     }
 
     #[test]
