@@ -15,7 +15,7 @@
 mod common;
 
 use common::sim::RawLine;
-use common::{read_frame, read_req, tempdir, Cfg, Gateway, Proc, Socat};
+use common::{cpu_ns, read_frame, read_req, tempdir, Cfg, Gateway, Proc, Socat};
 use std::fmt::Write as _;
 use std::io::Write as _;
 use std::net::TcpStream;
@@ -790,15 +790,6 @@ fn cpu_ticks(pid: u32) -> u64 {
         .collect();
     // rest starts at field 3 (state): field k is f[k - 3].
     f[14 - 3] + f[15 - 3]
-}
-
-/// Time on a CPU of all of a process's threads, in ns (/proc/PID/task/*/schedstat).
-fn cpu_ns(pid: u32) -> u64 {
-    std::fs::read_dir(format!("/proc/{pid}/task"))
-        .expect("tasks")
-        .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok())
-        .filter_map(|s| s.split_whitespace().next()?.parse::<u64>().ok())
-        .sum()
 }
 
 fn clock_ticks_per_second() -> u64 {
