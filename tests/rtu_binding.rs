@@ -325,6 +325,11 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
     let last_byte = talker.join().unwrap();
     let sent = device.seen_at.lock().unwrap()[0];
     let counters = gw.stop();
+    eprintln!(
+        "the request reached the device {:?} after the device side's last byte (3.5 \
+         character times: {t35:?}); {counters:?}",
+        sent.saturating_duration_since(last_byte)
+    );
     assert!(
         sent >= last_byte + t35 - Duration::from_millis(3),
         "the request reached the device {:?} after the device side's last byte, \
