@@ -95,7 +95,7 @@ fn ascii_stray_frame_before_a_request_is_never_its_reply() {
 }
 
 fn stray_frame_before_a_request(framing: &str) {
-    let mut b = sim_bench(framing, &[], &["response_timeout_ms = 300"]);
+    let mut b = sim_bench(framing, &[], &[]);
     // A second opener of the device's end: what it writes reaches the gateway as if
     // the device (or another master's device, or noise) had sent it.
     let mut line = RawLine::open(&b.socat.dev);
@@ -135,8 +135,9 @@ fn stray_frame_before_a_request(framing: &str) {
 }
 
 /// A device that answers 20 ms after the gateway's response timeout (the simulator's
-/// `--delay-ms`), two masters reading distinct registers at once: every answer is
-/// 0x0B, none is another request's data, and every late reply is discarded whole.
+/// `--delay-ms`), two masters reading distinct registers at once: no answer is another
+/// request's data; each is 0x0B (or, if the gateway's own timer woke late, its own
+/// value), and every late reply is discarded whole.
 #[test]
 fn rtu_late_replies_never_reach_the_next_request() {
     late_replies_never_reach_the_next_request("rtu");
@@ -146,6 +147,11 @@ fn rtu_late_replies_never_reach_the_next_request() {
 fn ascii_late_replies_never_reach_the_next_request() {
     late_replies_never_reach_the_next_request("ascii");
 }
+
+/// Far more than the 20 ms the replies are late: the simulator's own response time
+/// wanders by tens of ms on a busy machine (how late a reply the default guard
+/// catches is measured in docs/reliability.md).
+const GUARD_MS: u64 = 250;
 
 fn late_replies_never_reach_the_next_request(framing: &str) {
     const TIMEOUT_MS: u64 = 60;
@@ -157,6 +163,7 @@ fn late_replies_never_reach_the_next_request(framing: &str) {
         &["--delay-ms", &delay],
         &[
             &format!("response_timeout_ms = {TIMEOUT_MS}"),
+            &format!("timeout_guard_ms = {GUARD_MS}"),
             // Every request goes on the line, however often the unit times out.
             "unit_backoff = false",
         ],
@@ -187,23 +194,35 @@ fn late_replies_never_reach_the_next_request(framing: &str) {
         .filter(|(addr, a)| matches!(a, Answer::Value(v) if v != addr))
         .collect();
     assert!(wrong.is_empty(), "another request's data: {wrong:?}");
+    let late = answers
+        .iter()
+        .filter(|(_, a)| *a == Answer::Exception(0x0B))
+        .count();
     for (addr, a) in &answers {
-        assert_eq!(*a, Answer::Exception(0x0B), "register {addr}");
+        assert!(
+            *a == Answer::Exception(0x0B) || *a == Answer::Value(*addr),
+            "register {addr}: {a:?}"
+        );
     }
+    assert!(
+        late * 2 >= answers.len(),
+        "only {late} timed out: {answers:?}"
+    );
     let reply = encode(framing, 1, &[0x03, 2, 0, 0]).len() as u64;
     assert_eq!(
         counters["dropped_bytes"],
-        2 * u64::from(PER_MASTER) * reply,
+        late as u64 * reply,
         "every late reply discarded and counted: {counters:?}"
     );
 }
 
 /// A device that answers reads of even registers 20 ms after the response timeout and
-/// odd ones at once, read in turn: the late ones are 0x0B, the ones in time carry
-/// their own register's value (never the late reply just before them).
+/// odd ones at once, read in turn: the late ones are 0x0B (or their own value, if the
+/// gateway's timer woke late), the ones in time carry their own register's value,
+/// never the late reply just before them.
 #[test]
 fn rtu_late_and_timely_replies_alternating() {
-    const TIMEOUT_MS: u64 = 60;
+    const TIMEOUT_MS: u64 = 150;
     let dir = tempdir();
     let socat = Socat::start(dir.path());
     let mut regs = rtu_register_device(&[1]);
@@ -224,6 +243,7 @@ fn rtu_late_and_timely_replies_alternating() {
         .serial("framing = \"rtu\"")
         .serial("flow_control = \"none\"")
         .relay(&format!("response_timeout_ms = {TIMEOUT_MS}"))
+        .relay(&format!("timeout_guard_ms = {GUARD_MS}"))
         .relay("unit_backoff = false");
     let mut gw = Gateway::start(&cfg, dir.path());
     let mut m = gw.connect();
@@ -231,15 +251,19 @@ fn rtu_late_and_timely_replies_alternating() {
         .map(|addr| (addr, read_one(&mut m, addr, 1, addr)))
         .collect();
     let counters = gw.stop();
+    let mut late = 0;
     for (addr, a) in &answers {
-        let want = if addr.is_multiple_of(2) {
-            Answer::Exception(0x0B)
+        if addr.is_multiple_of(2) && *a == Answer::Exception(0x0B) {
+            late += 1;
         } else {
-            Answer::Value(*addr)
-        };
-        assert_eq!(*a, want, "register {addr}: {answers:?}");
+            assert_eq!(*a, Answer::Value(*addr), "register {addr}: {answers:?}");
+        }
     }
-    assert_eq!(counters["replies"], 6, "{counters:?}");
+    assert!(
+        late >= 3,
+        "only {late} of the 6 late replies timed out: {answers:?}"
+    );
+    assert_eq!(counters["replies"], 12 - late, "{counters:?}");
 }
 
 /// Replies that begin while the request is still being sent (1200 baud: 67 ms for a
