@@ -151,6 +151,14 @@ pub struct RelayConfig {
     pub unit_backoff_ms: u64,
     #[serde(deserialize_with = "de_key::unit_backoff_ms")]
     pub unit_backoff_max_ms: u64,
+    /// RTU/ASCII: the response timeout of a request that probes a backed-off unit
+    /// (never longer than `response_timeout_ms`).
+    #[serde(deserialize_with = "de_key::response_timeout_ms")]
+    pub probe_timeout_ms: u64,
+    /// RTU/ASCII: after a timeout the line stays quiet this long before the next
+    /// request, and what arrives meanwhile (most often the late reply) is discarded.
+    #[serde(deserialize_with = "de_key::timeout_guard_ms")]
+    pub timeout_guard_ms: u64,
 }
 
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -208,6 +216,8 @@ impl Default for RelayConfig {
             unit_backoff_after: 3,
             unit_backoff_ms: 1000,
             unit_backoff_max_ms: 30_000,
+            probe_timeout_ms: 250,
+            timeout_guard_ms: 100,
         }
     }
 }
@@ -624,6 +634,7 @@ const RS485_DELAY_MS: Limit = Limit::range(0, 1000);
 const BROADCAST_DELAY_MS: Limit = Limit::range(0, 60_000);
 const UNIT_BACKOFF_AFTER: Limit = Limit::range(1, 100);
 const UNIT_BACKOFF_MS: Limit = Limit::range(1, 3_600_000);
+const TIMEOUT_GUARD_MS: Limit = Limit::range(0, 60_000);
 
 fn check_serial_path(path: &str) -> Result<(), String> {
     if path.trim().is_empty() {
@@ -712,6 +723,7 @@ mod de_key {
         broadcast_delay_ms: u64 = BROADCAST_DELAY_MS;
         unit_backoff_after: u32 = UNIT_BACKOFF_AFTER;
         unit_backoff_ms: u64 = UNIT_BACKOFF_MS;
+        timeout_guard_ms: u64 = TIMEOUT_GUARD_MS;
     }
 
     pub(super) fn serial_path<'de, D: Deserializer<'de>>(d: D) -> Result<String, D::Error> {
@@ -875,6 +887,14 @@ pub struct Overrides {
     /// Longest back-off interval, 1..=3600000 ms [relay.unit_backoff_max_ms]
     #[arg(long, value_name = "MS")]
     pub unit_backoff_max_ms: Option<u64>,
+    /// Response timeout of a request probing a backed-off unit, 1..=600000 ms
+    /// [relay.probe_timeout_ms]
+    #[arg(long, value_name = "MS")]
+    pub probe_timeout_ms: Option<u64>,
+    /// RTU/ASCII: quiet time after a timeout, late replies discarded, 0..=60000 ms
+    /// [relay.timeout_guard_ms]
+    #[arg(long, value_name = "MS")]
+    pub timeout_guard_ms: Option<u64>,
     /// Log level [log.level]
     #[arg(long, value_name = "LEVEL", value_parser = LOG_LEVELS)]
     pub log_level: Option<String>,
@@ -974,6 +994,8 @@ impl Overrides {
             relay.unit_backoff_after = unit_backoff_after, "--unit-backoff-after", UNIT_BACKOFF_AFTER;
             relay.unit_backoff_ms = unit_backoff_ms, "--unit-backoff-ms", UNIT_BACKOFF_MS;
             relay.unit_backoff_max_ms = unit_backoff_max_ms, "--unit-backoff-max-ms", UNIT_BACKOFF_MS;
+            relay.probe_timeout_ms = probe_timeout_ms, "--probe-timeout-ms", RESPONSE_TIMEOUT_MS;
+            relay.timeout_guard_ms = timeout_guard_ms, "--timeout-guard-ms", TIMEOUT_GUARD_MS;
         }
         if let Some(level) = &self.log_level {
             check_log_level(level).map_err(|m| bad("--log-level", m))?;
@@ -1058,6 +1080,10 @@ mod tests {
         assert_eq!(
             (c.relay.unit_backoff_ms, c.relay.unit_backoff_max_ms),
             (1000, 30_000)
+        );
+        assert_eq!(
+            (c.relay.probe_timeout_ms, c.relay.timeout_guard_ms),
+            (250, 100)
         );
         assert_eq!(c.log.level, "info");
         assert!(!c.log.traffic);
@@ -1379,6 +1405,18 @@ mod tests {
             ),
             (
                 "relay",
+                "timeout_guard_ms",
+                "60001",
+                "must be between 0 and 60000",
+            ),
+            (
+                "relay",
+                "probe_timeout_ms",
+                "0",
+                "must be between 1 and 600000",
+            ),
+            (
+                "relay",
                 "unit_backoff_after",
                 "0",
                 "must be between 1 and 100",
@@ -1577,6 +1615,8 @@ mod tests {
                 unit_backoff_after: 100,
                 unit_backoff_ms: 1,
                 unit_backoff_max_ms: 3_600_000,
+                probe_timeout_ms: 1,
+                timeout_guard_ms: 60_000,
             },
             log: LogConfig {
                 level: "trace".into(),
@@ -1636,6 +1676,8 @@ mod tests {
             unit_backoff_after: Some(want.relay.unit_backoff_after),
             unit_backoff_ms: Some(want.relay.unit_backoff_ms),
             unit_backoff_max_ms: Some(want.relay.unit_backoff_max_ms),
+            probe_timeout_ms: Some(want.relay.probe_timeout_ms),
+            timeout_guard_ms: Some(want.relay.timeout_guard_ms),
             log_level: Some(want.log.level.clone()),
             traffic: Some(want.log.traffic),
         };
