@@ -344,7 +344,8 @@ fn backed_off_unit_polled_in_a_tight_loop_is_answered_at_the_line_pace() {
         .relay("timeout_guard_ms = 50")
         .relay("unit_backoff_after = 2")
         // No probe while this runs.
-        .relay("unit_backoff_ms = 60000");
+        .relay("unit_backoff_ms = 60000")
+        .relay("unit_backoff_max_ms = 60000");
     let mut gw = Gateway::start(&cfg, dir.path());
     let addr = gw.addr;
     let pid = gw.proc.pid();
