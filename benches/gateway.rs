@@ -3,7 +3,7 @@
 //! pty pairs, and printed as Markdown.
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
-//! `fairness`, `footprint`, `rtu` (all when none is named). `scripts/bench` runs this and
+//! `fairness`, `footprint`, `rtu`, `rtu-backoff` (all when none is named). `scripts/bench` runs this and
 //! `benches/decoder.rs` and writes the tables into docs/performance.md. With
 //! `MBGATE_BENCH_MD=FILE` the tables are also written to FILE.
 //!
@@ -15,7 +15,7 @@
 mod common;
 
 use common::sim::RawLine;
-use common::{read_frame, read_req, tempdir, Cfg, Gateway, Proc, Socat};
+use common::{cpu_ns, read_frame, read_req, tempdir, Cfg, Gateway, Proc, Socat};
 use std::fmt::Write as _;
 use std::io::Write as _;
 use std::net::TcpStream;
@@ -40,7 +40,14 @@ fn main() {
         .skip(1)
         .filter(|a| a != "--bench")
         .collect();
-    let all = ["latency", "wire", "fairness", "footprint", "rtu"];
+    let all = [
+        "latency",
+        "wire",
+        "fairness",
+        "footprint",
+        "rtu",
+        "rtu-backoff",
+    ];
     if let Some(bad) = args.iter().find(|a| !all.contains(&a.as_str())) {
         eprintln!("unknown scenario {bad:?}; scenarios: {}", all.join(", "));
         std::process::exit(2);
@@ -62,6 +69,9 @@ fn main() {
     }
     if wanted("rtu") {
         rtu(&mut r);
+    }
+    if wanted("rtu-backoff") {
+        rtu_backoff(&mut r);
     }
     let md = r.render(&load_before, &loadavg());
     println!("{md}");
@@ -792,15 +802,6 @@ fn cpu_ticks(pid: u32) -> u64 {
     f[14 - 3] + f[15 - 3]
 }
 
-/// Time on a CPU of all of a process's threads, in ns (/proc/PID/task/*/schedstat).
-fn cpu_ns(pid: u32) -> u64 {
-    std::fs::read_dir(format!("/proc/{pid}/task"))
-        .expect("tasks")
-        .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok())
-        .filter_map(|s| s.split_whitespace().next()?.parse::<u64>().ok())
-        .sum()
-}
-
 fn clock_ticks_per_second() -> u64 {
     // SAFETY: sysconf has no preconditions.
     (unsafe { libc::sysconf(libc::_SC_CLK_TCK) }).max(1) as u64
@@ -1036,5 +1037,105 @@ fn rtu(r: &mut Report) {
         "RTU (the simulator with --framing rtu --baud 9600 paces 10 bits a byte each way; the wire limit counts request and reply bytes at 10 bits a byte, and the second limit adds the 3.5 character times mbgate waits before each request)",
         &command("rtu"),
         &t,
+    );
+}
+
+/// A master polls a dead unit (2) in a tight loop beside a master polling a healthy
+/// one (1), RTU at 19 200 baud, every `[relay]` key at its default: once the dead unit
+/// is backed off, how fast its 0x0B answers come against the line's pace, what they
+/// cost the gateway (utime + stime and schedstat, the healthy master idle), and the
+/// healthy unit's throughput beside it against alone (probes of the dead unit
+/// included).
+fn rtu_backoff(r: &mut Report) {
+    use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+    const BAUD: u32 = 19_200;
+    const ALONE: Duration = Duration::from_secs(5);
+    const CPU_WINDOW: Duration = Duration::from_secs(5);
+    const BESIDE: Duration = Duration::from_secs(10);
+    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
+    let line = Line::start_probed(
+        &["--framing", "rtu", "--baud", "19200"],
+        &probe,
+        rtu_reply_len(1),
+    );
+    let cfg = Cfg::new(&line.socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .serial(&format!("baud_rate = {BAUD}"));
+    let gw = line.gateway_with(cfg, &[], &[]);
+    let pid = gw.proc.pid();
+    let mut healthy = connect(&gw);
+    eprintln!("rtu-backoff: the healthy unit alone, {ALONE:?}");
+    let alone = tcp_throughput(&mut healthy, 1, 1, ALONE);
+
+    let answered = Arc::new(AtomicUsize::new(0));
+    let stop = Arc::new(AtomicBool::new(false));
+    let (answered2, stop2) = (answered.clone(), stop.clone());
+    let mut s = connect(&gw);
+    let dead = thread::spawn(move || {
+        let mut tid = 0u16;
+        let mut slow = 0usize;
+        while !stop2.load(Ordering::Relaxed) && tid < u16::MAX {
+            tid += 1;
+            let t = Instant::now();
+            s.write_all(&read_req(tid, 2, 0, 1)).expect("send");
+            let reply = read_frame(&mut s);
+            assert_eq!(reply[7..], [0x83, 0x0B], "not 0x0B: {reply:02X?}");
+            if t.elapsed() > Duration::from_millis(200) {
+                slow += 1;
+            }
+            answered2.fetch_add(1, Ordering::Relaxed);
+        }
+        slow
+    });
+    // Three timeouts of 1 s and their 100 ms guards back it off.
+    eprintln!("rtu-backoff: backing the dead unit off");
+    thread::sleep(Duration::from_millis(3500));
+    eprintln!("rtu-backoff: the dead unit polled alone, {CPU_WINDOW:?}");
+    let (n0, ticks0, ns0, t0) = (
+        answered.load(Ordering::Relaxed),
+        cpu_ticks(pid),
+        cpu_ns(pid),
+        Instant::now(),
+    );
+    thread::sleep(CPU_WINDOW);
+    let (n1, ticks1, ns1, t1) = (
+        answered.load(Ordering::Relaxed),
+        cpu_ticks(pid),
+        cpu_ns(pid),
+        Instant::now(),
+    );
+    eprintln!("rtu-backoff: the healthy unit beside it, {BESIDE:?}");
+    let beside = tcp_throughput(&mut healthy, 1, 1, BESIDE);
+    stop.store(true, Ordering::Relaxed);
+    let slow = dead.join().unwrap();
+
+    let secs = (t1 - t0).as_secs_f64();
+    let rate = (n1 - n0) as f64 / secs;
+    // The line's shortest transaction: 8 bytes out, 5 back, each after 3.5 characters.
+    let char_time = 10.0 / f64::from(BAUD);
+    let line_rate = 1.0 / (13.0 * char_time + 2.0 * 0.00175);
+    let share = (ticks1 - ticks0) as f64 / clock_ticks_per_second() as f64 / secs;
+    let exact = (ns1 - ns0) as f64 / 1e9 / secs;
+    r.row(
+        "rtu-backoff",
+        "backed-off unit polled in a tight loop, RTU 19 200 baud: 0x0B answers and mbgate CPU",
+        format!(
+            "{rate:.1}/s (the line's pace {line_rate:.1}/s); {} of a core (schedstat {})",
+            pct(share),
+            pct(exact)
+        ),
+        "≤ the line's pace; < 5 % of a core",
+        Some(rate <= line_rate * 1.05 && share < 0.05),
+    );
+    r.row(
+        "rtu-backoff",
+        "healthy unit beside it: throughput against alone",
+        format!(
+            "{beside:.1}/s beside, {alone:.1}/s alone = {} (dead unit: {slow} answers slower than 200 ms, the 3 timeouts that backed it off and its probes)",
+            pct(beside / alone)
+        ),
+        "≥ 90 %",
+        Some(beside >= alone * 0.9),
     );
 }

@@ -76,6 +76,8 @@ struct Pending {
 struct InFlight {
     tid: u16,
     deadline: Instant,
+    /// Its response timeout: `probe_timeout_ms` for a probe of a backed-off unit.
+    timeout: Duration,
     req: Pending,
 }
 
@@ -120,6 +122,11 @@ pub struct Relay {
     /// `tcdrain` of the last write, running on the blocking pool (RTU/ASCII).
     drain: Option<tokio::task::JoinHandle<std::io::Result<()>>>,
     units: Units,
+    /// 0x0B answers for backed-off units, each due when the line could have served
+    /// the request, in order.
+    paced: VecDeque<(Instant, Pending)>,
+    /// When the next such answer may go.
+    paced_next: Instant,
     port: Port,
     backoff: Backoff,
     port_warned: bool,
@@ -169,6 +176,8 @@ impl Relay {
             line,
             drain: None,
             units,
+            paced: VecDeque::new(),
+            paced_next: now,
             port: Port::Closed { retry_at: now },
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
             port_warned: false,
@@ -205,6 +214,8 @@ impl Relay {
                 break;
             }
             let wake = self.next_wake(now);
+            // Anything written below is written after this.
+            let polled = now;
             let event = match &mut self.port {
                 // Biased, bytes first: a timer that finds bytes waiting must not take
                 // the line for quiet (a held reply would be refuted, a frame cut).
@@ -242,6 +253,7 @@ impl Relay {
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
                 Event::Wrote(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_out, n as u64);
+                    self.line.wrote(n, polled);
                     self.out.advance(n);
                     if self.out.is_empty() && self.line.is_serial() {
                         self.start_drain(now);
@@ -259,6 +271,7 @@ impl Relay {
             }
             self.take_frames(now);
             self.expire(now);
+            self.answer_paced(now);
         }
         debug!("relay stopped");
     }
@@ -268,9 +281,11 @@ impl Relay {
         for f in &self.in_flight {
             wake = wake.min(f.deadline);
         }
-        let waiting = !self.ring.is_empty() || !self.retry.is_empty();
-        if let Some(w) = self.line.next_wake(now, waiting) {
+        if let Some(w) = self.line.next_wake(now, self.has_waiting()) {
             wake = wake.min(w);
+        }
+        if let Some((due, _)) = self.paced.front() {
+            wake = wake.min(*due);
         }
         if let Port::Closed { retry_at } = self.port {
             wake = wake.min(retry_at);
@@ -359,6 +374,9 @@ impl Relay {
             );
             self.draining = true;
             self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
+            for (_, req) in std::mem::take(&mut self.paced) {
+                self.answer_backed_off_now(req);
+            }
         }
     }
 
@@ -474,13 +492,16 @@ impl Relay {
     }
 
     /// Puts queued requests on the line while it has room: fewer than `max_in_flight`
-    /// outstanding (MBAP), or none outstanding and the inter-frame gap passed
-    /// (RTU/ASCII). A request for a backed-off unit is answered at once instead.
+    /// outstanding (MBAP), or none outstanding, the inter-frame gap passed and no byte
+    /// waiting to be read (RTU/ASCII). A request for a backed-off unit is answered
+    /// 0x0B instead.
     fn dispatch(&mut self, now: Instant) {
         while self.is_open()
             && self
                 .line
                 .has_room(self.in_flight.len(), self.tx_busy(), now)
+            && self.has_waiting()
+            && !self.input_waiting()
         {
             let Some(req) = self.next_request() else {
                 break;
@@ -493,14 +514,31 @@ impl Relay {
         }
     }
 
+    /// Are requests waiting for the line (queued, or to be resent)?
+    fn has_waiting(&self) -> bool {
+        !self.ring.is_empty() || !self.retry.is_empty()
+    }
+
     /// Bytes are still being written, or have not yet left the port.
     fn tx_busy(&self) -> bool {
         !self.out.is_empty() || self.drain.is_some()
     }
 
+    /// RTU/ASCII: has the port received bytes the relay has not read yet? Then the
+    /// device is talking, and a request now would go over it (on RS-485, collide with
+    /// it): the bytes are read first, and the gap counts from them.
+    fn input_waiting(&self) -> bool {
+        match &self.port {
+            Port::Open { fd, .. } if self.line.is_serial() => {
+                serial::input_waiting(*fd).is_ok_and(|n| n > 0)
+            }
+            _ => false,
+        }
+    }
+
     fn send(&mut self, req: Pending, now: Instant) {
         let tid = self.line.allocate(now);
-        let bytes = self.line.encode(&req.adu, tid, now);
+        let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
         if self.traffic {
             debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn, "{}", Hex(&bytes));
         }
@@ -509,12 +547,21 @@ impl Relay {
             self.broadcast_sent(req);
             return;
         }
+        // A unit that stopped answering gets a shorter wait, so a probe holds the line
+        // from the healthy units less long.
+        let mut timeout = Duration::from_millis(self.cfg.response_timeout_ms);
+        if self.units.probing(req.adu.unit()) {
+            timeout = timeout.min(Duration::from_millis(self.cfg.probe_timeout_ms));
+        }
         // The response time counts from when the request has left: behind whatever is
         // still waiting to be written (RTU/ASCII: restarted when the port has drained).
-        let deadline = now
-            + serial::wire_time(&self.serial, self.out.len())
-            + Duration::from_millis(self.cfg.response_timeout_ms);
-        self.in_flight.push(InFlight { tid, deadline, req });
+        let deadline = now + serial::wire_time(&self.serial, self.out.len()) + timeout;
+        self.in_flight.push(InFlight {
+            tid,
+            deadline,
+            timeout,
+            req,
+        });
     }
 
     /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
@@ -548,10 +595,9 @@ impl Relay {
     }
 
     fn drained(&mut self, now: Instant) {
-        let left = self.line.drained(&self.serial, now);
-        let timeout = Duration::from_millis(self.cfg.response_timeout_ms);
+        let left = self.line.drained(now, &self.stats);
         for f in &mut self.in_flight {
-            f.deadline = left + timeout;
+            f.deadline = left + f.timeout;
         }
     }
 
@@ -701,13 +747,37 @@ impl Relay {
             .partition(|r| r.adu.unit() == unit);
         self.retry = kept;
         swept.extend::<VecDeque<Pending>>(gone);
+        // They have waited their turn on the line already: answered at once.
         for req in swept {
-            self.answer_backed_off(req);
+            self.answer_backed_off_now(req);
+        }
+    }
+
+    /// 0x0B for a backed-off unit, no sooner than the line could have served the
+    /// request: a master that polls a dead unit in a tight loop gets its answers at
+    /// the line's pace, not as fast as the gateway can turn them round. Healthy units
+    /// are not touched.
+    fn answer_backed_off(&mut self, req: Pending) {
+        let now = Instant::now();
+        let due = self.paced_next.max(now);
+        self.paced_next = due + self.line.shortest_transaction(&req.adu);
+        if due <= now {
+            self.answer_backed_off_now(req);
+        } else {
+            self.paced.push_back((due, req));
+        }
+    }
+
+    /// Sends the paced 0x0B answers whose time has come.
+    fn answer_paced(&mut self, now: Instant) {
+        while self.paced.front().is_some_and(|(due, _)| *due <= now) {
+            let (_, req) = self.paced.pop_front().expect("checked");
+            self.answer_backed_off_now(req);
         }
     }
 
     /// 0x0B at once for a backed-off unit, counted apart from timeouts.
-    fn answer_backed_off(&self, req: Pending) {
+    fn answer_backed_off_now(&self, req: Pending) {
         self.stats.add(&self.stats.backed_off, 1);
         let adu = Adu::exception(
             req.adu.tid(),
@@ -800,6 +870,11 @@ impl Units {
         Some(interval)
     }
 
+    /// Was `unit` backed off, with no reply since? A request to it now is a probe.
+    fn probing(&self, unit: u8) -> bool {
+        self.health.get(&unit).is_some_and(|h| h.interval.is_some())
+    }
+
     fn answered(&mut self, unit: u8) {
         self.health.remove(&unit);
     }
@@ -868,6 +943,14 @@ impl Outgoing {
     }
 }
 
+impl RelayConfig {
+    /// The longest the relay takes to answer a request that is on the line: the
+    /// response timeout of every attempt (docs/design.md §1 step 5).
+    pub fn answer_within(&self) -> std::time::Duration {
+        std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::{Outgoing, Units};
@@ -895,13 +978,17 @@ mod tests {
             "probed after"
         );
         assert!(!u.backed_off(6, t0), "other units are not touched");
+        assert!(
+            u.probing(5) && !u.probing(6),
+            "a request to it now probes it"
+        );
         // Failed probes double the interval, up to the max.
         assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(200)));
         assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
         assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
         // A reply forgets it all.
         u.answered(5);
-        assert!(!u.backed_off(5, t0));
+        assert!(!u.backed_off(5, t0) && !u.probing(5));
         assert_eq!(u.timed_out(5, t0), None);
         // Broadcasts and a disabled backoff never back off.
         assert_eq!(u.timed_out(0, t0), None);

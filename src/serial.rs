@@ -178,6 +178,17 @@ pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Resu
     }))
 }
 
+/// Bytes received by the port `fd` and not yet read (FIONREAD).
+pub fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
+    let mut n: libc::c_int = 0;
+    // SAFETY: FIONREAD writes one int, which `n` is, for the duration of the call.
+    if unsafe { libc::ioctl(fd, libc::FIONREAD as _, &mut n as *mut libc::c_int) } == 0 {
+        Ok(usize::try_from(n).unwrap_or(0))
+    } else {
+        Err(std::io::Error::last_os_error())
+    }
+}
+
 /// Bits on the wire for one character: start, data, parity, stop.
 pub fn bits_per_char(cfg: &SerialConfig) -> u32 {
     1 + u32::from(cfg.data_bits) + u32::from(cfg.parity != Parity::None) + u32::from(cfg.stop_bits)

@@ -54,6 +54,10 @@ fn defaults_are_design_md() {
         (c.relay.unit_backoff_ms, c.relay.unit_backoff_max_ms),
         (1000, 30_000)
     );
+    assert_eq!(
+        (c.relay.probe_timeout_ms, c.relay.timeout_guard_ms),
+        (250, 100)
+    );
     assert_eq!(c.log.level, "info");
     assert!(!c.log.traffic);
 }
@@ -374,6 +378,18 @@ fn range_violations() {
         ),
         (
             "relay",
+            "timeout_guard_ms",
+            "60001",
+            "must be between 0 and 60000",
+        ),
+        (
+            "relay",
+            "probe_timeout_ms",
+            "0",
+            "must be between 1 and 600000",
+        ),
+        (
+            "relay",
             "unit_backoff_after",
             "0",
             "must be between 1 and 100",
@@ -572,6 +588,8 @@ fn non_default() -> Config {
             unit_backoff_after: 100,
             unit_backoff_ms: 1,
             unit_backoff_max_ms: 3_600_000,
+            probe_timeout_ms: 1,
+            timeout_guard_ms: 60_000,
         },
         log: LogConfig {
             level: "trace".into(),

@@ -1,9 +1,7 @@
-//! Reading a configuration file. toml parses it with the position of every key and
-//! value (`DeTable`); each key is looked up in [`KEYS`] and checked there, so every
-//! error names the file, the line and column, and the full key, e.g.
-//! `config/x.toml:7:13: serial.baud_rate: must be between 50 and 4000000, got 10`.
-//! Both forms of docs/design.md §4 are read: `[serial]` `[tcp]` `[relay]`, and
-//! `[[line]]` `[[listen]]` (§4.1), of which mbgate runs one line and one listener.
+//! Reading a configuration file: toml gives the position of every key and value
+//! (`DeTable`), each key is checked by its declaration in [`KEYS`], and every error
+//! names file, line, column and key: `x.toml:7:13: serial.baud_rate: must be between
+//! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
 use super::{Check, Config, Key, Raw, Setting, KEYS};
 use std::borrow::Cow;

@@ -201,6 +201,10 @@ settings! {
             at_most unit_backoff_max_ms: "the first backoff would be longer than the longest";
         /// Longest back-off interval
         unit_backoff_max_ms: u64 = 30_000, Range(1, 3_600_000, None), "unit-backoff-max-ms" "MS";
+        /// RTU/ASCII: response timeout of a request probing a backed-off unit
+        probe_timeout_ms: u64 = 250, Range(1, 600_000, None), "probe-timeout-ms" "MS";
+        /// RTU/ASCII: quiet time after a timeout, late replies discarded
+        timeout_guard_ms: u64 = 100, Range(0, 60_000, None), "timeout-guard-ms" "MS";
     }
     /// What is logged.
     [log] LogConfig {
@@ -348,14 +352,6 @@ pub fn parse_listen(s: &str) -> Result<SocketAddr, String> {
     s.trim()
         .parse()
         .map_err(|_| format!("expected {LISTEN_EXPECTED}, got {s:?}"))
-}
-
-impl RelayConfig {
-    /// The longest the relay takes to answer a request that is on the line: the
-    /// response timeout of every attempt (docs/design.md §1 step 5).
-    pub fn answer_within(&self) -> std::time::Duration {
-        std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
-    }
 }
 
 /// A key above the key it must not exceed (`at_most` in [`settings!`]).

@@ -29,6 +29,15 @@ impl Codec {
             Codec::Ascii => ascii::encode(unit, pdu),
         }
     }
+
+    /// The length of that frame for a PDU of `pdu_len` bytes: address and CRC (RTU);
+    /// colon, each byte as two hex digits with the LRC, CR LF (ASCII).
+    pub fn encoded_len(self, pdu_len: usize) -> usize {
+        match self {
+            Codec::Rtu => 1 + pdu_len + 2,
+            Codec::Ascii => 1 + 2 * (1 + pdu_len + 1) + 2,
+        }
+    }
 }
 
 /// What the decoder expects at the front of its bytes.
@@ -154,6 +163,19 @@ mod tests {
             unit,
             pdu: pdu.to_vec(),
         })
+    }
+
+    #[test]
+    fn encoded_len_is_the_frame_length() {
+        for pdu in [
+            &[0x83, 0x02][..],
+            &[0x03, 0, 0, 0, 1],
+            &[0x10, 0, 1, 0, 1, 2, 0, 7],
+        ] {
+            for codec in [Codec::Rtu, Codec::Ascii] {
+                assert_eq!(codec.encoded_len(pdu.len()), codec.encode(9, pdu).len());
+            }
+        }
     }
 
     #[test]

@@ -5,11 +5,13 @@
 //!
 //! - [`Mbap`]: serial-side transaction ids, several requests on the line at once
 //!   (`max_in_flight`), the resynchronising decoder with confirmation, notifications.
-//! - [`Serial`]: RTU or ASCII. No transaction id, so one request at a time; frames
-//!   delimited by length, silence or line feed and checked by CRC or LRC; the
-//!   inter-frame gap (3.5 character times) before each request, counted from the last
-//!   byte seen or sent; broadcasts (unit 0) with a turnaround delay; local-echo
-//!   suppression.
+//! - [`Serial`]: RTU or ASCII. No transaction id, so one request at a time, and only
+//!   time ties a reply to its request: what was received before a request has left is
+//!   discarded, a reply must start after it; frames delimited by length, silence or
+//!   line feed and checked by CRC or LRC; the inter-frame gap (3.5 character times)
+//!   before each request, counted from the last byte seen or sent; a guard time after
+//!   a timeout, for the late reply; broadcasts (unit 0) with a turnaround delay;
+//!   local-echo suppression.
 
 use super::InFlight;
 use crate::config::{Notifications, RelayConfig, SerialConfig};
@@ -61,16 +63,20 @@ impl Line {
         let t35 =
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
         Line::Serial(Serial {
+            port: serial.clone(),
             decoder: Decoder::new(codec),
             t35,
             silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
+            guard: Duration::from_millis(relay.timeout_guard_ms),
             last_rx: now,
             ready_at: now,
             next_key: 0,
             echo: serial.echo.then(VecDeque::new),
             broadcast_on_wire: false,
             tx: None,
+            held: Vec::new(),
+            reply_from: now,
         })
     }
 
@@ -102,17 +108,28 @@ impl Line {
         self.is_serial() && adu.unit() == 0
     }
 
-    /// The bytes that put `adu` on the line as request `tid`.
-    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant) -> Bytes {
+    /// The bytes that put `adu` on the line as request `tid`, about to be written.
+    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, stats: &Stats) -> Bytes {
         match self {
             Line::Mbap(_) => adu.with_tid(tid).into_bytes(),
             Line::Serial(s) => {
+                // Nothing received before a request is written can be its reply.
+                let stale =
+                    s.decoder.clear() + s.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+                if stale > 0 {
+                    debug!(bytes = stale, "bytes received before the request discarded");
+                    stats.add(&stats.dropped_bytes, stale as u64);
+                }
                 let bytes = s.decoder.codec().encode(adu.unit(), adu.pdu());
                 if let Some(echo) = &mut s.echo {
+                    // Any echo still awaited belongs to an earlier request, long done.
+                    echo.clear();
                     echo.extend(&bytes);
                 }
                 s.broadcast_on_wire = adu.unit() == 0;
-                s.tx = Some((now, bytes.len()));
+                // Written from now on: its last byte cannot leave before its time on
+                // the wire has passed.
+                s.tx = Some(now + serial::wire_time(&s.port, bytes.len()));
                 Bytes::from(bytes)
             }
         }
@@ -127,24 +144,41 @@ impl Line {
         }
     }
 
+    /// `n` bytes were handed to the port, by a write that began after `polled`.
+    pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        if let Line::Serial(s) = self {
+            if let Some(earliest) = &mut s.tx {
+                // Held back by flow control, the last bytes leave later than a frame
+                // written in one go would.
+                *earliest = (*earliest).max(polled + serial::wire_time(&s.port, n));
+            }
+        }
+    }
+
     /// Everything written has left the port (`tcdrain`, RTU/ASCII only). Returns the
     /// instant the last byte left: the reply timer starts there.
-    pub(super) fn drained(&mut self, serial: &SerialConfig, now: Instant) -> Instant {
+    ///
+    /// Bytes read before the earliest instant the last byte can have left (its time
+    /// on the wire after it was written) are not the reply. `tcdrain` returning is no
+    /// such bound: the relay may see it late (its thread and the blocking pool's are
+    /// scheduled), and a fast device's reply may be read in between; a USB adapter
+    /// may report the bytes gone while its own FIFO still holds them.
+    pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {
         let Line::Serial(s) = self else {
             return now;
         };
-        // A USB adapter may report the bytes gone while its own FIFO still holds them:
-        // they cannot have left before their time on the wire.
-        let left = match s.tx.take() {
-            Some((at, n)) => now.max(at + serial::wire_time(serial, n)),
-            None => now,
-        };
+        let earliest = s.tx.take().unwrap_or(now);
+        let left = now.max(earliest);
+        s.reply_from = earliest;
+        for (at, bytes) in std::mem::take(&mut s.held) {
+            s.accept(&bytes, at, stats);
+        }
         let turnaround = if std::mem::take(&mut s.broadcast_on_wire) {
             s.broadcast_delay
         } else {
             s.t35
         };
-        s.ready_at = left + turnaround;
+        s.ready_at = s.ready_at.max(left + turnaround);
         left
     }
 
@@ -158,7 +192,16 @@ impl Line {
             Line::Serial(s) => {
                 s.last_rx = now;
                 let rest = s.strip_echo(bytes, stats);
-                s.decoder.push(rest);
+                if rest.is_empty() {
+                    return;
+                }
+                if s.tx.is_some() {
+                    // The request is still on its way out: when its last byte left
+                    // is not known yet, so these wait for `drained` to judge them.
+                    s.held.push((now, rest.to_vec()));
+                } else {
+                    s.accept(rest, now, stats);
+                }
             }
         }
     }
@@ -193,20 +236,38 @@ impl Line {
                     echo.clear();
                 }
                 s.tx = None;
+                s.held.clear();
                 s.broadcast_on_wire = false;
             }
         }
     }
 
     /// A request timed out: its reply may still come (MBAP holds replies for
-    /// confirmation a while); a partial RTU/ASCII reply is discarded.
+    /// confirmation a while). RTU/ASCII: a partial reply is discarded, and the line is
+    /// left quiet for the guard time, so a reply that comes just too late is dropped
+    /// rather than taken for the next request's.
     pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
         match self {
             Line::Mbap(m) => m.expect_followers(now),
             Line::Serial(s) => {
-                stats.add(&stats.dropped_bytes, s.decoder.clear() as u64);
+                let held = s.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+                stats.add(&stats.dropped_bytes, (s.decoder.clear() + held) as u64);
+                // Never written in time (CTS held low): nothing of it is on its way.
+                s.tx = None;
+                s.ready_at = s.ready_at.max(now + s.guard);
             }
         }
+    }
+
+    /// The shortest time the line could take to serve `adu`: the request and an
+    /// exception reply on the wire, each after its 3.5-character gap. Zero for MBAP.
+    pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
+        let Line::Serial(s) = self else {
+            return Duration::ZERO;
+        };
+        let codec = s.decoder.codec();
+        let bytes = codec.encoded_len(adu.pdu().len()) + codec.encoded_len(2);
+        serial::wire_time(&s.port, bytes) + 2 * s.t35
     }
 
     /// Frames the bytes received so far make, given what is in flight.
@@ -344,6 +405,8 @@ impl Mbap {
 // RTU and ASCII
 
 pub(super) struct Serial {
+    /// Its settings: the time bytes take on the wire.
+    port: SerialConfig,
     decoder: Decoder,
     /// 3.5 character times: the gap before each request.
     t35: Duration,
@@ -351,6 +414,8 @@ pub(super) struct Serial {
     /// `silence_floor_ms`.
     silence: Duration,
     broadcast_delay: Duration,
+    /// The line stays quiet this long after a timeout (`timeout_guard_ms`).
+    guard: Duration,
     last_rx: Instant,
     /// No request before then: the gap (or the broadcast turnaround) after the last
     /// request left.
@@ -360,8 +425,12 @@ pub(super) struct Serial {
     echo: Option<VecDeque<u8>>,
     /// The frame being written is a broadcast.
     broadcast_on_wire: bool,
-    /// When the frame being written was handed to the port, and its size.
-    tx: Option<(Instant, usize)>,
+    /// While a frame is being written: the earliest its last byte can leave.
+    tx: Option<Instant>,
+    /// Bytes read while the frame was being written, with when they were read.
+    held: Vec<(Instant, Vec<u8>)>,
+    /// When the last request's last byte left: bytes read before then answer nothing.
+    reply_from: Instant,
 }
 
 impl Serial {
@@ -369,6 +438,21 @@ impl Serial {
     /// device has been quiet for 3.5 character times.
     fn free_at(&self) -> Instant {
         self.ready_at.max(self.last_rx + self.t35)
+    }
+
+    /// Bytes read at `at`, once the request they follow has left: before its last byte
+    /// left they cannot be its reply (an echo, a device that answers too early, a
+    /// frame already on its way), and are dropped.
+    fn accept(&mut self, bytes: &[u8], at: Instant, stats: &Stats) {
+        if at < self.reply_from {
+            debug!(
+                bytes = bytes.len(),
+                "bytes received while the request was still being sent discarded"
+            );
+            stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        } else {
+            self.decoder.push(bytes);
+        }
     }
 
     /// Reads back the echo of what was sent; bytes that differ from it are line noise

@@ -788,6 +788,15 @@ pub fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
     }
 }
 
+/// Time on a CPU of all of a process's threads, in ns (/proc/PID/task/*/schedstat).
+pub fn cpu_ns(pid: u32) -> u64 {
+    std::fs::read_dir(format!("/proc/{pid}/task"))
+        .expect("tasks")
+        .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok())
+        .filter_map(|s| s.split_whitespace().next()?.parse::<u64>().ok())
+        .sum()
+}
+
 #[derive(Debug, Clone, Copy)]
 pub struct Mem {
     pub rss_kib: u64,
@@ -831,24 +840,56 @@ pub fn mem(gw: &Gateway) -> Mem {
 /// What the raw RTU device does with each request frame (address to CRC, as received).
 pub type RtuHandler = Box<dyn FnMut(&[u8]) -> Vec<u8> + Send>;
 
+/// What a scripted RTU device writes for each request frame: pieces of bytes, each
+/// written that long after the request's first byte was read (in order).
+pub type RtuScript = Box<dyn FnMut(&[u8]) -> Vec<(Duration, Vec<u8>)> + Send>;
+
+/// How long `bytes` take on a line at `baud`, 10 bits a byte (8N1).
+pub fn wire_time(bytes: usize, baud: u32) -> Duration {
+    Duration::from_micros(bytes as u64 * 10_000_000 / u64::from(baud))
+}
+
 /// A device on the `dev` end of a socat pair that reads RTU frames (cut at the length
 /// their function code calls for, or after 20 ms of silence), records each exactly as
 /// it came, and writes whatever the handler returns (nothing = no answer).
 pub struct RawRtuDevice {
     stop: Arc<AtomicBool>,
     pub seen: Arc<Mutex<Vec<Vec<u8>>>>,
+    /// When each request's first byte was read, in step with `seen`.
+    pub seen_at: Arc<Mutex<Vec<Instant>>>,
     thread: Option<JoinHandle<()>>,
 }
 
 impl RawRtuDevice {
-    pub fn start(path: &Path, mut handler: RtuHandler) -> RawRtuDevice {
+    /// A device on a 19 200 baud line (the gateway's default): as a real one, it
+    /// answers once the request can have reached it whole, its wire time after its
+    /// first byte (a pty delivers it at once).
+    pub fn start(path: &Path, handler: RtuHandler) -> RawRtuDevice {
+        RawRtuDevice::start_at(path, 19_200, handler)
+    }
+
+    /// [`RawRtuDevice::start`] on a line at `baud`.
+    pub fn start_at(path: &Path, baud: u32, mut handler: RtuHandler) -> RawRtuDevice {
+        RawRtuDevice::scripted(
+            path,
+            Box::new(move |frame: &[u8]| vec![(wire_time(frame.len(), baud), handler(frame))]),
+        )
+    }
+
+    /// A device that writes what `script` says when it says, early or late.
+    pub fn scripted(path: &Path, mut script: RtuScript) -> RawRtuDevice {
         use mbgate::frame::rtu::{request_length, Length};
         let file = open_pty(path);
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
-        let seen2 = seen.clone();
+        let seen_at = Arc::new(Mutex::new(Vec::new()));
+        let (seen2, seen_at2) = (seen.clone(), seen_at.clone());
         let mut buf: Vec<u8> = Vec::new();
+        let mut first_at = Instant::now();
         let thread = pump(&file, stop.clone(), move |chunk, idle, wr| {
+            if buf.is_empty() && !chunk.is_empty() {
+                first_at = Instant::now();
+            }
             buf.extend_from_slice(chunk);
             loop {
                 let quiet = idle >= Duration::from_millis(20);
@@ -859,15 +900,21 @@ impl RawRtuDevice {
                 };
                 let frame: Vec<u8> = buf.drain(..n).collect();
                 seen2.lock().unwrap().push(frame.clone());
-                let reply = handler(&frame);
-                if !reply.is_empty() && write_all_nb(wr, &reply).is_err() {
-                    return false;
+                seen_at2.lock().unwrap().push(first_at);
+                for (after, bytes) in script(&frame) {
+                    if let Some(wait) = (first_at + after).checked_duration_since(Instant::now()) {
+                        thread::sleep(wait);
+                    }
+                    if !bytes.is_empty() && write_all_nb(wr, &bytes).is_err() {
+                        return false;
+                    }
                 }
             }
         });
         RawRtuDevice {
             stop,
             seen,
+            seen_at,
             thread: Some(thread),
         }
     }
