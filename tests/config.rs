@@ -987,7 +987,7 @@ fn design_md_example_of_several_lines_is_valid_but_not_yet_run() {
     let example = &doc[doc.find("### 4.1").unwrap()..];
     let example = &example[example.find("```toml\n").unwrap() + 8..];
     let example = &example[..example.find("```").unwrap()];
-    let e = parse(example, "design.md").unwrap_err().to_string();
+    let e = parse(example, "docs/design.md").unwrap_err().to_string();
     assert!(
         e.contains(": line[1]: a second [[line]]: several lines are not yet supported"),
         "{e}"
@@ -995,7 +995,7 @@ fn design_md_example_of_several_lines_is_valid_but_not_yet_run() {
     // With its second line and units left out, it is what mbgate runs.
     let one = &example[..example.find("[[line]]\nunits = [10]").unwrap()];
     let one = one.replace("units = [1, 2, 3]", "");
-    let cfg = parse(&one, "design.md").unwrap();
+    let cfg = parse(&one, "docs/design.md").unwrap();
     assert_eq!(
         (cfg.serial.framing, cfg.relay.response_timeout_ms),
         (Framing::Rtu, 500)
