@@ -11,6 +11,7 @@ pub mod logging;
 pub mod notify;
 pub mod number;
 pub mod outbox;
+pub mod port;
 pub mod relay;
 pub mod serial;
 pub mod sim;

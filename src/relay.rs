@@ -19,18 +19,16 @@ use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
 use crate::notify;
 use crate::outbox::{Notifier, Ticket};
-use crate::serial::{self, Backoff};
+use crate::port::{self, Backoff, Link, Opening};
 use crate::stats::Stats;
 use bytes::Bytes;
 use line::{Line, Seen, Unsolicited};
 use std::collections::{HashMap, VecDeque};
-use std::os::fd::{AsRawFd, RawFd};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt, ReadHalf, WriteHalf};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
-use tokio_serial::SerialStream;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
@@ -82,12 +80,9 @@ struct InFlight {
 }
 
 enum Port {
-    Open {
-        rd: ReadHalf<SerialStream>,
-        wr: WriteHalf<SerialStream>,
-        /// The port's descriptor, for `tcdrain` (valid while `rd` and `wr` live).
-        fd: RawFd,
-    },
+    Open(Link),
+    /// An open that did not finish at once (a TCP connect).
+    Opening(Opening),
     Closed {
         retry_at: Instant,
     },
@@ -119,8 +114,8 @@ pub struct Relay {
     retry: VecDeque<Pending>,
     in_flight: Vec<InFlight>,
     line: Line,
-    /// `tcdrain` of the last write, running on the blocking pool (RTU/ASCII).
-    drain: Option<tokio::task::JoinHandle<std::io::Result<()>>>,
+    /// Waiting for the last write to leave the port (RTU/ASCII).
+    drain: Option<port::Drain>,
     units: Units,
     /// 0x0B answers for backed-off units, each due when the line could have served
     /// the request, in order.
@@ -128,6 +123,8 @@ pub struct Relay {
     /// When the next such answer may go.
     paced_next: Instant,
     port: Port,
+    /// What `port` opens: the relay never learns which transport it is.
+    transport: Box<dyn port::Port>,
     backoff: Backoff,
     port_warned: bool,
     out: Outgoing,
@@ -157,6 +154,7 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
+        let relay_serial = serial.clone();
         let line = Line::new(&cfg, &serial, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
@@ -179,6 +177,7 @@ impl Relay {
             paced: VecDeque::new(),
             paced_next: now,
             port: Port::Closed { retry_at: now },
+            transport: Box::new(port::serial::SerialPort::new(relay_serial)),
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
             port_warned: false,
             out: Outgoing::default(),
@@ -189,6 +188,13 @@ impl Relay {
             watchdog: None,
         };
         (relay, RelayHandle { tx })
+    }
+
+    /// Runs the line over `transport` instead of the `[serial]` port (a device behind
+    /// a TCP socket, an in-memory pipe in tests).
+    pub fn with_port(mut self, transport: Box<dyn port::Port>) -> Self {
+        self.transport = transport;
+        self
     }
 
     /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
@@ -219,12 +225,22 @@ impl Relay {
             let event = match &mut self.port {
                 // Biased, bytes first: a timer that finds bytes waiting must not take
                 // the line for quiet (a held reply would be refuted, a frame cut).
-                Port::Open { rd, wr, .. } => tokio::select! {
+                Port::Open(Link {
+                    reader: rd,
+                    writer: wr,
+                    ..
+                }) => tokio::select! {
                     biased;
                     r = rd.read(&mut rbuf) => Event::Read(r),
                     cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
                     d = async { self.drain.as_mut().expect("guarded").await }, if self.drain.is_some() => Event::Drained(d),
+                    _ = tokio::time::sleep_until(wake) => Event::Timer,
+                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
+                },
+                Port::Opening(opening) => tokio::select! {
+                    opened = opening => Event::Opened(opened),
+                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
@@ -260,9 +276,10 @@ impl Relay {
                     }
                 }
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
+                Event::Opened(r) => self.opened(r, now),
                 Event::Drained(r) => {
                     self.drain = None;
-                    if let Ok(Err(e)) | Err(e) = r.map_err(std::io::Error::other) {
+                    if let Err(e) = r {
                         debug!("tcdrain: {e}");
                     }
                     self.drained(now);
@@ -306,7 +323,7 @@ impl Relay {
     }
 
     fn is_open(&self) -> bool {
-        matches!(self.port, Port::Open { .. })
+        matches!(self.port, Port::Open(_))
     }
 
     fn open_if_due(&mut self, now: Instant) {
@@ -316,12 +333,19 @@ impl Relay {
         if now < retry_at || self.draining {
             return;
         }
-        match serial::open(&self.serial) {
-            Ok(port) => {
-                info!(path = %self.serial.path, baud = self.serial.baud_rate, "serial port open");
-                let fd = port.as_raw_fd();
-                let (rd, wr) = tokio::io::split(port);
-                self.port = Port::Open { rd, wr, fd };
+        match port::open_now(self.transport.open()) {
+            Ok(opened) => self.opened(opened, now),
+            Err(opening) => self.port = Port::Opening(opening),
+        }
+    }
+
+    /// An open finished: the line starts afresh, or the next attempt is due later.
+    fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
+        let kind = self.transport.kind();
+        match opened {
+            Ok(link) => {
+                info!(path = %self.transport.name(), baud = self.serial.baud_rate, "{kind} open");
+                self.port = Port::Open(link);
                 self.backoff.reset();
                 self.port_warned = false;
                 self.line.clear(&self.stats);
@@ -330,11 +354,11 @@ impl Relay {
             Err(e) => {
                 let delay = self.backoff.next_delay();
                 if self.port_warned {
-                    debug!(path = %self.serial.path, "serial port still unavailable: {e}");
+                    debug!(path = %self.transport.name(), "{kind} still unavailable: {e}");
                 } else {
                     warn!(
-                        path = %self.serial.path,
-                        "serial port unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
+                        path = %self.transport.name(),
+                        "{kind} unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
                     );
                     self.port_warned = true;
                 }
@@ -348,7 +372,8 @@ impl Relay {
     /// The port failed or its far end went away: answer everything waiting on it, and
     /// reopen with backoff.
     fn port_lost(&mut self, why: &str, now: Instant) {
-        warn!(path = %self.serial.path, "serial port lost: {why}; reopening with backoff");
+        let kind = self.transport.kind();
+        warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
         self.port = Port::Closed {
             retry_at: now + self.backoff.next_delay(),
         };
@@ -356,7 +381,7 @@ impl Relay {
         self.line.clear(&self.stats);
         self.out.clear();
         if let Some(d) = self.drain.take() {
-            d.abort();
+            drop(d);
         }
         for f in std::mem::take(&mut self.in_flight) {
             self.line.retire(f.tid, now);
@@ -529,9 +554,7 @@ impl Relay {
     /// it): the bytes are read first, and the gap counts from them.
     fn input_waiting(&self) -> bool {
         match &self.port {
-            Port::Open { fd, .. } if self.line.is_serial() => {
-                serial::input_waiting(*fd).is_ok_and(|n| n > 0)
-            }
+            Port::Open(link) if self.line.is_serial() => link.control.input_waiting(),
             _ => false,
         }
     }
@@ -555,7 +578,7 @@ impl Relay {
         }
         // The response time counts from when the request has left: behind whatever is
         // still waiting to be written (RTU/ASCII: restarted when the port has drained).
-        let deadline = now + serial::wire_time(&self.serial, self.out.len()) + timeout;
+        let deadline = now + self.transport.wire_time(self.out.len()) + timeout;
         self.in_flight.push(InFlight {
             tid,
             deadline,
@@ -582,10 +605,10 @@ impl Relay {
     /// Waits for the bytes written to leave the port, off the runtime's thread, so the
     /// reply timer and the inter-frame gap start from the last byte on the wire.
     fn start_drain(&mut self, now: Instant) {
-        let Port::Open { fd, .. } = &self.port else {
+        let Port::Open(link) = &self.port else {
             return;
         };
-        match serial::drain(*fd) {
+        match link.control.drain() {
             Ok(handle) => self.drain = Some(handle),
             Err(e) => {
                 debug!("tcdrain unavailable ({e}): timing from the write");
@@ -810,7 +833,8 @@ enum Event {
     Command(Option<Command>),
     Read(std::io::Result<usize>),
     Wrote(std::io::Result<usize>),
-    Drained(Result<std::io::Result<()>, tokio::task::JoinError>),
+    Drained(std::io::Result<()>),
+    Opened(std::io::Result<Link>),
     Timer,
     Shutdown,
 }

@@ -200,34 +200,7 @@ pub fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
     Duration::from_micros(bits * 1_000_000 / u64::from(cfg.baud_rate.max(1)))
 }
 
-/// Delays between attempts to (re)open a port: doubling from `min` up to `max`.
-#[derive(Debug, Clone)]
-pub struct Backoff {
-    min: Duration,
-    max: Duration,
-    next: Duration,
-}
-
-impl Backoff {
-    pub fn new(min: Duration, max: Duration) -> Self {
-        Self {
-            min,
-            max,
-            next: min,
-        }
-    }
-
-    /// The delay before the next attempt; each call doubles the one after.
-    pub fn next_delay(&mut self) -> Duration {
-        let d = self.next;
-        self.next = (self.next * 2).min(self.max);
-        d
-    }
-
-    pub fn reset(&mut self) {
-        self.next = self.min;
-    }
-}
+pub use crate::port::Backoff;
 
 #[cfg(test)]
 mod tests {

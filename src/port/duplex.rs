@@ -1,0 +1,129 @@
+//! An in-memory pipe as a [`Port`] (`tokio::io::duplex`): each open hands the far end
+//! to a [`DeviceEnd`], so a device written in Rust can sit on the other side of the
+//! relay in a test; a small pipe capacity stands in for flow control holding writes
+//! back, dropping the far end for a port that is lost.
+
+use super::{Link, Opening, Port};
+use std::io;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::DuplexStream;
+use tokio::sync::mpsc;
+
+/// The relay's side: opens a fresh pipe each time.
+#[derive(Debug)]
+pub struct DuplexPort {
+    capacity: usize,
+    char_time: Duration,
+    ends: mpsc::UnboundedSender<DuplexStream>,
+    refuse: Arc<AtomicBool>,
+}
+
+/// The device's side: receives the far end of each pipe the relay opens.
+#[derive(Debug)]
+pub struct DeviceEnd {
+    ends: mpsc::UnboundedReceiver<DuplexStream>,
+    refuse: Arc<AtomicBool>,
+}
+
+/// A port whose pipes hold `capacity` bytes each way (a writer waits while its pipe is
+/// full, as a serial port does while CTS is low), whose bytes take `char_time` each on
+/// the wire (for the relay's timing; the pipe itself is instant), and the device end.
+pub fn pair(capacity: usize, char_time: Duration) -> (DuplexPort, DeviceEnd) {
+    let (tx, rx) = mpsc::unbounded_channel();
+    let refuse = Arc::new(AtomicBool::new(false));
+    (
+        DuplexPort {
+            capacity,
+            char_time,
+            ends: tx,
+            refuse: refuse.clone(),
+        },
+        DeviceEnd { ends: rx, refuse },
+    )
+}
+
+impl DeviceEnd {
+    /// The far end of the next pipe the relay opens.
+    pub async fn accept(&mut self) -> DuplexStream {
+        self.ends
+            .recv()
+            .await
+            .expect("the port lives as long as the relay")
+    }
+
+    /// While `refuse` is true, opens fail (the device is unplugged).
+    pub fn refuse_opens(&self, refuse: bool) {
+        self.refuse.store(refuse, Ordering::SeqCst);
+    }
+}
+
+impl Port for DuplexPort {
+    fn kind(&self) -> &'static str {
+        "in-memory port"
+    }
+
+    fn name(&self) -> &str {
+        "duplex"
+    }
+
+    fn open(&mut self) -> Opening {
+        let opened = if self.refuse.load(Ordering::SeqCst) {
+            Err(io::Error::new(
+                io::ErrorKind::NotFound,
+                "refused by the test",
+            ))
+        } else {
+            let (near, far) = tokio::io::duplex(self.capacity);
+            match self.ends.send(far) {
+                Ok(()) => Ok(near),
+                Err(_) => Err(io::Error::new(io::ErrorKind::NotFound, "no device end")),
+            }
+        };
+        Box::pin(async move {
+            let (reader, writer) = tokio::io::split(opened?);
+            Ok(Link {
+                reader: Box::new(reader),
+                writer: Box::new(writer),
+                control: Box::new(Pipe),
+            })
+        })
+    }
+
+    fn wire_time(&self, bytes: usize) -> Duration {
+        self.char_time * u32::try_from(bytes).unwrap_or(u32::MAX)
+    }
+}
+
+/// Drained at once: the pipe has no wire.
+struct Pipe;
+
+impl super::Control for Pipe {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::port::open_now;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    #[tokio::test]
+    async fn opens_at_once_hands_the_far_end_over_and_refuses_on_demand() {
+        let (mut port, mut device) = pair(64, Duration::from_micros(100));
+        assert_eq!(port.wire_time(10), Duration::from_millis(1));
+        let mut link = open_now(port.open()).ok().expect("ready").unwrap();
+        let mut far = device.accept().await;
+        link.writer.write_all(b"ping").await.unwrap();
+        let mut got = [0u8; 4];
+        far.read_exact(&mut got).await.unwrap();
+        assert_eq!(&got, b"ping");
+        drop(far);
+        assert_eq!(link.reader.read(&mut got).await.unwrap(), 0, "lost");
+
+        device.refuse_opens(true);
+        let refused = open_now(port.open()).ok().expect("ready");
+        assert!(refused.is_err());
+        device.refuse_opens(false);
+        assert!(open_now(port.open()).ok().expect("ready").is_ok());
+    }
+}

@@ -1,0 +1,113 @@
+//! What the relay is attached to: a byte transport it opens, reopens, reads, writes and
+//! drains, with no knowledge of which one it is (docs/architecture.md "The port").
+//!
+//! Three implementations: the serial port ([`serial::SerialPort`], what the gateway
+//! runs on), a TCP socket to a device server ([`tcp::TcpPort`]) and an in-memory pipe
+//! ([`duplex::DuplexPort`], what the in-process relay tests drive). The relay holds a
+//! `Box<dyn Port>`: one indirect call per read or write, next to a system call each.
+
+pub mod duplex;
+pub mod serial;
+pub mod tcp;
+
+use std::future::Future;
+use std::io;
+use std::pin::Pin;
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite};
+
+/// The reading half of an open port.
+pub type Reader = Box<dyn AsyncRead + Send + Unpin>;
+/// The writing half of an open port.
+pub type Writer = Box<dyn AsyncWrite + Send + Unpin>;
+/// An open in progress ([`Port::open`]).
+pub type Opening = Pin<Box<dyn Future<Output = io::Result<Link>> + Send>>;
+/// A wait until the bytes written have left ([`Control::drain`]).
+pub type Drain = Pin<Box<dyn Future<Output = io::Result<()>> + Send>>;
+
+/// An open port: its two halves, read and written at once by the relay's loop, and
+/// what it can tell about the bytes in transit.
+pub struct Link {
+    /// Bytes from the device.
+    pub reader: Reader,
+    /// Bytes to the device.
+    pub writer: Writer,
+    /// Drain and input queries on the same transport.
+    pub control: Box<dyn Control>,
+}
+
+impl std::fmt::Debug for Link {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str("Link")
+    }
+}
+
+/// What the relay may ask an open port besides reading and writing.
+pub trait Control: Send {
+    /// Starts waiting until everything written so far has left the port (a serial
+    /// port's `tcdrain`): the reply timer and the inter-frame gap start from the last
+    /// byte on the wire. A transport with no such notion is drained at once.
+    fn drain(&self) -> io::Result<Drain> {
+        Ok(Box::pin(async { Ok(()) }))
+    }
+
+    /// Has the port received bytes not yet read? Then the device is talking, and an
+    /// RTU/ASCII request must wait for them. A transport that cannot tell says no.
+    fn input_waiting(&self) -> bool {
+        false
+    }
+}
+
+/// A transport the relay can (re)open. Opening never blocks the runtime's thread: a
+/// port that opens at once (a serial port, the in-memory pipe) returns a future that
+/// is ready on its first poll, and the relay then uses it at once.
+pub trait Port: Send {
+    /// What the logs call it ("serial port").
+    fn kind(&self) -> &'static str;
+    /// Which one: the device path or the address.
+    fn name(&self) -> &str;
+    /// Opens it afresh, stale bytes cleared.
+    fn open(&mut self) -> Opening;
+    /// How long `bytes` take on the wire; zero for a transport with no line speed.
+    fn wire_time(&self, bytes: usize) -> Duration;
+}
+
+/// Delays between attempts to (re)open a port: doubling from `min` up to `max`.
+#[derive(Debug, Clone)]
+pub struct Backoff {
+    min: Duration,
+    max: Duration,
+    next: Duration,
+}
+
+impl Backoff {
+    /// Starts at `min`.
+    pub fn new(min: Duration, max: Duration) -> Self {
+        Self {
+            min,
+            max,
+            next: min,
+        }
+    }
+
+    /// The delay before the next attempt; each call doubles the one after.
+    pub fn next_delay(&mut self) -> Duration {
+        let d = self.next;
+        self.next = (self.next * 2).min(self.max);
+        d
+    }
+
+    /// Back to `min` (the port opened).
+    pub fn reset(&mut self) {
+        self.next = self.min;
+    }
+}
+
+/// Polls `opening` once: its result if it is ready at once, else the future back.
+pub fn open_now(mut opening: Opening) -> Result<io::Result<Link>, Opening> {
+    let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+    match opening.as_mut().poll(&mut cx) {
+        std::task::Poll::Ready(r) => Ok(r),
+        std::task::Poll::Pending => Err(opening),
+    }
+}
