@@ -1,0 +1,588 @@
+//! The relay in process: masters as outboxes on its channel, a device written in Rust on
+//! the far end of an in-memory pipe (src/port/duplex.rs). No socat, no Python, no
+//! sockets: every assertion is on bytes and on the relay's own counters (src/stats.rs).
+//! The socat/pymodbus tests stay as the outer ring (docs/architecture.md).
+
+use mbgate::config::{Framing, Notifications, RelayConfig, SerialConfig};
+use mbgate::frame::serial::Codec;
+use mbgate::frame::Adu;
+use mbgate::outbox::{Inbox, Outbox};
+use mbgate::port::duplex::{self, DeviceEnd};
+use mbgate::relay::{Command, ConnId, Relay, RelayHandle};
+use mbgate::stats::Stats;
+use std::sync::atomic::AtomicU64;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt, DuplexStream};
+use tokio::task::JoinHandle;
+use tokio::time::{timeout, Instant};
+use tokio_util::sync::CancellationToken;
+
+const MS: Duration = Duration::from_millis(1);
+/// 115200 bit/s, 8N1: one character on the wire.
+const CHAR: Duration = Duration::from_nanos(86_806);
+
+struct Gw {
+    handle: RelayHandle,
+    stats: Arc<Stats>,
+    device: DeviceEnd,
+    shutdown: CancellationToken,
+    task: JoinHandle<()>,
+    next_conn: ConnId,
+}
+
+fn serial(framing: Framing) -> SerialConfig {
+    SerialConfig {
+        path: "duplex".into(),
+        baud_rate: 115_200,
+        framing,
+        silence_floor_ms: 5,
+        ..SerialConfig::default()
+    }
+}
+
+fn relay_cfg() -> RelayConfig {
+    RelayConfig {
+        response_timeout_ms: 300,
+        frame_gap_ms: 20,
+        ..RelayConfig::default()
+    }
+}
+
+/// A relay over a pipe of `capacity` bytes each way.
+fn start_with(cfg: RelayConfig, serial: SerialConfig, capacity: usize) -> Gw {
+    let stats = Arc::new(Stats::default());
+    let shutdown = CancellationToken::new();
+    let (port, device) = duplex::pair(capacity, CHAR);
+    let (relay, handle) = Relay::new(cfg, serial, false, stats.clone(), shutdown.clone());
+    let task = tokio::spawn(relay.with_port(Box::new(port)).run());
+    Gw {
+        handle,
+        stats,
+        device,
+        shutdown,
+        task,
+        next_conn: 1,
+    }
+}
+
+fn start(cfg: RelayConfig) -> Gw {
+    start_with(cfg, serial(Framing::Mbap), 4096)
+}
+
+/// One master: its tickets in request order, its replies in that order.
+struct Master {
+    conn: ConnId,
+    outbox: Outbox,
+    inbox: Inbox,
+    handle: RelayHandle,
+}
+
+impl Gw {
+    fn master(&mut self) -> Master {
+        let conn = self.next_conn;
+        self.next_conn += 1;
+        let (outbox, inbox) = Outbox::new(16);
+        self.handle
+            .send(Command::Attach {
+                conn,
+                notifier: outbox.notifier(),
+            })
+            .unwrap();
+        Master {
+            conn,
+            outbox,
+            inbox,
+            handle: self.handle.clone(),
+        }
+    }
+
+    fn get(&self, counter: impl Fn(&Stats) -> &AtomicU64) -> u64 {
+        self.stats.get(counter(&self.stats))
+    }
+
+    /// Waits until `counter` reaches `n` (the relay counts as it goes).
+    async fn until(&self, what: &str, counter: impl Fn(&Stats) -> &AtomicU64, n: u64) {
+        let t0 = Instant::now();
+        while self.get(&counter) < n {
+            assert!(
+                t0.elapsed() < 3 * SEC,
+                "{what} never reached {n}: {}",
+                self.stats
+            );
+            tokio::time::sleep(MS).await;
+        }
+    }
+
+    async fn stop(self) {
+        self.shutdown.cancel();
+        timeout(3 * SEC, self.task).await.expect("drained").unwrap();
+    }
+}
+
+const SEC: Duration = Duration::from_secs(1);
+
+impl Master {
+    async fn send(&mut self, adu: Adu) {
+        let ticket = self.outbox.ticket().await;
+        self.handle
+            .send(Command::Request {
+                conn: self.conn,
+                adu,
+                ticket,
+            })
+            .unwrap();
+    }
+
+    async fn recv(&mut self) -> Adu {
+        timeout(3 * SEC, self.inbox.next())
+            .await
+            .expect("an answer in time")
+            .expect("open")
+            .adu
+    }
+
+    async fn nothing_for(&mut self, d: Duration) {
+        if let Ok(got) = timeout(d, self.inbox.next()).await {
+            panic!("expected nothing, got {:?}", got.map(|o| o.adu));
+        }
+    }
+}
+
+/// FC 03 read of one register at `addr`.
+fn read(tid: u16, unit: u8, addr: u16) -> Adu {
+    let [hi, lo] = addr.to_be_bytes();
+    Adu::build(tid, unit, &[0x03, hi, lo, 0x00, 0x01])
+}
+
+/// FC 06 write of `value` at `addr`.
+fn write(tid: u16, unit: u8, addr: u16, value: u16) -> Adu {
+    let [hi, lo] = addr.to_be_bytes();
+    let [vh, vl] = value.to_be_bytes();
+    Adu::build(tid, unit, &[0x06, hi, lo, vh, vl])
+}
+
+/// The register address a read or write names.
+fn addr_of(adu: &Adu) -> u16 {
+    u16::from_be_bytes([adu.pdu()[1], adu.pdu()[2]])
+}
+
+/// The device's answer to a read: the register holds its own address plus one.
+fn answer(req: &Adu) -> Adu {
+    match req.function() {
+        0x03 => {
+            let [hi, lo] = (addr_of(req) + 1).to_be_bytes();
+            Adu::build(req.tid(), req.unit(), &[0x03, 0x02, hi, lo])
+        }
+        _ => Adu::build(req.tid(), req.unit(), req.pdu()),
+    }
+}
+
+/// The value a read's reply carries.
+fn value(reply: &Adu) -> u16 {
+    assert_eq!(reply.function(), 0x03, "not a read reply: {reply:?}");
+    u16::from_be_bytes([reply.pdu()[2], reply.pdu()[3]])
+}
+
+fn exception_of(reply: &Adu) -> Option<u8> {
+    (reply.function() & 0x80 != 0).then(|| reply.pdu()[1])
+}
+
+/// Reads one MBAP frame from the device end.
+async fn next_request(dev: &mut DuplexStream) -> Adu {
+    let mut head = [0u8; 6];
+    timeout(3 * SEC, dev.read_exact(&mut head))
+        .await
+        .expect("a request in time")
+        .unwrap();
+    let len = usize::from(u16::from_be_bytes([head[4], head[5]]));
+    let mut rest = vec![0u8; len];
+    dev.read_exact(&mut rest).await.unwrap();
+    let mut all = head.to_vec();
+    all.extend(rest);
+    Adu::from_frame(all.into())
+}
+
+async fn reply(dev: &mut DuplexStream, adu: &Adu) {
+    dev.write_all(adu.as_bytes()).await.unwrap();
+}
+
+/// Nothing more arrives at the device for `d`.
+async fn device_hears_nothing(dev: &mut DuplexStream, d: Duration) {
+    let mut b = [0u8; 64];
+    if let Ok(r) = timeout(d, dev.read(&mut b)).await {
+        if matches!(r, Ok(0)) {
+            return; // the relay closed the port: nothing more can come
+        }
+        panic!("device got {:?}", r.map(|n| b[..n].to_vec()));
+    }
+}
+
+#[tokio::test]
+async fn round_robin_a_master_that_starts_waiting_goes_ahead_of_the_one_just_served() {
+    let mut gw = start(relay_cfg());
+    let mut dev = gw.device.accept().await;
+    let (mut a, mut b) = (gw.master(), gw.master());
+    a.send(read(1, 1, 100)).await;
+    let first = next_request(&mut dev).await;
+    // A queues three more while its first is on the line; B then queues one.
+    for i in 1..4 {
+        a.send(read(1 + i, 1, 100 + i)).await;
+    }
+    tokio::time::sleep(5 * MS).await;
+    b.send(read(9, 1, 200)).await;
+    tokio::time::sleep(5 * MS).await;
+    let mut order = vec![addr_of(&first)];
+    reply(&mut dev, &answer(&first)).await;
+    for _ in 0..4 {
+        let req = next_request(&mut dev).await;
+        order.push(addr_of(&req));
+        reply(&mut dev, &answer(&req)).await;
+    }
+    assert_eq!(order, [100, 200, 101, 102, 103], "one request each in turn");
+    for i in 0..4u16 {
+        let r = a.recv().await;
+        assert_eq!(
+            (r.tid(), value(&r)),
+            (1 + i, 101 + i),
+            "A's replies, A's ids"
+        );
+    }
+    let r = b.recv().await;
+    assert_eq!((r.tid(), value(&r)), (9, 201));
+    assert_eq!(gw.get(|s| &s.replies), 5);
+    assert_eq!(gw.get(|s| &s.requests), 5);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn pipelining_puts_max_in_flight_on_the_line_and_answers_in_request_order() {
+    let mut gw = start(RelayConfig {
+        max_in_flight: 4,
+        ..relay_cfg()
+    });
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    for i in 0..5u16 {
+        // One transaction id for all, as many masters do.
+        m.send(read(0, 1, 10 + i)).await;
+    }
+    let mut on_line = Vec::new();
+    for _ in 0..4 {
+        on_line.push(next_request(&mut dev).await);
+    }
+    device_hears_nothing(&mut dev, 30 * MS).await;
+    let mut tids: Vec<u16> = on_line.iter().map(Adu::tid).collect();
+    tids.sort_unstable();
+    tids.dedup();
+    assert_eq!(tids.len(), 4, "each on the line under its own id");
+    // The device answers out of order.
+    for req in on_line.iter().rev() {
+        reply(&mut dev, &answer(req)).await;
+    }
+    let fifth = next_request(&mut dev).await;
+    assert_eq!(addr_of(&fifth), 14, "the fifth once one was answered");
+    reply(&mut dev, &answer(&fifth)).await;
+    for i in 0..5u16 {
+        let r = m.recv().await;
+        assert_eq!((r.tid(), value(&r)), (0, 11 + i), "in request order");
+    }
+    assert_eq!(gw.get(|s| &s.replies), 5);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn confirmation_a_reply_that_lost_a_byte_is_not_delivered_and_the_read_is_resent() {
+    let mut gw = start(RelayConfig {
+        max_in_flight: 2,
+        retries: 1,
+        ..relay_cfg()
+    });
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    m.send(read(1, 1, 10)).await;
+    m.send(read(2, 1, 20)).await;
+    let (r1, r2) = (next_request(&mut dev).await, next_request(&mut dev).await);
+    // The first reply loses a byte of its value; the second follows back to back,
+    // so the first borrows the second's first byte and looks whole.
+    let mut bytes = answer(&r1).as_bytes().to_vec();
+    bytes.remove(9);
+    bytes.extend_from_slice(answer(&r2).as_bytes());
+    dev.write_all(&bytes).await.unwrap();
+    // Neither reply is usable (the second lost its first byte to the first): both
+    // reads are resent, and answered whole this time.
+    let mut resent = Vec::new();
+    for _ in 0..2 {
+        let again = next_request(&mut dev).await;
+        resent.push(addr_of(&again));
+        reply(&mut dev, &answer(&again)).await;
+    }
+    resent.sort_unstable();
+    assert_eq!(resent, [10, 20], "both reads resent");
+    let (a, b) = (m.recv().await, m.recv().await);
+    assert_eq!((a.tid(), value(&a)), (1, 11), "never the shifted copy");
+    assert_eq!((b.tid(), value(&b)), (2, 21));
+    assert_eq!(gw.get(|s| &s.retries), 2);
+    assert_eq!(gw.get(|s| &s.replies), 2);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn retries_resend_reads_but_never_writes() {
+    let mut gw = start(RelayConfig {
+        retries: 2,
+        response_timeout_ms: 100,
+        ..relay_cfg()
+    });
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    m.send(read(7, 1, 10)).await;
+    let first = next_request(&mut dev).await;
+    // Ignored once: resent with the same bytes but a fresh id.
+    let second = next_request(&mut dev).await;
+    assert_eq!(second.pdu(), first.pdu());
+    assert_ne!(second.tid(), first.tid());
+    reply(&mut dev, &answer(&second)).await;
+    let r = m.recv().await;
+    assert_eq!((r.tid(), value(&r)), (7, 11));
+    assert_eq!(gw.get(|s| &s.retries), 1);
+
+    m.send(write(8, 1, 10, 0x1234)).await;
+    let w = next_request(&mut dev).await;
+    assert_eq!(w.function(), 0x06);
+    let t0 = Instant::now();
+    let r = m.recv().await;
+    assert_eq!(
+        exception_of(&r),
+        Some(0x0B),
+        "a write is answered, not resent"
+    );
+    assert!(
+        t0.elapsed() >= 90 * MS,
+        "after its timeout: {:?}",
+        t0.elapsed()
+    );
+    device_hears_nothing(&mut dev, 50 * MS).await;
+    assert_eq!(gw.get(|s| &s.retries), 1);
+    assert_eq!(gw.get(|s| &s.timeouts), 1);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn timeout_answers_0x0b_after_the_response_timeout_then_a_late_reply_is_dropped() {
+    let mut gw = start(RelayConfig {
+        response_timeout_ms: 150,
+        ..relay_cfg()
+    });
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    let t0 = Instant::now();
+    m.send(read(3, 1, 10)).await;
+    let req = next_request(&mut dev).await;
+    let r = m.recv().await;
+    let waited = t0.elapsed();
+    assert_eq!((r.tid(), exception_of(&r)), (3, Some(0x0B)));
+    assert!(
+        (140 * MS..600 * MS).contains(&waited),
+        "0x0B after the timeout: {waited:?}"
+    );
+    assert_eq!(gw.get(|s| &s.timeouts), 1);
+    // Its reply, late: recognised by its id, dropped, never delivered.
+    reply(&mut dev, &answer(&req)).await;
+    gw.until("late_replies", |s| &s.late_replies, 1).await;
+    m.nothing_for(50 * MS).await;
+    assert_eq!(
+        gw.get(|s| &s.notifications_dropped),
+        0,
+        "not a notification"
+    );
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn a_duplicate_reply_is_dropped_as_late() {
+    let mut gw = start(relay_cfg());
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    m.send(read(4, 1, 10)).await;
+    let req = next_request(&mut dev).await;
+    reply(&mut dev, &answer(&req)).await;
+    let r = m.recv().await;
+    assert_eq!(value(&r), 11);
+    tokio::time::sleep(30 * MS).await;
+    reply(&mut dev, &answer(&req)).await;
+    gw.until("late_replies", |s| &s.late_replies, 1).await;
+    m.nothing_for(50 * MS).await;
+    assert_eq!(gw.get(|s| &s.replies), 1);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn notifications_reach_every_master_or_are_dropped() {
+    let notification = Adu::build(0, 1, &[0x03, 0x02, 0xAB, 0xCD]);
+    for (mode, delivered) in [
+        (Notifications::Broadcast, true),
+        (Notifications::Drop, false),
+    ] {
+        let mut gw = start(RelayConfig {
+            notifications: mode,
+            ..relay_cfg()
+        });
+        let mut dev = gw.device.accept().await;
+        let (mut a, mut b) = (gw.master(), gw.master());
+        tokio::time::sleep(5 * MS).await;
+        reply(&mut dev, &notification).await;
+        if delivered {
+            for m in [&mut a, &mut b] {
+                assert_eq!(m.recv().await.as_bytes(), notification.as_bytes());
+            }
+            assert_eq!(gw.get(|s| &s.notifications_broadcast), 1);
+        } else {
+            gw.until("dropped", |s| &s.notifications_dropped, 1).await;
+            a.nothing_for(30 * MS).await;
+        }
+        // The line carries on.
+        a.send(read(1, 1, 10)).await;
+        let req = next_request(&mut dev).await;
+        reply(&mut dev, &answer(&req)).await;
+        assert_eq!(value(&a.recv().await), 11);
+        gw.stop().await;
+    }
+}
+
+/// Reads one RTU request (FC 03/06: 8 bytes).
+async fn next_rtu(dev: &mut DuplexStream) -> Vec<u8> {
+    let mut b = [0u8; 8];
+    timeout(3 * SEC, dev.read_exact(&mut b))
+        .await
+        .expect("a request in time")
+        .unwrap();
+    b.to_vec()
+}
+
+#[tokio::test]
+async fn unit_backoff_answers_a_dead_unit_at_once_and_serves_the_others() {
+    let mut gw = start_with(
+        RelayConfig {
+            response_timeout_ms: 60,
+            unit_backoff_after: 2,
+            unit_backoff_ms: 5_000,
+            unit_backoff_max_ms: 5_000,
+            ..relay_cfg()
+        },
+        serial(Framing::Rtu),
+        4096,
+    );
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    for i in 0..2 {
+        m.send(read(i, 5, 10)).await;
+        next_rtu(&mut dev).await;
+        assert_eq!(exception_of(&m.recv().await), Some(0x0B));
+    }
+    assert_eq!(gw.get(|s| &s.timeouts), 2);
+    // Backed off: answered without the line.
+    let t0 = Instant::now();
+    m.send(read(3, 5, 10)).await;
+    assert_eq!(exception_of(&m.recv().await), Some(0x0B));
+    assert!(t0.elapsed() < 50 * MS, "at once: {:?}", t0.elapsed());
+    assert_eq!(gw.get(|s| &s.backed_off), 1);
+    // Unit 1 is served as before.
+    m.send(read(4, 1, 10)).await;
+    let req = next_rtu(&mut dev).await;
+    assert_eq!(req, Codec::Rtu.encode(1, &[0x03, 0x00, 0x0A, 0x00, 0x01]));
+    // A reply cannot begin before the request has left the wire (8 characters).
+    tokio::time::sleep(2 * MS).await;
+    dev.write_all(&Codec::Rtu.encode(1, &[0x03, 0x02, 0x00, 0x0B]))
+        .await
+        .unwrap();
+    assert_eq!(value(&m.recv().await), 11);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn port_loss_answers_what_was_on_the_line_and_the_port_reopens() {
+    let mut gw = start(relay_cfg());
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    gw.until("opens", |s| &s.serial_opens, 1).await;
+    m.send(read(1, 1, 10)).await;
+    next_request(&mut dev).await;
+    // Unplugged with the request on the line, and kept unplugged a while.
+    gw.device.refuse_opens(true);
+    drop(dev);
+    let r = m.recv().await;
+    assert_eq!(
+        exception_of(&r),
+        Some(0x0B),
+        "it went out: it may have acted"
+    );
+    assert_eq!(gw.get(|s| &s.timeouts), 1);
+    m.send(read(2, 1, 10)).await;
+    assert_eq!(
+        exception_of(&m.recv().await),
+        Some(0x0A),
+        "no path meanwhile"
+    );
+    assert_eq!(gw.get(|s| &s.unavailable), 1);
+    // Plugged back: the relay reopens with backoff (100 ms first) and serves again.
+    gw.device.refuse_opens(false);
+    let mut dev = timeout(3 * SEC, gw.device.accept())
+        .await
+        .expect("reopened");
+    gw.until("opens", |s| &s.serial_opens, 2).await;
+    m.send(read(3, 1, 10)).await;
+    let req = next_request(&mut dev).await;
+    reply(&mut dev, &answer(&req)).await;
+    assert_eq!(value(&m.recv().await), 11);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn flow_control_withdraws_a_request_that_never_left() {
+    // Room for one 12-byte request: the pipe stands in for CTS held low.
+    let mut gw = start_with(
+        RelayConfig {
+            max_in_flight: 2,
+            response_timeout_ms: 100,
+            ..relay_cfg()
+        },
+        serial(Framing::Mbap),
+        12,
+    );
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    m.send(write(1, 1, 10, 1)).await;
+    m.send(write(2, 1, 20, 2)).await;
+    let (a, b) = (m.recv().await, m.recv().await);
+    assert_eq!(
+        (exception_of(&a), exception_of(&b)),
+        (Some(0x0B), Some(0x0B))
+    );
+    // The device now reads: only the first ever reached it.
+    let first = next_request(&mut dev).await;
+    assert_eq!(addr_of(&first), 10);
+    device_hears_nothing(&mut dev, 50 * MS).await;
+    assert_eq!(gw.get(|s| &s.serial_bytes_out), 12);
+    gw.stop().await;
+}
+
+#[tokio::test]
+async fn shutdown_answers_the_queue_0x0a_and_waits_for_the_line() {
+    let mut gw = start(relay_cfg());
+    let mut dev = gw.device.accept().await;
+    let mut m = gw.master();
+    m.send(read(1, 1, 10)).await;
+    let req = next_request(&mut dev).await;
+    m.send(read(2, 1, 20)).await;
+    tokio::time::sleep(5 * MS).await;
+    gw.shutdown.cancel();
+    tokio::time::sleep(30 * MS).await;
+    assert!(!gw.task.is_finished(), "waits for the request on the line");
+    reply(&mut dev, &answer(&req)).await;
+    let (a, b) = (m.recv().await, m.recv().await);
+    assert_eq!(value(&a), 11, "the reply on the line is delivered");
+    assert_eq!(exception_of(&b), Some(0x0A), "the queued one has no path");
+    timeout(SEC, gw.task).await.expect("stopped").unwrap();
+    device_hears_nothing(&mut dev, 20 * MS).await;
+}
