@@ -12,6 +12,8 @@
 //! all of them.
 
 mod line;
+#[cfg(test)]
+mod scheduler;
 
 use crate::config::{BroadcastReply, Notifications, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
