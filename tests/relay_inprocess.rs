@@ -586,3 +586,45 @@ async fn shutdown_answers_the_queue_0x0a_and_waits_for_the_line() {
     timeout(SEC, gw.task).await.expect("stopped").unwrap();
     device_hears_nothing(&mut dev, 20 * MS).await;
 }
+
+#[tokio::test]
+async fn rtu_a_reply_of_another_shape_with_a_good_crc_goes_to_the_master_unchanged() {
+    for framing in [Framing::Rtu, Framing::Ascii] {
+        let codec = if framing == Framing::Rtu {
+            Codec::Rtu
+        } else {
+            Codec::Ascii
+        };
+        let mut gw = start_with(relay_cfg(), serial(framing), 4096);
+        let mut dev = gw.device.accept().await;
+        let mut m = gw.master();
+        // Three registers asked, two answered (a device's own idea, or its error).
+        m.send(Adu::build(5, 1, &[0x03, 0x00, 0x0A, 0x00, 0x03]))
+            .await;
+        let request = codec.encode(1, &[0x03, 0x00, 0x0A, 0x00, 0x03]);
+        let mut got = vec![0u8; request.len()];
+        timeout(3 * SEC, dev.read_exact(&mut got))
+            .await
+            .unwrap()
+            .unwrap();
+        assert_eq!(got, request);
+        tokio::time::sleep(2 * MS).await;
+        let t0 = Instant::now();
+        let odd = [0x03, 0x04, 0x00, 0x0B, 0x00, 0x0C];
+        dev.write_all(&codec.encode(1, &odd)).await.unwrap();
+        let r = m.recv().await;
+        assert_eq!(
+            (r.tid(), r.unit(), r.pdu()),
+            (5, 1, &odd[..]),
+            "{framing:?}"
+        );
+        assert!(
+            t0.elapsed() < 150 * MS,
+            "not after the timeout: {:?}",
+            t0.elapsed()
+        );
+        assert_eq!(gw.get(|s| &s.bad_frames), 0);
+        assert_eq!(gw.get(|s| &s.replies), 1);
+        gw.stop().await;
+    }
+}

@@ -495,7 +495,16 @@ impl Serial {
         match next {
             None | Some(Decoded::Noise(_)) => Vec::new(),
             Some(Decoded::Frame { unit, pdu }) => {
-                if unit == f.req.adu.unit() && pdu::reply_matches(request, &pdu) {
+                if unit == f.req.adu.unit() {
+                    // The CRC or LRC proves these are the unit's own bytes: a reply of
+                    // another shape than the request's goes to the master unchanged, to
+                    // judge, as a transparent gateway passes it.
+                    if !pdu::reply_matches(request, &pdu) {
+                        debug!(
+                            unit,
+                            "a reply of another shape than its request's, passed on"
+                        );
+                    }
                     vec![Seen::Frame(Adu::build(f.tid, unit, &pdu))]
                 } else {
                     debug!(unit, "a frame that does not answer the request on the line");
