@@ -4,7 +4,9 @@
 //! shared.
 //!
 //! - [`Mbap`]: serial-side transaction ids, several requests on the line at once
-//!   (`max_in_flight`), the resynchronising decoder with confirmation, notifications.
+//!   (`max_in_flight`), the resynchronising decoder with confirmation of every frame
+//!   (by what follows it, or by a pause of a few character times), notifications,
+//!   echoes told by their timing.
 //! - [`Serial`]: RTU or ASCII. No transaction id, so one request at a time; frames
 //!   delimited by length, silence or line feed and checked by CRC or LRC; the
 //!   inter-frame gap (3.5 character times) before each request, counted from the last
@@ -12,14 +14,14 @@
 //!   suppression.
 
 use super::InFlight;
-use crate::config::{Notifications, RelayConfig, SerialConfig};
+use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::mbap::FrameRef;
 use crate::frame::pdu;
 use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
 use crate::frame::{rtu, Adu, Judge, Resync};
 use crate::serial;
 use crate::stats::Stats;
-use crate::tids::{self, Tids};
+use crate::tids::Tids;
 use bytes::Bytes;
 use std::collections::VecDeque;
 use std::time::Duration;
@@ -45,15 +47,27 @@ impl Line {
     pub(super) fn new(relay: &RelayConfig, serial: &SerialConfig, now: Instant) -> Line {
         let codec = match serial.framing {
             crate::config::Framing::Mbap => {
+                let gap = Duration::from_millis(relay.frame_gap_ms);
+                let t35 = Duration::from_micros(rtu::t35_us(
+                    serial.baud_rate,
+                    serial::bits_per_char(serial),
+                ));
                 return Line::Mbap(Mbap {
                     tids: Tids::new(),
                     decoder: Resync::new(),
                     last_byte: now,
-                    followers_until: now,
+                    pause: t35
+                        .max(Duration::from_millis(serial.silence_floor_ms))
+                        .min(gap),
                     max_in_flight: relay.max_in_flight,
-                    notifications: relay.notifications,
-                    gap: Duration::from_millis(relay.frame_gap_ms),
-                })
+                    gap,
+                    char_time: serial::wire_time(serial, 1000) / 1000,
+                    tx_clear: now,
+                    sent: Vec::new(),
+                    chunks: VecDeque::new(),
+                    received: 0,
+                    echo_bytes: 0,
+                });
             }
             crate::config::Framing::Rtu => Codec::Rtu,
             crate::config::Framing::Ascii => Codec::Ascii,
@@ -94,6 +108,7 @@ impl Line {
     pub(super) fn retire(&mut self, tid: u16, now: Instant) {
         if let Line::Mbap(m) = self {
             m.tids.retire(tid, now.into_std());
+            m.sent.retain(|s| s.tid != tid);
         }
     }
 
@@ -105,7 +120,11 @@ impl Line {
     /// The bytes that put `adu` on the line as request `tid`.
     pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant) -> Bytes {
         match self {
-            Line::Mbap(_) => adu.with_tid(tid).into_bytes(),
+            Line::Mbap(m) => {
+                let bytes = adu.with_tid(tid).into_bytes();
+                m.sent(tid, &bytes, now);
+                bytes
+            }
             Line::Serial(s) => {
                 let bytes = s.decoder.codec().encode(adu.unit(), adu.pdu());
                 if let Some(echo) = &mut s.echo {
@@ -152,6 +171,8 @@ impl Line {
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant, stats: &Stats) {
         match self {
             Line::Mbap(m) => {
+                m.chunks.push_back((m.received, now));
+                m.received += bytes.len() as u64;
                 m.decoder.push(bytes);
                 m.last_byte = now;
             }
@@ -168,7 +189,15 @@ impl Line {
     /// requests are waiting.
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         match self {
-            Line::Mbap(m) => (m.decoder.buffered() > 0).then(|| m.last_byte + m.gap),
+            Line::Mbap(m) => {
+                // First the pause that ends a frame, then the frame gap. A frame held
+                // past both waits for what follows it, or for a reply's deadline,
+                // which the relay wakes for anyway.
+                let quiet_for = if m.decoder.paused() { m.gap } else { m.pause };
+                (m.decoder.buffered() > 0)
+                    .then(|| m.last_byte + quiet_for)
+                    .filter(|&w| w > now)
+            }
             Line::Serial(s) => {
                 let mut wake: Option<Instant> = None;
                 if s.decoder.buffered() > 0 {
@@ -186,7 +215,11 @@ impl Line {
     /// Forgets every byte received (the port was opened or lost).
     pub(super) fn clear(&mut self, stats: &Stats) {
         match self {
-            Line::Mbap(m) => m.decoder.clear(),
+            Line::Mbap(m) => {
+                m.decoder.clear();
+                m.chunks.clear();
+                m.sent.clear();
+            }
             Line::Serial(s) => {
                 stats.add(&stats.dropped_bytes, s.decoder.clear() as u64);
                 if let Some(echo) = &mut s.echo {
@@ -198,11 +231,11 @@ impl Line {
         }
     }
 
-    /// A request timed out: its reply may still come (MBAP holds replies for
-    /// confirmation a while); a partial RTU/ASCII reply is discarded.
-    pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
+    /// A request timed out: its reply may still come (MBAP recognises it by its id);
+    /// a partial RTU/ASCII reply is discarded.
+    pub(super) fn timed_out(&mut self, _now: Instant, stats: &Stats) {
         match self {
-            Line::Mbap(m) => m.expect_followers(now),
+            Line::Mbap(_) => {}
             Line::Serial(s) => {
                 stats.add(&stats.dropped_bytes, s.decoder.clear() as u64);
             }
@@ -223,12 +256,10 @@ impl Line {
     }
 
     /// An MBAP frame that answers nothing in flight: a late reply or a notification.
-    /// Another frame may follow replies for a while.
-    pub(super) fn unsolicited(&mut self, tid: u16, now: Instant) -> Unsolicited {
+    pub(super) fn unsolicited(&mut self, tid: u16, _now: Instant) -> Unsolicited {
         let Line::Mbap(m) = self else {
             return Unsolicited::Late;
         };
-        m.expect_followers(now);
         if m.tids.is_retired(tid) {
             Unsolicited::Late
         } else {
@@ -249,21 +280,42 @@ pub(super) struct Mbap {
     tids: Tids,
     decoder: Resync,
     last_byte: Instant,
-    /// Until then another frame may follow any reply (a late reply, a notification),
-    /// so replies are held for confirmation.
-    followers_until: Instant,
+    /// The silence that ends a frame and confirms a reply with nothing after it: 3.5
+    /// character times, never less than `silence_floor_ms` (a USB adapter hands bytes
+    /// over in bursts its latency timer apart), never more than the frame gap.
+    pause: Duration,
     max_in_flight: usize,
-    notifications: Notifications,
     gap: Duration,
+    /// One character on the wire at the configured speed.
+    char_time: Duration,
+    /// When every byte handed to the port so far can have left it, written back to
+    /// back at the configured speed.
+    tx_clear: Instant,
+    /// The requests in flight as sent, for telling their echoes.
+    sent: Vec<Sent>,
+    /// Where each chunk read from the port begins in everything received, and when it
+    /// was read, back to the first byte the decoder still holds.
+    chunks: VecDeque<(u64, Instant)>,
+    /// Bytes received so far.
+    received: u64,
+    /// Bytes dropped as echoes.
+    echo_bytes: u64,
+}
+
+/// A request as it went on the line.
+struct Sent {
+    tid: u16,
+    bytes: Bytes,
+    /// The earliest instant its last byte can have left: nothing that began arriving
+    /// before then can be its reply.
+    left: Instant,
 }
 
 /// The relay's view of which frames on the line it can use (design.md §1 step 4, §2).
 struct RelayJudge<'a> {
     in_flight: &'a [InFlight],
     tids: &'a Tids,
-    /// Hold frames until what follows them confirms them (issue 4): when another frame
-    /// may follow, a reply that lost a byte could complete itself with its first byte.
-    strict: bool,
+    now: Instant,
 }
 
 impl Judge for RelayJudge<'_> {
@@ -294,47 +346,104 @@ impl Judge for RelayJudge<'_> {
         }
     }
 
+    /// Always: a frame that lost a byte completes itself with the first byte of
+    /// whatever follows it, and something may always follow: a notification the
+    /// device sends whether or not the gateway passes them on, a late or duplicate
+    /// reply, noise (docs/reliability.md).
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
-        self.strict
+        true
+    }
+
+    /// A pause confirms a frame when no other reply is due: then nothing is expected
+    /// after it. While other replies are due, the frame waits for the next one (a
+    /// pause inside that one would otherwise pass for the end of the line's talk), or
+    /// for its own request's deadline.
+    fn quiet_confirms(&self, frame: FrameRef<'_>) -> bool {
+        let tid = frame.tid();
+        let due = |f: &InFlight| f.deadline > self.now;
+        let own_expired = self.in_flight.iter().any(|f| f.tid == tid && !due(f));
+        own_expired || !self.in_flight.iter().any(|f| f.tid != tid && due(f))
     }
 }
 
 impl Mbap {
-    /// Can a frame other than the reply to the one request on the line arrive? Then
-    /// replies wait for confirmation (issue 4). It can when several requests are on the
-    /// line, when the device sends notifications, and for a while after a request timed
-    /// out (its reply may still come), an unsolicited frame was seen, or the line
-    /// carried garbage (noise that can land inside a reply).
-    fn followers_possible(&self, in_flight: usize, now: Instant) -> bool {
-        in_flight > 1
-            || self.notifications == Notifications::Broadcast
-            || now < self.followers_until
+    /// Request `tid` goes on the line now as `bytes`, behind whatever is still being
+    /// written.
+    fn sent(&mut self, tid: u16, bytes: &Bytes, now: Instant) {
+        let left = self.tx_clear.max(now) + self.char_time * bytes.len() as u32;
+        self.tx_clear = left;
+        self.sent.push(Sent {
+            tid,
+            bytes: bytes.clone(),
+            left,
+        });
     }
 
-    /// Another frame may follow replies for a while (see [`Self::followers_possible`]).
-    fn expect_followers(&mut self, now: Instant) {
-        self.followers_until = now + tids::RETIRED_FOR;
+    /// When the byte at `offset` (in everything received) was read.
+    fn read_at(&self, offset: u64) -> Option<Instant> {
+        self.chunks
+            .iter()
+            .rev()
+            .find(|&&(start, _)| start <= offset)
+            .map(|&(_, at)| at)
+    }
+
+    /// Is `frame`, just decoded, the echo of its request rather than its reply? An
+    /// RS-232 loopback (a cable, an adapter) sends every request straight back, and the
+    /// echo of an FC 05 or 06 write is byte for byte its successful reply. A reply
+    /// cannot begin before its request has left, so a copy of the request that began
+    /// arriving earlier (no later than its first byte was read, nor than its own time
+    /// on the wire before its last byte was read) is the echo.
+    fn is_echo(&self, frame: &Adu) -> bool {
+        let Some(sent) = self.sent.iter().find(|s| s.tid == frame.tid()) else {
+            return false;
+        };
+        if frame.as_bytes() != &sent.bytes[..] {
+            return false;
+        }
+        let len = frame.as_bytes().len() as u64;
+        let end = self.decoder.consumed();
+        let (Some(first), Some(last)) = (self.read_at(end - len), self.read_at(end - 1)) else {
+            return false;
+        };
+        let on_wire = self.char_time * len as u32;
+        let began = last.checked_sub(on_wire).map_or(first, |b| b.min(first));
+        began < sent.left
     }
 
     fn frames(&mut self, in_flight: &[InFlight], now: Instant, stats: &Stats) -> Vec<Seen> {
-        let quiet = now >= self.last_byte + self.gap;
+        let idle = now.saturating_duration_since(self.last_byte);
+        if idle >= self.pause {
+            self.decoder.pause();
+        }
+        let quiet = idle >= self.gap;
         let mut seen = Vec::new();
         loop {
             let judge = RelayJudge {
                 in_flight,
                 tids: &self.tids,
-                strict: self.followers_possible(in_flight.len(), now),
+                now,
             };
             let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
                 break;
             };
+            if self.is_echo(&frame) {
+                debug!(
+                    tid = frame.tid(),
+                    "a copy of the request that began before it had left: its echo, dropped"
+                );
+                self.echo_bytes += frame.as_bytes().len() as u64;
+                continue;
+            }
             seen.push(Seen::Frame(frame));
         }
-        let decoded = self.decoder.stats();
-        if decoded.dropped_bytes > stats.get(&stats.dropped_bytes) {
-            self.expect_followers(now);
+        // Chunks wholly taken by the decoder are no longer needed.
+        let consumed = self.decoder.consumed();
+        while self.chunks.get(1).is_some_and(|&(start, _)| start <= consumed) {
+            self.chunks.pop_front();
         }
-        stats.set(&stats.dropped_bytes, decoded.dropped_bytes);
+        let decoded = self.decoder.stats();
+        stats.set(&stats.dropped_bytes, decoded.dropped_bytes + self.echo_bytes);
         stats.set(&stats.refuted_frames, decoded.refuted);
         seen
     }
