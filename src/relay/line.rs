@@ -190,13 +190,9 @@ impl Line {
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         match self {
             Line::Mbap(m) => {
-                // First the pause that ends a frame, then the frame gap. A frame held
-                // past both waits for what follows it, or for a reply's deadline,
-                // which the relay wakes for anyway.
+                // First the pause that ends a frame, then the frame gap.
                 let quiet_for = if m.decoder.paused() { m.gap } else { m.pause };
-                (m.decoder.buffered() > 0)
-                    .then(|| m.last_byte + quiet_for)
-                    .filter(|&w| w > now)
+                (m.decoder.buffered() > 0).then(|| m.last_byte + quiet_for)
             }
             Line::Serial(s) => {
                 let mut wake: Option<Instant> = None;
@@ -354,11 +350,12 @@ impl Judge for RelayJudge<'_> {
         true
     }
 
-    /// A pause confirms a frame when no other reply is due: then nothing is expected
-    /// after it. While other replies are due, the frame waits for the next one (a
-    /// pause inside that one would otherwise pass for the end of the line's talk), or
-    /// for its own request's deadline.
-    fn quiet_confirms(&self, frame: FrameRef<'_>) -> bool {
+    /// A pause confirms a frame when no other reply is due (or its own request's time
+    /// is up): then nothing is expected after it. While other replies are due, the
+    /// frame waits for the next one or for the frame gap: a pause inside that next
+    /// reply, right after a byte this one borrowed, must not pass for the end of the
+    /// line's talk.
+    fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
         let tid = frame.tid();
         let due = |f: &InFlight| f.deadline > self.now;
         let own_expired = self.in_flight.iter().any(|f| f.tid == tid && !due(f));
@@ -535,5 +532,122 @@ impl Serial {
                 vec![Seen::Corrupt(f.tid)]
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::hex::parse as bytes;
+    use std::sync::Arc;
+    use tokio::sync::Semaphore;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    fn mbap(baud: u32) -> (Line, Instant) {
+        let serial = SerialConfig {
+            baud_rate: baud,
+            ..SerialConfig::default()
+        };
+        let now = Instant::now();
+        (Line::new(&RelayConfig::default(), &serial, now), now)
+    }
+
+    /// Request `adu` sent now as `tid`, due in a second.
+    fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight {
+        let tid = line.allocate(now);
+        line.encode(adu, tid, now);
+        InFlight {
+            tid,
+            deadline: now + Duration::from_secs(1),
+            req: super::super::Pending {
+                conn: 1,
+                adu: adu.clone(),
+                permit: Arc::new(Semaphore::new(1)).try_acquire_owned().unwrap(),
+                attempts: 0,
+            },
+        }
+    }
+
+    fn frames(line: &mut Line, in_flight: &[InFlight], now: Instant) -> Vec<Vec<u8>> {
+        line.frames(in_flight, now, &Stats::default())
+            .into_iter()
+            .map(|s| match s {
+                Seen::Frame(f) => f.as_bytes().to_vec(),
+                Seen::Corrupt(_) => panic!("corrupt on an MBAP line"),
+            })
+            .collect()
+    }
+
+    /// An RS-232 loopback sends an FC 06 write straight back, byte for byte its
+    /// successful reply, while the write is still going out (12 bytes at 9600 baud
+    /// take 12.5 ms). A copy that began before the write had left is its echo; the
+    /// device's own reply after it is the answer.
+    #[test]
+    fn a_copy_of_the_request_that_began_before_it_left_is_its_echo() {
+        let (mut line, t0) = mbap(9600);
+        let write = Adu::build(9, 1, &[6, 0, 1, 0, 3]);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent[..4], t0 + MS, &Stats::default());
+        line.received(&sent[4..], t0 + 12 * MS, &Stats::default());
+        assert!(frames(&mut line, &[f], t0 + 40 * MS).is_empty());
+        // Read late, in one piece: its own time on the wire before it was read is
+        // still before the write left.
+        let (mut line, t0) = mbap(9600);
+        let f = send(&mut line, &write, t0);
+        line.received(&sent, t0 + 20 * MS, &Stats::default());
+        assert!(frames(&mut line, &[f], t0 + 60 * MS).is_empty());
+        // The device's reply, begun after the write left.
+        let (mut line, t0) = mbap(9600);
+        let f = send(&mut line, &write, t0);
+        line.received(&sent, t0 + 26 * MS, &Stats::default());
+        assert_eq!(frames(&mut line, &[f], t0 + 60 * MS), vec![sent.clone()]);
+        // A request queued behind another leaves after it.
+        let (mut line, t0) = mbap(9600);
+        let first = send(&mut line, &Adu::build(1, 1, &[3, 0, 0, 0, 1]), t0);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent, t0 + 37 * MS, &Stats::default());
+        assert!(frames(&mut line, &[first, f], t0 + 90 * MS).is_empty());
+    }
+
+    /// Every reply is held until what follows confirms it, with default settings: a
+    /// reply that lost a data byte, then a notification at once, is never delivered.
+    /// A reply alone is confirmed by a pause (the default floor, 20 ms), not the frame
+    /// gap; with another reply due it waits for that one, or for the frame gap.
+    #[test]
+    fn replies_are_confirmed_by_what_follows_or_a_pause() {
+        let (mut line, t0) = mbap(19_200);
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 3]);
+        let a = send(&mut line, &read, t0);
+        let mut reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
+            .as_bytes()
+            .to_vec();
+        reply.remove(10);
+        let notification = bytes("00 00 00 00 00 05 01 03 02 00 0F");
+        let at = t0 + 30 * MS;
+        line.received(&[reply, notification].concat(), at, &Stats::default());
+        for after in [0, 20, 50] {
+            assert!(frames(&mut line, std::slice::from_ref(&a), at + after * MS).is_empty());
+        }
+
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let b = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3]).as_bytes().to_vec();
+        let at = t0 + 30 * MS;
+        line.received(&reply, at, &Stats::default());
+        let both = [a, b];
+        assert!(frames(&mut line, &both, at + 19 * MS).is_empty());
+        assert!(frames(&mut line, &both, at + 20 * MS).is_empty(), "b is due");
+        assert_eq!(line.next_wake(at + 20 * MS, false), Some(at + 50 * MS));
+        assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3]).as_bytes().to_vec();
+        line.received(&reply, at, &Stats::default());
+        assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
+        assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);
     }
 }
