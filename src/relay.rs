@@ -345,7 +345,10 @@ impl Relay {
     }
 
     /// The port failed or its far end went away: answer everything waiting on it, and
-    /// reopen with backoff.
+    /// reopen with backoff. A request that had begun to go out gets 0x0B, as for a
+    /// timeout: it may have reached the device and acted, and no answer came. One whose
+    /// bytes never left (held by flow control, or queued) gets 0x0A: there is no path
+    /// to the device, and it cannot have acted.
     fn port_lost(&mut self, why: &str, now: Instant) {
         warn!(path = %self.serial.path, "serial port lost: {why}; reopening with backoff");
         self.port = Port::Closed {
@@ -353,14 +356,19 @@ impl Relay {
         };
         self.port_warned = true;
         self.line.clear(&self.stats);
-        self.out.clear();
         if let Some(d) = self.drain.take() {
             d.abort();
         }
         for f in std::mem::take(&mut self.in_flight) {
             self.line.retire(f.tid, now);
-            self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+            let code = if self.out.withdraw(f.tid) {
+                exception::GATEWAY_PATH_UNAVAILABLE
+            } else {
+                exception::GATEWAY_TARGET_FAILED
+            };
+            self.answer_exception(f.req, code);
         }
+        self.out.clear();
         self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
     }
 
