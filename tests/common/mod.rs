@@ -603,8 +603,18 @@ fn pump(
     })
 }
 
+/// What a scripted MBAP device writes for each request: pieces of bytes, each written
+/// that long after the request was read (in order), so a test can put a pause exactly
+/// where it wants one.
+pub type MbapScript = Box<dyn FnMut(&Adu) -> Vec<(Duration, Vec<u8>)> + Send>;
+
 impl RawDevice {
     pub fn start(path: &Path, mut handler: Handler) -> RawDevice {
+        RawDevice::scripted(path, Box::new(move |req| vec![(Duration::ZERO, handler(req))]))
+    }
+
+    /// A device that writes what `script` says when it says.
+    pub fn scripted(path: &Path, mut script: MbapScript) -> RawDevice {
         let file = open_pty(path);
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
@@ -613,10 +623,15 @@ impl RawDevice {
         let thread = pump(&file, stop.clone(), move |chunk, _, wr| {
             buf.extend_from_slice(chunk);
             while let Ok(Some(req)) = decode_strict(&mut buf) {
+                let read = Instant::now();
                 seen2.lock().unwrap().push(req.clone());
-                let reply = handler(&req);
-                if !reply.is_empty() && write_all_nb(wr, &reply).is_err() {
-                    return false;
+                for (after, bytes) in script(&req) {
+                    if let Some(wait) = (read + after).checked_duration_since(Instant::now()) {
+                        thread::sleep(wait);
+                    }
+                    if !bytes.is_empty() && write_all_nb(wr, &bytes).is_err() {
+                        return false;
+                    }
                 }
             }
             true
