@@ -96,8 +96,10 @@ pub struct SerialConfig {
     pub stop_bits: u8,
     pub flow_control: FlowControl,
     pub framing: Framing,
-    /// RTU: the least silence that ends a frame of unknown shape, whatever 3.5
-    /// character times come to (a USB adapter delivers bytes in bursts).
+    /// The least silence that ends a frame, whatever 3.5 character times come to: a
+    /// USB adapter delivers bytes in bursts its latency timer apart (FTDI: 16 ms).
+    /// RTU: it ends a reply of unknown shape. MBAP: it confirms a reply with nothing
+    /// after it, and a frame whose bytes straddle it is suspect (docs/reliability.md).
     #[serde(deserialize_with = "de_key::silence_floor_ms")]
     pub silence_floor_ms: u64,
     /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter.
@@ -127,6 +129,9 @@ pub struct TcpConfig {
 pub struct RelayConfig {
     #[serde(deserialize_with = "de_key::response_timeout_ms")]
     pub response_timeout_ms: u64,
+    /// A partial frame that gets no byte for this long is discarded. MBAP: a reply
+    /// with nothing after it, while other replies are due, is taken after this much
+    /// quiet (a shorter pause may sit inside the next reply).
     #[serde(deserialize_with = "de_key::frame_gap_ms")]
     pub frame_gap_ms: u64,
     #[serde(deserialize_with = "de_key::max_in_flight")]
@@ -701,8 +706,8 @@ pub struct Overrides {
     /// Serial framing [serial.framing]
     #[arg(long, value_enum)]
     pub framing: Option<Framing>,
-    /// RTU: least silence that ends a frame of unknown shape, 0..=1000 ms
-    /// [serial.silence_floor_ms]
+    /// Least silence that ends a frame (above the adapter's latency timer), 0..=1000
+    /// ms [serial.silence_floor_ms]
     #[arg(long, value_name = "MS")]
     pub silence_floor_ms: Option<u64>,
     /// Turn on the kernel's RS-485 mode (TIOCSRS485) [serial.rs485]
@@ -732,8 +737,8 @@ pub struct Overrides {
     /// Time to wait for the device's reply, 1..=600000 ms [relay.response_timeout_ms]
     #[arg(long, value_name = "MS")]
     pub response_timeout_ms: Option<u64>,
-    /// Silence after which a partial serial frame is discarded, 1..=60000 ms
-    /// [relay.frame_gap_ms]
+    /// Silence after which a partial serial frame is discarded (MBAP: and a held
+    /// reply taken while other replies are due), 1..=60000 ms [relay.frame_gap_ms]
     #[arg(long, value_name = "MS")]
     pub frame_gap_ms: Option<u64>,
     /// Requests outstanding on the serial line at once, 1..=255 [relay.max_in_flight]

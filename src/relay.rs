@@ -578,7 +578,7 @@ impl Relay {
             self.deliver(f.req.conn, reply, Some(f.req.permit));
             return;
         }
-        match self.line.unsolicited(tid, now) {
+        match self.line.unsolicited(tid) {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
                 debug!(

@@ -50,7 +50,10 @@ const STRICT: Confirmed<ReplyJudge> = Confirmed(ReplyJudge);
 /// Register values: anything, or values that look like pieces of MBAP headers (zeros,
 /// lengths, unit and function code pairs, byte counts), which make shifted and
 /// spelled headers plausible.
-fn register_values(header_like: bool, n: std::ops::RangeInclusive<usize>) -> BoxedStrategy<Vec<u16>> {
+fn register_values(
+    header_like: bool,
+    n: std::ops::RangeInclusive<usize>,
+) -> BoxedStrategy<Vec<u16>> {
     if header_like {
         let piece = prop_oneof![
             4 => Just(0x0000u16),
@@ -78,7 +81,11 @@ fn line_reply(header_like: bool) -> BoxedStrategy<Adu> {
             }
             Adu::build(0, unit, &p)
         });
-    let echo = (unit.clone(), register_values(header_like, 2..=2), 0x10u8..=0x10)
+    let echo = (
+        unit.clone(),
+        register_values(header_like, 2..=2),
+        0x10u8..=0x10,
+    )
         .prop_map(|(unit, v, f)| {
             let mut p = vec![f];
             p.extend_from_slice(&v[0].to_be_bytes());
@@ -105,7 +112,11 @@ fn notification(header_like: bool) -> BoxedStrategy<Adu> {
 
 fn talk(header_like: bool) -> impl Strategy<Value = Talk> {
     prop::collection::vec(
-        (any::<u8>(), line_reply(header_like), prop::option::weighted(0.25, notification(header_like))),
+        (
+            any::<u8>(),
+            line_reply(header_like),
+            prop::option::weighted(0.25, notification(header_like)),
+        ),
         1..10,
     )
     .prop_map(|items| {
@@ -144,7 +155,11 @@ fn check_loss(
     pause_confirms: bool,
 ) -> Result<(), TestCaseError> {
     let found = lossy::unexplained(talk, runs, pauses, cuts, pause_confirms);
-    prop_assert!(found.is_none(), "not sent, too few bytes lost around it: {:?}", found);
+    prop_assert!(
+        found.is_none(),
+        "not sent, too few bytes lost around it: {:?}",
+        found
+    );
     Ok(())
 }
 

@@ -85,7 +85,10 @@ fn a_lost_byte_then_an_unsolicited_frame_delivers_nothing_wrong() {
     );
     let mut m = r.gw.connect();
     let mut tid = 0;
-    for (name, after) in [("notification", hex(NOTIFICATION)), ("its reply again", vec![])] {
+    for (name, after) in [
+        ("notification", hex(NOTIFICATION)),
+        ("its reply again", vec![]),
+    ] {
         *follower.lock().unwrap() = after;
         for data_byte in 9..15 {
             lost.store(data_byte, Ordering::SeqCst);
@@ -167,7 +170,10 @@ fn a_pause_inside_the_next_frame_delivers_nothing_wrong() {
     );
     let mut m = r.gw.connect();
     for tid in 1..=5 {
-        assert_eq!(transact(&mut m, &read_req(tid, 1, 100, 3)), no_reply(tid, 3));
+        assert_eq!(
+            transact(&mut m, &read_req(tid, 1, 100, 3)),
+            no_reply(tid, 3)
+        );
     }
 }
 

@@ -88,7 +88,10 @@ fn line(input: &[u8]) -> (Talk, Vec<Run>, Vec<usize>, bool) {
                 p.extend(c.value(header_like).to_be_bytes());
                 p
             }
-            3 => vec![[0x81, 0x83, 0x90][usize::from(c.byte() % 3)], 1 + c.byte() % 4],
+            3 => vec![
+                [0x81, 0x83, 0x90][usize::from(c.byte() % 3)],
+                1 + c.byte() % 4,
+            ],
             _ => {
                 let mut p = vec![0x03, 0x02];
                 p.extend(c.value(header_like).to_be_bytes());

@@ -21,8 +21,8 @@ pub const SHORTEST_FRAME: usize = 9;
 /// high byte, transaction ids below 256), lengths, unit and function code pairs, byte
 /// counts. They make shifted and spelled headers plausible.
 pub const HEADER_LIKE: [u16; 13] = [
-    0x0000, 0x0003, 0x0005, 0x0006, 0x0009, 0x0103, 0x0110, 0x0183, 0x0106, 0x0203, 0x0002,
-    0x0100, 0x0300,
+    0x0000, 0x0003, 0x0005, 0x0006, 0x0009, 0x0103, 0x0110, 0x0183, 0x0106, 0x0203, 0x0002, 0x0100,
+    0x0300,
 ];
 
 /// What the relay knows (design.md §1 step 4): the requests on the line, each with its
@@ -54,8 +54,7 @@ impl Judge for Outstanding {
                 && f.function() == frame.function()
                 && f.as_bytes().len() == frame.as_bytes().len()
                 && pdu::reply_well_formed(frame.pdu())
-                && (!matches!(f.function(), 0x05 | 0x06 | 0x10)
-                    || f.pdu()[..5] == frame.pdu()[..5])
+                && (!matches!(f.function(), 0x05 | 0x06 | 0x10) || f.pdu()[..5] == frame.pdu()[..5])
         })
     }
 
@@ -77,7 +76,11 @@ pub struct Talk {
 
 impl Talk {
     pub fn replies(&self) -> Vec<Adu> {
-        self.frames.iter().filter(|f| f.tid() != 0).cloned().collect()
+        self.frames
+            .iter()
+            .filter(|f| f.tid() != 0)
+            .cloned()
+            .collect()
     }
 
     pub fn bytes(&self) -> Vec<u8> {

@@ -316,8 +316,14 @@ mod tests {
         assert!(reply_matches(&[1, 0, 19, 0, 19], &[1, 3, 0xCD, 0x6B, 0x05]));
         assert!(!reply_matches(&[1, 0, 19, 0, 19], &[1, 2, 0xCD, 0x6B]));
         // The bits past coil 38 pad the last byte with zeros: 0x05 uses 3 bits.
-        assert!(!reply_matches(&[1, 0, 19, 0, 19], &[1, 3, 0xCD, 0x6B, 0x0D]));
-        assert!(!reply_matches(&[2, 0, 19, 0, 19], &[2, 3, 0xCD, 0x6B, 0x85]));
+        assert!(!reply_matches(
+            &[1, 0, 19, 0, 19],
+            &[1, 3, 0xCD, 0x6B, 0x0D]
+        ));
+        assert!(!reply_matches(
+            &[2, 0, 19, 0, 19],
+            &[2, 3, 0xCD, 0x6B, 0x85]
+        ));
         assert!(reply_matches(&[2, 0, 0, 0, 16], &[2, 2, 0xFF, 0xFF]));
         // An echo of an FC 01 read passes the byte count at address 0x03xx; for 17 to
         // 20 coils the padding gives it away.

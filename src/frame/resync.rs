@@ -35,7 +35,9 @@
 //!   held frame: a frame does not stop half way;
 //! - a held frame that ends with a whole frame the judge accepts is refuted: a run of
 //!   lost bytes as long as that frame would make exactly this (the reply's lost tail
-//!   filled by a whole frame that followed it), and it cannot be told apart.
+//!   filled by a whole frame that followed it), and it cannot be told apart;
+//! - a held frame followed by another with its transaction id but other bytes is
+//!   refuted: one of them took its id from somewhere else.
 //!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
@@ -314,7 +316,11 @@ impl Resync {
             Candidate::Incomplete => Verdict::Wait,
             Candidate::Complete(n) => {
                 let follower = FrameRef::new(&rest[..n]);
+                // The same id with other bytes: one of the two is not what it claims
+                // (a duplicate reply is the same bytes).
+                let contradicts = follower.tid() == frame.tid() && follower != frame;
                 if self.pause_within(total, total + n)
+                    || contradicts
                     || !judge.accept(follower)
                     || ends_with_a_frame(&self.buf[..total], judge)
                 {
@@ -693,7 +699,10 @@ mod tests {
         assert_eq!(decode_with(&ReplyJudge, &[&all])[0], wrong, "taken unheld");
         for cut in 0..=all.len() {
             for quiet in [Step::Pause, Step::Gap] {
-                let (got, d) = run(&STRICT, &[Step::Bytes(&all[..cut]), Step::Bytes(&all[cut..]), quiet]);
+                let (got, d) = run(
+                    &STRICT,
+                    &[Step::Bytes(&all[..cut]), Step::Bytes(&all[cut..]), quiet],
+                );
                 // The notification goes with it: what is left of it cannot start a frame.
                 assert!(got.is_empty(), "split at {cut}: {got:02X?}");
                 assert_eq!(d.stats().refuted, 1);
@@ -722,7 +731,12 @@ mod tests {
         // The bounds docs/reliability.md states: with nothing else due a pause
         // confirms it, and with replies due the frame gap does.
         assert_eq!(run(&STRICT, &paused).0, vec![wrong.clone()]);
-        let gap = [Step::Bytes(&wrong), Step::Gap, Step::Bytes(&b[1..]), Step::Gap];
+        let gap = [
+            Step::Bytes(&wrong),
+            Step::Gap,
+            Step::Bytes(&b[1..]),
+            Step::Gap,
+        ];
         assert_eq!(run(&RepliesDue, &gap).0, vec![wrong]);
         // The reply whole, the next frame after a pause: both delivered.
         let steps = [Step::Bytes(&a), Step::Pause, Step::Bytes(&b), Step::Gap];
@@ -743,7 +757,12 @@ mod tests {
         // lost everything after its second byte.
         let (got, d) = run(
             &STRICT,
-            &[Step::Bytes(&a), Step::Pause, Step::Bytes(&n[..2]), Step::Pause],
+            &[
+                Step::Bytes(&a),
+                Step::Pause,
+                Step::Bytes(&n[..2]),
+                Step::Pause,
+            ],
         );
         assert!(got.is_empty(), "{got:02X?}");
         assert_eq!((d.stats().refuted, d.buffered()), (1, 0));
@@ -797,7 +816,10 @@ mod tests {
         let a = bytes("00 05 00 00 00 19 01 03 16 00 01 00 02 00 03 00 04 00 05 00 06 00 07 00 08 00 09 00 0A 00 0B");
         let (b, c) = (bytes(B), bytes(C));
         let swallowed = [&a[..a.len() - c.len()], &c[..]].concat();
-        let (got, d) = run(&STRICT, &[Step::Bytes(&swallowed), Step::Bytes(&b), Step::Gap]);
+        let (got, d) = run(
+            &STRICT,
+            &[Step::Bytes(&swallowed), Step::Bytes(&b), Step::Gap],
+        );
         assert_eq!(got, vec![b.clone()]);
         assert_eq!(d.stats().refuted, 1);
         // A 10-register reply that lost 11 bytes holds a whole notification: refuted
@@ -824,6 +846,32 @@ mod tests {
         assert_eq!(got, vec![wrong, b]);
     }
 
+    /// A notification that lost both bytes of its id takes the two bytes before it as
+    /// one: register values that equal the id of a request in flight. The real reply
+    /// after it carries that id with other bytes: the two contradict each other and the
+    /// first is refuted. A duplicate (the same bytes twice) confirms.
+    #[test]
+    fn a_frame_followed_by_its_own_id_with_other_bytes_is_refuted() {
+        let n = bytes(NOTIFICATION);
+        let reply = bytes("01 03 00 00 00 05 01 03 02 00 2A");
+        // A damaged frame whose last register holds 0x0103, then the notification
+        // without its id, then the reply to request 0x0103.
+        let taken = [&[0x01u8, 0x03][..], &n[2..]].concat();
+        let all = [
+            &bytes("00 09 00 00 00 05 01 03")[..],
+            &taken[..],
+            &reply[..],
+        ]
+        .concat();
+        let (got, d) = run(&STRICT, &[Step::Bytes(&all), Step::Pause]);
+        assert_eq!(got, vec![reply.clone()], "{got:02X?}");
+        assert!(!got.contains(&taken));
+        assert_eq!(d.stats().refuted, 1);
+        let twice = [&reply[..], &reply[..]].concat();
+        let (got, _) = run(&STRICT, &[Step::Bytes(&twice), Step::Pause]);
+        assert_eq!(got, vec![reply.clone(), reply]);
+    }
+
     #[test]
     fn pauses_move_with_the_bytes_taken() {
         let a = bytes(A);
@@ -840,7 +888,10 @@ mod tests {
         d.drop_one();
         assert_eq!(d.pauses, vec![2]);
         d.skip(2);
-        assert!(d.pauses.is_empty(), "a pause before the first byte is no pause");
+        assert!(
+            d.pauses.is_empty(),
+            "a pause before the first byte is no pause"
+        );
         assert_eq!(d.consumed(), 3);
     }
 

@@ -66,7 +66,7 @@ impl Line {
                     sent: Vec::new(),
                     chunks: VecDeque::new(),
                     received: 0,
-                    echo_bytes: 0,
+                    early_bytes: 0,
                 });
             }
             crate::config::Framing::Rtu => Codec::Rtu,
@@ -252,7 +252,7 @@ impl Line {
     }
 
     /// An MBAP frame that answers nothing in flight: a late reply or a notification.
-    pub(super) fn unsolicited(&mut self, tid: u16, _now: Instant) -> Unsolicited {
+    pub(super) fn unsolicited(&self, tid: u16) -> Unsolicited {
         let Line::Mbap(m) = self else {
             return Unsolicited::Late;
         };
@@ -287,23 +287,25 @@ pub(super) struct Mbap {
     /// When every byte handed to the port so far can have left it, written back to
     /// back at the configured speed.
     tx_clear: Instant,
-    /// The requests in flight as sent, for telling their echoes.
+    /// The requests in flight as sent, for telling frames that came too early.
     sent: Vec<Sent>,
     /// Where each chunk read from the port begins in everything received, and when it
     /// was read, back to the first byte the decoder still holds.
     chunks: VecDeque<(u64, Instant)>,
     /// Bytes received so far.
     received: u64,
-    /// Bytes dropped as echoes.
-    echo_bytes: u64,
+    /// Bytes of frames dropped for arriving too early to answer their request.
+    early_bytes: u64,
 }
 
 /// A request as it went on the line.
 struct Sent {
     tid: u16,
     bytes: Bytes,
-    /// The earliest instant its last byte can have left: nothing that began arriving
-    /// before then can be its reply.
+    /// When it was handed to the port: nothing read before then answers it.
+    handed: Instant,
+    /// The earliest instant its last byte can have left at the configured speed: a
+    /// copy of it that began arriving before then is its echo.
     left: Instant,
 }
 
@@ -372,6 +374,7 @@ impl Mbap {
         self.sent.push(Sent {
             tid,
             bytes: bytes.clone(),
+            handed: now,
             left,
         });
     }
@@ -385,27 +388,33 @@ impl Mbap {
             .map(|&(_, at)| at)
     }
 
-    /// Is `frame`, just decoded, the echo of its request rather than its reply? An
-    /// RS-232 loopback (a cable, an adapter) sends every request straight back, and the
-    /// echo of an FC 05 or 06 write is byte for byte its successful reply. A reply
-    /// cannot begin before its request has left, so a copy of the request that began
-    /// arriving earlier (no later than its first byte was read, nor than its own time
-    /// on the wire before its last byte was read) is the echo.
-    fn is_echo(&self, frame: &Adu) -> bool {
-        let Some(sent) = self.sent.iter().find(|s| s.tid == frame.tid()) else {
-            return false;
-        };
-        if frame.as_bytes() != &sent.bytes[..] {
-            return false;
-        }
+    /// Did `frame`, just decoded with the id of a request in flight, begin arriving
+    /// too early to be its reply? Then says why.
+    ///
+    /// - Its first byte was read before the request was handed to the port: it was
+    ///   made of bytes already there, a frame that lost its own id and took the two
+    ///   bytes before it as one (register values equal to the request's id).
+    /// - It is a copy of the request that began arriving before the request could have
+    ///   left: its echo. An RS-232 loopback (a cable, an adapter) sends every request
+    ///   straight back, and the echo of an FC 05 or 06 write is byte for byte its
+    ///   successful reply. It began no later than its first byte was read, nor than its
+    ///   own time on the wire before its last byte was read.
+    fn too_early(&self, frame: &Adu) -> Option<&'static str> {
+        let sent = self.sent.iter().find(|s| s.tid == frame.tid())?;
         let len = frame.as_bytes().len() as u64;
         let end = self.decoder.consumed();
-        let (Some(first), Some(last)) = (self.read_at(end - len), self.read_at(end - 1)) else {
-            return false;
-        };
+        let first = self.read_at(end - len)?;
+        if first < sent.handed {
+            return Some("a frame read before its request was sent, dropped");
+        }
+        if frame.as_bytes() != &sent.bytes[..] {
+            return None;
+        }
+        let last = self.read_at(end - 1)?;
         let on_wire = self.char_time * len as u32;
         let began = last.checked_sub(on_wire).map_or(first, |b| b.min(first));
-        began < sent.left
+        (began < sent.left)
+            .then_some("a copy of the request that began before it had left: its echo, dropped")
     }
 
     fn frames(&mut self, in_flight: &[InFlight], now: Instant, stats: &Stats) -> Vec<Seen> {
@@ -424,23 +433,27 @@ impl Mbap {
             let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
                 break;
             };
-            if self.is_echo(&frame) {
-                debug!(
-                    tid = frame.tid(),
-                    "a copy of the request that began before it had left: its echo, dropped"
-                );
-                self.echo_bytes += frame.as_bytes().len() as u64;
+            if let Some(why) = self.too_early(&frame) {
+                debug!(tid = frame.tid(), "{why}: {:?}", frame);
+                self.early_bytes += frame.as_bytes().len() as u64;
                 continue;
             }
             seen.push(Seen::Frame(frame));
         }
         // Chunks wholly taken by the decoder are no longer needed.
         let consumed = self.decoder.consumed();
-        while self.chunks.get(1).is_some_and(|&(start, _)| start <= consumed) {
+        while self
+            .chunks
+            .get(1)
+            .is_some_and(|&(start, _)| start <= consumed)
+        {
             self.chunks.pop_front();
         }
         let decoded = self.decoder.stats();
-        stats.set(&stats.dropped_bytes, decoded.dropped_bytes + self.echo_bytes);
+        stats.set(
+            &stats.dropped_bytes,
+            decoded.dropped_bytes + self.early_bytes,
+        );
         stats.set(&stats.refuted_frames, decoded.refuted);
         seen
     }
@@ -553,10 +566,8 @@ mod tests {
         (Line::new(&RelayConfig::default(), &serial, now), now)
     }
 
-    /// Request `adu` sent now as `tid`, due in a second.
-    fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight {
-        let tid = line.allocate(now);
-        line.encode(adu, tid, now);
+    /// Request `adu` on the line as `tid` since `now`, due in a second.
+    fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight {
         InFlight {
             tid,
             deadline: now + Duration::from_secs(1),
@@ -567,6 +578,13 @@ mod tests {
                 attempts: 0,
             },
         }
+    }
+
+    /// Request `adu` sent now.
+    fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight {
+        let tid = line.allocate(now);
+        line.encode(adu, tid, now);
+        in_flight(tid, adu, now)
     }
 
     fn frames(line: &mut Line, in_flight: &[InFlight], now: Instant) -> Vec<Vec<u8>> {
@@ -596,11 +614,13 @@ mod tests {
         // still before the write left.
         let (mut line, t0) = mbap(9600);
         let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
         line.received(&sent, t0 + 20 * MS, &Stats::default());
         assert!(frames(&mut line, &[f], t0 + 60 * MS).is_empty());
         // The device's reply, begun after the write left.
         let (mut line, t0) = mbap(9600);
         let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
         line.received(&sent, t0 + 26 * MS, &Stats::default());
         assert_eq!(frames(&mut line, &[f], t0 + 60 * MS), vec![sent.clone()]);
         // A request queued behind another leaves after it.
@@ -610,6 +630,40 @@ mod tests {
         let sent = write.with_tid(f.tid).as_bytes().to_vec();
         line.received(&sent, t0 + 37 * MS, &Stats::default());
         assert!(frames(&mut line, &[first, f], t0 + 90 * MS).is_empty());
+    }
+
+    /// Bytes read before a request was sent cannot begin its reply: a notification
+    /// whose header was damaged leaves its last register (here equal to the request's
+    /// id) to be scanned, and the next notification, having lost its id, completes a
+    /// frame with that id and the shape the request calls for.
+    #[test]
+    fn a_frame_begun_before_its_request_was_sent_does_not_answer_it() {
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let body = bytes("00 00 00 05 01 03 02 02 F4");
+        for stale_before in [true, false] {
+            let (mut line, t0) = mbap(19_200);
+            let tid = line.allocate(t0);
+            let stale = [&bytes("00 00 00 00 05 01 03 02")[..], &tid.to_be_bytes()].concat();
+            let sent_at = t0 + 2 * MS;
+            let read_at = t0 + if stale_before { MS } else { 3 * MS };
+            if stale_before {
+                line.received(&stale, read_at, &Stats::default());
+            }
+            line.encode(&read, tid, sent_at);
+            if !stale_before {
+                line.received(&stale, read_at, &Stats::default());
+            }
+            line.received(&body, t0 + 4 * MS, &Stats::default());
+            let f = in_flight(tid, &read, sent_at);
+            let got = frames(&mut line, &[f], t0 + 40 * MS);
+            if stale_before {
+                assert!(got.is_empty(), "{got:02X?}");
+            } else {
+                // Read after the request left, the same bytes pass: the bound of
+                // docs/reliability.md (ids are random, so values equal one by chance).
+                assert_eq!(got, vec![[&tid.to_be_bytes()[..], &body[..]].concat()]);
+            }
+        }
     }
 
     /// Every reply is held until what follows confirms it, with default settings: a
@@ -635,17 +689,24 @@ mod tests {
         let (mut line, t0) = mbap(19_200);
         let a = send(&mut line, &read, t0);
         let b = send(&mut line, &read, t0);
-        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3]).as_bytes().to_vec();
+        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
+            .as_bytes()
+            .to_vec();
         let at = t0 + 30 * MS;
         line.received(&reply, at, &Stats::default());
         let both = [a, b];
         assert!(frames(&mut line, &both, at + 19 * MS).is_empty());
-        assert!(frames(&mut line, &both, at + 20 * MS).is_empty(), "b is due");
+        assert!(
+            frames(&mut line, &both, at + 20 * MS).is_empty(),
+            "b is due"
+        );
         assert_eq!(line.next_wake(at + 20 * MS, false), Some(at + 50 * MS));
         assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
         let (mut line, t0) = mbap(19_200);
         let a = send(&mut line, &read, t0);
-        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3]).as_bytes().to_vec();
+        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
+            .as_bytes()
+            .to_vec();
         line.received(&reply, at, &Stats::default());
         assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
         assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);

@@ -55,8 +55,7 @@ impl Bank {
 /// FC 16 echo) and many plausible headers at other offsets. A reply carrying them
 /// looks like frames inside frames to a decoder that lost its place.
 pub const HEADER_FILL: [u16; 12] = [
-    0x0000, 0x0000, 0x0005, 0x0103, 0x0200, 0x0000, 0x0000, 0x0000, 0x0006, 0x0110, 0x0000,
-    0x0001,
+    0x0000, 0x0000, 0x0005, 0x0103, 0x0200, 0x0000, 0x0000, 0x0000, 0x0006, 0x0110, 0x0000, 0x0001,
 ];
 
 /// Holding register `a` under `--fill header`.

@@ -610,7 +610,10 @@ pub type MbapScript = Box<dyn FnMut(&Adu) -> Vec<(Duration, Vec<u8>)> + Send>;
 
 impl RawDevice {
     pub fn start(path: &Path, mut handler: Handler) -> RawDevice {
-        RawDevice::scripted(path, Box::new(move |req| vec![(Duration::ZERO, handler(req))]))
+        RawDevice::scripted(
+            path,
+            Box::new(move |req| vec![(Duration::ZERO, handler(req))]),
+        )
     }
 
     /// A device that writes what `script` says when it says.
