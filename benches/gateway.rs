@@ -242,8 +242,11 @@ impl Line {
     }
 
     /// `mbgate run` on this line: log at info, and the given `[relay]`/`[tcp]` lines.
+    /// A pty has no USB adapter's latency: a lone MBAP reply is confirmed after 3.5
+    /// character times, not the default `silence_floor_ms`.
     fn gateway(&self, relay: &[&str], tcp: &[&str]) -> Gateway {
-        self.gateway_with(Cfg::new(&self.socat.gw), relay, tcp)
+        let cfg = Cfg::new(&self.socat.gw).serial("silence_floor_ms = 0");
+        self.gateway_with(cfg, relay, tcp)
     }
 
     /// [`Line::gateway`] from a configuration with `[serial]` lines of its own.

@@ -372,7 +372,10 @@ impl Relay {
     }
 
     /// The port failed or its far end went away: answer everything waiting on it, and
-    /// reopen with backoff.
+    /// reopen with backoff. A request that had begun to go out gets 0x0B, as for a
+    /// timeout: it may have reached the device and acted, and no answer came. One whose
+    /// bytes never left (held by flow control, or queued) gets 0x0A: there is no path
+    /// to the device, and it cannot have acted.
     fn port_lost(&mut self, why: &str, now: Instant) {
         let kind = self.transport.kind();
         warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
@@ -381,14 +384,19 @@ impl Relay {
         };
         self.port_warned = true;
         self.line.clear(&self.stats);
-        self.out.clear();
         if let Some(d) = self.drain.take() {
             drop(d);
         }
         for f in std::mem::take(&mut self.in_flight) {
             self.line.retire(f.tid, now);
-            self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+            let code = if self.out.withdraw(f.tid) {
+                exception::GATEWAY_PATH_UNAVAILABLE
+            } else {
+                exception::GATEWAY_TARGET_FAILED
+            };
+            self.answer_exception(f.req, code);
         }
+        self.out.clear();
         self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
     }
 
@@ -654,7 +662,7 @@ impl Relay {
             self.deliver(f.req, reply);
             return;
         }
-        match self.line.unsolicited(tid, now) {
+        match self.line.unsolicited(tid) {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
                 debug!(

@@ -10,6 +10,13 @@
 //! high byte) and borrowed the byte before it is a copy of that reply with another
 //! high byte; with distinct low bytes that copy can never pass for the answer to
 //! another request on the line (issue 4).
+//!
+//! Ids do not count up: they follow a full-period permutation of the 16-bit space from
+//! a random start. A frame that lost both bytes of its id takes the two bytes before it
+//! as one, and those are often register values, which are often counters: an id that
+//! counted up along with them (a notification carrying a count of changes, polled
+//! once per request) would match them far more often than 1 in 65 536
+//! (docs/reliability.md).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -35,10 +42,17 @@ impl Default for Tids {
     }
 }
 
+/// The next id after `x`: a linear congruential step modulo 2^16 with a multiplier
+/// of 1 mod 4 and an odd increment, which visits every value once per 65 536 steps
+/// (Hull-Dobell), so an id is always found.
+fn step(x: u16) -> u16 {
+    x.wrapping_mul(0x6D25).wrapping_add(0x3C6F)
+}
+
 impl Tids {
     pub fn new() -> Self {
         Self {
-            next: 1,
+            next: fastrand::u16(..),
             reserved: Box::new([0; 1024]),
             retired: VecDeque::new(),
             live_low: Box::new([0; 256]),
@@ -76,7 +90,7 @@ impl Tids {
         self.expire(now);
         loop {
             let tid = self.next;
-            self.next = self.next.checked_add(1).unwrap_or(1);
+            self.next = step(self.next);
             let low = tid & 0xFF;
             if low != 0 && !self.is_reserved(tid) && self.live_low[usize::from(low)] == 0 {
                 self.set(tid, true);
@@ -127,6 +141,25 @@ mod tests {
         lows.sort_unstable();
         lows.dedup();
         assert_eq!(lows.len(), held.len(), "and so are their low bytes");
+    }
+
+    #[test]
+    fn the_order_visits_every_id_and_does_not_count() {
+        let mut seen = vec![false; 65_536];
+        let mut x = 7u16;
+        for _ in 0..65_536 {
+            assert!(!seen[usize::from(x)], "{x} twice in one period");
+            seen[usize::from(x)] = true;
+            x = step(x);
+        }
+        let mut t = Tids::new();
+        let now = Instant::now();
+        let ids: Vec<u16> = (0..100).map(|_| t.allocate(now)).collect();
+        let counting = ids
+            .windows(2)
+            .filter(|w| w[1].wrapping_sub(w[0]) < 16)
+            .count();
+        assert!(counting < 5, "ids close to the one before: {ids:?}");
     }
 
     #[test]

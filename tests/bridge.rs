@@ -19,7 +19,7 @@ fn bench(extra: impl FnOnce(Cfg) -> Cfg) -> Bench {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
     let device = Py::start("stock_server.py", &["--port", socat.dev.to_str().unwrap()]);
-    let gw = Gateway::start(&extra(Cfg::new(&socat.gw)), dir.path());
+    let gw = Gateway::start(&extra(Cfg::new(&socat.gw).pty_line()), dir.path());
     Bench {
         _dir: dir,
         _socat: socat,

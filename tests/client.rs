@@ -206,7 +206,7 @@ fn serial_every_function_code_against_the_stock_server() {
 fn tcp_every_function_code_through_the_gateway() {
     let dir = tempdir();
     let (socat, _device) = stock_device(dir.path());
-    let gw = Gateway::start(&Cfg::new(&socat.gw), dir.path());
+    let gw = Gateway::start(&Cfg::new(&socat.gw).pty_line(), dir.path());
     let addr = gw.addr.to_string();
     every_function_code(&["--tcp", &addr]);
 }

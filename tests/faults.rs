@@ -119,6 +119,38 @@ fn serial_end_disappears_and_comes_back() {
     );
 }
 
+/// The port disappears under requests (README, "Exceptions mbgate answers itself"):
+/// the one whose bytes went out gets 0x0B, as for a timeout (it may have acted on the
+/// device); the one flow control held back and the one still queued get 0x0A (no
+/// path, and they cannot have acted).
+#[test]
+fn port_lost_answers_0x0b_for_a_request_sent_0x0a_for_the_rest() {
+    let mut r = rig(|c| {
+        c.serial("flow_control = \"software\"")
+            .relay("max_in_flight = 2")
+            .relay("response_timeout_ms = 5000")
+    });
+    let mut dev = RawDevice::start(&r.socat.dev, Box::new(|_| vec![]));
+    let (mut sent, mut held, mut queued) = (r.gw.connect(), r.gw.connect(), r.gw.connect());
+    sent.write_all(&read_req(1, 1, 0, 1)).unwrap();
+    wait_for("the request on the wire", Duration::from_secs(2), || {
+        dev.requests().len() == 1
+    });
+    dev.inject(&[0x13]); // XOFF: nothing more leaves
+    std::thread::sleep(Duration::from_millis(100));
+    held.write_all(&read_req(2, 1, 0, 1)).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    queued.write_all(&read_req(3, 1, 0, 1)).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    r.socat.stop();
+    let start = Instant::now();
+    assert_eq!(read_frame(&mut sent), exception(1, 1, 3, 0x0B));
+    assert_eq!(read_frame(&mut held), exception(2, 1, 3, 0x0A));
+    assert_eq!(read_frame(&mut queued), exception(3, 1, 3, 0x0A));
+    assert!(start.elapsed() < Duration::from_secs(2), "not prompt");
+    assert_eq!(dev.requests().len(), 1, "the held request never left");
+}
+
 /// A serial port that does not exist at start is not fatal: 0x0A at once, and service
 /// starts when the port appears.
 #[test]

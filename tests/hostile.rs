@@ -36,7 +36,7 @@ struct Rig {
 fn rig(cfg: impl FnOnce(Cfg) -> Cfg) -> Rig {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw)), dir.path());
+    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw).pty_line()), dir.path());
     let dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
     Rig {
         gw,

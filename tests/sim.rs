@@ -110,7 +110,9 @@ fn generic_profile_serves_pymodbus_through_the_gateway() {
         ],
     );
     let gw = Gateway::start(
-        &Cfg::new(&socat.gw).relay("response_timeout_ms = 300"),
+        &Cfg::new(&socat.gw)
+            .pty_line()
+            .relay("response_timeout_ms = 300"),
         dir.path(),
     );
 

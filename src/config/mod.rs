@@ -149,7 +149,7 @@ settings! {
         flow_control: FlowControl = FlowControl::Hardware, Any, "flow-control" "FLOW_CONTROL" port;
         /// Serial framing
         framing: Framing = Framing::Mbap, Any, "framing" "FRAMING";
-        /// RTU: least silence that ends a frame of unknown shape
+        /// Least silence that ends a frame, above the adapter's latency timer (RTU: a reply of unknown shape; MBAP: confirms a reply with nothing after it)
         silence_floor_ms: u64 = 20, Range(0, 1000, None), "silence-floor-ms" "MS";
         /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter
         rs485: bool = false, Any, "rs485" "BOOL";
@@ -173,7 +173,7 @@ settings! {
     [relay] RelayConfig {
         /// Time to wait for the device's reply
         response_timeout_ms: u64 = 1000, Range(1, 600_000, None), "response-timeout-ms" "MS";
-        /// Silence after which a partial serial frame is discarded
+        /// Silence after which a partial serial frame is discarded (MBAP: and a held reply taken while other replies are due)
         frame_gap_ms: u64 = 50, Range(1, 60_000, None), "frame-gap-ms" "MS";
         /// Requests outstanding on the serial line at once
         max_in_flight: usize = 1, Range(1, 255, None), "max-in-flight" "N";

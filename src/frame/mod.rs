@@ -3,6 +3,7 @@
 
 pub mod ascii;
 pub mod hex;
+pub mod lossy;
 pub mod mbap;
 pub mod pdu;
 pub mod request;

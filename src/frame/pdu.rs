@@ -224,7 +224,9 @@ pub fn reply_well_formed(reply: &[u8]) -> bool {
 
 /// Is `reply` an answer to `request` (design.md §1 step 4): the same function code or
 /// its exception, and the shape the request calls for (an FC 03 reply for N registers
-/// carries 2N bytes; a write echoes what it wrote).
+/// carries 2N bytes; a write echoes what it wrote; the bits of an FC 01 or 02 reply
+/// past the quantity asked are zero, as the Modbus Application Protocol V1.1b3 §6.1
+/// and §6.2 require, so an echo of the request rarely passes).
 pub fn reply_matches(request: &[u8], reply: &[u8]) -> bool {
     let (Some(&asked), Some(&got)) = (request.first(), reply.first()) else {
         return false;
@@ -240,7 +242,12 @@ pub fn reply_matches(request: &[u8], reply: &[u8]) -> bool {
         return false;
     }
     match asked {
-        READ_COILS | READ_DISCRETE_INPUTS => counted(reply) == Some(word(request, 3).div_ceil(8)),
+        READ_COILS | READ_DISCRETE_INPUTS => {
+            let qty = word(request, 3);
+            let used = qty % 8;
+            counted(reply) == Some(qty.div_ceil(8))
+                && (used == 0 || reply[reply.len() - 1] >> used == 0)
+        }
         READ_HOLDING_REGISTERS | READ_INPUT_REGISTERS | READ_WRITE_MULTIPLE_REGISTERS => {
             counted(reply) == Some(2 * word(request, 3))
         }
@@ -308,6 +315,22 @@ mod tests {
         // Seed 004: coils 20..38 read as CD 6B 05.
         assert!(reply_matches(&[1, 0, 19, 0, 19], &[1, 3, 0xCD, 0x6B, 0x05]));
         assert!(!reply_matches(&[1, 0, 19, 0, 19], &[1, 2, 0xCD, 0x6B]));
+        // The bits past coil 38 pad the last byte with zeros: 0x05 uses 3 bits.
+        assert!(!reply_matches(
+            &[1, 0, 19, 0, 19],
+            &[1, 3, 0xCD, 0x6B, 0x0D]
+        ));
+        assert!(!reply_matches(
+            &[2, 0, 19, 0, 19],
+            &[2, 3, 0xCD, 0x6B, 0x85]
+        ));
+        assert!(reply_matches(&[2, 0, 0, 0, 16], &[2, 2, 0xFF, 0xFF]));
+        // An echo of an FC 01 read passes the byte count at address 0x03xx; for 17 to
+        // 20 coils the padding gives it away.
+        for qty in 17..=20u8 {
+            let read = [1, 3, 0x10, 0, qty];
+            assert!(!reply_matches(&read, &read), "{qty} coils");
+        }
         assert!(reply_matches(&[6, 0, 1, 0, 3], &[6, 0, 1, 0, 3]));
         assert!(!reply_matches(&[6, 0, 1, 0, 3], &[6, 0, 1, 0, 4]));
         // Found by fuzzing: a request too short for its function code panicked.

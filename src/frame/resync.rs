@@ -17,10 +17,27 @@
 //!   only what comes after it can expose it. A held frame is handed on when the bytes
 //!   after it form a whole frame the judge accepts, or when the line goes quiet with
 //!   nothing after it. When the bytes after it cannot start a frame, or start one
-//!   that never completes before the line goes quiet, it is refuted and dropped whole:
-//!   either it borrowed bytes from what follows, or what follows lost bytes, and a
-//!   frame found by rescanning inside it could only be a shifted copy of the next one
-//!   with another transaction id (issue 4).
+//!   that stops before it is complete, it is refuted and dropped whole: either it
+//!   borrowed bytes from what follows, or what follows lost bytes, and a frame found
+//!   by rescanning inside it could only be a shifted copy of the next one with
+//!   another transaction id (docs/reliability.md).
+//!
+//! The caller also says when the line has paused ([`Resync::pause`]: quiet for the
+//! silence that ends a frame, a few character times, shorter than the frame gap). A
+//! device sends each frame's bytes back to back, so:
+//!
+//! - a held frame with nothing after it is confirmed by a pause (if the judge allows:
+//!   [`Judge::pause_confirms`]), not only by the frame gap;
+//! - a held frame whose own bytes straddle a pause is suspect: what completed it came
+//!   after a silence, so it may have borrowed the start of a later frame. Only a whole
+//!   frame after it confirms it; quiet refutes it;
+//! - a follower that pauses before it is complete, or straddles a pause, refutes the
+//!   held frame: a frame does not stop half way;
+//! - a held frame that ends with a whole frame the judge accepts is refuted: a run of
+//!   lost bytes as long as that frame would make exactly this (the reply's lost tail
+//!   filled by a whole frame that followed it), and it cannot be told apart;
+//! - a held frame followed by another with its transaction id but other bytes is
+//!   refuted: one of them took its id from somewhere else.
 //!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
@@ -53,6 +70,13 @@ pub trait Judge {
     /// unsolicited frames) say no and get frames without the wait.
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         false
+    }
+    /// May a pause ([`Resync::pause`]) confirm this held frame when nothing follows
+    /// it, or must the line be quiet for the whole frame gap? Judges that expect
+    /// another frame soon (other replies due) say no: a pause inside that next frame,
+    /// right after a byte this frame borrowed, must not pass for the end of the talk.
+    fn pause_confirms(&self, _frame: FrameRef<'_>) -> bool {
+        true
     }
 }
 
@@ -109,6 +133,10 @@ impl<J: Judge> Judge for Confirmed<J> {
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         true
     }
+
+    fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
+        self.0.pause_confirms(frame)
+    }
 }
 
 /// What the decoder has done so far.
@@ -125,6 +153,11 @@ pub struct ResyncStats {
 #[derive(Debug, Default)]
 pub struct Resync {
     buf: BytesMut,
+    /// Offsets in `buf` at which the line paused (before the byte at that offset), in
+    /// order; `buf.len()` last means it is quiet now.
+    pauses: Vec<usize>,
+    /// Bytes taken from the front so far (yielded or dropped).
+    consumed: u64,
     stats: ResyncStats,
 }
 
@@ -137,18 +170,14 @@ enum Candidate {
     Complete(usize),
 }
 
-/// What the bytes after a held frame say about it.
-enum Follower {
-    /// A whole frame the judge accepts: the held frame ended where a frame begins.
-    Confirms,
-    /// Nothing yet: wait for more, or for quiet, which confirms.
-    Nothing,
-    /// The plausible start of a frame: wait for more. Quiet refutes: a frame that
-    /// never completes is the tail of a frame that gained a byte (noise) or the start
-    /// of one that lost bytes; either way the held frame is not to be trusted.
-    Pending,
-    /// They cannot start a frame, or form one the judge rejects.
-    Refutes,
+/// What is to become of a held frame.
+enum Verdict {
+    /// Hand it on.
+    Confirmed,
+    /// Wait for more bytes, or for the line to go quiet.
+    Wait,
+    /// Drop it whole.
+    Refuted,
 }
 
 /// Judges the header at the front of `buf` with whatever bytes of it have arrived, so
@@ -186,9 +215,31 @@ impl Resync {
         self.buf.extend_from_slice(bytes);
     }
 
+    /// The line has been quiet, since the last byte pushed, for the silence that ends a
+    /// frame (a few character times; see the module notes). Bytes pushed after it are
+    /// known to have come after a pause.
+    pub fn pause(&mut self) {
+        let at = self.buf.len();
+        if at > 0 && self.pauses.last() != Some(&at) {
+            self.pauses.push(at);
+        }
+    }
+
+    /// Has the line paused since the last byte pushed?
+    pub fn paused(&self) -> bool {
+        !self.buf.is_empty() && self.pauses.last() == Some(&self.buf.len())
+    }
+
     /// Bytes held that are not yet part of a delivered frame.
     pub fn buffered(&self) -> usize {
         self.buf.len()
+    }
+
+    /// Bytes taken from the front so far, yielded or dropped: the offset, in everything
+    /// pushed, of the first byte still held. A frame just yielded began at
+    /// `consumed() - its length`.
+    pub fn consumed(&self) -> u64 {
+        self.consumed
     }
 
     pub fn stats(&self) -> ResyncStats {
@@ -199,25 +250,85 @@ impl Resync {
     /// dropped.
     pub fn clear(&mut self) {
         self.stats.dropped_bytes += self.buf.len() as u64;
-        self.buf.clear();
+        self.skip(self.buf.len());
+    }
+
+    /// Removes `n` bytes from the front, keeping the pauses after them.
+    fn take(&mut self, n: usize) -> BytesMut {
+        self.forget(n);
+        self.buf.split_to(n)
+    }
+
+    /// Drops `n` bytes from the front, keeping the pauses after them.
+    fn skip(&mut self, n: usize) {
+        self.forget(n);
+        mbap::skip(&mut self.buf, n);
+    }
+
+    fn forget(&mut self, n: usize) {
+        self.consumed += n as u64;
+        if !self.pauses.is_empty() {
+            self.pauses.retain_mut(|p| {
+                *p = p.saturating_sub(n);
+                *p > 0
+            });
+        }
     }
 
     fn drop_one(&mut self) {
-        mbap::skip(&mut self.buf, 1);
+        self.skip(1);
         self.stats.dropped_bytes += 1;
     }
 
-    /// What the bytes after the `held` bytes at the front say about them.
-    fn follower(&self, held: usize, judge: &impl Judge) -> Follower {
-        let rest = &self.buf[held..];
+    /// Did the line pause strictly between the bytes at `from` and `to`?
+    fn pause_within(&self, from: usize, to: usize) -> bool {
+        self.pauses.iter().any(|&p| from < p && p < to)
+    }
+
+    /// What is to become of the held frame of `total` bytes at the front, given what
+    /// follows it. `quiet`: the frame gap has passed.
+    fn verdict(&self, total: usize, judge: &impl Judge, quiet: bool) -> Verdict {
+        let frame = FrameRef::new(&self.buf[..total]);
+        let straddles = self.pause_within(0, total);
+        let rest = &self.buf[total..];
+        let quiet_now = quiet || self.paused();
         if rest.is_empty() {
-            return Follower::Nothing;
+            return if !quiet_now {
+                Verdict::Wait
+            } else if straddles {
+                // Completed after a silence by bytes nothing confirms.
+                Verdict::Refuted
+            } else if !quiet && !judge.pause_confirms(frame) {
+                Verdict::Wait
+            } else if ends_with_a_frame(&self.buf[..total], judge) {
+                Verdict::Refuted
+            } else {
+                Verdict::Confirmed
+            };
         }
         match candidate(rest, judge) {
-            Candidate::Implausible => Follower::Refutes,
-            Candidate::Incomplete => Follower::Pending,
-            Candidate::Complete(n) if judge.accept(FrameRef::new(&rest[..n])) => Follower::Confirms,
-            Candidate::Complete(_) => Follower::Refutes,
+            Candidate::Implausible => Verdict::Refuted,
+            // A frame does not stop half way: one that pauses is the tail of a frame
+            // that gained bytes or the start of one that lost some.
+            Candidate::Incomplete if quiet_now || self.pause_within(total, self.buf.len()) => {
+                Verdict::Refuted
+            }
+            Candidate::Incomplete => Verdict::Wait,
+            Candidate::Complete(n) => {
+                let follower = FrameRef::new(&rest[..n]);
+                // The same id with other bytes: one of the two is not what it claims
+                // (a duplicate reply is the same bytes).
+                let contradicts = follower.tid() == frame.tid() && follower != frame;
+                if self.pause_within(total, total + n)
+                    || contradicts
+                    || !judge.accept(follower)
+                    || ends_with_a_frame(&self.buf[..total], judge)
+                {
+                    Verdict::Refuted
+                } else {
+                    Verdict::Confirmed
+                }
+            }
         }
     }
 
@@ -239,25 +350,36 @@ impl Resync {
                         continue;
                     }
                     if judge.confirm(frame) {
-                        match (self.follower(total, judge), quiet) {
-                            (Follower::Confirms, _) | (Follower::Nothing, true) => {}
-                            (Follower::Nothing | Follower::Pending, false) => return None,
-                            (Follower::Pending, true) | (Follower::Refutes, _) => {
+                        match self.verdict(total, judge, quiet) {
+                            Verdict::Confirmed => {}
+                            Verdict::Wait => return None,
+                            Verdict::Refuted => {
                                 // Skipped whole: a frame found inside it could only be
-                                // a shifted copy of what follows (issue 4).
+                                // a shifted copy of what follows.
                                 self.stats.refuted += 1;
-                                mbap::skip(&mut self.buf, total);
+                                self.skip(total);
                                 self.stats.dropped_bytes += total as u64;
                                 continue;
                             }
                         }
                     }
                     self.stats.frames += 1;
-                    return Some(Adu::from_frame(self.buf.split_to(total).freeze()));
+                    return Some(Adu::from_frame(self.take(total).freeze()));
                 }
             }
         }
     }
+}
+
+/// Does `held` end with a whole frame the judge accepts, starting after its first byte?
+/// A frame whose tail was lost, with exactly as many bytes lost as a whole frame that
+/// followed it, completes itself with that frame (docs/reliability.md).
+fn ends_with_a_frame(held: &[u8], judge: &impl Judge) -> bool {
+    let smallest = PREFIX_LEN + usize::from(MIN_LENGTH);
+    (1..=held.len().saturating_sub(smallest)).any(|i| {
+        matches!(candidate(&held[i..], judge), Candidate::Complete(n) if i + n == held.len())
+            && judge.accept(FrameRef::new(&held[i..]))
+    })
 }
 
 #[cfg(test)]
@@ -501,6 +623,276 @@ mod tests {
                 }
             }
         }
+    }
+
+    /// What the line does in a scripted test.
+    enum Step<'a> {
+        Bytes(&'a [u8]),
+        /// Quiet for the silence that ends a frame.
+        Pause,
+        /// Quiet for the frame gap.
+        Gap,
+    }
+
+    /// Runs the steps, taking frames after each, as the relay does.
+    fn run(judge: &impl Judge, steps: &[Step<'_>]) -> (Vec<Vec<u8>>, Resync) {
+        let mut d = Resync::new();
+        let mut out = Vec::new();
+        for step in steps {
+            let quiet = match step {
+                Step::Bytes(b) => {
+                    d.push(b);
+                    false
+                }
+                Step::Pause => {
+                    d.pause();
+                    false
+                }
+                Step::Gap => {
+                    d.pause();
+                    true
+                }
+            };
+            while let Some(f) = d.next_frame(judge, quiet) {
+                out.push(f.as_bytes().to_vec());
+            }
+        }
+        (out, d)
+    }
+
+    /// A judge for a line with other replies due: a pause confirms nothing, only the
+    /// frame gap does.
+    struct RepliesDue;
+    impl Judge for RepliesDue {
+        fn plausible_function(&self, code: u8) -> bool {
+            pdu::is_reply_function(code)
+        }
+        fn accept(&self, frame: FrameRef<'_>) -> bool {
+            pdu::reply_well_formed(frame.pdu())
+        }
+        fn confirm(&self, _: FrameRef<'_>) -> bool {
+            true
+        }
+        fn pause_confirms(&self, _: FrameRef<'_>) -> bool {
+            false
+        }
+    }
+
+    /// An FC 03 reply for three registers holding 23413, 23402, 23403.
+    const A: &str = "00 07 00 00 00 09 01 03 06 5B 75 5B 6A 5B 6B";
+    /// A change notification (protocol.md §3), transaction id 0.
+    const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
+    /// A 9-byte exception reply and an FC 16 echo.
+    const C: &str = "00 0C 00 00 00 03 01 83 02";
+    const B: &str = "00 0B 00 00 00 06 01 10 00 08 00 01";
+
+    /// A lost data byte, then a notification at once: the reply completes itself with
+    /// the notification's first byte (values 23387, 27227, 27392), and only what comes
+    /// after that byte exposes it. Held for confirmation, it is never handed on.
+    #[test]
+    fn a_notification_at_once_after_a_reply_that_lost_a_byte_refutes_it() {
+        let mut a = bytes(A);
+        a.remove(10);
+        let n = bytes(NOTIFICATION);
+        let wrong = [&a[..], &n[..1]].concat();
+        let all = [a.clone(), n].concat();
+        assert_eq!(decode_with(&ReplyJudge, &[&all])[0], wrong, "taken unheld");
+        for cut in 0..=all.len() {
+            for quiet in [Step::Pause, Step::Gap] {
+                let (got, d) = run(
+                    &STRICT,
+                    &[Step::Bytes(&all[..cut]), Step::Bytes(&all[cut..]), quiet],
+                );
+                // The notification goes with it: what is left of it cannot start a frame.
+                assert!(got.is_empty(), "split at {cut}: {got:02X?}");
+                assert_eq!(d.stats().refuted, 1);
+            }
+        }
+    }
+
+    /// A reply that lost its last byte borrows the next frame's first, and that frame
+    /// pauses right after it: the borrowed byte ends the reply before the pause. With
+    /// other replies due, a pause does not confirm it, and the rest of the frame,
+    /// coming before the frame gap, refutes it.
+    #[test]
+    fn a_pause_inside_the_next_frame_does_not_confirm_a_reply_while_others_are_due() {
+        let a = bytes(A);
+        let b = bytes(B);
+        let wrong = [&a[..a.len() - 1], &b[..1]].concat();
+        let paused = [
+            Step::Bytes(&wrong),
+            Step::Pause,
+            Step::Bytes(&b[1..]),
+            Step::Gap,
+        ];
+        let (got, d) = run(&RepliesDue, &paused);
+        assert!(got.is_empty(), "{got:02X?}");
+        assert_eq!((d.stats().refuted, d.buffered()), (1, 0));
+        // The bounds docs/reliability.md states: with nothing else due a pause
+        // confirms it, and with replies due the frame gap does.
+        assert_eq!(run(&STRICT, &paused).0, vec![wrong.clone()]);
+        let gap = [
+            Step::Bytes(&wrong),
+            Step::Gap,
+            Step::Bytes(&b[1..]),
+            Step::Gap,
+        ];
+        assert_eq!(run(&RepliesDue, &gap).0, vec![wrong]);
+        // The reply whole, the next frame after a pause: both delivered.
+        let steps = [Step::Bytes(&a), Step::Pause, Step::Bytes(&b), Step::Gap];
+        assert_eq!(run(&RepliesDue, &steps).0, vec![a.clone(), b.clone()]);
+        let (got, d) = run(&RepliesDue, &[Step::Bytes(&a), Step::Pause]);
+        assert!(got.is_empty(), "waits for what follows");
+        assert_eq!(d.buffered(), a.len());
+    }
+
+    /// A frame completed by bytes that came after a pause may have borrowed the start
+    /// of a later frame: only a whole frame after it confirms it, quiet refutes it.
+    #[test]
+    fn a_frame_that_straddles_a_pause_needs_a_whole_frame_after_it() {
+        let mut a = bytes(A);
+        a.truncate(a.len() - 2);
+        let n = bytes(NOTIFICATION);
+        // A lost its last two bytes; the notification came later, after a pause, and
+        // lost everything after its second byte.
+        let (got, d) = run(
+            &STRICT,
+            &[
+                Step::Bytes(&a),
+                Step::Pause,
+                Step::Bytes(&n[..2]),
+                Step::Pause,
+            ],
+        );
+        assert!(got.is_empty(), "{got:02X?}");
+        assert_eq!((d.stats().refuted, d.buffered()), (1, 0));
+        // A whole frame right after it does confirm it (a device that paused inside
+        // a frame: outside what the pause assumes, but not refused).
+        let whole = bytes(A);
+        let (got, _) = run(
+            &STRICT,
+            &[
+                Step::Bytes(&whole[..5]),
+                Step::Pause,
+                Step::Bytes(&whole[5..]),
+                Step::Bytes(&n),
+                Step::Gap,
+            ],
+        );
+        assert_eq!(got, vec![whole, n]);
+    }
+
+    /// A follower that stops half way (a pause inside it, or after its start) refutes
+    /// the held frame, and one that straddles a pause does not confirm it.
+    #[test]
+    fn a_follower_that_pauses_refutes_the_held_frame() {
+        let a = bytes(A);
+        let b = bytes(B);
+        let (got, d) = run(
+            &STRICT,
+            &[Step::Bytes(&a), Step::Bytes(&b[..4]), Step::Pause],
+        );
+        assert!(got.is_empty());
+        assert_eq!(d.stats().refuted, 1);
+        let (got, d) = run(
+            &STRICT,
+            &[
+                Step::Bytes(&a),
+                Step::Bytes(&b[..4]),
+                Step::Pause,
+                Step::Bytes(&b[4..]),
+                Step::Gap,
+            ],
+        );
+        assert!(!got.contains(&a), "{got:02X?}");
+        assert!(d.stats().refuted >= 1);
+    }
+
+    /// A run of lost bytes exactly as long as the frame after the reply, ending where
+    /// the reply ended: the reply is completed by that whole frame, and the frame
+    /// after confirms it. A held frame that ends with a whole frame is refuted.
+    #[test]
+    fn a_reply_that_swallowed_a_whole_frame_is_refuted() {
+        let a = bytes("00 05 00 00 00 19 01 03 16 00 01 00 02 00 03 00 04 00 05 00 06 00 07 00 08 00 09 00 0A 00 0B");
+        let (b, c) = (bytes(B), bytes(C));
+        let swallowed = [&a[..a.len() - c.len()], &c[..]].concat();
+        let (got, d) = run(
+            &STRICT,
+            &[Step::Bytes(&swallowed), Step::Bytes(&b), Step::Gap],
+        );
+        assert_eq!(got, vec![b.clone()]);
+        assert_eq!(d.stats().refuted, 1);
+        // A 10-register reply that lost 11 bytes holds a whole notification: refuted
+        // when quiet follows too.
+        let n = bytes(NOTIFICATION);
+        let swallowed = [&a[..a.len() - n.len()], &n[..]].concat();
+        let (got, _) = run(&STRICT, &[Step::Bytes(&swallowed), Step::Pause]);
+        assert!(got.is_empty(), "{got:02X?}");
+        // The same frame not at the end of the reply is register data: delivered.
+        let data = [&a[..9], &n[..], &a[20..]].concat();
+        let (got, _) = run(&STRICT, &[Step::Bytes(&data), Step::Pause]);
+        assert_eq!(got, vec![data]);
+    }
+
+    /// What remains (docs/reliability.md): the same run of lost bytes, split between
+    /// the reply's tail and the swallowed frame's head, leaves the reply completed by
+    /// that frame's tail, which nothing on the wire tells from register values.
+    #[test]
+    fn a_run_as_long_as_a_frame_split_across_its_start_is_not_detected() {
+        let a = bytes(A);
+        let (b, c) = (bytes(B), bytes(C));
+        let wrong = [&a[..a.len() - 4], &c[5..]].concat();
+        let (got, _) = run(&STRICT, &[Step::Bytes(&wrong), Step::Bytes(&b), Step::Gap]);
+        assert_eq!(got, vec![wrong, b]);
+    }
+
+    /// A notification that lost both bytes of its id takes the two bytes before it as
+    /// one: register values that equal the id of a request in flight. The real reply
+    /// after it carries that id with other bytes: the two contradict each other and the
+    /// first is refuted. A duplicate (the same bytes twice) confirms.
+    #[test]
+    fn a_frame_followed_by_its_own_id_with_other_bytes_is_refuted() {
+        let n = bytes(NOTIFICATION);
+        let reply = bytes("01 03 00 00 00 05 01 03 02 00 2A");
+        // A damaged frame whose last register holds 0x0103, then the notification
+        // without its id, then the reply to request 0x0103.
+        let taken = [&[0x01u8, 0x03][..], &n[2..]].concat();
+        let all = [
+            &bytes("00 09 00 00 00 05 01 03")[..],
+            &taken[..],
+            &reply[..],
+        ]
+        .concat();
+        let (got, d) = run(&STRICT, &[Step::Bytes(&all), Step::Pause]);
+        assert_eq!(got, vec![reply.clone()], "{got:02X?}");
+        assert!(!got.contains(&taken));
+        assert_eq!(d.stats().refuted, 1);
+        let twice = [&reply[..], &reply[..]].concat();
+        let (got, _) = run(&STRICT, &[Step::Bytes(&twice), Step::Pause]);
+        assert_eq!(got, vec![reply.clone(), reply]);
+    }
+
+    #[test]
+    fn pauses_move_with_the_bytes_taken() {
+        let a = bytes(A);
+        let mut d = Resync::new();
+        d.pause();
+        assert!(!d.paused(), "nothing buffered: nothing to mark");
+        d.push(&a[..3]);
+        d.pause();
+        d.pause();
+        assert!(d.paused());
+        assert_eq!(d.pauses, vec![3]);
+        d.push(&a[3..]);
+        assert!(!d.paused());
+        d.drop_one();
+        assert_eq!(d.pauses, vec![2]);
+        d.skip(2);
+        assert!(
+            d.pauses.is_empty(),
+            "a pause before the first byte is no pause"
+        );
+        assert_eq!(d.consumed(), 3);
     }
 
     struct OnlyTid(u16);

@@ -50,11 +50,24 @@ impl Bank {
     }
 }
 
+/// What `--fill header` puts in holding registers, over and over: 24 bytes that spell
+/// two whole MBAP frames with transaction id 0 (an FC 03 reply of one register, an
+/// FC 16 echo) and many plausible headers at other offsets. A reply carrying them
+/// looks like frames inside frames to a decoder that lost its place.
+pub const HEADER_FILL: [u16; 12] = [
+    0x0000, 0x0000, 0x0005, 0x0103, 0x0200, 0x0000, 0x0000, 0x0000, 0x0006, 0x0110, 0x0000, 0x0001,
+];
+
+/// Holding register `a` under `--fill header`.
+pub fn header_fill(a: usize) -> u16 {
+    HEADER_FILL[a % HEADER_FILL.len()]
+}
+
 impl Bank {
-    /// Holding register N holds N.
-    pub fn fill_holding_with_addresses(&mut self) {
+    /// Holding register N holds `fill(N)`.
+    pub fn fill_holding(&mut self, fill: fn(usize) -> u16) {
         for (a, v) in self.holding.iter_mut().enumerate() {
-            *v = a as u16;
+            *v = fill(a);
         }
     }
 }

@@ -64,9 +64,8 @@ pub struct Device {
     /// Sizes of a device added without them.
     pub default_bits: usize,
     pub default_registers: usize,
-    /// Generic devices' holding registers start at their own address (`--fill
-    /// address`), so a reader can tell every value.
-    fill_address: bool,
+    /// What generic devices' holding registers start at, when not zero (`--fill`).
+    fill: Option<fn(usize) -> u16>,
     /// Generic devices send an unsolicited frame on each scheduled change (`--notify`).
     generic_notify: bool,
     /// The generic profile's scheduled changes so far.
@@ -105,19 +104,24 @@ impl Device {
             rng: fastrand::Rng::with_seed(seed),
             default_bits: generic::MIN_SIZE,
             default_registers: generic::MIN_SIZE,
-            fill_address: false,
+            fill: None,
             generic_notify: false,
             ticks: 0,
         }
     }
 
     /// Holding registers start at their own address, in every generic device now and
-    /// added later.
+    /// added later, so a reader can tell every value.
     pub fn fill_holding_with_addresses(&mut self) {
-        self.fill_address = true;
+        self.fill_holding(|a| a as u16);
+    }
+
+    /// Holding register N holds `fill(N)`, in every generic device now and added later.
+    pub fn fill_holding(&mut self, fill: fn(usize) -> u16) {
+        self.fill = Some(fill);
         if let Profile::Generic(g) = &mut self.profile {
             for bank in g.units.values_mut() {
-                bank.fill_holding_with_addresses();
+                bank.fill_holding(fill);
             }
         }
     }
@@ -141,8 +145,8 @@ impl Device {
 
     fn add(&mut self, unit: u8, bits: usize, registers: usize) {
         let mut bank = generic::Bank::new(bits, registers, now_civil(), &mut self.rng);
-        if self.fill_address {
-            bank.fill_holding_with_addresses();
+        if let Some(fill) = self.fill {
+            bank.fill_holding(fill);
         }
         if let Profile::Generic(g) = &mut self.profile {
             g.units.insert(unit, bank);

@@ -23,6 +23,9 @@ pub enum ProfileName {
 pub enum Fill {
     Zero,
     Address,
+    /// Pieces of MBAP headers (`generic::HEADER_FILL`, repeating every 12 registers):
+    /// replies that spell frames, to put a gateway's decoder to the test.
+    Header,
 }
 
 /// Which direction the line faults hit.
@@ -330,8 +333,10 @@ impl DeviceArgs {
                     self.registers,
                     seed.wrapping_add(2),
                 );
-                if self.fill == Fill::Address {
-                    d.fill_holding_with_addresses();
+                match self.fill {
+                    Fill::Zero => {}
+                    Fill::Address => d.fill_holding_with_addresses(),
+                    Fill::Header => d.fill_holding(generic::header_fill),
                 }
                 if self.notify {
                     d.notify_generic();

@@ -222,6 +222,14 @@ impl Cfg {
         self.log.push(line.into());
         self
     }
+    /// A pty as the line: bytes go through as fast as they are written, with no USB
+    /// adapter's latency in between. The gateway's line is the fastest there is, so a
+    /// peer that answers at once is a peer it can believe (a reply cannot start before
+    /// the request has left), and a pause of 3.5 characters (1.75 ms) ends a frame.
+    pub fn pty_line(self) -> Cfg {
+        self.serial("baud_rate = 4000000")
+            .serial("silence_floor_ms = 0")
+    }
     /// Replaces the log level (`debug` unless set).
     pub fn log_level(mut self, level: &str) -> Cfg {
         self.log[0] = format!("level = {level:?}");
@@ -607,8 +615,21 @@ fn pump(
     })
 }
 
+/// What a scripted MBAP device writes for each request: pieces of bytes, each written
+/// that long after the request was read (in order), so a test can put a pause exactly
+/// where it wants one.
+pub type MbapScript = Box<dyn FnMut(&Adu) -> Vec<(Duration, Vec<u8>)> + Send>;
+
 impl RawDevice {
     pub fn start(path: &Path, mut handler: Handler) -> RawDevice {
+        RawDevice::scripted(
+            path,
+            Box::new(move |req| vec![(Duration::ZERO, handler(req))]),
+        )
+    }
+
+    /// A device that writes what `script` says when it says.
+    pub fn scripted(path: &Path, mut script: MbapScript) -> RawDevice {
         let file = open_pty(path);
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
@@ -617,10 +638,15 @@ impl RawDevice {
         let thread = pump(&file, stop.clone(), move |chunk, _, wr| {
             buf.extend_from_slice(chunk);
             while let Ok(Some(req)) = decode_strict(&mut buf) {
+                let read = Instant::now();
                 seen2.lock().unwrap().push(req.clone());
-                let reply = handler(&req);
-                if !reply.is_empty() && write_all_nb(wr, &reply).is_err() {
-                    return false;
+                for (after, bytes) in script(&req) {
+                    if let Some(wait) = (read + after).checked_duration_since(Instant::now()) {
+                        thread::sleep(wait);
+                    }
+                    if !bytes.is_empty() && write_all_nb(wr, &bytes).is_err() {
+                        return false;
+                    }
                 }
             }
             true
