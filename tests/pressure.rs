@@ -27,11 +27,13 @@ struct Rig {
     _dir: tempfile::TempDir,
 }
 
-/// The gateway in front of `handler` on a socat pair.
+/// The gateway in front of `handler` on a socat pair, told the line is a pty (no USB
+/// latency to wait out before a reply is confirmed): these tests are about the TCP
+/// side, not the line's speed.
 fn rig_with(cfg: impl FnOnce(Cfg) -> Cfg, handler: Handler) -> Rig {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw)), dir.path());
+    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw).pty_line()), dir.path());
     let dev = RawDevice::start(&socat.dev, handler);
     Rig {
         gw,

@@ -560,15 +560,16 @@ fn lost_bytes_never_deliver_a_wrong_reply() {
 fn replies_in_pieces_all_arrive_correct() {
     let n = if long() { 4000 } else { 100 };
     let mut scenarios = Vec::new();
-    // The gateway's frame gap is 30 ms: gaps of up to 25 ms keep a margin for the
-    // scheduling jitter of a busy machine (a few ms), which a real UART does not add.
-    for (pieces, gap, in_flight) in [("bytes", "2", 1), ("random", "25", 1), ("random", "25", 4)] {
+    // The gateway's frame gap (and silence floor) is 40 ms: gaps of up to 20 ms keep a
+    // margin for the scheduling jitter of a machine busy with other tests (tens of ms
+    // at worst), which a real UART does not add.
+    for (pieces, gap, in_flight) in [("bytes", "2", 1), ("random", "20", 1), ("random", "20", 4)] {
         let mut sc = Scenario::new(Device::Sim, Direction::FromDevice, 0.0, in_flight);
         sc.sim_args = vec!["--chunks", pieces, "--chunk-gap-ms", gap];
-        sc.frame_gap_ms = 30;
-        // A reply of 25 bytes in pieces up to 25 ms apart takes ~200 ms; four queued
-        // behind each other take ~800, more on a busy machine.
-        sc.response_timeout_ms = 3000;
+        sc.frame_gap_ms = 40;
+        // A reply of 25 bytes in pieces up to 20 ms apart takes ~160 ms; four queued
+        // behind each other take ~650, more on a busy machine.
+        sc.response_timeout_ms = 6000;
         sc.requests = n;
         scenarios.push(sc);
     }
