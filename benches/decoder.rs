@@ -1,4 +1,4 @@
-//! Decoder benchmarks (issue 5): the resynchronising serial decoder
+//! Decoder benchmarks: the resynchronising serial decoder
 //! ([`mbgate::frame::Resync`]) and the strict TCP decoder
 //! ([`mbgate::frame::mbap::decode_strict`]) on clean streams and on streams that are
 //! mostly garbage, at 1 MiB and 10 MiB, so the cost can be seen to grow linearly.

@@ -1,4 +1,4 @@
-//! The gateway benchmarks (issue 5): added latency, wire efficiency, fairness and
+//! The gateway benchmarks: added latency, wire efficiency, fairness and
 //! footprint, measured side by side in one run against the device simulator on socat
 //! pty pairs, and printed as Markdown.
 //!

@@ -1,4 +1,4 @@
-//! `mbgate demo` (design.md §3): no hardware. A pty pair made in-process, the
+//! `mbgate demo` (docs/design.md §3): no hardware. A pty pair made in-process, the
 //! simulated device on one end, the gateway on the other, and instructions on how to
 //! connect. This is the README's "run it" command on a machine without a device.
 

@@ -1,5 +1,5 @@
 //! The gateway as a whole: bind, start the relay and the listener, and shut down
-//! cleanly (design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
+//! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see [`crate::notify`]).
 
 use crate::config::{Config, Framing, Notifications};

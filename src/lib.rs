@@ -1,4 +1,4 @@
-//! mbgate: a Modbus/TCP gateway to serial devices (design.md).
+//! mbgate: a Modbus/TCP gateway to serial devices (docs/design.md).
 
 pub mod cli_overrides;
 pub mod client;

@@ -1,4 +1,4 @@
-//! The command line (design.md §3). Parses, loads the configuration, starts tracing and
+//! The command line (docs/design.md §3). Parses, loads the configuration, starts tracing and
 //! runs; everything else lives in the library.
 
 use anyhow::Context as _;
@@ -59,7 +59,7 @@ enum Command {
     Demo(mbgate::demo::DemoArgs),
 }
 
-/// Exit code for a bad configuration or bad arguments (design.md §3; clap uses 2 too).
+/// Exit code for a bad configuration or bad arguments (docs/design.md §3; clap uses 2 too).
 const EXIT_CONFIG: u8 = 2;
 
 fn main() -> ExitCode {

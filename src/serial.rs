@@ -1,7 +1,7 @@
-//! Opening the serial port (design.md §4 `[serial]`, issue "The bridge": serial side).
+//! Opening the serial port (docs/design.md §4 `[serial]`).
 //!
 //! Baud, data bits, parity, stop bits and flow control come from the configuration;
-//! RTS/CTS is the default because the CIE-M10 manual asks for it (protocol.md §3). A
+//! RTS/CTS is the default because the CIE-M10 manual asks for it (docs/protocol.md §3). A
 //! freshly opened port can hold stale bytes, so it is flushed before use. Modem-line
 //! calls fail with ENOTTY on a pty; nothing here treats that as fatal.
 

@@ -1,4 +1,4 @@
-//! Counters the gateway keeps (design.md §1: dropped and late frames are counted).
+//! Counters the gateway keeps (docs/design.md §1: dropped and late frames are counted).
 
 use std::fmt;
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -1,4 +1,4 @@
-//! The TCP side (design.md §1 steps 1-2, §4 `[tcp]`): the listener with its connection
+//! The TCP side (docs/design.md §1 steps 1-2, §4 `[tcp]`): the listener with its connection
 //! limit, and one task per master that reads strictly checked MBAP requests and writes
 //! back their replies in the order of the requests, with the device's notifications
 //! (the path back is [`crate::outbox`]).

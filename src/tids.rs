@@ -1,15 +1,15 @@
-//! Serial-side transaction ids (design.md §1 step 3).
+//! Serial-side transaction ids (docs/design.md §1 step 3).
 //!
 //! Every request on the line gets a fresh id that no outstanding request uses, never
 //! 0x0000 (the CIE-M10's own change notifications may use it). Ids of finished requests
 //! (answered, timed out or abandoned) stay reserved for a while, so a late or duplicate
-//! answer is recognised as ours and dropped (design.md §1 steps 5 and 6) instead of
+//! answer is recognised as ours and dropped (docs/design.md §1 steps 5 and 6) instead of
 //! being taken for a notification.
 //!
 //! No two ids in flight share a low byte. A reply that lost its first byte (the id's
 //! high byte) and borrowed the byte before it is a copy of that reply with another
 //! high byte; with distinct low bytes that copy can never pass for the answer to
-//! another request on the line (issue 4).
+//! another request on the line.
 //!
 //! Ids do not count up: they follow a full-period permutation of the 16-bit space from
 //! a random start. A frame that lost both bytes of its id takes the two bytes before it

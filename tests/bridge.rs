@@ -1,6 +1,5 @@
 //! End to end against pymodbus: the real binary, a socat pty pair, pymodbus'
-//! `ModbusSerialServer` with the socket framer as the device (issue "The bridge", items
-//! 1, 2, 3 and 8).
+//! `ModbusSerialServer` with the socket framer as the device.
 
 mod common;
 use common::*;
@@ -28,7 +27,7 @@ fn bench(extra: impl FnOnce(Cfg) -> Cfg) -> Bench {
     }
 }
 
-/// Every byte-exact example of protocol.md §3, from a raw TCP client.
+/// Every byte-exact example of docs/protocol.md §3, from a raw TCP client.
 #[test]
 fn cie_m10_examples_byte_exact() {
     let b = bench(|c| c.log("traffic = true"));
@@ -63,7 +62,10 @@ fn cie_m10_examples_byte_exact() {
     let sent = " 00 00 00 09 01 10 00 08 00 01 02 00 11 dir=\"gw->serial\" conn=1";
     b.gw.wait_log(sent, std::time::Duration::from_secs(2));
     let log = b.gw.log();
-    let line = log.lines().find(|l| l.contains(sent)).expect("the write on the line");
+    let line = log
+        .lines()
+        .find(|l| l.contains(sent))
+        .expect("the write on the line");
     let hexes = line.split("traffic: ").nth(1).expect("traffic line");
     let serial_id = &hexes[..5];
     assert_ne!(serial_id, "00 00", "never 0x0000 on the line: {line}");

@@ -1,4 +1,4 @@
-//! The command line (design.md §3): `check-config`, flags over the file, exit code 2 with
+//! The command line (docs/design.md §3): `check-config`, flags over the file, exit code 2 with
 //! a message naming the file, line and key.
 
 mod common;

@@ -1,4 +1,4 @@
-//! End to end for the master client (issue 3): `mbgate read` and `mbgate write`, the real
+//! End to end for the master client: `mbgate read` and `mbgate write`, the real
 //! binary, against pymodbus' stock serial server on a socat pty (directly, and through
 //! `mbgate run` over TCP), against scripted raw peers, and against nobody.
 //!
@@ -71,7 +71,7 @@ fn every_function_code(target: &[&str]) {
             "0: 1", "1: 0", "2: 1", "3: 0", "4: 1", "5: 0", "6: 1", "7: 0", "8: 1", "9: 0",
         ],
     );
-    // FC 03, with register 0 = the CIE-M10 inputs 0..7 ON (protocol.md §3).
+    // FC 03, with register 0 = the CIE-M10 inputs 0..7 ON (docs/protocol.md §3).
     assert_reply(
         &m(&["read", "-v", "holding", "0", "3"]),
         "00 01 00 00 00 06 01 03 00 00 00 03",

@@ -24,7 +24,7 @@ fn assert_err(text: &str, line: usize, key: &str, contains: &str) {
 }
 
 #[test]
-fn defaults_are_design_md() {
+fn defaults_are_the_documented_ones() {
     let c = Config::default();
     assert_eq!(c.serial.path, "/dev/ttyUSB0");
     assert_eq!(c.serial.baud_rate, 19200);
@@ -607,7 +607,7 @@ fn round_trip() {
 }
 
 #[test]
-fn printed_layout_follows_design_md() {
+fn printed_configuration_has_the_sections_in_the_documented_order() {
     let text = to_toml(&Config::default());
     let headers: Vec<&str> = text.lines().filter(|l| l.starts_with('[')).collect();
     assert_eq!(headers, ["[serial]", "[tcp]", "[relay]", "[log]"]);
@@ -982,7 +982,7 @@ fn lines_and_listeners_are_validated_and_more_than_one_refused() {
 /// The example of docs/design.md §4.1 is read, validated, and refused only for having
 /// a second line.
 #[test]
-fn design_md_example_of_several_lines_is_valid_but_not_yet_run() {
+fn the_documented_example_of_several_lines_is_valid_but_not_yet_run() {
     let doc = include_str!("../docs/design.md");
     let example = &doc[doc.find("### 4.1").unwrap()..];
     let example = &example[example.find("```toml\n").unwrap() + 8..];

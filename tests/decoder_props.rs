@@ -1,4 +1,4 @@
-//! Properties of the resynchronising decoder (design.md §2): any chunking of a valid
+//! Properties of the resynchronising decoder (docs/design.md §2): any chunking of a valid
 //! stream decodes to the same frames; garbage that cannot start a header costs no
 //! frame; arbitrary bytes never panic and only ever yield well-formed frames; and on a
 //! lossy line (`mbgate::frame::lossy`), a reply that was not sent needs a whole
@@ -103,7 +103,7 @@ fn line_reply(header_like: bool) -> BoxedStrategy<Adu> {
     prop_oneof![4 => regs, 2 => echo, 1 => single, 2 => exc].boxed()
 }
 
-/// A notification as the CIE-M10 sends it (protocol.md §3): id 0, FC 03, one register.
+/// A notification as the CIE-M10 sends it (docs/protocol.md §3): id 0, FC 03, one register.
 fn notification(header_like: bool) -> BoxedStrategy<Adu> {
     register_values(header_like, 1..=1)
         .prop_map(|v| Adu::build(0, 1, &[0x03, 0x02, (v[0] >> 8) as u8, v[0] as u8]))

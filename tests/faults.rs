@@ -1,6 +1,6 @@
 //! End to end with a scripted raw device on the pty: a device that never answers, a
 //! cable that is pulled, notifications, hostile masters, full queues, late replies,
-//! retries, limits and shutdown (issue "The bridge", items 4-7, and design.md §1, §3).
+//! retries, limits and shutdown (docs/design.md §1, §3).
 
 mod common;
 use common::*;

@@ -1,4 +1,4 @@
-//! Hostile masters (issue 4, item 6): random and malformed MBAP with lengths up to
+//! Hostile masters: random and malformed MBAP with lengths up to
 //! 65535, frames trickled one byte per second, 1000 connection attempts against
 //! `max_connections = 32`, resets mid-request, a master that never reads its replies.
 //! In every case the gateway stays up, its memory stays bounded (VmRSS and VmHWM from

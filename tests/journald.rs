@@ -1,4 +1,4 @@
-//! Logs under journald (issue "A Raspberry Pi service"): when JOURNAL_STREAM names
+//! Logs under journald: when JOURNAL_STREAM names
 //! mbgate's stderr, each line is `<N>message fields` with the syslog priority
 //! (sd-daemon(3)), no timestamp and no colours, so `journalctl -p warning` shows the
 //! warnings; otherwise the usual format is kept.

@@ -50,7 +50,7 @@ fn reply_on_line(req: &Adu, values: &[u16]) -> Vec<u8> {
 /// Three registers whose reply, less one data byte and completed by a 0x00, still
 /// reads as three plausible values: 23413, 23402, 23403 (0x5B75 0x5B6A 0x5B6B).
 const VALUES: [u16; 3] = [23413, 23402, 23403];
-/// A change notification (protocol.md §3): transaction id 0, as the CIE-M10 sends it.
+/// A change notification (docs/protocol.md §3): transaction id 0, as the CIE-M10 sends it.
 const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
 
 /// Hole 1, with default settings (one request on the line, notifications dropped): a

@@ -1,4 +1,4 @@
-//! systemd's notify protocol (issue "A Raspberry Pi service"): a test plays systemd,
+//! systemd's notify protocol: a test plays systemd,
 //! listening on a NOTIFY_SOCKET datagram socket, and sees READY=1 once the gateway
 //! listens, WATCHDOG=1 from the relay at half of WATCHDOG_USEC (only when asked), and
 //! STOPPING=1 on SIGTERM, in that order. Notify failures are never fatal.

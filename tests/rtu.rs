@@ -1,4 +1,4 @@
-//! RTU and ASCII framing end to end (issue 7): the real binary with `framing = "rtu"`
+//! RTU and ASCII framing end to end: the real binary with `framing = "rtu"`
 //! or `"ascii"`, socat pty pairs, pymodbus' `ModbusSerialServer` with the RTU and the
 //! ASCII framer as the device, pymodbus TCP clients and raw bytes as the masters.
 //! Everything on 127.0.0.1; every loop bounded in count and time.
@@ -110,7 +110,7 @@ fn raw_bench(handler: RtuHandler, extra: impl FnOnce(Cfg) -> Cfg) -> RawBench {
 /// Seed 001: TCP `0001 0000 0006 11 03 006B 0003` leaves mbgate as RTU
 /// `11 03 00 6B 00 03 76 87`, and the RTU reply goes back with the master's id.
 #[test]
-fn seed_001_example_byte_exact() {
+fn the_rtu_read_of_protocol_md_section_2_byte_exact() {
     let b = raw_bench(rtu_register_device(&[0x11]), |c| c);
     let mut m = b.gw.connect();
     let reply = transact(&mut m, &hex("0001 0000 0006 11 03 006B 0003"));

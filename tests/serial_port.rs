@@ -1,5 +1,5 @@
 //! The serial side on a real pty: the `[serial]` settings reach the port's termios, and
-//! stale bytes are cleared on open (issue "The bridge": serial side).
+//! stale bytes are cleared on open (docs/design.md §4 `[serial]`).
 
 mod common;
 use common::*;

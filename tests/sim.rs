@@ -1,4 +1,4 @@
-//! End to end: the device simulator (`mbgate sim`) and `mbgate demo` (issue 3) with
+//! End to end: the device simulator (`mbgate sim`) and `mbgate demo` with
 //! real peers: socat pty pairs, a raw master on a pty, pymodbus as the master through
 //! the gateway, and a terminal for the console.
 
@@ -9,9 +9,9 @@ use std::time::{Duration, Instant};
 
 const QUIET: Duration = Duration::from_millis(200);
 
-/// Every byte-exact example of protocol.md §3 against the `cie-m10` profile, from a
+/// Every byte-exact example of docs/protocol.md §3 against the `cie-m10` profile, from a
 /// raw master on the other end of the pty pair: MBAP header included, transaction id
-/// echoed, notifications as the seed describes them.
+/// echoed, notifications as docs/protocol.md §3 describes them.
 #[test]
 fn cie_m10_profile_answers_the_protocol_examples_byte_exact() {
     let dir = tempdir();
@@ -26,7 +26,7 @@ fn cie_m10_profile_answers_the_protocol_examples_byte_exact() {
         "00 00 00 00 00 05 01 03 02 00 00"
     );
 
-    // The seed's write: outputs 0 and 4 on. Wired back to the inputs, the change is
+    // The device manual's write (docs/protocol.md §3): outputs 0 and 4 on. Wired back to the inputs, the change is
     // notified unsolicited as an FC 03 response with transaction id 0.
     let write = hex("00 00 00 00 00 09 01 10 00 08 00 01 02 00 11");
     assert_eq!(
@@ -39,7 +39,7 @@ fn cie_m10_profile_answers_the_protocol_examples_byte_exact() {
         "12 34 00 00 00 05 01 03 02 00 11"
     );
 
-    // All outputs on, so all inputs on: the seed's read response exactly.
+    // All outputs on, so all inputs on: the manual's read reply exactly (docs/protocol.md §3).
     m.transact(&hex("00 00 00 00 00 09 01 10 00 08 00 01 02 00 FF"), 23);
     assert_eq!(
         hexs(&m.transact(&read, 11)),
@@ -379,7 +379,7 @@ fn sim_survives_the_cable_being_pulled() {
     }
 }
 
-/// The console on a terminal: seed 003's menu as commands, driving what the device
+/// The console on a terminal: the reference simulator's menu (docs/protocol.md §4) as commands, driving what the device
 /// answers on the line.
 #[test]
 fn console_commands_on_a_terminal() {

@@ -1,4 +1,4 @@
-//! The shipped units (issue "A Raspberry Pi service"): `systemd-analyze security
+//! The shipped units: `systemd-analyze security
 //! --offline=true` rates each at an exposure of 1.5 or less, `systemd-analyze verify`
 //! has nothing to say about them, the template differs from the single unit only where
 //! it must, and the stop timeout covers the default drain.

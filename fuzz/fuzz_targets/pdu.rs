@@ -1,4 +1,4 @@
-//! Function-code knowledge (protocol.md §1) on arbitrary PDUs: request checks, reply
+//! Function-code knowledge (docs/protocol.md §1) on arbitrary PDUs: request checks, reply
 //! shapes and reply decoding never panic and agree with each other.
 #![no_main]
 

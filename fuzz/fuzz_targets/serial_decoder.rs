@@ -1,4 +1,4 @@
-//! The resynchronising serial decoder (design.md §2, docs/reliability.md) on arbitrary
+//! The resynchronising serial decoder (docs/design.md §2, docs/reliability.md) on arbitrary
 //! bytes at arbitrary chunking, with and without confirmation, with the line pausing
 //! anywhere: it never panics, every frame it yields is length-consistent and accepted
 //! by its judge, everything it is fed is either yielded or counted as dropped, quiet

@@ -1,4 +1,4 @@
-//! The strict MBAP decoder of the TCP side (design.md §1 step 1) on arbitrary bytes at
+//! The strict MBAP decoder of the TCP side (docs/design.md §1 step 1) on arbitrary bytes at
 //! arbitrary chunking: it never panics, never asks for more than one frame's bytes,
 //! yields only frames within the limits, and chunking changes neither the frames nor
 //! the error that ends the connection.

@@ -1,5 +1,5 @@
-//! The master's command line (issue 3): where requests go and what they ask, as the
-//! request PDUs of protocol.md §1.
+//! The master's command line: where requests go and what they ask, as the
+//! request PDUs of docs/protocol.md §1.
 
 use super::link::Link;
 use crate::cli_overrides::{PortFlags, PORT_GROUP};
@@ -42,7 +42,7 @@ pub struct CommonArgs {
     pub verbose: bool,
 }
 
-/// The tables a master reads (protocol.md §1).
+/// The tables a master reads (docs/protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ReadTable {
     /// FC 01 read coils (also: coil)
@@ -76,7 +76,7 @@ pub struct ReadArgs {
     pub quantity: u16,
 }
 
-/// The tables a master writes (protocol.md §1).
+/// The tables a master writes (docs/protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum WriteTable {
     /// FC 05 for one value, FC 0F for several (also: coil)
@@ -160,7 +160,7 @@ fn parse_coil(s: &str) -> Result<bool, String> {
 }
 
 impl ReadArgs {
-    /// The request these arguments ask for (protocol.md §1 table, FC 01..04).
+    /// The request these arguments ask for (docs/protocol.md §1 table, FC 01..04).
     pub fn request(&self) -> Request {
         let (addr, qty) = (self.addr, self.quantity);
         match self.table {
@@ -173,7 +173,7 @@ impl ReadArgs {
 }
 
 impl WriteArgs {
-    /// The request these arguments ask for (protocol.md §1 table, FC 05, 06, 0F, 10,
+    /// The request these arguments ask for (docs/protocol.md §1 table, FC 05, 06, 0F, 10,
     /// 17), or why there is none.
     pub fn request(&self) -> Result<Request, String> {
         let addr = self.addr;

@@ -1,6 +1,6 @@
-//! The master's transport (issue 3): one request at a time to a gateway over TCP
-//! (strict decoder, design.md §1 step 1) or to a device on a serial port (the
-//! resynchronising decoder of design.md §2, judging by transaction id and shape).
+//! The master's transport: one request at a time to a gateway over TCP
+//! (strict decoder, docs/design.md §1 step 1) or to a device on a serial port (the
+//! resynchronising decoder of docs/design.md §2, judging by transaction id and shape).
 
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::mbap::{decode_strict, FrameRef};
@@ -14,7 +14,7 @@ use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 use tokio_serial::SerialStream;
 
-/// The default TCP port of Modbus/TCP (protocol.md §3).
+/// The default TCP port of Modbus/TCP (docs/protocol.md §3).
 const MODBUS_PORT: u16 = 502;
 
 /// Why a request got no usable answer (exit code 1).
@@ -123,7 +123,7 @@ impl Link {
     }
 }
 
-/// Accepts only the answer to one request (design.md §1 step 4): its transaction id,
+/// Accepts only the answer to one request (docs/design.md §1 step 4): its transaction id,
 /// its unit id, its function code (or exception) and the shape it calls for.
 struct ReplyTo<'a>(&'a Adu);
 
@@ -163,7 +163,7 @@ struct Received {
 }
 
 /// A Modbus master on one link: numbers the requests (transaction ids 1, 2, ...,
-/// never 0x0000, which the device's own change notifications may use: design.md §1
+/// never 0x0000, which the device's own change notifications may use: docs/design.md §1
 /// step 3) and waits for each answer, bounded by the timeout.
 #[derive(Debug)]
 pub struct Master {
@@ -208,7 +208,7 @@ impl Master {
             }
         };
         // Over TCP a frame with our transaction id may still answer something else;
-        // on the serial line the judge has already checked (design.md §1 step 4).
+        // on the serial line the judge has already checked (docs/design.md §1 step 4).
         let result = received.and_then(|r| match decode_reply(request.pdu(), r.reply.pdu()) {
             Ok(decoded) => Ok(Exchange {
                 reply: r.reply,
@@ -331,7 +331,7 @@ async fn serial_exchange(
             .await
             .map_err(|e| io("sending", e))?;
         let mut chunk = [0u8; 512];
-        // Silence after which a partial frame is discarded (design.md §2): the
+        // Silence after which a partial frame is discarded (docs/design.md §2): the
         // gateway's default `relay.frame_gap_ms`.
         let frame_gap = Duration::from_millis(RelayConfig::default().frame_gap_ms);
         let mut last_byte = Instant::now();
@@ -341,7 +341,7 @@ async fn serial_exchange(
                 return Ok(frame);
             }
             // A partial candidate waits for more bytes until the frame gap; then it is
-            // discarded and the rest rescanned (design.md §2).
+            // discarded and the rest rescanned (docs/design.md §2).
             let read = if decoder.buffered() > 0 {
                 match timeout_at(last_byte + frame_gap, p.read(&mut chunk)).await {
                     Ok(r) => r,

@@ -1,16 +1,16 @@
-//! The master client of issue 3: `mbgate read` and `mbgate write` answer the field
+//! The master client: `mbgate read` and `mbgate write` answer the field
 //! engineer's first question, "does the device answer?".
 //!
 //! One request of the common function codes (01, 02, 03, 04, 05, 06, 0F, 10, 17;
-//! protocol.md §1) goes to a gateway over Modbus/TCP, or straight to a device on a
+//! docs/protocol.md §1) goes to a gateway over Modbus/TCP, or straight to a device on a
 //! serial port in the CIE-M10's serial Modbus/TCP mode (whole MBAP frames on the line,
-//! no CRC; protocol.md §3). The decoded reply or exception is printed; `--poll` repeats
+//! no CRC; docs/protocol.md §3). The decoded reply or exception is printed; `--poll` repeats
 //! it, `-v` shows both frames as hex.
 //!
-//! - Over TCP, replies are delimited by the strict decoder (design.md §1 step 1); a
+//! - Over TCP, replies are delimited by the strict decoder (docs/design.md §1 step 1); a
 //!   frame with another transaction id (a late answer to an earlier poll) is ignored.
-//! - On a serial line, which can lose bytes (protocol.md §3), replies are found by the
-//!   resynchronising decoder (design.md §2) with a judge that accepts only the answer
+//! - On a serial line, which can lose bytes (docs/protocol.md §3), replies are found by the
+//!   resynchronising decoder (docs/design.md §2) with a judge that accepts only the answer
 //!   to the outstanding request: its transaction id, its unit id and the shape the
 //!   request calls for.
 //!

@@ -1,4 +1,4 @@
-//! The ASCII frame (protocol.md §2, seed 002): `':'`, then the address, the PDU and the
+//! The ASCII frame (docs/protocol.md §2; Modbus over Serial Line V1.02 §2.5.2): `':'`, then the address, the PDU and the
 //! LRC as pairs of hex characters, then CR LF. The colon and the line feed delimit
 //! frames, so no length or silence is needed; a colon inside a frame starts a new one
 //! (Modbus over serial line, §2.5.2.1).
@@ -92,7 +92,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn lrc_of_seed_001_request() {
+    fn lrc_of_the_read_of_protocol_md_section_2() {
         // 11 + 03 + 00 + 6B + 00 + 03 = 0x82; two's complement 0x7E.
         assert_eq!(lrc(&[0x11, 0x03, 0x00, 0x6B, 0x00, 0x03]), 0x7E);
         let f = encode(0x11, &[0x03, 0x00, 0x6B, 0x00, 0x03]);

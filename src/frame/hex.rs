@@ -2,7 +2,7 @@
 
 use std::fmt;
 
-/// Displays bytes as `00 01 FF`, the way protocol.md writes frames.
+/// Displays bytes as `00 01 FF`, the way docs/protocol.md writes frames.
 pub struct Hex<'a>(pub &'a [u8]);
 
 impl fmt::Display for Hex<'_> {
@@ -23,7 +23,7 @@ impl fmt::Debug for Hex<'_> {
     }
 }
 
-/// `"00 01 FF"` → bytes, for tests written the way protocol.md writes frames.
+/// `"00 01 FF"` → bytes, for tests written the way docs/protocol.md writes frames.
 #[cfg(test)]
 pub(crate) fn parse(s: &str) -> Vec<u8> {
     s.split_whitespace()

@@ -25,7 +25,7 @@ pub const HEADER_LIKE: [u16; 13] = [
     0x0300,
 ];
 
-/// What the relay knows (design.md §1 step 4): the requests on the line, each with its
+/// What the relay knows (docs/design.md §1 step 4): the requests on the line, each with its
 /// own transaction id, no two sharing a low byte and none a low byte of 0 (as the
 /// relay allocates them). A frame is a reply only if it answers one of them: same id,
 /// unit, function code and shape. A well-formed frame with id 0 is a notification.

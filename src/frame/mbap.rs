@@ -1,5 +1,5 @@
-//! The MBAP frame (protocol.md §2, "Modbus/TCP (MBAP)") and the strict decoder used on
-//! the TCP side (design.md §1 step 1).
+//! The MBAP frame (docs/protocol.md §2, "Modbus/TCP (MBAP)") and the strict decoder used on
+//! the TCP side (docs/design.md §1 step 1).
 //!
 //! ```text
 //! TID(2) | protocol id(2) = 0000 | length(2) = bytes that follow | unit id(1) | PDU
@@ -67,7 +67,7 @@ impl Adu {
         Adu(b.freeze())
     }
 
-    /// An exception response (protocol.md §1): function code | 0x80, then the code.
+    /// An exception response (docs/protocol.md §1): function code | 0x80, then the code.
     pub fn exception(tid: u16, unit: u8, function: u8, code: u8) -> Self {
         Self::build(tid, unit, &[function | 0x80, code])
     }
@@ -102,7 +102,7 @@ impl Adu {
         self.0
     }
 
-    /// The same frame with another transaction id (the relay's id rewriting, design.md
+    /// The same frame with another transaction id (the relay's id rewriting, docs/design.md
     /// §1 step 3).
     pub fn with_tid(&self, tid: u16) -> Self {
         let mut b = BytesMut::from(&self.0[..]);
@@ -158,7 +158,7 @@ pub enum StrictError {
     Length(u16),
 }
 
-/// Takes one frame off the front of `buf`, checking it strictly (design.md §1 step 1):
+/// Takes one frame off the front of `buf`, checking it strictly (docs/design.md §1 step 1):
 /// protocol id 0 and length 2..=254. `Ok(None)` means more bytes are needed. A header
 /// is judged as soon as its six bytes are in, so a bad length never makes us wait.
 pub fn decode_strict(buf: &mut BytesMut) -> Result<Option<Adu>, StrictError> {

@@ -1,5 +1,5 @@
 //! Pure frame code: bytes in, frames out. No tokio, no I/O, so every piece here can be
-//! unit-tested, property-tested and fuzzed on its own (design.md §5).
+//! unit-tested, property-tested and fuzzed on its own (docs/design.md §5).
 
 pub mod ascii;
 pub mod hex;

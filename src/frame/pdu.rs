@@ -1,9 +1,9 @@
-//! What the function codes mean (protocol.md §1): which requests are well formed, what
+//! What the function codes mean (docs/protocol.md §1): which requests are well formed, what
 //! shape their replies must have, and which replies could exist at all.
 //!
 //! All functions take a PDU: the function code followed by its data.
 
-/// Function codes (protocol.md §1 table).
+/// Function codes (docs/protocol.md §1 table).
 pub mod fc {
     pub const READ_COILS: u8 = 0x01;
     pub const READ_DISCRETE_INPUTS: u8 = 0x02;
@@ -26,7 +26,7 @@ pub mod fc {
     pub const ENCAPSULATED_INTERFACE: u8 = 0x2B;
 }
 
-/// Exception codes (protocol.md §1).
+/// Exception codes (docs/protocol.md §1).
 pub mod exception {
     pub const ILLEGAL_FUNCTION: u8 = 0x01;
     pub const ILLEGAL_DATA_ADDRESS: u8 = 0x02;
@@ -79,7 +79,7 @@ pub fn is_exception_code(code: u8) -> bool {
     matches!(code, 0x01..=0x06 | 0x08 | 0x0A | 0x0B)
 }
 
-/// Requests that only read, and so may be resent after a timeout (design.md §4
+/// Requests that only read, and so may be resent after a timeout (docs/design.md §4
 /// `retries`). Everything else may act on the device and is resent only with
 /// `retry_writes`.
 pub fn is_read(function: u8) -> bool {
@@ -102,7 +102,7 @@ fn word(pdu: &[u8], at: usize) -> usize {
     usize::from(u16::from_be_bytes([pdu[at], pdu[at + 1]]))
 }
 
-/// Checks a master's request PDU against the limits of protocol.md §1. `Err` carries
+/// Checks a master's request PDU against the limits of docs/protocol.md §1. `Err` carries
 /// the exception code a device would answer: 01 for a function code that cannot be a
 /// request, 03 for a quantity or size out of range. Unknown (vendor) function codes
 /// pass: the device decides.
@@ -161,7 +161,7 @@ pub fn check_request(pdu: &[u8]) -> Result<(), u8> {
 }
 
 /// Is this request PDU consistent with itself: the size its function code calls for,
-/// and byte-count fields that cover the rest (protocol.md §1 table)? Values are not
+/// and byte-count fields that cover the rest (docs/protocol.md §1 table)? Values are not
 /// checked (a device answers 03 for those), and unknown function codes pass (a device
 /// answers 01). The simulator's decoder uses this to delimit requests on a lossy line.
 pub fn request_well_formed(pdu: &[u8]) -> bool {
@@ -193,7 +193,7 @@ fn counted(reply: &[u8]) -> Option<usize> {
     (reply.len() == 2 + count).then_some(count)
 }
 
-/// Is this reply PDU consistent with itself, whatever was asked (design.md §2: the
+/// Is this reply PDU consistent with itself, whatever was asked (docs/design.md §2: the
 /// shape check for frames that answer no outstanding request)? Unknown function codes
 /// pass: nothing is known of their shape.
 pub fn reply_well_formed(reply: &[u8]) -> bool {
@@ -222,7 +222,7 @@ pub fn reply_well_formed(reply: &[u8]) -> bool {
     }
 }
 
-/// Is `reply` an answer to `request` (design.md §1 step 4): the same function code or
+/// Is `reply` an answer to `request` (docs/design.md §1 step 4): the same function code or
 /// its exception, and the shape the request calls for (an FC 03 reply for N registers
 /// carries 2N bytes; a write echoes what it wrote; the bits of an FC 01 or 02 reply
 /// past the quantity asked are zero, as the Modbus Application Protocol V1.1b3 §6.1
@@ -284,7 +284,7 @@ mod tests {
         assert_eq!(check_request(&[1, 0, 0, 0x07, 0xD1]), Err(3));
         assert_eq!(check_request(&[5, 0, 1, 0xFF, 0x00]), Ok(()));
         assert_eq!(check_request(&[5, 0, 1, 0x12, 0x34]), Err(3));
-        // The CIE-M10 write of protocol.md §3.
+        // The CIE-M10 write of docs/protocol.md §3.
         assert_eq!(check_request(&[0x10, 0, 8, 0, 1, 2, 0, 0x11]), Ok(()));
         assert_eq!(check_request(&[0x10, 0, 8, 0, 1, 4, 0, 0x11, 0, 0]), Err(3));
         assert_eq!(check_request(&[0x0F, 0, 20, 0, 10, 2, 0xCD, 0x01]), Ok(()));
@@ -300,7 +300,7 @@ mod tests {
 
     #[test]
     fn replies_match_their_requests() {
-        // protocol.md §3: read of 1 word at 0 answered `03 02 00 FF`.
+        // docs/protocol.md §3: read of 1 word at 0 answered `03 02 00 FF`.
         assert!(reply_matches(&[3, 0, 0, 0, 1], &[3, 2, 0, 0xFF]));
         assert!(!reply_matches(&[3, 0, 0, 0, 2], &[3, 2, 0, 0xFF]));
         assert!(!reply_matches(&[4, 0, 0, 0, 1], &[3, 2, 0, 0xFF]));

@@ -1,6 +1,6 @@
-//! What a master sends and what the answer means, for `mbgate read` and `mbgate write`
-//! (issue 3, the master client): builders for the request PDUs of the common function
-//! codes and a decoder from a reply PDU to values or an exception (protocol.md §1).
+//! What a master sends and what the answer means, for `mbgate read` and `mbgate write`:
+//! builders for the request PDUs of the common function
+//! codes and a decoder from a reply PDU to values or an exception (docs/protocol.md §1).
 //!
 //! Pure: bytes in, values out. Matching a reply to its request (transaction id, unit,
 //! shape) uses [`pdu::reply_matches`], the same check the relay applies.
@@ -21,7 +21,7 @@
 use super::hex::Hex;
 use super::pdu::{self, exception, fc};
 
-/// One request of the common function codes (protocol.md §1 table). Addresses are
+/// One request of the common function codes (docs/protocol.md §1 table). Addresses are
 /// PDU addresses (0-based).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Request {
@@ -51,7 +51,7 @@ pub enum Request {
     },
 }
 
-/// A request outside the limits of protocol.md §1: it would never be sent.
+/// A request outside the limits of docs/protocol.md §1: it would never be sent.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum RequestError {
     #[error("{what} must be {min}..={max}, got {got}")]
@@ -86,7 +86,7 @@ fn block(what: &'static str, addr: u16, qty: usize, max: usize) -> Result<(), Re
     Ok(())
 }
 
-/// Packs bits the Modbus way (protocol.md §1): the first bit is the LSB of the first
+/// Packs bits the Modbus way (docs/protocol.md §1): the first bit is the LSB of the first
 /// byte; unused high bits of the last byte are zero.
 pub fn pack_bits(bits: &[bool]) -> Vec<u8> {
     let mut out = vec![0u8; bits.len().div_ceil(8)];
@@ -96,7 +96,7 @@ pub fn pack_bits(bits: &[bool]) -> Vec<u8> {
     out
 }
 
-/// The first `n` bits of `bytes`, unpacked the Modbus way (protocol.md §1).
+/// The first `n` bits of `bytes`, unpacked the Modbus way (docs/protocol.md §1).
 pub fn unpack_bits(bytes: &[u8], n: usize) -> Vec<bool> {
     (0..n.min(bytes.len() * 8))
         .map(|i| bytes[i / 8] & (1 << (i % 8)) != 0)
@@ -110,7 +110,7 @@ fn put_words(out: &mut Vec<u8>, words: &[u16]) {
 }
 
 impl Request {
-    /// The function code (protocol.md §1 table).
+    /// The function code (docs/protocol.md §1 table).
     pub fn function(&self) -> u8 {
         match self {
             Request::ReadCoils { .. } => fc::READ_COILS,
@@ -125,7 +125,7 @@ impl Request {
         }
     }
 
-    /// Checks the limits of protocol.md §1 (quantities, and blocks that stay inside the
+    /// Checks the limits of docs/protocol.md §1 (quantities, and blocks that stay inside the
     /// address space).
     pub fn validate(&self) -> Result<(), RequestError> {
         match self {
@@ -156,7 +156,7 @@ impl Request {
         }
     }
 
-    /// The request PDU (function code and data, protocol.md §1 table), after
+    /// The request PDU (function code and data, docs/protocol.md §1 table), after
     /// [`validate`](Request::validate).
     pub fn pdu(&self) -> Result<Vec<u8>, RequestError> {
         self.validate()?;
@@ -200,7 +200,7 @@ impl Request {
     }
 }
 
-/// What a reply says (protocol.md §1 "normal response data", or an exception).
+/// What a reply says (docs/protocol.md §1 "normal response data", or an exception).
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Reply {
     /// FC 01, 02: the bits asked for, padding dropped; `addr` is the first one's.
@@ -215,12 +215,12 @@ pub enum Reply {
     WroteMany { addr: u16, qty: u16, coils: bool },
     /// Any other function code (no decoding known): the reply PDU's data.
     Raw { data: Vec<u8> },
-    /// Exception response: function code | 0x80, then the code (protocol.md §1).
+    /// Exception response: function code | 0x80, then the code (docs/protocol.md §1).
     Exception { function: u8, code: u8 },
 }
 
 /// A reply PDU that does not answer the request: wrong function code, or a shape the
-/// request does not call for (design.md §1 step 4).
+/// request does not call for (docs/design.md §1 step 4).
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("reply PDU {reply} does not answer request PDU {request}")]
 pub struct Mismatch {
@@ -278,7 +278,7 @@ pub fn decode_reply(request: &[u8], reply: &[u8]) -> Result<Reply, Mismatch> {
     })
 }
 
-/// The name of an exception code (protocol.md §1).
+/// The name of an exception code (docs/protocol.md §1).
 pub fn exception_name(code: u8) -> &'static str {
     match code {
         exception::ILLEGAL_FUNCTION => "illegal function",
@@ -305,7 +305,7 @@ mod tests {
     }
 
     #[test]
-    fn seed_004_read_coils_20_to_38() {
+    fn read_coils_20_to_38_as_the_modbus_specification_shows() {
         let req = Request::ReadCoils { addr: 19, qty: 19 }.pdu().unwrap();
         assert_eq!(req, bytes("01 00 13 00 13"));
         let reply = decode_reply(&req, &bytes("01 03 CD 6B 05")).unwrap();
@@ -323,7 +323,7 @@ mod tests {
 
     #[test]
     fn read_discrete_inputs_197_to_218() {
-        // The public spec's example that seed 004 quotes (AC .. 35).
+        // The Modbus Application Protocol V1.1b3 example (AC .. 35).
         let req = Request::ReadDiscreteInputs { addr: 196, qty: 22 }
             .pdu()
             .unwrap();
@@ -371,7 +371,7 @@ mod tests {
 
     #[test]
     fn cie_m10_frames_byte_exact() {
-        // protocol.md §3: read the inputs, 1 word at 0, unit 1, transaction id 0.
+        // docs/protocol.md §3: read the inputs, 1 word at 0, unit 1, transaction id 0.
         let req = Request::ReadHoldingRegisters { addr: 0, qty: 1 }
             .pdu()
             .unwrap();
@@ -468,7 +468,7 @@ mod tests {
     }
 
     #[test]
-    fn seed_004_write_ten_coils_at_20() {
+    fn write_ten_coils_at_20_as_the_modbus_specification_shows() {
         // CD 01: coils 27..20 = 1100 1101, 29..28 = 01.
         let values = bits("1011001110");
         let req = Request::WriteMultipleCoils { addr: 19, values }

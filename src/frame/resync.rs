@@ -1,7 +1,7 @@
-//! The resynchronising MBAP decoder for the serial side (design.md §2).
+//! The resynchronising MBAP decoder for the serial side (docs/design.md §2).
 //!
 //! The CIE-M10's serial Modbus/TCP mode puts bare MBAP frames on RS232 with no checksum
-//! and no framing gaps, and the line can lose bytes (protocol.md §3). The length field
+//! and no framing gaps, and the line can lose bytes (docs/protocol.md §3). The length field
 //! is the only delimiter, so the decoder:
 //!
 //! - accepts a candidate header only if it is plausible (protocol id 0, length 2..=254,
@@ -45,7 +45,7 @@
 //! ```
 //! use mbgate::frame::{ReplyJudge, Resync};
 //! let mut d = Resync::new();
-//! // Noise, then the CIE-M10's read response (protocol.md §3) in two pieces.
+//! // Noise, then the CIE-M10's read response (docs/protocol.md §3) in two pieces.
 //! d.push(&[0xFF, 0x13, 0x00, 0x00, 0x00, 0x00, 0x00, 0x05]);
 //! assert!(d.next_frame(&ReplyJudge, false).is_none());
 //! d.push(&[0x01, 0x03, 0x02, 0x00, 0xFF]);
@@ -80,7 +80,7 @@ pub trait Judge {
     }
 }
 
-/// Accepts any well-formed reply to a public function code (design.md §2 shape check).
+/// Accepts any well-formed reply to a public function code (docs/design.md §2 shape check).
 #[derive(Debug, Default, Clone, Copy)]
 pub struct ReplyJudge;
 
@@ -387,7 +387,7 @@ mod tests {
     use super::*;
     use crate::frame::hex::{parse as bytes, Hex};
 
-    /// Replies of several shapes, the CIE-M10's among them (protocol.md §3).
+    /// Replies of several shapes, the CIE-M10's among them (docs/protocol.md §3).
     fn replies() -> Vec<Vec<u8>> {
         vec![
             bytes("00 01 00 00 00 05 01 03 02 00 FF"),
@@ -680,7 +680,7 @@ mod tests {
 
     /// An FC 03 reply for three registers holding 23413, 23402, 23403.
     const A: &str = "00 07 00 00 00 09 01 03 06 5B 75 5B 6A 5B 6B";
-    /// A change notification (protocol.md §3), transaction id 0.
+    /// A change notification (docs/protocol.md §3), transaction id 0.
     const NOTIFICATION: &str = "00 00 00 00 00 05 01 03 02 00 0F";
     /// A 9-byte exception reply and an FC 16 echo.
     const C: &str = "00 0C 00 00 00 03 01 83 02";

@@ -1,4 +1,4 @@
-//! The RTU frame (protocol.md §2, seeds 001 and 002): `address | PDU | CRC-16`, the CRC
+//! The RTU frame (docs/protocol.md §2; Modbus over Serial Line V1.02 §2.5.1): `address | PDU | CRC-16`, the CRC
 //! low byte first. RTU has no length field and no transaction id: frames are delimited
 //! by their function code's shape where it is known, and by 3.5 character times of
 //! silence otherwise (the caller measures the silence, see [`super::serial`]).
@@ -146,7 +146,7 @@ mod tests {
     use crate::frame::hex::parse as bytes;
 
     #[test]
-    fn seed_001_example() {
+    fn the_read_of_protocol_md_section_2_encodes_with_crc_76_87() {
         let frame = bytes("11 03 00 6B 00 03 76 87");
         assert_eq!(encode(0x11, &bytes("03 00 6B 00 03")), frame);
         assert_eq!(decode(&frame), Some((0x11, &frame[1..6])));

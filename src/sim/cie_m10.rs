@@ -1,4 +1,4 @@
-//! The `cie-m10` profile: the Sollae ezTCP CIE-M10/H10 as protocol.md §3 describes it.
+//! The `cie-m10` profile: the Sollae ezTCP CIE-M10/H10 as docs/protocol.md §3 describes it.
 //!
 //! Eight input ports read at the input port address, eight output ports driven at the
 //! output port address, one word each with port 0 in the least significant bit. Only
@@ -21,12 +21,12 @@ pub struct CieM10 {
     pub outputs: u8,
     /// The inputs follow the outputs, as if each output were wired to its input.
     pub loopback: bool,
-    /// Input port change notification (protocol.md §3, default off on the device).
+    /// Input port change notification (docs/protocol.md §3, default off on the device).
     pub notify: bool,
 }
 
 impl Default for CieM10 {
-    /// The device's defaults in serial Modbus/TCP mode (protocol.md §3).
+    /// The device's defaults in serial Modbus/TCP mode (docs/protocol.md §3).
     fn default() -> Self {
         Self {
             unit: 1,
@@ -92,7 +92,7 @@ impl CieM10 {
     }
 
     /// The unsolicited frame's PDU for the current inputs, if notification is on: it
-    /// looks like the FC 03 response to a read of the input port (protocol.md §3).
+    /// looks like the FC 03 response to a read of the input port (docs/protocol.md §3).
     pub fn notification(&self) -> Option<Vec<u8>> {
         self.notify
             .then(|| vec![fc::READ_HOLDING_REGISTERS, 2, 0, self.inputs])
@@ -104,7 +104,7 @@ mod tests {
     use super::*;
     use crate::frame::hex::parse as bytes;
 
-    /// The byte-exact examples of protocol.md §3, as PDUs (the MBAP header is the
+    /// The byte-exact examples of docs/protocol.md §3, as PDUs (the MBAP header is the
     /// caller's; the end-to-end tests check the whole frames).
     #[test]
     fn protocol_examples() {

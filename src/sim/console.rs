@@ -1,4 +1,4 @@
-//! The simulator's console (protocol.md §4: seed 003's slave menu, as commands): add,
+//! The simulator's console (docs/protocol.md §4: the reference simulator's slave menu, as commands): add,
 //! remove and list devices, set inputs and values, show and clear the packet log,
 //! clear the screen, quit. Parsing only; the simulator carries the commands out.
 

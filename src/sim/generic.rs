@@ -1,10 +1,10 @@
 //! The `generic` profile: virtual devices by unit id, each with coils, discrete inputs,
 //! holding and input registers, serving FC 01, 02, 03, 04, 05, 06, 0F, 10 and 17
-//! (protocol.md §1) with the standard exceptions: 01 for a function it does not serve,
+//! (docs/protocol.md §1) with the standard exceptions: 01 for a function it does not serve,
 //! 03 for a quantity or value out of range, 02 for an address out of range, checked in
 //! that order as the Modbus application protocol does.
 //!
-//! A new device follows seed 003's simulator (protocol.md §4): at least 10 coils and
+//! A new device follows the reference simulator (docs/protocol.md §4): at least 10 coils and
 //! 10 registers, input registers 0..5 hold its creation date and time (UTC: year,
 //! month, day, hour, minute, second), discrete inputs are random.
 
@@ -28,7 +28,7 @@ pub struct Bank {
 }
 
 impl Bank {
-    /// A device as seed 003 creates one: `bits` coils and discrete inputs (random),
+    /// A device as the reference simulator creates one (docs/protocol.md §4): `bits` coils and discrete inputs (random),
     /// `registers` holding registers (zero) and input registers (0..5 the creation date
     /// and time, the rest zero). `random` supplies the discrete inputs.
     pub fn new(
@@ -234,7 +234,7 @@ fn serve(bank: &mut Bank, pdu: &[u8]) -> Result<Vec<u8>, u8> {
 }
 
 /// Year, month, day, hour, minute, second (UTC), for input registers 0..5
-/// (protocol.md §4).
+/// (docs/protocol.md §4).
 pub fn civil_time(t: std::time::SystemTime) -> [u16; 6] {
     // `YYYY-MM-DDTHH:MM:SSZ`
     let s = humantime::format_rfc3339_seconds(t).to_string();

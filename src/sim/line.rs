@@ -1,4 +1,4 @@
-//! The simulator's line model (issue 3, "Line model"): bytes lost, garbage injected in
+//! The simulator's line model: bytes lost, garbage injected in
 //! bursts and bytes replaced,
 //! seeded so the same seed loses the same bytes, and the pace of a real UART, which a
 //! pty does not have.
@@ -118,7 +118,7 @@ impl Pacer {
     }
 }
 
-/// How the simulator hands a frame to the line (issue 4, "Chunking"): whole, one byte
+/// How the simulator hands a frame to the line: whole, one byte
 /// at a time, or in random bursts, with a gap before each piece after the first.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ChunkMode {

@@ -1,4 +1,4 @@
-//! The device simulator (issue 3; design.md §3 `mbgate sim`, protocol.md §3 and §4): a
+//! The device simulator (docs/design.md §3 `mbgate sim`, docs/protocol.md §3 and §4): a
 //! simulated device on a serial port or pty, speaking the gateway's framing, so nobody
 //! needs a CIE-M10 on their desk.
 //!
@@ -41,7 +41,7 @@ impl Answer {
     }
 }
 
-/// An exception response PDU (protocol.md §1).
+/// An exception response PDU (docs/protocol.md §1).
 pub fn exception_pdu(function: u8, code: u8) -> Vec<u8> {
     vec![function | 0x80, code]
 }
@@ -132,7 +132,7 @@ impl Device {
         self.generic_notify = true;
     }
 
-    /// A generic profile with a device on each of `units`, seed 003's way.
+    /// A generic profile with a device on each of `units`, the reference simulator's way (docs/protocol.md §4).
     pub fn generic(units: &[u8], bits: usize, registers: usize, seed: u64) -> Self {
         let mut d = Self::new(Profile::Generic(generic::Generic::default()), seed);
         d.default_bits = bits;

@@ -1,4 +1,4 @@
-//! The simulator's command line (issue 3, `mbgate sim`; shared with `mbgate demo`) and
+//! The simulator's command line (`mbgate sim`, shared with `mbgate demo`) and
 //! its validation into [`Settings`].
 
 use super::cie_m10::CieM10;
@@ -11,7 +11,7 @@ use std::time::Duration;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ProfileName {
-    /// The Sollae CIE-M10/H10 of protocol.md §3: 8 inputs, 8 outputs, FC 03 and 16.
+    /// The Sollae CIE-M10/H10 of docs/protocol.md §3: 8 inputs, 8 outputs, FC 03 and 16.
     #[value(name = "cie-m10")]
     CieM10,
     /// Devices by unit id with all four tables, FC 01-06, 0F, 10, 17.

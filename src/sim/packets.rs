@@ -1,4 +1,4 @@
-//! The simulator's packet log (protocol.md §4: the slave "shows and clears a log of
+//! The simulator's packet log (docs/protocol.md §4: the slave "shows and clears a log of
 //! request and response packets"). Bounded: the oldest entries go first.
 
 use crate::frame::hex::Hex;

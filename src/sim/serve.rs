@@ -1,5 +1,5 @@
 //! The simulator's task: it owns the port, decodes requests with the gateway's own
-//! resynchronising decoder (design.md §2), answers them through the device profile,
+//! resynchronising decoder (docs/design.md §2), answers them through the device profile,
 //! and sends replies and notifications through the line model. The console talks to
 //! it over a channel.
 
@@ -267,7 +267,7 @@ impl Sim {
     }
 
     /// With `--confirm-requests`, each request is confirmed by the next or by a quiet
-    /// line (issue 4): a device that takes requests back to back must know where a
+    /// line: a device that takes requests back to back must know where a
     /// damaged one ends.
     fn judge(&self) -> RequestJudge {
         RequestJudge {
@@ -338,7 +338,7 @@ impl Sim {
         }
     }
 
-    /// Queues an input change notification (protocol.md §3): transaction id 0, which
+    /// Queues an input change notification (docs/protocol.md §3): transaction id 0, which
     /// no gateway request carries.
     fn notify(&mut self, pdu: Vec<u8>) {
         let (Some(unit), true) = (self.device.notifying_unit(), self.serving) else {

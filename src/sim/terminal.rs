@@ -1,4 +1,4 @@
-//! The console on a terminal (issue 3: "Console when stdin is a terminal"): a thread
+//! The console on a terminal: a thread
 //! reads lines, the simulator task carries them out and answers over a channel. A
 //! thread, not a tokio task, because a blocking read of stdin cannot be cancelled and
 //! would hold up the runtime's shutdown.

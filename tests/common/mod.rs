@@ -690,7 +690,7 @@ impl Drop for RawDevice {
 }
 
 /// A register map answering FC 03 and FC 16 for the listed units, like the CIE-M10
-/// (protocol.md §3) but with room for many registers; other units get no answer.
+/// (docs/protocol.md §3) but with room for many registers; other units get no answer.
 pub fn register_device(units: &[u8], delay: Duration) -> Handler {
     let units = units.to_vec();
     let mut regs = Registers::default();
@@ -760,7 +760,7 @@ pub fn try_read_frame(s: &mut TcpStream) -> Option<Vec<u8>> {
     Some([head.to_vec(), rest].concat())
 }
 
-/// Bytes as protocol.md writes them: `00 01 FF`.
+/// Bytes as docs/protocol.md writes them: `00 01 FF`.
 pub fn hexs(b: &[u8]) -> String {
     mbgate::frame::hex::Hex(b).to_string()
 }

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """pymodbus' own ModbusSerialServer with the socket (MBAP) framer: the stock device the
 issue names for the byte-exact CIE-M10 examples and the ordinary-client test; with
---framer rtu or ascii, the stock RTU or ASCII device (issue 7).
+--framer rtu or ascii, the stock RTU or ASCII device.
 
     stock_server.py --port PATH [--size 200] [--baud 19200] [--framer socket|rtu|ascii]
                     [--broadcast]
