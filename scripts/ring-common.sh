@@ -27,6 +27,20 @@ ensure_commands() {
     apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
 }
 
+# ensure_packages PACKAGE...: installs those not installed.
+ensure_packages() {
+    local missing=() pkg
+    for pkg in "$@"; do
+        dpkg -s "$pkg" >/dev/null 2>&1 || missing+=("$pkg")
+    done
+    [ ${#missing[@]} -eq 0 ] && return 0
+    [ "$(id -u)" = 0 ] || die "needs root: missing ${missing[*]}"
+    say "installing ${missing[*]}"
+    export DEBIAN_FRONTEND=noninteractive
+    apt-get update -qq
+    apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
+}
+
 # cargo-deb at the version .ci/run pins.
 ensure_cargo_deb() {
     local version
