@@ -12,7 +12,6 @@
 //! all of them.
 
 mod line;
-#[cfg(test)]
 mod scheduler;
 
 use crate::config::{BroadcastReply, Notifications, RelayConfig, SerialConfig};
@@ -25,6 +24,7 @@ use crate::port::{self, Backoff, Link, Opening};
 use crate::stats::Stats;
 use bytes::Bytes;
 use line::{Line, Seen, Unsolicited};
+use scheduler::{Admitted, Queued, Scheduler};
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
 use std::time::Duration;
@@ -73,6 +73,15 @@ struct Pending {
     attempts: u32,
 }
 
+impl Queued for Pending {
+    fn conn(&self) -> ConnId {
+        self.conn
+    }
+    fn unit(&self) -> u8 {
+        self.adu.unit()
+    }
+}
+
 struct InFlight {
     tid: u16,
     deadline: Instant,
@@ -105,15 +114,8 @@ pub struct Relay {
     traffic: bool,
     rx: mpsc::UnboundedReceiver<Command>,
     conns: HashMap<ConnId, Notifier>,
-    queues: HashMap<ConnId, VecDeque<Pending>>,
-    /// Connections with queued requests, in round-robin order.
-    ring: VecDeque<ConnId>,
-    /// The connection whose request went on the line last: a connection that starts
-    /// waiting goes ahead of it, since it has just had its turn.
-    last_served: Option<ConnId>,
-    queued: usize,
-    /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
-    retry: VecDeque<Pending>,
+    /// The requests waiting for the line, and which goes next.
+    sched: Scheduler<Pending>,
     in_flight: Vec<InFlight>,
     line: Line,
     /// Waiting for the last write to leave the port (RTU/ASCII).
@@ -162,16 +164,12 @@ impl Relay {
         // an MBAP line, would gain the others nothing.
         let units = Units::new(&cfg, cfg.unit_backoff && line.is_serial());
         let relay = Relay {
+            sched: Scheduler::new(cfg.queue_depth),
             cfg,
             serial,
             traffic,
             rx,
             conns: HashMap::new(),
-            queues: HashMap::new(),
-            ring: VecDeque::new(),
-            last_served: None,
-            queued: 0,
-            retry: VecDeque::new(),
             in_flight: Vec::new(),
             line,
             drain: None,
@@ -300,7 +298,7 @@ impl Relay {
         for f in &self.in_flight {
             wake = wake.min(f.deadline);
         }
-        if let Some(w) = self.line.next_wake(now, self.has_waiting()) {
+        if let Some(w) = self.line.next_wake(now, self.sched.has_waiting()) {
             wake = wake.min(w);
         }
         if let Some((due, _)) = self.paced.front() {
@@ -404,7 +402,7 @@ impl Relay {
         if !self.draining {
             debug!(
                 in_flight = self.in_flight.len(),
-                queued = self.queued,
+                queued = self.sched.queued(),
                 "relay draining"
             );
             self.draining = true;
@@ -422,11 +420,7 @@ impl Relay {
             }
             Command::Detach { conn } => {
                 self.conns.remove(&conn);
-                self.retry.retain(|r| r.conn != conn);
-                if let Some(q) = self.queues.remove(&conn) {
-                    self.queued -= q.len();
-                    self.ring.retain(|&c| c != conn);
-                }
+                self.sched.detach(conn);
             }
             Command::Request { conn, adu, ticket } => {
                 self.stats.add(&self.stats.requests, 1);
@@ -440,89 +434,31 @@ impl Relay {
                     self.answer_exception(req, exception::GATEWAY_PATH_UNAVAILABLE);
                 } else if self.units.backed_off(req.adu.unit(), Instant::now()) {
                     self.answer_backed_off(req);
-                } else if self.queued >= self.cfg.queue_depth && !self.make_room(conn) {
-                    self.answer_exception(req, exception::SERVER_DEVICE_BUSY);
                 } else {
-                    let q = self.queues.entry(conn).or_default();
-                    if q.is_empty() {
-                        // Round-robin from its arrival: behind every connection still
-                        // waiting for a turn, ahead of the one just served.
-                        match self.ring.back() {
-                            Some(&back) if Some(back) == self.last_served => {
-                                self.ring.insert(self.ring.len() - 1, conn)
-                            }
-                            _ => self.ring.push_back(conn),
+                    // A full queue refuses the request of the master holding the most
+                    // of it (the scheduler's fair share).
+                    match self.sched.push(req) {
+                        Admitted::Queued => {}
+                        Admitted::Displaced(refused) => {
+                            debug!(
+                                conn = refused.conn,
+                                "queue full: 0x06 to the master holding the most of it, for conn {conn}"
+                            );
+                            self.answer_exception(refused, exception::SERVER_DEVICE_BUSY);
+                        }
+                        Admitted::Refused(req) => {
+                            self.answer_exception(req, exception::SERVER_DEVICE_BUSY);
                         }
                     }
-                    q.push_back(req);
-                    self.queued += 1;
                 }
             }
         }
     }
 
-    /// The queue is full and `conn` has a request for it: the 0x06 falls on the master
-    /// holding the most of the queue. If one holds at least two more waiting requests
-    /// than `conn` does, its newest is answered 0x06 and `conn`'s takes the room (true);
-    /// else `conn` holds as many as any, and its own request is the one refused (false).
-    /// So a master can always have its share of the queue waiting (`queue_depth`
-    /// divided by the masters that want it), however fast the others resend: a master
-    /// holding less than its share means another holds more.
-    fn make_room(&mut self, conn: ConnId) -> bool {
-        let mine = self.queues.get(&conn).map_or(0, VecDeque::len);
-        let Some((&heaviest, q)) = self.queues.iter_mut().max_by_key(|(_, q)| q.len()) else {
-            return false;
-        };
-        if q.len() < mine + 2 {
-            return false;
-        }
-        // Its newest: the one it sent last, and the last it would have been served.
-        let refused = q.pop_back().expect("holds at least two");
-        self.queued -= 1;
-        debug!(
-            conn = heaviest,
-            "queue full: 0x06 to the master holding the most of it, for conn {conn}"
-        );
-        self.answer_exception(refused, exception::SERVER_DEVICE_BUSY);
-        true
-    }
-
     /// Answers every queued request (and every one waiting to be resent) with `code`.
     fn flush_queue(&mut self, code: u8) {
-        self.ring.clear();
-        self.queued = 0;
-        for req in std::mem::take(&mut self.retry) {
+        for req in self.sched.drain_all() {
             self.answer_exception(req, code);
-        }
-        for (_, q) in std::mem::take(&mut self.queues) {
-            for req in q {
-                self.answer_exception(req, code);
-            }
-        }
-    }
-
-    /// The next request to put on the line: a resend first, then round-robin across
-    /// connections.
-    fn next_request(&mut self) -> Option<Pending> {
-        if let Some(req) = self.retry.pop_front() {
-            return Some(req);
-        }
-        loop {
-            let conn = self.ring.pop_front()?;
-            let Some(q) = self.queues.get_mut(&conn) else {
-                continue;
-            };
-            let Some(req) = q.pop_front() else {
-                continue;
-            };
-            if q.is_empty() {
-                self.queues.remove(&conn);
-            } else {
-                self.ring.push_back(conn);
-            }
-            self.queued -= 1;
-            self.last_served = Some(conn);
-            return Some(req);
         }
     }
 
@@ -535,10 +471,10 @@ impl Relay {
             && self
                 .line
                 .has_room(self.in_flight.len(), self.tx_busy(), now)
-            && self.has_waiting()
+            && self.sched.has_waiting()
             && !self.input_waiting()
         {
-            let Some(req) = self.next_request() else {
+            let Some(req) = self.sched.next() else {
                 break;
             };
             if self.units.backed_off(req.adu.unit(), now) {
@@ -547,11 +483,6 @@ impl Relay {
             }
             self.send(req, now);
         }
-    }
-
-    /// Are requests waiting for the line (queued, or to be resent)?
-    fn has_waiting(&self) -> bool {
-        !self.ring.is_empty() || !self.retry.is_empty()
     }
 
     /// Bytes are still being written, or have not yet left the port.
@@ -745,7 +676,7 @@ impl Relay {
             self.stats.add(&self.stats.retries, 1);
             let mut req = f.req;
             req.attempts += 1;
-            self.retry.push_back(req);
+            self.sched.resend(req);
         } else {
             debug!(
                 conn = f.req.conn,
@@ -763,25 +694,8 @@ impl Relay {
     /// A unit was just backed off: its waiting requests are answered now, so they never
     /// take the line from the healthy units.
     fn sweep_backed_off(&mut self, unit: u8) {
-        let mut swept = Vec::new();
-        for q in self.queues.values_mut() {
-            let (gone, kept): (VecDeque<Pending>, VecDeque<Pending>) = std::mem::take(q)
-                .into_iter()
-                .partition(|r| r.adu.unit() == unit);
-            *q = kept;
-            swept.extend(gone);
-        }
-        self.queued -= swept.len();
-        self.queues.retain(|_, q| !q.is_empty());
-        let queues = &self.queues;
-        self.ring.retain(|c| queues.contains_key(c));
-        let (gone, kept) = std::mem::take(&mut self.retry)
-            .into_iter()
-            .partition(|r| r.adu.unit() == unit);
-        self.retry = kept;
-        swept.extend::<VecDeque<Pending>>(gone);
         // They have waited their turn on the line already: answered at once.
-        for req in swept {
+        for req in self.sched.take_unit(unit) {
             self.answer_backed_off_now(req);
         }
     }
