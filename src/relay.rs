@@ -12,6 +12,7 @@
 //! all of them.
 
 mod line;
+mod outgoing;
 mod scheduler;
 
 use crate::config::{BroadcastReply, Notifications, RelayConfig, SerialConfig};
@@ -22,8 +23,8 @@ use crate::notify;
 use crate::outbox::{Notifier, Ticket};
 use crate::port::{self, Backoff, Link, Opening};
 use crate::stats::Stats;
-use bytes::Bytes;
 use line::{Line, Seen, Unsolicited};
+use outgoing::Outgoing;
 use scheduler::{Admitted, Queued, Scheduler};
 use std::collections::{HashMap, VecDeque};
 use std::sync::Arc;
@@ -828,69 +829,6 @@ impl Units {
     }
 }
 
-/// Frames waiting to be written to the port, in order. A frame not yet begun can be
-/// withdrawn; one partly written is finished, so the device's parser stays in step.
-#[derive(Debug, Default)]
-struct Outgoing {
-    frames: VecDeque<(u16, Bytes)>,
-    /// Bytes of the front frame already written.
-    written: usize,
-    len: usize,
-}
-
-impl Outgoing {
-    fn push(&mut self, tid: u16, frame: Bytes) {
-        self.len += frame.len();
-        self.frames.push_back((tid, frame));
-    }
-
-    fn is_empty(&self) -> bool {
-        self.frames.is_empty()
-    }
-
-    /// Bytes still to write.
-    fn len(&self) -> usize {
-        self.len
-    }
-
-    /// The unwritten rest of the front frame.
-    fn pending(&self) -> &[u8] {
-        self.frames
-            .front()
-            .map_or(&[][..], |(_, f)| &f[self.written..])
-    }
-
-    fn advance(&mut self, n: usize) {
-        self.written += n;
-        self.len -= n;
-        if let Some((_, f)) = self.frames.front() {
-            if self.written >= f.len() {
-                self.frames.pop_front();
-                self.written = 0;
-            }
-        }
-    }
-
-    /// Removes the frame for `tid` if none of it has been written.
-    fn withdraw(&mut self, tid: u16) -> bool {
-        let Some(i) = self.frames.iter().position(|(t, _)| *t == tid) else {
-            return false;
-        };
-        if i == 0 && self.written > 0 {
-            return false;
-        }
-        let (_, f) = self.frames.remove(i).expect("index found above");
-        self.len -= f.len();
-        true
-    }
-
-    fn clear(&mut self) {
-        self.frames.clear();
-        self.written = 0;
-        self.len = 0;
-    }
-}
-
 impl RelayConfig {
     /// The longest the relay takes to answer a request that is on the line: the
     /// response timeout of every attempt (docs/design.md §1 step 5).
@@ -901,9 +839,8 @@ impl RelayConfig {
 
 #[cfg(test)]
 mod tests {
-    use super::{Outgoing, Units};
+    use super::Units;
     use crate::config::RelayConfig;
-    use bytes::Bytes;
     use std::time::Duration;
     use tokio::time::Instant;
 
@@ -942,25 +879,5 @@ mod tests {
         assert_eq!(u.timed_out(0, t0), None);
         let mut off = Units::new(&cfg, false);
         assert_eq!((off.timed_out(5, t0), off.timed_out(5, t0)), (None, None));
-    }
-
-    #[test]
-    fn outgoing_writes_in_order_and_withdraws_only_unstarted_frames() {
-        let mut o = Outgoing::default();
-        o.push(1, Bytes::from_static(b"abc"));
-        o.push(2, Bytes::from_static(b"de"));
-        o.push(3, Bytes::from_static(b"f"));
-        assert_eq!(o.len(), 6);
-        o.advance(2);
-        assert_eq!(o.pending(), b"c");
-        assert!(!o.withdraw(1), "partly written: finished, not withdrawn");
-        assert!(o.withdraw(2));
-        assert_eq!(o.len(), 2);
-        o.advance(1);
-        assert_eq!(o.pending(), b"f");
-        o.advance(1);
-        assert!(o.is_empty());
-        assert_eq!(o.len(), 0);
-        assert!(!o.withdraw(3));
     }
 }
