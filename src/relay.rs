@@ -11,6 +11,7 @@
 //! queues, round-robin, timeouts, retries, unit backoff and exceptions are here, for
 //! all of them.
 
+mod inflight;
 mod line;
 mod outgoing;
 mod scheduler;
@@ -23,10 +24,11 @@ use crate::notify;
 use crate::outbox::{Notifier, Ticket};
 use crate::port::{self, Backoff, Link, Opening};
 use crate::stats::Stats;
+use inflight::{Asked, Failure, InFlight, Paced, Table, Verdict};
 use line::{Line, Seen, Unsolicited};
 use outgoing::Outgoing;
 use scheduler::{Admitted, Queued, Scheduler};
-use std::collections::{HashMap, VecDeque};
+use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -83,12 +85,13 @@ impl Queued for Pending {
     }
 }
 
-struct InFlight {
-    tid: u16,
-    deadline: Instant,
-    /// Its response timeout: `probe_timeout_ms` for a probe of a backed-off unit.
-    timeout: Duration,
-    req: Pending,
+impl Asked for Pending {
+    fn adu(&self) -> &Adu {
+        &self.adu
+    }
+    fn attempts(&self) -> u32 {
+        self.attempts
+    }
 }
 
 enum Port {
@@ -100,15 +103,6 @@ enum Port {
     },
 }
 
-/// Why a request on the line failed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Failure {
-    /// No reply in time.
-    Timeout,
-    /// A reply whose CRC or LRC failed, or that did not answer it (RTU/ASCII).
-    Corrupt,
-}
-
 pub struct Relay {
     cfg: RelayConfig,
     serial: SerialConfig,
@@ -117,16 +111,13 @@ pub struct Relay {
     conns: HashMap<ConnId, Notifier>,
     /// The requests waiting for the line, and which goes next.
     sched: Scheduler<Pending>,
-    in_flight: Vec<InFlight>,
+    /// The requests on the line: deadlines, retries, unit backoff.
+    in_flight: Table<Pending>,
     line: Line,
     /// Waiting for the last write to leave the port (RTU/ASCII).
     drain: Option<port::Drain>,
-    units: Units,
-    /// 0x0B answers for backed-off units, each due when the line could have served
-    /// the request, in order.
-    paced: VecDeque<(Instant, Pending)>,
-    /// When the next such answer may go.
-    paced_next: Instant,
+    /// 0x0B answers for backed-off units, at the line's pace.
+    paced: Paced<Pending>,
     port: Port,
     /// What `port` opens: the relay never learns which transport it is.
     transport: Box<dyn port::Port>,
@@ -163,7 +154,7 @@ impl Relay {
         let line = Line::new(&cfg, &serial, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
-        let units = Units::new(&cfg, cfg.unit_backoff && line.is_serial());
+        let in_flight = Table::new(&cfg, cfg.unit_backoff && line.is_serial());
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth),
             cfg,
@@ -171,12 +162,10 @@ impl Relay {
             traffic,
             rx,
             conns: HashMap::new(),
-            in_flight: Vec::new(),
+            in_flight,
             line,
             drain: None,
-            units,
-            paced: VecDeque::new(),
-            paced_next: now,
+            paced: Paced::new(now),
             port: Port::Closed { retry_at: now },
             transport: Box::new(port::serial::SerialPort::new(relay_serial)),
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
@@ -296,14 +285,14 @@ impl Relay {
 
     fn next_wake(&self, now: Instant) -> Instant {
         let mut wake = now + Duration::from_secs(3600);
-        for f in &self.in_flight {
-            wake = wake.min(f.deadline);
+        if let Some(d) = self.in_flight.next_deadline() {
+            wake = wake.min(d);
         }
         if let Some(w) = self.line.next_wake(now, self.sched.has_waiting()) {
             wake = wake.min(w);
         }
-        if let Some((due, _)) = self.paced.front() {
-            wake = wake.min(*due);
+        if let Some(due) = self.paced.next_due() {
+            wake = wake.min(due);
         }
         if let Port::Closed { retry_at } = self.port {
             wake = wake.min(retry_at);
@@ -386,7 +375,7 @@ impl Relay {
         if let Some(d) = self.drain.take() {
             drop(d);
         }
-        for f in std::mem::take(&mut self.in_flight) {
+        for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);
             let code = if self.out.withdraw(f.tid) {
                 exception::GATEWAY_PATH_UNAVAILABLE
@@ -408,7 +397,7 @@ impl Relay {
             );
             self.draining = true;
             self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
-            for (_, req) in std::mem::take(&mut self.paced) {
+            for req in self.paced.take_all() {
                 self.answer_backed_off_now(req);
             }
         }
@@ -433,7 +422,7 @@ impl Relay {
                 };
                 if self.draining || !self.is_open() {
                     self.answer_exception(req, exception::GATEWAY_PATH_UNAVAILABLE);
-                } else if self.units.backed_off(req.adu.unit(), Instant::now()) {
+                } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
                     self.answer_backed_off(req);
                 } else {
                     // A full queue refuses the request of the master holding the most
@@ -478,7 +467,7 @@ impl Relay {
             let Some(req) = self.sched.next() else {
                 break;
             };
-            if self.units.backed_off(req.adu.unit(), now) {
+            if self.in_flight.backed_off(req.adu.unit(), now) {
                 self.answer_backed_off(req);
                 continue;
             }
@@ -512,21 +501,10 @@ impl Relay {
             self.broadcast_sent(req);
             return;
         }
-        // A unit that stopped answering gets a shorter wait, so a probe holds the line
-        // from the healthy units less long.
-        let mut timeout = Duration::from_millis(self.cfg.response_timeout_ms);
-        if self.units.probing(req.adu.unit()) {
-            timeout = timeout.min(Duration::from_millis(self.cfg.probe_timeout_ms));
-        }
         // The response time counts from when the request has left: behind whatever is
-        // still waiting to be written (RTU/ASCII: restarted when the port has drained).
-        let deadline = now + self.transport.wire_time(self.out.len()) + timeout;
-        self.in_flight.push(InFlight {
-            tid,
-            deadline,
-            timeout,
-            req,
-        });
+        // still waiting to be written.
+        let queued = self.transport.wire_time(self.out.len());
+        self.in_flight.start(tid, req, now, queued);
     }
 
     /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
@@ -561,18 +539,15 @@ impl Relay {
 
     fn drained(&mut self, now: Instant) {
         let left = self.line.drained(now, &self.stats);
-        for f in &mut self.in_flight {
-            f.deadline = left + f.timeout;
-        }
+        self.in_flight.restart(left);
     }
 
     fn take_frames(&mut self, now: Instant) {
-        for seen in self.line.frames(&self.in_flight, now, &self.stats) {
+        for seen in self.line.frames(self.in_flight.entries(), now, &self.stats) {
             match seen {
                 Seen::Frame(frame) => self.on_frame(frame, now),
                 Seen::Corrupt(tid) => {
-                    if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
-                        let f = self.in_flight.swap_remove(i);
+                    if let Some(f) = self.in_flight.take(tid) {
                         self.failed(f, Failure::Corrupt, now);
                     }
                 }
@@ -582,13 +557,11 @@ impl Relay {
 
     fn on_frame(&mut self, frame: Adu, now: Instant) {
         let tid = frame.tid();
-        if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
-            // The line has checked unit, function code and shape against this request.
-            let f = self.in_flight.swap_remove(i);
+        // The line has checked unit, function code and shape against this request.
+        if let Some(f) = self.in_flight.answered(tid) {
             // Kept reserved a while: a second answer with this id is recognised as
             // ours and dropped, never broadcast.
             self.line.retire(tid, now);
-            self.units.answered(f.req.adu.unit());
             self.stats.add(&self.stats.replies, 1);
             let reply = frame.with_tid(f.req.adu.tid());
             self.deliver(f.req, reply);
@@ -625,13 +598,7 @@ impl Relay {
     }
 
     fn expire(&mut self, now: Instant) {
-        let mut i = 0;
-        while i < self.in_flight.len() {
-            if self.in_flight[i].deadline > now {
-                i += 1;
-                continue;
-            }
-            let f = self.in_flight.swap_remove(i);
+        for f in self.in_flight.take_expired(now) {
             self.line.timed_out(now, &self.stats);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
@@ -645,50 +612,48 @@ impl Relay {
         }
     }
 
-    /// A request on the line got no usable reply: resent if it may be (reads, or any
-    /// request with `retry_writes`, up to `retries` times), else answered 0x0B. A
-    /// timeout counts against its unit (a unit that keeps timing out is backed off).
-    fn failed(&mut self, f: InFlight, why: Failure, now: Instant) {
+    /// A request on the line got no usable reply: resent if it may be, else answered
+    /// 0x0B, or its unit backed off (the in-flight table decides).
+    fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
         self.line.retire(f.tid, now);
-        let unit = f.req.adu.unit();
-        if why == Failure::Timeout {
-            if let Some(interval) = self.units.timed_out(unit, now) {
+        let open = self.is_open();
+        match self.in_flight.verdict(&f, why, now, open) {
+            Verdict::BackedOff(interval) => {
+                let unit = f.req.adu.unit();
                 warn!(
                     unit,
                     "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
                 );
                 self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
                 self.sweep_backed_off(unit);
-                return;
             }
-        }
-        let function = f.req.adu.function();
-        let may_retry = pdu::is_read(function) || self.cfg.retry_writes;
-        if may_retry && f.req.attempts < self.cfg.retries && self.is_open() {
-            debug!(
-                conn = f.req.conn,
-                attempt = f.req.attempts + 1,
-                "{}; resending",
-                match why {
-                    Failure::Timeout => "no reply",
-                    Failure::Corrupt => "a bad reply",
-                }
-            );
-            self.stats.add(&self.stats.retries, 1);
-            let mut req = f.req;
-            req.attempts += 1;
-            self.sched.resend(req);
-        } else {
-            debug!(
-                conn = f.req.conn,
-                tid = f.req.adu.tid(),
-                "{}: 0x0B",
-                match why {
-                    Failure::Timeout => "no reply in time",
-                    Failure::Corrupt => "no good reply",
-                }
-            );
-            self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+            Verdict::Resend => {
+                debug!(
+                    conn = f.req.conn,
+                    attempt = f.req.attempts + 1,
+                    "{}; resending",
+                    match why {
+                        Failure::Timeout => "no reply",
+                        Failure::Corrupt => "a bad reply",
+                    }
+                );
+                self.stats.add(&self.stats.retries, 1);
+                let mut req = f.req;
+                req.attempts += 1;
+                self.sched.resend(req);
+            }
+            Verdict::Fail => {
+                debug!(
+                    conn = f.req.conn,
+                    tid = f.req.adu.tid(),
+                    "{}: 0x0B",
+                    match why {
+                        Failure::Timeout => "no reply in time",
+                        Failure::Corrupt => "no good reply",
+                    }
+                );
+                self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+            }
         }
     }
 
@@ -707,19 +672,15 @@ impl Relay {
     /// are not touched.
     fn answer_backed_off(&mut self, req: Pending) {
         let now = Instant::now();
-        let due = self.paced_next.max(now);
-        self.paced_next = due + self.line.shortest_transaction(&req.adu);
-        if due <= now {
+        let shortest = self.line.shortest_transaction(&req.adu);
+        if let Some(req) = self.paced.pace(req, now, shortest) {
             self.answer_backed_off_now(req);
-        } else {
-            self.paced.push_back((due, req));
         }
     }
 
     /// Sends the paced 0x0B answers whose time has come.
     fn answer_paced(&mut self, now: Instant) {
-        while self.paced.front().is_some_and(|(due, _)| *due <= now) {
-            let (_, req) = self.paced.pop_front().expect("checked");
+        for req in self.paced.due(now) {
             self.answer_backed_off_now(req);
         }
     }
@@ -764,120 +725,10 @@ enum Event {
     Shutdown,
 }
 
-/// Per-unit health on an RTU/ASCII bus: a unit that timed out `after` times in a row
-/// is backed off for an interval that doubles (from `min` up to `max`) each time a
-/// probe fails; a reply forgets it all.
-struct Units {
-    enabled: bool,
-    after: u32,
-    min: Duration,
-    max: Duration,
-    health: HashMap<u8, Health>,
-}
-
-#[derive(Debug, Default)]
-struct Health {
-    /// Timeouts in a row.
-    timeouts: u32,
-    /// The current back-off interval, once backed off.
-    interval: Option<Duration>,
-    until: Option<Instant>,
-}
-
-impl Units {
-    fn new(cfg: &RelayConfig, enabled: bool) -> Self {
-        let max = Duration::from_millis(cfg.unit_backoff_max_ms);
-        Self {
-            enabled,
-            after: cfg.unit_backoff_after,
-            min: Duration::from_millis(cfg.unit_backoff_ms).min(max),
-            max,
-            health: HashMap::new(),
-        }
-    }
-
-    fn backed_off(&self, unit: u8, now: Instant) -> bool {
-        self.health
-            .get(&unit)
-            .and_then(|h| h.until)
-            .is_some_and(|until| now < until)
-    }
-
-    /// A request to `unit` timed out; the interval it is now backed off for, if it is.
-    fn timed_out(&mut self, unit: u8, now: Instant) -> Option<Duration> {
-        if !self.enabled || unit == 0 {
-            return None;
-        }
-        let h = self.health.entry(unit).or_default();
-        h.timeouts += 1;
-        if h.timeouts < self.after {
-            return None;
-        }
-        let interval = h.interval.map_or(self.min, |i| (i * 2).min(self.max));
-        h.interval = Some(interval);
-        h.until = Some(now + interval);
-        Some(interval)
-    }
-
-    /// Was `unit` backed off, with no reply since? A request to it now is a probe.
-    fn probing(&self, unit: u8) -> bool {
-        self.health.get(&unit).is_some_and(|h| h.interval.is_some())
-    }
-
-    fn answered(&mut self, unit: u8) {
-        self.health.remove(&unit);
-    }
-}
-
 impl RelayConfig {
     /// The longest the relay takes to answer a request that is on the line: the
     /// response timeout of every attempt (docs/design.md §1 step 5).
     pub fn answer_within(&self) -> std::time::Duration {
         std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::Units;
-    use crate::config::RelayConfig;
-    use std::time::Duration;
-    use tokio::time::Instant;
-
-    #[test]
-    fn units_back_off_after_n_timeouts_doubling_up_to_max() {
-        let cfg = RelayConfig {
-            unit_backoff_after: 2,
-            unit_backoff_ms: 100,
-            unit_backoff_max_ms: 300,
-            ..RelayConfig::default()
-        };
-        let mut u = Units::new(&cfg, true);
-        let t0 = Instant::now();
-        assert_eq!(u.timed_out(5, t0), None);
-        assert!(!u.backed_off(5, t0));
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(100)));
-        assert!(u.backed_off(5, t0 + Duration::from_millis(99)));
-        assert!(
-            !u.backed_off(5, t0 + Duration::from_millis(100)),
-            "probed after"
-        );
-        assert!(!u.backed_off(6, t0), "other units are not touched");
-        assert!(
-            u.probing(5) && !u.probing(6),
-            "a request to it now probes it"
-        );
-        // Failed probes double the interval, up to the max.
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(200)));
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
-        // A reply forgets it all.
-        u.answered(5);
-        assert!(!u.backed_off(5, t0) && !u.probing(5));
-        assert_eq!(u.timed_out(5, t0), None);
-        // Broadcasts and a disabled backoff never back off.
-        assert_eq!(u.timed_out(0, t0), None);
-        let mut off = Units::new(&cfg, false);
-        assert_eq!((off.timed_out(5, t0), off.timed_out(5, t0)), (None, None));
     }
 }

@@ -15,7 +15,7 @@
 //!   a timeout, for the late reply; broadcasts (unit 0) with a turnaround delay;
 //!   local-echo suppression.
 
-use super::InFlight;
+use super::inflight::{Asked, InFlight};
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::mbap::FrameRef;
 use crate::frame::pdu;
@@ -300,9 +300,9 @@ impl Line {
     }
 
     /// Frames the bytes received so far make, given what is in flight.
-    pub(super) fn frames(
+    pub(super) fn frames<R: Asked>(
         &mut self,
-        in_flight: &[InFlight],
+        in_flight: &[InFlight<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {
@@ -371,25 +371,26 @@ struct Sent {
 }
 
 /// The relay's view of which frames on the line it can use (design.md §1 step 4, §2).
-struct RelayJudge<'a> {
-    in_flight: &'a [InFlight],
+struct RelayJudge<'a, R> {
+    in_flight: &'a [InFlight<R>],
     tids: &'a Tids,
     now: Instant,
 }
 
-impl Judge for RelayJudge<'_> {
+impl<R: Asked> Judge for RelayJudge<'_, R> {
     fn plausible_function(&self, code: u8) -> bool {
         pdu::is_reply_function(code)
             || self
                 .in_flight
                 .iter()
-                .any(|f| f.req.adu.function() == code & 0x7F)
+                .any(|f| f.req.adu().function() == code & 0x7F)
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
         match self.in_flight.iter().find(|f| f.tid == frame.tid()) {
             Some(f) => {
-                f.req.adu.unit() == frame.unit() && pdu::reply_matches(f.req.adu.pdu(), frame.pdu())
+                f.req.adu().unit() == frame.unit()
+                    && pdu::reply_matches(f.req.adu().pdu(), frame.pdu())
             }
             // Not an answer to anything on the line: a device notification (id 0), or a
             // late answer (a retired id), to be dropped as such. Any other id is not
@@ -420,7 +421,7 @@ impl Judge for RelayJudge<'_> {
     /// line's talk.
     fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
         let tid = frame.tid();
-        let due = |f: &InFlight| f.deadline > self.now;
+        let due = |f: &InFlight<R>| f.deadline > self.now;
         let own_expired = self.in_flight.iter().any(|f| f.tid == tid && !due(f));
         own_expired || !self.in_flight.iter().any(|f| f.tid != tid && due(f))
     }
@@ -478,7 +479,12 @@ impl Mbap {
             .then_some("a copy of the request that began before it had left: its echo, dropped")
     }
 
-    fn frames(&mut self, in_flight: &[InFlight], now: Instant, stats: &Stats) -> Vec<Seen> {
+    fn frames<R: Asked>(
+        &mut self,
+        in_flight: &[InFlight<R>],
+        now: Instant,
+        stats: &Stats,
+    ) -> Vec<Seen> {
         let idle = now.saturating_duration_since(self.last_byte);
         if idle >= self.pause {
             self.decoder.pause();
@@ -594,7 +600,12 @@ impl Serial {
         &[]
     }
 
-    fn frames(&mut self, in_flight: &[InFlight], now: Instant, stats: &Stats) -> Vec<Seen> {
+    fn frames<R: Asked>(
+        &mut self,
+        in_flight: &[InFlight<R>],
+        now: Instant,
+        stats: &Stats,
+    ) -> Vec<Seen> {
         let quiet = now >= self.last_rx + self.silence;
         let Some(f) = in_flight.first() else {
             // Nothing asked: late answers or noise, dropped once the line is quiet.
@@ -605,7 +616,7 @@ impl Serial {
             }
             return Vec::new();
         };
-        let request = f.req.adu.pdu();
+        let request = f.req.adu().pdu();
         let mut next = self.decoder.next(Expect::Reply(request), quiet);
         while let Some(Decoded::Noise(n)) = next {
             stats.add(&stats.dropped_bytes, n as u64);
@@ -614,7 +625,7 @@ impl Serial {
         match next {
             None | Some(Decoded::Noise(_)) => Vec::new(),
             Some(Decoded::Frame { unit, pdu }) => {
-                if unit == f.req.adu.unit() {
+                if unit == f.req.adu().unit() {
                     // The CRC or LRC proves these are the unit's own bytes: a reply of
                     // another shape than the request's goes to the master unchanged, to
                     // judge, as a transparent gateway passes it.
@@ -657,37 +668,27 @@ mod tests {
         (Line::new(&RelayConfig::default(), &serial, now), now)
     }
 
+    /// A request as the table holds it in tests: the ADU, never resent.
+    type Req = (Adu, u32);
+
     /// Request `adu` on the line as `tid` since `now`, due in a second.
-    fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight {
-        // A master's ticket, as the connection would take it; its inbox is kept alive
-        // for the test's length, as the connection would keep it.
-        let (mut outbox, inbox) = crate::outbox::Outbox::new(1);
-        let ticket = tokio::runtime::Builder::new_current_thread()
-            .build()
-            .unwrap()
-            .block_on(outbox.ticket());
-        std::mem::forget(inbox);
+    fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
         InFlight {
             tid,
             deadline: now + Duration::from_secs(1),
             timeout: Duration::from_secs(1),
-            req: super::super::Pending {
-                conn: 1,
-                adu: adu.clone(),
-                ticket,
-                attempts: 0,
-            },
+            req: (adu.clone(), 0),
         }
     }
 
     /// Request `adu` sent now.
-    fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight {
+    fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight<Req> {
         let tid = line.allocate(now);
         line.encode(adu, tid, now, &Stats::default());
         in_flight(tid, adu, now)
     }
 
-    fn frames(line: &mut Line, in_flight: &[InFlight], now: Instant) -> Vec<Vec<u8>> {
+    fn frames(line: &mut Line, in_flight: &[InFlight<Req>], now: Instant) -> Vec<Vec<u8>> {
         line.frames(in_flight, now, &Stats::default())
             .into_iter()
             .map(|s| match s {
