@@ -11,31 +11,36 @@
 //! queues, round-robin, timeouts, retries, unit backoff and exceptions are here, for
 //! all of them.
 
+mod fanout;
 mod inflight;
+mod lifecycle;
 mod line;
 mod outgoing;
+mod pending;
 mod scheduler;
 
-use crate::config::{BroadcastReply, Notifications, RelayConfig, SerialConfig};
+use crate::config::{BroadcastReply, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
 use crate::notify;
 use crate::outbox::{Notifier, Ticket};
-use crate::port::{self, Backoff, Link, Opening};
+use crate::port::{self, Link};
 use crate::stats::Stats;
-use inflight::{Asked, Failure, InFlight, Paced, Table, Verdict};
+use fanout::Masters;
+use inflight::{Failure, InFlight, Paced, Table, Verdict};
+use lifecycle::{Lifecycle, State};
 use line::{Line, Seen, Unsolicited};
 use outgoing::Outgoing;
-use scheduler::{Admitted, Queued, Scheduler};
-use std::collections::HashMap;
+use pending::Pending;
+use scheduler::{Admitted, Scheduler};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info, warn};
+use tracing::{debug, warn};
 
 /// Identifies one master's TCP connection.
 pub type ConnId = u64;
@@ -69,60 +74,19 @@ impl RelayHandle {
     }
 }
 
-struct Pending {
-    conn: ConnId,
-    adu: Adu,
-    ticket: Ticket,
-    attempts: u32,
-}
-
-impl Queued for Pending {
-    fn conn(&self) -> ConnId {
-        self.conn
-    }
-    fn unit(&self) -> u8 {
-        self.adu.unit()
-    }
-}
-
-impl Asked for Pending {
-    fn adu(&self) -> &Adu {
-        &self.adu
-    }
-    fn attempts(&self) -> u32 {
-        self.attempts
-    }
-}
-
-enum Port {
-    Open(Link),
-    /// An open that did not finish at once (a TCP connect).
-    Opening(Opening),
-    Closed {
-        retry_at: Instant,
-    },
-}
-
 pub struct Relay {
     cfg: RelayConfig,
-    serial: SerialConfig,
     traffic: bool,
     rx: mpsc::UnboundedReceiver<Command>,
-    conns: HashMap<ConnId, Notifier>,
+    masters: Masters,
     /// The requests waiting for the line, and which goes next.
     sched: Scheduler<Pending>,
     /// The requests on the line: deadlines, retries, unit backoff.
     in_flight: Table<Pending>,
     line: Line,
-    /// Waiting for the last write to leave the port (RTU/ASCII).
-    drain: Option<port::Drain>,
     /// 0x0B answers for backed-off units, at the line's pace.
     paced: Paced<Pending>,
-    port: Port,
-    /// What `port` opens: the relay never learns which transport it is.
-    transport: Box<dyn port::Port>,
-    backoff: Backoff,
-    port_warned: bool,
+    port: Lifecycle,
     out: Outgoing,
     stats: Arc<Stats>,
     shutdown: CancellationToken,
@@ -150,26 +114,22 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
-        let relay_serial = serial.clone();
         let line = Line::new(&cfg, &serial, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
         let in_flight = Table::new(&cfg, cfg.unit_backoff && line.is_serial());
+        let baud = serial.baud_rate;
+        let port = Lifecycle::new(Box::new(port::serial::SerialPort::new(serial)), baud, now);
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth),
+            masters: Masters::new(cfg.notifications),
             cfg,
-            serial,
             traffic,
             rx,
-            conns: HashMap::new(),
             in_flight,
             line,
-            drain: None,
             paced: Paced::new(now),
-            port: Port::Closed { retry_at: now },
-            transport: Box::new(port::serial::SerialPort::new(relay_serial)),
-            backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
-            port_warned: false,
+            port,
             out: Outgoing::default(),
             stats,
             shutdown,
@@ -183,7 +143,7 @@ impl Relay {
     /// Runs the line over `transport` instead of the `[serial]` port (a device behind
     /// a TCP socket, an in-memory pipe in tests).
     pub fn with_port(mut self, transport: Box<dyn port::Port>) -> Self {
-        self.transport = transport;
+        self.port.set_transport(transport);
         self
     }
 
@@ -212,10 +172,11 @@ impl Relay {
             let wake = self.next_wake(now);
             // Anything written below is written after this.
             let polled = now;
-            let event = match &mut self.port {
+            let drain = &mut self.port.drain;
+            let event = match &mut self.port.state {
                 // Biased, bytes first: a timer that finds bytes waiting must not take
                 // the line for quiet (a held reply would be refuted, a frame cut).
-                Port::Open(Link {
+                State::Open(Link {
                     reader: rd,
                     writer: wr,
                     ..
@@ -224,17 +185,17 @@ impl Relay {
                     r = rd.read(&mut rbuf) => Event::Read(r),
                     cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
-                    d = async { self.drain.as_mut().expect("guarded").await }, if self.drain.is_some() => Event::Drained(d),
+                    d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
-                Port::Opening(opening) => tokio::select! {
+                State::Opening(opening) => tokio::select! {
                     opened = opening => Event::Opened(opened),
                     cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
                 },
-                Port::Closed { .. } => tokio::select! {
+                State::Closed { .. } => tokio::select! {
                     cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
                     _ = tokio::time::sleep_until(wake) => Event::Timer,
                     _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
@@ -268,7 +229,7 @@ impl Relay {
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
                 Event::Opened(r) => self.opened(r, now),
                 Event::Drained(r) => {
-                    self.drain = None;
+                    self.port.drain = None;
                     if let Err(e) = r {
                         debug!("tcdrain: {e}");
                     }
@@ -294,7 +255,7 @@ impl Relay {
         if let Some(due) = self.paced.next_due() {
             wake = wake.min(due);
         }
-        if let Port::Closed { retry_at } = self.port {
+        if let Some(retry_at) = self.port.retry_at() {
             wake = wake.min(retry_at);
         }
         if let Some(w) = &self.watchdog {
@@ -313,49 +274,23 @@ impl Relay {
     }
 
     fn is_open(&self) -> bool {
-        matches!(self.port, Port::Open(_))
+        self.port.is_open()
     }
 
     fn open_if_due(&mut self, now: Instant) {
-        let Port::Closed { retry_at } = self.port else {
-            return;
-        };
-        if now < retry_at || self.draining {
+        if self.draining {
             return;
         }
-        match port::open_now(self.transport.open()) {
-            Ok(opened) => self.opened(opened, now),
-            Err(opening) => self.port = Port::Opening(opening),
+        if let Some(opened) = self.port.open_if_due(now) {
+            self.opened(opened, now);
         }
     }
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
     fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
-        let kind = self.transport.kind();
-        match opened {
-            Ok(link) => {
-                info!(path = %self.transport.name(), baud = self.serial.baud_rate, "{kind} open");
-                self.port = Port::Open(link);
-                self.backoff.reset();
-                self.port_warned = false;
-                self.line.clear(&self.stats);
-                self.stats.add(&self.stats.serial_opens, 1);
-            }
-            Err(e) => {
-                let delay = self.backoff.next_delay();
-                if self.port_warned {
-                    debug!(path = %self.transport.name(), "{kind} still unavailable: {e}");
-                } else {
-                    warn!(
-                        path = %self.transport.name(),
-                        "{kind} unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
-                    );
-                    self.port_warned = true;
-                }
-                self.port = Port::Closed {
-                    retry_at: now + delay,
-                };
-            }
+        if self.port.opened(opened, now) {
+            self.line.clear(&self.stats);
+            self.stats.add(&self.stats.serial_opens, 1);
         }
     }
 
@@ -365,16 +300,8 @@ impl Relay {
     /// bytes never left (held by flow control, or queued) gets 0x0A: there is no path
     /// to the device, and it cannot have acted.
     fn port_lost(&mut self, why: &str, now: Instant) {
-        let kind = self.transport.kind();
-        warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
-        self.port = Port::Closed {
-            retry_at: now + self.backoff.next_delay(),
-        };
-        self.port_warned = true;
+        self.port.lost(why, now);
         self.line.clear(&self.stats);
-        if let Some(d) = self.drain.take() {
-            drop(d);
-        }
         for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);
             let code = if self.out.withdraw(f.tid) {
@@ -382,7 +309,7 @@ impl Relay {
             } else {
                 exception::GATEWAY_TARGET_FAILED
             };
-            self.answer_exception(f.req, code);
+            f.req.answer_exception(code, &self.stats);
         }
         self.out.clear();
         self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
@@ -398,32 +325,25 @@ impl Relay {
             self.draining = true;
             self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
             for req in self.paced.take_all() {
-                self.answer_backed_off_now(req);
+                req.answer_backed_off(&self.stats);
             }
         }
     }
 
     fn on_command(&mut self, cmd: Command) {
         match cmd {
-            Command::Attach { conn, notifier } => {
-                self.conns.insert(conn, notifier);
-            }
+            Command::Attach { conn, notifier } => self.masters.attach(conn, notifier),
             Command::Detach { conn } => {
-                self.conns.remove(&conn);
+                self.masters.detach(conn);
                 self.sched.detach(conn);
             }
             Command::Request { conn, adu, ticket } => {
                 self.stats.add(&self.stats.requests, 1);
-                let req = Pending {
-                    conn,
-                    adu,
-                    ticket,
-                    attempts: 0,
-                };
+                let req = Pending::new(conn, adu, ticket);
                 if self.draining || !self.is_open() {
-                    self.answer_exception(req, exception::GATEWAY_PATH_UNAVAILABLE);
+                    req.answer_exception(exception::GATEWAY_PATH_UNAVAILABLE, &self.stats);
                 } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
-                    self.answer_backed_off(req);
+                    self.pace_backed_off(req);
                 } else {
                     // A full queue refuses the request of the master holding the most
                     // of it (the scheduler's fair share).
@@ -434,10 +354,10 @@ impl Relay {
                                 conn = refused.conn,
                                 "queue full: 0x06 to the master holding the most of it, for conn {conn}"
                             );
-                            self.answer_exception(refused, exception::SERVER_DEVICE_BUSY);
+                            refused.answer_exception(exception::SERVER_DEVICE_BUSY, &self.stats);
                         }
                         Admitted::Refused(req) => {
-                            self.answer_exception(req, exception::SERVER_DEVICE_BUSY);
+                            req.answer_exception(exception::SERVER_DEVICE_BUSY, &self.stats);
                         }
                     }
                 }
@@ -448,7 +368,7 @@ impl Relay {
     /// Answers every queued request (and every one waiting to be resent) with `code`.
     fn flush_queue(&mut self, code: u8) {
         for req in self.sched.drain_all() {
-            self.answer_exception(req, code);
+            req.answer_exception(code, &self.stats);
         }
     }
 
@@ -468,7 +388,7 @@ impl Relay {
                 break;
             };
             if self.in_flight.backed_off(req.adu.unit(), now) {
-                self.answer_backed_off(req);
+                self.pace_backed_off(req);
                 continue;
             }
             self.send(req, now);
@@ -477,17 +397,14 @@ impl Relay {
 
     /// Bytes are still being written, or have not yet left the port.
     fn tx_busy(&self) -> bool {
-        !self.out.is_empty() || self.drain.is_some()
+        !self.out.is_empty() || self.port.drain.is_some()
     }
 
     /// RTU/ASCII: has the port received bytes the relay has not read yet? Then the
     /// device is talking, and a request now would go over it (on RS-485, collide with
     /// it): the bytes are read first, and the gap counts from them.
     fn input_waiting(&self) -> bool {
-        match &self.port {
-            Port::Open(link) if self.line.is_serial() => link.control.input_waiting(),
-            _ => false,
-        }
+        self.line.is_serial() && self.port.input_waiting()
     }
 
     fn send(&mut self, req: Pending, now: Instant) {
@@ -503,7 +420,7 @@ impl Relay {
         }
         // The response time counts from when the request has left: behind whatever is
         // still waiting to be written.
-        let queued = self.transport.wire_time(self.out.len());
+        let queued = self.port.wire_time(self.out.len());
         self.in_flight.start(tid, req, now, queued);
     }
 
@@ -517,7 +434,7 @@ impl Relay {
             BroadcastReply::None => drop(req),
             BroadcastReply::Echo => {
                 let adu = Adu::build(req.adu.tid(), 0, &pdu::write_echo(req.adu.pdu()));
-                self.deliver(req, adu);
+                req.deliver(adu);
             }
         }
     }
@@ -525,15 +442,9 @@ impl Relay {
     /// Waits for the bytes written to leave the port, off the runtime's thread, so the
     /// reply timer and the inter-frame gap start from the last byte on the wire.
     fn start_drain(&mut self, now: Instant) {
-        let Port::Open(link) = &self.port else {
-            return;
-        };
-        match link.control.drain() {
-            Ok(handle) => self.drain = Some(handle),
-            Err(e) => {
-                debug!("tcdrain unavailable ({e}): timing from the write");
-                self.drained(now);
-            }
+        if let Err(e) = self.port.start_drain() {
+            debug!("tcdrain unavailable ({e}): timing from the write");
+            self.drained(now);
         }
     }
 
@@ -564,7 +475,7 @@ impl Relay {
             self.line.retire(tid, now);
             self.stats.add(&self.stats.replies, 1);
             let reply = frame.with_tid(f.req.adu.tid());
-            self.deliver(f.req, reply);
+            f.req.deliver(reply);
             return;
         }
         match self.line.unsolicited(tid) {
@@ -576,24 +487,7 @@ impl Relay {
                     frame
                 );
             }
-            Unsolicited::Notification => match self.cfg.notifications {
-                Notifications::Drop => {
-                    self.stats.add(&self.stats.notifications_dropped, 1);
-                    debug!("unsolicited frame dropped: {:?}", frame);
-                }
-                Notifications::Broadcast => self.broadcast(frame),
-            },
-        }
-    }
-
-    /// Sends a device notification to every master with room for it; a master whose
-    /// spare room is used up (it is not reading) misses it (counted).
-    fn broadcast(&self, frame: Adu) {
-        self.stats.add(&self.stats.notifications_broadcast, 1);
-        for notifier in self.conns.values() {
-            if !notifier.notify(frame.clone()) {
-                self.stats.add(&self.stats.notifications_missed, 1);
-            }
+            Unsolicited::Notification => self.masters.notification(frame, &self.stats),
         }
     }
 
@@ -624,7 +518,8 @@ impl Relay {
                     unit,
                     "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
                 );
-                self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+                f.req
+                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
                 self.sweep_backed_off(unit);
             }
             Verdict::Resend => {
@@ -652,7 +547,8 @@ impl Relay {
                         Failure::Corrupt => "no good reply",
                     }
                 );
-                self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
+                f.req
+                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
             }
         }
     }
@@ -662,7 +558,7 @@ impl Relay {
     fn sweep_backed_off(&mut self, unit: u8) {
         // They have waited their turn on the line already: answered at once.
         for req in self.sched.take_unit(unit) {
-            self.answer_backed_off_now(req);
+            req.answer_backed_off(&self.stats);
         }
     }
 
@@ -670,48 +566,19 @@ impl Relay {
     /// request: a master that polls a dead unit in a tight loop gets its answers at
     /// the line's pace, not as fast as the gateway can turn them round. Healthy units
     /// are not touched.
-    fn answer_backed_off(&mut self, req: Pending) {
+    fn pace_backed_off(&mut self, req: Pending) {
         let now = Instant::now();
         let shortest = self.line.shortest_transaction(&req.adu);
         if let Some(req) = self.paced.pace(req, now, shortest) {
-            self.answer_backed_off_now(req);
+            req.answer_backed_off(&self.stats);
         }
     }
 
     /// Sends the paced 0x0B answers whose time has come.
     fn answer_paced(&mut self, now: Instant) {
         for req in self.paced.due(now) {
-            self.answer_backed_off_now(req);
+            req.answer_backed_off(&self.stats);
         }
-    }
-
-    /// 0x0B at once for a backed-off unit, counted apart from timeouts.
-    fn answer_backed_off_now(&self, req: Pending) {
-        self.stats.add(&self.stats.backed_off, 1);
-        let adu = Adu::exception(
-            req.adu.tid(),
-            req.adu.unit(),
-            req.adu.function(),
-            exception::GATEWAY_TARGET_FAILED,
-        );
-        self.deliver(req, adu);
-    }
-
-    fn answer_exception(&self, req: Pending, code: u8) {
-        let counter = match code {
-            exception::GATEWAY_PATH_UNAVAILABLE => &self.stats.unavailable,
-            exception::SERVER_DEVICE_BUSY => &self.stats.busy,
-            // GATEWAY_TARGET_FAILED: the only other code the relay answers itself.
-            _ => &self.stats.timeouts,
-        };
-        self.stats.add(counter, 1);
-        let adu = Adu::exception(req.adu.tid(), req.adu.unit(), req.adu.function(), code);
-        self.deliver(req, adu);
-    }
-
-    /// The answer to `req`, to its master, after its answers to earlier requests.
-    fn deliver(&self, req: Pending, adu: Adu) {
-        req.ticket.answer(adu);
     }
 }
 
