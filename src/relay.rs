@@ -11,6 +11,8 @@
 //! queues, round-robin, timeouts, retries, unit backoff and exceptions are here, for
 //! all of them.
 
+mod command;
+mod event;
 mod fanout;
 mod inflight;
 mod lifecycle;
@@ -24,55 +26,23 @@ use crate::frame::hex::Hex;
 use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
 use crate::notify;
-use crate::outbox::{Notifier, Ticket};
 use crate::port::{self, Link};
 use crate::stats::Stats;
+pub use command::{Command, ConnId, RelayHandle};
+use event::Event;
 use fanout::Masters;
 use inflight::{Failure, InFlight, Paced, Table, Verdict};
-use lifecycle::{Lifecycle, State};
+use lifecycle::Lifecycle;
 use line::{Line, Seen, Unsolicited};
 use outgoing::Outgoing;
 use pending::Pending;
 use scheduler::{Admitted, Scheduler};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
-
-/// Identifies one master's TCP connection.
-pub type ConnId = u64;
-
-/// What connections tell the relay.
-#[derive(Debug)]
-pub enum Command {
-    /// A master connected; notifications reach it through `notifier`.
-    Attach { conn: ConnId, notifier: Notifier },
-    /// It went away: its queued requests are dropped, its late replies discarded.
-    Detach { conn: ConnId },
-    /// A request that passed the strict checks, with the master's own transaction id;
-    /// its answer goes back through `ticket`, in the master's order.
-    Request {
-        conn: ConnId,
-        adu: Adu,
-        ticket: Ticket,
-    },
-}
-
-/// The connections' side of the relay's channel.
-#[derive(Debug, Clone)]
-pub struct RelayHandle {
-    tx: mpsc::UnboundedSender<Command>,
-}
-
-impl RelayHandle {
-    /// Sends a command; gives it back if the relay has stopped.
-    pub fn send(&self, cmd: Command) -> Result<(), Command> {
-        self.tx.send(cmd).map_err(|e| e.0)
-    }
-}
 
 pub struct Relay {
     cfg: RelayConfig,
@@ -137,7 +107,7 @@ impl Relay {
             commands_open: true,
             watchdog: None,
         };
-        (relay, RelayHandle { tx })
+        (relay, RelayHandle::new(tx))
     }
 
     /// Runs the line over `transport` instead of the `[serial]` port (a device behind
@@ -172,35 +142,13 @@ impl Relay {
             let wake = self.next_wake(now);
             // Anything written below is written after this.
             let polled = now;
-            let drain = &mut self.port.drain;
-            let event = match &mut self.port.state {
-                // Biased, bytes first: a timer that finds bytes waiting must not take
-                // the line for quiet (a held reply would be refuted, a frame cut).
-                State::Open(Link {
-                    reader: rd,
-                    writer: wr,
-                    ..
-                }) => tokio::select! {
-                    biased;
-                    r = rd.read(&mut rbuf) => Event::Read(r),
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
-                    w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
-                    d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
-                    _ = tokio::time::sleep_until(wake) => Event::Timer,
-                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
-                },
-                State::Opening(opening) => tokio::select! {
-                    opened = opening => Event::Opened(opened),
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
-                    _ = tokio::time::sleep_until(wake) => Event::Timer,
-                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
-                },
-                State::Closed { .. } => tokio::select! {
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
-                    _ = tokio::time::sleep_until(wake) => Event::Timer,
-                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
-                },
+            let sources = event::Sources {
+                commands: self.commands_open.then_some(&mut self.rx),
+                out: &self.out,
+                wake,
+                shutdown: (!self.draining).then_some(&self.shutdown),
             };
+            let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();
             match event {
                 Event::Command(Some(cmd)) => self.on_command(cmd),
@@ -579,23 +527,5 @@ impl Relay {
         for req in self.paced.due(now) {
             req.answer_backed_off(&self.stats);
         }
-    }
-}
-
-enum Event {
-    Command(Option<Command>),
-    Read(std::io::Result<usize>),
-    Wrote(std::io::Result<usize>),
-    Drained(std::io::Result<()>),
-    Opened(std::io::Result<Link>),
-    Timer,
-    Shutdown,
-}
-
-impl RelayConfig {
-    /// The longest the relay takes to answer a request that is on the line: the
-    /// response timeout of every attempt (docs/design.md §1 step 5).
-    pub fn answer_within(&self) -> std::time::Duration {
-        std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
     }
 }
