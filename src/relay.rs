@@ -1,18 +1,20 @@
-//! The one task that owns the serial line (design.md §1, §5).
+//! The relay's loop: the one task that owns the line (design.md §1, §5), wiring its
+//! parts together and deciding nothing they can decide themselves.
 //!
-//! Connections talk to it over a channel ([`RelayHandle`]); it owns the port, the
-//! queues, the in-flight table and the decoder, so nothing here is locked. One loop
-//! waits on: commands from connections, bytes from the port, room to write to the
-//! port, the end of a write (`tcdrain`, RTU/ASCII), the nearest timer (a response
-//! deadline, the frame gap or silence, the inter-frame gap, the next reopen, the next
-//! systemd watchdog ping), and shutdown.
-//!
-//! What differs between framings (MBAP, RTU, ASCII) is behind [`line::Line`]; the
-//! queues, round-robin, timeouts, retries, unit backoff and exceptions are here, for
-//! all of them.
+//! Connections talk to it over a channel ([`RelayHandle`], `command.rs`); it owns
+//! every part below, so nothing here is locked. Each turn it pets the watchdog
+//! (`watchdog.rs`), opens the port when due (`lifecycle.rs`), puts requests on the line
+//! while it has room (`scheduler.rs` picks, `line/` encodes, `outgoing.rs` buffers,
+//! `inflight.rs` times), then waits for one event (`event.rs`): a command, bytes from
+//! the port, room to write, the end of a drain, the nearest timer, or shutdown. Bytes
+//! read go to the framing (`line/`), whose frames the in-flight table matches to
+//! their requests (answered through `pending.rs`) or not (late, or a notification for
+//! `fanout.rs`); requests past their deadline are resent or answered 0x0B as
+//! `inflight.rs` decides.
 
 mod command;
 mod event;
+mod failures;
 mod fanout;
 mod inflight;
 mod lifecycle;
@@ -20,18 +22,18 @@ mod line;
 mod outgoing;
 mod pending;
 mod scheduler;
+mod watchdog;
 
-use crate::config::{BroadcastReply, RelayConfig, SerialConfig};
+use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
-use crate::frame::pdu::{self, exception};
+use crate::frame::pdu::exception;
 use crate::frame::Adu;
-use crate::notify;
 use crate::port::{self, Link};
 use crate::stats::Stats;
 pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
 use fanout::Masters;
-use inflight::{Failure, InFlight, Paced, Table, Verdict};
+use inflight::{Failure, Paced, Table};
 use lifecycle::Lifecycle;
 use line::{Line, Seen, Unsolicited};
 use outgoing::Outgoing;
@@ -42,7 +44,8 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, warn};
+use tracing::debug;
+use watchdog::Watchdog;
 
 pub struct Relay {
     cfg: RelayConfig,
@@ -64,13 +67,6 @@ pub struct Relay {
     /// False once every [`RelayHandle`] is gone: `recv` would return at once forever.
     commands_open: bool,
     watchdog: Option<Watchdog>,
-}
-
-/// systemd's watchdog, pinged from the relay's own loop: if the loop wedges, the pings
-/// stop and systemd restarts the gateway.
-struct Watchdog {
-    every: Duration,
-    next: Instant,
 }
 
 impl Relay {
@@ -120,10 +116,7 @@ impl Relay {
     /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
     /// `None` means no watchdog and no timer for it, so an idle relay sleeps.
     pub fn with_watchdog(mut self, every: Option<Duration>) -> Self {
-        self.watchdog = every.map(|every| Watchdog {
-            every,
-            next: Instant::now(),
-        });
+        self.watchdog = every.map(|every| Watchdog::new(every, Instant::now()));
         self
     }
 
@@ -133,7 +126,9 @@ impl Relay {
         let mut rbuf = vec![0u8; 4096];
         loop {
             let now = Instant::now();
-            self.pet_watchdog(now);
+            if let Some(w) = &mut self.watchdog {
+                w.pet(now);
+            }
             self.open_if_due(now);
             self.dispatch(now);
             if self.draining && self.in_flight.is_empty() {
@@ -192,37 +187,19 @@ impl Relay {
         debug!("relay stopped");
     }
 
+    /// The nearest instant anything needs the loop: a deadline, the line's gaps, a
+    /// paced answer, the next open, the watchdog; an hour when nothing does.
     fn next_wake(&self, now: Instant) -> Instant {
-        let mut wake = now + Duration::from_secs(3600);
-        if let Some(d) = self.in_flight.next_deadline() {
-            wake = wake.min(d);
-        }
-        if let Some(w) = self.line.next_wake(now, self.sched.has_waiting()) {
-            wake = wake.min(w);
-        }
-        if let Some(due) = self.paced.next_due() {
-            wake = wake.min(due);
-        }
-        if let Some(retry_at) = self.port.retry_at() {
-            wake = wake.min(retry_at);
-        }
-        if let Some(w) = &self.watchdog {
-            wake = wake.min(w.next);
-        }
-        wake
-    }
-
-    fn pet_watchdog(&mut self, now: Instant) {
-        if let Some(w) = &mut self.watchdog {
-            if now >= w.next {
-                notify::watchdog();
-                w.next = now + w.every;
-            }
-        }
-    }
-
-    fn is_open(&self) -> bool {
-        self.port.is_open()
+        [
+            self.in_flight.next_deadline(),
+            self.line.next_wake(now, self.sched.has_waiting()),
+            self.paced.next_due(),
+            self.port.retry_at(),
+            self.watchdog.as_ref().map(Watchdog::next),
+        ]
+        .into_iter()
+        .flatten()
+        .fold(now + Duration::from_secs(3600), Instant::min)
     }
 
     fn open_if_due(&mut self, now: Instant) {
@@ -288,7 +265,7 @@ impl Relay {
             Command::Request { conn, adu, ticket } => {
                 self.stats.add(&self.stats.requests, 1);
                 let req = Pending::new(conn, adu, ticket);
-                if self.draining || !self.is_open() {
+                if self.draining || !self.port.is_open() {
                     req.answer_exception(exception::GATEWAY_PATH_UNAVAILABLE, &self.stats);
                 } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
                     self.pace_backed_off(req);
@@ -325,7 +302,7 @@ impl Relay {
     /// waiting to be read (RTU/ASCII). A request for a backed-off unit is answered
     /// 0x0B instead.
     fn dispatch(&mut self, now: Instant) {
-        while self.is_open()
+        while self.port.is_open()
             && self
                 .line
                 .has_room(self.in_flight.len(), self.tx_busy(), now)
@@ -363,28 +340,14 @@ impl Relay {
         }
         self.out.push(tid, bytes);
         if self.line.is_broadcast(&req.adu) {
-            self.broadcast_sent(req);
+            self.stats.add(&self.stats.broadcasts, 1);
+            req.broadcast_sent(self.cfg.broadcast_reply);
             return;
         }
         // The response time counts from when the request has left: behind whatever is
         // still waiting to be written.
         let queued = self.port.wire_time(self.out.len());
         self.in_flight.start(tid, req, now, queued);
-    }
-
-    /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
-    /// gets nothing, or the answer a device would have given (`broadcast_reply`).
-    fn broadcast_sent(&mut self, req: Pending) {
-        self.stats.add(&self.stats.broadcasts, 1);
-        match self.cfg.broadcast_reply {
-            // The ticket goes unanswered: the master may send another, and its
-            // replies behind this one are not held up.
-            BroadcastReply::None => drop(req),
-            BroadcastReply::Echo => {
-                let adu = Adu::build(req.adu.tid(), 0, &pdu::write_echo(req.adu.pdu()));
-                req.deliver(adu);
-            }
-        }
     }
 
     /// Waits for the bytes written to leave the port, off the runtime's thread, so the
@@ -436,96 +399,6 @@ impl Relay {
                 );
             }
             Unsolicited::Notification => self.masters.notification(frame, &self.stats),
-        }
-    }
-
-    fn expire(&mut self, now: Instant) {
-        for f in self.in_flight.take_expired(now) {
-            self.line.timed_out(now, &self.stats);
-            if self.out.withdraw(f.tid) {
-                // Flow control held it back (CTS low) the whole time: it never left,
-                // and must not act on the device after the master was told 0x0B.
-                warn!(
-                    conn = f.req.conn,
-                    "request could not be written in time (is CTS held low?)"
-                );
-            }
-            self.failed(f, Failure::Timeout, now);
-        }
-    }
-
-    /// A request on the line got no usable reply: resent if it may be, else answered
-    /// 0x0B, or its unit backed off (the in-flight table decides).
-    fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
-        self.line.retire(f.tid, now);
-        let open = self.is_open();
-        match self.in_flight.verdict(&f, why, now, open) {
-            Verdict::BackedOff(interval) => {
-                let unit = f.req.adu.unit();
-                warn!(
-                    unit,
-                    "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
-                );
-                f.req
-                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
-                self.sweep_backed_off(unit);
-            }
-            Verdict::Resend => {
-                debug!(
-                    conn = f.req.conn,
-                    attempt = f.req.attempts + 1,
-                    "{}; resending",
-                    match why {
-                        Failure::Timeout => "no reply",
-                        Failure::Corrupt => "a bad reply",
-                    }
-                );
-                self.stats.add(&self.stats.retries, 1);
-                let mut req = f.req;
-                req.attempts += 1;
-                self.sched.resend(req);
-            }
-            Verdict::Fail => {
-                debug!(
-                    conn = f.req.conn,
-                    tid = f.req.adu.tid(),
-                    "{}: 0x0B",
-                    match why {
-                        Failure::Timeout => "no reply in time",
-                        Failure::Corrupt => "no good reply",
-                    }
-                );
-                f.req
-                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
-            }
-        }
-    }
-
-    /// A unit was just backed off: its waiting requests are answered now, so they never
-    /// take the line from the healthy units.
-    fn sweep_backed_off(&mut self, unit: u8) {
-        // They have waited their turn on the line already: answered at once.
-        for req in self.sched.take_unit(unit) {
-            req.answer_backed_off(&self.stats);
-        }
-    }
-
-    /// 0x0B for a backed-off unit, no sooner than the line could have served the
-    /// request: a master that polls a dead unit in a tight loop gets its answers at
-    /// the line's pace, not as fast as the gateway can turn them round. Healthy units
-    /// are not touched.
-    fn pace_backed_off(&mut self, req: Pending) {
-        let now = Instant::now();
-        let shortest = self.line.shortest_transaction(&req.adu);
-        if let Some(req) = self.paced.pace(req, now, shortest) {
-            req.answer_backed_off(&self.stats);
-        }
-    }
-
-    /// Sends the paced 0x0B answers whose time has come.
-    fn answer_paced(&mut self, now: Instant) {
-        for req in self.paced.due(now) {
-            req.answer_backed_off(&self.stats);
         }
     }
 }

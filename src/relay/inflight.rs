@@ -37,6 +37,24 @@ pub(super) enum Failure {
     Corrupt,
 }
 
+impl Failure {
+    /// What went wrong with one attempt.
+    pub(super) fn what(self) -> &'static str {
+        match self {
+            Failure::Timeout => "no reply",
+            Failure::Corrupt => "a bad reply",
+        }
+    }
+
+    /// What went wrong, when no attempt is left.
+    pub(super) fn what_in_the_end(self) -> &'static str {
+        match self {
+            Failure::Timeout => "no reply in time",
+            Failure::Corrupt => "no good reply",
+        }
+    }
+}
+
 /// What becomes of a request that failed.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) enum Verdict {

@@ -5,7 +5,8 @@
 use super::inflight::Asked;
 use super::scheduler::Queued;
 use super::ConnId;
-use crate::frame::pdu::exception;
+use crate::config::BroadcastReply;
+use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
 use crate::outbox::Ticket;
 use crate::stats::Stats;
@@ -74,5 +75,19 @@ impl Pending {
             exception::GATEWAY_TARGET_FAILED,
         );
         self.deliver(adu);
+    }
+
+    /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
+    /// gets nothing, or the answer a device would have given (`broadcast_reply`).
+    pub(super) fn broadcast_sent(self, reply: BroadcastReply) {
+        match reply {
+            // The ticket goes unanswered: the master may send another, and its
+            // replies behind this one are not held up.
+            BroadcastReply::None => drop(self),
+            BroadcastReply::Echo => {
+                let adu = Adu::build(self.adu.tid(), 0, &pdu::write_echo(self.adu.pdu()));
+                self.deliver(adu);
+            }
+        }
     }
 }
