@@ -1,4 +1,4 @@
-//! The relay's loop: the one task that owns the line (design.md §1, §5), wiring its
+//! The relay's loop: the one task that owns the line (docs/design.md §1, §5), wiring its
 //! parts together and deciding nothing they can decide themselves.
 //!
 //! Connections talk to it over a channel ([`RelayHandle`], `command.rs`); it owns

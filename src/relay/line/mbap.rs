@@ -54,7 +54,8 @@ struct Sent {
     left: Instant,
 }
 
-/// The relay's view of which frames on the line it can use (design.md §1 step 4, §2).
+/// The relay's view of which frames on the line it can use (docs/design.md §1 step 4,
+/// §2).
 struct RelayJudge<'a, R> {
     in_flight: &'a [InFlight<R>],
     tids: &'a Tids,
