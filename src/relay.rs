@@ -1,134 +1,65 @@
-//! The one task that owns the serial line (design.md §1, §5).
+//! The relay's loop: the one task that owns the line (docs/design.md §1, §5), wiring its
+//! parts together and deciding nothing they can decide themselves.
 //!
-//! Connections talk to it over a channel ([`RelayHandle`]); it owns the port, the
-//! queues, the in-flight table and the decoder, so nothing here is locked. One loop
-//! waits on: commands from connections, bytes from the port, room to write to the
-//! port, the end of a write (`tcdrain`, RTU/ASCII), the nearest timer (a response
-//! deadline, the frame gap or silence, the inter-frame gap, the next reopen, the next
-//! systemd watchdog ping), and shutdown.
-//!
-//! What differs between framings (MBAP, RTU, ASCII) is behind [`line::Line`]; the
-//! queues, round-robin, timeouts, retries, unit backoff and exceptions are here, for
-//! all of them.
+//! Connections talk to it over a channel ([`RelayHandle`], `command.rs`); it owns
+//! every part below, so nothing here is locked. Each turn it pets the watchdog
+//! (`watchdog.rs`), opens the port when due (`lifecycle.rs`), puts requests on the line
+//! while it has room (`scheduler.rs` picks, `line/` encodes, `outgoing.rs` buffers,
+//! `inflight.rs` times), then waits for one event (`event.rs`): a command, bytes from
+//! the port, room to write, the end of a drain, the nearest timer, or shutdown. Bytes
+//! read go to the framing (`line/`), whose frames the in-flight table matches to
+//! their requests (answered through `pending.rs`) or not (late, or a notification for
+//! `fanout.rs`); requests past their deadline are resent or answered 0x0B as
+//! `inflight.rs` decides.
 
+mod command;
+mod event;
+mod failures;
+mod fanout;
+mod inflight;
+mod lifecycle;
 mod line;
-#[cfg(test)]
+mod outgoing;
+mod pending;
 mod scheduler;
+mod watchdog;
 
-use crate::config::{BroadcastReply, Notifications, RelayConfig, SerialConfig};
+use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
-use crate::frame::pdu::{self, exception};
+use crate::frame::pdu::exception;
 use crate::frame::Adu;
-use crate::notify;
-use crate::outbox::{Notifier, Ticket};
-use crate::port::{self, Backoff, Link, Opening};
+use crate::port::{self, Link};
 use crate::stats::Stats;
-use bytes::Bytes;
+pub use command::{Command, ConnId, RelayHandle};
+use event::Event;
+use fanout::Masters;
+use inflight::{Failure, Paced, Table};
+use lifecycle::Lifecycle;
 use line::{Line, Seen, Unsolicited};
-use std::collections::{HashMap, VecDeque};
+use outgoing::Outgoing;
+use pending::Pending;
+use scheduler::{Admitted, Scheduler};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info, warn};
-
-/// Identifies one master's TCP connection.
-pub type ConnId = u64;
-
-/// What connections tell the relay.
-#[derive(Debug)]
-pub enum Command {
-    /// A master connected; notifications reach it through `notifier`.
-    Attach { conn: ConnId, notifier: Notifier },
-    /// It went away: its queued requests are dropped, its late replies discarded.
-    Detach { conn: ConnId },
-    /// A request that passed the strict checks, with the master's own transaction id;
-    /// its answer goes back through `ticket`, in the master's order.
-    Request {
-        conn: ConnId,
-        adu: Adu,
-        ticket: Ticket,
-    },
-}
-
-/// The connections' side of the relay's channel.
-#[derive(Debug, Clone)]
-pub struct RelayHandle {
-    tx: mpsc::UnboundedSender<Command>,
-}
-
-impl RelayHandle {
-    /// Sends a command; gives it back if the relay has stopped.
-    pub fn send(&self, cmd: Command) -> Result<(), Command> {
-        self.tx.send(cmd).map_err(|e| e.0)
-    }
-}
-
-struct Pending {
-    conn: ConnId,
-    adu: Adu,
-    ticket: Ticket,
-    attempts: u32,
-}
-
-struct InFlight {
-    tid: u16,
-    deadline: Instant,
-    /// Its response timeout: `probe_timeout_ms` for a probe of a backed-off unit.
-    timeout: Duration,
-    req: Pending,
-}
-
-enum Port {
-    Open(Link),
-    /// An open that did not finish at once (a TCP connect).
-    Opening(Opening),
-    Closed {
-        retry_at: Instant,
-    },
-}
-
-/// Why a request on the line failed.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Failure {
-    /// No reply in time.
-    Timeout,
-    /// A reply whose CRC or LRC failed, or that did not answer it (RTU/ASCII).
-    Corrupt,
-}
+use tracing::debug;
+use watchdog::Watchdog;
 
 pub struct Relay {
     cfg: RelayConfig,
-    serial: SerialConfig,
     traffic: bool,
     rx: mpsc::UnboundedReceiver<Command>,
-    conns: HashMap<ConnId, Notifier>,
-    queues: HashMap<ConnId, VecDeque<Pending>>,
-    /// Connections with queued requests, in round-robin order.
-    ring: VecDeque<ConnId>,
-    /// The connection whose request went on the line last: a connection that starts
-    /// waiting goes ahead of it, since it has just had its turn.
-    last_served: Option<ConnId>,
-    queued: usize,
-    /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
-    retry: VecDeque<Pending>,
-    in_flight: Vec<InFlight>,
+    masters: Masters,
+    /// The requests waiting for the line, and which goes next.
+    sched: Scheduler<Pending>,
+    /// The requests on the line: deadlines, retries, unit backoff.
+    in_flight: Table<Pending>,
     line: Line,
-    /// Waiting for the last write to leave the port (RTU/ASCII).
-    drain: Option<port::Drain>,
-    units: Units,
-    /// 0x0B answers for backed-off units, each due when the line could have served
-    /// the request, in order.
-    paced: VecDeque<(Instant, Pending)>,
-    /// When the next such answer may go.
-    paced_next: Instant,
-    port: Port,
-    /// What `port` opens: the relay never learns which transport it is.
-    transport: Box<dyn port::Port>,
-    backoff: Backoff,
-    port_warned: bool,
+    /// 0x0B answers for backed-off units, at the line's pace.
+    paced: Paced<Pending>,
+    port: Lifecycle,
     out: Outgoing,
     stats: Arc<Stats>,
     shutdown: CancellationToken,
@@ -136,13 +67,6 @@ pub struct Relay {
     /// False once every [`RelayHandle`] is gone: `recv` would return at once forever.
     commands_open: bool,
     watchdog: Option<Watchdog>,
-}
-
-/// systemd's watchdog, pinged from the relay's own loop: if the loop wedges, the pings
-/// stop and systemd restarts the gateway.
-struct Watchdog {
-    every: Duration,
-    next: Instant,
 }
 
 impl Relay {
@@ -156,32 +80,22 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
-        let relay_serial = serial.clone();
         let line = Line::new(&cfg, &serial, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
-        let units = Units::new(&cfg, cfg.unit_backoff && line.is_serial());
+        let in_flight = Table::new(&cfg, cfg.unit_backoff && line.is_serial());
+        let baud = serial.baud_rate;
+        let port = Lifecycle::new(Box::new(port::serial::SerialPort::new(serial)), baud, now);
         let relay = Relay {
+            sched: Scheduler::new(cfg.queue_depth),
+            masters: Masters::new(cfg.notifications),
             cfg,
-            serial,
             traffic,
             rx,
-            conns: HashMap::new(),
-            queues: HashMap::new(),
-            ring: VecDeque::new(),
-            last_served: None,
-            queued: 0,
-            retry: VecDeque::new(),
-            in_flight: Vec::new(),
+            in_flight,
             line,
-            drain: None,
-            units,
-            paced: VecDeque::new(),
-            paced_next: now,
-            port: Port::Closed { retry_at: now },
-            transport: Box::new(port::serial::SerialPort::new(relay_serial)),
-            backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
-            port_warned: false,
+            paced: Paced::new(now),
+            port,
             out: Outgoing::default(),
             stats,
             shutdown,
@@ -189,23 +103,20 @@ impl Relay {
             commands_open: true,
             watchdog: None,
         };
-        (relay, RelayHandle { tx })
+        (relay, RelayHandle::new(tx))
     }
 
     /// Runs the line over `transport` instead of the `[serial]` port (a device behind
     /// a TCP socket, an in-memory pipe in tests).
     pub fn with_port(mut self, transport: Box<dyn port::Port>) -> Self {
-        self.transport = transport;
+        self.port.set_transport(transport);
         self
     }
 
     /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
     /// `None` means no watchdog and no timer for it, so an idle relay sleeps.
     pub fn with_watchdog(mut self, every: Option<Duration>) -> Self {
-        self.watchdog = every.map(|every| Watchdog {
-            every,
-            next: Instant::now(),
-        });
+        self.watchdog = every.map(|every| Watchdog::new(every, Instant::now()));
         self
     }
 
@@ -215,7 +126,9 @@ impl Relay {
         let mut rbuf = vec![0u8; 4096];
         loop {
             let now = Instant::now();
-            self.pet_watchdog(now);
+            if let Some(w) = &mut self.watchdog {
+                w.pet(now);
+            }
             self.open_if_due(now);
             self.dispatch(now);
             if self.draining && self.in_flight.is_empty() {
@@ -224,34 +137,13 @@ impl Relay {
             let wake = self.next_wake(now);
             // Anything written below is written after this.
             let polled = now;
-            let event = match &mut self.port {
-                // Biased, bytes first: a timer that finds bytes waiting must not take
-                // the line for quiet (a held reply would be refuted, a frame cut).
-                Port::Open(Link {
-                    reader: rd,
-                    writer: wr,
-                    ..
-                }) => tokio::select! {
-                    biased;
-                    r = rd.read(&mut rbuf) => Event::Read(r),
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
-                    w = wr.write(self.out.pending()), if !self.out.is_empty() => Event::Wrote(w),
-                    d = async { self.drain.as_mut().expect("guarded").await }, if self.drain.is_some() => Event::Drained(d),
-                    _ = tokio::time::sleep_until(wake) => Event::Timer,
-                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
-                },
-                Port::Opening(opening) => tokio::select! {
-                    opened = opening => Event::Opened(opened),
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
-                    _ = tokio::time::sleep_until(wake) => Event::Timer,
-                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
-                },
-                Port::Closed { .. } => tokio::select! {
-                    cmd = self.rx.recv(), if self.commands_open => Event::Command(cmd),
-                    _ = tokio::time::sleep_until(wake) => Event::Timer,
-                    _ = self.shutdown.cancelled(), if !self.draining => Event::Shutdown,
-                },
+            let sources = event::Sources {
+                commands: self.commands_open.then_some(&mut self.rx),
+                out: &self.out,
+                wake,
+                shutdown: (!self.draining).then_some(&self.shutdown),
             };
+            let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();
             match event {
                 Event::Command(Some(cmd)) => self.on_command(cmd),
@@ -280,7 +172,7 @@ impl Relay {
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
                 Event::Opened(r) => self.opened(r, now),
                 Event::Drained(r) => {
-                    self.drain = None;
+                    self.port.drain = None;
                     if let Err(e) = r {
                         debug!("tcdrain: {e}");
                     }
@@ -295,79 +187,35 @@ impl Relay {
         debug!("relay stopped");
     }
 
+    /// The nearest instant anything needs the loop: a deadline, the line's gaps, a
+    /// paced answer, the next open, the watchdog; an hour when nothing does.
     fn next_wake(&self, now: Instant) -> Instant {
-        let mut wake = now + Duration::from_secs(3600);
-        for f in &self.in_flight {
-            wake = wake.min(f.deadline);
-        }
-        if let Some(w) = self.line.next_wake(now, self.has_waiting()) {
-            wake = wake.min(w);
-        }
-        if let Some((due, _)) = self.paced.front() {
-            wake = wake.min(*due);
-        }
-        if let Port::Closed { retry_at } = self.port {
-            wake = wake.min(retry_at);
-        }
-        if let Some(w) = &self.watchdog {
-            wake = wake.min(w.next);
-        }
-        wake
-    }
-
-    fn pet_watchdog(&mut self, now: Instant) {
-        if let Some(w) = &mut self.watchdog {
-            if now >= w.next {
-                notify::watchdog();
-                w.next = now + w.every;
-            }
-        }
-    }
-
-    fn is_open(&self) -> bool {
-        matches!(self.port, Port::Open(_))
+        [
+            self.in_flight.next_deadline(),
+            self.line.next_wake(now, self.sched.has_waiting()),
+            self.paced.next_due(),
+            self.port.retry_at(),
+            self.watchdog.as_ref().map(Watchdog::next),
+        ]
+        .into_iter()
+        .flatten()
+        .fold(now + Duration::from_secs(3600), Instant::min)
     }
 
     fn open_if_due(&mut self, now: Instant) {
-        let Port::Closed { retry_at } = self.port else {
-            return;
-        };
-        if now < retry_at || self.draining {
+        if self.draining {
             return;
         }
-        match port::open_now(self.transport.open()) {
-            Ok(opened) => self.opened(opened, now),
-            Err(opening) => self.port = Port::Opening(opening),
+        if let Some(opened) = self.port.open_if_due(now) {
+            self.opened(opened, now);
         }
     }
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
     fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
-        let kind = self.transport.kind();
-        match opened {
-            Ok(link) => {
-                info!(path = %self.transport.name(), baud = self.serial.baud_rate, "{kind} open");
-                self.port = Port::Open(link);
-                self.backoff.reset();
-                self.port_warned = false;
-                self.line.clear(&self.stats);
-                self.stats.add(&self.stats.serial_opens, 1);
-            }
-            Err(e) => {
-                let delay = self.backoff.next_delay();
-                if self.port_warned {
-                    debug!(path = %self.transport.name(), "{kind} still unavailable: {e}");
-                } else {
-                    warn!(
-                        path = %self.transport.name(),
-                        "{kind} unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
-                    );
-                    self.port_warned = true;
-                }
-                self.port = Port::Closed {
-                    retry_at: now + delay,
-                };
-            }
+        if self.port.opened(opened, now) {
+            self.line.clear(&self.stats);
+            self.stats.add(&self.stats.serial_opens, 1);
         }
     }
 
@@ -377,24 +225,16 @@ impl Relay {
     /// bytes never left (held by flow control, or queued) gets 0x0A: there is no path
     /// to the device, and it cannot have acted.
     fn port_lost(&mut self, why: &str, now: Instant) {
-        let kind = self.transport.kind();
-        warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
-        self.port = Port::Closed {
-            retry_at: now + self.backoff.next_delay(),
-        };
-        self.port_warned = true;
+        self.port.lost(why, now);
         self.line.clear(&self.stats);
-        if let Some(d) = self.drain.take() {
-            drop(d);
-        }
-        for f in std::mem::take(&mut self.in_flight) {
+        for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);
             let code = if self.out.withdraw(f.tid) {
                 exception::GATEWAY_PATH_UNAVAILABLE
             } else {
                 exception::GATEWAY_TARGET_FAILED
             };
-            self.answer_exception(f.req, code);
+            f.req.answer_exception(code, &self.stats);
         }
         self.out.clear();
         self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
@@ -404,125 +244,56 @@ impl Relay {
         if !self.draining {
             debug!(
                 in_flight = self.in_flight.len(),
-                queued = self.queued,
+                queued = self.sched.queued(),
                 "relay draining"
             );
             self.draining = true;
             self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
-            for (_, req) in std::mem::take(&mut self.paced) {
-                self.answer_backed_off_now(req);
+            for req in self.paced.take_all() {
+                req.answer_backed_off(&self.stats);
             }
         }
     }
 
     fn on_command(&mut self, cmd: Command) {
         match cmd {
-            Command::Attach { conn, notifier } => {
-                self.conns.insert(conn, notifier);
-            }
+            Command::Attach { conn, notifier } => self.masters.attach(conn, notifier),
             Command::Detach { conn } => {
-                self.conns.remove(&conn);
-                self.retry.retain(|r| r.conn != conn);
-                if let Some(q) = self.queues.remove(&conn) {
-                    self.queued -= q.len();
-                    self.ring.retain(|&c| c != conn);
-                }
+                self.masters.detach(conn);
+                self.sched.detach(conn);
             }
             Command::Request { conn, adu, ticket } => {
                 self.stats.add(&self.stats.requests, 1);
-                let req = Pending {
-                    conn,
-                    adu,
-                    ticket,
-                    attempts: 0,
-                };
-                if self.draining || !self.is_open() {
-                    self.answer_exception(req, exception::GATEWAY_PATH_UNAVAILABLE);
-                } else if self.units.backed_off(req.adu.unit(), Instant::now()) {
-                    self.answer_backed_off(req);
-                } else if self.queued >= self.cfg.queue_depth && !self.make_room(conn) {
-                    self.answer_exception(req, exception::SERVER_DEVICE_BUSY);
+                let req = Pending::new(conn, adu, ticket);
+                if self.draining || !self.port.is_open() {
+                    req.answer_exception(exception::GATEWAY_PATH_UNAVAILABLE, &self.stats);
+                } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
+                    self.pace_backed_off(req);
                 } else {
-                    let q = self.queues.entry(conn).or_default();
-                    if q.is_empty() {
-                        // Round-robin from its arrival: behind every connection still
-                        // waiting for a turn, ahead of the one just served.
-                        match self.ring.back() {
-                            Some(&back) if Some(back) == self.last_served => {
-                                self.ring.insert(self.ring.len() - 1, conn)
-                            }
-                            _ => self.ring.push_back(conn),
+                    // A full queue refuses the request of the master holding the most
+                    // of it (the scheduler's fair share).
+                    match self.sched.push(req) {
+                        Admitted::Queued => {}
+                        Admitted::Displaced(refused) => {
+                            debug!(
+                                conn = refused.conn,
+                                "queue full: 0x06 to the master holding the most of it, for conn {conn}"
+                            );
+                            refused.answer_exception(exception::SERVER_DEVICE_BUSY, &self.stats);
+                        }
+                        Admitted::Refused(req) => {
+                            req.answer_exception(exception::SERVER_DEVICE_BUSY, &self.stats);
                         }
                     }
-                    q.push_back(req);
-                    self.queued += 1;
                 }
             }
         }
-    }
-
-    /// The queue is full and `conn` has a request for it: the 0x06 falls on the master
-    /// holding the most of the queue. If one holds at least two more waiting requests
-    /// than `conn` does, its newest is answered 0x06 and `conn`'s takes the room (true);
-    /// else `conn` holds as many as any, and its own request is the one refused (false).
-    /// So a master can always have its share of the queue waiting (`queue_depth`
-    /// divided by the masters that want it), however fast the others resend: a master
-    /// holding less than its share means another holds more.
-    fn make_room(&mut self, conn: ConnId) -> bool {
-        let mine = self.queues.get(&conn).map_or(0, VecDeque::len);
-        let Some((&heaviest, q)) = self.queues.iter_mut().max_by_key(|(_, q)| q.len()) else {
-            return false;
-        };
-        if q.len() < mine + 2 {
-            return false;
-        }
-        // Its newest: the one it sent last, and the last it would have been served.
-        let refused = q.pop_back().expect("holds at least two");
-        self.queued -= 1;
-        debug!(
-            conn = heaviest,
-            "queue full: 0x06 to the master holding the most of it, for conn {conn}"
-        );
-        self.answer_exception(refused, exception::SERVER_DEVICE_BUSY);
-        true
     }
 
     /// Answers every queued request (and every one waiting to be resent) with `code`.
     fn flush_queue(&mut self, code: u8) {
-        self.ring.clear();
-        self.queued = 0;
-        for req in std::mem::take(&mut self.retry) {
-            self.answer_exception(req, code);
-        }
-        for (_, q) in std::mem::take(&mut self.queues) {
-            for req in q {
-                self.answer_exception(req, code);
-            }
-        }
-    }
-
-    /// The next request to put on the line: a resend first, then round-robin across
-    /// connections.
-    fn next_request(&mut self) -> Option<Pending> {
-        if let Some(req) = self.retry.pop_front() {
-            return Some(req);
-        }
-        loop {
-            let conn = self.ring.pop_front()?;
-            let Some(q) = self.queues.get_mut(&conn) else {
-                continue;
-            };
-            let Some(req) = q.pop_front() else {
-                continue;
-            };
-            if q.is_empty() {
-                self.queues.remove(&conn);
-            } else {
-                self.ring.push_back(conn);
-            }
-            self.queued -= 1;
-            self.last_served = Some(conn);
-            return Some(req);
+        for req in self.sched.drain_all() {
+            req.answer_exception(code, &self.stats);
         }
     }
 
@@ -531,42 +302,34 @@ impl Relay {
     /// waiting to be read (RTU/ASCII). A request for a backed-off unit is answered
     /// 0x0B instead.
     fn dispatch(&mut self, now: Instant) {
-        while self.is_open()
+        while self.port.is_open()
             && self
                 .line
                 .has_room(self.in_flight.len(), self.tx_busy(), now)
-            && self.has_waiting()
+            && self.sched.has_waiting()
             && !self.input_waiting()
         {
-            let Some(req) = self.next_request() else {
+            let Some(req) = self.sched.next() else {
                 break;
             };
-            if self.units.backed_off(req.adu.unit(), now) {
-                self.answer_backed_off(req);
+            if self.in_flight.backed_off(req.adu.unit(), now) {
+                self.pace_backed_off(req);
                 continue;
             }
             self.send(req, now);
         }
     }
 
-    /// Are requests waiting for the line (queued, or to be resent)?
-    fn has_waiting(&self) -> bool {
-        !self.ring.is_empty() || !self.retry.is_empty()
-    }
-
     /// Bytes are still being written, or have not yet left the port.
     fn tx_busy(&self) -> bool {
-        !self.out.is_empty() || self.drain.is_some()
+        !self.out.is_empty() || self.port.drain.is_some()
     }
 
     /// RTU/ASCII: has the port received bytes the relay has not read yet? Then the
     /// device is talking, and a request now would go over it (on RS-485, collide with
     /// it): the bytes are read first, and the gap counts from them.
     fn input_waiting(&self) -> bool {
-        match &self.port {
-            Port::Open(link) if self.line.is_serial() => link.control.input_waiting(),
-            _ => false,
-        }
+        self.line.is_serial() && self.port.input_waiting()
     }
 
     fn send(&mut self, req: Pending, now: Instant) {
@@ -577,70 +340,36 @@ impl Relay {
         }
         self.out.push(tid, bytes);
         if self.line.is_broadcast(&req.adu) {
-            self.broadcast_sent(req);
+            self.stats.add(&self.stats.broadcasts, 1);
+            req.broadcast_sent(self.cfg.broadcast_reply);
             return;
         }
-        // A unit that stopped answering gets a shorter wait, so a probe holds the line
-        // from the healthy units less long.
-        let mut timeout = Duration::from_millis(self.cfg.response_timeout_ms);
-        if self.units.probing(req.adu.unit()) {
-            timeout = timeout.min(Duration::from_millis(self.cfg.probe_timeout_ms));
-        }
         // The response time counts from when the request has left: behind whatever is
-        // still waiting to be written (RTU/ASCII: restarted when the port has drained).
-        let deadline = now + self.transport.wire_time(self.out.len()) + timeout;
-        self.in_flight.push(InFlight {
-            tid,
-            deadline,
-            timeout,
-            req,
-        });
-    }
-
-    /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
-    /// gets nothing, or the answer a device would have given (`broadcast_reply`).
-    fn broadcast_sent(&mut self, req: Pending) {
-        self.stats.add(&self.stats.broadcasts, 1);
-        match self.cfg.broadcast_reply {
-            // The ticket goes unanswered: the master may send another, and its
-            // replies behind this one are not held up.
-            BroadcastReply::None => drop(req),
-            BroadcastReply::Echo => {
-                let adu = Adu::build(req.adu.tid(), 0, &pdu::write_echo(req.adu.pdu()));
-                self.deliver(req, adu);
-            }
-        }
+        // still waiting to be written.
+        let queued = self.port.wire_time(self.out.len());
+        self.in_flight.start(tid, req, now, queued);
     }
 
     /// Waits for the bytes written to leave the port, off the runtime's thread, so the
     /// reply timer and the inter-frame gap start from the last byte on the wire.
     fn start_drain(&mut self, now: Instant) {
-        let Port::Open(link) = &self.port else {
-            return;
-        };
-        match link.control.drain() {
-            Ok(handle) => self.drain = Some(handle),
-            Err(e) => {
-                debug!("tcdrain unavailable ({e}): timing from the write");
-                self.drained(now);
-            }
+        if let Err(e) = self.port.start_drain() {
+            debug!("tcdrain unavailable ({e}): timing from the write");
+            self.drained(now);
         }
     }
 
     fn drained(&mut self, now: Instant) {
         let left = self.line.drained(now, &self.stats);
-        for f in &mut self.in_flight {
-            f.deadline = left + f.timeout;
-        }
+        self.in_flight.restart(left);
     }
 
     fn take_frames(&mut self, now: Instant) {
-        for seen in self.line.frames(&self.in_flight, now, &self.stats) {
+        for seen in self.line.frames(self.in_flight.entries(), now, &self.stats) {
             match seen {
                 Seen::Frame(frame) => self.on_frame(frame, now),
                 Seen::Corrupt(tid) => {
-                    if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
-                        let f = self.in_flight.swap_remove(i);
+                    if let Some(f) = self.in_flight.take(tid) {
                         self.failed(f, Failure::Corrupt, now);
                     }
                 }
@@ -650,16 +379,14 @@ impl Relay {
 
     fn on_frame(&mut self, frame: Adu, now: Instant) {
         let tid = frame.tid();
-        if let Some(i) = self.in_flight.iter().position(|f| f.tid == tid) {
-            // The line has checked unit, function code and shape against this request.
-            let f = self.in_flight.swap_remove(i);
+        // The line has checked unit, function code and shape against this request.
+        if let Some(f) = self.in_flight.answered(tid) {
             // Kept reserved a while: a second answer with this id is recognised as
             // ours and dropped, never broadcast.
             self.line.retire(tid, now);
-            self.units.answered(f.req.adu.unit());
             self.stats.add(&self.stats.replies, 1);
             let reply = frame.with_tid(f.req.adu.tid());
-            self.deliver(f.req, reply);
+            f.req.deliver(reply);
             return;
         }
         match self.line.unsolicited(tid) {
@@ -671,382 +398,7 @@ impl Relay {
                     frame
                 );
             }
-            Unsolicited::Notification => match self.cfg.notifications {
-                Notifications::Drop => {
-                    self.stats.add(&self.stats.notifications_dropped, 1);
-                    debug!("unsolicited frame dropped: {:?}", frame);
-                }
-                Notifications::Broadcast => self.broadcast(frame),
-            },
+            Unsolicited::Notification => self.masters.notification(frame, &self.stats),
         }
-    }
-
-    /// Sends a device notification to every master with room for it; a master whose
-    /// spare room is used up (it is not reading) misses it (counted).
-    fn broadcast(&self, frame: Adu) {
-        self.stats.add(&self.stats.notifications_broadcast, 1);
-        for notifier in self.conns.values() {
-            if !notifier.notify(frame.clone()) {
-                self.stats.add(&self.stats.notifications_missed, 1);
-            }
-        }
-    }
-
-    fn expire(&mut self, now: Instant) {
-        let mut i = 0;
-        while i < self.in_flight.len() {
-            if self.in_flight[i].deadline > now {
-                i += 1;
-                continue;
-            }
-            let f = self.in_flight.swap_remove(i);
-            self.line.timed_out(now, &self.stats);
-            if self.out.withdraw(f.tid) {
-                // Flow control held it back (CTS low) the whole time: it never left,
-                // and must not act on the device after the master was told 0x0B.
-                warn!(
-                    conn = f.req.conn,
-                    "request could not be written in time (is CTS held low?)"
-                );
-            }
-            self.failed(f, Failure::Timeout, now);
-        }
-    }
-
-    /// A request on the line got no usable reply: resent if it may be (reads, or any
-    /// request with `retry_writes`, up to `retries` times), else answered 0x0B. A
-    /// timeout counts against its unit (a unit that keeps timing out is backed off).
-    fn failed(&mut self, f: InFlight, why: Failure, now: Instant) {
-        self.line.retire(f.tid, now);
-        let unit = f.req.adu.unit();
-        if why == Failure::Timeout {
-            if let Some(interval) = self.units.timed_out(unit, now) {
-                warn!(
-                    unit,
-                    "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
-                );
-                self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
-                self.sweep_backed_off(unit);
-                return;
-            }
-        }
-        let function = f.req.adu.function();
-        let may_retry = pdu::is_read(function) || self.cfg.retry_writes;
-        if may_retry && f.req.attempts < self.cfg.retries && self.is_open() {
-            debug!(
-                conn = f.req.conn,
-                attempt = f.req.attempts + 1,
-                "{}; resending",
-                match why {
-                    Failure::Timeout => "no reply",
-                    Failure::Corrupt => "a bad reply",
-                }
-            );
-            self.stats.add(&self.stats.retries, 1);
-            let mut req = f.req;
-            req.attempts += 1;
-            self.retry.push_back(req);
-        } else {
-            debug!(
-                conn = f.req.conn,
-                tid = f.req.adu.tid(),
-                "{}: 0x0B",
-                match why {
-                    Failure::Timeout => "no reply in time",
-                    Failure::Corrupt => "no good reply",
-                }
-            );
-            self.answer_exception(f.req, exception::GATEWAY_TARGET_FAILED);
-        }
-    }
-
-    /// A unit was just backed off: its waiting requests are answered now, so they never
-    /// take the line from the healthy units.
-    fn sweep_backed_off(&mut self, unit: u8) {
-        let mut swept = Vec::new();
-        for q in self.queues.values_mut() {
-            let (gone, kept): (VecDeque<Pending>, VecDeque<Pending>) = std::mem::take(q)
-                .into_iter()
-                .partition(|r| r.adu.unit() == unit);
-            *q = kept;
-            swept.extend(gone);
-        }
-        self.queued -= swept.len();
-        self.queues.retain(|_, q| !q.is_empty());
-        let queues = &self.queues;
-        self.ring.retain(|c| queues.contains_key(c));
-        let (gone, kept) = std::mem::take(&mut self.retry)
-            .into_iter()
-            .partition(|r| r.adu.unit() == unit);
-        self.retry = kept;
-        swept.extend::<VecDeque<Pending>>(gone);
-        // They have waited their turn on the line already: answered at once.
-        for req in swept {
-            self.answer_backed_off_now(req);
-        }
-    }
-
-    /// 0x0B for a backed-off unit, no sooner than the line could have served the
-    /// request: a master that polls a dead unit in a tight loop gets its answers at
-    /// the line's pace, not as fast as the gateway can turn them round. Healthy units
-    /// are not touched.
-    fn answer_backed_off(&mut self, req: Pending) {
-        let now = Instant::now();
-        let due = self.paced_next.max(now);
-        self.paced_next = due + self.line.shortest_transaction(&req.adu);
-        if due <= now {
-            self.answer_backed_off_now(req);
-        } else {
-            self.paced.push_back((due, req));
-        }
-    }
-
-    /// Sends the paced 0x0B answers whose time has come.
-    fn answer_paced(&mut self, now: Instant) {
-        while self.paced.front().is_some_and(|(due, _)| *due <= now) {
-            let (_, req) = self.paced.pop_front().expect("checked");
-            self.answer_backed_off_now(req);
-        }
-    }
-
-    /// 0x0B at once for a backed-off unit, counted apart from timeouts.
-    fn answer_backed_off_now(&self, req: Pending) {
-        self.stats.add(&self.stats.backed_off, 1);
-        let adu = Adu::exception(
-            req.adu.tid(),
-            req.adu.unit(),
-            req.adu.function(),
-            exception::GATEWAY_TARGET_FAILED,
-        );
-        self.deliver(req, adu);
-    }
-
-    fn answer_exception(&self, req: Pending, code: u8) {
-        let counter = match code {
-            exception::GATEWAY_PATH_UNAVAILABLE => &self.stats.unavailable,
-            exception::SERVER_DEVICE_BUSY => &self.stats.busy,
-            // GATEWAY_TARGET_FAILED: the only other code the relay answers itself.
-            _ => &self.stats.timeouts,
-        };
-        self.stats.add(counter, 1);
-        let adu = Adu::exception(req.adu.tid(), req.adu.unit(), req.adu.function(), code);
-        self.deliver(req, adu);
-    }
-
-    /// The answer to `req`, to its master, after its answers to earlier requests.
-    fn deliver(&self, req: Pending, adu: Adu) {
-        req.ticket.answer(adu);
-    }
-}
-
-enum Event {
-    Command(Option<Command>),
-    Read(std::io::Result<usize>),
-    Wrote(std::io::Result<usize>),
-    Drained(std::io::Result<()>),
-    Opened(std::io::Result<Link>),
-    Timer,
-    Shutdown,
-}
-
-/// Per-unit health on an RTU/ASCII bus: a unit that timed out `after` times in a row
-/// is backed off for an interval that doubles (from `min` up to `max`) each time a
-/// probe fails; a reply forgets it all.
-struct Units {
-    enabled: bool,
-    after: u32,
-    min: Duration,
-    max: Duration,
-    health: HashMap<u8, Health>,
-}
-
-#[derive(Debug, Default)]
-struct Health {
-    /// Timeouts in a row.
-    timeouts: u32,
-    /// The current back-off interval, once backed off.
-    interval: Option<Duration>,
-    until: Option<Instant>,
-}
-
-impl Units {
-    fn new(cfg: &RelayConfig, enabled: bool) -> Self {
-        let max = Duration::from_millis(cfg.unit_backoff_max_ms);
-        Self {
-            enabled,
-            after: cfg.unit_backoff_after,
-            min: Duration::from_millis(cfg.unit_backoff_ms).min(max),
-            max,
-            health: HashMap::new(),
-        }
-    }
-
-    fn backed_off(&self, unit: u8, now: Instant) -> bool {
-        self.health
-            .get(&unit)
-            .and_then(|h| h.until)
-            .is_some_and(|until| now < until)
-    }
-
-    /// A request to `unit` timed out; the interval it is now backed off for, if it is.
-    fn timed_out(&mut self, unit: u8, now: Instant) -> Option<Duration> {
-        if !self.enabled || unit == 0 {
-            return None;
-        }
-        let h = self.health.entry(unit).or_default();
-        h.timeouts += 1;
-        if h.timeouts < self.after {
-            return None;
-        }
-        let interval = h.interval.map_or(self.min, |i| (i * 2).min(self.max));
-        h.interval = Some(interval);
-        h.until = Some(now + interval);
-        Some(interval)
-    }
-
-    /// Was `unit` backed off, with no reply since? A request to it now is a probe.
-    fn probing(&self, unit: u8) -> bool {
-        self.health.get(&unit).is_some_and(|h| h.interval.is_some())
-    }
-
-    fn answered(&mut self, unit: u8) {
-        self.health.remove(&unit);
-    }
-}
-
-/// Frames waiting to be written to the port, in order. A frame not yet begun can be
-/// withdrawn; one partly written is finished, so the device's parser stays in step.
-#[derive(Debug, Default)]
-struct Outgoing {
-    frames: VecDeque<(u16, Bytes)>,
-    /// Bytes of the front frame already written.
-    written: usize,
-    len: usize,
-}
-
-impl Outgoing {
-    fn push(&mut self, tid: u16, frame: Bytes) {
-        self.len += frame.len();
-        self.frames.push_back((tid, frame));
-    }
-
-    fn is_empty(&self) -> bool {
-        self.frames.is_empty()
-    }
-
-    /// Bytes still to write.
-    fn len(&self) -> usize {
-        self.len
-    }
-
-    /// The unwritten rest of the front frame.
-    fn pending(&self) -> &[u8] {
-        self.frames
-            .front()
-            .map_or(&[][..], |(_, f)| &f[self.written..])
-    }
-
-    fn advance(&mut self, n: usize) {
-        self.written += n;
-        self.len -= n;
-        if let Some((_, f)) = self.frames.front() {
-            if self.written >= f.len() {
-                self.frames.pop_front();
-                self.written = 0;
-            }
-        }
-    }
-
-    /// Removes the frame for `tid` if none of it has been written.
-    fn withdraw(&mut self, tid: u16) -> bool {
-        let Some(i) = self.frames.iter().position(|(t, _)| *t == tid) else {
-            return false;
-        };
-        if i == 0 && self.written > 0 {
-            return false;
-        }
-        let (_, f) = self.frames.remove(i).expect("index found above");
-        self.len -= f.len();
-        true
-    }
-
-    fn clear(&mut self) {
-        self.frames.clear();
-        self.written = 0;
-        self.len = 0;
-    }
-}
-
-impl RelayConfig {
-    /// The longest the relay takes to answer a request that is on the line: the
-    /// response timeout of every attempt (docs/design.md §1 step 5).
-    pub fn answer_within(&self) -> std::time::Duration {
-        std::time::Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::{Outgoing, Units};
-    use crate::config::RelayConfig;
-    use bytes::Bytes;
-    use std::time::Duration;
-    use tokio::time::Instant;
-
-    #[test]
-    fn units_back_off_after_n_timeouts_doubling_up_to_max() {
-        let cfg = RelayConfig {
-            unit_backoff_after: 2,
-            unit_backoff_ms: 100,
-            unit_backoff_max_ms: 300,
-            ..RelayConfig::default()
-        };
-        let mut u = Units::new(&cfg, true);
-        let t0 = Instant::now();
-        assert_eq!(u.timed_out(5, t0), None);
-        assert!(!u.backed_off(5, t0));
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(100)));
-        assert!(u.backed_off(5, t0 + Duration::from_millis(99)));
-        assert!(
-            !u.backed_off(5, t0 + Duration::from_millis(100)),
-            "probed after"
-        );
-        assert!(!u.backed_off(6, t0), "other units are not touched");
-        assert!(
-            u.probing(5) && !u.probing(6),
-            "a request to it now probes it"
-        );
-        // Failed probes double the interval, up to the max.
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(200)));
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
-        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
-        // A reply forgets it all.
-        u.answered(5);
-        assert!(!u.backed_off(5, t0) && !u.probing(5));
-        assert_eq!(u.timed_out(5, t0), None);
-        // Broadcasts and a disabled backoff never back off.
-        assert_eq!(u.timed_out(0, t0), None);
-        let mut off = Units::new(&cfg, false);
-        assert_eq!((off.timed_out(5, t0), off.timed_out(5, t0)), (None, None));
-    }
-
-    #[test]
-    fn outgoing_writes_in_order_and_withdraws_only_unstarted_frames() {
-        let mut o = Outgoing::default();
-        o.push(1, Bytes::from_static(b"abc"));
-        o.push(2, Bytes::from_static(b"de"));
-        o.push(3, Bytes::from_static(b"f"));
-        assert_eq!(o.len(), 6);
-        o.advance(2);
-        assert_eq!(o.pending(), b"c");
-        assert!(!o.withdraw(1), "partly written: finished, not withdrawn");
-        assert!(o.withdraw(2));
-        assert_eq!(o.len(), 2);
-        o.advance(1);
-        assert_eq!(o.pending(), b"f");
-        o.advance(1);
-        assert!(o.is_empty());
-        assert_eq!(o.len(), 0);
-        assert!(!o.withdraw(3));
     }
 }

@@ -1,0 +1,41 @@
+//! What connections tell the relay, and the handle they tell it through.
+
+use crate::frame::Adu;
+use crate::outbox::{Notifier, Ticket};
+use tokio::sync::mpsc;
+
+/// Identifies one master's TCP connection.
+pub type ConnId = u64;
+
+/// What connections tell the relay.
+#[derive(Debug)]
+pub enum Command {
+    /// A master connected; notifications reach it through `notifier`.
+    Attach { conn: ConnId, notifier: Notifier },
+    /// It went away: its queued requests are dropped, its late replies discarded.
+    Detach { conn: ConnId },
+    /// A request that passed the strict checks, with the master's own transaction id;
+    /// its answer goes back through `ticket`, in the master's order.
+    Request {
+        conn: ConnId,
+        adu: Adu,
+        ticket: Ticket,
+    },
+}
+
+/// The connections' side of the relay's channel.
+#[derive(Debug, Clone)]
+pub struct RelayHandle {
+    tx: mpsc::UnboundedSender<Command>,
+}
+
+impl RelayHandle {
+    pub(super) fn new(tx: mpsc::UnboundedSender<Command>) -> Self {
+        Self { tx }
+    }
+
+    /// Sends a command; gives it back if the relay has stopped.
+    pub fn send(&self, cmd: Command) -> Result<(), Command> {
+        self.tx.send(cmd).map_err(|e| e.0)
+    }
+}

@@ -1,0 +1,76 @@
+//! What the relay's loop waits on, as one [`Event`]: a command from a connection, bytes
+//! from the port, room to write, the end of a drain, an open that finished, the next
+//! timer, or shutdown. The waiting only: the loop decides what each event means.
+
+use super::lifecycle::{Lifecycle, State};
+use super::outgoing::Outgoing;
+use super::Command;
+use crate::port::Link;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+
+pub(super) enum Event {
+    Command(Option<Command>),
+    Read(std::io::Result<usize>),
+    Wrote(std::io::Result<usize>),
+    Drained(std::io::Result<()>),
+    Opened(std::io::Result<Link>),
+    Timer,
+    Shutdown,
+}
+
+/// Everything besides the port the loop may wake for.
+pub(super) struct Sources<'a> {
+    /// `None` once every handle is gone: `recv` would return at once forever.
+    pub(super) commands: Option<&'a mut mpsc::UnboundedReceiver<Command>>,
+    /// Written while it holds bytes.
+    pub(super) out: &'a Outgoing,
+    pub(super) wake: Instant,
+    /// `None` once shutdown has been asked for.
+    pub(super) shutdown: Option<&'a CancellationToken>,
+}
+
+/// Waits for the next event; bytes read go into `rbuf`.
+pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]) -> Event {
+    let Sources {
+        mut commands,
+        out,
+        wake,
+        shutdown,
+    } = src;
+    let has_commands = commands.is_some();
+    let command = async { commands.as_mut().expect("guarded").recv().await };
+    let has_shutdown = shutdown.is_some();
+    let shutdown = async { shutdown.expect("guarded").cancelled().await };
+    let drain = &mut port.drain;
+    match &mut port.state {
+        // Biased, bytes first: a timer that finds bytes waiting must not take the
+        // line for quiet (a held reply would be refuted, a frame cut).
+        State::Open(Link {
+            reader: rd,
+            writer: wr,
+            ..
+        }) => tokio::select! {
+            biased;
+            r = rd.read(rbuf) => Event::Read(r),
+            cmd = command, if has_commands => Event::Command(cmd),
+            w = wr.write(out.pending()), if !out.is_empty() => Event::Wrote(w),
+            d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
+            _ = tokio::time::sleep_until(wake) => Event::Timer,
+            _ = shutdown, if has_shutdown => Event::Shutdown,
+        },
+        State::Opening(opening) => tokio::select! {
+            opened = opening => Event::Opened(opened),
+            cmd = command, if has_commands => Event::Command(cmd),
+            _ = tokio::time::sleep_until(wake) => Event::Timer,
+            _ = shutdown, if has_shutdown => Event::Shutdown,
+        },
+        State::Closed { .. } => tokio::select! {
+            cmd = command, if has_commands => Event::Command(cmd),
+            _ = tokio::time::sleep_until(wake) => Event::Timer,
+            _ = shutdown, if has_shutdown => Event::Shutdown,
+        },
+    }
+}

@@ -1,0 +1,97 @@
+//! What the loop does with requests that got no usable reply, as the in-flight table
+//! decides: resent, answered 0x0B, or their unit backed off, its waiting requests
+//! answered at once and its next ones paced at the line's speed.
+
+use super::inflight::{Failure, InFlight, Verdict};
+use super::pending::Pending;
+use super::Relay;
+use crate::frame::pdu::exception;
+use tokio::time::Instant;
+use tracing::{debug, warn};
+
+impl Relay {
+    /// Requests past their deadline fail.
+    pub(super) fn expire(&mut self, now: Instant) {
+        for f in self.in_flight.take_expired(now) {
+            self.line.timed_out(now, &self.stats);
+            if self.out.withdraw(f.tid) {
+                // Flow control held it back (CTS low) the whole time: it never left,
+                // and must not act on the device after the master was told 0x0B.
+                warn!(
+                    conn = f.req.conn,
+                    "request could not be written in time (is CTS held low?)"
+                );
+            }
+            self.failed(f, Failure::Timeout, now);
+        }
+    }
+
+    /// A request on the line got no usable reply: resent if it may be, else answered
+    /// 0x0B, or its unit backed off (the in-flight table decides).
+    pub(super) fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
+        self.line.retire(f.tid, now);
+        let open = self.port.is_open();
+        match self.in_flight.verdict(&f, why, now, open) {
+            Verdict::BackedOff(interval) => {
+                let unit = f.req.adu.unit();
+                warn!(
+                    unit,
+                    "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
+                );
+                f.req
+                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
+                self.sweep_backed_off(unit);
+            }
+            Verdict::Resend => {
+                debug!(
+                    conn = f.req.conn,
+                    attempt = f.req.attempts + 1,
+                    "{}; resending",
+                    why.what()
+                );
+                self.stats.add(&self.stats.retries, 1);
+                let mut req = f.req;
+                req.attempts += 1;
+                self.sched.resend(req);
+            }
+            Verdict::Fail => {
+                debug!(
+                    conn = f.req.conn,
+                    tid = f.req.adu.tid(),
+                    "{}: 0x0B",
+                    why.what_in_the_end()
+                );
+                f.req
+                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
+            }
+        }
+    }
+
+    /// A unit was just backed off: its waiting requests are answered now, so they never
+    /// take the line from the healthy units.
+    pub(super) fn sweep_backed_off(&mut self, unit: u8) {
+        // They have waited their turn on the line already: answered at once.
+        for req in self.sched.take_unit(unit) {
+            req.answer_backed_off(&self.stats);
+        }
+    }
+
+    /// 0x0B for a backed-off unit, no sooner than the line could have served the
+    /// request: a master that polls a dead unit in a tight loop gets its answers at
+    /// the line's pace, not as fast as the gateway can turn them round. Healthy units
+    /// are not touched.
+    pub(super) fn pace_backed_off(&mut self, req: Pending) {
+        let now = Instant::now();
+        let shortest = self.line.shortest_transaction(&req.adu);
+        if let Some(req) = self.paced.pace(req, now, shortest) {
+            req.answer_backed_off(&self.stats);
+        }
+    }
+
+    /// Sends the paced 0x0B answers whose time has come.
+    pub(super) fn answer_paced(&mut self, now: Instant) {
+        for req in self.paced.due(now) {
+            req.answer_backed_off(&self.stats);
+        }
+    }
+}

@@ -1,0 +1,501 @@
+//! The in-flight table: the requests on the line with their serial-side ids, deadlines
+//! and response timeouts; what a request that got no usable reply becomes (resent,
+//! answered 0x0B, or its unit backed off); per-unit backoff; and the pacing of the 0x0B
+//! answers for backed-off units. Plain data: no I/O, no clock (the loop passes the time in).
+
+use crate::config::RelayConfig;
+use crate::frame::pdu;
+use crate::frame::Adu;
+use std::collections::{HashMap, VecDeque};
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// What the table needs to know of a request.
+pub(super) trait Asked {
+    /// The request as the master sent it.
+    fn adu(&self) -> &Adu;
+    /// How many times it has been resent.
+    fn attempts(&self) -> u32;
+}
+
+/// A request on the line.
+pub(super) struct InFlight<R> {
+    /// Its serial-side id (MBAP) or key (RTU/ASCII).
+    pub(super) tid: u16,
+    pub(super) deadline: Instant,
+    /// Its response timeout: `probe_timeout_ms` for a probe of a backed-off unit.
+    pub(super) timeout: Duration,
+    pub(super) req: R,
+}
+
+/// Why a request on the line failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Failure {
+    /// No reply in time.
+    Timeout,
+    /// A reply whose CRC or LRC failed, or that did not answer it (RTU/ASCII).
+    Corrupt,
+}
+
+impl Failure {
+    /// What went wrong with one attempt.
+    pub(super) fn what(self) -> &'static str {
+        match self {
+            Failure::Timeout => "no reply",
+            Failure::Corrupt => "a bad reply",
+        }
+    }
+
+    /// What went wrong, when no attempt is left.
+    pub(super) fn what_in_the_end(self) -> &'static str {
+        match self {
+            Failure::Timeout => "no reply in time",
+            Failure::Corrupt => "no good reply",
+        }
+    }
+}
+
+/// What becomes of a request that failed.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(super) enum Verdict {
+    /// Its unit is now backed off for this long: 0x0B, and the unit's waiting requests
+    /// with it.
+    BackedOff(Duration),
+    /// Resent (reads, or any request with `retry_writes`, up to `retries` times).
+    Resend,
+    /// Answered 0x0B.
+    Fail,
+}
+
+/// The requests on the line, and the policy for those that fail.
+pub(super) struct Table<R> {
+    entries: Vec<InFlight<R>>,
+    response_timeout: Duration,
+    probe_timeout: Duration,
+    retries: u32,
+    retry_writes: bool,
+    units: Units,
+}
+
+impl<R: Asked> Table<R> {
+    /// `unit_backoff`: whether units are backed off at all (a bus of units only).
+    pub(super) fn new(cfg: &RelayConfig, unit_backoff: bool) -> Self {
+        Self {
+            entries: Vec::new(),
+            response_timeout: Duration::from_millis(cfg.response_timeout_ms),
+            probe_timeout: Duration::from_millis(cfg.probe_timeout_ms),
+            retries: cfg.retries,
+            retry_writes: cfg.retry_writes,
+            units: Units::new(cfg, unit_backoff),
+        }
+    }
+
+    pub(super) fn len(&self) -> usize {
+        self.entries.len()
+    }
+
+    pub(super) fn is_empty(&self) -> bool {
+        self.entries.is_empty()
+    }
+
+    pub(super) fn entries(&self) -> &[InFlight<R>] {
+        &self.entries
+    }
+
+    /// Request `req` goes on the line as `tid` at `now`, behind bytes that take
+    /// `queued` to leave: its response time counts from when it has left (RTU/ASCII:
+    /// restarted when the port has drained). A unit that stopped answering gets a
+    /// shorter wait, so a probe holds the line from the healthy units less long.
+    pub(super) fn start(&mut self, tid: u16, req: R, now: Instant, queued: Duration) {
+        let mut timeout = self.response_timeout;
+        if self.units.probing(req.adu().unit()) {
+            timeout = timeout.min(self.probe_timeout);
+        }
+        self.entries.push(InFlight {
+            tid,
+            deadline: now + queued + timeout,
+            timeout,
+            req,
+        });
+    }
+
+    /// The nearest deadline, if anything is in flight.
+    pub(super) fn next_deadline(&self) -> Option<Instant> {
+        self.entries.iter().map(|f| f.deadline).min()
+    }
+
+    /// Everything written left the port at `left`: every timer starts from there.
+    pub(super) fn restart(&mut self, left: Instant) {
+        for f in &mut self.entries {
+            f.deadline = left + f.timeout;
+        }
+    }
+
+    /// Takes request `tid` off the line (its reply failed), if it is on it.
+    pub(super) fn take(&mut self, tid: u16) -> Option<InFlight<R>> {
+        let i = self.entries.iter().position(|f| f.tid == tid)?;
+        Some(self.entries.swap_remove(i))
+    }
+
+    /// Request `tid` was answered: taken off the line, and its unit is healthy again.
+    pub(super) fn answered(&mut self, tid: u16) -> Option<InFlight<R>> {
+        let f = self.take(tid)?;
+        self.units.answered(f.req.adu().unit());
+        Some(f)
+    }
+
+    /// Takes everything off the line (the port was lost).
+    pub(super) fn take_all(&mut self) -> Vec<InFlight<R>> {
+        std::mem::take(&mut self.entries)
+    }
+
+    /// Takes off the line every request whose deadline has passed at `now`.
+    pub(super) fn take_expired(&mut self, now: Instant) -> Vec<InFlight<R>> {
+        let mut expired = Vec::new();
+        let mut i = 0;
+        while i < self.entries.len() {
+            if self.entries[i].deadline > now {
+                i += 1;
+            } else {
+                expired.push(self.entries.swap_remove(i));
+            }
+        }
+        expired
+    }
+
+    /// Is `unit` backed off at `now`? Its requests are answered 0x0B, paced.
+    pub(super) fn backed_off(&self, unit: u8, now: Instant) -> bool {
+        self.units.backed_off(unit, now)
+    }
+
+    /// What becomes of `f`, taken off the line for `why` at `now`. A timeout counts
+    /// against its unit (a unit that keeps timing out is backed off); a resend needs
+    /// the port open.
+    pub(super) fn verdict(
+        &mut self,
+        f: &InFlight<R>,
+        why: Failure,
+        now: Instant,
+        port_open: bool,
+    ) -> Verdict {
+        let adu = f.req.adu();
+        if why == Failure::Timeout {
+            if let Some(interval) = self.units.timed_out(adu.unit(), now) {
+                return Verdict::BackedOff(interval);
+            }
+        }
+        let may_retry = pdu::is_read(adu.function()) || self.retry_writes;
+        if may_retry && f.req.attempts() < self.retries && port_open {
+            Verdict::Resend
+        } else {
+            Verdict::Fail
+        }
+    }
+}
+
+/// Per-unit health on an RTU/ASCII bus: a unit that timed out `after` times in a row
+/// is backed off for an interval that doubles (from `min` up to `max`) each time a
+/// probe fails; a reply forgets it all.
+struct Units {
+    enabled: bool,
+    after: u32,
+    min: Duration,
+    max: Duration,
+    health: HashMap<u8, Health>,
+}
+
+#[derive(Debug, Default)]
+struct Health {
+    /// Timeouts in a row.
+    timeouts: u32,
+    /// The current back-off interval, once backed off.
+    interval: Option<Duration>,
+    until: Option<Instant>,
+}
+
+impl Units {
+    fn new(cfg: &RelayConfig, enabled: bool) -> Self {
+        let max = Duration::from_millis(cfg.unit_backoff_max_ms);
+        Self {
+            enabled,
+            after: cfg.unit_backoff_after,
+            min: Duration::from_millis(cfg.unit_backoff_ms).min(max),
+            max,
+            health: HashMap::new(),
+        }
+    }
+
+    fn backed_off(&self, unit: u8, now: Instant) -> bool {
+        self.health
+            .get(&unit)
+            .and_then(|h| h.until)
+            .is_some_and(|until| now < until)
+    }
+
+    /// A request to `unit` timed out; the interval it is now backed off for, if it is.
+    fn timed_out(&mut self, unit: u8, now: Instant) -> Option<Duration> {
+        if !self.enabled || unit == 0 {
+            return None;
+        }
+        let h = self.health.entry(unit).or_default();
+        h.timeouts += 1;
+        if h.timeouts < self.after {
+            return None;
+        }
+        let interval = h.interval.map_or(self.min, |i| (i * 2).min(self.max));
+        h.interval = Some(interval);
+        h.until = Some(now + interval);
+        Some(interval)
+    }
+
+    /// Was `unit` backed off, with no reply since? A request to it now is a probe.
+    fn probing(&self, unit: u8) -> bool {
+        self.health.get(&unit).is_some_and(|h| h.interval.is_some())
+    }
+
+    fn answered(&mut self, unit: u8) {
+        self.health.remove(&unit);
+    }
+}
+
+/// 0x0B answers for backed-off units, each due no sooner than the line could have
+/// served the request, in order: a master that polls a dead unit in a tight loop gets
+/// its answers at the line's pace, not as fast as the gateway can turn them round.
+pub(super) struct Paced<R> {
+    waiting: VecDeque<(Instant, R)>,
+    /// When the next answer may go.
+    next: Instant,
+}
+
+impl<R> Paced<R> {
+    pub(super) fn new(now: Instant) -> Self {
+        Self {
+            waiting: VecDeque::new(),
+            next: now,
+        }
+    }
+
+    /// `req`, which the line would take `shortest` to serve, is to be answered 0x0B:
+    /// given back if that may be done at `now`, else kept until it is due.
+    pub(super) fn pace(&mut self, req: R, now: Instant, shortest: Duration) -> Option<R> {
+        let due = self.next.max(now);
+        self.next = due + shortest;
+        if due <= now {
+            Some(req)
+        } else {
+            self.waiting.push_back((due, req));
+            None
+        }
+    }
+
+    /// The answers due at `now`, in order.
+    pub(super) fn due(&mut self, now: Instant) -> Vec<R> {
+        let mut due = Vec::new();
+        while self.waiting.front().is_some_and(|(at, _)| *at <= now) {
+            due.push(self.waiting.pop_front().expect("checked").1);
+        }
+        due
+    }
+
+    /// When the next kept answer is due.
+    pub(super) fn next_due(&self) -> Option<Instant> {
+        self.waiting.front().map(|(at, _)| *at)
+    }
+
+    /// Every kept answer, due or not (the relay is shutting down).
+    pub(super) fn take_all(&mut self) -> Vec<R> {
+        std::mem::take(&mut self.waiting)
+            .into_iter()
+            .map(|(_, r)| r)
+            .collect()
+    }
+}
+
+impl RelayConfig {
+    /// The longest the relay takes to answer a request that is on the line: the
+    /// response timeout of every attempt (docs/design.md §1 step 5).
+    pub fn answer_within(&self) -> Duration {
+        Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
+    }
+}
+
+/// A request in tests: the ADU and how many times it was resent.
+#[cfg(test)]
+impl Asked for (Adu, u32) {
+    fn adu(&self) -> &Adu {
+        &self.0
+    }
+    fn attempts(&self) -> u32 {
+        self.1
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    fn read(unit: u8, attempts: u32) -> (Adu, u32) {
+        (Adu::build(7, unit, &[3, 0, 0, 0, 1]), attempts)
+    }
+
+    fn write(unit: u8, attempts: u32) -> (Adu, u32) {
+        (Adu::build(7, unit, &[6, 0, 1, 0, 3]), attempts)
+    }
+
+    #[test]
+    fn units_back_off_after_n_timeouts_doubling_up_to_max() {
+        let cfg = RelayConfig {
+            unit_backoff_after: 2,
+            unit_backoff_ms: 100,
+            unit_backoff_max_ms: 300,
+            ..RelayConfig::default()
+        };
+        let mut u = Units::new(&cfg, true);
+        let t0 = Instant::now();
+        assert_eq!(u.timed_out(5, t0), None);
+        assert!(!u.backed_off(5, t0));
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(100)));
+        assert!(u.backed_off(5, t0 + Duration::from_millis(99)));
+        assert!(
+            !u.backed_off(5, t0 + Duration::from_millis(100)),
+            "probed after"
+        );
+        assert!(!u.backed_off(6, t0), "other units are not touched");
+        assert!(
+            u.probing(5) && !u.probing(6),
+            "a request to it now probes it"
+        );
+        // Failed probes double the interval, up to the max.
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(200)));
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
+        assert_eq!(u.timed_out(5, t0), Some(Duration::from_millis(300)));
+        // A reply forgets it all.
+        u.answered(5);
+        assert!(!u.backed_off(5, t0) && !u.probing(5));
+        assert_eq!(u.timed_out(5, t0), None);
+        // Broadcasts and a disabled backoff never back off.
+        assert_eq!(u.timed_out(0, t0), None);
+        let mut off = Units::new(&cfg, false);
+        assert_eq!((off.timed_out(5, t0), off.timed_out(5, t0)), (None, None));
+    }
+
+    /// Deadlines count from when the request has left (behind the bytes queued before
+    /// it), restart from when the port drained, and expire at the deadline itself.
+    #[test]
+    fn deadlines_count_from_the_request_leaving_and_restart_on_drain() {
+        let cfg = RelayConfig {
+            response_timeout_ms: 100,
+            ..RelayConfig::default()
+        };
+        let mut t = Table::new(&cfg, false);
+        let t0 = Instant::now();
+        t.start(1, read(1, 0), t0, 10 * MS);
+        t.start(2, read(2, 0), t0, 30 * MS);
+        assert_eq!(t.next_deadline(), Some(t0 + 110 * MS));
+        assert!(t.take_expired(t0 + 109 * MS).is_empty());
+        let gone: Vec<u16> = t
+            .take_expired(t0 + 110 * MS)
+            .iter()
+            .map(|f| f.tid)
+            .collect();
+        assert_eq!(gone, [1]);
+        t.restart(t0 + 50 * MS);
+        assert_eq!(t.next_deadline(), Some(t0 + 150 * MS));
+        assert!(t.take(1).is_none(), "already taken");
+        assert_eq!(t.take(2).map(|f| f.tid), Some(2));
+        assert!(t.is_empty() && t.next_deadline().is_none());
+    }
+
+    /// Reads are resent up to `retries` times while the port is open, writes only with
+    /// `retry_writes`; a unit that keeps timing out is backed off, its next request
+    /// is a probe with the shorter timeout, and a reply makes it healthy again.
+    #[test]
+    fn verdicts_resend_reads_fail_writes_and_back_off_a_silent_unit() {
+        let cfg = RelayConfig {
+            retries: 1,
+            retry_writes: false,
+            response_timeout_ms: 1000,
+            probe_timeout_ms: 200,
+            unit_backoff_after: 2,
+            unit_backoff_ms: 500,
+            unit_backoff_max_ms: 4000,
+            ..RelayConfig::default()
+        };
+        let mut t = Table::new(&cfg, true);
+        let t0 = Instant::now();
+        let verdict = |t: &mut Table<(Adu, u32)>, req, why, open| {
+            t.start(9, req, t0, Duration::ZERO);
+            let f = t.take(9).expect("just started");
+            t.verdict(&f, why, t0, open)
+        };
+        assert_eq!(
+            verdict(&mut t, read(1, 0), Failure::Corrupt, true),
+            Verdict::Resend
+        );
+        assert_eq!(
+            verdict(&mut t, read(1, 1), Failure::Corrupt, true),
+            Verdict::Fail,
+            "retries used up"
+        );
+        assert_eq!(
+            verdict(&mut t, read(1, 0), Failure::Corrupt, false),
+            Verdict::Fail,
+            "the port is closed"
+        );
+        assert_eq!(
+            verdict(&mut t, write(1, 0), Failure::Corrupt, true),
+            Verdict::Fail
+        );
+        let mut writes = Table::new(
+            &RelayConfig {
+                retry_writes: true,
+                ..cfg.clone()
+            },
+            true,
+        );
+        assert_eq!(
+            verdict(&mut writes, write(1, 0), Failure::Corrupt, true),
+            Verdict::Resend
+        );
+        // Two timeouts in a row back unit 3 off; a bad reply does not count.
+        assert_eq!(
+            verdict(&mut t, read(3, 0), Failure::Timeout, true),
+            Verdict::Resend
+        );
+        assert_eq!(
+            verdict(&mut t, read(3, 1), Failure::Timeout, true),
+            Verdict::BackedOff(500 * MS)
+        );
+        assert!(t.backed_off(3, t0 + 499 * MS) && !t.backed_off(3, t0 + 500 * MS));
+        assert!(!t.backed_off(1, t0));
+        // The probe waits the shorter timeout; its answer clears the unit.
+        t.start(4, read(3, 0), t0, Duration::ZERO);
+        t.start(5, read(1, 0), t0, Duration::ZERO);
+        assert_eq!(t.take(5).map(|f| f.deadline), Some(t0 + 1000 * MS));
+        assert_eq!(t.next_deadline(), Some(t0 + 200 * MS));
+        assert!(t.answered(4).is_some());
+        t.start(6, read(3, 0), t0, Duration::ZERO);
+        assert_eq!(t.next_deadline(), Some(t0 + 1000 * MS), "healthy again");
+    }
+
+    /// Answers for backed-off units go no faster than the line could serve their
+    /// requests: the first at once, the next each `shortest` after the one before.
+    #[test]
+    fn paced_answers_go_at_the_lines_pace_in_order() {
+        let t0 = Instant::now();
+        let mut p = Paced::new(t0);
+        assert_eq!(p.pace("a", t0, 10 * MS), Some("a"));
+        assert_eq!(p.pace("b", t0, 10 * MS), None);
+        assert_eq!(p.pace("c", t0 + MS, 10 * MS), None);
+        assert_eq!(p.next_due(), Some(t0 + 10 * MS));
+        assert!(p.due(t0 + 9 * MS).is_empty());
+        assert_eq!(p.due(t0 + 10 * MS), ["b"]);
+        assert_eq!(p.next_due(), Some(t0 + 20 * MS));
+        assert_eq!(p.take_all(), ["c"]);
+        // A line idle since: the next goes at once again.
+        assert_eq!(p.pace("d", t0 + 100 * MS, 10 * MS), Some("d"));
+        assert!(p.next_due().is_none());
+    }
+}

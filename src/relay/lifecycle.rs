@@ -1,0 +1,142 @@
+//! The port's lifecycle as the relay sees it: closed until the next attempt, opening,
+//! open; opened and reopened with backoff, lost; and what the loop asks of an open
+//! port (bytes waiting to be read, the wait until written bytes have left).
+
+use crate::port::{self, Backoff, Link, Opening};
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+/// Where the port is in its life.
+pub(super) enum State {
+    Open(Link),
+    /// An open that did not finish at once (a TCP connect).
+    Opening(Opening),
+    Closed {
+        retry_at: Instant,
+    },
+}
+
+/// The relay's port: any transport, opened and reopened with backoff.
+pub(super) struct Lifecycle {
+    pub(super) state: State,
+    /// Waiting for the last write to leave the port (RTU/ASCII).
+    pub(super) drain: Option<port::Drain>,
+    /// What `state` opens: the relay never learns which transport it is.
+    transport: Box<dyn port::Port>,
+    backoff: Backoff,
+    /// A failed open was logged at warning level: the next are logged at debug.
+    warned: bool,
+    /// For the log line when it opens.
+    baud: u32,
+}
+
+impl Lifecycle {
+    /// Closed, its first open due at `now`.
+    pub(super) fn new(transport: Box<dyn port::Port>, baud: u32, now: Instant) -> Self {
+        Self {
+            state: State::Closed { retry_at: now },
+            drain: None,
+            transport,
+            backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
+            warned: false,
+            baud,
+        }
+    }
+
+    pub(super) fn set_transport(&mut self, transport: Box<dyn port::Port>) {
+        self.transport = transport;
+    }
+
+    pub(super) fn is_open(&self) -> bool {
+        matches!(self.state, State::Open(_))
+    }
+
+    /// When the next open is due, while closed.
+    pub(super) fn retry_at(&self) -> Option<Instant> {
+        match self.state {
+            State::Closed { retry_at } => Some(retry_at),
+            _ => None,
+        }
+    }
+
+    /// Starts an open if one is due at `now`; gives back its result if it finished at
+    /// once (then pass it to [`Lifecycle::opened`]).
+    pub(super) fn open_if_due(&mut self, now: Instant) -> Option<std::io::Result<Link>> {
+        let retry_at = self.retry_at()?;
+        if now < retry_at {
+            return None;
+        }
+        match port::open_now(self.transport.open()) {
+            Ok(opened) => Some(opened),
+            Err(opening) => {
+                self.state = State::Opening(opening);
+                None
+            }
+        }
+    }
+
+    /// An open finished: true if the port is now open (the line starts afresh), else
+    /// the next attempt is due later.
+    pub(super) fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) -> bool {
+        let kind = self.transport.kind();
+        match opened {
+            Ok(link) => {
+                info!(path = %self.transport.name(), baud = self.baud, "{kind} open");
+                self.state = State::Open(link);
+                self.backoff.reset();
+                self.warned = false;
+                true
+            }
+            Err(e) => {
+                let delay = self.backoff.next_delay();
+                if self.warned {
+                    debug!(path = %self.transport.name(), "{kind} still unavailable: {e}");
+                } else {
+                    warn!(
+                        path = %self.transport.name(),
+                        "{kind} unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
+                    );
+                    self.warned = true;
+                }
+                self.state = State::Closed {
+                    retry_at: now + delay,
+                };
+                false
+            }
+        }
+    }
+
+    /// The port failed or its far end went away: closed, reopened with backoff.
+    pub(super) fn lost(&mut self, why: &str, now: Instant) {
+        let kind = self.transport.kind();
+        warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
+        self.state = State::Closed {
+            retry_at: now + self.backoff.next_delay(),
+        };
+        self.warned = true;
+        self.drain = None;
+    }
+
+    /// Has the port received bytes the relay has not read yet?
+    pub(super) fn input_waiting(&self) -> bool {
+        match &self.state {
+            State::Open(link) => link.control.input_waiting(),
+            _ => false,
+        }
+    }
+
+    /// Starts waiting for the bytes written to leave the port, off the runtime's
+    /// thread; an error says the port cannot tell (time from the write instead).
+    pub(super) fn start_drain(&mut self) -> std::io::Result<()> {
+        if let State::Open(link) = &self.state {
+            self.drain = Some(link.control.drain()?);
+        }
+        Ok(())
+    }
+
+    /// How long `bytes` take on the wire.
+    pub(super) fn wire_time(&self, bytes: usize) -> Duration {
+        self.transport.wire_time(bytes)
+    }
+}

@@ -1,0 +1,447 @@
+//! The MBAP line (the CIE-M10): serial-side transaction ids, several requests on the
+//! line at once, the resynchronising decoder that confirms every frame by what follows
+//! it or a pause, notifications and late replies told apart, echoes told by timing.
+
+use super::{Seen, Unsolicited};
+use crate::config::{RelayConfig, SerialConfig};
+use crate::frame::mbap::FrameRef;
+use crate::frame::pdu;
+use crate::frame::{rtu, Adu, Judge, Resync};
+use crate::relay::inflight::{Asked, InFlight};
+use crate::serial;
+use crate::stats::Stats;
+use crate::tids::Tids;
+use bytes::Bytes;
+use std::collections::VecDeque;
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::debug;
+
+pub(super) struct Mbap {
+    tids: Tids,
+    decoder: Resync,
+    last_byte: Instant,
+    /// The silence that ends a frame and confirms a reply with nothing after it: 3.5
+    /// character times, never less than `silence_floor_ms` (a USB adapter hands bytes
+    /// over in bursts its latency timer apart), never more than the frame gap.
+    pause: Duration,
+    max_in_flight: usize,
+    gap: Duration,
+    /// One character on the wire at the configured speed.
+    char_time: Duration,
+    /// When every byte handed to the port so far can have left it, written back to
+    /// back at the configured speed.
+    tx_clear: Instant,
+    /// The requests in flight as sent, for telling frames that came too early.
+    sent: Vec<Sent>,
+    /// Where each chunk read from the port begins in everything received, and when it
+    /// was read, back to the first byte the decoder still holds.
+    chunks: VecDeque<(u64, Instant)>,
+    /// Bytes received so far.
+    received: u64,
+    /// Bytes of frames dropped for arriving too early to answer their request.
+    early_bytes: u64,
+}
+
+/// A request as it went on the line.
+struct Sent {
+    tid: u16,
+    bytes: Bytes,
+    /// When it was handed to the port: nothing read before then answers it.
+    handed: Instant,
+    /// The earliest instant its last byte can have left at the configured speed: a
+    /// copy of it that began arriving before then is its echo.
+    left: Instant,
+}
+
+/// The relay's view of which frames on the line it can use (docs/design.md §1 step 4,
+/// §2).
+struct RelayJudge<'a, R> {
+    in_flight: &'a [InFlight<R>],
+    tids: &'a Tids,
+    now: Instant,
+}
+
+impl<R: Asked> Judge for RelayJudge<'_, R> {
+    fn plausible_function(&self, code: u8) -> bool {
+        pdu::is_reply_function(code)
+            || self
+                .in_flight
+                .iter()
+                .any(|f| f.req.adu().function() == code & 0x7F)
+    }
+
+    fn accept(&self, frame: FrameRef<'_>) -> bool {
+        match self.in_flight.iter().find(|f| f.tid == frame.tid()) {
+            Some(f) => {
+                f.req.adu().unit() == frame.unit()
+                    && pdu::reply_matches(f.req.adu().pdu(), frame.pdu())
+            }
+            // Not an answer to anything on the line: a device notification (id 0), or a
+            // late answer (a retired id), to be dropped as such. Any other id is not
+            // ours: a reply shifted by a lost byte carries its own low byte after a
+            // stranger's high byte (tids.rs), so ids sharing a low byte with one in
+            // flight are refused even when retired.
+            None => {
+                let tid = frame.tid();
+                (tid == 0 || self.tids.is_retired(tid))
+                    && pdu::reply_well_formed(frame.pdu())
+                    && !self.in_flight.iter().any(|f| f.tid & 0xFF == tid & 0xFF)
+            }
+        }
+    }
+
+    /// Always: a frame that lost a byte completes itself with the first byte of
+    /// whatever follows it, and something may always follow: a notification the
+    /// device sends whether or not the gateway passes them on, a late or duplicate
+    /// reply, noise (docs/reliability.md).
+    fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        true
+    }
+
+    /// A pause confirms a frame when no other reply is due (or its own request's time
+    /// is up): then nothing is expected after it. While other replies are due, the
+    /// frame waits for the next one or for the frame gap: a pause inside that next
+    /// reply, right after a byte this one borrowed, must not pass for the end of the
+    /// line's talk.
+    fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
+        let tid = frame.tid();
+        let due = |f: &InFlight<R>| f.deadline > self.now;
+        let own_expired = self.in_flight.iter().any(|f| f.tid == tid && !due(f));
+        own_expired || !self.in_flight.iter().any(|f| f.tid != tid && due(f))
+    }
+}
+
+impl Mbap {
+    pub(super) fn new(relay: &RelayConfig, serial: &SerialConfig, now: Instant) -> Mbap {
+        let gap = Duration::from_millis(relay.frame_gap_ms);
+        let t35 =
+            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
+        Mbap {
+            tids: Tids::new(),
+            decoder: Resync::new(),
+            last_byte: now,
+            pause: t35
+                .max(Duration::from_millis(serial.silence_floor_ms))
+                .min(gap),
+            max_in_flight: relay.max_in_flight,
+            gap,
+            char_time: serial::wire_time(serial, 1000) / 1000,
+            tx_clear: now,
+            sent: Vec::new(),
+            chunks: VecDeque::new(),
+            received: 0,
+            early_bytes: 0,
+        }
+    }
+
+    pub(super) fn allocate(&mut self, now: Instant) -> u16 {
+        self.tids.allocate(now.into_std())
+    }
+
+    pub(super) fn retire(&mut self, tid: u16, now: Instant) {
+        self.tids.retire(tid, now.into_std());
+        self.sent.retain(|s| s.tid != tid);
+    }
+
+    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant) -> Bytes {
+        let bytes = adu.with_tid(tid).into_bytes();
+        self.sent(tid, &bytes, now);
+        bytes
+    }
+
+    pub(super) fn has_room(&self, in_flight: usize) -> bool {
+        in_flight < self.max_in_flight
+    }
+
+    pub(super) fn received(&mut self, bytes: &[u8], now: Instant) {
+        self.chunks.push_back((self.received, now));
+        self.received += bytes.len() as u64;
+        self.decoder.push(bytes);
+        self.last_byte = now;
+    }
+
+    pub(super) fn next_wake(&self) -> Option<Instant> {
+        // First the pause that ends a frame, then the frame gap.
+        let quiet_for = if self.decoder.paused() {
+            self.gap
+        } else {
+            self.pause
+        };
+        (self.decoder.buffered() > 0).then(|| self.last_byte + quiet_for)
+    }
+
+    pub(super) fn clear(&mut self) {
+        self.decoder.clear();
+        self.chunks.clear();
+        self.sent.clear();
+    }
+
+    pub(super) fn unsolicited(&self, tid: u16) -> Unsolicited {
+        if self.tids.is_retired(tid) {
+            Unsolicited::Late
+        } else {
+            Unsolicited::Notification
+        }
+    }
+
+    /// Request `tid` goes on the line now as `bytes`, behind whatever is still being
+    /// written.
+    fn sent(&mut self, tid: u16, bytes: &Bytes, now: Instant) {
+        let left = self.tx_clear.max(now) + self.char_time * bytes.len() as u32;
+        self.tx_clear = left;
+        self.sent.push(Sent {
+            tid,
+            bytes: bytes.clone(),
+            handed: now,
+            left,
+        });
+    }
+
+    /// When the byte at `offset` (in everything received) was read.
+    fn read_at(&self, offset: u64) -> Option<Instant> {
+        self.chunks
+            .iter()
+            .rev()
+            .find(|&&(start, _)| start <= offset)
+            .map(|&(_, at)| at)
+    }
+
+    /// Did `frame`, just decoded with the id of a request in flight, begin arriving
+    /// too early to be its reply? Then says why.
+    ///
+    /// - Its first byte was read before the request was handed to the port: it was
+    ///   made of bytes already there, a frame that lost its own id and took the two
+    ///   bytes before it as one (register values equal to the request's id).
+    /// - It is a copy of the request that began arriving before the request could have
+    ///   left: its echo. An RS-232 loopback (a cable, an adapter) sends every request
+    ///   straight back, and the echo of an FC 05 or 06 write is byte for byte its
+    ///   successful reply. It began no later than its first byte was read, nor than its
+    ///   own time on the wire before its last byte was read.
+    fn too_early(&self, frame: &Adu) -> Option<&'static str> {
+        let sent = self.sent.iter().find(|s| s.tid == frame.tid())?;
+        let len = frame.as_bytes().len() as u64;
+        let end = self.decoder.consumed();
+        let first = self.read_at(end - len)?;
+        if first < sent.handed {
+            return Some("a frame read before its request was sent, dropped");
+        }
+        if frame.as_bytes() != &sent.bytes[..] {
+            return None;
+        }
+        let last = self.read_at(end - 1)?;
+        let on_wire = self.char_time * len as u32;
+        let began = last.checked_sub(on_wire).map_or(first, |b| b.min(first));
+        (began < sent.left)
+            .then_some("a copy of the request that began before it had left: its echo, dropped")
+    }
+
+    pub(super) fn frames<R: Asked>(
+        &mut self,
+        in_flight: &[InFlight<R>],
+        now: Instant,
+        stats: &Stats,
+    ) -> Vec<Seen> {
+        let idle = now.saturating_duration_since(self.last_byte);
+        if idle >= self.pause {
+            self.decoder.pause();
+        }
+        let quiet = idle >= self.gap;
+        let mut seen = Vec::new();
+        loop {
+            let judge = RelayJudge {
+                in_flight,
+                tids: &self.tids,
+                now,
+            };
+            let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
+                break;
+            };
+            if let Some(why) = self.too_early(&frame) {
+                debug!(tid = frame.tid(), "{why}: {:?}", frame);
+                self.early_bytes += frame.as_bytes().len() as u64;
+                continue;
+            }
+            seen.push(Seen::Frame(frame));
+        }
+        // Chunks wholly taken by the decoder are no longer needed.
+        let consumed = self.decoder.consumed();
+        while self
+            .chunks
+            .get(1)
+            .is_some_and(|&(start, _)| start <= consumed)
+        {
+            self.chunks.pop_front();
+        }
+        let decoded = self.decoder.stats();
+        stats.set(
+            &stats.dropped_bytes,
+            decoded.dropped_bytes + self.early_bytes,
+        );
+        stats.set(&stats.refuted_frames, decoded.refuted);
+        seen
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::Line;
+    use super::*;
+    use crate::frame::hex::parse as bytes;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    fn mbap(baud: u32) -> (Line, Instant) {
+        let serial = SerialConfig {
+            baud_rate: baud,
+            ..SerialConfig::default()
+        };
+        let now = Instant::now();
+        (Line::new(&RelayConfig::default(), &serial, now), now)
+    }
+
+    /// A request as the table holds it in tests: the ADU, never resent.
+    type Req = (Adu, u32);
+
+    /// Request `adu` on the line as `tid` since `now`, due in a second.
+    fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
+        InFlight {
+            tid,
+            deadline: now + Duration::from_secs(1),
+            timeout: Duration::from_secs(1),
+            req: (adu.clone(), 0),
+        }
+    }
+
+    /// Request `adu` sent now.
+    fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight<Req> {
+        let tid = line.allocate(now);
+        line.encode(adu, tid, now, &Stats::default());
+        in_flight(tid, adu, now)
+    }
+
+    fn frames(line: &mut Line, in_flight: &[InFlight<Req>], now: Instant) -> Vec<Vec<u8>> {
+        line.frames(in_flight, now, &Stats::default())
+            .into_iter()
+            .map(|s| match s {
+                Seen::Frame(f) => f.as_bytes().to_vec(),
+                Seen::Corrupt(_) => panic!("corrupt on an MBAP line"),
+            })
+            .collect()
+    }
+
+    /// An RS-232 loopback sends an FC 06 write straight back, byte for byte its
+    /// successful reply, while the write is still going out (12 bytes at 9600 baud
+    /// take 12.5 ms). A copy that began before the write had left is its echo; the
+    /// device's own reply after it is the answer.
+    #[test]
+    fn a_copy_of_the_request_that_began_before_it_left_is_its_echo() {
+        let (mut line, t0) = mbap(9600);
+        let write = Adu::build(9, 1, &[6, 0, 1, 0, 3]);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent[..4], t0 + MS, &Stats::default());
+        line.received(&sent[4..], t0 + 12 * MS, &Stats::default());
+        assert!(frames(&mut line, &[f], t0 + 40 * MS).is_empty());
+        // Read late, in one piece: its own time on the wire before it was read is
+        // still before the write left.
+        let (mut line, t0) = mbap(9600);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent, t0 + 20 * MS, &Stats::default());
+        assert!(frames(&mut line, &[f], t0 + 60 * MS).is_empty());
+        // The device's reply, begun after the write left.
+        let (mut line, t0) = mbap(9600);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent, t0 + 26 * MS, &Stats::default());
+        assert_eq!(frames(&mut line, &[f], t0 + 60 * MS), vec![sent.clone()]);
+        // A request queued behind another leaves after it.
+        let (mut line, t0) = mbap(9600);
+        let first = send(&mut line, &Adu::build(1, 1, &[3, 0, 0, 0, 1]), t0);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent, t0 + 37 * MS, &Stats::default());
+        assert!(frames(&mut line, &[first, f], t0 + 90 * MS).is_empty());
+    }
+
+    /// Bytes read before a request was sent cannot begin its reply: a notification
+    /// whose header was damaged leaves its last register (here equal to the request's
+    /// id) to be scanned, and the next notification, having lost its id, completes a
+    /// frame with that id and the shape the request calls for.
+    #[test]
+    fn a_frame_begun_before_its_request_was_sent_does_not_answer_it() {
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let body = bytes("00 00 00 05 01 03 02 02 F4");
+        for stale_before in [true, false] {
+            let (mut line, t0) = mbap(19_200);
+            let tid = line.allocate(t0);
+            let stale = [&bytes("00 00 00 00 05 01 03 02")[..], &tid.to_be_bytes()].concat();
+            let sent_at = t0 + 2 * MS;
+            let read_at = t0 + if stale_before { MS } else { 3 * MS };
+            if stale_before {
+                line.received(&stale, read_at, &Stats::default());
+            }
+            line.encode(&read, tid, sent_at, &Stats::default());
+            if !stale_before {
+                line.received(&stale, read_at, &Stats::default());
+            }
+            line.received(&body, t0 + 4 * MS, &Stats::default());
+            let f = in_flight(tid, &read, sent_at);
+            let got = frames(&mut line, &[f], t0 + 40 * MS);
+            if stale_before {
+                assert!(got.is_empty(), "{got:02X?}");
+            } else {
+                // Read after the request left, the same bytes pass: the bound of
+                // docs/reliability.md (ids are random, so values equal one by chance).
+                assert_eq!(got, vec![[&tid.to_be_bytes()[..], &body[..]].concat()]);
+            }
+        }
+    }
+
+    /// Every reply is held until what follows confirms it, with default settings: a
+    /// reply that lost a data byte, then a notification at once, is never delivered.
+    /// A reply alone is confirmed by a pause (the default floor, 20 ms), not the frame
+    /// gap; with another reply due it waits for that one, or for the frame gap.
+    #[test]
+    fn replies_are_confirmed_by_what_follows_or_a_pause() {
+        let (mut line, t0) = mbap(19_200);
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 3]);
+        let a = send(&mut line, &read, t0);
+        let mut reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
+            .as_bytes()
+            .to_vec();
+        reply.remove(10);
+        let notification = bytes("00 00 00 00 00 05 01 03 02 00 0F");
+        let at = t0 + 30 * MS;
+        line.received(&[reply, notification].concat(), at, &Stats::default());
+        for after in [0, 20, 50] {
+            assert!(frames(&mut line, std::slice::from_ref(&a), at + after * MS).is_empty());
+        }
+
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let b = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
+            .as_bytes()
+            .to_vec();
+        let at = t0 + 30 * MS;
+        line.received(&reply, at, &Stats::default());
+        let both = [a, b];
+        assert!(frames(&mut line, &both, at + 19 * MS).is_empty());
+        assert!(
+            frames(&mut line, &both, at + 20 * MS).is_empty(),
+            "b is due"
+        );
+        assert_eq!(line.next_wake(at + 20 * MS, false), Some(at + 50 * MS));
+        assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
+            .as_bytes()
+            .to_vec();
+        line.received(&reply, at, &Stats::default());
+        assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
+        assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);
+    }
+}

@@ -1,0 +1,190 @@
+//! The framing seam of the relay: what differs between a line of MBAP frames (the
+//! CIE-M10) and a line of RTU or ASCII frames, behind one [`Line`] the loop drives.
+//! Everything else (queues, round-robin, timeouts, retries, unit backoff, 0x0A/0x0B,
+//! the shutdown drain) is the relay's and shared.
+//!
+//! - [`Mbap`] (`mbap.rs`): serial-side transaction ids, several requests on the line
+//!   at once (`max_in_flight`), the resynchronising decoder with confirmation of every
+//!   frame (by what follows it, or by a pause of a few character times),
+//!   notifications, echoes told by their timing.
+//! - [`Serial`] (`serial.rs`): RTU or ASCII. No transaction id, so one request at a
+//!   time, and only time ties a reply to its request: what was received before a
+//!   request has left is discarded, a reply must start after it; frames delimited by
+//!   length, silence or line feed and checked by CRC or LRC; the inter-frame gap (3.5
+//!   character times) before each request, counted from the last byte seen or sent; a
+//!   guard time after a timeout, for the late reply; broadcasts (unit 0) with a
+//!   turnaround delay; local-echo suppression.
+
+mod mbap;
+mod serial;
+
+use super::inflight::{Asked, InFlight};
+use crate::config::{Framing, RelayConfig, SerialConfig};
+use crate::frame::serial::Codec;
+use crate::frame::Adu;
+use crate::stats::Stats;
+use bytes::Bytes;
+use mbap::Mbap;
+use serial::Serial;
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// What the line made of the bytes it received.
+pub(super) enum Seen {
+    /// A frame; its transaction id is the serial-side one (for RTU/ASCII, the key of
+    /// the request it answers, which it has been checked against).
+    Frame(Adu),
+    /// The answer to the request with this key failed its CRC or LRC, or did not
+    /// match the request: the request failed (retried if it may be).
+    Corrupt(u16),
+}
+
+/// An MBAP frame that answers nothing in flight.
+pub(super) enum Unsolicited {
+    /// The answer to a request already answered or timed out (a retired id).
+    Late,
+    /// A device notification (id 0, or an id never used).
+    Notification,
+}
+
+/// The line's framing, one of two.
+pub(super) struct Line(Kind);
+
+enum Kind {
+    Mbap(Mbap),
+    Serial(Serial),
+}
+
+impl Line {
+    pub(super) fn new(relay: &RelayConfig, serial: &SerialConfig, now: Instant) -> Line {
+        match serial.framing {
+            Framing::Mbap => Line(Kind::Mbap(Mbap::new(relay, serial, now))),
+            Framing::Rtu => Line(Kind::Serial(Serial::new(relay, serial, Codec::Rtu, now))),
+            Framing::Ascii => Line(Kind::Serial(Serial::new(relay, serial, Codec::Ascii, now))),
+        }
+    }
+
+    /// RTU or ASCII: one at a time, broadcasts, unit backoff, drain before timing.
+    pub(super) fn is_serial(&self) -> bool {
+        matches!(self.0, Kind::Serial(_))
+    }
+
+    /// A serial-side id (MBAP) or key (RTU/ASCII) for a request about to be sent.
+    pub(super) fn allocate(&mut self, now: Instant) -> u16 {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.allocate(now),
+            Kind::Serial(s) => s.allocate(),
+        }
+    }
+
+    /// The request is finished (answered, timed out, abandoned).
+    pub(super) fn retire(&mut self, tid: u16, now: Instant) {
+        if let Kind::Mbap(m) = &mut self.0 {
+            m.retire(tid, now);
+        }
+    }
+
+    /// Is this request a broadcast: sent, no reply awaited?
+    pub(super) fn is_broadcast(&self, adu: &Adu) -> bool {
+        self.is_serial() && adu.unit() == 0
+    }
+
+    /// The bytes that put `adu` on the line as request `tid`, about to be written.
+    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, stats: &Stats) -> Bytes {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.encode(adu, tid, now),
+            Kind::Serial(s) => s.encode(adu, now, stats),
+        }
+    }
+
+    /// May another request go on the line now? `in_flight` are outstanding; `busy`
+    /// says bytes are still being written or drained.
+    pub(super) fn has_room(&self, in_flight: usize, busy: bool, now: Instant) -> bool {
+        match &self.0 {
+            Kind::Mbap(m) => m.has_room(in_flight),
+            Kind::Serial(s) => s.has_room(in_flight, busy, now),
+        }
+    }
+
+    /// `n` bytes were handed to the port, by a write that began after `polled`.
+    pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        if let Kind::Serial(s) = &mut self.0 {
+            s.wrote(n, polled);
+        }
+    }
+
+    /// Everything written has left the port (`tcdrain`, RTU/ASCII only). Returns the
+    /// instant the last byte left: the reply timer starts there.
+    pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {
+        match &mut self.0 {
+            Kind::Mbap(_) => now,
+            Kind::Serial(s) => s.drained(now, stats),
+        }
+    }
+
+    /// Bytes from the port.
+    pub(super) fn received(&mut self, bytes: &[u8], now: Instant, stats: &Stats) {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.received(bytes, now),
+            Kind::Serial(s) => s.received(bytes, now, stats),
+        }
+    }
+
+    /// The earliest instant the line needs the relay's attention, if any: the frame gap
+    /// or silence that ends a partial frame, the end of the inter-frame gap when
+    /// requests are waiting.
+    pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
+        match &self.0 {
+            Kind::Mbap(m) => m.next_wake(),
+            Kind::Serial(s) => s.next_wake(now, waiting),
+        }
+    }
+
+    /// Forgets every byte received (the port was opened or lost).
+    pub(super) fn clear(&mut self, stats: &Stats) {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.clear(),
+            Kind::Serial(s) => s.clear(stats),
+        }
+    }
+
+    /// A request timed out: its reply may still come (MBAP recognises it by its id).
+    /// RTU/ASCII: a partial reply is discarded, and the line is left quiet for the
+    /// guard time, so a reply that comes just too late is dropped rather than taken
+    /// for the next request's.
+    pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
+        if let Kind::Serial(s) = &mut self.0 {
+            s.timed_out(now, stats);
+        }
+    }
+
+    /// The shortest time the line could take to serve `adu`: the request and an
+    /// exception reply on the wire, each after its 3.5-character gap. Zero for MBAP.
+    pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
+        match &self.0 {
+            Kind::Mbap(_) => Duration::ZERO,
+            Kind::Serial(s) => s.shortest_transaction(adu),
+        }
+    }
+
+    /// Frames the bytes received so far make, given what is in flight.
+    pub(super) fn frames<R: Asked>(
+        &mut self,
+        in_flight: &[InFlight<R>],
+        now: Instant,
+        stats: &Stats,
+    ) -> Vec<Seen> {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.frames(in_flight, now, stats),
+            Kind::Serial(s) => s.frames(in_flight, now, stats),
+        }
+    }
+
+    /// An MBAP frame that answers nothing in flight: a late reply or a notification.
+    pub(super) fn unsolicited(&self, tid: u16) -> Unsolicited {
+        match &self.0 {
+            Kind::Mbap(m) => m.unsolicited(tid),
+            Kind::Serial(_) => Unsolicited::Late,
+        }
+    }
+}

@@ -1,0 +1,275 @@
+//! The RTU and ASCII line: one request at a time, tied to its reply by time alone
+//! (bytes before the request left are not its reply), the inter-frame gap, CRC/LRC,
+//! the guard after a timeout, broadcasts with their turnaround, local echo.
+
+use super::Seen;
+use crate::config::{RelayConfig, SerialConfig};
+use crate::frame::pdu;
+use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
+use crate::frame::{rtu, Adu};
+use crate::relay::inflight::{Asked, InFlight};
+use crate::serial;
+use crate::stats::Stats;
+use bytes::Bytes;
+use std::collections::VecDeque;
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::debug;
+
+pub(super) struct Serial {
+    /// Its settings: the time bytes take on the wire.
+    port: SerialConfig,
+    decoder: Decoder,
+    /// 3.5 character times: the gap before each request.
+    t35: Duration,
+    /// What ends a frame of unknown shape: 3.5 character times, never less than
+    /// `silence_floor_ms`.
+    silence: Duration,
+    broadcast_delay: Duration,
+    /// The line stays quiet this long after a timeout (`timeout_guard_ms`).
+    guard: Duration,
+    last_rx: Instant,
+    /// No request before then: the gap (or the broadcast turnaround) after the last
+    /// request left.
+    ready_at: Instant,
+    next_key: u16,
+    /// Bytes sent whose echo is still to be read back (`echo = true`).
+    echo: Option<VecDeque<u8>>,
+    /// The frame being written is a broadcast.
+    broadcast_on_wire: bool,
+    /// While a frame is being written: the earliest its last byte can leave.
+    tx: Option<Instant>,
+    /// Bytes read while the frame was being written, with when they were read.
+    held: Vec<(Instant, Vec<u8>)>,
+    /// When the last request's last byte left: bytes read before then answer nothing.
+    reply_from: Instant,
+}
+
+impl Serial {
+    pub(super) fn new(
+        relay: &RelayConfig,
+        serial: &SerialConfig,
+        codec: Codec,
+        now: Instant,
+    ) -> Serial {
+        let t35 =
+            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
+        Serial {
+            port: serial.clone(),
+            decoder: Decoder::new(codec),
+            t35,
+            silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
+            broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
+            guard: Duration::from_millis(relay.timeout_guard_ms),
+            last_rx: now,
+            ready_at: now,
+            next_key: 0,
+            echo: serial.echo.then(VecDeque::new),
+            broadcast_on_wire: false,
+            tx: None,
+            held: Vec::new(),
+            reply_from: now,
+        }
+    }
+
+    pub(super) fn allocate(&mut self) -> u16 {
+        self.next_key = self.next_key.wrapping_add(1);
+        self.next_key
+    }
+
+    pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats) -> Bytes {
+        // Nothing received before a request is written can be its reply.
+        let stale = self.decoder.clear() + self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+        if stale > 0 {
+            debug!(bytes = stale, "bytes received before the request discarded");
+            stats.add(&stats.dropped_bytes, stale as u64);
+        }
+        let bytes = self.decoder.codec().encode(adu.unit(), adu.pdu());
+        if let Some(echo) = &mut self.echo {
+            // Any echo still awaited belongs to an earlier request, long done.
+            echo.clear();
+            echo.extend(&bytes);
+        }
+        self.broadcast_on_wire = adu.unit() == 0;
+        // Written from now on: its last byte cannot leave before its time on the wire
+        // has passed.
+        self.tx = Some(now + serial::wire_time(&self.port, bytes.len()));
+        Bytes::from(bytes)
+    }
+
+    pub(super) fn has_room(&self, in_flight: usize, busy: bool, now: Instant) -> bool {
+        in_flight == 0 && !busy && now >= self.free_at()
+    }
+
+    pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        if let Some(earliest) = &mut self.tx {
+            // Held back by flow control, the last bytes leave later than a frame
+            // written in one go would.
+            *earliest = (*earliest).max(polled + serial::wire_time(&self.port, n));
+        }
+    }
+
+    /// Bytes read before the earliest instant the last byte can have left (its time
+    /// on the wire after it was written) are not the reply. `tcdrain` returning is no
+    /// such bound: the relay may see it late (its thread and the blocking pool's are
+    /// scheduled), and a fast device's reply may be read in between; a USB adapter
+    /// may report the bytes gone while its own FIFO still holds them.
+    pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {
+        let earliest = self.tx.take().unwrap_or(now);
+        let left = now.max(earliest);
+        self.reply_from = earliest;
+        for (at, bytes) in std::mem::take(&mut self.held) {
+            self.accept(&bytes, at, stats);
+        }
+        let turnaround = if std::mem::take(&mut self.broadcast_on_wire) {
+            self.broadcast_delay
+        } else {
+            self.t35
+        };
+        self.ready_at = self.ready_at.max(left + turnaround);
+        left
+    }
+
+    pub(super) fn received(&mut self, bytes: &[u8], now: Instant, stats: &Stats) {
+        self.last_rx = now;
+        let rest = self.strip_echo(bytes, stats);
+        if rest.is_empty() {
+            return;
+        }
+        if self.tx.is_some() {
+            // The request is still on its way out: when its last byte left is not
+            // known yet, so these wait for `drained` to judge them.
+            self.held.push((now, rest.to_vec()));
+        } else {
+            self.accept(rest, now, stats);
+        }
+    }
+
+    pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
+        let mut wake: Option<Instant> = None;
+        if self.decoder.buffered() > 0 {
+            wake = Some(self.last_rx + self.silence);
+        }
+        if waiting {
+            let free = self.free_at();
+            wake = Some(wake.map_or(free, |w| w.min(free)));
+        }
+        wake.filter(|&w| w > now)
+    }
+
+    pub(super) fn clear(&mut self, stats: &Stats) {
+        stats.add(&stats.dropped_bytes, self.decoder.clear() as u64);
+        if let Some(echo) = &mut self.echo {
+            echo.clear();
+        }
+        self.tx = None;
+        self.held.clear();
+        self.broadcast_on_wire = false;
+    }
+
+    pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
+        let held = self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+        stats.add(&stats.dropped_bytes, (self.decoder.clear() + held) as u64);
+        // Never written in time (CTS held low): nothing of it is on its way.
+        self.tx = None;
+        self.ready_at = self.ready_at.max(now + self.guard);
+    }
+
+    pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
+        let codec = self.decoder.codec();
+        let bytes = codec.encoded_len(adu.pdu().len()) + codec.encoded_len(2);
+        serial::wire_time(&self.port, bytes) + 2 * self.t35
+    }
+
+    /// The line is free once the turnaround after our last request has passed and the
+    /// device has been quiet for 3.5 character times.
+    fn free_at(&self) -> Instant {
+        self.ready_at.max(self.last_rx + self.t35)
+    }
+
+    /// Bytes read at `at`, once the request they follow has left: before its last byte
+    /// left they cannot be its reply (an echo, a device that answers too early, a
+    /// frame already on its way), and are dropped.
+    fn accept(&mut self, bytes: &[u8], at: Instant, stats: &Stats) {
+        if at < self.reply_from {
+            debug!(
+                bytes = bytes.len(),
+                "bytes received while the request was still being sent discarded"
+            );
+            stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        } else {
+            self.decoder.push(bytes);
+        }
+    }
+
+    /// Reads back the echo of what was sent; bytes that differ from it are line noise
+    /// and dropped with it.
+    fn strip_echo<'a>(&mut self, bytes: &'a [u8], stats: &Stats) -> &'a [u8] {
+        let Some(echo) = &mut self.echo else {
+            return bytes;
+        };
+        let n = bytes.len().min(echo.len());
+        if echo.iter().take(n).eq(bytes[..n].iter()) {
+            echo.drain(..n);
+            return &bytes[n..];
+        }
+        debug!(
+            expected = echo.len(),
+            "the echo of the request differs from what was sent: dropped as noise"
+        );
+        echo.clear();
+        stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        &[]
+    }
+
+    pub(super) fn frames<R: Asked>(
+        &mut self,
+        in_flight: &[InFlight<R>],
+        now: Instant,
+        stats: &Stats,
+    ) -> Vec<Seen> {
+        let quiet = now >= self.last_rx + self.silence;
+        let Some(f) = in_flight.first() else {
+            // Nothing asked: late answers or noise, dropped once the line is quiet.
+            if quiet && self.decoder.buffered() > 0 {
+                let n = self.decoder.clear();
+                debug!(bytes = n, "bytes that answer no request dropped");
+                stats.add(&stats.dropped_bytes, n as u64);
+            }
+            return Vec::new();
+        };
+        let request = f.req.adu().pdu();
+        let mut next = self.decoder.next(Expect::Reply(request), quiet);
+        while let Some(Decoded::Noise(n)) = next {
+            stats.add(&stats.dropped_bytes, n as u64);
+            next = self.decoder.next(Expect::Reply(request), quiet);
+        }
+        match next {
+            None | Some(Decoded::Noise(_)) => Vec::new(),
+            Some(Decoded::Frame { unit, pdu }) => {
+                if unit == f.req.adu().unit() {
+                    // The CRC or LRC proves these are the unit's own bytes: a reply of
+                    // another shape than the request's goes to the master unchanged, to
+                    // judge, as a transparent gateway passes it.
+                    if !pdu::reply_matches(request, &pdu) {
+                        debug!(
+                            unit,
+                            "a reply of another shape than its request's, passed on"
+                        );
+                    }
+                    vec![Seen::Frame(Adu::build(f.tid, unit, &pdu))]
+                } else {
+                    debug!(unit, "a frame that does not answer the request on the line");
+                    stats.add(&stats.bad_frames, 1);
+                    vec![Seen::Corrupt(f.tid)]
+                }
+            }
+            Some(Decoded::Corrupt(n)) => {
+                debug!(bytes = n, "a reply whose check failed");
+                stats.add(&stats.bad_frames, 1);
+                stats.add(&stats.dropped_bytes, n as u64);
+                vec![Seen::Corrupt(f.tid)]
+            }
+        }
+    }
+}

@@ -1,0 +1,31 @@
+//! systemd's watchdog, pinged from the relay's own loop: if the loop wedges, the pings
+//! stop and systemd restarts the gateway.
+
+use crate::notify;
+use std::time::Duration;
+use tokio::time::Instant;
+
+pub(super) struct Watchdog {
+    every: Duration,
+    next: Instant,
+}
+
+impl Watchdog {
+    /// Pings every `every`, the first at `now`.
+    pub(super) fn new(every: Duration, now: Instant) -> Self {
+        Self { every, next: now }
+    }
+
+    /// When the next ping is due.
+    pub(super) fn next(&self) -> Instant {
+        self.next
+    }
+
+    /// Sends WATCHDOG=1 if it is due at `now`.
+    pub(super) fn pet(&mut self, now: Instant) {
+        if now >= self.next {
+            notify::watchdog();
+            self.next = now + self.every;
+        }
+    }
+}
