@@ -255,6 +255,32 @@ fn a_reply_that_swallows_a_whole_frame_delivers_nothing_wrong() {
     assert_eq!(read_frame(&mut other), hex(NOTIFICATION));
 }
 
+/// A frame that lost both bytes of its id takes the two bytes before it as one. Here
+/// the device (scripted to know the request's serial id, which a real one could only
+/// match by chance) ends a damaged notification with that id, sends a notification
+/// that lost its id, then its reply: the id and the notification's body have the shape
+/// the request calls for, but the real reply after them carries the same id with
+/// other bytes and refutes them. The master gets 42, never the count 15, five times.
+#[test]
+fn values_equal_to_the_request_id_before_a_frame_that_lost_its_id_deliver_nothing_wrong() {
+    let r = rig(|c| c);
+    let _dev = RawDevice::start(
+        &r.socat.dev,
+        Box::new(move |req| {
+            let n = hex(NOTIFICATION);
+            let damaged = [&n[1..9], &req.tid().to_be_bytes()[..]].concat();
+            [damaged, n[2..].to_vec(), reply_on_line(req, &[42])].concat()
+        }),
+    );
+    let mut m = r.gw.connect();
+    for tid in 1..=5 {
+        assert_eq!(
+            transact(&mut m, &read_req(tid, 1, 0, 1)),
+            read_reply(tid, 1, &[42])
+        );
+    }
+}
+
 /// Hole 5: an RS-232 loopback (a cable or adapter that echoes what is sent) with the
 /// gateway at 9600 baud, where a 12-byte request takes 12.5 ms to leave. The echo of
 /// an FC 06 write is byte for byte its successful reply, and that of an FC 01 read of

@@ -506,8 +506,10 @@ fn matrix(requests: usize) -> Vec<Scenario> {
             .collect(),
         Err(_) => vec![0.001, 0.01, 0.05],
     };
-    // MBGATE_LONG_MATCH runs the scenarios whose name contains it.
+    // MBGATE_LONG_MATCH runs the scenarios whose name contains it; MBGATE_LONG_SEED
+    // gives the simulator's line faults another seed (7 otherwise).
     let only = std::env::var("MBGATE_LONG_MATCH").unwrap_or_default();
+    let seed = std::env::var("MBGATE_LONG_SEED").map_or(7, |s| s.parse().expect("a seed"));
     let mut out = Vec::new();
     for drop in rates {
         for (device, direction, in_flight, notifications) in [
@@ -524,6 +526,7 @@ fn matrix(requests: usize) -> Vec<Scenario> {
             sc.notifications = notifications;
             sc.requests = requests;
             sc.response_timeout_ms = 100;
+            sc.seed = seed;
             if sc.to_string().contains(&only) {
                 out.push(sc);
             }
