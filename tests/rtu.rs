@@ -212,6 +212,24 @@ fn broadcast_echo_answers_the_master() {
     );
 }
 
+/// The simulator as one RTU device, unit 1, paced at 19 200 baud.
+fn rtu_unit_1(dev: &std::path::Path) -> Proc {
+    sim(
+        dev,
+        &[
+            "--framing", "rtu", "--profile", "generic", "--units", "1", "--baud", "19200",
+            "--headless",
+        ],
+    )
+}
+
+/// A gateway configuration for an RTU line without flow control.
+fn rtu_line(gw: &std::path::Path) -> Cfg {
+    Cfg::new(gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+}
+
 /// A dead unit beside a healthy one on the same line: once the dead one is backed
 /// off, its requests are answered 0x0B without using the line and the healthy unit's
 /// latency stays within one response timeout and its guard of what it is alone.
@@ -221,23 +239,8 @@ fn dead_unit_is_backed_off_and_does_not_slow_the_healthy_one() {
     const GUARD_MS: u64 = 50;
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let _device = sim(
-        &socat.dev,
-        &[
-            "--framing",
-            "rtu",
-            "--profile",
-            "generic",
-            "--units",
-            "1",
-            "--baud",
-            "19200",
-            "--headless",
-        ],
-    );
-    let cfg = Cfg::new(&socat.gw)
-        .serial("framing = \"rtu\"")
-        .serial("flow_control = \"none\"")
+    let _device = rtu_unit_1(&socat.dev);
+    let cfg = rtu_line(&socat.gw)
         .relay(&format!("response_timeout_ms = {TIMEOUT_MS}"))
         .relay(&format!("timeout_guard_ms = {GUARD_MS}"))
         .relay("unit_backoff_after = 2")
@@ -323,23 +326,8 @@ fn backed_off_unit_polled_in_a_tight_loop_is_answered_at_the_line_pace() {
     use std::sync::{Arc, Mutex};
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let _device = sim(
-        &socat.dev,
-        &[
-            "--framing",
-            "rtu",
-            "--profile",
-            "generic",
-            "--units",
-            "1",
-            "--baud",
-            "19200",
-            "--headless",
-        ],
-    );
-    let cfg = Cfg::new(&socat.gw)
-        .serial("framing = \"rtu\"")
-        .serial("flow_control = \"none\"")
+    let _device = rtu_unit_1(&socat.dev);
+    let cfg = rtu_line(&socat.gw)
         .relay("response_timeout_ms = 500")
         .relay("timeout_guard_ms = 50")
         .relay("unit_backoff_after = 2")

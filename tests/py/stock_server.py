@@ -13,7 +13,7 @@ One unit (id 1; pymodbus answers other ids with exception 04). Data (PDU address
 holding register 0 = 0x00FF (the CIE-M10 inputs 0..7 ON), holding register i = 1000 + i,
 input register i = 2000 + i, coil i ON when i % 3 == 0, discrete input i ON when
 i % 2 == 0. Prints READY on stdout once serving. It handles one request at a time and
-does not resynchronise after garbage (see DEVELOPERS.md), so the gateway must feed it
+does not resynchronise after garbage (pymodbus 3.16.1 behaviour), so the gateway must feed it
 one frame at a time, which it does with max_in_flight = 1.
 """
 
