@@ -217,7 +217,14 @@ fn rtu_unit_1(dev: &std::path::Path) -> Proc {
     sim(
         dev,
         &[
-            "--framing", "rtu", "--profile", "generic", "--units", "1", "--baud", "19200",
+            "--framing",
+            "rtu",
+            "--profile",
+            "generic",
+            "--units",
+            "1",
+            "--baud",
+            "19200",
             "--headless",
         ],
     )
