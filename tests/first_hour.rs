@@ -177,3 +177,72 @@ fn ctrl_c_in_the_demo_console_ends_the_line_and_shows_the_counters() {
     assert!(shown.contains("requests=0"), "{shown}");
     assert_eq!(lines.next(), Some("exit 0"), "{out}");
 }
+
+/// The register tables have one set of names: the README's table, `read --help` and
+/// `write --help` agree on the names and their aliases, and the demo's banner uses them.
+#[test]
+fn table_names_agree_between_help_and_readme() {
+    let readme = std::fs::read_to_string(common::repo().join("README.md")).unwrap();
+    // | `coils` | FC 01 | FC 05, 0F | `coil` |, and for holding registers
+    // `holding`, `hr`; for `write` also `registers`, `register`
+    let rows: Vec<(String, bool, Vec<String>, Vec<String>)> = readme
+        .lines()
+        .filter(|l| l.starts_with("| `") && l.contains("| FC 0"))
+        .map(|l| {
+            let cells: Vec<&str> = l.split('|').map(str::trim).collect();
+            let names = |cell: &str| -> Vec<String> {
+                cell.split('`')
+                    .skip(1)
+                    .step_by(2)
+                    .map(str::to_string)
+                    .collect()
+            };
+            let (both, write_only) = cells[4]
+                .split_once("; for `write` also")
+                .unwrap_or((cells[4], ""));
+            (
+                names(cells[1])[0].clone(),
+                cells[3] != "read-only",
+                names(both),
+                names(write_only),
+            )
+        })
+        .collect();
+    assert_eq!(rows.len(), 4, "the README's table of tables");
+    let read = mbgate(&["read", "--help"]).stdout;
+    let write = mbgate(&["write", "--help"]).stdout;
+    for (name, writable, aliases, write_aliases) in &rows {
+        let line = |help: &str| {
+            help.lines()
+                .find(|l| l.trim_start().starts_with(&format!("- {name}:")))
+                .map(str::to_string)
+        };
+        let r = line(&read).unwrap_or_else(|| panic!("read --help lacks {name}:\n{read}"));
+        for alias in aliases {
+            assert!(
+                r.contains(alias.as_str()),
+                "read --help, {name}: {alias}: {r}"
+            );
+        }
+        match line(&write) {
+            Some(w) => {
+                assert!(writable, "write --help offers read-only {name}");
+                for alias in aliases.iter().chain(write_aliases) {
+                    assert!(
+                        w.contains(alias.as_str()),
+                        "write --help, {name}: {alias}: {w}"
+                    );
+                }
+            }
+            None => assert!(!writable, "write --help lacks {name}:\n{write}"),
+        }
+    }
+    // The demo's banner names tables the same way (checked where it prints them).
+    let banner = std::fs::read_to_string(common::repo().join("src/demo.rs")).unwrap();
+    for used in ["holding-registers", "coils"] {
+        assert!(
+            banner.contains(&format!(" {used} ")),
+            "{used} in the banner"
+        );
+    }
+}
