@@ -960,6 +960,24 @@ fn rtu_reply_len(qty: u16) -> usize {
     5 + 2 * usize::from(qty)
 }
 
+/// The simulator as an RTU device paced at `baud`, answering once probed, and the
+/// gateway in front of it at the same speed without flow control.
+fn rtu_line(baud: u32) -> (Line, Gateway) {
+    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
+    let speed = baud.to_string();
+    let line = Line::start_probed(
+        &["--framing", "rtu", "--baud", &speed],
+        &probe,
+        rtu_reply_len(1),
+    );
+    let cfg = Cfg::new(&line.socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .serial(&format!("baud_rate = {baud}"));
+    let gw = line.gateway_with(cfg, &[], &[]);
+    (line, gw)
+}
+
 /// One master polls FC 03 through `mbgate run --framing rtu` at 9600 baud against the
 /// simulator (`--framing rtu --baud 9600`): transactions per second against the wire
 /// limit, and the gateway's CPU time meanwhile (utime + stime from /proc/PID/stat, and
@@ -968,17 +986,7 @@ fn rtu(r: &mut Report) {
     const BAUD: u32 = 9600;
     const CPU_BUDGET: Duration = Duration::from_secs(10);
     const BUDGET: Duration = Duration::from_secs(3);
-    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
-    let line = Line::start_probed(
-        &["--framing", "rtu", "--baud", "9600"],
-        &probe,
-        rtu_reply_len(1),
-    );
-    let cfg = Cfg::new(&line.socat.gw)
-        .serial("framing = \"rtu\"")
-        .serial("flow_control = \"none\"")
-        .serial(&format!("baud_rate = {BAUD}"));
-    let gw = line.gateway_with(cfg, &[], &[]);
+    let (_line, gw) = rtu_line(BAUD);
     let pid = gw.proc.pid();
     let mut s = connect(&gw);
     let char_time = 10.0 / f64::from(BAUD);
@@ -1055,17 +1063,7 @@ fn rtu_backoff(r: &mut Report) {
     const ALONE: Duration = Duration::from_secs(5);
     const CPU_WINDOW: Duration = Duration::from_secs(5);
     const BESIDE: Duration = Duration::from_secs(10);
-    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
-    let line = Line::start_probed(
-        &["--framing", "rtu", "--baud", "19200"],
-        &probe,
-        rtu_reply_len(1),
-    );
-    let cfg = Cfg::new(&line.socat.gw)
-        .serial("framing = \"rtu\"")
-        .serial("flow_control = \"none\"")
-        .serial(&format!("baud_rate = {BAUD}"));
-    let gw = line.gateway_with(cfg, &[], &[]);
+    let (_line, gw) = rtu_line(BAUD);
     let pid = gw.proc.pid();
     let mut healthy = connect(&gw);
     eprintln!("rtu-backoff: the healthy unit alone, {ALONE:?}");
