@@ -43,7 +43,7 @@ counters! {
     notifications_missed: "Broadcasts a master missed because it was not reading.",
     dropped_bytes: "Serial bytes the decoder discarded while resynchronising.",
     refuted_frames: "Replies that what followed them showed to have lost bytes: dropped.",
-    bad_frames: "RTU/ASCII replies whose CRC or LRC failed, or that came from another unit than the one asked.",
+    bad_frames: "RTU/ASCII replies whose CRC or LRC failed, or that came from another unit than the one asked; MBAP replies with a request's id and unit that did not fit it.",
     backed_off: "Requests answered 0x0B at once: their unit was backed off (RTU/ASCII).",
     broadcasts: "Broadcasts (unit 0) sent on an RTU/ASCII line.",
     serial_bytes_in: "Bytes read from the serial port.",

@@ -628,3 +628,67 @@ async fn rtu_a_reply_of_another_shape_with_a_good_crc_goes_to_the_master_unchang
         gw.stop().await;
     }
 }
+
+/// MBAP has no checksum, but a whole frame with the request's id and unit, confirmed
+/// by a pause like any reply, is the device's own answer: one whose shape does not fit
+/// the request (two registers for one asked) is answered at once (docs/reliability.md),
+/// 0x0B for a write or a read with no retry left, a resend under a fresh id for a read
+/// that may be retried.
+#[tokio::test]
+async fn mbap_a_reply_of_another_shape_is_answered_at_once_not_after_the_timeout() {
+    for retries in [0, 1] {
+        let mut gw = start(RelayConfig {
+            retries,
+            response_timeout_ms: 1000,
+            ..relay_cfg()
+        });
+        let mut dev = gw.device.accept().await;
+        let mut m = gw.master();
+        m.send(read(6, 1, 10)).await;
+        let req = next_request(&mut dev).await;
+        let t0 = Instant::now();
+        let odd = Adu::build(req.tid(), 1, &[0x03, 0x04, 0x00, 0x0B, 0x00, 0x0C]);
+        reply(&mut dev, &odd).await;
+        if retries == 0 {
+            let r = m.recv().await;
+            assert_eq!((r.tid(), exception_of(&r)), (6, Some(0x0B)));
+            assert_eq!(gw.get(|s| &s.retries), 0);
+        } else {
+            let again = next_request(&mut dev).await;
+            assert_eq!(again.pdu(), req.pdu(), "the same read");
+            assert_ne!(again.tid(), req.tid(), "under a fresh id");
+            assert!(
+                t0.elapsed() < 200 * MS,
+                "resent at once: {:?}",
+                t0.elapsed()
+            );
+            reply(&mut dev, &answer(&again)).await;
+            let r = m.recv().await;
+            assert_eq!((r.tid(), value(&r)), (6, 11));
+            assert_eq!(gw.get(|s| &s.retries), 1);
+            assert_eq!(gw.get(|s| &s.replies), 1);
+        }
+        assert!(
+            t0.elapsed() < 200 * MS,
+            "well before the 1 s timeout: {:?}",
+            t0.elapsed()
+        );
+        assert_eq!(gw.get(|s| &s.bad_frames), 1);
+        // The malformed reply's id is retired: sent again, it is a late reply.
+        reply(&mut dev, &odd).await;
+        gw.until("late_replies", |s| &s.late_replies, 1).await;
+        m.nothing_for(30 * MS).await;
+        // A write whose reply echoes another value: 0x0B at once, never resent.
+        m.send(write(8, 1, 10, 0x1234)).await;
+        let w = next_request(&mut dev).await;
+        let t0 = Instant::now();
+        reply(&mut dev, &write(w.tid(), 1, 10, 0x4321)).await;
+        let r = m.recv().await;
+        assert_eq!((r.tid(), exception_of(&r)), (8, Some(0x0B)));
+        assert!(t0.elapsed() < 200 * MS, "at once: {:?}", t0.elapsed());
+        device_hears_nothing(&mut dev, 30 * MS).await;
+        assert_eq!(gw.get(|s| &s.bad_frames), 2);
+        assert_eq!(gw.get(|s| &s.retries), retries.into());
+        gw.stop().await;
+    }
+}

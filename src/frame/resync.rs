@@ -8,6 +8,8 @@
 //!   a function code that can exist) and otherwise drops one byte and looks again;
 //! - on a complete candidate that the [`Judge`] rejects (wrong shape, or matching no
 //!   request), drops one byte and rescans: the next real frame may start inside it;
+//!   unless the judge wants it delivered once confirmed ([`Judge::deliver_refused`]),
+//!   when it is held like an accepted frame and rescanned only if refuted;
 //! - discards a partial candidate once the line has been quiet for the frame gap (the
 //!   caller says so with `quiet`), one byte at a time, so frames inside it are found;
 //! - counts every byte it drops;
@@ -77,6 +79,14 @@ pub trait Judge {
     /// right after a byte this frame borrowed, must not pass for the end of the talk.
     fn pause_confirms(&self, _frame: FrameRef<'_>) -> bool {
         true
+    }
+    /// Is this complete candidate, which [`accept`](Judge::accept) refused, still to
+    /// be handed on once confirmed like a held frame (the relay: the id and unit of a
+    /// request in flight, the shape of no reply to it)? Refuted, or left unconfirmed,
+    /// it is rescanned byte by byte as any refused candidate is, so a frame shifted by
+    /// lost bytes is still found inside it.
+    fn deliver_refused(&self, _frame: FrameRef<'_>) -> bool {
+        false
     }
 }
 
@@ -345,14 +355,20 @@ impl Resync {
                 Candidate::Incomplete => return None,
                 Candidate::Complete(total) => {
                     let frame = FrameRef::new(&self.buf[..total]);
-                    if !judge.accept(frame) {
+                    let accepted = judge.accept(frame);
+                    if !accepted && !judge.deliver_refused(frame) {
                         self.drop_one();
                         continue;
                     }
-                    if judge.confirm(frame) {
+                    if !accepted || judge.confirm(frame) {
                         match self.verdict(total, judge, quiet) {
                             Verdict::Confirmed => {}
                             Verdict::Wait => return None,
+                            Verdict::Refuted if !accepted => {
+                                // Refused in the first place: rescanned as before.
+                                self.drop_one();
+                                continue;
+                            }
                             Verdict::Refuted => {
                                 // Skipped whole: a frame found inside it could only be
                                 // a shifted copy of what follows.
@@ -675,6 +691,57 @@ mod tests {
         }
         fn pause_confirms(&self, _: FrameRef<'_>) -> bool {
             false
+        }
+    }
+
+    /// A relay's view with a read of one register in flight as id 7: a frame with id 7
+    /// of another shape is refused, but to be delivered once confirmed.
+    struct OneRegisterAsked;
+    impl Judge for OneRegisterAsked {
+        fn plausible_function(&self, code: u8) -> bool {
+            pdu::is_reply_function(code)
+        }
+        fn accept(&self, frame: FrameRef<'_>) -> bool {
+            let asked = [0x03, 0x00, 0x0A, 0x00, 0x01];
+            match frame.tid() {
+                7 => pdu::reply_matches(&asked, frame.pdu()),
+                _ => pdu::reply_well_formed(frame.pdu()),
+            }
+        }
+        fn confirm(&self, _: FrameRef<'_>) -> bool {
+            true
+        }
+        fn deliver_refused(&self, frame: FrameRef<'_>) -> bool {
+            frame.tid() == 7
+        }
+    }
+
+    /// A refused frame the judge wants is delivered once a pause confirms it; one that
+    /// lost its byte count and borrowed the next frame's first byte is refuted by what
+    /// follows and rescanned byte by byte, so that next frame is still found (dropping
+    /// it whole, as an accepted frame is, would lose it).
+    #[test]
+    fn a_refused_frame_the_judge_wants_is_delivered_confirmed_and_rescanned_refuted() {
+        let two = bytes("00 07 00 00 00 07 01 03 04 00 01 00 02");
+        let (got, _) = run(&OneRegisterAsked, &[Step::Bytes(&two), Step::Pause]);
+        assert_eq!(got, vec![two.clone()]);
+        let (got, _) = run(&OneRegisterAsked, &[Step::Bytes(&two)]);
+        assert!(got.is_empty(), "held until confirmed: {got:02X?}");
+
+        let mut lost = bytes("00 07 00 00 00 05 01 03 02 00 2A");
+        lost.remove(8);
+        let n = bytes(NOTIFICATION);
+        let all = [lost, n.clone()].concat();
+        for cut in 0..=all.len() {
+            let (got, _) = run(
+                &OneRegisterAsked,
+                &[
+                    Step::Bytes(&all[..cut]),
+                    Step::Bytes(&all[cut..]),
+                    Step::Gap,
+                ],
+            );
+            assert_eq!(got, vec![n.clone()], "cut at {cut}");
         }
     }
 

@@ -33,7 +33,8 @@ pub(super) struct InFlight<R> {
 pub(super) enum Failure {
     /// No reply in time.
     Timeout,
-    /// A reply whose CRC or LRC failed, or that did not answer it (RTU/ASCII).
+    /// A reply whose CRC or LRC failed (RTU/ASCII), or that carried its id and unit
+    /// (MBAP) or key but did not fit it.
     Corrupt,
 }
 

@@ -91,6 +91,19 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
         }
     }
 
+    /// The id and unit of a request in flight, the shape of no reply to it, and not
+    /// a copy of the request (an echo of a read never has a reply's shape): once
+    /// confirmed, the device's own answer, unusable. Answered at once (a resend or
+    /// 0x0B) rather than left to the response timeout; refuted, it is rescanned as a
+    /// refused frame is (docs/reliability.md).
+    fn deliver_refused(&self, frame: FrameRef<'_>) -> bool {
+        self.in_flight.iter().any(|f| {
+            f.tid == frame.tid()
+                && f.req.adu().unit() == frame.unit()
+                && f.req.adu().pdu() != frame.pdu()
+        })
+    }
+
     /// Always: a frame that lost a byte completes itself with the first byte of
     /// whatever follows it, and something may always follow: a notification the
     /// device sends whether or not the gateway passes them on, a late or duplicate
@@ -261,6 +274,18 @@ impl Mbap {
                 debug!(tid = frame.tid(), "{why}: {:?}", frame);
                 self.early_bytes += frame.as_bytes().len() as u64;
                 continue;
+            }
+            if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
+                let asked = f.req.adu();
+                if asked.unit() != frame.unit() || !pdu::reply_matches(asked.pdu(), frame.pdu()) {
+                    debug!(
+                        tid = frame.tid(),
+                        "a reply that does not fit its request: {:?}", frame
+                    );
+                    stats.add(&stats.bad_frames, 1);
+                    seen.push(Seen::Corrupt(frame.tid()));
+                    continue;
+                }
             }
             seen.push(Seen::Frame(frame));
         }

@@ -34,8 +34,10 @@ pub(super) enum Seen {
     /// A frame; its transaction id is the serial-side one (for RTU/ASCII, the key of
     /// the request it answers, which it has been checked against).
     Frame(Adu),
-    /// The answer to the request with this key failed its CRC or LRC, or did not
-    /// match the request: the request failed (retried if it may be).
+    /// The answer to the request with this key (RTU/ASCII) or id (MBAP) failed its
+    /// CRC or LRC, or did not match the request: the request failed (retried if it may
+    /// be). MBAP: a confirmed frame with the request's id and unit whose shape fits no
+    /// reply to it.
     Corrupt(u16),
 }
 
