@@ -2,7 +2,7 @@
 //! request PDUs of docs/protocol.md §1.
 
 use super::link::Link;
-use crate::cli_overrides::{PortFlags, PORT_GROUP};
+use crate::cli_overrides::{choice, PortFlags, PORT_GROUP};
 use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
 
@@ -15,9 +15,14 @@ pub struct CommonArgs {
     #[arg(long, value_name = "HOST:PORT", conflicts_with = "serial")]
     pub tcp: Option<String>,
     /// Ask a device directly on this serial port, in MBAP framing (the CIE-M10 serial
-    /// Modbus/TCP mode: whole MBAP frames on the line, no CRC)
+    /// Modbus/TCP mode: whole MBAP frames on the line, no CRC) unless --framing says
+    /// otherwise
     #[arg(long, value_name = "PATH")]
     pub serial: Option<String>,
+    /// How frames are carried on the --serial port: mbap, or rtu or ascii for a
+    /// Modbus serial-line device
+    #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap", requires = "serial")]
+    pub framing: Framing,
     /// The serial port's settings (with --serial only), as `mbgate run` takes them.
     #[command(flatten)]
     pub port: PortFlags,
@@ -230,7 +235,7 @@ impl CommonArgs {
         };
         let mut cfg = SerialConfig {
             path: path.clone(),
-            framing: Framing::Mbap,
+            framing: self.framing,
             ..SerialConfig::default()
         };
         self.port
@@ -275,6 +280,29 @@ mod tests {
         assert_eq!(r.request(), Request::ReadCoils { addr: 5, qty: 1 });
         assert!(
             matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.baud_rate == 9600)
+        );
+        assert!(
+            matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.framing == Framing::Mbap)
+        );
+        let r = parse_read(&[
+            "read",
+            "holding",
+            "0",
+            "--serial",
+            "/dev/x",
+            "--framing",
+            "ascii",
+        ])
+        .unwrap();
+        assert!(
+            matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.framing == Framing::Ascii)
+        );
+        assert!(
+            parse_read(&["read", "holding", "0", "--framing", "rtu"]).is_err(),
+            "--framing is for --serial"
+        );
+        assert!(
+            parse_read(&["read", "holding", "0", "--serial", "p", "--framing", "tcp"]).is_err()
         );
         assert!(
             parse_read(&["read", "holding", "0", "--baud", "9600"]).is_err(),

@@ -1,10 +1,14 @@
 //! The master's transport: one request at a time to a gateway over TCP
-//! (strict decoder, docs/design.md §1 step 1) or to a device on a serial port (the
-//! resynchronising decoder of docs/design.md §2, judging by transaction id and shape).
+//! (strict decoder, docs/design.md §1 step 1) or to a device on a serial port: MBAP
+//! (the resynchronising decoder of docs/design.md §2, judging by transaction id and
+//! shape), or RTU or ASCII (frames ended by their length, silence or line feed, and
+//! checked by CRC or LRC; Modbus over Serial Line V1.02 §2.5.1, §2.5.2).
 
-use crate::config::{RelayConfig, SerialConfig};
+use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::mbap::{decode_strict, FrameRef};
 use crate::frame::request::{self, decode_reply, Reply};
+use crate::frame::rtu;
+use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
 use crate::frame::{pdu, Adu, Judge, Resync, StrictError};
 use bytes::BytesMut;
 use std::io;
@@ -67,8 +71,36 @@ pub enum Link {
     Serial {
         cfg: SerialConfig,
         port: Option<SerialStream>,
-        decoder: Resync,
+        decoder: SerialDecoder,
     },
+}
+
+/// How replies are found on a serial port: by the port's framing.
+#[derive(Debug)]
+pub enum SerialDecoder {
+    /// MBAP frames (the CIE-M10 serial Modbus/TCP mode), resynchronising.
+    Mbap(Resync),
+    /// RTU or ASCII frames.
+    Line(Decoder),
+}
+
+impl SerialDecoder {
+    fn new(framing: Framing) -> Self {
+        match framing {
+            Framing::Mbap => SerialDecoder::Mbap(Resync::new()),
+            Framing::Rtu => SerialDecoder::Line(Decoder::new(Codec::Rtu)),
+            Framing::Ascii => SerialDecoder::Line(Decoder::new(Codec::Ascii)),
+        }
+    }
+
+    fn clear(&mut self) {
+        match self {
+            SerialDecoder::Mbap(d) => d.clear(),
+            SerialDecoder::Line(d) => {
+                d.clear();
+            }
+        }
+    }
 }
 
 impl Link {
@@ -94,9 +126,21 @@ impl Link {
 
     pub fn serial(cfg: SerialConfig) -> Link {
         Link::Serial {
+            decoder: SerialDecoder::new(cfg.framing),
             cfg,
             port: None,
-            decoder: Resync::new(),
+        }
+    }
+
+    /// The bytes `adu` is on this link's wire: MBAP as it is, RTU or ASCII as the
+    /// unit and PDU in that framing, check included.
+    pub fn wire(&self, adu: &Adu) -> Vec<u8> {
+        match self {
+            Link::Serial {
+                decoder: SerialDecoder::Line(d),
+                ..
+            } => d.codec().encode(adu.unit(), adu.pdu()),
+            _ => adu.as_bytes().to_vec(),
         }
     }
 
@@ -203,12 +247,20 @@ impl Master {
             Link::Tcp { addr, stream, buf } => {
                 tcp_exchange(addr, stream, buf, request, deadline, ms).await
             }
-            Link::Serial { cfg, port, decoder } => {
-                serial_exchange(cfg, port, decoder, request, deadline, ms).await
-            }
+            Link::Serial {
+                cfg,
+                port,
+                decoder: SerialDecoder::Mbap(decoder),
+            } => serial_exchange(cfg, port, decoder, request, deadline, ms).await,
+            Link::Serial {
+                cfg,
+                port,
+                decoder: SerialDecoder::Line(decoder),
+            } => line_exchange(cfg, port, decoder, request, deadline, ms).await,
         };
         // Over TCP a frame with our transaction id may still answer something else;
-        // on the serial line the judge has already checked (docs/design.md §1 step 4).
+        // on an MBAP serial line the judge has already checked (docs/design.md §1
+        // step 4); an RTU or ASCII reply whose check held is judged here.
         let result = received.and_then(|r| match decode_reply(request.pdu(), r.reply.pdu()) {
             Ok(decoded) => Ok(Exchange {
                 reply: r.reply,
@@ -365,6 +417,95 @@ async fn serial_exchange(
     };
     let result = timeout_at(deadline, wait).await;
     let dropped_bytes = decoder.stats().dropped_bytes - dropped_before;
+    received(result, target, ms, start, Vec::new(), dropped_bytes)
+}
+
+/// Opens the serial port if it is not open.
+fn open_port<'a>(
+    cfg: &SerialConfig,
+    port: &'a mut Option<SerialStream>,
+) -> Result<&'a mut SerialStream, ClientError> {
+    if port.is_none() {
+        let p = crate::serial::open(cfg).map_err(|source| ClientError::Open {
+            path: cfg.path.clone(),
+            source,
+        })?;
+        *port = Some(p);
+    }
+    Ok(port.as_mut().expect("opened above"))
+}
+
+/// One request to an RTU or ASCII device: the request in the port's framing, then the
+/// first frame whose CRC or LRC holds and that comes from the unit asked, ended by its
+/// length or a silence of 3.5 character times (RTU, never shorter than
+/// `silence_floor_ms`) or its line feed (ASCII). Frames from another unit and bytes
+/// that make no good frame are skipped and counted.
+async fn line_exchange(
+    cfg: &SerialConfig,
+    port: &mut Option<SerialStream>,
+    decoder: &mut Decoder,
+    request: &Adu,
+    deadline: Instant,
+    ms: u64,
+) -> Result<Received, ClientError> {
+    let target = || cfg.path.clone();
+    let fresh = port.is_none();
+    let p = open_port(cfg, port)?;
+    if fresh {
+        decoder.clear();
+    }
+    let start = Instant::now();
+    let io = |what, source| ClientError::Io {
+        target: target(),
+        what,
+        source,
+    };
+    let silence = Duration::from_micros(rtu::t35_us(
+        cfg.baud_rate,
+        crate::serial::bits_per_char(cfg),
+    ))
+    .max(Duration::from_millis(cfg.silence_floor_ms));
+    let mut dropped_bytes = 0u64;
+    let wait = async {
+        // Whatever came before the request answers nothing.
+        dropped_bytes += decoder.clear() as u64;
+        let frame = decoder.codec().encode(request.unit(), request.pdu());
+        p.write_all(&frame).await.map_err(|e| io("sending", e))?;
+        let mut chunk = [0u8; 512];
+        let mut quiet = false;
+        loop {
+            while let Some(decoded) = decoder.next(Expect::Reply(request.pdu()), quiet) {
+                match decoded {
+                    Decoded::Frame { unit, pdu } if unit == request.unit() => {
+                        return Ok(Adu::build(request.tid(), unit, &pdu));
+                    }
+                    Decoded::Frame { pdu, .. } => {
+                        dropped_bytes += decoder.codec().encoded_len(pdu.len()) as u64;
+                    }
+                    Decoded::Corrupt(n) | Decoded::Noise(n) => dropped_bytes += n as u64,
+                }
+            }
+            let read = if decoder.buffered() > 0 && decoder.silence_ends_frames() {
+                match timeout_at(Instant::now() + silence, p.read(&mut chunk)).await {
+                    Ok(r) => r,
+                    Err(_) => {
+                        quiet = true;
+                        continue;
+                    }
+                }
+            } else {
+                p.read(&mut chunk).await
+            };
+            match read.map_err(|e| io("receiving", e))? {
+                0 => return Err(ClientError::Closed { target: target() }),
+                n => {
+                    decoder.push(&chunk[..n]);
+                    quiet = false;
+                }
+            }
+        }
+    };
+    let result = timeout_at(deadline, wait).await;
     received(result, target, ms, start, Vec::new(), dropped_bytes)
 }
 

@@ -183,7 +183,7 @@ async fn once(
         .unwrap_or_default();
     let tx = || {
         if common.verbose {
-            say(format_args!("tx {}", Hex(request.as_bytes())));
+            say(format_args!("tx {}", Hex(&master.link().wire(&request))));
         }
     };
     let x = match outcome {
@@ -227,7 +227,7 @@ async fn once(
                 x.dropped_bytes
             ));
         }
-        say(format_args!("rx {}", Hex(x.reply.as_bytes())));
+        say(format_args!("rx {}", Hex(&master.link().wire(&x.reply))));
     }
     for line in value_lines(&x.decoded) {
         say(format_args!("{line}"));
