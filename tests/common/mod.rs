@@ -2,7 +2,7 @@
 //! processes, a scriptable raw device on a pty, and a raw TCP master.
 #![allow(dead_code)]
 
-pub mod sim;
+pub(crate) mod sim;
 
 use mbgate::frame::mbap::decode_strict;
 use mbgate::frame::Adu;
@@ -16,12 +16,12 @@ use std::sync::{mpsc, Arc, Mutex};
 use std::thread::{self, JoinHandle};
 use std::time::{Duration, Instant};
 
-pub fn repo() -> PathBuf {
+pub(crate) fn repo() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
 }
 
 /// The venv interpreter with the pinned pymodbus (`scripts/test` creates it).
-pub fn python() -> PathBuf {
+pub(crate) fn python() -> PathBuf {
     let p = std::env::var_os("MBGATE_PYTHON")
         .map(PathBuf::from)
         .unwrap_or_else(|| repo().join(".venv/bin/python"));
@@ -34,7 +34,7 @@ pub fn python() -> PathBuf {
 }
 
 /// `"00 01 FF"` → bytes.
-pub fn hex(s: &str) -> Vec<u8> {
+pub(crate) fn hex(s: &str) -> Vec<u8> {
     let s: String = s.split_whitespace().collect();
     (0..s.len())
         .step_by(2)
@@ -42,7 +42,7 @@ pub fn hex(s: &str) -> Vec<u8> {
         .collect()
 }
 
-pub fn tempdir() -> tempfile::TempDir {
+pub(crate) fn tempdir() -> tempfile::TempDir {
     tempfile::Builder::new()
         .prefix("mbgate-test-")
         .tempdir()
@@ -50,7 +50,7 @@ pub fn tempdir() -> tempfile::TempDir {
 }
 
 /// Polls `ok` every 10 ms until it holds; fails the test after `timeout`.
-pub fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
+pub(crate) fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
     let start = Instant::now();
     while !ok() {
         assert!(start.elapsed() < timeout, "timed out waiting for {what}");
@@ -73,21 +73,21 @@ fn signal(child: &mut Child, name: &str) {
 // One run of the binary to completion
 
 /// What one run of the binary did.
-pub struct Run {
-    pub code: i32,
-    pub stdout: String,
-    pub stderr: String,
-    pub elapsed: Duration,
+pub(crate) struct Run {
+    pub(crate) code: i32,
+    pub(crate) stdout: String,
+    pub(crate) stderr: String,
+    pub(crate) elapsed: Duration,
 }
 
 impl Run {
-    pub fn lines(&self) -> Vec<&str> {
+    pub(crate) fn lines(&self) -> Vec<&str> {
         self.stdout.lines().collect()
     }
 }
 
 /// Runs `mbgate ARGS`, bounded: a run that takes more than 30 s is killed and fails.
-pub fn mbgate(args: &[&str]) -> Run {
+pub(crate) fn mbgate(args: &[&str]) -> Run {
     let start = Instant::now();
     let (mut cmd, stderr) = Launch::default().command(args);
     let mut child = cmd.spawn().expect("run mbgate");
@@ -133,14 +133,14 @@ pub fn mbgate(args: &[&str]) -> Run {
 // socat
 
 /// A virtual serial cable: `gw` is the gateway's end, `dev` the device's.
-pub struct Socat {
+pub(crate) struct Socat {
     child: Option<Child>,
-    pub gw: PathBuf,
-    pub dev: PathBuf,
+    pub(crate) gw: PathBuf,
+    pub(crate) dev: PathBuf,
 }
 
 impl Socat {
-    pub fn start(dir: &Path) -> Socat {
+    pub(crate) fn start(dir: &Path) -> Socat {
         let mut s = Socat {
             child: None,
             gw: dir.join("gw"),
@@ -150,7 +150,7 @@ impl Socat {
         s
     }
 
-    pub fn restart(&mut self) {
+    pub(crate) fn restart(&mut self) {
         self.stop();
         let child = Command::new("socat")
             .arg(format!("pty,raw,echo=0,link={}", self.gw.display()))
@@ -168,7 +168,7 @@ impl Socat {
     }
 
     /// Pulls the cable: socat exits and both ptys vanish.
-    pub fn stop(&mut self) {
+    pub(crate) fn stop(&mut self) {
         if let Some(mut c) = self.child.take() {
             let _ = c.kill();
             let _ = c.wait();
@@ -190,7 +190,7 @@ impl Drop for Socat {
 /// Builds a configuration file: listen on 127.0.0.1:0, the given serial path, and
 /// extra `key = value` lines per section.
 #[derive(Clone)]
-pub struct Cfg {
+pub(crate) struct Cfg {
     serial: Vec<String>,
     tcp: Vec<String>,
     relay: Vec<String>,
@@ -198,7 +198,7 @@ pub struct Cfg {
 }
 
 impl Cfg {
-    pub fn new(serial_path: &Path) -> Cfg {
+    pub(crate) fn new(serial_path: &Path) -> Cfg {
         Cfg {
             serial: vec![format!("path = {:?}", serial_path.display().to_string())],
             tcp: vec!["listen = \"127.0.0.1:0\"".into()],
@@ -206,19 +206,19 @@ impl Cfg {
             log: vec!["level = \"debug\"".into()],
         }
     }
-    pub fn serial(mut self, line: &str) -> Cfg {
+    pub(crate) fn serial(mut self, line: &str) -> Cfg {
         self.serial.push(line.into());
         self
     }
-    pub fn tcp(mut self, line: &str) -> Cfg {
+    pub(crate) fn tcp(mut self, line: &str) -> Cfg {
         self.tcp.push(line.into());
         self
     }
-    pub fn relay(mut self, line: &str) -> Cfg {
+    pub(crate) fn relay(mut self, line: &str) -> Cfg {
         self.relay.push(line.into());
         self
     }
-    pub fn log(mut self, line: &str) -> Cfg {
+    pub(crate) fn log(mut self, line: &str) -> Cfg {
         self.log.push(line.into());
         self
     }
@@ -226,16 +226,16 @@ impl Cfg {
     /// adapter's latency in between. The gateway's line is the fastest there is, so a
     /// peer that answers at once is a peer it can believe (a reply cannot start before
     /// the request has left), and a pause of 3.5 characters (1.75 ms) ends a frame.
-    pub fn pty_line(self) -> Cfg {
+    pub(crate) fn pty_line(self) -> Cfg {
         self.serial("baud_rate = 4000000")
             .serial("silence_floor_ms = 0")
     }
     /// Replaces the log level (`debug` unless set).
-    pub fn log_level(mut self, level: &str) -> Cfg {
+    pub(crate) fn log_level(mut self, level: &str) -> Cfg {
         self.log[0] = format!("level = {level:?}");
         self
     }
-    pub fn render(&self) -> String {
+    pub(crate) fn render(&self) -> String {
         let mut s = String::new();
         for (name, lines) in [
             ("serial", &self.serial),
@@ -250,19 +250,19 @@ impl Cfg {
 }
 
 /// An `mbgate` subcommand running as a child, stderr captured as its log.
-pub struct Proc {
+pub(crate) struct Proc {
     child: Child,
     log: Arc<Mutex<String>>,
     /// From spawning to the first log line that showed `ready`.
     ready_after: Arc<Mutex<Option<Duration>>>,
     reader: Option<JoinHandle<()>>,
-    pub stdout: Arc<Mutex<String>>,
+    pub(crate) stdout: Arc<Mutex<String>>,
 }
 
 /// How an `mbgate` process is started, beyond its arguments: the environment
 /// systemd would give it. By default none of it (the variables are removed).
 #[derive(Default)]
-pub struct Launch {
+pub(crate) struct Launch {
     env: Vec<(&'static str, String)>,
     journal_stream: bool,
 }
@@ -277,14 +277,14 @@ const SERVICE_ENV: [&str; 5] = [
 ];
 
 impl Launch {
-    pub fn env(mut self, key: &'static str, value: impl Into<String>) -> Launch {
+    pub(crate) fn env(mut self, key: &'static str, value: impl Into<String>) -> Launch {
         self.env.push((key, value.into()));
         self
     }
 
     /// Sets JOURNAL_STREAM to the `dev:inode` of the gateway's stderr, as systemd
     /// does when the unit's output goes to the journal.
-    pub fn journal_stream(mut self) -> Launch {
+    pub(crate) fn journal_stream(mut self) -> Launch {
         self.journal_stream = true;
         self
     }
@@ -292,7 +292,7 @@ impl Launch {
     /// `mbgate ARGS` in this environment, stdin closed, stdout piped, stderr on a pipe
     /// whose read end comes back. Drop the command once spawned, so the pipe closes
     /// when mbgate exits.
-    pub fn command<S: AsRef<std::ffi::OsStr>>(
+    pub(crate) fn command<S: AsRef<std::ffi::OsStr>>(
         &self,
         args: impl IntoIterator<Item = S>,
     ) -> (Command, std::io::PipeReader) {
@@ -318,12 +318,12 @@ impl Launch {
 
 impl Proc {
     /// Starts `mbgate ARGS` and waits until its log shows `ready`.
-    pub fn start(args: &[&str], ready: &str) -> Proc {
+    pub(crate) fn start(args: &[&str], ready: &str) -> Proc {
         Proc::launch(args, ready, &Launch::default())
     }
 
     /// [`Proc::start`] in the environment `launch` describes.
-    pub fn launch(args: &[&str], ready: &str, launch: &Launch) -> Proc {
+    pub(crate) fn launch(args: &[&str], ready: &str, launch: &Launch) -> Proc {
         let spawned = Instant::now();
         let (mut cmd, err) = launch.command(args);
         let mut child = cmd.spawn().expect("start mbgate");
@@ -365,21 +365,21 @@ impl Proc {
         p
     }
 
-    pub fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         self.log.lock().unwrap().clone()
     }
 
     /// The child's process id (for /proc/PID: memory, state).
-    pub fn pid(&self) -> u32 {
+    pub(crate) fn pid(&self) -> u32 {
         self.child.id()
     }
 
     /// How long after spawning the `ready` line of [`Proc::start`] was read.
-    pub fn ready_after(&self) -> Duration {
+    pub(crate) fn ready_after(&self) -> Duration {
         self.ready_after.lock().unwrap().expect("started")
     }
 
-    pub fn wait_log(&self, needle: &str, timeout: Duration) {
+    pub(crate) fn wait_log(&self, needle: &str, timeout: Duration) {
         let start = Instant::now();
         while !self.log().contains(needle) {
             assert!(
@@ -392,12 +392,12 @@ impl Proc {
     }
 
     /// SIGTERM, then waits (bounded) for the exit.
-    pub fn terminate(&mut self, within: Duration) -> ExitStatus {
+    pub(crate) fn terminate(&mut self, within: Duration) -> ExitStatus {
         self.stop_with("TERM", within)
     }
 
     /// Sends the signal `name` (`kill -NAME`) and waits for the exit, at most `within`.
-    pub fn stop_with(&mut self, name: &str, within: Duration) -> ExitStatus {
+    pub(crate) fn stop_with(&mut self, name: &str, within: Duration) -> ExitStatus {
         signal(&mut self.child, name);
         let start = Instant::now();
         loop {
@@ -426,17 +426,17 @@ impl Drop for Proc {
 
 /// `mbgate run` with a configuration file, on 127.0.0.1 port 0: `addr` is the port it
 /// got.
-pub struct Gateway {
-    pub proc: Proc,
-    pub addr: SocketAddr,
+pub(crate) struct Gateway {
+    pub(crate) proc: Proc,
+    pub(crate) addr: SocketAddr,
 }
 
 impl Gateway {
-    pub fn start(cfg: &Cfg, dir: &Path) -> Gateway {
+    pub(crate) fn start(cfg: &Cfg, dir: &Path) -> Gateway {
         Gateway::launch(cfg, dir, Launch::default())
     }
 
-    pub fn launch(cfg: &Cfg, dir: &Path, launch: Launch) -> Gateway {
+    pub(crate) fn launch(cfg: &Cfg, dir: &Path, launch: Launch) -> Gateway {
         let file = dir.join("mbgate.toml");
         std::fs::write(&file, cfg.render()).expect("write config");
         let args = ["run", "--config", file.to_str().unwrap()];
@@ -451,16 +451,16 @@ impl Gateway {
         Gateway { proc, addr }
     }
 
-    pub fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         self.proc.log()
     }
 
     /// Waits until the log contains `needle`.
-    pub fn wait_log(&self, needle: &str, timeout: Duration) {
+    pub(crate) fn wait_log(&self, needle: &str, timeout: Duration) {
         self.proc.wait_log(needle, timeout)
     }
 
-    pub fn connect(&self) -> TcpStream {
+    pub(crate) fn connect(&self) -> TcpStream {
         let s = TcpStream::connect(self.addr).expect("connect to mbgate");
         s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
         s.set_nodelay(true).unwrap();
@@ -468,12 +468,12 @@ impl Gateway {
     }
 
     /// SIGTERM, then waits (bounded) for the exit; the log is complete afterwards.
-    pub fn terminate(&mut self, within: Duration) -> ExitStatus {
+    pub(crate) fn terminate(&mut self, within: Duration) -> ExitStatus {
         self.proc.terminate(within)
     }
 
     /// SIGTERM; the gateway must exit 0. Returns the counters it logs on exit.
-    pub fn stop(&mut self) -> std::collections::HashMap<String, u64> {
+    pub(crate) fn stop(&mut self) -> std::collections::HashMap<String, u64> {
         let status = self.terminate(Duration::from_secs(10));
         let log = self.log();
         assert!(status.success(), "exit {status:?}:\n{log}");
@@ -495,13 +495,13 @@ impl Gateway {
 // ---------------------------------------------------------------------------------
 // Python peers
 
-pub struct Py {
+pub(crate) struct Py {
     child: Child,
 }
 
 impl Py {
     /// Runs `tests/py/<script>` and waits for it to print READY.
-    pub fn start(script: &str, args: &[&str]) -> Py {
+    pub(crate) fn start(script: &str, args: &[&str]) -> Py {
         let mut child = Command::new(python())
             .arg(repo().join("tests/py").join(script))
             .args(args)
@@ -525,7 +525,7 @@ impl Py {
     }
 
     /// Runs a script to completion: (exit status, stdout).
-    pub fn run(script: &str, args: &[&str]) -> (ExitStatus, String) {
+    pub(crate) fn run(script: &str, args: &[&str]) -> (ExitStatus, String) {
         let out = Command::new(python())
             .arg(repo().join("tests/py").join(script))
             .args(args)
@@ -558,19 +558,19 @@ impl Drop for Py {
 // A raw device on the pty, scripted by the test
 
 /// What the raw device does with each request it receives.
-pub type Handler = Box<dyn FnMut(&Adu) -> Vec<u8> + Send>;
+pub(crate) type Handler = Box<dyn FnMut(&Adu) -> Vec<u8> + Send>;
 
 /// A device on the `dev` end of a socat pair that decodes MBAP requests and writes
 /// whatever the handler returns (nothing = no answer). Every request is recorded.
-pub struct RawDevice {
+pub(crate) struct RawDevice {
     stop: Arc<AtomicBool>,
     file: std::fs::File,
-    pub seen: Arc<Mutex<Vec<Adu>>>,
+    pub(crate) seen: Arc<Mutex<Vec<Adu>>>,
     thread: Option<JoinHandle<()>>,
 }
 
 /// Opens a pty end for raw, non-blocking reads and writes.
-pub fn open_pty(path: &Path) -> std::fs::File {
+pub(crate) fn open_pty(path: &Path) -> std::fs::File {
     std::fs::OpenOptions::new()
         .read(true)
         .write(true)
@@ -618,10 +618,10 @@ fn pump(
 /// What a scripted MBAP device writes for each request: pieces of bytes, each written
 /// that long after the request was read (in order), so a test can put a pause exactly
 /// where it wants one.
-pub type MbapScript = Box<dyn FnMut(&Adu) -> Vec<(Duration, Vec<u8>)> + Send>;
+pub(crate) type MbapScript = Box<dyn FnMut(&Adu) -> Vec<(Duration, Vec<u8>)> + Send>;
 
 impl RawDevice {
-    pub fn start(path: &Path, mut handler: Handler) -> RawDevice {
+    pub(crate) fn start(path: &Path, mut handler: Handler) -> RawDevice {
         RawDevice::scripted(
             path,
             Box::new(move |req| vec![(Duration::ZERO, handler(req))]),
@@ -629,7 +629,7 @@ impl RawDevice {
     }
 
     /// A device that writes what `script` says when it says.
-    pub fn scripted(path: &Path, mut script: MbapScript) -> RawDevice {
+    pub(crate) fn scripted(path: &Path, mut script: MbapScript) -> RawDevice {
         let file = open_pty(path);
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
@@ -660,11 +660,11 @@ impl RawDevice {
     }
 
     /// Writes bytes on the line by itself (a notification, noise).
-    pub fn inject(&mut self, bytes: &[u8]) {
+    pub(crate) fn inject(&mut self, bytes: &[u8]) {
         write_all_nb(&mut self.file, bytes).expect("inject");
     }
 
-    pub fn requests(&self) -> Vec<Adu> {
+    pub(crate) fn requests(&self) -> Vec<Adu> {
         self.seen.lock().unwrap().clone()
     }
 }
@@ -691,7 +691,7 @@ impl Drop for RawDevice {
 
 /// A register map answering FC 03 and FC 16 for the listed units, like the CIE-M10
 /// (docs/protocol.md §3) but with room for many registers; other units get no answer.
-pub fn register_device(units: &[u8], delay: Duration) -> Handler {
+pub(crate) fn register_device(units: &[u8], delay: Duration) -> Handler {
     let units = units.to_vec();
     let mut regs = Registers::default();
     Box::new(move |req: &Adu| {
@@ -709,12 +709,12 @@ pub fn register_device(units: &[u8], delay: Duration) -> Handler {
 /// The register map of [`register_device`] and [`rtu_register_device`]: register `a`
 /// reads as `a` until written.
 #[derive(Default)]
-pub struct Registers(std::collections::HashMap<(u8, u16), u16>);
+pub(crate) struct Registers(std::collections::HashMap<(u8, u16), u16>);
 
 impl Registers {
     /// The reply PDU to a request PDU: FC 03 and 16, and FC 06 when `single` is set;
     /// exception 01 for anything else.
-    pub fn answer(&mut self, unit: u8, p: &[u8], single: bool) -> Vec<u8> {
+    pub(crate) fn answer(&mut self, unit: u8, p: &[u8], single: bool) -> Vec<u8> {
         let word = |i: usize| u16::from_be_bytes([p[i], p[i + 1]]);
         match p[0] {
             0x03 => {
@@ -746,12 +746,12 @@ impl Registers {
 // A raw TCP master
 
 /// Reads one MBAP frame (header, then as many bytes as its length says).
-pub fn read_frame(s: &mut TcpStream) -> Vec<u8> {
+pub(crate) fn read_frame(s: &mut TcpStream) -> Vec<u8> {
     try_read_frame(s).expect("read an MBAP frame")
 }
 
 /// [`read_frame`], or `None` when the stream ends or its read timeout passes first.
-pub fn try_read_frame(s: &mut TcpStream) -> Option<Vec<u8>> {
+pub(crate) fn try_read_frame(s: &mut TcpStream) -> Option<Vec<u8>> {
     let mut head = [0u8; 6];
     s.read_exact(&mut head).ok()?;
     let len = u16::from_be_bytes([head[4], head[5]]) as usize;
@@ -761,18 +761,18 @@ pub fn try_read_frame(s: &mut TcpStream) -> Option<Vec<u8>> {
 }
 
 /// Bytes as docs/protocol.md writes them: `00 01 FF`.
-pub fn hexs(b: &[u8]) -> String {
+pub(crate) fn hexs(b: &[u8]) -> String {
     mbgate::frame::hex::Hex(b).to_string()
 }
 
 /// Sends a request and reads one frame back.
-pub fn transact(s: &mut TcpStream, req: &[u8]) -> Vec<u8> {
+pub(crate) fn transact(s: &mut TcpStream, req: &[u8]) -> Vec<u8> {
     s.write_all(req).expect("send request");
     read_frame(s)
 }
 
 /// FC 03 read of `qty` registers at `addr`.
-pub fn read_req(tid: u16, unit: u8, addr: u16, qty: u16) -> Vec<u8> {
+pub(crate) fn read_req(tid: u16, unit: u8, addr: u16, qty: u16) -> Vec<u8> {
     let mut pdu = vec![0x03];
     pdu.extend_from_slice(&addr.to_be_bytes());
     pdu.extend_from_slice(&qty.to_be_bytes());
@@ -780,7 +780,7 @@ pub fn read_req(tid: u16, unit: u8, addr: u16, qty: u16) -> Vec<u8> {
 }
 
 /// FC 16 write of `values` at `addr`.
-pub fn write_req(tid: u16, unit: u8, addr: u16, values: &[u16]) -> Vec<u8> {
+pub(crate) fn write_req(tid: u16, unit: u8, addr: u16, values: &[u16]) -> Vec<u8> {
     let mut pdu = vec![0x10];
     pdu.extend_from_slice(&addr.to_be_bytes());
     pdu.extend_from_slice(&(values.len() as u16).to_be_bytes());
@@ -792,7 +792,7 @@ pub fn write_req(tid: u16, unit: u8, addr: u16, values: &[u16]) -> Vec<u8> {
 }
 
 /// The reply a register read should get.
-pub fn read_reply(tid: u16, unit: u8, values: &[u16]) -> Vec<u8> {
+pub(crate) fn read_reply(tid: u16, unit: u8, values: &[u16]) -> Vec<u8> {
     let mut pdu = vec![0x03, (values.len() * 2) as u8];
     for v in values {
         pdu.extend_from_slice(&v.to_be_bytes());
@@ -801,7 +801,7 @@ pub fn read_reply(tid: u16, unit: u8, values: &[u16]) -> Vec<u8> {
 }
 
 /// Has the gateway closed this connection (EOF or reset) within `within`?
-pub fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
+pub(crate) fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
     s.set_read_timeout(Some(within)).unwrap();
     let mut b = [0u8; 1];
     match s.read(&mut b) {
@@ -815,7 +815,7 @@ pub fn is_closed(s: &mut TcpStream, within: Duration) -> bool {
 }
 
 /// Time on a CPU of all of a process's threads, in ns (/proc/PID/task/*/schedstat).
-pub fn cpu_ns(pid: u32) -> u64 {
+pub(crate) fn cpu_ns(pid: u32) -> u64 {
     std::fs::read_dir(format!("/proc/{pid}/task"))
         .expect("tasks")
         .filter_map(|t| std::fs::read_to_string(t.ok()?.path().join("schedstat")).ok())
@@ -824,13 +824,13 @@ pub fn cpu_ns(pid: u32) -> u64 {
 }
 
 #[derive(Debug, Clone, Copy)]
-pub struct Mem {
-    pub rss_kib: u64,
-    pub hwm_kib: u64,
+pub(crate) struct Mem {
+    pub(crate) rss_kib: u64,
+    pub(crate) hwm_kib: u64,
 }
 
 /// VmRSS and VmHWM of the gateway; fails the test if the process has exited.
-pub fn mem(gw: &Gateway) -> Mem {
+pub(crate) fn mem(gw: &Gateway) -> Mem {
     let pid = gw.proc.pid();
     let status = std::fs::read_to_string(format!("/proc/{pid}/status"))
         .unwrap_or_else(|e| panic!("the gateway is gone ({e}):\n{}", gw.log()));
@@ -864,25 +864,25 @@ pub fn mem(gw: &Gateway) -> Mem {
 // A raw RTU device on the pty, scripted by the test
 
 /// What the raw RTU device does with each request frame (address to CRC, as received).
-pub type RtuHandler = Box<dyn FnMut(&[u8]) -> Vec<u8> + Send>;
+pub(crate) type RtuHandler = Box<dyn FnMut(&[u8]) -> Vec<u8> + Send>;
 
 /// What a scripted RTU device writes for each request frame: pieces of bytes, each
 /// written that long after the request's first byte was read (in order).
-pub type RtuScript = Box<dyn FnMut(&[u8]) -> Vec<(Duration, Vec<u8>)> + Send>;
+pub(crate) type RtuScript = Box<dyn FnMut(&[u8]) -> Vec<(Duration, Vec<u8>)> + Send>;
 
 /// How long `bytes` take on a line at `baud`, 10 bits a byte (8N1).
-pub fn wire_time(bytes: usize, baud: u32) -> Duration {
+pub(crate) fn wire_time(bytes: usize, baud: u32) -> Duration {
     Duration::from_micros(bytes as u64 * 10_000_000 / u64::from(baud))
 }
 
 /// A device on the `dev` end of a socat pair that reads RTU frames (cut at the length
 /// their function code calls for, or after 20 ms of silence), records each exactly as
 /// it came, and writes whatever the handler returns (nothing = no answer).
-pub struct RawRtuDevice {
+pub(crate) struct RawRtuDevice {
     stop: Arc<AtomicBool>,
-    pub seen: Arc<Mutex<Vec<Vec<u8>>>>,
+    pub(crate) seen: Arc<Mutex<Vec<Vec<u8>>>>,
     /// When each request's first byte was read, in step with `seen`.
-    pub seen_at: Arc<Mutex<Vec<Instant>>>,
+    pub(crate) seen_at: Arc<Mutex<Vec<Instant>>>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -890,12 +890,12 @@ impl RawRtuDevice {
     /// A device on a 19 200 baud line (the gateway's default): as a real one, it
     /// answers once the request can have reached it whole, its wire time after its
     /// first byte (a pty delivers it at once).
-    pub fn start(path: &Path, handler: RtuHandler) -> RawRtuDevice {
+    pub(crate) fn start(path: &Path, handler: RtuHandler) -> RawRtuDevice {
         RawRtuDevice::start_at(path, 19_200, handler)
     }
 
     /// [`RawRtuDevice::start`] on a line at `baud`.
-    pub fn start_at(path: &Path, baud: u32, mut handler: RtuHandler) -> RawRtuDevice {
+    pub(crate) fn start_at(path: &Path, baud: u32, mut handler: RtuHandler) -> RawRtuDevice {
         RawRtuDevice::scripted(
             path,
             Box::new(move |frame: &[u8]| vec![(wire_time(frame.len(), baud), handler(frame))]),
@@ -903,7 +903,7 @@ impl RawRtuDevice {
     }
 
     /// A device that writes what `script` says when it says, early or late.
-    pub fn scripted(path: &Path, mut script: RtuScript) -> RawRtuDevice {
+    pub(crate) fn scripted(path: &Path, mut script: RtuScript) -> RawRtuDevice {
         use mbgate::frame::rtu::{request_length, Length};
         let file = open_pty(path);
         let stop = Arc::new(AtomicBool::new(false));
@@ -945,7 +945,7 @@ impl RawRtuDevice {
         }
     }
 
-    pub fn requests(&self) -> Vec<Vec<u8>> {
+    pub(crate) fn requests(&self) -> Vec<Vec<u8>> {
         self.seen.lock().unwrap().clone()
     }
 }
@@ -962,7 +962,7 @@ impl Drop for RawRtuDevice {
 /// A register map like [`register_device`], for RTU: FC 03 reads register `a` as `a`
 /// (or what was written), FC 06 and 16 write; units not listed get no answer; a
 /// frame whose CRC is wrong gets none either, as on a bus.
-pub fn rtu_register_device(units: &[u8]) -> RtuHandler {
+pub(crate) fn rtu_register_device(units: &[u8]) -> RtuHandler {
     use mbgate::frame::rtu;
     let units = units.to_vec();
     let mut regs = Registers::default();

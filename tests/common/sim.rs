@@ -8,7 +8,7 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 /// `mbgate sim --serial PATH ARGS`, started once it has the port open.
-pub fn sim(path: &Path, args: &[&str]) -> Proc {
+pub(crate) fn sim(path: &Path, args: &[&str]) -> Proc {
     let path = path.to_str().unwrap();
     let all: Vec<&str> = ["sim", "--serial", path]
         .iter()
@@ -20,18 +20,18 @@ pub fn sim(path: &Path, args: &[&str]) -> Proc {
 
 /// A master that writes and reads raw bytes on a pty (the gateway's end of a socat
 /// pair), to talk to the simulator directly.
-pub struct RawLine {
+pub(crate) struct RawLine {
     file: std::fs::File,
 }
 
 impl RawLine {
-    pub fn open(path: &Path) -> RawLine {
+    pub(crate) fn open(path: &Path) -> RawLine {
         RawLine {
             file: super::open_pty(path),
         }
     }
 
-    pub fn send(&mut self, mut bytes: &[u8]) {
+    pub(crate) fn send(&mut self, mut bytes: &[u8]) {
         while !bytes.is_empty() {
             match self.file.write(bytes) {
                 Ok(n) => bytes = &bytes[n..],
@@ -44,12 +44,12 @@ impl RawLine {
     }
 
     /// Reads until `n` bytes have come or `timeout` has passed.
-    pub fn recv(&mut self, n: usize, timeout: Duration) -> Vec<u8> {
+    pub(crate) fn recv(&mut self, n: usize, timeout: Duration) -> Vec<u8> {
         self.recv_while(timeout, None, |got| got.len() < n)
     }
 
     /// Reads until the line has been quiet for `quiet` (or `limit` has passed).
-    pub fn recv_until_quiet(&mut self, quiet: Duration, limit: Duration) -> Vec<u8> {
+    pub(crate) fn recv_until_quiet(&mut self, quiet: Duration, limit: Duration) -> Vec<u8> {
         self.recv_while(limit, Some(quiet), |_| true)
     }
 
@@ -100,7 +100,7 @@ impl RawLine {
     }
 
     /// Sends a request and reads one reply of the expected size.
-    pub fn transact(&mut self, request: &[u8], reply_len: usize) -> Vec<u8> {
+    pub(crate) fn transact(&mut self, request: &[u8], reply_len: usize) -> Vec<u8> {
         self.send(request);
         self.recv(reply_len, Duration::from_secs(5))
     }
