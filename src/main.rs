@@ -1,6 +1,8 @@
 //! The command line (docs/design.md §3). Parses, loads the configuration, starts tracing and
 //! runs; everything else lives in the library.
 
+#![deny(unsafe_code)]
+
 use anyhow::Context as _;
 use clap::{Parser, Subcommand};
 use mbgate::cli_overrides::Overrides;

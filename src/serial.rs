@@ -154,6 +154,7 @@ fn set_rs485(fd: RawFd, cfg: &SerialConfig) -> std::io::Result<()> {
     };
     // SAFETY: TIOCSRS485 reads one `struct serial_rs485`, which `conf` is, for the
     // duration of the call; `fd` is the open port.
+    #[allow(unsafe_code)]
     let r = unsafe { libc::ioctl(fd, libc::TIOCSRS485 as _, &conf as *const SerialRs485) };
     if r == 0 {
         Ok(())
@@ -167,10 +168,13 @@ fn set_rs485(fd: RawFd, cfg: &SerialConfig) -> std::io::Result<()> {
 /// descriptor, so closing the port meanwhile cannot make it touch another file.
 pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Result<()>>> {
     // SAFETY: `fd` is the open port, borrowed only to duplicate it.
+    #[allow(unsafe_code)]
     let owned = unsafe { BorrowedFd::borrow_raw(fd) }.try_clone_to_owned()?;
     Ok(tokio::task::spawn_blocking(move || {
         // SAFETY: a valid descriptor, ours until `owned` drops after the call.
-        if unsafe { libc::tcdrain(owned.as_raw_fd()) } == 0 {
+        #[allow(unsafe_code)]
+        let r = unsafe { libc::tcdrain(owned.as_raw_fd()) };
+        if r == 0 {
             Ok(())
         } else {
             Err(std::io::Error::last_os_error())
@@ -182,7 +186,9 @@ pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Resu
 pub fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
     let mut n: libc::c_int = 0;
     // SAFETY: FIONREAD writes one int, which `n` is, for the duration of the call.
-    if unsafe { libc::ioctl(fd, libc::FIONREAD as _, &mut n as *mut libc::c_int) } == 0 {
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::ioctl(fd, libc::FIONREAD as _, &mut n as *mut libc::c_int) };
+    if r == 0 {
         Ok(usize::try_from(n).unwrap_or(0))
     } else {
         Err(std::io::Error::last_os_error())
