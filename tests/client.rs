@@ -7,7 +7,7 @@
 //! i % 2 == 0.
 
 mod common;
-use common::sim::sim;
+use common::sim::serial_units;
 use common::*;
 use mbgate::frame::mbap::decode_strict;
 use mbgate::frame::{ascii, rtu, Adu};
@@ -621,22 +621,7 @@ fn serial_rtu_and_ascii_ask_a_device_directly() {
     ] {
         let dir = tempdir();
         let socat = Socat::start(dir.path());
-        let _sim = sim(
-            &socat.dev,
-            &[
-                "--framing",
-                framing,
-                "--profile",
-                "generic",
-                "--units",
-                "1,2",
-                "--fill",
-                "address",
-                "--baud",
-                "19200",
-                "--headless",
-            ],
-        );
+        let _sim = serial_units(&socat.dev, framing, "1,2");
         let port = socat.gw.to_str().unwrap();
         let target = ["--serial", port, "--framing", framing, "--baud", "19200"];
         let m = |args: &[&str]| mbgate(&with(&target, args));

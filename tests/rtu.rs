@@ -4,7 +4,7 @@
 //! Everything on 127.0.0.1; every loop bounded in count and time.
 
 mod common;
-use common::sim::{sim, RawLine};
+use common::sim::{serial_units, sim, RawLine};
 use common::*;
 use mbgate::frame::{ascii, rtu};
 use std::io::{Read, Write};
@@ -535,22 +535,7 @@ fn simulator_speaks_rtu_and_ascii() {
     ] {
         let dir = tempdir();
         let socat = Socat::start(dir.path());
-        let _sim = sim(
-            &socat.dev,
-            &[
-                "--framing",
-                framing,
-                "--profile",
-                "generic",
-                "--units",
-                "1,2",
-                "--fill",
-                "address",
-                "--baud",
-                "19200",
-                "--headless",
-            ],
-        );
+        let _sim = serial_units(&socat.dev, framing, "1,2");
         let mut line = RawLine::open(&socat.gw);
         let want = encode(2, &[0x03, 4, 0, 7, 0, 8]);
         let got = line.transact(&encode(2, &[0x03, 0, 7, 0, 2]), want.len());

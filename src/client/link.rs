@@ -361,15 +361,11 @@ async fn serial_exchange(
     ms: u64,
 ) -> Result<Received, ClientError> {
     let target = || cfg.path.clone();
-    if port.is_none() {
-        let p = crate::serial::open(cfg).map_err(|source| ClientError::Open {
-            path: target(),
-            source,
-        })?;
+    let fresh = port.is_none();
+    let p = open_port(cfg, port)?;
+    if fresh {
         decoder.clear();
-        *port = Some(p);
     }
-    let p = port.as_mut().expect("opened above");
     let judge = ReplyTo(request);
     let dropped_before = decoder.stats().dropped_bytes;
     let start = Instant::now();
@@ -394,20 +390,11 @@ async fn serial_exchange(
             }
             // A partial candidate waits for more bytes until the frame gap; then it is
             // discarded and the rest rescanned (docs/design.md §2).
-            let read = if decoder.buffered() > 0 {
-                match timeout_at(last_byte + frame_gap, p.read(&mut chunk)).await {
-                    Ok(r) => r,
-                    Err(_) => {
-                        quiet = true;
-                        continue;
-                    }
-                }
-            } else {
-                p.read(&mut chunk).await
-            };
-            match read.map_err(|e| io("receiving", e))? {
-                0 => return Err(ClientError::Closed { target: target() }),
-                n => {
+            let quiet_at = (decoder.buffered() > 0).then(|| last_byte + frame_gap);
+            match read_until(p, &mut chunk, quiet_at).await {
+                None => quiet = true,
+                Some(read) => {
+                    let n = received_bytes(read, &io, target)?;
                     decoder.push(&chunk[..n]);
                     last_byte = Instant::now();
                     quiet = false;
@@ -433,6 +420,31 @@ fn open_port<'a>(
         *port = Some(p);
     }
     Ok(port.as_mut().expect("opened above"))
+}
+
+/// The next read from the port, or `None` once `quiet_at` (if any) passes first: a
+/// partial frame then ends at silence.
+async fn read_until(
+    p: &mut SerialStream,
+    chunk: &mut [u8],
+    quiet_at: Option<Instant>,
+) -> Option<std::io::Result<usize>> {
+    match quiet_at {
+        Some(at) => timeout_at(at, p.read(chunk)).await.ok(),
+        None => Some(p.read(chunk).await),
+    }
+}
+
+/// How many bytes a read brought; the port closing or failing is the exchange's end.
+fn received_bytes(
+    read: std::io::Result<usize>,
+    io: &impl Fn(&'static str, std::io::Error) -> ClientError,
+    target: impl Fn() -> String,
+) -> Result<usize, ClientError> {
+    match read.map_err(|e| io("receiving", e))? {
+        0 => Err(ClientError::Closed { target: target() }),
+        n => Ok(n),
+    }
 }
 
 /// One request to an RTU or ASCII device: the request in the port's framing, then the
@@ -485,20 +497,12 @@ async fn line_exchange(
                     Decoded::Corrupt(n) | Decoded::Noise(n) => dropped_bytes += n as u64,
                 }
             }
-            let read = if decoder.buffered() > 0 && decoder.silence_ends_frames() {
-                match timeout_at(Instant::now() + silence, p.read(&mut chunk)).await {
-                    Ok(r) => r,
-                    Err(_) => {
-                        quiet = true;
-                        continue;
-                    }
-                }
-            } else {
-                p.read(&mut chunk).await
-            };
-            match read.map_err(|e| io("receiving", e))? {
-                0 => return Err(ClientError::Closed { target: target() }),
-                n => {
+            let quiet_at = (decoder.buffered() > 0 && decoder.silence_ends_frames())
+                .then(|| Instant::now() + silence);
+            match read_until(p, &mut chunk, quiet_at).await {
+                None => quiet = true,
+                Some(read) => {
+                    let n = received_bytes(read, &io, target)?;
                     decoder.push(&chunk[..n]);
                     quiet = false;
                 }

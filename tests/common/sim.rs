@@ -18,6 +18,27 @@ pub(crate) fn sim(path: &Path, args: &[&str]) -> Proc {
     Proc::start(&all, "simulating ")
 }
 
+/// `mbgate sim` as generic devices with the given unit ids (`"1,2"`) on an RTU or
+/// ASCII line paced at 19 200 baud, each holding register holding its address.
+pub(crate) fn serial_units(path: &Path, framing: &str, units: &str) -> Proc {
+    sim(
+        path,
+        &[
+            "--framing",
+            framing,
+            "--profile",
+            "generic",
+            "--units",
+            units,
+            "--fill",
+            "address",
+            "--baud",
+            "19200",
+            "--headless",
+        ],
+    )
+}
+
 /// A master that writes and reads raw bytes on a pty (the gateway's end of a socat
 /// pair), to talk to the simulator directly.
 pub(crate) struct RawLine {
