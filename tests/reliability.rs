@@ -465,10 +465,8 @@ const HEADER: &str = "| scenario | requests | answered | 0x0B | wrong | longest 
 /// Runs scenarios, prints the table, and holds each to the guarantee.
 fn check(scenarios: &[Scenario], wrong_allowed: bool) {
     println!("{HEADER}");
-    for sc in scenarios {
-        let start = Instant::now();
-        let (o, stats) = run(sc);
-        println!("{}", row(sc, &o, &stats, start.elapsed()));
+    for (sc, (o, stats, took)) in scenarios.iter().zip(run_side_by_side(scenarios)) {
+        println!("{}", row(sc, &o, &stats, took));
         assert_eq!(o.requests as usize, sc.requests / sc.masters * sc.masters);
         assert!(o.answered + o.timeouts <= o.requests);
         if !wrong_allowed {
@@ -491,6 +489,30 @@ fn check(scenarios: &[Scenario], wrong_allowed: bool) {
             );
         }
     }
+}
+
+/// Runs the scenarios at the same time, each on its own pty pair, device and
+/// gateway, and gives their outcomes in the scenarios' order. A lossy scenario spends
+/// most of its time waiting out response timeouts, so side by side they take about
+/// as long as the slowest alone. Not for the scenarios that count on the gateway
+/// seeing the device's pauses as it made them (`replies_in_pieces_all_arrive_correct`):
+/// a busier machine stretches those pauses.
+fn run_side_by_side(scenarios: &[Scenario]) -> Vec<(Outcome, HashMap<String, u64>, Duration)> {
+    thread::scope(|s| {
+        let runs: Vec<_> = scenarios
+            .iter()
+            .map(|sc| {
+                s.spawn(move || {
+                    let start = Instant::now();
+                    let (o, stats) = run(sc);
+                    (o, stats, start.elapsed())
+                })
+            })
+            .collect();
+        runs.into_iter()
+            .map(|r| r.join().expect("a scenario"))
+            .collect()
+    })
 }
 
 /// The long run's scenarios at each loss rate: the simulator losing bytes on its way
@@ -608,24 +630,25 @@ fn noise_is_mostly_refused() {
     let mut bit_errors = Scenario::new(Device::Sim, Direction::FromDevice, 0.0, 1);
     bit_errors.corrupt = 0.01;
     bit_errors.requests = n;
+    scenarios.push(bit_errors);
     println!("{HEADER}");
-    for sc in &scenarios {
-        let start = Instant::now();
-        let (o, stats) = run(sc);
-        println!("{}", row(sc, &o, &stats, start.elapsed()));
+    let outcomes = run_side_by_side(&scenarios);
+    for (sc, (o, stats, took)) in scenarios.iter().zip(&outcomes) {
+        println!("{}", row(sc, o, stats, *took));
+    }
+    let (inserted, flipped) = outcomes.split_at(2);
+    for (sc, (o, _, _)) in scenarios.iter().zip(inserted) {
         assert!(
             o.wrong * 100 <= o.requests,
             "{sc}: wrong replies under 1 %: {o:?}"
         );
     }
-    let start = Instant::now();
-    let (o, stats) = run(&bit_errors);
-    println!("{}", row(&bit_errors, &o, &stats, start.elapsed()));
+    let o = &flipped[0].0;
     assert!(o.wrong > 0, "bit errors in data bytes get through: {o:?}");
 }
 
-/// Fault 5: the serial side unplugged and plugged back 20 times (socat stopped and
-/// restarted) while 4 masters poll: mbgate does not restart, no master loses its
+/// Fault 5: the serial side unplugged and plugged back 8 times (20 in the long run;
+/// socat stopped and restarted) while 4 masters poll: mbgate does not restart, no master loses its
 /// connection or gets a wrong reply, every request is answered (a reply, 0x0A while
 /// the port is gone, or 0x0B), service resumes each time, memory stays flat.
 #[test]
@@ -686,7 +709,8 @@ fn unplug_and_replug_under_load() {
     };
     served(200);
     let before = mem(&gw);
-    for _ in 0..20 {
+    let replugs = if long() { 20 } else { 8 };
+    for _ in 0..replugs {
         socat.restart();
         // Each time, service resumes: 20 more replies after the cable is back.
         served(answered.load(Ordering::Relaxed) + 20);
@@ -701,7 +725,7 @@ fn unplug_and_replug_under_load() {
         failures += failed;
     }
     println!(
-        "20 replugs: {} answered, {failures} 0x0A/0x0B; RSS {} -> {} KiB, peak {} KiB",
+        "{replugs} replugs: {} answered, {failures} 0x0A/0x0B; RSS {} -> {} KiB, peak {} KiB",
         answered.load(Ordering::Relaxed),
         before.rss_kib,
         after.rss_kib,
@@ -711,5 +735,5 @@ fn unplug_and_replug_under_load() {
         after.rss_kib <= before.rss_kib + 1024,
         "memory stays flat: {before:?} -> {after:?}"
     );
-    assert!(gw.stop()["serial_opens"] >= 21, "{}", gw.log());
+    assert!(gw.stop()["serial_opens"] > replugs, "{}", gw.log());
 }
