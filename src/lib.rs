@@ -4,6 +4,7 @@
 // own (src/serial.rs: the ioctls and tcdrain).
 #![deny(unsafe_code)]
 
+pub mod bridge;
 pub mod cli_overrides;
 pub mod client;
 pub mod config;

@@ -135,7 +135,12 @@ fn run(cfg: Config) -> anyhow::Result<()> {
     rt.block_on(async {
         let shutdown = CancellationToken::new();
         tokio::spawn(watch_signals(shutdown.clone()));
-        mbgate::gateway::run(cfg, shutdown).await?;
+        if cfg.master.is_some() {
+            // The line's device is the master: no listener, routes to slaves.
+            mbgate::bridge::run(&cfg, shutdown).await?;
+        } else {
+            mbgate::gateway::run(cfg, shutdown).await?;
+        }
         Ok(())
     })
 }

@@ -66,7 +66,7 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
 const TOP: [&str; 6] = ["serial", "tcp", "relay", "log", "line", "listen"];
 /// The keys of a `[[line]]` table.
-const LINE: [&str; 3] = ["units", "serial", "relay"];
+const LINE: [&str; 5] = ["units", "serial", "relay", "role", "route"];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 
@@ -84,6 +84,11 @@ fn entries<'a, 'i>(table: &'a DeTable<'i>) -> Vec<Entry<'a, 'i>> {
     let mut all: Vec<_> = table.iter().collect();
     all.sort_by_key(|(k, _)| k.span().start);
     all
+}
+
+/// A TOML value as the checks see it (for the master line's keys too).
+pub(super) fn raw_value(v: &DeValue) -> Raw {
+    raw(v)
 }
 
 /// A TOML value as the checks see it.
@@ -189,7 +194,8 @@ impl Reader<'_> {
         match &lines[..] {
             [] => self.conflict(&cfg, "")?,
             [(_, line, false)] => {
-                (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone())
+                (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone());
+                cfg.master = line.master.clone();
             }
             [_] => {
                 let m = "routing by unit is not yet supported: the one line serves every unit";
@@ -244,15 +250,44 @@ impl Reader<'_> {
             return self.fail(v.span().start, path, m);
         };
         let (mut line, mut units) = (Config::default(), false);
+        let (mut role, mut routes) = (None, None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
+            let bad = |b: super::master::Bad| self.fail::<()>(b.at, &b.key, b.message);
             match k.get_ref().as_ref() {
                 "units" => units = self.units(item, &full)?,
+                "role" => match super::master::role(item, &full) {
+                    Ok(master) => role = Some((master, k.span().start)),
+                    Err(b) => bad(b)?,
+                },
+                "route" => match super::master::routes(item, &full) {
+                    Ok(r) => routes = Some((r, k.span().start)),
+                    Err(b) => bad(b)?,
+                },
                 name @ ("serial" | "relay") => self.section(&mut line, name, item, &full, &[])?,
                 _ => return self.unknown(k, &full, &LINE),
             }
         }
         self.conflict(&line, &format!("{path}."))?;
+        match (role, routes) {
+            (Some((true, _)), Some((routes, _))) => {
+                if units {
+                    let key = format!("{path}.units");
+                    let m = "a master line routes by the units of its [[line.route]] tables";
+                    return self.fail(self.at[&key], &key, m);
+                }
+                line.master = Some(super::master::MasterLine { routes });
+            }
+            (Some((true, at)), None) => {
+                let m = "a master line needs [[line.route]] tables (where its requests go)";
+                return self.fail(at, &format!("{path}.role"), m);
+            }
+            (_, Some((_, at))) => {
+                let m = "routes belong to a master line: add role = \"master\"";
+                return self.fail(at, &format!("{path}.route"), m);
+            }
+            (_, None) => {}
+        }
         Ok((v.span().start, line, units))
     }
 

@@ -8,6 +8,7 @@
 //! what it does.
 
 mod file;
+pub mod master;
 
 pub use file::{load, parse, ConfigError};
 use std::net::SocketAddr;
@@ -106,7 +107,11 @@ macro_rules! settings {
 
         /// The whole file (docs/design.md §4): every section and key is optional.
         #[derive(Debug, Clone, PartialEq, Default)]
-        pub struct Config { $(pub $section: $Struct,)* }
+        pub struct Config {
+            $(pub $section: $Struct,)*
+            /// The line's device is the master: its routes (docs/design.md §4.2).
+            pub master: Option<master::MasterLine>,
+        }
 
         /// Every setting, in the order of the file.
         pub static KEYS: &[Key] = &[$($(Key {
@@ -398,6 +403,9 @@ impl Config {
 /// The configuration as TOML, sections and keys in the order of docs/design.md §4
 /// (`mbgate check-config`). `parse(&to_toml(cfg), ..)` gives back `cfg`.
 pub fn to_toml(cfg: &Config) -> String {
+    if cfg.master.is_some() {
+        return to_toml_lines(cfg);
+    }
     let old = ["serial", "tcp", "relay", "log"].map(|s| (s, format!("[{s}]")));
     print(cfg, &old)
 }
@@ -411,7 +419,12 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         ("tcp", "[[listen]]"),
         ("log", "[log]"),
     ];
-    print(cfg, &tables.map(|(s, header)| (s, header.to_owned())))
+    let mut tables = tables.map(|(s, header)| (s, header.to_owned()));
+    if let Some(m) = &cfg.master {
+        tables[0].1 = "[[line]]\nrole = \"master\"\n\n[line.serial]".into();
+        tables[1].1 = format!("{}\n[line.relay]", master::to_toml(m));
+    }
+    print(cfg, &tables)
 }
 
 /// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as

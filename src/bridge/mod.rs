@@ -1,0 +1,325 @@
+//! The line whose device is the master (docs/design.md §4.2): requests that a serial
+//! master (a CIE-M10 in master mode, an RTU PLC or HMI) puts on the line go to the
+//! Modbus/TCP slave their unit routes to, and the replies come back on the line.
+//!
+//! - [`requests`]: the requests off the lossy line, the replies in its framing (pure);
+//! - [`table`]: routes, ids, what is outstanding, deadlines, answers (plain data, time
+//!   passed in);
+//! - [`slave`]: one task per route holding its TCP connection;
+//! - this file: the loop that owns the serial port and wires them.
+
+pub mod requests;
+pub mod slave;
+pub mod table;
+
+use crate::config::master::MasterLine;
+use crate::config::{Config, Framing};
+use crate::frame::hex::Hex;
+use crate::frame::Adu;
+use crate::port::{Backoff, Link, Port};
+use requests::{encode_reply, Requests};
+use std::time::Duration;
+use table::{Action, Counts, Table};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::mpsc;
+use tokio::time::{sleep_until, Instant};
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    #[error("cannot listen for the slave of route {route} on {addr}: {error}")]
+    Bind {
+        route: usize,
+        addr: String,
+        error: std::io::Error,
+    },
+}
+
+/// The line's timing: the pause that ends a frame, and the gap after which a partial
+/// one is dropped.
+#[derive(Debug, Clone, Copy)]
+pub struct Timing {
+    /// Silence that ends a frame: 3.5 characters (at least the adapter's latency).
+    pub pause: Duration,
+    /// MBAP: silence after which a partial frame is discarded.
+    pub frame_gap: Duration,
+}
+
+impl Timing {
+    pub fn of(cfg: &Config) -> Self {
+        let bits = crate::serial::bits_per_char(&cfg.serial);
+        let t35 = Duration::from_micros(crate::frame::rtu::t35_us(cfg.serial.baud_rate, bits));
+        Self {
+            pause: t35.max(Duration::from_millis(cfg.serial.silence_floor_ms)),
+            frame_gap: Duration::from_millis(cfg.relay.frame_gap_ms),
+        }
+    }
+}
+
+/// Runs the master line of `cfg` on its serial port until `shutdown`; the counts at
+/// the end.
+pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
+    let master = cfg.master.clone().expect("a master line");
+    let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
+    run_on(
+        Box::new(port),
+        cfg.serial.framing,
+        Timing::of(cfg),
+        master,
+        cfg.log.traffic,
+        shutdown,
+    )
+    .await
+}
+
+/// [`run`] on any port (tests use an in-memory one).
+pub async fn run_on(
+    mut port: Box<dyn Port>,
+    framing: Framing,
+    timing: Timing,
+    master: MasterLine,
+    traffic: bool,
+    shutdown: CancellationToken,
+) -> Result<Counts, BridgeError> {
+    let (events_tx, mut events) = mpsc::unbounded_channel();
+    let mut to_slaves = Vec::new();
+    let tracker = tokio_util::task::TaskTracker::new();
+    for (i, route) in master.routes.iter().enumerate() {
+        let listener = slave::bind(route).await.map_err(|error| BridgeError::Bind {
+            route: i,
+            addr: route.peer.to_string(),
+            error,
+        })?;
+        if let Some(l) = &listener {
+            if let Ok(a) = l.local_addr() {
+                info!(route = i, "waiting for the slave to connect to {a}");
+            }
+        }
+        let (tx, rx) = mpsc::unbounded_channel();
+        to_slaves.push(tx);
+        tracker.spawn(slave::run(
+            i,
+            route.clone(),
+            listener,
+            rx,
+            events_tx.clone(),
+            shutdown.clone(),
+        ));
+    }
+    drop(events_tx);
+    let routes: Vec<String> = master
+        .routes
+        .iter()
+        .map(|r| match r.units.as_slice() {
+            [] => format!("other units -> {}", r.peer),
+            u => format!("units {u:?} -> {}", r.peer),
+        })
+        .collect();
+    info!(
+        serial = port.name(),
+        "master line on {} ({}): {}",
+        port.name(),
+        framing.name(),
+        routes.join("; ")
+    );
+    let mut line = Line {
+        requests: Requests::new(framing),
+        table: Table::new(master, framing != Framing::Mbap),
+        timing,
+        traffic,
+        to_slaves,
+        watchdog: crate::notify::watchdog_interval(),
+        pet_at: None,
+    };
+    line.pet_at = line.watchdog.map(|_| Instant::now());
+    crate::notify::ready(&format!("master line on {}", port.name()));
+    let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
+    let mut reported = false;
+    'open: loop {
+        let link = tokio::select! {
+            _ = shutdown.cancelled() => break 'open,
+            r = port.open() => r,
+        };
+        let mut link = match link {
+            Ok(l) => {
+                backoff.reset();
+                reported = false;
+                info!(serial = port.name(), "{} open", port.kind());
+                l
+            }
+            Err(e) => {
+                if !reported {
+                    warn!(serial = port.name(), "cannot open the {} ({e}); retrying", port.kind());
+                    reported = true;
+                }
+                let until = Instant::now() + backoff.next_delay();
+                loop {
+                    tokio::select! {
+                        _ = shutdown.cancelled() => break 'open,
+                        _ = sleep_until(until) => continue 'open,
+                        _ = sleep_until(line.pet_at.unwrap_or_else(Instant::now)), if line.pet_at.is_some() => line.pet(),
+                        Some(ev) = events.recv() => {
+                            // No port to answer on: the table still follows the slaves.
+                            let actions = line.event(ev);
+                            let _ = line.act(actions, None).await;
+                        }
+                    }
+                }
+            }
+        };
+        match line.serve(&mut link, &mut events, &shutdown).await {
+            Ok(()) => break,
+            Err(e) => {
+                warn!(serial = port.name(), "{} lost ({e}); reopening", port.kind());
+                line.requests.clear();
+            }
+        }
+    }
+    tracker.close();
+    tracker.wait().await;
+    let c = line.table.counts;
+    info!(
+        requests = c.requests,
+        forwarded = c.forwarded,
+        replies = c.replies,
+        timeouts = c.timeouts,
+        unavailable = c.unavailable,
+        late = c.late,
+        broadcasts = c.broadcasts,
+        refused = c.refused,
+        dropped_bytes = line.requests.dropped(),
+        "master line stopped"
+    );
+    Ok(c)
+}
+
+struct Line {
+    requests: Requests,
+    table: Table,
+    timing: Timing,
+    traffic: bool,
+    to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
+    /// systemd's watchdog interval, pinged from this loop, and the next ping.
+    watchdog: Option<Duration>,
+    pet_at: Option<Instant>,
+}
+
+impl Line {
+    /// Serves the open port until shutdown (`Ok`) or its loss (`Err`).
+    async fn serve(
+        &mut self,
+        link: &mut Link,
+        events: &mut mpsc::UnboundedReceiver<slave::Event>,
+        shutdown: &CancellationToken,
+    ) -> std::io::Result<()> {
+        let mut buf = vec![0u8; 1024];
+        let mut last_rx = Instant::now();
+        let mut paused = true;
+        loop {
+            let partial = self.requests.buffered() > 0;
+            let deadline = self.table.next_deadline().map(Instant::from_std);
+            let actions = tokio::select! {
+                _ = shutdown.cancelled() => return Ok(()),
+                r = link.reader.read(&mut buf) => match r {
+                    Ok(0) => return Err(std::io::ErrorKind::UnexpectedEof.into()),
+                    Ok(n) => {
+                        if self.traffic {
+                            debug!("serial rx {}", Hex(&buf[..n]));
+                        }
+                        last_rx = Instant::now();
+                        paused = false;
+                        self.requests.push(&buf[..n]);
+                        self.take(false)
+                    }
+                    Err(e) => return Err(e),
+                },
+                _ = sleep_until(last_rx + self.timing.pause), if partial && !paused => {
+                    paused = true;
+                    self.requests.pause();
+                    // RTU: 3.5 characters of silence end the frame.
+                    self.take(self.requests.codec().is_some())
+                }
+                _ = sleep_until(last_rx + self.timing.frame_gap), if partial && paused => {
+                    let before = self.requests.dropped();
+                    let actions = self.take(true);
+                    let n = self.requests.dropped() - before;
+                    if n > 0 {
+                        debug!("discarded {n} bytes that made no request");
+                    }
+                    actions
+                }
+                _ = sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
+                    self.table.expire(std::time::Instant::now())
+                }
+                Some(ev) = events.recv() => self.event(ev),
+                _ = sleep_until(self.pet_at.unwrap_or_else(Instant::now)), if self.pet_at.is_some() => {
+                    self.pet();
+                    Vec::new()
+                }
+            };
+            self.act(actions, Some(&mut link.writer)).await?;
+        }
+    }
+
+    /// WATCHDOG=1, and when the next is due.
+    fn pet(&mut self) {
+        crate::notify::watchdog();
+        self.pet_at = self.watchdog.map(|every| Instant::now() + every);
+    }
+
+    /// Every whole request decoded so far, into the table.
+    fn take(&mut self, quiet: bool) -> Vec<Action> {
+        let mut out = Vec::new();
+        while let Some(req) = self.requests.next(quiet) {
+            debug!(unit = req.unit, "request from the serial master: {}", Hex(&req.pdu));
+            out.extend(self.table.request(req, std::time::Instant::now()));
+        }
+        out
+    }
+
+    fn event(&mut self, ev: slave::Event) -> Vec<Action> {
+        match ev {
+            slave::Event::Connecting(i) => {
+                self.table.connecting(i);
+                Vec::new()
+            }
+            slave::Event::Up(i) => self.table.up(i),
+            slave::Event::Down(i) => self.table.down(i),
+            slave::Event::Frame(i, adu) => {
+                if self.traffic {
+                    debug!(route = i, "slave rx {}", Hex(adu.as_bytes()));
+                }
+                self.table.reply(i, &adu)
+            }
+        }
+    }
+
+    async fn act(
+        &mut self,
+        actions: Vec<Action>,
+        mut writer: Option<&mut crate::port::Writer>,
+    ) -> std::io::Result<()> {
+        for a in actions {
+            match a {
+                Action::Send { route, adu } => {
+                    if self.traffic {
+                        debug!(route, "slave tx {}", Hex(adu.as_bytes()));
+                    }
+                    let _ = self.to_slaves[route].send(adu);
+                }
+                Action::Answer { request, pdu } => {
+                    let bytes = encode_reply(self.requests.codec(), &request, &pdu);
+                    if self.traffic {
+                        debug!("serial tx {}", Hex(&bytes));
+                    }
+                    if let Some(w) = writer.as_mut() {
+                        w.write_all(&bytes).await?;
+                        w.flush().await?;
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,470 @@
+//! The master line's state machine (docs/design.md §4.2): which slave each request goes
+//! to, the requests outstanding on each slave's connection with their MBAP ids and
+//! deadlines, what waits for room, and the answers the serial master gets. Plain data,
+//! time passed in; the loop in `bridge/mod.rs` does the I/O.
+
+use super::requests::Incoming;
+use crate::config::master::MasterLine;
+use crate::frame::pdu::{self, exception};
+use crate::frame::Adu;
+use std::collections::VecDeque;
+use std::time::{Duration, Instant};
+
+/// What the loop is to do.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Action {
+    /// Write this frame on route `route`'s connection.
+    Send { route: usize, adu: Adu },
+    /// Write this reply PDU to the serial master, for `request`.
+    Answer { request: Incoming, pdu: Vec<u8> },
+}
+
+/// A slave connection as the table sees it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Link {
+    /// Being made (or, passive, awaited for the first time): requests wait.
+    Connecting,
+    Up,
+    /// Lost or refused, until the next attempt: requests get 0x0A at once.
+    Down,
+}
+
+/// Running totals.
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct Counts {
+    /// Requests taken off the serial line.
+    pub requests: u64,
+    /// Frames written to slaves.
+    pub forwarded: u64,
+    /// Slave replies passed to the serial master.
+    pub replies: u64,
+    /// 0x0B answers: no reply in time, or the connection lost with the request sent.
+    pub timeouts: u64,
+    /// 0x0A answers: no route, or the slave unreachable.
+    pub unavailable: u64,
+    /// Replies that matched nothing outstanding (late, or for a broadcast), dropped.
+    pub late: u64,
+    /// Broadcasts (unit 0 on RTU/ASCII) sent to every route, unanswered.
+    pub broadcasts: u64,
+    /// Requests outside the protocol's limits, answered by mbgate.
+    pub refused: u64,
+}
+
+#[derive(Debug, Clone)]
+struct Held {
+    request: Incoming,
+    /// Does the serial master still wait for it? (On RTU/ASCII a newer request
+    /// means it gave up on this one.)
+    answer: bool,
+    deadline: Instant,
+}
+
+#[derive(Debug)]
+struct Route {
+    link: Link,
+    timeout: Duration,
+    max_in_flight: usize,
+    next_tid: u16,
+    in_flight: Vec<(u16, Held)>,
+    waiting: VecDeque<Held>,
+}
+
+/// Every route's state.
+#[derive(Debug)]
+pub struct Table {
+    line: MasterLine,
+    routes: Vec<Route>,
+    /// Unit 0 is a broadcast (RTU, ASCII), not on MBAP.
+    serial_bus: bool,
+    pub counts: Counts,
+}
+
+fn exception_pdu(request: &[u8], code: u8) -> Vec<u8> {
+    vec![request[0] | 0x80, code]
+}
+
+impl Table {
+    /// `serial_bus`: the line is RTU or ASCII (one transaction at a time, unit 0 a
+    /// broadcast).
+    pub fn new(line: MasterLine, serial_bus: bool) -> Self {
+        let routes = line
+            .routes
+            .iter()
+            .map(|r| Route {
+                link: Link::Connecting,
+                timeout: Duration::from_millis(r.response_timeout_ms),
+                max_in_flight: r.max_in_flight,
+                next_tid: 1,
+                in_flight: Vec::new(),
+                waiting: VecDeque::new(),
+            })
+            .collect();
+        Self {
+            line,
+            routes,
+            serial_bus,
+            counts: Counts::default(),
+        }
+    }
+
+    pub fn link(&self, route: usize) -> Link {
+        self.routes[route].link
+    }
+
+    fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: u8) {
+        match code {
+            exception::GATEWAY_TARGET_FAILED => self.counts.timeouts += 1,
+            _ => self.counts.unavailable += 1,
+        }
+        if held.answer {
+            let pdu = exception_pdu(&held.request.pdu, code);
+            out.push(Action::Answer {
+                request: held.request,
+                pdu,
+            });
+        }
+    }
+
+    /// A request from the serial master at `now`.
+    pub fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
+        let mut out = Vec::new();
+        self.counts.requests += 1;
+        let broadcast = self.serial_bus && request.unit == 0;
+        if let Err(code) = pdu::check_request(&request.pdu) {
+            self.counts.refused += 1;
+            if !broadcast {
+                let pdu = exception_pdu(&request.pdu, code);
+                out.push(Action::Answer { request, pdu });
+            }
+            return out;
+        }
+        if self.serial_bus {
+            // A master on a bus waits for one reply at a time: a new request means
+            // it gave up on any earlier one, whose late reply must not reach it.
+            for r in &mut self.routes {
+                r.in_flight.iter_mut().for_each(|(_, h)| h.answer = false);
+                r.waiting.iter_mut().for_each(|h| h.answer = false);
+            }
+        }
+        if broadcast {
+            // Every slave gets it, at once, and nothing is awaited: a reply to it is
+            // dropped as late.
+            self.counts.broadcasts += 1;
+            for i in 0..self.routes.len() {
+                if self.routes[i].link == Link::Up {
+                    let tid = self.allocate(i);
+                    let adu = Adu::build(tid, 0, &request.pdu);
+                    self.counts.forwarded += 1;
+                    out.push(Action::Send { route: i, adu });
+                }
+            }
+            return out;
+        }
+        let held = Held {
+            request,
+            answer: true,
+            deadline: now,
+        };
+        let Some(i) = self.line.route_for(held.request.unit) else {
+            self.answer(&mut out, held, exception::GATEWAY_PATH_UNAVAILABLE);
+            return out;
+        };
+        let held = Held {
+            deadline: now + self.routes[i].timeout,
+            ..held
+        };
+        if self.routes[i].link == Link::Down {
+            self.answer(&mut out, held, exception::GATEWAY_PATH_UNAVAILABLE);
+            return out;
+        }
+        self.routes[i].waiting.push_back(held);
+        self.pump(i, &mut out);
+        out
+    }
+
+    /// A transaction id not outstanding on route `i` (never 0, so a frame of zeros
+    /// matches nothing).
+    fn allocate(&mut self, i: usize) -> u16 {
+        let r = &mut self.routes[i];
+        loop {
+            let tid = r.next_tid;
+            r.next_tid = r.next_tid.wrapping_add(1).max(1);
+            if !r.in_flight.iter().any(|(t, _)| *t == tid) {
+                return tid;
+            }
+        }
+    }
+
+    /// Sends what waits on route `i` while its connection is up and has room.
+    fn pump(&mut self, i: usize, out: &mut Vec<Action>) {
+        while self.routes[i].link == Link::Up
+            && self.routes[i].in_flight.len() < self.routes[i].max_in_flight
+        {
+            let Some(held) = self.routes[i].waiting.pop_front() else {
+                break;
+            };
+            let tid = self.allocate(i);
+            let adu = Adu::build(tid, held.request.unit, &held.request.pdu);
+            self.routes[i].in_flight.push((tid, held));
+            self.counts.forwarded += 1;
+            out.push(Action::Send { route: i, adu });
+        }
+    }
+
+    /// Route `i`'s connection is being made.
+    pub fn connecting(&mut self, i: usize) {
+        self.routes[i].link = Link::Connecting;
+    }
+
+    /// Route `i`'s connection is up: what waited is sent.
+    pub fn up(&mut self, i: usize) -> Vec<Action> {
+        let mut out = Vec::new();
+        self.routes[i].link = Link::Up;
+        self.pump(i, &mut out);
+        out
+    }
+
+    /// Route `i`'s connection is lost or could not be made: requests already sent get
+    /// 0x0B (the slave may have acted on them), those not sent 0x0A.
+    pub fn down(&mut self, i: usize) -> Vec<Action> {
+        let mut out = Vec::new();
+        self.routes[i].link = Link::Down;
+        for (_, held) in std::mem::take(&mut self.routes[i].in_flight) {
+            self.answer(&mut out, held, exception::GATEWAY_TARGET_FAILED);
+        }
+        for held in std::mem::take(&mut self.routes[i].waiting) {
+            self.answer(&mut out, held, exception::GATEWAY_PATH_UNAVAILABLE);
+        }
+        out
+    }
+
+    /// A frame from route `i`'s slave: the reply to the request with its id, unit and
+    /// function code (or its exception), else dropped.
+    pub fn reply(&mut self, i: usize, adu: &Adu) -> Vec<Action> {
+        let mut out = Vec::new();
+        let r = &mut self.routes[i];
+        let found = r.in_flight.iter().position(|(tid, h)| {
+            *tid == adu.tid()
+                && h.request.unit == adu.unit()
+                && adu.function() & 0x7F == h.request.pdu[0]
+        });
+        match found {
+            Some(at) => {
+                let (_, held) = r.in_flight.remove(at);
+                if held.answer {
+                    self.counts.replies += 1;
+                    out.push(Action::Answer {
+                        request: held.request,
+                        pdu: adu.pdu().to_vec(),
+                    });
+                } else {
+                    self.counts.late += 1;
+                }
+                self.pump(i, &mut out);
+            }
+            None => self.counts.late += 1,
+        }
+        out
+    }
+
+    /// Requests whose time is up at `now`: 0x0B if sent (or waiting behind others on a
+    /// live connection), 0x0A if the connection never came.
+    pub fn expire(&mut self, now: Instant) -> Vec<Action> {
+        let mut out = Vec::new();
+        for i in 0..self.routes.len() {
+            let r = &mut self.routes[i];
+            let (late, kept): (Vec<_>, Vec<_>) = std::mem::take(&mut r.in_flight)
+                .into_iter()
+                .partition(|(_, h)| h.deadline <= now);
+            r.in_flight = kept;
+            let (stale, waiting): (VecDeque<_>, VecDeque<_>) = std::mem::take(&mut r.waiting)
+                .into_iter()
+                .partition(|h| h.deadline <= now);
+            r.waiting = waiting;
+            let code = if r.link == Link::Up {
+                exception::GATEWAY_TARGET_FAILED
+            } else {
+                exception::GATEWAY_PATH_UNAVAILABLE
+            };
+            for (_, held) in late {
+                self.answer(&mut out, held, exception::GATEWAY_TARGET_FAILED);
+            }
+            for held in stale {
+                self.answer(&mut out, held, code);
+            }
+            self.pump(i, &mut out);
+        }
+        out
+    }
+
+    /// The earliest deadline of anything held.
+    pub fn next_deadline(&self) -> Option<Instant> {
+        self.routes
+            .iter()
+            .flat_map(|r| {
+                let sent = r.in_flight.iter().map(|(_, h)| h.deadline);
+                sent.chain(r.waiting.iter().map(|h| h.deadline))
+            })
+            .min()
+    }
+
+    /// Requests held (sent or waiting) on route `i`.
+    pub fn held(&self, i: usize) -> usize {
+        self.routes[i].in_flight.len() + self.routes[i].waiting.len()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::master::{Peer, Route as RouteCfg};
+
+    const READ: [u8; 5] = [3, 0, 0, 0, 1];
+
+    fn line(max_in_flight: usize) -> MasterLine {
+        let route = |units: &[u8]| RouteCfg {
+            units: units.to_vec(),
+            peer: Peer::Connect("h:1".into()),
+            response_timeout_ms: 100,
+            max_in_flight,
+        };
+        MasterLine {
+            routes: vec![route(&[1]), route(&[])],
+        }
+    }
+
+    fn req(tid: u16, unit: u8) -> Incoming {
+        Incoming {
+            tid: Some(tid),
+            unit,
+            pdu: READ.to_vec(),
+        }
+    }
+
+    fn sent(actions: &[Action]) -> Vec<(usize, u16, u8)> {
+        actions
+            .iter()
+            .filter_map(|a| match a {
+                Action::Send { route, adu } => Some((*route, adu.tid(), adu.unit())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    fn answers(actions: &[Action]) -> Vec<(Option<u16>, Vec<u8>)> {
+        actions
+            .iter()
+            .filter_map(|a| match a {
+                Action::Answer { request, pdu } => Some((request.tid, pdu.clone())),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn routes_by_unit_waits_for_the_connection_and_restores_the_id() {
+        let t0 = Instant::now();
+        let mut t = Table::new(line(1), false);
+        assert_eq!(t.request(req(7, 1), t0), []);
+        assert_eq!(t.request(req(8, 9), t0), []);
+        assert_eq!(sent(&t.up(0)), [(0, 1, 1)]);
+        assert_eq!(sent(&t.up(1)), [(1, 1, 9)]);
+        let a = t.reply(1, &Adu::build(1, 9, &[3, 2, 0, 5]));
+        assert_eq!(answers(&a), [(Some(8), vec![3, 2, 0, 5])]);
+        // A reply with the id but another unit, or twice: dropped.
+        assert_eq!(t.reply(0, &Adu::build(1, 2, &[3, 2, 0, 5])), []);
+        let a = t.reply(0, &Adu::build(1, 1, &[0x83, 2]));
+        assert_eq!(answers(&a), [(Some(7), vec![0x83, 2])]);
+        assert_eq!(t.reply(0, &Adu::build(1, 1, &[0x83, 2])), []);
+        assert_eq!(t.counts.late, 2);
+    }
+
+    #[test]
+    fn one_at_a_time_unless_pipelining_is_allowed() {
+        let t0 = Instant::now();
+        let mut t = Table::new(line(1), false);
+        t.up(1);
+        assert_eq!(sent(&t.request(req(1, 5), t0)).len(), 1);
+        assert_eq!(t.request(req(2, 5), t0), [], "waits for room");
+        let a = t.reply(1, &Adu::build(1, 5, &[3, 2, 0, 0]));
+        assert_eq!(answers(&a).len(), 1);
+        assert_eq!(sent(&a), [(1, 2, 5)], "the next one goes when the first is answered");
+        let mut t = Table::new(line(3), false);
+        t.up(1);
+        let n: usize = (0..4).map(|i| sent(&t.request(req(i, 5), t0)).len()).sum();
+        assert_eq!(n, 3);
+        assert_eq!(t.held(1), 4);
+    }
+
+    #[test]
+    fn timeout_is_0x0b_unreachable_is_0x0a() {
+        let t0 = Instant::now();
+        let mut t = Table::new(line(1), false);
+        t.up(1);
+        t.request(req(1, 5), t0);
+        t.request(req(2, 5), t0 + Duration::from_millis(50));
+        assert_eq!(t.next_deadline(), Some(t0 + Duration::from_millis(100)));
+        assert_eq!(t.expire(t0 + Duration::from_millis(99)), []);
+        let a = t.expire(t0 + Duration::from_millis(100));
+        assert_eq!(answers(&a), [(Some(1), vec![0x83, 0x0B])]);
+        assert_eq!(sent(&a), [(1, 2, 5)]);
+        // The connection goes with a request on it: 0x0B for it (it was sent).
+        let a = t.down(1);
+        assert_eq!(answers(&a), [(Some(2), vec![0x83, 0x0B])]);
+        // While down: 0x0A at once, nothing sent.
+        let a = t.request(req(3, 5), t0);
+        assert_eq!(answers(&a), [(Some(3), vec![0x83, 0x0A])]);
+        // Connecting: it waits; the attempt fails: 0x0A.
+        t.connecting(1);
+        assert_eq!(t.request(req(4, 5), t0), []);
+        assert_eq!(answers(&t.down(1)), [(Some(4), vec![0x83, 0x0A])]);
+        // A route that never connects within the deadline: 0x0A.
+        t.connecting(1);
+        t.request(req(5, 5), t0);
+        let a = t.expire(t0 + Duration::from_millis(100));
+        assert_eq!(answers(&a), [(Some(5), vec![0x83, 0x0A])]);
+        assert_eq!((t.counts.timeouts, t.counts.unavailable), (2, 3));
+        // Back up: served again.
+        t.up(1);
+        assert_eq!(sent(&t.request(req(6, 5), t0)).len(), 1);
+    }
+
+    #[test]
+    fn no_route_is_0x0a_and_bad_requests_are_answered_here() {
+        let t0 = Instant::now();
+        let mut only = line(1);
+        only.routes.pop();
+        let mut t = Table::new(only, false);
+        t.up(0);
+        assert_eq!(answers(&t.request(req(1, 2), t0)), [(Some(1), vec![0x83, 0x0A])]);
+        let zero = Incoming {
+            pdu: vec![3, 0, 0, 0, 0],
+            ..req(2, 1)
+        };
+        assert_eq!(answers(&t.request(zero, t0)), [(Some(2), vec![0x83, 0x03])]);
+    }
+
+    #[test]
+    fn bus_broadcast_goes_everywhere_unanswered_and_a_new_request_supersedes() {
+        let t0 = Instant::now();
+        let mut t = Table::new(line(1), true);
+        t.up(0);
+        t.up(1);
+        let bus = |unit| Incoming {
+            tid: None,
+            unit,
+            pdu: vec![6, 0, 1, 0, 7],
+        };
+        let a = t.request(bus(0), t0);
+        assert_eq!(sent(&a), [(0, 1, 0), (1, 1, 0)]);
+        assert_eq!(answers(&a), []);
+        assert_eq!(t.held(0) + t.held(1), 0, "nothing awaited");
+        // The master gave up on unit 1's request and asked another: the late reply
+        // is dropped, the new one answered.
+        t.request(bus(1), t0);
+        let a = t.request(bus(9), t0);
+        assert_eq!(sent(&a), [(1, 2, 9)]);
+        assert_eq!(t.reply(0, &Adu::build(2, 1, &[6, 0, 1, 0, 7])), []);
+        assert_eq!(answers(&t.reply(1, &Adu::build(2, 9, &[6, 0, 1, 0, 7]))).len(), 1);
+    }
+}
