@@ -168,14 +168,30 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     use mbgate::sim::serve::{self, Port};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
+    let cie_m10 = args.device.profile == mbgate::sim::options::ProfileName::CieM10;
+    let polling = args.role.polling(cie_m10);
+    let settings = args.settings().and_then(|s| polling.clone().map(|_| s));
+    let tcp = args.role.tcp;
     simulate(
         &args.device,
-        args.settings(),
+        settings,
         false,
         None,
         |settings, commands, shutdown| async move {
+            if let Some(addr) = tcp {
+                let listener = mbgate::sim::tcp::bind(addr)
+                    .await
+                    .with_context(|| format!("cannot listen on {addr}"))?;
+                mbgate::sim::tcp::run(settings, listener, commands, shutdown).await?;
+                return Ok(());
+            }
             let port = Port::Path(port.map_err(anyhow::Error::msg)?);
-            serve::run(settings, port, commands, shutdown).await?;
+            match polling.map_err(anyhow::Error::msg)? {
+                Some(p) => {
+                    mbgate::sim::master::run(settings, p, port, commands, shutdown).await?;
+                }
+                None => serve::run(settings, port, commands, shutdown).await?,
+            }
             Ok(())
         },
     )

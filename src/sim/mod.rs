@@ -12,9 +12,12 @@ pub mod cie_m10;
 pub mod console;
 pub mod generic;
 pub mod line;
+pub mod master;
 pub mod options;
 pub mod packets;
+pub mod role;
 pub mod serve;
+pub mod tcp;
 pub mod terminal;
 
 use console::{Command, Table};

@@ -181,11 +181,14 @@ pub struct DeviceArgs {
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH")]
-    pub serial: PathBuf,
+    #[arg(long, value_name = "PATH", required_unless_present = "tcp")]
+    pub serial: Option<PathBuf>,
     // Before the port's flags: their heading would carry over onto these.
     #[command(flatten)]
     pub device: DeviceArgs,
+    /// The role it plays and where (src/sim/role.rs).
+    #[command(flatten)]
+    pub role: super::role::RoleArgs,
     /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
     /// output as a UART would (10 bits a byte); on a real port the UART does.
     #[command(flatten, next_help_heading = "serial port")]
@@ -217,7 +220,7 @@ impl SimArgs {
     /// The port settings: the defaults of `[serial]` and the flags given.
     pub fn serial_config(&self) -> Result<SerialConfig, String> {
         let mut cfg = SerialConfig {
-            path: self.serial.to_string_lossy().into_owned(),
+            path: self.serial.clone().unwrap_or_default().to_string_lossy().into_owned(),
             framing: self.framing,
             ..SerialConfig::default()
         };

@@ -1,0 +1,87 @@
+//! The simulated device as a Modbus/TCP slave (`mbgate sim --tcp ADDR`): the profile
+//! answers MBAP requests from any number of connections, with the same console. The
+//! slave a master line reaches in `mbgate demo --master` and in the tests.
+
+use super::options::Settings;
+use super::packets::Direction;
+use super::serve::ConsoleRequest;
+use super::Device;
+use crate::frame::hex::Hex;
+use crate::frame::mbap::decode_strict;
+use crate::frame::Adu;
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info};
+
+/// Binds `addr`; the address bound (port 0 becomes a real port) is logged as
+/// `serving Modbus/TCP on ADDR`.
+pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
+    let l = TcpListener::bind(addr).await?;
+    info!("serving Modbus/TCP on {}", l.local_addr()?);
+    Ok(l)
+}
+
+/// Serves the device on `listener` until `shutdown`.
+pub async fn run(
+    settings: Settings,
+    listener: TcpListener,
+    mut commands: mpsc::Receiver<ConsoleRequest>,
+    shutdown: CancellationToken,
+) -> std::io::Result<()> {
+    let device = Arc::new(Mutex::new(settings.device));
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return Ok(()),
+            r = listener.accept() => {
+                let (stream, from) = r?;
+                debug!("master connected from {from}");
+                tokio::spawn(connection(stream, device.clone(), shutdown.clone()));
+            }
+            Some(req) = commands.recv() => {
+                let outcome = device.lock().expect("not poisoned").execute(req.command);
+                // No unsolicited frames on TCP here: notification is the serial line's.
+                let _ = req.reply.send(outcome.text);
+            }
+        }
+    }
+}
+
+async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: CancellationToken) {
+    let _ = stream.set_nodelay(true);
+    let (mut rd, mut wr) = stream.into_split();
+    let mut buf = bytes::BytesMut::with_capacity(512);
+    loop {
+        let n = tokio::select! {
+            _ = shutdown.cancelled() => return,
+            r = rd.read_buf(&mut buf) => r,
+        };
+        if !matches!(n, Ok(n) if n > 0) {
+            return;
+        }
+        while let Ok(Some(req)) = decode_strict(&mut buf) {
+            let answer = {
+                let mut d = device.lock().expect("not poisoned");
+                d.log.record(Direction::Rx, req.as_bytes(), "request");
+                d.answer(req.unit(), req.pdu())
+            };
+            info!(target: "mbgate::sim::packets", "rx {} (request)", Hex(req.as_bytes()));
+            let Some(pdu) = answer.reply else {
+                continue;
+            };
+            let reply = Adu::build(req.tid(), req.unit(), &pdu);
+            info!(target: "mbgate::sim::packets", "tx {} (reply)", Hex(reply.as_bytes()));
+            device
+                .lock()
+                .expect("not poisoned")
+                .log
+                .record(Direction::Tx, reply.as_bytes(), "reply");
+            if wr.write_all(reply.as_bytes()).await.is_err() {
+                return;
+            }
+        }
+    }
+}
