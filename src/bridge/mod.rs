@@ -86,11 +86,13 @@ pub async fn run_on(
     let mut to_slaves = Vec::new();
     let tracker = tokio_util::task::TaskTracker::new();
     for (i, route) in master.routes.iter().enumerate() {
-        let listener = slave::bind(route).await.map_err(|error| BridgeError::Bind {
-            route: i,
-            addr: route.peer.to_string(),
-            error,
-        })?;
+        let listener = slave::bind(route)
+            .await
+            .map_err(|error| BridgeError::Bind {
+                route: i,
+                addr: route.peer.to_string(),
+                error,
+            })?;
         if let Some(l) = &listener {
             if let Ok(a) = l.local_addr() {
                 info!(route = i, "waiting for the slave to connect to {a}");
@@ -150,7 +152,11 @@ pub async fn run_on(
             }
             Err(e) => {
                 if !reported {
-                    warn!(serial = port.name(), "cannot open the {} ({e}); retrying", port.kind());
+                    warn!(
+                        serial = port.name(),
+                        "cannot open the {} ({e}); retrying",
+                        port.kind()
+                    );
                     reported = true;
                 }
                 let until = Instant::now() + backoff.next_delay();
@@ -171,7 +177,11 @@ pub async fn run_on(
         match line.serve(&mut link, &mut events, &shutdown).await {
             Ok(()) => break,
             Err(e) => {
-                warn!(serial = port.name(), "{} lost ({e}); reopening", port.kind());
+                warn!(
+                    serial = port.name(),
+                    "{} lost ({e}); reopening",
+                    port.kind()
+                );
                 line.requests.clear();
             }
         }
@@ -272,7 +282,11 @@ impl Line {
     fn take(&mut self, quiet: bool) -> Vec<Action> {
         let mut out = Vec::new();
         while let Some(req) = self.requests.next(quiet) {
-            debug!(unit = req.unit, "request from the serial master: {}", Hex(&req.pdu));
+            debug!(
+                unit = req.unit,
+                "request from the serial master: {}",
+                Hex(&req.pdu)
+            );
             out.extend(self.table.request(req, std::time::Instant::now()));
         }
         out

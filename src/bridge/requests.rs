@@ -178,7 +178,10 @@ mod tests {
         r.pause();
         let got = all(&mut r, false);
         assert_eq!(got.len(), 1, "{got:?}");
-        assert_eq!((got[0].tid, &got[0].pdu[..]), (Some(9), &[3, 0, 0, 0, 1][..]));
+        assert_eq!(
+            (got[0].tid, &got[0].pdu[..]),
+            (Some(9), &[3, 0, 0, 0, 1][..])
+        );
     }
 
     #[test]

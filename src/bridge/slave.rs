@@ -100,7 +100,10 @@ pub async fn run(
                     }
                     Err(e) => {
                         if !reported {
-                            warn!(route = i, "cannot reach the slave at {addr} ({e}); retrying");
+                            warn!(
+                                route = i,
+                                "cannot reach the slave at {addr} ({e}); retrying"
+                            );
                             reported = true;
                         }
                         let _ = events.send(Event::Down(i));
@@ -118,7 +121,15 @@ pub async fn run(
         // Frames given for a connection that is gone were answered when it went.
         while frames.try_recv().is_ok() {}
         let _ = events.send(Event::Up(i));
-        let end = session(i, stream, listener.as_ref(), &mut frames, &events, &shutdown).await;
+        let end = session(
+            i,
+            stream,
+            listener.as_ref(),
+            &mut frames,
+            &events,
+            &shutdown,
+        )
+        .await;
         let _ = events.send(Event::Down(i));
         match end {
             End::Shutdown => return,

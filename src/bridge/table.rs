@@ -388,7 +388,11 @@ mod tests {
         assert_eq!(t.request(req(2, 5), t0), [], "waits for room");
         let a = t.reply(1, &Adu::build(1, 5, &[3, 2, 0, 0]));
         assert_eq!(answers(&a).len(), 1);
-        assert_eq!(sent(&a), [(1, 2, 5)], "the next one goes when the first is answered");
+        assert_eq!(
+            sent(&a),
+            [(1, 2, 5)],
+            "the next one goes when the first is answered"
+        );
         let mut t = Table::new(line(3), false);
         t.up(1);
         let n: usize = (0..4).map(|i| sent(&t.request(req(i, 5), t0)).len()).sum();
@@ -436,7 +440,10 @@ mod tests {
         only.routes.pop();
         let mut t = Table::new(only, false);
         t.up(0);
-        assert_eq!(answers(&t.request(req(1, 2), t0)), [(Some(1), vec![0x83, 0x0A])]);
+        assert_eq!(
+            answers(&t.request(req(1, 2), t0)),
+            [(Some(1), vec![0x83, 0x0A])]
+        );
         let zero = Incoming {
             pdu: vec![3, 0, 0, 0, 0],
             ..req(2, 1)
@@ -465,6 +472,9 @@ mod tests {
         let a = t.request(bus(9), t0);
         assert_eq!(sent(&a), [(1, 2, 9)]);
         assert_eq!(t.reply(0, &Adu::build(2, 1, &[6, 0, 1, 0, 7])), []);
-        assert_eq!(answers(&t.reply(1, &Adu::build(2, 9, &[6, 0, 1, 0, 7]))).len(), 1);
+        assert_eq!(
+            answers(&t.reply(1, &Adu::build(2, 9, &[6, 0, 1, 0, 7]))).len(),
+            1
+        );
     }
 }

@@ -99,7 +99,10 @@ pub(super) fn role(v: &Spanned<DeValue>, key: &str) -> Result<bool, Bad> {
         DeValue::String(s) => bad(
             v.span().start,
             key,
-            format!("invalid value {:?}; expected one of slave, master", s.as_ref()),
+            format!(
+                "invalid value {:?}; expected one of slave, master",
+                s.as_ref()
+            ),
         ),
         _ => bad(
             v.span().start,
@@ -124,7 +127,9 @@ pub(super) fn routes(v: &Spanned<DeValue>, path: &str) -> Result<Vec<Route>, Bad
         let r = route(table, t.span().start, &here)?;
         for &u in &r.units {
             if let Some(j) = out.iter().position(|o| o.units.contains(&u)) {
-                let at = table.get("units").map_or(t.span().start, |v| v.span().start);
+                let at = table
+                    .get("units")
+                    .map_or(t.span().start, |v| v.span().start);
                 return bad(
                     at,
                     &format!("{here}.units"),
@@ -145,7 +150,11 @@ pub(super) fn routes(v: &Spanned<DeValue>, path: &str) -> Result<Vec<Route>, Bad
         out.push(r);
     }
     if out.is_empty() {
-        return bad(v.span().start, path, "a master line needs at least one route");
+        return bad(
+            v.span().start,
+            path,
+            "a master line needs at least one route",
+        );
     }
     Ok(out)
 }
@@ -206,7 +215,13 @@ fn route(table: &DeTable, start: usize, path: &str) -> Result<Route, Bad> {
     }
     r.peer = match peer {
         Some(p) => p,
-        None => return bad(start, path, "missing: address (host:port of the slave) or listen"),
+        None => {
+            return bad(
+                start,
+                path,
+                "missing: address (host:port of the slave) or listen",
+            )
+        }
     };
     Ok(r)
 }
@@ -226,7 +241,8 @@ fn units(v: &Spanned<DeValue>, key: &str) -> Result<Vec<u8>, Bad> {
     let mut out = Vec::new();
     for id in ids.iter() {
         let raw = super::file::raw_value(id.get_ref());
-        let u = u8::read(&raw, &Check::Range(1, 255, None)).or_else(|m| bad(id.span().start, key, m))?;
+        let u = u8::read(&raw, &Check::Range(1, 255, None))
+            .or_else(|m| bad(id.span().start, key, m))?;
         if out.contains(&u) {
             return bad(id.span().start, key, format!("unit {u} is listed twice"));
         }
@@ -243,7 +259,9 @@ fn check_host_port(s: &str) -> Result<(), String> {
     if ok {
         Ok(())
     } else {
-        Err(format!("expected host:port, e.g. 192.168.0.20:502, got {s:?}"))
+        Err(format!(
+            "expected host:port, e.g. 192.168.0.20:502, got {s:?}"
+        ))
     }
 }
 

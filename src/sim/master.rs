@@ -236,7 +236,9 @@ impl Master {
             "reply"
         };
         info!(target: "mbgate::sim::packets", "rx {} ({note})", Hex(frame.as_bytes()));
-        self.device.log.record(Direction::Rx, frame.as_bytes(), note);
+        self.device
+            .log
+            .record(Direction::Rx, frame.as_bytes(), note);
         if self.step == Step::Read && pdu.len() == 4 && pdu[..2] == [0x03, 2] {
             let read = pdu[3];
             let d = self.cie();

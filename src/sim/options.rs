@@ -220,7 +220,12 @@ impl SimArgs {
     /// The port settings: the defaults of `[serial]` and the flags given.
     pub fn serial_config(&self) -> Result<SerialConfig, String> {
         let mut cfg = SerialConfig {
-            path: self.serial.clone().unwrap_or_default().to_string_lossy().into_owned(),
+            path: self
+                .serial
+                .clone()
+                .unwrap_or_default()
+                .to_string_lossy()
+                .into_owned(),
             framing: self.framing,
             ..SerialConfig::default()
         };

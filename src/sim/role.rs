@@ -29,7 +29,12 @@ pub struct RoleArgs {
     pub timeout_ms: Option<u64>,
     /// slave: serve Modbus/TCP on this address instead of a serial port (cie-m10 or
     /// generic profile; the line model does not apply).
-    #[arg(long, value_name = "ADDR", conflicts_with = "serial", help_heading = "role")]
+    #[arg(
+        long,
+        value_name = "ADDR",
+        conflicts_with = "serial",
+        help_heading = "role"
+    )]
     pub tcp: Option<SocketAddr>,
 }
 

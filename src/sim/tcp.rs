@@ -74,11 +74,11 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
             };
             let reply = Adu::build(req.tid(), req.unit(), &pdu);
             info!(target: "mbgate::sim::packets", "tx {} (reply)", Hex(reply.as_bytes()));
-            device
-                .lock()
-                .expect("not poisoned")
-                .log
-                .record(Direction::Tx, reply.as_bytes(), "reply");
+            device.lock().expect("not poisoned").log.record(
+                Direction::Tx,
+                reply.as_bytes(),
+                "reply",
+            );
             if wr.write_all(reply.as_bytes()).await.is_err() {
                 return;
             }

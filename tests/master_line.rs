@@ -1,0 +1,562 @@
+//! A line whose device is the master (docs/design.md §4.2): serial masters (the
+//! simulated CIE-M10 master, pymodbus' RTU client, a scripted raw master) on a socat
+//! pty, mbgate in the middle, Modbus/TCP slaves (pymodbus' ModbusTcpServer, or a
+//! recording slave written here) on real sockets.
+
+mod common;
+
+use common::sim::RawLine;
+use common::{hexs, python, tempdir, wait_for, Proc, Py, Registers, Socat};
+use mbgate::frame::mbap::decode_strict;
+use mbgate::frame::{rtu, Adu};
+use std::io::{Read, Write};
+use std::net::{TcpListener, TcpStream};
+use std::path::Path;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+use std::thread;
+use std::time::{Duration, Instant};
+
+/// A free port on 127.0.0.1 for a pymodbus slave (pymodbus needs a number).
+fn free_port() -> u16 {
+    TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port()
+}
+
+/// The master line's configuration: the pty, its framing, and `[[line.route]]`
+/// tables given as (`units = [...]` or "" for the default route, port, extra lines).
+fn config(dir: &Path, gw: &Path, framing: &str, routes: &[(&str, u16, &str)]) -> String {
+    let mut s = format!(
+        "[[line]]\nrole = \"master\"\n\
+         serial = {{ path = {:?}, framing = \"{framing}\", baud_rate = 4000000, \
+         silence_floor_ms = 0, flow_control = \"none\" }}\n",
+        gw.display().to_string()
+    );
+    for (units, port, extra) in routes {
+        s += &format!("\n[[line.route]]\n{units}\naddress = \"127.0.0.1:{port}\"\n{extra}\n");
+    }
+    s += "\n[log]\nlevel = \"debug\"\ntraffic = true\n";
+    let file = dir.join("mbgate.toml");
+    std::fs::write(&file, &s).unwrap();
+    file.to_str().unwrap().to_owned()
+}
+
+/// `mbgate run` on a master line, started once its line is up.
+fn gateway(file: &str) -> Proc {
+    Proc::start(&["run", "--config", file], "serial port open")
+}
+
+/// A pymodbus Modbus/TCP slave on `port`.
+fn pymodbus_slave(port: u16, unit: u8, base: u16) -> Py {
+    let _ = python();
+    Py::start(
+        "tcp_slave.py",
+        &[
+            "--port",
+            &port.to_string(),
+            "--unit",
+            &unit.to_string(),
+            "--base",
+            &base.to_string(),
+        ],
+    )
+}
+
+/// One request to a Modbus/TCP server, directly (to look at or set a slave's
+/// registers behind mbgate's back).
+fn direct(port: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    s.write_all(Adu::build(0x4242, unit, pdu).as_bytes())
+        .unwrap();
+    common::read_frame(&mut s)[7..].to_vec()
+}
+
+/// What a recording slave does with each request.
+#[derive(Clone, Copy, PartialEq)]
+enum Behaviour {
+    /// Answers as a register map (FC 03, 06, 16).
+    Answer,
+    /// Reads the request and closes the connection.
+    Hang,
+    /// Reads and never answers.
+    Silent,
+}
+
+/// A Modbus/TCP slave written here: one connection at a time, every request recorded.
+struct Slave {
+    port: u16,
+    seen: Arc<Mutex<Vec<Adu>>>,
+    stop: Arc<AtomicBool>,
+}
+
+impl Slave {
+    fn start(behaviour: Behaviour) -> Slave {
+        let listener = TcpListener::bind("127.0.0.1:0").unwrap();
+        listener.set_nonblocking(true).unwrap();
+        let port = listener.local_addr().unwrap().port();
+        let seen = Arc::new(Mutex::new(Vec::new()));
+        let stop = Arc::new(AtomicBool::new(false));
+        let (seen2, stop2) = (seen.clone(), stop.clone());
+        thread::spawn(move || {
+            let mut regs = Registers::default();
+            while !stop2.load(Ordering::Relaxed) {
+                let Ok((mut s, _)) = listener.accept() else {
+                    thread::sleep(Duration::from_millis(2));
+                    continue;
+                };
+                s.set_nonblocking(false).unwrap();
+                s.set_read_timeout(Some(Duration::from_millis(20))).unwrap();
+                let mut buf = bytes::BytesMut::new();
+                let mut chunk = [0u8; 512];
+                'conn: while !stop2.load(Ordering::Relaxed) {
+                    match s.read(&mut chunk) {
+                        Ok(0) => break,
+                        Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                        Err(_) => continue,
+                    }
+                    while let Ok(Some(req)) = decode_strict(&mut buf) {
+                        seen2.lock().unwrap().push(req.clone());
+                        match behaviour {
+                            Behaviour::Answer => {
+                                let pdu = regs.answer(req.unit(), req.pdu(), true);
+                                let reply = Adu::build(req.tid(), req.unit(), &pdu);
+                                if s.write_all(reply.as_bytes()).is_err() {
+                                    break 'conn;
+                                }
+                            }
+                            Behaviour::Hang => break 'conn,
+                            Behaviour::Silent => {}
+                        }
+                    }
+                }
+            }
+        });
+        Slave { port, seen, stop }
+    }
+
+    fn requests(&self) -> Vec<Adu> {
+        self.seen.lock().unwrap().clone()
+    }
+}
+
+impl Drop for Slave {
+    fn drop(&mut self) {
+        self.stop.store(true, Ordering::Relaxed);
+    }
+}
+
+/// The frames the simulated master's log shows it sent (`tx HEX (request)`) or
+/// received (`rx HEX (reply)`), in order.
+fn logged(log: &str, what: &str) -> Vec<String> {
+    log.lines()
+        .filter_map(|l| {
+            let rest = l.split(&format!("{what} ")).nth(1)?;
+            Some(rest.split(" (").next()?.to_owned())
+        })
+        .collect()
+}
+
+/// The simulated CIE-M10 master (docs/protocol.md §3) on a pty, through mbgate, to
+/// pymodbus' ModbusTcpServer: the slave's output register follows the master's inputs,
+/// the master's outputs follow the slave's input register, and the bytes on the serial
+/// line are the manual's frames, ids counting from 0000.
+#[test]
+fn cie_m10_master_mirrors_a_pymodbus_slave() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let port = free_port();
+    let _slave = pymodbus_slave(port, 1, 0);
+    let file = config(dir.path(), &socat.gw, "mbap", &[("", port, "")]);
+    let gw = gateway(&file);
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let dev = socat.dev.to_str().unwrap();
+    let master = Proc::start(
+        &[
+            "sim",
+            "--serial",
+            dev,
+            "--role",
+            "master",
+            "--poll-ms",
+            "100",
+            "--toggle-ms",
+            "250",
+            "--headless",
+            "--flow-control",
+            "none",
+        ],
+        "a CIE-M10 master on",
+    );
+    wait_for("the first two exchanges", Duration::from_secs(5), || {
+        logged(&master.log(), "rx").len() >= 2
+    });
+    // Inputs 0 and outputs 0 at first: the manual's frames with ids 0000 and 0001.
+    let sent = logged(&master.log(), "tx");
+    let got = logged(&master.log(), "rx");
+    assert_eq!(sent[0], "00 00 00 00 00 06 01 03 00 00 00 01");
+    assert_eq!(got[0], "00 00 00 00 00 05 01 03 02 00 00");
+    assert_eq!(sent[1], "00 01 00 00 00 09 01 10 00 08 00 01 02 00 00");
+    assert_eq!(got[1], "00 01 00 00 00 06 01 10 00 08 00 01");
+    // What mbgate read and wrote on its end of the line is the same.
+    let log = gw.log();
+    assert!(
+        log.contains("serial rx 00 00 00 00 00 06 01 03 00 00 00 01"),
+        "{log}"
+    );
+    assert!(
+        log.contains("serial tx 00 00 00 00 00 05 01 03 02 00 00"),
+        "{log}"
+    );
+    assert!(
+        log.contains("serial tx 00 01 00 00 00 06 01 10 00 08 00 01"),
+        "{log}"
+    );
+
+    // The slave's inputs change: the master's outputs follow.
+    assert_eq!(direct(port, 1, &[6, 0, 0, 0, 0x5A]), [6, 0, 0, 0, 0x5A]);
+    wait_for("the master's outputs", Duration::from_secs(5), || {
+        master.stdout.lock().unwrap().contains("outputs 01011010")
+    });
+    // The master's inputs count up: the slave's output register follows them.
+    let outputs = || direct(port, 1, &[3, 0, 8, 0, 1])[3];
+    let mut values = std::collections::BTreeSet::new();
+    wait_for(
+        "the slave's outputs to change twice",
+        Duration::from_secs(5),
+        || {
+            values.insert(outputs());
+            values.len() >= 3
+        },
+    );
+    let sent = logged(&master.log(), "tx");
+    assert!(values
+        .iter()
+        .all(|v| sent.iter().any(|f| f.ends_with(&format!("02 00 {v:02X}")))));
+    for (i, f) in sent.iter().enumerate() {
+        let tid = hexs(&(i as u16).to_be_bytes());
+        assert!(
+            f.starts_with(&tid),
+            "ids count up from 0000: {f} is query {i}"
+        );
+    }
+    let replies = logged(&master.log(), "rx");
+    assert!(
+        replies.iter().any(|f| f.ends_with("01 03 02 00 5A")),
+        "the read replies carry the slave's inputs: {replies:?}"
+    );
+}
+
+/// pymodbus' RTU client as the serial master, two pymodbus slaves by unit id: every
+/// function code of docs/protocol.md §1 and an exception, and 0x0A for a unit with no
+/// route.
+#[test]
+fn rtu_master_reaches_two_slaves_by_unit() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let (p1, p2) = (free_port(), free_port());
+    let _s1 = pymodbus_slave(p1, 1, 0);
+    let _s2 = pymodbus_slave(p2, 2, 1000);
+    let file = config(
+        dir.path(),
+        &socat.gw,
+        "rtu",
+        &[("units = [1]", p1, ""), ("units = [2]", p2, "")],
+    );
+    let gw = gateway(&file);
+    gw.wait_log(
+        "connected to the slave at 127.0.0.1:",
+        Duration::from_secs(5),
+    );
+    let steps = r#"[
+        ["read_coils", [0], {"count": 5, "device_id": 1}],
+        ["read_discrete_inputs", [0], {"count": 4, "device_id": 2}],
+        ["read_holding_registers", [16], {"count": 2, "device_id": 1}],
+        ["read_holding_registers", [16], {"count": 2, "device_id": 2}],
+        ["read_input_registers", [1], {"count": 2, "device_id": 2}],
+        ["write_coil", [1, true], {"device_id": 1}],
+        ["write_register", [3, 77], {"device_id": 2}],
+        ["write_coils", [8, [true, false, true]], {"device_id": 2}],
+        ["write_registers", [20, [5, 6, 7]], {"device_id": 1}],
+        ["readwrite_registers", [], {"read_address": 20, "read_count": 3, "write_address": 4, "values": [9], "device_id": 1}],
+        ["read_holding_registers", [300], {"count": 1, "device_id": 1}],
+        ["read_holding_registers", [0], {"count": 1, "device_id": 3}]
+    ]"#;
+    let gw_dev = socat.dev.to_str().unwrap();
+    let (status, out) = Py::run(
+        "rtu_master.py",
+        &["--port", gw_dev, "--baud", "115200", steps],
+    );
+    assert!(status.success(), "{out}");
+    let got: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let want = serde_json::json!([
+        {"bits": [true, false, false, true, false, false, false, false]},
+        {"bits": [true, false, true, false, false, false, false, false]},
+        {"registers": [16, 17]},
+        {"registers": [1016, 1017]},
+        {"registers": [1501, 1502]},
+        {"bits": [true], "address": 1},
+        {"registers": [77], "address": 3},
+        {"address": 8, "count": 3},
+        {"address": 20, "count": 3},
+        {"registers": [5, 6, 7]},
+        {"exception": 2},
+        {"exception": 10}
+    ]);
+    // pymodbus reports a single write with a count of its own; compare the rest.
+    let (got, want) = (got.as_array().unwrap(), want.as_array().unwrap());
+    assert_eq!(got.len(), want.len(), "{got:?}");
+    for (i, (g, w)) in got.iter().zip(want).enumerate() {
+        for (k, v) in w.as_object().unwrap() {
+            assert_eq!(g.get(k), Some(v), "step {i}: {g} vs {w}");
+        }
+    }
+    // The writes reached the right slave, and only it.
+    assert_eq!(direct(p1, 1, &[1, 0, 1, 0, 1]), [1, 1, 1]);
+    assert_eq!(direct(p2, 2, &[3, 0, 3, 0, 2]), [3, 4, 0, 77, 0, 0]);
+    assert_eq!(direct(p2, 2, &[1, 0, 8, 0, 3]), [1, 1, 0b101]);
+    assert_eq!(direct(p1, 1, &[3, 0, 4, 0, 1]), [3, 2, 0, 9]);
+    assert_eq!(
+        direct(p1, 1, &[3, 0, 3, 0, 1]),
+        [3, 2, 0, 0],
+        "unit 2's write stayed there"
+    );
+}
+
+/// An RTU request from a raw master, and its reply (empty if none within `within`).
+fn ask(
+    line: &mut RawLine,
+    unit: u8,
+    pdu: &[u8],
+    reply_pdu_len: usize,
+    within: Duration,
+) -> Vec<u8> {
+    line.send(&rtu::encode(unit, pdu));
+    line.recv(1 + reply_pdu_len + 2, within)
+}
+
+/// The slave stops: 0x0A; a request already sent when its connection goes: 0x0B; a
+/// slave that never answers: 0x0B; the slave back: served again by the same mbgate.
+#[test]
+fn slave_lost_and_back() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let port = free_port();
+    let hang = Slave::start(Behaviour::Hang);
+    let silent = Slave::start(Behaviour::Silent);
+    let timeout = "response_timeout_ms = 300";
+    let file = config(
+        dir.path(),
+        &socat.gw,
+        "rtu",
+        &[
+            ("units = [1]", port, timeout),
+            ("units = [2]", hang.port, timeout),
+            ("units = [3]", silent.port, timeout),
+        ],
+    );
+    let slave = pymodbus_slave(port, 1, 0);
+    let gw = gateway(&file);
+    let pid = gw.pid();
+    gw.wait_log(
+        "connected to the slave at 127.0.0.1:",
+        Duration::from_secs(5),
+    );
+    thread::sleep(Duration::from_millis(300));
+    let mut line = RawLine::open(&socat.dev);
+    let read = [3, 0, 16, 0, 1];
+    let second = Duration::from_secs(1);
+    assert_eq!(
+        ask(&mut line, 1, &read, 4, second),
+        rtu::encode(1, &[3, 2, 0, 16])
+    );
+
+    let started = Instant::now();
+    assert_eq!(
+        ask(&mut line, 2, &read, 2, second),
+        rtu::encode(2, &[0x83, 0x0B])
+    );
+    assert!(
+        started.elapsed() < Duration::from_millis(250),
+        "at once when the connection goes"
+    );
+    assert_eq!(hang.requests().len(), 1);
+    let started = Instant::now();
+    assert_eq!(
+        ask(&mut line, 3, &read, 2, second),
+        rtu::encode(3, &[0x83, 0x0B])
+    );
+    assert!(started.elapsed() >= Duration::from_millis(290));
+
+    drop(slave);
+    gw.wait_log("slave connection lost", Duration::from_secs(5));
+    assert_eq!(
+        ask(&mut line, 1, &read, 2, second),
+        rtu::encode(1, &[0x83, 0x0A])
+    );
+
+    let _slave = pymodbus_slave(port, 1, 0);
+    let mut served = Vec::new();
+    wait_for("served again", Duration::from_secs(10), || {
+        served = ask(&mut line, 1, &read, 4, second);
+        served == rtu::encode(1, &[3, 2, 0, 16])
+            || (served == rtu::encode(1, &[0x83, 0x0A]) && {
+                thread::sleep(Duration::from_millis(100));
+                false
+            })
+    });
+    assert_eq!(gw.pid(), pid);
+}
+
+/// The simulated master loses 1 % of the bytes it sends; the slave records every
+/// request mbgate forwards: each is one the master sent, in the order it sent them
+/// (docs/reliability.md). MBGATE_LONG=1: at least 2 000 requests.
+#[test]
+fn lossy_line_forwards_only_what_the_master_sent() {
+    let long = std::env::var_os("MBGATE_LONG").is_some();
+    let want = if long { 2_000 } else { 300 };
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let slave = Slave::start(Behaviour::Answer);
+    let file = config(dir.path(), &socat.gw, "mbap", &[("", slave.port, "")]);
+    let gw = gateway(&file);
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let dev = socat.dev.to_str().unwrap();
+    // A master timeout shorter than mbgate's frame gap (50 ms): a request that lost a
+    // byte is still buffered when the next one comes, the hardest case.
+    let mut master = Proc::start(
+        &[
+            "sim",
+            "--serial",
+            dev,
+            "--role",
+            "master",
+            "--poll-ms",
+            "1",
+            "--timeout-ms",
+            "20",
+            "--toggle-ms",
+            "3",
+            "--drop",
+            "0.01",
+            "--faults",
+            "from-device",
+            "--seed",
+            "14",
+            "--headless",
+            "--flow-control",
+            "none",
+        ],
+        "a CIE-M10 master on",
+    );
+    wait_for(
+        "the requests",
+        Duration::from_secs(if long { 120 } else { 20 }),
+        || logged(&master.log(), "tx").len() >= want,
+    );
+    master.terminate(Duration::from_secs(5));
+    thread::sleep(Duration::from_millis(100));
+    let sent: Vec<Vec<u8>> = logged(&master.log(), "tx")
+        .iter()
+        .map(|f| common::hex(f)[6..].to_vec())
+        .collect();
+    let forwarded: Vec<Vec<u8>> = slave
+        .requests()
+        .iter()
+        .map(|f| f.as_bytes()[6..].to_vec())
+        .collect();
+    // Each forwarded request (unit and PDU) is the next one the master sent, or one of
+    // the few after it (the master's inputs count up, so its writes differ: one that
+    // is found only far ahead was made up).
+    let mut at = 0;
+    for (i, f) in forwarded.iter().enumerate() {
+        let ahead = &sent[at..sent.len().min(at + 20)];
+        let found = ahead.iter().position(|s| s == f);
+        let Some(k) = found else {
+            panic!(
+                "forwarded request {i} {} was never sent (after sent {at})",
+                hexs(f)
+            );
+        };
+        at += k + 1;
+    }
+    let lost = sent.len() - forwarded.len();
+    eprintln!(
+        "{} sent, {} forwarded, {lost} not",
+        sent.len(),
+        forwarded.len()
+    );
+    assert!(sent.len() >= want);
+    assert!(
+        lost > 0,
+        "the loss must cost some requests, or the test shows nothing"
+    );
+    assert!(
+        forwarded.len() * 10 > sent.len() * 7,
+        "most requests get through"
+    );
+}
+
+/// A scripted master writes garbage, an RTU frame with a bad CRC, then a good one:
+/// only the good one is forwarded and answered.
+#[test]
+fn rtu_garbage_and_bad_crc_are_not_forwarded() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let slave = Slave::start(Behaviour::Answer);
+    let file = config(dir.path(), &socat.gw, "rtu", &[("", slave.port, "")]);
+    let gw = gateway(&file);
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let mut line = RawLine::open(&socat.dev);
+    line.send(&[0xFF, 0x00, 0x13, 0x37]);
+    thread::sleep(Duration::from_millis(20));
+    let mut bad = rtu::encode(1, &[6, 0, 5, 0, 9]);
+    bad[6] ^= 0x40;
+    line.send(&bad);
+    assert_eq!(
+        line.recv(1, Duration::from_millis(300)),
+        Vec::<u8>::new(),
+        "no answer, as on a bus"
+    );
+    assert_eq!(
+        ask(&mut line, 1, &[3, 0, 5, 0, 1], 4, Duration::from_secs(1)),
+        rtu::encode(1, &[3, 2, 0, 5])
+    );
+    let seen: Vec<String> = slave.requests().iter().map(|f| hexs(f.pdu())).collect();
+    assert_eq!(seen, ["03 00 05 00 01"]);
+}
+
+/// MBAP: garbage, a truncated frame followed at once by a good one, then another
+/// good one after a pause: the first two are not forwarded (the truncated frame
+/// takes the good one's first byte, and what follows refutes it), the last is, with
+/// the master's own transaction id on its reply.
+#[test]
+fn mbap_truncated_frame_then_a_good_one() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let slave = Slave::start(Behaviour::Answer);
+    let file = config(dir.path(), &socat.gw, "mbap", &[("", slave.port, "")]);
+    let gw = gateway(&file);
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let mut line = RawLine::open(&socat.dev);
+    let write = |tid: u16, v: u8| {
+        Adu::build(tid, 1, &[0x10, 0, 8, 0, 1, 2, 0, v])
+            .as_bytes()
+            .to_vec()
+    };
+    let mut cut = write(0x0107, 0x11);
+    cut.remove(13);
+    let mut burst = vec![0x55, 0x00, 0x00];
+    burst.extend_from_slice(&cut);
+    burst.extend_from_slice(&write(0x0108, 0x22));
+    line.send(&burst);
+    assert_eq!(line.recv(1, Duration::from_millis(300)), Vec::<u8>::new());
+    line.send(&write(0x0109, 0x33));
+    let reply = line.recv(12, Duration::from_secs(1));
+    assert_eq!(hexs(&reply), "01 09 00 00 00 06 01 10 00 08 00 01");
+    let seen: Vec<String> = slave.requests().iter().map(|f| hexs(f.pdu())).collect();
+    assert_eq!(seen, ["10 00 08 00 01 02 00 33"]);
+}

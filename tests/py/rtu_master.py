@@ -1,0 +1,48 @@
+#!/usr/bin/env python3
+"""A pymodbus Modbus RTU master on a serial port (pymodbus' ModbusSerialClient with the
+RTU framer) that runs the steps it is given and reports what came back.
+
+    rtu_master.py --port PATH [--baud 19200] [--timeout 2] STEPS_JSON
+
+STEPS_JSON and the printed results are as in master.py (the Modbus/TCP master).
+"""
+
+import argparse
+import json
+import logging
+import sys
+
+from pymodbus import FramerType
+from pymodbus.client import ModbusSerialClient
+from pymodbus.exceptions import ModbusException
+
+from master import outcome
+
+
+def main() -> int:
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+    p = argparse.ArgumentParser()
+    p.add_argument("--port", required=True)
+    p.add_argument("--baud", type=int, default=19200)
+    p.add_argument("--timeout", type=float, default=2.0)
+    p.add_argument("steps")
+    a = p.parse_args()
+    client = ModbusSerialClient(
+        a.port, framer=FramerType.RTU, baudrate=a.baud, timeout=a.timeout, retries=0
+    )
+    if not client.connect():
+        print(json.dumps([{"error": "connect failed"}]))
+        return 1
+    results = []
+    for method, args, kwargs in json.loads(a.steps):
+        try:
+            results.append(outcome(getattr(client, method)(*args, **kwargs)))
+        except ModbusException as exc:
+            results.append({"error": f"{type(exc).__name__}: {exc}"})
+    client.close()
+    print(json.dumps(results))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
