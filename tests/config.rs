@@ -595,6 +595,7 @@ fn non_default() -> Config {
             level: "trace".into(),
             traffic: true,
         },
+        master: None,
     }
 }
 
@@ -930,7 +931,7 @@ fn lines_and_listeners_are_validated_and_more_than_one_refused() {
         ),
         (
             "[[line]]\nunit = [1]\n",
-            "2:1: line[0].unit: unknown key; expected one of units, serial, relay \
+            "2:1: line[0].unit: unknown key; expected one of units, serial, relay, role, route \
              (did you mean `units`?)",
         ),
         (

@@ -1,0 +1,142 @@
+//! The master line's configuration (docs/design.md §4.2): `role = "master"` and
+//! `[[line.route]]` tables, read, refused with file, line, column and key, and printed
+//! back by `check-config` to the same configuration.
+
+use mbgate::config::master::{MasterLine, Peer, Route};
+use mbgate::config::*;
+
+const F: &str = "m.toml";
+
+const EXAMPLE: &str = r#"
+[[line]]
+role = "master"
+serial = { path = "/dev/ttyS1", framing = "rtu", baud_rate = 9600 }
+
+[[line.route]]
+units = [1, 2]
+address = "plc.local:502"
+max_in_flight = 4
+
+[[line.route]]
+listen = "127.0.0.1:5021"
+response_timeout_ms = 250
+"#;
+
+#[test]
+fn the_example_reads_and_prints_back_the_same() {
+    let cfg = parse(EXAMPLE, F).unwrap();
+    assert_eq!(cfg.serial.path, "/dev/ttyS1");
+    assert_eq!(cfg.serial.framing, Framing::Rtu);
+    let want = MasterLine {
+        routes: vec![
+            Route {
+                units: vec![1, 2],
+                peer: Peer::Connect("plc.local:502".into()),
+                response_timeout_ms: 1000,
+                max_in_flight: 4,
+            },
+            Route {
+                units: vec![],
+                peer: Peer::Listen("127.0.0.1:5021".parse().unwrap()),
+                response_timeout_ms: 250,
+                max_in_flight: 1,
+            },
+        ],
+    };
+    assert_eq!(cfg.master.as_ref(), Some(&want));
+    assert_eq!(want.route_for(2), Some(0));
+    assert_eq!(want.route_for(7), Some(1));
+    let printed = to_toml(&cfg);
+    assert!(
+        printed.starts_with("[[line]]\nrole = \"master\"\n"),
+        "{printed}"
+    );
+    assert_eq!(parse(&printed, F).unwrap(), cfg, "{printed}");
+    // A slave line (the default role) has no master part.
+    let slave = parse("[[line]]\nrole = \"slave\"\n", F).unwrap();
+    assert_eq!(slave, Config::default());
+}
+
+#[test]
+fn mistakes_are_refused_naming_the_key() {
+    let line = "[[line]]\nrole = \"master\"\n";
+    let route = |body: &str| format!("{line}[[line.route]]\n{body}\n");
+    for (text, want) in [
+        (
+            "[[line]]\nrole = \"boss\"\n".to_owned(),
+            "2:8: line[0].role: invalid value \"boss\"; expected one of slave, master",
+        ),
+        (
+            line.to_owned(),
+            "2:1: line[0].role: a master line needs [[line.route]] tables",
+        ),
+        (
+            "[[line]]\n[[line.route]]\naddress = \"h:1\"\n".to_owned(),
+            "2:8: line[0].route: routes belong to a master line: add role = \"master\"",
+        ),
+        (
+            route("units = [1]"),
+            "3:1: line[0].route[0]: missing: address (host:port of the slave) or listen",
+        ),
+        (
+            route("address = \"plc\""),
+            "4:11: line[0].route[0].address: expected host:port",
+        ),
+        (
+            route("address = \"h:1\"\nlisten = \"0.0.0.0:5021\""),
+            "5:10: line[0].route[0].listen: give address (connect) or listen, not both",
+        ),
+        (
+            route("units = [0]\naddress = \"h:1\""),
+            "4:10: line[0].route[0].units: must be between 1 and 255, got 0",
+        ),
+        (
+            route("units = [1, 1]\naddress = \"h:1\""),
+            "4:13: line[0].route[0].units: unit 1 is listed twice",
+        ),
+        (
+            route(
+                "units = [1]\naddress = \"h:1\"\n[[line.route]]\nunits = [2, 1]\naddress = \"h:2\"",
+            ),
+            "7:9: line[0].route[1].units: unit 1 is also in line[0].route[0]",
+        ),
+        (
+            route("address = \"h:1\"\n[[line.route]]\naddress = \"h:2\""),
+            "5:1: line[0].route[1]: a second default route (no units); line[0].route[0] is one",
+        ),
+        (
+            route("address = \"h:1\"\nmax_in_flight = 0"),
+            "5:17: line[0].route[0].max_in_flight: must be between 1 and 255, got 0",
+        ),
+        (
+            route("adress = \"h:1\""),
+            "4:1: line[0].route[0].adress: unknown key; expected one of units, address, listen",
+        ),
+        (
+            format!("{line}units = [1]\n[[line.route]]\naddress = \"h:1\"\n"),
+            "3:9: line[0].units: a master line routes by the units of its [[line.route]] tables",
+        ),
+    ] {
+        let e = parse(&text, F).expect_err(&text).to_string();
+        assert!(
+            e.starts_with(&format!("{F}:{want}")),
+            "{text}\n{e:?}\nshould start with {want:?}"
+        );
+    }
+}
+
+/// config/mbgate.toml's commented example of a master line, uncommented, is valid.
+#[test]
+fn the_shipped_example_is_valid() {
+    let text = include_str!("../config/mbgate.toml");
+    let start = text
+        .find("# [[line]]\n# role = \"master\"")
+        .expect("the example");
+    let example: String = text[start..]
+        .lines()
+        .take_while(|l| l.starts_with('#'))
+        .map(|l| format!("{}\n", l.trim_start_matches('#').trim_start()))
+        .collect();
+    let cfg = parse(&example, F).unwrap_or_else(|e| panic!("{e}\n{example}"));
+    assert_eq!(cfg.master.unwrap().routes.len(), 2);
+}
