@@ -560,3 +560,69 @@ fn mbap_truncated_frame_then_a_good_one() {
     let seen: Vec<String> = slave.requests().iter().map(|f| hexs(f.pdu())).collect();
     assert_eq!(seen, ["10 00 08 00 01 02 00 33"]);
 }
+
+/// A slave that connects to mbgate (the ezTCP's active setting facing mbgate's passive
+/// route) and answers as a register map until `stop`.
+fn connecting_slave(port: u16, stop: Arc<AtomicBool>) -> thread::JoinHandle<()> {
+    thread::spawn(move || {
+        let mut s = TcpStream::connect(("127.0.0.1", port)).unwrap();
+        s.set_read_timeout(Some(Duration::from_millis(20))).unwrap();
+        let mut regs = Registers::default();
+        let mut buf = bytes::BytesMut::new();
+        let mut chunk = [0u8; 512];
+        while !stop.load(Ordering::Relaxed) {
+            match s.read(&mut chunk) {
+                Ok(0) => return,
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                Err(_) => continue,
+            }
+            while let Ok(Some(req)) = decode_strict(&mut buf) {
+                let pdu = regs.answer(req.unit(), req.pdu(), true);
+                let reply = Adu::build(req.tid(), req.unit(), &pdu);
+                s.write_all(reply.as_bytes()).unwrap();
+            }
+        }
+    })
+}
+
+/// A passive route: 0x0A until the slave connects in, served once it has, and served
+/// again when it connects anew.
+#[test]
+fn passive_route_serves_the_slave_that_connects_in() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let port = free_port();
+    let mut text = std::fs::read_to_string(config(dir.path(), &socat.gw, "rtu", &[])).unwrap();
+    text = text.replace(
+        "\n[log]",
+        &format!("\n[[line.route]]\nlisten = \"127.0.0.1:{port}\"\n\n[log]"),
+    );
+    let file = dir.path().join("passive.toml");
+    std::fs::write(&file, text).unwrap();
+    let gw = gateway(file.to_str().unwrap());
+    gw.wait_log("waiting for the slave to connect to", Duration::from_secs(5));
+    let mut line = RawLine::open(&socat.dev);
+    let read = [3, 0, 7, 0, 1];
+    let second = Duration::from_secs(1);
+    assert_eq!(ask(&mut line, 5, &read, 2, second), rtu::encode(5, &[0x83, 0x0A]));
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let first = connecting_slave(port, stop.clone());
+    gw.wait_log("slave connected from", Duration::from_secs(5));
+    assert_eq!(ask(&mut line, 5, &[6, 0, 7, 0, 99], 5, second), rtu::encode(5, &[6, 0, 7, 0, 99]));
+    assert_eq!(ask(&mut line, 5, &read, 4, second), rtu::encode(5, &[3, 2, 0, 99]));
+
+    // The slave restarts and connects again: the new connection is the route's.
+    let stop2 = Arc::new(AtomicBool::new(false));
+    let _second = connecting_slave(port, stop2.clone());
+    gw.wait_log("slave connected again", Duration::from_secs(5));
+    thread::sleep(Duration::from_millis(50));
+    assert_eq!(
+        ask(&mut line, 5, &read, 4, second),
+        rtu::encode(5, &[3, 2, 0, 7]),
+        "the new slave's registers"
+    );
+    stop.store(true, Ordering::Relaxed);
+    stop2.store(true, Ordering::Relaxed);
+    let _ = first.join();
+}

@@ -65,6 +65,10 @@ pub async fn run(
     let timeout = Duration::from_millis(route.response_timeout_ms);
     let mut reported = false;
     let mut next: Option<TcpStream> = None;
+    if listener.is_some() {
+        // No slave until one connects in: requests get 0x0A at once meanwhile.
+        let _ = events.send(Event::Down(i));
+    }
     loop {
         let stream = match (&listener, &route.peer) {
             (Some(l), _) => match next.take() {
