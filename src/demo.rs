@@ -32,6 +32,9 @@ pub struct DemoArgs {
     pub baud: Option<u32>,
     #[command(flatten)]
     pub device: DeviceArgs,
+    /// The device as master instead (src/master_demo.rs).
+    #[command(flatten)]
+    pub master: crate::master_demo::MasterDemoArgs,
 }
 
 #[derive(Debug, thiserror::Error)]

@@ -13,6 +13,7 @@ pub mod frame;
 pub mod gateway;
 pub mod invocation;
 pub mod logging;
+pub mod master_demo;
 pub mod notify;
 pub mod number;
 pub mod outbox;

@@ -182,7 +182,7 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
                 let listener = mbgate::sim::tcp::bind(addr)
                     .await
                     .with_context(|| format!("cannot listen on {addr}"))?;
-                mbgate::sim::tcp::run(settings, listener, commands, shutdown).await?;
+                mbgate::sim::tcp::run(settings.device, listener, commands, shutdown).await?;
                 return Ok(());
             }
             let port = Port::Path(port.map_err(anyhow::Error::msg)?);
@@ -199,6 +199,9 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
 
 /// `mbgate demo`.
 fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
+    if args.master.master {
+        return master_demo(args);
+    }
     let device = args.device.clone();
     let (_, console) = sim_level(&device);
     let (banner_shown, after_banner) = std::sync::mpsc::channel();
@@ -215,6 +218,26 @@ fn demo(args: mbgate::demo::DemoArgs) -> ExitCode {
             if console {
                 println!("mbgate demo stopped: {stats}");
             }
+            Ok(())
+        },
+    )
+}
+
+/// `mbgate demo --master`: the simulated master takes the device flags.
+fn master_demo(args: mbgate::demo::DemoArgs) -> ExitCode {
+    let device = args.device.clone();
+    let (banner_shown, after_banner) = std::sync::mpsc::channel();
+    let settings = args.settings().and_then(|s| match s.device.profile {
+        mbgate::sim::Profile::CieM10(_) => Ok(s),
+        mbgate::sim::Profile::Generic(_) => Err("--master is the cie-m10 profile's".into()),
+    });
+    simulate(
+        &device,
+        settings,
+        args.traffic,
+        Some(after_banner),
+        |settings, commands, shutdown| async move {
+            mbgate::master_demo::run(&args, settings, commands, shutdown, banner_shown).await?;
             Ok(())
         },
     )

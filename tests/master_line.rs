@@ -600,17 +600,29 @@ fn passive_route_serves_the_slave_that_connects_in() {
     let file = dir.path().join("passive.toml");
     std::fs::write(&file, text).unwrap();
     let gw = gateway(file.to_str().unwrap());
-    gw.wait_log("waiting for the slave to connect to", Duration::from_secs(5));
+    gw.wait_log(
+        "waiting for the slave to connect to",
+        Duration::from_secs(5),
+    );
     let mut line = RawLine::open(&socat.dev);
     let read = [3, 0, 7, 0, 1];
     let second = Duration::from_secs(1);
-    assert_eq!(ask(&mut line, 5, &read, 2, second), rtu::encode(5, &[0x83, 0x0A]));
+    assert_eq!(
+        ask(&mut line, 5, &read, 2, second),
+        rtu::encode(5, &[0x83, 0x0A])
+    );
 
     let stop = Arc::new(AtomicBool::new(false));
     let first = connecting_slave(port, stop.clone());
     gw.wait_log("slave connected from", Duration::from_secs(5));
-    assert_eq!(ask(&mut line, 5, &[6, 0, 7, 0, 99], 5, second), rtu::encode(5, &[6, 0, 7, 0, 99]));
-    assert_eq!(ask(&mut line, 5, &read, 4, second), rtu::encode(5, &[3, 2, 0, 99]));
+    assert_eq!(
+        ask(&mut line, 5, &[6, 0, 7, 0, 99], 5, second),
+        rtu::encode(5, &[6, 0, 7, 0, 99])
+    );
+    assert_eq!(
+        ask(&mut line, 5, &read, 4, second),
+        rtu::encode(5, &[3, 2, 0, 99])
+    );
 
     // The slave restarts and connects again: the new connection is the route's.
     let stop2 = Arc::new(AtomicBool::new(false));
@@ -625,4 +637,30 @@ fn passive_route_serves_the_slave_that_connects_in() {
     stop.store(true, Ordering::Relaxed);
     stop2.store(true, Ordering::Relaxed);
     let _ = first.join();
+}
+
+/// `mbgate demo --master` on a terminal: an input set on the master shows in the
+/// slave's outputs through the command the banner prints (run as printed), and one set
+/// on the slave shows in the master's outputs on the console; Ctrl-C ends it cleanly.
+#[test]
+fn demo_master_mirrors_both_ways() {
+    let (status, out) = Py::run("master_demo.py", &[env!("CARGO_BIN_EXE_mbgate")]);
+    assert!(status.success(), "master_demo.py:\n{out}");
+    let got: serde_json::Value = serde_json::from_str(&out).unwrap();
+    let banner = got["banner"].as_str().unwrap();
+    assert!(
+        banner.contains("a simulated CIE-M10 master on /dev/pts/"),
+        "{banner}"
+    );
+    assert!(got["command"]
+        .as_str()
+        .unwrap()
+        .ends_with(" holding-registers 8"));
+    assert_eq!(
+        got["shown"].as_str().unwrap().lines().last(),
+        Some("8: 1 (0x0001)"),
+        "{got}"
+    );
+    assert_eq!(got["followed"], true);
+    assert_eq!(got["exit"], 0);
 }

@@ -62,6 +62,8 @@ pub enum Command {
     ClearLog,
     ClearScreen,
     Quit,
+    /// `slave COMMAND`: for the simulated slave of `mbgate demo --master`.
+    Slave(Box<Command>),
 }
 
 pub const HELP: &str = "\
@@ -75,7 +77,9 @@ commands:
   log [N]                       the packet log (the last N packets)
   clear-log                     empty the packet log
   clear                         clear the screen
-  quit | q                      stop the simulator";
+  quit | q                      stop the simulator
+  slave COMMAND                 mbgate demo --master: a command for the slave, e.g.
+                                `slave input 3 on`";
 
 fn bounded<T: TryFrom<i64>>(s: &str, what: &str) -> Result<T, String> {
     let n = crate::number::parse(s).ok_or_else(|| format!("not a number: `{s}`"))?;
@@ -157,6 +161,14 @@ impl Command {
             "clear-log" | "clearlog" => Command::ClearLog,
             "clear" | "cls" => Command::ClearScreen,
             "quit" | "q" | "exit" => Command::Quit,
+            "slave" => {
+                let rest = line.trim_start()[first.len()..].trim();
+                match Command::parse(rest)? {
+                    Some(Command::Slave(_)) => return Err("usage: slave COMMAND".into()),
+                    Some(inner) => Command::Slave(Box::new(inner)),
+                    None => return Err("usage: slave COMMAND".into()),
+                }
+            }
             other => return Err(format!("unknown command `{other}`; `help` lists them")),
         };
         Ok(Some(cmd))
@@ -245,5 +257,23 @@ mod tests {
             "unknown command `frobnicate`; `help` lists them"
         );
         assert_eq!(e("log x"), "not a number: `x`");
+    }
+
+    #[test]
+    fn slave_prefix_wraps_one_command() {
+        let p = |s| Command::parse(s);
+        assert_eq!(
+            p("slave input 3 on"),
+            Ok(Some(Command::Slave(Box::new(Command::Input {
+                port: 3,
+                on: true
+            }))))
+        );
+        assert_eq!(p("slave"), Err("usage: slave COMMAND".into()));
+        assert_eq!(p("slave slave list"), Err("usage: slave COMMAND".into()));
+        assert_eq!(
+            p("slave input 9 on"),
+            Err("port out of range: 9 (0..7)".into())
+        );
     }
 }

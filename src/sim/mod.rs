@@ -212,6 +212,9 @@ impl Device {
     pub fn execute(&mut self, cmd: Command) -> Outcome {
         match cmd {
             Command::Help => Outcome::text(console::HELP),
+            Command::Slave(_) => {
+                Outcome::text("`slave` commands are for the slave of mbgate demo --master")
+            }
             Command::List => Outcome::text(self.list()),
             Command::Log(n) => Outcome::text(self.log.render(n).trim_end().to_string()),
             Command::ClearLog => {

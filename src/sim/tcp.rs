@@ -2,7 +2,6 @@
 //! answers MBAP requests from any number of connections, with the same console. The
 //! slave a master line reaches in `mbgate demo --master` and in the tests.
 
-use super::options::Settings;
 use super::packets::Direction;
 use super::serve::ConsoleRequest;
 use super::Device;
@@ -27,12 +26,12 @@ pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
 
 /// Serves the device on `listener` until `shutdown`.
 pub async fn run(
-    settings: Settings,
+    device: Device,
     listener: TcpListener,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> std::io::Result<()> {
-    let device = Arc::new(Mutex::new(settings.device));
+    let device = Arc::new(Mutex::new(device));
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
