@@ -183,6 +183,7 @@ pub async fn run_on(
                     port.kind()
                 );
                 line.requests.clear();
+                line.table.serial_lost();
             }
         }
     }

@@ -308,6 +308,21 @@ impl Table {
             .min()
     }
 
+    /// The serial port was lost: the master that asked is on the far side of a port
+    /// that is gone, and after the reopen it may have moved on to another request
+    /// (an RTU master matches a reply by unit and function code only). Nothing held
+    /// is answered any more: requests not yet sent are dropped, and the replies to
+    /// those sent are taken off their connections as late, never written to the
+    /// reopened port.
+    pub fn serial_lost(&mut self) {
+        for r in &mut self.routes {
+            r.waiting.clear();
+            for (_, held) in &mut r.in_flight {
+                held.answer = false;
+            }
+        }
+    }
+
     /// Requests held (sent or waiting) on route `i`.
     pub fn held(&self, i: usize) -> usize {
         self.routes[i].in_flight.len() + self.routes[i].waiting.len()
@@ -359,6 +374,26 @@ mod tests {
                 _ => None,
             })
             .collect()
+    }
+
+    #[test]
+    fn after_the_serial_port_is_lost_nothing_held_is_answered() {
+        let now = Instant::now();
+        let mut t = Table::new(line(1), true);
+        t.up(0);
+        assert_eq!(sent(&t.request(req(7, 1), now)), vec![(0, 1, 1)]);
+        assert!(
+            sent(&t.request(req(8, 1), now)).is_empty(),
+            "waits for room"
+        );
+        t.serial_lost();
+        let reply = Adu::build(1, 1, &[3, 2, 0, 42]);
+        let after = t.reply(0, &reply);
+        assert!(answers(&after).is_empty(), "{after:?}");
+        assert!(sent(&after).is_empty(), "the waiting request was dropped");
+        assert_eq!((t.counts.replies, t.counts.late), (0, 1));
+        assert_eq!(t.held(0), 0);
+        assert!(t.expire(now + Duration::from_secs(1)).is_empty());
     }
 
     #[test]
