@@ -6,8 +6,8 @@
 use crate::config::Config;
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
-use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
+use crate::frame::{pdu, ExceptionCode};
 use crate::outbox::{self, Inbox, Outbox, Ticket};
 use crate::relay::{Command, ConnId, RelayHandle};
 use crate::serial::Backoff;
@@ -306,14 +306,14 @@ impl Connection {
     /// Either way the answer goes through its ticket, so it keeps its place in the
     /// master's order.
     fn submit(&self, adu: Adu, ticket: Ticket) {
-        let local = |adu: &Adu, code: u8, ticket: Ticket| {
+        let local = |adu: &Adu, code: ExceptionCode, ticket: Ticket| {
             ticket.answer(Adu::exception(adu.tid(), adu.unit(), adu.function(), code));
         };
         if let Err(code) = pdu::check_request(adu.pdu()) {
             self.stats.add(&self.stats.bad_requests, 1);
             debug!(
                 conn = self.id,
-                "request outside protocol limits: exception {code:#04x}"
+                "request outside protocol limits: exception {code}"
             );
             local(&adu, code, ticket);
             return;
@@ -325,7 +325,7 @@ impl Connection {
         };
         if let Err(Command::Request { adu, ticket, .. }) = self.relay.send(cmd) {
             self.stats.add(&self.stats.unavailable, 1);
-            local(&adu, exception::GATEWAY_PATH_UNAVAILABLE, ticket);
+            local(&adu, ExceptionCode::GATEWAY_PATH_UNAVAILABLE, ticket);
         }
     }
 

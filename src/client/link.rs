@@ -9,7 +9,7 @@ use crate::frame::mbap::{decode_strict, FrameRef};
 use crate::frame::request::{self, decode_reply, Reply};
 use crate::frame::rtu;
 use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
-use crate::frame::{pdu, Adu, Judge, Resync, StrictError};
+use crate::frame::{pdu, Adu, FunctionCode, Judge, Resync, StrictError};
 use bytes::BytesMut;
 use std::io;
 use std::time::Duration;
@@ -172,8 +172,8 @@ impl Link {
 struct ReplyTo<'a>(&'a Adu);
 
 impl Judge for ReplyTo<'_> {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code) || code & 0x7F == self.0.function()
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.is_reply() || code.base() == self.0.function_code()
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {

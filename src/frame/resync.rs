@@ -56,6 +56,7 @@
 //! assert_eq!(d.stats().dropped_bytes, 2);
 //! ```
 
+use super::function::FunctionCode;
 use super::mbap::{self, Adu, FrameRef, MAX_LENGTH, MIN_LENGTH, PREFIX_LEN};
 use super::pdu;
 use bytes::BytesMut;
@@ -64,7 +65,7 @@ use bytes::BytesMut;
 /// requests; [`ReplyJudge`] knows only what any reply must look like.
 pub trait Judge {
     /// Could a frame with this function code be on the line at all?
-    fn plausible_function(&self, code: u8) -> bool;
+    fn plausible_function(&self, code: FunctionCode) -> bool;
     /// Is this complete, length-consistent candidate a frame to hand on?
     fn accept(&self, frame: FrameRef<'_>) -> bool;
     /// Must this accepted frame wait for confirmation by what follows it, or by a quiet
@@ -95,8 +96,8 @@ pub trait Judge {
 pub struct ReplyJudge;
 
 impl Judge for ReplyJudge {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code)
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.is_reply()
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
@@ -114,8 +115,8 @@ pub struct RequestJudge {
 }
 
 impl Judge for RequestJudge {
-    fn plausible_function(&self, code: u8) -> bool {
-        (1..0x80).contains(&code)
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.can_be_request()
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
@@ -132,7 +133,7 @@ impl Judge for RequestJudge {
 pub struct Confirmed<J>(pub J);
 
 impl<J: Judge> Judge for Confirmed<J> {
-    fn plausible_function(&self, code: u8) -> bool {
+    fn plausible_function(&self, code: FunctionCode) -> bool {
         self.0.plausible_function(code)
     }
 
@@ -201,7 +202,7 @@ fn candidate(buf: &[u8], judge: &impl Judge) -> Candidate {
     if n > 5 && !(MIN_LENGTH..=MAX_LENGTH).contains(&u16::from(buf[5])) {
         return Candidate::Implausible;
     }
-    if n > 7 && !judge.plausible_function(buf[7]) {
+    if n > 7 && !judge.plausible_function(FunctionCode::new(buf[7])) {
         return Candidate::Implausible;
     }
     if n < PREFIX_LEN {
@@ -680,8 +681,8 @@ mod tests {
     /// frame gap does.
     struct RepliesDue;
     impl Judge for RepliesDue {
-        fn plausible_function(&self, code: u8) -> bool {
-            pdu::is_reply_function(code)
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
         }
         fn accept(&self, frame: FrameRef<'_>) -> bool {
             pdu::reply_well_formed(frame.pdu())
@@ -698,8 +699,8 @@ mod tests {
     /// of another shape is refused, but to be delivered once confirmed.
     struct OneRegisterAsked;
     impl Judge for OneRegisterAsked {
-        fn plausible_function(&self, code: u8) -> bool {
-            pdu::is_reply_function(code)
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
         }
         fn accept(&self, frame: FrameRef<'_>) -> bool {
             let asked = [0x03, 0x00, 0x0A, 0x00, 0x01];
@@ -964,8 +965,8 @@ mod tests {
 
     struct OnlyTid(u16);
     impl Judge for OnlyTid {
-        fn plausible_function(&self, code: u8) -> bool {
-            pdu::is_reply_function(code)
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
         }
         fn accept(&self, frame: FrameRef<'_>) -> bool {
             frame.tid() == self.0

@@ -5,7 +5,7 @@
 use super::inflight::{Failure, InFlight, Verdict};
 use super::pending::Pending;
 use super::Relay;
-use crate::frame::pdu::exception;
+use crate::frame::ExceptionCode;
 use tokio::time::Instant;
 use tracing::{debug, warn};
 
@@ -39,7 +39,7 @@ impl Relay {
                     "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
                 );
                 f.req
-                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
+                    .answer_exception(ExceptionCode::GATEWAY_TARGET_FAILED, &self.stats);
                 self.sweep_backed_off(unit);
             }
             Verdict::Resend => {
@@ -62,7 +62,7 @@ impl Relay {
                     why.what_in_the_end()
                 );
                 f.req
-                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
+                    .answer_exception(ExceptionCode::GATEWAY_TARGET_FAILED, &self.stats);
             }
         }
     }

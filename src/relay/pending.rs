@@ -6,8 +6,8 @@ use super::inflight::Asked;
 use super::scheduler::Queued;
 use super::ConnId;
 use crate::config::BroadcastReply;
-use crate::frame::pdu::{self, exception};
 use crate::frame::Adu;
+use crate::frame::{pdu, ExceptionCode};
 use crate::outbox::Ticket;
 use crate::stats::Stats;
 
@@ -53,10 +53,10 @@ impl Pending {
     }
 
     /// Answers with exception `code`, counted by its kind.
-    pub(super) fn answer_exception(self, code: u8, stats: &Stats) {
+    pub(super) fn answer_exception(self, code: ExceptionCode, stats: &Stats) {
         let counter = match code {
-            exception::GATEWAY_PATH_UNAVAILABLE => &stats.unavailable,
-            exception::SERVER_DEVICE_BUSY => &stats.busy,
+            ExceptionCode::GATEWAY_PATH_UNAVAILABLE => &stats.unavailable,
+            ExceptionCode::SERVER_DEVICE_BUSY => &stats.busy,
             // GATEWAY_TARGET_FAILED: the only other code the relay answers itself.
             _ => &stats.timeouts,
         };
@@ -72,7 +72,7 @@ impl Pending {
             self.adu.tid(),
             self.adu.unit(),
             self.adu.function(),
-            exception::GATEWAY_TARGET_FAILED,
+            ExceptionCode::GATEWAY_TARGET_FAILED,
         );
         self.deliver(adu);
     }

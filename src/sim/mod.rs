@@ -17,6 +17,7 @@ pub mod packets;
 pub mod serve;
 pub mod terminal;
 
+use crate::frame::function::{ExceptionCode, FunctionCode};
 use console::{Command, Table};
 use packets::PacketLog;
 
@@ -42,8 +43,8 @@ impl Answer {
 }
 
 /// An exception response PDU (docs/protocol.md §1).
-pub fn exception_pdu(function: u8, code: u8) -> Vec<u8> {
-    vec![function | 0x80, code]
+pub fn exception_pdu(function: FunctionCode, code: ExceptionCode) -> Vec<u8> {
+    vec![function.exception().get(), code.get()]
 }
 
 /// Which device the simulator is.

@@ -5,7 +5,7 @@
 use super::{Seen, Unsolicited};
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::mbap::FrameRef;
-use crate::frame::pdu;
+use crate::frame::{pdu, FunctionCode};
 use crate::frame::{rtu, Adu, Judge, Resync};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
@@ -63,12 +63,12 @@ struct RelayJudge<'a, R> {
 }
 
 impl<R: Asked> Judge for RelayJudge<'_, R> {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code)
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.is_reply()
             || self
                 .in_flight
                 .iter()
-                .any(|f| f.req.adu().function() == code & 0x7F)
+                .any(|f| f.req.adu().function_code() == code.base())
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
