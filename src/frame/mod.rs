@@ -2,6 +2,7 @@
 //! unit-tested, property-tested and fuzzed on its own (docs/design.md §5).
 
 pub mod ascii;
+pub mod framer;
 pub mod function;
 pub mod hex;
 pub mod lossy;

@@ -59,6 +59,7 @@
 use super::function::FunctionCode;
 use super::mbap::{self, Adu, FrameRef, MAX_LENGTH, MIN_LENGTH, PREFIX_LEN};
 use super::pdu;
+use super::serial::Expect;
 use bytes::BytesMut;
 
 /// Decides what a frame on the line may be. The relay's judge knows the outstanding
@@ -88,6 +89,12 @@ pub trait Judge {
     /// lost bytes is still found inside it.
     fn deliver_refused(&self, _frame: FrameRef<'_>) -> bool {
         false
+    }
+    /// On an RTU or ASCII line ([`super::framer::Framer`]), what the frame at the front
+    /// must be: the reply to a request (whose shape gives the reply's length), or any
+    /// request. Any reply, unless the judge knows the request.
+    fn expect(&self) -> Expect<'_> {
+        Expect::Reply(&[])
     }
 }
 
@@ -126,6 +133,10 @@ impl Judge for RequestJudge {
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         self.confirm
     }
+
+    fn expect(&self) -> Expect<'_> {
+        Expect::Request
+    }
 }
 
 /// Another judge's decisions, with every frame held for confirmation.
@@ -147,6 +158,10 @@ impl<J: Judge> Judge for Confirmed<J> {
 
     fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
         self.0.pause_confirms(frame)
+    }
+
+    fn expect(&self) -> Expect<'_> {
+        self.0.expect()
     }
 }
 

@@ -4,9 +4,10 @@
 
 use super::{Seen, Unsolicited};
 use crate::config::{RelayConfig, SerialConfig};
+use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::FrameRef;
 use crate::frame::{pdu, FunctionCode};
-use crate::frame::{rtu, Adu, Judge, Resync};
+use crate::frame::{rtu, Adu, Judge};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
 use crate::stats::Stats;
@@ -19,7 +20,7 @@ use tracing::debug;
 
 pub(super) struct Mbap {
     tids: Tids,
-    decoder: Resync,
+    decoder: Framer,
     last_byte: Instant,
     /// The silence that ends a frame and confirms a reply with nothing after it: 3.5
     /// character times, never less than `silence_floor_ms` (a USB adapter hands bytes
@@ -132,7 +133,7 @@ impl Mbap {
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
         Mbap {
             tids: Tids::new(),
-            decoder: Resync::new(),
+            decoder: Framer::mbap(),
             last_byte: now,
             pause: t35
                 .max(Duration::from_millis(serial.silence_floor_ms))
@@ -267,8 +268,11 @@ impl Mbap {
                 tids: &self.tids,
                 now,
             };
-            let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
-                break;
+            let frame = match self.decoder.next_frame(&judge, quiet) {
+                Some(Framed::Frame(frame)) => frame,
+                // No check to fail on MBAP: the judge decides.
+                Some(Framed::Corrupt(_)) => continue,
+                None => break,
             };
             if let Some(why) = self.too_early(&frame) {
                 debug!(tid = frame.tid(), "{why}: {:?}", frame);
@@ -298,12 +302,11 @@ impl Mbap {
         {
             self.chunks.pop_front();
         }
-        let decoded = self.decoder.stats();
         stats.set(
             &stats.dropped_bytes,
-            decoded.dropped_bytes + self.early_bytes,
+            self.decoder.dropped() + self.early_bytes,
         );
-        stats.set(&stats.refuted_frames, decoded.refuted);
+        stats.set(&stats.refuted_frames, self.decoder.refuted());
         seen
     }
 }
