@@ -27,7 +27,7 @@ mod watchdog;
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
-use crate::frame::ExceptionCode;
+use crate::outbox::Refusal;
 use crate::port::{self, Link};
 use crate::stats::Stats;
 pub use command::{Command, ConnId, RelayHandle};
@@ -230,14 +230,14 @@ impl Relay {
         for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);
             let code = if self.out.withdraw(f.tid) {
-                ExceptionCode::GATEWAY_PATH_UNAVAILABLE
+                Refusal::Unavailable
             } else {
-                ExceptionCode::GATEWAY_TARGET_FAILED
+                Refusal::TargetFailed
             };
             f.req.answer_exception(code, &self.stats);
         }
         self.out.clear();
-        self.flush_queue(ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
+        self.flush_queue(Refusal::Unavailable);
     }
 
     fn start_draining(&mut self) {
@@ -248,7 +248,7 @@ impl Relay {
                 "relay draining"
             );
             self.draining = true;
-            self.flush_queue(ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
+            self.flush_queue(Refusal::Unavailable);
             for req in self.paced.take_all() {
                 req.answer_backed_off(&self.stats);
             }
@@ -266,7 +266,7 @@ impl Relay {
                 self.stats.add(&self.stats.requests, 1);
                 let req = Pending::new(conn, adu, ticket);
                 if self.draining || !self.port.is_open() {
-                    req.answer_exception(ExceptionCode::GATEWAY_PATH_UNAVAILABLE, &self.stats);
+                    req.answer_exception(Refusal::Unavailable, &self.stats);
                 } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
                     self.pace_backed_off(req);
                 } else {
@@ -279,11 +279,10 @@ impl Relay {
                                 conn = refused.conn,
                                 "queue full: 0x06 to the master holding the most of it, for conn {conn}"
                             );
-                            refused
-                                .answer_exception(ExceptionCode::SERVER_DEVICE_BUSY, &self.stats);
+                            refused.answer_exception(Refusal::Busy, &self.stats);
                         }
                         Admitted::Refused(req) => {
-                            req.answer_exception(ExceptionCode::SERVER_DEVICE_BUSY, &self.stats);
+                            req.answer_exception(Refusal::Busy, &self.stats);
                         }
                     }
                 }
@@ -291,10 +290,11 @@ impl Relay {
         }
     }
 
-    /// Answers every queued request (and every one waiting to be resent) with `code`.
-    fn flush_queue(&mut self, code: ExceptionCode) {
+    /// Answers every queued request (and every one waiting to be resent) with the
+    /// exception for `why`.
+    fn flush_queue(&mut self, why: Refusal) {
         for req in self.sched.drain_all() {
-            req.answer_exception(code, &self.stats);
+            req.answer_exception(why, &self.stats);
         }
     }
 

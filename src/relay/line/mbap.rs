@@ -40,8 +40,6 @@ pub(super) struct Mbap {
     chunks: VecDeque<(u64, Instant)>,
     /// Bytes received so far.
     received: u64,
-    /// Bytes of frames dropped for arriving too early to answer their request.
-    early_bytes: u64,
 }
 
 /// A request as it went on the line.
@@ -145,7 +143,6 @@ impl Mbap {
             sent: Vec::new(),
             chunks: VecDeque::new(),
             received: 0,
-            early_bytes: 0,
         }
     }
 
@@ -276,7 +273,7 @@ impl Mbap {
             };
             if let Some(why) = self.too_early(&frame) {
                 debug!(tid = frame.tid(), "{why}: {:?}", frame);
-                self.early_bytes += frame.as_bytes().len() as u64;
+                stats.add(&stats.dropped_bytes, frame.as_bytes().len() as u64);
                 continue;
             }
             if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
@@ -302,11 +299,10 @@ impl Mbap {
         {
             self.chunks.pop_front();
         }
-        stats.set(
-            &stats.dropped_bytes,
-            self.decoder.dropped() + self.early_bytes,
-        );
-        stats.set(&stats.refuted_frames, self.decoder.refuted());
+        // What the framer dropped or refuted since the last turn: counters only grow,
+        // whatever the framing.
+        stats.add(&stats.dropped_bytes, self.decoder.take_dropped());
+        stats.add(&stats.refuted_frames, self.decoder.take_refuted());
         seen
     }
 }
@@ -471,5 +467,23 @@ mod tests {
         line.received(&reply, at, &Stats::default());
         assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
         assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);
+    }
+
+    /// The dropped-byte counter only grows: two lines counting into one `Stats` (or
+    /// the MBAP and RTU code paths) add their own drops, never overwrite each other's
+    /// (the decoder's running total used to be stored into it).
+    #[test]
+    fn dropped_bytes_add_up_across_lines_sharing_the_counters() {
+        use std::sync::atomic::Ordering;
+        let stats = Stats::default();
+        let (mut a, t0) = mbap(19_200);
+        let (mut b, _) = mbap(19_200);
+        a.received(&[0xFF; 5], t0, &stats);
+        b.received(&[0xFF; 3], t0, &stats);
+        let later = t0 + Duration::from_secs(1);
+        assert!(a.frames::<Req>(&[], later, &stats).is_empty());
+        assert!(b.frames::<Req>(&[], later, &stats).is_empty());
+        assert!(a.frames::<Req>(&[], later, &stats).is_empty());
+        assert_eq!(stats.dropped_bytes.load(Ordering::Relaxed), 8);
     }
 }
