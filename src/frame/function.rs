@@ -80,7 +80,8 @@ impl FunctionCode {
 
     /// Its row of [`TABLE`], if it is a public code (an exception code has none).
     pub fn spec(self) -> Option<&'static Spec> {
-        TABLE.iter().find(|s| s.code == self)
+        let row = *INDEX.get(usize::from(self.0))?;
+        TABLE.get(usize::from(row))
     }
 
     /// A public code of the application protocol (in [`TABLE`]).
@@ -420,7 +421,7 @@ use FunctionCode as F;
 
 /// The public function codes of the Modbus Application Protocol V1.1b3 §6, with their
 /// limits. The section of each row is in its name's comment.
-pub const TABLE: [Spec; 19] = [
+pub const TABLE: &[Spec] = &[
     // §6.1, §6.2: quantity 1..=2000, the bits packed in the reply.
     Spec {
         request: Shape::Fixed(5),
@@ -559,6 +560,21 @@ pub const TABLE: [Spec; 19] = [
     ),
 ];
 
+/// Each request code's row in [`TABLE`] (`u8::MAX`: none), built when compiling, which
+/// also refuses a table with a code twice or a code that cannot be a request.
+const INDEX: [u8; 128] = {
+    let mut index = [u8::MAX; 128];
+    let mut row = 0;
+    while row < TABLE.len() {
+        let code = TABLE[row].code.0 as usize;
+        assert!(code != 0 && code < 128, "a request's function code is 1..=127");
+        assert!(index[code] == u8::MAX, "a function code in the table twice");
+        index[code] = row as u8;
+        row += 1;
+    }
+    index
+};
+
 fn word(pdu: &[u8], at: usize) -> Option<usize> {
     let w = pdu.get(at..at + 2)?;
     Some(usize::from(u16::from_be_bytes([w[0], w[1]])))
@@ -618,7 +634,7 @@ mod tests {
 
     #[test]
     fn every_row_fits_the_frames_of_the_specification() {
-        for spec in &TABLE {
+        for spec in TABLE {
             let code = spec.code;
             let (req, rep) = spec_example(code);
             let (req, rep) = (bytes(req), bytes(rep));
