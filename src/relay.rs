@@ -229,12 +229,12 @@ impl Relay {
         self.line.clear(&self.stats);
         for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);
-            let code = if self.out.withdraw(f.tid) {
+            let why = if self.out.withdraw(f.tid) {
                 Refusal::Unavailable
             } else {
                 Refusal::TargetFailed
             };
-            f.req.answer_exception(code, &self.stats);
+            f.req.answer_exception(why, &self.stats);
         }
         self.out.clear();
         self.flush_queue(Refusal::Unavailable);
