@@ -19,15 +19,25 @@
 //! - The slot is free again only once the reply has been written, so a master never
 //!   has more than `max_pending_per_connection` requests unanswered, counting replies
 //!   waiting for their turn.
+//! - A request the gateway answers itself gets the exception code of its
+//!   [`Refusal`] and is counted by it ([`Ticket::refuse`]), whoever refuses it: the
+//!   connection (limits, no relay) or the relay (no port, queue full, timeout, unit
+//!   backed off).
+//! - A connection is idle only while it owes nothing and is owed nothing
+//!   ([`Outbox::idle_at`]): the clock runs from the master's last byte or its last
+//!   reply, whichever is later.
 //! - Notifications ([`Notifier`]) take no slot and no sequence number: they are written
 //!   as they come, between replies, and never hold one up; they use only the channel's
 //!   spare room, so a master that does not read misses them (counted by the relay) and
 //!   never loses a reply for them.
 
-use crate::frame::Adu;
+use crate::frame::{Adu, ExceptionCode};
+use crate::stats::Stats;
 use std::collections::BTreeMap;
 use std::fmt;
+use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
+use std::time::Duration;
 use tokio::sync::{mpsc, OwnedSemaphorePermit, Semaphore};
 use tokio::time::Instant;
 
@@ -148,10 +158,59 @@ impl Outbox {
         *self.shared.settled.lock().expect("never poisoned")
     }
 
+    /// When a master whose last byte came at `last_read` is idle for `idle`: that long
+    /// after its last byte or its last reply, whichever is later. `None` while it is
+    /// owed a reply (or one is waiting to be written): a master waiting for a slow
+    /// device is not idle.
+    pub fn idle_at(&self, last_read: Instant, idle: Duration) -> Option<Instant> {
+        (!self.owed()).then(|| last_read.max(self.last_settled()) + idle)
+    }
+
     /// Returns once every ticket handed out has been answered and its reply written.
     pub async fn settled(&self) {
         let all = u32::try_from(self.shared.max_pending).unwrap_or(u32::MAX);
         let _ = self.shared.slots.acquire_many(all).await;
+    }
+}
+
+/// Why the gateway answers a request itself: the exception code that says so and the
+/// counter that counts it, declared together so that no local answer goes uncounted
+/// or is counted as another kind (README, "Exceptions mbgate answers itself").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Refusal {
+    /// Outside protocol limits: 01 or 03, as the function code table decides
+    /// (`bad_requests`).
+    BadRequest(ExceptionCode),
+    /// No path to the device, 0x0A: no port, or shutting down (`unavailable`).
+    Unavailable,
+    /// The queue is full, 0x06 (`busy`).
+    Busy,
+    /// No reply in time, or the port was lost under it, 0x0B (`timeouts`).
+    TargetFailed,
+    /// Its unit is backed off: 0x0B at once (`backed_off`).
+    BackedOff,
+}
+
+impl Refusal {
+    /// The exception code the master gets.
+    pub fn code(self) -> ExceptionCode {
+        match self {
+            Refusal::BadRequest(code) => code,
+            Refusal::Unavailable => ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
+            Refusal::Busy => ExceptionCode::SERVER_DEVICE_BUSY,
+            Refusal::TargetFailed | Refusal::BackedOff => ExceptionCode::GATEWAY_TARGET_FAILED,
+        }
+    }
+
+    /// The counter it adds to.
+    pub fn counter(self, stats: &Stats) -> &AtomicU64 {
+        match self {
+            Refusal::BadRequest(_) => &stats.bad_requests,
+            Refusal::Unavailable => &stats.unavailable,
+            Refusal::Busy => &stats.busy,
+            Refusal::TargetFailed => &stats.timeouts,
+            Refusal::BackedOff => &stats.backed_off,
+        }
     }
 }
 
@@ -169,6 +228,19 @@ impl Ticket {
     /// reserved with the ticket (a master already gone simply never sees it).
     pub fn answer(mut self, adu: Adu) {
         self.send(Some(adu));
+    }
+
+    /// Answers `request` (the master's own) with the gateway's exception for `why`,
+    /// counted.
+    pub fn refuse(self, request: &Adu, why: Refusal, stats: &Stats) {
+        stats.add(why.counter(stats), 1);
+        let code = why.code();
+        self.answer(Adu::exception(
+            request.tid(),
+            request.unit(),
+            request.function_code(),
+            code,
+        ));
     }
 
     fn send(&mut self, adu: Option<Adu>) {
@@ -349,5 +421,80 @@ mod tests {
         }
         assert_eq!(next_tid(&mut inbox).await, 0xA);
         assert_eq!(next_tid(&mut inbox).await, 0xB);
+    }
+
+    #[tokio::test]
+    async fn every_refusal_answers_its_code_and_counts_it_once() {
+        use std::sync::atomic::Ordering;
+        let request = Adu::build(0x1234, 7, &[0x03, 0, 0, 0, 1]);
+        let cases = [
+            (Refusal::BadRequest(ExceptionCode::ILLEGAL_DATA_VALUE), 0x03),
+            (Refusal::BadRequest(ExceptionCode::ILLEGAL_FUNCTION), 0x01),
+            (Refusal::Unavailable, 0x0A),
+            (Refusal::Busy, 0x06),
+            (Refusal::TargetFailed, 0x0B),
+            (Refusal::BackedOff, 0x0B),
+        ];
+        for (why, code) in cases {
+            let stats = Stats::default();
+            let (mut outbox, mut inbox) = Outbox::new(1);
+            outbox.ticket().await.refuse(&request, why, &stats);
+            let out = inbox.next().await.expect("the answer");
+            assert_eq!(
+                out.adu.as_bytes(),
+                Adu::build(0x1234, 7, &[0x83, code]).as_bytes()
+            );
+            let counted = [
+                &stats.bad_requests,
+                &stats.unavailable,
+                &stats.busy,
+                &stats.timeouts,
+                &stats.backed_off,
+            ]
+            .map(|c| c.load(Ordering::Relaxed));
+            assert_eq!(counted.iter().sum::<u64>(), 1, "{why:?}: {stats}");
+            assert_eq!(why.counter(&stats).load(Ordering::Relaxed), 1, "{why:?}");
+        }
+        assert_eq!(stats_name(Refusal::BackedOff), "backed_off=1");
+        assert_eq!(stats_name(Refusal::TargetFailed), "timeouts=1");
+    }
+
+    /// The one counter `why` adds to, as the stats line shows it.
+    fn stats_name(why: Refusal) -> String {
+        let stats = Stats::default();
+        stats.add(why.counter(&stats), 1);
+        stats
+            .to_string()
+            .split(' ')
+            .find(|f| f.ends_with("=1"))
+            .expect("one counter")
+            .to_string()
+    }
+
+    #[tokio::test]
+    async fn idle_only_while_nothing_is_owed() {
+        let idle = Duration::from_secs(5);
+        let (mut outbox, mut inbox) = Outbox::new(2);
+        let start = Instant::now();
+        let later = start + Duration::from_secs(60);
+        assert_eq!(
+            outbox.idle_at(later, idle),
+            Some(later + idle),
+            "from the last byte"
+        );
+        let t = outbox.ticket().await;
+        assert_eq!(outbox.idle_at(later, idle), None, "owed a reply");
+        t.answer(adu(1));
+        assert_eq!(
+            outbox.idle_at(later, idle),
+            None,
+            "its reply not yet written"
+        );
+        let out = inbox.next().await.unwrap();
+        drop(out);
+        let settled = outbox.last_settled();
+        assert!(settled >= start);
+        // From the last reply when it came after the last byte.
+        assert_eq!(outbox.idle_at(start, idle), Some(settled + idle));
     }
 }

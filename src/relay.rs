@@ -26,8 +26,8 @@ mod watchdog;
 
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
-use crate::frame::pdu::exception;
 use crate::frame::Adu;
+use crate::outbox::Refusal;
 use crate::port::{self, Link};
 use crate::stats::Stats;
 pub use command::{Command, ConnId, RelayHandle};
@@ -229,15 +229,15 @@ impl Relay {
         self.line.clear(&self.stats);
         for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);
-            let code = if self.out.withdraw(f.tid) {
-                exception::GATEWAY_PATH_UNAVAILABLE
+            let why = if self.out.withdraw(f.tid) {
+                Refusal::Unavailable
             } else {
-                exception::GATEWAY_TARGET_FAILED
+                Refusal::TargetFailed
             };
-            f.req.answer_exception(code, &self.stats);
+            f.req.answer_exception(why, &self.stats);
         }
         self.out.clear();
-        self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
+        self.flush_queue(Refusal::Unavailable);
     }
 
     fn start_draining(&mut self) {
@@ -248,7 +248,7 @@ impl Relay {
                 "relay draining"
             );
             self.draining = true;
-            self.flush_queue(exception::GATEWAY_PATH_UNAVAILABLE);
+            self.flush_queue(Refusal::Unavailable);
             for req in self.paced.take_all() {
                 req.answer_backed_off(&self.stats);
             }
@@ -266,7 +266,7 @@ impl Relay {
                 self.stats.add(&self.stats.requests, 1);
                 let req = Pending::new(conn, adu, ticket);
                 if self.draining || !self.port.is_open() {
-                    req.answer_exception(exception::GATEWAY_PATH_UNAVAILABLE, &self.stats);
+                    req.answer_exception(Refusal::Unavailable, &self.stats);
                 } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
                     self.pace_backed_off(req);
                 } else {
@@ -279,10 +279,10 @@ impl Relay {
                                 conn = refused.conn,
                                 "queue full: 0x06 to the master holding the most of it, for conn {conn}"
                             );
-                            refused.answer_exception(exception::SERVER_DEVICE_BUSY, &self.stats);
+                            refused.answer_exception(Refusal::Busy, &self.stats);
                         }
                         Admitted::Refused(req) => {
-                            req.answer_exception(exception::SERVER_DEVICE_BUSY, &self.stats);
+                            req.answer_exception(Refusal::Busy, &self.stats);
                         }
                     }
                 }
@@ -290,10 +290,11 @@ impl Relay {
         }
     }
 
-    /// Answers every queued request (and every one waiting to be resent) with `code`.
-    fn flush_queue(&mut self, code: u8) {
+    /// Answers every queued request (and every one waiting to be resent) with the
+    /// exception for `why`.
+    fn flush_queue(&mut self, why: Refusal) {
         for req in self.sched.drain_all() {
-            req.answer_exception(code, &self.stats);
+            req.answer_exception(why, &self.stats);
         }
     }
 

@@ -5,7 +5,9 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 macro_rules! counters {
     ($($name:ident: $doc:literal),* $(,)?) => {
-        /// Running totals since start. Written by their owning task, read by anyone.
+        /// Running totals since start, each only ever added to (there is no `set`: two
+        /// writers of one counter cannot overwrite each other's counts). Written by
+        /// their owning task, read by anyone.
         #[derive(Debug, Default)]
         pub struct Stats {
             $(#[doc = $doc] pub $name: AtomicU64,)*
@@ -58,9 +60,5 @@ impl Stats {
 
     pub fn get(&self, counter: &AtomicU64) -> u64 {
         counter.load(Ordering::Relaxed)
-    }
-
-    pub fn set(&self, counter: &AtomicU64, n: u64) {
-        counter.store(n, Ordering::Relaxed);
     }
 }

@@ -6,9 +6,9 @@
 use crate::config::Config;
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
-use crate::frame::pdu::{self, exception};
+use crate::frame::pdu;
 use crate::frame::Adu;
-use crate::outbox::{self, Inbox, Outbox, Ticket};
+use crate::outbox::{self, Inbox, Outbox, Refusal, Ticket};
 use crate::relay::{Command, ConnId, RelayHandle};
 use crate::serial::Backoff;
 use crate::stats::Stats;
@@ -287,14 +287,13 @@ impl Connection {
                     // that stopped growing is idle too: a master gone mid-frame must
                     // not hold its connection slot for ever.
                     let now = Instant::now();
-                    let since = last_read.max(outbox.last_settled());
-                    if outbox.owed() {
-                        wake = now + idle;
-                    } else if now >= since + idle {
-                        info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
-                        return End::Closed;
-                    } else {
-                        wake = since + idle;
+                    match outbox.idle_at(last_read, idle) {
+                        None => wake = now + idle,
+                        Some(at) if now >= at => {
+                            info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
+                            return End::Closed;
+                        }
+                        Some(at) => wake = at,
                     }
                 }
                 _ = self.shutdown.cancelled() => return End::Finish,
@@ -306,16 +305,12 @@ impl Connection {
     /// Either way the answer goes through its ticket, so it keeps its place in the
     /// master's order.
     fn submit(&self, adu: Adu, ticket: Ticket) {
-        let local = |adu: &Adu, code: u8, ticket: Ticket| {
-            ticket.answer(Adu::exception(adu.tid(), adu.unit(), adu.function(), code));
-        };
         if let Err(code) = pdu::check_request(adu.pdu()) {
-            self.stats.add(&self.stats.bad_requests, 1);
             debug!(
                 conn = self.id,
-                "request outside protocol limits: exception {code:#04x}"
+                "request outside protocol limits: exception {code}"
             );
-            local(&adu, code, ticket);
+            ticket.refuse(&adu, Refusal::BadRequest(code), &self.stats);
             return;
         }
         let cmd = Command::Request {
@@ -324,8 +319,7 @@ impl Connection {
             ticket,
         };
         if let Err(Command::Request { adu, ticket, .. }) = self.relay.send(cmd) {
-            self.stats.add(&self.stats.unavailable, 1);
-            local(&adu, exception::GATEWAY_PATH_UNAVAILABLE, ticket);
+            ticket.refuse(&adu, Refusal::Unavailable, &self.stats);
         }
     }
 

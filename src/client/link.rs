@@ -4,12 +4,13 @@
 //! shape), or RTU or ASCII (frames ended by their length, silence or line feed, and
 //! checked by CRC or LRC; Modbus over Serial Line V1.02 §2.5.1, §2.5.2).
 
-use crate::config::{Framing, RelayConfig, SerialConfig};
+use crate::config::{RelayConfig, SerialConfig};
+use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::{decode_strict, FrameRef};
 use crate::frame::request::{self, decode_reply, Reply};
 use crate::frame::rtu;
-use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
-use crate::frame::{pdu, Adu, Judge, Resync, StrictError};
+use crate::frame::serial::Expect;
+use crate::frame::{pdu, Adu, FunctionCode, Judge, StrictError};
 use bytes::BytesMut;
 use std::io;
 use std::time::Duration;
@@ -71,36 +72,10 @@ pub enum Link {
     Serial {
         cfg: SerialConfig,
         port: Option<SerialStream>,
-        decoder: SerialDecoder,
+        /// Replies found by the port's framing: MBAP (the CIE-M10 serial Modbus/TCP
+        /// mode, resynchronising), RTU or ASCII.
+        decoder: Framer,
     },
-}
-
-/// How replies are found on a serial port: by the port's framing.
-#[derive(Debug)]
-pub enum SerialDecoder {
-    /// MBAP frames (the CIE-M10 serial Modbus/TCP mode), resynchronising.
-    Mbap(Resync),
-    /// RTU or ASCII frames.
-    Line(Decoder),
-}
-
-impl SerialDecoder {
-    fn new(framing: Framing) -> Self {
-        match framing {
-            Framing::Mbap => SerialDecoder::Mbap(Resync::new()),
-            Framing::Rtu => SerialDecoder::Line(Decoder::new(Codec::Rtu)),
-            Framing::Ascii => SerialDecoder::Line(Decoder::new(Codec::Ascii)),
-        }
-    }
-
-    fn clear(&mut self) {
-        match self {
-            SerialDecoder::Mbap(d) => d.clear(),
-            SerialDecoder::Line(d) => {
-                d.clear();
-            }
-        }
-    }
 }
 
 impl Link {
@@ -126,7 +101,7 @@ impl Link {
 
     pub fn serial(cfg: SerialConfig) -> Link {
         Link::Serial {
-            decoder: SerialDecoder::new(cfg.framing),
+            decoder: Framer::new(cfg.framing),
             cfg,
             port: None,
         }
@@ -136,11 +111,8 @@ impl Link {
     /// unit and PDU in that framing, check included.
     pub fn wire(&self, adu: &Adu) -> Vec<u8> {
         match self {
-            Link::Serial {
-                decoder: SerialDecoder::Line(d),
-                ..
-            } => d.codec().encode(adu.unit(), adu.pdu()),
-            _ => adu.as_bytes().to_vec(),
+            Link::Serial { decoder, .. } => decoder.encode(adu),
+            Link::Tcp { .. } => adu.as_bytes().to_vec(),
         }
     }
 
@@ -172,14 +144,18 @@ impl Link {
 struct ReplyTo<'a>(&'a Adu);
 
 impl Judge for ReplyTo<'_> {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code) || code & 0x7F == self.0.function()
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.is_reply() || code.base() == self.0.function_code()
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
         frame.tid() == self.0.tid()
             && frame.unit() == self.0.unit()
             && pdu::reply_matches(self.0.pdu(), frame.pdu())
+    }
+
+    fn expect(&self) -> Expect<'_> {
+        Expect::Reply(self.0.pdu())
     }
 }
 
@@ -247,16 +223,9 @@ impl Master {
             Link::Tcp { addr, stream, buf } => {
                 tcp_exchange(addr, stream, buf, request, deadline, ms).await
             }
-            Link::Serial {
-                cfg,
-                port,
-                decoder: SerialDecoder::Mbap(decoder),
-            } => serial_exchange(cfg, port, decoder, request, deadline, ms).await,
-            Link::Serial {
-                cfg,
-                port,
-                decoder: SerialDecoder::Line(decoder),
-            } => line_exchange(cfg, port, decoder, request, deadline, ms).await,
+            Link::Serial { cfg, port, decoder } => {
+                serial_exchange(cfg, port, decoder, request, deadline, ms).await
+            }
         };
         // Over TCP a frame with our transaction id may still answer something else;
         // on an MBAP serial line the judge has already checked (docs/design.md §1
@@ -352,10 +321,21 @@ async fn tcp_exchange(
     received(result, target, ms, start, ignored, 0)
 }
 
+/// One request on a serial port, in the port's framing, and the first frame that
+/// answers it.
+///
+/// - MBAP: the resynchronising framer with [`ReplyTo`] as its judge; a partial
+///   candidate is discarded after the frame gap. Bytes kept from an earlier exchange
+///   may hold a late answer, recognised by its transaction id.
+/// - RTU or ASCII: the first frame whose CRC or LRC holds and that comes from the unit
+///   asked, ended by its length or a silence of 3.5 character times (RTU, never
+///   shorter than `silence_floor_ms`) or its line feed (ASCII). Whatever came before
+///   the request answers nothing. Frames from another unit and bytes that make no
+///   good frame are skipped and counted.
 async fn serial_exchange(
     cfg: &SerialConfig,
     port: &mut Option<SerialStream>,
-    decoder: &mut Resync,
+    decoder: &mut Framer,
     request: &Adu,
     deadline: Instant,
     ms: u64,
@@ -367,30 +347,50 @@ async fn serial_exchange(
         decoder.clear();
     }
     let judge = ReplyTo(request);
-    let dropped_before = decoder.stats().dropped_bytes;
+    let dropped_before = decoder.dropped();
+    let mut skipped = 0u64;
     let start = Instant::now();
     let io = |what, source| ClientError::Io {
         target: target(),
         what,
         source,
     };
+    // Silence after which a partial frame is discarded: on MBAP the gateway's default
+    // `relay.frame_gap_ms` (docs/design.md §2), on RTU 3.5 character times.
+    let silence = match decoder.codec() {
+        None => Duration::from_millis(RelayConfig::default().frame_gap_ms),
+        Some(_) => Duration::from_micros(rtu::t35_us(
+            cfg.baud_rate,
+            crate::serial::bits_per_char(cfg),
+        ))
+        .max(Duration::from_millis(cfg.silence_floor_ms)),
+    };
     let wait = async {
-        p.write_all(request.as_bytes())
+        if decoder.codec().is_some() {
+            // Whatever came before the request answers nothing.
+            decoder.clear();
+        }
+        p.write_all(&decoder.encode(request))
             .await
             .map_err(|e| io("sending", e))?;
         let mut chunk = [0u8; 512];
-        // Silence after which a partial frame is discarded (docs/design.md §2): the
-        // gateway's default `relay.frame_gap_ms`.
-        let frame_gap = Duration::from_millis(RelayConfig::default().frame_gap_ms);
         let mut last_byte = Instant::now();
         let mut quiet = false;
         loop {
-            if let Some(frame) = decoder.next_frame(&judge, quiet) {
-                return Ok(frame);
+            while let Some(framed) = decoder.next_frame(&judge, quiet) {
+                match framed {
+                    // MBAP: the judge took only the answer; RTU/ASCII: from the unit.
+                    Framed::Frame(frame) if frame.unit() == request.unit() => {
+                        return Ok(frame.with_tid(request.tid()));
+                    }
+                    Framed::Frame(frame) => {
+                        skipped += decoder.encoded_len(frame.pdu().len()) as u64;
+                    }
+                    Framed::Corrupt(_) => {}
+                }
             }
-            // A partial candidate waits for more bytes until the frame gap; then it is
-            // discarded and the rest rescanned (docs/design.md §2).
-            let quiet_at = (decoder.buffered() > 0).then(|| last_byte + frame_gap);
+            let quiet_at = (decoder.buffered() > 0 && decoder.silence_ends_frames())
+                .then(|| last_byte + silence);
             match read_until(p, &mut chunk, quiet_at).await {
                 None => quiet = true,
                 Some(read) => {
@@ -403,7 +403,7 @@ async fn serial_exchange(
         }
     };
     let result = timeout_at(deadline, wait).await;
-    let dropped_bytes = decoder.stats().dropped_bytes - dropped_before;
+    let dropped_bytes = decoder.dropped() - dropped_before + skipped;
     received(result, target, ms, start, Vec::new(), dropped_bytes)
 }
 
@@ -447,72 +447,6 @@ fn received_bytes(
     }
 }
 
-/// One request to an RTU or ASCII device: the request in the port's framing, then the
-/// first frame whose CRC or LRC holds and that comes from the unit asked, ended by its
-/// length or a silence of 3.5 character times (RTU, never shorter than
-/// `silence_floor_ms`) or its line feed (ASCII). Frames from another unit and bytes
-/// that make no good frame are skipped and counted.
-async fn line_exchange(
-    cfg: &SerialConfig,
-    port: &mut Option<SerialStream>,
-    decoder: &mut Decoder,
-    request: &Adu,
-    deadline: Instant,
-    ms: u64,
-) -> Result<Received, ClientError> {
-    let target = || cfg.path.clone();
-    let fresh = port.is_none();
-    let p = open_port(cfg, port)?;
-    if fresh {
-        decoder.clear();
-    }
-    let start = Instant::now();
-    let io = |what, source| ClientError::Io {
-        target: target(),
-        what,
-        source,
-    };
-    let silence = Duration::from_micros(rtu::t35_us(
-        cfg.baud_rate,
-        crate::serial::bits_per_char(cfg),
-    ))
-    .max(Duration::from_millis(cfg.silence_floor_ms));
-    let mut dropped_bytes = 0u64;
-    let wait = async {
-        // Whatever came before the request answers nothing.
-        dropped_bytes += decoder.clear() as u64;
-        let frame = decoder.codec().encode(request.unit(), request.pdu());
-        p.write_all(&frame).await.map_err(|e| io("sending", e))?;
-        let mut chunk = [0u8; 512];
-        let mut quiet = false;
-        loop {
-            while let Some(decoded) = decoder.next(Expect::Reply(request.pdu()), quiet) {
-                match decoded {
-                    Decoded::Frame { unit, pdu } if unit == request.unit() => {
-                        return Ok(Adu::build(request.tid(), unit, &pdu));
-                    }
-                    Decoded::Frame { pdu, .. } => {
-                        dropped_bytes += decoder.codec().encoded_len(pdu.len()) as u64;
-                    }
-                    Decoded::Corrupt(n) | Decoded::Noise(n) => dropped_bytes += n as u64,
-                }
-            }
-            let quiet_at = (decoder.buffered() > 0 && decoder.silence_ends_frames())
-                .then(|| Instant::now() + silence);
-            match read_until(p, &mut chunk, quiet_at).await {
-                None => quiet = true,
-                Some(read) => {
-                    let n = received_bytes(read, &io, target)?;
-                    decoder.push(&chunk[..n]);
-                    quiet = false;
-                }
-            }
-        }
-    };
-    let result = timeout_at(deadline, wait).await;
-    received(result, target, ms, start, Vec::new(), dropped_bytes)
-}
-
 /// The exchange's outcome: the reply with what was seen on the way, or a timeout.
 fn received(
     result: Result<Result<Adu, ClientError>, tokio::time::error::Elapsed>,
@@ -553,7 +487,7 @@ mod tests {
     #[test]
     fn judge_takes_only_the_answer_to_its_request() {
         let req = Adu::build(7, 1, &[3, 0, 0, 0, 1]);
-        let mut d = Resync::new();
+        let mut d = crate::frame::Resync::new();
         // A late answer (tid 6), another unit's, a wrong shape, then ours.
         for f in [
             Adu::build(6, 1, &[3, 2, 0, 1]),

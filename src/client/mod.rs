@@ -202,8 +202,10 @@ async fn once(
     let code = match x.decoded {
         Reply::Exception { function, code } => {
             say(format_args!(
-                "{prefix}exception 0x{code:02X} {} (fc 0x{function:02X}) in {rtt} ms",
-                exception_name(code)
+                "{prefix}exception 0x{:02X} {} (fc 0x{:02X}) in {rtt} ms",
+                code.get(),
+                exception_name(code.get()),
+                function.get()
             ));
             EXIT_EXCEPTION
         }

@@ -9,6 +9,7 @@
 //! from where its first byte was sent to where the header of what confirmed it was.
 //! Frames with id 0 are not checked: register values can spell one.
 
+use super::function::{Echo, FunctionCode};
 use super::mbap::FrameRef;
 use super::resync::{Judge, ReplyJudge, Resync};
 use super::{pdu, Adu};
@@ -37,7 +38,7 @@ pub struct Outstanding {
 }
 
 impl Judge for Outstanding {
-    fn plausible_function(&self, code: u8) -> bool {
+    fn plausible_function(&self, code: FunctionCode) -> bool {
         ReplyJudge.plausible_function(code)
     }
 
@@ -54,7 +55,7 @@ impl Judge for Outstanding {
                 && f.function() == frame.function()
                 && f.as_bytes().len() == frame.as_bytes().len()
                 && pdu::reply_well_formed(frame.pdu())
-                && (!matches!(f.function(), 0x05 | 0x06 | 0x10) || f.pdu()[..5] == frame.pdu()[..5])
+                && echoes(f, frame)
         })
     }
 
@@ -64,6 +65,16 @@ impl Judge for Outstanding {
 
     fn pause_confirms(&self, _: FrameRef<'_>) -> bool {
         self.pause_confirms
+    }
+}
+
+/// Does `frame` repeat what the reply `sent` repeats of its request (a write's address,
+/// quantity or value; the table's [`Echo`])? Both have the same length.
+fn echoes(sent: &Adu, frame: FrameRef<'_>) -> bool {
+    match sent.function_code().spec().map(|s| s.echo) {
+        Some(Echo::Whole) => sent.pdu() == frame.pdu(),
+        Some(Echo::Prefix(n)) => sent.pdu().get(..n) == frame.pdu().get(..n),
+        _ => true,
     }
 }
 

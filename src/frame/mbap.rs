@@ -5,6 +5,7 @@
 //! TID(2) | protocol id(2) = 0000 | length(2) = bytes that follow | unit id(1) | PDU
 //! ```
 
+use super::function::{ExceptionCode, FunctionCode};
 use super::hex::Hex;
 use bytes::{Buf, BufMut, Bytes, BytesMut};
 use std::fmt;
@@ -68,8 +69,14 @@ impl Adu {
     }
 
     /// An exception response (docs/protocol.md §1): function code | 0x80, then the code.
-    pub fn exception(tid: u16, unit: u8, function: u8, code: u8) -> Self {
-        Self::build(tid, unit, &[function | 0x80, code])
+    pub fn exception(
+        tid: u16,
+        unit: u8,
+        function: impl Into<FunctionCode>,
+        code: impl Into<ExceptionCode>,
+    ) -> Self {
+        let function = function.into().exception();
+        Self::build(tid, unit, &[function.get(), code.into().get()])
     }
 
     /// A borrowed view of the same frame.
@@ -85,8 +92,14 @@ impl Adu {
         self.view().unit()
     }
 
+    /// The function code's wire byte.
     pub fn function(&self) -> u8 {
         self.view().function()
+    }
+
+    /// The function code, for looking it up in the table.
+    pub fn function_code(&self) -> FunctionCode {
+        self.view().function_code()
     }
 
     /// Function code followed by its data.
@@ -125,8 +138,14 @@ impl<'a> FrameRef<'a> {
         self.0[6]
     }
 
+    /// The function code's wire byte.
     pub fn function(&self) -> u8 {
         self.0[7]
+    }
+
+    /// The function code, for looking it up in the table.
+    pub fn function_code(&self) -> FunctionCode {
+        FunctionCode::new(self.0[7])
     }
 
     pub fn pdu(&self) -> &'a [u8] {

@@ -2,6 +2,8 @@
 //! unit-tested, property-tested and fuzzed on its own (docs/design.md §5).
 
 pub mod ascii;
+pub mod framer;
+pub mod function;
 pub mod hex;
 pub mod lossy;
 pub mod mbap;
@@ -11,5 +13,6 @@ pub mod resync;
 pub mod rtu;
 pub mod serial;
 
+pub use function::{ExceptionCode, FunctionCode};
 pub use mbap::{Adu, StrictError};
 pub use resync::{Confirmed, Judge, ReplyJudge, RequestJudge, Resync};

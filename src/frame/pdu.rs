@@ -1,162 +1,54 @@
 //! What the function codes mean (docs/protocol.md §1): which requests are well formed, what
 //! shape their replies must have, and which replies could exist at all.
 //!
-//! All functions take a PDU: the function code followed by its data.
+//! All functions take a PDU: the function code followed by its data. What they know of
+//! each code comes from the one table, [`super::function::TABLE`].
 
-/// Function codes (docs/protocol.md §1 table).
-pub mod fc {
-    pub const READ_COILS: u8 = 0x01;
-    pub const READ_DISCRETE_INPUTS: u8 = 0x02;
-    pub const READ_HOLDING_REGISTERS: u8 = 0x03;
-    pub const READ_INPUT_REGISTERS: u8 = 0x04;
-    pub const WRITE_SINGLE_COIL: u8 = 0x05;
-    pub const WRITE_SINGLE_REGISTER: u8 = 0x06;
-    pub const READ_EXCEPTION_STATUS: u8 = 0x07;
-    pub const DIAGNOSTICS: u8 = 0x08;
-    pub const GET_COMM_EVENT_COUNTER: u8 = 0x0B;
-    pub const GET_COMM_EVENT_LOG: u8 = 0x0C;
-    pub const WRITE_MULTIPLE_COILS: u8 = 0x0F;
-    pub const WRITE_MULTIPLE_REGISTERS: u8 = 0x10;
-    pub const REPORT_SERVER_ID: u8 = 0x11;
-    pub const READ_FILE_RECORD: u8 = 0x14;
-    pub const WRITE_FILE_RECORD: u8 = 0x15;
-    pub const MASK_WRITE_REGISTER: u8 = 0x16;
-    pub const READ_WRITE_MULTIPLE_REGISTERS: u8 = 0x17;
-    pub const READ_FIFO_QUEUE: u8 = 0x18;
-    pub const ENCAPSULATED_INTERFACE: u8 = 0x2B;
-}
-
-/// Exception codes (docs/protocol.md §1).
-pub mod exception {
-    pub const ILLEGAL_FUNCTION: u8 = 0x01;
-    pub const ILLEGAL_DATA_ADDRESS: u8 = 0x02;
-    pub const ILLEGAL_DATA_VALUE: u8 = 0x03;
-    pub const SERVER_DEVICE_FAILURE: u8 = 0x04;
-    pub const ACKNOWLEDGE: u8 = 0x05;
-    pub const SERVER_DEVICE_BUSY: u8 = 0x06;
-    pub const MEMORY_PARITY_ERROR: u8 = 0x08;
-    /// The gateway cannot route the request: no serial port, or shutting down.
-    pub const GATEWAY_PATH_UNAVAILABLE: u8 = 0x0A;
-    /// The device did not answer in time.
-    pub const GATEWAY_TARGET_FAILED: u8 = 0x0B;
-}
-
-use fc::*;
-
-/// Every public function code of the Modbus application protocol.
-pub fn is_public_function(code: u8) -> bool {
-    matches!(
-        code,
-        READ_COILS
-            | READ_DISCRETE_INPUTS
-            | READ_HOLDING_REGISTERS
-            | READ_INPUT_REGISTERS
-            | WRITE_SINGLE_COIL
-            | WRITE_SINGLE_REGISTER
-            | READ_EXCEPTION_STATUS
-            | DIAGNOSTICS
-            | GET_COMM_EVENT_COUNTER
-            | GET_COMM_EVENT_LOG
-            | WRITE_MULTIPLE_COILS
-            | WRITE_MULTIPLE_REGISTERS
-            | REPORT_SERVER_ID
-            | READ_FILE_RECORD
-            | WRITE_FILE_RECORD
-            | MASK_WRITE_REGISTER
-            | READ_WRITE_MULTIPLE_REGISTERS
-            | READ_FIFO_QUEUE
-            | ENCAPSULATED_INTERFACE
-    )
-}
-
-/// A function code a device could send back: a public one, or its exception form.
-pub fn is_reply_function(code: u8) -> bool {
-    is_public_function(code & 0x7F)
-}
+use super::function::{Echo, ExceptionCode, FunctionCode, Item, Spec};
 
 /// Exception codes a device may answer with.
 pub fn is_exception_code(code: u8) -> bool {
-    matches!(code, 0x01..=0x06 | 0x08 | 0x0A | 0x0B)
-}
-
-/// Requests that only read, and so may be resent after a timeout (docs/design.md §4
-/// `retries`). Everything else may act on the device and is resent only with
-/// `retry_writes`.
-pub fn is_read(function: u8) -> bool {
-    matches!(
-        function,
-        READ_COILS
-            | READ_DISCRETE_INPUTS
-            | READ_HOLDING_REGISTERS
-            | READ_INPUT_REGISTERS
-            | READ_EXCEPTION_STATUS
-            | GET_COMM_EVENT_COUNTER
-            | GET_COMM_EVENT_LOG
-            | REPORT_SERVER_ID
-            | READ_FILE_RECORD
-            | READ_FIFO_QUEUE
-    )
+    ExceptionCode::new(code).is_known()
 }
 
 fn word(pdu: &[u8], at: usize) -> usize {
     usize::from(u16::from_be_bytes([pdu[at], pdu[at + 1]]))
 }
 
+/// The row of a request's function code, and whether the request has its shape;
+/// `None` for a code that cannot be a request.
+fn request_row(pdu: &[u8]) -> Option<(Option<&'static Spec>, bool)> {
+    let code = FunctionCode::new(*pdu.first()?);
+    if !code.can_be_request() {
+        return None;
+    }
+    Some((code.spec(), code.request_shape().fits(pdu)))
+}
+
 /// Checks a master's request PDU against the limits of docs/protocol.md §1. `Err` carries
 /// the exception code a device would answer: 01 for a function code that cannot be a
-/// request, 03 for a quantity or size out of range. Unknown (vendor) function codes
-/// pass: the device decides.
-pub fn check_request(pdu: &[u8]) -> Result<(), u8> {
-    use super::pdu::exception::{ILLEGAL_DATA_VALUE as BAD, ILLEGAL_FUNCTION};
-    let Some(&code) = pdu.first() else {
-        return Err(ILLEGAL_FUNCTION);
+/// request, 03 for a size, quantity or value out of range. Unknown (vendor) function
+/// codes pass: the device decides.
+pub fn check_request(pdu: &[u8]) -> Result<(), ExceptionCode> {
+    let Some((spec, fits)) = request_row(pdu) else {
+        return Err(ExceptionCode::ILLEGAL_FUNCTION);
     };
-    if code == 0 || code >= 0x80 {
-        return Err(ILLEGAL_FUNCTION);
-    }
-    let n = pdu.len();
-    let ok = match code {
-        READ_COILS | READ_DISCRETE_INPUTS => n == 5 && (1..=2000).contains(&word(pdu, 3)),
-        READ_HOLDING_REGISTERS | READ_INPUT_REGISTERS => {
-            n == 5 && (1..=125).contains(&word(pdu, 3))
-        }
-        WRITE_SINGLE_COIL => n == 5 && matches!(word(pdu, 3), 0xFF00 | 0x0000),
-        WRITE_SINGLE_REGISTER => n == 5,
-        WRITE_MULTIPLE_COILS => {
-            n >= 6 && {
-                let qty = word(pdu, 3);
-                let count = usize::from(pdu[5]);
-                (1..=1968).contains(&qty) && count == qty.div_ceil(8) && n == 6 + count
-            }
-        }
-        WRITE_MULTIPLE_REGISTERS => {
-            n >= 6 && {
-                let qty = word(pdu, 3);
-                let count = usize::from(pdu[5]);
-                (1..=123).contains(&qty) && count == 2 * qty && n == 6 + count
-            }
-        }
-        MASK_WRITE_REGISTER => n == 7,
-        READ_WRITE_MULTIPLE_REGISTERS => {
-            n >= 10 && {
-                let read = word(pdu, 3);
-                let write = word(pdu, 7);
-                let count = usize::from(pdu[9]);
-                (1..=125).contains(&read)
-                    && (1..=121).contains(&write)
-                    && count == 2 * write
-                    && n == 10 + count
-            }
-        }
-        READ_EXCEPTION_STATUS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG | REPORT_SERVER_ID => {
-            n == 1
-        }
-        _ => true,
+    let Some(spec) = spec else {
+        return Ok(());
     };
-    if ok {
+    let read_ok = spec
+        .read
+        .is_none_or(|q| q.of(pdu).is_some_and(|n| q.allows(n)));
+    let write_ok = spec.write.is_none_or(|q| {
+        let count = pdu.get(q.at + 2).map(|&c| usize::from(c));
+        q.of(pdu)
+            .is_some_and(|n| q.allows(n) && count == Some(q.item.bytes(n)))
+    });
+    let value_ok = !spec.coil_value || pdu.len() < 5 || matches!(word(pdu, 3), 0xFF00 | 0x0000);
+    if fits && read_ok && write_ok && value_ok {
         Ok(())
     } else {
-        Err(BAD)
+        Err(ExceptionCode::ILLEGAL_DATA_VALUE)
     }
 }
 
@@ -165,26 +57,7 @@ pub fn check_request(pdu: &[u8]) -> Result<(), u8> {
 /// checked (a device answers 03 for those), and unknown function codes pass (a device
 /// answers 01). The simulator's decoder uses this to delimit requests on a lossy line.
 pub fn request_well_formed(pdu: &[u8]) -> bool {
-    let Some(&code) = pdu.first() else {
-        return false;
-    };
-    let n = pdu.len();
-    match code {
-        0 | 0x80..=0xFF => false,
-        READ_COILS
-        | READ_DISCRETE_INPUTS
-        | READ_HOLDING_REGISTERS
-        | READ_INPUT_REGISTERS
-        | WRITE_SINGLE_COIL
-        | WRITE_SINGLE_REGISTER => n == 5,
-        WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => n >= 6 && n == 6 + usize::from(pdu[5]),
-        MASK_WRITE_REGISTER => n == 7,
-        READ_WRITE_MULTIPLE_REGISTERS => n >= 10 && n == 10 + usize::from(pdu[9]),
-        READ_EXCEPTION_STATUS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG | REPORT_SERVER_ID => {
-            n == 1
-        }
-        _ => true,
-    }
+    request_row(pdu).is_some_and(|(_, fits)| fits)
 }
 
 /// A reply whose byte-count field is its second byte and covers the rest.
@@ -200,26 +73,14 @@ pub fn reply_well_formed(reply: &[u8]) -> bool {
     let Some(&code) = reply.first() else {
         return false;
     };
-    if code & 0x80 != 0 {
-        return is_public_function(code & 0x7F) && reply.len() == 2 && is_exception_code(reply[1]);
+    let code = FunctionCode::new(code);
+    if code.is_exception() {
+        return code.is_reply() && reply.len() == 2 && is_exception_code(reply[1]);
     }
-    match code {
-        READ_COILS | READ_DISCRETE_INPUTS => counted(reply).is_some_and(|c| c >= 1),
-        READ_HOLDING_REGISTERS | READ_INPUT_REGISTERS | READ_WRITE_MULTIPLE_REGISTERS => {
-            counted(reply).is_some_and(|c| c >= 2 && c % 2 == 0)
-        }
-        WRITE_SINGLE_COIL => reply.len() == 5 && matches!(word(reply, 3), 0xFF00 | 0x0000),
-        WRITE_SINGLE_REGISTER | WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => reply.len() == 5,
-        MASK_WRITE_REGISTER => reply.len() == 7,
-        READ_EXCEPTION_STATUS => reply.len() == 2,
-        GET_COMM_EVENT_COUNTER => reply.len() == 5,
-        GET_COMM_EVENT_LOG | REPORT_SERVER_ID | READ_FILE_RECORD | WRITE_FILE_RECORD => {
-            counted(reply).is_some()
-        }
-        READ_FIFO_QUEUE => reply.len() >= 5 && word(reply, 1) + 3 == reply.len(),
-        DIAGNOSTICS => reply.len() >= 5,
-        _ => true,
-    }
+    let Some(spec) = code.spec() else {
+        return true;
+    };
+    spec.reply.fits(reply) && (!spec.coil_value || matches!(word(reply, 3), 0xFF00 | 0x0000))
 }
 
 /// Is `reply` an answer to `request` (docs/design.md §1 step 4): the same function code or
@@ -235,36 +96,42 @@ pub fn reply_matches(request: &[u8], reply: &[u8]) -> bool {
     if !request_well_formed(request) {
         return false;
     }
-    if got == asked | 0x80 {
+    let (asked, got) = (FunctionCode::new(asked), FunctionCode::new(got));
+    if got == asked.exception() {
         return reply.len() == 2 && is_exception_code(reply[1]);
     }
     if got != asked || !reply_well_formed(reply) {
         return false;
     }
-    match asked {
-        READ_COILS | READ_DISCRETE_INPUTS => {
-            let qty = word(request, 3);
-            let used = qty % 8;
-            counted(reply) == Some(qty.div_ceil(8))
-                && (used == 0 || reply[reply.len() - 1] >> used == 0)
-        }
-        READ_HOLDING_REGISTERS | READ_INPUT_REGISTERS | READ_WRITE_MULTIPLE_REGISTERS => {
-            counted(reply) == Some(2 * word(request, 3))
-        }
-        WRITE_SINGLE_COIL | WRITE_SINGLE_REGISTER | MASK_WRITE_REGISTER => reply == request,
-        WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => reply[..5] == request[..5],
-        _ => true,
-    }
+    let Some(spec) = asked.spec() else {
+        return true;
+    };
+    let read_ok = spec.read.is_none_or(|q| {
+        let qty = word(request, q.at);
+        let bits_padded = match q.item {
+            Item::Bits => qty.is_multiple_of(8) || reply[reply.len() - 1] >> (qty % 8) == 0,
+            Item::Registers => true,
+        };
+        counted(reply) == Some(q.item.bytes(qty)) && bits_padded
+    });
+    let echo_ok = match spec.echo {
+        Echo::No => true,
+        Echo::Whole => reply == request,
+        Echo::Prefix(n) => reply.get(..n) == request.get(..n),
+    };
+    read_ok && echo_ok
 }
 
 /// The answer a device gives to a write request, made from the request itself: FC 05,
 /// 06 and 16 echo it whole; 0F and 10 echo address and quantity. Other requests are
 /// echoed whole. (What a master gets for a broadcast with `broadcast_reply = "echo"`.)
 pub fn write_echo(request: &[u8]) -> Vec<u8> {
-    match request.first() {
-        Some(&(WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS)) if request.len() >= 5 => {
-            request[..5].to_vec()
-        }
+    let echo = request
+        .first()
+        .and_then(|&c| FunctionCode::new(c).spec())
+        .map(|s| s.echo);
+    match echo {
+        Some(Echo::Prefix(n)) if request.len() >= n => request[..n].to_vec(),
         _ => request.to_vec(),
     }
 }
@@ -277,24 +144,48 @@ mod tests {
     fn request_limits() {
         assert_eq!(check_request(&[3, 0, 0, 0, 1]), Ok(()));
         assert_eq!(check_request(&[3, 0, 0, 0, 125]), Ok(()));
-        assert_eq!(check_request(&[3, 0, 0, 0, 126]), Err(3));
-        assert_eq!(check_request(&[3, 0, 0, 0, 0]), Err(3));
-        assert_eq!(check_request(&[3, 0, 0, 0]), Err(3));
+        assert_eq!(
+            check_request(&[3, 0, 0, 0, 126]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
+        assert_eq!(
+            check_request(&[3, 0, 0, 0, 0]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
+        assert_eq!(
+            check_request(&[3, 0, 0, 0]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
         assert_eq!(check_request(&[1, 0, 0, 0x07, 0xD0]), Ok(()));
-        assert_eq!(check_request(&[1, 0, 0, 0x07, 0xD1]), Err(3));
+        assert_eq!(
+            check_request(&[1, 0, 0, 0x07, 0xD1]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
         assert_eq!(check_request(&[5, 0, 1, 0xFF, 0x00]), Ok(()));
-        assert_eq!(check_request(&[5, 0, 1, 0x12, 0x34]), Err(3));
+        assert_eq!(
+            check_request(&[5, 0, 1, 0x12, 0x34]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
         // The CIE-M10 write of docs/protocol.md §3.
         assert_eq!(check_request(&[0x10, 0, 8, 0, 1, 2, 0, 0x11]), Ok(()));
-        assert_eq!(check_request(&[0x10, 0, 8, 0, 1, 4, 0, 0x11, 0, 0]), Err(3));
+        assert_eq!(
+            check_request(&[0x10, 0, 8, 0, 1, 4, 0, 0x11, 0, 0]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
         assert_eq!(check_request(&[0x0F, 0, 20, 0, 10, 2, 0xCD, 0x01]), Ok(()));
-        assert_eq!(check_request(&[0x0F, 0, 20, 0, 10, 1, 0xCD]), Err(3));
+        assert_eq!(
+            check_request(&[0x0F, 0, 20, 0, 10, 1, 0xCD]),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        );
         assert_eq!(
             check_request(&[0x17, 0, 0, 0, 2, 0, 5, 0, 1, 2, 0, 9]),
             Ok(())
         );
-        assert_eq!(check_request(&[0x80, 0]), Err(1));
-        assert_eq!(check_request(&[0x00]), Err(1));
+        assert_eq!(
+            check_request(&[0x80, 0]),
+            Err(ExceptionCode::ILLEGAL_FUNCTION)
+        );
+        assert_eq!(check_request(&[0x00]), Err(ExceptionCode::ILLEGAL_FUNCTION));
         assert_eq!(check_request(&[0x41, 1, 2, 3]), Ok(()));
     }
 

@@ -18,8 +18,9 @@
 //! assert!(values[0] && !values[1] && values[18]);
 //! ```
 
+use super::function::{ExceptionCode, FunctionCode as Fc};
 use super::hex::Hex;
-use super::pdu::{self, exception, fc};
+use super::pdu;
 
 /// One request of the common function codes (docs/protocol.md §1 table). Addresses are
 /// PDU addresses (0-based).
@@ -69,6 +70,14 @@ pub enum RequestError {
     },
 }
 
+/// The limit of the table ([`super::function::TABLE`]) on what `code` reads, or on what
+/// it writes.
+fn limit(code: Fc, write: bool) -> usize {
+    let spec = code.spec().expect("a public function code");
+    let q = if write { spec.write } else { spec.read };
+    usize::from(q.expect("a quantity field").max)
+}
+
 /// Checks `1 <= qty <= max` and that the block `addr..addr+qty` fits the 16-bit
 /// address space.
 fn block(what: &'static str, addr: u16, qty: usize, max: usize) -> Result<(), RequestError> {
@@ -111,38 +120,40 @@ fn put_words(out: &mut Vec<u8>, words: &[u16]) {
 
 impl Request {
     /// The function code (docs/protocol.md §1 table).
-    pub fn function(&self) -> u8 {
+    pub fn function(&self) -> Fc {
         match self {
-            Request::ReadCoils { .. } => fc::READ_COILS,
-            Request::ReadDiscreteInputs { .. } => fc::READ_DISCRETE_INPUTS,
-            Request::ReadHoldingRegisters { .. } => fc::READ_HOLDING_REGISTERS,
-            Request::ReadInputRegisters { .. } => fc::READ_INPUT_REGISTERS,
-            Request::WriteSingleCoil { .. } => fc::WRITE_SINGLE_COIL,
-            Request::WriteSingleRegister { .. } => fc::WRITE_SINGLE_REGISTER,
-            Request::WriteMultipleCoils { .. } => fc::WRITE_MULTIPLE_COILS,
-            Request::WriteMultipleRegisters { .. } => fc::WRITE_MULTIPLE_REGISTERS,
-            Request::ReadWriteMultipleRegisters { .. } => fc::READ_WRITE_MULTIPLE_REGISTERS,
+            Request::ReadCoils { .. } => Fc::READ_COILS,
+            Request::ReadDiscreteInputs { .. } => Fc::READ_DISCRETE_INPUTS,
+            Request::ReadHoldingRegisters { .. } => Fc::READ_HOLDING_REGISTERS,
+            Request::ReadInputRegisters { .. } => Fc::READ_INPUT_REGISTERS,
+            Request::WriteSingleCoil { .. } => Fc::WRITE_SINGLE_COIL,
+            Request::WriteSingleRegister { .. } => Fc::WRITE_SINGLE_REGISTER,
+            Request::WriteMultipleCoils { .. } => Fc::WRITE_MULTIPLE_COILS,
+            Request::WriteMultipleRegisters { .. } => Fc::WRITE_MULTIPLE_REGISTERS,
+            Request::ReadWriteMultipleRegisters { .. } => Fc::READ_WRITE_MULTIPLE_REGISTERS,
         }
     }
 
     /// Checks the limits of docs/protocol.md §1 (quantities, and blocks that stay inside the
     /// address space).
     pub fn validate(&self) -> Result<(), RequestError> {
+        let read = || limit(self.function(), false);
+        let write = || limit(self.function(), true);
         match self {
-            Request::ReadCoils { addr, qty } => block("coils", *addr, usize::from(*qty), 2000),
+            Request::ReadCoils { addr, qty } => block("coils", *addr, usize::from(*qty), read()),
             Request::ReadDiscreteInputs { addr, qty } => {
-                block("discrete inputs", *addr, usize::from(*qty), 2000)
+                block("discrete inputs", *addr, usize::from(*qty), read())
             }
             Request::ReadHoldingRegisters { addr, qty }
             | Request::ReadInputRegisters { addr, qty } => {
-                block("registers", *addr, usize::from(*qty), 125)
+                block("registers", *addr, usize::from(*qty), read())
             }
             Request::WriteSingleCoil { .. } | Request::WriteSingleRegister { .. } => Ok(()),
             Request::WriteMultipleCoils { addr, values } => {
-                block("coils", *addr, values.len(), 1968)
+                block("coils", *addr, values.len(), write())
             }
             Request::WriteMultipleRegisters { addr, values } => {
-                block("registers", *addr, values.len(), 123)
+                block("registers", *addr, values.len(), write())
             }
             Request::ReadWriteMultipleRegisters {
                 read_addr,
@@ -150,8 +161,8 @@ impl Request {
                 write_addr,
                 values,
             } => {
-                block("registers read", *read_addr, usize::from(*read_qty), 125)?;
-                block("registers written", *write_addr, values.len(), 121)
+                block("registers read", *read_addr, usize::from(*read_qty), read())?;
+                block("registers written", *write_addr, values.len(), write())
             }
         }
     }
@@ -160,7 +171,7 @@ impl Request {
     /// [`validate`](Request::validate).
     pub fn pdu(&self) -> Result<Vec<u8>, RequestError> {
         self.validate()?;
-        let mut p = vec![self.function()];
+        let mut p = vec![self.function().get()];
         match self {
             Request::ReadCoils { addr, qty }
             | Request::ReadDiscreteInputs { addr, qty }
@@ -216,7 +227,7 @@ pub enum Reply {
     /// Any other function code (no decoding known): the reply PDU's data.
     Raw { data: Vec<u8> },
     /// Exception response: function code | 0x80, then the code (docs/protocol.md §1).
-    Exception { function: u8, code: u8 },
+    Exception { function: Fc, code: ExceptionCode },
 }
 
 /// A reply PDU that does not answer the request: wrong function code, or a shape the
@@ -241,36 +252,36 @@ pub fn decode_reply(request: &[u8], reply: &[u8]) -> Result<Reply, Mismatch> {
             reply: Hex(reply).to_string(),
         });
     }
-    let function = reply[0];
-    if function & 0x80 != 0 {
+    let function = Fc::new(reply[0]);
+    if function.is_exception() {
         return Ok(Reply::Exception {
-            function: function & 0x7F,
-            code: reply[1],
+            function: function.base(),
+            code: ExceptionCode::new(reply[1]),
         });
     }
     Ok(match function {
-        fc::READ_COILS | fc::READ_DISCRETE_INPUTS => Reply::Bits {
+        Fc::READ_COILS | Fc::READ_DISCRETE_INPUTS => Reply::Bits {
             addr: word(request, 1),
             values: unpack_bits(&reply[2..], usize::from(word(request, 3))),
         },
-        fc::READ_HOLDING_REGISTERS
-        | fc::READ_INPUT_REGISTERS
-        | fc::READ_WRITE_MULTIPLE_REGISTERS => Reply::Registers {
+        Fc::READ_HOLDING_REGISTERS
+        | Fc::READ_INPUT_REGISTERS
+        | Fc::READ_WRITE_MULTIPLE_REGISTERS => Reply::Registers {
             addr: word(request, 1),
             values: reply[2..].chunks(2).map(|c| word(c, 0)).collect(),
         },
-        fc::WRITE_SINGLE_COIL => Reply::WroteCoil {
+        Fc::WRITE_SINGLE_COIL => Reply::WroteCoil {
             addr: word(reply, 1),
             value: word(reply, 3) == 0xFF00,
         },
-        fc::WRITE_SINGLE_REGISTER => Reply::WroteRegister {
+        Fc::WRITE_SINGLE_REGISTER => Reply::WroteRegister {
             addr: word(reply, 1),
             value: word(reply, 3),
         },
-        fc::WRITE_MULTIPLE_COILS | fc::WRITE_MULTIPLE_REGISTERS => Reply::WroteMany {
+        Fc::WRITE_MULTIPLE_COILS | Fc::WRITE_MULTIPLE_REGISTERS => Reply::WroteMany {
             addr: word(reply, 1),
             qty: word(reply, 3),
-            coils: reply[0] == fc::WRITE_MULTIPLE_COILS,
+            coils: function == Fc::WRITE_MULTIPLE_COILS,
         },
         _ => Reply::Raw {
             data: reply[1..].to_vec(),
@@ -280,18 +291,9 @@ pub fn decode_reply(request: &[u8], reply: &[u8]) -> Result<Reply, Mismatch> {
 
 /// The name of an exception code (docs/protocol.md §1).
 pub fn exception_name(code: u8) -> &'static str {
-    match code {
-        exception::ILLEGAL_FUNCTION => "illegal function",
-        exception::ILLEGAL_DATA_ADDRESS => "illegal data address",
-        exception::ILLEGAL_DATA_VALUE => "illegal data value",
-        exception::SERVER_DEVICE_FAILURE => "server device failure",
-        exception::ACKNOWLEDGE => "acknowledge",
-        exception::SERVER_DEVICE_BUSY => "server device busy",
-        exception::MEMORY_PARITY_ERROR => "memory parity error",
-        exception::GATEWAY_PATH_UNAVAILABLE => "gateway path unavailable",
-        exception::GATEWAY_TARGET_FAILED => "gateway target device failed to respond",
-        _ => "unknown exception",
-    }
+    ExceptionCode::new(code)
+        .name()
+        .unwrap_or("unknown exception")
 }
 
 #[cfg(test)]
@@ -411,8 +413,8 @@ mod tests {
         assert_eq!(
             decode_reply(&req, &bytes("90 02")).unwrap(),
             Reply::Exception {
-                function: 0x10,
-                code: 0x02
+                function: Fc::WRITE_MULTIPLE_REGISTERS,
+                code: ExceptionCode::ILLEGAL_DATA_ADDRESS
             }
         );
         let read = Request::ReadHoldingRegisters { addr: 0, qty: 1 }
@@ -421,8 +423,8 @@ mod tests {
         assert_eq!(
             decode_reply(&read, &bytes("83 01")).unwrap(),
             Reply::Exception {
-                function: 0x03,
-                code: 0x01
+                function: Fc::READ_HOLDING_REGISTERS,
+                code: ExceptionCode::ILLEGAL_FUNCTION
             }
         );
         // Another function's exception is not an answer.

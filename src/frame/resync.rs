@@ -56,15 +56,17 @@
 //! assert_eq!(d.stats().dropped_bytes, 2);
 //! ```
 
+use super::function::FunctionCode;
 use super::mbap::{self, Adu, FrameRef, MAX_LENGTH, MIN_LENGTH, PREFIX_LEN};
 use super::pdu;
+use super::serial::Expect;
 use bytes::BytesMut;
 
 /// Decides what a frame on the line may be. The relay's judge knows the outstanding
 /// requests; [`ReplyJudge`] knows only what any reply must look like.
 pub trait Judge {
     /// Could a frame with this function code be on the line at all?
-    fn plausible_function(&self, code: u8) -> bool;
+    fn plausible_function(&self, code: FunctionCode) -> bool;
     /// Is this complete, length-consistent candidate a frame to hand on?
     fn accept(&self, frame: FrameRef<'_>) -> bool;
     /// Must this accepted frame wait for confirmation by what follows it, or by a quiet
@@ -88,6 +90,12 @@ pub trait Judge {
     fn deliver_refused(&self, _frame: FrameRef<'_>) -> bool {
         false
     }
+    /// On an RTU or ASCII line ([`super::framer::Framer`]), what the frame at the front
+    /// must be: the reply to a request (whose shape gives the reply's length), or any
+    /// request. Any reply, unless the judge knows the request.
+    fn expect(&self) -> Expect<'_> {
+        Expect::Reply(&[])
+    }
 }
 
 /// Accepts any well-formed reply to a public function code (docs/design.md §2 shape check).
@@ -95,8 +103,8 @@ pub trait Judge {
 pub struct ReplyJudge;
 
 impl Judge for ReplyJudge {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code)
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.is_reply()
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
@@ -114,8 +122,8 @@ pub struct RequestJudge {
 }
 
 impl Judge for RequestJudge {
-    fn plausible_function(&self, code: u8) -> bool {
-        (1..0x80).contains(&code)
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.can_be_request()
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
@@ -125,6 +133,10 @@ impl Judge for RequestJudge {
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         self.confirm
     }
+
+    fn expect(&self) -> Expect<'_> {
+        Expect::Request
+    }
 }
 
 /// Another judge's decisions, with every frame held for confirmation.
@@ -132,7 +144,7 @@ impl Judge for RequestJudge {
 pub struct Confirmed<J>(pub J);
 
 impl<J: Judge> Judge for Confirmed<J> {
-    fn plausible_function(&self, code: u8) -> bool {
+    fn plausible_function(&self, code: FunctionCode) -> bool {
         self.0.plausible_function(code)
     }
 
@@ -146,6 +158,10 @@ impl<J: Judge> Judge for Confirmed<J> {
 
     fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
         self.0.pause_confirms(frame)
+    }
+
+    fn expect(&self) -> Expect<'_> {
+        self.0.expect()
     }
 }
 
@@ -201,7 +217,7 @@ fn candidate(buf: &[u8], judge: &impl Judge) -> Candidate {
     if n > 5 && !(MIN_LENGTH..=MAX_LENGTH).contains(&u16::from(buf[5])) {
         return Candidate::Implausible;
     }
-    if n > 7 && !judge.plausible_function(buf[7]) {
+    if n > 7 && !judge.plausible_function(FunctionCode::new(buf[7])) {
         return Candidate::Implausible;
     }
     if n < PREFIX_LEN {
@@ -680,8 +696,8 @@ mod tests {
     /// frame gap does.
     struct RepliesDue;
     impl Judge for RepliesDue {
-        fn plausible_function(&self, code: u8) -> bool {
-            pdu::is_reply_function(code)
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
         }
         fn accept(&self, frame: FrameRef<'_>) -> bool {
             pdu::reply_well_formed(frame.pdu())
@@ -698,8 +714,8 @@ mod tests {
     /// of another shape is refused, but to be delivered once confirmed.
     struct OneRegisterAsked;
     impl Judge for OneRegisterAsked {
-        fn plausible_function(&self, code: u8) -> bool {
-            pdu::is_reply_function(code)
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
         }
         fn accept(&self, frame: FrameRef<'_>) -> bool {
             let asked = [0x03, 0x00, 0x0A, 0x00, 0x01];
@@ -964,8 +980,8 @@ mod tests {
 
     struct OnlyTid(u16);
     impl Judge for OnlyTid {
-        fn plausible_function(&self, code: u8) -> bool {
-            pdu::is_reply_function(code)
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
         }
         fn accept(&self, frame: FrameRef<'_>) -> bool {
             frame.tid() == self.0

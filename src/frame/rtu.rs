@@ -13,7 +13,7 @@
 //! );
 //! ```
 
-use super::pdu::fc::*;
+use super::function::{FunctionCode, Size};
 use crc::{Crc, CRC_16_MODBUS};
 
 const MODBUS: Crc<u16> = Crc::<u16>::new(&CRC_16_MODBUS);
@@ -59,75 +59,41 @@ pub enum Length {
     Silence,
 }
 
-fn counted(buf: &[u8], at: usize, before: usize) -> Length {
-    match buf.get(at) {
-        Some(&n) => Length::Exactly(before + usize::from(n) + 2),
-        None => Length::More,
+/// The frame length for a PDU of this [`Size`]: address and CRC around it.
+fn framed(size: Size) -> Length {
+    match size {
+        Size::More => Length::More,
+        Size::Exactly(n) => Length::Exactly(1 + n + 2),
+        Size::Open => Length::Silence,
     }
 }
 
 /// The length of the reply at the front of `buf` (address first) to the request
-/// `request` (a PDU): from the function code, and its byte count where it has one. An
-/// exception is known at once (5 bytes), so it never waits for silence.
+/// `request` (a PDU): from the function code's reply shape in the table
+/// ([`super::function::TABLE`]), and its byte count where it has one. An exception is
+/// known at once (5 bytes), so it never waits for silence.
 pub fn reply_length(request: &[u8], buf: &[u8]) -> Length {
     let Some(&code) = buf.get(1) else {
         return Length::More;
     };
-    if code & 0x80 != 0 {
+    let code = FunctionCode::new(code);
+    if code.is_exception() {
         return Length::Exactly(5);
     }
-    match code {
-        READ_COILS
-        | READ_DISCRETE_INPUTS
-        | READ_HOLDING_REGISTERS
-        | READ_INPUT_REGISTERS
-        | GET_COMM_EVENT_LOG
-        | REPORT_SERVER_ID
-        | READ_FILE_RECORD
-        | WRITE_FILE_RECORD
-        | READ_WRITE_MULTIPLE_REGISTERS => counted(buf, 2, 3),
-        WRITE_SINGLE_COIL
-        | WRITE_SINGLE_REGISTER
-        | WRITE_MULTIPLE_COILS
-        | WRITE_MULTIPLE_REGISTERS
-        | GET_COMM_EVENT_COUNTER => Length::Exactly(8),
-        MASK_WRITE_REGISTER => Length::Exactly(10),
-        READ_EXCEPTION_STATUS => Length::Exactly(5),
-        READ_FIFO_QUEUE => match buf.get(2..4) {
-            Some(w) => Length::Exactly(4 + usize::from(u16::from_be_bytes([w[0], w[1]])) + 2),
-            None => Length::More,
-        },
-        // Most diagnostics echo the request (sub-function and data).
-        DIAGNOSTICS if request.first() == Some(&DIAGNOSTICS) && request.len() == 5 => {
-            Length::Exactly(1 + request.len() + 2)
-        }
-        _ => Length::Silence,
-    }
+    framed(code.reply_shape().size_for(request, &buf[1..]))
 }
 
 /// The length of the request at the front of `buf` (address first), from its own
-/// function code and byte count (the simulator's side of the line).
+/// function code's request shape and byte count (the simulator's side of the line).
 pub fn request_length(buf: &[u8]) -> Length {
     let Some(&code) = buf.get(1) else {
         return Length::More;
     };
-    match code {
-        READ_COILS
-        | READ_DISCRETE_INPUTS
-        | READ_HOLDING_REGISTERS
-        | READ_INPUT_REGISTERS
-        | WRITE_SINGLE_COIL
-        | WRITE_SINGLE_REGISTER => Length::Exactly(8),
-        READ_EXCEPTION_STATUS | GET_COMM_EVENT_COUNTER | GET_COMM_EVENT_LOG | REPORT_SERVER_ID => {
-            Length::Exactly(4)
-        }
-        WRITE_MULTIPLE_COILS | WRITE_MULTIPLE_REGISTERS => counted(buf, 6, 7),
-        MASK_WRITE_REGISTER => Length::Exactly(10),
-        READ_WRITE_MULTIPLE_REGISTERS => counted(buf, 10, 11),
-        READ_FIFO_QUEUE => Length::Exactly(6),
-        READ_FILE_RECORD | WRITE_FILE_RECORD => counted(buf, 2, 3),
-        _ => Length::Silence,
+    let code = FunctionCode::new(code);
+    if !code.can_be_request() {
+        return Length::Silence;
     }
+    framed(code.request_shape().size(&buf[1..]))
 }
 
 /// 3.5 character times at `bits_per_second` with `bits_per_char` bits a character, in

@@ -5,7 +5,7 @@
 use super::inflight::{Failure, InFlight, Verdict};
 use super::pending::Pending;
 use super::Relay;
-use crate::frame::pdu::exception;
+use crate::outbox::Refusal;
 use tokio::time::Instant;
 use tracing::{debug, warn};
 
@@ -38,8 +38,7 @@ impl Relay {
                     unit,
                     "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
                 );
-                f.req
-                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
+                f.req.answer_exception(Refusal::TargetFailed, &self.stats);
                 self.sweep_backed_off(unit);
             }
             Verdict::Resend => {
@@ -61,8 +60,7 @@ impl Relay {
                     "{}: 0x0B",
                     why.what_in_the_end()
                 );
-                f.req
-                    .answer_exception(exception::GATEWAY_TARGET_FAILED, &self.stats);
+                f.req.answer_exception(Refusal::TargetFailed, &self.stats);
             }
         }
     }

@@ -4,7 +4,6 @@
 //! answers for backed-off units. Plain data: no I/O, no clock (the loop passes the time in).
 
 use crate::config::RelayConfig;
-use crate::frame::pdu;
 use crate::frame::Adu;
 use std::collections::{HashMap, VecDeque};
 use std::time::Duration;
@@ -185,7 +184,7 @@ impl<R: Asked> Table<R> {
                 return Verdict::BackedOff(interval);
             }
         }
-        let may_retry = pdu::is_read(adu.function()) || self.retry_writes;
+        let may_retry = adu.function_code().is_read() || self.retry_writes;
         if may_retry && f.req.attempts() < self.retries && port_open {
             Verdict::Resend
         } else {

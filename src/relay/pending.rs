@@ -6,9 +6,9 @@ use super::inflight::Asked;
 use super::scheduler::Queued;
 use super::ConnId;
 use crate::config::BroadcastReply;
-use crate::frame::pdu::{self, exception};
+use crate::frame::pdu;
 use crate::frame::Adu;
-use crate::outbox::Ticket;
+use crate::outbox::{Refusal, Ticket};
 use crate::stats::Stats;
 
 pub(super) struct Pending {
@@ -52,29 +52,14 @@ impl Pending {
         self.ticket.answer(adu);
     }
 
-    /// Answers with exception `code`, counted by its kind.
-    pub(super) fn answer_exception(self, code: u8, stats: &Stats) {
-        let counter = match code {
-            exception::GATEWAY_PATH_UNAVAILABLE => &stats.unavailable,
-            exception::SERVER_DEVICE_BUSY => &stats.busy,
-            // GATEWAY_TARGET_FAILED: the only other code the relay answers itself.
-            _ => &stats.timeouts,
-        };
-        stats.add(counter, 1);
-        let adu = Adu::exception(self.adu.tid(), self.adu.unit(), self.adu.function(), code);
-        self.deliver(adu);
+    /// Answers with the gateway's own exception for `why`, counted by its kind.
+    pub(super) fn answer_exception(self, why: Refusal, stats: &Stats) {
+        self.ticket.refuse(&self.adu, why, stats);
     }
 
     /// 0x0B for a backed-off unit, counted apart from timeouts.
     pub(super) fn answer_backed_off(self, stats: &Stats) {
-        stats.add(&stats.backed_off, 1);
-        let adu = Adu::exception(
-            self.adu.tid(),
-            self.adu.unit(),
-            self.adu.function(),
-            exception::GATEWAY_TARGET_FAILED,
-        );
-        self.deliver(adu);
+        self.answer_exception(Refusal::BackedOff, stats);
     }
 
     /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master

@@ -7,7 +7,7 @@
 //! change of the inputs can be notified unsolicited, as an FC 03 response.
 
 use super::{exception_pdu, Answer};
-use crate::frame::pdu::{exception, fc};
+use crate::frame::function::{ExceptionCode as Ex, FunctionCode as Fc};
 
 /// The device's settings and port state.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -50,24 +50,24 @@ impl CieM10 {
         if unit != self.unit {
             return Answer::silent();
         }
-        let code = pdu[0];
+        let code = Fc::new(pdu[0]);
         let reply = match code {
-            fc::READ_HOLDING_REGISTERS if pdu.len() == 5 => {
+            Fc::READ_HOLDING_REGISTERS if pdu.len() == 5 => {
                 let (address, quantity) = (word(pdu, 1), word(pdu, 3));
                 if quantity != 1 {
-                    exception_pdu(code, exception::ILLEGAL_DATA_ADDRESS)
+                    exception_pdu(code, Ex::ILLEGAL_DATA_ADDRESS)
                 } else if address == self.input_address {
-                    vec![code, 2, 0, self.inputs]
+                    vec![code.get(), 2, 0, self.inputs]
                 } else if address == self.output_address {
-                    vec![code, 2, 0, self.outputs]
+                    vec![code.get(), 2, 0, self.outputs]
                 } else {
-                    exception_pdu(code, exception::ILLEGAL_DATA_ADDRESS)
+                    exception_pdu(code, Ex::ILLEGAL_DATA_ADDRESS)
                 }
             }
-            fc::WRITE_MULTIPLE_REGISTERS if pdu.len() == 8 && pdu[5] == 2 => {
+            Fc::WRITE_MULTIPLE_REGISTERS if pdu.len() == 8 && pdu[5] == 2 => {
                 let (address, quantity) = (word(pdu, 1), word(pdu, 3));
                 if address != self.output_address || quantity != 1 {
-                    exception_pdu(code, exception::ILLEGAL_DATA_ADDRESS)
+                    exception_pdu(code, Ex::ILLEGAL_DATA_ADDRESS)
                 } else {
                     self.outputs = pdu[7];
                     let echo = pdu[..5].to_vec();
@@ -78,8 +78,8 @@ impl CieM10 {
                     };
                 }
             }
-            fc::WRITE_MULTIPLE_REGISTERS => exception_pdu(code, exception::ILLEGAL_DATA_ADDRESS),
-            _ => exception_pdu(code & 0x7F, exception::ILLEGAL_FUNCTION),
+            Fc::WRITE_MULTIPLE_REGISTERS => exception_pdu(code, Ex::ILLEGAL_DATA_ADDRESS),
+            _ => exception_pdu(code.base(), Ex::ILLEGAL_FUNCTION),
         };
         Answer::reply(reply)
     }
@@ -95,7 +95,7 @@ impl CieM10 {
     /// looks like the FC 03 response to a read of the input port (docs/protocol.md §3).
     pub fn notification(&self) -> Option<Vec<u8>> {
         self.notify
-            .then(|| vec![fc::READ_HOLDING_REGISTERS, 2, 0, self.inputs])
+            .then(|| vec![Fc::READ_HOLDING_REGISTERS.get(), 2, 0, self.inputs])
     }
 }
 

@@ -9,7 +9,8 @@
 //! month, day, hour, minute, second), discrete inputs are random.
 
 use super::{exception_pdu, Answer};
-use crate::frame::pdu::{exception, fc};
+use crate::frame::function::{ExceptionCode, FunctionCode as Fc};
+use crate::frame::pdu;
 use std::collections::BTreeMap;
 use std::fmt;
 
@@ -132,93 +133,74 @@ impl Generic {
         let Some(bank) = self.units.get_mut(&unit) else {
             return Answer::silent();
         };
-        let code = pdu[0];
+        let code = Fc::new(pdu[0]);
         Answer::reply(match serve(bank, pdu) {
             Ok(data) => data,
-            Err(e) => exception_pdu(code & 0x7F, e),
+            Err(e) => exception_pdu(code.base(), e),
         })
     }
 }
 
-/// The normal response PDU, or the exception code.
-fn serve(bank: &mut Bank, pdu: &[u8]) -> Result<Vec<u8>, u8> {
-    use exception::{ILLEGAL_DATA_ADDRESS as ADDRESS, ILLEGAL_DATA_VALUE as VALUE};
-    let code = pdu[0];
-    let n = pdu.len();
-    let sized = |ok: bool| if ok { Ok(()) } else { Err(VALUE) };
+/// The normal response PDU, or the exception code. Sizes, quantities and values are
+/// checked against the function code table as the gateway checks them
+/// ([`pdu::check_request`]: 03), before addresses (02).
+fn serve(bank: &mut Bank, pdu: &[u8]) -> Result<Vec<u8>, ExceptionCode> {
+    const ADDRESS: ExceptionCode = ExceptionCode::ILLEGAL_DATA_ADDRESS;
+    let code = Fc::new(pdu[0]);
+    let sized = || pdu::check_request(pdu);
     match code {
-        fc::READ_COILS | fc::READ_DISCRETE_INPUTS => {
-            sized(n == 5 && (1..=2000).contains(&word(pdu, 3)))?;
-            let table = if code == fc::READ_COILS {
+        Fc::READ_COILS | Fc::READ_DISCRETE_INPUTS => {
+            sized()?;
+            let table = if code == Fc::READ_COILS {
                 &bank.coils
             } else {
                 &bank.discrete
             };
             let r = span(word(pdu, 1), word(pdu, 3), table.len()).ok_or(ADDRESS)?;
             let bytes = pack(&table[r]);
-            Ok([vec![code, bytes.len() as u8], bytes].concat())
+            Ok([vec![code.get(), bytes.len() as u8], bytes].concat())
         }
-        fc::READ_HOLDING_REGISTERS | fc::READ_INPUT_REGISTERS => {
-            sized(n == 5 && (1..=125).contains(&word(pdu, 3)))?;
-            let table = if code == fc::READ_HOLDING_REGISTERS {
+        Fc::READ_HOLDING_REGISTERS | Fc::READ_INPUT_REGISTERS => {
+            sized()?;
+            let table = if code == Fc::READ_HOLDING_REGISTERS {
                 &bank.holding
             } else {
                 &bank.input
             };
             let r = span(word(pdu, 1), word(pdu, 3), table.len()).ok_or(ADDRESS)?;
             let bytes = registers(&table[r]);
-            Ok([vec![code, bytes.len() as u8], bytes].concat())
+            Ok([vec![code.get(), bytes.len() as u8], bytes].concat())
         }
-        fc::WRITE_SINGLE_COIL => {
-            sized(n == 5 && matches!(word(pdu, 3), 0xFF00 | 0x0000))?;
+        Fc::WRITE_SINGLE_COIL => {
+            sized()?;
             let slot = bank.coils.get_mut(word(pdu, 1)).ok_or(ADDRESS)?;
             *slot = word(pdu, 3) == 0xFF00;
             Ok(pdu.to_vec())
         }
-        fc::WRITE_SINGLE_REGISTER => {
-            sized(n == 5)?;
+        Fc::WRITE_SINGLE_REGISTER => {
+            sized()?;
             let slot = bank.holding.get_mut(word(pdu, 1)).ok_or(ADDRESS)?;
             *slot = word(pdu, 3) as u16;
             Ok(pdu.to_vec())
         }
-        fc::WRITE_MULTIPLE_COILS => {
-            sized(
-                n >= 6 && {
-                    let q = word(pdu, 3);
-                    (1..=1968).contains(&q)
-                        && usize::from(pdu[5]) == q.div_ceil(8)
-                        && n == 6 + usize::from(pdu[5])
-                },
-            )?;
+        Fc::WRITE_MULTIPLE_COILS => {
+            sized()?;
             let r = span(word(pdu, 1), word(pdu, 3), bank.coils.len()).ok_or(ADDRESS)?;
             for (i, slot) in bank.coils[r].iter_mut().enumerate() {
                 *slot = pdu[6 + i / 8] & (1 << (i % 8)) != 0;
             }
             Ok(pdu[..5].to_vec())
         }
-        fc::WRITE_MULTIPLE_REGISTERS => {
-            sized(
-                n >= 6 && {
-                    let q = word(pdu, 3);
-                    (1..=123).contains(&q) && usize::from(pdu[5]) == 2 * q && n == 6 + 2 * q
-                },
-            )?;
+        Fc::WRITE_MULTIPLE_REGISTERS => {
+            sized()?;
             let r = span(word(pdu, 1), word(pdu, 3), bank.holding.len()).ok_or(ADDRESS)?;
             for (i, slot) in bank.holding[r].iter_mut().enumerate() {
                 *slot = word(pdu, 6 + 2 * i) as u16;
             }
             Ok(pdu[..5].to_vec())
         }
-        fc::READ_WRITE_MULTIPLE_REGISTERS => {
-            sized(
-                n >= 10 && {
-                    let (rq, wq) = (word(pdu, 3), word(pdu, 7));
-                    (1..=125).contains(&rq)
-                        && (1..=121).contains(&wq)
-                        && usize::from(pdu[9]) == 2 * wq
-                        && n == 10 + 2 * wq
-                },
-            )?;
+        Fc::READ_WRITE_MULTIPLE_REGISTERS => {
+            sized()?;
             let len = bank.holding.len();
             let read = span(word(pdu, 1), word(pdu, 3), len).ok_or(ADDRESS)?;
             let write = span(word(pdu, 5), word(pdu, 7), len).ok_or(ADDRESS)?;
@@ -227,9 +209,9 @@ fn serve(bank: &mut Bank, pdu: &[u8]) -> Result<Vec<u8>, u8> {
                 *slot = word(pdu, 10 + 2 * i) as u16;
             }
             let bytes = registers(&bank.holding[read]);
-            Ok([vec![code, bytes.len() as u8], bytes].concat())
+            Ok([vec![code.get(), bytes.len() as u8], bytes].concat())
         }
-        _ => Err(exception::ILLEGAL_FUNCTION),
+        _ => Err(ExceptionCode::ILLEGAL_FUNCTION),
     }
 }
 

@@ -20,6 +20,7 @@ pub mod serve;
 pub mod tcp;
 pub mod terminal;
 
+use crate::frame::function::{ExceptionCode, FunctionCode};
 use console::{Command, Table};
 use packets::PacketLog;
 
@@ -45,8 +46,8 @@ impl Answer {
 }
 
 /// An exception response PDU (docs/protocol.md §1).
-pub fn exception_pdu(function: u8, code: u8) -> Vec<u8> {
-    vec![function | 0x80, code]
+pub fn exception_pdu(function: FunctionCode, code: ExceptionCode) -> Vec<u8> {
+    vec![function.exception().get(), code.get()]
 }
 
 /// Which device the simulator is.

@@ -8,10 +8,10 @@ use super::line::{Chunker, Faults, Pacer};
 use super::options::Settings;
 use super::packets::Direction;
 use super::Device;
-use crate::config::{Framing, SerialConfig};
+use crate::config::SerialConfig;
+use crate::frame::framer::{Framed, Framer};
 use crate::frame::hex::Hex;
-use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
-use crate::frame::{Adu, RequestJudge, Resync};
+use crate::frame::{Adu, RequestJudge};
 use crate::serial::{self, Backoff};
 use std::collections::VecDeque;
 use std::path::Path;
@@ -96,7 +96,8 @@ struct Sim {
     rx_pace: Pacer,
     tx_pace: Pacer,
     chunker: Chunker,
-    decoder: Requests,
+    /// Requests off the line, in the port's framing (the gateway's own framer).
+    decoder: Framer,
     out: VecDeque<Outgoing>,
     /// Without `--pipeline`, the device is busy until its reply has left.
     busy_until: Option<Instant>,
@@ -130,7 +131,7 @@ pub async fn run(
         rx_pace: Pacer::new(baud, 10),
         tx_pace: Pacer::new(baud, 10),
         chunker: settings.chunker,
-        decoder: Requests::new(settings.framing),
+        decoder: Framer::new(settings.framing),
         out: VecDeque::new(),
         busy_until: None,
         last_rx: Instant::now(),
@@ -284,8 +285,8 @@ impl Sim {
         self.last_rx = now;
         self.decoder.push(&bytes);
         let judge = self.judge();
-        while let Some(frame) = self.decoder.next_frame(&judge, false) {
-            self.request(frame, arrived);
+        while let Some(framed) = self.decoder.next_frame(&judge, false) {
+            self.framed(framed, arrived);
         }
     }
 
@@ -294,12 +295,20 @@ impl Sim {
         let before = self.decoder.dropped();
         let arrived = Instant::now();
         let judge = self.judge();
-        while let Some(frame) = self.decoder.next_frame(&judge, true) {
-            self.request(frame, arrived);
+        while let Some(framed) = self.decoder.next_frame(&judge, true) {
+            self.framed(framed, arrived);
         }
         let dropped = self.decoder.dropped() - before;
         if dropped > 0 {
             debug!("discarded {dropped} bytes that made no request");
+        }
+    }
+
+    /// A request off the line; a frame whose CRC or LRC failed is only counted (as
+    /// dropped bytes).
+    fn framed(&mut self, framed: Framed, arrived: Instant) {
+        if let Framed::Frame(frame) = framed {
+            self.request(frame, arrived);
         }
     }
 
@@ -383,10 +392,7 @@ impl Sim {
 
     /// A frame as this line carries it: MBAP as is, RTU or ASCII from its unit and PDU.
     fn wire(&self, frame: &Adu) -> Vec<u8> {
-        match self.decoder.codec() {
-            None => frame.as_bytes().to_vec(),
-            Some(codec) => codec.encode(frame.unit(), frame.pdu()),
-        }
+        self.decoder.encode(frame)
     }
 
     fn command(&mut self, req: ConsoleRequest) {
@@ -396,82 +402,5 @@ impl Sim {
         }
         // On `quit` the console cancels the shutdown token once it has printed this.
         let _ = req.reply.send(outcome.text);
-    }
-}
-
-/// The simulator's request decoder for its framing: MBAP with the gateway's
-/// resynchronising decoder, RTU and ASCII with their CRC or LRC. Requests come out as
-/// [`Adu`]s (transaction id 0 for RTU and ASCII, which have none).
-#[derive(Debug)]
-enum Requests {
-    Mbap(Resync),
-    Serial { decoder: Decoder, dropped: u64 },
-}
-
-impl Requests {
-    fn new(framing: Framing) -> Self {
-        match framing {
-            Framing::Mbap => Requests::Mbap(Resync::new()),
-            Framing::Rtu => Self::serial(Codec::Rtu),
-            Framing::Ascii => Self::serial(Codec::Ascii),
-        }
-    }
-
-    fn serial(codec: Codec) -> Self {
-        Requests::Serial {
-            decoder: Decoder::new(codec),
-            dropped: 0,
-        }
-    }
-
-    fn codec(&self) -> Option<Codec> {
-        match self {
-            Requests::Mbap(_) => None,
-            Requests::Serial { decoder, .. } => Some(decoder.codec()),
-        }
-    }
-
-    fn push(&mut self, bytes: &[u8]) {
-        match self {
-            Requests::Mbap(d) => d.push(bytes),
-            Requests::Serial { decoder, .. } => decoder.push(bytes),
-        }
-    }
-
-    fn buffered(&self) -> usize {
-        match self {
-            Requests::Mbap(d) => d.buffered(),
-            Requests::Serial { decoder, .. } => decoder.buffered(),
-        }
-    }
-
-    fn clear(&mut self) {
-        match self {
-            Requests::Mbap(d) => d.clear(),
-            Requests::Serial { decoder, dropped } => *dropped += decoder.clear() as u64,
-        }
-    }
-
-    /// Bytes dropped so far: garbage, and RTU/ASCII frames whose check failed.
-    fn dropped(&self) -> u64 {
-        match self {
-            Requests::Mbap(d) => d.stats().dropped_bytes,
-            Requests::Serial { dropped, .. } => *dropped,
-        }
-    }
-
-    fn next_frame(&mut self, judge: &RequestJudge, quiet: bool) -> Option<Adu> {
-        match self {
-            Requests::Mbap(d) => d.next_frame(judge, quiet),
-            Requests::Serial { decoder, dropped } => loop {
-                match decoder.next(Expect::Request, quiet)? {
-                    Decoded::Frame { unit, pdu } if !pdu.is_empty() && pdu.len() < 254 => {
-                        return Some(Adu::build(0, unit, &pdu));
-                    }
-                    Decoded::Frame { pdu, .. } => *dropped += pdu.len() as u64 + 1,
-                    Decoded::Corrupt(n) | Decoded::Noise(n) => *dropped += n as u64,
-                }
-            },
-        }
     }
 }

@@ -4,9 +4,10 @@
 
 use super::{Seen, Unsolicited};
 use crate::config::{RelayConfig, SerialConfig};
+use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::FrameRef;
-use crate::frame::pdu;
-use crate::frame::{rtu, Adu, Judge, Resync};
+use crate::frame::{pdu, FunctionCode};
+use crate::frame::{rtu, Adu, Judge};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
 use crate::stats::Stats;
@@ -19,7 +20,7 @@ use tracing::debug;
 
 pub(super) struct Mbap {
     tids: Tids,
-    decoder: Resync,
+    decoder: Framer,
     last_byte: Instant,
     /// The silence that ends a frame and confirms a reply with nothing after it: 3.5
     /// character times, never less than `silence_floor_ms` (a USB adapter hands bytes
@@ -39,8 +40,6 @@ pub(super) struct Mbap {
     chunks: VecDeque<(u64, Instant)>,
     /// Bytes received so far.
     received: u64,
-    /// Bytes of frames dropped for arriving too early to answer their request.
-    early_bytes: u64,
 }
 
 /// A request as it went on the line.
@@ -63,12 +62,12 @@ struct RelayJudge<'a, R> {
 }
 
 impl<R: Asked> Judge for RelayJudge<'_, R> {
-    fn plausible_function(&self, code: u8) -> bool {
-        pdu::is_reply_function(code)
+    fn plausible_function(&self, code: FunctionCode) -> bool {
+        code.is_reply()
             || self
                 .in_flight
                 .iter()
-                .any(|f| f.req.adu().function() == code & 0x7F)
+                .any(|f| f.req.adu().function_code() == code.base())
     }
 
     fn accept(&self, frame: FrameRef<'_>) -> bool {
@@ -132,7 +131,7 @@ impl Mbap {
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
         Mbap {
             tids: Tids::new(),
-            decoder: Resync::new(),
+            decoder: Framer::mbap(),
             last_byte: now,
             pause: t35
                 .max(Duration::from_millis(serial.silence_floor_ms))
@@ -144,7 +143,6 @@ impl Mbap {
             sent: Vec::new(),
             chunks: VecDeque::new(),
             received: 0,
-            early_bytes: 0,
         }
     }
 
@@ -267,12 +265,15 @@ impl Mbap {
                 tids: &self.tids,
                 now,
             };
-            let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
-                break;
+            let frame = match self.decoder.next_frame(&judge, quiet) {
+                Some(Framed::Frame(frame)) => frame,
+                // No check to fail on MBAP: the judge decides.
+                Some(Framed::Corrupt(_)) => continue,
+                None => break,
             };
             if let Some(why) = self.too_early(&frame) {
                 debug!(tid = frame.tid(), "{why}: {:?}", frame);
-                self.early_bytes += frame.as_bytes().len() as u64;
+                stats.add(&stats.dropped_bytes, frame.as_bytes().len() as u64);
                 continue;
             }
             if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
@@ -298,12 +299,10 @@ impl Mbap {
         {
             self.chunks.pop_front();
         }
-        let decoded = self.decoder.stats();
-        stats.set(
-            &stats.dropped_bytes,
-            decoded.dropped_bytes + self.early_bytes,
-        );
-        stats.set(&stats.refuted_frames, decoded.refuted);
+        // What the framer dropped or refuted since the last turn: counters only grow,
+        // whatever the framing.
+        stats.add(&stats.dropped_bytes, self.decoder.take_dropped());
+        stats.add(&stats.refuted_frames, self.decoder.take_refuted());
         seen
     }
 }
@@ -468,5 +467,23 @@ mod tests {
         line.received(&reply, at, &Stats::default());
         assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
         assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);
+    }
+
+    /// The dropped-byte counter only grows: two lines counting into one `Stats` (or
+    /// the MBAP and RTU code paths) add their own drops, never overwrite each other's
+    /// (the decoder's running total used to be stored into it).
+    #[test]
+    fn dropped_bytes_add_up_across_lines_sharing_the_counters() {
+        use std::sync::atomic::Ordering;
+        let stats = Stats::default();
+        let (mut a, t0) = mbap(19_200);
+        let (mut b, _) = mbap(19_200);
+        a.received(&[0xFF; 5], t0, &stats);
+        b.received(&[0xFF; 3], t0, &stats);
+        let later = t0 + Duration::from_secs(1);
+        assert!(a.frames::<Req>(&[], later, &stats).is_empty());
+        assert!(b.frames::<Req>(&[], later, &stats).is_empty());
+        assert!(a.frames::<Req>(&[], later, &stats).is_empty());
+        assert_eq!(stats.dropped_bytes.load(Ordering::Relaxed), 8);
     }
 }

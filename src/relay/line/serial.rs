@@ -4,8 +4,9 @@
 
 use super::Seen;
 use crate::config::{RelayConfig, SerialConfig};
+use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
-use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
+use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
@@ -19,7 +20,8 @@ use tracing::debug;
 pub(super) struct Serial {
     /// Its settings: the time bytes take on the wire.
     port: SerialConfig,
-    decoder: Decoder,
+    /// RTU or ASCII frames: the framer every side of the line uses.
+    decoder: Framer,
     /// 3.5 character times: the gap before each request.
     t35: Duration,
     /// What ends a frame of unknown shape: 3.5 character times, never less than
@@ -56,7 +58,7 @@ impl Serial {
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
         Serial {
             port: serial.clone(),
-            decoder: Decoder::new(codec),
+            decoder: Framer::serial(codec),
             t35,
             silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
@@ -79,12 +81,13 @@ impl Serial {
 
     pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats) -> Bytes {
         // Nothing received before a request is written can be its reply.
-        let stale = self.decoder.clear() + self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+        let held = self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+        let stale = self.decoder.clear() + held;
         if stale > 0 {
             debug!(bytes = stale, "bytes received before the request discarded");
-            stats.add(&stats.dropped_bytes, stale as u64);
         }
-        let bytes = self.decoder.codec().encode(adu.unit(), adu.pdu());
+        self.count_dropped(held, stats);
+        let bytes = self.decoder.encode(adu);
         if let Some(echo) = &mut self.echo {
             // Any echo still awaited belongs to an earlier request, long done.
             echo.clear();
@@ -158,7 +161,8 @@ impl Serial {
     }
 
     pub(super) fn clear(&mut self, stats: &Stats) {
-        stats.add(&stats.dropped_bytes, self.decoder.clear() as u64);
+        self.decoder.clear();
+        self.count_dropped(0, stats);
         if let Some(echo) = &mut self.echo {
             echo.clear();
         }
@@ -169,16 +173,25 @@ impl Serial {
 
     pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
         let held = self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
-        stats.add(&stats.dropped_bytes, (self.decoder.clear() + held) as u64);
+        self.decoder.clear();
+        self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
         self.ready_at = self.ready_at.max(now + self.guard);
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
-        let codec = self.decoder.codec();
-        let bytes = codec.encoded_len(adu.pdu().len()) + codec.encoded_len(2);
+        let bytes = self.decoder.encoded_len(adu.pdu().len()) + self.decoder.encoded_len(2);
         serial::wire_time(&self.port, bytes) + 2 * self.t35
+    }
+
+    /// Counts what the framer dropped since last asked, and `held` bytes dropped
+    /// before they reached it.
+    fn count_dropped(&mut self, held: usize, stats: &Stats) {
+        let n = held as u64 + self.decoder.take_dropped();
+        if n > 0 {
+            stats.add(&stats.dropped_bytes, n);
+        }
     }
 
     /// The line is free once the turnaround after our last request has passed and the
@@ -234,40 +247,39 @@ impl Serial {
             if quiet && self.decoder.buffered() > 0 {
                 let n = self.decoder.clear();
                 debug!(bytes = n, "bytes that answer no request dropped");
-                stats.add(&stats.dropped_bytes, n as u64);
+                self.count_dropped(0, stats);
             }
             return Vec::new();
         };
         let request = f.req.adu().pdu();
-        let mut next = self.decoder.next(Expect::Reply(request), quiet);
-        while let Some(Decoded::Noise(n)) = next {
-            stats.add(&stats.dropped_bytes, n as u64);
-            next = self.decoder.next(Expect::Reply(request), quiet);
-        }
+        let next = self.decoder.next_frame(&ReplyFor(request), quiet);
+        // Noise before a frame (ASCII: before its colon), and a frame whose check
+        // failed, the framer has dropped.
+        self.count_dropped(0, stats);
         match next {
-            None | Some(Decoded::Noise(_)) => Vec::new(),
-            Some(Decoded::Frame { unit, pdu }) => {
+            None => Vec::new(),
+            Some(Framed::Frame(frame)) => {
+                let (unit, pdu) = (frame.unit(), frame.pdu());
                 if unit == f.req.adu().unit() {
                     // The CRC or LRC proves these are the unit's own bytes: a reply of
                     // another shape than the request's goes to the master unchanged, to
                     // judge, as a transparent gateway passes it.
-                    if !pdu::reply_matches(request, &pdu) {
+                    if !pdu::reply_matches(request, pdu) {
                         debug!(
                             unit,
                             "a reply of another shape than its request's, passed on"
                         );
                     }
-                    vec![Seen::Frame(Adu::build(f.tid, unit, &pdu))]
+                    vec![Seen::Frame(frame.with_tid(f.tid))]
                 } else {
                     debug!(unit, "a frame that does not answer the request on the line");
                     stats.add(&stats.bad_frames, 1);
                     vec![Seen::Corrupt(f.tid)]
                 }
             }
-            Some(Decoded::Corrupt(n)) => {
+            Some(Framed::Corrupt(n)) => {
                 debug!(bytes = n, "a reply whose check failed");
                 stats.add(&stats.bad_frames, 1);
-                stats.add(&stats.dropped_bytes, n as u64);
                 vec![Seen::Corrupt(f.tid)]
             }
         }
