@@ -5,7 +5,8 @@
 
 use super::requests::Incoming;
 use crate::config::master::MasterLine;
-use crate::frame::pdu::{self, exception};
+use crate::frame::function::ExceptionCode;
+use crate::frame::pdu;
 use crate::frame::Adu;
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -79,8 +80,8 @@ pub struct Table {
     pub counts: Counts,
 }
 
-fn exception_pdu(request: &[u8], code: u8) -> Vec<u8> {
-    vec![request[0] | 0x80, code]
+fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
+    vec![request[0] | 0x80, code.get()]
 }
 
 impl Table {
@@ -111,10 +112,11 @@ impl Table {
         self.routes[route].link
     }
 
-    fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: u8) {
-        match code {
-            exception::GATEWAY_TARGET_FAILED => self.counts.timeouts += 1,
-            _ => self.counts.unavailable += 1,
+    fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: ExceptionCode) {
+        if code == ExceptionCode::GATEWAY_TARGET_FAILED {
+            self.counts.timeouts += 1;
+        } else {
+            self.counts.unavailable += 1;
         }
         if held.answer {
             let pdu = exception_pdu(&held.request.pdu, code);
@@ -166,7 +168,7 @@ impl Table {
             deadline: now,
         };
         let Some(i) = self.line.route_for(held.request.unit) else {
-            self.answer(&mut out, held, exception::GATEWAY_PATH_UNAVAILABLE);
+            self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
             return out;
         };
         let held = Held {
@@ -174,7 +176,7 @@ impl Table {
             ..held
         };
         if self.routes[i].link == Link::Down {
-            self.answer(&mut out, held, exception::GATEWAY_PATH_UNAVAILABLE);
+            self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
             return out;
         }
         self.routes[i].waiting.push_back(held);
@@ -230,10 +232,10 @@ impl Table {
         let mut out = Vec::new();
         self.routes[i].link = Link::Down;
         for (_, held) in std::mem::take(&mut self.routes[i].in_flight) {
-            self.answer(&mut out, held, exception::GATEWAY_TARGET_FAILED);
+            self.answer(&mut out, held, ExceptionCode::GATEWAY_TARGET_FAILED);
         }
         for held in std::mem::take(&mut self.routes[i].waiting) {
-            self.answer(&mut out, held, exception::GATEWAY_PATH_UNAVAILABLE);
+            self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
         }
         out
     }
@@ -282,12 +284,12 @@ impl Table {
                 .partition(|h| h.deadline <= now);
             r.waiting = waiting;
             let code = if r.link == Link::Up {
-                exception::GATEWAY_TARGET_FAILED
+                ExceptionCode::GATEWAY_TARGET_FAILED
             } else {
-                exception::GATEWAY_PATH_UNAVAILABLE
+                ExceptionCode::GATEWAY_PATH_UNAVAILABLE
             };
             for (_, held) in late {
-                self.answer(&mut out, held, exception::GATEWAY_TARGET_FAILED);
+                self.answer(&mut out, held, ExceptionCode::GATEWAY_TARGET_FAILED);
             }
             for held in stale {
                 self.answer(&mut out, held, code);
