@@ -9,8 +9,9 @@
 //!   slave on a bus would drop it.
 
 use crate::config::Framing;
-use crate::frame::serial::{Codec, Decoded, Decoder, Expect};
-use crate::frame::{Adu, RequestJudge, Resync};
+use crate::frame::framer::{Framed, Framer};
+use crate::frame::serial::Codec;
+use crate::frame::{Adu, RequestJudge};
 
 /// One request from the serial master.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -22,98 +23,62 @@ pub struct Incoming {
     pub pdu: Vec<u8>,
 }
 
-/// The decoder for the line's framing.
+/// The line's framer ([`Framer`], shared with the relay, the simulator and the
+/// client), judging frames as requests.
 #[derive(Debug)]
-pub enum Requests {
-    Mbap(Resync),
-    Serial { decoder: Decoder, dropped: u64 },
-}
+pub struct Requests(Framer);
 
 impl Requests {
     pub fn new(framing: Framing) -> Self {
-        let serial = |codec| Requests::Serial {
-            decoder: Decoder::new(codec),
-            dropped: 0,
-        };
-        match framing {
-            Framing::Mbap => Requests::Mbap(Resync::new()),
-            Framing::Rtu => serial(Codec::Rtu),
-            Framing::Ascii => serial(Codec::Ascii),
-        }
+        Self(Framer::new(framing))
     }
 
     /// RTU or ASCII (where unit 0 is a broadcast), or `None` for MBAP.
     pub fn codec(&self) -> Option<Codec> {
-        match self {
-            Requests::Mbap(_) => None,
-            Requests::Serial { decoder, .. } => Some(decoder.codec()),
-        }
+        self.0.codec()
     }
 
     pub fn push(&mut self, bytes: &[u8]) {
-        match self {
-            Requests::Mbap(d) => d.push(bytes),
-            Requests::Serial { decoder, .. } => decoder.push(bytes),
-        }
+        self.0.push(bytes);
     }
 
     /// The line has been silent for the pause that ends a frame (MBAP: confirms a
     /// request with nothing after it).
     pub fn pause(&mut self) {
-        if let Requests::Mbap(d) = self {
-            d.pause();
-        }
+        self.0.pause();
     }
 
     pub fn buffered(&self) -> usize {
-        match self {
-            Requests::Mbap(d) => d.buffered(),
-            Requests::Serial { decoder, .. } => decoder.buffered(),
-        }
+        self.0.buffered()
     }
 
     /// Forgets what is buffered (the port was lost); counted as dropped.
     pub fn clear(&mut self) {
-        match self {
-            Requests::Mbap(d) => d.clear(),
-            Requests::Serial { decoder, dropped } => *dropped += decoder.clear() as u64,
-        }
+        self.0.clear();
     }
 
     /// Bytes dropped so far: garbage, malformed or refuted MBAP frames, RTU/ASCII
     /// frames whose check failed.
     pub fn dropped(&self) -> u64 {
-        match self {
-            Requests::Mbap(d) => d.stats().dropped_bytes,
-            Requests::Serial { dropped, .. } => *dropped,
-        }
+        self.0.dropped()
     }
 
     /// The next whole request. `quiet`: the line has been silent for the frame gap
     /// (MBAP) or for 3.5 characters (RTU): a partial frame will not complete.
     pub fn next(&mut self, quiet: bool) -> Option<Incoming> {
-        match self {
-            Requests::Mbap(d) => {
-                let f = d.next_frame(&RequestJudge { confirm: true }, quiet)?;
-                Some(Incoming {
-                    tid: Some(f.tid()),
-                    unit: f.unit(),
-                    pdu: f.pdu().to_vec(),
-                })
-            }
-            Requests::Serial { decoder, dropped } => loop {
-                match decoder.next(Expect::Request, quiet)? {
-                    Decoded::Frame { unit, pdu } if !pdu.is_empty() && pdu.len() < 254 => {
-                        return Some(Incoming {
-                            tid: None,
-                            unit,
-                            pdu,
-                        });
-                    }
-                    Decoded::Frame { pdu, .. } => *dropped += pdu.len() as u64 + 3,
-                    Decoded::Corrupt(n) | Decoded::Noise(n) => *dropped += n as u64,
+        let mbap = self.0.codec().is_none();
+        loop {
+            match self.0.next_frame(&RequestJudge { confirm: true }, quiet)? {
+                Framed::Frame(adu) => {
+                    return Some(Incoming {
+                        tid: mbap.then(|| adu.tid()),
+                        unit: adu.unit(),
+                        pdu: adu.pdu().to_vec(),
+                    })
                 }
-            },
+                // Counted by the framer as dropped; a slave on a bus ignores it too.
+                Framed::Corrupt(_) => continue,
+            }
         }
     }
 }
