@@ -10,8 +10,9 @@ use super::packets::Direction;
 use super::role::Polling;
 use super::serve::{ConsoleRequest, Port, SimError};
 use super::{Device, Profile};
+use crate::frame::framer::{Framed, Framer};
 use crate::frame::hex::Hex;
-use crate::frame::{Adu, ReplyJudge, Resync};
+use crate::frame::{Adu, ReplyJudge};
 use crate::serial::{self, Backoff};
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -46,7 +47,7 @@ struct Master {
     polling: Polling,
     rx_faults: Faults,
     tx_faults: Faults,
-    decoder: Resync,
+    decoder: Framer,
     step: Step,
     tid: u16,
     /// The request awaiting its reply, and when the master gives up on it.
@@ -70,7 +71,7 @@ pub async fn run(
         polling,
         rx_faults: settings.rx_faults,
         tx_faults: settings.tx_faults,
-        decoder: Resync::new(),
+        decoder: Framer::mbap(),
         step: Step::Idle,
         tid: 0,
         asked: None,
@@ -144,8 +145,10 @@ impl Master {
                         let mut bytes = Vec::with_capacity(n);
                         self.rx_faults.apply(&buf[..n], &mut bytes);
                         self.decoder.push(&bytes);
-                        while let Some(frame) = self.decoder.next_frame(&ReplyJudge, false) {
-                            self.reply(frame);
+                        while let Some(framed) = self.decoder.next_frame(&ReplyJudge, false) {
+                            if let Framed::Frame(frame) = framed {
+                                self.reply(frame);
+                            }
                         }
                     }
                     Err(e) => return Err(e),
