@@ -1,30 +1,88 @@
-//! A master's request as the relay holds it (its master, the ADU, the ticket its answer
-//! goes back by, how often it was resent), and the answers the relay gives itself:
-//! 0x0A, 0x06, 0x0B, each counted in the relay's stats.
+//! A master's request as the relay holds it (the ADU, the ticket its answer goes back
+//! by, how often it was resent), with the identical reads of other masters that joined
+//! it (coalescing: one transaction, each master answered with its own transaction id
+//! through its own ticket), and the answers the relay gives itself: 0x0A, 0x06, 0x0B,
+//! each counted in the relay's stats once for every master answered.
 
 use super::inflight::Asked;
-use super::scheduler::Queued;
+use super::scheduler::{Queued, ReadKey};
 use super::ConnId;
 use crate::config::BroadcastReply;
-use crate::frame::pdu::{self, exception};
+use crate::frame::pdu::{self, exception, fc};
 use crate::frame::Adu;
 use crate::outbox::Ticket;
 use crate::stats::Stats;
 
-pub(super) struct Pending {
-    pub(super) conn: ConnId,
-    pub(super) adu: Adu,
+/// One master's request: who asked, under which transaction id, and the way back.
+struct Asker {
+    conn: ConnId,
+    tid: u16,
     ticket: Ticket,
+}
+
+pub(super) struct Pending {
+    /// The request as the first master sent it (its transaction id is that master's).
+    pub(super) adu: Adu,
+    /// The masters it answers: the one it is queued for first, then those whose
+    /// identical read joined it, in the order they asked. Never empty.
+    askers: Vec<Asker>,
     pub(super) attempts: u32,
+    /// The cache's generation for its unit when it came (`cache.rs`): its reply is
+    /// kept only if nothing acted on the unit since.
+    pub(super) cache_stamp: u64,
 }
 
 impl Queued for Pending {
     fn conn(&self) -> ConnId {
-        self.conn
+        self.conn()
     }
     fn unit(&self) -> u8 {
         self.adu.unit()
     }
+    fn read_key(&self) -> Option<ReadKey> {
+        read_key(&self.adu)
+    }
+    fn acts(&self) -> bool {
+        !pdu::is_read(self.adu.function())
+    }
+    fn masters(&self) -> impl Iterator<Item = ConnId> + '_ {
+        self.askers.iter().map(|a| a.conn)
+    }
+    fn join(&mut self, other: Self) {
+        self.askers.extend(other.askers);
+    }
+    fn leave(&mut self, conn: ConnId) -> Option<Self> {
+        if self.askers.iter().all(|a| a.conn == conn) {
+            return None;
+        }
+        let (gone, kept): (Vec<Asker>, Vec<Asker>) =
+            self.askers.drain(..).partition(|a| a.conn == conn);
+        self.askers = kept;
+        let first = gone.first()?.tid;
+        Some(Pending {
+            adu: self.adu.with_tid(first),
+            askers: gone,
+            attempts: self.attempts,
+            cache_stamp: self.cache_stamp,
+        })
+    }
+}
+
+/// The identity of a read that identical reads may join or be answered from the cache
+/// for: FC 01-04 to one unit (not a broadcast).
+pub(super) fn read_key(adu: &Adu) -> Option<ReadKey> {
+    let pdu: [u8; 5] = adu.pdu().try_into().ok()?;
+    let coalescable = matches!(
+        pdu[0],
+        fc::READ_COILS
+            | fc::READ_DISCRETE_INPUTS
+            | fc::READ_HOLDING_REGISTERS
+            | fc::READ_INPUT_REGISTERS
+    );
+    (coalescable && adu.unit() != 0).then_some(ReadKey {
+        unit: adu.unit(),
+        pdu,
+    })
 }
 
 impl Asked for Pending {
@@ -40,16 +98,33 @@ impl Pending {
     /// A request just received, never sent.
     pub(super) fn new(conn: ConnId, adu: Adu, ticket: Ticket) -> Self {
         Self {
-            conn,
+            askers: vec![Asker {
+                conn,
+                tid: adu.tid(),
+                ticket,
+            }],
             adu,
-            ticket,
             attempts: 0,
+            cache_stamp: 0,
         }
     }
 
-    /// The answer to this request, to its master, after its answers to earlier ones.
-    pub(super) fn deliver(self, adu: Adu) {
-        self.ticket.answer(adu);
+    /// The master it is queued for.
+    pub(super) fn conn(&self) -> ConnId {
+        self.askers[0].conn
+    }
+
+    /// How many masters' requests it answers.
+    pub(super) fn served(&self) -> u64 {
+        self.askers.len() as u64
+    }
+
+    /// `reply` (any transaction id) to every master it serves, each with its own
+    /// transaction id, after that master's answers to its earlier requests.
+    pub(super) fn deliver(self, reply: &Adu) {
+        for a in self.askers {
+            a.ticket.answer(reply.with_tid(a.tid));
+        }
     }
 
     /// Answers with exception `code`, counted by its kind.
@@ -60,21 +135,18 @@ impl Pending {
             // GATEWAY_TARGET_FAILED: the only other code the relay answers itself.
             _ => &stats.timeouts,
         };
-        stats.add(counter, 1);
-        let adu = Adu::exception(self.adu.tid(), self.adu.unit(), self.adu.function(), code);
-        self.deliver(adu);
+        self.answer_with(code, counter, stats);
     }
 
     /// 0x0B for a backed-off unit, counted apart from timeouts.
     pub(super) fn answer_backed_off(self, stats: &Stats) {
-        stats.add(&stats.backed_off, 1);
-        let adu = Adu::exception(
-            self.adu.tid(),
-            self.adu.unit(),
-            self.adu.function(),
-            exception::GATEWAY_TARGET_FAILED,
-        );
-        self.deliver(adu);
+        self.answer_with(exception::GATEWAY_TARGET_FAILED, &stats.backed_off, stats);
+    }
+
+    fn answer_with(self, code: u8, counter: &std::sync::atomic::AtomicU64, stats: &Stats) {
+        stats.add(counter, self.served());
+        let adu = Adu::exception(self.adu.tid(), self.adu.unit(), self.adu.function(), code);
+        self.deliver(&adu);
     }
 
     /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
@@ -86,7 +158,7 @@ impl Pending {
             BroadcastReply::None => drop(self),
             BroadcastReply::Echo => {
                 let adu = Adu::build(self.adu.tid(), 0, &pdu::write_echo(self.adu.pdu()));
-                self.deliver(adu);
+                self.deliver(&adu);
             }
         }
     }
