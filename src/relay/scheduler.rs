@@ -465,7 +465,7 @@ mod tests {
             }
             let (gone, kept) = self.askers.drain(..).partition(|a| a.0 == conn);
             self.askers = kept;
-            (!gone.is_empty()).then(|| Req {
+            (!gone.is_empty()).then_some(Req {
                 askers: gone,
                 unit: self.unit,
                 reads: self.reads,
