@@ -1112,3 +1112,62 @@ async fn mixed_readers_never_see_a_value_older_than_their_request_while_one_writ
         assert_eq!(device.await.unwrap(), 10);
     }
 }
+
+/// A read that came after a write but went on the line before it (its master's turn
+/// came first) is answered as it would be without the cache, but its reply is not
+/// kept past the write: a master that reads after the write was answered is never
+/// answered from before it.
+#[tokio::test]
+async fn cache_a_reply_read_before_a_write_went_out_is_not_kept_past_it() {
+    let mut gw = start(RelayConfig {
+        cache_ms: 2000,
+        ..relay_cfg()
+    });
+    let mut dev = gw.device.accept().await;
+    let (mut a, mut w, mut d, mut e) = (gw.master(), gw.master(), gw.master(), gw.master());
+    a.send(read(1, 1, 99)).await;
+    let blocking = next_request(&mut dev).await;
+    // W queues a read, then a write; D's read comes after the write, and its turn
+    // comes before the write's.
+    w.send(read(2, 1, 50)).await;
+    w.send(write(3, 1, 10, 7)).await;
+    d.send(read(4, 1, 10)).await;
+    tokio::time::sleep(5 * MS).await;
+    reply(&mut dev, &answer(&blocking)).await;
+    let mut reg = 0u16;
+    let mut order = Vec::new();
+    for _ in 0..3 {
+        let req = next_request(&mut dev).await;
+        order.push((req.function(), addr_of(&req)));
+        if req.function() == 0x06 {
+            reg = 7;
+            reply_to_write(&mut dev, &req).await;
+        } else {
+            reply(
+                &mut dev,
+                &answer_with(&req, if addr_of(&req) == 10 { reg } else { 0 }),
+            )
+            .await;
+        }
+    }
+    assert_eq!(
+        order,
+        [(0x03, 50), (0x03, 10), (0x06, 10)],
+        "D's read went first"
+    );
+    assert_eq!(value(&d.recv().await), 0, "as without the cache");
+    w.recv().await;
+    assert_eq!(w.recv().await.function(), 0x06);
+    // After the write was answered: the device is asked again.
+    e.send(read(5, 1, 10)).await;
+    let req = next_request(&mut dev).await;
+    reply(&mut dev, &answer_with(&req, reg)).await;
+    assert_eq!(
+        value(&e.recv().await),
+        7,
+        "never the reply from before the write"
+    );
+    assert_eq!(gw.get(|s| &s.served_from_cache), 0);
+    a.recv().await;
+    gw.stop().await;
+}
