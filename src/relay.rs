@@ -297,9 +297,12 @@ impl Relay {
         req.cache_stamp = self.cache.stamp(unit);
         // A full queue refuses the request of the master holding the most of it (the
         // scheduler's fair share).
-        match self.sched.push(req) {
-            Admitted::Queued => {}
-            Admitted::Joined => self.stats.add(&self.stats.coalesced, 1),
+        let joins = self.sched.joins();
+        let admitted = self.sched.push(req);
+        self.stats
+            .add(&self.stats.coalesced, self.sched.joins() - joins);
+        match admitted {
+            Admitted::Queued | Admitted::Joined => {}
             Admitted::Displaced(refused) => {
                 debug!(
                     conn = refused.conn(),

@@ -74,6 +74,8 @@ pub(super) struct Scheduler<R> {
     broadcast_epoch: u64,
     /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
     retry: VecDeque<R>,
+    /// Requests that joined another so far.
+    joins: u64,
 }
 
 /// What became of a request offered to the queue.
@@ -107,7 +109,14 @@ impl<R: Queued> Scheduler<R> {
             epochs: HashMap::new(),
             broadcast_epoch: 0,
             retry: VecDeque::new(),
+            joins: 0,
         }
+    }
+
+    /// Requests that joined an identical read so far (`Joined`, or `Displaced` with
+    /// the request joined).
+    pub(super) fn joins(&self) -> u64 {
+        self.joins
     }
 
     /// Requests queued, each once for every master it serves (resends not counted).
@@ -217,6 +226,7 @@ impl<R: Queued> Scheduler<R> {
         match host {
             Some(e) => {
                 e.req.join(req);
+                self.joins += 1;
                 Ok(())
             }
             None => Err(req),
@@ -558,6 +568,7 @@ mod tests {
         assert_eq!(s.push(read(3, 1, 11, "c11")), Admitted::Queued);
         assert_eq!(s.push(read(3, 2, 10, "c-unit2")), Admitted::Queued);
         assert_eq!(s.queued(), 5, "a joined read counts for its master");
+        assert_eq!(s.joins(), 2);
         assert_eq!(label(&s.next().unwrap()), "a+b+c");
         // On the line now: the next identical read is a transaction of its own.
         assert_eq!(s.push(read(2, 1, 10, "b2")), Admitted::Queued);
