@@ -58,13 +58,16 @@ impl Queued for Pending {
         let (gone, kept): (Vec<Asker>, Vec<Asker>) =
             self.askers.drain(..).partition(|a| a.conn == conn);
         self.askers = kept;
-        let first = gone.first()?.tid;
-        Some(Pending {
-            adu: self.adu.with_tid(first),
-            askers: gone,
-            attempts: self.attempts,
-            cache_stamp: self.cache_stamp,
-        })
+        gone.first()?;
+        Some(self.part(gone))
+    }
+    fn leave_one(&mut self, conn: ConnId) -> Option<Self> {
+        let i = self.askers.iter().rposition(|a| a.conn == conn)?;
+        if self.askers.len() == 1 {
+            return None;
+        }
+        let one = self.askers.remove(i);
+        Some(self.part(vec![one]))
     }
 }
 
@@ -106,6 +109,16 @@ impl Pending {
             adu,
             attempts: 0,
             cache_stamp: 0,
+        }
+    }
+
+    /// `askers`, taken out of this request, as a request of their own.
+    fn part(&self, askers: Vec<Asker>) -> Self {
+        Pending {
+            adu: self.adu.with_tid(askers[0].tid),
+            askers,
+            attempts: self.attempts,
+            cache_stamp: self.cache_stamp,
         }
     }
 
