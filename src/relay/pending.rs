@@ -72,7 +72,9 @@ impl Queued for Pending {
 }
 
 /// The identity of a read that identical reads may join or be answered from the cache
-/// for: FC 01-04 to one unit (not a broadcast).
+/// for: FC 01-04, of one unit. (Unit 0 too: on an MBAP line it is a unit like any other,
+/// and on a bus no device answers a read to it, so those who joined get what the
+/// first would have got.)
 pub(super) fn read_key(adu: &Adu) -> Option<ReadKey> {
     let pdu: [u8; 5] = adu.pdu().try_into().ok()?;
     let coalescable = matches!(
@@ -82,7 +84,7 @@ pub(super) fn read_key(adu: &Adu) -> Option<ReadKey> {
             | fc::READ_HOLDING_REGISTERS
             | fc::READ_INPUT_REGISTERS
     );
-    (coalescable && adu.unit() != 0).then_some(ReadKey {
+    coalescable.then_some(ReadKey {
         unit: adu.unit(),
         pdu,
     })
