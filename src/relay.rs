@@ -29,6 +29,7 @@ use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::pdu::exception;
 use crate::frame::Adu;
+use crate::outbox::Ticket;
 use crate::port::{self, Link};
 use crate::stats::Stats;
 use cache::Cache;
@@ -273,7 +274,7 @@ impl Relay {
 
     /// A master's request: answered at once (no path, a backed-off unit, a reply in
     /// the cache), joined to an identical read waiting for the line, or queued.
-    fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: crate::outbox::Ticket) {
+    fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket) {
         self.stats.add(&self.stats.requests, 1);
         let now = Instant::now();
         let mut req = Pending::new(conn, adu, ticket);
