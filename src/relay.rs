@@ -12,6 +12,7 @@
 //! `fanout.rs`); requests past their deadline are resent or answered 0x0B as
 //! `inflight.rs` decides.
 
+mod cache;
 mod command;
 mod event;
 mod failures;
@@ -27,9 +28,10 @@ mod watchdog;
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
-use crate::outbox::Refusal;
+use crate::outbox::{Refusal, Ticket};
 use crate::port::{self, Link};
 use crate::stats::Stats;
+use cache::Cache;
 pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
 use fanout::Masters;
@@ -38,7 +40,7 @@ use lifecycle::Lifecycle;
 use line::{Line, Seen, Unsolicited};
 use outgoing::Outgoing;
 use pending::Pending;
-use scheduler::{Admitted, Scheduler};
+use scheduler::{Admitted, Queued, Scheduler};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::sync::mpsc;
@@ -57,6 +59,8 @@ pub struct Relay {
     /// The requests on the line: deadlines, retries, unit backoff.
     in_flight: Table<Pending>,
     line: Line,
+    /// Replies that may answer identical reads (`cache_ms`; empty when off).
+    cache: Cache,
     /// 0x0B answers for backed-off units, at the line's pace.
     paced: Paced<Pending>,
     port: Lifecycle,
@@ -87,7 +91,8 @@ impl Relay {
         let baud = serial.baud_rate;
         let port = Lifecycle::new(Box::new(port::serial::SerialPort::new(serial)), baud, now);
         let relay = Relay {
-            sched: Scheduler::new(cfg.queue_depth),
+            sched: Scheduler::new(cfg.queue_depth, cfg.coalesce),
+            cache: Cache::new(Duration::from_millis(cfg.cache_ms)),
             masters: Masters::new(cfg.notifications),
             cfg,
             traffic,
@@ -262,32 +267,61 @@ impl Relay {
                 self.masters.detach(conn);
                 self.sched.detach(conn);
             }
-            Command::Request { conn, adu, ticket } => {
-                self.stats.add(&self.stats.requests, 1);
-                let req = Pending::new(conn, adu, ticket);
-                if self.draining || !self.port.is_open() {
-                    req.answer_exception(Refusal::Unavailable, &self.stats);
-                } else if self.in_flight.backed_off(req.adu.unit(), Instant::now()) {
-                    self.pace_backed_off(req);
-                } else {
-                    // A full queue refuses the request of the master holding the most
-                    // of it (the scheduler's fair share).
-                    match self.sched.push(req) {
-                        Admitted::Queued => {}
-                        Admitted::Displaced(refused) => {
-                            debug!(
-                                conn = refused.conn,
-                                "queue full: 0x06 to the master holding the most of it, for conn {conn}"
-                            );
-                            refused.answer_exception(Refusal::Busy, &self.stats);
-                        }
-                        Admitted::Refused(req) => {
-                            req.answer_exception(Refusal::Busy, &self.stats);
-                        }
-                    }
-                }
+            Command::Request { conn, adu, ticket } => self.on_request(conn, adu, ticket),
+        }
+    }
+
+    /// A master's request: answered at once (no path, a backed-off unit, a reply in
+    /// the cache), joined to an identical read waiting for the line, or queued.
+    fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket) {
+        self.stats.add(&self.stats.requests, 1);
+        let now = Instant::now();
+        let mut req = Pending::new(conn, adu, ticket);
+        let unit = req.adu.unit();
+        if req.acts() {
+            self.cache.acted_on(unit);
+        }
+        if self.draining || !self.port.is_open() {
+            req.answer_exception(Refusal::Unavailable, &self.stats);
+            return;
+        }
+        if let Some(reply) = self.cached(&req, now) {
+            self.stats.add(&self.stats.served_from_cache, 1);
+            req.deliver(&reply);
+            return;
+        }
+        if self.in_flight.backed_off(unit, now) {
+            self.pace_backed_off(req);
+            return;
+        }
+        req.cache_stamp = self.cache.stamp(unit);
+        // A full queue refuses the request of the master holding the most of it (the
+        // scheduler's fair share).
+        let joins = self.sched.joins();
+        let admitted = self.sched.push(req);
+        self.stats
+            .add(&self.stats.coalesced, self.sched.joins() - joins);
+        match admitted {
+            Admitted::Queued | Admitted::Joined => {}
+            Admitted::Displaced(refused) => {
+                debug!(
+                    conn = refused.conn(),
+                    "queue full: 0x06 to the master holding the most of it, for conn {conn}"
+                );
+                refused.answer_exception(Refusal::Busy, &self.stats);
+            }
+            Admitted::Refused(req) => {
+                req.answer_exception(Refusal::Busy, &self.stats);
             }
         }
+    }
+
+    /// The cached reply that may answer `req`: none while its master has a request
+    /// that acts on the unit still waiting for the line (the read must see it).
+    fn cached(&self, req: &Pending, now: Instant) -> Option<Adu> {
+        let key = req.read_key()?;
+        let reply = self.cache.get(&key, now)?;
+        (!self.sched.acts_waiting(req.conn(), key.unit)).then(|| reply.clone())
     }
 
     /// Answers every queued request (and every one waiting to be resent) with the
@@ -337,9 +371,13 @@ impl Relay {
         let tid = self.line.allocate(now);
         let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
         if self.traffic {
-            debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn, "{}", Hex(&bytes));
+            debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn(), "{}", Hex(&bytes));
         }
         self.out.push(tid, bytes);
+        if req.acts() {
+            // Reads sent before it may be answered after it was sent: not kept.
+            self.cache.acted_on(req.adu.unit());
+        }
         if self.line.is_broadcast(&req.adu) {
             self.stats.add(&self.stats.broadcasts, 1);
             req.broadcast_sent(self.cfg.broadcast_reply);
@@ -385,9 +423,11 @@ impl Relay {
             // Kept reserved a while: a second answer with this id is recognised as
             // ours and dropped, never broadcast.
             self.line.retire(tid, now);
-            self.stats.add(&self.stats.replies, 1);
-            let reply = frame.with_tid(f.req.adu.tid());
-            f.req.deliver(reply);
+            self.stats.add(&self.stats.replies, f.req.served());
+            if let Some(key) = f.req.read_key() {
+                self.cache.put(key, f.req.cache_stamp, &frame, now);
+            }
+            f.req.deliver(&frame);
             return;
         }
         match self.line.unsolicited(tid) {

@@ -590,6 +590,8 @@ fn non_default() -> Config {
             unit_backoff_max_ms: 3_600_000,
             probe_timeout_ms: 1,
             timeout_guard_ms: 60_000,
+            coalesce: false,
+            cache_ms: 3_600_000,
         },
         log: LogConfig {
             level: "trace".into(),

@@ -210,6 +210,10 @@ settings! {
         probe_timeout_ms: u64 = 250, Range(1, 600_000, None), "probe-timeout-ms" "MS";
         /// RTU/ASCII: quiet time after a timeout, late replies discarded
         timeout_guard_ms: u64 = 100, Range(0, 60_000, None), "timeout-guard-ms" "MS";
+        /// A read identical to one waiting for the line (unit, function, address, count) joins it: one transaction, each master answered
+        coalesce: bool = true, Any, "coalesce" "BOOL";
+        /// Answer a read from the reply to the identical read if younger than this; a write to the unit clears it; 0 = off
+        cache_ms: u64 = 0, Range(0, 3_600_000, None), "cache-ms" "MS";
     }
     /// What is logged.
     [log] LogConfig {

@@ -18,7 +18,7 @@ impl Relay {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
                 warn!(
-                    conn = f.req.conn,
+                    conn = f.req.conn(),
                     "request could not be written in time (is CTS held low?)"
                 );
             }
@@ -43,7 +43,7 @@ impl Relay {
             }
             Verdict::Resend => {
                 debug!(
-                    conn = f.req.conn,
+                    conn = f.req.conn(),
                     attempt = f.req.attempts + 1,
                     "{}; resending",
                     why.what()
@@ -55,7 +55,7 @@ impl Relay {
             }
             Verdict::Fail => {
                 debug!(
-                    conn = f.req.conn,
+                    conn = f.req.conn(),
                     tid = f.req.adu.tid(),
                     "{}: 0x0B",
                     why.what_in_the_end()

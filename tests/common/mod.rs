@@ -265,6 +265,8 @@ pub(crate) struct Proc {
 pub(crate) struct Launch {
     env: Vec<(&'static str, String)>,
     journal_stream: bool,
+    /// Another mbgate binary than this tree's (a benchmark's baseline).
+    program: Option<PathBuf>,
 }
 
 /// The variables systemd sets that change how mbgate behaves.
@@ -279,6 +281,12 @@ const SERVICE_ENV: [&str; 5] = [
 impl Launch {
     pub(crate) fn env(mut self, key: &'static str, value: impl Into<String>) -> Launch {
         self.env.push((key, value.into()));
+        self
+    }
+
+    /// Runs `program` instead of this tree's mbgate (a benchmark's baseline build).
+    pub(crate) fn program(mut self, program: impl Into<PathBuf>) -> Launch {
+        self.program = Some(program.into());
         self
     }
 
@@ -299,7 +307,8 @@ impl Launch {
         use std::os::unix::fs::MetadataExt;
         let (stderr, writer) = std::io::pipe().expect("pipe");
         let writer = std::fs::File::from(std::os::fd::OwnedFd::from(writer));
-        let mut cmd = Command::new(env!("CARGO_BIN_EXE_mbgate"));
+        let program = self.program.as_deref();
+        let mut cmd = Command::new(program.unwrap_or(Path::new(env!("CARGO_BIN_EXE_mbgate"))));
         cmd.args(args);
         for key in SERVICE_ENV {
             cmd.env_remove(key);
