@@ -8,8 +8,8 @@ use super::inflight::Asked;
 use super::scheduler::{Queued, ReadKey};
 use super::ConnId;
 use crate::config::BroadcastReply;
-use crate::frame::{pdu, FunctionCode};
 use crate::frame::Adu;
+use crate::frame::{pdu, FunctionCode};
 use crate::outbox::{Refusal, Ticket};
 use crate::stats::Stats;
 
