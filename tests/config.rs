@@ -590,11 +590,13 @@ fn non_default() -> Config {
             unit_backoff_max_ms: 3_600_000,
             probe_timeout_ms: 1,
             timeout_guard_ms: 60_000,
+            request_pause_ms: 60_000,
         },
         log: LogConfig {
             level: "trace".into(),
             traffic: true,
         },
+        ..Config::default()
     }
 }
 

@@ -8,8 +8,10 @@
 //! what it does.
 
 mod file;
+mod layout;
 
 pub use file::{load, parse, ConfigError};
+pub use layout::{LineConfig, ListenConfig, Units};
 use std::net::SocketAddr;
 use Check::{Any, NonEmpty, OneOf, Range};
 
@@ -77,6 +79,13 @@ choices! {
         /// Well-formed unsolicited frames go to every connected master
         Broadcast = "broadcast",
     }
+    /// How masters frame their requests on a listener (docs/design.md §4.1).
+    ListenFraming {
+        /// Modbus/TCP: an MBAP header, many requests in flight
+        Mbap = "mbap",
+        /// RTU over TCP: unit, PDU, CRC-16, one request at a time
+        Rtu = "rtu",
+    }
 }
 
 /// The values `log.level` accepts.
@@ -106,7 +115,15 @@ macro_rules! settings {
 
         /// The whole file (docs/design.md §4): every section and key is optional.
         #[derive(Debug, Clone, PartialEq, Default)]
-        pub struct Config { $(pub $section: $Struct,)* }
+        pub struct Config {
+            $(pub $section: $Struct,)*
+            /// The `[[line]]` tables when the file needs them (several lines, units,
+            /// a device on TCP); empty: one line of `[serial]` and `[relay]`.
+            pub lines: Vec<LineConfig>,
+            /// The `[[listen]]` tables when the file needs them (several, or RTU over
+            /// TCP); empty: one Modbus/TCP listener of `[tcp]`.
+            pub listeners: Vec<ListenConfig>,
+        }
 
         /// Every setting, in the order of the file.
         pub static KEYS: &[Key] = &[$($(Key {
@@ -205,6 +222,8 @@ settings! {
         probe_timeout_ms: u64 = 250, Range(1, 600_000, None), "probe-timeout-ms" "MS";
         /// RTU/ASCII: quiet time after a timeout, late replies discarded
         timeout_guard_ms: u64 = 100, Range(0, 60_000, None), "timeout-guard-ms" "MS";
+        /// Quiet time after each reply before the next request, for slow devices
+        request_pause_ms: u64 = 0, Range(0, 60_000, None), "request-pause-ms" "MS";
     }
     /// What is logged.
     [log] LogConfig {
@@ -396,24 +415,56 @@ impl Config {
 }
 
 /// The configuration as TOML, sections and keys in the order of docs/design.md §4
-/// (`mbgate check-config`). `parse(&to_toml(cfg), ..)` gives back `cfg`.
+/// (`mbgate check-config`); a configuration the old form cannot say (several lines or
+/// listeners, units, a device on TCP) in the form of §4.1. `parse(&to_toml(cfg), ..)`
+/// gives back `cfg`.
 pub fn to_toml(cfg: &Config) -> String {
+    if !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
+        return to_toml_lines(cfg);
+    }
     let old = ["serial", "tcp", "relay", "log"].map(|s| (s, format!("[{s}]")));
     print(cfg, &old)
 }
 
-/// The same configuration in the form of docs/design.md §4.1: one `[[line]]` (with its
-/// `serial` and `relay` tables) and one `[[listen]]`.
+/// The same configuration in the form of docs/design.md §4.1: a `[[line]]` for each
+/// line (its units, its `serial` or `tcp` table, its `relay` table) and a `[[listen]]`
+/// for each listener.
 pub fn to_toml_lines(cfg: &Config) -> String {
-    let tables = [
-        ("serial", "[[line]]\n\n[line.serial]"),
-        ("relay", "[line.relay]"),
-        ("tcp", "[[listen]]"),
-        ("log", "[log]"),
-    ];
-    print(cfg, &tables.map(|(s, header)| (s, header.to_owned())))
+    let mut out = Vec::new();
+    for line in cfg.lines() {
+        let mut head = "[[line]]\n".to_owned();
+        if !line.units.ids.is_empty() {
+            head += &format!("units = {}\n", line.units.print_ids());
+        }
+        if !line.units.remap.is_empty() {
+            head += &format!("remap = {}\n", line.units.print_remap());
+        }
+        let one = Config {
+            serial: line.serial.clone(),
+            relay: line.relay.clone(),
+            ..Config::default()
+        };
+        let device = match &line.tcp {
+            Some(address) => format!(
+                "\n[line.tcp]\naddress = {}\nframing = {}\n",
+                address.print(),
+                line.serial.framing.print()
+            ),
+            None => format!("\n{}", print(&one, &[("serial", "[line.serial]".into())])),
+        };
+        out.push(head + &device + "\n" + &print(&one, &[("relay", "[line.relay]".into())]));
+    }
+    for listener in cfg.listeners() {
+        let one = Config {
+            tcp: listener.tcp.clone(),
+            ..Config::default()
+        };
+        let table = print(&one, &[("tcp", "[[listen]]".into())]);
+        out.push(table + &format!("framing = {}\n", listener.framing.print()));
+    }
+    out.push(print(cfg, &[("log", "[log]".into())]));
+    out.join("\n")
 }
-
 /// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as
 /// that table calls them).
 fn print(cfg: &Config, tables: &[(&str, String)]) -> String {
