@@ -41,6 +41,11 @@ pub(super) struct Mbap {
     received: u64,
     /// Bytes of frames dropped for arriving too early to answer their request.
     early_bytes: u64,
+    /// Over TCP: no byte is lost, so a whole frame needs no confirmation.
+    stream: bool,
+    /// The line stays quiet this long after the last byte received
+    /// (`request_pause_ms`).
+    request_pause: Duration,
 }
 
 /// A request as it went on the line.
@@ -60,6 +65,7 @@ struct RelayJudge<'a, R> {
     in_flight: &'a [InFlight<R>],
     tids: &'a Tids,
     now: Instant,
+    stream: bool,
 }
 
 impl<R: Asked> Judge for RelayJudge<'_, R> {
@@ -108,8 +114,10 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
     /// whatever follows it, and something may always follow: a notification the
     /// device sends whether or not the gateway passes them on, a late or duplicate
     /// reply, noise (docs/reliability.md).
+    ///
+    /// Except over TCP, where no byte is lost and a whole frame is the frame.
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
-        true
+        !self.stream
     }
 
     /// A pause confirms a frame when no other reply is due (or its own request's time
@@ -126,7 +134,12 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
 }
 
 impl Mbap {
-    pub(super) fn new(relay: &RelayConfig, serial: &SerialConfig, now: Instant) -> Mbap {
+    pub(super) fn new(
+        relay: &RelayConfig,
+        serial: &SerialConfig,
+        stream: bool,
+        now: Instant,
+    ) -> Mbap {
         let gap = Duration::from_millis(relay.frame_gap_ms);
         let t35 =
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
@@ -139,12 +152,19 @@ impl Mbap {
                 .min(gap),
             max_in_flight: relay.max_in_flight,
             gap,
-            char_time: serial::wire_time(serial, 1000) / 1000,
+            // A socket has no line speed: nothing of a request is "still on the wire".
+            char_time: if stream {
+                Duration::ZERO
+            } else {
+                serial::wire_time(serial, 1000) / 1000
+            },
             tx_clear: now,
             sent: Vec::new(),
             chunks: VecDeque::new(),
             received: 0,
             early_bytes: 0,
+            stream,
+            request_pause: Duration::from_millis(relay.request_pause_ms),
         }
     }
 
@@ -163,8 +183,16 @@ impl Mbap {
         bytes
     }
 
-    pub(super) fn has_room(&self, in_flight: usize) -> bool {
-        in_flight < self.max_in_flight
+    pub(super) fn has_room(&self, in_flight: usize, now: Instant) -> bool {
+        in_flight < self.max_in_flight && now >= self.paused_until()
+    }
+
+    /// No request before then: `request_pause_ms` after the last byte received.
+    fn paused_until(&self) -> Instant {
+        if self.request_pause.is_zero() || self.received == 0 {
+            return self.last_byte;
+        }
+        self.last_byte + self.request_pause
     }
 
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant) {
@@ -174,14 +202,17 @@ impl Mbap {
         self.last_byte = now;
     }
 
-    pub(super) fn next_wake(&self) -> Option<Instant> {
+    pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         // First the pause that ends a frame, then the frame gap.
         let quiet_for = if self.decoder.paused() {
             self.gap
         } else {
             self.pause
         };
-        (self.decoder.buffered() > 0).then(|| self.last_byte + quiet_for)
+        let frame = (self.decoder.buffered() > 0).then(|| self.last_byte + quiet_for);
+        let paused = self.paused_until();
+        let pause = (waiting && paused > now).then_some(paused);
+        frame.into_iter().chain(pause).min()
     }
 
     pub(super) fn clear(&mut self) {
@@ -266,6 +297,7 @@ impl Mbap {
                 in_flight,
                 tids: &self.tids,
                 now,
+                stream: self.stream,
             };
             let Some(frame) = self.decoder.next_frame(&judge, quiet) else {
                 break;
@@ -322,7 +354,7 @@ mod tests {
             ..SerialConfig::default()
         };
         let now = Instant::now();
-        (Line::new(&RelayConfig::default(), &serial, now), now)
+        (Line::new(&RelayConfig::default(), &serial, false, now), now)
     }
 
     /// A request as the table holds it in tests: the ADU, never resent.

@@ -43,6 +43,10 @@ pub(super) struct Serial {
     held: Vec<(Instant, Vec<u8>)>,
     /// When the last request's last byte left: bytes read before then answer nothing.
     reply_from: Instant,
+    /// Over TCP: bytes take no time on a wire, and there is no gap to keep.
+    stream: bool,
+    /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
+    request_pause: Duration,
 }
 
 impl Serial {
@@ -50,10 +54,15 @@ impl Serial {
         relay: &RelayConfig,
         serial: &SerialConfig,
         codec: Codec,
+        stream: bool,
         now: Instant,
     ) -> Serial {
-        let t35 =
-            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
+        let t35 = if stream {
+            // The device server keeps the gap on its own line.
+            Duration::ZERO
+        } else {
+            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)))
+        };
         Serial {
             port: serial.clone(),
             decoder: Decoder::new(codec),
@@ -69,6 +78,17 @@ impl Serial {
             tx: None,
             held: Vec::new(),
             reply_from: now,
+            stream,
+            request_pause: Duration::from_millis(relay.request_pause_ms),
+        }
+    }
+
+    /// How long `bytes` take on the line: none over TCP.
+    fn wire_time(&self, bytes: usize) -> Duration {
+        if self.stream {
+            Duration::ZERO
+        } else {
+            serial::wire_time(&self.port, bytes)
         }
     }
 
@@ -93,7 +113,7 @@ impl Serial {
         self.broadcast_on_wire = adu.unit() == 0;
         // Written from now on: its last byte cannot leave before its time on the wire
         // has passed.
-        self.tx = Some(now + serial::wire_time(&self.port, bytes.len()));
+        self.tx = Some(now + self.wire_time(bytes.len()));
         Bytes::from(bytes)
     }
 
@@ -102,10 +122,11 @@ impl Serial {
     }
 
     pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        let wire = self.wire_time(n);
         if let Some(earliest) = &mut self.tx {
             // Held back by flow control, the last bytes leave later than a frame
             // written in one go would.
-            *earliest = (*earliest).max(polled + serial::wire_time(&self.port, n));
+            *earliest = (*earliest).max(polled + wire);
         }
     }
 
@@ -172,19 +193,20 @@ impl Serial {
         stats.add(&stats.dropped_bytes, (self.decoder.clear() + held) as u64);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
-        self.ready_at = self.ready_at.max(now + self.guard);
+        self.ready_at = self.ready_at.max(now + self.guard.max(self.request_pause));
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
         let codec = self.decoder.codec();
         let bytes = codec.encoded_len(adu.pdu().len()) + codec.encoded_len(2);
-        serial::wire_time(&self.port, bytes) + 2 * self.t35
+        self.wire_time(bytes) + 2 * self.t35
     }
 
     /// The line is free once the turnaround after our last request has passed and the
-    /// device has been quiet for 3.5 character times.
+    /// device has been quiet for 3.5 character times, or `request_pause_ms` if longer.
     fn free_at(&self) -> Instant {
-        self.ready_at.max(self.last_rx + self.t35)
+        self.ready_at
+            .max(self.last_rx + self.t35.max(self.request_pause))
     }
 
     /// Bytes read at `at`, once the request they follow has left: before its last byte
