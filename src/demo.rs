@@ -143,10 +143,12 @@ pub async fn run(
         }
         bound => bound?,
     };
-    let at = listener.local_addr().map_err(|error| GatewayError::Bind {
-        addr: cfg.tcp.listen,
-        error,
-    })?;
+    let at = listener[0]
+        .local_addr()
+        .map_err(|error| GatewayError::Bind {
+            addr: cfg.tcp.listen,
+            error,
+        })?;
     let me = crate::invocation::command();
     print!("{}", instructions(&settings, &pty, at, &me));
     let _ = banner_shown.send(());

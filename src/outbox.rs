@@ -122,6 +122,7 @@ impl Outbox {
         self.next_seq += 1;
         Ticket {
             seq,
+            unit: None,
             reserved: Some(reserved),
             slot: Some(Slot {
                 _permit: permit,
@@ -159,6 +160,8 @@ impl Outbox {
 /// unanswered says "no reply" so the requests behind it are not held up.
 pub struct Ticket {
     seq: u64,
+    /// The master's own unit id, put back into the answer (a remapped unit).
+    unit: Option<u8>,
     reserved: Option<mpsc::OwnedPermit<Message>>,
     slot: Option<Slot>,
 }
@@ -168,7 +171,18 @@ impl Ticket {
     /// earlier request of the same master. Never waits and never fails: the room was
     /// reserved with the ticket (a master already gone simply never sees it).
     pub fn answer(mut self, adu: Adu) {
+        let adu = match self.unit {
+            Some(unit) if unit != adu.unit() => Adu::build(adu.tid(), unit, adu.pdu()),
+            _ => adu,
+        };
         self.send(Some(adu));
+    }
+
+    /// The answer will carry `unit`, whatever unit the line answered as: the master
+    /// asked for `unit`, which is another id on the line (docs/design.md §4.1, `remap`).
+    pub fn answering_as(mut self, unit: u8) -> Ticket {
+        self.unit = Some(unit);
+        self
     }
 
     fn send(&mut self, adu: Option<Adu>) {

@@ -4,8 +4,7 @@
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
 use super::{
-    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Raw, Setting, Units,
-    KEYS,
+    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Raw, Setting, Units, KEYS,
 };
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -381,11 +380,7 @@ impl Reader<'_> {
     }
 
     /// `remap = { 11 = 1 }`: the master's unit 11 is unit 1 on this line.
-    fn remap(
-        &mut self,
-        v: &Spanned<DeValue>,
-        path: &str,
-    ) -> Result<BTreeMap<u8, u8>, ConfigError> {
+    fn remap(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeMap<u8, u8>, ConfigError> {
         let DeValue::Table(table) = v.get_ref() else {
             let m = raw(v.get_ref()).invalid("a table of unit = unit on the line");
             return self.fail(v.span().start, path, m);

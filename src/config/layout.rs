@@ -51,7 +51,11 @@ impl Units {
 
     /// `remap` as the file writes it: `{ 11 = 1, 12 = 2 }`.
     pub fn print_remap(&self) -> String {
-        let pairs: Vec<String> = self.remap.iter().map(|(m, l)| format!("{m} = {l}")).collect();
+        let pairs: Vec<String> = self
+            .remap
+            .iter()
+            .map(|(m, l)| format!("{m} = {l}"))
+            .collect();
         format!("{{ {} }}", pairs.join(", "))
     }
 }
