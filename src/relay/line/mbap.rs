@@ -501,4 +501,28 @@ mod tests {
         assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
         assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);
     }
+
+    /// Over TCP nothing is lost: a whole reply is taken the moment it is read, with
+    /// another reply due (on a serial line it would wait for the frame gap), and
+    /// `request_pause_ms` holds the next request back from the last byte read.
+    #[test]
+    fn over_tcp_a_whole_reply_is_taken_at_once_and_the_pause_kept() {
+        let relay = RelayConfig {
+            request_pause_ms: 30,
+            max_in_flight: 2,
+            ..RelayConfig::default()
+        };
+        let t0 = Instant::now();
+        let mut line = Line::new(&relay, &SerialConfig::default(), true, t0);
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let a = send(&mut line, &read, t0);
+        let b = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
+        let at = t0 + MS;
+        line.received(&reply, at, &Stats::default());
+        assert_eq!(frames(&mut line, &[a, b], at), vec![reply]);
+        assert!(!line.has_room(1, false, at + 29 * MS));
+        assert_eq!(line.next_wake(at, true), Some(at + 30 * MS));
+        assert!(line.has_room(1, false, at + 30 * MS));
+    }
 }

@@ -295,3 +295,41 @@ impl Serial {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::super::Line;
+    use super::*;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    /// RTU at 9600 baud: the next request waits 3.5 characters (4 ms) after a reply on
+    /// a serial line, none over TCP; `request_pause_ms` stretches the wait on both.
+    #[test]
+    fn the_gap_after_a_reply_is_none_over_tcp_and_request_pause_ms_on_both() {
+        let serial = SerialConfig {
+            baud_rate: 9600,
+            framing: crate::config::Framing::Rtu,
+            ..SerialConfig::default()
+        };
+        let stats = Stats::default();
+        for (stream, pause, free_after) in
+            [(false, 0, 4), (true, 0, 0), (true, 20, 20), (false, 20, 20)]
+        {
+            let relay = RelayConfig {
+                request_pause_ms: pause,
+                ..RelayConfig::default()
+            };
+            let t0 = Instant::now();
+            let mut line = Line::new(&relay, &serial, stream, t0);
+            line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + MS, &stats);
+            let at = t0 + MS;
+            let free = at + free_after * MS;
+            let before = free.checked_sub(MS).filter(|b| *b >= at);
+            if let Some(before) = before {
+                assert!(!line.has_room(0, false, before), "{stream} {pause}");
+            }
+            assert!(line.has_room(0, false, free), "{stream} {pause}");
+        }
+    }
+}
