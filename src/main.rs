@@ -163,13 +163,17 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     use mbgate::sim::serve::{self, Port};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
+    let listen = args.listen;
     simulate(
         &args.device,
         args.settings(),
         false,
         None,
         |settings, commands, shutdown| async move {
-            let port = Port::Path(port.map_err(anyhow::Error::msg)?);
+            let port = match listen {
+                Some(addr) => Port::Listen(addr),
+                None => Port::Path(port.map_err(anyhow::Error::msg)?),
+            };
             serve::run(settings, port, commands, shutdown).await?;
             Ok(())
         },

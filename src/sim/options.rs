@@ -181,8 +181,13 @@ pub struct DeviceArgs {
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH")]
-    pub serial: PathBuf,
+    #[arg(long, value_name = "PATH", required_unless_present = "listen")]
+    pub serial: Option<PathBuf>,
+    /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
+    /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
+    /// device server in raw TCP mode (--framing rtu or ascii).
+    #[arg(long, value_name = "ADDR", conflicts_with = "serial")]
+    pub listen: Option<std::net::SocketAddr>,
     // Before the port's flags: their heading would carry over onto these.
     #[command(flatten)]
     pub device: DeviceArgs,
@@ -217,7 +222,10 @@ impl SimArgs {
     /// The port settings: the defaults of `[serial]` and the flags given.
     pub fn serial_config(&self) -> Result<SerialConfig, String> {
         let mut cfg = SerialConfig {
-            path: self.serial.to_string_lossy().into_owned(),
+            path: self
+                .serial
+                .as_deref()
+                .map_or_else(String::new, |p| p.to_string_lossy().into_owned()),
             framing: self.framing,
             ..SerialConfig::default()
         };
