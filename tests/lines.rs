@@ -361,3 +361,83 @@ fn rtu_over_tcp_masters_reach_an_rtu_and_an_mbap_line() {
     );
     assert!(gw.terminate(Duration::from_secs(10)).success());
 }
+
+/// `mbgate sim --listen` as a serial device server in raw TCP mode (RTU frames on a
+/// socket, one connection at a time) behind a TCP line in RTU framing, and `mbgate
+/// read --tcp --framing rtu` through an `rtu` listener: the client's RTU frame goes
+/// to the simulator as RTU, and a second connection to the simulator, while the
+/// gateway holds the first, is closed at once.
+#[test]
+fn the_client_and_the_simulator_speak_rtu_over_tcp_through_the_gateway() {
+    let dir = tempdir();
+    let port = free_port();
+    let at = format!("127.0.0.1:{port}");
+    let _sim = Proc::start(
+        &[
+            "sim",
+            "--listen",
+            &at,
+            "--framing",
+            "rtu",
+            "--profile",
+            "generic",
+            "--units",
+            "1,2",
+            "--fill",
+            "address",
+            "--headless",
+        ],
+        "simulating ",
+    );
+    let text = format!(
+        "[[line]]\n[line.tcp]\naddress = \"{at}\"\nframing = \"rtu\"\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\nframing = \"rtu\"\n\n[log]\nlevel = \"debug\"\n"
+    );
+    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    gw.wait_log("device socket open", Duration::from_secs(10));
+    let listener = addrs[0].to_string();
+    let run = mbgate(&[
+        "read",
+        "--tcp",
+        &listener,
+        "--framing",
+        "rtu",
+        "--unit",
+        "2",
+        "holding-registers",
+        "3",
+        "2",
+        "-v",
+    ]);
+    assert_eq!(run.code, 0, "{}", run.stderr);
+    assert!(
+        run.stdout.contains("tx 02 03 00 03 00 02"),
+        "{}",
+        run.stdout
+    );
+    assert!(
+        run.stdout.contains("3: 3 (0x0003)\n4: 4 (0x0004)"),
+        "{}",
+        run.stdout
+    );
+    let mut second = TcpStream::connect(&at).unwrap();
+    assert!(
+        is_closed(&mut second, Duration::from_secs(5)),
+        "one connection at a time"
+    );
+    let run = mbgate(&[
+        "read",
+        "--tcp",
+        &listener,
+        "--framing",
+        "rtu",
+        "--unit",
+        "1",
+        "holding-registers",
+        "7",
+        "1",
+    ]);
+    assert_eq!(run.code, 0, "{}", run.stderr);
+    assert!(run.stdout.contains("7: 7 (0x0007)"), "{}", run.stdout);
+    assert!(gw.terminate(Duration::from_secs(10)).success());
+}
