@@ -64,8 +64,9 @@ impl Units {
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct LineConfig {
     pub units: Units,
-    /// The serial port's settings; on a TCP line only `framing` (and
-    /// `silence_floor_ms` for a reply of unknown shape) apply.
+    /// The serial port's settings; on a TCP line only `framing` is read from the
+    /// file (the others keep their defaults, `silence_floor_ms` ending a reply of
+    /// unknown shape).
     pub serial: SerialConfig,
     /// `host:port` of a device on the network (a Modbus/TCP slave, or a serial
     /// device server in raw TCP mode) instead of the serial port.

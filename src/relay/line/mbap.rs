@@ -43,6 +43,8 @@ pub(super) struct Mbap {
     early_bytes: u64,
     /// Over TCP: no byte is lost, so a whole frame needs no confirmation.
     stream: bool,
+    /// The dropped bytes and refuted frames already added to the stats.
+    counted: (u64, u64),
     /// The line stays quiet this long after the last byte received
     /// (`request_pause_ms`).
     request_pause: Duration,
@@ -164,6 +166,7 @@ impl Mbap {
             received: 0,
             early_bytes: 0,
             stream,
+            counted: (0, 0),
             request_pause: Duration::from_millis(relay.request_pause_ms),
         }
     }
@@ -330,12 +333,12 @@ impl Mbap {
         {
             self.chunks.pop_front();
         }
+        // Added as they grow, not set: other lines count into the same totals.
         let decoded = self.decoder.stats();
-        stats.set(
-            &stats.dropped_bytes,
-            decoded.dropped_bytes + self.early_bytes,
-        );
-        stats.set(&stats.refuted_frames, decoded.refuted);
+        let (dropped, refuted) = (decoded.dropped_bytes + self.early_bytes, decoded.refuted);
+        stats.add(&stats.dropped_bytes, dropped - self.counted.0);
+        stats.add(&stats.refuted_frames, refuted - self.counted.1);
+        self.counted = (dropped, refuted);
         seen
     }
 }
