@@ -187,15 +187,14 @@ impl Mbap {
     }
 
     pub(super) fn has_room(&self, in_flight: usize, now: Instant) -> bool {
-        in_flight < self.max_in_flight && now >= self.paused_until()
+        in_flight < self.max_in_flight && self.paused_until().is_none_or(|until| now >= until)
     }
 
-    /// No request before then: `request_pause_ms` after the last byte received.
-    fn paused_until(&self) -> Instant {
-        if self.request_pause.is_zero() || self.received == 0 {
-            return self.last_byte;
-        }
-        self.last_byte + self.request_pause
+    /// No request before then: `request_pause_ms` after the last byte received (none
+    /// without a pause, or before anything was received).
+    fn paused_until(&self) -> Option<Instant> {
+        let pausing = !self.request_pause.is_zero() && self.received > 0;
+        pausing.then(|| self.last_byte + self.request_pause)
     }
 
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant) {
@@ -213,8 +212,7 @@ impl Mbap {
             self.pause
         };
         let frame = (self.decoder.buffered() > 0).then(|| self.last_byte + quiet_for);
-        let paused = self.paused_until();
-        let pause = (waiting && paused > now).then_some(paused);
+        let pause = self.paused_until().filter(|&until| waiting && until > now);
         frame.into_iter().chain(pause).min()
     }
 
