@@ -289,6 +289,42 @@ fn masters_stay_connected_while_the_device_on_tcp_restarts() {
         gw.log()
     };
     assert!(stats.contains("device socket lost"), "{stats}");
+    // One connection to the device for all eight masters, once before the restart and
+    // once after it.
+    assert_eq!(stats.matches("device socket open").count(), 2, "{stats}");
+}
+
+/// `request_pause_ms` keeps the line quiet that long after each reply: a master that
+/// sends its next request the moment it has the reply still finds the device's
+/// requests that far apart (without it they come a few milliseconds apart).
+#[test]
+fn request_pause_ms_spaces_the_requests_on_the_line() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let dev = RawRtuDevice::start_at(&socat.dev, 4_000_000, rtu_register_device(&[1]));
+    let text = format!(
+        "[[line]]\nunits = [1]\n{}\n[line.relay]\nrequest_pause_ms = 80\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\n",
+        pty_line(&socat.gw, "rtu")
+    );
+    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let mut m = connect(addrs[0]);
+    for tid in 1..=4 {
+        assert_eq!(
+            transact(&mut m, &read_req(tid, 1, tid, 1)),
+            read_reply(tid, 1, &[tid])
+        );
+    }
+    let at = dev.seen_at.lock().unwrap().clone();
+    assert_eq!(at.len(), 4);
+    for pair in at.windows(2) {
+        let apart = pair[1] - pair[0];
+        assert!(
+            apart >= Duration::from_millis(80),
+            "requests {apart:?} apart"
+        );
+    }
+    assert!(gw.terminate(Duration::from_secs(10)).success());
 }
 
 /// pymodbus as an RTU-over-TCP master (its RTU framer on a TCP client) through an
