@@ -1,4 +1,4 @@
-//! The gateway as a whole: bind, start the relay and the listener, and shut down
+//! The gateway as a whole: bind the listeners, start a relay for each line, and shut down
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see [`crate::notify`]).
 

@@ -1,7 +1,8 @@
-//! The TCP side (docs/design.md §1 steps 1-2, §4 `[tcp]`): the listener with its connection
-//! limit, and one task per master that reads strictly checked MBAP requests and writes
-//! back their replies in the order of the requests, with the device's notifications
-//! (the path back is [`crate::outbox`]).
+//! The TCP side (docs/design.md §1 steps 1-2, §4 `[tcp]`, §4.1 `[[listen]]`): each
+//! listener with its connection limit, and one task per master that reads strictly
+//! checked MBAP requests (or RTU-over-TCP ones, `tcp/rtu.rs`), hands them to the line
+//! serving their unit ([`crate::router`]) and writes back their replies in the order of
+//! the requests, with the device's notifications (the path back is [`crate::outbox`]).
 
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
