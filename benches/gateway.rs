@@ -3,9 +3,10 @@
 //! pty pairs, and printed as Markdown.
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
-//! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `coalesce` (all when none is named).
-//! `MBGATE_BENCH_BASELINE=PATH` names another mbgate build (e.g. the commit before a
-//! change) that `coalesce` measures beside this one. `scripts/bench` runs this and
+//! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `coalesce`, `tcp-line`,
+//! `rtu-listener` (all when none is named). `MBGATE_BENCH_BASELINE=PATH` names another
+//! mbgate build (e.g. the commit before a change) that `coalesce` measures beside
+//! this one. `scripts/bench` runs this and
 //! `benches/decoder.rs` and writes the tables into docs/performance.md. With
 //! `MBGATE_BENCH_MD=FILE` the tables are also written to FILE.
 //!
@@ -53,6 +54,8 @@ fn main() {
         "rtu",
         "rtu-backoff",
         "coalesce",
+        "tcp-line",
+        "rtu-listener",
     ];
     if let Some(bad) = args.iter().find(|a| !all.contains(&a.as_str())) {
         eprintln!("unknown scenario {bad:?}; scenarios: {}", all.join(", "));
@@ -81,6 +84,12 @@ fn main() {
     }
     if wanted("coalesce") {
         coalesce(&mut r);
+    }
+    if wanted("tcp-line") {
+        tcp_line(&mut r);
+    }
+    if wanted("rtu-listener") {
+        rtu_listener(&mut r);
     }
     let md = r.render(&load_before, &loadavg());
     println!("{md}");
@@ -407,10 +416,14 @@ fn latency(r: &mut Report) {
 /// `socat TCP-LISTEN:0 FILE:PTY`: the least any TCP-to-serial process can add (a
 /// byte pipe, no framing), as a second baseline. Returns it and its address.
 fn socat_pipe(pty: &Path) -> (std::process::Child, std::net::SocketAddr) {
+    socat_to(&format!("FILE:{},raw,echo=0", pty.display()))
+}
+
+/// `socat TCP-LISTEN:0 FAR`: a bare byte pipe to `FAR` (a pty, a TCP address).
+fn socat_to(far: &str) -> (std::process::Child, std::net::SocketAddr) {
     use std::io::BufRead;
     let mut child = std::process::Command::new("socat")
-        .args(["-d", "-d", "TCP-LISTEN:0,bind=127.0.0.1"])
-        .arg(format!("FILE:{},raw,echo=0", pty.display()))
+        .args(["-d", "-d", "TCP-LISTEN:0,bind=127.0.0.1", far])
         .stdin(std::process::Stdio::null())
         .stderr(std::process::Stdio::piped())
         .spawn()
@@ -1470,6 +1483,229 @@ fn coalesce(r: &mut Report) {
     r.detail(
         "Many masters, one read (the simulator with --fill address paces 10 bits a byte each way; 1 s warm-up, then a 4 s window; every reply checked against the device's values; transactions on the line counted from the bytes mbgate wrote)",
         &command("coalesce"),
+        &t,
+    );
+}
+
+// ---------------------------------------------------------------------------------
+// 8. A device on the network, and RTU-over-TCP masters
+
+/// `mbgate run` with a configuration in the form of docs/design.md §4.1; its first
+/// listener's address is the `Gateway`'s.
+fn gateway_file(dir: &Path, text: &str) -> Gateway {
+    let file = dir.join("lines.toml");
+    std::fs::write(&file, text).unwrap();
+    let proc = Proc::start(
+        &["run", "--config", file.to_str().unwrap()],
+        "listening on ",
+    );
+    let log = proc.log();
+    let addr = log
+        .split("listening on ")
+        .nth(1)
+        .and_then(|rest| rest.split_whitespace().next())
+        .and_then(|a| a.parse().ok())
+        .expect("a listening address");
+    Gateway { proc, addr }
+}
+
+/// A connection to `addr` whose first FC 03 read is answered: the simulator serves
+/// one connection at a time, so this waits for the last one to be gone.
+fn served(addr: &str) -> TcpStream {
+    let start = Instant::now();
+    loop {
+        if let Ok(mut s) = TcpStream::connect(addr) {
+            s.set_nodelay(true).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(2))).unwrap();
+            if s.write_all(&read_req(1, 1, 0, 1)).is_ok() {
+                let mut head = [0u8; 1];
+                if std::io::Read::read(&mut s, &mut head).unwrap_or(0) == 1 {
+                    let mut rest = vec![0u8; reply_len(1) - 1];
+                    std::io::Read::read_exact(&mut s, &mut rest).unwrap();
+                    return s;
+                }
+            }
+        }
+        assert!(
+            start.elapsed() < Duration::from_secs(20),
+            "{addr} never served"
+        );
+        thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// FC 03 to `mbgate sim --listen` (a Modbus/TCP device on the network) directly,
+/// through a bare TCP byte pipe (socat), and through mbgate's TCP line: what the
+/// gateway adds when the device is on the network.
+fn tcp_line(r: &mut Report) {
+    eprintln!("tcp-line: FC 03 straight to a device on TCP, through socat, through mbgate");
+    const WARM: usize = 200;
+    const N: usize = 2000;
+    const ROUNDS: usize = 4;
+    let dir = tempdir();
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let at = format!("127.0.0.1:{port}");
+    let sim = [
+        "sim",
+        "--listen",
+        &at,
+        "--profile",
+        "generic",
+        "--log-level",
+        "warn",
+        "--headless",
+    ];
+    let _sim = Proc::start(&sim, "");
+    let text = format!(
+        "[[line]]\n[line.tcp]\naddress = \"{at}\"\n\n[[listen]]\naddress = \"127.0.0.1:0\"\n\n\
+         [log]\nlevel = \"info\"\n"
+    );
+    let (mut direct, mut piped, mut through) = (vec![], vec![], vec![]);
+    for _ in 0..ROUNDS {
+        let mut s = served(&at);
+        direct.extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, 1)));
+        drop(s);
+        let (mut pipe, addr) = socat_to(&format!("TCP:{at}"));
+        let mut s = served(&addr.to_string());
+        piped.extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, 1)));
+        drop(s);
+        let _ = pipe.kill();
+        let _ = pipe.wait();
+        let mut gw = gateway_file(dir.path(), &text);
+        let mut s = served(&gw.addr.to_string());
+        through.extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, 1)));
+        drop(s);
+        gw.terminate(Duration::from_secs(5));
+    }
+    let (d, p, g) = (spread(&direct), spread(&piped), spread(&through));
+    let mut t = String::from("| path | p50 | p99 | max |\n|---|---|---|---|\n");
+    for (path, x) in [
+        ("TCP → sim (direct)", d),
+        ("TCP → socat (a bare byte pipe) → TCP → sim", p),
+        ("TCP → mbgate (a TCP line) → TCP → sim", g),
+    ] {
+        let _ = writeln!(
+            t,
+            "| {path} | {} | {} | {} |",
+            us(x.p50),
+            us(x.p99),
+            us(x.max)
+        );
+    }
+    let pipe50 = diff_us(d.p50, p.p50);
+    for (q, added, pipe, before, after) in [
+        ("p50", diff_us(d.p50, g.p50), pipe50, d.p50, g.p50),
+        (
+            "p99",
+            diff_us(d.p99, g.p99),
+            diff_us(d.p99, p.p99),
+            d.p99,
+            g.p99,
+        ),
+    ] {
+        let _ = writeln!(
+            t,
+            "| added {q}: byte pipe {pipe:.0} µs, **mbgate {added:.0} µs** | | | |"
+        );
+        r.row(
+            "tcp-line",
+            &format!("TCP line: added latency {q}, FC 03 × 1"),
+            format!(
+                "{added:.0} µs ({} → {}); a byte pipe adds {pipe:.0} µs",
+                us(before),
+                us(after)
+            ),
+            "no more than the byte pipe + 50 µs",
+            Some(added <= pipe + 50.0),
+        );
+    }
+    r.detail(
+        &format!("A device on the network ({N} samples a path, in {ROUNDS} rounds, each after {WARM} warm-up; `mbgate sim --listen`, unpaced)"),
+        &command("tcp-line"),
+        &t,
+    );
+}
+
+/// FC 03 from an RTU-over-TCP master and from a Modbus/TCP master, taking turns,
+/// through one gateway with both listeners to the simulator (RTU) on a pty: what the
+/// RTU framing on the masters' side costs.
+fn rtu_listener(r: &mut Report) {
+    eprintln!("rtu-listener: FC 03 through an rtu listener and an mbap one");
+    const WARM: usize = 200;
+    const N: usize = 2000;
+    const ROUNDS: usize = 4;
+    // An RTU line at the fastest speed there is, to an unpaced simulator: a reply is
+    // taken the moment its last byte arrives, so the line adds the least it can.
+    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
+    let line = Line::start_probed(&["--framing", "rtu"], &probe, rtu_reply_len(1));
+    let text = format!(
+        "[[line]]\n[line.serial]\npath = {:?}\nframing = \"rtu\"\nflow_control = \"none\"\n\
+         baud_rate = 4000000\nsilence_floor_ms = 0\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\nframing = \"rtu\"\n\n[log]\nlevel = \"info\"\n",
+        line.socat.gw.display().to_string()
+    );
+    let mut gw = gateway_file(line.dir.path(), &text);
+    let rtu_at = {
+        let start = Instant::now();
+        loop {
+            let log = gw.proc.log();
+            if let Some(a) = log.split("listening on ").nth(2) {
+                break a.split_whitespace().next().unwrap().to_string();
+            }
+            assert!(start.elapsed() < Duration::from_secs(10), "no rtu listener");
+            thread::sleep(Duration::from_millis(10));
+        }
+    };
+    let mut m = connect(&gw);
+    let mut rtu = TcpStream::connect(&rtu_at).unwrap();
+    rtu.set_nodelay(true).unwrap();
+    rtu.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    let request = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
+    let mut rtu_read = |_tid: u16| {
+        let t = Instant::now();
+        rtu.write_all(&request).unwrap();
+        let mut reply = vec![0u8; rtu_reply_len(1)];
+        std::io::Read::read_exact(&mut rtu, &mut reply).unwrap();
+        let took = t.elapsed();
+        assert_eq!(reply[1], 0x03, "not a normal reply: {reply:02X?}");
+        took
+    };
+    let (mut mbap, mut rtu_samples) = (vec![], vec![]);
+    for _ in 0..ROUNDS {
+        mbap.extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut m, tid, 1)));
+        rtu_samples.extend(samples(WARM, N / ROUNDS, &mut rtu_read));
+    }
+    gw.terminate(Duration::from_secs(5));
+    let (a, b) = (spread(&mbap), spread(&rtu_samples));
+    let mut t = String::from("| master | p50 | p99 | max |\n|---|---|---|---|\n");
+    for (who, x) in [
+        ("Modbus/TCP (mbap listener)", a),
+        ("RTU over TCP (rtu listener)", b),
+    ] {
+        let _ = writeln!(
+            t,
+            "| {who} | {} | {} | {} |",
+            us(x.p50),
+            us(x.p99),
+            us(x.max)
+        );
+    }
+    let more = diff_us(a.p50, b.p50);
+    r.row(
+        "rtu-listener",
+        "RTU-over-TCP master against a Modbus/TCP one, p50, FC 03 × 1",
+        format!("{more:+.0} µs ({} → {})", us(a.p50), us(b.p50)),
+        "≤ 50 µs",
+        Some(more <= 50.0),
+    );
+    r.detail(
+        &format!("RTU over TCP masters ({N} samples each, in {ROUNDS} rounds taking turns, each after {WARM} warm-up; the simulator on a pty as an RTU device, unpaced, the line at 4 000 000 baud)"),
+        &command("rtu-listener"),
         &t,
     );
 }

@@ -70,6 +70,16 @@ impl<const PORT: bool> Flags<PORT> {
         };
         let mut c = cfg.clone();
         for (key, value) in &self.given {
+            // With several lines (or listeners) a flag could mean any of them.
+            let tables = match key.section {
+                "serial" | "relay" if !cfg.lines.is_empty() => Some("[[line]]"),
+                "tcp" if !cfg.listeners.is_empty() => Some("[[listen]]"),
+                _ => None,
+            };
+            if let Some(tables) = tables {
+                let m = format!("the file describes the gateway as {tables} tables: set it there");
+                return Err(bad(key.flag, m));
+            }
             (key.set)(&mut c, value).map_err(|m| bad(key.flag, m))?;
         }
         // Flags that contradict each other, or the file: name the flag that was given

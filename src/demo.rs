@@ -2,7 +2,7 @@
 //! simulated device on one end, the gateway on the other, and instructions on how to
 //! connect. This is the README's "run it" command on a machine without a device.
 
-use crate::config::{Config, FlowControl, Notifications};
+use crate::config::{Config, FlowControl, LineConfig, Notifications, SerialConfig, Units};
 use crate::gateway::{self, GatewayError};
 use crate::sim::options::{DeviceArgs, Settings};
 use crate::sim::serve::{self, ConsoleRequest, Port, SimError};
@@ -30,6 +30,11 @@ pub struct DemoArgs {
     /// as a UART would.
     #[arg(long, value_name = "BAUD", help_heading = "line model")]
     pub baud: Option<u32>,
+    /// Two lines behind the one address: a second pty pair with the same simulated
+    /// device, its units reached as unit + 100 (routing by unit, with remapping)
+    #[arg(long, value_name = "N", default_value_t = 1,
+          value_parser = clap::value_parser!(u8).range(1..=2))]
+    pub lines: u8,
     #[command(flatten)]
     pub device: DeviceArgs,
     /// The device as master instead (src/master_demo.rs).
@@ -47,6 +52,50 @@ pub enum DemoError {
     Gateway(#[from] GatewayError),
     #[error(transparent)]
     Sim(#[from] SimError),
+    #[error("{0}")]
+    Settings(String),
+}
+
+/// What the second line's units are called by the masters: unit + 100.
+const SECOND_LINE_OFFSET: u8 = 100;
+
+/// The simulated device's unit ids.
+fn device_units(settings: &Settings) -> Vec<u8> {
+    match &settings.device.profile {
+        Profile::CieM10(d) => vec![d.unit],
+        Profile::Generic(g) => g.units.keys().copied().collect(),
+    }
+}
+
+/// The gateway of `cfg` with two lines: the first on its pty serving the device's
+/// units as they are, the second on `second_pty` serving them as unit + 100.
+fn two_lines(cfg: &mut Config, units: &[u8], second_pty: String) {
+    let line = |path: String, units: Units| LineConfig {
+        units,
+        serial: SerialConfig {
+            path,
+            ..cfg.serial.clone()
+        },
+        tcp: None,
+        relay: cfg.relay.clone(),
+        master: None,
+    };
+    let as_they_are = Units {
+        ids: units.iter().copied().collect(),
+        ..Units::default()
+    };
+    let remap = units
+        .iter()
+        .filter_map(|&u| Some((u.checked_add(SECOND_LINE_OFFSET)?, u)))
+        .collect();
+    let plus_100 = Units {
+        remap,
+        ..Units::default()
+    };
+    cfg.lines = vec![
+        line(cfg.serial.path.clone(), as_they_are),
+        line(second_pty, plus_100),
+    ];
 }
 
 impl DemoArgs {
@@ -121,6 +170,26 @@ fn instructions(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> Str
     format!("mbgate demo: {device}\nAny Modbus/TCP master can connect to {at}. Ctrl-C stops.\n")
 }
 
+/// How to reach the second line (`--lines 2`): its units as unit + 100.
+fn second_line(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> String {
+    let units = device_units(settings);
+    let Some(&first) = units
+        .iter()
+        .find(|u| u.checked_add(SECOND_LINE_OFFSET).is_some())
+    else {
+        return String::new();
+    };
+    let unit = first + SECOND_LINE_OFFSET;
+    let (table, at_reg, count) = match &settings.device.profile {
+        Profile::CieM10(d) => ("holding-registers", d.input_address, 1),
+        Profile::Generic(_) => ("holding-registers", 0, 10),
+    };
+    format!(
+        "\nand the same device on a second line, {pty}: the gateway routes unit {unit} there as unit {first}\n\n\
+         read it through the second line: {me} read --tcp {at} --unit {unit} {table} {at_reg} {count}\n"
+    )
+}
+
 /// Runs the demo until `shutdown`; the gateway's counters at the end. `banner_shown`
 /// hears once the instructions are printed (the console waits for them).
 pub async fn run(
@@ -133,6 +202,15 @@ pub async fn run(
     let (device_end, gateway_end) = SerialStream::pair()?;
     let pty = gateway_end.name().ok_or(DemoError::Unnamed)?;
     let mut cfg = args.gateway_config(pty.clone());
+    // `--lines 2`: a second pty pair and the same device on it.
+    let mut second = None;
+    if args.lines > 1 {
+        let (device_end, gateway_end) = SerialStream::pair()?;
+        let pty = gateway_end.name().ok_or(DemoError::Unnamed)?;
+        two_lines(&mut cfg, &device_units(&settings), pty.clone());
+        let settings = args.settings().map_err(DemoError::Settings)?;
+        second = Some((device_end, gateway_end, pty, settings));
+    }
     let listener = match gateway::bind(&cfg).await {
         Err(GatewayError::Bind { error, .. })
             if args.listen.is_none() && error.kind() == std::io::ErrorKind::AddrInUse =>
@@ -146,13 +224,29 @@ pub async fn run(
         }
         bound => bound?,
     };
-    let at = listener.local_addr().map_err(|error| GatewayError::Bind {
-        addr: cfg.tcp.listen,
-        error,
-    })?;
+    let at = listener[0]
+        .local_addr()
+        .map_err(|error| GatewayError::Bind {
+            addr: cfg.tcp.listen,
+            error,
+        })?;
     let me = crate::invocation::command();
     print!("{}", instructions(&settings, &pty, at, &me));
+    if let Some((_, _, second_pty, _)) = &second {
+        print!("{}", second_line(&settings, second_pty, at, &me));
+    }
     let _ = banner_shown.send(());
+    // The console talks to the first line's device; the second's hears nothing.
+    let (_quiet, no_commands) = mpsc::channel(1);
+    let second = second.map(|(device_end, gateway_end, _, settings)| {
+        let sim = serve::run(
+            settings,
+            Port::Stream(device_end),
+            no_commands,
+            shutdown.clone(),
+        );
+        (tokio::spawn(sim), gateway_end)
+    });
     let sim = tokio::spawn(serve::run(
         settings,
         Port::Stream(device_end),
@@ -165,6 +259,10 @@ pub async fn run(
     // The gateway's end stays open until both are done, so the device end never
     // sees the pty hang up.
     drop(gateway_end);
+    if let Some((sim, gateway_end)) = second {
+        sim.await.unwrap_or(Ok(()))?;
+        drop(gateway_end);
+    }
     let stats = served?;
     simulated?;
     Ok(stats)

@@ -1,13 +1,15 @@
-//! The gateway as a whole: bind, start the relay and the listener, and shut down
+//! The gateway as a whole: bind the listeners, start a relay for each line, and shut down
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see [`crate::notify`]).
 
-use crate::config::{Config, Framing, Notifications};
+use crate::config::{Config, Framing, LineConfig, ListenConfig, Notifications};
 use crate::notify;
 use crate::relay::Relay;
+use crate::router::Router;
 use crate::stats::Stats;
 use crate::tcp;
 use std::net::SocketAddr;
+use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::net::TcpListener;
@@ -47,71 +49,113 @@ fn bind_hint(error: &std::io::Error, addr: SocketAddr) -> String {
 }
 
 /// Runs the gateway until `shutdown` is cancelled, then drains and returns the totals.
-/// The bound address is logged as `listening on ADDR` (port 0 becomes a real port).
+/// Each bound address is logged as `listening on ADDR` (port 0 becomes a real port).
 pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>, GatewayError> {
-    let listener = bind(&cfg).await?;
-    serve(listener, cfg, shutdown).await
+    let listeners = bind(&cfg).await?;
+    serve(listeners, cfg, shutdown).await
 }
 
-/// Binds `tcp.listen` (see [`tcp::listen`]).
-pub async fn bind(cfg: &Config) -> Result<TcpListener, GatewayError> {
-    let addr = cfg.tcp.listen;
-    tcp::listen(addr, cfg.relay.max_pending_per_connection)
-        .map_err(|error| GatewayError::Bind { addr, error })
+/// Binds every listener's address, in the order of the configuration (see
+/// [`tcp::listen`]).
+pub async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+    let max_pending = cfg.max_pending_per_connection();
+    let bind = |l: ListenConfig| {
+        let addr = l.tcp.listen;
+        tcp::listen(addr, max_pending).map_err(|error| GatewayError::Bind { addr, error })
+    };
+    cfg.listeners().into_iter().map(bind).collect()
 }
 
-/// [`run`] on a listener already bound (`mbgate demo` prints its address first).
+/// [`run`] on listeners already bound (`mbgate demo` prints their addresses first),
+/// one for each of `cfg.listeners()`.
 pub async fn serve(
-    listener: TcpListener,
+    listeners: Vec<TcpListener>,
     cfg: Config,
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
-    let addr = cfg.tcp.listen;
-    let local = listener
-        .local_addr()
-        .map_err(|error| GatewayError::Bind { addr, error })?;
+    let mut bound = Vec::new();
+    for (listener, listen) in listeners.into_iter().zip(cfg.listeners()) {
+        let local = listener.local_addr().map_err(|error| GatewayError::Bind {
+            addr: listen.tcp.listen,
+            error,
+        })?;
+        bound.push((listener, listen, local));
+    }
     warn_inapplicable(&cfg);
     let cfg = Arc::new(cfg);
     let stats = Arc::new(Stats::default());
 
-    let (relay, handle) = Relay::new(
-        cfg.relay.clone(),
-        cfg.serial.clone(),
-        cfg.log.traffic,
-        stats.clone(),
-        shutdown.clone(),
-    );
-    let relay = relay.with_watchdog(notify::watchdog_interval());
+    // Each line its own relay task: its own queue, timeouts, retries and backoff, so
+    // a slow or dead line never holds up another.
+    let lines = cfg.lines();
+    let mut handles = Vec::new();
+    let mut relays = Vec::new();
+    for (i, line) in lines.iter().enumerate() {
+        let (relay, handle) =
+            Relay::for_line(line, cfg.log.traffic, stats.clone(), shutdown.clone());
+        // One watchdog for the gateway: every relay runs on the one thread, so one
+        // loop that turns shows that all of them can.
+        let relay = if i == 0 {
+            relay.with_watchdog(notify::watchdog_interval())
+        } else {
+            relay
+        };
+        handles.push(handle);
+        relays.push(relay);
+    }
+    let router = Arc::new(Router::new(&lines, handles));
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
-    info!(serial = %cfg.serial.path, "listening on {local}");
-    // Before the relay first runs, so READY=1 precedes its first WATCHDOG=1.
-    notify::ready(&format!("listening on {local}, serial {}", cfg.serial.path));
-    let relay_task = tokio::spawn(relay.run());
+    let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
+    let devices = devices.join(", ");
+    for (_, listen, local) in &bound {
+        let framing = listen.framing.name();
+        info!(serial = %devices, framing, "listening on {local}");
+    }
+    let addrs: Vec<String> = bound
+        .iter()
+        .map(|(_, _, local)| local.to_string())
+        .collect();
+    // Before the relays first run, so READY=1 precedes the first WATCHDOG=1.
+    notify::ready(&format!(
+        "listening on {}, serial {devices}",
+        addrs.join(", ")
+    ));
+    let relay_tasks: Vec<_> = relays.into_iter().map(|r| tokio::spawn(r.run())).collect();
     if let Some(signals) = signals {
         tokio::spawn(report_on_signal(signals, stats.clone(), shutdown.clone()));
     }
 
     let tracker = TaskTracker::new();
-    tcp::accept_loop(
-        listener,
-        cfg.clone(),
-        handle,
-        stats.clone(),
-        shutdown.clone(),
-        tracker.clone(),
-    )
-    .await;
+    let shared = tcp::Shared {
+        cfg: cfg.clone(),
+        router,
+        stats: stats.clone(),
+        shutdown: shutdown.clone(),
+        tracker: tracker.clone(),
+        ids: Arc::new(AtomicU64::new(0)),
+    };
+    let accepting: Vec<_> = bound
+        .into_iter()
+        .map(|(listener, listen, _)| {
+            tokio::spawn(tcp::accept_loop(listener, listen, shared.clone()))
+        })
+        .collect();
+    for accept in accepting {
+        let _ = accept.await;
+    }
 
-    // Shutdown: the listener is closed; connections stop reading and the relay answers
-    // what is queued (0x0A) and waits for what is on the line.
-    let bound = cfg.relay.answer_within() + Duration::from_secs(2);
+    // Shutdown: the listeners are closed; connections stop reading and the relays
+    // answer what is queued (0x0A) and wait for what is on their lines.
+    let bound = cfg.answer_within() + Duration::from_secs(2);
     info!("shutting down: draining in-flight requests");
     // systemd waits for the drain, and a second more for the exit itself.
     notify::stopping(bound + Duration::from_secs(1));
     tracker.close();
     if tokio::time::timeout(bound, async {
-        let _ = relay_task.await;
+        for task in relay_tasks {
+            let _ = task.await;
+        }
         tracker.wait().await;
     })
     .await
@@ -167,21 +211,39 @@ fn warn_inapplicable(cfg: &Config) {
 
 /// Settings an RTU or ASCII line cannot honour: said at start (and by `mbgate
 /// check-config`), not refused, so a file written for MBAP keeps working when only the
-/// framing changes.
+/// framing changes. With several lines each is named (`line[1]: ...`).
 pub fn warnings(cfg: &Config) -> Vec<String> {
-    let framing = cfg.serial.framing.name();
+    let lines = cfg.lines();
     let mut said = Vec::new();
-    if cfg.serial.framing == Framing::Mbap {
+    for (i, line) in lines.iter().enumerate() {
+        let name = if lines.len() > 1 {
+            format!("line[{i}]: ")
+        } else {
+            String::new()
+        };
+        said.extend(
+            line_warnings(line)
+                .into_iter()
+                .map(|w| format!("{name}{w}")),
+        );
+    }
+    said
+}
+
+fn line_warnings(line: &LineConfig) -> Vec<String> {
+    let framing = line.serial.framing.name();
+    let mut said = Vec::new();
+    if line.serial.framing == Framing::Mbap {
         return said;
     }
-    if cfg.relay.max_in_flight > 1 {
+    if line.relay.max_in_flight > 1 {
         said.push(format!(
             "framing = {framing} has no transaction id: one request at a time \
              (max_in_flight = {} taken as 1)",
-            cfg.relay.max_in_flight
+            line.relay.max_in_flight
         ));
     }
-    if cfg.relay.notifications == Notifications::Broadcast {
+    if line.relay.notifications == Notifications::Broadcast {
         said.push(format!(
             "framing = {framing}: a frame that answers no request is dropped; \
              notifications = broadcast does not apply"

@@ -19,6 +19,7 @@ pub mod number;
 pub mod outbox;
 pub mod port;
 pub mod relay;
+pub mod router;
 pub mod serial;
 pub mod sim;
 pub mod stats;

@@ -172,6 +172,7 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     let polling = args.role.polling(cie_m10);
     let settings = args.settings().and_then(|s| polling.clone().map(|_| s));
     let tcp = args.role.tcp;
+    let listen = args.listen;
     simulate(
         &args.device,
         settings,
@@ -185,7 +186,10 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
                 mbgate::sim::tcp::run(settings.device, listener, commands, shutdown).await?;
                 return Ok(());
             }
-            let port = Port::Path(port.map_err(anyhow::Error::msg)?);
+            let port = match listen {
+                Some(addr) => Port::Listen(addr),
+                None => Port::Path(port.map_err(anyhow::Error::msg)?),
+            };
             match polling.map_err(anyhow::Error::msg)? {
                 Some(p) => {
                     mbgate::sim::master::run(settings, p, port, commands, shutdown).await?;

@@ -132,6 +132,7 @@ impl Outbox {
         self.next_seq += 1;
         Ticket {
             seq,
+            unit: None,
             reserved: Some(reserved),
             slot: Some(Slot {
                 _permit: permit,
@@ -218,6 +219,8 @@ impl Refusal {
 /// unanswered says "no reply" so the requests behind it are not held up.
 pub struct Ticket {
     seq: u64,
+    /// The master's own unit id, put back into the answer (a remapped unit).
+    unit: Option<u8>,
     reserved: Option<mpsc::OwnedPermit<Message>>,
     slot: Option<Slot>,
 }
@@ -227,6 +230,10 @@ impl Ticket {
     /// earlier request of the same master. Never waits and never fails: the room was
     /// reserved with the ticket (a master already gone simply never sees it).
     pub fn answer(mut self, adu: Adu) {
+        let adu = match self.unit {
+            Some(unit) if unit != adu.unit() => Adu::build(adu.tid(), unit, adu.pdu()),
+            _ => adu,
+        };
         self.send(Some(adu));
     }
 
@@ -241,6 +248,13 @@ impl Ticket {
             request.function_code(),
             code,
         ));
+    }
+
+    /// The answer will carry `unit`, whatever unit the line answered as: the master
+    /// asked for `unit`, which is another id on the line (docs/design.md §4.1, `remap`).
+    pub fn answering_as(mut self, unit: u8) -> Ticket {
+        self.unit = Some(unit);
+        self
     }
 
     fn send(&mut self, adu: Option<Adu>) {

@@ -25,7 +25,7 @@ mod pending;
 mod scheduler;
 mod watchdog;
 
-use crate::config::{RelayConfig, SerialConfig};
+use crate::config::{LineConfig, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::outbox::{Refusal, Ticket};
@@ -74,7 +74,7 @@ pub struct Relay {
 }
 
 impl Relay {
-    /// A relay for this line, and the handle connections use to reach it.
+    /// A relay for this serial line, and the handle connections use to reach it.
     pub fn new(
         cfg: RelayConfig,
         serial: SerialConfig,
@@ -82,14 +82,46 @@ impl Relay {
         stats: Arc<Stats>,
         shutdown: CancellationToken,
     ) -> (Self, RelayHandle) {
+        let port = Box::new(port::serial::SerialPort::new(serial.clone()));
+        Self::build(cfg, serial, port, false, traffic, stats, shutdown)
+    }
+
+    /// A relay for a line of docs/design.md §4.1: on its serial port, or on a TCP
+    /// connection to its device (`tcp`), where no byte is lost and none takes time on
+    /// a wire, so the line keeps no gaps and confirms no frame.
+    pub fn for_line(
+        line: &LineConfig,
+        traffic: bool,
+        stats: Arc<Stats>,
+        shutdown: CancellationToken,
+    ) -> (Self, RelayHandle) {
+        let (cfg, serial) = (line.relay.clone(), line.serial.clone());
+        match &line.tcp {
+            Some(addr) => {
+                let port = Box::new(port::tcp::TcpPort::new(addr.clone()));
+                Self::build(cfg, serial, port, true, traffic, stats, shutdown)
+            }
+            None => Self::new(cfg, serial, traffic, stats, shutdown),
+        }
+    }
+
+    fn build(
+        cfg: RelayConfig,
+        serial: SerialConfig,
+        transport: Box<dyn port::Port>,
+        stream: bool,
+        traffic: bool,
+        stats: Arc<Stats>,
+        shutdown: CancellationToken,
+    ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
-        let line = Line::new(&cfg, &serial, now);
+        let line = Line::new(&cfg, &serial, stream, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
         let in_flight = Table::new(&cfg, cfg.unit_backoff && line.is_serial());
         let baud = serial.baud_rate;
-        let port = Lifecycle::new(Box::new(port::serial::SerialPort::new(serial)), baud, now);
+        let port = Lifecycle::new(transport, baud, now);
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth, cfg.coalesce),
             cache: Cache::new(Duration::from_millis(cfg.cache_ms)),

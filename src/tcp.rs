@@ -1,19 +1,22 @@
-//! The TCP side (docs/design.md §1 steps 1-2, §4 `[tcp]`): the listener with its connection
-//! limit, and one task per master that reads strictly checked MBAP requests and writes
-//! back their replies in the order of the requests, with the device's notifications
-//! (the path back is [`crate::outbox`]).
+//! The TCP side (docs/design.md §1 steps 1-2, §4 `[tcp]`, §4.1 `[[listen]]`): each
+//! listener with its connection limit, and one task per master that reads strictly
+//! checked MBAP requests (or RTU-over-TCP ones, `tcp/rtu.rs`), hands them to the line
+//! serving their unit ([`crate::router`]) and writes back their replies in the order of
+//! the requests, with the device's notifications (the path back is [`crate::outbox`]).
 
-use crate::config::Config;
+use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::outbox::{self, Inbox, Outbox, Refusal, Ticket};
-use crate::relay::{Command, ConnId, RelayHandle};
+use crate::relay::ConnId;
+use crate::router::{Router, Unrouted};
 use crate::serial::Backoff;
 use crate::stats::Stats;
 use bytes::BytesMut;
 use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -24,6 +27,8 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
+
+mod rtu;
 
 /// Binds the masters' listener. Every connection it accepts inherits its send buffer,
 /// capped here at room for all the replies mbgate can owe one master (the kernel
@@ -46,18 +51,32 @@ pub fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<TcpListen
     socket.listen(1024)
 }
 
-/// Accepts masters until shutdown. A connection past `max_connections` is closed at
-/// once and logged; the others each get a task on `tracker`.
-pub async fn accept_loop(
-    listener: TcpListener,
-    cfg: Arc<Config>,
-    relay: RelayHandle,
-    stats: Arc<Stats>,
-    shutdown: CancellationToken,
-    tracker: TaskTracker,
-) {
-    let limit = Arc::new(Semaphore::new(cfg.tcp.max_connections));
-    let mut next_id: ConnId = 0;
+/// What every listener's connections share: the configuration, the lines, the
+/// counters, connection ids (unique across listeners), shutdown and the task tracker.
+#[derive(Clone)]
+pub struct Shared {
+    pub cfg: Arc<Config>,
+    pub router: Arc<Router>,
+    pub stats: Arc<Stats>,
+    pub shutdown: CancellationToken,
+    pub tracker: TaskTracker,
+    pub ids: Arc<AtomicU64>,
+}
+
+/// Accepts masters on `listener` (configured by `listen`) until shutdown. A
+/// connection past `max_connections` is closed at once and logged; the others each
+/// get a task on the tracker.
+pub async fn accept_loop(listener: TcpListener, listen: ListenConfig, shared: Shared) {
+    let Shared {
+        cfg,
+        router,
+        stats,
+        shutdown,
+        tracker,
+        ids,
+    } = shared;
+    let limit = Arc::new(Semaphore::new(listen.tcp.max_connections));
+    let listen = Arc::new(listen);
     let mut failing = AcceptFailures::default();
     loop {
         let accepted = tokio::select! {
@@ -77,20 +96,20 @@ pub async fn accept_loop(
         failing.recovered();
         let Ok(slot) = limit.clone().try_acquire_owned() else {
             stats.add(&stats.connections_refused, 1);
-            warn!(%peer, max = cfg.tcp.max_connections, "connection refused: max_connections reached");
+            warn!(%peer, max = listen.tcp.max_connections, "connection refused: max_connections reached");
             drop(stream);
             continue;
         };
         if let Err(e) = stream.set_nodelay(true) {
             debug!(%peer, "TCP_NODELAY: {e}");
         }
-        next_id += 1;
         stats.add(&stats.connections, 1);
         let conn = Connection {
-            id: next_id,
+            id: ids.fetch_add(1, Ordering::Relaxed) + 1,
             peer,
             cfg: cfg.clone(),
-            relay: relay.clone(),
+            listen: listen.clone(),
+            router: router.clone(),
             stats: stats.clone(),
             shutdown: shutdown.clone(),
         };
@@ -180,7 +199,8 @@ struct Connection {
     id: ConnId,
     peer: SocketAddr,
     cfg: Arc<Config>,
-    relay: RelayHandle,
+    listen: Arc<ListenConfig>,
+    router: Arc<Router>,
     stats: Arc<Stats>,
     shutdown: CancellationToken,
 }
@@ -197,16 +217,19 @@ enum End {
 
 impl Connection {
     async fn run(self, stream: TcpStream) {
-        info!(conn = self.id, peer = %self.peer, "master connected");
+        let rtu = self.listen.framing == ListenFraming::Rtu;
+        let framing = self.listen.framing.name();
+        info!(conn = self.id, peer = %self.peer, framing, "master connected");
         let (rd, wr) = stream.into_split();
-        let (mut outbox, inbox) = Outbox::new(self.cfg.relay.max_pending_per_connection);
-        let attached = self
-            .relay
-            .send(Command::Attach {
-                conn: self.id,
-                notifier: outbox.notifier(),
-            })
-            .is_ok();
+        // RTU over TCP has no transaction id: one request at a time, and no
+        // notifications (nothing would tell them from a reply).
+        let pending = if rtu {
+            1
+        } else {
+            self.cfg.max_pending_per_connection()
+        };
+        let (mut outbox, inbox) = Outbox::new(pending);
+        let attached = rtu || self.router.attach(self.id, &outbox.notifier());
         if attached {
             let writer = self.write_loop(wr, inbox);
             tokio::pin!(writer);
@@ -219,7 +242,7 @@ impl Connection {
                 // gateway shuts down (what is on the line within the response timeout
                 // and its retries), else in its turn. Only shutdown bounds the wait
                 // here; a master that stops reading meanwhile is closed by the writer.
-                let bound = self.cfg.relay.answer_within() + Duration::from_secs(1);
+                let bound = self.cfg.answer_within() + Duration::from_secs(1);
                 tokio::select! {
                     _ = outbox.settled() => {}
                     _ = &mut writer => {}
@@ -230,17 +253,27 @@ impl Connection {
                 }
             }
         }
-        let _ = self.relay.send(Command::Detach { conn: self.id });
+        self.router.detach(self.id);
         info!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
     async fn read_loop(&self, mut rd: OwnedReadHalf, outbox: &mut Outbox) -> End {
-        let idle = Duration::from_millis(self.cfg.tcp.idle_timeout_ms);
+        let idle = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         let mut last_read = Instant::now();
         let mut wake = last_read + idle;
         let mut buf = BytesMut::with_capacity(512);
+        let rtu = self.listen.framing == ListenFraming::Rtu;
+        // RTU: the ids the relay sees for this master's requests, and whether the
+        // master has paused (which ends a request of unknown shape).
+        let (mut tid, mut quiet) = (0u16, false);
         loop {
-            match decode_strict(&mut buf) {
+            let decoded = if rtu {
+                tid = tid.wrapping_add(1);
+                rtu::decode(&mut buf, std::mem::take(&mut quiet), tid).map_err(|e| e.to_string())
+            } else {
+                decode_strict(&mut buf).map_err(|e| e.to_string())
+            };
+            match decoded {
                 Ok(Some(adu)) => {
                     // One pipelining slot per request: with none free, stop reading
                     // and let TCP push back on the master.
@@ -261,7 +294,9 @@ impl Connection {
                     return End::Closed;
                 }
             }
+            let pause = rtu && rtu::needs_silence(&buf);
             tokio::select! {
+                _ = tokio::time::sleep(rtu::SILENCE), if pause => quiet = true,
                 r = rd.read_buf(&mut buf) => match r {
                     Ok(0) => {
                         // A shutdown of the master's sending side (`shutdown(SHUT_WR)`,
@@ -313,13 +348,11 @@ impl Connection {
             ticket.refuse(&adu, Refusal::BadRequest(code), &self.stats);
             return;
         }
-        let cmd = Command::Request {
-            conn: self.id,
-            adu,
-            ticket,
-        };
-        if let Err(Command::Request { adu, ticket, .. }) = self.relay.send(cmd) {
-            ticket.refuse(&adu, Refusal::Unavailable, &self.stats);
+        match self.router.submit(self.id, adu, ticket, &self.stats) {
+            Ok(()) | Err(Unrouted::Stopped) => {}
+            Err(Unrouted::NoLine) => {
+                debug!(conn = self.id, "a unit no line serves: exception 0x0a");
+            }
         }
     }
 
@@ -327,12 +360,19 @@ impl Connection {
     /// they come. A master that stops reading its replies for `idle_timeout_ms` is
     /// closed, so it cannot hold a connection slot for ever.
     async fn write_loop(&self, mut wr: OwnedWriteHalf, mut inbox: Inbox) {
-        let stall = Duration::from_millis(self.cfg.tcp.idle_timeout_ms);
+        let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         while let Some(out) = inbox.next().await {
             if self.cfg.log.traffic {
                 debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
             }
-            let write = wr.write_all(out.adu.as_bytes());
+            let rtu_frame;
+            let bytes = if self.listen.framing == ListenFraming::Rtu {
+                rtu_frame = rtu::encode(&out.adu);
+                &rtu_frame[..]
+            } else {
+                out.adu.as_bytes()
+            };
+            let write = wr.write_all(bytes);
             let result = if stall.is_zero() {
                 write.await
             } else {

@@ -592,12 +592,13 @@ fn non_default() -> Config {
             timeout_guard_ms: 60_000,
             coalesce: false,
             cache_ms: 3_600_000,
+            request_pause_ms: 60_000,
         },
         log: LogConfig {
             level: "trace".into(),
             traffic: true,
         },
-        master: None,
+        ..Config::default()
     }
 }
 
@@ -888,24 +889,53 @@ fn the_lines_form_means_the_same() {
     );
 }
 
-/// The new form is checked as closely as the old, at the position of what is wrong;
-/// what mbgate cannot run yet (a second line or listener, routing by unit) is refused
-/// saying so.
+/// The new form is checked as closely as the old, at the position of what is wrong.
 #[test]
-fn lines_and_listeners_are_validated_and_more_than_one_refused() {
+fn lines_and_listeners_are_validated() {
     let cases = [
         (
-            "[[line]]\nunits = [1, 2]\n[[line]]\nunits = [3]\n",
-            "3:1: line[1]: a second [[line]]: several lines are not yet supported \
-             (mbgate runs one line)",
+            "[[line]]\nunits = [\"1-3\"]\n[[line]]\nunits = [3]\n",
+            "4:10: line[1].units: unit 3 is also in line[0].units",
         ),
         (
-            "[[listen]]\naddress = \"127.0.0.1:1502\"\n[[listen]]\naddress = \"[::1]:1502\"\n",
-            "3:1: listen[1]: a second [[listen]]: several listeners are not yet supported",
+            "[[line]]\nunits = [\"5-3\"]\n",
+            "2:10: line[0].units: the range \"5-3\" is empty",
         ),
         (
-            "[[line]]\nunits = [1, 2]\n",
-            "2:9: line[0].units: routing by unit is not yet supported",
+            "[[line]]\nunits = [\"a-3\"]\n",
+            "2:10: line[0].units: expected a unit id or a range like \"10-20\", got \"a-3\"",
+        ),
+        (
+            "[[line]]\nunits = [1]\nremap = { 1 = 2 }\n",
+            "3:11: line[0].remap: unit 1 is also in line[0].units",
+        ),
+        (
+            "[[line]]\nremap = { 300 = 2 }\n",
+            "2:11: line[0].remap: \"300\" is not a unit id (1 to 255)",
+        ),
+        (
+            "[[line]]\nremap = { 11 = 256 }\n",
+            "2:16: line[0].remap: must be between 0 and 255, got 256",
+        ),
+        (
+            "[[line]]\ntcp = { framing = \"rtu\" }\n",
+            "2:7: line[0].tcp.address: missing: the device's host:port",
+        ),
+        (
+            "[[line]]\ntcp = { address = \"plc.local\" }\n",
+            "2:19: line[0].tcp.address: expected host:port, like 192.168.1.20:502, got \"plc.local\"",
+        ),
+        (
+            "[[line]]\ntcp = { address = \"plc:502\", baud_rate = 9600 }\n",
+            "2:30: line[0].tcp.baud_rate: unknown key; expected one of address, framing",
+        ),
+        (
+            "[[line]]\ntcp = { address = \"plc:502\" }\nserial = { path = \"/dev/ttyS0\" }\n",
+            "3:1: line[0].serial: a line's device is a serial port or a TCP address",
+        ),
+        (
+            "[[listen]]\nframing = \"ascii\"\n",
+            "2:11: listen[0].framing: invalid value \"ascii\"; expected one of mbap, rtu",
         ),
         (
             "[[line]]\nunits = [1]\n[[line]]\n",
@@ -933,7 +963,7 @@ fn lines_and_listeners_are_validated_and_more_than_one_refused() {
         ),
         (
             "[[line]]\nunit = [1]\n",
-            "2:1: line[0].unit: unknown key; expected one of units, serial, relay, role, route \
+            "2:1: line[0].unit: unknown key; expected one of units, remap, serial, tcp, relay, role, route \
              (did you mean `units`?)",
         ),
         (
@@ -952,7 +982,7 @@ fn lines_and_listeners_are_validated_and_more_than_one_refused() {
         (
             "[[listen]]\nlisten = \"0.0.0.0:502\"\n",
             "2:1: listen[0].listen: unknown key; expected one of address, max_connections, \
-             idle_timeout_ms",
+             idle_timeout_ms, framing",
         ),
         (
             "[[listen]]\naddress = \"0.0.0.0\"\n",
@@ -982,25 +1012,81 @@ fn lines_and_listeners_are_validated_and_more_than_one_refused() {
     }
 }
 
-/// The example of docs/design.md §4.1 is read, validated, and refused only for having
-/// a second line.
+/// The example of docs/design.md §4.1 is read as two lines with their units; one
+/// line serving every unit is the old form.
 #[test]
-fn the_documented_example_of_several_lines_is_valid_but_not_yet_run() {
+fn the_documented_example_of_several_lines_is_read_as_written() {
     let doc = include_str!("../docs/design.md");
     let example = &doc[doc.find("### 4.1").unwrap()..];
     let example = &example[example.find("```toml\n").unwrap() + 8..];
     let example = &example[..example.find("```").unwrap()];
-    let e = parse(example, "docs/design.md").unwrap_err().to_string();
-    assert!(
-        e.contains(": line[1]: a second [[line]]: several lines are not yet supported"),
-        "{e}"
+    let cfg = parse(example, "docs/design.md").unwrap();
+    let lines = cfg.lines();
+    assert_eq!(lines.len(), 3);
+    assert_eq!(
+        (lines[0].serial.framing, lines[0].relay.response_timeout_ms),
+        (Framing::Rtu, 500)
     );
-    // With its second line and units left out, it is what mbgate runs.
-    let one = &example[..example.find("[[line]]\nunits = [10]").unwrap()];
+    assert_eq!(
+        lines[0].units.ids.iter().copied().collect::<Vec<_>>(),
+        [1, 2, 3]
+    );
+    assert_eq!(lines[1].units.remap.get(&11), Some(&1));
+    assert_eq!(lines[2].tcp.as_deref(), Some("192.168.1.20:502"));
+    let listeners = cfg.listeners();
+    assert_eq!(listeners.len(), 2);
+    // Printed back, it reads the same.
+    assert_eq!(
+        parse(&to_toml(&cfg), "printed").unwrap(),
+        cfg,
+        "{}",
+        to_toml(&cfg)
+    );
+    // With one line and no units, it is the old form.
+    let one = &example[..example.find("[[line]]\nunits = [10").unwrap()];
     let one = one.replace("units = [1, 2, 3]", "");
     let cfg = parse(&one, "docs/design.md").unwrap();
+    assert!(cfg.lines.is_empty());
     assert_eq!(
         (cfg.serial.framing, cfg.relay.response_timeout_ms),
         (Framing::Rtu, 500)
     );
+}
+
+/// With several lines a serial or relay flag could mean any of them: refused, naming
+/// the flag; the log's flags still apply.
+#[test]
+fn flags_for_a_line_are_refused_when_the_file_has_several() {
+    let text = "[[line]]\nunits = [1]\n[[line]]\nunits = [2]\n";
+    let dir = std::env::temp_dir().join(format!("mbgate-flags-lines-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let file = dir.join("lines.toml");
+    std::fs::write(&file, text).unwrap();
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_mbgate"))
+        .args(["check-config", file.to_str().unwrap(), "--baud", "9600"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("--baud: the file describes the gateway as [[line]] tables: set it there"),
+        "{err}"
+    );
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_mbgate"))
+        .args([
+            "check-config",
+            file.to_str().unwrap(),
+            "--log-level",
+            "debug",
+        ])
+        .output()
+        .unwrap();
+    assert!(out.status.success());
+    let printed = String::from_utf8_lossy(&out.stdout);
+    assert!(
+        printed.starts_with("[[line]]\nunits = [1]\n\n[line.serial]\n"),
+        "{printed}"
+    );
+    assert!(printed.contains("\n[[line]]\nunits = [2]\n"), "{printed}");
+    std::fs::remove_dir_all(&dir).unwrap();
 }

@@ -67,6 +67,31 @@ fn the_demo_prints_commands_that_run_as_printed() {
     assert!(d.terminate(Duration::from_secs(5)).success());
 }
 
+/// `mbgate demo --lines 2`: a second line with the same device, reached as unit 101;
+/// its printed command runs as printed and is answered (the simulated CIE-M10 is unit
+/// 1 and stays silent for any other: the gateway remapped it).
+#[test]
+fn the_demo_with_two_lines_routes_unit_101_to_the_second() {
+    let mut d = Proc::start(
+        &["demo", "--lines", "2", "--listen", "127.0.0.1:0"],
+        "listening on ",
+    );
+    wait_for("the banner", Duration::from_secs(5), || {
+        printed_commands(&d.stdout.lock().unwrap()).len() == 4
+    });
+    let banner = d.stdout.lock().unwrap().clone();
+    let commands = printed_commands(&banner);
+    assert!(commands[3].contains("--unit 101"), "{banner}");
+    let (code, out) = paste(&commands[3]);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("0: "), "{out}");
+    let log = d.log();
+    assert_eq!(log.matches("serial port open").count(), 2, "{log}");
+    assert!(d.terminate(Duration::from_secs(5)).success());
+    let log = d.log();
+    assert!(log.contains("requests=1 replies=1"), "{log}");
+}
+
 #[test]
 fn the_demo_takes_a_free_port_when_5020_is_taken() {
     // Whoever holds 5020 (this test, or another program on the machine), the demo must

@@ -19,9 +19,10 @@ pub struct CommonArgs {
     /// otherwise
     #[arg(long, value_name = "PATH")]
     pub serial: Option<String>,
-    /// How frames are carried on the --serial port: mbap, or rtu or ascii for a
-    /// Modbus serial-line device
-    #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap", requires = "serial")]
+    /// How frames are carried: mbap, or rtu or ascii for a Modbus serial-line device on
+    /// --serial, or for RTU over TCP on --tcp (a gateway's rtu listener, a serial device
+    /// server in raw TCP mode)
+    #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap")]
     pub framing: Framing,
     /// The serial port's settings (with --serial only), as `mbgate run` takes them.
     #[command(flatten)]
@@ -231,7 +232,8 @@ impl CommonArgs {
     /// 127.0.0.1:502); or why the serial port's settings are refused.
     pub fn link(&self) -> Result<Link, String> {
         let Some(path) = &self.serial else {
-            return Ok(Link::tcp(self.tcp.as_deref().unwrap_or("127.0.0.1")));
+            let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
+            return Ok(Link::tcp_framed(addr, self.framing));
         };
         let mut cfg = SerialConfig {
             path: path.clone(),
@@ -297,9 +299,10 @@ mod tests {
         assert!(
             matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.framing == Framing::Ascii)
         );
+        let r = parse_read(&["read", "holding", "0", "--framing", "rtu"]).unwrap();
         assert!(
-            parse_read(&["read", "holding", "0", "--framing", "rtu"]).is_err(),
-            "--framing is for --serial"
+            matches!(r.common.link().unwrap(), Link::TcpFramed { ref addr, .. } if addr == "127.0.0.1:502"),
+            "RTU over TCP"
         );
         assert!(
             parse_read(&["read", "holding", "0", "--serial", "p", "--framing", "tcp"]).is_err()

@@ -4,7 +4,7 @@
 //! shape), or RTU or ASCII (frames ended by their length, silence or line feed, and
 //! checked by CRC or LRC; Modbus over Serial Line V1.02 §2.5.1, §2.5.2).
 
-use crate::config::{RelayConfig, SerialConfig};
+use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::{decode_strict, FrameRef};
 use crate::frame::request::{self, decode_reply, Reply};
@@ -18,6 +18,8 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 use tokio_serial::SerialStream;
+
+mod rtu_tcp;
 
 /// The default TCP port of Modbus/TCP (docs/protocol.md §3).
 const MODBUS_PORT: u16 = 502;
@@ -76,6 +78,13 @@ pub enum Link {
         /// mode, resynchronising), RTU or ASCII.
         decoder: Framer,
     },
+    /// RTU (or ASCII) frames on a TCP connection: an `rtu` listener of a gateway, or
+    /// a serial device server in raw TCP mode (`rtu_tcp.rs`).
+    TcpFramed {
+        addr: String,
+        stream: Option<TcpStream>,
+        decoder: Framer,
+    },
 }
 
 impl Link {
@@ -99,6 +108,23 @@ impl Link {
         }
     }
 
+    /// `HOST[:PORT]` as [`Link::tcp`], its frames in `framing` (MBAP: [`Link::tcp`]).
+    pub fn tcp_framed(addr: &str, framing: Framing) -> Link {
+        let codec = match framing {
+            Framing::Mbap => return Link::tcp(addr),
+            Framing::Rtu => crate::frame::serial::Codec::Rtu,
+            Framing::Ascii => crate::frame::serial::Codec::Ascii,
+        };
+        let Link::Tcp { addr, .. } = Link::tcp(addr) else {
+            unreachable!("Link::tcp gives a Tcp link")
+        };
+        Link::TcpFramed {
+            addr,
+            stream: None,
+            decoder: Framer::serial(codec),
+        }
+    }
+
     pub fn serial(cfg: SerialConfig) -> Link {
         Link::Serial {
             decoder: Framer::new(cfg.framing),
@@ -111,7 +137,7 @@ impl Link {
     /// unit and PDU in that framing, check included.
     pub fn wire(&self, adu: &Adu) -> Vec<u8> {
         match self {
-            Link::Serial { decoder, .. } => decoder.encode(adu),
+            Link::Serial { decoder, .. } | Link::TcpFramed { decoder, .. } => decoder.encode(adu),
             Link::Tcp { .. } => adu.as_bytes().to_vec(),
         }
     }
@@ -119,7 +145,7 @@ impl Link {
     /// What error messages call it: the address or the port's path.
     pub fn name(&self) -> &str {
         match self {
-            Link::Tcp { addr, .. } => addr,
+            Link::Tcp { addr, .. } | Link::TcpFramed { addr, .. } => addr,
             Link::Serial { cfg, .. } => &cfg.path,
         }
     }
@@ -133,6 +159,12 @@ impl Link {
             }
             Link::Serial { port, decoder, .. } => {
                 *port = None;
+                decoder.clear();
+            }
+            Link::TcpFramed {
+                stream, decoder, ..
+            } => {
+                *stream = None;
                 decoder.clear();
             }
         }
@@ -226,6 +258,11 @@ impl Master {
             Link::Serial { cfg, port, decoder } => {
                 serial_exchange(cfg, port, decoder, request, deadline, ms).await
             }
+            Link::TcpFramed {
+                addr,
+                stream,
+                decoder,
+            } => rtu_tcp::exchange(addr, stream, decoder, request, deadline, ms).await,
         };
         // Over TCP a frame with our transaction id may still answer something else;
         // on an MBAP serial line the judge has already checked (docs/design.md §1

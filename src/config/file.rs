@@ -3,9 +3,11 @@
 //! names file, line, column and key: `x.toml:7:13: serial.baud_rate: must be between
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
-use super::{Check, Config, Key, Raw, Setting, KEYS};
+use super::{
+    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Raw, Setting, Units, KEYS,
+};
 use std::borrow::Cow;
-use std::collections::HashMap;
+use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::{Path, PathBuf};
 use toml::de::{DeTable, DeValue};
 use toml::Spanned;
@@ -66,7 +68,9 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
 const TOP: [&str; 6] = ["serial", "tcp", "relay", "log", "line", "listen"];
 /// The keys of a `[[line]]` table.
-const LINE: [&str; 5] = ["units", "serial", "relay", "role", "route"];
+const LINE: [&str; 7] = ["units", "remap", "serial", "tcp", "relay", "role", "route"];
+/// The keys of a line's `tcp` table: a device on the network.
+const LINE_TCP: [&str; 2] = ["address", "framing"];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 
@@ -118,8 +122,8 @@ struct Reader<'t> {
     units: HashMap<u8, String>,
 }
 
-/// One `[[line]]`: where it starts, its `[serial]` and `[relay]`, whether it has units.
-type Line = (usize, Config, bool);
+/// One `[[line]]`: where it starts, the line, whether it lists units.
+type Line = (usize, LineConfig, bool);
 
 impl Reader<'_> {
     fn fail<T>(&self, at: usize, key: &str, message: impl Into<String>) -> Result<T, ConfigError> {
@@ -157,7 +161,7 @@ impl Reader<'_> {
                     .find(|s| root.get(*s).is_some()),
                 "listen" => root.get("tcp").map(|_| "tcp"),
                 _ if TOP.contains(&name) => {
-                    self.section(&mut cfg, name, v, name, &[])?;
+                    self.section(&mut cfg, name, v, name, &[], &[])?;
                     continue;
                 }
                 _ => return self.unknown(k, name, &TOP),
@@ -174,48 +178,55 @@ impl Reader<'_> {
                 if name == "line" {
                     lines.push(self.line(t, &path)?);
                 } else {
-                    let mut listener = Config::default();
-                    self.section(&mut listener, "tcp", t, &path, LISTEN_RENAMED)?;
-                    listeners.push((t.span().start, listener.tcp));
+                    listeners.push(self.listener(t, &path)?);
                 }
             }
         }
-        if let Some((at, _)) = listeners.get(1) {
-            let m = "a second [[listen]]: several listeners are not yet supported";
-            return self.fail(
-                *at,
-                "listen[1]",
-                format!("{m} (mbgate listens on one address)"),
-            );
+        match &listeners[..] {
+            [] => {}
+            // One Modbus/TCP listener is the old form's [tcp].
+            [one] if one.framing == ListenFraming::Mbap => cfg.tcp = one.tcp.clone(),
+            [first, ..] => {
+                cfg.tcp = first.tcp.clone();
+                cfg.listeners = listeners;
+            }
         }
-        if let Some((_, tcp)) = listeners.pop() {
-            cfg.tcp = tcp;
-        }
-        match &lines[..] {
-            [] => self.conflict(&cfg, "")?,
-            [(_, line, false)] => {
+        let old_form = match &lines[..] {
+            [] => {
+                self.conflict(&cfg, "")?;
+                true
+            }
+            // One serial line serving every unit is the old form's [serial] and [relay];
+            // so is a master line (its routes say where each unit goes).
+            [(_, line, _)] if line.tcp.is_none() && line.units.every() => {
                 (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone());
                 cfg.master = line.master.clone();
+                true
             }
-            [_] => {
-                let m = "routing by unit is not yet supported: the one line serves every unit";
-                let key = "line[0].units";
-                return self.fail(self.at[key], key, format!("{m} (leave units out)"));
-            }
+            [_] => false,
             [..] => {
+                if let Some(i) = lines.iter().position(|(_, l, _)| l.master.is_some()) {
+                    let m = "a master line (role = \"master\") must be the gateway's only line";
+                    return self.fail(lines[i].0, &format!("line[{i}].role"), m);
+                }
                 if let Some(i) = lines.iter().position(|(_, _, units)| !units) {
                     let m = "missing: with several lines, each says which unit ids it serves";
                     return self.fail(lines[i].0, &format!("line[{i}].units"), m);
                 }
-                let m = "a second [[line]]: several lines are not yet supported";
-                return self.fail(lines[1].0, "line[1]", format!("{m} (mbgate runs one line)"));
+                false
             }
+        };
+        if !old_form {
+            // The first line's settings stand for the gateway's where one is asked for.
+            (cfg.serial, cfg.relay) = (lines[0].1.serial.clone(), lines[0].1.relay.clone());
+            cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
         }
         Ok(cfg)
     }
 
     /// Reads the keys of `section` (of [`KEYS`]) from `v` into `cfg`; `path` is what
-    /// messages call the table, `rename` the keys it calls otherwise.
+    /// messages call the table, `rename` the keys it calls otherwise; `skip` are keys
+    /// the caller reads itself.
     fn section(
         &mut self,
         cfg: &mut Config,
@@ -223,16 +234,21 @@ impl Reader<'_> {
         v: &Spanned<DeValue>,
         path: &str,
         rename: &[(&str, &str)],
+        skip: &[&str],
     ) -> Result<(), ConfigError> {
         let DeValue::Table(table) = v.get_ref() else {
             let m = raw(v.get_ref()).invalid("a table ([section])");
             return self.fail(v.span().start, path, m);
         };
         let keys: Vec<&Key> = KEYS.iter().filter(|k| k.section == section).collect();
-        let names: Vec<&str> = keys.iter().map(|k| renamed(rename, k.name)).collect();
+        let mut names: Vec<&str> = keys.iter().map(|k| renamed(rename, k.name)).collect();
         for (k, v) in entries(table) {
+            if skip.contains(&k.get_ref().as_ref()) {
+                continue;
+            }
             let full = format!("{path}.{}", k.get_ref());
             let Some(i) = names.iter().position(|n| n == k.get_ref()) else {
+                names.extend(skip);
                 return self.unknown(k, &full, &names);
             };
             let at = v.span().start;
@@ -244,18 +260,44 @@ impl Reader<'_> {
         Ok(())
     }
 
+    /// A `[[listen]]`: the keys of `[tcp]` (`address` for `listen`) and `framing`.
+    fn listener(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<ListenConfig, ConfigError> {
+        let mut listener = Config::default();
+        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &["framing"])?;
+        let mut framing = ListenFraming::Mbap;
+        if let DeValue::Table(table) = v.get_ref() {
+            if let Some(f) = table.get("framing") {
+                framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
+                    .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
+            }
+        }
+        Ok(ListenConfig {
+            tcp: listener.tcp,
+            framing,
+        })
+    }
+
     fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {
         let DeValue::Table(table) = v.get_ref() else {
             let m = raw(v.get_ref()).invalid("a table ([[line]])");
             return self.fail(v.span().start, path, m);
         };
-        let (mut line, mut units) = (Config::default(), false);
+        let (mut line, mut listed) = (Config::default(), false);
+        let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
         let (mut role, mut routes) = (None, None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
             let bad = |b: super::master::Bad| self.fail::<()>(b.at, &b.key, b.message);
             match k.get_ref().as_ref() {
-                "units" => units = self.units(item, &full)?,
+                "units" => {
+                    units.ids = self.units(item, &full)?;
+                    listed = true;
+                }
+                "remap" => {
+                    units.remap = self.remap(item, &full)?;
+                    listed = true;
+                }
+                "tcp" => tcp = Some(self.line_tcp(&mut line, item, &full)?),
                 "role" => match super::master::role(item, &full) {
                     Ok(master) => role = Some((master, k.span().start)),
                     Err(b) => bad(b)?,
@@ -264,19 +306,39 @@ impl Reader<'_> {
                     Ok(r) => routes = Some((r, k.span().start)),
                     Err(b) => bad(b)?,
                 },
-                name @ ("serial" | "relay") => self.section(&mut line, name, item, &full, &[])?,
+                name @ ("serial" | "relay") => {
+                    if name == "serial" {
+                        serial_at = Some(k.span().start);
+                    }
+                    self.section(&mut line, name, item, &full, &[], &[])?
+                }
                 _ => return self.unknown(k, &full, &LINE),
             }
         }
+        if let (Some(_), Some(at)) = (&tcp, serial_at) {
+            let m = "a line's device is a serial port or a TCP address: give `serial` or `tcp`, not both";
+            return self.fail(at, &format!("{path}.serial"), m);
+        }
         self.conflict(&line, &format!("{path}."))?;
+        let mut master = None;
         match (role, routes) {
             (Some((true, _)), Some((routes, _))) => {
-                if units {
+                if listed {
                     let key = format!("{path}.units");
+                    let key = if self.at.contains_key(&key) {
+                        key
+                    } else {
+                        format!("{path}.remap")
+                    };
+                    let at = self.at.get(&key).copied().unwrap_or(v.span().start);
                     let m = "a master line routes by the units of its [[line.route]] tables";
-                    return self.fail(self.at[&key], &key, m);
+                    return self.fail(at, &key, m);
                 }
-                line.master = Some(super::master::MasterLine { routes });
+                if let Some(at) = tcp.as_ref().and(serial_at.or(Some(v.span().start))) {
+                    let m = "a master line's device is on a serial port, not on TCP";
+                    return self.fail(at, &format!("{path}.tcp"), m);
+                }
+                master = Some(super::master::MasterLine { routes });
             }
             (Some((true, at)), None) => {
                 let m = "a master line needs [[line.route]] tables (where its requests go)";
@@ -288,11 +350,59 @@ impl Reader<'_> {
             }
             (_, None) => {}
         }
-        Ok((v.span().start, line, units))
+        let line = LineConfig {
+            units,
+            serial: line.serial,
+            tcp,
+            relay: line.relay,
+            master,
+        };
+        Ok((v.span().start, line, listed))
     }
 
-    /// `units = [1, 2, ...]`: unit ids, each on one line only.
-    fn units(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<bool, ConfigError> {
+    /// A line's `tcp` table: `address = "host:port"` (required) and `framing`.
+    fn line_tcp(
+        &mut self,
+        line: &mut Config,
+        v: &Spanned<DeValue>,
+        path: &str,
+    ) -> Result<String, ConfigError> {
+        let DeValue::Table(table) = v.get_ref() else {
+            let m = raw(v.get_ref()).invalid("a table (address, framing)");
+            return self.fail(v.span().start, path, m);
+        };
+        let mut address = None;
+        for (k, item) in entries(table) {
+            let full = format!("{path}.{}", k.get_ref());
+            let at = item.span().start;
+            match k.get_ref().as_ref() {
+                "address" => {
+                    let s = String::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));
+                    let s = s.or_else(|m| self.fail(at, &full, m))?;
+                    if let Err(m) = parse_host_port(&s) {
+                        return self.fail(at, &full, m);
+                    }
+                    address = Some(s);
+                }
+                "framing" => {
+                    let f = Framing::read(&raw(item.get_ref()), &Check::Any);
+                    line.serial.framing = f.or_else(|m| self.fail(at, &full, m))?;
+                }
+                _ => return self.unknown(k, &full, &LINE_TCP),
+            }
+        }
+        match address {
+            Some(a) => Ok(a),
+            None => self.fail(
+                v.span().start,
+                &format!("{path}.address"),
+                "missing: the device's host:port",
+            ),
+        }
+    }
+
+    /// `units = [1, 2, "10-20", ...]`: unit ids and ranges, each on one line only.
+    fn units(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeSet<u8>, ConfigError> {
         let at = v.span().start;
         self.at.insert(path.to_owned(), at);
         let ids = match v.get_ref() {
@@ -302,15 +412,53 @@ impl Reader<'_> {
             DeValue::Array(ids) => ids,
             other => return self.fail(at, path, raw(other).invalid("an array of unit ids")),
         };
+        let mut set = BTreeSet::new();
         for id in ids.iter() {
             let at = id.span().start;
-            let unit = u8::read(&raw(id.get_ref()), &Check::Range(1, 255, None));
-            let unit = unit.or_else(|m| self.fail(at, path, m))?;
-            if let Some(other) = self.units.insert(unit, path.to_owned()) {
-                return self.fail(at, path, format!("unit {unit} is also in {other}"));
+            let (first, last) = match id.get_ref() {
+                DeValue::String(range) => unit_range(range).or_else(|m| self.fail(at, path, m))?,
+                other => {
+                    let unit = u8::read(&raw(other), &Check::Range(1, 255, None));
+                    let unit = unit.or_else(|m| self.fail(at, path, m))?;
+                    (unit, unit)
+                }
+            };
+            for unit in first..=last {
+                self.claim(unit, at, path)?;
+                set.insert(unit);
             }
         }
-        Ok(true)
+        Ok(set)
+    }
+
+    /// `remap = { 11 = 1 }`: the master's unit 11 is unit 1 on this line.
+    fn remap(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeMap<u8, u8>, ConfigError> {
+        let DeValue::Table(table) = v.get_ref() else {
+            let m = raw(v.get_ref()).invalid("a table of unit = unit on the line");
+            return self.fail(v.span().start, path, m);
+        };
+        let mut map = BTreeMap::new();
+        for (k, item) in entries(table) {
+            let at = k.span().start;
+            let unit = k.get_ref().parse::<u8>().ok().filter(|u| *u >= 1);
+            let Some(unit) = unit else {
+                let m = format!("{:?} is not a unit id (1 to 255)", k.get_ref());
+                return self.fail(at, path, m);
+            };
+            self.claim(unit, at, path)?;
+            let on_line = u8::read(&raw(item.get_ref()), &Check::Range(0, 255, None));
+            let on_line = on_line.or_else(|m| self.fail(item.span().start, path, m))?;
+            map.insert(unit, on_line);
+        }
+        Ok(map)
+    }
+
+    /// Gives `unit` to the line at `path`, unless another line (or this one) has it.
+    fn claim(&mut self, unit: u8, at: usize, path: &str) -> Result<(), ConfigError> {
+        if let Some(other) = self.units.insert(unit, path.to_owned()) {
+            return self.fail(at, path, format!("unit {unit} is also in {other}"));
+        }
+        Ok(())
     }
 
     /// Refuses two keys that contradict each other, at the value of the first if the
@@ -326,6 +474,29 @@ impl Reader<'_> {
         let at = self.at.get(&key).or(self.at.get(&other)).copied();
         self.fail(at.unwrap_or(0), &key, c.message(&prefix))
     }
+}
+
+/// `"10-20"`: the units 10 to 20.
+fn unit_range(s: &str) -> Result<(u8, u8), String> {
+    let bad = || format!("expected a unit id or a range like \"10-20\", got {s:?}");
+    let (a, b) = s.split_once('-').ok_or_else(bad)?;
+    let unit = |x: &str| x.trim().parse::<u8>().ok().filter(|u| *u >= 1);
+    match (unit(a), unit(b)) {
+        (Some(a), Some(b)) if a <= b => Ok((a, b)),
+        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty")),
+        _ => Err(bad()),
+    }
+}
+
+/// Checks a device's `host:port` (a name or an address, and a port).
+pub(super) fn parse_host_port(s: &str) -> Result<(), String> {
+    let bad = || format!("expected host:port, like 192.168.1.20:502, got {s:?}");
+    let (host, port) = s.rsplit_once(':').ok_or_else(bad)?;
+    let port_ok = port.parse::<u16>().is_ok_and(|p| p > 0);
+    if host.trim().is_empty() || !port_ok {
+        return Err(bad());
+    }
+    Ok(())
 }
 
 fn syntax_error(text: &str, origin: &str, err: &toml::de::Error) -> ConfigError {

@@ -8,9 +8,11 @@
 //! what it does.
 
 mod file;
+mod layout;
 pub mod master;
 
 pub use file::{load, parse, ConfigError};
+pub use layout::{LineConfig, ListenConfig, Units};
 use std::net::SocketAddr;
 use Check::{Any, NonEmpty, OneOf, Range};
 
@@ -78,6 +80,13 @@ choices! {
         /// Well-formed unsolicited frames go to every connected master
         Broadcast = "broadcast",
     }
+    /// How masters frame their requests on a listener (docs/design.md §4.1).
+    ListenFraming {
+        /// Modbus/TCP: an MBAP header, many requests in flight
+        Mbap = "mbap",
+        /// RTU over TCP: unit, PDU, CRC-16, one request at a time
+        Rtu = "rtu",
+    }
 }
 
 /// The values `log.level` accepts.
@@ -111,6 +120,12 @@ macro_rules! settings {
             $(pub $section: $Struct,)*
             /// The line's device is the master: its routes (docs/design.md §4.2).
             pub master: Option<master::MasterLine>,
+            /// The `[[line]]` tables when the file needs them (several lines, units,
+            /// a device on TCP); empty: one line of `[serial]` and `[relay]`.
+            pub lines: Vec<LineConfig>,
+            /// The `[[listen]]` tables when the file needs them (several, or RTU over
+            /// TCP); empty: one Modbus/TCP listener of `[tcp]`.
+            pub listeners: Vec<ListenConfig>,
         }
 
         /// Every setting, in the order of the file.
@@ -214,6 +229,8 @@ settings! {
         coalesce: bool = true, Any, "coalesce" "BOOL";
         /// Answer a read from the reply to the identical read if younger than this; a write to the unit clears it; 0 = off
         cache_ms: u64 = 0, Range(0, 3_600_000, None), "cache-ms" "MS";
+        /// Quiet time after each reply before the next request, for slow devices
+        request_pause_ms: u64 = 0, Range(0, 60_000, None), "request-pause-ms" "MS";
     }
     /// What is logged.
     [log] LogConfig {
@@ -405,32 +422,64 @@ impl Config {
 }
 
 /// The configuration as TOML, sections and keys in the order of docs/design.md §4
-/// (`mbgate check-config`). `parse(&to_toml(cfg), ..)` gives back `cfg`.
+/// (`mbgate check-config`); a configuration the old form cannot say (several lines or
+/// listeners, units, a device on TCP) in the form of §4.1. `parse(&to_toml(cfg), ..)`
+/// gives back `cfg`.
 pub fn to_toml(cfg: &Config) -> String {
-    if cfg.master.is_some() {
+    if cfg.master.is_some() || !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
         return to_toml_lines(cfg);
     }
     let old = ["serial", "tcp", "relay", "log"].map(|s| (s, format!("[{s}]")));
     print(cfg, &old)
 }
 
-/// The same configuration in the form of docs/design.md §4.1: one `[[line]]` (with its
-/// `serial` and `relay` tables) and one `[[listen]]`.
+/// The same configuration in the form of docs/design.md §4.1: a `[[line]]` for each
+/// line (its units, its `serial` or `tcp` table, its `relay` table) and a `[[listen]]`
+/// for each listener.
 pub fn to_toml_lines(cfg: &Config) -> String {
-    let tables = [
-        ("serial", "[[line]]\n\n[line.serial]"),
-        ("relay", "[line.relay]"),
-        ("tcp", "[[listen]]"),
-        ("log", "[log]"),
-    ];
-    let mut tables = tables.map(|(s, header)| (s, header.to_owned()));
-    if let Some(m) = &cfg.master {
-        tables[0].1 = "[[line]]\nrole = \"master\"\n\n[line.serial]".into();
-        tables[1].1 = format!("{}\n[line.relay]", master::to_toml(m));
+    let mut out = Vec::new();
+    for line in cfg.lines() {
+        let mut head = "[[line]]\n".to_owned();
+        if line.master.is_some() {
+            head += "role = \"master\"\n";
+        }
+        if !line.units.ids.is_empty() {
+            head += &format!("units = {}\n", line.units.print_ids());
+        }
+        if !line.units.remap.is_empty() {
+            head += &format!("remap = {}\n", line.units.print_remap());
+        }
+        let one = Config {
+            serial: line.serial.clone(),
+            relay: line.relay.clone(),
+            ..Config::default()
+        };
+        let device = match &line.tcp {
+            Some(address) => format!(
+                "\n[line.tcp]\naddress = {}\nframing = {}\n",
+                address.print(),
+                line.serial.framing.print()
+            ),
+            None => format!("\n{}", print(&one, &[("serial", "[line.serial]".into())])),
+        };
+        let routes = match &line.master {
+            Some(m) => master::to_toml(m).trim_start().to_owned() + "\n",
+            None => String::new(),
+        };
+        let relay = print(&one, &[("relay", "[line.relay]".into())]);
+        out.push(head + &device + "\n" + &routes + &relay);
     }
-    print(cfg, &tables)
+    for listener in cfg.listeners() {
+        let one = Config {
+            tcp: listener.tcp.clone(),
+            ..Config::default()
+        };
+        let table = print(&one, &[("tcp", "[[listen]]".into())]);
+        out.push(table + &format!("framing = {}\n", listener.framing.print()));
+    }
+    out.push(print(cfg, &[("log", "[log]".into())]));
+    out.join("\n")
 }
-
 /// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as
 /// that table calls them).
 fn print(cfg: &Config, tables: &[(&str, String)]) -> String {

@@ -1,24 +1,35 @@
-//! A device behind a TCP socket as a [`Port`] (a serial device server in raw TCP
-//! mode): connected without blocking the loop, Nagle off so a request leaves whole.
+//! A device behind a TCP socket as a [`Port`] (a Modbus/TCP slave, or a serial device
+//! server in raw TCP mode): connected without blocking the loop, within a bounded
+//! time, Nagle off so a request leaves whole, TCP keepalive on so a device that
+//! vanished without a word (power cut, cable pulled) is noticed and reconnected.
 
 use super::{Link, Opening, Port};
-use std::net::SocketAddr;
+use socket2::{SockRef, TcpKeepalive};
 use std::time::Duration;
 
-/// A device server's address.
+/// How long a connect may take before the attempt counts as failed (and is retried
+/// with backoff, masters answered 0x0A meanwhile).
+const CONNECT_TIMEOUT: Duration = Duration::from_secs(3);
+
+/// Keepalive: the first probe after this much silence, then every `KEEPALIVE_EVERY`,
+/// the connection dropped after `KEEPALIVE_PROBES` unanswered (about 25 s in all,
+/// against Linux's default of over two hours).
+const KEEPALIVE_IDLE: Duration = Duration::from_secs(10);
+const KEEPALIVE_EVERY: Duration = Duration::from_secs(5);
+const KEEPALIVE_PROBES: u32 = 3;
+
+/// A device's address on the network.
 #[derive(Debug)]
 pub struct TcpPort {
-    addr: SocketAddr,
-    name: String,
+    /// `host:port`: resolved again at each connect, so a device whose name moves to
+    /// another address is found there.
+    addr: String,
 }
 
 impl TcpPort {
-    /// The device at `addr`; nothing is connected yet.
-    pub fn new(addr: SocketAddr) -> Self {
-        Self {
-            addr,
-            name: addr.to_string(),
-        }
+    /// The device at `addr` (`host:port`); nothing is connected yet.
+    pub fn new(addr: impl Into<String>) -> Self {
+        Self { addr: addr.into() }
     }
 }
 
@@ -28,14 +39,26 @@ impl Port for TcpPort {
     }
 
     fn name(&self) -> &str {
-        &self.name
+        &self.addr
     }
 
     fn open(&mut self) -> Opening {
-        let addr = self.addr;
+        let addr = self.addr.clone();
         Box::pin(async move {
-            let stream = tokio::net::TcpStream::connect(addr).await?;
+            let connect = tokio::net::TcpStream::connect(&addr);
+            let stream = match tokio::time::timeout(CONNECT_TIMEOUT, connect).await {
+                Ok(connected) => connected?,
+                Err(_) => {
+                    let m = format!("no connection within {CONNECT_TIMEOUT:?}");
+                    return Err(std::io::Error::new(std::io::ErrorKind::TimedOut, m));
+                }
+            };
             stream.set_nodelay(true)?;
+            let keepalive = TcpKeepalive::new()
+                .with_time(KEEPALIVE_IDLE)
+                .with_interval(KEEPALIVE_EVERY)
+                .with_retries(KEEPALIVE_PROBES);
+            SockRef::from(&stream).set_tcp_keepalive(&keepalive)?;
             let (reader, writer) = stream.into_split();
             Ok(Link {
                 reader: Box::new(reader),
@@ -67,7 +90,7 @@ mod tests {
     async fn connects_reads_writes_and_fails_when_nobody_listens() {
         let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
         let addr = listener.local_addr().unwrap();
-        let mut port = TcpPort::new(addr);
+        let mut port = TcpPort::new(addr.to_string());
         assert_eq!(port.name(), addr.to_string());
         let opening = port.open();
         let (link, accepted) = tokio::join!(opening, listener.accept());
@@ -91,7 +114,7 @@ mod tests {
         );
 
         drop(listener);
-        let mut gone = TcpPort::new(addr);
+        let mut gone = TcpPort::new(addr.to_string());
         assert!(gone.open().await.is_err(), "nobody listens there any more");
     }
 }

@@ -30,7 +30,7 @@ pub struct RelayHandle {
 }
 
 impl RelayHandle {
-    pub(super) fn new(tx: mpsc::UnboundedSender<Command>) -> Self {
+    pub(crate) fn new(tx: mpsc::UnboundedSender<Command>) -> Self {
         Self { tx }
     }
 

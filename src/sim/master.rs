@@ -85,6 +85,9 @@ pub async fn run(
     };
     let result = match port {
         Port::Stream(mut s) => m.serve(&mut s, &mut commands, &shutdown).await,
+        Port::Listen(addr) => Err(std::io::Error::other(format!(
+            "--role master sends on a serial port (--serial), not --listen {addr}"
+        ))),
         Port::Path(cfg) => {
             let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
             loop {

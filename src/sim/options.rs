@@ -181,8 +181,13 @@ pub struct DeviceArgs {
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH", required_unless_present = "tcp")]
+    #[arg(long, value_name = "PATH", required_unless_present_any = ["listen", "tcp"])]
     pub serial: Option<PathBuf>,
+    /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
+    /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
+    /// device server in raw TCP mode (--framing rtu or ascii).
+    #[arg(long, value_name = "ADDR", conflicts_with = "serial")]
+    pub listen: Option<std::net::SocketAddr>,
     // Before the port's flags: their heading would carry over onto these.
     #[command(flatten)]
     pub device: DeviceArgs,
@@ -222,10 +227,8 @@ impl SimArgs {
         let mut cfg = SerialConfig {
             path: self
                 .serial
-                .clone()
-                .unwrap_or_default()
-                .to_string_lossy()
-                .into_owned(),
+                .as_deref()
+                .map_or_else(String::new, |p| p.to_string_lossy().into_owned()),
             framing: self.framing,
             ..SerialConfig::default()
         };

@@ -23,6 +23,8 @@ use tokio_serial::SerialStream;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+mod tcp;
+
 /// A console command and where its answer goes.
 #[derive(Debug)]
 pub struct ConsoleRequest {
@@ -37,6 +39,9 @@ pub enum Port {
     Path(SerialConfig),
     /// An open pty end (`mbgate demo`); losing it ends the simulator.
     Stream(SerialStream),
+    /// A device on the network: listens here and serves one connection at a time
+    /// (`tcp.rs`).
+    Listen(std::net::SocketAddr),
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -115,6 +120,8 @@ pub async fn run(
     let paced = match &port {
         Port::Path(cfg) => is_pty(Path::new(&cfg.path)),
         Port::Stream(_) => true,
+        // A socket has no byte rate to model.
+        Port::Listen(_) => false,
     };
     let baud = settings.baud.filter(|_| paced);
     if settings.baud.is_some() && !paced {
@@ -155,6 +162,7 @@ pub async fn run(
     });
 
     match port {
+        Port::Listen(addr) => tcp::listen(&mut sim, addr, &mut commands, ticks, &shutdown).await,
         Port::Stream(mut stream) => {
             info!("simulating {} on a pty", sim.describe());
             match sim
@@ -224,9 +232,9 @@ impl Sim {
         format!("{profile}{pace}")
     }
 
-    async fn serve(
+    async fn serve<P: AsyncReadExt + AsyncWriteExt + Unpin>(
         &mut self,
-        port: &mut SerialStream,
+        port: &mut P,
         commands: &mut mpsc::Receiver<ConsoleRequest>,
         mut ticks: Option<&mut tokio::time::Interval>,
         shutdown: &CancellationToken,
@@ -376,7 +384,7 @@ impl Sim {
     }
 
     /// Writes every frame whose time has come, through the line model.
-    async fn send_due(&mut self, port: &mut SerialStream) -> std::io::Result<()> {
+    async fn send_due<P: AsyncWriteExt + Unpin>(&mut self, port: &mut P) -> std::io::Result<()> {
         let now = Instant::now();
         let mut bytes = Vec::new();
         while self.out.front().is_some_and(|o| o.due <= now) {

@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """A pymodbus Modbus/TCP master that runs the steps it is given and reports what came back.
 
-    master.py --port N [--host 127.0.0.1] [--timeout 3] STEPS_JSON
+    master.py --port N [--host 127.0.0.1] [--timeout 3] [--framer socket|rtu] STEPS_JSON
+
+--framer rtu: RTU over TCP (RTU frames with their CRC on the socket, no MBAP header).
 
 STEPS_JSON is a list of [method, args, kwargs] for pymodbus' ModbusTcpClient, e.g.
 [["read_holding_registers", [0], {"count": 2, "device_id": 1}]]. Prints one JSON list,
@@ -17,6 +19,7 @@ import json
 import logging
 import sys
 
+from pymodbus import FramerType
 from pymodbus.client import ModbusTcpClient
 from pymodbus.exceptions import ModbusException
 
@@ -43,9 +46,11 @@ def main() -> int:
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, required=True)
     p.add_argument("--timeout", type=float, default=3.0)
+    p.add_argument("--framer", choices=["socket", "rtu"], default="socket")
     p.add_argument("steps")
     a = p.parse_args()
-    client = ModbusTcpClient(a.host, port=a.port, timeout=a.timeout, retries=0)
+    framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU}[a.framer]
+    client = ModbusTcpClient(a.host, port=a.port, timeout=a.timeout, retries=0, framer=framer)
     if not client.connect():
         print(json.dumps([{"error": "connect failed"}]))
         return 1

@@ -40,6 +40,11 @@ pub(super) struct Mbap {
     chunks: VecDeque<(u64, Instant)>,
     /// Bytes received so far.
     received: u64,
+    /// Over TCP: no byte is lost, so a whole frame needs no confirmation.
+    stream: bool,
+    /// The line stays quiet this long after the last byte received
+    /// (`request_pause_ms`).
+    request_pause: Duration,
 }
 
 /// A request as it went on the line.
@@ -59,6 +64,7 @@ struct RelayJudge<'a, R> {
     in_flight: &'a [InFlight<R>],
     tids: &'a Tids,
     now: Instant,
+    stream: bool,
 }
 
 impl<R: Asked> Judge for RelayJudge<'_, R> {
@@ -107,8 +113,10 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
     /// whatever follows it, and something may always follow: a notification the
     /// device sends whether or not the gateway passes them on, a late or duplicate
     /// reply, noise (docs/reliability.md).
+    ///
+    /// Except over TCP, where no byte is lost and a whole frame is the frame.
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
-        true
+        !self.stream
     }
 
     /// A pause confirms a frame when no other reply is due (or its own request's time
@@ -125,7 +133,12 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
 }
 
 impl Mbap {
-    pub(super) fn new(relay: &RelayConfig, serial: &SerialConfig, now: Instant) -> Mbap {
+    pub(super) fn new(
+        relay: &RelayConfig,
+        serial: &SerialConfig,
+        stream: bool,
+        now: Instant,
+    ) -> Mbap {
         let gap = Duration::from_millis(relay.frame_gap_ms);
         let t35 =
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
@@ -138,11 +151,18 @@ impl Mbap {
                 .min(gap),
             max_in_flight: relay.max_in_flight,
             gap,
-            char_time: serial::wire_time(serial, 1000) / 1000,
+            // A socket has no line speed: nothing of a request is "still on the wire".
+            char_time: if stream {
+                Duration::ZERO
+            } else {
+                serial::wire_time(serial, 1000) / 1000
+            },
             tx_clear: now,
             sent: Vec::new(),
             chunks: VecDeque::new(),
             received: 0,
+            stream,
+            request_pause: Duration::from_millis(relay.request_pause_ms),
         }
     }
 
@@ -161,8 +181,15 @@ impl Mbap {
         bytes
     }
 
-    pub(super) fn has_room(&self, in_flight: usize) -> bool {
-        in_flight < self.max_in_flight
+    pub(super) fn has_room(&self, in_flight: usize, now: Instant) -> bool {
+        in_flight < self.max_in_flight && self.paused_until().is_none_or(|until| now >= until)
+    }
+
+    /// No request before then: `request_pause_ms` after the last byte received (none
+    /// without a pause, or before anything was received).
+    fn paused_until(&self) -> Option<Instant> {
+        let pausing = !self.request_pause.is_zero() && self.received > 0;
+        pausing.then(|| self.last_byte + self.request_pause)
     }
 
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant) {
@@ -172,14 +199,16 @@ impl Mbap {
         self.last_byte = now;
     }
 
-    pub(super) fn next_wake(&self) -> Option<Instant> {
+    pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         // First the pause that ends a frame, then the frame gap.
         let quiet_for = if self.decoder.paused() {
             self.gap
         } else {
             self.pause
         };
-        (self.decoder.buffered() > 0).then(|| self.last_byte + quiet_for)
+        let frame = (self.decoder.buffered() > 0).then(|| self.last_byte + quiet_for);
+        let pause = self.paused_until().filter(|&until| waiting && until > now);
+        frame.into_iter().chain(pause).min()
     }
 
     pub(super) fn clear(&mut self) {
@@ -264,6 +293,7 @@ impl Mbap {
                 in_flight,
                 tids: &self.tids,
                 now,
+                stream: self.stream,
             };
             let frame = match self.decoder.next_frame(&judge, quiet) {
                 Some(Framed::Frame(frame)) => frame,
@@ -321,7 +351,7 @@ mod tests {
             ..SerialConfig::default()
         };
         let now = Instant::now();
-        (Line::new(&RelayConfig::default(), &serial, now), now)
+        (Line::new(&RelayConfig::default(), &serial, false, now), now)
     }
 
     /// A request as the table holds it in tests: the ADU, never resent.
@@ -485,5 +515,29 @@ mod tests {
         assert!(b.frames::<Req>(&[], later, &stats).is_empty());
         assert!(a.frames::<Req>(&[], later, &stats).is_empty());
         assert_eq!(stats.dropped_bytes.load(Ordering::Relaxed), 8);
+    }
+
+    /// Over TCP nothing is lost: a whole reply is taken the moment it is read, with
+    /// another reply due (on a serial line it would wait for the frame gap), and
+    /// `request_pause_ms` holds the next request back from the last byte read.
+    #[test]
+    fn over_tcp_a_whole_reply_is_taken_at_once_and_the_pause_kept() {
+        let relay = RelayConfig {
+            request_pause_ms: 30,
+            max_in_flight: 2,
+            ..RelayConfig::default()
+        };
+        let t0 = Instant::now();
+        let mut line = Line::new(&relay, &SerialConfig::default(), true, t0);
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let a = send(&mut line, &read, t0);
+        let b = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
+        let at = t0 + MS;
+        line.received(&reply, at, &Stats::default());
+        assert_eq!(frames(&mut line, &[a, b], at), vec![reply]);
+        assert!(!line.has_room(1, false, at + 29 * MS));
+        assert_eq!(line.next_wake(at, true), Some(at + 30 * MS));
+        assert!(line.has_room(1, false, at + 30 * MS));
     }
 }

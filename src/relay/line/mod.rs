@@ -58,12 +58,21 @@ enum Kind {
 }
 
 impl Line {
-    pub(super) fn new(relay: &RelayConfig, serial: &SerialConfig, now: Instant) -> Line {
-        match serial.framing {
-            Framing::Mbap => Line(Kind::Mbap(Mbap::new(relay, serial, now))),
-            Framing::Rtu => Line(Kind::Serial(Serial::new(relay, serial, Codec::Rtu, now))),
-            Framing::Ascii => Line(Kind::Serial(Serial::new(relay, serial, Codec::Ascii, now))),
-        }
+    /// The framing of `serial`; `stream` says the bytes go over TCP, where none is
+    /// lost and none takes time on a wire: no inter-frame gap, no echo timing, and an
+    /// MBAP frame is taken as soon as it is whole, without waiting for confirmation.
+    pub(super) fn new(
+        relay: &RelayConfig,
+        serial: &SerialConfig,
+        stream: bool,
+        now: Instant,
+    ) -> Line {
+        let codec = match serial.framing {
+            Framing::Mbap => return Line(Kind::Mbap(Mbap::new(relay, serial, stream, now))),
+            Framing::Rtu => Codec::Rtu,
+            Framing::Ascii => Codec::Ascii,
+        };
+        Line(Kind::Serial(Serial::new(relay, serial, codec, stream, now)))
     }
 
     /// RTU or ASCII: one at a time, broadcasts, unit backoff, drain before timing.
@@ -103,7 +112,7 @@ impl Line {
     /// says bytes are still being written or drained.
     pub(super) fn has_room(&self, in_flight: usize, busy: bool, now: Instant) -> bool {
         match &self.0 {
-            Kind::Mbap(m) => m.has_room(in_flight),
+            Kind::Mbap(m) => m.has_room(in_flight, now),
             Kind::Serial(s) => s.has_room(in_flight, busy, now),
         }
     }
@@ -137,7 +146,7 @@ impl Line {
     /// requests are waiting.
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         match &self.0 {
-            Kind::Mbap(m) => m.next_wake(),
+            Kind::Mbap(m) => m.next_wake(now, waiting),
             Kind::Serial(s) => s.next_wake(now, waiting),
         }
     }

@@ -45,6 +45,10 @@ pub(super) struct Serial {
     held: Vec<(Instant, Vec<u8>)>,
     /// When the last request's last byte left: bytes read before then answer nothing.
     reply_from: Instant,
+    /// Over TCP: bytes take no time on a wire, and there is no gap to keep.
+    stream: bool,
+    /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
+    request_pause: Duration,
 }
 
 impl Serial {
@@ -52,10 +56,15 @@ impl Serial {
         relay: &RelayConfig,
         serial: &SerialConfig,
         codec: Codec,
+        stream: bool,
         now: Instant,
     ) -> Serial {
-        let t35 =
-            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
+        let t35 = if stream {
+            // The device server keeps the gap on its own line.
+            Duration::ZERO
+        } else {
+            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)))
+        };
         Serial {
             port: serial.clone(),
             decoder: Framer::serial(codec),
@@ -71,6 +80,17 @@ impl Serial {
             tx: None,
             held: Vec::new(),
             reply_from: now,
+            stream,
+            request_pause: Duration::from_millis(relay.request_pause_ms),
+        }
+    }
+
+    /// How long `bytes` take on the line: none over TCP.
+    fn wire_time(&self, bytes: usize) -> Duration {
+        if self.stream {
+            Duration::ZERO
+        } else {
+            serial::wire_time(&self.port, bytes)
         }
     }
 
@@ -96,7 +116,7 @@ impl Serial {
         self.broadcast_on_wire = adu.unit() == 0;
         // Written from now on: its last byte cannot leave before its time on the wire
         // has passed.
-        self.tx = Some(now + serial::wire_time(&self.port, bytes.len()));
+        self.tx = Some(now + self.wire_time(bytes.len()));
         Bytes::from(bytes)
     }
 
@@ -105,10 +125,11 @@ impl Serial {
     }
 
     pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        let wire = self.wire_time(n);
         if let Some(earliest) = &mut self.tx {
             // Held back by flow control, the last bytes leave later than a frame
             // written in one go would.
-            *earliest = (*earliest).max(polled + serial::wire_time(&self.port, n));
+            *earliest = (*earliest).max(polled + wire);
         }
     }
 
@@ -177,12 +198,12 @@ impl Serial {
         self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
-        self.ready_at = self.ready_at.max(now + self.guard);
+        self.ready_at = self.ready_at.max(now + self.guard.max(self.request_pause));
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
         let bytes = self.decoder.encoded_len(adu.pdu().len()) + self.decoder.encoded_len(2);
-        serial::wire_time(&self.port, bytes) + 2 * self.t35
+        self.wire_time(bytes) + 2 * self.t35
     }
 
     /// Counts what the framer dropped since last asked, and `held` bytes dropped
@@ -195,9 +216,10 @@ impl Serial {
     }
 
     /// The line is free once the turnaround after our last request has passed and the
-    /// device has been quiet for 3.5 character times.
+    /// device has been quiet for 3.5 character times, or `request_pause_ms` if longer.
     fn free_at(&self) -> Instant {
-        self.ready_at.max(self.last_rx + self.t35)
+        self.ready_at
+            .max(self.last_rx + self.t35.max(self.request_pause))
     }
 
     /// Bytes read at `at`, once the request they follow has left: before its last byte
@@ -282,6 +304,44 @@ impl Serial {
                 stats.add(&stats.bad_frames, 1);
                 vec![Seen::Corrupt(f.tid)]
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::Line;
+    use super::*;
+
+    const MS: Duration = Duration::from_millis(1);
+
+    /// RTU at 9600 baud: the next request waits 3.5 characters (4 ms) after a reply on
+    /// a serial line, none over TCP; `request_pause_ms` stretches the wait on both.
+    #[test]
+    fn the_gap_after_a_reply_is_none_over_tcp_and_request_pause_ms_on_both() {
+        let serial = SerialConfig {
+            baud_rate: 9600,
+            framing: crate::config::Framing::Rtu,
+            ..SerialConfig::default()
+        };
+        let stats = Stats::default();
+        for (stream, pause, free_after) in
+            [(false, 0, 4), (true, 0, 0), (true, 20, 20), (false, 20, 20)]
+        {
+            let relay = RelayConfig {
+                request_pause_ms: pause,
+                ..RelayConfig::default()
+            };
+            let t0 = Instant::now();
+            let mut line = Line::new(&relay, &serial, stream, t0);
+            line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + MS, &stats);
+            let at = t0 + MS;
+            let free = at + free_after * MS;
+            let before = free.checked_sub(MS).filter(|b| *b >= at);
+            if let Some(before) = before {
+                assert!(!line.has_room(0, false, before), "{stream} {pause}");
+            }
+            assert!(line.has_room(0, false, free), "{stream} {pause}");
         }
     }
 }

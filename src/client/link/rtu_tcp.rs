@@ -1,0 +1,92 @@
+//! One request as RTU (or ASCII) frames on a TCP connection: to a gateway's `rtu`
+//! listener or a serial device server in raw TCP mode. The frame is sent with its CRC
+//! and no MBAP header; the reply is the first frame from the unit asked whose check
+//! holds, ended by its length (or, for a reply of unknown shape, a pause).
+
+use super::{received, ClientError, Received};
+use crate::frame::framer::{Framed, Framer, ReplyFor};
+use crate::frame::Adu;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::time::{timeout_at, Instant};
+
+/// A pause this long ends a reply of unknown shape: the far end writes a reply in one
+/// go, so its bytes are never this far apart on a socket.
+const SILENCE: Duration = Duration::from_millis(50);
+
+pub(super) async fn exchange(
+    addr: &str,
+    stream: &mut Option<TcpStream>,
+    decoder: &mut Framer,
+    request: &Adu,
+    deadline: Instant,
+    ms: u64,
+) -> Result<Received, ClientError> {
+    let target = || addr.to_string();
+    if stream.is_none() {
+        let s = match timeout_at(deadline, TcpStream::connect(addr)).await {
+            Err(_) => return Err(ClientError::ConnectTimeout { addr: target(), ms }),
+            Ok(Err(source)) => {
+                return Err(ClientError::Connect {
+                    addr: target(),
+                    source,
+                })
+            }
+            Ok(Ok(s)) => s,
+        };
+        let _ = s.set_nodelay(true);
+        decoder.clear();
+        *stream = Some(s);
+    }
+    let s = stream.as_mut().expect("connected above");
+    let start = Instant::now();
+    let io = |what, source| ClientError::Io {
+        target: target(),
+        what,
+        source,
+    };
+    let mut dropped_bytes = 0u64;
+    let wait = async {
+        // Whatever came before the request answers nothing (a late reply).
+        dropped_bytes += decoder.clear() as u64;
+        let frame = decoder.encode(request);
+        s.write_all(&frame).await.map_err(|e| io("sending", e))?;
+        let mut chunk = [0u8; 512];
+        let mut quiet = false;
+        loop {
+            while let Some(framed) = decoder.next_frame(&ReplyFor(request.pdu()), quiet) {
+                match framed {
+                    Framed::Frame(reply) if reply.unit() == request.unit() => {
+                        return Ok(reply.with_tid(request.tid()));
+                    }
+                    Framed::Frame(other) => {
+                        dropped_bytes += decoder.encoded_len(other.pdu().len()) as u64;
+                    }
+                    Framed::Corrupt(n) => dropped_bytes += n as u64,
+                }
+            }
+            let pause = decoder.buffered() > 0 && decoder.silence_ends_frames();
+            let read = if pause {
+                match tokio::time::timeout(SILENCE, s.read(&mut chunk)).await {
+                    Ok(read) => read,
+                    Err(_) => {
+                        quiet = true;
+                        continue;
+                    }
+                }
+            } else {
+                s.read(&mut chunk).await
+            };
+            match read.map_err(|e| io("receiving", e))? {
+                0 => return Err(ClientError::Closed { target: target() }),
+                n => {
+                    decoder.push(&chunk[..n]);
+                    quiet = false;
+                }
+            }
+        }
+    };
+    let result = timeout_at(deadline, wait).await;
+    received(result, target, ms, start, Vec::new(), dropped_bytes)
+}

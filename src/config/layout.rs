@@ -1,0 +1,136 @@
+//! The gateway as lines and listeners (docs/design.md §4.1): which units each line
+//! serves and what it calls them, where its device is (a serial port or a TCP
+//! address), and the listeners with their framing. The old form (`[serial]`,
+//! `[relay]`, `[tcp]`) is one line serving every unit and one Modbus/TCP listener.
+
+use super::{Config, ListenFraming, RelayConfig, SerialConfig, TcpConfig};
+use std::collections::{BTreeMap, BTreeSet};
+
+/// Which unit ids a line serves (the master's ids), and the id each has on the line.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Units {
+    /// Served as they are. With `remap` also empty: every unit.
+    pub ids: BTreeSet<u8>,
+    /// The master's unit → the unit on the line (the master's 11 is the line's 1).
+    pub remap: BTreeMap<u8, u8>,
+}
+
+impl Units {
+    /// No list: the line serves every unit (the one line of the old form).
+    pub fn every(&self) -> bool {
+        self.ids.is_empty() && self.remap.is_empty()
+    }
+
+    /// The id the line knows the master's `unit` by, if the line serves it.
+    pub fn route(&self, unit: u8) -> Option<u8> {
+        if let Some(&on_line) = self.remap.get(&unit) {
+            return Some(on_line);
+        }
+        (self.every() || self.ids.contains(&unit)).then_some(unit)
+    }
+
+    /// `ids` as the file writes them: runs of three or more as `"A-B"` strings.
+    pub fn print_ids(&self) -> String {
+        let mut parts = Vec::new();
+        let ids: Vec<u8> = self.ids.iter().copied().collect();
+        let mut i = 0;
+        while i < ids.len() {
+            let mut j = i;
+            while j + 1 < ids.len() && ids[j + 1] == ids[j] + 1 {
+                j += 1;
+            }
+            if j >= i + 2 {
+                parts.push(format!("\"{}-{}\"", ids[i], ids[j]));
+            } else {
+                parts.extend(ids[i..=j].iter().map(u8::to_string));
+            }
+            i = j + 1;
+        }
+        format!("[{}]", parts.join(", "))
+    }
+
+    /// `remap` as the file writes it: `{ 11 = 1, 12 = 2 }`.
+    pub fn print_remap(&self) -> String {
+        let pairs: Vec<String> = self
+            .remap
+            .iter()
+            .map(|(m, l)| format!("{m} = {l}"))
+            .collect();
+        format!("{{ {} }}", pairs.join(", "))
+    }
+}
+
+/// One device line: its units, its device, its queueing and timing.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct LineConfig {
+    pub units: Units,
+    /// The serial port's settings; on a TCP line only `framing` is read from the
+    /// file (the others keep their defaults, `silence_floor_ms` ending a reply of
+    /// unknown shape).
+    pub serial: SerialConfig,
+    /// `host:port` of a device on the network (a Modbus/TCP slave, or a serial
+    /// device server in raw TCP mode) instead of the serial port.
+    pub tcp: Option<String>,
+    pub relay: RelayConfig,
+    /// The line's device is the master: where its requests go (docs/design.md §4.2).
+    pub master: Option<super::master::MasterLine>,
+}
+
+impl LineConfig {
+    /// What the logs call the line: its serial port or its address.
+    pub fn name(&self) -> &str {
+        self.tcp.as_deref().unwrap_or(&self.serial.path)
+    }
+}
+
+/// One listening address and how its masters frame their requests.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ListenConfig {
+    pub tcp: TcpConfig,
+    pub framing: ListenFraming,
+}
+
+impl Config {
+    /// The lines mbgate runs: the `[[line]]` tables, or the one line of `[serial]` and
+    /// `[relay]` that serves every unit.
+    pub fn lines(&self) -> Vec<LineConfig> {
+        if !self.lines.is_empty() {
+            return self.lines.clone();
+        }
+        vec![LineConfig {
+            units: Units::default(),
+            serial: self.serial.clone(),
+            tcp: None,
+            relay: self.relay.clone(),
+            master: self.master.clone(),
+        }]
+    }
+
+    /// The listeners mbgate runs: the `[[listen]]` tables, or the one Modbus/TCP
+    /// listener of `[tcp]`.
+    pub fn listeners(&self) -> Vec<ListenConfig> {
+        if !self.listeners.is_empty() {
+            return self.listeners.clone();
+        }
+        vec![ListenConfig {
+            tcp: self.tcp.clone(),
+            framing: ListenFraming::Mbap,
+        }]
+    }
+
+    /// The most requests any line lets one master pipeline: the room each master's
+    /// connection keeps for replies.
+    pub fn max_pending_per_connection(&self) -> usize {
+        let lines = self.lines();
+        let most = lines.iter().map(|l| l.relay.max_pending_per_connection);
+        most.max().unwrap_or(self.relay.max_pending_per_connection)
+    }
+
+    /// The longest any line takes to answer a request it holds (its timeouts and
+    /// retries): the bound of the shutdown drain.
+    pub fn answer_within(&self) -> std::time::Duration {
+        let lines = self.lines();
+        let longest = lines.iter().map(|l| l.relay.answer_within());
+        longest.max().unwrap_or_default()
+    }
+}

@@ -1,0 +1,62 @@
+#!/usr/bin/env python3
+"""pymodbus' own ModbusTcpServer: a Modbus/TCP device on the network, for the tests of
+a line on TCP (README "A device on the network").
+
+    tcp_device.py --port N [--unit 1] [--size 200]
+
+Listens on 127.0.0.1:N. One unit (id --unit); the data of stock_server.py: holding
+register 0 = 0x00FF, holding register i = 1000 + i, input register i = 2000 + i.
+Prints READY on stdout once serving; SIGTERM stops it (and closes its connections).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import signal
+import sys
+
+from pymodbus.datastore import (
+    ModbusDeviceContext,
+    ModbusSequentialDataBlock,
+    ModbusServerContext,
+)
+from pymodbus.server import ModbusTcpServer
+
+
+def context(unit: int, size: int) -> ModbusServerContext:
+    device = ModbusDeviceContext(
+        co=ModbusSequentialDataBlock(1, [i % 3 == 0 for i in range(size)]),
+        di=ModbusSequentialDataBlock(1, [i % 2 == 0 for i in range(size)]),
+        hr=ModbusSequentialDataBlock(1, [0x00FF] + [1000 + i for i in range(1, size)]),
+        ir=ModbusSequentialDataBlock(1, [2000 + i for i in range(size)]),
+    )
+    return ModbusServerContext(devices={unit: device}, single=False)
+
+
+async def main() -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--port", type=int, required=True)
+    ap.add_argument("--unit", type=int, default=1)
+    ap.add_argument("--size", type=int, default=200)
+    args = ap.parse_args()
+    logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
+    # A unit it does not have is answered exception 04 (the tests ask for one on
+    # purpose): no traceback for it.
+    logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
+
+    server = ModbusTcpServer(context(args.unit, args.size), address=("127.0.0.1", args.port))
+    stop = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    await server.serve_forever(background=True)
+    print("READY", flush=True)
+    await stop.wait()
+    await server.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(asyncio.run(main()))
