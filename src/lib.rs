@@ -12,6 +12,7 @@ pub mod frame;
 pub mod gateway;
 pub mod invocation;
 pub mod logging;
+pub mod metrics;
 pub mod notify;
 pub mod number;
 pub mod outbox;

@@ -94,8 +94,10 @@ pub async fn accept_loop(
             stats: stats.clone(),
             shutdown: shutdown.clone(),
         };
+        let closed = stats.clone();
         tracker.spawn(async move {
             conn.run(stream).await;
+            closed.add(&closed.connections_closed, 1);
             drop(slot);
         });
     }

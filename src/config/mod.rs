@@ -210,7 +210,7 @@ settings! {
     [log] LogConfig {
         /// Log level (RUST_LOG overrides)
         level: String = "info".into(), OneOf(&LOG_LEVELS), "log-level" "LEVEL";
-        /// Log every frame, both directions, as hex at debug level
+        /// Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex
         traffic: bool = false, Any, "traffic" "BOOL";
     }
 }

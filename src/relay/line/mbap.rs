@@ -15,7 +15,7 @@ use bytes::Bytes;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
-use tracing::debug;
+use tracing::{debug, info};
 
 pub(super) struct Mbap {
     tids: Tids,
@@ -41,6 +41,8 @@ pub(super) struct Mbap {
     received: u64,
     /// Bytes of frames dropped for arriving too early to answer their request.
     early_bytes: u64,
+    /// Whether the cost of confirmation by a pause has been said (once a line).
+    told_pause: bool,
 }
 
 /// A request as it went on the line.
@@ -145,6 +147,7 @@ impl Mbap {
             chunks: VecDeque::new(),
             received: 0,
             early_bytes: 0,
+            told_pause: false,
         }
     }
 
@@ -249,6 +252,22 @@ impl Mbap {
             .then_some("a copy of the request that began before it had left: its echo, dropped")
     }
 
+    /// Said the first time a reply waited for the pause that confirms it (nothing
+    /// followed it): why replies take longer than the device, and what to do about it
+    /// (docs/reliability.md "How", docs/performance.md).
+    fn tell_pause(&mut self) {
+        self.told_pause = true;
+        info!(
+            "MBAP: a reply is held until the line has been quiet for {} ms after it, to \
+             confirm it arrived whole (docs/reliability.md); a lone reply takes that much \
+             longer. Lower serial.silence_floor_ms as far as the adapter allows (0 on a \
+             native UART or a pty; about 3 for an FTDI adapter with latency_timer 1, see \
+             config/99-mbgate.rules), or let replies confirm each other with several \
+             requests on the line (relay.max_in_flight)",
+            self.pause.as_secs_f64() * 1000.0
+        );
+    }
+
     pub(super) fn frames<R: Asked>(
         &mut self,
         in_flight: &[InFlight<R>],
@@ -286,6 +305,10 @@ impl Mbap {
                     seen.push(Seen::Corrupt(frame.tid()));
                     continue;
                 }
+            }
+            let reply = in_flight.iter().any(|f| f.tid == frame.tid());
+            if reply && idle >= self.pause && !self.told_pause {
+                self.tell_pause();
             }
             seen.push(Seen::Frame(frame));
         }

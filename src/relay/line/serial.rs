@@ -77,6 +77,10 @@ impl Serial {
         self.next_key
     }
 
+    pub(super) fn codec(&self) -> Codec {
+        self.decoder.codec()
+    }
+
     pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats) -> Bytes {
         // Nothing received before a request is written can be its reply.
         let stale = self.decoder.clear() + self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
@@ -84,7 +88,7 @@ impl Serial {
             debug!(bytes = stale, "bytes received before the request discarded");
             stats.add(&stats.dropped_bytes, stale as u64);
         }
-        let bytes = self.decoder.codec().encode(adu.unit(), adu.pdu());
+        let bytes = self.codec().encode(adu.unit(), adu.pdu());
         if let Some(echo) = &mut self.echo {
             // Any echo still awaited belongs to an earlier request, long done.
             echo.clear();
