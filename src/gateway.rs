@@ -3,6 +3,7 @@
 //! systemd when it is ready and when it stops (see [`crate::notify`]).
 
 use crate::config::{Config, Framing, Notifications};
+use crate::metrics::{self, Board, ListenerMetrics};
 use crate::notify;
 use crate::relay::Relay;
 use crate::stats::Stats;
@@ -21,6 +22,12 @@ pub enum GatewayError {
     /// not a `source`: printed as a chain it would appear twice.
     #[error("cannot listen on {addr}: {error}{}", bind_hint(.error, *.addr))]
     Bind {
+        addr: SocketAddr,
+        error: std::io::Error,
+    },
+    /// `metrics.listen` could not be bound.
+    #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
+    MetricsBind {
         addr: SocketAddr,
         error: std::io::Error,
     },
@@ -82,6 +89,19 @@ pub async fn serve(
         shutdown.clone(),
     );
     let relay = relay.with_watchdog(notify::watchdog_interval());
+    let board = Arc::new(Board::default());
+    board.add_line(relay.metrics());
+    board.add_listener(Arc::new(ListenerMetrics {
+        name: local.to_string(),
+        stats: stats.clone(),
+    }));
+    // Off unless asked for: then nothing but the Modbus port listens.
+    if let Some(addr) = cfg.metrics.listen {
+        let http = metrics::http::bind(addr)
+            .await
+            .map_err(|error| GatewayError::MetricsBind { addr, error })?;
+        tokio::spawn(metrics::http::serve(http, board.clone(), shutdown.clone()));
+    }
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
     info!(serial = %cfg.serial.path, "listening on {local}");

@@ -59,17 +59,17 @@ impl UnitMetrics {
         add(&self.sum_us, took.as_micros() as u64);
     }
 
-    /// The histogram as Prometheus has it: sum in seconds, count, and cumulative
-    /// counts at each bound (the last at +Inf).
+    /// The histogram: sum in seconds, count, and the count in each bucket by its
+    /// upper bound (the last +Inf), not cumulative: the encoder adds them up.
     pub fn histogram(&self) -> (f64, u64, Vec<(f64, u64)>) {
         let mut total = 0;
-        let mut cumulative = Vec::with_capacity(self.buckets.len());
+        let mut each = Vec::with_capacity(self.buckets.len());
         for (i, b) in self.buckets.iter().enumerate() {
             total += load(b);
             let bound = REPLY_BUCKETS.get(i).copied().unwrap_or(f64::INFINITY);
-            cumulative.push((bound, total));
+            each.push((bound, load(b)));
         }
-        (load(&self.sum_us) as f64 / 1e6, total, cumulative)
+        (load(&self.sum_us) as f64 / 1e6, total, each)
     }
 }
 

@@ -213,6 +213,11 @@ settings! {
         /// Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex
         traffic: bool = false, Any, "traffic" "BOOL";
     }
+    /// The metrics listener (README "Watching it run"): off unless given an address.
+    [metrics] MetricsConfig {
+        /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
+        listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
+    }
 }
 
 /// One setting as declared in [`settings!`].
@@ -345,6 +350,12 @@ setting! { SocketAddr: Addr, |raw, _check| match raw {
     _ => Err(raw.invalid(LISTEN_EXPECTED)),
 }, |v| format!("\"{v}\"") }
 
+setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
+    Raw::Str(s) if s.trim().is_empty() => Ok(None),
+    Raw::Str(s) => parse_listen(s).map(Some),
+    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+}, |v| v.map_or_else(|| "\"\"".to_owned(), |a| format!("\"{a}\"")) }
+
 const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
 
 /// Parses a `tcp.listen` / `--listen` value.
@@ -398,7 +409,7 @@ impl Config {
 /// The configuration as TOML, sections and keys in the order of docs/design.md §4
 /// (`mbgate check-config`). `parse(&to_toml(cfg), ..)` gives back `cfg`.
 pub fn to_toml(cfg: &Config) -> String {
-    let old = ["serial", "tcp", "relay", "log"].map(|s| (s, format!("[{s}]")));
+    let old = ["serial", "tcp", "relay", "log", "metrics"].map(|s| (s, format!("[{s}]")));
     print(cfg, &old)
 }
 
@@ -410,6 +421,7 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         ("relay", "[line.relay]"),
         ("tcp", "[[listen]]"),
         ("log", "[log]"),
+        ("metrics", "[metrics]"),
     ];
     print(cfg, &tables.map(|(s, header)| (s, header.to_owned())))
 }

@@ -1,1 +1,169 @@
-//! The metrics listener: a minimal HTTP/1.1 server for GET only.
+//! The metrics listener: a minimal HTTP/1.1 server on tokio, GET (and HEAD) only, one
+//! request per connection, then closed. Written here rather than taken from a crate:
+//! it serves a few read-only paths, and an HTTP crate would bring a large tree for
+//! them (docs/architecture.md "Dependencies").
+//!
+//! - `/metrics`: the Prometheus exposition (`expose.rs`).
+//! - `/`: a line saying where the metrics are.
+//!
+//! Nothing here changes the gateway. A request head larger than 8 KiB, or slower than
+//! 5 s, is refused; at most 16 connections at once, the others closed at once.
+
+use super::{expose, Board};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::Semaphore;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info};
+
+const INDEX: &str = "mbgate: Prometheus metrics at /metrics (README \"Watching it run\")\n";
+const MAX_HEAD: usize = 8 * 1024;
+const HEAD_WITHIN: Duration = Duration::from_secs(5);
+const MAX_CONNECTIONS: usize = 16;
+
+/// Binds `addr` for the metrics listener.
+pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
+    TcpListener::bind(addr).await
+}
+
+/// Serves `board` on `listener` until `stop`.
+pub async fn serve(listener: TcpListener, board: Arc<Board>, stop: CancellationToken) {
+    if let Ok(local) = listener.local_addr() {
+        info!("metrics on http://{local}/metrics");
+    }
+    let limit = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    loop {
+        let accepted = tokio::select! {
+            _ = stop.cancelled() => break,
+            r = listener.accept() => r,
+        };
+        let Ok((stream, peer)) = accepted else {
+            // Out of descriptors, most likely: the Modbus side matters more.
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            continue;
+        };
+        let Ok(slot) = limit.clone().try_acquire_owned() else {
+            debug!(%peer, "metrics: too many connections, closed");
+            continue;
+        };
+        let board = board.clone();
+        tokio::spawn(async move {
+            if let Err(e) = answer(stream, &board).await {
+                debug!(%peer, "metrics: {e}");
+            }
+            drop(slot);
+        });
+    }
+}
+
+/// Reads one request head and answers it.
+async fn answer(mut stream: TcpStream, board: &Arc<Board>) -> std::io::Result<()> {
+    let mut head = Vec::with_capacity(512);
+    let read = tokio::time::timeout(HEAD_WITHIN, async {
+        let mut buf = [0u8; 1024];
+        while !head.windows(4).any(|w| w == b"\r\n\r\n") && !head.windows(2).any(|w| w == b"\n\n") {
+            let n = stream.read(&mut buf).await?;
+            if n == 0 {
+                return Ok(false);
+            }
+            head.extend_from_slice(&buf[..n]);
+            if head.len() > MAX_HEAD {
+                return Ok(false);
+            }
+        }
+        Ok::<_, std::io::Error>(true)
+    })
+    .await;
+    let response = match read {
+        Ok(Ok(true)) => respond(&head, board),
+        Ok(Err(e)) => return Err(e),
+        _ => reply(
+            400,
+            "text/plain; charset=utf-8",
+            "bad request\n".into(),
+            false,
+        ),
+    };
+    stream.write_all(&response).await?;
+    stream.shutdown().await
+}
+
+/// The response to a request head.
+fn respond(head: &[u8], board: &Arc<Board>) -> Vec<u8> {
+    let text = String::from_utf8_lossy(head);
+    let mut words = text.lines().next().unwrap_or("").split_whitespace();
+    let (method, target) = (words.next().unwrap_or(""), words.next().unwrap_or(""));
+    let head_only = method == "HEAD";
+    if method != "GET" && !head_only {
+        return reply(405, "text/plain; charset=utf-8", "GET only\n".into(), false);
+    }
+    let path = target.split('?').next().unwrap_or("");
+    match path {
+        "/metrics" => reply(200, expose::CONTENT_TYPE, expose::render(board), head_only),
+        "/" => reply(200, "text/plain; charset=utf-8", INDEX.into(), head_only),
+        _ => reply(
+            404,
+            "text/plain; charset=utf-8",
+            "not found: try /metrics\n".into(),
+            head_only,
+        ),
+    }
+}
+
+fn reply(status: u16, content_type: &str, body: String, head_only: bool) -> Vec<u8> {
+    let reason = match status {
+        200 => "OK",
+        400 => "Bad Request",
+        404 => "Not Found",
+        _ => "Method Not Allowed",
+    };
+    let mut out = format!(
+        "HTTP/1.1 {status} {reason}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\n\
+         Cache-Control: no-store\r\nConnection: close\r\n",
+        body.len()
+    );
+    if status == 405 {
+        out += "Allow: GET, HEAD\r\n";
+    }
+    out += "\r\n";
+    let mut out = out.into_bytes();
+    if !head_only {
+        out.extend_from_slice(body.as_bytes());
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn ask(head: &str) -> String {
+        String::from_utf8(respond(head.as_bytes(), &Arc::new(Board::default()))).unwrap()
+    }
+
+    #[test]
+    fn get_metrics_head_and_refusals() {
+        let r = ask("GET /metrics HTTP/1.1\r\nHost: x\r\n\r\n");
+        assert!(r.starts_with("HTTP/1.1 200 OK\r\n"), "{r}");
+        assert!(
+            r.contains("Content-Type: application/openmetrics-text"),
+            "{r}"
+        );
+        assert!(r.ends_with("# EOF\n"), "{r}");
+        let r = ask("HEAD /metrics HTTP/1.1\r\n\r\n");
+        assert!(
+            r.starts_with("HTTP/1.1 200 OK\r\n") && r.ends_with("\r\n\r\n"),
+            "{r}"
+        );
+        let r = ask("POST /metrics HTTP/1.1\r\n\r\n");
+        assert!(
+            r.starts_with("HTTP/1.1 405 ") && r.contains("Allow: GET, HEAD"),
+            "{r}"
+        );
+        let r = ask("GET /nothing HTTP/1.1\r\n\r\n");
+        assert!(r.starts_with("HTTP/1.1 404 "), "{r}");
+    }
+}
