@@ -108,6 +108,9 @@ pub async fn serve(
     // Before the relay first runs, so READY=1 precedes its first WATCHDOG=1.
     notify::ready(&format!("listening on {local}, serial {}", cfg.serial.path));
     let relay_task = tokio::spawn(relay.run());
+    if notify::under_systemd() {
+        tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
+    }
     if let Some(signals) = signals {
         tokio::spawn(report_on_signal(signals, stats.clone(), shutdown.clone()));
     }

@@ -10,6 +10,7 @@
 
 pub mod expose;
 pub mod http;
+pub mod status;
 
 use crate::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};
