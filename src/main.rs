@@ -59,6 +59,12 @@ enum Command {
     Sim(mbgate::sim::options::SimArgs),
     /// No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process.
     Demo(mbgate::demo::DemoArgs),
+    /// Ask a running gateway how its lines are: a summary per line and unit.
+    ///
+    /// From its metrics listener (`[metrics] listen`). Exit code 0 healthy, 1 not (a
+    /// line's port not open, or a unit not answering), 3 the gateway could not be
+    /// asked, 2 bad arguments.
+    Status(mbgate::metrics::ask::StatusArgs),
 }
 
 /// Exit code for a bad configuration or bad arguments (docs/design.md §3; clap uses 2 too).
@@ -71,6 +77,7 @@ fn main() -> ExitCode {
         Command::Write(args) => mbgate::client::write_main(args),
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
+        Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::CheckConfig {
             file,
             lines,

@@ -8,6 +8,7 @@
 //! each number as it was at some instant, the set of them not necessarily at the same
 //! one (a scrape in the middle of a reply may count the request and not yet the reply).
 
+pub mod ask;
 pub mod expose;
 pub mod http;
 pub mod status;
@@ -41,6 +42,9 @@ pub struct UnitMetrics {
     pub timeouts: AtomicU64,
     /// 1 while it is backed off (RTU/ASCII, `unit_backoff`), else 0.
     pub backed_off: AtomicU64,
+    /// 1 from its third timeout in a row until it answers again (the log's "not
+    /// answering" warning), else 0.
+    pub not_answering: AtomicU64,
     /// Reply times, from the request on the line to its reply: one count per bucket
     /// of [`REPLY_BUCKETS`] (not cumulative), the last for those above every bound.
     buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],

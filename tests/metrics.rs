@@ -85,7 +85,7 @@ fn metrics_addr(gw: &Gateway) -> SocketAddr {
 }
 
 /// FC 03 of one register at `addr`, as a master sends it.
-fn read_req(tid: u16, addr: u16) -> Vec<u8> {
+fn read_at(tid: u16, addr: u16) -> Vec<u8> {
     let [t0, t1] = tid.to_be_bytes();
     let [a0, a1] = addr.to_be_bytes();
     vec![t0, t1, 0, 0, 0, 6, 1, 0x03, a0, a1, 0, 1]
@@ -130,12 +130,12 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
     let http = metrics_addr(&gw);
     let mut m = gw.connect();
     for tid in 0..3 {
-        let reply = ask(&mut m, &read_req(tid, 0));
+        let reply = ask(&mut m, &read_at(tid, 0));
         assert_eq!(reply[7..], [0x03, 0x02, 0x12, 0x34]);
     }
-    assert_eq!(ask(&mut m, &read_req(3, 1))[7..], [0x83, 0x0B]);
-    assert_eq!(ask(&mut m, &read_req(4, 2))[7..], [0x83, 0x02]);
-    assert_eq!(ask(&mut m, &read_req(5, 3))[7..], [0x83, 0x0B]);
+    assert_eq!(ask(&mut m, &read_at(3, 1))[7..], [0x83, 0x0B]);
+    assert_eq!(ask(&mut m, &read_at(4, 2))[7..], [0x83, 0x02]);
+    assert_eq!(ask(&mut m, &read_at(5, 3))[7..], [0x83, 0x0B]);
     gw.wait_log("late reply dropped", Duration::from_secs(3));
 
     let (status, body) = get(http, "/metrics");
@@ -270,4 +270,76 @@ fn with_metrics_off_only_the_modbus_port_listens() {
     want.sort();
     assert_eq!(listening_ports(gw.proc.pid()), want);
     gw.stop();
+}
+
+/// `mbgate status` summarises what the listener shows and its exit code says whether
+/// the gateway is healthy: 0, then 1 once a unit stops answering; 3 when there is no
+/// gateway to ask.
+#[test]
+fn status_prints_a_summary_and_its_exit_code_says_healthy_or_not() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let cfg = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"")
+        .relay("response_timeout_ms = 100")
+        .metrics("listen = \"127.0.0.1:0\"");
+    let mut gw = Gateway::start(&cfg, dir.path());
+    let http = metrics_addr(&gw).to_string();
+    let line = socat.gw.to_str().unwrap();
+    let mut m = gw.connect();
+    assert_eq!(
+        transact(&mut m, &read_req(1, 1, 7, 1)),
+        read_reply(1, 1, &[7])
+    );
+    let run = mbgate(&["status", "--metrics", &http]);
+    assert_eq!(run.code, 0, "{}", run.stderr);
+    let lines = run.lines();
+    assert_eq!(lines[0], "healthy");
+    assert!(
+        lines[1].starts_with(&format!(
+            "line {line}: port open, 1 masters, 1 requests, 1 replies, 0 timeouts, 0 queued, 0 in flight, last reply "
+        )),
+        "{}",
+        lines[1]
+    );
+    assert!(
+        lines[2].starts_with("  unit 1: 1 requests, 1 replies, 0 timeouts, replies in "),
+        "{}",
+        lines[2]
+    );
+    assert_eq!(
+        lines[3],
+        format!(
+            "listener {}: 1 masters, 1 connections, 0 refused, 0 protocol violations",
+            gw.addr
+        )
+    );
+    // Unit 2 has no device: three timeouts in a row.
+    for tid in 2..5 {
+        assert_eq!(transact(&mut m, &read_req(tid, 2, 7, 1))[7..], [0x83, 0x0B]);
+    }
+    let run = mbgate(&["status", "--metrics", &http]);
+    assert_eq!(run.code, 1, "{}", run.stdout);
+    assert_eq!(
+        run.lines()[0],
+        format!("NOT HEALTHY: unit 2 on {line} not answering")
+    );
+    assert!(
+        run.stdout
+            .contains("  unit 2: 3 requests, 0 replies, 3 timeouts, NOT ANSWERING\n"),
+        "{}",
+        run.stdout
+    );
+    gw.stop();
+    // Nobody listens there any more.
+    let run = mbgate(&["status", "--metrics", &http]);
+    assert_eq!(run.code, 3);
+    assert!(
+        run.stderr
+            .starts_with(&format!("mbgate: cannot ask the gateway at {http}: ")),
+        "{}",
+        run.stderr
+    );
 }

@@ -204,7 +204,7 @@ fn exceptions(lines: &[Arc<LineMetrics>]) -> Family {
 
 fn unit_families(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::fmt::Result {
     type Get = fn(&super::UnitMetrics) -> &std::sync::atomic::AtomicU64;
-    let plain: [(&str, &str, MetricType, Get); 4] = [
+    let plain: [(&str, &str, MetricType, Get); 5] = [
         ("mbgate_unit_requests", "Requests for the unit.", C, |u| {
             &u.requests
         }),
@@ -225,6 +225,12 @@ fn unit_families(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::
             "1 from when the unit is backed off (RTU/ASCII) until it answers again, else 0.",
             G,
             |u| &u.backed_off,
+        ),
+        (
+            "mbgate_unit_not_answering",
+            "1 from the unit's third timeout in a row until it answers again, else 0.",
+            G,
+            |u| &u.not_answering,
         ),
     ];
     for (name, help, kind, get) in plain {

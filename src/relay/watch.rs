@@ -130,6 +130,7 @@ impl Watch {
         u.replies.fetch_add(1, Ordering::Relaxed);
         u.observe(now.saturating_duration_since(left));
         u.backed_off.store(0, Ordering::Relaxed);
+        u.not_answering.store(0, Ordering::Relaxed);
         self.metrics.replied_at(now);
         let exception = (frame.function() & 0x80 != 0).then(|| frame.pdu().get(1).copied());
         if let Some(code) = exception {
@@ -198,6 +199,8 @@ impl Watch {
         if s.timeouts != NOT_ANSWERING_AFTER {
             return;
         }
+        let u = self.metrics.unit(unit);
+        u.not_answering.store(1, Ordering::Relaxed);
         if s.last_warning.is_some_and(|at| now - at < WARN_EVERY) {
             s.unsaid += 1;
             return;
@@ -280,6 +283,7 @@ mod tests {
         assert!(!s(&w).warned);
         w.timed_out(1, t0 + Duration::from_secs(2));
         assert!(s(&w).warned);
+        assert_eq!(w.metrics.unit(1).not_answering.load(Ordering::Relaxed), 1);
         assert_eq!(s(&w).last_warning, Some(t0 + Duration::from_secs(2)));
         w.timed_out(1, t0 + Duration::from_secs(3));
         assert_eq!(s(&w).last_warning, Some(t0 + Duration::from_secs(2)));
