@@ -6,12 +6,14 @@ use crate::config::{Config, Framing, Notifications};
 use crate::metrics::{self, Board, ListenerMetrics};
 use crate::notify;
 use crate::relay::Relay;
+use crate::reload;
 use crate::stats::Stats;
 use crate::tcp;
 use std::net::SocketAddr;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::net::TcpListener;
+use tokio::signal::unix::SignalKind;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
@@ -60,6 +62,17 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
     serve(listener, cfg, shutdown).await
 }
 
+/// [`run`], and on each SIGHUP `load` reads the configuration again and what can
+/// change while running is applied ([`crate::reload`]).
+pub async fn run_reloading(
+    cfg: Config,
+    load: reload::Loader,
+    shutdown: CancellationToken,
+) -> Result<Arc<Stats>, GatewayError> {
+    let listener = bind(&cfg).await?;
+    serve_with(listener, cfg, Some(load), shutdown).await
+}
+
 /// Binds `tcp.listen` (see [`tcp::listen`]).
 pub async fn bind(cfg: &Config) -> Result<TcpListener, GatewayError> {
     let addr = cfg.tcp.listen;
@@ -73,11 +86,21 @@ pub async fn serve(
     cfg: Config,
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
+    serve_with(listener, cfg, None, shutdown).await
+}
+
+async fn serve_with(
+    listener: TcpListener,
+    cfg: Config,
+    load: Option<reload::Loader>,
+    shutdown: CancellationToken,
+) -> Result<Arc<Stats>, GatewayError> {
     let addr = cfg.tcp.listen;
     let local = listener
         .local_addr()
         .map_err(|error| GatewayError::Bind { addr, error })?;
     warn_inapplicable(&cfg);
+    let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     let stats = Arc::new(Stats::default());
 
@@ -96,18 +119,43 @@ pub async fn serve(
         stats: stats.clone(),
     }));
     // Off unless asked for: then nothing but the Modbus port listens.
+    let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
-        let http = metrics::http::bind(addr)
+        let bound = metrics::http::bind(addr)
             .await
             .map_err(|error| GatewayError::MetricsBind { addr, error })?;
-        tokio::spawn(metrics::http::serve(http, board.clone(), shutdown.clone()));
+        http.start(addr, bound);
     }
+    // Before "listening on", as the other handlers: a reload asked for at once finds
+    // its handler, never SIGHUP's default action (the end of the process).
+    let hup = match load {
+        Some(load) => match tokio::signal::unix::signal(SignalKind::hangup()) {
+            Ok(hup) => Some((hup, load)),
+            Err(e) => {
+                warn!("cannot install the SIGHUP handler: no reload ({e})");
+                None
+            }
+        },
+        None => None,
+    };
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
     info!(serial = %cfg.serial.path, "listening on {local}");
     // Before the relay first runs, so READY=1 precedes its first WATCHDOG=1.
     notify::ready(&format!("listening on {local}, serial {}", cfg.serial.path));
     let relay_task = tokio::spawn(relay.run());
+    if let Some((hup, load)) = hup {
+        let relay = handle.clone();
+        let stop = shutdown.clone();
+        tokio::spawn(reload::on_sighup(
+            hup,
+            running.clone(),
+            load,
+            relay,
+            http,
+            stop,
+        ));
+    }
     if notify::under_systemd() {
         tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
     }
@@ -128,7 +176,9 @@ pub async fn serve(
 
     // Shutdown: the listener is closed; connections stop reading and the relay answers
     // what is queued (0x0A) and waits for what is on the line.
-    let bound = cfg.relay.answer_within() + Duration::from_secs(2);
+    // As the configuration runs now: a reload may have changed the timeouts.
+    let answer_within = running.lock().expect("not poisoned").relay.answer_within();
+    let bound = answer_within + Duration::from_secs(2);
     info!("shutting down: draining in-flight requests");
     // systemd waits for the drain, and a second more for the exit itself.
     notify::stopping(bound + Duration::from_secs(1));

@@ -18,6 +18,7 @@ pub mod number;
 pub mod outbox;
 pub mod port;
 pub mod relay;
+pub mod reload;
 pub mod serial;
 pub mod sim;
 pub mod stats;

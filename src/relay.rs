@@ -279,6 +279,11 @@ impl Relay {
                 self.sched.detach(conn);
                 self.watch.masters(self.masters.len());
             }
+            Command::Retune { relay, traffic } => {
+                self.in_flight.retune(&relay);
+                self.watch.set_traffic(traffic);
+                self.cfg = relay;
+            }
             Command::Request { conn, adu, ticket } => {
                 self.stats.add(&self.stats.requests, 1);
                 self.watch.request(adu.unit());

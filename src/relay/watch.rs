@@ -109,6 +109,10 @@ impl Watch {
         }
     }
 
+    pub(super) fn set_traffic(&mut self, on: bool) {
+        self.traffic = on;
+    }
+
     /// Whether the traffic log is on: then the relay passes the frames as on the wire.
     pub(super) fn traffic(&self) -> bool {
         self.traffic

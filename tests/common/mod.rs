@@ -401,6 +401,11 @@ impl Proc {
         }
     }
 
+    /// Sends the signal `name` (`kill -NAME`) and carries on.
+    pub(crate) fn signal(&mut self, name: &str) {
+        signal(&mut self.child, name);
+    }
+
     /// SIGTERM, then waits (bounded) for the exit.
     pub(crate) fn terminate(&mut self, within: Duration) -> ExitStatus {
         self.stop_with("TERM", within)
