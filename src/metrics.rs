@@ -11,6 +11,7 @@
 pub mod ask;
 pub mod expose;
 pub mod http;
+pub mod page;
 pub mod status;
 
 use crate::stats::Stats;
@@ -100,7 +101,43 @@ pub struct LineMetrics {
     /// Whether the port is open (1) or not (0).
     pub port_open: AtomicU64,
     started: Instant,
+    /// Until when (microseconds after `started`) the status page is open: the relay
+    /// records frames for it only then.
+    watched_until_us: AtomicU64,
+    /// The last frames on the line, for the status page.
+    frames: Mutex<Frames>,
 }
+
+/// A frame on the line (or a timeout), as the status page lists it.
+#[derive(Debug, Clone)]
+pub struct FrameSeen {
+    /// Milliseconds since the Unix epoch.
+    pub at_ms: u64,
+    /// `gw->serial`, `serial->gw`, `late`, `unsolicited`, `timeout`.
+    pub dir: &'static str,
+    /// The master's connection, when there is one.
+    pub conn: Option<u64>,
+    pub unit: u8,
+    pub function: u8,
+    /// The address and count a read or write names.
+    pub span: Option<(u16, u16)>,
+    /// The frame as on the wire (empty for a timeout).
+    pub bytes: Vec<u8>,
+}
+
+/// The last [`Frames::KEPT`] frames of a line, and how many there were in all.
+#[derive(Debug, Default)]
+pub struct Frames {
+    pub kept: std::collections::VecDeque<FrameSeen>,
+    pub total: u64,
+}
+
+impl Frames {
+    pub const KEPT: usize = 100;
+}
+
+/// How long the status page counts as open after its last request.
+const WATCHED_FOR: Duration = Duration::from_secs(10);
 
 impl LineMetrics {
     pub fn new(name: &str, stats: Arc<Stats>) -> Self {
@@ -116,6 +153,8 @@ impl LineMetrics {
             last_reply_us: AtomicU64::new(0),
             port_open: AtomicU64::new(0),
             started: Instant::now(),
+            watched_until_us: AtomicU64::new(0),
+            frames: Mutex::new(Frames::default()),
         }
     }
 
@@ -160,6 +199,39 @@ impl LineMetrics {
     pub fn get(&self, a: &AtomicU64) -> u64 {
         load(a)
     }
+
+    fn us_since_start(&self, now: Instant) -> u64 {
+        now.saturating_duration_since(self.started).as_micros() as u64
+    }
+
+    /// The status page asked at `now`: frames are recorded for a while.
+    pub fn watched(&self, now: Instant) {
+        let until = self.us_since_start(now + WATCHED_FOR);
+        self.watched_until_us.store(until, Ordering::Relaxed);
+    }
+
+    /// Is the status page open? (One atomic load: the relay asks for every frame.)
+    pub fn is_watched(&self, now: Instant) -> bool {
+        load(&self.watched_until_us) > self.us_since_start(now)
+    }
+
+    /// Records a frame for the status page. Never waits: while a reader holds the
+    /// list, the frame is left out of it (not out of the counters).
+    pub fn record(&self, frame: FrameSeen) {
+        if let Ok(mut f) = self.frames.try_lock() {
+            if f.kept.len() == Frames::KEPT {
+                f.kept.pop_front();
+            }
+            f.kept.push_back(frame);
+            f.total += 1;
+        }
+    }
+
+    /// The frames kept, oldest first, and how many were recorded in all.
+    pub fn frames(&self) -> (Vec<FrameSeen>, u64) {
+        let f = self.frames.lock().expect("not poisoned");
+        (f.kept.iter().cloned().collect(), f.total)
+    }
 }
 
 /// One Modbus/TCP listener.
@@ -186,6 +258,9 @@ impl ListenerMetrics {
 pub struct Board {
     pub lines: Mutex<Vec<Arc<LineMetrics>>>,
     pub listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
+    /// Each line's last minute, a point a second, by line name, while the metrics
+    /// listener runs (`page::sample`).
+    pub history: Mutex<std::collections::HashMap<String, page::History>>,
 }
 
 impl Board {

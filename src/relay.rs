@@ -358,7 +358,7 @@ impl Relay {
     fn send(&mut self, req: Pending, now: Instant) {
         let tid = self.line.allocate(now);
         let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
-        self.watch.sent(req.conn, &req.adu, tid, &bytes);
+        self.watch.sent(req.conn, &req.adu, tid, &bytes, now);
         self.out.push(tid, bytes);
         if self.line.is_broadcast(&req.adu) {
             self.stats.add(&self.stats.broadcasts, 1);
@@ -408,7 +408,10 @@ impl Relay {
             self.stats.add(&self.stats.replies, 1);
             // When it left: its deadline is its response timeout after that.
             let left = f.deadline.checked_sub(f.timeout).unwrap_or(now);
-            let wire = self.watch.traffic().then(|| self.line.on_wire(&frame));
+            let wire = self
+                .watch
+                .wants_frames(now)
+                .then(|| self.line.on_wire(&frame));
             let (conn, asked) = (f.req.conn, &f.req.adu);
             self.watch.replied(conn, asked, &frame, wire, (left, now));
             let reply = frame.with_tid(f.req.adu.tid());
@@ -418,7 +421,7 @@ impl Relay {
         match self.line.unsolicited(tid) {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
-                self.traffic("late reply, dropped", &frame);
+                self.traffic("late reply, dropped", &frame, now);
                 debug!(
                     tid,
                     "late reply dropped (its request timed out or was answered already): {:?}",
@@ -426,17 +429,17 @@ impl Relay {
                 );
             }
             Unsolicited::Notification => {
-                self.traffic("answers no request", &frame);
+                self.traffic("answers no request", &frame, now);
                 self.masters.notification(frame, &self.stats)
             }
         }
     }
 
     /// The traffic log's line for a frame that answers nothing on the line.
-    fn traffic(&self, what: &str, frame: &Adu) {
-        if self.watch.traffic() {
-            self.watch
-                .unsolicited(what, frame, &self.line.on_wire(frame));
+    fn traffic(&self, what: &str, frame: &Adu, now: Instant) {
+        if self.watch.wants_frames(now) {
+            let wire = self.line.on_wire(frame);
+            self.watch.unsolicited(what, frame, &wire, now);
         }
     }
 }

@@ -4,12 +4,12 @@
 //! them (docs/architecture.md "Dependencies").
 //!
 //! - `/metrics`: the Prometheus exposition (`expose.rs`).
-//! - `/`: a line saying where the metrics are.
+//! - `/`: the status page, and `/status.json`, what it polls (`page.rs`).
 //!
 //! Nothing here changes the gateway. A request head larger than 8 KiB, or slower than
 //! 5 s, is refused; at most 16 connections at once, the others closed at once.
 
-use super::{expose, Board};
+use super::{expose, page, Board};
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -19,7 +19,6 @@ use tokio::sync::Semaphore;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info};
 
-const INDEX: &str = "mbgate: Prometheus metrics at /metrics (README \"Watching it run\")\n";
 const MAX_HEAD: usize = 8 * 1024;
 const HEAD_WITHIN: Duration = Duration::from_secs(5);
 const MAX_CONNECTIONS: usize = 16;
@@ -35,6 +34,7 @@ pub async fn serve(listener: TcpListener, board: Arc<Board>, stop: CancellationT
         info!("metrics on http://{local}/metrics");
     }
     let limit = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    tokio::spawn(page::sample(board.clone(), stop.clone()));
     loop {
         let accepted = tokio::select! {
             _ = stop.cancelled() => break,
@@ -103,7 +103,13 @@ fn respond(head: &[u8], board: &Arc<Board>) -> Vec<u8> {
     let path = target.split('?').next().unwrap_or("");
     match path {
         "/metrics" => reply(200, expose::CONTENT_TYPE, expose::render(board), head_only),
-        "/" => reply(200, "text/plain; charset=utf-8", INDEX.into(), head_only),
+        "/" => reply(
+            200,
+            "text/html; charset=utf-8",
+            page::HTML.into(),
+            head_only,
+        ),
+        "/status.json" => reply(200, "application/json", page::json(board), head_only),
         _ => reply(
             404,
             "text/plain; charset=utf-8",

@@ -15,7 +15,7 @@ impl Relay {
     pub(super) fn expire(&mut self, now: Instant) {
         for f in self.in_flight.take_expired(now) {
             self.line.timed_out(now, &self.stats);
-            self.watch.timed_out(f.req.adu.unit(), now);
+            self.watch.timed_out(f.req.conn, &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.

@@ -9,7 +9,7 @@
 use crate::frame::hex::Hex;
 use crate::frame::pdu::fc;
 use crate::frame::Adu;
-use crate::metrics::LineMetrics;
+use crate::metrics::{FrameSeen, LineMetrics};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -89,8 +89,29 @@ impl Watch {
         self.metrics.masters.store(n as u64, Ordering::Relaxed);
     }
 
+    /// Is anyone looking at the frames: the traffic log, or the status page at `now`?
+    pub(super) fn wants_frames(&self, now: Instant) -> bool {
+        self.traffic || self.metrics.is_watched(now)
+    }
+
+    /// Records a frame for the status page, if it is open.
+    fn record(&self, now: Instant, frame: impl FnOnce() -> FrameSeen) {
+        if self.metrics.is_watched(now) {
+            self.metrics.record(frame());
+        }
+    }
+
     /// Request `adu` from master `conn` goes on the line as `tid`, as `bytes`.
-    pub(super) fn sent(&self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8]) {
+    pub(super) fn sent(&self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
+        self.record(now, || FrameSeen {
+            at_ms: unix_ms(),
+            dir: "gw->serial",
+            conn: Some(conn),
+            unit: adu.unit(),
+            function: adu.function(),
+            span: span(adu.pdu()),
+            bytes: bytes.to_vec(),
+        });
         if self.traffic {
             let (addr, count) = span(adu.pdu()).unzip();
             debug!(
@@ -111,11 +132,6 @@ impl Watch {
 
     pub(super) fn set_traffic(&mut self, on: bool) {
         self.traffic = on;
-    }
-
-    /// Whether the traffic log is on: then the relay passes the frames as on the wire.
-    pub(super) fn traffic(&self) -> bool {
-        self.traffic
     }
 
     /// The reply `frame` (with the line's id) answered `asked` from master `conn`,
@@ -140,7 +156,18 @@ impl Watch {
         if let Some(code) = exception {
             self.metrics.device_exception(code.unwrap_or(0));
         }
-        if let Some(wire) = wire {
+        if let Some(wire) = &wire {
+            self.record(now, || FrameSeen {
+                at_ms: unix_ms(),
+                dir: "serial->gw",
+                conn: Some(conn),
+                unit,
+                function: frame.function(),
+                span: span(asked.pdu()),
+                bytes: wire.clone(),
+            });
+        }
+        if let (Some(wire), true) = (wire, self.traffic) {
             let (addr, count) = span(asked.pdu()).unzip();
             debug!(
                 target: "mbgate::traffic",
@@ -178,7 +205,23 @@ impl Watch {
 
     /// A frame from the device that answers nothing on the line: `what` it is, and
     /// the frame as on the wire.
-    pub(super) fn unsolicited(&self, what: &str, frame: &Adu, wire: &[u8]) {
+    pub(super) fn unsolicited(&self, what: &str, frame: &Adu, wire: &[u8], now: Instant) {
+        self.record(now, || FrameSeen {
+            at_ms: unix_ms(),
+            dir: if what.starts_with("late") {
+                "late"
+            } else {
+                "unsolicited"
+            },
+            conn: None,
+            unit: frame.unit(),
+            function: frame.function(),
+            span: None,
+            bytes: wire.to_vec(),
+        });
+        if !self.traffic {
+            return;
+        }
         debug!(
             target: "mbgate::traffic",
             dir = "serial->gw",
@@ -190,8 +233,18 @@ impl Watch {
         );
     }
 
-    /// A request for `unit` got no reply in time (one attempt).
-    pub(super) fn timed_out(&mut self, unit: u8, now: Instant) {
+    /// A request `asked` from master `conn` got no reply in time (one attempt).
+    pub(super) fn timed_out(&mut self, conn: u64, asked: &Adu, now: Instant) {
+        let unit = asked.unit();
+        self.record(now, || FrameSeen {
+            at_ms: unix_ms(),
+            dir: "timeout",
+            conn: Some(conn),
+            unit,
+            function: asked.function(),
+            span: span(asked.pdu()),
+            bytes: Vec::new(),
+        });
         self.metrics
             .unit(unit)
             .timeouts
@@ -234,6 +287,12 @@ impl Watch {
     }
 }
 
+/// Now, in milliseconds since the Unix epoch.
+fn unix_ms() -> u64 {
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH);
+    now.unwrap_or_default().as_millis() as u64
+}
+
 /// Seconds, to a tenth: `0.3 s`, `12.0 s`.
 fn secs(d: Duration) -> String {
     format!("{:.1} s", d.as_secs_f64())
@@ -263,6 +322,10 @@ mod tests {
     use super::*;
     use crate::stats::Stats;
 
+    fn asked(unit: u8) -> Adu {
+        Adu::build(1, unit, &[3, 0, 0, 0, 1])
+    }
+
     fn watch() -> (Watch, Instant) {
         let m = Arc::new(LineMetrics::new("/dev/ttyX", Arc::new(Stats::default())));
         (Watch::new(m, false), Instant::now())
@@ -282,14 +345,14 @@ mod tests {
     fn a_spell_is_warned_at_its_third_timeout_and_its_end_said() {
         let (mut w, t0) = watch();
         let s = |w: &Watch| w.spells[1].clone();
-        w.timed_out(1, t0);
-        w.timed_out(1, t0 + Duration::from_secs(1));
+        w.timed_out(7, &asked(1), t0);
+        w.timed_out(7, &asked(1), t0 + Duration::from_secs(1));
         assert!(!s(&w).warned);
-        w.timed_out(1, t0 + Duration::from_secs(2));
+        w.timed_out(7, &asked(1), t0 + Duration::from_secs(2));
         assert!(s(&w).warned);
         assert_eq!(w.metrics.unit(1).not_answering.load(Ordering::Relaxed), 1);
         assert_eq!(s(&w).last_warning, Some(t0 + Duration::from_secs(2)));
-        w.timed_out(1, t0 + Duration::from_secs(3));
+        w.timed_out(7, &asked(1), t0 + Duration::from_secs(3));
         assert_eq!(s(&w).last_warning, Some(t0 + Duration::from_secs(2)));
         assert_eq!(w.metrics.unit(1).timeouts.load(Ordering::Relaxed), 4);
         // Other units are not touched.
@@ -302,18 +365,18 @@ mod tests {
         let req = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let rep = Adu::build(1, 1, &[3, 2, 0, 0]);
         for i in 0..3 {
-            w.timed_out(1, t0 + Duration::from_secs(i));
+            w.timed_out(7, &asked(1), t0 + Duration::from_secs(i));
         }
         w.replied(1, &req, &rep, None, (t0, t0 + Duration::from_secs(5)));
         assert_eq!(w.spells[1].timeouts, 0);
         for i in 10..13 {
-            w.timed_out(1, t0 + Duration::from_secs(i));
+            w.timed_out(7, &asked(1), t0 + Duration::from_secs(i));
         }
         assert!(!w.spells[1].warned, "within a minute of the last warning");
         assert_eq!(w.spells[1].unsaid, 1);
         w.replied(1, &req, &rep, None, (t0, t0 + Duration::from_secs(20)));
         for i in 70..73 {
-            w.timed_out(1, t0 + Duration::from_secs(i));
+            w.timed_out(7, &asked(1), t0 + Duration::from_secs(i));
         }
         assert!(w.spells[1].warned, "a minute later");
         assert_eq!(w.spells[1].unsaid, 0);
