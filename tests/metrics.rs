@@ -203,6 +203,16 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
         0.0
     );
 
+    // Every metric the Grafana dashboard and the scrape docs name is one the gateway
+    // exports.
+    let names: std::collections::BTreeSet<&str> = s.keys().map(|(n, _)| n.as_str()).collect();
+    let dashboard = include_str!("../docs/grafana-dashboard.json");
+    for word in dashboard.split(|c: char| !(c.is_ascii_alphanumeric() || c == '_')) {
+        if word.starts_with("mbgate_") {
+            assert!(names.contains(word), "docs/grafana-dashboard.json names {word}");
+        }
+    }
+
     // The master goes: the gauges follow.
     drop(m);
     wait_for("the master detached", Duration::from_secs(3), || {
