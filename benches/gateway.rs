@@ -3,7 +3,7 @@
 //! pty pairs, and printed as Markdown.
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
-//! `fairness`, `footprint`, `rtu`, `rtu-backoff` (all when none is named). `scripts/bench` runs this and
+//! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `metrics` (all when none is named). `scripts/bench` runs this and
 //! `benches/decoder.rs` and writes the tables into docs/performance.md. With
 //! `MBGATE_BENCH_MD=FILE` the tables are also written to FILE.
 //!
@@ -47,6 +47,7 @@ fn main() {
         "footprint",
         "rtu",
         "rtu-backoff",
+        "metrics",
     ];
     if let Some(bad) = args.iter().find(|a| !all.contains(&a.as_str())) {
         eprintln!("unknown scenario {bad:?}; scenarios: {}", all.join(", "));
@@ -72,6 +73,9 @@ fn main() {
     }
     if wanted("rtu-backoff") {
         rtu_backoff(&mut r);
+    }
+    if wanted("metrics") {
+        metrics_cost(&mut r);
     }
     let md = r.render(&load_before, &loadavg());
     println!("{md}");
@@ -391,6 +395,96 @@ fn latency(r: &mut Report) {
     r.detail(
         &format!("Added latency ({N} samples a path and size, in {ROUNDS} rounds in which the paths take turns, each after {WARM} warm-up; simulator unpaced, no delay; every path crosses the one socat hop of the pty pair)"),
         &command("latency"),
+        &t,
+    );
+}
+
+/// GET `path` from `addr`, the whole answer.
+fn http_get(addr: &str, path: &str) -> usize {
+    use std::io::Read as _;
+    let Ok(mut s) = TcpStream::connect(addr) else {
+        return 0;
+    };
+    let _ = write!(s, "GET {path} HTTP/1.1\r\n\r\n");
+    let mut all = Vec::new();
+    let _ = s.read_to_end(&mut all);
+    all.len()
+}
+
+/// What the metrics listener costs: one master polling FC 03 × 1 through the gateway
+/// with `[metrics]` off, then on with a scrape of /metrics and a poll of the status
+/// page's /status.json every second (frames recorded, the worst case), in rounds that
+/// take turns; CPU per transaction and the latency added, each against off.
+fn metrics_cost(r: &mut Report) {
+    eprintln!("metrics: the same polling with the metrics listener off and on");
+    const WARM: usize = 200;
+    const N: usize = 4000;
+    const ROUNDS: usize = 4;
+    let line = Line::start(&[]);
+    let mut lat = [Vec::new(), Vec::new()];
+    let mut cpu = [0u64; 2];
+    let mut transactions = [0usize; 2];
+    for _ in 0..ROUNDS {
+        for (i, on) in [false, true].into_iter().enumerate() {
+            let mut cfg = Cfg::new(&line.socat.gw).serial("silence_floor_ms = 0");
+            if on {
+                cfg = cfg.metrics("listen = \"127.0.0.1:0\"");
+            }
+            let mut gw = line.gateway_with(cfg, &[], &[]);
+            let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let scraper = on.then(|| {
+                gw.wait_log("metrics on http://", Duration::from_secs(5));
+                let log = gw.log();
+                let rest = log.split("metrics on http://").nth(1).unwrap();
+                let addr = rest.split('/').next().unwrap().to_owned();
+                let stop = stop.clone();
+                thread::spawn(move || {
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        assert!(http_get(&addr, "/metrics") > 1000);
+                        assert!(http_get(&addr, "/status.json") > 100);
+                        thread::sleep(Duration::from_secs(1));
+                    }
+                })
+            });
+            let mut s = connect(&gw);
+            let cpu0 = cpu_ns(gw.proc.pid());
+            lat[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, 1)));
+            cpu[i] += cpu_ns(gw.proc.pid()) - cpu0;
+            transactions[i] += WARM + N / ROUNDS;
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            if let Some(t) = scraper {
+                t.join().expect("the scraper");
+            }
+            gw.terminate(Duration::from_secs(5));
+        }
+    }
+    let per = |i: usize| Duration::from_nanos(cpu[i]) / transactions[i] as u32;
+    let (off, on) = (spread(&lat[0]), spread(&lat[1]));
+    let mut t = String::from("| metrics | CPU per transaction | p50 | p99 | max |\n|---|---|---|---|---|\n");
+    for (name, i, x) in [("off", 0, off), ("on, scraped and the page polled every second", 1, on)] {
+        let _ = writeln!(t, "| {name} | {} | {} | {} | {} |", us(per(i)), us(x.p50), us(x.p99), us(x.max));
+    }
+    let cpu_pct = (per(1).as_secs_f64() / per(0).as_secs_f64() - 1.0) * 100.0;
+    r.row(
+        "metrics",
+        "metrics on: CPU per transaction against off",
+        format!("{cpu_pct:+.1} % ({} → {})", us(per(0)), us(per(1))),
+        "< 5 %",
+        Some(cpu_pct < 5.0),
+    );
+    for (q, a, b) in [("p50", off.p50, on.p50), ("p99", off.p99, on.p99)] {
+        let pct = (b.as_secs_f64() / a.as_secs_f64() - 1.0) * 100.0;
+        r.row(
+            "metrics",
+            &format!("metrics on: round trip {q} against off, FC 03 × 1"),
+            format!("{pct:+.1} % ({} → {})", us(a), us(b)),
+            "< 5 %",
+            Some(pct < 5.0),
+        );
+    }
+    r.detail(
+        &format!("The metrics listener's cost ({N} samples each, in {ROUNDS} rounds taking turns, each after {WARM} warm-up)"),
+        &command("metrics"),
         &t,
     );
 }
