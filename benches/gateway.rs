@@ -460,9 +460,21 @@ fn metrics_cost(r: &mut Report) {
     }
     let per = |i: usize| Duration::from_nanos(cpu[i]) / transactions[i] as u32;
     let (off, on) = (spread(&lat[0]), spread(&lat[1]));
-    let mut t = String::from("| metrics | CPU per transaction | p50 | p99 | max |\n|---|---|---|---|---|\n");
-    for (name, i, x) in [("off", 0, off), ("on, scraped and the page polled every second", 1, on)] {
-        let _ = writeln!(t, "| {name} | {} | {} | {} | {} |", us(per(i)), us(x.p50), us(x.p99), us(x.max));
+    let mut t = String::from(
+        "| metrics | CPU per transaction | p50 | p99 | max |\n|---|---|---|---|---|\n",
+    );
+    for (name, i, x) in [
+        ("off", 0, off),
+        ("on, scraped and the page polled every second", 1, on),
+    ] {
+        let _ = writeln!(
+            t,
+            "| {name} | {} | {} | {} | {} |",
+            us(per(i)),
+            us(x.p50),
+            us(x.p99),
+            us(x.max)
+        );
     }
     let cpu_pct = (per(1).as_secs_f64() / per(0).as_secs_f64() - 1.0) * 100.0;
     r.row(

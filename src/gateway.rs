@@ -121,9 +121,8 @@ async fn serve_with(
     // Off unless asked for: then nothing but the Modbus port listens.
     let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
-        let bound = metrics::http::bind(addr)
-            .await
-            .map_err(|error| GatewayError::MetricsBind { addr, error })?;
+        let bound =
+            metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
         http.start(addr, bound);
     }
     // Before "listening on", as the other handlers: a reload asked for at once finds

@@ -62,20 +62,20 @@ impl MetricsListener {
     }
 
     /// Serves on `listener` (bound at start, so a bad address fails the start).
-    pub fn start(&mut self, addr: SocketAddr, listener: tokio::net::TcpListener) {
+    pub fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
         let stop = self.shutdown.child_token();
-        tokio::spawn(http::serve(listener, self.board.clone(), stop.clone()));
+        http::spawn(listener, self.board.clone(), stop.clone());
         self.running = Some((addr, stop));
     }
 
     /// Listens on `want` (none: not at all). A new address that cannot be bound
     /// leaves the old listener running, and says so.
-    async fn set(&mut self, want: Option<SocketAddr>) -> Result<(), String> {
+    fn set(&mut self, want: Option<SocketAddr>) -> Result<(), String> {
         if self.running.as_ref().map(|(a, _)| *a) == want {
             return Ok(());
         }
         let bound = match want {
-            Some(addr) => match http::bind(addr).await {
+            Some(addr) => match http::bind(addr) {
                 Ok(l) => Some((addr, l)),
                 Err(e) => return Err(format!("cannot listen for metrics on {addr}: {e}")),
             },
@@ -121,7 +121,7 @@ pub async fn on_sighup(
                 restart.push(format!("{key} = {value}"));
             }
         }
-        if let Err(e) = metrics.set(new.metrics.listen).await {
+        if let Err(e) = metrics.set(new.metrics.listen) {
             error!("reload: {e}; the metrics listener stays as it was");
             new.metrics = old.metrics.clone();
         }

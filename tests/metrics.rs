@@ -209,7 +209,10 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
     let dashboard = include_str!("../docs/grafana-dashboard.json");
     for word in dashboard.split(|c: char| !(c.is_ascii_alphanumeric() || c == '_')) {
         if word.starts_with("mbgate_") {
-            assert!(names.contains(word), "docs/grafana-dashboard.json names {word}");
+            assert!(
+                names.contains(word),
+                "docs/grafana-dashboard.json names {word}"
+            );
         }
     }
 

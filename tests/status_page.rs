@@ -7,6 +7,7 @@
 
 mod common;
 use common::*;
+use std::io::{Read, Write};
 use std::process::Command;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -101,8 +102,28 @@ fn the_status_page_shows_live_rates_and_decoded_frames_in_a_browser() {
         }
     });
 
-    // The gateway samples a point a second: two make a rate.
+    // The page was open a moment ago (frames are recorded only while it is), and the
+    // gateway samples a point a second: two make a rate.
+    let host = url
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_owned();
+    let mut s = std::net::TcpStream::connect(&host).unwrap();
+    write!(s, "GET /status.json HTTP/1.1\r\n\r\n").unwrap();
+    let mut json = String::new();
+    s.read_to_string(&mut json).unwrap();
+    assert!(
+        json.contains("\"frames_total\":0"),
+        "nothing recorded before: {json}"
+    );
     thread::sleep(Duration::from_millis(2100));
+    let mut s = std::net::TcpStream::connect(&host).unwrap();
+    write!(s, "GET /status.json HTTP/1.1\r\n\r\n").unwrap();
+    let mut json = String::new();
+    s.read_to_string(&mut json).unwrap();
+    let at = json.find("\"frames_total\":").expect("frames_total") + 15;
+    let before: u64 = json[at..].split(',').next().unwrap().parse().unwrap();
+    assert!(before > 0, "recorded while the page was open: {json}");
     let first = browse(browser, &url, &["--dump-dom"]);
     // Several polls of /status.json: the rate is a number above zero.
     let updates: u32 = text_after(&first, "(update ").parse().unwrap();
@@ -138,11 +159,15 @@ fn the_status_page_shows_live_rates_and_decoded_frames_in_a_browser() {
     assert!(first.contains("healthy"), "{first}");
     let total = |dom: &str| -> u64 { text_after(dom, "frames (of ").parse().unwrap() };
 
-    // Later, the page shows more.
+    // Newer than what there was before the browser came: the page shows the frames
+    // recorded since, having polled several times.
+    assert!(
+        total(&first) > before,
+        "{} frames, {before} before",
+        total(&first)
+    );
     let shot = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/status-page.png");
     let _ = std::fs::remove_file(&shot);
-    let second = browse(browser, &url, &["--dump-dom"]);
-    assert!(total(&second) > total(&first), "the frame list updates");
     browse(
         browser,
         &url,

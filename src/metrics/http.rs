@@ -6,7 +6,8 @@
 //! - `/metrics`: the Prometheus exposition (`expose.rs`).
 //! - `/`: the status page, and `/status.json`, what it polls (`page.rs`).
 //!
-//! Nothing here changes the gateway. A request head larger than 8 KiB, or slower than
+//! It runs on a thread of its own ([`spawn`]), so the relay's loop never waits for a
+//! scrape to be rendered. Nothing here changes the gateway. A request head larger than 8 KiB, or slower than
 //! 5 s, is refused; at most 16 connections at once, the others closed at once.
 
 use super::{expose, page, Board};
@@ -23,13 +24,41 @@ const MAX_HEAD: usize = 8 * 1024;
 const HEAD_WITHIN: Duration = Duration::from_secs(5);
 const MAX_CONNECTIONS: usize = 16;
 
-/// Binds `addr` for the metrics listener.
-pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
-    TcpListener::bind(addr).await
+/// Binds `addr` for the metrics listener (at start, so a bad address fails the start).
+pub fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
+    let listener = std::net::TcpListener::bind(addr)?;
+    listener.set_nonblocking(true)?;
+    Ok(listener)
+}
+
+/// Serves `board` on `listener` until `stop`, on a thread of its own with a runtime of
+/// its own: rendering a scrape or the page never holds up the relay's loop, whose
+/// runtime has one thread.
+pub fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: CancellationToken) {
+    let run = move || {
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
+        rt.block_on(async {
+            let listener = TcpListener::from_std(listener)?;
+            serve(listener, board, stop).await;
+            Ok::<_, std::io::Error>(())
+        })
+    };
+    let spawned = std::thread::Builder::new()
+        .name("mbgate-metrics".into())
+        .spawn(move || {
+            if let Err(e) = run() {
+                tracing::error!("metrics listener stopped: {e}");
+            }
+        });
+    if let Err(e) = spawned {
+        tracing::error!("cannot start the metrics listener's thread: {e}");
+    }
 }
 
 /// Serves `board` on `listener` until `stop`.
-pub async fn serve(listener: TcpListener, board: Arc<Board>, stop: CancellationToken) {
+async fn serve(listener: TcpListener, board: Arc<Board>, stop: CancellationToken) {
     if let Ok(local) = listener.local_addr() {
         info!("metrics on http://{local}/metrics");
     }

@@ -141,6 +141,8 @@ fn frame(f: &FrameSeen) -> String {
 }
 
 fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
+    // The frames first: a first request shows none, then recording starts.
+    let (frames, total) = l.frames();
     l.watched(now);
     let g = |a: &AtomicU64| l.get(a);
     let st = &l.stats;
@@ -162,7 +164,6 @@ fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
     let device: u64 = l.device_exceptions().iter().map(|(_, n)| n).sum();
     let gateway =
         st.get(&st.timeouts) + st.get(&st.backed_off) + st.get(&st.busy) + st.get(&st.unavailable);
-    let (frames, total) = l.frames();
     let frames: Vec<String> = frames.iter().map(frame).collect();
     format!(
         "{{\"name\":{},\"open\":{},\"masters\":{},\"queued\":{},\"in_flight\":{},\"requests\":{},\"replies\":{},\"timeouts\":{timeouts},\"retries\":{},\"late\":{},\"exceptions_device\":{device},\"exceptions_gateway\":{gateway},\"busy_s\":{},\"last_reply_ms\":{},\"units\":[{}],\"frames_total\":{total},\"frames\":[{}],\"history\":{}}}",
