@@ -103,7 +103,9 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     let (reply, took) = slow_read(&mut m, 2);
     assert_eq!(reply, hex("00 02 00 00 00 03 01 83 0B"), "200 ms now");
     assert!(took < Duration::from_millis(300), "{took:?}");
-    // The metrics listener came up with the reload.
+    // The metrics listener came up with the reload (its thread says where).
+    gw.wait_log("metrics on http://", Duration::from_secs(5));
+    let log = gw.log();
     let rest = log.split("metrics on http://").nth(1).expect("metrics on");
     let http = rest.split('/').next().unwrap();
     let mut s = std::net::TcpStream::connect(http).unwrap();
