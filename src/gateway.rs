@@ -3,16 +3,19 @@
 //! systemd when it is ready and when it stops (see [`crate::notify`]).
 
 use crate::config::{Config, Framing, LineConfig, ListenConfig, Notifications};
+use crate::metrics::{self, Board, ListenerMetrics};
 use crate::notify;
-use crate::relay::Relay;
+use crate::relay::{Relay, RelayHandle};
+use crate::reload;
 use crate::router::Router;
 use crate::stats::Stats;
 use crate::tcp;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::net::TcpListener;
+use tokio::signal::unix::SignalKind;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
@@ -23,6 +26,12 @@ pub enum GatewayError {
     /// not a `source`: printed as a chain it would appear twice.
     #[error("cannot listen on {addr}: {error}{}", bind_hint(.error, *.addr))]
     Bind {
+        addr: SocketAddr,
+        error: std::io::Error,
+    },
+    /// `metrics.listen` could not be bound.
+    #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
+    MetricsBind {
         addr: SocketAddr,
         error: std::io::Error,
     },
@@ -55,6 +64,17 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
     serve(listeners, cfg, shutdown).await
 }
 
+/// [`run`], and on each SIGHUP `load` reads the configuration again and what can
+/// change while running is applied ([`crate::reload`]).
+pub async fn run_reloading(
+    cfg: Config,
+    load: reload::Loader,
+    shutdown: CancellationToken,
+) -> Result<Arc<Stats>, GatewayError> {
+    let listeners = bind(&cfg).await?;
+    serve_with(listeners, cfg, Some(load), shutdown).await
+}
+
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
 pub async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
@@ -73,6 +93,15 @@ pub async fn serve(
     cfg: Config,
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
+    serve_with(listeners, cfg, None, shutdown).await
+}
+
+async fn serve_with(
+    listeners: Vec<TcpListener>,
+    cfg: Config,
+    load: Option<reload::Loader>,
+    shutdown: CancellationToken,
+) -> Result<Arc<Stats>, GatewayError> {
     let mut bound = Vec::new();
     for (listener, listen) in listeners.into_iter().zip(cfg.listeners()) {
         let local = listener.local_addr().map_err(|error| GatewayError::Bind {
@@ -82,13 +111,15 @@ pub async fn serve(
         bound.push((listener, listen, local));
     }
     warn_inapplicable(&cfg);
+    let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     let stats = Arc::new(Stats::default());
+    let board = Arc::new(Board::default());
 
     // Each line its own relay task: its own queue, timeouts, retries and backoff, so
     // a slow or dead line never holds up another.
     let lines = cfg.lines();
-    let mut handles = Vec::new();
+    let mut handles: Vec<RelayHandle> = Vec::new();
     let mut relays = Vec::new();
     for (i, line) in lines.iter().enumerate() {
         let (relay, handle) =
@@ -100,10 +131,36 @@ pub async fn serve(
         } else {
             relay
         };
+        board.add_line(relay.metrics());
         handles.push(handle);
         relays.push(relay);
     }
-    let router = Arc::new(Router::new(&lines, handles));
+    for (_, _, local) in &bound {
+        board.add_listener(Arc::new(ListenerMetrics {
+            name: local.to_string(),
+            stats: stats.clone(),
+        }));
+    }
+    // Off unless asked for: then nothing but the Modbus ports listen.
+    let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
+    if let Some(addr) = cfg.metrics.listen {
+        let listener =
+            metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
+        http.start(addr, listener);
+    }
+    let router = Arc::new(Router::new(&lines, handles.clone()));
+    // Before "listening on", as the other handlers: a reload asked for at once finds
+    // its handler, never SIGHUP's default action (the end of the process).
+    let hup = match load {
+        Some(load) => match tokio::signal::unix::signal(SignalKind::hangup()) {
+            Ok(hup) => Some((hup, load)),
+            Err(e) => {
+                warn!("cannot install the SIGHUP handler: no reload ({e})");
+                None
+            }
+        },
+        None => None,
+    };
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
     let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
@@ -122,6 +179,20 @@ pub async fn serve(
         addrs.join(", ")
     ));
     let relay_tasks: Vec<_> = relays.into_iter().map(|r| tokio::spawn(r.run())).collect();
+    if let Some((hup, load)) = hup {
+        let stop = shutdown.clone();
+        tokio::spawn(reload::on_sighup(
+            hup,
+            running.clone(),
+            load,
+            handles,
+            http,
+            stop,
+        ));
+    }
+    if notify::under_systemd() {
+        tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
+    }
     if let Some(signals) = signals {
         tokio::spawn(report_on_signal(signals, stats.clone(), shutdown.clone()));
     }
@@ -147,7 +218,9 @@ pub async fn serve(
 
     // Shutdown: the listeners are closed; connections stop reading and the relays
     // answer what is queued (0x0A) and wait for what is on their lines.
-    let bound = cfg.answer_within() + Duration::from_secs(2);
+    // As the configuration runs now: a reload may have changed the timeouts.
+    let answer_within = running.lock().expect("not poisoned").answer_within();
+    let bound = answer_within + Duration::from_secs(2);
     info!("shutting down: draining in-flight requests");
     // systemd waits for the drain, and a second more for the exit itself.
     notify::stopping(bound + Duration::from_secs(1));

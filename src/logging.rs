@@ -8,15 +8,20 @@ use crate::config::LogConfig;
 use std::fmt;
 use std::os::fd::AsFd;
 use std::os::unix::fs::MetadataExt;
+use std::sync::OnceLock;
 use tracing::{Event, Level, Subscriber};
 use tracing_subscriber::fmt::format::Writer;
 use tracing_subscriber::fmt::{FmtContext, FormatEvent, FormatFields};
+use tracing_subscriber::layer::SubscriberExt;
 use tracing_subscriber::registry::LookupSpan;
-use tracing_subscriber::EnvFilter;
+use tracing_subscriber::util::SubscriberInitExt;
+use tracing_subscriber::{reload, EnvFilter, Registry};
 
-/// Installs the global subscriber: `cfg.level` (or `RUST_LOG`), the traffic log if
-/// asked for, and the journald format when stderr is the journal.
-pub fn init(cfg: &LogConfig) {
+/// The filter of the installed subscriber, replaced by a reload ([`reload`]).
+static FILTER: OnceLock<reload::Handle<EnvFilter, Registry>> = OnceLock::new();
+
+/// What `cfg` asks to be logged: `cfg.level` (or `RUST_LOG`), and the traffic log.
+fn filter(cfg: &LogConfig) -> EnvFilter {
     let mut filter = match std::env::var("RUST_LOG") {
         Ok(s) if !s.is_empty() => EnvFilter::new(s),
         _ => EnvFilter::new(&cfg.level),
@@ -24,14 +29,31 @@ pub fn init(cfg: &LogConfig) {
     if cfg.traffic {
         filter = filter.add_directive("mbgate::traffic=debug".parse().expect("valid directive"));
     }
-    let fmt = tracing_subscriber::fmt()
-        .with_env_filter(filter)
-        .with_writer(std::io::stderr);
+    filter
+}
+
+/// Installs the global subscriber: `cfg.level` (or `RUST_LOG`), the traffic log if
+/// asked for, and the journald format when stderr is the journal.
+pub fn init(cfg: &LogConfig) {
+    let (filter, handle) = reload::Layer::new(filter(cfg));
+    let _ = FILTER.set(handle);
+    let fmt = tracing_subscriber::fmt::layer().with_writer(std::io::stderr);
+    let registry = tracing_subscriber::registry().with(filter);
     if stderr_is_journal() {
-        fmt.with_ansi(false).event_format(Journal).init();
-    } else {
-        fmt.with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
+        registry
+            .with(fmt.with_ansi(false).event_format(Journal))
             .init();
+    } else {
+        let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+        registry.with(fmt.with_ansi(ansi)).init();
+    }
+}
+
+/// Applies `cfg`'s level and traffic log to the running subscriber (a reload); does
+/// nothing when [`init`] did not install it (tests in process).
+pub fn reload(cfg: &LogConfig) {
+    if let Some(handle) = FILTER.get() {
+        let _ = handle.reload(filter(cfg));
     }
 }
 

@@ -59,6 +59,12 @@ enum Command {
     Sim(mbgate::sim::options::SimArgs),
     /// No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process.
     Demo(mbgate::demo::DemoArgs),
+    /// Ask a running gateway how its lines are: a summary per line and unit.
+    ///
+    /// From its metrics listener (`[metrics] listen`). Exit code 0 healthy, 1 not (a
+    /// line's port not open, or a unit not answering), 3 the gateway could not be
+    /// asked, 2 bad arguments.
+    Status(mbgate::metrics::ask::StatusArgs),
 }
 
 /// Exit code for a bad configuration or bad arguments (docs/design.md §3; clap uses 2 too).
@@ -71,6 +77,7 @@ fn main() -> ExitCode {
         Command::Write(args) => mbgate::client::write_main(args),
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
+        Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::CheckConfig {
             file,
             lines,
@@ -96,14 +103,16 @@ fn main() -> ExitCode {
         Command::Run { config, overrides } => {
             // Under journald these lines get the error priority too.
             let prefix = mbgate::logging::error_prefix();
-            let cfg = match effective(config, &overrides) {
+            let cfg = match effective(config.clone(), &overrides) {
                 Ok(cfg) => cfg,
                 Err(e) => {
                     eprintln!("{prefix}mbgate: {e}");
                     return ExitCode::from(EXIT_CONFIG);
                 }
             };
-            match run(cfg) {
+            // A reload reads the file again and puts the same flags on top.
+            let load = Box::new(move || effective(config.clone(), &overrides));
+            match run(cfg, load) {
                 Ok(()) => ExitCode::SUCCESS,
                 Err(e) => {
                     eprintln!("{prefix}mbgate: {e:#}");
@@ -124,7 +133,7 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
     Ok(cfg)
 }
 
-fn run(cfg: Config) -> anyhow::Result<()> {
+fn run(cfg: Config, load: mbgate::reload::Loader) -> anyhow::Result<()> {
     mbgate::logging::init(&cfg.log);
     // One thread: the serial line is the bottleneck, and a single-threaded runtime has
     // the smallest footprint and no cross-thread wake-ups on the reply path.
@@ -134,12 +143,12 @@ fn run(cfg: Config) -> anyhow::Result<()> {
         .context("starting the runtime")?;
     rt.block_on(async {
         let shutdown = CancellationToken::new();
-        tokio::spawn(watch_signals(shutdown.clone()));
+        tokio::spawn(watch_signals(shutdown.clone(), Hangup::Reloads));
         if cfg.master.is_some() {
             // The line's device is the master: no listener, routes to slaves.
             mbgate::bridge::run(&cfg, shutdown).await?;
         } else {
-            mbgate::gateway::run(cfg, shutdown).await?;
+            mbgate::gateway::run_reloading(cfg, load, shutdown).await?;
         }
         Ok(())
     })
@@ -277,7 +286,7 @@ where
     finish(runtime().and_then(|rt| {
         rt.block_on(async {
             let shutdown = CancellationToken::new();
-            tokio::spawn(watch_signals(shutdown.clone()));
+            tokio::spawn(watch_signals(shutdown.clone(), Hangup::Stops));
             let commands = mbgate::sim::terminal::start(console, shutdown.clone(), console_after);
             if console {
                 // Ctrl-C leaves the cursor after `sim> `: end that line, so what
@@ -303,27 +312,46 @@ fn finish(result: anyhow::Result<()>) -> ExitCode {
     }
 }
 
-/// SIGTERM (systemd stop), SIGINT (Ctrl-C) or SIGHUP (a closed terminal, or a reload
-/// asked for, which mbgate does not have: its default action would end the process
-/// and lose what is on the line) starts a graceful shutdown. The handlers are
-/// installed before this returns, so a signal that comes at once is not fatal; the
-/// future it returns waits for one.
-fn watch_signals(shutdown: CancellationToken) -> impl std::future::Future<Output = ()> {
+/// What SIGHUP does.
+#[derive(Clone, Copy, PartialEq, Eq)]
+enum Hangup {
+    /// `mbgate run`: a reload (`systemctl reload`), handled by the gateway
+    /// (`mbgate::reload`).
+    Reloads,
+    /// `sim`, `demo`: a closed terminal stops them, gracefully (SIGHUP's default
+    /// action would end the process at once).
+    Stops,
+}
+
+/// SIGTERM (systemd stop), SIGINT (Ctrl-C) and, for `sim` and `demo`, SIGHUP start a
+/// graceful shutdown. The handlers are installed before this returns, so a signal
+/// that comes at once is not fatal; the future it returns waits for one.
+fn watch_signals(
+    shutdown: CancellationToken,
+    hangup: Hangup,
+) -> impl std::future::Future<Output = ()> {
     use tokio::signal::unix::{signal, SignalKind};
     let handlers = (
         signal(SignalKind::terminate()),
         signal(SignalKind::interrupt()),
-        signal(SignalKind::hangup()),
+        (hangup == Hangup::Stops).then(|| signal(SignalKind::hangup())),
     );
     async move {
-        let (Ok(mut term), Ok(mut int), Ok(mut hup)) = handlers else {
+        let (Ok(mut term), Ok(mut int)) = (handlers.0, handlers.1) else {
             tracing::error!("cannot install signal handlers");
             return;
+        };
+        let mut hup = handlers.2.and_then(Result::ok);
+        let hung_up = async {
+            match &mut hup {
+                Some(hup) => hup.recv().await,
+                None => std::future::pending().await,
+            }
         };
         tokio::select! {
             _ = term.recv() => tracing::info!("SIGTERM received"),
             _ = int.recv() => tracing::info!("SIGINT received"),
-            _ = hup.recv() => tracing::info!("SIGHUP received (there is no reload: restart to read the configuration again); stopping"),
+            _ = hung_up => tracing::info!("SIGHUP received; stopping"),
         }
         shutdown.cancel();
     }

@@ -1,5 +1,6 @@
 //! systemd's notify protocol (sd_notify(3)) for `Type=notify` units: READY=1 once the
-//! listener is bound, STOPPING=1 when shutdown begins, WATCHDOG=1 from the relay's loop.
+//! listener is bound, STOPPING=1 when shutdown begins, WATCHDOG=1 from the relay's loop,
+//! STATUS= every few seconds (`crate::metrics::status`).
 //!
 //! Outside systemd (no `NOTIFY_SOCKET`) every call does nothing. A failure to notify is
 //! never fatal: it is logged (a warning the first time, then at debug level) and the
@@ -26,6 +27,16 @@ pub fn stopping(drain: Duration) {
         NotifyState::Status("draining in-flight requests"),
         NotifyState::ExtendTimeoutUsec(usec),
     ]);
+}
+
+/// STATUS=: the line `systemctl status` shows.
+pub fn status(status: &str) {
+    send(&[NotifyState::Status(status)]);
+}
+
+/// Is the process run by systemd with `Type=notify` (is `NOTIFY_SOCKET` set)?
+pub fn under_systemd() -> bool {
+    std::env::var_os("NOTIFY_SOCKET").is_some()
 }
 
 /// WATCHDOG=1: the caller's loop is alive.

@@ -23,11 +23,12 @@ mod line;
 mod outgoing;
 mod pending;
 mod scheduler;
+mod watch;
 mod watchdog;
 
 use crate::config::{LineConfig, RelayConfig, SerialConfig};
-use crate::frame::hex::Hex;
 use crate::frame::Adu;
+use crate::metrics::LineMetrics;
 use crate::outbox::{Refusal, Ticket};
 use crate::port::{self, Link};
 use crate::stats::Stats;
@@ -47,11 +48,11 @@ use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
+use watch::Watch;
 use watchdog::Watchdog;
 
 pub struct Relay {
     cfg: RelayConfig,
-    traffic: bool,
     rx: mpsc::UnboundedReceiver<Command>,
     masters: Masters,
     /// The requests waiting for the line, and which goes next.
@@ -71,6 +72,8 @@ pub struct Relay {
     /// False once every [`RelayHandle`] is gone: `recv` would return at once forever.
     commands_open: bool,
     watchdog: Option<Watchdog>,
+    /// The line's numbers, warnings and traffic log.
+    watch: Watch,
 }
 
 impl Relay {
@@ -121,13 +124,14 @@ impl Relay {
         // an MBAP line, would gain the others nothing.
         let in_flight = Table::new(&cfg, cfg.unit_backoff && line.is_serial());
         let baud = serial.baud_rate;
+        // The line is known by its transport's name (the metrics' `line` label).
+        let metrics = Arc::new(LineMetrics::new(transport.name(), stats.clone()));
         let port = Lifecycle::new(transport, baud, now);
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth, cfg.coalesce),
             cache: Cache::new(Duration::from_millis(cfg.cache_ms)),
             masters: Masters::new(cfg.notifications),
             cfg,
-            traffic,
             rx,
             in_flight,
             line,
@@ -139,6 +143,7 @@ impl Relay {
             draining: false,
             commands_open: true,
             watchdog: None,
+            watch: Watch::new(metrics, traffic),
         };
         (relay, RelayHandle::new(tx))
     }
@@ -146,8 +151,18 @@ impl Relay {
     /// Runs the line over `transport` instead of the `[serial]` port (a device behind
     /// a TCP socket, an in-memory pipe in tests).
     pub fn with_port(mut self, transport: Box<dyn port::Port>) -> Self {
+        // The line is known by its transport's name (the metrics' `line` label).
+        let metrics = LineMetrics::new(transport.name(), self.stats.clone());
+        self.watch.metrics = Arc::new(metrics);
         self.port.set_transport(transport);
         self
+    }
+
+    /// The line's numbers as the relay keeps them (`crate::metrics`), for the metrics
+    /// listener, systemd's status line and `mbgate status`. Asked after `with_port`,
+    /// which names the line afresh.
+    pub fn metrics(&self) -> Arc<LineMetrics> {
+        self.watch.metrics.clone()
     }
 
     /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
@@ -191,9 +206,6 @@ impl Relay {
                 Event::Shutdown => self.start_draining(),
                 Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
                 Event::Read(Ok(n)) => {
-                    if self.traffic {
-                        debug!(target: "mbgate::traffic", dir = "serial->gw", "{}", Hex(&rbuf[..n]));
-                    }
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
@@ -220,6 +232,8 @@ impl Relay {
             self.take_frames(now);
             self.expire(now);
             self.answer_paced(now);
+            let (queued, in_flight) = (self.sched.queued(), self.in_flight.len());
+            self.watch.turn(now, queued, in_flight, self.port.is_open());
         }
         debug!("relay stopped");
     }
@@ -294,10 +308,19 @@ impl Relay {
 
     fn on_command(&mut self, cmd: Command) {
         match cmd {
-            Command::Attach { conn, notifier } => self.masters.attach(conn, notifier),
+            Command::Attach { conn, notifier } => {
+                self.masters.attach(conn, notifier);
+                self.watch.masters(self.masters.len());
+            }
             Command::Detach { conn } => {
                 self.masters.detach(conn);
                 self.sched.detach(conn);
+                self.watch.masters(self.masters.len());
+            }
+            Command::Retune { relay, traffic } => {
+                self.in_flight.retune(&relay);
+                self.watch.set_traffic(traffic);
+                self.cfg = relay;
             }
             Command::Request { conn, adu, ticket } => self.on_request(conn, adu, ticket),
         }
@@ -307,6 +330,7 @@ impl Relay {
     /// the cache), joined to an identical read waiting for the line, or queued.
     fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket) {
         self.stats.add(&self.stats.requests, 1);
+        self.watch.request(adu.unit());
         let now = Instant::now();
         let mut req = Pending::new(conn, adu, ticket);
         let unit = req.adu.unit();
@@ -402,9 +426,7 @@ impl Relay {
     fn send(&mut self, req: Pending, now: Instant) {
         let tid = self.line.allocate(now);
         let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
-        if self.traffic {
-            debug!(target: "mbgate::traffic", dir = "gw->serial", conn = req.conn(), "{}", Hex(&bytes));
-        }
+        self.watch.sent(req.conn(), &req.adu, tid, &bytes, now);
         self.out.push(tid, bytes);
         if req.acts() {
             // Reads sent before it may be answered after it was sent: not kept.
@@ -459,19 +481,39 @@ impl Relay {
             if let Some(key) = f.req.read_key() {
                 self.cache.put(key, f.req.cache_stamp, &frame, now);
             }
+            // When it left: its deadline is its response timeout after that.
+            let left = f.deadline.checked_sub(f.timeout).unwrap_or(now);
+            let wire = self
+                .watch
+                .wants_frames(now)
+                .then(|| self.line.on_wire(&frame));
+            let (conn, asked) = (f.req.conn(), &f.req.adu);
+            self.watch.replied(conn, asked, &frame, wire, (left, now));
             f.req.deliver(&frame);
             return;
         }
         match self.line.unsolicited(tid) {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
+                self.traffic("late reply, dropped", &frame, now);
                 debug!(
                     tid,
                     "late reply dropped (its request timed out or was answered already): {:?}",
                     frame
                 );
             }
-            Unsolicited::Notification => self.masters.notification(frame, &self.stats),
+            Unsolicited::Notification => {
+                self.traffic("answers no request", &frame, now);
+                self.masters.notification(frame, &self.stats)
+            }
+        }
+    }
+
+    /// The traffic log's line for a frame that answers nothing on the line.
+    fn traffic(&self, what: &str, frame: &Adu, now: Instant) {
+        if self.watch.wants_frames(now) {
+            let wire = self.line.on_wire(frame);
+            self.watch.unsolicited(what, frame, &wire, now);
         }
     }
 }

@@ -31,6 +31,7 @@ macro_rules! counters {
 counters! {
     connections: "TCP connections accepted.",
     connections_refused: "TCP connections closed at once: `max_connections` reached.",
+    connections_closed: "TCP connections accepted and since closed.",
     protocol_violations: "Connections closed for a frame that failed the strict MBAP checks.",
     requests: "Requests handed to the relay.",
     replies: "Device replies delivered to masters (one reply to reads joined together counts once for each master).",

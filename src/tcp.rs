@@ -113,8 +113,10 @@ pub async fn accept_loop(listener: TcpListener, listen: ListenConfig, shared: Sh
             stats: stats.clone(),
             shutdown: shutdown.clone(),
         };
+        let closed = stats.clone();
         tracker.spawn(async move {
             conn.run(stream).await;
+            closed.add(&closed.connections_closed, 1);
             drop(slot);
         });
     }

@@ -598,6 +598,9 @@ fn non_default() -> Config {
             level: "trace".into(),
             traffic: true,
         },
+        metrics: MetricsConfig {
+            listen: Some("127.0.0.1:9502".parse().unwrap()),
+        },
         ..Config::default()
     }
 }
@@ -614,7 +617,10 @@ fn round_trip() {
 fn printed_configuration_has_the_sections_in_the_documented_order() {
     let text = to_toml(&Config::default());
     let headers: Vec<&str> = text.lines().filter(|l| l.starts_with('[')).collect();
-    assert_eq!(headers, ["[serial]", "[tcp]", "[relay]", "[log]"]);
+    assert_eq!(
+        headers,
+        ["[serial]", "[tcp]", "[relay]", "[log]", "[metrics]"]
+    );
     assert!(text.contains("[serial]\npath = \"/dev/ttyUSB0\"\nbaud_rate = 19200\n"));
     assert!(text.contains("listen = \"0.0.0.0:502\"\n"));
     assert!(text.contains("parity = \"none\"\n"));

@@ -1,7 +1,8 @@
 //! systemd's notify protocol: a test plays systemd,
 //! listening on a NOTIFY_SOCKET datagram socket, and sees READY=1 once the gateway
 //! listens, WATCHDOG=1 from the relay at half of WATCHDOG_USEC (only when asked), and
-//! STOPPING=1 on SIGTERM, in that order. Notify failures are never fatal.
+//! STOPPING=1 on SIGTERM, in that order; STATUS= refreshed with the line's numbers.
+//! Notify failures are never fatal.
 
 mod common;
 use common::*;
@@ -180,4 +181,50 @@ fn a_notify_socket_nobody_listens_on_is_not_fatal() {
         1,
         "warned once, then quiet: {log}"
     );
+}
+
+/// `systemctl status` tells the story: STATUS= is refreshed every 2 s with the masters,
+/// the request rate, the last reply's age and the timeouts of the last minute.
+#[test]
+fn status_is_refreshed_with_masters_rate_last_reply_and_timeouts() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let sd = Manager::listen(dir.path());
+    let launch = Launch::default().env("NOTIFY_SOCKET", sd.path.to_str().unwrap());
+    let cfg = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"")
+        .relay("response_timeout_ms = 100");
+    let mut gw = Gateway::launch(&cfg, dir.path(), launch);
+    gw.wait_log("serial port open", Duration::from_secs(5));
+    let mut a = gw.connect();
+    let _b = gw.connect();
+    for tid in 0..10 {
+        assert_eq!(
+            transact(&mut a, &read_req(tid, 1, 7, 1)),
+            read_reply(tid, 1, &[7])
+        );
+    }
+    // Unit 2 does not answer: one timeout.
+    assert_eq!(
+        transact(&mut a, &read_req(10, 2, 7, 1)),
+        hex("00 0A 00 00 00 03 02 83 0B")
+    );
+    let refreshed = |m: &str| m.starts_with("STATUS=2 masters, ");
+    wait_for("a STATUS= refresh", Duration::from_secs(5), || {
+        sd.messages().iter().any(|(_, m)| refreshed(m))
+    });
+    let msgs = sd.messages();
+    let (_, status) = msgs.iter().find(|(_, m)| refreshed(m)).unwrap();
+    // "2 masters, 4.9 req/s, last reply 812 ms ago, 1 timeout in the last minute":
+    // 11 requests within the first 2 s.
+    let rest = status.strip_prefix("STATUS=2 masters, ").unwrap();
+    let (rate, rest) = rest.split_once(" req/s, last reply ").expect(status);
+    let rate: f64 = rate.parse().expect(status);
+    assert!((2.0..=11.0).contains(&rate), "{status}");
+    let (ago, rest) = rest.split_once(" ago, ").expect(status);
+    assert!(ago.ends_with(" ms") || ago.ends_with(" s"), "{status}");
+    assert_eq!(rest.trim_end(), "1 timeout in the last minute", "{status}");
+    assert_eq!(gw.terminate(Duration::from_secs(5)).code(), Some(0));
 }

@@ -236,8 +236,13 @@ settings! {
     [log] LogConfig {
         /// Log level (RUST_LOG overrides)
         level: String = "info".into(), OneOf(&LOG_LEVELS), "log-level" "LEVEL";
-        /// Log every frame, both directions, as hex at debug level
+        /// Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex
         traffic: bool = false, Any, "traffic" "BOOL";
+    }
+    /// The metrics listener (README "Watching it run"): off unless given an address.
+    [metrics] MetricsConfig {
+        /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
+        listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
     }
 }
 
@@ -371,6 +376,12 @@ setting! { SocketAddr: Addr, |raw, _check| match raw {
     _ => Err(raw.invalid(LISTEN_EXPECTED)),
 }, |v| format!("\"{v}\"") }
 
+setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
+    Raw::Str(s) if s.trim().is_empty() => Ok(None),
+    Raw::Str(s) => parse_listen(s).map(Some),
+    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+}, |v| v.map_or_else(|| "\"\"".to_owned(), |a| format!("\"{a}\"")) }
+
 const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
 
 /// Parses a `tcp.listen` / `--listen` value.
@@ -429,7 +440,7 @@ pub fn to_toml(cfg: &Config) -> String {
     if cfg.master.is_some() || !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
         return to_toml_lines(cfg);
     }
-    let old = ["serial", "tcp", "relay", "log"].map(|s| (s, format!("[{s}]")));
+    let old = ["serial", "tcp", "relay", "log", "metrics"].map(|s| (s, format!("[{s}]")));
     print(cfg, &old)
 }
 
@@ -477,7 +488,10 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         let table = print(&one, &[("tcp", "[[listen]]".into())]);
         out.push(table + &format!("framing = {}\n", listener.framing.print()));
     }
-    out.push(print(cfg, &[("log", "[log]".into())]));
+    out.push(print(
+        cfg,
+        &[("log", "[log]".into()), ("metrics", "[metrics]".into())],
+    ));
     out.join("\n")
 }
 /// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as

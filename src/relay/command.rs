@@ -1,5 +1,6 @@
 //! What connections tell the relay, and the handle they tell it through.
 
+use crate::config::RelayConfig;
 use crate::frame::Adu;
 use crate::outbox::{Notifier, Ticket};
 use tokio::sync::mpsc;
@@ -21,6 +22,9 @@ pub enum Command {
         adu: Adu,
         ticket: Ticket,
     },
+    /// A reload (SIGHUP): the response and probe timeouts, retries and the traffic log
+    /// from now on; requests already on the line keep their deadlines.
+    Retune { relay: RelayConfig, traffic: bool },
 }
 
 /// The connections' side of the relay's channel.

@@ -6,14 +6,16 @@ use super::inflight::{Failure, InFlight, Verdict};
 use super::pending::Pending;
 use super::Relay;
 use crate::outbox::Refusal;
+use std::time::Duration;
 use tokio::time::Instant;
-use tracing::{debug, warn};
+use tracing::{debug, info, warn};
 
 impl Relay {
     /// Requests past their deadline fail.
     pub(super) fn expire(&mut self, now: Instant) {
         for f in self.in_flight.take_expired(now) {
             self.line.timed_out(now, &self.stats);
+            self.watch.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
@@ -34,10 +36,21 @@ impl Relay {
         match self.in_flight.verdict(&f, why, now, open) {
             Verdict::BackedOff(interval) => {
                 let unit = f.req.adu.unit();
-                warn!(
-                    unit,
-                    "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
-                );
+                self.watch.backed_off(unit);
+                // Said once a spell: the warning that the unit is not answering is
+                // the watch's (watch.rs); the longer intervals after failed probes
+                // are for debugging.
+                if interval <= Duration::from_millis(self.cfg.unit_backoff_ms) {
+                    info!(
+                        unit,
+                        "unit backed off for {interval:?}: its requests get 0x0B at once, then one probes it"
+                    );
+                } else {
+                    debug!(
+                        unit,
+                        "unit still not answering: backed off for {interval:?}"
+                    );
+                }
                 f.req.answer_exception(Refusal::TargetFailed, &self.stats);
                 self.sweep_backed_off(unit);
             }

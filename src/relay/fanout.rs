@@ -30,6 +30,11 @@ impl Masters {
         self.conns.remove(&conn);
     }
 
+    /// How many are attached.
+    pub(super) fn len(&self) -> usize {
+        self.conns.len()
+    }
+
     /// A frame from the device that answers no request and is no late reply.
     pub(super) fn notification(&self, frame: Adu, stats: &Stats) {
         match self.policy {

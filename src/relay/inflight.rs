@@ -90,6 +90,14 @@ impl<R: Asked> Table<R> {
         }
     }
 
+    /// New timeouts and retries (a reload), for the requests sent from now on.
+    pub(super) fn retune(&mut self, cfg: &RelayConfig) {
+        self.response_timeout = Duration::from_millis(cfg.response_timeout_ms);
+        self.probe_timeout = Duration::from_millis(cfg.probe_timeout_ms);
+        self.retries = cfg.retries;
+        self.retry_writes = cfg.retry_writes;
+    }
+
     pub(super) fn len(&self) -> usize {
         self.entries.len()
     }

@@ -195,6 +195,8 @@ pub(crate) struct Cfg {
     tcp: Vec<String>,
     relay: Vec<String>,
     log: Vec<String>,
+    /// The `[metrics]` section, written only when it has a line.
+    metrics: Vec<String>,
 }
 
 impl Cfg {
@@ -204,6 +206,7 @@ impl Cfg {
             tcp: vec!["listen = \"127.0.0.1:0\"".into()],
             relay: vec![],
             log: vec!["level = \"debug\"".into()],
+            metrics: vec![],
         }
     }
     pub(crate) fn serial(mut self, line: &str) -> Cfg {
@@ -220,6 +223,10 @@ impl Cfg {
     }
     pub(crate) fn log(mut self, line: &str) -> Cfg {
         self.log.push(line.into());
+        self
+    }
+    pub(crate) fn metrics(mut self, line: &str) -> Cfg {
+        self.metrics.push(line.into());
         self
     }
     /// A pty as the line: bytes go through as fast as they are written, with no USB
@@ -242,8 +249,11 @@ impl Cfg {
             ("tcp", &self.tcp),
             ("relay", &self.relay),
             ("log", &self.log),
+            ("metrics", &self.metrics),
         ] {
-            s += &format!("[{name}]\n{}\n\n", lines.join("\n"));
+            if name != "metrics" || !lines.is_empty() {
+                s += &format!("[{name}]\n{}\n\n", lines.join("\n"));
+            }
         }
         s
     }
@@ -398,6 +408,11 @@ impl Proc {
             );
             thread::sleep(Duration::from_millis(10));
         }
+    }
+
+    /// Sends the signal `name` (`kill -NAME`) and carries on.
+    pub(crate) fn signal(&mut self, name: &str) {
+        signal(&mut self.child, name);
     }
 
     /// SIGTERM, then waits (bounded) for the exit.

@@ -16,7 +16,7 @@ use bytes::Bytes;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
-use tracing::debug;
+use tracing::{debug, info};
 
 pub(super) struct Mbap {
     tids: Tids,
@@ -45,6 +45,8 @@ pub(super) struct Mbap {
     /// The line stays quiet this long after the last byte received
     /// (`request_pause_ms`).
     request_pause: Duration,
+    /// Whether the cost of confirmation by a pause has been said (once a line).
+    told_pause: bool,
 }
 
 /// A request as it went on the line.
@@ -163,6 +165,7 @@ impl Mbap {
             received: 0,
             stream,
             request_pause: Duration::from_millis(relay.request_pause_ms),
+            told_pause: false,
         }
     }
 
@@ -276,6 +279,22 @@ impl Mbap {
             .then_some("a copy of the request that began before it had left: its echo, dropped")
     }
 
+    /// Said the first time a reply waited for the pause that confirms it (nothing
+    /// followed it): why replies take longer than the device, and what to do about it
+    /// (docs/reliability.md "How", docs/performance.md).
+    fn tell_pause(&mut self) {
+        self.told_pause = true;
+        info!(
+            "MBAP: a reply is held until the line has been quiet for {} ms after it, to \
+             confirm it arrived whole (docs/reliability.md); a lone reply takes that much \
+             longer. Lower serial.silence_floor_ms as far as the adapter allows (0 on a \
+             native UART or a pty; about 3 for an FTDI adapter with latency_timer 1, see \
+             config/99-mbgate.rules), or let replies confirm each other with several \
+             requests on the line (relay.max_in_flight)",
+            self.pause.as_secs_f64() * 1000.0
+        );
+    }
+
     pub(super) fn frames<R: Asked>(
         &mut self,
         in_flight: &[InFlight<R>],
@@ -317,6 +336,10 @@ impl Mbap {
                     seen.push(Seen::Corrupt(frame.tid()));
                     continue;
                 }
+            }
+            let reply = in_flight.iter().any(|f| f.tid == frame.tid());
+            if reply && idle >= self.pause && !self.told_pause {
+                self.tell_pause();
             }
             seen.push(Seen::Frame(frame));
         }

@@ -191,6 +191,14 @@ impl Line {
         }
     }
 
+    /// `frame` as it was on the wire (its CRC or LRC was checked), for the traffic log.
+    pub(super) fn on_wire(&self, frame: &Adu) -> Vec<u8> {
+        match &self.0 {
+            Kind::Mbap(_) => frame.as_bytes().to_vec(),
+            Kind::Serial(s) => s.on_wire(frame),
+        }
+    }
+
     /// An MBAP frame that answers nothing in flight: a late reply or a notification.
     pub(super) fn unsolicited(&self, tid: u16) -> Unsolicited {
         match &self.0 {

@@ -99,6 +99,11 @@ impl Serial {
         self.next_key
     }
 
+    /// `frame` as it is on the wire, CRC or LRC included (for the traffic log).
+    pub(super) fn on_wire(&self, frame: &Adu) -> Vec<u8> {
+        self.decoder.encode(frame)
+    }
+
     pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats) -> Bytes {
         // Nothing received before a request is written can be its reply.
         let held = self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();

@@ -1,0 +1,282 @@
+//! What the gateway knows of each line, unit and listener while it runs (README
+//! "Watching it run"): counters and gauges their owners write with relaxed atomics, read
+//! by the metrics listener (`http.rs`), the Prometheus exposition (`expose.rs`),
+//! systemd's STATUS= line and `mbgate status`.
+//!
+//! The relay writes its line's numbers as it goes, a few relaxed atomic stores a
+//! request and no lock: nothing here makes the relay wait on a reader. A reader sees
+//! each number as it was at some instant, the set of them not necessarily at the same
+//! one (a scrape in the middle of a reply may count the request and not yet the reply).
+
+pub mod ask;
+pub mod expose;
+pub mod http;
+pub mod page;
+pub mod status;
+
+use crate::stats::Stats;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::time::Instant;
+
+/// Upper bounds of the reply-time histogram buckets, in seconds: from a fast native
+/// UART's few milliseconds to a slow device near the default response timeout.
+pub const REPLY_BUCKETS: [f64; 11] = [0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0];
+
+fn load(a: &AtomicU64) -> u64 {
+    a.load(Ordering::Relaxed)
+}
+
+fn add(a: &AtomicU64, n: u64) {
+    a.fetch_add(n, Ordering::Relaxed);
+}
+
+/// One unit on a line.
+#[derive(Debug, Default)]
+pub struct UnitMetrics {
+    /// Requests for this unit the relay took.
+    pub requests: AtomicU64,
+    /// Replies from it delivered to masters (exceptions it sent included).
+    pub replies: AtomicU64,
+    /// Attempts it did not answer in time (a resent request counts each attempt).
+    pub timeouts: AtomicU64,
+    /// 1 while it is backed off (RTU/ASCII, `unit_backoff`), else 0.
+    pub backed_off: AtomicU64,
+    /// 1 from its third timeout in a row until it answers again (the log's "not
+    /// answering" warning), else 0.
+    pub not_answering: AtomicU64,
+    /// Reply times, from the request on the line to its reply: one count per bucket
+    /// of [`REPLY_BUCKETS`] (not cumulative), the last for those above every bound.
+    buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],
+    /// Their sum, in microseconds.
+    sum_us: AtomicU64,
+}
+
+impl UnitMetrics {
+    /// A reply came `took` after its request went on the line.
+    pub fn observe(&self, took: Duration) {
+        let s = took.as_secs_f64();
+        let i = REPLY_BUCKETS
+            .iter()
+            .position(|b| s <= *b)
+            .unwrap_or(REPLY_BUCKETS.len());
+        add(&self.buckets[i], 1);
+        add(&self.sum_us, took.as_micros() as u64);
+    }
+
+    /// The histogram: sum in seconds, count, and the count in each bucket by its
+    /// upper bound (the last +Inf), not cumulative: the encoder adds them up.
+    pub fn histogram(&self) -> (f64, u64, Vec<(f64, u64)>) {
+        let mut total = 0;
+        let mut each = Vec::with_capacity(self.buckets.len());
+        for (i, b) in self.buckets.iter().enumerate() {
+            total += load(b);
+            let bound = REPLY_BUCKETS.get(i).copied().unwrap_or(f64::INFINITY);
+            each.push((bound, load(b)));
+        }
+        (load(&self.sum_us) as f64 / 1e6, total, each)
+    }
+}
+
+/// One line: its counters (the relay's [`Stats`]), its units, its gauges.
+#[derive(Debug)]
+pub struct LineMetrics {
+    /// The `line` label: the serial port's path, or host:port of a device server.
+    pub name: String,
+    pub stats: Arc<Stats>,
+    units: Box<[UnitMetrics]>,
+    /// Exception replies the device sent, by exception code.
+    device_exceptions: Box<[AtomicU64]>,
+    /// Requests waiting for the line.
+    pub queued: AtomicU64,
+    /// Requests on the line, awaiting their reply.
+    pub in_flight: AtomicU64,
+    /// Masters attached to the line.
+    pub masters: AtomicU64,
+    /// Time with a request on the line, in microseconds.
+    pub busy_us: AtomicU64,
+    /// When the last reply came, in microseconds after `started`; 0 for none yet.
+    pub last_reply_us: AtomicU64,
+    /// Whether the port is open (1) or not (0).
+    pub port_open: AtomicU64,
+    started: Instant,
+    /// Until when (microseconds after `started`) the status page is open: the relay
+    /// records frames for it only then.
+    watched_until_us: AtomicU64,
+    /// The last frames on the line, for the status page.
+    frames: Mutex<Frames>,
+}
+
+/// A frame on the line (or a timeout), as the status page lists it.
+#[derive(Debug, Clone)]
+pub struct FrameSeen {
+    /// Milliseconds since the Unix epoch.
+    pub at_ms: u64,
+    /// `gw->serial`, `serial->gw`, `late`, `unsolicited`, `timeout`.
+    pub dir: &'static str,
+    /// The master's connection, when there is one.
+    pub conn: Option<u64>,
+    pub unit: u8,
+    pub function: u8,
+    /// The address and count a read or write names.
+    pub span: Option<(u16, u16)>,
+    /// The frame as on the wire (empty for a timeout).
+    pub bytes: Vec<u8>,
+}
+
+/// The last [`Frames::KEPT`] frames of a line, and how many there were in all.
+#[derive(Debug, Default)]
+pub struct Frames {
+    pub kept: std::collections::VecDeque<FrameSeen>,
+    pub total: u64,
+}
+
+impl Frames {
+    pub const KEPT: usize = 100;
+}
+
+/// How long the status page counts as open after its last request.
+const WATCHED_FOR: Duration = Duration::from_secs(10);
+
+impl LineMetrics {
+    pub fn new(name: &str, stats: Arc<Stats>) -> Self {
+        Self {
+            name: name.to_owned(),
+            stats,
+            units: (0..256).map(|_| UnitMetrics::default()).collect(),
+            device_exceptions: (0..256).map(|_| AtomicU64::new(0)).collect(),
+            queued: AtomicU64::new(0),
+            in_flight: AtomicU64::new(0),
+            masters: AtomicU64::new(0),
+            busy_us: AtomicU64::new(0),
+            last_reply_us: AtomicU64::new(0),
+            port_open: AtomicU64::new(0),
+            started: Instant::now(),
+            watched_until_us: AtomicU64::new(0),
+            frames: Mutex::new(Frames::default()),
+        }
+    }
+
+    pub fn unit(&self, unit: u8) -> &UnitMetrics {
+        &self.units[usize::from(unit)]
+    }
+
+    /// The units that have had a request, with their numbers.
+    pub fn units(&self) -> impl Iterator<Item = (u8, &UnitMetrics)> {
+        self.units
+            .iter()
+            .enumerate()
+            .filter(|(_, u)| load(&u.requests) > 0)
+            .map(|(i, u)| (i as u8, u))
+    }
+
+    /// The device answered a request with exception `code`.
+    pub fn device_exception(&self, code: u8) {
+        add(&self.device_exceptions[usize::from(code)], 1);
+    }
+
+    /// Exception codes the device sent, with how many of each.
+    pub fn device_exceptions(&self) -> Vec<(u8, u64)> {
+        let all = self.device_exceptions.iter().enumerate();
+        all.map(|(c, n)| (c as u8, load(n)))
+            .filter(|(_, n)| *n > 0)
+            .collect()
+    }
+
+    /// A reply came at `now`.
+    pub fn replied_at(&self, now: Instant) {
+        let us = now.saturating_duration_since(self.started).as_micros() as u64;
+        self.last_reply_us.store(us.max(1), Ordering::Relaxed);
+    }
+
+    /// How long ago the last reply came, if one has.
+    pub fn since_last_reply(&self, now: Instant) -> Option<Duration> {
+        let us = load(&self.last_reply_us);
+        (us > 0).then(|| now.saturating_duration_since(self.started + Duration::from_micros(us)))
+    }
+
+    pub fn get(&self, a: &AtomicU64) -> u64 {
+        load(a)
+    }
+
+    fn us_since_start(&self, now: Instant) -> u64 {
+        now.saturating_duration_since(self.started).as_micros() as u64
+    }
+
+    /// The status page asked at `now`: frames are recorded for a while.
+    pub fn watched(&self, now: Instant) {
+        let until = self.us_since_start(now + WATCHED_FOR);
+        self.watched_until_us.store(until, Ordering::Relaxed);
+    }
+
+    /// Is the status page open? (One atomic load: the relay asks for every frame.)
+    pub fn is_watched(&self, now: Instant) -> bool {
+        load(&self.watched_until_us) > self.us_since_start(now)
+    }
+
+    /// Records a frame for the status page. Never waits: while a reader holds the
+    /// list, the frame is left out of it (not out of the counters).
+    pub fn record(&self, frame: FrameSeen) {
+        if let Ok(mut f) = self.frames.try_lock() {
+            if f.kept.len() == Frames::KEPT {
+                f.kept.pop_front();
+            }
+            f.kept.push_back(frame);
+            f.total += 1;
+        }
+    }
+
+    /// The frames kept, oldest first, and how many were recorded in all.
+    pub fn frames(&self) -> (Vec<FrameSeen>, u64) {
+        let f = self.frames.lock().expect("not poisoned");
+        (f.kept.iter().cloned().collect(), f.total)
+    }
+}
+
+/// One Modbus/TCP listener.
+#[derive(Debug)]
+pub struct ListenerMetrics {
+    /// The `listener` label: the address it is bound to.
+    pub name: String,
+    /// Its connection counters (`connections`, `connections_refused`,
+    /// `protocol_violations`, `connections_closed`).
+    pub stats: Arc<Stats>,
+}
+
+impl ListenerMetrics {
+    /// Masters connected now.
+    pub fn connected(&self) -> u64 {
+        let s = &self.stats;
+        s.get(&s.connections)
+            .saturating_sub(s.get(&s.connections_closed))
+    }
+}
+
+/// Everything the gateway shows: its lines and listeners, in the order they started.
+#[derive(Debug, Default)]
+pub struct Board {
+    pub lines: Mutex<Vec<Arc<LineMetrics>>>,
+    pub listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
+    /// Each line's last minute, a point a second, by line name, while the metrics
+    /// listener runs (`page::sample`).
+    pub history: Mutex<std::collections::HashMap<String, page::History>>,
+}
+
+impl Board {
+    pub fn add_line(&self, line: Arc<LineMetrics>) {
+        self.lines.lock().expect("not poisoned").push(line);
+    }
+
+    pub fn add_listener(&self, listener: Arc<ListenerMetrics>) {
+        self.listeners.lock().expect("not poisoned").push(listener);
+    }
+
+    pub fn lines(&self) -> Vec<Arc<LineMetrics>> {
+        self.lines.lock().expect("not poisoned").clone()
+    }
+
+    pub fn listeners(&self) -> Vec<Arc<ListenerMetrics>> {
+        self.listeners.lock().expect("not poisoned").clone()
+    }
+}

@@ -1,0 +1,279 @@
+//! `mbgate status`: asks a running gateway's metrics listener (`[metrics] listen`) and
+//! prints a short summary per line, unit and listener. The exit code serves a
+//! monitoring check: 0 healthy, 1 not (a line's port is not open, or a unit is not
+//! answering), 3 the gateway could not be asked (2: bad arguments, as everywhere).
+
+use std::collections::BTreeMap;
+use std::io::{Read, Write};
+use std::net::{TcpStream, ToSocketAddrs};
+use std::process::ExitCode;
+use std::time::{Duration, SystemTime};
+
+#[derive(Debug, clap::Args)]
+pub struct StatusArgs {
+    /// The gateway's metrics listener (its `metrics.listen`)
+    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:9502")]
+    pub metrics: String,
+}
+
+const EXIT_UNHEALTHY: u8 = 1;
+const EXIT_UNREACHABLE: u8 = 3;
+
+/// `mbgate status`.
+pub fn main(args: StatusArgs) -> ExitCode {
+    let text = match scrape(&args.metrics) {
+        Ok(text) => text,
+        Err(e) => {
+            eprintln!("mbgate: cannot ask the gateway at {}: {e}", args.metrics);
+            return ExitCode::from(EXIT_UNREACHABLE);
+        }
+    };
+    let samples = parse(&text);
+    let (report, healthy) = summary(&samples, SystemTime::now());
+    print!("{report}");
+    if healthy {
+        ExitCode::SUCCESS
+    } else {
+        ExitCode::from(EXIT_UNHEALTHY)
+    }
+}
+
+/// GET /metrics from `addr`, within a few seconds.
+fn scrape(addr: &str) -> Result<String, String> {
+    let within = Duration::from_secs(3);
+    let to = addr
+        .to_socket_addrs()
+        .map_err(|e| e.to_string())?
+        .next()
+        .ok_or("no address")?;
+    let mut s = TcpStream::connect_timeout(&to, within).map_err(|e| e.to_string())?;
+    s.set_read_timeout(Some(within))
+        .map_err(|e| e.to_string())?;
+    write!(
+        s,
+        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+    )
+    .map_err(|e| e.to_string())?;
+    let mut all = String::new();
+    s.read_to_string(&mut all).map_err(|e| e.to_string())?;
+    let (head, body) = all.split_once("\r\n\r\n").ok_or("not an HTTP response")?;
+    let status = head.lines().next().unwrap_or("");
+    if !status.contains(" 200 ") {
+        return Err(format!("{status} (is it mbgate's metrics listener?)"));
+    }
+    Ok(body.to_owned())
+}
+
+/// Samples by name, each with its labels.
+type Samples = BTreeMap<String, Vec<(BTreeMap<String, String>, f64)>>;
+
+/// The samples of an exposition (comments skipped).
+fn parse(text: &str) -> Samples {
+    let mut out = Samples::new();
+    for line in text
+        .lines()
+        .filter(|l| !l.starts_with('#') && !l.is_empty())
+    {
+        let Some((series, value)) = line.rsplit_once(' ') else {
+            continue;
+        };
+        let Ok(value) = value.parse::<f64>() else {
+            continue;
+        };
+        let (name, labels) = match series.split_once('{') {
+            Some((name, rest)) => (name, labels(rest.strip_suffix('}').unwrap_or(rest))),
+            None => (series, BTreeMap::new()),
+        };
+        out.entry(name.to_owned())
+            .or_default()
+            .push((labels, value));
+    }
+    out
+}
+
+/// `a="x",b="y \"q\""` → {a: x, b: y "q"}.
+fn labels(s: &str) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    let mut chars = s.chars().peekable();
+    loop {
+        let key: String = chars.by_ref().take_while(|c| *c != '=').collect();
+        if key.is_empty() || chars.next() != Some('"') {
+            break;
+        }
+        let mut value = String::new();
+        while let Some(c) = chars.next() {
+            match c {
+                '\\' => match chars.next() {
+                    Some('n') => value.push('\n'),
+                    Some(c) => value.push(c),
+                    None => break,
+                },
+                '"' => break,
+                c => value.push(c),
+            }
+        }
+        out.insert(key.trim_start_matches(',').to_owned(), value);
+        if chars.peek() == Some(&',') {
+            chars.next();
+        }
+    }
+    out
+}
+
+/// The value of `name` whose labels include all of `with`.
+fn get(s: &Samples, name: &str, with: &[(&str, &str)]) -> f64 {
+    let Some(all) = s.get(name) else {
+        return 0.0;
+    };
+    all.iter()
+        .find(|(l, _)| {
+            with.iter()
+                .all(|(k, v)| l.get(*k).map(String::as_str) == Some(*v))
+        })
+        .map_or(0.0, |(_, v)| *v)
+}
+
+/// Each distinct value of label `key` among the samples of `name`, in order.
+fn values_of(s: &Samples, name: &str, key: &str) -> Vec<String> {
+    let mut seen: Vec<String> = Vec::new();
+    for (l, _) in s.get(name).into_iter().flatten() {
+        if let Some(v) = l.get(key) {
+            if !seen.contains(v) {
+                seen.push(v.clone());
+            }
+        }
+    }
+    seen
+}
+
+fn n(v: f64) -> String {
+    format!("{}", v as u64)
+}
+
+/// The report, and whether every line is open and every unit answering.
+fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
+    let mut out = String::new();
+    let mut problems = Vec::new();
+    let unix = now
+        .duration_since(SystemTime::UNIX_EPOCH)
+        .unwrap_or_default()
+        .as_secs_f64();
+    for line in values_of(s, "mbgate_line_requests_total", "line") {
+        let l = [("line", line.as_str())];
+        let open = get(s, "mbgate_line_port_open", &l) == 1.0;
+        if !open {
+            problems.push(format!("{line} not open"));
+        }
+        let last = match s
+            .get("mbgate_line_last_reply_timestamp_seconds")
+            .and_then(|all| all.iter().find(|(lb, _)| lb.get("line") == Some(&line)))
+        {
+            Some((_, at)) => format!("last reply {:.1} s ago", (unix - at).max(0.0)),
+            None => "no reply yet".into(),
+        };
+        out += &format!(
+            "line {line}: port {}, {} masters, {} requests, {} replies, {} timeouts, {} queued, {} in flight, {last}\n",
+            if open { "open" } else { "NOT OPEN" },
+            n(get(s, "mbgate_line_masters", &l)),
+            n(get(s, "mbgate_line_requests_total", &l)),
+            n(get(s, "mbgate_line_replies_total", &l)),
+            n(get(s, "mbgate_line_timeouts_total", &l)),
+            n(get(s, "mbgate_line_queued", &l)),
+            n(get(s, "mbgate_line_in_flight", &l)),
+        );
+        let units = s.get("mbgate_unit_requests_total").into_iter().flatten();
+        let units = units.filter(|(lb, _)| lb.get("line") == Some(&line));
+        for (lb, requests) in units {
+            let unit = lb.get("unit").cloned().unwrap_or_default();
+            let u = [("line", line.as_str()), ("unit", unit.as_str())];
+            let count = get(s, "mbgate_unit_reply_seconds_count", &u);
+            let avg = if count > 0.0 {
+                format!(
+                    ", replies in {:.1} ms on average",
+                    1000.0 * get(s, "mbgate_unit_reply_seconds_sum", &u) / count
+                )
+            } else {
+                String::new()
+            };
+            let mut state = String::new();
+            if get(s, "mbgate_unit_not_answering", &u) == 1.0 {
+                state += ", NOT ANSWERING";
+                problems.push(format!("unit {unit} on {line} not answering"));
+            }
+            if get(s, "mbgate_unit_backed_off", &u) == 1.0 {
+                state += ", backed off";
+            }
+            out += &format!(
+                "  unit {unit}: {} requests, {} replies, {} timeouts{avg}{state}\n",
+                n(*requests),
+                n(get(s, "mbgate_unit_replies_total", &u)),
+                n(get(s, "mbgate_unit_timeouts_total", &u)),
+            );
+        }
+    }
+    for listener in values_of(s, "mbgate_listener_connections_total", "listener") {
+        let l = [("listener", listener.as_str())];
+        out += &format!(
+            "listener {listener}: {} masters, {} connections, {} refused, {} protocol violations\n",
+            n(get(s, "mbgate_listener_masters", &l)),
+            n(get(s, "mbgate_listener_connections_total", &l)),
+            n(get(s, "mbgate_listener_refused_connections_total", &l)),
+            n(get(s, "mbgate_listener_protocol_violations_total", &l)),
+        );
+    }
+    let healthy = problems.is_empty();
+    let head = if healthy {
+        "healthy".to_owned()
+    } else {
+        format!("NOT HEALTHY: {}", problems.join("; "))
+    };
+    (format!("{head}\n{out}"), healthy)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn labels_with_escapes() {
+        let l = labels(r#"line="/dev/a \"b\"",unit="1""#);
+        assert_eq!(l["line"], "/dev/a \"b\"");
+        assert_eq!(l["unit"], "1");
+    }
+
+    #[test]
+    fn a_unit_not_answering_or_a_closed_port_is_not_healthy() {
+        let text = "\
+mbgate_line_requests_total{line=\"/dev/x\"} 5
+mbgate_line_port_open{line=\"/dev/x\"} 1
+mbgate_unit_requests_total{line=\"/dev/x\",unit=\"1\"} 5
+mbgate_unit_not_answering{line=\"/dev/x\",unit=\"1\"} 0
+";
+        let (report, healthy) = summary(&parse(text), SystemTime::now());
+        assert!(healthy, "{report}");
+        assert!(
+            report.starts_with("healthy\nline /dev/x: port open"),
+            "{report}"
+        );
+        let sick = text.replace(
+            "not_answering{line=\"/dev/x\",unit=\"1\"} 0",
+            "not_answering{line=\"/dev/x\",unit=\"1\"} 1",
+        );
+        let (report, healthy) = summary(&parse(&sick), SystemTime::now());
+        assert!(!healthy);
+        assert!(
+            report.starts_with("NOT HEALTHY: unit 1 on /dev/x not answering\n"),
+            "{report}"
+        );
+        let closed = text.replace(
+            "port_open{line=\"/dev/x\"} 1",
+            "port_open{line=\"/dev/x\"} 0",
+        );
+        let (report, healthy) = summary(&parse(&closed), SystemTime::now());
+        assert!(!healthy);
+        assert!(
+            report.starts_with("NOT HEALTHY: /dev/x not open\n"),
+            "{report}"
+        );
+    }
+}

@@ -1,0 +1,384 @@
+//! What the relay tells about its line as it goes (README "Watching it run"): the
+//! numbers of `crate::metrics` (requests, replies, reply times, timeouts, exceptions,
+//! queue, time busy), one warning when a unit stops answering and one line when it
+//! answers again, and the traffic log of whole frames (`log.traffic`).
+//!
+//! Plain data and a few relaxed atomic stores, the time passed in: the relay never
+//! waits on whoever reads the numbers.
+
+use crate::frame::hex::Hex;
+use crate::frame::Adu;
+use crate::frame::FunctionCode as F;
+use crate::metrics::{FrameSeen, LineMetrics};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::time::Instant;
+use tracing::{debug, info, warn};
+
+/// Timeouts in a row, with no reply between them, that make a unit "not answering".
+/// On RTU/ASCII it is the default `unit_backoff_after`: the warning comes with the
+/// back-off.
+pub(super) const NOT_ANSWERING_AFTER: u32 = 3;
+/// The least time between two warnings about one unit: a unit that comes and goes
+/// does not fill the log. Spells in between are counted and said in the next warning.
+pub(super) const WARN_EVERY: Duration = Duration::from_secs(60);
+
+/// One unit's run of timeouts.
+#[derive(Debug, Default, Clone)]
+struct Spell {
+    /// Timeouts since its last reply.
+    timeouts: u32,
+    /// When the first of them came.
+    first: Option<Instant>,
+    /// Whether this spell was warned about (then its end is said too).
+    warned: bool,
+    last_warning: Option<Instant>,
+    /// Spells since the last warning that were not warned about (rate limit).
+    unsaid: u32,
+}
+
+pub(super) struct Watch {
+    pub(super) metrics: Arc<LineMetrics>,
+    spells: Vec<Spell>,
+    /// When the line last had a request on it, while it has.
+    busy_since: Option<Instant>,
+    traffic: bool,
+}
+
+impl Watch {
+    pub(super) fn new(metrics: Arc<LineMetrics>, traffic: bool) -> Self {
+        Self {
+            metrics,
+            spells: vec![Spell::default(); 256],
+            busy_since: None,
+            traffic,
+        }
+    }
+
+    fn line(&self) -> &str {
+        &self.metrics.name
+    }
+
+    /// A request for `unit` reached the relay.
+    pub(super) fn request(&self, unit: u8) {
+        self.metrics
+            .unit(unit)
+            .requests
+            .fetch_add(1, Ordering::Relaxed);
+    }
+
+    /// The end of a turn of the loop: the gauges as they are now, and the time the
+    /// line was busy (a request on it) since the last turn.
+    pub(super) fn turn(&mut self, now: Instant, queued: usize, in_flight: usize, open: bool) {
+        let m = &self.metrics;
+        m.queued.store(queued as u64, Ordering::Relaxed);
+        m.in_flight.store(in_flight as u64, Ordering::Relaxed);
+        m.port_open.store(u64::from(open), Ordering::Relaxed);
+        if let Some(since) = self.busy_since.take() {
+            let us = now.saturating_duration_since(since).as_micros() as u64;
+            m.busy_us.fetch_add(us, Ordering::Relaxed);
+        }
+        if in_flight > 0 {
+            self.busy_since = Some(now);
+        }
+    }
+
+    /// Masters attached to the line now.
+    pub(super) fn masters(&self, n: usize) {
+        self.metrics.masters.store(n as u64, Ordering::Relaxed);
+    }
+
+    /// Is anyone looking at the frames: the traffic log, or the status page at `now`?
+    pub(super) fn wants_frames(&self, now: Instant) -> bool {
+        self.traffic || self.metrics.is_watched(now)
+    }
+
+    /// Records a frame for the status page, if it is open.
+    fn record(&self, now: Instant, frame: impl FnOnce() -> FrameSeen) {
+        if self.metrics.is_watched(now) {
+            self.metrics.record(frame());
+        }
+    }
+
+    /// Request `adu` from master `conn` goes on the line as `tid`, as `bytes`.
+    pub(super) fn sent(&self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
+        self.record(now, || FrameSeen {
+            at_ms: unix_ms(),
+            dir: "gw->serial",
+            conn: Some(conn),
+            unit: adu.unit(),
+            function: adu.function(),
+            span: span(adu.pdu()),
+            bytes: bytes.to_vec(),
+        });
+        if self.traffic {
+            let (addr, count) = span(adu.pdu()).unzip();
+            debug!(
+                target: "mbgate::traffic",
+                dir = "gw->serial",
+                conn,
+                unit = adu.unit(),
+                tid = adu.tid(),
+                line_tid = tid,
+                fc = adu.function(),
+                addr,
+                count,
+                "{}",
+                Hex(bytes)
+            );
+        }
+    }
+
+    pub(super) fn set_traffic(&mut self, on: bool) {
+        self.traffic = on;
+    }
+
+    /// The reply `frame` (with the line's id) answered `asked` from master `conn`,
+    /// which left at `left`; `wire` is the reply as it was on the wire (given when the
+    /// traffic log is on).
+    pub(super) fn replied(
+        &mut self,
+        conn: u64,
+        asked: &Adu,
+        frame: &Adu,
+        wire: Option<Vec<u8>>,
+        (left, now): (Instant, Instant),
+    ) {
+        let unit = asked.unit();
+        let u = self.metrics.unit(unit);
+        u.replies.fetch_add(1, Ordering::Relaxed);
+        u.observe(now.saturating_duration_since(left));
+        u.backed_off.store(0, Ordering::Relaxed);
+        u.not_answering.store(0, Ordering::Relaxed);
+        self.metrics.replied_at(now);
+        let exception = (frame.function() & 0x80 != 0).then(|| frame.pdu().get(1).copied());
+        if let Some(code) = exception {
+            self.metrics.device_exception(code.unwrap_or(0));
+        }
+        if let Some(wire) = &wire {
+            self.record(now, || FrameSeen {
+                at_ms: unix_ms(),
+                dir: "serial->gw",
+                conn: Some(conn),
+                unit,
+                function: frame.function(),
+                span: span(asked.pdu()),
+                bytes: wire.clone(),
+            });
+        }
+        if let (Some(wire), true) = (wire, self.traffic) {
+            let (addr, count) = span(asked.pdu()).unzip();
+            debug!(
+                target: "mbgate::traffic",
+                dir = "serial->gw",
+                conn,
+                unit,
+                tid = asked.tid(),
+                line_tid = frame.tid(),
+                fc = frame.function(),
+                addr,
+                count,
+                exception = exception.flatten(),
+                "{}",
+                Hex(&wire)
+            );
+        }
+        let spell = std::mem::take(&mut self.spells[usize::from(unit)]);
+        self.spells[usize::from(unit)] = Spell {
+            last_warning: spell.last_warning,
+            unsaid: spell.unsaid,
+            ..Spell::default()
+        };
+        if spell.warned {
+            let over = spell.first.map_or(Duration::ZERO, |f| now - f);
+            info!(
+                unit,
+                line = self.line(),
+                "unit {unit} on {} answering again, after {} timeouts in {}",
+                self.line(),
+                spell.timeouts,
+                secs(over)
+            );
+        }
+    }
+
+    /// A frame from the device that answers nothing on the line: `what` it is, and
+    /// the frame as on the wire.
+    pub(super) fn unsolicited(&self, what: &str, frame: &Adu, wire: &[u8], now: Instant) {
+        self.record(now, || FrameSeen {
+            at_ms: unix_ms(),
+            dir: if what.starts_with("late") {
+                "late"
+            } else {
+                "unsolicited"
+            },
+            conn: None,
+            unit: frame.unit(),
+            function: frame.function(),
+            span: None,
+            bytes: wire.to_vec(),
+        });
+        if !self.traffic {
+            return;
+        }
+        debug!(
+            target: "mbgate::traffic",
+            dir = "serial->gw",
+            unit = frame.unit(),
+            line_tid = frame.tid(),
+            fc = frame.function(),
+            "{} ({what})",
+            Hex(wire)
+        );
+    }
+
+    /// A request `asked` from master `conn` got no reply in time (one attempt).
+    pub(super) fn timed_out(&mut self, conn: u64, asked: &Adu, now: Instant) {
+        let unit = asked.unit();
+        self.record(now, || FrameSeen {
+            at_ms: unix_ms(),
+            dir: "timeout",
+            conn: Some(conn),
+            unit,
+            function: asked.function(),
+            span: span(asked.pdu()),
+            bytes: Vec::new(),
+        });
+        self.metrics
+            .unit(unit)
+            .timeouts
+            .fetch_add(1, Ordering::Relaxed);
+        let line = self.metrics.name.clone();
+        let s = &mut self.spells[usize::from(unit)];
+        s.timeouts += 1;
+        let first = *s.first.get_or_insert(now);
+        if s.timeouts != NOT_ANSWERING_AFTER {
+            return;
+        }
+        let u = self.metrics.unit(unit);
+        u.not_answering.store(1, Ordering::Relaxed);
+        if s.last_warning.is_some_and(|at| now - at < WARN_EVERY) {
+            s.unsaid += 1;
+            return;
+        }
+        let unsaid = match std::mem::take(&mut s.unsaid) {
+            0 => String::new(),
+            n => format!(
+                " ({n} more such spells in the last {} not warned about)",
+                secs(now - s.last_warning.unwrap_or(now))
+            ),
+        };
+        s.warned = true;
+        s.last_warning = Some(now);
+        warn!(
+            unit,
+            line = %line,
+            "unit {unit} on {line} not answering: {} timeouts in {}{unsaid}",
+            s.timeouts,
+            secs(now - first)
+        );
+    }
+
+    /// `unit` was backed off (RTU/ASCII).
+    pub(super) fn backed_off(&self, unit: u8) {
+        let u = self.metrics.unit(unit);
+        u.backed_off.store(1, Ordering::Relaxed);
+    }
+}
+
+/// Now, in milliseconds since the Unix epoch.
+fn unix_ms() -> u64 {
+    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH);
+    now.unwrap_or_default().as_millis() as u64
+}
+
+/// Seconds, to a tenth: `0.3 s`, `12.0 s`.
+fn secs(d: Duration) -> String {
+    format!("{:.1} s", d.as_secs_f64())
+}
+
+/// The first address and count a read or write request names (a single write: its
+/// address and 1); `None` for the other functions.
+pub(crate) fn span(pdu: &[u8]) -> Option<(u16, u16)> {
+    let word = |i: usize| Some(u16::from_be_bytes([*pdu.get(i)?, *pdu.get(i + 1)?]));
+    match F::new(*pdu.first()?) {
+        F::READ_COILS
+        | F::READ_DISCRETE_INPUTS
+        | F::READ_HOLDING_REGISTERS
+        | F::READ_INPUT_REGISTERS
+        | F::WRITE_MULTIPLE_COILS
+        | F::WRITE_MULTIPLE_REGISTERS
+        | F::READ_WRITE_MULTIPLE_REGISTERS => Some((word(1)?, word(3)?)),
+        F::WRITE_SINGLE_COIL | F::WRITE_SINGLE_REGISTER | F::MASK_WRITE_REGISTER => {
+            Some((word(1)?, 1))
+        }
+        _ => None,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::stats::Stats;
+
+    fn asked(unit: u8) -> Adu {
+        Adu::build(1, unit, &[3, 0, 0, 0, 1])
+    }
+
+    fn watch() -> (Watch, Instant) {
+        let m = Arc::new(LineMetrics::new("/dev/ttyX", Arc::new(Stats::default())));
+        (Watch::new(m, false), Instant::now())
+    }
+
+    #[test]
+    fn spans_of_reads_and_writes() {
+        assert_eq!(span(&[3, 0, 10, 0, 4]), Some((10, 4)));
+        assert_eq!(span(&[6, 1, 0, 0, 7]), Some((256, 1)));
+        assert_eq!(span(&[0x10, 0, 1, 0, 2, 4, 0, 0, 0, 0]), Some((1, 2)));
+        assert_eq!(span(&[0x17, 0, 5, 0, 3, 0, 9, 0, 1, 2, 0, 0]), Some((5, 3)));
+        assert_eq!(span(&[8, 0, 0, 0, 0]), None);
+        assert_eq!(span(&[3, 0]), None);
+    }
+
+    #[test]
+    fn a_spell_is_warned_at_its_third_timeout_and_its_end_said() {
+        let (mut w, t0) = watch();
+        let s = |w: &Watch| w.spells[1].clone();
+        w.timed_out(7, &asked(1), t0);
+        w.timed_out(7, &asked(1), t0 + Duration::from_secs(1));
+        assert!(!s(&w).warned);
+        w.timed_out(7, &asked(1), t0 + Duration::from_secs(2));
+        assert!(s(&w).warned);
+        assert_eq!(w.metrics.unit(1).not_answering.load(Ordering::Relaxed), 1);
+        assert_eq!(s(&w).last_warning, Some(t0 + Duration::from_secs(2)));
+        w.timed_out(7, &asked(1), t0 + Duration::from_secs(3));
+        assert_eq!(s(&w).last_warning, Some(t0 + Duration::from_secs(2)));
+        assert_eq!(w.metrics.unit(1).timeouts.load(Ordering::Relaxed), 4);
+        // Other units are not touched.
+        assert_eq!(w.spells[2].timeouts, 0);
+    }
+
+    #[test]
+    fn a_second_spell_within_the_minute_is_not_warned_but_counted() {
+        let (mut w, t0) = watch();
+        let req = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let rep = Adu::build(1, 1, &[3, 2, 0, 0]);
+        for i in 0..3 {
+            w.timed_out(7, &asked(1), t0 + Duration::from_secs(i));
+        }
+        w.replied(1, &req, &rep, None, (t0, t0 + Duration::from_secs(5)));
+        assert_eq!(w.spells[1].timeouts, 0);
+        for i in 10..13 {
+            w.timed_out(7, &asked(1), t0 + Duration::from_secs(i));
+        }
+        assert!(!w.spells[1].warned, "within a minute of the last warning");
+        assert_eq!(w.spells[1].unsaid, 1);
+        w.replied(1, &req, &rep, None, (t0, t0 + Duration::from_secs(20)));
+        for i in 70..73 {
+            w.timed_out(7, &asked(1), t0 + Duration::from_secs(i));
+        }
+        assert!(w.spells[1].warned, "a minute later");
+        assert_eq!(w.spells[1].unsaid, 0);
+    }
+}

@@ -1,0 +1,151 @@
+//! Reload (SIGHUP, `systemctl reload`; README "Reload") under load: two masters poll
+//! throughout and are never disconnected nor answered wrongly; a shorter response
+//! timeout is in force after the reload; the metrics listener starts; a key that needs
+//! a restart is said; a broken file is refused with its precise error and the running
+//! configuration stays.
+
+mod common;
+use common::*;
+use std::io::{Read, Write};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread;
+use std::time::{Duration, Instant};
+
+/// A device that answers a read of one register with its address, at once, except
+/// register 9: 300 ms later. One request at a time, as a serial device: a request
+/// sent while it is busy with register 9 waits for it (at most 100 ms after a 200 ms
+/// timeout, so the pollers never time out).
+fn device(path: &std::path::Path) -> RawDevice {
+    RawDevice::scripted(
+        path,
+        Box::new(|req| {
+            let pdu = req.pdu();
+            let addr = u16::from_be_bytes([pdu[1], pdu[2]]);
+            let [t0, t1] = req.tid().to_be_bytes();
+            let [a0, a1] = addr.to_be_bytes();
+            let reply = vec![t0, t1, 0, 0, 0, 5, req.unit(), 0x03, 0x02, a0, a1];
+            let after = if addr == 9 { 300 } else { 0 };
+            vec![(Duration::from_millis(after), reply)]
+        }),
+    )
+}
+
+/// A master polling register `addr` until `stop`; returns how many replies it got.
+/// Any wrong answer or lost connection panics (and fails the test at the join).
+fn poller(gw: &Gateway, addr: u16, stop: Arc<AtomicBool>) -> thread::JoinHandle<u32> {
+    let mut m = gw.connect();
+    thread::spawn(move || {
+        let mut n = 0u32;
+        while !stop.load(Ordering::Relaxed) {
+            let tid = n as u16;
+            assert_eq!(
+                transact(&mut m, &read_req(tid, 1, addr, 1)),
+                read_reply(tid, 1, &[addr]),
+                "poll {n} of register {addr}"
+            );
+            n += 1;
+            thread::sleep(Duration::from_millis(5));
+        }
+        // Still connected: the gateway answers once more.
+        assert_eq!(
+            transact(&mut m, &read_req(0, 1, addr, 1)),
+            read_reply(0, 1, &[addr])
+        );
+        n
+    })
+}
+
+/// Reads register 9 (the slow one): its reply, and how long it took.
+fn slow_read(m: &mut std::net::TcpStream, tid: u16) -> (Vec<u8>, Duration) {
+    let t0 = Instant::now();
+    (transact(m, &read_req(tid, 1, 9, 1)), t0.elapsed())
+}
+
+#[test]
+fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = device(&socat.dev);
+    let base = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"");
+    let mut gw = Gateway::start(
+        &base.clone().relay("response_timeout_ms = 1000"),
+        dir.path(),
+    );
+    let file = dir.path().join("mbgate.toml");
+    gw.wait_log("serial port open", Duration::from_secs(5));
+    let stop = Arc::new(AtomicBool::new(false));
+    let polls = [poller(&gw, 1, stop.clone()), poller(&gw, 2, stop.clone())];
+    let mut m = gw.connect();
+    let (reply, _) = slow_read(&mut m, 1);
+    assert_eq!(reply, read_reply(1, 1, &[9]), "300 ms is within 1 s");
+
+    // A shorter timeout, the metrics listener, and a key only a restart applies.
+    let new = base
+        .clone()
+        .relay("response_timeout_ms = 200")
+        .tcp("max_connections = 5")
+        .metrics("listen = \"127.0.0.1:0\"");
+    std::fs::write(&file, new.render()).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("reloaded: ", Duration::from_secs(5));
+    let log = gw.log();
+    assert!(
+        log.contains("reloaded: relay.response_timeout_ms = 200, metrics.listen = \"127.0.0.1:0\""),
+        "{log}"
+    );
+    assert!(
+        log.contains("applied only by a restart (systemctl restart): tcp.max_connections = 5"),
+        "{log}"
+    );
+    let (reply, took) = slow_read(&mut m, 2);
+    assert_eq!(reply, hex("00 02 00 00 00 03 01 83 0B"), "200 ms now");
+    assert!(took < Duration::from_millis(300), "{took:?}");
+    // The metrics listener came up with the reload (its thread says where).
+    gw.wait_log("metrics on http://", Duration::from_secs(5));
+    let log = gw.log();
+    let rest = log.split("metrics on http://").nth(1).expect("metrics on");
+    let http = rest.split('/').next().unwrap();
+    let mut s = std::net::TcpStream::connect(http).unwrap();
+    write!(s, "GET /metrics HTTP/1.1\r\n\r\n").unwrap();
+    let mut text = String::new();
+    s.read_to_string(&mut text).unwrap();
+    assert!(text.starts_with("HTTP/1.1 200 OK"), "{text}");
+
+    // A broken file: refused, with the usual error, and 200 ms stays.
+    let broken = new.relay("retries = \"many\"");
+    std::fs::write(&file, broken.render()).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("reload refused: ", Duration::from_secs(5));
+    let log = gw.log();
+    let refused = log
+        .lines()
+        .find(|l| l.contains("reload refused: "))
+        .unwrap();
+    let line = broken
+        .render()
+        .lines()
+        .position(|l| l.contains("\"many\""))
+        .unwrap()
+        + 1;
+    assert!(
+        refused.contains(&format!(
+            "reload refused: {}:{line}:11: relay.retries: invalid type: string \"many\", expected an integer; the running configuration stays",
+            file.display()
+        )),
+        "{refused}"
+    );
+    let (reply, _) = slow_read(&mut m, 3);
+    assert_eq!(reply, hex("00 03 00 00 00 03 01 83 0B"), "still 200 ms");
+
+    stop.store(true, Ordering::Relaxed);
+    for p in polls {
+        let n = p.join().expect("a poller failed");
+        assert!(n >= 3, "{n} polls");
+    }
+    let counters = gw.stop();
+    assert_eq!(counters["connections"], 3, "no master reconnected");
+    assert_eq!(counters["protocol_violations"], 0);
+}

@@ -1,0 +1,186 @@
+//! The status page (README "Watching it run") in a real browser: headless Chromium
+//! (Debian's `chromium`, installed by .ci/run) loads it from the metrics listener while
+//! a master polls; the request rate and the frame list appear, decoded, and update.
+//! A screenshot at a phone's size goes to target/status-page.png. Without chromium the
+//! test says so on stderr and checks nothing, when it could not install it (not root);
+//! as root (CI) it fails unless MBGATE_SKIP_BROWSER is set.
+
+mod common;
+use common::*;
+use std::io::{Read, Write};
+use std::process::Command;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::thread;
+use std::time::Duration;
+
+fn chromium() -> Option<&'static str> {
+    ["chromium", "chromium-browser"].into_iter().find(|b| {
+        Command::new(b)
+            .arg("--version")
+            .output()
+            .is_ok_and(|o| o.status.success())
+    })
+}
+
+/// Chromium, headless, at a phone's width, `extra` flags, on `url`: its stdout.
+fn browse(browser: &str, url: &str, extra: &[&str]) -> String {
+    let out = Command::new(browser)
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-dev-shm-usage",
+            "--no-first-run",
+            "--hide-scrollbars",
+            "--window-size=412,915",
+            "--virtual-time-budget=3000",
+        ])
+        .args(extra)
+        .arg(url)
+        .output()
+        .expect("run chromium");
+    assert!(
+        out.status.success(),
+        "chromium failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The text right after `marker`, up to the next `<` or `)`.
+fn text_after<'a>(dom: &'a str, marker: &str) -> &'a str {
+    let at = dom
+        .find(marker)
+        .unwrap_or_else(|| panic!("{marker} not in:\n{dom}"));
+    let rest = &dom[at + marker.len()..];
+    &rest[..rest.find(['<', ')']).unwrap()]
+}
+
+#[test]
+fn the_status_page_shows_live_rates_and_decoded_frames_in_a_browser() {
+    let Some(browser) = chromium() else {
+        // SAFETY: geteuid(2) has no preconditions and cannot fail.
+        let root = unsafe { libc::geteuid() } == 0;
+        let skip = std::env::var_os("MBGATE_SKIP_BROWSER").is_some();
+        assert!(
+            !root || skip,
+            "chromium not found, though running as root: apt-get install chromium \
+             (.ci/run does), or set MBGATE_SKIP_BROWSER=1 to skip this test"
+        );
+        eprintln!(
+            "SKIPPED the_status_page_shows_live_rates_and_decoded_frames_in_a_browser: \
+             no chromium (apt-get install chromium as root; .ci/run does)"
+        );
+        return;
+    };
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let cfg = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"")
+        .metrics("listen = \"127.0.0.1:0\"");
+    let mut gw = Gateway::start(&cfg, dir.path());
+    gw.wait_log("metrics on http://", Duration::from_secs(5));
+    let log = gw.log();
+    let http = log.split("metrics on http://").nth(1).unwrap();
+    let url = format!("http://{}/", http.split('/').next().unwrap());
+    // A master polls register 7 every 20 ms throughout.
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut m = gw.connect();
+    let polling = stop.clone();
+    let master = thread::spawn(move || {
+        let mut tid = 0u16;
+        while !polling.load(Ordering::Relaxed) {
+            assert_eq!(
+                transact(&mut m, &read_req(tid, 1, 7, 3)),
+                read_reply(tid, 1, &[7, 8, 9])
+            );
+            tid = tid.wrapping_add(1);
+            thread::sleep(Duration::from_millis(20));
+        }
+    });
+
+    // The page was open a moment ago (frames are recorded only while it is), and the
+    // gateway samples a point a second: two make a rate.
+    let host = url
+        .trim_start_matches("http://")
+        .trim_end_matches('/')
+        .to_owned();
+    let mut s = std::net::TcpStream::connect(&host).unwrap();
+    write!(s, "GET /status.json HTTP/1.1\r\n\r\n").unwrap();
+    let mut json = String::new();
+    s.read_to_string(&mut json).unwrap();
+    assert!(
+        json.contains("\"frames_total\":0"),
+        "nothing recorded before: {json}"
+    );
+    thread::sleep(Duration::from_millis(2100));
+    let mut s = std::net::TcpStream::connect(&host).unwrap();
+    write!(s, "GET /status.json HTTP/1.1\r\n\r\n").unwrap();
+    let mut json = String::new();
+    s.read_to_string(&mut json).unwrap();
+    let at = json.find("\"frames_total\":").expect("frames_total") + 15;
+    let before: u64 = json[at..].split(',').next().unwrap().parse().unwrap();
+    assert!(before > 0, "recorded while the page was open: {json}");
+    let first = browse(browser, &url, &["--dump-dom"]);
+    // Several polls of /status.json: the rate is a number above zero.
+    let updates: u32 = text_after(&first, "(update ").parse().unwrap();
+    assert!(updates >= 2, "{updates} updates");
+    let rate: f64 = text_after(&first, "id=\"rate-0\"><b>").parse().unwrap();
+    assert!(rate > 1.0, "req/s {rate}");
+    assert!(first.contains("Line ") && first.contains(socat.gw.to_str().unwrap()));
+    // The frames decoded: both directions, unit 1, FC 03, address 7, count 3, the hex.
+    let rows = |dom: &str| -> Vec<String> {
+        let table = &dom[dom.find("id=\"frames-0\"").expect("frame table")..];
+        let body = &table[..table.find("</table>").unwrap()];
+        body.split("<tr>").skip(2).map(str::to_owned).collect()
+    };
+    let frames = rows(&first);
+    assert!(frames.len() >= 4, "{frames:?}");
+    let out = frames
+        .iter()
+        .find(|r| r.contains("gw-&gt;serial"))
+        .expect("a request");
+    assert!(
+        out.contains("<td>1</td><td>0x03</td><td>7</td><td>3</td>")
+            && out.contains("00 00 00 06 01 03 00 07 00 03"),
+        "{out}"
+    );
+    let back = frames
+        .iter()
+        .find(|r| r.contains("serial-&gt;gw"))
+        .expect("a reply");
+    assert!(
+        back.contains("00 00 00 09 01 03 06 00 07 00 08 00 09"),
+        "{back}"
+    );
+    assert!(first.contains("healthy"), "{first}");
+    let total = |dom: &str| -> u64 { text_after(dom, "frames (of ").parse().unwrap() };
+
+    // Newer than what there was before the browser came: the page shows the frames
+    // recorded since, having polled several times.
+    assert!(
+        total(&first) > before,
+        "{} frames, {before} before",
+        total(&first)
+    );
+    let shot = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("target/status-page.png");
+    let _ = std::fs::remove_file(&shot);
+    browse(
+        browser,
+        &url,
+        &[&format!("--screenshot={}", shot.display())],
+    );
+    let png = std::fs::read(&shot).expect("the screenshot");
+    assert!(
+        png.starts_with(b"\x89PNG") && png.len() > 10_000,
+        "{} bytes",
+        png.len()
+    );
+
+    stop.store(true, Ordering::Relaxed);
+    master.join().expect("the master was answered throughout");
+    gw.stop();
+}
