@@ -113,7 +113,10 @@ async fn serve_with(
     warn_inapplicable(&cfg);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
+    // The listeners' counters (connections, refusals, unrouted requests); each line
+    // keeps its own (its metrics are per line), and the totals add them up.
     let stats = Arc::new(Stats::default());
+    let mut counted = vec![stats.clone()];
     let board = Arc::new(Board::default());
 
     // Each line its own relay task: its own queue, timeouts, retries and backoff, so
@@ -122,8 +125,10 @@ async fn serve_with(
     let mut handles: Vec<RelayHandle> = Vec::new();
     let mut relays = Vec::new();
     for (i, line) in lines.iter().enumerate() {
+        let line_stats = Arc::new(Stats::default());
+        counted.push(line_stats.clone());
         let (relay, handle) =
-            Relay::for_line(line, cfg.log.traffic, stats.clone(), shutdown.clone());
+            Relay::for_line(line, cfg.log.traffic, line_stats.clone(), shutdown.clone());
         // One watchdog for the gateway: every relay runs on the one thread, so one
         // loop that turns shows that all of them can.
         let relay = if i == 0 {
@@ -194,7 +199,7 @@ async fn serve_with(
         tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
     }
     if let Some(signals) = signals {
-        tokio::spawn(report_on_signal(signals, stats.clone(), shutdown.clone()));
+        tokio::spawn(report_on_signal(signals, counted.clone(), shutdown.clone()));
     }
 
     let tracker = TaskTracker::new();
@@ -236,8 +241,9 @@ async fn serve_with(
     {
         warn!("drain did not finish in {bound:?}; exiting anyway");
     }
-    info!(%stats, "stopped");
-    Ok(stats)
+    let totals = Arc::new(Stats::total(counted.iter().map(|s| &**s)));
+    info!(stats = %totals, "stopped");
+    Ok(totals)
 }
 
 type UserSignals = (tokio::signal::unix::Signal, tokio::signal::unix::Signal);
@@ -263,12 +269,15 @@ fn user_signals() -> Option<UserSignals> {
 /// SIGUSR2 is ignored.
 async fn report_on_signal(
     (mut usr1, mut usr2): UserSignals,
-    stats: Arc<Stats>,
+    counted: Vec<Arc<Stats>>,
     shutdown: CancellationToken,
 ) {
     loop {
         tokio::select! {
-            _ = usr1.recv() => info!(%stats, "counters (SIGUSR1)"),
+            _ = usr1.recv() => {
+                let stats = Stats::total(counted.iter().map(|s| &**s));
+                info!(%stats, "counters (SIGUSR1)");
+            }
             _ = usr2.recv() => debug!("SIGUSR2 ignored"),
             _ = shutdown.cancelled() => return,
         }

@@ -13,6 +13,18 @@ macro_rules! counters {
             $(#[doc = $doc] pub $name: AtomicU64,)*
         }
 
+        impl Stats {
+            /// The sum of `parts`, counter by counter: the gateway's totals from its
+            /// listeners' counters and each line's own.
+            pub fn total<'a>(parts: impl IntoIterator<Item = &'a Stats>) -> Stats {
+                let sum = Stats::default();
+                for p in parts {
+                    $(sum.$name.fetch_add(p.$name.load(Ordering::Relaxed), Ordering::Relaxed);)*
+                }
+                sum
+            }
+        }
+
         impl fmt::Display for Stats {
             fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
                 let mut first = true;
