@@ -185,9 +185,36 @@ mod tests {
             max_pending_per_connection = 2\nqueue_depth = 9\nretries = 2\nretry_writes = true\n\
             notifications = \"broadcast\"\nbroadcast_delay_ms = 1\nbroadcast_reply = \"echo\"\n\
             unit_backoff = false\nunit_backoff_after = 9\nunit_backoff_ms = 9\nunit_backoff_max_ms = 99\n\
-            probe_timeout_ms = 9\ntimeout_guard_ms = 9\n\
+            probe_timeout_ms = 9\ntimeout_guard_ms = 9\ncoalesce = false\ncache_ms = 9\n\
+            request_pause_ms = 9\n\
             [log]\nlevel = \"debug\"\ntraffic = true\n[metrics]\nlisten = \"127.0.0.1:9502\"\n";
         crate::config::parse(text, "t").unwrap()
+    }
+
+    /// With `[[line]]` tables each line takes its own reloadable keys; its units do not
+    /// change (they need a restart, and `merged` leaves them as they run).
+    #[test]
+    fn each_line_takes_its_own_timeout() {
+        let file = |t1: u32, t2: u32, units2: &str| {
+            let text = format!(
+                "[[line]]\nunits = [1]\nserial = {{ path = \"/dev/a\" }}\nrelay = {{ response_timeout_ms = {t1} }}\n\
+                 [[line]]\nunits = [{units2}]\nserial = {{ path = \"/dev/b\" }}\nrelay = {{ response_timeout_ms = {t2} }}\n"
+            );
+            crate::config::parse(&text, "t").unwrap()
+        };
+        let (old, read) = (file(100, 200, "2"), file(300, 400, "2, 3"));
+        let new = merged(&old, &read);
+        let timeouts: Vec<u64> = new
+            .lines
+            .iter()
+            .map(|l| l.relay.response_timeout_ms)
+            .collect();
+        assert_eq!(timeouts, [300, 400]);
+        assert_eq!(new.lines[1].units, old.lines[1].units);
+        assert_ne!(
+            new.lines, read.lines,
+            "the units' change waits for a restart"
+        );
     }
 
     #[test]
