@@ -178,9 +178,17 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
     let cie_m10 = args.device.profile == mbgate::sim::options::ProfileName::CieM10;
-    let polling = args.role.polling(cie_m10);
-    let settings = args.settings().and_then(|s| polling.clone().map(|_| s));
-    let tcp = args.role.tcp;
+    let polling = args.role.polling(cie_m10, args.listen.is_some());
+    let many = (args.connections > 1).then_some(args.connections);
+    let settings = args
+        .settings()
+        .and_then(|s| polling.clone().map(|_| s))
+        .and_then(|s| match many {
+            Some(_) if args.framing != mbgate::config::Framing::Mbap => {
+                Err("--connections above 1 is a Modbus/TCP slave's: --framing mbap".into())
+            }
+            _ => Ok(s),
+        });
     let listen = args.listen;
     simulate(
         &args.device,
@@ -188,11 +196,12 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
         false,
         None,
         |settings, commands, shutdown| async move {
-            if let Some(addr) = tcp {
+            if let (Some(addr), Some(n)) = (listen, many) {
                 let listener = mbgate::sim::tcp::bind(addr)
                     .await
                     .with_context(|| format!("cannot listen on {addr}"))?;
-                mbgate::sim::tcp::run(settings.device, listener, commands, shutdown).await?;
+                let n = usize::from(n);
+                mbgate::sim::tcp::run(settings.device, listener, n, commands, shutdown).await?;
                 return Ok(());
             }
             let port = match listen {

@@ -137,9 +137,11 @@ pub async fn run(
         }
     });
     let slave = Device::new(Profile::CieM10(CieM10::default()), settings.seed);
+    // The master line, and the user's own reads of the slave (the banner's).
     let slave = tokio::spawn(crate::sim::tcp::run(
         slave,
         listener,
+        8,
         slave_commands,
         shutdown.clone(),
     ));

@@ -564,3 +564,60 @@ fn unsafe_free_terminate(pid: u32) {
         .args(["-TERM", &pid.to_string()])
         .status();
 }
+
+/// `mbgate sim --listen ADDR --connections 2` is a Modbus/TCP slave two masters reach
+/// at once: both are answered, each with its own transaction id, while a third
+/// connection is closed at once; `--connections` above 1 in RTU framing is refused.
+#[test]
+fn the_simulator_serves_as_many_connections_as_asked() {
+    let port = free_port();
+    let at = format!("127.0.0.1:{port}");
+    let args = |framing: &str| -> Vec<String> {
+        let argv = [
+            "sim",
+            "--listen",
+            &at,
+            "--connections",
+            "2",
+            "--framing",
+            framing,
+        ];
+        let tail = ["--profile", "generic", "--fill", "address", "--headless"];
+        argv.iter().chain(&tail).map(|s| s.to_string()).collect()
+    };
+    let refused = std::process::Command::new(env!("CARGO_BIN_EXE_mbgate"))
+        .args(args("rtu"))
+        .output()
+        .unwrap();
+    assert_eq!(refused.status.code(), Some(2), "{refused:?}");
+    assert!(
+        String::from_utf8_lossy(&refused.stderr).contains("--framing mbap"),
+        "{refused:?}"
+    );
+    let argv = args("mbap");
+    let argv: Vec<&str> = argv.iter().map(String::as_str).collect();
+    let _sim = Proc::start(&argv, "serving Modbus/TCP on");
+    let addr: SocketAddr = at.parse().unwrap();
+    let (mut a, mut b) = (connect(addr), connect(addr));
+    let mut third = connect(addr);
+    third
+        .set_read_timeout(Some(Duration::from_secs(3)))
+        .unwrap();
+    let mut buf = [0u8; 1];
+    assert!(
+        matches!(third.read(&mut buf), Ok(0)),
+        "the third is closed at once"
+    );
+    assert_eq!(
+        transact(&mut a, &read_req(7, 1, 3, 2)),
+        read_reply(7, 1, &[3, 4])
+    );
+    assert_eq!(
+        transact(&mut b, &read_req(9, 1, 5, 1)),
+        read_reply(9, 1, &[5])
+    );
+    assert_eq!(
+        transact(&mut a, &read_req(8, 1, 0, 1)),
+        read_reply(8, 1, &[0])
+    );
+}

@@ -181,13 +181,24 @@ pub struct DeviceArgs {
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH", required_unless_present_any = ["listen", "tcp"])]
+    #[arg(long, value_name = "PATH", required_unless_present = "listen")]
     pub serial: Option<PathBuf>,
     /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
     /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
     /// device server in raw TCP mode (--framing rtu or ascii).
     #[arg(long, value_name = "ADDR", conflicts_with = "serial")]
     pub listen: Option<std::net::SocketAddr>,
+    /// With --listen: how many connections are served at once. 1 (the default): a
+    /// second is closed at once, as a device server or a single-connection PLC does;
+    /// more: a Modbus/TCP slave that several masters reach at once (--framing mbap).
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 1,
+        requires = "listen",
+        value_parser = clap::value_parser!(u16).range(1..=256)
+    )]
+    pub connections: u16,
     // Before the port's flags: their heading would carry over onto these.
     #[command(flatten)]
     pub device: DeviceArgs,

@@ -1,7 +1,6 @@
 //! `mbgate sim`'s role flags: the CIE-M10 as the master of docs/protocol.md §3
-//! (`--role master --poll-ms`), or the device as a Modbus/TCP slave (`--tcp ADDR`).
+//! (`--role master --poll-ms`); a slave (the default) answers requests.
 
-use std::net::SocketAddr;
 use std::time::Duration;
 
 /// Which side of the conversation the simulated device is.
@@ -27,15 +26,6 @@ pub struct RoleArgs {
     /// master: how long it waits for each reply, in ms [default: the period, at most 1000].
     #[arg(long, value_name = "MS", help_heading = "role")]
     pub timeout_ms: Option<u64>,
-    /// slave: serve Modbus/TCP on this address instead of a serial port (cie-m10 or
-    /// generic profile; the line model does not apply).
-    #[arg(
-        long,
-        value_name = "ADDR",
-        conflicts_with = "serial",
-        help_heading = "role"
-    )]
-    pub tcp: Option<SocketAddr>,
 }
 
 /// The master's timing, checked.
@@ -46,8 +36,9 @@ pub struct Polling {
 }
 
 impl RoleArgs {
-    /// The master's timing, or why the flags do not fit together.
-    pub fn polling(&self, cie_m10: bool) -> Result<Option<Polling>, String> {
+    /// The master's timing, or why the flags do not fit together (`listen`: the
+    /// device is on the network, `--listen`).
+    pub fn polling(&self, cie_m10: bool, listen: bool) -> Result<Option<Polling>, String> {
         if self.role == Role::Slave {
             if self.timeout_ms.is_some() || self.poll_ms != 1000 {
                 return Err("--poll-ms and --timeout-ms apply to --role master".into());
@@ -57,8 +48,8 @@ impl RoleArgs {
         if !cie_m10 {
             return Err("--role master is the cie-m10 profile's".into());
         }
-        if self.tcp.is_some() {
-            return Err("--role master sends on a serial port (--serial), not --tcp".into());
+        if listen {
+            return Err("--role master sends on a serial port (--serial), not --listen".into());
         }
         if self.poll_ms == 0 || self.timeout_ms == Some(0) {
             return Err("--poll-ms and --timeout-ms must be positive".into());

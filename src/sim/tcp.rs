@@ -1,6 +1,8 @@
-//! The simulated device as a Modbus/TCP slave (`mbgate sim --tcp ADDR`): the profile
-//! answers MBAP requests from any number of connections, with the same console. The
-//! slave a master line reaches in `mbgate demo --master` and in the tests.
+//! The simulated device as a Modbus/TCP slave that several masters reach at once
+//! (`mbgate sim --listen ADDR --connections N`): the profile answers MBAP requests on
+//! up to N connections, with the same console. The slave a master line reaches in
+//! `mbgate demo --master` (where the user's own reads reach it too). One connection at
+//! a time, in any framing, is `serve/tcp.rs`.
 
 use super::packets::Direction;
 use super::serve::ConsoleRequest;
@@ -24,21 +26,32 @@ pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
     Ok(l)
 }
 
-/// Serves the device on `listener` until `shutdown`.
+/// Serves the device on `listener`, at most `connections` at once (a connection
+/// beyond them is closed at once), until `shutdown`.
 pub async fn run(
     device: Device,
     listener: TcpListener,
+    connections: usize,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> std::io::Result<()> {
     let device = Arc::new(Mutex::new(device));
+    let room = Arc::new(tokio::sync::Semaphore::new(connections));
     loop {
         tokio::select! {
             _ = shutdown.cancelled() => return Ok(()),
             r = listener.accept() => {
                 let (stream, from) = r?;
+                let Ok(permit) = room.clone().try_acquire_owned() else {
+                    info!("a connection from {from} closed: {connections} served already");
+                    continue;
+                };
                 debug!("master connected from {from}");
-                tokio::spawn(connection(stream, device.clone(), shutdown.clone()));
+                let (device, shutdown) = (device.clone(), shutdown.clone());
+                tokio::spawn(async move {
+                    connection(stream, device, shutdown).await;
+                    drop(permit);
+                });
             }
             Some(req) = commands.recv() => {
                 let outcome = device.lock().expect("not poisoned").execute(req.command);
