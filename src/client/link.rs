@@ -294,6 +294,34 @@ impl Master {
     }
 }
 
+/// The connection to `addr`, made now (before `deadline`) when there is none, with
+/// `fresh` run on a new one (what was buffered from an old one answers nothing).
+async fn connected<'a>(
+    addr: &str,
+    stream: &'a mut Option<TcpStream>,
+    deadline: Instant,
+    ms: u64,
+    fresh: impl FnOnce(),
+) -> Result<&'a mut TcpStream, ClientError> {
+    if stream.is_none() {
+        let s = match timeout_at(deadline, TcpStream::connect(addr)).await {
+            Err(_) => {
+                let addr = addr.to_string();
+                return Err(ClientError::ConnectTimeout { addr, ms });
+            }
+            Ok(Err(source)) => {
+                let addr = addr.to_string();
+                return Err(ClientError::Connect { addr, source });
+            }
+            Ok(Ok(s)) => s,
+        };
+        let _ = s.set_nodelay(true);
+        fresh();
+        *stream = Some(s);
+    }
+    Ok(stream.as_mut().expect("connected above"))
+}
+
 async fn tcp_exchange(
     addr: &str,
     stream: &mut Option<TcpStream>,
@@ -303,22 +331,7 @@ async fn tcp_exchange(
     ms: u64,
 ) -> Result<Received, ClientError> {
     let target = || addr.to_string();
-    if stream.is_none() {
-        let s = match timeout_at(deadline, TcpStream::connect(addr)).await {
-            Err(_) => return Err(ClientError::ConnectTimeout { addr: target(), ms }),
-            Ok(Err(source)) => {
-                return Err(ClientError::Connect {
-                    addr: target(),
-                    source,
-                })
-            }
-            Ok(Ok(s)) => s,
-        };
-        let _ = s.set_nodelay(true);
-        buf.clear();
-        *stream = Some(s);
-    }
-    let s = stream.as_mut().expect("connected above");
+    let s = connected(addr, stream, deadline, ms, || buf.clear()).await?;
     let start = Instant::now();
     let io = |what, source| ClientError::Io {
         target: target(),

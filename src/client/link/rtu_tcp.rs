@@ -3,7 +3,7 @@
 //! and no MBAP header; the reply is the first frame from the unit asked whose check
 //! holds, ended by its length (or, for a reply of unknown shape, a pause).
 
-use super::{received, ClientError, Received};
+use super::{connected, received, ClientError, Received};
 use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::Adu;
 use std::time::Duration;
@@ -24,22 +24,10 @@ pub(super) async fn exchange(
     ms: u64,
 ) -> Result<Received, ClientError> {
     let target = || addr.to_string();
-    if stream.is_none() {
-        let s = match timeout_at(deadline, TcpStream::connect(addr)).await {
-            Err(_) => return Err(ClientError::ConnectTimeout { addr: target(), ms }),
-            Ok(Err(source)) => {
-                return Err(ClientError::Connect {
-                    addr: target(),
-                    source,
-                })
-            }
-            Ok(Ok(s)) => s,
-        };
-        let _ = s.set_nodelay(true);
+    let s = connected(addr, stream, deadline, ms, || {
         decoder.clear();
-        *stream = Some(s);
-    }
-    let s = stream.as_mut().expect("connected above");
+    })
+    .await?;
     let start = Instant::now();
     let io = |what, source| ClientError::Io {
         target: target(),
