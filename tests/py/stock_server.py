@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import signal
 import sys
 
 from pymodbus import FramerType
@@ -32,6 +31,7 @@ from pymodbus.datastore import (
     ModbusServerContext,
 )
 from pymodbus.server import ModbusSerialServer
+import serving
 
 
 def context(size: int) -> ModbusServerContext:
@@ -63,15 +63,7 @@ async def main() -> int:
         baudrate=args.baud,
         broadcast_enable=args.broadcast,
     )
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    await server.serve_forever(background=True)
-    print("READY", flush=True)
-    await stop.wait()
-    await server.shutdown()
-    return 0
+    return await serving.until_signalled(server)
 
 
 if __name__ == "__main__":

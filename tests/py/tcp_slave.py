@@ -15,7 +15,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
-import signal
 import sys
 
 from pymodbus.datastore import (
@@ -24,6 +23,7 @@ from pymodbus.datastore import (
     ModbusServerContext,
 )
 from pymodbus.server import ModbusTcpServer
+import serving
 
 
 def context(unit: int, base: int, size: int) -> ModbusServerContext:
@@ -48,15 +48,7 @@ async def main() -> int:
     server = ModbusTcpServer(
         context(args.unit, args.base, args.size), address=("127.0.0.1", args.port)
     )
-    stop = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGTERM, signal.SIGINT):
-        loop.add_signal_handler(sig, stop.set)
-    await server.serve_forever(background=True)
-    print("READY", flush=True)
-    await stop.wait()
-    await server.shutdown()
-    return 0
+    return await serving.until_signalled(server)
 
 
 if __name__ == "__main__":
