@@ -514,7 +514,7 @@ fn the_readme_sections_run_as_printed() {
             section.contains(&format!("config/examples/{file}")),
             "{title}"
         );
-        let mut background = Vec::new();
+        let mut background = Background(Vec::new());
         for line in fenced(section, "sh").lines() {
             let sh = |script: String| {
                 let mut c = std::process::Command::new("sh");
@@ -530,7 +530,7 @@ fn the_readme_sections_run_as_printed() {
                     .stderr(std::process::Stdio::null())
                     .spawn()
                     .unwrap();
-                background.push(child);
+                background.0.push(child);
                 continue;
             }
             let want = if line.contains("exit code 3") { 3 } else { 0 };
@@ -550,7 +550,17 @@ fn the_readme_sections_run_as_printed() {
                 thread::sleep(Duration::from_millis(200));
             }
         }
-        for mut child in background.into_iter().rev() {
+        drop(background);
+    }
+}
+
+/// The processes a README section starts with `&`: stopped when the section is done,
+/// and when the test fails, so that none is left holding the section's ports.
+struct Background(Vec<std::process::Child>);
+
+impl Drop for Background {
+    fn drop(&mut self) {
+        for child in self.0.iter_mut().rev() {
             // SIGTERM: mbgate drains and exits, socat removes its links.
             unsafe_free_terminate(child.id());
             let _ = child.wait();

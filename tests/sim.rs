@@ -442,3 +442,42 @@ fn bad_options_exit_2() {
         "mbgate: --loopback applies to the cie-m10 profile only"
     );
 }
+
+/// A simulator started before its pty exists (`socat ... &` then `mbgate sim ... &`, as
+/// the README's examples run them) paces the pty once it appears: at 9600 baud the
+/// reply to an 8-byte RTU request leaves no sooner than the request's and the reply's
+/// wire time after it (8 + 9 bytes of 10 bits: 17.7 ms). An unpaced reply, the moment
+/// the request is in, would be dropped by a gateway as too early to be its answer.
+#[test]
+fn a_pty_that_appears_after_the_start_is_paced() {
+    let dir = tempdir();
+    let dev = dir.path().join("dev");
+    let dev_arg = dev.to_str().unwrap().to_owned();
+    let args = [
+        "sim",
+        "--serial",
+        &dev_arg,
+        "--framing",
+        "rtu",
+        "--profile",
+        "generic",
+        "--units",
+        "1",
+        "--fill",
+        "address",
+        "--baud",
+        "9600",
+        "--headless",
+    ];
+    let sim = Proc::start(&args, "cannot open the port");
+    let socat = Socat::start(dir.path());
+    sim.wait_log("simulating ", Duration::from_secs(5));
+    let mut line = RawLine::open(&socat.gw);
+    let request = mbgate::frame::rtu::encode(1, &[0x03, 0x00, 0x05, 0x00, 0x02]);
+    let start = Instant::now();
+    let reply = line.transact(&request, 9);
+    let took = start.elapsed();
+    let want = mbgate::frame::rtu::encode(1, &[0x03, 0x04, 0x00, 0x05, 0x00, 0x06]);
+    assert_eq!(reply, want, "{took:?}");
+    assert!(took >= Duration::from_micros(17_700), "unpaced: {took:?}");
+}

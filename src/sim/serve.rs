@@ -117,6 +117,7 @@ pub async fn run(
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> Result<(), SimError> {
+    // A path is judged again each time it opens (below): it may not exist yet.
     let paced = match &port {
         Port::Path(cfg) => is_pty(Path::new(&cfg.path)),
         Port::Stream(_) => true,
@@ -181,6 +182,10 @@ pub async fn run(
                     Ok(mut stream) => {
                         backoff.reset();
                         reported = false;
+                        // A pty made after the simulator started (socat in the
+                        // background) is only known to be one now.
+                        let baud = settings.baud.filter(|_| is_pty(Path::new(&cfg.path)));
+                        (sim.rx_pace, sim.tx_pace) = (Pacer::new(baud, 10), Pacer::new(baud, 10));
                         info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
                         match sim
                             .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
