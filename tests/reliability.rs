@@ -586,7 +586,7 @@ fn lost_bytes_never_deliver_a_wrong_reply() {
 /// just under the gateway's frame gap: every one arrives, correct.
 #[test]
 fn replies_in_pieces_all_arrive_correct() {
-    let n = if long() { 4000 } else { 60 };
+    let n = if long() { 4000 } else { 30 };
     let mut scenarios = Vec::new();
     // The gateway's frame gap (and silence floor) is 40 ms: gaps of up to 10 ms keep a
     // margin for the scheduling jitter of a machine busy with other tests (tens of ms
