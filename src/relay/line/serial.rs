@@ -20,8 +20,9 @@ pub(super) struct Serial {
     /// Its settings: the time bytes take on the wire.
     port: SerialConfig,
     decoder: Decoder,
-    /// 3.5 character times: the gap before each request.
-    t35: Duration,
+    /// The silence before each request (`inter_frame_gap_us`; by default 3.5
+    /// character times).
+    gap: Duration,
     /// What ends a frame of unknown shape: 3.5 character times, never less than
     /// `silence_floor_ms`.
     silence: Duration,
@@ -54,10 +55,14 @@ impl Serial {
     ) -> Serial {
         let t35 =
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
+        let gap = match serial.inter_frame_gap_us {
+            0 => t35,
+            us => Duration::from_micros(us),
+        };
         Serial {
             port: serial.clone(),
             decoder: Decoder::new(codec),
-            t35,
+            gap,
             silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
@@ -124,7 +129,7 @@ impl Serial {
         let turnaround = if std::mem::take(&mut self.broadcast_on_wire) {
             self.broadcast_delay
         } else {
-            self.t35
+            self.gap
         };
         self.ready_at = self.ready_at.max(left + turnaround);
         left
@@ -178,13 +183,13 @@ impl Serial {
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
         let codec = self.decoder.codec();
         let bytes = codec.encoded_len(adu.pdu().len()) + codec.encoded_len(2);
-        serial::wire_time(&self.port, bytes) + 2 * self.t35
+        serial::wire_time(&self.port, bytes) + 2 * self.gap
     }
 
     /// The line is free once the turnaround after our last request has passed and the
-    /// device has been quiet for 3.5 character times.
+    /// device has been quiet for the gap.
     fn free_at(&self) -> Instant {
-        self.ready_at.max(self.last_rx + self.t35)
+        self.ready_at.max(self.last_rx + self.gap)
     }
 
     /// Bytes read at `at`, once the request they follow has left: before its last byte
