@@ -1,11 +1,13 @@
 //! What the relay's loop waits on, as one [`Event`]: a command from a connection, bytes
 //! from the port, room to write, the end of a drain, an open that finished, the next
-//! timer, or shutdown. The waiting only: the loop decides what each event means.
+//! timer (the line's to the microsecond, the others to tokio's millisecond), or
+//! shutdown. The waiting only: the loop decides what each event means.
 
 use super::lifecycle::{Lifecycle, State};
 use super::outgoing::Outgoing;
 use super::Command;
 use crate::port::Link;
+use crate::serial::PreciseTimer;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -15,7 +17,8 @@ pub(super) enum Event {
     Command(Option<Command>),
     Read(std::io::Result<usize>),
     Wrote(std::io::Result<usize>),
-    Drained(std::io::Result<()>),
+    /// When the last byte left (the drain thread's clock), or why it cannot tell.
+    Drained(std::io::Result<std::time::Instant>),
     Opened(std::io::Result<Link>),
     Timer,
     Shutdown,
@@ -28,6 +31,9 @@ pub(super) struct Sources<'a> {
     /// Written while it holds bytes.
     pub(super) out: &'a Outgoing,
     pub(super) wake: Instant,
+    /// The line's own wake (the inter-frame gap, a frame's silence), earlier than
+    /// `wake`, waited for to the microsecond.
+    pub(super) precise: Option<(&'a mut PreciseTimer, Instant)>,
     /// `None` once shutdown has been asked for.
     pub(super) shutdown: Option<&'a CancellationToken>,
 }
@@ -38,8 +44,18 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
         mut commands,
         out,
         wake,
+        precise,
         shutdown,
     } = src;
+    let has_precise = precise.is_some();
+    let precise = async {
+        let (timer, at) = precise.expect("guarded");
+        if let Err(e) = timer.until(at).await {
+            // Never seen: then tokio's timer, to the millisecond.
+            tracing::debug!("timerfd: {e}");
+            tokio::time::sleep_until(at).await;
+        }
+    };
     let has_commands = commands.is_some();
     let command = async { commands.as_mut().expect("guarded").recv().await };
     let has_shutdown = shutdown.is_some();
@@ -58,6 +74,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
             cmd = command, if has_commands => Event::Command(cmd),
             w = wr.write(out.pending()), if !out.is_empty() => Event::Wrote(w),
             d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
+            _ = precise, if has_precise => Event::Timer,
             _ = tokio::time::sleep_until(wake) => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,
         },

@@ -23,6 +23,10 @@ pub(super) struct Serial {
     /// The silence before each request (`inter_frame_gap_us`; by default 3.5
     /// character times).
     gap: Duration,
+    /// The silence before a request once the device's last bytes made whole frames:
+    /// `gap`, but none for ASCII by default (its frames end with CR LF, and the
+    /// specification asks for no gap between them).
+    gap_after_frame: Duration,
     /// What ends a frame of unknown shape: 3.5 character times, never less than
     /// `silence_floor_ms`.
     silence: Duration,
@@ -40,6 +44,8 @@ pub(super) struct Serial {
     broadcast_on_wire: bool,
     /// While a frame is being written: the earliest its last byte can leave.
     tx: Option<Instant>,
+    /// Bytes of that frame not yet handed to the port.
+    unwritten: usize,
     /// Bytes read while the frame was being written, with when they were read.
     held: Vec<(Instant, Vec<u8>)>,
     /// When the last request's last byte left: bytes read before then answer nothing.
@@ -59,10 +65,15 @@ impl Serial {
             0 => t35,
             us => Duration::from_micros(us),
         };
+        let gap_after_frame = match (serial.inter_frame_gap_us, codec) {
+            (0, Codec::Ascii) => Duration::ZERO,
+            _ => gap,
+        };
         Serial {
             port: serial.clone(),
             decoder: Decoder::new(codec),
             gap,
+            gap_after_frame,
             silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
@@ -72,6 +83,7 @@ impl Serial {
             echo: serial.echo.then(VecDeque::new),
             broadcast_on_wire: false,
             tx: None,
+            unwritten: 0,
             held: Vec::new(),
             reply_from: now,
         }
@@ -99,6 +111,7 @@ impl Serial {
         // Written from now on: its last byte cannot leave before its time on the wire
         // has passed.
         self.tx = Some(now + serial::wire_time(&self.port, bytes.len()));
+        self.unwritten = bytes.len();
         Bytes::from(bytes)
     }
 
@@ -107,6 +120,7 @@ impl Serial {
     }
 
     pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        self.unwritten = self.unwritten.saturating_sub(n);
         if let Some(earliest) = &mut self.tx {
             // Held back by flow control, the last bytes leave later than a frame
             // written in one go would.
@@ -122,10 +136,7 @@ impl Serial {
     pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {
         let earliest = self.tx.take().unwrap_or(now);
         let left = now.max(earliest);
-        self.reply_from = earliest;
-        for (at, bytes) in std::mem::take(&mut self.held) {
-            self.accept(&bytes, at, stats);
-        }
+        self.judge_held(earliest, stats);
         let turnaround = if std::mem::take(&mut self.broadcast_on_wire) {
             self.broadcast_delay
         } else {
@@ -141,12 +152,28 @@ impl Serial {
         if rest.is_empty() {
             return;
         }
-        if self.tx.is_some() {
+        match self.tx {
+            // The whole request has been handed to the port and its time on the wire
+            // has passed: that bound is all `drained` would judge by, so these are
+            // judged now, and a reply is taken without waiting for the drain's answer
+            // (the drain thread may be scheduled late; docs/performance.md).
+            Some(earliest) if self.unwritten == 0 && now >= earliest => {
+                self.judge_held(earliest, stats);
+                self.accept(rest, now, stats);
+            }
             // The request is still on its way out: when its last byte left is not
             // known yet, so these wait for `drained` to judge them.
-            self.held.push((now, rest.to_vec()));
-        } else {
-            self.accept(rest, now, stats);
+            Some(_) => self.held.push((now, rest.to_vec())),
+            None => self.accept(rest, now, stats),
+        }
+    }
+
+    /// The request's last byte left `earliest` or later: bytes held until then are
+    /// judged by it.
+    fn judge_held(&mut self, earliest: Instant, stats: &Stats) {
+        self.reply_from = earliest;
+        for (at, bytes) in std::mem::take(&mut self.held) {
+            self.accept(&bytes, at, stats);
         }
     }
 
@@ -168,6 +195,7 @@ impl Serial {
             echo.clear();
         }
         self.tx = None;
+        self.unwritten = 0;
         self.held.clear();
         self.broadcast_on_wire = false;
     }
@@ -187,9 +215,15 @@ impl Serial {
     }
 
     /// The line is free once the turnaround after our last request has passed and the
-    /// device has been quiet for the gap.
+    /// device has been quiet for the gap, counted from the instant its last byte was
+    /// read (docs/performance.md, "RTU at the line's limit").
     fn free_at(&self) -> Instant {
-        self.ready_at.max(self.last_rx + self.gap)
+        let gap = if self.decoder.buffered() == 0 {
+            self.gap_after_frame
+        } else {
+            self.gap
+        };
+        self.ready_at.max(self.last_rx + gap)
     }
 
     /// Bytes read at `at`, once the request they follow has left: before its last byte
