@@ -124,9 +124,10 @@ impl Relay {
     /// answered or has timed out, or until every handle is gone.
     pub async fn run(mut self) {
         let mut rbuf = vec![0u8; 4096];
-        // The line's gaps to the microsecond; without a timerfd, to the millisecond.
+        // Every timer to the microsecond, set only when the next wake moves; without a
+        // timerfd, tokio's, to the millisecond.
         let mut timer = crate::serial::PreciseTimer::new()
-            .inspect_err(|e| debug!("no timerfd ({e}): the line's gaps to the millisecond"))
+            .inspect_err(|e| debug!("no timerfd ({e}): timers to the millisecond"))
             .ok();
         loop {
             let now = Instant::now();
@@ -138,26 +139,14 @@ impl Relay {
             if self.draining && self.in_flight.is_empty() {
                 break;
             }
-            let mut wake = self.next_wake(now);
-            let line_wake = self
-                .line
-                .next_wake(now, self.sched.has_waiting())
-                .filter(|&at| at < wake);
-            let precise = match (&mut timer, line_wake) {
-                (Some(t), Some(at)) => Some((t, at)),
-                (None, Some(at)) => {
-                    wake = at;
-                    None
-                }
-                (_, None) => None,
-            };
+            let wake = self.next_wake(now);
             // Anything written below is written after this.
             let polled = now;
             let sources = event::Sources {
                 commands: self.commands_open.then_some(&mut self.rx),
                 out: &self.out,
                 wake,
-                precise,
+                timer: timer.as_mut(),
                 shutdown: (!self.draining).then_some(&self.shutdown),
             };
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
@@ -209,19 +198,19 @@ impl Relay {
         debug!("relay stopped");
     }
 
-    /// The nearest instant anything but the line needs the loop: a deadline, a paced
-    /// answer, the next open, the watchdog; an hour when nothing does. (The line's
-    /// gaps are waited for apart, to the microsecond.)
-    fn next_wake(&self, now: Instant) -> Instant {
+    /// The nearest instant anything needs the loop: a deadline, the line's gaps, a
+    /// paced answer, the next open, the watchdog; `None` when nothing does.
+    fn next_wake(&self, now: Instant) -> Option<Instant> {
         [
             self.in_flight.next_deadline(),
+            self.line.next_wake(now, self.sched.has_waiting()),
             self.paced.next_due(),
             self.port.retry_at(),
             self.watchdog.as_ref().map(Watchdog::next),
         ]
         .into_iter()
         .flatten()
-        .fold(now + Duration::from_secs(3600), Instant::min)
+        .min()
     }
 
     fn open_if_due(&mut self, now: Instant) {
