@@ -23,9 +23,9 @@ pub(super) struct Serial {
     /// The silence before each request (`inter_frame_gap_us`; by default 3.5
     /// character times).
     gap: Duration,
-    /// The silence before a request once the device's last bytes made whole frames:
-    /// `gap`, but none for ASCII by default (its frames end with CR LF, and the
-    /// specification asks for no gap between them).
+    /// The silence before a request once the last bytes on the line (the device's, or
+    /// our own request's) made whole frames: `gap`, but none for ASCII by default (its
+    /// frames end with CR LF, and the specification asks for no silence between them).
     gap_after_frame: Duration,
     /// What ends a frame of unknown shape: 3.5 character times, never less than
     /// `silence_floor_ms`.
@@ -140,7 +140,7 @@ impl Serial {
         let turnaround = if std::mem::take(&mut self.broadcast_on_wire) {
             self.broadcast_delay
         } else {
-            self.gap
+            self.gap_after_frame
         };
         self.ready_at = self.ready_at.max(left + turnaround);
         left
