@@ -1176,20 +1176,47 @@ impl Drop for ContenderProc {
 
 /// The simulator as an RTU device paced at `baud` on a pty pair of its own.
 fn rtu_sim_line(baud: u32) -> Line {
-    let probe = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, 1]);
+    serial_sim_line("rtu", baud)
+}
+
+/// An FC 03 read of `qty` registers of unit 1 in `framing` ("rtu" or "ascii").
+fn serial_read(framing: &str, qty: u16) -> Vec<u8> {
+    let pdu = [0x03, 0, 0, 0, qty as u8];
+    match framing {
+        "rtu" => mbgate::frame::rtu::encode(1, &pdu),
+        _ => mbgate::frame::ascii::encode(1, &pdu),
+    }
+}
+
+/// Bytes of the reply to [`serial_read`]: ASCII is `:`, two hex digits a byte of
+/// unit, function, count, data and LRC, CR LF.
+fn serial_reply_len(framing: &str, qty: u16) -> usize {
+    match framing {
+        "rtu" => rtu_reply_len(qty),
+        _ => 3 + 2 * (4 + 2 * usize::from(qty)),
+    }
+}
+
+/// The simulator as a paced device in `framing` at `baud` on a pty pair of its own.
+fn serial_sim_line(framing: &str, baud: u32) -> Line {
     let speed = baud.to_string();
     Line::start_probed(
-        &["--framing", "rtu", "--baud", &speed],
-        &probe,
-        rtu_reply_len(1),
+        &["--framing", framing, "--baud", &speed],
+        &serial_read(framing, 1),
+        serial_reply_len(framing, 1),
     )
 }
 
 /// `mbgate run` in RTU at `baud`, no flow control, with extra `[serial]` lines.
 fn mbgate_contender(name: &str, baud: u32, serial: &[&str]) -> Contender {
-    let line = rtu_sim_line(baud);
+    mbgate_contender_in("rtu", name, baud, serial)
+}
+
+/// [`mbgate_contender`] in `framing`.
+fn mbgate_contender_in(framing: &str, name: &str, baud: u32, serial: &[&str]) -> Contender {
+    let line = serial_sim_line(framing, baud);
     let mut cfg = Cfg::new(&line.socat.gw)
-        .serial("framing = \"rtu\"")
+        .serial(&format!("framing = {framing:?}"))
         .serial("flow_control = \"none\"")
         .serial(&format!("baud_rate = {baud}"));
     for l in serial {
@@ -1385,6 +1412,61 @@ fn rtu_limit(r: &mut Report) {
             );
         }
     }
+    // ASCII: its limit is the wire time alone (no gap between frames).
+    let mut a = String::from(
+        "| baud | registers | direct tx/s (p50) | mbgate tx/s (p50) | mbgate / direct | mbgate CPU/tx |\n|---|---|---|---|---|---|\n",
+    );
+    for baud in [9600u32, 115_200] {
+        let gw = mbgate_contender_in("ascii", "mbgate ascii", baud, &[]);
+        let direct_line = serial_sim_line("ascii", baud);
+        let qty = 1;
+        eprintln!("rtu-limit: ASCII {baud} baud, FC 03 × {qty}");
+        let req = serial_read("ascii", qty);
+        let len = serial_reply_len("ascii", qty);
+        let (mut direct, mut via) = (Polled::default(), Polled::default());
+        for _ in 0..ROUNDS {
+            let mut m = direct_line.raw();
+            direct.times.extend(poll_for(round, |_| {
+                let t = Instant::now();
+                assert_eq!(m.transact(&req, len).len(), len, "short reply");
+                t.elapsed()
+            }));
+            drop(m);
+            let mut s = TcpStream::connect(gw.addr).expect("connect");
+            s.set_nodelay(true).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            let cpu0 = cpu_ns(gw.pid);
+            via.times
+                .extend(poll_for(round, |tid| tcp_read(&mut s, tid, qty)));
+            via.cpu_ns += cpu_ns(gw.pid) - cpu0;
+        }
+        let ratio = via.rate() / direct.rate();
+        let _ = writeln!(
+            a,
+            "| {baud} | {qty} | {:.1} ({}) | {:.1} ({}) | **{}** | {} |",
+            direct.rate(),
+            ms(spread(&direct.times).p50),
+            via.rate(),
+            ms(spread(&via.times).p50),
+            pct(ratio),
+            us(Duration::from_nanos(
+                via.cpu_ns / via.times.len().max(1) as u64
+            )),
+        );
+        r.row(
+            "rtu-limit",
+            &format!("ASCII {baud} baud FC 03 × {qty}: mbgate against the line's limit (direct)"),
+            format!(
+                "{:.1}/s of {:.1}/s = {}",
+                via.rate(),
+                direct.rate(),
+                pct(ratio)
+            ),
+            "≥ 98 %",
+            Some(ratio >= 0.98),
+        );
+    }
+    let _ = write!(t, "\nASCII (the same, `--framing ascii`; no gap between frames, so the limit is the direct rate):\n\n{a}");
     let note = if mbusd.is_some() {
         ""
     } else {
