@@ -344,6 +344,41 @@ mod tests {
         assert_eq!(b.next_delay(), Duration::from_millis(100));
     }
 
+    /// The timer goes off at its instant, not before and not a millisecond after (the
+    /// bound is loose for a loaded machine; tokio's timer alone would take the 1750 µs
+    /// to 2 or 3 ms, and the median of these is checked against 700 µs); an expiry
+    /// nobody waited for does not end a later wait early.
+    #[tokio::test]
+    async fn precise_timer_is_neither_early_nor_a_tick_late() {
+        use tokio::time::Instant;
+        let mut timer = PreciseTimer::new().unwrap();
+        let mut late = Vec::new();
+        for _ in 0..20 {
+            let at = Instant::now() + Duration::from_micros(1750);
+            timer.until(at).await.unwrap();
+            let now = Instant::now();
+            assert!(now >= at, "{:?} early", at - now);
+            late.push(now - at);
+        }
+        late.sort();
+        assert!(
+            late[10] < Duration::from_micros(700),
+            "median {:?} late",
+            late[10]
+        );
+
+        // Set for 1 ms and dropped unwaited: it goes off while the reactor waits for
+        // something else; a later, longer wait must not end with that expiry.
+        let first = Instant::now() + Duration::from_millis(1);
+        let _ = tokio::time::timeout(Duration::ZERO, timer.until(first)).await;
+        tokio::time::sleep(Duration::from_millis(4)).await;
+        let second = Instant::now() + Duration::from_millis(5);
+        timer.until(second).await.unwrap();
+        assert!(Instant::now() >= second, "woken by the earlier expiry");
+        // An instant already past returns at once.
+        timer.until(first).await.unwrap();
+    }
+
     #[test]
     fn wire_time_at_19200_8n1() {
         let cfg = SerialConfig::default();
