@@ -3,10 +3,11 @@
 //! pty pairs, and printed as Markdown.
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
-//! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `coalesce`, `tcp-line`,
-//! `rtu-listener`, `metrics` (all when none is named). `MBGATE_BENCH_BASELINE=PATH`
-//! names another mbgate build (e.g. the commit before a change) that `coalesce`
-//! measures beside this one. `scripts/bench` runs this and
+//! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `rtu-limit`, `coalesce`, `tcp-line`,
+//! `rtu-listener`, `metrics` (all when none is named). `rtu-limit` compares with mbusd
+//! given `MBUSD=/path/to/mbusd`; `MBGATE_BENCH_BASELINE=PATH` names another mbgate
+//! build (e.g. the commit before a change) that `coalesce` measures beside this one.
+//! `scripts/bench` runs this and
 //! `benches/decoder.rs` and writes the tables into docs/performance.md. With
 //! `MBGATE_BENCH_MD=FILE` the tables are also written to FILE.
 //!
@@ -53,6 +54,7 @@ fn main() {
         "footprint",
         "rtu",
         "rtu-backoff",
+        "rtu-limit",
         "coalesce",
         "tcp-line",
         "rtu-listener",
@@ -82,6 +84,9 @@ fn main() {
     }
     if wanted("rtu-backoff") {
         rtu_backoff(&mut r);
+    }
+    if wanted("rtu-limit") {
+        rtu_limit(&mut r);
     }
     if wanted("coalesce") {
         coalesce(&mut r);
@@ -1838,5 +1843,338 @@ fn rtu_listener(r: &mut Report) {
         &format!("RTU over TCP masters ({N} samples each, in {ROUNDS} rounds taking turns, each after {WARM} warm-up; the simulator on a pty as an RTU device, unpaced, the line at 4 000 000 baud)"),
         &command("rtu-listener"),
         &t,
+    );
+}
+
+// ---------------------------------------------------------------------------------
+// 9. RTU at the line's limit, side by side with mbusd
+
+/// A gateway under test in the side-by-side RTU scenario: where masters connect, and
+/// its process for the CPU it spends.
+struct Contender {
+    name: String,
+    addr: std::net::SocketAddr,
+    pid: u32,
+    /// Keeps the line (pty pair and simulator) alive.
+    _line: Line,
+    _proc: ContenderProc,
+}
+
+enum ContenderProc {
+    Mbgate(#[allow(dead_code)] Gateway),
+    Mbusd(std::process::Child),
+}
+
+impl Drop for ContenderProc {
+    fn drop(&mut self) {
+        if let ContenderProc::Mbusd(c) = self {
+            let _ = c.kill();
+            let _ = c.wait();
+        }
+    }
+}
+
+/// The simulator as an RTU device paced at `baud` on a pty pair of its own.
+fn rtu_sim_line(baud: u32) -> Line {
+    serial_sim_line("rtu", baud)
+}
+
+/// An FC 03 read of `qty` registers of unit 1 in `framing` ("rtu" or "ascii").
+fn serial_read(framing: &str, qty: u16) -> Vec<u8> {
+    let pdu = [0x03, 0, 0, 0, qty as u8];
+    match framing {
+        "rtu" => mbgate::frame::rtu::encode(1, &pdu),
+        _ => mbgate::frame::ascii::encode(1, &pdu),
+    }
+}
+
+/// Bytes of the reply to [`serial_read`]: ASCII is `:`, two hex digits a byte of
+/// unit, function, count, data and LRC, CR LF.
+fn serial_reply_len(framing: &str, qty: u16) -> usize {
+    match framing {
+        "rtu" => rtu_reply_len(qty),
+        _ => 3 + 2 * (4 + 2 * usize::from(qty)),
+    }
+}
+
+/// The simulator as a paced device in `framing` at `baud` on a pty pair of its own.
+fn serial_sim_line(framing: &str, baud: u32) -> Line {
+    let speed = baud.to_string();
+    Line::start_probed(
+        &["--framing", framing, "--baud", &speed],
+        &serial_read(framing, 1),
+        serial_reply_len(framing, 1),
+    )
+}
+
+/// `mbgate run` in RTU at `baud`, no flow control, with extra `[serial]` lines.
+fn mbgate_contender(name: &str, baud: u32, serial: &[&str]) -> Contender {
+    mbgate_contender_in("rtu", name, baud, serial)
+}
+
+/// [`mbgate_contender`] in `framing`.
+fn mbgate_contender_in(framing: &str, name: &str, baud: u32, serial: &[&str]) -> Contender {
+    let line = serial_sim_line(framing, baud);
+    let mut cfg = Cfg::new(&line.socat.gw)
+        .serial(&format!("framing = {framing:?}"))
+        .serial("flow_control = \"none\"")
+        .serial(&format!("baud_rate = {baud}"));
+    for l in serial {
+        cfg = cfg.serial(l);
+    }
+    let gw = line.gateway_with(cfg, &[], &[]);
+    Contender {
+        name: name.into(),
+        addr: gw.addr,
+        pid: gw.proc.pid(),
+        _line: line,
+        _proc: ContenderProc::Mbgate(gw),
+    }
+}
+
+/// mbusd (`MBUSD=/path/to/mbusd`) in front of the same simulator at `baud`, with its
+/// pause between requests at its least (`-R 1`, 1 ms), no retries.
+fn mbusd_contender(mbusd: &Path, baud: u32) -> Contender {
+    let line = rtu_sim_line(baud);
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .and_then(|l| l.local_addr())
+        .expect("a free port")
+        .port();
+    let child = std::process::Command::new(mbusd)
+        .args(["-d", "-L", "-", "-v", "0", "-p"])
+        .arg(&line.socat.gw)
+        .args(["-s", &baud.to_string(), "-m", "8N1", "-A", "127.0.0.1"])
+        .args([
+            "-P",
+            &port.to_string(),
+            "-R",
+            "1",
+            "-W",
+            "500",
+            "-N",
+            "0",
+            "-T",
+            "0",
+        ])
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .expect("start mbusd");
+    let addr = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let start = Instant::now();
+    while TcpStream::connect(addr).is_err() {
+        assert!(
+            start.elapsed() < Duration::from_secs(10),
+            "mbusd never listened"
+        );
+        thread::sleep(Duration::from_millis(20));
+    }
+    Contender {
+        name: "mbusd -R 1".into(),
+        addr,
+        pid: child.id(),
+        _line: line,
+        _proc: ContenderProc::Mbusd(child),
+    }
+}
+
+/// One master polling FC 03 × `qty` for `budget`: each transaction's time.
+fn poll_for(budget: Duration, mut f: impl FnMut(u16) -> Duration) -> Vec<Duration> {
+    for tid in 0..8 {
+        f(tid);
+    }
+    let start = Instant::now();
+    let mut v = Vec::new();
+    while start.elapsed() < budget && v.len() < MAX_TRANSACTIONS {
+        v.push(f(v.len() as u16));
+    }
+    v
+}
+
+/// Per path of one row: transaction times, and CPU nanoseconds spent on them.
+#[derive(Default, Clone)]
+struct LimitRow {
+    times: Vec<Duration>,
+    cpu_ns: u64,
+}
+
+impl LimitRow {
+    fn rate(&self) -> f64 {
+        self.times.len() as f64 / self.times.iter().sum::<Duration>().as_secs_f64()
+    }
+}
+
+/// The line's own limit, side by side: the simulator as a paced RTU device at 9600 to
+/// 921 600 baud, one master polling FC 03 × 1 and × 10 as fast as answered, straight on
+/// the pty (the device's pace and turnaround), through mbgate (the default gap, t3.5
+/// of Modbus over Serial Line V1.02 §2.5.1.1, and above 19 200 baud also with
+/// `inter_frame_gap_us = 1000`) and, given `MBUSD=/path/to/mbusd`, through mbusd
+/// `-R 1`; each path on a pty pair and simulator of its own, the paths taking turns
+/// (A B A B) for `MBGATE_BENCH_RTU_ROUND_MS` (default 1000) each
+/// (`MBGATE_BENCH_RTU_BAUDS` picks speeds). The limit: the
+/// direct transaction time plus exactly the gap.
+fn rtu_limit(r: &mut Report) {
+    const ROUNDS: usize = 2;
+    let round = Duration::from_millis(
+        std::env::var("MBGATE_BENCH_RTU_ROUND_MS")
+            .ok()
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(1000),
+    );
+    let mbusd = std::env::var_os("MBUSD").map(std::path::PathBuf::from);
+    if mbusd.is_none() {
+        eprintln!("rtu-limit: MBUSD not set: the mbusd column is skipped (MBUSD=/path/to/mbusd)");
+    }
+    let mut t = String::from(
+        "| baud | registers | direct tx/s (p50) | limit with t3.5 | mbgate tx/s (p50) | mbgate / limit | mbgate CPU/tx | mbgate gap 1000 µs tx/s (p50) | mbusd -R 1 tx/s (p50) | mbgate / mbusd | mbusd CPU/tx |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
+    );
+    // `MBGATE_BENCH_RTU_BAUDS=115200,921600` measures only those speeds.
+    let bauds: Vec<u32> = std::env::var("MBGATE_BENCH_RTU_BAUDS")
+        .ok()
+        .map(|v| v.split(',').filter_map(|b| b.trim().parse().ok()).collect())
+        .unwrap_or_else(|| vec![9600, 19_200, 115_200, 921_600]);
+    for baud in bauds {
+        let t35 = Duration::from_micros(mbgate::frame::rtu::t35_us(baud, 10));
+        let mut paths = vec![mbgate_contender("mbgate", baud, &[])];
+        if baud > 19_200 {
+            paths.push(mbgate_contender(
+                "mbgate, gap 1000 µs",
+                baud,
+                &["inter_frame_gap_us = 1000"],
+            ));
+        }
+        if let Some(m) = &mbusd {
+            paths.push(mbusd_contender(m, baud));
+        }
+        let direct_line = rtu_sim_line(baud);
+        for qty in [1u16, 10] {
+            eprintln!("rtu-limit: {baud} baud, FC 03 × {qty}");
+            let mut direct = LimitRow::default();
+            let mut via = vec![LimitRow::default(); paths.len()];
+            let req = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, qty as u8]);
+            for _ in 0..ROUNDS {
+                let mut m = direct_line.raw();
+                direct.times.extend(poll_for(round, |_| {
+                    let t = Instant::now();
+                    let got = m.transact(&req, rtu_reply_len(qty)).len();
+                    assert_eq!(got, rtu_reply_len(qty), "short reply");
+                    t.elapsed()
+                }));
+                drop(m);
+                for (p, out) in paths.iter().zip(via.iter_mut()) {
+                    let mut s = TcpStream::connect(p.addr).expect("connect");
+                    s.set_nodelay(true).unwrap();
+                    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+                    let cpu0 = cpu_ns(p.pid);
+                    let times = poll_for(round, |tid| tcp_read(&mut s, tid, qty));
+                    out.cpu_ns += cpu_ns(p.pid) - cpu0;
+                    out.times.extend(times);
+                }
+            }
+            let d = spread(&direct.times);
+            let per_direct = 1.0 / direct.rate();
+            let limit = 1.0 / (per_direct + t35.as_secs_f64());
+            let cell = |p: &LimitRow| format!("{:.1} ({})", p.rate(), ms(spread(&p.times).p50));
+            let cpu = |p: &LimitRow| {
+                // The warm-up transactions are not in `times`: slightly high.
+                us(Duration::from_nanos(p.cpu_ns / p.times.len().max(1) as u64))
+            };
+            let g = &via[0];
+            let gap = paths
+                .iter()
+                .position(|p| p.name.contains("gap"))
+                .map_or("-".into(), |i| cell(&via[i]));
+            let busd = paths.iter().position(|p| p.name.starts_with("mbusd"));
+            let (busd_cell, ratio, busd_cpu) = match busd {
+                Some(i) => (
+                    cell(&via[i]),
+                    format!("**{:.2}**", g.rate() / via[i].rate()),
+                    cpu(&via[i]),
+                ),
+                None => ("(MBUSD not set)".into(), "-".into(), "-".into()),
+            };
+            let _ = writeln!(
+                t,
+                "| {baud} | {qty} | {:.1} ({}) | {limit:.1}/s | {} | **{}** | {} | {gap} | {busd_cell} | {ratio} | {busd_cpu} |",
+                direct.rate(),
+                ms(d.p50),
+                cell(g),
+                pct(g.rate() / limit),
+                cpu(g),
+            );
+            r.row(
+                "rtu-limit",
+                &format!("RTU {baud} baud FC 03 × {qty}: mbgate against the line's limit (direct + t3.5)"),
+                format!("{:.1}/s of {limit:.1}/s = {}", g.rate(), pct(g.rate() / limit)),
+                "≥ 98 %",
+                Some(g.rate() >= 0.98 * limit),
+            );
+        }
+    }
+    // ASCII: its limit is the wire time alone (no gap between frames).
+    let mut a = String::from(
+        "| baud | registers | direct tx/s (p50) | mbgate tx/s (p50) | mbgate / direct | mbgate CPU/tx |\n|---|---|---|---|---|---|\n",
+    );
+    for baud in [9600u32, 115_200] {
+        let gw = mbgate_contender_in("ascii", "mbgate ascii", baud, &[]);
+        let direct_line = serial_sim_line("ascii", baud);
+        let qty = 1;
+        eprintln!("rtu-limit: ASCII {baud} baud, FC 03 × {qty}");
+        let req = serial_read("ascii", qty);
+        let len = serial_reply_len("ascii", qty);
+        let (mut direct, mut via) = (LimitRow::default(), LimitRow::default());
+        for _ in 0..ROUNDS {
+            let mut m = direct_line.raw();
+            direct.times.extend(poll_for(round, |_| {
+                let t = Instant::now();
+                assert_eq!(m.transact(&req, len).len(), len, "short reply");
+                t.elapsed()
+            }));
+            drop(m);
+            let mut s = TcpStream::connect(gw.addr).expect("connect");
+            s.set_nodelay(true).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            let cpu0 = cpu_ns(gw.pid);
+            via.times
+                .extend(poll_for(round, |tid| tcp_read(&mut s, tid, qty)));
+            via.cpu_ns += cpu_ns(gw.pid) - cpu0;
+        }
+        let ratio = via.rate() / direct.rate();
+        let _ = writeln!(
+            a,
+            "| {baud} | {qty} | {:.1} ({}) | {:.1} ({}) | **{}** | {} |",
+            direct.rate(),
+            ms(spread(&direct.times).p50),
+            via.rate(),
+            ms(spread(&via.times).p50),
+            pct(ratio),
+            us(Duration::from_nanos(
+                via.cpu_ns / via.times.len().max(1) as u64
+            )),
+        );
+        r.row(
+            "rtu-limit",
+            &format!("ASCII {baud} baud FC 03 × {qty}: mbgate against the line's limit (direct)"),
+            format!(
+                "{:.1}/s of {:.1}/s = {}",
+                via.rate(),
+                direct.rate(),
+                pct(ratio)
+            ),
+            "≥ 98 %",
+            Some(ratio >= 0.98),
+        );
+    }
+    let _ = write!(t, "\nASCII (the same, `--framing ascii`; no gap between frames, so the limit is the direct rate):\n\n{a}");
+    let note = if mbusd.is_some() {
+        ""
+    } else {
+        "\nmbusd not measured: run with `MBUSD=/path/to/mbusd` (built from github.com/3cky/mbusd with cmake).\n"
+    };
+    r.detail(
+        &format!("RTU at the line's limit (the simulator paced as a UART, 10 bits a byte; one master polling; each path on its own pty pair and simulator; paths in turn, {ROUNDS} rounds of {round:?} each; p50 of the transaction time in brackets)"),
+        "MBUSD=/path/to/mbusd cargo bench --bench gateway -- rtu-limit",
+        &format!("{t}{note}"),
     );
 }

@@ -176,6 +176,11 @@ impl Relay {
     /// answered or has timed out, or until every handle is gone.
     pub async fn run(mut self) {
         let mut rbuf = vec![0u8; 4096];
+        // Every timer to the microsecond, set only when the next wake moves; without a
+        // timerfd, tokio's, to the millisecond.
+        let mut timer = crate::serial::PreciseTimer::new()
+            .inspect_err(|e| debug!("no timerfd ({e}): timers to the millisecond"))
+            .ok();
         loop {
             let now = Instant::now();
             if let Some(w) = &mut self.watchdog {
@@ -193,6 +198,7 @@ impl Relay {
                 commands: self.commands_open.then_some(&mut self.rx),
                 out: &self.out,
                 wake,
+                timer: timer.as_mut(),
                 shutdown: (!self.draining).then_some(&self.shutdown),
             };
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
@@ -222,10 +228,15 @@ impl Relay {
                 Event::Opened(r) => self.opened(r, now),
                 Event::Drained(r) => {
                     self.port.drain = None;
-                    if let Err(e) = r {
-                        debug!("tcdrain: {e}");
-                    }
-                    self.drained(now);
+                    let left = match r {
+                        // Not later than now: the two clocks are the same one.
+                        Ok(at) => Instant::from_std(at).min(now),
+                        Err(e) => {
+                            debug!("tcdrain: {e}");
+                            now
+                        }
+                    };
+                    self.drained(left);
                 }
                 Event::Timer => {}
             }
@@ -239,8 +250,8 @@ impl Relay {
     }
 
     /// The nearest instant anything needs the loop: a deadline, the line's gaps, a
-    /// paced answer, the next open, the watchdog; an hour when nothing does.
-    fn next_wake(&self, now: Instant) -> Instant {
+    /// paced answer, the next open, the watchdog; `None` when nothing does.
+    fn next_wake(&self, now: Instant) -> Option<Instant> {
         [
             self.in_flight.next_deadline(),
             self.line.next_wake(now, self.sched.has_waiting()),
@@ -250,7 +261,7 @@ impl Relay {
         ]
         .into_iter()
         .flatten()
-        .fold(now + Duration::from_secs(3600), Instant::min)
+        .min()
     }
 
     fn open_if_due(&mut self, now: Instant) {

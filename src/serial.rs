@@ -3,10 +3,12 @@
 //! Baud, data bits, parity, stop bits and flow control come from the configuration;
 //! RTS/CTS is the default because the CIE-M10 manual asks for it (docs/protocol.md §3). A
 //! freshly opened port can hold stale bytes, so it is flushed before use. Modem-line
-//! calls fail with ENOTTY on a pty; nothing here treats that as fatal.
+//! calls fail with ENOTTY on a pty; nothing here treats that as fatal. Also what the
+//! line's timing asks of the OS: the drain thread, FIONREAD, and a timer finer than
+//! tokio's millisecond.
 
 use crate::config::{FlowControl, Parity, SerialConfig};
-use std::os::fd::{AsRawFd, BorrowedFd, RawFd};
+use std::os::fd::{AsRawFd, BorrowedFd, FromRawFd, RawFd};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Duration;
 use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
@@ -163,23 +165,144 @@ fn set_rs485(fd: RawFd, cfg: &SerialConfig) -> std::io::Result<()> {
     }
 }
 
-/// Waits on the blocking pool until everything written to the port `fd` has left it
-/// (`tcdrain`), without holding the runtime's thread. Works on a duplicate of the
-/// descriptor, so closing the port meanwhile cannot make it touch another file.
-pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Result<()>>> {
-    // SAFETY: `fd` is the open port, borrowed only to duplicate it.
-    #[allow(unsafe_code)]
-    let owned = unsafe { BorrowedFd::borrow_raw(fd) }.try_clone_to_owned()?;
-    Ok(tokio::task::spawn_blocking(move || {
-        // SAFETY: a valid descriptor, ours until `owned` drops after the call.
+/// What a drain answers: when `tcdrain` returned, or why it failed.
+pub type Drained = std::io::Result<std::time::Instant>;
+
+/// A thread of the port's own that waits, when asked, until everything written to the
+/// port has left it (`tcdrain`), so the runtime's thread never blocks on it
+/// (docs/performance.md, "RTU at the line's limit"). Made once when the port opens: it
+/// owns a duplicate of the descriptor, made then (closing the port meanwhile cannot
+/// make it touch another file), and each drain costs one wake of it and one of the
+/// runtime, with no descriptor made and closed and no trip through tokio's blocking
+/// pool. It ends, closing its duplicate, when the [`Drainer`] is dropped and the drain
+/// it may be in has returned.
+#[derive(Debug)]
+pub struct Drainer {
+    asks: std::sync::mpsc::Sender<tokio::sync::oneshot::Sender<Drained>>,
+}
+
+impl Drainer {
+    /// Starts the thread for the open port `fd`.
+    pub fn start(fd: RawFd) -> std::io::Result<Drainer> {
+        // SAFETY: `fd` is the open port, borrowed only to duplicate it.
         #[allow(unsafe_code)]
-        let r = unsafe { libc::tcdrain(owned.as_raw_fd()) };
-        if r == 0 {
-            Ok(())
-        } else {
-            Err(std::io::Error::last_os_error())
+        let owned = unsafe { BorrowedFd::borrow_raw(fd) }.try_clone_to_owned()?;
+        let (asks, asked) = std::sync::mpsc::channel::<tokio::sync::oneshot::Sender<Drained>>();
+        std::thread::Builder::new()
+            .name("mbgate-drain".into())
+            .spawn(move || {
+                for answer in asked {
+                    // SAFETY: a valid descriptor, ours until `owned` drops when the
+                    // thread ends.
+                    #[allow(unsafe_code)]
+                    let r = unsafe { libc::tcdrain(owned.as_raw_fd()) };
+                    // Dated here, not where the relay learns it: its thread may be
+                    // scheduled late, and the gap counts from the last byte out.
+                    let at = std::time::Instant::now();
+                    let _ = answer.send(if r == 0 {
+                        Ok(at)
+                    } else {
+                        Err(std::io::Error::last_os_error())
+                    });
+                }
+            })?;
+        Ok(Drainer { asks })
+    }
+
+    /// Asks for a drain of everything written so far; the answer comes on the
+    /// receiver. An error says the thread is gone.
+    pub fn drain(&self) -> std::io::Result<tokio::sync::oneshot::Receiver<Drained>> {
+        let (answer, answered) = tokio::sync::oneshot::channel();
+        self.asks
+            .send(answer)
+            .map_err(|_| std::io::Error::other("the drain thread is gone"))?;
+        Ok(answered)
+    }
+}
+
+/// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
+/// counts whole milliseconds and rounds a deadline up, which turns the 1750 µs gap
+/// before an RTU request into 2 to 3 ms (docs/performance.md, "RTU at the line's
+/// limit"). No thread and no spinning: the timerfd wakes the reactor's `epoll_wait`
+/// at the instant it is set to.
+#[derive(Debug)]
+pub struct PreciseTimer {
+    fd: tokio::io::unix::AsyncFd<std::os::fd::OwnedFd>,
+    /// The instant it is set to go off.
+    armed: Option<tokio::time::Instant>,
+}
+
+impl PreciseTimer {
+    /// A timer on the current runtime's reactor; an error where there is no timerfd.
+    pub fn new() -> std::io::Result<PreciseTimer> {
+        // SAFETY: no pointers; the descriptor returned is checked and then owned.
+        #[allow(unsafe_code)]
+        let fd = unsafe {
+            libc::timerfd_create(
+                libc::CLOCK_MONOTONIC,
+                libc::TFD_NONBLOCK | libc::TFD_CLOEXEC,
+            )
+        };
+        if fd < 0 {
+            return Err(std::io::Error::last_os_error());
         }
-    }))
+        // SAFETY: `fd` was just made, is valid and belongs to nothing else.
+        #[allow(unsafe_code)]
+        let owned = unsafe { std::os::fd::OwnedFd::from_raw_fd(fd) };
+        // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
+        // which is when the `AsyncFd` holding it does.
+        #[allow(unsafe_code)]
+        let fd = unsafe {
+            tokio::io::unix::AsyncFd::register_with_interest(owned, tokio::io::Interest::READABLE)
+        }?;
+        Ok(PreciseTimer { fd, armed: None })
+    }
+
+    /// Returns at `at`, or at once if it has passed. Sets the timerfd only when `at` is
+    /// not what it is already set to: a loop that waits for the same instant several
+    /// times makes one system call for it.
+    pub async fn until(&mut self, at: tokio::time::Instant) -> std::io::Result<()> {
+        let now = tokio::time::Instant::now();
+        if at <= now {
+            return Ok(());
+        }
+        if self.armed != Some(at) {
+            // Relative to a `now` read before the call: the kernel's clock has moved on
+            // since, so it goes off at `at` or after, never before. (Setting it also
+            // zeroes its count of expirations, so it is never read.)
+            let rest = at - now;
+            let spec = libc::itimerspec {
+                it_interval: libc::timespec {
+                    tv_sec: 0,
+                    tv_nsec: 0,
+                },
+                it_value: libc::timespec {
+                    tv_sec: rest.as_secs() as libc::time_t,
+                    tv_nsec: libc::c_long::from(rest.subsec_nanos() as i32),
+                },
+            };
+            // SAFETY: `spec` is a valid itimerspec for the duration of the call; the old
+            // value is not asked for (null).
+            #[allow(unsafe_code)]
+            let r = unsafe {
+                libc::timerfd_settime(self.fd.as_raw_fd(), 0, &spec, std::ptr::null_mut())
+            };
+            if r != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            self.armed = Some(at);
+        }
+        loop {
+            let mut ready = self.fd.readable().await?;
+            // Readiness left over from an earlier setting says nothing about this one:
+            // each expiry wakes the reactor anew (edge-triggered), so clearing it and
+            // waiting again loses nothing.
+            ready.clear_ready();
+            if tokio::time::Instant::now() >= at {
+                return Ok(());
+            }
+        }
+    }
 }
 
 /// Bytes received by the port `fd` and not yet read (FIONREAD).
@@ -219,6 +342,41 @@ mod tests {
         assert_eq!(got, [100, 200, 400, 500, 500]);
         b.reset();
         assert_eq!(b.next_delay(), Duration::from_millis(100));
+    }
+
+    /// The timer goes off at its instant, not before and not a millisecond after (the
+    /// bound is loose for a loaded machine; tokio's timer alone would take the 1750 µs
+    /// to 2 or 3 ms, and the median of these is checked against 700 µs); an expiry
+    /// nobody waited for does not end a later wait early.
+    #[tokio::test]
+    async fn precise_timer_is_neither_early_nor_a_tick_late() {
+        use tokio::time::Instant;
+        let mut timer = PreciseTimer::new().unwrap();
+        let mut late = Vec::new();
+        for _ in 0..20 {
+            let at = Instant::now() + Duration::from_micros(1750);
+            timer.until(at).await.unwrap();
+            let now = Instant::now();
+            assert!(now >= at, "{:?} early", at - now);
+            late.push(now - at);
+        }
+        late.sort();
+        assert!(
+            late[10] < Duration::from_micros(700),
+            "median {:?} late",
+            late[10]
+        );
+
+        // Set for 1 ms and dropped unwaited: it goes off while the reactor waits for
+        // something else; a later, longer wait must not end with that expiry.
+        let first = Instant::now() + Duration::from_millis(1);
+        let _ = tokio::time::timeout(Duration::ZERO, timer.until(first)).await;
+        tokio::time::sleep(Duration::from_millis(4)).await;
+        let second = Instant::now() + Duration::from_millis(5);
+        timer.until(second).await.unwrap();
+        assert!(Instant::now() >= second, "woken by the earlier expiry");
+        // An instant already past returns at once.
+        timer.until(first).await.unwrap();
     }
 
     #[test]

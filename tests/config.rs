@@ -146,8 +146,9 @@ fn unknown_key_in_each_section() {
         2,
         "serial.baudrate",
         "unknown key; expected one of path, baud_rate, data_bits, parity, stop_bits, \
-         flow_control, framing, silence_floor_ms, rs485, rs485_delay_before_send_ms, \
-         rs485_delay_after_send_ms, echo (did you mean `baud_rate`?)",
+         flow_control, framing, silence_floor_ms, inter_frame_gap_us, rs485, \
+         rs485_delay_before_send_ms, rs485_delay_after_send_ms, echo (did you mean \
+         `baud_rate`?)",
     );
     assert_err(
         "[tcp]\nlisten = \"0.0.0.0:502\"\n\nmax_conections = 3\n",
@@ -563,6 +564,7 @@ fn non_default() -> Config {
             flow_control: FlowControl::Software,
             framing: Framing::Rtu,
             silence_floor_ms: 0,
+            inter_frame_gap_us: 1_000_000,
             rs485: true,
             rs485_delay_before_send_ms: 2,
             rs485_delay_after_send_ms: 1000,

@@ -171,6 +171,8 @@ settings! {
         framing: Framing = Framing::Mbap, Any, "framing" "FRAMING";
         /// Least silence that ends a frame, above the adapter's latency timer (RTU: a reply of unknown shape; MBAP: confirms a reply with nothing after it)
         silence_floor_ms: u64 = 20, Range(0, 1000, None), "silence-floor-ms" "MS";
+        /// RTU/ASCII: silence before each request, in microseconds; 0 is the specification's (RTU: 3.5 characters, 1750 above 19 200 baud; ASCII: none after a whole reply)
+        inter_frame_gap_us: u64 = 0, Range(0, 1_000_000, None), "inter-frame-gap-us" "US";
         /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter
         rs485: bool = false, Any, "rs485" "BOOL";
         /// RS-485: RTS delay before sending

@@ -22,8 +22,9 @@ pub type Reader = Box<dyn AsyncRead + Send + Unpin>;
 pub type Writer = Box<dyn AsyncWrite + Send + Unpin>;
 /// An open in progress ([`Port::open`]).
 pub type Opening = Pin<Box<dyn Future<Output = io::Result<Link>> + Send>>;
-/// A wait until the bytes written have left ([`Control::drain`]).
-pub type Drain = Pin<Box<dyn Future<Output = io::Result<()>> + Send>>;
+/// A wait until the bytes written have left ([`Control::drain`]): the instant they
+/// had.
+pub type Drain = Pin<Box<dyn Future<Output = io::Result<std::time::Instant>> + Send>>;
 
 /// An open port: its two halves, read and written at once by the relay's loop, and
 /// what it can tell about the bytes in transit.
@@ -48,7 +49,7 @@ pub trait Control: Send {
     /// port's `tcdrain`): the reply timer and the inter-frame gap start from the last
     /// byte on the wire. A transport with no such notion is drained at once.
     fn drain(&self) -> io::Result<Drain> {
-        Ok(Box::pin(async { Ok(()) }))
+        Ok(Box::pin(async { Ok(std::time::Instant::now()) }))
     }
 
     /// Has the port received bytes not yet read? Then the device is talking, and an

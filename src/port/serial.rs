@@ -1,6 +1,7 @@
 //! The serial port as a [`Port`]: the configured settings, flow control, stale bytes
 //! cleared, RS-485, exclusive open (all in [`crate::serial::open`]), and `tcdrain` and
-//! FIONREAD on its descriptor, the drain run off the runtime's thread.
+//! FIONREAD on its descriptor, the drain run by a thread of the port's own
+//! ([`crate::serial::Drainer`]).
 
 use super::{Control, Drain, Link, Opening, Port};
 use crate::config::SerialConfig;
@@ -35,11 +36,12 @@ impl Port for SerialPort {
         Box::pin(async move {
             let port = opened?;
             let fd = port.as_raw_fd();
+            let drainer = crate::serial::Drainer::start(fd)?;
             let (reader, writer) = tokio::io::split(port);
             Ok(Link {
                 reader: Box::new(reader),
                 writer: Box::new(writer),
-                control: Box::new(Tty { fd }),
+                control: Box::new(Tty { fd, drainer }),
             })
         })
     }
@@ -50,17 +52,20 @@ impl Port for SerialPort {
 }
 
 /// The port's descriptor, valid while the two halves of its [`Link`] live (the relay
-/// drops all three together).
+/// drops all three together), and its drain thread, which ends with it.
 struct Tty {
     fd: RawFd,
+    drainer: crate::serial::Drainer,
 }
 
 impl Control for Tty {
     fn drain(&self) -> io::Result<Drain> {
-        let handle = crate::serial::drain(self.fd)?;
-        Ok(Box::pin(
-            async move { handle.await.map_err(io::Error::other)? },
-        ))
+        let answered = self.drainer.drain()?;
+        Ok(Box::pin(async move {
+            answered
+                .await
+                .map_err(|_| io::Error::other("the drain thread is gone"))?
+        }))
     }
 
     fn input_waiting(&self) -> bool {

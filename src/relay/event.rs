@@ -1,11 +1,13 @@
 //! What the relay's loop waits on, as one [`Event`]: a command from a connection, bytes
 //! from the port, room to write, the end of a drain, an open that finished, the next
-//! timer, or shutdown. The waiting only: the loop decides what each event means.
+//! timer (to the microsecond, on a timerfd set only when the next wake moves: no
+//! self-wake of tokio's reactor for each new deadline), or shutdown. The waiting only: the loop decides what each event means.
 
 use super::lifecycle::{Lifecycle, State};
 use super::outgoing::Outgoing;
 use super::Command;
 use crate::port::Link;
+use crate::serial::PreciseTimer;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -15,7 +17,8 @@ pub(super) enum Event {
     Command(Option<Command>),
     Read(std::io::Result<usize>),
     Wrote(std::io::Result<usize>),
-    Drained(std::io::Result<()>),
+    /// When the last byte left (the drain thread's clock), or why it cannot tell.
+    Drained(std::io::Result<std::time::Instant>),
     Opened(std::io::Result<Link>),
     Timer,
     Shutdown,
@@ -27,7 +30,11 @@ pub(super) struct Sources<'a> {
     pub(super) commands: Option<&'a mut mpsc::UnboundedReceiver<Command>>,
     /// Written while it holds bytes.
     pub(super) out: &'a Outgoing,
-    pub(super) wake: Instant,
+    /// The next timer, if any.
+    pub(super) wake: Option<Instant>,
+    /// Waits for `wake` to the microsecond; without it, tokio's timer does, to the
+    /// millisecond.
+    pub(super) timer: Option<&'a mut PreciseTimer>,
     /// `None` once shutdown has been asked for.
     pub(super) shutdown: Option<&'a CancellationToken>,
 }
@@ -38,8 +45,23 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
         mut commands,
         out,
         wake,
+        timer,
         shutdown,
     } = src;
+    let has_wake = wake.is_some();
+    let timer = async {
+        let at = wake.expect("guarded");
+        match timer {
+            Some(t) => {
+                if let Err(e) = t.until(at).await {
+                    // Never seen: then tokio's timer.
+                    tracing::debug!("timerfd: {e}");
+                    tokio::time::sleep_until(at).await;
+                }
+            }
+            None => tokio::time::sleep_until(at).await,
+        }
+    };
     let has_commands = commands.is_some();
     let command = async { commands.as_mut().expect("guarded").recv().await };
     let has_shutdown = shutdown.is_some();
@@ -58,18 +80,18 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
             cmd = command, if has_commands => Event::Command(cmd),
             w = wr.write(out.pending()), if !out.is_empty() => Event::Wrote(w),
             d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
-            _ = tokio::time::sleep_until(wake) => Event::Timer,
+            _ = timer, if has_wake => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,
         },
         State::Opening(opening) => tokio::select! {
             opened = opening => Event::Opened(opened),
             cmd = command, if has_commands => Event::Command(cmd),
-            _ = tokio::time::sleep_until(wake) => Event::Timer,
+            _ = timer, if has_wake => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,
         },
         State::Closed { .. } => tokio::select! {
             cmd = command, if has_commands => Event::Command(cmd),
-            _ = tokio::time::sleep_until(wake) => Event::Timer,
+            _ = timer, if has_wake => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,
         },
     }

@@ -22,8 +22,14 @@ pub(super) struct Serial {
     port: SerialConfig,
     /// RTU or ASCII frames: the framer every side of the line uses.
     decoder: Framer,
-    /// 3.5 character times: the gap before each request.
-    t35: Duration,
+    /// The silence before each request (`inter_frame_gap_us`; by default 3.5
+    /// character times; none over TCP, where the device server keeps the gap on its
+    /// own line).
+    gap: Duration,
+    /// The silence before a request once the last bytes on the line (the device's, or
+    /// our own request's) made whole frames: `gap`, but none for ASCII by default (its
+    /// frames end with CR LF, and the specification asks for no silence between them).
+    gap_after_frame: Duration,
     /// What ends a frame of unknown shape: 3.5 character times, never less than
     /// `silence_floor_ms`.
     silence: Duration,
@@ -41,6 +47,8 @@ pub(super) struct Serial {
     broadcast_on_wire: bool,
     /// While a frame is being written: the earliest its last byte can leave.
     tx: Option<Instant>,
+    /// Bytes of that frame not yet handed to the port.
+    unwritten: usize,
     /// Bytes read while the frame was being written, with when they were read.
     held: Vec<(Instant, Vec<u8>)>,
     /// When the last request's last byte left: bytes read before then answer nothing.
@@ -65,10 +73,20 @@ impl Serial {
         } else {
             Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)))
         };
+        let gap = match serial.inter_frame_gap_us {
+            _ if stream => Duration::ZERO,
+            0 => t35,
+            us => Duration::from_micros(us),
+        };
+        let gap_after_frame = match (serial.inter_frame_gap_us, codec) {
+            (0, Codec::Ascii) => Duration::ZERO,
+            _ => gap,
+        };
         Serial {
             port: serial.clone(),
             decoder: Framer::serial(codec),
-            t35,
+            gap,
+            gap_after_frame,
             silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
@@ -78,6 +96,7 @@ impl Serial {
             echo: serial.echo.then(VecDeque::new),
             broadcast_on_wire: false,
             tx: None,
+            unwritten: 0,
             held: Vec::new(),
             reply_from: now,
             stream,
@@ -122,6 +141,7 @@ impl Serial {
         // Written from now on: its last byte cannot leave before its time on the wire
         // has passed.
         self.tx = Some(now + self.wire_time(bytes.len()));
+        self.unwritten = bytes.len();
         Bytes::from(bytes)
     }
 
@@ -130,6 +150,7 @@ impl Serial {
     }
 
     pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
+        self.unwritten = self.unwritten.saturating_sub(n);
         let wire = self.wire_time(n);
         if let Some(earliest) = &mut self.tx {
             // Held back by flow control, the last bytes leave later than a frame
@@ -146,14 +167,11 @@ impl Serial {
     pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {
         let earliest = self.tx.take().unwrap_or(now);
         let left = now.max(earliest);
-        self.reply_from = earliest;
-        for (at, bytes) in std::mem::take(&mut self.held) {
-            self.accept(&bytes, at, stats);
-        }
+        self.judge_held(earliest, stats);
         let turnaround = if std::mem::take(&mut self.broadcast_on_wire) {
             self.broadcast_delay
         } else {
-            self.t35
+            self.gap_after_frame
         };
         self.ready_at = self.ready_at.max(left + turnaround);
         left
@@ -165,12 +183,28 @@ impl Serial {
         if rest.is_empty() {
             return;
         }
-        if self.tx.is_some() {
+        match self.tx {
+            // The whole request has been handed to the port and its time on the wire
+            // has passed: that bound is all `drained` would judge by, so these are
+            // judged now, and a reply is taken without waiting for the drain's answer
+            // (the drain thread may be scheduled late; docs/performance.md).
+            Some(earliest) if self.unwritten == 0 && now >= earliest => {
+                self.judge_held(earliest, stats);
+                self.accept(rest, now, stats);
+            }
             // The request is still on its way out: when its last byte left is not
             // known yet, so these wait for `drained` to judge them.
-            self.held.push((now, rest.to_vec()));
-        } else {
-            self.accept(rest, now, stats);
+            Some(_) => self.held.push((now, rest.to_vec())),
+            None => self.accept(rest, now, stats),
+        }
+    }
+
+    /// The request's last byte left `earliest` or later: bytes held until then are
+    /// judged by it.
+    fn judge_held(&mut self, earliest: Instant, stats: &Stats) {
+        self.reply_from = earliest;
+        for (at, bytes) in std::mem::take(&mut self.held) {
+            self.accept(&bytes, at, stats);
         }
     }
 
@@ -193,6 +227,7 @@ impl Serial {
             echo.clear();
         }
         self.tx = None;
+        self.unwritten = 0;
         self.held.clear();
         self.broadcast_on_wire = false;
     }
@@ -208,7 +243,7 @@ impl Serial {
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
         let bytes = self.decoder.encoded_len(adu.pdu().len()) + self.decoder.encoded_len(2);
-        self.wire_time(bytes) + 2 * self.t35
+        self.wire_time(bytes) + 2 * self.gap
     }
 
     /// Counts what the framer dropped since last asked, and `held` bytes dropped
@@ -221,10 +256,17 @@ impl Serial {
     }
 
     /// The line is free once the turnaround after our last request has passed and the
-    /// device has been quiet for 3.5 character times, or `request_pause_ms` if longer.
+    /// device has been quiet for the gap, counted from the instant its last byte was
+    /// read (docs/performance.md, "RTU at the line's limit"), or `request_pause_ms` if
+    /// longer.
     fn free_at(&self) -> Instant {
+        let gap = if self.decoder.buffered() == 0 {
+            self.gap_after_frame
+        } else {
+            self.gap
+        };
         self.ready_at
-            .max(self.last_rx + self.t35.max(self.request_pause))
+            .max(self.last_rx + gap.max(self.request_pause))
     }
 
     /// Bytes read at `at`, once the request they follow has left: before its last byte
