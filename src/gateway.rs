@@ -77,7 +77,7 @@ pub async fn run_reloading(
 
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
-pub async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
     let max_pending = cfg.max_pending_per_connection();
     let bind = |l: ListenConfig| {
         let addr = l.tcp.listen;
@@ -88,7 +88,7 @@ pub async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
 
 /// [`run`] on listeners already bound (`mbgate demo` prints their addresses first),
 /// one for each of `cfg.listeners()`.
-pub async fn serve(
+pub(crate) async fn serve(
     listeners: Vec<TcpListener>,
     cfg: Config,
     shutdown: CancellationToken,

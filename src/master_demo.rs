@@ -32,7 +32,7 @@ pub struct MasterDemoArgs {
         requires = "master",
         help_heading = "the device as master"
     )]
-    pub poll_ms: u64,
+    pub(crate) poll_ms: u64,
 }
 
 #[derive(Debug, thiserror::Error)]

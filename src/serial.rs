@@ -13,7 +13,7 @@ use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
 
 /// The `[serial]` settings in tokio-serial's terms: data bits, parity, stop bits, flow
 /// control.
-pub fn line_settings(
+pub(crate) fn line_settings(
     cfg: &SerialConfig,
 ) -> (
     tokio_serial::DataBits,
@@ -46,7 +46,7 @@ pub fn line_settings(
 /// The processes other than this one that have `path` open, as `PID (name)`, found
 /// the way `fuser` finds them: through the links in `/proc/*/fd`. Processes of other
 /// users are invisible without privilege, so an empty list proves nothing.
-pub fn holders(path: &str) -> Vec<String> {
+pub(crate) fn holders(path: &str) -> Vec<String> {
     let Ok(target) = std::fs::canonicalize(path) else {
         return Vec::new();
     };
@@ -166,7 +166,7 @@ fn set_rs485(fd: RawFd, cfg: &SerialConfig) -> std::io::Result<()> {
 /// Waits on the blocking pool until everything written to the port `fd` has left it
 /// (`tcdrain`), without holding the runtime's thread. Works on a duplicate of the
 /// descriptor, so closing the port meanwhile cannot make it touch another file.
-pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Result<()>>> {
+pub(crate) fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Result<()>>> {
     // SAFETY: `fd` is the open port, borrowed only to duplicate it.
     #[allow(unsafe_code)]
     let owned = unsafe { BorrowedFd::borrow_raw(fd) }.try_clone_to_owned()?;
@@ -183,7 +183,7 @@ pub fn drain(fd: RawFd) -> std::io::Result<tokio::task::JoinHandle<std::io::Resu
 }
 
 /// Bytes received by the port `fd` and not yet read (FIONREAD).
-pub fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
+pub(crate) fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
     let mut n: libc::c_int = 0;
     // SAFETY: FIONREAD writes one int, which `n` is, for the duration of the call.
     #[allow(unsafe_code)]
@@ -196,17 +196,17 @@ pub fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
 }
 
 /// Bits on the wire for one character: start, data, parity, stop.
-pub fn bits_per_char(cfg: &SerialConfig) -> u32 {
+pub(crate) fn bits_per_char(cfg: &SerialConfig) -> u32 {
     1 + u32::from(cfg.data_bits) + u32::from(cfg.parity != Parity::None) + u32::from(cfg.stop_bits)
 }
 
 /// How long `bytes` take on the wire at the configured rate.
-pub fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
+pub(crate) fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
     let bits = bytes as u64 * u64::from(bits_per_char(cfg));
     Duration::from_micros(bits * 1_000_000 / u64::from(cfg.baud_rate.max(1)))
 }
 
-pub use crate::port::Backoff;
+pub(crate) use crate::port::Backoff;
 
 #[cfg(test)]
 mod tests {

@@ -8,9 +8,9 @@
 //! - [`slave`]: one task per route holding its TCP connection;
 //! - this file: the loop that owns the serial port and wires them.
 
-pub mod requests;
-pub mod slave;
-pub mod table;
+pub(crate) mod requests;
+pub(crate) mod slave;
+pub(crate) mod table;
 
 use crate::config::master::MasterLine;
 use crate::config::{Config, Framing};
@@ -39,15 +39,15 @@ pub enum BridgeError {
 /// The line's timing: the pause that ends a frame, and the gap after which a partial
 /// one is dropped.
 #[derive(Debug, Clone, Copy)]
-pub struct Timing {
+pub(crate) struct Timing {
     /// Silence that ends a frame: 3.5 characters (at least the adapter's latency).
-    pub pause: Duration,
+    pub(crate) pause: Duration,
     /// MBAP: silence after which a partial frame is discarded.
-    pub frame_gap: Duration,
+    pub(crate) frame_gap: Duration,
 }
 
 impl Timing {
-    pub fn of(cfg: &Config) -> Self {
+    pub(crate) fn of(cfg: &Config) -> Self {
         let bits = crate::serial::bits_per_char(&cfg.serial);
         let t35 = Duration::from_micros(crate::frame::rtu::t35_us(cfg.serial.baud_rate, bits));
         Self {
@@ -74,7 +74,7 @@ pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, Br
 }
 
 /// [`run`] on any port (tests use an in-memory one).
-pub async fn run_on(
+pub(crate) async fn run_on(
     mut port: Box<dyn Port>,
     framing: Framing,
     timing: Timing,

@@ -23,7 +23,7 @@ use toml::de::{DeTable, DeValue};
 use toml::Spanned;
 
 /// The keys of a `[[line.route]]` table.
-pub const ROUTE_KEYS: [&str; 5] = [
+pub(crate) const ROUTE_KEYS: [&str; 5] = [
     "units",
     "address",
     "listen",
@@ -78,9 +78,9 @@ impl MasterLine {
 /// A value the file got wrong: where, which key, why.
 #[derive(Debug)]
 pub(super) struct Bad {
-    pub at: usize,
-    pub key: String,
-    pub message: String,
+    pub(crate) at: usize,
+    pub(crate) key: String,
+    pub(crate) message: String,
 }
 
 fn bad<T>(at: usize, key: &str, message: impl Into<String>) -> Result<T, Bad> {
@@ -267,7 +267,7 @@ fn check_host_port(s: &str) -> Result<(), String> {
 
 /// The master line as the `[[line]]` form prints it (`mbgate check-config`), after
 /// its `serial` table; `parse` reads it back to the same.
-pub fn to_toml(m: &MasterLine) -> String {
+pub(crate) fn to_toml(m: &MasterLine) -> String {
     let mut out = String::new();
     for r in &m.routes {
         out += "\n[[line.route]]\n";

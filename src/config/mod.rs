@@ -12,7 +12,7 @@ mod layout;
 pub mod master;
 
 pub use file::{load, parse, ConfigError};
-pub use layout::{LineConfig, ListenConfig, Units};
+pub(crate) use layout::{LineConfig, ListenConfig, Units};
 use std::net::SocketAddr;
 use Check::{Any, NonEmpty, OneOf, Range};
 
@@ -28,7 +28,7 @@ macro_rules! choices {
 
         impl $Enum {
             /// The word for this value in the file.
-            pub fn name(self) -> &'static str {
+            pub(crate) fn name(self) -> &'static str {
                 match self { $(Self::$V => $name,)* }
             }
         }
@@ -90,7 +90,7 @@ choices! {
 }
 
 /// The values `log.level` accepts.
-pub const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
+pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
 
 /// Declares the sections and their settings: `key: type = default, check, "flag"
 /// "VALUE_NAME" [port] [, at_most other: "why"];` under the key's one line of help.
@@ -253,25 +253,25 @@ pub struct Key {
     pub name: &'static str,
     /// The long flag without its dashes: `baud` for `--baud`.
     pub flag: &'static str,
-    pub value_name: &'static str,
+    pub(crate) value_name: &'static str,
     /// One line (with a leading space, as doc comments have it).
     pub help: &'static str,
-    pub check: Check,
-    pub kind: Kind,
+    pub(crate) check: Check,
+    pub(crate) kind: Kind,
     /// A serial port setting that `mbgate sim` and the client take as flags too.
-    pub port: bool,
+    pub(crate) port: bool,
     /// The key of the section this one must not exceed, and why.
-    pub at_most: Option<(&'static str, &'static str)>,
+    pub(crate) at_most: Option<(&'static str, &'static str)>,
     /// Checks a value and sets this key in a configuration; the error says why,
     /// without the key.
-    pub set: fn(&mut Config, &Raw) -> Result<(), String>,
+    pub(crate) set: fn(&mut Config, &Raw) -> Result<(), String>,
     /// The value of this key in a configuration, as written in a TOML file.
     pub get: fn(&Config) -> String,
 }
 
 /// What a key's value is, for parsing flags and for messages.
 #[derive(Debug, Clone, Copy)]
-pub enum Kind {
+pub(crate) enum Kind {
     Int,
     Bool,
     Str,
@@ -283,7 +283,7 @@ pub enum Kind {
 
 /// What values a key accepts beyond its type.
 #[derive(Debug, Clone, Copy)]
-pub enum Check {
+pub(crate) enum Check {
     Any,
     /// An inclusive integer range, and how to say it when not "between MIN and MAX".
     Range(i128, i128, Option<&'static str>),
@@ -340,7 +340,7 @@ impl Raw {
 }
 
 /// A type a setting can have.
-pub trait Setting: Sized {
+pub(crate) trait Setting: Sized {
     const KIND: Kind;
     /// The value `raw` stands for, if it has the right type and passes `check`.
     fn read(raw: &Raw, check: &Check) -> Result<Self, String>;
@@ -385,16 +385,16 @@ setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
 const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
 
 /// Parses a `tcp.listen` / `--listen` value.
-pub fn parse_listen(s: &str) -> Result<SocketAddr, String> {
+pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
     s.trim()
         .parse()
         .map_err(|_| format!("expected {LISTEN_EXPECTED}, got {s:?}"))
 }
 
 /// A key above the key it must not exceed (`at_most` in [`settings!`]).
-pub struct Conflict {
-    pub key: &'static Key,
-    pub other: &'static Key,
+pub(crate) struct Conflict {
+    pub(crate) key: &'static Key,
+    pub(crate) other: &'static Key,
     value: i128,
     limit: i128,
     why: &'static str,
@@ -402,7 +402,7 @@ pub struct Conflict {
 
 impl Conflict {
     /// The message, with the section's keys under `prefix` (`relay.`).
-    pub fn message(&self, prefix: &str) -> String {
+    pub(crate) fn message(&self, prefix: &str) -> String {
         let (other, limit, value, why) = (self.other.name, self.limit, self.value, self.why);
         format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
     }
@@ -412,7 +412,7 @@ impl Config {
     /// The first pair of keys whose values contradict each other, if any. Refused
     /// rather than one silently capped: the operator meant one of them and mbgate
     /// cannot tell which.
-    pub fn conflict(&self) -> Option<Conflict> {
+    pub(crate) fn conflict(&self) -> Option<Conflict> {
         KEYS.iter().find_map(|key| {
             let (other, why) = key.at_most?;
             let other = KEYS

@@ -16,7 +16,7 @@ use super::{pdu, Adu};
 
 /// The shortest frame a device sends: an exception reply (6 + 3 bytes). A reply can
 /// only be completed by a whole frame when at least this many bytes were lost.
-pub const SHORTEST_FRAME: usize = 9;
+pub(crate) const SHORTEST_FRAME: usize = 9;
 
 /// Register values that look like pieces of MBAP headers: zeros (protocol id, length
 /// high byte, transaction ids below 256), lengths, unit and function code pairs, byte
@@ -86,7 +86,7 @@ pub struct Talk {
 }
 
 impl Talk {
-    pub fn replies(&self) -> Vec<Adu> {
+    pub(crate) fn replies(&self) -> Vec<Adu> {
         self.frames
             .iter()
             .filter(|f| f.tid() != 0)
@@ -133,7 +133,7 @@ pub struct Received {
 }
 
 /// Loses the runs of `talk` and marks its pauses (offsets in what was sent).
-pub fn deliver(talk: &Talk, runs: &[Run], pauses_at: &[usize]) -> Received {
+pub(crate) fn deliver(talk: &Talk, runs: &[Run], pauses_at: &[usize]) -> Received {
     let sent = talk.bytes();
     let bounds = talk.bounds();
     let frames = talk.frames.len();
@@ -219,7 +219,7 @@ pub fn decode(judge: &impl Judge, r: &Received, cuts: &[usize]) -> Vec<(usize, A
 /// The bytes lost from where a yielded frame's first byte was sent up to where the
 /// header of what confirmed it (the first bytes received after it) was sent, or the
 /// end.
-pub fn lost_around(r: &Received, start: usize, len: usize) -> usize {
+pub(crate) fn lost_around(r: &Received, start: usize, len: usize) -> usize {
     let from = r.sent_at[start];
     let to = r
         .sent_at

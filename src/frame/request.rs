@@ -97,7 +97,7 @@ fn block(what: &'static str, addr: u16, qty: usize, max: usize) -> Result<(), Re
 
 /// Packs bits the Modbus way (docs/protocol.md §1): the first bit is the LSB of the first
 /// byte; unused high bits of the last byte are zero.
-pub fn pack_bits(bits: &[bool]) -> Vec<u8> {
+pub(crate) fn pack_bits(bits: &[bool]) -> Vec<u8> {
     let mut out = vec![0u8; bits.len().div_ceil(8)];
     for (i, _) in bits.iter().enumerate().filter(|(_, &b)| b) {
         out[i / 8] |= 1 << (i % 8);
@@ -106,7 +106,7 @@ pub fn pack_bits(bits: &[bool]) -> Vec<u8> {
 }
 
 /// The first `n` bits of `bytes`, unpacked the Modbus way (docs/protocol.md §1).
-pub fn unpack_bits(bytes: &[u8], n: usize) -> Vec<bool> {
+pub(crate) fn unpack_bits(bytes: &[u8], n: usize) -> Vec<bool> {
     (0..n.min(bytes.len() * 8))
         .map(|i| bytes[i / 8] & (1 << (i % 8)) != 0)
         .collect()
@@ -120,7 +120,7 @@ fn put_words(out: &mut Vec<u8>, words: &[u16]) {
 
 impl Request {
     /// The function code (docs/protocol.md §1 table).
-    pub fn function(&self) -> Fc {
+    pub(crate) fn function(&self) -> Fc {
         match self {
             Request::ReadCoils { .. } => Fc::READ_COILS,
             Request::ReadDiscreteInputs { .. } => Fc::READ_DISCRETE_INPUTS,
@@ -136,7 +136,7 @@ impl Request {
 
     /// Checks the limits of docs/protocol.md §1 (quantities, and blocks that stay inside the
     /// address space).
-    pub fn validate(&self) -> Result<(), RequestError> {
+    pub(crate) fn validate(&self) -> Result<(), RequestError> {
         let read = || limit(self.function(), false);
         let write = || limit(self.function(), true);
         match self {
@@ -235,8 +235,8 @@ pub enum Reply {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("reply PDU {reply} does not answer request PDU {request}")]
 pub struct Mismatch {
-    pub request: String,
-    pub reply: String,
+    pub(crate) request: String,
+    pub(crate) reply: String,
 }
 
 fn word(p: &[u8], at: usize) -> u16 {
@@ -290,7 +290,7 @@ pub fn decode_reply(request: &[u8], reply: &[u8]) -> Result<Reply, Mismatch> {
 }
 
 /// The name of an exception code (docs/protocol.md §1).
-pub fn exception_name(code: u8) -> &'static str {
+pub(crate) fn exception_name(code: u8) -> &'static str {
     ExceptionCode::new(code)
         .name()
         .unwrap_or("unknown exception")

@@ -19,12 +19,12 @@ use crc::{Crc, CRC_16_MODBUS};
 const MODBUS: Crc<u16> = Crc::<u16>::new(&CRC_16_MODBUS);
 
 /// Address, function code, and the two CRC bytes: the least a frame holds.
-pub const MIN_FRAME: usize = 4;
+pub(crate) const MIN_FRAME: usize = 4;
 /// Address + a 253-byte PDU + CRC.
-pub const MAX_FRAME: usize = 256;
+pub(crate) const MAX_FRAME: usize = 256;
 
 /// The Modbus CRC-16 of `bytes` (sent low byte first).
-pub fn crc16(bytes: &[u8]) -> u16 {
+pub(crate) fn crc16(bytes: &[u8]) -> u16 {
     MODBUS.checksum(bytes)
 }
 
@@ -72,7 +72,7 @@ fn framed(size: Size) -> Length {
 /// `request` (a PDU): from the function code's reply shape in the table
 /// ([`super::function::TABLE`]), and its byte count where it has one. An exception is
 /// known at once (5 bytes), so it never waits for silence.
-pub fn reply_length(request: &[u8], buf: &[u8]) -> Length {
+pub(crate) fn reply_length(request: &[u8], buf: &[u8]) -> Length {
     let Some(&code) = buf.get(1) else {
         return Length::More;
     };
@@ -99,7 +99,7 @@ pub fn request_length(buf: &[u8]) -> Length {
 /// 3.5 character times at `bits_per_second` with `bits_per_char` bits a character, in
 /// microseconds: the silence that ends an RTU frame. Above 19 200 baud the spec fixes it
 /// at 1750 µs (Modbus over serial line, §2.5.1.1).
-pub fn t35_us(bits_per_second: u32, bits_per_char: u32) -> u64 {
+pub(crate) fn t35_us(bits_per_second: u32, bits_per_char: u32) -> u64 {
     if bits_per_second > 19_200 {
         return 1750;
     }

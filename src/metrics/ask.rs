@@ -13,7 +13,7 @@ use std::time::{Duration, SystemTime};
 pub struct StatusArgs {
     /// The gateway's metrics listener (its `metrics.listen`)
     #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:9502")]
-    pub metrics: String,
+    pub(crate) metrics: String,
 }
 
 const EXIT_UNHEALTHY: u8 = 1;
