@@ -30,6 +30,7 @@ pub struct FunctionCode(u8);
 impl FunctionCode {
     pub(crate) const READ_COILS: Self = Self(0x01);
     pub(crate) const READ_DISCRETE_INPUTS: Self = Self(0x02);
+    /// FC 03, read holding registers (V1.1b3 §6.3).
     pub const READ_HOLDING_REGISTERS: Self = Self(0x03);
     pub(crate) const READ_INPUT_REGISTERS: Self = Self(0x04);
     pub(crate) const WRITE_SINGLE_COIL: Self = Self(0x05);
@@ -254,6 +255,7 @@ impl Item {
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Quantity {
     pub(crate) at: usize,
+    /// The most items one request may carry (125 registers for FC 03, for one).
     pub max: u16,
     pub(crate) item: Item,
 }
@@ -279,9 +281,13 @@ pub enum Shape {
     /// A byte count at offset `at` (one byte, or two big-endian when `wide`) covers the
     /// rest; the count is at least `min` and a multiple of `step`.
     Counted {
+        /// PDU offset of the byte count.
         at: usize,
+        /// The count is two bytes, big-endian (FC 18, read FIFO queue).
         wide: bool,
+        /// The smallest count a well-formed PDU has.
         min: usize,
+        /// The count is a multiple of this (2 for registers).
         step: usize,
     },
     /// FC 08's reply: at least 5 bytes; as long as a 5-byte request it answers (most

@@ -33,7 +33,10 @@ pub const HEADER_LIKE: [u16; 13] = [
 /// Every frame is held for confirmation; `pause_confirms` says whether a pause
 /// confirms one with nothing after it (no other reply due).
 pub struct Outstanding {
+    /// The replies due, standing for their requests: a frame is accepted when it has
+    /// one's id, unit, function code and length.
     pub replies: Vec<Adu>,
+    /// A pause confirms a held frame with nothing after it.
     pub pause_confirms: bool,
 }
 
@@ -82,6 +85,7 @@ fn echoes(sent: &Adu, frame: FrameRef<'_>) -> bool {
 /// notifications (id 0) among them.
 #[derive(Debug, Clone)]
 pub struct Talk {
+    /// The frames, in the order they are sent.
     pub frames: Vec<Adu>,
 }
 
@@ -94,6 +98,7 @@ impl Talk {
             .collect()
     }
 
+    /// Every frame's bytes, back to back: what is sent.
     pub fn bytes(&self) -> Vec<u8> {
         self.frames
             .iter()
@@ -117,18 +122,44 @@ impl Talk {
 /// frame. Offsets and frame numbers wrap around what was sent.
 #[derive(Debug, Clone)]
 pub enum Run {
-    At { at: usize, len: usize },
-    FromBoundary { frame: usize, len: usize },
-    ToBoundary { frame: usize, len: usize },
-    Frame { frame: usize },
+    /// `len` bytes from offset `at` of what was sent.
+    At {
+        /// The offset of the first byte lost.
+        at: usize,
+        /// How many bytes are lost.
+        len: usize,
+    },
+    /// The first `len` bytes of frame `frame` on.
+    FromBoundary {
+        /// The frame whose start the run begins at.
+        frame: usize,
+        /// How many bytes are lost.
+        len: usize,
+    },
+    /// The last `len` bytes before the end of frame `frame`.
+    ToBoundary {
+        /// The frame whose end the run stops at.
+        frame: usize,
+        /// How many bytes are lost.
+        len: usize,
+    },
+    /// All of frame `frame`.
+    Frame {
+        /// The frame lost.
+        frame: usize,
+    },
 }
 
 /// What the line delivers: the bytes not lost, each with where it was sent, and the
 /// pauses (before the received byte at each offset).
 pub struct Received {
+    /// The bytes that arrived, in order.
     pub bytes: Vec<u8>,
+    /// For each byte of `bytes`, its offset in what was sent.
     pub sent_at: Vec<usize>,
+    /// For each byte sent, whether it was lost.
     pub lost: Vec<bool>,
+    /// Offsets in `bytes` before which the line paused, ascending, no repeats.
     pub pauses: Vec<usize>,
 }
 

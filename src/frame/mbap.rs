@@ -84,10 +84,12 @@ impl Adu {
         FrameRef(&self.0)
     }
 
+    /// The transaction id (MBAP header bytes 0-1).
     pub fn tid(&self) -> u16 {
         self.view().tid()
     }
 
+    /// The unit id (MBAP header byte 6): the device behind the gateway.
     pub fn unit(&self) -> u8 {
         self.view().unit()
     }
@@ -107,6 +109,7 @@ impl Adu {
         &self.0[HEADER_LEN..]
     }
 
+    /// The whole frame, header and PDU, as on the wire.
     pub fn as_bytes(&self) -> &[u8] {
         &self.0
     }
@@ -171,8 +174,10 @@ impl fmt::Debug for Adu {
 /// Why the strict decoder rejected a master's frame. Any of these closes the connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 pub enum StrictError {
+    /// The protocol id is not 0 (Modbus); the value found.
     #[error("protocol id {0:#06x}, expected 0x0000")]
     ProtocolId(u16),
+    /// The length field (unit id and PDU) is outside what a PDU can be; the value found.
     #[error("length field {0}, expected {MIN_LENGTH}..={MAX_LENGTH}")]
     Length(u16),
 }

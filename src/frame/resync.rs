@@ -232,6 +232,7 @@ fn candidate(buf: &[u8], judge: &impl Judge) -> Candidate {
 }
 
 impl Resync {
+    /// A decoder with nothing buffered.
     pub fn new() -> Self {
         Self::default()
     }
@@ -268,6 +269,7 @@ impl Resync {
         self.consumed
     }
 
+    /// What the decoder has dropped and why, since it was made.
     pub fn stats(&self) -> ResyncStats {
         self.stats
     }

@@ -17,7 +17,10 @@ use super::{ascii, rtu};
 /// Which serial framing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Codec {
+    /// Modbus RTU: binary, CRC-16, frames ended by silence (Modbus over Serial Line
+    /// V1.02 §2.5.1).
     Rtu,
+    /// Modbus ASCII: `:`, hex digits, LRC, CR LF (Modbus over Serial Line V1.02 §2.5.2).
     Ascii,
 }
 
