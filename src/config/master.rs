@@ -52,7 +52,9 @@ impl std::fmt::Display for Peer {
 /// One `[[line.route]]`: the unit ids it takes (none: the default route) and its slave.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Route {
+    /// The unit ids sent this way; empty: every unit no other route takes.
     pub units: Vec<u8>,
+    /// Where the slave is.
     pub peer: Peer,
     /// From the request's arrival on the serial line to the slave's reply; also bounds
     /// a connection attempt.
@@ -64,6 +66,7 @@ pub struct Route {
 /// What a master line adds to the line: its routes, in the order of the file.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct MasterLine {
+    /// The routes; a request takes the first that lists its unit, else the default.
     pub routes: Vec<Route>,
 }
 

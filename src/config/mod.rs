@@ -24,7 +24,7 @@ macro_rules! choices {
     })*) => {$(
         $(#[doc = $doc])*
         #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-        pub enum $Enum { $($(#[doc = $vdoc])* $V,)* }
+        pub enum $Enum { $($(#[doc = $vdoc])* #[doc = concat!("\n\nWritten `", $name, "`.")] $V,)* }
 
         impl $Enum {
             /// The word for this value in the file.
@@ -51,7 +51,9 @@ macro_rules! choices {
 }
 
 choices! {
+    /// The serial line's parity bit.
     Parity { None = "none", Even = "even", Odd = "odd", }
+    /// How the serial line holds off a sender whose receiver is full.
     FlowControl {
         /// RTS/CTS, as the device manual advises
         Hardware = "hardware",
@@ -68,12 +70,15 @@ choices! {
         /// Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time
         Ascii = "ascii",
     }
+    /// What a master that sent a broadcast (unit 0) gets back (Modbus over Serial Line
+    /// V1.02 §2.1: the device answers no broadcast).
     BroadcastReply {
         /// The master gets nothing back (as on the bus)
         None = "none",
         /// The master gets the reply the device would have given
         Echo = "echo",
     }
+    /// What becomes of frames from the device that answer no request (docs/protocol.md §3).
     Notifications {
         /// Frames from the device that answer no request are dropped and counted
         Drop = "drop",
@@ -117,7 +122,7 @@ macro_rules! settings {
         /// The whole file (docs/design.md §4): every section and key is optional.
         #[derive(Debug, Clone, PartialEq, Default)]
         pub struct Config {
-            $(pub $section: $Struct,)*
+            $($(#[doc = $sdoc])* pub $section: $Struct,)*
             /// The line's device is the master: its routes (docs/design.md §4.2).
             pub master: Option<master::MasterLine>,
             /// The `[[line]]` tables when the file needs them (several lines, units,
@@ -249,7 +254,9 @@ settings! {
 /// One setting as declared in [`settings!`].
 #[derive(Debug)]
 pub struct Key {
+    /// The section it is in: `serial` for `serial.baud_rate`.
     pub section: &'static str,
+    /// The key within its section: `baud_rate`.
     pub name: &'static str,
     /// The long flag without its dashes: `baud` for `--baud`.
     pub flag: &'static str,
@@ -320,8 +327,11 @@ impl Check {
 /// A value as found in the file or given as a flag, before it is checked.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Raw {
+    /// A TOML integer, or a flag's value that parses as one.
     Int(i128),
+    /// A TOML boolean, or a flag's `true`/`false`.
     Bool(bool),
+    /// A TOML string, or a flag's value taken as text.
     Str(String),
     /// Any other TOML value, as described in messages (`floating point `1.5``).
     Other(String),
