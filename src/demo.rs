@@ -42,16 +42,22 @@ pub struct DemoArgs {
     pub master: crate::master_demo::MasterDemoArgs,
 }
 
+/// Why the demo stopped early.
 #[derive(Debug, thiserror::Error)]
 pub enum DemoError {
+    /// The system gave no pseudo-terminal pair.
     #[error("cannot create a pty pair: {0}")]
     Pty(#[from] tokio_serial::Error),
+    /// The pty pair's device end has no path to give the gateway.
     #[error("the pty pair has no name")]
     Unnamed,
+    /// The gateway could not start.
     #[error(transparent)]
     Gateway(#[from] GatewayError),
+    /// The simulated device failed.
     #[error(transparent)]
     Sim(#[from] SimError),
+    /// The device flags do not make a device; the message says why.
     #[error("{0}")]
     Settings(String),
 }

@@ -20,19 +20,26 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
+/// Why the gateway could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
+    /// A listener's address could not be bound.
+    ///
     /// The cause is part of the message, with what to do about it, and deliberately
     /// not a `source`: printed as a chain it would appear twice.
     #[error("cannot listen on {addr}: {error}{}", bind_hint(.error, *.addr))]
     Bind {
+        /// The listener's address (`tcp.listen` or a `[[listen]]`).
         addr: SocketAddr,
+        /// What the system said.
         error: std::io::Error,
     },
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
+        /// The metrics address.
         addr: SocketAddr,
+        /// What the system said.
         error: std::io::Error,
     },
 }

@@ -35,16 +35,22 @@ pub struct MasterDemoArgs {
     pub(crate) poll_ms: u64,
 }
 
+/// Why the master demo stopped early.
 #[derive(Debug, thiserror::Error)]
 pub enum MasterDemoError {
+    /// The system gave no pseudo-terminal pair.
     #[error("cannot create a pty pair: {0}")]
     Pty(#[from] tokio_serial::Error),
+    /// The pty pair's device end has no path to give the master line.
     #[error("the pty pair has no name")]
     Unnamed,
+    /// The simulated slave's address (`--listen`) could not be bound.
     #[error("cannot listen on {0}: {1}")]
     Bind(SocketAddr, std::io::Error),
+    /// The master line could not start.
     #[error(transparent)]
     Bridge(#[from] crate::bridge::BridgeError),
+    /// A simulated device failed.
     #[error(transparent)]
     Sim(#[from] crate::sim::serve::SimError),
 }

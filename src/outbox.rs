@@ -311,6 +311,7 @@ pub struct Inbox {
 
 /// A frame to write. Drop it once written: a reply's pipelining slot is freed then.
 pub struct Outgoing {
+    /// The frame to write to the master: a reply, or a notification.
     pub adu: Adu,
     _slot: Option<Slot>,
 }

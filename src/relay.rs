@@ -51,6 +51,8 @@ use tracing::debug;
 use watch::Watch;
 use watchdog::Watchdog;
 
+/// The task that owns one serial line and everything on it (the module notes): built
+/// with [`Relay::new`], driven by [`Relay::run`].
 pub struct Relay {
     cfg: RelayConfig,
     rx: mpsc::UnboundedReceiver<Command>,

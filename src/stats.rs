@@ -73,6 +73,7 @@ impl Stats {
         counter.fetch_add(n, Ordering::Relaxed);
     }
 
+    /// The current value of one of this struct's counters (`stats.get(&stats.requests)`).
     pub fn get(&self, counter: &AtomicU64) -> u64 {
         counter.load(Ordering::Relaxed)
     }

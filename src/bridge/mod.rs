@@ -26,12 +26,17 @@ use tokio::time::{sleep_until, Instant};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+/// Why the master line could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum BridgeError {
+    /// A passive route's listening address could not be bound.
     #[error("cannot listen for the slave of route {route} on {addr}: {error}")]
     Bind {
+        /// The route's index, in the order of the file.
         route: usize,
+        /// The address as configured.
         addr: String,
+        /// What the system said.
         error: std::io::Error,
     },
 }
