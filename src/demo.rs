@@ -17,6 +17,7 @@ use tokio_util::sync::CancellationToken;
 pub(crate) const DEFAULT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 5020);
 
+/// `mbgate demo`'s flags.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
     /// Where Modbus/TCP masters connect [default: 127.0.0.1:5020, or a free port when
@@ -35,6 +36,7 @@ pub struct DemoArgs {
     #[arg(long, value_name = "N", default_value_t = 1,
           value_parser = clap::value_parser!(u8).range(1..=2))]
     pub(crate) lines: u8,
+    /// The simulated device, as `mbgate sim` takes it.
     #[command(flatten)]
     pub device: DeviceArgs,
     /// The device as master instead (src/master_demo.rs).

@@ -18,6 +18,7 @@ use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
 use tokio_util::sync::CancellationToken;
 
+/// `mbgate demo --master` and its flags.
 #[derive(Debug, Clone, clap::Args)]
 pub struct MasterDemoArgs {
     /// The device as master: a simulated CIE-M10 master, mbgate's master line and a

@@ -9,6 +9,7 @@ use std::net::{TcpStream, ToSocketAddrs};
 use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
 
+/// `mbgate status`'s flags.
 #[derive(Debug, clap::Args)]
 pub struct StatusArgs {
     /// The gateway's metrics listener (its `metrics.listen`)

@@ -23,6 +23,8 @@ pub(crate) const MAX_SIZE: usize = 65536;
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Bank {
     pub(crate) coils: Vec<bool>,
+    /// Discrete inputs (FC 02), by address: random from the seed, then changed only by
+    /// the console's `set` (masters cannot write them).
     pub discrete: Vec<bool>,
     pub(crate) holding: Vec<u16>,
     pub(crate) input: Vec<u16>,
@@ -101,6 +103,7 @@ impl fmt::Display for Bank {
 /// The devices on the line, by unit id.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Generic {
+    /// Each unit id (1..=247) that answers, and its tables.
     pub units: BTreeMap<u8, Bank>,
 }
 

@@ -23,6 +23,8 @@ pub struct Faults {
 }
 
 impl Faults {
+    /// Faults that lose a byte with chance `drop` and insert garbage with chance
+    /// `noise` (each 0.0..=1.0), drawn from a generator seeded with `seed`.
     pub fn new(drop: f64, noise: f64, seed: u64) -> Self {
         Self {
             drop,

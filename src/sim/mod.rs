@@ -53,7 +53,9 @@ pub(crate) fn exception_pdu(function: FunctionCode, code: ExceptionCode) -> Vec<
 /// Which device the simulator is.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Profile {
+    /// One Sollae CIE-M10/H10: eight inputs, eight outputs (docs/protocol.md §3).
     CieM10(cie_m10::CieM10),
+    /// Any number of plain Modbus devices, each with its own tables.
     Generic(generic::Generic),
 }
 
@@ -61,6 +63,7 @@ pub enum Profile {
 /// create devices from the console.
 #[derive(Debug)]
 pub struct Device {
+    /// What the device is, and its state (ports, tables).
     pub profile: Profile,
     pub(crate) log: PacketLog,
     /// Supplies the random discrete inputs of new generic devices (seeded).

@@ -9,6 +9,7 @@ use crate::config::{Framing, SerialConfig};
 use std::path::PathBuf;
 use std::time::Duration;
 
+/// The device `mbgate sim --profile` simulates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ProfileName {
     /// The Sollae CIE-M10/H10 of docs/protocol.md §3: 8 inputs, 8 outputs, FC 03 and 16.
@@ -200,6 +201,7 @@ pub struct SimArgs {
     )]
     pub connections: u16,
     // Before the port's flags: their heading would carry over onto these.
+    /// The device simulated.
     #[command(flatten)]
     pub device: DeviceArgs,
     /// The role it plays and where (src/sim/role.rs).
@@ -253,6 +255,7 @@ impl SimArgs {
 /// Validated simulator settings.
 #[derive(Debug)]
 pub struct Settings {
+    /// The device, built from the profile flags.
     pub device: Device,
     /// How frames are carried: MBAP unless `mbgate sim --framing` says otherwise.
     pub(crate) framing: Framing,

@@ -44,8 +44,10 @@ pub enum Port {
     Listen(std::net::SocketAddr),
 }
 
+/// Why the simulator stopped.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
+    /// Reading or writing the serial port or connection failed.
     #[error("the simulator's port was lost: {0}")]
     Lost(std::io::Error),
 }
