@@ -1,7 +1,7 @@
 //! The command-line flags that override the configuration (docs/design.md §3), built
 //! from the declarations in [`crate::config::KEYS`]: one flag a key for `mbgate run` and
 //! `check-config` ([`Overrides`]), the serial port's for `mbgate sim` and the client
-//! ([`PortFlags`]). A flag's value passes the same checks as the file's; its help
+//! (`PortFlags`). A flag's value passes the same checks as the file's; its help
 //! shows the key's range, name and default.
 
 use crate::config::{

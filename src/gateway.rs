@@ -1,6 +1,6 @@
 //! The gateway as a whole: bind the listeners, start a relay for each line, and shut down
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
-//! systemd when it is ready and when it stops (see [`crate::notify`]).
+//! systemd when it is ready and when it stops (see `crate::notify`).
 
 use crate::config::{Config, Framing, LineConfig, ListenConfig, Notifications};
 use crate::metrics::{self, Board, ListenerMetrics};

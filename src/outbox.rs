@@ -9,7 +9,7 @@
 //!   pipelining slot (`max_pending_per_connection` of them), a sequence number in read
 //!   order, and a place reserved in the channel to the writer. So its answer can always
 //!   be sent, by the relay or by the connection itself, and never waits for room.
-//! - Whoever answers consumes the ticket ([`Ticket::answer`]); a ticket dropped
+//! - Whoever answers consumes the ticket (`Ticket::answer`); a ticket dropped
 //!   unanswered (a broadcast with no reply, a request dropped with its master) still
 //!   tells the writer, so no later reply waits for it.
 //! - The writer ([`Inbox`]) releases replies in sequence: a reply that comes early
@@ -20,11 +20,11 @@
 //!   has more than `max_pending_per_connection` requests unanswered, counting replies
 //!   waiting for their turn.
 //! - A request the gateway answers itself gets the exception code of its
-//!   [`Refusal`] and is counted by it ([`Ticket::refuse`]), whoever refuses it: the
+//!   `Refusal` and is counted by it (`Ticket::refuse`), whoever refuses it: the
 //!   connection (limits, no relay) or the relay (no port, queue full, timeout, unit
 //!   backed off).
 //! - A connection is idle only while it owes nothing and is owed nothing
-//!   ([`Outbox::idle_at`]): the clock runs from the master's last byte or its last
+//!   (`Outbox::idle_at`): the clock runs from the master's last byte or its last
 //!   reply, whichever is later.
 //! - Notifications ([`Notifier`]) take no slot and no sequence number: they are written
 //!   as they come, between replies, and never hold one up; they use only the channel's

@@ -2,10 +2,10 @@
 //! master (a CIE-M10 in master mode, an RTU PLC or HMI) puts on the line go to the
 //! Modbus/TCP slave their unit routes to, and the replies come back on the line.
 //!
-//! - [`requests`]: the requests off the lossy line, the replies in its framing (pure);
-//! - [`table`]: routes, ids, what is outstanding, deadlines, answers (plain data, time
+//! - `requests`: the requests off the lossy line, the replies in its framing (pure);
+//! - `table`: routes, ids, what is outstanding, deadlines, answers (plain data, time
 //!   passed in);
-//! - [`slave`]: one task per route holding its TCP connection;
+//! - `slave`: one task per route holding its TCP connection;
 //! - this file: the loop that owns the serial port and wires them.
 
 pub(crate) mod requests;

@@ -1,6 +1,6 @@
 //! The configuration model of docs/design.md §4: every setting declared once, below.
 //!
-//! Each setting is one line of [`settings!`]: key, type, default, allowed values, flag
+//! Each setting is one line of `settings!`: key, type, default, allowed values, flag
 //! and help. From it come the section structs and their defaults, and [`KEYS`], which
 //! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
 //! the tests holding the README and `config/mbgate.toml` to it all read. A value is
@@ -251,7 +251,7 @@ settings! {
     }
 }
 
-/// One setting as declared in [`settings!`].
+/// One setting as declared in `settings!`.
 #[derive(Debug)]
 pub struct Key {
     /// The section it is in: `serial` for `serial.baud_rate`.

@@ -1,5 +1,5 @@
 //! One framer for the serial side's three framings: MBAP (resynchronising,
-//! [`super::resync`]), RTU and ASCII ([`super::serial`]). The relay, the simulator and
+//! `super::resync`), RTU and ASCII ([`super::serial`]). The relay, the simulator and
 //! the client all decode through it: bytes in with [`push`](Framer::push), frames out
 //! with [`next_frame`](Framer::next_frame), bytes for the wire with
 //! [`encode`](Framer::encode), and one count of the bytes dropped.

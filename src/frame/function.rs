@@ -1,6 +1,6 @@
 //! The one table of function codes (Modbus Application Protocol V1.1b3 §6, docs/protocol.md
 //! §1): each public code's request shape, reply shape, whether it only reads, and its
-//! quantity limits. Every check derives from [`TABLE`]: TCP request validation and reply
+//! quantity limits. Every check derives from `TABLE`: TCP request validation and reply
 //! matching ([`super::pdu`]), RTU frame lengths ([`super::rtu`]), the MBAP decoders'
 //! plausible function codes, the simulator and the client. Adding a function code is
 //! one entry here.
@@ -79,7 +79,7 @@ impl FunctionCode {
         self.0 != 0 && !self.is_exception()
     }
 
-    /// Its row of [`TABLE`], if it is a public code (an exception code has none).
+    /// Its row of `TABLE`, if it is a public code (an exception code has none).
     pub fn spec(self) -> Option<&'static Spec> {
         let row = *INDEX.get(usize::from(self.0))?;
         TABLE.get(usize::from(row))
@@ -143,7 +143,7 @@ impl fmt::Display for FunctionCode {
 }
 
 /// The exception code of an exception reply (V1.1b3 §7). Any byte is representable; a
-/// device may only answer with the [known](ExceptionCode::is_known) ones.
+/// device may only answer with the known (`ExceptionCode::is_known`) ones.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ExceptionCode(u8);
 
@@ -343,7 +343,7 @@ impl Shape {
         }
     }
 
-    /// [`size_for`](Shape::size_for) without a request.
+    /// `Shape::size_for` without a request.
     pub fn size(self, pdu: &[u8]) -> Size {
         self.size_for(&[], pdu)
     }

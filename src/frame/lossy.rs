@@ -5,7 +5,7 @@
 //! (fuzz/fuzz_targets/serial_decoder.rs) drive it.
 //!
 //! The check: every frame the decoder yields with a nonzero transaction id (a reply)
-//! was sent, byte for byte, or at least [`SHORTEST_FRAME`] bytes were lost around it,
+//! was sent, byte for byte, or at least `SHORTEST_FRAME` bytes were lost around it,
 //! from where its first byte was sent to where the header of what confirmed it was.
 //! Frames with id 0 are not checked: register values can spell one.
 
@@ -261,7 +261,7 @@ pub(crate) fn lost_around(r: &Received, start: usize, len: usize) -> usize {
 }
 
 /// Runs the line and returns the first reply yielded that was not sent with fewer
-/// than [`SHORTEST_FRAME`] bytes lost around it, and how many were.
+/// than `SHORTEST_FRAME` bytes lost around it, and how many were.
 pub fn unexplained(
     talk: &Talk,
     runs: &[Run],

@@ -2,7 +2,7 @@
 //! shape their replies must have, and which replies could exist at all.
 //!
 //! All functions take a PDU: the function code followed by its data. What they know of
-//! each code comes from the one table, [`super::function::TABLE`].
+//! each code comes from the one table, `super::function::TABLE`.
 
 use super::function::{Echo, ExceptionCode, FunctionCode, Item, Spec};
 

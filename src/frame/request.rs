@@ -221,7 +221,7 @@ impl Request {
     }
 
     /// The request PDU (function code and data, docs/protocol.md §1 table), after
-    /// [`validate`](Request::validate).
+    /// `Request::validate`.
     pub fn pdu(&self) -> Result<Vec<u8>, RequestError> {
         self.validate()?;
         let mut p = vec![self.function().get()];

@@ -75,7 +75,7 @@ pub trait Judge {
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         false
     }
-    /// May a pause ([`Resync::pause`]) confirm this held frame when nothing follows
+    /// May a pause (`Resync::pause`) confirm this held frame when nothing follows
     /// it, or must the line be quiet for the whole frame gap? Judges that expect
     /// another frame soon (other replies due) say no: a pause inside that next frame,
     /// right after a byte this frame borrowed, must not pass for the end of the talk.

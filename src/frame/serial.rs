@@ -8,7 +8,7 @@
 //! - RTU: complete at the length the function code (and byte count) calls for, so a
 //!   reply, and an exception at once, is taken when its last byte arrives; a function
 //!   code of unknown shape is ended by silence. A frame whose CRC is wrong is
-//!   [`Decoded::Corrupt`].
+//!   `Decoded::Corrupt`.
 //! - ASCII: complete at the line feed; a new colon drops what came before it. Silence
 //!   does not cut an ASCII frame (the spec allows a second between characters).
 

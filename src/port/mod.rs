@@ -1,8 +1,8 @@
 //! What the relay is attached to: a byte transport it opens, reopens, reads, writes and
 //! drains, with no knowledge of which one it is (docs/architecture.md "The port").
 //!
-//! Three implementations: the serial port ([`serial::SerialPort`], what the gateway
-//! runs on), a TCP socket to a device server ([`tcp::TcpPort`]) and an in-memory pipe
+//! Three implementations: the serial port (`serial::SerialPort`, what the gateway
+//! runs on), a TCP socket to a device server (`tcp::TcpPort`) and an in-memory pipe
 //! ([`duplex::DuplexPort`], what the in-process relay tests drive). The relay holds a
 //! `Box<dyn Port>`: one indirect call per read or write, next to a system call each.
 

@@ -2,9 +2,9 @@
 //! simulated device on a serial port or pty, speaking the gateway's framing, so nobody
 //! needs a CIE-M10 on their desk.
 //!
-//! - [`cie_m10`] and [`generic`] are the device profiles (pure: PDU in, PDU out);
-//! - [`line`] is the line model: seeded loss and noise, and a UART's pace;
-//! - [`console`] parses the console's commands, [`packets`] keeps the packet log;
+//! - `cie_m10` and [`generic`] are the device profiles (pure: PDU in, PDU out);
+//! - `line` is the line model: seeded loss and noise, and a UART's pace;
+//! - `console` parses the console's commands, `packets` keeps the packet log;
 //! - [`serve`] is the task that owns the port, [`terminal`] the console's thread;
 //! - [`options`] is the command line.
 
