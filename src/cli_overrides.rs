@@ -1,7 +1,7 @@
 //! The command-line flags that override the configuration (docs/design.md §3), built
 //! from the declarations in [`crate::config::KEYS`]: one flag a key for `mbgate run` and
 //! `check-config` ([`Overrides`]), the serial port's for `mbgate sim` and the client
-//! ([`PortFlags`]). A flag's value passes the same checks as the file's; its help
+//! (`PortFlags`). A flag's value passes the same checks as the file's; its help
 //! shows the key's range, name and default.
 
 use crate::config::{
@@ -16,10 +16,10 @@ pub type Overrides = Flags<false>;
 
 /// The serial port's flags (`--baud`, `--data-bits`, `--parity`, `--stop-bits`,
 /// `--flow-control`), for `mbgate sim` and the client. In the group [`PORT_GROUP`].
-pub type PortFlags = Flags<true>;
+pub(crate) type PortFlags = Flags<true>;
 
 /// The clap group of the [`PortFlags`], e.g. to make them require another argument.
-pub const PORT_GROUP: &str = "serial-port";
+pub(crate) const PORT_GROUP: &str = "serial-port";
 
 /// The flags given, in the order of [`KEYS`]; `PORT` keeps only the port's.
 #[derive(Debug, Clone, Default)]
@@ -104,7 +104,7 @@ impl<const PORT: bool> Flags<PORT> {
     }
 
     /// [`Flags::apply`] to serial port settings alone.
-    pub fn apply_serial(&self, serial: &mut SerialConfig) -> Result<(), ConfigError> {
+    pub(crate) fn apply_serial(&self, serial: &mut SerialConfig) -> Result<(), ConfigError> {
         let mut cfg = Config {
             serial: serial.clone(),
             ..Config::default()
@@ -194,7 +194,8 @@ fn words_parser(words: &'static [(&'static str, &'static str)]) -> PossibleValue
 /// The value parser of one of the configuration's enums, for a flag of its own
 /// (`mbgate sim --framing rtu`): the same words and help as the key's. (A type that is
 /// not an enum has no words: nothing is accepted.)
-pub fn choice<T: Setting + Clone + Send + Sync + 'static>() -> impl TypedValueParser<Value = T> {
+pub(crate) fn choice<T: Setting + Clone + Send + Sync + 'static>(
+) -> impl TypedValueParser<Value = T> {
     let words = match T::KIND {
         Kind::Choice(words) => words,
         _ => &[],

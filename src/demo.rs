@@ -14,27 +14,29 @@ use tokio_util::sync::CancellationToken;
 
 /// Where the demo listens unless told: the port pymodbus' examples use too, so on a
 /// clash the demo takes a free one instead.
-pub const DEFAULT_LISTEN: SocketAddr =
+pub(crate) const DEFAULT_LISTEN: SocketAddr =
     SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 5020);
 
+/// `mbgate demo`'s flags.
 #[derive(Debug, Clone, clap::Args)]
 pub struct DemoArgs {
     /// Where Modbus/TCP masters connect [default: 127.0.0.1:5020, or a free port when
     /// another program holds 5020]
     #[arg(long, value_name = "ADDR")]
-    pub listen: Option<SocketAddr>,
+    pub(crate) listen: Option<SocketAddr>,
     /// Log every frame the gateway relays, both directions, as hex.
     #[arg(long)]
     pub traffic: bool,
     /// Pace the simulated device's output at this many bits a second (10 bits a byte),
     /// as a UART would.
     #[arg(long, value_name = "BAUD", help_heading = "line model")]
-    pub baud: Option<u32>,
+    pub(crate) baud: Option<u32>,
     /// Two lines behind the one address: a second pty pair with the same simulated
     /// device, its units reached as unit + 100 (routing by unit, with remapping)
     #[arg(long, value_name = "N", default_value_t = 1,
           value_parser = clap::value_parser!(u8).range(1..=2))]
-    pub lines: u8,
+    pub(crate) lines: u8,
+    /// The simulated device, as `mbgate sim` takes it.
     #[command(flatten)]
     pub device: DeviceArgs,
     /// The device as master instead (src/master_demo.rs).
@@ -42,16 +44,22 @@ pub struct DemoArgs {
     pub master: crate::master_demo::MasterDemoArgs,
 }
 
+/// Why the demo stopped early.
 #[derive(Debug, thiserror::Error)]
 pub enum DemoError {
+    /// The system gave no pseudo-terminal pair.
     #[error("cannot create a pty pair: {0}")]
     Pty(#[from] tokio_serial::Error),
+    /// The pty pair's device end has no path to give the gateway.
     #[error("the pty pair has no name")]
     Unnamed,
+    /// The gateway could not start.
     #[error(transparent)]
     Gateway(#[from] GatewayError),
+    /// The simulated device failed.
     #[error(transparent)]
     Sim(#[from] SimError),
+    /// The device flags do not make a device; the message says why.
     #[error("{0}")]
     Settings(String),
 }
@@ -115,7 +123,7 @@ impl DemoArgs {
     /// unpaced (a pty passes bytes at once; the gateway takes a reply that begins
     /// before its request could have left the wire for an echo), and a pty has no USB
     /// latency to wait out.
-    pub fn gateway_config(&self, pty: String) -> Config {
+    pub(crate) fn gateway_config(&self, pty: String) -> Config {
         let mut cfg = Config::default();
         cfg.serial.path = pty;
         cfg.serial.baud_rate = self.baud.unwrap_or(4_000_000);

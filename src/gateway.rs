@@ -1,6 +1,6 @@
 //! The gateway as a whole: bind the listeners, start a relay for each line, and shut down
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
-//! systemd when it is ready and when it stops (see [`crate::notify`]).
+//! systemd when it is ready and when it stops (see `crate::notify`).
 
 use crate::config::{Config, Framing, LineConfig, ListenConfig, Notifications};
 use crate::metrics::{self, Board, ListenerMetrics};
@@ -20,19 +20,26 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
+/// Why the gateway could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum GatewayError {
+    /// A listener's address could not be bound.
+    ///
     /// The cause is part of the message, with what to do about it, and deliberately
     /// not a `source`: printed as a chain it would appear twice.
     #[error("cannot listen on {addr}: {error}{}", bind_hint(.error, *.addr))]
     Bind {
+        /// The listener's address (`tcp.listen` or a `[[listen]]`).
         addr: SocketAddr,
+        /// What the system said.
         error: std::io::Error,
     },
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
+        /// The metrics address.
         addr: SocketAddr,
+        /// What the system said.
         error: std::io::Error,
     },
 }
@@ -77,7 +84,7 @@ pub async fn run_reloading(
 
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
-pub async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
     let max_pending = cfg.max_pending_per_connection();
     let bind = |l: ListenConfig| {
         let addr = l.tcp.listen;
@@ -88,7 +95,7 @@ pub async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
 
 /// [`run`] on listeners already bound (`mbgate demo` prints their addresses first),
 /// one for each of `cfg.listeners()`.
-pub async fn serve(
+pub(crate) async fn serve(
     listeners: Vec<TcpListener>,
     cfg: Config,
     shutdown: CancellationToken,

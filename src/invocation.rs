@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 /// `mbgate` when that name on `PATH` is this binary; otherwise the binary's path,
 /// relative to the working directory when it lies below it (`target/release/mbgate`
 /// after `cargo run --release`), else absolute; quoted for a POSIX shell when needed.
-pub fn command() -> String {
+pub(crate) fn command() -> String {
     let Ok(me) = std::env::current_exe().and_then(|p| p.canonicalize()) else {
         return "mbgate".into();
     };

@@ -51,7 +51,7 @@ pub fn init(cfg: &LogConfig) {
 
 /// Applies `cfg`'s level and traffic log to the running subscriber (a reload); does
 /// nothing when [`init`] did not install it (tests in process).
-pub fn reload(cfg: &LogConfig) {
+pub(crate) fn reload(cfg: &LogConfig) {
     if let Some(handle) = FILTER.get() {
         let _ = handle.reload(filter(cfg));
     }
@@ -70,7 +70,7 @@ pub fn error_prefix() -> &'static str {
 /// Is stderr the stream systemd connected to the journal? `JOURNAL_STREAM` holds its
 /// `device:inode` (systemd.exec(5)); comparing with stderr itself ignores a variable
 /// inherited by a process whose stderr was redirected elsewhere.
-pub fn stderr_is_journal() -> bool {
+pub(crate) fn stderr_is_journal() -> bool {
     let Some(var) = std::env::var_os("JOURNAL_STREAM") else {
         return false;
     };
@@ -94,7 +94,7 @@ fn names_stream(var: &str, dev: u64, ino: u64) -> bool {
 
 /// The syslog priority journald files an event under (sd-daemon(3)): error 3, warning
 /// 4, info 6, debug and trace 7.
-pub fn syslog_priority(level: &Level) -> u8 {
+pub(crate) fn syslog_priority(level: &Level) -> u8 {
     match *level {
         Level::ERROR => 3,
         Level::WARN => 4,

@@ -18,6 +18,7 @@ use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
 use tokio_util::sync::CancellationToken;
 
+/// `mbgate demo --master` and its flags.
 #[derive(Debug, Clone, clap::Args)]
 pub struct MasterDemoArgs {
     /// The device as master: a simulated CIE-M10 master, mbgate's master line and a
@@ -32,19 +33,25 @@ pub struct MasterDemoArgs {
         requires = "master",
         help_heading = "the device as master"
     )]
-    pub poll_ms: u64,
+    pub(crate) poll_ms: u64,
 }
 
+/// Why the master demo stopped early.
 #[derive(Debug, thiserror::Error)]
 pub enum MasterDemoError {
+    /// The system gave no pseudo-terminal pair.
     #[error("cannot create a pty pair: {0}")]
     Pty(#[from] tokio_serial::Error),
+    /// The pty pair's device end has no path to give the master line.
     #[error("the pty pair has no name")]
     Unnamed,
+    /// The simulated slave's address (`--listen`) could not be bound.
     #[error("cannot listen on {0}: {1}")]
     Bind(SocketAddr, std::io::Error),
+    /// The master line could not start.
     #[error(transparent)]
     Bridge(#[from] crate::bridge::BridgeError),
+    /// A simulated device failed.
     #[error(transparent)]
     Sim(#[from] crate::sim::serve::SimError),
 }

@@ -9,10 +9,10 @@
 //! one (a scrape in the middle of a reply may count the request and not yet the reply).
 
 pub mod ask;
-pub mod expose;
-pub mod http;
-pub mod page;
-pub mod status;
+pub(crate) mod expose;
+pub(crate) mod http;
+pub(crate) mod page;
+pub(crate) mod status;
 
 use crate::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -22,7 +22,8 @@ use tokio::time::Instant;
 
 /// Upper bounds of the reply-time histogram buckets, in seconds: from a fast native
 /// UART's few milliseconds to a slow device near the default response timeout.
-pub const REPLY_BUCKETS: [f64; 11] = [0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0];
+pub(crate) const REPLY_BUCKETS: [f64; 11] =
+    [0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0];
 
 fn load(a: &AtomicU64) -> u64 {
     a.load(Ordering::Relaxed)
@@ -34,18 +35,18 @@ fn add(a: &AtomicU64, n: u64) {
 
 /// One unit on a line.
 #[derive(Debug, Default)]
-pub struct UnitMetrics {
+pub(crate) struct UnitMetrics {
     /// Requests for this unit the relay took.
-    pub requests: AtomicU64,
+    pub(crate) requests: AtomicU64,
     /// Replies from it delivered to masters (exceptions it sent included).
-    pub replies: AtomicU64,
+    pub(crate) replies: AtomicU64,
     /// Attempts it did not answer in time (a resent request counts each attempt).
-    pub timeouts: AtomicU64,
+    pub(crate) timeouts: AtomicU64,
     /// 1 while it is backed off (RTU/ASCII, `unit_backoff`), else 0.
-    pub backed_off: AtomicU64,
+    pub(crate) backed_off: AtomicU64,
     /// 1 from its third timeout in a row until it answers again (the log's "not
     /// answering" warning), else 0.
-    pub not_answering: AtomicU64,
+    pub(crate) not_answering: AtomicU64,
     /// Reply times, from the request on the line to its reply: one count per bucket
     /// of [`REPLY_BUCKETS`] (not cumulative), the last for those above every bound.
     buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],
@@ -55,7 +56,7 @@ pub struct UnitMetrics {
 
 impl UnitMetrics {
     /// A reply came `took` after its request went on the line.
-    pub fn observe(&self, took: Duration) {
+    pub(crate) fn observe(&self, took: Duration) {
         let s = took.as_secs_f64();
         let i = REPLY_BUCKETS
             .iter()
@@ -67,7 +68,7 @@ impl UnitMetrics {
 
     /// The histogram: sum in seconds, count, and the count in each bucket by its
     /// upper bound (the last +Inf), not cumulative: the encoder adds them up.
-    pub fn histogram(&self) -> (f64, u64, Vec<(f64, u64)>) {
+    pub(crate) fn histogram(&self) -> (f64, u64, Vec<(f64, u64)>) {
         let mut total = 0;
         let mut each = Vec::with_capacity(self.buckets.len());
         for (i, b) in self.buckets.iter().enumerate() {
@@ -81,25 +82,25 @@ impl UnitMetrics {
 
 /// One line: its counters (the relay's [`Stats`]), its units, its gauges.
 #[derive(Debug)]
-pub struct LineMetrics {
+pub(crate) struct LineMetrics {
     /// The `line` label: the serial port's path, or host:port of a device server.
-    pub name: String,
-    pub stats: Arc<Stats>,
+    pub(crate) name: String,
+    pub(crate) stats: Arc<Stats>,
     units: Box<[UnitMetrics]>,
     /// Exception replies the device sent, by exception code.
     device_exceptions: Box<[AtomicU64]>,
     /// Requests waiting for the line.
-    pub queued: AtomicU64,
+    pub(crate) queued: AtomicU64,
     /// Requests on the line, awaiting their reply.
-    pub in_flight: AtomicU64,
+    pub(crate) in_flight: AtomicU64,
     /// Masters attached to the line.
-    pub masters: AtomicU64,
+    pub(crate) masters: AtomicU64,
     /// Time with a request on the line, in microseconds.
-    pub busy_us: AtomicU64,
+    pub(crate) busy_us: AtomicU64,
     /// When the last reply came, in microseconds after `started`; 0 for none yet.
-    pub last_reply_us: AtomicU64,
+    pub(crate) last_reply_us: AtomicU64,
     /// Whether the port is open (1) or not (0).
-    pub port_open: AtomicU64,
+    pub(crate) port_open: AtomicU64,
     started: Instant,
     /// Until when (microseconds after `started`) the status page is open: the relay
     /// records frames for it only then.
@@ -110,37 +111,37 @@ pub struct LineMetrics {
 
 /// A frame on the line (or a timeout), as the status page lists it.
 #[derive(Debug, Clone)]
-pub struct FrameSeen {
+pub(crate) struct FrameSeen {
     /// Milliseconds since the Unix epoch.
-    pub at_ms: u64,
+    pub(crate) at_ms: u64,
     /// `gw->serial`, `serial->gw`, `late`, `unsolicited`, `timeout`.
-    pub dir: &'static str,
+    pub(crate) dir: &'static str,
     /// The master's connection, when there is one.
-    pub conn: Option<u64>,
-    pub unit: u8,
-    pub function: u8,
+    pub(crate) conn: Option<u64>,
+    pub(crate) unit: u8,
+    pub(crate) function: u8,
     /// The address and count a read or write names.
-    pub span: Option<(u16, u16)>,
+    pub(crate) span: Option<(u16, u16)>,
     /// The frame as on the wire (empty for a timeout).
-    pub bytes: Vec<u8>,
+    pub(crate) bytes: Vec<u8>,
 }
 
 /// The last [`Frames::KEPT`] frames of a line, and how many there were in all.
 #[derive(Debug, Default)]
-pub struct Frames {
-    pub kept: std::collections::VecDeque<FrameSeen>,
-    pub total: u64,
+pub(crate) struct Frames {
+    pub(crate) kept: std::collections::VecDeque<FrameSeen>,
+    pub(crate) total: u64,
 }
 
 impl Frames {
-    pub const KEPT: usize = 100;
+    pub(crate) const KEPT: usize = 100;
 }
 
 /// How long the status page counts as open after its last request.
 const WATCHED_FOR: Duration = Duration::from_secs(10);
 
 impl LineMetrics {
-    pub fn new(name: &str, stats: Arc<Stats>) -> Self {
+    pub(crate) fn new(name: &str, stats: Arc<Stats>) -> Self {
         Self {
             name: name.to_owned(),
             stats,
@@ -158,12 +159,12 @@ impl LineMetrics {
         }
     }
 
-    pub fn unit(&self, unit: u8) -> &UnitMetrics {
+    pub(crate) fn unit(&self, unit: u8) -> &UnitMetrics {
         &self.units[usize::from(unit)]
     }
 
     /// The units that have had a request, with their numbers.
-    pub fn units(&self) -> impl Iterator<Item = (u8, &UnitMetrics)> {
+    pub(crate) fn units(&self) -> impl Iterator<Item = (u8, &UnitMetrics)> {
         self.units
             .iter()
             .enumerate()
@@ -172,12 +173,12 @@ impl LineMetrics {
     }
 
     /// The device answered a request with exception `code`.
-    pub fn device_exception(&self, code: u8) {
+    pub(crate) fn device_exception(&self, code: u8) {
         add(&self.device_exceptions[usize::from(code)], 1);
     }
 
     /// Exception codes the device sent, with how many of each.
-    pub fn device_exceptions(&self) -> Vec<(u8, u64)> {
+    pub(crate) fn device_exceptions(&self) -> Vec<(u8, u64)> {
         let all = self.device_exceptions.iter().enumerate();
         all.map(|(c, n)| (c as u8, load(n)))
             .filter(|(_, n)| *n > 0)
@@ -185,18 +186,18 @@ impl LineMetrics {
     }
 
     /// A reply came at `now`.
-    pub fn replied_at(&self, now: Instant) {
+    pub(crate) fn replied_at(&self, now: Instant) {
         let us = now.saturating_duration_since(self.started).as_micros() as u64;
         self.last_reply_us.store(us.max(1), Ordering::Relaxed);
     }
 
     /// How long ago the last reply came, if one has.
-    pub fn since_last_reply(&self, now: Instant) -> Option<Duration> {
+    pub(crate) fn since_last_reply(&self, now: Instant) -> Option<Duration> {
         let us = load(&self.last_reply_us);
         (us > 0).then(|| now.saturating_duration_since(self.started + Duration::from_micros(us)))
     }
 
-    pub fn get(&self, a: &AtomicU64) -> u64 {
+    pub(crate) fn get(&self, a: &AtomicU64) -> u64 {
         load(a)
     }
 
@@ -205,19 +206,19 @@ impl LineMetrics {
     }
 
     /// The status page asked at `now`: frames are recorded for a while.
-    pub fn watched(&self, now: Instant) {
+    pub(crate) fn watched(&self, now: Instant) {
         let until = self.us_since_start(now + WATCHED_FOR);
         self.watched_until_us.store(until, Ordering::Relaxed);
     }
 
     /// Is the status page open? (One atomic load: the relay asks for every frame.)
-    pub fn is_watched(&self, now: Instant) -> bool {
+    pub(crate) fn is_watched(&self, now: Instant) -> bool {
         load(&self.watched_until_us) > self.us_since_start(now)
     }
 
     /// Records a frame for the status page. Never waits: while a reader holds the
     /// list, the frame is left out of it (not out of the counters).
-    pub fn record(&self, frame: FrameSeen) {
+    pub(crate) fn record(&self, frame: FrameSeen) {
         if let Ok(mut f) = self.frames.try_lock() {
             if f.kept.len() == Frames::KEPT {
                 f.kept.pop_front();
@@ -228,7 +229,7 @@ impl LineMetrics {
     }
 
     /// The frames kept, oldest first, and how many were recorded in all.
-    pub fn frames(&self) -> (Vec<FrameSeen>, u64) {
+    pub(crate) fn frames(&self) -> (Vec<FrameSeen>, u64) {
         let f = self.frames.lock().expect("not poisoned");
         (f.kept.iter().cloned().collect(), f.total)
     }
@@ -236,17 +237,17 @@ impl LineMetrics {
 
 /// One Modbus/TCP listener.
 #[derive(Debug)]
-pub struct ListenerMetrics {
+pub(crate) struct ListenerMetrics {
     /// The `listener` label: the address it is bound to.
-    pub name: String,
+    pub(crate) name: String,
     /// Its connection counters (`connections`, `connections_refused`,
     /// `protocol_violations`, `connections_closed`).
-    pub stats: Arc<Stats>,
+    pub(crate) stats: Arc<Stats>,
 }
 
 impl ListenerMetrics {
     /// Masters connected now.
-    pub fn connected(&self) -> u64 {
+    pub(crate) fn connected(&self) -> u64 {
         let s = &self.stats;
         s.get(&s.connections)
             .saturating_sub(s.get(&s.connections_closed))
@@ -255,28 +256,28 @@ impl ListenerMetrics {
 
 /// Everything the gateway shows: its lines and listeners, in the order they started.
 #[derive(Debug, Default)]
-pub struct Board {
-    pub lines: Mutex<Vec<Arc<LineMetrics>>>,
-    pub listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
+pub(crate) struct Board {
+    pub(crate) lines: Mutex<Vec<Arc<LineMetrics>>>,
+    pub(crate) listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
     /// Each line's last minute, a point a second, by line name, while the metrics
     /// listener runs (`page::sample`).
-    pub history: Mutex<std::collections::HashMap<String, page::History>>,
+    pub(crate) history: Mutex<std::collections::HashMap<String, page::History>>,
 }
 
 impl Board {
-    pub fn add_line(&self, line: Arc<LineMetrics>) {
+    pub(crate) fn add_line(&self, line: Arc<LineMetrics>) {
         self.lines.lock().expect("not poisoned").push(line);
     }
 
-    pub fn add_listener(&self, listener: Arc<ListenerMetrics>) {
+    pub(crate) fn add_listener(&self, listener: Arc<ListenerMetrics>) {
         self.listeners.lock().expect("not poisoned").push(listener);
     }
 
-    pub fn lines(&self) -> Vec<Arc<LineMetrics>> {
+    pub(crate) fn lines(&self) -> Vec<Arc<LineMetrics>> {
         self.lines.lock().expect("not poisoned").clone()
     }
 
-    pub fn listeners(&self) -> Vec<Arc<ListenerMetrics>> {
+    pub(crate) fn listeners(&self) -> Vec<Arc<ListenerMetrics>> {
         self.listeners.lock().expect("not poisoned").clone()
     }
 }

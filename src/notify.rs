@@ -13,14 +13,14 @@ use tracing::{debug, warn};
 
 /// READY=1: the listener is bound and masters can connect. `status` becomes the
 /// unit's STATUS= line (`systemctl status`).
-pub fn ready(status: &str) {
+pub(crate) fn ready(status: &str) {
     send(&[NotifyState::Ready, NotifyState::Status(status)]);
 }
 
 /// STOPPING=1: shutdown has begun. `drain` is the longest the drain may take; systemd
 /// is asked to wait at least that long (EXTEND_TIMEOUT_USEC), so a long response
 /// timeout never has the gateway killed mid-drain by a shorter `TimeoutStopSec`.
-pub fn stopping(drain: Duration) {
+pub(crate) fn stopping(drain: Duration) {
     let usec = u32::try_from(drain.as_micros()).unwrap_or(u32::MAX);
     send(&[
         NotifyState::Stopping,
@@ -30,23 +30,23 @@ pub fn stopping(drain: Duration) {
 }
 
 /// STATUS=: the line `systemctl status` shows.
-pub fn status(status: &str) {
+pub(crate) fn status(status: &str) {
     send(&[NotifyState::Status(status)]);
 }
 
 /// Is the process run by systemd with `Type=notify` (is `NOTIFY_SOCKET` set)?
-pub fn under_systemd() -> bool {
+pub(crate) fn under_systemd() -> bool {
     std::env::var_os("NOTIFY_SOCKET").is_some()
 }
 
 /// WATCHDOG=1: the caller's loop is alive.
-pub fn watchdog() {
+pub(crate) fn watchdog() {
     send(&[NotifyState::Watchdog]);
 }
 
 /// How often to send WATCHDOG=1: half of `WATCHDOG_USEC` (sd_watchdog_enabled(3)), or
 /// `None` when systemd asked for no watchdog (or asked another process).
-pub fn watchdog_interval() -> Option<Duration> {
+pub(crate) fn watchdog_interval() -> Option<Duration> {
     sd_notify::watchdog_enabled()
         .filter(|d| !d.is_zero())
         .map(|d| d / 2)

@@ -2,7 +2,7 @@
 //! decimal, `0x` hex or `0b` binary, with an optional minus sign.
 
 /// `123`, `0x7B`, `0b1111011`, `-5`; `None` for anything else.
-pub fn parse(s: &str) -> Option<i64> {
+pub(crate) fn parse(s: &str) -> Option<i64> {
     let (negative, digits) = match s.strip_prefix('-') {
         Some(rest) => (true, rest),
         None => (false, s),

@@ -9,7 +9,7 @@
 //!   pipelining slot (`max_pending_per_connection` of them), a sequence number in read
 //!   order, and a place reserved in the channel to the writer. So its answer can always
 //!   be sent, by the relay or by the connection itself, and never waits for room.
-//! - Whoever answers consumes the ticket ([`Ticket::answer`]); a ticket dropped
+//! - Whoever answers consumes the ticket (`Ticket::answer`); a ticket dropped
 //!   unanswered (a broadcast with no reply, a request dropped with its master) still
 //!   tells the writer, so no later reply waits for it.
 //! - The writer ([`Inbox`]) releases replies in sequence: a reply that comes early
@@ -20,11 +20,11 @@
 //!   has more than `max_pending_per_connection` requests unanswered, counting replies
 //!   waiting for their turn.
 //! - A request the gateway answers itself gets the exception code of its
-//!   [`Refusal`] and is counted by it ([`Ticket::refuse`]), whoever refuses it: the
+//!   `Refusal` and is counted by it (`Ticket::refuse`), whoever refuses it: the
 //!   connection (limits, no relay) or the relay (no port, queue full, timeout, unit
 //!   backed off).
 //! - A connection is idle only while it owes nothing and is owed nothing
-//!   ([`Outbox::idle_at`]): the clock runs from the master's last byte or its last
+//!   (`Outbox::idle_at`): the clock runs from the master's last byte or its last
 //!   reply, whichever is later.
 //! - Notifications ([`Notifier`]) take no slot and no sequence number: they are written
 //!   as they come, between replies, and never hold one up; they use only the channel's
@@ -46,7 +46,7 @@ const NOTIFICATION_SLACK: usize = 16;
 
 /// The most frames the gateway holds for one master at once, with
 /// `max_pending` requests pipelined: its replies and the notifications beside them.
-pub fn capacity(max_pending: usize) -> usize {
+pub(crate) fn capacity(max_pending: usize) -> usize {
     max_pending + NOTIFICATION_SLACK
 }
 
@@ -149,13 +149,13 @@ impl Outbox {
     }
 
     /// Some request of this master is not yet answered (or its reply not yet written).
-    pub fn owed(&self) -> bool {
+    pub(crate) fn owed(&self) -> bool {
         self.shared.slots.available_permits() < self.shared.max_pending
     }
 
     /// When the master was last answered: its last reply written, or its last request
     /// finished without one. The start of the connection if neither yet.
-    pub fn last_settled(&self) -> Instant {
+    pub(crate) fn last_settled(&self) -> Instant {
         *self.shared.settled.lock().expect("never poisoned")
     }
 
@@ -163,12 +163,12 @@ impl Outbox {
     /// after its last byte or its last reply, whichever is later. `None` while it is
     /// owed a reply (or one is waiting to be written): a master waiting for a slow
     /// device is not idle.
-    pub fn idle_at(&self, last_read: Instant, idle: Duration) -> Option<Instant> {
+    pub(crate) fn idle_at(&self, last_read: Instant, idle: Duration) -> Option<Instant> {
         (!self.owed()).then(|| last_read.max(self.last_settled()) + idle)
     }
 
     /// Returns once every ticket handed out has been answered and its reply written.
-    pub async fn settled(&self) {
+    pub(crate) async fn settled(&self) {
         let all = u32::try_from(self.shared.max_pending).unwrap_or(u32::MAX);
         let _ = self.shared.slots.acquire_many(all).await;
     }
@@ -178,7 +178,7 @@ impl Outbox {
 /// counter that counts it, declared together so that no local answer goes uncounted
 /// or is counted as another kind (README, "Exceptions mbgate answers itself").
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Refusal {
+pub(crate) enum Refusal {
     /// Outside protocol limits: 01 or 03, as the function code table decides
     /// (`bad_requests`).
     BadRequest(ExceptionCode),
@@ -194,7 +194,7 @@ pub enum Refusal {
 
 impl Refusal {
     /// The exception code the master gets.
-    pub fn code(self) -> ExceptionCode {
+    pub(crate) fn code(self) -> ExceptionCode {
         match self {
             Refusal::BadRequest(code) => code,
             Refusal::Unavailable => ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
@@ -204,7 +204,7 @@ impl Refusal {
     }
 
     /// The counter it adds to.
-    pub fn counter(self, stats: &Stats) -> &AtomicU64 {
+    pub(crate) fn counter(self, stats: &Stats) -> &AtomicU64 {
         match self {
             Refusal::BadRequest(_) => &stats.bad_requests,
             Refusal::Unavailable => &stats.unavailable,
@@ -229,7 +229,7 @@ impl Ticket {
     /// Sends the reply to this request; it is written after the replies to every
     /// earlier request of the same master. Never waits and never fails: the room was
     /// reserved with the ticket (a master already gone simply never sees it).
-    pub fn answer(mut self, adu: Adu) {
+    pub(crate) fn answer(mut self, adu: Adu) {
         let adu = match self.unit {
             Some(unit) if unit != adu.unit() => Adu::build(adu.tid(), unit, adu.pdu()),
             _ => adu,
@@ -239,7 +239,7 @@ impl Ticket {
 
     /// Answers `request` (the master's own) with the gateway's exception for `why`,
     /// counted.
-    pub fn refuse(self, request: &Adu, why: Refusal, stats: &Stats) {
+    pub(crate) fn refuse(self, request: &Adu, why: Refusal, stats: &Stats) {
         stats.add(why.counter(stats), 1);
         let code = why.code();
         self.answer(Adu::exception(
@@ -252,7 +252,7 @@ impl Ticket {
 
     /// The answer will carry `unit`, whatever unit the line answered as: the master
     /// asked for `unit`, which is another id on the line (docs/design.md §4.1, `remap`).
-    pub fn answering_as(mut self, unit: u8) -> Ticket {
+    pub(crate) fn answering_as(mut self, unit: u8) -> Ticket {
         self.unit = Some(unit);
         self
     }
@@ -289,7 +289,7 @@ pub struct Notifier {
 impl Notifier {
     /// Queues a notification for the master, unless its spare room is used up (it is
     /// not reading) or it is gone: then false, and it misses this one.
-    pub fn notify(&self, adu: Adu) -> bool {
+    pub(crate) fn notify(&self, adu: Adu) -> bool {
         self.tx.try_send(Message::Notification(adu)).is_ok()
     }
 }
@@ -311,6 +311,7 @@ pub struct Inbox {
 
 /// A frame to write. Drop it once written: a reply's pipelining slot is freed then.
 pub struct Outgoing {
+    /// The frame to write to the master: a reply, or a notification.
     pub adu: Adu,
     _slot: Option<Slot>,
 }

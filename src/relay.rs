@@ -51,6 +51,8 @@ use tracing::debug;
 use watch::Watch;
 use watchdog::Watchdog;
 
+/// The task that owns one serial line and everything on it (the module notes): built
+/// with [`Relay::new`], driven by [`Relay::run`].
 pub struct Relay {
     cfg: RelayConfig,
     rx: mpsc::UnboundedReceiver<Command>,
@@ -92,7 +94,7 @@ impl Relay {
     /// A relay for a line of docs/design.md §4.1: on its serial port, or on a TCP
     /// connection to its device (`tcp`), where no byte is lost and none takes time on
     /// a wire, so the line keeps no gaps and confirms no frame.
-    pub fn for_line(
+    pub(crate) fn for_line(
         line: &LineConfig,
         traffic: bool,
         stats: Arc<Stats>,
@@ -161,13 +163,13 @@ impl Relay {
     /// The line's numbers as the relay keeps them (`crate::metrics`), for the metrics
     /// listener, systemd's status line and `mbgate status`. Asked after `with_port`,
     /// which names the line afresh.
-    pub fn metrics(&self) -> Arc<LineMetrics> {
+    pub(crate) fn metrics(&self) -> Arc<LineMetrics> {
         self.watch.metrics.clone()
     }
 
     /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
     /// `None` means no watchdog and no timer for it, so an idle relay sleeps.
-    pub fn with_watchdog(mut self, every: Option<Duration>) -> Self {
+    pub(crate) fn with_watchdog(mut self, every: Option<Duration>) -> Self {
         self.watchdog = every.map(|every| Watchdog::new(every, Instant::now()));
         self
     }

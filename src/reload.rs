@@ -15,7 +15,7 @@ use tracing::{error, info, warn};
 pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 
 /// The keys a reload applies while the gateway runs.
-pub const RELOADABLE: [&str; 7] = [
+pub(crate) const RELOADABLE: [&str; 7] = [
     "relay.response_timeout_ms",
     "relay.retries",
     "relay.retry_writes",
@@ -28,7 +28,7 @@ pub const RELOADABLE: [&str; 7] = [
 /// `running` with the [`RELOADABLE`] keys of `read` (the rest needs a restart); with
 /// `[[line]]` tables, each line's `relay` keys too, line by line, while the file keeps
 /// the same lines.
-pub fn merged(running: &Config, read: &Config) -> Config {
+pub(crate) fn merged(running: &Config, read: &Config) -> Config {
     let mut c = running.clone();
     retune(&mut c.relay, &read.relay);
     if c.lines.len() == read.lines.len() {
@@ -58,14 +58,14 @@ fn changed(a: &Config, b: &Config) -> Vec<(String, String)> {
 }
 
 /// The metrics listener as it runs, moved or stopped by a reload.
-pub struct MetricsListener {
+pub(crate) struct MetricsListener {
     board: Arc<Board>,
     running: Option<(SocketAddr, CancellationToken)>,
     shutdown: CancellationToken,
 }
 
 impl MetricsListener {
-    pub fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
+    pub(crate) fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
         Self {
             board,
             running: None,
@@ -74,7 +74,7 @@ impl MetricsListener {
     }
 
     /// Serves on `listener` (bound at start, so a bad address fails the start).
-    pub fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
+    pub(crate) fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
         let stop = self.shutdown.child_token();
         http::spawn(listener, self.board.clone(), stop.clone());
         self.running = Some((addr, stop));
@@ -104,7 +104,7 @@ impl MetricsListener {
 }
 
 /// Reloads on each SIGHUP until shutdown; `running` is the configuration in force.
-pub async fn on_sighup(
+pub(crate) async fn on_sighup(
     mut hup: tokio::signal::unix::Signal,
     running: Arc<Mutex<Config>>,
     load: Loader,

@@ -12,7 +12,7 @@ use crate::stats::Stats;
 
 /// The relays of every line, and the route of each unit id.
 #[derive(Debug, Clone)]
-pub struct Router {
+pub(crate) struct Router {
     relays: Vec<RelayHandle>,
     /// For each unit id the master may ask: its line and its id on that line.
     routes: Vec<Option<(usize, u8)>>,
@@ -20,7 +20,7 @@ pub struct Router {
 
 /// Why a request was answered here and not by a line.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Unrouted {
+pub(crate) enum Unrouted {
     /// No line serves the unit.
     NoLine,
     /// Its line's relay has stopped (shutting down).
@@ -29,7 +29,7 @@ pub enum Unrouted {
 
 impl Router {
     /// `relays[i]` runs `lines[i]`.
-    pub fn new(lines: &[LineConfig], relays: Vec<RelayHandle>) -> Router {
+    pub(crate) fn new(lines: &[LineConfig], relays: Vec<RelayHandle>) -> Router {
         let routes = (0..=255u8)
             .map(|unit| {
                 // A line that lists units (or remaps them) before one that serves
@@ -45,7 +45,7 @@ impl Router {
     }
 
     /// A master connected: every line may send it notifications.
-    pub fn attach(&self, conn: ConnId, notifier: &Notifier) -> bool {
+    pub(crate) fn attach(&self, conn: ConnId, notifier: &Notifier) -> bool {
         let mut attached = false;
         for relay in &self.relays {
             let cmd = Command::Attach {
@@ -58,7 +58,7 @@ impl Router {
     }
 
     /// It went away: every line drops its queued requests.
-    pub fn detach(&self, conn: ConnId) {
+    pub(crate) fn detach(&self, conn: ConnId) {
         for relay in &self.relays {
             let _ = relay.send(Command::Detach { conn });
         }
@@ -66,7 +66,7 @@ impl Router {
 
     /// Hands the request to the line serving its unit, under the line's id for it;
     /// else answers 0x0A through its ticket (counted in `stats`) and says why.
-    pub fn submit(
+    pub(crate) fn submit(
         &self,
         conn: ConnId,
         adu: Adu,

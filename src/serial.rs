@@ -15,7 +15,7 @@ use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
 
 /// The `[serial]` settings in tokio-serial's terms: data bits, parity, stop bits, flow
 /// control.
-pub fn line_settings(
+pub(crate) fn line_settings(
     cfg: &SerialConfig,
 ) -> (
     tokio_serial::DataBits,
@@ -48,7 +48,7 @@ pub fn line_settings(
 /// The processes other than this one that have `path` open, as `PID (name)`, found
 /// the way `fuser` finds them: through the links in `/proc/*/fd`. Processes of other
 /// users are invisible without privilege, so an empty list proves nothing.
-pub fn holders(path: &str) -> Vec<String> {
+pub(crate) fn holders(path: &str) -> Vec<String> {
     let Ok(target) = std::fs::canonicalize(path) else {
         return Vec::new();
     };
@@ -306,7 +306,7 @@ impl PreciseTimer {
 }
 
 /// Bytes received by the port `fd` and not yet read (FIONREAD).
-pub fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
+pub(crate) fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
     let mut n: libc::c_int = 0;
     // SAFETY: FIONREAD writes one int, which `n` is, for the duration of the call.
     #[allow(unsafe_code)]
@@ -319,17 +319,17 @@ pub fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
 }
 
 /// Bits on the wire for one character: start, data, parity, stop.
-pub fn bits_per_char(cfg: &SerialConfig) -> u32 {
+pub(crate) fn bits_per_char(cfg: &SerialConfig) -> u32 {
     1 + u32::from(cfg.data_bits) + u32::from(cfg.parity != Parity::None) + u32::from(cfg.stop_bits)
 }
 
 /// How long `bytes` take on the wire at the configured rate.
-pub fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
+pub(crate) fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
     let bits = bytes as u64 * u64::from(bits_per_char(cfg));
     Duration::from_micros(bits * 1_000_000 / u64::from(cfg.baud_rate.max(1)))
 }
 
-pub use crate::port::Backoff;
+pub(crate) use crate::port::Backoff;
 
 #[cfg(test)]
 mod tests {

@@ -16,7 +16,7 @@ macro_rules! counters {
         impl Stats {
             /// The sum of `parts`, counter by counter: the gateway's totals from its
             /// listeners' counters and each line's own.
-            pub fn total<'a>(parts: impl IntoIterator<Item = &'a Stats>) -> Stats {
+            pub(crate) fn total<'a>(parts: impl IntoIterator<Item = &'a Stats>) -> Stats {
                 let sum = Stats::default();
                 for p in parts {
                     $(sum.$name.fetch_add(p.$name.load(Ordering::Relaxed), Ordering::Relaxed);)*
@@ -69,10 +69,11 @@ counters! {
 }
 
 impl Stats {
-    pub fn add(&self, counter: &AtomicU64, n: u64) {
+    pub(crate) fn add(&self, counter: &AtomicU64, n: u64) {
         counter.fetch_add(n, Ordering::Relaxed);
     }
 
+    /// The current value of one of this struct's counters (`stats.get(&stats.requests)`).
     pub fn get(&self, counter: &AtomicU64) -> u64 {
         counter.load(Ordering::Relaxed)
     }

@@ -37,7 +37,7 @@ mod rtu;
 /// and thousands of replies would queue for it before its writer stalled and
 /// `idle_timeout_ms` could close it. The serial line, not this buffer, bounds the
 /// rate of replies, so a master that reads loses nothing by it.
-pub fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<TcpListener> {
+pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<TcpListener> {
     let socket = if addr.is_ipv4() {
         TcpSocket::new_v4()?
     } else {
@@ -54,19 +54,19 @@ pub fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<TcpListen
 /// What every listener's connections share: the configuration, the lines, the
 /// counters, connection ids (unique across listeners), shutdown and the task tracker.
 #[derive(Clone)]
-pub struct Shared {
-    pub cfg: Arc<Config>,
-    pub router: Arc<Router>,
-    pub stats: Arc<Stats>,
-    pub shutdown: CancellationToken,
-    pub tracker: TaskTracker,
-    pub ids: Arc<AtomicU64>,
+pub(crate) struct Shared {
+    pub(crate) cfg: Arc<Config>,
+    pub(crate) router: Arc<Router>,
+    pub(crate) stats: Arc<Stats>,
+    pub(crate) shutdown: CancellationToken,
+    pub(crate) tracker: TaskTracker,
+    pub(crate) ids: Arc<AtomicU64>,
 }
 
 /// Accepts masters on `listener` (configured by `listen`) until shutdown. A
 /// connection past `max_connections` is closed at once and logged; the others each
 /// get a task on the tracker.
-pub async fn accept_loop(listener: TcpListener, listen: ListenConfig, shared: Shared) {
+pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, shared: Shared) {
     let Shared {
         cfg,
         router,

@@ -22,12 +22,12 @@ use std::collections::VecDeque;
 use std::time::{Duration, Instant};
 
 /// How many finished ids are remembered at most.
-pub const RETIRED_MAX: usize = 1024;
+pub(crate) const RETIRED_MAX: usize = 1024;
 /// How long a finished id is remembered.
-pub const RETIRED_FOR: Duration = Duration::from_secs(60);
+pub(crate) const RETIRED_FOR: Duration = Duration::from_secs(60);
 
 #[derive(Debug)]
-pub struct Tids {
+pub(crate) struct Tids {
     next: u16,
     /// One bit per id: in flight or retired.
     reserved: Box<[u64; 1024]>,
@@ -50,7 +50,7 @@ fn step(x: u16) -> u16 {
 }
 
 impl Tids {
-    pub fn new() -> Self {
+    pub(crate) fn new() -> Self {
         Self {
             next: fastrand::u16(..),
             reserved: Box::new([0; 1024]),
@@ -86,7 +86,7 @@ impl Tids {
     /// and never a low byte of 0 (so never 0x0000, the id the CIE-M10's notifications
     /// may carry, nor a shifted copy of one). At most 255 are in flight and
     /// [`RETIRED_MAX`] retired, so one is always found.
-    pub fn allocate(&mut self, now: Instant) -> u16 {
+    pub(crate) fn allocate(&mut self, now: Instant) -> u16 {
         self.expire(now);
         loop {
             let tid = self.next;
@@ -102,7 +102,7 @@ impl Tids {
 
     /// The request is finished (answered, timed out or abandoned): an answer with this
     /// id from now on is late or a duplicate.
-    pub fn retire(&mut self, tid: u16, now: Instant) {
+    pub(crate) fn retire(&mut self, tid: u16, now: Instant) {
         let live = &mut self.live_low[usize::from(tid & 0xFF)];
         *live = live.saturating_sub(1);
         self.retired.push_back((tid, now));
@@ -111,7 +111,7 @@ impl Tids {
 
     /// Was this id given to a request that is no longer in flight? Only meaningful for
     /// ids the caller has already found not to be in flight.
-    pub fn is_retired(&self, tid: u16) -> bool {
+    pub(crate) fn is_retired(&self, tid: u16) -> bool {
         tid != 0 && self.is_reserved(tid)
     }
 }

@@ -2,15 +2,15 @@
 //! master (a CIE-M10 in master mode, an RTU PLC or HMI) puts on the line go to the
 //! Modbus/TCP slave their unit routes to, and the replies come back on the line.
 //!
-//! - [`requests`]: the requests off the lossy line, the replies in its framing (pure);
-//! - [`table`]: routes, ids, what is outstanding, deadlines, answers (plain data, time
+//! - `requests`: the requests off the lossy line, the replies in its framing (pure);
+//! - `table`: routes, ids, what is outstanding, deadlines, answers (plain data, time
 //!   passed in);
-//! - [`slave`]: one task per route holding its TCP connection;
+//! - `slave`: one task per route holding its TCP connection;
 //! - this file: the loop that owns the serial port and wires them.
 
-pub mod requests;
-pub mod slave;
-pub mod table;
+pub(crate) mod requests;
+pub(crate) mod slave;
+pub(crate) mod table;
 
 use crate::config::master::MasterLine;
 use crate::config::{Config, Framing};
@@ -26,12 +26,17 @@ use tokio::time::{sleep_until, Instant};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+/// Why the master line could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum BridgeError {
+    /// A passive route's listening address could not be bound.
     #[error("cannot listen for the slave of route {route} on {addr}: {error}")]
     Bind {
+        /// The route's index, in the order of the file.
         route: usize,
+        /// The address as configured.
         addr: String,
+        /// What the system said.
         error: std::io::Error,
     },
 }
@@ -39,15 +44,15 @@ pub enum BridgeError {
 /// The line's timing: the pause that ends a frame, and the gap after which a partial
 /// one is dropped.
 #[derive(Debug, Clone, Copy)]
-pub struct Timing {
+pub(crate) struct Timing {
     /// Silence that ends a frame: 3.5 characters (at least the adapter's latency).
-    pub pause: Duration,
+    pub(crate) pause: Duration,
     /// MBAP: silence after which a partial frame is discarded.
-    pub frame_gap: Duration,
+    pub(crate) frame_gap: Duration,
 }
 
 impl Timing {
-    pub fn of(cfg: &Config) -> Self {
+    pub(crate) fn of(cfg: &Config) -> Self {
         let bits = crate::serial::bits_per_char(&cfg.serial);
         let t35 = Duration::from_micros(crate::frame::rtu::t35_us(cfg.serial.baud_rate, bits));
         Self {
@@ -74,7 +79,7 @@ pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, Br
 }
 
 /// [`run`] on any port (tests use an in-memory one).
-pub async fn run_on(
+pub(crate) async fn run_on(
     mut port: Box<dyn Port>,
     framing: Framing,
     timing: Timing,

@@ -15,57 +15,57 @@ use crate::frame::{Adu, RequestJudge};
 
 /// One request from the serial master.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Incoming {
+pub(crate) struct Incoming {
     /// The master's own transaction id (MBAP), restored on its reply; `None` on RTU
     /// and ASCII, which have none.
-    pub tid: Option<u16>,
-    pub unit: u8,
-    pub pdu: Vec<u8>,
+    pub(crate) tid: Option<u16>,
+    pub(crate) unit: u8,
+    pub(crate) pdu: Vec<u8>,
 }
 
 /// The line's framer ([`Framer`], shared with the relay, the simulator and the
 /// client), judging frames as requests.
 #[derive(Debug)]
-pub struct Requests(Framer);
+pub(crate) struct Requests(Framer);
 
 impl Requests {
-    pub fn new(framing: Framing) -> Self {
+    pub(crate) fn new(framing: Framing) -> Self {
         Self(Framer::new(framing))
     }
 
     /// RTU or ASCII (where unit 0 is a broadcast), or `None` for MBAP.
-    pub fn codec(&self) -> Option<Codec> {
+    pub(crate) fn codec(&self) -> Option<Codec> {
         self.0.codec()
     }
 
-    pub fn push(&mut self, bytes: &[u8]) {
+    pub(crate) fn push(&mut self, bytes: &[u8]) {
         self.0.push(bytes);
     }
 
     /// The line has been silent for the pause that ends a frame (MBAP: confirms a
     /// request with nothing after it).
-    pub fn pause(&mut self) {
+    pub(crate) fn pause(&mut self) {
         self.0.pause();
     }
 
-    pub fn buffered(&self) -> usize {
+    pub(crate) fn buffered(&self) -> usize {
         self.0.buffered()
     }
 
     /// Forgets what is buffered (the port was lost); counted as dropped.
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         self.0.clear();
     }
 
     /// Bytes dropped so far: garbage, malformed or refuted MBAP frames, RTU/ASCII
     /// frames whose check failed.
-    pub fn dropped(&self) -> u64 {
+    pub(crate) fn dropped(&self) -> u64 {
         self.0.dropped()
     }
 
     /// The next whole request. `quiet`: the line has been silent for the frame gap
     /// (MBAP) or for 3.5 characters (RTU): a partial frame will not complete.
-    pub fn next(&mut self, quiet: bool) -> Option<Incoming> {
+    pub(crate) fn next(&mut self, quiet: bool) -> Option<Incoming> {
         let mbap = self.0.codec().is_none();
         loop {
             match self.0.next_frame(&RequestJudge { confirm: true }, quiet)? {
@@ -85,7 +85,7 @@ impl Requests {
 
 /// A reply `pdu` to `request` as the line carries it: MBAP with the master's own
 /// transaction id, RTU with its CRC, ASCII with its LRC.
-pub fn encode_reply(codec: Option<Codec>, request: &Incoming, pdu: &[u8]) -> Vec<u8> {
+pub(crate) fn encode_reply(codec: Option<Codec>, request: &Incoming, pdu: &[u8]) -> Vec<u8> {
     match codec {
         None => Adu::build(request.tid.unwrap_or(0), request.unit, pdu)
             .as_bytes()

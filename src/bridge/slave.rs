@@ -17,7 +17,7 @@ use tracing::{debug, info, warn};
 
 /// What a connection task tells the loop, with its route's index.
 #[derive(Debug)]
-pub enum Event {
+pub(crate) enum Event {
     Connecting(usize),
     Up(usize),
     Down(usize),
@@ -44,7 +44,7 @@ fn tune(stream: &TcpStream) {
 
 /// Binds a passive route's address (before the line starts, so a taken port is an
 /// error at start).
-pub async fn bind(route: &Route) -> std::io::Result<Option<TcpListener>> {
+pub(crate) async fn bind(route: &Route) -> std::io::Result<Option<TcpListener>> {
     match &route.peer {
         Peer::Listen(addr) => TcpListener::bind(addr).await.map(Some),
         Peer::Connect(_) => Ok(None),
@@ -53,7 +53,7 @@ pub async fn bind(route: &Route) -> std::io::Result<Option<TcpListener>> {
 
 /// Runs route `i`'s connection until `shutdown`: frames to write come on `frames`,
 /// events go to `events`.
-pub async fn run(
+pub(crate) async fn run(
     i: usize,
     route: Route,
     listener: Option<TcpListener>,

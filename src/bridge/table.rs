@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 
 /// What the loop is to do.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Action {
+pub(crate) enum Action {
     /// Write this frame on route `route`'s connection.
     Send { route: usize, adu: Adu },
     /// Write this reply PDU to the serial master, for `request`.
@@ -22,7 +22,7 @@ pub enum Action {
 
 /// A slave connection as the table sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Link {
+pub(crate) enum Link {
     /// Being made (or, passive, awaited for the first time): requests wait.
     Connecting,
     Up,
@@ -34,21 +34,21 @@ pub enum Link {
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct Counts {
     /// Requests taken off the serial line.
-    pub requests: u64,
+    pub(crate) requests: u64,
     /// Frames written to slaves.
-    pub forwarded: u64,
+    pub(crate) forwarded: u64,
     /// Slave replies passed to the serial master.
-    pub replies: u64,
+    pub(crate) replies: u64,
     /// 0x0B answers: no reply in time, or the connection lost with the request sent.
-    pub timeouts: u64,
+    pub(crate) timeouts: u64,
     /// 0x0A answers: no route, or the slave unreachable.
-    pub unavailable: u64,
+    pub(crate) unavailable: u64,
     /// Replies that matched nothing outstanding (late, or for a broadcast), dropped.
-    pub late: u64,
+    pub(crate) late: u64,
     /// Broadcasts (unit 0 on RTU/ASCII) sent to every route, unanswered.
-    pub broadcasts: u64,
+    pub(crate) broadcasts: u64,
     /// Requests outside the protocol's limits, answered by mbgate.
-    pub refused: u64,
+    pub(crate) refused: u64,
 }
 
 #[derive(Debug, Clone)]
@@ -72,12 +72,12 @@ struct Route {
 
 /// Every route's state.
 #[derive(Debug)]
-pub struct Table {
+pub(crate) struct Table {
     line: MasterLine,
     routes: Vec<Route>,
     /// Unit 0 is a broadcast (RTU, ASCII), not on MBAP.
     serial_bus: bool,
-    pub counts: Counts,
+    pub(crate) counts: Counts,
 }
 
 fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
@@ -87,7 +87,7 @@ fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
 impl Table {
     /// `serial_bus`: the line is RTU or ASCII (one transaction at a time, unit 0 a
     /// broadcast).
-    pub fn new(line: MasterLine, serial_bus: bool) -> Self {
+    pub(crate) fn new(line: MasterLine, serial_bus: bool) -> Self {
         let routes = line
             .routes
             .iter()
@@ -108,10 +108,6 @@ impl Table {
         }
     }
 
-    pub fn link(&self, route: usize) -> Link {
-        self.routes[route].link
-    }
-
     fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: ExceptionCode) {
         if code == ExceptionCode::GATEWAY_TARGET_FAILED {
             self.counts.timeouts += 1;
@@ -128,7 +124,7 @@ impl Table {
     }
 
     /// A request from the serial master at `now`.
-    pub fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
+    pub(crate) fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
         let mut out = Vec::new();
         self.counts.requests += 1;
         let broadcast = self.serial_bus && request.unit == 0;
@@ -214,12 +210,12 @@ impl Table {
     }
 
     /// Route `i`'s connection is being made.
-    pub fn connecting(&mut self, i: usize) {
+    pub(crate) fn connecting(&mut self, i: usize) {
         self.routes[i].link = Link::Connecting;
     }
 
     /// Route `i`'s connection is up: what waited is sent.
-    pub fn up(&mut self, i: usize) -> Vec<Action> {
+    pub(crate) fn up(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
         self.routes[i].link = Link::Up;
         self.pump(i, &mut out);
@@ -228,7 +224,7 @@ impl Table {
 
     /// Route `i`'s connection is lost or could not be made: requests already sent get
     /// 0x0B (the slave may have acted on them), those not sent 0x0A.
-    pub fn down(&mut self, i: usize) -> Vec<Action> {
+    pub(crate) fn down(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
         self.routes[i].link = Link::Down;
         for (_, held) in std::mem::take(&mut self.routes[i].in_flight) {
@@ -242,7 +238,7 @@ impl Table {
 
     /// A frame from route `i`'s slave: the reply to the request with its id, unit and
     /// function code (or its exception), else dropped.
-    pub fn reply(&mut self, i: usize, adu: &Adu) -> Vec<Action> {
+    pub(crate) fn reply(&mut self, i: usize, adu: &Adu) -> Vec<Action> {
         let mut out = Vec::new();
         let r = &mut self.routes[i];
         let found = r.in_flight.iter().position(|(tid, h)| {
@@ -271,7 +267,7 @@ impl Table {
 
     /// Requests whose time is up at `now`: 0x0B if sent (or waiting behind others on a
     /// live connection), 0x0A if the connection never came.
-    pub fn expire(&mut self, now: Instant) -> Vec<Action> {
+    pub(crate) fn expire(&mut self, now: Instant) -> Vec<Action> {
         let mut out = Vec::new();
         for i in 0..self.routes.len() {
             let r = &mut self.routes[i];
@@ -300,7 +296,7 @@ impl Table {
     }
 
     /// The earliest deadline of anything held.
-    pub fn next_deadline(&self) -> Option<Instant> {
+    pub(crate) fn next_deadline(&self) -> Option<Instant> {
         self.routes
             .iter()
             .flat_map(|r| {
@@ -316,7 +312,7 @@ impl Table {
     /// is answered any more: requests not yet sent are dropped, and the replies to
     /// those sent are taken off their connections as late, never written to the
     /// reopened port.
-    pub fn serial_lost(&mut self) {
+    pub(crate) fn serial_lost(&mut self) {
         for r in &mut self.routes {
             r.waiting.clear();
             for (_, held) in &mut r.in_flight {
@@ -326,7 +322,8 @@ impl Table {
     }
 
     /// Requests held (sent or waiting) on route `i`.
-    pub fn held(&self, i: usize) -> usize {
+    #[cfg(test)]
+    pub(crate) fn held(&self, i: usize) -> usize {
         self.routes[i].in_flight.len() + self.routes[i].waiting.len()
     }
 }

@@ -13,39 +13,39 @@ pub struct CommonArgs {
     /// Gateway or Modbus/TCP device, HOST[:PORT] (port 502 if left out)
     /// [default: 127.0.0.1:502]
     #[arg(long, value_name = "HOST:PORT", conflicts_with = "serial")]
-    pub tcp: Option<String>,
+    pub(crate) tcp: Option<String>,
     /// Ask a device directly on this serial port, in MBAP framing (the CIE-M10 serial
     /// Modbus/TCP mode: whole MBAP frames on the line, no CRC) unless --framing says
     /// otherwise
     #[arg(long, value_name = "PATH")]
-    pub serial: Option<String>,
+    pub(crate) serial: Option<String>,
     /// How frames are carried: mbap, or rtu or ascii for a Modbus serial-line device on
     /// --serial, or for RTU over TCP on --tcp (a gateway's rtu listener, a serial device
     /// server in raw TCP mode)
     #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap")]
-    pub framing: Framing,
+    pub(crate) framing: Framing,
     /// The serial port's settings (with --serial only), as `mbgate run` takes them.
     #[command(flatten)]
-    pub port: PortFlags,
+    pub(crate) port: PortFlags,
     /// Unit id (slave address), 0..=255
     #[arg(long, short = 'u', value_name = "N", default_value_t = 1)]
-    pub unit: u8,
+    pub(crate) unit: u8,
     /// Give up on a reply after this long (a gateway answers 0x0B after its own
     /// response timeout, 1000 ms by default, so wait longer than that)
     #[arg(long, value_name = "MS", default_value_t = 2000,
           value_parser = clap::value_parser!(u64).range(1..=600_000))]
-    pub timeout_ms: u64,
+    pub(crate) timeout_ms: u64,
     /// Repeat every MS milliseconds until Ctrl-C (or --count), printing each result
     /// with a timestamp
     #[arg(long, value_name = "MS", value_parser = parse_poll)]
-    pub poll: Option<u64>,
+    pub(crate) poll: Option<u64>,
     /// With --poll: stop after N requests
     #[arg(long, value_name = "N", requires = "poll",
           value_parser = clap::value_parser!(u64).range(1..))]
-    pub count: Option<u64>,
+    pub(crate) count: Option<u64>,
     /// Print both frames (request and reply) as hex
     #[arg(long, short = 'v')]
-    pub verbose: bool,
+    pub(crate) verbose: bool,
 }
 
 /// The tables a master reads (docs/protocol.md §1).
@@ -69,17 +69,17 @@ pub enum ReadTable {
 #[derive(Debug, Clone, clap::Args)]
 pub struct ReadArgs {
     #[command(flatten)]
-    pub common: CommonArgs,
+    pub(crate) common: CommonArgs,
     /// What to read
     #[arg(value_enum)]
-    pub table: ReadTable,
+    pub(crate) table: ReadTable,
     /// First address: the 0-based PDU address, decimal or 0x hex (register "40108" is
     /// 107)
     #[arg(value_parser = parse_u16)]
-    pub addr: u16,
+    pub(crate) addr: u16,
     /// How many: 1..=2000 bits or 1..=125 registers
     #[arg(value_name = "COUNT", value_parser = parse_u16, default_value = "1")]
-    pub quantity: u16,
+    pub(crate) quantity: u16,
 }
 
 /// The tables a master writes (docs/protocol.md §1).
@@ -104,25 +104,25 @@ pub enum WriteTable {
 #[derive(Debug, Clone, clap::Args)]
 pub struct WriteArgs {
     #[command(flatten)]
-    pub common: CommonArgs,
+    pub(crate) common: CommonArgs,
     /// What to write
     #[arg(value_enum)]
-    pub table: WriteTable,
+    pub(crate) table: WriteTable,
     /// First address: the 0-based PDU address, decimal or 0x hex
     #[arg(value_parser = parse_u16)]
-    pub addr: u16,
+    pub(crate) addr: u16,
     /// Values from ADDR on. Coils: 1, 0, on, off, true, false. Registers: 0..=65535
     /// decimal or 0x hex, or -32768..=-1 (sent as two's complement)
     #[arg(required = true, num_args = 1.., allow_negative_numbers = true)]
-    pub values: Vec<String>,
+    pub(crate) values: Vec<String>,
     /// Use FC 0F / 10 even for a single value
     #[arg(long)]
-    pub multiple: bool,
+    pub(crate) multiple: bool,
     /// FC 17 (registers only): in the same transaction, after the write, read COUNT
     /// registers at ADDR and print them
     #[arg(long, num_args = 2, value_names = ["ADDR", "COUNT"], value_parser = parse_u16,
           conflicts_with = "multiple")]
-    pub read: Option<Vec<u16>>,
+    pub(crate) read: Option<Vec<u16>>,
 }
 
 /// A poll interval: at least 1 ms; a line answers in milliseconds, so 100..=1000 is
@@ -167,7 +167,7 @@ fn parse_coil(s: &str) -> Result<bool, String> {
 
 impl ReadArgs {
     /// The request these arguments ask for (docs/protocol.md §1 table, FC 01..04).
-    pub fn request(&self) -> Request {
+    pub(crate) fn request(&self) -> Request {
         let (addr, qty) = (self.addr, self.quantity);
         match self.table {
             ReadTable::Coils => Request::ReadCoils { addr, qty },
@@ -181,7 +181,7 @@ impl ReadArgs {
 impl WriteArgs {
     /// The request these arguments ask for (docs/protocol.md §1 table, FC 05, 06, 0F, 10,
     /// 17), or why there is none.
-    pub fn request(&self) -> Result<Request, String> {
+    pub(crate) fn request(&self) -> Result<Request, String> {
         let addr = self.addr;
         let single = self.values.len() == 1 && !self.multiple;
         match self.table {
@@ -230,7 +230,7 @@ impl WriteArgs {
 impl CommonArgs {
     /// The link these arguments name: `--serial` if given, else `--tcp` (default
     /// 127.0.0.1:502); or why the serial port's settings are refused.
-    pub fn link(&self) -> Result<Link, String> {
+    pub(crate) fn link(&self) -> Result<Link, String> {
         let Some(path) = &self.serial else {
             let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
             return Ok(Link::tcp_framed(addr, self.framing));

@@ -26,7 +26,7 @@ const MODBUS_PORT: u16 = 502;
 
 /// Why a request got no usable answer (exit code 1).
 #[derive(Debug, thiserror::Error)]
-pub enum ClientError {
+pub(crate) enum ClientError {
     #[error("cannot connect to {addr}: {source}")]
     Connect { addr: String, source: io::Error },
     #[error("no connection to {addr} within {ms} ms")]
@@ -65,7 +65,7 @@ pub enum ClientError {
 /// The way to the device: a TCP connection (opened on first use, reopened after an
 /// error) or a serial port (likewise).
 #[derive(Debug)]
-pub enum Link {
+pub(crate) enum Link {
     Tcp {
         addr: String,
         stream: Option<TcpStream>,
@@ -89,7 +89,7 @@ pub enum Link {
 
 impl Link {
     /// `HOST[:PORT]`; port 502 if left out.
-    pub fn tcp(addr: &str) -> Link {
+    pub(crate) fn tcp(addr: &str) -> Link {
         let has_port = addr.parse::<std::net::SocketAddr>().is_ok()
             || addr.rsplit_once(':').is_some_and(|(host, port)| {
                 !host.is_empty() && !host.ends_with(':') && port.parse::<u16>().is_ok()
@@ -109,7 +109,7 @@ impl Link {
     }
 
     /// `HOST[:PORT]` as [`Link::tcp`], its frames in `framing` (MBAP: [`Link::tcp`]).
-    pub fn tcp_framed(addr: &str, framing: Framing) -> Link {
+    pub(crate) fn tcp_framed(addr: &str, framing: Framing) -> Link {
         let codec = match framing {
             Framing::Mbap => return Link::tcp(addr),
             Framing::Rtu => crate::frame::serial::Codec::Rtu,
@@ -125,7 +125,7 @@ impl Link {
         }
     }
 
-    pub fn serial(cfg: SerialConfig) -> Link {
+    pub(crate) fn serial(cfg: SerialConfig) -> Link {
         Link::Serial {
             decoder: Framer::new(cfg.framing),
             cfg,
@@ -135,7 +135,7 @@ impl Link {
 
     /// The bytes `adu` is on this link's wire: MBAP as it is, RTU or ASCII as the
     /// unit and PDU in that framing, check included.
-    pub fn wire(&self, adu: &Adu) -> Vec<u8> {
+    pub(crate) fn wire(&self, adu: &Adu) -> Vec<u8> {
         match self {
             Link::Serial { decoder, .. } | Link::TcpFramed { decoder, .. } => decoder.encode(adu),
             Link::Tcp { .. } => adu.as_bytes().to_vec(),
@@ -143,7 +143,7 @@ impl Link {
     }
 
     /// What error messages call it: the address or the port's path.
-    pub fn name(&self) -> &str {
+    pub(crate) fn name(&self) -> &str {
         match self {
             Link::Tcp { addr, .. } | Link::TcpFramed { addr, .. } => addr,
             Link::Serial { cfg, .. } => &cfg.path,
@@ -193,17 +193,17 @@ impl Judge for ReplyTo<'_> {
 
 /// One answered request.
 #[derive(Debug, Clone)]
-pub struct Exchange {
+pub(crate) struct Exchange {
     /// The reply frame.
-    pub reply: Adu,
+    pub(crate) reply: Adu,
     /// What it says.
-    pub decoded: Reply,
+    pub(crate) decoded: Reply,
     /// From the first byte written to the reply decoded.
-    pub round_trip: Duration,
+    pub(crate) round_trip: Duration,
     /// TCP: whole frames that answered something else (another transaction id).
-    pub ignored: Vec<Adu>,
+    pub(crate) ignored: Vec<Adu>,
     /// Serial: bytes the resynchronising decoder dropped while waiting.
-    pub dropped_bytes: u64,
+    pub(crate) dropped_bytes: u64,
 }
 
 /// What a link hands back before decoding.
@@ -218,14 +218,14 @@ struct Received {
 /// never 0x0000, which the device's own change notifications may use: docs/design.md §1
 /// step 3) and waits for each answer, bounded by the timeout.
 #[derive(Debug)]
-pub struct Master {
+pub(crate) struct Master {
     link: Link,
     timeout: Duration,
     next_tid: u16,
 }
 
 impl Master {
-    pub fn new(link: Link, timeout: Duration) -> Master {
+    pub(crate) fn new(link: Link, timeout: Duration) -> Master {
         Master {
             link,
             timeout,
@@ -233,12 +233,12 @@ impl Master {
         }
     }
 
-    pub fn link(&self) -> &Link {
+    pub(crate) fn link(&self) -> &Link {
         &self.link
     }
 
     /// The transaction id for the next request; each call gives a new one.
-    pub fn next_tid(&mut self) -> u16 {
+    pub(crate) fn next_tid(&mut self) -> u16 {
         let tid = self.next_tid;
         self.next_tid = self.next_tid.checked_add(1).unwrap_or(1);
         tid
@@ -248,7 +248,7 @@ impl Master {
     /// included), for its answer. After an I/O or protocol error the link is closed,
     /// to be reopened by the next request; after a timeout it is kept (a late answer
     /// is recognised by its transaction id and ignored).
-    pub async fn transact(&mut self, request: &Adu) -> Result<Exchange, ClientError> {
+    pub(crate) async fn transact(&mut self, request: &Adu) -> Result<Exchange, ClientError> {
         let deadline = Instant::now() + self.timeout;
         let ms = self.timeout.as_millis() as u64;
         let received = match &mut self.link {

@@ -22,7 +22,7 @@ mod args;
 mod link;
 
 pub use args::{CommonArgs, ReadArgs, ReadTable, WriteArgs, WriteTable};
-pub use link::{ClientError, Exchange, Link, Master};
+pub(crate) use link::{Link, Master};
 
 use crate::frame::hex::Hex;
 use crate::frame::request::{exception_name, Reply, Request};
@@ -32,13 +32,13 @@ use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
 
 /// A normal response.
-pub const EXIT_OK: u8 = 0;
+pub(crate) const EXIT_OK: u8 = 0;
 /// No answer: timeout, connection refused, port missing, or no valid reply.
-pub const EXIT_NO_ANSWER: u8 = 1;
+pub(crate) const EXIT_NO_ANSWER: u8 = 1;
 /// Bad arguments (clap uses 2 too).
-pub const EXIT_USAGE: u8 = 2;
+pub(crate) const EXIT_USAGE: u8 = 2;
 /// The device (or the gateway) answered with an exception.
-pub const EXIT_EXCEPTION: u8 = 3;
+pub(crate) const EXIT_EXCEPTION: u8 = 3;
 
 /// `mbgate read`: exit code 0, 1, 2 or 3 (module docs).
 pub fn read_main(args: ReadArgs) -> ExitCode {

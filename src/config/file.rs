@@ -19,7 +19,9 @@ pub enum ConfigError {
     /// The file could not be read (missing, permissions, not UTF-8...).
     #[error("{}: cannot read the configuration file: {source}", path.display())]
     Read {
+        /// The file named (`--config` or the default path).
         path: PathBuf,
+        /// What the system said.
         source: std::io::Error,
     },
     /// The text is not valid TOML, or a key is unknown, has the wrong type or a value
@@ -27,15 +29,25 @@ pub enum ConfigError {
     /// unknown key; `key` is the full dotted key (`serial.baud_rate`) when it can be told.
     #[error("{origin}:{line}:{column}: {}{message}", key_prefix(.key))]
     Invalid {
+        /// Where the text came from: the file's path, or a name for a text given in code.
         origin: String,
+        /// 1-based line of the value (or of the unknown key).
         line: usize,
+        /// 1-based column on that line.
         column: usize,
+        /// The full dotted key, when it can be told.
         key: Option<String>,
+        /// What is wrong, for the operator.
         message: String,
     },
     /// A command-line override is out of range; `flag` is e.g. `--baud`.
     #[error("{flag}: {message}")]
-    Override { flag: String, message: String },
+    Override {
+        /// The flag with its dashes, e.g. `--baud`.
+        flag: String,
+        /// What is wrong with its value.
+        message: String,
+    },
 }
 
 fn key_prefix(key: &Option<String>) -> String {

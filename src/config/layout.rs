@@ -17,12 +17,12 @@ pub struct Units {
 
 impl Units {
     /// No list: the line serves every unit (the one line of the old form).
-    pub fn every(&self) -> bool {
+    pub(crate) fn every(&self) -> bool {
         self.ids.is_empty() && self.remap.is_empty()
     }
 
     /// The id the line knows the master's `unit` by, if the line serves it.
-    pub fn route(&self, unit: u8) -> Option<u8> {
+    pub(crate) fn route(&self, unit: u8) -> Option<u8> {
         if let Some(&on_line) = self.remap.get(&unit) {
             return Some(on_line);
         }
@@ -30,7 +30,7 @@ impl Units {
     }
 
     /// `ids` as the file writes them: runs of three or more as `"A-B"` strings.
-    pub fn print_ids(&self) -> String {
+    pub(crate) fn print_ids(&self) -> String {
         let mut parts = Vec::new();
         let ids: Vec<u8> = self.ids.iter().copied().collect();
         let mut i = 0;
@@ -50,7 +50,7 @@ impl Units {
     }
 
     /// `remap` as the file writes it: `{ 11 = 1, 12 = 2 }`.
-    pub fn print_remap(&self) -> String {
+    pub(crate) fn print_remap(&self) -> String {
         let pairs: Vec<String> = self
             .remap
             .iter()
@@ -73,12 +73,12 @@ pub struct LineConfig {
     pub tcp: Option<String>,
     pub relay: RelayConfig,
     /// The line's device is the master: where its requests go (docs/design.md §4.2).
-    pub master: Option<super::master::MasterLine>,
+    pub(crate) master: Option<super::master::MasterLine>,
 }
 
 impl LineConfig {
     /// What the logs call the line: its serial port or its address.
-    pub fn name(&self) -> &str {
+    pub(crate) fn name(&self) -> &str {
         self.tcp.as_deref().unwrap_or(&self.serial.path)
     }
 }
@@ -86,8 +86,8 @@ impl LineConfig {
 /// One listening address and how its masters frame their requests.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ListenConfig {
-    pub tcp: TcpConfig,
-    pub framing: ListenFraming,
+    pub(crate) tcp: TcpConfig,
+    pub(crate) framing: ListenFraming,
 }
 
 impl Config {
@@ -120,7 +120,7 @@ impl Config {
 
     /// The most requests any line lets one master pipeline: the room each master's
     /// connection keeps for replies.
-    pub fn max_pending_per_connection(&self) -> usize {
+    pub(crate) fn max_pending_per_connection(&self) -> usize {
         let lines = self.lines();
         let most = lines.iter().map(|l| l.relay.max_pending_per_connection);
         most.max().unwrap_or(self.relay.max_pending_per_connection)
@@ -128,7 +128,7 @@ impl Config {
 
     /// The longest any line takes to answer a request it holds (its timeouts and
     /// retries): the bound of the shutdown drain.
-    pub fn answer_within(&self) -> std::time::Duration {
+    pub(crate) fn answer_within(&self) -> std::time::Duration {
         let lines = self.lines();
         let longest = lines.iter().map(|l| l.relay.answer_within());
         longest.max().unwrap_or_default()

@@ -23,7 +23,7 @@ use toml::de::{DeTable, DeValue};
 use toml::Spanned;
 
 /// The keys of a `[[line.route]]` table.
-pub const ROUTE_KEYS: [&str; 5] = [
+pub(crate) const ROUTE_KEYS: [&str; 5] = [
     "units",
     "address",
     "listen",
@@ -52,7 +52,9 @@ impl std::fmt::Display for Peer {
 /// One `[[line.route]]`: the unit ids it takes (none: the default route) and its slave.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Route {
+    /// The unit ids sent this way; empty: every unit no other route takes.
     pub units: Vec<u8>,
+    /// Where the slave is.
     pub peer: Peer,
     /// From the request's arrival on the serial line to the slave's reply; also bounds
     /// a connection attempt.
@@ -64,6 +66,7 @@ pub struct Route {
 /// What a master line adds to the line: its routes, in the order of the file.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct MasterLine {
+    /// The routes; a request takes the first that lists its unit, else the default.
     pub routes: Vec<Route>,
 }
 
@@ -78,9 +81,9 @@ impl MasterLine {
 /// A value the file got wrong: where, which key, why.
 #[derive(Debug)]
 pub(super) struct Bad {
-    pub at: usize,
-    pub key: String,
-    pub message: String,
+    pub(crate) at: usize,
+    pub(crate) key: String,
+    pub(crate) message: String,
 }
 
 fn bad<T>(at: usize, key: &str, message: impl Into<String>) -> Result<T, Bad> {
@@ -267,7 +270,7 @@ fn check_host_port(s: &str) -> Result<(), String> {
 
 /// The master line as the `[[line]]` form prints it (`mbgate check-config`), after
 /// its `serial` table; `parse` reads it back to the same.
-pub fn to_toml(m: &MasterLine) -> String {
+pub(crate) fn to_toml(m: &MasterLine) -> String {
     let mut out = String::new();
     for r in &m.routes {
         out += "\n[[line.route]]\n";

@@ -1,6 +1,6 @@
 //! The configuration model of docs/design.md §4: every setting declared once, below.
 //!
-//! Each setting is one line of [`settings!`]: key, type, default, allowed values, flag
+//! Each setting is one line of `settings!`: key, type, default, allowed values, flag
 //! and help. From it come the section structs and their defaults, and [`KEYS`], which
 //! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
 //! the tests holding the README and `config/mbgate.toml` to it all read. A value is
@@ -12,7 +12,7 @@ mod layout;
 pub mod master;
 
 pub use file::{load, parse, ConfigError};
-pub use layout::{LineConfig, ListenConfig, Units};
+pub(crate) use layout::{LineConfig, ListenConfig, Units};
 use std::net::SocketAddr;
 use Check::{Any, NonEmpty, OneOf, Range};
 
@@ -24,11 +24,11 @@ macro_rules! choices {
     })*) => {$(
         $(#[doc = $doc])*
         #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-        pub enum $Enum { $($(#[doc = $vdoc])* $V,)* }
+        pub enum $Enum { $($(#[doc = $vdoc])* #[doc = concat!("\n\nWritten `", $name, "`.")] $V,)* }
 
         impl $Enum {
             /// The word for this value in the file.
-            pub fn name(self) -> &'static str {
+            pub(crate) fn name(self) -> &'static str {
                 match self { $(Self::$V => $name,)* }
             }
         }
@@ -51,7 +51,9 @@ macro_rules! choices {
 }
 
 choices! {
+    /// The serial line's parity bit.
     Parity { None = "none", Even = "even", Odd = "odd", }
+    /// How the serial line holds off a sender whose receiver is full.
     FlowControl {
         /// RTS/CTS, as the device manual advises
         Hardware = "hardware",
@@ -68,12 +70,15 @@ choices! {
         /// Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time
         Ascii = "ascii",
     }
+    /// What a master that sent a broadcast (unit 0) gets back (Modbus over Serial Line
+    /// V1.02 §2.1: the device answers no broadcast).
     BroadcastReply {
         /// The master gets nothing back (as on the bus)
         None = "none",
         /// The master gets the reply the device would have given
         Echo = "echo",
     }
+    /// What becomes of frames from the device that answer no request (docs/protocol.md §3).
     Notifications {
         /// Frames from the device that answer no request are dropped and counted
         Drop = "drop",
@@ -90,7 +95,7 @@ choices! {
 }
 
 /// The values `log.level` accepts.
-pub const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
+pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
 
 /// Declares the sections and their settings: `key: type = default, check, "flag"
 /// "VALUE_NAME" [port] [, at_most other: "why"];` under the key's one line of help.
@@ -117,7 +122,7 @@ macro_rules! settings {
         /// The whole file (docs/design.md §4): every section and key is optional.
         #[derive(Debug, Clone, PartialEq, Default)]
         pub struct Config {
-            $(pub $section: $Struct,)*
+            $($(#[doc = $sdoc])* pub $section: $Struct,)*
             /// The line's device is the master: its routes (docs/design.md §4.2).
             pub master: Option<master::MasterLine>,
             /// The `[[line]]` tables when the file needs them (several lines, units,
@@ -248,32 +253,34 @@ settings! {
     }
 }
 
-/// One setting as declared in [`settings!`].
+/// One setting as declared in `settings!`.
 #[derive(Debug)]
 pub struct Key {
+    /// The section it is in: `serial` for `serial.baud_rate`.
     pub section: &'static str,
+    /// The key within its section: `baud_rate`.
     pub name: &'static str,
     /// The long flag without its dashes: `baud` for `--baud`.
     pub flag: &'static str,
-    pub value_name: &'static str,
+    pub(crate) value_name: &'static str,
     /// One line (with a leading space, as doc comments have it).
     pub help: &'static str,
-    pub check: Check,
-    pub kind: Kind,
+    pub(crate) check: Check,
+    pub(crate) kind: Kind,
     /// A serial port setting that `mbgate sim` and the client take as flags too.
-    pub port: bool,
+    pub(crate) port: bool,
     /// The key of the section this one must not exceed, and why.
-    pub at_most: Option<(&'static str, &'static str)>,
+    pub(crate) at_most: Option<(&'static str, &'static str)>,
     /// Checks a value and sets this key in a configuration; the error says why,
     /// without the key.
-    pub set: fn(&mut Config, &Raw) -> Result<(), String>,
+    pub(crate) set: fn(&mut Config, &Raw) -> Result<(), String>,
     /// The value of this key in a configuration, as written in a TOML file.
     pub get: fn(&Config) -> String,
 }
 
 /// What a key's value is, for parsing flags and for messages.
 #[derive(Debug, Clone, Copy)]
-pub enum Kind {
+pub(crate) enum Kind {
     Int,
     Bool,
     Str,
@@ -285,7 +292,7 @@ pub enum Kind {
 
 /// What values a key accepts beyond its type.
 #[derive(Debug, Clone, Copy)]
-pub enum Check {
+pub(crate) enum Check {
     Any,
     /// An inclusive integer range, and how to say it when not "between MIN and MAX".
     Range(i128, i128, Option<&'static str>),
@@ -322,8 +329,11 @@ impl Check {
 /// A value as found in the file or given as a flag, before it is checked.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Raw {
+    /// A TOML integer, or a flag's value that parses as one.
     Int(i128),
+    /// A TOML boolean, or a flag's `true`/`false`.
     Bool(bool),
+    /// A TOML string, or a flag's value taken as text.
     Str(String),
     /// Any other TOML value, as described in messages (`floating point `1.5``).
     Other(String),
@@ -342,7 +352,7 @@ impl Raw {
 }
 
 /// A type a setting can have.
-pub trait Setting: Sized {
+pub(crate) trait Setting: Sized {
     const KIND: Kind;
     /// The value `raw` stands for, if it has the right type and passes `check`.
     fn read(raw: &Raw, check: &Check) -> Result<Self, String>;
@@ -387,16 +397,16 @@ setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
 const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
 
 /// Parses a `tcp.listen` / `--listen` value.
-pub fn parse_listen(s: &str) -> Result<SocketAddr, String> {
+pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
     s.trim()
         .parse()
         .map_err(|_| format!("expected {LISTEN_EXPECTED}, got {s:?}"))
 }
 
 /// A key above the key it must not exceed (`at_most` in [`settings!`]).
-pub struct Conflict {
-    pub key: &'static Key,
-    pub other: &'static Key,
+pub(crate) struct Conflict {
+    pub(crate) key: &'static Key,
+    pub(crate) other: &'static Key,
     value: i128,
     limit: i128,
     why: &'static str,
@@ -404,7 +414,7 @@ pub struct Conflict {
 
 impl Conflict {
     /// The message, with the section's keys under `prefix` (`relay.`).
-    pub fn message(&self, prefix: &str) -> String {
+    pub(crate) fn message(&self, prefix: &str) -> String {
         let (other, limit, value, why) = (self.other.name, self.limit, self.value, self.why);
         format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
     }
@@ -414,7 +424,7 @@ impl Config {
     /// The first pair of keys whose values contradict each other, if any. Refused
     /// rather than one silently capped: the operator meant one of them and mbgate
     /// cannot tell which.
-    pub fn conflict(&self) -> Option<Conflict> {
+    pub(crate) fn conflict(&self) -> Option<Conflict> {
         KEYS.iter().find_map(|key| {
             let (other, why) = key.at_most?;
             let other = KEYS

@@ -10,12 +10,12 @@
 
 const HEX: &[u8; 16] = b"0123456789ABCDEF";
 /// `:` + address, function code and LRC (6 characters) + CR LF.
-pub const MIN_FRAME: usize = 9;
+pub(crate) const MIN_FRAME: usize = 9;
 /// `:` + 2 × (address + 253-byte PDU + LRC) + CR LF.
-pub const MAX_FRAME: usize = 1 + 2 * 255 + 2;
+pub(crate) const MAX_FRAME: usize = 1 + 2 * 255 + 2;
 
 /// The longitudinal redundancy check: the two's complement of the byte sum.
-pub fn lrc(bytes: &[u8]) -> u8 {
+pub(crate) fn lrc(bytes: &[u8]) -> u8 {
     bytes
         .iter()
         .fold(0u8, |a, &b| a.wrapping_add(b))
@@ -62,7 +62,7 @@ pub fn decode(frame: &[u8]) -> Option<(u8, Vec<u8>)> {
 
 /// What the front of a buffer holds.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Scan {
+pub(crate) enum Scan {
     /// This many bytes cannot belong to a frame (before a colon, or a frame cut short
     /// by a new colon): drop them.
     Garbage(usize),
@@ -73,7 +73,7 @@ pub enum Scan {
 }
 
 /// Finds the frame at the front of `buf`.
-pub fn scan(buf: &[u8]) -> Scan {
+pub(crate) fn scan(buf: &[u8]) -> Scan {
     match buf.iter().position(|&b| b == b':') {
         None if buf.is_empty() => Scan::More,
         None => Scan::Garbage(buf.len()),

@@ -1,5 +1,5 @@
 //! One framer for the serial side's three framings: MBAP (resynchronising,
-//! [`super::resync`]), RTU and ASCII ([`super::serial`]). The relay, the simulator and
+//! `super::resync`), RTU and ASCII ([`super::serial`]). The relay, the simulator and
 //! the client all decode through it: bytes in with [`push`](Framer::push), frames out
 //! with [`next_frame`](Framer::next_frame), bytes for the wire with
 //! [`encode`](Framer::encode), and one count of the bytes dropped.
@@ -86,7 +86,7 @@ pub struct Framer {
 
 impl Framer {
     /// The framer for a line of this framing.
-    pub fn new(framing: Framing) -> Self {
+    pub(crate) fn new(framing: Framing) -> Self {
         match framing {
             Framing::Mbap => Self::mbap(),
             Framing::Rtu => Self::serial(Codec::Rtu),
@@ -115,7 +115,7 @@ impl Framer {
     }
 
     /// RTU or ASCII; `None` for MBAP.
-    pub fn codec(&self) -> Option<Codec> {
+    pub(crate) fn codec(&self) -> Option<Codec> {
         match &self.kind {
             Kind::Mbap(_) => None,
             Kind::Line(d) => Some(d.codec()),
@@ -149,14 +149,14 @@ impl Framer {
 
     /// The line has been quiet for the silence that ends a frame, since the last byte
     /// pushed (MBAP: see [`Resync::pause`]; RTU and ASCII are told by `quiet`).
-    pub fn pause(&mut self) {
+    pub(crate) fn pause(&mut self) {
         if let Kind::Mbap(d) = &mut self.kind {
             d.pause();
         }
     }
 
     /// Has the line paused since the last byte pushed (MBAP)?
-    pub fn paused(&self) -> bool {
+    pub(crate) fn paused(&self) -> bool {
         match &self.kind {
             Kind::Mbap(d) => d.paused(),
             Kind::Line(_) => false,
@@ -165,7 +165,7 @@ impl Framer {
 
     /// Does a quiet line end a partial frame? MBAP (the frame gap) and RTU (3.5
     /// character times) yes; ASCII only ends at a line feed.
-    pub fn silence_ends_frames(&self) -> bool {
+    pub(crate) fn silence_ends_frames(&self) -> bool {
         match &self.kind {
             Kind::Mbap(_) => true,
             Kind::Line(d) => d.silence_ends_frames(),
@@ -210,7 +210,7 @@ impl Framer {
 
     /// Forgets every buffered byte (the port was reopened, or nothing before a request
     /// can be its reply); they count as dropped. Returns how many.
-    pub fn clear(&mut self) -> usize {
+    pub(crate) fn clear(&mut self) -> usize {
         match &mut self.kind {
             Kind::Mbap(d) => {
                 let n = d.buffered();
@@ -244,13 +244,13 @@ impl Framer {
     }
 
     /// Bytes dropped since the last call: what a counter adds.
-    pub fn take_dropped(&mut self) -> u64 {
+    pub(crate) fn take_dropped(&mut self) -> u64 {
         let now = self.dropped();
         now - std::mem::replace(&mut self.dropped_taken, now)
     }
 
     /// MBAP frames that what followed them refuted, so far.
-    pub fn refuted(&self) -> u64 {
+    pub(crate) fn refuted(&self) -> u64 {
         match &self.kind {
             Kind::Mbap(d) => d.stats().refuted,
             Kind::Line(_) => 0,
@@ -258,7 +258,7 @@ impl Framer {
     }
 
     /// Frames refuted since the last call: what a counter adds.
-    pub fn take_refuted(&mut self) -> u64 {
+    pub(crate) fn take_refuted(&mut self) -> u64 {
         let now = self.refuted();
         now - std::mem::replace(&mut self.refuted_taken, now)
     }

@@ -1,6 +1,6 @@
 //! The one table of function codes (Modbus Application Protocol V1.1b3 §6, docs/protocol.md
 //! §1): each public code's request shape, reply shape, whether it only reads, and its
-//! quantity limits. Every check derives from [`TABLE`]: TCP request validation and reply
+//! quantity limits. Every check derives from `TABLE`: TCP request validation and reply
 //! matching ([`super::pdu`]), RTU frame lengths ([`super::rtu`]), the MBAP decoders'
 //! plausible function codes, the simulator and the client. Adding a function code is
 //! one entry here.
@@ -28,25 +28,26 @@ use std::fmt;
 pub struct FunctionCode(u8);
 
 impl FunctionCode {
-    pub const READ_COILS: Self = Self(0x01);
-    pub const READ_DISCRETE_INPUTS: Self = Self(0x02);
+    pub(crate) const READ_COILS: Self = Self(0x01);
+    pub(crate) const READ_DISCRETE_INPUTS: Self = Self(0x02);
+    /// FC 03, read holding registers (V1.1b3 §6.3).
     pub const READ_HOLDING_REGISTERS: Self = Self(0x03);
-    pub const READ_INPUT_REGISTERS: Self = Self(0x04);
-    pub const WRITE_SINGLE_COIL: Self = Self(0x05);
-    pub const WRITE_SINGLE_REGISTER: Self = Self(0x06);
-    pub const READ_EXCEPTION_STATUS: Self = Self(0x07);
-    pub const DIAGNOSTICS: Self = Self(0x08);
-    pub const GET_COMM_EVENT_COUNTER: Self = Self(0x0B);
-    pub const GET_COMM_EVENT_LOG: Self = Self(0x0C);
-    pub const WRITE_MULTIPLE_COILS: Self = Self(0x0F);
-    pub const WRITE_MULTIPLE_REGISTERS: Self = Self(0x10);
-    pub const REPORT_SERVER_ID: Self = Self(0x11);
-    pub const READ_FILE_RECORD: Self = Self(0x14);
-    pub const WRITE_FILE_RECORD: Self = Self(0x15);
-    pub const MASK_WRITE_REGISTER: Self = Self(0x16);
-    pub const READ_WRITE_MULTIPLE_REGISTERS: Self = Self(0x17);
-    pub const READ_FIFO_QUEUE: Self = Self(0x18);
-    pub const ENCAPSULATED_INTERFACE: Self = Self(0x2B);
+    pub(crate) const READ_INPUT_REGISTERS: Self = Self(0x04);
+    pub(crate) const WRITE_SINGLE_COIL: Self = Self(0x05);
+    pub(crate) const WRITE_SINGLE_REGISTER: Self = Self(0x06);
+    pub(crate) const READ_EXCEPTION_STATUS: Self = Self(0x07);
+    pub(crate) const DIAGNOSTICS: Self = Self(0x08);
+    pub(crate) const GET_COMM_EVENT_COUNTER: Self = Self(0x0B);
+    pub(crate) const GET_COMM_EVENT_LOG: Self = Self(0x0C);
+    pub(crate) const WRITE_MULTIPLE_COILS: Self = Self(0x0F);
+    pub(crate) const WRITE_MULTIPLE_REGISTERS: Self = Self(0x10);
+    pub(crate) const REPORT_SERVER_ID: Self = Self(0x11);
+    pub(crate) const READ_FILE_RECORD: Self = Self(0x14);
+    pub(crate) const WRITE_FILE_RECORD: Self = Self(0x15);
+    pub(crate) const MASK_WRITE_REGISTER: Self = Self(0x16);
+    pub(crate) const READ_WRITE_MULTIPLE_REGISTERS: Self = Self(0x17);
+    pub(crate) const READ_FIFO_QUEUE: Self = Self(0x18);
+    pub(crate) const ENCAPSULATED_INTERFACE: Self = Self(0x2B);
 
     /// The code of this wire byte, whatever it is.
     pub const fn new(byte: u8) -> Self {
@@ -54,43 +55,43 @@ impl FunctionCode {
     }
 
     /// The wire byte.
-    pub const fn get(self) -> u8 {
+    pub(crate) const fn get(self) -> u8 {
         self.0
     }
 
     /// The high bit: an exception reply (V1.1b3 §7).
-    pub const fn is_exception(self) -> bool {
+    pub(crate) const fn is_exception(self) -> bool {
         self.0 & 0x80 != 0
     }
 
     /// The request's code this reply code answers (the high bit cleared).
-    pub const fn base(self) -> Self {
+    pub(crate) const fn base(self) -> Self {
         Self(self.0 & 0x7F)
     }
 
     /// The exception reply's code for this request's code.
-    pub const fn exception(self) -> Self {
+    pub(crate) const fn exception(self) -> Self {
         Self(self.0 | 0x80)
     }
 
     /// Can a master send it at all? 0 and the exception codes cannot be requests.
-    pub const fn can_be_request(self) -> bool {
+    pub(crate) const fn can_be_request(self) -> bool {
         self.0 != 0 && !self.is_exception()
     }
 
-    /// Its row of [`TABLE`], if it is a public code (an exception code has none).
+    /// Its row of `TABLE`, if it is a public code (an exception code has none).
     pub fn spec(self) -> Option<&'static Spec> {
         let row = *INDEX.get(usize::from(self.0))?;
         TABLE.get(usize::from(row))
     }
 
     /// A public code of the application protocol (in [`TABLE`]).
-    pub fn is_public(self) -> bool {
+    pub(crate) fn is_public(self) -> bool {
         self.spec().is_some()
     }
 
     /// Could a device send a reply with this code: a public one, or its exception form?
-    pub fn is_reply(self) -> bool {
+    pub(crate) fn is_reply(self) -> bool {
         self.base().is_public()
     }
 
@@ -101,7 +102,7 @@ impl FunctionCode {
     }
 
     /// The shape of a request with this code ([`Shape::Open`] when unknown).
-    pub fn request_shape(self) -> Shape {
+    pub(crate) fn request_shape(self) -> Shape {
         self.spec().map_or(Shape::Open, |s| s.request)
     }
 
@@ -142,40 +143,40 @@ impl fmt::Display for FunctionCode {
 }
 
 /// The exception code of an exception reply (V1.1b3 §7). Any byte is representable; a
-/// device may only answer with the [known](ExceptionCode::is_known) ones.
+/// device may only answer with the known (`ExceptionCode::is_known`) ones.
 #[derive(Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
 pub struct ExceptionCode(u8);
 
 impl ExceptionCode {
-    pub const ILLEGAL_FUNCTION: Self = Self(0x01);
-    pub const ILLEGAL_DATA_ADDRESS: Self = Self(0x02);
-    pub const ILLEGAL_DATA_VALUE: Self = Self(0x03);
-    pub const SERVER_DEVICE_FAILURE: Self = Self(0x04);
-    pub const ACKNOWLEDGE: Self = Self(0x05);
-    pub const SERVER_DEVICE_BUSY: Self = Self(0x06);
-    pub const MEMORY_PARITY_ERROR: Self = Self(0x08);
+    pub(crate) const ILLEGAL_FUNCTION: Self = Self(0x01);
+    pub(crate) const ILLEGAL_DATA_ADDRESS: Self = Self(0x02);
+    pub(crate) const ILLEGAL_DATA_VALUE: Self = Self(0x03);
+    pub(crate) const SERVER_DEVICE_FAILURE: Self = Self(0x04);
+    pub(crate) const ACKNOWLEDGE: Self = Self(0x05);
+    pub(crate) const SERVER_DEVICE_BUSY: Self = Self(0x06);
+    pub(crate) const MEMORY_PARITY_ERROR: Self = Self(0x08);
     /// The gateway cannot route the request: no serial port, or shutting down.
-    pub const GATEWAY_PATH_UNAVAILABLE: Self = Self(0x0A);
+    pub(crate) const GATEWAY_PATH_UNAVAILABLE: Self = Self(0x0A);
     /// The device did not answer in time.
-    pub const GATEWAY_TARGET_FAILED: Self = Self(0x0B);
+    pub(crate) const GATEWAY_TARGET_FAILED: Self = Self(0x0B);
 
     /// The code of this wire byte, whatever it is.
-    pub const fn new(byte: u8) -> Self {
+    pub(crate) const fn new(byte: u8) -> Self {
         Self(byte)
     }
 
     /// The wire byte.
-    pub const fn get(self) -> u8 {
+    pub(crate) const fn get(self) -> u8 {
         self.0
     }
 
     /// Is it one of the codes of V1.1b3 §7, the only ones a device may answer with?
-    pub fn is_known(self) -> bool {
+    pub(crate) fn is_known(self) -> bool {
         self.name().is_some()
     }
 
     /// Its name in V1.1b3 §7.
-    pub fn name(self) -> Option<&'static str> {
+    pub(crate) fn name(self) -> Option<&'static str> {
         Some(match self {
             Self::ILLEGAL_FUNCTION => "illegal function",
             Self::ILLEGAL_DATA_ADDRESS => "illegal data address",
@@ -223,7 +224,7 @@ impl fmt::Display for ExceptionCode {
 
 /// What a request may do to the device.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Access {
+pub(crate) enum Access {
     /// It only reads: resending it is harmless.
     Read,
     /// It may act on the device: resent only with `retry_writes`.
@@ -232,7 +233,7 @@ pub enum Access {
 
 /// What a quantity counts, and so how many data bytes it takes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Item {
+pub(crate) enum Item {
     /// Coils or discrete inputs, packed 8 to a byte.
     Bits,
     /// 16-bit registers, 2 bytes each.
@@ -241,7 +242,7 @@ pub enum Item {
 
 impl Item {
     /// Data bytes for `qty` items.
-    pub fn bytes(self, qty: usize) -> usize {
+    pub(crate) fn bytes(self, qty: usize) -> usize {
         match self {
             Item::Bits => qty.div_ceil(8),
             Item::Registers => 2 * qty,
@@ -253,19 +254,20 @@ impl Item {
 /// limit (V1.1b3 §6). A quantity written is followed by the byte count of the data.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Quantity {
-    pub at: usize,
+    pub(crate) at: usize,
+    /// The most items one request may carry (125 registers for FC 03, for one).
     pub max: u16,
-    pub item: Item,
+    pub(crate) item: Item,
 }
 
 impl Quantity {
     /// The quantity in `pdu`, if the field is there.
-    pub fn of(&self, pdu: &[u8]) -> Option<usize> {
+    pub(crate) fn of(&self, pdu: &[u8]) -> Option<usize> {
         word(pdu, self.at)
     }
 
     /// Within 1..=max?
-    pub fn allows(&self, qty: usize) -> bool {
+    pub(crate) fn allows(&self, qty: usize) -> bool {
         (1..=usize::from(self.max)).contains(&qty)
     }
 }
@@ -279,9 +281,13 @@ pub enum Shape {
     /// A byte count at offset `at` (one byte, or two big-endian when `wide`) covers the
     /// rest; the count is at least `min` and a multiple of `step`.
     Counted {
+        /// PDU offset of the byte count.
         at: usize,
+        /// The count is two bytes, big-endian (FC 18, read FIFO queue).
         wide: bool,
+        /// The smallest count a well-formed PDU has.
         min: usize,
+        /// The count is a multiple of this (2 for registers).
         step: usize,
     },
     /// FC 08's reply: at least 5 bytes; as long as a 5-byte request it answers (most
@@ -315,7 +321,7 @@ impl Shape {
     /// The size of the PDU at the front of `pdu` (function code first), from its count
     /// field where it has one. For [`Shape::Diagnostic`], `request` is the request it
     /// answers.
-    pub fn size_for(self, request: &[u8], pdu: &[u8]) -> Size {
+    pub(crate) fn size_for(self, request: &[u8], pdu: &[u8]) -> Size {
         match self {
             Shape::Fixed(n) => Size::Exactly(n),
             Shape::Counted {
@@ -337,13 +343,13 @@ impl Shape {
         }
     }
 
-    /// [`size_for`](Shape::size_for) without a request.
+    /// `Shape::size_for` without a request.
     pub fn size(self, pdu: &[u8]) -> Size {
         self.size_for(&[], pdu)
     }
 
     /// Is `pdu` a whole PDU of this shape (the count fields' own limits included)?
-    pub fn fits(self, pdu: &[u8]) -> bool {
+    pub(crate) fn fits(self, pdu: &[u8]) -> bool {
         match self {
             Shape::Fixed(n) => pdu.len() == n,
             Shape::Counted {
@@ -368,7 +374,7 @@ impl Shape {
 
 /// What a normal reply repeats of its request.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Echo {
+pub(crate) enum Echo {
     /// Nothing (it carries data).
     No,
     /// The whole request.
@@ -381,21 +387,21 @@ pub enum Echo {
 /// of it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Spec {
-    pub code: FunctionCode,
-    pub name: &'static str,
-    pub access: Access,
+    pub(crate) code: FunctionCode,
+    pub(crate) name: &'static str,
+    pub(crate) access: Access,
     /// The request's size.
-    pub request: Shape,
+    pub(crate) request: Shape,
     /// What it reads: the reply's byte count is that many items.
     pub read: Option<Quantity>,
     /// What it writes: the byte count right after the field (at `at + 2`) covers that
     /// many items.
-    pub write: Option<Quantity>,
+    pub(crate) write: Option<Quantity>,
     /// The 16-bit value at offset 3 of request and reply is FF00 or 0000 (FC 05).
-    pub coil_value: bool,
+    pub(crate) coil_value: bool,
     /// The normal reply's size.
-    pub reply: Shape,
-    pub echo: Echo,
+    pub(crate) reply: Shape,
+    pub(crate) echo: Echo,
 }
 
 const fn row(code: FunctionCode, name: &'static str, access: Access) -> Spec {
@@ -421,7 +427,7 @@ use FunctionCode as F;
 
 /// The public function codes of the Modbus Application Protocol V1.1b3 §6, with their
 /// limits. The section of each row is in its name's comment.
-pub const TABLE: &[Spec] = &[
+pub(crate) const TABLE: &[Spec] = &[
     // §6.1, §6.2: quantity 1..=2000, the bits packed in the reply.
     Spec {
         request: Shape::Fixed(5),

@@ -5,7 +5,7 @@
 //! (fuzz/fuzz_targets/serial_decoder.rs) drive it.
 //!
 //! The check: every frame the decoder yields with a nonzero transaction id (a reply)
-//! was sent, byte for byte, or at least [`SHORTEST_FRAME`] bytes were lost around it,
+//! was sent, byte for byte, or at least `SHORTEST_FRAME` bytes were lost around it,
 //! from where its first byte was sent to where the header of what confirmed it was.
 //! Frames with id 0 are not checked: register values can spell one.
 
@@ -16,7 +16,7 @@ use super::{pdu, Adu};
 
 /// The shortest frame a device sends: an exception reply (6 + 3 bytes). A reply can
 /// only be completed by a whole frame when at least this many bytes were lost.
-pub const SHORTEST_FRAME: usize = 9;
+pub(crate) const SHORTEST_FRAME: usize = 9;
 
 /// Register values that look like pieces of MBAP headers: zeros (protocol id, length
 /// high byte, transaction ids below 256), lengths, unit and function code pairs, byte
@@ -33,7 +33,10 @@ pub const HEADER_LIKE: [u16; 13] = [
 /// Every frame is held for confirmation; `pause_confirms` says whether a pause
 /// confirms one with nothing after it (no other reply due).
 pub struct Outstanding {
+    /// The replies due, standing for their requests: a frame is accepted when it has
+    /// one's id, unit, function code and length.
     pub replies: Vec<Adu>,
+    /// A pause confirms a held frame with nothing after it.
     pub pause_confirms: bool,
 }
 
@@ -82,11 +85,12 @@ fn echoes(sent: &Adu, frame: FrameRef<'_>) -> bool {
 /// notifications (id 0) among them.
 #[derive(Debug, Clone)]
 pub struct Talk {
+    /// The frames, in the order they are sent.
     pub frames: Vec<Adu>,
 }
 
 impl Talk {
-    pub fn replies(&self) -> Vec<Adu> {
+    pub(crate) fn replies(&self) -> Vec<Adu> {
         self.frames
             .iter()
             .filter(|f| f.tid() != 0)
@@ -94,6 +98,7 @@ impl Talk {
             .collect()
     }
 
+    /// Every frame's bytes, back to back: what is sent.
     pub fn bytes(&self) -> Vec<u8> {
         self.frames
             .iter()
@@ -117,23 +122,49 @@ impl Talk {
 /// frame. Offsets and frame numbers wrap around what was sent.
 #[derive(Debug, Clone)]
 pub enum Run {
-    At { at: usize, len: usize },
-    FromBoundary { frame: usize, len: usize },
-    ToBoundary { frame: usize, len: usize },
-    Frame { frame: usize },
+    /// `len` bytes from offset `at` of what was sent.
+    At {
+        /// The offset of the first byte lost.
+        at: usize,
+        /// How many bytes are lost.
+        len: usize,
+    },
+    /// The first `len` bytes of frame `frame` on.
+    FromBoundary {
+        /// The frame whose start the run begins at.
+        frame: usize,
+        /// How many bytes are lost.
+        len: usize,
+    },
+    /// The last `len` bytes before the end of frame `frame`.
+    ToBoundary {
+        /// The frame whose end the run stops at.
+        frame: usize,
+        /// How many bytes are lost.
+        len: usize,
+    },
+    /// All of frame `frame`.
+    Frame {
+        /// The frame lost.
+        frame: usize,
+    },
 }
 
 /// What the line delivers: the bytes not lost, each with where it was sent, and the
 /// pauses (before the received byte at each offset).
 pub struct Received {
+    /// The bytes that arrived, in order.
     pub bytes: Vec<u8>,
+    /// For each byte of `bytes`, its offset in what was sent.
     pub sent_at: Vec<usize>,
+    /// For each byte sent, whether it was lost.
     pub lost: Vec<bool>,
+    /// Offsets in `bytes` before which the line paused, ascending, no repeats.
     pub pauses: Vec<usize>,
 }
 
 /// Loses the runs of `talk` and marks its pauses (offsets in what was sent).
-pub fn deliver(talk: &Talk, runs: &[Run], pauses_at: &[usize]) -> Received {
+pub(crate) fn deliver(talk: &Talk, runs: &[Run], pauses_at: &[usize]) -> Received {
     let sent = talk.bytes();
     let bounds = talk.bounds();
     let frames = talk.frames.len();
@@ -219,7 +250,7 @@ pub fn decode(judge: &impl Judge, r: &Received, cuts: &[usize]) -> Vec<(usize, A
 /// The bytes lost from where a yielded frame's first byte was sent up to where the
 /// header of what confirmed it (the first bytes received after it) was sent, or the
 /// end.
-pub fn lost_around(r: &Received, start: usize, len: usize) -> usize {
+pub(crate) fn lost_around(r: &Received, start: usize, len: usize) -> usize {
     let from = r.sent_at[start];
     let to = r
         .sent_at
@@ -230,7 +261,7 @@ pub fn lost_around(r: &Received, start: usize, len: usize) -> usize {
 }
 
 /// Runs the line and returns the first reply yielded that was not sent with fewer
-/// than [`SHORTEST_FRAME`] bytes lost around it, and how many were.
+/// than `SHORTEST_FRAME` bytes lost around it, and how many were.
 pub fn unexplained(
     talk: &Talk,
     runs: &[Run],

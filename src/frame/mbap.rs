@@ -11,13 +11,13 @@ use bytes::{Buf, BufMut, Bytes, BytesMut};
 use std::fmt;
 
 /// Bytes before the length field's payload: TID, protocol id, length.
-pub const PREFIX_LEN: usize = 6;
+pub(crate) const PREFIX_LEN: usize = 6;
 /// The MBAP header including the unit id.
-pub const HEADER_LEN: usize = 7;
+pub(crate) const HEADER_LEN: usize = 7;
 /// Smallest valid length field: unit id + function code.
-pub const MIN_LENGTH: u16 = 2;
+pub(crate) const MIN_LENGTH: u16 = 2;
 /// Largest valid length field: unit id + a 253-byte PDU.
-pub const MAX_LENGTH: u16 = 254;
+pub(crate) const MAX_LENGTH: u16 = 254;
 /// Largest whole frame.
 pub const MAX_ADU: usize = PREFIX_LEN + MAX_LENGTH as usize;
 
@@ -80,14 +80,16 @@ impl Adu {
     }
 
     /// A borrowed view of the same frame.
-    pub fn view(&self) -> FrameRef<'_> {
+    pub(crate) fn view(&self) -> FrameRef<'_> {
         FrameRef(&self.0)
     }
 
+    /// The transaction id (MBAP header bytes 0-1).
     pub fn tid(&self) -> u16 {
         self.view().tid()
     }
 
+    /// The unit id (MBAP header byte 6): the device behind the gateway.
     pub fn unit(&self) -> u8 {
         self.view().unit()
     }
@@ -98,7 +100,7 @@ impl Adu {
     }
 
     /// The function code, for looking it up in the table.
-    pub fn function_code(&self) -> FunctionCode {
+    pub(crate) fn function_code(&self) -> FunctionCode {
         self.view().function_code()
     }
 
@@ -107,11 +109,12 @@ impl Adu {
         &self.0[HEADER_LEN..]
     }
 
+    /// The whole frame, header and PDU, as on the wire.
     pub fn as_bytes(&self) -> &[u8] {
         &self.0
     }
 
-    pub fn into_bytes(self) -> Bytes {
+    pub(crate) fn into_bytes(self) -> Bytes {
         self.0
     }
 
@@ -130,29 +133,29 @@ impl Adu {
 pub struct FrameRef<'a>(&'a [u8]);
 
 impl<'a> FrameRef<'a> {
-    pub fn tid(&self) -> u16 {
+    pub(crate) fn tid(&self) -> u16 {
         u16::from_be_bytes([self.0[0], self.0[1]])
     }
 
-    pub fn unit(&self) -> u8 {
+    pub(crate) fn unit(&self) -> u8 {
         self.0[6]
     }
 
     /// The function code's wire byte.
-    pub fn function(&self) -> u8 {
+    pub(crate) fn function(&self) -> u8 {
         self.0[7]
     }
 
     /// The function code, for looking it up in the table.
-    pub fn function_code(&self) -> FunctionCode {
+    pub(crate) fn function_code(&self) -> FunctionCode {
         FunctionCode::new(self.0[7])
     }
 
-    pub fn pdu(&self) -> &'a [u8] {
+    pub(crate) fn pdu(&self) -> &'a [u8] {
         &self.0[HEADER_LEN..]
     }
 
-    pub fn as_bytes(&self) -> &'a [u8] {
+    pub(crate) fn as_bytes(&self) -> &'a [u8] {
         self.0
     }
 
@@ -171,8 +174,10 @@ impl fmt::Debug for Adu {
 /// Why the strict decoder rejected a master's frame. Any of these closes the connection.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 pub enum StrictError {
+    /// The protocol id is not 0 (Modbus); the value found.
     #[error("protocol id {0:#06x}, expected 0x0000")]
     ProtocolId(u16),
+    /// The length field (unit id and PDU) is outside what a PDU can be; the value found.
     #[error("length field {0}, expected {MIN_LENGTH}..={MAX_LENGTH}")]
     Length(u16),
 }

@@ -9,7 +9,7 @@ pub mod lossy;
 pub mod mbap;
 pub mod pdu;
 pub mod request;
-pub mod resync;
+pub(crate) mod resync;
 pub mod rtu;
 pub mod serial;
 

@@ -2,12 +2,12 @@
 //! shape their replies must have, and which replies could exist at all.
 //!
 //! All functions take a PDU: the function code followed by its data. What they know of
-//! each code comes from the one table, [`super::function::TABLE`].
+//! each code comes from the one table, `super::function::TABLE`.
 
 use super::function::{Echo, ExceptionCode, FunctionCode, Item, Spec};
 
 /// Exception codes a device may answer with.
-pub fn is_exception_code(code: u8) -> bool {
+pub(crate) fn is_exception_code(code: u8) -> bool {
     ExceptionCode::new(code).is_known()
 }
 
@@ -125,7 +125,7 @@ pub fn reply_matches(request: &[u8], reply: &[u8]) -> bool {
 /// The answer a device gives to a write request, made from the request itself: FC 05,
 /// 06 and 16 echo it whole; 0F and 10 echo address and quantity. Other requests are
 /// echoed whole. (What a master gets for a broadcast with `broadcast_reply = "echo"`.)
-pub fn write_echo(request: &[u8]) -> Vec<u8> {
+pub(crate) fn write_echo(request: &[u8]) -> Vec<u8> {
     let echo = request
         .first()
         .and_then(|&c| FunctionCode::new(c).spec())

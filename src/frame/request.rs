@@ -27,27 +27,71 @@ use super::pdu;
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Request {
     /// FC 01.
-    ReadCoils { addr: u16, qty: u16 },
+    ReadCoils {
+        /// The first coil's address.
+        addr: u16,
+        /// How many coils, 1..=2000.
+        qty: u16,
+    },
     /// FC 02.
-    ReadDiscreteInputs { addr: u16, qty: u16 },
+    ReadDiscreteInputs {
+        /// The first input's address.
+        addr: u16,
+        /// How many inputs, 1..=2000.
+        qty: u16,
+    },
     /// FC 03.
-    ReadHoldingRegisters { addr: u16, qty: u16 },
+    ReadHoldingRegisters {
+        /// The first register's address.
+        addr: u16,
+        /// How many registers, 1..=125.
+        qty: u16,
+    },
     /// FC 04.
-    ReadInputRegisters { addr: u16, qty: u16 },
+    ReadInputRegisters {
+        /// The first register's address.
+        addr: u16,
+        /// How many registers, 1..=125.
+        qty: u16,
+    },
     /// FC 05: `true` is sent as FF00, `false` as 0000.
-    WriteSingleCoil { addr: u16, value: bool },
+    WriteSingleCoil {
+        /// The coil's address.
+        addr: u16,
+        /// On (`true`) or off.
+        value: bool,
+    },
     /// FC 06.
-    WriteSingleRegister { addr: u16, value: u16 },
+    WriteSingleRegister {
+        /// The register's address.
+        addr: u16,
+        /// The value written.
+        value: u16,
+    },
     /// FC 0F.
-    WriteMultipleCoils { addr: u16, values: Vec<bool> },
+    WriteMultipleCoils {
+        /// The first coil's address.
+        addr: u16,
+        /// The coils from `addr` on, 1..=1968 of them.
+        values: Vec<bool>,
+    },
     /// FC 10.
-    WriteMultipleRegisters { addr: u16, values: Vec<u16> },
+    WriteMultipleRegisters {
+        /// The first register's address.
+        addr: u16,
+        /// The registers from `addr` on, 1..=123 of them.
+        values: Vec<u16>,
+    },
     /// FC 17: the device writes `values` at `write_addr`, then reads `read_qty`
     /// registers at `read_addr`, in one transaction.
     ReadWriteMultipleRegisters {
+        /// The first register read.
         read_addr: u16,
+        /// How many registers are read, 1..=125.
         read_qty: u16,
+        /// The first register written.
         write_addr: u16,
+        /// The registers written from `write_addr` on, 1..=121 of them.
         values: Vec<u16>,
     },
 }
@@ -55,17 +99,26 @@ pub enum Request {
 /// A request outside the limits of docs/protocol.md §1: it would never be sent.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum RequestError {
+    /// Too few or too many items for the function code.
     #[error("{what} must be {min}..={max}, got {got}")]
     Quantity {
+        /// What is counted, as the message says it ("coils", "registers").
         what: &'static str,
+        /// The fewest allowed (1).
         min: usize,
+        /// The most the function code carries (docs/protocol.md §1).
         max: usize,
+        /// How many were asked for.
         got: usize,
     },
+    /// The block would run past the last address (65535).
     #[error("address {addr} + {qty} {what} runs past address 65535")]
     Range {
+        /// What is counted, as the message says it.
         what: &'static str,
+        /// The block's first address.
         addr: u16,
+        /// How many items it holds.
         qty: usize,
     },
 }
@@ -97,7 +150,7 @@ fn block(what: &'static str, addr: u16, qty: usize, max: usize) -> Result<(), Re
 
 /// Packs bits the Modbus way (docs/protocol.md §1): the first bit is the LSB of the first
 /// byte; unused high bits of the last byte are zero.
-pub fn pack_bits(bits: &[bool]) -> Vec<u8> {
+pub(crate) fn pack_bits(bits: &[bool]) -> Vec<u8> {
     let mut out = vec![0u8; bits.len().div_ceil(8)];
     for (i, _) in bits.iter().enumerate().filter(|(_, &b)| b) {
         out[i / 8] |= 1 << (i % 8);
@@ -106,7 +159,7 @@ pub fn pack_bits(bits: &[bool]) -> Vec<u8> {
 }
 
 /// The first `n` bits of `bytes`, unpacked the Modbus way (docs/protocol.md §1).
-pub fn unpack_bits(bytes: &[u8], n: usize) -> Vec<bool> {
+pub(crate) fn unpack_bits(bytes: &[u8], n: usize) -> Vec<bool> {
     (0..n.min(bytes.len() * 8))
         .map(|i| bytes[i / 8] & (1 << (i % 8)) != 0)
         .collect()
@@ -120,7 +173,7 @@ fn put_words(out: &mut Vec<u8>, words: &[u16]) {
 
 impl Request {
     /// The function code (docs/protocol.md §1 table).
-    pub fn function(&self) -> Fc {
+    pub(crate) fn function(&self) -> Fc {
         match self {
             Request::ReadCoils { .. } => Fc::READ_COILS,
             Request::ReadDiscreteInputs { .. } => Fc::READ_DISCRETE_INPUTS,
@@ -136,7 +189,7 @@ impl Request {
 
     /// Checks the limits of docs/protocol.md §1 (quantities, and blocks that stay inside the
     /// address space).
-    pub fn validate(&self) -> Result<(), RequestError> {
+    pub(crate) fn validate(&self) -> Result<(), RequestError> {
         let read = || limit(self.function(), false);
         let write = || limit(self.function(), true);
         match self {
@@ -168,7 +221,7 @@ impl Request {
     }
 
     /// The request PDU (function code and data, docs/protocol.md §1 table), after
-    /// [`validate`](Request::validate).
+    /// `Request::validate`.
     pub fn pdu(&self) -> Result<Vec<u8>, RequestError> {
         self.validate()?;
         let mut p = vec![self.function().get()];
@@ -215,19 +268,54 @@ impl Request {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Reply {
     /// FC 01, 02: the bits asked for, padding dropped; `addr` is the first one's.
-    Bits { addr: u16, values: Vec<bool> },
+    Bits {
+        /// The first bit's address (the request's).
+        addr: u16,
+        /// As many bits as the request asked for.
+        values: Vec<bool>,
+    },
     /// FC 03, 04, 17: the registers read; `addr` is the first one's.
-    Registers { addr: u16, values: Vec<u16> },
+    Registers {
+        /// The first register's address (the request's).
+        addr: u16,
+        /// The registers read, in address order.
+        values: Vec<u16>,
+    },
     /// FC 05: the echo of the coil written.
-    WroteCoil { addr: u16, value: bool },
+    WroteCoil {
+        /// The coil's address.
+        addr: u16,
+        /// On (`true`, FF00) or off (0000).
+        value: bool,
+    },
     /// FC 06: the echo of the register written.
-    WroteRegister { addr: u16, value: u16 },
+    WroteRegister {
+        /// The register's address.
+        addr: u16,
+        /// The value it now holds.
+        value: u16,
+    },
     /// FC 0F (`coils`) or 10: where and how many were written.
-    WroteMany { addr: u16, qty: u16, coils: bool },
+    WroteMany {
+        /// The first address written.
+        addr: u16,
+        /// How many coils or registers were written.
+        qty: u16,
+        /// Coils (FC 0F) rather than registers (FC 10).
+        coils: bool,
+    },
     /// Any other function code (no decoding known): the reply PDU's data.
-    Raw { data: Vec<u8> },
+    Raw {
+        /// The reply PDU after its function code.
+        data: Vec<u8>,
+    },
     /// Exception response: function code | 0x80, then the code (docs/protocol.md §1).
-    Exception { function: Fc, code: ExceptionCode },
+    Exception {
+        /// The function code of the request (the high bit cleared).
+        function: Fc,
+        /// Why the device refused (Modbus Application Protocol V1.1b3 §7).
+        code: ExceptionCode,
+    },
 }
 
 /// A reply PDU that does not answer the request: wrong function code, or a shape the
@@ -235,8 +323,8 @@ pub enum Reply {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("reply PDU {reply} does not answer request PDU {request}")]
 pub struct Mismatch {
-    pub request: String,
-    pub reply: String,
+    pub(crate) request: String,
+    pub(crate) reply: String,
 }
 
 fn word(p: &[u8], at: usize) -> u16 {
@@ -290,7 +378,7 @@ pub fn decode_reply(request: &[u8], reply: &[u8]) -> Result<Reply, Mismatch> {
 }
 
 /// The name of an exception code (docs/protocol.md §1).
-pub fn exception_name(code: u8) -> &'static str {
+pub(crate) fn exception_name(code: u8) -> &'static str {
     ExceptionCode::new(code)
         .name()
         .unwrap_or("unknown exception")

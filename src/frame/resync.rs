@@ -75,7 +75,7 @@ pub trait Judge {
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         false
     }
-    /// May a pause ([`Resync::pause`]) confirm this held frame when nothing follows
+    /// May a pause (`Resync::pause`) confirm this held frame when nothing follows
     /// it, or must the line be quiet for the whole frame gap? Judges that expect
     /// another frame soon (other replies due) say no: a pause inside that next frame,
     /// right after a byte this frame borrowed, must not pass for the end of the talk.
@@ -118,7 +118,7 @@ impl Judge for ReplyJudge {
 /// that takes requests back to back.
 #[derive(Debug, Default, Clone, Copy)]
 pub struct RequestJudge {
-    pub confirm: bool,
+    pub(crate) confirm: bool,
 }
 
 impl Judge for RequestJudge {
@@ -168,10 +168,10 @@ impl<J: Judge> Judge for Confirmed<J> {
 /// What the decoder has done so far.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
 pub struct ResyncStats {
-    pub frames: u64,
+    pub(crate) frames: u64,
     pub dropped_bytes: u64,
     /// Accepted frames that the bytes after them refuted.
-    pub refuted: u64,
+    pub(crate) refuted: u64,
 }
 
 /// The decoder. Feed it with [`push`](Resync::push), take frames with
@@ -232,6 +232,7 @@ fn candidate(buf: &[u8], judge: &impl Judge) -> Candidate {
 }
 
 impl Resync {
+    /// A decoder with nothing buffered.
     pub fn new() -> Self {
         Self::default()
     }
@@ -244,7 +245,7 @@ impl Resync {
     /// The line has been quiet, since the last byte pushed, for the silence that ends a
     /// frame (a few character times; see the module notes). Bytes pushed after it are
     /// known to have come after a pause.
-    pub fn pause(&mut self) {
+    pub(crate) fn pause(&mut self) {
         let at = self.buf.len();
         if at > 0 && self.pauses.last() != Some(&at) {
             self.pauses.push(at);
@@ -252,7 +253,7 @@ impl Resync {
     }
 
     /// Has the line paused since the last byte pushed?
-    pub fn paused(&self) -> bool {
+    pub(crate) fn paused(&self) -> bool {
         !self.buf.is_empty() && self.pauses.last() == Some(&self.buf.len())
     }
 
@@ -264,17 +265,18 @@ impl Resync {
     /// Bytes taken from the front so far, yielded or dropped: the offset, in everything
     /// pushed, of the first byte still held. A frame just yielded began at
     /// `consumed() - its length`.
-    pub fn consumed(&self) -> u64 {
+    pub(crate) fn consumed(&self) -> u64 {
         self.consumed
     }
 
+    /// What the decoder has dropped and why, since it was made.
     pub fn stats(&self) -> ResyncStats {
         self.stats
     }
 
     /// Forgets every buffered byte (the port was closed or reopened); they count as
     /// dropped.
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         self.stats.dropped_bytes += self.buf.len() as u64;
         self.skip(self.buf.len());
     }

@@ -19,12 +19,12 @@ use crc::{Crc, CRC_16_MODBUS};
 const MODBUS: Crc<u16> = Crc::<u16>::new(&CRC_16_MODBUS);
 
 /// Address, function code, and the two CRC bytes: the least a frame holds.
-pub const MIN_FRAME: usize = 4;
+pub(crate) const MIN_FRAME: usize = 4;
 /// Address + a 253-byte PDU + CRC.
-pub const MAX_FRAME: usize = 256;
+pub(crate) const MAX_FRAME: usize = 256;
 
 /// The Modbus CRC-16 of `bytes` (sent low byte first).
-pub fn crc16(bytes: &[u8]) -> u16 {
+pub(crate) fn crc16(bytes: &[u8]) -> u16 {
     MODBUS.checksum(bytes)
 }
 
@@ -72,7 +72,7 @@ fn framed(size: Size) -> Length {
 /// `request` (a PDU): from the function code's reply shape in the table
 /// ([`super::function::TABLE`]), and its byte count where it has one. An exception is
 /// known at once (5 bytes), so it never waits for silence.
-pub fn reply_length(request: &[u8], buf: &[u8]) -> Length {
+pub(crate) fn reply_length(request: &[u8], buf: &[u8]) -> Length {
     let Some(&code) = buf.get(1) else {
         return Length::More;
     };

@@ -8,7 +8,7 @@
 //! - RTU: complete at the length the function code (and byte count) calls for, so a
 //!   reply, and an exception at once, is taken when its last byte arrives; a function
 //!   code of unknown shape is ended by silence. A frame whose CRC is wrong is
-//!   [`Decoded::Corrupt`].
+//!   `Decoded::Corrupt`.
 //! - ASCII: complete at the line feed; a new colon drops what came before it. Silence
 //!   does not cut an ASCII frame (the spec allows a second between characters).
 
@@ -17,7 +17,10 @@ use super::{ascii, rtu};
 /// Which serial framing.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Codec {
+    /// Modbus RTU: binary, CRC-16, frames ended by silence (Modbus over Serial Line
+    /// V1.02 §2.5.1).
     Rtu,
+    /// Modbus ASCII: `:`, hex digits, LRC, CR LF (Modbus over Serial Line V1.02 §2.5.2).
     Ascii,
 }
 
@@ -32,7 +35,7 @@ impl Codec {
 
     /// The length of that frame for a PDU of `pdu_len` bytes: address and CRC (RTU);
     /// colon, each byte as two hex digits with the LRC, CR LF (ASCII).
-    pub fn encoded_len(self, pdu_len: usize) -> usize {
+    pub(crate) fn encoded_len(self, pdu_len: usize) -> usize {
         match self {
             Codec::Rtu => 1 + pdu_len + 2,
             Codec::Ascii => 1 + 2 * (1 + pdu_len + 1) + 2,
@@ -51,7 +54,7 @@ pub enum Expect<'a> {
 
 /// One frame off the line.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Decoded {
+pub(crate) enum Decoded {
     /// Its check (CRC or LRC) held.
     Frame { unit: u8, pdu: Vec<u8> },
     /// This many bytes made a frame whose check failed, or could not be one.
@@ -64,44 +67,44 @@ pub enum Decoded {
 /// The incremental decoder: bytes in with [`push`](Decoder::push), frames out with
 /// [`next`](Decoder::next); any chunking gives the same frames.
 #[derive(Debug)]
-pub struct Decoder {
+pub(crate) struct Decoder {
     codec: Codec,
     buf: Vec<u8>,
 }
 
 impl Decoder {
-    pub fn new(codec: Codec) -> Self {
+    pub(crate) fn new(codec: Codec) -> Self {
         Self {
             codec,
             buf: Vec::new(),
         }
     }
 
-    pub fn codec(&self) -> Codec {
+    pub(crate) fn codec(&self) -> Codec {
         self.codec
     }
 
-    pub fn push(&mut self, bytes: &[u8]) {
+    pub(crate) fn push(&mut self, bytes: &[u8]) {
         self.buf.extend_from_slice(bytes);
     }
 
     /// Bytes held that are not yet part of a frame.
-    pub fn buffered(&self) -> usize {
+    pub(crate) fn buffered(&self) -> usize {
         self.buf.len()
     }
 
     /// Does a quiet line end what is buffered (RTU), or does only a line feed (ASCII)?
-    pub fn silence_ends_frames(&self) -> bool {
+    pub(crate) fn silence_ends_frames(&self) -> bool {
         self.codec == Codec::Rtu
     }
 
     /// Forgets every buffered byte; returns how many.
-    pub fn clear(&mut self) -> usize {
+    pub(crate) fn clear(&mut self) -> usize {
         std::mem::take(&mut self.buf).len()
     }
 
     /// The next frame, if the bytes (and, for RTU, a `quiet` line) delimit one.
-    pub fn next(&mut self, expect: Expect<'_>, quiet: bool) -> Option<Decoded> {
+    pub(crate) fn next(&mut self, expect: Expect<'_>, quiet: bool) -> Option<Decoded> {
         match self.codec {
             Codec::Rtu => self.next_rtu(expect, quiet),
             Codec::Ascii => self.next_ascii(),

@@ -9,11 +9,12 @@ use std::net::{TcpStream, ToSocketAddrs};
 use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
 
+/// `mbgate status`'s flags.
 #[derive(Debug, clap::Args)]
 pub struct StatusArgs {
     /// The gateway's metrics listener (its `metrics.listen`)
     #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:9502")]
-    pub metrics: String,
+    pub(crate) metrics: String,
 }
 
 const EXIT_UNHEALTHY: u8 = 1;

@@ -21,7 +21,7 @@ use std::time::SystemTime;
 use tokio::time::Instant;
 
 /// The text a scrape of `/metrics` gets.
-pub fn render(board: &Arc<Board>) -> String {
+pub(crate) fn render(board: &Arc<Board>) -> String {
     let mut registry = Registry::default();
     registry.register_collector(Box::new(Scrape(board.clone())));
     let mut out = String::new();
@@ -31,7 +31,7 @@ pub fn render(board: &Arc<Board>) -> String {
 }
 
 /// The media type of [`render`]'s text.
-pub const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
+pub(crate) const CONTENT_TYPE: &str = "application/openmetrics-text; version=1.0.0; charset=utf-8";
 
 #[derive(Debug)]
 struct Scrape(Arc<Board>);

@@ -25,7 +25,7 @@ const HEAD_WITHIN: Duration = Duration::from_secs(5);
 const MAX_CONNECTIONS: usize = 16;
 
 /// Binds `addr` for the metrics listener (at start, so a bad address fails the start).
-pub fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
+pub(crate) fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
     let listener = std::net::TcpListener::bind(addr)?;
     listener.set_nonblocking(true)?;
     Ok(listener)
@@ -34,7 +34,7 @@ pub fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
 /// Serves `board` on `listener` until `stop`, on a thread of its own with a runtime of
 /// its own: rendering a scrape or the page never holds up the relay's loop, whose
 /// runtime has one thread.
-pub fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: CancellationToken) {
+pub(crate) fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: CancellationToken) {
     let run = move || {
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()

@@ -13,7 +13,7 @@ use std::time::SystemTime;
 use tokio::time::Instant;
 
 /// The page.
-pub const HTML: &str = include_str!("status.html");
+pub(crate) const HTML: &str = include_str!("status.html");
 
 /// Points kept: a minute, one a second.
 const KEPT: usize = 61;
@@ -30,11 +30,11 @@ struct Point {
 
 /// A line's last minute.
 #[derive(Debug, Default)]
-pub struct History(std::collections::VecDeque<Point>);
+pub(crate) struct History(std::collections::VecDeque<Point>);
 
 /// Samples every line's totals once a second until `stop`, so the page shows the last
 /// minute from its first load (reading the relay's atomics: the relay never waits).
-pub async fn sample(board: Arc<Board>, stop: tokio_util::sync::CancellationToken) {
+pub(crate) async fn sample(board: Arc<Board>, stop: tokio_util::sync::CancellationToken) {
     loop {
         let at_ms = unix_ms();
         for l in board.lines() {
@@ -185,7 +185,7 @@ fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
 }
 
 /// What `/status.json` answers.
-pub fn json(board: &Board) -> String {
+pub(crate) fn json(board: &Board) -> String {
     let now = Instant::now();
     let unix_ms = unix_ms();
     let lines: Vec<String> = board.lines().iter().map(|l| line(board, l, now)).collect();

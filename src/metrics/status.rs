@@ -11,11 +11,11 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
 /// How often the line is refreshed.
-pub const EVERY: Duration = Duration::from_secs(2);
+pub(crate) const EVERY: Duration = Duration::from_secs(2);
 const MINUTE: Duration = Duration::from_secs(60);
 
 /// The numbers behind the line, kept between refreshes for the rates.
-pub struct StatusLine {
+pub(crate) struct StatusLine {
     /// The requests counted at the last refresh, and when.
     requests: (Instant, u64),
     /// Timeouts counted at each refresh of the last minute, oldest first.
@@ -52,7 +52,7 @@ fn totals(board: &Board, now: Instant) -> Totals {
 
 impl StatusLine {
     /// Starts counting from the numbers `board` has at `now`.
-    pub fn new(board: &Board, now: Instant) -> Self {
+    pub(crate) fn new(board: &Board, now: Instant) -> Self {
         let t = totals(board, now);
         Self {
             requests: (now, t.requests),
@@ -61,7 +61,7 @@ impl StatusLine {
     }
 
     /// The line at `now`; the rate is over the time since the last call.
-    pub fn line(&mut self, board: &Board, now: Instant) -> String {
+    pub(crate) fn line(&mut self, board: &Board, now: Instant) -> String {
         let t = totals(board, now);
         let (then, before) = self.requests;
         let secs = now.saturating_duration_since(then).as_secs_f64();
@@ -109,7 +109,7 @@ fn ago_text(d: Duration) -> String {
 }
 
 /// Sends the line to systemd every [`EVERY`] until `stop`.
-pub async fn refresh(board: Arc<Board>, stop: CancellationToken) {
+pub(crate) async fn refresh(board: Arc<Board>, stop: CancellationToken) {
     let mut status = StatusLine::new(&board, Instant::now());
     loop {
         tokio::select! {

@@ -1,14 +1,14 @@
 //! What the relay is attached to: a byte transport it opens, reopens, reads, writes and
 //! drains, with no knowledge of which one it is (docs/architecture.md "The port").
 //!
-//! Three implementations: the serial port ([`serial::SerialPort`], what the gateway
-//! runs on), a TCP socket to a device server ([`tcp::TcpPort`]) and an in-memory pipe
+//! Three implementations: the serial port (`serial::SerialPort`, what the gateway
+//! runs on), a TCP socket to a device server (`tcp::TcpPort`) and an in-memory pipe
 //! ([`duplex::DuplexPort`], what the in-process relay tests drive). The relay holds a
 //! `Box<dyn Port>`: one indirect call per read or write, next to a system call each.
 
 pub mod duplex;
-pub mod serial;
-pub mod tcp;
+pub(crate) mod serial;
+pub(crate) mod tcp;
 
 use std::future::Future;
 use std::io;
@@ -17,24 +17,24 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 
 /// The reading half of an open port.
-pub type Reader = Box<dyn AsyncRead + Send + Unpin>;
+pub(crate) type Reader = Box<dyn AsyncRead + Send + Unpin>;
 /// The writing half of an open port.
-pub type Writer = Box<dyn AsyncWrite + Send + Unpin>;
+pub(crate) type Writer = Box<dyn AsyncWrite + Send + Unpin>;
 /// An open in progress ([`Port::open`]).
-pub type Opening = Pin<Box<dyn Future<Output = io::Result<Link>> + Send>>;
+pub(crate) type Opening = Pin<Box<dyn Future<Output = io::Result<Link>> + Send>>;
 /// A wait until the bytes written have left ([`Control::drain`]): the instant they
 /// had.
-pub type Drain = Pin<Box<dyn Future<Output = io::Result<std::time::Instant>> + Send>>;
+pub(crate) type Drain = Pin<Box<dyn Future<Output = io::Result<std::time::Instant>> + Send>>;
 
 /// An open port: its two halves, read and written at once by the relay's loop, and
 /// what it can tell about the bytes in transit.
 pub struct Link {
     /// Bytes from the device.
-    pub reader: Reader,
+    pub(crate) reader: Reader,
     /// Bytes to the device.
-    pub writer: Writer,
+    pub(crate) writer: Writer,
     /// Drain and input queries on the same transport.
-    pub control: Box<dyn Control>,
+    pub(crate) control: Box<dyn Control>,
 }
 
 impl std::fmt::Debug for Link {
@@ -44,7 +44,7 @@ impl std::fmt::Debug for Link {
 }
 
 /// What the relay may ask an open port besides reading and writing.
-pub trait Control: Send {
+pub(crate) trait Control: Send {
     /// Starts waiting until everything written so far has left the port (a serial
     /// port's `tcdrain`): the reply timer and the inter-frame gap start from the last
     /// byte on the wire. A transport with no such notion is drained at once.
@@ -75,7 +75,7 @@ pub trait Port: Send {
 
 /// Delays between attempts to (re)open a port: doubling from `min` up to `max`.
 #[derive(Debug, Clone)]
-pub struct Backoff {
+pub(crate) struct Backoff {
     min: Duration,
     max: Duration,
     next: Duration,
@@ -83,7 +83,7 @@ pub struct Backoff {
 
 impl Backoff {
     /// Starts at `min`.
-    pub fn new(min: Duration, max: Duration) -> Self {
+    pub(crate) fn new(min: Duration, max: Duration) -> Self {
         Self {
             min,
             max,
@@ -92,20 +92,20 @@ impl Backoff {
     }
 
     /// The delay before the next attempt; each call doubles the one after.
-    pub fn next_delay(&mut self) -> Duration {
+    pub(crate) fn next_delay(&mut self) -> Duration {
         let d = self.next;
         self.next = (self.next * 2).min(self.max);
         d
     }
 
     /// Back to `min` (the port opened).
-    pub fn reset(&mut self) {
+    pub(crate) fn reset(&mut self) {
         self.next = self.min;
     }
 }
 
 /// Polls `opening` once: its result if it is ready at once, else the future back.
-pub fn open_now(mut opening: Opening) -> Result<io::Result<Link>, Opening> {
+pub(crate) fn open_now(mut opening: Opening) -> Result<io::Result<Link>, Opening> {
     let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
     match opening.as_mut().poll(&mut cx) {
         std::task::Poll::Ready(r) => Ok(r),

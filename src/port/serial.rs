@@ -11,13 +11,13 @@ use std::time::Duration;
 
 /// The `[serial]` port the gateway runs on.
 #[derive(Debug)]
-pub struct SerialPort {
+pub(crate) struct SerialPort {
     cfg: SerialConfig,
 }
 
 impl SerialPort {
     /// The port named and set up by `cfg`; nothing is opened yet.
-    pub fn new(cfg: SerialConfig) -> Self {
+    pub(crate) fn new(cfg: SerialConfig) -> Self {
         Self { cfg }
     }
 }

@@ -20,7 +20,7 @@ const KEEPALIVE_PROBES: u32 = 3;
 
 /// A device's address on the network.
 #[derive(Debug)]
-pub struct TcpPort {
+pub(crate) struct TcpPort {
     /// `host:port`: resolved again at each connect, so a device whose name moves to
     /// another address is found there.
     addr: String,
@@ -28,7 +28,7 @@ pub struct TcpPort {
 
 impl TcpPort {
     /// The device at `addr` (`host:port`); nothing is connected yet.
-    pub fn new(addr: impl Into<String>) -> Self {
+    pub(crate) fn new(addr: impl Into<String>) -> Self {
         Self { addr: addr.into() }
     }
 }

@@ -12,19 +12,35 @@ pub type ConnId = u64;
 #[derive(Debug)]
 pub enum Command {
     /// A master connected; notifications reach it through `notifier`.
-    Attach { conn: ConnId, notifier: Notifier },
+    Attach {
+        /// The connection.
+        conn: ConnId,
+        /// Where notifications for it go.
+        notifier: Notifier,
+    },
     /// It went away: its queued requests are dropped, its late replies discarded.
-    Detach { conn: ConnId },
+    Detach {
+        /// The connection gone.
+        conn: ConnId,
+    },
     /// A request that passed the strict checks, with the master's own transaction id;
     /// its answer goes back through `ticket`, in the master's order.
     Request {
+        /// The connection it came on.
         conn: ConnId,
+        /// The request as the master framed it.
         adu: Adu,
+        /// Its place in the master's reply order.
         ticket: Ticket,
     },
     /// A reload (SIGHUP): the response and probe timeouts, retries and the traffic log
     /// from now on; requests already on the line keep their deadlines.
-    Retune { relay: RelayConfig, traffic: bool },
+    Retune {
+        /// The line's new `[relay]` settings.
+        relay: RelayConfig,
+        /// Log every frame as hex (`log.traffic`).
+        traffic: bool,
+    },
 }
 
 /// The connections' side of the relay's channel.

@@ -12,17 +12,17 @@ use crate::frame::function::{ExceptionCode as Ex, FunctionCode as Fc};
 /// The device's settings and port state.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct CieM10 {
-    pub unit: u8,
-    pub input_address: u16,
-    pub output_address: u16,
+    pub(crate) unit: u8,
+    pub(crate) input_address: u16,
+    pub(crate) output_address: u16,
     /// Input ports 0..7, port 0 in bit 0.
-    pub inputs: u8,
+    pub(crate) inputs: u8,
     /// Output ports 0..7, port 0 in bit 0.
-    pub outputs: u8,
+    pub(crate) outputs: u8,
     /// The inputs follow the outputs, as if each output were wired to its input.
-    pub loopback: bool,
+    pub(crate) loopback: bool,
     /// Input port change notification (docs/protocol.md §3, default off on the device).
-    pub notify: bool,
+    pub(crate) notify: bool,
 }
 
 impl Default for CieM10 {
@@ -46,7 +46,7 @@ fn word(pdu: &[u8], at: usize) -> u16 {
 
 impl CieM10 {
     /// Answers one request PDU addressed to `unit`; any other unit gets silence.
-    pub fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
+    pub(crate) fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
         if unit != self.unit {
             return Answer::silent();
         }
@@ -85,7 +85,7 @@ impl CieM10 {
     }
 
     /// Sets the inputs; `true` if any changed.
-    pub fn set_inputs(&mut self, inputs: u8) -> bool {
+    pub(crate) fn set_inputs(&mut self, inputs: u8) -> bool {
         let changed = self.inputs != inputs;
         self.inputs = inputs;
         changed
@@ -93,7 +93,7 @@ impl CieM10 {
 
     /// The unsolicited frame's PDU for the current inputs, if notification is on: it
     /// looks like the FC 03 response to a read of the input port (docs/protocol.md §3).
-    pub fn notification(&self) -> Option<Vec<u8>> {
+    pub(crate) fn notification(&self) -> Option<Vec<u8>> {
         self.notify
             .then(|| vec![Fc::READ_HOLDING_REGISTERS.get(), 2, 0, self.inputs])
     }

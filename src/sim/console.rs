@@ -6,7 +6,7 @@ use std::fmt;
 
 /// A table of the generic profile's devices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Table {
+pub(crate) enum Table {
     Coils,
     Discrete,
     Holding,
@@ -30,7 +30,7 @@ impl Table {
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Command {
+pub(crate) enum Command {
     Help,
     /// List the devices and their state.
     List,
@@ -66,7 +66,7 @@ pub enum Command {
     Slave(Box<Command>),
 }
 
-pub const HELP: &str = "\
+pub(crate) const HELP: &str = "\
 commands:
   list                          devices and their state
   add UNIT [COILS [REGISTERS]]  add a device (generic; at least 10 of each)
@@ -96,7 +96,7 @@ fn on_off(s: &str) -> Result<bool, String> {
 
 impl Command {
     /// One console line; `Ok(None)` for an empty line.
-    pub fn parse(line: &str) -> Result<Option<Command>, String> {
+    pub(crate) fn parse(line: &str) -> Result<Option<Command>, String> {
         let words: Vec<&str> = line.split_whitespace().collect();
         let Some((&first, args)) = words.split_first() else {
             return Ok(None);

@@ -15,24 +15,26 @@ use std::collections::BTreeMap;
 use std::fmt;
 
 /// Seed 003's smallest device: 10 coils, 10 registers.
-pub const MIN_SIZE: usize = 10;
+pub(crate) const MIN_SIZE: usize = 10;
 /// Every address a PDU can name.
-pub const MAX_SIZE: usize = 65536;
+pub(crate) const MAX_SIZE: usize = 65536;
 
 /// One virtual device's tables.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Bank {
-    pub coils: Vec<bool>,
+    pub(crate) coils: Vec<bool>,
+    /// Discrete inputs (FC 02), by address: random from the seed, then changed only by
+    /// the console's `set` (masters cannot write them).
     pub discrete: Vec<bool>,
-    pub holding: Vec<u16>,
-    pub input: Vec<u16>,
+    pub(crate) holding: Vec<u16>,
+    pub(crate) input: Vec<u16>,
 }
 
 impl Bank {
     /// A device as the reference simulator creates one (docs/protocol.md §4): `bits` coils and discrete inputs (random),
     /// `registers` holding registers (zero) and input registers (0..5 the creation date
     /// and time, the rest zero). `random` supplies the discrete inputs.
-    pub fn new(
+    pub(crate) fn new(
         bits: usize,
         registers: usize,
         created: [u16; 6],
@@ -55,7 +57,7 @@ impl Bank {
 /// two whole MBAP frames with transaction id 0 (an FC 03 reply of one register, an
 /// FC 16 echo) and many plausible headers at other offsets. A reply carrying them
 /// looks like frames inside frames to a decoder that lost its place.
-pub const HEADER_FILL: [u16; 12] = [
+pub(crate) const HEADER_FILL: [u16; 12] = [
     0x0000, 0x0000, 0x0005, 0x0103, 0x0200, 0x0000, 0x0000, 0x0000, 0x0006, 0x0110, 0x0000, 0x0001,
 ];
 
@@ -66,7 +68,7 @@ pub fn header_fill(a: usize) -> u16 {
 
 impl Bank {
     /// Holding register N holds `fill(N)`.
-    pub fn fill_holding(&mut self, fill: fn(usize) -> u16) {
+    pub(crate) fn fill_holding(&mut self, fill: fn(usize) -> u16) {
         for (a, v) in self.holding.iter_mut().enumerate() {
             *v = fill(a);
         }
@@ -101,6 +103,7 @@ impl fmt::Display for Bank {
 /// The devices on the line, by unit id.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub struct Generic {
+    /// Each unit id (1..=247) that answers, and its tables.
     pub units: BTreeMap<u8, Bank>,
 }
 
@@ -129,7 +132,7 @@ fn registers(values: &[u16]) -> Vec<u8> {
 
 impl Generic {
     /// Answers one request PDU. A unit id with no device gets silence, as on a bus.
-    pub fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
+    pub(crate) fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
         let Some(bank) = self.units.get_mut(&unit) else {
             return Answer::silent();
         };
@@ -217,7 +220,7 @@ fn serve(bank: &mut Bank, pdu: &[u8]) -> Result<Vec<u8>, ExceptionCode> {
 
 /// Year, month, day, hour, minute, second (UTC), for input registers 0..5
 /// (docs/protocol.md §4).
-pub fn civil_time(t: std::time::SystemTime) -> [u16; 6] {
+pub(crate) fn civil_time(t: std::time::SystemTime) -> [u16; 6] {
     // `YYYY-MM-DDTHH:MM:SSZ`
     let s = humantime::format_rfc3339_seconds(t).to_string();
     let field = |at: usize, len: usize| {

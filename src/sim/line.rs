@@ -10,19 +10,21 @@ use std::time::{Duration, Instant};
 #[derive(Debug, Clone)]
 pub struct Faults {
     /// Chance that a byte is lost.
-    pub drop: f64,
+    pub(crate) drop: f64,
     /// Chance that a burst of 1 to 8 garbage bytes is inserted before a byte.
-    pub noise: f64,
+    pub(crate) noise: f64,
     /// Chance that a byte is replaced by another (a bit error).
-    pub corrupt: f64,
+    pub(crate) corrupt: f64,
     rng: fastrand::Rng,
     /// Bytes lost, inserted and replaced so far.
-    pub dropped: u64,
-    pub inserted: u64,
-    pub corrupted: u64,
+    pub(crate) dropped: u64,
+    pub(crate) inserted: u64,
+    pub(crate) corrupted: u64,
 }
 
 impl Faults {
+    /// Faults that lose a byte with chance `drop` and insert garbage with chance
+    /// `noise` (each 0.0..=1.0), drawn from a generator seeded with `seed`.
     pub fn new(drop: f64, noise: f64, seed: u64) -> Self {
         Self {
             drop,
@@ -36,7 +38,7 @@ impl Faults {
     }
 
     /// Replaces bytes too, with probability `p` each.
-    pub fn with_corrupt(mut self, p: f64) -> Self {
+    pub(crate) fn with_corrupt(mut self, p: f64) -> Self {
         self.corrupt = p;
         self
     }
@@ -46,7 +48,7 @@ impl Faults {
         Self::new(0.0, 0.0, 0)
     }
 
-    pub fn is_active(&self) -> bool {
+    pub(crate) fn is_active(&self) -> bool {
         self.drop > 0.0 || self.noise > 0.0 || self.corrupt > 0.0
     }
 
@@ -83,14 +85,14 @@ impl Faults {
 /// One direction of a UART: when the byte now being sent will have left. Frames queue
 /// behind each other at `char_time` a byte.
 #[derive(Debug, Clone)]
-pub struct Pacer {
+pub(crate) struct Pacer {
     char_time: Duration,
     free_at: Option<Instant>,
 }
 
 impl Pacer {
     /// `baud` bits a second, `bits_per_char` bits a byte; `None` paces nothing.
-    pub fn new(baud: Option<u32>, bits_per_char: u32) -> Self {
+    pub(crate) fn new(baud: Option<u32>, bits_per_char: u32) -> Self {
         let char_time = baud
             .filter(|&b| b > 0)
             .map(|b| Duration::from_nanos(u64::from(bits_per_char) * 1_000_000_000 / u64::from(b)))
@@ -101,13 +103,13 @@ impl Pacer {
         }
     }
 
-    pub fn char_time(&self) -> Duration {
+    pub(crate) fn char_time(&self) -> Duration {
         self.char_time
     }
 
     /// `bytes` ready to go at `ready`: the instant their last byte has left, after
     /// whatever is still being sent.
-    pub fn finish(&mut self, ready: Instant, bytes: usize) -> Instant {
+    pub(crate) fn finish(&mut self, ready: Instant, bytes: usize) -> Instant {
         let start = match self.free_at {
             Some(free) if free > ready => free,
             _ => ready,
@@ -121,7 +123,7 @@ impl Pacer {
 /// How the simulator hands a frame to the line: whole, one byte
 /// at a time, or in random bursts, with a gap before each piece after the first.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum ChunkMode {
+pub(crate) enum ChunkMode {
     Whole,
     Bytes,
     Random,
@@ -129,14 +131,14 @@ pub enum ChunkMode {
 
 /// Splits frames into pieces and gaps, seeded.
 #[derive(Debug, Clone)]
-pub struct Chunker {
+pub(crate) struct Chunker {
     mode: ChunkMode,
     gap: Duration,
     rng: fastrand::Rng,
 }
 
 impl Chunker {
-    pub fn new(mode: ChunkMode, gap: Duration, seed: u64) -> Self {
+    pub(crate) fn new(mode: ChunkMode, gap: Duration, seed: u64) -> Self {
         Self {
             mode,
             gap,
@@ -145,7 +147,7 @@ impl Chunker {
     }
 
     /// The pieces of a `len`-byte frame: (bytes, gap before the piece).
-    pub fn pieces(&mut self, len: usize) -> Vec<(usize, Duration)> {
+    pub(crate) fn pieces(&mut self, len: usize) -> Vec<(usize, Duration)> {
         let mut out = Vec::new();
         let mut left = len;
         while left > 0 {

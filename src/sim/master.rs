@@ -36,10 +36,10 @@ enum Step {
 /// The master's totals, logged when it stops.
 #[derive(Debug, Default, Clone, Copy)]
 pub struct Totals {
-    pub sent: u64,
-    pub replies: u64,
-    pub exceptions: u64,
-    pub timeouts: u64,
+    pub(crate) sent: u64,
+    pub(crate) replies: u64,
+    pub(crate) exceptions: u64,
+    pub(crate) timeouts: u64,
 }
 
 struct Master {

@@ -2,20 +2,20 @@
 //! simulated device on a serial port or pty, speaking the gateway's framing, so nobody
 //! needs a CIE-M10 on their desk.
 //!
-//! - [`cie_m10`] and [`generic`] are the device profiles (pure: PDU in, PDU out);
-//! - [`line`] is the line model: seeded loss and noise, and a UART's pace;
-//! - [`console`] parses the console's commands, [`packets`] keeps the packet log;
+//! - `cie_m10` and [`generic`] are the device profiles (pure: PDU in, PDU out);
+//! - `line` is the line model: seeded loss and noise, and a UART's pace;
+//! - `console` parses the console's commands, `packets` keeps the packet log;
 //! - [`serve`] is the task that owns the port, [`terminal`] the console's thread;
 //! - [`options`] is the command line.
 
-pub mod cie_m10;
-pub mod console;
+pub(crate) mod cie_m10;
+pub(crate) mod console;
 pub mod generic;
 pub mod line;
 pub mod master;
 pub mod options;
-pub mod packets;
-pub mod role;
+pub(crate) mod packets;
+pub(crate) mod role;
 pub mod serve;
 pub mod tcp;
 pub mod terminal;
@@ -27,17 +27,17 @@ use packets::PacketLog;
 /// What a device does with one request: a reply PDU (or silence, for a unit id that is
 /// not there), and an unsolicited notification PDU that the request caused.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Answer {
-    pub reply: Option<Vec<u8>>,
-    pub notification: Option<Vec<u8>>,
+pub(crate) struct Answer {
+    pub(crate) reply: Option<Vec<u8>>,
+    pub(crate) notification: Option<Vec<u8>>,
 }
 
 impl Answer {
-    pub fn silent() -> Self {
+    pub(crate) fn silent() -> Self {
         Self::default()
     }
 
-    pub fn reply(pdu: Vec<u8>) -> Self {
+    pub(crate) fn reply(pdu: Vec<u8>) -> Self {
         Self {
             reply: Some(pdu),
             notification: None,
@@ -46,14 +46,16 @@ impl Answer {
 }
 
 /// An exception response PDU (docs/protocol.md §1).
-pub fn exception_pdu(function: FunctionCode, code: ExceptionCode) -> Vec<u8> {
+pub(crate) fn exception_pdu(function: FunctionCode, code: ExceptionCode) -> Vec<u8> {
     vec![function.exception().get(), code.get()]
 }
 
 /// Which device the simulator is.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum Profile {
+    /// One Sollae CIE-M10/H10: eight inputs, eight outputs (docs/protocol.md §3).
     CieM10(cie_m10::CieM10),
+    /// Any number of plain Modbus devices, each with its own tables.
     Generic(generic::Generic),
 }
 
@@ -61,13 +63,14 @@ pub enum Profile {
 /// create devices from the console.
 #[derive(Debug)]
 pub struct Device {
+    /// What the device is, and its state (ports, tables).
     pub profile: Profile,
-    pub log: PacketLog,
+    pub(crate) log: PacketLog,
     /// Supplies the random discrete inputs of new generic devices (seeded).
     rng: fastrand::Rng,
     /// Sizes of a device added without them.
-    pub default_bits: usize,
-    pub default_registers: usize,
+    pub(crate) default_bits: usize,
+    pub(crate) default_registers: usize,
     /// What generic devices' holding registers start at, when not zero (`--fill`).
     fill: Option<fn(usize) -> u16>,
     /// Generic devices send an unsolicited frame on each scheduled change (`--notify`).
@@ -78,12 +81,15 @@ pub struct Device {
 
 /// What a console command produced.
 #[derive(Debug, Default)]
-pub struct Outcome {
+pub(crate) struct Outcome {
     /// Text for the console.
-    pub text: String,
+    pub(crate) text: String,
     /// A notification PDU to send (the inputs changed).
-    pub notification: Option<Vec<u8>>,
-    pub quit: bool,
+    pub(crate) notification: Option<Vec<u8>>,
+    /// The console asked to stop; only the unit tests read it (the terminal stops
+    /// on `Command::Quit` itself, src/sim/terminal.rs).
+    #[allow(dead_code)]
+    pub(crate) quit: bool,
 }
 
 impl Outcome {
@@ -96,12 +102,12 @@ impl Outcome {
 }
 
 /// The creation date and time of a device made now (UTC).
-pub fn now_civil() -> [u16; 6] {
+pub(crate) fn now_civil() -> [u16; 6] {
     generic::civil_time(std::time::SystemTime::now())
 }
 
 impl Device {
-    pub fn new(profile: Profile, seed: u64) -> Self {
+    pub(crate) fn new(profile: Profile, seed: u64) -> Self {
         Self {
             profile,
             log: PacketLog::default(),
@@ -116,12 +122,12 @@ impl Device {
 
     /// Holding registers start at their own address, in every generic device now and
     /// added later, so a reader can tell every value.
-    pub fn fill_holding_with_addresses(&mut self) {
+    pub(crate) fn fill_holding_with_addresses(&mut self) {
         self.fill_holding(|a| a as u16);
     }
 
     /// Holding register N holds `fill(N)`, in every generic device now and added later.
-    pub fn fill_holding(&mut self, fill: fn(usize) -> u16) {
+    pub(crate) fn fill_holding(&mut self, fill: fn(usize) -> u16) {
         self.fill = Some(fill);
         if let Profile::Generic(g) = &mut self.profile {
             for bank in g.units.values_mut() {
@@ -132,7 +138,7 @@ impl Device {
 
     /// Generic devices notify each scheduled change: an unsolicited FC 03 response
     /// from the first unit, transaction id 0, carrying the count of changes.
-    pub fn notify_generic(&mut self) {
+    pub(crate) fn notify_generic(&mut self) {
         self.generic_notify = true;
     }
 
@@ -158,7 +164,7 @@ impl Device {
     }
 
     /// Answers one request PDU for `unit`.
-    pub fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
+    pub(crate) fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
         match &mut self.profile {
             Profile::CieM10(d) => d.answer(unit, pdu),
             Profile::Generic(g) => g.answer(unit, pdu),
@@ -167,7 +173,7 @@ impl Device {
 
     /// A broadcast request (unit 0 on an RTU/ASCII bus): every device acts on it, none
     /// answers.
-    pub fn broadcast(&mut self, pdu: &[u8]) {
+    pub(crate) fn broadcast(&mut self, pdu: &[u8]) {
         match &mut self.profile {
             Profile::CieM10(d) => {
                 let unit = d.unit;
@@ -183,7 +189,7 @@ impl Device {
     }
 
     /// The unit id notifications come from, if the profile sends any.
-    pub fn notifying_unit(&self) -> Option<u8> {
+    pub(crate) fn notifying_unit(&self) -> Option<u8> {
         match &self.profile {
             Profile::CieM10(d) => Some(d.unit),
             Profile::Generic(g) if self.generic_notify => g.units.keys().next().copied(),
@@ -194,7 +200,7 @@ impl Device {
     /// The scheduled input change (`--toggle-ms`): the CIE-M10's inputs count up by one,
     /// so every port changes in turn; the generic profile counts. Returns the
     /// notification, if any.
-    pub fn toggle(&mut self) -> Option<Vec<u8>> {
+    pub(crate) fn toggle(&mut self) -> Option<Vec<u8>> {
         match &mut self.profile {
             Profile::CieM10(d) => {
                 let next = d.inputs.wrapping_add(1);
@@ -210,7 +216,7 @@ impl Device {
     }
 
     /// Carries out a console command.
-    pub fn execute(&mut self, cmd: Command) -> Outcome {
+    pub(crate) fn execute(&mut self, cmd: Command) -> Outcome {
         match cmd {
             Command::Help => Outcome::text(console::HELP),
             Command::Slave(_) => {

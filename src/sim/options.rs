@@ -9,6 +9,7 @@ use crate::config::{Framing, SerialConfig};
 use std::path::PathBuf;
 use std::time::Duration;
 
+/// The device `mbgate sim --profile` simulates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum ProfileName {
     /// The Sollae CIE-M10/H10 of docs/protocol.md §3: 8 inputs, 8 outputs, FC 03 and 16.
@@ -20,7 +21,7 @@ pub enum ProfileName {
 
 /// What generic devices' holding registers start at.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Fill {
+pub(crate) enum Fill {
     Zero,
     Address,
     /// Pieces of MBAP headers (`generic::HEADER_FILL`, repeating every 12 registers):
@@ -30,7 +31,7 @@ pub enum Fill {
 
 /// Which direction the line faults hit.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum FaultDirection {
+pub(crate) enum FaultDirection {
     Both,
     /// Bytes the gateway sends to the device.
     ToDevice,
@@ -47,7 +48,7 @@ pub struct DeviceArgs {
 
     /// cie-m10: the unit id it answers.
     #[arg(long, default_value_t = 1, help_heading = "cie-m10 profile")]
-    pub unit: u8,
+    pub(crate) unit: u8,
     /// cie-m10: register of the 8 input ports.
     #[arg(
         long,
@@ -55,7 +56,7 @@ pub struct DeviceArgs {
         value_name = "REGISTER",
         help_heading = "cie-m10 profile"
     )]
-    pub input_address: u16,
+    pub(crate) input_address: u16,
     /// cie-m10: register of the 8 output ports.
     #[arg(
         long,
@@ -63,19 +64,19 @@ pub struct DeviceArgs {
         value_name = "REGISTER",
         help_heading = "cie-m10 profile"
     )]
-    pub output_address: u16,
+    pub(crate) output_address: u16,
     /// cie-m10: wire each output to its input, so inputs follow the outputs.
     #[arg(long, help_heading = "cie-m10 profile")]
-    pub loopback: bool,
+    pub(crate) loopback: bool,
     /// Input port change notification, an unsolicited FC 03 response (transaction id
     /// 0) whenever an input changes (cie-m10), or on each scheduled change (generic:
     /// from the first unit, carrying the count of changes).
     #[arg(long, help_heading = "cie-m10 profile")]
-    pub notify: bool,
+    pub(crate) notify: bool,
     /// Change the inputs on a schedule: they count up by one every MS (cie-m10); the
     /// generic profile counts the changes.
     #[arg(long, value_name = "MS", help_heading = "cie-m10 profile")]
-    pub toggle_ms: Option<u64>,
+    pub(crate) toggle_ms: Option<u64>,
 
     /// generic: unit ids of the devices, comma separated.
     #[arg(
@@ -85,17 +86,17 @@ pub struct DeviceArgs {
         value_name = "UNITS",
         help_heading = "generic profile"
     )]
-    pub units: Vec<u8>,
+    pub(crate) units: Vec<u8>,
     /// generic: holding registers start at zero, or each at its own address (so a
     /// reader can check every value it gets).
     #[arg(long, value_enum, default_value_t = Fill::Zero, help_heading = "generic profile")]
-    pub fill: Fill,
+    pub(crate) fill: Fill,
     /// generic: coils and discrete inputs per device (at least 10).
     #[arg(long, default_value_t = generic::MIN_SIZE, value_name = "N", help_heading = "generic profile")]
-    pub coils: usize,
+    pub(crate) coils: usize,
     /// generic: holding and input registers per device (at least 10).
     #[arg(long, default_value_t = generic::MIN_SIZE, value_name = "N", help_heading = "generic profile")]
-    pub registers: usize,
+    pub(crate) registers: usize,
 
     /// Wait this long before answering each request.
     #[arg(
@@ -104,7 +105,7 @@ pub struct DeviceArgs {
         value_name = "MS",
         help_heading = "line model"
     )]
-    pub delay_ms: u64,
+    pub(crate) delay_ms: u64,
     /// Lose each byte with this probability (0..1).
     #[arg(
         long,
@@ -112,7 +113,7 @@ pub struct DeviceArgs {
         value_name = "P",
         help_heading = "line model"
     )]
-    pub drop: f64,
+    pub(crate) drop: f64,
     /// Insert a burst of 1 to 8 random bytes before each byte with this probability
     /// (0..1).
     #[arg(
@@ -121,7 +122,7 @@ pub struct DeviceArgs {
         value_name = "P",
         help_heading = "line model"
     )]
-    pub noise: f64,
+    pub(crate) noise: f64,
     /// Replace each byte by another with this probability (0..1): a bit error, which
     /// MBAP has no checksum to catch.
     #[arg(
@@ -130,27 +131,27 @@ pub struct DeviceArgs {
         value_name = "P",
         help_heading = "line model"
     )]
-    pub corrupt: f64,
+    pub(crate) corrupt: f64,
     /// Which direction --drop, --noise and --corrupt hit.
     #[arg(long, value_enum, default_value_t = FaultDirection::Both, help_heading = "line model")]
-    pub faults: FaultDirection,
+    pub(crate) faults: FaultDirection,
     /// Seed of the line faults and of random inputs: the same seed loses the same bytes.
     /// Without it, one is chosen and logged.
     #[arg(long, help_heading = "line model")]
-    pub seed: Option<u64>,
+    pub(crate) seed: Option<u64>,
     /// Answer requests that arrive back to back (pipelined) in turn; without it, a
     /// request that arrives while the device is busy is ignored, as on the real device.
     #[arg(long, help_heading = "line model")]
-    pub pipeline: bool,
+    pub(crate) pipeline: bool,
     /// Hold each request until the bytes after it start another, or the line goes
     /// quiet, so a request that lost a byte is never executed with the next one's
     /// first byte. Costs up to --frame-gap-ms whenever the gateway pauses its pipeline.
     #[arg(long, help_heading = "line model")]
-    pub confirm_requests: bool,
+    pub(crate) confirm_requests: bool,
     /// Hand each frame to the line whole, one byte at a time, or in random bursts of
     /// 1 to 8 bytes, with --chunk-gap-ms between the pieces.
     #[arg(long, value_enum, default_value_t = ChunkMode::Whole, help_heading = "line model")]
-    pub chunks: ChunkMode,
+    pub(crate) chunks: ChunkMode,
     /// The gap between pieces: exactly this one byte at a time, between half of it and
     /// all of it in random bursts.
     #[arg(
@@ -159,7 +160,7 @@ pub struct DeviceArgs {
         value_name = "MS",
         help_heading = "line model"
     )]
-    pub chunk_gap_ms: u64,
+    pub(crate) chunk_gap_ms: u64,
     /// A partial request is discarded after this much silence.
     #[arg(
         long,
@@ -167,7 +168,7 @@ pub struct DeviceArgs {
         value_name = "MS",
         help_heading = "line model"
     )]
-    pub frame_gap_ms: u64,
+    pub(crate) frame_gap_ms: u64,
 
     /// Log level (RUST_LOG overrides). Each packet is logged at info.
     #[arg(long, value_name = "LEVEL")]
@@ -182,7 +183,7 @@ pub struct DeviceArgs {
 pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
     #[arg(long, value_name = "PATH", required_unless_present = "listen")]
-    pub serial: Option<PathBuf>,
+    pub(crate) serial: Option<PathBuf>,
     /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
     /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
     /// device server in raw TCP mode (--framing rtu or ascii).
@@ -200,6 +201,7 @@ pub struct SimArgs {
     )]
     pub connections: u16,
     // Before the port's flags: their heading would carry over onto these.
+    /// The device simulated.
     #[command(flatten)]
     pub device: DeviceArgs,
     /// The role it plays and where (src/sim/role.rs).
@@ -208,7 +210,7 @@ pub struct SimArgs {
     /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
     /// output as a UART would (10 bits a byte); on a real port the UART does.
     #[command(flatten, next_help_heading = "serial port")]
-    pub port: PortFlags,
+    pub(crate) port: PortFlags,
     /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
     /// (generic profile only).
     #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap", help_heading = "serial port")]
@@ -253,19 +255,20 @@ impl SimArgs {
 /// Validated simulator settings.
 #[derive(Debug)]
 pub struct Settings {
+    /// The device, built from the profile flags.
     pub device: Device,
     /// How frames are carried: MBAP unless `mbgate sim --framing` says otherwise.
-    pub framing: Framing,
-    pub baud: Option<u32>,
-    pub delay: Duration,
-    pub rx_faults: Faults,
-    pub tx_faults: Faults,
-    pub seed: u64,
-    pub pipeline: bool,
-    pub confirm_requests: bool,
-    pub frame_gap: Duration,
-    pub toggle: Option<Duration>,
-    pub chunker: Chunker,
+    pub(crate) framing: Framing,
+    pub(crate) baud: Option<u32>,
+    pub(crate) delay: Duration,
+    pub(crate) rx_faults: Faults,
+    pub(crate) tx_faults: Faults,
+    pub(crate) seed: u64,
+    pub(crate) pipeline: bool,
+    pub(crate) confirm_requests: bool,
+    pub(crate) frame_gap: Duration,
+    pub(crate) toggle: Option<Duration>,
+    pub(crate) chunker: Chunker,
 }
 
 /// Options that belong to the other profile are refused rather than ignored.
@@ -277,7 +280,7 @@ fn only_for(profile: &str, set: &[(&str, bool)]) -> Result<(), String> {
 }
 
 impl DeviceArgs {
-    pub fn settings(&self) -> Result<Settings, String> {
+    pub(crate) fn settings(&self) -> Result<Settings, String> {
         for (flag, p) in [
             ("--drop", self.drop),
             ("--noise", self.noise),

@@ -7,10 +7,10 @@ use std::fmt;
 use std::time::Instant;
 
 /// Entries kept; older ones are forgotten.
-pub const CAPACITY: usize = 1000;
+pub(crate) const CAPACITY: usize = 1000;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Direction {
+pub(crate) enum Direction {
     /// A request the simulator received.
     Rx,
     /// A reply or notification it sent.
@@ -18,20 +18,20 @@ pub enum Direction {
 }
 
 #[derive(Debug, Clone)]
-pub struct Entry {
-    pub at: Instant,
-    pub direction: Direction,
-    pub bytes: Vec<u8>,
+pub(crate) struct Entry {
+    pub(crate) at: Instant,
+    pub(crate) direction: Direction,
+    pub(crate) bytes: Vec<u8>,
     /// What happened to it: "reply", "ignored: busy", "notification", ...
-    pub note: &'static str,
+    pub(crate) note: &'static str,
 }
 
 #[derive(Debug)]
-pub struct PacketLog {
+pub(crate) struct PacketLog {
     start: Instant,
     entries: VecDeque<Entry>,
     /// Entries ever recorded, including forgotten ones.
-    pub total: u64,
+    pub(crate) total: u64,
 }
 
 impl Default for PacketLog {
@@ -45,7 +45,7 @@ impl Default for PacketLog {
 }
 
 impl PacketLog {
-    pub fn record(&mut self, direction: Direction, bytes: &[u8], note: &'static str) {
+    pub(crate) fn record(&mut self, direction: Direction, bytes: &[u8], note: &'static str) {
         if self.entries.len() == CAPACITY {
             self.entries.pop_front();
         }
@@ -58,20 +58,21 @@ impl PacketLog {
         self.total += 1;
     }
 
-    pub fn clear(&mut self) {
+    pub(crate) fn clear(&mut self) {
         self.entries.clear();
     }
 
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.entries.len()
     }
 
-    pub fn is_empty(&self) -> bool {
+    #[cfg(test)]
+    pub(crate) fn is_empty(&self) -> bool {
         self.entries.is_empty()
     }
 
     /// The last `n` entries (all when `None`), one a line.
-    pub fn render(&self, n: Option<usize>) -> String {
+    pub(crate) fn render(&self, n: Option<usize>) -> String {
         let skip = n.map_or(0, |n| self.entries.len().saturating_sub(n));
         let mut out = String::new();
         for e in self.entries.iter().skip(skip) {

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 /// Which side of the conversation the simulated device is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Role {
+pub(crate) enum Role {
     /// It answers requests (the default).
     Slave,
     /// It sends the CIE-M10 master's queries every --poll-ms (cie-m10 profile).
@@ -19,20 +19,20 @@ pub struct RoleArgs {
     /// register (the --input-address and --output-address), and sets its outputs from
     /// what it read.
     #[arg(long, value_enum, default_value_t = Role::Slave, help_heading = "role")]
-    pub role: Role,
+    pub(crate) role: Role,
     /// master: the communication period, in ms.
     #[arg(long, default_value_t = 1000, value_name = "MS", help_heading = "role")]
-    pub poll_ms: u64,
+    pub(crate) poll_ms: u64,
     /// master: how long it waits for each reply, in ms [default: the period, at most 1000].
     #[arg(long, value_name = "MS", help_heading = "role")]
-    pub timeout_ms: Option<u64>,
+    pub(crate) timeout_ms: Option<u64>,
 }
 
 /// The master's timing, checked.
 #[derive(Debug, Clone, Copy)]
 pub struct Polling {
-    pub period: Duration,
-    pub timeout: Duration,
+    pub(crate) period: Duration,
+    pub(crate) timeout: Duration,
 }
 
 impl RoleArgs {

@@ -28,8 +28,8 @@ mod tcp;
 /// A console command and where its answer goes.
 #[derive(Debug)]
 pub struct ConsoleRequest {
-    pub command: Command,
-    pub reply: oneshot::Sender<String>,
+    pub(crate) command: Command,
+    pub(crate) reply: oneshot::Sender<String>,
 }
 
 /// Where the simulated device sits.
@@ -44,15 +44,17 @@ pub enum Port {
     Listen(std::net::SocketAddr),
 }
 
+/// Why the simulator stopped.
 #[derive(Debug, thiserror::Error)]
 pub enum SimError {
+    /// Reading or writing the serial port or connection failed.
     #[error("the simulator's port was lost: {0}")]
     Lost(std::io::Error),
 }
 
 /// Is this path a pseudo-terminal? A pty has no byte rate of its own, so the simulator
 /// paces it; a real UART paces itself.
-pub fn is_pty(path: &Path) -> bool {
+pub(crate) fn is_pty(path: &Path) -> bool {
     std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts"))
 }
 
