@@ -83,6 +83,11 @@ fn silences_in(framing: &'static str, baud: u32, serial: &[&str]) -> Vec<Duratio
 /// tokio's millisecond timer alone, which rounds the 1750 µs gap up to 2 or 3 ms,
 /// would put it above.
 fn assert_silences(s: &[Duration], gap: Duration) {
+    assert_silences_within(s, gap, Duration::from_micros(700));
+}
+
+/// [`assert_silences`] with the median at most `slack` above the gap.
+fn assert_silences_within(s: &[Duration], gap: Duration, slack: Duration) {
     let mut sorted = s.to_vec();
     sorted.sort();
     let median = sorted[sorted.len() / 2];
@@ -104,7 +109,7 @@ fn assert_silences(s: &[Duration], gap: Duration) {
         "a silence of {longest:?}, the gap is {gap:?}"
     );
     assert!(
-        median <= gap + Duration::from_micros(700),
+        median <= gap + slack,
         "median silence {median:?}, the gap is {gap:?}"
     );
 }
@@ -134,5 +139,8 @@ fn silence_before_each_request_follows_inter_frame_gap_us() {
 #[test]
 fn ascii_request_follows_a_whole_reply_without_a_gap() {
     let s = silences_in("ascii", 115_200, &[]);
-    assert_silences(&s, Duration::ZERO);
+    // With no gap to hide it in, the silence is the master's own round trip through
+    // the gateway (TCP both ways, two threads woken), which a busy machine stretches:
+    // 1.2 ms, where a gap kept after the reply measured 1.69 ms.
+    assert_silences_within(&s, Duration::ZERO, Duration::from_micros(1200));
 }
