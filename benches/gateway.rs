@@ -812,8 +812,13 @@ fn fairness(r: &mut Report) {
     const BAUD: u32 = 115_200;
     eprintln!("fairness: 1, 10, 100 masters polling at {BAUD} baud");
     let line = Line::start(&["--baud", "115200"]);
-    // Room for every master and every pipelined request: no 0x06, no refusals.
-    let gw = line.gateway(&["queue_depth = 256"], &["max_connections = 128"]);
+    // Room for every master and every pipelined request: no 0x06, no refusals. Every
+    // request its own transaction: the masters poll the same reads, which coalescing
+    // would merge (measured on its own, `-- coalesce`).
+    let gw = line.gateway(
+        &["queue_depth = 256", "coalesce = false"],
+        &["max_connections = 128"],
+    );
     let wire_t = Duration::from_secs_f64(1.0 / wire_limit(BAUD, 1, false));
     let mut t = String::from(
         "| masters | window | throughput | of wire limit | share min / max of mean | p50 | p99 | p99 / (masters × T₁) |\n|---|---|---|---|---|---|---|---|\n",
