@@ -42,6 +42,14 @@ fn gateway(dir: &Path, text: &str, listeners: usize) -> (Proc, Vec<SocketAddr>) 
     (proc, addrs)
 }
 
+/// Two pty pairs, each in its own folder of `dir`: two serial lines.
+fn two_ptys(dir: &Path) -> (Socat, Socat) {
+    let (a, b) = (dir.join("a"), dir.join("b"));
+    std::fs::create_dir_all(&a).unwrap();
+    std::fs::create_dir_all(&b).unwrap();
+    (Socat::start(&a), Socat::start(&b))
+}
+
 fn connect(addr: SocketAddr) -> TcpStream {
     let s = TcpStream::connect(addr).unwrap();
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
@@ -65,10 +73,7 @@ fn pty_line(path: &Path, framing: &str) -> String {
 #[test]
 fn requests_are_routed_by_unit_to_two_ptys_and_a_device_on_tcp() {
     let dir = tempdir();
-    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (sa, sb) = (Socat::start(&a), Socat::start(&b));
+    let (sa, sb) = two_ptys(dir.path());
     let rtu_dev = RawRtuDevice::start_at(&sa.dev, 4_000_000, rtu_register_device(&[1, 2]));
     let mbap_dev = RawDevice::start(&sb.dev, register_device(&[5], Duration::ZERO));
     let port = free_port();
@@ -128,10 +133,7 @@ fn requests_are_routed_by_unit_to_two_ptys_and_a_device_on_tcp() {
 #[test]
 fn a_dead_line_does_not_hold_up_another() {
     let dir = tempdir();
-    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (sa, sb) = (Socat::start(&a), Socat::start(&b));
+    let (sa, sb) = two_ptys(dir.path());
     // Line A: an RTU bus whose device is gone (nothing answers on the pty).
     let _dead = RawRtuDevice::start_at(&sa.dev, 4_000_000, rtu_register_device(&[]));
     let _alive = RawDevice::start(&sb.dev, register_device(&[5], Duration::ZERO));
@@ -333,10 +335,7 @@ fn request_pause_ms_spaces_the_requests_on_the_line() {
 #[test]
 fn rtu_over_tcp_masters_reach_an_rtu_and_an_mbap_line() {
     let dir = tempdir();
-    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (sa, sb) = (Socat::start(&a), Socat::start(&b));
+    let (sa, sb) = two_ptys(dir.path());
     let rtu_dev = RawRtuDevice::start_at(&sa.dev, 4_000_000, rtu_register_device(&[1]));
     let mbap_dev = RawDevice::start(&sb.dev, register_device(&[5], Duration::ZERO));
     let text = format!(

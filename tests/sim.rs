@@ -453,22 +453,8 @@ fn a_pty_that_appears_after_the_start_is_paced() {
     let dir = tempdir();
     let dev = dir.path().join("dev");
     let dev_arg = dev.to_str().unwrap().to_owned();
-    let args = [
-        "sim",
-        "--serial",
-        &dev_arg,
-        "--framing",
-        "rtu",
-        "--profile",
-        "generic",
-        "--units",
-        "1",
-        "--fill",
-        "address",
-        "--baud",
-        "9600",
-        "--headless",
-    ];
+    let mut args = vec!["sim", "--serial", &dev_arg];
+    args.extend(common::sim::generic_flags("rtu", "1", "9600"));
     let sim = Proc::start(&args, "cannot open the port");
     let socat = Socat::start(dir.path());
     sim.wait_log("simulating ", Duration::from_secs(5));

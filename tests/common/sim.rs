@@ -21,22 +21,25 @@ pub(crate) fn sim(path: &Path, args: &[&str]) -> Proc {
 /// `mbgate sim` as generic devices with the given unit ids (`"1,2"`) on an RTU or
 /// ASCII line paced at 19 200 baud, each holding register holding its address.
 pub(crate) fn serial_units(path: &Path, framing: &str, units: &str) -> Proc {
-    sim(
-        path,
-        &[
-            "--framing",
-            framing,
-            "--profile",
-            "generic",
-            "--units",
-            units,
-            "--fill",
-            "address",
-            "--baud",
-            "19200",
-            "--headless",
-        ],
-    )
+    sim(path, &generic_flags(framing, units, "19200"))
+}
+
+/// The flags of [`serial_units`]: generic devices with these unit ids, in `framing`,
+/// paced at `baud`, each holding register holding its address, no console.
+pub(crate) fn generic_flags<'a>(framing: &'a str, units: &'a str, baud: &'a str) -> Vec<&'a str> {
+    vec![
+        "--framing",
+        framing,
+        "--profile",
+        "generic",
+        "--units",
+        units,
+        "--fill",
+        "address",
+        "--baud",
+        baud,
+        "--headless",
+    ]
 }
 
 /// A master that writes and reads raw bytes on a pty (the gateway's end of a socat
