@@ -1631,25 +1631,6 @@ fn coalesce(r: &mut Report) {
 // ---------------------------------------------------------------------------------
 // 8. A device on the network, and RTU-over-TCP masters
 
-/// `mbgate run` with a configuration in the form of docs/design.md §4.1; its first
-/// listener's address is the `Gateway`'s.
-fn gateway_file(dir: &Path, text: &str) -> Gateway {
-    let file = dir.join("lines.toml");
-    std::fs::write(&file, text).unwrap();
-    let proc = Proc::start(
-        &["run", "--config", file.to_str().unwrap()],
-        "listening on ",
-    );
-    let log = proc.log();
-    let addr = log
-        .split("listening on ")
-        .nth(1)
-        .and_then(|rest| rest.split_whitespace().next())
-        .and_then(|a| a.parse().ok())
-        .expect("a listening address");
-    Gateway { proc, addr }
-}
-
 /// A connection to `addr` whose first FC 03 read is answered: the simulator serves
 /// one connection at a time, so this waits for the last one to be gone.
 fn served(addr: &str) -> TcpStream {
@@ -1716,7 +1697,7 @@ fn tcp_line(r: &mut Report) {
         drop(s);
         let _ = pipe.kill();
         let _ = pipe.wait();
-        let mut gw = gateway_file(dir.path(), &text);
+        let mut gw = Gateway::launch_text(&text, dir.path(), Launch::default());
         let mut s = served(&gw.addr.to_string());
         through.extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, 1)));
         drop(s);
@@ -1790,7 +1771,7 @@ fn rtu_listener(r: &mut Report) {
          [[listen]]\naddress = \"127.0.0.1:0\"\nframing = \"rtu\"\n\n[log]\nlevel = \"info\"\n",
         line.socat.gw.display().to_string()
     );
-    let mut gw = gateway_file(line.dir.path(), &text);
+    let mut gw = Gateway::launch_text(&text, line.dir.path(), Launch::default());
     let rtu_at = {
         let start = Instant::now();
         loop {

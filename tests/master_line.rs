@@ -49,6 +49,18 @@ fn gateway(file: &str) -> Proc {
     Proc::start(&["run", "--config", file], "serial port open")
 }
 
+/// A master line in `framing` on a pty pair, its default route to one answering slave,
+/// connected: the folder, the pty pair, the slave and the gateway.
+fn one_slave(framing: &str) -> (tempfile::TempDir, Socat, Slave, Proc) {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let slave = Slave::start(Behaviour::Answer);
+    let file = config(dir.path(), &socat.gw, framing, &[("", slave.port, "")]);
+    let gw = gateway(&file);
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    (dir, socat, slave, gw)
+}
+
 /// A pymodbus Modbus/TCP slave on `port`.
 fn pymodbus_slave(port: u16, unit: u8, base: u16) -> Py {
     let _ = python();
@@ -418,12 +430,7 @@ fn slave_lost_and_back() {
 fn lossy_line_forwards_only_what_the_master_sent() {
     let long = std::env::var_os("MBGATE_LONG").is_some();
     let want = if long { 2_000 } else { 300 };
-    let dir = tempdir();
-    let socat = Socat::start(dir.path());
-    let slave = Slave::start(Behaviour::Answer);
-    let file = config(dir.path(), &socat.gw, "mbap", &[("", slave.port, "")]);
-    let gw = gateway(&file);
-    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let (_dir, socat, slave, _gw) = one_slave("mbap");
     let dev = socat.dev.to_str().unwrap();
     // A master timeout shorter than mbgate's frame gap (50 ms): a request that lost a
     // byte is still buffered when the next one comes, the hardest case.
@@ -504,12 +511,7 @@ fn lossy_line_forwards_only_what_the_master_sent() {
 /// only the good one is forwarded and answered.
 #[test]
 fn rtu_garbage_and_bad_crc_are_not_forwarded() {
-    let dir = tempdir();
-    let socat = Socat::start(dir.path());
-    let slave = Slave::start(Behaviour::Answer);
-    let file = config(dir.path(), &socat.gw, "rtu", &[("", slave.port, "")]);
-    let gw = gateway(&file);
-    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let (_dir, socat, slave, _gw) = one_slave("rtu");
     let mut line = RawLine::open(&socat.dev);
     line.send(&[0xFF, 0x00, 0x13, 0x37]);
     thread::sleep(Duration::from_millis(20));
@@ -535,12 +537,7 @@ fn rtu_garbage_and_bad_crc_are_not_forwarded() {
 /// the master's own transaction id on its reply.
 #[test]
 fn mbap_truncated_frame_then_a_good_one() {
-    let dir = tempdir();
-    let socat = Socat::start(dir.path());
-    let slave = Slave::start(Behaviour::Answer);
-    let file = config(dir.path(), &socat.gw, "mbap", &[("", slave.port, "")]);
-    let gw = gateway(&file);
-    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let (_dir, socat, slave, _gw) = one_slave("mbap");
     let mut line = RawLine::open(&socat.dev);
     let write = |tid: u16, v: u8| {
         Adu::build(tid, 1, &[0x10, 0, 8, 0, 1, 2, 0, v])

@@ -461,8 +461,14 @@ impl Gateway {
     }
 
     pub(crate) fn launch(cfg: &Cfg, dir: &Path, launch: Launch) -> Gateway {
+        Gateway::launch_text(&cfg.render(), dir, launch)
+    }
+
+    /// `mbgate run` with the configuration file `text` (either form, docs/design.md
+    /// §4 and §4.1, in `dir`); `addr` is its first listener's address.
+    pub(crate) fn launch_text(text: &str, dir: &Path, launch: Launch) -> Gateway {
         let file = dir.join("mbgate.toml");
-        std::fs::write(&file, cfg.render()).expect("write config");
+        std::fs::write(&file, text).expect("write config");
         let args = ["run", "--config", file.to_str().unwrap()];
         let proc = Proc::launch(&args, "listening on ", &launch);
         let log = proc.log();

@@ -40,6 +40,23 @@ def outcome(rr):
     return out
 
 
+def run_steps(client, steps_json: str) -> int:
+    """Connects `client`, runs the steps, prints the results as one JSON list; the
+    exit code (1: no connection)."""
+    if not client.connect():
+        print(json.dumps([{"error": "connect failed"}]))
+        return 1
+    results = []
+    for method, args, kwargs in json.loads(steps_json):
+        try:
+            results.append(outcome(getattr(client, method)(*args, **kwargs)))
+        except ModbusException as exc:
+            results.append({"error": f"{type(exc).__name__}: {exc}"})
+    client.close()
+    print(json.dumps(results))
+    return 0
+
+
 def main() -> int:
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     p = argparse.ArgumentParser()
@@ -51,18 +68,7 @@ def main() -> int:
     a = p.parse_args()
     framer = {"socket": FramerType.SOCKET, "rtu": FramerType.RTU}[a.framer]
     client = ModbusTcpClient(a.host, port=a.port, timeout=a.timeout, retries=0, framer=framer)
-    if not client.connect():
-        print(json.dumps([{"error": "connect failed"}]))
-        return 1
-    results = []
-    for method, args, kwargs in json.loads(a.steps):
-        try:
-            results.append(outcome(getattr(client, method)(*args, **kwargs)))
-        except ModbusException as exc:
-            results.append({"error": f"{type(exc).__name__}: {exc}"})
-    client.close()
-    print(json.dumps(results))
-    return 0
+    return run_steps(client, a.steps)
 
 
 if __name__ == "__main__":

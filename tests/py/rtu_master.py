@@ -8,15 +8,13 @@ STEPS_JSON and the printed results are as in master.py (the Modbus/TCP master).
 """
 
 import argparse
-import json
 import logging
 import sys
 
 from pymodbus import FramerType
 from pymodbus.client import ModbusSerialClient
-from pymodbus.exceptions import ModbusException
 
-from master import outcome
+from master import run_steps
 
 
 def main() -> int:
@@ -30,18 +28,7 @@ def main() -> int:
     client = ModbusSerialClient(
         a.port, framer=FramerType.RTU, baudrate=a.baud, timeout=a.timeout, retries=0
     )
-    if not client.connect():
-        print(json.dumps([{"error": "connect failed"}]))
-        return 1
-    results = []
-    for method, args, kwargs in json.loads(a.steps):
-        try:
-            results.append(outcome(getattr(client, method)(*args, **kwargs)))
-        except ModbusException as exc:
-            results.append({"error": f"{type(exc).__name__}: {exc}"})
-    client.close()
-    print(json.dumps(results))
-    return 0
+    return run_steps(client, a.steps)
 
 
 if __name__ == "__main__":
