@@ -119,17 +119,14 @@ pub async fn run(
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> Result<(), SimError> {
-    // A path is judged again each time it opens (below): it may not exist yet.
     let paced = match &port {
-        Port::Path(cfg) => is_pty(Path::new(&cfg.path)),
+        // Judged each time it opens (below): a pty may not exist yet.
+        Port::Path(_) => false,
         Port::Stream(_) => true,
         // A socket has no byte rate to model.
         Port::Listen(_) => false,
     };
     let baud = settings.baud.filter(|_| paced);
-    if settings.baud.is_some() && !paced {
-        debug!("a real serial port: the UART paces the bytes");
-    }
     let mut sim = Sim {
         device: settings.device,
         delay: settings.delay,
@@ -186,7 +183,11 @@ pub async fn run(
                         reported = false;
                         // A pty made after the simulator started (socat in the
                         // background) is only known to be one now.
-                        let baud = settings.baud.filter(|_| is_pty(Path::new(&cfg.path)));
+                        let pty = is_pty(Path::new(&cfg.path));
+                        if settings.baud.is_some() && !pty {
+                            debug!("a real serial port: the UART paces the bytes");
+                        }
+                        let baud = settings.baud.filter(|_| pty);
                         (sim.rx_pace, sim.tx_pace) = (Pacer::new(baud, 10), Pacer::new(baud, 10));
                         info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
                         match sim
