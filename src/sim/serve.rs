@@ -58,6 +58,20 @@ pub(crate) fn is_pty(path: &Path) -> bool {
     std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts"))
 }
 
+/// The fastest speed a serial port is set to (`serial.baud_rate`'s upper bound).
+const FASTEST_LINE: u32 = 4_000_000;
+
+/// The pace on a pty: `--baud`, or else the fastest line there is. A pty passes bytes
+/// at once, but no device on a wire can answer before the request has reached it and
+/// its own reply has left; a gateway set to the fastest line (as `mbgate demo` and
+/// the tests set it for a pty) relies on that to tell a reply from the echo of its
+/// request (docs/reliability.md, "How", item 8), and an unpaced simulator answering
+/// within those 2 × 12 bytes at 4 Mbaud (60 µs) had its write replies dropped as
+/// echoes now and then.
+fn pty_pace(given: Option<u32>) -> u32 {
+    given.unwrap_or(FASTEST_LINE)
+}
+
 /// A frame, or a piece of one, waiting for the instant its last byte has left the
 /// simulated UART.
 #[derive(Debug)]
@@ -68,14 +82,21 @@ struct Outgoing {
     frame: Option<(bytes::Bytes, &'static str)>,
 }
 
-/// Waits until `due`, to within the OS's timer slack. Tokio's timer counts whole
-/// milliseconds and rounds a deadline up, which would put up to 1 ms between the
-/// instant a reply's last byte has left the simulated UART and its sending (half a
-/// transaction at 115 200 baud, and a millisecond on every unpaced reply). So the
-/// timer wakes the simulator a millisecond early and a blocking-pool thread sleeps
-/// the rest: the simulator's own thread stays free to read, so requests that come
-/// meanwhile are dated when they come. A `due` already past returns at once.
-async fn until_precisely(due: Instant) {
+/// Waits until `due`: on a timerfd ([`serial::PreciseTimer`]) to the microsecond, as
+/// the gateway's own line timers are, so a reply leaves the moment its last byte has
+/// left the simulated UART whatever the phase of the request against any tick. Tokio's
+/// timer counts whole milliseconds and rounds a deadline up: up to 1 ms between that
+/// instant and the sending (half a transaction at 115 200 baud), varying with when
+/// the request came, which the line-limit benchmark would count against whoever
+/// polls. Where there is no timerfd, tokio's timer wakes the simulator a millisecond
+/// early and a blocking-pool thread sleeps the rest. A `due` already past returns at
+/// once.
+async fn until_precisely(timer: Option<&mut serial::PreciseTimer>, due: Instant) {
+    if let Some(timer) = timer {
+        if timer.until(due).await.is_ok() {
+            return;
+        }
+    }
     const TICK: Duration = Duration::from_millis(1);
     if due > Instant::now() + TICK {
         sleep_until(due - TICK).await;
@@ -126,7 +147,7 @@ pub async fn run(
         // A socket has no byte rate to model.
         Port::Listen(_) => false,
     };
-    let baud = settings.baud.filter(|_| paced);
+    let baud = paced.then(|| pty_pace(settings.baud));
     let mut sim = Sim {
         device: settings.device,
         delay: settings.delay,
@@ -187,7 +208,7 @@ pub async fn run(
                         if settings.baud.is_some() && !pty {
                             debug!("a real serial port: the UART paces the bytes");
                         }
-                        let baud = settings.baud.filter(|_| pty);
+                        let baud = pty.then(|| pty_pace(settings.baud));
                         (sim.rx_pace, sim.tx_pace) = (Pacer::new(baud, 10), Pacer::new(baud, 10));
                         info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
                         match sim
@@ -235,7 +256,10 @@ impl Sim {
         let pace = if self.tx_pace.char_time().is_zero() {
             String::new()
         } else {
-            format!(", {} µs a byte", self.tx_pace.char_time().as_micros())
+            format!(
+                ", {:.1} µs a byte",
+                self.tx_pace.char_time().as_secs_f64() * 1e6
+            )
         };
         format!("{profile}{pace}")
     }
@@ -249,6 +273,9 @@ impl Sim {
     ) -> End {
         self.serving = true;
         let mut buf = vec![0u8; 4096];
+        let mut timer = serial::PreciseTimer::new()
+            .inspect_err(|e| debug!("no timerfd ({e}): replies timed to the millisecond"))
+            .ok();
         let end = loop {
             let due = self.out.front().map(|o| o.due);
             let gap_end = self.last_rx + self.frame_gap;
@@ -256,7 +283,7 @@ impl Sim {
             tokio::select! {
                 biased;
                 _ = shutdown.cancelled() => break End::Shutdown,
-                _ = until_precisely(due.unwrap_or_else(Instant::now)), if due.is_some() => {
+                _ = until_precisely(timer.as_mut(), due.unwrap_or_else(Instant::now)), if due.is_some() => {
                     if let Err(e) = self.send_due(port).await {
                         break End::Lost(e);
                     }
