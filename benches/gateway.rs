@@ -20,7 +20,8 @@ mod common;
 
 use common::sim::RawLine;
 use common::{
-    cpu_ns, read_frame, read_reply, read_req, tempdir, write_req, Cfg, Gateway, Launch, Proc, Socat,
+    cpu_ns, read_frame, read_reply, read_req, tempdir, write_req, Cfg, Gateway, Launch, Proc, Py,
+    Socat,
 };
 use std::fmt::Write as _;
 use std::io::Write as _;
@@ -231,7 +232,13 @@ fn diff_us(a: Duration, b: Duration) -> f64 {
 struct Line {
     dir: tempfile::TempDir,
     socat: Socat,
-    _sim: Proc,
+    _sim: Device,
+}
+
+/// The device on a line's far end; stopped when the line drops.
+enum Device {
+    Sim(#[allow(dead_code)] Proc),
+    Pymodbus(#[allow(dead_code)] Py),
 }
 
 impl Line {
@@ -260,7 +267,35 @@ impl Line {
         Line {
             dir,
             socat,
-            _sim: s,
+            _sim: Device::Sim(s),
+        }
+    }
+
+    /// pymodbus' own RTU server (tests/py/stock_server.py, `ModbusSerialServer` with the
+    /// RTU framer) on a pty pair of its own: a device that answers as fast as Python
+    /// does, nothing paced.
+    fn pymodbus_rtu(baud: u32) -> Line {
+        let dir = tempdir();
+        let socat = Socat::start(dir.path());
+        let speed = baud.to_string();
+        let dev = socat.dev.to_str().unwrap();
+        let py = Py::start(
+            "stock_server.py",
+            &["--port", dev, "--framer", "rtu", "--baud", &speed],
+        );
+        let mut probe = RawLine::open(&socat.gw);
+        let (req, len) = (serial_read("rtu", 1), serial_reply_len("rtu", 1));
+        let start = Instant::now();
+        while probe.transact(&req, len).len() < len {
+            assert!(
+                start.elapsed() < Duration::from_secs(20),
+                "pymodbus never answered"
+            );
+        }
+        Line {
+            dir,
+            socat,
+            _sim: Device::Pymodbus(py),
         }
     }
 
@@ -331,6 +366,11 @@ fn samples(warm: usize, n: usize, mut f: impl FnMut(u16) -> Duration) -> Vec<Dur
 // ---------------------------------------------------------------------------------
 // 1. Added latency
 
+/// The pause that confirms a lone MBAP reply at the gateway's 19 200 baud with
+/// `silence_floor_ms = 0`: 3.5 characters of 10 bits (docs/reliability.md, "How",
+/// item 2).
+const PAUSE: Duration = Duration::from_nanos(35_000_000_000 / 19_200);
+
 fn latency(r: &mut Report) {
     eprintln!("latency: FC 03 straight to the simulator, then through mbgate");
     const WARM: usize = 200;
@@ -400,11 +440,12 @@ fn latency(r: &mut Report) {
         );
         let _ = writeln!(
             t,
-            "| {qty} | **added by mbgate** | **{a50:.0} µs** | **{a99:.0} µs** | |"
+            "| {qty} | **added by mbgate** (of which a lone reply's confirmation pause: {}) | **{a50:.0} µs** | **{a99:.0} µs** | |",
+            us(PAUSE),
         );
         for (q, added, before, after, target) in [
             ("p50", a50, d.p50, g.p50, 50.0),
-            ("p99", a99, d.p99, g.p99, 200.0),
+            ("p99", a99, d.p99, g.p99, 150.0),
         ] {
             r.row(
                 "latency",
@@ -414,6 +455,13 @@ fn latency(r: &mut Report) {
                 Some(added <= target),
             );
         }
+        r.row(
+            "latency",
+            &format!("added latency p50, FC 03 × {qty}, less the confirmation pause"),
+            format!("{:.0} µs", a50 - PAUSE.as_secs_f64() * 1e6),
+            "(reported)",
+            None,
+        );
     }
     r.detail(
         &format!("Added latency ({N} samples a path and size, in {ROUNDS} rounds in which the paths take turns, each after {WARM} warm-up; simulator unpaced, no delay; every path crosses the one socat hop of the pty pair)"),
@@ -1860,6 +1908,117 @@ impl Drop for ContenderProc {
     }
 }
 
+/// `a − b` in µs, with its sign.
+fn signed_us(a: Duration, b: Duration) -> String {
+    if a >= b {
+        format!("+{}", us(a - b))
+    } else {
+        format!("−{}", us(b - a))
+    }
+}
+
+/// How late this machine wakes a thread sleeping on a timer: the gateway's own timer
+/// ([`mbgate::serial::PreciseTimer`], a timerfd on tokio's reactor) set 1750 µs ahead
+/// (t3.5 above 19 200 baud) 1000 times, on an otherwise idle runtime. A gateway keeps
+/// the gap with one such wake more than a master talking straight to the device, so
+/// this is the least it can add to a transaction without spinning.
+fn timer_floor() -> Spread {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("a runtime");
+    rt.block_on(async {
+        let mut timer = mbgate::serial::PreciseTimer::new().expect("a timerfd");
+        let mut late = Vec::new();
+        for _ in 0..1000 {
+            let at = tokio::time::Instant::now() + Duration::from_micros(1750);
+            timer.until(at).await.expect("the timer");
+            late.push(tokio::time::Instant::now() - at);
+        }
+        spread(&late)
+    })
+}
+
+/// The line's limit with a fast device: pymodbus' own RTU server on a pty, unpaced (it
+/// answers as fast as Python does, sooner than a request takes on a 115 200 baud
+/// wire, which mbgate would take for a reply begun before its request left: the
+/// line is set to 4 000 000 baud), the gap t3.5 = 1750 µs as at any speed above
+/// 19 200 baud. Direct, through mbgate (the default gap, and `inter_frame_gap_us = 1000`)
+/// and through mbusd `-R 1`, each on a pty pair and server of its own, in turns. The
+/// target: mbgate's p50 at most t3.5 + 150 µs above the direct p50.
+fn rtu_unpaced(r: &mut Report, round: Duration, rounds: usize, mbusd: Option<&Path>) -> String {
+    const BAUD: u32 = 4_000_000;
+    let t35 = Duration::from_micros(mbgate::frame::rtu::t35_us(BAUD, 10));
+    eprintln!("rtu-limit: pymodbus RTU server, unpaced, FC 03 × 1");
+    let mut paths = vec![
+        mbgate_contender_on(Line::pymodbus_rtu(BAUD), "rtu", "mbgate", BAUD, &[]),
+        mbgate_contender_on(
+            Line::pymodbus_rtu(BAUD),
+            "rtu",
+            "mbgate, gap 1000 µs",
+            BAUD,
+            &["inter_frame_gap_us = 1000"],
+        ),
+    ];
+    if let Some(m) = mbusd {
+        paths.push(mbusd_contender_on(Line::pymodbus_rtu(BAUD), m, BAUD));
+    }
+    let direct_line = Line::pymodbus_rtu(BAUD);
+    let (req, len) = (serial_read("rtu", 1), serial_reply_len("rtu", 1));
+    let mut direct = LimitRow::default();
+    let mut via = vec![LimitRow::default(); paths.len()];
+    for _ in 0..rounds {
+        let mut m = direct_line.raw();
+        direct.times.extend(poll_for(round, |_| {
+            let t = Instant::now();
+            assert_eq!(m.transact(&req, len).len(), len, "short reply");
+            t.elapsed()
+        }));
+        drop(m);
+        for (p, out) in paths.iter().zip(via.iter_mut()) {
+            let mut s = TcpStream::connect(p.addr).expect("connect");
+            s.set_nodelay(true).unwrap();
+            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            let cpu0 = cpu_ns(p.pid);
+            out.times
+                .extend(poll_for(round, |tid| tcp_read(&mut s, tid, 1)));
+            out.cpu_ns += cpu_ns(p.pid) - cpu0;
+        }
+    }
+    let d = spread(&direct.times).p50;
+    let cell = |p: &LimitRow| format!("{:.1} ({})", p.rate(), ms(spread(&p.times).p50));
+    let above = |p: &LimitRow| spread(&p.times).p50.saturating_sub(d);
+    let g = &via[0];
+    let bound = t35 + Duration::from_micros(150);
+    let (busd, ratio) = match paths.iter().position(|p| p.name.starts_with("mbusd")) {
+        Some(i) => (
+            format!("{} (+{})", cell(&via[i]), us(above(&via[i]))),
+            format!("**{:.2}**", g.rate() / via[i].rate()),
+        ),
+        None => ("(MBUSD not set)".into(), "-".into()),
+    };
+    r.row(
+        "rtu-limit",
+        "RTU, pymodbus server unpaced: mbgate's p50 above direct",
+        format!("{} (t3.5 = {})", us(above(g)), us(t35)),
+        "≤ t3.5 + 150 µs",
+        Some(above(g) <= bound),
+    );
+    format!(
+        "A fast device: pymodbus' own RTU server (`tests/py/stock_server.py --framer rtu`), unpaced, the line set to {BAUD} baud (t3.5 = {}); tx/s (p50), and in brackets after it the p50 above direct:\n\n\
+         | direct tx/s (p50) | mbgate tx/s (p50) | mbgate above direct, p50 | target | mbgate CPU/tx | mbgate gap 1000 µs | mbusd -R 1 | mbgate / mbusd |\n|---|---|---|---|---|---|---|---|\n\
+         | {} | {} | **{}** | ≤ {} | {} | {} (+{}) | {busd} | {ratio} |\n",
+        us(t35),
+        cell(&direct),
+        cell(g),
+        us(above(g)),
+        us(bound),
+        us(Duration::from_nanos(g.cpu_ns / g.times.len().max(1) as u64)),
+        cell(&via[1]),
+        us(above(&via[1])),
+    )
+}
+
 /// The simulator as an RTU device paced at `baud` on a pty pair of its own.
 fn rtu_sim_line(baud: u32) -> Line {
     serial_sim_line("rtu", baud)
@@ -1900,7 +2059,17 @@ fn mbgate_contender(name: &str, baud: u32, serial: &[&str]) -> Contender {
 
 /// [`mbgate_contender`] in `framing`.
 fn mbgate_contender_in(framing: &str, name: &str, baud: u32, serial: &[&str]) -> Contender {
-    let line = serial_sim_line(framing, baud);
+    mbgate_contender_on(serial_sim_line(framing, baud), framing, name, baud, serial)
+}
+
+/// [`mbgate_contender_in`] in front of the device on `line`.
+fn mbgate_contender_on(
+    line: Line,
+    framing: &str,
+    name: &str,
+    baud: u32,
+    serial: &[&str],
+) -> Contender {
     let mut cfg = Cfg::new(&line.socat.gw)
         .serial(&format!("framing = {framing:?}"))
         .serial("flow_control = \"none\"")
@@ -1921,7 +2090,11 @@ fn mbgate_contender_in(framing: &str, name: &str, baud: u32, serial: &[&str]) ->
 /// mbusd (`MBUSD=/path/to/mbusd`) in front of the same simulator at `baud`, with its
 /// pause between requests at its least (`-R 1`, 1 ms), no retries.
 fn mbusd_contender(mbusd: &Path, baud: u32) -> Contender {
-    let line = rtu_sim_line(baud);
+    mbusd_contender_on(rtu_sim_line(baud), mbusd, baud)
+}
+
+/// [`mbusd_contender`] in front of the device on `line`.
+fn mbusd_contender_on(line: Line, mbusd: &Path, baud: u32) -> Contender {
     let port = std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .expect("a free port")
@@ -2013,7 +2186,7 @@ fn rtu_limit(r: &mut Report) {
         eprintln!("rtu-limit: MBUSD not set: the mbusd column is skipped (MBUSD=/path/to/mbusd)");
     }
     let mut t = String::from(
-        "| baud | registers | direct tx/s (p50) | limit with t3.5 | mbgate tx/s (p50) | mbgate / limit | mbgate CPU/tx | mbgate gap 1000 µs tx/s (p50) | mbusd -R 1 tx/s (p50) | mbgate / mbusd | mbusd CPU/tx |\n|---|---|---|---|---|---|---|---|---|---|---|\n",
+        "| baud | registers | direct tx/s (p50) | limit with t3.5 | mbgate tx/s (p50) | mbgate / limit | mbgate p50 − direct p50 − t3.5 | mbgate CPU/tx | mbgate gap 1000 µs tx/s (p50) | mbusd -R 1 tx/s (p50) | mbgate / mbusd | mbusd CPU/tx |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
     );
     // `MBGATE_BENCH_RTU_BAUDS=115200,921600` measures only those speeds.
     let bauds: Vec<u32> = std::env::var("MBGATE_BENCH_RTU_BAUDS")
@@ -2082,11 +2255,12 @@ fn rtu_limit(r: &mut Report) {
             };
             let _ = writeln!(
                 t,
-                "| {baud} | {qty} | {:.1} ({}) | {limit:.1}/s | {} | **{}** | {} | {gap} | {busd_cell} | {ratio} | {busd_cpu} |",
+                "| {baud} | {qty} | {:.1} ({}) | {limit:.1}/s | {} | **{}** | {} | {} | {gap} | {busd_cell} | {ratio} | {busd_cpu} |",
                 direct.rate(),
                 ms(d.p50),
                 cell(g),
                 pct(g.rate() / limit),
+                signed_us(spread(&g.times).p50, d.p50 + t35),
                 cpu(g),
             );
             r.row(
@@ -2098,6 +2272,8 @@ fn rtu_limit(r: &mut Report) {
             );
         }
     }
+    let unpaced = rtu_unpaced(r, round, ROUNDS, mbusd.as_deref());
+    let _ = write!(t, "\n{unpaced}");
     // ASCII: its limit is the wire time alone (no gap between frames).
     let mut a = String::from(
         "| baud | registers | direct tx/s (p50) | mbgate tx/s (p50) | mbgate / direct | mbgate CPU/tx |\n|---|---|---|---|---|---|\n",
@@ -2158,6 +2334,13 @@ fn rtu_limit(r: &mut Report) {
     } else {
         "\nmbusd not measured: run with `MBUSD=/path/to/mbusd` (built from github.com/3cky/mbusd with cmake).\n"
     };
+    let floor = timer_floor();
+    let _ = write!(
+        t,
+        "\nThis machine's timer floor (a timerfd set 1750 µs ahead, 1000 times, on an idle runtime): late by {} at p50, {} at p99. The gap costs a gateway one such wake more than a master talking straight to the device.\n",
+        us(floor.p50),
+        us(floor.p99),
+    );
     r.detail(
         &format!("RTU at the line's limit (the simulator paced as a UART, 10 bits a byte; one master polling; each path on its own pty pair and simulator; paths in turn, {ROUNDS} rounds of {round:?} each; p50 of the transaction time in brackets)"),
         "MBUSD=/path/to/mbusd cargo bench --bench gateway -- rtu-limit",
