@@ -43,63 +43,40 @@ fn reply_len(qty: u16) -> usize {
 /// Upper bound on transactions in any one load loop, whatever its time budget.
 const MAX_TRANSACTIONS: usize = 200_000;
 
+/// A benchmark scenario: it measures, and adds its rows and tables to the report.
+type Scenario = fn(&mut Report);
+
 fn main() {
     let args: Vec<String> = std::env::args()
         .skip(1)
         .filter(|a| a != "--bench")
         .collect();
-    let all = [
-        "latency",
-        "wire",
-        "fairness",
-        "footprint",
-        "rtu",
-        "rtu-backoff",
-        "rtu-limit",
-        "coalesce",
-        "tcp-line",
-        "rtu-listener",
-        "metrics",
+    // Each scenario by the name that picks it, in the order they run.
+    let all: [(&str, Scenario); 11] = [
+        ("latency", latency),
+        ("wire", wire),
+        ("fairness", fairness),
+        ("footprint", footprint),
+        ("rtu", rtu),
+        ("rtu-backoff", rtu_backoff),
+        ("rtu-limit", rtu_limit),
+        ("coalesce", coalesce),
+        ("tcp-line", tcp_line),
+        ("rtu-listener", rtu_listener),
+        ("metrics", metrics_cost),
     ];
-    if let Some(bad) = args.iter().find(|a| !all.contains(&a.as_str())) {
-        eprintln!("unknown scenario {bad:?}; scenarios: {}", all.join(", "));
+    let names: Vec<&str> = all.iter().map(|(name, _)| *name).collect();
+    if let Some(bad) = args.iter().find(|a| !names.contains(&a.as_str())) {
+        eprintln!("unknown scenario {bad:?}; scenarios: {}", names.join(", "));
         std::process::exit(2);
     }
     let wanted = |s: &str| args.is_empty() || args.iter().any(|a| a == s);
     let mut r = Report::default();
     let load_before = loadavg();
-    if wanted("latency") {
-        latency(&mut r);
-    }
-    if wanted("wire") {
-        wire(&mut r);
-    }
-    if wanted("fairness") {
-        fairness(&mut r);
-    }
-    if wanted("footprint") {
-        footprint(&mut r);
-    }
-    if wanted("rtu") {
-        rtu(&mut r);
-    }
-    if wanted("rtu-backoff") {
-        rtu_backoff(&mut r);
-    }
-    if wanted("rtu-limit") {
-        rtu_limit(&mut r);
-    }
-    if wanted("coalesce") {
-        coalesce(&mut r);
-    }
-    if wanted("tcp-line") {
-        tcp_line(&mut r);
-    }
-    if wanted("rtu-listener") {
-        rtu_listener(&mut r);
-    }
-    if wanted("metrics") {
-        metrics_cost(&mut r);
+    for (name, scenario) in all {
+        if wanted(name) {
+            scenario(&mut r);
+        }
     }
     let md = r.render(&load_before, &loadavg());
     println!("{md}");
@@ -248,54 +225,52 @@ impl Line {
 
     /// [`Line::start`], the simulator probed with `probe`, answered in `answer` bytes.
     fn start_probed(sim_args: &[&str], probe_req: &[u8], answer: usize) -> Line {
-        let dir = tempdir();
-        let socat = Socat::start(dir.path());
-        let mut args = vec!["--profile", "generic", "--log-level", "warn"];
-        args.extend_from_slice(sim_args);
-        // No log line to wait for ("" is there at once): the probe below decides.
-        let dev = socat.dev.to_str().unwrap();
-        let all: Vec<&str> = ["sim", "--serial", dev].into_iter().chain(args).collect();
-        let s = Proc::start(&all, "");
-        let mut probe = RawLine::open(&socat.gw);
-        let start = Instant::now();
-        while probe.transact(probe_req, answer).len() < answer {
-            assert!(
-                start.elapsed() < Duration::from_secs(20),
-                "the simulator never answered"
-            );
-        }
-        Line {
-            dir,
-            socat,
-            _sim: Device::Sim(s),
-        }
+        Line::probed(
+            |dev| {
+                let mut args = vec!["sim", "--serial", dev];
+                args.extend(["--profile", "generic", "--log-level", "warn"]);
+                args.extend_from_slice(sim_args);
+                // No log line to wait for ("" is there at once): the probe decides.
+                Device::Sim(Proc::start(&args, ""))
+            },
+            probe_req,
+            answer,
+        )
     }
 
     /// pymodbus' own RTU server (tests/py/stock_server.py, `ModbusSerialServer` with the
     /// RTU framer) on a pty pair of its own: a device that answers as fast as Python
     /// does, nothing paced.
     fn pymodbus_rtu(baud: u32) -> Line {
+        let speed = baud.to_string();
+        Line::probed(
+            |dev| {
+                let args = ["--port", dev, "--framer", "rtu", "--baud", &speed];
+                Device::Pymodbus(Py::start("stock_server.py", &args))
+            },
+            &serial_read("rtu", 1),
+            serial_reply_len("rtu", 1),
+        )
+    }
+
+    /// A pty pair with the device `start` puts on its far end (given that end's path),
+    /// once it answers `probe_req` in `answer` bytes.
+    fn probed(start: impl FnOnce(&str) -> Device, probe_req: &[u8], answer: usize) -> Line {
         let dir = tempdir();
         let socat = Socat::start(dir.path());
-        let speed = baud.to_string();
-        let dev = socat.dev.to_str().unwrap();
-        let py = Py::start(
-            "stock_server.py",
-            &["--port", dev, "--framer", "rtu", "--baud", &speed],
-        );
+        let device = start(socat.dev.to_str().unwrap());
         let mut probe = RawLine::open(&socat.gw);
-        let (req, len) = (serial_read("rtu", 1), serial_reply_len("rtu", 1));
-        let start = Instant::now();
-        while probe.transact(&req, len).len() < len {
+        let since = Instant::now();
+        while probe.transact(probe_req, answer).len() < answer {
             assert!(
-                start.elapsed() < Duration::from_secs(20),
-                "pymodbus never answered"
+                since.elapsed() < Duration::from_secs(20),
+                "the device never answered"
             );
         }
         Line {
             dir,
             socat,
-            _sim: Device::Pymodbus(py),
+            _sim: device,
         }
     }
 
@@ -367,9 +342,11 @@ fn samples(warm: usize, n: usize, mut f: impl FnMut(u16) -> Duration) -> Vec<Dur
 // 1. Added latency
 
 /// The pause that confirms a lone MBAP reply at the gateway's 19 200 baud with
-/// `silence_floor_ms = 0`: 3.5 characters of 10 bits (docs/reliability.md, "How",
-/// item 2).
-const PAUSE: Duration = Duration::from_nanos(35_000_000_000 / 19_200);
+/// `silence_floor_ms = 0`: 3.5 characters of 10 bits, as the relay reckons it
+/// (docs/reliability.md, "How", item 2).
+fn pause() -> Duration {
+    Duration::from_micros(mbgate::frame::rtu::t35_us(19_200, 10))
+}
 
 fn latency(r: &mut Report) {
     eprintln!("latency: FC 03 straight to the simulator, then through mbgate");
@@ -441,7 +418,7 @@ fn latency(r: &mut Report) {
         let _ = writeln!(
             t,
             "| {qty} | **added by mbgate** (of which a lone reply's confirmation pause: {}) | **{a50:.0} µs** | **{a99:.0} µs** | |",
-            us(PAUSE),
+            us(pause()),
         );
         for (q, added, before, after, target) in [
             ("p50", a50, d.p50, g.p50, 50.0),
@@ -458,7 +435,7 @@ fn latency(r: &mut Report) {
         r.row(
             "latency",
             &format!("added latency p50, FC 03 × {qty}, less the confirmation pause"),
-            format!("{:.0} µs", a50 - PAUSE.as_secs_f64() * 1e6),
+            format!("{:.0} µs", a50 - pause().as_secs_f64() * 1e6),
             "(reported)",
             None,
         );
@@ -1908,15 +1885,6 @@ impl Drop for ContenderProc {
     }
 }
 
-/// `a − b` in µs, with its sign.
-fn signed_us(a: Duration, b: Duration) -> String {
-    if a >= b {
-        format!("+{}", us(a - b))
-    } else {
-        format!("−{}", us(b - a))
-    }
-}
-
 /// How late this machine wakes a thread sleeping on a timer: the gateway's own timer
 /// ([`mbgate::serial::PreciseTimer`], a timerfd on tokio's reactor) set 1750 µs ahead
 /// (t3.5 above 19 200 baud) 1000 times, on an otherwise idle runtime. A gateway keeps
@@ -1969,27 +1937,16 @@ fn rtu_unpaced(r: &mut Report, round: Duration, rounds: usize, mbusd: Option<&Pa
     let mut via = vec![LimitRow::default(); paths.len()];
     for _ in 0..rounds {
         let mut m = direct_line.raw();
-        direct.times.extend(poll_for(round, |_| {
-            let t = Instant::now();
-            assert_eq!(m.transact(&req, len).len(), len, "short reply");
-            t.elapsed()
-        }));
+        direct
+            .times
+            .extend(poll_direct(&mut m, &req, len, round, Duration::ZERO));
         // The master keeping t3.5 itself (as in the paced rows).
-        direct_gap.times.extend(poll_for(round, |_| {
-            let t = Instant::now();
-            thread::sleep(t35);
-            assert_eq!(m.transact(&req, len).len(), len, "short reply");
-            t.elapsed()
-        }));
+        direct_gap
+            .times
+            .extend(poll_direct(&mut m, &req, len, round, t35));
         drop(m);
         for (p, out) in paths.iter().zip(via.iter_mut()) {
-            let mut s = TcpStream::connect(p.addr).expect("connect");
-            s.set_nodelay(true).unwrap();
-            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-            let cpu0 = cpu_ns(p.pid);
-            out.times
-                .extend(poll_for(round, |tid| tcp_read(&mut s, tid, 1)));
-            out.cpu_ns += cpu_ns(p.pid) - cpu0;
+            poll_through(p, 1, round, out);
         }
     }
     let d = spread(&direct.times).p50;
@@ -2160,6 +2117,38 @@ fn poll_for(budget: Duration, mut f: impl FnMut(u16) -> Duration) -> Vec<Duratio
     v
 }
 
+/// One master straight on the device's pty, polling with `req` (answered in `len`
+/// bytes) for `round`, sleeping `gap` before each request (zero: none); each
+/// transaction's time, the sleep included.
+fn poll_direct(
+    m: &mut RawLine,
+    req: &[u8],
+    len: usize,
+    round: Duration,
+    gap: Duration,
+) -> Vec<Duration> {
+    poll_for(round, |_| {
+        let t = Instant::now();
+        if !gap.is_zero() {
+            thread::sleep(gap);
+        }
+        assert_eq!(m.transact(req, len).len(), len, "short reply");
+        t.elapsed()
+    })
+}
+
+/// One master polling FC 03 × `qty` through `p` for `round`: its transaction times and
+/// the CPU `p` spent on them go into `out`.
+fn poll_through(p: &Contender, qty: u16, round: Duration, out: &mut LimitRow) {
+    let mut s = TcpStream::connect(p.addr).expect("connect");
+    s.set_nodelay(true).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    let cpu0 = cpu_ns(p.pid);
+    let times = poll_for(round, |tid| tcp_read(&mut s, tid, qty));
+    out.cpu_ns += cpu_ns(p.pid) - cpu0;
+    out.times.extend(times);
+}
+
 /// Per path of one row: transaction times, and CPU nanoseconds spent on them.
 #[derive(Default, Clone)]
 struct LimitRow {
@@ -2229,31 +2218,19 @@ fn rtu_limit(r: &mut Report) {
             let req = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, qty as u8]);
             for _ in 0..ROUNDS {
                 let mut m = direct_line.raw();
-                direct.times.extend(poll_for(round, |_| {
-                    let t = Instant::now();
-                    let got = m.transact(&req, rtu_reply_len(qty)).len();
-                    assert_eq!(got, rtu_reply_len(qty), "short reply");
-                    t.elapsed()
-                }));
+                let len = rtu_reply_len(qty);
+                direct
+                    .times
+                    .extend(poll_direct(&mut m, &req, len, round, Duration::ZERO));
                 // The same master keeping t3.5 itself after each reply, on a timer as
                 // precise as the gateway's: what a transaction takes on this machine
                 // when the line is left silent for the gap, whoever keeps it.
-                direct_gap.times.extend(poll_for(round, |_| {
-                    let t = Instant::now();
-                    thread::sleep(t35);
-                    let got = m.transact(&req, rtu_reply_len(qty)).len();
-                    assert_eq!(got, rtu_reply_len(qty), "short reply");
-                    t.elapsed()
-                }));
+                direct_gap
+                    .times
+                    .extend(poll_direct(&mut m, &req, len, round, t35));
                 drop(m);
                 for (p, out) in paths.iter().zip(via.iter_mut()) {
-                    let mut s = TcpStream::connect(p.addr).expect("connect");
-                    s.set_nodelay(true).unwrap();
-                    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-                    let cpu0 = cpu_ns(p.pid);
-                    let times = poll_for(round, |tid| tcp_read(&mut s, tid, qty));
-                    out.cpu_ns += cpu_ns(p.pid) - cpu0;
-                    out.times.extend(times);
+                    poll_through(p, qty, round, out);
                 }
             }
             let d = spread(&direct.times);
@@ -2280,12 +2257,12 @@ fn rtu_limit(r: &mut Report) {
             };
             let _ = writeln!(
                 t,
-                "| {baud} | {qty} | {:.1} ({}) | {limit:.1}/s | {} | **{}** | {} | {} | {} | {} | {gap} | {busd_cell} | {ratio} | {busd_cpu} |",
+                "| {baud} | {qty} | {:.1} ({}) | {limit:.1}/s | {} | **{}** | {:+.1} µs | {} | {} | {} | {gap} | {busd_cell} | {ratio} | {busd_cpu} |",
                 direct.rate(),
                 ms(d.p50),
                 cell(g),
                 pct(g.rate() / limit),
-                signed_us(spread(&g.times).p50, d.p50 + t35),
+                diff_us(d.p50 + t35, spread(&g.times).p50),
                 cell(&direct_gap),
                 pct(g.rate() / direct_gap.rate()),
                 cpu(g),
@@ -2315,19 +2292,11 @@ fn rtu_limit(r: &mut Report) {
         let (mut direct, mut via) = (LimitRow::default(), LimitRow::default());
         for _ in 0..ROUNDS {
             let mut m = direct_line.raw();
-            direct.times.extend(poll_for(round, |_| {
-                let t = Instant::now();
-                assert_eq!(m.transact(&req, len).len(), len, "short reply");
-                t.elapsed()
-            }));
+            direct
+                .times
+                .extend(poll_direct(&mut m, &req, len, round, Duration::ZERO));
             drop(m);
-            let mut s = TcpStream::connect(gw.addr).expect("connect");
-            s.set_nodelay(true).unwrap();
-            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
-            let cpu0 = cpu_ns(gw.pid);
-            via.times
-                .extend(poll_for(round, |tid| tcp_read(&mut s, tid, qty)));
-            via.cpu_ns += cpu_ns(gw.pid) - cpu0;
+            poll_through(&gw, qty, round, &mut via);
         }
         let ratio = via.rate() / direct.rate();
         let _ = writeln!(
