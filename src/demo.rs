@@ -2,7 +2,9 @@
 //! simulated device on one end, the gateway on the other, and instructions on how to
 //! connect. This is the README's "run it" command on a machine without a device.
 
-use crate::config::{Config, FlowControl, LineConfig, Notifications, SerialConfig, Units};
+use crate::config::{
+    Config, FlowControl, LineConfig, Notifications, SerialConfig, Units, FASTEST_BAUD,
+};
 use crate::gateway::{self, GatewayError};
 use crate::sim::options::{DeviceArgs, Settings};
 use crate::sim::serve::{self, ConsoleRequest, Port, SimError};
@@ -126,7 +128,7 @@ impl DemoArgs {
     pub(crate) fn gateway_config(&self, pty: String) -> Config {
         let mut cfg = Config::default();
         cfg.serial.path = pty;
-        cfg.serial.baud_rate = self.baud.unwrap_or(4_000_000);
+        cfg.serial.baud_rate = self.baud.unwrap_or(FASTEST_BAUD);
         cfg.serial.silence_floor_ms = 0;
         cfg.serial.flow_control = FlowControl::None;
         cfg.tcp.listen = self.listen.unwrap_or(DEFAULT_LISTEN);

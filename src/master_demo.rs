@@ -61,7 +61,7 @@ pub enum MasterDemoError {
 fn line_config(pty: String, slave: SocketAddr, traffic: bool) -> Config {
     let mut cfg = Config::default();
     cfg.serial.path = pty;
-    cfg.serial.baud_rate = 4_000_000;
+    cfg.serial.baud_rate = crate::config::FASTEST_BAUD;
     cfg.serial.silence_floor_ms = 0;
     cfg.serial.flow_control = FlowControl::None;
     cfg.log.traffic = traffic;

@@ -58,9 +58,6 @@ pub(crate) fn is_pty(path: &Path) -> bool {
     std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts"))
 }
 
-/// The fastest speed a serial port is set to (`serial.baud_rate`'s upper bound).
-const FASTEST_LINE: u32 = 4_000_000;
-
 /// The pace on a pty: `--baud`, or else the fastest line there is. A pty passes bytes
 /// at once, but no device on a wire can answer before the request has reached it and
 /// its own reply has left; a gateway set to the fastest line (as `mbgate demo` and
@@ -69,7 +66,7 @@ const FASTEST_LINE: u32 = 4_000_000;
 /// within those 2 × 12 bytes at 4 Mbaud (60 µs) had its write replies dropped as
 /// echoes now and then.
 fn pty_pace(given: Option<u32>) -> u32 {
-    given.unwrap_or(FASTEST_LINE)
+    given.unwrap_or(crate::config::FASTEST_BAUD)
 }
 
 /// A frame, or a piece of one, waiting for the instant its last byte has left the
