@@ -6,9 +6,9 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use mbgate::frame::framer::{Framed, Framer, ReplyFor};
+use mbgate::frame::framer::{frame_in_cuts, Framed, Framer, ReplyFor};
 use mbgate::frame::serial::Codec;
-use mbgate::frame::{Judge, RequestJudge};
+use mbgate::frame::RequestJudge;
 
 fn framer(kind: u8) -> Framer {
     match kind % 3 {
@@ -18,41 +18,23 @@ fn framer(kind: u8) -> Framer {
     }
 }
 
-fn run(f: &mut Framer, judge: &impl Judge, data: &[u8], cuts: &[u8]) -> Vec<mbgate::frame::Adu> {
-    let mut out = Vec::new();
-    let mut at = 0;
-    let take = |f: &mut Framer, quiet: bool, out: &mut Vec<_>| {
-        while let Some(framed) = f.next_frame(judge, quiet) {
-            if let Framed::Frame(adu) = framed {
-                out.push(adu);
-            }
-        }
-    };
-    for &c in cuts {
-        let end = (at + usize::from(c)).min(data.len());
-        f.push(&data[at..end]);
-        at = end;
-        take(f, c % 5 == 0, &mut out);
-    }
-    f.push(&data[at..]);
-    take(f, false, &mut out);
-    take(f, true, &mut out);
-    out
-}
-
 fuzz_target!(|input: (u8, Vec<u8>, Vec<u8>, Vec<u8>)| {
     let (kind, request, data, cuts) = input;
     let mut f = framer(kind);
     let frames = if kind % 2 == 0 {
-        run(&mut f, &RequestJudge::default(), &data, &cuts)
+        frame_in_cuts(&mut f, &RequestJudge::default(), &data, &cuts)
     } else {
-        run(&mut f, &ReplyFor(&request), &data, &cuts)
+        frame_in_cuts(&mut f, &ReplyFor(&request), &data, &cuts)
     };
     let yielded: u64 = frames
         .iter()
         .map(|a| f.encoded_len(a.pdu().len()) as u64)
         .sum();
-    assert_eq!(yielded + f.dropped(), f.consumed(), "taken: yielded or dropped");
+    assert_eq!(
+        yielded + f.dropped(),
+        f.consumed(),
+        "taken: yielded or dropped"
+    );
     assert_eq!(
         f.consumed() + f.buffered() as u64,
         data.len() as u64,

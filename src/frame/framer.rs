@@ -264,6 +264,32 @@ impl Framer {
     }
 }
 
+/// The frames `f` yields from `data` fed in chunks of the sizes in `cuts` (the line
+/// going quiet after each size that is a multiple of five), then the rest, then a
+/// quiet line. Any chunking the property tests and the fuzz target
+/// (fuzz/fuzz_targets/framer.rs) draw, fed the one way.
+pub fn frame_in_cuts(f: &mut Framer, judge: &impl Judge, data: &[u8], cuts: &[u8]) -> Vec<Adu> {
+    let mut out = Vec::new();
+    let take = |f: &mut Framer, quiet: bool, out: &mut Vec<Adu>| {
+        while let Some(framed) = f.next_frame(judge, quiet) {
+            if let Framed::Frame(adu) = framed {
+                out.push(adu);
+            }
+        }
+    };
+    let mut at = 0;
+    for &c in cuts {
+        let end = (at + usize::from(c)).min(data.len());
+        f.push(&data[at..end]);
+        at = end;
+        take(f, c % 5 == 0, &mut out);
+    }
+    f.push(&data[at..]);
+    take(f, false, &mut out);
+    take(f, true, &mut out);
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -350,30 +376,6 @@ mod tests {
         }
     }
 
-    /// Frames `data` fed in chunks of the sizes in `cuts` (a quiet line after each
-    /// fifth size), then quiet: what fuzz/fuzz_targets/framer.rs checks.
-    fn frame_all(f: &mut Framer, judge: &impl Judge, data: &[u8], cuts: &[u8]) -> Vec<Adu> {
-        let mut out = Vec::new();
-        let take = |f: &mut Framer, quiet: bool, out: &mut Vec<Adu>| {
-            while let Some(framed) = f.next_frame(judge, quiet) {
-                if let Framed::Frame(adu) = framed {
-                    out.push(adu);
-                }
-            }
-        };
-        let mut at = 0;
-        for &c in cuts {
-            let end = (at + usize::from(c)).min(data.len());
-            f.push(&data[at..end]);
-            at = end;
-            take(f, c % 5 == 0, &mut out);
-        }
-        f.push(&data[at..]);
-        take(f, false, &mut out);
-        take(f, true, &mut out);
-        out
-    }
-
     proptest::proptest! {
         /// Every byte pushed is in a frame yielded, counted as dropped, or still held
         /// (ASCII keeps a frame begun at a colon), and every frame yielded encodes
@@ -398,7 +400,7 @@ mod tests {
                 }
             }
             let mut f = framer(kind);
-            let frames = frame_all(&mut f, &ReplyJudge, &data, &cuts);
+            let frames = frame_in_cuts(&mut f, &ReplyJudge, &data, &cuts);
             let yielded: u64 = frames.iter().map(|a| f.encoded_len(a.pdu().len()) as u64).sum();
             proptest::prop_assert_eq!(yielded + f.dropped(), f.consumed());
             proptest::prop_assert_eq!(f.consumed() + f.buffered() as u64, data.len() as u64);
