@@ -35,15 +35,23 @@ def read_until(fd, marker: bytes, timeout=5.0) -> bytes:
     return buf
 
 
-def main() -> int:
-    mbgate, device, master = sys.argv[1:4]
+def on_terminal(args, stderr=subprocess.DEVNULL, cwd=None):
+    """Starts `args` with a pty as its terminal (stdin and stdout); returns the
+    process and our side of the pty."""
     console, terminal = pty.openpty()
-    log = tempfile.NamedTemporaryFile(prefix="mbgate-sim-", suffix=".log")
     proc = subprocess.Popen(
-        [mbgate, "sim", "--serial", device, "--log-level", "info"],
-        stdin=terminal, stdout=terminal, stderr=log, close_fds=True,
+        args, stdin=terminal, stdout=terminal, stderr=stderr, close_fds=True, cwd=cwd,
     )
     os.close(terminal)
+    return proc, console
+
+
+def main() -> int:
+    mbgate, device, master = sys.argv[1:4]
+    log = tempfile.NamedTemporaryFile(prefix="mbgate-sim-", suffix=".log")
+    proc, console = on_terminal(
+        [mbgate, "sim", "--serial", device, "--log-level", "info"], stderr=log,
+    )
     read_until(console, b"sim> ")
     end = time.monotonic() + 5
     while b"simulating" not in open(log.name, "rb").read():

@@ -7,23 +7,16 @@ then "exit N".
 """
 
 import os
-import pty
 import signal
-import subprocess
 import sys
 
 sys.path.insert(0, os.path.dirname(__file__))
-from console import read_until  # noqa: E402
+from console import on_terminal, read_until  # noqa: E402
 
 
 def main() -> int:
     mbgate = sys.argv[1]
-    console, terminal = pty.openpty()
-    proc = subprocess.Popen(
-        [mbgate, "demo", "--listen", "127.0.0.1:0"],
-        stdin=terminal, stdout=terminal, stderr=subprocess.DEVNULL, close_fds=True,
-    )
-    os.close(terminal)
+    proc, console = on_terminal([mbgate, "demo", "--listen", "127.0.0.1:0"])
     read_until(console, b"sim> ")
     proc.send_signal(signal.SIGINT)
     rest = read_until(console, b"stopped: ", timeout=10)

@@ -10,25 +10,21 @@ banner, what the printed command printed, and the exit code.
 
 import json
 import os
-import pty
 import signal
 import subprocess
 import sys
 import time
 
 sys.path.insert(0, os.path.dirname(__file__))
-from console import read_until  # noqa: E402
+from console import on_terminal, read_until  # noqa: E402
 
 
 def main() -> int:
     mbgate = sys.argv[1]
-    console, terminal = pty.openpty()
-    proc = subprocess.Popen(
+    proc, console = on_terminal(
         [mbgate, "demo", "--master", "--poll-ms", "100", "--listen", "127.0.0.1:0"],
-        stdin=terminal, stdout=terminal, stderr=subprocess.DEVNULL, close_fds=True,
         cwd=os.path.dirname(mbgate),
     )
-    os.close(terminal)
     banner = read_until(console, b"sim> ").decode()
     os.write(console, b"input 0 on\n")
     read_until(console, b"inputs 00000001")
