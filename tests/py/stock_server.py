@@ -34,7 +34,8 @@ from pymodbus.server import ModbusSerialServer
 import serving
 
 
-def context(size: int) -> ModbusServerContext:
+def context(size: int, unit: int = 1) -> ModbusServerContext:
+    """The data above, as unit `unit` (tcp_device.py serves it too)."""
     # ModbusSequentialDataBlock(1, ...) puts PDU address 0 at values[0].
     device = ModbusDeviceContext(
         co=ModbusSequentialDataBlock(1, [i % 3 == 0 for i in range(size)]),
@@ -42,7 +43,7 @@ def context(size: int) -> ModbusServerContext:
         hr=ModbusSequentialDataBlock(1, [0x00FF] + [1000 + i for i in range(1, size)]),
         ir=ModbusSequentialDataBlock(1, [2000 + i for i in range(size)]),
     )
-    return ModbusServerContext(devices={1: device}, single=False)
+    return ModbusServerContext(devices={unit: device}, single=False)
 
 
 async def main() -> int:

@@ -16,23 +16,9 @@ import asyncio
 import logging
 import sys
 
-from pymodbus.datastore import (
-    ModbusDeviceContext,
-    ModbusSequentialDataBlock,
-    ModbusServerContext,
-)
 from pymodbus.server import ModbusTcpServer
 import serving
-
-
-def context(unit: int, size: int) -> ModbusServerContext:
-    device = ModbusDeviceContext(
-        co=ModbusSequentialDataBlock(1, [i % 3 == 0 for i in range(size)]),
-        di=ModbusSequentialDataBlock(1, [i % 2 == 0 for i in range(size)]),
-        hr=ModbusSequentialDataBlock(1, [0x00FF] + [1000 + i for i in range(1, size)]),
-        ir=ModbusSequentialDataBlock(1, [2000 + i for i in range(size)]),
-    )
-    return ModbusServerContext(devices={unit: device}, single=False)
+from stock_server import context
 
 
 async def main() -> int:
@@ -46,7 +32,7 @@ async def main() -> int:
     # purpose): no traceback for it.
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
 
-    server = ModbusTcpServer(context(args.unit, args.size), address=("127.0.0.1", args.port))
+    server = ModbusTcpServer(context(args.size, args.unit), address=("127.0.0.1", args.port))
     return await serving.until_signalled(server)
 
 
