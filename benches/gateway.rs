@@ -1932,23 +1932,11 @@ fn rtu_unpaced(r: &mut Report, round: Duration, rounds: usize, mbusd: Option<&Pa
         paths.push(mbusd_contender_on(Line::pymodbus_rtu(BAUD), m, BAUD));
     }
     let direct_line = Line::pymodbus_rtu(BAUD);
-    let (req, len) = (serial_read("rtu", 1), serial_reply_len("rtu", 1));
-    let (mut direct, mut direct_gap) = (LimitRow::default(), LimitRow::default());
-    let mut via = vec![LimitRow::default(); paths.len()];
-    for _ in 0..rounds {
-        let mut m = direct_line.raw();
-        direct
-            .times
-            .extend(poll_direct(&mut m, &req, len, round, Duration::ZERO));
-        // The master keeping t3.5 itself (as in the paced rows).
-        direct_gap
-            .times
-            .extend(poll_direct(&mut m, &req, len, round, t35));
-        drop(m);
-        for (p, out) in paths.iter().zip(via.iter_mut()) {
-            poll_through(p, 1, round, out);
-        }
-    }
+    let LimitRows {
+        direct,
+        direct_gap,
+        via,
+    } = LimitRows::measure(&direct_line, &paths, 1, t35, round, rounds);
     let d = spread(&direct.times).p50;
     let cell = |p: &LimitRow| format!("{:.1} ({})", p.rate(), ms(spread(&p.times).p50));
     let above = |p: &LimitRow| spread(&p.times).p50.saturating_sub(d);
@@ -2149,6 +2137,50 @@ fn poll_through(p: &Contender, qty: u16, round: Duration, out: &mut LimitRow) {
     out.times.extend(times);
 }
 
+/// The paths of one RTU row of the line's limit.
+struct LimitRows {
+    /// A master straight on the device's pty.
+    direct: LimitRow,
+    /// The same master keeping the gap itself after each reply, on a sleep as precise
+    /// as the gateway's timer: what a transaction takes on this machine when the line
+    /// is left silent for the gap, whoever keeps it.
+    direct_gap: LimitRow,
+    /// A master through each of the paths, in their order.
+    via: Vec<LimitRow>,
+}
+
+impl LimitRows {
+    /// FC 03 × `qty` polled on each path in turn for `round`, `rounds` times: straight
+    /// on `device`'s pty, the same keeping `gap`, then through each of `paths`.
+    fn measure(
+        device: &Line,
+        paths: &[Contender],
+        qty: u16,
+        gap: Duration,
+        round: Duration,
+        rounds: usize,
+    ) -> LimitRows {
+        let (req, len) = (serial_read("rtu", qty), serial_reply_len("rtu", qty));
+        let mut rows = LimitRows {
+            direct: LimitRow::default(),
+            direct_gap: LimitRow::default(),
+            via: vec![LimitRow::default(); paths.len()],
+        };
+        for _ in 0..rounds {
+            let mut m = device.raw();
+            let direct = poll_direct(&mut m, &req, len, round, Duration::ZERO);
+            rows.direct.times.extend(direct);
+            let kept = poll_direct(&mut m, &req, len, round, gap);
+            rows.direct_gap.times.extend(kept);
+            drop(m);
+            for (p, out) in paths.iter().zip(rows.via.iter_mut()) {
+                poll_through(p, qty, round, out);
+            }
+        }
+        rows
+    }
+}
+
 /// Per path of one row: transaction times, and CPU nanoseconds spent on them.
 #[derive(Default, Clone)]
 struct LimitRow {
@@ -2213,26 +2245,11 @@ fn rtu_limit(r: &mut Report) {
         let direct_line = rtu_sim_line(baud);
         for qty in [1u16, 10] {
             eprintln!("rtu-limit: {baud} baud, FC 03 × {qty}");
-            let (mut direct, mut direct_gap) = (LimitRow::default(), LimitRow::default());
-            let mut via = vec![LimitRow::default(); paths.len()];
-            let req = mbgate::frame::rtu::encode(1, &[0x03, 0, 0, 0, qty as u8]);
-            for _ in 0..ROUNDS {
-                let mut m = direct_line.raw();
-                let len = rtu_reply_len(qty);
-                direct
-                    .times
-                    .extend(poll_direct(&mut m, &req, len, round, Duration::ZERO));
-                // The same master keeping t3.5 itself after each reply, on a timer as
-                // precise as the gateway's: what a transaction takes on this machine
-                // when the line is left silent for the gap, whoever keeps it.
-                direct_gap
-                    .times
-                    .extend(poll_direct(&mut m, &req, len, round, t35));
-                drop(m);
-                for (p, out) in paths.iter().zip(via.iter_mut()) {
-                    poll_through(p, qty, round, out);
-                }
-            }
+            let LimitRows {
+                direct,
+                direct_gap,
+                via,
+            } = LimitRows::measure(&direct_line, &paths, qty, t35, round, ROUNDS);
             let d = spread(&direct.times);
             let per_direct = 1.0 / direct.rate();
             let limit = 1.0 / (per_direct + t35.as_secs_f64());
