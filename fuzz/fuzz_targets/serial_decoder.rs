@@ -6,7 +6,8 @@
 //! from the input (`mbgate::frame::lossy`: replies and notifications, register values
 //! that look like MBAP headers, runs of up to 32 lost bytes anywhere or aligned to
 //! frame boundaries, pauses between and inside frames): a reply that was not sent is
-//! never yielded unless a whole frame's worth of bytes was lost around it.
+//! never yielded unless a whole frame's worth of bytes was lost around it, or its id
+//! was register values (docs/reliability.md, "The guarantee", conditions 1 and 3).
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;

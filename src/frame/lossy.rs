@@ -6,11 +6,13 @@
 //!
 //! The check: every frame the decoder yields with a nonzero transaction id (a reply)
 //! was sent, byte for byte, or at least `SHORTEST_FRAME` bytes were lost around it,
-//! from where its first byte was sent to where the header of what confirmed it was.
-//! Frames with id 0 are not checked: register values can spell one.
+//! from where its first byte was sent to where the header of what confirmed it was,
+//! or both bytes of its id were sent as register values (docs/reliability.md, "The
+//! guarantee", condition 3). Frames with id 0 are not checked: register values can
+//! spell one.
 
 use super::function::{Echo, FunctionCode};
-use super::mbap::FrameRef;
+use super::mbap::{FrameRef, HEADER_LEN};
 use super::resync::{Judge, ReplyJudge, Resync};
 use super::{pdu, Adu};
 
@@ -260,8 +262,22 @@ pub(crate) fn lost_around(r: &Received, start: usize, len: usize) -> usize {
     r.lost[from..to].iter().filter(|&&l| l).count()
 }
 
+/// Were both bytes of the id of the frame yielded at `start` (in what was received)
+/// sent as values, past some frame's function code? A frame that lost its whole id
+/// takes the two bytes before it as one: register values that equal an id in flight
+/// then answer its request. That is outside the guarantee (docs/reliability.md, "The
+/// guarantee", condition 3: the relay draws its ids so that values match one only by
+/// chance), and the line model draws ids and values freely enough to make it happen.
+fn id_sent_as_values(bounds: &[usize], r: &Received, start: usize) -> bool {
+    r.sent_at[start..start + 2].iter().all(|&at| {
+        let frame = bounds.partition_point(|&b| b <= at) - 1;
+        at - bounds[frame] > HEADER_LEN
+    })
+}
+
 /// Runs the line and returns the first reply yielded that was not sent with fewer
-/// than `SHORTEST_FRAME` bytes lost around it, and how many were.
+/// than `SHORTEST_FRAME` bytes lost around it (nor with its id sent as register
+/// values: condition 3), and how many were.
 pub fn unexplained(
     talk: &Talk,
     runs: &[Run],
@@ -274,9 +290,11 @@ pub fn unexplained(
         replies: talk.replies(),
         pause_confirms,
     };
+    let bounds = talk.bounds();
     decode(&judge, &r, cuts)
         .into_iter()
         .filter(|(_, f)| f.tid() != 0 && !talk.frames.contains(f))
+        .filter(|&(start, _)| !id_sent_as_values(&bounds, &r, start))
         .map(|(start, f)| {
             let lost = lost_around(&r, start, f.as_bytes().len());
             (f, lost)
