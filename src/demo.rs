@@ -87,6 +87,7 @@ fn two_lines(cfg: &mut Config, units: &[u8], second_pty: String) {
             ..cfg.serial.clone()
         },
         tcp: None,
+        tcp_tls: None,
         relay: cfg.relay.clone(),
         master: None,
     };

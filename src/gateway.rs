@@ -10,6 +10,7 @@ use crate::reload;
 use crate::router::Router;
 use crate::stats::Stats;
 use crate::tcp;
+use crate::tls::server::Acceptor;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
@@ -34,6 +35,9 @@ pub enum GatewayError {
         /// What the system said.
         error: std::io::Error,
     },
+    /// A TLS file could not be used (read, parsed, or its key does not fit).
+    #[error("{0}")]
+    Tls(#[from] crate::tls::TlsError),
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
@@ -110,20 +114,35 @@ async fn serve_with(
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
     let mut bound = Vec::new();
-    for (listener, listen) in listeners.into_iter().zip(cfg.listeners()) {
+    for (i, (listener, listen)) in listeners.into_iter().zip(cfg.listeners()).enumerate() {
         let local = listener.local_addr().map_err(|error| GatewayError::Bind {
             addr: listen.tcp.listen,
             error,
         })?;
-        bound.push((listener, listen, local));
+        let name = format!("listen[{i}]");
+        let tls = match &listen.access.tls {
+            Some(t) => Some(Arc::new(Acceptor::new(
+                t,
+                &format!("{name}.tls"),
+                &cfg.roles,
+            )?)),
+            None => None,
+        };
+        let listening = tcp::Listening {
+            listen,
+            name,
+            local,
+            tls,
+        };
+        bound.push((listener, listening));
     }
     warn_inapplicable(&cfg);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
-    // The listeners' counters (connections, refusals, unrouted requests); each line
-    // keeps its own (its metrics are per line), and the totals add them up.
-    let stats = Arc::new(Stats::default());
-    let mut counted = vec![stats.clone()];
+    // Each listener's counters (connections, refusals, requests it answered itself);
+    // each line keeps its own (its metrics are per line), and the totals add them up.
+    let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
+    let mut counted = listener_stats.clone();
     let board = Arc::new(Board::default());
 
     // Each line its own relay task: its own queue, timeouts, retries and backoff, so
@@ -147,9 +166,9 @@ async fn serve_with(
         handles.push(handle);
         relays.push(relay);
     }
-    for (_, _, local) in &bound {
+    for ((_, l), stats) in bound.iter().zip(&listener_stats) {
         board.add_listener(Arc::new(ListenerMetrics {
-            name: local.to_string(),
+            name: l.local.to_string(),
             stats: stats.clone(),
         }));
     }
@@ -173,18 +192,25 @@ async fn serve_with(
         },
         None => None,
     };
+    // The certificates of the TLS listeners are read again on SIGHUP too, whatever
+    // becomes of the rest of the reload.
+    let acceptors: Vec<Arc<Acceptor>> = bound.iter().filter_map(|(_, l)| l.tls.clone()).collect();
+    let tls_hup = match (&hup, acceptors.is_empty()) {
+        (Some(_), false) => tokio::signal::unix::signal(SignalKind::hangup()).ok(),
+        _ => None,
+    };
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
     let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
     let devices = devices.join(", ");
-    for (_, listen, local) in &bound {
-        let framing = listen.framing.name();
-        info!(serial = %devices, framing, "listening on {local}");
+    for (_, l) in &bound {
+        let framing = l.listen.framing.name();
+        for said in crate::config::effective_access(&l.listen, &cfg.roles) {
+            info!("{}: {said}", l.name);
+        }
+        info!(serial = %devices, framing, "listening on {}", l.local);
     }
-    let addrs: Vec<String> = bound
-        .iter()
-        .map(|(_, _, local)| local.to_string())
-        .collect();
+    let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
     // Before the relays first run, so READY=1 precedes the first WATCHDOG=1.
     notify::ready(&format!(
         "listening on {}, serial {devices}",
@@ -202,6 +228,9 @@ async fn serve_with(
             stop,
         ));
     }
+    if let Some(hup) = tls_hup {
+        tokio::spawn(reload_certificates(hup, acceptors, shutdown.clone()));
+    }
     if notify::under_systemd() {
         tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
     }
@@ -213,15 +242,21 @@ async fn serve_with(
     let shared = tcp::Shared {
         cfg: cfg.clone(),
         router,
-        stats: stats.clone(),
+        stats: Arc::default(),
         shutdown: shutdown.clone(),
         tracker: tracker.clone(),
         ids: Arc::new(AtomicU64::new(0)),
+        masters: board.masters.clone(),
     };
     let accepting: Vec<_> = bound
         .into_iter()
-        .map(|(listener, listen, _)| {
-            tokio::spawn(tcp::accept_loop(listener, listen, shared.clone()))
+        .zip(listener_stats)
+        .map(|((listener, listening), stats)| {
+            let shared = tcp::Shared {
+                stats,
+                ..shared.clone()
+            };
+            tokio::spawn(tcp::accept_loop(listener, listening, shared))
         })
         .collect();
     for accept in accepting {
@@ -251,6 +286,32 @@ async fn serve_with(
     let totals = Arc::new(Stats::total(counted.iter().map(|s| &**s)));
     info!(stats = %totals, "stopped");
     Ok(totals)
+}
+
+/// On each SIGHUP, the certificate, key and CA of every TLS listener are read again
+/// (docs/security.md "Renewing certificates"): new connections use them, connected
+/// masters keep their session. A file that does not load leaves that listener as it
+/// was, and says why.
+async fn reload_certificates(
+    mut hup: tokio::signal::unix::Signal,
+    acceptors: Vec<Arc<Acceptor>>,
+    shutdown: CancellationToken,
+) {
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return,
+            _ = hup.recv() => {}
+        }
+        for a in &acceptors {
+            match a.reload() {
+                Ok(subject) => info!(
+                    "{}: certificate, key and client CA read again (the gateway is {subject:?}); connected masters keep their session",
+                    a.name()
+                ),
+                Err(e) => warn!("{}: not reloaded, the certificate in use stays: {e}", a.name()),
+            }
+        }
+    }
 }
 
 type UserSignals = (tokio::signal::unix::Signal, tokio::signal::unix::Signal);

@@ -4,6 +4,7 @@
 // own (src/serial.rs: the ioctls and tcdrain).
 #![deny(unsafe_code)]
 
+pub mod access;
 pub mod bridge;
 pub mod cli_overrides;
 pub mod client;
@@ -27,3 +28,4 @@ pub mod sim;
 pub mod stats;
 pub(crate) mod tcp;
 pub(crate) mod tids;
+pub mod tls;

@@ -82,7 +82,7 @@ fn main() -> ExitCode {
             file,
             lines,
             overrides,
-        } => match effective(Some(file), &overrides) {
+        } => match checked(Some(file), &overrides) {
             Ok(cfg) => {
                 let print = if lines {
                     config::to_toml_lines
@@ -103,7 +103,7 @@ fn main() -> ExitCode {
         Command::Run { config, overrides } => {
             // Under journald these lines get the error priority too.
             let prefix = mbgate::logging::error_prefix();
-            let cfg = match effective(config.clone(), &overrides) {
+            let cfg = match checked(config.clone(), &overrides) {
                 Ok(cfg) => cfg,
                 Err(e) => {
                     eprintln!("{prefix}mbgate: {e}");
@@ -130,6 +130,14 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
         None => Config::default(),
     };
     overrides.apply(&mut cfg)?;
+    Ok(cfg)
+}
+
+/// [`effective`], and every TLS file it names loaded: a certificate or key that cannot
+/// be used is a bad configuration too (docs/security.md).
+fn checked(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, String> {
+    let cfg = effective(file, overrides).map_err(|e| e.to_string())?;
+    mbgate::tls::check(&cfg).map_err(|e| e.to_string())?;
     Ok(cfg)
 }
 

@@ -241,7 +241,9 @@ pub(crate) struct ListenerMetrics {
     /// The `listener` label: the address it is bound to.
     pub(crate) name: String,
     /// Its connection counters (`connections`, `connections_refused`,
-    /// `protocol_violations`, `connections_closed`).
+    /// `connections_denied`, `tls_failed`, `tls_refused`, `protocol_violations`,
+    /// `connections_closed`) and the requests it answered itself (`denied`,
+    /// `bad_requests`, `unavailable` for a unit no line serves).
     pub(crate) stats: Arc<Stats>,
 }
 
@@ -254,11 +256,52 @@ impl ListenerMetrics {
     }
 }
 
+/// A master connected now, as the status page and `mbgate status` show it.
+#[derive(Debug, Clone, PartialEq)]
+pub(crate) struct MasterSeen {
+    /// The connection id the logs use (`conn=3`).
+    pub(crate) conn: u64,
+    /// The listener's address (the `listener` label).
+    pub(crate) listener: String,
+    pub(crate) peer: std::net::SocketAddr,
+    /// When it connected, seconds since the Unix epoch.
+    pub(crate) since: f64,
+    /// A TLS master's role and its certificate's subject (docs/security.md).
+    pub(crate) tls: Option<(String, String)>,
+}
+
+/// The masters connected now: the connections add and remove themselves (a lock taken
+/// once at each end of a connection, never by the relay).
+#[derive(Debug, Default)]
+pub(crate) struct Masters(Mutex<std::collections::BTreeMap<u64, MasterSeen>>);
+
+impl Masters {
+    pub(crate) fn add(&self, m: MasterSeen) {
+        self.0.lock().expect("not poisoned").insert(m.conn, m);
+    }
+
+    pub(crate) fn remove(&self, conn: u64) {
+        self.0.lock().expect("not poisoned").remove(&conn);
+    }
+
+    /// Every master connected, oldest connection first.
+    pub(crate) fn list(&self) -> Vec<MasterSeen> {
+        self.0
+            .lock()
+            .expect("not poisoned")
+            .values()
+            .cloned()
+            .collect()
+    }
+}
+
 /// Everything the gateway shows: its lines and listeners, in the order they started.
 #[derive(Debug, Default)]
 pub(crate) struct Board {
     pub(crate) lines: Mutex<Vec<Arc<LineMetrics>>>,
     pub(crate) listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
+    /// The masters connected now.
+    pub(crate) masters: Arc<Masters>,
     /// Each line's last minute, a point a second, by line name, while the metrics
     /// listener runs (`page::sample`).
     pub(crate) history: Mutex<std::collections::HashMap<String, page::History>>,

@@ -190,6 +190,9 @@ pub(crate) enum Refusal {
     TargetFailed,
     /// Its unit is backed off: 0x0B at once (`backed_off`).
     BackedOff,
+    /// The access rules do not permit it (read only, or no write rule matches): 0x01,
+    /// as Modbus/TCP Security answers an unauthorized request (`denied`).
+    Denied,
 }
 
 impl Refusal {
@@ -200,6 +203,7 @@ impl Refusal {
             Refusal::Unavailable => ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
             Refusal::Busy => ExceptionCode::SERVER_DEVICE_BUSY,
             Refusal::TargetFailed | Refusal::BackedOff => ExceptionCode::GATEWAY_TARGET_FAILED,
+            Refusal::Denied => ExceptionCode::ILLEGAL_FUNCTION,
         }
     }
 
@@ -211,6 +215,7 @@ impl Refusal {
             Refusal::Busy => &stats.busy,
             Refusal::TargetFailed => &stats.timeouts,
             Refusal::BackedOff => &stats.backed_off,
+            Refusal::Denied => &stats.denied,
         }
     }
 }
@@ -449,6 +454,7 @@ mod tests {
             (Refusal::Busy, 0x06),
             (Refusal::TargetFailed, 0x0B),
             (Refusal::BackedOff, 0x0B),
+            (Refusal::Denied, 0x01),
         ];
         for (why, code) in cases {
             let stats = Stats::default();
@@ -465,6 +471,7 @@ mod tests {
                 &stats.busy,
                 &stats.timeouts,
                 &stats.backed_off,
+                &stats.denied,
             ]
             .map(|c| c.load(Ordering::Relaxed));
             assert_eq!(counted.iter().sum::<u64>(), 1, "{why:?}: {stats}");

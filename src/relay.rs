@@ -103,7 +103,8 @@ impl Relay {
         let (cfg, serial) = (line.relay.clone(), line.serial.clone());
         match &line.tcp {
             Some(addr) => {
-                let port = Box::new(port::tcp::TcpPort::new(addr.clone()));
+                let port = port::tcp::TcpPort::new(addr.clone()).with_tls(line.tcp_tls.clone());
+                let port = Box::new(port);
                 Self::build(cfg, serial, port, true, traffic, stats, shutdown)
             }
             None => Self::new(cfg, serial, traffic, stats, shutdown),

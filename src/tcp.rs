@@ -3,24 +3,29 @@
 //! checked MBAP requests (or RTU-over-TCP ones, `tcp/rtu.rs`), hands them to the line
 //! serving their unit ([`crate::router`]) and writes back their replies in the order of
 //! the requests, with the device's notifications (the path back is [`crate::outbox`]).
+//! Who gets in (the allow list, TLS and the master's role) is `tcp/admit.rs`; what a
+//! master may do is checked here before a request goes anywhere ([`crate::access`],
+//! docs/security.md).
 
+use crate::access;
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
 use crate::frame::pdu;
 use crate::frame::Adu;
+use crate::metrics::{MasterSeen, Masters};
 use crate::outbox::{self, Inbox, Outbox, Refusal, Ticket};
 use crate::relay::ConnId;
 use crate::router::{Router, Unrouted};
 use crate::serial::Backoff;
 use crate::stats::Stats;
+use crate::tls::server::{Acceptor, Grant};
 use bytes::BytesMut;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::net::tcp::{OwnedReadHalf, OwnedWriteHalf};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
 use tokio::sync::Semaphore;
 use tokio::time::Instant;
@@ -28,6 +33,7 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
+mod admit;
 mod rtu;
 
 /// Binds the masters' listener. Every connection it accepts inherits its send buffer,
@@ -52,7 +58,8 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
 }
 
 /// What every listener's connections share: the configuration, the lines, the
-/// counters, connection ids (unique across listeners), shutdown and the task tracker.
+/// counters (each listener its own), connection ids (unique across listeners), the
+/// masters connected, shutdown and the task tracker.
 #[derive(Clone)]
 pub(crate) struct Shared {
     pub(crate) cfg: Arc<Config>,
@@ -61,12 +68,23 @@ pub(crate) struct Shared {
     pub(crate) shutdown: CancellationToken,
     pub(crate) tracker: TaskTracker,
     pub(crate) ids: Arc<AtomicU64>,
+    pub(crate) masters: Arc<Masters>,
 }
 
-/// Accepts masters on `listener` (configured by `listen`) until shutdown. A
-/// connection past `max_connections` is closed at once and logged; the others each
-/// get a task on the tracker.
-pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, shared: Shared) {
+/// One listener as the accept loop runs it: its configuration, its name in the file
+/// (`listen[0]`), the address it is bound to, and its TLS acceptor if it has one.
+pub(crate) struct Listening {
+    pub(crate) listen: ListenConfig,
+    pub(crate) name: String,
+    pub(crate) local: SocketAddr,
+    pub(crate) tls: Option<Arc<Acceptor>>,
+}
+
+/// Accepts masters on `listener` until shutdown. A source not in the allow list is
+/// closed at once, before any byte is read; a connection past `max_connections` is
+/// closed at once and logged; the others each get a task on the tracker (where a TLS
+/// handshake runs, so it never holds up the accept loop).
+pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, shared: Shared) {
     let Shared {
         cfg,
         router,
@@ -74,8 +92,16 @@ pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, sha
         shutdown,
         tracker,
         ids,
+        masters,
     } = shared;
+    let Listening {
+        listen,
+        name,
+        local,
+        tls,
+    } = listening;
     let limit = Arc::new(Semaphore::new(listen.tcp.max_connections));
+    let mut gate = admit::Gate::new(name, listen.access.allow.clone());
     let listen = Arc::new(listen);
     let mut failing = AcceptFailures::default();
     loop {
@@ -94,6 +120,10 @@ pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, sha
             }
         };
         failing.recovered();
+        if !gate.admits(peer, &stats) {
+            drop(stream);
+            continue;
+        }
         let Ok(slot) = limit.clone().try_acquire_owned() else {
             stats.add(&stats.connections_refused, 1);
             warn!(%peer, max = listen.tcp.max_connections, "connection refused: max_connections reached");
@@ -112,10 +142,14 @@ pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, sha
             router: router.clone(),
             stats: stats.clone(),
             shutdown: shutdown.clone(),
+            masters: masters.clone(),
+            local,
+            grant: None,
         };
         let closed = stats.clone();
+        let tls = tls.clone();
         tracker.spawn(async move {
-            conn.run(stream).await;
+            conn.start(stream, tls.as_deref()).await;
             closed.add(&closed.connections_closed, 1);
             drop(slot);
         });
@@ -205,6 +239,11 @@ struct Connection {
     router: Arc<Router>,
     stats: Arc<Stats>,
     shutdown: CancellationToken,
+    masters: Arc<Masters>,
+    /// The listener's own address.
+    local: SocketAddr,
+    /// A TLS master's role, and what it may do.
+    grant: Option<Grant>,
 }
 
 /// Why a connection's reader stopped.
@@ -218,11 +257,52 @@ enum End {
 }
 
 impl Connection {
-    async fn run(self, stream: TcpStream) {
+    /// Serves the master on `stream`, after the TLS handshake on a TLS listener.
+    async fn start(mut self, stream: TcpStream, tls: Option<&Acceptor>) {
+        let Some(acceptor) = tls else {
+            let (rd, wr) = stream.into_split();
+            return self.run(rd, wr).await;
+        };
+        let handshake = admit::handshake(acceptor, stream, self.id, self.peer, &self.stats);
+        let done = tokio::select! {
+            done = handshake => done,
+            _ = self.shutdown.cancelled() => None,
+        };
+        if let Some((stream, grant)) = done {
+            self.grant = Some(grant);
+            let (rd, wr) = tokio::io::split(stream);
+            self.run(rd, wr).await;
+        }
+    }
+
+    async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
         let rtu = self.listen.framing == ListenFraming::Rtu;
         let framing = self.listen.framing.name();
-        info!(conn = self.id, peer = %self.peer, framing, "master connected");
-        let (rd, wr) = stream.into_split();
+        match &self.grant {
+            None => info!(conn = self.id, peer = %self.peer, framing, "master connected"),
+            Some(g) => info!(
+                conn = self.id,
+                peer = %self.peer,
+                framing,
+                role = %g.role,
+                subject = %g.subject,
+                "master connected over TLS{}",
+                if g.defaulted { " (no role in its certificate: the default role)" } else { "" }
+            ),
+        }
+        self.masters.add(MasterSeen {
+            conn: self.id,
+            listener: self.local.to_string(),
+            peer: self.peer,
+            since: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap_or_default()
+                .as_secs_f64(),
+            tls: self
+                .grant
+                .as_ref()
+                .map(|g| (g.role.clone(), g.subject.clone())),
+        });
         // RTU over TCP has no transaction id: one request at a time, and no
         // notifications (nothing would tell them from a reply).
         let pending = if rtu {
@@ -256,10 +336,11 @@ impl Connection {
             }
         }
         self.router.detach(self.id);
+        self.masters.remove(self.id);
         info!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
-    async fn read_loop(&self, mut rd: OwnedReadHalf, outbox: &mut Outbox) -> End {
+    async fn read_loop(&self, mut rd: impl AsyncRead + Unpin, outbox: &mut Outbox) -> End {
         let idle = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         let mut last_read = Instant::now();
         let mut wake = last_read + idle;
@@ -350,6 +431,21 @@ impl Connection {
             ticket.refuse(&adu, Refusal::BadRequest(code), &self.stats);
             return;
         }
+        let role = self.grant.as_ref().map(|g| (g.role.as_str(), &g.policy));
+        if let Err(denied) = access::decide(&self.listen.access.policy, role, adu.unit(), adu.pdu())
+        {
+            debug!(
+                conn = self.id,
+                peer = %self.peer,
+                role = role.map(|r| r.0),
+                unit = adu.unit(),
+                function = %adu.function_code(),
+                written = ?crate::frame::function::written(adu.pdu()),
+                "request refused: {denied}; exception 0x01"
+            );
+            ticket.refuse(&adu, Refusal::Denied, &self.stats);
+            return;
+        }
         match self.router.submit(self.id, adu, ticket, &self.stats) {
             Ok(()) | Err(Unrouted::Stopped) => {}
             Err(Unrouted::NoLine) => {
@@ -361,7 +457,7 @@ impl Connection {
     /// Writes the master's replies in the order of its requests, and notifications as
     /// they come. A master that stops reading its replies for `idle_timeout_ms` is
     /// closed, so it cannot hold a connection slot for ever.
-    async fn write_loop(&self, mut wr: OwnedWriteHalf, mut inbox: Inbox) {
+    async fn write_loop(&self, mut wr: impl AsyncWrite + Unpin, mut inbox: Inbox) {
         let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         while let Some(out) = inbox.next().await {
             if self.cfg.log.traffic {
@@ -374,7 +470,11 @@ impl Connection {
             } else {
                 out.adu.as_bytes()
             };
-            let write = wr.write_all(bytes);
+            // Flushed: a TLS stream holds what it could not send at once until then.
+            let write = async {
+                wr.write_all(bytes).await?;
+                wr.flush().await
+            };
             let result = if stall.is_zero() {
                 write.await
             } else {

@@ -78,11 +78,13 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 }
 
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
-const TOP: [&str; 7] = ["serial", "tcp", "relay", "log", "metrics", "line", "listen"];
+const TOP: [&str; 8] = [
+    "serial", "tcp", "relay", "log", "metrics", "line", "listen", "role",
+];
 /// The keys of a `[[line]]` table.
 const LINE: [&str; 7] = ["units", "remap", "serial", "tcp", "relay", "role", "route"];
 /// The keys of a line's `tcp` table: a device on the network.
-const LINE_TCP: [&str; 2] = ["address", "framing"];
+const LINE_TCP: [&str; 3] = ["address", "framing", "tls"];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 
@@ -165,9 +167,19 @@ impl Reader<'_> {
     fn read(mut self, root: &DeTable) -> Result<Config, ConfigError> {
         let mut cfg = Config::default();
         let (mut lines, mut listeners) = (Vec::new(), Vec::new());
+        let mut roles = Vec::new();
         for (k, v) in entries(root) {
             let (name, at) = (k.get_ref().as_ref(), k.span().start);
             let replaced = match name {
+                "role" => {
+                    roles = super::access::roles(v, "role").or_else(|b| self.bad(b))?;
+                    continue;
+                }
+                "tcp" => {
+                    self.tcp_has_no_access(v)?;
+                    self.section(&mut cfg, name, v, name, &[], &[])?;
+                    continue;
+                }
                 "line" => ["serial", "relay"]
                     .into_iter()
                     .find(|s| root.get(*s).is_some()),
@@ -194,10 +206,15 @@ impl Reader<'_> {
                 }
             }
         }
+        self.default_roles(&listeners, &roles)?;
+        cfg.roles = roles.into_iter().map(|(_, r)| r).collect();
+        let listeners: Vec<ListenConfig> = listeners.into_iter().map(|(_, l)| l).collect();
         match &listeners[..] {
             [] => {}
-            // One Modbus/TCP listener is the old form's [tcp].
-            [one] if one.framing == ListenFraming::Mbap => cfg.tcp = one.tcp.clone(),
+            // One Modbus/TCP listener open to all is the old form's [tcp].
+            [one] if one.framing == ListenFraming::Mbap && one.access.is_open() => {
+                cfg.tcp = one.tcp.clone()
+            }
             [first, ..] => {
                 cfg.tcp = first.tcp.clone();
                 cfg.listeners = listeners;
@@ -272,21 +289,91 @@ impl Reader<'_> {
         Ok(())
     }
 
-    /// A `[[listen]]`: the keys of `[tcp]` (`address` for `listen`) and `framing`.
-    fn listener(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<ListenConfig, ConfigError> {
+    /// A `[[listen]]`: the keys of `[tcp]` (`address` for `listen`), `framing`, and
+    /// who may connect and what they may do (`src/config/access.rs`).
+    fn listener(
+        &mut self,
+        v: &Spanned<DeValue>,
+        path: &str,
+    ) -> Result<(usize, ListenConfig), ConfigError> {
         let mut listener = Config::default();
-        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &["framing"])?;
+        let skip = ["framing", "allow", "read_only", "write", "tls"];
+        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &skip)?;
         let mut framing = ListenFraming::Mbap;
+        let mut access = super::ListenAccess::default();
         if let DeValue::Table(table) = v.get_ref() {
             if let Some(f) = table.get("framing") {
                 framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
                     .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
             }
+            let read = || -> Result<super::ListenAccess, super::master::Bad> {
+                let allow = match table.get("allow") {
+                    Some(a) => Some(super::access::allow(a, &format!("{path}.allow"))?),
+                    None => None,
+                };
+                let tls = match table.get("tls") {
+                    Some(t) => Some(super::access::tls_listen(t, &format!("{path}.tls"))?),
+                    None => None,
+                };
+                let policy = super::access::policy(table, path)?;
+                Ok(super::ListenAccess { allow, policy, tls })
+            };
+            access = read().or_else(|b| self.bad(b))?;
         }
-        Ok(ListenConfig {
+        let listen = ListenConfig {
             tcp: listener.tcp,
             framing,
-        })
+            access,
+        };
+        Ok((v.span().start, listen))
+    }
+
+    fn bad<T>(&self, b: super::master::Bad) -> Result<T, ConfigError> {
+        self.fail(b.at, &b.key, b.message)
+    }
+
+    /// `[tcp]` is the one listener open to all: the security keys belong in a
+    /// `[[listen]]` table, and the message says so rather than "unknown key".
+    fn tcp_has_no_access(&self, v: &Spanned<DeValue>) -> Result<(), ConfigError> {
+        if let DeValue::Table(t) = v.get_ref() {
+            for (k, _) in entries(t) {
+                let name = k.get_ref().as_ref();
+                if super::access::LISTEN_ACCESS.contains(&name) {
+                    let m = format!(
+                        "{name} belongs in a [[listen]] table (write [[listen]] with address = \
+                         the listen address instead of [tcp]; docs/security.md)"
+                    );
+                    return self.fail(k.span().start, &format!("tcp.{name}"), m);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Each listener's `tls.default_role` names a `[[role]]`.
+    fn default_roles(
+        &self,
+        listeners: &[(usize, ListenConfig)],
+        roles: &[(usize, super::Role)],
+    ) -> Result<(), ConfigError> {
+        for (i, (at, l)) in listeners.iter().enumerate() {
+            let Some(role) = l.access.tls.as_ref().and_then(|t| t.default_role.as_ref()) else {
+                continue;
+            };
+            if !roles.iter().any(|(_, r)| &r.name == role) {
+                let names: Vec<&str> = roles.iter().map(|(_, r)| r.name.as_str()).collect();
+                let m = if names.is_empty() {
+                    format!("no [[role]] is named {role:?} (there are no [[role]] tables)")
+                } else {
+                    format!(
+                        "no [[role]] is named {role:?}; the roles are {}",
+                        names.join(", ")
+                    )
+                };
+                return self.fail(*at, &format!("listen[{i}].tls.default_role"), m);
+            }
+        }
+        Ok(())
     }
 
     fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {
@@ -296,7 +383,7 @@ impl Reader<'_> {
         };
         let (mut line, mut listed) = (Config::default(), false);
         let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
-        let (mut role, mut routes) = (None, None);
+        let (mut role, mut routes, mut tcp_tls) = (None, None, None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
             let bad = |b: super::master::Bad| self.fail::<()>(b.at, &b.key, b.message);
@@ -309,7 +396,11 @@ impl Reader<'_> {
                     units.remap = self.remap(item, &full)?;
                     listed = true;
                 }
-                "tcp" => tcp = Some(self.line_tcp(&mut line, item, &full)?),
+                "tcp" => {
+                    let (address, tls) = self.line_tcp(&mut line, item, &full)?;
+                    tcp = Some(address);
+                    tcp_tls = tls;
+                }
                 "role" => match super::master::role(item, &full) {
                     Ok(master) => role = Some((master, k.span().start)),
                     Err(b) => bad(b)?,
@@ -366,6 +457,7 @@ impl Reader<'_> {
             units,
             serial: line.serial,
             tcp,
+            tcp_tls,
             relay: line.relay,
             master,
         };
@@ -378,16 +470,19 @@ impl Reader<'_> {
         line: &mut Config,
         v: &Spanned<DeValue>,
         path: &str,
-    ) -> Result<String, ConfigError> {
+    ) -> Result<(String, Option<super::TlsDevice>), ConfigError> {
         let DeValue::Table(table) = v.get_ref() else {
             let m = raw(v.get_ref()).invalid("a table (address, framing)");
             return self.fail(v.span().start, path, m);
         };
-        let mut address = None;
+        let (mut address, mut tls) = (None, None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
             let at = item.span().start;
             match k.get_ref().as_ref() {
+                "tls" => {
+                    tls = Some(super::access::tls_device(item, &full).or_else(|b| self.bad(b))?)
+                }
                 "address" => {
                     let s = String::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));
                     let s = s.or_else(|m| self.fail(at, &full, m))?;
@@ -404,7 +499,7 @@ impl Reader<'_> {
             }
         }
         match address {
-            Some(a) => Ok(a),
+            Some(a) => Ok((a, tls)),
             None => self.fail(
                 v.span().start,
                 &format!("{path}.address"),
@@ -536,7 +631,7 @@ fn line_col(text: &str, offset: usize) -> (usize, usize) {
 }
 
 /// The expected name closest to a misspelt `name`, if one is close enough.
-fn suggest<'a>(name: &str, expected: &[&'a str]) -> Option<&'a str> {
+pub(super) fn suggest<'a>(name: &str, expected: &[&'a str]) -> Option<&'a str> {
     let norm = |s: &str| -> String {
         s.chars()
             .filter(|c| *c != '_' && *c != '-')

@@ -71,6 +71,9 @@ pub struct LineConfig {
     /// `host:port` of a device on the network (a Modbus/TCP slave, or a serial
     /// device server in raw TCP mode) instead of the serial port.
     pub tcp: Option<String>,
+    /// The device on `tcp` speaks TLS: verify it, present our certificate
+    /// (docs/security.md "A device behind TLS").
+    pub tcp_tls: Option<super::TlsDevice>,
     pub relay: RelayConfig,
     /// The line's device is the master: where its requests go (docs/design.md §4.2).
     pub(crate) master: Option<super::master::MasterLine>,
@@ -88,6 +91,8 @@ impl LineConfig {
 pub struct ListenConfig {
     pub(crate) tcp: TcpConfig,
     pub(crate) framing: ListenFraming,
+    /// Who may connect and what they may do (docs/security.md).
+    pub(crate) access: super::ListenAccess,
 }
 
 impl Config {
@@ -101,6 +106,7 @@ impl Config {
             units: Units::default(),
             serial: self.serial.clone(),
             tcp: None,
+            tcp_tls: None,
             relay: self.relay.clone(),
             master: self.master.clone(),
         }]
@@ -115,6 +121,7 @@ impl Config {
         vec![ListenConfig {
             tcp: self.tcp.clone(),
             framing: ListenFraming::Mbap,
+            access: super::ListenAccess::default(),
         }]
     }
 

@@ -7,10 +7,18 @@
 //! checked the same way from the file or a flag. A new setting is one line here plus
 //! what it does.
 
+mod access;
 mod file;
 mod layout;
 pub mod master;
 
+pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
+
+/// Who may connect to `listen` and what they may do, in words (the start-up log,
+/// `mbgate check-config`).
+pub(crate) fn effective_access(listen: &ListenConfig, roles: &[Role]) -> Vec<String> {
+    access::effective(&listen.access, roles)
+}
 pub use file::{load, parse, ConfigError};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
 use std::net::SocketAddr;
@@ -128,9 +136,12 @@ macro_rules! settings {
             /// The `[[line]]` tables when the file needs them (several lines, units,
             /// a device on TCP); empty: one line of `[serial]` and `[relay]`.
             pub lines: Vec<LineConfig>,
-            /// The `[[listen]]` tables when the file needs them (several, or RTU over
-            /// TCP); empty: one Modbus/TCP listener of `[tcp]`.
+            /// The `[[listen]]` tables when the file needs them (several, RTU over
+            /// TCP, or access rules); empty: one Modbus/TCP listener of `[tcp]`.
             pub listeners: Vec<ListenConfig>,
+            /// The `[[role]]` tables: what a TLS master may do, by the role its
+            /// certificate carries (docs/security.md).
+            pub roles: Vec<Role>,
         }
 
         /// Every setting, in the order of the file.
@@ -457,7 +468,15 @@ pub fn to_toml(cfg: &Config) -> String {
         return to_toml_lines(cfg);
     }
     let old = ["serial", "tcp", "relay", "log", "metrics"].map(|s| (s, format!("[{s}]")));
-    print(cfg, &old)
+    with_roles(print(cfg, &old), cfg)
+}
+
+/// `text` and then the `[[role]]` tables, if any.
+fn with_roles(text: String, cfg: &Config) -> String {
+    if cfg.roles.is_empty() {
+        return text;
+    }
+    format!("{text}\n{}", access::roles_to_toml(&cfg.roles))
 }
 
 /// The same configuration in the form of docs/design.md §4.1: a `[[line]]` for each
@@ -483,9 +502,13 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         };
         let device = match &line.tcp {
             Some(address) => format!(
-                "\n[line.tcp]\naddress = {}\nframing = {}\n",
+                "\n[line.tcp]\naddress = {}\nframing = {}\n{}",
                 address.print(),
-                line.serial.framing.print()
+                line.serial.framing.print(),
+                line.tcp_tls
+                    .as_ref()
+                    .map(access::device_to_toml)
+                    .unwrap_or_default()
             ),
             None => format!("\n{}", print(&one, &[("serial", "[line.serial]".into())])),
         };
@@ -502,13 +525,14 @@ pub fn to_toml_lines(cfg: &Config) -> String {
             ..Config::default()
         };
         let table = print(&one, &[("tcp", "[[listen]]".into())]);
-        out.push(table + &format!("framing = {}\n", listener.framing.print()));
+        let access = access::listen_to_toml(&listener.access, &cfg.roles);
+        out.push(table + &format!("framing = {}\n", listener.framing.print()) + &access);
     }
     out.push(print(
         cfg,
         &[("log", "[log]".into()), ("metrics", "[metrics]".into())],
     ));
-    out.join("\n")
+    with_roles(out.join("\n"), cfg)
 }
 /// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as
 /// that table calls them).

@@ -399,6 +399,8 @@ pub struct Spec {
     pub(crate) write: Option<Quantity>,
     /// The 16-bit value at offset 3 of request and reply is FF00 or 0000 (FC 05).
     pub(crate) coil_value: bool,
+    /// It writes one item, at the address at offset 1 (FC 05, 06, 22).
+    pub(crate) writes_one: bool,
     /// The normal reply's size.
     pub(crate) reply: Shape,
     pub(crate) echo: Echo,
@@ -413,6 +415,7 @@ const fn row(code: FunctionCode, name: &'static str, access: Access) -> Spec {
         read: None,
         write: None,
         coil_value: false,
+        writes_one: false,
         reply: Shape::Open,
         echo: Echo::No,
     }
@@ -458,6 +461,7 @@ pub(crate) const TABLE: &[Spec] = &[
     Spec {
         request: Shape::Fixed(5),
         coil_value: true,
+        writes_one: true,
         reply: Shape::Fixed(5),
         echo: Echo::Whole,
         ..row(F::WRITE_SINGLE_COIL, "write single coil", Write)
@@ -465,6 +469,7 @@ pub(crate) const TABLE: &[Spec] = &[
     // §6.6.
     Spec {
         request: Shape::Fixed(5),
+        writes_one: true,
         reply: Shape::Fixed(5),
         echo: Echo::Whole,
         ..row(F::WRITE_SINGLE_REGISTER, "write single register", Write)
@@ -531,6 +536,7 @@ pub(crate) const TABLE: &[Spec] = &[
     // §6.16: address, AND mask, OR mask; the reply echoes the request.
     Spec {
         request: Shape::Fixed(7),
+        writes_one: true,
         reply: Shape::Fixed(7),
         echo: Echo::Whole,
         ..row(F::MASK_WRITE_REGISTER, "mask write register", Write)
@@ -583,6 +589,37 @@ const INDEX: [u8; 128] = {
     }
     index
 };
+
+/// MEI type 0x0E of FC 0x2B: read device identification (V1.1b3 §6.21), the one
+/// encapsulated interface transport that only reads.
+const READ_DEVICE_ID: u8 = 0x0E;
+
+/// Does this request PDU only read? The table's reads, and FC 0x2B with MEI type 0x0E
+/// (read device identification). Anything else (a write, diagnostics, a code the
+/// table does not know) may act on the device: a read-only master may not send it
+/// (docs/security.md).
+pub fn only_reads(pdu: &[u8]) -> bool {
+    match pdu {
+        [fc, ..] if FunctionCode(*fc).is_read() => true,
+        [0x2B, READ_DEVICE_ID, ..] => true,
+        _ => false,
+    }
+}
+
+/// The addresses a write request writes: its first address and how many items, coils
+/// for FC 05 and 15, holding registers for FC 06, 16, 22 and 23 (only the written range
+/// of 23). `None` for a request that writes no address range (FC 08, 21, 0x2B, codes
+/// the table does not know) or is too short to say.
+pub fn written(pdu: &[u8]) -> Option<(u16, u16)> {
+    let spec = FunctionCode(*pdu.first()?).spec()?;
+    let (addr, count) = if spec.writes_one {
+        (word(pdu, 1)?, 1)
+    } else {
+        let q = spec.write?;
+        (word(pdu, q.at - 2)?, q.of(pdu)?)
+    };
+    Some((addr as u16, u16::try_from(count).ok()?))
+}
 
 fn word(pdu: &[u8], at: usize) -> Option<usize> {
     let w = pdu.get(at..at + 2)?;

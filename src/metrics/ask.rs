@@ -151,6 +151,32 @@ fn n(v: f64) -> String {
     format!("{}", v as u64)
 }
 
+/// The masters connected to `listener`, one line each: address, connection, for how
+/// long, and on a TLS listener the role and certificate subject.
+fn masters(s: &Samples, listener: &str, unix: f64) -> String {
+    let mut out = String::new();
+    let all = s
+        .get("mbgate_master_connected_timestamp_seconds")
+        .into_iter()
+        .flatten();
+    for (lb, since) in
+        all.filter(|(lb, _)| lb.get("listener").map(String::as_str) == Some(listener))
+    {
+        let label = |k: &str| lb.get(k).cloned().unwrap_or_default();
+        let who = match label("role").as_str() {
+            "" => "plain TCP".to_owned(),
+            role => format!("role {role}, {}", label("subject")),
+        };
+        out += &format!(
+            "  master {} (conn {}): {who}, connected {:.0} s\n",
+            label("peer"),
+            label("conn"),
+            (unix - since).max(0.0)
+        );
+    }
+    out
+}
+
 /// The report, and whether every line is open and every unit answering.
 fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
     let mut out = String::new();
@@ -221,6 +247,28 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
             n(get(s, "mbgate_listener_refused_connections_total", &l)),
             n(get(s, "mbgate_listener_protocol_violations_total", &l)),
         );
+        let access = [
+            (
+                "mbgate_listener_denied_connections_total",
+                "not in the allow list",
+            ),
+            ("mbgate_listener_tls_failed_total", "TLS handshakes failed"),
+            (
+                "mbgate_listener_tls_refused_total",
+                "TLS masters refused for their role",
+            ),
+            ("mbgate_listener_denied_requests_total", "requests denied"),
+        ];
+        let said: Vec<String> = access
+            .iter()
+            .map(|(name, what)| (get(s, name, &l), what))
+            .filter(|(v, _)| *v > 0.0)
+            .map(|(v, what)| format!("{} {what}", n(v)))
+            .collect();
+        if !said.is_empty() {
+            out += &format!("  {}\n", said.join(", "));
+        }
+        out += &masters(s, &listener, unix);
     }
     let healthy = problems.is_empty();
     let head = if healthy {

@@ -100,6 +100,7 @@ impl Collector for Scrape {
         for f in listener_families(&listeners) {
             f.encode(&mut e)?;
         }
+        masters(&self.0.masters.list()).encode(&mut e)?;
         Ok(())
     }
 }
@@ -280,5 +281,33 @@ fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
         per(("mbgate_listener_refused_connections", "Connections closed at once: max_connections reached.", C), &|l| l.stats.get(&l.stats.connections_refused)),
         per(("mbgate_listener_protocol_violations", "Connections closed for a frame that broke the MBAP rules.", C), &|l| l.stats.get(&l.stats.protocol_violations)),
         per(("mbgate_listener_bad_requests", "Requests answered by mbgate with an exception: their PDU broke the protocol's limits.", C), &|l| l.stats.get(&l.stats.bad_requests)),
+        per(("mbgate_listener_denied_connections", "Connections closed before any byte was read: the source is not in the listener's allow list.", C), &|l| l.stats.get(&l.stats.connections_denied)),
+        per(("mbgate_listener_tls_failed", "TLS handshakes that failed or timed out (no or a bad client certificate, an old protocol).", C), &|l| l.stats.get(&l.stats.tls_failed)),
+        per(("mbgate_listener_tls_refused", "TLS masters refused for their role (none and no default_role, or one no [[role]] names).", C), &|l| l.stats.get(&l.stats.tls_refused)),
+        per(("mbgate_listener_denied_requests", "Requests answered 0x01 because the listener's or the role's access rules do not permit them.", C), &|l| l.stats.get(&l.stats.denied)),
     ]
+}
+
+/// Each master connected now, with its listener, address, and on TLS its role and
+/// certificate subject; the value is when it connected. At most `max_connections` a
+/// listener; a series ends when its master leaves.
+fn masters(all: &[super::MasterSeen]) -> Family {
+    let mut f = Family::new(
+        "mbgate_master_connected_timestamp",
+        "A master connected now (Unix time it connected), by listener, peer, connection id, and on a TLS listener its role and certificate subject.",
+        G,
+    )
+    .seconds();
+    for m in all {
+        let (role, subject) = m.tls.clone().unwrap_or_default();
+        let labels = vec![
+            ("listener", m.listener.clone()),
+            ("conn", m.conn.to_string()),
+            ("peer", m.peer.to_string()),
+            ("role", role),
+            ("subject", subject),
+        ];
+        f.values.push((labels, m.since));
+    }
+    f
 }

@@ -195,19 +195,42 @@ pub(crate) fn json(board: &Board) -> String {
         .map(|l| {
             let s = &l.stats;
             format!(
-                "{{\"name\":{},\"masters\":{},\"connections\":{},\"refused\":{},\"violations\":{}}}",
+                "{{\"name\":{},\"masters\":{},\"connections\":{},\"refused\":{},\"violations\":{},\"denied_connections\":{},\"tls_failed\":{},\"tls_refused\":{},\"denied_requests\":{}}}",
                 string(&l.name),
                 l.connected(),
                 s.get(&s.connections),
                 s.get(&s.connections_refused),
                 s.get(&s.protocol_violations),
+                s.get(&s.connections_denied),
+                s.get(&s.tls_failed),
+                s.get(&s.tls_refused),
+                s.get(&s.denied),
+            )
+        })
+        .collect();
+    let masters: Vec<String> = board
+        .masters
+        .list()
+        .iter()
+        .map(|m| {
+            let (role, subject) = match &m.tls {
+                Some((r, s)) => (string(r), string(s)),
+                None => ("null".into(), "null".into()),
+            };
+            format!(
+                "{{\"conn\":{},\"listener\":{},\"peer\":{},\"since_ms\":{},\"role\":{role},\"subject\":{subject}}}",
+                m.conn,
+                string(&m.listener),
+                string(&m.peer.to_string()),
+                (m.since * 1000.0) as u64,
             )
         })
         .collect();
     format!(
-        "{{\"now_ms\":{unix_ms},\"lines\":[{}],\"listeners\":[{}]}}\n",
+        "{{\"now_ms\":{unix_ms},\"lines\":[{}],\"listeners\":[{}],\"masters\":[{}]}}\n",
         lines.join(","),
-        listeners.join(",")
+        listeners.join(","),
+        masters.join(",")
     )
 }
 

@@ -2,10 +2,16 @@
 //! server in raw TCP mode): connected without blocking the loop, within a bounded
 //! time, Nagle off so a request leaves whole, TCP keepalive on so a device that
 //! vanished without a word (power cut, cable pulled) is noticed and reconnected.
+//! Over TLS (docs/security.md "A device behind TLS") the handshake is part of the
+//! bounded connect, and a task of its own carries the bytes between the TLS stream and
+//! the relay, flushing each write, since the relay writes and never flushes.
 
 use super::{Link, Opening, Port};
+use crate::config::TlsDevice;
+use crate::tls::client::Connector;
 use socket2::{SockRef, TcpKeepalive};
 use std::time::Duration;
+use tokio::io::AsyncWriteExt;
 
 /// How long a connect may take before the attempt counts as failed (and is retried
 /// with backoff, masters answered 0x0A meanwhile).
@@ -24,12 +30,50 @@ pub(crate) struct TcpPort {
     /// `host:port`: resolved again at each connect, so a device whose name moves to
     /// another address is found there.
     addr: String,
+    /// The device speaks TLS: its files are read at each connect.
+    tls: Option<TlsDevice>,
 }
 
 impl TcpPort {
     /// The device at `addr` (`host:port`); nothing is connected yet.
     pub(crate) fn new(addr: impl Into<String>) -> Self {
-        Self { addr: addr.into() }
+        Self {
+            addr: addr.into(),
+            tls: None,
+        }
+    }
+
+    /// The device at `addr` behind TLS.
+    pub(crate) fn with_tls(mut self, tls: Option<TlsDevice>) -> Self {
+        self.tls = tls;
+        self
+    }
+}
+
+/// The room of the in-memory pipe between the relay and a TLS device's task: more than
+/// the relay ever has in flight.
+const PIPE: usize = 64 * 1024;
+
+/// Carries bytes both ways between the relay's end of a pipe and the TLS stream until
+/// either side ends; then the other side is shut down (a TLS `close_notify` to the
+/// device, the end of the stream to the relay) and the connection dropped.
+async fn carry(
+    relay_end: tokio::io::DuplexStream,
+    tls: tokio_rustls::client::TlsStream<tokio::net::TcpStream>,
+) {
+    let (mut from_relay, mut to_relay) = tokio::io::split(relay_end);
+    let (mut from_device, mut to_device) = tokio::io::split(tls);
+    let up = async {
+        let _ = tokio::io::copy(&mut from_relay, &mut to_device).await;
+        let _ = to_device.shutdown().await;
+    };
+    let down = async {
+        let _ = tokio::io::copy(&mut from_device, &mut to_relay).await;
+        let _ = to_relay.shutdown().await;
+    };
+    tokio::select! {
+        _ = up => {}
+        _ = down => {}
     }
 }
 
@@ -44,14 +88,24 @@ impl Port for TcpPort {
 
     fn open(&mut self) -> Opening {
         let addr = self.addr.clone();
+        let tls = self.tls.clone();
         Box::pin(async move {
+            let connector = match &tls {
+                Some(t) => Some(
+                    Connector::load(t, &addr, "tcp.tls")
+                        .map_err(|e| std::io::Error::new(std::io::ErrorKind::InvalidInput, e))?,
+                ),
+                None => None,
+            };
+            let deadline = tokio::time::Instant::now() + CONNECT_TIMEOUT;
             let connect = tokio::net::TcpStream::connect(&addr);
-            let stream = match tokio::time::timeout(CONNECT_TIMEOUT, connect).await {
+            let timed_out = || {
+                let m = format!("no connection within {CONNECT_TIMEOUT:?}");
+                std::io::Error::new(std::io::ErrorKind::TimedOut, m)
+            };
+            let stream = match tokio::time::timeout_at(deadline, connect).await {
                 Ok(connected) => connected?,
-                Err(_) => {
-                    let m = format!("no connection within {CONNECT_TIMEOUT:?}");
-                    return Err(std::io::Error::new(std::io::ErrorKind::TimedOut, m));
-                }
+                Err(_) => return Err(timed_out()),
             };
             stream.set_nodelay(true)?;
             let keepalive = TcpKeepalive::new()
@@ -59,6 +113,23 @@ impl Port for TcpPort {
                 .with_interval(KEEPALIVE_EVERY)
                 .with_retries(KEEPALIVE_PROBES);
             SockRef::from(&stream).set_tcp_keepalive(&keepalive)?;
+            if let Some(connector) = connector {
+                let handshake = connector.connect(stream);
+                let tls = match tokio::time::timeout_at(deadline, handshake).await {
+                    Ok(done) => done.map_err(|e| {
+                        std::io::Error::new(e.kind(), format!("TLS handshake with the device: {e}"))
+                    })?,
+                    Err(_) => return Err(timed_out()),
+                };
+                let (relay_end, carried) = tokio::io::duplex(PIPE);
+                tokio::spawn(carry(carried, tls));
+                let (reader, writer) = tokio::io::split(relay_end);
+                return Ok(Link {
+                    reader: Box::new(reader),
+                    writer: Box::new(writer),
+                    control: Box::new(NoControl),
+                });
+            }
             let (reader, writer) = stream.into_split();
             Ok(Link {
                 reader: Box::new(reader),

@@ -285,3 +285,48 @@ fn unknown_codes_stay_representable() {
         "as the log has always shown it"
     );
 }
+
+/// What a write writes, from the examples of V1.1b3 §6: the address and count each
+/// writing code names (23: its written range, not its read range); nothing for the
+/// codes that write no address range; and every read only reads, read device
+/// identification included, while every other code of 0..=255 may act on the device.
+#[test]
+fn written_ranges_and_reads_follow_the_specification_examples() {
+    let expect: &[(u8, Option<(u16, u16)>)] = &[
+        (0x05, Some((0xAC, 1))),
+        (0x06, Some((1, 1))),
+        (0x0F, Some((0x13, 10))),
+        (0x10, Some((1, 2))),
+        (0x16, Some((4, 1))),
+        (0x17, Some((0x0E, 3))),
+        (0x08, None),
+        (0x15, None),
+    ];
+    for &(code, range) in expect {
+        let (req, _) = spec_example(FunctionCode(code));
+        let pdu = bytes(req);
+        assert_eq!(written(&pdu), range, "FC {code:#04x}");
+        assert!(!only_reads(&pdu), "FC {code:#04x} may act on the device");
+    }
+    for spec in TABLE.iter().filter(|s| s.access == Access::Read) {
+        let (req, _) = spec_example(spec.code);
+        let pdu = bytes(req);
+        assert!(only_reads(&pdu) && written(&pdu).is_none(), "{}", spec.name);
+    }
+    assert!(
+        only_reads(&bytes("2B 0E 01 00")),
+        "read device identification"
+    );
+    assert_eq!(written(&bytes("2B 0E 01 00")), None);
+    assert!(!only_reads(&bytes("2B 0D 00")), "CANopen general reference");
+    for code in 0..=255u8 {
+        let public_read = FunctionCode(code).is_read();
+        assert_eq!(
+            only_reads(&[code, 0, 0, 0, 1]),
+            public_read,
+            "FC {code:#04x}"
+        );
+    }
+    assert_eq!(written(&[]), None);
+    assert_eq!(written(&[0x10, 0]), None, "too short to say");
+}
