@@ -2,6 +2,7 @@
 //! processes, a scriptable raw device on a pty, and a raw TCP master.
 #![allow(dead_code)]
 
+pub(crate) mod pki;
 pub(crate) mod sim;
 
 use mbgate::frame::mbap::decode_strict;
