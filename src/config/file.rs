@@ -325,7 +325,15 @@ impl Reader<'_> {
             framing,
             access,
         };
-        Ok((v.span().start, listen))
+        // Where a `default_role` that names no role is reported: at its value.
+        let role_at = match v.get_ref() {
+            DeValue::Table(t) => t.get("tls").and_then(|tls| match tls.get_ref() {
+                DeValue::Table(tls) => tls.get("default_role").map(|r| r.span().start),
+                _ => None,
+            }),
+            _ => None,
+        };
+        Ok((role_at.unwrap_or(v.span().start), listen))
     }
 
     fn bad<T>(&self, b: super::master::Bad) -> Result<T, ConfigError> {
