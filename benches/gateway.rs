@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
 //! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `rtu-limit`, `coalesce`, `tcp-line`,
-//! `rtu-listener`, `metrics` (all when none is named). `rtu-limit` compares with mbusd
+//! `rtu-listener`, `metrics`, `tls` (all when none is named). `rtu-limit` compares with mbusd
 //! given `MBUSD=/path/to/mbusd`; `MBGATE_BENCH_BASELINE=PATH` names another mbgate
 //! build (e.g. the commit before a change) that `coalesce` measures beside this one.
 //! `scripts/bench` runs this and
@@ -17,6 +17,8 @@
 
 #[path = "../tests/common/mod.rs"]
 mod common;
+#[path = "gateway/tls.rs"]
+mod tls;
 
 use common::sim::RawLine;
 use common::{
@@ -52,7 +54,7 @@ fn main() {
         .filter(|a| a != "--bench")
         .collect();
     // Each scenario by the name that picks it, in the order they run.
-    let all: [(&str, Scenario); 11] = [
+    let all: [(&str, Scenario); 12] = [
         ("latency", latency),
         ("wire", wire),
         ("fairness", fairness),
@@ -64,6 +66,7 @@ fn main() {
         ("tcp-line", tcp_line),
         ("rtu-listener", rtu_listener),
         ("metrics", metrics_cost),
+        ("tls", tls::tls),
     ];
     let names: Vec<&str> = all.iter().map(|(name, _)| *name).collect();
     if let Some(bad) = args.iter().find(|a| !names.contains(&a.as_str())) {

@@ -329,6 +329,68 @@ fn range(s: &str, max: u16) -> Result<(u16, u16), String> {
     }
 }
 
+/// A `[[listen]]`'s security keys, from its `table`; `path` is `listen[0]`. Also where
+/// its `default_role` is, for [`default_roles`].
+pub(super) fn listen(table: &DeTable, path: &str) -> Result<(ListenAccess, Option<usize>), Bad> {
+    let allow = match table.get("allow") {
+        Some(a) => Some(allow(a, &format!("{path}.allow"))?),
+        None => None,
+    };
+    let (mut tls, mut role_at) = (None, None);
+    if let Some(t) = table.get("tls") {
+        tls = Some(tls_listen(t, &format!("{path}.tls"))?);
+        if let DeValue::Table(t) = t.get_ref() {
+            role_at = t.get("default_role").map(|r| r.span().start);
+        }
+    }
+    let policy = policy(table, path)?;
+    Ok((ListenAccess { allow, policy, tls }, role_at))
+}
+
+/// `[tcp]` is the one listener open to all: the security keys belong in a
+/// `[[listen]]` table, and the message says so rather than "unknown key".
+pub(super) fn not_in_tcp(v: &Spanned<DeValue>) -> Result<(), Bad> {
+    if let DeValue::Table(t) = v.get_ref() {
+        for (k, _) in entries(t) {
+            let name = k.get_ref().as_ref();
+            if LISTEN_ACCESS.contains(&name) {
+                let m = format!(
+                    "{name} belongs in a [[listen]] table (write [[listen]] with address = \
+                     the listen address instead of [tcp]; docs/security.md)"
+                );
+                return bad(k.span().start, &format!("tcp.{name}"), m);
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Each listener's `tls.default_role` names a `[[role]]`; `listeners` with where each
+/// one's `default_role` is.
+pub(super) fn default_roles(
+    listeners: &[(usize, super::ListenConfig)],
+    roles: &[(usize, Role)],
+) -> Result<(), Bad> {
+    for (i, (at, l)) in listeners.iter().enumerate() {
+        let Some(role) = l.access.tls.as_ref().and_then(|t| t.default_role.as_ref()) else {
+            continue;
+        };
+        if !roles.iter().any(|(_, r)| &r.name == role) {
+            let names: Vec<&str> = roles.iter().map(|(_, r)| r.name.as_str()).collect();
+            let m = if names.is_empty() {
+                format!("no [[role]] is named {role:?} (there are no [[role]] tables)")
+            } else {
+                format!(
+                    "no [[role]] is named {role:?}; the roles are {}",
+                    names.join(", ")
+                )
+            };
+            return bad(*at, &format!("listen[{i}].tls.default_role"), m);
+        }
+    }
+    Ok(())
+}
+
 /// A path: a non-empty string.
 fn path(v: &Spanned<DeValue>, key: &str, what: &'static str) -> Result<PathBuf, Bad> {
     let s =
@@ -509,194 +571,8 @@ pub(super) fn tls_device(v: &Spanned<DeValue>, key: &str) -> Result<TlsDevice, B
     })
 }
 
-fn quoted(p: &std::path::Path) -> String {
-    toml::Value::String(p.display().to_string()).to_string()
-}
-
-/// A listener's security keys as the `[[listen]]` form prints them, and two comment
-/// lines saying who may connect and what they may do (`mbgate check-config`).
-pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[Role]) -> String {
-    let mut out = String::new();
-    if let Some(allow) = &a.allow {
-        let nets: Vec<String> = allow.nets().iter().map(|n| format!("\"{n}\"")).collect();
-        out += &format!("allow = [{}]\n", nets.join(", "));
-    }
-    out += &policy_to_toml(&a.policy);
-    if let Some(t) = &a.tls {
-        let mut parts = vec![
-            format!("cert = {}", quoted(&t.cert)),
-            format!("key = {}", quoted(&t.key)),
-            format!("client_ca = {}", quoted(&t.client_ca)),
-        ];
-        if let Some(r) = &t.default_role {
-            parts.push(format!("default_role = {}", toml::Value::String(r.clone())));
-        }
-        parts.push(format!("handshake_timeout_ms = {}", t.handshake_timeout_ms));
-        out += &format!("tls = {{ {} }}\n", parts.join(", "));
-    }
-    for line in effective(a, roles) {
-        out += &format!("# {line}\n");
-    }
-    out
-}
-
-fn policy_to_toml(p: &Policy) -> String {
-    let mut out = String::new();
-    if p.read_only {
-        out += "read_only = true\n";
-    }
-    if !p.write.is_empty() {
-        let rules: Vec<String> = p.write.iter().map(WriteRule::to_string).collect();
-        out += &format!("write = [{}]\n", rules.join(", "));
-    }
-    out
-}
-
-/// Who may connect to a listener, and what each may do, in words.
-pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
-    let who = match &a.allow {
-        None => "from everyone (no allow list)".to_owned(),
-        Some(l) => format!("only from {l}"),
-    };
-    let mut lines = Vec::new();
-    match &a.tls {
-        None => {
-            lines.push(format!("who: {who}, plain TCP"));
-            lines.push(format!("what: {}", a.policy.describe()));
-        }
-        Some(t) => {
-            lines.push(format!(
-                "who: {who}, TLS 1.2/1.3 with a client certificate from {}",
-                t.client_ca.display()
-            ));
-            let no_role = match &t.default_role {
-                None => "refused".to_owned(),
-                Some(r) => format!("role {r:?}"),
-            };
-            if roles.is_empty() && t.default_role.is_none() {
-                lines.push("what: nothing: no [[role]] tables, every master is refused".into());
-            }
-            for r in roles {
-                let mut what = r.policy.describe();
-                if !a.policy.is_open() {
-                    what += &format!(", within the listener's {}", a.policy.describe());
-                }
-                lines.push(format!("what: role {:?}: {what}", r.name));
-            }
-            lines.push(format!("what: a certificate without a role: {no_role}; with a role no [[role]] names: refused"));
-        }
-    }
-    lines
-}
-
-/// The `[[role]]` tables as the file writes them.
-pub(crate) fn roles_to_toml(roles: &[Role]) -> String {
-    let mut out = Vec::new();
-    for r in roles {
-        out.push(format!(
-            "[[role]]\nname = {}\n{}",
-            toml::Value::String(r.name.clone()),
-            policy_to_toml(&r.policy)
-        ));
-    }
-    out.join("\n")
-}
-
-/// A TCP line's `tls` table as `[line.tcp]` prints it.
-pub(crate) fn device_to_toml(t: &TlsDevice) -> String {
-    let mut parts = vec![
-        format!("cert = {}", quoted(&t.cert)),
-        format!("key = {}", quoted(&t.key)),
-        format!("device_ca = {}", quoted(&t.device_ca)),
-    ];
-    if let Some(n) = &t.server_name {
-        parts.push(format!("server_name = {}", toml::Value::String(n.clone())));
-    }
-    format!("tls = {{ {} }}\n", parts.join(", "))
-}
+mod print;
+pub(crate) use print::{device_to_toml, effective, listen_to_toml, roles_to_toml};
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use crate::config::{parse, to_toml};
-
-    #[test]
-    fn ranges() {
-        assert_eq!(range("10-20", 255), Ok((10, 20)));
-        assert_eq!(range(" 0 - 65535 ", 65535), Ok((0, 65535)));
-        assert!(range("20-10", 255).unwrap_err().contains("empty"));
-        assert!(range("0-256", 255).is_err());
-        assert!(range("7", 255).is_err());
-    }
-
-    fn error(text: &str) -> String {
-        parse(text, "t.toml").unwrap_err().to_string()
-    }
-
-    /// Each mistake is named with its file, line, column and key, and says what to do.
-    #[test]
-    fn mistakes_are_named_precisely() {
-        let listen = "[[listen]]\naddress = \"0.0.0.0:502\"\n";
-        let cases = [
-            (format!("{listen}allow = [\"10.0.0.1/24\"]\n"),
-             "t.toml:3:10: listen[0].allow: \"10.0.0.1/24\" has bits set past its prefix length: did you mean \"10.0.0.0/24\"?"),
-            (format!("{listen}allow = []\n"),
-             "t.toml:3:9: listen[0].allow: must list at least one address (leave allow out to take everyone)"),
-            (format!("{listen}read_only = true\nwrite = [{{ units = [1] }}]\n"),
-             "t.toml:3:13: listen[0].read_only: read_only = true refuses every write: give listen[0].read_only or listen[0].write, not both"),
-            (format!("{listen}write = [{{ unit = [1] }}]\n"),
-             "t.toml:3:12: listen[0].write[0].unit: unknown key; expected one of units, functions, addresses (did you mean `units`?)"),
-            (format!("{listen}write = [{{ functions = [3] }}]\n"),
-             "t.toml:3:25: listen[0].write[0].functions: function 3 only reads"),
-            (format!("{listen}write = [{{ addresses = \"9-1\" }}]\n"),
-             "t.toml:3:24: listen[0].write[0].addresses: the range \"9-1\" is empty"),
-            (format!("{listen}write = [{{}}]\n"),
-             "t.toml:3:10: listen[0].write[0]: an empty rule permits every write"),
-            (format!("{listen}tls = {{ cert = \"c\", key = \"k\" }}\n"),
-             "t.toml:3:7: listen[0].tls.client_ca: missing: the CA masters' certificates must chain to"),
-            (format!("{listen}tls = {{ cert = \"c\", key = \"k\", client_ca = \"a\", default_role = \"op\" }}\n[[role]]\nname = \"viewer\"\n"),
-             "t.toml:3:64: listen[0].tls.default_role: no [[role]] is named \"op\"; the roles are viewer"),
-            (format!("{listen}tls = {{ cert = \"c\", key = \"k\", client_ca = \"a\", handshake_timeout = 1 }}\n"),
-             "listen[0].tls.handshake_timeout: unknown key; expected one of cert, key, client_ca, default_role, handshake_timeout_ms (did you mean `handshake_timeout_ms`?)"),
-            ("[[role]]\nname = \"a\"\n[[role]]\nname = \"a\"\n".into(),
-             "t.toml:4:8: role[1].name: role \"a\" is also role[0]"),
-            ("[[role]]\nread_only = true\n".into(), "t.toml:1:1: role[0].name: missing"),
-            ("[tcp]\nlisten = \"0.0.0.0:502\"\nallow = [\"10.0.0.0/8\"]\n".into(),
-             "t.toml:3:1: tcp.allow: allow belongs in a [[listen]] table"),
-            ("[[line]]\ntcp = { address = \"h:802\", tls = { cert = \"c\", key = \"k\" } }\n".into(),
-             "line[0].tcp.tls.device_ca: missing: the CA the device's certificate must chain to"),
-        ];
-        let wrong: Vec<String> = cases
-            .iter()
-            .map(|(text, want)| (text, want, error(text)))
-            .filter(|(_, want, got)| !got.starts_with(*want) && !got.contains(*want))
-            .map(|(text, want, got)| format!("{text}\n got: {got}\nwant: {want}"))
-            .collect();
-        assert!(wrong.is_empty(), "{}", wrong.join("\n\n"));
-    }
-
-    /// check-config prints the security keys and who and what in comments; the text
-    /// reads back to the same configuration.
-    #[test]
-    fn printed_and_read_back_with_who_and_what() {
-        let text = "[[line]]\ntcp = { address = \"10.0.0.9:802\", tls = { cert = \"/c.pem\", key = \"/c.key\", device_ca = \"/ca.pem\", server_name = \"plc\" } }\n\
-            [[listen]]\naddress = \"0.0.0.0:502\"\nallow = [\"10.0.0.0/24\", \"::ffff:192.168.1.0/120\"]\nread_only = true\n\
-            [[listen]]\naddress = \"0.0.0.0:802\"\nwrite = [{ units = [1, 2, 3], functions = [6], addresses = \"0-99\" }, { units = [9] }]\n\
-            tls = { cert = \"/g.pem\", key = \"/g.key\", client_ca = \"/ca.pem\", default_role = \"viewer\" }\n\
-            [[role]]\nname = \"operator\"\nwrite = [{ addresses = 7 }]\n[[role]]\nname = \"viewer\"\nread_only = true\n";
-        let cfg = parse(text, "t").unwrap();
-        let printed = to_toml(&cfg);
-        assert_eq!(parse(&printed, "printed").unwrap(), cfg, "{printed}");
-        for said in [
-            "allow = [\"10.0.0.0/24\", \"192.168.1.0/24\"]\nread_only = true\n# who: only from 10.0.0.0/24, 192.168.1.0/24, plain TCP\n# what: read only\n",
-            "write = [{ units = [\"1-3\"], functions = [6], addresses = \"0-99\" }, { units = [9] }]\n",
-            "# who: from everyone (no allow list), TLS 1.2/1.3 with a client certificate from /ca.pem\n",
-            "# what: role \"operator\": read, and write only as { addresses = \"7-7\" }, within the listener's read, and write only as",
-            "# what: a certificate without a role: role \"viewer\"; with a role no [[role]] names: refused\n",
-            "tls = { cert = \"/c.pem\", key = \"/c.key\", device_ca = \"/ca.pem\", server_name = \"plc\" }\n",
-            "[[role]]\nname = \"viewer\"\nread_only = true\n",
-        ] {
-            assert!(printed.contains(said), "{said}\nnot in:\n{printed}");
-        }
-    }
-}
+mod tests;

@@ -176,7 +176,7 @@ impl Reader<'_> {
                     continue;
                 }
                 "tcp" => {
-                    self.tcp_has_no_access(v)?;
+                    super::access::not_in_tcp(v).or_else(|b| self.bad(b))?;
                     self.section(&mut cfg, name, v, name, &[], &[])?;
                     continue;
                 }
@@ -206,7 +206,7 @@ impl Reader<'_> {
                 }
             }
         }
-        self.default_roles(&listeners, &roles)?;
+        super::access::default_roles(&listeners, &roles).or_else(|b| self.bad(b))?;
         cfg.roles = roles.into_iter().map(|(_, r)| r).collect();
         let listeners: Vec<ListenConfig> = listeners.into_iter().map(|(_, l)| l).collect();
         match &listeners[..] {
@@ -300,88 +300,26 @@ impl Reader<'_> {
         let skip = ["framing", "allow", "read_only", "write", "tls"];
         self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &skip)?;
         let mut framing = ListenFraming::Mbap;
-        let mut access = super::ListenAccess::default();
+        let (mut access, mut at) = (super::ListenAccess::default(), v.span().start);
         if let DeValue::Table(table) = v.get_ref() {
             if let Some(f) = table.get("framing") {
                 framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
                     .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
             }
-            let read = || -> Result<super::ListenAccess, super::master::Bad> {
-                let allow = match table.get("allow") {
-                    Some(a) => Some(super::access::allow(a, &format!("{path}.allow"))?),
-                    None => None,
-                };
-                let tls = match table.get("tls") {
-                    Some(t) => Some(super::access::tls_listen(t, &format!("{path}.tls"))?),
-                    None => None,
-                };
-                let policy = super::access::policy(table, path)?;
-                Ok(super::ListenAccess { allow, policy, tls })
-            };
-            access = read().or_else(|b| self.bad(b))?;
+            let (read, role_at) = super::access::listen(table, path).or_else(|b| self.bad(b))?;
+            access = read;
+            at = role_at.unwrap_or(at);
         }
         let listen = ListenConfig {
             tcp: listener.tcp,
             framing,
             access,
         };
-        // Where a `default_role` that names no role is reported: at its value.
-        let role_at = match v.get_ref() {
-            DeValue::Table(t) => t.get("tls").and_then(|tls| match tls.get_ref() {
-                DeValue::Table(tls) => tls.get("default_role").map(|r| r.span().start),
-                _ => None,
-            }),
-            _ => None,
-        };
-        Ok((role_at.unwrap_or(v.span().start), listen))
+        Ok((at, listen))
     }
 
     fn bad<T>(&self, b: super::master::Bad) -> Result<T, ConfigError> {
         self.fail(b.at, &b.key, b.message)
-    }
-
-    /// `[tcp]` is the one listener open to all: the security keys belong in a
-    /// `[[listen]]` table, and the message says so rather than "unknown key".
-    fn tcp_has_no_access(&self, v: &Spanned<DeValue>) -> Result<(), ConfigError> {
-        if let DeValue::Table(t) = v.get_ref() {
-            for (k, _) in entries(t) {
-                let name = k.get_ref().as_ref();
-                if super::access::LISTEN_ACCESS.contains(&name) {
-                    let m = format!(
-                        "{name} belongs in a [[listen]] table (write [[listen]] with address = \
-                         the listen address instead of [tcp]; docs/security.md)"
-                    );
-                    return self.fail(k.span().start, &format!("tcp.{name}"), m);
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// Each listener's `tls.default_role` names a `[[role]]`.
-    fn default_roles(
-        &self,
-        listeners: &[(usize, ListenConfig)],
-        roles: &[(usize, super::Role)],
-    ) -> Result<(), ConfigError> {
-        for (i, (at, l)) in listeners.iter().enumerate() {
-            let Some(role) = l.access.tls.as_ref().and_then(|t| t.default_role.as_ref()) else {
-                continue;
-            };
-            if !roles.iter().any(|(_, r)| &r.name == role) {
-                let names: Vec<&str> = roles.iter().map(|(_, r)| r.name.as_str()).collect();
-                let m = if names.is_empty() {
-                    format!("no [[role]] is named {role:?} (there are no [[role]] tables)")
-                } else {
-                    format!(
-                        "no [[role]] is named {role:?}; the roles are {}",
-                        names.join(", ")
-                    )
-                };
-                return self.fail(*at, &format!("listen[{i}].tls.default_role"), m);
-            }
-        }
-        Ok(())
     }
 
     fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {

@@ -1,0 +1,111 @@
+//! The security keys as `mbgate check-config` prints them: TOML that reads back to the
+//! same configuration, and under each listener who may connect and what they may do.
+
+use super::{ListenAccess, Role, TlsDevice};
+use crate::access::{Policy, WriteRule};
+
+fn quoted(p: &std::path::Path) -> String {
+    toml::Value::String(p.display().to_string()).to_string()
+}
+
+/// A listener's security keys as the `[[listen]]` form prints them, and two comment
+/// lines saying who may connect and what they may do (`mbgate check-config`).
+pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[Role]) -> String {
+    let mut out = String::new();
+    if let Some(allow) = &a.allow {
+        let nets: Vec<String> = allow.nets().iter().map(|n| format!("\"{n}\"")).collect();
+        out += &format!("allow = [{}]\n", nets.join(", "));
+    }
+    out += &policy_to_toml(&a.policy);
+    if let Some(t) = &a.tls {
+        let mut parts = vec![
+            format!("cert = {}", quoted(&t.cert)),
+            format!("key = {}", quoted(&t.key)),
+            format!("client_ca = {}", quoted(&t.client_ca)),
+        ];
+        if let Some(r) = &t.default_role {
+            parts.push(format!("default_role = {}", toml::Value::String(r.clone())));
+        }
+        parts.push(format!("handshake_timeout_ms = {}", t.handshake_timeout_ms));
+        out += &format!("tls = {{ {} }}\n", parts.join(", "));
+    }
+    for line in effective(a, roles) {
+        out += &format!("# {line}\n");
+    }
+    out
+}
+
+fn policy_to_toml(p: &Policy) -> String {
+    let mut out = String::new();
+    if p.read_only {
+        out += "read_only = true\n";
+    }
+    if !p.write.is_empty() {
+        let rules: Vec<String> = p.write.iter().map(WriteRule::to_string).collect();
+        out += &format!("write = [{}]\n", rules.join(", "));
+    }
+    out
+}
+
+/// Who may connect to a listener, and what each may do, in words.
+pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
+    let who = match &a.allow {
+        None => "from everyone (no allow list)".to_owned(),
+        Some(l) => format!("only from {l}"),
+    };
+    let mut lines = Vec::new();
+    match &a.tls {
+        None => {
+            lines.push(format!("who: {who}, plain TCP"));
+            lines.push(format!("what: {}", a.policy.describe()));
+        }
+        Some(t) => {
+            lines.push(format!(
+                "who: {who}, TLS 1.2/1.3 with a client certificate from {}",
+                t.client_ca.display()
+            ));
+            let no_role = match &t.default_role {
+                None => "refused".to_owned(),
+                Some(r) => format!("role {r:?}"),
+            };
+            if roles.is_empty() && t.default_role.is_none() {
+                lines.push("what: nothing: no [[role]] tables, every master is refused".into());
+            }
+            for r in roles {
+                let mut what = r.policy.describe();
+                if !a.policy.is_open() {
+                    what += &format!(", within the listener's {}", a.policy.describe());
+                }
+                lines.push(format!("what: role {:?}: {what}", r.name));
+            }
+            lines.push(format!("what: a certificate without a role: {no_role}; with a role no [[role]] names: refused"));
+        }
+    }
+    lines
+}
+
+/// The `[[role]]` tables as the file writes them.
+pub(crate) fn roles_to_toml(roles: &[Role]) -> String {
+    let mut out = Vec::new();
+    for r in roles {
+        out.push(format!(
+            "[[role]]\nname = {}\n{}",
+            toml::Value::String(r.name.clone()),
+            policy_to_toml(&r.policy)
+        ));
+    }
+    out.join("\n")
+}
+
+/// A TCP line's `tls` table as `[line.tcp]` prints it.
+pub(crate) fn device_to_toml(t: &TlsDevice) -> String {
+    let mut parts = vec![
+        format!("cert = {}", quoted(&t.cert)),
+        format!("key = {}", quoted(&t.key)),
+        format!("device_ca = {}", quoted(&t.device_ca)),
+    ];
+    if let Some(n) = &t.server_name {
+        parts.push(format!("server_name = {}", toml::Value::String(n.clone())));
+    }
+    format!("tls = {{ {} }}\n", parts.join(", "))
+}
