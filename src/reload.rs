@@ -138,6 +138,9 @@ pub(crate) async fn on_sighup(
         if (&new.lines, &new.listeners) != (&read.lines, &read.listeners) {
             restart.push("the [[line]] or [[listen]] tables".into());
         }
+        if new.roles != read.roles {
+            restart.push("the [[role]] tables".into());
+        }
         if let Err(e) = metrics.set(new.metrics.listen) {
             error!("reload: {e}; the metrics listener stays as it was");
             new.metrics = old.metrics.clone();
