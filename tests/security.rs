@@ -590,6 +590,29 @@ fn bad_certificates_and_old_protocols_are_refused() {
     );
 }
 
+/// TLS on an RTU-over-TCP listener: the RTU frame (unit, PDU, CRC) inside the TLS
+/// session, answered with the device's register.
+#[test]
+fn an_rtu_over_tcp_listener_speaks_tls_too() {
+    let dir = tempdir();
+    let pki = pki(dir.path());
+    let (_device, _port, line) = tcp_device();
+    let text = format!(
+        "{line}[[listen]]\naddress = \"127.0.0.1:0\"\nframing = \"rtu\"\n{}\n\n{ROLES}\
+         [log]\nlevel = \"debug\"\n",
+        pki.listen_tls("")
+    );
+    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let got = TlsMaster::start(addrs[0].port(), &pki, Some("viewer-1")).ask("rtu-read");
+    let want = mbgate::frame::rtu::encode(1, &[3, 2, 0, 0xFF]);
+    assert_eq!(
+        got["reply"].as_str(),
+        Some(hexs(&want).replace(' ', "").to_lowercase().as_str()),
+        "{got}"
+    );
+    assert!(gw.terminate(Duration::from_secs(10)).success());
+}
+
 /// A certificate without a role gets the listener's default_role (viewer here: reads,
 /// no writes).
 #[test]

@@ -14,6 +14,8 @@ Reads commands on stdin, one a line, and answers each with one JSON line on stdo
     handshake             a raw ssl socket: the handshake, then one FC 03 request of
                           register 0; {"ok": bool, "error": TEXT, "protocol": "TLSv1.3",
                           "subject": the gateway certificate's CN}
+    rtu-read              the same over an RTU-over-TCP listener: the RTU frame of an
+                          FC 03 read of register 0 (unit 1, CRC); {"ok", "reply"}
     stall                 opens a plain TCP connection to the port that never sends a
                           byte (a master stuck before its handshake): {"ok": true}
     stalled               {"open": bool}: has the gateway not closed it yet?
@@ -45,7 +47,11 @@ def context(args) -> ssl.SSLContext:
     return ctx
 
 
-def handshake(args) -> dict:
+# FC 03, unit 1, register 0, count 1, with its CRC-16.
+RTU_READ = bytes.fromhex("010300000001840a")
+
+
+def handshake(args, rtu: bool = False) -> dict:
     """The TLS handshake alone with a raw socket, then one read of register 0: with TLS
     1.3 a refused client certificate shows only when the server's alert arrives, after
     the client's side of the handshake is done."""
@@ -57,8 +63,17 @@ def handshake(args) -> dict:
                 out["protocol"] = s.version()
                 subject = dict(x[0] for x in s.getpeercert()["subject"])
                 out["subject"] = subject.get("commonName")
-                s.sendall(struct.pack(">HHHBBHH", 7, 0, 6, args.unit, 3, 0, 1))
-                reply = s.recv(260)
+                if rtu:
+                    s.sendall(RTU_READ)
+                else:
+                    s.sendall(struct.pack(">HHHBBHH", 7, 0, 6, args.unit, 3, 0, 1))
+                reply = b""
+                want = 7 if rtu else 1
+                while len(reply) < want:
+                    got = s.recv(260)
+                    if not got:
+                        break
+                    reply += got
                 if not reply:
                     out["error"] = "closed by the gateway"
                 else:
@@ -108,6 +123,8 @@ async def main() -> int:
                 out = {"ok": False, "error": f"{type(exc).__name__}: {exc}"}
         elif cmd == "handshake":
             out = await loop.run_in_executor(None, handshake, args)
+        elif cmd == "rtu-read":
+            out = await loop.run_in_executor(None, handshake, args, True)
         elif cmd == "stall":
             stalled = socket.create_connection(("127.0.0.1", args.port), timeout=5)
             stalled.setblocking(False)
