@@ -177,9 +177,14 @@ async fn serve_with(
     let signals = user_signals();
     let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
     let devices = devices.join(", ");
+    // Each line with its own framing and settings, then each listener with the
+    // masters it takes: a listener's framing is never printed beside a serial port.
+    for line in &lines {
+        info!("line {}", crate::config::describe::line(line));
+    }
     for (_, listen, local) in &bound {
-        let framing = listen.framing.name();
-        info!(serial = %devices, framing, "listening on {local}");
+        let masters = crate::config::describe::masters(listen.framing);
+        info!(serial = %devices, "listening on {local} for {masters}");
     }
     let addrs: Vec<String> = bound
         .iter()

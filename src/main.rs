@@ -61,9 +61,10 @@ enum Command {
     Demo(mbgate::demo::DemoArgs),
     /// Ask a running gateway how its lines are: a summary per line and unit.
     ///
-    /// From its metrics listener (`[metrics] listen`). Exit code 0 healthy, 1 not (a
-    /// line's port not open, or a unit not answering), 3 the gateway could not be
-    /// asked, 2 bad arguments.
+    /// From its metrics listener (`[metrics] listen`, off unless given an address).
+    /// Exit code 0 healthy, 1 not (a line's port not open, or a unit not answering:
+    /// three timeouts in a row, no reply since, the last timeout within a minute), 3
+    /// the gateway could not be asked, 2 bad arguments.
     Status(mbgate::metrics::ask::StatusArgs),
 }
 

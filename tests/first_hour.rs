@@ -271,3 +271,26 @@ fn table_names_agree_between_help_and_readme() {
         );
     }
 }
+
+/// `mbgate status` with no metrics listener to ask: exit 3, and it says how to turn
+/// the listener on (the `[metrics]` lines for that address, the flag, the reload).
+#[test]
+fn status_without_a_metrics_listener_says_how_to_turn_it_on() {
+    let free = TcpListener::bind("127.0.0.1:0").unwrap();
+    let at = free.local_addr().unwrap().to_string();
+    drop(free);
+    let out = mbgate(&["status", "--metrics", &at]);
+    assert_eq!(out.code, 3, "{}", out.stderr);
+    assert!(
+        out.stderr
+            .contains(&format!("[metrics]\n    listen = \"{at}\"")),
+        "{}",
+        out.stderr
+    );
+    assert!(
+        out.stderr.contains(&format!("--metrics-listen {at}")),
+        "{}",
+        out.stderr
+    );
+    assert!(out.stderr.contains("systemctl reload"), "{}", out.stderr);
+}

@@ -7,6 +7,7 @@
 //! checked the same way from the file or a flag. A new setting is one line here plus
 //! what it does.
 
+pub mod describe;
 mod file;
 mod layout;
 pub mod master;
