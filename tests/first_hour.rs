@@ -64,7 +64,31 @@ fn the_demo_prints_commands_that_run_as_printed() {
     let (code, out) = paste(&commands[2]);
     assert_eq!(code, 0, "{out}");
     assert!(out.contains("8: 17 (0x0011)"), "{out}");
+    // What the profile answers, and the switch to one that answers the usual requests.
+    assert!(
+        banner.contains("the CIE-M10 manual's register map"),
+        "{banner}"
+    );
+    assert!(banner.contains("exception for anything else"), "{banner}");
+    let generic = banner
+        .lines()
+        .find(|l| l.contains(" demo --profile generic"))
+        .unwrap_or_else(|| panic!("no --profile generic in:\n{banner}"));
     assert!(d.terminate(Duration::from_secs(5)).success());
+    // That command as printed (another address: 5020 may be taken), then an FC 06
+    // write the CIE-M10 profile refuses, answered.
+    let args: Vec<&str> = generic.split_whitespace().skip(1).collect();
+    let args = [&args[..], &["--listen", "127.0.0.1:0", "--headless"]].concat();
+    let mut g = Proc::start(&args, "listening on ");
+    wait_for("the banner", Duration::from_secs(5), || {
+        printed_commands(&g.stdout.lock().unwrap()).len() == 2
+    });
+    let read = printed_commands(&g.stdout.lock().unwrap())[0].clone();
+    let write = read.replace(" read ", " write ").replace(" 0 10", " 9 3") + " --unit 2";
+    let (code, out) = paste(&write);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("9: 3 (0x0003)"), "{out}");
+    assert!(g.terminate(Duration::from_secs(5)).success());
 }
 
 /// `mbgate demo --lines 2`: a second line with the same device, reached as unit 101;
