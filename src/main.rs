@@ -30,12 +30,17 @@ enum Command {
         #[command(flatten)]
         overrides: Overrides,
     },
-    /// Validate a configuration file and print the effective configuration, and on
-    /// stderr the warnings `run` would give.
+    /// Validate a configuration file: "OK" and the effective setup in a few lines (or
+    /// the whole effective configuration with --print), and on stderr the warnings
+    /// `run` would give. Exit code 0 valid, 2 not (the message names file, line, key).
     CheckConfig {
         /// The file to check.
         file: PathBuf,
-        /// Print it as one [[line]] and one [[listen]] (docs/design.md §4.1)
+        /// Print the whole effective configuration, every key with its value, as TOML
+        #[arg(long)]
+        print: bool,
+        /// Print the whole effective configuration as [[line]] and [[listen]] tables
+        /// (docs/design.md §4.1)
         #[arg(long)]
         lines: bool,
         #[command(flatten)]
@@ -81,16 +86,19 @@ fn main() -> ExitCode {
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::CheckConfig {
             file,
+            print,
             lines,
             overrides,
-        } => match effective(Some(file), &overrides) {
+        } => match effective(Some(file.clone()), &overrides) {
             Ok(cfg) => {
-                let print = if lines {
-                    config::to_toml_lines
+                if lines {
+                    print!("{}", config::to_toml_lines(&cfg));
+                } else if print {
+                    print!("{}", config::to_toml(&cfg));
                 } else {
-                    config::to_toml
-                };
-                print!("{}", print(&cfg));
+                    println!("OK: {}", file.display());
+                    print!("{}", config::describe::summary(&cfg));
+                }
                 for warning in mbgate::gateway::warnings(&cfg) {
                     eprintln!("mbgate: warning: {warning}");
                 }

@@ -1084,6 +1084,7 @@ fn flags_for_a_line_are_refused_when_the_file_has_several() {
         .args([
             "check-config",
             file.to_str().unwrap(),
+            "--print",
             "--log-level",
             "debug",
         ])

@@ -10,7 +10,14 @@ pub(crate) fn line(line: &LineConfig) -> String {
     let s = &line.serial;
     let framing = framing(s.framing);
     let device = match &line.tcp {
-        Some(address) => format!("{address} (a device on TCP): {framing}"),
+        Some(address) => {
+            let framing = match s.framing {
+                Framing::Mbap => "Modbus/TCP",
+                Framing::Rtu => "RTU over TCP",
+                Framing::Ascii => "ASCII over TCP",
+            };
+            format!("{address} (a device on the network): {framing}")
+        }
         None => {
             let parity = match s.parity {
                 Parity::None => 'N',
@@ -145,7 +152,7 @@ mod tests {
         assert_eq!(
             summary(&cfg),
             "line /dev/ttyUSB1: RTU, 9600 baud 8E1, no flow control, units 1-3, 7, unit 11 as 1\n\
-             line 10.0.0.5:502 (a device on TCP): MBAP (serial Modbus/TCP), units 50\n\
+             line 10.0.0.5:502 (a device on the network): Modbus/TCP, units 50\n\
              listening on 0.0.0.0:502 for Modbus/TCP masters, at most 32 at once\n\
              listening on 0.0.0.0:4001 for RTU-over-TCP masters, at most 32 at once\n\
              no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"

@@ -390,22 +390,50 @@ setting! { String: Str, |raw, check| match raw {
 }, |v| toml::Value::String(v.clone()).to_string() }
 setting! { SocketAddr: Addr, |raw, _check| match raw {
     Raw::Str(s) => parse_listen(s),
-    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+    _ => Err(raw.invalid(&format!("an address like {LISTEN_EXAMPLE}"))),
 }, |v| format!("\"{v}\"") }
 
+// Only `metrics.listen` is an optional address: its example is the metrics port.
 setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
-    Raw::Str(s) if s.trim().is_empty() => Ok(None),
-    Raw::Str(s) => parse_listen(s).map(Some),
-    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+    Raw::Str(s) => parse_optional_address(s, METRICS_EXAMPLE),
+    _ => Err(raw.invalid(&format!("an address like {METRICS_EXAMPLE}, or \"\" for none"))),
 }, |v| v.map_or_else(|| "\"\"".to_owned(), |a| format!("\"{a}\"")) }
 
-const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
+/// What a Modbus listener's address looks like.
+const LISTEN_EXAMPLE: &str = "0.0.0.0:502";
+/// What the metrics listener's address looks like (never the Modbus port).
+pub(crate) const METRICS_EXAMPLE: &str = "127.0.0.1:9502";
 
 /// Parses a `tcp.listen` / `--listen` value.
 pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
-    s.trim()
-        .parse()
-        .map_err(|_| format!("expected {LISTEN_EXPECTED}, got {s:?}"))
+    parse_address(s, LISTEN_EXAMPLE)
+}
+
+/// Parses an address to listen on, `example` showing what one looks like. A host
+/// name is refused with what to give instead: listening needs one of this machine's
+/// addresses, and a name could stand for several, or for another machine's.
+pub(crate) fn parse_address(s: &str, example: &str) -> Result<SocketAddr, String> {
+    s.trim().parse().map_err(|_| {
+        let mut m = format!("expected an address like {example}, got {s:?}");
+        let named = s.trim().rsplit_once(':').is_some_and(|(host, port)| {
+            port.parse::<u16>().is_ok()
+                && host.starts_with(|c: char| c.is_ascii_alphabetic())
+                && host.parse::<std::net::IpAddr>().is_err()
+        });
+        if named {
+            m += ": a host name is not looked up here; give an IP address of this machine \
+                  (127.0.0.1 for this machine only, 0.0.0.0 for every interface)";
+        }
+        m
+    })
+}
+
+/// [`parse_address`], or none for `""`.
+pub(crate) fn parse_optional_address(s: &str, example: &str) -> Result<Option<SocketAddr>, String> {
+    if s.trim().is_empty() {
+        return Ok(None);
+    }
+    parse_address(s, example).map(Some)
 }
 
 /// A key above the key it must not exceed (`at_most` in [`settings!`]).
