@@ -105,22 +105,24 @@ fn list(ids: &[u8]) -> String {
     parts.join(", ")
 }
 
-/// The whole setup, a line each: the lines, the listeners (none for a master line),
-/// the metrics listener.
+/// The whole setup, a line each: the lines, then the listeners and the metrics
+/// listener (a master line has neither).
 pub fn summary(cfg: &Config) -> String {
     let mut out = String::new();
     let lines = cfg.lines();
     for l in &lines {
         out += &format!("line {}\n", line(l));
     }
-    if cfg.master.is_none() {
-        for l in cfg.listeners() {
-            out += &format!(
-                "listening on {}, at most {} at once\n",
-                listener(&l),
-                l.tcp.max_connections
-            );
-        }
+    if cfg.master.is_some() {
+        // A master line listens for no masters and has no metrics listener.
+        return out;
+    }
+    for l in cfg.listeners() {
+        out += &format!(
+            "listening on {}, at most {} at once\n",
+            listener(&l),
+            l.tcp.max_connections
+        );
     }
     out += &match cfg.metrics.listen {
         Some(a) => format!(
