@@ -1,6 +1,6 @@
 //! `mbgate demo` (docs/design.md §3): no hardware. A pty pair made in-process, the
 //! simulated device on one end, the gateway on the other, and instructions on how to
-//! connect. This is the README's "run it" command on a machine without a device.
+//! connect. This is the README's first command, on a machine without a device.
 
 use crate::config::{
     Config, FlowControl, LineConfig, Notifications, SerialConfig, Units, FASTEST_BAUD,

@@ -1,5 +1,5 @@
-//! What the gateway knows of each line, unit and listener while it runs (README
-//! "Watching it run"): counters and gauges their owners write with relaxed atomics, read
+//! What the gateway knows of each line, unit and listener while it runs
+//! (docs/watching.md): counters and gauges their owners write with relaxed atomics, read
 //! by the metrics listener (`http.rs`), the Prometheus exposition (`expose.rs`),
 //! systemd's STATUS= line and `mbgate status`.
 //!

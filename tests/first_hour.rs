@@ -227,11 +227,12 @@ fn ctrl_c_in_the_demo_console_ends_the_line_and_shows_the_counters() {
     assert_eq!(lines.next(), Some("exit 0"), "{out}");
 }
 
-/// The register tables have one set of names: the README's table, `read --help` and
-/// `write --help` agree on the names and their aliases, and the demo's banner uses them.
+/// The register tables have one set of names: docs/read-write.md's table, `read --help`
+/// and `write --help` agree on the names and their aliases, and the demo's banner uses
+/// them.
 #[test]
-fn table_names_agree_between_help_and_readme() {
-    let readme = std::fs::read_to_string(common::repo().join("README.md")).unwrap();
+fn table_names_agree_between_help_and_the_guide() {
+    let readme = std::fs::read_to_string(common::repo().join("docs/read-write.md")).unwrap();
     // | `coils` | FC 01 | FC 05, 0F | `coil` |, and for holding registers
     // `holding`, `hr`; for `write` also `registers`, `register`
     let rows: Vec<(String, bool, Vec<String>, Vec<String>)> = readme
@@ -257,7 +258,7 @@ fn table_names_agree_between_help_and_readme() {
             )
         })
         .collect();
-    assert_eq!(rows.len(), 4, "the README's table of tables");
+    assert_eq!(rows.len(), 4, "docs/read-write.md's table of tables");
     let read = mbgate(&["read", "--help"]).stdout;
     let write = mbgate(&["write", "--help"]).stdout;
     for (name, writable, aliases, write_aliases) in &rows {

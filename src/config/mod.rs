@@ -3,7 +3,7 @@
 //! Each setting is one line of `settings!`: key, type, default, allowed values, flag
 //! and help. From it come the section structs and their defaults, and [`KEYS`], which
 //! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
-//! the tests holding the README and `config/mbgate.toml` to it all read. A value is
+//! the tests holding docs/configuration.md and `config/mbgate.toml` to it all read. A value is
 //! checked the same way from the file or a flag. A new setting is one line here plus
 //! what it does.
 
@@ -251,7 +251,7 @@ settings! {
         /// Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex
         traffic: bool = false, Any, "traffic" "BOOL";
     }
-    /// The metrics listener (README "Watching it run"): off unless given an address.
+    /// The metrics listener (docs/watching.md): off unless given an address.
     [metrics] MetricsConfig {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
         listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
