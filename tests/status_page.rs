@@ -30,29 +30,44 @@ fn browse(browser: &str, url: &str, extra: &[&str]) -> String {
     browse_at(browser, 420, url, extra)
 }
 
-/// Chromium, headless, `width` pixels wide, `extra` flags, on `url`: its stdout.
+/// Chromium, headless, `width` pixels wide, `extra` flags, on `url`: its stdout. A
+/// browser that hangs (seen once on a machine loaded ten times over its cores: a
+/// screenshot that never came) is killed after a minute and started again, twice at
+/// most, so the test fails with a message rather than never ending.
 fn browse_at(browser: &str, width: u32, url: &str, extra: &[&str]) -> String {
-    let out = Command::new(browser)
-        .args([
-            "--headless",
-            "--no-sandbox",
-            "--disable-gpu",
-            "--disable-dev-shm-usage",
-            "--no-first-run",
-            "--hide-scrollbars",
-            &format!("--window-size={width},915"),
-            "--virtual-time-budget=3000",
-        ])
-        .args(extra)
-        .arg(url)
-        .output()
-        .expect("run chromium");
-    assert!(
-        out.status.success(),
-        "chromium failed: {}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    String::from_utf8_lossy(&out.stdout).into_owned()
+    let mut tries = 0;
+    loop {
+        tries += 1;
+        let out = Command::new("timeout")
+            .args(["-k", "5", "60", browser])
+            .args([
+                "--headless",
+                "--no-sandbox",
+                "--disable-gpu",
+                "--disable-dev-shm-usage",
+                "--no-first-run",
+                "--hide-scrollbars",
+                &format!("--window-size={width},915"),
+                "--virtual-time-budget=3000",
+            ])
+            .args(extra)
+            .arg(url)
+            .output()
+            .expect("run chromium");
+        // timeout(1): 124 when it stopped the browser, 137 when it had to kill it.
+        let hung = matches!(out.status.code(), Some(124 | 137));
+        if hung && tries < 3 {
+            eprintln!("chromium hung for a minute: started again");
+            continue;
+        }
+        assert!(
+            out.status.success(),
+            "chromium failed ({:?}, try {tries}): {}",
+            out.status.code(),
+            String::from_utf8_lossy(&out.stderr)
+        );
+        return String::from_utf8_lossy(&out.stdout).into_owned();
+    }
 }
 
 /// The text right after `marker`, up to the next `<` or `)`.
