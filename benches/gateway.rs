@@ -1333,7 +1333,7 @@ fn rtu_backoff(r: &mut Report) {
 }
 
 // ---------------------------------------------------------------------------------
-// 7. Many masters, one read (README "Many masters, one read")
+// 7. Many masters, one read (docs/masters.md, "Many masters, one read")
 
 /// FC 03 × 10 at `addr` through the gateway, the reply checked against the
 /// simulator's values (`--fill address`: each register holds its address), except

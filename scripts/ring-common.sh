@@ -13,18 +13,32 @@ die() {
     exit 1
 }
 
-# ensure_commands "cmd:package ..." installs the packages whose command is missing.
+# ensure_commands "cmd:package ..." installs the packages whose command is missing (in
+# one apt-get call, so apt resolves them together), then checks every command again:
+# a command still missing stops the script here, named with its package, not minutes
+# later where it is first used.
 ensure_commands() {
     local missing=() pair
     for pair in "$@"; do
         command -v "${pair%%:*}" >/dev/null 2>&1 || missing+=("${pair#*:}")
     done
-    [ ${#missing[@]} -eq 0 ] && return 0
-    [ "$(id -u)" = 0 ] || die "needs root (debootstrap, mounts): missing ${missing[*]}"
-    say "installing ${missing[*]}"
-    export DEBIAN_FRONTEND=noninteractive
-    apt-get update -qq
-    apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
+    if [ ${#missing[@]} -gt 0 ]; then
+        [ "$(id -u)" = 0 ] || die "needs root (debootstrap, mounts): missing ${missing[*]}"
+        say "installing ${missing[*]}"
+        export DEBIAN_FRONTEND=noninteractive
+        apt-get update -qq
+        apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
+    fi
+    require_commands "$@"
+}
+
+# require_commands "cmd:package ...": stops with the first command that is not there.
+require_commands() {
+    local pair
+    for pair in "$@"; do
+        command -v "${pair%%:*}" >/dev/null 2>&1 ||
+            die "${pair%%:*} not found (Debian package ${pair#*:}); install it and run again"
+    done
 }
 
 # ensure_packages PACKAGE...: installs those not installed.

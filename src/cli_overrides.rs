@@ -5,7 +5,8 @@
 //! shows the key's range, name and default.
 
 use crate::config::{
-    parse_listen, Check, Config, ConfigError, Key, Kind, Raw, SerialConfig, Setting, KEYS,
+    parse_listen, parse_optional_address, Check, Config, ConfigError, Key, Kind, Raw, SerialConfig,
+    Setting, KEYS, METRICS_EXAMPLE,
 };
 use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 use clap::{Arg, ArgGroup, ArgMatches, Args, Command, FromArgMatches};
@@ -140,6 +141,10 @@ fn arg(key: &'static Key) -> Arg {
             .num_args(0..=1)
             .require_equals(true)
             .default_missing_value("true"),
+        // `--metrics-listen ""`: none, as in the file.
+        (Kind::Addr, _) if key.section == "metrics" => arg.value_parser(|s: &str| {
+            parse_optional_address(s, METRICS_EXAMPLE).map(|_| s.to_owned())
+        }),
         (Kind::Addr, _) => arg.value_parser(|s: &str| parse_listen(s).map(|_| s.to_owned())),
         (Kind::Choice(words), _) => arg.value_parser(words_parser(words)),
         (Kind::Str, Check::OneOf(words)) => arg.value_parser(PossibleValuesParser::new(words)),

@@ -1,6 +1,6 @@
 //! `mbgate demo` (docs/design.md §3): no hardware. A pty pair made in-process, the
 //! simulated device on one end, the gateway on the other, and instructions on how to
-//! connect. This is the README's "run it" command on a machine without a device.
+//! connect. This is the README's first command, on a machine without a device.
 
 use crate::config::{
     Config, FlowControl, LineConfig, Notifications, SerialConfig, Units, FASTEST_BAUD,
@@ -151,12 +151,20 @@ fn instructions(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> Str
             } else {
                 format!(" --unit {}", d.unit)
             };
+            let (input, output, u) = (d.input_address, d.output_address, d.unit);
             format!(
-                "a simulated CIE-M10 (unit {}) on {pty}\n\n\
-                 read the 8 inputs (FC 03):     {me} read --tcp {at}{unit} holding-registers {}\n\
-                 drive outputs 0 and 4 (FC 16): {me} write --tcp {at}{unit} holding-registers {} 0x11 --multiple\n\
-                 read the outputs back:         {me} read --tcp {at}{unit} holding-registers {}\n",
-                d.unit, d.input_address, d.output_address, d.output_address,
+                "a simulated CIE-M10 (unit {u}) on {pty}\n\n\
+                 read the 8 inputs (FC 03):     {me} read --tcp {at}{unit} holding-registers {input}\n\
+                 drive outputs 0 and 4 (FC 16): {me} write --tcp {at}{unit} holding-registers {output} 0x11 --multiple\n\
+                 read the outputs back:         {me} read --tcp {at}{unit} holding-registers {output}\n\n\
+                 What it answers, the CIE-M10 manual's register map (unit {u}):\n  \
+                 FC 03 of 1 register at {input}: the 8 inputs; at {output}: the 8 outputs\n  \
+                 FC 16 of 1 register at {output}: drive the outputs\n\
+                 and an exception for anything else, as the device does: 01 for another\n\
+                 function (FC 06, coils, input registers), 02 for another address or count.\n\
+                 A device that answers the usual requests instead (FC 01-06, 0F, 10, 17;\n\
+                 coils and registers 0-9 of units 1 and 2):\n  \
+                 {me} demo --profile generic --units 1,2\n",
             )
         }
         Profile::Generic(g) => {

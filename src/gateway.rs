@@ -2,7 +2,7 @@
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see `crate::notify`).
 
-use crate::config::{Config, Framing, LineConfig, ListenConfig, Notifications};
+use crate::config::{Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications};
 use crate::metrics::{self, Board, ListenerMetrics};
 use crate::notify;
 use crate::relay::{Relay, RelayHandle};
@@ -203,12 +203,18 @@ async fn serve_with(
     let signals = user_signals();
     let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
     let devices = devices.join(", ");
+    // Each line with its own framing and settings, then each listener with the
+    // masters it takes and who may do what: a listener's framing is never printed
+    // beside a serial port.
+    for line in &lines {
+        info!("line {}", crate::config::describe::line(line));
+    }
     for (_, l) in &bound {
-        let framing = l.listen.framing.name();
+        let masters = crate::config::describe::masters(l.listen.framing);
+        info!(serial = %devices, "listening on {} for {masters}", l.local);
         for said in crate::config::effective_access(&l.listen, &cfg.roles) {
             info!("{}: {said}", l.name);
         }
-        info!(serial = %devices, framing, "listening on {}", l.local);
     }
     let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
     // Before the relays first run, so READY=1 precedes the first WATCHDOG=1.
@@ -391,6 +397,15 @@ fn line_warnings(line: &LineConfig) -> Vec<String> {
             "framing = {framing} has no transaction id: one request at a time \
              (max_in_flight = {} taken as 1)",
             line.relay.max_in_flight
+        ));
+    }
+    if line.tcp.is_none() && line.serial.flow_control == FlowControl::Hardware {
+        said.push(format!(
+            "framing = {framing} with flow_control = hardware (the default, for the CIE-M10's \
+             RS-232 link): RS-485 adapters and most {} devices do not wire RTS/CTS, and an \
+             adapter whose CTS is never raised holds every request back (0x0B for each); \
+             set flow_control = \"none\" unless the cable carries RTS and CTS",
+            framing.to_uppercase()
         ));
     }
     if line.relay.notifications == Notifications::Broadcast {

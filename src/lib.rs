@@ -14,6 +14,7 @@ pub mod frame;
 pub mod gateway;
 pub(crate) mod invocation;
 pub mod logging;
+pub mod manual;
 pub mod master_demo;
 pub mod metrics;
 pub(crate) mod notify;

@@ -14,7 +14,19 @@ use tokio_util::sync::CancellationToken;
 /// Modbus/TCP to serial gateway for MBAP (Sollae ezTCP CIE-M10/H10 serial Modbus/TCP
 /// mode), Modbus RTU and Modbus ASCII devices: many TCP masters, one serial line.
 #[derive(Debug, Parser)]
-#[command(name = "mbgate", version, about)]
+#[command(
+    name = "mbgate",
+    version,
+    about,
+    long_about = "mbgate lets Modbus/TCP masters (SCADA, HMIs, PLCs, scripts) reach \
+devices that only have a serial port: Modbus RTU or ASCII devices on an RS-232 line or \
+an RS-485 bus, or a device that takes whole MBAP frames such as a Sollae ezTCP \
+CIE-M10/H10 in serial Modbus/TCP mode. It multiplexes many masters onto one line, \
+several lines behind one address, devices on the network too.\n\n\
+Try it without hardware: mbgate demo. Check a configuration: mbgate check-config FILE \
+(see mbgate.toml(5)). Run it: mbgate run --config FILE, or as the systemd service \
+mbgate@NAME, which reads /etc/mbgate/NAME.toml. Ask a running gateway: mbgate status."
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -30,12 +42,19 @@ enum Command {
         #[command(flatten)]
         overrides: Overrides,
     },
-    /// Validate a configuration file and print the effective configuration, and on
-    /// stderr the warnings `run` would give.
+    /// Validate a configuration file and say what it sets up.
+    ///
+    /// Prints "OK" and the effective setup in a few lines (with --print, the whole
+    /// effective configuration), and on stderr the warnings `run` would give. Exit code
+    /// 0 valid, 2 not (the message names the file, line and key).
     CheckConfig {
         /// The file to check.
         file: PathBuf,
-        /// Print it as one [[line]] and one [[listen]] (docs/design.md §4.1)
+        /// Print the whole effective configuration, every key with its value, as TOML
+        #[arg(long)]
+        print: bool,
+        /// Print the whole effective configuration as [[line]] and [[listen]] tables
+        /// (docs/design.md §4.1)
         #[arg(long)]
         lines: bool,
         #[command(flatten)]
@@ -61,10 +80,36 @@ enum Command {
     Demo(mbgate::demo::DemoArgs),
     /// Ask a running gateway how its lines are: a summary per line and unit.
     ///
-    /// From its metrics listener (`[metrics] listen`). Exit code 0 healthy, 1 not (a
-    /// line's port not open, or a unit not answering), 3 the gateway could not be
-    /// asked, 2 bad arguments.
+    /// From its metrics listener (`[metrics] listen`, off unless given an address).
+    /// Exit code 0 healthy, 1 not (a line's port not open, or a unit not answering:
+    /// three timeouts in a row, no reply since, the last timeout within a minute), 3
+    /// the gateway could not be asked, 2 bad arguments.
     Status(mbgate::metrics::ask::StatusArgs),
+    /// Man pages and shell completions, generated from this command line.
+    ///
+    /// The .deb installs them; for an install with cargo: `mbgate generate man DIR`,
+    /// then `man -l DIR/mbgate.1`, and `mbgate generate completions bash >
+    /// ~/.local/share/bash-completion/completions/mbgate`.
+    #[command(subcommand)]
+    Generate(Generate),
+}
+
+/// What `mbgate generate` writes.
+#[derive(Debug, Subcommand)]
+enum Generate {
+    /// Write the man pages into DIR: mbgate(1), mbgate-SUBCOMMAND(1) for each
+    /// subcommand, and mbgate.toml(5), the configuration file.
+    Man {
+        /// Where to write them (it must exist).
+        #[arg(value_name = "DIR")]
+        dir: PathBuf,
+    },
+    /// Print the completion script for SHELL.
+    Completions {
+        /// bash, zsh, fish, elvish or powershell.
+        #[arg(value_name = "SHELL")]
+        shell: clap_complete::Shell,
+    },
 }
 
 /// Exit code for a bad configuration or bad arguments (docs/design.md §3; clap uses 2 too).
@@ -78,18 +123,22 @@ fn main() -> ExitCode {
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
+        Command::Generate(what) => generate(what),
         Command::CheckConfig {
             file,
+            print,
             lines,
             overrides,
-        } => match checked(Some(file), &overrides) {
+        } => match checked(Some(file.clone()), &overrides) {
             Ok(cfg) => {
-                let print = if lines {
-                    config::to_toml_lines
+                if lines {
+                    print!("{}", config::to_toml_lines(&cfg));
+                } else if print {
+                    print!("{}", config::to_toml(&cfg));
                 } else {
-                    config::to_toml
-                };
-                print!("{}", print(&cfg));
+                    println!("OK: {}", file.display());
+                    print!("{}", config::describe::summary(&cfg));
+                }
                 for warning in mbgate::gateway::warnings(&cfg) {
                     eprintln!("mbgate: warning: {warning}");
                 }
@@ -121,6 +170,23 @@ fn main() -> ExitCode {
             }
         }
     }
+}
+
+/// `mbgate generate`: the man pages into a directory, or a completion script on
+/// stdout.
+fn generate(what: Generate) -> ExitCode {
+    use clap::CommandFactory;
+    let written = match what {
+        Generate::Man { dir } => mbgate::manual::man_pages(Cli::command(), &dir).map(|files| {
+            for f in files {
+                println!("{}", f.display());
+            }
+        }),
+        Generate::Completions { shell } => {
+            mbgate::manual::completion(Cli::command(), shell, &mut std::io::stdout())
+        }
+    };
+    finish(written.map_err(anyhow::Error::from))
 }
 
 /// The file (or the defaults), then the flags on top.

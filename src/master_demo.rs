@@ -1,4 +1,4 @@
-//! `mbgate demo --master` (README "The device as master"): no hardware, the other way
+//! `mbgate demo --master` (docs/device-as-master.md): no hardware, the other way
 //! round. A simulated CIE-M10 master on one end of a pty pair, mbgate's master line on
 //! the other, and a simulated CIE-M10 slave on Modbus/TCP: the master reads the slave's
 //! inputs and drives its outputs every period, so an input set on one side shows on

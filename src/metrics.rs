@@ -1,5 +1,5 @@
-//! What the gateway knows of each line, unit and listener while it runs (README
-//! "Watching it run"): counters and gauges their owners write with relaxed atomics, read
+//! What the gateway knows of each line, unit and listener while it runs
+//! (docs/watching.md): counters and gauges their owners write with relaxed atomics, read
 //! by the metrics listener (`http.rs`), the Prometheus exposition (`expose.rs`),
 //! systemd's STATUS= line and `mbgate status`.
 //!
@@ -45,8 +45,11 @@ pub(crate) struct UnitMetrics {
     /// 1 while it is backed off (RTU/ASCII, `unit_backoff`), else 0.
     pub(crate) backed_off: AtomicU64,
     /// 1 from its third timeout in a row until it answers again (the log's "not
-    /// answering" warning), else 0.
+    /// answering" warning), else 0. What the metrics and `mbgate status` show is
+    /// [`LineMetrics::not_answering`]: this, within [`HEALTH_WINDOW`] of a timeout.
     pub(crate) not_answering: AtomicU64,
+    /// When its last timeout came, in microseconds after the line's start; 0 for none.
+    last_timeout_us: AtomicU64,
     /// Reply times, from the request on the line to its reply: one count per bucket
     /// of [`REPLY_BUCKETS`] (not cumulative), the last for those above every bound.
     buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],
@@ -140,6 +143,13 @@ impl Frames {
 /// How long the status page counts as open after its last request.
 const WATCHED_FOR: Duration = Duration::from_secs(10);
 
+/// A unit not answering counts as failing (the gateway not healthy) until it answers
+/// again, or until this long has passed since its last timeout: a unit nobody asks
+/// any more (a mistyped unit id, asked once) is not failing. Longer than the longest
+/// default backoff (`unit_backoff_max_ms`, 30 s), so a dead unit that masters keep
+/// polling stays failing between its probes.
+pub const HEALTH_WINDOW: Duration = Duration::from_secs(60);
+
 impl LineMetrics {
     pub(crate) fn new(name: &str, stats: Arc<Stats>) -> Self {
         Self {
@@ -189,6 +199,23 @@ impl LineMetrics {
     pub(crate) fn replied_at(&self, now: Instant) {
         let us = now.saturating_duration_since(self.started).as_micros() as u64;
         self.last_reply_us.store(us.max(1), Ordering::Relaxed);
+    }
+
+    /// A request for `unit` timed out at `now`.
+    pub(crate) fn timed_out(&self, unit: u8, now: Instant) {
+        let u = self.unit(unit);
+        add(&u.timeouts, 1);
+        let us = self.us_since_start(now).max(1);
+        u.last_timeout_us.store(us, Ordering::Relaxed);
+    }
+
+    /// Whether `u` is failing at `now`: not answering (three timeouts in a row, no
+    /// reply since), its last timeout within [`HEALTH_WINDOW`].
+    pub(crate) fn not_answering(&self, u: &UnitMetrics, now: Instant) -> bool {
+        let last = load(&u.last_timeout_us);
+        let recent = last > 0
+            && self.us_since_start(now).saturating_sub(last) < HEALTH_WINDOW.as_micros() as u64;
+        load(&u.not_answering) == 1 && recent
     }
 
     /// How long ago the last reply came, if one has.

@@ -8,7 +8,7 @@ use std::time::Duration;
 #[test]
 fn check_config_prints_the_effective_configuration() {
     let example = repo().join("config/mbgate.toml");
-    let o = mbgate(&["check-config", example.to_str().unwrap()]);
+    let o = mbgate(&["check-config", example.to_str().unwrap(), "--print"]);
     assert!((o.code == 0), "{}", o.stderr);
     let printed = o.stdout;
     let cfg = mbgate::config::parse(&printed, "stdout").expect("output parses back");
@@ -19,6 +19,7 @@ fn check_config_prints_the_effective_configuration() {
     let o = mbgate(&[
         "check-config",
         example.to_str().unwrap(),
+        "--print",
         "--baud",
         "9600",
         "--serial",
@@ -159,7 +160,8 @@ fn check_config_warns_as_run_does() {
     let checked = mbgate(&["check-config", path]);
     assert_eq!(checked.code, 0, "{}", checked.stderr);
     let warnings: Vec<&str> = checked.stderr.lines().collect();
-    assert_eq!(warnings.len(), 2, "{}", checked.stderr);
+    // max_in_flight, notifications, and RTS/CTS flow control (the default) on RTU.
+    assert_eq!(warnings.len(), 3, "{}", checked.stderr);
     let mut run = Proc::start(&["run", "--config", path], "listening on");
     run.terminate(Duration::from_secs(5));
     for warning in warnings {
@@ -184,5 +186,132 @@ fn check_config_warns_as_run_does() {
     assert_eq!(
         mbgate::config::parse(&lines.stdout, "stdout").unwrap(),
         mbgate::config::load(&file).unwrap()
+    );
+}
+
+/// A valid file: "OK", then the effective setup a line each (lines with their framing
+/// and port settings, listeners with the masters they take, the metrics listener);
+/// the whole configuration only with --print.
+#[test]
+fn check_config_says_ok_and_the_setup_in_a_few_lines() {
+    let dir = tempdir();
+    let file = dir.path().join("bus.toml");
+    std::fs::write(
+        &file,
+        "[serial]\npath = \"/dev/ttyUSB1\"\nframing = \"rtu\"\nbaud_rate = 9600\n\
+         parity = \"even\"\nflow_control = \"none\"\n[metrics]\nlisten = \"127.0.0.1:9502\"\n",
+    )
+    .unwrap();
+    let path = file.to_str().unwrap();
+    let o = mbgate(&["check-config", path]);
+    assert_eq!((o.code, o.stderr.as_str()), (0, ""));
+    assert_eq!(
+        o.stdout,
+        format!(
+            "OK: {path}\n\
+             line /dev/ttyUSB1: RTU, 9600 baud 8E1, no flow control, every unit\n\
+             listening on 0.0.0.0:502 for Modbus/TCP masters, at most 32 at once\n\
+             status page on http://127.0.0.1:9502/, metrics on http://127.0.0.1:9502/metrics \
+             (mbgate status --metrics 127.0.0.1:9502)\n"
+        )
+    );
+}
+
+/// The check-config messages a new user met: a host name in `listen` says to give an
+/// address; a serial key at the top of the file says which table it belongs in (in
+/// either form of the file); `metrics.listen`'s example is the metrics port, not 502;
+/// RTU with RTS/CTS flow control (the default) is warned about.
+#[test]
+fn check_config_says_what_to_write_instead() {
+    let dir = tempdir();
+    let check = |text: &str| {
+        let file = dir.path().join("c.toml");
+        std::fs::write(&file, text).unwrap();
+        mbgate(&["check-config", file.to_str().unwrap()])
+    };
+    let o = check("[tcp]\nlisten = \"localhost:502\"\n");
+    assert_eq!(o.code, 2);
+    assert!(
+        o.stderr.contains(
+            "tcp.listen: expected an address like 0.0.0.0:502, got \"localhost:502\": a host \
+             name is not looked up here; give an IP address of this machine"
+        ),
+        "{}",
+        o.stderr
+    );
+    let o = check("baud_rate = 9600\n");
+    assert_eq!(o.code, 2);
+    assert!(
+        o.stderr.contains(":1:1: baud_rate: unknown key")
+            && o.stderr.contains(
+                "did you mean `baud_rate` under [serial], or under [line.serial] in the \
+                 [[line]] form?"
+            ),
+        "{}",
+        o.stderr
+    );
+    let o = check("[[line]]\nbaud_rate = 9600\n");
+    assert!(
+        o.stderr.contains(
+            "line[0].baud_rate: unknown key; expected one of units, remap, serial, tcp, \
+             relay, role, route (did you mean `baud_rate` in this line's serial table: under \
+             [line.serial], or serial = { baud_rate = ... }?)"
+        ),
+        "{}",
+        o.stderr
+    );
+    let o = check("[metrics]\nlisten = \"9502\"\n");
+    assert_eq!(o.code, 2);
+    assert!(
+        o.stderr
+            .contains("metrics.listen: expected an address like 127.0.0.1:9502, got \"9502\""),
+        "{}",
+        o.stderr
+    );
+    let o = check("[serial]\nframing = \"rtu\"\n");
+    assert_eq!(o.code, 0, "{}", o.stderr);
+    assert!(
+        o.stderr.starts_with(
+            "mbgate: warning: framing = rtu with flow_control = hardware (the default"
+        ) && o.stderr.contains("set flow_control = \"none\""),
+        "{}",
+        o.stderr
+    );
+    let quiet = check("[serial]\nframing = \"rtu\"\nflow_control = \"none\"\n");
+    assert_eq!((quiet.code, quiet.stderr.as_str()), (0, ""));
+}
+
+/// At start the log names each line with its own framing and settings, then each
+/// listener with the masters it takes: an RTU line behind a Modbus/TCP listener no
+/// longer reads as an MBAP line.
+#[test]
+fn the_log_says_each_lines_framing_apart_from_the_listeners() {
+    let mut run = Proc::start(
+        &[
+            "run",
+            "--serial",
+            "/nonexistent/tty",
+            "--framing",
+            "rtu",
+            "--flow-control",
+            "none",
+            "--listen",
+            "127.0.0.1:0",
+        ],
+        "listening on",
+    );
+    run.terminate(Duration::from_secs(5));
+    let log = run.log();
+    assert!(
+        log.contains("line /nonexistent/tty: RTU, 19200 baud 8N1, no flow control, every unit"),
+        "{log}"
+    );
+    let listening = log
+        .lines()
+        .find(|l| l.contains("listening on"))
+        .expect("a listening line");
+    assert!(
+        listening.contains(" for Modbus/TCP masters") && !listening.contains("framing"),
+        "{listening}"
     );
 }

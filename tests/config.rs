@@ -1,6 +1,6 @@
 //! The configuration contract (docs/design.md §4): defaults, every error message with
 //! its file, line, column and key, the command-line flags over the file, and the
-//! README's table and config/mbgate.toml held to the declarations.
+//! docs/configuration.md's table and config/mbgate.toml held to the declarations.
 
 use clap::Parser;
 use mbgate::cli_overrides::Overrides;
@@ -820,12 +820,12 @@ fn command_line_rejects_bad_values_naming_the_flag() {
     );
 }
 
-/// The README's configuration table has one row per declared key, with its default as
-/// the file writes it; its list of flags names every flag. (config/mbgate.toml is held
-/// to the declarations by `shipped_file_is_defaults`.)
+/// docs/configuration.md's table has one row per declared key, with its default as the
+/// file writes it; its list of flags names every flag. (config/mbgate.toml is held to
+/// the declarations by `shipped_file_is_defaults`.)
 #[test]
-fn readme_table_and_flag_list_follow_the_declarations() {
-    let readme = include_str!("../README.md");
+fn the_reference_table_and_flag_list_follow_the_declarations() {
+    let readme = include_str!("../docs/configuration.md");
     let rows: Vec<(String, String)> = readme
         .lines()
         .filter_map(|l| {
@@ -843,14 +843,17 @@ fn readme_table_and_flag_list_follow_the_declarations() {
             (format!("{}.{}", k.section, k.name), default)
         })
         .collect();
-    assert_eq!(rows, declared, "README.md's table against config::KEYS");
+    assert_eq!(
+        rows, declared,
+        "docs/configuration.md's table against config::KEYS"
+    );
     let flags = &readme[readme.find("Every configuration key has a flag").unwrap()..];
     let flags = &flags[..flags.find("\n\n").unwrap()];
     for key in KEYS {
         let flag = format!("`--{}", key.flag);
         assert!(
             flags.contains(&flag),
-            "{flag} missing from README.md's list"
+            "{flag} missing from docs/configuration.md's list"
         );
     }
 }
@@ -1084,6 +1087,7 @@ fn flags_for_a_line_are_refused_when_the_file_has_several() {
         .args([
             "check-config",
             file.to_str().unwrap(),
+            "--print",
             "--log-level",
             "debug",
         ])

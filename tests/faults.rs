@@ -119,7 +119,7 @@ fn serial_end_disappears_and_comes_back() {
     );
 }
 
-/// The port disappears under requests (README, "Exceptions mbgate answers itself"):
+/// The port disappears under requests (docs/masters.md, the exceptions mbgate answers itself):
 /// the one whose bytes went out gets 0x0B, as for a timeout (it may have acted on the
 /// device); the one flow control held back and the one still queued get 0x0A (no
 /// path, and they cannot have acted).
@@ -523,7 +523,7 @@ fn sigterm_drains_in_flight_and_exits_0() {
     let _ = &r.dir;
 }
 
-/// SIGHUP is a reload now (README "Reload"), no longer a stop: the request on the line
+/// SIGHUP is a reload now (docs/configuration.md, "Reload"), no longer a stop: the request on the line
 /// is answered, the gateway keeps running, and SIGTERM still drains and exits 0.
 #[test]
 fn sighup_reloads_and_the_request_on_the_line_is_answered() {

@@ -64,7 +64,31 @@ fn the_demo_prints_commands_that_run_as_printed() {
     let (code, out) = paste(&commands[2]);
     assert_eq!(code, 0, "{out}");
     assert!(out.contains("8: 17 (0x0011)"), "{out}");
+    // What the profile answers, and the switch to one that answers the usual requests.
+    assert!(
+        banner.contains("the CIE-M10 manual's register map"),
+        "{banner}"
+    );
+    assert!(banner.contains("exception for anything else"), "{banner}");
+    let generic = banner
+        .lines()
+        .find(|l| l.contains(" demo --profile generic"))
+        .unwrap_or_else(|| panic!("no --profile generic in:\n{banner}"));
     assert!(d.terminate(Duration::from_secs(5)).success());
+    // That command as printed (another address: 5020 may be taken), then an FC 06
+    // write the CIE-M10 profile refuses, answered.
+    let args: Vec<&str> = generic.split_whitespace().skip(1).collect();
+    let args = [&args[..], &["--listen", "127.0.0.1:0", "--headless"]].concat();
+    let mut g = Proc::start(&args, "listening on ");
+    wait_for("the banner", Duration::from_secs(5), || {
+        printed_commands(&g.stdout.lock().unwrap()).len() == 2
+    });
+    let read = printed_commands(&g.stdout.lock().unwrap())[0].clone();
+    let write = read.replace(" read ", " write ").replace(" 0 10", " 9 3") + " --unit 2";
+    let (code, out) = paste(&write);
+    assert_eq!(code, 0, "{out}");
+    assert!(out.contains("9: 3 (0x0003)"), "{out}");
+    assert!(g.terminate(Duration::from_secs(5)).success());
 }
 
 /// `mbgate demo --lines 2`: a second line with the same device, reached as unit 101;
@@ -203,11 +227,12 @@ fn ctrl_c_in_the_demo_console_ends_the_line_and_shows_the_counters() {
     assert_eq!(lines.next(), Some("exit 0"), "{out}");
 }
 
-/// The register tables have one set of names: the README's table, `read --help` and
-/// `write --help` agree on the names and their aliases, and the demo's banner uses them.
+/// The register tables have one set of names: docs/read-write.md's table, `read --help`
+/// and `write --help` agree on the names and their aliases, and the demo's banner uses
+/// them.
 #[test]
-fn table_names_agree_between_help_and_readme() {
-    let readme = std::fs::read_to_string(common::repo().join("README.md")).unwrap();
+fn table_names_agree_between_help_and_the_guide() {
+    let readme = std::fs::read_to_string(common::repo().join("docs/read-write.md")).unwrap();
     // | `coils` | FC 01 | FC 05, 0F | `coil` |, and for holding registers
     // `holding`, `hr`; for `write` also `registers`, `register`
     let rows: Vec<(String, bool, Vec<String>, Vec<String>)> = readme
@@ -233,7 +258,7 @@ fn table_names_agree_between_help_and_readme() {
             )
         })
         .collect();
-    assert_eq!(rows.len(), 4, "the README's table of tables");
+    assert_eq!(rows.len(), 4, "docs/read-write.md's table of tables");
     let read = mbgate(&["read", "--help"]).stdout;
     let write = mbgate(&["write", "--help"]).stdout;
     for (name, writable, aliases, write_aliases) in &rows {
@@ -270,4 +295,27 @@ fn table_names_agree_between_help_and_readme() {
             "{used} in the banner"
         );
     }
+}
+
+/// `mbgate status` with no metrics listener to ask: exit 3, and it says how to turn
+/// the listener on (the `[metrics]` lines for that address, the flag, the reload).
+#[test]
+fn status_without_a_metrics_listener_says_how_to_turn_it_on() {
+    let free = TcpListener::bind("127.0.0.1:0").unwrap();
+    let at = free.local_addr().unwrap().to_string();
+    drop(free);
+    let out = mbgate(&["status", "--metrics", &at]);
+    assert_eq!(out.code, 3, "{}", out.stderr);
+    assert!(
+        out.stderr
+            .contains(&format!("[metrics]\n    listen = \"{at}\"")),
+        "{}",
+        out.stderr
+    );
+    assert!(
+        out.stderr.contains(&format!("--metrics-listen {at}")),
+        "{}",
+        out.stderr
+    );
+    assert!(out.stderr.contains("systemctl reload"), "{}", out.stderr);
 }

@@ -1,6 +1,6 @@
 //! Several lines behind one address, a device on the network, RTU-over-TCP masters
-//! (docs/design.md §4.1; README "Several buses behind one address", "A device on the
-//! network", "RTU over TCP masters"), end to end: the mbgate binary, socat ptys with
+//! (docs/design.md §4.1; docs/several-buses.md, network-devices.md, rtu-over-tcp.md,
+//! whose commands tests/docs.rs runs), end to end: the mbgate binary, socat ptys with
 //! raw devices, pymodbus' ModbusTcpServer as the device on TCP and pymodbus' RTU
 //! framer on a TCP client as a master.
 
@@ -475,103 +475,6 @@ fn the_client_and_the_simulator_speak_rtu_over_tcp_through_the_gateway() {
     assert_eq!(run.code, 0, "{}", run.stderr);
     assert!(run.stdout.contains("7: 7 (0x0007)"), "{}", run.stdout);
     assert!(gw.terminate(Duration::from_secs(10)).success());
-}
-
-/// The body of the README section titled `title`.
-fn readme_section<'a>(readme: &'a str, title: &str) -> &'a str {
-    let start = readme.find(&format!("\n## {title}\n")).expect("section");
-    let body = &readme[start + 1..];
-    let end = body[3..].find("\n## ").map_or(body.len(), |e| e + 3);
-    &body[..end]
-}
-
-/// The first fenced block of language `lang` in `text`.
-fn fenced<'a>(text: &'a str, lang: &str) -> &'a str {
-    let start = text.find(&format!("```{lang}\n")).expect("block") + lang.len() + 4;
-    let len = text[start..].find("```").expect("end of block");
-    &text[start..start + len]
-}
-
-/// The three README sections of this feature: each section's configuration is the
-/// file it names, and its commands run as printed (`mbgate` on PATH, from the
-/// repository), in order: `... &` started in the background, the others until they
-/// exit as the line says (0 unless it says `exit code 3`), within a few seconds.
-#[test]
-fn the_readme_sections_run_as_printed() {
-    let readme = std::fs::read_to_string(repo().join("README.md")).unwrap();
-    let bin = Path::new(env!("CARGO_BIN_EXE_mbgate")).parent().unwrap();
-    let path = format!("{}:{}", bin.display(), std::env::var("PATH").unwrap());
-    for (title, file) in [
-        ("A device on the network", "device-on-the-network.toml"),
-        ("RTU over TCP masters", "rtu-over-tcp.toml"),
-        ("Several buses behind one address", "several-buses.toml"),
-    ] {
-        let section = readme_section(&readme, title);
-        let shipped = std::fs::read_to_string(repo().join("config/examples").join(file)).unwrap();
-        assert_eq!(fenced(section, "toml"), shipped, "{title}");
-        assert!(
-            section.contains(&format!("config/examples/{file}")),
-            "{title}"
-        );
-        let mut background = Background(Vec::new());
-        for line in fenced(section, "sh").lines() {
-            let sh = |script: String| {
-                let mut c = std::process::Command::new("sh");
-                c.args(["-c", &script])
-                    .env("PATH", &path)
-                    .current_dir(repo());
-                c
-            };
-            if let Some(cmd) = line.strip_suffix('&') {
-                let child = sh(format!("exec {cmd}"))
-                    .stdin(std::process::Stdio::null())
-                    .stdout(std::process::Stdio::null())
-                    .stderr(std::process::Stdio::null())
-                    .spawn()
-                    .unwrap();
-                background.0.push(child);
-                continue;
-            }
-            let want = if line.contains("exit code 3") { 3 } else { 0 };
-            let start = Instant::now();
-            loop {
-                let out = sh(line.to_string()).output().unwrap();
-                if out.status.code() == Some(want) {
-                    break;
-                }
-                let said = String::from_utf8_lossy(&out.stdout).into_owned()
-                    + &String::from_utf8_lossy(&out.stderr);
-                assert!(
-                    start.elapsed() < Duration::from_secs(15),
-                    "{title}: `{line}` exited {:?}:\n{said}",
-                    out.status.code()
-                );
-                thread::sleep(Duration::from_millis(200));
-            }
-        }
-        drop(background);
-    }
-}
-
-/// The processes a README section starts with `&`: stopped when the section is done,
-/// and when the test fails, so that none is left holding the section's ports.
-struct Background(Vec<std::process::Child>);
-
-impl Drop for Background {
-    fn drop(&mut self) {
-        for child in self.0.iter_mut().rev() {
-            // SIGTERM: mbgate drains and exits, socat removes its links.
-            unsafe_free_terminate(child.id());
-            let _ = child.wait();
-        }
-    }
-}
-
-/// SIGTERM to a process this test started.
-fn unsafe_free_terminate(pid: u32) {
-    let _ = std::process::Command::new("kill")
-        .args(["-TERM", &pid.to_string()])
-        .status();
 }
 
 /// `mbgate sim --listen ADDR --connections 2` is a Modbus/TCP slave two masters reach

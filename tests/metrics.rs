@@ -1,4 +1,4 @@
-//! The metrics listener (README "Watching it run"): `mbgate run` with a scripted MBAP
+//! The metrics listener (docs/watching.md): `mbgate run` with a scripted MBAP
 //! device on a socat pty, known traffic from a raw Modbus/TCP master, and the scraped
 //! text parsed by the Python `prometheus_client` OpenMetrics parser
 //! (tests/py/parse_metrics.py): every counter has the value the traffic makes. And with

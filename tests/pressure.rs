@@ -1,4 +1,4 @@
-//! Under pressure, the TCP side keeps the README's promises: the idle timeout closes
+//! Under pressure, the TCP side keeps the promises of docs/masters.md: the idle timeout closes
 //! only a master that owes nothing and is owed nothing; a full queue's 0x06 falls on
 //! the masters holding the most of it, never on a polite one; a master that shuts
 //! down its sending side still gets its replies; each master's replies come in the

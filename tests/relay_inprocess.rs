@@ -694,7 +694,7 @@ async fn mbap_a_reply_of_another_shape_is_answered_at_once_not_after_the_timeout
 }
 
 // ---------------------------------------------------------------------------------
-// Many masters, one read: coalescing and the cache (README "Many masters, one read")
+// Many masters, one read: coalescing and the cache (docs/masters.md, "Many masters, one read")
 
 /// A reply to `req` (FC 03 × 1) carrying `v`.
 fn answer_with(req: &Adu, v: u16) -> Adu {
@@ -703,7 +703,7 @@ fn answer_with(req: &Adu, v: u16) -> Adu {
 }
 
 /// Answers a write with its echo, once the request has left the wire: a copy that
-/// begins before is taken for the line's echo of the request (README "Confirmation").
+/// begins before is taken for the line's echo of the request (docs/cie-m10.md, "Confirmation and what it costs").
 async fn reply_to_write(dev: &mut DuplexStream, req: &Adu) {
     tokio::time::sleep(3 * MS).await;
     reply(dev, &answer(req)).await;

@@ -617,7 +617,7 @@ fn replies_in_pieces_all_arrive_correct() {
 /// surrounds them; bit errors (a byte replaced, not added) leave a frame of the right
 /// shape that nothing on the wire can tell from the real one: MBAP has no checksum.
 /// The rates are reported (docs/reliability.md); here inserted noise is held under
-/// 1 % wrong, and bit errors are shown to get through, as the README warns.
+/// 1 % wrong, and bit errors are shown to get through, as docs/cie-m10.md warns.
 #[test]
 fn noise_is_mostly_refused() {
     let n = if long() { 10_000 } else { 200 };

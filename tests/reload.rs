@@ -1,4 +1,4 @@
-//! Reload (SIGHUP, `systemctl reload`; README "Reload") under load: two masters poll
+//! Reload (SIGHUP, `systemctl reload`; docs/configuration.md "Reload") under load: two masters poll
 //! throughout and are never disconnected nor answered wrongly; a shorter response
 //! timeout is in force after the reload; the metrics listener starts; a key that needs
 //! a restart is said; a broken file is refused with its precise error and the running

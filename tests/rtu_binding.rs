@@ -1,8 +1,8 @@
 //! RTU and ASCII carry no transaction id: only time ties a reply to its request. These
 //! tests attack that end to end (the real binary, socat ptys, `mbgate sim` or a
 //! scripted device writing exact bytes at the worst moment) and check that a master
-//! only ever gets the answer to its own request, or 0x0B (README, "RTU and ASCII
-//! devices"; docs/reliability.md, "RTU and ASCII").
+//! only ever gets the answer to its own request, or 0x0B (docs/rtu-ascii.md, "How the
+//! line is run"; docs/reliability.md, "RTU and ASCII").
 
 mod common;
 use common::sim::{sim, RawLine};

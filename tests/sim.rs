@@ -444,7 +444,7 @@ fn bad_options_exit_2() {
 }
 
 /// A simulator started before its pty exists (`socat ... &` then `mbgate sim ... &`, as
-/// the README's examples run them) paces the pty once it appears: at 9600 baud the
+/// the examples of docs/ run them) paces the pty once it appears: at 9600 baud the
 /// reply to an 8-byte RTU request leaves no sooner than the request's and the reply's
 /// wire time after it (8 + 9 bytes of 10 bits: 17.7 ms). An unpaced reply, the moment
 /// the request is in, would be dropped by a gateway as too early to be its answer.

@@ -1,4 +1,4 @@
-//! What the relay says about its line (README "Watching it run"), in process: the relay
+//! What the relay says about its line (docs/watching.md), in process: the relay
 //! over an in-memory pipe (src/port/duplex.rs) with a device written here, its log
 //! captured. A unit that stops answering is warned about once and its return said
 //! once, on MBAP and on RTU; the cost of MBAP confirmation is said once; the traffic

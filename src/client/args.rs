@@ -253,7 +253,7 @@ mod tests {
     use crate::config::{FlowControl, Parity};
 
     /// The argument definitions are consistent (clap's own checks), and parse the
-    /// forms the README documents.
+    /// forms docs/read-write.md documents.
     #[test]
     fn command_lines() {
         use clap::{Args, FromArgMatches};

@@ -68,11 +68,15 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
 /// (normally the file name).
 pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
     let root = DeTable::parse(text).map_err(|e| syntax_error(text, origin, &e))?;
+    let lines_form = ["line", "listen"]
+        .iter()
+        .any(|t| root.get_ref().get(*t).is_some());
     Reader {
         text,
         origin,
         at: HashMap::new(),
         units: HashMap::new(),
+        lines_form,
     }
     .read(root.get_ref())
 }
@@ -134,6 +138,8 @@ struct Reader<'t> {
     at: HashMap<String, usize>,
     /// The `[[line]]` each unit id was given to.
     units: HashMap<u8, String>,
+    /// The file describes the gateway as `[[line]]` or `[[listen]]` tables.
+    lines_form: bool,
 }
 
 /// One `[[line]]`: where it starts, the line, whether it lists units.
@@ -160,8 +166,42 @@ impl Reader<'_> {
         let mut m = format!("unknown key; expected one of {}", expected.join(", "));
         if let Some(s) = suggest(k.get_ref(), expected) {
             m += &format!(" (did you mean `{s}`?)");
+        } else if let Some(elsewhere) = self.belongs(k.get_ref(), key) {
+            m += &format!(" ({elsewhere})");
         }
         self.fail(k.span().start, key, m)
+    }
+
+    /// Where `name`, unknown at `key`, belongs when it is (or nearly is) a key of
+    /// another table: a top-level `baud_rate` is `[serial]`'s, or in the `[[line]]`
+    /// form a line's `serial` table's.
+    fn belongs(&self, name: &str, key: &str) -> Option<String> {
+        let names: Vec<&str> = KEYS.iter().map(|k| k.name).collect();
+        let found = KEYS
+            .iter()
+            .find(|k| k.name == name)
+            .or_else(|| suggest(name, &names).and_then(|n| KEYS.iter().find(|k| k.name == n)))?;
+        let (section, name) = (found.section, found.name);
+        let in_line = key.starts_with("line[");
+        let line_table = matches!(section, "serial" | "relay");
+        Some(match (section, in_line || self.lines_form) {
+            _ if in_line && line_table => format!(
+                "did you mean `{name}` in this line's {section} table: under [line.{section}], \
+                 or {section} = {{ {name} = ... }}?"
+            ),
+            (_, true) if line_table => format!(
+                "did you mean `{name}` in a [[line]]'s {section} table, under [line.{section}]?"
+            ),
+            ("tcp", true) => {
+                let name = renamed(LISTEN_RENAMED, name);
+                format!("did you mean `{name}` in a [[listen]] table?")
+            }
+            _ if line_table => format!(
+                "did you mean `{name}` under [{section}], or under [line.{section}] in the \
+                 [[line]] form?"
+            ),
+            _ => format!("did you mean `{name}` under [{section}]?"),
+        })
     }
 
     fn read(mut self, root: &DeTable) -> Result<Config, ConfigError> {

@@ -3,11 +3,12 @@
 //! Each setting is one line of `settings!`: key, type, default, allowed values, flag
 //! and help. From it come the section structs and their defaults, and [`KEYS`], which
 //! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
-//! the tests holding the README and `config/mbgate.toml` to it all read. A value is
+//! the tests holding docs/configuration.md and `config/mbgate.toml` to it all read. A value is
 //! checked the same way from the file or a flag. A new setting is one line here plus
 //! what it does.
 
 mod access;
+pub mod describe;
 mod file;
 mod layout;
 pub mod master;
@@ -261,7 +262,7 @@ settings! {
         /// Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex
         traffic: bool = false, Any, "traffic" "BOOL";
     }
-    /// The metrics listener (README "Watching it run"): off unless given an address.
+    /// The metrics listener (docs/watching.md): off unless given an address.
     [metrics] MetricsConfig {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
         listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
@@ -400,22 +401,50 @@ setting! { String: Str, |raw, check| match raw {
 }, |v| toml::Value::String(v.clone()).to_string() }
 setting! { SocketAddr: Addr, |raw, _check| match raw {
     Raw::Str(s) => parse_listen(s),
-    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+    _ => Err(raw.invalid(&format!("an address like {LISTEN_EXAMPLE}"))),
 }, |v| format!("\"{v}\"") }
 
+// Only `metrics.listen` is an optional address: its example is the metrics port.
 setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
-    Raw::Str(s) if s.trim().is_empty() => Ok(None),
-    Raw::Str(s) => parse_listen(s).map(Some),
-    _ => Err(raw.invalid(LISTEN_EXPECTED)),
+    Raw::Str(s) => parse_optional_address(s, METRICS_EXAMPLE),
+    _ => Err(raw.invalid(&format!("an address like {METRICS_EXAMPLE}, or \"\" for none"))),
 }, |v| v.map_or_else(|| "\"\"".to_owned(), |a| format!("\"{a}\"")) }
 
-const LISTEN_EXPECTED: &str = "an address like 0.0.0.0:502";
+/// What a Modbus listener's address looks like.
+const LISTEN_EXAMPLE: &str = "0.0.0.0:502";
+/// What the metrics listener's address looks like (never the Modbus port).
+pub(crate) const METRICS_EXAMPLE: &str = "127.0.0.1:9502";
 
 /// Parses a `tcp.listen` / `--listen` value.
 pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
-    s.trim()
-        .parse()
-        .map_err(|_| format!("expected {LISTEN_EXPECTED}, got {s:?}"))
+    parse_address(s, LISTEN_EXAMPLE)
+}
+
+/// Parses an address to listen on, `example` showing what one looks like. A host
+/// name is refused with what to give instead: listening needs one of this machine's
+/// addresses, and a name could stand for several, or for another machine's.
+pub(crate) fn parse_address(s: &str, example: &str) -> Result<SocketAddr, String> {
+    s.trim().parse().map_err(|_| {
+        let mut m = format!("expected an address like {example}, got {s:?}");
+        let named = s.trim().rsplit_once(':').is_some_and(|(host, port)| {
+            port.parse::<u16>().is_ok()
+                && host.starts_with(|c: char| c.is_ascii_alphabetic())
+                && host.parse::<std::net::IpAddr>().is_err()
+        });
+        if named {
+            m += ": a host name is not looked up here; give an IP address of this machine \
+                  (127.0.0.1 for this machine only, 0.0.0.0 for every interface)";
+        }
+        m
+    })
+}
+
+/// [`parse_address`], or none for `""`.
+pub(crate) fn parse_optional_address(s: &str, example: &str) -> Result<Option<SocketAddr>, String> {
+    if s.trim().is_empty() {
+        return Ok(None);
+    }
+    parse_address(s, example).map(Some)
 }
 
 /// A key above the key it must not exceed (`at_most` in [`settings!`]).

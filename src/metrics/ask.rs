@@ -26,6 +26,7 @@ pub fn main(args: StatusArgs) -> ExitCode {
         Ok(text) => text,
         Err(e) => {
             eprintln!("mbgate: cannot ask the gateway at {}: {e}", args.metrics);
+            eprint!("{}", turn_on(&args.metrics));
             return ExitCode::from(EXIT_UNREACHABLE);
         }
     };
@@ -37,6 +38,18 @@ pub fn main(args: StatusArgs) -> ExitCode {
     } else {
         ExitCode::from(EXIT_UNHEALTHY)
     }
+}
+
+/// What to do when nothing answers at `addr`: the metrics listener is off unless the
+/// configuration gives it an address.
+fn turn_on(addr: &str) -> String {
+    format!(
+        "mbgate: the gateway answers `mbgate status` on its metrics listener, which is off \
+         unless its configuration names an address:\n\
+         \n    [metrics]\n    listen = \"{addr}\"\n\n\
+         then `systemctl reload` the service (or start `mbgate run` with --metrics-listen {addr}); \
+         for a listener at another address, `mbgate status --metrics ADDR`\n"
+    )
 }
 
 /// GET /metrics from `addr`, within a few seconds.

@@ -96,7 +96,7 @@ impl Collector for Scrape {
         for f in line_families(&lines, now) {
             f.encode(&mut e)?;
         }
-        unit_families(&lines, &mut e)?;
+        unit_families(&lines, now, &mut e)?;
         for f in listener_families(&listeners) {
             f.encode(&mut e)?;
         }
@@ -206,9 +206,13 @@ fn exceptions(lines: &[Arc<LineMetrics>]) -> Family {
     f
 }
 
-fn unit_families(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::fmt::Result {
+fn unit_families(
+    lines: &[Arc<LineMetrics>],
+    now: Instant,
+    e: &mut DescriptorEncoder,
+) -> std::fmt::Result {
     type Get = fn(&super::UnitMetrics) -> &std::sync::atomic::AtomicU64;
-    let plain: [(&str, &str, MetricType, Get); 5] = [
+    let plain: [(&str, &str, MetricType, Get); 4] = [
         ("mbgate_unit_requests", "Requests for the unit.", C, |u| {
             &u.requests
         }),
@@ -230,12 +234,6 @@ fn unit_families(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::
             G,
             |u| &u.backed_off,
         ),
-        (
-            "mbgate_unit_not_answering",
-            "1 from the unit's third timeout in a row until it answers again, else 0.",
-            G,
-            |u| &u.not_answering,
-        ),
     ];
     for (name, help, kind, get) in plain {
         let mut f = Family::new(name, help, kind);
@@ -247,6 +245,19 @@ fn unit_families(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::
         }
         f.encode(e)?;
     }
+    let mut f = Family::new(
+        "mbgate_unit_not_answering",
+        "1 from the unit's third timeout in a row until it answers again, or until a minute passes without a timeout (nobody asks it), else 0.",
+        G,
+    );
+    for l in lines {
+        for (unit, u) in l.units() {
+            let labels = vec![("line", l.name.clone()), ("unit", unit.to_string())];
+            f.values
+                .push((labels, f64::from(u8::from(l.not_answering(u, now)))));
+        }
+    }
+    f.encode(e)?;
     let mut m = e.encode_descriptor(
         "mbgate_unit_reply",
         "Reply time, from the request leaving for the device to its reply confirmed.",

@@ -60,7 +60,11 @@ pub(crate) fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: Ca
 /// Serves `board` on `listener` until `stop`.
 async fn serve(listener: TcpListener, board: Arc<Board>, stop: CancellationToken) {
     if let Ok(local) = listener.local_addr() {
-        info!("metrics on http://{local}/metrics");
+        // The page's address first: the one a person opens.
+        info!(
+            "status page on http://{local}/ (open it in a browser; `mbgate status --metrics {local}` \
+             asks it from a shell); Prometheus metrics on http://{local}/metrics"
+        );
     }
     let limit = Arc::new(Semaphore::new(MAX_CONNECTIONS));
     tokio::spawn(page::sample(board.clone(), stop.clone()));

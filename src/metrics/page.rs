@@ -156,7 +156,7 @@ fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
                 g(&u.replies),
                 g(&u.timeouts),
                 g(&u.backed_off) == 1,
-                g(&u.not_answering) == 1,
+                l.not_answering(u, now),
             )
         })
         .collect();

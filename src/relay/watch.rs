@@ -245,10 +245,7 @@ impl Watch {
             span: span(asked.pdu()),
             bytes: Vec::new(),
         });
-        self.metrics
-            .unit(unit)
-            .timeouts
-            .fetch_add(1, Ordering::Relaxed);
+        self.metrics.timed_out(unit, now);
         let line = self.metrics.name.clone();
         let s = &mut self.spells[usize::from(unit)];
         s.timeouts += 1;
@@ -339,6 +336,34 @@ mod tests {
         assert_eq!(span(&[0x17, 0, 5, 0, 3, 0, 9, 0, 1, 2, 0, 0]), Some((5, 3)));
         assert_eq!(span(&[8, 0, 0, 0, 0]), None);
         assert_eq!(span(&[3, 0]), None);
+    }
+
+    /// The health window: a unit not answering is failing while it keeps timing out,
+    /// stops failing a minute after its last timeout when nobody asks it any more (a
+    /// mistyped unit asked a few times), fails again at its next timeout, and is
+    /// healthy again at once when it answers.
+    #[test]
+    fn a_unit_fails_while_it_times_out_and_until_it_answers_or_a_minute_passes() {
+        let (mut w, t0) = watch();
+        let at = |s: u64| t0 + Duration::from_secs(s);
+        let failing = |w: &Watch, t| w.metrics.not_answering(w.metrics.unit(1), t);
+        w.timed_out(7, &asked(1), at(0));
+        w.timed_out(7, &asked(1), at(1));
+        assert!(
+            !failing(&w, at(1)),
+            "two timeouts are not yet a unit not answering"
+        );
+        w.timed_out(7, &asked(1), at(2));
+        assert!(failing(&w, at(2)));
+        assert!(failing(
+            &w,
+            at(2) + crate::metrics::HEALTH_WINDOW - Duration::from_millis(1)
+        ));
+        assert!(!failing(&w, at(2) + crate::metrics::HEALTH_WINDOW));
+        w.timed_out(7, &asked(1), at(100));
+        assert!(failing(&w, at(100)), "asked again, and again no answer");
+        w.replied(7, &asked(1), &asked(1), None, (at(101), at(101)));
+        assert!(!failing(&w, at(101)), "it answered");
     }
 
     #[test]

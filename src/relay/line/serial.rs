@@ -391,4 +391,57 @@ mod tests {
             assert!(line.has_room(0, false, free), "{stream} {pause}");
         }
     }
+    /// The gap the line asks its timer for after a whole reply, to the microsecond:
+    /// 3.5 character times (1750 µs above 19 200 baud, 3646 µs at 9600), or
+    /// `inter_frame_gap_us`, or for ASCII none; not a microsecond less (the relay's
+    /// timer is armed for `next_wake`, and `has_room` says when it may write).
+    #[test]
+    fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
+        let us = Duration::from_micros;
+        let stats = Stats::default();
+        for (framing, baud, gap_us, gap) in [
+            (crate::config::Framing::Rtu, 115_200, 0, us(1750)),
+            (crate::config::Framing::Rtu, 9600, 0, us(3646)),
+            (crate::config::Framing::Rtu, 115_200, 400, us(400)),
+            (crate::config::Framing::Ascii, 115_200, 0, Duration::ZERO),
+        ] {
+            let serial = SerialConfig {
+                baud_rate: baud,
+                framing,
+                inter_frame_gap_us: gap_us,
+                ..SerialConfig::default()
+            };
+            let relay = RelayConfig::default();
+            let t0 = Instant::now();
+            let mut line = Line::new(&relay, &serial, false, t0);
+            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+            let tid = line.allocate(t0);
+            let bytes = line.encode(&read, tid, t0, &stats);
+            line.wrote(bytes.len(), t0);
+            let left = line.drained(t0 + 50 * MS, &stats);
+            let reply = match framing {
+                crate::config::Framing::Ascii => crate::frame::ascii::encode(1, &[3, 2, 0, 7]),
+                _ => rtu::encode(1, &[3, 2, 0, 7]),
+            };
+            let at = left + 10 * MS;
+            line.received(&reply, at, &stats);
+            let asked = InFlight {
+                tid,
+                deadline: at + Duration::from_secs(1),
+                timeout: Duration::from_secs(1),
+                req: (read.clone(), 0),
+            };
+            let seen = line.frames(&[asked], at, &stats);
+            assert!(matches!(seen[..], [Seen::Frame(_)]), "the reply is taken");
+            let why = format!("{framing:?} at {baud} baud, inter_frame_gap_us {gap_us}");
+            if gap.is_zero() {
+                assert!(line.has_room(0, false, at), "{why}");
+                assert_eq!(line.next_wake(at, true), None, "{why}");
+            } else {
+                assert_eq!(line.next_wake(at, true), Some(at + gap), "{why}");
+                assert!(!line.has_room(0, false, at + gap - us(1)), "{why}");
+                assert!(line.has_room(0, false, at + gap), "{why}");
+            }
+        }
+    }
 }

@@ -1,5 +1,5 @@
 //! `mbgate sim --listen ADDR`: the simulated device on the network, as the devices a
-//! TCP line is for (README "A device on the network"): a Modbus/TCP slave (MBAP
+//! TCP line is for (docs/network-devices.md): a Modbus/TCP slave (MBAP
 //! framing) or a serial device server in raw TCP mode (RTU or ASCII framing) that
 //! serves one connection at a time. A second connection while one is served is
 //! accepted and closed at once, as such devices do.

@@ -1,0 +1,163 @@
+//! The effective setup in a few words a line: what `mbgate check-config` prints after
+//! "OK", and what the log says of each line and listener at start. Each line says its
+//! own framing and port settings, each listener the masters it takes, so a listener's
+//! framing is never read as the line's.
+
+use super::{Config, FlowControl, Framing, LineConfig, ListenConfig, ListenFraming, Parity};
+
+/// `/dev/ttyUSB0: rtu, 19200 baud 8N1, no flow control, every unit`.
+pub(crate) fn line(line: &LineConfig) -> String {
+    let s = &line.serial;
+    let framing = framing(s.framing);
+    let device = match &line.tcp {
+        Some(address) => {
+            let framing = match s.framing {
+                Framing::Mbap => "Modbus/TCP",
+                Framing::Rtu => "RTU over TCP",
+                Framing::Ascii => "ASCII over TCP",
+            };
+            format!("{address} (a device on the network): {framing}")
+        }
+        None => {
+            let parity = match s.parity {
+                Parity::None => 'N',
+                Parity::Even => 'E',
+                Parity::Odd => 'O',
+            };
+            let flow = match s.flow_control {
+                FlowControl::None => "no flow control",
+                FlowControl::Hardware => "RTS/CTS flow control",
+                FlowControl::Software => "XON/XOFF flow control",
+            };
+            let rs485 = if s.rs485 { ", RS-485 mode" } else { "" };
+            format!(
+                "{}: {framing}, {} baud {}{parity}{}, {flow}{rs485}",
+                s.path, s.baud_rate, s.data_bits, s.stop_bits
+            )
+        }
+    };
+    if let Some(master) = &line.master {
+        let routes: Vec<String> = master
+            .routes
+            .iter()
+            .map(|r| match r.units.as_slice() {
+                [] => format!("other units -> {}", r.peer),
+                u => format!("units {} -> {}", list(u), r.peer),
+            })
+            .collect();
+        return format!("{device}; the device is the master: {}", routes.join("; "));
+    }
+    let units = &line.units;
+    let served = if units.every() {
+        "every unit".to_owned()
+    } else {
+        let mut parts = Vec::new();
+        if !units.ids.is_empty() {
+            let ids: Vec<u8> = units.ids.iter().copied().collect();
+            parts.push(format!("units {}", list(&ids)));
+        }
+        for (master, on_line) in &units.remap {
+            parts.push(format!("unit {master} as {on_line}"));
+        }
+        parts.join(", ")
+    };
+    format!("{device}, {served}")
+}
+
+/// `127.0.0.1:5502 for Modbus/TCP masters`.
+pub(crate) fn listener(l: &ListenConfig) -> String {
+    format!("{} for {}", l.tcp.listen, masters(l.framing))
+}
+
+/// Who connects to a listener of this framing.
+pub(crate) fn masters(framing: ListenFraming) -> &'static str {
+    match framing {
+        ListenFraming::Mbap => "Modbus/TCP masters",
+        ListenFraming::Rtu => "RTU-over-TCP masters",
+    }
+}
+
+/// A line's framing in words.
+fn framing(f: Framing) -> &'static str {
+    match f {
+        Framing::Mbap => "MBAP (serial Modbus/TCP)",
+        Framing::Rtu => "RTU",
+        Framing::Ascii => "ASCII",
+    }
+}
+
+/// Unit ids with runs as ranges: `1, 2, 20-29`.
+fn list(ids: &[u8]) -> String {
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < ids.len() {
+        let mut j = i;
+        while j + 1 < ids.len() && ids[j + 1] == ids[j].wrapping_add(1) {
+            j += 1;
+        }
+        if j >= i + 2 {
+            parts.push(format!("{}-{}", ids[i], ids[j]));
+        } else {
+            parts.extend(ids[i..=j].iter().map(u8::to_string));
+        }
+        i = j + 1;
+    }
+    parts.join(", ")
+}
+
+/// The whole setup, a line each: the lines, then the listeners and the metrics
+/// listener (a master line has neither).
+pub fn summary(cfg: &Config) -> String {
+    let mut out = String::new();
+    let lines = cfg.lines();
+    for l in &lines {
+        out += &format!("line {}\n", line(l));
+    }
+    if cfg.master.is_some() {
+        // A master line listens for no masters and has no metrics listener.
+        return out;
+    }
+    for l in cfg.listeners() {
+        out += &format!(
+            "listening on {}, at most {} at once\n",
+            listener(&l),
+            l.tcp.max_connections
+        );
+    }
+    out += &match cfg.metrics.listen {
+        Some(a) => format!(
+            "status page on http://{a}/, metrics on http://{a}/metrics (mbgate status --metrics {a})\n"
+        ),
+        None => "no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
+            .to_owned(),
+    };
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::parse;
+
+    #[test]
+    fn a_file_in_a_few_lines() {
+        let cfg = parse(
+            "[[line]]\nunits = [1, 2, 3, 7]\nremap = { 11 = 1 }\n\
+             serial = { path = \"/dev/ttyUSB1\", framing = \"rtu\", baud_rate = 9600, \
+             parity = \"even\", flow_control = \"none\" }\n\
+             [[line]]\nunits = [50]\ntcp = { address = \"10.0.0.5:502\" }\n\
+             [[listen]]\naddress = \"0.0.0.0:502\"\n\
+             [[listen]]\naddress = \"0.0.0.0:4001\"\nframing = \"rtu\"\n",
+            "t.toml",
+        )
+        .unwrap();
+        assert_eq!(
+            summary(&cfg),
+            "line /dev/ttyUSB1: RTU, 9600 baud 8E1, no flow control, units 1-3, 7, unit 11 as 1\n\
+             line 10.0.0.5:502 (a device on the network): Modbus/TCP, units 50\n\
+             listening on 0.0.0.0:502 for Modbus/TCP masters, at most 32 at once\n\
+             listening on 0.0.0.0:4001 for RTU-over-TCP masters, at most 32 at once\n\
+             no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
+        );
+    }
+}
