@@ -27,6 +27,9 @@ pub(super) struct Pending {
     /// identical read joined it, in the order they asked. Never empty.
     askers: Vec<Asker>,
     pub(super) attempts: u32,
+    /// The scheduler's turn that last put it on the line (a resend is checked
+    /// against it, `scheduler.rs`).
+    turn: u64,
     /// The cache's generation for its unit when it came (`cache.rs`): its reply is
     /// kept only if nothing acted on the unit since.
     pub(super) cache_stamp: u64,
@@ -69,6 +72,12 @@ impl Queued for Pending {
         let one = self.askers.remove(i);
         Some(self.part(vec![one]))
     }
+    fn turn(&self) -> u64 {
+        self.turn
+    }
+    fn set_turn(&mut self, turn: u64) {
+        self.turn = turn;
+    }
 }
 
 /// The identity of a read that identical reads may join or be answered from the cache
@@ -110,6 +119,7 @@ impl Pending {
             }],
             adu,
             attempts: 0,
+            turn: 0,
             cache_stamp: 0,
         }
     }
@@ -120,6 +130,7 @@ impl Pending {
             adu: self.adu.with_tid(askers[0].tid),
             askers,
             attempts: self.attempts,
+            turn: self.turn,
             cache_stamp: self.cache_stamp,
         }
     }
