@@ -190,6 +190,9 @@ pub(crate) enum Refusal {
     TargetFailed,
     /// Its unit is backed off: 0x0B at once (`backed_off`).
     BackedOff,
+    /// To unit 0 on a bus, where it would be a broadcast, but not a write: no device
+    /// would answer it, 0x01 (`broadcasts_refused`, docs/protocol.md §2).
+    NotBroadcast,
 }
 
 impl Refusal {
@@ -200,6 +203,7 @@ impl Refusal {
             Refusal::Unavailable => ExceptionCode::GATEWAY_PATH_UNAVAILABLE,
             Refusal::Busy => ExceptionCode::SERVER_DEVICE_BUSY,
             Refusal::TargetFailed | Refusal::BackedOff => ExceptionCode::GATEWAY_TARGET_FAILED,
+            Refusal::NotBroadcast => ExceptionCode::ILLEGAL_FUNCTION,
         }
     }
 
@@ -211,6 +215,7 @@ impl Refusal {
             Refusal::Busy => &stats.busy,
             Refusal::TargetFailed => &stats.timeouts,
             Refusal::BackedOff => &stats.backed_off,
+            Refusal::NotBroadcast => &stats.broadcasts_refused,
         }
     }
 }
