@@ -65,6 +65,14 @@ enum Command {
     /// line's port not open, or a unit not answering), 3 the gateway could not be
     /// asked, 2 bad arguments.
     Status(mbgate::metrics::ask::StatusArgs),
+    /// Have a running gateway read its configuration file again, and say what changed.
+    ///
+    /// As SIGHUP (`systemctl reload`), asked through its metrics listener (`[metrics]
+    /// listen`, from this machine). Prints each change applied, line by line and key
+    /// by key, and what waits for a restart. Exit code 0 taken, 1 refused (the file
+    /// does not load, or adds or removes a line; the running configuration stays), 3
+    /// the gateway could not be asked, 2 bad arguments.
+    Reload(mbgate::reload::ask::ReloadArgs),
 }
 
 /// Exit code for a bad configuration or bad arguments (docs/design.md §3; clap uses 2 too).
@@ -78,6 +86,7 @@ fn main() -> ExitCode {
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
+        Command::Reload(args) => mbgate::reload::ask::main(args),
         Command::CheckConfig {
             file,
             lines,
