@@ -173,7 +173,15 @@ async fn serve_with(
         }));
     }
     // Off unless asked for: then nothing but the Modbus ports listen.
-    let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
+    // `mbgate reload` asks through the metrics listener (`POST /reload`).
+    let (asked, reload_asked) = match load {
+        Some(_) => {
+            let (handle, asked) = reload::ReloadHandle::new();
+            (Some(asked), Some(handle))
+        }
+        None => (None, None),
+    };
+    let mut http = reload::MetricsListener::new(board.clone(), reload_asked, shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
         let listener =
             metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
@@ -223,10 +231,11 @@ async fn serve_with(
         addrs.join(", ")
     ));
     let relay_tasks: Vec<_> = relays.into_iter().map(|r| tokio::spawn(r.run())).collect();
-    if let Some((hup, load)) = hup {
+    if let (Some((hup, load)), Some(asked)) = (hup, asked) {
         let stop = shutdown.clone();
         tokio::spawn(reload::on_sighup(
             hup,
+            asked,
             running.clone(),
             load,
             handles,

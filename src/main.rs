@@ -92,6 +92,14 @@ enum Command {
     /// ~/.local/share/bash-completion/completions/mbgate`.
     #[command(subcommand)]
     Generate(Generate),
+    /// Have a running gateway read its configuration file again, and say what changed.
+    ///
+    /// As SIGHUP (`systemctl reload`), asked through its metrics listener (`[metrics]
+    /// listen`, from this machine). Prints each change applied, line by line and key
+    /// by key, and what waits for a restart. Exit code 0 taken, 1 refused (the file
+    /// does not load, or adds or removes a line; the running configuration stays), 3
+    /// the gateway could not be asked, 2 bad arguments.
+    Reload(mbgate::reload::ask::ReloadArgs),
 }
 
 /// What `mbgate generate` writes.
@@ -124,6 +132,7 @@ fn main() -> ExitCode {
         Command::Demo(args) => demo(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::Generate(what) => generate(what),
+        Command::Reload(args) => mbgate::reload::ask::main(args),
         Command::CheckConfig {
             file,
             print,

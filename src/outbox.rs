@@ -193,6 +193,9 @@ pub(crate) enum Refusal {
     /// The access rules do not permit it (read only, or no write rule matches): 0x01,
     /// as Modbus/TCP Security answers an unauthorized request (`denied`).
     Denied,
+    /// To unit 0 on a bus, where it would be a broadcast, but not a write: no device
+    /// would answer it, 0x01 (`broadcasts_refused`, docs/protocol.md §2).
+    NotBroadcast,
 }
 
 impl Refusal {
@@ -204,6 +207,7 @@ impl Refusal {
             Refusal::Busy => ExceptionCode::SERVER_DEVICE_BUSY,
             Refusal::TargetFailed | Refusal::BackedOff => ExceptionCode::GATEWAY_TARGET_FAILED,
             Refusal::Denied => ExceptionCode::ILLEGAL_FUNCTION,
+            Refusal::NotBroadcast => ExceptionCode::ILLEGAL_FUNCTION,
         }
     }
 
@@ -216,6 +220,7 @@ impl Refusal {
             Refusal::TargetFailed => &stats.timeouts,
             Refusal::BackedOff => &stats.backed_off,
             Refusal::Denied => &stats.denied,
+            Refusal::NotBroadcast => &stats.broadcasts_refused,
         }
     }
 }

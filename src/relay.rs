@@ -340,14 +340,24 @@ impl Relay {
         }
     }
 
-    /// A master's request: answered at once (no path, a backed-off unit, a reply in
-    /// the cache), joined to an identical read waiting for the line, or queued.
+    /// A master's request: answered at once (a broadcast that cannot be one, no path,
+    /// a backed-off unit, a reply in the cache), joined to an identical read waiting
+    /// for the line, or queued.
     fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket) {
         self.stats.add(&self.stats.requests, 1);
         self.watch.request(adu.unit());
         let now = Instant::now();
         let mut req = Pending::new(conn, adu, ticket);
         let unit = req.adu.unit();
+        if self.line.not_broadcast(&req.adu) {
+            debug!(
+                conn,
+                fc = req.adu.function(),
+                "a broadcast (unit 0) cannot carry this function: exception 0x01"
+            );
+            req.answer_exception(Refusal::NotBroadcast, &self.stats);
+            return;
+        }
         if req.acts() {
             self.cache.acted_on(unit);
         }

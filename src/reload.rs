@@ -1,73 +1,125 @@
-//! Reload (SIGHUP, `systemctl reload`): the configuration file is read again and what
-//! can change without dropping a master is applied at once (README "Reload"); what
-//! needs a restart is said in the log and left as it runs. A file that does not load
-//! is refused with the usual precise error, and the running configuration stays.
+//! Reload (SIGHUP, `systemctl reload`, `mbgate reload`): the configuration file is
+//! read again and what can change without dropping a master is applied at once
+//! (README "Reload"); what needs a restart is said in the log and left as it runs. The
+//! lines are known by their port or address, not their place in the file
+//! (`changes.rs`): a file that adds or removes a line, or does not load at all, is
+//! refused with the reason, and the running configuration stays. Every change applied
+//! is named, line by line and key by key, in the log and in `mbgate reload`'s answer.
 
-use crate::config::{Config, ConfigError, RelayConfig, KEYS};
+pub mod ask;
+mod changes;
+
+use crate::config::{Config, ConfigError};
 use crate::metrics::{http, Board};
 use crate::relay::{Command, RelayHandle};
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
+use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
 /// Reads the configuration again, as at start (the file, then the flags on top).
 pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 
-/// The keys a reload applies while the gateway runs.
-pub(crate) const RELOADABLE: [&str; 7] = [
-    "relay.response_timeout_ms",
-    "relay.retries",
-    "relay.retry_writes",
-    "relay.probe_timeout_ms",
-    "log.level",
-    "log.traffic",
-    "metrics.listen",
-];
+/// What a reload did: refused (why), or done (what it applied, and what changed in the
+/// file but waits for a restart).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) enum Outcome {
+    Refused(String),
+    Done {
+        applied: Vec<String>,
+        restart: Vec<String>,
+    },
+}
 
-/// `running` with the [`RELOADABLE`] keys of `read` (the rest needs a restart); with
-/// `[[line]]` tables, each line's `relay` keys too, line by line, while the file keeps
-/// the same lines.
-pub(crate) fn merged(running: &Config, read: &Config) -> Config {
-    let mut c = running.clone();
-    retune(&mut c.relay, &read.relay);
-    if c.lines.len() == read.lines.len() {
-        for (line, new) in c.lines.iter_mut().zip(&read.lines) {
-            retune(&mut line.relay, &new.relay);
+impl Outcome {
+    /// What the log says, and `mbgate reload` prints: one line, and a second for what
+    /// waits for a restart.
+    pub(crate) fn lines(&self) -> Vec<String> {
+        match self {
+            Outcome::Refused(why) => {
+                vec![format!(
+                    "reload refused: {why}; the running configuration stays"
+                )]
+            }
+            Outcome::Done { applied, restart } => {
+                let mut out = vec![match (applied.is_empty(), restart.is_empty()) {
+                    (false, _) => format!("reloaded: {}", applied.join(", ")),
+                    (true, true) => "reloaded: nothing to change".to_owned(),
+                    (true, false) => "reloaded: nothing a reload applies changed".to_owned(),
+                }];
+                if !restart.is_empty() {
+                    out.push(format!(
+                        "reload: changed in the file but applied only by a restart (systemctl restart): {}",
+                        restart.join(", ")
+                    ));
+                }
+                out
+            }
         }
     }
-    c.log = read.log.clone();
-    c.metrics = read.metrics.clone();
-    c
+
+    /// Was the file taken (applied, or with nothing to apply)?
+    pub(crate) fn taken(&self) -> bool {
+        matches!(self, Outcome::Done { .. })
+    }
+
+    fn log(&self) {
+        let lines = self.lines();
+        match self {
+            Outcome::Refused(_) => error!("{}", lines[0]),
+            Outcome::Done { .. } => {
+                info!("{}", lines[0]);
+                if let Some(restart) = lines.get(1) {
+                    warn!("{restart}");
+                }
+            }
+        }
+    }
 }
 
-/// The reloadable keys of a line's `relay` table.
-fn retune(into: &mut RelayConfig, from: &RelayConfig) {
-    into.response_timeout_ms = from.response_timeout_ms;
-    into.retries = from.retries;
-    into.retry_writes = from.retry_writes;
-    into.probe_timeout_ms = from.probe_timeout_ms;
-}
+/// A request for a reload from `mbgate reload` (the metrics listener's `POST
+/// /reload`), answered with its outcome.
+pub(crate) type Asked = oneshot::Sender<Outcome>;
 
-/// The keys whose values differ between `a` and `b`, as `section.key = value` of `b`.
-fn changed(a: &Config, b: &Config) -> Vec<(String, String)> {
-    KEYS.iter()
-        .filter(|k| (k.get)(a) != (k.get)(b))
-        .map(|k| (format!("{}.{}", k.section, k.name), (k.get)(b)))
-        .collect()
+/// The way to ask the running gateway for a reload.
+#[derive(Debug, Clone)]
+pub(crate) struct ReloadHandle(mpsc::UnboundedSender<Asked>);
+
+impl ReloadHandle {
+    /// A handle, and what [`on_sighup`] takes the requests from.
+    pub(crate) fn new() -> (Self, mpsc::UnboundedReceiver<Asked>) {
+        let (tx, rx) = mpsc::unbounded_channel();
+        (Self(tx), rx)
+    }
+
+    /// Reloads and says how it went; `None` if the gateway is stopping.
+    pub(crate) async fn reload(&self) -> Option<Outcome> {
+        let (tx, rx) = oneshot::channel();
+        self.0.send(tx).ok()?;
+        rx.await.ok()
+    }
 }
 
 /// The metrics listener as it runs, moved or stopped by a reload.
 pub(crate) struct MetricsListener {
     board: Arc<Board>,
+    /// Where `POST /reload` goes (`mbgate reload`): none when the gateway does not
+    /// reload (no file to read again).
+    reload: Option<ReloadHandle>,
     running: Option<(SocketAddr, CancellationToken)>,
     shutdown: CancellationToken,
 }
 
 impl MetricsListener {
-    pub(crate) fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
+    pub(crate) fn new(
+        board: Arc<Board>,
+        reload: Option<ReloadHandle>,
+        shutdown: CancellationToken,
+    ) -> Self {
         Self {
             board,
+            reload,
             running: None,
             shutdown,
         }
@@ -76,7 +128,8 @@ impl MetricsListener {
     /// Serves on `listener` (bound at start, so a bad address fails the start).
     pub(crate) fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
         let stop = self.shutdown.child_token();
-        http::spawn(listener, self.board.clone(), stop.clone());
+        let (board, reload) = (self.board.clone(), self.reload.clone());
+        http::spawn(listener, board, reload, stop.clone());
         self.running = Some((addr, stop));
     }
 
@@ -103,9 +156,11 @@ impl MetricsListener {
     }
 }
 
-/// Reloads on each SIGHUP until shutdown; `running` is the configuration in force.
+/// Reloads on each SIGHUP, and on each request of `mbgate reload` (`asked`), until
+/// shutdown; `running` is the configuration in force.
 pub(crate) async fn on_sighup(
     mut hup: tokio::signal::unix::Signal,
+    mut asked: mpsc::UnboundedReceiver<Asked>,
     running: Arc<Mutex<Config>>,
     load: Loader,
     relays: Vec<RelayHandle>,
@@ -113,73 +168,76 @@ pub(crate) async fn on_sighup(
     shutdown: CancellationToken,
 ) {
     loop {
-        tokio::select! {
+        let answer = tokio::select! {
             _ = shutdown.cancelled() => return,
-            _ = hup.recv() => {}
-        }
-        info!("SIGHUP received: reading the configuration again");
-        let read = match load() {
-            Ok(read) => read,
-            Err(e) => {
-                error!("reload refused: {e}; the running configuration stays");
-                continue;
+            _ = hup.recv() => {
+                info!("SIGHUP received: reading the configuration again");
+                None
+            }
+            Some(a) = asked.recv() => {
+                info!("reload asked for (mbgate reload): reading the configuration again");
+                Some(a)
             }
         };
-        let old = running.lock().expect("not poisoned").clone();
-        let mut new = merged(&old, &read);
-        let mut restart = Vec::new();
-        for (key, value) in changed(&old, &read) {
-            if !RELOADABLE.contains(&key.as_str()) {
-                restart.push(format!("{key} = {value}"));
-            }
-        }
-        // The lines and listeners themselves (their number, units, devices, the keys
-        // of each line that a reload does not apply).
-        if (&new.lines, &new.listeners) != (&read.lines, &read.listeners) {
-            restart.push("the [[line]] or [[listen]] tables".into());
-        }
-        if new.roles != read.roles {
-            restart.push("the [[role]] tables".into());
-        }
-        if let Err(e) = metrics.set(new.metrics.listen) {
-            error!("reload: {e}; the metrics listener stays as it was");
-            new.metrics = old.metrics.clone();
-        }
-        crate::logging::reload(&new.log);
-        for (relay, line) in relays.iter().zip(new.lines()) {
-            let retune = Command::Retune {
-                relay: line.relay,
-                traffic: new.log.traffic,
-            };
-            if relay.send(retune).is_err() {
-                return; // the relay has stopped: shutting down
-            }
-        }
-        let applied: Vec<String> = changed(&old, &new)
-            .into_iter()
-            .map(|(k, v)| format!("{k} = {v}"))
-            .collect();
-        *running.lock().expect("not poisoned") = new;
-        if applied.is_empty() {
-            info!("reloaded: nothing to change");
-        } else {
-            info!("reloaded: {}", applied.join(", "));
-        }
-        if !restart.is_empty() {
-            warn!(
-                "reload: changed in the file but applied only by a restart (systemctl restart): {}",
-                restart.join(", ")
-            );
+        let Some(outcome) = reload(&running, &load, &relays, &mut metrics) else {
+            return; // a relay has stopped: shutting down
+        };
+        outcome.log();
+        if let Some(a) = answer {
+            let _ = a.send(outcome);
         }
     }
 }
 
+/// One reload: the file read, its lines matched to the running ones, what a reload
+/// applies applied (the relays' timeouts and retries, the log, the metrics listener).
+/// `None` when a relay has stopped.
+fn reload(
+    running: &Mutex<Config>,
+    load: &Loader,
+    relays: &[RelayHandle],
+    metrics: &mut MetricsListener,
+) -> Option<Outcome> {
+    let read = match load() {
+        Ok(read) => read,
+        Err(e) => return Some(Outcome::Refused(e.to_string())),
+    };
+    let old = running.lock().expect("not poisoned").clone();
+    let matched = match changes::match_lines(&old.lines(), &read.lines()) {
+        Ok(m) => m,
+        Err(why) => return Some(Outcome::Refused(why)),
+    };
+    let mut new = changes::merged(&old, &read, &matched);
+    if let Err(e) = metrics.set(new.metrics.listen) {
+        error!("reload: {e}; the metrics listener stays as it was");
+        new.metrics = old.metrics.clone();
+    }
+    crate::logging::reload(&new.log);
+    for (relay, line) in relays.iter().zip(new.lines()) {
+        let retune = Command::Retune {
+            relay: line.relay,
+            traffic: new.log.traffic,
+        };
+        relay.send(retune).ok()?;
+    }
+    let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {
+        let changes = changes::changes(a, b, matched);
+        changes.into_iter().map(|c| c.said).collect()
+    };
+    // `new` keeps the running lines' order; the file may have another.
+    let same: Vec<usize> = (0..matched.len()).collect();
+    let applied = said(&old, &new, &same);
+    let restart = said(&new, &read, &matched);
+    *running.lock().expect("not poisoned") = new;
+    Some(Outcome::Done { applied, restart })
+}
+
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A configuration with every key changed from the defaults.
-    fn all_changed() -> Config {
+    pub(super) fn all_changed() -> Config {
         let text = "[serial]\npath = \"/dev/x\"\nbaud_rate = 9600\ndata_bits = 7\nparity = \"odd\"\n\
             stop_bits = 2\nflow_control = \"none\"\nframing = \"rtu\"\nsilence_floor_ms = 3\n\
             rs485 = true\nrs485_delay_before_send_ms = 1\nrs485_delay_after_send_ms = 1\necho = true\n\
@@ -193,40 +251,5 @@ mod tests {
             request_pause_ms = 9\n\
             [log]\nlevel = \"debug\"\ntraffic = true\n[metrics]\nlisten = \"127.0.0.1:9502\"\n";
         crate::config::parse(text, "t").unwrap()
-    }
-
-    /// With `[[line]]` tables each line takes its own reloadable keys; its units do not
-    /// change (they need a restart, and `merged` leaves them as they run).
-    #[test]
-    fn each_line_takes_its_own_timeout() {
-        let file = |t1: u32, t2: u32, units2: &str| {
-            let text = format!(
-                "[[line]]\nunits = [1]\nserial = {{ path = \"/dev/a\" }}\nrelay = {{ response_timeout_ms = {t1} }}\n\
-                 [[line]]\nunits = [{units2}]\nserial = {{ path = \"/dev/b\" }}\nrelay = {{ response_timeout_ms = {t2} }}\n"
-            );
-            crate::config::parse(&text, "t").unwrap()
-        };
-        let (old, read) = (file(100, 200, "2"), file(300, 400, "2, 3"));
-        let new = merged(&old, &read);
-        let timeouts: Vec<u64> = new
-            .lines
-            .iter()
-            .map(|l| l.relay.response_timeout_ms)
-            .collect();
-        assert_eq!(timeouts, [300, 400]);
-        assert_eq!(new.lines[1].units, old.lines[1].units);
-        assert_ne!(
-            new.lines, read.lines,
-            "the units' change waits for a restart"
-        );
-    }
-
-    #[test]
-    fn a_reload_takes_exactly_the_reloadable_keys() {
-        let (old, read) = (Config::default(), all_changed());
-        assert_eq!(changed(&old, &read).len(), KEYS.len(), "every key differs");
-        let new = merged(&old, &read);
-        let taken: Vec<String> = changed(&old, &new).into_iter().map(|(k, _)| k).collect();
-        assert_eq!(taken, RELOADABLE);
     }
 }

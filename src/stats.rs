@@ -67,6 +67,7 @@ counters! {
     bad_frames: "RTU/ASCII replies whose CRC or LRC failed, or that came from another unit than the one asked; MBAP replies with a request's id and unit that did not fit it.",
     backed_off: "Requests answered 0x0B at once: their unit was backed off (RTU/ASCII).",
     broadcasts: "Broadcasts (unit 0) sent on an RTU/ASCII line.",
+    broadcasts_refused: "Requests to unit 0 on an RTU/ASCII line that a broadcast cannot carry (a read, or any function but a write): answered 0x01, never sent.",
     serial_bytes_in: "Bytes read from the serial port.",
     serial_bytes_out: "Bytes written to the serial port.",
     serial_opens: "Times the serial port was opened.",

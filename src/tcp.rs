@@ -465,6 +465,15 @@ impl Connection {
             }
             let rtu_frame;
             let bytes = if self.listen.framing == ListenFraming::Rtu {
+                if out.adu.unit() == 0 {
+                    // Unit 0 is a broadcast in RTU: its master awaits no answer, and
+                    // would take one for the answer to its next request.
+                    debug!(
+                        conn = self.id,
+                        "answer to a broadcast (unit 0): not written"
+                    );
+                    continue;
+                }
                 rtu_frame = rtu::encode(&out.adu);
                 &rtu_frame[..]
             } else {

@@ -957,6 +957,14 @@ fn lines_and_listeners_are_validated() {
             "4:13: line[1].units: unit 2 is also in line[0].units",
         ),
         (
+            "[[line]]\nunits = [1]\nserial = { path = \"/dev/a\" }\n[[line]]\nunits = [2]\nserial = { path = \"/dev/a\" }\n",
+            "6:19: line[1].serial.path: the same as line[0]'s (\"/dev/a\"): each line has its own port or address",
+        ),
+        (
+            "[[line]]\nunits = [1]\ntcp = { address = \"plc:502\" }\n[[line]]\nunits = [2]\n[line.tcp]\naddress = \"plc:502\"\n",
+            "7:11: line[1].tcp.address: the same as line[0]'s (\"plc:502\"): each line has its own port or address",
+        ),
+        (
             "[[line]]\nunits = [1, 1]\n",
             "2:13: line[0].units: unit 1 is also in line[0].units",
         ),
@@ -1068,7 +1076,8 @@ fn the_documented_example_of_several_lines_is_read_as_written() {
 /// the flag; the log's flags still apply.
 #[test]
 fn flags_for_a_line_are_refused_when_the_file_has_several() {
-    let text = "[[line]]\nunits = [1]\n[[line]]\nunits = [2]\n";
+    let text = "[[line]]\nunits = [1]\nserial = { path = \"/dev/a\" }\n\
+                [[line]]\nunits = [2]\nserial = { path = \"/dev/b\" }\n";
     let dir = std::env::temp_dir().join(format!("mbgate-flags-lines-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let file = dir.join("lines.toml");

@@ -14,7 +14,6 @@ mod common;
 use common::*;
 use std::io::{ErrorKind, Read, Write};
 use std::net::{Shutdown, TcpStream};
-use std::os::fd::AsRawFd;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::thread::{self, JoinHandle};
@@ -137,37 +136,6 @@ impl Steady {
         );
         n
     }
-}
-
-/// Sets a SOL_SOCKET option to `value`, which must be of the type the option takes.
-fn set_option<T>(s: &TcpStream, name: libc::c_int, value: &T) {
-    // SAFETY: a valid socket, and a pointer to a `T` with its size.
-    let r = unsafe {
-        libc::setsockopt(
-            s.as_raw_fd(),
-            libc::SOL_SOCKET,
-            name,
-            (value as *const T).cast(),
-            std::mem::size_of::<T>() as libc::socklen_t,
-        )
-    };
-    assert_eq!(
-        r,
-        0,
-        "setsockopt {name}: {}",
-        std::io::Error::last_os_error()
-    );
-}
-
-/// Closes with SO_LINGER 0: the kernel sends RST instead of FIN and drops what is
-/// unsent.
-fn reset(s: TcpStream) {
-    let linger = libc::linger {
-        l_onoff: 1,
-        l_linger: 0,
-    };
-    set_option(&s, libc::SO_LINGER, &linger);
-    drop(s);
 }
 
 /// Shrinks the socket's receive buffer, so that a master that does not read fills

@@ -52,9 +52,14 @@ fn gateway(file: &str) -> Proc {
 /// A master line in `framing` on a pty pair, its default route to one answering slave,
 /// connected: the folder, the pty pair, the slave and the gateway.
 fn one_slave(framing: &str) -> (tempfile::TempDir, Socat, Slave, Proc) {
+    one_slave_doing(framing, Behaviour::Answer)
+}
+
+/// [`one_slave`] with a slave that does `behaviour`.
+fn one_slave_doing(framing: &str, behaviour: Behaviour) -> (tempfile::TempDir, Socat, Slave, Proc) {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let slave = Slave::start(Behaviour::Answer);
+    let slave = Slave::start(behaviour);
     let file = config(dir.path(), &socat.gw, framing, &[("", slave.port, "")]);
     let gw = gateway(&file);
     gw.wait_log("connected to the slave", Duration::from_secs(5));
@@ -92,6 +97,10 @@ fn direct(port: u16, unit: u8, pdu: &[u8]) -> Vec<u8> {
 enum Behaviour {
     /// Answers as a register map (FC 03, 06, 16).
     Answer,
+    /// The same, with this unit id in every reply (a server that ignores the unit).
+    AnswerAs(u8),
+    /// The same, this many milliseconds late.
+    AnswerAfter(u64),
     /// Reads the request and closes the connection.
     Hang,
     /// Reads and never answers.
@@ -133,9 +142,18 @@ impl Slave {
                     while let Ok(Some(req)) = decode_strict(&mut buf) {
                         seen2.lock().unwrap().push(req.clone());
                         match behaviour {
-                            Behaviour::Answer => {
+                            Behaviour::Answer
+                            | Behaviour::AnswerAs(_)
+                            | Behaviour::AnswerAfter(_) => {
                                 let pdu = regs.answer(req.unit(), req.pdu(), true);
-                                let reply = Adu::build(req.tid(), req.unit(), &pdu);
+                                let unit = match behaviour {
+                                    Behaviour::AnswerAs(unit) => unit,
+                                    _ => req.unit(),
+                                };
+                                if let Behaviour::AnswerAfter(ms) = behaviour {
+                                    thread::sleep(Duration::from_millis(ms));
+                                }
+                                let reply = Adu::build(req.tid(), unit, &pdu);
                                 if s.write_all(reply.as_bytes()).is_err() {
                                     break 'conn;
                                 }
@@ -532,9 +550,10 @@ fn rtu_garbage_and_bad_crc_are_not_forwarded() {
 }
 
 /// MBAP: garbage, a truncated frame followed at once by a good one, then another
-/// good one after a pause: the first two are not forwarded (the truncated frame
-/// takes the good one's first byte, and what follows refutes it), the last is, with
-/// the master's own transaction id on its reply.
+/// good one after a pause. The truncated frame takes the good one's first byte, and
+/// what follows refutes it: it is not forwarded, but the good one behind it is found
+/// where it starts, inside it, and is (before, it was lost with it). Both good ones
+/// are answered with the master's own transaction ids, in order.
 #[test]
 fn mbap_truncated_frame_then_a_good_one() {
     let (_dir, socat, slave, _gw) = one_slave("mbap");
@@ -550,12 +569,13 @@ fn mbap_truncated_frame_then_a_good_one() {
     burst.extend_from_slice(&cut);
     burst.extend_from_slice(&write(0x0108, 0x22));
     line.send(&burst);
-    assert_eq!(line.recv(1, Duration::from_millis(300)), Vec::<u8>::new());
+    let reply = line.recv(12, Duration::from_secs(1));
+    assert_eq!(hexs(&reply), "01 08 00 00 00 06 01 10 00 08 00 01");
     line.send(&write(0x0109, 0x33));
     let reply = line.recv(12, Duration::from_secs(1));
     assert_eq!(hexs(&reply), "01 09 00 00 00 06 01 10 00 08 00 01");
     let seen: Vec<String> = slave.requests().iter().map(|f| hexs(f.pdu())).collect();
-    assert_eq!(seen, ["10 00 08 00 01 02 00 33"]);
+    assert_eq!(seen, ["10 00 08 00 01 02 00 22", "10 00 08 00 01 02 00 33"]);
 }
 
 /// A slave that connects to mbgate (the ezTCP's active setting facing mbgate's passive
@@ -696,4 +716,41 @@ fn pipelined_up_to_max_in_flight_each_answered_with_its_own_id() {
         hexs(&replies),
         "0A 01 00 00 00 03 07 83 0B 0A 02 00 00 00 03 07 83 0B 0A 03 00 00 00 03 07 83 0B"
     );
+}
+
+/// A Modbus/TCP slave that ignores the unit id and answers with 0 or 255 (many do;
+/// TCP/IP Implementation Guide §4.4.2): its reply is matched by mbgate's transaction
+/// id and the function code, and the serial master gets it with its own unit and
+/// transaction id (before, it timed out: 0x0B).
+#[test]
+fn a_slave_answering_as_unit_0_or_255_is_matched() {
+    for as_unit in [0u8, 0xFF] {
+        let (_dir, socat, _slave, gw) = one_slave_doing("mbap", Behaviour::AnswerAs(as_unit));
+        let mut line = RawLine::open(&socat.dev);
+        line.send(Adu::build(0x0A0B, 1, &[3, 0, 4, 0, 2]).as_bytes());
+        let reply = line.recv(13, Duration::from_secs(2));
+        assert_eq!(
+            hexs(&reply),
+            "0A 0B 00 00 00 07 01 03 04 00 04 00 05",
+            "answered as unit {as_unit}:\n{}",
+            gw.log()
+        );
+    }
+}
+
+/// SIGTERM while a request is with a slow slave: the serial master still gets its
+/// reply before mbgate exits (before, the line stopped at once and the master was
+/// cut off), and mbgate exits 0.
+#[test]
+fn shutdown_answers_the_request_in_flight_first() {
+    let (_dir, socat, _slave, mut gw) = one_slave_doing("rtu", Behaviour::AnswerAfter(300));
+    let mut line = RawLine::open(&socat.dev);
+    line.send(&rtu::encode(1, &[3, 0, 6, 0, 1]));
+    gw.wait_log("slave tx", Duration::from_secs(2));
+    gw.signal("TERM");
+    let reply = line.recv(7, Duration::from_secs(3));
+    assert_eq!(hexs(&reply), hexs(&rtu::encode(1, &[3, 2, 0, 6])));
+    let status = gw.stop_with("TERM", Duration::from_secs(5));
+    assert!(status.success(), "{status:?}:\n{}", gw.log());
+    assert!(gw.log().contains("replies=1"), "{}", gw.log());
 }

@@ -6,6 +6,7 @@
 
 mod common;
 use common::*;
+use mbgate::frame::Adu;
 use std::io::{Read, Write};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -148,4 +149,112 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     let counters = gw.stop();
     assert_eq!(counters["connections"], 3, "no master reconnected");
     assert_eq!(counters["protocol_violations"], 0);
+}
+
+/// Two lines, each with its own response timeout: the line on `a` 200 ms (its
+/// device's 300 ms read times out), the one on `b` 1000 ms. `order` puts the tables
+/// in the file: `b_first` writes `b`'s table first; each table keeps its port, units
+/// and timeout.
+fn two_lines(a: &std::path::Path, b: &std::path::Path, b_first: bool, b_timeout: u32) -> String {
+    let table = |path: &std::path::Path, unit: u8, timeout: u32| {
+        format!(
+            "[[line]]\nunits = [{unit}]\nserial = {{ path = {:?}, baud_rate = 4000000, silence_floor_ms = 0, flow_control = \"none\" }}\nrelay = {{ response_timeout_ms = {timeout} }}\n\n",
+            path.display().to_string()
+        )
+    };
+    let (ta, tb) = (table(a, 1, 200), table(b, 2, b_timeout));
+    let lines = if b_first { tb + &ta } else { ta + &tb };
+    lines
+        + "[[listen]]\naddress = \"127.0.0.1:0\"\n\n[log]\nlevel = \"debug\"\n\n\
+           [metrics]\nlisten = \"127.0.0.1:0\"\n"
+}
+
+/// `mbgate reload` against the gateway's metrics listener: exit code and output.
+fn mbgate_reload(gw: &Gateway) -> (i32, String) {
+    let log = gw.log();
+    let rest = log.split("metrics on http://").nth(1).expect("metrics on");
+    let http = rest.split('/').next().unwrap();
+    let run = mbgate(&["reload", "--metrics", http]);
+    (run.code, run.stdout + &run.stderr)
+}
+
+/// A reload knows each line by its port, not by its place in the file: the same two
+/// tables written in the other order change nothing (before, each line took the
+/// other's timeout, and the log said "nothing to change"); a per-line change is
+/// applied to that line and named with it, in the log and in `mbgate reload`'s answer
+/// (before: "nothing to change"); a file that adds a line is refused, naming it, and
+/// the running configuration stays.
+#[test]
+fn reload_matches_lines_by_their_port_and_names_each_change() {
+    let dir = tempdir();
+    let (da, db) = (dir.path().join("a"), dir.path().join("b"));
+    std::fs::create_dir_all(&da).unwrap();
+    std::fs::create_dir_all(&db).unwrap();
+    let (sa, sb) = (Socat::start(&da), Socat::start(&db));
+    let (_deva, _devb) = (device(&sa.dev), device(&sb.dev));
+    let file = dir.path().join("mbgate.toml");
+    let gw = Gateway::launch_text(
+        &two_lines(&sa.gw, &sb.gw, false, 1000),
+        dir.path(),
+        Launch::default(),
+    );
+    gw.wait_log("metrics on http://", Duration::from_secs(5));
+    let mut m = gw.connect();
+    let slow =
+        |m: &mut std::net::TcpStream, tid: u16, unit: u8| transact(m, &read_req(tid, unit, 9, 1));
+    let timed_out = |tid: u16, unit: u8| Adu::exception(tid, unit, 0x03, 0x0B).as_bytes().to_vec();
+    assert_eq!(slow(&mut m, 1, 1), timed_out(1, 1), "line a: 200 ms");
+    assert_eq!(
+        slow(&mut m, 2, 2),
+        read_reply(2, 2, &[9]),
+        "line b: 1000 ms"
+    );
+
+    // The same tables, the other way round: SIGHUP.
+    std::fs::write(&file, two_lines(&sa.gw, &sb.gw, true, 1000)).unwrap();
+    let mut gw = gw;
+    gw.proc.signal("HUP");
+    gw.wait_log("reloaded: ", Duration::from_secs(5));
+    assert_eq!(
+        slow(&mut m, 3, 1),
+        timed_out(3, 1),
+        "line a still 200 ms:\n{}",
+        gw.log()
+    );
+    assert_eq!(
+        slow(&mut m, 4, 2),
+        read_reply(4, 2, &[9]),
+        "line b still 1000 ms"
+    );
+    let log = gw.log();
+    assert!(log.contains("reloaded: nothing to change"), "{log}");
+    assert!(!log.contains("applied only by a restart"), "{log}");
+
+    // Line b's timeout to 200 ms, through `mbgate reload`.
+    std::fs::write(&file, two_lines(&sa.gw, &sb.gw, true, 200)).unwrap();
+    let (code, said) = mbgate_reload(&gw);
+    let b = sb.gw.display().to_string();
+    let change = format!("reloaded: line {b:?} relay.response_timeout_ms = 200");
+    assert_eq!(code, 0, "{said}");
+    assert!(said.starts_with(&change), "{said}");
+    gw.wait_log(&change, Duration::from_secs(5));
+    assert_eq!(slow(&mut m, 5, 2), timed_out(5, 2), "line b: 200 ms now");
+    assert_eq!(slow(&mut m, 6, 1), timed_out(6, 1), "line a: 200 ms still");
+
+    // A third line: refused, named; the running configuration stays.
+    let third = "[[line]]\nunits = [3]\nserial = { path = \"/dev/mbgate-no-such-port\" }\n\n";
+    std::fs::write(
+        &file,
+        third.to_owned() + &two_lines(&sa.gw, &sb.gw, true, 1000),
+    )
+    .unwrap();
+    let (code, said) = mbgate_reload(&gw);
+    assert_eq!(code, 1, "{said}");
+    assert!(
+        said.contains("reload refused: the line on \"/dev/mbgate-no-such-port\" is new in the file: a line is added or removed only by a restart (systemctl restart); the running configuration stays"),
+        "{said}"
+    );
+    assert_eq!(slow(&mut m, 7, 2), timed_out(7, 2), "line b: still 200 ms");
+    let counters = gw.stop();
+    assert_eq!(counters["connections"], 1, "no master reconnected");
 }

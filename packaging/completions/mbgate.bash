@@ -31,6 +31,9 @@ _mbgate() {
             mbgate,read)
                 cmd="mbgate__subcmd__read"
                 ;;
+            mbgate,reload)
+                cmd="mbgate__subcmd__reload"
+                ;;
             mbgate,run)
                 cmd="mbgate__subcmd__run"
                 ;;
@@ -76,6 +79,9 @@ _mbgate() {
             mbgate__subcmd__help,read)
                 cmd="mbgate__subcmd__help__subcmd__read"
                 ;;
+            mbgate__subcmd__help,reload)
+                cmd="mbgate__subcmd__help__subcmd__reload"
+                ;;
             mbgate__subcmd__help,run)
                 cmd="mbgate__subcmd__help__subcmd__run"
                 ;;
@@ -101,7 +107,7 @@ _mbgate() {
 
     case "${cmd}" in
         mbgate)
-            opts="-h -V --help --version run check-config read write sim demo status generate help"
+            opts="-h -V --help --version run check-config read write sim demo status generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 1 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -485,7 +491,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__help)
-            opts="run check-config read write sim demo status generate help"
+            opts="run check-config read write sim demo status generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -583,6 +589,20 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__help__subcmd__read)
+            opts=""
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
+        mbgate__subcmd__help__subcmd__reload)
             opts=""
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
@@ -708,6 +728,24 @@ _mbgate() {
                     return 0
                     ;;
                 --count)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
+        mbgate__subcmd__reload)
+            opts="-h --metrics --help"
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                --metrics)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;

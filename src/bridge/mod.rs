@@ -89,6 +89,9 @@ pub(crate) async fn run_on(
 ) -> Result<Counts, BridgeError> {
     let (events_tx, mut events) = mpsc::unbounded_channel();
     let mut to_slaves = Vec::new();
+    // Stopped once the line has drained at shutdown: the replies still due come
+    // through these connections.
+    let slaves_stop = CancellationToken::new();
     let tracker = tokio_util::task::TaskTracker::new();
     for (i, route) in master.routes.iter().enumerate() {
         let listener = slave::bind(route)
@@ -111,7 +114,7 @@ pub(crate) async fn run_on(
             listener,
             rx,
             events_tx.clone(),
-            shutdown.clone(),
+            slaves_stop.clone(),
         ));
     }
     drop(events_tx);
@@ -130,12 +133,19 @@ pub(crate) async fn run_on(
         framing.name(),
         routes.join("; ")
     );
+    let drain_within = master
+        .routes
+        .iter()
+        .map(|r| Duration::from_millis(r.response_timeout_ms))
+        .max()
+        .unwrap_or_default();
     let mut line = Line {
         requests: Requests::new(framing),
         table: Table::new(master, framing != Framing::Mbap),
         timing,
         traffic,
         to_slaves,
+        drain_within,
         watchdog: crate::notify::watchdog_interval(),
         pet_at: None,
     };
@@ -192,6 +202,7 @@ pub(crate) async fn run_on(
             }
         }
     }
+    slaves_stop.cancel();
     tracker.close();
     tracker.wait().await;
     let c = line.table.counts;
@@ -203,6 +214,7 @@ pub(crate) async fn run_on(
         unavailable = c.unavailable,
         late = c.late,
         broadcasts = c.broadcasts,
+        broadcasts_refused = c.broadcasts_refused,
         refused = c.refused,
         dropped_bytes = line.requests.dropped(),
         "master line stopped"
@@ -216,13 +228,18 @@ struct Line {
     timing: Timing,
     traffic: bool,
     to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
+    /// The longest a request held at shutdown can take to be answered (the longest
+    /// route timeout).
+    drain_within: Duration,
     /// systemd's watchdog interval, pinged from this loop, and the next ping.
     watchdog: Option<Duration>,
     pet_at: Option<Instant>,
 }
 
 impl Line {
-    /// Serves the open port until shutdown (`Ok`) or its loss (`Err`).
+    /// Serves the open port until shutdown (`Ok`) or its loss (`Err`). At shutdown
+    /// the requests held are answered first (their replies, or 0x0B at their
+    /// deadlines; new ones get 0x0A), so the serial master is not cut off mid-request.
     async fn serve(
         &mut self,
         link: &mut Link,
@@ -232,11 +249,23 @@ impl Line {
         let mut buf = vec![0u8; 1024];
         let mut last_rx = Instant::now();
         let mut paused = true;
+        let mut draining = false;
         loop {
+            if draining && self.table.idle() {
+                return Ok(());
+            }
             let partial = self.requests.buffered() > 0;
             let deadline = self.table.next_deadline().map(Instant::from_std);
             let actions = tokio::select! {
-                _ = shutdown.cancelled() => return Ok(()),
+                _ = shutdown.cancelled(), if !draining => {
+                    draining = true;
+                    self.table.close();
+                    if !self.table.idle() {
+                        debug!("stopping: answering the requests held first");
+                    }
+                    crate::notify::stopping(self.drain_within + Duration::from_secs(1));
+                    Vec::new()
+                }
                 r = link.reader.read(&mut buf) => match r {
                     Ok(0) => return Err(std::io::ErrorKind::UnexpectedEof.into()),
                     Ok(n) => {

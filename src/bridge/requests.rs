@@ -127,26 +127,54 @@ mod tests {
     }
 
     /// A frame that lost a byte, followed at once by a good one: the truncated one
-    /// borrows the good one's first byte, and what follows it refutes it; it is
-    /// skipped whole (docs/design.md §2), so neither is forwarded (the good one lost
-    /// its first byte to it). The next request is taken as usual.
+    /// borrows the good one's first byte, and what follows it refutes it. The good
+    /// one starts inside it, at the byte it borrowed: found there (the first start
+    /// inside that runs past its end) and forwarded. The damaged one never is.
     #[test]
-    fn truncated_mbap_then_a_good_one() {
+    fn an_intact_request_right_behind_a_damaged_one_is_recovered() {
         let mut r = Requests::new(Framing::Mbap);
         let mut cut = bytes("00 07 00 00 00 06 01 03 00 00 00 01");
         cut.remove(9);
         r.push(&cut);
-        r.push(&bytes("00 08 00 00 00 06 01 03 00 00 00 01"));
+        r.push(&bytes("00 08 00 00 00 06 01 03 00 00 00 02"));
         r.pause();
-        assert_eq!(all(&mut r, true), []);
-        r.push(&bytes("00 09 00 00 00 06 01 03 00 00 00 01"));
-        r.pause();
-        let got = all(&mut r, false);
+        let got = all(&mut r, true);
         assert_eq!(got.len(), 1, "{got:?}");
         assert_eq!(
             (got[0].tid, &got[0].pdu[..]),
-            (Some(9), &[3, 0, 0, 0, 1][..])
+            (Some(8), &[3, 0, 0, 0, 2][..])
         );
+        assert_eq!(r.dropped(), 11, "the damaged one's own bytes");
+
+        // Back to back with a third, in any chunking: the second and the third.
+        let mut stream = cut.clone();
+        stream.extend(bytes("00 08 00 00 00 06 01 03 00 00 00 02"));
+        stream.extend(bytes("00 09 00 00 00 09 01 10 00 08 00 01 02 00 11"));
+        for at in 0..stream.len() {
+            let mut r = Requests::new(Framing::Mbap);
+            r.push(&stream[..at]);
+            let mut got = all(&mut r, false);
+            r.push(&stream[at..]);
+            got.extend(all(&mut r, false));
+            r.pause();
+            got.extend(all(&mut r, true));
+            let tids: Vec<Option<u16>> = got.iter().map(|g| g.tid).collect();
+            assert_eq!(tids, [Some(8), Some(9)], "cut at {at}");
+        }
+        // A write whose values are a whole request, damaged (a byte of its values
+        // lost, so it borrows the next one's first byte and is refuted): its values do
+        // not become a request; only a start that runs past its end counts.
+        let mut r = Requests::new(Framing::Mbap);
+        let inner = bytes("00 05 00 00 00 06 01 06 00 01 00 07");
+        let mut write = bytes("00 0A 00 00 00 15 01 10 00 00 00 07 0E AA BB");
+        write.extend(&inner);
+        write.remove(13);
+        r.push(&write);
+        r.push(&bytes("00 0B 00 00 00 06 01 03 00 00 00 01"));
+        r.pause();
+        let got = all(&mut r, true);
+        let tids: Vec<Option<u16>> = got.iter().map(|g| g.tid).collect();
+        assert_eq!(tids, [Some(11)], "{got:?}");
     }
 
     #[test]

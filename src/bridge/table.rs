@@ -5,7 +5,7 @@
 
 use super::requests::Incoming;
 use crate::config::master::MasterLine;
-use crate::frame::function::ExceptionCode;
+use crate::frame::function::{ExceptionCode, FunctionCode};
 use crate::frame::pdu;
 use crate::frame::Adu;
 use std::collections::VecDeque;
@@ -49,6 +49,9 @@ pub struct Counts {
     pub(crate) broadcasts: u64,
     /// Requests outside the protocol's limits, answered by mbgate.
     pub(crate) refused: u64,
+    /// Requests to unit 0 on RTU/ASCII that a broadcast cannot carry (anything but a
+    /// write): dropped, as no slave on a bus would answer them.
+    pub(crate) broadcasts_refused: u64,
 }
 
 #[derive(Debug, Clone)]
@@ -77,6 +80,8 @@ pub(crate) struct Table {
     routes: Vec<Route>,
     /// Unit 0 is a broadcast (RTU, ASCII), not on MBAP.
     serial_bus: bool,
+    /// Shutting down: new requests get 0x0A, those held are answered or time out.
+    closing: bool,
     pub(crate) counts: Counts,
 }
 
@@ -104,8 +109,22 @@ impl Table {
             line,
             routes,
             serial_bus,
+            closing: false,
             counts: Counts::default(),
         }
+    }
+
+    /// Shutting down: requests from now on are answered 0x0A at once; those held
+    /// still get their replies, or 0x0B at their deadlines.
+    pub(crate) fn close(&mut self) {
+        self.closing = true;
+    }
+
+    /// Is nothing held (sent, or waiting for its turn)?
+    pub(crate) fn idle(&self) -> bool {
+        self.routes
+            .iter()
+            .all(|r| r.in_flight.is_empty() && r.waiting.is_empty())
     }
 
     fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: ExceptionCode) {
@@ -143,6 +162,21 @@ impl Table {
                 r.in_flight.iter_mut().for_each(|(_, h)| h.answer = false);
                 r.waiting.iter_mut().for_each(|h| h.answer = false);
             }
+        }
+        if broadcast && !FunctionCode::new(request.pdu[0]).may_broadcast() {
+            // No slave on a bus answers a broadcast, so it can only be a write: a
+            // read to unit 0 goes nowhere (docs/protocol.md §2, "Unit 0 on a bus").
+            self.counts.broadcasts_refused += 1;
+            return out;
+        }
+        if self.closing {
+            let held = Held {
+                request,
+                answer: !broadcast,
+                deadline: now,
+            };
+            self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
+            return out;
         }
         if broadcast {
             // Every slave gets it, at once, and nothing is awaited: a reply to it is
@@ -241,9 +275,13 @@ impl Table {
     pub(crate) fn reply(&mut self, i: usize, adu: &Adu) -> Vec<Action> {
         let mut out = Vec::new();
         let r = &mut self.routes[i];
+        // The unit asked, or 0 or 255: a Modbus/TCP server addressed by its IP address
+        // may ignore the unit id and answer with either (TCP/IP Implementation Guide
+        // §4.4.2). The id is mbgate's own on this connection, so nothing else matches.
+        let unit_ok = |asked: u8| adu.unit() == asked || adu.unit() == 0 || adu.unit() == 0xFF;
         let found = r.in_flight.iter().position(|(tid, h)| {
             *tid == adu.tid()
-                && h.request.unit == adu.unit()
+                && unit_ok(h.request.unit)
                 && adu.function() & 0x7F == h.request.pdu[0]
         });
         match found {
@@ -510,5 +548,50 @@ mod tests {
             answers(&t.reply(1, &Adu::build(2, 9, &[6, 0, 1, 0, 7]))).len(),
             1
         );
+        // A read to unit 0 is no broadcast: sent nowhere, answered nothing, counted.
+        let a = t.request(req(0, 0), t0);
+        assert_eq!((sent(&a), answers(&a)), (vec![], vec![]));
+        assert_eq!(t.counts.broadcasts_refused, 1);
+        assert_eq!(t.counts.broadcasts, 1);
+    }
+
+    /// A Modbus/TCP slave that ignores the unit id answers with 0 or 255: matched by
+    /// mbgate's own transaction id and the function code, answered with the serial
+    /// master's unit. Another unit, or another function, is not the reply.
+    #[test]
+    fn a_slave_answering_as_unit_0_or_255_is_matched() {
+        let now = Instant::now();
+        let mut t = Table::new(line(1), false);
+        t.up(0);
+        for (i, as_unit) in [0u8, 0xFF].into_iter().enumerate() {
+            let tid = i as u16 + 1;
+            assert_eq!(sent(&t.request(req(7 + tid, 1), now)), [(0, tid, 1)]);
+            assert_eq!(t.reply(0, &Adu::build(tid, 2, &[3, 2, 0, 9])), []);
+            assert_eq!(t.reply(0, &Adu::build(tid, as_unit, &[4, 2, 0, 9])), []);
+            let a = t.reply(0, &Adu::build(tid, as_unit, &[3, 2, 0, 9]));
+            assert_eq!(answers(&a), [(Some(7 + tid), vec![3, 2, 0, 9])]);
+        }
+        assert_eq!(t.counts.late, 4);
+    }
+
+    /// Shutting down: what is held is still answered (its reply, or 0x0B at its
+    /// deadline); a new request gets 0x0A at once.
+    #[test]
+    fn closing_answers_what_is_held_and_refuses_the_rest() {
+        let now = Instant::now();
+        let mut t = Table::new(line(1), false);
+        t.up(0);
+        t.request(req(1, 1), now);
+        t.request(req(2, 1), now);
+        t.close();
+        assert!(!t.idle());
+        let a = t.request(req(3, 1), now);
+        assert_eq!(answers(&a), [(Some(3), vec![0x83, 0x0A])]);
+        let a = t.reply(0, &Adu::build(1, 1, &[3, 2, 0, 5]));
+        assert_eq!(answers(&a), [(Some(1), vec![3, 2, 0, 5])]);
+        assert_eq!(sent(&a), [(0, 2, 1)], "the one waiting goes too");
+        let a = t.expire(now + Duration::from_millis(100));
+        assert_eq!(answers(&a), [(Some(2), vec![0x83, 0x0B])]);
+        assert!(t.idle());
     }
 }

@@ -282,6 +282,22 @@ impl Reader<'_> {
                     let m = "missing: with several lines, each says which unit ids it serves";
                     return self.fail(lines[i].0, &format!("line[{i}].units"), m);
                 }
+                // A line is known by its port or address (a reload matches lines so).
+                for (i, (at, line, _)) in lines.iter().enumerate() {
+                    let first = lines.iter().position(|(_, l, _)| l.name() == line.name());
+                    if let Some(j) = first.filter(|&j| j < i) {
+                        let key = match line.tcp {
+                            Some(_) => format!("line[{i}].tcp.address"),
+                            None => format!("line[{i}].serial.path"),
+                        };
+                        let m = format!(
+                            "the same as line[{j}]'s ({:?}): each line has its own port or address",
+                            line.name()
+                        );
+                        let at = self.at.get(&key).copied().unwrap_or(*at);
+                        return self.fail(at, &key, m);
+                    }
+                }
                 false
             }
         };
@@ -475,6 +491,7 @@ impl Reader<'_> {
                     if let Err(m) = parse_host_port(&s) {
                         return self.fail(at, &full, m);
                     }
+                    self.at.insert(full, at);
                     address = Some(s);
                 }
                 "framing" => {

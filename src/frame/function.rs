@@ -101,6 +101,23 @@ impl FunctionCode {
         self.spec().is_some_and(|s| s.access == Access::Read)
     }
 
+    /// May a request with this code go to unit 0, the broadcast address of a serial
+    /// bus? Only the writes of the application protocol: a broadcast is answered by
+    /// no device, so it can only be a writing command (Modbus over Serial Line V1.02
+    /// §2.1). A read (01-04, 17 too), a diagnostic, a code the specification does
+    /// not define, cannot: no device would answer it (docs/protocol.md §2).
+    pub(crate) fn may_broadcast(self) -> bool {
+        matches!(
+            self,
+            Self::WRITE_SINGLE_COIL
+                | Self::WRITE_SINGLE_REGISTER
+                | Self::WRITE_MULTIPLE_COILS
+                | Self::WRITE_MULTIPLE_REGISTERS
+                | Self::WRITE_FILE_RECORD
+                | Self::MASK_WRITE_REGISTER
+        )
+    }
+
     /// The shape of a request with this code ([`Shape::Open`] when unknown).
     pub(crate) fn request_shape(self) -> Shape {
         self.spec().map_or(Shape::Open, |s| s.request)

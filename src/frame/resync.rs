@@ -22,7 +22,10 @@
 //!   that stops before it is complete, it is refuted and dropped whole: either it
 //!   borrowed bytes from what follows, or what follows lost bytes, and a frame found
 //!   by rescanning inside it could only be a shifted copy of the next one with
-//!   another transaction id (docs/reliability.md).
+//!   another transaction id (docs/reliability.md). A judge of requests
+//!   ([`Judge::resume_inside_refuted`]) has the frame it borrowed from looked for
+//!   instead: a frame that starts inside it and runs past its end (one wholly inside
+//!   it would be made of its own data).
 //!
 //! The caller also says when the line has paused ([`Resync::pause`]: quiet for the
 //! silence that ends a frame, a few character times, shorter than the frame gap). A
@@ -90,6 +93,16 @@ pub trait Judge {
     fn deliver_refused(&self, _frame: FrameRef<'_>) -> bool {
         false
     }
+    /// When a held frame this judge accepted is refuted, look inside it for the next
+    /// frame (the first plausible start that runs past its end) instead of dropping
+    /// it whole? A frame that lost bytes borrowed the first bytes of the one behind
+    /// it, which then starts inside it. Requests say yes (a serial master's intact
+    /// request right behind a damaged one is recovered); replies no (a reply found
+    /// that way could be a shifted copy of the next with another id,
+    /// docs/reliability.md).
+    fn resume_inside_refuted(&self) -> bool {
+        false
+    }
     /// On an RTU or ASCII line ([`super::framer::Framer`]), what the frame at the front
     /// must be: the reply to a request (whose shape gives the reply's length), or any
     /// request. Any reply, unless the judge knows the request.
@@ -132,6 +145,10 @@ impl Judge for RequestJudge {
 
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         self.confirm
+    }
+
+    fn resume_inside_refuted(&self) -> bool {
+        true
     }
 
     fn expect(&self) -> Expect<'_> {
@@ -184,6 +201,9 @@ pub struct Resync {
     pauses: Vec<usize>,
     /// Bytes taken from the front so far (yielded or dropped).
     consumed: u64,
+    /// Bytes at the front that belong to a refuted frame searched for the next one
+    /// ([`Judge::resume_inside_refuted`]): only a frame that runs past them is taken.
+    inside: usize,
     stats: ResyncStats,
 }
 
@@ -295,6 +315,7 @@ impl Resync {
 
     fn forget(&mut self, n: usize) {
         self.consumed += n as u64;
+        self.inside = self.inside.saturating_sub(n);
         if !self.pauses.is_empty() {
             self.pauses.retain_mut(|p| {
                 *p = p.saturating_sub(n);
@@ -369,6 +390,8 @@ impl Resync {
         loop {
             match candidate(&self.buf, judge) {
                 Candidate::Implausible => self.drop_one(),
+                // Made of a refuted frame's own bytes (`resume_inside_refuted`).
+                Candidate::Complete(total) if total <= self.inside => self.drop_one(),
                 Candidate::Incomplete if quiet && !self.buf.is_empty() => self.drop_one(),
                 Candidate::Incomplete => return None,
                 Candidate::Complete(total) => {
@@ -389,10 +412,16 @@ impl Resync {
                             }
                             Verdict::Refuted => {
                                 // Skipped whole: a frame found inside it could only be
-                                // a shifted copy of what follows.
+                                // a shifted copy of what follows. Unless the judge
+                                // looks for the frame it borrowed from.
                                 self.stats.refuted += 1;
-                                self.skip(total);
-                                self.stats.dropped_bytes += total as u64;
+                                if judge.resume_inside_refuted() {
+                                    self.inside = total;
+                                    self.drop_one();
+                                } else {
+                                    self.skip(total);
+                                    self.stats.dropped_bytes += total as u64;
+                                }
                                 continue;
                             }
                         }

@@ -170,12 +170,16 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
 fn exceptions(lines: &[Arc<LineMetrics>]) -> Family {
     let mut f = Family::new(
         "mbgate_line_exceptions",
-        "Exception replies to masters: source=device, sent by the device; source=gateway, made by mbgate (0x0A no path, 0x06 queue full, 0x0B no reply in time or unit backed off).",
+        "Exception replies to masters: source=device, sent by the device; source=gateway, made by mbgate (0x01 a read or another non-write to unit 0 on a bus, 0x0A no path, 0x06 queue full, 0x0B no reply in time or unit backed off).",
         C,
     );
     for l in lines {
         let st = &l.stats;
         let made = [
+            (
+                ExceptionCode::ILLEGAL_FUNCTION.get(),
+                st.get(&st.broadcasts_refused),
+            ),
             (ExceptionCode::SERVER_DEVICE_BUSY.get(), st.get(&st.busy)),
             (
                 ExceptionCode::GATEWAY_PATH_UNAVAILABLE.get(),

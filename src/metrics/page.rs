@@ -162,8 +162,11 @@ fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
         .collect();
     let timeouts: u64 = l.units().map(|(_, u)| g(&u.timeouts)).sum();
     let device: u64 = l.device_exceptions().iter().map(|(_, n)| n).sum();
-    let gateway =
-        st.get(&st.timeouts) + st.get(&st.backed_off) + st.get(&st.busy) + st.get(&st.unavailable);
+    let gateway = st.get(&st.timeouts)
+        + st.get(&st.backed_off)
+        + st.get(&st.busy)
+        + st.get(&st.unavailable)
+        + st.get(&st.broadcasts_refused);
     let frames: Vec<String> = frames.iter().map(frame).collect();
     format!(
         "{{\"name\":{},\"open\":{},\"masters\":{},\"queued\":{},\"in_flight\":{},\"requests\":{},\"replies\":{},\"timeouts\":{timeouts},\"retries\":{},\"late\":{},\"exceptions_device\":{device},\"exceptions_gateway\":{gateway},\"busy_s\":{},\"last_reply_ms\":{},\"units\":[{}],\"frames_total\":{total},\"frames\":[{}],\"history\":{}}}",

@@ -55,16 +55,26 @@ impl Relay {
                 self.sweep_backed_off(unit);
             }
             Verdict::Resend => {
-                debug!(
-                    conn = f.req.conn(),
-                    attempt = f.req.attempts + 1,
-                    "{}; resending",
-                    why.what()
-                );
-                self.stats.add(&self.stats.retries, 1);
                 let mut req = f.req;
                 req.attempts += 1;
-                self.sched.resend(req);
+                let (conn, attempt) = (req.conn(), req.attempts);
+                match self.sched.resend(req) {
+                    Ok(()) => {
+                        debug!(conn, attempt, "{}; resending", why.what());
+                        self.stats.add(&self.stats.retries, 1);
+                    }
+                    // More than one in flight, and a later request of one of its
+                    // masters went on the line after it: resent, it would overtake
+                    // that one (docs/design.md §1 "Each master's order").
+                    Err(req) => {
+                        debug!(
+                            conn = req.conn(),
+                            "{}; not resent: a later request of its master is on the line: 0x0B",
+                            why.what()
+                        );
+                        req.answer_exception(Refusal::TargetFailed, &self.stats);
+                    }
+                }
             }
             Verdict::Fail => {
                 debug!(

@@ -27,6 +27,9 @@ pub(super) struct Pending {
     /// identical read joined it, in the order they asked. Never empty.
     askers: Vec<Asker>,
     pub(super) attempts: u32,
+    /// The scheduler's turn that last put it on the line (a resend is checked
+    /// against it, `scheduler.rs`).
+    turn: u64,
     /// The cache's generation for its unit when it came (`cache.rs`): its reply is
     /// kept only if nothing acted on the unit since.
     pub(super) cache_stamp: u64,
@@ -69,12 +72,18 @@ impl Queued for Pending {
         let one = self.askers.remove(i);
         Some(self.part(vec![one]))
     }
+    fn turn(&self) -> u64 {
+        self.turn
+    }
+    fn set_turn(&mut self, turn: u64) {
+        self.turn = turn;
+    }
 }
 
 /// The identity of a read that identical reads may join or be answered from the cache
-/// for: FC 01-04, of one unit. (Unit 0 too: on an MBAP line it is a unit like any other,
-/// and on a bus no device answers a read to it, so those who joined get what the
-/// first would have got.)
+/// for: FC 01-04, of one unit. (Unit 0 too: on an MBAP line it is a unit like any other;
+/// on a bus a read to it never gets this far, answered 0x01 as a broadcast that cannot
+/// be one.)
 pub(super) fn read_key(adu: &Adu) -> Option<ReadKey> {
     let pdu: [u8; 5] = adu.pdu().try_into().ok()?;
     let coalescable = matches!(
@@ -110,6 +119,7 @@ impl Pending {
             }],
             adu,
             attempts: 0,
+            turn: 0,
             cache_stamp: 0,
         }
     }
@@ -120,6 +130,7 @@ impl Pending {
             adu: self.adu.with_tid(askers[0].tid),
             askers,
             attempts: self.attempts,
+            turn: self.turn,
             cache_stamp: self.cache_stamp,
         }
     }
@@ -155,8 +166,11 @@ impl Pending {
         self.answer_exception(Refusal::BackedOff, stats);
     }
 
-    /// A broadcast (unit 0, RTU/ASCII) is on its way: no device answers it. The master
-    /// gets nothing, or the answer a device would have given (`broadcast_reply`).
+    /// A broadcast (unit 0, RTU/ASCII; a write: `FunctionCode::may_broadcast`) is on
+    /// its way: no device answers it. The master gets nothing, or, with
+    /// `broadcast_reply = "echo"`, the acknowledgement a device gives a write, made
+    /// from the request itself: it carries nothing read from a device (docs/protocol.md
+    /// §2).
     pub(super) fn broadcast_sent(self, reply: BroadcastReply) {
         match reply {
             // The ticket goes unanswered: the master may send another, and its

@@ -1,10 +1,24 @@
 //! Which request goes on the line next: the per-master queues, round-robin between
 //! masters, the queue's depth and each master's share of it, resends ahead of all, and
-//! the joining of a read to an identical one still waiting (coalescing).
+//! the joining of a read to an identical one still waiting (coalescing), all under one
+//! invariant: no request goes on the line behind a later request of any master it
+//! answers (docs/design.md §1 "Each master's order").
 //! Plain data: no I/O, no clock; the relay's loop asks and acts.
+//!
+//! How the invariant is kept, whatever moves a request: every waiting request has a
+//! number, given when it is queued; each master's queue lists the numbers of the
+//! requests it waits for (its own, and those its reads joined) in the order it sent
+//! them, which is also ascending, since a read joins only a request numbered after
+//! everything its master already waits for. A request goes on the line only from the
+//! front of the queue of every master it answers. A master leaving, or a full queue
+//! taking one master's part of a shared read, takes that master out of the request
+//! and nothing else: the request keeps its number and its place in the other masters'
+//! queues. The request with the lowest number is always at the front of all of its
+//! masters' queues, so something can always be sent. A resend goes ahead of all, and
+//! only if no later request of any of its masters has gone on the line since it went.
 
 use super::ConnId;
-use std::collections::{HashMap, VecDeque};
+use std::collections::{BTreeMap, HashMap, VecDeque};
 
 /// What makes two reads the same read: the unit and the PDU (function code 01-04,
 /// address, count). Two requests with the same key get the same reply from the device
@@ -17,7 +31,7 @@ pub(super) struct ReadKey {
 
 /// What the scheduler needs to know of a request.
 pub(super) trait Queued: Sized {
-    /// The master it is queued for (the first of the masters it serves).
+    /// The master that sent it (the first of the masters it serves).
     fn conn(&self) -> ConnId;
     /// The unit it is for.
     fn unit(&self) -> u8;
@@ -28,17 +42,22 @@ pub(super) trait Queued: Sized {
     /// queued before it to be joined by reads that come after it; to unit 0, for every
     /// unit (a broadcast on a bus).
     fn acts(&self) -> bool;
-    /// The masters it serves, once for each of their requests it answers.
+    /// The masters it serves, once for each of their requests it answers, in the
+    /// order they asked.
     fn masters(&self) -> impl Iterator<Item = ConnId> + '_;
     /// `other`, an identical read, is answered with this one.
     fn join(&mut self, other: Self);
-    /// Takes out the requests of `conn` as a request of their own, leaving the others'
-    /// (the first of them now the one it is queued for); `None` when it serves no other
-    /// master (then the whole request is `conn`'s) or does not serve `conn`.
+    /// Takes out the requests of `conn` as a request of their own, leaving the others';
+    /// `None` when it serves no other master (then the whole request is `conn`'s) or
+    /// does not serve `conn`.
     fn leave(&mut self, conn: ConnId) -> Option<Self>;
     /// Takes out the newest request of `conn` alone, as [`Queued::leave`] does all of
     /// them; `None` when it is the only request this one answers.
     fn leave_one(&mut self, conn: ConnId) -> Option<Self>;
+    /// The turn that last put it on the line (`set_turn`): a resend is checked
+    /// against it.
+    fn turn(&self) -> u64;
+    fn set_turn(&mut self, turn: u64);
 
     /// How many masters' requests it answers.
     fn served(&self) -> usize {
@@ -60,7 +79,14 @@ pub(super) struct Scheduler<R> {
     depth: usize,
     /// Whether an identical read may join one waiting (`coalesce`).
     coalesce: bool,
-    queues: HashMap<ConnId, VecDeque<Entry<R>>>,
+    /// The requests waiting, by number (the order they were queued in).
+    waiting: BTreeMap<u64, Entry<R>>,
+    /// The number the next request queued gets.
+    next_number: u64,
+    /// Each master's waiting requests, its own and those it joined, as numbers in the
+    /// order it sent them (ascending): a request goes on the line only from the front
+    /// of the queue of every master it answers.
+    queues: HashMap<ConnId, VecDeque<u64>>,
     /// Connections with queued requests, in round-robin order.
     ring: VecDeque<ConnId>,
     /// The connection whose request went on the line last: a connection that starts
@@ -70,15 +96,26 @@ pub(super) struct Scheduler<R> {
     queued: usize,
     /// Each master's part of `queued`: its share of the queue.
     held: HashMap<ConnId, usize>,
-    /// Where the newest joinable read of each key was queued (a hint, checked).
-    joinable: HashMap<ReadKey, ConnId>,
+    /// The newest joinable read of each key, by number (a hint, checked).
+    joinable: HashMap<ReadKey, u64>,
     /// Requests that act, queued so far: per unit, and to unit 0.
     epochs: HashMap<u8, u64>,
     broadcast_epoch: u64,
     /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
     retry: VecDeque<R>,
+    /// Requests handed to the line so far (each a turn), and for each master the turns
+    /// that last put one of its requests on the line.
+    turns: u64,
+    last_out: HashMap<ConnId, LastOut>,
     /// Requests that joined another so far.
     joins: u64,
+}
+
+/// The turns that last put a master's requests on the line: any, and one that acts.
+#[derive(Debug, Default, Clone, Copy)]
+struct LastOut {
+    any: u64,
+    acting: u64,
 }
 
 /// What became of a request offered to the queue.
@@ -103,6 +140,8 @@ impl<R: Queued> Scheduler<R> {
         Self {
             depth,
             coalesce,
+            waiting: BTreeMap::new(),
+            next_number: 0,
             queues: HashMap::new(),
             ring: VecDeque::new(),
             last_served: None,
@@ -112,6 +151,8 @@ impl<R: Queued> Scheduler<R> {
             epochs: HashMap::new(),
             broadcast_epoch: 0,
             retry: VecDeque::new(),
+            turns: 0,
+            last_out: HashMap::new(),
             joins: 0,
         }
     }
@@ -129,7 +170,7 @@ impl<R: Queued> Scheduler<R> {
 
     /// Are requests waiting for the line (queued, or to be resent)?
     pub(super) fn has_waiting(&self) -> bool {
-        !self.ring.is_empty() || !self.retry.is_empty()
+        !self.waiting.is_empty() || !self.retry.is_empty()
     }
 
     /// Has `conn` a request that acts on `unit` still waiting for the line (queued, or
@@ -138,13 +179,13 @@ impl<R: Queued> Scheduler<R> {
     /// nor take a cached reply.
     pub(super) fn acts_waiting(&self, conn: ConnId, unit: u8) -> bool {
         let acts_on = |r: &R| r.acts() && (r.unit() == unit || r.unit() == 0);
-        self.queues
-            .get(&conn)
-            .is_some_and(|q| q.iter().any(|e| acts_on(&e.req)))
-            || self
-                .retry
-                .iter()
-                .any(|r| acts_on(r) && r.masters().any(|c| c == conn))
+        self.queues.get(&conn).is_some_and(|q| {
+            q.iter()
+                .any(|n| self.waiting.get(n).is_some_and(|e| acts_on(&e.req)))
+        }) || self
+            .retry
+            .iter()
+            .any(|r| acts_on(r) && r.masters().any(|c| c == conn))
     }
 
     /// Queues `req` behind its master's earlier ones, or joins it to an identical read
@@ -172,11 +213,14 @@ impl<R: Queued> Scheduler<R> {
         let admitted = match self.try_join(req) {
             Ok(()) => Admitted::Joined,
             Err(req) => {
+                let number = self.next_number;
+                self.next_number += 1;
                 if let (true, Some(key)) = (self.coalesce, req.read_key()) {
-                    self.joinable.insert(key, conn);
+                    self.joinable.insert(key, number);
                 }
                 let epoch = self.epoch(req.unit());
-                self.enqueue(Entry { req, epoch });
+                self.waiting.insert(number, Entry { req, epoch });
+                self.enlist(conn, number);
                 Admitted::Queued
             }
         };
@@ -207,40 +251,42 @@ impl<R: Queued> Scheduler<R> {
     }
 
     /// Joins `req` to the newest identical read queued since the last request that
-    /// acted on its unit, if there is one and `req`'s master has nothing that acts on
-    /// the unit waiting before it; else gives it back.
+    /// acted on its unit, if there is one, `req`'s master has nothing that acts on the
+    /// unit waiting before it, and that read is not ahead of anything the master
+    /// already waits for (its order); else gives it back.
     fn try_join(&mut self, req: R) -> Result<(), R> {
         let Some(key) = req.read_key().filter(|_| self.coalesce) else {
             return Err(req);
         };
-        if self.acts_waiting(req.conn(), key.unit) {
+        let conn = req.conn();
+        if self.acts_waiting(conn, key.unit) {
+            return Err(req);
+        }
+        let Some(&number) = self.joinable.get(&key) else {
+            return Err(req);
+        };
+        let last = self.queues.get(&conn).and_then(|q| q.back().copied());
+        if last.is_some_and(|last| last > number) {
             return Err(req);
         }
         let epoch = self.epoch(key.unit);
-        let host = self
-            .joinable
-            .get(&key)
-            .and_then(|host| self.queues.get_mut(host))
-            .and_then(|q| {
-                q.iter_mut()
-                    .rev()
-                    .find(|e| e.epoch == epoch && e.req.read_key() == Some(key))
-            });
-        match host {
-            Some(e) => {
+        match self.waiting.get_mut(&number) {
+            Some(e) if e.epoch == epoch && e.req.read_key() == Some(key) => {
                 e.req.join(req);
                 self.joins += 1;
+                if last != Some(number) {
+                    self.enlist(conn, number);
+                }
                 Ok(())
             }
-            None => Err(req),
+            _ => Err(req),
         }
     }
 
-    /// At the back of its master's queue. Round-robin from its arrival: a master that
-    /// starts waiting goes behind every connection still waiting for a turn, ahead of
-    /// the one just served.
-    fn enqueue(&mut self, e: Entry<R>) {
-        let conn = e.req.conn();
+    /// Request `number` goes at the back of `conn`'s queue. Round-robin from its
+    /// arrival: a master that starts waiting goes behind every connection still
+    /// waiting for a turn, ahead of the one just served.
+    fn enlist(&mut self, conn: ConnId, number: u64) {
         let q = self.queues.entry(conn).or_default();
         if q.is_empty() {
             match self.ring.back() {
@@ -250,7 +296,7 @@ impl<R: Queued> Scheduler<R> {
                 _ => self.ring.push_back(conn),
             }
         }
-        q.push_back(e);
+        q.push_back(number);
     }
 
     /// `req` waits: it counts for each master it serves.
@@ -274,85 +320,151 @@ impl<R: Queued> Scheduler<R> {
         }
     }
 
-    /// Takes out one request of `conn`, its newest, to be answered 0x06: from the
-    /// newest read queued for it (a read that also answers others, or its own earlier
-    /// identical reads, stays queued for them), else from a read of another's it
-    /// joined.
+    /// Takes out one request of `conn`, its newest, to be answered 0x06: the last of
+    /// its queue. Of a read that also answers others (or `conn`'s own earlier
+    /// identical reads) only that one request is taken, and the read stays where it
+    /// is for the rest.
     fn evict(&mut self, conn: ConnId) -> Option<R> {
-        let own = self.queues.get_mut(&conn).and_then(|q| {
-            let e = q.back_mut()?;
-            match e.req.leave_one(conn) {
-                // Still answering others; if `conn` was the one it was queued for,
-                // it goes on queued for the first of them.
-                Some(part) => Some((part, (e.req.conn() != conn).then(|| q.pop_back()))),
-                None => q.pop_back().map(|e| (e.req, None)),
+        let number = *self.queues.get(&conn)?.back()?;
+        let e = self.waiting.get_mut(&number)?;
+        let gone = match e.req.leave_one(conn) {
+            Some(part) => {
+                if !e.req.masters().any(|c| c == conn) {
+                    self.unlist(conn, number);
+                }
+                part
             }
+            None => {
+                let whole = self.remove(number)?;
+                self.unlist(conn, number);
+                whole
+            }
+        };
+        self.uncount(&gone);
+        Some(gone)
+    }
+
+    /// Request `number` is no longer in `conn`'s queue.
+    fn unlist(&mut self, conn: ConnId, number: u64) {
+        if let Some(q) = self.queues.get_mut(&conn) {
+            q.retain(|&n| n != number);
+            if q.is_empty() {
+                self.queues.remove(&conn);
+                self.ring.retain(|&c| c != conn);
+            }
+        }
+    }
+
+    /// Takes request `number` out of the waiting ones (not out of the queues).
+    fn remove(&mut self, number: u64) -> Option<R> {
+        let e = self.waiting.remove(&number)?;
+        if let Some(key) = e.req.read_key() {
+            if self.joinable.get(&key) == Some(&number) {
+                self.joinable.remove(&key);
+            }
+        }
+        Some(e.req)
+    }
+
+    /// `req`, on the line at turn `req.turn()`, got no usable reply and may be resent:
+    /// ahead of every queue, unless that would put it behind a later request of one of
+    /// its masters that went on the line since (more than one in flight) and that
+    /// could change its answer: a later request that acts, or any later request when
+    /// `req` itself acts. A read resent behind its master's later reads gets the
+    /// answer it would have got in its place. Given back too when all its masters have
+    /// gone (nobody wants it). What is given back is answered as a request that was
+    /// not resent.
+    pub(super) fn resend(&mut self, req: R) -> Result<(), R> {
+        let turn = req.turn();
+        let acts = req.acts();
+        let overtaken = req.masters().any(|c| {
+            self.last_out.get(&c).is_some_and(|out| {
+                let later = if acts { out.any } else { out.acting };
+                later > turn
+            })
         });
-        if let Some((gone, moved)) = own {
-            self.drop_if_empty(conn);
-            if let Some(Some(e)) = moved {
-                self.enqueue(e);
-            }
-            self.uncount(&gone);
-            return Some(gone);
+        let unwanted = req.masters().all(|c| !self.last_out.contains_key(&c));
+        if overtaken || unwanted {
+            return Err(req);
         }
-        let part = self
-            .queues
-            .values_mut()
-            .find_map(|q| q.iter_mut().rev().find_map(|e| e.req.leave_one(conn)))?;
-        self.uncount(&part);
-        Some(part)
-    }
-
-    fn drop_if_empty(&mut self, conn: ConnId) {
-        if self.queues.get(&conn).is_some_and(VecDeque::is_empty) {
-            self.queues.remove(&conn);
-            self.ring.retain(|&c| c != conn);
-        }
-    }
-
-    /// `req` is to be resent: ahead of every queue.
-    pub(super) fn resend(&mut self, req: R) {
         self.retry.push_back(req);
+        Ok(())
     }
 
     /// The next request to put on the line: a resend first, then round-robin across
-    /// connections.
+    /// connections, the first whose next request is next for every master it answers.
     pub(super) fn next(&mut self) -> Option<R> {
-        if let Some(req) = self.retry.pop_front() {
-            return Some(req);
+        let mut req = match self.retry.pop_front() {
+            Some(req) => req,
+            None => self.next_queued()?,
+        };
+        self.turns += 1;
+        let turn = self.turns;
+        req.set_turn(turn);
+        let acts = req.acts();
+        for c in req.masters() {
+            let out = self.last_out.entry(c).or_default();
+            out.any = turn;
+            if acts {
+                out.acting = turn;
+            }
         }
-        loop {
-            let conn = self.ring.pop_front()?;
-            let Some(q) = self.queues.get_mut(&conn) else {
-                continue;
-            };
-            let Some(e) = q.pop_front() else {
-                self.queues.remove(&conn);
-                continue;
-            };
-            // Sent, it can be joined no more.
-            if let Some(key) = e.req.read_key() {
-                if self.joinable.get(&key) == Some(&conn)
-                    && !q.iter().any(|x| x.req.read_key() == Some(key))
-                {
-                    self.joinable.remove(&key);
+        Some(req)
+    }
+
+    fn next_queued(&mut self) -> Option<R> {
+        let ready = |s: &Self, number: u64| {
+            s.waiting.get(&number).is_some_and(|e| {
+                e.req
+                    .masters()
+                    .all(|c| s.queues.get(&c).and_then(|q| q.front()) == Some(&number))
+            })
+        };
+        let found = self.ring.iter().position(|c| {
+            self.queues
+                .get(c)
+                .and_then(|q| q.front())
+                .is_some_and(|&n| ready(self, n))
+        });
+        let (conn, number) = match found {
+            Some(i) => {
+                let conn = self.ring.remove(i)?;
+                (conn, *self.queues.get(&conn)?.front()?)
+            }
+            // Never: the lowest number is at the front of all its masters' queues.
+            None => {
+                let (&number, e) = self.waiting.first_key_value()?;
+                let conn = e.req.conn();
+                self.ring.retain(|&c| c != conn);
+                (conn, number)
+            }
+        };
+        let req = self.remove(number)?;
+        for c in req.masters() {
+            if let Some(q) = self.queues.get_mut(&c) {
+                if q.front() == Some(&number) {
+                    q.pop_front();
+                }
+                if q.is_empty() {
+                    self.queues.remove(&c);
+                    if c != conn {
+                        self.ring.retain(|&r| r != c);
+                    }
                 }
             }
-            if q.is_empty() {
-                self.queues.remove(&conn);
-            } else {
-                self.ring.push_back(conn);
-            }
-            self.uncount(&e.req);
-            self.last_served = Some(conn);
-            return Some(e.req);
         }
+        if self.queues.contains_key(&conn) {
+            self.ring.push_back(conn);
+        }
+        self.uncount(&req);
+        self.last_served = Some(conn);
+        Some(req)
     }
 
     /// The master went away: its waiting requests are dropped (their tickets with them).
-    /// A read it shared with others stays for them.
+    /// A read it shared with others stays for them, where it was.
     pub(super) fn detach(&mut self, conn: ConnId) {
+        self.last_out.remove(&conn);
         self.retry.retain_mut(|r| {
             if r.masters().all(|c| c == conn) {
                 return false;
@@ -360,60 +472,61 @@ impl<R: Queued> Scheduler<R> {
             r.leave(conn);
             true
         });
-        let mut gone = Vec::new();
-        let mut rehome = Vec::new();
-        if let Some(q) = self.queues.remove(&conn) {
-            self.ring.retain(|&c| c != conn);
-            for mut e in q {
-                match e.req.leave(conn) {
-                    Some(part) => {
-                        gone.push(part);
-                        rehome.push(e);
-                    }
-                    None => gone.push(e.req),
-                }
-            }
-        }
-        for q in self.queues.values_mut() {
-            gone.extend(q.iter_mut().filter_map(|e| e.req.leave(conn)));
-        }
-        for r in &gone {
-            self.uncount(r);
-        }
-        for e in rehome {
-            self.enqueue(e);
+        let Some(q) = self.queues.remove(&conn) else {
+            return;
+        };
+        self.ring.retain(|&c| c != conn);
+        for number in q {
+            let Some(e) = self.waiting.get_mut(&number) else {
+                continue;
+            };
+            let gone = match e.req.leave(conn) {
+                Some(part) => part,
+                None => match self.remove(number) {
+                    Some(whole) => whole,
+                    None => continue,
+                },
+            };
+            self.uncount(&gone);
         }
     }
 
     /// Takes every waiting request out: resends first, then the queues.
     pub(super) fn drain_all(&mut self) -> Vec<R> {
         self.ring.clear();
+        self.queues.clear();
         self.queued = 0;
         self.held.clear();
         self.joinable.clear();
         let mut all: Vec<R> = std::mem::take(&mut self.retry).into();
-        for (_, q) in std::mem::take(&mut self.queues) {
-            all.extend(q.into_iter().map(|e| e.req));
-        }
+        all.extend(
+            std::mem::take(&mut self.waiting)
+                .into_values()
+                .map(|e| e.req),
+        );
         all
     }
 
     /// Takes out every waiting request for `unit` (it was just backed off).
     pub(super) fn take_unit(&mut self, unit: u8) -> Vec<R> {
+        let numbers: Vec<u64> = self
+            .waiting
+            .iter()
+            .filter(|(_, e)| e.req.unit() == unit)
+            .map(|(&n, _)| n)
+            .collect();
         let mut swept = Vec::new();
-        for q in self.queues.values_mut() {
-            let (gone, kept): (VecDeque<_>, VecDeque<_>) = std::mem::take(q)
-                .into_iter()
-                .partition(|e| e.req.unit() == unit);
-            *q = kept;
-            swept.extend(gone.into_iter().map(|e| e.req));
+        for number in numbers {
+            let Some(req) = self.remove(number) else {
+                continue;
+            };
+            let masters: Vec<ConnId> = req.masters().collect();
+            for c in masters {
+                self.unlist(c, number);
+            }
+            self.uncount(&req);
+            swept.push(req);
         }
-        for r in &swept {
-            self.uncount(r);
-        }
-        self.queues.retain(|_, q| !q.is_empty());
-        let queues = &self.queues;
-        self.ring.retain(|c| queues.contains_key(c));
         let (gone, kept) = std::mem::take(&mut self.retry)
             .into_iter()
             .partition(|r| r.unit() == unit);
@@ -421,275 +534,38 @@ impl<R: Queued> Scheduler<R> {
         swept.extend::<VecDeque<R>>(gone);
         swept
     }
+
+    /// Checks the bookkeeping against the requests (tests): every count, every queue
+    /// ascending and listing exactly the requests its master waits for, the ring
+    /// holding exactly the masters with a queue.
+    #[cfg(test)]
+    fn audit(&self) {
+        let mut held: HashMap<ConnId, usize> = HashMap::new();
+        let mut listed: HashMap<ConnId, Vec<u64>> = HashMap::new();
+        for (&n, e) in &self.waiting {
+            for c in e.req.masters() {
+                *held.entry(c).or_default() += 1;
+                let l = listed.entry(c).or_default();
+                if l.last() != Some(&n) {
+                    l.push(n);
+                }
+            }
+        }
+        assert_eq!(held, self.held, "shares");
+        assert_eq!(held.values().sum::<usize>(), self.queued, "queued");
+        let queues: HashMap<ConnId, Vec<u64>> = self
+            .queues
+            .iter()
+            .map(|(&c, q)| (c, q.iter().copied().collect()))
+            .collect();
+        assert_eq!(listed, queues, "queues");
+        let mut ring: Vec<ConnId> = self.ring.iter().copied().collect();
+        ring.sort_unstable();
+        let mut with_queue: Vec<ConnId> = self.queues.keys().copied().collect();
+        with_queue.sort_unstable();
+        assert_eq!(ring, with_queue, "ring");
+    }
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A request: each master it serves with a label, its unit, and the register it
-    /// reads (`None`: it acts, like a write).
-    #[derive(Debug, PartialEq, Eq)]
-    struct Req {
-        askers: Vec<(ConnId, &'static str)>,
-        unit: u8,
-        reads: Option<u16>,
-    }
-
-    /// A request that acts on `unit` (a write).
-    #[allow(non_snake_case)]
-    fn Req(conn: ConnId, unit: u8, label: &'static str) -> Req {
-        Req {
-            askers: vec![(conn, label)],
-            unit,
-            reads: None,
-        }
-    }
-
-    /// A read of register `addr` of `unit`.
-    fn read(conn: ConnId, unit: u8, addr: u16, label: &'static str) -> Req {
-        Req {
-            askers: vec![(conn, label)],
-            unit,
-            reads: Some(addr),
-        }
-    }
-
-    impl Queued for Req {
-        fn conn(&self) -> ConnId {
-            self.askers[0].0
-        }
-        fn unit(&self) -> u8 {
-            self.unit
-        }
-        fn read_key(&self) -> Option<ReadKey> {
-            let [hi, lo] = self.reads?.to_be_bytes();
-            Some(ReadKey {
-                unit: self.unit,
-                pdu: [3, hi, lo, 0, 1],
-            })
-        }
-        fn acts(&self) -> bool {
-            self.reads.is_none()
-        }
-        fn masters(&self) -> impl Iterator<Item = ConnId> + '_ {
-            self.askers.iter().map(|a| a.0)
-        }
-        fn join(&mut self, other: Self) {
-            self.askers.extend(other.askers);
-        }
-        fn leave(&mut self, conn: ConnId) -> Option<Self> {
-            if self.askers.iter().all(|a| a.0 == conn) {
-                return None;
-            }
-            let (gone, kept) = self.askers.drain(..).partition(|a| a.0 == conn);
-            self.askers = kept;
-            (!gone.is_empty()).then_some(Req {
-                askers: gone,
-                unit: self.unit,
-                reads: self.reads,
-            })
-        }
-        fn leave_one(&mut self, conn: ConnId) -> Option<Self> {
-            let i = self.askers.iter().rposition(|a| a.0 == conn)?;
-            (self.askers.len() > 1).then(|| Req {
-                askers: vec![self.askers.remove(i)],
-                unit: self.unit,
-                reads: self.reads,
-            })
-        }
-    }
-
-    /// What goes on the line, in order: each request as the labels it answers.
-    fn sent(s: &mut Scheduler<Req>) -> Vec<String> {
-        std::iter::from_fn(|| s.next()).map(|r| label(&r)).collect()
-    }
-
-    fn label(r: &Req) -> String {
-        let labels: Vec<&str> = r.askers.iter().map(|a| a.1).collect();
-        labels.join("+")
-    }
-
-    fn labels(s: &mut Scheduler<Req>) -> Vec<String> {
-        sent(s)
-    }
-
-    #[test]
-    fn round_robin_and_a_newcomer_goes_ahead_of_the_master_just_served() {
-        let mut s = Scheduler::new(64, true);
-        s.push(Req(1, 1, "a1"));
-        assert_eq!(label(&s.next().unwrap()), "a1");
-        s.push(Req(1, 1, "a2"));
-        s.push(Req(1, 1, "a3"));
-        s.push(Req(2, 1, "b1"));
-        s.push(Req(3, 1, "c1"));
-        assert_eq!(labels(&mut s), ["b1", "c1", "a2", "a3"]);
-        assert!(!s.has_waiting());
-    }
-
-    #[test]
-    fn resends_go_first() {
-        let mut s = Scheduler::new(64, true);
-        s.push(Req(1, 1, "a1"));
-        s.resend(Req(2, 1, "again"));
-        assert_eq!(labels(&mut s), ["again", "a1"]);
-    }
-
-    #[test]
-    fn a_full_queue_refuses_the_heaviest_masters_newest() {
-        let mut s = Scheduler::new(3, true);
-        for l in ["a1", "a2", "a3"] {
-            assert_eq!(s.push(Req(1, 1, l)), Admitted::Queued);
-        }
-        assert_eq!(
-            s.push(Req(2, 1, "b1")),
-            Admitted::Displaced(Req(1, 1, "a3"))
-        );
-        assert_eq!(s.push(Req(2, 1, "b2")), Admitted::Refused(Req(2, 1, "b2")));
-        assert_eq!(s.push(Req(1, 1, "a4")), Admitted::Refused(Req(1, 1, "a4")));
-        assert_eq!(s.queued(), 3);
-        assert_eq!(labels(&mut s), ["a1", "b1", "a2"]);
-    }
-
-    #[test]
-    fn detach_unit_sweep_and_drain_take_requests_out() {
-        let mut s = Scheduler::new(64, true);
-        s.push(Req(1, 1, "a1"));
-        s.push(Req(1, 5, "a5"));
-        s.push(Req(2, 5, "b5"));
-        s.resend(Req(3, 5, "c5"));
-        s.push(Req(3, 1, "c1"));
-        let swept: Vec<_> = s.take_unit(5).iter().map(label).collect();
-        assert_eq!(swept.len(), 3);
-        for l in ["c5", "b5", "a5"] {
-            assert!(swept.iter().any(|s| s == l), "{swept:?}");
-        }
-        assert_eq!(s.queued(), 2);
-        s.detach(3);
-        assert_eq!(s.queued(), 1);
-        s.resend(Req(1, 1, "r"));
-        let all: Vec<_> = s.drain_all().iter().map(label).collect();
-        assert_eq!(all, ["r", "a1"]);
-        assert!(!s.has_waiting() && s.next().is_none());
-    }
-
-    /// An identical read joins one still queued, from any master (and the same
-    /// master's second copy too); a read already sent is joined by nothing; another
-    /// register, unit or `coalesce = false` never joins.
-    #[test]
-    fn identical_queued_reads_join_and_sent_ones_do_not() {
-        let mut s = Scheduler::new(64, true);
-        assert_eq!(s.push(read(1, 1, 10, "a")), Admitted::Queued);
-        assert_eq!(s.push(read(2, 1, 10, "b")), Admitted::Joined);
-        assert_eq!(s.push(read(3, 1, 10, "c")), Admitted::Joined);
-        assert_eq!(s.push(read(3, 1, 11, "c11")), Admitted::Queued);
-        assert_eq!(s.push(read(3, 2, 10, "c-unit2")), Admitted::Queued);
-        assert_eq!(s.queued(), 5, "a joined read counts for its master");
-        assert_eq!(s.joins(), 2);
-        assert_eq!(label(&s.next().unwrap()), "a+b+c");
-        // On the line now: the next identical read is a transaction of its own.
-        assert_eq!(s.push(read(2, 1, 10, "b2")), Admitted::Queued);
-        assert_eq!(s.push(read(2, 1, 10, "b3")), Admitted::Joined);
-        assert_eq!(sent(&mut s), ["c11", "b2+b3", "c-unit2"]);
-        assert_eq!(s.queued(), 0);
-
-        let mut off = Scheduler::new(64, false);
-        off.push(read(1, 1, 10, "a"));
-        assert_eq!(off.push(read(2, 1, 10, "b")), Admitted::Queued);
-        assert_eq!(sent(&mut off), ["a", "b"]);
-    }
-
-    /// A request that acts on the unit, from any master, queued between two identical
-    /// reads keeps them apart; on another unit it does not; to unit 0 (a broadcast) it
-    /// does for every unit. A master with a write of its own still waiting never joins
-    /// a read queued after that write, though nothing else stops it.
-    #[test]
-    fn a_write_to_the_unit_in_between_ends_the_chance_to_join() {
-        let mut s = Scheduler::new(64, true);
-        s.push(read(1, 1, 10, "a"));
-        s.push(Req(3, 1, "w"));
-        assert_eq!(s.push(read(2, 1, 10, "b")), Admitted::Queued);
-        assert_eq!(s.push(read(1, 1, 10, "a2")), Admitted::Joined, "joins b");
-        s.push(Req(3, 7, "w-unit7"));
-        assert_eq!(s.push(read(4, 1, 10, "d")), Admitted::Joined);
-        s.push(Req(3, 0, "broadcast"));
-        assert_eq!(s.push(read(4, 1, 10, "d2")), Admitted::Queued);
-        assert_eq!(
-            sent(&mut s),
-            ["a", "w", "b+a2+d", "d2", "w-unit7", "broadcast"]
-        );
-
-        // Master 2 writes, then master 1 queues a read, then 2 reads the same: 1's
-        // read may go before 2's write, so 2's read waits behind its write.
-        let mut s = Scheduler::new(64, true);
-        s.push(Req(2, 1, "w2"));
-        s.push(read(1, 1, 10, "a"));
-        assert_eq!(s.push(read(2, 1, 10, "b")), Admitted::Queued);
-        assert_eq!(s.push(read(3, 1, 10, "c")), Admitted::Joined, "joins b");
-        // A resend of 2's write waiting counts the same.
-        let mut s = Scheduler::new(64, true);
-        s.resend(Req(2, 1, "w2 again"));
-        s.push(read(1, 1, 10, "a"));
-        assert_eq!(s.push(read(2, 1, 10, "b")), Admitted::Queued);
-    }
-
-    /// A master that goes away leaves the reads it shared queued for the others, and
-    /// its part of them is no longer counted; a read shared by others is never taken
-    /// whole by a 0x06: the master holding the most gives up its own part of it.
-    #[test]
-    fn a_joined_master_leaving_or_displaced_leaves_the_others_their_read() {
-        let mut s = Scheduler::new(64, true);
-        s.push(read(1, 1, 10, "a"));
-        s.push(read(2, 1, 10, "b"));
-        s.push(read(3, 1, 10, "c"));
-        s.push(read(2, 1, 20, "b20"));
-        s.push(read(1, 1, 20, "a20"));
-        s.resend(read(1, 1, 30, "a30 again"));
-        s.detach(1);
-        assert_eq!(s.queued(), 3);
-        assert!(!s.acts_waiting(1, 1));
-        // Its read goes on queued for the others, behind what they queued themselves.
-        assert_eq!(sent(&mut s), ["b20", "b+c"]);
-
-        // Master 1 holds the most: its newest, a read 2 joined, is taken from it; the
-        // read stays queued for 2.
-        let mut s = Scheduler::new(4, true);
-        s.push(read(1, 1, 10, "a10"));
-        s.push(read(1, 1, 11, "a11"));
-        s.push(read(1, 1, 12, "a12"));
-        assert_eq!(s.push(read(2, 1, 12, "b12")), Admitted::Joined);
-        match s.push(read(3, 1, 99, "c")) {
-            Admitted::Displaced(r) => assert_eq!(label(&r), "a12"),
-            other => panic!("{other:?}"),
-        }
-        assert_eq!(s.queued(), 4);
-        assert_eq!(sent(&mut s), ["a10", "b12", "c", "a11"]);
-
-        // Master 2 holds the most, all of it joined to another's read: its newest
-        // request is taken from it.
-        let mut s = Scheduler::new(3, true);
-        s.push(read(1, 1, 10, "a10"));
-        s.push(read(2, 1, 10, "b10"));
-        s.push(read(2, 1, 10, "b10'"));
-        match s.push(read(3, 1, 99, "c")) {
-            Admitted::Displaced(r) => assert_eq!(label(&r), "b10'"),
-            other => panic!("{other:?}"),
-        }
-        assert_eq!(s.queued(), 3);
-        assert_eq!(sent(&mut s), ["a10+b10", "c"]);
-
-        // A master whose pipelined identical reads joined each other holds one read on
-        // the line but a share of 4: a full queue takes one of them, not all four.
-        let mut s = Scheduler::new(5, true);
-        for l in ["a1", "a2", "a3", "a4"] {
-            s.push(read(1, 1, 10, l));
-        }
-        s.push(read(2, 1, 20, "b"));
-        match s.push(read(3, 1, 30, "c")) {
-            Admitted::Displaced(r) => assert_eq!(label(&r), "a4"),
-            other => panic!("{other:?}"),
-        }
-        assert_eq!(s.queued(), 5);
-        assert_eq!(sent(&mut s), ["a1+a2+a3", "b", "c"]);
-    }
-}
+mod tests;

@@ -9,6 +9,7 @@ use mbgate::frame::mbap::decode_strict;
 use mbgate::frame::Adu;
 use std::io::{BufRead, BufReader, ErrorKind, Read, Write};
 use std::net::{SocketAddr, TcpStream};
+use std::os::fd::AsRawFd;
 use std::os::unix::fs::OpenOptionsExt;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, ExitStatus, Stdio};
@@ -829,6 +830,37 @@ pub(crate) fn read_reply(tid: u16, unit: u8, values: &[u16]) -> Vec<u8> {
         pdu.extend_from_slice(&v.to_be_bytes());
     }
     Adu::build(tid, unit, &pdu).as_bytes().to_vec()
+}
+
+/// Sets a SOL_SOCKET option to `value`, which must be of the type the option takes.
+pub(crate) fn set_option<T>(s: &TcpStream, name: libc::c_int, value: &T) {
+    // SAFETY: a valid socket, and a pointer to a `T` with its size.
+    let r = unsafe {
+        libc::setsockopt(
+            s.as_raw_fd(),
+            libc::SOL_SOCKET,
+            name,
+            (value as *const T).cast(),
+            std::mem::size_of::<T>() as libc::socklen_t,
+        )
+    };
+    assert_eq!(
+        r,
+        0,
+        "setsockopt {name}: {}",
+        std::io::Error::last_os_error()
+    );
+}
+
+/// Closes with SO_LINGER 0: the kernel sends RST instead of FIN and drops what is
+/// unsent.
+pub(crate) fn reset(s: TcpStream) {
+    let linger = libc::linger {
+        l_onoff: 1,
+        l_linger: 0,
+    };
+    set_option(&s, libc::SO_LINGER, &linger);
+    drop(s);
 }
 
 /// Has the gateway closed this connection (EOF or reset) within `within`?

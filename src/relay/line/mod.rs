@@ -21,7 +21,7 @@ mod serial;
 use super::inflight::{Asked, InFlight};
 use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::serial::Codec;
-use crate::frame::Adu;
+use crate::frame::{Adu, FunctionCode};
 use crate::stats::Stats;
 use bytes::Bytes;
 use mbap::Mbap;
@@ -98,6 +98,13 @@ impl Line {
     /// Is this request a broadcast: sent, no reply awaited?
     pub(super) fn is_broadcast(&self, adu: &Adu) -> bool {
         self.is_serial() && adu.unit() == 0
+    }
+
+    /// Would this request be a broadcast that cannot be one (a read, anything but a
+    /// write: `FunctionCode::may_broadcast`)? No device would answer it, so it never
+    /// goes on the line.
+    pub(super) fn not_broadcast(&self, adu: &Adu) -> bool {
+        self.is_broadcast(adu) && !FunctionCode::new(adu.function()).may_broadcast()
     }
 
     /// The bytes that put `adu` on the line as request `tid`, about to be written.

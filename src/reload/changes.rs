@@ -1,0 +1,328 @@
+//! What a reload would change, key by key and line by line: the lines of the running
+//! configuration and of the file matched by their identity (the serial port or the
+//! device's address, never their place in the file), the changes a reload applies
+//! taken into the running configuration, and every difference named as the log and
+//! `mbgate reload` say it. Plain data: nothing here touches the gateway.
+
+use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, KEYS};
+
+/// The keys a reload applies while the gateway runs: of each line (`[relay]` or
+/// `[line.relay]`), and of the gateway.
+pub(crate) const LINE_RELOADABLE: [&str; 4] = [
+    "relay.response_timeout_ms",
+    "relay.retries",
+    "relay.retry_writes",
+    "relay.probe_timeout_ms",
+];
+const GATEWAY_RELOADABLE: [&str; 3] = ["log.level", "log.traffic", "metrics.listen"];
+
+/// What identifies a line across a reload: its serial port, or its device's address.
+/// Two lines on one port or address are refused when the file is read.
+pub(crate) fn identity(line: &LineConfig) -> &str {
+    line.name()
+}
+
+/// For each line of `running`, the index of the line of `read` with its identity; or
+/// why the two cannot be matched (a line is new or gone): a line is a relay task and
+/// the route of its units, which only a restart makes or ends.
+pub(crate) fn match_lines(
+    running: &[LineConfig],
+    read: &[LineConfig],
+) -> Result<Vec<usize>, String> {
+    let find = |lines: &[LineConfig], id: &str| lines.iter().position(|l| identity(l) == id);
+    let gone: Vec<String> = running
+        .iter()
+        .filter(|l| find(read, identity(l)).is_none())
+        .map(|l| format!("{:?}", identity(l)))
+        .collect();
+    let new: Vec<String> = read
+        .iter()
+        .filter(|l| find(running, identity(l)).is_none())
+        .map(|l| format!("{:?}", identity(l)))
+        .collect();
+    let mut why = Vec::new();
+    if !new.is_empty() {
+        why.push(format!("the line on {} is new in the file", new.join(", ")));
+    }
+    if !gone.is_empty() {
+        why.push(format!("the line on {} is gone from it", gone.join(", ")));
+    }
+    if !why.is_empty() {
+        return Err(format!(
+            "{}: a line is added or removed only by a restart (systemctl restart)",
+            why.join(" and ")
+        ));
+    }
+    Ok(running
+        .iter()
+        .map(|l| find(read, identity(l)).expect("matched above"))
+        .collect())
+}
+
+/// `running` with what a reload applies taken from `read` (its lines matched by
+/// `matched`, [`match_lines`]): each line's reloadable relay keys, the log and the
+/// metrics listener. The rest stays as it runs.
+pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Config {
+    let mut c = running.clone();
+    let read_lines = read.lines();
+    if c.lines.is_empty() {
+        retune(&mut c.relay, &read_lines[matched[0]].relay);
+    } else {
+        for (line, &j) in c.lines.iter_mut().zip(matched) {
+            retune(&mut line.relay, &read_lines[j].relay);
+        }
+        // The first line's settings stand for the gateway's, as when the file is read.
+        c.relay = c.lines[0].relay.clone();
+    }
+    c.log = read.log.clone();
+    c.metrics = read.metrics.clone();
+    c
+}
+
+/// The reloadable keys of a line's relay table.
+fn retune(into: &mut RelayConfig, from: &RelayConfig) {
+    into.response_timeout_ms = from.response_timeout_ms;
+    into.retries = from.retries;
+    into.retry_writes = from.retry_writes;
+    into.probe_timeout_ms = from.probe_timeout_ms;
+}
+
+/// One difference between two configurations.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Change {
+    /// How it is said: `relay.retries = 2`, `line "/dev/ttyUSB1" relay.retries = 2`.
+    pub(crate) said: String,
+    /// Does a reload apply it?
+    pub(crate) reloadable: bool,
+}
+
+/// Every difference from `a` to `b` (their lines matched by `matched`), in the order
+/// of `a`'s lines, then the gateway's sections. With `[[line]]` tables each line's
+/// keys are named with the line (`line "/dev/ttyUSB1" relay.retries = 2`); in the
+/// old form, the one line's are the `[serial]` and `[relay]` keys as they are.
+pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> {
+    let (a_lines, b_lines) = (a.lines(), b.lines());
+    let named = !a.lines.is_empty() || !b.lines.is_empty();
+    let mut out = Vec::new();
+    for (la, &j) in a_lines.iter().zip(matched) {
+        let lb = &b_lines[j];
+        let prefix = if named {
+            format!("line {:?} ", identity(la))
+        } else {
+            String::new()
+        };
+        let mut say = |key: &str, value: String, reloadable: bool| {
+            out.push(Change {
+                said: format!("{prefix}{key} = {value}"),
+                reloadable,
+            })
+        };
+        if la.units.ids != lb.units.ids {
+            say("units", lb.units.print_ids(), false);
+        }
+        if la.units.remap != lb.units.remap {
+            say("remap", lb.units.print_remap(), false);
+        }
+        let (ca, cb) = (line_as_config(la), line_as_config(lb));
+        for k in KEYS
+            .iter()
+            .filter(|k| ["serial", "relay"].contains(&k.section))
+        {
+            let (va, vb) = ((k.get)(&ca), (k.get)(&cb));
+            if va != vb {
+                let key = format!("{}.{}", k.section, k.name);
+                let reloadable = LINE_RELOADABLE.contains(&key.as_str());
+                say(&key, vb, reloadable);
+            }
+        }
+        if la.master != lb.master {
+            say("route", "(the [[line.route]] tables)".into(), false);
+        }
+        if la.tcp_tls != lb.tcp_tls {
+            say("tcp.tls", "(the device's TLS settings)".into(), false);
+        }
+    }
+    for k in KEYS
+        .iter()
+        .filter(|k| ["log", "metrics"].contains(&k.section))
+    {
+        let (va, vb) = ((k.get)(a), (k.get)(b));
+        if va != vb {
+            let key = format!("{}.{}", k.section, k.name);
+            let reloadable = GATEWAY_RELOADABLE.contains(&key.as_str());
+            out.push(Change {
+                said: format!("{key} = {vb}"),
+                reloadable,
+            });
+        }
+    }
+    out.extend(listener_changes(a, b));
+    if a.roles != b.roles {
+        out.push(Change {
+            said: "the [[role]] tables".into(),
+            reloadable: false,
+        });
+    }
+    out
+}
+
+/// A line's settings as a configuration of the old form, to read its keys by [`KEYS`].
+fn line_as_config(line: &LineConfig) -> Config {
+    Config {
+        serial: line.serial.clone(),
+        relay: line.relay.clone(),
+        ..Config::default()
+    }
+}
+
+/// The listeners' differences (all of them wait for a restart): `tcp.*` keys in the old
+/// form; with `[[listen]]` tables each listener by its address.
+fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
+    let restart = |said: String| Change {
+        said,
+        reloadable: false,
+    };
+    let keys = || KEYS.iter().filter(|k| k.section == "tcp");
+    if a.listeners.is_empty() && b.listeners.is_empty() {
+        return keys()
+            .filter(|k| (k.get)(a) != (k.get)(b))
+            .map(|k| restart(format!("tcp.{} = {}", k.name, (k.get)(b))))
+            .collect();
+    }
+    let (la, lb) = (a.listeners(), b.listeners());
+    let at = |l: &ListenConfig| l.tcp.listen;
+    let as_config = |l: &ListenConfig| Config {
+        tcp: l.tcp.clone(),
+        ..Config::default()
+    };
+    let mut out = Vec::new();
+    for l in &la {
+        match lb.iter().find(|m| at(m) == at(l)) {
+            None => out.push(restart(format!(
+                "listen \"{}\" (gone from the file)",
+                at(l)
+            ))),
+            Some(m) => {
+                let (ca, cb) = (as_config(l), as_config(m));
+                for k in keys().filter(|k| k.name != "listen") {
+                    if (k.get)(&ca) != (k.get)(&cb) {
+                        let said = format!("listen \"{}\" {} = {}", at(l), k.name, (k.get)(&cb));
+                        out.push(restart(said));
+                    }
+                }
+                if l.framing != m.framing {
+                    let said = format!("listen \"{}\" framing = {}", at(l), m.framing.print());
+                    out.push(restart(said));
+                }
+                // Who may connect and what they may do (docs/security.md); the
+                // certificate files themselves are read again by every reload.
+                if l.access != m.access {
+                    let said = format!(
+                        "listen \"{}\" access (allow, read_only, write or tls)",
+                        at(l)
+                    );
+                    out.push(restart(said));
+                }
+            }
+        }
+    }
+    for m in lb.iter().filter(|m| !la.iter().any(|l| at(l) == at(m))) {
+        out.push(restart(format!("listen \"{}\" (new in the file)", at(m))));
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn two_lines(first: (&str, u32), second: (&str, u32)) -> Config {
+        let line = |(path, timeout): (&str, u32), unit: u8| {
+            format!(
+                "[[line]]\nunits = [{unit}]\nserial = {{ path = \"{path}\" }}\nrelay = {{ response_timeout_ms = {timeout} }}\n"
+            )
+        };
+        let text = line(first, 1) + &line(second, 2);
+        crate::config::parse(&text, "t").unwrap()
+    }
+
+    /// The same two lines written in the other order: nothing changes but the units
+    /// each table lists (which stay as they run); each line keeps its own timeout.
+    #[test]
+    fn lines_are_matched_by_their_port_not_their_place() {
+        let running = two_lines(("/dev/a", 100), ("/dev/b", 200));
+        let read = two_lines(("/dev/b", 200), ("/dev/a", 100));
+        let matched = match_lines(&running.lines, &read.lines).unwrap();
+        assert_eq!(matched, [1, 0]);
+        let new = merged(&running, &read, &matched);
+        assert_eq!(new, running, "nothing a reload applies changed");
+        let said: Vec<String> = changes(&running, &read, &matched)
+            .into_iter()
+            .map(|c| c.said)
+            .collect();
+        assert_eq!(
+            said,
+            [
+                r#"line "/dev/a" units = [2]"#,
+                r#"line "/dev/b" units = [1]"#
+            ]
+        );
+
+        // One line's timeout changed: that line's, named, and applied.
+        let read = two_lines(("/dev/b", 300), ("/dev/a", 100));
+        let matched = match_lines(&running.lines, &read.lines).unwrap();
+        let new = merged(&running, &read, &matched);
+        let timeouts: Vec<u64> = new
+            .lines
+            .iter()
+            .map(|l| l.relay.response_timeout_ms)
+            .collect();
+        assert_eq!(timeouts, [100, 300]);
+        assert_eq!(
+            changes(&running, &new, &[0, 1]),
+            [Change {
+                said: r#"line "/dev/b" relay.response_timeout_ms = 300"#.into(),
+                reloadable: true
+            }]
+        );
+    }
+
+    #[test]
+    fn a_line_new_or_gone_is_named() {
+        let running = two_lines(("/dev/a", 100), ("/dev/b", 200));
+        let read = two_lines(("/dev/a", 100), ("/dev/c", 200));
+        assert_eq!(
+            match_lines(&running.lines, &read.lines),
+            Err(r#"the line on "/dev/c" is new in the file and the line on "/dev/b" is gone from it: a line is added or removed only by a restart (systemctl restart)"#.into())
+        );
+    }
+
+    /// Every key changed but the port: the reloadable ones are exactly those applied;
+    /// the old form's keys are named as they are, without a line.
+    #[test]
+    fn a_reload_takes_exactly_the_reloadable_keys() {
+        let read = super::super::tests::all_changed();
+        let mut running = Config::default();
+        running.serial.path = read.serial.path.clone();
+        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        let all = changes(&running, &read, &matched);
+        assert_eq!(
+            all.len(),
+            KEYS.len() - 1,
+            "every key but the port: {all:#?}"
+        );
+        let new = merged(&running, &read, &matched);
+        let taken: Vec<String> = changes(&running, &new, &[0])
+            .into_iter()
+            .map(|c| c.said.split(" = ").next().unwrap().to_owned())
+            .collect();
+        let reloadable: Vec<&str> = LINE_RELOADABLE
+            .iter()
+            .chain(&GATEWAY_RELOADABLE)
+            .copied()
+            .collect();
+        assert_eq!(taken, reloadable);
+        assert!(changes(&running, &new, &[0]).iter().all(|c| c.reloadable));
+        assert!(changes(&new, &read, &matched).iter().all(|c| !c.reloadable));
+    }
+}
