@@ -5,6 +5,7 @@
 #![deny(unsafe_code)]
 
 pub mod bridge;
+pub mod capture;
 pub mod cli_overrides;
 pub mod client;
 pub mod config;

@@ -65,6 +65,14 @@ enum Command {
     /// line's port not open, or a unit not answering), 3 the gateway could not be
     /// asked, 2 bad arguments.
     Status(mbgate::metrics::ask::StatusArgs),
+    /// Capture a running gateway's frames to pcapng, for Wireshark (docs/capture.md).
+    ///
+    /// Every frame each master sent and received, every frame on each line, and the
+    /// bytes the gateway dropped with why; over its control socket (root, or the
+    /// service's user or group). Exit code 0 when the capture ended as asked (--count,
+    /// --seconds, Ctrl-C), 1 when it could not run or its output failed, 2 bad
+    /// arguments.
+    Capture(mbgate::capture::client::CaptureArgs),
 }
 
 /// Exit code for a bad configuration or bad arguments (docs/design.md §3; clap uses 2 too).
@@ -78,6 +86,7 @@ fn main() -> ExitCode {
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
+        Command::Capture(args) => mbgate::capture::client::main(args),
         Command::CheckConfig {
             file,
             lines,

@@ -78,7 +78,9 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 }
 
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
-const TOP: [&str; 7] = ["serial", "tcp", "relay", "log", "metrics", "line", "listen"];
+const TOP: [&str; 9] = [
+    "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen",
+];
 /// The keys of a `[[line]]` table.
 const LINE: [&str; 7] = ["units", "remap", "serial", "tcp", "relay", "role", "route"];
 /// The keys of a line's `tcp` table: a device on the network.
