@@ -118,6 +118,8 @@ async fn serve_with(
         bound.push((listener, listen, local));
     }
     warn_inapplicable(&cfg);
+    // Before the relays: the always-on ring has their first frames.
+    let capture = crate::capture::Capture::start(&cfg, &shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     // The listeners' counters (connections, refusals, unrouted requests); each line
@@ -125,6 +127,7 @@ async fn serve_with(
     let stats = Arc::new(Stats::default());
     let mut counted = vec![stats.clone()];
     let board = Arc::new(Board::default());
+    let _ = board.capture.set(capture.hub().clone());
 
     // Each line its own relay task: its own queue, timeouts, retries and backoff, so
     // a slow or dead line never holds up another.
@@ -136,6 +139,7 @@ async fn serve_with(
         counted.push(line_stats.clone());
         let (relay, handle) =
             Relay::for_line(line, cfg.log.traffic, line_stats.clone(), shutdown.clone());
+        let relay = relay.with_tap(capture.hub().tap(i as u16 + 1));
         // One watchdog for the gateway: every relay runs on the one thread, so one
         // loop that turns shows that all of them can.
         let relay = if i == 0 {
@@ -217,6 +221,7 @@ async fn serve_with(
         shutdown: shutdown.clone(),
         tracker: tracker.clone(),
         ids: Arc::new(AtomicU64::new(0)),
+        capture: capture.hub().clone(),
     };
     let accepting: Vec<_> = bound
         .into_iter()
@@ -248,6 +253,8 @@ async fn serve_with(
     {
         warn!("drain did not finish in {bound:?}; exiting anyway");
     }
+    // Every capture gets its end, the ring its last packets.
+    capture.finish().await;
     let totals = Arc::new(Stats::total(counted.iter().map(|s| &**s)));
     info!(stats = %totals, "stopped");
     Ok(totals)

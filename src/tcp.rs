@@ -4,6 +4,8 @@
 //! serving their unit ([`crate::router`]) and writes back their replies in the order of
 //! the requests, with the device's notifications (the path back is [`crate::outbox`]).
 
+use crate::capture::packet::{Dir, Ends, Packet, Proto, Reason, Role};
+use crate::capture::{Hub, Tap};
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
@@ -61,6 +63,8 @@ pub(crate) struct Shared {
     pub(crate) shutdown: CancellationToken,
     pub(crate) tracker: TaskTracker,
     pub(crate) ids: Arc<AtomicU64>,
+    /// The capture (docs/capture.md): the TCP side is its interface 0.
+    pub(crate) capture: Hub,
 }
 
 /// Accepts masters on `listener` (configured by `listen`) until shutdown. A
@@ -74,6 +78,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, sha
         shutdown,
         tracker,
         ids,
+        capture,
     } = shared;
     let limit = Arc::new(Semaphore::new(listen.tcp.max_connections));
     let listen = Arc::new(listen);
@@ -112,6 +117,9 @@ pub(crate) async fn accept_loop(listener: TcpListener, listen: ListenConfig, sha
             router: router.clone(),
             stats: stats.clone(),
             shutdown: shutdown.clone(),
+            capture: capture.clone(),
+            tap: capture.tap(0),
+            local: stream.local_addr().unwrap_or(listen.tcp.listen),
         };
         let closed = stats.clone();
         tracker.spawn(async move {
@@ -205,6 +213,11 @@ struct Connection {
     router: Arc<Router>,
     stats: Arc<Stats>,
     shutdown: CancellationToken,
+    capture: Hub,
+    /// The TCP side's tap.
+    tap: Tap,
+    /// The listener's address this master reached.
+    local: SocketAddr,
 }
 
 /// Why a connection's reader stopped.
@@ -222,6 +235,7 @@ impl Connection {
         let rtu = self.listen.framing == ListenFraming::Rtu;
         let framing = self.listen.framing.name();
         info!(conn = self.id, peer = %self.peer, framing, "master connected");
+        self.capture.connected(self.id, self.peer);
         let (rd, wr) = stream.into_split();
         // RTU over TCP has no transaction id: one request at a time, and no
         // notifications (nothing would tell them from a reply).
@@ -256,6 +270,7 @@ impl Connection {
             }
         }
         self.router.detach(self.id);
+        self.capture.forget(self.id);
         info!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
@@ -286,11 +301,23 @@ impl Connection {
                     if self.cfg.log.traffic {
                         debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
                     }
+                    if self.tap.on() {
+                        self.captured(&adu, Dir::In, "master->gw");
+                    }
                     self.submit(adu, ticket);
                     continue;
                 }
                 Ok(None) => {}
                 Err(e) => {
+                    if self.tap.on() {
+                        let end = buf.len().min(rtu::MAX_FRAME + 8);
+                        let mut p =
+                            Packet::dropped(None, Reason::Refused, buf[..end].to_vec(), false, "");
+                        p.note = Some(format!("dropped (refused): {e}; the connection was closed"));
+                        p.ends = Some(self.ends());
+                        p.conn = Some(self.id);
+                        self.tap.send(p, Instant::now());
+                    }
                     self.stats.add(&self.stats.protocol_violations, 1);
                     warn!(conn = self.id, peer = %self.peer, "protocol violation: {e}; closing the connection");
                     return End::Closed;
@@ -338,6 +365,36 @@ impl Connection {
         }
     }
 
+    fn ends(&self) -> Ends {
+        Ends {
+            client: self.peer,
+            server: self.local,
+        }
+    }
+
+    /// A frame to or from this master, for the capture: as the master framed it
+    /// (MBAP with its own transaction id, or RTU with its CRC).
+    fn captured(&self, adu: &Adu, dir: Dir, label: &'static str) {
+        let (proto, bytes) = if self.listen.framing == ListenFraming::Rtu {
+            (Proto::Mbrtu, rtu::encode(adu))
+        } else {
+            (Proto::Mbtcp, adu.as_bytes().to_vec())
+        };
+        let role = if dir == Dir::In {
+            Role::Query
+        } else {
+            Role::Reply
+        };
+        let mut p = Packet::new(dir, role, proto, bytes);
+        p.ends = Some(self.ends());
+        p.conn = Some(self.id);
+        p.unit = Some(adu.unit());
+        p.function = Some(adu.function());
+        p.span = crate::relay::span(adu.pdu());
+        p.label = label;
+        self.tap.send(p, Instant::now());
+    }
+
     /// Hands a request to the relay, or answers it here when it cannot go on the line.
     /// Either way the answer goes through its ticket, so it keeps its place in the
     /// master's order.
@@ -366,6 +423,9 @@ impl Connection {
         while let Some(out) = inbox.next().await {
             if self.cfg.log.traffic {
                 debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
+            }
+            if self.tap.on() {
+                self.captured(&out.adu, Dir::Out, "gw->master");
             }
             let rtu_frame;
             let bytes = if self.listen.framing == ListenFraming::Rtu {

@@ -12,6 +12,8 @@ pub(crate) mod requests;
 pub(crate) mod slave;
 pub(crate) mod table;
 
+use crate::capture::packet::{Dir, Packet, Role};
+use crate::capture::{Capture, Tap};
 use crate::config::master::MasterLine;
 use crate::config::{Config, Framing};
 use crate::frame::hex::Hex;
@@ -67,24 +69,29 @@ impl Timing {
 pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
     let master = cfg.master.clone().expect("a master line");
     let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
-    run_on(
+    let capture = Capture::start(cfg, &shutdown);
+    let taps = (capture.hub().tap(1), capture.hub().tap(0));
+    let counts = run_on(
         Box::new(port),
         cfg.serial.framing,
         Timing::of(cfg),
         master,
-        cfg.log.traffic,
+        (cfg.log.traffic, taps),
         shutdown,
     )
-    .await
+    .await;
+    capture.finish().await;
+    counts
 }
 
-/// [`run`] on any port (tests use an in-memory one).
+/// [`run`] on any port (tests use an in-memory one). `traffic` turns the traffic log
+/// on; the taps take the line's packets and the slaves' (docs/capture.md).
 pub(crate) async fn run_on(
     mut port: Box<dyn Port>,
     framing: Framing,
     timing: Timing,
     master: MasterLine,
-    traffic: bool,
+    (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
     shutdown: CancellationToken,
 ) -> Result<Counts, BridgeError> {
     let (events_tx, mut events) = mpsc::unbounded_channel();
@@ -111,7 +118,7 @@ pub(crate) async fn run_on(
             listener,
             rx,
             events_tx.clone(),
-            shutdown.clone(),
+            (tcp_tap.clone(), shutdown.clone()),
         ));
     }
     drop(events_tx);
@@ -135,6 +142,8 @@ pub(crate) async fn run_on(
         table: Table::new(master, framing != Framing::Mbap),
         timing,
         traffic,
+        framing,
+        tap: line_tap,
         to_slaves,
         watchdog: crate::notify::watchdog_interval(),
         pet_at: None,
@@ -215,6 +224,9 @@ struct Line {
     table: Table,
     timing: Timing,
     traffic: bool,
+    framing: Framing,
+    /// The line's packets, for the capture.
+    tap: Tap,
     to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
     /// systemd's watchdog interval, pinged from this loop, and the next ping.
     watchdog: Option<Duration>,
@@ -233,6 +245,7 @@ impl Line {
         let mut last_rx = Instant::now();
         let mut paused = true;
         loop {
+            self.requests.set_tape(self.tap.on());
             let partial = self.requests.buffered() > 0;
             let deadline = self.table.next_deadline().map(Instant::from_std);
             let actions = tokio::select! {
@@ -287,15 +300,38 @@ impl Line {
     /// Every whole request decoded so far, into the table.
     fn take(&mut self, quiet: bool) -> Vec<Action> {
         let mut out = Vec::new();
+        let now = Instant::now();
         while let Some(req) = self.requests.next(quiet) {
             debug!(
                 unit = req.unit,
                 "request from the serial master: {}",
                 Hex(&req.pdu)
             );
+            if self.tap.on() {
+                self.capture(&req, &req.pdu, Dir::In, now);
+            }
             out.extend(self.table.request(req, std::time::Instant::now()));
         }
+        for d in self.requests.take_drops() {
+            let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
+            self.tap.send(p, d.at.unwrap_or(now));
+        }
         out
+    }
+
+    /// A request from the serial master (`Dir::In`) or the reply to it (`pdu`,
+    /// `Dir::Out`) as the line carries it, for the capture.
+    fn capture(&self, req: &requests::Incoming, pdu: &[u8], dir: Dir, at: Instant) {
+        let wire = encode_reply(self.requests.codec(), req, pdu);
+        let adu = Adu::build(req.tid.unwrap_or(0), req.unit, pdu);
+        let (role, label) = match dir {
+            Dir::In => (Role::Query, "serial->gw"),
+            _ => (Role::Reply, "gw->serial"),
+        };
+        let mut p = Packet::line_frame(self.framing, &adu, &wire, dir, role);
+        p.span = crate::relay::span(&req.pdu);
+        p.label = label;
+        self.tap.send(p, at);
     }
 
     fn event(&mut self, ev: slave::Event) -> Vec<Action> {
@@ -329,6 +365,9 @@ impl Line {
                     let _ = self.to_slaves[route].send(adu);
                 }
                 Action::Answer { request, pdu } => {
+                    if self.tap.on() {
+                        self.capture(&request, &pdu, Dir::Out, Instant::now());
+                    }
                     let bytes = encode_reply(self.requests.codec(), &request, &pdu);
                     if self.traffic {
                         debug!("serial tx {}", Hex(&bytes));
