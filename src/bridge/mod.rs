@@ -314,6 +314,8 @@ impl Line {
         }
         for d in self.requests.take_drops() {
             let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
+            // What comes off a master's line is a request.
+            let p = p.as_a(Role::Query);
             self.tap.send(p, d.at.unwrap_or(now));
         }
         out

@@ -29,8 +29,8 @@ use tracing::{debug, info, warn};
 
 /// Captures at once; one more is refused with a message.
 const MAX_CLIENTS: usize = 8;
-/// A client has this long to send its request.
-const REQUEST_WITHIN: Duration = Duration::from_secs(5);
+/// A client has this long to send its request (`mbgate capture` sends it at once).
+const REQUEST_WITHIN: Duration = Duration::from_secs(2);
 
 /// Message tags.
 pub(crate) const DATA: u8 = b'D';

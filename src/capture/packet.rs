@@ -220,6 +220,15 @@ impl Packet {
         p
     }
 
+    /// Dropped bytes that make a frame are shown as the `role` they would have had
+    /// (a stale reply as a reply), so Wireshark decodes their values.
+    pub(crate) fn as_a(mut self, role: Role) -> Packet {
+        if self.proto != Proto::Data {
+            self.role = role;
+        }
+        self
+    }
+
     /// The Enhanced Packet Block of this packet, on interface `iface` of the file.
     pub(crate) fn block(&self, iface: u32) -> Vec<u8> {
         let ports = match (self.role, self.ends) {

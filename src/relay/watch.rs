@@ -156,7 +156,14 @@ impl Watch {
 
     /// Bytes the line dropped, for the capture.
     pub(super) fn dropped(&self, d: Dropped, now: Instant) {
+        // What comes off a line of devices is a reply, but for the echo of a request.
+        let role = if d.reason == Reason::Echo {
+            Role::Query
+        } else {
+            Role::Reply
+        };
         let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
+        let p = p.as_a(role);
         self.tap.send(p, d.at.unwrap_or(now));
     }
 
@@ -230,6 +237,7 @@ impl Watch {
                     true,
                     "a reply to a request already answered or timed out",
                 )
+                .as_a(Role::Reply)
             } else {
                 let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
                 p.label = "unsolicited";
