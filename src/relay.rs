@@ -225,6 +225,8 @@ impl Relay {
                 Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
                 Event::Read(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
+                    // A capture begun while the loop waited has these bytes too.
+                    self.line.set_tape(self.watch.capturing());
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),

@@ -6,6 +6,7 @@
 
 mod common;
 
+use common::sim::RawLine;
 use common::*;
 use mbgate::frame::{rtu, Adu};
 use std::io::{Read, Write};
@@ -722,6 +723,146 @@ fn the_capture_ring_rotates_and_a_full_disk_stops_only_the_ring() {
     assert_eq!(
         transact(&mut m, &read_req(99, 2, 5, 1)),
         read_reply(99, 2, &[5])
+    );
+    gw.terminate(Duration::from_secs(10));
+}
+
+/// A Modbus/TCP slave for the master line: one connection at a time, register `a`
+/// reads as `a`.
+fn tcp_slave() -> (u16, std::thread::JoinHandle<()>) {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let port = listener.local_addr().unwrap().port();
+    let t = std::thread::spawn(move || {
+        let Ok((mut s, _)) = listener.accept() else {
+            return;
+        };
+        let mut regs = Registers::default();
+        let mut buf = bytes::BytesMut::new();
+        let mut chunk = [0u8; 512];
+        while let Ok(n) = s.read(&mut chunk) {
+            if n == 0 {
+                return;
+            }
+            buf.extend_from_slice(&chunk[..n]);
+            while let Ok(Some(req)) = mbgate::frame::mbap::decode_strict(&mut buf) {
+                let pdu = regs.answer(req.unit(), req.pdu(), true);
+                let reply = Adu::build(req.tid(), req.unit(), &pdu);
+                if s.write_all(reply.as_bytes()).is_err() {
+                    return;
+                }
+            }
+        }
+    });
+    (port, t)
+}
+
+/// The line whose device is the master (docs/design.md §4.2): the serial master's
+/// requests and the replies on the line (RTU), what it sent that was dropped
+/// (garbage, a bad CRC: each a frame whose check failed), and the frames to and from the slave on the TCP side.
+#[test]
+fn the_master_line_and_its_slave_are_captured_too() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let (port, _slave) = tcp_slave();
+    let socket = dir.path().join("control.sock");
+    let text = format!(
+        "[[line]]\nrole = \"master\"\nserial = {{ path = {:?}, framing = \"rtu\", \
+         baud_rate = 4000000, silence_floor_ms = 0, flow_control = \"none\" }}\n\n\
+         [[line.route]]\naddress = \"127.0.0.1:{port}\"\n\n[log]\nlevel = \"debug\"\n\n\
+         [control]\nsocket = {:?}\n",
+        socat.gw.display().to_string(),
+        socket.display().to_string()
+    );
+    let file = dir.path().join("mbgate.toml");
+    std::fs::write(&file, text).unwrap();
+    let mut gw = Proc::start(
+        &["run", "--config", file.to_str().unwrap()],
+        "serial port open",
+    );
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let out = dir.path().join("master.pcapng");
+    let mut cap = capture(&[
+        "capture",
+        "--socket",
+        socket.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ]);
+    let mut line = RawLine::open(&socat.dev);
+    line.send(&[0xFF, 0x00, 0x13, 0x37]);
+    std::thread::sleep(Duration::from_millis(20));
+    let mut bad = rtu::encode(1, &[6, 0, 5, 0, 9]);
+    bad[6] ^= 0x40;
+    line.send(&bad);
+    std::thread::sleep(Duration::from_millis(50));
+    line.send(&rtu::encode(1, &[3, 0, 5, 0, 2]));
+    assert_eq!(
+        line.recv(9, Duration::from_secs(2)),
+        rtu::encode(1, &[3, 4, 0, 5, 0, 6])
+    );
+    std::thread::sleep(Duration::from_millis(100));
+    assert!(
+        cap.stop_with("INT", Duration::from_secs(5)).success(),
+        "{}",
+        cap.log()
+    );
+    let fields = [
+        "frame.interface_id",
+        "frame.packet_flags_direction",
+        "ip.dst",
+        "exported_pdu.dst_port",
+        "mbrtu.unit_id",
+        "mbtcp.unit_id",
+        "modbus.func_code",
+        "modbus.regval_uint16",
+        "frame.comment",
+    ];
+    let rows = tshark(&out, &fields);
+    let find = |want: &[(&str, &str)]| {
+        rows.iter().any(|r| {
+            want.iter()
+                .all(|(f, v)| r[fields.iter().position(|x| x == f).unwrap()] == *v)
+        })
+    };
+    // The serial master's request in, its reply out, on the line.
+    assert!(find(&[
+        ("frame.interface_id", "1"),
+        ("frame.packet_flags_direction", "0x00000001"),
+        ("mbrtu.unit_id", "1"),
+        ("modbus.func_code", "3"),
+        ("exported_pdu.dst_port", "502")
+    ]));
+    assert!(find(&[
+        ("frame.interface_id", "1"),
+        ("frame.packet_flags_direction", "0x00000002"),
+        ("modbus.regval_uint16", "5,6")
+    ]));
+    // Forwarded to the slave and back, on the TCP side.
+    assert!(find(&[
+        ("frame.interface_id", "0"),
+        ("frame.packet_flags_direction", "0x00000002"),
+        ("ip.dst", "127.0.0.1"),
+        ("mbtcp.unit_id", "1"),
+        ("modbus.func_code", "3")
+    ]));
+    assert!(find(&[
+        ("frame.interface_id", "0"),
+        ("frame.packet_flags_direction", "0x00000001"),
+        ("modbus.regval_uint16", "5,6")
+    ]));
+    let comments: Vec<&str> = rows
+        .iter()
+        .map(|r| r[8].as_str())
+        .filter(|c| !c.is_empty())
+        .collect();
+    // On RTU a frame ends at a silence: the garbage was a 4-byte frame whose CRC
+    // failed, as the bad write (8 bytes) was.
+    assert_eq!(
+        comments,
+        [
+            "dropped (CRC): a request whose check failed, or cut short (4 bytes)",
+            "dropped (CRC): a request whose check failed, or cut short (8 bytes)"
+        ]
     );
     gw.terminate(Duration::from_secs(10));
 }

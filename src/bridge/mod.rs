@@ -258,6 +258,8 @@ impl Line {
                         }
                         last_rx = Instant::now();
                         paused = false;
+                        // A capture begun while the loop waited has these bytes too.
+                        self.requests.set_tape(self.tap.on());
                         self.requests.push(&buf[..n]);
                         self.take(false)
                     }
@@ -315,7 +317,7 @@ impl Line {
         for d in self.requests.take_drops() {
             let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
             // What comes off a master's line is a request.
-            let p = p.as_a(Role::Query);
+            let p = p.shown_as(Role::Query);
             self.tap.send(p, d.at.unwrap_or(now));
         }
         out

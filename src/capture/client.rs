@@ -251,17 +251,18 @@ async fn capture(
         .map_err(|e| connect_error(socket, &e))?;
     let (rd, mut wr) = stream.into_split();
     let mut rd = tokio::io::BufReader::new(rd);
-    wr.write_all(format!("{request}\n").as_bytes())
-        .await
-        .map_err(|e| format!("the gateway closed the control socket: {e}"))?;
+    // A gateway that refuses may close before it has read the request: its answer
+    // is read even when the request could not be written.
+    let sent = wr.write_all(format!("{request}\n").as_bytes()).await;
     let mut answer = String::new();
-    tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut answer)
-        .await
-        .map_err(|e| format!("no answer on the control socket: {e}"))?;
-    match answer.trim_end() {
-        "ok" => {}
-        "" => return Err("the gateway closed the control socket without an answer".into()),
-        a => return Err(a.strip_prefix("error: ").unwrap_or(a).to_owned()),
+    let read = tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut answer).await;
+    match (answer.trim_end(), sent, read) {
+        ("ok", Ok(()), _) => {}
+        ("" | "ok", Err(e), _) | ("", _, Err(e)) => {
+            return Err(format!("the gateway closed the control socket: {e}"))
+        }
+        ("", _, _) => return Err("the gateway closed the control socket without an answer".into()),
+        (a, _, _) => return Err(a.strip_prefix("error: ").unwrap_or(a).to_owned()),
     }
     let mut out = open_output(output)
         .await
@@ -298,13 +299,23 @@ async fn capture(
             }
             Some((END, text)) => break parse_end(&String::from_utf8_lossy(&text)),
             Some((DATA, bytes)) if failed.is_none() => {
-                let written = async {
+                let mut write = std::pin::pin!(async {
                     out.write_all(&bytes).await?;
                     out.flush().await
-                };
-                let written = tokio::select! {
-                    r = written => r,
-                    _ = interrupt.recv() => Err(std::io::Error::other("interrupted while the output would not take more")),
+                });
+                // Ctrl-C while the output is slow: the capture stops once this is
+                // written; a second one gives up on it (a reader that never reads).
+                let written = loop {
+                    tokio::select! {
+                        r = &mut write => break r,
+                        _ = interrupt.recv() => {
+                            if stopping {
+                                return Err("interrupted twice: stopped at once".into());
+                            }
+                            stopping = true;
+                            let _ = wr.write_all(b"stop\n").await;
+                        }
+                    }
                 };
                 if let Err(e) = written {
                     failed = Some(format!("cannot write {shown}: {e}"));

@@ -222,7 +222,7 @@ impl Packet {
 
     /// Dropped bytes that make a frame are shown as the `role` they would have had
     /// (a stale reply as a reply), so Wireshark decodes their values.
-    pub(crate) fn as_a(mut self, role: Role) -> Packet {
+    pub(crate) fn shown_as(mut self, role: Role) -> Packet {
         if self.proto != Proto::Data {
             self.role = role;
         }

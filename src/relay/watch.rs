@@ -163,7 +163,7 @@ impl Watch {
             Role::Reply
         };
         let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
-        let p = p.as_a(role);
+        let p = p.shown_as(role);
         self.tap.send(p, d.at.unwrap_or(now));
     }
 
@@ -237,7 +237,7 @@ impl Watch {
                     true,
                     "a reply to a request already answered or timed out",
                 )
-                .as_a(Role::Reply)
+                .shown_as(Role::Reply)
             } else {
                 let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
                 p.label = "unsolicited";
