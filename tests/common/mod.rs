@@ -197,6 +197,8 @@ pub(crate) struct Cfg {
     log: Vec<String>,
     /// The `[metrics]` section, written only when it has a line.
     metrics: Vec<String>,
+    /// The `[control]` section, written only when it has a line.
+    control: Vec<String>,
 }
 
 impl Cfg {
@@ -207,6 +209,7 @@ impl Cfg {
             relay: vec![],
             log: vec!["level = \"debug\"".into()],
             metrics: vec![],
+            control: vec![],
         }
     }
     pub(crate) fn serial(mut self, line: &str) -> Cfg {
@@ -227,6 +230,10 @@ impl Cfg {
     }
     pub(crate) fn metrics(mut self, line: &str) -> Cfg {
         self.metrics.push(line.into());
+        self
+    }
+    pub(crate) fn control(mut self, line: &str) -> Cfg {
+        self.control.push(line.into());
         self
     }
     /// A pty as the line: bytes go through as fast as they are written, with no USB
@@ -250,8 +257,9 @@ impl Cfg {
             ("relay", &self.relay),
             ("log", &self.log),
             ("metrics", &self.metrics),
+            ("control", &self.control),
         ] {
-            if name != "metrics" || !lines.is_empty() {
+            if !matches!(name, "metrics" | "control") || !lines.is_empty() {
                 s += &format!("[{name}]\n{}\n\n", lines.join("\n"));
             }
         }
