@@ -866,3 +866,89 @@ fn the_master_line_and_its_slave_are_captured_too() {
     );
     gw.terminate(Duration::from_secs(10));
 }
+
+/// An ASCII line: the frames on it are given to Wireshark as RTU, decoded, each with
+/// its text as it was on the wire in its comment (docs/design.md §6).
+#[test]
+fn ascii_frames_decode_as_rtu_with_their_text_in_the_comment() {
+    use mbgate::frame::ascii;
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    // An ASCII device: a read of register `a` answers `a`.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let device = {
+        let mut pty = open_pty(&socat.dev);
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let mut buf = Vec::new();
+            let mut chunk = [0u8; 256];
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                match pty.read(&mut chunk) {
+                    Ok(n) if n > 0 => buf.extend_from_slice(&chunk[..n]),
+                    _ => std::thread::sleep(Duration::from_millis(1)),
+                }
+                while let Some(end) = buf.windows(2).position(|w| w == b"\r\n") {
+                    let frame: Vec<u8> = buf.drain(..end + 2).collect();
+                    if let Some((unit, p)) = ascii::decode(&frame) {
+                        let addr = u16::from_be_bytes([p[1], p[2]]);
+                        let mut pdu = vec![3, 2];
+                        pdu.extend(addr.to_be_bytes());
+                        std::thread::sleep(Duration::from_millis(1));
+                        let _ = pty.write_all(&ascii::encode(unit, &pdu));
+                    }
+                }
+            }
+        })
+    };
+    let socket = dir.path().join("control.sock");
+    let cfg = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"")
+        .serial("framing = \"ascii\"")
+        .control(&format!("socket = {:?}", socket.display().to_string()));
+    let mut gw = Gateway::start(&cfg, dir.path());
+    gw.wait_log("control socket", Duration::from_secs(5));
+    let out = dir.path().join("ascii.pcapng");
+    let args = [
+        "capture",
+        "--socket",
+        socket.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ];
+    let mut cap = capture(&[&args[..], &["--line", "0", "--count", "2"]].concat());
+    let mut m = gw.connect();
+    assert_eq!(
+        transact(&mut m, &read_req(7, 1, 10, 1)),
+        read_reply(7, 1, &[10])
+    );
+    let start = Instant::now();
+    while !cap.log().contains("the count was reached") {
+        assert!(start.elapsed() < Duration::from_secs(5), "{}", cap.log());
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let _ = cap.terminate(Duration::from_secs(5));
+    let fields = [
+        "frame.protocols",
+        "mbrtu.unit_id",
+        "modbus.func_code",
+        "modbus.regval_uint16",
+        "frame.comment",
+    ];
+    let rows = tshark(&out, &fields);
+    assert_eq!(rows.len(), 2, "{rows:?}");
+    assert_eq!(rows[0][0], "exported_pdu:mbrtu:modbus");
+    assert_eq!(rows[0][4], "ASCII on the wire: :0103000A0001F1\\r\\n");
+    assert_eq!(
+        (
+            rows[1][1].as_str(),
+            rows[1][2].as_str(),
+            rows[1][3].as_str()
+        ),
+        ("1", "3", "10")
+    );
+    assert_eq!(rows[1][4], "ASCII on the wire: :010302000AF0\\r\\n");
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let _ = device.join();
+    gw.terminate(Duration::from_secs(10));
+}

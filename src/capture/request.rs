@@ -226,6 +226,33 @@ mod tests {
         }
     }
 
+    proptest::proptest! {
+        /// Whatever a client sends, the gateway answers a request or an error: it
+        /// never panics (one client's malformed request closes that client only).
+        #[test]
+        fn any_line_is_a_request_or_an_error(line in ".{0,200}") {
+            let _ = Request::parse(&line);
+        }
+
+        /// Every request a client can ask for reads back as itself.
+        #[test]
+        fn every_request_reads_back(
+            units in proptest::collection::vec(proptest::num::u8::ANY, 0..4),
+            functions in proptest::collection::vec(1u8..0x80, 0..4),
+            count in proptest::option::of(1u64..u64::MAX),
+            seconds in proptest::option::of(1u64..100_000),
+            port in proptest::option::of(proptest::num::u16::ANY),
+        ) {
+            let masters = port
+                .map(|p| Peer::Addr(SocketAddr::from(([10, 0, 0, 5], p))))
+                .into_iter()
+                .chain([Peer::Ip([10, 0, 0, 6].into())])
+                .collect();
+            let r = Request { lines: vec!["tcp".into(), "0".into()], units, masters, functions, count, seconds };
+            proptest::prop_assert_eq!(Request::parse(&r.to_string()), Ok(r));
+        }
+    }
+
     #[test]
     fn lines_by_index_name_or_tcp() {
         let names: Vec<String> = ["tcp", "/dev/ttyUSB0", "10.0.0.9:502"]

@@ -215,6 +215,78 @@ mod tests {
         );
     }
 
+    proptest::proptest! {
+        /// On any bytes in any chunking, for each framing: the drops the tape gives
+        /// and the frames the framer yields are every byte it took, in order, none
+        /// twice: each dropped byte is in exactly one drop packet.
+        #[test]
+        fn drops_and_frames_are_every_byte_taken_in_order(
+            kind in 0u8..3,
+            pieces in proptest::collection::vec(
+                (0u8..4, proptest::collection::vec(proptest::num::u8::ANY, 1..12)),
+                0..8,
+            ),
+            cuts in proptest::collection::vec(1u8..40, 0..10),
+        ) {
+            use crate::frame::ascii;
+            let mut data = Vec::new();
+            for (how, pdu) in &pieces {
+                match how {
+                    0 => data.extend(rtu::encode(1, pdu)),
+                    1 => data.extend(ascii::encode(1, pdu)),
+                    2 => data.extend(Adu::build(7, 1, pdu).as_bytes()),
+                    _ => data.extend(pdu),
+                }
+            }
+            let mut f = match kind {
+                0 => Framer::mbap(),
+                1 => Framer::serial(Codec::Rtu),
+                _ => Framer::serial(Codec::Ascii),
+            };
+            let mut t = Tape::default();
+            t.set(true);
+            let mut taken = Vec::new();
+            let mut take = |f: &mut Framer, t: &mut Tape, quiet: bool, taken: &mut Vec<u8>| {
+                while let Some(framed) = f.next_frame(&ReplyJudge, quiet) {
+                    match framed {
+                        Framed::Frame(adu) => {
+                            let wire = f.encode(&adu);
+                            t.frame(f.consumed(), wire.len(), None, Reason::LostSync);
+                            for d in t.take() {
+                                taken.extend(d.bytes);
+                            }
+                            taken.extend(wire);
+                        }
+                        Framed::Corrupt(n) => {
+                            t.dropped_frame(f.consumed(), n, None, (Reason::LostSync, Reason::Crc), "x");
+                        }
+                    }
+                }
+                t.dropped_to(f.consumed(), None, Reason::LostSync, "x");
+                for d in t.take() {
+                    taken.extend(d.bytes);
+                }
+            };
+            let mut at = 0;
+            for &c in &cuts {
+                let end = (at + usize::from(c)).min(data.len());
+                f.push(&data[at..end]);
+                t.push(&data[at..end]);
+                at = end;
+                take(&mut f, &mut t, c % 5 == 0, &mut taken);
+            }
+            f.push(&data[at..]);
+            t.push(&data[at..]);
+            take(&mut f, &mut t, true, &mut taken);
+            f.clear();
+            t.dropped_to(f.consumed(), None, Reason::Stale, "x");
+            for d in t.take() {
+                taken.extend(d.bytes);
+            }
+            proptest::prop_assert_eq!(taken, data);
+        }
+    }
+
     #[test]
     fn off_it_keeps_nothing_and_on_it_starts_with_the_next_byte() {
         let mut t = Tape::default();
