@@ -661,6 +661,23 @@ fn the_capture_ring_rotates_and_a_full_disk_stops_only_the_ring() {
         ring.display().to_string()
     );
     let (mut gw, addrs) = session_gateway(dir.path(), &line_a, &line_b, &extra);
+    // A capture running when the gateway stops: it gets everything to the last
+    // packet, then its end.
+    let socket = dir.path().join("control.sock");
+    let live = dir.path().join("live.pcapng");
+    let args = [
+        "capture",
+        "--socket",
+        socket.to_str().unwrap(),
+        "-o",
+        live.to_str().unwrap(),
+    ];
+    let (mut cmd, mut live_err) = Launch::default().command(args);
+    let mut live_child = cmd.spawn().unwrap();
+    drop(cmd);
+    wait_for("the capture", Duration::from_secs(5), || {
+        gw.log().contains("capture started")
+    });
     let mut m = master_from("127.0.0.1:0", addrs[0]);
     // About 70 bytes a packet, four packets a read: 300 reads fill more than three
     // files of 16 kB.
@@ -672,6 +689,16 @@ fn the_capture_ring_rotates_and_a_full_disk_stops_only_the_ring() {
         );
     }
     gw.terminate(Duration::from_secs(10));
+    let status = live_child.wait().unwrap();
+    let mut err = String::new();
+    live_err.read_to_string(&mut err).unwrap();
+    assert!(status.success(), "{err}");
+    assert!(
+        err.contains("1200 packets to ") && err.contains("(the gateway stopped)"),
+        "{err}"
+    );
+    let rows = tshark(&live, &["frame.interface_id", "mbtcp.trans_id"]);
+    assert_eq!(rows.len(), 1200);
     let nth = |n: u32| -> PathBuf {
         if n == 0 {
             ring.clone()

@@ -129,9 +129,9 @@ pub(crate) async fn serve(control: Control, hub: Hub, shutdown: CancellationToke
             let _ = s.write_all(msg.as_bytes()).await;
             continue;
         }
-        let (hub, shutdown, clients) = (hub.clone(), shutdown.clone(), clients.clone());
+        let (hub, clients) = (hub.clone(), clients.clone());
         tokio::spawn(async move {
-            client(stream, hub, shutdown).await;
+            client(stream, hub).await;
             clients.fetch_sub(1, Ordering::Relaxed);
         });
     }
@@ -209,7 +209,7 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
 }
 
 /// One capture: its request, then packets until a stop condition.
-async fn client(stream: UnixStream, hub: Hub, shutdown: CancellationToken) {
+async fn client(stream: UnixStream, hub: Hub) {
     let (mut rd, mut wr) = stream.into_split();
     let request = match request_line(&mut rd)
         .await
@@ -237,7 +237,7 @@ async fn client(stream: UnixStream, hub: Hub, shutdown: CancellationToken) {
         written: vec![0; hub.interfaces().len()],
         start_us: unix_us(Instant::now()),
     };
-    let why = run.stream(&mut rd, &mut wr, &hub, &shutdown).await;
+    let why = run.stream(&mut rd, &mut wr, &hub).await;
     let dropped: u64 = run.sub.dropped().iter().sum();
     info!(packets = run.packets, dropped, "capture ended ({why})");
 }
@@ -258,7 +258,6 @@ impl Run {
         rd: &mut tokio::net::unix::OwnedReadHalf,
         wr: &mut tokio::net::unix::OwnedWriteHalf,
         hub: &Hub,
-        shutdown: &CancellationToken,
     ) -> &'static str {
         let mut head = pcapng::section_header(&format!("mbgate {}", env!("CARGO_PKG_VERSION")));
         for i in hub.interfaces() {
@@ -301,15 +300,12 @@ impl Run {
                 _ = async { tokio::time::sleep_until(until.expect("guarded")).await }, if until.is_some() => {
                     break "seconds";
                 }
-                _ = shutdown.cancelled() => break "the gateway stopped",
             }
+            // A gateway that stops ends the capture when its last packet (the drain's
+            // answers included) has gone out: the hub closes, `recv` gives `None`.
             let mut msg = Vec::with_capacity(blocks.len() + 5);
             message(&mut msg, DATA, &blocks);
-            let sent = tokio::select! {
-                r = wr.write_all(&msg) => r.is_ok(),
-                _ = shutdown.cancelled() => false,
-            };
-            if !sent {
+            if wr.write_all(&msg).await.is_err() {
                 return "the client went away";
             }
             if self.request.count.is_some_and(|n| self.packets >= n) {
