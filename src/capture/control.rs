@@ -73,6 +73,13 @@ pub(crate) fn bind(path: &Path) -> Result<Control, BindError> {
     if std::os::unix::net::UnixStream::connect(path).is_ok() {
         return Err(BindError::InUse(path.to_owned()));
     }
+    // Only a socket is ever replaced: a path that names a file by mistake keeps it.
+    use std::os::unix::fs::FileTypeExt;
+    if let Ok(m) = std::fs::symlink_metadata(path) {
+        if !m.file_type().is_socket() {
+            return Err(io(std::io::Error::other("it exists and is not a socket")));
+        }
+    }
     let tmp = path.with_file_name(format!(
         ".{}.{}.tmp",
         path.file_name()
@@ -335,5 +342,32 @@ impl Run {
         message(&mut msg, END, end.as_bytes());
         let _ = tokio::time::timeout(Duration::from_secs(5), wr.write_all(&msg)).await;
         why
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[tokio::test]
+    async fn the_socket_is_made_0660_a_live_one_is_kept_and_a_file_never_replaced() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("control.sock");
+        let c = bind(&path).unwrap();
+        let mode = std::fs::metadata(&path).unwrap().permissions().mode();
+        assert_eq!(mode & 0o777, 0o660);
+        assert!(matches!(bind(&path), Err(BindError::InUse(_))));
+        drop(c);
+        assert!(!path.exists(), "removed when dropped");
+        // Left behind by a gateway that stopped: replaced.
+        let stale = std::os::unix::net::UnixListener::bind(&path).unwrap();
+        drop(stale);
+        let c = bind(&path).unwrap();
+        drop(c);
+        let file = dir.path().join("notes.txt");
+        std::fs::write(&file, "keep me").unwrap();
+        let e = bind(&file).err().unwrap().to_string();
+        assert!(e.contains("it exists and is not a socket"), "{e}");
+        assert_eq!(std::fs::read_to_string(&file).unwrap(), "keep me");
     }
 }

@@ -148,6 +148,24 @@ impl Tape {
         }
     }
 
+    /// A whole frame of the line's framing dropped after the framer yielded it (too
+    /// early, an echo, a reply that fits no request): kept when the tape is on.
+    pub(crate) fn whole_frame(
+        &mut self,
+        at: Option<Instant>,
+        reason: Reason,
+        bytes: &[u8],
+        detail: &'static str,
+    ) {
+        self.dropped_aside(|| Dropped {
+            at,
+            reason,
+            bytes: bytes.to_vec(),
+            whole: true,
+            detail,
+        });
+    }
+
     /// The drops found since the last call.
     pub(crate) fn take(&mut self) -> Vec<Dropped> {
         std::mem::take(&mut self.found)

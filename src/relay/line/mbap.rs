@@ -4,7 +4,7 @@
 
 use super::{Seen, Unsolicited};
 use crate::capture::packet::Reason;
-use crate::capture::tape::{Dropped, Tape};
+use crate::capture::tape::Tape;
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::FrameRef;
@@ -340,17 +340,9 @@ impl Mbap {
             if let Some(why) = self.too_early(&frame) {
                 debug!(tid = frame.tid(), "{why}: {:?}", frame);
                 stats.add(&stats.dropped_bytes, len as u64);
-                self.tape.dropped_aside(|| Dropped {
-                    at: Some(at),
-                    reason: if why.contains("echo") {
-                        Reason::Echo
-                    } else {
-                        Reason::TooEarly
-                    },
-                    bytes: frame.as_bytes().to_vec(),
-                    whole: true,
-                    detail: why,
-                });
+                let reason = [Reason::TooEarly, Reason::Echo][usize::from(why.contains("echo"))];
+                self.tape
+                    .whole_frame(Some(at), reason, frame.as_bytes(), why);
                 continue;
             }
             if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
@@ -361,13 +353,10 @@ impl Mbap {
                         "a reply that does not fit its request: {:?}", frame
                     );
                     stats.add(&stats.bad_frames, 1);
-                    self.tape.dropped_aside(|| Dropped {
-                        at: Some(at),
-                        reason: Reason::LostSync,
-                        bytes: frame.as_bytes().to_vec(),
-                        whole: true,
-                        detail: "a reply with its request's id that does not fit the request",
-                    });
+                    let why = "a reply with its request's id that does not fit the request";
+                    let bytes = frame.as_bytes();
+                    self.tape
+                        .whole_frame(Some(at), Reason::LostSync, bytes, why);
                     seen.push(Seen::Corrupt(frame.tid()));
                     continue;
                 }
