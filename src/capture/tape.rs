@@ -264,7 +264,7 @@ mod tests {
             let mut t = Tape::default();
             t.set(true);
             let mut taken = Vec::new();
-            let mut take = |f: &mut Framer, t: &mut Tape, quiet: bool, taken: &mut Vec<u8>| {
+            let take = |f: &mut Framer, t: &mut Tape, quiet: bool, taken: &mut Vec<u8>| {
                 while let Some(framed) = f.next_frame(&ReplyJudge, quiet) {
                     match framed {
                         Framed::Frame(adu) => {
