@@ -2457,7 +2457,7 @@ fn capture_cost(r: &mut Report) {
     }
     let per = |i: usize| Duration::from_nanos(cpu[i] / transactions[i].max(1));
     let mut t = String::from(
-        "| capture | transactions/s | CPU per transaction | packets written | packets dropped (counted, reported) |\n|---|---|---|---|---|\n",
+        "| capture | transactions/s | CPU per transaction | packets captured | packets dropped (counted, reported) |\n|---|---|---|---|---|\n",
     );
     for (i, (name, _)) in CASES.into_iter().enumerate() {
         let _ = writeln!(
