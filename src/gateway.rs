@@ -137,6 +137,8 @@ async fn serve_with(
         bound.push((listener, listening));
     }
     warn_inapplicable(&cfg);
+    // Before the relays: the always-on ring has their first frames.
+    let capture = crate::capture::Capture::start(&cfg, &shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     // Each listener's counters (connections, refusals, requests it answered itself);
@@ -144,6 +146,7 @@ async fn serve_with(
     let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
     let mut counted = listener_stats.clone();
     let board = Arc::new(Board::default());
+    let _ = board.capture.set(capture.hub().clone());
 
     // Each line its own relay task: its own queue, timeouts, retries and backoff, so
     // a slow or dead line never holds up another.
@@ -155,6 +158,7 @@ async fn serve_with(
         counted.push(line_stats.clone());
         let (relay, handle) =
             Relay::for_line(line, cfg.log.traffic, line_stats.clone(), shutdown.clone());
+        let relay = relay.with_tap(capture.hub().tap(i as u16 + 1));
         // One watchdog for the gateway: every relay runs on the one thread, so one
         // loop that turns shows that all of them can.
         let relay = if i == 0 {
@@ -262,6 +266,7 @@ async fn serve_with(
         tracker: tracker.clone(),
         ids: Arc::new(AtomicU64::new(0)),
         masters: board.masters.clone(),
+        capture: capture.hub().clone(),
     };
     let accepting: Vec<_> = bound
         .into_iter()
@@ -298,6 +303,8 @@ async fn serve_with(
     {
         warn!("drain did not finish in {bound:?}; exiting anyway");
     }
+    // Every capture gets its end, the ring its last packets.
+    capture.finish().await;
     let totals = Arc::new(Stats::total(counted.iter().map(|s| &**s)));
     info!(stats = %totals, "stopped");
     Ok(totals)

@@ -6,6 +6,7 @@
 
 pub mod access;
 pub mod bridge;
+pub mod capture;
 pub mod cli_overrides;
 pub mod client;
 pub mod config;

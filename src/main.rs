@@ -85,6 +85,14 @@ enum Command {
     /// three timeouts in a row, no reply since, the last timeout within a minute), 3
     /// the gateway could not be asked, 2 bad arguments.
     Status(mbgate::metrics::ask::StatusArgs),
+    /// Capture a running gateway's frames to pcapng, for Wireshark (docs/capture.md).
+    ///
+    /// Every frame each master sent and received, every frame on each line, and the
+    /// bytes the gateway dropped with why; over its control socket (root, or the
+    /// service's user or group). Exit code 0 when the capture ended as asked (--count,
+    /// --seconds, Ctrl-C), 1 when it could not run or its output failed, 2 bad
+    /// arguments.
+    Capture(mbgate::capture::client::CaptureArgs),
     /// Man pages and shell completions, generated from this command line.
     ///
     /// The .deb installs them; for an install with cargo: `mbgate generate man DIR`,
@@ -133,6 +141,7 @@ fn main() -> ExitCode {
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::Generate(what) => generate(what),
         Command::Reload(args) => mbgate::reload::ask::main(args),
+        Command::Capture(args) => mbgate::capture::client::main(args),
         Command::CheckConfig {
             file,
             print,

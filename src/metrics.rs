@@ -4,7 +4,8 @@
 //! systemd's STATUS= line and `mbgate status`.
 //!
 //! The relay writes its line's numbers as it goes, a few relaxed atomic stores a
-//! request and no lock: nothing here makes the relay wait on a reader. A reader sees
+//! request and no lock: nothing here makes the relay wait on a reader. (The status
+//! page's last frames come from the capture, `crate::capture`.) A reader sees
 //! each number as it was at some instant, the set of them not necessarily at the same
 //! one (a scrape in the middle of a reply may count the request and not yet the reply).
 
@@ -105,43 +106,7 @@ pub(crate) struct LineMetrics {
     /// Whether the port is open (1) or not (0).
     pub(crate) port_open: AtomicU64,
     started: Instant,
-    /// Until when (microseconds after `started`) the status page is open: the relay
-    /// records frames for it only then.
-    watched_until_us: AtomicU64,
-    /// The last frames on the line, for the status page.
-    frames: Mutex<Frames>,
 }
-
-/// A frame on the line (or a timeout), as the status page lists it.
-#[derive(Debug, Clone)]
-pub(crate) struct FrameSeen {
-    /// Milliseconds since the Unix epoch.
-    pub(crate) at_ms: u64,
-    /// `gw->serial`, `serial->gw`, `late`, `unsolicited`, `timeout`.
-    pub(crate) dir: &'static str,
-    /// The master's connection, when there is one.
-    pub(crate) conn: Option<u64>,
-    pub(crate) unit: u8,
-    pub(crate) function: u8,
-    /// The address and count a read or write names.
-    pub(crate) span: Option<(u16, u16)>,
-    /// The frame as on the wire (empty for a timeout).
-    pub(crate) bytes: Vec<u8>,
-}
-
-/// The last [`Frames::KEPT`] frames of a line, and how many there were in all.
-#[derive(Debug, Default)]
-pub(crate) struct Frames {
-    pub(crate) kept: std::collections::VecDeque<FrameSeen>,
-    pub(crate) total: u64,
-}
-
-impl Frames {
-    pub(crate) const KEPT: usize = 100;
-}
-
-/// How long the status page counts as open after its last request.
-const WATCHED_FOR: Duration = Duration::from_secs(10);
 
 /// A unit not answering counts as failing (the gateway not healthy) until it answers
 /// again, or until this long has passed since its last timeout: a unit nobody asks
@@ -164,8 +129,6 @@ impl LineMetrics {
             last_reply_us: AtomicU64::new(0),
             port_open: AtomicU64::new(0),
             started: Instant::now(),
-            watched_until_us: AtomicU64::new(0),
-            frames: Mutex::new(Frames::default()),
         }
     }
 
@@ -230,35 +193,6 @@ impl LineMetrics {
 
     fn us_since_start(&self, now: Instant) -> u64 {
         now.saturating_duration_since(self.started).as_micros() as u64
-    }
-
-    /// The status page asked at `now`: frames are recorded for a while.
-    pub(crate) fn watched(&self, now: Instant) {
-        let until = self.us_since_start(now + WATCHED_FOR);
-        self.watched_until_us.store(until, Ordering::Relaxed);
-    }
-
-    /// Is the status page open? (One atomic load: the relay asks for every frame.)
-    pub(crate) fn is_watched(&self, now: Instant) -> bool {
-        load(&self.watched_until_us) > self.us_since_start(now)
-    }
-
-    /// Records a frame for the status page. Never waits: while a reader holds the
-    /// list, the frame is left out of it (not out of the counters).
-    pub(crate) fn record(&self, frame: FrameSeen) {
-        if let Ok(mut f) = self.frames.try_lock() {
-            if f.kept.len() == Frames::KEPT {
-                f.kept.pop_front();
-            }
-            f.kept.push_back(frame);
-            f.total += 1;
-        }
-    }
-
-    /// The frames kept, oldest first, and how many were recorded in all.
-    pub(crate) fn frames(&self) -> (Vec<FrameSeen>, u64) {
-        let f = self.frames.lock().expect("not poisoned");
-        (f.kept.iter().cloned().collect(), f.total)
     }
 }
 
@@ -332,6 +266,8 @@ pub(crate) struct Board {
     /// Each line's last minute, a point a second, by line name, while the metrics
     /// listener runs (`page::sample`).
     pub(crate) history: Mutex<std::collections::HashMap<String, page::History>>,
+    /// The capture, whose packets the status page lists (each line's last frames).
+    pub(crate) capture: std::sync::OnceLock<crate::capture::Hub>,
 }
 
 impl Board {

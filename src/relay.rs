@@ -48,6 +48,7 @@ use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
+pub(crate) use watch::span;
 use watch::Watch;
 use watchdog::Watchdog;
 
@@ -146,7 +147,7 @@ impl Relay {
             draining: false,
             commands_open: true,
             watchdog: None,
-            watch: Watch::new(metrics, traffic),
+            watch: Watch::new(metrics, traffic, serial.framing),
         };
         (relay, RelayHandle::new(tx))
     }
@@ -158,6 +159,13 @@ impl Relay {
         let metrics = LineMetrics::new(transport.name(), self.stats.clone());
         self.watch.metrics = Arc::new(metrics);
         self.port.set_transport(transport);
+        self
+    }
+
+    /// Hands the line's packets to `tap` (the capture and the status page's last
+    /// frames, docs/capture.md) while anyone looks.
+    pub(crate) fn with_tap(mut self, tap: crate::capture::Tap) -> Self {
+        self.watch.tap = tap;
         self
     }
 
@@ -189,6 +197,8 @@ impl Relay {
             if let Some(w) = &mut self.watchdog {
                 w.pet(now);
             }
+            // The line keeps the bytes it drops only while a capture wants them.
+            self.line.set_tape(self.watch.capturing());
             self.open_if_due(now);
             self.dispatch(now);
             if self.draining && self.in_flight.is_empty() {
@@ -216,6 +226,8 @@ impl Relay {
                 Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
                 Event::Read(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
+                    // A capture begun while the loop waited has these bytes too.
+                    self.line.set_tape(self.watch.capturing());
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
@@ -246,6 +258,9 @@ impl Relay {
             self.take_frames(now);
             self.expire(now);
             self.answer_paced(now);
+            for dropped in self.line.take_drops() {
+                self.watch.dropped(dropped, now);
+            }
             let (queued, in_flight) = (self.sched.queued(), self.in_flight.len());
             self.watch.turn(now, queued, in_flight, self.port.is_open());
         }
@@ -484,7 +499,7 @@ impl Relay {
     fn take_frames(&mut self, now: Instant) {
         for seen in self.line.frames(self.in_flight.entries(), now, &self.stats) {
             match seen {
-                Seen::Frame(frame) => self.on_frame(frame, now),
+                Seen::Frame(frame, at) => self.on_frame(frame, at, now),
                 Seen::Corrupt(tid) => {
                     if let Some(f) = self.in_flight.take(tid) {
                         self.failed(f, Failure::Corrupt, now);
@@ -494,7 +509,8 @@ impl Relay {
         }
     }
 
-    fn on_frame(&mut self, frame: Adu, now: Instant) {
+    /// `frame`, taken off the line at `at` (its last byte read), handled `now`.
+    fn on_frame(&mut self, frame: Adu, at: Instant, now: Instant) {
         let tid = frame.tid();
         // The line has checked unit, function code and shape against this request.
         if let Some(f) = self.in_flight.answered(tid) {
@@ -507,11 +523,11 @@ impl Relay {
             }
             // When it left: its deadline is its response timeout after that.
             let left = f.deadline.checked_sub(f.timeout).unwrap_or(now);
-            let wire = self
-                .watch
-                .wants_frames(now)
-                .then(|| self.line.on_wire(&frame));
+            let wire = self.watch.wants_frames().then(|| self.line.on_wire(&frame));
             let (conn, asked) = (f.req.conn(), &f.req.adu);
+            if let Some(wire) = &wire {
+                self.watch.taken(conn, asked, &frame, wire, at);
+            }
             self.watch.replied(conn, asked, &frame, wire, (left, now));
             f.req.deliver(&frame);
             return;
@@ -519,7 +535,7 @@ impl Relay {
         match self.line.unsolicited(tid) {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
-                self.traffic("late reply, dropped", &frame, now);
+                self.traffic("late reply, dropped", &frame, at);
                 debug!(
                     tid,
                     "late reply dropped (its request timed out or was answered already): {:?}",
@@ -527,17 +543,22 @@ impl Relay {
                 );
             }
             Unsolicited::Notification => {
-                self.traffic("answers no request", &frame, now);
+                let what = match self.cfg.notifications {
+                    crate::config::Notifications::Drop => "dropped (notifications = drop)",
+                    crate::config::Notifications::Broadcast => "broadcast to every master",
+                };
+                self.traffic(what, &frame, at);
                 self.masters.notification(frame, &self.stats)
             }
         }
     }
 
-    /// The traffic log's line for a frame that answers nothing on the line.
-    fn traffic(&self, what: &str, frame: &Adu, now: Instant) {
-        if self.watch.wants_frames(now) {
+    /// The traffic log's line, and the capture's packet, for a frame that answers
+    /// nothing on the line, taken off it at `at`.
+    fn traffic(&self, what: &str, frame: &Adu, at: Instant) {
+        if self.watch.wants_frames() {
             let wire = self.line.on_wire(frame);
-            self.watch.unsolicited(what, frame, &wire, now);
+            self.watch.unsolicited(what, frame, &wire, at);
         }
     }
 }

@@ -249,7 +249,8 @@ pub(crate) mod tests {
             unit_backoff = false\nunit_backoff_after = 9\nunit_backoff_ms = 9\nunit_backoff_max_ms = 99\n\
             probe_timeout_ms = 9\ntimeout_guard_ms = 9\ncoalesce = false\ncache_ms = 9\n\
             request_pause_ms = 9\n\
-            [log]\nlevel = \"debug\"\ntraffic = true\n[metrics]\nlisten = \"127.0.0.1:9502\"\n";
+            [log]\nlevel = \"debug\"\ntraffic = true\n[metrics]\nlisten = \"127.0.0.1:9502\"\n\
+            [capture]\nfile = \"/x\"\nfiles = 3\nfile_size_kb = 99\n[control]\nsocket = \"/y\"\n";
         crate::config::parse(text, "t").unwrap()
     }
 }

@@ -8,6 +8,8 @@
 //! docs/security.md).
 
 use crate::access;
+use crate::capture::packet::{Dir, Ends, Packet, Proto, Reason, Role};
+use crate::capture::{Hub, Tap};
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
@@ -69,6 +71,8 @@ pub(crate) struct Shared {
     pub(crate) tracker: TaskTracker,
     pub(crate) ids: Arc<AtomicU64>,
     pub(crate) masters: Arc<Masters>,
+    /// The capture (docs/capture.md): the TCP side is its interface 0.
+    pub(crate) capture: Hub,
 }
 
 /// One listener as the accept loop runs it: its configuration, its name in the file
@@ -93,6 +97,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
         tracker,
         ids,
         masters,
+        capture,
     } = shared;
     let Listening {
         listen,
@@ -145,6 +150,8 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             masters: masters.clone(),
             local,
             grant: None,
+            capture: capture.clone(),
+            tap: capture.tap(0),
         };
         let closed = stats.clone();
         let tls = tls.clone();
@@ -244,6 +251,9 @@ struct Connection {
     local: SocketAddr,
     /// A TLS master's role, and what it may do.
     grant: Option<Grant>,
+    capture: Hub,
+    /// The TCP side's tap.
+    tap: Tap,
 }
 
 /// Why a connection's reader stopped.
@@ -303,6 +313,7 @@ impl Connection {
                 .as_ref()
                 .map(|g| (g.role.clone(), g.subject.clone())),
         });
+        self.capture.connected(self.id, self.peer);
         // RTU over TCP has no transaction id: one request at a time, and no
         // notifications (nothing would tell them from a reply).
         let pending = if rtu {
@@ -337,6 +348,7 @@ impl Connection {
         }
         self.router.detach(self.id);
         self.masters.remove(self.id);
+        self.capture.forget(self.id);
         info!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
@@ -367,11 +379,23 @@ impl Connection {
                     if self.cfg.log.traffic {
                         debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
                     }
+                    if self.tap.on() {
+                        self.captured(&adu, Dir::In, "master->gw");
+                    }
                     self.submit(adu, ticket);
                     continue;
                 }
                 Ok(None) => {}
                 Err(e) => {
+                    if self.tap.on() {
+                        let end = buf.len().min(rtu::MAX_FRAME + 8);
+                        let mut p =
+                            Packet::dropped(None, Reason::Refused, buf[..end].to_vec(), false, "");
+                        p.note = Some(format!("dropped (refused): {e}; the connection was closed"));
+                        p.ends = Some(self.ends());
+                        p.conn = Some(self.id);
+                        self.tap.send(p, Instant::now());
+                    }
                     self.stats.add(&self.stats.protocol_violations, 1);
                     warn!(conn = self.id, peer = %self.peer, "protocol violation: {e}; closing the connection");
                     return End::Closed;
@@ -419,6 +443,36 @@ impl Connection {
         }
     }
 
+    fn ends(&self) -> Ends {
+        Ends {
+            client: self.peer,
+            server: self.local,
+        }
+    }
+
+    /// A frame to or from this master, for the capture: as the master framed it
+    /// (MBAP with its own transaction id, or RTU with its CRC).
+    fn captured(&self, adu: &Adu, dir: Dir, label: &'static str) {
+        let (proto, bytes) = if self.listen.framing == ListenFraming::Rtu {
+            (Proto::Mbrtu, rtu::encode(adu))
+        } else {
+            (Proto::Mbtcp, adu.as_bytes().to_vec())
+        };
+        let role = if dir == Dir::In {
+            Role::Query
+        } else {
+            Role::Reply
+        };
+        let mut p = Packet::new(dir, role, proto, bytes);
+        p.ends = Some(self.ends());
+        p.conn = Some(self.id);
+        p.unit = Some(adu.unit());
+        p.function = Some(adu.function());
+        p.span = crate::relay::span(adu.pdu());
+        p.label = label;
+        self.tap.send(p, Instant::now());
+    }
+
     /// Hands a request to the relay, or answers it here when it cannot go on the line.
     /// Either way the answer goes through its ticket, so it keeps its place in the
     /// master's order.
@@ -462,6 +516,9 @@ impl Connection {
         while let Some(out) = inbox.next().await {
             if self.cfg.log.traffic {
                 debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
+            }
+            if self.tap.on() {
+                self.captured(&out.adu, Dir::Out, "gw->master");
             }
             let rtu_frame;
             let bytes = if self.listen.framing == ListenFraming::Rtu {

@@ -621,7 +621,15 @@ fn printed_configuration_has_the_sections_in_the_documented_order() {
     let headers: Vec<&str> = text.lines().filter(|l| l.starts_with('[')).collect();
     assert_eq!(
         headers,
-        ["[serial]", "[tcp]", "[relay]", "[log]", "[metrics]"]
+        [
+            "[serial]",
+            "[tcp]",
+            "[relay]",
+            "[log]",
+            "[metrics]",
+            "[capture]",
+            "[control]"
+        ]
     );
     assert!(text.contains("[serial]\npath = \"/dev/ttyUSB0\"\nbaud_rate = 19200\n"));
     assert!(text.contains("listen = \"0.0.0.0:502\"\n"));

@@ -51,6 +51,11 @@ const PROGRAMS: &[&str] = &[
     "mkdir",
     "printf",
     "chmod",
+    // docs/capture.md's displays of a capture file, and where a live one goes.
+    "tshark",
+    "wireshark",
+    "grep",
+    "cd",
 ];
 
 /// The README and every page of docs/.
@@ -189,6 +194,44 @@ fn help(path: &[String], cache: &mut BTreeMap<Vec<String>, Option<String>>) -> O
 /// Whether `cmd` is of a form that runs from a checkout (or, with `installed`, on a
 /// machine with the package installed); why not, if not.
 fn runnable(
+    cmd: &str,
+    installed: bool,
+    cache: &mut BTreeMap<Vec<String>, Option<String>>,
+) -> Result<(), String> {
+    pipeline(cmd)
+        .into_iter()
+        .try_for_each(|part| runnable_one(part, installed, cache))
+}
+
+/// The commands of a pipeline or list (`a | b`, `a && b`, `a; b`), split outside quotes.
+fn pipeline(cmd: &str) -> Vec<&str> {
+    let (mut single, mut double) = (false, false);
+    let (mut parts, mut start) = (Vec::new(), 0);
+    let bytes = cmd.as_bytes();
+    let mut i = 0;
+    while i < bytes.len() {
+        match bytes[i] {
+            b'\'' if !double => single = !single,
+            b'"' if !single => double = !double,
+            b'|' | b';' if !single && !double => {
+                parts.push(&cmd[start..i]);
+                start = i + 1;
+            }
+            b'&' if !single && !double && bytes.get(i + 1) == Some(&b'&') => {
+                parts.push(&cmd[start..i]);
+                start = i + 2;
+                i += 1;
+            }
+            _ => {}
+        }
+        i += 1;
+    }
+    parts.push(&cmd[start..]);
+    parts
+}
+
+/// [`runnable`] for one simple command.
+fn runnable_one(
     cmd: &str,
     installed: bool,
     cache: &mut BTreeMap<Vec<String>, Option<String>>,

@@ -16,6 +16,9 @@ _mbgate() {
             ",$1")
                 cmd="mbgate"
                 ;;
+            mbgate,capture)
+                cmd="mbgate__subcmd__capture"
+                ;;
             mbgate,check-config)
                 cmd="mbgate__subcmd__check__subcmd__config"
                 ;;
@@ -64,6 +67,9 @@ _mbgate() {
             mbgate__subcmd__generate__subcmd__help,man)
                 cmd="mbgate__subcmd__generate__subcmd__help__subcmd__man"
                 ;;
+            mbgate__subcmd__help,capture)
+                cmd="mbgate__subcmd__help__subcmd__capture"
+                ;;
             mbgate__subcmd__help,check-config)
                 cmd="mbgate__subcmd__help__subcmd__check__subcmd__config"
                 ;;
@@ -107,7 +113,7 @@ _mbgate() {
 
     case "${cmd}" in
         mbgate)
-            opts="-h -V --help --version run check-config read write sim demo status generate reload help"
+            opts="-h -V --help --version run check-config read write sim demo status capture generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 1 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -120,8 +126,66 @@ _mbgate() {
             COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
             return 0
             ;;
+        mbgate__subcmd__capture)
+            opts="-o -c -h --output --socket --config --line --unit --master --function --count --seconds --help"
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                --output)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                -o)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --socket)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --config)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                -c)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --line)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --unit)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --master)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --function)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --count)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --seconds)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
         mbgate__subcmd__check__subcmd__config)
-            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --help"
+            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -276,6 +340,22 @@ _mbgate() {
                     return 0
                     ;;
                 --metrics-listen)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --capture-file)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --capture-files)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --capture-file-size-kb)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --control-socket)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;
@@ -491,8 +571,22 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__help)
-            opts="run check-config read write sim demo status generate reload help"
+            opts="run check-config read write sim demo status capture generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
+        mbgate__subcmd__help__subcmd__capture)
+            opts=""
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
             fi
@@ -757,7 +851,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__run)
-            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --help"
+            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -920,6 +1014,22 @@ _mbgate() {
                     return 0
                     ;;
                 --metrics-listen)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --capture-file)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --capture-files)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --capture-file-size-kb)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --control-socket)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;

@@ -33,6 +33,7 @@ complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "write" -d 'Write coil
 complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "sim" -d 'A simulated device on a serial port or pty (a CIE-M10, or generic devices)'
 complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "demo" -d 'No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process'
 complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "status" -d 'Ask a running gateway how its lines are: a summary per line and unit'
+complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "capture" -d 'Capture a running gateway\'s frames to pcapng, for Wireshark (docs/capture.md)'
 complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "generate" -d 'Man pages and shell completions, generated from this command line'
 complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "reload" -d 'Have a running gateway read its configuration file again, and say what changed'
 complete -c mbgate -n "__fish_mbgate_needs_command" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'
@@ -93,6 +94,10 @@ error\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l traffic -d 'Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex [log.traffic] [default: false]' -r -f -a "true\t''
 false\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l metrics-listen -d 'Address for Prometheus metrics (/metrics) and the status page; "" (the default): none [metrics.listen] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l capture-file -d 'Always-on capture to pcapng: the current file of a ring, the older ones FILE.1 to FILE.N-1; "" (the default): off [capture.file] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l capture-files -d 'Files in the capture ring, the current one included, 2..=1000 [capture.files] [default: 10]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l capture-file-size-kb -d 'Size of each file of the capture ring, in kB (1024 bytes), 16..=16777216 [capture.file_size_kb] [default: 10240]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l control-socket -d 'Unix socket for mbgate capture, mode 0660 (root, the service\'s user and group); "" (the default): control.sock in systemd\'s RuntimeDirectory, none outside systemd [control.socket] [default: ]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l serial -d 'Serial device of the Modbus device [serial.path] [default: /dev/ttyUSB0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l baud -d 'Serial speed in bit/s, 50..=4000000 [serial.baud_rate] [default: 19200]' -r
@@ -150,6 +155,10 @@ error\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l traffic -d 'Log every whole frame at debug level: direction, connection, unit, both transaction ids, function, address and count, hex [log.traffic] [default: false]' -r -f -a "true\t''
 false\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l metrics-listen -d 'Address for Prometheus metrics (/metrics) and the status page; "" (the default): none [metrics.listen] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l capture-file -d 'Always-on capture to pcapng: the current file of a ring, the older ones FILE.1 to FILE.N-1; "" (the default): off [capture.file] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l capture-files -d 'Files in the capture ring, the current one included, 2..=1000 [capture.files] [default: 10]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l capture-file-size-kb -d 'Size of each file of the capture ring, in kB (1024 bytes), 16..=16777216 [capture.file_size_kb] [default: 10240]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l control-socket -d 'Unix socket for mbgate capture, mode 0660 (root, the service\'s user and group); "" (the default): control.sock in systemd\'s RuntimeDirectory, none outside systemd [control.socket] [default: ]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l print -d 'Print the whole effective configuration, every key with its value, as TOML'
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l lines -d 'Print the whole effective configuration as [[line]] and [[listen]] tables (docs/design.md §4.1)'
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -s h -l help -d 'Print help (see more with \'--help\')'
@@ -286,6 +295,16 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand demo" -l master -d 'The de
 complete -c mbgate -n "__fish_mbgate_using_subcommand demo" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand status" -l metrics -d 'The gateway\'s metrics listener (its `metrics.listen`)' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand status" -s h -l help -d 'Print help (see more with \'--help\')'
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -s o -l output -d 'Where to write: a file, or - for standard output (`-o - | wireshark -k -i -`)' -r -F
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l socket -d 'The gateway\'s control socket [default: from the configuration file]' -r -F
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -s c -l config -d 'The gateway\'s configuration file, to find its control socket (control.socket; empty: the packaged unit\'s runtime directory for this file) [default: /etc/mbgate/mbgate.toml]' -r -F
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l line -d 'Only this line: its index (0 is the first [[line]]), its name (/dev/ttyUSB0, host:port), or tcp for the masters\' side; repeat for several' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l unit -d 'Only this unit id (dropped bytes, which have none, are kept); repeat for several' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l master -d 'Only this master\'s packets, by its address (10.0.0.5) or address and port (10.0.0.5:40000), and the line\'s frames for its requests; repeat for several' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l function -d 'Only this function code (decimal or 0x10; its exceptions too); repeat for several' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l count -d 'Stop after this many packets' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -l seconds -d 'Stop after this many seconds' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand capture" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and not __fish_seen_subcommand_from man completions help" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and not __fish_seen_subcommand_from man completions help" -f -a "man" -d 'Write the man pages into DIR: mbgate(1), mbgate-SUBCOMMAND(1) for each subcommand, and mbgate.toml(5), the configuration file'
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and not __fish_seen_subcommand_from man completions help" -f -a "completions" -d 'Print the completion script for SHELL'
@@ -297,15 +316,16 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and __fish_seen_
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and __fish_seen_subcommand_from help" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'
 complete -c mbgate -n "__fish_mbgate_using_subcommand reload" -l metrics -d 'The gateway\'s metrics listener (its `metrics.listen`, on this machine)' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand reload" -s h -l help -d 'Print help (see more with \'--help\')'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "run" -d 'Run the gateway in the foreground (systemd does this)'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "check-config" -d 'Validate a configuration file and say what it sets up'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "read" -d 'Read coils, discrete inputs or registers (FC 01..04) and print them'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "write" -d 'Write coils or registers (FC 05, 06, 0F, 10; 17 with --read), print the reply'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "sim" -d 'A simulated device on a serial port or pty (a CIE-M10, or generic devices)'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "demo" -d 'No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "status" -d 'Ask a running gateway how its lines are: a summary per line and unit'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "generate" -d 'Man pages and shell completions, generated from this command line'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "reload" -d 'Have a running gateway read its configuration file again, and say what changed'
-complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status generate reload help" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "run" -d 'Run the gateway in the foreground (systemd does this)'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "check-config" -d 'Validate a configuration file and say what it sets up'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "read" -d 'Read coils, discrete inputs or registers (FC 01..04) and print them'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "write" -d 'Write coils or registers (FC 05, 06, 0F, 10; 17 with --read), print the reply'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "sim" -d 'A simulated device on a serial port or pty (a CIE-M10, or generic devices)'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "demo" -d 'No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "status" -d 'Ask a running gateway how its lines are: a summary per line and unit'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "capture" -d 'Capture a running gateway\'s frames to pcapng, for Wireshark (docs/capture.md)'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "generate" -d 'Man pages and shell completions, generated from this command line'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "reload" -d 'Have a running gateway read its configuration file again, and say what changed'
+complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'
 complete -c mbgate -n "__fish_mbgate_using_subcommand help; and __fish_seen_subcommand_from generate" -f -a "man" -d 'Write the man pages into DIR: mbgate(1), mbgate-SUBCOMMAND(1) for each subcommand, and mbgate.toml(5), the configuration file'
 complete -c mbgate -n "__fish_mbgate_using_subcommand help; and __fish_seen_subcommand_from generate" -f -a "completions" -d 'Print the completion script for SHELL'

@@ -12,6 +12,8 @@ pub(crate) mod requests;
 pub(crate) mod slave;
 pub(crate) mod table;
 
+use crate::capture::packet::{Dir, Packet, Role};
+use crate::capture::{Capture, Tap};
 use crate::config::master::MasterLine;
 use crate::config::{Config, Framing};
 use crate::frame::hex::Hex;
@@ -67,24 +69,29 @@ impl Timing {
 pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
     let master = cfg.master.clone().expect("a master line");
     let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
-    run_on(
+    let capture = Capture::start(cfg, &shutdown);
+    let taps = (capture.hub().tap(1), capture.hub().tap(0));
+    let counts = run_on(
         Box::new(port),
         cfg.serial.framing,
         Timing::of(cfg),
         master,
-        cfg.log.traffic,
+        (cfg.log.traffic, taps),
         shutdown,
     )
-    .await
+    .await;
+    capture.finish().await;
+    counts
 }
 
-/// [`run`] on any port (tests use an in-memory one).
+/// [`run`] on any port (tests use an in-memory one). `traffic` turns the traffic log
+/// on; the taps take the line's packets and the slaves' (docs/capture.md).
 pub(crate) async fn run_on(
     mut port: Box<dyn Port>,
     framing: Framing,
     timing: Timing,
     master: MasterLine,
-    traffic: bool,
+    (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
     shutdown: CancellationToken,
 ) -> Result<Counts, BridgeError> {
     let (events_tx, mut events) = mpsc::unbounded_channel();
@@ -114,7 +121,7 @@ pub(crate) async fn run_on(
             listener,
             rx,
             events_tx.clone(),
-            slaves_stop.clone(),
+            (tcp_tap.clone(), slaves_stop.clone()),
         ));
     }
     drop(events_tx);
@@ -144,6 +151,8 @@ pub(crate) async fn run_on(
         table: Table::new(master, framing != Framing::Mbap),
         timing,
         traffic,
+        framing,
+        tap: line_tap,
         to_slaves,
         drain_within,
         watchdog: crate::notify::watchdog_interval(),
@@ -227,6 +236,9 @@ struct Line {
     table: Table,
     timing: Timing,
     traffic: bool,
+    framing: Framing,
+    /// The line's packets, for the capture.
+    tap: Tap,
     to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
     /// The longest a request held at shutdown can take to be answered (the longest
     /// route timeout).
@@ -254,6 +266,7 @@ impl Line {
             if draining && self.table.idle() {
                 return Ok(());
             }
+            self.requests.set_tape(self.tap.on());
             let partial = self.requests.buffered() > 0;
             let deadline = self.table.next_deadline().map(Instant::from_std);
             let actions = tokio::select! {
@@ -274,6 +287,8 @@ impl Line {
                         }
                         last_rx = Instant::now();
                         paused = false;
+                        // A capture begun while the loop waited has these bytes too.
+                        self.requests.set_tape(self.tap.on());
                         self.requests.push(&buf[..n]);
                         self.take(false)
                     }
@@ -316,15 +331,40 @@ impl Line {
     /// Every whole request decoded so far, into the table.
     fn take(&mut self, quiet: bool) -> Vec<Action> {
         let mut out = Vec::new();
+        let now = Instant::now();
         while let Some(req) = self.requests.next(quiet) {
             debug!(
                 unit = req.unit,
                 "request from the serial master: {}",
                 Hex(&req.pdu)
             );
+            if self.tap.on() {
+                self.capture(&req, &req.pdu, Dir::In, now);
+            }
             out.extend(self.table.request(req, std::time::Instant::now()));
         }
+        for d in self.requests.take_drops() {
+            let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
+            // What comes off a master's line is a request.
+            let p = p.shown_as(Role::Query);
+            self.tap.send(p, d.at.unwrap_or(now));
+        }
         out
+    }
+
+    /// A request from the serial master (`Dir::In`) or the reply to it (`pdu`,
+    /// `Dir::Out`) as the line carries it, for the capture.
+    fn capture(&self, req: &requests::Incoming, pdu: &[u8], dir: Dir, at: Instant) {
+        let wire = encode_reply(self.requests.codec(), req, pdu);
+        let adu = Adu::build(req.tid.unwrap_or(0), req.unit, pdu);
+        let (role, label) = match dir {
+            Dir::In => (Role::Query, "serial->gw"),
+            _ => (Role::Reply, "gw->serial"),
+        };
+        let mut p = Packet::line_frame(self.framing, &adu, &wire, dir, role);
+        p.span = crate::relay::span(&req.pdu);
+        p.label = label;
+        self.tap.send(p, at);
     }
 
     fn event(&mut self, ev: slave::Event) -> Vec<Action> {
@@ -358,6 +398,9 @@ impl Line {
                     let _ = self.to_slaves[route].send(adu);
                 }
                 Action::Answer { request, pdu } => {
+                    if self.tap.on() {
+                        self.capture(&request, &pdu, Dir::Out, Instant::now());
+                    }
                     let bytes = encode_reply(self.requests.codec(), &request, &pdu);
                     if self.traffic {
                         debug!("serial tx {}", Hex(&bytes));

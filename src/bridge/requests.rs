@@ -8,6 +8,8 @@
 //! - RTU / ASCII: the serial decoder; a frame whose CRC or LRC fails is dropped, as a
 //!   slave on a bus would drop it.
 
+use crate::capture::packet::Reason;
+use crate::capture::tape::{Dropped, Tape};
 use crate::config::Framing;
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::serial::Codec;
@@ -24,13 +26,23 @@ pub(crate) struct Incoming {
 }
 
 /// The line's framer ([`Framer`], shared with the relay, the simulator and the
-/// client), judging frames as requests.
+/// client), judging frames as requests; and the bytes it drops, for the capture.
 #[derive(Debug)]
-pub(crate) struct Requests(Framer);
+pub(crate) struct Requests(Framer, Tape);
 
 impl Requests {
     pub(crate) fn new(framing: Framing) -> Self {
-        Self(Framer::new(framing))
+        Self(Framer::new(framing), Tape::default())
+    }
+
+    /// Keep the bytes dropped, for the capture, or not.
+    pub(crate) fn set_tape(&mut self, on: bool) {
+        self.1.set(on);
+    }
+
+    /// The bytes dropped since the last call, with why (while the tape is on).
+    pub(crate) fn take_drops(&mut self) -> Vec<Dropped> {
+        self.1.take()
     }
 
     /// RTU or ASCII (where unit 0 is a broadcast), or `None` for MBAP.
@@ -40,6 +52,7 @@ impl Requests {
 
     pub(crate) fn push(&mut self, bytes: &[u8]) {
         self.0.push(bytes);
+        self.1.push(bytes);
     }
 
     /// The line has been silent for the pause that ends a frame (MBAP: confirms a
@@ -55,6 +68,9 @@ impl Requests {
     /// Forgets what is buffered (the port was lost); counted as dropped.
     pub(crate) fn clear(&mut self) {
         self.0.clear();
+        let to = self.0.consumed();
+        self.1
+            .dropped_to(to, None, Reason::Stale, "bytes held when the port was lost");
     }
 
     /// Bytes dropped so far: garbage, malformed or refuted MBAP frames, RTU/ASCII
@@ -67,17 +83,34 @@ impl Requests {
     /// (MBAP) or for 3.5 characters (RTU): a partial frame will not complete.
     pub(crate) fn next(&mut self, quiet: bool) -> Option<Incoming> {
         let mbap = self.0.codec().is_none();
+        let check = match self.0.codec() {
+            Some(crate::frame::serial::Codec::Ascii) => Reason::Lrc,
+            _ => Reason::Crc,
+        };
         loop {
-            match self.0.next_frame(&RequestJudge { confirm: true }, quiet)? {
+            let Some(framed) = self.0.next_frame(&RequestJudge { confirm: true }, quiet) else {
+                let to = self.0.consumed();
+                let why = "bytes that make no request (garbage, a frame that lost bytes)";
+                self.1.dropped_to(to, None, Reason::LostSync, why);
+                return None;
+            };
+            match framed {
                 Framed::Frame(adu) => {
+                    let len = self.0.encoded_len(adu.pdu().len());
+                    self.1.frame(self.0.consumed(), len, None, Reason::LostSync);
                     return Some(Incoming {
                         tid: mbap.then(|| adu.tid()),
                         unit: adu.unit(),
                         pdu: adu.pdu().to_vec(),
-                    })
+                    });
                 }
                 // Counted by the framer as dropped; a slave on a bus ignores it too.
-                Framed::Corrupt(_) => continue,
+                Framed::Corrupt(n) => {
+                    let why = "a request whose check failed, or cut short";
+                    let end = self.0.consumed();
+                    self.1
+                        .dropped_frame(end, n, None, (Reason::LostSync, check), why);
+                }
             }
         }
     }

@@ -4,6 +4,8 @@
 //! Nagle off. It tells the loop when the connection is up or down and hands it each
 //! MBAP frame the slave sends; it writes what the loop gives it.
 
+use crate::capture::packet::{Dir, Ends, Packet, Proto, Role};
+use crate::capture::Tap;
 use crate::config::master::{Peer, Route};
 use crate::frame::mbap::decode_strict;
 use crate::frame::Adu;
@@ -52,14 +54,14 @@ pub(crate) async fn bind(route: &Route) -> std::io::Result<Option<TcpListener>> 
 }
 
 /// Runs route `i`'s connection until `shutdown`: frames to write come on `frames`,
-/// events go to `events`.
+/// events go to `events`; both go to `tap` for the capture.
 pub(crate) async fn run(
     i: usize,
     route: Route,
     listener: Option<TcpListener>,
     mut frames: mpsc::UnboundedReceiver<Adu>,
     events: mpsc::UnboundedSender<Event>,
-    shutdown: CancellationToken,
+    (tap, shutdown): (Tap, CancellationToken),
 ) {
     let mut backoff = Backoff::new(RECONNECT_MIN, RECONNECT_MAX);
     let timeout = Duration::from_millis(route.response_timeout_ms);
@@ -129,8 +131,8 @@ pub(crate) async fn run(
             i,
             stream,
             listener.as_ref(),
-            &mut frames,
-            &events,
+            (&mut frames, &events),
+            &tap,
             &shutdown,
         )
         .await;
@@ -158,14 +160,39 @@ enum End {
     Replaced(TcpStream),
 }
 
+/// A frame to or from the slave (mbgate is the client), for the capture.
+fn captured(tap: &Tap, ends: Option<Ends>, adu: &Adu, dir: Dir) {
+    if !tap.on() {
+        return;
+    }
+    let (role, label) = match dir {
+        Dir::Out => (Role::Query, "gw->slave"),
+        _ => (Role::Reply, "slave->gw"),
+    };
+    let mut p = Packet::new(dir, role, Proto::Mbtcp, adu.as_bytes().to_vec());
+    p.ends = ends;
+    p.unit = Some(adu.unit());
+    p.function = Some(adu.function());
+    p.span = crate::relay::span(adu.pdu());
+    p.label = label;
+    tap.send(p, tokio::time::Instant::now());
+}
+
 async fn session(
     i: usize,
     stream: TcpStream,
     listener: Option<&TcpListener>,
-    frames: &mut mpsc::UnboundedReceiver<Adu>,
-    events: &mpsc::UnboundedSender<Event>,
+    (frames, events): (
+        &mut mpsc::UnboundedReceiver<Adu>,
+        &mpsc::UnboundedSender<Event>,
+    ),
+    tap: &Tap,
     shutdown: &CancellationToken,
 ) -> End {
+    let ends = match (stream.local_addr(), stream.peer_addr()) {
+        (Ok(client), Ok(server)) => Some(Ends { client, server }),
+        _ => None,
+    };
     let (mut rd, mut wr) = stream.into_split();
     let mut buf = bytes::BytesMut::with_capacity(1024);
     loop {
@@ -176,6 +203,7 @@ async fn session(
                 Ok(_) => loop {
                     match decode_strict(&mut buf) {
                         Ok(Some(adu)) => {
+                            captured(tap, ends, &adu, Dir::In);
                             let _ = events.send(Event::Frame(i, adu));
                         }
                         Ok(None) => break,
@@ -185,6 +213,7 @@ async fn session(
                 Err(e) => return End::Lost(e.to_string()),
             },
             Some(adu) = frames.recv() => {
+                captured(tap, ends, &adu, Dir::Out);
                 if let Err(e) = wr.write_all(adu.as_bytes()).await {
                     return End::Lost(e.to_string());
                 }

@@ -82,8 +82,8 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 }
 
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
-const TOP: [&str; 8] = [
-    "serial", "tcp", "relay", "log", "metrics", "line", "listen", "role",
+const TOP: [&str; 10] = [
+    "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen", "role",
 ];
 /// The keys of a `[[line]]` table.
 const LINE: [&str; 7] = ["units", "remap", "serial", "tcp", "relay", "role", "route"];

@@ -267,6 +267,20 @@ settings! {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
         listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
     }
+    /// The always-on capture (docs/capture.md): every packet into a ring of pcapng files.
+    [capture] CaptureConfig {
+        /// Always-on capture to pcapng: the current file of a ring, the older ones FILE.1 to FILE.N-1; "" (the default): off
+        file: String = String::new(), Any, "capture-file" "FILE";
+        /// Files in the capture ring, the current one included
+        files: u32 = 10, Range(2, 1000, None), "capture-files" "N";
+        /// Size of each file of the capture ring, in kB (1024 bytes)
+        file_size_kb: u64 = 10_240, Range(16, 16_777_216, None), "capture-file-size-kb" "KB";
+    }
+    /// The control socket `mbgate capture` uses (docs/capture.md).
+    [control] ControlConfig {
+        /// Unix socket for mbgate capture, mode 0660 (root, the service's user and group); "" (the default): control.sock in systemd's RuntimeDirectory, none outside systemd
+        socket: String = String::new(), Any, "control-socket" "PATH";
+    }
 }
 
 /// One setting as declared in `settings!`.
@@ -496,7 +510,10 @@ pub fn to_toml(cfg: &Config) -> String {
     if cfg.master.is_some() || !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
         return to_toml_lines(cfg);
     }
-    let old = ["serial", "tcp", "relay", "log", "metrics"].map(|s| (s, format!("[{s}]")));
+    let old = [
+        "serial", "tcp", "relay", "log", "metrics", "capture", "control",
+    ]
+    .map(|s| (s, format!("[{s}]")));
     with_roles(print(cfg, &old), cfg)
 }
 
@@ -559,7 +576,12 @@ pub fn to_toml_lines(cfg: &Config) -> String {
     }
     out.push(print(
         cfg,
-        &[("log", "[log]".into()), ("metrics", "[metrics]".into())],
+        &[
+            ("log", "[log]".into()),
+            ("metrics", "[metrics]".into()),
+            ("capture", "[capture]".into()),
+            ("control", "[control]".into()),
+        ],
     ));
     with_roles(out.join("\n"), cfg)
 }

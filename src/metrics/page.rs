@@ -1,10 +1,13 @@
 //! The status page on the metrics listener: `/` is the page (`status.html`, plain HTML
 //! and a little JavaScript from the binary, no external assets), `/status.json` what it
 //! polls every second: each line's numbers, its units, its last frames decoded, and the
-//! listeners. Asking for it turns the frame list on for a while ([`LineMetrics::watched`]):
-//! the relay records frames only while someone looks.
+//! listeners. The last frames are the capture's packets of the line
+//! (`crate::capture`): asking for the page turns them on for a while
+//! (`Hub::page`), so the relay makes packets only while someone looks.
 
-use super::{Board, FrameSeen, LineMetrics};
+use super::{Board, LineMetrics};
+use crate::capture::hub::Recent;
+use crate::capture::packet::Packet;
 use crate::frame::hex::Hex;
 use std::fmt::Write as _;
 use std::sync::atomic::AtomicU64;
@@ -125,25 +128,34 @@ fn opt(v: Option<impl std::fmt::Display>) -> String {
     v.map_or_else(|| "null".to_owned(), |v| v.to_string())
 }
 
-fn frame(f: &FrameSeen) -> String {
+/// A packet of the line as the page lists it: its time (milliseconds, and
+/// microseconds), what it is, the master it belongs to, unit, function, address and
+/// count, its bytes (for an ASCII frame, its unit, PDU and CRC; the text is in the
+/// note), and the note (why bytes were dropped).
+fn frame(board: &Board, f: &Packet) -> String {
     let (addr, count) = f.span.unzip();
+    let master = f
+        .conn
+        .and_then(|c| board.capture.get()?.master(c))
+        .map(|a| string(&a.to_string()));
     format!(
-        "{{\"t\":{},\"dir\":{},\"conn\":{},\"unit\":{},\"fc\":{},\"addr\":{},\"count\":{},\"hex\":{}}}",
-        f.at_ms,
-        string(f.dir),
+        "{{\"t\":{},\"us\":{},\"dir\":{},\"conn\":{},\"master\":{},\"unit\":{},\"fc\":{},\"addr\":{},\"count\":{},\"hex\":{},\"note\":{}}}",
+        f.at_us / 1000,
+        f.at_us,
+        string(f.label),
         opt(f.conn),
-        f.unit,
-        f.function,
+        opt(master),
+        opt(f.unit),
+        opt(f.function),
         opt(addr),
         opt(count),
-        string(&Hex(&f.bytes).to_string())
+        string(&Hex(&f.bytes).to_string()),
+        opt(f.note.as_deref().map(string)),
     )
 }
 
-fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
-    // The frames first: a first request shows none, then recording starts.
-    let (frames, total) = l.frames();
-    l.watched(now);
+fn line(board: &Board, l: &LineMetrics, recent: Option<&Recent>, now: Instant) -> String {
+    let (frames, total) = recent.map_or((Vec::new(), 0), |r| (r.kept.iter().collect(), r.total));
     let g = |a: &AtomicU64| l.get(a);
     let st = &l.stats;
     let units: Vec<String> = l
@@ -167,7 +179,7 @@ fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
         + st.get(&st.busy)
         + st.get(&st.unavailable)
         + st.get(&st.broadcasts_refused);
-    let frames: Vec<String> = frames.iter().map(frame).collect();
+    let frames: Vec<String> = frames.iter().map(|f| frame(board, f)).collect();
     format!(
         "{{\"name\":{},\"open\":{},\"masters\":{},\"queued\":{},\"in_flight\":{},\"requests\":{},\"replies\":{},\"timeouts\":{timeouts},\"retries\":{},\"late\":{},\"exceptions_device\":{device},\"exceptions_gateway\":{gateway},\"busy_s\":{},\"last_reply_ms\":{},\"units\":[{}],\"frames_total\":{total},\"frames\":[{}],\"history\":{}}}",
         string(&l.name),
@@ -191,7 +203,14 @@ fn line(board: &Board, l: &LineMetrics, now: Instant) -> String {
 pub(crate) fn json(board: &Board) -> String {
     let now = Instant::now();
     let unix_ms = unix_ms();
-    let lines: Vec<String> = board.lines().iter().map(|l| line(board, l, now)).collect();
+    // The frames as kept so far: a first request shows none, then keeping starts.
+    let recent = board.capture.get().map(|c| c.page()).unwrap_or_default();
+    let lines: Vec<String> = board
+        .lines()
+        .iter()
+        .enumerate()
+        .map(|(i, l)| line(board, l, recent.get(i + 1), now))
+        .collect();
     let listeners: Vec<String> = board
         .listeners()
         .iter()
@@ -229,8 +248,9 @@ pub(crate) fn json(board: &Board) -> String {
             )
         })
         .collect();
+    let capture_dropped = board.capture.get().map_or(0, |c| c.dropped());
     format!(
-        "{{\"now_ms\":{unix_ms},\"lines\":[{}],\"listeners\":[{}],\"masters\":[{}]}}\n",
+        "{{\"now_ms\":{unix_ms},\"lines\":[{}],\"listeners\":[{}],\"masters\":[{}],\"capture_dropped\":{capture_dropped}}}\n",
         lines.join(","),
         listeners.join(","),
         masters.join(",")
@@ -242,30 +262,37 @@ mod tests {
     use super::*;
     use crate::stats::Stats;
 
-    #[test]
-    fn json_strings_are_escaped_and_frames_listed_only_while_watched() {
+    #[tokio::test]
+    async fn json_strings_are_escaped_and_frames_listed_only_while_watched() {
+        use crate::capture::packet::{Dir, Proto, Role};
+        use crate::capture::{Hub, Interface};
         assert_eq!(string("a\"b\\c\n"), "\"a\\\"b\\\\c\\u000a\"");
         let l = Arc::new(LineMetrics::new("/dev/\"x\"", Arc::new(Stats::default())));
-        let seen = FrameSeen {
-            at_ms: 5,
-            dir: "gw->serial",
-            conn: Some(3),
-            unit: 1,
-            function: 3,
-            span: Some((10, 2)),
-            bytes: vec![1, 0xAB],
+        let iface = |n: &str| Interface {
+            name: n.into(),
+            description: String::new(),
         };
-        assert!(!l.is_watched(Instant::now()));
+        let (hub, task) = Hub::new(vec![iface("tcp"), iface("/dev/\"x\"")]);
+        tokio::spawn(task);
         let board = Board::default();
         board.add_line(l.clone());
+        board.capture.set(hub.clone()).unwrap();
+        let tap = hub.tap(1);
+        assert!(!tap.on());
         let j = json(&board);
         assert!(j.contains("\"name\":\"/dev/\\\"x\\\"\""), "{j}");
-        assert!(l.is_watched(Instant::now()), "asked: watched for a while");
-        l.record(seen);
+        assert!(j.contains("\"frames_total\":0,\"frames\":[]"), "{j}");
+        assert!(tap.on(), "asked: watched for a while");
+        let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![1, 0xAB]);
+        (p.conn, p.unit, p.function, p.span) = (Some(3), Some(1), Some(3), Some((10, 2)));
+        p.label = "gw->serial";
+        tap.send(p, tokio::time::Instant::now());
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
         let j = json(&board);
         assert!(
-            j.contains("\"frames_total\":1,\"frames\":[{\"t\":5,\"dir\":\"gw->serial\",\"conn\":3,\"unit\":1,\"fc\":3,\"addr\":10,\"count\":2,\"hex\":\"01 AB\"}]"),
+            j.contains("\"dir\":\"gw->serial\",\"conn\":3,\"master\":null,\"unit\":1,\"fc\":3,\"addr\":10,\"count\":2,\"hex\":\"01 AB\",\"note\":null}]"),
             "{j}"
         );
+        assert!(j.contains("\"frames_total\":1,"), "{j}");
     }
 }

@@ -1,15 +1,21 @@
 //! What the relay tells about its line as it goes (README "Watching it run"): the
 //! numbers of `crate::metrics` (requests, replies, reply times, timeouts, exceptions,
 //! queue, time busy), one warning when a unit stops answering and one line when it
-//! answers again, and the traffic log of whole frames (`log.traffic`).
+//! answers again, the traffic log of whole frames (`log.traffic`), and the line's
+//! packets for the capture and the status page's last frames (docs/capture.md),
+//! through its tap while anyone looks.
 //!
 //! Plain data and a few relaxed atomic stores, the time passed in: the relay never
-//! waits on whoever reads the numbers.
+//! waits on whoever reads the numbers, and a capture's packets go out by `try_send`.
 
+use crate::capture::packet::{Dir, Packet, Proto, Reason, Role};
+use crate::capture::tape::Dropped;
+use crate::capture::Tap;
+use crate::config::Framing;
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::frame::FunctionCode as F;
-use crate::metrics::{FrameSeen, LineMetrics};
+use crate::metrics::LineMetrics;
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -44,15 +50,21 @@ pub(super) struct Watch {
     /// When the line last had a request on it, while it has.
     busy_since: Option<Instant>,
     traffic: bool,
+    /// The line's framing: how its frames are shown to Wireshark.
+    framing: Framing,
+    /// Where the line's packets go for the capture and the status page.
+    pub(super) tap: Tap,
 }
 
 impl Watch {
-    pub(super) fn new(metrics: Arc<LineMetrics>, traffic: bool) -> Self {
+    pub(super) fn new(metrics: Arc<LineMetrics>, traffic: bool, framing: Framing) -> Self {
         Self {
             metrics,
             spells: vec![Spell::default(); 256],
             busy_since: None,
             traffic,
+            framing,
+            tap: Tap::off(),
         }
     }
 
@@ -89,29 +101,25 @@ impl Watch {
         self.metrics.masters.store(n as u64, Ordering::Relaxed);
     }
 
-    /// Is anyone looking at the frames: the traffic log, or the status page at `now`?
-    pub(super) fn wants_frames(&self, now: Instant) -> bool {
-        self.traffic || self.metrics.is_watched(now)
+    /// Is anyone capturing the line's packets (a capture, the status page)?
+    pub(super) fn capturing(&self) -> bool {
+        self.tap.on()
     }
 
-    /// Records a frame for the status page, if it is open.
-    fn record(&self, now: Instant, frame: impl FnOnce() -> FrameSeen) {
-        if self.metrics.is_watched(now) {
-            self.metrics.record(frame());
-        }
+    /// Is anyone looking at the frames: the traffic log, a capture, the status page?
+    pub(super) fn wants_frames(&self) -> bool {
+        self.traffic || self.tap.on()
     }
 
     /// Request `adu` from master `conn` goes on the line as `tid`, as `bytes`.
     pub(super) fn sent(&self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
-        self.record(now, || FrameSeen {
-            at_ms: unix_ms(),
-            dir: "gw->serial",
-            conn: Some(conn),
-            unit: adu.unit(),
-            function: adu.function(),
-            span: span(adu.pdu()),
-            bytes: bytes.to_vec(),
-        });
+        if self.tap.on() {
+            let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Role::Query);
+            p.conn = Some(conn);
+            p.span = span(adu.pdu());
+            p.label = "gw->serial";
+            self.tap.send(p, now);
+        }
         if self.traffic {
             let (addr, count) = span(adu.pdu()).unzip();
             debug!(
@@ -132,6 +140,31 @@ impl Watch {
 
     pub(super) fn set_traffic(&mut self, on: bool) {
         self.traffic = on;
+    }
+
+    /// The reply `frame` (with the line's id) to `asked` from master `conn`, as it
+    /// was on the wire (`wire`), taken off the line at `at`: for the capture.
+    pub(super) fn taken(&self, conn: u64, asked: &Adu, frame: &Adu, wire: &[u8], at: Instant) {
+        if self.tap.on() {
+            let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
+            p.conn = Some(conn);
+            p.span = span(asked.pdu());
+            p.label = "serial->gw";
+            self.tap.send(p, at);
+        }
+    }
+
+    /// Bytes the line dropped, for the capture.
+    pub(super) fn dropped(&self, d: Dropped, now: Instant) {
+        // What comes off a line of devices is a reply, but for the echo of a request.
+        let role = if d.reason == Reason::Echo {
+            Role::Query
+        } else {
+            Role::Reply
+        };
+        let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
+        let p = p.shown_as(role);
+        self.tap.send(p, d.at.unwrap_or(now));
     }
 
     /// The reply `frame` (with the line's id) answered `asked` from master `conn`,
@@ -155,17 +188,6 @@ impl Watch {
         let exception = (frame.function() & 0x80 != 0).then(|| frame.pdu().get(1).copied());
         if let Some(code) = exception {
             self.metrics.device_exception(code.unwrap_or(0));
-        }
-        if let Some(wire) = &wire {
-            self.record(now, || FrameSeen {
-                at_ms: unix_ms(),
-                dir: "serial->gw",
-                conn: Some(conn),
-                unit,
-                function: frame.function(),
-                span: span(asked.pdu()),
-                bytes: wire.clone(),
-            });
         }
         if let (Some(wire), true) = (wire, self.traffic) {
             let (addr, count) = span(asked.pdu()).unzip();
@@ -204,21 +226,30 @@ impl Watch {
     }
 
     /// A frame from the device that answers nothing on the line: `what` it is, and
-    /// the frame as on the wire.
-    pub(super) fn unsolicited(&self, what: &str, frame: &Adu, wire: &[u8], now: Instant) {
-        self.record(now, || FrameSeen {
-            at_ms: unix_ms(),
-            dir: if what.starts_with("late") {
-                "late"
+    /// the frame as on the wire, taken off the line at `at`.
+    pub(super) fn unsolicited(&self, what: &str, frame: &Adu, wire: &[u8], at: Instant) {
+        if self.tap.on() {
+            let p = if what.starts_with("late") {
+                Packet::dropped(
+                    Some(self.framing),
+                    Reason::Stale,
+                    wire.to_vec(),
+                    true,
+                    "a reply to a request already answered or timed out",
+                )
+                .shown_as(Role::Reply)
             } else {
-                "unsolicited"
-            },
-            conn: None,
-            unit: frame.unit(),
-            function: frame.function(),
-            span: None,
-            bytes: wire.to_vec(),
-        });
+                let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
+                p.label = "unsolicited";
+                let note = format!("a frame that answers no request: {what}");
+                p.note = Some(match p.note {
+                    Some(ascii) => format!("{note}; {ascii}"),
+                    None => note,
+                });
+                p
+            };
+            self.tap.send(p, at);
+        }
         if !self.traffic {
             return;
         }
@@ -236,15 +267,19 @@ impl Watch {
     /// A request `asked` from master `conn` got no reply in time (one attempt).
     pub(super) fn timed_out(&mut self, conn: u64, asked: &Adu, now: Instant) {
         let unit = asked.unit();
-        self.record(now, || FrameSeen {
-            at_ms: unix_ms(),
-            dir: "timeout",
-            conn: Some(conn),
-            unit,
-            function: asked.function(),
-            span: span(asked.pdu()),
-            bytes: Vec::new(),
-        });
+        if self.tap.on() {
+            let mut p = Packet::new(Dir::Neither, Role::Other, Proto::Data, Vec::new());
+            p.conn = Some(conn);
+            p.unit = Some(unit);
+            p.function = Some(asked.function());
+            p.span = span(asked.pdu());
+            p.label = "timeout";
+            p.note = Some(format!(
+                "timeout: no reply from unit {unit} to function {} in time",
+                asked.function()
+            ));
+            self.tap.send(p, now);
+        }
         self.metrics.timed_out(unit, now);
         let line = self.metrics.name.clone();
         let s = &mut self.spells[usize::from(unit)];
@@ -284,12 +319,6 @@ impl Watch {
     }
 }
 
-/// Now, in milliseconds since the Unix epoch.
-fn unix_ms() -> u64 {
-    let now = std::time::SystemTime::now().duration_since(std::time::UNIX_EPOCH);
-    now.unwrap_or_default().as_millis() as u64
-}
-
 /// Seconds, to a tenth: `0.3 s`, `12.0 s`.
 fn secs(d: Duration) -> String {
     format!("{:.1} s", d.as_secs_f64())
@@ -325,7 +354,7 @@ mod tests {
 
     fn watch() -> (Watch, Instant) {
         let m = Arc::new(LineMetrics::new("/dev/ttyX", Arc::new(Stats::default())));
-        (Watch::new(m, false), Instant::now())
+        (Watch::new(m, false, Framing::Mbap), Instant::now())
     }
 
     #[test]

@@ -199,6 +199,8 @@ pub(crate) struct Cfg {
     log: Vec<String>,
     /// The `[metrics]` section, written only when it has a line.
     metrics: Vec<String>,
+    /// The `[control]` section, written only when it has a line.
+    control: Vec<String>,
 }
 
 impl Cfg {
@@ -209,6 +211,7 @@ impl Cfg {
             relay: vec![],
             log: vec!["level = \"debug\"".into()],
             metrics: vec![],
+            control: vec![],
         }
     }
     pub(crate) fn serial(mut self, line: &str) -> Cfg {
@@ -229,6 +232,10 @@ impl Cfg {
     }
     pub(crate) fn metrics(mut self, line: &str) -> Cfg {
         self.metrics.push(line.into());
+        self
+    }
+    pub(crate) fn control(mut self, line: &str) -> Cfg {
+        self.control.push(line.into());
         self
     }
     /// A pty as the line: bytes go through as fast as they are written, with no USB
@@ -252,8 +259,9 @@ impl Cfg {
             ("relay", &self.relay),
             ("log", &self.log),
             ("metrics", &self.metrics),
+            ("control", &self.control),
         ] {
-            if name != "metrics" || !lines.is_empty() {
+            if !matches!(name, "metrics" | "control") || !lines.is_empty() {
                 s += &format!("[{name}]\n{}\n\n", lines.join("\n"));
             }
         }

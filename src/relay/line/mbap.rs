@@ -3,6 +3,8 @@
 //! it or a pause, notifications and late replies told apart, echoes told by timing.
 
 use super::{Seen, Unsolicited};
+use crate::capture::packet::Reason;
+use crate::capture::tape::Tape;
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::FrameRef;
@@ -47,6 +49,8 @@ pub(super) struct Mbap {
     request_pause: Duration,
     /// Whether the cost of confirmation by a pause has been said (once a line).
     told_pause: bool,
+    /// The bytes dropped, for the capture.
+    pub(super) tape: Tape,
 }
 
 /// A request as it went on the line.
@@ -166,6 +170,7 @@ impl Mbap {
             stream,
             request_pause: Duration::from_millis(relay.request_pause_ms),
             told_pause: false,
+            tape: Tape::default(),
         }
     }
 
@@ -199,6 +204,7 @@ impl Mbap {
         self.chunks.push_back((self.received, now));
         self.received += bytes.len() as u64;
         self.decoder.push(bytes);
+        self.tape.push(bytes);
         self.last_byte = now;
     }
 
@@ -216,6 +222,13 @@ impl Mbap {
 
     pub(super) fn clear(&mut self) {
         self.decoder.clear();
+        let to = self.decoder.consumed();
+        self.tape.dropped_to(
+            to,
+            None,
+            Reason::Stale,
+            "bytes held when the port was opened or lost",
+        );
         self.chunks.clear();
         self.sent.clear();
     }
@@ -320,9 +333,16 @@ impl Mbap {
                 Some(Framed::Corrupt(_)) => continue,
                 None => break,
             };
+            let end = self.decoder.consumed();
+            let len = frame.as_bytes().len();
+            let at = self.read_at(end - 1).unwrap_or(now);
+            self.tape.frame(end, len, Some(at), Reason::LostSync);
             if let Some(why) = self.too_early(&frame) {
                 debug!(tid = frame.tid(), "{why}: {:?}", frame);
-                stats.add(&stats.dropped_bytes, frame.as_bytes().len() as u64);
+                stats.add(&stats.dropped_bytes, len as u64);
+                let reason = [Reason::TooEarly, Reason::Echo][usize::from(why.contains("echo"))];
+                self.tape
+                    .whole_frame(Some(at), reason, frame.as_bytes(), why);
                 continue;
             }
             if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
@@ -333,6 +353,10 @@ impl Mbap {
                         "a reply that does not fit its request: {:?}", frame
                     );
                     stats.add(&stats.bad_frames, 1);
+                    let why = "a reply with its request's id that does not fit the request";
+                    let bytes = frame.as_bytes();
+                    self.tape
+                        .whole_frame(Some(at), Reason::LostSync, bytes, why);
                     seen.push(Seen::Corrupt(frame.tid()));
                     continue;
                 }
@@ -341,8 +365,17 @@ impl Mbap {
             if reply && idle >= self.pause && !self.told_pause {
                 self.tell_pause();
             }
-            seen.push(Seen::Frame(frame));
+            seen.push(Seen::Frame(frame, at));
         }
+        // Bytes the decoder dropped after the last frame: garbage, a refuted frame, a
+        // partial frame the frame gap ended.
+        let consumed = self.decoder.consumed();
+        self.tape.dropped_to(
+            consumed,
+            Some(now),
+            Reason::LostSync,
+            "bytes that make no frame (garbage, a frame that lost bytes, a partial frame)",
+        );
         // Chunks wholly taken by the decoder are no longer needed.
         let consumed = self.decoder.consumed();
         while self
@@ -401,7 +434,7 @@ mod tests {
         line.frames(in_flight, now, &Stats::default())
             .into_iter()
             .map(|s| match s {
-                Seen::Frame(f) => f.as_bytes().to_vec(),
+                Seen::Frame(f, _) => f.as_bytes().to_vec(),
                 Seen::Corrupt(_) => panic!("corrupt on an MBAP line"),
             })
             .collect()

@@ -19,6 +19,7 @@ mod mbap;
 mod serial;
 
 use super::inflight::{Asked, InFlight};
+use crate::capture::tape::Dropped;
 use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::serial::Codec;
 use crate::frame::{Adu, FunctionCode};
@@ -32,8 +33,9 @@ use tokio::time::Instant;
 /// What the line made of the bytes it received.
 pub(super) enum Seen {
     /// A frame; its transaction id is the serial-side one (for RTU/ASCII, the key of
-    /// the request it answers, which it has been checked against).
-    Frame(Adu),
+    /// the request it answers, which it has been checked against); and when its last
+    /// byte was read.
+    Frame(Adu, Instant),
     /// The answer to the request with this key (RTU/ASCII) or id (MBAP) failed its
     /// CRC or LRC, or did not match the request: the request failed (retried if it may
     /// be). MBAP: a confirmed frame with the request's id and unit whose shape fits no
@@ -203,6 +205,23 @@ impl Line {
         match &self.0 {
             Kind::Mbap(_) => frame.as_bytes().to_vec(),
             Kind::Serial(s) => s.on_wire(frame),
+        }
+    }
+
+    /// Keep the bytes the line drops, for the capture (docs/capture.md), or not.
+    pub(super) fn set_tape(&mut self, on: bool) {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.tape.set(on),
+            Kind::Serial(s) => s.tape.set(on),
+        }
+    }
+
+    /// The bytes the line dropped since the last call, with why (while the tape is
+    /// on).
+    pub(super) fn take_drops(&mut self) -> Vec<Dropped> {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.tape.take(),
+            Kind::Serial(s) => s.tape.take(),
         }
     }
 

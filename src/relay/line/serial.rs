@@ -3,6 +3,8 @@
 //! the guard after a timeout, broadcasts with their turnaround, local echo.
 
 use super::Seen;
+use crate::capture::packet::Reason;
+use crate::capture::tape::{Dropped, Tape};
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
@@ -57,6 +59,10 @@ pub(super) struct Serial {
     stream: bool,
     /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
     request_pause: Duration,
+    /// The bytes dropped, for the capture.
+    pub(super) tape: Tape,
+    /// What a failed check is called: CRC (RTU) or LRC (ASCII).
+    check: Reason,
 }
 
 impl Serial {
@@ -101,6 +107,11 @@ impl Serial {
             reply_from: now,
             stream,
             request_pause: Duration::from_millis(relay.request_pause_ms),
+            tape: Tape::default(),
+            check: match codec {
+                Codec::Rtu => Reason::Crc,
+                Codec::Ascii => Reason::Lrc,
+            },
         }
     }
 
@@ -125,8 +136,15 @@ impl Serial {
 
     pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats) -> Bytes {
         // Nothing received before a request is written can be its reply.
-        let held = self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+        let held = self.drop_held(now, "received before the request was sent");
         let stale = self.decoder.clear() + held;
+        let to = self.decoder.consumed();
+        self.tape.dropped_to(
+            to,
+            Some(now),
+            Reason::Stale,
+            "received before the request was sent",
+        );
         if stale > 0 {
             debug!(bytes = stale, "bytes received before the request discarded");
         }
@@ -179,7 +197,7 @@ impl Serial {
 
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant, stats: &Stats) {
         self.last_rx = now;
-        let rest = self.strip_echo(bytes, stats);
+        let rest = self.strip_echo(bytes, now, stats);
         if rest.is_empty() {
             return;
         }
@@ -222,6 +240,13 @@ impl Serial {
 
     pub(super) fn clear(&mut self, stats: &Stats) {
         self.decoder.clear();
+        let to = self.decoder.consumed();
+        self.tape.dropped_to(
+            to,
+            None,
+            Reason::Stale,
+            "bytes held when the port was opened or lost",
+        );
         self.count_dropped(0, stats);
         if let Some(echo) = &mut self.echo {
             echo.clear();
@@ -233,8 +258,11 @@ impl Serial {
     }
 
     pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
-        let held = self.held.drain(..).map(|(_, b)| b.len()).sum::<usize>();
+        let held = self.drop_held(now, "a partial reply when its request timed out");
         self.decoder.clear();
+        let to = self.decoder.consumed();
+        let why = "a partial reply when its request timed out";
+        self.tape.dropped_to(to, Some(now), Reason::Stale, why);
         self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
@@ -244,6 +272,23 @@ impl Serial {
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
         let bytes = self.decoder.encoded_len(adu.pdu().len()) + self.decoder.encoded_len(2);
         self.wire_time(bytes) + 2 * self.gap
+    }
+
+    /// Drops the bytes held while a request was being written (`why`, for the
+    /// capture); returns how many.
+    fn drop_held(&mut self, now: Instant, why: &'static str) -> usize {
+        let mut n = 0;
+        for (at, bytes) in std::mem::take(&mut self.held) {
+            n += bytes.len();
+            self.tape.dropped_aside(|| Dropped {
+                at: Some(at.min(now)),
+                reason: Reason::Stale,
+                bytes,
+                whole: false,
+                detail: why,
+            });
+        }
+        n
     }
 
     /// Counts what the framer dropped since last asked, and `held` bytes dropped
@@ -279,20 +324,37 @@ impl Serial {
                 "bytes received while the request was still being sent discarded"
             );
             stats.add(&stats.dropped_bytes, bytes.len() as u64);
+            self.tape.dropped_aside(|| Dropped {
+                at: Some(at),
+                reason: Reason::TooEarly,
+                bytes: bytes.to_vec(),
+                whole: false,
+                detail: "received while the request was still being sent",
+            });
         } else {
             self.decoder.push(bytes);
+            self.tape.push(bytes);
         }
     }
 
     /// Reads back the echo of what was sent; bytes that differ from it are line noise
     /// and dropped with it.
-    fn strip_echo<'a>(&mut self, bytes: &'a [u8], stats: &Stats) -> &'a [u8] {
+    fn strip_echo<'a>(&mut self, bytes: &'a [u8], now: Instant, stats: &Stats) -> &'a [u8] {
         let Some(echo) = &mut self.echo else {
             return bytes;
         };
         let n = bytes.len().min(echo.len());
         if echo.iter().take(n).eq(bytes[..n].iter()) {
             echo.drain(..n);
+            if n > 0 {
+                self.tape.dropped_aside(|| Dropped {
+                    at: Some(now),
+                    reason: Reason::Echo,
+                    bytes: bytes[..n].to_vec(),
+                    whole: false,
+                    detail: "the line's echo of the request (echo = true)",
+                });
+            }
             return &bytes[n..];
         }
         debug!(
@@ -301,6 +363,13 @@ impl Serial {
         );
         echo.clear();
         stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        self.tape.dropped_aside(|| Dropped {
+            at: Some(now),
+            reason: Reason::Echo,
+            bytes: bytes.to_vec(),
+            whole: false,
+            detail: "bytes where the echo of the request should be, and different from it",
+        });
         &[]
     }
 
@@ -315,6 +384,13 @@ impl Serial {
             // Nothing asked: late answers or noise, dropped once the line is quiet.
             if quiet && self.decoder.buffered() > 0 {
                 let n = self.decoder.clear();
+                let to = self.decoder.consumed();
+                self.tape.dropped_to(
+                    to,
+                    Some(self.last_rx),
+                    Reason::Stale,
+                    "bytes that answer no request",
+                );
                 debug!(bytes = n, "bytes that answer no request dropped");
                 self.count_dropped(0, stats);
             }
@@ -328,6 +404,10 @@ impl Serial {
         match next {
             None => Vec::new(),
             Some(Framed::Frame(frame)) => {
+                let at = self.last_rx.min(now);
+                let end = self.decoder.consumed();
+                let len = self.decoder.encoded_len(frame.pdu().len());
+                self.tape.frame(end, len, Some(at), Reason::LostSync);
                 let (unit, pdu) = (frame.unit(), frame.pdu());
                 if unit == f.req.adu().unit() {
                     // The CRC or LRC proves these are the unit's own bytes: a reply of
@@ -339,15 +419,27 @@ impl Serial {
                             "a reply of another shape than its request's, passed on"
                         );
                     }
-                    vec![Seen::Frame(frame.with_tid(f.tid))]
+                    vec![Seen::Frame(frame.with_tid(f.tid), at)]
                 } else {
                     debug!(unit, "a frame that does not answer the request on the line");
+                    self.tape.dropped_aside(|| Dropped {
+                        at: Some(at),
+                        reason: Reason::Stale,
+                        bytes: self.decoder.encode(&frame),
+                        whole: true,
+                        detail: "a frame from another unit than the request's",
+                    });
                     stats.add(&stats.bad_frames, 1);
                     vec![Seen::Corrupt(f.tid)]
                 }
             }
             Some(Framed::Corrupt(n)) => {
                 debug!(bytes = n, "a reply whose check failed");
+                let end = self.decoder.consumed();
+                let at = Some(self.last_rx.min(now));
+                let check = (Reason::LostSync, self.check);
+                let why = "a reply whose check failed, or cut short";
+                self.tape.dropped_frame(end, n, at, check, why);
                 stats.add(&stats.bad_frames, 1);
                 vec![Seen::Corrupt(f.tid)]
             }
@@ -432,7 +524,7 @@ mod tests {
                 req: (read.clone(), 0),
             };
             let seen = line.frames(&[asked], at, &stats);
-            assert!(matches!(seen[..], [Seen::Frame(_)]), "the reply is taken");
+            assert!(matches!(seen[..], [Seen::Frame(..)]), "the reply is taken");
             let why = format!("{framing:?} at {baud} baud, inter_frame_gap_us {gap_us}");
             if gap.is_zero() {
                 assert!(line.has_room(0, false, at), "{why}");

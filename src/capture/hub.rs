@@ -1,0 +1,454 @@
+//! Where captured packets go (docs/capture.md "Never in the line's way"): the relays,
+//! the connections and the master line hand each packet to a [`Tap`], which puts it
+//! on one bounded channel with `try_send` (never waiting: a full channel drops the
+//! packet and counts it); one task, the hub's, takes them off, keeps each
+//! interface's times from going back, keeps the last [`RECENT`] of each line for the
+//! status page while it is open, and hands each subscriber (a `mbgate capture`, the
+//! capture ring) what its filter keeps, again with `try_send` and a count of what
+//! its own full channel dropped.
+//!
+//! With no subscriber and the status page closed, a tap is one atomic load: the
+//! relay builds no packet.
+
+use super::packet::Packet;
+use super::request::Request;
+use std::collections::{HashMap, VecDeque};
+use std::net::SocketAddr;
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::{Arc, Mutex, OnceLock};
+use std::time::{Duration, SystemTime};
+use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+
+/// Packets waiting for the hub's task, from every source at once.
+const CENTRAL: usize = 8192;
+/// Packets waiting for one subscriber.
+pub(crate) const PER_SUBSCRIBER: usize = 4096;
+/// Packets of each line the status page shows.
+pub(crate) const RECENT: usize = 50;
+/// How long the status page counts as open after its last poll.
+const PAGE_OPEN_FOR: Duration = Duration::from_secs(10);
+
+/// The one clock of every packet: the monotonic clock, anchored once to the wall
+/// clock, so times on every interface compare and never go back.
+fn anchor() -> (Instant, u64) {
+    static ANCHOR: OnceLock<(Instant, u64)> = OnceLock::new();
+    *ANCHOR.get_or_init(|| {
+        let wall = SystemTime::now()
+            .duration_since(SystemTime::UNIX_EPOCH)
+            .unwrap_or_default();
+        (Instant::now(), wall.as_micros() as u64)
+    })
+}
+
+/// `at` in microseconds since the Unix epoch, on the capture's clock.
+pub(crate) fn unix_us(at: Instant) -> u64 {
+    let (base, base_us) = anchor();
+    match at.checked_duration_since(base) {
+        Some(d) => base_us + d.as_micros() as u64,
+        None => base_us.saturating_sub(base.duration_since(at).as_micros() as u64),
+    }
+}
+
+/// One pcapng interface: the TCP side, or a line.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Interface {
+    /// `if_name`: `tcp`, or the line's name (its serial port, or host:port).
+    pub(crate) name: String,
+    /// `if_description`: what it is, in words.
+    pub(crate) description: String,
+}
+
+/// A line's last packets, for the status page.
+#[derive(Debug, Default, Clone)]
+pub(crate) struct Recent {
+    pub(crate) kept: VecDeque<Arc<Packet>>,
+    /// Packets recorded in all while the page was open.
+    pub(crate) total: u64,
+}
+
+struct Sub {
+    id: u64,
+    request: Request,
+    keep: Vec<bool>,
+    tx: mpsc::Sender<Arc<Packet>>,
+    /// Packets this subscriber's full channel dropped, by interface.
+    dropped: Arc<[AtomicU64]>,
+}
+
+struct Shared {
+    tx: mpsc::Sender<Packet>,
+    interfaces: Vec<Interface>,
+    /// Subscribers now: a tap builds packets only while there is one (or the page).
+    active: AtomicUsize,
+    /// Until when (on the capture's clock) the status page counts as open.
+    page_until_us: AtomicU64,
+    /// Packets the central channel dropped, by interface.
+    dropped: Box<[AtomicU64]>,
+    subs: Mutex<Vec<Sub>>,
+    next_id: AtomicU64,
+    /// The master behind each connection id, for the master filter and the page.
+    conns: Mutex<HashMap<u64, SocketAddr>>,
+    recent: Mutex<Vec<Recent>>,
+    closed: CancellationToken,
+}
+
+/// The capture's centre: made once at start with its interfaces; cheap to clone.
+#[derive(Clone)]
+pub(crate) struct Hub(Arc<Shared>);
+
+/// Where one source (a line, the TCP side) hands its packets: cheap to clone.
+#[derive(Clone, Default)]
+pub(crate) struct Tap {
+    hub: Option<Arc<Shared>>,
+    iface: u16,
+}
+
+impl Hub {
+    /// A hub for these interfaces (0: the TCP side, then each line), and its task.
+    pub(crate) fn new(interfaces: Vec<Interface>) -> (Hub, impl std::future::Future<Output = ()>) {
+        anchor();
+        let (tx, rx) = mpsc::channel(CENTRAL);
+        let n = interfaces.len();
+        let shared = Arc::new(Shared {
+            tx,
+            dropped: (0..n).map(|_| AtomicU64::new(0)).collect(),
+            recent: Mutex::new(vec![Recent::default(); n]),
+            interfaces,
+            active: AtomicUsize::new(0),
+            page_until_us: AtomicU64::new(0),
+            subs: Mutex::new(Vec::new()),
+            next_id: AtomicU64::new(1),
+            conns: Mutex::new(HashMap::new()),
+            closed: CancellationToken::new(),
+        });
+        let task = run(shared.clone(), rx);
+        (Hub(shared), task)
+    }
+
+    pub(crate) fn interfaces(&self) -> &[Interface] {
+        &self.0.interfaces
+    }
+
+    /// The tap of interface `iface`.
+    pub(crate) fn tap(&self, iface: u16) -> Tap {
+        Tap {
+            hub: Some(self.0.clone()),
+            iface,
+        }
+    }
+
+    /// Master connection `conn` is at `peer` (until [`Hub::forget`]).
+    pub(crate) fn connected(&self, conn: u64, peer: SocketAddr) {
+        self.0
+            .conns
+            .lock()
+            .expect("not poisoned")
+            .insert(conn, peer);
+    }
+
+    pub(crate) fn forget(&self, conn: u64) {
+        self.0.conns.lock().expect("not poisoned").remove(&conn);
+    }
+
+    /// Packets of every interface from now on that `request` keeps (it names only
+    /// interfaces there are: see [`Request::interfaces`]).
+    pub(crate) fn subscribe(&self, request: Request) -> Result<Subscription, String> {
+        let names: Vec<String> = self.0.interfaces.iter().map(|i| i.name.clone()).collect();
+        let keep = request.interfaces(&names)?;
+        let (tx, rx) = mpsc::channel(PER_SUBSCRIBER);
+        let id = self.0.next_id.fetch_add(1, Ordering::Relaxed);
+        let dropped: Arc<[AtomicU64]> = (0..names.len()).map(|_| AtomicU64::new(0)).collect();
+        let central: Vec<u64> = self
+            .0
+            .dropped
+            .iter()
+            .map(|d| d.load(Ordering::Relaxed))
+            .collect();
+        let mut subs = self.0.subs.lock().expect("not poisoned");
+        if self.0.closed.is_cancelled() {
+            return Err("the gateway is stopping".into());
+        }
+        subs.push(Sub {
+            id,
+            request,
+            keep,
+            tx,
+            dropped: dropped.clone(),
+        });
+        self.0.active.fetch_add(1, Ordering::Relaxed);
+        Ok(Subscription {
+            rx,
+            id,
+            hub: self.0.clone(),
+            dropped,
+            central,
+        })
+    }
+
+    /// The status page was asked for now: the lines' last packets are kept for a
+    /// while. Returns each interface's last packets as kept so far.
+    pub(crate) fn page(&self) -> Vec<Recent> {
+        let until = unix_us(Instant::now() + PAGE_OPEN_FOR);
+        self.0.page_until_us.store(until, Ordering::Relaxed);
+        self.0.recent.lock().expect("not poisoned").clone()
+    }
+
+    /// The master at connection `conn`, if known.
+    pub(crate) fn master(&self, conn: u64) -> Option<SocketAddr> {
+        self.0
+            .conns
+            .lock()
+            .expect("not poisoned")
+            .get(&conn)
+            .copied()
+    }
+
+    /// Packets every capture lost because the central channel was full, in all.
+    pub(crate) fn dropped(&self) -> u64 {
+        self.0
+            .dropped
+            .iter()
+            .map(|d| d.load(Ordering::Relaxed))
+            .sum()
+    }
+
+    /// No more packets: the hub's task hands on what it has, then ends every
+    /// subscription (each sees its channel close).
+    pub(crate) fn close(&self) {
+        self.0.closed.cancel();
+    }
+}
+
+impl std::fmt::Debug for Hub {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Hub")
+            .field("interfaces", &self.0.interfaces)
+            .field("active", &self.0.active.load(Ordering::Relaxed))
+            .finish()
+    }
+}
+
+impl Tap {
+    /// A tap that goes nowhere (no capture configured, tests).
+    pub(crate) fn off() -> Tap {
+        Tap::default()
+    }
+
+    /// Is anyone capturing, or is the status page open? One atomic load while a
+    /// capture runs; when none does, a second, and a clock reading while the page
+    /// was opened in the last few seconds.
+    pub(crate) fn on(&self) -> bool {
+        let Some(h) = &self.hub else {
+            return false;
+        };
+        if h.active.load(Ordering::Relaxed) > 0 {
+            return true;
+        }
+        let until = h.page_until_us.load(Ordering::Relaxed);
+        until != 0 && until > unix_us(Instant::now())
+    }
+
+    /// Hands `p` on, stamped with this tap's interface and the time `at`; never
+    /// waits: when the hub is behind, the packet is dropped and counted.
+    pub(crate) fn send(&self, mut p: Packet, at: Instant) {
+        let Some(h) = &self.hub else {
+            return;
+        };
+        p.iface = self.iface;
+        p.at_us = unix_us(at);
+        if h.tx.try_send(p).is_err() {
+            if let Some(d) = h.dropped.get(usize::from(self.iface)) {
+                d.fetch_add(1, Ordering::Relaxed);
+            }
+        }
+    }
+}
+
+/// One subscriber's packets, until it is dropped (or the hub closes).
+pub(crate) struct Subscription {
+    pub(crate) rx: mpsc::Receiver<Arc<Packet>>,
+    id: u64,
+    hub: Arc<Shared>,
+    dropped: Arc<[AtomicU64]>,
+    /// The central channel's drops when it began.
+    central: Vec<u64>,
+}
+
+impl Subscription {
+    /// Packets this subscription lost, by interface: those its own full channel
+    /// dropped, and those the central channel dropped since it began (before any
+    /// filter: an upper bound of what it would have kept).
+    pub(crate) fn dropped(&self) -> Vec<u64> {
+        self.dropped
+            .iter()
+            .zip(self.hub.dropped.iter().zip(&self.central))
+            .map(|(own, (all, at_start))| {
+                own.load(Ordering::Relaxed) + all.load(Ordering::Relaxed).saturating_sub(*at_start)
+            })
+            .collect()
+    }
+}
+
+impl Drop for Subscription {
+    fn drop(&mut self) {
+        let mut subs = self.hub.subs.lock().expect("not poisoned");
+        let before = subs.len();
+        subs.retain(|s| s.id != self.id);
+        if subs.len() < before {
+            self.hub.active.fetch_sub(1, Ordering::Relaxed);
+        }
+    }
+}
+
+/// The hub's task: every packet to whoever keeps it, until the hub closes.
+async fn run(shared: Arc<Shared>, mut rx: mpsc::Receiver<Packet>) {
+    let mut last_us = vec![0u64; shared.interfaces.len()];
+    loop {
+        let p = tokio::select! {
+            biased;
+            p = rx.recv() => p,
+            _ = shared.closed.cancelled() => None,
+        };
+        let Some(p) = p else {
+            break;
+        };
+        hand_on(&shared, p, &mut last_us);
+    }
+    // What is already waiting goes out; then the subscriptions end.
+    while let Ok(p) = rx.try_recv() {
+        hand_on(&shared, p, &mut last_us);
+    }
+    let mut subs = shared.subs.lock().expect("not poisoned");
+    shared.active.fetch_sub(subs.len(), Ordering::Relaxed);
+    subs.clear();
+}
+
+fn hand_on(shared: &Shared, mut p: Packet, last_us: &mut [u64]) {
+    let i = usize::from(p.iface);
+    let Some(last) = last_us.get_mut(i) else {
+        return;
+    };
+    // One interface's times never go back: a packet handed on later than one
+    // stamped after it (a reply held for its confirmation while the next request
+    // went out) takes that one's time.
+    p.at_us = p.at_us.max(*last);
+    *last = p.at_us;
+    let p = Arc::new(p);
+    let page = shared.page_until_us.load(Ordering::Relaxed);
+    if page != 0 && page > p.at_us {
+        let mut recent = shared.recent.lock().expect("not poisoned");
+        let r = &mut recent[i];
+        if r.kept.len() == RECENT {
+            r.kept.pop_front();
+        }
+        r.kept.push_back(p.clone());
+        r.total += 1;
+    }
+    let subs = shared.subs.lock().expect("not poisoned");
+    if subs.is_empty() {
+        return;
+    }
+    let master = match (p.conn, subs.iter().any(|s| !s.request.masters.is_empty())) {
+        (Some(conn), true) => shared
+            .conns
+            .lock()
+            .expect("not poisoned")
+            .get(&conn)
+            .copied(),
+        _ => None,
+    };
+    for s in subs.iter() {
+        if !s.keep[i] || !s.request.keeps(&p, master) {
+            continue;
+        }
+        if s.tx.try_send(p.clone()).is_err() {
+            s.dropped[i].fetch_add(1, Ordering::Relaxed);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::packet::{Dir, Proto, Role};
+    use super::*;
+
+    fn hub() -> Hub {
+        let iface = |n: &str| Interface {
+            name: n.into(),
+            description: String::new(),
+        };
+        let (hub, task) = Hub::new(vec![iface("tcp"), iface("/dev/ttyX")]);
+        tokio::spawn(task);
+        hub
+    }
+
+    fn frame(unit: u8) -> Packet {
+        let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![unit]);
+        p.unit = Some(unit);
+        p
+    }
+
+    #[tokio::test]
+    async fn a_tap_is_off_until_someone_subscribes_and_a_full_subscriber_loses_packets_counted() {
+        let hub = hub();
+        let tap = hub.tap(1);
+        assert!(!tap.on());
+        let mut sub = hub
+            .subscribe(Request::parse("capture unit=1").unwrap())
+            .unwrap();
+        assert!(tap.on());
+        let t0 = Instant::now();
+        for _ in 0..PER_SUBSCRIBER + 10 {
+            tap.send(frame(1), t0);
+            tap.send(frame(2), t0);
+            tokio::task::yield_now().await;
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let mut got = 0;
+        while let Ok(p) = sub.rx.try_recv() {
+            assert_eq!((p.unit, p.iface), (Some(1), 1));
+            got += 1;
+        }
+        assert_eq!(got, PER_SUBSCRIBER);
+        assert_eq!(sub.dropped(), [0, 10], "unit 2 filtered out, not dropped");
+        drop(sub);
+        assert!(!tap.on());
+    }
+
+    #[tokio::test]
+    async fn times_on_an_interface_never_go_back_and_closing_ends_subscriptions() {
+        let hub = hub();
+        let mut sub = hub.subscribe(Request::default()).unwrap();
+        let tap = hub.tap(1);
+        let t0 = Instant::now();
+        tap.send(frame(1), t0 + Duration::from_millis(5));
+        tap.send(frame(1), t0);
+        hub.tap(0).send(frame(1), t0);
+        let a = sub.rx.recv().await.unwrap();
+        let b = sub.rx.recv().await.unwrap();
+        let c = sub.rx.recv().await.unwrap();
+        assert_eq!(a.at_us, b.at_us);
+        assert_eq!(c.at_us, unix_us(t0), "another interface keeps its own time");
+        hub.close();
+        assert!(sub.rx.recv().await.is_none());
+        assert!(hub.subscribe(Request::default()).is_err());
+    }
+
+    #[tokio::test]
+    async fn the_page_keeps_each_line_s_last_packets_while_it_is_open() {
+        let hub = hub();
+        let tap = hub.tap(1);
+        tap.send(frame(1), Instant::now());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+        assert!(hub.page()[1].kept.is_empty(), "not open yet");
+        assert!(tap.on());
+        for _ in 0..RECENT + 5 {
+            tap.send(frame(1), Instant::now());
+        }
+        tokio::time::sleep(Duration::from_millis(50)).await;
+        let r = &hub.page()[1];
+        assert_eq!((r.kept.len(), r.total), (RECENT, RECENT as u64 + 5));
+    }
+}

@@ -1,0 +1,124 @@
+//! Capture to pcapng (docs/capture.md; the choices in docs/design.md §6): every frame
+//! each master sent and received, every frame put on and taken off each line, and the
+//! bytes the gateway dropped with why, as packets Wireshark decodes as Modbus with no
+//! setting. One pcapng interface for the TCP side and one per line; times in
+//! microseconds from one clock.
+//!
+//! - `pcapng`: the file format (pure);
+//! - `packet`: what a packet holds, and its block (pure);
+//! - `tape`: which bytes a framer dropped (pure);
+//! - `request`: what a capture asks for, and which packets it keeps (pure);
+//! - `hub`: taps, the bounded channel and the task that hands packets on;
+//! - `control`: the control socket `mbgate capture` talks to;
+//! - `ring`: the always-on ring of files (`[capture] file`);
+//! - `client`: `mbgate capture`.
+
+pub mod client;
+pub(crate) mod control;
+pub(crate) mod hub;
+pub(crate) mod packet;
+pub mod pcapng;
+pub(crate) mod request;
+pub(crate) mod ring;
+pub(crate) mod tape;
+
+use crate::config::{Config, ListenFraming};
+pub(crate) use hub::{Hub, Interface, Tap};
+use std::path::PathBuf;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, warn};
+
+/// The interfaces of a gateway of `cfg`: the TCP side (0), then each line.
+pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
+    let mut v = Vec::new();
+    if let Some(m) = &cfg.master {
+        let routes: Vec<String> = m.routes.iter().map(|r| r.peer.to_string()).collect();
+        v.push(Interface {
+            name: "tcp".into(),
+            description: format!(
+                "Modbus/TCP slaves of the master line: {}",
+                routes.join(", ")
+            ),
+        });
+    } else {
+        let listeners: Vec<String> = cfg
+            .listeners()
+            .iter()
+            .map(|l| match l.framing {
+                ListenFraming::Mbap => l.tcp.listen.to_string(),
+                ListenFraming::Rtu => format!("{} (RTU over TCP)", l.tcp.listen),
+            })
+            .collect();
+        v.push(Interface {
+            name: "tcp".into(),
+            description: format!("Modbus/TCP masters on {}", listeners.join(", ")),
+        });
+    }
+    for (i, line) in cfg.lines().iter().enumerate() {
+        let device = match &line.tcp {
+            Some(addr) => format!("device at {addr}"),
+            None => format!("{} baud", line.serial.baud_rate),
+        };
+        let role = if line.master.is_some() {
+            ", the device is the master"
+        } else {
+            ""
+        };
+        v.push(Interface {
+            name: line.name().to_owned(),
+            description: format!("line {i}: {}, {device}{role}", line.serial.framing.name()),
+        });
+    }
+    v
+}
+
+/// Where the control socket goes: `control.socket`, else `control.sock` in the
+/// runtime directory systemd made for the service (`RUNTIME_DIRECTORY`), else none.
+pub(crate) fn socket_path(cfg: &Config) -> Option<PathBuf> {
+    let set = cfg.control.socket.trim();
+    if !set.is_empty() {
+        return Some(PathBuf::from(set));
+    }
+    let dirs = std::env::var_os("RUNTIME_DIRECTORY")?;
+    let first = std::env::split_paths(&dirs).next()?;
+    Some(first.join(client::SOCKET_NAME))
+}
+
+/// The capture of a running gateway: its hub, its control socket and its ring.
+pub(crate) struct Capture {
+    hub: Hub,
+    ring: Option<std::thread::JoinHandle<()>>,
+}
+
+impl Capture {
+    /// Starts the hub for `cfg`'s interfaces, the control socket (if it has a
+    /// place; one that cannot be made is warned about, and the gateway goes on
+    /// without) and the ring (if `capture.file` is set).
+    pub(crate) fn start(cfg: &Config, shutdown: &CancellationToken) -> Capture {
+        let (hub, task) = Hub::new(interfaces(cfg));
+        tokio::spawn(task);
+        match socket_path(cfg) {
+            Some(path) => match control::bind(&path) {
+                Ok(c) => {
+                    tokio::spawn(control::serve(c, hub.clone(), shutdown.clone()));
+                }
+                Err(e) => warn!("{e}; mbgate capture is not available"),
+            },
+            None => debug!("no control socket (control.socket is empty, and not under systemd)"),
+        }
+        let ring = ring::start(&cfg.capture, &hub);
+        Capture { hub, ring }
+    }
+
+    pub(crate) fn hub(&self) -> &Hub {
+        &self.hub
+    }
+
+    /// After the last packet: every capture ends, the ring's files are flushed.
+    pub(crate) async fn finish(self) {
+        self.hub.close();
+        if let Some(ring) = self.ring {
+            let _ = tokio::task::spawn_blocking(move || ring.join()).await;
+        }
+    }
+}

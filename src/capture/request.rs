@@ -1,0 +1,300 @@
+//! What `mbgate capture` asks the gateway for over the control socket (docs/capture.md
+//! "The control socket"): one line of text, `capture` and the filters and stop
+//! conditions as `key=value` words; and which packets a filter keeps. Pure.
+//!
+//! ```text
+//! capture line=0 line=tcp unit=3 master=10.0.0.5 function=3 count=100 seconds=60
+//! ```
+//!
+//! Each key may come more than once (any of the values keeps a packet); keys of
+//! different names must all hold. Anything else is refused with a message naming it.
+
+use super::packet::Packet;
+use std::fmt;
+use std::net::{IpAddr, SocketAddr};
+
+/// The longest request line the gateway reads.
+pub(crate) const MAX_LINE: usize = 4096;
+
+/// A TCP peer to keep: its address, and its port if given.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Peer {
+    Ip(IpAddr),
+    Addr(SocketAddr),
+}
+
+impl Peer {
+    pub(crate) fn parse(s: &str) -> Result<Peer, String> {
+        if let Ok(a) = s.parse::<SocketAddr>() {
+            return Ok(Peer::Addr(a));
+        }
+        let bare = s.trim_start_matches('[').trim_end_matches(']');
+        bare.parse::<IpAddr>().map(Peer::Ip).map_err(|_| {
+            format!("master {s:?}: expected an address (10.0.0.5) or an address and port (10.0.0.5:40000)")
+        })
+    }
+
+    fn matches(&self, a: SocketAddr) -> bool {
+        let ip = match a.ip() {
+            IpAddr::V6(v6) => v6.to_ipv4_mapped().map_or(a.ip(), IpAddr::V4),
+            v4 => v4,
+        };
+        match *self {
+            Peer::Ip(want) => ip == want,
+            Peer::Addr(want) => ip == want.ip() && a.port() == want.port(),
+        }
+    }
+}
+
+impl fmt::Display for Peer {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Peer::Ip(ip) => write!(f, "{ip}"),
+            Peer::Addr(a) => write!(f, "{a}"),
+        }
+    }
+}
+
+/// A capture as asked for: which packets, and when to stop.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub(crate) struct Request {
+    /// Interfaces to keep, as given: a line's index (`0`), its name (`/dev/ttyUSB0`),
+    /// or `tcp` for the TCP side. None: all.
+    pub(crate) lines: Vec<String>,
+    pub(crate) units: Vec<u8>,
+    pub(crate) masters: Vec<Peer>,
+    pub(crate) functions: Vec<u8>,
+    /// Stop after this many packets.
+    pub(crate) count: Option<u64>,
+    /// Stop after this many seconds.
+    pub(crate) seconds: Option<u64>,
+}
+
+/// A number in decimal or, with `0x`, in hex.
+fn number<T: TryFrom<u64>>(key: &str, v: &str) -> Result<T, String> {
+    let n = match v.strip_prefix("0x").or_else(|| v.strip_prefix("0X")) {
+        Some(hex) => u64::from_str_radix(hex, 16),
+        None => v.parse::<u64>(),
+    };
+    n.ok()
+        .and_then(|n| T::try_from(n).ok())
+        .ok_or_else(|| format!("{key}={v}: not a number in range"))
+}
+
+impl Request {
+    /// Reads a request line (without its newline).
+    pub(crate) fn parse(line: &str) -> Result<Request, String> {
+        let mut words = line.split_ascii_whitespace();
+        match words.next() {
+            Some("capture") => {}
+            Some(w) => return Err(format!("unknown request {w:?} (expected capture)")),
+            None => return Err("empty request".into()),
+        }
+        let mut r = Request::default();
+        for w in words {
+            let Some((key, value)) = w.split_once('=') else {
+                return Err(format!("{w:?}: expected key=value"));
+            };
+            match key {
+                "line" if !value.is_empty() => r.lines.push(value.to_owned()),
+                "unit" => r.units.push(number(key, value)?),
+                "master" => r.masters.push(Peer::parse(value)?),
+                "function" => {
+                    let fc: u8 = number(key, value)?;
+                    if fc == 0 || fc >= 0x80 {
+                        return Err(format!("function={value}: a function code is 1 to 127"));
+                    }
+                    r.functions.push(fc);
+                }
+                "count" => r.count = Some(number(key, value)?).filter(|&n| n > 0),
+                "seconds" => r.seconds = Some(number(key, value)?).filter(|&n| n > 0),
+                _ => return Err(format!("unknown key {key:?} in {w:?}")),
+            }
+        }
+        Ok(r)
+    }
+
+    /// The interfaces this request keeps, among `names` (0: the TCP side, then each
+    /// line); an error names a line that is not there.
+    pub(crate) fn interfaces(&self, names: &[String]) -> Result<Vec<bool>, String> {
+        if self.lines.is_empty() {
+            return Ok(vec![true; names.len()]);
+        }
+        let mut keep = vec![false; names.len()];
+        for l in &self.lines {
+            let at = if l == "tcp" {
+                Some(0)
+            } else if let Ok(i) = l.parse::<usize>() {
+                (i + 1 < names.len()).then_some(i + 1)
+            } else {
+                names.iter().skip(1).position(|n| n == l).map(|i| i + 1)
+            };
+            let Some(at) = at else {
+                let lines: Vec<String> = names
+                    .iter()
+                    .skip(1)
+                    .enumerate()
+                    .map(|(i, n)| format!("{i} ({n})"))
+                    .collect();
+                return Err(format!(
+                    "no line {l:?}: the lines are {}, and tcp for the TCP side",
+                    lines.join(", ")
+                ));
+            };
+            keep[at] = true;
+        }
+        Ok(keep)
+    }
+
+    /// Does this request keep `p`, whose master (if any) is at `master`? Dropped
+    /// bytes and events belong to no known unit or function: the unit and function
+    /// filters keep them (on the interfaces kept).
+    pub(crate) fn keeps(&self, p: &Packet, master: Option<SocketAddr>) -> bool {
+        let any = |v: &[u8], x: Option<u8>| v.is_empty() || x.is_none_or(|x| v.contains(&x));
+        if !any(&self.units, p.unit) {
+            return false;
+        }
+        if !any(&self.functions, p.function.map(|f| f & 0x7F)) {
+            return false;
+        }
+        if self.masters.is_empty() {
+            return true;
+        }
+        let peer = p.ends.map(|e| e.client).or(master);
+        peer.is_some_and(|a| self.masters.iter().any(|m| m.matches(a)))
+    }
+}
+
+impl fmt::Display for Request {
+    /// The request line, as `parse` reads it.
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("capture")?;
+        for l in &self.lines {
+            write!(f, " line={l}")?;
+        }
+        for u in &self.units {
+            write!(f, " unit={u}")?;
+        }
+        for m in &self.masters {
+            write!(f, " master={m}")?;
+        }
+        for fc in &self.functions {
+            write!(f, " function={fc}")?;
+        }
+        if let Some(n) = self.count {
+            write!(f, " count={n}")?;
+        }
+        if let Some(s) = self.seconds {
+            write!(f, " seconds={s}")?;
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::packet::{Dir, Ends, Proto, Role};
+    use super::*;
+
+    #[test]
+    fn a_request_reads_back_what_it_prints() {
+        let r = Request::parse(
+            "capture line=0 line=tcp unit=3 unit=0x11 master=10.0.0.5 master=[::1]:502 function=0x10 count=5 seconds=9",
+        )
+        .unwrap();
+        assert_eq!(r.units, [3, 17]);
+        assert_eq!(r.functions, [16]);
+        assert_eq!((r.count, r.seconds), (Some(5), Some(9)));
+        assert_eq!(Request::parse(&r.to_string()).unwrap(), r);
+        assert_eq!(Request::parse("capture").unwrap(), Request::default());
+    }
+
+    #[test]
+    fn a_bad_request_is_refused_naming_what_is_wrong() {
+        for (line, says) in [
+            ("", "empty"),
+            ("status", "unknown request"),
+            ("capture unit=300", "unit=300"),
+            ("capture function=0", "1 to 127"),
+            ("capture function=128", "1 to 127"),
+            ("capture master=nowhere", "master \"nowhere\""),
+            ("capture colour=red", "unknown key"),
+            ("capture unit", "key=value"),
+        ] {
+            let e = Request::parse(line).unwrap_err();
+            assert!(e.contains(says), "{line}: {e}");
+        }
+    }
+
+    proptest::proptest! {
+        /// Whatever a client sends, the gateway answers a request or an error: it
+        /// never panics (one client's malformed request closes that client only).
+        #[test]
+        fn any_line_is_a_request_or_an_error(line in ".{0,200}") {
+            let _ = Request::parse(&line);
+        }
+
+        /// Every request a client can ask for reads back as itself.
+        #[test]
+        fn every_request_reads_back(
+            units in proptest::collection::vec(proptest::num::u8::ANY, 0..4),
+            functions in proptest::collection::vec(1u8..0x80, 0..4),
+            count in proptest::option::of(1u64..u64::MAX),
+            seconds in proptest::option::of(1u64..100_000),
+            port in proptest::option::of(proptest::num::u16::ANY),
+        ) {
+            let masters = port
+                .map(|p| Peer::Addr(SocketAddr::from(([10, 0, 0, 5], p))))
+                .into_iter()
+                .chain([Peer::Ip([10, 0, 0, 6].into())])
+                .collect();
+            let r = Request { lines: vec!["tcp".into(), "0".into()], units, masters, functions, count, seconds };
+            proptest::prop_assert_eq!(Request::parse(&r.to_string()), Ok(r));
+        }
+    }
+
+    #[test]
+    fn lines_by_index_name_or_tcp() {
+        let names: Vec<String> = ["tcp", "/dev/ttyUSB0", "10.0.0.9:502"]
+            .map(String::from)
+            .into();
+        let pick = |l: &[&str]| {
+            let r = Request {
+                lines: l.iter().map(|s| s.to_string()).collect(),
+                ..Request::default()
+            };
+            r.interfaces(&names)
+        };
+        assert_eq!(pick(&[]), Ok(vec![true, true, true]));
+        assert_eq!(pick(&["1"]), Ok(vec![false, false, true]));
+        assert_eq!(pick(&["tcp", "/dev/ttyUSB0"]), Ok(vec![true, true, false]));
+        let e = pick(&["2"]).unwrap_err();
+        assert!(e.contains("0 (/dev/ttyUSB0), 1 (10.0.0.9:502)"), "{e}");
+    }
+
+    #[test]
+    fn filters_keep_what_they_name_and_every_drop() {
+        let mut tcp = Packet::new(Dir::In, Role::Query, Proto::Mbtcp, vec![]);
+        tcp.unit = Some(3);
+        tcp.function = Some(0x83);
+        tcp.ends = Some(Ends {
+            client: "10.0.0.5:40000".parse().unwrap(),
+            server: "10.0.0.1:502".parse().unwrap(),
+        });
+        let only = |s: &str| Request::parse(&format!("capture {s}")).unwrap();
+        assert!(
+            only("unit=3 function=3").keeps(&tcp, None),
+            "an exception is its function's"
+        );
+        assert!(!only("unit=4").keeps(&tcp, None));
+        assert!(only("master=10.0.0.5").keeps(&tcp, None));
+        assert!(only("master=10.0.0.5:40000").keeps(&tcp, None));
+        assert!(!only("master=10.0.0.5:40001").keeps(&tcp, None));
+        let mut line = tcp.clone();
+        line.ends = None;
+        assert!(!only("master=10.0.0.5").keeps(&line, None));
+        assert!(only("master=10.0.0.5").keeps(&line, Some("10.0.0.5:1".parse().unwrap())));
+        let drop = Packet::new(Dir::In, Role::Other, Proto::Data, vec![0xFF]);
+        assert!(only("unit=9 function=16").keeps(&drop, None));
+    }
+}
