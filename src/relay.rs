@@ -145,7 +145,7 @@ impl Relay {
             draining: false,
             commands_open: true,
             watchdog: None,
-            watch: Watch::new(metrics, traffic),
+            watch: Watch::new(metrics, traffic, baud),
         };
         (relay, RelayHandle::new(tx))
     }
@@ -215,6 +215,7 @@ impl Relay {
                 Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
                 Event::Read(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
+                    self.line.heard(n, self.in_flight.len(), now, &self.stats);
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
@@ -277,8 +278,10 @@ impl Relay {
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
     fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
-        if self.port.opened(opened, now) {
+        if let Some(info) = self.port.opened(opened, now) {
             self.line.clear(&self.stats);
+            let timing = self.line.port_opened(&info);
+            self.port.tell_open(&info, &timing);
             self.stats.add(&self.stats.serial_opens, 1);
         }
     }
@@ -505,7 +508,10 @@ impl Relay {
             f.req.deliver(&frame);
             return;
         }
-        match self.line.unsolicited(tid) {
+        let unsolicited = self.line.unsolicited(tid);
+        self.line
+            .answered_nothing(matches!(unsolicited, Unsolicited::Late), now);
+        match unsolicited {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
                 self.traffic("late reply, dropped", &frame, now);

@@ -75,7 +75,7 @@ async fn start(framing: Framing, cfg: RelayConfig, traffic: bool) -> Gw {
         path: "unused".into(),
         baud_rate: 115_200,
         framing,
-        silence_floor_ms: 5,
+        silence_floor_ms: mbgate::config::Floor::Ms(5),
         ..SerialConfig::default()
     };
     let shutdown = CancellationToken::new();

@@ -41,6 +41,9 @@
 //! - a held frame followed by another with its transaction id but other bytes is
 //!   refuted: one of them took its id from somewhere else.
 //!
+//! A judge that knows nothing can follow a frame ([`Judge::alone`]) has it handed on
+//! as soon as it is whole, if it came back to back and nothing is buffered after it.
+//!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
 //!
@@ -73,6 +76,15 @@ pub trait Judge {
     /// line? Judges that know nothing can follow (one request outstanding, no
     /// unsolicited frames) say no and get frames without the wait.
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        false
+    }
+    /// For a frame [`confirm`](Judge::confirm) would hold: may it be handed on at once
+    /// when it came back to back (no pause inside it) and nothing is buffered after
+    /// it? Judges that know nothing can follow it on the line say yes (the relay with
+    /// one request in flight and nothing else to come, docs/reliability.md): a frame
+    /// that lost bytes then has nothing to complete itself with. Bytes already after
+    /// it, or a pause inside it, show something did come, and it is held as ever.
+    fn alone(&self, _frame: FrameRef<'_>) -> bool {
         false
     }
     /// May a pause (`Resync::pause`) confirm this held frame when nothing follows
@@ -378,7 +390,11 @@ impl Resync {
                         self.drop_one();
                         continue;
                     }
-                    if !accepted || judge.confirm(frame) {
+                    let alone = accepted
+                        && total == self.buf.len()
+                        && !self.pause_within(0, total)
+                        && judge.alone(frame);
+                    if !accepted || (judge.confirm(frame) && !alone) {
                         match self.verdict(total, judge, quiet) {
                             Verdict::Confirmed => {}
                             Verdict::Wait => return None,

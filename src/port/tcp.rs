@@ -61,6 +61,7 @@ impl Port for TcpPort {
             SockRef::from(&stream).set_tcp_keepalive(&keepalive)?;
             let (reader, writer) = stream.into_split();
             Ok(Link {
+                info: super::kind::PortInfo::plain(super::kind::Kind::Tcp),
                 reader: Box::new(reader),
                 writer: Box::new(writer),
                 control: Box::new(NoControl),

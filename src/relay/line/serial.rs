@@ -1,6 +1,7 @@
 //! The RTU and ASCII line: one request at a time, tied to its reply by time alone
-//! (bytes before the request left are not its reply), the inter-frame gap, CRC/LRC,
-//! the guard after a timeout, broadcasts with their turnaround, local echo.
+//! (bytes before the request left are not its reply: on a wire, its time at
+//! `baud_rate` counts), the inter-frame gap, CRC/LRC, the guard after a timeout,
+//! broadcasts with their turnaround, local echo.
 
 use super::Seen;
 use crate::config::{RelayConfig, SerialConfig};
@@ -8,6 +9,7 @@ use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
 use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
+use crate::port::kind::{self, PortInfo};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
 use crate::stats::Stats;
@@ -55,6 +57,9 @@ pub(super) struct Serial {
     reply_from: Instant,
     /// Over TCP: bytes take no time on a wire, and there is no gap to keep.
     stream: bool,
+    /// A wire at `baud_rate` between the port and the device (not a pty, unless
+    /// `port_kind = "wire"`): a request's bytes take their time to leave.
+    wire: bool,
     /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
     request_pause: Duration,
 }
@@ -87,7 +92,7 @@ impl Serial {
             decoder: Framer::serial(codec),
             gap,
             gap_after_frame,
-            silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
+            silence: kind::silence(serial, &PortInfo::unknown()),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
             last_rx: now,
@@ -100,17 +105,38 @@ impl Serial {
             held: Vec::new(),
             reply_from: now,
             stream,
+            wire: !stream,
             request_pause: Duration::from_millis(relay.request_pause_ms),
         }
     }
 
-    /// How long `bytes` take on the line: none over TCP.
+    /// How long `bytes` take to leave the port: none over TCP, nor where there is no
+    /// wire (a pty passes them at once whatever `baud_rate` says).
     fn wire_time(&self, bytes: usize) -> Duration {
-        if self.stream {
+        if self.stream || !self.wire {
             Duration::ZERO
         } else {
             serial::wire_time(&self.port, bytes)
         }
+    }
+
+    /// A port was opened and found to be `info`: whether bytes take their time on a
+    /// wire, and the silence that ends a frame of unknown shape. Says how.
+    pub(super) fn port_opened(&mut self, info: &PortInfo) -> String {
+        if self.stream {
+            return "no gap kept: the device server keeps it on its own line".into();
+        }
+        self.wire = kind::wire(&self.port, info);
+        self.silence = kind::silence(&self.port, info);
+        let wire = if self.wire {
+            "a wire at serial.baud_rate: a reply must begin after its request has left"
+        } else {
+            "no wire: a reply is taken however soon it comes"
+        };
+        format!(
+            "{wire}; {:.2} ms of silence ends a frame of unknown shape",
+            self.silence.as_secs_f64() * 1000.0
+        )
     }
 
     pub(super) fn allocate(&mut self) -> u16 {
@@ -129,6 +155,7 @@ impl Serial {
         let stale = self.decoder.clear() + held;
         if stale > 0 {
             debug!(bytes = stale, "bytes received before the request discarded");
+            stats.add(&stats.dropped_stale, stale as u64);
         }
         self.count_dropped(held, stats);
         let bytes = self.decoder.encode(adu);
@@ -242,8 +269,15 @@ impl Serial {
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
+        // The line's pace at `baud_rate`, on a pty too: a backed-off unit's answers
+        // come no faster than a wire would serve them.
         let bytes = self.decoder.encoded_len(adu.pdu().len()) + self.decoder.encoded_len(2);
-        self.wire_time(bytes) + 2 * self.gap
+        let on_line = if self.stream {
+            Duration::ZERO
+        } else {
+            serial::wire_time(&self.port, bytes)
+        };
+        on_line + 2 * self.gap
     }
 
     /// Counts what the framer dropped since last asked, and `held` bytes dropped
@@ -279,6 +313,7 @@ impl Serial {
                 "bytes received while the request was still being sent discarded"
             );
             stats.add(&stats.dropped_bytes, bytes.len() as u64);
+            stats.add(&stats.dropped_too_early, bytes.len() as u64);
         } else {
             self.decoder.push(bytes);
         }
@@ -316,6 +351,7 @@ impl Serial {
             if quiet && self.decoder.buffered() > 0 {
                 let n = self.decoder.clear();
                 debug!(bytes = n, "bytes that answer no request dropped");
+                stats.add(&stats.dropped_stale, n as u64);
                 self.count_dropped(0, stats);
             }
             return Vec::new();
