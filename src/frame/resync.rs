@@ -42,7 +42,8 @@
 //!   refuted: one of them took its id from somewhere else.
 //!
 //! A judge that knows nothing can follow a frame ([`Judge::alone`]) has it handed on
-//! as soon as it is whole, if it came back to back and nothing is buffered after it.
+//! as soon as it is whole, if nothing is buffered after it (and, if the judge asks,
+//! it came back to back).
 //!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
@@ -78,13 +79,15 @@ pub trait Judge {
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         false
     }
-    /// For a frame [`confirm`](Judge::confirm) would hold: may it be handed on at once
-    /// when it came back to back (no pause inside it) and nothing is buffered after
-    /// it? Judges that know nothing can follow it on the line say yes (the relay with
-    /// one request in flight and nothing else to come, docs/reliability.md): a frame
-    /// that lost bytes then has nothing to complete itself with. Bytes already after
-    /// it, or a pause inside it, show something did come, and it is held as ever.
-    fn alone(&self, _frame: FrameRef<'_>) -> bool {
+    /// For a frame [`confirm`](Judge::confirm) would hold, with nothing buffered after
+    /// it: may it be handed on at once? Judges that know nothing can follow it on the
+    /// line say yes (the relay with one request in flight and nothing else to come,
+    /// docs/reliability.md): a frame that lost bytes then has nothing to complete
+    /// itself with. `straddles` says the line paused inside it: on a wire what came
+    /// after a pause may be noise completing a frame that lost bytes, and a judge
+    /// then says no. Bytes already after it show something did come: it is held as
+    /// ever.
+    fn alone(&self, _frame: FrameRef<'_>, _straddles: bool) -> bool {
         false
     }
     /// May a pause (`Resync::pause`) confirm this held frame when nothing follows
@@ -392,8 +395,7 @@ impl Resync {
                     }
                     let alone = accepted
                         && total == self.buf.len()
-                        && !self.pause_within(0, total)
-                        && judge.alone(frame);
+                        && judge.alone(frame, self.pause_within(0, total));
                     if !accepted || (judge.confirm(frame) && !alone) {
                         match self.verdict(total, judge, quiet) {
                             Verdict::Confirmed => {}

@@ -35,6 +35,8 @@ pub(super) struct Mbap {
     /// One character on the wire at the configured speed; zero where there is no
     /// wire (a pty, TCP): nothing of a request is then "still on its way".
     char_time: Duration,
+    /// A wire at `baud_rate` between the port and the device (`port_kind`).
+    wire: bool,
     /// The device sends frames nobody asked for (`device_notifications`, or
     /// `notifications = "broadcast"`: the operator expects them).
     notifies: bool,
@@ -94,6 +96,8 @@ struct RelayJudge<'a, R> {
     /// Nothing but the replies to the requests in flight can come on the line: the
     /// device sends nothing unasked and no late reply is possible.
     only_replies: bool,
+    /// There is a wire (and so noise) between the port and the device.
+    wire: bool,
 }
 
 /// Can anything follow frame `tid` on the line, so that a frame that lost a byte may
@@ -161,12 +165,17 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
         !self.stream
     }
 
-    /// When nothing can follow it ([`may_follow`]), a whole reply that came back to
-    /// back with nothing after it is its device's reply (or register values spelt a
-    /// header: condition 3), so it is taken at once, without the pause.
-    fn alone(&self, frame: FrameRef<'_>) -> bool {
+    /// When nothing can follow it ([`may_follow`]), a whole reply with nothing after
+    /// it is its device's reply (or register values spelt a header: condition 3), so
+    /// it is taken at once, without the pause. On a wire it must have come back to
+    /// back: a byte after a pause there may be noise completing a reply that lost one.
+    /// Where there is no wire (a pty) there is no noise, and a device that pauses
+    /// inside its frames is served.
+    fn alone(&self, frame: FrameRef<'_>, straddles: bool) -> bool {
         let tid = frame.tid();
-        self.only_replies && !may_follow(tid, self.in_flight.iter().map(|f| f.tid), false, false)
+        self.only_replies
+            && !(straddles && self.wire)
+            && !may_follow(tid, self.in_flight.iter().map(|f| f.tid), false, false)
     }
 
     /// A pause confirms a frame when no other reply is due (or its own request's time
@@ -199,6 +208,7 @@ impl Mbap {
             max_in_flight: relay.max_in_flight,
             gap,
             char_time: Duration::ZERO,
+            wire: !stream,
             notifies: relay.device_notifications || relay.notifications == Notifications::Broadcast,
             heard_unasked: false,
             late_until: None,
@@ -225,6 +235,7 @@ impl Mbap {
     /// there is a wire, and the pause that ends a frame is the port's. Says how.
     pub(super) fn port_opened(&mut self, info: &PortInfo) -> String {
         let wire = !self.stream && kind::wire(&self.serial, info);
+        self.wire = wire;
         // A socket or a pty has no line speed: nothing of a request is "still on the
         // wire".
         self.char_time = if wire {
@@ -450,6 +461,7 @@ impl Mbap {
                 now,
                 stream: self.stream,
                 only_replies: !self.notifies && !self.heard_unasked && !self.late_possible(now),
+                wire: self.wire,
             };
             let frame = match self.decoder.next_frame(&judge, quiet) {
                 Some(Framed::Frame(frame)) => frame,
@@ -830,6 +842,44 @@ mod tests {
                 .load(std::sync::atomic::Ordering::Relaxed),
             12
         );
+    }
+
+    /// A device that pauses inside its reply (libmodbus' test server sends one byte
+    /// every 5 ms): with nothing able to follow, on a pty (no wire, no noise) the
+    /// whole reply is taken when its last byte comes; on a wire what came after a
+    /// pause may be noise completing a damaged reply, and it is refuted.
+    #[test]
+    fn a_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
+        use crate::port::kind::{Kind, PortInfo};
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        // A UART whose FIFO hands each byte over: the pause is 3.5 characters.
+        let uart = Kind::Uart {
+            driver: None,
+            trigger: Some(1),
+        };
+        for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+            let serial = SerialConfig {
+                baud_rate: 115_200,
+                ..SerialConfig::default()
+            };
+            let t0 = Instant::now();
+            let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+            line.port_opened(&PortInfo::plain(kind.clone()));
+            let a = send(&mut line, &read, t0);
+            let reply = Adu::build(a.tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
+            let mut got = Vec::new();
+            for (i, b) in reply.iter().enumerate() {
+                let at = t0 + (5 * i as u32 + 1) * MS;
+                got.extend(frames(&mut line, std::slice::from_ref(&a), at));
+                line.received(&[*b], at, &Stats::default());
+                got.extend(frames(&mut line, std::slice::from_ref(&a), at + MS / 2));
+            }
+            for after in [30, 100] {
+                got.extend(frames(&mut line, std::slice::from_ref(&a), t0 + after * MS));
+            }
+            let want = if taken { vec![reply] } else { Vec::new() };
+            assert_eq!(got, want, "{kind:?}");
+        }
     }
 
     /// The dropped-byte counter only grows: two lines counting into one `Stats` (or

@@ -35,6 +35,12 @@ pub(super) struct Serial {
     /// What ends a frame of unknown shape: 3.5 character times, never less than
     /// `silence_floor_ms`.
     silence: Duration,
+    /// `frame_gap_ms`: where there is no wire, a partial reply of known length is
+    /// discarded after this much silence rather than `silence` (a program on a pty
+    /// may pause inside a frame; nothing there is lost or added).
+    frame_gap: Duration,
+    /// The request on the line, for the length of its reply.
+    asked: Option<Vec<u8>>,
     broadcast_delay: Duration,
     /// The line stays quiet this long after a timeout (`timeout_guard_ms`).
     guard: Duration,
@@ -93,6 +99,8 @@ impl Serial {
             gap,
             gap_after_frame,
             silence: kind::silence(serial, &PortInfo::unknown()),
+            frame_gap: Duration::from_millis(relay.frame_gap_ms),
+            asked: None,
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
             last_rx: now,
@@ -235,10 +243,25 @@ impl Serial {
         }
     }
 
+    /// The silence after which what is buffered ends (a frame of unknown shape) or is
+    /// discarded: `silence`, or where there is no wire and the partial frame's length
+    /// is known, the frame gap.
+    fn quiet_after(&self) -> Duration {
+        let known = self
+            .asked
+            .as_deref()
+            .is_some_and(|asked| self.decoder.length_known(&ReplyFor(asked)));
+        if !self.wire && !self.stream && known {
+            self.frame_gap.max(self.silence)
+        } else {
+            self.silence
+        }
+    }
+
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         let mut wake: Option<Instant> = None;
         if self.decoder.buffered() > 0 {
-            wake = Some(self.last_rx + self.silence);
+            wake = Some(self.last_rx + self.quiet_after());
         }
         if waiting {
             let free = self.free_at();
@@ -345,7 +368,11 @@ impl Serial {
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {
-        let quiet = now >= self.last_rx + self.silence;
+        let asked = in_flight.first().map(|f| f.req.adu().pdu());
+        if self.asked.as_deref() != asked {
+            self.asked = asked.map(<[u8]>::to_vec);
+        }
+        let quiet = now >= self.last_rx + self.quiet_after();
         let Some(f) = in_flight.first() else {
             // Nothing asked: late answers or noise, dropped once the line is quiet.
             if quiet && self.decoder.buffered() > 0 {
@@ -393,10 +420,64 @@ impl Serial {
 
 #[cfg(test)]
 mod tests {
-    use super::super::Line;
+    use super::super::{Line, Seen};
     use super::*;
+    use crate::port::kind::Kind;
 
     const MS: Duration = Duration::from_millis(1);
+
+    /// A reply whose bytes come 5 ms apart at 115 200 baud (43 character times): on a
+    /// pty a partial reply of known length waits for the frame gap, so it is taken
+    /// whole; on a wire 3.5 characters of silence end it, and it fails its CRC.
+    #[test]
+    fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
+        use crate::relay::inflight::InFlight;
+        let serial = SerialConfig {
+            baud_rate: 115_200,
+            framing: crate::config::Framing::Rtu,
+            ..SerialConfig::default()
+        };
+        let uart = Kind::Uart {
+            driver: None,
+            trigger: Some(1),
+        };
+        for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+            let stats = Stats::default();
+            let t0 = Instant::now();
+            let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+            line.port_opened(&PortInfo::plain(kind.clone()));
+            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+            let key = line.allocate(t0);
+            line.encode(&read, key, t0, &stats);
+            line.wrote(8, t0);
+            line.drained(t0 + MS, &stats);
+            let f = [InFlight {
+                tid: key,
+                deadline: t0 + Duration::from_secs(1),
+                timeout: Duration::from_secs(1),
+                req: (read.clone(), 0u32),
+            }];
+            let reply = Codec::Rtu.encode(1, &[3, 2, 0, 7]);
+            let mut got = Vec::new();
+            for (i, b) in reply.iter().enumerate() {
+                let at = t0 + (5 * i as u32 + 2) * MS;
+                line.received(&[*b], at, &stats);
+                got.extend(
+                    line.frames(&f, at + 4 * MS, &stats)
+                        .into_iter()
+                        .map(|s| match s {
+                            Seen::Frame(frame) => Some(frame.pdu().to_vec()),
+                            Seen::Corrupt(_) => None,
+                        }),
+                );
+            }
+            if taken {
+                assert_eq!(got, vec![Some(vec![3, 2, 0, 7])], "{kind:?}");
+            } else {
+                assert!(got.first() == Some(&None), "{kind:?}: {got:?}");
+            }
+        }
+    }
 
     /// RTU at 9600 baud: the next request waits 3.5 characters (4 ms) after a reply on
     /// a serial line, none over TCP; `request_pause_ms` stretches the wait on both.
