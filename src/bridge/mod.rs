@@ -153,7 +153,7 @@ pub(crate) async fn run_on(
             Ok(l) => {
                 backoff.reset();
                 reported = false;
-                info!(serial = port.name(), "{} open", port.kind());
+                info!(serial = port.name(), "{} open: {}", port.kind(), l.info);
                 l
             }
             Err(e) => {

@@ -120,7 +120,6 @@ impl Lifecycle {
         info!(
             path = %self.transport.name(),
             baud = self.baud,
-            port = %info,
             "{kind} open: {info}; {timing}"
         );
     }
