@@ -5,11 +5,12 @@
 //!
 //! - [`Mbap`] (`mbap.rs`): serial-side transaction ids, several requests on the line
 //!   at once (`max_in_flight`), the resynchronising decoder with confirmation of every
-//!   frame (by what follows it, or by a pause of a few character times),
-//!   notifications, echoes told by their timing.
+//!   frame something can follow (by what follows it, or by a pause of a few character
+//!   times), notifications, echoes told by their timing on a wire.
 //! - [`Serial`] (`serial.rs`): RTU or ASCII. No transaction id, so one request at a
 //!   time, and only time ties a reply to its request: what was received before a
-//!   request has left is discarded, a reply must start after it; frames delimited by
+//!   request was written is discarded, and on a wire a reply must start after the
+//!   request has left; frames delimited by
 //!   length, silence or line feed and checked by CRC or LRC; the inter-frame gap (3.5
 //!   character times) before each request, counted from the last byte seen or sent; a
 //!   guard time after a timeout, for the late reply; broadcasts (unit 0) with a
