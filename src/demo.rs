@@ -123,14 +123,11 @@ impl DemoArgs {
     /// The gateway's configuration: defaults, the pty, the listen address; device
     /// notifications reach every master when the simulator sends them. The line is
     /// as fast as the simulator's `--baud`, or the fastest there is when it is
-    /// unpaced (a pty passes bytes at once; the gateway takes a reply that begins
-    /// before its request could have left the wire for an echo), and a pty has no USB
-    /// latency to wait out.
+    /// unpaced; the gateway finds the port a pty (no wire, no latency to wait out).
     pub(crate) fn gateway_config(&self, pty: String) -> Config {
         let mut cfg = Config::default();
         cfg.serial.path = pty;
         cfg.serial.baud_rate = self.baud.unwrap_or(FASTEST_BAUD);
-        cfg.serial.silence_floor_ms = 0;
         cfg.serial.flow_control = FlowControl::None;
         cfg.tcp.listen = self.listen.unwrap_or(DEFAULT_LISTEN);
         cfg.log.traffic = self.traffic;

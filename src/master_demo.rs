@@ -62,7 +62,6 @@ fn line_config(pty: String, slave: SocketAddr, traffic: bool) -> Config {
     let mut cfg = Config::default();
     cfg.serial.path = pty;
     cfg.serial.baud_rate = crate::config::FASTEST_BAUD;
-    cfg.serial.silence_floor_ms = 0;
     cfg.serial.flow_control = FlowControl::None;
     cfg.log.traffic = traffic;
     cfg.master = Some(MasterLine {

@@ -147,7 +147,7 @@ impl Relay {
             draining: false,
             commands_open: true,
             watchdog: None,
-            watch: Watch::new(metrics, traffic, serial.framing),
+            watch: Watch::new(metrics, traffic, serial.framing, baud),
         };
         (relay, RelayHandle::new(tx))
     }
@@ -228,6 +228,7 @@ impl Relay {
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
                     // A capture begun while the loop waited has these bytes too.
                     self.line.set_tape(self.watch.capturing());
+                    self.line.heard(n, self.in_flight.len(), now, &self.stats);
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
@@ -293,8 +294,10 @@ impl Relay {
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
     fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
-        if self.port.opened(opened, now) {
+        if let Some(info) = self.port.opened(opened, now) {
             self.line.clear(&self.stats);
+            let timing = self.line.port_opened(&info);
+            self.port.tell_open(&info, &timing);
             self.stats.add(&self.stats.serial_opens, 1);
         }
     }
@@ -532,7 +535,10 @@ impl Relay {
             f.req.deliver(&frame);
             return;
         }
-        match self.line.unsolicited(tid) {
+        let unsolicited = self.line.unsolicited(tid);
+        self.line
+            .answered_nothing(matches!(unsolicited, Unsolicited::Late), now);
+        match unsolicited {
             Unsolicited::Late => {
                 self.stats.add(&self.stats.late_replies, 1);
                 self.traffic("late reply, dropped", &frame, at);

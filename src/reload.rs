@@ -240,12 +240,13 @@ pub(crate) mod tests {
     pub(super) fn all_changed() -> Config {
         let text = "[serial]\npath = \"/dev/x\"\nbaud_rate = 9600\ndata_bits = 7\nparity = \"odd\"\n\
             stop_bits = 2\nflow_control = \"none\"\nframing = \"rtu\"\nsilence_floor_ms = 3\n\
+            port_kind = \"wire\"\nlow_latency = false\n\
             rs485 = true\nrs485_delay_before_send_ms = 1\nrs485_delay_after_send_ms = 1\necho = true\n\
             inter_frame_gap_us = 900\n\
             [tcp]\nlisten = \"127.0.0.1:1502\"\nmax_connections = 3\nidle_timeout_ms = 5\n\
             [relay]\nresponse_timeout_ms = 7\nframe_gap_ms = 7\nmax_in_flight = 2\n\
             max_pending_per_connection = 2\nqueue_depth = 9\nretries = 2\nretry_writes = true\n\
-            notifications = \"broadcast\"\nbroadcast_delay_ms = 1\nbroadcast_reply = \"echo\"\n\
+            notifications = \"broadcast\"\ndevice_notifications = true\nbroadcast_delay_ms = 1\nbroadcast_reply = \"echo\"\n\
             unit_backoff = false\nunit_backoff_after = 9\nunit_backoff_ms = 9\nunit_backoff_max_ms = 99\n\
             probe_timeout_ms = 9\ntimeout_guard_ms = 9\ncoalesce = false\ncache_ms = 9\n\
             request_pause_ms = 9\n\

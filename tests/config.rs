@@ -44,7 +44,9 @@ fn defaults_are_the_documented_ones() {
     assert_eq!(c.relay.retries, 0);
     assert!(!c.relay.retry_writes);
     assert_eq!(c.relay.notifications, Notifications::Drop);
-    assert_eq!(c.serial.silence_floor_ms, 20);
+    assert_eq!(c.serial.silence_floor_ms, Floor::Auto);
+    assert_eq!(c.serial.port_kind, PortKind::Auto);
+    assert!(c.serial.low_latency && !c.relay.device_notifications);
     assert!(!c.serial.rs485 && !c.serial.echo);
     assert_eq!(c.relay.broadcast_delay_ms, 100);
     assert_eq!(c.relay.broadcast_reply, BroadcastReply::None);
@@ -146,7 +148,7 @@ fn unknown_key_in_each_section() {
         2,
         "serial.baudrate",
         "unknown key; expected one of path, baud_rate, data_bits, parity, stop_bits, \
-         flow_control, framing, silence_floor_ms, inter_frame_gap_us, rs485, \
+         flow_control, framing, port_kind, low_latency, silence_floor_ms, inter_frame_gap_us, rs485, \
          rs485_delay_before_send_ms, rs485_delay_after_send_ms, echo (did you mean \
          `baud_rate`?)",
     );
@@ -363,7 +365,7 @@ fn range_violations() {
             "serial",
             "silence_floor_ms",
             "1001",
-            "must be between 0 and 1000",
+            "must be \"auto\" or 0 to 1000",
         ),
         (
             "serial",
@@ -563,7 +565,9 @@ fn non_default() -> Config {
             stop_bits: 2,
             flow_control: FlowControl::Software,
             framing: Framing::Rtu,
-            silence_floor_ms: 0,
+            port_kind: PortKind::Wire,
+            low_latency: false,
+            silence_floor_ms: Floor::Ms(0),
             inter_frame_gap_us: 1_000_000,
             rs485: true,
             rs485_delay_before_send_ms: 2,
@@ -584,6 +588,7 @@ fn non_default() -> Config {
             retries: 10,
             retry_writes: true,
             notifications: Notifications::Broadcast,
+            device_notifications: true,
             broadcast_delay_ms: 0,
             broadcast_reply: BroadcastReply::Echo,
             unit_backoff: false,

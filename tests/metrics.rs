@@ -152,6 +152,26 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
         ("mbgate_line_retries_total", &l, 0.0),
         ("mbgate_line_opens_total", &l, 1.0),
         ("mbgate_line_dropped_bytes_total", &l, 0.0),
+        (
+            "mbgate_line_dropped_bytes_by_reason_total",
+            &[("line", line), ("reason", "too_early")],
+            0.0,
+        ),
+        (
+            "mbgate_line_dropped_bytes_by_reason_total",
+            &[("line", line), ("reason", "echo")],
+            0.0,
+        ),
+        (
+            "mbgate_line_dropped_bytes_by_reason_total",
+            &[("line", line), ("reason", "stale")],
+            0.0,
+        ),
+        (
+            "mbgate_line_dropped_bytes_by_reason_total",
+            &[("line", line), ("reason", "other")],
+            0.0,
+        ),
         // Six requests of 12 bytes; four replies of 11, one exception of 9.
         ("mbgate_line_sent_bytes_total", &l, 72.0),
         ("mbgate_line_received_bytes_total", &l, 53.0),

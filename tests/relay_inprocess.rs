@@ -36,7 +36,7 @@ fn serial(framing: Framing) -> SerialConfig {
         path: "duplex".into(),
         baud_rate: 115_200,
         framing,
-        silence_floor_ms: 5,
+        silence_floor_ms: mbgate::config::Floor::Ms(5),
         ..SerialConfig::default()
     }
 }

@@ -39,7 +39,9 @@ fn encode(framing: &str, unit: u8, pdu: &[u8]) -> Vec<u8> {
 }
 
 /// A pty pair, the simulator (generic unit 1, each register holding its address, 19 200
-/// baud paced as a UART) on one end with `sim_args` added, the gateway on the other.
+/// baud paced as a UART) on one end with `sim_args` added, the gateway on the other,
+/// told the pty stands for a wire at its baud rate (`port_kind = "wire"`: a reply
+/// cannot begin before its request has left it).
 struct SimBench {
     _dir: tempfile::TempDir,
     socat: Socat,
@@ -67,7 +69,8 @@ fn sim_bench(framing: &str, sim_args: &[&str], relay: &[&str]) -> SimBench {
     let sim = sim(&socat.dev, &args);
     let mut cfg = Cfg::new(&socat.gw)
         .serial(&format!("framing = {framing:?}"))
-        .serial("flow_control = \"none\"");
+        .serial("flow_control = \"none\"")
+        .serial("port_kind = \"wire\"");
     for line in relay {
         cfg = cfg.relay(line);
     }
@@ -130,6 +133,13 @@ fn stray_frame_before_a_request(framing: &str) {
         counters["dropped_bytes"],
         4 * stray.len() as u64,
         "each stray frame discarded and counted: {counters:?}"
+    );
+    // There before the request was written (stale), or read while it was still
+    // leaving the wire (too early).
+    assert_eq!(
+        counters["dropped_stale"] + counters["dropped_too_early"],
+        4 * stray.len() as u64,
+        "{counters:?}"
     );
     assert_eq!(counters["bad_frames"], 0, "{counters:?}");
 }
@@ -293,6 +303,7 @@ fn rtu_reply_begun_before_the_request_ended_is_not_taken() {
     let cfg = Cfg::new(&socat.gw)
         .serial("framing = \"rtu\"")
         .serial("flow_control = \"none\"")
+        .serial("port_kind = \"wire\"")
         .serial(&format!("baud_rate = {BAUD}"))
         .relay("response_timeout_ms = 200");
     let mut gw = Gateway::start(&cfg, dir.path());
@@ -311,8 +322,9 @@ fn rtu_reply_begun_before_the_request_ended_is_not_taken() {
         "the reply after the echo"
     );
     let counters = gw.stop();
-    // The early reply (7 bytes) and three echoes (8 bytes each).
+    // The early reply (7 bytes) and three echoes (8 bytes each), all too early.
     assert_eq!(counters["dropped_bytes"], 7 + 3 * 8, "{counters:?}");
+    assert_eq!(counters["dropped_too_early"], 7 + 3 * 8, "{counters:?}");
     assert_eq!(counters["bad_frames"], 0, "{counters:?}");
 }
 
@@ -330,6 +342,7 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
     let cfg = Cfg::new(&socat.gw)
         .serial("framing = \"rtu\"")
         .serial("flow_control = \"none\"")
+        .serial("port_kind = \"wire\"")
         .serial(&format!("baud_rate = {BAUD}"))
         .relay("response_timeout_ms = 500");
     let mut gw = Gateway::start(&cfg, dir.path());

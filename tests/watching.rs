@@ -1,8 +1,9 @@
 //! What the relay says about its line (docs/watching.md), in process: the relay
 //! over an in-memory pipe (src/port/duplex.rs) with a device written here, its log
 //! captured. A unit that stops answering is warned about once and its return said
-//! once, on MBAP and on RTU; the cost of MBAP confirmation is said once; the traffic
-//! log shows whole frames with both transaction ids.
+//! once, on MBAP and on RTU (and when its answers were being dropped, why, naming the
+//! setting); the cost of MBAP confirmation is said once; the traffic log shows whole
+//! frames with both transaction ids.
 
 use mbgate::config::{Framing, RelayConfig, SerialConfig};
 use mbgate::frame::serial::Codec;
@@ -75,9 +76,14 @@ async fn start(framing: Framing, cfg: RelayConfig, traffic: bool) -> Gw {
         path: "unused".into(),
         baud_rate: 115_200,
         framing,
-        silence_floor_ms: 5,
+        silence_floor_ms: mbgate::config::Floor::Ms(5),
         ..SerialConfig::default()
     };
+    start_on(serial, cfg, traffic).await
+}
+
+/// [`start`] with these serial settings.
+async fn start_on(serial: SerialConfig, cfg: RelayConfig, traffic: bool) -> Gw {
     let shutdown = CancellationToken::new();
     let (port, mut device) = duplex::pair(4096, Duration::from_nanos(86_806));
     let stats = Arc::new(Stats::default());
@@ -259,7 +265,12 @@ async fn rtu_a_backed_off_unit_is_warned_about_once_and_its_return_said_once() {
 #[tokio::test]
 async fn mbap_the_cost_of_confirmation_is_said_once_and_the_traffic_log_shows_whole_frames() {
     let (log, _guard) = Log::capture();
-    let mut gw = start(Framing::Mbap, RelayConfig::default(), true).await;
+    // A device said to send notifications: every reply waits for the pause.
+    let relay = RelayConfig {
+        device_notifications: true,
+        ..RelayConfig::default()
+    };
+    let mut gw = start(Framing::Mbap, relay, true).await;
     let mut dev = std::mem::replace(&mut gw.dev, tokio::io::duplex(1).0);
     let device = tokio::spawn(async move {
         for _ in 0..3 {
@@ -273,7 +284,7 @@ async fn mbap_the_cost_of_confirmation_is_said_once_and_the_traffic_log_shows_wh
         assert_eq!(got.pdu(), [0x03, 0x04, 0, 1, 0, 2]);
     }
     gw.dev = device.await.unwrap();
-    let told = log.lines("INFO", "quiet for 5 ms after it");
+    let told = log.lines("INFO", "quiet for 5.00 ms after it");
     assert_eq!(told.len(), 1, "{}", log.text());
     assert!(told[0].contains("serial.silence_floor_ms"), "{}", told[0]);
     // Each request and reply as one line: direction, master, unit, both ids, function,
@@ -296,5 +307,54 @@ async fn mbap_the_cost_of_confirmation_is_said_once_and_the_traffic_log_shows_wh
         "{}",
         back[2]
     );
+    gw.stop().await;
+}
+
+/// A loopback on a port declared a wire at 9600 baud (`port_kind = "wire"`): each FC 06
+/// write comes straight back, byte for byte its reply, before it could have left the
+/// wire, and is dropped as its echo. The warning says the answers were dropped as
+/// echoes, how many bytes, and names the settings, not "not answering".
+#[tokio::test]
+async fn answers_dropped_as_echoes_are_said_in_the_warning() {
+    let (log, _guard) = Log::capture();
+    let serial = SerialConfig {
+        path: "unused".into(),
+        baud_rate: 9600,
+        port_kind: mbgate::config::PortKind::Wire,
+        ..SerialConfig::default()
+    };
+    let cfg = RelayConfig {
+        response_timeout_ms: 60,
+        ..RelayConfig::default()
+    };
+    let mut gw = start_on(serial, cfg, false).await;
+    let mut dev = std::mem::replace(&mut gw.dev, tokio::io::duplex(1).0);
+    let device = tokio::spawn(async move {
+        for _ in 0..3 {
+            let mut req = [0u8; 12];
+            timeout(3 * SEC, dev.read_exact(&mut req))
+                .await
+                .unwrap()
+                .unwrap();
+            dev.write_all(&req).await.unwrap();
+        }
+        dev
+    });
+    for tid in 0..3 {
+        let write = Adu::build(tid, 1, &[0x06, 0, 8, 0, 0x11]);
+        assert_eq!(exception_of(&gw.ask(write).await), Some(0x0B));
+    }
+    gw.dev = device.await.unwrap();
+    let warned = log.lines("WARN", "unit 1 on duplex");
+    assert_eq!(warned.len(), 1, "{}", log.text());
+    assert!(
+        warned[0].contains("3 timeouts in")
+            && warned[0].contains("dropped as echoes: 36 bytes")
+            && warned[0].contains("serial.baud_rate = 9600")
+            && warned[0].contains("serial.port_kind"),
+        "{}",
+        warned[0]
+    );
+    assert!(!warned[0].contains("not answering"), "{}", warned[0]);
     gw.stop().await;
 }

@@ -185,7 +185,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__check__subcmd__config)
-            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
+            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -217,6 +217,14 @@ _mbgate() {
                     ;;
                 --framing)
                     COMPREPLY=($(compgen -W "mbap rtu ascii" -- "${cur}"))
+                    return 0
+                    ;;
+                --port-kind)
+                    COMPREPLY=($(compgen -W "auto pty wire" -- "${cur}"))
+                    return 0
+                    ;;
+                --low-latency)
+                    COMPREPLY=($(compgen -W "true false" -- "${cur}"))
                     return 0
                     ;;
                 --silence-floor-ms)
@@ -285,6 +293,10 @@ _mbgate() {
                     ;;
                 --notifications)
                     COMPREPLY=($(compgen -W "drop broadcast" -- "${cur}"))
+                    return 0
+                    ;;
+                --device-notifications)
+                    COMPREPLY=($(compgen -W "true false" -- "${cur}"))
                     return 0
                     ;;
                 --broadcast-delay-ms)
@@ -851,7 +863,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__run)
-            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
+            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -891,6 +903,14 @@ _mbgate() {
                     ;;
                 --framing)
                     COMPREPLY=($(compgen -W "mbap rtu ascii" -- "${cur}"))
+                    return 0
+                    ;;
+                --port-kind)
+                    COMPREPLY=($(compgen -W "auto pty wire" -- "${cur}"))
+                    return 0
+                    ;;
+                --low-latency)
+                    COMPREPLY=($(compgen -W "true false" -- "${cur}"))
                     return 0
                     ;;
                 --silence-floor-ms)
@@ -959,6 +979,10 @@ _mbgate() {
                     ;;
                 --notifications)
                     COMPREPLY=($(compgen -W "drop broadcast" -- "${cur}"))
+                    return 0
+                    ;;
+                --device-notifications)
+                    COMPREPLY=($(compgen -W "true false" -- "${cur}"))
                     return 0
                     ;;
                 --broadcast-delay-ms)

@@ -51,7 +51,12 @@ none\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l framing -d 'Serial framing [serial.framing] [default: mbap]' -r -f -a "mbap\t'CIE-M10 serial Modbus/TCP: whole MBAP frames on the line (docs/protocol.md §3)'
 rtu\t'Modbus RTU: unit, PDU, CRC-16; one transaction at a time'
 ascii\t'Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time'"
-complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l silence-floor-ms -d 'Least silence that ends a frame, above the adapter\'s latency timer (RTU: a reply of unknown shape; MBAP: confirms a reply with nothing after it), 0..=1000 ms [serial.silence_floor_ms] [default: 20]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l port-kind -d 'What the port is: auto (learnt at each open), pty (no wire) or wire (a wire at baud_rate) [serial.port_kind] [default: auto]' -r -f -a "auto\t'Learnt at each open: a pseudo-terminal has no wire; a UART, a USB adapter or any other port is a wire at baud_rate'
+pty\t'No wire whatever the port (a pty, a virtual port): a reply is taken however soon it comes'
+wire\t'A wire at baud_rate whatever the port (a pty in front of a real line): echoes and replies begun before the request left are dropped'"
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l low-latency -d 'Turn the driver\'s low latency on at each open (TIOCSSERIAL ASYNC_LOW_LATENCY, what setserial low_latency does; an FTDI adapter then hands bytes over every 1 ms) [serial.low_latency] [default: true]' -r -f -a "true\t''
+false\t''"
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l silence-floor-ms -d 'Least silence that ends a frame (RTU: a reply of unknown shape; MBAP: confirms a held reply); "auto": from the port (a pty 0, a UART its FIFO, a USB adapter its latency timer + 2), "auto" or 0 to 1000 [serial.silence_floor_ms] [default: auto]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l inter-frame-gap-us -d 'RTU/ASCII: silence before each request, in microseconds; 0 is the specification\'s (RTU: 3.5 characters, 1750 above 19 200 baud; ASCII: none after a whole reply), 0..=1000000 [serial.inter_frame_gap_us] [default: 0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l rs485 -d 'Turn on the kernel\'s RS-485 mode (TIOCSRS485): RTS drives the transmitter [serial.rs485] [default: false]' -r -f -a "true\t''
 false\t''"
@@ -72,6 +77,8 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l retry-writes -d 'A
 false\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l notifications -d 'What to do with device frames that answer no request [relay.notifications] [default: drop]' -r -f -a "drop\t'Frames from the device that answer no request are dropped and counted'
 broadcast\t'Well-formed unsolicited frames go to every connected master'"
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l device-notifications -d 'MBAP: the device sends frames nobody asked for (the CIE-M10\'s input port change notification; off as shipped): every reply is then held for confirmation [relay.device_notifications] [default: false]' -r -f -a "true\t''
+false\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l broadcast-delay-ms -d 'RTU/ASCII: quiet time after a broadcast (unit 0), 0..=60000 ms [relay.broadcast_delay_ms] [default: 100]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l broadcast-reply -d 'RTU/ASCII: what a master gets for a broadcast [relay.broadcast_reply] [default: none]' -r -f -a "none\t'The master gets nothing back (as on the bus)'
 echo\t'The master gets the reply the device would have given'"
@@ -112,7 +119,12 @@ none\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l framing -d 'Serial framing [serial.framing] [default: mbap]' -r -f -a "mbap\t'CIE-M10 serial Modbus/TCP: whole MBAP frames on the line (docs/protocol.md §3)'
 rtu\t'Modbus RTU: unit, PDU, CRC-16; one transaction at a time'
 ascii\t'Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time'"
-complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l silence-floor-ms -d 'Least silence that ends a frame, above the adapter\'s latency timer (RTU: a reply of unknown shape; MBAP: confirms a reply with nothing after it), 0..=1000 ms [serial.silence_floor_ms] [default: 20]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l port-kind -d 'What the port is: auto (learnt at each open), pty (no wire) or wire (a wire at baud_rate) [serial.port_kind] [default: auto]' -r -f -a "auto\t'Learnt at each open: a pseudo-terminal has no wire; a UART, a USB adapter or any other port is a wire at baud_rate'
+pty\t'No wire whatever the port (a pty, a virtual port): a reply is taken however soon it comes'
+wire\t'A wire at baud_rate whatever the port (a pty in front of a real line): echoes and replies begun before the request left are dropped'"
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l low-latency -d 'Turn the driver\'s low latency on at each open (TIOCSSERIAL ASYNC_LOW_LATENCY, what setserial low_latency does; an FTDI adapter then hands bytes over every 1 ms) [serial.low_latency] [default: true]' -r -f -a "true\t''
+false\t''"
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l silence-floor-ms -d 'Least silence that ends a frame (RTU: a reply of unknown shape; MBAP: confirms a held reply); "auto": from the port (a pty 0, a UART its FIFO, a USB adapter its latency timer + 2), "auto" or 0 to 1000 [serial.silence_floor_ms] [default: auto]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l inter-frame-gap-us -d 'RTU/ASCII: silence before each request, in microseconds; 0 is the specification\'s (RTU: 3.5 characters, 1750 above 19 200 baud; ASCII: none after a whole reply), 0..=1000000 [serial.inter_frame_gap_us] [default: 0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l rs485 -d 'Turn on the kernel\'s RS-485 mode (TIOCSRS485): RTS drives the transmitter [serial.rs485] [default: false]' -r -f -a "true\t''
 false\t''"
@@ -133,6 +145,8 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l retry-wri
 false\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l notifications -d 'What to do with device frames that answer no request [relay.notifications] [default: drop]' -r -f -a "drop\t'Frames from the device that answer no request are dropped and counted'
 broadcast\t'Well-formed unsolicited frames go to every connected master'"
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l device-notifications -d 'MBAP: the device sends frames nobody asked for (the CIE-M10\'s input port change notification; off as shipped): every reply is then held for confirmation [relay.device_notifications] [default: false]' -r -f -a "true\t''
+false\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l broadcast-delay-ms -d 'RTU/ASCII: quiet time after a broadcast (unit 0), 0..=60000 ms [relay.broadcast_delay_ms] [default: 100]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l broadcast-reply -d 'RTU/ASCII: what a master gets for a broadcast [relay.broadcast_reply] [default: none]' -r -f -a "none\t'The master gets nothing back (as on the bus)'
 echo\t'The master gets the reply the device would have given'"

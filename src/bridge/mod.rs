@@ -55,10 +55,11 @@ pub(crate) struct Timing {
 
 impl Timing {
     pub(crate) fn of(cfg: &Config) -> Self {
-        let bits = crate::serial::bits_per_char(&cfg.serial);
-        let t35 = Duration::from_micros(crate::frame::rtu::t35_us(cfg.serial.baud_rate, bits));
+        // Taken before the port opens: its kind from the path (its device number).
+        let kind = crate::port::kind::of_path(&cfg.serial.path);
+        let port = crate::port::kind::PortInfo::plain(kind);
         Self {
-            pause: t35.max(Duration::from_millis(cfg.serial.silence_floor_ms)),
+            pause: crate::port::kind::silence(&cfg.serial, &port),
             frame_gap: Duration::from_millis(cfg.relay.frame_gap_ms),
         }
     }
@@ -171,7 +172,7 @@ pub(crate) async fn run_on(
             Ok(l) => {
                 backoff.reset();
                 reported = false;
-                info!(serial = port.name(), "{} open", port.kind());
+                info!(serial = port.name(), "{} open: {}", port.kind(), l.info);
                 l
             }
             Err(e) => {

@@ -8,7 +8,6 @@ use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::{decode_strict, FrameRef};
 use crate::frame::request::{self, decode_reply, Reply};
-use crate::frame::rtu;
 use crate::frame::serial::Expect;
 use crate::frame::{pdu, Adu, FunctionCode, Judge, StrictError};
 use bytes::BytesMut;
@@ -409,11 +408,10 @@ async fn serial_exchange(
     // `relay.frame_gap_ms` (docs/design.md §2), on RTU 3.5 character times.
     let silence = match decoder.codec() {
         None => Duration::from_millis(RelayConfig::default().frame_gap_ms),
-        Some(_) => Duration::from_micros(rtu::t35_us(
-            cfg.baud_rate,
-            crate::serial::bits_per_char(cfg),
-        ))
-        .max(Duration::from_millis(cfg.silence_floor_ms)),
+        Some(_) => {
+            let port = crate::port::kind::PortInfo::plain(crate::port::kind::of_path(&cfg.path));
+            crate::port::kind::silence(cfg, &port)
+        }
     };
     let wait = async {
         if decoder.codec().is_some() {

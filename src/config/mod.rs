@@ -94,6 +94,16 @@ choices! {
         /// Well-formed unsolicited frames go to every connected master
         Broadcast = "broadcast",
     }
+    /// What the serial port is, for the rules that read the clock against `baud_rate`
+    /// (docs/reliability.md "Knowing the wire").
+    PortKind {
+        /// Learnt at each open: a pseudo-terminal has no wire; a UART, a USB adapter or any other port is a wire at baud_rate
+        Auto = "auto",
+        /// No wire whatever the port (a pty, a virtual port): a reply is taken however soon it comes
+        Pty = "pty",
+        /// A wire at baud_rate whatever the port (a pty in front of a real line): echoes and replies begun before the request left are dropped
+        Wire = "wire",
+    }
     /// How masters frame their requests on a listener (docs/design.md §4.1).
     ListenFraming {
         /// Modbus/TCP: an MBAP header, many requests in flight
@@ -169,8 +179,8 @@ macro_rules! settings {
     (@at_most $other:ident $why:literal) => { Some((stringify!($other), $why)) };
 }
 
-/// The fastest `serial.baud_rate` there is: what a pty is set to, since it passes
-/// bytes at once (`mbgate demo`, the simulator's pace on a pty without `--baud`).
+/// The fastest `serial.baud_rate` there is: what the demos set a pty to, since it
+/// passes bytes at once.
 pub const FASTEST_BAUD: u32 = 4_000_000;
 
 settings! {
@@ -190,8 +200,12 @@ settings! {
         flow_control: FlowControl = FlowControl::Hardware, Any, "flow-control" "FLOW_CONTROL" port;
         /// Serial framing
         framing: Framing = Framing::Mbap, Any, "framing" "FRAMING";
-        /// Least silence that ends a frame, above the adapter's latency timer (RTU: a reply of unknown shape; MBAP: confirms a reply with nothing after it)
-        silence_floor_ms: u64 = 20, Range(0, 1000, None), "silence-floor-ms" "MS";
+        /// What the port is: auto (learnt at each open), pty (no wire) or wire (a wire at baud_rate)
+        port_kind: PortKind = PortKind::Auto, Any, "port-kind" "PORT_KIND";
+        /// Turn the driver's low latency on at each open (TIOCSSERIAL ASYNC_LOW_LATENCY, what setserial low_latency does; an FTDI adapter then hands bytes over every 1 ms)
+        low_latency: bool = true, Any, "low-latency" "BOOL";
+        /// Least silence that ends a frame (RTU: a reply of unknown shape; MBAP: confirms a held reply); "auto": from the port (a pty 0, a UART its FIFO, a USB adapter its latency timer + 2)
+        silence_floor_ms: Floor = Floor::Auto, Range(0, 1000, Some("\"auto\" or 0 to 1000")), "silence-floor-ms" "MS";
         /// RTU/ASCII: silence before each request, in microseconds; 0 is the specification's (RTU: 3.5 characters, 1750 above 19 200 baud; ASCII: none after a whole reply)
         inter_frame_gap_us: u64 = 0, Range(0, 1_000_000, None), "inter-frame-gap-us" "US";
         /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter
@@ -231,6 +245,8 @@ settings! {
         retry_writes: bool = false, Any, "retry-writes" "BOOL";
         /// What to do with device frames that answer no request
         notifications: Notifications = Notifications::Drop, Any, "notifications" "NOTIFICATIONS";
+        /// MBAP: the device sends frames nobody asked for (the CIE-M10's input port change notification; off as shipped): every reply is then held for confirmation
+        device_notifications: bool = false, Any, "device-notifications" "BOOL";
         /// RTU/ASCII: quiet time after a broadcast (unit 0)
         broadcast_delay_ms: u64 = 100, Range(0, 60_000, None), "broadcast-delay-ms" "MS";
         /// RTU/ASCII: what a master gets for a broadcast
@@ -428,6 +444,44 @@ setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
 const LISTEN_EXAMPLE: &str = "0.0.0.0:502";
 /// What the metrics listener's address looks like (never the Modbus port).
 pub(crate) const METRICS_EXAMPLE: &str = "127.0.0.1:9502";
+
+/// `serial.silence_floor_ms`: the least silence that ends a frame, in milliseconds, or
+/// `"auto"`, from the port as it is found at each open (`crate::port::kind`).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Floor {
+    /// From the port: none on a pty, the receive FIFO on a native UART, the latency
+    /// timer on a USB adapter.
+    Auto,
+    /// This many milliseconds, whatever the port.
+    Ms(u64),
+}
+
+impl Setting for Floor {
+    const KIND: Kind = Kind::Str;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, String> {
+        const EXPECTED: &str = "\"auto\" or a number of milliseconds";
+        let ms = match raw {
+            Raw::Str(s) if s.trim() == "auto" => return Ok(Floor::Auto),
+            Raw::Int(v) => *v,
+            // From a flag: the text as typed.
+            Raw::Str(s) => s
+                .trim()
+                .parse::<i128>()
+                .map_err(|_| format!("invalid value {s:?}; expected {EXPECTED}"))?,
+            _ => return Err(raw.invalid(EXPECTED)),
+        };
+        check.int(ms)?;
+        u64::try_from(ms)
+            .map(Floor::Ms)
+            .map_err(|_| format!("{ms} is too large"))
+    }
+    fn print(&self) -> String {
+        match self {
+            Floor::Auto => "\"auto\"".into(),
+            Floor::Ms(ms) => ms.to_string(),
+        }
+    }
+}
 
 /// Parses a `tcp.listen` / `--listen` value.
 pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {

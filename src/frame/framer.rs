@@ -200,6 +200,16 @@ impl Framer {
         }
     }
 
+    /// RTU: is the partial frame held one whose length its function code tells (the
+    /// reply to the judge's request), or will once more bytes are in? False for MBAP
+    /// and ASCII.
+    pub(crate) fn length_known(&self, judge: &impl Judge) -> bool {
+        match &self.kind {
+            Kind::Mbap(_) => false,
+            Kind::Line(d) => d.length_known(judge.expect()),
+        }
+    }
+
     /// Bytes held that are not yet part of a frame.
     pub fn buffered(&self) -> usize {
         match &self.kind {

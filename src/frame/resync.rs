@@ -44,6 +44,10 @@
 //! - a held frame followed by another with its transaction id but other bytes is
 //!   refuted: one of them took its id from somewhere else.
 //!
+//! A judge that knows nothing can follow a frame ([`Judge::alone`]) has it handed on
+//! as soon as it is whole, if nothing is buffered after it (and, if the judge asks,
+//! it came back to back).
+//!
 //! State is kept across [`Resync::push`] calls, so any chunking of the byte stream
 //! gives the same frames.
 //!
@@ -76,6 +80,17 @@ pub trait Judge {
     /// line? Judges that know nothing can follow (one request outstanding, no
     /// unsolicited frames) say no and get frames without the wait.
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
+        false
+    }
+    /// For a frame [`confirm`](Judge::confirm) would hold, with nothing buffered after
+    /// it: may it be handed on at once? Judges that know nothing can follow it on the
+    /// line say yes (the relay with one request in flight and nothing else to come,
+    /// docs/reliability.md): a frame that lost bytes then has nothing to complete
+    /// itself with. `straddles` says the line paused inside it: on a wire what came
+    /// after a pause may be noise completing a frame that lost bytes, and a judge
+    /// then says no. Bytes already after it show something did come: it is held as
+    /// ever.
+    fn alone(&self, _frame: FrameRef<'_>, _straddles: bool) -> bool {
         false
     }
     /// May a pause (`Resync::pause`) confirm this held frame when nothing follows
@@ -401,7 +416,10 @@ impl Resync {
                         self.drop_one();
                         continue;
                     }
-                    if !accepted || judge.confirm(frame) {
+                    let alone = accepted
+                        && total == self.buf.len()
+                        && judge.alone(frame, self.pause_within(0, total));
+                    if !accepted || (judge.confirm(frame) && !alone) {
                         match self.verdict(total, judge, quiet) {
                             Verdict::Confirmed => {}
                             Verdict::Wait => return None,
@@ -449,6 +467,7 @@ fn ends_with_a_frame(held: &[u8], judge: &impl Judge) -> bool {
 mod tests {
     use super::*;
     use crate::frame::hex::{parse as bytes, Hex};
+    use proptest::prelude::{prop, Strategy};
 
     /// Replies of several shapes, the CIE-M10's among them (docs/protocol.md §3).
     fn replies() -> Vec<Vec<u8>> {
@@ -1028,5 +1047,145 @@ mod tests {
         let f = d.next_frame(&OnlyTid(3), true).unwrap();
         assert_eq!(f.as_bytes(), &r[2][..]);
         assert_eq!(d.next_frame(&OnlyTid(3), true), None);
+    }
+
+    /// The relay's view with one read in flight (id 0x1234, unit 1, `qty` registers)
+    /// and nothing able to follow it: replies are held (confirm), but a whole one with
+    /// nothing after it is taken at once, on a wire only if no pause came inside it.
+    struct LoneRead {
+        asked: [u8; 5],
+        wire: bool,
+    }
+    impl Judge for LoneRead {
+        fn plausible_function(&self, code: FunctionCode) -> bool {
+            code.is_reply()
+        }
+        fn accept(&self, frame: FrameRef<'_>) -> bool {
+            frame.tid() == 0x1234
+                && frame.unit() == 1
+                && pdu::reply_matches(&self.asked, frame.pdu())
+        }
+        fn confirm(&self, _: FrameRef<'_>) -> bool {
+            true
+        }
+        fn alone(&self, _: FrameRef<'_>, straddles: bool) -> bool {
+            !(straddles && self.wire)
+        }
+    }
+
+    /// Feeds `bytes` cut at `cuts`, the line pausing at `pauses` (offsets), then
+    /// paused and quiet: every frame taken.
+    fn feed(judge: &impl Judge, bytes: &[u8], cuts: &[usize], pauses: &[usize]) -> Vec<Vec<u8>> {
+        let n = bytes.len();
+        let mut stops: Vec<(usize, bool)> = cuts.iter().map(|&c| (c % (n + 1), false)).collect();
+        stops.extend(pauses.iter().map(|&p| (p % (n + 1), true)));
+        stops.sort_unstable();
+        let mut d = Resync::new();
+        let mut out = Vec::new();
+        let mut at = 0;
+        for (stop, pause) in stops.into_iter().chain([(n, true)]) {
+            d.push(&bytes[at..stop]);
+            at = stop;
+            if pause {
+                d.pause();
+            }
+            while let Some(f) = d.next_frame(judge, false) {
+                out.push(f.as_bytes().to_vec());
+            }
+        }
+        while let Some(f) = d.next_frame(judge, true) {
+            out.push(f.as_bytes().to_vec());
+        }
+        out
+    }
+
+    /// An FC 03 reply to [`LoneRead`] whose data bytes are `data`.
+    fn lone_reply(data: &[u8]) -> Vec<u8> {
+        let mut r = vec![
+            0x12,
+            0x34,
+            0,
+            0,
+            0,
+            3 + data.len() as u8,
+            1,
+            3,
+            data.len() as u8,
+        ];
+        r.extend_from_slice(data);
+        r
+    }
+
+    /// Data bytes that cannot spell a header: no zero (a protocol id), no 3 (an
+    /// exception's length); condition 3 of docs/reliability.md made concrete.
+    fn plain_data() -> impl Strategy<Value = Vec<u8>> {
+        (1usize..=20).prop_flat_map(|n| {
+            prop::collection::vec((1u8..=255).prop_filter("not 3", |b| *b != 3), 2 * n)
+        })
+    }
+
+    proptest::proptest! {
+        /// docs/reliability.md, "When nothing can follow a reply": a reply that lost
+        /// up to 8 bytes anywhere, at any chunking, with pauses anywhere (on a wire or
+        /// not), and nothing after it, is taken only whole or not at all; whole,
+        /// unpaused (or with no wire), it is taken.
+        #[test]
+        fn a_lone_reply_is_never_completed_by_its_own_bytes(
+            data in plain_data(),
+            lost in prop::collection::vec(proptest::prelude::any::<usize>(), 0..=8),
+            cuts in prop::collection::vec(proptest::prelude::any::<usize>(), 0..=6),
+            pauses in prop::collection::vec(proptest::prelude::any::<usize>(), 0..=3),
+            wire in proptest::prelude::any::<bool>(),
+        ) {
+            let reply = lone_reply(&data);
+            let mut gone: Vec<usize> = lost.iter().map(|i| i % reply.len()).collect();
+            gone.sort_unstable();
+            gone.dedup();
+            let received: Vec<u8> = reply
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| gone.binary_search(i).is_err())
+                .map(|(_, b)| *b)
+                .collect();
+            let qty = (data.len() / 2) as u8;
+            let judge = LoneRead { asked: [3, 0, 0, 0, qty], wire };
+            let got = feed(&judge, &received, &cuts, &pauses);
+            for f in &got {
+                proptest::prop_assert_eq!(f, &reply, "lost {:?}", gone);
+            }
+            let paused_inside = pauses.iter().any(|p| {
+                let p = p % (received.len() + 1);
+                0 < p && p < received.len()
+            });
+            if gone.is_empty() && !(wire && paused_inside) {
+                proptest::prop_assert_eq!(got, vec![reply]);
+            }
+        }
+
+        /// Noise read with a lone reply that lost bytes, more bytes of it than were
+        /// lost: what is after the completed reply refutes it.
+        #[test]
+        fn noise_read_with_a_damaged_lone_reply_refutes_it(
+            data in plain_data(),
+            lost in prop::collection::vec(proptest::prelude::any::<usize>(), 1..=4),
+            noise in prop::collection::vec(proptest::prelude::any::<u8>(), 5..=8),
+        ) {
+            let reply = lone_reply(&data);
+            let mut gone: Vec<usize> = lost.iter().map(|i| i % reply.len()).collect();
+            gone.sort_unstable();
+            gone.dedup();
+            let mut received: Vec<u8> = reply
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| gone.binary_search(i).is_err())
+                .map(|(_, b)| *b)
+                .collect();
+            received.extend_from_slice(&noise);
+            let qty = (data.len() / 2) as u8;
+            let judge = LoneRead { asked: [3, 0, 0, 0, qty], wire: true };
+            for f in feed(&judge, &received, &[], &[]) {
+                proptest::prop_assert_eq!(&f, &reply);
+            }
+        }
     }
 }

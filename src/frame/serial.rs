@@ -98,6 +98,17 @@ impl Decoder {
         self.codec == Codec::Rtu
     }
 
+    /// RTU: is what is buffered the start of a frame whose length its function code
+    /// (and byte count) tells, or will once they are in (not one of unknown shape,
+    /// which silence ends)?
+    pub(crate) fn length_known(&self, expect: Expect<'_>) -> bool {
+        let length = match expect {
+            Expect::Reply(request) => rtu::reply_length(request, &self.buf),
+            Expect::Request => rtu::request_length(&self.buf),
+        };
+        self.codec == Codec::Rtu && !matches!(length, rtu::Length::Silence)
+    }
+
     /// Forgets every buffered byte; returns how many.
     pub(crate) fn clear(&mut self) -> usize {
         std::mem::take(&mut self.buf).len()

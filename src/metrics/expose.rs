@@ -134,7 +134,8 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
         per_line(lines, ("mbgate_line_late_replies", "Replies to a request no longer on the line (timed out, or a duplicate of one answered): dropped.", C), s(|s| &s.late_replies)),
         per_line(lines, ("mbgate_line_bad_frames", "Replies that failed their CRC or LRC, or did not fit their request.", C), s(|s| &s.bad_frames)),
         per_line(lines, ("mbgate_line_refuted_frames", "MBAP replies that what followed showed to have lost bytes: dropped.", C), s(|s| &s.refuted_frames)),
-        per_line(lines, ("mbgate_line_dropped_bytes", "Bytes from the device the decoder discarded.", C), s(|s| &s.dropped_bytes)),
+        per_line(lines, ("mbgate_line_dropped_bytes", "Bytes from the device the decoder discarded (by reason: mbgate_line_dropped_bytes_by_reason).", C), s(|s| &s.dropped_bytes)),
+        per_line(lines, ("mbgate_line_unasked_bytes", "MBAP: bytes from the device while nothing was asked and no late reply could come.", C), s(|s| &s.unasked_bytes)),
         per_line(lines, ("mbgate_line_notifications_dropped", "Frames answering no request, dropped.", C), s(|s| &s.notifications_dropped)),
         per_line(lines, ("mbgate_line_notifications_broadcast", "Frames answering no request, sent to every master.", C), s(|s| &s.notifications_broadcast)),
         per_line(lines, ("mbgate_line_opens", "Times the port was opened (the first open, then each reopen or reconnect).", C), s(|s| &s.serial_opens)),
@@ -163,7 +164,36 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
     }
     families.push(last);
     families.push(exceptions(lines));
+    families.push(dropped_by_reason(lines));
     families
+}
+
+/// Bytes dropped by line and reason (docs/reliability.md "Knowing the wire"):
+/// `too_early` (before the request could have left the wire), `echo` (a copy of the
+/// request begun before it left), `stale` (there before the request was sent, or
+/// answering none), `other` (garbage, failed checks, refuted and partial frames).
+fn dropped_by_reason(lines: &[Arc<LineMetrics>]) -> Family {
+    let mut f = Family::new(
+        "mbgate_line_dropped_bytes_by_reason",
+        "Bytes from the device discarded, by reason: too_early (before the request could have left the wire at baud_rate), echo (a copy of the request begun before it left), stale (there before the request was sent, or answering none), other (garbage, failed checks, refuted or partial frames).",
+        C,
+    );
+    for l in lines {
+        let st = &l.stats;
+        let named = [
+            ("too_early", st.get(&st.dropped_too_early)),
+            ("echo", st.get(&st.dropped_echo)),
+            ("stale", st.get(&st.dropped_stale)),
+        ];
+        let other = st
+            .get(&st.dropped_bytes)
+            .saturating_sub(named.iter().map(|(_, n)| n).sum());
+        for (reason, n) in named.into_iter().chain([("other", other)]) {
+            let labels = vec![("line", l.name.clone()), ("reason", reason.into())];
+            f.values.push((labels, n as f64));
+        }
+    }
+    f
 }
 
 /// Exception answers by line, source and code.

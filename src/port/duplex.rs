@@ -87,6 +87,7 @@ impl Port for DuplexPort {
                 reader: Box::new(reader),
                 writer: Box::new(writer),
                 control: Box::new(Pipe),
+                info: super::kind::PortInfo::plain(super::kind::Kind::Memory),
             })
         })
     }

@@ -7,6 +7,7 @@
 //! `Box<dyn Port>`: one indirect call per read or write, next to a system call each.
 
 pub mod duplex;
+pub mod kind;
 pub(crate) mod serial;
 pub(crate) mod tcp;
 
@@ -35,6 +36,9 @@ pub struct Link {
     pub(crate) writer: Writer,
     /// Drain and input queries on the same transport.
     pub(crate) control: Box<dyn Control>,
+    /// What the port turned out to be at this open (docs/reliability.md "Knowing the
+    /// wire").
+    pub(crate) info: kind::PortInfo,
 }
 
 impl std::fmt::Debug for Link {

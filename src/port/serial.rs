@@ -33,15 +33,18 @@ impl Port for SerialPort {
 
     fn open(&mut self) -> Opening {
         let opened = crate::serial::open(&self.cfg).map_err(io::Error::other);
+        let low_latency = self.cfg.low_latency;
         Box::pin(async move {
             let port = opened?;
             let fd = port.as_raw_fd();
+            let info = super::kind::detect(fd, low_latency);
             let drainer = crate::serial::Drainer::start(fd)?;
             let (reader, writer) = tokio::io::split(port);
             Ok(Link {
                 reader: Box::new(reader),
                 writer: Box::new(writer),
                 control: Box::new(Tty { fd, drainer }),
+                info,
             })
         })
     }

@@ -2,6 +2,7 @@
 //! open; opened and reopened with backoff, lost; and what the loop asks of an open
 //! port (bytes waiting to be read, the wait until written bytes have left).
 
+use crate::port::kind::PortInfo;
 use crate::port::{self, Backoff, Link, Opening};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -76,17 +77,22 @@ impl Lifecycle {
         }
     }
 
-    /// An open finished: true if the port is now open (the line starts afresh), else
-    /// the next attempt is due later.
-    pub(super) fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) -> bool {
+    /// An open finished: what the port turned out to be if it is now open (the line
+    /// starts afresh; then [`Lifecycle::tell_open`]), else the next attempt is due
+    /// later.
+    pub(super) fn opened(
+        &mut self,
+        opened: std::io::Result<Link>,
+        now: Instant,
+    ) -> Option<PortInfo> {
         let kind = self.transport.kind();
         match opened {
             Ok(link) => {
-                info!(path = %self.transport.name(), baud = self.baud, "{kind} open");
+                let info = link.info.clone();
                 self.state = State::Open(link);
                 self.backoff.reset();
                 self.warned = false;
-                true
+                Some(info)
             }
             Err(e) => {
                 let delay = self.backoff.next_delay();
@@ -102,9 +108,20 @@ impl Lifecycle {
                 self.state = State::Closed {
                     retry_at: now + delay,
                 };
-                false
+                None
             }
         }
+    }
+
+    /// Says the port is open: what it turned out to be (`info`) and how the line
+    /// times it (`timing`).
+    pub(super) fn tell_open(&self, info: &PortInfo, timing: &str) {
+        let kind = self.transport.kind();
+        info!(
+            path = %self.transport.name(),
+            baud = self.baud,
+            "{kind} open: {info}; {timing}"
+        );
     }
 
     /// The port failed or its far end went away: closed, reopened with backoff.

@@ -1,7 +1,8 @@
 //! What the relay tells about its line as it goes (README "Watching it run"): the
 //! numbers of `crate::metrics` (requests, replies, reply times, timeouts, exceptions,
-//! queue, time busy), one warning when a unit stops answering and one line when it
-//! answers again, the traffic log of whole frames (`log.traffic`), and the line's
+//! queue, time busy), one warning when a unit stops answering (or when its answers
+//! were being dropped: too early, echoes, stale, naming the setting) and one line when
+//! it answers again, the traffic log of whole frames (`log.traffic`), and the line's
 //! packets for the capture and the status page's last frames (docs/capture.md),
 //! through its tap while anyone looks.
 //!
@@ -42,10 +43,81 @@ struct Spell {
     last_warning: Option<Instant>,
     /// Spells since the last warning that were not warned about (rate limit).
     unsaid: u32,
+    /// The line's drop counters by reason when the unit's last request was sent.
+    sent_drops: Option<Drops>,
+    /// Bytes dropped by reason while its requests of this spell were on the line.
+    dropped: Drops,
+}
+
+/// Bytes dropped, by reason: too early, echo, stale (`crate::stats`).
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub(super) struct Drops {
+    too_early: u64,
+    echo: u64,
+    stale: u64,
+}
+
+impl Drops {
+    fn of(stats: &crate::stats::Stats) -> Drops {
+        Drops {
+            too_early: stats.get(&stats.dropped_too_early),
+            echo: stats.get(&stats.dropped_echo),
+            stale: stats.get(&stats.dropped_stale),
+        }
+    }
+
+    fn since(self, before: Drops) -> Drops {
+        Drops {
+            too_early: self.too_early - before.too_early,
+            echo: self.echo - before.echo,
+            stale: self.stale - before.stale,
+        }
+    }
+
+    fn add(&mut self, more: Drops) {
+        self.too_early += more.too_early;
+        self.echo += more.echo;
+        self.stale += more.stale;
+    }
+
+    /// What the warning says when bytes were dropped meanwhile: how many, why, and the
+    /// setting that decides it; `None` when none were.
+    pub(super) fn said(&self, baud: u32) -> Option<String> {
+        let Drops {
+            too_early,
+            echo,
+            stale,
+        } = *self;
+        if too_early >= echo.max(stale) && too_early > 0 {
+            Some(format!(
+                "its answers were dropped: {too_early} bytes came before the request could \
+                 have left the wire at serial.baud_rate = {baud}. If nothing but a pty or a \
+                 virtual port is between mbgate and the device, set serial.port_kind = \
+                 \"pty\"; otherwise check serial.baud_rate against the device's"
+            ))
+        } else if echo >= stale && echo > 0 {
+            Some(format!(
+                "its answers were dropped as echoes: {echo} bytes were copies of the request \
+                 that began before it could have left the wire at serial.baud_rate = {baud}. \
+                 If nothing but a pty or a virtual port is between mbgate and the device, set \
+                 serial.port_kind = \"pty\"; otherwise check serial.baud_rate against the \
+                 device's"
+            ))
+        } else if stale > 0 {
+            Some(format!(
+                "{stale} bytes were dropped as stale (there before their request was sent: \
+                 late answers?); relay.response_timeout_ms may be shorter than the device takes"
+            ))
+        } else {
+            None
+        }
+    }
 }
 
 pub(super) struct Watch {
     pub(super) metrics: Arc<LineMetrics>,
+    /// `serial.baud_rate`, for the warnings.
+    pub(super) baud: u32,
     spells: Vec<Spell>,
     /// When the line last had a request on it, while it has.
     busy_since: Option<Instant>,
@@ -57,9 +129,15 @@ pub(super) struct Watch {
 }
 
 impl Watch {
-    pub(super) fn new(metrics: Arc<LineMetrics>, traffic: bool, framing: Framing) -> Self {
+    pub(super) fn new(
+        metrics: Arc<LineMetrics>,
+        traffic: bool,
+        framing: Framing,
+        baud: u32,
+    ) -> Self {
         Self {
             metrics,
+            baud,
             spells: vec![Spell::default(); 256],
             busy_since: None,
             traffic,
@@ -112,7 +190,8 @@ impl Watch {
     }
 
     /// Request `adu` from master `conn` goes on the line as `tid`, as `bytes`.
-    pub(super) fn sent(&self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
+    pub(super) fn sent(&mut self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
+        self.spells[usize::from(adu.unit())].sent_drops = Some(Drops::of(&self.metrics.stats));
         if self.tap.on() {
             let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Role::Query);
             p.conn = Some(conn);
@@ -210,6 +289,7 @@ impl Watch {
         self.spells[usize::from(unit)] = Spell {
             last_warning: spell.last_warning,
             unsaid: spell.unsaid,
+            sent_drops: spell.sent_drops,
             ..Spell::default()
         };
         if spell.warned {
@@ -282,7 +362,12 @@ impl Watch {
         }
         self.metrics.timed_out(unit, now);
         let line = self.metrics.name.clone();
+        let drops = Drops::of(&self.metrics.stats);
+        let baud = self.baud;
         let s = &mut self.spells[usize::from(unit)];
+        if let Some(before) = s.sent_drops.replace(drops) {
+            s.dropped.add(drops.since(before));
+        }
         s.timeouts += 1;
         let first = *s.first.get_or_insert(now);
         if s.timeouts != NOT_ANSWERING_AFTER {
@@ -303,13 +388,22 @@ impl Watch {
         };
         s.warned = true;
         s.last_warning = Some(now);
-        warn!(
-            unit,
-            line = %line,
-            "unit {unit} on {line} not answering: {} timeouts in {}{unsaid}",
-            s.timeouts,
-            secs(now - first)
-        );
+        match s.dropped.said(baud) {
+            Some(why) => warn!(
+                unit,
+                line = %line,
+                "unit {unit} on {line}: {} timeouts in {}{unsaid}, and {why}",
+                s.timeouts,
+                secs(now - first)
+            ),
+            None => warn!(
+                unit,
+                line = %line,
+                "unit {unit} on {line} not answering: {} timeouts in {}{unsaid}",
+                s.timeouts,
+                secs(now - first)
+            ),
+        }
     }
 
     /// `unit` was backed off (RTU/ASCII).
@@ -354,7 +448,7 @@ mod tests {
 
     fn watch() -> (Watch, Instant) {
         let m = Arc::new(LineMetrics::new("/dev/ttyX", Arc::new(Stats::default())));
-        (Watch::new(m, false, Framing::Mbap), Instant::now())
+        (Watch::new(m, false, Framing::Mbap, 19_200), Instant::now())
     }
 
     #[test]

@@ -144,7 +144,7 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
     }
     for k in KEYS
         .iter()
-        .filter(|k| ["log", "metrics"].contains(&k.section))
+        .filter(|k| ["log", "metrics", "capture", "control"].contains(&k.section))
     {
         let (va, vb) = ((k.get)(a), (k.get)(b));
         if va != vb {

@@ -208,8 +208,8 @@ pub struct SimArgs {
     #[command(flatten)]
     pub role: super::role::RoleArgs,
     /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
-    /// output as a UART would (10 bits a byte), and without it the fastest line (4
-    /// Mbaud); on a real port the UART does.
+    /// output as a UART would (10 bits a byte), and without it the simulator answers
+    /// at once; on a real port the UART does.
     #[command(flatten, next_help_heading = "serial port")]
     pub(crate) port: PortFlags,
     /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
@@ -481,7 +481,7 @@ mod tests {
         assert_eq!(
             s.settings().unwrap().baud,
             None,
-            "no --baud given: on a pty the fastest line paces it (serve.rs)"
+            "no --baud given: on a pty nothing paces it (serve.rs)"
         );
         let bad = sim(&["--data-bits", "9"]).settings().unwrap_err();
         assert_eq!(bad, "--data-bits: must be 7 or 8, got 9");

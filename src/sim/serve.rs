@@ -58,15 +58,11 @@ pub(crate) fn is_pty(path: &Path) -> bool {
     std::fs::canonicalize(path).is_ok_and(|p| p.starts_with("/dev/pts"))
 }
 
-/// The pace on a pty: `--baud`, or else the fastest line there is. A pty passes bytes
-/// at once, but no device on a wire can answer before the request has reached it and
-/// its own reply has left; a gateway set to the fastest line (as `mbgate demo` and
-/// the tests set it for a pty) relies on that to tell a reply from the echo of its
-/// request (docs/reliability.md, "How", item 8), and an unpaced simulator answering
-/// within those 2 × 12 bytes at 4 Mbaud (60 µs) had its write replies dropped as
-/// echoes now and then.
-fn pty_pace(given: Option<u32>) -> u32 {
-    given.unwrap_or(crate::config::FASTEST_BAUD)
+/// The pace on a pty: `--baud` paces the bytes as a UART at that speed would; without
+/// it the simulator answers at once, as any program on a pty does (the gateway knows
+/// a pty has no wire: docs/reliability.md "Knowing the wire").
+fn pty_pace(given: Option<u32>) -> Option<u32> {
+    given
 }
 
 /// A frame, or a piece of one, waiting for the instant its last byte has left the
@@ -144,7 +140,7 @@ pub async fn run(
         // A socket has no byte rate to model.
         Port::Listen(_) => false,
     };
-    let baud = paced.then(|| pty_pace(settings.baud));
+    let baud = paced.then(|| pty_pace(settings.baud)).flatten();
     let mut sim = Sim {
         device: settings.device,
         delay: settings.delay,
@@ -205,7 +201,7 @@ pub async fn run(
                         if settings.baud.is_some() && !pty {
                             debug!("a real serial port: the UART paces the bytes");
                         }
-                        let baud = pty.then(|| pty_pace(settings.baud));
+                        let baud = pty.then(|| pty_pace(settings.baud)).flatten();
                         (sim.rx_pace, sim.tx_pace) = (Pacer::new(baud, 10), Pacer::new(baud, 10));
                         info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
                         match sim

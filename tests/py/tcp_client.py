@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
 """An ordinary Modbus/TCP user (pymodbus AsyncModbusTcpClient) against mbgate + stock_server.py.
 
-    tcp_client.py --host 127.0.0.1 --port N [--unit 1] [--timeout 3]
+    tcp_client.py --host 127.0.0.1 --port N [--unit 1 [--unit 2 ...]] [--timeout 3]
 
 Expects the device behind the gateway to be tests/py/stock_server.py with its defaults
 (size 200, fresh state). Runs every step below, prints one JSON object on stdout
 ({"ok": bool, "steps": [{"step", "ok", "got", "expected"|"error"}, ...]}) and exits 0
 only if every expectation held; otherwise exits 1 and names each failing step on
-stderr. Each request: 3 s timeout, no retries.
+stderr. Each request: 3 s timeout, no retries. With several --unit, each unit's steps
+run at once on a connection of its own (a device behind each; steps named UNIT/step).
 """
 
 from __future__ import annotations
@@ -153,7 +154,7 @@ class Runner:
                 self.record(step, True, "written", "written")
 
 
-async def amain(args: argparse.Namespace) -> int:
+async def one_unit(args: argparse.Namespace, unit: int) -> list[dict]:
     client = AsyncModbusTcpClient(
         args.host,
         port=args.port,
@@ -162,17 +163,27 @@ async def amain(args: argparse.Namespace) -> int:
         reconnect_delay=0,
     )
     if not await client.connect():
-        print(json.dumps({"ok": False, "steps": [], "error": "connect failed"}), flush=True)
-        print(f"tcp_client: FAIL connect: cannot connect to {args.host}:{args.port}", file=sys.stderr)
-        return 1
-    runner = Runner(client, args.unit)
+        return [{"step": "connect", "ok": False, "got": None, "error": f"cannot connect to {args.host}:{args.port}"}]
+    runner = Runner(client, unit)
     try:
         await runner.run()
     finally:
         client.close()
-    ok = all(s["ok"] for s in runner.steps)
-    print(json.dumps({"ok": ok, "steps": runner.steps}), flush=True)
-    for s in runner.steps:
+    return runner.steps
+
+
+async def amain(args: argparse.Namespace) -> int:
+    units = args.unit or [1]
+    results = await asyncio.gather(*(one_unit(args, u) for u in units))
+    steps = []
+    for unit, unit_steps in zip(units, results):
+        for s in unit_steps:
+            if len(units) > 1:
+                s["step"] = f"{unit}/{s['step']}"
+            steps.append(s)
+    ok = all(s["ok"] for s in steps)
+    print(json.dumps({"ok": ok, "steps": steps}), flush=True)
+    for s in steps:
         if not s["ok"]:
             detail = s.get("error") or f"got {s['got']!r}, expected {s['expected']!r}"
             print(f"tcp_client: FAIL {s['step']}: {detail}", file=sys.stderr)
@@ -184,7 +195,7 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--host", default="127.0.0.1")
     p.add_argument("--port", type=int, required=True)
-    p.add_argument("--unit", type=int, default=1)
+    p.add_argument("--unit", type=int, action="append", help="unit id (repeat for several; default 1)")
     p.add_argument("--timeout", type=float, default=3.0, help="seconds per request (default 3)")
     return asyncio.run(amain(p.parse_args()))
 

@@ -1,15 +1,17 @@
 //! The MBAP line (the CIE-M10): serial-side transaction ids, several requests on the
-//! line at once, the resynchronising decoder that confirms every frame by what follows
-//! it or a pause, notifications and late replies told apart, echoes told by timing.
+//! line at once, the resynchronising decoder that confirms a frame by what follows it
+//! or a pause whenever something can follow it, notifications and late replies told
+//! apart, echoes told by timing on a wire (docs/reliability.md).
 
 use super::{Seen, Unsolicited};
 use crate::capture::packet::Reason;
 use crate::capture::tape::Tape;
-use crate::config::{RelayConfig, SerialConfig};
+use crate::config::{Notifications, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::mbap::FrameRef;
 use crate::frame::{pdu, FunctionCode};
-use crate::frame::{rtu, Adu, Judge};
+use crate::frame::{Adu, Judge};
+use crate::port::kind::{self, PortInfo};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
 use crate::stats::Stats;
@@ -18,20 +20,36 @@ use bytes::Bytes;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
-use tracing::{debug, info};
+use tracing::{debug, info, warn};
 
 pub(super) struct Mbap {
     tids: Tids,
     decoder: Framer,
     last_byte: Instant,
+    /// The serial settings, for the timing of each port opened.
+    serial: SerialConfig,
     /// The silence that ends a frame and confirms a reply with nothing after it: 3.5
     /// character times, never less than `silence_floor_ms` (a USB adapter hands bytes
     /// over in bursts its latency timer apart), never more than the frame gap.
     pause: Duration,
     max_in_flight: usize,
     gap: Duration,
-    /// One character on the wire at the configured speed.
+    /// One character on the wire at the configured speed; zero where there is no
+    /// wire (a pty, TCP): nothing of a request is then "still on its way".
     char_time: Duration,
+    /// A wire at `baud_rate` between the port and the device (`port_kind`).
+    wire: bool,
+    /// The device sends frames nobody asked for (`device_notifications`, or
+    /// `notifications = "broadcast"`: the operator expects them).
+    notifies: bool,
+    /// The device was heard talking when nothing was asked, though said not to: every
+    /// reply is confirmed from then on.
+    heard_unasked: bool,
+    /// A request ended without its reply: until then (`timeout_guard_ms` after) its
+    /// late reply may still come, and follow any other reply.
+    late_until: Option<Instant>,
+    /// `timeout_guard_ms`.
+    guard: Duration,
     /// When every byte handed to the port so far can have left it, written back to
     /// back at the configured speed.
     tx_clear: Instant,
@@ -53,6 +71,14 @@ pub(super) struct Mbap {
     pub(super) tape: Tape,
 }
 
+/// Why a frame with the id of a request in flight does not answer it.
+enum Early {
+    /// Its first byte was read before the request was sent.
+    Stale,
+    /// A copy of the request that began before the request could have left the wire.
+    Echo,
+}
+
 /// A request as it went on the line.
 struct Sent {
     tid: u16,
@@ -71,6 +97,26 @@ struct RelayJudge<'a, R> {
     tids: &'a Tids,
     now: Instant,
     stream: bool,
+    /// Nothing but the replies to the requests in flight can come on the line: the
+    /// device sends nothing unasked and no late reply is possible.
+    only_replies: bool,
+    /// There is a wire (and so noise) between the port and the device.
+    wire: bool,
+}
+
+/// Can anything follow frame `tid` on the line, so that a frame that lost a byte may
+/// have completed itself with the first byte of it (docs/reliability.md, "When
+/// nothing can follow a reply")? Another request in flight (its reply), a late reply
+/// (`late`: a request ended without its reply within the guard time), or a frame the
+/// device sends unasked (`unasked`). Otherwise the device sends nothing more until the
+/// next request, which the gateway sends only after this one is answered or over.
+pub(crate) fn may_follow(
+    tid: u16,
+    mut in_flight: impl Iterator<Item = u16>,
+    late: bool,
+    unasked: bool,
+) -> bool {
+    late || unasked || in_flight.any(|t| t != tid)
 }
 
 impl<R: Asked> Judge for RelayJudge<'_, R> {
@@ -115,14 +161,25 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
         })
     }
 
-    /// Always: a frame that lost a byte completes itself with the first byte of
-    /// whatever follows it, and something may always follow: a notification the
-    /// device sends whether or not the gateway passes them on, a late or duplicate
-    /// reply, noise (docs/reliability.md).
+    /// On a serial line: a frame that lost a byte completes itself with the first byte
+    /// of whatever follows it. Whether anything can follow decides [`Judge::alone`].
     ///
-    /// Except over TCP, where no byte is lost and a whole frame is the frame.
+    /// Not over TCP, where no byte is lost and a whole frame is the frame.
     fn confirm(&self, _frame: FrameRef<'_>) -> bool {
         !self.stream
+    }
+
+    /// When nothing can follow it ([`may_follow`]), a whole reply with nothing after
+    /// it is its device's reply (or register values spelt a header: condition 3), so
+    /// it is taken at once, without the pause. On a wire it must have come back to
+    /// back: a byte after a pause there may be noise completing a reply that lost one.
+    /// Where there is no wire (a pty) there is no noise, and a device that pauses
+    /// inside its frames is served.
+    fn alone(&self, frame: FrameRef<'_>, straddles: bool) -> bool {
+        let tid = frame.tid();
+        self.only_replies
+            && !(straddles && self.wire)
+            && !may_follow(tid, self.in_flight.iter().map(|f| f.tid), false, false)
     }
 
     /// A pause confirms a frame when no other reply is due (or its own request's time
@@ -146,23 +203,20 @@ impl Mbap {
         now: Instant,
     ) -> Mbap {
         let gap = Duration::from_millis(relay.frame_gap_ms);
-        let t35 =
-            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)));
-        Mbap {
+        let mut line = Mbap {
             tids: Tids::new(),
             decoder: Framer::mbap(),
             last_byte: now,
-            pause: t35
-                .max(Duration::from_millis(serial.silence_floor_ms))
-                .min(gap),
+            serial: serial.clone(),
+            pause: gap,
             max_in_flight: relay.max_in_flight,
             gap,
-            // A socket has no line speed: nothing of a request is "still on the wire".
-            char_time: if stream {
-                Duration::ZERO
-            } else {
-                serial::wire_time(serial, 1000) / 1000
-            },
+            char_time: Duration::ZERO,
+            wire: !stream,
+            notifies: relay.device_notifications || relay.notifications == Notifications::Broadcast,
+            heard_unasked: false,
+            late_until: None,
+            guard: Duration::from_millis(relay.timeout_guard_ms),
             tx_clear: now,
             sent: Vec::new(),
             chunks: VecDeque::new(),
@@ -171,7 +225,95 @@ impl Mbap {
             request_pause: Duration::from_millis(relay.request_pause_ms),
             told_pause: false,
             tape: Tape::default(),
+        };
+        // Until a port is open its kind is not known: a wire, the old floor.
+        let info = if stream {
+            PortInfo::plain(kind::Kind::Tcp)
+        } else {
+            PortInfo::unknown()
+        };
+        line.port_opened(&info);
+        line
+    }
+
+    /// A port was opened and found to be `info`: the echo rule applies only where
+    /// there is a wire, and the pause that ends a frame is the port's. Says how.
+    pub(super) fn port_opened(&mut self, info: &PortInfo) -> String {
+        let wire = !self.stream && kind::wire(&self.serial, info);
+        self.wire = wire;
+        // A socket or a pty has no line speed: nothing of a request is "still on the
+        // wire".
+        self.char_time = if wire {
+            serial::wire_time(&self.serial, 1000) / 1000
+        } else {
+            Duration::ZERO
+        };
+        self.pause = kind::silence(&self.serial, info).min(self.gap);
+        let confirm = if self.stream {
+            "a whole frame is taken at once".to_owned()
+        } else {
+            format!(
+                "a reply is held for confirmation only when something can follow it, \
+                 then a pause of {:.2} ms confirms it",
+                self.pause.as_secs_f64() * 1000.0
+            )
+        };
+        let wire = match (self.stream, wire) {
+            (true, _) => "",
+            (false, true) => {
+                "; a wire at serial.baud_rate: echoes and frames begun too early dropped"
+            }
+            (false, false) => "; no wire: replies taken however soon they come",
+        };
+        format!("{confirm}{wire}")
+    }
+
+    /// Bytes arrived with `in_flight` requests on the line: with none, and no late
+    /// reply possible, the device talked unasked.
+    pub(super) fn heard(&mut self, n: usize, in_flight: usize, now: Instant, stats: &Stats) {
+        if self.stream || in_flight > 0 || self.late_possible(now) {
+            return;
         }
+        stats.add(&stats.unasked_bytes, n as u64);
+        self.unasked("bytes came while nothing was asked");
+    }
+
+    /// A whole frame answering nothing on the line came (`late`: a retired id).
+    pub(super) fn answered_nothing(&mut self, late: bool, now: Instant) {
+        if self.stream || (late && self.late_possible(now)) {
+            return;
+        }
+        self.unasked(if late {
+            "a late reply came after relay.timeout_guard_ms"
+        } else {
+            "a frame came that answers no request"
+        });
+    }
+
+    /// The device sends what nobody asked for: from now on every reply is held for
+    /// confirmation. Said once.
+    fn unasked(&mut self, what: &str) {
+        if self.notifies || self.heard_unasked {
+            return;
+        }
+        self.heard_unasked = true;
+        warn!(
+            "MBAP: {what}, though relay.device_notifications = false says the device \
+             sends nothing unasked: every reply is now held until what follows it or a \
+             pause confirms it (docs/reliability.md). If the device sends notifications, \
+             set relay.device_notifications = true"
+        );
+    }
+
+    /// May a late reply still come?
+    fn late_possible(&self, now: Instant) -> bool {
+        self.late_until.is_some_and(|until| now < until)
+    }
+
+    /// A request timed out: its reply may still come, for the guard time.
+    pub(super) fn timed_out(&mut self, now: Instant) {
+        let until = now + self.guard;
+        self.late_until = Some(self.late_until.map_or(until, |u| u.max(until)));
     }
 
     pub(super) fn allocate(&mut self, now: Instant) -> u16 {
@@ -274,13 +416,13 @@ impl Mbap {
     ///   straight back, and the echo of an FC 05 or 06 write is byte for byte its
     ///   successful reply. It began no later than its first byte was read, nor than its
     ///   own time on the wire before its last byte was read.
-    fn too_early(&self, frame: &Adu) -> Option<&'static str> {
+    fn too_early(&self, frame: &Adu) -> Option<Early> {
         let sent = self.sent.iter().find(|s| s.tid == frame.tid())?;
         let len = frame.as_bytes().len() as u64;
         let end = self.decoder.consumed();
         let first = self.read_at(end - len)?;
         if first < sent.handed {
-            return Some("a frame read before its request was sent, dropped");
+            return Some(Early::Stale);
         }
         if frame.as_bytes() != &sent.bytes[..] {
             return None;
@@ -288,8 +430,7 @@ impl Mbap {
         let last = self.read_at(end - 1)?;
         let on_wire = self.char_time * len as u32;
         let began = last.checked_sub(on_wire).map_or(first, |b| b.min(first));
-        (began < sent.left)
-            .then_some("a copy of the request that began before it had left: its echo, dropped")
+        (began < sent.left).then_some(Early::Echo)
     }
 
     /// Said the first time a reply waited for the pause that confirms it (nothing
@@ -297,13 +438,19 @@ impl Mbap {
     /// (docs/reliability.md "How", docs/performance.md).
     fn tell_pause(&mut self) {
         self.told_pause = true;
+        let why = if self.notifies {
+            "the device sends notifications (relay.device_notifications)"
+        } else if self.heard_unasked {
+            "the device was heard talking unasked"
+        } else {
+            "another reply, or a late one, could follow it"
+        };
         info!(
-            "MBAP: a reply is held until the line has been quiet for {} ms after it, to \
-             confirm it arrived whole (docs/reliability.md); a lone reply takes that much \
-             longer. Lower serial.silence_floor_ms as far as the adapter allows (0 on a \
-             native UART or a pty; about 3 for an FTDI adapter with latency_timer 1, see \
-             config/99-mbgate.rules), or let replies confirm each other with several \
-             requests on the line (relay.max_in_flight)",
+            "MBAP: a reply waited for the line to be quiet for {:.2} ms after it, to \
+             confirm it arrived whole, because {why} (docs/reliability.md); each such \
+             reply takes that much longer. The pause comes from the port \
+             (serial.silence_floor_ms = \"auto\"); with several requests on the line \
+             (relay.max_in_flight) replies confirm each other",
             self.pause.as_secs_f64() * 1000.0
         );
     }
@@ -326,6 +473,8 @@ impl Mbap {
                 tids: &self.tids,
                 now,
                 stream: self.stream,
+                only_replies: !self.notifies && !self.heard_unasked && !self.late_possible(now),
+                wire: self.wire,
             };
             let frame = match self.decoder.next_frame(&judge, quiet) {
                 Some(Framed::Frame(frame)) => frame,
@@ -338,11 +487,23 @@ impl Mbap {
             let at = self.read_at(end - 1).unwrap_or(now);
             self.tape.frame(end, len, Some(at), Reason::LostSync);
             if let Some(why) = self.too_early(&frame) {
-                debug!(tid = frame.tid(), "{why}: {:?}", frame);
+                let (what, counter, reason) = match why {
+                    Early::Stale => (
+                        "a frame read before its request was sent, dropped",
+                        &stats.dropped_stale,
+                        Reason::Stale,
+                    ),
+                    Early::Echo => (
+                        "a copy of the request that began before it had left: its echo, dropped",
+                        &stats.dropped_echo,
+                        Reason::Echo,
+                    ),
+                };
+                debug!(tid = frame.tid(), "{what}: {:?}", frame);
                 stats.add(&stats.dropped_bytes, len as u64);
-                let reason = [Reason::TooEarly, Reason::Echo][usize::from(why.contains("echo"))];
+                stats.add(counter, len as u64);
                 self.tape
-                    .whole_frame(Some(at), reason, frame.as_bytes(), why);
+                    .whole_frame(Some(at), reason, frame.as_bytes(), what);
                 continue;
             }
             if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
@@ -509,13 +670,20 @@ mod tests {
         }
     }
 
-    /// Every reply is held until what follows confirms it, with default settings: a
-    /// reply that lost a data byte, then a notification at once, is never delivered.
-    /// A reply alone is confirmed by a pause (the default floor, 20 ms), not the frame
-    /// gap; with another reply due it waits for that one, or for the frame gap.
+    /// With the device said to send notifications, every reply is held until what
+    /// follows confirms it: a reply that lost a data byte, then a notification at once,
+    /// is never delivered. A reply alone is confirmed by a pause (the floor of a port
+    /// not yet known, 20 ms), not the frame gap; with another reply due it waits for
+    /// that one, or for the frame gap.
     #[test]
     fn replies_are_confirmed_by_what_follows_or_a_pause() {
-        let (mut line, t0) = mbap(19_200);
+        let relay = RelayConfig {
+            device_notifications: true,
+            ..RelayConfig::default()
+        };
+        let serial = SerialConfig::default();
+        let t0 = Instant::now();
+        let mut line = Line::new(&relay, &serial, false, t0);
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 3]);
         let a = send(&mut line, &read, t0);
         let mut reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
@@ -529,7 +697,7 @@ mod tests {
             assert!(frames(&mut line, std::slice::from_ref(&a), at + after * MS).is_empty());
         }
 
-        let (mut line, t0) = mbap(19_200);
+        let mut line = Line::new(&relay, &serial, false, t0);
         let a = send(&mut line, &read, t0);
         let b = send(&mut line, &read, t0);
         let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
@@ -545,7 +713,7 @@ mod tests {
         );
         assert_eq!(line.next_wake(at + 20 * MS, false), Some(at + 50 * MS));
         assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
-        let (mut line, t0) = mbap(19_200);
+        let mut line = Line::new(&relay, &serial, false, t0);
         let a = send(&mut line, &read, t0);
         let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
             .as_bytes()
@@ -553,6 +721,198 @@ mod tests {
         line.received(&reply, at, &Stats::default());
         assert_eq!(line.next_wake(at, false), Some(at + 20 * MS));
         assert_eq!(frames(&mut line, &[a], at + 20 * MS), vec![reply]);
+    }
+
+    /// A reply nothing can follow (one request in flight, no late reply possible, a
+    /// device that sends nothing unasked) is taken the moment it is whole; the same
+    /// reply that lost a data byte waits for a byte that never comes and is dropped
+    /// after the frame gap. With two requests in flight it is held for the other's.
+    #[test]
+    fn a_lone_reply_is_taken_at_once_and_a_damaged_one_never() {
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 3]);
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
+            .as_bytes()
+            .to_vec();
+        let at = t0 + 10 * MS;
+        line.received(&reply, at, &Stats::default());
+        assert_eq!(
+            line.next_wake(at, false),
+            Some(at + 20 * MS),
+            "not taken yet"
+        );
+        assert_eq!(
+            frames(&mut line, std::slice::from_ref(&a), at),
+            vec![reply.clone()]
+        );
+        assert_eq!(line.next_wake(at, false), None);
+
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let mut lost = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
+            .as_bytes()
+            .to_vec();
+        lost.remove(10);
+        line.received(&lost, at, &Stats::default());
+        for after in [0, 20, 50, 60] {
+            assert!(frames(&mut line, std::slice::from_ref(&a), at + after * MS).is_empty());
+        }
+
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let b = send(&mut line, &read, t0);
+        let reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
+            .as_bytes()
+            .to_vec();
+        line.received(&reply, at, &Stats::default());
+        let both = [a, b];
+        assert!(
+            frames(&mut line, &both, at).is_empty(),
+            "b's reply may follow"
+        );
+        assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
+    }
+
+    /// What may follow a reply decides whether it is held: a late reply for the guard
+    /// time after a timeout (`timeout_guard_ms`, 100 ms), then no longer; anything
+    /// heard while nothing was asked, for good (said once, counted); bytes already
+    /// after it, or a pause inside it.
+    #[test]
+    fn what_may_follow_a_reply_holds_it() {
+        use std::sync::atomic::Ordering;
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let whole = |tid| Adu::build(tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
+        // A timeout: the next reply is held for 100 ms after it.
+        let (mut line, t0) = mbap(19_200);
+        line.timed_out(t0, &Stats::default());
+        let a = send(&mut line, &read, t0);
+        line.received(&whole(a.tid), t0 + 5 * MS, &Stats::default());
+        assert!(frames(&mut line, std::slice::from_ref(&a), t0 + 5 * MS).is_empty());
+        assert_eq!(
+            frames(&mut line, std::slice::from_ref(&a), t0 + 25 * MS),
+            vec![whole(a.tid)]
+        );
+        let b = send(&mut line, &read, t0 + 100 * MS);
+        line.received(&whole(b.tid), t0 + 105 * MS, &Stats::default());
+        assert_eq!(
+            frames(&mut line, std::slice::from_ref(&b), t0 + 105 * MS),
+            vec![whole(b.tid)]
+        );
+        // Bytes while nothing is asked: counted, and every reply held from then on.
+        let stats = Stats::default();
+        let (mut line, t0) = mbap(19_200);
+        line.heard(3, 0, t0, &stats);
+        line.received(&[0xFF; 3], t0, &stats);
+        assert_eq!(stats.unasked_bytes.load(Ordering::Relaxed), 3);
+        let a = send(&mut line, &read, t0 + 10 * MS);
+        line.heard(11, 1, t0 + 12 * MS, &stats);
+        line.received(&whole(a.tid), t0 + 12 * MS, &stats);
+        assert!(frames(&mut line, std::slice::from_ref(&a), t0 + 12 * MS).is_empty());
+        assert_eq!(
+            frames(&mut line, std::slice::from_ref(&a), t0 + 32 * MS),
+            vec![whole(a.tid)]
+        );
+        assert_eq!(
+            stats.unasked_bytes.load(Ordering::Relaxed),
+            3,
+            "only what came unasked"
+        );
+        // A noise byte right behind a whole reply, read with it: held, then refuted.
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        line.received(
+            &[whole(a.tid), vec![0x5A]].concat(),
+            t0 + 5 * MS,
+            &Stats::default(),
+        );
+        for after in [5, 25, 60] {
+            assert!(frames(&mut line, std::slice::from_ref(&a), t0 + after * MS).is_empty());
+        }
+        // A reply that lost its last byte, completed by a noise byte after a pause:
+        // it straddles the pause, and is refuted.
+        let (mut line, t0) = mbap(19_200);
+        let a = send(&mut line, &read, t0);
+        let w = whole(a.tid);
+        line.received(&w[..w.len() - 1], t0 + 5 * MS, &Stats::default());
+        assert!(frames(&mut line, std::slice::from_ref(&a), t0 + 26 * MS).is_empty());
+        line.received(&[0x00], t0 + 30 * MS, &Stats::default());
+        for after in [30, 55, 90] {
+            assert!(frames(&mut line, std::slice::from_ref(&a), t0 + after * MS).is_empty());
+        }
+    }
+
+    /// On a pty (no wire) a copy of the request read at once is the device's reply:
+    /// an FC 06 write answered by a device that answers as soon as the request is in
+    /// (pymodbus' serial server).
+    #[test]
+    fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
+        use crate::port::kind::{Kind, PortInfo};
+        let (mut line, t0) = mbap(9600);
+        let told = line.port_opened(&PortInfo::plain(Kind::Pty));
+        assert!(told.contains("no wire"), "{told}");
+        let write = Adu::build(9, 1, &[6, 0, 1, 0, 3]);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        line.received(&sent, t0 + MS / 10, &Stats::default());
+        assert_eq!(frames(&mut line, &[f], t0 + MS / 10), vec![sent]);
+        // Declared a wire, the same is its echo.
+        let serial = SerialConfig {
+            baud_rate: 9600,
+            port_kind: crate::config::PortKind::Wire,
+            ..SerialConfig::default()
+        };
+        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        line.port_opened(&PortInfo::plain(Kind::Pty));
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        let stats = Stats::default();
+        line.received(&sent, t0 + MS / 10, &stats);
+        assert!(line.frames(&[f], t0 + 60 * MS, &stats).is_empty());
+        assert_eq!(
+            stats
+                .dropped_echo
+                .load(std::sync::atomic::Ordering::Relaxed),
+            12
+        );
+    }
+
+    /// A device that pauses inside its reply (libmodbus' test server sends one byte
+    /// every 5 ms): with nothing able to follow, on a pty (no wire, no noise) the
+    /// whole reply is taken when its last byte comes; on a wire what came after a
+    /// pause may be noise completing a damaged reply, and it is refuted.
+    #[test]
+    fn a_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
+        use crate::port::kind::{Kind, PortInfo};
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        // A UART whose FIFO hands each byte over: the pause is 3.5 characters.
+        let uart = Kind::Uart {
+            driver: None,
+            trigger: Some(1),
+        };
+        for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+            let serial = SerialConfig {
+                baud_rate: 115_200,
+                ..SerialConfig::default()
+            };
+            let t0 = Instant::now();
+            let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+            line.port_opened(&PortInfo::plain(kind.clone()));
+            let a = send(&mut line, &read, t0);
+            let reply = Adu::build(a.tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
+            let mut got = Vec::new();
+            for (i, b) in reply.iter().enumerate() {
+                let at = t0 + (5 * i as u32 + 1) * MS;
+                got.extend(frames(&mut line, std::slice::from_ref(&a), at));
+                line.received(&[*b], at, &Stats::default());
+                got.extend(frames(&mut line, std::slice::from_ref(&a), at + MS / 2));
+            }
+            for after in [30, 100] {
+                got.extend(frames(&mut line, std::slice::from_ref(&a), t0 + after * MS));
+            }
+            let want = if taken { vec![reply] } else { Vec::new() };
+            assert_eq!(got, want, "{kind:?}");
+        }
     }
 
     /// The dropped-byte counter only grows: two lines counting into one `Stats` (or

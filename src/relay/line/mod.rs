@@ -5,11 +5,12 @@
 //!
 //! - [`Mbap`] (`mbap.rs`): serial-side transaction ids, several requests on the line
 //!   at once (`max_in_flight`), the resynchronising decoder with confirmation of every
-//!   frame (by what follows it, or by a pause of a few character times),
-//!   notifications, echoes told by their timing.
+//!   frame something can follow (by what follows it, or by a pause of a few character
+//!   times), notifications, echoes told by their timing on a wire.
 //! - [`Serial`] (`serial.rs`): RTU or ASCII. No transaction id, so one request at a
 //!   time, and only time ties a reply to its request: what was received before a
-//!   request has left is discarded, a reply must start after it; frames delimited by
+//!   request was written is discarded, and on a wire a reply must start after the
+//!   request has left; frames delimited by
 //!   length, silence or line feed and checked by CRC or LRC; the inter-frame gap (3.5
 //!   character times) before each request, counted from the last byte seen or sent; a
 //!   guard time after a timeout, for the late reply; broadcasts (unit 0) with a
@@ -23,6 +24,7 @@ use crate::capture::tape::Dropped;
 use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::serial::Codec;
 use crate::frame::{Adu, FunctionCode};
+use crate::port::kind::PortInfo;
 use crate::stats::Stats;
 use bytes::Bytes;
 use mbap::Mbap;
@@ -75,6 +77,30 @@ impl Line {
             Framing::Ascii => Codec::Ascii,
         };
         Line(Kind::Serial(Serial::new(relay, serial, codec, stream, now)))
+    }
+
+    /// The port was opened and found to be `info` (docs/reliability.md "Knowing the
+    /// wire"): the line takes its timing from it. Says how, for the log.
+    pub(super) fn port_opened(&mut self, info: &PortInfo) -> String {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.port_opened(info),
+            Kind::Serial(s) => s.port_opened(info),
+        }
+    }
+
+    /// `n` bytes were read with `in_flight` requests on the line (MBAP: with none, and
+    /// no late reply possible, the device talked unasked).
+    pub(super) fn heard(&mut self, n: usize, in_flight: usize, now: Instant, stats: &Stats) {
+        if let Kind::Mbap(m) = &mut self.0 {
+            m.heard(n, in_flight, now, stats);
+        }
+    }
+
+    /// A whole MBAP frame that answers nothing in flight came (`late`: a retired id).
+    pub(super) fn answered_nothing(&mut self, late: bool, now: Instant) {
+        if let Kind::Mbap(m) = &mut self.0 {
+            m.answered_nothing(late, now);
+        }
     }
 
     /// RTU or ASCII: one at a time, broadcasts, unit backoff, drain before timing.
@@ -168,13 +194,15 @@ impl Line {
         }
     }
 
-    /// A request timed out: its reply may still come (MBAP recognises it by its id).
+    /// A request timed out: its reply may still come (MBAP recognises it by its id, and
+    /// holds replies for confirmation for the guard time, as the late one may follow).
     /// RTU/ASCII: a partial reply is discarded, and the line is left quiet for the
     /// guard time, so a reply that comes just too late is dropped rather than taken
     /// for the next request's.
     pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
-        if let Kind::Serial(s) = &mut self.0 {
-            s.timed_out(now, stats);
+        match &mut self.0 {
+            Kind::Mbap(m) => m.timed_out(now),
+            Kind::Serial(s) => s.timed_out(now, stats),
         }
     }
 

@@ -1,6 +1,7 @@
 //! The RTU and ASCII line: one request at a time, tied to its reply by time alone
-//! (bytes before the request left are not its reply), the inter-frame gap, CRC/LRC,
-//! the guard after a timeout, broadcasts with their turnaround, local echo.
+//! (bytes before the request left are not its reply: on a wire, its time at
+//! `baud_rate` counts), the inter-frame gap, CRC/LRC, the guard after a timeout,
+//! broadcasts with their turnaround, local echo.
 
 use super::Seen;
 use crate::capture::packet::Reason;
@@ -10,6 +11,7 @@ use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
 use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
+use crate::port::kind::{self, PortInfo};
 use crate::relay::inflight::{Asked, InFlight};
 use crate::serial;
 use crate::stats::Stats;
@@ -35,6 +37,12 @@ pub(super) struct Serial {
     /// What ends a frame of unknown shape: 3.5 character times, never less than
     /// `silence_floor_ms`.
     silence: Duration,
+    /// `frame_gap_ms`: where there is no wire, a partial reply of known length is
+    /// discarded after this much silence rather than `silence` (a program on a pty
+    /// may pause inside a frame; nothing there is lost or added).
+    frame_gap: Duration,
+    /// The request on the line, for the length of its reply.
+    asked: Option<Vec<u8>>,
     broadcast_delay: Duration,
     /// The line stays quiet this long after a timeout (`timeout_guard_ms`).
     guard: Duration,
@@ -57,6 +65,9 @@ pub(super) struct Serial {
     reply_from: Instant,
     /// Over TCP: bytes take no time on a wire, and there is no gap to keep.
     stream: bool,
+    /// A wire at `baud_rate` between the port and the device (not a pty, unless
+    /// `port_kind = "wire"`): a request's bytes take their time to leave.
+    wire: bool,
     /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
     request_pause: Duration,
     /// The bytes dropped, for the capture.
@@ -93,7 +104,9 @@ impl Serial {
             decoder: Framer::serial(codec),
             gap,
             gap_after_frame,
-            silence: t35.max(Duration::from_millis(serial.silence_floor_ms)),
+            silence: kind::silence(serial, &PortInfo::unknown()),
+            frame_gap: Duration::from_millis(relay.frame_gap_ms),
+            asked: None,
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
             last_rx: now,
@@ -106,6 +119,7 @@ impl Serial {
             held: Vec::new(),
             reply_from: now,
             stream,
+            wire: !stream,
             request_pause: Duration::from_millis(relay.request_pause_ms),
             tape: Tape::default(),
             check: match codec {
@@ -115,13 +129,33 @@ impl Serial {
         }
     }
 
-    /// How long `bytes` take on the line: none over TCP.
+    /// How long `bytes` take to leave the port: none over TCP, nor where there is no
+    /// wire (a pty passes them at once whatever `baud_rate` says).
     fn wire_time(&self, bytes: usize) -> Duration {
-        if self.stream {
+        if self.stream || !self.wire {
             Duration::ZERO
         } else {
             serial::wire_time(&self.port, bytes)
         }
+    }
+
+    /// A port was opened and found to be `info`: whether bytes take their time on a
+    /// wire, and the silence that ends a frame of unknown shape. Says how.
+    pub(super) fn port_opened(&mut self, info: &PortInfo) -> String {
+        if self.stream {
+            return "no gap kept: the device server keeps it on its own line".into();
+        }
+        self.wire = kind::wire(&self.port, info);
+        self.silence = kind::silence(&self.port, info);
+        let wire = if self.wire {
+            "a wire at serial.baud_rate: a reply must begin after its request has left"
+        } else {
+            "no wire: a reply is taken however soon it comes"
+        };
+        format!(
+            "{wire}; {:.2} ms of silence ends a frame of unknown shape",
+            self.silence.as_secs_f64() * 1000.0
+        )
     }
 
     pub(super) fn allocate(&mut self) -> u16 {
@@ -147,6 +181,7 @@ impl Serial {
         );
         if stale > 0 {
             debug!(bytes = stale, "bytes received before the request discarded");
+            stats.add(&stats.dropped_stale, stale as u64);
         }
         self.count_dropped(held, stats);
         let bytes = self.decoder.encode(adu);
@@ -226,10 +261,25 @@ impl Serial {
         }
     }
 
+    /// The silence after which what is buffered ends (a frame of unknown shape) or is
+    /// discarded: `silence`, or where there is no wire and the partial frame's length
+    /// is known, the frame gap.
+    fn quiet_after(&self) -> Duration {
+        let known = self
+            .asked
+            .as_deref()
+            .is_some_and(|asked| self.decoder.length_known(&ReplyFor(asked)));
+        if !self.wire && !self.stream && known {
+            self.frame_gap.max(self.silence)
+        } else {
+            self.silence
+        }
+    }
+
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         let mut wake: Option<Instant> = None;
         if self.decoder.buffered() > 0 {
-            wake = Some(self.last_rx + self.silence);
+            wake = Some(self.last_rx + self.quiet_after());
         }
         if waiting {
             let free = self.free_at();
@@ -270,8 +320,15 @@ impl Serial {
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
+        // The line's pace at `baud_rate`, on a pty too: a backed-off unit's answers
+        // come no faster than a wire would serve them.
         let bytes = self.decoder.encoded_len(adu.pdu().len()) + self.decoder.encoded_len(2);
-        self.wire_time(bytes) + 2 * self.gap
+        let on_line = if self.stream {
+            Duration::ZERO
+        } else {
+            serial::wire_time(&self.port, bytes)
+        };
+        on_line + 2 * self.gap
     }
 
     /// Drops the bytes held while a request was being written (`why`, for the
@@ -324,6 +381,7 @@ impl Serial {
                 "bytes received while the request was still being sent discarded"
             );
             stats.add(&stats.dropped_bytes, bytes.len() as u64);
+            stats.add(&stats.dropped_too_early, bytes.len() as u64);
             self.tape.dropped_aside(|| Dropped {
                 at: Some(at),
                 reason: Reason::TooEarly,
@@ -379,7 +437,11 @@ impl Serial {
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {
-        let quiet = now >= self.last_rx + self.silence;
+        let asked = in_flight.first().map(|f| f.req.adu().pdu());
+        if self.asked.as_deref() != asked {
+            self.asked = asked.map(<[u8]>::to_vec);
+        }
+        let quiet = now >= self.last_rx + self.quiet_after();
         let Some(f) = in_flight.first() else {
             // Nothing asked: late answers or noise, dropped once the line is quiet.
             if quiet && self.decoder.buffered() > 0 {
@@ -392,6 +454,7 @@ impl Serial {
                     "bytes that answer no request",
                 );
                 debug!(bytes = n, "bytes that answer no request dropped");
+                stats.add(&stats.dropped_stale, n as u64);
                 self.count_dropped(0, stats);
             }
             return Vec::new();
@@ -449,10 +512,64 @@ impl Serial {
 
 #[cfg(test)]
 mod tests {
-    use super::super::Line;
+    use super::super::{Line, Seen};
     use super::*;
+    use crate::port::kind::Kind;
 
     const MS: Duration = Duration::from_millis(1);
+
+    /// A reply whose bytes come 5 ms apart at 115 200 baud (43 character times): on a
+    /// pty a partial reply of known length waits for the frame gap, so it is taken
+    /// whole; on a wire 3.5 characters of silence end it, and it fails its CRC.
+    #[test]
+    fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
+        use crate::relay::inflight::InFlight;
+        let serial = SerialConfig {
+            baud_rate: 115_200,
+            framing: crate::config::Framing::Rtu,
+            ..SerialConfig::default()
+        };
+        let uart = Kind::Uart {
+            driver: None,
+            trigger: Some(1),
+        };
+        for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+            let stats = Stats::default();
+            let t0 = Instant::now();
+            let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+            line.port_opened(&PortInfo::plain(kind.clone()));
+            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+            let key = line.allocate(t0);
+            line.encode(&read, key, t0, &stats);
+            line.wrote(8, t0);
+            line.drained(t0 + MS, &stats);
+            let f = [InFlight {
+                tid: key,
+                deadline: t0 + Duration::from_secs(1),
+                timeout: Duration::from_secs(1),
+                req: (read.clone(), 0u32),
+            }];
+            let reply = Codec::Rtu.encode(1, &[3, 2, 0, 7]);
+            let mut got = Vec::new();
+            for (i, b) in reply.iter().enumerate() {
+                let at = t0 + (5 * i as u32 + 2) * MS;
+                line.received(&[*b], at, &stats);
+                got.extend(
+                    line.frames(&f, at + 4 * MS, &stats)
+                        .into_iter()
+                        .map(|s| match s {
+                            Seen::Frame(frame, _) => Some(frame.pdu().to_vec()),
+                            Seen::Corrupt(_) => None,
+                        }),
+                );
+            }
+            if taken {
+                assert_eq!(got, vec![Some(vec![3, 2, 0, 7])], "{kind:?}");
+            } else {
+                assert!(got.first() == Some(&None), "{kind:?}: {got:?}");
+            }
+        }
+    }
 
     /// RTU at 9600 baud: the next request waits 3.5 characters (4 ms) after a reply on
     /// a serial line, none over TCP; `request_pause_ms` stretches the wait on both.
