@@ -137,8 +137,16 @@ async fn serve_with(
         bound.push((listener, listening));
     }
     warn_inapplicable(&cfg);
+    // `mbgate reload` asks over the control socket, when there is a file to read again.
+    let (asked, reload_handle) = match load {
+        Some(_) => {
+            let (handle, asked) = reload::ReloadHandle::new();
+            (Some(asked), Some(handle))
+        }
+        None => (None, None),
+    };
     // Before the relays: the always-on ring has their first frames.
-    let capture = crate::capture::Capture::start(&cfg, &shutdown);
+    let capture = crate::capture::Capture::start(&cfg, reload_handle, &shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     // Each listener's counters (connections, refusals, requests it answered itself);
@@ -177,15 +185,7 @@ async fn serve_with(
         }));
     }
     // Off unless asked for: then nothing but the Modbus ports listen.
-    // `mbgate reload` asks through the metrics listener (`POST /reload`).
-    let (asked, reload_asked) = match load {
-        Some(_) => {
-            let (handle, asked) = reload::ReloadHandle::new();
-            (Some(asked), Some(handle))
-        }
-        None => (None, None),
-    };
-    let mut http = reload::MetricsListener::new(board.clone(), reload_asked, shutdown.clone());
+    let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
         let listener =
             metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
@@ -203,13 +203,6 @@ async fn serve_with(
             }
         },
         None => None,
-    };
-    // The certificates of the TLS listeners are read again on SIGHUP too, whatever
-    // becomes of the rest of the reload.
-    let acceptors: Vec<Arc<Acceptor>> = bound.iter().filter_map(|(_, l)| l.tls.clone()).collect();
-    let tls_hup = match (&hup, acceptors.is_empty()) {
-        (Some(_), false) => tokio::signal::unix::signal(SignalKind::hangup()).ok(),
-        _ => None,
     };
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
@@ -236,19 +229,16 @@ async fn serve_with(
     ));
     let relay_tasks: Vec<_> = relays.into_iter().map(|r| tokio::spawn(r.run())).collect();
     if let (Some((hup, load)), Some(asked)) = (hup, asked) {
-        let stop = shutdown.clone();
-        tokio::spawn(reload::on_sighup(
-            hup,
-            asked,
-            running.clone(),
+        let reloadable = reload::Reloadable {
+            running: running.clone(),
             load,
-            handles,
-            http,
-            stop,
-        ));
-    }
-    if let Some(hup) = tls_hup {
-        tokio::spawn(reload_certificates(hup, acceptors, shutdown.clone()));
+            relays: handles,
+            metrics: http,
+            // Their certificates are read again by every reload, whatever becomes of
+            // the rest of it.
+            acceptors: bound.iter().filter_map(|(_, l)| l.tls.clone()).collect(),
+        };
+        tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
     }
     if notify::under_systemd() {
         tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
@@ -308,32 +298,6 @@ async fn serve_with(
     let totals = Arc::new(Stats::total(counted.iter().map(|s| &**s)));
     info!(stats = %totals, "stopped");
     Ok(totals)
-}
-
-/// On each SIGHUP, the certificate, key and CA of every TLS listener are read again
-/// (docs/security.md "Renewing certificates"): new connections use them, connected
-/// masters keep their session. A file that does not load leaves that listener as it
-/// was, and says why.
-async fn reload_certificates(
-    mut hup: tokio::signal::unix::Signal,
-    acceptors: Vec<Arc<Acceptor>>,
-    shutdown: CancellationToken,
-) {
-    loop {
-        tokio::select! {
-            _ = shutdown.cancelled() => return,
-            _ = hup.recv() => {}
-        }
-        for a in &acceptors {
-            match a.reload() {
-                Ok(subject) => info!(
-                    "{}: certificate, key and client CA read again (the gateway is {subject:?}); connected masters keep their session",
-                    a.name()
-                ),
-                Err(e) => warn!("{}: not reloaded, the certificate in use stays: {e}", a.name()),
-            }
-        }
-    }
 }
 
 type UserSignals = (tokio::signal::unix::Signal, tokio::signal::unix::Signal);

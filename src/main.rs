@@ -102,11 +102,12 @@ enum Command {
     Generate(Generate),
     /// Have a running gateway read its configuration file again, and say what changed.
     ///
-    /// As SIGHUP (`systemctl reload`), asked through its metrics listener (`[metrics]
-    /// listen`, from this machine). Prints each change applied, line by line and key
-    /// by key, and what waits for a restart. Exit code 0 taken, 1 refused (the file
-    /// does not load, or adds or removes a line; the running configuration stays), 3
-    /// the gateway could not be asked, 2 bad arguments.
+    /// As SIGHUP (`systemctl reload`), asked over its control socket (root, or the
+    /// service's user or group: the one `mbgate capture` uses). Prints each change
+    /// applied, line by line and key by key, what waits for a restart, and each TLS
+    /// listener's certificate read again. Exit code 0 taken, 1 refused (the file does
+    /// not load, or adds or removes a line; the running configuration stays), 3 the
+    /// gateway could not be asked, 2 bad arguments.
     Reload(mbgate::reload::ask::ReloadArgs),
 }
 

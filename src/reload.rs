@@ -1,10 +1,12 @@
 //! Reload (SIGHUP, `systemctl reload`, `mbgate reload`): the configuration file is
 //! read again and what can change without dropping a master is applied at once
-//! (README "Reload"); what needs a restart is said in the log and left as it runs. The
+//! (docs/configuration.md "Reload"); what needs a restart is said in the log and left as it runs. The
 //! lines are known by their port or address, not their place in the file
 //! (`changes.rs`): a file that adds or removes a line, or does not load at all, is
 //! refused with the reason, and the running configuration stays. Every change applied
 //! is named, line by line and key by key, in the log and in `mbgate reload`'s answer.
+//! Every reload also reads the certificates of the TLS listeners again
+//! (docs/security.md "Renewing certificates"), whatever becomes of the file.
 
 pub mod ask;
 mod changes;
@@ -12,6 +14,7 @@ mod changes;
 use crate::config::{Config, ConfigError};
 use crate::metrics::{http, Board};
 use crate::relay::{Command, RelayHandle};
+use crate::tls::server::Acceptor;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use tokio::sync::{mpsc, oneshot};
@@ -78,9 +81,26 @@ impl Outcome {
     }
 }
 
-/// A request for a reload from `mbgate reload` (the metrics listener's `POST
-/// /reload`), answered with its outcome.
-pub(crate) type Asked = oneshot::Sender<Outcome>;
+/// What `mbgate reload` is told: the outcome, then what became of each TLS
+/// listener's certificate.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Answer {
+    pub(crate) outcome: Outcome,
+    pub(crate) certificates: Vec<String>,
+}
+
+impl Answer {
+    /// The lines `mbgate reload` prints, as the log says them.
+    pub(crate) fn lines(&self) -> Vec<String> {
+        let mut lines = self.outcome.lines();
+        lines.extend(self.certificates.iter().cloned());
+        lines
+    }
+}
+
+/// A request for a reload from `mbgate reload` (over the control socket), answered
+/// with its outcome.
+pub(crate) type Asked = oneshot::Sender<Answer>;
 
 /// The way to ask the running gateway for a reload.
 #[derive(Debug, Clone)]
@@ -94,7 +114,7 @@ impl ReloadHandle {
     }
 
     /// Reloads and says how it went; `None` if the gateway is stopping.
-    pub(crate) async fn reload(&self) -> Option<Outcome> {
+    pub(crate) async fn reload(&self) -> Option<Answer> {
         let (tx, rx) = oneshot::channel();
         self.0.send(tx).ok()?;
         rx.await.ok()
@@ -104,22 +124,14 @@ impl ReloadHandle {
 /// The metrics listener as it runs, moved or stopped by a reload.
 pub(crate) struct MetricsListener {
     board: Arc<Board>,
-    /// Where `POST /reload` goes (`mbgate reload`): none when the gateway does not
-    /// reload (no file to read again).
-    reload: Option<ReloadHandle>,
     running: Option<(SocketAddr, CancellationToken)>,
     shutdown: CancellationToken,
 }
 
 impl MetricsListener {
-    pub(crate) fn new(
-        board: Arc<Board>,
-        reload: Option<ReloadHandle>,
-        shutdown: CancellationToken,
-    ) -> Self {
+    pub(crate) fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
         Self {
             board,
-            reload,
             running: None,
             shutdown,
         }
@@ -128,8 +140,7 @@ impl MetricsListener {
     /// Serves on `listener` (bound at start, so a bad address fails the start).
     pub(crate) fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
         let stop = self.shutdown.child_token();
-        let (board, reload) = (self.board.clone(), self.reload.clone());
-        http::spawn(listener, board, reload, stop.clone());
+        http::spawn(listener, self.board.clone(), stop.clone());
         self.running = Some((addr, stop));
     }
 
@@ -156,15 +167,22 @@ impl MetricsListener {
     }
 }
 
+/// What a reload reloads: the file, the relays it retunes, the metrics listener it
+/// moves, and the TLS listeners whose certificates it reads again.
+pub(crate) struct Reloadable {
+    pub(crate) running: Arc<Mutex<Config>>,
+    pub(crate) load: Loader,
+    pub(crate) relays: Vec<RelayHandle>,
+    pub(crate) metrics: MetricsListener,
+    pub(crate) acceptors: Vec<Arc<Acceptor>>,
+}
+
 /// Reloads on each SIGHUP, and on each request of `mbgate reload` (`asked`), until
-/// shutdown; `running` is the configuration in force.
+/// shutdown.
 pub(crate) async fn on_sighup(
     mut hup: tokio::signal::unix::Signal,
     mut asked: mpsc::UnboundedReceiver<Asked>,
-    running: Arc<Mutex<Config>>,
-    load: Loader,
-    relays: Vec<RelayHandle>,
-    mut metrics: MetricsListener,
+    mut it: Reloadable,
     shutdown: CancellationToken,
 ) {
     loop {
@@ -179,14 +197,47 @@ pub(crate) async fn on_sighup(
                 Some(a)
             }
         };
-        let Some(outcome) = reload(&running, &load, &relays, &mut metrics) else {
+        let certificates = reload_certificates(&it.acceptors);
+        let Some(outcome) = reload(&it.running, &it.load, &it.relays, &mut it.metrics) else {
             return; // a relay has stopped: shutting down
         };
         outcome.log();
         if let Some(a) = answer {
-            let _ = a.send(outcome);
+            let _ = a.send(Answer {
+                outcome,
+                certificates,
+            });
         }
     }
+}
+
+/// The certificate, key and CA of every TLS listener read again (docs/security.md
+/// "Renewing certificates"): new connections use them, connected masters keep their
+/// session. A file that does not load leaves that listener as it was, and says why.
+/// What was said, a line a listener.
+fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
+    let mut said = Vec::new();
+    for a in acceptors {
+        match a.reload() {
+            Ok(subject) => {
+                let line = format!(
+                    "{}: certificate, key and client CA read again (the gateway is {subject:?}); connected masters keep their session",
+                    a.name()
+                );
+                info!("{line}");
+                said.push(line);
+            }
+            Err(e) => {
+                let line = format!(
+                    "{}: not reloaded, the certificate in use stays: {e}",
+                    a.name()
+                );
+                warn!("{line}");
+                said.push(line);
+            }
+        }
+    }
+    said
 }
 
 /// One reload: the file read, its lines matched to the running ones, what a reload

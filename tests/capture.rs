@@ -628,14 +628,24 @@ fn the_control_socket_refuses_strangers_and_a_bad_request_closes_only_its_client
         err.contains(&format!("permission denied on {sock}")),
         "{err}"
     );
+    // Nor a reload, asked on the same socket.
+    let (code, err) = as_nobody(&["reload", "--socket", sock]);
+    assert_eq!(code, Some(3), "{err}");
+    assert!(
+        err.contains(&format!("permission denied on {sock}")),
+        "{err}"
+    );
     // The mode loosened by hand: the gateway checks who connected.
     std::fs::set_permissions(&socket, std::fs::Permissions::from_mode(0o666)).unwrap();
     let (code, err) = as_nobody(&["capture", "--socket", sock, "-o", nowhere]);
     assert_eq!(code, Some(1), "{err}");
-    assert!(err.contains("user 65534 may not capture"), "{err}");
+    assert!(
+        err.contains("user 65534 may not use the control socket"),
+        "{err}"
+    );
     assert!(gw
         .log()
-        .contains("control socket: user 65534 may not capture"));
+        .contains("control socket: user 65534 may not use the control socket"));
     assert_eq!(
         transact(&mut m, &read_req(4, 1, 13, 1)),
         read_reply(4, 1, &[13])

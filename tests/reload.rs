@@ -154,7 +154,7 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
 /// Two lines, each with its own response timeout: the line on `a` 200 ms (its
 /// device's 300 ms read times out), the one on `b` 1000 ms. `order` puts the tables
 /// in the file: `b_first` writes `b`'s table first; each table keeps its port, units
-/// and timeout.
+/// and timeout. The control socket ([`control_socket`]) is beside `a`.
 fn two_lines(a: &std::path::Path, b: &std::path::Path, b_first: bool, b_timeout: u32) -> String {
     let table = |path: &std::path::Path, unit: u8, timeout: u32| {
         format!(
@@ -166,15 +166,21 @@ fn two_lines(a: &std::path::Path, b: &std::path::Path, b_first: bool, b_timeout:
     let lines = if b_first { tb + &ta } else { ta + &tb };
     lines
         + "[[listen]]\naddress = \"127.0.0.1:0\"\n\n[log]\nlevel = \"debug\"\n\n\
-           [metrics]\nlisten = \"127.0.0.1:0\"\n"
+           [metrics]\nlisten = \"127.0.0.1:0\"\n\n"
+        + &format!(
+            "[control]\nsocket = {:?}\n",
+            control_socket(a).display().to_string()
+        )
 }
 
-/// `mbgate reload` against the gateway's metrics listener: exit code and output.
-fn mbgate_reload(gw: &Gateway) -> (i32, String) {
-    let log = gw.log();
-    let rest = log.split("metrics on http://").nth(1).expect("metrics on");
-    let http = rest.split('/').next().unwrap();
-    let run = mbgate(&["reload", "--metrics", http]);
+/// The control socket of [`two_lines`] with its first line on `a`.
+fn control_socket(a: &std::path::Path) -> std::path::PathBuf {
+    a.parent().unwrap().join("control.sock")
+}
+
+/// `mbgate reload` over the control socket at `socket`: exit code and output.
+fn mbgate_reload(socket: &std::path::Path) -> (i32, String) {
+    let run = mbgate(&["reload", "--socket", socket.to_str().unwrap()]);
     (run.code, run.stdout + &run.stderr)
 }
 
@@ -232,7 +238,7 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
 
     // Line b's timeout to 200 ms, through `mbgate reload`.
     std::fs::write(&file, two_lines(&sa.gw, &sb.gw, true, 200)).unwrap();
-    let (code, said) = mbgate_reload(&gw);
+    let (code, said) = mbgate_reload(&control_socket(&sa.gw));
     let b = sb.gw.display().to_string();
     let change = format!("reloaded: line {b:?} relay.response_timeout_ms = 200");
     assert_eq!(code, 0, "{said}");
@@ -241,6 +247,18 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
     assert_eq!(slow(&mut m, 5, 2), timed_out(5, 2), "line b: 200 ms now");
     assert_eq!(slow(&mut m, 6, 1), timed_out(6, 1), "line a: 200 ms still");
 
+    // A mistake in the file: `mbgate reload --config` still finds the socket (it reads
+    // only control.socket from the file) and says the gateway refused it.
+    let good = std::fs::read_to_string(&file).unwrap();
+    std::fs::write(&file, good.replace("[log]\n", "[log]\nlevle = \"debug\"\n")).unwrap();
+    let run = mbgate(&["reload", "--config", file.to_str().unwrap()]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("reload refused: ") && run.stderr.contains("log.levle: unknown key"),
+        "{}",
+        run.stderr
+    );
+
     // A third line: refused, named; the running configuration stays.
     let third = "[[line]]\nunits = [3]\nserial = { path = \"/dev/mbgate-no-such-port\" }\n\n";
     std::fs::write(
@@ -248,7 +266,7 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
         third.to_owned() + &two_lines(&sa.gw, &sb.gw, true, 1000),
     )
     .unwrap();
-    let (code, said) = mbgate_reload(&gw);
+    let (code, said) = mbgate_reload(&control_socket(&sa.gw));
     assert_eq!(code, 1, "{said}");
     assert!(
         said.contains("reload refused: the line on \"/dev/mbgate-no-such-port\" is new in the file: a line is added or removed only by a restart (systemctl restart); the running configuration stays"),

@@ -644,15 +644,18 @@ fn a_certificate_without_a_role_gets_the_default_role() {
 /// other is served while the first still waits (its connection still open), and the
 /// first is closed once `handshake_timeout_ms` has passed. A new gateway certificate
 /// read on SIGHUP is presented to new connections, while the master connected before
-/// keeps its session and is served on.
+/// keeps its session and is served on; `mbgate reload` reads it again too, and says so.
 #[test]
 fn a_stalled_handshake_delays_nobody_and_a_certificate_reload_keeps_masters() {
     let dir = tempdir();
     let pki = pki(dir.path());
     let (_device, _port, line) = tcp_device();
+    let socket = dir.path().join("control.sock");
     let text = format!(
-        "{line}[[listen]]\naddress = \"127.0.0.1:0\"\n{}\n\n{ROLES}[log]\nlevel = \"debug\"\n",
-        pki.listen_tls(", handshake_timeout_ms = 5000")
+        "{line}[[listen]]\naddress = \"127.0.0.1:0\"\n{}\n\n{ROLES}[log]\nlevel = \"debug\"\n\n\
+         [control]\nsocket = {:?}\n",
+        pki.listen_tls(", handshake_timeout_ms = 5000"),
+        socket.display().to_string()
     );
     let (mut gw, addrs) = gateway(dir.path(), &text, 1);
     let tls = addrs[0].port();
@@ -686,6 +689,25 @@ fn a_stalled_handshake_delays_nobody_and_a_certificate_reload_keeps_masters() {
     );
     let fresh = m.ask("handshake");
     assert_eq!(fresh["subject"], "localhost-renewed", "{fresh}");
+    // Once more, through `mbgate reload`: its answer names the listener.
+    pki.sign(
+        "gateway",
+        "ca",
+        "/CN=localhost-again",
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\n",
+        30,
+    );
+    let run = common::mbgate(&["reload", "--socket", socket.to_str().unwrap()]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout.contains(
+            "listen[0].tls: certificate, key and client CA read again (the gateway is \"CN=localhost-again\")"
+        ),
+        "{}",
+        run.stdout
+    );
+    let fresh = m.ask("handshake");
+    assert_eq!(fresh["subject"], "localhost-again", "{fresh}");
     gw.wait_log("no TLS handshake within 5000 ms", Duration::from_secs(10));
     assert_eq!(m.ask("stalled")["open"], false);
     assert_eq!(m.ask("read 2 1")["registers"], serde_json::json!([1002]));

@@ -328,7 +328,8 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and __fish_seen_
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and __fish_seen_subcommand_from help" -f -a "man" -d 'Write the man pages into DIR: mbgate(1), mbgate-SUBCOMMAND(1) for each subcommand, and mbgate.toml(5), the configuration file'
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and __fish_seen_subcommand_from help" -f -a "completions" -d 'Print the completion script for SHELL'
 complete -c mbgate -n "__fish_mbgate_using_subcommand generate; and __fish_seen_subcommand_from help" -f -a "help" -d 'Print this message or the help of the given subcommand(s)'
-complete -c mbgate -n "__fish_mbgate_using_subcommand reload" -l metrics -d 'The gateway\'s metrics listener (its `metrics.listen`, on this machine)' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand reload" -l socket -d 'The gateway\'s control socket [default: from the configuration file]' -r -F
+complete -c mbgate -n "__fish_mbgate_using_subcommand reload" -s c -l config -d 'The gateway\'s configuration file, to find its control socket (control.socket; empty: the packaged unit\'s runtime directory for this file) [default: /etc/mbgate/mbgate.toml]' -r -F
 complete -c mbgate -n "__fish_mbgate_using_subcommand reload" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "run" -d 'Run the gateway in the foreground (systemd does this)'
 complete -c mbgate -n "__fish_mbgate_using_subcommand help; and not __fish_seen_subcommand_from run check-config read write sim demo status capture generate reload help" -f -a "check-config" -d 'Validate a configuration file and say what it sets up'

@@ -6,7 +6,6 @@
 
 use super::control::{DATA, END};
 use super::request::{Peer, Request};
-use crate::config::{self, Config};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -110,24 +109,37 @@ impl CaptureArgs {
                 .replace("function=", "--function ")
         })
     }
+}
 
-    /// The control socket: `--socket`, else the configuration's `control.socket`,
-    /// else the packaged unit's for that file.
-    fn socket(&self) -> Result<PathBuf, String> {
-        if let Some(s) = &self.socket {
-            return Ok(s.clone());
-        }
-        let file = match &self.config {
-            Some(f) => f.clone(),
-            None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
-            None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
-        };
-        let cfg: Config = config::load(&file).map_err(|e| e.to_string())?;
-        if cfg.control.socket.trim().is_empty() {
-            Ok(packaged_socket(&file))
-        } else {
-            Ok(PathBuf::from(cfg.control.socket))
-        }
+/// The control socket: `socket` (`--socket`), else the `control.socket` of `config`
+/// (`--config`, by default the packaged unit's file), else the packaged unit's for
+/// that file. For `mbgate capture` and `mbgate reload`.
+///
+/// Only `control.socket` is read from the file, and leniently: a file with a mistake
+/// elsewhere (just edited, about to be reloaded and refused with the precise error)
+/// still names the socket of the gateway running with the file as it was.
+pub(crate) fn control_socket(
+    socket: Option<&Path>,
+    config: Option<&Path>,
+) -> Result<PathBuf, String> {
+    if let Some(s) = socket {
+        return Ok(s.to_owned());
+    }
+    let file = match config {
+        Some(f) => f.to_owned(),
+        None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
+        None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
+    };
+    let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let set = text
+        .parse::<toml::Table>()
+        .ok()
+        .and_then(|t| Some(t.get("control")?.get("socket")?.as_str()?.trim().to_owned()))
+        .unwrap_or_default();
+    if set.is_empty() {
+        Ok(packaged_socket(&file))
+    } else {
+        Ok(PathBuf::from(set))
     }
 }
 
@@ -147,7 +159,7 @@ pub fn main(args: CaptureArgs) -> ExitCode {
         );
         return ExitCode::from(EXIT_USAGE);
     }
-    let socket = match args.socket() {
+    let socket = match control_socket(args.socket.as_deref(), args.config.as_deref()) {
         Ok(s) => s,
         Err(e) => {
             eprintln!("mbgate capture: {e}");
@@ -179,7 +191,7 @@ pub fn main(args: CaptureArgs) -> ExitCode {
 }
 
 /// What connecting to `socket` failed with, said for a user.
-fn connect_error(socket: &Path, e: &std::io::Error) -> String {
+pub(crate) fn connect_error(socket: &Path, e: &std::io::Error) -> String {
     let s = socket.display();
     match e.kind() {
         std::io::ErrorKind::NotFound => format!(
@@ -188,7 +200,7 @@ fn connect_error(socket: &Path, e: &std::io::Error) -> String {
         ),
         std::io::ErrorKind::PermissionDenied => format!(
             "permission denied on {s}: only root and the gateway's user or group may \
-             capture (try sudo)"
+             use it (try sudo)"
         ),
         std::io::ErrorKind::ConnectionRefused => {
             format!("nothing answers on {s}: a socket left by a gateway that stopped?")

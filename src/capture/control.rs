@@ -1,8 +1,14 @@
 //! The control socket (docs/design.md §6, docs/capture.md "The control socket"): a
 //! Unix socket in the runtime directory that only root and the service's own user or
-//! group may use, where `mbgate capture` asks for a capture and reads it back.
+//! group may use, where `mbgate capture` asks for a capture and reads it back, and
+//! `mbgate reload` asks for a reload (the metrics listener, which may listen on the
+//! network and knows no one, never changes the gateway).
 //!
-//! The conversation: the client writes one request line ([`Request`]); the gateway
+//! A reload: the client writes `reload`; the gateway answers `ok` (taken) or
+//! `refused`, then the lines its log says of it, and closes (`error: why` when the
+//! gateway does not reload).
+//!
+//! A capture: the client writes one request line ([`Request`]); the gateway
 //! answers `ok` or `error: why` on a line of its own (and closes, for an error).
 //! Then messages, each a tag byte and a 32-bit big-endian length: `D` pcapng bytes
 //! (the section and interface headers first, then packets), `E` the end, a line of
@@ -16,6 +22,7 @@
 use super::hub::{unix_us, Hub, Subscription};
 use super::pcapng;
 use super::request::{Request, MAX_LINE};
+use crate::reload::ReloadHandle;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -108,8 +115,16 @@ impl Drop for Control {
 }
 
 /// Serves captures on `control` until `shutdown`; the socket is removed then.
-pub(crate) async fn serve(control: Control, hub: Hub, shutdown: CancellationToken) {
-    info!("control socket {} (mbgate capture)", control.path.display());
+pub(crate) async fn serve(
+    control: Control,
+    hub: Hub,
+    reload: Option<ReloadHandle>,
+    shutdown: CancellationToken,
+) {
+    info!(
+        "control socket {} (mbgate capture, mbgate reload)",
+        control.path.display()
+    );
     let clients = Arc::new(AtomicUsize::new(0));
     loop {
         let (stream, _) = tokio::select! {
@@ -136,9 +151,9 @@ pub(crate) async fn serve(control: Control, hub: Hub, shutdown: CancellationToke
             let _ = s.write_all(msg.as_bytes()).await;
             continue;
         }
-        let (hub, clients) = (hub.clone(), clients.clone());
+        let (hub, clients, reload) = (hub.clone(), clients.clone(), reload.clone());
         tokio::spawn(async move {
-            client(stream, hub).await;
+            client(stream, hub, reload).await;
             clients.fetch_sub(1, Ordering::Relaxed);
         });
     }
@@ -184,7 +199,7 @@ fn allowed(stream: &UnixStream) -> Result<(), String> {
         return Ok(());
     }
     Err(format!(
-        "user {peer_uid} may not capture: root, or the gateway's user ({uid}) or group ({gid}) only"
+        "user {peer_uid} may not use the control socket: root, or the gateway's user ({uid}) or group ({gid}) only"
     ))
 }
 
@@ -215,13 +230,20 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
     String::from_utf8(line).map_err(|_| "a request that is not text".into())
 }
 
-/// One capture: its request, then packets until a stop condition.
-async fn client(stream: UnixStream, hub: Hub) {
+/// One client: a reload, or a capture (its request, then packets until a stop
+/// condition).
+async fn client(stream: UnixStream, hub: Hub, reload: Option<ReloadHandle>) {
     let (mut rd, mut wr) = stream.into_split();
-    let request = match request_line(&mut rd)
-        .await
-        .and_then(|l| Request::parse(l.trim_end_matches('\r')))
+    let line = request_line(&mut rd).await;
+    if line
+        .as_deref()
+        .is_ok_and(|l| l.trim_end_matches('\r') == RELOAD)
     {
+        let answer = reloaded(reload).await;
+        let _ = wr.write_all(answer.as_bytes()).await;
+        return;
+    }
+    let request = match line.and_then(|l| Request::parse(l.trim_end_matches('\r'))) {
         Ok(r) => r,
         Err(why) => {
             debug!("control socket: bad request: {why}");
@@ -247,6 +269,29 @@ async fn client(stream: UnixStream, hub: Hub) {
     let why = run.stream(&mut rd, &mut wr, &hub).await;
     let dropped: u64 = run.sub.dropped().iter().sum();
     info!(packets = run.packets, dropped, "capture ended ({why})");
+}
+
+/// The request line of `mbgate reload`.
+pub(crate) const RELOAD: &str = "reload";
+
+/// What a reload asked for over the socket is told: `ok` or `refused`, then what the
+/// log says of it.
+async fn reloaded(reload: Option<ReloadHandle>) -> String {
+    let Some(handle) = reload else {
+        return "error: this gateway does not reload (it runs without a configuration file)\n"
+            .into();
+    };
+    match handle.reload().await {
+        None => "error: the gateway is stopping\n".into(),
+        Some(answer) => {
+            let head = if answer.outcome.taken() {
+                "ok"
+            } else {
+                "refused"
+            };
+            format!("{head}\n{}\n", answer.lines().join("\n"))
+        }
+    }
 }
 
 struct Run {
@@ -348,6 +393,38 @@ impl Run {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::reload::{Answer, Outcome};
+
+    /// `reload` is answered `ok` or `refused`, then the lines the log says (the
+    /// certificates last); `error:` from a gateway that does not reload.
+    #[tokio::test]
+    async fn a_reload_is_answered_with_what_the_log_says() {
+        assert_eq!(
+            reloaded(None).await,
+            "error: this gateway does not reload (it runs without a configuration file)\n"
+        );
+        for (outcome, head) in [
+            (
+                Outcome::Done {
+                    applied: vec!["log.level = \"debug\"".into()],
+                    restart: vec![],
+                },
+                "ok\nreloaded: log.level = \"debug\"\nlisten[0].tls: read again\n",
+            ),
+            (
+                Outcome::Refused("mbgate.toml:1:1: bogus: unknown key".into()),
+                "refused\nreload refused: mbgate.toml:1:1: bogus: unknown key; the running configuration stays\nlisten[0].tls: read again\n",
+            ),
+        ] {
+            let (handle, mut asked) = ReloadHandle::new();
+            tokio::spawn(async move {
+                let a = asked.recv().await.unwrap();
+                let certificates = vec!["listen[0].tls: read again".into()];
+                a.send(Answer { outcome, certificates }).unwrap();
+            });
+            assert_eq!(reloaded(Some(handle)).await, head);
+        }
+    }
 
     #[tokio::test]
     async fn the_socket_is_made_0660_a_live_one_is_kept_and_a_file_never_replaced() {

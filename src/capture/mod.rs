@@ -9,7 +9,7 @@
 //! - `tape`: which bytes a framer dropped (pure);
 //! - `request`: what a capture asks for, and which packets it keeps (pure);
 //! - `hub`: taps, the bounded channel and the task that hands packets on;
-//! - `control`: the control socket `mbgate capture` talks to;
+//! - `control`: the control socket `mbgate capture` (and `mbgate reload`) talk to;
 //! - `ring`: the always-on ring of files (`[capture] file`);
 //! - `client`: `mbgate capture`.
 
@@ -93,16 +93,21 @@ pub(crate) struct Capture {
 impl Capture {
     /// Starts the hub for `cfg`'s interfaces, the control socket (if it has a
     /// place; one that cannot be made is warned about, and the gateway goes on
-    /// without) and the ring (if `capture.file` is set).
-    pub(crate) fn start(cfg: &Config, shutdown: &CancellationToken) -> Capture {
+    /// without; `reload` is where its reloads go, none if the gateway has no file to
+    /// read again) and the ring (if `capture.file` is set).
+    pub(crate) fn start(
+        cfg: &Config,
+        reload: Option<crate::reload::ReloadHandle>,
+        shutdown: &CancellationToken,
+    ) -> Capture {
         let (hub, task) = Hub::new(interfaces(cfg));
         tokio::spawn(task);
         match socket_path(cfg) {
             Some(path) => match control::bind(&path) {
                 Ok(c) => {
-                    tokio::spawn(control::serve(c, hub.clone(), shutdown.clone()));
+                    tokio::spawn(control::serve(c, hub.clone(), reload, shutdown.clone()));
                 }
-                Err(e) => warn!("{e}; mbgate capture is not available"),
+                Err(e) => warn!("{e}; mbgate capture and mbgate reload are not available"),
             },
             None => debug!("no control socket (control.socket is empty, and not under systemd)"),
         }

@@ -87,7 +87,11 @@ impl Request {
         let mut words = line.split_ascii_whitespace();
         match words.next() {
             Some("capture") => {}
-            Some(w) => return Err(format!("unknown request {w:?} (expected capture)")),
+            Some(w) => {
+                return Err(format!(
+                    "unknown request {w:?} (expected capture or reload)"
+                ))
+            }
             None => return Err("empty request".into()),
         }
         let mut r = Request::default();

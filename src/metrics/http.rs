@@ -1,22 +1,19 @@
 //! The metrics listener: a minimal HTTP/1.1 server on tokio, GET (and HEAD), one
-//! request per connection, then closed; and one POST, from this machine only. Written here rather than taken from a crate:
+//! request per connection, then closed. Written here rather than taken from a crate:
 //! it serves a few read-only paths, and an HTTP crate would bring a large tree for
 //! them (docs/architecture.md "Dependencies").
 //!
 //! - `/metrics`: the Prometheus exposition (`expose.rs`).
 //! - `/`: the status page, and `/status.json`, what it polls (`page.rs`).
-//! - `POST /reload`: `mbgate reload`. The configuration file is read again as on
-//!   SIGHUP (`crate::reload`), and the answer is what the log says of it: 200 when
-//!   it was taken, 409 when refused. Only from a loopback address (403 otherwise):
-//!   whoever can reach the listener from elsewhere may read the numbers, not
-//!   reconfigure the gateway.
 //!
-//! It runs on a thread of its own ([`spawn`]), so the relay's loop never waits for a
-//! scrape to be rendered. Nothing here changes the gateway but a reload. A request head larger than 8 KiB, or slower than
-//! 5 s, is refused; at most 16 connections at once, the others closed at once.
+//! Nothing here changes the gateway: whoever can reach the listener may read the
+//! numbers, never reconfigure it (`mbgate reload` asks over the control socket,
+//! `crate::capture::control`). It runs on a thread of its own ([`spawn`]), so the
+//! relay's loop never waits for a scrape to be rendered. A request head larger than
+//! 8 KiB, or slower than 5 s, is refused; at most 16 connections at once, the others
+//! closed at once.
 
 use super::{expose, page, Board};
-use crate::reload::ReloadHandle;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
@@ -40,20 +37,14 @@ pub(crate) fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
 /// Serves `board` on `listener` until `stop`, on a thread of its own with a runtime of
 /// its own: rendering a scrape or the page never holds up the relay's loop, whose
 /// runtime has one thread.
-/// `reload`: where `POST /reload` goes (none: 404).
-pub(crate) fn spawn(
-    listener: std::net::TcpListener,
-    board: Arc<Board>,
-    reload: Option<ReloadHandle>,
-    stop: CancellationToken,
-) {
+pub(crate) fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: CancellationToken) {
     let run = move || {
         let rt = tokio::runtime::Builder::new_current_thread()
             .enable_all()
             .build()?;
         rt.block_on(async {
             let listener = TcpListener::from_std(listener)?;
-            serve(listener, board, reload, stop).await;
+            serve(listener, board, stop).await;
             Ok::<_, std::io::Error>(())
         })
     };
@@ -70,12 +61,7 @@ pub(crate) fn spawn(
 }
 
 /// Serves `board` on `listener` until `stop`.
-async fn serve(
-    listener: TcpListener,
-    board: Arc<Board>,
-    reload: Option<ReloadHandle>,
-    stop: CancellationToken,
-) {
+async fn serve(listener: TcpListener, board: Arc<Board>, stop: CancellationToken) {
     if let Ok(local) = listener.local_addr() {
         // The page's address first: the one a person opens.
         info!(
@@ -99,10 +85,9 @@ async fn serve(
             debug!(%peer, "metrics: too many connections, closed");
             continue;
         };
-        let (board, reload) = (board.clone(), reload.clone());
+        let board = board.clone();
         tokio::spawn(async move {
-            let reload = reload.filter(|_| peer.ip().is_loopback()).ok_or(peer);
-            if let Err(e) = answer(stream, &board, reload).await {
+            if let Err(e) = answer(stream, &board).await {
                 debug!(%peer, "metrics: {e}");
             }
             drop(slot);
@@ -110,13 +95,8 @@ async fn serve(
     }
 }
 
-/// Reads one request head and answers it. `reload`: where a reload is asked for, or
-/// the peer, when it may not ask (not on this machine, or no reload here).
-async fn answer(
-    mut stream: TcpStream,
-    board: &Arc<Board>,
-    reload: Result<ReloadHandle, SocketAddr>,
-) -> std::io::Result<()> {
+/// Reads one request head and answers it.
+async fn answer(mut stream: TcpStream, board: &Arc<Board>) -> std::io::Result<()> {
     let mut head = Vec::with_capacity(512);
     let read = tokio::time::timeout(HEAD_WITHIN, async {
         let mut buf = [0u8; 1024];
@@ -134,7 +114,6 @@ async fn answer(
     })
     .await;
     let response = match read {
-        Ok(Ok(true)) if is_reload(&head) => reloaded(reload).await,
         Ok(Ok(true)) => respond(&head, board),
         Ok(Err(e)) => return Err(e),
         _ => reply(
@@ -176,41 +155,11 @@ fn respond(head: &[u8], board: &Arc<Board>) -> Vec<u8> {
     }
 }
 
-/// Is this `POST /reload`?
-fn is_reload(head: &[u8]) -> bool {
-    let text = String::from_utf8_lossy(head);
-    let mut words = text.lines().next().unwrap_or("").split_whitespace();
-    (words.next(), words.next()) == (Some("POST"), Some("/reload"))
-}
-
-/// `POST /reload`: the gateway reloads, and the answer is what the log says of it.
-async fn reloaded(reload: Result<ReloadHandle, SocketAddr>) -> Vec<u8> {
-    const TEXT: &str = "text/plain; charset=utf-8";
-    let handle = match reload {
-        Ok(h) => h,
-        Err(peer) if !peer.ip().is_loopback() => {
-            let body = "a reload is asked for from this machine only\n";
-            return reply(403, TEXT, body.into(), false);
-        }
-        Err(_) => return reply(404, TEXT, "this gateway does not reload\n".into(), false),
-    };
-    match handle.reload().await {
-        Some(outcome) => {
-            let status = if outcome.taken() { 200 } else { 409 };
-            reply(status, TEXT, outcome.lines().join("\n") + "\n", false)
-        }
-        None => reply(503, TEXT, "the gateway is stopping\n".into(), false),
-    }
-}
-
 fn reply(status: u16, content_type: &str, body: String, head_only: bool) -> Vec<u8> {
     let reason = match status {
         200 => "OK",
         400 => "Bad Request",
-        403 => "Forbidden",
         404 => "Not Found",
-        409 => "Conflict",
-        503 => "Service Unavailable",
         _ => "Method Not Allowed",
     };
     let mut out = format!(
@@ -258,35 +207,5 @@ mod tests {
         );
         let r = ask("GET /nothing HTTP/1.1\r\n\r\n");
         assert!(r.starts_with("HTTP/1.1 404 "), "{r}");
-    }
-
-    /// `POST /reload` from elsewhere than this machine is forbidden; from here, to a
-    /// gateway that does not reload, not found; otherwise the reload's outcome.
-    #[tokio::test]
-    async fn a_reload_is_asked_for_from_this_machine_only() {
-        assert!(is_reload(b"POST /reload HTTP/1.1\r\n\r\n"));
-        assert!(!is_reload(b"GET /reload HTTP/1.1\r\n\r\n"));
-        let text = |r: Vec<u8>| String::from_utf8(r).unwrap();
-        let far: SocketAddr = "192.0.2.7:4000".parse().unwrap();
-        let r = text(reloaded(Err(far)).await);
-        assert!(r.starts_with("HTTP/1.1 403 Forbidden"), "{r}");
-        let near: SocketAddr = "127.0.0.1:4000".parse().unwrap();
-        let r = text(reloaded(Err(near)).await);
-        assert!(r.starts_with("HTTP/1.1 404 "), "{r}");
-        let (handle, mut asked) = ReloadHandle::new();
-        tokio::spawn(async move {
-            let a = asked.recv().await.unwrap();
-            let done = crate::reload::Outcome::Done {
-                applied: vec!["log.level = \"debug\"".into()],
-                restart: vec![],
-            };
-            a.send(done).unwrap();
-        });
-        let r = text(reloaded(Ok(handle)).await);
-        assert!(r.starts_with("HTTP/1.1 200 OK"), "{r}");
-        assert!(
-            r.ends_with("\r\n\r\nreloaded: log.level = \"debug\"\n"),
-            "{r}"
-        );
     }
 }
