@@ -3,8 +3,9 @@
 //! names file, line, column and key: `x.toml:7:13: serial.baud_rate: must be between
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
+use super::raw::{entries, raw_value as raw, suggest, Bad};
 use super::{
-    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Raw, Setting, Units, KEYS,
+    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units, KEYS,
 };
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -97,38 +98,6 @@ pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 pub(super) fn renamed<'a>(rename: &[(&'a str, &'a str)], name: &'a str) -> &'a str {
     let found = rename.iter().find(|(_, key)| *key == name);
     found.map_or(name, |(file, _)| file)
-}
-
-type Entry<'a, 'i> = (&'a Spanned<Cow<'i, str>>, &'a Spanned<DeValue<'i>>);
-
-/// A table's entries in the order of the file (`DeTable` keeps them sorted by name).
-fn entries<'a, 'i>(table: &'a DeTable<'i>) -> Vec<Entry<'a, 'i>> {
-    let mut all: Vec<_> = table.iter().collect();
-    all.sort_by_key(|(k, _)| k.span().start);
-    all
-}
-
-/// A TOML value as the checks see it (for the master line's keys too).
-pub(super) fn raw_value(v: &DeValue) -> Raw {
-    raw(v)
-}
-
-/// A TOML value as the checks see it.
-fn raw(v: &DeValue) -> Raw {
-    match v {
-        DeValue::Integer(i) => {
-            // Beyond i128 (far beyond any range): saturated, which keeps the sign.
-            let negative = i.as_str().starts_with('-');
-            let beyond = if negative { i128::MIN } else { i128::MAX };
-            Raw::Int(i128::from_str_radix(i.as_str(), i.radix()).unwrap_or(beyond))
-        }
-        DeValue::Boolean(b) => Raw::Bool(*b),
-        DeValue::String(s) => Raw::Str(s.to_string()),
-        DeValue::Float(f) => Raw::Other(format!("floating point `{}`", f.as_str())),
-        DeValue::Datetime(d) => Raw::Other(format!("datetime `{d}`")),
-        DeValue::Array(_) => Raw::Other("array".into()),
-        DeValue::Table(_) => Raw::Other("table".into()),
-    }
 }
 
 struct Reader<'t> {
@@ -374,7 +343,7 @@ impl Reader<'_> {
         Ok((at, listen))
     }
 
-    fn bad<T>(&self, b: super::master::Bad) -> Result<T, ConfigError> {
+    fn bad<T>(&self, b: Bad) -> Result<T, ConfigError> {
         self.fail(b.at, &b.key, b.message)
     }
 
@@ -388,7 +357,7 @@ impl Reader<'_> {
         let (mut role, mut routes, mut tcp_tls) = (None, None, None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
-            let bad = |b: super::master::Bad| self.fail::<()>(b.at, &b.key, b.message);
+            let bad = |b: Bad| self.fail::<()>(b.at, &b.key, b.message);
             match k.get_ref().as_ref() {
                 "units" => {
                     units.ids = self.units(item, &full)?;
@@ -631,23 +600,6 @@ fn line_col(text: &str, offset: usize) -> (usize, usize) {
     let line = before.matches('\n').count() + 1;
     let line_start = before.rfind('\n').map_or(0, |i| i + 1);
     (line, before[line_start..].chars().count() + 1)
-}
-
-/// The expected name closest to a misspelt `name`, if one is close enough.
-pub(super) fn suggest<'a>(name: &str, expected: &[&'a str]) -> Option<&'a str> {
-    let norm = |s: &str| -> String {
-        s.chars()
-            .filter(|c| *c != '_' && *c != '-')
-            .flat_map(char::to_lowercase)
-            .collect()
-    };
-    let n = norm(name);
-    expected
-        .iter()
-        .map(|e| (strsim::levenshtein(&n, &norm(e)), *e))
-        .filter(|(d, e)| *d <= 2.max(e.len() / 4))
-        .min_by_key(|(d, _)| *d)
-        .map(|(_, e)| e)
 }
 
 /// Best-effort name of the key on a line of a file that failed to parse (there is no

@@ -12,6 +12,7 @@ pub mod describe;
 mod file;
 mod layout;
 pub mod master;
+mod raw;
 
 pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
 
@@ -22,6 +23,7 @@ pub(crate) fn effective_access(listen: &ListenConfig, roles: &[Role]) -> Vec<Str
 }
 pub use file::{load, parse, ConfigError};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
+pub use raw::Raw;
 use std::net::SocketAddr;
 use Check::{Any, NonEmpty, OneOf, Range};
 
@@ -369,31 +371,6 @@ impl Check {
             }
             _ => Ok(()),
         }
-    }
-}
-
-/// A value as found in the file or given as a flag, before it is checked.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Raw {
-    /// A TOML integer, or a flag's value that parses as one.
-    Int(i128),
-    /// A TOML boolean, or a flag's `true`/`false`.
-    Bool(bool),
-    /// A TOML string, or a flag's value taken as text.
-    Str(String),
-    /// Any other TOML value, as described in messages (`floating point `1.5``).
-    Other(String),
-}
-
-impl Raw {
-    fn invalid(&self, expected: &str) -> String {
-        let found = match self {
-            Raw::Int(v) => format!("integer `{v}`"),
-            Raw::Bool(b) => format!("boolean `{b}`"),
-            Raw::Str(s) => format!("string {s:?}"),
-            Raw::Other(what) => what.clone(),
-        };
-        format!("invalid type: {found}, expected {expected}")
     }
 }
 
