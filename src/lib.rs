@@ -16,7 +16,6 @@ pub mod gateway;
 pub(crate) mod invocation;
 pub mod logging;
 pub mod manual;
-pub mod master_demo;
 pub mod metrics;
 pub(crate) mod notify;
 pub(crate) mod number;

@@ -352,7 +352,7 @@ fn master_demo(args: mbgate::demo::DemoArgs) -> ExitCode {
         args.traffic,
         Some(after_banner),
         |settings, commands, shutdown| async move {
-            mbgate::master_demo::run(&args, settings, commands, shutdown, banner_shown).await?;
+            mbgate::demo::master::run(&args, settings, commands, shutdown, banner_shown).await?;
             Ok(())
         },
     )
