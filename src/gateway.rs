@@ -146,7 +146,8 @@ async fn serve_with(
         None => (None, None),
     };
     // Before the relays: the always-on ring has their first frames.
-    let capture = crate::capture::Capture::start(&cfg, reload_handle, &shutdown);
+    let capture = crate::capture::Capture::start(&cfg);
+    crate::control::start(&cfg, capture.hub(), reload_handle, &shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     // Each listener's counters (connections, refusals, requests it answered itself);

@@ -10,6 +10,7 @@ pub mod capture;
 pub mod cli_overrides;
 pub mod client;
 pub mod config;
+pub mod control;
 pub mod demo;
 pub mod frame;
 pub mod gateway;

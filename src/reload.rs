@@ -8,7 +8,6 @@
 //! Every reload also reads the certificates of the TLS listeners again
 //! (docs/security.md "Renewing certificates"), whatever becomes of the file.
 
-pub mod ask;
 mod changes;
 
 use crate::config::{Config, ConfigError};

@@ -70,7 +70,8 @@ impl Timing {
 pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
     let master = cfg.master.clone().expect("a master line");
     let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
-    let capture = Capture::start(cfg, None, &shutdown);
+    let capture = Capture::start(cfg);
+    crate::control::start(cfg, capture.hub(), None, &shutdown);
     let taps = (capture.hub().tap(1), capture.hub().tap(0));
     let counts = run_on(
         Box::new(port),

@@ -8,7 +8,7 @@
 //!
 //! Nothing here changes the gateway: whoever can reach the listener may read the
 //! numbers, never reconfigure it (`mbgate reload` asks over the control socket,
-//! `crate::capture::control`). It runs on a thread of its own ([`spawn`]), so the
+//! `crate::control`). It runs on a thread of its own ([`spawn`]), so the
 //! relay's loop never waits for a scrape to be rendered. A request head larger than
 //! 8 KiB, or slower than 5 s, is refused; at most 16 connections at once, the others
 //! closed at once.
