@@ -126,7 +126,7 @@ impl Link {
 
     pub(crate) fn serial(cfg: SerialConfig) -> Link {
         Link::Serial {
-            decoder: Framer::new(cfg.framing),
+            decoder: cfg.framing.framer(),
             cfg,
             port: None,
         }

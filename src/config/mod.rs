@@ -115,6 +115,19 @@ choices! {
     }
 }
 
+impl Framing {
+    /// The framer for a line of this framing (the framings themselves are
+    /// `crate::frame`'s, which knows nothing of the configuration).
+    pub(crate) fn framer(self) -> crate::frame::framer::Framer {
+        use crate::frame::{framer::Framer, serial::Codec};
+        match self {
+            Framing::Mbap => Framer::mbap(),
+            Framing::Rtu => Framer::serial(Codec::Rtu),
+            Framing::Ascii => Framer::serial(Codec::Ascii),
+        }
+    }
+}
+
 /// The values `log.level` accepts.
 pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
 

@@ -152,7 +152,7 @@ pub async fn run(
         rx_pace: Pacer::new(baud, 10),
         tx_pace: Pacer::new(baud, 10),
         chunker: settings.chunker,
-        decoder: Framer::new(settings.framing),
+        decoder: settings.framing.framer(),
         out: VecDeque::new(),
         busy_until: None,
         last_rx: Instant::now(),
