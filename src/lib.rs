@@ -1,7 +1,7 @@
 //! mbgate: a Modbus/TCP gateway to serial devices (docs/design.md).
 
 // Unsafe only where a SAFETY comment says why it is sound, each block allowed on its
-// own (src/serial.rs: the ioctls and tcdrain).
+// own (src/port/serial/: the ioctls and tcdrain).
 #![deny(unsafe_code)]
 
 pub mod access;
@@ -25,7 +25,6 @@ pub mod port;
 pub mod relay;
 pub mod reload;
 pub(crate) mod router;
-pub mod serial;
 pub mod sim;
 pub mod stats;
 pub(crate) mod tcp;

@@ -461,7 +461,7 @@ fn open_port<'a>(
     port: &'a mut Option<SerialStream>,
 ) -> Result<&'a mut SerialStream, ClientError> {
     if port.is_none() {
-        let p = crate::serial::open(cfg).map_err(|source| ClientError::Open {
+        let p = crate::port::serial::open(cfg).map_err(|source| ClientError::Open {
             path: cfg.path.clone(),
             source,
         })?;

@@ -139,7 +139,7 @@ pub(crate) fn wire(cfg: &SerialConfig, info: &PortInfo) -> bool {
 /// The silence that ends a frame on this port: 3.5 character times, never less than
 /// `serial.silence_floor_ms` (a number, or from the port: [`Kind::auto_floor`]).
 pub(crate) fn silence(cfg: &SerialConfig, info: &PortInfo) -> Duration {
-    let bits = crate::serial::bits_per_char(cfg);
+    let bits = super::serial::bits_per_char(cfg);
     let t35 = Duration::from_micros(crate::frame::rtu::t35_us(cfg.baud_rate, bits));
     t35.max(floor(cfg, info))
 }
@@ -150,7 +150,7 @@ pub(crate) fn floor(cfg: &SerialConfig, info: &PortInfo) -> Duration {
         Floor::Ms(ms) => Duration::from_millis(ms),
         Floor::Auto => info
             .kind
-            .auto_floor(crate::serial::wire_time(cfg, 1000) / 1000),
+            .auto_floor(super::serial::wire_time(cfg, 1000) / 1000),
     }
 }
 

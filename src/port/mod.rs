@@ -8,7 +8,7 @@
 
 pub mod duplex;
 pub mod kind;
-pub(crate) mod serial;
+pub mod serial;
 pub(crate) mod tcp;
 
 use std::future::Future;

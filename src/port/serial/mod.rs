@@ -1,7 +1,12 @@
 //! The serial port as a [`Port`]: the configured settings, flow control, stale bytes
-//! cleared, RS-485, exclusive open (all in [`crate::serial::open`]), and `tcdrain` and
+//! cleared, RS-485, exclusive open (all in [`open()`], `open.rs`), and `tcdrain` and
 //! FIONREAD on its descriptor, the drain run by a thread of the port's own
-//! ([`crate::serial::Drainer`]).
+//! ([`Drainer`]).
+
+mod open;
+
+pub(crate) use open::{bits_per_char, input_waiting, wire_time};
+pub use open::{held_by, open, Drained, Drainer, PreciseTimer};
 
 use super::{Control, Drain, Link, Opening, Port};
 use crate::config::SerialConfig;
@@ -32,13 +37,13 @@ impl Port for SerialPort {
     }
 
     fn open(&mut self) -> Opening {
-        let opened = crate::serial::open(&self.cfg).map_err(io::Error::other);
+        let opened = open(&self.cfg).map_err(io::Error::other);
         let low_latency = self.cfg.low_latency;
         Box::pin(async move {
             let port = opened?;
             let fd = port.as_raw_fd();
             let info = super::kind::detect(fd, low_latency);
-            let drainer = crate::serial::Drainer::start(fd)?;
+            let drainer = Drainer::start(fd)?;
             let (reader, writer) = tokio::io::split(port);
             Ok(Link {
                 reader: Box::new(reader),
@@ -50,7 +55,7 @@ impl Port for SerialPort {
     }
 
     fn wire_time(&self, bytes: usize) -> Duration {
-        crate::serial::wire_time(&self.cfg, bytes)
+        wire_time(&self.cfg, bytes)
     }
 }
 
@@ -58,7 +63,7 @@ impl Port for SerialPort {
 /// drops all three together), and its drain thread, which ends with it.
 struct Tty {
     fd: RawFd,
-    drainer: crate::serial::Drainer,
+    drainer: Drainer,
 }
 
 impl Control for Tty {
@@ -72,6 +77,6 @@ impl Control for Tty {
     }
 
     fn input_waiting(&self) -> bool {
-        crate::serial::input_waiting(self.fd).is_ok_and(|n| n > 0)
+        input_waiting(self.fd).is_ok_and(|n| n > 0)
     }
 }

@@ -329,11 +329,10 @@ pub(crate) fn wire_time(cfg: &SerialConfig, bytes: usize) -> Duration {
     Duration::from_micros(bits * 1_000_000 / u64::from(cfg.baud_rate.max(1)))
 }
 
-pub(crate) use crate::port::Backoff;
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::port::Backoff;
 
     #[test]
     fn backoff_doubles_up_to_max_and_resets() {
