@@ -56,7 +56,7 @@ pub(crate) struct Timing {
 impl Timing {
     pub(crate) fn of(cfg: &Config) -> Self {
         // Taken before the port opens: its kind from the path (its device number).
-        let kind = crate::port::kind::of_path(&cfg.serial.path);
+        let kind = crate::port::serial::of_path(&cfg.serial.path);
         let port = crate::port::kind::PortInfo::plain(kind);
         Self {
             pause: crate::port::kind::silence(&cfg.serial, &port),

@@ -409,7 +409,7 @@ async fn serial_exchange(
     let silence = match decoder.codec() {
         None => Duration::from_millis(RelayConfig::default().frame_gap_ms),
         Some(_) => {
-            let port = crate::port::kind::PortInfo::plain(crate::port::kind::of_path(&cfg.path));
+            let port = crate::port::kind::PortInfo::plain(crate::port::serial::of_path(&cfg.path));
             crate::port::kind::silence(cfg, &port)
         }
     };

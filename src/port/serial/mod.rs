@@ -1,12 +1,18 @@
-//! The serial port as a [`Port`]: the configured settings, flow control, stale bytes
-//! cleared, RS-485, exclusive open (all in [`open()`], `open.rs`), and `tcdrain` and
-//! FIONREAD on its descriptor, the drain run by a thread of the port's own
-//! ([`Drainer`]).
+//! The serial port, all of it: opening it with the configured settings, flow control,
+//! stale bytes cleared, RS-485, exclusively (`open.rs`); what it is (`detect.rs`);
+//! `tcdrain` and FIONREAD on its descriptor, the drain run by a thread of the port's
+//! own (`drain.rs`); the timer the line's gaps are kept with (`timer.rs`); and here,
+//! the port as a [`Port`]. The simulator and the client open their ports with the same
+//! [`open`]; how long bytes take at `baud_rate` is `port/kind.rs`'s.
 
+mod detect;
+mod drain;
 mod open;
+mod timer;
 
-pub(crate) use open::{bits_per_char, input_waiting, wire_time};
-pub use open::{held_by, open, Drained, Drainer, PreciseTimer};
+pub(crate) use detect::of_path;
+pub use open::{held_by, open};
+pub use timer::PreciseTimer;
 
 use super::{Control, Drain, Link, Opening, Port};
 use crate::config::SerialConfig;
@@ -42,8 +48,8 @@ impl Port for SerialPort {
         Box::pin(async move {
             let port = opened?;
             let fd = port.as_raw_fd();
-            let info = super::kind::detect(fd, low_latency);
-            let drainer = Drainer::start(fd)?;
+            let info = detect::detect(fd, low_latency);
+            let drainer = drain::Drainer::start(fd)?;
             let (reader, writer) = tokio::io::split(port);
             Ok(Link {
                 reader: Box::new(reader),
@@ -55,7 +61,7 @@ impl Port for SerialPort {
     }
 
     fn wire_time(&self, bytes: usize) -> Duration {
-        wire_time(&self.cfg, bytes)
+        super::kind::wire_time(&self.cfg, bytes)
     }
 }
 
@@ -63,7 +69,7 @@ impl Port for SerialPort {
 /// drops all three together), and its drain thread, which ends with it.
 struct Tty {
     fd: RawFd,
-    drainer: Drainer,
+    drainer: drain::Drainer,
 }
 
 impl Control for Tty {
@@ -77,6 +83,6 @@ impl Control for Tty {
     }
 
     fn input_waiting(&self) -> bool {
-        input_waiting(self.fd).is_ok_and(|n| n > 0)
+        drain::input_waiting(self.fd).is_ok_and(|n| n > 0)
     }
 }

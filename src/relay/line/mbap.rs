@@ -12,7 +12,6 @@ use crate::frame::mbap::FrameRef;
 use crate::frame::{pdu, FunctionCode};
 use crate::frame::{Adu, Judge};
 use crate::port::kind::{self, PortInfo};
-use crate::port::serial;
 use crate::relay::inflight::{Asked, InFlight};
 use crate::stats::Stats;
 use crate::tids::Tids;
@@ -244,7 +243,7 @@ impl Mbap {
         // A socket or a pty has no line speed: nothing of a request is "still on the
         // wire".
         self.char_time = if wire {
-            serial::wire_time(&self.serial, 1000) / 1000
+            kind::wire_time(&self.serial, 1000) / 1000
         } else {
             Duration::ZERO
         };

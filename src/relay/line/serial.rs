@@ -12,7 +12,6 @@ use crate::frame::pdu;
 use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
 use crate::port::kind::{self, PortInfo};
-use crate::port::serial;
 use crate::relay::inflight::{Asked, InFlight};
 use crate::stats::Stats;
 use bytes::Bytes;
@@ -88,7 +87,7 @@ impl Serial {
             // The device server keeps the gap on its own line.
             Duration::ZERO
         } else {
-            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)))
+            Duration::from_micros(rtu::t35_us(serial.baud_rate, kind::bits_per_char(serial)))
         };
         let gap = match serial.inter_frame_gap_us {
             _ if stream => Duration::ZERO,
@@ -135,7 +134,7 @@ impl Serial {
         if self.stream || !self.wire {
             Duration::ZERO
         } else {
-            serial::wire_time(&self.port, bytes)
+            kind::wire_time(&self.port, bytes)
         }
     }
 
@@ -326,7 +325,7 @@ impl Serial {
         let on_line = if self.stream {
             Duration::ZERO
         } else {
-            serial::wire_time(&self.port, bytes)
+            kind::wire_time(&self.port, bytes)
         };
         on_line + 2 * self.gap
     }
