@@ -186,7 +186,7 @@ async fn serve_with(
         }));
     }
     // Off unless asked for: then nothing but the Modbus ports listen.
-    let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
+    let mut http = crate::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
         let listener =
             metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
