@@ -19,7 +19,7 @@
 //! connection by the peer's credentials (`SO_PEERCRED`): root, the gateway's own
 //! user, or a member of its group. A malformed request closes that client only.
 //!
-//! Both ends live here: the gateway's (`serve.rs`, started by [`start`]) and the two
+//! Both ends live here: the gateway's (`serve.rs`, started by `start`) and the two
 //! commands that ask it, `mbgate capture` (`capture.rs`) and `mbgate reload`
 //! (`reload.rs`); this file holds what both ends read: the words and messages, and
 //! where the socket is.

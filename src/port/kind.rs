@@ -3,8 +3,8 @@
 //! driver, its receive FIFO's trigger level), a USB adapter (its driver, its latency
 //! timer), TCP, or an in-memory pipe; whether the driver's low latency was turned on;
 //! and, from these, whether the rules that read the clock against `baud_rate` apply
-//! ([`wire`]), the silence that ends a frame by default ([`silence`]), and how long
-//! bytes take on the wire ([`wire_time`]).
+//! (`wire`), the silence that ends a frame by default (`silence`), and how long
+//! bytes take on the wire (`wire_time`).
 //!
 //! Plain data: a serial port is found out by `port/serial/detect.rs`; the other ports
 //! say what they are.
