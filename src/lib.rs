@@ -1,7 +1,8 @@
 //! mbgate: a Modbus/TCP gateway to serial devices (docs/design.md).
 
 // Unsafe only where a SAFETY comment says why it is sound, each block allowed on its
-// own (src/port/serial/: the ioctls and tcdrain).
+// own (src/port/serial/: the ioctls and tcdrain; src/control/serve.rs: the effective
+// user and group).
 #![deny(unsafe_code)]
 
 pub mod access;

@@ -1,7 +1,7 @@
 //! The metrics listener: a minimal HTTP/1.1 server on tokio, GET (and HEAD), one
 //! request per connection, then closed. Written here rather than taken from a crate:
 //! it serves a few read-only paths, and an HTTP crate would bring a large tree for
-//! them (docs/architecture.md "Dependencies").
+//! them (docs/architecture.md "Dependencies we kept and why").
 //!
 //! - `/metrics`: the Prometheus exposition (`expose.rs`).
 //! - `/`: the status page, and `/status.json`, what it polls (`page.rs`).

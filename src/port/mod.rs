@@ -1,5 +1,5 @@
 //! What the relay is attached to: a byte transport it opens, reopens, reads, writes and
-//! drains, with no knowledge of which one it is (docs/architecture.md "The port").
+//! drains, with no knowledge of which one it is (docs/architecture.md "The ports").
 //!
 //! Three implementations: the serial port (`serial::SerialPort`, what the gateway
 //! runs on), a TCP socket to a device server (`tcp::TcpPort`) and an in-memory pipe
