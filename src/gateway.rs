@@ -146,7 +146,8 @@ async fn serve_with(
         None => (None, None),
     };
     // Before the relays: the always-on ring has their first frames.
-    let capture = crate::capture::Capture::start(&cfg, reload_handle, &shutdown);
+    let capture = crate::capture::Capture::start(&cfg);
+    crate::control::start(&cfg, capture.hub(), reload_handle, &shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     // Each listener's counters (connections, refusals, requests it answered itself);
@@ -185,7 +186,7 @@ async fn serve_with(
         }));
     }
     // Off unless asked for: then nothing but the Modbus ports listen.
-    let mut http = reload::MetricsListener::new(board.clone(), shutdown.clone());
+    let mut http = crate::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
         let listener =
             metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;

@@ -1,7 +1,8 @@
 //! mbgate: a Modbus/TCP gateway to serial devices (docs/design.md).
 
 // Unsafe only where a SAFETY comment says why it is sound, each block allowed on its
-// own (src/serial.rs: the ioctls and tcdrain).
+// own (src/port/serial/: the ioctls and tcdrain; src/control/serve.rs: the effective
+// user and group).
 #![deny(unsafe_code)]
 
 pub mod access;
@@ -10,13 +11,13 @@ pub mod capture;
 pub mod cli_overrides;
 pub mod client;
 pub mod config;
+pub mod control;
 pub mod demo;
 pub mod frame;
 pub mod gateway;
 pub(crate) mod invocation;
 pub mod logging;
 pub mod manual;
-pub mod master_demo;
 pub mod metrics;
 pub(crate) mod notify;
 pub(crate) mod number;
@@ -25,7 +26,6 @@ pub mod port;
 pub mod relay;
 pub mod reload;
 pub(crate) mod router;
-pub mod serial;
 pub mod sim;
 pub mod stats;
 pub(crate) mod tcp;

@@ -92,7 +92,7 @@ enum Command {
     /// service's user or group). Exit code 0 when the capture ended as asked (--count,
     /// --seconds, Ctrl-C), 1 when it could not run or its output failed, 2 bad
     /// arguments.
-    Capture(mbgate::capture::client::CaptureArgs),
+    Capture(mbgate::control::capture::CaptureArgs),
     /// Man pages and shell completions, generated from this command line.
     ///
     /// The .deb installs them; for an install with cargo: `mbgate generate man DIR`,
@@ -108,7 +108,7 @@ enum Command {
     /// listener's certificate read again. Exit code 0 taken, 1 refused (the file does
     /// not load, or adds or removes a line; the running configuration stays), 3 the
     /// gateway could not be asked, 2 bad arguments.
-    Reload(mbgate::reload::ask::ReloadArgs),
+    Reload(mbgate::control::reload::ReloadArgs),
 }
 
 /// What `mbgate generate` writes.
@@ -141,8 +141,8 @@ fn main() -> ExitCode {
         Command::Demo(args) => demo(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::Generate(what) => generate(what),
-        Command::Reload(args) => mbgate::reload::ask::main(args),
-        Command::Capture(args) => mbgate::capture::client::main(args),
+        Command::Reload(args) => mbgate::control::reload::main(args),
+        Command::Capture(args) => mbgate::control::capture::main(args),
         Command::CheckConfig {
             file,
             print,
@@ -352,7 +352,7 @@ fn master_demo(args: mbgate::demo::DemoArgs) -> ExitCode {
         args.traffic,
         Some(after_banner),
         |settings, commands, shutdown| async move {
-            mbgate::master_demo::run(&args, settings, commands, shutdown, banner_shown).await?;
+            mbgate::demo::master::run(&args, settings, commands, shutdown, banner_shown).await?;
             Ok(())
         },
     )

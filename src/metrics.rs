@@ -12,6 +12,7 @@
 pub mod ask;
 pub(crate) mod expose;
 pub(crate) mod http;
+pub(crate) mod listener;
 pub(crate) mod page;
 pub(crate) mod status;
 

@@ -189,7 +189,7 @@ impl Relay {
         let mut rbuf = vec![0u8; 4096];
         // Every timer to the microsecond, set only when the next wake moves; without a
         // timerfd, tokio's, to the millisecond.
-        let mut timer = crate::serial::PreciseTimer::new()
+        let mut timer = crate::port::serial::PreciseTimer::new()
             .inspect_err(|e| debug!("no timerfd ({e}): timers to the millisecond"))
             .ok();
         loop {

@@ -8,14 +8,12 @@
 //! Every reload also reads the certificates of the TLS listeners again
 //! (docs/security.md "Renewing certificates"), whatever becomes of the file.
 
-pub mod ask;
 mod changes;
 
 use crate::config::{Config, ConfigError};
-use crate::metrics::{http, Board};
+use crate::metrics::listener::MetricsListener;
 use crate::relay::{Command, RelayHandle};
 use crate::tls::server::Acceptor;
-use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
@@ -118,52 +116,6 @@ impl ReloadHandle {
         let (tx, rx) = oneshot::channel();
         self.0.send(tx).ok()?;
         rx.await.ok()
-    }
-}
-
-/// The metrics listener as it runs, moved or stopped by a reload.
-pub(crate) struct MetricsListener {
-    board: Arc<Board>,
-    running: Option<(SocketAddr, CancellationToken)>,
-    shutdown: CancellationToken,
-}
-
-impl MetricsListener {
-    pub(crate) fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
-        Self {
-            board,
-            running: None,
-            shutdown,
-        }
-    }
-
-    /// Serves on `listener` (bound at start, so a bad address fails the start).
-    pub(crate) fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
-        let stop = self.shutdown.child_token();
-        http::spawn(listener, self.board.clone(), stop.clone());
-        self.running = Some((addr, stop));
-    }
-
-    /// Listens on `want` (none: not at all). A new address that cannot be bound
-    /// leaves the old listener running, and says so.
-    fn set(&mut self, want: Option<SocketAddr>) -> Result<(), String> {
-        if self.running.as_ref().map(|(a, _)| *a) == want {
-            return Ok(());
-        }
-        let bound = match want {
-            Some(addr) => match http::bind(addr) {
-                Ok(l) => Some((addr, l)),
-                Err(e) => return Err(format!("cannot listen for metrics on {addr}: {e}")),
-            },
-            None => None,
-        };
-        if let Some((_, stop)) = self.running.take() {
-            stop.cancel();
-        }
-        if let Some((addr, listener)) = bound {
-            self.start(addr, listener);
-        }
-        Ok(())
     }
 }
 

@@ -58,9 +58,9 @@ const PROGRAMS: &[&str] = &[
     "cd",
 ];
 
-/// The README and every page of docs/.
+/// The README, CONTRIBUTING.md and every page of docs/.
 fn pages() -> Vec<PathBuf> {
-    let mut pages = vec![repo().join("README.md")];
+    let mut pages = vec![repo().join("README.md"), repo().join("CONTRIBUTING.md")];
     let mut docs: Vec<PathBuf> = std::fs::read_dir(repo().join("docs"))
         .unwrap()
         .map(|e| e.unwrap().path())

@@ -7,7 +7,8 @@
 
 use super::common::pki::Pki;
 use super::common::{cpu_ns, read_req, tempdir, Gateway, Launch, Proc};
-use super::{command, diff_us, samples, served, spread, tcp_read, us, Report};
+use super::report::{command, diff_us, spread, us, Report};
+use super::shared::{samples, served, tcp_read};
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName};
 use std::fmt::Write as _;

@@ -56,7 +56,7 @@ pub(crate) struct Timing {
 impl Timing {
     pub(crate) fn of(cfg: &Config) -> Self {
         // Taken before the port opens: its kind from the path (its device number).
-        let kind = crate::port::kind::of_path(&cfg.serial.path);
+        let kind = crate::port::serial::of_path(&cfg.serial.path);
         let port = crate::port::kind::PortInfo::plain(kind);
         Self {
             pause: crate::port::kind::silence(&cfg.serial, &port),
@@ -70,7 +70,8 @@ impl Timing {
 pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
     let master = cfg.master.clone().expect("a master line");
     let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
-    let capture = Capture::start(cfg, None, &shutdown);
+    let capture = Capture::start(cfg);
+    crate::control::start(cfg, capture.hub(), None, &shutdown);
     let taps = (capture.hub().tap(1), capture.hub().tap(0));
     let counts = run_on(
         Box::new(port),

@@ -32,7 +32,7 @@ pub(crate) struct Requests(Framer, Tape);
 
 impl Requests {
     pub(crate) fn new(framing: Framing) -> Self {
-        Self(Framer::new(framing), Tape::default())
+        Self(framing.framer(), Tape::default())
     }
 
     /// Keep the bytes dropped, for the capture, or not.

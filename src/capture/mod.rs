@@ -9,12 +9,11 @@
 //! - `tape`: which bytes a framer dropped (pure);
 //! - `request`: what a capture asks for, and which packets it keeps (pure);
 //! - `hub`: taps, the bounded channel and the task that hands packets on;
-//! - `control`: the control socket `mbgate capture` (and `mbgate reload`) talk to;
-//! - `ring`: the always-on ring of files (`[capture] file`);
-//! - `client`: `mbgate capture`.
+//! - `ring`: the always-on ring of files (`[capture] file`).
+//!
+//! A capture is asked for over the control socket (`crate::control`: the gateway's
+//! end, and `mbgate capture`).
 
-pub mod client;
-pub(crate) mod control;
 pub(crate) mod hub;
 pub(crate) mod packet;
 pub mod pcapng;
@@ -24,9 +23,6 @@ pub(crate) mod tape;
 
 use crate::config::{Config, ListenFraming};
 pub(crate) use hub::{Hub, Interface, Tap};
-use std::path::PathBuf;
-use tokio_util::sync::CancellationToken;
-use tracing::{debug, warn};
 
 /// The interfaces of a gateway of `cfg`: the TCP side (0), then each line.
 pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
@@ -72,45 +68,18 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
     v
 }
 
-/// Where the control socket goes: `control.socket`, else `control.sock` in the
-/// runtime directory systemd made for the service (`RUNTIME_DIRECTORY`), else none.
-pub(crate) fn socket_path(cfg: &Config) -> Option<PathBuf> {
-    let set = cfg.control.socket.trim();
-    if !set.is_empty() {
-        return Some(PathBuf::from(set));
-    }
-    let dirs = std::env::var_os("RUNTIME_DIRECTORY")?;
-    let first = std::env::split_paths(&dirs).next()?;
-    Some(first.join(client::SOCKET_NAME))
-}
-
-/// The capture of a running gateway: its hub, its control socket and its ring.
+/// The capture of a running gateway: its hub and its ring.
 pub(crate) struct Capture {
     hub: Hub,
     ring: Option<std::thread::JoinHandle<()>>,
 }
 
 impl Capture {
-    /// Starts the hub for `cfg`'s interfaces, the control socket (if it has a
-    /// place; one that cannot be made is warned about, and the gateway goes on
-    /// without; `reload` is where its reloads go, none if the gateway has no file to
-    /// read again) and the ring (if `capture.file` is set).
-    pub(crate) fn start(
-        cfg: &Config,
-        reload: Option<crate::reload::ReloadHandle>,
-        shutdown: &CancellationToken,
-    ) -> Capture {
+    /// Starts the hub for `cfg`'s interfaces and the ring (if `capture.file` is set).
+    /// The control socket, where captures are asked for, is `crate::control`'s.
+    pub(crate) fn start(cfg: &Config) -> Capture {
         let (hub, task) = Hub::new(interfaces(cfg));
         tokio::spawn(task);
-        match socket_path(cfg) {
-            Some(path) => match control::bind(&path) {
-                Ok(c) => {
-                    tokio::spawn(control::serve(c, hub.clone(), reload, shutdown.clone()));
-                }
-                Err(e) => warn!("{e}; mbgate capture and mbgate reload are not available"),
-            },
-            None => debug!("no control socket (control.socket is empty, and not under systemd)"),
-        }
         let ring = ring::start(&cfg.capture, &hub);
         Capture { hub, ring }
     }

@@ -126,7 +126,7 @@ impl Link {
 
     pub(crate) fn serial(cfg: SerialConfig) -> Link {
         Link::Serial {
-            decoder: Framer::new(cfg.framing),
+            decoder: cfg.framing.framer(),
             cfg,
             port: None,
         }
@@ -409,7 +409,7 @@ async fn serial_exchange(
     let silence = match decoder.codec() {
         None => Duration::from_millis(RelayConfig::default().frame_gap_ms),
         Some(_) => {
-            let port = crate::port::kind::PortInfo::plain(crate::port::kind::of_path(&cfg.path));
+            let port = crate::port::kind::PortInfo::plain(crate::port::serial::of_path(&cfg.path));
             crate::port::kind::silence(cfg, &port)
         }
     };
@@ -461,7 +461,7 @@ fn open_port<'a>(
     port: &'a mut Option<SerialStream>,
 ) -> Result<&'a mut SerialStream, ClientError> {
     if port.is_none() {
-        let p = crate::serial::open(cfg).map_err(|source| ClientError::Open {
+        let p = crate::port::serial::open(cfg).map_err(|source| ClientError::Open {
             path: cfg.path.clone(),
             source,
         })?;

@@ -19,7 +19,7 @@
 //! read_only = true
 //! ```
 
-use super::master::Bad;
+use super::raw::{bad, entries, raw_value, suggest, Bad};
 use super::{Check, Setting};
 use crate::access::{AllowList, Net, Policy, UnitSet, WriteRule};
 use crate::frame::function::FunctionCode;
@@ -102,33 +102,14 @@ pub struct TlsDevice {
     pub server_name: Option<String>,
 }
 
-fn bad<T>(at: usize, key: &str, message: impl Into<String>) -> Result<T, Bad> {
-    Err(Bad {
-        at,
-        key: key.to_owned(),
-        message: message.into(),
-    })
-}
-
+/// A value as the checks see it.
 fn raw(v: &Spanned<DeValue>) -> super::Raw {
-    super::file::raw_value(v.get_ref())
-}
-
-/// A table's entries in the order of the file.
-fn entries<'a, 'i>(
-    t: &'a DeTable<'i>,
-) -> Vec<(
-    &'a Spanned<std::borrow::Cow<'i, str>>,
-    &'a Spanned<DeValue<'i>>,
-)> {
-    let mut all: Vec<_> = t.iter().collect();
-    all.sort_by_key(|(k, _)| k.span().start);
-    all
+    raw_value(v.get_ref())
 }
 
 fn unknown<T>(k: &Spanned<std::borrow::Cow<str>>, key: &str, expected: &[&str]) -> Result<T, Bad> {
     let mut m = format!("unknown key; expected one of {}", expected.join(", "));
-    if let Some(s) = super::file::suggest(k.get_ref(), expected) {
+    if let Some(s) = suggest(k.get_ref(), expected) {
         m += &format!(" (did you mean `{s}`?)");
     }
     bad(k.span().start, key, m)

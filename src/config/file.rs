@@ -3,56 +3,16 @@
 //! names file, line, column and key: `x.toml:7:13: serial.baud_rate: must be between
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
+use super::error::{line_col, syntax_error, ConfigError};
+use super::raw::{entries, raw_value as raw, suggest, Bad};
 use super::{
-    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Raw, Setting, Units, KEYS,
+    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units, KEYS,
 };
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use toml::de::{DeTable, DeValue};
 use toml::Spanned;
-
-/// Why a configuration was rejected. The `Display` text is the whole message for the
-/// operator: it names the file, the line and column, and the key (or the flag).
-#[derive(Debug, thiserror::Error)]
-pub enum ConfigError {
-    /// The file could not be read (missing, permissions, not UTF-8...).
-    #[error("{}: cannot read the configuration file: {source}", path.display())]
-    Read {
-        /// The file named (`--config` or the default path).
-        path: PathBuf,
-        /// What the system said.
-        source: std::io::Error,
-    },
-    /// The text is not valid TOML, or a key is unknown, has the wrong type or a value
-    /// out of range. `line`/`column` (1-based) point at the value, or at the key for an
-    /// unknown key; `key` is the full dotted key (`serial.baud_rate`) when it can be told.
-    #[error("{origin}:{line}:{column}: {}{message}", key_prefix(.key))]
-    Invalid {
-        /// Where the text came from: the file's path, or a name for a text given in code.
-        origin: String,
-        /// 1-based line of the value (or of the unknown key).
-        line: usize,
-        /// 1-based column on that line.
-        column: usize,
-        /// The full dotted key, when it can be told.
-        key: Option<String>,
-        /// What is wrong, for the operator.
-        message: String,
-    },
-    /// A command-line override is out of range; `flag` is e.g. `--baud`.
-    #[error("{flag}: {message}")]
-    Override {
-        /// The flag with its dashes, e.g. `--baud`.
-        flag: String,
-        /// What is wrong with its value.
-        message: String,
-    },
-}
-
-fn key_prefix(key: &Option<String>) -> String {
-    key.as_ref().map(|k| format!("{k}: ")).unwrap_or_default()
-}
 
 /// Read and validate the configuration file at `path`. Error messages use `path` as
 /// given (relative paths stay relative).
@@ -97,38 +57,6 @@ pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 pub(super) fn renamed<'a>(rename: &[(&'a str, &'a str)], name: &'a str) -> &'a str {
     let found = rename.iter().find(|(_, key)| *key == name);
     found.map_or(name, |(file, _)| file)
-}
-
-type Entry<'a, 'i> = (&'a Spanned<Cow<'i, str>>, &'a Spanned<DeValue<'i>>);
-
-/// A table's entries in the order of the file (`DeTable` keeps them sorted by name).
-fn entries<'a, 'i>(table: &'a DeTable<'i>) -> Vec<Entry<'a, 'i>> {
-    let mut all: Vec<_> = table.iter().collect();
-    all.sort_by_key(|(k, _)| k.span().start);
-    all
-}
-
-/// A TOML value as the checks see it (for the master line's keys too).
-pub(super) fn raw_value(v: &DeValue) -> Raw {
-    raw(v)
-}
-
-/// A TOML value as the checks see it.
-fn raw(v: &DeValue) -> Raw {
-    match v {
-        DeValue::Integer(i) => {
-            // Beyond i128 (far beyond any range): saturated, which keeps the sign.
-            let negative = i.as_str().starts_with('-');
-            let beyond = if negative { i128::MIN } else { i128::MAX };
-            Raw::Int(i128::from_str_radix(i.as_str(), i.radix()).unwrap_or(beyond))
-        }
-        DeValue::Boolean(b) => Raw::Bool(*b),
-        DeValue::String(s) => Raw::Str(s.to_string()),
-        DeValue::Float(f) => Raw::Other(format!("floating point `{}`", f.as_str())),
-        DeValue::Datetime(d) => Raw::Other(format!("datetime `{d}`")),
-        DeValue::Array(_) => Raw::Other("array".into()),
-        DeValue::Table(_) => Raw::Other("table".into()),
-    }
 }
 
 struct Reader<'t> {
@@ -374,7 +302,7 @@ impl Reader<'_> {
         Ok((at, listen))
     }
 
-    fn bad<T>(&self, b: super::master::Bad) -> Result<T, ConfigError> {
+    fn bad<T>(&self, b: Bad) -> Result<T, ConfigError> {
         self.fail(b.at, &b.key, b.message)
     }
 
@@ -388,7 +316,7 @@ impl Reader<'_> {
         let (mut role, mut routes, mut tcp_tls) = (None, None, None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
-            let bad = |b: super::master::Bad| self.fail::<()>(b.at, &b.key, b.message);
+            let bad = |b: Bad| self.fail::<()>(b.at, &b.key, b.message);
             match k.get_ref().as_ref() {
                 "units" => {
                     units.ids = self.units(item, &full)?;
@@ -607,71 +535,4 @@ pub(super) fn parse_host_port(s: &str) -> Result<(), String> {
         return Err(bad());
     }
     Ok(())
-}
-
-fn syntax_error(text: &str, origin: &str, err: &toml::de::Error) -> ConfigError {
-    let (line, column) = err.span().map_or((1, 1), |s| line_col(text, s.start));
-    let message = err.message().trim().replace('\n', "; ");
-    ConfigError::Invalid {
-        origin: origin.to_owned(),
-        line,
-        column,
-        key: key_on_line(text, line),
-        message: format!("TOML syntax error: {message}"),
-    }
-}
-
-/// 1-based line and column (in characters) of byte `offset` in `text`.
-fn line_col(text: &str, offset: usize) -> (usize, usize) {
-    let mut offset = offset.min(text.len());
-    while !text.is_char_boundary(offset) {
-        offset -= 1;
-    }
-    let before = &text[..offset];
-    let line = before.matches('\n').count() + 1;
-    let line_start = before.rfind('\n').map_or(0, |i| i + 1);
-    (line, before[line_start..].chars().count() + 1)
-}
-
-/// The expected name closest to a misspelt `name`, if one is close enough.
-pub(super) fn suggest<'a>(name: &str, expected: &[&'a str]) -> Option<&'a str> {
-    let norm = |s: &str| -> String {
-        s.chars()
-            .filter(|c| *c != '_' && *c != '-')
-            .flat_map(char::to_lowercase)
-            .collect()
-    };
-    let n = norm(name);
-    expected
-        .iter()
-        .map(|e| (strsim::levenshtein(&n, &norm(e)), *e))
-        .filter(|(d, e)| *d <= 2.max(e.len() / 4))
-        .min_by_key(|(d, _)| *d)
-        .map(|(_, e)| e)
-}
-
-/// Best-effort name of the key on a line of a file that failed to parse (there is no
-/// table to ask): `section.key` for `key = ...`, `section` for `[section]`.
-fn key_on_line(text: &str, line: usize) -> Option<String> {
-    fn bare(s: &str) -> bool {
-        !s.is_empty()
-            && s.chars()
-                .all(|c| c.is_ascii_alphanumeric() || matches!(c, '_' | '-' | '.'))
-    }
-    fn header(l: &str) -> Option<&str> {
-        let inner = l.trim().strip_prefix('[')?;
-        let name = inner[..inner.find(']')?].trim();
-        (!inner.starts_with('[') && bare(name)).then_some(name)
-    }
-    let lines: Vec<&str> = text.split('\n').collect();
-    let current = lines.get(line.checked_sub(1)?)?;
-    if current.trim_start().starts_with('[') {
-        return header(current).map(str::to_owned);
-    }
-    let section = lines[..line - 1].iter().rev().find_map(|l| header(l));
-    let key = current[..current.find('=')?].trim();
-    bare(key).then(|| match section {
-        Some(s) => format!("{s}.{key}"),
-        None => key.to_owned(),
-    })
 }

@@ -17,6 +17,7 @@
 //! listen = "0.0.0.0:5021"     # passive: the slave connects in
 //! ```
 
+use super::raw::{bad, entries, raw_value, Bad};
 use super::{Check, Setting};
 use std::net::SocketAddr;
 use toml::de::{DeTable, DeValue};
@@ -76,22 +77,6 @@ impl MasterLine {
         let listed = self.routes.iter().position(|r| r.units.contains(&unit));
         listed.or_else(|| self.routes.iter().position(|r| r.units.is_empty()))
     }
-}
-
-/// A value the file got wrong: where, which key, why.
-#[derive(Debug)]
-pub(super) struct Bad {
-    pub(crate) at: usize,
-    pub(crate) key: String,
-    pub(crate) message: String,
-}
-
-fn bad<T>(at: usize, key: &str, message: impl Into<String>) -> Result<T, Bad> {
-    Err(Bad {
-        at,
-        key: key.to_owned(),
-        message: message.into(),
-    })
 }
 
 /// `role = "slave" | "master"`: true for a master line.
@@ -170,12 +155,10 @@ fn route(table: &DeTable, start: usize, path: &str) -> Result<Route, Bad> {
         max_in_flight: 1,
     };
     let mut peer = None;
-    let mut all: Vec<_> = table.iter().collect();
-    all.sort_by_key(|(k, _)| k.span().start);
-    for (k, v) in all {
+    for (k, v) in entries(table) {
         let key = format!("{path}.{}", k.get_ref());
         let at = v.span().start;
-        let raw = || super::file::raw_value(v.get_ref());
+        let raw = || raw_value(v.get_ref());
         let given = match k.get_ref().as_ref() {
             "units" => {
                 r.units = units(v, &key)?;
@@ -243,7 +226,7 @@ fn units(v: &Spanned<DeValue>, key: &str) -> Result<Vec<u8>, Bad> {
     }
     let mut out = Vec::new();
     for id in ids.iter() {
-        let raw = super::file::raw_value(id.get_ref());
+        let raw = raw_value(id.get_ref());
         let u = u8::read(&raw, &Check::Range(1, 255, None))
             .or_else(|m| bad(id.span().start, key, m))?;
         if out.contains(&u) {

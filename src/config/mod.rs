@@ -9,9 +9,12 @@
 
 mod access;
 pub mod describe;
+mod error;
 mod file;
 mod layout;
 pub mod master;
+mod print;
+mod raw;
 
 pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
 
@@ -20,8 +23,11 @@ pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
 pub(crate) fn effective_access(listen: &ListenConfig, roles: &[Role]) -> Vec<String> {
     access::effective(&listen.access, roles)
 }
-pub use file::{load, parse, ConfigError};
+pub use error::ConfigError;
+pub use file::{load, parse};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
+pub use print::{to_toml, to_toml_lines};
+pub use raw::Raw;
 use std::net::SocketAddr;
 use Check::{Any, NonEmpty, OneOf, Range};
 
@@ -110,6 +116,19 @@ choices! {
         Mbap = "mbap",
         /// RTU over TCP: unit, PDU, CRC-16, one request at a time
         Rtu = "rtu",
+    }
+}
+
+impl Framing {
+    /// The framer for a line of this framing (the framings themselves are
+    /// `crate::frame`'s, which knows nothing of the configuration).
+    pub(crate) fn framer(self) -> crate::frame::framer::Framer {
+        use crate::frame::{framer::Framer, serial::Codec};
+        match self {
+            Framing::Mbap => Framer::mbap(),
+            Framing::Rtu => Framer::serial(Codec::Rtu),
+            Framing::Ascii => Framer::serial(Codec::Ascii),
+        }
     }
 }
 
@@ -372,31 +391,6 @@ impl Check {
     }
 }
 
-/// A value as found in the file or given as a flag, before it is checked.
-#[derive(Debug, Clone, PartialEq)]
-pub enum Raw {
-    /// A TOML integer, or a flag's value that parses as one.
-    Int(i128),
-    /// A TOML boolean, or a flag's `true`/`false`.
-    Bool(bool),
-    /// A TOML string, or a flag's value taken as text.
-    Str(String),
-    /// Any other TOML value, as described in messages (`floating point `1.5``).
-    Other(String),
-}
-
-impl Raw {
-    fn invalid(&self, expected: &str) -> String {
-        let found = match self {
-            Raw::Int(v) => format!("integer `{v}`"),
-            Raw::Bool(b) => format!("boolean `{b}`"),
-            Raw::Str(s) => format!("string {s:?}"),
-            Raw::Other(what) => what.clone(),
-        };
-        format!("invalid type: {found}, expected {expected}")
-    }
-}
-
 /// A type a setting can have.
 pub(crate) trait Setting: Sized {
     const KIND: Kind;
@@ -554,104 +548,4 @@ impl Config {
             (value > limit).then_some(c)
         })
     }
-}
-
-/// The configuration as TOML, sections and keys in the order of docs/design.md §4
-/// (`mbgate check-config`); a configuration the old form cannot say (several lines or
-/// listeners, units, a device on TCP) in the form of §4.1. `parse(&to_toml(cfg), ..)`
-/// gives back `cfg`.
-pub fn to_toml(cfg: &Config) -> String {
-    if cfg.master.is_some() || !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
-        return to_toml_lines(cfg);
-    }
-    let old = [
-        "serial", "tcp", "relay", "log", "metrics", "capture", "control",
-    ]
-    .map(|s| (s, format!("[{s}]")));
-    with_roles(print(cfg, &old), cfg)
-}
-
-/// `text` and then the `[[role]]` tables, if any.
-fn with_roles(text: String, cfg: &Config) -> String {
-    if cfg.roles.is_empty() {
-        return text;
-    }
-    format!("{text}\n{}", access::roles_to_toml(&cfg.roles))
-}
-
-/// The same configuration in the form of docs/design.md §4.1: a `[[line]]` for each
-/// line (its units, its `serial` or `tcp` table, its `relay` table) and a `[[listen]]`
-/// for each listener.
-pub fn to_toml_lines(cfg: &Config) -> String {
-    let mut out = Vec::new();
-    for line in cfg.lines() {
-        let mut head = "[[line]]\n".to_owned();
-        if line.master.is_some() {
-            head += "role = \"master\"\n";
-        }
-        if !line.units.ids.is_empty() {
-            head += &format!("units = {}\n", line.units.print_ids());
-        }
-        if !line.units.remap.is_empty() {
-            head += &format!("remap = {}\n", line.units.print_remap());
-        }
-        let one = Config {
-            serial: line.serial.clone(),
-            relay: line.relay.clone(),
-            ..Config::default()
-        };
-        let device = match &line.tcp {
-            Some(address) => format!(
-                "\n[line.tcp]\naddress = {}\nframing = {}\n{}",
-                address.print(),
-                line.serial.framing.print(),
-                line.tcp_tls
-                    .as_ref()
-                    .map(access::device_to_toml)
-                    .unwrap_or_default()
-            ),
-            None => format!("\n{}", print(&one, &[("serial", "[line.serial]".into())])),
-        };
-        let routes = match &line.master {
-            Some(m) => master::to_toml(m).trim_start().to_owned() + "\n",
-            None => String::new(),
-        };
-        let relay = print(&one, &[("relay", "[line.relay]".into())]);
-        out.push(head + &device + "\n" + &routes + &relay);
-    }
-    for listener in cfg.listeners() {
-        let one = Config {
-            tcp: listener.tcp.clone(),
-            ..Config::default()
-        };
-        let table = print(&one, &[("tcp", "[[listen]]".into())]);
-        let access = access::listen_to_toml(&listener.access, &cfg.roles);
-        out.push(table + &format!("framing = {}\n", listener.framing.print()) + &access);
-    }
-    out.push(print(
-        cfg,
-        &[
-            ("log", "[log]".into()),
-            ("metrics", "[metrics]".into()),
-            ("capture", "[capture]".into()),
-            ("control", "[control]".into()),
-        ],
-    ));
-    with_roles(out.join("\n"), cfg)
-}
-/// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as
-/// that table calls them).
-fn print(cfg: &Config, tables: &[(&str, String)]) -> String {
-    let mut out = Vec::new();
-    for (section, header) in tables {
-        let listen = header == "[[listen]]";
-        let rename = if listen { file::LISTEN_RENAMED } else { &[] };
-        let mut table = format!("{header}\n");
-        for key in KEYS.iter().filter(|k| k.section == *section) {
-            let value = (key.get)(cfg);
-            table += &format!("{} = {value}\n", file::renamed(rename, key.name));
-        }
-        out.push(table);
-    }
-    out.join("\n")
 }

@@ -31,7 +31,6 @@ use super::mbap::{FrameRef, HEADER_LEN};
 use super::resync::{Judge, Resync};
 use super::serial::{Codec, Decoded, Decoder, Expect};
 use super::{pdu, Adu, FunctionCode};
-use crate::config::Framing;
 
 /// Any well-formed reply (as [`ReplyJudge`](super::ReplyJudge)), and on an RTU or ASCII
 /// line the reply to this request PDU, whose shape gives the reply's length.
@@ -85,15 +84,6 @@ pub struct Framer {
 }
 
 impl Framer {
-    /// The framer for a line of this framing.
-    pub(crate) fn new(framing: Framing) -> Self {
-        match framing {
-            Framing::Mbap => Self::mbap(),
-            Framing::Rtu => Self::serial(Codec::Rtu),
-            Framing::Ascii => Self::serial(Codec::Ascii),
-        }
-    }
-
     /// MBAP frames, resynchronising (docs/design.md §2).
     pub fn mbap() -> Self {
         Self::with(Kind::Mbap(Resync::new()))
@@ -312,15 +302,18 @@ mod tests {
     fn one_api_for_the_three_framings() {
         let request = Adu::build(0, 0x11, &[0x03, 0x00, 0x6B, 0x00, 0x03]);
         let reply = Adu::build(0, 0x11, &[0x03, 0x06, 0x02, 0x2B, 0x00, 0x00, 0x00, 0x64]);
-        for framing in [Framing::Mbap, Framing::Rtu, Framing::Ascii] {
+        let framings = [
+            ("mbap", None),
+            ("rtu", Some(Codec::Rtu)),
+            ("ascii", Some(Codec::Ascii)),
+        ];
+        for (framing, codec) in framings {
+            let new = || codec.map_or_else(Framer::mbap, Framer::serial);
             for (adu, requests) in [(&request, true), (&reply, false)] {
-                let wire = Framer::new(framing).encode(adu);
-                assert_eq!(
-                    wire.len(),
-                    Framer::new(framing).encoded_len(adu.pdu().len())
-                );
+                let wire = new().encode(adu);
+                assert_eq!(wire.len(), new().encoded_len(adu.pdu().len()));
                 for cut in 0..wire.len() {
-                    let mut f = Framer::new(framing);
+                    let mut f = new();
                     let next = |f: &mut Framer| {
                         if requests {
                             f.next_frame(&RequestJudge::default(), false)
@@ -329,13 +322,9 @@ mod tests {
                         }
                     };
                     f.push(&wire[..cut]);
-                    assert_eq!(next(&mut f), None, "{framing:?} cut at {cut}");
+                    assert_eq!(next(&mut f), None, "{framing} cut at {cut}");
                     f.push(&wire[cut..]);
-                    assert_eq!(
-                        next(&mut f),
-                        Some(Framed::Frame(adu.clone())),
-                        "{framing:?}"
-                    );
+                    assert_eq!(next(&mut f), Some(Framed::Frame(adu.clone())), "{framing}");
                     assert_eq!((f.buffered(), f.dropped()), (0, 0));
                     assert_eq!(f.consumed(), wire.len() as u64);
                 }

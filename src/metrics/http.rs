@@ -1,14 +1,14 @@
 //! The metrics listener: a minimal HTTP/1.1 server on tokio, GET (and HEAD), one
 //! request per connection, then closed. Written here rather than taken from a crate:
 //! it serves a few read-only paths, and an HTTP crate would bring a large tree for
-//! them (docs/architecture.md "Dependencies").
+//! them (docs/architecture.md "Dependencies we kept and why").
 //!
 //! - `/metrics`: the Prometheus exposition (`expose.rs`).
 //! - `/`: the status page, and `/status.json`, what it polls (`page.rs`).
 //!
 //! Nothing here changes the gateway: whoever can reach the listener may read the
 //! numbers, never reconfigure it (`mbgate reload` asks over the control socket,
-//! `crate::capture::control`). It runs on a thread of its own ([`spawn`]), so the
+//! `crate::control`). It runs on a thread of its own ([`spawn`]), so the
 //! relay's loop never waits for a scrape to be rendered. A request head larger than
 //! 8 KiB, or slower than 5 s, is refused; at most 16 connections at once, the others
 //! closed at once.

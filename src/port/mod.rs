@@ -1,5 +1,5 @@
 //! What the relay is attached to: a byte transport it opens, reopens, reads, writes and
-//! drains, with no knowledge of which one it is (docs/architecture.md "The port").
+//! drains, with no knowledge of which one it is (docs/architecture.md "The ports").
 //!
 //! Three implementations: the serial port (`serial::SerialPort`, what the gateway
 //! runs on), a TCP socket to a device server (`tcp::TcpPort`) and an in-memory pipe
@@ -8,7 +8,7 @@
 
 pub mod duplex;
 pub mod kind;
-pub(crate) mod serial;
+pub mod serial;
 pub(crate) mod tcp;
 
 use std::future::Future;
@@ -114,5 +114,19 @@ pub(crate) fn open_now(mut opening: Opening) -> Result<io::Result<Link>, Opening
     match opening.as_mut().poll(&mut cx) {
         std::task::Poll::Ready(r) => Ok(r),
         std::task::Poll::Pending => Err(opening),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn backoff_doubles_up_to_max_and_resets() {
+        let mut b = Backoff::new(Duration::from_millis(100), Duration::from_millis(500));
+        let got: Vec<u64> = (0..5).map(|_| b.next_delay().as_millis() as u64).collect();
+        assert_eq!(got, [100, 200, 400, 500, 500]);
+        b.reset();
+        assert_eq!(b.next_delay(), Duration::from_millis(100));
     }
 }

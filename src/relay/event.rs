@@ -6,8 +6,8 @@
 use super::lifecycle::{Lifecycle, State};
 use super::outgoing::Outgoing;
 use super::Command;
+use crate::port::serial::PreciseTimer;
 use crate::port::Link;
-use crate::serial::PreciseTimer;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;

@@ -12,7 +12,8 @@ use crate::config::SerialConfig;
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::hex::Hex;
 use crate::frame::{Adu, RequestJudge};
-use crate::serial::{self, Backoff};
+use crate::port::serial::{self, PreciseTimer};
+use crate::port::Backoff;
 use std::collections::VecDeque;
 use std::path::Path;
 use std::time::Duration;
@@ -75,7 +76,7 @@ struct Outgoing {
     frame: Option<(bytes::Bytes, &'static str)>,
 }
 
-/// Waits until `due`: on a timerfd ([`serial::PreciseTimer`]) to the microsecond, as
+/// Waits until `due`: on a timerfd ([`PreciseTimer`]) to the microsecond, as
 /// the gateway's own line timers are, so a reply leaves the moment its last byte has
 /// left the simulated UART whatever the phase of the request against any tick. Tokio's
 /// timer counts whole milliseconds and rounds a deadline up: up to 1 ms between that
@@ -84,7 +85,7 @@ struct Outgoing {
 /// polls. Where there is no timerfd, tokio's timer wakes the simulator a millisecond
 /// early and a blocking-pool thread sleeps the rest. A `due` already past returns at
 /// once.
-async fn until_precisely(timer: Option<&mut serial::PreciseTimer>, due: Instant) {
+async fn until_precisely(timer: Option<&mut PreciseTimer>, due: Instant) {
     if let Some(timer) = timer {
         if timer.until(due).await.is_ok() {
             return;
@@ -152,7 +153,7 @@ pub async fn run(
         rx_pace: Pacer::new(baud, 10),
         tx_pace: Pacer::new(baud, 10),
         chunker: settings.chunker,
-        decoder: Framer::new(settings.framing),
+        decoder: settings.framing.framer(),
         out: VecDeque::new(),
         busy_until: None,
         last_rx: Instant::now(),
@@ -266,7 +267,7 @@ impl Sim {
     ) -> End {
         self.serving = true;
         let mut buf = vec![0u8; 4096];
-        let mut timer = serial::PreciseTimer::new()
+        let mut timer = PreciseTimer::new()
             .inspect_err(|e| debug!("no timerfd ({e}): replies timed to the millisecond"))
             .ok();
         let end = loop {

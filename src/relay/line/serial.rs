@@ -13,7 +13,6 @@ use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
 use crate::port::kind::{self, PortInfo};
 use crate::relay::inflight::{Asked, InFlight};
-use crate::serial;
 use crate::stats::Stats;
 use bytes::Bytes;
 use std::collections::VecDeque;
@@ -88,7 +87,7 @@ impl Serial {
             // The device server keeps the gap on its own line.
             Duration::ZERO
         } else {
-            Duration::from_micros(rtu::t35_us(serial.baud_rate, serial::bits_per_char(serial)))
+            Duration::from_micros(rtu::t35_us(serial.baud_rate, kind::bits_per_char(serial)))
         };
         let gap = match serial.inter_frame_gap_us {
             _ if stream => Duration::ZERO,
@@ -135,7 +134,7 @@ impl Serial {
         if self.stream || !self.wire {
             Duration::ZERO
         } else {
-            serial::wire_time(&self.port, bytes)
+            kind::wire_time(&self.port, bytes)
         }
     }
 
@@ -326,7 +325,7 @@ impl Serial {
         let on_line = if self.stream {
             Duration::ZERO
         } else {
-            serial::wire_time(&self.port, bytes)
+            kind::wire_time(&self.port, bytes)
         };
         on_line + 2 * self.gap
     }
@@ -511,146 +510,4 @@ impl Serial {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::super::{Line, Seen};
-    use super::*;
-    use crate::port::kind::Kind;
-
-    const MS: Duration = Duration::from_millis(1);
-
-    /// A reply whose bytes come 5 ms apart at 115 200 baud (43 character times): on a
-    /// pty a partial reply of known length waits for the frame gap, so it is taken
-    /// whole; on a wire 3.5 characters of silence end it, and it fails its CRC.
-    #[test]
-    fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
-        use crate::relay::inflight::InFlight;
-        let serial = SerialConfig {
-            baud_rate: 115_200,
-            framing: crate::config::Framing::Rtu,
-            ..SerialConfig::default()
-        };
-        let uart = Kind::Uart {
-            driver: None,
-            trigger: Some(1),
-        };
-        for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
-            let stats = Stats::default();
-            let t0 = Instant::now();
-            let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
-            line.port_opened(&PortInfo::plain(kind.clone()));
-            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
-            let key = line.allocate(t0);
-            line.encode(&read, key, t0, &stats);
-            line.wrote(8, t0);
-            line.drained(t0 + MS, &stats);
-            let f = [InFlight {
-                tid: key,
-                deadline: t0 + Duration::from_secs(1),
-                timeout: Duration::from_secs(1),
-                req: (read.clone(), 0u32),
-            }];
-            let reply = Codec::Rtu.encode(1, &[3, 2, 0, 7]);
-            let mut got = Vec::new();
-            for (i, b) in reply.iter().enumerate() {
-                let at = t0 + (5 * i as u32 + 2) * MS;
-                line.received(&[*b], at, &stats);
-                got.extend(
-                    line.frames(&f, at + 4 * MS, &stats)
-                        .into_iter()
-                        .map(|s| match s {
-                            Seen::Frame(frame, _) => Some(frame.pdu().to_vec()),
-                            Seen::Corrupt(_) => None,
-                        }),
-                );
-            }
-            if taken {
-                assert_eq!(got, vec![Some(vec![3, 2, 0, 7])], "{kind:?}");
-            } else {
-                assert!(got.first() == Some(&None), "{kind:?}: {got:?}");
-            }
-        }
-    }
-
-    /// RTU at 9600 baud: the next request waits 3.5 characters (4 ms) after a reply on
-    /// a serial line, none over TCP; `request_pause_ms` stretches the wait on both.
-    #[test]
-    fn the_gap_after_a_reply_is_none_over_tcp_and_request_pause_ms_on_both() {
-        let serial = SerialConfig {
-            baud_rate: 9600,
-            framing: crate::config::Framing::Rtu,
-            ..SerialConfig::default()
-        };
-        let stats = Stats::default();
-        for (stream, pause, free_after) in
-            [(false, 0, 4), (true, 0, 0), (true, 20, 20), (false, 20, 20)]
-        {
-            let relay = RelayConfig {
-                request_pause_ms: pause,
-                ..RelayConfig::default()
-            };
-            let t0 = Instant::now();
-            let mut line = Line::new(&relay, &serial, stream, t0);
-            line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + MS, &stats);
-            let at = t0 + MS;
-            let free = at + free_after * MS;
-            let before = free.checked_sub(MS).filter(|b| *b >= at);
-            if let Some(before) = before {
-                assert!(!line.has_room(0, false, before), "{stream} {pause}");
-            }
-            assert!(line.has_room(0, false, free), "{stream} {pause}");
-        }
-    }
-    /// The gap the line asks its timer for after a whole reply, to the microsecond:
-    /// 3.5 character times (1750 µs above 19 200 baud, 3646 µs at 9600), or
-    /// `inter_frame_gap_us`, or for ASCII none; not a microsecond less (the relay's
-    /// timer is armed for `next_wake`, and `has_room` says when it may write).
-    #[test]
-    fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
-        let us = Duration::from_micros;
-        let stats = Stats::default();
-        for (framing, baud, gap_us, gap) in [
-            (crate::config::Framing::Rtu, 115_200, 0, us(1750)),
-            (crate::config::Framing::Rtu, 9600, 0, us(3646)),
-            (crate::config::Framing::Rtu, 115_200, 400, us(400)),
-            (crate::config::Framing::Ascii, 115_200, 0, Duration::ZERO),
-        ] {
-            let serial = SerialConfig {
-                baud_rate: baud,
-                framing,
-                inter_frame_gap_us: gap_us,
-                ..SerialConfig::default()
-            };
-            let relay = RelayConfig::default();
-            let t0 = Instant::now();
-            let mut line = Line::new(&relay, &serial, false, t0);
-            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
-            let tid = line.allocate(t0);
-            let bytes = line.encode(&read, tid, t0, &stats);
-            line.wrote(bytes.len(), t0);
-            let left = line.drained(t0 + 50 * MS, &stats);
-            let reply = match framing {
-                crate::config::Framing::Ascii => crate::frame::ascii::encode(1, &[3, 2, 0, 7]),
-                _ => rtu::encode(1, &[3, 2, 0, 7]),
-            };
-            let at = left + 10 * MS;
-            line.received(&reply, at, &stats);
-            let asked = InFlight {
-                tid,
-                deadline: at + Duration::from_secs(1),
-                timeout: Duration::from_secs(1),
-                req: (read.clone(), 0),
-            };
-            let seen = line.frames(&[asked], at, &stats);
-            assert!(matches!(seen[..], [Seen::Frame(..)]), "the reply is taken");
-            let why = format!("{framing:?} at {baud} baud, inter_frame_gap_us {gap_us}");
-            if gap.is_zero() {
-                assert!(line.has_room(0, false, at), "{why}");
-                assert_eq!(line.next_wake(at, true), None, "{why}");
-            } else {
-                assert_eq!(line.next_wake(at, true), Some(at + gap), "{why}");
-                assert!(!line.has_room(0, false, at + gap - us(1)), "{why}");
-                assert!(line.has_room(0, false, at + gap), "{why}");
-            }
-        }
-    }
-}
+mod tests;

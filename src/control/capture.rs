@@ -4,36 +4,13 @@
 //! that went away), it tells the gateway to stop and reads the capture's end, so the
 //! summary on standard error always says how many packets the gateway dropped.
 
-use super::control::{DATA, END};
-use super::request::{Peer, Request};
+use super::{connect_error, control_socket, DATA, END};
+use crate::capture::request::{Peer, Request};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::UnixStream;
-
-/// Where a gateway run by the packaged units keeps its control socket, from the
-/// name of its configuration file: `/etc/mbgate/mbgate.toml` is `mbgate.service`'s
-/// (`/run/mbgate`), `/etc/mbgate/NAME.toml` is `mbgate@NAME.service`'s
-/// (`/run/mbgate@NAME`); both units have `RuntimeDirectory=%N`.
-pub(crate) fn packaged_socket(config: &Path) -> PathBuf {
-    let stem = config
-        .file_stem()
-        .and_then(|s| s.to_str())
-        .unwrap_or("mbgate");
-    let dir = if stem == "mbgate" {
-        "mbgate".to_owned()
-    } else {
-        format!("mbgate@{stem}")
-    };
-    Path::new("/run").join(dir).join(SOCKET_NAME)
-}
-
-/// The control socket's name in the runtime directory.
-pub(crate) const SOCKET_NAME: &str = "control.sock";
-
-/// The configuration file of `mbgate.service`.
-const PACKAGED_CONFIG: &str = "/etc/mbgate/mbgate.toml";
 
 /// Capture a running gateway's traffic to pcapng, for Wireshark.
 #[derive(Debug, clap::Args)]
@@ -111,38 +88,6 @@ impl CaptureArgs {
     }
 }
 
-/// The control socket: `socket` (`--socket`), else the `control.socket` of `config`
-/// (`--config`, by default the packaged unit's file), else the packaged unit's for
-/// that file. For `mbgate capture` and `mbgate reload`.
-///
-/// Only `control.socket` is read from the file, and leniently: a file with a mistake
-/// elsewhere (just edited, about to be reloaded and refused with the precise error)
-/// still names the socket of the gateway running with the file as it was.
-pub(crate) fn control_socket(
-    socket: Option<&Path>,
-    config: Option<&Path>,
-) -> Result<PathBuf, String> {
-    if let Some(s) = socket {
-        return Ok(s.to_owned());
-    }
-    let file = match config {
-        Some(f) => f.to_owned(),
-        None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
-        None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
-    };
-    let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
-    let set = text
-        .parse::<toml::Table>()
-        .ok()
-        .and_then(|t| Some(t.get("control")?.get("socket")?.as_str()?.trim().to_owned()))
-        .unwrap_or_default();
-    if set.is_empty() {
-        Ok(packaged_socket(&file))
-    } else {
-        Ok(PathBuf::from(set))
-    }
-}
-
 /// `mbgate capture`.
 pub fn main(args: CaptureArgs) -> ExitCode {
     let request = match args.request() {
@@ -187,25 +132,6 @@ pub fn main(args: CaptureArgs) -> ExitCode {
             eprintln!("mbgate capture: {e}");
             ExitCode::from(EXIT_FAILED)
         }
-    }
-}
-
-/// What connecting to `socket` failed with, said for a user.
-pub(crate) fn connect_error(socket: &Path, e: &std::io::Error) -> String {
-    let s = socket.display();
-    match e.kind() {
-        std::io::ErrorKind::NotFound => format!(
-            "no control socket at {s}: is the gateway running, with this control.socket? \
-             (--socket PATH, or --config the gateway's file)"
-        ),
-        std::io::ErrorKind::PermissionDenied => format!(
-            "permission denied on {s}: only root and the gateway's user or group may \
-             use it (try sudo)"
-        ),
-        std::io::ErrorKind::ConnectionRefused => {
-            format!("nothing answers on {s}: a socket left by a gateway that stopped?")
-        }
-        _ => format!("cannot connect to {s}: {e}"),
     }
 }
 
@@ -368,18 +294,6 @@ async fn capture(
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn the_packaged_units_socket_follows_the_file_name() {
-        assert_eq!(
-            packaged_socket(Path::new("/etc/mbgate/mbgate.toml")),
-            Path::new("/run/mbgate/control.sock")
-        );
-        assert_eq!(
-            packaged_socket(Path::new("/etc/mbgate/ttyUSB0.toml")),
-            Path::new("/run/mbgate@ttyUSB0/control.sock")
-        );
-    }
 
     #[test]
     fn the_end_reads_back() {

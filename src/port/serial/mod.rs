@@ -1,7 +1,18 @@
-//! The serial port as a [`Port`]: the configured settings, flow control, stale bytes
-//! cleared, RS-485, exclusive open (all in [`crate::serial::open`]), and `tcdrain` and
-//! FIONREAD on its descriptor, the drain run by a thread of the port's own
-//! ([`crate::serial::Drainer`]).
+//! The serial port, all of it: opening it with the configured settings, flow control,
+//! stale bytes cleared, RS-485, exclusively (`open.rs`); what it is (`detect.rs`);
+//! `tcdrain` and FIONREAD on its descriptor, the drain run by a thread of the port's
+//! own (`drain.rs`); the timer the line's gaps are kept with (`timer.rs`); and here,
+//! the port as a [`Port`]. The simulator and the client open their ports with the same
+//! [`open`]; how long bytes take at `baud_rate` is `port/kind.rs`'s.
+
+mod detect;
+mod drain;
+mod open;
+mod timer;
+
+pub(crate) use detect::of_path;
+pub use open::{held_by, open};
+pub use timer::PreciseTimer;
 
 use super::{Control, Drain, Link, Opening, Port};
 use crate::config::SerialConfig;
@@ -32,13 +43,13 @@ impl Port for SerialPort {
     }
 
     fn open(&mut self) -> Opening {
-        let opened = crate::serial::open(&self.cfg).map_err(io::Error::other);
+        let opened = open(&self.cfg).map_err(io::Error::other);
         let low_latency = self.cfg.low_latency;
         Box::pin(async move {
             let port = opened?;
             let fd = port.as_raw_fd();
-            let info = super::kind::detect(fd, low_latency);
-            let drainer = crate::serial::Drainer::start(fd)?;
+            let info = detect::detect(fd, low_latency);
+            let drainer = drain::Drainer::start(fd)?;
             let (reader, writer) = tokio::io::split(port);
             Ok(Link {
                 reader: Box::new(reader),
@@ -50,7 +61,7 @@ impl Port for SerialPort {
     }
 
     fn wire_time(&self, bytes: usize) -> Duration {
-        crate::serial::wire_time(&self.cfg, bytes)
+        super::kind::wire_time(&self.cfg, bytes)
     }
 }
 
@@ -58,7 +69,7 @@ impl Port for SerialPort {
 /// drops all three together), and its drain thread, which ends with it.
 struct Tty {
     fd: RawFd,
-    drainer: crate::serial::Drainer,
+    drainer: drain::Drainer,
 }
 
 impl Control for Tty {
@@ -72,6 +83,6 @@ impl Control for Tty {
     }
 
     fn input_waiting(&self) -> bool {
-        crate::serial::input_waiting(self.fd).is_ok_and(|n| n > 0)
+        drain::input_waiting(self.fd).is_ok_and(|n| n > 0)
     }
 }

@@ -5,8 +5,7 @@
 //! key, what waits for a restart, or why the file was refused. Exit code: 0 taken, 1
 //! refused, 3 the gateway could not be asked (2: bad arguments, as everywhere).
 
-use crate::capture::client::{connect_error, control_socket};
-use crate::capture::control::RELOAD;
+use super::{connect_error, control_socket, RELOAD};
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::PathBuf;

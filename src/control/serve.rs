@@ -1,27 +1,12 @@
-//! The control socket (docs/design.md §6, docs/capture.md "The control socket"): a
-//! Unix socket in the runtime directory that only root and the service's own user or
-//! group may use, where `mbgate capture` asks for a capture and reads it back, and
-//! `mbgate reload` asks for a reload (the metrics listener, which may listen on the
-//! network and knows no one, never changes the gateway).
-//!
-//! A reload: the client writes `reload`; the gateway answers `ok` (taken) or
-//! `refused`, then the lines its log says of it, and closes (`error: why` when the
-//! gateway does not reload).
-//!
-//! A capture: the client writes one request line ([`Request`]); the gateway
-//! answers `ok` or `error: why` on a line of its own (and closes, for an error).
-//! Then messages, each a tag byte and a 32-bit big-endian length: `D` pcapng bytes
-//! (the section and interface headers first, then packets), `E` the end, a line of
-//! `key=value` words (`packets`, `dropped`, `why`). The client may write `stop` at
-//! any time; the gateway then ends the capture as for `--count`.
-//!
-//! Access is the file's mode (0660: its owner and group), checked again on each
-//! connection by the peer's credentials (`SO_PEERCRED`): root, the gateway's own
-//! user, or a member of its group. A malformed request closes that client only.
+//! The gateway's end of the control socket (the protocol: `control/mod.rs`): the
+//! socket made 0660, who may use it (checked again on each connection by the peer's
+//! credentials), one client's request read, then a capture streamed from the hub or a
+//! reload asked of the gateway and its answer written.
 
-use super::hub::{unix_us, Hub, Subscription};
-use super::pcapng;
-use super::request::{Request, MAX_LINE};
+use super::{message, DATA, END, RELOAD};
+use crate::capture::hub::{unix_us, Hub, Subscription};
+use crate::capture::pcapng;
+use crate::capture::request::{Request, MAX_LINE};
 use crate::reload::ReloadHandle;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -38,17 +23,6 @@ use tracing::{debug, info, warn};
 const MAX_CLIENTS: usize = 8;
 /// A client has this long to send its request (`mbgate capture` sends it at once).
 const REQUEST_WITHIN: Duration = Duration::from_secs(2);
-
-/// Message tags.
-pub(crate) const DATA: u8 = b'D';
-pub(crate) const END: u8 = b'E';
-
-/// Appends a message.
-pub(crate) fn message(out: &mut Vec<u8>, tag: u8, payload: &[u8]) {
-    out.push(tag);
-    out.extend((payload.len() as u32).to_be_bytes());
-    out.extend(payload);
-}
 
 /// Why the control socket could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -270,9 +244,6 @@ async fn client(stream: UnixStream, hub: Hub, reload: Option<ReloadHandle>) {
     let dropped: u64 = run.sub.dropped().iter().sum();
     info!(packets = run.packets, dropped, "capture ended ({why})");
 }
-
-/// The request line of `mbgate reload`.
-pub(crate) const RELOAD: &str = "reload";
 
 /// What a reload asked for over the socket is told: `ok` or `refused`, then what the
 /// log says of it.

@@ -2,49 +2,22 @@
 //! simulated device on one end, the gateway on the other, and instructions on how to
 //! connect. This is the README's first command, on a machine without a device.
 
+mod args;
+pub mod master;
+
 use crate::config::{
     Config, FlowControl, LineConfig, Notifications, SerialConfig, Units, FASTEST_BAUD,
 };
 use crate::gateway::{self, GatewayError};
-use crate::sim::options::{DeviceArgs, Settings};
+use crate::sim::options::Settings;
 use crate::sim::serve::{self, ConsoleRequest, Port, SimError};
 use crate::sim::Profile;
+use args::DEFAULT_LISTEN;
+pub use args::{DemoArgs, MasterDemoArgs};
 use std::net::SocketAddr;
 use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
 use tokio_util::sync::CancellationToken;
-
-/// Where the demo listens unless told: the port pymodbus' examples use too, so on a
-/// clash the demo takes a free one instead.
-pub(crate) const DEFAULT_LISTEN: SocketAddr =
-    SocketAddr::new(std::net::IpAddr::V4(std::net::Ipv4Addr::LOCALHOST), 5020);
-
-/// `mbgate demo`'s flags.
-#[derive(Debug, Clone, clap::Args)]
-pub struct DemoArgs {
-    /// Where Modbus/TCP masters connect [default: 127.0.0.1:5020, or a free port when
-    /// another program holds 5020]
-    #[arg(long, value_name = "ADDR")]
-    pub(crate) listen: Option<SocketAddr>,
-    /// Log every frame the gateway relays, both directions, as hex.
-    #[arg(long)]
-    pub traffic: bool,
-    /// Pace the simulated device's output at this many bits a second (10 bits a byte),
-    /// as a UART would.
-    #[arg(long, value_name = "BAUD", help_heading = "line model")]
-    pub(crate) baud: Option<u32>,
-    /// Two lines behind the one address: a second pty pair with the same simulated
-    /// device, its units reached as unit + 100 (routing by unit, with remapping)
-    #[arg(long, value_name = "N", default_value_t = 1,
-          value_parser = clap::value_parser!(u8).range(1..=2))]
-    pub(crate) lines: u8,
-    /// The simulated device, as `mbgate sim` takes it.
-    #[command(flatten)]
-    pub device: DeviceArgs,
-    /// The device as master instead (src/master_demo.rs).
-    #[command(flatten)]
-    pub master: crate::master_demo::MasterDemoArgs,
-}
 
 /// Why the demo stopped early.
 #[derive(Debug, thiserror::Error)]
@@ -110,16 +83,6 @@ fn two_lines(cfg: &mut Config, units: &[u8], second_pty: String) {
 }
 
 impl DemoArgs {
-    /// The simulated device's settings, paced at `--baud` if given.
-    pub fn settings(&self) -> Result<Settings, String> {
-        if self.baud == Some(0) {
-            return Err("--baud must be positive".into());
-        }
-        let mut s = self.device.settings()?;
-        s.baud = self.baud;
-        Ok(s)
-    }
-
     /// The gateway's configuration: defaults, the pty, the listen address; device
     /// notifications reach every master when the simulator sends them. The line is
     /// as fast as the simulator's `--baud`, or the fastest there is when it is

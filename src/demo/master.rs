@@ -4,6 +4,7 @@
 //! inputs and drives its outputs every period, so an input set on one side shows on
 //! the other. The console talks to the master; `slave COMMAND` to the slave.
 
+use super::args::{DemoArgs, DEFAULT_LISTEN};
 use crate::config::master::{MasterLine, Peer, Route};
 use crate::config::{Config, FlowControl};
 use crate::sim::cie_m10::CieM10;
@@ -17,24 +18,6 @@ use std::time::Duration;
 use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
 use tokio_util::sync::CancellationToken;
-
-/// `mbgate demo --master` and its flags.
-#[derive(Debug, Clone, clap::Args)]
-pub struct MasterDemoArgs {
-    /// The device as master: a simulated CIE-M10 master, mbgate's master line and a
-    /// simulated CIE-M10 slave on Modbus/TCP (at --listen).
-    #[arg(long, help_heading = "the device as master")]
-    pub master: bool,
-    /// --master: the master's communication period, in ms.
-    #[arg(
-        long,
-        default_value_t = 1000,
-        value_name = "MS",
-        requires = "master",
-        help_heading = "the device as master"
-    )]
-    pub(crate) poll_ms: u64,
-}
 
 /// Why the master demo stopped early.
 #[derive(Debug, thiserror::Error)]
@@ -95,7 +78,7 @@ fn instructions(pty: &str, slave: SocketAddr, poll_ms: u64, me: &str) -> String 
 async fn bind_slave(
     listen: Option<SocketAddr>,
 ) -> Result<tokio::net::TcpListener, MasterDemoError> {
-    let addr = listen.unwrap_or(crate::demo::DEFAULT_LISTEN);
+    let addr = listen.unwrap_or(DEFAULT_LISTEN);
     match crate::sim::tcp::bind(addr).await {
         Err(e) if listen.is_none() && e.kind() == std::io::ErrorKind::AddrInUse => {
             let free = SocketAddr::new(addr.ip(), 0);
@@ -110,7 +93,7 @@ async fn bind_slave(
 /// Runs the demo until `shutdown`. `settings` are the master's (the device flags of
 /// `mbgate demo`); the slave is a CIE-M10 with the manual's defaults.
 pub async fn run(
-    args: &crate::demo::DemoArgs,
+    args: &DemoArgs,
     settings: Settings,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
@@ -119,9 +102,9 @@ pub async fn run(
     let (device_end, gateway_end) = SerialStream::pair()?;
     let pty = gateway_end.name().ok_or(MasterDemoError::Unnamed)?;
     let listener = bind_slave(args.listen).await?;
-    let slave_at = listener.local_addr().map_err(|e| {
-        MasterDemoError::Bind(args.listen.unwrap_or(crate::demo::DEFAULT_LISTEN), e)
-    })?;
+    let slave_at = listener
+        .local_addr()
+        .map_err(|e| MasterDemoError::Bind(args.listen.unwrap_or(DEFAULT_LISTEN), e))?;
     let cfg = line_config(pty.clone(), slave_at, args.traffic);
     let me = crate::invocation::command();
     print!("{}", instructions(&pty, slave_at, args.master.poll_ms, &me));

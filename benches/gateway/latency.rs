@@ -1,0 +1,126 @@
+//! `latency`: the latency mbgate adds to a transaction, against the simulator straight
+//! on the pty and a bare socat byte pipe, and the CPU it spends on one.
+
+use super::common::sim::RawLine;
+use super::common::{cpu_ns, read_req};
+use super::report::{command, diff_us, spread, us, Report};
+use super::shared::{connect, reply_len, samples, socat_pipe, tcp_read, Line};
+use std::fmt::Write as _;
+use std::net::TcpStream;
+use std::time::{Duration, Instant};
+
+/// One FC 03 round trip straight to the simulator on the pty.
+fn raw_read(m: &mut RawLine, tid: u16, qty: u16) -> Duration {
+    let req = read_req(tid, 1, 0, qty);
+    let t = Instant::now();
+    let reply = m.transact(&req, reply_len(qty));
+    let took = t.elapsed();
+    assert_eq!(reply.len(), reply_len(qty), "short reply: {reply:02X?}");
+    took
+}
+
+/// The pause that confirms a lone MBAP reply at the gateway's 19 200 baud with
+/// `silence_floor_ms = 0`: 3.5 characters of 10 bits, as the relay reckons it
+/// (docs/reliability.md, "How", item 2).
+fn pause() -> Duration {
+    Duration::from_micros(mbgate::frame::rtu::t35_us(19_200, 10))
+}
+
+pub(super) fn latency(r: &mut Report) {
+    eprintln!("latency: FC 03 straight to the simulator, then through mbgate");
+    const WARM: usize = 200;
+    const N: usize = 2000;
+    // The three paths take turns, ROUNDS times, so a change in the machine's load
+    // during the run falls on all of them alike.
+    const ROUNDS: usize = 4;
+    let line = Line::start(&[]);
+    let (mut direct, mut piped, mut through) = (vec![vec![]; 2], vec![vec![]; 2], vec![vec![]; 2]);
+    let (mut cpu, mut transactions) = (0, 0);
+    for _ in 0..ROUNDS {
+        let mut m = line.raw();
+        for (i, qty) in [1, 10].into_iter().enumerate() {
+            direct[i].extend(samples(WARM, N / ROUNDS, |tid| raw_read(&mut m, tid, qty)));
+        }
+        drop(m);
+        let (mut pipe, addr) = socat_pipe(&line.socat.gw);
+        let mut s = TcpStream::connect(addr).expect("connect to socat");
+        s.set_nodelay(true).unwrap();
+        s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        for (i, qty) in [1, 10].into_iter().enumerate() {
+            piped[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, qty)));
+        }
+        let _ = pipe.kill();
+        let _ = pipe.wait();
+        let mut gw = line.gateway(&[], &[]);
+        let mut s = connect(&gw);
+        let cpu0 = cpu_ns(gw.proc.pid());
+        for (i, qty) in [1, 10].into_iter().enumerate() {
+            through[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, qty)));
+        }
+        cpu += cpu_ns(gw.proc.pid()) - cpu0;
+        transactions += 2 * (WARM + N / ROUNDS);
+        gw.terminate(Duration::from_secs(5));
+    }
+    // What mbgate itself spends on a transaction, against what it adds to one.
+    let per = Duration::from_nanos(cpu) / transactions as u32;
+    r.row(
+        "latency",
+        "mbgate CPU time per transaction (schedstat)",
+        us(per),
+        "(reported)",
+        None,
+    );
+    let mut t = String::from("| registers | path | p50 | p99 | max |\n|---|---|---|---|---|\n");
+    for (i, qty) in [1u16, 10].into_iter().enumerate() {
+        let (d, p, g) = (spread(&direct[i]), spread(&piped[i]), spread(&through[i]));
+        for (path, x) in [
+            ("pty → sim (direct)", d),
+            ("TCP → socat (a bare byte pipe) → pty → sim", p),
+            ("TCP → mbgate → pty → sim", g),
+        ] {
+            let _ = writeln!(
+                t,
+                "| {qty} | {path} | {} | {} | {} |",
+                us(x.p50),
+                us(x.p99),
+                us(x.max)
+            );
+        }
+        let (a50, a99) = (diff_us(d.p50, g.p50), diff_us(d.p99, g.p99));
+        let _ = writeln!(
+            t,
+            "| {qty} | added by the byte pipe | {:.0} µs | {:.0} µs | |",
+            diff_us(d.p50, p.p50),
+            diff_us(d.p99, p.p99)
+        );
+        let _ = writeln!(
+            t,
+            "| {qty} | **added by mbgate** (of which a lone reply's confirmation pause: {}) | **{a50:.0} µs** | **{a99:.0} µs** | |",
+            us(pause()),
+        );
+        for (q, added, before, after, target) in [
+            ("p50", a50, d.p50, g.p50, 50.0),
+            ("p99", a99, d.p99, g.p99, 150.0),
+        ] {
+            r.row(
+                "latency",
+                &format!("added latency {q}, FC 03 × {qty}"),
+                format!("{added:.0} µs ({} → {})", us(before), us(after)),
+                &format!("≤ {target:.0} µs"),
+                Some(added <= target),
+            );
+        }
+        r.row(
+            "latency",
+            &format!("added latency p50, FC 03 × {qty}, less the confirmation pause"),
+            format!("{:.0} µs", a50 - pause().as_secs_f64() * 1e6),
+            "(reported)",
+            None,
+        );
+    }
+    r.detail(
+        &format!("Added latency ({N} samples a path and size, in {ROUNDS} rounds in which the paths take turns, each after {WARM} warm-up; simulator unpaced, no delay; every path crosses the one socat hop of the pty pair)"),
+        &command("latency"),
+        &t,
+    );
+}

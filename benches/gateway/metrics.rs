@@ -1,0 +1,139 @@
+//! `metrics`: what the metrics listener and the status page cost the relay, in CPU per
+//! transaction and round trips, against the metrics off.
+
+use super::common::{cpu_ns, Cfg};
+use super::report::{command, spread, us, Report};
+use super::shared::{connect, samples, tcp_read, Line};
+use std::fmt::Write as _;
+use std::io::Write as _;
+use std::net::TcpStream;
+use std::sync::Arc;
+use std::thread;
+use std::time::Duration;
+
+/// GET `path` from `addr`, the whole answer.
+fn http_get(addr: &str, path: &str) -> usize {
+    use std::io::Read as _;
+    let Ok(mut s) = TcpStream::connect(addr) else {
+        return 0;
+    };
+    let _ = write!(s, "GET {path} HTTP/1.1\r\n\r\n");
+    let mut all = Vec::new();
+    let _ = s.read_to_end(&mut all);
+    all.len()
+}
+
+/// CPU time of the process's main thread (the runtime the relay runs on), in ns.
+fn main_thread_cpu_ns(pid: u32) -> u64 {
+    let s =
+        std::fs::read_to_string(format!("/proc/{pid}/task/{pid}/schedstat")).unwrap_or_default();
+    s.split_whitespace()
+        .next()
+        .and_then(|v| v.parse().ok())
+        .unwrap_or(0)
+}
+
+/// What the metrics cost: one master polling FC 03 × 1 through the gateway with
+/// `[metrics]` off; on, /metrics scraped every second; on, /metrics and the status
+/// page's /status.json every second (frames recorded: the worst case). In rounds that
+/// take turns; CPU per transaction (the whole process, and the relay's thread alone)
+/// and round trips, each against off. The counters themselves are kept in every case.
+pub(super) fn metrics_cost(r: &mut Report) {
+    eprintln!("metrics: the same polling with the metrics listener off and on");
+    const WARM: usize = 200;
+    const N: usize = 4000;
+    const ROUNDS: usize = 4;
+    const CASES: [(&str, bool, bool); 3] = [
+        ("off", false, false),
+        ("on, /metrics scraped every second", true, false),
+        ("on, /metrics and the status page every second", true, true),
+    ];
+    let line = Line::start(&[]);
+    let mut lat = vec![Vec::new(); CASES.len()];
+    let mut cpu = [0u64; CASES.len()];
+    let mut relay_cpu = [0u64; CASES.len()];
+    let mut transactions = [0usize; CASES.len()];
+    for _ in 0..ROUNDS {
+        for (i, (_, on, page)) in CASES.into_iter().enumerate() {
+            let mut cfg = Cfg::new(&line.socat.gw).serial("silence_floor_ms = 0");
+            if on {
+                cfg = cfg.metrics("listen = \"127.0.0.1:0\"");
+            }
+            let mut gw = line.gateway_with(cfg, &[], &[]);
+            let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+            let scraper = on.then(|| {
+                gw.wait_log("metrics on http://", Duration::from_secs(5));
+                let log = gw.log();
+                let rest = log.split("metrics on http://").nth(1).unwrap();
+                let addr = rest.split('/').next().unwrap().to_owned();
+                let stop = stop.clone();
+                thread::spawn(move || {
+                    while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                        assert!(http_get(&addr, "/metrics") > 1000);
+                        if page {
+                            assert!(http_get(&addr, "/status.json") > 100);
+                        }
+                        thread::sleep(Duration::from_secs(1));
+                    }
+                })
+            });
+            let mut s = connect(&gw);
+            let pid = gw.proc.pid();
+            let (cpu0, relay0) = (cpu_ns(pid), main_thread_cpu_ns(pid));
+            lat[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, 1)));
+            cpu[i] += cpu_ns(pid) - cpu0;
+            relay_cpu[i] += main_thread_cpu_ns(pid) - relay0;
+            transactions[i] += WARM + N / ROUNDS;
+            stop.store(true, std::sync::atomic::Ordering::Relaxed);
+            if let Some(t) = scraper {
+                t.join().expect("the scraper");
+            }
+            gw.terminate(Duration::from_secs(5));
+        }
+    }
+    let per = |v: &[u64], i: usize| Duration::from_nanos(v[i]) / transactions[i] as u32;
+    let mut t = String::from(
+        "| metrics | CPU per transaction (process) | relay's thread | p50 | p99 | max |\n|---|---|---|---|---|---|\n",
+    );
+    for (i, (name, _, _)) in CASES.into_iter().enumerate() {
+        let x = spread(&lat[i]);
+        let _ = writeln!(
+            t,
+            "| {name} | {} | {} | {} | {} | {} |",
+            us(per(&cpu, i)),
+            us(per(&relay_cpu, i)),
+            us(x.p50),
+            us(x.p99),
+            us(x.max)
+        );
+    }
+    let off = spread(&lat[0]);
+    for (i, (name, _, _)) in CASES.into_iter().enumerate().skip(1) {
+        let pct = |a: f64, b: f64| (b / a - 1.0) * 100.0;
+        let (a, b) = (per(&cpu, 0), per(&cpu, i));
+        let cpu_pct = pct(a.as_secs_f64(), b.as_secs_f64());
+        r.row(
+            "metrics",
+            &format!("metrics {name}: CPU per transaction against off"),
+            format!("{cpu_pct:+.1} % ({} → {})", us(a), us(b)),
+            "< 5 %",
+            Some(cpu_pct < 5.0),
+        );
+        let x = spread(&lat[i]);
+        for (q, a, b) in [("p50", off.p50, x.p50), ("p99", off.p99, x.p99)] {
+            let p = pct(a.as_secs_f64(), b.as_secs_f64());
+            r.row(
+                "metrics",
+                &format!("metrics {name}: round trip {q} against off, FC 03 × 1"),
+                format!("{p:+.1} % ({} → {})", us(a), us(b)),
+                "< 5 %",
+                Some(p < 5.0),
+            );
+        }
+    }
+    r.detail(
+        &format!("The metrics' cost ({N} samples a case, in {ROUNDS} rounds taking turns, each after {WARM} warm-up)"),
+        &command("metrics"),
+        &t,
+    );
+}

@@ -1,0 +1,105 @@
+//! The configuration as TOML (`mbgate check-config`): either form of docs/design.md §4
+//! and §4.1, every key with its value, which `parse` reads back to the same.
+
+use super::{access, file, master, Config, Setting, KEYS};
+
+/// The configuration as TOML, sections and keys in the order of docs/design.md §4
+/// (`mbgate check-config`); a configuration the old form cannot say (several lines or
+/// listeners, units, a device on TCP) in the form of §4.1. `parse(&to_toml(cfg), ..)`
+/// gives back `cfg`.
+pub fn to_toml(cfg: &Config) -> String {
+    if cfg.master.is_some() || !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
+        return to_toml_lines(cfg);
+    }
+    let old = [
+        "serial", "tcp", "relay", "log", "metrics", "capture", "control",
+    ]
+    .map(|s| (s, format!("[{s}]")));
+    with_roles(print(cfg, &old), cfg)
+}
+
+/// `text` and then the `[[role]]` tables, if any.
+fn with_roles(text: String, cfg: &Config) -> String {
+    if cfg.roles.is_empty() {
+        return text;
+    }
+    format!("{text}\n{}", access::roles_to_toml(&cfg.roles))
+}
+
+/// The same configuration in the form of docs/design.md §4.1: a `[[line]]` for each
+/// line (its units, its `serial` or `tcp` table, its `relay` table) and a `[[listen]]`
+/// for each listener.
+pub fn to_toml_lines(cfg: &Config) -> String {
+    let mut out = Vec::new();
+    for line in cfg.lines() {
+        let mut head = "[[line]]\n".to_owned();
+        if line.master.is_some() {
+            head += "role = \"master\"\n";
+        }
+        if !line.units.ids.is_empty() {
+            head += &format!("units = {}\n", line.units.print_ids());
+        }
+        if !line.units.remap.is_empty() {
+            head += &format!("remap = {}\n", line.units.print_remap());
+        }
+        let one = Config {
+            serial: line.serial.clone(),
+            relay: line.relay.clone(),
+            ..Config::default()
+        };
+        let device = match &line.tcp {
+            Some(address) => format!(
+                "\n[line.tcp]\naddress = {}\nframing = {}\n{}",
+                address.print(),
+                line.serial.framing.print(),
+                line.tcp_tls
+                    .as_ref()
+                    .map(access::device_to_toml)
+                    .unwrap_or_default()
+            ),
+            None => format!("\n{}", print(&one, &[("serial", "[line.serial]".into())])),
+        };
+        let routes = match &line.master {
+            Some(m) => master::to_toml(m).trim_start().to_owned() + "\n",
+            None => String::new(),
+        };
+        let relay = print(&one, &[("relay", "[line.relay]".into())]);
+        out.push(head + &device + "\n" + &routes + &relay);
+    }
+    for listener in cfg.listeners() {
+        let one = Config {
+            tcp: listener.tcp.clone(),
+            ..Config::default()
+        };
+        let table = print(&one, &[("tcp", "[[listen]]".into())]);
+        let access = access::listen_to_toml(&listener.access, &cfg.roles);
+        out.push(table + &format!("framing = {}\n", listener.framing.print()) + &access);
+    }
+    out.push(print(
+        cfg,
+        &[
+            ("log", "[log]".into()),
+            ("metrics", "[metrics]".into()),
+            ("capture", "[capture]".into()),
+            ("control", "[control]".into()),
+        ],
+    ));
+    with_roles(out.join("\n"), cfg)
+}
+
+/// Each of `tables`: its header, then the keys of its section (in a `[[listen]]`, as
+/// that table calls them).
+fn print(cfg: &Config, tables: &[(&str, String)]) -> String {
+    let mut out = Vec::new();
+    for (section, header) in tables {
+        let listen = header == "[[listen]]";
+        let rename = if listen { file::LISTEN_RENAMED } else { &[] };
+        let mut table = format!("{header}\n");
+        for key in KEYS.iter().filter(|k| k.section == *section) {
+            let value = (key.get)(cfg);
+            table += &format!("{} = {value}\n", file::renamed(rename, key.name));
+        }
+        out.push(table);
+    }
+    out.join("\n")
+}

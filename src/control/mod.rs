@@ -1,0 +1,174 @@
+//! The control socket (docs/design.md §6, docs/capture.md "The control socket"): a
+//! Unix socket in the runtime directory that only root and the service's own user or
+//! group may use, where `mbgate capture` asks for a capture and reads it back, and
+//! `mbgate reload` asks for a reload (the metrics listener, which may listen on the
+//! network and knows no one, never changes the gateway).
+//!
+//! A reload: the client writes `reload`; the gateway answers `ok` (taken) or
+//! `refused`, then the lines its log says of it, and closes (`error: why` when the
+//! gateway does not reload).
+//!
+//! A capture: the client writes one request line (`capture/request.rs`); the gateway
+//! answers `ok` or `error: why` on a line of its own (and closes, for an error).
+//! Then messages, each a tag byte and a 32-bit big-endian length: `D` pcapng bytes
+//! (the section and interface headers first, then packets), `E` the end, a line of
+//! `key=value` words (`packets`, `dropped`, `why`). The client may write `stop` at
+//! any time; the gateway then ends the capture as for `--count`.
+//!
+//! Access is the file's mode (0660: its owner and group), checked again on each
+//! connection by the peer's credentials (`SO_PEERCRED`): root, the gateway's own
+//! user, or a member of its group. A malformed request closes that client only.
+//!
+//! Both ends live here: the gateway's (`serve.rs`, started by `start`) and the two
+//! commands that ask it, `mbgate capture` (`capture.rs`) and `mbgate reload`
+//! (`reload.rs`); this file holds what both ends read: the words and messages, and
+//! where the socket is.
+
+pub mod capture;
+pub mod reload;
+mod serve;
+
+use crate::capture::Hub;
+use crate::config::Config;
+use crate::reload::ReloadHandle;
+use std::path::{Path, PathBuf};
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, warn};
+
+/// Message tags.
+pub(crate) const DATA: u8 = b'D';
+pub(crate) const END: u8 = b'E';
+
+/// Appends a message.
+pub(crate) fn message(out: &mut Vec<u8>, tag: u8, payload: &[u8]) {
+    out.push(tag);
+    out.extend((payload.len() as u32).to_be_bytes());
+    out.extend(payload);
+}
+
+/// The request line of `mbgate reload`.
+pub(crate) const RELOAD: &str = "reload";
+
+/// Where the control socket goes: `control.socket`, else `control.sock` in the
+/// runtime directory systemd made for the service (`RUNTIME_DIRECTORY`), else none.
+pub(crate) fn socket_path(cfg: &Config) -> Option<PathBuf> {
+    let set = cfg.control.socket.trim();
+    if !set.is_empty() {
+        return Some(PathBuf::from(set));
+    }
+    let dirs = std::env::var_os("RUNTIME_DIRECTORY")?;
+    let first = std::env::split_paths(&dirs).next()?;
+    Some(first.join(SOCKET_NAME))
+}
+
+/// Where a gateway run by the packaged units keeps its control socket, from the
+/// name of its configuration file: `/etc/mbgate/mbgate.toml` is `mbgate.service`'s
+/// (`/run/mbgate`), `/etc/mbgate/NAME.toml` is `mbgate@NAME.service`'s
+/// (`/run/mbgate@NAME`); both units have `RuntimeDirectory=%N`.
+pub(crate) fn packaged_socket(config: &Path) -> PathBuf {
+    let stem = config
+        .file_stem()
+        .and_then(|s| s.to_str())
+        .unwrap_or("mbgate");
+    let dir = if stem == "mbgate" {
+        "mbgate".to_owned()
+    } else {
+        format!("mbgate@{stem}")
+    };
+    Path::new("/run").join(dir).join(SOCKET_NAME)
+}
+
+/// The control socket's name in the runtime directory.
+pub(crate) const SOCKET_NAME: &str = "control.sock";
+
+/// The configuration file of `mbgate.service`.
+const PACKAGED_CONFIG: &str = "/etc/mbgate/mbgate.toml";
+
+/// The control socket: `socket` (`--socket`), else the `control.socket` of `config`
+/// (`--config`, by default the packaged unit's file), else the packaged unit's for
+/// that file. For `mbgate capture` and `mbgate reload`.
+///
+/// Only `control.socket` is read from the file, and leniently: a file with a mistake
+/// elsewhere (just edited, about to be reloaded and refused with the precise error)
+/// still names the socket of the gateway running with the file as it was.
+pub(crate) fn control_socket(
+    socket: Option<&Path>,
+    config: Option<&Path>,
+) -> Result<PathBuf, String> {
+    if let Some(s) = socket {
+        return Ok(s.to_owned());
+    }
+    let file = match config {
+        Some(f) => f.to_owned(),
+        None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
+        None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
+    };
+    let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let set = text
+        .parse::<toml::Table>()
+        .ok()
+        .and_then(|t| Some(t.get("control")?.get("socket")?.as_str()?.trim().to_owned()))
+        .unwrap_or_default();
+    if set.is_empty() {
+        Ok(packaged_socket(&file))
+    } else {
+        Ok(PathBuf::from(set))
+    }
+}
+
+/// What connecting to `socket` failed with, said for a user.
+pub(crate) fn connect_error(socket: &Path, e: &std::io::Error) -> String {
+    let s = socket.display();
+    match e.kind() {
+        std::io::ErrorKind::NotFound => format!(
+            "no control socket at {s}: is the gateway running, with this control.socket? \
+             (--socket PATH, or --config the gateway's file)"
+        ),
+        std::io::ErrorKind::PermissionDenied => format!(
+            "permission denied on {s}: only root and the gateway's user or group may \
+             use it (try sudo)"
+        ),
+        std::io::ErrorKind::ConnectionRefused => {
+            format!("nothing answers on {s}: a socket left by a gateway that stopped?")
+        }
+        _ => format!("cannot connect to {s}: {e}"),
+    }
+}
+
+/// Makes the control socket of a gateway of `cfg` and serves it until `shutdown`, if it
+/// has a place; one that cannot be made is warned about, and the gateway goes on
+/// without. `hub` is where captures come from; `reload` is where reloads go, none if
+/// the gateway has no file to read again.
+pub(crate) fn start(
+    cfg: &Config,
+    hub: &Hub,
+    reload: Option<ReloadHandle>,
+    shutdown: &CancellationToken,
+) {
+    match socket_path(cfg) {
+        Some(path) => match serve::bind(&path) {
+            Ok(c) => {
+                tokio::spawn(serve::serve(c, hub.clone(), reload, shutdown.clone()));
+            }
+            Err(e) => warn!("{e}; mbgate capture and mbgate reload are not available"),
+        },
+        None => debug!("no control socket (control.socket is empty, and not under systemd)"),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_packaged_units_socket_follows_the_file_name() {
+        assert_eq!(
+            packaged_socket(Path::new("/etc/mbgate/mbgate.toml")),
+            Path::new("/run/mbgate/control.sock")
+        );
+        assert_eq!(
+            packaged_socket(Path::new("/etc/mbgate/ttyUSB0.toml")),
+            Path::new("/run/mbgate@ttyUSB0/control.sock")
+        );
+    }
+}

@@ -1,0 +1,55 @@
+//! The metrics listener's lifecycle (docs/watching.md): started at start on the
+//! address bound then, moved or stopped by a reload (`metrics.listen`), the old one
+//! running until the new address is bound. What it serves is `http.rs`.
+
+use super::{http, Board};
+use std::net::SocketAddr;
+use std::sync::Arc;
+use tokio_util::sync::CancellationToken;
+
+/// The metrics listener as it runs, moved or stopped by a reload.
+pub(crate) struct MetricsListener {
+    board: Arc<Board>,
+    running: Option<(SocketAddr, CancellationToken)>,
+    shutdown: CancellationToken,
+}
+
+impl MetricsListener {
+    /// Not listening yet; stopped at `shutdown`.
+    pub(crate) fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
+        Self {
+            board,
+            running: None,
+            shutdown,
+        }
+    }
+
+    /// Serves on `listener` (bound at start, so a bad address fails the start).
+    pub(crate) fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
+        let stop = self.shutdown.child_token();
+        http::spawn(listener, self.board.clone(), stop.clone());
+        self.running = Some((addr, stop));
+    }
+
+    /// Listens on `want` (none: not at all). A new address that cannot be bound
+    /// leaves the old listener running, and says so.
+    pub(crate) fn set(&mut self, want: Option<SocketAddr>) -> Result<(), String> {
+        if self.running.as_ref().map(|(a, _)| *a) == want {
+            return Ok(());
+        }
+        let bound = match want {
+            Some(addr) => match http::bind(addr) {
+                Ok(l) => Some((addr, l)),
+                Err(e) => return Err(format!("cannot listen for metrics on {addr}: {e}")),
+            },
+            None => None,
+        };
+        if let Some((_, stop)) = self.running.take() {
+            stop.cancel();
+        }
+        if let Some((addr, listener)) = bound {
+            self.start(addr, listener);
+        }
+        Ok(())
+    }
+}
