@@ -20,11 +20,10 @@
 mod common;
 
 use common::sim::{generic_flags, RawLine};
-use common::{read_frame, read_reply, read_req, tempdir, Cfg, Gateway, Proc, Socat};
+use common::{read_frame, read_reply, read_req, socat_pipe, tempdir, Cfg, Gateway, Proc, Socat};
 use std::fmt::Write as _;
-use std::io::{BufRead, Write as _};
-use std::net::{SocketAddr, TcpStream};
-use std::path::Path;
+use std::io::Write as _;
+use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 /// Upper bound on transactions in one turn, whatever its length.
@@ -71,30 +70,6 @@ fn poll(s: &mut TcpStream, qty: u16, budget: Duration) -> Turn {
     turn
 }
 
-/// `socat -d -d TCP-LISTEN:0,bind=127.0.0.1 FILE:PTY,raw,echo=0`: a bare byte pipe to
-/// the pty, one connection; its address.
-fn pipe(pty: &Path) -> (std::process::Child, SocketAddr) {
-    let mut child = std::process::Command::new("socat")
-        .args(["-d", "-d", "TCP-LISTEN:0,bind=127.0.0.1"])
-        .arg(format!("FILE:{},raw,echo=0", pty.display()))
-        .stdin(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("socat");
-    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
-    let addr = lines
-        .by_ref()
-        .map_while(Result::ok)
-        .find_map(|l| {
-            l.split("listening on AF=2 ")
-                .nth(1)
-                .and_then(|a| a.trim().parse().ok())
-        })
-        .expect("socat's listening address");
-    std::thread::spawn(move || lines.for_each(drop));
-    (child, addr)
-}
-
 /// One pty pair and the paced simulator on it.
 struct Line {
     dir: tempfile::TempDir,
@@ -129,7 +104,7 @@ impl Line {
 
     /// A turn through the byte pipe.
     fn through_pipe(&self, qty: u16, budget: Duration) -> Turn {
-        let (mut child, addr) = pipe(&self.socat.gw);
+        let (mut child, addr) = socat_pipe(&self.socat.gw);
         let mut s = TcpStream::connect(addr).expect("connect to socat");
         let turn = poll(&mut s, qty, budget);
         drop(s);

@@ -145,6 +145,28 @@ fn mbap_device(path: &Path) -> RawDevice {
     )
 }
 
+/// The scripted session's two lines, each a socat pty pair below `dir` with its
+/// device on the far end: line 0's RTU device (unit 1), line 1's MBAP device (unit 2).
+struct SessionLines {
+    _rtu: RawRtuDevice,
+    _mbap: RawDevice,
+    a: Socat,
+    b: Socat,
+}
+
+fn session_lines(dir: &Path) -> SessionLines {
+    let (a, b) = (dir.join("a"), dir.join("b"));
+    std::fs::create_dir_all(&a).unwrap();
+    std::fs::create_dir_all(&b).unwrap();
+    let (a, b) = (Socat::start(&a), Socat::start(&b));
+    SessionLines {
+        _rtu: rtu_device(&a.dev),
+        _mbap: mbap_device(&b.dev),
+        a,
+        b,
+    }
+}
+
 /// The gateway of the scripted session: line 0 RTU (unit 1) and line 1 MBAP (unit
 /// 2), a Modbus/TCP listener and an RTU-over-TCP one, the control socket in `dir`.
 fn session_gateway(dir: &Path, a: &Socat, b: &Socat, extra: &str) -> (Proc, Vec<SocketAddr>) {
@@ -215,16 +237,12 @@ fn col<'a>(rows: &'a [Vec<String>], fields: &[&str], name: &str) -> Vec<&'a str>
 #[test]
 fn a_scripted_session_through_both_lines_reads_back_in_tshark() {
     let dir = tempdir();
-    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (line_a, line_b) = (Socat::start(&a), Socat::start(&b));
-    let _rtu = rtu_device(&line_a.dev);
-    let _mbap = mbap_device(&line_b.dev);
+    let lines = session_lines(dir.path());
+    let (line_a, line_b) = (&lines.a, &lines.b);
     let (mut gw, addrs) = session_gateway(
         dir.path(),
-        &line_a,
-        &line_b,
+        line_a,
+        line_b,
         "[metrics]\nlisten = \"127.0.0.1:0\"\n",
     );
     let socket = dir.path().join("control.sock");
@@ -526,13 +544,9 @@ fn a_scripted_session_through_both_lines_reads_back_in_tshark() {
 fn the_control_socket_refuses_strangers_and_a_bad_request_closes_only_its_client() {
     let dir = tempdir();
     std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
-    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (line_a, line_b) = (Socat::start(&a), Socat::start(&b));
-    let _rtu = rtu_device(&line_a.dev);
-    let _mbap = mbap_device(&line_b.dev);
-    let (mut gw, addrs) = session_gateway(dir.path(), &line_a, &line_b, "");
+    let lines = session_lines(dir.path());
+    let (line_a, line_b) = (&lines.a, &lines.b);
+    let (mut gw, addrs) = session_gateway(dir.path(), line_a, line_b, "");
     let socket = dir.path().join("control.sock");
     let meta = std::fs::metadata(&socket).unwrap();
     // SAFETY: geteuid(2) has no preconditions and cannot fail.
@@ -659,18 +673,14 @@ fn the_control_socket_refuses_strangers_and_a_bad_request_closes_only_its_client
 #[test]
 fn the_capture_ring_rotates_and_a_full_disk_stops_only_the_ring() {
     let dir = tempdir();
-    let (a, b) = (dir.path().join("a"), dir.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (line_a, line_b) = (Socat::start(&a), Socat::start(&b));
-    let _rtu = rtu_device(&line_a.dev);
-    let _mbap = mbap_device(&line_b.dev);
+    let lines = session_lines(dir.path());
+    let (line_a, line_b) = (&lines.a, &lines.b);
     let ring = dir.path().join("ring.pcapng");
     let extra = format!(
         "[capture]\nfile = {:?}\nfiles = 3\nfile_size_kb = 16\n",
         ring.display().to_string()
     );
-    let (mut gw, addrs) = session_gateway(dir.path(), &line_a, &line_b, &extra);
+    let (mut gw, addrs) = session_gateway(dir.path(), line_a, line_b, &extra);
     // A capture running when the gateway stops: it gets everything to the last
     // packet, then its end.
     let socket = dir.path().join("control.sock");
@@ -735,14 +745,9 @@ fn the_capture_ring_rotates_and_a_full_disk_stops_only_the_ring() {
 
     // A disk that is full.
     let dir2 = tempdir();
-    let (a, b) = (dir2.path().join("a"), dir2.path().join("b"));
-    std::fs::create_dir_all(&a).unwrap();
-    std::fs::create_dir_all(&b).unwrap();
-    let (line_a, line_b) = (Socat::start(&a), Socat::start(&b));
-    let _rtu = rtu_device(&line_a.dev);
-    let _mbap = mbap_device(&line_b.dev);
+    let lines2 = session_lines(dir2.path());
     let extra = "[capture]\nfile = \"/dev/full\"\n";
-    let (mut gw, addrs) = session_gateway(dir2.path(), &line_a, &line_b, extra);
+    let (mut gw, addrs) = session_gateway(dir2.path(), &lines2.a, &lines2.b, extra);
     let mut m = master_from("127.0.0.1:0", addrs[0]);
     for tid in 0..20u16 {
         assert_eq!(

@@ -16,32 +16,6 @@ use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
 
-/// A port nobody listens on now (for a device started later, or restarted there).
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
-
-/// `mbgate run` with this configuration; the addresses of its `listeners`, in order.
-fn gateway(dir: &Path, text: &str, listeners: usize) -> (Proc, Vec<SocketAddr>) {
-    let file = dir.join("mbgate.toml");
-    std::fs::write(&file, text).unwrap();
-    let proc = Proc::start(
-        &["run", "--config", file.to_str().unwrap()],
-        "listening on ",
-    );
-    wait_for("every listener", Duration::from_secs(10), || {
-        proc.log().matches("listening on ").count() >= listeners
-    });
-    let addrs = proc
-        .log()
-        .split("listening on ")
-        .skip(1)
-        .map(|rest| rest.split_whitespace().next().unwrap().parse().unwrap())
-        .collect();
-    (proc, addrs)
-}
-
 /// Two pty pairs, each in its own folder of `dir`: two serial lines.
 fn two_ptys(dir: &Path) -> (Socat, Socat) {
     let (a, b) = (dir.join("a"), dir.join("b"));
@@ -86,7 +60,7 @@ fn requests_are_routed_by_unit_to_two_ptys_and_a_device_on_tcp() {
         pty_line(&sa.gw, "rtu"),
         pty_line(&sb.gw, "mbap"),
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     gw.wait_log("device socket open", Duration::from_secs(10));
     let mut m = connect(addrs[0]);
 
@@ -144,7 +118,7 @@ fn a_dead_line_does_not_hold_up_another() {
         pty_line(&sa.gw, "rtu"),
         pty_line(&sb.gw, "mbap"),
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let addr = addrs[0];
 
     let healthy = |n: u16, m: &mut TcpStream, at: &mut Vec<Instant>| -> Vec<Duration> {
@@ -232,7 +206,7 @@ fn masters_stay_connected_while_the_device_on_tcp_restarts() {
          response_timeout_ms = 500\n\n[[listen]]\naddress = \"127.0.0.1:0\"\n\n\
          [log]\nlevel = \"debug\"\n"
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     gw.wait_log("device socket open", Duration::from_secs(10));
     let stop = Arc::new(AtomicBool::new(false));
     let seen: Vec<Arc<Mutex<Vec<Seen>>>> = (0..8).map(|_| Arc::default()).collect();
@@ -309,7 +283,7 @@ fn request_pause_ms_spaces_the_requests_on_the_line() {
          [[listen]]\naddress = \"127.0.0.1:0\"\n",
         pty_line(&socat.gw, "rtu")
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let mut m = connect(addrs[0]);
     for tid in 1..=4 {
         assert_eq!(
@@ -345,7 +319,7 @@ fn rtu_over_tcp_masters_reach_an_rtu_and_an_mbap_line() {
         pty_line(&sa.gw, "rtu"),
         pty_line(&sb.gw, "mbap"),
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 2);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 2);
     let (mbap_at, rtu_at) = (addrs[0], addrs[1]);
 
     let steps = r#"[["read_holding_registers", [3], {"count": 2, "device_id": 1}],
@@ -428,7 +402,7 @@ fn the_client_and_the_simulator_speak_rtu_over_tcp_through_the_gateway() {
         "[[line]]\n[line.tcp]\naddress = \"{at}\"\nframing = \"rtu\"\n\n\
          [[listen]]\naddress = \"127.0.0.1:0\"\nframing = \"rtu\"\n\n[log]\nlevel = \"debug\"\n"
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     gw.wait_log("device socket open", Duration::from_secs(10));
     let listener = addrs[0].to_string();
     let run = mbgate(&[

@@ -6,7 +6,7 @@
 mod common;
 
 use common::sim::RawLine;
-use common::{hexs, python, tempdir, wait_for, Proc, Py, Registers, Socat};
+use common::{free_port, hexs, python, tempdir, wait_for, Proc, Py, Registers, Socat};
 use mbgate::frame::mbap::decode_strict;
 use mbgate::frame::{rtu, Adu};
 use std::io::{Read, Write};
@@ -16,15 +16,6 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::thread;
 use std::time::{Duration, Instant};
-
-/// A free port on 127.0.0.1 for a pymodbus slave (pymodbus needs a number).
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port()
-}
 
 /// The master line's configuration: the pty, its framing, and `[[line.route]]`
 /// tables given as (`units = [...]` or "" for the default route, port, extra lines).

@@ -15,31 +15,6 @@ use std::path::Path;
 use std::process::{Child, ChildStdin, Command, Stdio};
 use std::time::Duration;
 
-fn free_port() -> u16 {
-    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
-    l.local_addr().unwrap().port()
-}
-
-/// `mbgate run` with this configuration; the addresses of its `listeners`, in order.
-fn gateway(dir: &Path, text: &str, listeners: usize) -> (Proc, Vec<SocketAddr>) {
-    let file = dir.join("mbgate.toml");
-    std::fs::write(&file, text).unwrap();
-    let proc = Proc::start(
-        &["run", "--config", file.to_str().unwrap()],
-        "listening on ",
-    );
-    wait_for("every listener", Duration::from_secs(10), || {
-        proc.log().matches("listening on ").count() >= listeners
-    });
-    let addrs = proc
-        .log()
-        .split("listening on ")
-        .skip(1)
-        .map(|rest| rest.split_whitespace().next().unwrap().parse().unwrap())
-        .collect();
-    (proc, addrs)
-}
-
 /// The stopped gateway's counters, from the line it logs at the stop.
 fn counters(gw: &mut Proc) -> std::collections::HashMap<String, u64> {
     assert!(gw.terminate(Duration::from_secs(10)).success());
@@ -133,7 +108,7 @@ fn an_allow_list_refuses_other_sources_before_reading_a_byte() {
          [[listen]]\naddress = \"[::]:0\"\nallow = [\"127.0.0.0/31\", \"::1\"]\n\n\
          [[listen]]\naddress = \"127.0.0.1:0\"\n\n[log]\nlevel = \"debug\"\n"
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 3);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 3);
     let log = gw.log();
     assert!(
         log.contains("listen[0]: who: only from 127.0.0.1, 10.0.0.0/8, plain TCP"),
@@ -214,7 +189,7 @@ fn a_read_only_listener_refuses_every_write_and_the_device_is_unchanged() {
     let text = format!(
         "{line}[[listen]]\naddress = \"127.0.0.1:0\"\nread_only = true\n\n[log]\nlevel = \"debug\"\n"
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     assert!(
         gw.log().contains("listen[0]: what: read only"),
         "{}",
@@ -269,7 +244,7 @@ fn write_rules_permit_only_their_units_functions_and_addresses() {
          write = [{{ units = [1], functions = [6, 16], addresses = \"8-9\" }}]\n\n\
          [log]\nlevel = \"debug\"\n"
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let mut m = connect(addrs[0]);
     assert_eq!(
         transact(&mut m, &req(1, &[6, 0, 8, 0, 0x11])),
@@ -391,7 +366,7 @@ fn the_role_in_the_certificate_decides_what_a_tls_master_may_do() {
          [metrics]\nlisten = \"127.0.0.1:{metrics}\"\n\n[log]\nlevel = \"debug\"\n",
         pki.listen_tls("")
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let tls = addrs[0].port();
     let mut operator = TlsMaster::start(tls, &pki, Some("operator-1"));
     assert_eq!(operator.ask("connect")["ok"], true);
@@ -496,7 +471,7 @@ fn bad_certificates_and_old_protocols_are_refused() {
         "{line}[[listen]]\naddress = \"127.0.0.1:0\"\n{}\n\n{ROLES}[log]\nlevel = \"debug\"\n",
         pki.listen_tls("")
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let tls = addrs[0].port();
     let good = TlsMaster::start(tls, &pki, Some("operator-1")).ask("handshake");
     assert_eq!(
@@ -602,7 +577,7 @@ fn an_rtu_over_tcp_listener_speaks_tls_too() {
          [log]\nlevel = \"debug\"\n",
         pki.listen_tls("")
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let got = TlsMaster::start(addrs[0].port(), &pki, Some("viewer-1")).ask("rtu-read");
     let want = mbgate::frame::rtu::encode(1, &[3, 2, 0, 0xFF]);
     assert_eq!(
@@ -624,7 +599,7 @@ fn a_certificate_without_a_role_gets_the_default_role() {
         "{line}[[listen]]\naddress = \"127.0.0.1:0\"\n{}\n\n{ROLES}[log]\nlevel = \"debug\"\n",
         pki.listen_tls(", default_role = \"viewer\"")
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let mut m = TlsMaster::start(addrs[0].port(), &pki, Some("nobody"));
     assert_eq!(m.ask("connect")["ok"], true);
     assert_eq!(m.ask("read 8 1")["registers"], serde_json::json!([1008]));
@@ -657,7 +632,7 @@ fn a_stalled_handshake_delays_nobody_and_a_certificate_reload_keeps_masters() {
         pki.listen_tls(", handshake_timeout_ms = 5000"),
         socket.display().to_string()
     );
-    let (mut gw, addrs) = gateway(dir.path(), &text, 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
     let tls = addrs[0].port();
     let mut m = TlsMaster::start(tls, &pki, Some("operator-1"));
     assert_eq!(m.ask("stall")["ok"], true);
@@ -756,7 +731,7 @@ fn the_gateway_reaches_a_device_behind_tls_and_verifies_it() {
             pki.pem(ca)
         )
     };
-    let (mut gw, addrs) = gateway(dir.path(), &line("ca"), 1);
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &line("ca"), 1);
     gw.wait_log("device socket open", Duration::from_secs(10));
     let mut m = connect(addrs[0]);
     assert_eq!(
@@ -770,7 +745,7 @@ fn the_gateway_reaches_a_device_behind_tls_and_verifies_it() {
     assert!(gw.terminate(Duration::from_secs(10)).success());
 
     let dir2 = tempdir();
-    let (mut gw, addrs) = gateway(dir2.path(), &line("other"), 1);
+    let (mut gw, addrs) = gateway_from_file(dir2.path(), &line("other"), 1);
     gw.wait_log("TLS handshake with the device", Duration::from_secs(10));
     let mut m = connect(addrs[0]);
     assert_eq!(

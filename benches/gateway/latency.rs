@@ -2,9 +2,9 @@
 //! on the pty and a bare socat byte pipe, and the CPU it spends on one.
 
 use super::common::sim::RawLine;
-use super::common::{cpu_ns, read_req};
+use super::common::{cpu_ns, read_req, socat_pipe};
 use super::report::{command, diff_us, spread, us, Report};
-use super::shared::{connect, reply_len, samples, socat_pipe, tcp_read, Line};
+use super::shared::{connect, reply_len, samples, tcp_read, Line};
 use std::fmt::Write as _;
 use std::net::TcpStream;
 use std::time::{Duration, Instant};

@@ -7,7 +7,6 @@ use super::common::{read_frame, read_req, tempdir, Cfg, Gateway, Proc, Py, Socat
 use super::report::Report;
 use std::io::Write as _;
 use std::net::TcpStream;
-use std::path::Path;
 use std::thread;
 use std::time::{Duration, Instant};
 
@@ -174,36 +173,6 @@ pub(super) fn served(addr: &str) -> TcpStream {
     }
 }
 
-/// `socat TCP-LISTEN:0 FILE:PTY`: the least any TCP-to-serial process can add (a
-/// byte pipe, no framing), as a second baseline. Returns it and its address.
-pub(super) fn socat_pipe(pty: &Path) -> (std::process::Child, std::net::SocketAddr) {
-    socat_to(&format!("FILE:{},raw,echo=0", pty.display()))
-}
-
-/// `socat TCP-LISTEN:0 FAR`: a bare byte pipe to `FAR` (a pty, a TCP address).
-pub(super) fn socat_to(far: &str) -> (std::process::Child, std::net::SocketAddr) {
-    use std::io::BufRead;
-    let mut child = std::process::Command::new("socat")
-        .args(["-d", "-d", "TCP-LISTEN:0,bind=127.0.0.1", far])
-        .stdin(std::process::Stdio::null())
-        .stderr(std::process::Stdio::piped())
-        .spawn()
-        .expect("socat");
-    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
-    // "... listening on AF=2 127.0.0.1:PORT"; stderr closes if socat fails.
-    let addr = lines
-        .by_ref()
-        .map_while(Result::ok)
-        .find_map(|l| {
-            l.split("listening on AF=2 ")
-                .nth(1)
-                .and_then(|a| a.trim().parse().ok())
-        })
-        .expect("socat's listening address");
-    thread::spawn(move || lines.for_each(drop));
-    (child, addr)
-}
-
 // ---------------------------------------------------------------------------------
 // Load loops
 
@@ -351,4 +320,26 @@ pub(super) fn serial_reply_len(framing: &str, qty: u16) -> usize {
         "rtu" => rtu_reply_len(qty),
         _ => 3 + 2 * (4 + 2 * usize::from(qty)),
     }
+}
+
+/// The simulator (`generic` profile) as a Modbus/TCP device on a free port of
+/// 127.0.0.1, for the scenarios with a device on the network; it and its address.
+pub(super) fn network_sim() -> (Proc, String) {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")
+        .unwrap()
+        .local_addr()
+        .unwrap()
+        .port();
+    let at = format!("127.0.0.1:{port}");
+    let sim = [
+        "sim",
+        "--listen",
+        &at,
+        "--profile",
+        "generic",
+        "--log-level",
+        "warn",
+        "--headless",
+    ];
+    (Proc::start(&sim, ""), at)
 }

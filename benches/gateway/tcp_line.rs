@@ -1,9 +1,9 @@
 //! `tcp-line`: a device on the network: FC 03 to `mbgate sim --listen` directly,
 //! through a bare socat byte pipe and through mbgate's TCP line.
 
-use super::common::{tempdir, Gateway, Launch, Proc};
+use super::common::{socat_to, tempdir, Gateway, Launch};
 use super::report::{command, diff_us, spread, us, Report};
-use super::shared::{samples, served, socat_to, tcp_read};
+use super::shared::{network_sim, samples, served, tcp_read};
 use std::fmt::Write as _;
 use std::time::Duration;
 
@@ -16,23 +16,7 @@ pub(super) fn tcp_line(r: &mut Report) {
     const N: usize = 2000;
     const ROUNDS: usize = 4;
     let dir = tempdir();
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let at = format!("127.0.0.1:{port}");
-    let sim = [
-        "sim",
-        "--listen",
-        &at,
-        "--profile",
-        "generic",
-        "--log-level",
-        "warn",
-        "--headless",
-    ];
-    let _sim = Proc::start(&sim, "");
+    let (_sim, at) = network_sim();
     let text = format!(
         "[[line]]\n[line.tcp]\naddress = \"{at}\"\n\n[[listen]]\naddress = \"127.0.0.1:0\"\n\n\
          [log]\nlevel = \"info\"\n"

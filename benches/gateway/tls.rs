@@ -6,9 +6,9 @@
 //! clients in this process; the certificates are made with the openssl CLI.
 
 use super::common::pki::Pki;
-use super::common::{cpu_ns, read_req, tempdir, Gateway, Launch, Proc};
+use super::common::{cpu_ns, read_req, tempdir, Gateway, Launch};
 use super::report::{command, diff_us, spread, us, Report};
-use super::shared::{samples, served, tcp_read};
+use super::shared::{network_sim, samples, served, tcp_read};
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer, ServerName};
 use std::fmt::Write as _;
@@ -82,23 +82,7 @@ pub(super) fn tls(r: &mut Report) {
     let dir = tempdir();
     let pki = Pki::new(&dir.path().join("pki"));
     pki.master("operator-1", "ca", Some("operator"), 30);
-    let port = std::net::TcpListener::bind("127.0.0.1:0")
-        .unwrap()
-        .local_addr()
-        .unwrap()
-        .port();
-    let at = format!("127.0.0.1:{port}");
-    let sim = [
-        "sim",
-        "--listen",
-        &at,
-        "--profile",
-        "generic",
-        "--log-level",
-        "warn",
-        "--headless",
-    ];
-    let _sim = Proc::start(&sim, "");
+    let (_sim, at) = network_sim();
     let text = format!(
         "[[line]]\n[line.tcp]\naddress = \"{at}\"\n\n[[listen]]\naddress = \"127.0.0.1:0\"\n\n\
          [[listen]]\naddress = \"127.0.0.1:0\"\n{}\n\n[[role]]\nname = \"operator\"\n\n\

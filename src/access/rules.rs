@@ -52,21 +52,7 @@ impl fmt::Display for UnitSet {
     /// As the file writes it: `[1, "10-20"]`, runs of three or more as ranges.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let ids: Vec<u8> = self.ids().collect();
-        let mut parts = Vec::new();
-        let mut i = 0;
-        while i < ids.len() {
-            let mut j = i;
-            while j + 1 < ids.len() && ids[j + 1] == ids[j] + 1 {
-                j += 1;
-            }
-            if j >= i + 2 {
-                parts.push(format!("\"{}-{}\"", ids[i], ids[j]));
-            } else {
-                parts.extend(ids[i..=j].iter().map(u8::to_string));
-            }
-            i = j + 1;
-        }
-        write!(f, "[{}]", parts.join(", "))
+        f.write_str(&crate::number::id_list(&ids))
     }
 }
 

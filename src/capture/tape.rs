@@ -84,6 +84,17 @@ impl Tape {
         self.take_to(end);
     }
 
+    /// The framer was cleared (the port opened or lost): everything up to `to` not
+    /// yet accounted for was stale.
+    pub(crate) fn stale_to(&mut self, to: u64) {
+        self.dropped_to(
+            to,
+            None,
+            Reason::Stale,
+            "bytes held when the port was opened or lost",
+        );
+    }
+
     /// Everything up to offset `to` (the framer's `consumed()` now) not yet accounted
     /// for was dropped for `reason`.
     pub(crate) fn dropped_to(
@@ -246,21 +257,8 @@ mod tests {
             ),
             cuts in proptest::collection::vec(1u8..40, 0..10),
         ) {
-            use crate::frame::ascii;
-            let mut data = Vec::new();
-            for (how, pdu) in &pieces {
-                match how {
-                    0 => data.extend(rtu::encode(1, pdu)),
-                    1 => data.extend(ascii::encode(1, pdu)),
-                    2 => data.extend(Adu::build(7, 1, pdu).as_bytes()),
-                    _ => data.extend(pdu),
-                }
-            }
-            let mut f = match kind {
-                0 => Framer::mbap(),
-                1 => Framer::serial(Codec::Rtu),
-                _ => Framer::serial(Codec::Ascii),
-            };
+            let data = crate::frame::framer::mixed_stream(&pieces);
+            let mut f = crate::frame::framer::framer_of(kind);
             let mut t = Tape::default();
             t.set(true);
             let mut taken = Vec::new();

@@ -31,22 +31,8 @@ impl Units {
 
     /// `ids` as the file writes them: runs of three or more as `"A-B"` strings.
     pub(crate) fn print_ids(&self) -> String {
-        let mut parts = Vec::new();
         let ids: Vec<u8> = self.ids.iter().copied().collect();
-        let mut i = 0;
-        while i < ids.len() {
-            let mut j = i;
-            while j + 1 < ids.len() && ids[j + 1] == ids[j] + 1 {
-                j += 1;
-            }
-            if j >= i + 2 {
-                parts.push(format!("\"{}-{}\"", ids[i], ids[j]));
-            } else {
-                parts.extend(ids[i..=j].iter().map(u8::to_string));
-            }
-            i = j + 1;
-        }
-        format!("[{}]", parts.join(", "))
+        crate::number::id_list(&ids)
     }
 
     /// `remap` as the file writes it: `{ 11 = 1, 12 = 2 }`.

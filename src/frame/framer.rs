@@ -264,6 +264,34 @@ impl Framer {
     }
 }
 
+/// For property tests: bytes that mix whole frames of each framing with noise, a
+/// piece each (`0` an RTU frame of the PDU, `1` ASCII, `2` MBAP, anything else the
+/// bytes themselves, as noise).
+#[cfg(test)]
+pub(crate) fn mixed_stream(pieces: &[(u8, Vec<u8>)]) -> Vec<u8> {
+    use crate::frame::{ascii, rtu};
+    let mut data = Vec::new();
+    for (how, pdu) in pieces {
+        match how {
+            0 => data.extend(rtu::encode(1, pdu)),
+            1 => data.extend(ascii::encode(1, pdu)),
+            2 => data.extend(Adu::build(7, 1, pdu).as_bytes()),
+            _ => data.extend(pdu),
+        }
+    }
+    data
+}
+
+/// For property tests: the framer of framing `kind % 3` (MBAP, RTU, ASCII).
+#[cfg(test)]
+pub(crate) fn framer_of(kind: u8) -> Framer {
+    match kind % 3 {
+        0 => Framer::mbap(),
+        1 => Framer::serial(Codec::Rtu),
+        _ => Framer::serial(Codec::Ascii),
+    }
+}
+
 /// The frames `f` yields from `data` fed in chunks of the sizes in `cuts` (the line
 /// going quiet after each size that is a multiple of five), then the rest, then a
 /// quiet line. Any chunking the property tests and the fuzz target
@@ -367,14 +395,6 @@ mod tests {
         assert_eq!((f.dropped(), f.take_dropped(), f.take_dropped()), (5, 5, 0));
     }
 
-    fn framer(kind: u8) -> Framer {
-        match kind % 3 {
-            0 => Framer::mbap(),
-            1 => Framer::serial(Codec::Rtu),
-            _ => Framer::serial(Codec::Ascii),
-        }
-    }
-
     proptest::proptest! {
         /// Every byte pushed is in a frame yielded, counted as dropped, or still held
         /// (ASCII keeps a frame begun at a colon), and every frame yielded encodes
@@ -389,22 +409,14 @@ mod tests {
             ),
             cuts in proptest::collection::vec(0u8..40, 0..10),
         ) {
-            let mut data = Vec::new();
-            for (how, pdu) in &pieces {
-                match how {
-                    0 => data.extend(rtu::encode(1, pdu)),
-                    1 => data.extend(ascii::encode(1, pdu)),
-                    2 => data.extend(Adu::build(7, 1, pdu).as_bytes()),
-                    _ => data.extend(pdu),
-                }
-            }
-            let mut f = framer(kind);
+            let data = mixed_stream(&pieces);
+            let mut f = framer_of(kind);
             let frames = frame_in_cuts(&mut f, &ReplyJudge, &data, &cuts);
             let yielded: u64 = frames.iter().map(|a| f.encoded_len(a.pdu().len()) as u64).sum();
             proptest::prop_assert_eq!(yielded + f.dropped(), f.consumed());
             proptest::prop_assert_eq!(f.consumed() + f.buffered() as u64, data.len() as u64);
             for adu in frames {
-                let mut again = framer(kind);
+                let mut again = framer_of(kind);
                 again.push(&f.encode(&adu));
                 proptest::prop_assert_eq!(
                     again.next_frame(&ReplyJudge, true),

@@ -35,6 +35,37 @@ pub(crate) fn python() -> PathBuf {
     p
 }
 
+/// A port nobody listens on now (for a device started later, or restarted there).
+pub(crate) fn free_port() -> u16 {
+    let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    l.local_addr().unwrap().port()
+}
+
+/// `mbgate run` with this configuration file's text (written to `dir`); the addresses
+/// of its first `listeners` listeners, in the order it logs them.
+pub(crate) fn gateway_from_file(
+    dir: &Path,
+    text: &str,
+    listeners: usize,
+) -> (Proc, Vec<std::net::SocketAddr>) {
+    let file = dir.join("mbgate.toml");
+    std::fs::write(&file, text).unwrap();
+    let proc = Proc::start(
+        &["run", "--config", file.to_str().unwrap()],
+        "listening on ",
+    );
+    wait_for("every listener", Duration::from_secs(10), || {
+        proc.log().matches("listening on ").count() >= listeners
+    });
+    let addrs = proc
+        .log()
+        .split("listening on ")
+        .skip(1)
+        .map(|rest| rest.split_whitespace().next().unwrap().parse().unwrap())
+        .collect();
+    (proc, addrs)
+}
+
 /// `"00 01 FF"` → bytes.
 pub(crate) fn hex(s: &str) -> Vec<u8> {
     let s: String = s.split_whitespace().collect();
@@ -133,6 +164,36 @@ pub(crate) fn mbgate(args: &[&str]) -> Run {
 
 // ---------------------------------------------------------------------------------
 // socat
+
+/// `socat TCP-LISTEN:0 FILE:PTY`: the least any TCP-to-serial process can add (a
+/// byte pipe, no framing), as a second baseline. Returns it and its address.
+pub(crate) fn socat_pipe(pty: &Path) -> (std::process::Child, std::net::SocketAddr) {
+    socat_to(&format!("FILE:{},raw,echo=0", pty.display()))
+}
+
+/// `socat TCP-LISTEN:0 FAR`: a bare byte pipe to `FAR` (a pty, a TCP address).
+pub(crate) fn socat_to(far: &str) -> (std::process::Child, std::net::SocketAddr) {
+    use std::io::BufRead;
+    let mut child = std::process::Command::new("socat")
+        .args(["-d", "-d", "TCP-LISTEN:0,bind=127.0.0.1", far])
+        .stdin(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("socat");
+    let mut lines = std::io::BufReader::new(child.stderr.take().unwrap()).lines();
+    // "... listening on AF=2 127.0.0.1:PORT"; stderr closes if socat fails.
+    let addr = lines
+        .by_ref()
+        .map_while(Result::ok)
+        .find_map(|l| {
+            l.split("listening on AF=2 ")
+                .nth(1)
+                .and_then(|a| a.trim().parse().ok())
+        })
+        .expect("socat's listening address");
+    thread::spawn(move || lines.for_each(drop));
+    (child, addr)
+}
 
 /// A virtual serial cable: `gw` is the gateway's end, `dev` the device's.
 pub(crate) struct Socat {

@@ -263,12 +263,7 @@ impl Mbap {
     pub(super) fn clear(&mut self) {
         self.decoder.clear();
         let to = self.decoder.consumed();
-        self.tape.dropped_to(
-            to,
-            None,
-            Reason::Stale,
-            "bytes held when the port was opened or lost",
-        );
+        self.tape.stale_to(to);
         self.chunks.clear();
         self.sent.clear();
     }

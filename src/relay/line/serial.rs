@@ -290,12 +290,7 @@ impl Serial {
     pub(super) fn clear(&mut self, stats: &Stats) {
         self.decoder.clear();
         let to = self.decoder.consumed();
-        self.tape.dropped_to(
-            to,
-            None,
-            Reason::Stale,
-            "bytes held when the port was opened or lost",
-        );
+        self.tape.stale_to(to);
         self.count_dropped(0, stats);
         if let Some(echo) = &mut self.echo {
             echo.clear();
