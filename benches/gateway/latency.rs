@@ -19,13 +19,6 @@ fn raw_read(m: &mut RawLine, tid: u16, qty: u16) -> Duration {
     took
 }
 
-/// The pause that confirms a lone MBAP reply at the gateway's 19 200 baud with
-/// `silence_floor_ms = 0`: 3.5 characters of 10 bits, as the relay reckons it
-/// (docs/reliability.md, "How", item 2).
-fn pause() -> Duration {
-    Duration::from_micros(mbgate::frame::rtu::t35_us(19_200, 10))
-}
-
 pub(super) fn latency(r: &mut Report) {
     eprintln!("latency: FC 03 straight to the simulator, then through mbgate");
     const WARM: usize = 200;
@@ -95,8 +88,7 @@ pub(super) fn latency(r: &mut Report) {
         );
         let _ = writeln!(
             t,
-            "| {qty} | **added by mbgate** (of which a lone reply's confirmation pause: {}) | **{a50:.0} µs** | **{a99:.0} µs** | |",
-            us(pause()),
+            "| {qty} | **added by mbgate** (a lone reply nothing can follow is taken at once) | **{a50:.0} µs** | **{a99:.0} µs** | |",
         );
         for (q, added, before, after, target) in [
             ("p50", a50, d.p50, g.p50, 50.0),
@@ -110,13 +102,6 @@ pub(super) fn latency(r: &mut Report) {
                 Some(added <= target),
             );
         }
-        r.row(
-            "latency",
-            &format!("added latency p50, FC 03 × {qty}, less the confirmation pause"),
-            format!("{:.0} µs", a50 - pause().as_secs_f64() * 1e6),
-            "(reported)",
-            None,
-        );
     }
     r.detail(
         &format!("Added latency ({N} samples a path and size, in {ROUNDS} rounds in which the paths take turns, each after {WARM} warm-up; simulator unpaced, no delay; every path crosses the one socat hop of the pty pair)"),

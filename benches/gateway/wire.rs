@@ -52,7 +52,10 @@ pub(super) fn wire(r: &mut Report) {
                     .collect()
             };
             let inf = format!("max_in_flight = {in_flight}");
-            let gw = line.gateway(&[&inf], &[]);
+            // Every request its own transaction: the master sends the same read, which
+            // coalescing would answer with fewer transactions than requests (measured
+            // on its own, `-- coalesce`).
+            let gw = line.gateway(&[&inf, "coalesce = false"], &[]);
             let mut s = connect(&gw);
             for (i, qty) in [1u16, 10].into_iter().enumerate() {
                 let got = tcp_throughput(&mut s, window, qty, BUDGET);
