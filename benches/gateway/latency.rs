@@ -71,13 +71,7 @@ pub(super) fn latency(r: &mut Report) {
             ("TCP → socat (a bare byte pipe) → pty → sim", p),
             ("TCP → mbgate → pty → sim", g),
         ] {
-            let _ = writeln!(
-                t,
-                "| {qty} | {path} | {} | {} | {} |",
-                us(x.p50),
-                us(x.p99),
-                us(x.max)
-            );
+            let _ = writeln!(t, "| {qty} | {path} | {} |", x.cells());
         }
         let (a50, a99) = (diff_us(d.p50, g.p50), diff_us(d.p99, g.p99));
         let _ = writeln!(

@@ -99,12 +99,10 @@ pub(super) fn metrics_cost(r: &mut Report) {
         let x = spread(&lat[i]);
         let _ = writeln!(
             t,
-            "| {name} | {} | {} | {} | {} | {} |",
+            "| {name} | {} | {} | {} |",
             us(per(&cpu, i)),
             us(per(&relay_cpu, i)),
-            us(x.p50),
-            us(x.p99),
-            us(x.max)
+            x.cells()
         );
     }
     let off = spread(&lat[0]);

@@ -100,6 +100,13 @@ pub(super) struct Spread {
     pub(super) max: Duration,
 }
 
+impl Spread {
+    /// The three as Markdown table cells: `p50 | p99 | max`, in µs.
+    pub(super) fn cells(&self) -> String {
+        format!("{} | {} | {}", us(self.p50), us(self.p99), us(self.max))
+    }
+}
+
 pub(super) fn spread(samples: &[Duration]) -> Spread {
     assert!(!samples.is_empty(), "no samples");
     let mut v = samples.to_vec();

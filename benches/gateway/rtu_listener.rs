@@ -67,13 +67,7 @@ pub(super) fn rtu_listener(r: &mut Report) {
         ("Modbus/TCP (mbap listener)", a),
         ("RTU over TCP (rtu listener)", b),
     ] {
-        let _ = writeln!(
-            t,
-            "| {who} | {} | {} | {} |",
-            us(x.p50),
-            us(x.p99),
-            us(x.max)
-        );
+        let _ = writeln!(t, "| {who} | {} |", x.cells());
     }
     let more = diff_us(a.p50, b.p50);
     r.row(

@@ -45,13 +45,7 @@ pub(super) fn tcp_line(r: &mut Report) {
         ("TCP → socat (a bare byte pipe) → TCP → sim", p),
         ("TCP → mbgate (a TCP line) → TCP → sim", g),
     ] {
-        let _ = writeln!(
-            t,
-            "| {path} | {} | {} | {} |",
-            us(x.p50),
-            us(x.p99),
-            us(x.max)
-        );
+        let _ = writeln!(t, "| {path} | {} |", x.cells());
     }
     let pipe50 = diff_us(d.p50, p.p50);
     for (q, added, pipe, before, after) in [

@@ -133,13 +133,7 @@ pub(super) fn tls(r: &mut Report) {
         ("plain listener → mbgate → TCP → sim", &p),
         ("TLS 1.3 listener → mbgate → TCP → sim", &t),
     ] {
-        let _ = writeln!(
-            table,
-            "| {path} | {} | {} | {} |",
-            us(x.p50),
-            us(x.p99),
-            us(x.max)
-        );
+        let _ = writeln!(table, "| {path} | {} |", x.cells());
     }
     for (q, a, b) in [("p50", p.p50, t.p50), ("p99", p.p99, t.p99)] {
         let added = diff_us(a, b);
