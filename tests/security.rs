@@ -232,6 +232,66 @@ fn a_read_only_listener_refuses_every_write_and_the_device_is_unchanged() {
     assert_eq!((stats["denied"], stats["requests"]), (7, 2), "{stats:?}");
 }
 
+/// FC 43 (0x2B) with MEI type 14, read device identification, is a read only in its own
+/// shape (a read device id code and an object id, Modbus Application Protocol §6.21):
+/// with trailing bytes it is answered 0x03 by the gateway and never goes on the line,
+/// so a read-only master cannot carry bytes of its own to the device that way.
+#[test]
+fn a_read_only_master_cannot_put_trailing_bytes_on_the_line_with_fc_43() {
+    let dir = tempdir();
+    let (_device, _port, line) = tcp_device();
+    let text = format!("{line}[[listen]]\naddress = \"127.0.0.1:0\"\nread_only = true\n");
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
+    let mut m = connect(addrs[0]);
+    let mut long = vec![0x2B, 0x0E, 0x01, 0x00];
+    long.extend([0xA5; 200]);
+    for (tid, pdu) in [
+        (1u16, &long[..]),
+        (2, &[0x2B, 0x0E, 0x01, 0x00, 0x00][..]),
+        (3, &[0x2B, 0x0E, 0x07, 0x00][..]),
+        (4, &[0x2B, 0x0E, 0x01][..]),
+    ] {
+        assert_eq!(
+            transact(&mut m, &req(tid, pdu)),
+            exception(tid, 0x2B, 0x03),
+            "{pdu:02X?}"
+        );
+    }
+    // Its own shape goes to the device, whose answer starts with MEI 14 and the code.
+    let reply = transact(&mut m, &req(5, &[0x2B, 0x0E, 0x01, 0x00]));
+    assert_eq!(&reply[7..10], &[0x2B, 0x0E, 0x01], "{reply:02X?}");
+    let stats = counters(&mut gw);
+    assert_eq!(
+        (stats["bad_requests"], stats["requests"]),
+        (4, 1),
+        "{stats:?}"
+    );
+}
+
+/// `allow = ["::/0"]` on a dual-stack listener takes IPv4 masters too (seen as
+/// ::ffff:127.0.0.1), as it takes IPv6 ones: what the one who wrote it meant.
+#[test]
+fn allow_all_of_ipv6_on_a_dual_stack_listener_takes_ipv4_masters() {
+    let dir = tempdir();
+    let (_device, _port, line) = tcp_device();
+    let text = format!("{line}[[listen]]\naddress = \"[::]:0\"\nallow = [\"::/0\"]\n");
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
+    let port = addrs[0].port();
+    for (tid, to) in [
+        (1u16, SocketAddr::from(([127, 0, 0, 1], port))),
+        (2, SocketAddr::from(([127, 0, 0, 2], port))),
+        (3, SocketAddr::from((std::net::Ipv6Addr::LOCALHOST, port))),
+    ] {
+        assert_eq!(
+            transact(&mut connect(to), &read_req(tid, 1, 8, 1)),
+            read_reply(tid, 1, &[1008]),
+            "{to}"
+        );
+    }
+    let stats = counters(&mut gw);
+    assert_eq!(stats["connections_denied"], 0, "{stats:?}");
+}
+
 /// Write rules: unit 1, FC 06 and 16, registers 8 and 9 only. A write inside passes and
 /// changes the device; one that leaves the range, uses another function or another
 /// unit is answered 0x01 and the device keeps its value.

@@ -34,7 +34,11 @@ impl Net {
                     .unwrap_or(0);
                 u128::from(net) & mask == u128::from(ip) & mask
             }
-            _ => false,
+            // An IPv6 block shorter than /96 that covers the IPv4-mapped range
+            // (`::/0`, `::/80`) takes the IPv4 masters a dual-stack listener sees in it:
+            // what someone who writes `::/0` means is "everyone".
+            (IpAddr::V6(_), IpAddr::V4(ip)) => self.contains(IpAddr::V6(ip.to_ipv6_mapped())),
+            (IpAddr::V4(_), IpAddr::V6(_)) => false,
         }
     }
 
@@ -272,12 +276,18 @@ mod tests {
         assert_eq!(mapped.to_string(), "192.168.0.0/16");
         assert!(mapped.allows(ip("192.168.3.4")) && mapped.allows(ip("::ffff:192.168.3.4")));
         assert!(!mapped.allows(ip("192.169.0.1")));
-        // /0 takes every address of its family, and only of its family.
+        // 0.0.0.0/0 takes every IPv4 address; ::/0 every address, an IPv4 master
+        // on a dual-stack listener (::ffff:a.b.c.d) included.
         let any4 = list(&["0.0.0.0/0"]);
         assert!(any4.allows(ip("203.0.113.9")) && !any4.allows(ip("2001:db8::1")));
         assert!(any4.allows(ip("::ffff:203.0.113.9")));
         let any6 = list(&["::/0"]);
-        assert!(any6.allows(ip("2001:db8::1")) && !any6.allows(ip("10.0.0.1")));
+        assert!(any6.allows(ip("2001:db8::1")) && any6.allows(ip("10.0.0.1")));
+        assert!(any6.allows(ip("::ffff:10.0.0.1")));
+        // A block that does not cover the mapped range takes no IPv4 master.
+        let doc = list(&["2001:db8::/32", "::/96"]);
+        assert!(!doc.allows(ip("10.0.0.1")) && !doc.allows(ip("::ffff:10.0.0.1")));
+        assert!(list(&["::/80"]).allows(ip("::ffff:10.0.0.1")));
     }
 
     #[test]

@@ -534,14 +534,34 @@ const INDEX: [u8; 128] = {
 /// encapsulated interface transport that only reads.
 const READ_DEVICE_ID: u8 = 0x0E;
 
+/// MEI type 0x0D of FC 0x2B: CANopen general reference (V1.1b3 §6.20), MEI type
+/// specific data of any length after it.
+const CANOPEN_REFERENCE: u8 = 0x0D;
+
+/// Does an FC 0x2B request have the shape its MEI type calls for (V1.1b3 §6.19-§6.21,
+/// docs/protocol.md §1)? At least the MEI type; MEI 0x0E (read device identification)
+/// exactly the read device id code (01 to 04) and the object id, nothing after them;
+/// MEI 0x0D its data, any length; other MEI types are reserved and left to the
+/// device. `None` for another function code.
+pub(crate) fn mei_request_fits(pdu: &[u8]) -> Option<bool> {
+    match pdu {
+        [0x2B] => Some(false),
+        [0x2B, READ_DEVICE_ID, rest @ ..] => Some(matches!(rest, [1..=4, _])),
+        [0x2B, CANOPEN_REFERENCE, ..] => Some(true),
+        [0x2B, ..] => Some(true),
+        _ => None,
+    }
+}
+
 /// Does this request PDU only read? The table's reads, and FC 0x2B with MEI type 0x0E
-/// (read device identification). Anything else (a write, diagnostics, a code the
-/// table does not know) may act on the device: a read-only master may not send it
-/// (docs/security.md).
+/// (read device identification) of exactly its shape: a code and an object id, no
+/// bytes after them to carry anything else to the device. Anything else (a write,
+/// diagnostics, a code the table does not know) may act on the device: a read-only
+/// master may not send it (docs/security.md).
 pub fn only_reads(pdu: &[u8]) -> bool {
     match pdu {
         [fc, ..] if FunctionCode(*fc).is_read() => true,
-        [0x2B, READ_DEVICE_ID, ..] => true,
+        [0x2B, READ_DEVICE_ID, ..] => mei_request_fits(pdu) == Some(true),
         _ => false,
     }
 }

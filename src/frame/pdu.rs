@@ -33,6 +33,13 @@ pub fn check_request(pdu: &[u8]) -> Result<(), ExceptionCode> {
     let Some((spec, fits)) = request_row(pdu) else {
         return Err(ExceptionCode::ILLEGAL_FUNCTION);
     };
+    if let Some(fits) = super::function::mei_request_fits(pdu) {
+        return if fits {
+            Ok(())
+        } else {
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+        };
+    }
     let Some(spec) = spec else {
         return Ok(());
     };

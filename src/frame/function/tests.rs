@@ -319,6 +319,41 @@ fn written_ranges_and_reads_follow_the_specification_examples() {
     );
     assert_eq!(written(&bytes("2B 0E 01 00")), None);
     assert!(!only_reads(&bytes("2B 0D 00")), "CANopen general reference");
+    // Read device identification only in its own shape: nothing after the object id
+    // to carry to the device, and a read device id code of 01 to 04 (§6.21).
+    let trailing = [&bytes("2B 0E 01 00")[..], &[0xAA; 200]].concat();
+    for bad in [
+        &bytes("2B 0E 01 00 00")[..],
+        &trailing,
+        &bytes("2B 0E 01"),
+        &bytes("2B 0E"),
+        &bytes("2B 0E 05 00"),
+        &bytes("2B 0E 00 00"),
+    ] {
+        assert!(!only_reads(bad), "{bad:02X?}");
+        assert_eq!(
+            crate::frame::pdu::check_request(bad),
+            Err(ExceptionCode::ILLEGAL_DATA_VALUE),
+            "{bad:02X?}"
+        );
+    }
+    for good in [
+        "2B 0E 01 00",
+        "2B 0E 04 FF",
+        "2B 0D",
+        "2B 0D 00 01 02",
+        "2B 0F 01",
+    ] {
+        assert_eq!(
+            crate::frame::pdu::check_request(&bytes(good)),
+            Ok(()),
+            "{good}"
+        );
+    }
+    assert_eq!(
+        crate::frame::pdu::check_request(&[0x2B]),
+        Err(ExceptionCode::ILLEGAL_DATA_VALUE)
+    );
     for code in 0..=255u8 {
         let public_read = FunctionCode(code).is_read();
         assert_eq!(
