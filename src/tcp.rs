@@ -23,9 +23,11 @@ use crate::router::{Router, Unrouted};
 use crate::stats::Stats;
 use crate::tls::server::{Acceptor, Grant};
 use bytes::BytesMut;
+use handshakes::Handshakes;
+use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
-use std::sync::Arc;
+use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
@@ -36,6 +38,7 @@ use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
 mod admit;
+mod handshakes;
 mod rtu;
 
 /// Binds the masters' listener. Every connection it accepts inherits its send buffer,
@@ -85,9 +88,12 @@ pub(crate) struct Listening {
 }
 
 /// Accepts masters on `listener` until shutdown. A source not in the allow list is
-/// closed at once, before any byte is read; a connection past `max_connections` is
-/// closed at once and logged; the others each get a task on the tracker (where a TLS
-/// handshake runs, so it never holds up the accept loop).
+/// closed at once, before any byte is read. On a plain listener a connection past
+/// `max_connections` is closed at once; the others each get a task on the tracker. On a
+/// TLS listener the handshake runs in the connection's task within the listener's
+/// handshake budget (`tcp/handshakes.rs`), and a connection slot is taken only once
+/// the master has authenticated: peers that never do hold no slot. Refusals are
+/// logged at most once a minute per source and reason, with counts ([`admit::Refusals`]).
 pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, shared: Shared) {
     let Shared {
         cfg,
@@ -107,6 +113,8 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
     } = listening;
     let limit = Arc::new(Semaphore::new(listen.tcp.max_connections));
     let mut gate = admit::Gate::new(name, listen.access.allow.clone());
+    let refusals = Arc::new(admit::Refusals::default());
+    let handshakes = Arc::new(Budget::new(listen.tcp.max_connections));
     let listen = Arc::new(listen);
     let mut failing = AcceptFailures::default();
     loop {
@@ -129,11 +137,18 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             drop(stream);
             continue;
         }
-        let Ok(slot) = limit.clone().try_acquire_owned() else {
-            stats.add(&stats.connections_refused, 1);
-            warn!(%peer, max = listen.tcp.max_connections, "connection refused: max_connections reached");
-            drop(stream);
-            continue;
+        let slot = if tls.is_some() {
+            None
+        } else {
+            match limit.clone().try_acquire_owned() {
+                Ok(slot) => Some(slot),
+                Err(_) => {
+                    stats.add(&stats.connections_refused, 1);
+                    refuse_at_limit(&refusals, peer, listen.tcp.max_connections);
+                    drop(stream);
+                    continue;
+                }
+            }
         };
         if let Err(e) = stream.set_nodelay(true) {
             debug!(%peer, "TCP_NODELAY: {e}");
@@ -154,14 +169,89 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             tap: capture.tap(0),
         };
         let closed = stats.clone();
-        let tls = tls.clone();
-        tracker.spawn(async move {
-            conn.start(stream, tls.as_deref()).await;
-            closed.add(&closed.connections_closed, 1);
-            drop(slot);
-        });
+        match (&tls, slot) {
+            (Some(acceptor), _) => {
+                let turn = handshakes.begin(peer, &refusals, acceptor.name());
+                let (acceptor, limit, refusals) =
+                    (acceptor.clone(), limit.clone(), refusals.clone());
+                tracker.spawn(async move {
+                    conn.start_tls(stream, &acceptor, turn, &limit, &refusals)
+                        .await;
+                    closed.add(&closed.connections_closed, 1);
+                });
+            }
+            (None, slot) => {
+                tracker.spawn(async move {
+                    let (rd, wr) = stream.into_split();
+                    conn.run(rd, wr).await;
+                    closed.add(&closed.connections_closed, 1);
+                    drop(slot);
+                });
+            }
+        }
     }
     debug!("listener closed");
+}
+
+/// A connection turned away at `max_connections`: counted by the caller, logged here
+/// once a minute per source with the count between.
+fn refuse_at_limit(refusals: &admit::Refusals, peer: SocketAddr, max: usize) {
+    let why = format!("max_connections ({max}) reached");
+    refusals.refused(peer, &why, "", admit::Loud::Warn);
+}
+
+/// A TLS listener's handshakes in progress ([`Handshakes`]) and how to end each: the
+/// accept loop begins them, a handshake's [`Turn`] ends it when dropped.
+struct Budget {
+    state: Mutex<(Handshakes, HashMap<u64, CancellationToken>)>,
+}
+
+/// One handshake's place in the budget: `dropped` fires when it must make room for a
+/// newer one; dropping the turn gives the place back.
+struct Turn {
+    id: u64,
+    dropped: CancellationToken,
+    budget: Arc<Budget>,
+}
+
+impl Budget {
+    fn new(max_connections: usize) -> Budget {
+        Budget {
+            state: Mutex::new((Handshakes::for_listener(max_connections), HashMap::new())),
+        }
+    }
+
+    /// A handshake from `peer` begins; the one it makes room for, if any, is told to
+    /// end (and logged, once a minute per source).
+    fn begin(self: &Arc<Self>, peer: SocketAddr, refusals: &admit::Refusals, table: &str) -> Turn {
+        let dropped = CancellationToken::new();
+        let mut state = self.state.lock().expect("not poisoned");
+        let (handshakes, tokens) = &mut *state;
+        let (id, evicted) = handshakes.begin(peer.ip());
+        tokens.insert(id, dropped.clone());
+        if let Some(old) = evicted.and_then(|e| tokens.remove(&e)) {
+            old.cancel();
+            let why = format!(
+                "{table}: handshakes in progress at their limit ({} on the listener, {} from one source): the oldest unfinished one gave way",
+                handshakes.limit(),
+                handshakes.per_source()
+            );
+            refusals.refused(peer, &why, "", admit::Loud::Info);
+        }
+        Turn {
+            id,
+            dropped,
+            budget: self.clone(),
+        }
+    }
+}
+
+impl Drop for Turn {
+    fn drop(&mut self) {
+        let mut state = self.budget.state.lock().expect("not poisoned");
+        state.0.end(self.id);
+        state.1.remove(&self.id);
+    }
 }
 
 /// accept() failing, mostly for want of file descriptors (EMFILE, ENFILE): the
@@ -267,22 +357,42 @@ enum End {
 }
 
 impl Connection {
-    /// Serves the master on `stream`, after the TLS handshake on a TLS listener.
-    async fn start(mut self, stream: TcpStream, tls: Option<&Acceptor>) {
-        let Some(acceptor) = tls else {
-            let (rd, wr) = stream.into_split();
-            return self.run(rd, wr).await;
-        };
-        let handshake = admit::handshake(acceptor, stream, self.id, self.peer, &self.stats);
+    /// The TLS handshake within its `turn` of the listener's budget, then, with a
+    /// connection slot (taken only now: a peer that never authenticates never holds
+    /// one), the master served. A handshake that must make room for a newer one ends
+    /// at once, counted as failed.
+    async fn start_tls(
+        mut self,
+        stream: TcpStream,
+        acceptor: &Acceptor,
+        turn: Turn,
+        limit: &Arc<Semaphore>,
+        refusals: &admit::Refusals,
+    ) {
+        let handshake =
+            admit::handshake(acceptor, stream, self.id, self.peer, &self.stats, refusals);
         let done = tokio::select! {
             done = handshake => done,
+            _ = turn.dropped.cancelled() => {
+                self.stats.add(&self.stats.tls_failed, 1);
+                debug!(conn = self.id, peer = %self.peer, "handshake dropped to make room for a newer one");
+                None
+            }
             _ = self.shutdown.cancelled() => None,
         };
-        if let Some((stream, grant)) = done {
-            self.grant = Some(grant);
-            let (rd, wr) = tokio::io::split(stream);
-            self.run(rd, wr).await;
-        }
+        drop(turn);
+        let Some((stream, grant)) = done else {
+            return;
+        };
+        let Ok(slot) = limit.clone().try_acquire_owned() else {
+            self.stats.add(&self.stats.connections_refused, 1);
+            refuse_at_limit(refusals, self.peer, self.listen.tcp.max_connections);
+            return;
+        };
+        self.grant = Some(grant);
+        let (rd, wr) = tokio::io::split(stream);
+        self.run(rd, wr).await;
+        drop(slot);
     }
 
     async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {

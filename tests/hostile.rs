@@ -367,7 +367,8 @@ fn slowloris_trickle_is_answered_and_a_stalled_frame_is_closed() {
 /// its log), every held connection is either answered or closed within 2 s, the
 /// well-behaved master is served throughout, and afterwards all 32 slots are free: 31
 /// new masters are served at once, and the next is refused. Every attempt is counted
-/// either accepted or refused.
+/// either accepted or refused, and the refusals are logged once (one source, within a
+/// minute), not once each.
 #[test]
 fn connection_storm_against_max_connections() {
     let mut r = rig(|c| c.tcp("max_connections = 32"));
@@ -447,7 +448,7 @@ fn connection_storm_against_max_connections() {
 
     steady.finish("storm");
     assert_memory_bounded("storm", &r.gw, before);
-    let logged = count(&r.gw.log(), "max_connections reached") as u64;
+    let logged = count(&r.gw.log(), "max_connections (32) reached") as u64;
     drop(fresh);
     let stats = r.gw.stop();
     eprintln!(
@@ -457,8 +458,18 @@ fn connection_storm_against_max_connections() {
     // The baseline's, the well-behaved master, the storm, the fresh 31 and the extra.
     let total = 1 + 1 + u64::from(ATTEMPTS) + 31 + 1;
     assert_eq!(stats["connections"] + stats["connections_refused"], total);
-    assert_eq!(stats["connections_refused"], logged);
-    assert!(logged > refused as u64);
+    // Refusals are logged as the allow list's are: once a minute per source and
+    // reason, the count of the others said at the next line. All came from 127.0.0.1
+    // within the minute: one line for hundreds of refusals.
+    assert!(stats["connections_refused"] > refused as u64);
+    assert_eq!(logged, 1, "{} refusals", stats["connections_refused"]);
+    assert_eq!(
+        count(
+            &r.gw.log(),
+            "connection refused: max_connections (32) reached"
+        ),
+        1
+    );
 }
 
 /// 200 masters reset their connection (SO_LINGER 0) mid-request: right after a

@@ -751,6 +751,158 @@ fn a_stalled_handshake_delays_nobody_and_a_certificate_reload_keeps_masters() {
     assert_eq!(stats["tls_failed"], 1, "{stats:?}");
 }
 
+/// Silent TCP connections to `to`, from `sources` in turn, `n` in all: what an attacker
+/// who never starts a handshake holds open. Connects that fail (the backlog full) are
+/// not counted.
+fn half_open(sources: &[String], to: SocketAddr, n: usize) -> Vec<TcpStream> {
+    (0..n)
+        .filter_map(|i| {
+            let from: SocketAddr = format!("{}:0", sources[i % sources.len()]).parse().unwrap();
+            let s =
+                socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).ok()?;
+            s.bind(&from.into()).ok()?;
+            s.connect_timeout(&to.into(), Duration::from_secs(2)).ok()?;
+            Some(s.into())
+        })
+        .collect()
+}
+
+/// A certificate holder's handshakes (pymodbus' TLS master's raw ssl socket: the
+/// handshake, then one FC 03 read answered): how many of `n` were served, and their
+/// times in ms.
+fn handshakes_served(m: &mut TlsMaster, n: usize) -> (usize, Vec<f64>) {
+    let mut ms = Vec::new();
+    let mut served = 0;
+    for _ in 0..n {
+        let got = m.ask("handshake");
+        if got["ok"] == true && got["reply"].as_str().is_some_and(|r| r.len() > 14) {
+            served += 1;
+        }
+        ms.push(got["ms"].as_f64().unwrap_or(f64::NAN));
+    }
+    (served, ms)
+}
+
+/// Unauthenticated peers cannot lock certificate holders out of a TLS listener
+/// (docs/security.md "Handshakes"): with the defaults (32 connection slots, 10 s to
+/// finish a handshake, so 128 handshakes in progress, 16 from one source), an attacker
+/// holds 400 silent TCP connections from one address, then 400 from 100 addresses,
+/// then keeps opening new ones from 100 addresses as fast as it can; meanwhile every
+/// handshake of a master with a valid operator certificate (pymodbus' TLS master, then
+/// `openssl s_client`) is served. Handshakes that gave way are counted as failed and
+/// their log lines capped, as are those of 30 peers that speak HTTP to it (one line).
+/// `-- --nocapture` prints the figures docs/security.md quotes.
+#[test]
+fn unauthenticated_peers_cannot_lock_certificate_holders_out() {
+    let dir = tempdir();
+    let pki = pki(dir.path());
+    let (_device, _port, line) = tcp_device();
+    let text = format!(
+        "{line}[[listen]]\naddress = \"127.0.0.1:0\"\n{}\n\n{ROLES}",
+        pki.listen_tls("")
+    );
+    let (mut gw, addrs) = gateway_from_file(dir.path(), &text, 1);
+    let to = addrs[0];
+    let mut m = TlsMaster::start(to.port(), &pki, Some("operator-1"));
+    let one = vec!["127.0.0.2".to_string()];
+    let many: Vec<String> = (10..110).map(|i| format!("127.0.0.{i}")).collect();
+
+    // 30 peers that speak HTTP to it: 30 failed handshakes, one line in the log.
+    for _ in 0..30 {
+        let mut s = connect(to);
+        let _ = s.write_all(b"GET / HTTP/1.0\r\n\r\n");
+        // An alert, then the close.
+        let mut alert = Vec::new();
+        let end = std::io::Read::read_to_end(&mut s, &mut alert);
+        assert!(
+            end.is_ok() || end.is_err_and(|e| e.kind() == std::io::ErrorKind::ConnectionReset),
+            "still open"
+        );
+    }
+    gw.wait_log("TLS handshake failed", Duration::from_secs(5));
+    assert_eq!(
+        gw.log().matches("TLS handshake failed").count(),
+        1,
+        "{}",
+        gw.log()
+    );
+
+    let held = half_open(&one, to, 400);
+    assert!(held.len() >= 100, "only {} connects", held.len());
+    std::thread::sleep(Duration::from_millis(300));
+    let (served, ms) = handshakes_served(&mut m, 10);
+    eprintln!(
+        "one source, {} silent connections: {served}/10 served, ms {ms:?}",
+        held.len()
+    );
+    assert_eq!(served, 10, "one source: {ms:?}");
+    drop(held);
+
+    let held = half_open(&many, to, 400);
+    assert!(held.len() >= 100, "only {} connects", held.len());
+    std::thread::sleep(Duration::from_millis(300));
+    let (served, ms) = handshakes_served(&mut m, 10);
+    eprintln!(
+        "100 sources, {} silent connections: {served}/10 served, ms {ms:?}",
+        held.len()
+    );
+    assert_eq!(served, 10, "many sources: {ms:?}");
+    drop(held);
+
+    // Churn: new silent connections from 100 sources as fast as one thread opens them
+    // (at most 20 000, keeping the newest 400), while the master connects.
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let attacker = {
+        let (stop, many) = (stop.clone(), many.clone());
+        std::thread::spawn(move || {
+            let started = std::time::Instant::now();
+            let mut open = std::collections::VecDeque::new();
+            let mut opened = 0usize;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) && opened < 20_000 {
+                for s in half_open(&many[opened % 100..opened % 100 + 1], to, 1) {
+                    open.push_back(s);
+                }
+                opened += 1;
+                if open.len() > 400 {
+                    open.pop_front();
+                }
+            }
+            (opened, started.elapsed())
+        })
+    };
+    std::thread::sleep(Duration::from_millis(300));
+    let (served, ms) = handshakes_served(&mut m, 10);
+    let ok = s_client(
+        to.port(),
+        &[
+            "-cert",
+            &pki.pem("operator-1"),
+            "-key",
+            &pki.key("operator-1"),
+            "-CAfile",
+            &pki.pem("ca"),
+        ],
+    );
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let (opened, took) = attacker.join().unwrap();
+    eprintln!(
+        "100 sources churning ({opened} connects in {took:.1?}, {:.0}/s): {served}/10 served, ms {ms:?}",
+        opened as f64 / took.as_secs_f64()
+    );
+    assert!(served >= 8, "churn: {served}/10, {ms:?}");
+    assert!(ok.contains("Verify return code: 0 (ok)"), "{ok}");
+    drop(m);
+    let log = gw.log();
+    let gave_way = log.matches("the oldest unfinished one gave way").count();
+    assert!(
+        (1..=200).contains(&gave_way),
+        "each source said once a minute: {gave_way} lines"
+    );
+    let stats = counters(&mut gw);
+    assert_eq!(stats["connections_refused"], 0, "{stats:?}");
+    assert!(stats["tls_failed"] >= 530, "{stats:?}");
+}
+
 /// mbgate as a TLS client of a device (pymodbus' ModbusTlsServer requiring a client
 /// certificate): it verifies the device against device_ca and presents its own
 /// certificate; a plain master reads through it. With a device_ca that did not sign

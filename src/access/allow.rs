@@ -158,13 +158,15 @@ impl fmt::Display for AllowList {
 }
 
 /// The log of refused sources: each source is named at its first refusal, then at most
-/// once per [`RefusedLog::EVERY`] with the count of refusals in between, so a scanner
+/// once per `EVERY` with the count of refusals in between, so a scanner
 /// or a misconfigured master retrying in a loop cannot flood the journal. At most
-/// [`RefusedLog::SOURCES`] sources are remembered; past that, refusals from new
+/// `SOURCES` sources are remembered; past that, refusals from new
 /// sources are told together, once per period.
-#[derive(Debug, Default)]
-pub(crate) struct RefusedLog {
-    sources: HashMap<IpAddr, Seen>,
+/// Keyed by source address, or by whatever else a caller counts apart (a source and a
+/// reason).
+#[derive(Debug)]
+pub(crate) struct RefusedLog<K = IpAddr> {
+    sources: HashMap<K, Seen>,
     /// Refusals from sources not remembered (the table full), since last told.
     others: u64,
     others_told: Option<Instant>,
@@ -188,14 +190,24 @@ pub(crate) enum Tell {
     Others { count: u64 },
 }
 
-impl RefusedLog {
+impl<K> Default for RefusedLog<K> {
+    fn default() -> Self {
+        RefusedLog {
+            sources: HashMap::new(),
+            others: 0,
+            others_told: None,
+        }
+    }
+}
+
+impl<K: std::hash::Hash + Eq> RefusedLog<K> {
     /// The least time between two lines about one source.
     pub(crate) const EVERY: Duration = Duration::from_secs(60);
     /// The most sources remembered.
     pub(crate) const SOURCES: usize = 1024;
 
     /// A connection from `ip` was refused at `now`: what to say about it.
-    pub(crate) fn refused(&mut self, ip: IpAddr, now: Instant) -> Tell {
+    pub(crate) fn refused(&mut self, ip: K, now: Instant) -> Tell {
         let due = |t: Instant| now.saturating_duration_since(t) >= Self::EVERY;
         if let Some(seen) = self.sources.get_mut(&ip) {
             if due(seen.told) {
@@ -316,7 +328,7 @@ mod tests {
 
     #[test]
     fn each_source_is_told_once_a_period_with_the_count_between() {
-        let mut log = RefusedLog::default();
+        let mut log: RefusedLog = RefusedLog::default();
         let t0 = Instant::now();
         let (a, b) = (ip("192.0.2.1"), ip("192.0.2.2"));
         assert_eq!(log.refused(a, t0), Tell::Source { more: 0 });
@@ -324,7 +336,7 @@ mod tests {
         for i in 1..=5 {
             assert_eq!(log.refused(a, t0 + Duration::from_secs(i)), Tell::Quiet);
         }
-        let later = t0 + RefusedLog::EVERY;
+        let later = t0 + RefusedLog::<IpAddr>::EVERY;
         assert_eq!(log.refused(a, later), Tell::Source { more: 5 });
         assert_eq!(log.refused(a, later), Tell::Quiet);
         assert_eq!(log.refused(b, later), Tell::Source { more: 0 });
@@ -332,9 +344,9 @@ mod tests {
 
     #[test]
     fn past_the_table_new_sources_are_told_together() {
-        let mut log = RefusedLog::default();
+        let mut log: RefusedLog = RefusedLog::default();
         let t0 = Instant::now();
-        for i in 0..RefusedLog::SOURCES as u32 {
+        for i in 0..RefusedLog::<IpAddr>::SOURCES as u32 {
             let src = IpAddr::V4((0x0A00_0000 + i).into());
             assert_eq!(log.refused(src, t0), Tell::Source { more: 0 });
         }
@@ -343,9 +355,9 @@ mod tests {
         for i in 1..100 {
             assert_eq!(log.refused(new(i), t0), Tell::Quiet);
         }
-        assert!(log.sources.len() <= RefusedLog::SOURCES);
+        assert!(log.sources.len() <= RefusedLog::<IpAddr>::SOURCES);
         // A period on, the old sources are forgotten and new ones named again.
-        let later = t0 + RefusedLog::EVERY;
+        let later = t0 + RefusedLog::<IpAddr>::EVERY;
         assert_eq!(log.refused(new(200), later), Tell::Source { more: 0 });
     }
 }

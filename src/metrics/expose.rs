@@ -323,11 +323,11 @@ fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
     vec![
         per(("mbgate_listener_masters", "Masters connected now.", G), &|l| l.connected()),
         per(("mbgate_listener_connections", "Connections accepted.", C), &|l| l.stats.get(&l.stats.connections)),
-        per(("mbgate_listener_refused_connections", "Connections closed at once: max_connections reached.", C), &|l| l.stats.get(&l.stats.connections_refused)),
+        per(("mbgate_listener_refused_connections", "Connections closed at once: max_connections reached (on TLS, once authenticated).", C), &|l| l.stats.get(&l.stats.connections_refused)),
         per(("mbgate_listener_protocol_violations", "Connections closed for a frame that broke the MBAP rules.", C), &|l| l.stats.get(&l.stats.protocol_violations)),
         per(("mbgate_listener_bad_requests", "Requests answered by mbgate with an exception: their PDU broke the protocol's limits.", C), &|l| l.stats.get(&l.stats.bad_requests)),
         per(("mbgate_listener_denied_connections", "Connections closed before any byte was read: the source is not in the listener's allow list.", C), &|l| l.stats.get(&l.stats.connections_denied)),
-        per(("mbgate_listener_tls_failed", "TLS handshakes that failed or timed out (no or a bad client certificate, an old protocol).", C), &|l| l.stats.get(&l.stats.tls_failed)),
+        per(("mbgate_listener_tls_failed", "TLS handshakes that failed, timed out or gave way to newer ones (no or a bad client certificate, an old protocol, the handshake budget full).", C), &|l| l.stats.get(&l.stats.tls_failed)),
         per(("mbgate_listener_tls_refused", "TLS masters refused for their role (none and no default_role, or one no [[role]] names).", C), &|l| l.stats.get(&l.stats.tls_refused)),
         per(("mbgate_listener_denied_requests", "Requests answered 0x01 because the listener's or the role's access rules do not permit them.", C), &|l| l.stats.get(&l.stats.denied)),
     ]
