@@ -667,6 +667,206 @@ fn the_control_socket_refuses_strangers_and_a_bad_request_closes_only_its_client
     gw.terminate(Duration::from_secs(10));
 }
 
+/// A raw control client: connected, `line` sent (if any), nothing read.
+fn control_client(socket: &Path, line: &[u8]) -> std::os::unix::net::UnixStream {
+    let mut c = std::os::unix::net::UnixStream::connect(socket).unwrap();
+    c.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    c.write_all(line).unwrap();
+    c
+}
+
+/// Every number a control client sends is checked: `seconds=` past a year (the raw
+/// request that made the gateway add 9.3e18 s to its clock) is refused with an error,
+/// ten times over, and so is `mbgate capture --seconds 18446744073709551615`; no slot is
+/// lost to them. Eight captures whose clients never read are ended once the gateway
+/// cannot write to them for 5 s, their slots given back; with eight silent clients
+/// connected besides, `mbgate reload` is answered and a new capture runs.
+#[test]
+fn hostile_and_stalled_control_clients_are_dropped_and_their_slots_given_back() {
+    let dir = tempdir();
+    let lines = session_lines(dir.path());
+    let (mut gw, addrs) = session_gateway(dir.path(), &lines.a, &lines.b, "");
+    let socket = dir.path().join("control.sock");
+    let sock = socket.to_str().unwrap();
+
+    for _ in 0..10 {
+        let mut c = control_client(&socket, b"capture seconds=9300000000000000000\n");
+        let mut answer = String::new();
+        let _ = c.read_to_string(&mut answer);
+        assert_eq!(
+            answer,
+            "error: seconds=9300000000000000000: at most 31622400\n"
+        );
+    }
+    let out = dir.path().join("never.pcapng");
+    let (code, err) = capture_run(
+        &[
+            "capture",
+            "--socket",
+            sock,
+            "-o",
+            out.to_str().unwrap(),
+            "--seconds",
+            "18446744073709551615",
+        ],
+        Duration::from_secs(5),
+    );
+    assert_eq!(code, 2, "{err}");
+    assert!(
+        err.contains("seconds=18446744073709551615: at most 31622400"),
+        "{err}"
+    );
+
+    // Eight captures nobody reads, and traffic enough to fill their sockets: FC 03 of
+    // 125 registers from line 1, 8 requests pipelined.
+    let stalled: Vec<_> = (0..8)
+        .map(|_| control_client(&socket, b"capture\n"))
+        .collect();
+    gw.wait_log("capture started", Duration::from_secs(5));
+    let mut m = master_from("127.0.0.1:0", addrs[0]);
+    let start = Instant::now();
+    let mut tid = 0u16;
+    while gw
+        .log()
+        .matches("capture ended (the client stopped reading)")
+        .count()
+        < 8
+    {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "captures not read still running:\n{}",
+            gw.log()
+        );
+        for k in 0..8 {
+            m.write_all(&read_req(tid.wrapping_add(k), 2, 0, 125))
+                .unwrap();
+        }
+        for _ in 0..8 {
+            let f = read_frame(&mut m);
+            assert_eq!(f.len(), 9 + 250);
+        }
+        tid = tid.wrapping_add(8);
+    }
+    eprintln!(
+        "stalled captures ended after {:?}, {tid} reads",
+        start.elapsed()
+    );
+
+    // Their slots are free: eight clients that say nothing do not keep a reload out,
+    // and a capture runs.
+    let silent: Vec<_> = (0..8).map(|_| control_client(&socket, b"")).collect();
+    let run = mbgate(&["reload", "--socket", sock]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    let out = dir.path().join("after.pcapng");
+    let after = capture(&[
+        "capture",
+        "--socket",
+        sock,
+        "-o",
+        out.to_str().unwrap(),
+        "--count",
+        "2",
+    ]);
+    assert_eq!(
+        transact(&mut m, &read_req(1, 2, 10, 1)),
+        read_reply(1, 2, &[10])
+    );
+    after.wait_log("2 packets to", Duration::from_secs(5));
+    drop((stalled, silent));
+    gw.terminate(Duration::from_secs(10));
+}
+
+/// A socket another user put in a directory anyone may write: the gateway refuses to
+/// make its control socket there and says why, and `mbgate reload` and `mbgate
+/// capture` run by root check who serves the socket (its peer credentials), refuse
+/// the impostor's answer and say why, instead of printing its "ok".
+#[test]
+fn an_impostor_on_the_control_socket_is_not_believed() {
+    // SAFETY: geteuid(2) has no preconditions and cannot fail.
+    if unsafe { libc::geteuid() } != 0 {
+        eprintln!("SKIPPED: not root, cannot become nobody");
+        return;
+    }
+    let dir = tempdir();
+    let open = dir.path().join("open");
+    std::fs::create_dir(&open).unwrap();
+    std::fs::set_permissions(&open, std::fs::Permissions::from_mode(0o1777)).unwrap();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let socket = open.join("control.sock");
+    let sock = socket.to_str().unwrap();
+    // Nobody's socket, answering every client as a gateway that reloaded would.
+    struct Killed(std::process::Child);
+    impl Drop for Killed {
+        fn drop(&mut self) {
+            let _ = self.0.kill();
+            let _ = self.0.wait();
+        }
+    }
+    let _impostor = Killed(
+        Command::new("setpriv")
+            .args(["--reuid=65534", "--regid=65534", "--clear-groups", "socat"])
+            .arg(format!("UNIX-LISTEN:{sock},fork"))
+            .arg("SYSTEM:echo ok; echo reloaded: everything")
+            .stdout(std::process::Stdio::null())
+            .stderr(std::process::Stdio::null())
+            .spawn()
+            .unwrap(),
+    );
+    wait_for("the impostor's socket", Duration::from_secs(5), || {
+        socket.exists()
+    });
+
+    let run = mbgate(&["reload", "--socket", sock]);
+    assert_eq!(run.code, 3, "{}{}", run.stdout, run.stderr);
+    assert!(!run.stdout.contains("reloaded"), "{}", run.stdout);
+    assert!(
+        run.stderr
+            .contains(&format!("{sock} is served by user 65534"))
+            && run
+                .stderr
+                .contains("not the gateway; its answer is not trusted"),
+        "{}",
+        run.stderr
+    );
+    let (code, err) = capture_run(
+        &[
+            "capture",
+            "--socket",
+            sock,
+            "-o",
+            dir.path().join("x.pcapng").to_str().unwrap(),
+        ],
+        Duration::from_secs(5),
+    );
+    assert_eq!(code, 1, "{err}");
+    assert!(
+        err.contains("not the gateway; its answer is not trusted"),
+        "{err}"
+    );
+
+    // A gateway told to put its control socket there refuses, and says why.
+    let lines = session_lines(dir.path());
+    let text = format!(
+        "[[line]]\n[line.serial]\npath = {:?}\nflow_control = \"none\"\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\n\n[control]\nsocket = {sock:?}\n",
+        lines.a.gw.display().to_string()
+    );
+    let file = dir.path().join("mbgate.toml");
+    std::fs::write(&file, text).unwrap();
+    let mut gw = Proc::start(
+        &["run", "--config", file.to_str().unwrap()],
+        "listening on ",
+    );
+    gw.wait_log(
+        "is writable by everyone (mode 1777): another user could put a socket of their own there",
+        Duration::from_secs(5),
+    );
+    assert!(gw
+        .log()
+        .contains("mbgate capture and mbgate reload are not available"));
+    gw.terminate(Duration::from_secs(10));
+}
+
 /// `[capture] file`: every packet into a ring of files of the size asked, the oldest
 /// deleted; each file stands alone in tshark. A ring that cannot write (a full disk)
 /// stops with one error, and the gateway goes on.

@@ -70,6 +70,21 @@ pub(crate) struct Request {
     pub(crate) seconds: Option<u64>,
 }
 
+/// The longest capture `seconds=` asks for: a year. Past it a deadline would mean
+/// nothing (and near `u64::MAX` it cannot be added to a clock).
+pub(crate) const MAX_SECONDS: u64 = 366 * 24 * 3600;
+/// The most packets `count=` asks for: more than a busy gateway captures in a year.
+pub(crate) const MAX_COUNT: u64 = 1_000_000_000_000;
+
+/// A number of `key=` from 1 to `max`; 0 means none (no limit).
+fn limit(key: &str, v: &str, max: u64) -> Result<Option<u64>, String> {
+    let n: u64 = number(key, v)?;
+    if n > max {
+        return Err(format!("{key}={v}: at most {max}"));
+    }
+    Ok(Some(n).filter(|&n| n > 0))
+}
+
 /// A number in decimal or, with `0x`, in hex.
 fn number<T: TryFrom<u64>>(key: &str, v: &str) -> Result<T, String> {
     let n = match v.strip_prefix("0x").or_else(|| v.strip_prefix("0X")) {
@@ -110,8 +125,8 @@ impl Request {
                     }
                     r.functions.push(fc);
                 }
-                "count" => r.count = Some(number(key, value)?).filter(|&n| n > 0),
-                "seconds" => r.seconds = Some(number(key, value)?).filter(|&n| n > 0),
+                "count" => r.count = limit(key, value, MAX_COUNT)?,
+                "seconds" => r.seconds = limit(key, value, MAX_SECONDS)?,
                 _ => return Err(format!("unknown key {key:?} in {w:?}")),
             }
         }
@@ -224,6 +239,15 @@ mod tests {
             ("capture master=nowhere", "master \"nowhere\""),
             ("capture colour=red", "unknown key"),
             ("capture unit", "key=value"),
+            ("capture seconds=9300000000000000000", "at most 31622400"),
+            ("capture seconds=18446744073709551615", "at most 31622400"),
+            (
+                "capture seconds=18446744073709551616",
+                "not a number in range",
+            ),
+            ("capture seconds=31622401", "at most"),
+            ("capture count=1000000000001", "at most 1000000000000"),
+            ("capture count=-1", "not a number"),
         ] {
             let e = Request::parse(line).unwrap_err();
             assert!(e.contains(says), "{line}: {e}");
@@ -245,8 +269,8 @@ mod tests {
         fn every_request_reads_back(
             units in proptest::collection::vec(proptest::num::u8::ANY, 0..4),
             functions in proptest::collection::vec(1u8..0x80, 0..4),
-            count in proptest::option::of(1u64..u64::MAX),
-            seconds in proptest::option::of(1u64..100_000),
+            count in proptest::option::of(1u64..=MAX_COUNT),
+            seconds in proptest::option::of(1u64..=MAX_SECONDS),
             port in proptest::option::of(proptest::num::u16::ANY),
         ) {
             let masters = port

@@ -4,7 +4,7 @@
 //! that went away), it tells the gateway to stop and reads the capture's end, so the
 //! summary on standard error always says how many packets the gateway dropped.
 
-use super::{connect_error, control_socket, DATA, END};
+use super::{connect_error, control_socket, peer_uid, trust_server, DATA, END};
 use crate::capture::request::{Peer, Request};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
@@ -187,6 +187,9 @@ async fn capture(
     let stream = UnixStream::connect(socket)
         .await
         .map_err(|e| connect_error(socket, &e))?;
+    let uid = peer_uid(&stream)
+        .map_err(|e| format!("cannot tell who serves {}: {e}", socket.display()))?;
+    trust_server(uid, socket)?;
     let (rd, mut wr) = stream.into_split();
     let mut rd = tokio::io::BufReader::new(rd);
     // A gateway that refuses may close before it has read the request: its answer

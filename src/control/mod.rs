@@ -17,7 +17,10 @@
 //!
 //! Access is the file's mode (0660: its owner and group), checked again on each
 //! connection by the peer's credentials (`SO_PEERCRED`): root, the gateway's own
-//! user, or a member of its group. A malformed request closes that client only.
+//! user, or a member of its group. A malformed request closes that client only. The
+//! socket is made only in a directory no one but the gateway's user (or root) may
+//! write, and the two commands believe only a socket served by root, their own user,
+//! or that directory's owner ([`trust_server`]; docs/capture.md).
 //!
 //! Both ends live here: the gateway's (`serve.rs`, started by `start`) and the two
 //! commands that ask it, `mbgate capture` (`capture.rs`) and `mbgate reload`
@@ -113,6 +116,67 @@ pub(crate) fn control_socket(
         Ok(packaged_socket(&file))
     } else {
         Ok(PathBuf::from(set))
+    }
+}
+
+/// Is whoever serves the control socket at `socket` (its process runs as `peer_uid`,
+/// from the kernel's `SO_PEERCRED`) to be trusted as the gateway, before `mbgate
+/// reload` or `mbgate capture` believes a word of it? Root, the user running the
+/// command, or the owner of the socket's directory when that directory only its owner
+/// may write (systemd's RuntimeDirectory, owned by the service's user): there no one
+/// else can have put a socket. Anyone else is an impostor: a socket planted in a
+/// directory others may write.
+pub(crate) fn trust_server(peer_uid: u32, socket: &Path) -> Result<(), String> {
+    use std::os::unix::fs::MetadataExt;
+    #[allow(unsafe_code)]
+    // SAFETY: geteuid(2) has no preconditions and cannot fail.
+    let me = unsafe { libc::geteuid() };
+    if peer_uid == 0 || peer_uid == me {
+        return Ok(());
+    }
+    let dir = match socket.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let s = socket.display();
+    match std::fs::metadata(dir) {
+        Ok(m) if m.uid() == peer_uid && m.mode() & 0o022 == 0 => Ok(()),
+        Ok(m) => Err(format!(
+            "{s} is served by user {peer_uid}, who is neither root, you, nor the owner of {} (owned by user {}, mode {:04o}): not the gateway; its answer is not trusted (a socket another user put there?)",
+            dir.display(),
+            m.uid(),
+            m.mode() & 0o7777
+        )),
+        Err(e) => Err(format!(
+            "{s} is served by user {peer_uid}, neither root nor you, and its directory cannot be read ({e}): its answer is not trusted"
+        )),
+    }
+}
+
+/// The user id of the process at the other end of a Unix socket (`SO_PEERCRED`).
+pub(crate) fn peer_uid(socket: &impl std::os::fd::AsRawFd) -> std::io::Result<u32> {
+    let mut cred = libc::ucred {
+        pid: 0,
+        uid: 0,
+        gid: 0,
+    };
+    let mut len = std::mem::size_of::<libc::ucred>() as libc::socklen_t;
+    #[allow(unsafe_code)]
+    // SAFETY: `cred` and `len` are valid for writes of the size given; the descriptor
+    // is open for the borrow of `socket`; getsockopt(2) writes at most `len` bytes.
+    let r = unsafe {
+        libc::getsockopt(
+            socket.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_PEERCRED,
+            (&raw mut cred).cast(),
+            &raw mut len,
+        )
+    };
+    if r == 0 {
+        Ok(cred.uid)
+    } else {
+        Err(std::io::Error::last_os_error())
     }
 }
 

@@ -5,7 +5,7 @@
 //! key, what waits for a restart, or why the file was refused. Exit code: 0 taken, 1
 //! refused, 3 the gateway could not be asked (2: bad arguments, as everywhere).
 
-use super::{connect_error, control_socket, RELOAD};
+use super::{connect_error, control_socket, peer_uid, trust_server, RELOAD};
 use std::io::{Read, Write};
 use std::os::unix::net::UnixStream;
 use std::path::PathBuf;
@@ -68,15 +68,24 @@ pub fn main(args: ReloadArgs) -> ExitCode {
 /// `reload` on the control socket at `socket`: the whole answer.
 fn ask(socket: &std::path::Path) -> Result<String, String> {
     let mut s = UnixStream::connect(socket).map_err(|e| connect_error(socket, &e))?;
+    let uid =
+        peer_uid(&s).map_err(|e| format!("cannot tell who serves {}: {e}", socket.display()))?;
+    trust_server(uid, socket)?;
     // Reading a file and applying it takes little, but the gateway may be busy.
-    s.set_read_timeout(Some(Duration::from_secs(30)))
+    s.set_read_timeout(Some(Duration::from_secs(35)))
         .map_err(|e| e.to_string())?;
-    s.write_all(format!("{RELOAD}\n").as_bytes())
-        .map_err(|e| e.to_string())?;
-    let mut all = String::new();
-    s.read_to_string(&mut all).map_err(|e| e.to_string())?;
-    if all.is_empty() {
-        return Err(format!("{} closed without an answer", socket.display()));
+    // A gateway that refuses may close before it has read the request: its answer is
+    // read even when the request could not be written.
+    let sent = s.write_all(format!("{RELOAD}\n").as_bytes());
+    let mut all = Vec::new();
+    let read = s.read_to_end(&mut all);
+    let all = String::from_utf8_lossy(&all).into_owned();
+    match (all.is_empty(), sent, read) {
+        (false, _, _) => Ok(all),
+        (true, Err(e), _) | (true, _, Err(e)) => Err(format!(
+            "{} closed without an answer: {e}",
+            socket.display()
+        )),
+        (true, Ok(()), Ok(_)) => Err(format!("{} closed without an answer", socket.display())),
     }
-    Ok(all)
 }

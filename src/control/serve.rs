@@ -1,7 +1,10 @@
 //! The gateway's end of the control socket (the protocol: `control/mod.rs`): the
-//! socket made 0660, who may use it (checked again on each connection by the peer's
-//! credentials), one client's request read, then a capture streamed from the hub or a
-//! reload asked of the gateway and its answer written.
+//! socket made 0660 in a directory only the gateway may write, who may use it (checked
+//! again on each connection by the peer's credentials), one client's request read
+//! within a deadline, then a capture streamed from the hub or a reload asked of the
+//! gateway and its answer written, every write within a deadline too. Each client
+//! holds a slot (waiting for its request, or capturing) that a guard gives back
+//! however its task ends.
 
 use super::{message, DATA, END, RELOAD};
 use crate::capture::hub::{unix_us, Hub, Subscription};
@@ -21,14 +24,67 @@ use tracing::{debug, info, warn};
 
 /// Captures at once; one more is refused with a message.
 const MAX_CLIENTS: usize = 8;
+/// Clients connected that have not yet sent their request (a reload is answered
+/// within this slot too); one more is refused with a message. Apart from the
+/// captures: eight captures running never keep `mbgate reload` out.
+const MAX_WAITING: usize = 16;
+/// Clients being told they were refused, at most; past it they are closed at once.
+const MAX_REFUSING: usize = 32;
 /// A client has this long to send its request (`mbgate capture` sends it at once).
 const REQUEST_WITHIN: Duration = Duration::from_secs(2);
+/// A write to a client that does not read it within this long ends that client (a
+/// capture that stops being read is ended, its slot given back).
+const WRITE_WITHIN: Duration = Duration::from_secs(5);
+/// The longest a reload is waited for.
+const RELOAD_WITHIN: Duration = Duration::from_secs(30);
+
+/// Slots of one kind: a [`Slot`] taken while one is free, given back when dropped.
+#[derive(Debug)]
+struct Slots {
+    taken: AtomicUsize,
+    max: usize,
+}
+
+/// A slot taken; dropping it (the task ending, by any path, a panic included) gives it
+/// back.
+#[derive(Debug)]
+struct Slot(Arc<Slots>);
+
+impl Slots {
+    fn new(max: usize) -> Arc<Slots> {
+        Arc::new(Slots {
+            taken: AtomicUsize::new(0),
+            max,
+        })
+    }
+
+    fn take(self: &Arc<Self>) -> Option<Slot> {
+        self.taken
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
+                (n < self.max).then_some(n + 1)
+            })
+            .ok()
+            .map(|_| Slot(self.clone()))
+    }
+
+    fn taken(&self) -> usize {
+        self.taken.load(Ordering::Acquire)
+    }
+}
+
+impl Drop for Slot {
+    fn drop(&mut self) {
+        self.0.taken.fetch_sub(1, Ordering::AcqRel);
+    }
+}
 
 /// Why the control socket could not be made.
 #[derive(Debug, thiserror::Error)]
 pub(crate) enum BindError {
     #[error("{0} is in use by another running mbgate (give each its own control.socket)")]
     InUse(PathBuf),
+    #[error("control socket {path}: refused: {why}")]
+    Unsafe { path: PathBuf, why: String },
     #[error("cannot make the control socket {path}: {error}")]
     Io {
         path: PathBuf,
@@ -51,6 +107,12 @@ pub(crate) fn bind(path: &Path) -> Result<Control, BindError> {
         path: path.to_owned(),
         error,
     };
+    if let Err(why) = directory_is_ours(path) {
+        return Err(BindError::Unsafe {
+            path: path.to_owned(),
+            why,
+        });
+    }
     if std::os::unix::net::UnixStream::connect(path).is_ok() {
         return Err(BindError::InUse(path.to_owned()));
     }
@@ -82,6 +144,36 @@ pub(crate) fn bind(path: &Path) -> Result<Control, BindError> {
     })
 }
 
+/// Is the directory of `path` one only the gateway may write: its own (or root's,
+/// for a gateway run as root), not writable by its group or others? Elsewhere another
+/// user could put a socket of their own at the path before the gateway starts, or
+/// replace the gateway's after, and `mbgate reload` run by root would talk to it.
+fn directory_is_ours(path: &Path) -> Result<(), String> {
+    use std::os::unix::fs::MetadataExt;
+    let dir = match path.parent() {
+        Some(d) if !d.as_os_str().is_empty() => d,
+        _ => Path::new("."),
+    };
+    let m = std::fs::metadata(dir).map_err(|e| format!("its directory {}: {e}", dir.display()))?;
+    let (uid, _) = own_ids();
+    let mode = m.mode() & 0o7777;
+    if mode & 0o022 != 0 {
+        return Err(format!(
+            "its directory {} is writable by {} (mode {mode:04o}): another user could put a socket of their own there; use a directory only the gateway's user may write (mode 0755 or 0750, like systemd's RuntimeDirectory)",
+            dir.display(),
+            if mode & 0o002 != 0 { "everyone" } else { "its group" },
+        ));
+    }
+    if m.uid() != uid && m.uid() != 0 {
+        return Err(format!(
+            "its directory {} belongs to user {}, not to the gateway's user ({uid}) or root",
+            dir.display(),
+            m.uid()
+        ));
+    }
+    Ok(())
+}
+
 impl Drop for Control {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.path);
@@ -99,7 +191,9 @@ pub(crate) async fn serve(
         "control socket {} (mbgate capture, mbgate reload)",
         control.path.display()
     );
-    let clients = Arc::new(AtomicUsize::new(0));
+    let waiting = Slots::new(MAX_WAITING);
+    let captures = Slots::new(MAX_CLIENTS);
+    let refusing = Slots::new(MAX_REFUSING);
     loop {
         let (stream, _) = tokio::select! {
             _ = shutdown.cancelled() => break,
@@ -112,24 +206,33 @@ pub(crate) async fn serve(
                 }
             },
         };
-        if let Err(why) = allowed(&stream) {
-            warn!("control socket: {why}; refused");
-            let mut s = stream;
-            let _ = s.write_all(format!("error: {why}\n").as_bytes()).await;
+        let refusal = match allowed(&stream) {
+            Err(why) => {
+                warn!("control socket: {why}; refused");
+                Some(why)
+            }
+            Ok(()) => None,
+        };
+        let slot = match refusal {
+            None => waiting.take(),
+            Some(_) => None,
+        };
+        let Some(slot) = slot else {
+            let why = refusal.unwrap_or_else(|| {
+                format!("{MAX_WAITING} clients are waiting to be served already")
+            });
+            // Told in a task of its own (at most MAX_REFUSING at once): the accept
+            // loop never waits on a client.
+            if let Some(r) = refusing.take() {
+                tokio::spawn(async move {
+                    refuse(stream, &why).await;
+                    drop(r);
+                });
+            }
             continue;
-        }
-        if clients.fetch_add(1, Ordering::Relaxed) >= MAX_CLIENTS {
-            clients.fetch_sub(1, Ordering::Relaxed);
-            let mut s = stream;
-            let msg = format!("error: {MAX_CLIENTS} captures are running already\n");
-            let _ = s.write_all(msg.as_bytes()).await;
-            continue;
-        }
-        let (hub, clients, reload) = (hub.clone(), clients.clone(), reload.clone());
-        tokio::spawn(async move {
-            client(stream, hub, reload).await;
-            clients.fetch_sub(1, Ordering::Relaxed);
-        });
+        };
+        let (hub, captures, reload) = (hub.clone(), captures.clone(), reload.clone());
+        tokio::spawn(client(stream, hub, reload, slot, captures));
     }
     drop(control);
 }
@@ -177,6 +280,30 @@ fn allowed(stream: &UnixStream) -> Result<(), String> {
     ))
 }
 
+/// Tells a client it is refused: reads what it sent first (within a moment), so that
+/// closing does not reset the connection and lose the answer, then writes `error: why`.
+async fn refuse(stream: UnixStream, why: &str) {
+    let (mut rd, mut wr) = stream.into_split();
+    let _ = tokio::time::timeout(Duration::from_millis(500), request_line(&mut rd)).await;
+    let _ = tokio::time::timeout(
+        WRITE_WITHIN,
+        wr.write_all(format!("error: {why}\n").as_bytes()),
+    )
+    .await;
+}
+
+/// Writes `bytes` to a client that has [`WRITE_WITHIN`] to take them.
+async fn write_within(
+    wr: &mut tokio::net::unix::OwnedWriteHalf,
+    bytes: &[u8],
+) -> Result<(), &'static str> {
+    match tokio::time::timeout(WRITE_WITHIN, wr.write_all(bytes)).await {
+        Ok(Ok(())) => Ok(()),
+        Ok(Err(_)) => Err("the client went away"),
+        Err(_) => Err("the client stopped reading"),
+    }
+}
+
 /// Reads the request line: at most [`MAX_LINE`] bytes, within [`REQUEST_WITHIN`].
 async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String, String> {
     let mut line = Vec::new();
@@ -204,31 +331,53 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
     String::from_utf8(line).map_err(|_| "a request that is not text".into())
 }
 
-/// One client: a reload, or a capture (its request, then packets until a stop
-/// condition).
-async fn client(stream: UnixStream, hub: Hub, reload: Option<ReloadHandle>) {
+/// One client, holding `waiting` until its request is read: a reload, or a capture
+/// (its request, then packets until a stop condition) in one of `captures`.
+async fn client(
+    stream: UnixStream,
+    hub: Hub,
+    reload: Option<ReloadHandle>,
+    waiting: Slot,
+    captures: Arc<Slots>,
+) {
     let (mut rd, mut wr) = stream.into_split();
     let line = request_line(&mut rd).await;
     if line
         .as_deref()
         .is_ok_and(|l| l.trim_end_matches('\r') == RELOAD)
     {
-        let answer = reloaded(reload).await;
-        let _ = wr.write_all(answer.as_bytes()).await;
+        let answer = match tokio::time::timeout(RELOAD_WITHIN, reloaded(reload)).await {
+            Ok(a) => a,
+            Err(_) => format!(
+                "error: no answer from the gateway's reload within {} s\n",
+                RELOAD_WITHIN.as_secs()
+            ),
+        };
+        let _ = write_within(&mut wr, answer.as_bytes()).await;
         return;
     }
     let request = match line.and_then(|l| Request::parse(l.trim_end_matches('\r'))) {
         Ok(r) => r,
         Err(why) => {
             debug!("control socket: bad request: {why}");
-            let _ = wr.write_all(format!("error: {why}\n").as_bytes()).await;
+            let _ = write_within(&mut wr, format!("error: {why}\n").as_bytes()).await;
             return;
         }
     };
+    let Some(slot) = captures.take() else {
+        let why = format!("error: {MAX_CLIENTS} captures are running already\n");
+        let _ = write_within(&mut wr, why.as_bytes()).await;
+        return;
+    };
+    drop(waiting);
+    debug!(
+        captures = captures.taken(),
+        "control socket: a capture begins"
+    );
     let sub = match hub.subscribe(request.clone()) {
         Ok(s) => s,
         Err(why) => {
-            let _ = wr.write_all(format!("error: {why}\n").as_bytes()).await;
+            let _ = write_within(&mut wr, format!("error: {why}\n").as_bytes()).await;
             return;
         }
     };
@@ -243,6 +392,7 @@ async fn client(stream: UnixStream, hub: Hub, reload: Option<ReloadHandle>) {
     let why = run.stream(&mut rd, &mut wr, &hub).await;
     let dropped: u64 = run.sub.dropped().iter().sum();
     info!(packets = run.packets, dropped, "capture ended ({why})");
+    drop(slot);
 }
 
 /// What a reload asked for over the socket is told: `ok` or `refused`, then what the
@@ -288,13 +438,14 @@ impl Run {
         }
         let mut out = b"ok\n".to_vec();
         message(&mut out, DATA, &head);
-        if wr.write_all(&out).await.is_err() {
-            return "the client went away";
+        if let Err(why) = write_within(wr, &out).await {
+            return why;
         }
+        // Bounded by the request's reader (a year at most); checked all the same.
         let until = self
             .request
             .seconds
-            .map(|s| Instant::now() + Duration::from_secs(s));
+            .and_then(|s| Instant::now().checked_add(Duration::from_secs(s)));
         let mut cmd = [0u8; 64];
         let why = loop {
             let mut blocks = Vec::new();
@@ -328,8 +479,8 @@ impl Run {
             // answers included) has gone out: the hub closes, `recv` gives `None`.
             let mut msg = Vec::with_capacity(blocks.len() + 5);
             message(&mut msg, DATA, &blocks);
-            if wr.write_all(&msg).await.is_err() {
-                return "the client went away";
+            if let Err(why) = write_within(wr, &msg).await {
+                return why;
             }
             if self.request.count.is_some_and(|n| self.packets >= n) {
                 break "count";
@@ -356,7 +507,7 @@ impl Run {
             why.replace(' ', "_")
         );
         message(&mut msg, END, end.as_bytes());
-        let _ = tokio::time::timeout(Duration::from_secs(5), wr.write_all(&msg)).await;
+        let _ = write_within(wr, &msg).await;
         why
     }
 }
@@ -395,6 +546,45 @@ mod tests {
             });
             assert_eq!(reloaded(Some(handle)).await, head);
         }
+    }
+
+    /// A slot is given back however its holder ends: dropped, or its task panicking.
+    #[tokio::test]
+    async fn slots_are_given_back_on_every_path() {
+        let slots = Slots::new(2);
+        let a = slots.take().unwrap();
+        let b = slots.take().unwrap();
+        assert!(slots.take().is_none());
+        drop(a);
+        let c = slots.take().unwrap();
+        let task = tokio::spawn(async move {
+            let _held = b;
+            panic!("a client's task fails");
+        });
+        assert!(task.await.is_err());
+        assert_eq!(slots.taken(), 1);
+        drop(c);
+        assert_eq!(slots.taken(), 0);
+    }
+
+    /// The socket's directory: not one others may write, and the gateway's own.
+    #[tokio::test]
+    async fn a_directory_others_may_write_is_refused_saying_why() {
+        let dir = tempfile::tempdir().unwrap();
+        for (mode, says) in [
+            (0o1777, "writable by everyone (mode 1777)"),
+            (0o770, "writable by its group (mode 0770)"),
+        ] {
+            std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(mode)).unwrap();
+            let e = bind(&dir.path().join("control.sock"))
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(e.contains(says), "{e}");
+            assert!(!dir.path().join("control.sock").exists());
+        }
+        std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o750)).unwrap();
+        drop(bind(&dir.path().join("control.sock")).unwrap());
     }
 
     #[tokio::test]
