@@ -852,24 +852,32 @@ fn unauthenticated_peers_cannot_lock_certificate_holders_out() {
     // Churn: new silent connections from 100 sources as fast as one thread opens them
     // (at most 20 000, keeping the newest 400), while the master connects.
     let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
-    let attacker = {
-        let (stop, many) = (stop.clone(), many.clone());
-        std::thread::spawn(move || {
-            let started = std::time::Instant::now();
-            let mut open = std::collections::VecDeque::new();
-            let mut opened = 0usize;
-            while !stop.load(std::sync::atomic::Ordering::Relaxed) && opened < 20_000 {
-                for s in half_open(&many[opened % 100..opened % 100 + 1], to, 1) {
-                    open.push_back(s);
+    // `MBGATE_ATTACKERS=N`: N such threads (1 by default), each its 20 000 and 400.
+    let threads: usize = std::env::var("MBGATE_ATTACKERS")
+        .ok()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or(1);
+    let attackers: Vec<_> = (0..threads)
+        .map(|t| {
+            let (stop, many) = (stop.clone(), many.clone());
+            std::thread::spawn(move || {
+                let started = std::time::Instant::now();
+                let mut open = std::collections::VecDeque::new();
+                let mut opened = 0usize;
+                while !stop.load(std::sync::atomic::Ordering::Relaxed) && opened < 20_000 {
+                    let from = (opened + 7 * t) % 100;
+                    for s in half_open(&many[from..from + 1], to, 1) {
+                        open.push_back(s);
+                    }
+                    opened += 1;
+                    if open.len() > 400 {
+                        open.pop_front();
+                    }
                 }
-                opened += 1;
-                if open.len() > 400 {
-                    open.pop_front();
-                }
-            }
-            (opened, started.elapsed())
+                (opened, started.elapsed())
+            })
         })
-    };
+        .collect();
     std::thread::sleep(Duration::from_millis(300));
     let (served, ms) = handshakes_served(&mut m, 10);
     let ok = s_client(
@@ -884,9 +892,14 @@ fn unauthenticated_peers_cannot_lock_certificate_holders_out() {
         ],
     );
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
-    let (opened, took) = attacker.join().unwrap();
+    let (mut opened, mut took) = (0, Duration::ZERO);
+    for a in attackers {
+        let (n, t) = a.join().unwrap();
+        opened += n;
+        took = took.max(t);
+    }
     eprintln!(
-        "100 sources churning ({opened} connects in {took:.1?}, {:.0}/s): {served}/10 served, ms {ms:?}",
+        "100 sources churning, {threads} threads ({opened} connects in {took:.1?}, {:.0}/s): {served}/10 served, ms {ms:?}",
         opened as f64 / took.as_secs_f64()
     );
     assert!(served >= 8, "churn: {served}/10, {ms:?}");
