@@ -1312,3 +1312,83 @@ async fn direction_on_for_each_request_off_before_its_reply() {
     assert!(!on.load(SeqCst), "left off");
     assert_eq!(log.lock().unwrap().last().map(|e| e.1), Some(false));
 }
+
+/// `echo = true` with the gateway switching the transmitter (a receiver left on while
+/// sending reads the request back), by either method: the copy of the request is
+/// read back and dropped, the reply after it taken.
+#[tokio::test]
+async fn direction_with_echo_drops_the_request_read_back() {
+    use mbgate::config::{Direction, FlowControl};
+    use mbgate::port::duplex::Bus;
+    use std::sync::atomic::Ordering::SeqCst;
+    for direction in [Direction::Rts, Direction::Gpio] {
+        let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let lost = Arc::new(AtomicU64::new(0));
+        let on2 = on.clone();
+        let bus = Bus {
+            make: Arc::new(move || {
+                Box::new(FakeSwitch {
+                    on: on2.clone(),
+                    log: Arc::default(),
+                    broken: Arc::default(),
+                })
+            }),
+            on: on.clone(),
+            lost: lost.clone(),
+        };
+        let serial = SerialConfig {
+            direction,
+            flow_control: FlowControl::None,
+            echo: true,
+            direction_gpio_line: mbgate::config::GpioLine::Offset(4),
+            ..serial(Framing::Rtu)
+        };
+        let stats = Arc::new(Stats::default());
+        let (port, mut device) = duplex::pair(4096, CHAR);
+        let (relay, handle) = Relay::new(
+            relay_cfg(),
+            serial,
+            false,
+            stats.clone(),
+            CancellationToken::new(),
+        );
+        let _task = tokio::spawn(relay.with_port(Box::new(port.with_switch(bus))).run());
+        let (outbox, inbox) = Outbox::new(16);
+        handle
+            .send(Command::Attach {
+                conn: 1,
+                notifier: outbox.notifier(),
+            })
+            .unwrap();
+        let mut m = Master {
+            conn: 1,
+            outbox,
+            inbox,
+            handle,
+        };
+        let mut dev = device.accept().await;
+        for i in 0..5u16 {
+            m.send(read(i, 1, i)).await;
+            let req = next_rtu(&mut dev).await;
+            // The bus gives the request back to the gateway's receiver, then the
+            // device answers once the transmitter is off.
+            dev.write_all(&req).await.unwrap();
+            while on.load(SeqCst) {
+                tokio::time::sleep(Duration::from_micros(100)).await;
+            }
+            let [hi, lo] = (i + 7).to_be_bytes();
+            dev.write_all(&Codec::Rtu.encode(1, &[0x03, 0x02, hi, lo]))
+                .await
+                .unwrap();
+            assert_eq!(value(&m.recv().await), i + 7, "{direction:?}");
+        }
+        assert_eq!(lost.load(SeqCst), 0);
+        // Each echo (8 bytes) was read with its reply (7), and none taken for one.
+        assert_eq!(
+            stats.get(&stats.serial_bytes_in),
+            5 * 15,
+            "{direction:?}: {stats}"
+        );
+        assert_eq!(stats.get(&stats.bad_frames), 0, "{direction:?}: {stats}");
+    }
+}
