@@ -297,9 +297,7 @@ impl Relay {
         [
             self.in_flight.next_deadline(),
             self.line.next_wake(now, self.sched.has_waiting()),
-            self.turnaround
-                .as_ref()
-                .and_then(turnaround::Turnaround::wake),
+            self.turnaround.as_ref().and_then(|t| t.wake(now)),
             self.paced.next_due(),
             self.port.retry_at(),
             self.watchdog.as_ref().map(Watchdog::next),
@@ -569,6 +567,19 @@ impl Relay {
                         _ => tracing::trace!(on, "transmitter switched"),
                     }
                 }
+            }
+        }
+    }
+
+    /// Switches the transmitter off now if it is on (where the gateway switches it).
+    fn switch_off(&mut self, now: Instant) {
+        let Some(t) = &mut self.turnaround else {
+            return;
+        };
+        if t.abort().is_some() {
+            if let Err(e) = self.port.transmit(false) {
+                let why = format!("could not switch the RS-485 transmitter off: {e}");
+                self.port_lost(&why, now);
             }
         }
     }

@@ -1392,3 +1392,76 @@ async fn direction_with_echo_drops_the_request_read_back() {
         assert_eq!(stats.get(&stats.bad_frames), 0, "{direction:?}: {stats}");
     }
 }
+
+/// A request held back (the pipe full, as with CTS low) times out with the
+/// transmitter on: the master gets 0x0B and the transmitter goes off at the timeout
+/// (it goes on again only to finish the frame begun, which keeps the device's parser in
+/// step); the loop waits meanwhile rather than spinning.
+#[tokio::test]
+async fn direction_a_request_that_times_out_stuck_leaves_the_transmitter_off() {
+    use mbgate::config::{Direction, FlowControl};
+    use mbgate::port::duplex::Bus;
+    use std::sync::atomic::Ordering::SeqCst;
+    let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let log = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let (on2, log2) = (on.clone(), log.clone());
+    let bus = Bus {
+        make: Arc::new(move || {
+            Box::new(FakeSwitch {
+                on: on2.clone(),
+                log: log2.clone(),
+                broken: Arc::default(),
+            })
+        }),
+        on: on.clone(),
+        lost: Arc::default(),
+    };
+    let serial = SerialConfig {
+        direction: Direction::Gpio,
+        flow_control: FlowControl::None,
+        direction_gpio_line: mbgate::config::GpioLine::Offset(4),
+        ..serial(Framing::Rtu)
+    };
+    let stats = Arc::new(Stats::default());
+    // Room for 4 bytes of the 8-byte request; the device never reads.
+    let (port, mut device) = duplex::pair(4, CHAR);
+    let cfg = RelayConfig {
+        response_timeout_ms: 100,
+        ..relay_cfg()
+    };
+    let (relay, handle) = Relay::new(cfg, serial, false, stats, CancellationToken::new());
+    let _task = tokio::spawn(relay.with_port(Box::new(port.with_switch(bus))).run());
+    let (outbox, inbox) = Outbox::new(16);
+    handle
+        .send(Command::Attach {
+            conn: 1,
+            notifier: outbox.notifier(),
+        })
+        .unwrap();
+    let mut m = Master {
+        conn: 1,
+        outbox,
+        inbox,
+        handle,
+    };
+    let _dev = device.accept().await;
+    m.send(read(1, 1, 1)).await;
+    let t0 = Instant::now();
+    while !on.load(SeqCst) {
+        assert!(t0.elapsed() < 3 * SEC, "never switched on");
+        tokio::time::sleep(Duration::from_micros(100)).await;
+    }
+    let t_on = log.lock().unwrap()[1].0;
+    assert_eq!(
+        exception_of(&m.recv().await),
+        Some(0x0B),
+        "it began to go out"
+    );
+    let log = log.lock().unwrap().clone();
+    assert!(log[1].1, "{log:?}");
+    assert!(!log[2].1, "off at the timeout: {log:?}");
+    assert!(
+        log[2].0 >= t_on + 100 * MS,
+        "not before the timeout: {log:?}"
+    );
+}

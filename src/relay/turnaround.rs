@@ -164,15 +164,18 @@ impl Turnaround {
         }
     }
 
-    /// When the loop must come back: the end of the delay before, the next look, the
-    /// end of the delay after.
-    pub(super) fn wake(&self) -> Option<Instant> {
-        match self.phase {
+    /// When the loop must come back after `now`: the end of the delay before, the
+    /// next look, the end of the delay after. Never `now` or before: a wake that has
+    /// passed would wake the loop at once, again and again (a write held back by flow
+    /// control leaves the delay before passed for as long as it is held).
+    pub(super) fn wake(&self, now: Instant) -> Option<Instant> {
+        let at = match self.phase {
             Phase::Receive => None,
             Phase::Sending { ready_at } => Some(ready_at),
             Phase::Emptying { look_at, .. } => look_at,
             Phase::Trailing { off_at } => Some(off_at),
-        }
+        };
+        at.filter(|&at| at > now)
     }
 
     /// On, with no byte of the frame handed to the port yet.
@@ -282,7 +285,7 @@ mod tests {
             b.turn(true);
             assert_eq!(b.history, [(t0, true)]);
             assert!(!b.write(), "not before the delay before");
-            assert_eq!(b.t.wake(), Some(t0 + us(100)));
+            assert_eq!(b.t.wake(b.now), Some(t0 + us(100)));
             b.now = t0 + us(100);
             assert!(b.write());
             // 8 characters: their last stop bit leaves 700 µs later at the soonest,
@@ -297,7 +300,7 @@ mod tests {
                 // Looked at every quarter character until it is empty.
                 let mut looks = 0;
                 while b.history.len() == 1 {
-                    b.now = b.t.wake().expect("a look or the off is due");
+                    b.now = b.t.wake(b.now).expect("a look or the off is due");
                     b.turn(false);
                     looks += 1;
                     assert!(looks < 10, "looked too often");
@@ -308,7 +311,7 @@ mod tests {
                 assert!(off.0 >= empty + us(50), "off before the delay after");
                 assert!(off.0 <= empty + us(50) + us(22), "off a look late at most");
             } else {
-                assert_eq!(b.t.wake(), None, "waits for the drain");
+                assert_eq!(b.t.wake(b.now), None, "waits for the drain");
                 b.now = t0 + us(2000);
                 b.t.drained(b.now);
                 b.turn(false);
@@ -335,7 +338,7 @@ mod tests {
         assert!(!b.on);
         b.turn(true);
         b.t.written(b.now);
-        assert_eq!(b.t.wake(), None, "no look this time");
+        assert_eq!(b.t.wake(b.now), None, "no look this time");
     }
 
     /// Abandoned while on: off at once; a fresh open starts off, learning again.
@@ -447,6 +450,9 @@ mod tests {
                 }
                 if !b.on {
                     prop_assert!(!b.t.may_write(b.now), "may write while off");
+                }
+                if let Some(w) = b.t.wake(b.now) {
+                    prop_assert!(w > b.now, "a wake that has passed");
                 }
             }
         }
