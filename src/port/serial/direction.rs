@@ -163,23 +163,36 @@ pub enum DirectionError {
 /// The transmitter's switch `cfg` asks for on the open port `fd`, switched off; none
 /// where the gateway switches nothing.
 pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, DirectionError> {
-    let switch: Box<dyn Switch> = match cfg.direction {
-        Direction::None => return Ok(None),
-        Direction::Rts => Box::new(Rts {
-            lines: Tty(fd),
-            invert: cfg.direction_invert,
-        }),
-        Direction::Gpio => Box::new(Gpio {
-            line: request_line(cfg)?,
-            invert: cfg.direction_invert,
-        }),
-    };
-    Transmitter::new(switch)
-        .map(Some)
-        .map_err(|source| DirectionError::NoModemLines {
-            path: cfg.path.clone(),
-            source,
-        })
+    match cfg.direction {
+        Direction::None => Ok(None),
+        Direction::Rts => {
+            let rts = Rts {
+                lines: Tty(fd),
+                invert: cfg.direction_invert,
+            };
+            Transmitter::new(Box::new(rts)).map(Some).map_err(|source| {
+                DirectionError::NoModemLines {
+                    path: cfg.path.clone(),
+                    source,
+                }
+            })
+        }
+        Direction::Gpio => {
+            let line = request_line(cfg)?;
+            let (offset, chip) = (line.offset, line.request.chip_path());
+            let gpio = Gpio {
+                line,
+                invert: cfg.direction_invert,
+            };
+            Transmitter::new(Box::new(gpio))
+                .map(Some)
+                .map_err(|source| DirectionError::Gpio {
+                    offset,
+                    chip: chip.display().to_string(),
+                    source: gpiocdev::Error::from(source),
+                })
+        }
+    }
 }
 
 /// RTS of the open port.
@@ -268,7 +281,11 @@ fn find_chip(spec: &str) -> Result<PathBuf, DirectionError> {
         s => Path::new("/dev").join(s),
     };
     let no_chip = || DirectionError::NoChip {
-        chip: spec.to_owned(),
+        chip: if spec.is_empty() {
+            "gpiochip0".to_owned()
+        } else {
+            spec.to_owned()
+        },
         found: chips_here(),
     };
     if path.exists() {
@@ -537,6 +554,17 @@ mod tests {
             e.starts_with("serial.direction_gpio_line = \"NO_SUCH_LINE_X\": no line"),
             "{e}"
         );
+        // The default chip, where there is none: named as gpiochip0.
+        if !Path::new("/dev/gpiochip0").exists() {
+            let e = request_line(&gpio("", GpioLine::Offset(1)))
+                .err()
+                .unwrap()
+                .to_string();
+            assert!(
+                e.starts_with("serial.direction_gpio_chip = \"gpiochip0\": no GPIO chip"),
+                "{e}"
+            );
+        }
         // Not a GPIO chip at all: a file that is no character device.
         let e = request_line(&gpio("/etc/hostname", GpioLine::Offset(0)))
             .err()
