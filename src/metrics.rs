@@ -107,6 +107,9 @@ pub(crate) struct LineMetrics {
     /// Whether the port is open (1) or not (0).
     pub(crate) port_open: AtomicU64,
     started: Instant,
+    /// Who switches the line's RS-485 transmitter, in words; empty where nobody is
+    /// asked to (`crate::config::describe::direction`).
+    direction: std::sync::Mutex<String>,
 }
 
 /// A unit not answering counts as failing (the gateway not healthy) until it answers
@@ -130,7 +133,19 @@ impl LineMetrics {
             last_reply_us: AtomicU64::new(0),
             port_open: AtomicU64::new(0),
             started: Instant::now(),
+            direction: std::sync::Mutex::new(String::new()),
         }
+    }
+
+    /// Says who switches the line's transmitter (`None`: nobody is asked to).
+    pub(crate) fn set_direction(&self, said: Option<String>) {
+        *self.direction.lock().unwrap_or_else(|e| e.into_inner()) = said.unwrap_or_default();
+    }
+
+    /// Who switches the line's transmitter, if anybody is asked to.
+    pub(crate) fn direction(&self) -> Option<String> {
+        let d = self.direction.lock().unwrap_or_else(|e| e.into_inner());
+        (!d.is_empty()).then(|| d.clone())
     }
 
     pub(crate) fn unit(&self, unit: u8) -> &UnitMetrics {

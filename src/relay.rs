@@ -23,6 +23,7 @@ mod line;
 mod outgoing;
 mod pending;
 mod scheduler;
+mod turnaround;
 mod watch;
 mod watchdog;
 
@@ -77,6 +78,8 @@ pub struct Relay {
     watchdog: Option<Watchdog>,
     /// The line's numbers, warnings and traffic log.
     watch: Watch,
+    /// The RS-485 transmitter, where the gateway switches it (`serial.direction`).
+    turnaround: Option<turnaround::Turnaround>,
 }
 
 impl Relay {
@@ -131,6 +134,16 @@ impl Relay {
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = Arc::new(LineMetrics::new(transport.name(), stats.clone()));
         let port = Lifecycle::new(transport, baud, now);
+        metrics.set_direction(crate::config::describe::direction(&serial));
+        // Over TCP the device server has the wire: nothing to switch here.
+        let turnaround =
+            (serial.direction != crate::config::Direction::None && !stream).then(|| {
+                turnaround::Turnaround::new(
+                    Duration::from_micros(serial.direction_delay_before_us.into()),
+                    Duration::from_micros(serial.direction_delay_after_us.into()),
+                    crate::port::kind::wire_time(&serial, 1),
+                )
+            });
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth, cfg.coalesce),
             cache: Cache::new(Duration::from_millis(cfg.cache_ms)),
@@ -148,6 +161,7 @@ impl Relay {
             commands_open: true,
             watchdog: None,
             watch: Watch::new(metrics, traffic, serial.framing, baud),
+            turnaround,
         };
         (relay, RelayHandle::new(tx))
     }
@@ -157,6 +171,7 @@ impl Relay {
     pub fn with_port(mut self, transport: Box<dyn port::Port>) -> Self {
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = LineMetrics::new(transport.name(), self.stats.clone());
+        metrics.set_direction(self.watch.metrics.direction());
         self.watch.metrics = Arc::new(metrics);
         self.port.set_transport(transport);
         self
@@ -204,12 +219,14 @@ impl Relay {
             if self.draining && self.in_flight.is_empty() {
                 break;
             }
+            self.steer(now);
             let wake = self.next_wake(now);
             // Anything written below is written after this.
             let polled = now;
             let sources = event::Sources {
                 commands: self.commands_open.then_some(&mut self.rx),
                 out: &self.out,
+                may_write: self.turnaround.as_ref().is_none_or(|t| t.may_write(now)),
                 wake,
                 timer: timer.as_mut(),
                 shutdown: (!self.draining).then_some(&self.shutdown),
@@ -237,6 +254,9 @@ impl Relay {
                     self.line.wrote(n, polled);
                     self.out.advance(n);
                     if self.out.is_empty() && self.line.is_serial() {
+                        if let Some(t) = &mut self.turnaround {
+                            t.written(self.line.leaves_at().unwrap_or(now));
+                        }
                         self.start_drain(now);
                     }
                 }
@@ -252,6 +272,9 @@ impl Relay {
                             now
                         }
                     };
+                    if let Some(t) = &mut self.turnaround {
+                        t.drained(now);
+                    }
                     self.drained(left);
                 }
                 Event::Timer => {}
@@ -274,6 +297,7 @@ impl Relay {
         [
             self.in_flight.next_deadline(),
             self.line.next_wake(now, self.sched.has_waiting()),
+            self.turnaround.as_ref().and_then(|t| t.wake(now)),
             self.paced.next_due(),
             self.port.retry_at(),
             self.watchdog.as_ref().map(Watchdog::next),
@@ -296,6 +320,10 @@ impl Relay {
     fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
         if let Some(info) = self.port.opened(opened, now) {
             self.line.clear(&self.stats);
+            if let Some(t) = &mut self.turnaround {
+                // The switch was taken off with the port.
+                t.reset();
+            }
             let timing = self.line.port_opened(&info);
             self.port.tell_open(&info, &timing);
             self.stats.add(&self.stats.serial_opens, 1);
@@ -308,6 +336,10 @@ impl Relay {
     /// bytes never left (held by flow control, or queued) gets 0x0A: there is no path
     /// to the device, and it cannot have acted.
     fn port_lost(&mut self, why: &str, now: Instant) {
+        // Closing the port drops its switch, which leaves the transmitter off.
+        if let Some(t) = &mut self.turnaround {
+            t.abort();
+        }
         self.port.lost(why, now);
         self.line.clear(&self.stats);
         for f in self.in_flight.take_all() {
@@ -485,11 +517,81 @@ impl Relay {
         self.in_flight.start(tid, req, now, queued);
     }
 
+    /// Switches the RS-485 transmitter as the turnaround says (docs/rs485.md): on when
+    /// bytes wait to be written (only while no request awaits its reply: `dispatch`
+    /// sends one at a time), a look at the port's transmitter when due, off once the
+    /// last stop bit has left. A switch that fails loses the port: its requests get
+    /// their exception, and it is reopened (the switch taken afresh) with backoff.
+    fn steer(&mut self, now: Instant) {
+        if !self.port.is_open() {
+            return;
+        }
+        // Each pass switches, or looks and moves on (a look that finds the
+        // transmitter still busy sets the next one later than now): a few passes are
+        // all one turn of the loop can take.
+        for _ in 0..6 {
+            let waiting = !self.out.is_empty();
+            let Some(t) = &mut self.turnaround else {
+                return;
+            };
+            let act = if waiting {
+                t.begin(now)
+            } else if t.sending() {
+                // Its frame was withdrawn before a byte of it was written.
+                t.abort()
+            } else {
+                None
+            };
+            let Some(a) = act.or_else(|| t.due(now)) else {
+                return;
+            };
+            let late = t.late_by(now);
+            match a {
+                turnaround::Act::Look => {
+                    let empty = self.port.transmitter_empty();
+                    t.looked(empty.ok(), now);
+                }
+                turnaround::Act::On | turnaround::Act::Off => {
+                    let on = a == turnaround::Act::On;
+                    if let Err(e) = self.port.transmit(on) {
+                        let what = if on { "on" } else { "off" };
+                        let why = format!("could not switch the RS-485 transmitter {what}: {e}");
+                        self.port_lost(&why, now);
+                        return;
+                    }
+                    match late {
+                        Some(late) if !on => tracing::trace!(
+                            us = late.as_micros() as u64,
+                            "transmitter off after the last stop bit could have left"
+                        ),
+                        _ => tracing::trace!(on, "transmitter switched"),
+                    }
+                }
+            }
+        }
+    }
+
+    /// Switches the transmitter off now if it is on (where the gateway switches it).
+    fn switch_off(&mut self, now: Instant) {
+        let Some(t) = &mut self.turnaround else {
+            return;
+        };
+        if t.abort().is_some() {
+            if let Err(e) = self.port.transmit(false) {
+                let why = format!("could not switch the RS-485 transmitter off: {e}");
+                self.port_lost(&why, now);
+            }
+        }
+    }
+
     /// Waits for the bytes written to leave the port, off the runtime's thread, so the
     /// reply timer and the inter-frame gap start from the last byte on the wire.
     fn start_drain(&mut self, now: Instant) {
         if let Err(e) = self.port.start_drain() {
             debug!("tcdrain unavailable ({e}): timing from the write");
+            if let Some(t) = &mut self.turnaround {
+                t.drained(now);
+            }
             self.drained(now);
         }
     }

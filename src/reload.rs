@@ -239,12 +239,15 @@ fn reload(
 pub(crate) mod tests {
     use super::*;
 
-    /// A configuration with every key changed from the defaults.
+    /// A configuration with every key changed from the defaults but `serial.direction`
+    /// (it cannot go with `rs485 = true`).
     pub(super) fn all_changed() -> Config {
         let text = "[serial]\npath = \"/dev/x\"\nbaud_rate = 9600\ndata_bits = 7\nparity = \"odd\"\n\
             stop_bits = 2\nflow_control = \"none\"\nframing = \"rtu\"\nsilence_floor_ms = 3\n\
             port_kind = \"wire\"\nlow_latency = false\n\
             rs485 = true\nrs485_delay_before_send_ms = 1\nrs485_delay_after_send_ms = 1\necho = true\n\
+            direction_invert = true\ndirection_gpio_chip = \"gpiochip1\"\ndirection_gpio_line = 4\n\
+            direction_delay_before_us = 1\ndirection_delay_after_us = 1\n\
             inter_frame_gap_us = 900\n\
             [tcp]\nlisten = \"127.0.0.1:1502\"\nmax_connections = 3\nidle_timeout_ms = 5\n\
             [relay]\nresponse_timeout_ms = 7\nframe_gap_ms = 7\nmax_in_flight = 2\n\

@@ -1171,3 +1171,297 @@ async fn cache_a_reply_read_before_a_write_went_out_is_not_kept_past_it() {
     a.recv().await;
     gw.stop().await;
 }
+
+/// A switch of the in-memory bus that keeps the transmitter's state and logs each
+/// switching; fails to switch on while `broken` is set.
+struct FakeSwitch {
+    on: Arc<std::sync::atomic::AtomicBool>,
+    log: Arc<std::sync::Mutex<Vec<(Instant, bool)>>>,
+    broken: Arc<std::sync::atomic::AtomicBool>,
+}
+
+impl mbgate::port::serial::direction::Switch for FakeSwitch {
+    fn set(&mut self, transmit: bool) -> std::io::Result<()> {
+        use std::sync::atomic::Ordering::SeqCst;
+        if transmit && self.broken.load(SeqCst) {
+            return Err(std::io::Error::other("the adapter is gone"));
+        }
+        self.on.store(transmit, SeqCst);
+        self.log.lock().unwrap().push((Instant::now(), transmit));
+        Ok(())
+    }
+}
+
+/// `serial.direction` on a half-duplex bus (the pipe loses what the relay writes while
+/// its transmitter is off): every request reaches the device whole, so the switch was
+/// on before its first byte and stayed on past its last; the device, which answers only
+/// once the bus is free, is answered; the switch goes on once per request, only after
+/// the previous reply came (never while a reply can come), and stays on at least the
+/// two delays; a switch that fails loses the port (0x0A: nothing was written) and the
+/// port reopens; at shutdown the transmitter is left off.
+#[tokio::test]
+async fn direction_on_for_each_request_off_before_its_reply() {
+    use mbgate::config::{Direction, FlowControl};
+    use mbgate::port::duplex::Bus;
+    use std::sync::atomic::Ordering::SeqCst;
+    let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let log = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let broken = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let lost = Arc::new(AtomicU64::new(0));
+    let (on2, log2, broken2) = (on.clone(), log.clone(), broken.clone());
+    let bus = Bus {
+        make: Arc::new(move || {
+            Box::new(FakeSwitch {
+                on: on2.clone(),
+                log: log2.clone(),
+                broken: broken2.clone(),
+            })
+        }),
+        on: on.clone(),
+        lost: lost.clone(),
+    };
+    let serial = SerialConfig {
+        direction: Direction::Rts,
+        flow_control: FlowControl::None,
+        direction_delay_before_us: 300,
+        direction_delay_after_us: 200,
+        ..serial(Framing::Rtu)
+    };
+    let stats = Arc::new(Stats::default());
+    let shutdown = CancellationToken::new();
+    let (port, mut device) = duplex::pair(4096, CHAR);
+    let port = port.with_switch(bus);
+    let (relay, handle) = Relay::new(relay_cfg(), serial, false, stats.clone(), shutdown.clone());
+    let task = tokio::spawn(relay.with_port(Box::new(port)).run());
+    let mut gw = Gw {
+        handle,
+        stats,
+        device: mbgate::port::duplex::pair(1, CHAR).1,
+        shutdown,
+        task,
+        next_conn: 1,
+    };
+    let mut dev = device.accept().await;
+    let mut m = gw.master();
+    let mut replied = Vec::new();
+    for i in 0..20u16 {
+        m.send(read(i, 1, i)).await;
+        let req = next_rtu(&mut dev).await;
+        assert_eq!(
+            req,
+            Codec::Rtu.encode(1, &[0x03, 0x00, i as u8, 0x00, 0x01])
+        );
+        // The device answers once the bus is free.
+        let t0 = Instant::now();
+        while on.load(SeqCst) {
+            assert!(t0.elapsed() < 3 * SEC, "the transmitter stayed on");
+            tokio::time::sleep(Duration::from_micros(100)).await;
+        }
+        let [hi, lo] = (i + 1).to_be_bytes();
+        dev.write_all(&Codec::Rtu.encode(1, &[0x03, 0x02, hi, lo]))
+            .await
+            .unwrap();
+        assert_eq!(value(&m.recv().await), i + 1);
+        replied.push(Instant::now());
+    }
+    assert_eq!(lost.load(SeqCst), 0, "no byte written while off");
+    {
+        let log = log.lock().unwrap();
+        // Off when taken at open, then on and off once per request.
+        assert_eq!(log.len(), 1 + 2 * 20, "{log:?}");
+        assert!(!log[0].1);
+        for (i, pair) in log[1..].chunks(2).enumerate() {
+            let ((t_on, on_), (t_off, off_)) = (pair[0], pair[1]);
+            assert!(on_ && !off_, "on then off: {pair:?}");
+            assert!(
+                t_off - t_on >= Duration::from_micros(500),
+                "the delays before and after: {:?}",
+                t_off - t_on
+            );
+            if i > 0 {
+                assert!(t_on >= replied[i - 1], "on before the last reply came");
+            }
+        }
+    }
+
+    // The switch fails: the port is lost, the request never left (0x0A), the port
+    // reopens with a new switch and serves again.
+    broken.store(true, SeqCst);
+    m.send(read(50, 1, 50)).await;
+    assert_eq!(exception_of(&m.recv().await), Some(0x0A));
+    broken.store(false, SeqCst);
+    let mut dev = timeout(3 * SEC, device.accept()).await.expect("reopened");
+    m.send(read(51, 1, 51)).await;
+    let req = next_rtu(&mut dev).await;
+    assert_eq!(req, Codec::Rtu.encode(1, &[0x03, 0x00, 51, 0x00, 0x01]));
+    while on.load(SeqCst) {
+        tokio::time::sleep(Duration::from_micros(100)).await;
+    }
+    dev.write_all(&Codec::Rtu.encode(1, &[0x03, 0x02, 0x00, 52]))
+        .await
+        .unwrap();
+    assert_eq!(value(&m.recv().await), 52);
+    assert_eq!(lost.load(SeqCst), 0);
+
+    // Shutdown with the transmitter on (a request written, its reply not yet come):
+    // left off.
+    m.send(read(60, 1, 60)).await;
+    next_rtu(&mut dev).await;
+    gw.shutdown.cancel();
+    let _ = timeout(3 * SEC, &mut gw.task).await.expect("stopped");
+    assert!(!on.load(SeqCst), "left off");
+    assert_eq!(log.lock().unwrap().last().map(|e| e.1), Some(false));
+}
+
+/// `echo = true` with the gateway switching the transmitter (a receiver left on while
+/// sending reads the request back), by either method: the copy of the request is
+/// read back and dropped, the reply after it taken.
+#[tokio::test]
+async fn direction_with_echo_drops_the_request_read_back() {
+    use mbgate::config::{Direction, FlowControl};
+    use mbgate::port::duplex::Bus;
+    use std::sync::atomic::Ordering::SeqCst;
+    for direction in [Direction::Rts, Direction::Gpio] {
+        let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let lost = Arc::new(AtomicU64::new(0));
+        let on2 = on.clone();
+        let bus = Bus {
+            make: Arc::new(move || {
+                Box::new(FakeSwitch {
+                    on: on2.clone(),
+                    log: Arc::default(),
+                    broken: Arc::default(),
+                })
+            }),
+            on: on.clone(),
+            lost: lost.clone(),
+        };
+        let serial = SerialConfig {
+            direction,
+            flow_control: FlowControl::None,
+            echo: true,
+            direction_gpio_line: mbgate::config::GpioLine::Offset(4),
+            ..serial(Framing::Rtu)
+        };
+        let stats = Arc::new(Stats::default());
+        let (port, mut device) = duplex::pair(4096, CHAR);
+        let (relay, handle) = Relay::new(
+            relay_cfg(),
+            serial,
+            false,
+            stats.clone(),
+            CancellationToken::new(),
+        );
+        let _task = tokio::spawn(relay.with_port(Box::new(port.with_switch(bus))).run());
+        let (outbox, inbox) = Outbox::new(16);
+        handle
+            .send(Command::Attach {
+                conn: 1,
+                notifier: outbox.notifier(),
+            })
+            .unwrap();
+        let mut m = Master {
+            conn: 1,
+            outbox,
+            inbox,
+            handle,
+        };
+        let mut dev = device.accept().await;
+        for i in 0..5u16 {
+            m.send(read(i, 1, i)).await;
+            let req = next_rtu(&mut dev).await;
+            // The bus gives the request back to the gateway's receiver, then the
+            // device answers once the transmitter is off.
+            dev.write_all(&req).await.unwrap();
+            while on.load(SeqCst) {
+                tokio::time::sleep(Duration::from_micros(100)).await;
+            }
+            let [hi, lo] = (i + 7).to_be_bytes();
+            dev.write_all(&Codec::Rtu.encode(1, &[0x03, 0x02, hi, lo]))
+                .await
+                .unwrap();
+            assert_eq!(value(&m.recv().await), i + 7, "{direction:?}");
+        }
+        assert_eq!(lost.load(SeqCst), 0);
+        // Each echo (8 bytes) was read with its reply (7), and none taken for one.
+        assert_eq!(
+            stats.get(&stats.serial_bytes_in),
+            5 * 15,
+            "{direction:?}: {stats}"
+        );
+        assert_eq!(stats.get(&stats.bad_frames), 0, "{direction:?}: {stats}");
+    }
+}
+
+/// A request held back (the pipe full, as with CTS low) times out with the
+/// transmitter on: the master gets 0x0B and the transmitter goes off at the timeout
+/// (it goes on again only to finish the frame begun, which keeps the device's parser in
+/// step); the loop waits meanwhile rather than spinning.
+#[tokio::test]
+async fn direction_a_request_that_times_out_stuck_leaves_the_transmitter_off() {
+    use mbgate::config::{Direction, FlowControl};
+    use mbgate::port::duplex::Bus;
+    use std::sync::atomic::Ordering::SeqCst;
+    let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let log = Arc::new(std::sync::Mutex::new(Vec::new()));
+    let (on2, log2) = (on.clone(), log.clone());
+    let bus = Bus {
+        make: Arc::new(move || {
+            Box::new(FakeSwitch {
+                on: on2.clone(),
+                log: log2.clone(),
+                broken: Arc::default(),
+            })
+        }),
+        on: on.clone(),
+        lost: Arc::default(),
+    };
+    let serial = SerialConfig {
+        direction: Direction::Gpio,
+        flow_control: FlowControl::None,
+        direction_gpio_line: mbgate::config::GpioLine::Offset(4),
+        ..serial(Framing::Rtu)
+    };
+    let stats = Arc::new(Stats::default());
+    // Room for 4 bytes of the 8-byte request; the device never reads.
+    let (port, mut device) = duplex::pair(4, CHAR);
+    let cfg = RelayConfig {
+        response_timeout_ms: 100,
+        ..relay_cfg()
+    };
+    let (relay, handle) = Relay::new(cfg, serial, false, stats, CancellationToken::new());
+    let _task = tokio::spawn(relay.with_port(Box::new(port.with_switch(bus))).run());
+    let (outbox, inbox) = Outbox::new(16);
+    handle
+        .send(Command::Attach {
+            conn: 1,
+            notifier: outbox.notifier(),
+        })
+        .unwrap();
+    let mut m = Master {
+        conn: 1,
+        outbox,
+        inbox,
+        handle,
+    };
+    let _dev = device.accept().await;
+    m.send(read(1, 1, 1)).await;
+    let t0 = Instant::now();
+    while !on.load(SeqCst) {
+        assert!(t0.elapsed() < 3 * SEC, "never switched on");
+        tokio::time::sleep(Duration::from_micros(100)).await;
+    }
+    let t_on = log.lock().unwrap()[1].0;
+    assert_eq!(
+        exception_of(&m.recv().await),
+        Some(0x0B),
+        "it began to go out"
+    );
+    let log = log.lock().unwrap().clone();
+    assert!(log[1].1, "{log:?}");
+    assert!(!log[2].1, "off at the timeout: {log:?}");
+    assert!(
+        log[2].0 >= t_on + 100 * MS,
+        "not before the timeout: {log:?}"
+    );
+}

@@ -166,7 +166,7 @@ fn the_service_contract_is_kept() {
         ("Restart", "on-failure"),
         ("RestartPreventExitStatus", "2"),
         ("DynamicUser", "yes"),
-        ("SupplementaryGroups", "dialout"),
+        ("SupplementaryGroups", "dialout gpio"),
         ("AmbientCapabilities", "CAP_NET_BIND_SERVICE"),
         ("CapabilityBoundingSet", "CAP_NET_BIND_SERVICE"),
         ("DevicePolicy", "closed"),
@@ -175,7 +175,7 @@ fn the_service_contract_is_kept() {
         assert_eq!(setting(&s, key).as_deref(), Some(want), "{key}");
     }
     assert!(setting(&s, "WatchdogSec").is_some(), "the watchdog is on");
-    for dev in ["ttyUSB", "ttyACM", "ttyAMA", "ttyS"] {
+    for dev in ["ttyUSB", "ttyACM", "ttyAMA", "ttyS", "gpiochip"] {
         let line = format!("DeviceAllow=char-{dev} rw");
         assert!(s.contains(&line), "{line}");
     }

@@ -185,7 +185,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__check__subcmd__config)
-            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
+            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --direction --direction-invert --direction-gpio-chip --direction-gpio-line --direction-delay-before-us --direction-delay-after-us --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -249,6 +249,30 @@ _mbgate() {
                     ;;
                 --echo)
                     COMPREPLY=($(compgen -W "true false" -- "${cur}"))
+                    return 0
+                    ;;
+                --direction)
+                    COMPREPLY=($(compgen -W "none rts gpio" -- "${cur}"))
+                    return 0
+                    ;;
+                --direction-invert)
+                    COMPREPLY=($(compgen -W "true false" -- "${cur}"))
+                    return 0
+                    ;;
+                --direction-gpio-chip)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --direction-gpio-line)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --direction-delay-before-us)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --direction-delay-after-us)
+                    COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;
                 --listen)
@@ -871,7 +895,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__run)
-            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
+            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --direction --direction-invert --direction-gpio-chip --direction-gpio-line --direction-delay-before-us --direction-delay-after-us --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -943,6 +967,30 @@ _mbgate() {
                     ;;
                 --echo)
                     COMPREPLY=($(compgen -W "true false" -- "${cur}"))
+                    return 0
+                    ;;
+                --direction)
+                    COMPREPLY=($(compgen -W "none rts gpio" -- "${cur}"))
+                    return 0
+                    ;;
+                --direction-invert)
+                    COMPREPLY=($(compgen -W "true false" -- "${cur}"))
+                    return 0
+                    ;;
+                --direction-gpio-chip)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --direction-gpio-line)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --direction-delay-before-us)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --direction-delay-after-us)
+                    COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;
                 --listen)

@@ -64,6 +64,15 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l rs485-delay-before
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l rs485-delay-after-send-ms -d 'RS-485: RTS delay after sending, 0..=1000 ms [serial.rs485_delay_after_send_ms] [default: 0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l echo -d 'The adapter echoes what is sent: read it back and discard it [serial.echo] [default: false]' -r -f -a "true\t''
 false\t''"
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l direction -d 'RS-485: who switches the transmitter: none (the adapter, or the kernel with rs485 = true), rts or gpio (the gateway; RTU/ASCII lines) [serial.direction] [default: none]' -r -f -a "none\t'The gateway switches nothing: the adapter does it by itself, or the kernel does (rs485 = true)'
+rts\t'The gateway asserts RTS while it sends (TIOCMBIS, TIOCMBIC): DE wired to RTS, a driver without RS-485 mode'
+gpio\t'The gateway drives a GPIO line while it sends (the GPIO character device): DE wired to a GPIO pin'"
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l direction-invert -d 'direction: the opposite level switches the transmitter on (RTS released, the GPIO line low while sending) [serial.direction_invert] [default: false]' -r -f -a "true\t''
+false\t''"
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l direction-gpio-chip -d 'direction = "gpio": the GPIO chip by path (/dev/gpiochip0), name (gpiochip0) or label; "" (the default): gpiochip0, or for a line given by name, every chip [serial.direction_gpio_chip] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l direction-gpio-line -d 'direction = "gpio": the line by offset on its chip (17) or by name ("GPIO17") [serial.direction_gpio_line] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l direction-delay-before-us -d 'direction: microseconds between switching the transmitter on and the first byte, 0..=1000000 [serial.direction_delay_before_us] [default: 0]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l direction-delay-after-us -d 'direction: microseconds between the last stop bit leaving and switching the transmitter off, 0..=1000000 [serial.direction_delay_after_us] [default: 0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l listen -d 'TCP address to listen on for Modbus/TCP masters [tcp.listen] [default: 0.0.0.0:502]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l max-connections -d 'Simultaneous master connections, 1..=4096 [tcp.max_connections] [default: 32]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand run" -l idle-timeout-ms -d 'Close a master connection idle this long, 0 (never) or a number of milliseconds [tcp.idle_timeout_ms] [default: 60000]' -r
@@ -132,6 +141,15 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l rs485-del
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l rs485-delay-after-send-ms -d 'RS-485: RTS delay after sending, 0..=1000 ms [serial.rs485_delay_after_send_ms] [default: 0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l echo -d 'The adapter echoes what is sent: read it back and discard it [serial.echo] [default: false]' -r -f -a "true\t''
 false\t''"
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l direction -d 'RS-485: who switches the transmitter: none (the adapter, or the kernel with rs485 = true), rts or gpio (the gateway; RTU/ASCII lines) [serial.direction] [default: none]' -r -f -a "none\t'The gateway switches nothing: the adapter does it by itself, or the kernel does (rs485 = true)'
+rts\t'The gateway asserts RTS while it sends (TIOCMBIS, TIOCMBIC): DE wired to RTS, a driver without RS-485 mode'
+gpio\t'The gateway drives a GPIO line while it sends (the GPIO character device): DE wired to a GPIO pin'"
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l direction-invert -d 'direction: the opposite level switches the transmitter on (RTS released, the GPIO line low while sending) [serial.direction_invert] [default: false]' -r -f -a "true\t''
+false\t''"
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l direction-gpio-chip -d 'direction = "gpio": the GPIO chip by path (/dev/gpiochip0), name (gpiochip0) or label; "" (the default): gpiochip0, or for a line given by name, every chip [serial.direction_gpio_chip] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l direction-gpio-line -d 'direction = "gpio": the line by offset on its chip (17) or by name ("GPIO17") [serial.direction_gpio_line] [default: ]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l direction-delay-before-us -d 'direction: microseconds between switching the transmitter on and the first byte, 0..=1000000 [serial.direction_delay_before_us] [default: 0]' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l direction-delay-after-us -d 'direction: microseconds between the last stop bit leaving and switching the transmitter off, 0..=1000000 [serial.direction_delay_after_us] [default: 0]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l listen -d 'TCP address to listen on for Modbus/TCP masters [tcp.listen] [default: 0.0.0.0:502]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l max-connections -d 'Simultaneous master connections, 1..=4096 [tcp.max_connections] [default: 32]' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand check-config" -l idle-timeout-ms -d 'Close a master connection idle this long, 0 (never) or a number of milliseconds [tcp.idle_timeout_ms] [default: 60000]' -r

@@ -3,7 +3,10 @@
 //! own framing and port settings, each listener the masters it takes, so a listener's
 //! framing is never read as the line's.
 
-use super::{Config, FlowControl, Framing, LineConfig, ListenConfig, ListenFraming, Parity};
+use super::{
+    Config, Direction, FlowControl, Framing, GpioLine, LineConfig, ListenConfig, ListenFraming,
+    Parity, SerialConfig,
+};
 
 /// `/dev/ttyUSB0: rtu, 19200 baud 8N1, no flow control, every unit`.
 pub(crate) fn line(line: &LineConfig) -> String {
@@ -29,9 +32,12 @@ pub(crate) fn line(line: &LineConfig) -> String {
                 FlowControl::Hardware => "RTS/CTS flow control",
                 FlowControl::Software => "XON/XOFF flow control",
             };
-            let rs485 = if s.rs485 { ", RS-485 mode" } else { "" };
+            let direction = match direction(s) {
+                Some(d) => format!(", {d}"),
+                None => String::new(),
+            };
             format!(
-                "{}: {framing}, {} baud {}{parity}{}, {flow}{rs485}",
+                "{}: {framing}, {} baud {}{parity}{}, {flow}{direction}",
                 s.path, s.baud_rate, s.data_bits, s.stop_bits
             )
         }
@@ -74,6 +80,54 @@ pub(crate) fn masters(framing: ListenFraming) -> &'static str {
     match framing {
         ListenFraming::Mbap => "Modbus/TCP masters",
         ListenFraming::Rtu => "RTU-over-TCP masters",
+    }
+}
+
+/// Who switches the line's RS-485 transmitter, in words (`check-config`, the start-up
+/// log, the status page); `None` when nobody is asked to: the adapter does it by itself,
+/// or the line is no RS-485 bus.
+pub(crate) fn direction(s: &SerialConfig) -> Option<String> {
+    let delays = || match (s.direction_delay_before_us, s.direction_delay_after_us) {
+        (0, 0) => String::new(),
+        (before, after) => {
+            format!(", {before} µs before the first byte, {after} µs after the last")
+        }
+    };
+    match s.direction {
+        Direction::None if s.rs485 => {
+            Some("RS-485 mode: the kernel switches the transmitter by RTS".into())
+        }
+        Direction::None => None,
+        Direction::Rts => {
+            let when = if s.direction_invert {
+                "released"
+            } else {
+                "asserted"
+            };
+            Some(format!(
+                "the gateway switches the transmitter by RTS ({when} while sending{})",
+                delays()
+            ))
+        }
+        Direction::Gpio => {
+            let level = if s.direction_invert { "low" } else { "high" };
+            let line = match &s.direction_gpio_line {
+                GpioLine::Offset(n) => format!("line {n}"),
+                GpioLine::Name(n) => format!("line {n:?}"),
+                GpioLine::Unset => "no line".into(),
+            };
+            let chip = match s.direction_gpio_chip.as_str() {
+                "" => match &s.direction_gpio_line {
+                    GpioLine::Name(_) => "any chip".into(),
+                    _ => "gpiochip0".into(),
+                },
+                c => c.to_owned(),
+            };
+            Some(format!(
+                "the gateway switches the transmitter by GPIO {line} of {chip} ({level} while sending{})",
+                delays()
+            ))
+        }
     }
 }
 
@@ -159,5 +213,61 @@ mod tests {
              listening on 0.0.0.0:4001 for RTU-over-TCP masters, at most 32 at once\n\
              no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
         );
+    }
+
+    /// Each way of switching the transmitter says itself, with its polarity and delays.
+    #[test]
+    fn the_direction_method_is_said() {
+        let said = |extra: &str| {
+            let text = format!(
+                "[serial]\npath = \"/dev/ttyAMA0\"\nframing = \"rtu\"\nflow_control = \"none\"\n{extra}"
+            );
+            let cfg = parse(&text, "t.toml").unwrap();
+            direction(&cfg.serial)
+        };
+        assert_eq!(said(""), None);
+        assert_eq!(
+            said("rs485 = true\n").as_deref(),
+            Some("RS-485 mode: the kernel switches the transmitter by RTS")
+        );
+        assert_eq!(
+            said("direction = \"rts\"\n").as_deref(),
+            Some("the gateway switches the transmitter by RTS (asserted while sending)")
+        );
+        assert_eq!(
+            said("direction = \"rts\"\ndirection_invert = true\ndirection_delay_before_us = 50\n").as_deref(),
+            Some("the gateway switches the transmitter by RTS (released while sending, 50 µs before the first byte, 0 µs after the last)")
+        );
+        assert_eq!(
+            said("direction = \"gpio\"\ndirection_gpio_line = 17\n").as_deref(),
+            Some("the gateway switches the transmitter by GPIO line 17 of gpiochip0 (high while sending)")
+        );
+        assert_eq!(
+            said("direction = \"gpio\"\ndirection_gpio_line = \"GPIO17\"\ndirection_invert = true\n").as_deref(),
+            Some("the gateway switches the transmitter by GPIO line \"GPIO17\" of any chip (low while sending)")
+        );
+    }
+
+    /// The keys `direction` cannot go with are refused, naming both.
+    #[test]
+    fn direction_refuses_what_it_cannot_go_with() {
+        let refused = |text: &str| parse(text, "t.toml").unwrap_err().to_string();
+        let e = refused("[serial]\nframing = \"rtu\"\nflow_control = \"none\"\ndirection = \"rts\"\nrs485 = true\n");
+        assert!(
+            e.contains("serial.direction") && e.contains("serial.rs485"),
+            "{e}"
+        );
+        let e = refused("[serial]\nframing = \"rtu\"\ndirection = \"rts\"\n");
+        assert!(e.contains("serial.flow_control = \"hardware\""), "{e}");
+        let e = refused("[serial]\ndirection = \"gpio\"\ndirection_gpio_line = 4\n");
+        assert!(e.contains("serial.framing = \"mbap\""), "{e}");
+        let e = refused("[serial]\nframing = \"ascii\"\ndirection = \"gpio\"\n");
+        assert!(e.contains("serial.direction_gpio_line unset"), "{e}");
+        let e = refused("[[line]]\nserial = { framing = \"rtu\", direction = \"rts\" }\n");
+        assert!(e.contains("line[0].serial.direction"), "{e}");
+        let e = refused(
+            "[serial]\nframing = \"rtu\"\ndirection = \"gpio\"\ndirection_gpio_line = -1\n",
+        );
+        assert!(e.contains("-1 is no line offset"), "{e}");
     }
 }

@@ -110,6 +110,15 @@ choices! {
         /// A wire at baud_rate whatever the port (a pty in front of a real line): echoes and replies begun before the request left are dropped
         Wire = "wire",
     }
+    /// Who switches an RS-485 transmitter on to send and off to receive (docs/rs485.md).
+    Direction {
+        /// The gateway switches nothing: the adapter does it by itself, or the kernel does (rs485 = true)
+        None = "none",
+        /// The gateway asserts RTS while it sends (TIOCMBIS, TIOCMBIC): DE wired to RTS, a driver without RS-485 mode
+        Rts = "rts",
+        /// The gateway drives a GPIO line while it sends (the GPIO character device): DE wired to a GPIO pin
+        Gpio = "gpio",
+    }
     /// How masters frame their requests on a listener (docs/design.md §4.1).
     ListenFraming {
         /// Modbus/TCP: an MBAP header, many requests in flight
@@ -235,6 +244,18 @@ settings! {
         rs485_delay_after_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-after-send-ms" "MS";
         /// The adapter echoes what is sent: read it back and discard it
         echo: bool = false, Any, "echo" "BOOL";
+        /// RS-485: who switches the transmitter: none (the adapter, or the kernel with rs485 = true), rts or gpio (the gateway; RTU/ASCII lines)
+        direction: Direction = Direction::None, Any, "direction" "DIRECTION";
+        /// direction: the opposite level switches the transmitter on (RTS released, the GPIO line low while sending)
+        direction_invert: bool = false, Any, "direction-invert" "BOOL";
+        /// direction = "gpio": the GPIO chip by path (/dev/gpiochip0), name (gpiochip0) or label; "" (the default): gpiochip0, or for a line given by name, every chip
+        direction_gpio_chip: String = String::new(), Any, "direction-gpio-chip" "CHIP";
+        /// direction = "gpio": the line by offset on its chip (17) or by name ("GPIO17")
+        direction_gpio_line: GpioLine = GpioLine::Unset, Any, "direction-gpio-line" "LINE";
+        /// direction: microseconds between switching the transmitter on and the first byte
+        direction_delay_before_us: u32 = 0, Range(0, 1_000_000, None), "direction-delay-before-us" "US";
+        /// direction: microseconds between the last stop bit leaving and switching the transmitter off
+        direction_delay_after_us: u32 = 0, Range(0, 1_000_000, None), "direction-delay-after-us" "US";
     }
     /// Where Modbus/TCP masters connect.
     [tcp] TcpConfig {
@@ -477,6 +498,47 @@ impl Setting for Floor {
     }
 }
 
+/// `serial.direction_gpio_line`: the GPIO line that switches the transmitter, by its
+/// offset on its chip or by its name (docs/rs485.md).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum GpioLine {
+    /// Not given: `direction = "gpio"` then refuses the file.
+    Unset,
+    /// The line at this offset on its chip.
+    Offset(u32),
+    /// The line of this name (`gpioinfo` lists them).
+    Name(String),
+}
+
+impl Setting for GpioLine {
+    const KIND: Kind = Kind::Str;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, String> {
+        const EXPECTED: &str = "a line offset like 17 or a line name like \"GPIO17\"";
+        let offset = |v: i128| {
+            u32::try_from(v)
+                .map(GpioLine::Offset)
+                .map_err(|_| format!("{v} is no line offset; expected {EXPECTED}"))
+        };
+        match raw {
+            Raw::Int(v) => offset(*v),
+            Raw::Str(s) if s.trim().is_empty() => Ok(GpioLine::Unset),
+            // From a flag, an offset is typed as text.
+            Raw::Str(s) => match s.trim().parse::<i128>() {
+                Ok(v) => offset(v),
+                Err(_) => Ok(GpioLine::Name(s.trim().to_owned())),
+            },
+            _ => Err(raw.invalid(EXPECTED)),
+        }
+    }
+    fn print(&self) -> String {
+        match self {
+            GpioLine::Unset => "\"\"".into(),
+            GpioLine::Offset(n) => n.to_string(),
+            GpioLine::Name(s) => toml::Value::String(s.clone()).to_string(),
+        }
+    }
+}
+
 /// Parses a `tcp.listen` / `--listen` value.
 pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
     parse_address(s, LISTEN_EXAMPLE)
@@ -509,21 +571,43 @@ pub(crate) fn parse_optional_address(s: &str, example: &str) -> Result<Option<So
     parse_address(s, example).map(Some)
 }
 
-/// A key above the key it must not exceed (`at_most` in [`settings!`]).
+/// Two keys whose values contradict each other: a key above the key it must not
+/// exceed (`at_most` in [`settings!`]), or a value another key's value rules out.
 pub(crate) struct Conflict {
     pub(crate) key: &'static Key,
     pub(crate) other: &'static Key,
-    value: i128,
-    limit: i128,
-    why: &'static str,
+    clash: Clash,
+}
+
+enum Clash {
+    /// `key` is above `other`.
+    Exceeds {
+        value: i128,
+        limit: i128,
+        why: &'static str,
+    },
+    /// `key`'s value cannot go with `other`'s: the words after the other key's name.
+    Excludes(String),
 }
 
 impl Conflict {
     /// The message, with the section's keys under `prefix` (`relay.`).
     pub(crate) fn message(&self, prefix: &str) -> String {
-        let (other, limit, value, why) = (self.other.name, self.limit, self.value, self.why);
-        format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
+        let other = self.other.name;
+        match &self.clash {
+            Clash::Exceeds { value, limit, why } => {
+                format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
+            }
+            Clash::Excludes(why) => format!("cannot go with {prefix}{other}{why}"),
+        }
     }
+}
+
+/// The key `section.name` of [`KEYS`].
+fn key(section: &str, name: &str) -> &'static Key {
+    KEYS.iter()
+        .find(|k| k.section == section && k.name == name)
+        .expect("a declared key")
 }
 
 impl Config {
@@ -531,7 +615,7 @@ impl Config {
     /// rather than one silently capped: the operator meant one of them and mbgate
     /// cannot tell which.
     pub(crate) fn conflict(&self) -> Option<Conflict> {
-        KEYS.iter().find_map(|key| {
+        let exceeds = KEYS.iter().find_map(|key| {
             let (other, why) = key.at_most?;
             let other = KEYS
                 .iter()
@@ -541,11 +625,54 @@ impl Config {
             let c = Conflict {
                 key,
                 other,
-                value,
-                limit,
-                why,
+                clash: Clash::Exceeds { value, limit, why },
             };
             (value > limit).then_some(c)
-        })
+        });
+        exceeds.or_else(|| self.direction_conflict())
+    }
+
+    /// `serial.direction` against the keys it cannot go with (docs/rs485.md).
+    fn direction_conflict(&self) -> Option<Conflict> {
+        let s = &self.serial;
+        let excludes = |name: &str, other: &str, why: String| Conflict {
+            key: key("serial", name),
+            other: key("serial", other),
+            clash: Clash::Excludes(why),
+        };
+        let method = s.direction.name();
+        match s.direction {
+            Direction::None => None,
+            _ if s.rs485 => Some(excludes(
+                "direction",
+                "rs485",
+                format!(
+                    " = true: the kernel's RS-485 mode switches the transmitter itself; \
+                     set rs485 = false for direction = {method:?}, or direction = \"none\""
+                ),
+            )),
+            _ if s.framing == Framing::Mbap => Some(excludes(
+                "direction",
+                "framing",
+                " = \"mbap\": an MBAP line may have a reply coming while it sends; the \
+                 gateway switches the transmitter on RTU and ASCII lines, one request at a time"
+                    .into(),
+            )),
+            Direction::Rts if s.flow_control == FlowControl::Hardware => Some(excludes(
+                "direction",
+                "flow_control",
+                " = \"hardware\": RTS/CTS flow control drives RTS itself; set flow_control = \
+                 \"none\" for direction = \"rts\""
+                    .into(),
+            )),
+            Direction::Gpio if s.direction_gpio_line == GpioLine::Unset => Some(excludes(
+                "direction",
+                "direction_gpio_line",
+                " unset: direction = \"gpio\" needs the line, by offset (17) or by name \
+                 (\"GPIO17\")"
+                    .into(),
+            )),
+            _ => None,
+        }
     }
 }

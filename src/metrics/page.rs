@@ -181,8 +181,9 @@ fn line(board: &Board, l: &LineMetrics, recent: Option<&Recent>, now: Instant) -
         + st.get(&st.broadcasts_refused);
     let frames: Vec<String> = frames.iter().map(|f| frame(board, f)).collect();
     format!(
-        "{{\"name\":{},\"open\":{},\"masters\":{},\"queued\":{},\"in_flight\":{},\"requests\":{},\"replies\":{},\"timeouts\":{timeouts},\"retries\":{},\"late\":{},\"exceptions_device\":{device},\"exceptions_gateway\":{gateway},\"busy_s\":{},\"last_reply_ms\":{},\"units\":[{}],\"frames_total\":{total},\"frames\":[{}],\"history\":{}}}",
+        "{{\"name\":{},\"direction\":{},\"open\":{},\"masters\":{},\"queued\":{},\"in_flight\":{},\"requests\":{},\"replies\":{},\"timeouts\":{timeouts},\"retries\":{},\"late\":{},\"exceptions_device\":{device},\"exceptions_gateway\":{gateway},\"busy_s\":{},\"last_reply_ms\":{},\"units\":[{}],\"frames_total\":{total},\"frames\":[{}],\"history\":{}}}",
         string(&l.name),
+        l.direction().map_or_else(|| "null".to_owned(), |d| string(&d)),
         g(&l.port_open) == 1,
         g(&l.masters),
         g(&l.queued),
@@ -280,7 +281,16 @@ mod tests {
         let tap = hub.tap(1);
         assert!(!tap.on());
         let j = json(&board);
-        assert!(j.contains("\"name\":\"/dev/\\\"x\\\"\""), "{j}");
+        assert!(
+            j.contains("\"name\":\"/dev/\\\"x\\\"\",\"direction\":null,"),
+            "{j}"
+        );
+        l.set_direction(Some("the gateway switches the transmitter by RTS".into()));
+        let j = json(&board);
+        assert!(
+            j.contains("\"direction\":\"the gateway switches the transmitter by RTS\","),
+            "the method of the line: {j}"
+        );
         assert!(j.contains("\"frames_total\":0,\"frames\":[]"), "{j}");
         assert!(tap.on(), "asked: watched for a while");
         let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![1, 0xAB]);

@@ -1,15 +1,42 @@
 //! An in-memory pipe as a [`Port`] (`tokio::io::duplex`): each open hands the far end
 //! to a [`DeviceEnd`], so a device written in Rust can sit on the other side of the
 //! relay in a test; a small pipe capacity stands in for flow control holding writes
-//! back, dropping the far end for a port that is lost.
+//! back, dropping the far end for a port that is lost. With a switch
+//! ([`DuplexPort::with_switch`]) the pipe is a half-duplex bus: what the relay writes
+//! while its transmitter is off never reaches the device, as on RS-485.
 
+use super::serial::direction::{Switch, Transmitter};
 use super::{Link, Opening, Port};
 use std::io;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::pin::Pin;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
+use std::task::{Context, Poll};
 use std::time::Duration;
-use tokio::io::DuplexStream;
+use tokio::io::{AsyncWrite, DuplexStream};
 use tokio::sync::mpsc;
+
+/// Makes the transmitter's switch at each open.
+pub type SwitchMaker = Arc<dyn Fn() -> Box<dyn Switch> + Send + Sync>;
+
+/// A switch of the in-memory bus: `on` is the transmitter, which its switch must set.
+pub struct Bus {
+    /// The switch at each open, which must keep `on` as it switches.
+    pub make: SwitchMaker,
+    /// The transmitter is on.
+    pub on: Arc<AtomicBool>,
+    /// Bytes the relay wrote while it was off: lost on the bus.
+    pub lost: Arc<AtomicU64>,
+}
+
+impl std::fmt::Debug for Bus {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Bus")
+            .field("on", &self.on)
+            .field("lost", &self.lost)
+            .finish()
+    }
+}
 
 /// The relay's side: opens a fresh pipe each time.
 #[derive(Debug)]
@@ -18,6 +45,7 @@ pub struct DuplexPort {
     char_time: Duration,
     ends: mpsc::UnboundedSender<DuplexStream>,
     refuse: Arc<AtomicBool>,
+    bus: Option<Arc<Bus>>,
 }
 
 /// The device's side: receives the far end of each pipe the relay opens.
@@ -39,6 +67,7 @@ pub fn pair(capacity: usize, char_time: Duration) -> (DuplexPort, DeviceEnd) {
             char_time,
             ends: tx,
             refuse: refuse.clone(),
+            bus: None,
         },
         DeviceEnd { ends: rx, refuse },
     )
@@ -56,6 +85,42 @@ impl DeviceEnd {
     /// While `refuse` is true, opens fail (the device is unplugged).
     pub fn refuse_opens(&self, refuse: bool) {
         self.refuse.store(refuse, Ordering::SeqCst);
+    }
+}
+
+impl DuplexPort {
+    /// The pipe as a half-duplex bus whose transmitter `bus` switches: the relay's
+    /// bytes written while it is off are lost (and counted).
+    pub fn with_switch(mut self, bus: Bus) -> DuplexPort {
+        self.bus = Some(Arc::new(bus));
+        self
+    }
+}
+
+/// The relay's writing half on a bus: bytes written while the transmitter is off
+/// are taken and lost.
+struct Gated<W> {
+    inner: W,
+    bus: Arc<Bus>,
+}
+
+impl<W: AsyncWrite + Unpin> AsyncWrite for Gated<W> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        if !self.bus.on.load(Ordering::SeqCst) {
+            self.bus.lost.fetch_add(buf.len() as u64, Ordering::SeqCst);
+            return Poll::Ready(Ok(buf.len()));
+        }
+        Pin::new(&mut self.inner).poll_write(cx, buf)
+    }
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_flush(cx)
+    }
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
     }
 }
 
@@ -81,12 +146,20 @@ impl Port for DuplexPort {
                 Err(_) => Err(io::Error::new(io::ErrorKind::NotFound, "no device end")),
             }
         };
+        let bus = self.bus.clone();
         Box::pin(async move {
             let (reader, writer) = tokio::io::split(opened?);
+            let (writer, transmitter): (super::Writer, _) = match bus {
+                Some(bus) => {
+                    let switch = Transmitter::new((bus.make)())?;
+                    (Box::new(Gated { inner: writer, bus }), Some(switch))
+                }
+                None => (Box::new(writer), None),
+            };
             Ok(Link {
                 reader: Box::new(reader),
-                writer: Box::new(writer),
-                control: Box::new(Pipe),
+                writer,
+                control: Box::new(Pipe(transmitter)),
                 info: super::kind::PortInfo::plain(super::kind::Kind::Memory),
             })
         })
@@ -97,10 +170,17 @@ impl Port for DuplexPort {
     }
 }
 
-/// Drained at once: the pipe has no wire.
-struct Pipe;
+/// Drained at once: the pipe has no wire; the bus's switch, if it is one.
+struct Pipe(Option<Transmitter>);
 
-impl super::Control for Pipe {}
+impl super::Control for Pipe {
+    fn transmit(&mut self, on: bool) -> io::Result<()> {
+        match &mut self.0 {
+            Some(t) => t.set(on),
+            None => Ok(()),
+        }
+    }
+}
 
 #[cfg(test)]
 mod tests {

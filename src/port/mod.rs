@@ -61,6 +61,18 @@ pub(crate) trait Control: Send {
     fn input_waiting(&self) -> bool {
         false
     }
+
+    /// Switches the RS-485 transmitter on (to send) or off (to receive), where the
+    /// gateway drives it (`serial.direction`); elsewhere nothing to do.
+    fn transmit(&mut self, _on: bool) -> io::Result<()> {
+        Ok(())
+    }
+
+    /// Has the last stop bit of what was written left the port? An error says the
+    /// port cannot tell (then the drain's answer stands for it).
+    fn transmitter_empty(&self) -> io::Result<bool> {
+        Err(io::Error::from(io::ErrorKind::Unsupported))
+    }
 }
 
 /// A transport the relay can (re)open. Opening never blocks the runtime's thread: a

@@ -30,6 +30,9 @@ pub(super) struct Sources<'a> {
     pub(super) commands: Option<&'a mut mpsc::UnboundedReceiver<Command>>,
     /// Written while it holds bytes.
     pub(super) out: &'a Outgoing,
+    /// The transmitter is on and its delay before has passed (always, where the
+    /// gateway switches none).
+    pub(super) may_write: bool,
     /// The next timer, if any.
     pub(super) wake: Option<Instant>,
     /// Waits for `wake` to the microsecond; without it, tokio's timer does, to the
@@ -44,6 +47,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
     let Sources {
         mut commands,
         out,
+        may_write,
         wake,
         timer,
         shutdown,
@@ -78,7 +82,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
             biased;
             r = rd.read(rbuf) => Event::Read(r),
             cmd = command, if has_commands => Event::Command(cmd),
-            w = wr.write(out.pending()), if !out.is_empty() => Event::Wrote(w),
+            w = wr.write(out.pending()), if !out.is_empty() && may_write => Event::Wrote(w),
             d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
             _ = timer, if has_wake => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,

@@ -14,6 +14,9 @@ impl Relay {
     /// Requests past their deadline fail.
     pub(super) fn expire(&mut self, now: Instant) {
         for f in self.in_flight.take_expired(now) {
+            // A request timed out with the transmitter still on (its bytes held back,
+            // or a UART that never says it is empty): off, so the bus is not held.
+            self.switch_off(now);
             self.line.timed_out(now, &self.stats);
             self.watch.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {

@@ -143,6 +143,22 @@ impl Lifecycle {
         }
     }
 
+    /// Switches the RS-485 transmitter on or off (where the gateway drives it).
+    pub(super) fn transmit(&mut self, on: bool) -> std::io::Result<()> {
+        match &mut self.state {
+            State::Open(link) => link.control.transmit(on),
+            _ => Ok(()),
+        }
+    }
+
+    /// Has the last stop bit left the port? An error: it cannot tell.
+    pub(super) fn transmitter_empty(&self) -> std::io::Result<bool> {
+        match &self.state {
+            State::Open(link) => link.control.transmitter_empty(),
+            _ => Ok(true),
+        }
+    }
+
     /// Starts waiting for the bytes written to leave the port, off the runtime's
     /// thread; an error says the port cannot tell (time from the write instead).
     pub(super) fn start_drain(&mut self) -> std::io::Result<()> {

@@ -2,10 +2,12 @@
 //! stale bytes cleared, RS-485, exclusively (`open.rs`); what it is (`detect.rs`);
 //! `tcdrain` and FIONREAD on its descriptor, the drain run by a thread of the port's
 //! own (`drain.rs`); the timer the line's gaps are kept with (`timer.rs`); and here,
-//! the port as a [`Port`]. The simulator and the client open their ports with the same
+//! the port as a [`Port`], with the switch of its RS-485 transmitter when the gateway
+//! drives it (`direction.rs`). The simulator and the client open their ports with the same
 //! [`open`]; how long bytes take at `baud_rate` is `port/kind.rs`'s.
 
 mod detect;
+pub mod direction;
 mod drain;
 mod open;
 mod timer;
@@ -43,10 +45,16 @@ impl Port for SerialPort {
     }
 
     fn open(&mut self) -> Opening {
-        let opened = open(&self.cfg).map_err(io::Error::other);
+        // The switch is taken with the port: a port whose switch cannot be had is not
+        // open, and is retried as a lost one is.
+        let opened = open(&self.cfg).map_err(io::Error::other).and_then(|port| {
+            let fd = port.as_raw_fd();
+            let transmitter = direction::take(&self.cfg, fd).map_err(io::Error::other)?;
+            Ok((port, transmitter))
+        });
         let low_latency = self.cfg.low_latency;
         Box::pin(async move {
-            let port = opened?;
+            let (port, transmitter) = opened?;
             let fd = port.as_raw_fd();
             let info = detect::detect(fd, low_latency);
             let drainer = drain::Drainer::start(fd)?;
@@ -54,7 +62,11 @@ impl Port for SerialPort {
             Ok(Link {
                 reader: Box::new(reader),
                 writer: Box::new(writer),
-                control: Box::new(Tty { fd, drainer }),
+                control: Box::new(Tty {
+                    fd,
+                    drainer,
+                    transmitter,
+                }),
                 info,
             })
         })
@@ -66,10 +78,12 @@ impl Port for SerialPort {
 }
 
 /// The port's descriptor, valid while the two halves of its [`Link`] live (the relay
-/// drops all three together), and its drain thread, which ends with it.
+/// drops all three together), its drain thread, which ends with it, and the switch of
+/// its transmitter, left off when it drops.
 struct Tty {
     fd: RawFd,
     drainer: drain::Drainer,
+    transmitter: Option<direction::Transmitter>,
 }
 
 impl Control for Tty {
@@ -84,5 +98,16 @@ impl Control for Tty {
 
     fn input_waiting(&self) -> bool {
         drain::input_waiting(self.fd).is_ok_and(|n| n > 0)
+    }
+
+    fn transmit(&mut self, on: bool) -> io::Result<()> {
+        match &mut self.transmitter {
+            Some(t) => t.set(on),
+            None => Ok(()),
+        }
+    }
+
+    fn transmitter_empty(&self) -> io::Result<bool> {
+        direction::transmitter_empty(self.fd)
     }
 }

@@ -159,6 +159,15 @@ impl Line {
         }
     }
 
+    /// RTU/ASCII, while a frame is being written or drained: the earliest its last
+    /// stop bit can leave (its time on the wire after it was written).
+    pub(super) fn leaves_at(&self) -> Option<Instant> {
+        match &self.0 {
+            Kind::Mbap(_) => None,
+            Kind::Serial(s) => s.leaves_at(),
+        }
+    }
+
     /// Everything written has left the port (`tcdrain`, RTU/ASCII only). Returns the
     /// instant the last byte left: the reply timer starts there.
     pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {

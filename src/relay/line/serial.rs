@@ -211,6 +211,11 @@ impl Serial {
         }
     }
 
+    /// While a frame is being written or drained: the earliest its last byte can leave.
+    pub(super) fn leaves_at(&self) -> Option<Instant> {
+        self.tx
+    }
+
     /// Bytes read before the earliest instant the last byte can have left (its time
     /// on the wire after it was written) are not the reply. `tcdrain` returning is no
     /// such bound: the relay may see it late (its thread and the blocking pool's are
