@@ -236,8 +236,11 @@ impl Relay {
                     self.stats.add(&self.stats.serial_bytes_out, n as u64);
                     self.line.wrote(n, polled);
                     self.out.advance(n);
-                    if self.out.is_empty() && self.line.is_serial() {
+                    if self.out.is_empty() && self.line.needs_drain() {
                         self.start_drain(now);
+                    } else if self.out.is_empty() && self.line.is_serial() {
+                        // No wire: gone once written (`Line::needs_drain`).
+                        self.drained(now);
                     }
                 }
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),

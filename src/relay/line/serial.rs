@@ -177,6 +177,12 @@ impl Serial {
         )
     }
 
+    /// A wire at `baud_rate` between the port and the device: its bytes take their
+    /// time to leave, and `tcdrain` says when they have.
+    pub(super) fn has_wire(&self) -> bool {
+        self.wire && !self.stream
+    }
+
     pub(super) fn allocate(&mut self) -> u16 {
         self.next_key = self.next_key.wrapping_add(1);
         self.next_key
