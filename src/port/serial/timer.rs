@@ -4,16 +4,16 @@
 
 use std::os::fd::{AsRawFd, FromRawFd};
 
-/// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
-/// counts whole milliseconds and rounds a deadline up, which turns the 1750 µs gap
-/// before an RTU request into 2 to 3 ms (docs/performance.md, "RTU at the line's
-/// limit"). No thread and no spinning: the timerfd wakes the reactor's `epoll_wait`
-/// at the instant it is set to.
 /// Deadlines further off than this are left to tokio's timer (to the millisecond):
 /// only the gaps and turnarounds of a line, a few character times, need the
 /// microsecond, and at 1200 baud 3.5 characters are 29 ms.
 const COARSE: std::time::Duration = std::time::Duration::from_millis(50);
 
+/// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
+/// counts whole milliseconds and rounds a deadline up, which turns the 1750 µs gap
+/// before an RTU request into 2 to 3 ms (docs/performance.md, "RTU at the line's
+/// limit"). No thread and no spinning: the timerfd wakes the reactor's `epoll_wait`
+/// at the instant it is set to.
 #[derive(Debug)]
 pub struct PreciseTimer {
     fd: tokio::io::unix::AsyncFd<std::os::fd::OwnedFd>,
