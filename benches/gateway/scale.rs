@@ -4,7 +4,9 @@
 //! line's unit: transactions a second summed, the gateway's CPU per transaction, its
 //! peak RSS, and the p99 round trip. The cost per transaction must stay flat as lines
 //! and masters grow: no work per transaction that counts the masters or the lines
-//! (docs/performance.md "How cost grows").
+//! (docs/performance.md "How cost grows"). With `MBGATE_BENCH_BASELINE=PATH` (another
+//! mbgate build, e.g. the commit before a change) each cell is measured with it too,
+//! the two builds in turns on the same lines.
 
 use super::common::{cpu_ns, read_req, Gateway, Launch};
 use super::report::{command, ms, spread, us, Report};
@@ -27,7 +29,7 @@ struct Cell {
 /// The gateway in front of `lines`: line `i` serves unit `i + 1`, unpaced MBAP on its
 /// pty, every request its own transaction (the masters poll the same reads, which
 /// coalescing would merge), room for 100 masters.
-fn gateway(lines: &[Line], dir: &std::path::Path) -> Gateway {
+fn gateway(lines: &[Line], dir: &std::path::Path, program: Option<&std::ffi::OsStr>) -> Gateway {
     let mut text = String::from("[log]\nlevel = \"warn\"\n\n");
     for (i, line) in lines.iter().enumerate() {
         let _ = write!(
@@ -38,7 +40,11 @@ fn gateway(lines: &[Line], dir: &std::path::Path) -> Gateway {
         );
     }
     text += "[[listen]]\naddress = \"127.0.0.1:0\"\nmax_connections = 256\n";
-    Gateway::launch_text(&text, dir, Launch::default())
+    let launch = match program {
+        Some(p) => Launch::default().program(p),
+        None => Launch::default(),
+    };
+    Gateway::launch_text(&text, dir, launch)
 }
 
 /// `masters` masters, master `j` on unit `j % lines + 1`, poll together for `window`
@@ -102,11 +108,18 @@ fn measure(gw: &Gateway, lines: usize, masters: usize, warm: Duration, window: D
 pub(super) fn scale(r: &mut Report) {
     eprintln!("scale: 1, 4 and 8 lines × 1, 10 and 100 masters");
     let (warm, window) = (Duration::from_millis(300), Duration::from_secs(2));
+    let baseline = std::env::var_os("MBGATE_BENCH_BASELINE");
+    let mut builds: Vec<(String, Option<&std::ffi::OsStr>)> = vec![("this build".into(), None)];
+    if let Some(b) = baseline.as_deref() {
+        builds.push((
+            format!("baseline `{}`", std::path::Path::new(b).display()),
+            Some(b),
+        ));
+    }
     let mut t = String::from(
-        "| lines | masters | transactions/s (sum) | CPU per transaction | peak RSS | p99 |\n|---|---|---|---|---|---|\n",
+        "| lines | masters | build | transactions/s (sum) | CPU per transaction | peak RSS | p99 |\n|---|---|---|---|---|---|---|\n",
     );
-    let mut first = None;
-    let mut last = None;
+    let (mut first, mut last) = (None, None);
     for n_lines in [1usize, 4, 8] {
         let lines: Vec<Line> = (0..n_lines)
             .map(|i| {
@@ -118,21 +131,25 @@ pub(super) fn scale(r: &mut Report) {
                 )
             })
             .collect();
-        let mut gw = gateway(&lines, lines[0].dir.path());
         for masters in [1usize, 10, 100] {
-            let c = measure(&gw, n_lines, masters, warm, window);
-            let _ = writeln!(
-                t,
-                "| {n_lines} | {masters} | {:.0} | {} | {:.1} MiB | {} |",
-                c.rate,
-                us(c.cpu_per),
-                c.hwm_kib as f64 / 1024.0,
-                ms(c.p99),
-            );
-            first.get_or_insert(c.cpu_per);
-            last = Some(c.cpu_per);
+            for (k, (name, program)) in builds.iter().enumerate() {
+                let mut gw = gateway(&lines, lines[0].dir.path(), *program);
+                let c = measure(&gw, n_lines, masters, warm, window);
+                gw.terminate(Duration::from_secs(5));
+                let _ = writeln!(
+                    t,
+                    "| {n_lines} | {masters} | {name} | {:.0} | {} | {:.1} MiB | {} |",
+                    c.rate,
+                    us(c.cpu_per),
+                    c.hwm_kib as f64 / 1024.0,
+                    ms(c.p99),
+                );
+                if k == 0 {
+                    first.get_or_insert(c.cpu_per);
+                    last = Some(c.cpu_per);
+                }
+            }
         }
-        gw.terminate(Duration::from_secs(5));
     }
     if let (Some(a), Some(b)) = (first, last) {
         let ratio = b.as_secs_f64() / a.as_secs_f64();
@@ -145,7 +162,7 @@ pub(super) fn scale(r: &mut Report) {
         );
     }
     r.detail(
-        &format!("How cost grows (each cell {:.1} s after {} ms of warm-up; the simulator unpaced on each line's pty, MBAP, every request its own transaction)", window.as_secs_f64(), warm.as_millis()),
+        &format!("How cost grows (each cell {:.1} s after {} ms of warm-up, a gateway started for it; the simulator unpaced on each line's pty, MBAP, every request its own transaction)", window.as_secs_f64(), warm.as_millis()),
         &command("scale"),
         &t,
     );
