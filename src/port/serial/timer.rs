@@ -4,11 +4,6 @@
 
 use std::os::fd::{AsRawFd, FromRawFd};
 
-/// Deadlines further off than this are left to tokio's timer (to the millisecond):
-/// only the gaps and turnarounds of a line, a few character times, need the
-/// microsecond, and at 1200 baud 3.5 characters are 29 ms.
-const COARSE: std::time::Duration = std::time::Duration::from_millis(50);
-
 /// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
 /// counts whole milliseconds and rounds a deadline up, which turns the 1750 µs gap
 /// before an RTU request into 2 to 3 ms (docs/performance.md, "RTU at the line's
@@ -53,14 +48,6 @@ impl PreciseTimer {
     pub async fn until(&mut self, at: tokio::time::Instant) -> std::io::Result<()> {
         let now = tokio::time::Instant::now();
         if at <= now {
-            return Ok(());
-        }
-        if at - now > COARSE && self.armed != Some(at) {
-            // A response timeout, a guard, a watchdog: a millisecond more is nothing
-            // to them, and tokio's own timer costs no system call (the reactor's
-            // `epoll_wait` takes its timeout), where setting the timerfd costs one a
-            // transaction (docs/performance.md "What a transaction costs").
-            tokio::time::sleep_until(at).await;
             return Ok(());
         }
         if self.armed != Some(at) {
