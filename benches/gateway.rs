@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
 //! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `rtu-limit`, `coalesce`, `tcp-line`,
-//! `rtu-listener`, `metrics`, `tls`, `capture` (all when none is named). `rtu-limit`
+//! `rtu-listener`, `metrics`, `tls`, `capture`, `scale` (all when none is named). `rtu-limit`
 //! compares with mbusd given `MBUSD=/path/to/mbusd`; `MBGATE_BENCH_BASELINE=PATH` names
 //! another mbgate build (e.g. the commit before a change) that `coalesce` measures
 //! beside this one. `scripts/bench` runs this and
@@ -46,6 +46,8 @@ mod rtu;
 mod rtu_limit;
 #[path = "gateway/rtu_listener.rs"]
 mod rtu_listener;
+#[path = "gateway/scale.rs"]
+mod scale;
 #[path = "gateway/tcp_line.rs"]
 mod tcp_line;
 #[path = "gateway/timer_floor.rs"]
@@ -66,7 +68,7 @@ fn main() {
         .filter(|a| a != "--bench")
         .collect();
     // Each scenario by the name that picks it, in the order they run.
-    let all: [(&str, Scenario); 13] = [
+    let all: [(&str, Scenario); 14] = [
         ("latency", latency::latency),
         ("wire", wire::wire),
         ("fairness", fairness::fairness),
@@ -80,6 +82,7 @@ fn main() {
         ("metrics", metrics::metrics_cost),
         ("tls", tls::tls),
         ("capture", capture::capture_cost),
+        ("scale", scale::scale),
     ];
     let names: Vec<&str> = all.iter().map(|(name, _)| *name).collect();
     if let Some(bad) = args.iter().find(|a| !names.contains(&a.as_str())) {

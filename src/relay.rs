@@ -257,7 +257,14 @@ impl Relay {
                         if let Some(t) = &mut self.turnaround {
                             t.written(self.line.leaves_at().unwrap_or(now));
                         }
-                        self.start_drain(now);
+                        // The transmitter switch the gateway drives waits for the
+                        // drain on any port; without one, no wire needs none.
+                        if self.line.needs_drain() || self.turnaround.is_some() {
+                            self.start_drain(now);
+                        } else {
+                            // No wire: gone once written (`Line::needs_drain`).
+                            self.drained(now);
+                        }
                     }
                 }
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),

@@ -466,6 +466,12 @@ impl Connection {
         let idle = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         let mut last_read = Instant::now();
         let mut wake = last_read + idle;
+        // One timer for the connection's life, moved only when it goes off (the idle
+        // clock is read then): a timer made afresh each turn of the loop would be
+        // registered with tokio's timer once a request, and each registration wakes
+        // the reactor (a system call; docs/performance.md "What a transaction costs").
+        let idle_timer = tokio::time::sleep_until(wake);
+        tokio::pin!(idle_timer);
         let mut buf = BytesMut::with_capacity(512);
         let rtu = self.listen.framing == ListenFraming::Rtu;
         // RTU: the ids the relay sees for this master's requests, and whether the
@@ -532,7 +538,7 @@ impl Connection {
                         return End::Closed;
                     }
                 },
-                _ = tokio::time::sleep_until(wake), if !idle.is_zero() => {
+                _ = &mut idle_timer, if !idle.is_zero() => {
                     // Idle means the master owes nothing and is owed nothing: the clock
                     // runs from its last byte or its last reply, whichever is later,
                     // and only while no request of its is unanswered. A partial frame
@@ -547,6 +553,7 @@ impl Connection {
                         }
                         Some(at) => wake = at,
                     }
+                    idle_timer.as_mut().reset(wake);
                 }
                 _ = self.shutdown.cancelled() => return End::Finish,
             }

@@ -1,7 +1,10 @@
 //! The silence mbgate leaves before each RTU request, timed on the device's side of a
 //! pty: never less than the inter-frame gap (3.5 character times, Modbus over Serial
 //! Line V1.02 §2.5.1.1, or `inter_frame_gap_us`). ASCII frames end with CR LF: no gap
-//! is asked after a whole reply.
+//! is asked after a whole reply. The port is declared a wire (`port_kind = "wire"`):
+//! on a pty left as one, nothing can collide and a request follows a whole reply at
+//! once (docs/reliability.md "Knowing the wire"; the unit test
+//! `no_gap_after_a_whole_reply_where_there_is_no_wire`).
 //!
 //! What a test can hold on any machine, however busy: the gateway never writes a
 //! request before the gap has passed (a loaded machine only makes silences longer),
@@ -99,15 +102,18 @@ fn assert_silences(s: &[Duration], gap: Duration) {
     );
 }
 
+/// The device's side paces its replies as a wire would: the gateway is told so.
+const WIRE: &str = "port_kind = \"wire\"";
+
 #[test]
 fn silence_before_each_request_is_t35_at_115200_baud() {
-    let s = silences(115_200, &[]);
+    let s = silences(115_200, &[WIRE]);
     assert_silences(&s, Duration::from_micros(1750));
 }
 
 #[test]
 fn silence_before_each_request_is_t35_at_9600_baud() {
-    let s = silences(9600, &[]);
+    let s = silences(9600, &[WIRE]);
     // 3.5 characters of 10 bits at 9600 baud.
     assert_silences(&s, Duration::from_micros(3646));
 }

@@ -25,9 +25,11 @@ fn rtu_line(baud: u32) -> (Line, Gateway) {
         &probe,
         rtu_reply_len(1),
     );
+    // Paced as a wire at `baud`: the gateway is told so, and keeps a wire's gap.
     let cfg = Cfg::new(&line.socat.gw)
         .serial("framing = \"rtu\"")
         .serial("flow_control = \"none\"")
+        .serial("port_kind = \"wire\"")
         .serial(&format!("baud_rate = {baud}"));
     let gw = line.gateway_with(cfg, &[], &[]);
     (line, gw)

@@ -66,6 +66,25 @@ pub(crate) struct Recent {
     pub(crate) kept: VecDeque<Arc<Packet>>,
     /// Packets recorded in all while the page was open.
     pub(crate) total: u64,
+    /// The time of the last packet recorded here: times never go back.
+    last_us: u64,
+}
+
+impl Recent {
+    /// Keeps `p`, the oldest making room, its time never before the last one's.
+    fn record(&mut self, mut p: Packet) {
+        p.at_us = p.at_us.max(self.last_us);
+        self.last_us = p.at_us;
+        self.keep(Arc::new(p));
+    }
+
+    fn keep(&mut self, p: Arc<Packet>) {
+        if self.kept.len() == RECENT {
+            self.kept.pop_front();
+        }
+        self.kept.push_back(p);
+        self.total += 1;
+    }
 }
 
 struct Sub {
@@ -251,13 +270,27 @@ impl Tap {
     }
 
     /// Hands `p` on, stamped with this tap's interface and the time `at`; never
-    /// waits: when the hub is behind, the packet is dropped and counted.
+    /// waits: when the hub is behind, the packet is dropped and counted. With no
+    /// capture running (only the status page open) the packet goes straight into its
+    /// interface's last packets: no channel, no wake of the hub's task, so watching
+    /// the page costs the line one short lock a frame (docs/performance.md "What a
+    /// transaction costs").
     pub(crate) fn send(&self, mut p: Packet, at: Instant) {
         let Some(h) = &self.hub else {
             return;
         };
         p.iface = self.iface;
         p.at_us = unix_us(at);
+        if h.active.load(Ordering::Relaxed) == 0 {
+            if h.page_until_us.load(Ordering::Relaxed) <= p.at_us {
+                return;
+            }
+            let mut recent = h.recent.lock().expect("not poisoned");
+            if let Some(r) = recent.get_mut(usize::from(self.iface)) {
+                r.record(p);
+            }
+            return;
+        }
         if h.tx.try_send(p).is_err() {
             if let Some(d) = h.dropped.get(usize::from(self.iface)) {
                 d.fetch_add(1, Ordering::Relaxed);
@@ -340,11 +373,8 @@ fn hand_on(shared: &Shared, mut p: Packet, last_us: &mut [u64]) {
     if page != 0 && page > p.at_us {
         let mut recent = shared.recent.lock().expect("not poisoned");
         let r = &mut recent[i];
-        if r.kept.len() == RECENT {
-            r.kept.pop_front();
-        }
-        r.kept.push_back(p.clone());
-        r.total += 1;
+        r.last_us = r.last_us.max(p.at_us);
+        r.keep(p.clone());
     }
     let subs = shared.subs.lock().expect("not poisoned");
     if subs.is_empty() {
@@ -388,6 +418,31 @@ mod tests {
         let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![unit]);
         p.unit = Some(unit);
         p
+    }
+
+    /// With only the status page open, a packet is among the line's last at once,
+    /// without the hub's task (never started here); closed, nothing is kept.
+    #[tokio::test]
+    async fn with_only_the_page_open_packets_are_kept_without_the_hubs_task() {
+        let iface = |n: &str| Interface {
+            name: n.into(),
+            description: String::new(),
+        };
+        let (hub, _task) = Hub::new(vec![iface("tcp"), iface("/dev/ttyX")]);
+        let tap = hub.tap(1);
+        let t0 = Instant::now();
+        tap.send(frame(9), t0);
+        assert!(hub.page()[1].kept.is_empty(), "the page was closed");
+        assert!(tap.on(), "the page is open now");
+        for unit in 0..RECENT as u8 + 2 {
+            tap.send(frame(unit), t0);
+        }
+        let recent = &hub.page()[1];
+        assert_eq!(recent.total, RECENT as u64 + 2);
+        let units: Vec<_> = recent.kept.iter().map(|p| p.unit).collect();
+        let want: Vec<_> = (2..RECENT as u8 + 2).map(Some).collect();
+        assert_eq!(units, want, "the last RECENT, oldest first");
+        assert!(hub.page()[0].kept.is_empty());
     }
 
     #[tokio::test]

@@ -168,6 +168,17 @@ impl Line {
         }
     }
 
+    /// Must the relay wait for `tcdrain` before it times the reply (RTU/ASCII on a
+    /// wire)? Where there is no wire (a pty: docs/reliability.md "Knowing the wire")
+    /// the bytes are gone once written, and asking the drain thread would cost two
+    /// thread hand-offs a transaction for nothing.
+    pub(super) fn needs_drain(&self) -> bool {
+        match &self.0 {
+            Kind::Mbap(_) => false,
+            Kind::Serial(s) => s.has_wire(),
+        }
+    }
+
     /// Everything written has left the port (`tcdrain`, RTU/ASCII only). Returns the
     /// instant the last byte left: the reply timer starts there.
     pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {

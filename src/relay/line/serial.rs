@@ -73,6 +73,12 @@ pub(super) struct Serial {
     pub(super) tape: Tape,
     /// What a failed check is called: CRC (RTU) or LRC (ASCII).
     check: Reason,
+    /// The gaps as configured, kept for where there is a wire: `gap` and
+    /// `gap_after_frame` become these again when a reopened port has one.
+    wire_gaps: (Duration, Duration),
+    /// `inter_frame_gap_us = 0`: the gap is the line's (3.5 character times at
+    /// `baud_rate`), so it is kept only where there is a wire.
+    auto_gap: bool,
 }
 
 impl Serial {
@@ -125,6 +131,8 @@ impl Serial {
                 Codec::Rtu => Reason::Crc,
                 Codec::Ascii => Reason::Lrc,
             },
+            wire_gaps: (gap, gap_after_frame),
+            auto_gap: serial.inter_frame_gap_us == 0,
         }
     }
 
@@ -146,15 +154,33 @@ impl Serial {
         }
         self.wire = kind::wire(&self.port, info);
         self.silence = kind::silence(&self.port, info);
+        (self.gap, self.gap_after_frame) = self.wire_gaps;
+        if !self.wire && self.auto_gap {
+            // Nothing can collide where there is no wire: the device has sent its
+            // whole reply before the next request is written, and the two directions
+            // of a pty never meet. Once the last frame on the line is whole, the next
+            // request goes at once (docs/reliability.md "Knowing the wire"). Bytes
+            // still arriving (a late reply, a frame of unknown shape) are waited out
+            // as the silence that ends a frame, never less.
+            self.gap_after_frame = Duration::ZERO;
+            self.gap = self.gap.max(self.silence);
+        }
         let wire = if self.wire {
             "a wire at serial.baud_rate: a reply must begin after its request has left"
         } else {
-            "no wire: a reply is taken however soon it comes"
+            "no wire: a reply is taken however soon it comes, and a request follows a \
+             whole reply at once"
         };
         format!(
             "{wire}; {:.2} ms of silence ends a frame of unknown shape",
             self.silence.as_secs_f64() * 1000.0
         )
+    }
+
+    /// A wire at `baud_rate` between the port and the device: its bytes take their
+    /// time to leave, and `tcdrain` says when they have.
+    pub(super) fn has_wire(&self) -> bool {
+        self.wire && !self.stream
     }
 
     pub(super) fn allocate(&mut self) -> u16 {

@@ -142,3 +142,64 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
         }
     }
 }
+
+/// Where there is no wire (a pty) the next RTU request follows a whole reply at once:
+/// nothing can collide there. A wire keeps its 3.5 characters, a set
+/// `inter_frame_gap_us` is kept on a pty too, and bytes still arriving (a partial
+/// frame) are waited out on both.
+#[test]
+fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
+    let us = Duration::from_micros;
+    let stats = Stats::default();
+    let uart = Kind::Uart {
+        driver: None,
+        trigger: Some(1),
+    };
+    for (kind, gap_us, gap) in [
+        (Kind::Pty, 0, Duration::ZERO),
+        (uart, 0, us(1750)),
+        (Kind::Pty, 400, us(400)),
+    ] {
+        let serial = SerialConfig {
+            baud_rate: 115_200,
+            framing: crate::config::Framing::Rtu,
+            inter_frame_gap_us: gap_us,
+            ..SerialConfig::default()
+        };
+        let t0 = Instant::now();
+        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        line.port_opened(&PortInfo::plain(kind.clone()));
+        let why = format!("{kind:?}, inter_frame_gap_us {gap_us}");
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let tid = line.allocate(t0);
+        let bytes = line.encode(&read, tid, t0, &stats);
+        line.wrote(bytes.len(), t0);
+        let left = line.drained(t0 + MS, &stats);
+        let at = left + MS;
+        line.received(&rtu::encode(1, &[3, 2, 0, 7]), at, &stats);
+        let asked = InFlight {
+            tid,
+            deadline: at + Duration::from_secs(1),
+            timeout: Duration::from_secs(1),
+            req: (read.clone(), 0),
+        };
+        let seen = line.frames(&[asked], at, &stats);
+        assert!(
+            matches!(seen[..], [Seen::Frame(..)]),
+            "{why}: the reply is taken"
+        );
+        if gap.is_zero() {
+            assert!(line.has_room(0, false, at), "{why}");
+        } else {
+            assert!(!line.has_room(0, false, at + gap - us(1)), "{why}");
+            assert!(line.has_room(0, false, at + gap), "{why}");
+        }
+        // Half a frame arriving: waited out as on a wire (3.5 characters of silence,
+        // or the gap that is set), on a pty too.
+        let later = at + 10 * MS;
+        line.received(&[1, 3], later, &stats);
+        let partial = if gap_us > 0 { us(gap_us) } else { us(1750) };
+        assert!(!line.has_room(0, false, later + partial - us(1)), "{why}");
+        assert!(line.has_room(0, false, later + partial), "{why}");
+    }
+}
