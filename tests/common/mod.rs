@@ -567,6 +567,32 @@ impl Gateway {
         s
     }
 
+    /// The sum of every sample of the metric `name` (its `_total` included) on the
+    /// gateway's `[metrics]` listener (`listen = "127.0.0.1:0"`), read now: for a test
+    /// that waits until a count is reached instead of sleeping a guess.
+    pub(crate) fn metric(&self, name: &str) -> f64 {
+        self.wait_log("metrics on http://", Duration::from_secs(10));
+        let log = self.log();
+        let rest = log.split("metrics on http://").nth(1).unwrap();
+        let addr: SocketAddr = rest.split('/').next().unwrap().parse().unwrap();
+        let mut s = TcpStream::connect(addr).expect("connect to the metrics listener");
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        write!(
+            s,
+            "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut all = String::new();
+        s.read_to_string(&mut all).unwrap();
+        all.lines()
+            .filter(|l| {
+                l.strip_prefix(name)
+                    .is_some_and(|rest| rest.starts_with(['{', ' ']) || rest.starts_with("_total"))
+            })
+            .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+            .sum()
+    }
+
     /// SIGTERM, then waits (bounded) for the exit; the log is complete afterwards.
     pub(crate) fn terminate(&mut self, within: Duration) -> ExitStatus {
         self.proc.terminate(within)
