@@ -19,7 +19,7 @@
 
 mod common;
 
-use common::repo;
+use common::{peer, repo};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -783,22 +783,13 @@ fn the_man_pages_and_completions_are_generated_from_this_command_line() {
     }
 }
 
-/// Whether `program` runs here; as root (CI) it must, since scripts/test installs it.
+/// Whether `program` runs here; when it does not, the test skips (common::peer).
 fn have(program: &str) -> bool {
-    let found = Command::new("sh")
-        .args(["-c", &format!("command -v {program}")])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    // SAFETY: geteuid(2) has no preconditions and cannot fail.
-    let root = unsafe { libc::geteuid() } == 0;
-    assert!(
-        found || !root,
-        "{program} is missing, though running as root: scripts/test installs it"
-    );
-    if !found {
-        eprintln!("skipped: no {program} (scripts/test installs it as root)");
-    }
-    found
+    let package = match program {
+        "man" => "man-db",
+        other => other,
+    };
+    peer(program, package)
 }
 
 /// Each page renders with man(1) without a warning, with its title and a NAME section.

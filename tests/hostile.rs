@@ -35,7 +35,13 @@ struct Rig {
 fn rig(cfg: impl FnOnce(Cfg) -> Cfg) -> Rig {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw).pty_line()), dir.path());
+    // The device answers at once on a quiet machine; on a loaded one its thread can
+    // wait for hundreds of ms, and these tests are about who gets which bytes: a
+    // response timeout far beyond that.
+    let base = Cfg::new(&socat.gw)
+        .pty_line()
+        .relay("response_timeout_ms = 5000");
+    let gw = Gateway::start(&cfg(base), dir.path());
     let dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
     Rig {
         gw,

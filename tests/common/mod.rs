@@ -82,6 +82,41 @@ pub(crate) fn tempdir() -> tempfile::TempDir {
         .expect("temp dir")
 }
 
+/// Whether the command `command` is installed (on PATH). When it is not, the calling
+/// test is to return at once: this says so on stderr, naming the Debian package that
+/// has it, and adds a line to the file `$MBGATE_SKIPS`, which scripts/test counts as a
+/// skip in its summary (scripts/test --no-install installs nothing). In CI (CI=true)
+/// everything is installed, and a missing command fails the test.
+pub(crate) fn peer(command: &str, package: &str) -> bool {
+    let found = std::env::var_os("PATH").is_some_and(|path| {
+        std::env::split_paths(&path).any(|dir| {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::metadata(dir.join(command))
+                .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        })
+    });
+    if found {
+        return true;
+    }
+    assert!(
+        std::env::var("CI").as_deref() != Ok("true"),
+        "{command} is missing in CI, where scripts/test installs every Debian package \
+         (this one: {package})"
+    );
+    let test = std::thread::current().name().unwrap_or("?").to_owned();
+    let line = format!("{test}: needs {command} (Debian package {package})");
+    eprintln!("skipped: {line}");
+    if let Some(file) = std::env::var_os("MBGATE_SKIPS") {
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .create(true)
+            .open(file)
+            .expect("open $MBGATE_SKIPS");
+        writeln!(f, "{}: {line}", env!("CARGO_CRATE_NAME")).unwrap();
+    }
+    false
+}
+
 /// Polls `ok` every 10 ms until it holds; fails the test after `timeout`.
 pub(crate) fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
     let start = Instant::now();
