@@ -588,7 +588,7 @@ fn the_security_recipe_makes_certificates_the_gateway_takes() {
         ),
     )
     .unwrap();
-    let check = Command::new(repo().join("target/release/mbgate"))
+    let check = Command::new(BIN)
         .arg("check-config")
         .arg(&cfg)
         .output()
@@ -598,6 +598,90 @@ fn the_security_recipe_makes_certificates_the_gateway_takes() {
         "{}{}",
         String::from_utf8_lossy(&check.stdout),
         String::from_utf8_lossy(&check.stderr)
+    );
+}
+
+/// docs/security.md's walkthrough on this machine, run as printed but in a directory
+/// and on a port of its own: the certificates, the configuration file, the pty pair,
+/// simulator and gateway in the background, openssl's handshake and the pymodbus
+/// master, each output compared with the text block the page shows after it.
+#[test]
+fn the_tls_walkthrough_runs_on_localhost_as_printed() {
+    let md = std::fs::read_to_string(repo().join("docs/security.md")).unwrap();
+    let from = md
+        .find("### Trying it on this machine")
+        .expect("the walkthrough");
+    let to = md[from..].find("\n### ").map_or(md.len(), |n| from + n);
+    let bs = blocks(&md[from..to]);
+    let langs: Vec<&str> = bs.iter().map(|b| b.lang.as_str()).collect();
+    assert_eq!(
+        langs,
+        ["sh", "toml", "sh", "text", "python", "text"],
+        "the walkthrough's blocks"
+    );
+    let dir = common::tempdir();
+    let port = common::free_port().to_string();
+    let here = |t: &str| {
+        t.replace("/tmp/mbgate-tls", dir.path().to_str().unwrap())
+            .replace("8802", &port)
+            .replace("target/release/mbgate", BIN)
+    };
+    let bash = |script: &str| {
+        let out = Command::new("bash")
+            .args(["-c", script])
+            .current_dir(repo())
+            .stdin(Stdio::null())
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        (
+            out.status.success(),
+            text,
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (ok, out, err) = bash(&format!("set -e\n{}", here(&bs[0].text)));
+    assert!(ok, "the certificates: {out}{err}");
+    std::fs::write(dir.path().join("tls.toml"), here(&bs[1].text)).unwrap();
+    let mut background = Background(Vec::new());
+    let cmds = commands(&bs[2].text);
+    let (last, starts) = cmds.split_last().unwrap();
+    for (cmd, _) in starts {
+        let cmd = here(cmd);
+        let cmd = cmd.strip_suffix('&').expect("a background job");
+        let child = Command::new("sh")
+            .args(["-c", &format!("exec {cmd}")])
+            .current_dir(repo())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        background.0.push(child);
+        // A person pastes the next line a moment later.
+        thread::sleep(Duration::from_millis(500));
+    }
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    common::wait_for("the gateway listening", Duration::from_secs(30), || {
+        std::net::TcpStream::connect(addr).is_ok()
+    });
+    let (_, out, err) = bash(&here(&last.0));
+    assert_eq!(out.trim(), bs[3].text.trim(), "openssl s_client: {err}");
+    let py = Command::new(common::python())
+        .arg("-c")
+        .arg(here(&bs[4].text))
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        py.status.success(),
+        "the pymodbus master: {}",
+        String::from_utf8_lossy(&py.stderr)
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&py.stdout).trim(),
+        bs[5].text.trim(),
+        "the pymodbus master"
     );
 }
 
