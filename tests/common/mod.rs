@@ -141,6 +141,7 @@ fn signal(child: &mut Child, name: &str) {
 // One run of the binary to completion
 
 /// What one run of the binary did.
+#[derive(Debug)]
 pub(crate) struct Run {
     pub(crate) code: i32,
     pub(crate) stdout: String,
