@@ -250,6 +250,11 @@ fn runnable_one(
         return Ok(());
     };
     let mbgate_args = match program {
+        "target/release/mbgate" if installed => {
+            return Err(format!(
+                "a block starting with `{INSTALLED}` runs the packaged `mbgate`, not a checkout's"
+            ))
+        }
         "target/release/mbgate" => Some(args),
         "mbgate" if installed => Some(args),
         "mbgate" => {
@@ -781,6 +786,124 @@ fn every_link_and_anchor_leads_somewhere() {
         }
     }
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
+/// A section named in words rather than linked (`README "Some heading"`, `watching.md,
+/// "Some heading"`) exists in that page.
+#[test]
+fn every_section_named_in_words_exists() {
+    let mut wrong = Vec::new();
+    let mut seen = 0;
+    for page in pages() {
+        let md = std::fs::read_to_string(&page).unwrap();
+        let mut rest = md.as_str();
+        while let Some(at) = rest.find(" \"") {
+            let before = &rest[..at];
+            let after = &rest[at + 2..];
+            rest = &rest[at + 2..];
+            let file = before
+                .rsplit(|c: char| c.is_whitespace() || c == '(' || c == '`')
+                .next()
+                .unwrap_or("")
+                .trim_end_matches(',');
+            let target = match file {
+                "README" | "README's" => repo().join("README.md"),
+                f if f.ends_with(".md") && !f.contains('/') => page.parent().unwrap().join(f),
+                _ => continue,
+            };
+            let Some(heading) = after.split('"').next() else {
+                continue;
+            };
+            seen += 1;
+            let text = std::fs::read_to_string(&target).unwrap_or_default();
+            if !anchors(&text).contains(&slug(heading)) {
+                wrong.push(format!(
+                    "{}: {file} \"{heading}\": no such heading in {}",
+                    name(&page),
+                    name(&target)
+                ));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "{} (of {seen})", wrong.join("\n"));
+}
+
+/// A count of the tests a page states (`about N tests`) is within a tenth of the
+/// `#[test]` functions there are: it drifts as tests are added.
+#[test]
+fn every_count_of_tests_is_near_the_count() {
+    fn count(dir: &Path) -> usize {
+        let mut n = 0;
+        for e in std::fs::read_dir(dir).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                n += count(&p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                n += std::fs::read_to_string(&p)
+                    .unwrap()
+                    .matches("#[test]")
+                    .count();
+            }
+        }
+        n
+    }
+    let tests = count(&repo().join("src")) + count(&repo().join("tests"));
+    for page in pages() {
+        let md = std::fs::read_to_string(&page).unwrap();
+        for (at, _) in md.match_indices(" tests") {
+            let Some(said) = md[..at]
+                .rsplit(|c: char| !c.is_ascii_digit())
+                .next()
+                .and_then(|n| n.parse::<usize>().ok())
+            else {
+                continue;
+            };
+            if !md[..at]
+                .trim_end_matches(char::is_numeric)
+                .ends_with("about ")
+            {
+                continue;
+            }
+            assert!(
+                said * 10 >= tests * 9 && said * 10 <= tests * 11,
+                "{}: \"about {said} tests\", and there are {tests}",
+                name(&page)
+            );
+        }
+    }
+}
+
+/// What the docs say of the status page's frame list holds: it shows as many frames
+/// as the gateway keeps (src/capture/hub.rs, `RECENT`).
+#[test]
+fn the_status_page_frames_the_docs_state_are_the_ones_kept() {
+    let hub = std::fs::read_to_string(repo().join("src/capture/hub.rs")).unwrap();
+    let kept: usize = hub
+        .split("pub(crate) const RECENT: usize = ")
+        .nth(1)
+        .and_then(|r| r.split(';').next())
+        .and_then(|n| n.parse().ok())
+        .expect("RECENT in src/capture/hub.rs");
+    let mut seen = 0;
+    for page in pages() {
+        let md = std::fs::read_to_string(&page).unwrap().replace('\n', " ");
+        for (at, _) in md.match_indices(" frames") {
+            let before = md[..at].trim_end();
+            let Some(n) = before
+                .rsplit(|c: char| !c.is_ascii_digit())
+                .next()
+                .and_then(|n| n.parse::<usize>().ok())
+            else {
+                continue;
+            };
+            let lead = before.trim_end_matches(char::is_numeric).trim_end();
+            if lead.ends_with("last") || lead.ends_with("Last") {
+                seen += 1;
+                assert_eq!(n, kept, "{}: \"last {n} frames\"", name(&page));
+            }
+        }
+    }
+    assert!(seen >= 2, "only {seen} mentions of the last frames");
 }
 
 /// The example configurations: each valid (OK, nothing to warn about), each named in

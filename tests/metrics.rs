@@ -100,6 +100,46 @@ fn ask(m: &mut TcpStream, req: &[u8]) -> Vec<u8> {
     [head.to_vec(), rest].concat()
 }
 
+/// A write a read-only listener denies is answered 0x01 by the listener, never reaches
+/// a line, and is counted in `mbgate_listener_denied_requests_total`, not in the line's
+/// `mbgate_line_exceptions_total` (docs/watching.md says so).
+#[test]
+fn a_denied_request_is_counted_by_its_listener_not_as_a_line_exception() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let text = format!(
+        "[[line]]\nserial = {{ path = {:?}, baud_rate = 4000000, flow_control = \"none\" }}\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\nread_only = true\n\n\
+         [metrics]\nlisten = \"127.0.0.1:0\"\n",
+        socat.gw.display().to_string()
+    );
+    let gw = Gateway::launch_text(&text, dir.path(), Launch::default());
+    let http = metrics_addr(&gw);
+    let mut m = gw.connect();
+    for tid in 1..=2 {
+        let reply = ask(&mut m, &write_req(tid, 1, 4, &[7]));
+        assert_eq!(reply[7..], [0x90, 0x01], "denied: {reply:?}");
+    }
+    let (_, body) = get(http, "/metrics");
+    let samples = parse(&body);
+    let denied: f64 = samples
+        .iter()
+        .filter(|((name, _), _)| name == "mbgate_listener_denied_requests_total")
+        .map(|(_, v)| v)
+        .sum();
+    assert_eq!(denied, 2.0, "{body}");
+    let line_0x01: f64 = samples
+        .iter()
+        .filter(|((name, labels), _)| {
+            name == "mbgate_line_exceptions_total"
+                && labels.iter().any(|(k, v)| k == "code" && v == "0x01")
+        })
+        .map(|(_, v)| v)
+        .sum();
+    assert_eq!(line_0x01, 0.0, "{body}");
+}
+
 #[test]
 fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
     let dir = tempdir();
