@@ -999,6 +999,55 @@ fn have(program: &str) -> bool {
     peer(program, package)
 }
 
+/// mbgate.toml(5), as man renders it, keeps each line of config/mbgate.toml's
+/// commented-out examples that is itself a comment (`# # ...`) a line of its own, so
+/// that an example pasted from the page is still TOML; mbgate(1)'s exit codes end
+/// before the sentence after them.
+#[test]
+fn the_man_pages_keep_examples_verbatim_and_sentences_apart() {
+    if !have("man") {
+        return;
+    }
+    let render = |page: &str| {
+        let out = Command::new("man")
+            .args(["-l"])
+            .arg(repo().join("packaging/man").join(page))
+            .env("MANWIDTH", "200")
+            .env("MANPAGER", "cat")
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let page = render("mbgate.toml.5");
+    let shown: Vec<&str> = page.lines().map(str::trim).collect();
+    let file = std::fs::read_to_string(repo().join("config/mbgate.toml")).unwrap();
+    let mut seen = 0;
+    for line in file.lines() {
+        let Some(inner) = line.strip_prefix("# # ") else {
+            continue;
+        };
+        seen += 1;
+        let want = format!("# {inner}");
+        assert!(
+            shown.iter().any(|l| *l == want.trim()),
+            "mbgate.toml(5) does not show `{want}` as a line of its own"
+        );
+    }
+    assert!(seen >= 5, "only {seen} commented comment lines");
+    let top = render("mbgate.1");
+    let lines: Vec<&str> = top.lines().collect();
+    let at = lines
+        .iter()
+        .position(|l| l.contains("The subcommands read, write and status"))
+        .unwrap_or_else(|| panic!("{top}"));
+    assert!(
+        lines[at].trim().starts_with("The subcommands") && lines[at - 1].trim().is_empty(),
+        "mbgate(1): the exit codes run into the next sentence:\n{}\n{}",
+        lines[at - 1],
+        lines[at]
+    );
+}
+
 /// Each page renders with man(1) without a warning, with its title and a NAME section.
 #[test]
 fn the_man_pages_render_without_a_warning() {
