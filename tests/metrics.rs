@@ -140,6 +140,51 @@ fn a_denied_request_is_counted_by_its_listener_not_as_a_line_exception() {
     assert_eq!(line_0x01, 0.0, "{body}");
 }
 
+/// An RTU unit that never answers, backed off after one timeout: of its three
+/// requests, one timed out on the line and two were answered 0x0B at once; `mbgate
+/// status` counts each (requests = replies + timeouts + backed off) and so does
+/// `mbgate_line_backed_off_requests_total`.
+#[test]
+fn mbgate_status_counts_the_backed_off_requests() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawRtuDevice::start(&socat.dev, rtu_register_device(&[1]));
+    let cfg = Cfg::new(&socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        // Unit 2 never answers: the timeout's length does not matter.
+        .relay("response_timeout_ms = 200")
+        .relay("unit_backoff_after = 1")
+        .relay("unit_backoff_ms = 60000")
+        .relay("unit_backoff_max_ms = 60000")
+        .metrics("listen = \"127.0.0.1:0\"");
+    let gw = Gateway::start(&cfg, dir.path());
+    let http = metrics_addr(&gw);
+    let mut m = gw.connect();
+    for tid in 1..=3u16 {
+        let reply = transact(&mut m, &read_req(tid, 2, 0, 1));
+        assert_eq!(reply[7..], [0x83, 0x0B], "{reply:?}");
+    }
+    let run = mbgate(&["status", "--metrics", &http.to_string()]);
+    let line = socat.gw.to_str().unwrap();
+    assert!(
+        run.stdout.contains(&format!(
+            "line {line}: port open, 1 masters, 3 requests, 0 replies, 1 timeouts, 2 backed off, 0 queued, 0 in flight"
+        )),
+        "{}",
+        run.stdout
+    );
+    let (_, body) = get(http, "/metrics");
+    assert_eq!(
+        value(
+            &parse(&body),
+            "mbgate_line_backed_off_requests_total",
+            &[("line", line)]
+        ),
+        2.0
+    );
+}
+
 #[test]
 fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
     let dir = tempdir();
@@ -356,7 +401,6 @@ fn status_prints_a_summary_and_its_exit_code_says_healthy_or_not() {
     let cfg = Cfg::new(&socat.gw)
         .pty_line()
         .serial("flow_control = \"none\"")
-        .relay("response_timeout_ms = 100")
         .metrics("listen = \"127.0.0.1:0\"");
     let mut gw = Gateway::start(&cfg, dir.path());
     let http = metrics_addr(&gw).to_string();
@@ -372,7 +416,7 @@ fn status_prints_a_summary_and_its_exit_code_says_healthy_or_not() {
     assert_eq!(lines[0], "healthy");
     assert!(
         lines[1].starts_with(&format!(
-            "line {line}: port open, 1 masters, 1 requests, 1 replies, 0 timeouts, 0 queued, 0 in flight, last reply "
+            "line {line}: port open, 1 masters, 1 requests, 1 replies, 0 timeouts, 0 backed off, 0 queued, 0 in flight, last reply "
         )),
         "{}",
         lines[1]

@@ -192,6 +192,18 @@ fn the_status_page_shows_live_rates_and_decoded_frames_in_a_browser() {
             body.contains("data-overflow=\"0\"") && body.contains("data-inner-overflow=\"0\""),
             "at {width} px: {body}"
         );
+        // A unit's state ("answering", "NOT ANSWERING") is never broken inside a word;
+        // on a desktop the line's tiles take one row (the last one once stood alone).
+        assert!(
+            body.contains("data-broken-words=\"0\""),
+            "at {width} px: {body}"
+        );
+        if width == 1280 {
+            assert!(
+                body.contains("data-tile-rows=\"1\""),
+                "at {width} px: {body}"
+            );
+        }
         // The chart's y axis: three labels in ms, from the top down to 0 ms.
         let axis = &dom[dom.find("id=\"yaxis-0\"").expect("a y axis")..];
         let axis = &axis[..axis.find("</div>").unwrap()];
