@@ -75,7 +75,9 @@ fn silent_device_gives_0x0b_and_others_keep_being_served() {
 /// 0x0B promptly; service resumes without restarting mbgate; masters stay connected.
 #[test]
 fn serial_end_disappears_and_comes_back() {
-    let mut r = rig(|c| c.relay("response_timeout_ms = 500"));
+    // Far beyond what load adds to the device's answer; "promptly" below is within it
+    // and a margin.
+    let mut r = rig(|c| c.relay("response_timeout_ms = 2000"));
     let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut m = r.gw.connect();
     assert_eq!(
@@ -93,7 +95,7 @@ fn serial_end_disappears_and_comes_back() {
             got == exception(tid, 1, 3, 0x0A) || got == exception(tid, 1, 3, 0x0B),
             "unexpected {got:02X?}"
         );
-        assert!(start.elapsed() < Duration::from_secs(2), "not prompt");
+        assert!(start.elapsed() < Duration::from_secs(5), "not prompt");
     }
 
     r.socat.restart();
@@ -111,7 +113,7 @@ fn serial_end_disappears_and_comes_back() {
             "unexpected {got:02X?}"
         );
         assert!(
-            start.elapsed() < Duration::from_secs(10),
+            start.elapsed() < Duration::from_secs(30),
             "service did not resume"
         );
         std::thread::sleep(Duration::from_millis(100));

@@ -129,15 +129,19 @@ impl Steady {
         Steady { stop, thread }
     }
 
-    /// Stops it: it must have been served all along, never slowly. Returns how many
+    /// Stops it: it must have been served all along, never stalled. Returns how many
     /// requests it made.
     fn finish(self, what: &str) -> u32 {
         self.stop.store(true, Ordering::Relaxed);
         let (n, slowest) = self.thread.join().expect("the well-behaved master failed");
         eprintln!("{what}: the well-behaved master was served {n} times, slowest {slowest:?}");
         assert!(n >= 5, "{what}: served only {n} times");
+        // A bound against a stall (the hostile masters holding the line or the
+        // relay), generous enough for a machine loaded many times over its cores
+        // (seen: 4 s at a load of 18 on 2 cores); how fast it is served is a
+        // benchmark's business.
         assert!(
-            slowest < Duration::from_secs(2),
+            slowest < Duration::from_secs(15),
             "{what}: a reply took {slowest:?}"
         );
         n

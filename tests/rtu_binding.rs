@@ -370,12 +370,13 @@ fn rtu_reply_begun_before_the_request_ended_is_not_taken() {
 /// character times of silence (Modbus over Serial Line V1.02 §2.5.1.1), and is
 /// answered right.
 ///
-/// Under load the talker's thread can sleep far longer than 2 ms; a pause of 3.5
-/// character times is silence, and the gateway is right to send then. So each attempt
-/// first checks the talker kept the line busy from the request on (its bytes stamped
-/// before they are written: the gateway saw each one no earlier), and an attempt in
-/// which it did not is run again (at most 5): the property is asserted only on a line
-/// that was really talking, never skipped.
+/// Under load the talker's thread can sleep far longer than 2 ms, and socat can hold
+/// its bytes as long; a pause of 3.5 character times is silence, and the gateway is
+/// right to send then. So each attempt first checks the line was kept busy from the
+/// request on, as the talker wrote it and as the gateway read it (its count of bytes
+/// received, sampled all along), and an attempt in which it was not is run again (at
+/// most 5): the property is asserted only on a line that was really talking, never
+/// skipped.
 #[test]
 fn rtu_request_waits_for_silence_before_going_on_the_line() {
     const BAUD: u32 = 300;
@@ -394,6 +395,25 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
             .metrics("listen = \"127.0.0.1:0\"");
         let mut gw = Gateway::start(&cfg, dir.path());
         let mut m = gw.connect();
+        gw.metric("mbgate_line_received_bytes");
+        let log = gw.log();
+        let http: std::net::SocketAddr = log
+            .split("metrics on http://")
+            .nth(1)
+            .and_then(|r| r.split('/').next())
+            .and_then(|a| a.parse().ok())
+            .expect("the metrics address");
+        // The gateway's count of bytes received, sampled until the talker is done.
+        let done = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+        let done2 = done.clone();
+        let sampler = thread::spawn(move || {
+            let mut samples = Vec::new();
+            while !done2.load(std::sync::atomic::Ordering::Relaxed) && samples.len() < 100_000 {
+                samples.push((Instant::now(), received(http)));
+                thread::sleep(Duration::from_millis(1));
+            }
+            samples
+        });
         let mut line = RawLine::open(&socat.dev);
         let (started_tx, started) = std::sync::mpsc::channel();
         let talker = thread::spawn(move || {
@@ -412,7 +432,17 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
         let asked = Instant::now();
         let answer = read_one(&mut m, 1, 1, 4);
         let stamps = talker.join().unwrap();
+        done.store(true, std::sync::atomic::Ordering::Relaxed);
+        let samples = sampler.join().unwrap();
         let sent = device.seen_at.lock().unwrap()[0];
+        // The longest the gateway's count stood still before the request reached the
+        // device, while the talker had bytes still to come.
+        let gateway_pause = samples
+            .windows(2)
+            .filter(|w| w[0].0 > asked && w[1].0 < sent && w[0].1 < 100.0 && w[0].1 == w[1].1)
+            .map(|w| w[1].0 - w[0].0)
+            .max()
+            .unwrap_or_default();
         // Every byte through socat before the counts are read (bounded).
         let start = Instant::now();
         while gw.metric("mbgate_line_received_bytes") < 107.0
@@ -431,10 +461,11 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
         eprintln!(
             "attempt {attempt}: the request reached the device {:?} after the device \
              side's last byte (3.5 character times: {t35:?}); the talker's longest pause \
-             after the request {longest_pause:?}; {answer:?}; {counters:?}",
+             after the request {longest_pause:?}, the gateway's {gateway_pause:?}; \
+             {answer:?}; {counters:?}",
             sent.saturating_duration_since(last_byte)
         );
-        if longest_pause >= t35 / 2 {
+        if longest_pause >= t35 / 2 || gateway_pause >= t35 / 2 {
             eprintln!("attempt {attempt}: the talker paused, the line was not busy: again");
             continue;
         }
@@ -449,4 +480,23 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
         return;
     }
     panic!("in 5 attempts the talker never kept the line busy (a byte every 2 ms)");
+}
+
+/// The gateway's count of bytes received on its line, from its metrics listener.
+fn received(http: std::net::SocketAddr) -> f64 {
+    use std::io::{Read, Write};
+    let Ok(mut s) = TcpStream::connect(http) else {
+        return 0.0;
+    };
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let _ = write!(
+        s,
+        "GET /metrics HTTP/1.1\r\nHost: {http}\r\nConnection: close\r\n\r\n"
+    );
+    let mut all = String::new();
+    let _ = s.read_to_string(&mut all);
+    all.lines()
+        .filter(|l| l.starts_with("mbgate_line_received_bytes_total"))
+        .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+        .sum()
 }

@@ -609,7 +609,8 @@ impl Gateway {
 
     pub(crate) fn connect(&self) -> TcpStream {
         let s = TcpStream::connect(self.addr).expect("connect to mbgate");
-        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        // Against a hang, not a measure: a loaded machine can take seconds.
+        s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
         s.set_nodelay(true).unwrap();
         s
     }
