@@ -124,7 +124,7 @@ fn arg(key: &'static Key) -> Arg {
     match key.check {
         Check::Range(min, max, None) => help += &format!(", {min}..={max}{unit}"),
         Check::Range(_, _, Some(said)) => help += &format!(", {said}"),
-        Check::Any | Check::NonEmpty(_) | Check::OneOf(_) => {}
+        Check::Any | Check::NonEmpty(_) | Check::OneOf(_) | Check::SocketPath => {}
     }
     let default = (key.get)(&Config::default());
     let (section, name, default) = (key.section, key.name, default.trim_matches('"'));

@@ -97,6 +97,8 @@ fn command_page(cmd: &clap::Command, name: &str, top: bool) -> io::Result<Vec<u8
                 .text([bold(code)])
                 .text([roman(what)]);
         }
+        // A paragraph of its own: run on after the last entry, it read as part of it.
+        tail.control("PP", []);
         tail.text([roman(
             "The subcommands read, write and status have exit codes of their own: see their pages.",
         )]);
@@ -185,7 +187,10 @@ fn comment(roff: &mut Roff, lines: &[String]) {
         let toml = line.split_once(" = ").is_some_and(|(k, _)| {
             !k.is_empty() && k.chars().all(|c| c.is_ascii_lowercase() || c == '_')
         });
-        let indented = line.starts_with("  ") || line.starts_with('[') || toml;
+        // A line of commented-out TOML that is itself a comment (`# # ...` in the
+        // file) belongs to the example, verbatim: reflowed, it would no longer be TOML.
+        let indented =
+            line.starts_with("  ") || line.starts_with('[') || line.starts_with('#') || toml;
         if line.trim().is_empty() || line.trim_start().starts_with("---") {
             flush(roff, &mut text);
             if verbatim {

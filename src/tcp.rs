@@ -398,9 +398,12 @@ impl Connection {
     async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
         let rtu = self.listen.framing == ListenFraming::Rtu;
         let framing = self.listen.framing.name();
+        // At debug: a SCADA that connects for each poll would fill the journal at info;
+        // the connections are counted (mbgate_listener_connections_total) and the
+        // masters connected now listed (mbgate status, the status page).
         match &self.grant {
-            None => info!(conn = self.id, peer = %self.peer, framing, "master connected"),
-            Some(g) => info!(
+            None => debug!(conn = self.id, peer = %self.peer, framing, "master connected"),
+            Some(g) => debug!(
                 conn = self.id,
                 peer = %self.peer,
                 framing,
@@ -459,7 +462,7 @@ impl Connection {
         self.router.detach(self.id);
         self.masters.remove(self.id);
         self.capture.forget(self.id);
-        info!(conn = self.id, peer = %self.peer, "master disconnected");
+        debug!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
     async fn read_loop(&self, mut rd: impl AsyncRead + Unpin, outbox: &mut Outbox) -> End {

@@ -211,10 +211,44 @@ fn check_config_says_ok_and_the_setup_in_a_few_lines() {
             "OK: {path}\n\
              line /dev/ttyUSB1: RTU, 9600 baud 8E1, no flow control, every unit\n\
              listening on 0.0.0.0:502 for Modbus/TCP masters, at most 32 at once\n\
+             \x20 # who: from everyone (no allow list), plain TCP\n\
+             \x20 # what: read and write\n\
              status page on http://127.0.0.1:9502/, metrics on http://127.0.0.1:9502/metrics \
              (mbgate status --metrics 127.0.0.1:9502)\n"
         )
     );
+}
+
+/// A `[control] socket` whose directory does not exist is a bad configuration (exit 2),
+/// named by file, line and key: the gateway could not make the socket, and capture and
+/// reload would be unavailable. An existing directory is fine.
+#[test]
+fn check_config_refuses_a_control_socket_in_a_missing_directory() {
+    let dir = tempdir();
+    let file = dir.path().join("c.toml");
+    std::fs::write(
+        &file,
+        "[serial]\npath = \"/dev/ttyUSB0\"\nflow_control = \"none\"\n\n[control]\nsocket = \"/nonexistent-mbgate/control.sock\"\n",
+    )
+    .unwrap();
+    let path = file.to_str().unwrap();
+    let o = mbgate(&["check-config", path]);
+    assert_eq!(o.code, 2, "{o:?}");
+    assert!(
+        o.stderr.starts_with(&format!(
+            "mbgate: {path}:6:10: control.socket: the directory /nonexistent-mbgate does not exist"
+        )),
+        "{}",
+        o.stderr
+    );
+    let sock = dir.path().join("control.sock");
+    std::fs::write(
+        &file,
+        format!("[serial]\npath = \"/dev/ttyUSB0\"\nflow_control = \"none\"\n\n[control]\nsocket = {:?}\n", sock.display().to_string()),
+    )
+    .unwrap();
+    let o = mbgate(&["check-config", path]);
+    assert_eq!((o.code, o.stderr.as_str()), (0, ""), "{o:?}");
 }
 
 /// The check-config messages a new user met: a host name in `listen` says to give an

@@ -19,7 +19,7 @@
 
 mod common;
 
-use common::repo;
+use common::{peer, repo};
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
@@ -250,6 +250,11 @@ fn runnable_one(
         return Ok(());
     };
     let mbgate_args = match program {
+        "target/release/mbgate" if installed => {
+            return Err(format!(
+                "a block starting with `{INSTALLED}` runs the packaged `mbgate`, not a checkout's"
+            ))
+        }
         "target/release/mbgate" => Some(args),
         "mbgate" if installed => Some(args),
         "mbgate" => {
@@ -588,7 +593,7 @@ fn the_security_recipe_makes_certificates_the_gateway_takes() {
         ),
     )
     .unwrap();
-    let check = Command::new(repo().join("target/release/mbgate"))
+    let check = Command::new(BIN)
         .arg("check-config")
         .arg(&cfg)
         .output()
@@ -598,6 +603,90 @@ fn the_security_recipe_makes_certificates_the_gateway_takes() {
         "{}{}",
         String::from_utf8_lossy(&check.stdout),
         String::from_utf8_lossy(&check.stderr)
+    );
+}
+
+/// docs/security.md's walkthrough on this machine, run as printed but in a directory
+/// and on a port of its own: the certificates, the configuration file, the pty pair,
+/// simulator and gateway in the background, openssl's handshake and the pymodbus
+/// master, each output compared with the text block the page shows after it.
+#[test]
+fn the_tls_walkthrough_runs_on_localhost_as_printed() {
+    let md = std::fs::read_to_string(repo().join("docs/security.md")).unwrap();
+    let from = md
+        .find("### Trying it on this machine")
+        .expect("the walkthrough");
+    let to = md[from..].find("\n### ").map_or(md.len(), |n| from + n);
+    let bs = blocks(&md[from..to]);
+    let langs: Vec<&str> = bs.iter().map(|b| b.lang.as_str()).collect();
+    assert_eq!(
+        langs,
+        ["sh", "toml", "sh", "text", "python", "text"],
+        "the walkthrough's blocks"
+    );
+    let dir = common::tempdir();
+    let port = common::free_port().to_string();
+    let here = |t: &str| {
+        t.replace("/tmp/mbgate-tls", dir.path().to_str().unwrap())
+            .replace("8802", &port)
+            .replace("target/release/mbgate", BIN)
+    };
+    let bash = |script: &str| {
+        let out = Command::new("bash")
+            .args(["-c", script])
+            .current_dir(repo())
+            .stdin(Stdio::null())
+            .output()
+            .unwrap();
+        let text = String::from_utf8_lossy(&out.stdout).into_owned();
+        (
+            out.status.success(),
+            text,
+            String::from_utf8_lossy(&out.stderr).into_owned(),
+        )
+    };
+    let (ok, out, err) = bash(&format!("set -e\n{}", here(&bs[0].text)));
+    assert!(ok, "the certificates: {out}{err}");
+    std::fs::write(dir.path().join("tls.toml"), here(&bs[1].text)).unwrap();
+    let mut background = Background(Vec::new());
+    let cmds = commands(&bs[2].text);
+    let (last, starts) = cmds.split_last().unwrap();
+    for (cmd, _) in starts {
+        let cmd = here(cmd);
+        let cmd = cmd.strip_suffix('&').expect("a background job");
+        let child = Command::new("sh")
+            .args(["-c", &format!("exec {cmd}")])
+            .current_dir(repo())
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(Stdio::null())
+            .spawn()
+            .unwrap();
+        background.0.push(child);
+        // A person pastes the next line a moment later.
+        thread::sleep(Duration::from_millis(500));
+    }
+    let addr: std::net::SocketAddr = format!("127.0.0.1:{port}").parse().unwrap();
+    common::wait_for("the gateway listening", Duration::from_secs(30), || {
+        std::net::TcpStream::connect(addr).is_ok()
+    });
+    let (_, out, err) = bash(&here(&last.0));
+    assert_eq!(out.trim(), bs[3].text.trim(), "openssl s_client: {err}");
+    let py = Command::new(common::python())
+        .arg("-c")
+        .arg(here(&bs[4].text))
+        .current_dir(dir.path())
+        .output()
+        .unwrap();
+    assert!(
+        py.status.success(),
+        "the pymodbus master: {}",
+        String::from_utf8_lossy(&py.stderr)
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&py.stdout).trim(),
+        bs[5].text.trim(),
+        "the pymodbus master"
     );
 }
 
@@ -699,6 +788,124 @@ fn every_link_and_anchor_leads_somewhere() {
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }
 
+/// A section named in words rather than linked (`README "Some heading"`, `watching.md,
+/// "Some heading"`) exists in that page.
+#[test]
+fn every_section_named_in_words_exists() {
+    let mut wrong = Vec::new();
+    let mut seen = 0;
+    for page in pages() {
+        let md = std::fs::read_to_string(&page).unwrap();
+        let mut rest = md.as_str();
+        while let Some(at) = rest.find(" \"") {
+            let before = &rest[..at];
+            let after = &rest[at + 2..];
+            rest = &rest[at + 2..];
+            let file = before
+                .rsplit(|c: char| c.is_whitespace() || c == '(' || c == '`')
+                .next()
+                .unwrap_or("")
+                .trim_end_matches(',');
+            let target = match file {
+                "README" | "README's" => repo().join("README.md"),
+                f if f.ends_with(".md") && !f.contains('/') => page.parent().unwrap().join(f),
+                _ => continue,
+            };
+            let Some(heading) = after.split('"').next() else {
+                continue;
+            };
+            seen += 1;
+            let text = std::fs::read_to_string(&target).unwrap_or_default();
+            if !anchors(&text).contains(&slug(heading)) {
+                wrong.push(format!(
+                    "{}: {file} \"{heading}\": no such heading in {}",
+                    name(&page),
+                    name(&target)
+                ));
+            }
+        }
+    }
+    assert!(wrong.is_empty(), "{} (of {seen})", wrong.join("\n"));
+}
+
+/// A count of the tests a page states (`about N tests`) is within a tenth of the
+/// `#[test]` functions there are: it drifts as tests are added.
+#[test]
+fn every_count_of_tests_is_near_the_count() {
+    fn count(dir: &Path) -> usize {
+        let mut n = 0;
+        for e in std::fs::read_dir(dir).unwrap().flatten() {
+            let p = e.path();
+            if p.is_dir() {
+                n += count(&p);
+            } else if p.extension().is_some_and(|x| x == "rs") {
+                n += std::fs::read_to_string(&p)
+                    .unwrap()
+                    .matches("#[test]")
+                    .count();
+            }
+        }
+        n
+    }
+    let tests = count(&repo().join("src")) + count(&repo().join("tests"));
+    for page in pages() {
+        let md = std::fs::read_to_string(&page).unwrap();
+        for (at, _) in md.match_indices(" tests") {
+            let Some(said) = md[..at]
+                .rsplit(|c: char| !c.is_ascii_digit())
+                .next()
+                .and_then(|n| n.parse::<usize>().ok())
+            else {
+                continue;
+            };
+            if !md[..at]
+                .trim_end_matches(char::is_numeric)
+                .ends_with("about ")
+            {
+                continue;
+            }
+            assert!(
+                said * 10 >= tests * 9 && said * 10 <= tests * 11,
+                "{}: \"about {said} tests\", and there are {tests}",
+                name(&page)
+            );
+        }
+    }
+}
+
+/// What the docs say of the status page's frame list holds: it shows as many frames
+/// as the gateway keeps (src/capture/hub.rs, `RECENT`).
+#[test]
+fn the_status_page_frames_the_docs_state_are_the_ones_kept() {
+    let hub = std::fs::read_to_string(repo().join("src/capture/hub.rs")).unwrap();
+    let kept: usize = hub
+        .split("pub(crate) const RECENT: usize = ")
+        .nth(1)
+        .and_then(|r| r.split(';').next())
+        .and_then(|n| n.parse().ok())
+        .expect("RECENT in src/capture/hub.rs");
+    let mut seen = 0;
+    for page in pages() {
+        let md = std::fs::read_to_string(&page).unwrap().replace('\n', " ");
+        for (at, _) in md.match_indices(" frames") {
+            let before = md[..at].trim_end();
+            let Some(n) = before
+                .rsplit(|c: char| !c.is_ascii_digit())
+                .next()
+                .and_then(|n| n.parse::<usize>().ok())
+            else {
+                continue;
+            };
+            let lead = before.trim_end_matches(char::is_numeric).trim_end();
+            if lead.ends_with("last") || lead.ends_with("Last") {
+                seen += 1;
+                assert_eq!(n, kept, "{}: \"last {n} frames\"", name(&page));
+            }
+        }
+    }
+    assert!(seen >= 2, "only {seen} mentions of the last frames");
+}
+
 /// The example configurations: each valid (OK, nothing to warn about), each named in
 /// the README or the guide, and a copy of one in the guide is the file.
 #[test]
@@ -783,22 +990,62 @@ fn the_man_pages_and_completions_are_generated_from_this_command_line() {
     }
 }
 
-/// Whether `program` runs here; as root (CI) it must, since scripts/test installs it.
+/// Whether `program` runs here; when it does not, the test skips (common::peer).
 fn have(program: &str) -> bool {
-    let found = Command::new("sh")
-        .args(["-c", &format!("command -v {program}")])
-        .output()
-        .is_ok_and(|o| o.status.success());
-    // SAFETY: geteuid(2) has no preconditions and cannot fail.
-    let root = unsafe { libc::geteuid() } == 0;
-    assert!(
-        found || !root,
-        "{program} is missing, though running as root: scripts/test installs it"
-    );
-    if !found {
-        eprintln!("skipped: no {program} (scripts/test installs it as root)");
+    let package = match program {
+        "man" => "man-db",
+        other => other,
+    };
+    peer(program, package)
+}
+
+/// mbgate.toml(5), as man renders it, keeps each line of config/mbgate.toml's
+/// commented-out examples that is itself a comment (`# # ...`) a line of its own, so
+/// that an example pasted from the page is still TOML; mbgate(1)'s exit codes end
+/// before the sentence after them.
+#[test]
+fn the_man_pages_keep_examples_verbatim_and_sentences_apart() {
+    if !have("man") {
+        return;
     }
-    found
+    let render = |page: &str| {
+        let out = Command::new("man")
+            .args(["-l"])
+            .arg(repo().join("packaging/man").join(page))
+            .env("MANWIDTH", "200")
+            .env("MANPAGER", "cat")
+            .output()
+            .unwrap();
+        String::from_utf8_lossy(&out.stdout).into_owned()
+    };
+    let page = render("mbgate.toml.5");
+    let shown: Vec<&str> = page.lines().map(str::trim).collect();
+    let file = std::fs::read_to_string(repo().join("config/mbgate.toml")).unwrap();
+    let mut seen = 0;
+    for line in file.lines() {
+        let Some(inner) = line.strip_prefix("# # ") else {
+            continue;
+        };
+        seen += 1;
+        let want = format!("# {inner}");
+        assert!(
+            shown.iter().any(|l| *l == want.trim()),
+            "mbgate.toml(5) does not show `{want}` as a line of its own"
+        );
+    }
+    assert!(seen >= 5, "only {seen} commented comment lines");
+    let top = render("mbgate.1");
+    let lines: Vec<&str> = top.lines().collect();
+    let at = lines
+        .iter()
+        .position(|l| l.contains("The subcommands read, write and status"))
+        .unwrap_or_else(|| panic!("{top}"));
+    assert!(
+        lines[at].trim().starts_with("The subcommands") && lines[at - 1].trim().is_empty(),
+        "mbgate(1): the exit codes run into the next sentence:\n{}\n{}",
+        lines[at - 1],
+        lines[at]
+    );
 }
 
 /// Each page renders with man(1) without a warning, with its title and a NAME section.

@@ -32,7 +32,8 @@ fn exception(tid: u16, unit: u8, function: u8, code: u8) -> Vec<u8> {
 /// master is served meanwhile and afterwards.
 #[test]
 fn silent_device_gives_0x0b_and_others_keep_being_served() {
-    let r = rig(|c| c.relay("response_timeout_ms = 300"));
+    // Unit 1 answers at once, in far less than the timeout even on a loaded machine.
+    let r = rig(|c| c.relay("response_timeout_ms = 2000"));
     let _dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut a = r.gw.connect();
     let mut b = r.gw.connect();
@@ -52,10 +53,13 @@ fn silent_device_gives_0x0b_and_others_keep_being_served() {
     assert_eq!(read_frame(&mut a), exception(7, 2, 0x03, 0x0B));
     let waited = start.elapsed();
     assert!(
-        waited >= Duration::from_millis(300),
+        waited >= Duration::from_millis(2000),
         "0x0B too early: {waited:?}"
     );
-    assert!(waited < Duration::from_secs(3), "0x0B too late: {waited:?}");
+    assert!(
+        waited < Duration::from_secs(10),
+        "0x0B too late: {waited:?}"
+    );
 
     assert_eq!(
         transact(&mut b, &read_req(3, 1, 7, 1)),
@@ -71,7 +75,9 @@ fn silent_device_gives_0x0b_and_others_keep_being_served() {
 /// 0x0B promptly; service resumes without restarting mbgate; masters stay connected.
 #[test]
 fn serial_end_disappears_and_comes_back() {
-    let mut r = rig(|c| c.relay("response_timeout_ms = 500"));
+    // Far beyond what load adds to the device's answer; "promptly" below is within it
+    // and a margin.
+    let mut r = rig(|c| c.relay("response_timeout_ms = 2000"));
     let dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
     let mut m = r.gw.connect();
     assert_eq!(
@@ -89,7 +95,7 @@ fn serial_end_disappears_and_comes_back() {
             got == exception(tid, 1, 3, 0x0A) || got == exception(tid, 1, 3, 0x0B),
             "unexpected {got:02X?}"
         );
-        assert!(start.elapsed() < Duration::from_secs(2), "not prompt");
+        assert!(start.elapsed() < Duration::from_secs(5), "not prompt");
     }
 
     r.socat.restart();
@@ -107,7 +113,7 @@ fn serial_end_disappears_and_comes_back() {
             "unexpected {got:02X?}"
         );
         assert!(
-            start.elapsed() < Duration::from_secs(10),
+            start.elapsed() < Duration::from_secs(30),
             "service did not resume"
         );
         std::thread::sleep(Duration::from_millis(100));
@@ -360,7 +366,7 @@ fn full_queue_answers_0x06() {
 #[test]
 fn late_reply_is_never_delivered() {
     let mut r = rig(|c| {
-        c.relay("response_timeout_ms = 200")
+        c.relay("response_timeout_ms = 2000")
             .relay("notifications = \"broadcast\"")
     });
     let calls = Arc::new(AtomicUsize::new(0));
@@ -370,7 +376,8 @@ fn late_reply_is_never_delivered() {
         &r.socat.dev,
         Box::new(move |req| {
             if c2.fetch_add(1, Ordering::SeqCst) == 0 {
-                std::thread::sleep(Duration::from_millis(600));
+                // Late by far more than the timeout; the others on time by far.
+                std::thread::sleep(Duration::from_millis(3000));
             }
             inner(req)
         }),
@@ -381,7 +388,7 @@ fn late_reply_is_never_delivered() {
         transact(&mut a, &read_req(1, 1, 11, 1)),
         exception(1, 1, 3, 0x0B)
     );
-    r.gw.wait_log("late reply dropped", Duration::from_secs(3));
+    r.gw.wait_log("late reply dropped", Duration::from_secs(20));
     assert_eq!(
         transact(&mut a, &read_req(2, 1, 12, 1)),
         read_reply(2, 1, &[12])
@@ -405,7 +412,7 @@ fn late_reply_is_never_delivered() {
 /// `retry_writes`.
 #[test]
 fn retries_resend_reads_but_not_writes() {
-    let r = rig(|c| c.relay("response_timeout_ms = 200").relay("retries = 1"));
+    let r = rig(|c| c.relay("response_timeout_ms = 2000").relay("retries = 1"));
     let calls = Arc::new(AtomicUsize::new(0));
     let mut inner = register_device(&[1], Duration::ZERO);
     let c2 = calls.clone();

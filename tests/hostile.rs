@@ -35,7 +35,13 @@ struct Rig {
 fn rig(cfg: impl FnOnce(Cfg) -> Cfg) -> Rig {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let gw = Gateway::start(&cfg(Cfg::new(&socat.gw).pty_line()), dir.path());
+    // The device answers at once on a quiet machine; on a loaded one its thread can
+    // wait for hundreds of ms, and these tests are about who gets which bytes: a
+    // response timeout far beyond that.
+    let base = Cfg::new(&socat.gw)
+        .pty_line()
+        .relay("response_timeout_ms = 5000");
+    let gw = Gateway::start(&cfg(base), dir.path());
     let dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
     Rig {
         gw,
@@ -123,15 +129,19 @@ impl Steady {
         Steady { stop, thread }
     }
 
-    /// Stops it: it must have been served all along, never slowly. Returns how many
+    /// Stops it: it must have been served all along, never stalled. Returns how many
     /// requests it made.
     fn finish(self, what: &str) -> u32 {
         self.stop.store(true, Ordering::Relaxed);
         let (n, slowest) = self.thread.join().expect("the well-behaved master failed");
         eprintln!("{what}: the well-behaved master was served {n} times, slowest {slowest:?}");
         assert!(n >= 5, "{what}: served only {n} times");
+        // A bound against a stall (the hostile masters holding the line or the
+        // relay), generous enough for a machine loaded many times over its cores
+        // (seen: 4 s at a load of 18 on 2 cores); how fast it is served is a
+        // benchmark's business.
         assert!(
-            slowest < Duration::from_secs(2),
+            slowest < Duration::from_secs(15),
             "{what}: a reply took {slowest:?}"
         );
         n

@@ -100,6 +100,91 @@ fn ask(m: &mut TcpStream, req: &[u8]) -> Vec<u8> {
     [head.to_vec(), rest].concat()
 }
 
+/// A write a read-only listener denies is answered 0x01 by the listener, never reaches
+/// a line, and is counted in `mbgate_listener_denied_requests_total`, not in the line's
+/// `mbgate_line_exceptions_total` (docs/watching.md says so).
+#[test]
+fn a_denied_request_is_counted_by_its_listener_not_as_a_line_exception() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let text = format!(
+        "[[line]]\nserial = {{ path = {:?}, baud_rate = 4000000, flow_control = \"none\" }}\n\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\nread_only = true\n\n\
+         [metrics]\nlisten = \"127.0.0.1:0\"\n",
+        socat.gw.display().to_string()
+    );
+    let gw = Gateway::launch_text(&text, dir.path(), Launch::default());
+    let http = metrics_addr(&gw);
+    let mut m = gw.connect();
+    for tid in 1..=2 {
+        let reply = ask(&mut m, &write_req(tid, 1, 4, &[7]));
+        assert_eq!(reply[7..], [0x90, 0x01], "denied: {reply:?}");
+    }
+    let (_, body) = get(http, "/metrics");
+    let samples = parse(&body);
+    let denied: f64 = samples
+        .iter()
+        .filter(|((name, _), _)| name == "mbgate_listener_denied_requests_total")
+        .map(|(_, v)| v)
+        .sum();
+    assert_eq!(denied, 2.0, "{body}");
+    let line_0x01: f64 = samples
+        .iter()
+        .filter(|((name, labels), _)| {
+            name == "mbgate_line_exceptions_total"
+                && labels.iter().any(|(k, v)| k == "code" && v == "0x01")
+        })
+        .map(|(_, v)| v)
+        .sum();
+    assert_eq!(line_0x01, 0.0, "{body}");
+}
+
+/// An RTU unit that never answers, backed off after one timeout: of its three
+/// requests, one timed out on the line and two were answered 0x0B at once; `mbgate
+/// status` counts each (requests = replies + timeouts + backed off) and so does
+/// `mbgate_line_backed_off_requests_total`.
+#[test]
+fn mbgate_status_counts_the_backed_off_requests() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = RawRtuDevice::start(&socat.dev, rtu_register_device(&[1]));
+    let cfg = Cfg::new(&socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        // Unit 2 never answers: the timeout's length does not matter.
+        .relay("response_timeout_ms = 200")
+        .relay("unit_backoff_after = 1")
+        .relay("unit_backoff_ms = 60000")
+        .relay("unit_backoff_max_ms = 60000")
+        .metrics("listen = \"127.0.0.1:0\"");
+    let gw = Gateway::start(&cfg, dir.path());
+    let http = metrics_addr(&gw);
+    let mut m = gw.connect();
+    for tid in 1..=3u16 {
+        let reply = transact(&mut m, &read_req(tid, 2, 0, 1));
+        assert_eq!(reply[7..], [0x83, 0x0B], "{reply:?}");
+    }
+    let run = mbgate(&["status", "--metrics", &http.to_string()]);
+    let line = socat.gw.to_str().unwrap();
+    assert!(
+        run.stdout.contains(&format!(
+            "line {line}: port open, 1 masters, 3 requests, 0 replies, 1 timeouts, 2 backed off, 0 queued, 0 in flight"
+        )),
+        "{}",
+        run.stdout
+    );
+    let (_, body) = get(http, "/metrics");
+    assert_eq!(
+        value(
+            &parse(&body),
+            "mbgate_line_backed_off_requests_total",
+            &[("line", line)]
+        ),
+        2.0
+    );
+}
+
 #[test]
 fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
     let dir = tempdir();
@@ -316,7 +401,6 @@ fn status_prints_a_summary_and_its_exit_code_says_healthy_or_not() {
     let cfg = Cfg::new(&socat.gw)
         .pty_line()
         .serial("flow_control = \"none\"")
-        .relay("response_timeout_ms = 100")
         .metrics("listen = \"127.0.0.1:0\"");
     let mut gw = Gateway::start(&cfg, dir.path());
     let http = metrics_addr(&gw).to_string();
@@ -332,7 +416,7 @@ fn status_prints_a_summary_and_its_exit_code_says_healthy_or_not() {
     assert_eq!(lines[0], "healthy");
     assert!(
         lines[1].starts_with(&format!(
-            "line {line}: port open, 1 masters, 1 requests, 1 replies, 0 timeouts, 0 queued, 0 in flight, last reply "
+            "line {line}: port open, 1 masters, 1 requests, 1 replies, 0 timeouts, 0 backed off, 0 queued, 0 in flight, last reply "
         )),
         "{}",
         lines[1]

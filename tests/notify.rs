@@ -87,7 +87,9 @@ fn ready_then_watchdog_from_the_relay_then_stopping() {
     let launch = Launch::default()
         .env("NOTIFY_SOCKET", sd.path.to_str().unwrap())
         .env("WATCHDOG_USEC", "400000");
-    let mut gw = Gateway::launch(&Cfg::new(&socat.gw), dir.path(), launch);
+    // The default response timeout, which the drain's extension below counts.
+    let cfg = Cfg::new(&socat.gw).relay("response_timeout_ms = 1000");
+    let mut gw = Gateway::launch(&cfg, dir.path(), launch);
     let ready = sd.wait_for("READY=1", Duration::from_secs(5));
     let (_, first) = &sd.messages()[ready];
     assert!(

@@ -27,6 +27,9 @@ const CENTRAL: usize = 8192;
 pub(crate) const PER_SUBSCRIBER: usize = 4096;
 /// Packets of each line the status page shows.
 pub(crate) const RECENT: usize = 50;
+/// Disconnected masters whose addresses are kept for the page: enough for every frame
+/// of the last [`RECENT`] of a few lines to have come from a different one.
+const GONE: usize = 256;
 /// How long the status page counts as open after its last poll.
 const PAGE_OPEN_FOR: Duration = Duration::from_secs(10);
 
@@ -109,6 +112,9 @@ struct Shared {
     next_id: AtomicU64,
     /// The master behind each connection id, for the master filter and the page.
     conns: Mutex<HashMap<u64, SocketAddr>>,
+    /// The last [`GONE`] masters that disconnected, oldest first: the page still names
+    /// the master of a frame kept from before it went.
+    gone: Mutex<VecDeque<(u64, SocketAddr)>>,
     recent: Mutex<Vec<Recent>>,
     closed: CancellationToken,
 }
@@ -140,6 +146,7 @@ impl Hub {
             subs: Mutex::new(Vec::new()),
             next_id: AtomicU64::new(1),
             conns: Mutex::new(HashMap::new()),
+            gone: Mutex::new(VecDeque::new()),
             closed: CancellationToken::new(),
         });
         let task = run(shared.clone(), rx);
@@ -168,7 +175,14 @@ impl Hub {
     }
 
     pub(crate) fn forget(&self, conn: u64) {
-        self.0.conns.lock().expect("not poisoned").remove(&conn);
+        let Some(peer) = self.0.conns.lock().expect("not poisoned").remove(&conn) else {
+            return;
+        };
+        let mut gone = self.0.gone.lock().expect("not poisoned");
+        if gone.len() == GONE {
+            gone.pop_front();
+        }
+        gone.push_back((conn, peer));
     }
 
     /// Packets of every interface from now on that `request` keeps (it names only
@@ -214,14 +228,20 @@ impl Hub {
         self.0.recent.lock().expect("not poisoned").clone()
     }
 
-    /// The master at connection `conn`, if known.
+    /// The master at connection `conn`, if known: connected, or among the last
+    /// [`GONE`] that disconnected.
     pub(crate) fn master(&self, conn: u64) -> Option<SocketAddr> {
-        self.0
+        let now = self
+            .0
             .conns
             .lock()
             .expect("not poisoned")
             .get(&conn)
-            .copied()
+            .copied();
+        now.or_else(|| {
+            let gone = self.0.gone.lock().expect("not poisoned");
+            gone.iter().rev().find(|(c, _)| *c == conn).map(|(_, p)| *p)
+        })
     }
 
     /// Packets every capture lost because the central channel was full, in all.
@@ -505,5 +525,20 @@ mod tests {
         tokio::time::sleep(Duration::from_millis(50)).await;
         let r = &hub.page()[1];
         assert_eq!((r.kept.len(), r.total), (RECENT, RECENT as u64 + 5));
+    }
+
+    #[test]
+    fn a_master_that_disconnected_keeps_its_address_for_the_page() {
+        let (hub, _task) = Hub::new(vec![]);
+        let peer: SocketAddr = "10.0.0.7:40001".parse().unwrap();
+        hub.connected(7, peer);
+        hub.forget(7);
+        assert_eq!(hub.master(7), Some(peer));
+        for c in 100..100 + GONE as u64 {
+            hub.connected(c, peer);
+            hub.forget(c);
+        }
+        assert_eq!(hub.master(7), None, "the oldest forgotten first");
+        assert_eq!(hub.master(99 + GONE as u64), Some(peer));
     }
 }

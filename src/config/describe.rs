@@ -177,6 +177,11 @@ pub fn summary(cfg: &Config) -> String {
             listener(&l),
             l.tcp.max_connections
         );
+        // Who may connect and what they may do: TLS, the allow list, the roles
+        // (docs/security.md shows these lines).
+        for said in super::effective_access(&l, &cfg.roles) {
+            out += &format!("  # {said}\n");
+        }
     }
     out += &match cfg.metrics.listen {
         Some(a) => format!(
@@ -210,7 +215,11 @@ mod tests {
             "line /dev/ttyUSB1: RTU, 9600 baud 8E1, no flow control, units 1-3, 7, unit 11 as 1\n\
              line 10.0.0.5:502 (a device on the network): Modbus/TCP, units 50\n\
              listening on 0.0.0.0:502 for Modbus/TCP masters, at most 32 at once\n\
+             \x20 # who: from everyone (no allow list), plain TCP\n\
+             \x20 # what: read and write\n\
              listening on 0.0.0.0:4001 for RTU-over-TCP masters, at most 32 at once\n\
+             \x20 # who: from everyone (no allow list), plain TCP\n\
+             \x20 # what: read and write\n\
              no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
         );
     }

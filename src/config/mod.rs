@@ -29,7 +29,7 @@ pub(crate) use layout::{LineConfig, ListenConfig, Units};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;
-use Check::{Any, NonEmpty, OneOf, Range};
+use Check::{Any, NonEmpty, OneOf, Range, SocketPath};
 
 /// Declares enums whose values are lower-case words in the file and on the command
 /// line; each variant's doc line is its help.
@@ -335,7 +335,7 @@ settings! {
     /// The control socket `mbgate capture` uses (docs/capture.md).
     [control] ControlConfig {
         /// Unix socket for mbgate capture, mode 0660 (root, the service's user and group); "" (the default): control.sock in systemd's RuntimeDirectory, none outside systemd
-        socket: String = String::new(), Any, "control-socket" "PATH";
+        socket: String = String::new(), SocketPath, "control-socket" "PATH";
     }
 }
 
@@ -386,6 +386,9 @@ pub(crate) enum Check {
     NonEmpty(&'static str),
     /// One of these words.
     OneOf(&'static [&'static str]),
+    /// A path to create a socket at, or empty: its directory must exist (binding there
+    /// would fail at start, leaving capture and reload unavailable).
+    SocketPath,
 }
 
 impl Check {
@@ -406,6 +409,21 @@ impl Check {
             }
             Check::OneOf(words) if !words.contains(&s) => {
                 Err(format!("must be one of {}, got {s:?}", words.join(", ")))
+            }
+            Check::SocketPath if !s.is_empty() => {
+                let dir = match std::path::Path::new(s).parent() {
+                    Some(d) if !d.as_os_str().is_empty() => d,
+                    _ => std::path::Path::new("."),
+                };
+                if dir.is_dir() {
+                    Ok(())
+                } else {
+                    Err(format!(
+                        "the directory {} does not exist (make it, or leave the key empty \
+                         under systemd: control.sock in the service's RuntimeDirectory)",
+                        dir.display()
+                    ))
+                }
             }
             _ => Ok(()),
         }

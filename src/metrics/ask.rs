@@ -212,12 +212,15 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
             None => "no reply yet".into(),
         };
         out += &format!(
-            "line {line}: port {}, {} masters, {} requests, {} replies, {} timeouts, {} queued, {} in flight, {last}\n",
+            "line {line}: port {}, {} masters, {} requests, {} replies, {} timeouts, {} backed off, {} queued, {} in flight, {last}\n",
             if open { "open" } else { "NOT OPEN" },
             n(get(s, "mbgate_line_masters", &l)),
             n(get(s, "mbgate_line_requests_total", &l)),
             n(get(s, "mbgate_line_replies_total", &l)),
             n(get(s, "mbgate_line_timeouts_total", &l)),
+            // Answered 0x0B at once, their unit backed off: neither a reply nor a
+            // timeout on the line.
+            n(get(s, "mbgate_line_backed_off_requests_total", &l)),
             n(get(s, "mbgate_line_queued", &l)),
             n(get(s, "mbgate_line_in_flight", &l)),
         );

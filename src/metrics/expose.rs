@@ -131,6 +131,7 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
         per_line(lines, ("mbgate_line_replies", "Device replies delivered to masters (device exceptions included).", C), s(|s| &s.replies)),
         per_line(lines, ("mbgate_line_timeouts", "Attempts the device did not answer in time (each resend counts).", C), sum_units(|u| &u.timeouts)),
         per_line(lines, ("mbgate_line_retries", "Requests resent after a timeout.", C), s(|s| &s.retries)),
+        per_line(lines, ("mbgate_line_backed_off_requests", "Requests answered 0x0B at once, without the line: their unit was backed off (RTU/ASCII).", C), s(|s| &s.backed_off)),
         per_line(lines, ("mbgate_line_late_replies", "Replies to a request no longer on the line (timed out, or a duplicate of one answered): dropped.", C), s(|s| &s.late_replies)),
         per_line(lines, ("mbgate_line_bad_frames", "Replies that failed their CRC or LRC, or did not fit their request.", C), s(|s| &s.bad_frames)),
         per_line(lines, ("mbgate_line_refuted_frames", "MBAP replies that what followed showed to have lost bytes: dropped.", C), s(|s| &s.refuted_frames)),

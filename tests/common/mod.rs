@@ -82,6 +82,41 @@ pub(crate) fn tempdir() -> tempfile::TempDir {
         .expect("temp dir")
 }
 
+/// Whether the command `command` is installed (on PATH). When it is not, the calling
+/// test is to return at once: this says so on stderr, naming the Debian package that
+/// has it, and adds a line to the file `$MBGATE_SKIPS`, which scripts/test counts as a
+/// skip in its summary (scripts/test --no-install installs nothing). In CI (CI=true)
+/// everything is installed, and a missing command fails the test.
+pub(crate) fn peer(command: &str, package: &str) -> bool {
+    let found = std::env::var_os("PATH").is_some_and(|path| {
+        std::env::split_paths(&path).any(|dir| {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::metadata(dir.join(command))
+                .is_ok_and(|m| m.is_file() && m.permissions().mode() & 0o111 != 0)
+        })
+    });
+    if found {
+        return true;
+    }
+    assert!(
+        std::env::var("CI").as_deref() != Ok("true"),
+        "{command} is missing in CI, where scripts/test installs every Debian package \
+         (this one: {package})"
+    );
+    let test = std::thread::current().name().unwrap_or("?").to_owned();
+    let line = format!("{test}: needs {command} (Debian package {package})");
+    eprintln!("skipped: {line}");
+    if let Some(file) = std::env::var_os("MBGATE_SKIPS") {
+        let mut f = std::fs::OpenOptions::new()
+            .append(true)
+            .create(true)
+            .open(file)
+            .expect("open $MBGATE_SKIPS");
+        writeln!(f, "{}: {line}", env!("CARGO_CRATE_NAME")).unwrap();
+    }
+    false
+}
+
 /// Polls `ok` every 10 ms until it holds; fails the test after `timeout`.
 pub(crate) fn wait_for(what: &str, timeout: Duration, mut ok: impl FnMut() -> bool) {
     let start = Instant::now();
@@ -106,6 +141,7 @@ fn signal(child: &mut Child, name: &str) {
 // One run of the binary to completion
 
 /// What one run of the binary did.
+#[derive(Debug)]
 pub(crate) struct Run {
     pub(crate) code: i32,
     pub(crate) stdout: String,
@@ -313,10 +349,21 @@ impl Cfg {
     }
     pub(crate) fn render(&self) -> String {
         let mut s = String::new();
+        // A test that does not set the response timeout gets one far beyond what a
+        // loaded machine adds to a device's answer (the default, 1 s, was missed with
+        // a busy loop on each core beside five test runs): who gets which bytes does
+        // not depend on how busy the machine is. A test about timeouts sets its own.
+        let mut relay = self.relay.clone();
+        if !relay
+            .iter()
+            .any(|l| l.trim_start().starts_with("response_timeout_ms"))
+        {
+            relay.push("response_timeout_ms = 5000".into());
+        }
         for (name, lines) in [
             ("serial", &self.serial),
             ("tcp", &self.tcp),
-            ("relay", &self.relay),
+            ("relay", &relay),
             ("log", &self.log),
             ("metrics", &self.metrics),
             ("control", &self.control),
@@ -562,9 +609,36 @@ impl Gateway {
 
     pub(crate) fn connect(&self) -> TcpStream {
         let s = TcpStream::connect(self.addr).expect("connect to mbgate");
-        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        // Against a hang, not a measure: a loaded machine can take seconds.
+        s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
         s.set_nodelay(true).unwrap();
         s
+    }
+
+    /// The sum of every sample of the metric `name` (its `_total` included) on the
+    /// gateway's `[metrics]` listener (`listen = "127.0.0.1:0"`), read now: for a test
+    /// that waits until a count is reached instead of sleeping a guess.
+    pub(crate) fn metric(&self, name: &str) -> f64 {
+        self.wait_log("metrics on http://", Duration::from_secs(10));
+        let log = self.log();
+        let rest = log.split("metrics on http://").nth(1).unwrap();
+        let addr: SocketAddr = rest.split('/').next().unwrap().parse().unwrap();
+        let mut s = TcpStream::connect(addr).expect("connect to the metrics listener");
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        write!(
+            s,
+            "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+        )
+        .unwrap();
+        let mut all = String::new();
+        s.read_to_string(&mut all).unwrap();
+        all.lines()
+            .filter(|l| {
+                l.strip_prefix(name)
+                    .is_some_and(|rest| rest.starts_with(['{', ' ']) || rest.starts_with("_total"))
+            })
+            .filter_map(|l| l.rsplit(' ').next()?.parse::<f64>().ok())
+            .sum()
     }
 
     /// SIGTERM, then waits (bounded) for the exit; the log is complete afterwards.
