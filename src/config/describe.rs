@@ -112,6 +112,9 @@ pub fn summary(cfg: &Config) -> String {
     let lines = cfg.lines();
     for l in &lines {
         out += &format!("line {}\n", line(l));
+        for unit in l.unit_tables.describe(&l.relay) {
+            out += &format!("  {unit}\n");
+        }
     }
     if cfg.master.is_some() {
         // A master line listens for no masters and has no metrics listener.

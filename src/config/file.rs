@@ -46,7 +46,9 @@ const TOP: [&str; 10] = [
     "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen", "role",
 ];
 /// The keys of a `[[line]]` table.
-const LINE: [&str; 7] = ["units", "remap", "serial", "tcp", "relay", "role", "route"];
+const LINE: [&str; 8] = [
+    "units", "remap", "serial", "tcp", "relay", "role", "route", "unit",
+];
 /// The keys of a line's `tcp` table: a device on the network.
 const LINE_TCP: [&str; 3] = ["address", "framing", "tls"];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
@@ -193,9 +195,12 @@ impl Reader<'_> {
                 self.conflict(&cfg, "")?;
                 true
             }
-            // One serial line serving every unit is the old form's [serial] and [relay];
+            // One serial line serving every unit is the old form's [serial] and [relay],
+            // unless its units have settings of their own, which only a [[line]] says;
             // so is a master line (its routes say where each unit goes).
-            [(_, line, _)] if line.tcp.is_none() && line.units.every() => {
+            [(_, line, _)]
+                if line.tcp.is_none() && line.units.every() && line.unit_tables.is_empty() =>
+            {
                 (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone());
                 cfg.master = line.master.clone();
                 true
@@ -314,6 +319,7 @@ impl Reader<'_> {
         let (mut line, mut listed) = (Config::default(), false);
         let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
         let (mut role, mut routes, mut tcp_tls) = (None, None, None);
+        let mut unit_tables = (super::unit::UnitTables::default(), None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
             let bad = |b: Bad| self.fail::<()>(b.at, &b.key, b.message);
@@ -333,6 +339,10 @@ impl Reader<'_> {
                 }
                 "role" => match super::master::role(item, &full) {
                     Ok(master) => role = Some((master, k.span().start)),
+                    Err(b) => bad(b)?,
+                },
+                "unit" => match super::unit::tables(item, &full) {
+                    Ok(t) => unit_tables = (t, Some(k.span().start)),
                     Err(b) => bad(b)?,
                 },
                 "route" => match super::master::routes(item, &full) {
@@ -371,6 +381,10 @@ impl Reader<'_> {
                     let m = "a master line's device is on a serial port, not on TCP";
                     return self.fail(at, &format!("{path}.tcp"), m);
                 }
+                if let Some(at) = unit_tables.1 {
+                    let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
+                    return self.fail(at, &format!("{path}.unit"), m);
+                }
                 master = Some(super::master::MasterLine { routes });
             }
             (Some((true, at)), None) => {
@@ -389,6 +403,7 @@ impl Reader<'_> {
             tcp,
             tcp_tls,
             relay: line.relay,
+            unit_tables: unit_tables.0,
             master,
         };
         Ok((v.span().start, line, listed))

@@ -64,7 +64,8 @@ pub fn to_toml_lines(cfg: &Config) -> String {
             None => String::new(),
         };
         let relay = print(&one, &[("relay", "[line.relay]".into())]);
-        out.push(head + &device + "\n" + &routes + &relay);
+        let units = line.unit_tables.to_toml();
+        out.push(head + &device + "\n" + &routes + &relay + &units);
     }
     for listener in cfg.listeners() {
         let one = Config {

@@ -37,7 +37,9 @@ pub enum Command {
     /// from now on; requests already on the line keep their deadlines.
     Retune {
         /// The line's new `[relay]` settings.
-        relay: RelayConfig,
+        relay: Box<RelayConfig>,
+        /// The line's `[[line.unit]]` tables.
+        units: crate::config::unit::UnitTables,
         /// Log every frame as hex (`log.traffic`).
         traffic: bool,
     },

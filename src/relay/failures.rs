@@ -33,7 +33,9 @@ impl Relay {
     pub(super) fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
         self.line.retire(f.tid, now);
         let open = self.port.is_open();
-        match self.in_flight.verdict(&f, why, now, open) {
+        let verdict = self.in_flight.verdict(&f, why, now, open);
+        self.tell_learned(f.req.adu.unit());
+        match verdict {
             Verdict::BackedOff(interval) => {
                 let unit = f.req.adu.unit();
                 self.watch.backed_off(unit);

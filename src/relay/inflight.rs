@@ -1,8 +1,11 @@
 //! The in-flight table: the requests on the line with their serial-side ids, deadlines
-//! and response timeouts; what a request that got no usable reply becomes (resent,
-//! answered 0x0B, or its unit backed off); per-unit backoff; and the pacing of the 0x0B
-//! answers for backed-off units. Plain data: no I/O, no clock (the loop passes the time in).
+//! and response timeouts (each unit's own, fixed or learned: `[[line.unit]]`); what a
+//! request that got no usable reply becomes (resent, answered 0x0B, or its unit backed
+//! off); per-unit backoff; and the pacing of the 0x0B answers for backed-off units.
+//! Plain data: no I/O, no clock (the loop passes the time in).
 
+use super::learn::Learned;
+use crate::config::unit::{Timeout, UnitPolicy, UnitTables};
 use crate::config::RelayConfig;
 use crate::frame::Adu;
 use std::collections::{HashMap, VecDeque};
@@ -70,32 +73,62 @@ pub(super) enum Verdict {
 /// The requests on the line, and the policy for those that fail.
 pub(super) struct Table<R> {
     entries: Vec<InFlight<R>>,
-    response_timeout: Duration,
     probe_timeout: Duration,
-    retries: u32,
-    retry_writes: bool,
+    /// Each unit's timeout, retries and pause, by unit id: its `[[line.unit]]`
+    /// table's, else the line's.
+    policies: Box<[UnitPolicy]>,
+    /// The learned timeouts of the units that have one, once they had a request.
+    learned: HashMap<u8, Learned>,
     units: Units,
 }
 
 impl<R: Asked> Table<R> {
     /// `unit_backoff`: whether units are backed off at all (a bus of units only).
-    pub(super) fn new(cfg: &RelayConfig, unit_backoff: bool) -> Self {
-        Self {
+    pub(super) fn new(cfg: &RelayConfig, tables: &UnitTables, unit_backoff: bool) -> Self {
+        let mut t = Self {
             entries: Vec::new(),
-            response_timeout: Duration::from_millis(cfg.response_timeout_ms),
-            probe_timeout: Duration::from_millis(cfg.probe_timeout_ms),
-            retries: cfg.retries,
-            retry_writes: cfg.retry_writes,
+            probe_timeout: Duration::ZERO,
+            policies: Box::default(),
+            learned: HashMap::new(),
             units: Units::new(cfg, unit_backoff),
-        }
+        };
+        t.retune(cfg, tables);
+        t
     }
 
-    /// New timeouts and retries (a reload), for the requests sent from now on.
-    pub(super) fn retune(&mut self, cfg: &RelayConfig) {
-        self.response_timeout = Duration::from_millis(cfg.response_timeout_ms);
+    /// New timeouts and retries (a reload), for the requests sent from now on. A
+    /// learned timeout whose bounds changed, or that is learned no more, starts over.
+    pub(super) fn retune(&mut self, cfg: &RelayConfig, tables: &UnitTables) {
         self.probe_timeout = Duration::from_millis(cfg.probe_timeout_ms);
-        self.retries = cfg.retries;
-        self.retry_writes = cfg.retry_writes;
+        self.policies = (0..=255u8).map(|u| tables.policy(cfg, u)).collect();
+        let policies = &self.policies;
+        self.learned
+            .retain(|&u, l| match policies[usize::from(u)].timeout {
+                Timeout::Learned { floor, ceiling } => l.bounds() == (floor, ceiling),
+                Timeout::Fixed(_) => false,
+            });
+    }
+
+    /// `unit`'s settings.
+    pub(super) fn policy(&self, unit: u8) -> &UnitPolicy {
+        &self.policies[usize::from(unit)]
+    }
+
+    /// `unit`'s learned timeout, if it has one (for the metrics).
+    pub(super) fn learned(&self, unit: u8) -> Option<&Learned> {
+        self.learned.get(&unit)
+    }
+
+    /// `unit`'s response timeout now: fixed, or as learned so far.
+    fn response_timeout(&mut self, unit: u8) -> Duration {
+        match self.policies[usize::from(unit)].timeout {
+            Timeout::Fixed(t) => t,
+            Timeout::Learned { floor, ceiling } => self
+                .learned
+                .entry(unit)
+                .or_insert_with(|| Learned::new(floor, ceiling))
+                .timeout(),
+        }
     }
 
     pub(super) fn len(&self) -> usize {
@@ -115,7 +148,7 @@ impl<R: Asked> Table<R> {
     /// restarted when the port has drained). A unit that stopped answering gets a
     /// shorter wait, so a probe holds the line from the healthy units less long.
     pub(super) fn start(&mut self, tid: u16, req: R, now: Instant, queued: Duration) {
-        let mut timeout = self.response_timeout;
+        let mut timeout = self.response_timeout(req.adu().unit());
         if self.units.probing(req.adu().unit()) {
             timeout = timeout.min(self.probe_timeout);
         }
@@ -145,10 +178,17 @@ impl<R: Asked> Table<R> {
         Some(self.entries.swap_remove(i))
     }
 
-    /// Request `tid` was answered: taken off the line, and its unit is healthy again.
-    pub(super) fn answered(&mut self, tid: u16) -> Option<InFlight<R>> {
+    /// Request `tid` was answered by a reply whose last byte came `at`: taken off the
+    /// line, and its unit is healthy again; a learned timeout learns how long it took.
+    pub(super) fn answered(&mut self, tid: u16, at: Instant) -> Option<InFlight<R>> {
         let f = self.take(tid)?;
-        self.units.answered(f.req.adu().unit());
+        let unit = f.req.adu().unit();
+        self.units.answered(unit);
+        if let Some(l) = self.learned.get_mut(&unit) {
+            // Its deadline is its timeout after it left.
+            let left = f.deadline.checked_sub(f.timeout).unwrap_or(at);
+            l.replied(at.saturating_duration_since(left));
+        }
         Some(f)
     }
 
@@ -187,13 +227,18 @@ impl<R: Asked> Table<R> {
         port_open: bool,
     ) -> Verdict {
         let adu = f.req.adu();
+        let unit = adu.unit();
         if why == Failure::Timeout {
-            if let Some(interval) = self.units.timed_out(adu.unit(), now) {
+            if let Some(l) = self.learned.get_mut(&unit) {
+                l.timed_out();
+            }
+            if let Some(interval) = self.units.timed_out(unit, now) {
                 return Verdict::BackedOff(interval);
             }
         }
-        let may_retry = adu.function_code().is_read() || self.retry_writes;
-        if may_retry && f.req.attempts() < self.retries && port_open {
+        let policy = self.policy(unit);
+        let may_retry = adu.function_code().is_read() || policy.retry_writes;
+        if may_retry && f.req.attempts() < policy.retries && port_open {
             Verdict::Resend
         } else {
             Verdict::Fail
@@ -397,7 +442,7 @@ mod tests {
             response_timeout_ms: 100,
             ..RelayConfig::default()
         };
-        let mut t = Table::new(&cfg, false);
+        let mut t = Table::new(&cfg, &UnitTables::default(), false);
         let t0 = Instant::now();
         t.start(1, read(1, 0), t0, 10 * MS);
         t.start(2, read(2, 0), t0, 30 * MS);
@@ -431,7 +476,7 @@ mod tests {
             unit_backoff_max_ms: 4000,
             ..RelayConfig::default()
         };
-        let mut t = Table::new(&cfg, true);
+        let mut t = Table::new(&cfg, &UnitTables::default(), true);
         let t0 = Instant::now();
         let verdict = |t: &mut Table<(Adu, u32)>, req, why, open| {
             t.start(9, req, t0, Duration::ZERO);
@@ -461,6 +506,7 @@ mod tests {
                 retry_writes: true,
                 ..cfg.clone()
             },
+            &UnitTables::default(),
             true,
         );
         assert_eq!(
@@ -483,7 +529,7 @@ mod tests {
         t.start(5, read(1, 0), t0, Duration::ZERO);
         assert_eq!(t.take(5).map(|f| f.deadline), Some(t0 + 1000 * MS));
         assert_eq!(t.next_deadline(), Some(t0 + 200 * MS));
-        assert!(t.answered(4).is_some());
+        assert!(t.answered(4, t0).is_some());
         t.start(6, read(3, 0), t0, Duration::ZERO);
         assert_eq!(t.next_deadline(), Some(t0 + 1000 * MS), "healthy again");
     }

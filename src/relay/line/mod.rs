@@ -135,6 +135,15 @@ impl Line {
         self.is_broadcast(adu) && !FunctionCode::new(adu.function()).may_broadcast()
     }
 
+    /// The quiet time after the request about to be sent (its unit's
+    /// `request_pause_ms`): after its reply or its timeout, before the next request.
+    pub(super) fn pause_after(&mut self, pause: Duration) {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.request_pause = pause,
+            Kind::Serial(s) => s.request_pause = pause,
+        }
+    }
+
     /// The bytes that put `adu` on the line as request `tid`, about to be written.
     pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, stats: &Stats) -> Bytes {
         match &mut self.0 {

@@ -68,7 +68,7 @@ pub(super) struct Serial {
     /// `port_kind = "wire"`): a request's bytes take their time to leave.
     wire: bool,
     /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
-    request_pause: Duration,
+    pub(super) request_pause: Duration,
     /// The bytes dropped, for the capture.
     pub(super) tape: Tape,
     /// What a failed check is called: CRC (RTU) or LRC (ASCII).
