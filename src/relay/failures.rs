@@ -14,7 +14,8 @@ impl Relay {
     /// Requests past their deadline fail.
     pub(super) fn expire(&mut self, now: Instant) {
         for f in self.in_flight.take_expired(now) {
-            self.line.timed_out(now, &self.stats);
+            let hold = self.in_flight.hold_after_timeout(&f);
+            self.line.timed_out(now, hold, &self.stats);
             self.watch.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,

@@ -119,6 +119,18 @@ impl<R: Asked> Table<R> {
         self.learned.get(&unit)
     }
 
+    /// How long the line stays quiet after `f` timed out, beyond the guard: with a
+    /// learned timeout, until its ceiling has passed since `f` left. A reply later
+    /// than that would be late with a fixed timeout at the ceiling too, so a learned
+    /// timeout lets no late reply through that the ceiling would not
+    /// (docs/reliability.md "Learned timeouts").
+    pub(super) fn hold_after_timeout(&self, f: &InFlight<R>) -> Duration {
+        match self.policy(f.req.adu().unit()).timeout {
+            Timeout::Learned { ceiling, .. } => ceiling.saturating_sub(f.timeout),
+            Timeout::Fixed(_) => Duration::ZERO,
+        }
+    }
+
     /// `unit`'s response timeout now: fixed, or as learned so far.
     fn response_timeout(&mut self, unit: u8) -> Duration {
         match self.policies[usize::from(unit)].timeout {

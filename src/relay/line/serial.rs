@@ -301,7 +301,7 @@ impl Serial {
         self.broadcast_on_wire = false;
     }
 
-    pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
+    pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
         let held = self.drop_held(now, "a partial reply when its request timed out");
         self.decoder.clear();
         let to = self.decoder.consumed();
@@ -310,7 +310,8 @@ impl Serial {
         self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
-        self.ready_at = self.ready_at.max(now + self.guard.max(self.request_pause));
+        let quiet = self.guard.max(self.request_pause).max(hold);
+        self.ready_at = self.ready_at.max(now + quiet);
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {

@@ -1,0 +1,221 @@
+//! Each unit its own timeout (docs/configuration.md "Per-unit settings",
+//! docs/reliability.md "Learned timeouts"), end to end: `mbgate run` on an RTU line
+//! of one pymodbus serial server (tests/py/paced_units.py) answering unit 1 in 20 ms
+//! and unit 2 in 300 ms, each unit's registers its own (1000 × unit + address), so any
+//! reply taken for another request's shows in its value. Masters are raw Modbus/TCP
+//! sockets. Bounds on time are generous (the machine may be busy): they tell a
+//! unit's own timeout from the line's (1 s), never a tight figure (those are in
+//! docs/performance.md, from the same runs with `--nocapture`).
+
+mod common;
+use common::*;
+use std::net::TcpStream;
+use std::path::Path;
+use std::time::{Duration, Instant};
+
+/// One register of `unit` at `addr`: its value, or the exception code.
+fn read(m: &mut TcpStream, tid: u16, unit: u8, addr: u16) -> Result<u16, u8> {
+    let reply = transact(m, &read_req(tid, unit, addr, 1));
+    assert_eq!(
+        &reply[..2],
+        &tid.to_be_bytes(),
+        "the reply's transaction id"
+    );
+    assert_eq!(reply[6], unit, "the reply's unit");
+    match reply[7] {
+        0x03 => Ok(u16::from_be_bytes([reply[9], reply[10]])),
+        0x83 => Err(reply[8]),
+        fc => panic!("function {fc:#04x} in the reply to a read: {reply:02x?}"),
+    }
+}
+
+/// The device's pace: `unit=seconds` or `unit=dead`, read before each request.
+fn pace(file: &Path, units: &str) {
+    std::fs::write(file, units.replace(' ', "\n") + "\n").unwrap();
+}
+
+/// The configuration: an RTU line on `gw` (line timeout 1 s) with `units`, a
+/// listener and the metrics listener.
+fn config(gw: &Path, relay: &str, units: &str) -> String {
+    format!(
+        "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", baud_rate = 4000000, flow_control = \"none\" }}\n\
+         relay = {{ response_timeout_ms = 1000{relay} }}\n{units}\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\n[metrics]\nlisten = \"127.0.0.1:0\"\n",
+        gw.display().to_string()
+    )
+}
+
+/// The metrics listener's address, from the log.
+fn metrics_addr(gw: &Gateway) -> String {
+    gw.wait_log("metrics on http://", Duration::from_secs(5));
+    let log = gw.log();
+    let rest = log.split("metrics on http://").nth(1).unwrap();
+    rest.split('/').next().unwrap().to_owned()
+}
+
+/// `unit`'s learned timeout on /metrics: (seconds, why).
+fn learned(http: &str, unit: u8) -> (f64, String) {
+    use std::io::{Read, Write};
+    let mut s = TcpStream::connect(http).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    write!(s, "GET /metrics HTTP/1.1\r\nHost: {http}\r\n\r\n").unwrap();
+    let mut all = String::new();
+    s.read_to_string(&mut all).unwrap();
+    let want = format!("unit=\"{unit}\"");
+    let line = all
+        .lines()
+        .find(|l| l.starts_with("mbgate_unit_response_timeout_seconds{") && l.contains(&want))
+        .unwrap_or_else(|| panic!("no learned timeout of unit {unit}:\n{all}"));
+    let why = line
+        .split("why=\"")
+        .nth(1)
+        .unwrap()
+        .split('"')
+        .next()
+        .unwrap();
+    let value = line.rsplit(' ').next().unwrap().parse().unwrap();
+    (value, why.to_owned())
+}
+
+/// Unit 1 answers in 20 ms with a timeout of 100 ms, unit 2 in 300 ms with 600 ms:
+/// unit 2 never times out; when unit 1 dies, each try at it takes its 100 ms, not
+/// the line's second; and `check-config` says each unit's settings.
+#[test]
+fn each_unit_waits_its_own_timeout() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let delays = dir.path().join("delays");
+    pace(&delays, "1=0.02 2=0.3");
+    let (dev, file) = (socat.dev.to_str().unwrap(), delays.to_str().unwrap());
+    let _device = Py::start("paced_units.py", &["--port", dev, "--delays", file]);
+    let units = "[[line.unit]]\nunits = 1\nresponse_timeout_ms = 100\n\
+                 [[line.unit]]\nunits = 2\nresponse_timeout_ms = 600\n";
+    let text = config(&socat.gw, ", timeout_guard_ms = 20", units);
+    std::fs::write(dir.path().join("check.toml"), &text).unwrap();
+    let check = mbgate(&[
+        "check-config",
+        dir.path().join("check.toml").to_str().unwrap(),
+    ]);
+    assert_eq!(check.code, 0, "{}", check.stderr);
+    for said in [
+        "  unit 1: response timeout 100 ms, pause 0 ms, 0 retries, writes not resent",
+        "  unit 2: response timeout 600 ms, pause 0 ms, 0 retries, writes not resent",
+        "  other units: response timeout 1000 ms,",
+    ] {
+        assert!(
+            check.stdout.contains(said),
+            "{said:?} in:\n{}",
+            check.stdout
+        );
+    }
+    let mut gw = Gateway::launch_text(&text, dir.path(), Launch::default());
+    let mut m = gw.connect();
+    let mut tid = 0;
+    for i in 0..10u16 {
+        for unit in [1u8, 2] {
+            tid += 1;
+            let addr = 1 + i;
+            assert_eq!(
+                read(&mut m, tid, unit, addr),
+                Ok(1000 * u16::from(unit) + addr),
+                "unit {unit} at {addr}"
+            );
+        }
+    }
+    // Unit 1 dies: each try at it is its own 100 ms (the line's is 1 s).
+    pace(&delays, "1=dead 2=0.3");
+    for i in 0..3 {
+        tid += 1;
+        let start = Instant::now();
+        assert_eq!(read(&mut m, tid, 1, 1), Err(0x0B), "try {i}");
+        let took = start.elapsed();
+        eprintln!("dead unit 1, try {i}: 0x0B after {took:?}");
+        assert!(took < Duration::from_millis(500), "try {i} took {took:?}");
+    }
+    tid += 1;
+    assert_eq!(read(&mut m, tid, 2, 9), Ok(2009), "unit 2 still served");
+    let counters = gw.stop();
+    assert_eq!(counters.get("timeouts").copied(), Some(3), "{counters:?}");
+}
+
+/// `response_timeout_ms = "auto"` with a ceiling of 1 s: after warm-up unit 1's
+/// timeout is below 100 ms and unit 2's below 1 s, learned; unit 2 slowed to 500 ms
+/// times out at most once and is served again; slowed beyond what was learned (800
+/// ms) it times out once, gets the ceiling back at once (why = "timeout"), and its
+/// late reply is never taken for the next request's (every value checked).
+#[test]
+fn a_learned_timeout_settles_and_gives_time_back_after_a_timeout() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let delays = dir.path().join("delays");
+    pace(&delays, "1=0.02 2=0.3");
+    let (dev, file) = (socat.dev.to_str().unwrap(), delays.to_str().unwrap());
+    let _device = Py::start("paced_units.py", &["--port", dev, "--delays", file]);
+    let units = "[[line.unit]]\nunits = [1, 2]\nresponse_timeout_ms = \"auto\"\n\
+                 response_timeout_max_ms = 1000\n";
+    let text = config(&socat.gw, ", unit_backoff = false", units);
+    let mut gw = Gateway::launch_text(&text, dir.path(), Launch::default());
+    let http = metrics_addr(&gw);
+    let mut m = gw.connect();
+    let mut tid = 0;
+    let mut ask = |m: &mut TcpStream, unit: u8, addr: u16| {
+        tid += 1;
+        read(m, tid, unit, addr)
+    };
+    for i in 0..25u16 {
+        for unit in [1u8, 2] {
+            let addr = 1 + i;
+            assert_eq!(ask(&mut m, unit, addr), Ok(1000 * u16::from(unit) + addr));
+        }
+    }
+    let (one, why_one) = learned(&http, 1);
+    let (two, why_two) = learned(&http, 2);
+    eprintln!("after warm-up: unit 1 {one} s ({why_one}), unit 2 {two} s ({why_two})");
+    assert!(
+        one < 0.1 && ["learned", "floor"].contains(&why_one.as_str()),
+        "unit 1: {one} {why_one}"
+    );
+    assert!(two < 1.0 && why_two == "learned", "unit 2: {two} {why_two}");
+    assert!(two >= 0.3, "unit 2's replies take 300 ms: {two}");
+
+    pace(&delays, "1=0.02 2=0.5");
+    let mut failed = 0;
+    for i in 0..5u16 {
+        match ask(&mut m, 2, 30 + i) {
+            Ok(v) => assert_eq!(v, 2030 + i),
+            Err(e) => {
+                assert_eq!(e, 0x0B);
+                failed += 1;
+            }
+        }
+        assert_eq!(ask(&mut m, 1, 30 + i), Ok(1030 + i), "unit 1 beside it");
+    }
+    assert!(failed <= 1, "{failed} timeouts at 500 ms");
+
+    pace(&delays, "1=0.02 2=0.8");
+    let mut failed = 0;
+    for i in 0..4u16 {
+        match ask(&mut m, 2, 40 + i) {
+            Ok(v) => assert_eq!(v, 2040 + i, "never the late reply of another read"),
+            Err(e) => {
+                assert_eq!(e, 0x0B);
+                failed += 1;
+            }
+        }
+        assert_eq!(ask(&mut m, 1, 40 + i), Ok(1040 + i), "unit 1 beside it");
+    }
+    assert!(failed <= 1, "{failed} timeouts at 800 ms");
+    let (two, why) = learned(&http, 2);
+    if failed == 1 {
+        assert_eq!((two, why.as_str()), (1.0, "timeout"), "the ceiling back");
+        let status = mbgate(&["status", "--metrics", &http]);
+        assert!(
+            status
+                .stdout
+                .contains("timeout 1000.0 ms learned (timeout)"),
+            "{}",
+            status.stdout
+        );
+    }
+    gw.stop();
+}
