@@ -353,6 +353,7 @@ impl Relay {
                 self.masters.attach(conn, notifier);
                 self.watch.masters(self.masters.len());
             }
+            Command::Priority { conn, class } => self.sched.set_class(conn, class),
             Command::Detach { conn } => {
                 self.masters.detach(conn);
                 self.sched.detach(conn);

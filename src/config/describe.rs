@@ -121,8 +121,12 @@ pub fn summary(cfg: &Config) -> String {
         return out;
     }
     for l in cfg.listeners() {
+        let priority = match l.priority {
+            0 => String::new(),
+            p => format!(", priority class {p}"),
+        };
         out += &format!(
-            "listening on {}, at most {} at once\n",
+            "listening on {}, at most {} at once{priority}\n",
             listener(&l),
             l.tcp.max_connections
         );

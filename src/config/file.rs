@@ -182,7 +182,11 @@ impl Reader<'_> {
         match &listeners[..] {
             [] => {}
             // One Modbus/TCP listener open to all is the old form's [tcp].
-            [one] if one.framing == ListenFraming::Mbap && one.access.is_open() => {
+            [one]
+                if one.framing == ListenFraming::Mbap
+                    && one.access.is_open()
+                    && one.priority == 0 =>
+            {
                 cfg.tcp = one.tcp.clone()
             }
             [first, ..] => {
@@ -286,14 +290,18 @@ impl Reader<'_> {
         path: &str,
     ) -> Result<(usize, ListenConfig), ConfigError> {
         let mut listener = Config::default();
-        let skip = ["framing", "allow", "read_only", "write", "tls"];
+        let skip = ["framing", "allow", "read_only", "write", "tls", "priority"];
         self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &skip)?;
-        let mut framing = ListenFraming::Mbap;
+        let (mut framing, mut priority) = (ListenFraming::Mbap, 0);
         let (mut access, mut at) = (super::ListenAccess::default(), v.span().start);
         if let DeValue::Table(table) = v.get_ref() {
             if let Some(f) = table.get("framing") {
                 framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
                     .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
+            }
+            if let Some(p) = table.get("priority") {
+                let key = format!("{path}.priority");
+                priority = super::access::priority(p, &key).or_else(|b| self.bad(b))?;
             }
             let (read, role_at) = super::access::listen(table, path).or_else(|b| self.bad(b))?;
             access = read;
@@ -303,6 +311,7 @@ impl Reader<'_> {
             tcp: listener.tcp,
             framing,
             access,
+            priority,
         };
         Ok((at, listen))
     }

@@ -81,6 +81,9 @@ pub struct ListenConfig {
     pub(crate) framing: ListenFraming,
     /// Who may connect and what they may do (docs/security.md).
     pub(crate) access: super::ListenAccess,
+    /// Its masters' priority class on the lines (docs/masters.md "Priority"); a
+    /// role's, if it has one, stands for it.
+    pub(crate) priority: u8,
 }
 
 impl Config {
@@ -111,6 +114,7 @@ impl Config {
             tcp: self.tcp.clone(),
             framing: ListenFraming::Mbap,
             access: super::ListenAccess::default(),
+            priority: 0,
         }]
     }
 

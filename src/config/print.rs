@@ -74,7 +74,13 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         };
         let table = print(&one, &[("tcp", "[[listen]]".into())]);
         let access = access::listen_to_toml(&listener.access, &cfg.roles);
-        out.push(table + &format!("framing = {}\n", listener.framing.print()) + &access);
+        let priority = match listener.priority {
+            0 => String::new(),
+            p => format!("priority = {p}\n"),
+        };
+        out.push(
+            table + &format!("framing = {}\n", listener.framing.print()) + &priority + &access,
+        );
     }
     out.push(print(
         cfg,
