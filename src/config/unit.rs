@@ -235,14 +235,16 @@ impl UnitTables {
 
 /// The `[[line.unit]]` array at `v`; `path` is `line[0].unit`.
 pub(super) fn tables(v: &Spanned<DeValue>, path: &str) -> Result<UnitTables, Bad> {
+    // `unit = [1]` is most likely the line's `units` misspelt.
+    let expected = "expected [[line.unit]] tables (the unit ids the line serves are its `units`)";
     let DeValue::Array(tables) = v.get_ref() else {
-        return bad(v.span().start, path, "expected [[line.unit]] tables");
+        return bad(v.span().start, path, expected);
     };
     let mut out: Vec<UnitTable> = Vec::new();
     for (i, t) in tables.iter().enumerate() {
         let here = format!("{path}[{i}]");
         let DeValue::Table(table) = t.get_ref() else {
-            return bad(t.span().start, &here, "expected a table ([[line.unit]])");
+            return bad(v.span().start, path, expected);
         };
         let u = table_at(table, t.span().start, &here)?;
         for &id in &u.ids {
