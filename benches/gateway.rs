@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
 //! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `rtu-limit`, `coalesce`, `tcp-line`,
-//! `rtu-listener`, `metrics`, `tls`, `capture` (all when none is named). `rtu-limit`
+//! `rtu-listener`, `metrics`, `tls`, `capture`, `units` (all when none is named). `rtu-limit`
 //! compares with mbusd given `MBUSD=/path/to/mbusd`; `MBGATE_BENCH_BASELINE=PATH` names
 //! another mbgate build (e.g. the commit before a change) that `coalesce` measures
 //! beside this one. `scripts/bench` runs this and
@@ -52,6 +52,8 @@ mod tcp_line;
 mod timer_floor;
 #[path = "gateway/tls.rs"]
 mod tls;
+#[path = "gateway/units.rs"]
+mod units;
 #[path = "gateway/wire.rs"]
 mod wire;
 
@@ -66,7 +68,7 @@ fn main() {
         .filter(|a| a != "--bench")
         .collect();
     // Each scenario by the name that picks it, in the order they run.
-    let all: [(&str, Scenario); 13] = [
+    let all: [(&str, Scenario); 14] = [
         ("latency", latency::latency),
         ("wire", wire::wire),
         ("fairness", fairness::fairness),
@@ -80,6 +82,7 @@ fn main() {
         ("metrics", metrics::metrics_cost),
         ("tls", tls::tls),
         ("capture", capture::capture_cost),
+        ("units", units::units_cost),
     ];
     let names: Vec<&str> = all.iter().map(|(name, _)| *name).collect();
     if let Some(bad) = args.iter().find(|a| !names.contains(&a.as_str())) {

@@ -32,9 +32,10 @@ pub(crate) const UNIT_KEYS: [&str; 7] = [
 ];
 
 /// A learned timeout never goes below this unless `response_timeout_min_ms` says
-/// otherwise: below it a pty's scheduling, a USB adapter's latency timer (1 to 16 ms)
-/// and the relay's own turn make up most of what is measured.
-pub(crate) const LEARNED_FLOOR_MS: u64 = 10;
+/// otherwise: near it a USB adapter's latency timer (1 to 16 ms), the kernel's and
+/// the relay's own scheduling on a busy machine make up much of what is measured, and
+/// a stall of the machine would time a healthy unit out.
+pub(crate) const LEARNED_FLOOR_MS: u64 = 50;
 
 /// A unit's response timeout: a number of milliseconds, or learned from its replies.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
