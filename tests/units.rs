@@ -88,9 +88,12 @@ fn each_unit_waits_its_own_timeout() {
     pace(&delays, "1=0.02 2=0.3");
     let (dev, file) = (socat.dev.to_str().unwrap(), delays.to_str().unwrap());
     let _device = Py::start("paced_units.py", &["--port", dev, "--delays", file]);
-    let units = "[[line.unit]]\nunits = 1\nresponse_timeout_ms = 100\n\
+    // Unit 1's reads are resent twice (its own retries; the line's are 0): a reply
+    // that a busy machine delays past 100 ms costs a resend, not the test.
+    let units = "[[line.unit]]\nunits = 1\nresponse_timeout_ms = 100\nretries = 2\n\
                  [[line.unit]]\nunits = 2\nresponse_timeout_ms = 600\n";
-    let text = config(&socat.gw, ", timeout_guard_ms = 20", units);
+    let relay = ", timeout_guard_ms = 20, unit_backoff = false";
+    let text = config(&socat.gw, relay, units);
     std::fs::write(dir.path().join("check.toml"), &text).unwrap();
     let check = mbgate(&[
         "check-config",
@@ -98,7 +101,7 @@ fn each_unit_waits_its_own_timeout() {
     ]);
     assert_eq!(check.code, 0, "{}", check.stderr);
     for said in [
-        "  unit 1: response timeout 100 ms, pause 0 ms, 0 retries, writes not resent",
+        "  unit 1: response timeout 100 ms, pause 0 ms, 2 retries, writes not resent",
         "  unit 2: response timeout 600 ms, pause 0 ms, 0 retries, writes not resent",
         "  other units: response timeout 1000 ms,",
     ] {
@@ -122,26 +125,31 @@ fn each_unit_waits_its_own_timeout() {
             );
         }
     }
-    // Unit 1 dies: each try at it is its own 100 ms (the line's is 1 s).
+    // Unit 1 dies: each read is three tries of its own 100 ms (and the 20 ms guard
+    // after each): well under one try of the line's 1 s.
     pace(&delays, "1=dead 2=0.3");
     for i in 0..3 {
         tid += 1;
         let start = Instant::now();
-        assert_eq!(read(&mut m, tid, 1, 1), Err(0x0B), "try {i}");
+        assert_eq!(read(&mut m, tid, 1, 1), Err(0x0B), "read {i}");
         let took = start.elapsed();
-        eprintln!("dead unit 1, try {i}: 0x0B after {took:?}");
-        assert!(took < Duration::from_millis(500), "try {i} took {took:?}");
+        eprintln!(
+            "dead unit 1, read {i}: 0x0B after {took:?}, {:?} a try",
+            took / 3
+        );
+        assert!(took < Duration::from_millis(1000), "read {i} took {took:?}");
     }
     tid += 1;
     assert_eq!(read(&mut m, tid, 2, 9), Ok(2009), "unit 2 still served");
     let counters = gw.stop();
-    assert_eq!(counters.get("timeouts").copied(), Some(3), "{counters:?}");
+    let timeouts = counters.get("timeouts").copied().unwrap_or(0);
+    assert!(timeouts >= 9, "three tries of three reads: {counters:?}");
 }
 
 /// `response_timeout_ms = "auto"` with a ceiling of 1 s: after warm-up unit 1's
 /// timeout is below 100 ms and unit 2's below 1 s, learned; unit 2 slowed to 500 ms
-/// times out at most once and is served again; slowed beyond what was learned (800
-/// ms) it times out once, gets the ceiling back at once (why = "timeout"), and its
+/// times out at most once and is served again; slowed beyond what was learned (150 ms
+/// beyond) it times out once, gets the ceiling back at once (why = "timeout"), and its
 /// late reply is never taken for the next request's (every value checked).
 #[test]
 fn a_learned_timeout_settles_and_gives_time_back_after_a_timeout() {
@@ -168,6 +176,10 @@ fn a_learned_timeout_settles_and_gives_time_back_after_a_timeout() {
             assert_eq!(ask(&mut m, unit, addr), Ok(1000 * u16::from(unit) + addr));
         }
     }
+    // A full window of unit 1's replies: its 99th percentile leaves out the slowest.
+    for i in 0..80u16 {
+        assert_eq!(ask(&mut m, 1, 100 + i), Ok(1100 + i));
+    }
     let (one, why_one) = learned(&http, 1);
     let (two, why_two) = learned(&http, 2);
     eprintln!("after warm-up: unit 1 {one} s ({why_one}), unit 2 {two} s ({why_two})");
@@ -178,6 +190,31 @@ fn a_learned_timeout_settles_and_gives_time_back_after_a_timeout() {
     assert!(two < 1.0 && why_two == "learned", "unit 2: {two} {why_two}");
     assert!(two >= 0.3, "unit 2's replies take 300 ms: {two}");
 
+    // Slowed to 150 ms beyond what it learned: one timeout, the ceiling back at
+    // once, then served at its new pace; and never another read's late reply.
+    assert!(two < 0.8, "unit 2 learned {two} s from 300 ms replies");
+    pace(&delays, &format!("1=0.02 2={:.3}", two + 0.15));
+    for i in 0..4u16 {
+        let want = if i == 0 { Err(0x0B) } else { Ok(2040 + i) };
+        assert_eq!(
+            ask(&mut m, 2, 40 + i),
+            want,
+            "read {i} of the slowed unit 2"
+        );
+        assert_eq!(ask(&mut m, 1, 40 + i), Ok(1040 + i), "unit 1 beside it");
+    }
+    let (two, why) = learned(&http, 2);
+    assert_eq!((two, why.as_str()), (1.0, "timeout"), "the ceiling back");
+    let status = mbgate(&["status", "--metrics", &http]);
+    let line = status.stdout.lines().find(|l| l.contains("unit 2: "));
+    let line = line.unwrap_or_default();
+    assert!(
+        line.contains("timeout 1000.0 ms learned (timeout)"),
+        "{}",
+        status.stdout
+    );
+
+    // At 500 ms: at most one timeout (none at the ceiling), then served.
     pace(&delays, "1=0.02 2=0.5");
     let mut failed = 0;
     for i in 0..5u16 {
@@ -191,31 +228,6 @@ fn a_learned_timeout_settles_and_gives_time_back_after_a_timeout() {
         assert_eq!(ask(&mut m, 1, 30 + i), Ok(1030 + i), "unit 1 beside it");
     }
     assert!(failed <= 1, "{failed} timeouts at 500 ms");
-
-    pace(&delays, "1=0.02 2=0.8");
-    let mut failed = 0;
-    for i in 0..4u16 {
-        match ask(&mut m, 2, 40 + i) {
-            Ok(v) => assert_eq!(v, 2040 + i, "never the late reply of another read"),
-            Err(e) => {
-                assert_eq!(e, 0x0B);
-                failed += 1;
-            }
-        }
-        assert_eq!(ask(&mut m, 1, 40 + i), Ok(1040 + i), "unit 1 beside it");
-    }
-    assert!(failed <= 1, "{failed} timeouts at 800 ms");
-    let (two, why) = learned(&http, 2);
-    if failed == 1 {
-        assert_eq!((two, why.as_str()), (1.0, "timeout"), "the ceiling back");
-        let status = mbgate(&["status", "--metrics", &http]);
-        assert!(
-            status
-                .stdout
-                .contains("timeout 1000.0 ms learned (timeout)"),
-            "{}",
-            status.stdout
-        );
-    }
+    assert!(matches!(ask(&mut m, 2, 50), Ok(2050)), "served again");
     gw.stop();
 }
