@@ -564,4 +564,74 @@ mod tests {
         assert_eq!(p.pace("d", t0 + 100 * MS, 10 * MS), Some("d"));
         assert!(p.next_due().is_none());
     }
+
+    /// A unit's own table: its retries and retry_writes decide its verdicts, its
+    /// pause is the line's pause after it; a learned timeout starts at the ceiling,
+    /// learns from the replies, gives the ceiling back after a timeout, and holds the
+    /// line quiet until the ceiling after a timeout.
+    #[test]
+    fn a_units_own_settings_and_learned_timeout() {
+        let text = "[[line]]\nserial = { path = \"/dev/x\", framing = \"rtu\" }\n\
+                    relay = { response_timeout_ms = 400 }\n\
+                    [[line.unit]]\nunits = 5\nretries = 2\nretry_writes = true\nrequest_pause_ms = 30\n\
+                    [[line.unit]]\nunits = 6\nresponse_timeout_ms = \"auto\"\nresponse_timeout_max_ms = 800\n";
+        let cfg = crate::config::parse(text, "t").unwrap();
+        let line = &cfg.lines()[0];
+        let mut t = Table::new(&line.relay, &line.unit_tables, false);
+        let t0 = Instant::now();
+        assert_eq!(
+            (t.policy(5).pause, t.policy(4).pause),
+            (30 * MS, Duration::ZERO)
+        );
+        let mut verdict = |t: &mut Table<(Adu, u32)>, req| {
+            t.start(9, req, t0, Duration::ZERO);
+            let f = t.take(9).expect("just started");
+            t.verdict(&f, Failure::Corrupt, t0, true)
+        };
+        assert_eq!(
+            verdict(&mut t, write(5, 1)),
+            Verdict::Resend,
+            "its own retries"
+        );
+        assert_eq!(verdict(&mut t, write(5, 2)), Verdict::Fail);
+        assert_eq!(
+            verdict(&mut t, read(4, 0)),
+            Verdict::Fail,
+            "the line's: none"
+        );
+        // Unit 6: at the ceiling until 20 replies of 20 ms, then the floor (50 ms).
+        for _ in 0..20 {
+            t.start(1, read(6, 0), t0, Duration::ZERO);
+            assert_eq!(t.next_deadline(), Some(t0 + 800 * MS));
+            assert!(t.answered(1, t0 + 20 * MS).is_some());
+        }
+        t.start(1, read(6, 0), t0, Duration::ZERO);
+        assert_eq!(
+            t.next_deadline(),
+            Some(t0 + 50 * MS),
+            "learned, at the floor"
+        );
+        let f = t.take_expired(t0 + 50 * MS).pop().expect("timed out");
+        assert_eq!(
+            t.hold_after_timeout(&f),
+            750 * MS,
+            "quiet until the ceiling"
+        );
+        assert_eq!(t.verdict(&f, Failure::Timeout, t0, true), Verdict::Fail);
+        t.start(2, read(6, 0), t0, Duration::ZERO);
+        assert_eq!(t.next_deadline(), Some(t0 + 800 * MS), "the ceiling back");
+        assert_eq!(
+            t.learned(6).map(|l| l.why()),
+            Some(crate::relay::learn::Why::TimedOut)
+        );
+        let fixed = t.take(2).unwrap();
+        t.start(3, read(5, 0), t0, Duration::ZERO);
+        let five = t.take(3).unwrap();
+        assert_eq!(
+            t.hold_after_timeout(&five),
+            Duration::ZERO,
+            "a fixed timeout: the guard alone"
+        );
+        drop(fixed);
+    }
 }
