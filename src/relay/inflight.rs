@@ -583,7 +583,7 @@ mod tests {
             (t.policy(5).pause, t.policy(4).pause),
             (30 * MS, Duration::ZERO)
         );
-        let mut verdict = |t: &mut Table<(Adu, u32)>, req| {
+        let verdict = |t: &mut Table<(Adu, u32)>, req| {
             t.start(9, req, t0, Duration::ZERO);
             let f = t.take(9).expect("just started");
             t.verdict(&f, Failure::Corrupt, t0, true)
