@@ -19,7 +19,10 @@ fn config(gw: &std::path::Path, learned: bool, classes: bool) -> String {
         gw.display().to_string()
     );
     if learned {
-        text += "[[line.unit]]\nunits = \"1-255\"\nresponse_timeout_ms = \"auto\"\n";
+        // A floor well above the machine's stalls: a spurious timeout would end the
+        // run; every reply is still learned from.
+        text += "[[line.unit]]\nunits = \"1-255\"\nresponse_timeout_ms = \"auto\"\n\
+                 response_timeout_min_ms = 300\n";
     }
     let high = if classes { "priority = 1\n" } else { "" };
     text += &format!("[[listen]]\naddress = \"127.0.0.1:0\"\n{high}");
@@ -53,6 +56,7 @@ pub(super) fn units_cost(r: &mut Report) {
     for _ in 0..ROUNDS {
         for (i, (_, learned, classes)) in CASES.into_iter().enumerate() {
             let text = config(&line.socat.gw, learned, classes);
+            eprintln!("  {}", CASES[i].0);
             let mut gw = Gateway::launch_text(&text, line.dir.path(), Launch::default());
             gw.wait_log("serial port open", Duration::from_secs(5));
             let addrs = listeners(&gw);
