@@ -271,3 +271,48 @@ fn timeouts(http: &str, unit: u8) -> f64 {
     line.and_then(|l| l.rsplit(' ').next()?.parse().ok())
         .unwrap_or(0.0)
 }
+
+/// A reload applies a changed `[[line.unit]]` table at once and names the unit: a dead
+/// unit's tries go from 800 ms to 100 ms without a restart.
+#[test]
+fn a_reload_applies_a_units_new_timeout() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let delays = dir.path().join("delays");
+    pace(&delays, "1=dead 2=0.02");
+    let (dev, file) = (socat.dev.to_str().unwrap(), delays.to_str().unwrap());
+    let _device = Py::start("paced_units.py", &["--port", dev, "--delays", file]);
+    let relay = ", timeout_guard_ms = 20, unit_backoff = false";
+    let with = |ms: u32| {
+        let units = format!("[[line.unit]]\nunits = 1\nresponse_timeout_ms = {ms}\n");
+        config(&socat.gw, relay, &units)
+    };
+    let mut gw = Gateway::launch_text(&with(800), dir.path(), Launch::default());
+    let mut m = gw.connect();
+    let try_dead = |m: &mut TcpStream, tid: u16| {
+        let start = Instant::now();
+        assert_eq!(read(m, tid, 1, 1), Err(0x0B));
+        start.elapsed()
+    };
+    let before = try_dead(&mut m, 1);
+    assert!(
+        before >= Duration::from_millis(790),
+        "800 ms first: {before:?}"
+    );
+    std::fs::write(dir.path().join("mbgate.toml"), with(100)).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("reloaded: ", Duration::from_secs(10));
+    let log = gw.log();
+    assert!(
+        log.contains("unit 1 = response timeout 100 ms, pause 0 ms, 0 retries"),
+        "{log}"
+    );
+    let after = try_dead(&mut m, 2);
+    eprintln!("a dead unit's try: {before:?} before the reload, {after:?} after");
+    assert!(
+        after < Duration::from_millis(500),
+        "100 ms after: {after:?}"
+    );
+    assert_eq!(read(&mut m, 3, 2, 5), Ok(2005), "unit 2 served throughout");
+    gw.stop();
+}
