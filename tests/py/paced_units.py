@@ -46,6 +46,12 @@ class Paced:
     def __init__(self, core, path: str):
         self.core = core
         self.path = path
+        # The unit whose answer is being sent: pymodbus 3.16.1's request handler
+        # labels a reply with the unit of the last request it received, which is
+        # another's when a request came while this one was still waiting for its
+        # delay (after the gateway timed it out); a device on a bus answers with its
+        # own id, so `own_id` puts it back as the reply goes out.
+        self.answering = None
 
     async def pace(self, device_id: int) -> None:
         delay = delays(self.path).get(device_id, 0.0)
@@ -55,11 +61,23 @@ class Paced:
 
     async def async_getValues(self, device_id, *args, **kwargs):
         await self.pace(device_id)
-        return await self.core.async_getValues(device_id, *args, **kwargs)
+        values = await self.core.async_getValues(device_id, *args, **kwargs)
+        self.answering = device_id
+        return values
 
     async def async_setValues(self, device_id, *args, **kwargs):
         await self.pace(device_id)
-        return await self.core.async_setValues(device_id, *args, **kwargs)
+        result = await self.core.async_setValues(device_id, *args, **kwargs)
+        self.answering = device_id
+        return result
+
+    def own_id(self, sending: bool, pdu):
+        """trace_pdu: a reply goes out with the id of the unit that made it (nothing
+        is awaited between the datastore's answer and the send)."""
+        if sending and self.answering is not None:
+            pdu.dev_id = self.answering
+            self.answering = None
+        return pdu
 
     def __getattr__(self, name):
         return getattr(self.core, name)
@@ -75,14 +93,17 @@ async def main() -> int:
     logging.basicConfig(level=logging.CRITICAL, stream=sys.stderr)
     units = sorted(delays(args.delays))
     devices = {u: device(args.size, 1000 * u) for u in units}
+    hooks: list = []
     server = ModbusSerialServer(
         ModbusServerContext(devices=devices, single=False),
         framer=FramerType.RTU,
         port=args.port,
         baudrate=args.baud,
         ignore_missing_devices=True,
+        trace_pdu=lambda sending, pdu: hooks[0](sending, pdu),
     )
     server.context = Paced(server.context, args.delays)
+    hooks.append(server.context.own_id)
     return await serving.until_signalled(server)
 
 
