@@ -120,17 +120,18 @@ fn a_high_class_master_is_served_first_beside_fifty_low_ones() {
         p99,
         waits[waits.len() - 1]
     );
-    // Round-robin would put it behind up to 50 transactions (25 on average): nine
-    // in ten polls within ten transactions alone, and none behind fifty, tell the
-    // two apart on a busy machine too (the tight figures are printed above).
+    // Round-robin would put it behind up to 50 transactions (25 on average): its
+    // median within four transactions alone, and none behind fifty, tell the two
+    // apart on a busy machine too, whose stalls show in single polls (the figures
+    // are printed above).
     let one = alone[alone.len() / 2];
-    let p90 = waits[waits.len() * 9 / 10];
-    assert!(p90 < one * 10, "p90 {p90:?}, a transaction alone {one:?}");
+    let median = waits[waits.len() / 2];
     assert!(
-        waits[waits.len() - 1] < one * 50,
-        "max {:?}, alone {one:?}",
-        waits[waits.len() - 1]
+        median < one * 4,
+        "median {median:?}, a transaction alone {one:?}"
     );
+    let max = waits[waits.len() - 1];
+    assert!(max < one * 50, "max {max:?}, a transaction alone {one:?}");
     assert!(low > 30, "the low class was served: {low}");
     gw.stop();
 }
