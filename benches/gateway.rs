@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
 //! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `rtu-limit`, `coalesce`, `tcp-line`,
-//! `rtu-listener`, `metrics`, `tls`, `capture`, `scale` (all when none is named). `rtu-limit`
+//! `rtu-listener`, `metrics`, `tls`, `capture`, `scale`, `units` (all when none is named). `rtu-limit`
 //! compares with mbusd given `MBUSD=/path/to/mbusd`; `MBGATE_BENCH_BASELINE=PATH` names
 //! another mbgate build (e.g. the commit before a change) that `coalesce` measures
 //! beside this one. `scripts/bench` runs this and
@@ -54,6 +54,8 @@ mod tcp_line;
 mod timer_floor;
 #[path = "gateway/tls.rs"]
 mod tls;
+#[path = "gateway/units.rs"]
+mod units;
 #[path = "gateway/wire.rs"]
 mod wire;
 
@@ -68,7 +70,7 @@ fn main() {
         .filter(|a| a != "--bench")
         .collect();
     // Each scenario by the name that picks it, in the order they run.
-    let all: [(&str, Scenario); 14] = [
+    let all: [(&str, Scenario); 15] = [
         ("latency", latency::latency),
         ("wire", wire::wire),
         ("fairness", fairness::fairness),
@@ -83,6 +85,7 @@ fn main() {
         ("tls", tls::tls),
         ("capture", capture::capture_cost),
         ("scale", scale::scale),
+        ("units", units::units_cost),
     ];
     let names: Vec<&str> = all.iter().map(|(name, _)| *name).collect();
     if let Some(bad) = args.iter().find(|a| !names.contains(&a.as_str())) {

@@ -22,10 +22,12 @@ use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::time::Instant;
 
-/// Upper bounds of the reply-time histogram buckets, in seconds: from a fast native
-/// UART's few milliseconds to a slow device near the default response timeout.
-pub(crate) const REPLY_BUCKETS: [f64; 11] =
-    [0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0];
+/// Upper bounds of the reply-time histogram buckets, in seconds, for serial lines: from
+/// a fast device on a native UART (1 ms) to a slow device behind a radio link near the
+/// longest timeout anyone sets (10 s), 1-2-5 a decade.
+pub(crate) const REPLY_BUCKETS: [f64; 13] = [
+    0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0, 10.0,
+];
 
 fn load(a: &AtomicU64) -> u64 {
     a.load(Ordering::Relaxed)
@@ -57,7 +59,17 @@ pub(crate) struct UnitMetrics {
     buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],
     /// Their sum, in microseconds.
     sum_us: AtomicU64,
+    /// Its learned response timeout in microseconds (`response_timeout_ms = "auto"`);
+    /// 0 for a fixed one.
+    learned_us: AtomicU64,
+    /// Why the learned timeout is what it is: its place in `crate::relay`'s reasons
+    /// ([`LEARNED_WHY`]).
+    learned_why: AtomicU64,
 }
+
+/// The reasons a learned timeout gives, in the relay's order (docs/reliability.md
+/// "Learned timeouts"): the `why` label.
+pub(crate) const LEARNED_WHY: [&str; 5] = ["start", "timeout", "learned", "floor", "ceiling"];
 
 impl UnitMetrics {
     /// A reply came `took` after its request went on the line.
@@ -69,6 +81,36 @@ impl UnitMetrics {
             .unwrap_or(REPLY_BUCKETS.len());
         add(&self.buckets[i], 1);
         add(&self.sum_us, took.as_micros() as u64);
+    }
+
+    /// The unit's learned timeout is now `timeout`, for the reason at `why` in
+    /// [`LEARNED_WHY`].
+    pub(crate) fn set_learned(&self, timeout: Duration, why: usize) {
+        let us = (timeout.as_micros() as u64).max(1);
+        self.learned_us.store(us, Ordering::Relaxed);
+        self.learned_why.store(why as u64, Ordering::Relaxed);
+    }
+
+    /// Its learned timeout and why, if it has one.
+    pub(crate) fn learned(&self) -> Option<(Duration, &'static str)> {
+        let us = load(&self.learned_us);
+        let why = LEARNED_WHY.get(load(&self.learned_why) as usize).copied();
+        (us > 0).then(|| (Duration::from_micros(us), why.unwrap_or("start")))
+    }
+
+    /// The upper bound of the bucket that holds the `q` quantile of the reply times
+    /// (0 < q ≤ 1), in seconds; `None` without replies, infinity above 10 s.
+    pub(crate) fn quantile_bound(&self, q: f64) -> Option<f64> {
+        let (_, count, each) = self.histogram();
+        if count == 0 {
+            return None;
+        }
+        let want = (q * count as f64).ceil() as u64;
+        let mut seen = 0;
+        each.iter().find_map(|&(bound, n)| {
+            seen += n;
+            (seen >= want).then_some(bound)
+        })
     }
 
     /// The histogram: sum in seconds, count, and the count in each bucket by its

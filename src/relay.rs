@@ -18,6 +18,7 @@ mod event;
 mod failures;
 mod fanout;
 mod inflight;
+mod learn;
 mod lifecycle;
 mod line;
 mod outgoing;
@@ -105,14 +106,21 @@ impl Relay {
         shutdown: CancellationToken,
     ) -> (Self, RelayHandle) {
         let (cfg, serial) = (line.relay.clone(), line.serial.clone());
-        match &line.tcp {
+        let (relay, handle) = match &line.tcp {
             Some(addr) => {
                 let port = port::tcp::TcpPort::new(addr.clone()).with_tls(line.tcp_tls.clone());
                 let port = Box::new(port);
                 Self::build(cfg, serial, port, true, traffic, stats, shutdown)
             }
             None => Self::new(cfg, serial, traffic, stats, shutdown),
-        }
+        };
+        (relay.with_units(&line.unit_tables), handle)
+    }
+
+    /// Units with settings of their own (`[[line.unit]]`).
+    pub(crate) fn with_units(mut self, units: &crate::config::unit::UnitTables) -> Self {
+        self.in_flight.retune(&self.cfg, units);
+        self
     }
 
     fn build(
@@ -129,7 +137,8 @@ impl Relay {
         let line = Line::new(&cfg, &serial, stream, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
-        let in_flight = Table::new(&cfg, cfg.unit_backoff && line.is_serial());
+        let units = crate::config::unit::UnitTables::default();
+        let in_flight = Table::new(&cfg, &units, cfg.unit_backoff && line.is_serial());
         let baud = serial.baud_rate;
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = Arc::new(LineMetrics::new(transport.name(), stats.clone()));
@@ -383,15 +392,20 @@ impl Relay {
                 self.masters.attach(conn, notifier);
                 self.watch.masters(self.masters.len());
             }
+            Command::Priority { conn, class } => self.sched.set_class(conn, class),
             Command::Detach { conn } => {
                 self.masters.detach(conn);
                 self.sched.detach(conn);
                 self.watch.masters(self.masters.len());
             }
-            Command::Retune { relay, traffic } => {
-                self.in_flight.retune(&relay);
+            Command::Retune {
+                relay,
+                units,
+                traffic,
+            } => {
+                self.in_flight.retune(&relay, &units);
                 self.watch.set_traffic(traffic);
-                self.cfg = relay;
+                self.cfg = *relay;
             }
             Command::Request { conn, adu, ticket } => self.on_request(conn, adu, ticket),
         }
@@ -506,6 +520,8 @@ impl Relay {
 
     fn send(&mut self, req: Pending, now: Instant) {
         let tid = self.line.allocate(now);
+        let pause = self.in_flight.policy(req.adu.unit()).pause;
+        self.line.pause_after(pause);
         let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
         self.watch.sent(req.conn(), &req.adu, tid, &bytes, now);
         self.out.push(tid, bytes);
@@ -625,7 +641,7 @@ impl Relay {
     fn on_frame(&mut self, frame: Adu, at: Instant, now: Instant) {
         let tid = frame.tid();
         // The line has checked unit, function code and shape against this request.
-        if let Some(f) = self.in_flight.answered(tid) {
+        if let Some(f) = self.in_flight.answered(tid, at) {
             // Kept reserved a while: a second answer with this id is recognised as
             // ours and dropped, never broadcast.
             self.line.retire(tid, now);
@@ -641,6 +657,7 @@ impl Relay {
                 self.watch.taken(conn, asked, &frame, wire, at);
             }
             self.watch.replied(conn, asked, &frame, wire, (left, now));
+            self.tell_learned(asked.unit());
             f.req.deliver(&frame);
             return;
         }
@@ -665,6 +682,15 @@ impl Relay {
                 self.traffic(what, &frame, at);
                 self.masters.notification(frame, &self.stats)
             }
+        }
+    }
+
+    /// `unit`'s learned timeout, if it has one, as it is now, for the metrics.
+    fn tell_learned(&self, unit: u8) {
+        if let Some(l) = self.in_flight.learned(unit) {
+            let why = learn::Why::ALL.iter().position(|w| *w == l.why());
+            let u = self.watch.metrics.unit(unit);
+            u.set_learned(l.timeout(), why.unwrap_or(0));
         }
     }
 

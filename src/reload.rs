@@ -218,7 +218,8 @@ fn reload(
     crate::logging::reload(&new.log);
     for (relay, line) in relays.iter().zip(new.lines()) {
         let retune = Command::Retune {
-            relay: line.relay,
+            relay: Box::new(line.relay),
+            units: line.unit_tables,
             traffic: new.log.traffic,
         };
         relay.send(retune).ok()?;

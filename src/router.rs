@@ -57,6 +57,17 @@ impl Router {
         attached
     }
 
+    /// The master's priority class on every line (docs/masters.md "Priority"); 0,
+    /// the default, needs no word.
+    pub(crate) fn classify(&self, conn: ConnId, class: u8) {
+        if class == 0 {
+            return;
+        }
+        for relay in &self.relays {
+            let _ = relay.send(Command::Priority { conn, class });
+        }
+    }
+
     /// It went away: every line drops its queued requests.
     pub(crate) fn detach(&self, conn: ConnId) {
         for relay in &self.relays {

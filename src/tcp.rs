@@ -436,6 +436,13 @@ impl Connection {
         };
         let (mut outbox, inbox) = Outbox::new(pending);
         let attached = rtu || self.router.attach(self.id, &outbox.notifier());
+        // Its role's priority class, else its listener's.
+        let role = self.grant.as_ref().map(|g| g.role.as_str());
+        let role = role.and_then(|name| self.cfg.roles.iter().find(|r| r.name == name));
+        let class = role
+            .and_then(|r| r.priority)
+            .unwrap_or(self.listen.priority);
+        self.router.classify(self.id, class);
         if attached {
             let writer = self.write_loop(wr, inbox);
             tokio::pin!(writer);

@@ -1018,8 +1018,7 @@ fn lines_and_listeners_are_validated() {
         ),
         (
             "[[line]]\nunit = [1]\n",
-            "2:1: line[0].unit: unknown key; expected one of units, remap, serial, tcp, relay, role, route \
-             (did you mean `units`?)",
+            "2:8: line[0].unit: expected [[line.unit]] tables (the unit ids the line serves are its `units`)",
         ),
         (
             "[[line]]\n[line.serial]\nbaudrate = 9600\n",

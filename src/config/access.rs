@@ -38,7 +38,7 @@ const LISTEN_TLS: [&str; 5] = [
     "handshake_timeout_ms",
 ];
 /// The keys of a `[[role]]`.
-const ROLE: [&str; 3] = ["name", "read_only", "write"];
+const ROLE: [&str; 4] = ["name", "read_only", "write", "priority"];
 /// The keys of a `write` rule.
 const RULE: [&str; 3] = ["units", "functions", "addresses"];
 /// The keys of a TCP line's `tls` table.
@@ -87,6 +87,9 @@ pub struct Role {
     pub name: String,
     /// What a master with this role may do.
     pub policy: Policy,
+    /// Its masters' priority class on the lines (docs/masters.md "Priority"), over
+    /// the listener's; `None`: the listener's.
+    pub priority: Option<u8>,
 }
 
 /// A TCP line's `tls` table: the gateway as a TLS client of the device.
@@ -142,6 +145,20 @@ pub(super) fn allow(v: &Spanned<DeValue>, key: &str) -> Result<AllowList, Bad> {
         nets.push(net);
     }
     Ok(AllowList::new(nets))
+}
+
+/// The most priority classes there are: `priority` is 0 (the default, the lowest) to
+/// this.
+pub(crate) const PRIORITY_MAX: u8 = 7;
+
+/// `priority = N` of a listener or a role: a class from 0 to [`PRIORITY_MAX`].
+pub(super) fn priority(v: &Spanned<DeValue>, key: &str) -> Result<u8, Bad> {
+    let said = "0 (the default, the lowest) to 7";
+    u8::read(
+        &raw(v),
+        &Check::Range(0, i128::from(PRIORITY_MAX), Some(said)),
+    )
+    .or_else(|m| bad(v.span().start, key, m))
 }
 
 /// `read_only` and `write` of a listener or a role: `table` is where they are, `path`
@@ -477,7 +494,16 @@ pub(super) fn roles(v: &Spanned<DeValue>, path: &str) -> Result<Vec<(usize, Role
             );
         }
         let policy = policy(table, &here)?;
-        out.push((t.span().start, Role { name, policy }));
+        let priority = match table.get("priority") {
+            Some(v) => Some(priority(v, &format!("{here}.priority"))?),
+            None => None,
+        };
+        let role = Role {
+            name,
+            policy,
+            priority,
+        };
+        out.push((t.span().start, role));
     }
     Ok(out)
 }

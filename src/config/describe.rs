@@ -166,14 +166,21 @@ pub fn summary(cfg: &Config) -> String {
     let lines = cfg.lines();
     for l in &lines {
         out += &format!("line {}\n", line(l));
+        for unit in l.unit_tables.describe(&l.relay) {
+            out += &format!("  {unit}\n");
+        }
     }
     if cfg.master.is_some() {
         // A master line listens for no masters and has no metrics listener.
         return out;
     }
     for l in cfg.listeners() {
+        let priority = match l.priority {
+            0 => String::new(),
+            p => format!(", priority class {p}"),
+        };
         out += &format!(
-            "listening on {}, at most {} at once\n",
+            "listening on {}, at most {} at once{priority}\n",
             listener(&l),
             l.tcp.max_connections
         );

@@ -46,7 +46,9 @@ const TOP: [&str; 10] = [
     "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen", "role",
 ];
 /// The keys of a `[[line]]` table.
-const LINE: [&str; 7] = ["units", "remap", "serial", "tcp", "relay", "role", "route"];
+const LINE: [&str; 8] = [
+    "units", "remap", "serial", "tcp", "relay", "role", "route", "unit",
+];
 /// The keys of a line's `tcp` table: a device on the network.
 const LINE_TCP: [&str; 3] = ["address", "framing", "tls"];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
@@ -180,7 +182,11 @@ impl Reader<'_> {
         match &listeners[..] {
             [] => {}
             // One Modbus/TCP listener open to all is the old form's [tcp].
-            [one] if one.framing == ListenFraming::Mbap && one.access.is_open() => {
+            [one]
+                if one.framing == ListenFraming::Mbap
+                    && one.access.is_open()
+                    && one.priority == 0 =>
+            {
                 cfg.tcp = one.tcp.clone()
             }
             [first, ..] => {
@@ -193,9 +199,12 @@ impl Reader<'_> {
                 self.conflict(&cfg, "")?;
                 true
             }
-            // One serial line serving every unit is the old form's [serial] and [relay];
+            // One serial line serving every unit is the old form's [serial] and [relay],
+            // unless its units have settings of their own, which only a [[line]] says;
             // so is a master line (its routes say where each unit goes).
-            [(_, line, _)] if line.tcp.is_none() && line.units.every() => {
+            [(_, line, _)]
+                if line.tcp.is_none() && line.units.every() && line.unit_tables.is_empty() =>
+            {
                 (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone());
                 cfg.master = line.master.clone();
                 true
@@ -281,14 +290,18 @@ impl Reader<'_> {
         path: &str,
     ) -> Result<(usize, ListenConfig), ConfigError> {
         let mut listener = Config::default();
-        let skip = ["framing", "allow", "read_only", "write", "tls"];
+        let skip = ["framing", "allow", "read_only", "write", "tls", "priority"];
         self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &skip)?;
-        let mut framing = ListenFraming::Mbap;
+        let (mut framing, mut priority) = (ListenFraming::Mbap, 0);
         let (mut access, mut at) = (super::ListenAccess::default(), v.span().start);
         if let DeValue::Table(table) = v.get_ref() {
             if let Some(f) = table.get("framing") {
                 framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
                     .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
+            }
+            if let Some(p) = table.get("priority") {
+                let key = format!("{path}.priority");
+                priority = super::access::priority(p, &key).or_else(|b| self.bad(b))?;
             }
             let (read, role_at) = super::access::listen(table, path).or_else(|b| self.bad(b))?;
             access = read;
@@ -298,6 +311,7 @@ impl Reader<'_> {
             tcp: listener.tcp,
             framing,
             access,
+            priority,
         };
         Ok((at, listen))
     }
@@ -314,6 +328,7 @@ impl Reader<'_> {
         let (mut line, mut listed) = (Config::default(), false);
         let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
         let (mut role, mut routes, mut tcp_tls) = (None, None, None);
+        let mut unit_tables = (super::unit::UnitTables::default(), None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
             let bad = |b: Bad| self.fail::<()>(b.at, &b.key, b.message);
@@ -333,6 +348,10 @@ impl Reader<'_> {
                 }
                 "role" => match super::master::role(item, &full) {
                     Ok(master) => role = Some((master, k.span().start)),
+                    Err(b) => bad(b)?,
+                },
+                "unit" => match super::unit::tables(item, &full) {
+                    Ok(t) => unit_tables = (t, Some(k.span().start)),
                     Err(b) => bad(b)?,
                 },
                 "route" => match super::master::routes(item, &full) {
@@ -371,6 +390,10 @@ impl Reader<'_> {
                     let m = "a master line's device is on a serial port, not on TCP";
                     return self.fail(at, &format!("{path}.tcp"), m);
                 }
+                if let Some(at) = unit_tables.1 {
+                    let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
+                    return self.fail(at, &format!("{path}.unit"), m);
+                }
                 master = Some(super::master::MasterLine { routes });
             }
             (Some((true, at)), None) => {
@@ -389,6 +412,7 @@ impl Reader<'_> {
             tcp,
             tcp_tls,
             relay: line.relay,
+            unit_tables: unit_tables.0,
             master,
         };
         Ok((v.span().start, line, listed))

@@ -61,6 +61,8 @@ pub struct LineConfig {
     /// (docs/security.md "A device behind TLS").
     pub tcp_tls: Option<super::TlsDevice>,
     pub relay: RelayConfig,
+    /// What units of the line have of their own (`[[line.unit]]`).
+    pub unit_tables: super::unit::UnitTables,
     /// The line's device is the master: where its requests go (docs/design.md §4.2).
     pub(crate) master: Option<super::master::MasterLine>,
 }
@@ -79,6 +81,9 @@ pub struct ListenConfig {
     pub(crate) framing: ListenFraming,
     /// Who may connect and what they may do (docs/security.md).
     pub(crate) access: super::ListenAccess,
+    /// Its masters' priority class on the lines (docs/masters.md "Priority"); a
+    /// role's, if it has one, stands for it.
+    pub(crate) priority: u8,
 }
 
 impl Config {
@@ -94,6 +99,7 @@ impl Config {
             tcp: None,
             tcp_tls: None,
             relay: self.relay.clone(),
+            unit_tables: Default::default(),
             master: self.master.clone(),
         }]
     }
@@ -108,6 +114,7 @@ impl Config {
             tcp: self.tcp.clone(),
             framing: ListenFraming::Mbap,
             access: super::ListenAccess::default(),
+            priority: 0,
         }]
     }
 
@@ -123,7 +130,7 @@ impl Config {
     /// retries): the bound of the shutdown drain.
     pub(crate) fn answer_within(&self) -> std::time::Duration {
         let lines = self.lines();
-        let longest = lines.iter().map(|l| l.relay.answer_within());
+        let longest = lines.iter().map(|l| l.unit_tables.answer_within(&l.relay));
         longest.max().unwrap_or_default()
     }
 }

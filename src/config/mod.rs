@@ -15,6 +15,7 @@ mod layout;
 pub mod master;
 mod print;
 mod raw;
+pub(crate) mod unit;
 
 pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
 

@@ -64,7 +64,8 @@ pub fn to_toml_lines(cfg: &Config) -> String {
             None => String::new(),
         };
         let relay = print(&one, &[("relay", "[line.relay]".into())]);
-        out.push(head + &device + "\n" + &routes + &relay);
+        let units = line.unit_tables.to_toml();
+        out.push(head + &device + "\n" + &routes + &relay + &units);
     }
     for listener in cfg.listeners() {
         let one = Config {
@@ -73,7 +74,13 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         };
         let table = print(&one, &[("tcp", "[[listen]]".into())]);
         let access = access::listen_to_toml(&listener.access, &cfg.roles);
-        out.push(table + &format!("framing = {}\n", listener.framing.print()) + &access);
+        let priority = match listener.priority {
+            0 => String::new(),
+            p => format!("priority = {p}\n"),
+        };
+        out.push(
+            table + &format!("framing = {}\n", listener.framing.print()) + &priority + &access,
+        );
     }
     out.push(print(
         cfg,

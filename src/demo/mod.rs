@@ -62,6 +62,7 @@ fn two_lines(cfg: &mut Config, units: &[u8], second_pty: String) {
         tcp: None,
         tcp_tls: None,
         relay: cfg.relay.clone(),
+        unit_tables: Default::default(),
         master: None,
     };
     let as_they_are = Units {

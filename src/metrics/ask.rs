@@ -246,6 +246,17 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
             if get(s, "mbgate_unit_backed_off", &u) == 1.0 {
                 state += ", backed off";
             }
+            let learned = s
+                .get("mbgate_unit_response_timeout_seconds")
+                .and_then(|all| {
+                    all.iter().find(|(lb, _)| {
+                        lb.get("line") == Some(&line) && lb.get("unit") == Some(&unit)
+                    })
+                });
+            if let Some((lb, t)) = learned {
+                let why = lb.get("why").map_or("", String::as_str);
+                state += &format!(", timeout {:.1} ms learned ({why})", t * 1000.0);
+            }
             out += &format!(
                 "  unit {unit}: {} requests, {} replies, {} timeouts{avg}{state}\n",
                 n(*requests),

@@ -293,6 +293,25 @@ fn unit_families(
         }
     }
     f.encode(e)?;
+    let mut f = Family::new(
+        "mbgate_unit_response_timeout",
+        "The unit's learned response timeout (response_timeout_ms = \"auto\"), why: start or timeout (at the ceiling), learned (p99 of its replies x 2), floor, ceiling.",
+        G,
+    )
+    .seconds();
+    for l in lines {
+        for (unit, u) in l.units() {
+            if let Some((t, why)) = u.learned() {
+                let labels = vec![
+                    ("line", l.name.clone()),
+                    ("unit", unit.to_string()),
+                    ("why", why.to_owned()),
+                ];
+                f.values.push((labels, t.as_secs_f64()));
+            }
+        }
+    }
+    f.encode(e)?;
     let mut m = e.encode_descriptor(
         "mbgate_unit_reply",
         "Reply time, from the request leaving for the device to its reply confirmed.",

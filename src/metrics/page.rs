@@ -162,13 +162,22 @@ fn line(board: &Board, l: &LineMetrics, recent: Option<&Recent>, now: Instant) -
         .units()
         .map(|(unit, u)| {
             let (sum, count, _) = u.histogram();
+            // The bucket bound of the 99th percentile (infinity is no JSON number).
+            let p99 = u.quantile_bound(0.99).filter(|b| b.is_finite());
+            let (learned, why) = match u.learned() {
+                Some((t, why)) => (Some(t.as_secs_f64()), Some(string(why))),
+                None => (None, None),
+            };
             format!(
-                "{{\"unit\":{unit},\"requests\":{},\"replies\":{},\"timeouts\":{},\"backed_off\":{},\"not_answering\":{},\"reply_sum_s\":{sum},\"reply_count\":{count}}}",
+                "{{\"unit\":{unit},\"requests\":{},\"replies\":{},\"timeouts\":{},\"backed_off\":{},\"not_answering\":{},\"reply_sum_s\":{sum},\"reply_count\":{count},\"reply_p99_le_s\":{},\"learned_timeout_s\":{},\"learned_why\":{}}}",
                 g(&u.requests),
                 g(&u.replies),
                 g(&u.timeouts),
                 g(&u.backed_off) == 1,
                 l.not_answering(u, now),
+                opt(p99),
+                opt(learned),
+                opt(why),
             )
         })
         .collect();

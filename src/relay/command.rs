@@ -33,11 +33,21 @@ pub enum Command {
         /// Its place in the master's reply order.
         ticket: Ticket,
     },
+    /// The master's priority class on this line from now on (docs/masters.md
+    /// "Priority").
+    Priority {
+        /// The master.
+        conn: ConnId,
+        /// 0 (the default, the lowest) to 7.
+        class: u8,
+    },
     /// A reload (SIGHUP): the response and probe timeouts, retries and the traffic log
     /// from now on; requests already on the line keep their deadlines.
     Retune {
         /// The line's new `[relay]` settings.
-        relay: RelayConfig,
+        relay: Box<RelayConfig>,
+        /// The line's `[[line.unit]]` tables.
+        units: crate::config::unit::UnitTables,
         /// Log every frame as hex (`log.traffic`).
         traffic: bool,
     },

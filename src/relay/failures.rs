@@ -17,7 +17,8 @@ impl Relay {
             // A request timed out with the transmitter still on (its bytes held back,
             // or a UART that never says it is empty): off, so the bus is not held.
             self.switch_off(now);
-            self.line.timed_out(now, &self.stats);
+            let hold = self.in_flight.hold_after_timeout(&f);
+            self.line.timed_out(now, hold, &self.stats);
             self.watch.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
@@ -36,7 +37,9 @@ impl Relay {
     pub(super) fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
         self.line.retire(f.tid, now);
         let open = self.port.is_open();
-        match self.in_flight.verdict(&f, why, now, open) {
+        let verdict = self.in_flight.verdict(&f, why, now, open);
+        self.tell_learned(f.req.adu.unit());
+        match verdict {
             Verdict::BackedOff(interval) => {
                 let unit = f.req.adu.unit();
                 self.watch.backed_off(unit);

@@ -1,8 +1,11 @@
 //! The in-flight table: the requests on the line with their serial-side ids, deadlines
-//! and response timeouts; what a request that got no usable reply becomes (resent,
-//! answered 0x0B, or its unit backed off); per-unit backoff; and the pacing of the 0x0B
-//! answers for backed-off units. Plain data: no I/O, no clock (the loop passes the time in).
+//! and response timeouts (each unit's own, fixed or learned: `[[line.unit]]`); what a
+//! request that got no usable reply becomes (resent, answered 0x0B, or its unit backed
+//! off); per-unit backoff; and the pacing of the 0x0B answers for backed-off units.
+//! Plain data: no I/O, no clock (the loop passes the time in).
 
+use super::learn::Learned;
+use crate::config::unit::{Timeout, UnitPolicy, UnitTables};
 use crate::config::RelayConfig;
 use crate::frame::Adu;
 use std::collections::{HashMap, VecDeque};
@@ -70,32 +73,74 @@ pub(super) enum Verdict {
 /// The requests on the line, and the policy for those that fail.
 pub(super) struct Table<R> {
     entries: Vec<InFlight<R>>,
-    response_timeout: Duration,
     probe_timeout: Duration,
-    retries: u32,
-    retry_writes: bool,
+    /// Each unit's timeout, retries and pause, by unit id: its `[[line.unit]]`
+    /// table's, else the line's.
+    policies: Box<[UnitPolicy]>,
+    /// The learned timeouts of the units that have one, once they had a request.
+    learned: HashMap<u8, Learned>,
     units: Units,
 }
 
 impl<R: Asked> Table<R> {
     /// `unit_backoff`: whether units are backed off at all (a bus of units only).
-    pub(super) fn new(cfg: &RelayConfig, unit_backoff: bool) -> Self {
-        Self {
+    pub(super) fn new(cfg: &RelayConfig, tables: &UnitTables, unit_backoff: bool) -> Self {
+        let mut t = Self {
             entries: Vec::new(),
-            response_timeout: Duration::from_millis(cfg.response_timeout_ms),
-            probe_timeout: Duration::from_millis(cfg.probe_timeout_ms),
-            retries: cfg.retries,
-            retry_writes: cfg.retry_writes,
+            probe_timeout: Duration::ZERO,
+            policies: Box::default(),
+            learned: HashMap::new(),
             units: Units::new(cfg, unit_backoff),
+        };
+        t.retune(cfg, tables);
+        t
+    }
+
+    /// New timeouts and retries (a reload), for the requests sent from now on. A
+    /// learned timeout whose bounds changed, or that is learned no more, starts over.
+    pub(super) fn retune(&mut self, cfg: &RelayConfig, tables: &UnitTables) {
+        self.probe_timeout = Duration::from_millis(cfg.probe_timeout_ms);
+        self.policies = (0..=255u8).map(|u| tables.policy(cfg, u)).collect();
+        let policies = &self.policies;
+        self.learned
+            .retain(|&u, l| match policies[usize::from(u)].timeout {
+                Timeout::Learned { floor, ceiling } => l.bounds() == (floor, ceiling),
+                Timeout::Fixed(_) => false,
+            });
+    }
+
+    /// `unit`'s settings.
+    pub(super) fn policy(&self, unit: u8) -> &UnitPolicy {
+        &self.policies[usize::from(unit)]
+    }
+
+    /// `unit`'s learned timeout, if it has one (for the metrics).
+    pub(super) fn learned(&self, unit: u8) -> Option<&Learned> {
+        self.learned.get(&unit)
+    }
+
+    /// How long the line stays quiet after `f` timed out, beyond the guard: with a
+    /// learned timeout, until its ceiling has passed since `f` left. A reply later
+    /// than that would be late with a fixed timeout at the ceiling too, so a learned
+    /// timeout lets no late reply through that the ceiling would not
+    /// (docs/reliability.md "Learned timeouts").
+    pub(super) fn hold_after_timeout(&self, f: &InFlight<R>) -> Duration {
+        match self.policy(f.req.adu().unit()).timeout {
+            Timeout::Learned { ceiling, .. } => ceiling.saturating_sub(f.timeout),
+            Timeout::Fixed(_) => Duration::ZERO,
         }
     }
 
-    /// New timeouts and retries (a reload), for the requests sent from now on.
-    pub(super) fn retune(&mut self, cfg: &RelayConfig) {
-        self.response_timeout = Duration::from_millis(cfg.response_timeout_ms);
-        self.probe_timeout = Duration::from_millis(cfg.probe_timeout_ms);
-        self.retries = cfg.retries;
-        self.retry_writes = cfg.retry_writes;
+    /// `unit`'s response timeout now: fixed, or as learned so far.
+    fn response_timeout(&mut self, unit: u8) -> Duration {
+        match self.policies[usize::from(unit)].timeout {
+            Timeout::Fixed(t) => t,
+            Timeout::Learned { floor, ceiling } => self
+                .learned
+                .entry(unit)
+                .or_insert_with(|| Learned::new(floor, ceiling))
+                .timeout(),
+        }
     }
 
     pub(super) fn len(&self) -> usize {
@@ -115,7 +160,7 @@ impl<R: Asked> Table<R> {
     /// restarted when the port has drained). A unit that stopped answering gets a
     /// shorter wait, so a probe holds the line from the healthy units less long.
     pub(super) fn start(&mut self, tid: u16, req: R, now: Instant, queued: Duration) {
-        let mut timeout = self.response_timeout;
+        let mut timeout = self.response_timeout(req.adu().unit());
         if self.units.probing(req.adu().unit()) {
             timeout = timeout.min(self.probe_timeout);
         }
@@ -145,10 +190,17 @@ impl<R: Asked> Table<R> {
         Some(self.entries.swap_remove(i))
     }
 
-    /// Request `tid` was answered: taken off the line, and its unit is healthy again.
-    pub(super) fn answered(&mut self, tid: u16) -> Option<InFlight<R>> {
+    /// Request `tid` was answered by a reply whose last byte came `at`: taken off the
+    /// line, and its unit is healthy again; a learned timeout learns how long it took.
+    pub(super) fn answered(&mut self, tid: u16, at: Instant) -> Option<InFlight<R>> {
         let f = self.take(tid)?;
-        self.units.answered(f.req.adu().unit());
+        let unit = f.req.adu().unit();
+        self.units.answered(unit);
+        if let Some(l) = self.learned.get_mut(&unit) {
+            // Its deadline is its timeout after it left.
+            let left = f.deadline.checked_sub(f.timeout).unwrap_or(at);
+            l.replied(at.saturating_duration_since(left));
+        }
         Some(f)
     }
 
@@ -187,13 +239,18 @@ impl<R: Asked> Table<R> {
         port_open: bool,
     ) -> Verdict {
         let adu = f.req.adu();
+        let unit = adu.unit();
         if why == Failure::Timeout {
-            if let Some(interval) = self.units.timed_out(adu.unit(), now) {
+            if let Some(l) = self.learned.get_mut(&unit) {
+                l.timed_out();
+            }
+            if let Some(interval) = self.units.timed_out(unit, now) {
                 return Verdict::BackedOff(interval);
             }
         }
-        let may_retry = adu.function_code().is_read() || self.retry_writes;
-        if may_retry && f.req.attempts() < self.retries && port_open {
+        let policy = self.policy(unit);
+        let may_retry = adu.function_code().is_read() || policy.retry_writes;
+        if may_retry && f.req.attempts() < policy.retries && port_open {
             Verdict::Resend
         } else {
             Verdict::Fail
@@ -397,7 +454,7 @@ mod tests {
             response_timeout_ms: 100,
             ..RelayConfig::default()
         };
-        let mut t = Table::new(&cfg, false);
+        let mut t = Table::new(&cfg, &UnitTables::default(), false);
         let t0 = Instant::now();
         t.start(1, read(1, 0), t0, 10 * MS);
         t.start(2, read(2, 0), t0, 30 * MS);
@@ -431,7 +488,7 @@ mod tests {
             unit_backoff_max_ms: 4000,
             ..RelayConfig::default()
         };
-        let mut t = Table::new(&cfg, true);
+        let mut t = Table::new(&cfg, &UnitTables::default(), true);
         let t0 = Instant::now();
         let verdict = |t: &mut Table<(Adu, u32)>, req, why, open| {
             t.start(9, req, t0, Duration::ZERO);
@@ -461,6 +518,7 @@ mod tests {
                 retry_writes: true,
                 ..cfg.clone()
             },
+            &UnitTables::default(),
             true,
         );
         assert_eq!(
@@ -483,7 +541,7 @@ mod tests {
         t.start(5, read(1, 0), t0, Duration::ZERO);
         assert_eq!(t.take(5).map(|f| f.deadline), Some(t0 + 1000 * MS));
         assert_eq!(t.next_deadline(), Some(t0 + 200 * MS));
-        assert!(t.answered(4).is_some());
+        assert!(t.answered(4, t0).is_some());
         t.start(6, read(3, 0), t0, Duration::ZERO);
         assert_eq!(t.next_deadline(), Some(t0 + 1000 * MS), "healthy again");
     }
@@ -505,5 +563,75 @@ mod tests {
         // A line idle since: the next goes at once again.
         assert_eq!(p.pace("d", t0 + 100 * MS, 10 * MS), Some("d"));
         assert!(p.next_due().is_none());
+    }
+
+    /// A unit's own table: its retries and retry_writes decide its verdicts, its
+    /// pause is the line's pause after it; a learned timeout starts at the ceiling,
+    /// learns from the replies, gives the ceiling back after a timeout, and holds the
+    /// line quiet until the ceiling after a timeout.
+    #[test]
+    fn a_units_own_settings_and_learned_timeout() {
+        let text = "[[line]]\nserial = { path = \"/dev/x\", framing = \"rtu\" }\n\
+                    relay = { response_timeout_ms = 400 }\n\
+                    [[line.unit]]\nunits = 5\nretries = 2\nretry_writes = true\nrequest_pause_ms = 30\n\
+                    [[line.unit]]\nunits = 6\nresponse_timeout_ms = \"auto\"\nresponse_timeout_max_ms = 800\n";
+        let cfg = crate::config::parse(text, "t").unwrap();
+        let line = &cfg.lines()[0];
+        let mut t = Table::new(&line.relay, &line.unit_tables, false);
+        let t0 = Instant::now();
+        assert_eq!(
+            (t.policy(5).pause, t.policy(4).pause),
+            (30 * MS, Duration::ZERO)
+        );
+        let verdict = |t: &mut Table<(Adu, u32)>, req| {
+            t.start(9, req, t0, Duration::ZERO);
+            let f = t.take(9).expect("just started");
+            t.verdict(&f, Failure::Corrupt, t0, true)
+        };
+        assert_eq!(
+            verdict(&mut t, write(5, 1)),
+            Verdict::Resend,
+            "its own retries"
+        );
+        assert_eq!(verdict(&mut t, write(5, 2)), Verdict::Fail);
+        assert_eq!(
+            verdict(&mut t, read(4, 0)),
+            Verdict::Fail,
+            "the line's: none"
+        );
+        // Unit 6: at the ceiling until 20 replies of 20 ms, then the floor (50 ms).
+        for _ in 0..20 {
+            t.start(1, read(6, 0), t0, Duration::ZERO);
+            assert_eq!(t.next_deadline(), Some(t0 + 800 * MS));
+            assert!(t.answered(1, t0 + 20 * MS).is_some());
+        }
+        t.start(1, read(6, 0), t0, Duration::ZERO);
+        assert_eq!(
+            t.next_deadline(),
+            Some(t0 + 50 * MS),
+            "learned, at the floor"
+        );
+        let f = t.take_expired(t0 + 50 * MS).pop().expect("timed out");
+        assert_eq!(
+            t.hold_after_timeout(&f),
+            750 * MS,
+            "quiet until the ceiling"
+        );
+        assert_eq!(t.verdict(&f, Failure::Timeout, t0, true), Verdict::Fail);
+        t.start(2, read(6, 0), t0, Duration::ZERO);
+        assert_eq!(t.next_deadline(), Some(t0 + 800 * MS), "the ceiling back");
+        assert_eq!(
+            t.learned(6).map(|l| l.why()),
+            Some(crate::relay::learn::Why::TimedOut)
+        );
+        let fixed = t.take(2).unwrap();
+        t.start(3, read(5, 0), t0, Duration::ZERO);
+        let five = t.take(3).unwrap();
+        assert_eq!(
+            t.hold_after_timeout(&five),
+            Duration::ZERO,
+            "a fixed timeout: the guard alone"
+        );
+        drop(fixed);
     }
 }

@@ -16,9 +16,23 @@
 //! queues. The request with the lowest number is always at the front of all of its
 //! masters' queues, so something can always be sent. A resend goes ahead of all, and
 //! only if no later request of any of its masters has gone on the line since it went.
+//!
+//! Priority classes (docs/masters.md "Priority"): each master has a class (its
+//! listener's or its role's `priority`, 0 by default); a request's is the highest of
+//! the masters it serves. Of the requests ready to go, one of the highest class goes,
+//! round-robin among its masters as above; but when a request serving a master of a
+//! lower class is ready too, and [`LOWER_EVERY`]` - 1` requests of the higher class
+//! have gone in a row past it, the oldest such request goes instead: a lower class
+//! gets at least one transaction in [`LOWER_EVERY`] of those taken from the queues,
+//! however busy the higher one. Which request is ready is the same rule as without
+//! classes (the front of every queue it is in), so each master's order holds.
 
 use super::ConnId;
 use std::collections::{BTreeMap, HashMap, VecDeque};
+
+/// When a lower class waits, at least one request in this many taken from the queues
+/// serves it (the module notes).
+pub(crate) const LOWER_EVERY: u32 = 8;
 
 /// What makes two reads the same read: the unit and the PDU (function code 01-04,
 /// address, count). Two requests with the same key get the same reply from the device
@@ -109,6 +123,11 @@ pub(super) struct Scheduler<R> {
     last_out: HashMap<ConnId, LastOut>,
     /// Requests that joined another so far.
     joins: u64,
+    /// Each master's priority class, if not 0.
+    classes: HashMap<ConnId, u8>,
+    /// Requests of a higher class taken in a row while one serving a lower class was
+    /// ready.
+    streak: u32,
 }
 
 /// The turns that last put a master's requests on the line: any, and one that acts.
@@ -154,7 +173,26 @@ impl<R: Queued> Scheduler<R> {
             turns: 0,
             last_out: HashMap::new(),
             joins: 0,
+            classes: HashMap::new(),
+            streak: 0,
         }
+    }
+
+    /// `conn`'s priority class from now on (0, the lowest, unless set).
+    pub(super) fn set_class(&mut self, conn: ConnId, class: u8) {
+        if class == 0 {
+            self.classes.remove(&conn);
+        } else {
+            self.classes.insert(conn, class);
+        }
+    }
+
+    /// The lowest and the highest class of the masters `req` serves.
+    fn classes_of(&self, req: &R) -> (u8, u8) {
+        let each = req
+            .masters()
+            .map(|c| self.classes.get(&c).copied().unwrap_or(0));
+        each.fold((u8::MAX, 0), |(lo, hi), c| (lo.min(c), hi.max(c)))
     }
 
     /// Requests that joined an identical read so far (`Joined`, or `Displaced` with
@@ -420,12 +458,51 @@ impl<R: Queued> Scheduler<R> {
                     .all(|c| s.queues.get(&c).and_then(|q| q.front()) == Some(&number))
             })
         };
-        let found = self.ring.iter().position(|c| {
-            self.queues
-                .get(c)
-                .and_then(|q| q.front())
-                .is_some_and(|&n| ready(self, n))
+        if self.classes.is_empty() {
+            // One class: the first ready in round-robin order.
+            let found = self.ring.iter().position(|c| {
+                self.queues
+                    .get(c)
+                    .and_then(|q| q.front())
+                    .is_some_and(|&n| ready(self, n))
+            });
+            return self.take_queued(found);
+        }
+        // The requests ready to go, in round-robin order, with their classes.
+        let candidates: Vec<(usize, u64, (u8, u8))> = self
+            .ring
+            .iter()
+            .enumerate()
+            .filter_map(|(i, c)| {
+                let &n = self.queues.get(c)?.front()?;
+                let e = self.waiting.get(&n)?;
+                ready(self, n).then(|| (i, n, self.classes_of(&e.req)))
+            })
+            .collect();
+        let top = candidates.iter().map(|(_, _, (_, hi))| *hi).max();
+        // The oldest ready request that serves a master below the top class.
+        let lower = top.and_then(|top| {
+            let below = candidates.iter().filter(|(_, _, (lo, _))| *lo < top);
+            below.min_by_key(|(_, n, _)| *n).map(|(i, ..)| *i)
         });
+        let found = match (top, lower) {
+            (Some(_), Some(i)) if self.streak + 1 >= LOWER_EVERY => {
+                self.streak = 0;
+                Some(i)
+            }
+            (Some(top), lower) => {
+                self.streak = if lower.is_some() { self.streak + 1 } else { 0 };
+                let first = candidates.iter().find(|(_, _, (_, hi))| *hi == top);
+                first.map(|(i, ..)| *i)
+            }
+            (None, _) => None,
+        };
+        self.take_queued(found)
+    }
+
+    /// Takes out the front request of the connection at `found` in the ring (or, if
+    /// none is ready, which never happens, the lowest numbered).
+    fn take_queued(&mut self, found: Option<usize>) -> Option<R> {
         let (conn, number) = match found {
             Some(i) => {
                 let conn = self.ring.remove(i)?;
@@ -465,6 +542,7 @@ impl<R: Queued> Scheduler<R> {
     /// A read it shared with others stays for them, where it was.
     pub(super) fn detach(&mut self, conn: ConnId) {
         self.last_out.remove(&conn);
+        self.classes.remove(&conn);
         self.retry.retain_mut(|r| {
             if r.masters().all(|c| c == conn) {
                 return false;

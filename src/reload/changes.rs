@@ -67,9 +67,17 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     let read_lines = read.lines();
     if c.lines.is_empty() {
         retune(&mut c.relay, &read_lines[matched[0]].relay);
+        let units = &read_lines[matched[0]].unit_tables;
+        if !units.is_empty() {
+            // Units with settings of their own: only a [[line]] says them.
+            let mut line = c.lines().remove(0);
+            line.unit_tables = units.clone();
+            c.lines = vec![line];
+        }
     } else {
         for (line, &j) in c.lines.iter_mut().zip(matched) {
             retune(&mut line.relay, &read_lines[j].relay);
+            line.unit_tables = read_lines[j].unit_tables.clone();
         }
         // The first line's settings stand for the gateway's, as when the file is read.
         c.relay = c.lines[0].relay.clone();
@@ -133,6 +141,25 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
                 let key = format!("{}.{}", k.section, k.name);
                 let reloadable = LINE_RELOADABLE.contains(&key.as_str());
                 say(&key, vb, reloadable);
+            }
+        }
+        // Each unit whose [[line.unit]] table changed, with its settings as they are
+        // now (a reload applies them).
+        let named = |l: &LineConfig| -> Vec<u8> {
+            l.unit_tables
+                .0
+                .iter()
+                .flat_map(|t| t.ids.iter().copied())
+                .collect()
+        };
+        let mut units = named(la);
+        units.extend(named(lb));
+        units.sort_unstable();
+        units.dedup();
+        for u in units {
+            if la.unit_tables.settings(u) != lb.unit_tables.settings(u) {
+                let now = lb.unit_tables.policy(&lb.relay, u).describe();
+                say(&format!("unit {u}"), now, true);
             }
         }
         if la.master != lb.master {
@@ -325,5 +352,38 @@ mod tests {
         assert_eq!(taken, reloadable);
         assert!(changes(&running, &new, &[0]).iter().all(|c| c.reloadable));
         assert!(changes(&new, &read, &matched).iter().all(|c| !c.reloadable));
+    }
+
+    /// A unit's table changed, or a table was added to the old form's one line: the
+    /// units named with their settings as they are now, applied by the reload.
+    #[test]
+    fn unit_tables_are_applied_and_each_unit_named() {
+        let file = |units: &str| {
+            let text =
+                format!("[[line]]\nserial = {{ path = \"/dev/a\", framing = \"rtu\" }}\n{units}");
+            crate::config::parse(&text, "t").unwrap()
+        };
+        let running = file("");
+        assert!(running.lines.is_empty(), "the old form");
+        let read = file("[[line.unit]]\nunits = \"1-2\"\nresponse_timeout_ms = 100\n");
+        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        let new = merged(&running, &read, &matched);
+        assert_eq!(new.lines()[0].unit_tables, read.lines()[0].unit_tables);
+        let said: Vec<(String, bool)> = changes(&running, &new, &[0])
+            .into_iter()
+            .map(|c| (c.said, c.reloadable))
+            .collect();
+        let unit = |u| {
+            let s = format!("line \"/dev/a\" unit {u} = response timeout 100 ms, pause 0 ms, 0 retries, writes not resent");
+            (s, true)
+        };
+        assert_eq!(said, [unit(1), unit(2)]);
+        assert!(
+            changes(&new, &read, &matched).is_empty(),
+            "nothing waits for a restart"
+        );
+        // Back to the line's settings.
+        let back = merged(&new, &running, &matched);
+        assert!(back.lines()[0].unit_tables.is_empty());
     }
 }

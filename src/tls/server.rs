@@ -316,6 +316,7 @@ mod tests {
                 read_only,
                 write: vec![],
             },
+            priority: None,
         }
     }
 

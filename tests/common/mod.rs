@@ -360,6 +360,19 @@ impl Cfg {
         {
             relay.push("response_timeout_ms = 5000".into());
         }
+        // MBGATE_TEST_UNITS=auto: the same line in the [[line]] form, every unit's
+        // response timeout learned (`response_timeout_ms = "auto"`, the line's as its
+        // ceiling), to run a test file's scenarios with learned timeouts on
+        // (docs/reliability.md "Learned timeouts").
+        if std::env::var("MBGATE_TEST_UNITS").as_deref() == Ok("auto") {
+            s += &format!(
+                "[[line]]\n[line.serial]\n{}\n[line.relay]\n{}\n\
+                 [[line.unit]]\nunits = \"1-255\"\nresponse_timeout_ms = \"auto\"\n\n",
+                self.serial.join("\n"),
+                relay.join("\n")
+            );
+        }
+        let units = !s.is_empty();
         for (name, lines) in [
             ("serial", &self.serial),
             ("tcp", &self.tcp),
@@ -368,6 +381,9 @@ impl Cfg {
             ("metrics", &self.metrics),
             ("control", &self.control),
         ] {
+            if units && matches!(name, "serial" | "relay") {
+                continue;
+            }
             if !matches!(name, "metrics" | "control") || !lines.is_empty() {
                 s += &format!("[{name}]\n{}\n\n", lines.join("\n"));
             }

@@ -36,14 +36,19 @@ import serving
 
 def context(size: int, unit: int = 1) -> ModbusServerContext:
     """The data above, as unit `unit` (tcp_device.py serves it too)."""
+    return ModbusServerContext(devices={unit: device(size)}, single=False)
+
+
+def device(size: int, base: int = 1000) -> ModbusDeviceContext:
+    """One device with the data above, holding register i (i > 0) base + i
+    (paced_units.py serves several, each its own base)."""
     # ModbusSequentialDataBlock(1, ...) puts PDU address 0 at values[0].
-    device = ModbusDeviceContext(
+    return ModbusDeviceContext(
         co=ModbusSequentialDataBlock(1, [i % 3 == 0 for i in range(size)]),
         di=ModbusSequentialDataBlock(1, [i % 2 == 0 for i in range(size)]),
-        hr=ModbusSequentialDataBlock(1, [0x00FF] + [1000 + i for i in range(1, size)]),
+        hr=ModbusSequentialDataBlock(1, [0x00FF] + [base + i for i in range(1, size)]),
         ir=ModbusSequentialDataBlock(1, [2000 + i for i in range(size)]),
     )
-    return ModbusServerContext(devices={unit: device}, single=False)
 
 
 async def main() -> int:

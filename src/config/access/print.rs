@@ -88,8 +88,11 @@ pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
 pub(crate) fn roles_to_toml(roles: &[Role]) -> String {
     let mut out = Vec::new();
     for r in roles {
+        let priority = r
+            .priority
+            .map_or(String::new(), |p| format!("priority = {p}\n"));
         out.push(format!(
-            "[[role]]\nname = {}\n{}",
+            "[[role]]\nname = {}\n{}{priority}",
             toml::Value::String(r.name.clone()),
             policy_to_toml(&r.policy)
         ));

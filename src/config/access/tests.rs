@@ -82,3 +82,34 @@ fn printed_and_read_back_with_who_and_what() {
         assert!(printed.contains(said), "{said}\nnot in:\n{printed}");
     }
 }
+
+/// A listener's and a role's `priority`: read, said by check-config, printed and read
+/// back; out of range, named.
+#[test]
+fn priority_classes_of_listeners_and_roles() {
+    let text = "[[listen]]\naddress = \"127.0.0.1:1502\"\npriority = 2\n\
+                [[listen]]\naddress = \"127.0.0.1:1503\"\n\
+                [[role]]\nname = \"scada\"\npriority = 5\n";
+    let cfg = parse(text, "t.toml").unwrap();
+    let classes: Vec<u8> = cfg.listeners().iter().map(|l| l.priority).collect();
+    assert_eq!(classes, [2, 0]);
+    assert_eq!(cfg.roles[0].priority, Some(5));
+    assert!(crate::config::describe::summary(&cfg)
+        .contains("127.0.0.1:1502 for Modbus/TCP masters, at most 32 at once, priority class 2"));
+    assert_eq!(parse(&to_toml(&cfg), "again").unwrap(), cfg);
+    // One listener with a priority is no longer the old form's [tcp].
+    let one = parse(
+        "[[listen]]\naddress = \"127.0.0.1:1502\"\npriority = 1\n",
+        "t",
+    )
+    .unwrap();
+    assert_eq!(one.listeners[0].priority, 1);
+    assert_eq!(
+        error("[[listen]]\naddress = \"127.0.0.1:1502\"\npriority = 8\n"),
+        "t.toml:3:12: listen[0].priority: must be 0 (the default, the lowest) to 7, got 8"
+    );
+    assert_eq!(
+        error("[[role]]\nname = \"x\"\npriority = -1\n"),
+        "t.toml:3:12: role[0].priority: must be 0 (the default, the lowest) to 7, got -1"
+    );
+}

@@ -67,7 +67,7 @@ pub(super) struct Mbap {
     stream: bool,
     /// The line stays quiet this long after the last byte received
     /// (`request_pause_ms`).
-    request_pause: Duration,
+    pub(super) request_pause: Duration,
     /// Whether the cost of confirmation by a pause has been said (once a line).
     told_pause: bool,
     /// The bytes dropped, for the capture.

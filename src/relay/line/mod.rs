@@ -135,6 +135,15 @@ impl Line {
         self.is_broadcast(adu) && !FunctionCode::new(adu.function()).may_broadcast()
     }
 
+    /// The quiet time after the request about to be sent (its unit's
+    /// `request_pause_ms`): after its reply or its timeout, before the next request.
+    pub(super) fn pause_after(&mut self, pause: Duration) {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.request_pause = pause,
+            Kind::Serial(s) => s.request_pause = pause,
+        }
+    }
+
     /// The bytes that put `adu` on the line as request `tid`, about to be written.
     pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, stats: &Stats) -> Bytes {
         match &mut self.0 {
@@ -217,12 +226,13 @@ impl Line {
     /// A request timed out: its reply may still come (MBAP recognises it by its id, and
     /// holds replies for confirmation for the guard time, as the late one may follow).
     /// RTU/ASCII: a partial reply is discarded, and the line is left quiet for the
-    /// guard time, so a reply that comes just too late is dropped rather than taken
-    /// for the next request's.
-    pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
+    /// guard time, or `hold` if longer (a learned timeout's way to its ceiling), so a
+    /// reply that comes just too late is dropped rather than taken for the next
+    /// request's.
+    pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
         match &mut self.0 {
             Kind::Mbap(m) => m.timed_out(now),
-            Kind::Serial(s) => s.timed_out(now, stats),
+            Kind::Serial(s) => s.timed_out(now, hold, stats),
         }
     }
 

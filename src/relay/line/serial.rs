@@ -68,7 +68,7 @@ pub(super) struct Serial {
     /// `port_kind = "wire"`): a request's bytes take their time to leave.
     wire: bool,
     /// The line stays quiet this long after a reply or a timeout (`request_pause_ms`).
-    request_pause: Duration,
+    pub(super) request_pause: Duration,
     /// The bytes dropped, for the capture.
     pub(super) tape: Tape,
     /// What a failed check is called: CRC (RTU) or LRC (ASCII).
@@ -332,7 +332,7 @@ impl Serial {
         self.broadcast_on_wire = false;
     }
 
-    pub(super) fn timed_out(&mut self, now: Instant, stats: &Stats) {
+    pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
         let held = self.drop_held(now, "a partial reply when its request timed out");
         self.decoder.clear();
         let to = self.decoder.consumed();
@@ -341,7 +341,8 @@ impl Serial {
         self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
-        self.ready_at = self.ready_at.max(now + self.guard.max(self.request_pause));
+        let quiet = self.guard.max(self.request_pause).max(hold);
+        self.ready_at = self.ready_at.max(now + quiet);
     }
 
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {

@@ -454,6 +454,8 @@ struct Run {
     in_flight: Vec<Req>,
     /// The connection id of each master slot (a new one after a leave).
     conns: [ConnId; 4],
+    /// Each slot's priority class (its new connection after a leave keeps it).
+    classes: [u8; 4],
     next_conn: ConnId,
     /// Each master's requests sent so far.
     sent_by: HashMap<ConnId, u64>,
@@ -475,6 +477,7 @@ impl Run {
             retry_writes,
             in_flight: Vec::new(),
             conns: [1, 2, 3, 4],
+            classes: [0; 4],
             next_conn: 5,
             sent_by: HashMap::new(),
             seen: HashMap::new(),
@@ -574,6 +577,7 @@ impl Run {
                 self.s.detach(conn);
                 self.gone.push(conn);
                 self.conns[master] = self.next_conn;
+                self.s.set_class(self.next_conn, self.classes[master]);
                 self.next_conn += 1;
             }
             Step::BackOff(unit) => {
@@ -627,7 +631,8 @@ impl Run {
 /// sends, replies, timeouts and resends, masters leaving, a full queue's evictions, a
 /// unit backed off and the port lost: every master sees its requests go on the line
 /// in the order it sent them (a resend repeating the last only), every ticket ends
-/// once, and nothing is stuck. `MBGATE_LONG=1`: many more runs.
+/// once, and nothing is stuck; with the masters in priority classes or not.
+/// `MBGATE_LONG=1`: many more runs.
 #[test]
 fn each_master_sees_its_own_order_through_every_path() {
     let cases = if std::env::var_os("MBGATE_LONG").is_some() {
@@ -643,11 +648,104 @@ fn each_master_sees_its_own_order_through_every_path() {
     let flags = (prop::bool::weighted(0.85), prop::bool::ANY);
     let params = (3..9usize, 1..4usize, 0..3u32, flags);
     let steps = prop::collection::vec(step(), 1..80);
-    proptest!(config, |((depth, max_in_flight, retries, flags) in params, steps in steps)| {
+    let classes = prop_oneof![Just([0u8; 4]), prop::array::uniform4(0..3u8)];
+    proptest!(config, |((depth, max_in_flight, retries, flags) in params, steps in steps, classes in classes)| {
         let mut run = Run::new(depth, max_in_flight, retries, flags);
+        run.classes = classes;
+        for (i, &c) in classes.iter().enumerate() {
+            run.s.set_class(run.conns[i], c);
+        }
         for s in steps {
             run.apply(s);
         }
         run.finish();
+    });
+}
+
+/// Masters in classes 0 to 2 queue reads at random (identical ones joined or not), and
+/// the line takes them one by one: of the requests ready to go, one of the highest
+/// class goes, except that while one serving a lower class is ready, no more than
+/// LOWER_EVERY - 1 of the higher class go in a row; and within each master the order
+/// holds.
+#[test]
+fn a_higher_class_goes_first_and_a_lower_one_gets_one_in_n() {
+    let config = ProptestConfig {
+        cases: if std::env::var_os("MBGATE_LONG").is_some() {
+            20_000
+        } else {
+            300
+        },
+        failure_persistence: None,
+        ..ProptestConfig::default()
+    };
+    // Each step: a request of master 1..=6, or a transaction.
+    let step = prop_oneof![3 => (1..=6u64).prop_map(Some), 2 => Just(None)];
+    let classes = prop::array::uniform6(0..3u8);
+    proptest!(config, |(classes in classes, coalesce in prop::bool::ANY, steps in prop::collection::vec(step, 1..300))| {
+        let mut s: Scheduler<Req> = Scheduler::new(1000, coalesce);
+        let class = |c: ConnId| classes[(c - 1) as usize];
+        for c in 1..=6u64 {
+            s.set_class(c, class(c));
+        }
+        let mut sent: HashMap<ConnId, u64> = HashMap::new();
+        let mut seen: HashMap<ConnId, u64> = HashMap::new();
+        let mut streak = 0;
+        for step in steps {
+            match step {
+                Some(c) => {
+                    let n = sent.entry(c).or_default();
+                    *n += 1;
+                    // Reads of one register, some identical across masters (joined).
+                    let _ = s.push(read(c, 1, (*n % 3) as u16, &n.to_string()));
+                }
+                None => {
+                    // The requests ready to go: at the front of the queue of every
+                    // master they serve (a joined read waits for each of its masters'
+                    // earlier requests), with the lowest and highest class they serve.
+                    let span = |n: u64| {
+                        let r = &s.waiting[&n].req;
+                        r.askers.iter().fold((u8::MAX, 0), |(lo, hi), (c, _)| {
+                            (lo.min(class(*c)), hi.max(class(*c)))
+                        })
+                    };
+                    let ready: Vec<(u8, u8)> = s
+                        .queues
+                        .values()
+                        .filter_map(|q| q.front().copied())
+                        .filter(|n| {
+                            s.waiting[n].req.askers.iter().all(|(c, _)| s.queues[c].front() == Some(n))
+                        })
+                        .map(span)
+                        .collect();
+                    let waiting: Vec<u8> = s.queues.keys().map(|&c| class(c)).collect();
+                    let Some(r) = s.next() else {
+                        prop_assert!(waiting.is_empty());
+                        continue;
+                    };
+                    let (lo, hi) = r.askers.iter().fold((u8::MAX, 0), |(lo, hi), (c, _)| {
+                        (lo.min(class(*c)), hi.max(class(*c)))
+                    });
+                    let top = ready.iter().map(|(_, hi)| *hi).max().unwrap_or(0);
+                    let lower_waits = ready.iter().any(|(lo, _)| *lo < top);
+                    if lo < top {
+                        streak = 0; // a lower class served
+                    } else if lower_waits {
+                        streak += 1;
+                    } else {
+                        streak = 0;
+                    }
+                    prop_assert!(
+                        hi == top || lo < top,
+                        "class {hi} went while class {top} waited"
+                    );
+                    prop_assert!(streak < LOWER_EVERY, "a lower class waited {streak} in a row");
+                    for (c, label) in &r.askers {
+                        let n: u64 = label.parse().unwrap();
+                        let last = seen.insert(*c, n).unwrap_or(0);
+                        prop_assert!(n > last, "master {c}: {n} after {last}");
+                    }
+                }
+            }
+        }
     });
 }

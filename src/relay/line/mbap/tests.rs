@@ -230,7 +230,7 @@ fn what_may_follow_a_reply_holds_it() {
     let whole = |tid| Adu::build(tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
     // A timeout: the next reply is held for 100 ms after it.
     let (mut line, t0) = mbap(19_200);
-    line.timed_out(t0, &Stats::default());
+    line.timed_out(t0, Duration::ZERO, &Stats::default());
     let a = send(&mut line, &read, t0);
     line.received(&whole(a.tid), t0 + 5 * MS, &Stats::default());
     assert!(frames(&mut line, std::slice::from_ref(&a), t0 + 5 * MS).is_empty());

@@ -1,5 +1,5 @@
 //! The RTU and ASCII line's tests: a reply with pauses inside on a pty and on a wire,
-//! the gap after a reply (over TCP, to the microsecond, `request_pause_ms`).
+//! the gap after a reply (over TCP, to the microsecond, `request_pause_ms`, a unit's own).
 
 use super::super::{Line, Seen};
 use super::*;
@@ -87,6 +87,45 @@ fn the_gap_after_a_reply_is_none_over_tcp_and_request_pause_ms_on_both() {
             assert!(!line.has_room(0, false, before), "{stream} {pause}");
         }
         assert!(line.has_room(0, false, free), "{stream} {pause}");
+    }
+}
+
+/// A unit's own pause (`[[line.unit]] request_pause_ms`), set for the request about
+/// to be sent, is the quiet time after that transaction, longer or shorter than the
+/// line's; after a timeout too.
+#[test]
+fn a_units_own_pause_is_the_quiet_after_its_transaction() {
+    let serial = SerialConfig {
+        baud_rate: 9600,
+        framing: crate::config::Framing::Rtu,
+        ..SerialConfig::default()
+    };
+    let relay = RelayConfig {
+        request_pause_ms: 20,
+        timeout_guard_ms: 0,
+        ..RelayConfig::default()
+    };
+    let stats = Stats::default();
+    for (pause, free_after) in [(50, 50), (0, 4)] {
+        let t0 = Instant::now();
+        let mut line = Line::new(&relay, &serial, false, t0);
+        line.pause_after(pause * MS);
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let key = line.allocate(t0);
+        line.encode(&read, key, t0, &stats);
+        line.wrote(8, t0);
+        line.drained(t0, &stats);
+        line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + 10 * MS, &stats);
+        let free = t0 + 10 * MS + free_after * MS;
+        assert!(!line.has_room(0, false, free - MS), "pause {pause:?}");
+        assert!(line.has_room(0, false, free), "pause {pause:?}");
+        // A timeout: quiet for the pause (the guard is 0 here).
+        let t1 = free + 100 * MS;
+        line.timed_out(t1, Duration::ZERO, &stats);
+        assert_eq!(
+            line.has_room(0, false, t1 + (pause * MS).saturating_sub(MS)),
+            pause == 0
+        );
     }
 }
 /// The gap the line asks its timer for after a whole reply, to the microsecond:
