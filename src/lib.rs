@@ -31,3 +31,4 @@ pub mod stats;
 pub(crate) mod tcp;
 pub(crate) mod tids;
 pub mod tls;
+pub mod wire;

@@ -76,6 +76,13 @@ enum Command {
     /// With a console when stdin is a terminal (`help` lists its commands); headless
     /// otherwise, logging each packet.
     Sim(mbgate::sim::options::SimArgs),
+    /// A virtual serial line: two ptys joined like a null-modem cable, at the wire's pace.
+    ///
+    /// Each byte takes its time at its sender's baud rate (start, data, parity and stop
+    /// bits) and arrives as the receiver's UART takes it: garbled where the two ends'
+    /// baud rates or formats differ. Optional loss, noise and RS-232 echo, seeded. Runs
+    /// until Ctrl-C or SIGTERM (docs/simulator.md, "A virtual line").
+    Wire(mbgate::wire::WireArgs),
     /// No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process.
     Demo(mbgate::demo::DemoArgs),
     /// Ask a running gateway how its lines are: a summary per line and unit.
@@ -139,6 +146,7 @@ fn main() -> ExitCode {
         Command::Write(args) => mbgate::client::write_main(args),
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
+        Command::Wire(args) => mbgate::wire::main(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::Generate(what) => generate(what),
         Command::Reload(args) => mbgate::control::reload::main(args),
