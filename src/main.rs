@@ -76,6 +76,16 @@ enum Command {
     /// With a console when stdin is a terminal (`help` lists its commands); headless
     /// otherwise, logging each packet.
     Sim(mbgate::sim::options::SimArgs),
+    /// Find what is on a bus: baud rate, format, framing and unit ids, by reads only.
+    ///
+    /// Tries each setting (19200 8E1 and 9600 8N1 RTU first) with FC 03 of one
+    /// register to each unit; a setting is proven by any frame with a good CRC or LRC,
+    /// and left after --give-up units without one. Then each unit found is asked its
+    /// identity (FC 43/14, FC 17). Ends with a table and a [[line]] block for
+    /// mbgate.toml (docs/scan.md). Exit code 0 something answered, 1 nothing did or
+    /// the port could not be used (held by a gateway: the process is named), 2 bad
+    /// arguments.
+    Scan(mbgate::scan::ScanArgs),
     /// A virtual serial line: two ptys joined like a null-modem cable, at the wire's pace.
     ///
     /// Each byte takes its time at its sender's baud rate (start, data, parity and stop
@@ -147,6 +157,7 @@ fn main() -> ExitCode {
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
         Command::Wire(args) => mbgate::wire::main(args),
+        Command::Scan(args) => mbgate::scan::main(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::Generate(what) => generate(what),
         Command::Reload(args) => mbgate::control::reload::main(args),

@@ -179,7 +179,10 @@ impl Drop for End {
 }
 
 /// Raw mode on the device end (cfmakeraw), so nothing the line hands it is echoed back
-/// or edited before a program sets its own.
+/// or edited before a program sets its own; and 50 baud, a speed no program asks for,
+/// so that the first program's settings always change the speed: Linux refuses
+/// (EINVAL) a tcsetattr on a pty whose only change is a parity bit it cannot keep, as
+/// pyserial's even parity at the pty's default 38400 baud would be.
 fn raw(fd: RawFd) -> io::Result<()> {
     // SAFETY: termios is plain data; tcgetattr fills it before it is used.
     #[allow(unsafe_code)]
@@ -191,6 +194,7 @@ fn raw(fd: RawFd) -> io::Result<()> {
             -1
         } else {
             libc::cfmakeraw(&mut t);
+            libc::cfsetspeed(&mut t, libc::B50);
             libc::tcsetattr(fd, libc::TCSANOW, &t)
         }
     };

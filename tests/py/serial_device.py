@@ -8,6 +8,13 @@ unit, and a device identification (FC 43/14: vendor "pymodbus-test", product cod
     serial_device.py --port PATH --framer rtu|ascii --baud 9600 --parity N|E|O
                      [--stopbits 1|2] --units 3,17
 
+A scan sends such a device requests at wrong baud rates and parities, which it hears
+as garbage. pymodbus 3.16.1 keeps garbage in its receive buffer and may never find a
+frame after it; a device on a bus starts afresh after a silence (Modbus over Serial
+Line V1.02 §2.5.1.1), so here the buffer is emptied when bytes come after 20 ms of
+silence (longer than 3.5 characters at any baud rate a scan tries, and than Python's
+own pauses on a loaded machine inside a frame).
+
 Prints READY on stdout once serving, then serves until SIGTERM or SIGINT.
 """
 
@@ -17,12 +24,28 @@ import argparse
 import asyncio
 import logging
 import sys
+import time
 
 from pymodbus import FramerType, ModbusDeviceIdentification
 from pymodbus.datastore import ModbusServerContext
 from pymodbus.server import ModbusSerialServer
+from pymodbus.transport.transport import ModbusProtocol
 import serving
 from stock_server import context
+
+SILENCE = 0.020
+_received = ModbusProtocol.datagram_received
+
+
+def _afresh_after_silence(self, data, addr):
+    now = time.monotonic()
+    if now - getattr(self, "_last_byte", 0.0) > SILENCE:
+        self.recv_buffer = b""
+    self._last_byte = now  # pylint: disable=protected-access
+    _received(self, data, addr)
+
+
+ModbusProtocol.datagram_received = _afresh_after_silence
 
 
 async def main() -> int:
