@@ -317,3 +317,47 @@ fn a_held_port_is_refused_naming_who_holds_it() {
         run.stderr
     );
 }
+
+/// Ctrl-C (SIGINT) ends a scan early and prints what it found so far, saying it was
+/// interrupted.
+#[test]
+fn ctrl_c_prints_what_was_found_so_far() {
+    let line = Line::start("8N1");
+    let _device = Py::start(
+        "serial_device.py",
+        &[
+            "--port",
+            line.b.to_str().unwrap(),
+            "--baud",
+            "9600",
+            "--units",
+            "1",
+        ],
+    );
+    // Unit 1 first, then 246 silent units at 300 ms each: over a minute.
+    let mut scan = Proc::start(
+        &[
+            "scan",
+            line.a.to_str().unwrap(),
+            "--baud",
+            "9600",
+            "--format",
+            "8N1",
+            "--framing",
+            "rtu",
+            "--timeout-ms",
+            "300",
+        ],
+        "",
+    );
+    std::thread::sleep(Duration::from_secs(5));
+    let status = scan.stop_with("INT", Duration::from_secs(10));
+    std::thread::sleep(Duration::from_millis(500));
+    assert_eq!(status.code(), Some(0), "{}{}", scan.log(), scan.stdout.lock().unwrap());
+    wait_for("the report", Duration::from_secs(5), || {
+        scan.stdout.lock().unwrap().contains("For mbgate.toml")
+    });
+    let out = scan.stdout.lock().unwrap().clone();
+    assert!(out.contains(", interrupted):"), "{out}");
+    assert!(out.contains("[[line]]\nunits = [1]\n"), "{out}");
+}

@@ -154,7 +154,8 @@ pub(super) async fn scan(
             let what = format!("{} {} {}", s.baud, s.format, framing.name());
             while let Some(unit) = at.next_unit() {
                 if stop.is_cancelled() {
-                    break 'settings;
+                    // What was found so far is kept (and reported) below.
+                    break;
                 }
                 // The time left: this setting's tries, then every later one's.
                 let later: Duration = settings[i..]
@@ -210,7 +211,7 @@ pub(super) async fn scan(
                 super::identified(f, &device, &server);
             }
             report.found.extend(found_here);
-            if at.proven && !all {
+            if stop.is_cancelled() || (at.proven && !all) {
                 break 'settings;
             }
         }
