@@ -541,6 +541,11 @@ fn the_watching_page_runs_as_printed() {
 }
 
 #[test]
+fn the_scan_page_runs_as_printed() {
+    assert_runs("docs/scan.md");
+}
+
+#[test]
 fn the_simulator_page_runs_as_printed() {
     assert_runs("docs/simulator.md");
 }
