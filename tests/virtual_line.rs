@@ -261,3 +261,170 @@ fn a_parity_mismatch_is_seen_as_errors() {
     let got = read_until(&mut b, 3, Duration::from_secs(2));
     assert_eq!(got[..2], [0x00, 0x00], "{got:02X?}");
 }
+
+/// The gateway on end A, declared a wire (`port_kind = "wire"`), RTU at `baud`; a
+/// pymodbus RTU server (unit 1, stock_server.py's registers) on end B.
+struct Behind {
+    gw: Gateway,
+    _device: Py,
+    _line: Line,
+}
+
+fn gateway_behind_the_line(
+    baud: u32,
+    line_args: &[&str],
+    device_echo: bool,
+    serial: &[&str],
+) -> Behind {
+    let line = Line::start(line_args);
+    let baud_s = baud.to_string();
+    let mut dev_args = vec![
+        "--port",
+        line.b.to_str().unwrap(),
+        "--framer",
+        "rtu",
+        "--baud",
+        &baud_s,
+        "--units",
+        "1",
+    ];
+    if device_echo {
+        dev_args.push("--echo");
+    }
+    let device = Py::start("serial_device.py", &dev_args);
+    // pymodbus says READY before its port is set up: until then its end is at the
+    // line's initial 50 baud, and a request would reach it garbled.
+    let speed = match baud {
+        1200 => libc::B1200,
+        9600 => libc::B9600,
+        _ => libc::B19200,
+    };
+    wait_for("the device's speed", Duration::from_secs(10), || {
+        let f = open_pty(&line.b);
+        // SAFETY: termios is plain data, filled by tcgetattr; valid fd.
+        unsafe {
+            let mut t: libc::termios = std::mem::zeroed();
+            libc::tcgetattr(f.as_raw_fd(), &mut t) == 0 && libc::cfgetospeed(&t) == speed
+        }
+    });
+    let mut cfg = Cfg::new(&line.a)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .serial("port_kind = \"wire\"")
+        .serial(&format!("baud_rate = {baud}"))
+        // The line is a program: on a loaded machine its wake-ups can pause a frame
+        // by a few ms, as a USB adapter's latency timer does; the floor is what a user
+        // gives such a port (docs/simulator.md, "A virtual line").
+        .serial("silence_floor_ms = 50")
+        // pymodbus in Python on a loaded machine: its first answers can take a second.
+        .relay("response_timeout_ms = 5000");
+    for s in serial {
+        cfg = cfg.serial(s);
+    }
+    let gw = Gateway::start(&cfg, line._dir.path());
+    Behind {
+        gw,
+        _device: device,
+        _line: line,
+    }
+}
+
+/// `n` reads of register `i % 5` through the gateway, after one read not counted (the
+/// device's first answer may be lost while pymodbus sets its port up): none gets
+/// another register's value or another request's reply, each is its own or 0x0B
+/// (pymodbus in Python on a loaded machine can miss a request); returns how many were
+/// right.
+fn reads_never_wrong(gw: &Gateway, n: u16) -> u16 {
+    let mut s = gw.connect();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    let _ = transact(&mut s, &read_req(999, 1, 0, 1));
+    let mut right = 0;
+    for i in 0..n {
+        let addr = i % 5;
+        let want = if addr == 0 { 0x00FF } else { 1000 + addr };
+        let got = transact(&mut s, &read_req(i + 1, 1, addr, 1));
+        let timeout = mbgate::frame::Adu::build(i + 1, 1, &[0x83, 0x0B]);
+        if hexs(&got) == hexs(timeout.as_bytes()) {
+            continue;
+        }
+        assert_eq!(
+            hexs(&got),
+            hexs(&read_reply(i + 1, 1, &[want])),
+            "read {i}:\n{}",
+            gw.log()
+        );
+        right += 1;
+    }
+    right
+}
+
+/// A third-party device whose replies take their time on the wire: on a line declared
+/// a wire, at 1200 and at 9600 baud, no genuine reply is ever dropped as begun before
+/// its request had left (`dropped_too_early` 0: none can, on this line), no read gets
+/// a wrong answer, and most are answered.
+#[test]
+fn a_wire_timed_device_gets_every_reply_taken() {
+    for (baud, n) in [(1200, 6), (9600, 20)] {
+        let mut b = gateway_behind_the_line(baud, &[], false, &[]);
+        let right = reads_never_wrong(&b.gw, n);
+        eprintln!("{baud} baud: {right} of {n} right, 0 wrong");
+        assert!(right >= n / 2, "{baud}: {right} of {n} right");
+        let counters = b.gw.stop();
+        assert_eq!(
+            counters.get("dropped_too_early"),
+            Some(&0),
+            "{baud}: {counters:?}"
+        );
+    }
+}
+
+/// An RS-232 loopback: the line echoes every byte to its sender. With `echo = true`
+/// the gateway reads its echo back and discards it, and every write and read gets its
+/// own answer. Without it, the gateway has only the wire's time to tell the echo from
+/// the reply (docs/reliability.md: bytes read before the request could have left the
+/// wire are dropped), and the line's delivery can be late by a scheduler's wake-up: a
+/// read may then fail (0x0B), but never gets another answer than its own.
+#[test]
+fn an_echoing_line_never_gives_the_echo_as_the_reply() {
+    for serial in [&["echo = true"][..], &[][..]] {
+        let mut b = gateway_behind_the_line(19200, &["--echo"], true, serial);
+        let mut s = b.gw.connect();
+        s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+        let (mut right, mut failed) = (0, 0);
+        for i in 0..10u16 {
+            // FC 06 to register 1 + i % 4 with a value the read then checks.
+            let addr = 1 + i % 4;
+            let value = 0x4000 + i;
+            let mut pdu = vec![0x06];
+            pdu.extend_from_slice(&addr.to_be_bytes());
+            pdu.extend_from_slice(&value.to_be_bytes());
+            let req = mbgate::frame::Adu::build(100 + i, 1, &pdu)
+                .as_bytes()
+                .to_vec();
+            let wrote = transact(&mut s, &req);
+            let read = transact(&mut s, &read_req(200 + i, 1, addr, 1));
+            let want = read_reply(200 + i, 1, &[value]);
+            let timeout = mbgate::frame::Adu::build(200 + i, 1, &[0x83, 0x0B]);
+            let wrote_timeout = mbgate::frame::Adu::build(100 + i, 1, &[0x86, 0x0B]);
+            if hexs(&read) == hexs(timeout.as_bytes())
+                || hexs(&wrote) == hexs(wrote_timeout.as_bytes())
+            {
+                failed += 1;
+                continue;
+            }
+            assert_eq!(hexs(&wrote), hexs(&req), "write {i} ({serial:?})");
+            assert_eq!(
+                hexs(&read),
+                hexs(&want),
+                "read back {i} ({serial:?}):\n{}",
+                b.gw.log()
+            );
+            right += 1;
+        }
+        eprintln!("echo, {serial:?}: {right} right, {failed} 0x0B, 0 wrong");
+        if !serial.is_empty() {
+            assert!(right >= 5, "echo = true: {right} of 10 right");
+        }
+        b.gw.stop();
+    }
+}

@@ -6,14 +6,16 @@ unit, and a device identification (FC 43/14: vendor "pymodbus-test", product cod
 "SCAN-<unit>").
 
     serial_device.py --port PATH --framer rtu|ascii --baud 9600 --parity N|E|O
-                     [--stopbits 1|2] --units 3,17
+                     [--stopbits 1|2] --units 3,17 [--echo]
+
+--echo: the line echoes what the device sends (pymodbus' handle_local_echo discards it).
 
 A scan sends such a device requests at wrong baud rates and parities, which it hears
 as garbage. pymodbus 3.16.1 keeps garbage in its receive buffer and may never find a
 frame after it; a device on a bus starts afresh after a silence (Modbus over Serial
-Line V1.02 §2.5.1.1), so here the buffer is emptied when bytes come after 20 ms of
-silence (longer than 3.5 characters at any baud rate a scan tries, and than Python's
-own pauses on a loaded machine inside a frame).
+Line V1.02 §2.5.1.1), so here the buffer is emptied when bytes come after a silence
+of 10 character times, and at least 20 ms (longer than 3.5 characters, and than
+Python's own pauses on a loaded machine inside a frame).
 
 Prints READY on stdout once serving, then serves until SIGTERM or SIGINT.
 """
@@ -33,13 +35,13 @@ from pymodbus.transport.transport import ModbusProtocol
 import serving
 from stock_server import context
 
-SILENCE = 0.020
+SILENCE = [0.020]
 _received = ModbusProtocol.datagram_received
 
 
 def _afresh_after_silence(self, data, addr):
     now = time.monotonic()
-    if now - getattr(self, "_last_byte", 0.0) > SILENCE:
+    if now - getattr(self, "_last_byte", 0.0) > SILENCE[0]:
         self.recv_buffer = b""
     self._last_byte = now  # pylint: disable=protected-access
     _received(self, data, addr)
@@ -56,9 +58,11 @@ async def main() -> int:
     ap.add_argument("--parity", choices=["N", "E", "O"], default="N")
     ap.add_argument("--stopbits", type=int, default=1)
     ap.add_argument("--units", default="1")
+    ap.add_argument("--echo", action="store_true", help="the line echoes: discard our own replies")
     args = ap.parse_args()
     logging.basicConfig(level=logging.CRITICAL, stream=sys.stderr)
     units = [int(u) for u in args.units.split(",")]
+    SILENCE[0] = max(0.020, 10 * 11 / args.baud)
     devices = {u: context(20, u)._devices[u] for u in units}  # pylint: disable=protected-access
     identity = ModbusDeviceIdentification(
         info_name={"VendorName": "pymodbus-test", "ProductCode": "SCAN", "MajorMinorRevision": "3.16"}
@@ -86,6 +90,7 @@ async def main() -> int:
         parity=args.parity,
         stopbits=args.stopbits,
         ignore_missing_devices=True,
+        handle_local_echo=args.echo,
         trace_packet=silent_for_others,
     )
     return await serving.until_signalled(server)
