@@ -486,4 +486,46 @@ mod tests {
         assert!("248".parse::<Units>().is_err());
         assert!("5-2".parse::<Units>().is_err());
     }
+
+    mod props {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            /// Invariant of the give-up rule: units are tried in the list's order,
+            /// each at most once; a setting that never gets a good frame costs at
+            /// most `give_up` tries; once a frame has come, every unit of the list is
+            /// tried.
+            #[test]
+            fn give_up_rule(
+                n in 1usize..60,
+                give_up in 1usize..10,
+                answering in prop::collection::btree_set(1u8..60, 0..4),
+                garbage in prop::collection::btree_set(1u8..60, 0..4),
+            ) {
+                let units: Vec<u8> = (1..=n as u8).collect();
+                let mut at = AtSetting::new(units.clone(), give_up);
+                let mut tried = Vec::new();
+                while let Some(u) = at.next_unit() {
+                    tried.push(u);
+                    let heard = if answering.contains(&u) {
+                        Heard::Frame { unit: u, pdu: vec![3, 2, 0, 0] }
+                    } else if garbage.contains(&u) {
+                        Heard::Garbage(3)
+                    } else {
+                        Heard::Nothing
+                    };
+                    at.record(&heard);
+                    prop_assert!(tried.len() <= n);
+                }
+                prop_assert_eq!(&tried[..], &units[..tried.len()]);
+                let first_answer = units.iter().position(|u| answering.contains(u));
+                match first_answer {
+                    Some(i) if i < give_up => prop_assert_eq!(tried.len(), n),
+                    _ => prop_assert_eq!(tried.len(), give_up.min(n)),
+                }
+                prop_assert_eq!(at.left(), 0);
+            }
+        }
+    }
 }

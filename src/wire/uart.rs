@@ -627,4 +627,100 @@ mod tests {
         let (got, _) = r.poll(u64::MAX / 2, set);
         assert_eq!(got[0].what, Received::Parity(0x55 ^ 0x04));
     }
+
+    mod props {
+        use super::*;
+        use proptest::prelude::*;
+
+        fn format() -> impl Strategy<Value = Format> {
+            prop_oneof![
+                Just("8N1"),
+                Just("8E1"),
+                Just("8O1"),
+                Just("8N2"),
+                Just("7E1")
+            ]
+            .prop_map(|f| f.parse().unwrap())
+        }
+
+        proptest! {
+            /// Invariant: at one setting, whatever the bytes and however they are
+            /// written (bursts with pauses of any length, polled at any instants),
+            /// the receiver gets exactly the bytes, in order, each at the end of its
+            /// own character, never before.
+            #[test]
+            fn same_setting_is_the_identity(
+                bursts in prop::collection::vec(
+                    (prop::collection::vec(any::<u8>(), 1..20), 0u64..5_000_000),
+                    1..6,
+                ),
+                baud in prop_oneof![Just(1200u32), Just(9600), Just(19200), Just(115200)],
+                f in format(),
+                polls in prop::collection::vec(0u64..3_000_000, 0..20),
+            ) {
+                let set = Setting { baud, format: f };
+                let mask = if f.data_bits == 7 { 0x7F } else { 0xFF };
+                let mut t = Transmitter::default();
+                let mut r = Receiver::new();
+                let mut now = 0;
+                let mut sent = Vec::new();
+                let mut ends = Vec::new();
+                let mut got = Vec::new();
+                let mut poll_at = polls.into_iter();
+                for (bytes, pause) in bursts {
+                    now += pause;
+                    for (b, start) in bytes.iter().zip(t.schedule(now, bytes.len(), set)) {
+                        let c = Char::new(start, *b, set);
+                        ends.push(c.end());
+                        r.push(c);
+                        sent.push(b & mask);
+                    }
+                    if let Some(p) = poll_at.next() {
+                        now += p;
+                        got.extend(r.poll(now, set).0);
+                    }
+                }
+                got.extend(r.poll(u64::MAX / 2, set).0);
+                let bytes: Vec<Received> = sent.iter().map(|&b| Received::Byte(b)).collect();
+                prop_assert_eq!(got.iter().map(|a| a.what).collect::<Vec<_>>(), bytes);
+                for (a, end) in got.iter().zip(ends) {
+                    prop_assert_eq!(a.at, end);
+                }
+            }
+
+            /// Invariant: at any two settings, what the receiver takes comes in order
+            /// of time, each no earlier than a whole character of its own after the
+            /// first byte sent began, and it takes no more characters than the line's
+            /// busy time could hold at its own rate.
+            #[test]
+            fn any_mismatch_arrives_in_order_and_bounded(
+                bytes in prop::collection::vec(any::<u8>(), 1..40),
+                tx_baud in prop_oneof![Just(1200u32), Just(9600), Just(19200), Just(115200)],
+                rx_baud in prop_oneof![Just(1200u32), Just(9600), Just(19200), Just(115200)],
+                tx_f in format(),
+                rx_f in format(),
+            ) {
+                let tx = Setting { baud: tx_baud, format: tx_f };
+                let rx = Setting { baud: rx_baud, format: rx_f };
+                let mut t = Transmitter::default();
+                let mut r = Receiver::new();
+                for (b, start) in bytes.iter().zip(t.schedule(0, bytes.len(), tx)) {
+                    r.push(Char::new(start, *b, tx));
+                }
+                let (got, wake) = r.poll(u64::MAX / 2, rx);
+                prop_assert_eq!(wake, None);
+                let busy = t.free_at();
+                // A start bit needs a low level, found within the busy time; each
+                // character takes at least its stop-bit middle before the next.
+                let most = (busy / (rx.char_ns() / u64::from(rx.format.bits()) * u64::from(1 + u32::from(rx.format.data_bits)))) + 1;
+                prop_assert!(got.len() as u64 <= most, "{} > {}", got.len(), most);
+                let mut last = 0;
+                for a in &got {
+                    prop_assert!(a.at >= last);
+                    prop_assert!(a.at >= rx.char_ns());
+                    last = a.at;
+                }
+            }
+        }
+    }
 }
