@@ -352,8 +352,13 @@ fn ctrl_c_prints_what_was_found_so_far() {
     );
     std::thread::sleep(Duration::from_secs(5));
     let status = scan.stop_with("INT", Duration::from_secs(10));
-    std::thread::sleep(Duration::from_millis(500));
-    assert_eq!(status.code(), Some(0), "{}{}", scan.log(), scan.stdout.lock().unwrap());
+    assert_eq!(
+        status.code(),
+        Some(0),
+        "{}{}",
+        scan.log(),
+        scan.stdout.lock().unwrap()
+    );
     wait_for("the report", Duration::from_secs(5), || {
         scan.stdout.lock().unwrap().contains("For mbgate.toml")
     });

@@ -451,3 +451,74 @@ fn noise_flips_bits() {
         "{got:02X?}"
     );
 }
+
+/// The gap before each request (Modbus over Serial Line V1.02 §2.5.1.1: 3.5 character
+/// times of silence), seen by a device behind the line: a raw RTU device on end B that
+/// answers each read the instant it has it. Its reply's last stop bit ends its wire
+/// time after the write; the gateway's next request must not begin before 3.5
+/// characters after that, so its first byte cannot be read at B before 4.5 character
+/// times after it (the gap, then the byte's own time). Asserted for every request:
+/// a lower bound, which no load can break; the silences are printed.
+#[test]
+fn the_gap_before_each_request_holds_behind_the_line() {
+    let line = Line::start(&[]);
+    let baud = 19200u32;
+    let char_ns = 10 * 1_000_000_000u64 / u64::from(baud);
+    let mut dev = open_at(&line.b, libc::B19200);
+    let cfg = Cfg::new(&line.a)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .serial("port_kind = \"wire\"")
+        .serial(&format!("baud_rate = {baud}"))
+        .serial("silence_floor_ms = 50")
+        .relay("response_timeout_ms = 5000");
+    let gw = Gateway::start(&cfg, line._dir.path());
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let stopping = stop.clone();
+    let device = std::thread::spawn(move || {
+        let mut silences = Vec::new();
+        let mut reply_ends: Option<Instant> = None;
+        let mut buf = Vec::new();
+        while !stopping.load(std::sync::atomic::Ordering::Relaxed) {
+            let more = read_some(&mut dev, Duration::from_millis(50));
+            if more.is_empty() {
+                continue;
+            }
+            let at = Instant::now();
+            if buf.is_empty() {
+                if let Some(end) = reply_ends.take() {
+                    silences.push(at.saturating_duration_since(end));
+                }
+            }
+            buf.extend(more);
+            if buf.len() >= 8 {
+                let addr = u16::from_be_bytes([buf[2], buf[3]]);
+                let reply = mbgate::frame::rtu::encode(1, &[0x03, 0x02, 0x00, addr as u8]);
+                buf.clear();
+                let written = Instant::now();
+                dev.write_all(&reply).unwrap();
+                reply_ends = Some(written + Duration::from_nanos(char_ns * reply.len() as u64));
+            }
+        }
+        silences
+    });
+    let mut s = gw.connect();
+    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
+    for i in 0..20u16 {
+        let got = transact(&mut s, &read_req(i + 1, 1, i, 1));
+        assert_eq!(hexs(&got), hexs(&read_reply(i + 1, 1, &[i])), "read {i}");
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let mut silences = device.join().unwrap();
+    assert_eq!(silences.len(), 19);
+    let least = Duration::from_nanos(char_ns * 45 / 10);
+    for (i, s) in silences.iter().enumerate() {
+        assert!(
+            *s >= least,
+            "request {}: first byte {s:?} after the reply ended, under {least:?}",
+            i + 1
+        );
+    }
+    silences.sort();
+    eprintln!("19200 8N1: from a reply's end to the next request's first byte: min {:?}, median {:?}, max {:?} (at least {least:?})", silences[0], silences[9], silences[18]);
+}
