@@ -132,7 +132,7 @@ fn finds_the_device_at(baud: u32, rng: &mut fastrand::Rng) {
         // pymodbus in Python on a loaded machine can take longer than the default
         // 100 ms to answer.
         "--timeout-ms",
-        "300",
+        "600",
         "--json",
     ]);
     eprintln!("scan took {:?}: {}", t0.elapsed(), run.stdout);
@@ -165,7 +165,7 @@ fn finds_the_device_at(baud: u32, rng: &mut fastrand::Rng) {
         "--units",
         &scan_units,
         "--timeout-ms",
-        "300",
+        "600",
     ]);
     assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
     let parity = match &format[1..2] {
@@ -365,4 +365,46 @@ fn ctrl_c_prints_what_was_found_so_far() {
     let out = scan.stdout.lock().unwrap().clone();
     assert!(out.contains(", interrupted):"), "{out}");
     assert!(out.contains("[[line]]\nunits = [1]\n"), "{out}");
+}
+
+/// The default order: a device at 9600 8N1 RTU, unit 1 (one of the two likeliest
+/// settings) is found right after the three silent tries at 19200 8E1 RTU: 3 tries
+/// there, then units 1-20 at 9600 8N1 (FC 03, and FC 04 to each of the 19 silent
+/// ones), then its identity (2): 44 tries, a few seconds (one fewer FC 04 for each
+/// unit whose try heard a late reply of the one before: at least 23). Any other
+/// order would put 3 more tries before it for each setting tried first.
+#[test]
+fn the_default_order_finds_the_usual_settings_first() {
+    let line = Line::start("8N1");
+    let _device = Py::start(
+        "serial_device.py",
+        &[
+            "--port",
+            line.b.to_str().unwrap(),
+            "--baud",
+            "9600",
+            "--units",
+            "1",
+        ],
+    );
+    let run = mbgate(&[
+        "scan",
+        line.a.to_str().unwrap(),
+        "--units",
+        "1-20",
+        "--json",
+    ]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    assert_eq!(
+        found(&run.stdout),
+        vec![(1, Some(9600), Some("8N1".to_string()), "rtu".to_string())]
+    );
+    let v: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
+    let tries = v["tries"].as_u64().unwrap();
+    assert!(
+        (3 + 20..=3 + 20 + 19 + 2).contains(&tries),
+        "{}",
+        run.stdout
+    );
+    eprintln!("found at 9600 8N1 in {} s", v["elapsed_s"]);
 }

@@ -128,7 +128,8 @@ pub enum Heard {
 const SEARCH_LIMIT: usize = 600;
 
 /// Looks in `bytes` for a frame with a good CRC (RTU) or LRC (ASCII) answering
-/// `function`: its function code, or it with the exception bit. The request's own echo
+/// `function`: its function code, or it with the exception bit (for a read, either
+/// read). The request's own echo
 /// at the front (an RS-232 loopback, a 2-wire RS-485 adapter) is skipped. Any start
 /// and length is tried, so garbage before or after a reply does not hide it.
 pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> Heard {
@@ -137,7 +138,10 @@ pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> He
     if bytes.is_empty() {
         return Heard::Nothing;
     }
-    let answers = |fc: u8| fc & 0x7F == function;
+    // The two reads answer each other: FC 04 is asked where FC 03 got nothing, and
+    // FC 03's late reply may come while FC 04 is asked.
+    let reads = |f: u8| f == 3 || f == 4;
+    let answers = |fc: u8| fc & 0x7F == function || (reads(function) && reads(fc & 0x7F));
     match framing {
         Framing::Rtu => {
             for i in 0..bytes.len() {
@@ -395,8 +399,15 @@ mod tests {
         let mut bad = reply.clone();
         bad[3] ^= 1;
         assert_eq!(judge(Framing::Rtu, &req, 3, &bad), Heard::Garbage(7));
-        let other = rtu::encode(5, &[0x04, 0x02, 0x00, 0xFF]);
+        let other = rtu::encode(5, &[0x11, 0x02, 0x00, 0xFF]);
         assert_eq!(judge(Framing::Rtu, &req, 3, &other), Heard::Garbage(7));
+        // FC 03's late reply while FC 04 is asked is a reply.
+        let late = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
+        let req4 = rtu::encode(5, &read_one(4));
+        assert!(matches!(
+            judge(Framing::Rtu, &req4, 4, &late),
+            Heard::Frame { .. }
+        ));
         // ASCII: the LRC is checked.
         let req = ascii::encode(7, &read_one(4));
         let reply = ascii::encode(7, &[0x04, 0x02, 0x07, 0xD0]);

@@ -187,9 +187,14 @@ pub(super) async fn scan(
                     total += units.len().saturating_sub(per_setting);
                 }
                 if let Heard::Frame { unit: from, pdu } = &heard {
-                    if *from == unit {
+                    // A frame from a unit asked before is its late reply: each unit is
+                    // asked once, so it can be no other's.
+                    let late = *from != unit
+                        && units.contains(from)
+                        && !found_here.iter().any(|f: &Found| f.unit == *from);
+                    if *from == unit || late {
                         found_here.push(Found {
-                            unit,
+                            unit: *from,
                             serial: Some((s.baud, s.format, framing)),
                             answered: probe::describe(pdu),
                             device_id: Err("not asked".into()),
@@ -210,6 +215,8 @@ pub(super) async fn scan(
                 report.tries += 2;
                 super::identified(f, &device, &server);
             }
+            // In the order of their ids, late replies included.
+            found_here.sort_by_key(|f| f.unit);
             report.found.extend(found_here);
             if stop.is_cancelled() || (at.proven && !all) {
                 break 'settings;

@@ -14,8 +14,8 @@ A scan sends such a device requests at wrong baud rates and parities, which it h
 as garbage. pymodbus 3.16.1 keeps garbage in its receive buffer and may never find a
 frame after it; a device on a bus starts afresh after a silence (Modbus over Serial
 Line V1.02 §2.5.1.1), so here the buffer is emptied when bytes come after a silence
-of 10 character times, and at least 20 ms (longer than 3.5 characters, and than
-Python's own pauses on a loaded machine inside a frame).
+of 10 character times, and at least 50 ms (longer than 3.5 characters, and than
+Python's own pauses, or the virtual line's, on a loaded machine inside a frame).
 
 Prints READY on stdout once serving, then serves until SIGTERM or SIGINT.
 """
@@ -35,7 +35,7 @@ from pymodbus.transport.transport import ModbusProtocol
 import serving
 from stock_server import context
 
-SILENCE = [0.020]
+SILENCE = [0.050]
 _received = ModbusProtocol.datagram_received
 
 
@@ -62,7 +62,7 @@ async def main() -> int:
     args = ap.parse_args()
     logging.basicConfig(level=logging.CRITICAL, stream=sys.stderr)
     units = [int(u) for u in args.units.split(",")]
-    SILENCE[0] = max(0.020, 10 * 11 / args.baud)
+    SILENCE[0] = max(0.050, 10 * 11 / args.baud)
     devices = {u: context(20, u)._devices[u] for u in units}  # pylint: disable=protected-access
     identity = ModbusDeviceIdentification(
         info_name={"VendorName": "pymodbus-test", "ProductCode": "SCAN", "MajorMinorRevision": "3.16"}
