@@ -408,3 +408,22 @@ fn the_default_order_finds_the_usual_settings_first() {
     );
     eprintln!("found at 9600 8N1 in {} s", v["elapsed_s"]);
 }
+
+/// A port a running gateway holds is refused, naming the gateway's process.
+#[test]
+fn a_port_a_gateway_holds_is_refused() {
+    let line = Line::start("8N1");
+    let cfg = Cfg::new(&line.a)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"");
+    let gw = Gateway::start(&cfg, line._dir.path());
+    gw.wait_log("serial port open", Duration::from_secs(10));
+    let run = mbgate(&["scan", line.a.to_str().unwrap(), "--baud", "9600"]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("another process holds the port")
+            && run.stderr.contains(&format!("{} (mbgate)", gw.proc.pid())),
+        "{}",
+        run.stderr
+    );
+}
