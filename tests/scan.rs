@@ -151,7 +151,17 @@ fn finds_the_device_at(baud: u32, rng: &mut fastrand::Rng) {
     want.sort();
     assert_eq!(found(&run.stdout), want);
     let v: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
-    assert_eq!(v["found"][0]["device_id"]["0"], "pymodbus-test");
+    // Its identity, from at least one of its units (pymodbus in Python on a loaded
+    // machine can miss a request twice).
+    assert!(
+        v["found"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .any(|f| f["device_id"]["0"] == "pymodbus-test"),
+        "{}",
+        run.stdout
+    );
     // The table form, its [[line]] block ready for mbgate.toml.
     let run = mbgate(&[
         "scan",
@@ -370,8 +380,9 @@ fn ctrl_c_prints_what_was_found_so_far() {
 /// The default order: a device at 9600 8N1 RTU, unit 1 (one of the two likeliest
 /// settings) is found right after the three silent tries at 19200 8E1 RTU: 3 tries
 /// there, then units 1-20 at 9600 8N1 (FC 03, and FC 04 to each of the 19 silent
-/// ones), then its identity (2): 44 tries, a few seconds (one fewer FC 04 for each
-/// unit whose try heard a late reply of the one before: at least 23). Any other
+/// ones), then its identity (2, or up to 4 when asked again): 44 tries, a few seconds
+/// (one fewer FC 04 for each unit whose try heard a late reply of the one before: at
+/// least 23). Any other
 /// order would put 3 more tries before it for each setting tried first.
 #[test]
 fn the_default_order_finds_the_usual_settings_first() {
@@ -402,7 +413,7 @@ fn the_default_order_finds_the_usual_settings_first() {
     let v: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
     let tries = v["tries"].as_u64().unwrap();
     assert!(
-        (3 + 20..=3 + 20 + 19 + 2).contains(&tries),
+        (3 + 20..=3 + 20 + 19 + 4).contains(&tries),
         "{}",
         run.stdout
     );

@@ -210,9 +210,20 @@ pub(super) async fn scan(
                 if stop.is_cancelled() {
                     break;
                 }
-                let device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
-                let server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
-                report.tries += 2;
+                // Each asked again once when nothing came: a device busy with
+                // something else may miss one request.
+                let mut device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
+                report.tries += 1;
+                if device == Heard::Nothing {
+                    device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
+                    report.tries += 1;
+                }
+                let mut server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
+                report.tries += 1;
+                if server == Heard::Nothing {
+                    server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
+                    report.tries += 1;
+                }
                 super::identified(f, &device, &server);
             }
             // In the order of their ids, late replies included.
