@@ -33,6 +33,7 @@ const INSTALLED: &str = "# with the .deb installed";
 /// Programs a command may start with, besides mbgate and the scripts.
 const PROGRAMS: &[&str] = &[
     "cargo",
+    "sleep",
     "socat",
     "sudo",
     "sudoedit",
