@@ -76,6 +76,23 @@ enum Command {
     /// With a console when stdin is a terminal (`help` lists its commands); headless
     /// otherwise, logging each packet.
     Sim(mbgate::sim::options::SimArgs),
+    /// Find what is on a bus: baud rate, format, framing and unit ids, by reads only.
+    ///
+    /// Tries each setting (19200 8E1 and 9600 8N1 RTU first) with FC 03 of one
+    /// register to each unit; a setting is proven by any frame with a good CRC or LRC,
+    /// and left after --give-up units without one. Then each unit found is asked its
+    /// identity (FC 43/14, FC 17). Ends with a table and a [[line]] block for
+    /// mbgate.toml (docs/scan.md). Exit code 0 something answered, 1 nothing did or
+    /// the port could not be used (held by a gateway: the process is named), 2 bad
+    /// arguments.
+    Scan(mbgate::scan::ScanArgs),
+    /// A virtual serial line: two ptys joined like a null-modem cable, at the wire's pace.
+    ///
+    /// Each byte takes its time at its sender's baud rate (start, data, parity and stop
+    /// bits) and arrives as the receiver's UART takes it: garbled where the two ends'
+    /// baud rates or formats differ. Optional loss, noise and RS-232 echo, seeded. Runs
+    /// until Ctrl-C or SIGTERM (docs/simulator.md, "A virtual line").
+    Wire(mbgate::wire::WireArgs),
     /// No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process.
     Demo(mbgate::demo::DemoArgs),
     /// Ask a running gateway how its lines are: a summary per line and unit.
@@ -139,6 +156,8 @@ fn main() -> ExitCode {
         Command::Write(args) => mbgate::client::write_main(args),
         Command::Sim(args) => sim(args),
         Command::Demo(args) => demo(args),
+        Command::Wire(args) => mbgate::wire::main(args),
+        Command::Scan(args) => mbgate::scan::main(args),
         Command::Status(args) => mbgate::metrics::ask::main(args),
         Command::Generate(what) => generate(what),
         Command::Reload(args) => mbgate::control::reload::main(args),

@@ -33,6 +33,7 @@ const INSTALLED: &str = "# with the .deb installed";
 /// Programs a command may start with, besides mbgate and the scripts.
 const PROGRAMS: &[&str] = &[
     "cargo",
+    "sleep",
     "socat",
     "sudo",
     "sudoedit",
@@ -543,6 +544,16 @@ fn the_device_as_master_page_runs_as_printed() {
 #[test]
 fn the_watching_page_runs_as_printed() {
     assert_runs("docs/watching.md");
+}
+
+#[test]
+fn the_scan_page_runs_as_printed() {
+    assert_runs("docs/scan.md");
+}
+
+#[test]
+fn the_simulator_page_runs_as_printed() {
+    assert_runs("docs/simulator.md");
 }
 
 #[test]

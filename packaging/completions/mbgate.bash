@@ -40,11 +40,17 @@ _mbgate() {
             mbgate,run)
                 cmd="mbgate__subcmd__run"
                 ;;
+            mbgate,scan)
+                cmd="mbgate__subcmd__scan"
+                ;;
             mbgate,sim)
                 cmd="mbgate__subcmd__sim"
                 ;;
             mbgate,status)
                 cmd="mbgate__subcmd__status"
+                ;;
+            mbgate,wire)
+                cmd="mbgate__subcmd__wire"
                 ;;
             mbgate,write)
                 cmd="mbgate__subcmd__write"
@@ -91,11 +97,17 @@ _mbgate() {
             mbgate__subcmd__help,run)
                 cmd="mbgate__subcmd__help__subcmd__run"
                 ;;
+            mbgate__subcmd__help,scan)
+                cmd="mbgate__subcmd__help__subcmd__scan"
+                ;;
             mbgate__subcmd__help,sim)
                 cmd="mbgate__subcmd__help__subcmd__sim"
                 ;;
             mbgate__subcmd__help,status)
                 cmd="mbgate__subcmd__help__subcmd__status"
+                ;;
+            mbgate__subcmd__help,wire)
+                cmd="mbgate__subcmd__help__subcmd__wire"
                 ;;
             mbgate__subcmd__help,write)
                 cmd="mbgate__subcmd__help__subcmd__write"
@@ -113,7 +125,7 @@ _mbgate() {
 
     case "${cmd}" in
         mbgate)
-            opts="-h -V --help --version run check-config read write sim demo status capture generate reload help"
+            opts="-h -V --help --version run check-config read write sim scan wire demo status capture generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 1 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -607,7 +619,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__help)
-            opts="run check-config read write sim demo status capture generate reload help"
+            opts="run check-config read write sim scan wire demo status capture generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -760,6 +772,20 @@ _mbgate() {
             COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
             return 0
             ;;
+        mbgate__subcmd__help__subcmd__scan)
+            opts=""
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
         mbgate__subcmd__help__subcmd__sim)
             opts=""
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
@@ -775,6 +801,20 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__help__subcmd__status)
+            opts=""
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
+        mbgate__subcmd__help__subcmd__wire)
             opts=""
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
@@ -1120,6 +1160,48 @@ _mbgate() {
             COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
             return 0
             ;;
+        mbgate__subcmd__scan)
+            opts="-h --tcp --baud --format --framing --units --timeout-ms --give-up --all --json --help"
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                --tcp)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --baud)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --format)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --framing)
+                    COMPREPLY=($(compgen -W "rtu ascii" -- "${cur}"))
+                    return 0
+                    ;;
+                --units)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --timeout-ms)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --give-up)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
         mbgate__subcmd__sim)
             opts="-h --serial --listen --connections --profile --unit --input-address --output-address --loopback --notify --toggle-ms --units --fill --coils --registers --delay-ms --drop --noise --corrupt --faults --seed --pipeline --confirm-requests --chunks --chunk-gap-ms --frame-gap-ms --log-level --headless --role --poll-ms --timeout-ms --baud --data-bits --parity --stop-bits --flow-control --framing --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
@@ -1266,6 +1348,44 @@ _mbgate() {
             fi
             case "${prev}" in
                 --metrics)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
+        mbgate__subcmd__wire)
+            opts="-h --format --a --b --loss --noise --echo --seed --help"
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                --format)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --a)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --b)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --loss)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --noise)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --seed)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;

@@ -1,0 +1,462 @@
+//! `mbgate scan` (docs/scan.md): what is on a bus. Tries baud rates, formats, framings
+//! and unit ids on a serial port, or unit ids on a Modbus/TCP address, with reads only,
+//! and says what answered, with a ready `[[line]]` block. What is sent and judged is
+//! `probe.rs`'s (pure); the port's side `serial.rs`'s and `tcp.rs`'s; here the
+//! options, the loop over settings and the report.
+
+pub mod probe;
+mod serial;
+mod tcp;
+
+use probe::{Framing, Heard, Units};
+use std::io::IsTerminal;
+use std::process::ExitCode;
+use std::time::{Duration, Instant};
+use tokio_util::sync::CancellationToken;
+
+use crate::wire::uart::{Format, Parity};
+
+/// `mbgate scan`'s options.
+#[derive(Debug, clap::Args)]
+pub struct ScanArgs {
+    /// The serial port (or a virtual line's end) to scan.
+    #[arg(value_name = "PORT", required_unless_present = "tcp")]
+    pub port: Option<String>,
+    /// Scan a Modbus/TCP device or gateway at HOST:PORT instead: unit ids only.
+    #[arg(long, value_name = "HOST:PORT", conflicts_with = "port")]
+    pub tcp: Option<String>,
+    /// The baud rates to try, in order [default: 19200,9600,115200,38400,57600,4800,2400,1200]
+    #[arg(long, value_delimiter = ',', value_name = "BAUD,...")]
+    pub baud: Vec<u32>,
+    /// The formats to try, in order [default: 8E1,8N1,8N2,8O1]
+    #[arg(long, value_delimiter = ',', value_name = "FORMAT,...")]
+    pub format: Vec<Format>,
+    /// The framings to try, in order [default: rtu,ascii]
+    #[arg(long, value_delimiter = ',', value_name = "FRAMING,...")]
+    pub framing: Vec<Framing>,
+    /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
+    #[arg(long, default_value = "1-247", value_name = "IDS")]
+    pub units: Units,
+    /// How long a device may take to answer, beyond the request's and the reply's own
+    /// time on the wire.
+    #[arg(long, default_value_t = 100, value_name = "MS")]
+    pub timeout_ms: u64,
+    /// Leave a setting after this many units got no frame with a good CRC or LRC (a
+    /// setting that got one is scanned to the last unit).
+    #[arg(long, default_value_t = 3, value_name = "N")]
+    pub give_up: usize,
+    /// Go on to the other settings after one is found (a bus has one setting, so by
+    /// default the scan ends with the first that answers).
+    #[arg(long)]
+    pub all: bool,
+    /// Print the result as JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+/// Why a scan could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanError {
+    /// A bad option.
+    #[error("{0}")]
+    Option(String),
+    /// The port could not be opened (held by a gateway, absent...).
+    #[error("cannot open {path}: {source}")]
+    Open {
+        /// The port.
+        path: String,
+        /// Why: names the process that holds it, when one does.
+        source: tokio_serial::Error,
+    },
+    /// Reading or writing failed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// A unit that answered.
+#[derive(Debug, Clone)]
+pub struct Found {
+    /// Its id.
+    pub unit: u8,
+    /// Its setting (none on TCP).
+    pub serial: Option<(u32, Format, Framing)>,
+    /// What it answered to the read.
+    pub answered: String,
+    /// Its read device identification objects, or why none.
+    pub device_id: Result<Vec<(u8, String)>, String>,
+    /// Its report server id data, or why none.
+    pub server_id: Result<Vec<u8>, String>,
+}
+
+/// What a scan found, and how it went.
+#[derive(Debug, Default)]
+pub struct Report {
+    /// The units that answered.
+    pub found: Vec<Found>,
+    /// Settings where bytes came but no frame with a good check.
+    pub garbage: Vec<(u32, Format, Framing)>,
+    /// Ctrl-C ended it early.
+    pub interrupted: bool,
+    /// How long it took.
+    pub elapsed: Duration,
+    /// Tries made.
+    pub tries: usize,
+}
+
+/// Runs `mbgate scan`: exit code 0 something answered, 1 nothing did or the port could
+/// not be used, 2 bad options.
+pub fn main(args: ScanArgs) -> ExitCode {
+    let rt = match tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+    {
+        Ok(rt) => rt,
+        Err(e) => {
+            eprintln!("mbgate: starting the runtime: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let stop = CancellationToken::new();
+    let result = rt.block_on(async {
+        let cancel = stop.clone();
+        tokio::spawn(async move {
+            if tokio::signal::ctrl_c().await.is_ok() {
+                cancel.cancel();
+            }
+        });
+        let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
+        run(&args, stop, progress).await
+    });
+    let report = match result {
+        Ok(r) => r,
+        Err(ScanError::Option(e)) => {
+            eprintln!("mbgate: {e}");
+            return ExitCode::from(2);
+        }
+        Err(e) => {
+            eprintln!("mbgate: {e}");
+            return ExitCode::FAILURE;
+        }
+    };
+    let target = args.tcp.clone().or(args.port.clone()).unwrap_or_default();
+    if args.json {
+        println!("{}", json(&report, &target, args.tcp.is_some()));
+    } else {
+        print!("{}", table(&report, &target, args.tcp.is_some(), &args));
+    }
+    if report.found.is_empty() {
+        ExitCode::FAILURE
+    } else {
+        ExitCode::SUCCESS
+    }
+}
+
+/// The scan itself, until done or `stop`.
+pub async fn run(
+    args: &ScanArgs,
+    stop: CancellationToken,
+    mut progress: Progress,
+) -> Result<Report, ScanError> {
+    let started = Instant::now();
+    let timeout = Duration::from_millis(args.timeout_ms);
+    let units = args.units.0.clone();
+    let mut report = if let Some(addr) = &args.tcp {
+        tcp::scan(addr, &units, timeout, &stop, &mut progress).await?
+    } else {
+        let path = args.port.clone().unwrap_or_default();
+        let bauds = if args.baud.is_empty() {
+            probe::DEFAULT_BAUDS.to_vec()
+        } else {
+            args.baud.clone()
+        };
+        if let Some(b) = bauds.iter().find(|&&b| !(50..=4_000_000).contains(&b)) {
+            return Err(ScanError::Option(format!("--baud {b}: 50 to 4000000")));
+        }
+        let formats: Vec<Format> = if args.format.is_empty() {
+            probe::DEFAULT_FORMATS
+                .iter()
+                .filter_map(|s| s.parse().ok())
+                .collect()
+        } else {
+            args.format.clone()
+        };
+        if let Some(f) = formats.iter().find(|f| f.data_bits < 7) {
+            return Err(ScanError::Option(format!("--format {f}: 7 or 8 data bits")));
+        }
+        let framings = if args.framing.is_empty() {
+            vec![Framing::Rtu, Framing::Ascii]
+        } else {
+            args.framing.clone()
+        };
+        let e1: Format = "8E1".parse().expect("a format");
+        let first = [(19200, e1, Framing::Rtu), (9600, Format::N81, Framing::Rtu)];
+        let settings = probe::order(&bauds, &formats, &framings, &first);
+        serial::scan(
+            &path,
+            &settings,
+            &units,
+            args.give_up,
+            timeout,
+            args.all,
+            &stop,
+            &mut progress,
+        )
+        .await?
+    };
+    progress.done();
+    report.interrupted = stop.is_cancelled();
+    report.elapsed = started.elapsed();
+    Ok(report)
+}
+
+/// A unit's identity from the replies to FC 43/14 and FC 17 (either may be nothing).
+pub(crate) fn identified(found: &mut Found, device: &Heard, server: &Heard) {
+    found.device_id = match device {
+        Heard::Frame { pdu, .. } => probe::device_id(pdu),
+        _ => Err("no answer".into()),
+    };
+    found.server_id = match server {
+        Heard::Frame { pdu, .. } => probe::server_id(pdu),
+        _ => Err("no answer".into()),
+    };
+}
+
+/// The progress bar on stderr, when it is a terminal: tries made and the time left at
+/// most, from the tries the give-up rule still allows.
+#[derive(Debug)]
+pub struct Progress {
+    on: bool,
+    started: Instant,
+    drawn: bool,
+}
+
+impl Progress {
+    /// Draws only when `on`.
+    pub fn new(on: bool) -> Progress {
+        Progress {
+            on,
+            started: Instant::now(),
+            drawn: false,
+        }
+    }
+
+    /// `done` tries made of at most `total`, the rest costing `left` at most; `what`
+    /// is being tried.
+    pub(crate) fn show(&mut self, done: usize, total: usize, left: Duration, what: &str) {
+        if !self.on {
+            return;
+        }
+        let width = 30;
+        let filled = (done * width).checked_div(total).unwrap_or(0).min(width);
+        eprint!(
+            "\r[{}{}] {done}/{total} tries, {:.0} s, at most {:.0} s left: {what}\x1b[K",
+            "#".repeat(filled),
+            " ".repeat(width - filled),
+            self.started.elapsed().as_secs_f64(),
+            left.as_secs_f64(),
+        );
+        self.drawn = true;
+    }
+
+    fn done(&mut self) {
+        if self.drawn {
+            eprint!("\r\x1b[K");
+        }
+    }
+}
+
+fn parity_name(p: Parity) -> &'static str {
+    match p {
+        Parity::None => "none",
+        Parity::Even => "even",
+        Parity::Odd => "odd",
+    }
+}
+
+fn identity(f: &Found) -> String {
+    let mut parts = Vec::new();
+    if let Ok(objects) = &f.device_id {
+        let text: Vec<&str> = objects.iter().map(|(_, v)| v.as_str()).collect();
+        if !text.is_empty() {
+            parts.push(text.join(" "));
+        }
+    }
+    if let Ok(data) = &f.server_id {
+        parts.push(format!("server id {}", probe::server_id_text(data)));
+    }
+    if parts.is_empty() {
+        "-".into()
+    } else {
+        parts.join("; ")
+    }
+}
+
+/// The report as a table and a `[[line]]` block; or "nothing found" and a hint.
+pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    let took = format!(
+        "{:.1} s, {} tries{}",
+        report.elapsed.as_secs_f64(),
+        report.tries,
+        if report.interrupted {
+            ", interrupted"
+        } else {
+            ""
+        }
+    );
+    if report.found.is_empty() {
+        let _ = writeln!(s, "nothing found on {target} ({took})");
+        for (b, f, fr) in &report.garbage {
+            let _ = writeln!(
+                s,
+                "bytes came back at {b} {f} {} but no frame with a good check",
+                fr.name()
+            );
+        }
+        let hint = if tcp {
+            "hint: is it a Modbus/TCP device (port 502)? Try more --units, a longer --timeout-ms"
+        } else if report.garbage.is_empty() {
+            "hint: nothing at all came back: check the wiring (RS-485 A and B swapped? \
+             the bus terminated?), the device's power, and that it is a Modbus device; \
+             a unit id above --give-up at a setting not proven is not tried: give the \
+             setting you suspect with --baud, --format, --framing and --give-up 247"
+        } else {
+            "hint: bytes came back without a good frame: a device is there at another \
+             setting (try --all, or other --baud and --format), or the line is noisy"
+        };
+        let _ = writeln!(s, "{hint}");
+        return s;
+    }
+    let _ = writeln!(s, "found on {target} ({took}):");
+    let _ = writeln!(
+        s,
+        "{:<5} {:<7} {:<6} {:<8} {:<24} identity",
+        "unit", "baud", "format", "framing", "answered"
+    );
+    for f in &report.found {
+        let (b, fmt, fr) = match f.serial {
+            Some((b, fmt, fr)) => (b.to_string(), fmt.to_string(), fr.name()),
+            None => ("-".into(), "-".into(), "mbap"),
+        };
+        let _ = writeln!(
+            s,
+            "{:<5} {:<7} {:<6} {:<8} {:<24} {}",
+            f.unit,
+            b,
+            fmt,
+            fr,
+            f.answered,
+            identity(f)
+        );
+    }
+    let _ = writeln!(s, "\nFor mbgate.toml:\n");
+    let mut settings: Vec<Option<(u32, Format, Framing)>> = Vec::new();
+    for f in &report.found {
+        if !settings.contains(&f.serial) {
+            settings.push(f.serial);
+        }
+    }
+    for setting in settings {
+        let units: Vec<String> = report
+            .found
+            .iter()
+            .filter(|f| f.serial == setting)
+            .map(|f| f.unit.to_string())
+            .collect();
+        let _ = writeln!(s, "[[line]]\nunits = [{}]", units.join(", "));
+        match setting {
+            None => {
+                let _ = writeln!(
+                    s,
+                    "tcp = {{ address = \"{target}\", framing = \"mbap\" }}\n"
+                );
+            }
+            Some((b, f, fr)) => {
+                let _ = writeln!(
+                    s,
+                    "serial = {{ path = \"{target}\", baud_rate = {b}, data_bits = {}, \
+                     parity = \"{}\", stop_bits = {}, framing = \"{}\", flow_control = \"none\" }}\n",
+                    f.data_bits,
+                    parity_name(f.parity),
+                    f.stop_bits,
+                    fr.name()
+                );
+            }
+        }
+    }
+    let _ = args;
+    s
+}
+
+/// A string as JSON.
+fn js(s: &str) -> String {
+    let mut out = String::from("\"");
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if (c as u32) < 0x20 => out.push_str(&format!("\\u{:04x}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+/// The report as one JSON object.
+pub fn json(report: &Report, target: &str, tcp: bool) -> String {
+    let found: Vec<String> = report
+        .found
+        .iter()
+        .map(|f| {
+            let setting = match f.serial {
+                Some((b, fmt, fr)) => format!(
+                    "\"baud\":{b},\"format\":{},\"framing\":{}",
+                    js(&fmt.to_string()),
+                    js(fr.name())
+                ),
+                None => "\"framing\":\"mbap\"".into(),
+            };
+            let device_id = match &f.device_id {
+                Ok(objects) => {
+                    let o: Vec<String> = objects
+                        .iter()
+                        .map(|(id, v)| format!("{}:{}", js(&id.to_string()), js(v)))
+                        .collect();
+                    format!("{{{}}}", o.join(","))
+                }
+                Err(_) => "null".into(),
+            };
+            let server_id = match &f.server_id {
+                Ok(d) => js(&d.iter().map(|b| format!("{b:02X}")).collect::<String>()),
+                Err(_) => "null".into(),
+            };
+            format!(
+                "{{\"unit\":{},{setting},\"answered\":{},\"device_id\":{device_id},\"server_id\":{server_id}}}",
+                f.unit,
+                js(&f.answered)
+            )
+        })
+        .collect();
+    let garbage: Vec<String> = report
+        .garbage
+        .iter()
+        .map(|(b, f, fr)| {
+            format!(
+                "{{\"baud\":{b},\"format\":{},\"framing\":{}}}",
+                js(&f.to_string()),
+                js(fr.name())
+            )
+        })
+        .collect();
+    format!(
+        "{{\"target\":{},\"tcp\":{tcp},\"found\":[{}],\"garbage\":[{}],\"interrupted\":{},\"elapsed_s\":{:.3},\"tries\":{}}}",
+        js(target),
+        found.join(","),
+        garbage.join(","),
+        report.interrupted,
+        report.elapsed.as_secs_f64(),
+        report.tries
+    )
+}

@@ -1,0 +1,542 @@
+//! What `mbgate scan` sends and how it judges what comes back, pure: the order of the
+//! settings tried, the read requests, the search of a reply for a frame with a good
+//! CRC or LRC, the give-up rule of a setting, and the identity a device reports
+//! (FC 43/14, FC 17: Modbus Application Protocol V1.1b3 §6.21, §6.13).
+
+use crate::frame::{ascii, rtu};
+use crate::wire::uart::Format;
+
+/// A serial framing the scan tries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum Framing {
+    /// Modbus RTU: binary, CRC-16.
+    Rtu,
+    /// Modbus ASCII: hex between `:` and CR LF, LRC.
+    Ascii,
+}
+
+impl Framing {
+    /// As the configuration spells it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Framing::Rtu => "rtu",
+            Framing::Ascii => "ascii",
+        }
+    }
+
+    /// `unit`, `pdu` and the check, framed.
+    pub fn encode(self, unit: u8, pdu: &[u8]) -> Vec<u8> {
+        match self {
+            Framing::Rtu => rtu::encode(unit, pdu),
+            Framing::Ascii => ascii::encode(unit, pdu),
+        }
+    }
+
+    /// Bytes on the wire for a PDU of `pdu_len` bytes.
+    pub fn wire_len(self, pdu_len: usize) -> usize {
+        match self {
+            Framing::Rtu => pdu_len + 3,
+            Framing::Ascii => 2 * (pdu_len + 2) + 3,
+        }
+    }
+}
+
+/// The baud rates tried by default, most used first.
+pub const DEFAULT_BAUDS: [u32; 8] = [19200, 9600, 115200, 38400, 57600, 4800, 2400, 1200];
+
+/// The formats tried by default: the specification's default (8E1), the most used in
+/// practice (8N1), the specification's no-parity form (8N2), odd parity.
+pub const DEFAULT_FORMATS: [&str; 4] = ["8E1", "8N1", "8N2", "8O1"];
+
+/// One setting of the port, with the framings tried on it while it is open.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Setting {
+    /// Bits per second.
+    pub baud: u32,
+    /// Data bits, parity, stop bits.
+    pub format: Format,
+    /// Tried in this order.
+    pub framings: Vec<Framing>,
+}
+
+/// Every combination of `bauds` × `formats` × `framings`, in that order of importance,
+/// except that `first` (the likeliest: 19200 8E1 RTU, the specification's default, and
+/// 9600 8N1 RTU, the most common) go before all. Consecutive tries at one baud rate and
+/// format share one open of the port.
+pub fn order(
+    bauds: &[u32],
+    formats: &[Format],
+    framings: &[Framing],
+    first: &[(u32, Format, Framing)],
+) -> Vec<Setting> {
+    let wanted = |&(b, f, fr): &(u32, Format, Framing)| {
+        bauds.contains(&b) && formats.contains(&f) && framings.contains(&fr)
+    };
+    let mut triples: Vec<(u32, Format, Framing)> = first.iter().copied().filter(wanted).collect();
+    for &b in bauds {
+        for &f in formats {
+            for &fr in framings {
+                if !triples.contains(&(b, f, fr)) {
+                    triples.push((b, f, fr));
+                }
+            }
+        }
+    }
+    let mut out: Vec<Setting> = Vec::new();
+    for (baud, format, framing) in triples {
+        match out.last_mut() {
+            Some(s) if s.baud == baud && s.format == format => s.framings.push(framing),
+            _ => out.push(Setting {
+                baud,
+                format,
+                framings: vec![framing],
+            }),
+        }
+    }
+    out
+}
+
+/// The read a unit is asked first: FC 03 (or 04) of one register at address 0.
+pub fn read_one(function: u8) -> [u8; 5] {
+    [function, 0x00, 0x00, 0x00, 0x01]
+}
+
+/// FC 43 / MEI 14, read device identification, basic stream (01) from object 0.
+pub const DEVICE_ID: [u8; 4] = [0x2B, 0x0E, 0x01, 0x00];
+
+/// FC 17, report server id.
+pub const SERVER_ID: [u8; 1] = [0x11];
+
+/// What came back for a request.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Heard {
+    /// Nothing at all (or only the request's own echo).
+    Nothing,
+    /// Bytes, but no frame with a good check for this request.
+    Garbage(usize),
+    /// A frame with a good check whose function is the request's (or its exception).
+    Frame {
+        /// The unit that answered.
+        unit: u8,
+        /// Its PDU.
+        pdu: Vec<u8>,
+    },
+}
+
+/// The most bytes searched for a frame: a reply to these requests is far shorter, and
+/// the search is quadratic.
+const SEARCH_LIMIT: usize = 600;
+
+/// Looks in `bytes` for a frame with a good CRC (RTU) or LRC (ASCII) answering
+/// `function`: its function code, or it with the exception bit (for a read, either
+/// read). The request's own echo
+/// at the front (an RS-232 loopback, a 2-wire RS-485 adapter) is skipped. Any start
+/// and length is tried, so garbage before or after a reply does not hide it.
+pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> Heard {
+    let bytes = bytes.strip_prefix(request).unwrap_or(bytes);
+    let bytes = &bytes[..bytes.len().min(SEARCH_LIMIT)];
+    if bytes.is_empty() {
+        return Heard::Nothing;
+    }
+    // The two reads answer each other: FC 04 is asked where FC 03 got nothing, and
+    // FC 03's late reply may come while FC 04 is asked.
+    let reads = |f: u8| f == 3 || f == 4;
+    let answers = |fc: u8| fc & 0x7F == function || (reads(function) && reads(fc & 0x7F));
+    match framing {
+        Framing::Rtu => {
+            for i in 0..bytes.len() {
+                if bytes.len() - i < 4 || !answers(bytes[i + 1]) {
+                    continue;
+                }
+                for j in i + 4..=bytes.len() {
+                    if let Some((unit, pdu)) = rtu::decode(&bytes[i..j]) {
+                        return Heard::Frame {
+                            unit,
+                            pdu: pdu.to_vec(),
+                        };
+                    }
+                }
+            }
+        }
+        Framing::Ascii => {
+            let mut start = 0;
+            while let Some(colon) = bytes[start..].iter().position(|&b| b == b':') {
+                let from = start + colon;
+                let Some(lf) = bytes[from..].iter().position(|&b| b == b'\n') else {
+                    break;
+                };
+                if let Some((unit, pdu)) = ascii::decode(&bytes[from..=from + lf]) {
+                    if pdu.first().is_some_and(|&fc| answers(fc)) {
+                        return Heard::Frame { unit, pdu };
+                    }
+                }
+                start = from + 1;
+            }
+        }
+    }
+    Heard::Garbage(bytes.len())
+}
+
+/// A reply's PDU in a few words: the register read, or the exception.
+pub fn describe(pdu: &[u8]) -> String {
+    match pdu {
+        [fc, code, ..] if fc & 0x80 != 0 => {
+            format!("FC {:02}: exception {code:02X}", fc & 0x7F)
+        }
+        [fc, 2, hi, lo] => format!("FC {fc:02}: {}", u16::from_be_bytes([*hi, *lo])),
+        [fc, ..] => format!("FC {fc:02}: {} bytes", pdu.len() - 1),
+        [] => String::new(),
+    }
+}
+
+/// The objects of a read device identification reply, `(id, value)`, or why not.
+pub fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, String> {
+    if let [fc, code, ..] = pdu {
+        if fc & 0x80 != 0 {
+            return Err(format!("exception {code:02X}"));
+        }
+    }
+    let [0x2B, 0x0E, _code, _conformity, _more, _next, count, rest @ ..] = pdu else {
+        return Err("a malformed reply".into());
+    };
+    let mut objects = Vec::new();
+    let mut rest = rest;
+    for _ in 0..*count {
+        let [id, len, tail @ ..] = rest else { break };
+        let len = usize::from(*len).min(tail.len());
+        objects.push((*id, String::from_utf8_lossy(&tail[..len]).into_owned()));
+        rest = &tail[len..];
+    }
+    Ok(objects)
+}
+
+/// The data of a report server id reply, or why not.
+pub fn server_id(pdu: &[u8]) -> Result<Vec<u8>, String> {
+    match pdu {
+        [fc, code, ..] if fc & 0x80 != 0 => Err(format!("exception {code:02X}")),
+        [0x11, count, data @ ..] => Ok(data[..usize::from(*count).min(data.len())].to_vec()),
+        _ => Err("a malformed reply".into()),
+    }
+}
+
+/// Bytes shown as text where they are printable, else as hex.
+pub fn printable(data: &[u8]) -> String {
+    if !data.is_empty() && data.iter().all(|b| (0x20..0x7F).contains(b)) {
+        String::from_utf8_lossy(data).into_owned()
+    } else {
+        data.iter().map(|b| format!("{b:02X}")).collect()
+    }
+}
+
+/// A report server id's data for a person: the run indicator status (0x00 OFF, 0xFF
+/// ON), when it is the last byte after printable text, said as such.
+pub fn server_id_text(data: &[u8]) -> String {
+    match data.split_last() {
+        Some((&run @ (0x00 | 0xFF), text))
+            if !text.is_empty() && text.iter().all(|b| (0x20..0x7F).contains(b)) =>
+        {
+            let on = if run == 0xFF { "ON" } else { "OFF" };
+            format!("{}, run indicator {on}", String::from_utf8_lossy(text))
+        }
+        _ => printable(data),
+    }
+}
+
+/// The units of one setting, and when to leave it: a setting is proven by any frame
+/// with a good check; until then, after `give_up` units have got no such frame, it is
+/// left (at a wrong baud rate or parity a device hears garbage and stays silent, so
+/// every further unit would cost a whole timeout for nothing). Once proven, every unit
+/// is tried.
+#[derive(Debug, Clone)]
+pub struct AtSetting {
+    units: Vec<u8>,
+    next: usize,
+    give_up: usize,
+    /// A frame with a good check came at this setting.
+    pub proven: bool,
+    /// Some try got bytes without a frame.
+    pub garbage: bool,
+}
+
+impl AtSetting {
+    /// Starts on `units`.
+    pub fn new(units: Vec<u8>, give_up: usize) -> AtSetting {
+        AtSetting {
+            units,
+            next: 0,
+            give_up,
+            proven: false,
+            garbage: false,
+        }
+    }
+
+    /// The unit to try next, if the setting is not done with.
+    pub fn next_unit(&self) -> Option<u8> {
+        if !self.proven && self.next >= self.give_up {
+            return None;
+        }
+        self.units.get(self.next).copied()
+    }
+
+    /// What the unit last returned by [`next_unit`](Self::next_unit) got.
+    pub fn record(&mut self, heard: &Heard) {
+        self.next += 1;
+        match heard {
+            Heard::Frame { .. } => self.proven = true,
+            Heard::Garbage(_) => self.garbage = true,
+            Heard::Nothing => {}
+        }
+    }
+
+    /// Tries left at most, as things stand (for the time left).
+    pub fn left(&self) -> usize {
+        let end = if self.proven {
+            self.units.len()
+        } else {
+            self.give_up.min(self.units.len())
+        };
+        end.saturating_sub(self.next)
+    }
+}
+
+/// A list of unit ids: `1-247`, `1,2,10-20`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Units(pub Vec<u8>);
+
+impl std::str::FromStr for Units {
+    type Err = String;
+
+    fn from_str(s: &str) -> Result<Units, String> {
+        let mut out = Vec::new();
+        for part in s.split(',') {
+            let bad = || format!("{part:?}: a unit id is 1 to 247, a range A-B");
+            let id = |x: &str| match x.trim().parse::<u8>() {
+                Ok(n @ 1..=247) => Ok(n),
+                _ => Err(bad()),
+            };
+            match part.split_once('-') {
+                Some((a, b)) => {
+                    let (a, b) = (id(a)?, id(b)?);
+                    if a > b {
+                        return Err(bad());
+                    }
+                    out.extend(a..=b);
+                }
+                None => out.push(id(part)?),
+            }
+        }
+        out.dedup();
+        Ok(Units(out))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn f(s: &str) -> Format {
+        s.parse().unwrap()
+    }
+
+    #[test]
+    fn the_likeliest_settings_come_first_and_share_an_open() {
+        let formats: Vec<Format> = DEFAULT_FORMATS.iter().map(|s| f(s)).collect();
+        let first = [
+            (19200, f("8E1"), Framing::Rtu),
+            (9600, f("8N1"), Framing::Rtu),
+        ];
+        let o = order(
+            &DEFAULT_BAUDS,
+            &formats,
+            &[Framing::Rtu, Framing::Ascii],
+            &first,
+        );
+        assert_eq!(o[0].baud, 19200);
+        assert_eq!(o[0].format, f("8E1"));
+        assert_eq!(o[0].framings, vec![Framing::Rtu]);
+        assert_eq!((o[1].baud, o[1].format), (9600, f("8N1")));
+        // Every combination once: 8 × 4 × 2.
+        let tries: usize = o.iter().map(|s| s.framings.len()).sum();
+        assert_eq!(tries, 64);
+        // 19200 8E1 ASCII comes later, in its own open.
+        assert_eq!(o[2].baud, 19200);
+        assert_eq!(o[2].framings, vec![Framing::Ascii]);
+        // A first setting not asked for is not tried.
+        let o = order(&[1200], &[f("8N1")], &[Framing::Ascii], &first);
+        assert_eq!(o.len(), 1);
+        assert_eq!(o[0].framings, vec![Framing::Ascii]);
+    }
+
+    #[test]
+    fn a_good_frame_is_found_among_echo_and_garbage() {
+        let req = rtu::encode(5, &read_one(3));
+        let reply = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
+        assert_eq!(
+            judge(Framing::Rtu, &req, 3, &reply),
+            Heard::Frame {
+                unit: 5,
+                pdu: vec![0x03, 0x02, 0x00, 0xFF]
+            }
+        );
+        // Echo first, garbage around.
+        let mut noisy = req.clone();
+        noisy.extend([0x00, 0xF8]);
+        noisy.extend(&reply);
+        noisy.push(0x77);
+        assert!(matches!(
+            judge(Framing::Rtu, &req, 3, &noisy),
+            Heard::Frame { unit: 5, .. }
+        ));
+        // An exception is a reply.
+        let exc = rtu::encode(5, &[0x83, 0x02]);
+        assert!(matches!(
+            judge(Framing::Rtu, &req, 3, &exc),
+            Heard::Frame { .. }
+        ));
+        // The echo alone is nothing; a bad CRC is garbage; a good frame of another
+        // function is not this request's.
+        assert_eq!(judge(Framing::Rtu, &req, 3, &req), Heard::Nothing);
+        let mut bad = reply.clone();
+        bad[3] ^= 1;
+        assert_eq!(judge(Framing::Rtu, &req, 3, &bad), Heard::Garbage(7));
+        let other = rtu::encode(5, &[0x11, 0x02, 0x00, 0xFF]);
+        assert_eq!(judge(Framing::Rtu, &req, 3, &other), Heard::Garbage(7));
+        // FC 03's late reply while FC 04 is asked is a reply.
+        let late = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
+        let req4 = rtu::encode(5, &read_one(4));
+        assert!(matches!(
+            judge(Framing::Rtu, &req4, 4, &late),
+            Heard::Frame { .. }
+        ));
+        // ASCII: the LRC is checked.
+        let req = ascii::encode(7, &read_one(4));
+        let reply = ascii::encode(7, &[0x04, 0x02, 0x07, 0xD0]);
+        let mut noisy = b"\x00zz".to_vec();
+        noisy.extend(&reply);
+        assert!(matches!(
+            judge(Framing::Ascii, &req, 4, &noisy),
+            Heard::Frame { unit: 7, .. }
+        ));
+        let mut bad = reply.clone();
+        bad[5] = b'F';
+        assert!(matches!(
+            judge(Framing::Ascii, &req, 4, &bad),
+            Heard::Garbage(_)
+        ));
+        assert_eq!(judge(Framing::Ascii, &req, 4, b""), Heard::Nothing);
+    }
+
+    #[test]
+    fn a_setting_is_left_after_give_up_units_unless_proven() {
+        let mut s = AtSetting::new((1..=247).collect(), 3);
+        let mut tried = Vec::new();
+        while let Some(u) = s.next_unit() {
+            tried.push(u);
+            s.record(&Heard::Nothing);
+        }
+        assert_eq!(tried, vec![1, 2, 3]);
+        assert!(!s.proven);
+        // Garbage does not prove it either.
+        let mut s = AtSetting::new((1..=247).collect(), 2);
+        s.record(&Heard::Garbage(3));
+        s.record(&Heard::Garbage(3));
+        assert_eq!(s.next_unit(), None);
+        assert!(s.garbage);
+        // A frame at the third unit: every unit is tried.
+        let mut s = AtSetting::new((1..=10).collect(), 3);
+        let mut n = 0;
+        while let Some(u) = s.next_unit() {
+            n += 1;
+            let heard = if u == 3 {
+                Heard::Frame {
+                    unit: 3,
+                    pdu: vec![3, 2, 0, 0],
+                }
+            } else {
+                Heard::Nothing
+            };
+            s.record(&heard);
+            if u == 3 {
+                assert_eq!(s.left(), 7);
+            }
+        }
+        assert_eq!(n, 10);
+    }
+
+    #[test]
+    fn identities_parse() {
+        let pdu = [
+            0x2B, 0x0E, 0x01, 0x01, 0x00, 0x00, 0x02, 0x00, 0x03, b'A', b'C', b'M', 0x01, 0x02,
+            b'X', b'1',
+        ];
+        assert_eq!(
+            device_id(&pdu).unwrap(),
+            vec![(0, "ACM".to_string()), (1, "X1".to_string())]
+        );
+        assert_eq!(device_id(&[0xAB, 0x01]), Err("exception 01".into()));
+        assert_eq!(
+            server_id(&[0x11, 0x03, 0x0A, 0xFF, 0x00]).unwrap(),
+            vec![0x0A, 0xFF, 0x00]
+        );
+        assert_eq!(printable(b"pymodbus"), "pymodbus");
+        assert_eq!(
+            server_id_text(b"pymodbus\xFF"),
+            "pymodbus, run indicator ON"
+        );
+        assert_eq!(server_id_text(&[0x0A, 0x00]), "0A00");
+        assert_eq!(printable(&[0x0A, 0xFF]), "0AFF");
+        assert_eq!(describe(&[0x03, 0x02, 0x00, 0xFF]), "FC 03: 255");
+        assert_eq!(describe(&[0x84, 0x02]), "FC 04: exception 02");
+    }
+
+    #[test]
+    fn unit_lists_parse() {
+        assert_eq!("1-3,7".parse::<Units>().unwrap().0, vec![1, 2, 3, 7]);
+        assert_eq!("1-247".parse::<Units>().unwrap().0.len(), 247);
+        assert!("0".parse::<Units>().is_err());
+        assert!("248".parse::<Units>().is_err());
+        assert!("5-2".parse::<Units>().is_err());
+    }
+
+    mod props {
+        use super::*;
+        use proptest::prelude::*;
+
+        proptest! {
+            /// Invariant of the give-up rule: units are tried in the list's order,
+            /// each at most once; a setting that never gets a good frame costs at
+            /// most `give_up` tries; once a frame has come, every unit of the list is
+            /// tried.
+            #[test]
+            fn give_up_rule(
+                n in 1usize..60,
+                give_up in 1usize..10,
+                answering in prop::collection::btree_set(1u8..60, 0..4),
+                garbage in prop::collection::btree_set(1u8..60, 0..4),
+            ) {
+                let units: Vec<u8> = (1..=n as u8).collect();
+                let mut at = AtSetting::new(units.clone(), give_up);
+                let mut tried = Vec::new();
+                while let Some(u) = at.next_unit() {
+                    tried.push(u);
+                    let heard = if answering.contains(&u) {
+                        Heard::Frame { unit: u, pdu: vec![3, 2, 0, 0] }
+                    } else if garbage.contains(&u) {
+                        Heard::Garbage(3)
+                    } else {
+                        Heard::Nothing
+                    };
+                    at.record(&heard);
+                    prop_assert!(tried.len() <= n);
+                }
+                prop_assert_eq!(&tried[..], &units[..tried.len()]);
+                let first_answer = units.iter().position(|u| answering.contains(u));
+                match first_answer {
+                    Some(i) if i < give_up => prop_assert_eq!(tried.len(), n),
+                    _ => prop_assert_eq!(tried.len(), give_up.min(n)),
+                }
+                prop_assert_eq!(at.left(), 0);
+            }
+        }
+    }
+}

@@ -1,0 +1,249 @@
+//! `mbgate scan` on a serial port: each setting opened in turn (exclusively: a port a
+//! gateway holds is refused, naming the process), each unit asked with the
+//! 3.5-character gap before it, kept with the line's microsecond timer, and a reply
+//! awaited for its time on the wire plus the timeout.
+
+use super::probe::{self, AtSetting, Framing, Heard, Setting};
+use super::{Found, Progress, Report, ScanError};
+use crate::config::{FlowControl, Parity as CfgParity, SerialConfig};
+use crate::port::serial::PreciseTimer;
+use crate::wire::uart::Parity;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::time::Instant;
+use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
+use tokio_util::sync::CancellationToken;
+
+/// The longest reply awaited to an identity request (a PDU of 253 bytes).
+const LONGEST_PDU: usize = 253;
+
+/// One open port at one setting, and the time of the last byte on its line.
+struct Line<'a> {
+    port: SerialStream,
+    timer: &'a mut PreciseTimer,
+    setting: &'a Setting,
+    /// When the line last carried a byte: the gap before a request counts from it.
+    last: Instant,
+    timeout: Duration,
+}
+
+impl Line<'_> {
+    /// A character's time on this line.
+    fn char_time(&self) -> Duration {
+        Duration::from_nanos(
+            (u64::from(self.setting.format.bits()) * 1_000_000_000)
+                .div_ceil(u64::from(self.setting.baud)),
+        )
+    }
+
+    /// The longest a try at `framing` waits for a read's reply, the request's time
+    /// included: the budget of the time left.
+    fn read_cost(&self, framing: Framing) -> Duration {
+        let chars = framing.wire_len(5) + framing.wire_len(4);
+        self.char_time() * chars as u32 + self.timeout
+    }
+
+    /// Sends `pdu` to `unit` after the 3.5-character gap, and returns what came back:
+    /// as soon as a frame with a good check answers it, else after the request's and
+    /// the longest reply's time on the wire plus the timeout.
+    async fn ask(&mut self, framing: Framing, unit: u8, pdu: &[u8]) -> Result<Heard, ScanError> {
+        let gap = Duration::from_micros(crate::frame::rtu::t35_us(
+            self.setting.baud,
+            self.setting.format.bits(),
+        ));
+        self.timer.until(self.last + gap).await?;
+        // Whatever a slow device sent since is not this request's reply.
+        let _ = self.port.clear(ClearBuffer::Input);
+        let request = framing.encode(unit, pdu);
+        self.port.write_all(&request).await?;
+        let written = Instant::now();
+        let on_wire = self.char_time() * request.len() as u32;
+        let reply_pdu = if pdu[0] == 3 || pdu[0] == 4 {
+            4
+        } else {
+            LONGEST_PDU
+        };
+        let deadline = written
+            + on_wire
+            + self.char_time() * framing.wire_len(reply_pdu) as u32
+            + self.timeout;
+        self.last = written + on_wire;
+        let mut got = Vec::new();
+        let mut chunk = [0u8; 512];
+        loop {
+            tokio::select! {
+                r = self.port.read(&mut chunk) => {
+                    let n = r?;
+                    if n == 0 {
+                        break;
+                    }
+                    got.extend_from_slice(&chunk[..n]);
+                    self.last = self.last.max(Instant::now());
+                    let heard = probe::judge(framing, &request, pdu[0], &got);
+                    if matches!(heard, Heard::Frame { .. }) {
+                        return Ok(heard);
+                    }
+                }
+                r = self.timer.until(deadline) => {
+                    r?;
+                    break;
+                }
+            }
+        }
+        Ok(probe::judge(framing, &request, pdu[0], &got))
+    }
+}
+
+/// The port's configuration at `s`: no flow control (a scan needs none, and a bus
+/// adapter wires none).
+fn config(path: &str, s: &Setting) -> SerialConfig {
+    SerialConfig {
+        path: path.to_string(),
+        baud_rate: s.baud,
+        data_bits: s.format.data_bits,
+        parity: match s.format.parity {
+            Parity::None => CfgParity::None,
+            Parity::Even => CfgParity::Even,
+            Parity::Odd => CfgParity::Odd,
+        },
+        stop_bits: s.format.stop_bits,
+        flow_control: FlowControl::None,
+        ..SerialConfig::default()
+    }
+}
+
+/// Scans `path` at each of `settings` in turn; see docs/scan.md for the rules.
+#[allow(clippy::too_many_arguments)]
+pub(super) async fn scan(
+    path: &str,
+    settings: &[Setting],
+    units: &[u8],
+    give_up: usize,
+    timeout: Duration,
+    all: bool,
+    stop: &CancellationToken,
+    progress: &mut Progress,
+) -> Result<Report, ScanError> {
+    let mut report = Report::default();
+    let mut timer = PreciseTimer::new()?;
+    let per_setting = give_up.min(units.len());
+    let mut total: usize = settings
+        .iter()
+        .map(|s| s.framings.len() * per_setting)
+        .sum();
+    let mut done = 0;
+    'settings: for (i, s) in settings.iter().enumerate() {
+        if stop.is_cancelled() {
+            break;
+        }
+        let port =
+            crate::port::serial::open(&config(path, s)).map_err(|source| ScanError::Open {
+                path: path.to_string(),
+                source,
+            })?;
+        let mut line = Line {
+            port,
+            timer: &mut timer,
+            setting: s,
+            last: Instant::now(),
+            timeout,
+        };
+        for (k, &framing) in s.framings.iter().enumerate() {
+            let mut at = AtSetting::new(units.to_vec(), give_up);
+            let mut found_here = Vec::new();
+            let what = format!("{} {} {}", s.baud, s.format, framing.name());
+            while let Some(unit) = at.next_unit() {
+                if stop.is_cancelled() {
+                    // What was found so far is kept (and reported) below.
+                    break;
+                }
+                // The time left: this setting's tries, then every later one's.
+                let later: Duration = settings[i..]
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(j, t)| {
+                        let skip = if j == 0 { k + 1 } else { 0 };
+                        t.framings.iter().skip(skip).map(move |&f| (t, f))
+                    })
+                    .map(|(t, f)| {
+                        let probe = Line::cost(t, f, timeout);
+                        probe * per_setting as u32
+                    })
+                    .sum();
+                let left = line.read_cost(framing) * at.left() as u32 + later;
+                progress.show(done, total, left, &format!("{what} unit {unit}"));
+                let mut heard = line.ask(framing, unit, &probe::read_one(3)).await?;
+                report.tries += 1;
+                if heard == Heard::Nothing && at.proven {
+                    // No answer at all to FC 03 where a device is known to be: some
+                    // devices keep silent for a function they lack; FC 04 too.
+                    heard = line.ask(framing, unit, &probe::read_one(4)).await?;
+                    report.tries += 1;
+                }
+                let was_proven = at.proven;
+                at.record(&heard);
+                done += 1;
+                if at.proven && !was_proven {
+                    total += units.len().saturating_sub(per_setting);
+                }
+                if let Heard::Frame { unit: from, pdu } = &heard {
+                    // A frame from a unit asked before is its late reply: each unit is
+                    // asked once, so it can be no other's.
+                    let late = *from != unit
+                        && units.contains(from)
+                        && !found_here.iter().any(|f: &Found| f.unit == *from);
+                    if *from == unit || late {
+                        found_here.push(Found {
+                            unit: *from,
+                            serial: Some((s.baud, s.format, framing)),
+                            answered: probe::describe(pdu),
+                            device_id: Err("not asked".into()),
+                            server_id: Err("not asked".into()),
+                        });
+                    }
+                }
+            }
+            if at.garbage && !at.proven {
+                report.garbage.push((s.baud, s.format, framing));
+            }
+            for f in &mut found_here {
+                if stop.is_cancelled() {
+                    break;
+                }
+                // Each asked again once when nothing came: a device busy with
+                // something else may miss one request.
+                let mut device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
+                report.tries += 1;
+                if device == Heard::Nothing {
+                    device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
+                    report.tries += 1;
+                }
+                let mut server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
+                report.tries += 1;
+                if server == Heard::Nothing {
+                    server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
+                    report.tries += 1;
+                }
+                super::identified(f, &device, &server);
+            }
+            // In the order of their ids, late replies included.
+            found_here.sort_by_key(|f| f.unit);
+            report.found.extend(found_here);
+            if stop.is_cancelled() || (at.proven && !all) {
+                break 'settings;
+            }
+        }
+    }
+    Ok(report)
+}
+
+impl Line<'_> {
+    /// [`Line::read_cost`] of a setting not open yet.
+    fn cost(s: &Setting, framing: Framing, timeout: Duration) -> Duration {
+        let char_time = Duration::from_nanos(
+            (u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)),
+        );
+        let chars = framing.wire_len(5) + framing.wire_len(4);
+        char_time * chars as u32 + timeout
+    }
+}
