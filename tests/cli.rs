@@ -288,7 +288,7 @@ fn check_config_says_what_to_write_instead() {
     assert!(
         o.stderr.contains(
             "line[0].baud_rate: unknown key; expected one of units, remap, serial, tcp, \
-             relay, role, route (did you mean `baud_rate` in this line's serial table: under \
+             relay, role, route, unit (did you mean `baud_rate` in this line's serial table: under \
              [line.serial], or serial = { baud_rate = ... }?)"
         ),
         "{}",

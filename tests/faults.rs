@@ -460,7 +460,7 @@ fn max_connections_enforced() {
     );
     let mut c = r.gw.connect();
     assert!(is_closed(&mut c, Duration::from_secs(3)));
-    r.gw.wait_log("max_connections reached", Duration::from_secs(2));
+    r.gw.wait_log("max_connections (2) reached", Duration::from_secs(2));
     assert_eq!(
         transact(&mut a, &read_req(2, 1, 3, 1)),
         read_reply(2, 1, &[3])

@@ -253,10 +253,19 @@ fn cie_m10_master_mirrors_a_pymodbus_slave() {
             values.len() >= 3
         },
     );
+    // Each value the slave holds was sent by the master: its log line may come a
+    // moment after the write it tells of, so the log is read until it says so.
+    let all_sent = |sent: &[String]| {
+        values
+            .iter()
+            .all(|v| sent.iter().any(|f| f.ends_with(&format!("02 00 {v:02X}"))))
+    };
+    wait_for(
+        "the master's log of what it sent",
+        Duration::from_secs(5),
+        || all_sent(&logged(&master.log(), "tx")),
+    );
     let sent = logged(&master.log(), "tx");
-    assert!(values
-        .iter()
-        .all(|v| sent.iter().any(|f| f.ends_with(&format!("02 00 {v:02X}")))));
     for (i, f) in sent.iter().enumerate() {
         let tid = hexs(&(i as u16).to_be_bytes());
         assert!(
