@@ -57,6 +57,12 @@ const PROGRAMS: &[&str] = &[
     "wireshark",
     "grep",
     "cd",
+    // docs/install.md: a static binary checked and installed, the container image loaded.
+    "sha256sum",
+    "install",
+    "sed",
+    "tee",
+    "docker",
 ];
 
 /// The README, CONTRIBUTING.md and every page of docs/.
@@ -258,6 +264,8 @@ fn runnable_one(
         }
         "target/release/mbgate" => Some(args),
         "mbgate" if installed => Some(args),
+        // Where docs/install.md puts a static binary.
+        "/usr/local/bin/mbgate" => Some(args),
         "mbgate" => {
             return Err(format!(
                 "`mbgate` is not on PATH in a checkout: `target/release/mbgate`, or a block \

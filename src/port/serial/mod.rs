@@ -1,11 +1,13 @@
 //! The serial port, all of it: opening it with the configured settings, flow control,
-//! stale bytes cleared, RS-485, exclusively (`open.rs`); what it is (`detect.rs`);
+//! stale bytes cleared, RS-485, exclusively (`open.rs`), with the classic termios
+//! where termios2 is missing (`classic.rs`); what it is (`detect.rs`);
 //! `tcdrain` and FIONREAD on its descriptor, the drain run by a thread of the port's
 //! own (`drain.rs`); the timer the line's gaps are kept with (`timer.rs`); and here,
 //! the port as a [`Port`], with the switch of its RS-485 transmitter when the gateway
 //! drives it (`direction.rs`). The simulator and the client open their ports with the same
 //! [`open`]; how long bytes take at `baud_rate` is `port/kind.rs`'s.
 
+mod classic;
 mod detect;
 pub mod direction;
 mod drain;

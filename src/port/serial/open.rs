@@ -91,7 +91,19 @@ pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
         .parity(parity)
         .stop_bits(stop_bits)
         .flow_control(flow_control);
-    let port = SerialStream::open(&builder).map_err(|e| held_elsewhere(e, &cfg.path))?;
+    let port = match SerialStream::open(&builder) {
+        Ok(port) => port,
+        // A kernel or emulator without termios2: the classic calls can still set a
+        // standard rate (classic.rs).
+        Err(e) if super::classic::termios2_missing(&cfg.path) => {
+            tracing::info!(
+                path = %cfg.path,
+                "no termios2 here ({e}); setting the port with the classic termios calls"
+            );
+            super::classic::open(cfg).map_err(|e| held_elsewhere(e, &cfg.path))?
+        }
+        Err(e) => return Err(held_elsewhere(e, &cfg.path)),
+    };
     if let Err(e) = port.clear(ClearBuffer::All) {
         tracing::debug!(path = %cfg.path, "could not clear stale bytes: {e}");
     }
