@@ -30,7 +30,7 @@ struct Cell {
 /// pty, every request its own transaction (the masters poll the same reads, which
 /// coalescing would merge), room for 100 masters.
 fn gateway(lines: &[Line], dir: &std::path::Path, program: Option<&std::ffi::OsStr>) -> Gateway {
-    let mut text = String::from("[log]\nlevel = \"warn\"\n\n");
+    let mut text = String::from("[log]\nlevel = \"info\"\n\n");
     for (i, line) in lines.iter().enumerate() {
         let _ = write!(
             text,
