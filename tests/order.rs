@@ -278,7 +278,10 @@ fn rtu_bench(broadcast_reply: &str) -> RtuBench {
         .serial("flow_control = \"none\"")
         .serial("baud_rate = 4000000")
         .relay(&format!("broadcast_reply = {broadcast_reply:?}"))
-        .relay("broadcast_delay_ms = 20")
+        // pymodbus, a Python program on a machine that may be busy, gets the time a
+        // slow device would to act on a broadcast before the next request (Modbus
+        // over Serial Line V1.02 §2.4.1: the turnaround delay, typically 100 to 200 ms).
+        .relay("broadcast_delay_ms = 200")
         .log("traffic = true");
     let gw = Gateway::start(&cfg, dir.path());
     gw.wait_log("serial port open", Duration::from_secs(5));

@@ -294,8 +294,13 @@ fn a_reload_applies_a_units_new_timeout() {
     let (dev, file) = (socat.dev.to_str().unwrap(), delays.to_str().unwrap());
     let _device = Py::start("paced_units.py", &["--port", dev, "--delays", file]);
     let relay = ", timeout_guard_ms = 20, unit_backoff = false";
+    // Unit 2, alive, gets time far beyond what a busy machine adds to pymodbus'
+    // 20 ms: this test is about unit 1's timeout, not unit 2's.
     let with = |ms: u32| {
-        let units = format!("[[line.unit]]\nunits = 1\nresponse_timeout_ms = {ms}\n");
+        let units = format!(
+            "[[line.unit]]\nunits = 1\nresponse_timeout_ms = {ms}\n\
+             [[line.unit]]\nunits = 2\nresponse_timeout_ms = 5000\n"
+        );
         config(&socat.gw, relay, &units)
     };
     let mut gw = Gateway::launch_text(&with(800), dir.path(), Launch::default());
