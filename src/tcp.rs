@@ -475,12 +475,11 @@ impl Connection {
     async fn read_loop(&self, mut rd: impl AsyncRead + Unpin, outbox: &mut Outbox) -> End {
         let idle = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         let mut last_read = Instant::now();
-        let mut wake = last_read + idle;
         // One timer for the connection's life, moved only when it goes off (the idle
         // clock is read then): a timer made afresh each turn of the loop would be
         // registered with tokio's timer once a request, and each registration wakes
         // the reactor (a system call; docs/performance.md "What a transaction costs").
-        let idle_timer = tokio::time::sleep_until(wake);
+        let idle_timer = tokio::time::sleep_until(last_read + idle);
         tokio::pin!(idle_timer);
         let mut buf = BytesMut::with_capacity(512);
         let rtu = self.listen.framing == ListenFraming::Rtu;
@@ -555,14 +554,14 @@ impl Connection {
                     // that stopped growing is idle too: a master gone mid-frame must
                     // not hold its connection slot for ever.
                     let now = Instant::now();
-                    match outbox.idle_at(last_read, idle) {
-                        None => wake = now + idle,
+                    let wake = match outbox.idle_at(last_read, idle) {
+                        None => now + idle,
                         Some(at) if now >= at => {
                             info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
                             return End::Closed;
                         }
-                        Some(at) => wake = at,
-                    }
+                        Some(at) => at,
+                    };
                     idle_timer.as_mut().reset(wake);
                 }
                 _ = self.shutdown.cancelled() => return End::Finish,
