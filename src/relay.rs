@@ -260,7 +260,7 @@ impl Relay {
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
                 Event::Wrote(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_out, n as u64);
-                    self.line.wrote(n, polled);
+                    self.line.wrote(n, polled, now);
                     self.out.advance(n);
                     if self.out.is_empty() && self.line.is_serial() {
                         if let Some(t) = &mut self.turnaround {

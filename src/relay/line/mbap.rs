@@ -89,8 +89,11 @@ struct Sent {
     /// When it was handed to the port: nothing read before then answers it.
     handed: Instant,
     /// The earliest instant its last byte can have left at the configured speed: a
-    /// copy of it that began arriving before then is its echo.
+    /// copy of it that began arriving before then is its echo. Counted again from
+    /// when the write that carried its last byte returned (`Mbap::wrote`).
     left: Instant,
+    /// Its bytes not yet handed to the port by a write that returned.
+    unwritten: usize,
 }
 
 impl Mbap {
@@ -286,7 +289,34 @@ impl Mbap {
             bytes: bytes.clone(),
             handed: now,
             left,
+            unwritten: bytes.len(),
         });
+    }
+
+    /// A write that returned at `now` handed the next `n` bytes to the port. Each
+    /// request whose last byte was among them cannot have left before `now` and the
+    /// time on the wire of the bytes of this write up to it: the write may have begun
+    /// well after the request was queued (a busy machine runs the loop late), and an
+    /// echo counted from the queueing would look like a reply. Counted from the
+    /// write's return, a device's own answer is dropped only if it began within a few
+    /// microseconds of the request leaving, and only a copy of the request is ever
+    /// dropped: the master gets 0x0B, never the echo as "written"
+    /// (docs/reliability.md, item 8).
+    pub(super) fn wrote(&mut self, n: usize, now: Instant) {
+        let (mut rest, mut through) = (n, 0usize);
+        for s in self.sent.iter_mut().filter(|s| s.unwritten > 0) {
+            if rest == 0 {
+                break;
+            }
+            let take = rest.min(s.unwritten);
+            s.unwritten -= take;
+            rest -= take;
+            through += take;
+            if s.unwritten == 0 {
+                s.left = s.left.max(now + self.char_time * through as u32);
+            }
+        }
+        self.tx_clear = self.tx_clear.max(now + self.char_time * n as u32);
     }
 
     /// When the byte at `offset` (in everything received) was read.

@@ -161,10 +161,14 @@ impl Line {
         }
     }
 
-    /// `n` bytes were handed to the port, by a write that began after `polled`.
-    pub(super) fn wrote(&mut self, n: usize, polled: Instant) {
-        if let Kind::Serial(s) = &mut self.0 {
-            s.wrote(n, polled);
+    /// `n` bytes were handed to the port, by a write that began after `polled` and
+    /// returned before `now`. RTU and ASCII count the earliest the bytes can leave
+    /// from `polled` (nothing read before then is a reply); MBAP counts when a request
+    /// has left from `now`, so that a late-run write never lets its echo pass.
+    pub(super) fn wrote(&mut self, n: usize, polled: Instant, now: Instant) {
+        match &mut self.0 {
+            Kind::Mbap(m) => m.wrote(n, now),
+            Kind::Serial(s) => s.wrote(n, polled),
         }
     }
 

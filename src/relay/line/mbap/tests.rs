@@ -81,6 +81,44 @@ fn a_copy_of_the_request_that_began_before_it_left_is_its_echo() {
     assert!(frames(&mut line, &[first, f], t0 + 90 * MS).is_empty());
 }
 
+/// A busy machine runs the loop late: the write that carries a request returns long
+/// after the request was queued. The echo, begun while that write went out, is still
+/// its echo; the device's own reply, begun after the request left counted from the
+/// write's return, is the answer. Written in two pieces, the request leaves with the
+/// second.
+#[test]
+fn a_request_written_late_leaves_after_its_write() {
+    let write = Adu::build(9, 1, &[6, 0, 1, 0, 3]);
+    let late = 300 * MS;
+    for pieces in [vec![12], vec![5, 7]] {
+        let (mut line, t0) = mbap(9600);
+        let f = send(&mut line, &write, t0);
+        let sent = write.with_tid(f.tid).as_bytes().to_vec();
+        for &n in &pieces {
+            line.wrote(n, t0, t0 + late);
+        }
+        // 12.5 ms on the wire from the write's return: an echo read at 4 and 14 ms.
+        line.received(&sent[..4], t0 + late + 4 * MS, &Stats::default());
+        line.received(&sent[4..], t0 + late + 14 * MS, &Stats::default());
+        assert!(
+            frames(
+                &mut line,
+                &[in_flight(f.tid, &write, t0)],
+                t0 + late + 60 * MS
+            )
+            .is_empty(),
+            "{pieces:?}"
+        );
+        // The device's answer, begun after it left.
+        line.received(&sent, t0 + late + 40 * MS, &Stats::default());
+        assert_eq!(
+            frames(&mut line, &[f], t0 + late + 80 * MS),
+            vec![sent.clone()],
+            "{pieces:?}"
+        );
+    }
+}
+
 /// Bytes read before a request was sent cannot begin its reply: a notification
 /// whose header was damaged leaves its last register (here equal to the request's
 /// id) to be scanned, and the next notification, having lost its id, completes a

@@ -30,7 +30,7 @@ fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let key = line.allocate(t0);
         line.encode(&read, key, t0, &stats);
-        line.wrote(8, t0);
+        line.wrote(8, t0, t0);
         line.drained(t0 + MS, &stats);
         let f = [InFlight {
             tid: key,
@@ -113,7 +113,7 @@ fn a_units_own_pause_is_the_quiet_after_its_transaction() {
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let key = line.allocate(t0);
         line.encode(&read, key, t0, &stats);
-        line.wrote(8, t0);
+        line.wrote(8, t0, t0);
         line.drained(t0, &stats);
         line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + 10 * MS, &stats);
         let free = t0 + 10 * MS + free_after * MS;
@@ -154,7 +154,7 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let tid = line.allocate(t0);
         let bytes = line.encode(&read, tid, t0, &stats);
-        line.wrote(bytes.len(), t0);
+        line.wrote(bytes.len(), t0, t0);
         let left = line.drained(t0 + 50 * MS, &stats);
         let reply = match framing {
             crate::config::Framing::Ascii => crate::frame::ascii::encode(1, &[3, 2, 0, 7]),
@@ -212,7 +212,7 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let tid = line.allocate(t0);
         let bytes = line.encode(&read, tid, t0, &stats);
-        line.wrote(bytes.len(), t0);
+        line.wrote(bytes.len(), t0, t0);
         let left = line.drained(t0 + MS, &stats);
         let at = left + MS;
         line.received(&rtu::encode(1, &[3, 2, 0, 7]), at, &stats);
