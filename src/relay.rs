@@ -630,6 +630,12 @@ impl Relay {
                 Seen::Frame(frame, at) => self.on_frame(frame, at, now),
                 Seen::Corrupt(tid) => {
                     if let Some(f) = self.in_flight.take(tid) {
+                        // What failed its check may be an echo or noise over the start
+                        // of the real reply, which can still come: the line keeps the
+                        // guard it keeps after a timeout, so that reply never meets
+                        // the next request (docs/reliability.md "RTU and ASCII", 3).
+                        let hold = self.in_flight.hold_after_timeout(&f);
+                        self.line.timed_out(now, hold, &self.stats);
                         self.failed(f, Failure::Corrupt, now);
                     }
                 }

@@ -312,6 +312,57 @@ fn rtu_late_and_timely_replies_alternating() {
     assert_eq!(counters["replies"], 12 - late, "{counters:?}");
 }
 
+/// A reply that fails its CRC (an echo or noise over the start of the real reply)
+/// gets 0x0B at once, and the real reply, still on its way, must not answer the next
+/// request: each read of an even register is answered by a damaged copy of its reply
+/// at once and by the real one 300 ms later (within the 1.5 s guard); each read of an
+/// odd register at once. Alternating, the odd reads get their own values, the even
+/// ones 0x0B, never a neighbour's value.
+#[test]
+fn rtu_the_reply_after_a_damaged_one_never_answers_the_next_request() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let mut regs = rtu_register_device(&[1]);
+    let _device = RawRtuDevice::scripted(
+        &socat.dev,
+        Box::new(move |frame: &[u8]| {
+            let on_wire = wire_time(frame.len(), 19_200);
+            let reply = regs(frame);
+            if frame[1] == 0x03 && frame[3].is_multiple_of(2) {
+                let mut damaged = reply.clone();
+                *damaged.last_mut().unwrap() ^= 0x5A;
+                vec![
+                    (on_wire, damaged),
+                    (on_wire + Duration::from_millis(300), reply),
+                ]
+            } else {
+                vec![(on_wire, reply)]
+            }
+        }),
+    );
+    let cfg = Cfg::new(&socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .relay("response_timeout_ms = 1000")
+        .relay(&format!("timeout_guard_ms = {GUARD_MS}"))
+        .relay("unit_backoff = false");
+    let mut gw = Gateway::start(&cfg, dir.path());
+    let mut m = gw.connect();
+    let answers: Vec<(u16, Answer)> = (0..8u16)
+        .map(|addr| (addr, read_one(&mut m, addr, 1, addr)))
+        .collect();
+    let counters = gw.stop();
+    for (addr, a) in &answers {
+        let want = if addr.is_multiple_of(2) {
+            Answer::Exception(0x0B)
+        } else {
+            Answer::Value(*addr)
+        };
+        assert_eq!(*a, want, "register {addr}: {answers:?}");
+    }
+    assert_eq!(counters["replies"], 4, "{counters:?}");
+}
+
 /// Replies that begin while the request is still being sent (150 baud: 533 ms for a
 /// read, far longer than a busy machine can delay the device's bytes through socat)
 /// are not taken: a device that answers too early (unit 1), an echo of a write
