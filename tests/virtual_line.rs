@@ -295,6 +295,9 @@ fn gateway_behind_the_line(
         "--units",
         "1",
     ];
+    // No garbage reaches the device here: it starts afresh only after half a second
+    // of silence, not after a pause a busy machine puts inside a long request.
+    dev_args.extend_from_slice(&["--silence", "0.5"]);
     dev_args.extend_from_slice(device);
     let device = Py::start("serial_device.py", &dev_args);
     // pymodbus says READY before its port is set up: until then its end is at the
@@ -341,12 +344,17 @@ fn stock(addr: u16) -> u16 {
 }
 
 /// What masters got, each answer judged against the exact reply its request should
-/// have: its own (right), exception 0x0B (no reply in time: allowed, counted), or
-/// anything else (wrong, kept to be shown). Every test here asserts `wrong` empty.
+/// have: its own (right), exception 0x0B (no reply in time: allowed, counted), a frame
+/// of another function code (allowed, counted: a frame whose CRC proves it the unit's
+/// own, of another shape than the request's, is passed on unchanged for the master to
+/// judge, as a transparent gateway does, src/relay/line/serial.rs; no master takes an
+/// FC 06 frame for its FC 03 answer), or anything else (wrong, kept to be shown).
+/// Every test here asserts `wrong` empty.
 #[derive(Debug, Default)]
 struct Tally {
     right: u32,
     timed_out: u32,
+    other_function: u32,
     wrong: Vec<String>,
 }
 
@@ -364,6 +372,9 @@ impl Tally {
             true
         } else if got == timeout.as_bytes() {
             self.timed_out += 1;
+            false
+        } else if got.len() > 7 && got[7] & 0x7F != req[7] {
+            self.other_function += 1;
             false
         } else {
             self.wrong
@@ -388,10 +399,11 @@ impl Tally {
     fn assert_none_wrong(&self, what: &str, log: impl FnOnce() -> String) {
         assert!(
             self.wrong.is_empty(),
-            "{what}: {} wrong ({} right, {} 0x0B): {:#?}\n{}",
+            "{what}: {} wrong ({} right, {} 0x0B, {} of another function): {:#?}\n{}",
             self.wrong.len(),
             self.right,
             self.timed_out,
+            self.other_function,
             self.wrong,
             log()
         );
@@ -467,7 +479,6 @@ fn an_echoing_line_never_gives_the_echo_as_the_reply() {
         let mut s = b.gw.connect();
         s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
         let mut tally = Tally::default();
-        let mut other_function = 0;
         for i in 0..10u16 {
             // FC 06 to register 1 + i % 4 with a value the read then checks.
             let addr = 1 + i % 4;
@@ -479,13 +490,8 @@ fn an_echoing_line_never_gives_the_echo_as_the_reply() {
                 .as_bytes()
                 .to_vec();
             let wrote = transact(&mut s, &req);
-            // The gateway passes on a frame of another function from the unit, for
-            // the master to judge (docs/reliability.md): a late read reply given to a
-            // write is such a frame, which no master takes for its write's answer.
-            if wrote.len() > 7 && wrote[7] & 0x7F != 0x06 {
-                other_function += 1;
-                continue;
-            }
+            // A late read reply given to a write, or a late write reply given to the
+            // read, is a frame of another function ([`Tally`]).
             let written = tally.judge(&format!("write {i}"), &req, &wrote, &req);
             let read = read_req(200 + i, 1, addr, 1);
             let got = transact(&mut s, &read);
@@ -498,7 +504,7 @@ fn an_echoing_line_never_gives_the_echo_as_the_reply() {
                 );
             }
         }
-        eprintln!("echo, {serial:?}: {tally:?}, {other_function} frames of another function");
+        eprintln!("echo, {serial:?}: {tally:?}");
         tally.assert_none_wrong(&format!("echo, {serial:?}"), || b.gw.log());
         if !serial.is_empty() {
             assert!(
@@ -748,7 +754,8 @@ fn a_frame_just_before_a_request_is_never_its_reply_behind_the_line() {
 /// FC 16, at 0xBEEF, its CRC right: 8 bytes, 67 ms), which arrives whole long before
 /// the request has left (docs/reliability.md: bytes read before the request could
 /// have left the wire are not its reply). Every write gets its own reply (or 0x0B),
-/// never the stray one, and the values it wrote read back; when every one was
+/// never the stray one, and the values it wrote read back (three writes answered, in
+/// at most eight tries); when every one was
 /// answered, each stray frame was dropped whole as too early and no frame was bad.
 /// A full-duplex cable lets the two cross; on RS-485 they would collide, and the
 /// gateway must still not take what it reads then.
@@ -765,7 +772,11 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
     warm_up(&mut s);
     let mut tally = Tally::default();
     let mut waited = Vec::new();
-    for i in 0..3u16 {
+    // Until three writes were answered (a busy machine can make pymodbus miss one),
+    // at most eight.
+    let mut written = 0;
+    let mut i = 0u16;
+    while written < 3 && i < 8 {
         let values: Vec<u16> = (0..N).map(|k| 0x5000 + 0x100 * i + k).collect();
         let req = write_req(10 + i, 1, 1, &values);
         let sent = b.gw.metric("mbgate_line_sent_bytes");
@@ -782,6 +793,7 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
         let got = read_frame(&mut s);
         let want = mbgate::frame::Adu::build(10 + i, 1, &[0x10, 0x00, 0x01, 0x00, N as u8]);
         if tally.judge(&format!("write {i}"), &req, &got, want.as_bytes()) {
+            written += 1;
             let read = read_req(20 + i, 1, 1 + i, 1);
             let got = transact(&mut s, &read);
             tally.judge(
@@ -791,16 +803,17 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
                 &read_reply(20 + i, 1, &[values[usize::from(i)]]),
             );
         }
+        i += 1;
     }
     let counters = b.gw.stop();
     eprintln!("sent seen after {waited:?}\n{tally:?}\n{counters:?}");
     tally.assert_none_wrong("a frame as the request leaves", || b.gw.log());
-    assert!(tally.right >= 3, "{tally:?}");
+    assert_eq!(written, 3, "{tally:?}");
     if tally.timed_out > 0 {
         eprintln!("{} timed out: the drops are not counted", tally.timed_out);
         return;
     }
-    let strays = 3 * stray.len() as u64;
+    let strays = u64::from(i) * stray.len() as u64;
     assert_eq!(counters["dropped_too_early"], strays, "{counters:?}");
     assert_eq!(counters["dropped_bytes"], strays, "{counters:?}");
     assert_eq!(counters["bad_frames"], 0, "{counters:?}");

@@ -8,6 +8,7 @@ unit, and a device identification (FC 43/14: vendor "pymodbus-test", product cod
     serial_device.py --port PATH --framer rtu|ascii --baud 9600 --parity N|E|O
                      [--stopbits 1|2] --units 3,17 [--echo]
                      [--delay SECONDS] [--late-even SECONDS] [--size 20]
+                     [--silence SECONDS]
 
 --echo: the line echoes what the device sends (pymodbus' handle_local_echo discards it).
 --delay: every answer waits this long after its request is in (a device's turnaround:
@@ -23,7 +24,9 @@ as garbage. pymodbus 3.16.1 keeps garbage in its receive buffer and may never fi
 frame after it; a device on a bus starts afresh after a silence (Modbus over Serial
 Line V1.02 §2.5.1.1), so here the buffer is emptied when bytes come after a silence
 of 10 character times, and at least 50 ms (longer than 3.5 characters, and than
-Python's own pauses, or the virtual line's, on a loaded machine inside a frame).
+Python's own pauses, or the virtual line's, on a loaded machine inside a frame);
+--silence sets it, for a test that sends no garbage and long frames at a low baud
+rate, where a busy machine pauses inside a frame for longer.
 
 Prints READY on stdout once serving, then serves until SIGTERM or SIGINT.
 """
@@ -96,12 +99,13 @@ async def main() -> int:
     ap.add_argument("--units", default="1")
     ap.add_argument("--echo", action="store_true", help="the line echoes: discard our own replies")
     ap.add_argument("--size", type=int, default=20)
+    ap.add_argument("--silence", type=float, default=None)
     ap.add_argument("--delay", type=float, default=0.0)
     ap.add_argument("--late-even", type=float, default=None)
     args = ap.parse_args()
     logging.basicConfig(level=logging.CRITICAL, stream=sys.stderr)
     units = [int(u) for u in args.units.split(",")]
-    SILENCE[0] = max(0.050, 10 * 11 / args.baud)
+    SILENCE[0] = args.silence if args.silence is not None else max(0.050, 10 * 11 / args.baud)
     devices = {u: context(args.size, u)._devices[u] for u in units}  # pylint: disable=protected-access
     identity = ModbusDeviceIdentification(
         info_name={"VendorName": "pymodbus-test", "ProductCode": "SCAN", "MajorMinorRevision": "3.16"}
