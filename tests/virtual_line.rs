@@ -410,6 +410,14 @@ impl Tally {
     }
 }
 
+/// Why a test counts the bytes dropped only when nothing timed out (the warm-up read
+/// included). On a busy machine the line, or pymodbus, can pause inside a reply for
+/// longer than the silence that ends a frame (`silence_floor_ms`): the gateway takes
+/// the first part for a cut frame (a bad frame, 0x0B at once, counted as a timeout),
+/// and the rest, coming while the next request leaves, is dropped as too early. Seen
+/// once in about twenty runs beside two busy loops, on the warm-up read.
+const NOT_COUNTED: &str = "a reply cut by a pause on a busy machine adds drops of its own";
+
 /// The first read, not counted: the device's first answer may be lost while pymodbus
 /// sets its port up.
 fn warm_up(s: &mut std::net::TcpStream) {
@@ -686,9 +694,10 @@ fn late_replies_behind_the_line_never_reach_the_next_request_300_ms_late() {
 /// device, at 1200 baud (a character takes 8.3 ms). Then a read is asked for: while
 /// the frame is still arriving (once the gateway has some of it, not all: the request
 /// then waits for the line to fall silent, Modbus over Serial Line V1.02 §2.5.1.1),
-/// and 0, 5 and 50 ms after the gateway has read all of it. Every read gets its own register's value or 0x0B, never 0xBEEF; and when
-/// every read was answered, each stray frame was discarded whole, as received before
-/// the request (stale) or while it was leaving (too early), and no frame was bad.
+/// and 0, 5 and 50 ms after the gateway has read all of it. Every read gets its own
+/// register's value or 0x0B, never 0xBEEF; and when nothing timed out
+/// ([`NOT_COUNTED`]), each stray frame was discarded whole, as received before the
+/// request (stale) or while it was leaving (too early), and no frame was bad.
 #[test]
 fn a_frame_just_before_a_request_is_never_its_reply_behind_the_line() {
     let mut b = gateway_behind_the_line(1200, &[], &[], |c| c.metrics("listen = \"127.0.0.1:0\""));
@@ -731,10 +740,8 @@ fn a_frame_just_before_a_request_is_never_its_reply_behind_the_line() {
     eprintln!("{cases:#?}\n{tally:?}\n{counters:?}");
     tally.assert_none_wrong("after a stray frame", || b.gw.log());
     assert!(tally.right >= 6, "{tally:?}");
-    if tally.timed_out > 0 {
-        // A reply that timed out is dropped too when it comes: the counts below hold
-        // when every read was answered.
-        eprintln!("{} timed out: the drops are not counted", tally.timed_out);
+    if counters["timeouts"] > 0 {
+        eprintln!("timeouts: the drops are not counted ({NOT_COUNTED})");
         return;
     }
     let strays = 4 * stray.len() as u64;
@@ -755,8 +762,8 @@ fn a_frame_just_before_a_request_is_never_its_reply_behind_the_line() {
 /// the request has left (docs/reliability.md: bytes read before the request could
 /// have left the wire are not its reply). Every write gets its own reply (or 0x0B),
 /// never the stray one, and the values it wrote read back (three writes answered, in
-/// at most eight tries); when every one was
-/// answered, each stray frame was dropped whole as too early and no frame was bad.
+/// at most eight tries); when nothing timed out ([`NOT_COUNTED`]), each stray frame
+/// was dropped whole as too early and no frame was bad.
 /// A full-duplex cable lets the two cross; on RS-485 they would collide, and the
 /// gateway must still not take what it reads then.
 #[test]
@@ -809,14 +816,18 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
     eprintln!("sent seen after {waited:?}\n{tally:?}\n{counters:?}");
     tally.assert_none_wrong("a frame as the request leaves", || b.gw.log());
     assert_eq!(written, 3, "{tally:?}");
-    if tally.timed_out > 0 {
-        eprintln!("{} timed out: the drops are not counted", tally.timed_out);
+    if counters["timeouts"] > 0 {
+        eprintln!("timeouts: the drops are not counted ({NOT_COUNTED})");
         return;
     }
     let strays = u64::from(i) * stray.len() as u64;
-    assert_eq!(counters["dropped_too_early"], strays, "{counters:?}");
-    assert_eq!(counters["dropped_bytes"], strays, "{counters:?}");
-    assert_eq!(counters["bad_frames"], 0, "{counters:?}");
+    for (key, want) in [
+        ("dropped_too_early", strays),
+        ("dropped_bytes", strays),
+        ("bad_frames", 0),
+    ] {
+        assert_eq!(counters[key], want, "{key}: {counters:?}\n{}", b.gw.log());
+    }
 }
 
 /// The turnaround, behind the line: the device answers 3.5 character times after the
@@ -825,7 +836,8 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
 /// declared a wire. The reply's first byte must not be lost, neither dropped as come
 /// before the request had left (its time on the wire) nor cut off by a turnaround
 /// still under way: every read is its own register's value (0x0B allowed, counted, as
-/// pymodbus on a loaded machine can miss a request), and when none timed out, no byte
+/// pymodbus on a loaded machine can miss a request), and when nothing timed out
+/// ([`NOT_COUNTED`]), no byte
 /// was dropped and no frame was bad. (A pseudo-terminal has no RTS and the machine no
 /// GPIO chip, so `serial.direction` cannot be set here, tests/rs485.rs: this is the
 /// wire port's drain and timing path; the switch itself is tests/relay_inprocess.rs's.)
@@ -846,8 +858,8 @@ fn a_reply_three_and_a_half_characters_after_the_request_keeps_its_first_byte() 
             tally.right >= u32::from(n) / 2,
             "{baud}: {tally:?}\n{counters:?}"
         );
-        if tally.timed_out > 0 {
-            eprintln!("{baud}: timeouts, the drops not judged");
+        if counters["timeouts"] > 0 {
+            eprintln!("{baud}: timeouts, the drops are not counted ({NOT_COUNTED})");
             continue;
         }
         for key in ["dropped_bytes", "dropped_too_early", "bad_frames"] {
