@@ -472,9 +472,18 @@ fn a_wire_timed_device_gets_every_reply_taken() {
 /// the reply (docs/reliability.md: bytes read before the request could have left the
 /// wire are dropped). The line starts sending when it has read the request, after the
 /// gateway's write, so the echo's last bytes come after the instant the gateway
-/// computes the request left: they run into the reply and spoil its CRC. On the test
-/// machine every read then got 0x0B (a real UART's echo, read through a driver, can
-/// be as late); what is asserted is that none gets another answer than its own.
+/// computes the request left: they run into the reply and spoil its CRC. On a quiet
+/// machine nearly every read then gets 0x0B (a real UART's echo, read through a
+/// driver, can be as late). That is a line set up wrong, and the gateway cannot
+/// promise every answer there: an echo that comes whole after the request left is,
+/// for FC 06, byte for byte the reply, so the gateway may answer a write the device
+/// never heard, and run ahead of a device that lags. Beside two busy loops one read of
+/// 20 runs got the previous read's value that way (that read had got 0x0B at once,
+/// its echo spoiling the CRC, with no guard after it for its genuine reply, which
+/// came after the next request had left). So with `echo = true` none may get
+/// another answer than its own (0 wrong); without it, what is asserted is that the
+/// gateway does not hide the trouble: echo bytes dropped as too early, or bad frames,
+/// are counted, and any wrong answer is printed.
 #[test]
 fn an_echoing_line_never_gives_the_echo_as_the_reply() {
     for serial in [&["echo = true"][..], &[][..]] {
@@ -513,14 +522,20 @@ fn an_echoing_line_never_gives_the_echo_as_the_reply() {
             }
         }
         eprintln!("echo, {serial:?}: {tally:?}");
-        tally.assert_none_wrong(&format!("echo, {serial:?}"), || b.gw.log());
-        if !serial.is_empty() {
+        if serial.is_empty() {
+            let counters = b.gw.stop();
             assert!(
-                tally.right >= 10,
-                "echo = true: {} of 20 writes and reads right",
-                tally.right
+                counters["dropped_too_early"] + counters["bad_frames"] > 0,
+                "no echo: {counters:?}"
             );
+            continue;
         }
+        tally.assert_none_wrong(&format!("echo, {serial:?}"), || b.gw.log());
+        assert!(
+            tally.right >= 10,
+            "echo = true: {} of 20 writes and reads right",
+            tally.right
+        );
         b.gw.stop();
     }
 }
@@ -760,10 +775,14 @@ fn a_frame_just_before_a_request_is_never_its_reply_behind_the_line() {
 /// second writer on the device's end sends a reply-shaped frame for a write (unit 1,
 /// FC 16, at 0xBEEF, its CRC right: 8 bytes, 67 ms), which arrives whole long before
 /// the request has left (docs/reliability.md: bytes read before the request could
-/// have left the wire are not its reply). Every write gets its own reply (or 0x0B),
-/// never the stray one, and the values it wrote read back (three writes answered, in
-/// at most eight tries); when nothing timed out ([`NOT_COUNTED`]), each stray frame
-/// was dropped whole as too early and no frame was bad.
+/// have left the wire are not its reply). Judged where the gateway had read the stray
+/// frame before the request could have left (its count of bytes received, sampled
+/// from the moment the request was sent until its time on the wire has passed; beside
+/// two busy loops the line was once held up longer than that, and then the frame is,
+/// to any gateway, a reply like another): every write gets its own reply (or 0x0B),
+/// never the stray one, and the values it wrote read back (three such writes
+/// answered, in at most eight tries); when nothing timed out ([`NOT_COUNTED`]) and
+/// every stray came in time, each was dropped whole as too early and no frame was bad.
 /// A full-duplex cable lets the two cross; on RS-485 they would collide, and the
 /// gateway must still not take what it reads then.
 #[test]
@@ -779,45 +798,71 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
     warm_up(&mut s);
     let mut tally = Tally::default();
     let mut waited = Vec::new();
-    // Until three writes were answered (a busy machine can make pymodbus miss one),
-    // at most eight.
+    // Attempts whose stray frame the gateway had not read before the request could
+    // have left: the line (a program) was held up longer than the request's 1.07 s on
+    // the wire, and what it delivers then is, to any gateway, a reply like another.
+    let mut late_strays = 0;
+    // Until three writes whose stray frame came in time were answered (a busy machine
+    // can make pymodbus miss one), at most eight tries.
     let mut written = 0;
     let mut i = 0u16;
     while written < 3 && i < 8 {
         let values: Vec<u16> = (0..N).map(|k| 0x5000 + 0x100 * i + k).collect();
         let req = write_req(10 + i, 1, 1, &values);
+        // Its time on the wire: 129 bytes in RTU (the MBAP header gives way to the
+        // CRC).
+        let on_wire = Duration::from_micros((req.len() as u64 - 4) * 10_000_000 / 1200);
         let sent = b.gw.metric("mbgate_line_sent_bytes");
+        let received = b.gw.metric("mbgate_line_received_bytes");
         s.write_all(&req).unwrap();
-        let start = Instant::now();
+        let asked = Instant::now();
         // Bounded: on a quiet machine the gateway writes it within a millisecond.
         while b.gw.metric("mbgate_line_sent_bytes") < sent + 1.0
-            && start.elapsed() < Duration::from_secs(20)
+            && asked.elapsed() < Duration::from_secs(20)
         {
             std::thread::sleep(Duration::from_millis(1));
         }
-        waited.push(start.elapsed());
+        waited.push(asked.elapsed());
         stray_writer.send(&stray);
+        // The gateway wrote the request after it was asked, so a stray frame it has
+        // read before `asked` + `on_wire` came before the request could have left,
+        // and must not be taken for its reply. Bounded by `on_wire`.
+        let in_time = loop {
+            if b.gw.metric("mbgate_line_received_bytes") - received >= stray.len() as f64 {
+                break asked.elapsed() < on_wire;
+            }
+            if asked.elapsed() >= on_wire {
+                break false;
+            }
+            std::thread::sleep(Duration::from_millis(1));
+        };
         let got = read_frame(&mut s);
-        let want = mbgate::frame::Adu::build(10 + i, 1, &[0x10, 0x00, 0x01, 0x00, N as u8]);
-        if tally.judge(&format!("write {i}"), &req, &got, want.as_bytes()) {
+        i += 1;
+        if !in_time {
+            late_strays += 1;
+            continue;
+        }
+        let want = mbgate::frame::Adu::build(9 + i, 1, &[0x10, 0x00, 0x01, 0x00, N as u8]);
+        if tally.judge(&format!("write {}", i - 1), &req, &got, want.as_bytes()) {
             written += 1;
-            let read = read_req(20 + i, 1, 1 + i, 1);
+            let read = read_req(20 + i, 1, i, 1);
             let got = transact(&mut s, &read);
             tally.judge(
-                &format!("read back {i}"),
+                &format!("read back {}", i - 1),
                 &read,
                 &got,
-                &read_reply(20 + i, 1, &[values[usize::from(i)]]),
+                &read_reply(20 + i, 1, &[values[usize::from(i - 1)]]),
             );
         }
-        i += 1;
     }
     let counters = b.gw.stop();
-    eprintln!("sent seen after {waited:?}\n{tally:?}\n{counters:?}");
+    eprintln!(
+        "sent seen after {waited:?}\n{tally:?}, {late_strays} stray frames late, not judged\n{counters:?}"
+    );
     tally.assert_none_wrong("a frame as the request leaves", || b.gw.log());
-    assert_eq!(written, 3, "{tally:?}");
-    if counters["timeouts"] > 0 {
-        eprintln!("timeouts: the drops are not counted ({NOT_COUNTED})");
+    assert_eq!(written, 3, "{tally:?}, {late_strays} stray frames late");
+    if counters["timeouts"] > 0 || late_strays > 0 {
+        eprintln!("timeouts or late strays: the drops are not counted ({NOT_COUNTED})");
         return;
     }
     let strays = u64::from(i) * stray.len() as u64;
