@@ -323,9 +323,12 @@ fn gateway_behind_the_line(
         .serial("port_kind = \"wire\"")
         .serial(&format!("baud_rate = {baud}"))
         // The line is a program: on a loaded machine its wake-ups can pause a frame
-        // by a few ms, as a USB adapter's latency timer does; the floor is what a user
-        // gives such a port (docs/simulator.md, "A virtual line").
-        .serial("silence_floor_ms = 50");
+        // by a few ms, as a USB adapter's latency timer does, and a user gives such a
+        // port a floor of 50 ms (docs/simulator.md, "A virtual line"). Beside two busy
+        // loops it paused inside 9 of 13 replies at 1200 baud for longer than that
+        // (each a cut frame, 0x0B): these tests are of who gets which reply, not of
+        // how short a pause ends one, and take 250 ms.
+        .serial("silence_floor_ms = 250");
     let gw = Gateway::start(&tune(cfg), line._dir.path());
     Behind {
         gw,
@@ -745,16 +748,27 @@ fn a_frame_just_before_a_request_is_never_its_reply_behind_the_line() {
         if let Some(ms) = before.strip_suffix(" ms") {
             std::thread::sleep(Duration::from_millis(ms.parse().unwrap()));
         }
-        for addr in [1u16, 2, 3] {
+        // Until two were right (a busy machine can make pymodbus miss one), at most
+        // six.
+        let mut right = 0;
+        for addr in 1..=6u16 {
+            if right == 2 {
+                break;
+            }
             tid += 1;
-            tally.read(&mut s, tid, addr);
+            right += u32::from(tally.read(&mut s, tid, addr));
         }
-        cases.push(format!("{before}: the gateway had {had} of its bytes"));
+        cases.push(format!(
+            "{before}: the gateway had {had} of its bytes; {right} right"
+        ));
     }
     let counters = b.gw.stop();
     eprintln!("{cases:#?}\n{tally:?}\n{counters:?}");
     tally.assert_none_wrong("after a stray frame", || b.gw.log());
-    assert!(tally.right >= 6, "{tally:?}");
+    assert_eq!(
+        tally.right, 8,
+        "two right after each stray frame: {cases:#?}"
+    );
     if counters["timeouts"] > 0 {
         eprintln!("timeouts: the drops are not counted ({NOT_COUNTED})");
         return;
