@@ -324,8 +324,8 @@ fn gateway_behind_the_line(
         .serial(&format!("baud_rate = {baud}"))
         // The line is a program: on a loaded machine its wake-ups can pause a frame
         // by a few ms, as a USB adapter's latency timer does, and a user gives such a
-        // port a floor of 50 ms (docs/simulator.md, "A virtual line"). Beside two busy
-        // loops it paused inside 9 of 13 replies at 1200 baud for longer than that
+        // port a floor of 50 ms (docs/simulator.md, "A virtual line"). At a load
+        // average of 10 it paused inside 9 of 13 replies at 1200 baud for longer than that
         // (each a cut frame, 0x0B): these tests are of who gets which reply, not of
         // how short a pause ends one, and take 250 ms.
         .serial("silence_floor_ms = 250");
