@@ -247,12 +247,7 @@ fn checked(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, Strin
 
 fn run(cfg: Config, load: mbgate::reload::Loader) -> anyhow::Result<()> {
     mbgate::logging::init(&cfg.log);
-    // One thread: the serial line is the bottleneck, and a single-threaded runtime has
-    // the smallest footprint and no cross-thread wake-ups on the reply path.
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the runtime")?;
+    let rt = runtime()?;
     rt.block_on(async {
         let shutdown = CancellationToken::new();
         tokio::spawn(watch_signals(shutdown.clone(), Hangup::Reloads));
@@ -278,10 +273,7 @@ fn sim_level(device: &mbgate::sim::options::DeviceArgs) -> (String, bool) {
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the runtime")
+    mbgate::runtime::new().context("starting the runtime")
 }
 
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.

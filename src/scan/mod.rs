@@ -106,15 +106,9 @@ pub struct Report {
 /// Runs `mbgate scan`: exit code 0 something answered, 1 nothing did or the port could
 /// not be used, 2 bad options.
 pub fn main(args: ScanArgs) -> ExitCode {
-    let rt = match tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    {
+    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("mbgate: starting the runtime: {e}");
-            return ExitCode::FAILURE;
-        }
+        Err(code) => return code,
     };
     let stop = CancellationToken::new();
     let result = rt.block_on(async {
