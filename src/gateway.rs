@@ -38,6 +38,9 @@ pub enum GatewayError {
     /// A TLS file could not be used (read, parsed, or its key does not fit).
     #[error("{0}")]
     Tls(#[from] crate::tls::TlsError),
+    /// A master line could not start (a passive route's address).
+    #[error("{0}")]
+    MasterLine(#[from] crate::bridge::BridgeError),
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
@@ -89,6 +92,10 @@ pub async fn run_reloading(
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
 pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+    if !cfg.serves_masters() {
+        // Every line's device is a master: nothing for a Modbus/TCP master to reach.
+        return Ok(Vec::new());
+    }
     let max_pending = cfg.max_pending_per_connection();
     let bind = |l: ListenConfig| {
         let addr = l.tcp.listen;
@@ -118,7 +125,7 @@ async fn serve_with(
 ) -> Result<Arc<Stats>, GatewayError> {
     let bound = listening(listeners, &cfg)?;
     warn_inapplicable(&cfg);
-    let mut started = start(bound, cfg, load, &shutdown)?;
+    let mut started = start(bound, cfg, load, &shutdown).await?;
     let tracker = accept(&mut started, &shutdown).await;
     Ok(drain(started, tracker).await)
 }
@@ -175,7 +182,7 @@ struct Started {
 /// Start: the capture and control socket, the lines, the metrics listener, the signal
 /// handlers and reload, the log's account of it all, and READY=1. The lines run from
 /// here; the listeners accept nothing before [`accept`].
-fn start(
+async fn start(
     bound: Vec<Bound>,
     cfg: Config,
     load: Option<reload::Loader>,
@@ -196,7 +203,7 @@ fn start(
     let cfg = Arc::new(cfg);
     let board = Arc::new(Board::default());
     let _ = board.capture.set(capture.hub().clone());
-    let lines = start_lines(&cfg, &capture, &board, shutdown);
+    let lines = start_lines(&cfg, &capture, &board, shutdown).await?;
     // Each listener's counters (connections, refusals, requests it answered itself);
     // each line keeps its own (its metrics are per line), and the totals add them up.
     let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
@@ -209,7 +216,7 @@ fn start(
     let mut counted = listener_stats.clone();
     counted.extend(lines.stats);
     let http = start_metrics(&cfg, &board, shutdown)?;
-    let router = Arc::new(Router::new(&cfg.lines(), lines.handles.clone()));
+    let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
     // Before "listening on", as the other handlers: a reload asked for at once finds
     // its handler, never SIGHUP's default action (the end of the process).
     let hup = load.and_then(hangup);
@@ -221,7 +228,7 @@ fn start(
         let reloadable = reload::Reloadable {
             running: running.clone(),
             load,
-            relays: lines.handles,
+            lines: lines.handles,
             metrics: http,
             // Their certificates are read again by every reload, whatever becomes of
             // the rest of it.
@@ -252,43 +259,78 @@ fn start(
 struct Lines {
     /// Each line's task, to spawn once the gateway has said it is ready.
     tasks: Vec<std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>>,
-    /// How the router and a reload reach each line.
-    handles: Vec<RelayHandle>,
+    /// How a reload reaches each line.
+    handles: Vec<reload::LineHandle>,
+    /// The lines whose device is a slave, and their relays: what the router routes
+    /// masters' requests to.
+    slaves: Vec<LineConfig>,
+    relays: Vec<RelayHandle>,
     /// Each line's counters.
     stats: Vec<Arc<Stats>>,
 }
 
-/// Start lines: each line its own relay task, with its own queue, timeouts, retries
-/// and backoff, so a slow or dead line never holds up another; its capture tap and its
-/// metrics on the board.
-fn start_lines(
+/// Start lines: each line its own task (a relay where the device is a slave, a master
+/// line where it is the master), with its own queue, timeouts and backoff, so a slow
+/// or dead line never holds up another; its capture tap and its metrics on the board.
+async fn start_lines(
     cfg: &Config,
     capture: &crate::capture::Capture,
     board: &Board,
     shutdown: &CancellationToken,
-) -> Lines {
+) -> Result<Lines, GatewayError> {
     let mut lines = Lines {
         tasks: Vec::new(),
         handles: Vec::new(),
         stats: Vec::new(),
+        slaves: Vec::new(),
+        relays: Vec::new(),
     };
     for (i, line) in cfg.lines().iter().enumerate() {
         let line_stats = Arc::new(Stats::default());
         lines.stats.push(line_stats.clone());
-        let (relay, handle) = Relay::for_line(line, cfg.log.traffic, line_stats, shutdown.clone());
-        let relay = relay.with_tap(capture.hub().tap(i as u16 + 1));
         // One watchdog for the gateway: every line runs on the one thread, so one
         // loop that turns shows that all of them can.
-        let relay = if i == 0 {
-            relay.with_watchdog(notify::watchdog_interval())
+        let watchdog = if i == 0 {
+            notify::watchdog_interval()
         } else {
-            relay
+            None
         };
+        let tap = capture.hub().tap(i as u16 + 1);
+        if let Some(master) = &line.master {
+            let port = crate::port::serial::SerialPort::new(line.serial.clone());
+            let timing = crate::bridge::Timing::of_line(&line.serial, &line.relay);
+            let metrics = Arc::new(metrics::LineMetrics::new(line.name(), line_stats));
+            board.add_line(metrics.clone());
+            let systemd = crate::bridge::Systemd {
+                watchdog,
+                alone: false,
+            };
+            let (task, handle) = crate::bridge::start(
+                Box::new(port),
+                (line.serial.framing, timing, master.clone()),
+                (cfg.log.traffic, (tap, capture.hub().tap(0))),
+                metrics,
+                systemd,
+            )
+            .await?;
+            lines.handles.push(reload::LineHandle::Master(handle));
+            let shutdown = shutdown.clone();
+            lines.tasks.push(Box::pin(async move {
+                task.run(shutdown).await;
+            }));
+            continue;
+        }
+        let (relay, handle) = Relay::for_line(line, cfg.log.traffic, line_stats, shutdown.clone());
+        let relay = relay.with_tap(tap).with_watchdog(watchdog);
         board.add_line(relay.metrics());
-        lines.handles.push(handle);
+        lines
+            .handles
+            .push(reload::LineHandle::Relay(handle.clone()));
+        lines.slaves.push(line.clone());
+        lines.relays.push(handle);
         lines.tasks.push(Box::pin(relay.run()));
     }
-    lines
+    Ok(lines)
 }
 
 /// The metrics listener: off unless asked for, and then nothing but the Modbus ports

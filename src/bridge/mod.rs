@@ -15,13 +15,16 @@ pub(crate) mod table;
 use crate::capture::packet::{Dir, Packet, Role};
 use crate::capture::{Capture, Tap};
 use crate::config::master::MasterLine;
-use crate::config::{Config, Framing};
+use crate::config::{Config, Framing, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
+use crate::metrics::LineMetrics;
 use crate::port::{Backoff, Link, Port};
 use requests::{encode_reply, Requests};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
 use std::time::Duration;
-use table::{Action, Counts, Table};
+use table::{Action, Counts, Table, Tally};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::{sleep_until, Instant};
@@ -55,18 +58,25 @@ pub(crate) struct Timing {
 
 impl Timing {
     pub(crate) fn of(cfg: &Config) -> Self {
+        Self::of_line(&cfg.serial, &cfg.relay)
+    }
+
+    /// A line's timing from its `serial` and `relay` tables.
+    pub(crate) fn of_line(serial: &SerialConfig, relay: &RelayConfig) -> Self {
         // Taken before the port opens: its kind from the path (its device number).
-        let kind = crate::port::serial::of_path(&cfg.serial.path);
+        let kind = crate::port::serial::of_path(&serial.path);
         let port = crate::port::kind::PortInfo::plain(kind);
         Self {
-            pause: crate::port::kind::silence(&cfg.serial, &port),
-            frame_gap: Duration::from_millis(cfg.relay.frame_gap_ms),
+            pause: crate::port::kind::silence(serial, &port),
+            frame_gap: Duration::from_millis(relay.frame_gap_ms),
         }
     }
 }
 
-/// Runs the master line of `cfg` on its serial port until `shutdown`; the counts at
-/// the end.
+/// Runs the master line of `cfg` (the old form's one line) on its serial port until
+/// `shutdown`, with the capture and the control socket a gateway has; the counts at
+/// the end. A master line beside other lines is started by the gateway
+/// ([`start`]) instead.
 pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
     let master = cfg.master.clone().expect("a master line");
     let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
@@ -87,16 +97,76 @@ pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, Br
 }
 
 /// [`run`] on any port (tests use an in-memory one). `traffic` turns the traffic log
-/// on; the taps take the line's packets and the slaves' (docs/capture.md).
+/// on; the taps take the line's packets and the slaves' (docs/capture.md). The line
+/// tells systemd itself that it is ready, stopping and alive.
 pub(crate) async fn run_on(
-    mut port: Box<dyn Port>,
+    port: Box<dyn Port>,
     framing: Framing,
     timing: Timing,
     master: MasterLine,
-    (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
+    (traffic, taps): (bool, (Tap, Tap)),
     shutdown: CancellationToken,
 ) -> Result<Counts, BridgeError> {
-    let (events_tx, mut events) = mpsc::unbounded_channel();
+    let name = port.name().to_owned();
+    let metrics = Arc::new(LineMetrics::new(&name, Arc::default()));
+    let systemd = Systemd {
+        watchdog: crate::notify::watchdog_interval(),
+        alone: true,
+    };
+    let (line, _handle) = start(
+        port,
+        (framing, timing, master),
+        (traffic, taps),
+        metrics,
+        systemd,
+    )
+    .await?;
+    crate::notify::ready(&format!("master line on {name}"));
+    Ok(line.run(shutdown).await)
+}
+
+/// What a master line tells systemd.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Systemd {
+    /// The watchdog interval when this line pets it (the gateway's first line does).
+    pub(crate) watchdog: Option<Duration>,
+    /// It is the process's only line: it says STOPPING=1 itself at shutdown.
+    pub(crate) alone: bool,
+}
+
+/// How a reload reaches a running master line.
+#[derive(Debug, Clone)]
+pub(crate) struct MasterHandle(mpsc::UnboundedSender<MasterLine>);
+
+impl MasterHandle {
+    /// The routes' timeouts as `line` gives them now; `Err` when the line has stopped.
+    pub(crate) fn retune(&self, line: MasterLine) -> Result<(), ()> {
+        self.0.send(line).map_err(|_| ())
+    }
+}
+
+/// A master line ready to run: its routes' connections started (a passive route's
+/// address bound), its serial port not yet open.
+pub(crate) struct MasterLineTask {
+    port: Box<dyn Port>,
+    line: Line,
+    events: mpsc::UnboundedReceiver<slave::Event>,
+    retunes: mpsc::UnboundedReceiver<MasterLine>,
+    slaves_stop: CancellationToken,
+    tracker: tokio_util::task::TaskTracker,
+}
+
+/// Makes the master line on `port`: binds its passive routes (a taken address is an
+/// error now, not later), starts a task for each route's connection, and puts its
+/// counts on `metrics`.
+pub(crate) async fn start(
+    port: Box<dyn Port>,
+    (framing, timing, master): (Framing, Timing, MasterLine),
+    (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
+    metrics: Arc<LineMetrics>,
+    systemd: Systemd,
+) -> Result<(MasterLineTask, MasterHandle), BridgeError> {
+    let (events_tx, events) = mpsc::unbounded_channel();
     let mut to_slaves = Vec::new();
     // Stopped once the line has drained at shutdown: the replies still due come
     // through these connections.
@@ -157,80 +227,123 @@ pub(crate) async fn run_on(
         tap: line_tap,
         to_slaves,
         drain_within,
-        watchdog: crate::notify::watchdog_interval(),
+        systemd,
         pet_at: None,
+        metrics,
+        published: Published::default(),
     };
-    line.pet_at = line.watchdog.map(|_| Instant::now());
-    crate::notify::ready(&format!("master line on {}", port.name()));
-    let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
-    let mut reported = false;
-    'open: loop {
-        let link = tokio::select! {
-            _ = shutdown.cancelled() => break 'open,
-            r = port.open() => r,
-        };
-        let mut link = match link {
-            Ok(l) => {
-                backoff.reset();
-                reported = false;
-                info!(serial = port.name(), "{} open: {}", port.kind(), l.info);
-                l
-            }
-            Err(e) => {
-                if !reported {
-                    warn!(
-                        serial = port.name(),
-                        "cannot open the {} ({e}); retrying",
-                        port.kind()
-                    );
-                    reported = true;
+    line.pet_at = line.systemd.watchdog.map(|_| Instant::now());
+    let (retune, retunes) = mpsc::unbounded_channel();
+    let task = MasterLineTask {
+        port,
+        line,
+        events,
+        retunes,
+        slaves_stop,
+        tracker,
+    };
+    Ok((task, MasterHandle(retune)))
+}
+
+impl MasterLineTask {
+    /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
+    /// when it is lost; at shutdown answers what it holds first. The counts at the
+    /// end.
+    pub(crate) async fn run(self, shutdown: CancellationToken) -> Counts {
+        let MasterLineTask {
+            mut port,
+            mut line,
+            mut events,
+            mut retunes,
+            slaves_stop,
+            tracker,
+        } = self;
+        let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
+        let mut reported = false;
+        'open: loop {
+            let link = tokio::select! {
+                _ = shutdown.cancelled() => break 'open,
+                r = port.open() => r,
+            };
+            let mut link = match link {
+                Ok(l) => {
+                    backoff.reset();
+                    reported = false;
+                    info!(serial = port.name(), "{} open: {}", port.kind(), l.info);
+                    line.opened(true);
+                    l
                 }
-                let until = Instant::now() + backoff.next_delay();
-                loop {
-                    tokio::select! {
-                        _ = shutdown.cancelled() => break 'open,
-                        _ = sleep_until(until) => continue 'open,
-                        _ = sleep_until(line.pet_at.unwrap_or_else(Instant::now)), if line.pet_at.is_some() => line.pet(),
-                        Some(ev) = events.recv() => {
-                            // No port to answer on: the table still follows the slaves.
-                            let actions = line.event(ev);
-                            let _ = line.act(actions, None).await;
+                Err(e) => {
+                    if !reported {
+                        warn!(
+                            serial = port.name(),
+                            "cannot open the {} ({e}); retrying",
+                            port.kind()
+                        );
+                        reported = true;
+                    }
+                    let until = Instant::now() + backoff.next_delay();
+                    loop {
+                        tokio::select! {
+                            _ = shutdown.cancelled() => break 'open,
+                            _ = sleep_until(until) => continue 'open,
+                            _ = sleep_until(line.pet_at.unwrap_or_else(Instant::now)), if line.pet_at.is_some() => line.pet(),
+                            Some(ev) = events.recv() => {
+                                // No port to answer on: the table still follows the slaves.
+                                let actions = line.event(ev);
+                                let _ = line.act(actions, None).await;
+                                line.publish();
+                            }
+                            Some(routes) = retunes.recv() => line.table.retune(&routes),
                         }
                     }
                 }
-            }
-        };
-        match line.serve(&mut link, &mut events, &shutdown).await {
-            Ok(()) => break,
-            Err(e) => {
-                warn!(
-                    serial = port.name(),
-                    "{} lost ({e}); reopening",
-                    port.kind()
-                );
-                line.requests.clear();
-                line.table.serial_lost();
+            };
+            let served = line
+                .serve(&mut link, (&mut events, &mut retunes), &shutdown)
+                .await;
+            line.opened(false);
+            match served {
+                Ok(()) => break,
+                Err(e) => {
+                    warn!(
+                        serial = port.name(),
+                        "{} lost ({e}); reopening",
+                        port.kind()
+                    );
+                    line.requests.clear();
+                    line.table.serial_lost();
+                    line.publish();
+                }
             }
         }
+        slaves_stop.cancel();
+        tracker.close();
+        tracker.wait().await;
+        line.publish();
+        let c = line.table.counts;
+        info!(
+            requests = c.requests,
+            forwarded = c.forwarded,
+            replies = c.replies,
+            timeouts = c.timeouts,
+            unavailable = c.unavailable,
+            late = c.late,
+            broadcasts = c.broadcasts,
+            broadcasts_refused = c.broadcasts_refused,
+            refused = c.refused,
+            dropped_bytes = line.requests.dropped(),
+            "master line stopped"
+        );
+        c
     }
-    slaves_stop.cancel();
-    tracker.close();
-    tracker.wait().await;
-    let c = line.table.counts;
-    info!(
-        requests = c.requests,
-        forwarded = c.forwarded,
-        replies = c.replies,
-        timeouts = c.timeouts,
-        unavailable = c.unavailable,
-        late = c.late,
-        broadcasts = c.broadcasts,
-        broadcasts_refused = c.broadcasts_refused,
-        refused = c.refused,
-        dropped_bytes = line.requests.dropped(),
-        "master line stopped"
-    );
-    Ok(c)
+}
+
+/// What of the table's counts is on the metrics board already.
+#[derive(Debug, Default)]
+struct Published {
+    counts: Counts,
+    dropped: u64,
 }
 
 struct Line {
@@ -245,9 +358,13 @@ struct Line {
     /// The longest a request held at shutdown can take to be answered (the longest
     /// route timeout).
     drain_within: Duration,
-    /// systemd's watchdog interval, pinged from this loop, and the next ping.
-    watchdog: Option<Duration>,
+    /// What the line tells systemd; the watchdog's next ping.
+    systemd: Systemd,
     pet_at: Option<Instant>,
+    /// The line's numbers on the metrics board (docs/watching.md), and how far
+    /// they are published.
+    metrics: Arc<LineMetrics>,
+    published: Published,
 }
 
 impl Line {
@@ -257,7 +374,10 @@ impl Line {
     async fn serve(
         &mut self,
         link: &mut Link,
-        events: &mut mpsc::UnboundedReceiver<slave::Event>,
+        (events, retunes): (
+            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<MasterLine>,
+        ),
         shutdown: &CancellationToken,
     ) -> std::io::Result<()> {
         let mut buf = vec![0u8; 1024];
@@ -278,7 +398,9 @@ impl Line {
                     if !self.table.idle() {
                         debug!("stopping: answering the requests held first");
                     }
-                    crate::notify::stopping(self.drain_within + Duration::from_secs(1));
+                    if self.systemd.alone {
+                        crate::notify::stopping(self.drain_within + Duration::from_secs(1));
+                    }
                     Vec::new()
                 }
                 r = link.reader.read(&mut buf) => match r {
@@ -287,6 +409,7 @@ impl Line {
                         if self.traffic {
                             debug!("serial rx {}", Hex(&buf[..n]));
                         }
+                        self.metrics.stats.add(&self.metrics.stats.serial_bytes_in, n as u64);
                         last_rx = Instant::now();
                         paused = false;
                         // A capture begun while the loop waited has these bytes too.
@@ -315,19 +438,78 @@ impl Line {
                     self.table.expire(std::time::Instant::now())
                 }
                 Some(ev) = events.recv() => self.event(ev),
+                Some(routes) = retunes.recv() => {
+                    self.table.retune(&routes);
+                    Vec::new()
+                }
                 _ = sleep_until(self.pet_at.unwrap_or_else(Instant::now)), if self.pet_at.is_some() => {
                     self.pet();
                     Vec::new()
                 }
             };
             self.act(actions, Some(&mut link.writer)).await?;
+            self.publish();
         }
+    }
+
+    /// The port opened (`true`) or closed: the `port_open` gauge, and each opening
+    /// counted.
+    fn opened(&self, open: bool) {
+        let m = &self.metrics;
+        m.port_open.store(u64::from(open), Ordering::Relaxed);
+        if open {
+            m.stats.add(&m.stats.serial_opens, 1);
+        }
+    }
+
+    /// The table's counts since the last call onto the metrics board, each under the
+    /// name a relay's line uses for the same thing (docs/watching.md).
+    fn publish(&mut self) {
+        let (now, was) = (self.table.counts, self.published.counts);
+        let s = &self.metrics.stats;
+        let pairs = [
+            (&s.requests, now.requests - was.requests),
+            (&s.replies, now.replies - was.replies),
+            (&s.timeouts, now.timeouts - was.timeouts),
+            (&s.unavailable, now.unavailable - was.unavailable),
+            (&s.late_replies, now.late - was.late),
+            (&s.broadcasts, now.broadcasts - was.broadcasts),
+            (
+                &s.broadcasts_refused,
+                now.broadcasts_refused - was.broadcasts_refused,
+            ),
+            (&s.bad_requests, now.refused - was.refused),
+        ];
+        for (counter, n) in pairs {
+            s.add(counter, n);
+        }
+        let at = Instant::now();
+        if now.replies > was.replies {
+            self.metrics.replied_at(at);
+        }
+        for (unit, tally) in self.table.take_tallies() {
+            let u = self.metrics.unit(unit);
+            match tally {
+                Tally::Request => s.add(&u.requests, 1),
+                Tally::Reply => s.add(&u.replies, 1),
+                Tally::Timeout => self.metrics.timed_out(unit, at),
+            }
+        }
+        let dropped = self.requests.dropped();
+        s.add(
+            &s.dropped_bytes,
+            dropped.saturating_sub(self.published.dropped),
+        );
+        self.published = Published {
+            counts: now,
+            dropped,
+        };
     }
 
     /// WATCHDOG=1, and when the next is due.
     fn pet(&mut self) {
         crate::notify::watchdog();
-        self.pet_at = self.watchdog.map(|every| Instant::now() + every);
+        self.pet_at = self.systemd.watchdog.map(|every| Instant::now() + every);
     }
 
     /// Every whole request decoded so far, into the table.
@@ -410,6 +592,8 @@ impl Line {
                     if let Some(w) = writer.as_mut() {
                         w.write_all(&bytes).await?;
                         w.flush().await?;
+                        let s = &self.metrics.stats;
+                        s.add(&s.serial_bytes_out, bytes.len() as u64);
                     }
                 }
             }

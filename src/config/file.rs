@@ -211,11 +211,11 @@ impl Reader<'_> {
             }
             [_] => false,
             [..] => {
-                if let Some(i) = lines.iter().position(|(_, l, _)| l.master.is_some()) {
-                    let m = "a master line (role = \"master\") must be the gateway's only line";
-                    return self.fail(lines[i].0, &format!("line[{i}].role"), m);
-                }
-                if let Some(i) = lines.iter().position(|(_, _, units)| !units) {
+                // A master line routes by its [[line.route]] tables: it serves no unit
+                // of the masters'.
+                let unlisted =
+                    |(_, l, units): &&(usize, LineConfig, bool)| l.master.is_none() && !units;
+                if let Some(i) = lines.iter().position(|l| unlisted(&l)) {
                     let m = "missing: with several lines, each says which unit ids it serves";
                     return self.fail(lines[i].0, &format!("line[{i}].units"), m);
                 }
