@@ -380,10 +380,10 @@ fn announce(cfg: &Config, bound: &[Bound]) {
         }
     }
     let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
-    notify::ready(&format!(
-        "listening on {}, serial {devices}",
-        addrs.join(", ")
-    ));
+    notify::ready(&match addrs.is_empty() {
+        true => format!("serial {devices}, no Modbus/TCP listener"),
+        false => format!("listening on {}, serial {devices}", addrs.join(", ")),
+    });
 }
 
 /// Serve: every listener's accept loop until shutdown; the connections they started

@@ -251,12 +251,9 @@ fn run(cfg: Config, load: mbgate::reload::Loader) -> anyhow::Result<()> {
     rt.block_on(async {
         let shutdown = CancellationToken::new();
         tokio::spawn(watch_signals(shutdown.clone(), Hangup::Reloads));
-        if cfg.master.is_some() {
-            // The line's device is the master: no listener, routes to slaves.
-            mbgate::bridge::run(&cfg, shutdown).await?;
-        } else {
-            mbgate::gateway::run_reloading(cfg, load, shutdown).await?;
-        }
+        // Every line, whichever side its device is on (a gateway of master lines
+        // alone listens for no Modbus/TCP master).
+        mbgate::gateway::run_reloading(cfg, load, shutdown).await?;
         Ok(())
     })
 }

@@ -73,10 +73,10 @@ impl Timing {
     }
 }
 
-/// Runs the master line of `cfg` (the old form's one line) on its serial port until
-/// `shutdown`, with the capture and the control socket a gateway has; the counts at
-/// the end. A master line beside other lines is started by the gateway
-/// ([`start`]) instead.
+/// Runs the master line of `cfg` (one line, the old form's) on its serial port until
+/// `shutdown`, with a capture and the control socket; the counts at the end. For
+/// `mbgate demo --master`; `mbgate run` starts every line in the gateway
+/// ([`start`], `crate::gateway`).
 pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
     let master = cfg.master.clone().expect("a master line");
     let port = crate::port::serial::SerialPort::new(cfg.serial.clone());

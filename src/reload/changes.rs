@@ -68,6 +68,11 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     let read_lines = read.lines();
     if c.lines.is_empty() {
         retune(&mut c.relay, &read_lines[matched[0]].relay);
+        if let (Some(m), Some(read)) = (&mut c.master, &read_lines[matched[0]].master) {
+            if timeouts_only(m, read) {
+                *m = read.clone();
+            }
+        }
         let units = &read_lines[matched[0]].unit_tables;
         if !units.is_empty() {
             // Units with settings of their own: only a [[line]] says them.
