@@ -13,9 +13,9 @@ pub(crate) mod slave;
 pub(crate) mod table;
 
 use crate::capture::packet::{Dir, Packet, Role};
-use crate::capture::{Capture, Tap};
+use crate::capture::Tap;
 use crate::config::master::MasterLine;
-use crate::config::{Config, Framing, RelayConfig, SerialConfig};
+use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::metrics::LineMetrics;
@@ -57,10 +57,6 @@ pub(crate) struct Timing {
 }
 
 impl Timing {
-    pub(crate) fn of(cfg: &Config) -> Self {
-        Self::of_line(&cfg.serial, &cfg.relay)
-    }
-
     /// A line's timing from its `serial` and `relay` tables.
     pub(crate) fn of_line(serial: &SerialConfig, relay: &RelayConfig) -> Self {
         // Taken before the port opens: its kind from the path (its device number).
@@ -71,58 +67,6 @@ impl Timing {
             frame_gap: Duration::from_millis(relay.frame_gap_ms),
         }
     }
-}
-
-/// Runs the master line of `cfg` (one line, the old form's) on its serial port until
-/// `shutdown`, with a capture and the control socket; the counts at the end. For
-/// `mbgate demo --master`; `mbgate run` starts every line in the gateway
-/// ([`start`], `crate::gateway`).
-pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
-    let master = cfg.master.clone().expect("a master line");
-    let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
-    let capture = Capture::start(cfg);
-    crate::control::start(cfg, capture.hub(), None, &shutdown);
-    let taps = (capture.hub().tap(1), capture.hub().tap(0));
-    let counts = run_on(
-        Box::new(port),
-        cfg.serial.framing,
-        Timing::of(cfg),
-        master,
-        (cfg.log.traffic, taps),
-        shutdown,
-    )
-    .await;
-    capture.finish().await;
-    counts
-}
-
-/// [`run`] on any port (tests use an in-memory one). `traffic` turns the traffic log
-/// on; the taps take the line's packets and the slaves' (docs/capture.md). The line
-/// tells systemd itself that it is ready, stopping and alive.
-pub(crate) async fn run_on(
-    port: Box<dyn Port>,
-    framing: Framing,
-    timing: Timing,
-    master: MasterLine,
-    (traffic, taps): (bool, (Tap, Tap)),
-    shutdown: CancellationToken,
-) -> Result<Counts, BridgeError> {
-    let name = port.name().to_owned();
-    let metrics = Arc::new(LineMetrics::new(&name, Arc::default()));
-    let systemd = Systemd {
-        watchdog: crate::notify::watchdog_interval(),
-        alone: true,
-    };
-    let (line, _handle) = start(
-        port,
-        (framing, timing, master),
-        (traffic, taps),
-        metrics,
-        systemd,
-    )
-    .await?;
-    crate::notify::ready(&format!("master line on {name}"));
-    Ok(line.run(shutdown).await)
 }
 
 /// What a master line tells systemd.

@@ -43,7 +43,7 @@ pub(crate) enum Link {
 
 /// Running totals.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub struct Counts {
+pub(crate) struct Counts {
     /// Requests taken off the serial line.
     pub(crate) requests: u64,
     /// Frames written to slaves.

@@ -383,6 +383,28 @@ mod tests {
         );
     }
 
+    /// A master line alone (the old form's one line): its route timeouts applied too.
+    #[test]
+    fn a_lone_master_lines_route_timeouts_are_applied() {
+        let file = |timeout: u32| {
+            let text = format!(
+                "[[line]]\nrole = \"master\"\nserial = {{ path = \"/dev/m\" }}\n\
+                 [[line.route]]\naddress = \"h:1\"\nresponse_timeout_ms = {timeout}\n"
+            );
+            crate::config::parse(&text, "t").unwrap()
+        };
+        let (running, read) = (file(300), file(900));
+        assert!(running.lines.is_empty(), "the old form");
+        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        let new = merged(&running, &read, &matched);
+        assert_eq!(new, read);
+        let said: Vec<String> = changes(&running, &new, &matched)
+            .into_iter()
+            .map(|c| c.said)
+            .collect();
+        assert_eq!(said, ["route[0].response_timeout_ms = 900"]);
+    }
+
     #[test]
     fn a_line_new_or_gone_is_named() {
         let running = two_lines(("/dev/a", 100), ("/dev/b", 200));
