@@ -19,7 +19,9 @@ use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::metrics::LineMetrics;
-use crate::port::{Backoff, Link, Port};
+use crate::port::lifecycle::{Lifecycle, State};
+use crate::port::{Link, Port};
+use crate::relay::watchdog::Watchdog;
 use requests::{encode_reply, Requests};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
@@ -29,7 +31,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::{sleep_until, Instant};
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info, warn};
+use tracing::{debug, info};
 
 /// Why the master line could not start.
 #[derive(Debug, thiserror::Error)]
@@ -54,6 +56,8 @@ pub(crate) struct Timing {
     pub(crate) pause: Duration,
     /// MBAP: silence after which a partial frame is discarded.
     pub(crate) frame_gap: Duration,
+    /// The line's speed, for the log.
+    pub(crate) baud: u32,
 }
 
 impl Timing {
@@ -65,6 +69,7 @@ impl Timing {
         Self {
             pause: crate::port::kind::silence(serial, &port),
             frame_gap: Duration::from_millis(relay.frame_gap_ms),
+            baud: serial.baud_rate,
         }
     }
 }
@@ -162,7 +167,7 @@ pub(crate) async fn start(
         .map(|r| Duration::from_millis(r.response_timeout_ms))
         .max()
         .unwrap_or_default();
-    let mut line = Line {
+    let line = Line {
         requests: Requests::new(framing),
         table: Table::new(master, framing != Framing::Mbap),
         timing,
@@ -172,11 +177,12 @@ pub(crate) async fn start(
         to_slaves,
         drain_within,
         systemd,
-        pet_at: None,
+        watchdog: systemd
+            .watchdog
+            .map(|every| Watchdog::new(every, Instant::now())),
         metrics,
         published: Published::default(),
     };
-    line.pet_at = line.systemd.watchdog.map(|_| Instant::now());
     let (retune, retunes) = mpsc::unbounded_channel();
     let task = MasterLineTask {
         port,
@@ -191,73 +197,43 @@ pub(crate) async fn start(
 
 impl MasterLineTask {
     /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
-    /// when it is lost; at shutdown answers what it holds first. The counts at the
-    /// end.
+    /// when it is lost, as every line does (`crate::port::lifecycle`); at shutdown
+    /// answers what it holds first. The counts at the end.
     pub(crate) async fn run(self, shutdown: CancellationToken) -> Counts {
         let MasterLineTask {
-            mut port,
+            port,
             mut line,
             mut events,
             mut retunes,
             slaves_stop,
             tracker,
         } = self;
-        let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
-        let mut reported = false;
-        'open: loop {
-            let link = tokio::select! {
-                _ = shutdown.cancelled() => break 'open,
-                r = port.open() => r,
-            };
-            let mut link = match link {
-                Ok(l) => {
-                    backoff.reset();
-                    reported = false;
-                    info!(serial = port.name(), "{} open: {}", port.kind(), l.info);
-                    line.opened(true);
-                    l
+        let mut port = Lifecycle::new(port, line.timing.baud, Instant::now())
+            .meanwhile("the serial master is not heard meanwhile");
+        loop {
+            let now = Instant::now();
+            if let Some(opened) = port.open_if_due(now) {
+                line.opened(&mut port, opened, now);
+            }
+            let State::Open(link) = &mut port.state else {
+                match line
+                    .wait_for_port(&mut port.state, (&mut events, &mut retunes), &shutdown)
+                    .await
+                {
+                    Waited::Stop => break,
+                    Waited::Opened(opened) => line.opened(&mut port, opened, Instant::now()),
+                    Waited::Due => {}
                 }
-                Err(e) => {
-                    if !reported {
-                        warn!(
-                            serial = port.name(),
-                            "cannot open the {} ({e}); retrying",
-                            port.kind()
-                        );
-                        reported = true;
-                    }
-                    let until = Instant::now() + backoff.next_delay();
-                    loop {
-                        tokio::select! {
-                            _ = shutdown.cancelled() => break 'open,
-                            _ = sleep_until(until) => continue 'open,
-                            _ = sleep_until(line.pet_at.unwrap_or_else(Instant::now)), if line.pet_at.is_some() => line.pet(),
-                            Some(ev) = events.recv() => {
-                                // No port to answer on: the table still follows the slaves.
-                                let actions = line.event(ev);
-                                let _ = line.act(actions, None).await;
-                                line.publish();
-                            }
-                            Some(routes) = retunes.recv() => line.table.retune(&routes),
-                        }
-                    }
-                }
+                continue;
             };
-            let served = line
-                .serve(&mut link, (&mut events, &mut retunes), &shutdown)
-                .await;
-            line.opened(false);
-            match served {
+            match line
+                .serve(link, (&mut events, &mut retunes), &shutdown)
+                .await
+            {
                 Ok(()) => break,
                 Err(e) => {
-                    warn!(
-                        serial = port.name(),
-                        "{} lost ({e}); reopening",
-                        port.kind()
-                    );
-                    line.requests.clear();
-                    line.table.serial_lost();
-                    line.publish();
+                    port.lost(&e.to_string(), Instant::now());
+                    line.closed();
                 }
             }
         }
@@ -283,6 +259,16 @@ impl MasterLineTask {
     }
 }
 
+/// How a wait for the port ended.
+enum Waited {
+    /// Shutdown.
+    Stop,
+    /// The open under way finished.
+    Opened(std::io::Result<Link>),
+    /// The next attempt is due.
+    Due,
+}
+
 /// What of the table's counts is on the metrics board already.
 #[derive(Debug, Default)]
 struct Published {
@@ -302,9 +288,9 @@ struct Line {
     /// The longest a request held at shutdown can take to be answered (the longest
     /// route timeout).
     drain_within: Duration,
-    /// What the line tells systemd; the watchdog's next ping.
+    /// What the line tells systemd, and its watchdog when it pets it.
     systemd: Systemd,
-    pet_at: Option<Instant>,
+    watchdog: Option<Watchdog>,
     /// The line's numbers on the metrics board (docs/watching.md), and how far
     /// they are published.
     metrics: Arc<LineMetrics>,
@@ -335,6 +321,7 @@ impl Line {
             self.requests.set_tape(self.tap.on());
             let partial = self.requests.buffered() > 0;
             let deadline = self.table.next_deadline().map(Instant::from_std);
+            let pet_at = self.watchdog.as_ref().map(Watchdog::next);
             let actions = tokio::select! {
                 _ = shutdown.cancelled(), if !draining => {
                     draining = true;
@@ -386,23 +373,13 @@ impl Line {
                     self.table.retune(&routes);
                     Vec::new()
                 }
-                _ = sleep_until(self.pet_at.unwrap_or_else(Instant::now)), if self.pet_at.is_some() => {
+                _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => {
                     self.pet();
                     Vec::new()
                 }
             };
             self.act(actions, Some(&mut link.writer)).await?;
             self.publish();
-        }
-    }
-
-    /// The port opened (`true`) or closed: the `port_open` gauge, and each opening
-    /// counted.
-    fn opened(&self, open: bool) {
-        let m = &self.metrics;
-        m.port_open.store(u64::from(open), Ordering::Relaxed);
-        if open {
-            m.stats.add(&m.stats.serial_opens, 1);
         }
     }
 
@@ -450,10 +427,74 @@ impl Line {
         };
     }
 
-    /// WATCHDOG=1, and when the next is due.
+    /// WATCHDOG=1 if it is due.
     fn pet(&mut self) {
-        crate::notify::watchdog();
-        self.pet_at = self.systemd.watchdog.map(|every| Instant::now() + every);
+        if let Some(w) = &mut self.watchdog {
+            w.pet(Instant::now());
+        }
+    }
+
+    /// While the port is closed (until its next attempt) or opening: follows the
+    /// slaves (no port to answer on, but the table still tracks them), the watchdog
+    /// and a reload's timeouts, until the open ends, the attempt is due or shutdown.
+    async fn wait_for_port(
+        &mut self,
+        state: &mut State,
+        (events, retunes): (
+            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<MasterLine>,
+        ),
+        shutdown: &CancellationToken,
+    ) -> Waited {
+        let retry_at = match state {
+            State::Closed { retry_at } => Some(*retry_at),
+            _ => None,
+        };
+        let mut opening = match state {
+            State::Opening(o) => Some(o),
+            _ => None,
+        };
+        loop {
+            let pet_at = self.watchdog.as_ref().map(Watchdog::next);
+            let open = async {
+                match opening.as_mut() {
+                    Some(o) => o.await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                _ = shutdown.cancelled() => return Waited::Stop,
+                r = open => return Waited::Opened(r),
+                _ = sleep_until(retry_at.unwrap_or_else(Instant::now)), if retry_at.is_some() => return Waited::Due,
+                _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => self.pet(),
+                Some(ev) = events.recv() => {
+                    let actions = self.event(ev);
+                    let _ = self.act(actions, None).await;
+                    self.publish();
+                }
+                Some(routes) = retunes.recv() => self.table.retune(&routes),
+            }
+        }
+    }
+
+    /// An open finished at `now`: open, the line starts afresh and says so; or not,
+    /// and the next attempt is due later.
+    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<Link>, now: Instant) {
+        if let Some(info) = port.opened(opened, now) {
+            port.tell_open(&info, "the device is the master");
+            let m = &self.metrics;
+            m.port_open.store(1, Ordering::Relaxed);
+            m.stats.add(&m.stats.serial_opens, 1);
+        }
+    }
+
+    /// The port was lost: what was read of a request is dropped, and what was held
+    /// for the serial master is never answered (it gave up on it).
+    fn closed(&mut self) {
+        self.metrics.port_open.store(0, Ordering::Relaxed);
+        self.requests.clear();
+        self.table.serial_lost();
+        self.publish();
     }
 
     /// Every whole request decoded so far, into the table.
