@@ -3,6 +3,7 @@
 //! CRC or LRC, the give-up rule of a setting, and the identity a device reports
 //! (FC 43/14, FC 17: Modbus Application Protocol V1.1b3 §6.21, §6.13).
 
+use crate::frame::serial::Codec;
 use crate::frame::{ascii, rtu};
 use crate::wire::uart::Format;
 
@@ -24,19 +25,12 @@ impl Framing {
         }
     }
 
-    /// `unit`, `pdu` and the check, framed.
-    pub fn encode(self, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    /// The framing itself, whose frames (and their lengths) `crate::frame` makes:
+    /// this enum is only the flag's values, which the pure frame code stays free of.
+    pub fn codec(self) -> Codec {
         match self {
-            Framing::Rtu => rtu::encode(unit, pdu),
-            Framing::Ascii => ascii::encode(unit, pdu),
-        }
-    }
-
-    /// Bytes on the wire for a PDU of `pdu_len` bytes.
-    pub fn wire_len(self, pdu_len: usize) -> usize {
-        match self {
-            Framing::Rtu => pdu_len + 3,
-            Framing::Ascii => 2 * (pdu_len + 2) + 3,
+            Framing::Rtu => Codec::Rtu,
+            Framing::Ascii => Codec::Ascii,
         }
     }
 }
