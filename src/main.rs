@@ -371,7 +371,7 @@ fn master_demo(args: mbgate::demo::DemoArgs) -> ExitCode {
 /// `body` runs the simulator.
 fn simulate<F, Fut>(
     device: &mbgate::sim::options::DeviceArgs,
-    settings: Result<mbgate::sim::options::Settings, String>,
+    settings: Result<mbgate::sim::options::Settings, mbgate::sim::options::BadFlags>,
     traffic: bool,
     console_after: Option<std::sync::mpsc::Receiver<()>>,
     body: F,

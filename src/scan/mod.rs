@@ -83,9 +83,9 @@ pub struct Found {
     /// What it answered to the read.
     pub answered: String,
     /// Its read device identification objects, or why none.
-    pub device_id: Result<Vec<(u8, String)>, String>,
+    pub device_id: Result<Vec<(u8, String)>, probe::NoIdentity>,
     /// Its report server id data, or why none.
-    pub server_id: Result<Vec<u8>, String>,
+    pub server_id: Result<Vec<u8>, probe::NoIdentity>,
 }
 
 /// What a scan found, and how it went.
@@ -207,11 +207,11 @@ pub async fn run(
 pub(crate) fn identified(found: &mut Found, device: &Heard, server: &Heard) {
     found.device_id = match device {
         Heard::Frame { pdu, .. } => probe::device_id(pdu),
-        _ => Err("no answer".into()),
+        _ => Err(probe::NoIdentity::NoAnswer),
     };
     found.server_id = match server {
         Heard::Frame { pdu, .. } => probe::server_id(pdu),
-        _ => Err("no answer".into()),
+        _ => Err(probe::NoIdentity::NoAnswer),
     };
 }
 

@@ -197,8 +197,8 @@ pub(super) async fn scan(
                             unit: *from,
                             serial: Some((s.baud, s.format, framing)),
                             answered: probe::describe(pdu),
-                            device_id: Err("not asked".into()),
-                            server_id: Err("not asked".into()),
+                            device_id: Err(probe::NoIdentity::NotAsked),
+                            server_id: Err(probe::NoIdentity::NotAsked),
                         });
                     }
                 }
