@@ -142,8 +142,9 @@ fn the_shipped_example_is_valid() {
 }
 
 /// A master line beside a line of slaves: both read, the master line needing no
-/// `units`; the slave line still must say its units, and two lines on one port are
-/// refused naming the second's port.
+/// `units`; the slave line still must say its units, two lines on one port are
+/// refused naming the second's port, and a passive route on a listener's address
+/// naming the route.
 #[test]
 fn a_master_line_stands_beside_other_lines() {
     let master =
@@ -164,6 +165,14 @@ fn a_master_line_stands_beside_other_lines() {
         (
             format!("{master}{}", slaves("/dev/ttyS2", "")),
             "7:1: line[1].units: missing: with several lines, each says which unit ids it serves",
+        ),
+        (
+            format!(
+                "{}{}[[listen]]\naddress = \"127.0.0.1:5021\"\n",
+                master.replace("address = \"h:1\"", "listen = \"127.0.0.1:5021\""),
+                slaves("/dev/ttyS2", "units = [1]\n")
+            ),
+            "1:1: line[0].route[0].listen: 127.0.0.1:5021 is listen[0]'s address too: each socket has its own",
         ),
         (
             format!("{master}{}", slaves("/dev/ttyS1", "units = [1]\n")),

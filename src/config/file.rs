@@ -238,6 +238,35 @@ impl Reader<'_> {
                 false
             }
         };
+        // A passive route binds its address as the gateway binds its listeners: two
+        // sockets cannot share one.
+        let serving = lines.iter().any(|(_, l, _)| l.master.is_none());
+        let listening: Vec<_> = match serving {
+            true => cfg.listeners().iter().map(|l| l.tcp.listen).collect(),
+            false => Vec::new(),
+        };
+        let mut passive = Vec::new();
+        for (i, (at, line, _)) in lines.iter().enumerate() {
+            let routes = line.master.iter().flat_map(|m| m.routes.iter().enumerate());
+            for (j, route) in routes {
+                let super::master::Peer::Listen(addr) = route.peer else {
+                    continue;
+                };
+                let key = format!("line[{i}].route[{j}].listen");
+                let taken = match listening.iter().position(|l| *l == addr) {
+                    Some(k) => Some(format!("listen[{k}]'s")),
+                    None => passive
+                        .iter()
+                        .find(|(a, _)| *a == addr)
+                        .map(|(_, k)| format!("{k}'s")),
+                };
+                if let Some(whose) = taken {
+                    let m = format!("{addr} is {whose} address too: each socket has its own");
+                    return self.fail(*at, &key, m);
+                }
+                passive.push((addr, key));
+            }
+        }
         if !old_form {
             // The first line's settings stand for the gateway's where one is asked for.
             (cfg.serial, cfg.relay) = (lines[0].1.serial.clone(), lines[0].1.relay.clone());
