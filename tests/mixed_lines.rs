@@ -51,6 +51,11 @@ fn config(
 
 /// The gateway's /metrics, read now.
 fn scrape(gw: &Gateway) -> String {
+    get(gw, "/metrics")
+}
+
+/// The body of `path` on the gateway's metrics listener, read now.
+fn get(gw: &Gateway, path: &str) -> String {
     gw.wait_log("metrics on http://", Duration::from_secs(10));
     let log = gw.log();
     let rest = log.split("metrics on http://").nth(1).unwrap();
@@ -59,12 +64,13 @@ fn scrape(gw: &Gateway) -> String {
     s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
     write!(
         s,
-        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
     )
     .unwrap();
     let mut all = String::new();
     s.read_to_string(&mut all).unwrap();
-    all
+    let (_, body) = all.split_once("\r\n\r\n").expect("an HTTP reply");
+    body.to_owned()
 }
 
 /// The value of `name` (a counter's `_total` sample included) on the line `line`;
@@ -228,6 +234,19 @@ fn a_master_line_beside_a_bus_serves_both_counts_both_and_reloads_both() {
         master.gw.display()
     );
     assert!(metrics.contains(&unit), "{unit}:\n{metrics}");
+    // And on the status page, beside the bus.
+    let page: serde_json::Value = serde_json::from_str(&get(&gw, "/status.json")).unwrap();
+    let lines = page["lines"].as_array().unwrap();
+    let named = |path: &Path| {
+        let name = path.to_str().unwrap();
+        lines
+            .iter()
+            .find(|l| l["name"] == name)
+            .unwrap_or_else(|| panic!("{name}: {page}"))
+    };
+    assert_eq!(named(&master.gw)["requests"], 6, "{page}");
+    assert_eq!(named(&master.gw)["open"], true, "{page}");
+    assert_eq!(named(&bus.gw)["requests"], bus_reads, "{page}");
 
     // Before the reload: a request nobody answers costs each line its 2.5 s timeout.
     drop(device);
