@@ -301,16 +301,12 @@ async fn start_lines(
             let timing = crate::bridge::Timing::of_line(&line.serial, &line.relay);
             let metrics = Arc::new(metrics::LineMetrics::new(line.name(), line_stats));
             board.add_line(metrics.clone());
-            let systemd = crate::bridge::Systemd {
-                watchdog,
-                alone: false,
-            };
             let (task, handle) = crate::bridge::start(
                 Box::new(port),
                 (line.serial.framing, timing, master.clone()),
                 (cfg.log.traffic, (tap, capture.hub().tap(0))),
                 metrics,
-                systemd,
+                watchdog,
             )
             .await?;
             lines.handles.push(reload::LineHandle::Master(handle));

@@ -74,15 +74,6 @@ impl Timing {
     }
 }
 
-/// What a master line tells systemd.
-#[derive(Debug, Clone, Copy)]
-pub(crate) struct Systemd {
-    /// The watchdog interval when this line pets it (the gateway's first line does).
-    pub(crate) watchdog: Option<Duration>,
-    /// It is the process's only line: it says STOPPING=1 itself at shutdown.
-    pub(crate) alone: bool,
-}
-
 /// How a reload reaches a running master line.
 #[derive(Debug, Clone)]
 pub(crate) struct MasterHandle(mpsc::UnboundedSender<MasterLine>);
@@ -107,13 +98,14 @@ pub(crate) struct MasterLineTask {
 
 /// Makes the master line on `port`: binds its passive routes (a taken address is an
 /// error now, not later), starts a task for each route's connection, and puts its
-/// counts on `metrics`.
+/// counts on `metrics`. `watchdog`: systemd's interval, when this line pets it (the
+/// gateway's first line does; the gateway says READY=1 and STOPPING=1).
 pub(crate) async fn start(
     port: Box<dyn Port>,
     (framing, timing, master): (Framing, Timing, MasterLine),
     (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
     metrics: Arc<LineMetrics>,
-    systemd: Systemd,
+    watchdog: Option<Duration>,
 ) -> Result<(MasterLineTask, MasterHandle), BridgeError> {
     let (events_tx, events) = mpsc::unbounded_channel();
     let mut to_slaves = Vec::new();
@@ -161,12 +153,6 @@ pub(crate) async fn start(
         framing.name(),
         routes.join("; ")
     );
-    let drain_within = master
-        .routes
-        .iter()
-        .map(|r| Duration::from_millis(r.response_timeout_ms))
-        .max()
-        .unwrap_or_default();
     let line = Line {
         requests: Requests::new(framing),
         table: Table::new(master, framing != Framing::Mbap),
@@ -175,11 +161,7 @@ pub(crate) async fn start(
         framing,
         tap: line_tap,
         to_slaves,
-        drain_within,
-        systemd,
-        watchdog: systemd
-            .watchdog
-            .map(|every| Watchdog::new(every, Instant::now())),
+        watchdog: watchdog.map(|every| Watchdog::new(every, Instant::now())),
         metrics,
         published: Published::default(),
     };
@@ -285,11 +267,7 @@ struct Line {
     /// The line's packets, for the capture.
     tap: Tap,
     to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
-    /// The longest a request held at shutdown can take to be answered (the longest
-    /// route timeout).
-    drain_within: Duration,
-    /// What the line tells systemd, and its watchdog when it pets it.
-    systemd: Systemd,
+    /// systemd's watchdog, when this line pets it.
     watchdog: Option<Watchdog>,
     /// The line's numbers on the metrics board (docs/watching.md), and how far
     /// they are published.
@@ -328,9 +306,6 @@ impl Line {
                     self.table.close();
                     if !self.table.idle() {
                         debug!("stopping: answering the requests held first");
-                    }
-                    if self.systemd.alone {
-                        crate::notify::stopping(self.drain_within + Duration::from_secs(1));
                     }
                     Vec::new()
                 }
