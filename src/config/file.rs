@@ -238,8 +238,23 @@ impl Reader<'_> {
                 false
             }
         };
-        // A passive route binds its address as the gateway binds its listeners: two
-        // sockets cannot share one.
+        self.sockets(&lines, &cfg)?;
+        if !old_form {
+            // The first line's settings stand for the gateway's where one is asked for.
+            (cfg.serial, cfg.relay) = (lines[0].1.serial.clone(), lines[0].1.relay.clone());
+            cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
+        }
+        Ok(cfg)
+    }
+
+    /// A passive route binds its address as the gateway binds its listeners (only when
+    /// some line serves masters): two sockets cannot share one, so a route's `listen`
+    /// on a listener's address or another route's is refused, naming the route.
+    fn sockets(
+        &self,
+        lines: &[(usize, LineConfig, bool)],
+        cfg: &Config,
+    ) -> Result<(), ConfigError> {
         let serving = lines.iter().any(|(_, l, _)| l.master.is_none());
         let listening: Vec<_> = match serving {
             true => cfg.listeners().iter().map(|l| l.tcp.listen).collect(),
@@ -267,12 +282,7 @@ impl Reader<'_> {
                 passive.push((addr, key));
             }
         }
-        if !old_form {
-            // The first line's settings stand for the gateway's where one is asked for.
-            (cfg.serial, cfg.relay) = (lines[0].1.serial.clone(), lines[0].1.relay.clone());
-            cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
-        }
-        Ok(cfg)
+        Ok(())
     }
 
     /// Reads the keys of `section` (of [`KEYS`]) from `v` into `cfg`; `path` is what
