@@ -382,8 +382,8 @@ fn announce(cfg: &Config, bound: &[Bound]) {
     });
 }
 
-/// Serve: every listener's accept loop until shutdown; the connections they started
-/// are on the tracker returned.
+/// Serve: every listener's accept loop (there may be none) until shutdown; the
+/// connections they started are on the tracker returned.
 async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTracker {
     let tracker = TaskTracker::new();
     let shared = tcp::Shared {
@@ -410,6 +410,9 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
     for accept in accepting {
         let _ = accept.await;
     }
+    // The accept loops end at shutdown; with none (every line a master line) serving
+    // is waiting for it.
+    shutdown.cancelled().await;
     tracker
 }
 

@@ -296,3 +296,47 @@ fn a_master_line_beside_a_bus_serves_both_counts_both_and_reloads_both() {
     let counters = gw.stop();
     assert_eq!(counters["connections"], 1, "the master was never cut off");
 }
+
+/// A gateway whose only line is a master line has no listener, and runs until it is
+/// stopped: past its drain's bound (the route's 100 ms and two seconds), the serial
+/// master is still served, and the gateway shuts down only at SIGTERM.
+#[test]
+fn a_lone_master_line_runs_until_stopped() {
+    let dir = tempdir();
+    let master = Socat::start(dir.path());
+    let slave = free_port();
+    let _slave = Py::start(
+        "tcp_slave.py",
+        &["--port", &slave.to_string(), "--unit", "1"],
+    );
+    let text = format!(
+        "[[line]]\nrole = \"master\"\nserial = {{ path = {:?}, framing = \"rtu\", baud_rate = 4000000, silence_floor_ms = 0, flow_control = \"none\" }}\n\n\
+         [[line.route]]\naddress = \"127.0.0.1:{slave}\"\nresponse_timeout_ms = 100\n\n[log]\nlevel = \"debug\"\n",
+        master.gw.display().to_string()
+    );
+    let file = dir.path().join("mbgate.toml");
+    std::fs::write(&file, text).unwrap();
+    let mut gw = Proc::start(
+        &["run", "--config", file.to_str().unwrap()],
+        "serial port open",
+    );
+    gw.wait_log(
+        "connected to the slave at 127.0.0.1:",
+        Duration::from_secs(10),
+    );
+    thread::sleep(Duration::from_secs(3));
+    let steps = r#"[["read_holding_registers", [16], {"count": 2, "device_id": 1}]]"#;
+    let got = serial_master(&master.dev, steps);
+    assert_eq!(
+        got[0]["registers"],
+        serde_json::json!([16, 17]),
+        "{}",
+        gw.log()
+    );
+    let log = gw.log();
+    assert!(!log.contains("listening on"), "{log}");
+    assert!(!log.contains("shutting down"), "before SIGTERM:\n{log}");
+    let status = gw.terminate(Duration::from_secs(10));
+    assert!(status.success(), "{}", gw.log());
+    assert!(gw.log().contains("shutting down"), "{}", gw.log());
+}
