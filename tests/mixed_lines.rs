@@ -299,7 +299,8 @@ fn a_master_line_beside_a_bus_serves_both_counts_both_and_reloads_both() {
 
 /// A gateway whose only line is a master line has no listener, and runs until it is
 /// stopped: past its drain's bound (the route's 100 ms and two seconds), the serial
-/// master is still served, and the gateway shuts down only at SIGTERM.
+/// master is still served; SIGHUP reloads it (its default action would end the
+/// process); it shuts down only at SIGTERM.
 #[test]
 fn a_lone_master_line_runs_until_stopped() {
     let dir = tempdir();
@@ -309,13 +310,15 @@ fn a_lone_master_line_runs_until_stopped() {
         "tcp_slave.py",
         &["--port", &slave.to_string(), "--unit", "1"],
     );
-    let text = format!(
-        "[[line]]\nrole = \"master\"\nserial = {{ path = {:?}, framing = \"rtu\", baud_rate = 4000000, silence_floor_ms = 0, flow_control = \"none\" }}\n\n\
-         [[line.route]]\naddress = \"127.0.0.1:{slave}\"\nresponse_timeout_ms = 100\n\n[log]\nlevel = \"debug\"\n",
-        master.gw.display().to_string()
-    );
+    let text = |timeout: u32| {
+        format!(
+            "[[line]]\nrole = \"master\"\nserial = {{ path = {:?}, framing = \"rtu\", baud_rate = 4000000, silence_floor_ms = 0, flow_control = \"none\" }}\n\n\
+             [[line.route]]\naddress = \"127.0.0.1:{slave}\"\nresponse_timeout_ms = {timeout}\n\n[log]\nlevel = \"debug\"\n",
+            master.gw.display().to_string()
+        )
+    };
     let file = dir.path().join("mbgate.toml");
-    std::fs::write(&file, text).unwrap();
+    std::fs::write(&file, text(100)).unwrap();
     let mut gw = Proc::start(
         &["run", "--config", file.to_str().unwrap()],
         "serial port open",
@@ -326,6 +329,19 @@ fn a_lone_master_line_runs_until_stopped() {
     );
     thread::sleep(Duration::from_secs(3));
     let steps = r#"[["read_holding_registers", [16], {"count": 2, "device_id": 1}]]"#;
+    let got = serial_master(&master.dev, steps);
+    assert_eq!(
+        got[0]["registers"],
+        serde_json::json!([16, 17]),
+        "{}",
+        gw.log()
+    );
+    std::fs::write(&file, text(300)).unwrap();
+    gw.signal("HUP");
+    gw.wait_log(
+        "reloaded: route[0].response_timeout_ms = 300",
+        Duration::from_secs(5),
+    );
     let got = serial_master(&master.dev, steps);
     assert_eq!(
         got[0]["registers"],
