@@ -38,6 +38,9 @@ pub enum GatewayError {
     /// A TLS file could not be used (read, parsed, or its key does not fit).
     #[error("{0}")]
     Tls(#[from] crate::tls::TlsError),
+    /// A master line could not start (a passive route's address).
+    #[error("{0}")]
+    MasterLine(#[from] crate::bridge::BridgeError),
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
@@ -89,6 +92,10 @@ pub async fn run_reloading(
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
 pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+    if !cfg.serves_masters() {
+        // Every line's device is a master: nothing for a Modbus/TCP master to reach.
+        return Ok(Vec::new());
+    }
     let max_pending = cfg.max_pending_per_connection();
     let bind = |l: ListenConfig| {
         let addr = l.tcp.listen;
@@ -107,12 +114,28 @@ pub(crate) async fn serve(
     serve_with(listeners, cfg, None, shutdown).await
 }
 
+/// The gateway's phases, each its own step: the listeners made ready ([`listening`]),
+/// the lines and everything beside them started ([`start`]), the masters served until
+/// shutdown ([`accept`]), and the drain ([`drain`]).
 async fn serve_with(
     listeners: Vec<TcpListener>,
     cfg: Config,
     load: Option<reload::Loader>,
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
+    let bound = listening(listeners, &cfg)?;
+    warn_inapplicable(&cfg);
+    let mut started = start(bound, cfg, load, &shutdown).await?;
+    let tracker = accept(&mut started, &shutdown).await;
+    Ok(drain(started, tracker).await)
+}
+
+/// A listener bound, and what its accept loop is told about it.
+type Bound = (TcpListener, tcp::Listening);
+
+/// Bind, second half: each bound listener with its name in the file, its real address
+/// (port 0 is a real port by now) and its TLS acceptor, whose files are read here.
+fn listening(listeners: Vec<TcpListener>, cfg: &Config) -> Result<Vec<Bound>, GatewayError> {
     let mut bound = Vec::new();
     for (i, (listener, listen)) in listeners.into_iter().zip(cfg.listeners()).enumerate() {
         let local = listener.local_addr().map_err(|error| GatewayError::Bind {
@@ -136,7 +159,35 @@ async fn serve_with(
         };
         bound.push((listener, listening));
     }
-    warn_inapplicable(&cfg);
+    Ok(bound)
+}
+
+/// The gateway once started: what serving and draining need.
+struct Started {
+    bound: Vec<Bound>,
+    /// The configuration as it runs now (a reload changes it).
+    running: Arc<Mutex<Config>>,
+    cfg: Arc<Config>,
+    capture: crate::capture::Capture,
+    board: Arc<Board>,
+    router: Arc<Router>,
+    /// Each listener's counters, in the order of `bound`.
+    listener_stats: Vec<Arc<Stats>>,
+    /// Every listener's and line's counters: the totals add them up.
+    counted: Vec<Arc<Stats>>,
+    /// The lines' tasks, running.
+    line_tasks: Vec<tokio::task::JoinHandle<()>>,
+}
+
+/// Start: the capture and control socket, the lines, the metrics listener, the signal
+/// handlers and reload, the log's account of it all, and READY=1. The lines run from
+/// here; the listeners accept nothing before [`accept`].
+async fn start(
+    bound: Vec<Bound>,
+    cfg: Config,
+    load: Option<reload::Loader>,
+    shutdown: &CancellationToken,
+) -> Result<Started, GatewayError> {
     // `mbgate reload` asks over the control socket, when there is a file to read again.
     let (asked, reload_handle) = match load {
         Some(_) => {
@@ -145,95 +196,39 @@ async fn serve_with(
         }
         None => (None, None),
     };
-    // Before the relays: the always-on ring has their first frames.
+    // Before the lines: the always-on ring has their first frames.
     let capture = crate::capture::Capture::start(&cfg);
-    crate::control::start(&cfg, capture.hub(), reload_handle, &shutdown);
+    crate::control::start(&cfg, capture.hub(), reload_handle, shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
+    let board = Arc::new(Board::default());
+    let _ = board.capture.set(capture.hub().clone());
+    let lines = start_lines(&cfg, &capture, &board, shutdown).await?;
     // Each listener's counters (connections, refusals, requests it answered itself);
     // each line keeps its own (its metrics are per line), and the totals add them up.
     let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
-    let mut counted = listener_stats.clone();
-    let board = Arc::new(Board::default());
-    let _ = board.capture.set(capture.hub().clone());
-
-    // Each line its own relay task: its own queue, timeouts, retries and backoff, so
-    // a slow or dead line never holds up another.
-    let lines = cfg.lines();
-    let mut handles: Vec<RelayHandle> = Vec::new();
-    let mut relays = Vec::new();
-    for (i, line) in lines.iter().enumerate() {
-        let line_stats = Arc::new(Stats::default());
-        counted.push(line_stats.clone());
-        let (relay, handle) =
-            Relay::for_line(line, cfg.log.traffic, line_stats.clone(), shutdown.clone());
-        let relay = relay.with_tap(capture.hub().tap(i as u16 + 1));
-        // One watchdog for the gateway: every relay runs on the one thread, so one
-        // loop that turns shows that all of them can.
-        let relay = if i == 0 {
-            relay.with_watchdog(notify::watchdog_interval())
-        } else {
-            relay
-        };
-        board.add_line(relay.metrics());
-        handles.push(handle);
-        relays.push(relay);
-    }
     for ((_, l), stats) in bound.iter().zip(&listener_stats) {
         board.add_listener(Arc::new(ListenerMetrics {
             name: l.local.to_string(),
             stats: stats.clone(),
         }));
     }
-    // Off unless asked for: then nothing but the Modbus ports listen.
-    let mut http = crate::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
-    if let Some(addr) = cfg.metrics.listen {
-        let listener =
-            metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
-        http.start(addr, listener);
-    }
-    let router = Arc::new(Router::new(&lines, handles.clone()));
+    let mut counted = listener_stats.clone();
+    counted.extend(lines.stats);
+    let http = start_metrics(&cfg, &board, shutdown)?;
+    let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
     // Before "listening on", as the other handlers: a reload asked for at once finds
     // its handler, never SIGHUP's default action (the end of the process).
-    let hup = match load {
-        Some(load) => match tokio::signal::unix::signal(SignalKind::hangup()) {
-            Ok(hup) => Some((hup, load)),
-            Err(e) => {
-                warn!("cannot install the SIGHUP handler: no reload ({e})");
-                None
-            }
-        },
-        None => None,
-    };
+    let hup = load.and_then(hangup);
     // Before "listening on": from then on a signal finds its handler.
     let signals = user_signals();
-    let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
-    let devices = devices.join(", ");
-    // Each line with its own framing and settings, then each listener with the
-    // masters it takes and who may do what: a listener's framing is never printed
-    // beside a serial port.
-    for line in &lines {
-        info!("line {}", crate::config::describe::line(line));
-    }
-    for (_, l) in &bound {
-        let masters = crate::config::describe::masters(l.listen.framing);
-        info!(serial = %devices, "listening on {} for {masters}", l.local);
-        for said in crate::config::effective_access(&l.listen, &cfg.roles) {
-            info!("{}: {said}", l.name);
-        }
-    }
-    let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
-    // Before the relays first run, so READY=1 precedes the first WATCHDOG=1.
-    notify::ready(&format!(
-        "listening on {}, serial {devices}",
-        addrs.join(", ")
-    ));
-    let relay_tasks: Vec<_> = relays.into_iter().map(|r| tokio::spawn(r.run())).collect();
+    announce(&cfg, &bound);
+    let line_tasks: Vec<_> = lines.tasks.into_iter().map(tokio::spawn).collect();
     if let (Some((hup, load)), Some(asked)) = (hup, asked) {
         let reloadable = reload::Reloadable {
             running: running.clone(),
             load,
-            relays: handles,
+            lines: lines.handles,
             metrics: http,
             // Their certificates are read again by every reload, whatever becomes of
             // the rest of it.
@@ -247,24 +242,166 @@ async fn serve_with(
     if let Some(signals) = signals {
         tokio::spawn(report_on_signal(signals, counted.clone(), shutdown.clone()));
     }
+    Ok(Started {
+        bound,
+        running,
+        cfg,
+        capture,
+        board,
+        router,
+        listener_stats,
+        counted,
+        line_tasks,
+    })
+}
 
+/// The lines, made and on the board, not yet running.
+struct Lines {
+    /// Each line's task, to spawn once the gateway has said it is ready.
+    tasks: Vec<std::pin::Pin<Box<dyn std::future::Future<Output = ()> + Send>>>,
+    /// How a reload reaches each line.
+    handles: Vec<reload::LineHandle>,
+    /// The lines whose device is a slave, and their relays: what the router routes
+    /// masters' requests to.
+    slaves: Vec<LineConfig>,
+    relays: Vec<RelayHandle>,
+    /// Each line's counters.
+    stats: Vec<Arc<Stats>>,
+}
+
+/// Start lines: each line its own task (a relay where the device is a slave, a master
+/// line where it is the master), with its own queue, timeouts and backoff, so a slow
+/// or dead line never holds up another; its capture tap and its metrics on the board.
+async fn start_lines(
+    cfg: &Config,
+    capture: &crate::capture::Capture,
+    board: &Board,
+    shutdown: &CancellationToken,
+) -> Result<Lines, GatewayError> {
+    let mut lines = Lines {
+        tasks: Vec::new(),
+        handles: Vec::new(),
+        stats: Vec::new(),
+        slaves: Vec::new(),
+        relays: Vec::new(),
+    };
+    for (i, line) in cfg.lines().iter().enumerate() {
+        let line_stats = Arc::new(Stats::default());
+        lines.stats.push(line_stats.clone());
+        // One watchdog for the gateway: every line runs on the one thread, so one
+        // loop that turns shows that all of them can.
+        let watchdog = if i == 0 {
+            notify::watchdog_interval()
+        } else {
+            None
+        };
+        let tap = capture.hub().tap(i as u16 + 1);
+        if let Some(master) = &line.master {
+            let port = crate::port::serial::SerialPort::new(line.serial.clone());
+            let timing = crate::bridge::Timing::of_line(&line.serial, &line.relay);
+            let metrics = Arc::new(metrics::LineMetrics::new(line.name(), line_stats));
+            board.add_line(metrics.clone());
+            let (task, handle) = crate::bridge::start(
+                Box::new(port),
+                (line.serial.framing, timing, master.clone()),
+                (cfg.log.traffic, (tap, capture.hub().tap(0))),
+                metrics,
+                watchdog,
+            )
+            .await?;
+            lines.handles.push(reload::LineHandle::Master(handle));
+            let shutdown = shutdown.clone();
+            lines.tasks.push(Box::pin(async move {
+                task.run(shutdown).await;
+            }));
+            continue;
+        }
+        let (relay, handle) = Relay::for_line(line, cfg.log.traffic, line_stats, shutdown.clone());
+        let relay = relay.with_tap(tap).with_watchdog(watchdog);
+        board.add_line(relay.metrics());
+        lines
+            .handles
+            .push(reload::LineHandle::Relay(handle.clone()));
+        lines.slaves.push(line.clone());
+        lines.relays.push(handle);
+        lines.tasks.push(Box::pin(relay.run()));
+    }
+    Ok(lines)
+}
+
+/// The metrics listener: off unless asked for, and then nothing but the Modbus ports
+/// listen.
+fn start_metrics(
+    cfg: &Config,
+    board: &Arc<Board>,
+    shutdown: &CancellationToken,
+) -> Result<crate::metrics::listener::MetricsListener, GatewayError> {
+    let mut http = crate::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
+    if let Some(addr) = cfg.metrics.listen {
+        let listener =
+            metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
+        http.start(addr, listener);
+    }
+    Ok(http)
+}
+
+/// SIGHUP's handler, with the loader a reload reads the file by; none (and no reload)
+/// when it cannot be installed.
+fn hangup(load: reload::Loader) -> Option<(tokio::signal::unix::Signal, reload::Loader)> {
+    match tokio::signal::unix::signal(SignalKind::hangup()) {
+        Ok(hup) => Some((hup, load)),
+        Err(e) => {
+            warn!("cannot install the SIGHUP handler: no reload ({e})");
+            None
+        }
+    }
+}
+
+/// Each line with its own framing and settings, then each listener with the masters
+/// it takes and who may do what (a listener's framing is never printed beside a
+/// serial port); then READY=1, before the lines first run, so it precedes the first
+/// WATCHDOG=1.
+fn announce(cfg: &Config, bound: &[Bound]) {
+    let lines = cfg.lines();
+    let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
+    let devices = devices.join(", ");
+    for line in &lines {
+        info!("line {}", crate::config::describe::line(line));
+    }
+    for (_, l) in bound {
+        let masters = crate::config::describe::masters(l.listen.framing);
+        info!(serial = %devices, "listening on {} for {masters}", l.local);
+        for said in crate::config::effective_access(&l.listen, &cfg.roles) {
+            info!("{}: {said}", l.name);
+        }
+    }
+    let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
+    notify::ready(&match addrs.is_empty() {
+        true => format!("serial {devices}, no Modbus/TCP listener"),
+        false => format!("listening on {}, serial {devices}", addrs.join(", ")),
+    });
+}
+
+/// Serve: every listener's accept loop (there may be none) until shutdown; the
+/// connections they started are on the tracker returned.
+async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTracker {
     let tracker = TaskTracker::new();
     let shared = tcp::Shared {
-        cfg: cfg.clone(),
-        router,
+        cfg: started.cfg.clone(),
+        router: started.router.clone(),
         stats: Arc::default(),
         shutdown: shutdown.clone(),
         tracker: tracker.clone(),
         ids: Arc::new(AtomicU64::new(0)),
-        masters: board.masters.clone(),
-        capture: capture.hub().clone(),
+        masters: started.board.masters.clone(),
+        capture: started.capture.hub().clone(),
     };
-    let accepting: Vec<_> = bound
+    let accepting: Vec<_> = std::mem::take(&mut started.bound)
         .into_iter()
-        .zip(listener_stats)
+        .zip(&started.listener_stats)
         .map(|((listener, listening), stats)| {
             let shared = tcp::Shared {
-                stats,
+                stats: stats.clone(),
                 ..shared.clone()
             };
             tokio::spawn(tcp::accept_loop(listener, listening, shared))
@@ -273,18 +410,29 @@ async fn serve_with(
     for accept in accepting {
         let _ = accept.await;
     }
+    // The accept loops end at shutdown; with none (every line a master line) serving
+    // is waiting for it.
+    shutdown.cancelled().await;
+    tracker
+}
 
-    // Shutdown: the listeners are closed; connections stop reading and the relays
-    // answer what is queued (0x0A) and wait for what is on their lines.
-    // As the configuration runs now: a reload may have changed the timeouts.
-    let answer_within = running.lock().expect("not poisoned").answer_within();
+/// Drain: the listeners are closed; connections stop reading and the lines answer
+/// what is queued (0x0A) and wait for what is on them, within the longest answer the
+/// configuration allows as it runs now (a reload may have changed the timeouts) and
+/// two seconds more. Then the capture ends and the totals are logged.
+async fn drain(started: Started, tracker: TaskTracker) -> Arc<Stats> {
+    let answer_within = started
+        .running
+        .lock()
+        .expect("not poisoned")
+        .answer_within();
     let bound = answer_within + Duration::from_secs(2);
     info!("shutting down: draining in-flight requests");
     // systemd waits for the drain, and a second more for the exit itself.
     notify::stopping(bound + Duration::from_secs(1));
     tracker.close();
     if tokio::time::timeout(bound, async {
-        for task in relay_tasks {
+        for task in started.line_tasks {
             let _ = task.await;
         }
         tracker.wait().await;
@@ -295,10 +443,10 @@ async fn serve_with(
         warn!("drain did not finish in {bound:?}; exiting anyway");
     }
     // Every capture gets its end, the ring its last packets.
-    capture.finish().await;
-    let totals = Arc::new(Stats::total(counted.iter().map(|s| &**s)));
+    started.capture.finish().await;
+    let totals = Arc::new(Stats::total(started.counted.iter().map(|s| &**s)));
     info!(stats = %totals, "stopped");
-    Ok(totals)
+    totals
 }
 
 type UserSignals = (tokio::signal::unix::Signal, tokio::signal::unix::Signal);

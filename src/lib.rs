@@ -26,6 +26,7 @@ pub mod port;
 pub mod relay;
 pub mod reload;
 pub(crate) mod router;
+pub mod runtime;
 pub mod scan;
 pub mod sim;
 pub mod stats;

@@ -247,21 +247,13 @@ fn checked(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, Strin
 
 fn run(cfg: Config, load: mbgate::reload::Loader) -> anyhow::Result<()> {
     mbgate::logging::init(&cfg.log);
-    // One thread: the serial line is the bottleneck, and a single-threaded runtime has
-    // the smallest footprint and no cross-thread wake-ups on the reply path.
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the runtime")?;
+    let rt = runtime()?;
     rt.block_on(async {
         let shutdown = CancellationToken::new();
         tokio::spawn(watch_signals(shutdown.clone(), Hangup::Reloads));
-        if cfg.master.is_some() {
-            // The line's device is the master: no listener, routes to slaves.
-            mbgate::bridge::run(&cfg, shutdown).await?;
-        } else {
-            mbgate::gateway::run_reloading(cfg, load, shutdown).await?;
-        }
+        // Every line, whichever side its device is on (a gateway of master lines
+        // alone listens for no Modbus/TCP master).
+        mbgate::gateway::run_reloading(cfg, load, shutdown).await?;
         Ok(())
     })
 }
@@ -278,10 +270,7 @@ fn sim_level(device: &mbgate::sim::options::DeviceArgs) -> (String, bool) {
 }
 
 fn runtime() -> anyhow::Result<tokio::runtime::Runtime> {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the runtime")
+    mbgate::runtime::new().context("starting the runtime")
 }
 
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
@@ -382,7 +371,7 @@ fn master_demo(args: mbgate::demo::DemoArgs) -> ExitCode {
 /// `body` runs the simulator.
 fn simulate<F, Fut>(
     device: &mbgate::sim::options::DeviceArgs,
-    settings: Result<mbgate::sim::options::Settings, String>,
+    settings: Result<mbgate::sim::options::Settings, mbgate::sim::options::BadFlags>,
     traffic: bool,
     console_after: Option<std::sync::mpsc::Receiver<()>>,
     body: F,

@@ -3,7 +3,7 @@
 //!
 //! Connections talk to it over a channel ([`RelayHandle`], `command.rs`); it owns
 //! every part below, so nothing here is locked. Each turn it pets the watchdog
-//! (`watchdog.rs`), opens the port when due (`lifecycle.rs`), puts requests on the line
+//! (`watchdog.rs`), opens the port when due (`crate::port::lifecycle`), puts requests on the line
 //! while it has room (`scheduler.rs` picks, `line/` encodes, `outgoing.rs` buffers,
 //! `inflight.rs` times), then waits for one event (`event.rs`): a command, bytes from
 //! the port, room to write, the end of a drain, the nearest timer, or shutdown. Bytes
@@ -19,19 +19,19 @@ mod failures;
 mod fanout;
 mod inflight;
 mod learn;
-mod lifecycle;
 mod line;
 mod outgoing;
 mod pending;
 mod scheduler;
 mod turnaround;
 mod watch;
-mod watchdog;
+pub(crate) mod watchdog;
 
 use crate::config::{LineConfig, RelayConfig, SerialConfig};
 use crate::frame::Adu;
 use crate::metrics::LineMetrics;
 use crate::outbox::{Refusal, Ticket};
+use crate::port::lifecycle::Lifecycle;
 use crate::port::{self, Link};
 use crate::stats::Stats;
 use cache::Cache;
@@ -39,7 +39,6 @@ pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
 use fanout::Masters;
 use inflight::{Failure, Paced, Table};
-use lifecycle::Lifecycle;
 use line::{Line, Seen, Unsolicited};
 use outgoing::Outgoing;
 use pending::Pending;

@@ -119,12 +119,40 @@ impl ReloadHandle {
     }
 }
 
-/// What a reload reloads: the file, the relays it retunes, the metrics listener it
+/// How a reload reaches a running line, whichever side its device is on.
+#[derive(Debug, Clone)]
+pub(crate) enum LineHandle {
+    /// A relay: the device is a slave.
+    Relay(RelayHandle),
+    /// A master line: the device is the master.
+    Master(crate::bridge::MasterHandle),
+}
+
+impl LineHandle {
+    /// Gives the line `line`'s reloadable settings; `None` when it has stopped.
+    fn retune(&self, line: crate::config::LineConfig, traffic: bool) -> Option<()> {
+        match (self, line.master) {
+            (LineHandle::Master(m), Some(routes)) => m.retune(routes).ok(),
+            (LineHandle::Relay(r), _) => {
+                let retune = Command::Retune {
+                    relay: Box::new(line.relay),
+                    units: line.unit_tables,
+                    traffic,
+                };
+                r.send(retune).ok()
+            }
+            // Lines are matched by their port and a line's side is fixed: never met.
+            (LineHandle::Master(_), None) => Some(()),
+        }
+    }
+}
+
+/// What a reload reloads: the file, the lines it retunes, the metrics listener it
 /// moves, and the TLS listeners whose certificates it reads again.
 pub(crate) struct Reloadable {
     pub(crate) running: Arc<Mutex<Config>>,
     pub(crate) load: Loader,
-    pub(crate) relays: Vec<RelayHandle>,
+    pub(crate) lines: Vec<LineHandle>,
     pub(crate) metrics: MetricsListener,
     pub(crate) acceptors: Vec<Arc<Acceptor>>,
 }
@@ -150,7 +178,7 @@ pub(crate) async fn on_sighup(
             }
         };
         let certificates = reload_certificates(&it.acceptors);
-        let Some(outcome) = reload(&it.running, &it.load, &it.relays, &mut it.metrics) else {
+        let Some(outcome) = reload(&it.running, &it.load, &it.lines, &mut it.metrics) else {
             return; // a relay has stopped: shutting down
         };
         outcome.log();
@@ -198,7 +226,7 @@ fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
 fn reload(
     running: &Mutex<Config>,
     load: &Loader,
-    relays: &[RelayHandle],
+    lines: &[LineHandle],
     metrics: &mut MetricsListener,
 ) -> Option<Outcome> {
     let read = match load() {
@@ -216,13 +244,8 @@ fn reload(
         new.metrics = old.metrics.clone();
     }
     crate::logging::reload(&new.log);
-    for (relay, line) in relays.iter().zip(new.lines()) {
-        let retune = Command::Retune {
-            relay: Box::new(line.relay),
-            units: line.unit_tables,
-            traffic: new.log.traffic,
-        };
-        relay.send(retune).ok()?;
+    for (handle, line) in lines.iter().zip(new.lines()) {
+        handle.retune(line, new.log.traffic)?;
     }
     let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {
         let changes = changes::changes(a, b, matched);

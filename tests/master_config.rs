@@ -140,3 +140,49 @@ fn the_shipped_example_is_valid() {
     let cfg = parse(&example, F).unwrap_or_else(|e| panic!("{e}\n{example}"));
     assert_eq!(cfg.master.unwrap().routes.len(), 2);
 }
+
+/// A master line beside a line of slaves: both read, the master line needing no
+/// `units`; the slave line still must say its units, two lines on one port are
+/// refused naming the second's port, and a passive route on a listener's address
+/// naming the route.
+#[test]
+fn a_master_line_stands_beside_other_lines() {
+    let master =
+        "[[line]]\nrole = \"master\"\nserial = { path = \"/dev/ttyS1\", framing = \"rtu\" }\n\
+                  [[line.route]]\naddress = \"h:1\"\nresponse_timeout_ms = 300\n";
+    let slaves = |path: &str, units: &str| {
+        format!("[[line]]\n{units}serial = {{ path = \"{path}\", framing = \"rtu\" }}\n")
+    };
+    let text = format!("{master}{}", slaves("/dev/ttyS2", "units = [1, 2]\n"));
+    let cfg = parse(&text, F).unwrap();
+    let lines = cfg.lines();
+    assert_eq!(lines.len(), 2);
+    assert!(cfg.master.is_none(), "not the old form's one master line");
+    let printed = to_toml_lines(&cfg);
+    assert_eq!(parse(&printed, F).unwrap(), cfg, "{printed}");
+
+    for (text, want) in [
+        (
+            format!("{master}{}", slaves("/dev/ttyS2", "")),
+            "7:1: line[1].units: missing: with several lines, each says which unit ids it serves",
+        ),
+        (
+            format!(
+                "{}{}[[listen]]\naddress = \"127.0.0.1:5021\"\n",
+                master.replace("address = \"h:1\"", "listen = \"127.0.0.1:5021\""),
+                slaves("/dev/ttyS2", "units = [1]\n")
+            ),
+            "1:1: line[0].route[0].listen: 127.0.0.1:5021 is listen[0]'s address too: each socket has its own",
+        ),
+        (
+            format!("{master}{}", slaves("/dev/ttyS1", "units = [1]\n")),
+            "9:19: line[1].serial.path: the same as line[0]'s (\"/dev/ttyS1\"): each line has its own port or address",
+        ),
+    ] {
+        let e = parse(&text, F).expect_err(&text).to_string();
+        assert!(
+            e.starts_with(&format!("{F}:{want}")),
+            "{text}\n{e:?}\nshould start with {want:?}"
+        );
+    }
+}

@@ -13,20 +13,25 @@ pub(crate) mod slave;
 pub(crate) mod table;
 
 use crate::capture::packet::{Dir, Packet, Role};
-use crate::capture::{Capture, Tap};
+use crate::capture::Tap;
 use crate::config::master::MasterLine;
-use crate::config::{Config, Framing};
+use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
-use crate::port::{Backoff, Link, Port};
+use crate::metrics::LineMetrics;
+use crate::port::lifecycle::{Lifecycle, State};
+use crate::port::{Link, Port};
+use crate::relay::watchdog::Watchdog;
 use requests::{encode_reply, Requests};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
 use std::time::Duration;
-use table::{Action, Counts, Table};
+use table::{Action, Counts, Table, Tally};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::{sleep_until, Instant};
 use tokio_util::sync::CancellationToken;
-use tracing::{debug, info, warn};
+use tracing::{debug, info};
 
 /// Why the master line could not start.
 #[derive(Debug, thiserror::Error)]
@@ -51,52 +56,58 @@ pub(crate) struct Timing {
     pub(crate) pause: Duration,
     /// MBAP: silence after which a partial frame is discarded.
     pub(crate) frame_gap: Duration,
+    /// The line's speed, for the log.
+    pub(crate) baud: u32,
 }
 
 impl Timing {
-    pub(crate) fn of(cfg: &Config) -> Self {
+    /// A line's timing from its `serial` and `relay` tables.
+    pub(crate) fn of_line(serial: &SerialConfig, relay: &RelayConfig) -> Self {
         // Taken before the port opens: its kind from the path (its device number).
-        let kind = crate::port::serial::of_path(&cfg.serial.path);
+        let kind = crate::port::serial::of_path(&serial.path);
         let port = crate::port::kind::PortInfo::plain(kind);
         Self {
-            pause: crate::port::kind::silence(&cfg.serial, &port),
-            frame_gap: Duration::from_millis(cfg.relay.frame_gap_ms),
+            pause: crate::port::kind::silence(serial, &port),
+            frame_gap: Duration::from_millis(relay.frame_gap_ms),
+            baud: serial.baud_rate,
         }
     }
 }
 
-/// Runs the master line of `cfg` on its serial port until `shutdown`; the counts at
-/// the end.
-pub async fn run(cfg: &Config, shutdown: CancellationToken) -> Result<Counts, BridgeError> {
-    let master = cfg.master.clone().expect("a master line");
-    let port = crate::port::serial::SerialPort::new(cfg.serial.clone());
-    let capture = Capture::start(cfg);
-    crate::control::start(cfg, capture.hub(), None, &shutdown);
-    let taps = (capture.hub().tap(1), capture.hub().tap(0));
-    let counts = run_on(
-        Box::new(port),
-        cfg.serial.framing,
-        Timing::of(cfg),
-        master,
-        (cfg.log.traffic, taps),
-        shutdown,
-    )
-    .await;
-    capture.finish().await;
-    counts
+/// How a reload reaches a running master line.
+#[derive(Debug, Clone)]
+pub(crate) struct MasterHandle(mpsc::UnboundedSender<MasterLine>);
+
+impl MasterHandle {
+    /// The routes' timeouts as `line` gives them now; `Err` when the line has stopped.
+    pub(crate) fn retune(&self, line: MasterLine) -> Result<(), ()> {
+        self.0.send(line).map_err(|_| ())
+    }
 }
 
-/// [`run`] on any port (tests use an in-memory one). `traffic` turns the traffic log
-/// on; the taps take the line's packets and the slaves' (docs/capture.md).
-pub(crate) async fn run_on(
-    mut port: Box<dyn Port>,
-    framing: Framing,
-    timing: Timing,
-    master: MasterLine,
+/// A master line ready to run: its routes' connections started (a passive route's
+/// address bound), its serial port not yet open.
+pub(crate) struct MasterLineTask {
+    port: Box<dyn Port>,
+    line: Line,
+    events: mpsc::UnboundedReceiver<slave::Event>,
+    retunes: mpsc::UnboundedReceiver<MasterLine>,
+    slaves_stop: CancellationToken,
+    tracker: tokio_util::task::TaskTracker,
+}
+
+/// Makes the master line on `port`: binds its passive routes (a taken address is an
+/// error now, not later), starts a task for each route's connection, and puts its
+/// counts on `metrics`. `watchdog`: systemd's interval, when this line pets it (the
+/// gateway's first line does; the gateway says READY=1 and STOPPING=1).
+pub(crate) async fn start(
+    port: Box<dyn Port>,
+    (framing, timing, master): (Framing, Timing, MasterLine),
     (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
-    shutdown: CancellationToken,
-) -> Result<Counts, BridgeError> {
-    let (events_tx, mut events) = mpsc::unbounded_channel();
+    metrics: Arc<LineMetrics>,
+    watchdog: Option<Duration>,
+) -> Result<(MasterLineTask, MasterHandle), BridgeError> {
+    let (events_tx, events) = mpsc::unbounded_channel();
     let mut to_slaves = Vec::new();
     // Stopped once the line has drained at shutdown: the replies still due come
     // through these connections.
@@ -142,13 +153,7 @@ pub(crate) async fn run_on(
         framing.name(),
         routes.join("; ")
     );
-    let drain_within = master
-        .routes
-        .iter()
-        .map(|r| Duration::from_millis(r.response_timeout_ms))
-        .max()
-        .unwrap_or_default();
-    let mut line = Line {
+    let line = Line {
         requests: Requests::new(framing),
         table: Table::new(master, framing != Framing::Mbap),
         timing,
@@ -156,81 +161,101 @@ pub(crate) async fn run_on(
         framing,
         tap: line_tap,
         to_slaves,
-        drain_within,
-        watchdog: crate::notify::watchdog_interval(),
-        pet_at: None,
+        watchdog: watchdog.map(|every| Watchdog::new(every, Instant::now())),
+        metrics,
+        published: Published::default(),
     };
-    line.pet_at = line.watchdog.map(|_| Instant::now());
-    crate::notify::ready(&format!("master line on {}", port.name()));
-    let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
-    let mut reported = false;
-    'open: loop {
-        let link = tokio::select! {
-            _ = shutdown.cancelled() => break 'open,
-            r = port.open() => r,
-        };
-        let mut link = match link {
-            Ok(l) => {
-                backoff.reset();
-                reported = false;
-                info!(serial = port.name(), "{} open: {}", port.kind(), l.info);
-                l
+    let (retune, retunes) = mpsc::unbounded_channel();
+    let task = MasterLineTask {
+        port,
+        line,
+        events,
+        retunes,
+        slaves_stop,
+        tracker,
+    };
+    Ok((task, MasterHandle(retune)))
+}
+
+impl MasterLineTask {
+    /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
+    /// when it is lost, as every line does (`crate::port::lifecycle`); at shutdown
+    /// answers what it holds first. The counts at the end.
+    pub(crate) async fn run(self, shutdown: CancellationToken) -> Counts {
+        let MasterLineTask {
+            port,
+            mut line,
+            mut events,
+            mut retunes,
+            slaves_stop,
+            tracker,
+        } = self;
+        let mut port = Lifecycle::new(port, line.timing.baud, Instant::now())
+            .meanwhile("the serial master is not heard meanwhile");
+        loop {
+            let now = Instant::now();
+            if let Some(opened) = port.open_if_due(now) {
+                line.opened(&mut port, opened, now);
             }
-            Err(e) => {
-                if !reported {
-                    warn!(
-                        serial = port.name(),
-                        "cannot open the {} ({e}); retrying",
-                        port.kind()
-                    );
-                    reported = true;
+            let State::Open(link) = &mut port.state else {
+                match line
+                    .wait_for_port(&mut port.state, (&mut events, &mut retunes), &shutdown)
+                    .await
+                {
+                    Waited::Stop => break,
+                    Waited::Opened(opened) => line.opened(&mut port, opened, Instant::now()),
+                    Waited::Due => {}
                 }
-                let until = Instant::now() + backoff.next_delay();
-                loop {
-                    tokio::select! {
-                        _ = shutdown.cancelled() => break 'open,
-                        _ = sleep_until(until) => continue 'open,
-                        _ = sleep_until(line.pet_at.unwrap_or_else(Instant::now)), if line.pet_at.is_some() => line.pet(),
-                        Some(ev) = events.recv() => {
-                            // No port to answer on: the table still follows the slaves.
-                            let actions = line.event(ev);
-                            let _ = line.act(actions, None).await;
-                        }
-                    }
+                continue;
+            };
+            match line
+                .serve(link, (&mut events, &mut retunes), &shutdown)
+                .await
+            {
+                Ok(()) => break,
+                Err(e) => {
+                    port.lost(&e.to_string(), Instant::now());
+                    line.closed();
                 }
-            }
-        };
-        match line.serve(&mut link, &mut events, &shutdown).await {
-            Ok(()) => break,
-            Err(e) => {
-                warn!(
-                    serial = port.name(),
-                    "{} lost ({e}); reopening",
-                    port.kind()
-                );
-                line.requests.clear();
-                line.table.serial_lost();
             }
         }
+        slaves_stop.cancel();
+        tracker.close();
+        tracker.wait().await;
+        line.publish();
+        let c = line.table.counts;
+        info!(
+            requests = c.requests,
+            forwarded = c.forwarded,
+            replies = c.replies,
+            timeouts = c.timeouts,
+            unavailable = c.unavailable,
+            late = c.late,
+            broadcasts = c.broadcasts,
+            broadcasts_refused = c.broadcasts_refused,
+            refused = c.refused,
+            dropped_bytes = line.requests.dropped(),
+            "master line stopped"
+        );
+        c
     }
-    slaves_stop.cancel();
-    tracker.close();
-    tracker.wait().await;
-    let c = line.table.counts;
-    info!(
-        requests = c.requests,
-        forwarded = c.forwarded,
-        replies = c.replies,
-        timeouts = c.timeouts,
-        unavailable = c.unavailable,
-        late = c.late,
-        broadcasts = c.broadcasts,
-        broadcasts_refused = c.broadcasts_refused,
-        refused = c.refused,
-        dropped_bytes = line.requests.dropped(),
-        "master line stopped"
-    );
-    Ok(c)
+}
+
+/// How a wait for the port ended.
+enum Waited {
+    /// Shutdown.
+    Stop,
+    /// The open under way finished.
+    Opened(std::io::Result<Link>),
+    /// The next attempt is due.
+    Due,
+}
+
+/// What of the table's counts is on the metrics board already.
+#[derive(Debug, Default)]
+struct Published {
+    counts: Counts,
+    dropped: u64,
 }
 
 struct Line {
@@ -242,12 +267,12 @@ struct Line {
     /// The line's packets, for the capture.
     tap: Tap,
     to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
-    /// The longest a request held at shutdown can take to be answered (the longest
-    /// route timeout).
-    drain_within: Duration,
-    /// systemd's watchdog interval, pinged from this loop, and the next ping.
-    watchdog: Option<Duration>,
-    pet_at: Option<Instant>,
+    /// systemd's watchdog, when this line pets it.
+    watchdog: Option<Watchdog>,
+    /// The line's numbers on the metrics board (docs/watching.md), and how far
+    /// they are published.
+    metrics: Arc<LineMetrics>,
+    published: Published,
 }
 
 impl Line {
@@ -257,7 +282,10 @@ impl Line {
     async fn serve(
         &mut self,
         link: &mut Link,
-        events: &mut mpsc::UnboundedReceiver<slave::Event>,
+        (events, retunes): (
+            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<MasterLine>,
+        ),
         shutdown: &CancellationToken,
     ) -> std::io::Result<()> {
         let mut buf = vec![0u8; 1024];
@@ -271,6 +299,7 @@ impl Line {
             self.requests.set_tape(self.tap.on());
             let partial = self.requests.buffered() > 0;
             let deadline = self.table.next_deadline().map(Instant::from_std);
+            let pet_at = self.watchdog.as_ref().map(Watchdog::next);
             let actions = tokio::select! {
                 _ = shutdown.cancelled(), if !draining => {
                     draining = true;
@@ -278,7 +307,6 @@ impl Line {
                     if !self.table.idle() {
                         debug!("stopping: answering the requests held first");
                     }
-                    crate::notify::stopping(self.drain_within + Duration::from_secs(1));
                     Vec::new()
                 }
                 r = link.reader.read(&mut buf) => match r {
@@ -287,6 +315,7 @@ impl Line {
                         if self.traffic {
                             debug!("serial rx {}", Hex(&buf[..n]));
                         }
+                        self.metrics.stats.add(&self.metrics.stats.serial_bytes_in, n as u64);
                         last_rx = Instant::now();
                         paused = false;
                         // A capture begun while the loop waited has these bytes too.
@@ -315,19 +344,132 @@ impl Line {
                     self.table.expire(std::time::Instant::now())
                 }
                 Some(ev) = events.recv() => self.event(ev),
-                _ = sleep_until(self.pet_at.unwrap_or_else(Instant::now)), if self.pet_at.is_some() => {
+                Some(routes) = retunes.recv() => {
+                    self.table.retune(&routes);
+                    Vec::new()
+                }
+                _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => {
                     self.pet();
                     Vec::new()
                 }
             };
             self.act(actions, Some(&mut link.writer)).await?;
+            self.publish();
         }
     }
 
-    /// WATCHDOG=1, and when the next is due.
+    /// The table's counts since the last call onto the metrics board, each under the
+    /// name a relay's line uses for the same thing (docs/watching.md).
+    fn publish(&mut self) {
+        let (now, was) = (self.table.counts, self.published.counts);
+        let s = &self.metrics.stats;
+        let pairs = [
+            (&s.requests, now.requests - was.requests),
+            (&s.replies, now.replies - was.replies),
+            (&s.timeouts, now.timeouts - was.timeouts),
+            (&s.unavailable, now.unavailable - was.unavailable),
+            (&s.late_replies, now.late - was.late),
+            (&s.broadcasts, now.broadcasts - was.broadcasts),
+            (
+                &s.broadcasts_refused,
+                now.broadcasts_refused - was.broadcasts_refused,
+            ),
+            (&s.bad_requests, now.refused - was.refused),
+        ];
+        for (counter, n) in pairs {
+            s.add(counter, n);
+        }
+        let at = Instant::now();
+        if now.replies > was.replies {
+            self.metrics.replied_at(at);
+        }
+        for (unit, tally) in self.table.take_tallies() {
+            let u = self.metrics.unit(unit);
+            match tally {
+                Tally::Request => s.add(&u.requests, 1),
+                Tally::Reply => s.add(&u.replies, 1),
+                Tally::Timeout => self.metrics.timed_out(unit, at),
+            }
+        }
+        let dropped = self.requests.dropped();
+        s.add(
+            &s.dropped_bytes,
+            dropped.saturating_sub(self.published.dropped),
+        );
+        self.published = Published {
+            counts: now,
+            dropped,
+        };
+    }
+
+    /// WATCHDOG=1 if it is due.
     fn pet(&mut self) {
-        crate::notify::watchdog();
-        self.pet_at = self.watchdog.map(|every| Instant::now() + every);
+        if let Some(w) = &mut self.watchdog {
+            w.pet(Instant::now());
+        }
+    }
+
+    /// While the port is closed (until its next attempt) or opening: follows the
+    /// slaves (no port to answer on, but the table still tracks them), the watchdog
+    /// and a reload's timeouts, until the open ends, the attempt is due or shutdown.
+    async fn wait_for_port(
+        &mut self,
+        state: &mut State,
+        (events, retunes): (
+            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<MasterLine>,
+        ),
+        shutdown: &CancellationToken,
+    ) -> Waited {
+        let retry_at = match state {
+            State::Closed { retry_at } => Some(*retry_at),
+            _ => None,
+        };
+        let mut opening = match state {
+            State::Opening(o) => Some(o),
+            _ => None,
+        };
+        loop {
+            let pet_at = self.watchdog.as_ref().map(Watchdog::next);
+            let open = async {
+                match opening.as_mut() {
+                    Some(o) => o.await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                _ = shutdown.cancelled() => return Waited::Stop,
+                r = open => return Waited::Opened(r),
+                _ = sleep_until(retry_at.unwrap_or_else(Instant::now)), if retry_at.is_some() => return Waited::Due,
+                _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => self.pet(),
+                Some(ev) = events.recv() => {
+                    let actions = self.event(ev);
+                    let _ = self.act(actions, None).await;
+                    self.publish();
+                }
+                Some(routes) = retunes.recv() => self.table.retune(&routes),
+            }
+        }
+    }
+
+    /// An open finished at `now`: open, the line starts afresh and says so; or not,
+    /// and the next attempt is due later.
+    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<Link>, now: Instant) {
+        if let Some(info) = port.opened(opened, now) {
+            port.tell_open(&info, "the device is the master");
+            let m = &self.metrics;
+            m.port_open.store(1, Ordering::Relaxed);
+            m.stats.add(&m.stats.serial_opens, 1);
+        }
+    }
+
+    /// The port was lost: what was read of a request is dropped, and what was held
+    /// for the serial master is never answered (it gave up on it).
+    fn closed(&mut self) {
+        self.metrics.port_open.store(0, Ordering::Relaxed);
+        self.requests.clear();
+        self.table.serial_lost();
+        self.publish();
     }
 
     /// Every whole request decoded so far, into the table.
@@ -410,6 +552,8 @@ impl Line {
                     if let Some(w) = writer.as_mut() {
                         w.write_all(&bytes).await?;
                         w.flush().await?;
+                        let s = &self.metrics.stats;
+                        s.add(&s.serial_bytes_out, bytes.len() as u64);
                     }
                 }
             }

@@ -20,6 +20,17 @@ pub(crate) enum Action {
     Answer { request: Incoming, pdu: Vec<u8> },
 }
 
+/// What became of a request, by its unit, for the unit's metrics.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Tally {
+    /// Taken off the line.
+    Request,
+    /// Its slave's reply passed on.
+    Reply,
+    /// Answered 0x0B: no reply in time, or its connection lost.
+    Timeout,
+}
+
 /// A slave connection as the table sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Link {
@@ -32,7 +43,7 @@ pub(crate) enum Link {
 
 /// Running totals.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub struct Counts {
+pub(crate) struct Counts {
     /// Requests taken off the serial line.
     pub(crate) requests: u64,
     /// Frames written to slaves.
@@ -83,6 +94,9 @@ pub(crate) struct Table {
     /// Shutting down: new requests get 0x0A, those held are answered or time out.
     closing: bool,
     pub(crate) counts: Counts,
+    /// Each unit's requests, replies and timeouts since the loop last took them
+    /// ([`Table::take_tallies`]).
+    tallies: Vec<(u8, Tally)>,
 }
 
 fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
@@ -111,7 +125,24 @@ impl Table {
             serial_bus,
             closing: false,
             counts: Counts::default(),
+            tallies: Vec::new(),
         }
+    }
+
+    /// The routes' response timeouts as `line` gives them now (a reload; its routes
+    /// matched by their place, as the reload checked): requests from now on take
+    /// them, those held keep their deadlines.
+    pub(crate) fn retune(&mut self, line: &MasterLine) {
+        let routes = self.routes.iter_mut().zip(self.line.routes.iter_mut());
+        for ((route, cfg), now) in routes.zip(&line.routes) {
+            route.timeout = Duration::from_millis(now.response_timeout_ms);
+            cfg.response_timeout_ms = now.response_timeout_ms;
+        }
+    }
+
+    /// Each unit's requests, replies and timeouts since the last call, in order.
+    pub(crate) fn take_tallies(&mut self) -> Vec<(u8, Tally)> {
+        std::mem::take(&mut self.tallies)
     }
 
     /// Shutting down: requests from now on are answered 0x0A at once; those held
@@ -130,6 +161,7 @@ impl Table {
     fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: ExceptionCode) {
         if code == ExceptionCode::GATEWAY_TARGET_FAILED {
             self.counts.timeouts += 1;
+            self.tallies.push((held.request.unit, Tally::Timeout));
         } else {
             self.counts.unavailable += 1;
         }
@@ -146,6 +178,7 @@ impl Table {
     pub(crate) fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
         let mut out = Vec::new();
         self.counts.requests += 1;
+        self.tallies.push((request.unit, Tally::Request));
         let broadcast = self.serial_bus && request.unit == 0;
         if let Err(code) = pdu::check_request(&request.pdu) {
             self.counts.refused += 1;
@@ -289,6 +322,7 @@ impl Table {
                 let (_, held) = r.in_flight.remove(at);
                 if held.answer {
                     self.counts.replies += 1;
+                    self.tallies.push((held.request.unit, Tally::Reply));
                     out.push(Action::Answer {
                         request: held.request,
                         pdu: adu.pdu().to_vec(),
@@ -411,6 +445,29 @@ mod tests {
                 _ => None,
             })
             .collect()
+    }
+
+    /// A reload's timeouts: the requests after it take them, the one held keeps the
+    /// deadline it had.
+    #[test]
+    fn retune_changes_the_timeout_of_later_requests_only() {
+        let t0 = Instant::now();
+        let mut t = Table::new(line(2), false);
+        t.up(1);
+        assert_eq!(sent(&t.request(req(1, 9), t0)), [(1, 1, 9)]);
+        let mut longer = line(2);
+        longer.routes[1].response_timeout_ms = 500;
+        t.retune(&longer);
+        assert_eq!(sent(&t.request(req(2, 9), t0)), [(1, 2, 9)]);
+        let timed_out = vec![0x83, 0x0B];
+        let at = |ms| t0 + Duration::from_millis(ms);
+        assert_eq!(answers(&t.expire(at(200))), [(Some(1), timed_out.clone())]);
+        assert_eq!(answers(&t.expire(at(400))), []);
+        assert_eq!(answers(&t.expire(at(600))), [(Some(2), timed_out)]);
+        assert_eq!(t.counts.timeouts, 2);
+        let (r, to) = (Tally::Request, Tally::Timeout);
+        assert_eq!(t.take_tallies(), [(9, r), (9, r), (9, to), (9, to)]);
+        assert_eq!(t.take_tallies(), []);
     }
 
     #[test]

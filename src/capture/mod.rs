@@ -27,16 +27,9 @@ pub(crate) use hub::{Hub, Interface, Tap};
 /// The interfaces of a gateway of `cfg`: the TCP side (0), then each line.
 pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
     let mut v = Vec::new();
-    if let Some(m) = &cfg.master {
-        let routes: Vec<String> = m.routes.iter().map(|r| r.peer.to_string()).collect();
-        v.push(Interface {
-            name: "tcp".into(),
-            description: format!(
-                "Modbus/TCP slaves of the master line: {}",
-                routes.join(", ")
-            ),
-        });
-    } else {
+    // The TCP side: the masters' listeners, and the slaves of each master line.
+    let mut said = Vec::new();
+    if cfg.serves_masters() {
         let listeners: Vec<String> = cfg
             .listeners()
             .iter()
@@ -45,11 +38,23 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
                 ListenFraming::Rtu => format!("{} (RTU over TCP)", l.tcp.listen),
             })
             .collect();
-        v.push(Interface {
-            name: "tcp".into(),
-            description: format!("Modbus/TCP masters on {}", listeners.join(", ")),
-        });
+        said.push(format!("Modbus/TCP masters on {}", listeners.join(", ")));
     }
+    let lines = cfg.lines();
+    let routes = lines.iter().filter_map(|l| l.master.as_ref());
+    let routes: Vec<String> = routes
+        .flat_map(|m| m.routes.iter().map(|r| r.peer.to_string()))
+        .collect();
+    if !routes.is_empty() {
+        said.push(format!(
+            "Modbus/TCP slaves of the master line: {}",
+            routes.join(", ")
+        ));
+    }
+    v.push(Interface {
+        name: "tcp".into(),
+        description: said.join("; "),
+    });
     for (i, line) in cfg.lines().iter().enumerate() {
         let device = match &line.tcp {
             Some(addr) => format!("device at {addr}"),

@@ -68,15 +68,9 @@ fn run(common: &CommonArgs, request: Request) -> ExitCode {
         Ok(link) => link,
         Err(e) => return usage(&e),
     };
-    let rt = match tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    {
+    let rt = match crate::runtime::for_command(ExitCode::from(EXIT_NO_ANSWER)) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("mbgate: starting the runtime: {e}");
-            return ExitCode::from(EXIT_NO_ANSWER);
-        }
+        Err(code) => return code,
     };
     ExitCode::from(rt.block_on(session(common, link, &pdu)))
 }

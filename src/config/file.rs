@@ -211,11 +211,11 @@ impl Reader<'_> {
             }
             [_] => false,
             [..] => {
-                if let Some(i) = lines.iter().position(|(_, l, _)| l.master.is_some()) {
-                    let m = "a master line (role = \"master\") must be the gateway's only line";
-                    return self.fail(lines[i].0, &format!("line[{i}].role"), m);
-                }
-                if let Some(i) = lines.iter().position(|(_, _, units)| !units) {
+                // A master line routes by its [[line.route]] tables: it serves no unit
+                // of the masters'.
+                let unlisted =
+                    |(_, l, units): &&(usize, LineConfig, bool)| l.master.is_none() && !units;
+                if let Some(i) = lines.iter().position(|l| unlisted(&l)) {
                     let m = "missing: with several lines, each says which unit ids it serves";
                     return self.fail(lines[i].0, &format!("line[{i}].units"), m);
                 }
@@ -238,12 +238,51 @@ impl Reader<'_> {
                 false
             }
         };
+        self.sockets(&lines, &cfg)?;
         if !old_form {
             // The first line's settings stand for the gateway's where one is asked for.
             (cfg.serial, cfg.relay) = (lines[0].1.serial.clone(), lines[0].1.relay.clone());
             cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
         }
         Ok(cfg)
+    }
+
+    /// A passive route binds its address as the gateway binds its listeners (only when
+    /// some line serves masters): two sockets cannot share one, so a route's `listen`
+    /// on a listener's address or another route's is refused, naming the route.
+    fn sockets(
+        &self,
+        lines: &[(usize, LineConfig, bool)],
+        cfg: &Config,
+    ) -> Result<(), ConfigError> {
+        let serving = lines.iter().any(|(_, l, _)| l.master.is_none());
+        let listening: Vec<_> = match serving {
+            true => cfg.listeners().iter().map(|l| l.tcp.listen).collect(),
+            false => Vec::new(),
+        };
+        let mut passive = Vec::new();
+        for (i, (at, line, _)) in lines.iter().enumerate() {
+            let routes = line.master.iter().flat_map(|m| m.routes.iter().enumerate());
+            for (j, route) in routes {
+                let super::master::Peer::Listen(addr) = route.peer else {
+                    continue;
+                };
+                let key = format!("line[{i}].route[{j}].listen");
+                let taken = match listening.iter().position(|l| *l == addr) {
+                    Some(k) => Some(format!("listen[{k}]'s")),
+                    None => passive
+                        .iter()
+                        .find(|(a, _)| *a == addr)
+                        .map(|(_, k)| format!("{k}'s")),
+                };
+                if let Some(whose) = taken {
+                    let m = format!("{addr} is {whose} address too: each socket has its own");
+                    return self.fail(*at, &key, m);
+                }
+                passive.push((addr, key));
+            }
+        }
+        Ok(())
     }
 
     /// Reads the keys of `section` (of [`KEYS`]) from `v` into `cfg`; `path` is what

@@ -130,7 +130,22 @@ impl Config {
     /// retries): the bound of the shutdown drain.
     pub(crate) fn answer_within(&self) -> std::time::Duration {
         let lines = self.lines();
-        let longest = lines.iter().map(|l| l.unit_tables.answer_within(&l.relay));
+        let longest = lines.iter().map(|l| match &l.master {
+            // A master line's requests wait for their route's slave.
+            Some(m) => m
+                .routes
+                .iter()
+                .map(|r| std::time::Duration::from_millis(r.response_timeout_ms))
+                .max()
+                .unwrap_or_default(),
+            None => l.unit_tables.answer_within(&l.relay),
+        });
         longest.max().unwrap_or_default()
+    }
+
+    /// Is any line's device a slave, for Modbus/TCP masters to reach? Not when every
+    /// line is a master line: then no listener is bound.
+    pub(crate) fn serves_masters(&self) -> bool {
+        self.lines().iter().any(|l| l.master.is_none())
     }
 }

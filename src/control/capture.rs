@@ -111,10 +111,7 @@ pub fn main(args: CaptureArgs) -> ExitCode {
             return ExitCode::from(EXIT_USAGE);
         }
     };
-    let rt = match tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    {
+    let rt = match crate::runtime::new() {
         Ok(rt) => rt,
         Err(e) => {
             eprintln!("mbgate capture: {e}");

@@ -39,7 +39,7 @@ pub struct DemoArgs {
 
 impl DemoArgs {
     /// The simulated device's settings, paced at `--baud` if given.
-    pub fn settings(&self) -> Result<Settings, String> {
+    pub fn settings(&self) -> Result<Settings, crate::sim::options::BadFlags> {
         if self.baud == Some(0) {
             return Err("--baud must be positive".into());
         }

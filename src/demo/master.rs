@@ -31,9 +31,9 @@ pub enum MasterDemoError {
     /// The simulated slave's address (`--listen`) could not be bound.
     #[error("cannot listen on {0}: {1}")]
     Bind(SocketAddr, std::io::Error),
-    /// The master line could not start.
+    /// The gateway of the master line could not start.
     #[error(transparent)]
-    Bridge(#[from] crate::bridge::BridgeError),
+    Gateway(#[from] crate::gateway::GatewayError),
     /// A simulated device failed.
     #[error(transparent)]
     Sim(#[from] crate::sim::serve::SimError),
@@ -136,7 +136,7 @@ pub async fn run(
     ));
     let line = {
         let shutdown = shutdown.clone();
-        tokio::spawn(async move { crate::bridge::run(&cfg, shutdown).await })
+        tokio::spawn(async move { crate::gateway::run(cfg, shutdown).await })
     };
     let polling = Polling {
         period: Duration::from_millis(args.master.poll_ms.max(1)),

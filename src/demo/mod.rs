@@ -35,8 +35,8 @@ pub enum DemoError {
     #[error(transparent)]
     Sim(#[from] SimError),
     /// The device flags do not make a device; the message says why.
-    #[error("{0}")]
-    Settings(String),
+    #[error(transparent)]
+    Settings(#[from] crate::sim::options::BadFlags),
 }
 
 /// What the second line's units are called by the masters: unit + 100.
@@ -188,7 +188,7 @@ pub async fn run(
         let (device_end, gateway_end) = SerialStream::pair()?;
         let pty = gateway_end.name().ok_or(DemoError::Unnamed)?;
         two_lines(&mut cfg, &device_units(&settings), pty.clone());
-        let settings = args.settings().map_err(DemoError::Settings)?;
+        let settings = args.settings()?;
         second = Some((device_end, gateway_end, pty, settings));
     }
     let listener = match gateway::bind(&cfg).await {

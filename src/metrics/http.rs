@@ -39,9 +39,7 @@ pub(crate) fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
 /// runtime has one thread.
 pub(crate) fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: CancellationToken) {
     let run = move || {
-        let rt = tokio::runtime::Builder::new_current_thread()
-            .enable_all()
-            .build()?;
+        let rt = crate::runtime::new()?;
         rt.block_on(async {
             let listener = TcpListener::from_std(listener)?;
             serve(listener, board, stop).await;

@@ -8,6 +8,7 @@
 
 pub mod duplex;
 pub mod kind;
+pub(crate) mod lifecycle;
 pub mod serial;
 pub(crate) mod tcp;
 

@@ -3,9 +3,9 @@
 //! timer (to the microsecond, on a timerfd set only when the next wake moves: no
 //! self-wake of tokio's reactor for each new deadline), or shutdown. The waiting only: the loop decides what each event means.
 
-use super::lifecycle::{Lifecycle, State};
 use super::outgoing::Outgoing;
 use super::Command;
+use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::serial::PreciseTimer;
 use crate::port::Link;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};

@@ -1,28 +1,29 @@
-//! systemd's watchdog, pinged from the relay's own loop: if the loop wedges, the pings
-//! stop and systemd restarts the gateway.
+//! systemd's watchdog, pinged from a line's own loop (the gateway's first line, a relay
+//! or a master line): if the loop wedges, the pings stop and systemd restarts the
+//! gateway.
 
 use crate::notify;
 use std::time::Duration;
 use tokio::time::Instant;
 
-pub(super) struct Watchdog {
+pub(crate) struct Watchdog {
     every: Duration,
     next: Instant,
 }
 
 impl Watchdog {
     /// Pings every `every`, the first at `now`.
-    pub(super) fn new(every: Duration, now: Instant) -> Self {
+    pub(crate) fn new(every: Duration, now: Instant) -> Self {
         Self { every, next: now }
     }
 
     /// When the next ping is due.
-    pub(super) fn next(&self) -> Instant {
+    pub(crate) fn next(&self) -> Instant {
         self.next
     }
 
     /// Sends WATCHDOG=1 if it is due at `now`.
-    pub(super) fn pet(&mut self, now: Instant) {
+    pub(crate) fn pet(&mut self, now: Instant) {
         if now >= self.next {
             notify::watchdog();
             self.next = now + self.every;

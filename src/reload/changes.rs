@@ -4,6 +4,7 @@
 //! taken into the running configuration, and every difference named as the log and
 //! `mbgate reload` say it. Plain data: nothing here touches the gateway.
 
+use crate::config::master::{MasterLine, Route};
 use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, KEYS};
 
 /// The keys a reload applies while the gateway runs: of each line (`[relay]` or
@@ -67,6 +68,11 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     let read_lines = read.lines();
     if c.lines.is_empty() {
         retune(&mut c.relay, &read_lines[matched[0]].relay);
+        if let (Some(m), Some(read)) = (&mut c.master, &read_lines[matched[0]].master) {
+            if timeouts_only(m, read) {
+                *m = read.clone();
+            }
+        }
         let units = &read_lines[matched[0]].unit_tables;
         if !units.is_empty() {
             // Units with settings of their own: only a [[line]] says them.
@@ -78,6 +84,11 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
         for (line, &j) in c.lines.iter_mut().zip(matched) {
             retune(&mut line.relay, &read_lines[j].relay);
             line.unit_tables = read_lines[j].unit_tables.clone();
+            if let (Some(m), Some(read)) = (&mut line.master, &read_lines[j].master) {
+                if timeouts_only(m, read) {
+                    *m = read.clone();
+                }
+            }
         }
         // The first line's settings stand for the gateway's, as when the file is read.
         c.relay = c.lines[0].relay.clone();
@@ -93,6 +104,19 @@ fn retune(into: &mut RelayConfig, from: &RelayConfig) {
     into.retries = from.retries;
     into.retry_writes = from.retry_writes;
     into.probe_timeout_ms = from.probe_timeout_ms;
+}
+
+/// Do two master lines' routes differ in their response timeouts alone? Those a
+/// reload applies; any other change to the routes waits for a restart.
+fn timeouts_only(a: &MasterLine, b: &MasterLine) -> bool {
+    let same = |x: &Route, y: &Route| {
+        let x = Route {
+            response_timeout_ms: y.response_timeout_ms,
+            ..x.clone()
+        };
+        x == *y
+    };
+    a.routes.len() == b.routes.len() && a.routes.iter().zip(&b.routes).all(|(x, y)| same(x, y))
 }
 
 /// One difference between two configurations.
@@ -162,8 +186,17 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
                 say(&format!("unit {u}"), now, true);
             }
         }
-        if la.master != lb.master {
-            say("route", "(the [[line.route]] tables)".into(), false);
+        match (&la.master, &lb.master) {
+            (Some(a), Some(b)) if timeouts_only(a, b) => {
+                for (i, (ra, rb)) in a.routes.iter().zip(&b.routes).enumerate() {
+                    if ra.response_timeout_ms != rb.response_timeout_ms {
+                        let key = format!("route[{i}].response_timeout_ms");
+                        say(&key, rb.response_timeout_ms.to_string(), true);
+                    }
+                }
+            }
+            (a, b) if a != b => say("route", "(the [[line.route]] tables)".into(), false),
+            _ => {}
         }
         if la.tcp_tls != lb.tcp_tls {
             say("tcp.tls", "(the device's TLS settings)".into(), false);
@@ -312,6 +345,64 @@ mod tests {
                 reloadable: true
             }]
         );
+    }
+
+    /// A master line beside a line of slaves: its routes' timeouts are applied and
+    /// named by route; another change to its routes waits for a restart.
+    #[test]
+    fn a_master_lines_route_timeouts_are_applied() {
+        let file = |timeout: u32, address: &str| {
+            let text = format!(
+                "[[line]]\nrole = \"master\"\nserial = {{ path = \"/dev/m\" }}\n\
+                 [[line.route]]\naddress = \"{address}\"\nresponse_timeout_ms = {timeout}\n\
+                 [[line]]\nunits = [1]\nserial = {{ path = \"/dev/s\" }}\n"
+            );
+            crate::config::parse(&text, "t").unwrap()
+        };
+        let running = file(300, "h:1");
+        let read = file(900, "h:1");
+        let matched = match_lines(&running.lines, &read.lines).unwrap();
+        let new = merged(&running, &read, &matched);
+        assert_eq!(new, read, "the timeout taken");
+        assert_eq!(
+            changes(&running, &new, &matched),
+            [Change {
+                said: r#"line "/dev/m" route[0].response_timeout_ms = 900"#.into(),
+                reloadable: true
+            }]
+        );
+        let moved = file(900, "h:2");
+        let new = merged(&running, &moved, &matched);
+        assert_eq!(new, running, "the route's slave moved: nothing applied");
+        assert_eq!(
+            changes(&new, &moved, &matched),
+            [Change {
+                said: r#"line "/dev/m" route = (the [[line.route]] tables)"#.into(),
+                reloadable: false
+            }]
+        );
+    }
+
+    /// A master line alone (the old form's one line): its route timeouts applied too.
+    #[test]
+    fn a_lone_master_lines_route_timeouts_are_applied() {
+        let file = |timeout: u32| {
+            let text = format!(
+                "[[line]]\nrole = \"master\"\nserial = {{ path = \"/dev/m\" }}\n\
+                 [[line.route]]\naddress = \"h:1\"\nresponse_timeout_ms = {timeout}\n"
+            );
+            crate::config::parse(&text, "t").unwrap()
+        };
+        let (running, read) = (file(300), file(900));
+        assert!(running.lines.is_empty(), "the old form");
+        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        let new = merged(&running, &read, &matched);
+        assert_eq!(new, read);
+        let said: Vec<String> = changes(&running, &new, &matched)
+            .into_iter()
+            .map(|c| c.said)
+            .collect();
+        assert_eq!(said, ["route[0].response_timeout_ms = 900"]);
     }
 
     #[test]

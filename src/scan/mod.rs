@@ -83,9 +83,9 @@ pub struct Found {
     /// What it answered to the read.
     pub answered: String,
     /// Its read device identification objects, or why none.
-    pub device_id: Result<Vec<(u8, String)>, String>,
+    pub device_id: Result<Vec<(u8, String)>, probe::NoIdentity>,
     /// Its report server id data, or why none.
-    pub server_id: Result<Vec<u8>, String>,
+    pub server_id: Result<Vec<u8>, probe::NoIdentity>,
 }
 
 /// What a scan found, and how it went.
@@ -106,15 +106,9 @@ pub struct Report {
 /// Runs `mbgate scan`: exit code 0 something answered, 1 nothing did or the port could
 /// not be used, 2 bad options.
 pub fn main(args: ScanArgs) -> ExitCode {
-    let rt = match tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    {
+    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("mbgate: starting the runtime: {e}");
-            return ExitCode::FAILURE;
-        }
+        Err(code) => return code,
     };
     let stop = CancellationToken::new();
     let result = rt.block_on(async {
@@ -213,11 +207,11 @@ pub async fn run(
 pub(crate) fn identified(found: &mut Found, device: &Heard, server: &Heard) {
     found.device_id = match device {
         Heard::Frame { pdu, .. } => probe::device_id(pdu),
-        _ => Err("no answer".into()),
+        _ => Err(probe::NoIdentity::NoAnswer),
     };
     found.server_id = match server {
         Heard::Frame { pdu, .. } => probe::server_id(pdu),
-        _ => Err("no answer".into()),
+        _ => Err(probe::NoIdentity::NoAnswer),
     };
 }
 

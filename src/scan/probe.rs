@@ -3,6 +3,7 @@
 //! CRC or LRC, the give-up rule of a setting, and the identity a device reports
 //! (FC 43/14, FC 17: Modbus Application Protocol V1.1b3 §6.21, §6.13).
 
+use crate::frame::serial::Codec;
 use crate::frame::{ascii, rtu};
 use crate::wire::uart::Format;
 
@@ -24,19 +25,12 @@ impl Framing {
         }
     }
 
-    /// `unit`, `pdu` and the check, framed.
-    pub fn encode(self, unit: u8, pdu: &[u8]) -> Vec<u8> {
+    /// The framing itself, whose frames (and their lengths) `crate::frame` makes:
+    /// this enum is only the flag's values, which the pure frame code stays free of.
+    pub fn codec(self) -> Codec {
         match self {
-            Framing::Rtu => rtu::encode(unit, pdu),
-            Framing::Ascii => ascii::encode(unit, pdu),
-        }
-    }
-
-    /// Bytes on the wire for a PDU of `pdu_len` bytes.
-    pub fn wire_len(self, pdu_len: usize) -> usize {
-        match self {
-            Framing::Rtu => pdu_len + 3,
-            Framing::Ascii => 2 * (pdu_len + 2) + 3,
+            Framing::Rtu => Codec::Rtu,
+            Framing::Ascii => Codec::Ascii,
         }
     }
 }
@@ -189,15 +183,32 @@ pub fn describe(pdu: &[u8]) -> String {
     }
 }
 
+/// Why a unit's identity (FC 43/14 or FC 17) is not known.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+pub enum NoIdentity {
+    /// Not asked: the scan stopped first, or the unit was found some other way.
+    #[error("not asked")]
+    NotAsked,
+    /// Asked, and nothing came.
+    #[error("no answer")]
+    NoAnswer,
+    /// The unit answered with this exception code (0x01: it has no such function).
+    #[error("exception {0:02X}")]
+    Exception(u8),
+    /// What came is no reply to the function asked.
+    #[error("a malformed reply")]
+    Malformed,
+}
+
 /// The objects of a read device identification reply, `(id, value)`, or why not.
-pub fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, String> {
+pub fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, NoIdentity> {
     if let [fc, code, ..] = pdu {
         if fc & 0x80 != 0 {
-            return Err(format!("exception {code:02X}"));
+            return Err(NoIdentity::Exception(*code));
         }
     }
     let [0x2B, 0x0E, _code, _conformity, _more, _next, count, rest @ ..] = pdu else {
-        return Err("a malformed reply".into());
+        return Err(NoIdentity::Malformed);
     };
     let mut objects = Vec::new();
     let mut rest = rest;
@@ -211,11 +222,11 @@ pub fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, String> {
 }
 
 /// The data of a report server id reply, or why not.
-pub fn server_id(pdu: &[u8]) -> Result<Vec<u8>, String> {
+pub fn server_id(pdu: &[u8]) -> Result<Vec<u8>, NoIdentity> {
     match pdu {
-        [fc, code, ..] if fc & 0x80 != 0 => Err(format!("exception {code:02X}")),
+        [fc, code, ..] if fc & 0x80 != 0 => Err(NoIdentity::Exception(*code)),
         [0x11, count, data @ ..] => Ok(data[..usize::from(*count).min(data.len())].to_vec()),
-        _ => Err("a malformed reply".into()),
+        _ => Err(NoIdentity::Malformed),
     }
 }
 
@@ -473,7 +484,9 @@ mod tests {
             device_id(&pdu).unwrap(),
             vec![(0, "ACM".to_string()), (1, "X1".to_string())]
         );
-        assert_eq!(device_id(&[0xAB, 0x01]), Err("exception 01".into()));
+        assert_eq!(device_id(&[0xAB, 0x01]), Err(NoIdentity::Exception(1)));
+        assert_eq!(NoIdentity::Exception(1).to_string(), "exception 01");
+        assert_eq!(server_id(&[0x11]), Err(NoIdentity::Malformed));
         assert_eq!(
             server_id(&[0x11, 0x03, 0x0A, 0xFF, 0x00]).unwrap(),
             vec![0x0A, 0xFF, 0x00]

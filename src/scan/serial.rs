@@ -39,7 +39,7 @@ impl Line<'_> {
     /// The longest a try at `framing` waits for a read's reply, the request's time
     /// included: the budget of the time left.
     fn read_cost(&self, framing: Framing) -> Duration {
-        let chars = framing.wire_len(5) + framing.wire_len(4);
+        let chars = framing.codec().encoded_len(5) + framing.codec().encoded_len(4);
         self.char_time() * chars as u32 + self.timeout
     }
 
@@ -54,7 +54,7 @@ impl Line<'_> {
         self.timer.until(self.last + gap).await?;
         // Whatever a slow device sent since is not this request's reply.
         let _ = self.port.clear(ClearBuffer::Input);
-        let request = framing.encode(unit, pdu);
+        let request = framing.codec().encode(unit, pdu);
         self.port.write_all(&request).await?;
         let written = Instant::now();
         let on_wire = self.char_time() * request.len() as u32;
@@ -65,7 +65,7 @@ impl Line<'_> {
         };
         let deadline = written
             + on_wire
-            + self.char_time() * framing.wire_len(reply_pdu) as u32
+            + self.char_time() * framing.codec().encoded_len(reply_pdu) as u32
             + self.timeout;
         self.last = written + on_wire;
         let mut got = Vec::new();
@@ -197,8 +197,8 @@ pub(super) async fn scan(
                             unit: *from,
                             serial: Some((s.baud, s.format, framing)),
                             answered: probe::describe(pdu),
-                            device_id: Err("not asked".into()),
-                            server_id: Err("not asked".into()),
+                            device_id: Err(probe::NoIdentity::NotAsked),
+                            server_id: Err(probe::NoIdentity::NotAsked),
                         });
                     }
                 }
@@ -243,7 +243,7 @@ impl Line<'_> {
         let char_time = Duration::from_nanos(
             (u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)),
         );
-        let chars = framing.wire_len(5) + framing.wire_len(4);
+        let chars = framing.codec().encoded_len(5) + framing.codec().encoded_len(4);
         char_time * chars as u32 + timeout
     }
 }

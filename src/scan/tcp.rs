@@ -121,8 +121,8 @@ pub(super) async fn scan(
             unit,
             serial: None,
             answered: probe::describe(&pdu),
-            device_id: Err("not asked".into()),
-            server_id: Err("not asked".into()),
+            device_id: Err(probe::NoIdentity::NotAsked),
+            server_id: Err(probe::NoIdentity::NotAsked),
         };
         let device = conn.ask(unit, &probe::DEVICE_ID).await?;
         let server = conn.ask(unit, &probe::SERVER_ID).await?;

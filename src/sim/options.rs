@@ -218,10 +218,28 @@ pub struct SimArgs {
     pub framing: Framing,
 }
 
+/// Simulator or demo flags that cannot be used: a value out of range, or flags that
+/// do not go together. The message names the flag; `mbgate` exits 2 on it.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct BadFlags(String);
+
+impl From<String> for BadFlags {
+    fn from(said: String) -> Self {
+        Self(said)
+    }
+}
+
+impl From<&str> for BadFlags {
+    fn from(said: &str) -> Self {
+        Self(said.to_owned())
+    }
+}
+
 impl SimArgs {
     /// The device and line settings, with this port's framing and, when given, its
     /// speed as the pace.
-    pub fn settings(&self) -> Result<Settings, String> {
+    pub fn settings(&self) -> Result<Settings, BadFlags> {
         if self.framing != Framing::Mbap && self.device.profile == ProfileName::CieM10 {
             return Err(
                 "--framing rtu and ascii need --profile generic (the CIE-M10's serial \
@@ -237,7 +255,7 @@ impl SimArgs {
     }
 
     /// The port settings: the defaults of `[serial]` and the flags given.
-    pub fn serial_config(&self) -> Result<SerialConfig, String> {
+    pub fn serial_config(&self) -> Result<SerialConfig, BadFlags> {
         let mut cfg = SerialConfig {
             path: self
                 .serial
@@ -484,7 +502,7 @@ mod tests {
             "no --baud given: on a pty nothing paces it (serve.rs)"
         );
         let bad = sim(&["--data-bits", "9"]).settings().unwrap_err();
-        assert_eq!(bad, "--data-bits: must be 7 or 8, got 9");
+        assert_eq!(bad.to_string(), "--data-bits: must be 7 or 8, got 9");
     }
 
     #[test]

@@ -38,7 +38,11 @@ pub struct Polling {
 impl RoleArgs {
     /// The master's timing, or why the flags do not fit together (`listen`: the
     /// device is on the network, `--listen`).
-    pub fn polling(&self, cie_m10: bool, listen: bool) -> Result<Option<Polling>, String> {
+    pub fn polling(
+        &self,
+        cie_m10: bool,
+        listen: bool,
+    ) -> Result<Option<Polling>, super::options::BadFlags> {
         if self.role == Role::Slave {
             if self.timeout_ms.is_some() || self.poll_ms != 1000 {
                 return Err("--poll-ms and --timeout-ms apply to --role master".into());

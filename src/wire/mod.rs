@@ -109,15 +109,9 @@ pub enum WireError {
 
 /// `mbgate wire`: exit code 0 when stopped by a signal, 1 when it failed, 2 bad options.
 pub fn main(args: WireArgs) -> ExitCode {
-    let rt = match tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-    {
+    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
         Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("mbgate: starting the runtime: {e}");
-            return ExitCode::FAILURE;
-        }
+        Err(code) => return code,
     };
     let shutdown = CancellationToken::new();
     let r = rt.block_on(async {

@@ -18,6 +18,7 @@ import argparse
 import json
 import logging
 import sys
+import time
 
 from pymodbus import FramerType
 from pymodbus.client import ModbusTcpClient
@@ -40,18 +41,23 @@ def outcome(rr):
     return out
 
 
-def run_steps(client, steps_json: str) -> int:
+def run_steps(client, steps_json: str, timed: bool = False) -> int:
     """Connects `client`, runs the steps, prints the results as one JSON list; the
-    exit code (1: no connection)."""
+    exit code (1: no connection). `timed`: each result also has the seconds its step
+    took ("seconds")."""
     if not client.connect():
         print(json.dumps([{"error": "connect failed"}]))
         return 1
     results = []
     for method, args, kwargs in json.loads(steps_json):
+        start = time.monotonic()
         try:
-            results.append(outcome(getattr(client, method)(*args, **kwargs)))
+            result = outcome(getattr(client, method)(*args, **kwargs))
         except ModbusException as exc:
-            results.append({"error": f"{type(exc).__name__}: {exc}"})
+            result = {"error": f"{type(exc).__name__}: {exc}"}
+        if timed:
+            result["seconds"] = time.monotonic() - start
+        results.append(result)
     client.close()
     print(json.dumps(results))
     return 0

@@ -1,6 +1,7 @@
-//! The port's lifecycle as the relay sees it: closed until the next attempt, opening,
-//! open; opened and reopened with backoff, lost; and what the loop asks of an open
-//! port (bytes waiting to be read, the wait until written bytes have left).
+//! A line's port through its life, the same for every line (the relay's, the master
+//! line's): closed until the next attempt, opening, open; opened and reopened with
+//! backoff, lost; and what the loop asks of an open port (bytes waiting to be read,
+//! the wait until written bytes have left).
 
 use crate::port::kind::PortInfo;
 use crate::port::{self, Backoff, Link, Opening};
@@ -9,7 +10,7 @@ use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 /// Where the port is in its life.
-pub(super) enum State {
+pub(crate) enum State {
     Open(Link),
     /// An open that did not finish at once (a TCP connect).
     Opening(Opening),
@@ -18,23 +19,25 @@ pub(super) enum State {
     },
 }
 
-/// The relay's port: any transport, opened and reopened with backoff.
-pub(super) struct Lifecycle {
-    pub(super) state: State,
+/// A line's port: any transport, opened and reopened with backoff.
+pub(crate) struct Lifecycle {
+    pub(crate) state: State,
     /// Waiting for the last write to leave the port (RTU/ASCII).
-    pub(super) drain: Option<port::Drain>,
-    /// What `state` opens: the relay never learns which transport it is.
+    pub(crate) drain: Option<port::Drain>,
+    /// What `state` opens: the line never learns which transport it is.
     transport: Box<dyn port::Port>,
     backoff: Backoff,
     /// A failed open was logged at warning level: the next are logged at debug.
     warned: bool,
     /// For the log line when it opens.
     baud: u32,
+    /// What the log says happens while the port cannot be opened.
+    meanwhile: &'static str,
 }
 
 impl Lifecycle {
     /// Closed, its first open due at `now`.
-    pub(super) fn new(transport: Box<dyn port::Port>, baud: u32, now: Instant) -> Self {
+    pub(crate) fn new(transport: Box<dyn port::Port>, baud: u32, now: Instant) -> Self {
         Self {
             state: State::Closed { retry_at: now },
             drain: None,
@@ -42,19 +45,27 @@ impl Lifecycle {
             backoff: Backoff::new(Duration::from_millis(100), Duration::from_secs(2)),
             warned: false,
             baud,
+            meanwhile: "answering 0x0A meanwhile",
         }
     }
 
-    pub(super) fn set_transport(&mut self, transport: Box<dyn port::Port>) {
+    /// What the log says happens while the port cannot be opened (a relay:
+    /// "answering 0x0A meanwhile").
+    pub(crate) fn meanwhile(mut self, said: &'static str) -> Self {
+        self.meanwhile = said;
+        self
+    }
+
+    pub(crate) fn set_transport(&mut self, transport: Box<dyn port::Port>) {
         self.transport = transport;
     }
 
-    pub(super) fn is_open(&self) -> bool {
+    pub(crate) fn is_open(&self) -> bool {
         matches!(self.state, State::Open(_))
     }
 
     /// When the next open is due, while closed.
-    pub(super) fn retry_at(&self) -> Option<Instant> {
+    pub(crate) fn retry_at(&self) -> Option<Instant> {
         match self.state {
             State::Closed { retry_at } => Some(retry_at),
             _ => None,
@@ -63,7 +74,7 @@ impl Lifecycle {
 
     /// Starts an open if one is due at `now`; gives back its result if it finished at
     /// once (then pass it to [`Lifecycle::opened`]).
-    pub(super) fn open_if_due(&mut self, now: Instant) -> Option<std::io::Result<Link>> {
+    pub(crate) fn open_if_due(&mut self, now: Instant) -> Option<std::io::Result<Link>> {
         let retry_at = self.retry_at()?;
         if now < retry_at {
             return None;
@@ -80,7 +91,7 @@ impl Lifecycle {
     /// An open finished: what the port turned out to be if it is now open (the line
     /// starts afresh; then [`Lifecycle::tell_open`]), else the next attempt is due
     /// later.
-    pub(super) fn opened(
+    pub(crate) fn opened(
         &mut self,
         opened: std::io::Result<Link>,
         now: Instant,
@@ -101,7 +112,8 @@ impl Lifecycle {
                 } else {
                     warn!(
                         path = %self.transport.name(),
-                        "{kind} unavailable: {e}; retrying with backoff, answering 0x0A meanwhile"
+                        "{kind} unavailable: {e}; retrying with backoff, {}",
+                        self.meanwhile
                     );
                     self.warned = true;
                 }
@@ -115,7 +127,7 @@ impl Lifecycle {
 
     /// Says the port is open: what it turned out to be (`info`) and how the line
     /// times it (`timing`).
-    pub(super) fn tell_open(&self, info: &PortInfo, timing: &str) {
+    pub(crate) fn tell_open(&self, info: &PortInfo, timing: &str) {
         let kind = self.transport.kind();
         info!(
             path = %self.transport.name(),
@@ -125,7 +137,7 @@ impl Lifecycle {
     }
 
     /// The port failed or its far end went away: closed, reopened with backoff.
-    pub(super) fn lost(&mut self, why: &str, now: Instant) {
+    pub(crate) fn lost(&mut self, why: &str, now: Instant) {
         let kind = self.transport.kind();
         warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
         self.state = State::Closed {
@@ -136,7 +148,7 @@ impl Lifecycle {
     }
 
     /// Has the port received bytes the relay has not read yet?
-    pub(super) fn input_waiting(&self) -> bool {
+    pub(crate) fn input_waiting(&self) -> bool {
         match &self.state {
             State::Open(link) => link.control.input_waiting(),
             _ => false,
@@ -144,7 +156,7 @@ impl Lifecycle {
     }
 
     /// Switches the RS-485 transmitter on or off (where the gateway drives it).
-    pub(super) fn transmit(&mut self, on: bool) -> std::io::Result<()> {
+    pub(crate) fn transmit(&mut self, on: bool) -> std::io::Result<()> {
         match &mut self.state {
             State::Open(link) => link.control.transmit(on),
             _ => Ok(()),
@@ -152,7 +164,7 @@ impl Lifecycle {
     }
 
     /// Has the last stop bit left the port? An error: it cannot tell.
-    pub(super) fn transmitter_empty(&self) -> std::io::Result<bool> {
+    pub(crate) fn transmitter_empty(&self) -> std::io::Result<bool> {
         match &self.state {
             State::Open(link) => link.control.transmitter_empty(),
             _ => Ok(true),
@@ -161,7 +173,7 @@ impl Lifecycle {
 
     /// Starts waiting for the bytes written to leave the port, off the runtime's
     /// thread; an error says the port cannot tell (time from the write instead).
-    pub(super) fn start_drain(&mut self) -> std::io::Result<()> {
+    pub(crate) fn start_drain(&mut self) -> std::io::Result<()> {
         if let State::Open(link) = &self.state {
             self.drain = Some(link.control.drain()?);
         }
@@ -169,7 +181,7 @@ impl Lifecycle {
     }
 
     /// How long `bytes` take on the wire.
-    pub(super) fn wire_time(&self, bytes: usize) -> Duration {
+    pub(crate) fn wire_time(&self, bytes: usize) -> Duration {
         self.transport.wire_time(bytes)
     }
 }
