@@ -105,10 +105,11 @@ install_runner() {
 # A short key for what went into a base system, so a changed recipe builds a new one.
 recipe_key() { printf '%s\n' "$@" "$runner_unit" "$runner_script" | sha256sum | cut -c1-12; }
 
-# follow_results FILE PID: print the result lines as they arrive until PID exits.
+# follow_results FILE PID: print the result lines as they arrive until PID exits, and
+# the figures measured beside them (FIGURE lines: a measurement, not a check).
 follow_results() {
     local file=$1 pid=$2
-    tail -n +1 -F --pid="$pid" "$file" 2>/dev/null | grep --line-buffered -E '^(PASS|FAIL|SKIP|DONE) ' || true
+    tail -n +1 -F --pid="$pid" "$file" 2>/dev/null | grep --line-buffered -E '^(PASS|FAIL|SKIP|FIGURE|DONE) ' || true
 }
 
 # verdict FILE TOTAL MAX_SKIPS: 0 if FILE has its DONE line, no failure, TOTAL checks
