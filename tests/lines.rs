@@ -114,6 +114,7 @@ fn a_dead_line_does_not_hold_up_another() {
     let text = format!(
         "[[line]]\nunits = [1]\n{}\n[line.relay]\nresponse_timeout_ms = 300\n\
          unit_backoff = false\n\n[[line]]\nunits = [5]\n{}\n\
+         [line.relay]\nresponse_timeout_ms = 5000\n\n\
          [[listen]]\naddress = \"127.0.0.1:0\"\n",
         pty_line(&sa.gw, "rtu"),
         pty_line(&sb.gw, "mbap"),

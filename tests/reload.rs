@@ -14,8 +14,8 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 /// A device that answers a read of one register with its address, at once, except
-/// register 9: 300 ms later. One request at a time, as a serial device: a request
-/// sent while it is busy with register 9 waits for it (at most 100 ms after a 200 ms
+/// register 9: [`SLOW_MS`] later. One request at a time, as a serial device: a request
+/// sent while it is busy with register 9 waits for it (at most 500 ms after a 1.5 s
 /// timeout, so the pollers never time out).
 fn device(path: &std::path::Path) -> RawDevice {
     RawDevice::scripted(
@@ -26,7 +26,7 @@ fn device(path: &std::path::Path) -> RawDevice {
             let [t0, t1] = req.tid().to_be_bytes();
             let [a0, a1] = addr.to_be_bytes();
             let reply = vec![t0, t1, 0, 0, 0, 5, req.unit(), 0x03, 0x02, a0, a1];
-            let after = if addr == 9 { 300 } else { 0 };
+            let after = if addr == 9 { SLOW_MS } else { 0 };
             vec![(Duration::from_millis(after), reply)]
         }),
     )
@@ -57,6 +57,9 @@ fn poller(gw: &Gateway, addr: u16, stop: Arc<AtomicBool>) -> thread::JoinHandle<
     })
 }
 
+/// How long register 9 takes to answer.
+const SLOW_MS: u64 = 2000;
+
 /// Reads register 9 (the slow one): its reply, and how long it took.
 fn slow_read(m: &mut std::net::TcpStream, tid: u16) -> (Vec<u8>, Duration) {
     let t0 = Instant::now();
@@ -65,6 +68,9 @@ fn slow_read(m: &mut std::net::TcpStream, tid: u16) -> (Vec<u8>, Duration) {
 
 #[test]
 fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
+    // Register 9 answers in 2 s: within the first timeout (8 s), past the reloaded one
+    // (1.5 s); the pollers' registers answer at once, and a busy machine delays them
+    // by far less than the 1 s left after waiting out register 9.
     let dir = tempdir();
     let socat = Socat::start(dir.path());
     let _dev = device(&socat.dev);
@@ -72,7 +78,7 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
         .pty_line()
         .serial("flow_control = \"none\"");
     let mut gw = Gateway::start(
-        &base.clone().relay("response_timeout_ms = 1000"),
+        &base.clone().relay("response_timeout_ms = 8000"),
         dir.path(),
     );
     let file = dir.path().join("mbgate.toml");
@@ -81,12 +87,12 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     let polls = [poller(&gw, 1, stop.clone()), poller(&gw, 2, stop.clone())];
     let mut m = gw.connect();
     let (reply, _) = slow_read(&mut m, 1);
-    assert_eq!(reply, read_reply(1, 1, &[9]), "300 ms is within 1 s");
+    assert_eq!(reply, read_reply(1, 1, &[9]), "2 s is within 8 s");
 
     // A shorter timeout, the metrics listener, and a key only a restart applies.
     let new = base
         .clone()
-        .relay("response_timeout_ms = 200")
+        .relay("response_timeout_ms = 1500")
         .tcp("max_connections = 5")
         .metrics("listen = \"127.0.0.1:0\"");
     std::fs::write(&file, new.render()).unwrap();
@@ -94,7 +100,9 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     gw.wait_log("reloaded: ", Duration::from_secs(5));
     let log = gw.log();
     assert!(
-        log.contains("reloaded: relay.response_timeout_ms = 200, metrics.listen = \"127.0.0.1:0\""),
+        log.contains(
+            "reloaded: relay.response_timeout_ms = 1500, metrics.listen = \"127.0.0.1:0\""
+        ),
         "{log}"
     );
     assert!(
@@ -102,8 +110,8 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
         "{log}"
     );
     let (reply, took) = slow_read(&mut m, 2);
-    assert_eq!(reply, hex("00 02 00 00 00 03 01 83 0B"), "200 ms now");
-    assert!(took < Duration::from_millis(300), "{took:?}");
+    assert_eq!(reply, hex("00 02 00 00 00 03 01 83 0B"), "1.5 s now");
+    assert!(took < Duration::from_millis(SLOW_MS), "{took:?}");
     // The metrics listener came up with the reload (its thread says where).
     gw.wait_log("metrics on http://", Duration::from_secs(5));
     let log = gw.log();
@@ -115,7 +123,7 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     s.read_to_string(&mut text).unwrap();
     assert!(text.starts_with("HTTP/1.1 200 OK"), "{text}");
 
-    // A broken file: refused, with the usual error, and 200 ms stays.
+    // A broken file: refused, with the usual error, and 1.5 s stays.
     let broken = new.relay("retries = \"many\"");
     std::fs::write(&file, broken.render()).unwrap();
     gw.proc.signal("HUP");
@@ -139,7 +147,7 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
         "{refused}"
     );
     let (reply, _) = slow_read(&mut m, 3);
-    assert_eq!(reply, hex("00 03 00 00 00 03 01 83 0B"), "still 200 ms");
+    assert_eq!(reply, hex("00 03 00 00 00 03 01 83 0B"), "still 1.5 s");
 
     stop.store(true, Ordering::Relaxed);
     for p in polls {
