@@ -15,7 +15,7 @@ use std::fs::{File, OpenOptions};
 use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, IntoRawFd, RawFd};
 use std::os::unix::fs::OpenOptionsExt;
-use tokio_serial::{ErrorKind, SerialStream};
+use tokio_serial::ErrorKind;
 
 /// Whether `path` is a terminal that refuses TCGETS2 (ENOTTY, ENOSYS or EINVAL) while
 /// it answers TCGETS: the one failure of the crate's open this module can mend.
@@ -79,7 +79,7 @@ pub(crate) fn speed(baud: u32) -> Option<libc::speed_t> {
 /// Opens and sets up the port of `cfg` with TCGETS/TCSETS, then hands the descriptor to
 /// the serial crate, which takes it exclusively (TIOCEXCL and an exclusive flock) as
 /// its own open does.
-pub(crate) fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
+pub(crate) fn open(cfg: &SerialConfig) -> Result<serialport::TTYPort, tokio_serial::Error> {
     let rate = speed(cfg.baud_rate).ok_or_else(|| {
         tokio_serial::Error::new(
             ErrorKind::InvalidInput,
@@ -102,8 +102,7 @@ pub(crate) fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Err
     }
     // SAFETY: the descriptor is open and given up by `file`, so the port is its one owner.
     #[allow(unsafe_code)]
-    let port = unsafe { serialport::TTYPort::from_raw_fd(file.into_raw_fd()) };
-    SerialStream::try_from(port)
+    Ok(unsafe { serialport::TTYPort::from_raw_fd(file.into_raw_fd()) })
 }
 
 /// What the serial crate sets on a port, in classic termios: raw mode, the receiver on,
@@ -305,7 +304,8 @@ mod tests {
     #[tokio::test]
     async fn a_port_opened_the_classic_way_has_its_settings_and_carries_bytes() {
         let (mut master, slave) = pty();
-        let mut port = open(&cfg(&slave, 38_400)).unwrap();
+        let mut port =
+            tokio_serial::SerialStream::try_from(open(&cfg(&slave, 38_400)).unwrap()).unwrap();
         let t = get(port.as_raw_fd()).unwrap();
         // SAFETY: cfget*speed read the `termios` they are given.
         #[allow(unsafe_code)]

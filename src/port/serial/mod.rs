@@ -2,7 +2,8 @@
 //! stale bytes cleared, RS-485, exclusively (`open.rs`), with the classic termios
 //! where termios2 is missing (`classic.rs`); what it is (`detect.rs`);
 //! `tcdrain` and FIONREAD on its descriptor, the drain run by a thread of the port's
-//! own (`drain.rs`); the timer the line's gaps are kept with (`timer.rs`); and here,
+//! own (`drain.rs`); its descriptor as the relay's reader and writer (`stream.rs`);
+//! the timer the line's gaps are kept with (`timer.rs`); and here,
 //! the port as a [`Port`], with the switch of its RS-485 transmitter when the gateway
 //! drives it (`direction.rs`). The simulator and the client open their ports with the same
 //! [`open`]; how long bytes take at `baud_rate` is `port/kind.rs`'s.
@@ -12,6 +13,7 @@ mod detect;
 pub mod direction;
 mod drain;
 mod open;
+mod stream;
 mod timer;
 
 pub(crate) use detect::of_path;
@@ -49,18 +51,20 @@ impl Port for SerialPort {
     fn open(&mut self) -> Opening {
         // The switch is taken with the port: a port whose switch cannot be had is not
         // open, and is retried as a lost one is.
-        let opened = open(&self.cfg).map_err(io::Error::other).and_then(|port| {
-            let fd = port.as_raw_fd();
-            let transmitter = direction::take(&self.cfg, fd).map_err(io::Error::other)?;
-            Ok((port, transmitter))
-        });
+        let opened = open::open_tty(&self.cfg)
+            .map_err(io::Error::other)
+            .and_then(|port| {
+                let fd = port.as_raw_fd();
+                let transmitter = direction::take(&self.cfg, fd).map_err(io::Error::other)?;
+                Ok((port, transmitter))
+            });
         let low_latency = self.cfg.low_latency;
         Box::pin(async move {
             let (port, transmitter) = opened?;
             let fd = port.as_raw_fd();
             let info = detect::detect(fd, low_latency);
             let drainer = drain::Drainer::start(fd)?;
-            let (reader, writer) = tokio::io::split(port);
+            let (reader, writer) = stream::split(port)?;
             Ok(Link {
                 reader: Box::new(reader),
                 writer: Box::new(writer),

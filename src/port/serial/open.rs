@@ -7,6 +7,7 @@
 //! fail with ENOTTY on a pty; nothing here treats that as fatal.
 
 use crate::config::{FlowControl, Parity, SerialConfig};
+use serialport::TTYPort;
 use std::os::fd::{AsRawFd, RawFd};
 use std::sync::atomic::{AtomicBool, Ordering};
 use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
@@ -83,15 +84,22 @@ pub fn held_by(path: &str) -> String {
     }
 }
 
-/// Opens and configures the port, then clears whatever it held.
+/// Opens and configures the port, then clears whatever it held, as a stream on the
+/// current runtime's reactor (the simulator, the client, scan).
 pub fn open(cfg: &SerialConfig) -> Result<SerialStream, tokio_serial::Error> {
+    SerialStream::try_from(open_tty(cfg)?)
+}
+
+/// Opens and configures the port, then clears whatever it held: the port itself,
+/// blocking, for the gateway's own reader and writer (`stream.rs`).
+pub(crate) fn open_tty(cfg: &SerialConfig) -> Result<TTYPort, tokio_serial::Error> {
     let (data_bits, parity, stop_bits, flow_control) = line_settings(cfg);
     let builder = tokio_serial::new(&cfg.path, cfg.baud_rate)
         .data_bits(data_bits)
         .parity(parity)
         .stop_bits(stop_bits)
         .flow_control(flow_control);
-    let port = match SerialStream::open(&builder) {
+    let port = match TTYPort::open(&builder) {
         Ok(port) => port,
         // A kernel or emulator without termios2: the classic calls can still set a
         // standard rate (classic.rs).

@@ -42,39 +42,19 @@ impl PreciseTimer {
         Ok(PreciseTimer { fd, armed: None })
     }
 
-    /// Returns at `at`, or at once if it has passed. Sets the timerfd only when `at` is
-    /// not what it is already set to: a loop that waits for the same instant several
-    /// times makes one system call for it.
+    /// Returns at `at`, or at once if it has passed. Sets the timerfd only when it is
+    /// not already set to go off by `at` and after now: a loop that waits for a later
+    /// instant each time (a new response deadline each transaction) leaves the earlier
+    /// setting, is woken by it once, and only then sets the timerfd again, so a line
+    /// polled without pause makes one system call for it each timeout's worth of
+    /// transactions, not one each (docs/performance.md "What a transaction costs").
     pub async fn until(&mut self, at: tokio::time::Instant) -> std::io::Result<()> {
         let now = tokio::time::Instant::now();
         if at <= now {
             return Ok(());
         }
-        if self.armed != Some(at) {
-            // Relative to a `now` read before the call: the kernel's clock has moved on
-            // since, so it goes off at `at` or after, never before. (Setting it also
-            // zeroes its count of expirations, so it is never read.)
-            let rest = at - now;
-            let spec = libc::itimerspec {
-                it_interval: libc::timespec {
-                    tv_sec: 0,
-                    tv_nsec: 0,
-                },
-                it_value: libc::timespec {
-                    tv_sec: rest.as_secs() as libc::time_t,
-                    tv_nsec: libc::c_long::from(rest.subsec_nanos() as i32),
-                },
-            };
-            // SAFETY: `spec` is a valid itimerspec for the duration of the call; the old
-            // value is not asked for (null).
-            #[allow(unsafe_code)]
-            let r = unsafe {
-                libc::timerfd_settime(self.fd.as_raw_fd(), 0, &spec, std::ptr::null_mut())
-            };
-            if r != 0 {
-                return Err(std::io::Error::last_os_error());
-            }
-            self.armed = Some(at);
+        if !self.armed.is_some_and(|a| a > now && a <= at) {
+            self.arm(at, now)?;
         }
         loop {
             let mut ready = self.fd.readable().await?;
@@ -82,10 +62,43 @@ impl PreciseTimer {
             // each expiry wakes the reactor anew (edge-triggered), so clearing it and
             // waiting again loses nothing.
             ready.clear_ready();
-            if tokio::time::Instant::now() >= at {
+            let now = tokio::time::Instant::now();
+            if now >= at {
                 return Ok(());
             }
+            // Woken by an earlier setting left in place: now for `at`.
+            if self.armed.is_none_or(|a| a <= now) {
+                self.arm(at, now)?;
+            }
         }
+    }
+
+    /// Sets the timerfd to go off at `at`, `now` being before it.
+    fn arm(&mut self, at: tokio::time::Instant, now: tokio::time::Instant) -> std::io::Result<()> {
+        // Relative to a `now` read before the call: the kernel's clock has moved on
+        // since, so it goes off at `at` or after, never before. (Setting it also zeroes
+        // its count of expirations, so it is never read.)
+        let rest = at - now;
+        let spec = libc::itimerspec {
+            it_interval: libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            },
+            it_value: libc::timespec {
+                tv_sec: rest.as_secs() as libc::time_t,
+                tv_nsec: libc::c_long::from(rest.subsec_nanos() as i32),
+            },
+        };
+        // SAFETY: `spec` is a valid itimerspec for the duration of the call; the old
+        // value is not asked for (null).
+        #[allow(unsafe_code)]
+        let r =
+            unsafe { libc::timerfd_settime(self.fd.as_raw_fd(), 0, &spec, std::ptr::null_mut()) };
+        if r != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        self.armed = Some(at);
+        Ok(())
     }
 }
 

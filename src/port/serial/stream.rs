@@ -1,0 +1,241 @@
+//! The open port's descriptor as the relay's reader and writer: read on tokio's
+//! reactor, registered for reading only, and written straight to the descriptor.
+//!
+//! What this saves against a `SerialStream` split in two (docs/performance.md "What a
+//! transaction costs"): the reader tells the reactor the port is drained when a read
+//! returns less than it asked for, so the next read waits instead of returning
+//! EAGAIN; and the port is not registered for writing, so the kernel's "room to
+//! write" after every byte a pty's far end reads wakes nobody. A write the port has
+//! no room for (flow control holding it back) registers a duplicate of the descriptor
+//! for writing until a write goes through.
+
+use std::io;
+use std::os::fd::{AsFd, AsRawFd, FromRawFd, IntoRawFd, OwnedFd};
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{ready, Context, Poll};
+use tokio::io::unix::AsyncFd;
+use tokio::io::{AsyncRead, AsyncWrite, Interest, ReadBuf};
+
+/// The read half: owns the descriptor's registration; the write half shares it.
+#[derive(Debug)]
+pub(crate) struct Reader {
+    fd: Arc<AsyncFd<OwnedFd>>,
+}
+
+/// The write half.
+#[derive(Debug)]
+pub(crate) struct Writer {
+    fd: Arc<AsyncFd<OwnedFd>>,
+    /// While the port has no room: a duplicate of its descriptor, registered for
+    /// writing, to wait on.
+    waiting: Option<AsyncFd<OwnedFd>>,
+}
+
+/// The two halves of the port opened as `port` (its settings made, held exclusively):
+/// its descriptor is taken from it, set non-blocking and put on the current runtime's
+/// reactor.
+pub(crate) fn split(port: serialport::TTYPort) -> io::Result<(Reader, Writer)> {
+    // SAFETY: `into_raw_fd` gives up the descriptor, open, with nothing else owning it.
+    #[allow(unsafe_code)]
+    let fd = unsafe { OwnedFd::from_raw_fd(port.into_raw_fd()) };
+    set_nonblocking(&fd)?;
+    // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
+    // which is when the `AsyncFd` holding it does.
+    #[allow(unsafe_code)]
+    let fd = Arc::new(unsafe { AsyncFd::register_with_interest(fd, Interest::READABLE) }?);
+    Ok((Reader { fd: fd.clone() }, Writer { fd, waiting: None }))
+}
+
+fn set_nonblocking(fd: &impl AsRawFd) -> io::Result<()> {
+    let fd = fd.as_raw_fd();
+    // SAFETY: plain fcntl calls on an open descriptor.
+    #[allow(unsafe_code)]
+    let r = unsafe {
+        let flags = libc::fcntl(fd, libc::F_GETFL);
+        if flags < 0 {
+            -1
+        } else {
+            libc::fcntl(fd, libc::F_SETFL, flags | libc::O_NONBLOCK)
+        }
+    };
+    if r < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(())
+}
+
+fn read(fd: &impl AsRawFd, buf: &mut [u8]) -> io::Result<usize> {
+    // SAFETY: `buf` is valid for writes of its length for the call.
+    #[allow(unsafe_code)]
+    let n = unsafe { libc::read(fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
+    if n < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(n as usize)
+}
+
+fn write(fd: &impl AsRawFd, buf: &[u8]) -> io::Result<usize> {
+    // SAFETY: `buf` is valid for reads of its length for the call.
+    #[allow(unsafe_code)]
+    let n = unsafe { libc::write(fd.as_raw_fd(), buf.as_ptr().cast(), buf.len()) };
+    if n < 0 {
+        return Err(io::Error::last_os_error());
+    }
+    Ok(n as usize)
+}
+
+impl AsyncRead for Reader {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<io::Result<()>> {
+        loop {
+            let mut ready = ready!(self.fd.poll_read_ready(cx))?;
+            let unfilled = buf.initialize_unfilled();
+            let asked = unfilled.len();
+            match ready.try_io(|fd| read(fd, unfilled)) {
+                Ok(Ok(n)) => {
+                    // Less than asked: the port held no more. Waiting for the next
+                    // edge is cheaper than a read that says EAGAIN; an edge that
+                    // came after this read is kept (tokio clears only the readiness
+                    // this guard saw). Not at end of file: that is said again.
+                    if n > 0 && n < asked {
+                        ready.clear_ready();
+                    }
+                    buf.advance(n);
+                    return Poll::Ready(Ok(()));
+                }
+                Ok(Err(e)) => return Poll::Ready(Err(e)),
+                // EAGAIN: readiness cleared by `try_io`; wait again.
+                Err(_would_block) => continue,
+            }
+        }
+    }
+}
+
+impl AsyncWrite for Writer {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<io::Result<usize>> {
+        loop {
+            if let Some(waiting) = &self.waiting {
+                let mut ready = ready!(waiting.poll_write_ready(cx))?;
+                match ready.try_io(|fd| write(fd, buf)) {
+                    Ok(Ok(n)) => {
+                        self.waiting = None;
+                        return Poll::Ready(Ok(n));
+                    }
+                    Ok(Err(e)) => return Poll::Ready(Err(e)),
+                    Err(_would_block) => continue,
+                }
+            }
+            match write(self.fd.get_ref(), buf) {
+                Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
+                    let dup = self.fd.get_ref().as_fd().try_clone_to_owned()?;
+                    // SAFETY: as the reader's: the duplicate is owned by its `AsyncFd`.
+                    #[allow(unsafe_code)]
+                    let waiting =
+                        unsafe { AsyncFd::register_with_interest(dup, Interest::WRITABLE) }?;
+                    self.waiting = Some(waiting);
+                }
+                done => return Poll::Ready(done),
+            }
+        }
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
+        // Nothing is buffered here; the drain is the relay's (`Control::drain`).
+        Poll::Ready(Ok(()))
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
+        Poll::Ready(Ok(()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    /// A pty pair: the device end as a `TTYPort`, the master as a file.
+    fn pty() -> (serialport::TTYPort, std::fs::File) {
+        let (mut master, mut device) = (-1, -1);
+        // SAFETY: the out-pointers are valid for the call; nothing else is asked for.
+        #[allow(unsafe_code)]
+        let r = unsafe {
+            libc::openpty(
+                &mut master,
+                &mut device,
+                std::ptr::null_mut(),
+                std::ptr::null(),
+                std::ptr::null(),
+            )
+        };
+        assert_eq!(r, 0);
+        // SAFETY: both were just made and belong to nothing else.
+        #[allow(unsafe_code)]
+        let (master, device) = unsafe {
+            (
+                std::fs::File::from_raw_fd(master),
+                serialport::TTYPort::from_raw_fd(device),
+            )
+        };
+        // SAFETY: a termios filled by tcgetattr, made raw, set back.
+        #[allow(unsafe_code)]
+        unsafe {
+            let mut t: libc::termios = std::mem::zeroed();
+            libc::tcgetattr(device.as_raw_fd(), &mut t);
+            libc::cfmakeraw(&mut t);
+            libc::tcsetattr(device.as_raw_fd(), libc::TCSANOW, &t);
+        }
+        (device, master)
+    }
+
+    /// Bytes cross both ways, in pieces as they come; a read after a short read waits
+    /// for the next bytes rather than ending; a write larger than the pty holds goes
+    /// through as the far end reads it (the writer waits on its duplicate).
+    #[tokio::test]
+    async fn bytes_cross_both_ways_and_a_full_port_waits() {
+        use std::io::{Read, Write};
+        let (device, master) = pty();
+        let (mut rd, mut wr) = split(device).unwrap();
+        let mut far = master.try_clone().unwrap();
+        far.write_all(b"abc").unwrap();
+        let mut buf = [0u8; 16];
+        let n = rd.read(&mut buf).await.unwrap();
+        assert_eq!(&buf[..n], b"abc");
+        // Nothing waiting now: the next read waits until bytes come.
+        let later = tokio::spawn(async move {
+            let mut buf = [0u8; 16];
+            let n = rd.read(&mut buf).await.unwrap();
+            buf[..n].to_vec()
+        });
+        tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+        assert!(!later.is_finished());
+        far.write_all(b"de").unwrap();
+        assert_eq!(later.await.unwrap(), b"de");
+
+        // 256 KiB: more than a pty buffers; read on a thread as it comes.
+        let want: Vec<u8> = (0..256 * 1024).map(|i| (i % 251) as u8).collect();
+        let reader = std::thread::spawn(move || {
+            let mut got = Vec::new();
+            let mut chunk = [0u8; 4096];
+            while got.len() < 256 * 1024 {
+                let n = far.read(&mut chunk).unwrap();
+                got.extend_from_slice(&chunk[..n]);
+            }
+            got
+        });
+        wr.write_all(&want).await.unwrap();
+        assert_eq!(reader.join().unwrap(), want);
+        assert!(
+            wr.waiting.is_none(),
+            "the duplicate is gone once a write went through"
+        );
+    }
+}
