@@ -913,11 +913,11 @@ fn the_capture_ring_rotates_and_a_full_disk_stops_only_the_ring() {
     let mut m = master_from("127.0.0.1:0", addrs[0]);
     // About 70 bytes a packet, four packets a read: 300 reads fill more than three
     // files of 16 kB. The session's lines time out at 300 ms: a read a busy machine
-    // delays past that gets 0x0B and is asked again (three tries), never a wrong value.
+    // delays past that gets 0x0B and is asked again (ten tries), never a wrong value.
     for tid in 0..300u16 {
         let unit = 1 + (tid % 2) as u8;
         let mut got = Vec::new();
-        for _ in 0..3 {
+        for _ in 0..10 {
             got = transact(&mut m, &read_req(tid, unit, tid, 1));
             if got != Adu::exception(tid, unit, 3, 0x0B).as_bytes() {
                 break;

@@ -14,19 +14,19 @@ use std::thread;
 use std::time::{Duration, Instant};
 
 /// A device that answers a read of one register with its address, at once, except
-/// register 9: [`SLOW_MS`] later. One request at a time, as a serial device: a request
+/// register 9: `slow_ms` later. One request at a time, as a serial device: a request
 /// sent while it is busy with register 9 waits for it (at most 500 ms after a 1.5 s
 /// timeout, so the pollers never time out).
-fn device(path: &std::path::Path) -> RawDevice {
+fn device(path: &std::path::Path, slow_ms: u64) -> RawDevice {
     RawDevice::scripted(
         path,
-        Box::new(|req| {
+        Box::new(move |req| {
             let pdu = req.pdu();
             let addr = u16::from_be_bytes([pdu[1], pdu[2]]);
             let [t0, t1] = req.tid().to_be_bytes();
             let [a0, a1] = addr.to_be_bytes();
             let reply = vec![t0, t1, 0, 0, 0, 5, req.unit(), 0x03, 0x02, a0, a1];
-            let after = if addr == 9 { SLOW_MS } else { 0 };
+            let after = if addr == 9 { slow_ms } else { 0 };
             vec![(Duration::from_millis(after), reply)]
         }),
     )
@@ -73,7 +73,7 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     // by far less than the 1 s left after waiting out register 9.
     let dir = tempdir();
     let socat = Socat::start(dir.path());
-    let _dev = device(&socat.dev);
+    let _dev = device(&socat.dev, SLOW_MS);
     let base = Cfg::new(&socat.gw)
         .pty_line()
         .serial("flow_control = \"none\"");
@@ -160,7 +160,8 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
 }
 
 /// Two lines, each with its own response timeout: the line on `a` 200 ms (its
-/// device's 300 ms read times out), the one on `b` 1000 ms. `order` puts the tables
+/// device's 300 ms read times out), the one on `b` `b_timeout` (3000 ms: far more
+/// than a busy machine adds to 300 ms). `order` puts the tables
 /// in the file: `b_first` writes `b`'s table first; each table keeps its port, units
 /// and timeout. The control socket ([`control_socket`]) is beside `a`.
 fn two_lines(a: &std::path::Path, b: &std::path::Path, b_first: bool, b_timeout: u32) -> String {
@@ -205,10 +206,10 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
     std::fs::create_dir_all(&da).unwrap();
     std::fs::create_dir_all(&db).unwrap();
     let (sa, sb) = (Socat::start(&da), Socat::start(&db));
-    let (_deva, _devb) = (device(&sa.dev), device(&sb.dev));
+    let (_deva, _devb) = (device(&sa.dev, 300), device(&sb.dev, 300));
     let file = dir.path().join("mbgate.toml");
     let gw = Gateway::launch_text(
-        &two_lines(&sa.gw, &sb.gw, false, 1000),
+        &two_lines(&sa.gw, &sb.gw, false, 3000),
         dir.path(),
         Launch::default(),
     );
@@ -221,11 +222,11 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
     assert_eq!(
         slow(&mut m, 2, 2),
         read_reply(2, 2, &[9]),
-        "line b: 1000 ms"
+        "line b: 3000 ms"
     );
 
     // The same tables, the other way round: SIGHUP.
-    std::fs::write(&file, two_lines(&sa.gw, &sb.gw, true, 1000)).unwrap();
+    std::fs::write(&file, two_lines(&sa.gw, &sb.gw, true, 3000)).unwrap();
     let mut gw = gw;
     gw.proc.signal("HUP");
     gw.wait_log("reloaded: ", Duration::from_secs(5));
@@ -238,7 +239,7 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
     assert_eq!(
         slow(&mut m, 4, 2),
         read_reply(4, 2, &[9]),
-        "line b still 1000 ms"
+        "line b still 3000 ms"
     );
     let log = gw.log();
     assert!(log.contains("reloaded: nothing to change"), "{log}");
@@ -271,7 +272,7 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
     let third = "[[line]]\nunits = [3]\nserial = { path = \"/dev/mbgate-no-such-port\" }\n\n";
     std::fs::write(
         &file,
-        third.to_owned() + &two_lines(&sa.gw, &sb.gw, true, 1000),
+        third.to_owned() + &two_lines(&sa.gw, &sb.gw, true, 3000),
     )
     .unwrap();
     let (code, said) = mbgate_reload(&control_socket(&sa.gw));
