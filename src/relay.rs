@@ -263,7 +263,14 @@ impl Relay {
                     self.out.advance(n);
                     if self.out.is_empty() && self.line.is_serial() {
                         if let Some(t) = &mut self.turnaround {
-                            t.written(self.line.leaves_at().unwrap_or(now));
+                            // The line times the frame from before the write (`polled`,
+                            // a lower bound for judging the reply); the transmitter goes
+                            // off no sooner than the last bytes' time on the wire after
+                            // the write returned, so a pause of this thread between the
+                            // two (a busy machine) cannot cut the request's tail where
+                            // the port cannot say it is empty.
+                            let left = self.line.leaves_at().unwrap_or(now);
+                            t.written(self.line.left_after(n, now).map_or(left, |a| a.max(left)));
                         }
                         // The transmitter switch the gateway drives waits for the
                         // drain on any port; without one, no wire needs none.

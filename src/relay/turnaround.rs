@@ -10,7 +10,10 @@
 //! from the earliest instant it can have, the frame's time on the wire after it was
 //! written, and again every quarter of a character until it has, each look on the
 //! relay's microsecond timer, never by spinning; where the port cannot tell, when the
-//! drain (`tcdrain`) returns.
+//! drain (`tcdrain`) returns, but never before that earliest instant: a drain may
+//! return while bytes are still on their way (a pseudo-terminal's at once, a USB
+//! adapter's while its own FIFO still holds them), and a transmitter switched off
+//! then cuts the request's tail.
 
 use std::time::Duration;
 use tokio::time::Instant;
@@ -105,14 +108,16 @@ impl Turnaround {
     /// The drain has returned: everything written has left the driver's buffer.
     pub(super) fn drained(&mut self, now: Instant) {
         if let Phase::Emptying { .. } = self.phase {
+            let at = self.not_before_earliest(now);
             if self.looks {
-                // Its shift register may still hold the last character: look now.
+                // Its shift register may still hold the last character: look now,
+                // or once it can have left.
                 self.phase = Phase::Emptying {
-                    look_at: Some(now),
+                    look_at: Some(at),
                     drained: true,
                 };
             } else {
-                self.emptied(now);
+                self.emptied(at);
             }
         }
     }
@@ -132,7 +137,7 @@ impl Turnaround {
                 None => {
                     self.looks = false;
                     if drained {
-                        self.emptied(now);
+                        self.emptied(self.not_before_earliest(now));
                     } else {
                         self.phase = Phase::Emptying {
                             look_at: None,
@@ -144,10 +149,18 @@ impl Turnaround {
         }
     }
 
-    fn emptied(&mut self, now: Instant) {
+    /// The transmitter emptied at `at` (now, or the earliest instant the last stop bit
+    /// can leave, if later): off once the delay after has passed.
+    fn emptied(&mut self, at: Instant) {
         self.phase = Phase::Trailing {
-            off_at: now + self.after,
+            off_at: at + self.after,
         };
+    }
+
+    /// `now`, or the earliest instant the frame's last stop bit can leave if that is
+    /// later: no drain nor look can have seen it leave sooner.
+    fn not_before_earliest(&self, now: Instant) -> Instant {
+        self.earliest.map_or(now, |e| e.max(now))
     }
 
     /// What is due at `now`: a look, or switching off.
@@ -341,6 +354,33 @@ mod tests {
         assert_eq!(b.t.wake(b.now), None, "no look this time");
     }
 
+    /// A drain that returns while the bytes are still on their way (a pseudo-terminal's
+    /// returns at once) does not switch off before their time on the wire has passed,
+    /// with or without an LSR.
+    #[test]
+    fn an_early_drain_waits_for_the_wire() {
+        for lsr in [true, false] {
+            let mut b = Bench::new(0, 30, lsr);
+            let t0 = b.now;
+            b.turn(true);
+            assert!(b.write());
+            let earliest = t0 + us(700);
+            b.t.written(earliest);
+            b.empty_at = Some(t0);
+            b.now = t0 + us(10);
+            b.t.drained(b.now);
+            b.turn(false);
+            assert!(b.on, "not off while the bytes are on the wire");
+            assert_eq!(b.t.wake(b.now), Some(earliest));
+            b.now = earliest;
+            b.turn(false);
+            assert!(b.on, "the delay after");
+            b.now = b.t.wake(b.now).expect("the off is due");
+            b.turn(false);
+            assert_eq!(b.history[1], (earliest + us(30), false));
+        }
+    }
+
     /// Abandoned while on: off at once; a fresh open starts off, learning again.
     #[test]
     fn abort_switches_off() {
@@ -392,6 +432,7 @@ mod tests {
             after in 0u64..300,
             lsr in any::<bool>(),
             empties in 0u64..500,
+            wire in 0u64..800,
             steps in proptest::collection::vec(step(), 1..80),
         ) {
             let mut b = Bench::new(before, after, lsr);
@@ -400,6 +441,8 @@ mod tests {
             let mut whole = false;
             let mut emptied: Option<Instant> = None;
             let mut aborted = false;
+            // The earliest the frame's last stop bit can leave (its time on the wire).
+            let mut earliest = b.now;
             for s in steps {
                 let switched = b.history.len();
                 let wants = matches!(s, Step::Turn(true));
@@ -413,7 +456,8 @@ mod tests {
                             prop_assert!(b.now >= on + us(before), "written within the delay before");
                             if last {
                                 whole = true;
-                                b.t.written(b.now);
+                                earliest = b.now + us(wire);
+                                b.t.written(earliest);
                                 b.empty_at = Some(b.now + us(empties));
                             }
                         }
@@ -446,6 +490,9 @@ mod tests {
                         prop_assert!(whole, "off before the frame was whole");
                         let empty = if lsr { b.empty_at.expect("written") } else { emptied.expect("drained") };
                         prop_assert!(at >= empty + us(after), "off before the last stop bit and the delay after");
+                        // Whatever the port or the drain says, never before the
+                        // frame's time on the wire has passed.
+                        prop_assert!(at >= earliest + us(after), "off before the bytes can have left");
                     }
                 }
                 if !b.on {

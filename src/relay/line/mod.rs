@@ -181,6 +181,15 @@ impl Line {
         }
     }
 
+    /// RTU/ASCII: `n` bytes whose write returned at `written` cannot all have left
+    /// before their time on the wire after it.
+    pub(super) fn left_after(&self, n: usize, written: Instant) -> Option<Instant> {
+        match &self.0 {
+            Kind::Mbap(_) => None,
+            Kind::Serial(s) => Some(written + s.wire_time(n)),
+        }
+    }
+
     /// Must the relay wait for `tcdrain` before it times the reply (RTU/ASCII on a
     /// wire)? Where there is no wire (a pty: docs/reliability.md "Knowing the wire")
     /// the bytes are gone once written, and asking the drain thread would cost two

@@ -138,7 +138,7 @@ impl Serial {
 
     /// How long `bytes` take to leave the port: none over TCP, nor where there is no
     /// wire (a pty passes them at once whatever `baud_rate` says).
-    fn wire_time(&self, bytes: usize) -> Duration {
+    pub(super) fn wire_time(&self, bytes: usize) -> Duration {
         if self.stream || !self.wire {
             Duration::ZERO
         } else {
