@@ -483,7 +483,10 @@ fn a_wire_timed_device_gets_every_reply_taken() {
 /// never heard, and run ahead of a device that lags. Beside two busy loops one read of
 /// 20 runs got the previous read's value that way (that read had got 0x0B at once,
 /// its echo spoiling the CRC, with no guard after it for its genuine reply, which
-/// came after the next request had left). So with `echo = true` none may get
+/// came after the next request had left: the guard now follows a reply that fails its
+/// check as it follows a timeout, `rtu_binding`'s
+/// `rtu_the_reply_after_a_damaged_one_never_answers_the_next_request`; a reply later
+/// than the guard stays outside the guarantee). So with `echo = true` none may get
 /// another answer than its own (0 wrong); without it, what is asserted is that the
 /// gateway does not hide the trouble: echo bytes dropped as too early, or bad frames,
 /// are counted, and any wrong answer is printed.
