@@ -90,9 +90,12 @@ fn the_status_page_shows_live_rates_and_decoded_frames_in_a_browser() {
     let dir = tempdir();
     let socat = Socat::start(dir.path());
     let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    // The device answers at once; a browser beside a busy machine can hold its answer
+    // past the default second.
     let cfg = Cfg::new(&socat.gw)
         .pty_line()
         .serial("flow_control = \"none\"")
+        .relay("response_timeout_ms = 5000")
         .metrics("listen = \"127.0.0.1:0\"");
     let mut gw = Gateway::start(&cfg, dir.path());
     // The log says where the page is.
