@@ -17,16 +17,40 @@ use std::task::{ready, Context, Poll};
 use tokio::io::unix::AsyncFd;
 use tokio::io::{AsyncRead, AsyncWrite, Interest, ReadBuf};
 
+/// The port's descriptor. Its exclusive hold (TIOCEXCL, taken at open) is given back
+/// before it closes, as the serial crate's own close does: the flag is the tty's, not
+/// the descriptor's, and a tty that outlives the gateway (a pty whose far end lives
+/// on) would refuse the next start of the service with EBUSY.
+#[derive(Debug)]
+struct Held(OwnedFd);
+
+impl AsRawFd for Held {
+    fn as_raw_fd(&self) -> std::os::fd::RawFd {
+        self.0.as_raw_fd()
+    }
+}
+
+impl Drop for Held {
+    fn drop(&mut self) {
+        // SAFETY: TIOCNXCL takes no argument; the descriptor is open until `self.0`
+        // drops, after this. Best effort: a port gone has nothing to give back.
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::ioctl(self.0.as_raw_fd(), libc::TIOCNXCL as _)
+        };
+    }
+}
+
 /// The read half: owns the descriptor's registration; the write half shares it.
 #[derive(Debug)]
 pub(crate) struct Reader {
-    fd: Arc<AsyncFd<OwnedFd>>,
+    fd: Arc<AsyncFd<Held>>,
 }
 
 /// The write half.
 #[derive(Debug)]
 pub(crate) struct Writer {
-    fd: Arc<AsyncFd<OwnedFd>>,
+    fd: Arc<AsyncFd<Held>>,
     /// While the port has no room: a duplicate of its descriptor, registered for
     /// writing, to wait on.
     waiting: Option<AsyncFd<OwnedFd>>,
@@ -43,7 +67,7 @@ pub(crate) fn split(port: serialport::TTYPort) -> io::Result<(Reader, Writer)> {
     // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
     // which is when the `AsyncFd` holding it does.
     #[allow(unsafe_code)]
-    let fd = Arc::new(unsafe { AsyncFd::register_with_interest(fd, Interest::READABLE) }?);
+    let fd = Arc::new(unsafe { AsyncFd::register_with_interest(Held(fd), Interest::READABLE) }?);
     Ok((Reader { fd: fd.clone() }, Writer { fd, waiting: None }))
 }
 
@@ -135,7 +159,7 @@ impl AsyncWrite for Writer {
             }
             match write(self.fd.get_ref(), buf) {
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    let dup = self.fd.get_ref().as_fd().try_clone_to_owned()?;
+                    let dup = self.fd.get_ref().0.as_fd().try_clone_to_owned()?;
                     // SAFETY: as the reader's: the duplicate is owned by its `AsyncFd`.
                     #[allow(unsafe_code)]
                     let waiting =
@@ -237,5 +261,37 @@ mod tests {
             wr.waiting.is_none(),
             "the duplicate is gone once a write went through"
         );
+    }
+
+    /// The exclusive hold taken at open is given back when both halves are gone: the
+    /// tty's flag, read through another descriptor of it (root opens a port held
+    /// exclusively all the same, so the flag itself is what is checked).
+    #[tokio::test]
+    async fn the_exclusive_hold_is_given_back_at_close() {
+        let (device, _master) = pty();
+        // SAFETY: F_DUPFD_CLOEXEC on an open descriptor; the copy is owned here.
+        #[allow(unsafe_code)]
+        let other = unsafe {
+            OwnedFd::from_raw_fd(libc::fcntl(device.as_raw_fd(), libc::F_DUPFD_CLOEXEC, 0))
+        };
+        let excl = |fd: &OwnedFd| {
+            let mut on: libc::c_int = 0;
+            // SAFETY: TIOCGEXCL writes one int into `on`; the descriptor is open.
+            #[allow(unsafe_code)]
+            let r = unsafe { libc::ioctl(fd.as_raw_fd(), libc::TIOCGEXCL as _, &mut on) };
+            assert_eq!(r, 0, "{}", io::Error::last_os_error());
+            on
+        };
+        // SAFETY: TIOCEXCL takes no argument; the descriptor is open.
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::ioctl(other.as_raw_fd(), libc::TIOCEXCL as _)
+        };
+        assert_eq!(excl(&other), 1);
+        let (rd, wr) = split(device).unwrap();
+        drop(rd);
+        assert_eq!(excl(&other), 1, "held while the writer lives");
+        drop(wr);
+        assert_eq!(excl(&other), 0, "given back at close");
     }
 }
