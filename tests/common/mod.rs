@@ -783,6 +783,12 @@ fn pump(
     let mut rd = file.try_clone().unwrap();
     let mut wr = file.try_clone().unwrap();
     thread::spawn(move || {
+        // A scripted pause is a premise of its test (shorter than the pause that ends
+        // a frame): at real-time priority where the test may set it (root, as CI runs
+        // it), a busy machine cannot stretch it; refused, the thread runs as it was.
+        let param = libc::sched_param { sched_priority: 1 };
+        // SAFETY: `param` is valid for the call; 0 is this thread.
+        unsafe { libc::sched_setscheduler(0, libc::SCHED_FIFO, &param) };
         let mut chunk = [0u8; 1024];
         let mut last = Instant::now();
         while !stop.load(Ordering::Relaxed) {
