@@ -285,12 +285,7 @@ fn rtu_late_and_timely_replies_alternating() {
             vec![(after, regs(frame))]
         }),
     );
-    let cfg = Cfg::new(&socat.gw)
-        .serial("framing = \"rtu\"")
-        .serial("flow_control = \"none\"")
-        .relay(&format!("response_timeout_ms = {TIMEOUT_MS}"))
-        .relay(&format!("timeout_guard_ms = {GUARD_MS}"))
-        .relay("unit_backoff = false");
+    let cfg = guarded_rtu(&socat, TIMEOUT_MS);
     let mut gw = Gateway::start(&cfg, dir.path());
     let mut m = gw.connect();
     let answers: Vec<(u16, Answer)> = (0..12u16)
@@ -340,12 +335,7 @@ fn rtu_the_reply_after_a_damaged_one_never_answers_the_next_request() {
             }
         }),
     );
-    let cfg = Cfg::new(&socat.gw)
-        .serial("framing = \"rtu\"")
-        .serial("flow_control = \"none\"")
-        .relay("response_timeout_ms = 1000")
-        .relay(&format!("timeout_guard_ms = {GUARD_MS}"))
-        .relay("unit_backoff = false");
+    let cfg = guarded_rtu(&socat, 1000);
     let mut gw = Gateway::start(&cfg, dir.path());
     let mut m = gw.connect();
     let answers: Vec<(u16, Answer)> = (0..8u16)
@@ -361,6 +351,17 @@ fn rtu_the_reply_after_a_damaged_one_never_answers_the_next_request() {
         assert_eq!(*a, want, "register {addr}: {answers:?}");
     }
     assert_eq!(counters["replies"], 4, "{counters:?}");
+}
+
+/// An RTU line on `socat` timing out at `timeout_ms`, with the long guard after a
+/// timeout (`GUARD_MS`) and no backoff: every read goes on the line.
+fn guarded_rtu(socat: &Socat, timeout_ms: u64) -> Cfg {
+    Cfg::new(&socat.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"")
+        .relay(&format!("response_timeout_ms = {timeout_ms}"))
+        .relay(&format!("timeout_guard_ms = {GUARD_MS}"))
+        .relay("unit_backoff = false")
 }
 
 /// Replies that begin while the request is still being sent (75 baud: 1.07 s for a
