@@ -1,11 +1,13 @@
 //! Where captured packets go (docs/capture.md "Never in the line's way"): the relays,
-//! the connections and the master line hand each packet to a [`Tap`], which puts it
-//! on one bounded channel with `try_send` (never waiting: a full channel drops the
-//! packet and counts it); one task, the hub's, takes them off, keeps each
-//! interface's times from going back, keeps the last [`RECENT`] of each line for the
-//! status page while it is open, and hands each subscriber (a `mbgate capture`, the
-//! capture ring) what its filter keeps, again with `try_send` and a count of what
-//! its own full channel dropped.
+//! the connections and the master line hand each packet to a [`Tap`], which, under
+//! one short lock, keeps each interface's times from going back, keeps the last
+//! [`RECENT`] of each line for the status page while it is open, and hands each
+//! subscriber (a `mbgate capture`, the capture ring) what its filter keeps with
+//! `try_send` (never waiting: a full channel drops the packet and counts it).
+//!
+//! No task stands between a line and a subscriber: a task in between cost a wake of
+//! its own for each packet (docs/performance.md "What a capture costs"). The hub's
+//! task only ends every subscription when the hub closes.
 //!
 //! With no subscriber and the status page closed, a tap is one atomic load: the
 //! relay builds no packet.
@@ -21,10 +23,12 @@ use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 
-/// Packets waiting for the hub's task, from every source at once.
-const CENTRAL: usize = 8192;
 /// Packets waiting for one subscriber.
 pub(crate) const PER_SUBSCRIBER: usize = 4096;
+/// How long a subscriber lets packets gather after taking some: one wake and one
+/// write for a few hundred packets at full speed, where each packet woke it (docs/
+/// performance.md "What a capture costs"), and well within what its channel holds.
+pub(crate) const GATHER: Duration = Duration::from_millis(10);
 /// Packets of each line the status page shows.
 pub(crate) const RECENT: usize = 50;
 /// Disconnected masters whose addresses are kept for the page: enough for every frame
@@ -100,15 +104,17 @@ struct Sub {
 }
 
 struct Shared {
-    tx: mpsc::Sender<Packet>,
     interfaces: Vec<Interface>,
     /// Subscribers now: a tap builds packets only while there is one (or the page).
     active: AtomicUsize,
     /// Until when (on the capture's clock) the status page counts as open.
     page_until_us: AtomicU64,
-    /// Packets the central channel dropped, by interface.
-    dropped: Box<[AtomicU64]>,
-    subs: Mutex<Vec<Sub>>,
+    subs: Mutex<Subs>,
+    /// Packets any subscriber lost because its channel was full, in all.
+    lost: AtomicU64,
+    /// Subscriptions not yet dropped, and the news that one was.
+    alive: AtomicUsize,
+    ended: tokio::sync::Notify,
     next_id: AtomicU64,
     /// The master behind each connection id, for the master filter and the page.
     conns: Mutex<HashMap<u64, SocketAddr>>,
@@ -117,6 +123,12 @@ struct Shared {
     gone: Mutex<VecDeque<(u64, SocketAddr)>>,
     recent: Mutex<Vec<Recent>>,
     closed: CancellationToken,
+}
+
+/// The subscribers, and each interface's last time handed to them.
+struct Subs {
+    list: Vec<Sub>,
+    last_us: Vec<u64>,
 }
 
 /// The capture's centre: made once at start with its interfaces; cheap to clone.
@@ -134,22 +146,25 @@ impl Hub {
     /// A hub for these interfaces (0: the TCP side, then each line), and its task.
     pub(crate) fn new(interfaces: Vec<Interface>) -> (Hub, impl std::future::Future<Output = ()>) {
         anchor();
-        let (tx, rx) = mpsc::channel(CENTRAL);
         let n = interfaces.len();
         let shared = Arc::new(Shared {
-            tx,
-            dropped: (0..n).map(|_| AtomicU64::new(0)).collect(),
             recent: Mutex::new(vec![Recent::default(); n]),
             interfaces,
             active: AtomicUsize::new(0),
             page_until_us: AtomicU64::new(0),
-            subs: Mutex::new(Vec::new()),
+            lost: AtomicU64::new(0),
+            alive: AtomicUsize::new(0),
+            ended: tokio::sync::Notify::new(),
+            subs: Mutex::new(Subs {
+                list: Vec::new(),
+                last_us: vec![0; n],
+            }),
             next_id: AtomicU64::new(1),
             conns: Mutex::new(HashMap::new()),
             gone: Mutex::new(VecDeque::new()),
             closed: CancellationToken::new(),
         });
-        let task = run(shared.clone(), rx);
+        let task = run(shared.clone());
         (Hub(shared), task)
     }
 
@@ -193,17 +208,11 @@ impl Hub {
         let (tx, rx) = mpsc::channel(PER_SUBSCRIBER);
         let id = self.0.next_id.fetch_add(1, Ordering::Relaxed);
         let dropped: Arc<[AtomicU64]> = (0..names.len()).map(|_| AtomicU64::new(0)).collect();
-        let central: Vec<u64> = self
-            .0
-            .dropped
-            .iter()
-            .map(|d| d.load(Ordering::Relaxed))
-            .collect();
         let mut subs = self.0.subs.lock().expect("not poisoned");
         if self.0.closed.is_cancelled() {
             return Err("the gateway is stopping".into());
         }
-        subs.push(Sub {
+        subs.list.push(Sub {
             id,
             request,
             keep,
@@ -211,12 +220,12 @@ impl Hub {
             dropped: dropped.clone(),
         });
         self.0.active.fetch_add(1, Ordering::Relaxed);
+        self.0.alive.fetch_add(1, Ordering::Relaxed);
         Ok(Subscription {
             rx,
             id,
             hub: self.0.clone(),
             dropped,
-            central,
         })
     }
 
@@ -244,19 +253,36 @@ impl Hub {
         })
     }
 
-    /// Packets every capture lost because the central channel was full, in all.
+    /// Packets every capture lost because it was behind, in all.
     pub(crate) fn dropped(&self) -> u64 {
-        self.0
-            .dropped
-            .iter()
-            .map(|d| d.load(Ordering::Relaxed))
-            .sum()
+        self.0.lost.load(Ordering::Relaxed)
     }
 
-    /// No more packets: the hub's task hands on what it has, then ends every
-    /// subscription (each sees its channel close).
+    /// No more packets: the hub's task ends every subscription (each sees its
+    /// channel close once it has taken what was handed to it).
     pub(crate) fn close(&self) {
         self.0.closed.cancel();
+    }
+
+    /// Done once [`Hub::close`] was called: a subscriber letting packets gather
+    /// stops waiting.
+    pub(crate) async fn closed(&self) {
+        self.0.closed.cancelled().await;
+    }
+
+    /// Once every subscription has been dropped (each capture has written its end),
+    /// or `within` has passed: false then.
+    pub(crate) async fn ended(&self, within: Duration) -> bool {
+        let all = async {
+            loop {
+                let notified = self.0.ended.notified();
+                if self.0.alive.load(Ordering::Acquire) == 0 {
+                    return;
+                }
+                notified.await;
+            }
+        };
+        tokio::time::timeout(within, all).await.is_ok()
     }
 }
 
@@ -290,11 +316,10 @@ impl Tap {
     }
 
     /// Hands `p` on, stamped with this tap's interface and the time `at`; never
-    /// waits: when the hub is behind, the packet is dropped and counted. With no
+    /// waits: a subscriber that is behind loses the packet, counted. With no
     /// capture running (only the status page open) the packet goes straight into its
-    /// interface's last packets: no channel, no wake of the hub's task, so watching
-    /// the page costs the line one short lock a frame (docs/performance.md "What a
-    /// transaction costs").
+    /// interface's last packets, so watching the page costs the line one short lock a
+    /// frame (docs/performance.md "What a transaction costs").
     pub(crate) fn send(&self, mut p: Packet, at: Instant) {
         let Some(h) = &self.hub else {
             return;
@@ -311,11 +336,7 @@ impl Tap {
             }
             return;
         }
-        if h.tx.try_send(p).is_err() {
-            if let Some(d) = h.dropped.get(usize::from(self.iface)) {
-                d.fetch_add(1, Ordering::Relaxed);
-            }
-        }
+        hand_on(h, p);
     }
 }
 
@@ -325,21 +346,14 @@ pub(crate) struct Subscription {
     id: u64,
     hub: Arc<Shared>,
     dropped: Arc<[AtomicU64]>,
-    /// The central channel's drops when it began.
-    central: Vec<u64>,
 }
 
 impl Subscription {
-    /// Packets this subscription lost, by interface: those its own full channel
-    /// dropped, and those the central channel dropped since it began (before any
-    /// filter: an upper bound of what it would have kept).
+    /// Packets this subscription lost because its channel was full, by interface.
     pub(crate) fn dropped(&self) -> Vec<u64> {
         self.dropped
             .iter()
-            .zip(self.hub.dropped.iter().zip(&self.central))
-            .map(|(own, (all, at_start))| {
-                own.load(Ordering::Relaxed) + all.load(Ordering::Relaxed).saturating_sub(*at_start)
-            })
+            .map(|d| d.load(Ordering::Relaxed))
             .collect()
     }
 }
@@ -347,40 +361,30 @@ impl Subscription {
 impl Drop for Subscription {
     fn drop(&mut self) {
         let mut subs = self.hub.subs.lock().expect("not poisoned");
-        let before = subs.len();
-        subs.retain(|s| s.id != self.id);
-        if subs.len() < before {
+        let before = subs.list.len();
+        subs.list.retain(|s| s.id != self.id);
+        if subs.list.len() < before {
             self.hub.active.fetch_sub(1, Ordering::Relaxed);
         }
+        drop(subs);
+        self.hub.alive.fetch_sub(1, Ordering::Release);
+        self.hub.ended.notify_waiters();
     }
 }
 
-/// The hub's task: every packet to whoever keeps it, until the hub closes.
-async fn run(shared: Arc<Shared>, mut rx: mpsc::Receiver<Packet>) {
-    let mut last_us = vec![0u64; shared.interfaces.len()];
-    loop {
-        let p = tokio::select! {
-            biased;
-            p = rx.recv() => p,
-            _ = shared.closed.cancelled() => None,
-        };
-        let Some(p) = p else {
-            break;
-        };
-        hand_on(&shared, p, &mut last_us);
-    }
-    // What is already waiting goes out; then the subscriptions end.
-    while let Ok(p) = rx.try_recv() {
-        hand_on(&shared, p, &mut last_us);
-    }
+/// The hub's task: when the hub closes, every subscription ends.
+async fn run(shared: Arc<Shared>) {
+    shared.closed.cancelled().await;
     let mut subs = shared.subs.lock().expect("not poisoned");
-    shared.active.fetch_sub(subs.len(), Ordering::Relaxed);
-    subs.clear();
+    shared.active.fetch_sub(subs.list.len(), Ordering::Relaxed);
+    subs.list.clear();
 }
 
-fn hand_on(shared: &Shared, mut p: Packet, last_us: &mut [u64]) {
+/// `p` to the page, if open, and to each subscriber whose filter keeps it.
+fn hand_on(shared: &Shared, mut p: Packet) {
     let i = usize::from(p.iface);
-    let Some(last) = last_us.get_mut(i) else {
+    let mut subs = shared.subs.lock().expect("not poisoned");
+    let Some(last) = subs.last_us.get_mut(i) else {
         return;
     };
     // One interface's times never go back: a packet handed on later than one
@@ -396,11 +400,13 @@ fn hand_on(shared: &Shared, mut p: Packet, last_us: &mut [u64]) {
         r.last_us = r.last_us.max(p.at_us);
         r.keep(p.clone());
     }
-    let subs = shared.subs.lock().expect("not poisoned");
-    if subs.is_empty() {
+    if subs.list.is_empty() {
         return;
     }
-    let master = match (p.conn, subs.iter().any(|s| !s.request.masters.is_empty())) {
+    let master = match (
+        p.conn,
+        subs.list.iter().any(|s| !s.request.masters.is_empty()),
+    ) {
         (Some(conn), true) => shared
             .conns
             .lock()
@@ -409,12 +415,13 @@ fn hand_on(shared: &Shared, mut p: Packet, last_us: &mut [u64]) {
             .copied(),
         _ => None,
     };
-    for s in subs.iter() {
+    for s in subs.list.iter() {
         if !s.keep[i] || !s.request.keeps(&p, master) {
             continue;
         }
         if s.tx.try_send(p.clone()).is_err() {
             s.dropped[i].fetch_add(1, Ordering::Relaxed);
+            shared.lost.fetch_add(1, Ordering::Relaxed);
         }
     }
 }
@@ -509,6 +516,31 @@ mod tests {
         hub.close();
         assert!(sub.rx.recv().await.is_none());
         assert!(hub.subscribe(Request::default()).is_err());
+    }
+
+    /// A stopping gateway waits for its captures to end, and not for ever.
+    #[tokio::test]
+    async fn the_hub_has_ended_once_every_subscription_is_dropped() {
+        let hub = hub();
+        assert!(hub.ended(Duration::ZERO).await, "none to wait for");
+        let mut sub = hub.subscribe(Request::default()).unwrap();
+        hub.tap(1).send(frame(1), Instant::now());
+        hub.close();
+        assert!(
+            !hub.ended(Duration::from_millis(50)).await,
+            "one still writing"
+        );
+        let waiter = {
+            let hub = hub.clone();
+            tokio::spawn(async move { hub.ended(Duration::from_secs(60)).await })
+        };
+        assert_eq!(sub.rx.recv().await.map(|p| p.unit), Some(Some(1)));
+        assert!(
+            sub.rx.recv().await.is_none(),
+            "closed after the last packet"
+        );
+        drop(sub);
+        assert!(waiter.await.unwrap());
     }
 
     #[tokio::test]

@@ -73,6 +73,9 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
     v
 }
 
+/// How long a stopping gateway waits for its captures to write their end.
+const END_WITHIN: std::time::Duration = std::time::Duration::from_millis(500);
+
 /// The capture of a running gateway: its hub and its ring.
 pub(crate) struct Capture {
     hub: Hub,
@@ -96,6 +99,11 @@ impl Capture {
     /// After the last packet: every capture ends, the ring's files are flushed.
     pub(crate) async fn finish(self) {
         self.hub.close();
+        // A capture running now gets its last packets and its end before the
+        // process exits; one that does not read is not waited for long.
+        if !self.hub.ended(END_WITHIN).await {
+            tracing::debug!("a capture did not end within {END_WITHIN:?}");
+        }
         if let Some(ring) = self.ring {
             let _ = tokio::task::spawn_blocking(move || ring.join()).await;
         }

@@ -9,7 +9,7 @@
 //! any capture. A write that fails (a full disk) ends the ring, with one error in the
 //! log: the gateway goes on.
 
-use super::hub::{Hub, Subscription};
+use super::hub::{Hub, Subscription, GATHER};
 use super::pcapng;
 use super::request::Request;
 use crate::config::CaptureConfig;
@@ -143,6 +143,8 @@ fn run(mut ring: Ring, mut sub: Subscription) {
                 ring.write(&p.block(u32::from(p.iface)))?;
             }
             ring.flush()?;
+            // Packets gather meanwhile: one wake and one write for many.
+            std::thread::sleep(GATHER);
         }
         ring.flush()
     })();

@@ -7,7 +7,7 @@
 //! however its task ends.
 
 use super::{message, DATA, END, RELOAD};
-use crate::capture::hub::{unix_us, Hub, Subscription};
+use crate::capture::hub::{unix_us, Hub, Subscription, GATHER};
 use crate::capture::pcapng;
 use crate::capture::request::{Request, MAX_LINE};
 use crate::reload::ReloadHandle;
@@ -484,6 +484,11 @@ impl Run {
             }
             if self.request.count.is_some_and(|n| self.packets >= n) {
                 break "count";
+            }
+            // Packets gather meanwhile: one wake and one write for many.
+            tokio::select! {
+                _ = tokio::time::sleep(GATHER) => {}
+                _ = hub.closed() => {}
             }
         };
         let end_us = unix_us(Instant::now());
