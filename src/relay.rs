@@ -39,7 +39,7 @@ pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
 use fanout::Masters;
 use inflight::{Failure, Paced, Table};
-use line::{Line, Seen, Unsolicited};
+use line::{LineFraming, Seen, Unsolicited};
 use outgoing::Outgoing;
 use pending::Pending;
 use scheduler::{Admitted, Queued, Scheduler};
@@ -63,7 +63,7 @@ pub struct Relay {
     sched: Scheduler<Pending>,
     /// The requests on the line: deadlines, retries, unit backoff.
     in_flight: Table<Pending>,
-    line: Line,
+    line: LineFraming,
     /// Replies that may answer identical reads (`cache_ms`; empty when off).
     cache: Cache,
     /// 0x0B answers for backed-off units, at the line's pace.
@@ -133,7 +133,7 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
-        let line = Line::new(&cfg, &serial, stream, now);
+        let line = LineFraming::new(&cfg, &serial, stream, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
         let units = crate::config::unit::UnitTables::default();
@@ -277,7 +277,7 @@ impl Relay {
                         if self.line.needs_drain() || self.turnaround.is_some() {
                             self.start_drain(now);
                         } else {
-                            // No wire: gone once written (`Line::needs_drain`).
+                            // No wire: gone once written (`LineFraming::needs_drain`).
                             self.drained(now);
                         }
                     }

@@ -3,17 +3,20 @@
 
 use super::*;
 use crate::frame::hex::parse as bytes;
-use crate::relay::line::Line;
+use crate::relay::line::LineFraming;
 
 const MS: Duration = Duration::from_millis(1);
 
-fn mbap(baud: u32) -> (Line, Instant) {
+fn mbap(baud: u32) -> (LineFraming, Instant) {
     let serial = SerialConfig {
         baud_rate: baud,
         ..SerialConfig::default()
     };
     let now = Instant::now();
-    (Line::new(&RelayConfig::default(), &serial, false, now), now)
+    (
+        LineFraming::new(&RelayConfig::default(), &serial, false, now),
+        now,
+    )
 }
 
 /// A request as the table holds it in tests: the ADU, never resent.
@@ -30,13 +33,13 @@ fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
 }
 
 /// Request `adu` sent now.
-fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight<Req> {
+fn send(line: &mut LineFraming, adu: &Adu, now: Instant) -> InFlight<Req> {
     let tid = line.allocate(now);
     line.encode(adu, tid, now, &Stats::default());
     in_flight(tid, adu, now)
 }
 
-fn frames(line: &mut Line, in_flight: &[InFlight<Req>], now: Instant) -> Vec<Vec<u8>> {
+fn frames(line: &mut LineFraming, in_flight: &[InFlight<Req>], now: Instant) -> Vec<Vec<u8>> {
     line.frames(in_flight, now, &Stats::default())
         .into_iter()
         .map(|s| match s {
@@ -166,7 +169,7 @@ fn replies_are_confirmed_by_what_follows_or_a_pause() {
     };
     let serial = SerialConfig::default();
     let t0 = Instant::now();
-    let mut line = Line::new(&relay, &serial, false, t0);
+    let mut line = LineFraming::new(&relay, &serial, false, t0);
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 3]);
     let a = send(&mut line, &read, t0);
     let mut reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
@@ -180,7 +183,7 @@ fn replies_are_confirmed_by_what_follows_or_a_pause() {
         assert!(frames(&mut line, std::slice::from_ref(&a), at + after * MS).is_empty());
     }
 
-    let mut line = Line::new(&relay, &serial, false, t0);
+    let mut line = LineFraming::new(&relay, &serial, false, t0);
     let a = send(&mut line, &read, t0);
     let b = send(&mut line, &read, t0);
     let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
@@ -196,7 +199,7 @@ fn replies_are_confirmed_by_what_follows_or_a_pause() {
     );
     assert_eq!(line.next_wake(at + 20 * MS, false), Some(at + 50 * MS));
     assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
-    let mut line = Line::new(&relay, &serial, false, t0);
+    let mut line = LineFraming::new(&relay, &serial, false, t0);
     let a = send(&mut line, &read, t0);
     let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
         .as_bytes()
@@ -345,7 +348,7 @@ fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
         port_kind: crate::config::PortKind::Wire,
         ..SerialConfig::default()
     };
-    let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+    let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
     line.port_opened(&PortInfo::plain(Kind::Pty));
     let f = send(&mut line, &write, t0);
     let sent = write.with_tid(f.tid).as_bytes().to_vec();
@@ -379,7 +382,7 @@ fn a_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
             ..SerialConfig::default()
         };
         let t0 = Instant::now();
-        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
         line.port_opened(&PortInfo::plain(kind.clone()));
         let a = send(&mut line, &read, t0);
         let reply = Adu::build(a.tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
@@ -427,7 +430,7 @@ fn over_tcp_a_whole_reply_is_taken_at_once_and_the_pause_kept() {
         ..RelayConfig::default()
     };
     let t0 = Instant::now();
-    let mut line = Line::new(&relay, &SerialConfig::default(), true, t0);
+    let mut line = LineFraming::new(&relay, &SerialConfig::default(), true, t0);
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
     let a = send(&mut line, &read, t0);
     let b = send(&mut line, &read, t0);

@@ -1,7 +1,7 @@
 //! The RTU and ASCII line's tests: a reply with pauses inside on a pty and on a wire,
 //! the gap after a reply (over TCP, to the microsecond, `request_pause_ms`, a unit's own).
 
-use super::super::{Line, Seen};
+use super::super::{LineFraming, Seen};
 use super::*;
 use crate::port::kind::Kind;
 
@@ -25,7 +25,7 @@ fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
     for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
         let stats = Stats::default();
         let t0 = Instant::now();
-        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
         line.port_opened(&PortInfo::plain(kind.clone()));
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let key = line.allocate(t0);
@@ -78,7 +78,7 @@ fn the_gap_after_a_reply_is_none_over_tcp_and_request_pause_ms_on_both() {
             ..RelayConfig::default()
         };
         let t0 = Instant::now();
-        let mut line = Line::new(&relay, &serial, stream, t0);
+        let mut line = LineFraming::new(&relay, &serial, stream, t0);
         line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + MS, &stats);
         let at = t0 + MS;
         let free = at + free_after * MS;
@@ -108,7 +108,7 @@ fn a_units_own_pause_is_the_quiet_after_its_transaction() {
     let stats = Stats::default();
     for (pause, free_after) in [(50, 50), (0, 4)] {
         let t0 = Instant::now();
-        let mut line = Line::new(&relay, &serial, false, t0);
+        let mut line = LineFraming::new(&relay, &serial, false, t0);
         line.pause_after(pause * MS);
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let key = line.allocate(t0);
@@ -150,7 +150,7 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
         };
         let relay = RelayConfig::default();
         let t0 = Instant::now();
-        let mut line = Line::new(&relay, &serial, false, t0);
+        let mut line = LineFraming::new(&relay, &serial, false, t0);
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let tid = line.allocate(t0);
         let bytes = line.encode(&read, tid, t0, &stats);
@@ -206,7 +206,7 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
             ..SerialConfig::default()
         };
         let t0 = Instant::now();
-        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
         line.port_opened(&PortInfo::plain(kind.clone()));
         let why = format!("{kind:?}, inter_frame_gap_us {gap_us}");
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
