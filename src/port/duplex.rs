@@ -160,7 +160,7 @@ impl Port for DuplexPort {
                 reader: Box::new(reader),
                 writer,
                 control: Box::new(Pipe(transmitter)),
-                info: super::kind::PortInfo::plain(super::kind::Kind::Memory),
+                info: super::kind::PortInfo::plain(super::kind::Medium::Memory),
             })
         })
     }

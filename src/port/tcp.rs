@@ -125,7 +125,7 @@ impl Port for TcpPort {
                 tokio::spawn(carry(carried, tls));
                 let (reader, writer) = tokio::io::split(relay_end);
                 return Ok(Link {
-                    info: super::kind::PortInfo::plain(super::kind::Kind::Tcp),
+                    info: super::kind::PortInfo::plain(super::kind::Medium::Tcp),
                     reader: Box::new(reader),
                     writer: Box::new(writer),
                     control: Box::new(NoControl),
@@ -133,7 +133,7 @@ impl Port for TcpPort {
             }
             let (reader, writer) = stream.into_split();
             Ok(Link {
-                info: super::kind::PortInfo::plain(super::kind::Kind::Tcp),
+                info: super::kind::PortInfo::plain(super::kind::Medium::Tcp),
                 reader: Box::new(reader),
                 writer: Box::new(writer),
                 control: Box::new(NoControl),

@@ -129,7 +129,7 @@ impl Mbap {
         };
         // Until a port is open its kind is not known: a wire, the old floor.
         let info = if stream {
-            PortInfo::plain(kind::Kind::Tcp)
+            PortInfo::plain(kind::Medium::Tcp)
         } else {
             PortInfo::unknown()
         };

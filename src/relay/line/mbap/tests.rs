@@ -333,9 +333,9 @@ fn what_may_follow_a_reply_holds_it() {
 /// (pymodbus' serial server).
 #[test]
 fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
-    use crate::port::kind::{Kind, PortInfo};
+    use crate::port::kind::{Medium, PortInfo};
     let (mut line, t0) = mbap(9600);
-    let told = line.port_opened(&PortInfo::plain(Kind::Pty));
+    let told = line.port_opened(&PortInfo::plain(Medium::Pty));
     assert!(told.contains("no wire"), "{told}");
     let write = Adu::build(9, 1, &[6, 0, 1, 0, 3]);
     let f = send(&mut line, &write, t0);
@@ -349,7 +349,7 @@ fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
         ..SerialConfig::default()
     };
     let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
-    line.port_opened(&PortInfo::plain(Kind::Pty));
+    line.port_opened(&PortInfo::plain(Medium::Pty));
     let f = send(&mut line, &write, t0);
     let sent = write.with_tid(f.tid).as_bytes().to_vec();
     let stats = Stats::default();
@@ -369,14 +369,14 @@ fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
 /// pause may be noise completing a damaged reply, and it is refuted.
 #[test]
 fn a_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
-    use crate::port::kind::{Kind, PortInfo};
+    use crate::port::kind::{Medium, PortInfo};
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
     // A UART whose FIFO hands each byte over: the pause is 3.5 characters.
-    let uart = Kind::Uart {
+    let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
-    for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+    for (kind, taken) in [(Medium::Pty, true), (uart, false)] {
         let serial = SerialConfig {
             baud_rate: 115_200,
             ..SerialConfig::default()

@@ -3,7 +3,7 @@
 
 use super::super::{LineFraming, Seen};
 use super::*;
-use crate::port::kind::Kind;
+use crate::port::kind::Medium;
 
 const MS: Duration = Duration::from_millis(1);
 
@@ -18,11 +18,11 @@ fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
         framing: crate::config::Framing::Rtu,
         ..SerialConfig::default()
     };
-    let uart = Kind::Uart {
+    let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
-    for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+    for (kind, taken) in [(Medium::Pty, true), (uart, false)] {
         let stats = Stats::default();
         let t0 = Instant::now();
         let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
@@ -190,14 +190,14 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
 fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
     let us = Duration::from_micros;
     let stats = Stats::default();
-    let uart = Kind::Uart {
+    let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
     for (kind, gap_us, gap) in [
-        (Kind::Pty, 0, Duration::ZERO),
+        (Medium::Pty, 0, Duration::ZERO),
         (uart, 0, us(1750)),
-        (Kind::Pty, 400, us(400)),
+        (Medium::Pty, 400, us(400)),
     ] {
         let serial = SerialConfig {
             baud_rate: 115_200,
