@@ -38,7 +38,7 @@ use cache::Cache;
 pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
 use fanout::Masters;
-use inflight::{Failure, Paced, Table};
+use inflight::{Failure, InFlight, Paced};
 use line::{LineFraming, Seen, Unsolicited};
 use outgoing::Outgoing;
 use pending::Pending;
@@ -62,7 +62,7 @@ pub struct Relay {
     /// The requests waiting for the line, and which goes next.
     sched: Scheduler<Pending>,
     /// The requests on the line: deadlines, retries, unit backoff.
-    in_flight: Table<Pending>,
+    in_flight: InFlight<Pending>,
     line: LineFraming,
     /// Replies that may answer identical reads (`cache_ms`; empty when off).
     cache: Cache,
@@ -137,7 +137,7 @@ impl Relay {
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
         let units = crate::config::unit::UnitTables::default();
-        let in_flight = Table::new(&cfg, &units, cfg.unit_backoff && line.is_serial());
+        let in_flight = InFlight::new(&cfg, &units, cfg.unit_backoff && line.is_serial());
         let baud = serial.baud_rate;
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = Arc::new(LineMetrics::new(transport.name(), stats.clone()));

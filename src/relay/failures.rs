@@ -2,7 +2,7 @@
 //! decides: resent, answered 0x0B, or their unit backed off, its waiting requests
 //! answered at once and its next ones paced at the line's speed.
 
-use super::inflight::{Failure, InFlight, Verdict};
+use super::inflight::{Failure, OnLine, Verdict};
 use super::pending::Pending;
 use super::Relay;
 use crate::outbox::Refusal;
@@ -34,7 +34,7 @@ impl Relay {
 
     /// A request on the line got no usable reply: resent if it may be, else answered
     /// 0x0B, or its unit backed off (the in-flight table decides).
-    pub(super) fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
+    pub(super) fn failed(&mut self, f: OnLine<Pending>, why: Failure, now: Instant) {
         self.line.retire(f.tid, now);
         let open = self.port.is_open();
         let verdict = self.in_flight.verdict(&f, why, now, open);

@@ -15,7 +15,7 @@ use crate::frame::framer::{Framed, Framer};
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::port::kind::{self, PortInfo};
-use crate::relay::inflight::{Asked, InFlight};
+use crate::relay::inflight::{Asked, OnLine};
 use crate::stats::Stats;
 use crate::tids::Tids;
 use bytes::Bytes;
@@ -380,7 +380,7 @@ impl Mbap {
 
     pub(super) fn frames<R: Asked>(
         &mut self,
-        in_flight: &[InFlight<R>],
+        in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {

@@ -19,7 +19,7 @@
 mod mbap;
 mod serial;
 
-use super::inflight::{Asked, InFlight};
+use super::inflight::{Asked, OnLine};
 use crate::capture::tape::Dropped;
 use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::serial::Codec;
@@ -266,7 +266,7 @@ impl LineFraming {
     /// Frames the bytes received so far make, given what is in flight.
     pub(super) fn frames<R: Asked>(
         &mut self,
-        in_flight: &[InFlight<R>],
+        in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {

@@ -23,8 +23,8 @@ fn mbap(baud: u32) -> (LineFraming, Instant) {
 type Req = (Adu, u32);
 
 /// Request `adu` on the line as `tid` since `now`, due in a second.
-fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
-    InFlight {
+fn in_flight(tid: u16, adu: &Adu, now: Instant) -> OnLine<Req> {
+    OnLine {
         tid,
         deadline: now + Duration::from_secs(1),
         timeout: Duration::from_secs(1),
@@ -33,13 +33,13 @@ fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
 }
 
 /// Request `adu` sent now.
-fn send(line: &mut LineFraming, adu: &Adu, now: Instant) -> InFlight<Req> {
+fn send(line: &mut LineFraming, adu: &Adu, now: Instant) -> OnLine<Req> {
     let tid = line.allocate(now);
     line.encode(adu, tid, now, &Stats::default());
     in_flight(tid, adu, now)
 }
 
-fn frames(line: &mut LineFraming, in_flight: &[InFlight<Req>], now: Instant) -> Vec<Vec<u8>> {
+fn frames(line: &mut LineFraming, in_flight: &[OnLine<Req>], now: Instant) -> Vec<Vec<u8>> {
     line.frames(in_flight, now, &Stats::default())
         .into_iter()
         .map(|s| match s {

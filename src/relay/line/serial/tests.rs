@@ -12,7 +12,7 @@ const MS: Duration = Duration::from_millis(1);
 /// whole; on a wire 3.5 characters of silence end it, and it fails its CRC.
 #[test]
 fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
-    use crate::relay::inflight::InFlight;
+    use crate::relay::inflight::OnLine;
     let serial = SerialConfig {
         baud_rate: 115_200,
         framing: crate::config::Framing::Rtu,
@@ -32,7 +32,7 @@ fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
         line.encode(&read, key, t0, &stats);
         line.wrote(8, t0, t0);
         line.drained(t0 + MS, &stats);
-        let f = [InFlight {
+        let f = [OnLine {
             tid: key,
             deadline: t0 + Duration::from_secs(1),
             timeout: Duration::from_secs(1),
@@ -162,7 +162,7 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
         };
         let at = left + 10 * MS;
         line.received(&reply, at, &stats);
-        let asked = InFlight {
+        let asked = OnLine {
             tid,
             deadline: at + Duration::from_secs(1),
             timeout: Duration::from_secs(1),
@@ -216,7 +216,7 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
         let left = line.drained(t0 + MS, &stats);
         let at = left + MS;
         line.received(&rtu::encode(1, &[3, 2, 0, 7]), at, &stats);
-        let asked = InFlight {
+        let asked = OnLine {
             tid,
             deadline: at + Duration::from_secs(1),
             timeout: Duration::from_secs(1),
