@@ -32,7 +32,7 @@ use crate::frame::Adu;
 use crate::metrics::LineMetrics;
 use crate::outbox::{Refusal, Ticket};
 use crate::port::lifecycle::Lifecycle;
-use crate::port::{self, Link};
+use crate::port::{self, OpenPort};
 use crate::stats::Stats;
 use cache::Cache;
 pub use command::{Command, ConnId, RelayHandle};
@@ -339,7 +339,7 @@ impl Relay {
     }
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
-    fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
+    fn opened(&mut self, opened: std::io::Result<OpenPort>, now: Instant) {
         if let Some(info) = self.port.opened(opened, now) {
             self.line.clear(&self.stats);
             if let Some(t) = &mut self.turnaround {

@@ -20,7 +20,7 @@ use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::metrics::LineMetrics;
 use crate::port::lifecycle::{Lifecycle, State};
-use crate::port::{Link, Port};
+use crate::port::{OpenPort, Port};
 use crate::relay::watchdog::Watchdog;
 use requests::{encode_reply, Requests};
 use routing::{Action, Counts, Routing, Tally};
@@ -246,7 +246,7 @@ enum Waited {
     /// Shutdown.
     Stop,
     /// The open under way finished.
-    Opened(std::io::Result<Link>),
+    Opened(std::io::Result<OpenPort>),
     /// The next attempt is due.
     Due,
 }
@@ -281,7 +281,7 @@ impl Bridge {
     /// deadlines; new ones get 0x0A), so the serial master is not cut off mid-request.
     async fn serve(
         &mut self,
-        link: &mut Link,
+        link: &mut OpenPort,
         (events, retunes): (
             &mut mpsc::UnboundedReceiver<slave::Event>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
@@ -454,7 +454,7 @@ impl Bridge {
 
     /// An open finished at `now`: open, the line starts afresh and says so; or not,
     /// and the next attempt is due later.
-    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<Link>, now: Instant) {
+    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<OpenPort>, now: Instant) {
         if let Some(info) = port.opened(opened, now) {
             port.tell_open(&info, "the device is the master");
             let m = &self.metrics;
