@@ -12,7 +12,7 @@ pub(crate) mod requests;
 pub(crate) mod routing;
 pub(crate) mod slave;
 
-use crate::capture::packet::{Dir, Packet, Role};
+use crate::capture::packet::{Dir, Packet, Part};
 use crate::capture::Tap;
 use crate::config::master::MasterLine;
 use crate::config::{Framing, RelayConfig, SerialConfig};
@@ -490,7 +490,7 @@ impl Bridge {
         for d in self.requests.take_drops() {
             let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
             // What comes off a master's line is a request.
-            let p = p.shown_as(Role::Query);
+            let p = p.shown_as(Part::Query);
             self.tap.send(p, d.at.unwrap_or(now));
         }
         out
@@ -502,8 +502,8 @@ impl Bridge {
         let wire = encode_reply(self.requests.codec(), req, pdu);
         let adu = Adu::build(req.tid.unwrap_or(0), req.unit, pdu);
         let (role, label) = match dir {
-            Dir::In => (Role::Query, "serial->gw"),
-            _ => (Role::Reply, "gw->serial"),
+            Dir::In => (Part::Query, "serial->gw"),
+            _ => (Part::Reply, "gw->serial"),
         };
         let mut p = Packet::line_frame(self.framing, &adu, &wire, dir, role);
         p.span = crate::relay::span(&req.pdu);

@@ -421,7 +421,7 @@ fn hand_on(shared: &Shared, mut p: Packet, last_us: &mut [u64]) {
 
 #[cfg(test)]
 mod tests {
-    use super::super::packet::{Dir, Proto, Role};
+    use super::super::packet::{Dir, Part, Proto};
     use super::*;
 
     fn hub() -> Hub {
@@ -435,7 +435,7 @@ mod tests {
     }
 
     fn frame(unit: u8) -> Packet {
-        let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![unit]);
+        let mut p = Packet::new(Dir::Out, Part::Query, Proto::Mbtcp, vec![unit]);
         p.unit = Some(unit);
         p
     }

@@ -9,7 +9,7 @@
 //! Plain data and a few relaxed atomic stores, the time passed in: the relay never
 //! waits on whoever reads the numbers, and a capture's packets go out by `try_send`.
 
-use crate::capture::packet::{Dir, Packet, Proto, Reason, Role};
+use crate::capture::packet::{Dir, Packet, Part, Proto, Reason};
 use crate::capture::tape::Dropped;
 use crate::capture::Tap;
 use crate::config::Framing;
@@ -193,7 +193,7 @@ impl Watch {
     pub(super) fn sent(&mut self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
         self.spells[usize::from(adu.unit())].sent_drops = Some(Drops::of(&self.metrics.stats));
         if self.tap.on() {
-            let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Role::Query);
+            let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Part::Query);
             p.conn = Some(conn);
             p.span = span(adu.pdu());
             p.label = "gw->serial";
@@ -225,7 +225,7 @@ impl Watch {
     /// was on the wire (`wire`), taken off the line at `at`: for the capture.
     pub(super) fn taken(&self, conn: u64, asked: &Adu, frame: &Adu, wire: &[u8], at: Instant) {
         if self.tap.on() {
-            let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
+            let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Part::Reply);
             p.conn = Some(conn);
             p.span = span(asked.pdu());
             p.label = "serial->gw";
@@ -237,9 +237,9 @@ impl Watch {
     pub(super) fn dropped(&self, d: Dropped, now: Instant) {
         // What comes off a line of devices is a reply, but for the echo of a request.
         let role = if d.reason == Reason::Echo {
-            Role::Query
+            Part::Query
         } else {
-            Role::Reply
+            Part::Reply
         };
         let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
         let p = p.shown_as(role);
@@ -317,9 +317,9 @@ impl Watch {
                     true,
                     "a reply to a request already answered or timed out",
                 )
-                .shown_as(Role::Reply)
+                .shown_as(Part::Reply)
             } else {
-                let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
+                let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Part::Reply);
                 p.label = "unsolicited";
                 let note = format!("a frame that answers no request: {what}");
                 p.note = Some(match p.note {
@@ -348,7 +348,7 @@ impl Watch {
     pub(super) fn timed_out(&mut self, conn: u64, asked: &Adu, now: Instant) {
         let unit = asked.unit();
         if self.tap.on() {
-            let mut p = Packet::new(Dir::Neither, Role::Other, Proto::Data, Vec::new());
+            let mut p = Packet::new(Dir::Neither, Part::Other, Proto::Data, Vec::new());
             p.conn = Some(conn);
             p.unit = Some(unit);
             p.function = Some(asked.function());
