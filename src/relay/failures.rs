@@ -19,7 +19,7 @@ impl Relay {
             self.switch_off(now);
             let hold = self.in_flight.hold_after_timeout(&f);
             self.line.timed_out(now, hold, &self.stats);
-            self.watch.timed_out(f.req.conn(), &f.req.adu, now);
+            self.telemetry.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
@@ -42,9 +42,9 @@ impl Relay {
         match verdict {
             Verdict::BackedOff(interval) => {
                 let unit = f.req.adu.unit();
-                self.watch.backed_off(unit);
+                self.telemetry.backed_off(unit);
                 // Said once a spell: the warning that the unit is not answering is
-                // the watch's (watch.rs); the longer intervals after failed probes
+                // the telemetry's (telemetry.rs); the longer intervals after failed probes
                 // are for debugging.
                 if interval <= Duration::from_millis(self.cfg.unit_backoff_ms) {
                     info!(

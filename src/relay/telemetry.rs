@@ -114,7 +114,8 @@ impl Drops {
     }
 }
 
-pub(super) struct Watch {
+/// What the relay tells about its line: see the module notes.
+pub(super) struct Telemetry {
     pub(super) metrics: Arc<LineMetrics>,
     /// `serial.baud_rate`, for the warnings.
     pub(super) baud: u32,
@@ -128,7 +129,7 @@ pub(super) struct Watch {
     pub(super) tap: Tap,
 }
 
-impl Watch {
+impl Telemetry {
     pub(super) fn new(
         metrics: Arc<LineMetrics>,
         traffic: bool,
@@ -446,9 +447,12 @@ mod tests {
         Adu::build(1, unit, &[3, 0, 0, 0, 1])
     }
 
-    fn watch() -> (Watch, Instant) {
+    fn telemetry() -> (Telemetry, Instant) {
         let m = Arc::new(LineMetrics::new("/dev/ttyX", Arc::new(Stats::default())));
-        (Watch::new(m, false, Framing::Mbap, 19_200), Instant::now())
+        (
+            Telemetry::new(m, false, Framing::Mbap, 19_200),
+            Instant::now(),
+        )
     }
 
     #[test]
@@ -467,9 +471,9 @@ mod tests {
     /// healthy again at once when it answers.
     #[test]
     fn a_unit_fails_while_it_times_out_and_until_it_answers_or_a_minute_passes() {
-        let (mut w, t0) = watch();
+        let (mut w, t0) = telemetry();
         let at = |s: u64| t0 + Duration::from_secs(s);
-        let failing = |w: &Watch, t| w.metrics.not_answering(w.metrics.unit(1), t);
+        let failing = |w: &Telemetry, t| w.metrics.not_answering(w.metrics.unit(1), t);
         w.timed_out(7, &asked(1), at(0));
         w.timed_out(7, &asked(1), at(1));
         assert!(
@@ -491,8 +495,8 @@ mod tests {
 
     #[test]
     fn a_spell_is_warned_at_its_third_timeout_and_its_end_said() {
-        let (mut w, t0) = watch();
-        let s = |w: &Watch| w.spells[1].clone();
+        let (mut w, t0) = telemetry();
+        let s = |w: &Telemetry| w.spells[1].clone();
         w.timed_out(7, &asked(1), t0);
         w.timed_out(7, &asked(1), t0 + Duration::from_secs(1));
         assert!(!s(&w).warned);
@@ -509,7 +513,7 @@ mod tests {
 
     #[test]
     fn a_second_spell_within_the_minute_is_not_warned_but_counted() {
-        let (mut w, t0) = watch();
+        let (mut w, t0) = telemetry();
         let req = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let rep = Adu::build(1, 1, &[3, 2, 0, 0]);
         for i in 0..3 {
