@@ -9,8 +9,8 @@
 //! Plain data and a few relaxed atomic stores, the time passed in: the relay never
 //! waits on whoever reads the numbers, and a capture's packets go out by `try_send`.
 
+use crate::capture::dropped::Dropped;
 use crate::capture::packet::{Dir, Packet, Part, Proto, Reason};
-use crate::capture::tape::Dropped;
 use crate::capture::Tap;
 use crate::config::Framing;
 use crate::frame::hex::Hex;

@@ -8,8 +8,8 @@
 mod judge;
 
 use super::{Seen, Unsolicited};
+use crate::capture::dropped::Tape;
 use crate::capture::packet::Reason;
-use crate::capture::tape::Tape;
 use crate::config::{Notifications, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::pdu;

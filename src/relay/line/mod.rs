@@ -20,7 +20,7 @@ mod mbap;
 mod serial;
 
 use super::inflight::{Asked, OnLine};
-use crate::capture::tape::Dropped;
+use crate::capture::dropped::Dropped;
 use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::serial::Codec;
 use crate::frame::{Adu, FunctionCode};

@@ -4,8 +4,8 @@
 //! broadcasts with their turnaround, local echo.
 
 use super::Seen;
+use crate::capture::dropped::{Dropped, Tape};
 use crate::capture::packet::Reason;
-use crate::capture::tape::{Dropped, Tape};
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
