@@ -9,17 +9,17 @@
 //! the port, room to write, the end of a drain, the nearest timer, or shutdown. Bytes
 //! read go to the framing (`line/`), whose frames the in-flight table matches to
 //! their requests (answered through `pending.rs`) or not (late, or a notification for
-//! `fanout.rs`); requests past their deadline are resent or answered 0x0B as
+//! `masters.rs`); requests past their deadline are resent or answered 0x0B as
 //! `inflight.rs` decides.
 
 mod cache;
 mod command;
 mod event;
 mod failures;
-mod fanout;
 mod inflight;
 mod learn;
 mod line;
+mod masters;
 mod outgoing;
 mod pending;
 mod scheduler;
@@ -37,9 +37,9 @@ use crate::stats::Stats;
 use cache::Cache;
 pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
-use fanout::Masters;
 use inflight::{Failure, InFlight, Paced};
 use line::{LineFraming, Seen, Unsolicited};
+use masters::Masters;
 use outgoing::Outgoing;
 use pending::Pending;
 use scheduler::{Admitted, Queued, Scheduler};
