@@ -3,9 +3,9 @@
 //! or a pause whenever something can follow it, notifications and late replies told
 //! apart, echoes told by timing on a wire (docs/reliability.md). The state the line
 //! keeps and its mechanism are here; which frames the relay can use (the decoder's
-//! judge, and whether anything can follow a reply) is `mbap/judge.rs`.
+//! judge, and whether anything can follow a reply) is `mbap/usable.rs`.
 
-mod judge;
+mod usable;
 
 use super::{Seen, Unsolicited};
 use crate::capture::dropped::Tape;
@@ -19,11 +19,11 @@ use crate::relay::inflight::{Asked, OnLine};
 use crate::stats::Stats;
 use crate::tids::Tids;
 use bytes::Bytes;
-use judge::RelayJudge;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
+use usable::RelayJudge;
 
 pub(super) struct Mbap {
     tids: Tids,
