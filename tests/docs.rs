@@ -14,7 +14,8 @@
 //! - the man pages and completions in packaging/ are what `mbgate generate` gives now,
 //!   the pages render without a warning, and each shell loads its completions;
 //! - docs/architecture.md and CONTRIBUTING.md name only files, modules and types the
-//!   tree has (`docs/map.rs`).
+//!   tree has, every file of src/ is on the map, every import points down the rooms'
+//!   drawing, and the files a new framing touches are counted right (`docs/map.rs`).
 //!
 //! The examples listen on fixed ports (5502, 1502, ...), as a user's would: they run one
 //! at a time.

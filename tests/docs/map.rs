@@ -319,3 +319,186 @@ fn the_map_names_only_what_the_code_has() {
     );
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }
+
+/// The files of `src/` a table row of `page` names: its first cell's paths, and every
+/// `.rs` or `.html` file another cell names from the row's folder (`mbap/tests.rs` in
+/// the row of `src/relay/line/mbap.rs`, `console.rs` in the row of `src/sim/`).
+fn rows_name(page: &str) -> Vec<String> {
+    let mut named = Vec::new();
+    for row in page.lines().filter(|l| l.starts_with("| `src/")) {
+        let first = row
+            .trim_start_matches('|')
+            .split(" | ")
+            .next()
+            .unwrap_or("");
+        let bases: Vec<String> = spans(first)
+            .into_iter()
+            .filter(|s| s.starts_with("src/"))
+            .map(|p| match p.ends_with('/') {
+                true => p,
+                false => p[..=p.rfind('/').unwrap()].to_string(),
+            })
+            .collect();
+        for s in spans(row) {
+            named.push(s.clone());
+            if s.ends_with(".rs") || s.ends_with(".html") {
+                named.extend(bases.iter().map(|b| format!("{b}{s}")));
+            }
+        }
+    }
+    named
+}
+
+/// docs/architecture.md is the map of every file: each source file of `src/` is named
+/// there, by its path or in its folder's row.
+#[test]
+fn every_source_file_is_on_the_map() {
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let page = std::fs::read_to_string(repo().join("docs/architecture.md")).unwrap();
+    let mut named = rows_name(&page);
+    named.extend(paths(&page, &[]));
+    let missing: Vec<&String> = files
+        .iter()
+        .filter(|f| f.ends_with(".rs") || f.ends_with(".html"))
+        .filter(|f| !named.contains(f))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "files of src/ docs/architecture.md does not name: {missing:?}"
+    );
+}
+
+/// The room of a source file: its first step under `src/` (`relay` for
+/// `src/relay/line/mod.rs` and `src/relay.rs`).
+fn room(file: &str) -> String {
+    let step = file["src/".len()..].split('/').next().unwrap();
+    step.trim_end_matches(".rs").to_string()
+}
+
+/// The production code of a source file: no comments, no test module.
+fn production(path: &Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut out = String::new();
+    let mut lines = text.lines().peekable();
+    while let Some(line) = lines.next() {
+        let t = line.trim_start();
+        if t == "#[cfg(test)]"
+            && lines
+                .peek()
+                .is_some_and(|n| n.trim_start().starts_with("mod "))
+        {
+            break;
+        }
+        out.push_str(line.split("//").next().unwrap());
+        out.push('\n');
+    }
+    out
+}
+
+/// The rooms' drawing of docs/architecture.md, "The rooms", holds: a room's
+/// production code names (`crate::room`, or `mbgate::room` in main.rs) only rooms in
+/// rows below it, or to its right in its own row; and every room is drawn.
+#[test]
+fn every_import_points_down_the_rooms_drawing() {
+    let page = std::fs::read_to_string(repo().join("docs/architecture.md")).unwrap();
+    let after = &page[page.find("## The rooms").expect("the rooms section")..];
+    let start = after.find("```").unwrap() + 3;
+    let drawing = &after[start..start + after[start..].find("```").unwrap()];
+    // (row, place in the row) of each room drawn.
+    let mut place = std::collections::BTreeMap::new();
+    let mut row = 0;
+    for line in drawing.lines() {
+        let rooms: Vec<String> = line
+            .split_whitespace()
+            .filter(|w| {
+                (w.ends_with(".rs") || w.ends_with('/'))
+                    && w.chars()
+                        .all(|c| c.is_ascii_lowercase() || "_./".contains(c))
+            })
+            .map(|w| w.trim_end_matches('/').trim_end_matches(".rs").to_string())
+            .collect();
+        if rooms.is_empty() {
+            continue;
+        }
+        for (i, r) in rooms.into_iter().enumerate() {
+            place.insert(r, (row, i));
+        }
+        row += 1;
+    }
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let mut wrong = Vec::new();
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        let from = room(file);
+        if from == "lib" || file.ends_with("/tests.rs") || file.contains("/tests/") {
+            continue;
+        }
+        let Some(&at) = place.get(&from) else {
+            wrong.push(format!("{file}: room `{from}` is not drawn"));
+            continue;
+        };
+        let code = production(&repo().join(file));
+        let mut seen = std::collections::BTreeSet::new();
+        for prefix in ["crate::", "mbgate::"] {
+            for (i, _) in code.match_indices(prefix) {
+                let to: String = code[i + prefix.len()..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect();
+                if to == from || !seen.insert(to.clone()) {
+                    continue;
+                }
+                if let Some(&there) = place.get(&to) {
+                    if there <= at {
+                        wrong.push(format!(
+                            "{file}: `{from}` uses `{to}`, above it or to its left"
+                        ));
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        place.len() > 20,
+        "only {} rooms drawn: is the parsing right?",
+        place.len()
+    );
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
+/// The number of files in `src/` a new framing touches, as the pages state it
+/// ("13 in `src/` today"), is the number that name `Framing::Ascii` or `Codec::Ascii`.
+#[test]
+fn the_files_a_framing_touches_are_counted_right() {
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let count = files
+        .iter()
+        .filter(|f| f.ends_with(".rs"))
+        .filter(|f| {
+            let text = std::fs::read_to_string(repo().join(f)).unwrap();
+            has_word(&text, "Framing::Ascii") || has_word(&text, "Codec::Ascii")
+        })
+        .count();
+    let mut stated = Vec::new();
+    for page in PAGES {
+        let md = std::fs::read_to_string(repo().join(page)).unwrap();
+        let md = md.split_whitespace().collect::<Vec<_>>().join(" ");
+        for (i, _) in md.match_indices(" in `src/` today") {
+            let n = md[..i]
+                .split(|c: char| !c.is_ascii_digit())
+                .rfind(|w| !w.is_empty())
+                .and_then(|w| w.parse::<usize>().ok());
+            stated.push((page, n));
+        }
+    }
+    assert_eq!(stated.len(), 2, "both pages state the count: {stated:?}");
+    for (page, n) in stated {
+        assert_eq!(
+            n,
+            Some(count),
+            "{page}: the files naming Framing::Ascii or Codec::Ascii"
+        );
+    }
+}
