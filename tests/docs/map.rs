@@ -91,7 +91,7 @@ fn found(name: &str, files: &[String]) -> bool {
     })
 }
 
-/// The paths `text` names: every `src/...`, and in `spans_only` tokens that end in
+/// The paths `text` names: every `src/...`, and among `tokens` those that end in
 /// `.rs` or `/`, or start at a folder of the checkout.
 fn paths(text: &str, tokens: &[String]) -> Vec<String> {
     let mut out = Vec::new();
