@@ -1,8 +1,9 @@
 //! mbgate: a Modbus/TCP gateway to serial devices (docs/design.md).
 
 // Unsafe only where a SAFETY comment says why it is sound, each block allowed on its
-// own (src/port/serial/: the ioctls and tcdrain; src/control/serve.rs: the effective
-// user and group).
+// own (src/port/serial/: the ioctls, tcdrain, the descriptor's reads and writes and
+// the timerfd; src/control/: the peer's credentials and our effective user and group;
+// src/wire/pty.rs: the pty pair and its descriptors' flags).
 #![deny(unsafe_code)]
 
 pub mod access;

@@ -101,7 +101,7 @@ enum Command {
     /// Exit code 0 healthy, 1 not (a line's port not open, or a unit not answering:
     /// three timeouts in a row, no reply since, the last timeout within a minute), 3
     /// the gateway could not be asked, 2 bad arguments.
-    Status(mbgate::metrics::ask::StatusArgs),
+    Status(mbgate::metrics::status_command::StatusArgs),
     /// Capture a running gateway's frames to pcapng, for Wireshark (docs/capture.md).
     ///
     /// Every frame each master sent and received, every frame on each line, and the
@@ -158,7 +158,7 @@ fn main() -> ExitCode {
         Command::Demo(args) => demo(args),
         Command::Wire(args) => mbgate::wire::main(args),
         Command::Scan(args) => mbgate::scan::main(args),
-        Command::Status(args) => mbgate::metrics::ask::main(args),
+        Command::Status(args) => mbgate::metrics::status_command::main(args),
         Command::Generate(what) => generate(what),
         Command::Reload(args) => mbgate::control::reload::main(args),
         Command::Capture(args) => mbgate::control::capture::main(args),

@@ -9,12 +9,12 @@
 //! each number as it was at some instant, the set of them not necessarily at the same
 //! one (a scrape in the middle of a reply may count the request and not yet the reply).
 
-pub mod ask;
 pub(crate) mod expose;
 pub(crate) mod http;
 pub(crate) mod listener;
 pub(crate) mod page;
 pub(crate) mod status;
+pub mod status_command;
 
 use crate::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};

@@ -319,8 +319,8 @@ pub struct Inbox {
     held: BTreeMap<u64, (Option<Adu>, Slot)>,
 }
 
-/// A frame to write. Drop it once written: a reply's pipelining slot is freed then.
-pub struct Outgoing {
+/// A frame to deliver to the master. Drop it once written: a reply's pipelining slot is freed then.
+pub struct Delivery {
     /// The frame to write to the master: a reply, or a notification.
     pub adu: Adu,
     _slot: Option<Slot>,
@@ -330,13 +330,13 @@ impl Inbox {
     /// The next frame to write: a notification as soon as it comes, a reply once every
     /// earlier request of this master has been answered. `None` once nothing more can
     /// come. Cancel-safe.
-    pub async fn next(&mut self) -> Option<Outgoing> {
+    pub async fn next(&mut self) -> Option<Delivery> {
         loop {
             if let Some((adu, slot)) = self.held.remove(&self.next) {
                 self.next += 1;
                 match adu {
                     Some(adu) => {
-                        return Some(Outgoing {
+                        return Some(Delivery {
                             adu,
                             _slot: Some(slot),
                         })
@@ -346,7 +346,7 @@ impl Inbox {
                 }
             }
             match self.rx.recv().await? {
-                Message::Notification(adu) => return Some(Outgoing { adu, _slot: None }),
+                Message::Notification(adu) => return Some(Delivery { adu, _slot: None }),
                 Message::Reply { seq, adu, slot } => {
                     self.held.insert(seq, (adu, slot));
                 }

@@ -9,22 +9,22 @@
 //! the port, room to write, the end of a drain, the nearest timer, or shutdown. Bytes
 //! read go to the framing (`line/`), whose frames the in-flight table matches to
 //! their requests (answered through `pending.rs`) or not (late, or a notification for
-//! `fanout.rs`); requests past their deadline are resent or answered 0x0B as
+//! `masters.rs`); requests past their deadline are resent or answered 0x0B as
 //! `inflight.rs` decides.
 
 mod cache;
 mod command;
 mod event;
 mod failures;
-mod fanout;
 mod inflight;
 mod learn;
 mod line;
+mod masters;
 mod outgoing;
 mod pending;
 mod scheduler;
+mod telemetry;
 mod turnaround;
-mod watch;
 pub(crate) mod watchdog;
 
 use crate::config::{LineConfig, RelayConfig, SerialConfig};
@@ -32,25 +32,25 @@ use crate::frame::Adu;
 use crate::metrics::LineMetrics;
 use crate::outbox::{Refusal, Ticket};
 use crate::port::lifecycle::Lifecycle;
-use crate::port::{self, Link};
+use crate::port::{self, OpenPort};
 use crate::stats::Stats;
 use cache::Cache;
 pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
-use fanout::Masters;
-use inflight::{Failure, Paced, Table};
-use line::{Line, Seen, Unsolicited};
+use inflight::{Failure, InFlight, Paced};
+use line::{LineFraming, Seen, Unsolicited};
+use masters::Masters;
 use outgoing::Outgoing;
 use pending::Pending;
 use scheduler::{Admitted, Queued, Scheduler};
 use std::sync::Arc;
 use std::time::Duration;
+pub(crate) use telemetry::span;
+use telemetry::Telemetry;
 use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
-pub(crate) use watch::span;
-use watch::Watch;
 use watchdog::Watchdog;
 
 /// The task that owns one serial line and everything on it (the module notes): built
@@ -62,8 +62,8 @@ pub struct Relay {
     /// The requests waiting for the line, and which goes next.
     sched: Scheduler<Pending>,
     /// The requests on the line: deadlines, retries, unit backoff.
-    in_flight: Table<Pending>,
-    line: Line,
+    in_flight: InFlight<Pending>,
+    line: LineFraming,
     /// Replies that may answer identical reads (`cache_ms`; empty when off).
     cache: Cache,
     /// 0x0B answers for backed-off units, at the line's pace.
@@ -77,7 +77,7 @@ pub struct Relay {
     commands_open: bool,
     watchdog: Option<Watchdog>,
     /// The line's numbers, warnings and traffic log.
-    watch: Watch,
+    telemetry: Telemetry,
     /// The RS-485 transmitter, where the gateway switches it (`serial.direction`).
     turnaround: Option<turnaround::Turnaround>,
 }
@@ -133,11 +133,11 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (tx, rx) = mpsc::unbounded_channel();
         let now = Instant::now();
-        let line = Line::new(&cfg, &serial, stream, now);
+        let line = LineFraming::new(&cfg, &serial, stream, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
         let units = crate::config::unit::UnitTables::default();
-        let in_flight = Table::new(&cfg, &units, cfg.unit_backoff && line.is_serial());
+        let in_flight = InFlight::new(&cfg, &units, cfg.unit_backoff && line.is_serial());
         let baud = serial.baud_rate;
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = Arc::new(LineMetrics::new(transport.name(), stats.clone()));
@@ -168,7 +168,7 @@ impl Relay {
             draining: false,
             commands_open: true,
             watchdog: None,
-            watch: Watch::new(metrics, traffic, serial.framing, baud),
+            telemetry: Telemetry::new(metrics, traffic, serial.framing, baud),
             turnaround,
         };
         (relay, RelayHandle::new(tx))
@@ -179,8 +179,8 @@ impl Relay {
     pub fn with_port(mut self, transport: Box<dyn port::Port>) -> Self {
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = LineMetrics::new(transport.name(), self.stats.clone());
-        metrics.set_direction(self.watch.metrics.direction());
-        self.watch.metrics = Arc::new(metrics);
+        metrics.set_direction(self.telemetry.metrics.direction());
+        self.telemetry.metrics = Arc::new(metrics);
         self.port.set_transport(transport);
         self
     }
@@ -188,7 +188,7 @@ impl Relay {
     /// Hands the line's packets to `tap` (the capture and the status page's last
     /// frames, docs/capture.md) while anyone looks.
     pub(crate) fn with_tap(mut self, tap: crate::capture::Tap) -> Self {
-        self.watch.tap = tap;
+        self.telemetry.tap = tap;
         self
     }
 
@@ -196,7 +196,7 @@ impl Relay {
     /// listener, systemd's status line and `mbgate status`. Asked after `with_port`,
     /// which names the line afresh.
     pub(crate) fn metrics(&self) -> Arc<LineMetrics> {
-        self.watch.metrics.clone()
+        self.telemetry.metrics.clone()
     }
 
     /// Sends systemd WATCHDOG=1 from the loop every `every` (the first at once);
@@ -221,7 +221,7 @@ impl Relay {
                 w.pet(now);
             }
             // The line keeps the bytes it drops only while a capture wants them.
-            self.line.set_tape(self.watch.capturing());
+            self.line.set_tape(self.telemetry.capturing());
             self.open_if_due(now);
             self.dispatch(now);
             if self.draining && self.in_flight.is_empty() {
@@ -252,7 +252,7 @@ impl Relay {
                 Event::Read(Ok(n)) => {
                     self.stats.add(&self.stats.serial_bytes_in, n as u64);
                     // A capture begun while the loop waited has these bytes too.
-                    self.line.set_tape(self.watch.capturing());
+                    self.line.set_tape(self.telemetry.capturing());
                     self.line.heard(n, self.in_flight.len(), now, &self.stats);
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
@@ -277,7 +277,7 @@ impl Relay {
                         if self.line.needs_drain() || self.turnaround.is_some() {
                             self.start_drain(now);
                         } else {
-                            // No wire: gone once written (`Line::needs_drain`).
+                            // No wire: gone once written (`LineFraming::needs_drain`).
                             self.drained(now);
                         }
                     }
@@ -305,10 +305,11 @@ impl Relay {
             self.expire(now);
             self.answer_paced(now);
             for dropped in self.line.take_drops() {
-                self.watch.dropped(dropped, now);
+                self.telemetry.dropped(dropped, now);
             }
             let (queued, in_flight) = (self.sched.queued(), self.in_flight.len());
-            self.watch.turn(now, queued, in_flight, self.port.is_open());
+            self.telemetry
+                .turn(now, queued, in_flight, self.port.is_open());
         }
         debug!("relay stopped");
     }
@@ -339,7 +340,7 @@ impl Relay {
     }
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
-    fn opened(&mut self, opened: std::io::Result<Link>, now: Instant) {
+    fn opened(&mut self, opened: std::io::Result<OpenPort>, now: Instant) {
         if let Some(info) = self.port.opened(opened, now) {
             self.line.clear(&self.stats);
             if let Some(t) = &mut self.turnaround {
@@ -396,13 +397,13 @@ impl Relay {
         match cmd {
             Command::Attach { conn, notifier } => {
                 self.masters.attach(conn, notifier);
-                self.watch.masters(self.masters.len());
+                self.telemetry.masters(self.masters.len());
             }
             Command::Priority { conn, class } => self.sched.set_class(conn, class),
             Command::Detach { conn } => {
                 self.masters.detach(conn);
                 self.sched.detach(conn);
-                self.watch.masters(self.masters.len());
+                self.telemetry.masters(self.masters.len());
             }
             Command::Retune {
                 relay,
@@ -410,7 +411,7 @@ impl Relay {
                 traffic,
             } => {
                 self.in_flight.retune(&relay, &units);
-                self.watch.set_traffic(traffic);
+                self.telemetry.set_traffic(traffic);
                 self.cfg = *relay;
             }
             Command::Request { conn, adu, ticket } => self.on_request(conn, adu, ticket),
@@ -422,7 +423,7 @@ impl Relay {
     /// for the line, or queued.
     fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket) {
         self.stats.add(&self.stats.requests, 1);
-        self.watch.request(adu.unit());
+        self.telemetry.request(adu.unit());
         let now = Instant::now();
         let mut req = Pending::new(conn, adu, ticket);
         let unit = req.adu.unit();
@@ -529,7 +530,7 @@ impl Relay {
         let pause = self.in_flight.policy(req.adu.unit()).pause;
         self.line.pause_after(pause);
         let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
-        self.watch.sent(req.conn(), &req.adu, tid, &bytes, now);
+        self.telemetry.sent(req.conn(), &req.adu, tid, &bytes, now);
         self.out.push(tid, bytes);
         if req.acts() {
             // Reads sent before it may be answered after it was sent: not kept.
@@ -663,12 +664,16 @@ impl Relay {
             }
             // When it left: its deadline is its response timeout after that.
             let left = f.deadline.checked_sub(f.timeout).unwrap_or(now);
-            let wire = self.watch.wants_frames().then(|| self.line.on_wire(&frame));
+            let wire = self
+                .telemetry
+                .wants_frames()
+                .then(|| self.line.on_wire(&frame));
             let (conn, asked) = (f.req.conn(), &f.req.adu);
             if let Some(wire) = &wire {
-                self.watch.taken(conn, asked, &frame, wire, at);
+                self.telemetry.taken(conn, asked, &frame, wire, at);
             }
-            self.watch.replied(conn, asked, &frame, wire, (left, now));
+            self.telemetry
+                .replied(conn, asked, &frame, wire, (left, now));
             self.tell_learned(asked.unit());
             f.req.deliver(&frame);
             return;
@@ -701,7 +706,7 @@ impl Relay {
     fn tell_learned(&self, unit: u8) {
         if let Some(l) = self.in_flight.learned(unit) {
             let why = learn::Why::ALL.iter().position(|w| *w == l.why());
-            let u = self.watch.metrics.unit(unit);
+            let u = self.telemetry.metrics.unit(unit);
             u.set_learned(l.timeout(), why.unwrap_or(0));
         }
     }
@@ -709,9 +714,9 @@ impl Relay {
     /// The traffic log's line, and the capture's packet, for a frame that answers
     /// nothing on the line, taken off it at `at`.
     fn traffic(&self, what: &str, frame: &Adu, at: Instant) {
-        if self.watch.wants_frames() {
+        if self.telemetry.wants_frames() {
             let wire = self.line.on_wire(frame);
-            self.watch.unsolicited(what, frame, &wire, at);
+            self.telemetry.unsolicited(what, frame, &wire, at);
         }
     }
 }

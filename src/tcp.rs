@@ -8,7 +8,7 @@
 //! docs/security.md).
 
 use crate::access;
-use crate::capture::packet::{Dir, Ends, Packet, Proto, Reason, Role};
+use crate::capture::packet::{Dir, Ends, Packet, Part, Proto, Reason};
 use crate::capture::{Hub, Tap};
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
@@ -585,9 +585,9 @@ impl Connection {
             (Proto::Mbtcp, adu.as_bytes().to_vec())
         };
         let role = if dir == Dir::In {
-            Role::Query
+            Part::Query
         } else {
-            Role::Reply
+            Part::Reply
         };
         let mut p = Packet::new(dir, role, proto, bytes);
         p.ends = Some(self.ends());

@@ -12,12 +12,17 @@
 //! - every example configuration passes `check-config`, is named in the guide, and a
 //!   copy of it in the guide is the file;
 //! - the man pages and completions in packaging/ are what `mbgate generate` gives now,
-//!   the pages render without a warning, and each shell loads its completions.
+//!   the pages render without a warning, and each shell loads its completions;
+//! - docs/architecture.md and CONTRIBUTING.md name only files, modules and types the
+//!   tree has, every file of src/ is on the map, every import points down the rooms'
+//!   drawing, and the files a new framing touches are counted right (`docs/map.rs`).
 //!
 //! The examples listen on fixed ports (5502, 1502, ...), as a user's would: they run one
 //! at a time.
 
 mod common;
+#[path = "docs/map.rs"]
+mod map;
 
 use common::{peer, repo};
 use std::collections::{BTreeMap, BTreeSet};

@@ -3,16 +3,16 @@
 //! Modbus/TCP slave their unit routes to, and the replies come back on the line.
 //!
 //! - `requests`: the requests off the lossy line, the replies in its framing (pure);
-//! - `table`: routes, ids, what is outstanding, deadlines, answers (plain data, time
+//! - `routing`: routes, ids, what is outstanding, deadlines, answers (plain data, time
 //!   passed in);
 //! - `slave`: one task per route holding its TCP connection;
 //! - this file: the loop that owns the serial port and wires them.
 
 pub(crate) mod requests;
+pub(crate) mod routing;
 pub(crate) mod slave;
-pub(crate) mod table;
 
-use crate::capture::packet::{Dir, Packet, Role};
+use crate::capture::packet::{Dir, Packet, Part};
 use crate::capture::Tap;
 use crate::config::master::MasterLine;
 use crate::config::{Framing, RelayConfig, SerialConfig};
@@ -20,13 +20,13 @@ use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::metrics::LineMetrics;
 use crate::port::lifecycle::{Lifecycle, State};
-use crate::port::{Link, Port};
+use crate::port::{OpenPort, Port};
 use crate::relay::watchdog::Watchdog;
 use requests::{encode_reply, Requests};
+use routing::{Action, Counts, Routing, Tally};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
-use table::{Action, Counts, Table, Tally};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::{sleep_until, Instant};
@@ -89,7 +89,7 @@ impl MasterHandle {
 /// address bound), its serial port not yet open.
 pub(crate) struct MasterLineTask {
     port: Box<dyn Port>,
-    line: Line,
+    line: Bridge,
     events: mpsc::UnboundedReceiver<slave::Event>,
     retunes: mpsc::UnboundedReceiver<MasterLine>,
     slaves_stop: CancellationToken,
@@ -153,9 +153,9 @@ pub(crate) async fn start(
         framing.name(),
         routes.join("; ")
     );
-    let line = Line {
+    let line = Bridge {
         requests: Requests::new(framing),
-        table: Table::new(master, framing != Framing::Mbap),
+        routing: Routing::new(master, framing != Framing::Mbap),
         timing,
         traffic,
         framing,
@@ -223,7 +223,7 @@ impl MasterLineTask {
         tracker.close();
         tracker.wait().await;
         line.publish();
-        let c = line.table.counts;
+        let c = line.routing.counts;
         info!(
             requests = c.requests,
             forwarded = c.forwarded,
@@ -246,21 +246,21 @@ enum Waited {
     /// Shutdown.
     Stop,
     /// The open under way finished.
-    Opened(std::io::Result<Link>),
+    Opened(std::io::Result<OpenPort>),
     /// The next attempt is due.
     Due,
 }
 
-/// What of the table's counts is on the metrics board already.
+/// What of the routing's counts is on the metrics board already.
 #[derive(Debug, Default)]
 struct Published {
     counts: Counts,
     dropped: u64,
 }
 
-struct Line {
+struct Bridge {
     requests: Requests,
-    table: Table,
+    routing: Routing,
     timing: Timing,
     traffic: bool,
     framing: Framing,
@@ -275,13 +275,13 @@ struct Line {
     published: Published,
 }
 
-impl Line {
+impl Bridge {
     /// Serves the open port until shutdown (`Ok`) or its loss (`Err`). At shutdown
     /// the requests held are answered first (their replies, or 0x0B at their
     /// deadlines; new ones get 0x0A), so the serial master is not cut off mid-request.
     async fn serve(
         &mut self,
-        link: &mut Link,
+        link: &mut OpenPort,
         (events, retunes): (
             &mut mpsc::UnboundedReceiver<slave::Event>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
@@ -293,18 +293,18 @@ impl Line {
         let mut paused = true;
         let mut draining = false;
         loop {
-            if draining && self.table.idle() {
+            if draining && self.routing.idle() {
                 return Ok(());
             }
             self.requests.set_tape(self.tap.on());
             let partial = self.requests.buffered() > 0;
-            let deadline = self.table.next_deadline().map(Instant::from_std);
+            let deadline = self.routing.next_deadline().map(Instant::from_std);
             let pet_at = self.watchdog.as_ref().map(Watchdog::next);
             let actions = tokio::select! {
                 _ = shutdown.cancelled(), if !draining => {
                     draining = true;
-                    self.table.close();
-                    if !self.table.idle() {
+                    self.routing.close();
+                    if !self.routing.idle() {
                         debug!("stopping: answering the requests held first");
                     }
                     Vec::new()
@@ -341,11 +341,11 @@ impl Line {
                     actions
                 }
                 _ = sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
-                    self.table.expire(std::time::Instant::now())
+                    self.routing.expire(std::time::Instant::now())
                 }
                 Some(ev) = events.recv() => self.event(ev),
                 Some(routes) = retunes.recv() => {
-                    self.table.retune(&routes);
+                    self.routing.retune(&routes);
                     Vec::new()
                 }
                 _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => {
@@ -358,10 +358,10 @@ impl Line {
         }
     }
 
-    /// The table's counts since the last call onto the metrics board, each under the
+    /// The routing's counts since the last call onto the metrics board, each under the
     /// name a relay's line uses for the same thing (docs/watching.md).
     fn publish(&mut self) {
-        let (now, was) = (self.table.counts, self.published.counts);
+        let (now, was) = (self.routing.counts, self.published.counts);
         let s = &self.metrics.stats;
         let pairs = [
             (&s.requests, now.requests - was.requests),
@@ -383,7 +383,7 @@ impl Line {
         if now.replies > was.replies {
             self.metrics.replied_at(at);
         }
-        for (unit, tally) in self.table.take_tallies() {
+        for (unit, tally) in self.routing.take_tallies() {
             let u = self.metrics.unit(unit);
             match tally {
                 Tally::Request => s.add(&u.requests, 1),
@@ -410,7 +410,7 @@ impl Line {
     }
 
     /// While the port is closed (until its next attempt) or opening: follows the
-    /// slaves (no port to answer on, but the table still tracks them), the watchdog
+    /// slaves (no port to answer on, but the routing still tracks them), the watchdog
     /// and a reload's timeouts, until the open ends, the attempt is due or shutdown.
     async fn wait_for_port(
         &mut self,
@@ -447,14 +447,14 @@ impl Line {
                     let _ = self.act(actions, None).await;
                     self.publish();
                 }
-                Some(routes) = retunes.recv() => self.table.retune(&routes),
+                Some(routes) = retunes.recv() => self.routing.retune(&routes),
             }
         }
     }
 
     /// An open finished at `now`: open, the line starts afresh and says so; or not,
     /// and the next attempt is due later.
-    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<Link>, now: Instant) {
+    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<OpenPort>, now: Instant) {
         if let Some(info) = port.opened(opened, now) {
             port.tell_open(&info, "the device is the master");
             let m = &self.metrics;
@@ -468,11 +468,11 @@ impl Line {
     fn closed(&mut self) {
         self.metrics.port_open.store(0, Ordering::Relaxed);
         self.requests.clear();
-        self.table.serial_lost();
+        self.routing.serial_lost();
         self.publish();
     }
 
-    /// Every whole request decoded so far, into the table.
+    /// Every whole request decoded so far, into the routing.
     fn take(&mut self, quiet: bool) -> Vec<Action> {
         let mut out = Vec::new();
         let now = Instant::now();
@@ -485,12 +485,12 @@ impl Line {
             if self.tap.on() {
                 self.capture(&req, &req.pdu, Dir::In, now);
             }
-            out.extend(self.table.request(req, std::time::Instant::now()));
+            out.extend(self.routing.request(req, std::time::Instant::now()));
         }
         for d in self.requests.take_drops() {
             let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
             // What comes off a master's line is a request.
-            let p = p.shown_as(Role::Query);
+            let p = p.shown_as(Part::Query);
             self.tap.send(p, d.at.unwrap_or(now));
         }
         out
@@ -502,8 +502,8 @@ impl Line {
         let wire = encode_reply(self.requests.codec(), req, pdu);
         let adu = Adu::build(req.tid.unwrap_or(0), req.unit, pdu);
         let (role, label) = match dir {
-            Dir::In => (Role::Query, "serial->gw"),
-            _ => (Role::Reply, "gw->serial"),
+            Dir::In => (Part::Query, "serial->gw"),
+            _ => (Part::Reply, "gw->serial"),
         };
         let mut p = Packet::line_frame(self.framing, &adu, &wire, dir, role);
         p.span = crate::relay::span(&req.pdu);
@@ -514,16 +514,16 @@ impl Line {
     fn event(&mut self, ev: slave::Event) -> Vec<Action> {
         match ev {
             slave::Event::Connecting(i) => {
-                self.table.connecting(i);
+                self.routing.connecting(i);
                 Vec::new()
             }
-            slave::Event::Up(i) => self.table.up(i),
-            slave::Event::Down(i) => self.table.down(i),
+            slave::Event::Up(i) => self.routing.up(i),
+            slave::Event::Down(i) => self.routing.down(i),
             slave::Event::Frame(i, adu) => {
                 if self.traffic {
                     debug!(route = i, "slave rx {}", Hex(adu.as_bytes()));
                 }
-                self.table.reply(i, &adu)
+                self.routing.reply(i, &adu)
             }
         }
     }

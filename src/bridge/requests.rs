@@ -8,8 +8,8 @@
 //! - RTU / ASCII: the serial decoder; a frame whose CRC or LRC fails is dropped, as a
 //!   slave on a bus would drop it.
 
+use crate::capture::dropped::{Dropped, Tape};
 use crate::capture::packet::Reason;
-use crate::capture::tape::{Dropped, Tape};
 use crate::config::Framing;
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::serial::Codec;

@@ -4,7 +4,7 @@
 //! Nagle off. It tells the loop when the connection is up or down and hands it each
 //! MBAP frame the slave sends; it writes what the loop gives it.
 
-use crate::capture::packet::{Dir, Ends, Packet, Proto, Role};
+use crate::capture::packet::{Dir, Ends, Packet, Part, Proto};
 use crate::capture::Tap;
 use crate::config::master::{Peer, Route};
 use crate::frame::mbap::decode_strict;
@@ -166,8 +166,8 @@ fn captured(tap: &Tap, ends: Option<Ends>, adu: &Adu, dir: Dir) {
         return;
     }
     let (role, label) = match dir {
-        Dir::Out => (Role::Query, "gw->slave"),
-        _ => (Role::Reply, "slave->gw"),
+        Dir::Out => (Part::Query, "gw->slave"),
+        _ => (Part::Reply, "slave->gw"),
     };
     let mut p = Packet::new(dir, role, Proto::Mbtcp, adu.as_bytes().to_vec());
     p.ends = ends;

@@ -428,7 +428,7 @@ fn hand_on(shared: &Shared, mut p: Packet) {
 
 #[cfg(test)]
 mod tests {
-    use super::super::packet::{Dir, Proto, Role};
+    use super::super::packet::{Dir, Part, Proto};
     use super::*;
 
     fn hub() -> Hub {
@@ -442,7 +442,7 @@ mod tests {
     }
 
     fn frame(unit: u8) -> Packet {
-        let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![unit]);
+        let mut p = Packet::new(Dir::Out, Part::Query, Proto::Mbtcp, vec![unit]);
         p.unit = Some(unit);
         p
     }

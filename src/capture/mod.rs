@@ -14,12 +14,12 @@
 //! A capture is asked for over the control socket (`crate::control`: the gateway's
 //! end, and `mbgate capture`).
 
+pub(crate) mod dropped;
 pub(crate) mod hub;
 pub(crate) mod packet;
 pub mod pcapng;
 pub(crate) mod request;
 pub(crate) mod ring;
-pub(crate) mod tape;
 
 use crate::config::{Config, ListenFraming};
 pub(crate) use hub::{Hub, Interface, Tap};

@@ -45,9 +45,9 @@ pub(crate) enum Dir {
     Neither,
 }
 
-/// What the packet is in its conversation.
+/// The packet's part in its conversation.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Role {
+pub(crate) enum Part {
     /// A request, to the side that serves.
     Query,
     /// A reply (or a notification), from the side that serves.
@@ -110,7 +110,7 @@ pub(crate) struct Packet {
     /// 0: the TCP side; 1 and up: the lines, in the order of the configuration.
     pub(crate) iface: u16,
     pub(crate) dir: Dir,
-    pub(crate) role: Role,
+    pub(crate) part: Part,
     pub(crate) proto: Proto,
     /// What the dissector reads.
     pub(crate) bytes: Vec<u8>,
@@ -134,12 +134,12 @@ pub(crate) struct Packet {
 
 impl Packet {
     /// A packet with nothing in it yet but its bytes for `proto`.
-    pub(crate) fn new(dir: Dir, role: Role, proto: Proto, bytes: Vec<u8>) -> Packet {
+    pub(crate) fn new(dir: Dir, part: Part, proto: Proto, bytes: Vec<u8>) -> Packet {
         Packet {
             at_us: 0,
             iface: 0,
             dir,
-            role,
+            part,
             proto,
             bytes,
             ends: None,
@@ -162,7 +162,7 @@ impl Packet {
         adu: &Adu,
         wire: &[u8],
         dir: Dir,
-        role: Role,
+        part: Part,
     ) -> Packet {
         let (proto, bytes, note) = match framing {
             Framing::Mbap => (Proto::Mbtcp, wire.to_vec(), None),
@@ -173,7 +173,7 @@ impl Packet {
                 Some(format!("ASCII on the wire: {}", ascii_text(wire))),
             ),
         };
-        let mut p = Packet::new(dir, role, proto, bytes);
+        let mut p = Packet::new(dir, part, proto, bytes);
         p.unit = Some(adu.unit());
         p.function = Some(adu.function());
         p.note = note;
@@ -203,7 +203,7 @@ impl Packet {
             },
             _ => (Proto::Data, bytes, None),
         };
-        let mut p = Packet::new(Dir::In, Role::Other, proto, bytes);
+        let mut p = Packet::new(Dir::In, Part::Other, proto, bytes);
         if proto != Proto::Data && p.bytes.len() >= 2 {
             let head = if proto == Proto::Mbtcp { 6 } else { 0 };
             p.unit = p.bytes.get(head).copied();
@@ -220,30 +220,30 @@ impl Packet {
         p
     }
 
-    /// Dropped bytes that make a frame are shown as the `role` they would have had
+    /// Dropped bytes that make a frame are shown as the `part` they would have had
     /// (a stale reply as a reply), so Wireshark decodes their values.
-    pub(crate) fn shown_as(mut self, role: Role) -> Packet {
+    pub(crate) fn shown_as(mut self, part: Part) -> Packet {
         if self.proto != Proto::Data {
-            self.role = role;
+            self.part = part;
         }
         self
     }
 
     /// The Enhanced Packet Block of this packet, on interface `iface` of the file.
     pub(crate) fn block(&self, iface: u32) -> Vec<u8> {
-        let ports = match (self.role, self.ends) {
-            (Role::Query, Some(e)) => Some((e.client.port(), MODBUS_PORT)),
-            (Role::Reply, Some(e)) => Some((MODBUS_PORT, e.client.port())),
-            (Role::Other, Some(e)) => Some((e.client.port(), MODBUS_PORT)),
+        let ports = match (self.part, self.ends) {
+            (Part::Query, Some(e)) => Some((e.client.port(), MODBUS_PORT)),
+            (Part::Reply, Some(e)) => Some((MODBUS_PORT, e.client.port())),
+            (Part::Other, Some(e)) => Some((e.client.port(), MODBUS_PORT)),
             // A serial line has no ports: 0 on the side that asks.
-            (Role::Query, None) => Some((0, MODBUS_PORT)),
-            (Role::Reply, None) => Some((MODBUS_PORT, 0)),
-            (Role::Other, None) => None,
+            (Part::Query, None) => Some((0, MODBUS_PORT)),
+            (Part::Reply, None) => Some((MODBUS_PORT, 0)),
+            (Part::Other, None) => None,
         };
         let addresses = self.ends.map(|e| {
             let (c, s) = (plain(e.client.ip()), plain(e.server.ip()));
-            match self.role {
-                Role::Reply => (s, c),
+            match self.part {
+                Part::Reply => (s, c),
                 _ => (c, s),
             }
         });
@@ -312,7 +312,7 @@ mod tests {
     fn ascii_frames_go_to_the_rtu_dissector_with_their_text_in_the_comment() {
         let adu = Adu::build(0, 1, &[3, 0, 0, 0, 10]);
         let wire = ascii::encode(1, adu.pdu());
-        let p = Packet::line_frame(Framing::Ascii, &adu, &wire, Dir::Out, Role::Query);
+        let p = Packet::line_frame(Framing::Ascii, &adu, &wire, Dir::Out, Part::Query);
         assert_eq!(p.proto, Proto::Mbrtu);
         assert_eq!(p.bytes, rtu::encode(1, &[3, 0, 0, 0, 10]));
         assert_eq!(
@@ -322,7 +322,7 @@ mod tests {
         assert_eq!((p.unit, p.function), (Some(1), Some(3)));
         // RTU and MBAP go as they were on the wire.
         let rtu_wire = rtu::encode(1, adu.pdu());
-        let p = Packet::line_frame(Framing::Rtu, &adu, &rtu_wire, Dir::Out, Role::Query);
+        let p = Packet::line_frame(Framing::Rtu, &adu, &rtu_wire, Dir::Out, Part::Query);
         assert_eq!(
             (p.proto, &p.bytes, &p.note),
             (Proto::Mbrtu, &rtu_wire, &None)
@@ -333,9 +333,9 @@ mod tests {
     /// port 0 for the side that asks) and on TCP (the client's own port).
     #[test]
     fn queries_go_to_502_and_replies_come_from_it() {
-        let q = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![0; 12]);
+        let q = Packet::new(Dir::Out, Part::Query, Proto::Mbtcp, vec![0; 12]);
         assert_eq!(tag_ports(&q.block(1)), Some((0, 502)));
-        let mut r = Packet::new(Dir::In, Role::Reply, Proto::Mbtcp, vec![0; 11]);
+        let mut r = Packet::new(Dir::In, Part::Reply, Proto::Mbtcp, vec![0; 11]);
         assert_eq!(tag_ports(&r.block(1)), Some((502, 0)));
         r.ends = Some(Ends {
             client: "10.0.0.5:40000".parse().unwrap(),

@@ -212,7 +212,7 @@ impl fmt::Display for Request {
 
 #[cfg(test)]
 mod tests {
-    use super::super::packet::{Dir, Ends, Proto, Role};
+    use super::super::packet::{Dir, Ends, Part, Proto};
     use super::*;
 
     #[test]
@@ -304,7 +304,7 @@ mod tests {
 
     #[test]
     fn filters_keep_what_they_name_and_every_drop() {
-        let mut tcp = Packet::new(Dir::In, Role::Query, Proto::Mbtcp, vec![]);
+        let mut tcp = Packet::new(Dir::In, Part::Query, Proto::Mbtcp, vec![]);
         tcp.unit = Some(3);
         tcp.function = Some(0x83);
         tcp.ends = Some(Ends {
@@ -324,7 +324,7 @@ mod tests {
         line.ends = None;
         assert!(!only("master=10.0.0.5").keeps(&line, None));
         assert!(only("master=10.0.0.5").keeps(&line, Some("10.0.0.5:1".parse().unwrap())));
-        let drop = Packet::new(Dir::In, Role::Other, Proto::Data, vec![0xFF]);
+        let drop = Packet::new(Dir::In, Part::Other, Proto::Data, vec![0xFF]);
         assert!(only("unit=9 function=16").keeps(&drop, None));
     }
 }

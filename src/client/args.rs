@@ -1,7 +1,7 @@
 //! The master's command line: where requests go and what they ask, as the
 //! request PDUs of docs/protocol.md §1.
 
-use super::link::Link;
+use super::transport::Transport;
 use crate::cli_overrides::{choice, PortFlags, PORT_GROUP};
 use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
@@ -228,12 +228,12 @@ impl WriteArgs {
 }
 
 impl CommonArgs {
-    /// The link these arguments name: `--serial` if given, else `--tcp` (default
+    /// The transport these arguments name: `--serial` if given, else `--tcp` (default
     /// 127.0.0.1:502); or why the serial port's settings are refused.
-    pub(crate) fn link(&self) -> Result<Link, String> {
+    pub(crate) fn transport(&self) -> Result<Transport, String> {
         let Some(path) = &self.serial else {
             let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
-            return Ok(Link::tcp_framed(addr, self.framing));
+            return Ok(Transport::tcp_framed(addr, self.framing));
         };
         let mut cfg = SerialConfig {
             path: path.clone(),
@@ -243,7 +243,7 @@ impl CommonArgs {
         self.port
             .apply_serial(&mut cfg)
             .map_err(|e| e.to_string())?;
-        Ok(Link::serial(cfg))
+        Ok(Transport::serial(cfg))
     }
 }
 
@@ -281,10 +281,10 @@ mod tests {
         .unwrap();
         assert_eq!(r.request(), Request::ReadCoils { addr: 5, qty: 1 });
         assert!(
-            matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.baud_rate == 9600)
+            matches!(r.common.transport().unwrap(), Transport::Serial { cfg, .. } if cfg.baud_rate == 9600)
         );
         assert!(
-            matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.framing == Framing::Mbap)
+            matches!(r.common.transport().unwrap(), Transport::Serial { cfg, .. } if cfg.framing == Framing::Mbap)
         );
         let r = parse_read(&[
             "read",
@@ -297,11 +297,11 @@ mod tests {
         ])
         .unwrap();
         assert!(
-            matches!(r.common.link().unwrap(), Link::Serial { cfg, .. } if cfg.framing == Framing::Ascii)
+            matches!(r.common.transport().unwrap(), Transport::Serial { cfg, .. } if cfg.framing == Framing::Ascii)
         );
         let r = parse_read(&["read", "holding", "0", "--framing", "rtu"]).unwrap();
         assert!(
-            matches!(r.common.link().unwrap(), Link::TcpFramed { ref addr, .. } if addr == "127.0.0.1:502"),
+            matches!(r.common.transport().unwrap(), Transport::TcpFramed { ref addr, .. } if addr == "127.0.0.1:502"),
             "RTU over TCP"
         );
         assert!(
@@ -399,15 +399,15 @@ mod tests {
             "--flow-control",
             "none",
         ];
-        let Ok(Link::Serial { cfg, .. }) = common(&args).link() else {
-            panic!("a serial link");
+        let Ok(Transport::Serial { cfg, .. }) = common(&args).transport() else {
+            panic!("a serial transport");
         };
         assert_eq!((cfg.parity, cfg.stop_bits), (Parity::Odd, 2));
         assert_eq!(
             (cfg.flow_control, cfg.baud_rate),
             (FlowControl::None, 19_200)
         );
-        let bad = common(&["--stop-bits", "3"]).link().unwrap_err();
+        let bad = common(&["--stop-bits", "3"]).transport().unwrap_err();
         assert_eq!(bad, "--stop-bits: must be 1 or 2, got 3");
         let line = ["read", "holding", "0", "--parity", "odd"];
         assert!(
@@ -438,7 +438,7 @@ mod tests {
 
     #[test]
     fn tcp_addresses_get_port_502() {
-        let name = |s: &str| Link::tcp(s).name().to_string();
+        let name = |s: &str| Transport::tcp(s).name().to_string();
         assert_eq!(name("10.0.0.5"), "10.0.0.5:502");
         assert_eq!(name("10.0.0.5:5020"), "10.0.0.5:5020");
         assert_eq!(name("plc.local"), "plc.local:502");

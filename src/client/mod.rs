@@ -19,10 +19,10 @@
 //! 2 bad arguments.
 
 mod args;
-mod link;
+mod transport;
 
 pub use args::{CommonArgs, ReadArgs, ReadTable, WriteArgs, WriteTable};
-pub(crate) use link::{Link, Master};
+pub(crate) use transport::{Master, Transport};
 
 use crate::frame::hex::Hex;
 use crate::frame::request::{exception_name, Reply, Request};
@@ -64,15 +64,15 @@ fn run(common: &CommonArgs, request: Request) -> ExitCode {
         Ok(pdu) => pdu,
         Err(e) => return usage(&e.to_string()),
     };
-    let link = match common.link() {
-        Ok(link) => link,
+    let transport = match common.transport() {
+        Ok(transport) => transport,
         Err(e) => return usage(&e),
     };
     let rt = match crate::runtime::for_command(ExitCode::from(EXIT_NO_ANSWER)) {
         Ok(rt) => rt,
         Err(code) => return code,
     };
-    ExitCode::from(rt.block_on(session(common, link, &pdu)))
+    ExitCode::from(rt.block_on(session(common, transport, &pdu)))
 }
 
 /// A line on stdout; a closed stdout (`| head`) is not an error worth a panic.
@@ -132,8 +132,8 @@ fn millis(d: Duration) -> String {
 
 /// One request, or one per `--poll` period until `--count` or Ctrl-C. Returns the exit
 /// code of the last request.
-async fn session(common: &CommonArgs, link: Link, pdu: &[u8]) -> u8 {
-    let mut master = Master::new(link, Duration::from_millis(common.timeout_ms));
+async fn session(common: &CommonArgs, transport: Transport, pdu: &[u8]) -> u8 {
+    let mut master = Master::new(transport, Duration::from_millis(common.timeout_ms));
     let Some(period) = common.poll else {
         return once(&mut master, common, pdu, None).await.0;
     };
@@ -177,7 +177,10 @@ async fn once(
         .unwrap_or_default();
     let tx = || {
         if common.verbose {
-            say(format_args!("tx {}", Hex(&master.link().wire(&request))));
+            say(format_args!(
+                "tx {}",
+                Hex(&master.transport().wire(&request))
+            ));
         }
     };
     let x = match outcome {
@@ -223,7 +226,10 @@ async fn once(
                 x.dropped_bytes
             ));
         }
-        say(format_args!("rx {}", Hex(&master.link().wire(&x.reply))));
+        say(format_args!(
+            "rx {}",
+            Hex(&master.transport().wire(&x.reply))
+        ));
     }
     for line in value_lines(&x.decoded) {
         say(format_args!("{line}"));

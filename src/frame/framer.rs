@@ -62,16 +62,18 @@ pub enum Framed {
     Corrupt(usize),
 }
 
+/// The decoder of the line's framing: MBAP's resynchronising one, or RTU/ASCII's by
+/// CRC or LRC.
 #[derive(Debug)]
-enum Kind {
+enum Decoding {
     Mbap(Resync),
-    Line(Decoder),
+    Serial(Decoder),
 }
 
 /// The framer for one line; see the module notes.
 #[derive(Debug)]
 pub struct Framer {
-    kind: Kind,
+    decoding: Decoding,
     /// RTU/ASCII: bytes dropped (noise, failed checks, cleared). MBAP: bytes cleared
     /// are the decoder's own count.
     line_dropped: u64,
@@ -86,17 +88,17 @@ pub struct Framer {
 impl Framer {
     /// MBAP frames, resynchronising (docs/design.md §2).
     pub fn mbap() -> Self {
-        Self::with(Kind::Mbap(Resync::new()))
+        Self::with(Decoding::Mbap(Resync::new()))
     }
 
     /// RTU or ASCII frames.
     pub fn serial(codec: Codec) -> Self {
-        Self::with(Kind::Line(Decoder::new(codec)))
+        Self::with(Decoding::Serial(Decoder::new(codec)))
     }
 
-    fn with(kind: Kind) -> Self {
+    fn with(decoding: Decoding) -> Self {
         Self {
-            kind,
+            decoding,
             line_dropped: 0,
             line_consumed: 0,
             dropped_taken: 0,
@@ -106,9 +108,9 @@ impl Framer {
 
     /// RTU or ASCII; `None` for MBAP.
     pub(crate) fn codec(&self) -> Option<Codec> {
-        match &self.kind {
-            Kind::Mbap(_) => None,
-            Kind::Line(d) => Some(d.codec()),
+        match &self.decoding {
+            Decoding::Mbap(_) => None,
+            Decoding::Serial(d) => Some(d.codec()),
         }
     }
 
@@ -131,34 +133,34 @@ impl Framer {
 
     /// Appends bytes read from the line.
     pub fn push(&mut self, bytes: &[u8]) {
-        match &mut self.kind {
-            Kind::Mbap(d) => d.push(bytes),
-            Kind::Line(d) => d.push(bytes),
+        match &mut self.decoding {
+            Decoding::Mbap(d) => d.push(bytes),
+            Decoding::Serial(d) => d.push(bytes),
         }
     }
 
     /// The line has been quiet for the silence that ends a frame, since the last byte
     /// pushed (MBAP: see [`Resync::pause`]; RTU and ASCII are told by `quiet`).
     pub(crate) fn pause(&mut self) {
-        if let Kind::Mbap(d) = &mut self.kind {
+        if let Decoding::Mbap(d) = &mut self.decoding {
             d.pause();
         }
     }
 
     /// Has the line paused since the last byte pushed (MBAP)?
     pub(crate) fn paused(&self) -> bool {
-        match &self.kind {
-            Kind::Mbap(d) => d.paused(),
-            Kind::Line(_) => false,
+        match &self.decoding {
+            Decoding::Mbap(d) => d.paused(),
+            Decoding::Serial(_) => false,
         }
     }
 
     /// Does a quiet line end a partial frame? MBAP (the frame gap) and RTU (3.5
     /// character times) yes; ASCII only ends at a line feed.
     pub(crate) fn silence_ends_frames(&self) -> bool {
-        match &self.kind {
-            Kind::Mbap(_) => true,
-            Kind::Line(d) => d.silence_ends_frames(),
+        match &self.decoding {
+            Decoding::Mbap(_) => true,
+            Decoding::Serial(d) => d.silence_ends_frames(),
         }
     }
 
@@ -167,9 +169,9 @@ impl Framer {
     /// Bytes that make no frame (noise before an ASCII colon, MBAP garbage) are
     /// dropped and counted, not returned.
     pub fn next_frame(&mut self, judge: &impl Judge, quiet: bool) -> Option<Framed> {
-        match &mut self.kind {
-            Kind::Mbap(d) => d.next_frame(judge, quiet).map(Framed::Frame),
-            Kind::Line(d) => loop {
+        match &mut self.decoding {
+            Decoding::Mbap(d) => d.next_frame(judge, quiet).map(Framed::Frame),
+            Decoding::Serial(d) => loop {
                 match d.next(judge.expect(), quiet)? {
                     // A CRC or LRC frame holds 1..=253 PDU bytes (its size limits).
                     Decoded::Frame { unit, pdu } => {
@@ -194,30 +196,30 @@ impl Framer {
     /// reply to the judge's request), or will once more bytes are in? False for MBAP
     /// and ASCII.
     pub(crate) fn length_known(&self, judge: &impl Judge) -> bool {
-        match &self.kind {
-            Kind::Mbap(_) => false,
-            Kind::Line(d) => d.length_known(judge.expect()),
+        match &self.decoding {
+            Decoding::Mbap(_) => false,
+            Decoding::Serial(d) => d.length_known(judge.expect()),
         }
     }
 
     /// Bytes held that are not yet part of a frame.
     pub fn buffered(&self) -> usize {
-        match &self.kind {
-            Kind::Mbap(d) => d.buffered(),
-            Kind::Line(d) => d.buffered(),
+        match &self.decoding {
+            Decoding::Mbap(d) => d.buffered(),
+            Decoding::Serial(d) => d.buffered(),
         }
     }
 
     /// Forgets every buffered byte (the port was reopened, or nothing before a request
     /// can be its reply); they count as dropped. Returns how many.
     pub(crate) fn clear(&mut self) -> usize {
-        match &mut self.kind {
-            Kind::Mbap(d) => {
+        match &mut self.decoding {
+            Decoding::Mbap(d) => {
                 let n = d.buffered();
                 d.clear();
                 n
             }
-            Kind::Line(d) => {
+            Decoding::Serial(d) => {
                 let n = d.clear();
                 self.line_dropped += n as u64;
                 self.line_consumed += n as u64;
@@ -229,17 +231,17 @@ impl Framer {
     /// Bytes taken from the front so far, in frames or dropped: a frame just yielded
     /// began at `consumed()` minus its length on the wire.
     pub fn consumed(&self) -> u64 {
-        match &self.kind {
-            Kind::Mbap(d) => d.consumed(),
-            Kind::Line(_) => self.line_consumed,
+        match &self.decoding {
+            Decoding::Mbap(d) => d.consumed(),
+            Decoding::Serial(_) => self.line_consumed,
         }
     }
 
     /// Every byte dropped so far: garbage, failed checks, partial frames, cleared.
     pub fn dropped(&self) -> u64 {
-        match &self.kind {
-            Kind::Mbap(d) => d.stats().dropped_bytes,
-            Kind::Line(_) => self.line_dropped,
+        match &self.decoding {
+            Decoding::Mbap(d) => d.stats().dropped_bytes,
+            Decoding::Serial(_) => self.line_dropped,
         }
     }
 
@@ -251,9 +253,9 @@ impl Framer {
 
     /// MBAP frames that what followed them refuted, so far.
     pub(crate) fn refuted(&self) -> u64 {
-        match &self.kind {
-            Kind::Mbap(d) => d.stats().refuted,
-            Kind::Line(_) => 0,
+        match &self.decoding {
+            Decoding::Mbap(d) => d.stats().refuted,
+            Decoding::Serial(_) => 0,
         }
     }
 

@@ -274,7 +274,7 @@ mod tests {
 
     #[tokio::test]
     async fn json_strings_are_escaped_and_frames_listed_only_while_watched() {
-        use crate::capture::packet::{Dir, Proto, Role};
+        use crate::capture::packet::{Dir, Part, Proto};
         use crate::capture::{Hub, Interface};
         assert_eq!(string("a\"b\\c\n"), "\"a\\\"b\\\\c\\u000a\"");
         let l = Arc::new(LineMetrics::new("/dev/\"x\"", Arc::new(Stats::default())));
@@ -302,7 +302,7 @@ mod tests {
         );
         assert!(j.contains("\"frames_total\":0,\"frames\":[]"), "{j}");
         assert!(tap.on(), "asked: watched for a while");
-        let mut p = Packet::new(Dir::Out, Role::Query, Proto::Mbtcp, vec![1, 0xAB]);
+        let mut p = Packet::new(Dir::Out, Part::Query, Proto::Mbtcp, vec![1, 0xAB]);
         (p.conn, p.unit, p.function, p.span) = (Some(3), Some(1), Some(3), Some((10, 2)));
         p.label = "gw->serial";
         tap.send(p, tokio::time::Instant::now());

@@ -6,7 +6,7 @@
 //! while its transmitter is off never reaches the device, as on RS-485.
 
 use super::serial::direction::{Switch, Transmitter};
-use super::{Link, Opening, Port};
+use super::{OpenPort, Opening, Port};
 use std::io;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -156,11 +156,11 @@ impl Port for DuplexPort {
                 }
                 None => (Box::new(writer), None),
             };
-            Ok(Link {
+            Ok(OpenPort {
                 reader: Box::new(reader),
                 writer,
                 control: Box::new(Pipe(transmitter)),
-                info: super::kind::PortInfo::plain(super::kind::Kind::Memory),
+                info: super::kind::PortInfo::plain(super::kind::Medium::Memory),
             })
         })
     }

@@ -13,9 +13,10 @@ use crate::config::{Floor, Parity, PortKind, SerialConfig};
 use std::fmt;
 use std::time::Duration;
 
-/// What kind of port a line is on.
+/// What carries a line's bytes: a pty, a UART, a USB adapter, TCP or memory (what
+/// `port_kind = "auto"` finds at each open).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Kind {
+pub enum Medium {
     /// A pseudo-terminal: bytes cross at once whatever `baud_rate` says.
     Pty,
     /// A UART of the machine's own (ttyS*, ttyAMA*): its driver, and how many bytes
@@ -66,32 +67,32 @@ pub enum LowLatency {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct PortInfo {
     /// What it is.
-    pub kind: Kind,
+    pub medium: Medium,
     /// What became of the low latency asked for.
     pub low_latency: LowLatency,
 }
 
 impl PortInfo {
     /// A port with no tty behind it (TCP, the in-memory pipe).
-    pub fn plain(kind: Kind) -> PortInfo {
+    pub fn plain(medium: Medium) -> PortInfo {
         PortInfo {
-            kind,
+            medium,
             low_latency: LowLatency::NotApplicable,
         }
     }
 
     /// Before the first open: a wire, the conservative floor.
     pub(crate) fn unknown() -> PortInfo {
-        PortInfo::plain(Kind::Other { driver: None })
+        PortInfo::plain(Medium::Other { driver: None })
     }
 }
 
-impl Kind {
+impl Medium {
     /// Is there a wire, whose bytes take their time at `baud_rate`, between the port
     /// and the device? Not on a pty, nor in memory (TCP has its own rules: no wire
     /// time, whole frames).
     pub fn has_wire(&self) -> bool {
-        !matches!(self, Kind::Pty | Kind::Memory | Kind::Tcp)
+        !matches!(self, Medium::Pty | Medium::Memory | Medium::Tcp)
     }
 
     /// The least silence that ends a frame, from the port (`silence_floor_ms =
@@ -112,13 +113,13 @@ impl Kind {
     pub fn auto_floor(&self, char_time: Duration) -> Duration {
         const MS: Duration = Duration::from_millis(1);
         match self {
-            Kind::Pty | Kind::Memory => Duration::ZERO,
-            Kind::Uart { trigger, .. } => {
+            Medium::Pty | Medium::Memory => Duration::ZERO,
+            Medium::Uart { trigger, .. } => {
                 let chars = 3.5 + f64::from(trigger.unwrap_or(16)) + 4.0;
                 char_time.mul_f64(chars) + MS
             }
-            Kind::Usb { latency_ms, .. } => MS * latency_ms.unwrap_or(16) + 2 * MS,
-            Kind::Tcp | Kind::Other { .. } => 20 * MS,
+            Medium::Usb { latency_ms, .. } => MS * latency_ms.unwrap_or(16) + 2 * MS,
+            Medium::Tcp | Medium::Other { .. } => 20 * MS,
         }
     }
 }
@@ -128,14 +129,14 @@ impl Kind {
 /// is its echo)? `serial.port_kind` says, or the port found at open.
 pub(crate) fn wire(cfg: &SerialConfig, info: &PortInfo) -> bool {
     match cfg.port_kind {
-        PortKind::Auto => info.kind.has_wire(),
+        PortKind::Auto => info.medium.has_wire(),
         PortKind::Pty => false,
         PortKind::Wire => true,
     }
 }
 
 /// The silence that ends a frame on this port: 3.5 character times, never less than
-/// `serial.silence_floor_ms` (a number, or from the port: [`Kind::auto_floor`]).
+/// `serial.silence_floor_ms` (a number, or from the port: [`Medium::auto_floor`]).
 pub(crate) fn silence(cfg: &SerialConfig, info: &PortInfo) -> Duration {
     let bits = bits_per_char(cfg);
     let t35 = Duration::from_micros(crate::frame::rtu::t35_us(cfg.baud_rate, bits));
@@ -146,23 +147,23 @@ pub(crate) fn silence(cfg: &SerialConfig, info: &PortInfo) -> Duration {
 pub(crate) fn floor(cfg: &SerialConfig, info: &PortInfo) -> Duration {
     match cfg.silence_floor_ms {
         Floor::Ms(ms) => Duration::from_millis(ms),
-        Floor::Auto => info.kind.auto_floor(wire_time(cfg, 1000) / 1000),
+        Floor::Auto => info.medium.auto_floor(wire_time(cfg, 1000) / 1000),
     }
 }
 
-impl fmt::Display for Kind {
+impl fmt::Display for Medium {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let driver = |d: &Option<String>| d.clone().unwrap_or_else(|| "driver unknown".into());
         match self {
-            Kind::Pty => f.write_str("a pseudo-terminal (no wire)"),
-            Kind::Uart { driver: d, trigger } => {
+            Medium::Pty => f.write_str("a pseudo-terminal (no wire)"),
+            Medium::Uart { driver: d, trigger } => {
                 write!(f, "a native UART ({}", driver(d))?;
                 match trigger {
                     Some(t) => write!(f, ", FIFO trigger {t} bytes)"),
                     None => f.write_str(")"),
                 }
             }
-            Kind::Usb {
+            Medium::Usb {
                 driver: d,
                 latency_ms,
             } => {
@@ -172,16 +173,16 @@ impl fmt::Display for Kind {
                     None => f.write_str(", latency timer unknown)"),
                 }
             }
-            Kind::Tcp => f.write_str("TCP"),
-            Kind::Memory => f.write_str("an in-memory pipe (no wire)"),
-            Kind::Other { driver: d } => write!(f, "a serial port ({})", driver(d)),
+            Medium::Tcp => f.write_str("TCP"),
+            Medium::Memory => f.write_str("an in-memory pipe (no wire)"),
+            Medium::Other { driver: d } => write!(f, "a serial port ({})", driver(d)),
         }
     }
 }
 
 impl fmt::Display for PortInfo {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        write!(f, "{}", self.kind)?;
+        write!(f, "{}", self.medium)?;
         match &self.low_latency {
             LowLatency::On => f.write_str(", low latency on"),
             LowLatency::NotAsked => {
@@ -224,8 +225,8 @@ mod tests {
     #[test]
     fn auto_floors_from_the_port() {
         let char_115200 = Duration::from_nanos(86_806);
-        assert_eq!(Kind::Pty.auto_floor(char_115200), Duration::ZERO);
-        let uart = Kind::Uart {
+        assert_eq!(Medium::Pty.auto_floor(char_115200), Duration::ZERO);
+        let uart = Medium::Uart {
             driver: None,
             trigger: Some(8),
         };
@@ -234,17 +235,17 @@ mod tests {
             f > Duration::from_micros(2340) && f < Duration::from_micros(2350),
             "{f:?}"
         );
-        let usb = |ms| Kind::Usb {
+        let usb = |ms| Medium::Usb {
             driver: None,
             latency_ms: ms,
         };
         assert_eq!(usb(Some(1)).auto_floor(char_115200), 3 * MS);
         assert_eq!(usb(Some(16)).auto_floor(char_115200), 18 * MS);
         assert_eq!(usb(None).auto_floor(char_115200), 18 * MS);
-        assert_eq!(Kind::Tcp.auto_floor(char_115200), 20 * MS);
+        assert_eq!(Medium::Tcp.auto_floor(char_115200), 20 * MS);
         // The resolved silence: never below 3.5 characters, an explicit number wins.
         let cfg = SerialConfig::default();
-        let pty = PortInfo::plain(Kind::Pty);
+        let pty = PortInfo::plain(Medium::Pty);
         assert_eq!(silence(&cfg, &pty), Duration::from_micros(1823));
         let cfg = SerialConfig {
             silence_floor_ms: Floor::Ms(5),
@@ -257,8 +258,8 @@ mod tests {
     #[test]
     fn the_declared_kind_wins_over_the_found_one() {
         let mut cfg = SerialConfig::default();
-        let pty = PortInfo::plain(Kind::Pty);
-        let usb = PortInfo::plain(Kind::Usb {
+        let pty = PortInfo::plain(Medium::Pty);
+        let usb = PortInfo::plain(Medium::Usb {
             driver: None,
             latency_ms: None,
         });

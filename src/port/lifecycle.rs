@@ -4,14 +4,14 @@
 //! the wait until written bytes have left).
 
 use crate::port::kind::PortInfo;
-use crate::port::{self, Backoff, Link, Opening};
+use crate::port::{self, Backoff, OpenPort, Opening};
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 /// Where the port is in its life.
 pub(crate) enum State {
-    Open(Link),
+    Open(OpenPort),
     /// An open that did not finish at once (a TCP connect).
     Opening(Opening),
     Closed {
@@ -74,7 +74,7 @@ impl Lifecycle {
 
     /// Starts an open if one is due at `now`; gives back its result if it finished at
     /// once (then pass it to [`Lifecycle::opened`]).
-    pub(crate) fn open_if_due(&mut self, now: Instant) -> Option<std::io::Result<Link>> {
+    pub(crate) fn open_if_due(&mut self, now: Instant) -> Option<std::io::Result<OpenPort>> {
         let retry_at = self.retry_at()?;
         if now < retry_at {
             return None;
@@ -93,7 +93,7 @@ impl Lifecycle {
     /// later.
     pub(crate) fn opened(
         &mut self,
-        opened: std::io::Result<Link>,
+        opened: std::io::Result<OpenPort>,
         now: Instant,
     ) -> Option<PortInfo> {
         let kind = self.transport.kind();

@@ -23,14 +23,14 @@ pub(crate) type Reader = Box<dyn AsyncRead + Send + Unpin>;
 /// The writing half of an open port.
 pub(crate) type Writer = Box<dyn AsyncWrite + Send + Unpin>;
 /// An open in progress ([`Port::open`]).
-pub(crate) type Opening = Pin<Box<dyn Future<Output = io::Result<Link>> + Send>>;
+pub(crate) type Opening = Pin<Box<dyn Future<Output = io::Result<OpenPort>> + Send>>;
 /// A wait until the bytes written have left ([`Control::drain`]): the instant they
 /// had.
 pub(crate) type Drain = Pin<Box<dyn Future<Output = io::Result<std::time::Instant>> + Send>>;
 
 /// An open port: its two halves, read and written at once by the relay's loop, and
 /// what it can tell about the bytes in transit.
-pub struct Link {
+pub struct OpenPort {
     /// Bytes from the device.
     pub(crate) reader: Reader,
     /// Bytes to the device.
@@ -42,9 +42,9 @@ pub struct Link {
     pub(crate) info: kind::PortInfo,
 }
 
-impl std::fmt::Debug for Link {
+impl std::fmt::Debug for OpenPort {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("Link")
+        f.write_str("OpenPort")
     }
 }
 
@@ -122,7 +122,7 @@ impl Backoff {
 }
 
 /// Polls `opening` once: its result if it is ready at once, else the future back.
-pub(crate) fn open_now(mut opening: Opening) -> Result<io::Result<Link>, Opening> {
+pub(crate) fn open_now(mut opening: Opening) -> Result<io::Result<OpenPort>, Opening> {
     let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
     match opening.as_mut().poll(&mut cx) {
         std::task::Poll::Ready(r) => Ok(r),

@@ -6,7 +6,7 @@
 //! bounded connect, and a task of its own carries the bytes between the TLS stream and
 //! the relay, flushing each write, since the relay writes and never flushes.
 
-use super::{Link, Opening, Port};
+use super::{OpenPort, Opening, Port};
 use crate::config::TlsDevice;
 use crate::tls::client::Connector;
 use socket2::{SockRef, TcpKeepalive};
@@ -124,16 +124,16 @@ impl Port for TcpPort {
                 let (relay_end, carried) = tokio::io::duplex(PIPE);
                 tokio::spawn(carry(carried, tls));
                 let (reader, writer) = tokio::io::split(relay_end);
-                return Ok(Link {
-                    info: super::kind::PortInfo::plain(super::kind::Kind::Tcp),
+                return Ok(OpenPort {
+                    info: super::kind::PortInfo::plain(super::kind::Medium::Tcp),
                     reader: Box::new(reader),
                     writer: Box::new(writer),
                     control: Box::new(NoControl),
                 });
             }
             let (reader, writer) = stream.into_split();
-            Ok(Link {
-                info: super::kind::PortInfo::plain(super::kind::Kind::Tcp),
+            Ok(OpenPort {
+                info: super::kind::PortInfo::plain(super::kind::Medium::Tcp),
                 reader: Box::new(reader),
                 writer: Box::new(writer),
                 control: Box::new(NoControl),

@@ -7,7 +7,7 @@ use super::outgoing::Outgoing;
 use super::Command;
 use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::serial::PreciseTimer;
-use crate::port::Link;
+use crate::port::OpenPort;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -19,7 +19,7 @@ pub(super) enum Event {
     Wrote(std::io::Result<usize>),
     /// When the last byte left (the drain thread's clock), or why it cannot tell.
     Drained(std::io::Result<std::time::Instant>),
-    Opened(std::io::Result<Link>),
+    Opened(std::io::Result<OpenPort>),
     Timer,
     Shutdown,
 }
@@ -74,7 +74,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
     match &mut port.state {
         // Biased, bytes first: a timer that finds bytes waiting must not take the
         // line for quiet (a held reply would be refuted, a frame cut).
-        State::Open(Link {
+        State::Open(OpenPort {
             reader: rd,
             writer: wr,
             ..

@@ -2,7 +2,7 @@
 //! decides: resent, answered 0x0B, or their unit backed off, its waiting requests
 //! answered at once and its next ones paced at the line's speed.
 
-use super::inflight::{Failure, InFlight, Verdict};
+use super::inflight::{Failure, OnLine, Verdict};
 use super::pending::Pending;
 use super::Relay;
 use crate::outbox::Refusal;
@@ -19,7 +19,7 @@ impl Relay {
             self.switch_off(now);
             let hold = self.in_flight.hold_after_timeout(&f);
             self.line.timed_out(now, hold, &self.stats);
-            self.watch.timed_out(f.req.conn(), &f.req.adu, now);
+            self.telemetry.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
@@ -34,7 +34,7 @@ impl Relay {
 
     /// A request on the line got no usable reply: resent if it may be, else answered
     /// 0x0B, or its unit backed off (the in-flight table decides).
-    pub(super) fn failed(&mut self, f: InFlight<Pending>, why: Failure, now: Instant) {
+    pub(super) fn failed(&mut self, f: OnLine<Pending>, why: Failure, now: Instant) {
         self.line.retire(f.tid, now);
         let open = self.port.is_open();
         let verdict = self.in_flight.verdict(&f, why, now, open);
@@ -42,9 +42,9 @@ impl Relay {
         match verdict {
             Verdict::BackedOff(interval) => {
                 let unit = f.req.adu.unit();
-                self.watch.backed_off(unit);
+                self.telemetry.backed_off(unit);
                 // Said once a spell: the warning that the unit is not answering is
-                // the watch's (watch.rs); the longer intervals after failed probes
+                // the telemetry's (telemetry.rs); the longer intervals after failed probes
                 // are for debugging.
                 if interval <= Duration::from_millis(self.cfg.unit_backoff_ms) {
                     info!(

@@ -21,7 +21,7 @@ pub(super) trait Asked {
 }
 
 /// A request on the line.
-pub(super) struct InFlight<R> {
+pub(super) struct OnLine<R> {
     /// Its serial-side id (MBAP) or key (RTU/ASCII).
     pub(super) tid: u16,
     pub(super) deadline: Instant,
@@ -71,8 +71,8 @@ pub(super) enum Verdict {
 }
 
 /// The requests on the line, and the policy for those that fail.
-pub(super) struct Table<R> {
-    entries: Vec<InFlight<R>>,
+pub(super) struct InFlight<R> {
+    entries: Vec<OnLine<R>>,
     probe_timeout: Duration,
     /// Each unit's timeout, retries and pause, by unit id: its `[[line.unit]]`
     /// table's, else the line's.
@@ -82,7 +82,7 @@ pub(super) struct Table<R> {
     units: Units,
 }
 
-impl<R: Asked> Table<R> {
+impl<R: Asked> InFlight<R> {
     /// `unit_backoff`: whether units are backed off at all (a bus of units only).
     pub(super) fn new(cfg: &RelayConfig, tables: &UnitTables, unit_backoff: bool) -> Self {
         let mut t = Self {
@@ -124,7 +124,7 @@ impl<R: Asked> Table<R> {
     /// than that would be late with a fixed timeout at the ceiling too, so a learned
     /// timeout lets no late reply through that the ceiling would not
     /// (docs/reliability.md "Learned timeouts").
-    pub(super) fn hold_after_timeout(&self, f: &InFlight<R>) -> Duration {
+    pub(super) fn hold_after_timeout(&self, f: &OnLine<R>) -> Duration {
         match self.policy(f.req.adu().unit()).timeout {
             Timeout::Learned { ceiling, .. } => ceiling.saturating_sub(f.timeout),
             Timeout::Fixed(_) => Duration::ZERO,
@@ -151,7 +151,7 @@ impl<R: Asked> Table<R> {
         self.entries.is_empty()
     }
 
-    pub(super) fn entries(&self) -> &[InFlight<R>] {
+    pub(super) fn entries(&self) -> &[OnLine<R>] {
         &self.entries
     }
 
@@ -164,7 +164,7 @@ impl<R: Asked> Table<R> {
         if self.units.probing(req.adu().unit()) {
             timeout = timeout.min(self.probe_timeout);
         }
-        self.entries.push(InFlight {
+        self.entries.push(OnLine {
             tid,
             deadline: now + queued + timeout,
             timeout,
@@ -185,14 +185,14 @@ impl<R: Asked> Table<R> {
     }
 
     /// Takes request `tid` off the line (its reply failed), if it is on it.
-    pub(super) fn take(&mut self, tid: u16) -> Option<InFlight<R>> {
+    pub(super) fn take(&mut self, tid: u16) -> Option<OnLine<R>> {
         let i = self.entries.iter().position(|f| f.tid == tid)?;
         Some(self.entries.swap_remove(i))
     }
 
     /// Request `tid` was answered by a reply whose last byte came `at`: taken off the
     /// line, and its unit is healthy again; a learned timeout learns how long it took.
-    pub(super) fn answered(&mut self, tid: u16, at: Instant) -> Option<InFlight<R>> {
+    pub(super) fn answered(&mut self, tid: u16, at: Instant) -> Option<OnLine<R>> {
         let f = self.take(tid)?;
         let unit = f.req.adu().unit();
         self.units.answered(unit);
@@ -205,12 +205,12 @@ impl<R: Asked> Table<R> {
     }
 
     /// Takes everything off the line (the port was lost).
-    pub(super) fn take_all(&mut self) -> Vec<InFlight<R>> {
+    pub(super) fn take_all(&mut self) -> Vec<OnLine<R>> {
         std::mem::take(&mut self.entries)
     }
 
     /// Takes off the line every request whose deadline has passed at `now`.
-    pub(super) fn take_expired(&mut self, now: Instant) -> Vec<InFlight<R>> {
+    pub(super) fn take_expired(&mut self, now: Instant) -> Vec<OnLine<R>> {
         let mut expired = Vec::new();
         let mut i = 0;
         while i < self.entries.len() {
@@ -233,7 +233,7 @@ impl<R: Asked> Table<R> {
     /// the port open.
     pub(super) fn verdict(
         &mut self,
-        f: &InFlight<R>,
+        f: &OnLine<R>,
         why: Failure,
         now: Instant,
         port_open: bool,
@@ -454,7 +454,7 @@ mod tests {
             response_timeout_ms: 100,
             ..RelayConfig::default()
         };
-        let mut t = Table::new(&cfg, &UnitTables::default(), false);
+        let mut t = InFlight::new(&cfg, &UnitTables::default(), false);
         let t0 = Instant::now();
         t.start(1, read(1, 0), t0, 10 * MS);
         t.start(2, read(2, 0), t0, 30 * MS);
@@ -488,9 +488,9 @@ mod tests {
             unit_backoff_max_ms: 4000,
             ..RelayConfig::default()
         };
-        let mut t = Table::new(&cfg, &UnitTables::default(), true);
+        let mut t = InFlight::new(&cfg, &UnitTables::default(), true);
         let t0 = Instant::now();
-        let verdict = |t: &mut Table<(Adu, u32)>, req, why, open| {
+        let verdict = |t: &mut InFlight<(Adu, u32)>, req, why, open| {
             t.start(9, req, t0, Duration::ZERO);
             let f = t.take(9).expect("just started");
             t.verdict(&f, why, t0, open)
@@ -513,7 +513,7 @@ mod tests {
             verdict(&mut t, write(1, 0), Failure::Corrupt, true),
             Verdict::Fail
         );
-        let mut writes = Table::new(
+        let mut writes = InFlight::new(
             &RelayConfig {
                 retry_writes: true,
                 ..cfg.clone()
@@ -577,13 +577,13 @@ mod tests {
                     [[line.unit]]\nunits = 6\nresponse_timeout_ms = \"auto\"\nresponse_timeout_max_ms = 800\n";
         let cfg = crate::config::parse(text, "t").unwrap();
         let line = &cfg.lines()[0];
-        let mut t = Table::new(&line.relay, &line.unit_tables, false);
+        let mut t = InFlight::new(&line.relay, &line.unit_tables, false);
         let t0 = Instant::now();
         assert_eq!(
             (t.policy(5).pause, t.policy(4).pause),
             (30 * MS, Duration::ZERO)
         );
-        let verdict = |t: &mut Table<(Adu, u32)>, req| {
+        let verdict = |t: &mut InFlight<(Adu, u32)>, req| {
             t.start(9, req, t0, Duration::ZERO);
             let f = t.take(9).expect("just started");
             t.verdict(&f, Failure::Corrupt, t0, true)

@@ -18,7 +18,7 @@ use tokio_util::sync::CancellationToken;
 const LONGEST_PDU: usize = 253;
 
 /// One open port at one setting, and the time of the last byte on its line.
-struct Line<'a> {
+struct OpenSetting<'a> {
     port: SerialStream,
     timer: &'a mut PreciseTimer,
     setting: &'a Setting,
@@ -27,7 +27,7 @@ struct Line<'a> {
     timeout: Duration,
 }
 
-impl Line<'_> {
+impl OpenSetting<'_> {
     /// A character's time on this line.
     fn char_time(&self) -> Duration {
         Duration::from_nanos(
@@ -141,7 +141,7 @@ pub(super) async fn scan(
                 path: path.to_string(),
                 source,
             })?;
-        let mut line = Line {
+        let mut line = OpenSetting {
             port,
             timer: &mut timer,
             setting: s,
@@ -166,7 +166,7 @@ pub(super) async fn scan(
                         t.framings.iter().skip(skip).map(move |&f| (t, f))
                     })
                     .map(|(t, f)| {
-                        let probe = Line::cost(t, f, timeout);
+                        let probe = OpenSetting::cost(t, f, timeout);
                         probe * per_setting as u32
                     })
                     .sum();
@@ -237,8 +237,8 @@ pub(super) async fn scan(
     Ok(report)
 }
 
-impl Line<'_> {
-    /// [`Line::read_cost`] of a setting not open yet.
+impl OpenSetting<'_> {
+    /// [`OpenSetting::read_cost`] of a setting not open yet.
     fn cost(s: &Setting, framing: Framing, timeout: Duration) -> Duration {
         let char_time = Duration::from_nanos(
             (u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)),

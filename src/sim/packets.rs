@@ -76,7 +76,7 @@ impl PacketLog {
         let skip = n.map_or(0, |n| self.entries.len().saturating_sub(n));
         let mut out = String::new();
         for e in self.entries.iter().skip(skip) {
-            out.push_str(&format!("{}\n", Line(self.start, e)));
+            out.push_str(&format!("{}\n", LogLine(self.start, e)));
         }
         if out.is_empty() {
             out.push_str("(no packets)\n");
@@ -85,11 +85,13 @@ impl PacketLog {
     }
 }
 
-struct Line<'a>(Instant, &'a Entry);
+/// One entry of the log as a line of text: its time since the log began, its way,
+/// its bytes.
+struct LogLine<'a>(Instant, &'a Entry);
 
-impl fmt::Display for Line<'_> {
+impl fmt::Display for LogLine<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        let Line(start, e) = self;
+        let LogLine(start, e) = self;
         let t = e.at.saturating_duration_since(*start).as_secs_f64();
         let dir = match e.direction {
             Direction::Rx => "rx",

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 /// Which side of the conversation the simulated device is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum Role {
+pub(crate) enum Side {
     /// It answers requests (the default).
     Slave,
     /// It sends the CIE-M10 master's queries every --poll-ms (cie-m10 profile).
@@ -18,8 +18,8 @@ pub struct RoleArgs {
     /// input port register and FC 16 with its own inputs to the slave's output port
     /// register (the --input-address and --output-address), and sets its outputs from
     /// what it read.
-    #[arg(long, value_enum, default_value_t = Role::Slave, help_heading = "role")]
-    pub(crate) role: Role,
+    #[arg(long, value_enum, default_value_t = Side::Slave, help_heading = "role")]
+    pub(crate) role: Side,
     /// master: the communication period, in ms.
     #[arg(long, default_value_t = 1000, value_name = "MS", help_heading = "role")]
     pub(crate) poll_ms: u64,
@@ -43,7 +43,7 @@ impl RoleArgs {
         cie_m10: bool,
         listen: bool,
     ) -> Result<Option<Polling>, super::options::BadFlags> {
-        if self.role == Role::Slave {
+        if self.role == Side::Slave {
             if self.timeout_ms.is_some() || self.poll_ms != 1000 {
                 return Err("--poll-ms and --timeout-ms apply to --role master".into());
             }

@@ -69,7 +69,7 @@ fn pty_pace(given: Option<u32>) -> Option<u32> {
 /// A frame, or a piece of one, waiting for the instant its last byte has left the
 /// simulated UART.
 #[derive(Debug)]
-struct Outgoing {
+struct InTransit {
     due: Instant,
     bytes: bytes::Bytes,
     /// The whole frame as sent and what it is, on its first piece (for the log).
@@ -120,7 +120,7 @@ struct Sim {
     chunker: Chunker,
     /// Requests off the line, in the port's framing (the gateway's own framer).
     decoder: Framer,
-    out: VecDeque<Outgoing>,
+    out: VecDeque<InTransit>,
     /// Without `--pipeline`, the device is busy until its reply has left.
     busy_until: Option<Instant>,
     last_rx: Instant,
@@ -402,7 +402,7 @@ impl Sim {
         let (mut at, mut due) = (0, ready);
         for (n, gap) in self.chunker.pieces(bytes.len()) {
             due = self.tx_pace.finish((due + gap).into_std(), n).into();
-            self.out.push_back(Outgoing {
+            self.out.push_back(InTransit {
                 due,
                 bytes: bytes.slice(at..at + n),
                 frame: first.take(),

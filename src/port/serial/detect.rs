@@ -7,7 +7,7 @@
 //! from sysfs, only ever read: it works where /sys is read-only (the hardened systemd
 //! units), and where /sys cannot be read at all it falls back on the device number.
 
-use crate::port::kind::{Kind, LowLatency, PortInfo};
+use crate::port::kind::{LowLatency, Medium, PortInfo};
 use std::os::fd::RawFd;
 use std::path::{Path, PathBuf};
 
@@ -29,23 +29,28 @@ pub(crate) struct SysFacts {
 
 /// The kind of the tty with this device number, given what sysfs said (`None`: it
 /// could not be read) and whether low latency is on.
-pub(crate) fn classify(major: u32, minor: u32, sys: Option<&SysFacts>, low_latency: bool) -> Kind {
+pub(crate) fn classify(
+    major: u32,
+    minor: u32,
+    sys: Option<&SysFacts>,
+    low_latency: bool,
+) -> Medium {
     // Unix 98 pty slaves (/dev/pts/N), and the legacy BSD ones.
     if (136..=143).contains(&major) || major == 3 {
-        return Kind::Pty;
+        return Medium::Pty;
     }
     let Some(sys) = sys else {
         // No sysfs: the well-known device numbers (Documentation/admin-guide/devices.txt).
         return match (major, minor) {
-            (4, 64..) | (204, _) => Kind::Uart {
+            (4, 64..) | (204, _) => Medium::Uart {
                 driver: None,
                 trigger: None,
             },
-            (188, _) | (166, _) => Kind::Usb {
+            (188, _) | (166, _) => Medium::Usb {
                 driver: None,
                 latency_ms: None,
             },
-            _ => Kind::Other { driver: None },
+            _ => Medium::Other { driver: None },
         };
     };
     if sys.usb {
@@ -57,18 +62,18 @@ pub(crate) fn classify(major: u32, minor: u32, sys: Option<&SysFacts>, low_laten
         } else {
             sys.latency_ms
         };
-        return Kind::Usb {
+        return Medium::Usb {
             driver: sys.driver.clone(),
             latency_ms,
         };
     }
     if sys.serial_core {
-        return Kind::Uart {
+        return Medium::Uart {
             driver: sys.driver.clone(),
             trigger: sys.trigger,
         };
     }
-    Kind::Other {
+    Medium::Other {
         driver: sys.driver.clone(),
     }
 }
@@ -147,28 +152,28 @@ pub(crate) fn detect(fd: RawFd, low_latency: bool) -> PortInfo {
     } else {
         LowLatency::NotAsked
     };
-    let kind = match device_number(fd) {
+    let medium = match device_number(fd) {
         Some((major, minor)) => {
             let sys = sys_facts(Path::new("/sys"), major, minor);
             classify(major, minor, sys.as_ref(), ll == LowLatency::On)
         }
-        None => Kind::Other { driver: None },
+        None => Medium::Other { driver: None },
     };
     PortInfo {
-        kind,
+        medium,
         low_latency: ll,
     }
 }
 
 /// What the path names, without opening it (the master line and the client, which
 /// take their timing before the port opens): the device number from `stat`.
-pub(crate) fn of_path(path: &str) -> Kind {
+pub(crate) fn of_path(path: &str) -> Medium {
     use std::os::unix::fs::{FileTypeExt, MetadataExt};
     let Ok(meta) = std::fs::metadata(path) else {
-        return Kind::Other { driver: None };
+        return Medium::Other { driver: None };
     };
     if !meta.file_type().is_char_device() {
-        return Kind::Other { driver: None };
+        return Medium::Other { driver: None };
     }
     let dev = meta.rdev();
     let major = (((dev >> 8) & 0xfff) | ((dev >> 32) & !0xfff)) as u32;
@@ -255,9 +260,9 @@ mod tests {
 
     #[test]
     fn device_numbers_without_sysfs() {
-        assert_eq!(classify(136, 3, None, false), Kind::Pty);
-        assert_eq!(classify(143, 9, None, true), Kind::Pty);
-        let uart = Kind::Uart {
+        assert_eq!(classify(136, 3, None, false), Medium::Pty);
+        assert_eq!(classify(143, 9, None, true), Medium::Pty);
+        let uart = Medium::Uart {
             driver: None,
             trigger: None,
         };
@@ -265,10 +270,10 @@ mod tests {
         assert_eq!(classify(204, 64, None, false), uart, "ttyAMA0");
         assert_eq!(
             classify(4, 1, None, false),
-            Kind::Other { driver: None },
+            Medium::Other { driver: None },
             "tty1, a console"
         );
-        let usb = Kind::Usb {
+        let usb = Medium::Usb {
             driver: None,
             latency_ms: None,
         };
@@ -284,7 +289,7 @@ mod tests {
             latency_ms: Some(16),
             ..SysFacts::default()
         };
-        let usb = |ms| Kind::Usb {
+        let usb = |ms| Medium::Usb {
             driver: Some("ftdi_sio".into()),
             latency_ms: ms,
         };
@@ -297,7 +302,7 @@ mod tests {
         };
         assert_eq!(
             classify(188, 1, Some(&cp210x), true),
-            Kind::Usb {
+            Medium::Usb {
                 driver: Some("cp210x".into()),
                 latency_ms: None
             },
@@ -310,14 +315,14 @@ mod tests {
         };
         assert_eq!(
             classify(204, 64, Some(&pl011), true),
-            Kind::Uart {
+            Medium::Uart {
                 driver: Some("uart-pl011".into()),
                 trigger: None
             }
         );
         assert_eq!(
             classify(216, 0, Some(&SysFacts::default()), false),
-            Kind::Other { driver: None },
+            Medium::Other { driver: None },
             "rfcomm"
         );
     }
@@ -379,7 +384,7 @@ mod tests {
         let facts = sys_facts(r, 4, 64).unwrap();
         assert_eq!(
             classify(4, 64, Some(&facts), true),
-            Kind::Uart {
+            Medium::Uart {
                 driver: Some("serial".into()),
                 trigger: Some(8)
             }
@@ -409,9 +414,9 @@ mod tests {
             .unwrap();
         use std::os::fd::AsRawFd;
         let info = detect(slave.as_raw_fd(), true);
-        assert_eq!(info.kind, Kind::Pty);
+        assert_eq!(info.medium, Medium::Pty);
         assert_eq!(info.low_latency, LowLatency::Unsupported);
-        assert_eq!(of_path(&name), Kind::Pty);
+        assert_eq!(of_path(&name), Medium::Pty);
         assert_eq!(info.to_string(), "a pseudo-terminal (no wire)");
         #[allow(unsafe_code)]
         unsafe {
@@ -437,7 +442,7 @@ mod tests {
         let before = get_serial(f.as_raw_fd()).unwrap().flags;
         let info = detect(f.as_raw_fd(), true);
         eprintln!("{}: {info}", path.to_string_lossy());
-        assert!(matches!(info.kind, Kind::Uart { .. }), "{info:?}");
+        assert!(matches!(info.medium, Medium::Uart { .. }), "{info:?}");
         assert_eq!(info.low_latency, LowLatency::On);
         // Put back as found.
         let mut ss = get_serial(f.as_raw_fd()).unwrap();

@@ -20,7 +20,7 @@ pub(crate) use detect::of_path;
 pub use open::{held_by, open};
 pub use timer::PreciseTimer;
 
-use super::{Control, Drain, Link, Opening, Port};
+use super::{Control, Drain, OpenPort, Opening, Port};
 use crate::config::SerialConfig;
 use std::io;
 use std::os::fd::{AsRawFd, RawFd};
@@ -65,7 +65,7 @@ impl Port for SerialPort {
             let info = detect::detect(fd, low_latency);
             let drainer = drain::Drainer::start(fd)?;
             let (reader, writer) = stream::split(port)?;
-            Ok(Link {
+            Ok(OpenPort {
                 reader: Box::new(reader),
                 writer: Box::new(writer),
                 control: Box::new(Tty {
@@ -83,7 +83,7 @@ impl Port for SerialPort {
     }
 }
 
-/// The port's descriptor, valid while the two halves of its [`Link`] live (the relay
+/// The port's descriptor, valid while the two halves of its [`OpenPort`] live (the relay
 /// drops all three together), its drain thread, which ends with it, and the switch of
 /// its transmitter, left off when it drops.
 struct Tty {

@@ -3,27 +3,27 @@
 //! or a pause whenever something can follow it, notifications and late replies told
 //! apart, echoes told by timing on a wire (docs/reliability.md). The state the line
 //! keeps and its mechanism are here; which frames the relay can use (the decoder's
-//! judge, and whether anything can follow a reply) is `mbap/judge.rs`.
+//! judge, and whether anything can follow a reply) is `mbap/usable.rs`.
 
-mod judge;
+mod usable;
 
 use super::{Seen, Unsolicited};
+use crate::capture::dropped::Tape;
 use crate::capture::packet::Reason;
-use crate::capture::tape::Tape;
 use crate::config::{Notifications, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::port::kind::{self, PortInfo};
-use crate::relay::inflight::{Asked, InFlight};
+use crate::relay::inflight::{Asked, OnLine};
 use crate::stats::Stats;
 use crate::tids::Tids;
 use bytes::Bytes;
-use judge::RelayJudge;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
+use usable::RelayJudge;
 
 pub(super) struct Mbap {
     tids: Tids,
@@ -129,7 +129,7 @@ impl Mbap {
         };
         // Until a port is open its kind is not known: a wire, the old floor.
         let info = if stream {
-            PortInfo::plain(kind::Kind::Tcp)
+            PortInfo::plain(kind::Medium::Tcp)
         } else {
             PortInfo::unknown()
         };
@@ -380,7 +380,7 @@ impl Mbap {
 
     pub(super) fn frames<R: Asked>(
         &mut self,
-        in_flight: &[InFlight<R>],
+        in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {

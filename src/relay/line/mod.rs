@@ -1,5 +1,5 @@
 //! The framing seam of the relay: what differs between a line of MBAP frames (the
-//! CIE-M10) and a line of RTU or ASCII frames, behind one [`Line`] the loop drives.
+//! CIE-M10) and a line of RTU or ASCII frames, behind one [`LineFraming`] the loop drives.
 //! Everything else (queues, round-robin, timeouts, retries, unit backoff, 0x0A/0x0B,
 //! the shutdown drain) is the relay's and shared.
 //!
@@ -19,8 +19,8 @@
 mod mbap;
 mod serial;
 
-use super::inflight::{Asked, InFlight};
-use crate::capture::tape::Dropped;
+use super::inflight::{Asked, OnLine};
+use crate::capture::dropped::Dropped;
 use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::serial::Codec;
 use crate::frame::{Adu, FunctionCode};
@@ -53,15 +53,16 @@ pub(super) enum Unsolicited {
     Notification,
 }
 
-/// The line's framing, one of two.
-pub(super) struct Line(Kind);
+/// The line's framing, one of two, as the relay's loop drives it.
+pub(super) struct LineFraming(FramingState);
 
-enum Kind {
+/// What one framing keeps: MBAP's ids, decoder and timing, or RTU/ASCII's.
+enum FramingState {
     Mbap(Mbap),
     Serial(Serial),
 }
 
-impl Line {
+impl LineFraming {
     /// The framing of `serial`; `stream` says the bytes go over TCP, where none is
     /// lost and none takes time on a wire: no inter-frame gap, no echo timing, and an
     /// MBAP frame is taken as soon as it is whole, without waiting for confirmation.
@@ -70,55 +71,59 @@ impl Line {
         serial: &SerialConfig,
         stream: bool,
         now: Instant,
-    ) -> Line {
+    ) -> LineFraming {
         let codec = match serial.framing {
-            Framing::Mbap => return Line(Kind::Mbap(Mbap::new(relay, serial, stream, now))),
+            Framing::Mbap => {
+                return LineFraming(FramingState::Mbap(Mbap::new(relay, serial, stream, now)))
+            }
             Framing::Rtu => Codec::Rtu,
             Framing::Ascii => Codec::Ascii,
         };
-        Line(Kind::Serial(Serial::new(relay, serial, codec, stream, now)))
+        LineFraming(FramingState::Serial(Serial::new(
+            relay, serial, codec, stream, now,
+        )))
     }
 
     /// The port was opened and found to be `info` (docs/reliability.md "Knowing the
     /// wire"): the line takes its timing from it. Says how, for the log.
     pub(super) fn port_opened(&mut self, info: &PortInfo) -> String {
         match &mut self.0 {
-            Kind::Mbap(m) => m.port_opened(info),
-            Kind::Serial(s) => s.port_opened(info),
+            FramingState::Mbap(m) => m.port_opened(info),
+            FramingState::Serial(s) => s.port_opened(info),
         }
     }
 
     /// `n` bytes were read with `in_flight` requests on the line (MBAP: with none, and
     /// no late reply possible, the device talked unasked).
     pub(super) fn heard(&mut self, n: usize, in_flight: usize, now: Instant, stats: &Stats) {
-        if let Kind::Mbap(m) = &mut self.0 {
+        if let FramingState::Mbap(m) = &mut self.0 {
             m.heard(n, in_flight, now, stats);
         }
     }
 
     /// A whole MBAP frame that answers nothing in flight came (`late`: a retired id).
     pub(super) fn answered_nothing(&mut self, late: bool, now: Instant) {
-        if let Kind::Mbap(m) = &mut self.0 {
+        if let FramingState::Mbap(m) = &mut self.0 {
             m.answered_nothing(late, now);
         }
     }
 
     /// RTU or ASCII: one at a time, broadcasts, unit backoff, drain before timing.
     pub(super) fn is_serial(&self) -> bool {
-        matches!(self.0, Kind::Serial(_))
+        matches!(self.0, FramingState::Serial(_))
     }
 
     /// A serial-side id (MBAP) or key (RTU/ASCII) for a request about to be sent.
     pub(super) fn allocate(&mut self, now: Instant) -> u16 {
         match &mut self.0 {
-            Kind::Mbap(m) => m.allocate(now),
-            Kind::Serial(s) => s.allocate(),
+            FramingState::Mbap(m) => m.allocate(now),
+            FramingState::Serial(s) => s.allocate(),
         }
     }
 
     /// The request is finished (answered, timed out, abandoned).
     pub(super) fn retire(&mut self, tid: u16, now: Instant) {
-        if let Kind::Mbap(m) = &mut self.0 {
+        if let FramingState::Mbap(m) = &mut self.0 {
             m.retire(tid, now);
         }
     }
@@ -139,16 +144,16 @@ impl Line {
     /// `request_pause_ms`): after its reply or its timeout, before the next request.
     pub(super) fn pause_after(&mut self, pause: Duration) {
         match &mut self.0 {
-            Kind::Mbap(m) => m.request_pause = pause,
-            Kind::Serial(s) => s.request_pause = pause,
+            FramingState::Mbap(m) => m.request_pause = pause,
+            FramingState::Serial(s) => s.request_pause = pause,
         }
     }
 
     /// The bytes that put `adu` on the line as request `tid`, about to be written.
     pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, stats: &Stats) -> Bytes {
         match &mut self.0 {
-            Kind::Mbap(m) => m.encode(adu, tid, now),
-            Kind::Serial(s) => s.encode(adu, now, stats),
+            FramingState::Mbap(m) => m.encode(adu, tid, now),
+            FramingState::Serial(s) => s.encode(adu, now, stats),
         }
     }
 
@@ -156,8 +161,8 @@ impl Line {
     /// says bytes are still being written or drained.
     pub(super) fn has_room(&self, in_flight: usize, busy: bool, now: Instant) -> bool {
         match &self.0 {
-            Kind::Mbap(m) => m.has_room(in_flight, now),
-            Kind::Serial(s) => s.has_room(in_flight, busy, now),
+            FramingState::Mbap(m) => m.has_room(in_flight, now),
+            FramingState::Serial(s) => s.has_room(in_flight, busy, now),
         }
     }
 
@@ -167,8 +172,8 @@ impl Line {
     /// has left from `now`, so that a late-run write never lets its echo pass.
     pub(super) fn wrote(&mut self, n: usize, polled: Instant, now: Instant) {
         match &mut self.0 {
-            Kind::Mbap(m) => m.wrote(n, now),
-            Kind::Serial(s) => s.wrote(n, polled),
+            FramingState::Mbap(m) => m.wrote(n, now),
+            FramingState::Serial(s) => s.wrote(n, polled),
         }
     }
 
@@ -176,8 +181,8 @@ impl Line {
     /// stop bit can leave (its time on the wire after it was written).
     pub(super) fn leaves_at(&self) -> Option<Instant> {
         match &self.0 {
-            Kind::Mbap(_) => None,
-            Kind::Serial(s) => s.leaves_at(),
+            FramingState::Mbap(_) => None,
+            FramingState::Serial(s) => s.leaves_at(),
         }
     }
 
@@ -185,8 +190,8 @@ impl Line {
     /// before their time on the wire after it.
     pub(super) fn left_after(&self, n: usize, written: Instant) -> Option<Instant> {
         match &self.0 {
-            Kind::Mbap(_) => None,
-            Kind::Serial(s) => Some(written + s.wire_time(n)),
+            FramingState::Mbap(_) => None,
+            FramingState::Serial(s) => Some(written + s.wire_time(n)),
         }
     }
 
@@ -196,8 +201,8 @@ impl Line {
     /// thread hand-offs a transaction for nothing.
     pub(super) fn needs_drain(&self) -> bool {
         match &self.0 {
-            Kind::Mbap(_) => false,
-            Kind::Serial(s) => s.has_wire(),
+            FramingState::Mbap(_) => false,
+            FramingState::Serial(s) => s.has_wire(),
         }
     }
 
@@ -205,16 +210,16 @@ impl Line {
     /// instant the last byte left: the reply timer starts there.
     pub(super) fn drained(&mut self, now: Instant, stats: &Stats) -> Instant {
         match &mut self.0 {
-            Kind::Mbap(_) => now,
-            Kind::Serial(s) => s.drained(now, stats),
+            FramingState::Mbap(_) => now,
+            FramingState::Serial(s) => s.drained(now, stats),
         }
     }
 
     /// Bytes from the port.
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant, stats: &Stats) {
         match &mut self.0 {
-            Kind::Mbap(m) => m.received(bytes, now),
-            Kind::Serial(s) => s.received(bytes, now, stats),
+            FramingState::Mbap(m) => m.received(bytes, now),
+            FramingState::Serial(s) => s.received(bytes, now, stats),
         }
     }
 
@@ -223,16 +228,16 @@ impl Line {
     /// requests are waiting.
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
         match &self.0 {
-            Kind::Mbap(m) => m.next_wake(now, waiting),
-            Kind::Serial(s) => s.next_wake(now, waiting),
+            FramingState::Mbap(m) => m.next_wake(now, waiting),
+            FramingState::Serial(s) => s.next_wake(now, waiting),
         }
     }
 
     /// Forgets every byte received (the port was opened or lost).
     pub(super) fn clear(&mut self, stats: &Stats) {
         match &mut self.0 {
-            Kind::Mbap(m) => m.clear(),
-            Kind::Serial(s) => s.clear(stats),
+            FramingState::Mbap(m) => m.clear(),
+            FramingState::Serial(s) => s.clear(stats),
         }
     }
 
@@ -244,8 +249,8 @@ impl Line {
     /// request's.
     pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
         match &mut self.0 {
-            Kind::Mbap(m) => m.timed_out(now),
-            Kind::Serial(s) => s.timed_out(now, hold, stats),
+            FramingState::Mbap(m) => m.timed_out(now),
+            FramingState::Serial(s) => s.timed_out(now, hold, stats),
         }
     }
 
@@ -253,37 +258,37 @@ impl Line {
     /// exception reply on the wire, each after its 3.5-character gap. Zero for MBAP.
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {
         match &self.0 {
-            Kind::Mbap(_) => Duration::ZERO,
-            Kind::Serial(s) => s.shortest_transaction(adu),
+            FramingState::Mbap(_) => Duration::ZERO,
+            FramingState::Serial(s) => s.shortest_transaction(adu),
         }
     }
 
     /// Frames the bytes received so far make, given what is in flight.
     pub(super) fn frames<R: Asked>(
         &mut self,
-        in_flight: &[InFlight<R>],
+        in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {
         match &mut self.0 {
-            Kind::Mbap(m) => m.frames(in_flight, now, stats),
-            Kind::Serial(s) => s.frames(in_flight, now, stats),
+            FramingState::Mbap(m) => m.frames(in_flight, now, stats),
+            FramingState::Serial(s) => s.frames(in_flight, now, stats),
         }
     }
 
     /// `frame` as it was on the wire (its CRC or LRC was checked), for the traffic log.
     pub(super) fn on_wire(&self, frame: &Adu) -> Vec<u8> {
         match &self.0 {
-            Kind::Mbap(_) => frame.as_bytes().to_vec(),
-            Kind::Serial(s) => s.on_wire(frame),
+            FramingState::Mbap(_) => frame.as_bytes().to_vec(),
+            FramingState::Serial(s) => s.on_wire(frame),
         }
     }
 
     /// Keep the bytes the line drops, for the capture (docs/capture.md), or not.
     pub(super) fn set_tape(&mut self, on: bool) {
         match &mut self.0 {
-            Kind::Mbap(m) => m.tape.set(on),
-            Kind::Serial(s) => s.tape.set(on),
+            FramingState::Mbap(m) => m.tape.set(on),
+            FramingState::Serial(s) => s.tape.set(on),
         }
     }
 
@@ -291,16 +296,16 @@ impl Line {
     /// on).
     pub(super) fn take_drops(&mut self) -> Vec<Dropped> {
         match &mut self.0 {
-            Kind::Mbap(m) => m.tape.take(),
-            Kind::Serial(s) => s.tape.take(),
+            FramingState::Mbap(m) => m.tape.take(),
+            FramingState::Serial(s) => s.tape.take(),
         }
     }
 
     /// An MBAP frame that answers nothing in flight: a late reply or a notification.
     pub(super) fn unsolicited(&self, tid: u16) -> Unsolicited {
         match &self.0 {
-            Kind::Mbap(m) => m.unsolicited(tid),
-            Kind::Serial(_) => Unsolicited::Late,
+            FramingState::Mbap(m) => m.unsolicited(tid),
+            FramingState::Serial(_) => Unsolicited::Late,
         }
     }
 }

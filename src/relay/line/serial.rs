@@ -4,15 +4,15 @@
 //! broadcasts with their turnaround, local echo.
 
 use super::Seen;
+use crate::capture::dropped::{Dropped, Tape};
 use crate::capture::packet::Reason;
-use crate::capture::tape::{Dropped, Tape};
 use crate::config::{RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
 use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
 use crate::port::kind::{self, PortInfo};
-use crate::relay::inflight::{Asked, InFlight};
+use crate::relay::inflight::{Asked, OnLine};
 use crate::stats::Stats;
 use bytes::Bytes;
 use std::collections::VecDeque;
@@ -459,7 +459,7 @@ impl Serial {
 
     pub(super) fn frames<R: Asked>(
         &mut self,
-        in_flight: &[InFlight<R>],
+        in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {

@@ -3,25 +3,28 @@
 
 use super::*;
 use crate::frame::hex::parse as bytes;
-use crate::relay::line::Line;
+use crate::relay::line::LineFraming;
 
 const MS: Duration = Duration::from_millis(1);
 
-fn mbap(baud: u32) -> (Line, Instant) {
+fn mbap(baud: u32) -> (LineFraming, Instant) {
     let serial = SerialConfig {
         baud_rate: baud,
         ..SerialConfig::default()
     };
     let now = Instant::now();
-    (Line::new(&RelayConfig::default(), &serial, false, now), now)
+    (
+        LineFraming::new(&RelayConfig::default(), &serial, false, now),
+        now,
+    )
 }
 
 /// A request as the table holds it in tests: the ADU, never resent.
 type Req = (Adu, u32);
 
 /// Request `adu` on the line as `tid` since `now`, due in a second.
-fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
-    InFlight {
+fn in_flight(tid: u16, adu: &Adu, now: Instant) -> OnLine<Req> {
+    OnLine {
         tid,
         deadline: now + Duration::from_secs(1),
         timeout: Duration::from_secs(1),
@@ -30,13 +33,13 @@ fn in_flight(tid: u16, adu: &Adu, now: Instant) -> InFlight<Req> {
 }
 
 /// Request `adu` sent now.
-fn send(line: &mut Line, adu: &Adu, now: Instant) -> InFlight<Req> {
+fn send(line: &mut LineFraming, adu: &Adu, now: Instant) -> OnLine<Req> {
     let tid = line.allocate(now);
     line.encode(adu, tid, now, &Stats::default());
     in_flight(tid, adu, now)
 }
 
-fn frames(line: &mut Line, in_flight: &[InFlight<Req>], now: Instant) -> Vec<Vec<u8>> {
+fn frames(line: &mut LineFraming, in_flight: &[OnLine<Req>], now: Instant) -> Vec<Vec<u8>> {
     line.frames(in_flight, now, &Stats::default())
         .into_iter()
         .map(|s| match s {
@@ -166,7 +169,7 @@ fn replies_are_confirmed_by_what_follows_or_a_pause() {
     };
     let serial = SerialConfig::default();
     let t0 = Instant::now();
-    let mut line = Line::new(&relay, &serial, false, t0);
+    let mut line = LineFraming::new(&relay, &serial, false, t0);
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 3]);
     let a = send(&mut line, &read, t0);
     let mut reply = Adu::build(a.tid, 1, &bytes("03 06 5B 75 5B 6A 5B 6B"))
@@ -180,7 +183,7 @@ fn replies_are_confirmed_by_what_follows_or_a_pause() {
         assert!(frames(&mut line, std::slice::from_ref(&a), at + after * MS).is_empty());
     }
 
-    let mut line = Line::new(&relay, &serial, false, t0);
+    let mut line = LineFraming::new(&relay, &serial, false, t0);
     let a = send(&mut line, &read, t0);
     let b = send(&mut line, &read, t0);
     let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
@@ -196,7 +199,7 @@ fn replies_are_confirmed_by_what_follows_or_a_pause() {
     );
     assert_eq!(line.next_wake(at + 20 * MS, false), Some(at + 50 * MS));
     assert_eq!(frames(&mut line, &both, at + 50 * MS), vec![reply]);
-    let mut line = Line::new(&relay, &serial, false, t0);
+    let mut line = LineFraming::new(&relay, &serial, false, t0);
     let a = send(&mut line, &read, t0);
     let reply = Adu::build(a.tid, 1, &[3, 6, 0, 1, 0, 2, 0, 3])
         .as_bytes()
@@ -330,9 +333,9 @@ fn what_may_follow_a_reply_holds_it() {
 /// (pymodbus' serial server).
 #[test]
 fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
-    use crate::port::kind::{Kind, PortInfo};
+    use crate::port::kind::{Medium, PortInfo};
     let (mut line, t0) = mbap(9600);
-    let told = line.port_opened(&PortInfo::plain(Kind::Pty));
+    let told = line.port_opened(&PortInfo::plain(Medium::Pty));
     assert!(told.contains("no wire"), "{told}");
     let write = Adu::build(9, 1, &[6, 0, 1, 0, 3]);
     let f = send(&mut line, &write, t0);
@@ -345,8 +348,8 @@ fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
         port_kind: crate::config::PortKind::Wire,
         ..SerialConfig::default()
     };
-    let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
-    line.port_opened(&PortInfo::plain(Kind::Pty));
+    let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
+    line.port_opened(&PortInfo::plain(Medium::Pty));
     let f = send(&mut line, &write, t0);
     let sent = write.with_tid(f.tid).as_bytes().to_vec();
     let stats = Stats::default();
@@ -366,20 +369,20 @@ fn on_a_pty_a_write_reply_equal_to_the_request_is_taken_at_once() {
 /// pause may be noise completing a damaged reply, and it is refuted.
 #[test]
 fn a_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
-    use crate::port::kind::{Kind, PortInfo};
+    use crate::port::kind::{Medium, PortInfo};
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
     // A UART whose FIFO hands each byte over: the pause is 3.5 characters.
-    let uart = Kind::Uart {
+    let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
-    for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+    for (kind, taken) in [(Medium::Pty, true), (uart, false)] {
         let serial = SerialConfig {
             baud_rate: 115_200,
             ..SerialConfig::default()
         };
         let t0 = Instant::now();
-        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
         line.port_opened(&PortInfo::plain(kind.clone()));
         let a = send(&mut line, &read, t0);
         let reply = Adu::build(a.tid, 1, &[3, 2, 0, 7]).as_bytes().to_vec();
@@ -427,7 +430,7 @@ fn over_tcp_a_whole_reply_is_taken_at_once_and_the_pause_kept() {
         ..RelayConfig::default()
     };
     let t0 = Instant::now();
-    let mut line = Line::new(&relay, &SerialConfig::default(), true, t0);
+    let mut line = LineFraming::new(&relay, &SerialConfig::default(), true, t0);
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
     let a = send(&mut line, &read, t0);
     let b = send(&mut line, &read, t0);

@@ -1,9 +1,9 @@
 //! The RTU and ASCII line's tests: a reply with pauses inside on a pty and on a wire,
 //! the gap after a reply (over TCP, to the microsecond, `request_pause_ms`, a unit's own).
 
-use super::super::{Line, Seen};
+use super::super::{LineFraming, Seen};
 use super::*;
-use crate::port::kind::Kind;
+use crate::port::kind::Medium;
 
 const MS: Duration = Duration::from_millis(1);
 
@@ -12,27 +12,27 @@ const MS: Duration = Duration::from_millis(1);
 /// whole; on a wire 3.5 characters of silence end it, and it fails its CRC.
 #[test]
 fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
-    use crate::relay::inflight::InFlight;
+    use crate::relay::inflight::OnLine;
     let serial = SerialConfig {
         baud_rate: 115_200,
         framing: crate::config::Framing::Rtu,
         ..SerialConfig::default()
     };
-    let uart = Kind::Uart {
+    let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
-    for (kind, taken) in [(Kind::Pty, true), (uart, false)] {
+    for (kind, taken) in [(Medium::Pty, true), (uart, false)] {
         let stats = Stats::default();
         let t0 = Instant::now();
-        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
         line.port_opened(&PortInfo::plain(kind.clone()));
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let key = line.allocate(t0);
         line.encode(&read, key, t0, &stats);
         line.wrote(8, t0, t0);
         line.drained(t0 + MS, &stats);
-        let f = [InFlight {
+        let f = [OnLine {
             tid: key,
             deadline: t0 + Duration::from_secs(1),
             timeout: Duration::from_secs(1),
@@ -78,7 +78,7 @@ fn the_gap_after_a_reply_is_none_over_tcp_and_request_pause_ms_on_both() {
             ..RelayConfig::default()
         };
         let t0 = Instant::now();
-        let mut line = Line::new(&relay, &serial, stream, t0);
+        let mut line = LineFraming::new(&relay, &serial, stream, t0);
         line.received(&[1, 3, 2, 0, 7, 0, 0], t0 + MS, &stats);
         let at = t0 + MS;
         let free = at + free_after * MS;
@@ -108,7 +108,7 @@ fn a_units_own_pause_is_the_quiet_after_its_transaction() {
     let stats = Stats::default();
     for (pause, free_after) in [(50, 50), (0, 4)] {
         let t0 = Instant::now();
-        let mut line = Line::new(&relay, &serial, false, t0);
+        let mut line = LineFraming::new(&relay, &serial, false, t0);
         line.pause_after(pause * MS);
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let key = line.allocate(t0);
@@ -150,7 +150,7 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
         };
         let relay = RelayConfig::default();
         let t0 = Instant::now();
-        let mut line = Line::new(&relay, &serial, false, t0);
+        let mut line = LineFraming::new(&relay, &serial, false, t0);
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let tid = line.allocate(t0);
         let bytes = line.encode(&read, tid, t0, &stats);
@@ -162,7 +162,7 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
         };
         let at = left + 10 * MS;
         line.received(&reply, at, &stats);
-        let asked = InFlight {
+        let asked = OnLine {
             tid,
             deadline: at + Duration::from_secs(1),
             timeout: Duration::from_secs(1),
@@ -190,14 +190,14 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
 fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
     let us = Duration::from_micros;
     let stats = Stats::default();
-    let uart = Kind::Uart {
+    let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
     for (kind, gap_us, gap) in [
-        (Kind::Pty, 0, Duration::ZERO),
+        (Medium::Pty, 0, Duration::ZERO),
         (uart, 0, us(1750)),
-        (Kind::Pty, 400, us(400)),
+        (Medium::Pty, 400, us(400)),
     ] {
         let serial = SerialConfig {
             baud_rate: 115_200,
@@ -206,7 +206,7 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
             ..SerialConfig::default()
         };
         let t0 = Instant::now();
-        let mut line = Line::new(&RelayConfig::default(), &serial, false, t0);
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
         line.port_opened(&PortInfo::plain(kind.clone()));
         let why = format!("{kind:?}, inter_frame_gap_us {gap_us}");
         let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
@@ -216,7 +216,7 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
         let left = line.drained(t0 + MS, &stats);
         let at = left + MS;
         line.received(&rtu::encode(1, &[3, 2, 0, 7]), at, &stats);
-        let asked = InFlight {
+        let asked = OnLine {
             tid,
             deadline: at + Duration::from_secs(1),
             timeout: Duration::from_secs(1),

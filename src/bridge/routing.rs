@@ -31,9 +31,9 @@ pub(crate) enum Tally {
     Timeout,
 }
 
-/// A slave connection as the table sees it.
+/// A slave connection as the routing sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Link {
+pub(crate) enum Connection {
     /// Being made (or, passive, awaited for the first time): requests wait.
     Connecting,
     Up,
@@ -76,7 +76,7 @@ struct Held {
 
 #[derive(Debug)]
 struct Route {
-    link: Link,
+    conn: Connection,
     timeout: Duration,
     max_in_flight: usize,
     next_tid: u16,
@@ -86,7 +86,7 @@ struct Route {
 
 /// Every route's state.
 #[derive(Debug)]
-pub(crate) struct Table {
+pub(crate) struct Routing {
     line: MasterLine,
     routes: Vec<Route>,
     /// Unit 0 is a broadcast (RTU, ASCII), not on MBAP.
@@ -95,7 +95,7 @@ pub(crate) struct Table {
     closing: bool,
     pub(crate) counts: Counts,
     /// Each unit's requests, replies and timeouts since the loop last took them
-    /// ([`Table::take_tallies`]).
+    /// ([`Routing::take_tallies`]).
     tallies: Vec<(u8, Tally)>,
 }
 
@@ -103,7 +103,7 @@ fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
     vec![request[0] | 0x80, code.get()]
 }
 
-impl Table {
+impl Routing {
     /// `serial_bus`: the line is RTU or ASCII (one transaction at a time, unit 0 a
     /// broadcast).
     pub(crate) fn new(line: MasterLine, serial_bus: bool) -> Self {
@@ -111,7 +111,7 @@ impl Table {
             .routes
             .iter()
             .map(|r| Route {
-                link: Link::Connecting,
+                conn: Connection::Connecting,
                 timeout: Duration::from_millis(r.response_timeout_ms),
                 max_in_flight: r.max_in_flight,
                 next_tid: 1,
@@ -216,7 +216,7 @@ impl Table {
             // dropped as late.
             self.counts.broadcasts += 1;
             for i in 0..self.routes.len() {
-                if self.routes[i].link == Link::Up {
+                if self.routes[i].conn == Connection::Up {
                     let tid = self.allocate(i);
                     let adu = Adu::build(tid, 0, &request.pdu);
                     self.counts.forwarded += 1;
@@ -238,7 +238,7 @@ impl Table {
             deadline: now + self.routes[i].timeout,
             ..held
         };
-        if self.routes[i].link == Link::Down {
+        if self.routes[i].conn == Connection::Down {
             self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
             return out;
         }
@@ -262,7 +262,7 @@ impl Table {
 
     /// Sends what waits on route `i` while its connection is up and has room.
     fn pump(&mut self, i: usize, out: &mut Vec<Action>) {
-        while self.routes[i].link == Link::Up
+        while self.routes[i].conn == Connection::Up
             && self.routes[i].in_flight.len() < self.routes[i].max_in_flight
         {
             let Some(held) = self.routes[i].waiting.pop_front() else {
@@ -278,13 +278,13 @@ impl Table {
 
     /// Route `i`'s connection is being made.
     pub(crate) fn connecting(&mut self, i: usize) {
-        self.routes[i].link = Link::Connecting;
+        self.routes[i].conn = Connection::Connecting;
     }
 
     /// Route `i`'s connection is up: what waited is sent.
     pub(crate) fn up(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
-        self.routes[i].link = Link::Up;
+        self.routes[i].conn = Connection::Up;
         self.pump(i, &mut out);
         out
     }
@@ -293,7 +293,7 @@ impl Table {
     /// 0x0B (the slave may have acted on them), those not sent 0x0A.
     pub(crate) fn down(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
-        self.routes[i].link = Link::Down;
+        self.routes[i].conn = Connection::Down;
         for (_, held) in std::mem::take(&mut self.routes[i].in_flight) {
             self.answer(&mut out, held, ExceptionCode::GATEWAY_TARGET_FAILED);
         }
@@ -351,7 +351,7 @@ impl Table {
                 .into_iter()
                 .partition(|h| h.deadline <= now);
             r.waiting = waiting;
-            let code = if r.link == Link::Up {
+            let code = if r.conn == Connection::Up {
                 ExceptionCode::GATEWAY_TARGET_FAILED
             } else {
                 ExceptionCode::GATEWAY_PATH_UNAVAILABLE
@@ -452,7 +452,7 @@ mod tests {
     #[test]
     fn retune_changes_the_timeout_of_later_requests_only() {
         let t0 = Instant::now();
-        let mut t = Table::new(line(2), false);
+        let mut t = Routing::new(line(2), false);
         t.up(1);
         assert_eq!(sent(&t.request(req(1, 9), t0)), [(1, 1, 9)]);
         let mut longer = line(2);
@@ -473,7 +473,7 @@ mod tests {
     #[test]
     fn after_the_serial_port_is_lost_nothing_held_is_answered() {
         let now = Instant::now();
-        let mut t = Table::new(line(1), true);
+        let mut t = Routing::new(line(1), true);
         t.up(0);
         assert_eq!(sent(&t.request(req(7, 1), now)), vec![(0, 1, 1)]);
         assert!(
@@ -493,7 +493,7 @@ mod tests {
     #[test]
     fn routes_by_unit_waits_for_the_connection_and_restores_the_id() {
         let t0 = Instant::now();
-        let mut t = Table::new(line(1), false);
+        let mut t = Routing::new(line(1), false);
         assert_eq!(t.request(req(7, 1), t0), []);
         assert_eq!(t.request(req(8, 9), t0), []);
         assert_eq!(sent(&t.up(0)), [(0, 1, 1)]);
@@ -511,7 +511,7 @@ mod tests {
     #[test]
     fn one_at_a_time_unless_pipelining_is_allowed() {
         let t0 = Instant::now();
-        let mut t = Table::new(line(1), false);
+        let mut t = Routing::new(line(1), false);
         t.up(1);
         assert_eq!(sent(&t.request(req(1, 5), t0)).len(), 1);
         assert_eq!(t.request(req(2, 5), t0), [], "waits for room");
@@ -522,7 +522,7 @@ mod tests {
             [(1, 2, 5)],
             "the next one goes when the first is answered"
         );
-        let mut t = Table::new(line(3), false);
+        let mut t = Routing::new(line(3), false);
         t.up(1);
         let n: usize = (0..4).map(|i| sent(&t.request(req(i, 5), t0)).len()).sum();
         assert_eq!(n, 3);
@@ -532,7 +532,7 @@ mod tests {
     #[test]
     fn timeout_is_0x0b_unreachable_is_0x0a() {
         let t0 = Instant::now();
-        let mut t = Table::new(line(1), false);
+        let mut t = Routing::new(line(1), false);
         t.up(1);
         t.request(req(1, 5), t0);
         t.request(req(2, 5), t0 + Duration::from_millis(50));
@@ -567,7 +567,7 @@ mod tests {
         let t0 = Instant::now();
         let mut only = line(1);
         only.routes.pop();
-        let mut t = Table::new(only, false);
+        let mut t = Routing::new(only, false);
         t.up(0);
         assert_eq!(
             answers(&t.request(req(1, 2), t0)),
@@ -583,7 +583,7 @@ mod tests {
     #[test]
     fn bus_broadcast_goes_everywhere_unanswered_and_a_new_request_supersedes() {
         let t0 = Instant::now();
-        let mut t = Table::new(line(1), true);
+        let mut t = Routing::new(line(1), true);
         t.up(0);
         t.up(1);
         let bus = |unit| Incoming {
@@ -618,7 +618,7 @@ mod tests {
     #[test]
     fn a_slave_answering_as_unit_0_or_255_is_matched() {
         let now = Instant::now();
-        let mut t = Table::new(line(1), false);
+        let mut t = Routing::new(line(1), false);
         t.up(0);
         for (i, as_unit) in [0u8, 0xFF].into_iter().enumerate() {
             let tid = i as u16 + 1;
@@ -636,7 +636,7 @@ mod tests {
     #[test]
     fn closing_answers_what_is_held_and_refuses_the_rest() {
         let now = Instant::now();
-        let mut t = Table::new(line(1), false);
+        let mut t = Routing::new(line(1), false);
         t.up(0);
         t.request(req(1, 1), now);
         t.request(req(2, 1), now);

@@ -9,8 +9,8 @@
 //! Plain data and a few relaxed atomic stores, the time passed in: the relay never
 //! waits on whoever reads the numbers, and a capture's packets go out by `try_send`.
 
-use crate::capture::packet::{Dir, Packet, Proto, Reason, Role};
-use crate::capture::tape::Dropped;
+use crate::capture::dropped::Dropped;
+use crate::capture::packet::{Dir, Packet, Part, Proto, Reason};
 use crate::capture::Tap;
 use crate::config::Framing;
 use crate::frame::hex::Hex;
@@ -114,7 +114,8 @@ impl Drops {
     }
 }
 
-pub(super) struct Watch {
+/// What the relay tells about its line: see the module notes.
+pub(super) struct Telemetry {
     pub(super) metrics: Arc<LineMetrics>,
     /// `serial.baud_rate`, for the warnings.
     pub(super) baud: u32,
@@ -128,7 +129,7 @@ pub(super) struct Watch {
     pub(super) tap: Tap,
 }
 
-impl Watch {
+impl Telemetry {
     pub(super) fn new(
         metrics: Arc<LineMetrics>,
         traffic: bool,
@@ -193,7 +194,7 @@ impl Watch {
     pub(super) fn sent(&mut self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
         self.spells[usize::from(adu.unit())].sent_drops = Some(Drops::of(&self.metrics.stats));
         if self.tap.on() {
-            let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Role::Query);
+            let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Part::Query);
             p.conn = Some(conn);
             p.span = span(adu.pdu());
             p.label = "gw->serial";
@@ -225,7 +226,7 @@ impl Watch {
     /// was on the wire (`wire`), taken off the line at `at`: for the capture.
     pub(super) fn taken(&self, conn: u64, asked: &Adu, frame: &Adu, wire: &[u8], at: Instant) {
         if self.tap.on() {
-            let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
+            let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Part::Reply);
             p.conn = Some(conn);
             p.span = span(asked.pdu());
             p.label = "serial->gw";
@@ -237,9 +238,9 @@ impl Watch {
     pub(super) fn dropped(&self, d: Dropped, now: Instant) {
         // What comes off a line of devices is a reply, but for the echo of a request.
         let role = if d.reason == Reason::Echo {
-            Role::Query
+            Part::Query
         } else {
-            Role::Reply
+            Part::Reply
         };
         let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
         let p = p.shown_as(role);
@@ -317,9 +318,9 @@ impl Watch {
                     true,
                     "a reply to a request already answered or timed out",
                 )
-                .shown_as(Role::Reply)
+                .shown_as(Part::Reply)
             } else {
-                let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Role::Reply);
+                let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Part::Reply);
                 p.label = "unsolicited";
                 let note = format!("a frame that answers no request: {what}");
                 p.note = Some(match p.note {
@@ -348,7 +349,7 @@ impl Watch {
     pub(super) fn timed_out(&mut self, conn: u64, asked: &Adu, now: Instant) {
         let unit = asked.unit();
         if self.tap.on() {
-            let mut p = Packet::new(Dir::Neither, Role::Other, Proto::Data, Vec::new());
+            let mut p = Packet::new(Dir::Neither, Part::Other, Proto::Data, Vec::new());
             p.conn = Some(conn);
             p.unit = Some(unit);
             p.function = Some(asked.function());
@@ -446,9 +447,12 @@ mod tests {
         Adu::build(1, unit, &[3, 0, 0, 0, 1])
     }
 
-    fn watch() -> (Watch, Instant) {
+    fn telemetry() -> (Telemetry, Instant) {
         let m = Arc::new(LineMetrics::new("/dev/ttyX", Arc::new(Stats::default())));
-        (Watch::new(m, false, Framing::Mbap, 19_200), Instant::now())
+        (
+            Telemetry::new(m, false, Framing::Mbap, 19_200),
+            Instant::now(),
+        )
     }
 
     #[test]
@@ -467,9 +471,9 @@ mod tests {
     /// healthy again at once when it answers.
     #[test]
     fn a_unit_fails_while_it_times_out_and_until_it_answers_or_a_minute_passes() {
-        let (mut w, t0) = watch();
+        let (mut w, t0) = telemetry();
         let at = |s: u64| t0 + Duration::from_secs(s);
-        let failing = |w: &Watch, t| w.metrics.not_answering(w.metrics.unit(1), t);
+        let failing = |w: &Telemetry, t| w.metrics.not_answering(w.metrics.unit(1), t);
         w.timed_out(7, &asked(1), at(0));
         w.timed_out(7, &asked(1), at(1));
         assert!(
@@ -491,8 +495,8 @@ mod tests {
 
     #[test]
     fn a_spell_is_warned_at_its_third_timeout_and_its_end_said() {
-        let (mut w, t0) = watch();
-        let s = |w: &Watch| w.spells[1].clone();
+        let (mut w, t0) = telemetry();
+        let s = |w: &Telemetry| w.spells[1].clone();
         w.timed_out(7, &asked(1), t0);
         w.timed_out(7, &asked(1), t0 + Duration::from_secs(1));
         assert!(!s(&w).warned);
@@ -509,7 +513,7 @@ mod tests {
 
     #[test]
     fn a_second_spell_within_the_minute_is_not_warned_but_counted() {
-        let (mut w, t0) = watch();
+        let (mut w, t0) = telemetry();
         let req = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
         let rep = Adu::build(1, 1, &[3, 2, 0, 0]);
         for i in 0..3 {

@@ -9,6 +9,7 @@ use crate::stats::Stats;
 use std::collections::HashMap;
 use tracing::debug;
 
+/// The masters attached to the relay, and what becomes of a notification.
 pub(super) struct Masters {
     conns: HashMap<ConnId, Notifier>,
     policy: Notifications,

@@ -64,7 +64,7 @@ pub(crate) enum ClientError {
 /// The way to the device: a TCP connection (opened on first use, reopened after an
 /// error) or a serial port (likewise).
 #[derive(Debug)]
-pub(crate) enum Link {
+pub(crate) enum Transport {
     Tcp {
         addr: String,
         stream: Option<TcpStream>,
@@ -86,9 +86,9 @@ pub(crate) enum Link {
     },
 }
 
-impl Link {
+impl Transport {
     /// `HOST[:PORT]`; port 502 if left out.
-    pub(crate) fn tcp(addr: &str) -> Link {
+    pub(crate) fn tcp(addr: &str) -> Transport {
         let has_port = addr.parse::<std::net::SocketAddr>().is_ok()
             || addr.rsplit_once(':').is_some_and(|(host, port)| {
                 !host.is_empty() && !host.ends_with(':') && port.parse::<u16>().is_ok()
@@ -100,67 +100,69 @@ impl Link {
         } else {
             format!("{addr}:{MODBUS_PORT}")
         };
-        Link::Tcp {
+        Transport::Tcp {
             addr,
             stream: None,
             buf: BytesMut::new(),
         }
     }
 
-    /// `HOST[:PORT]` as [`Link::tcp`], its frames in `framing` (MBAP: [`Link::tcp`]).
-    pub(crate) fn tcp_framed(addr: &str, framing: Framing) -> Link {
+    /// `HOST[:PORT]` as [`Transport::tcp`], its frames in `framing` (MBAP: [`Transport::tcp`]).
+    pub(crate) fn tcp_framed(addr: &str, framing: Framing) -> Transport {
         let codec = match framing {
-            Framing::Mbap => return Link::tcp(addr),
+            Framing::Mbap => return Transport::tcp(addr),
             Framing::Rtu => crate::frame::serial::Codec::Rtu,
             Framing::Ascii => crate::frame::serial::Codec::Ascii,
         };
-        let Link::Tcp { addr, .. } = Link::tcp(addr) else {
-            unreachable!("Link::tcp gives a Tcp link")
+        let Transport::Tcp { addr, .. } = Transport::tcp(addr) else {
+            unreachable!("Transport::tcp gives a Tcp transport")
         };
-        Link::TcpFramed {
+        Transport::TcpFramed {
             addr,
             stream: None,
             decoder: Framer::serial(codec),
         }
     }
 
-    pub(crate) fn serial(cfg: SerialConfig) -> Link {
-        Link::Serial {
+    pub(crate) fn serial(cfg: SerialConfig) -> Transport {
+        Transport::Serial {
             decoder: cfg.framing.framer(),
             cfg,
             port: None,
         }
     }
 
-    /// The bytes `adu` is on this link's wire: MBAP as it is, RTU or ASCII as the
+    /// The bytes `adu` is on this transport's wire: MBAP as it is, RTU or ASCII as the
     /// unit and PDU in that framing, check included.
     pub(crate) fn wire(&self, adu: &Adu) -> Vec<u8> {
         match self {
-            Link::Serial { decoder, .. } | Link::TcpFramed { decoder, .. } => decoder.encode(adu),
-            Link::Tcp { .. } => adu.as_bytes().to_vec(),
+            Transport::Serial { decoder, .. } | Transport::TcpFramed { decoder, .. } => {
+                decoder.encode(adu)
+            }
+            Transport::Tcp { .. } => adu.as_bytes().to_vec(),
         }
     }
 
     /// What error messages call it: the address or the port's path.
     pub(crate) fn name(&self) -> &str {
         match self {
-            Link::Tcp { addr, .. } | Link::TcpFramed { addr, .. } => addr,
-            Link::Serial { cfg, .. } => &cfg.path,
+            Transport::Tcp { addr, .. } | Transport::TcpFramed { addr, .. } => addr,
+            Transport::Serial { cfg, .. } => &cfg.path,
         }
     }
 
     /// Forgets the connection or port; the next request opens it again.
     fn close(&mut self) {
         match self {
-            Link::Tcp { stream, buf, .. } => {
+            Transport::Tcp { stream, buf, .. } => {
                 *stream = None;
                 buf.clear();
             }
-            Link::Serial { port, decoder, .. } => {
+            Transport::Serial { port, decoder, .. } => {
                 *port = None;
                 decoder.clear();
             }
-            Link::TcpFramed {
+            Transport::TcpFramed {
                 stream, decoder, ..
             } => {
                 *stream = None;
@@ -205,7 +207,7 @@ pub(crate) struct Exchange {
     pub(crate) dropped_bytes: u64,
 }
 
-/// What a link hands back before decoding.
+/// What a transport hands back before decoding.
 struct Received {
     reply: Adu,
     round_trip: Duration,
@@ -213,27 +215,27 @@ struct Received {
     dropped_bytes: u64,
 }
 
-/// A Modbus master on one link: numbers the requests (transaction ids 1, 2, ...,
+/// A Modbus master on one transport: numbers the requests (transaction ids 1, 2, ...,
 /// never 0x0000, which the device's own change notifications may use: docs/design.md §1
 /// step 3) and waits for each answer, bounded by the timeout.
 #[derive(Debug)]
 pub(crate) struct Master {
-    link: Link,
+    transport: Transport,
     timeout: Duration,
     next_tid: u16,
 }
 
 impl Master {
-    pub(crate) fn new(link: Link, timeout: Duration) -> Master {
+    pub(crate) fn new(transport: Transport, timeout: Duration) -> Master {
         Master {
-            link,
+            transport,
             timeout,
             next_tid: 1,
         }
     }
 
-    pub(crate) fn link(&self) -> &Link {
-        &self.link
+    pub(crate) fn transport(&self) -> &Transport {
+        &self.transport
     }
 
     /// The transaction id for the next request; each call gives a new one.
@@ -244,20 +246,20 @@ impl Master {
     }
 
     /// Sends `request` and waits, at most the timeout in all (connecting or opening
-    /// included), for its answer. After an I/O or protocol error the link is closed,
+    /// included), for its answer. After an I/O or protocol error the transport is closed,
     /// to be reopened by the next request; after a timeout it is kept (a late answer
     /// is recognised by its transaction id and ignored).
     pub(crate) async fn transact(&mut self, request: &Adu) -> Result<Exchange, ClientError> {
         let deadline = Instant::now() + self.timeout;
         let ms = self.timeout.as_millis() as u64;
-        let received = match &mut self.link {
-            Link::Tcp { addr, stream, buf } => {
+        let received = match &mut self.transport {
+            Transport::Tcp { addr, stream, buf } => {
                 tcp_exchange(addr, stream, buf, request, deadline, ms).await
             }
-            Link::Serial { cfg, port, decoder } => {
+            Transport::Serial { cfg, port, decoder } => {
                 serial_exchange(cfg, port, decoder, request, deadline, ms).await
             }
-            Link::TcpFramed {
+            Transport::TcpFramed {
                 addr,
                 stream,
                 decoder,
@@ -275,7 +277,7 @@ impl Master {
                 dropped_bytes: r.dropped_bytes,
             }),
             Err(source) => Err(ClientError::Mismatch {
-                target: self.link.name().to_string(),
+                target: self.transport.name().to_string(),
                 source,
             }),
         });
@@ -287,7 +289,7 @@ impl Master {
                 | ClientError::WrongUnit { .. }
                 | ClientError::Mismatch { .. })
         ) {
-            self.link.close();
+            self.transport.close();
         }
         result
     }
@@ -524,7 +526,7 @@ mod tests {
 
     #[test]
     fn transaction_ids_skip_zero() {
-        let mut m = Master::new(Link::tcp("127.0.0.1"), Duration::from_secs(1));
+        let mut m = Master::new(Transport::tcp("127.0.0.1"), Duration::from_secs(1));
         assert_eq!(m.next_tid(), 1);
         assert_eq!(m.next_tid(), 2);
         m.next_tid = 0xFFFF;

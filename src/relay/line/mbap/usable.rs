@@ -5,14 +5,14 @@
 
 use crate::frame::mbap::FrameRef;
 use crate::frame::{pdu, FunctionCode, Judge};
-use crate::relay::inflight::{Asked, InFlight};
+use crate::relay::inflight::{Asked, OnLine};
 use crate::tids::Tids;
 use tokio::time::Instant;
 
 /// The relay's view of which frames on the line it can use (docs/design.md §1 step 4,
 /// §2).
 pub(super) struct RelayJudge<'a, R> {
-    pub(super) in_flight: &'a [InFlight<R>],
+    pub(super) in_flight: &'a [OnLine<R>],
     pub(super) tids: &'a Tids,
     pub(super) now: Instant,
     pub(super) stream: bool,
@@ -108,7 +108,7 @@ impl<R: Asked> Judge for RelayJudge<'_, R> {
     /// line's talk.
     fn pause_confirms(&self, frame: FrameRef<'_>) -> bool {
         let tid = frame.tid();
-        let due = |f: &InFlight<R>| f.deadline > self.now;
+        let due = |f: &OnLine<R>| f.deadline > self.now;
         let own_expired = self.in_flight.iter().any(|f| f.tid == tid && !due(f));
         own_expired || !self.in_flight.iter().any(|f| f.tid != tid && due(f))
     }

@@ -1,0 +1,504 @@
+//! The map held to the code: every file, folder, module path and type that
+//! docs/architecture.md and CONTRIBUTING.md name exists in the tree, so a rename or a
+//! move that forgets the docs fails here, naming what is missing.
+
+use super::repo;
+use std::path::{Path, PathBuf};
+
+/// The pages that describe the code.
+const PAGES: &[&str] = &["docs/architecture.md", "CONTRIBUTING.md"];
+/// The folders at the top of the checkout a named path may start with.
+const ROOTS: &[&str] = &[
+    "src/",
+    "tests/",
+    "benches/",
+    "fuzz/",
+    "scripts/",
+    "docs/",
+    "packaging/",
+    "systemd/",
+    "config/",
+    ".ci/",
+    ".cargo/",
+];
+/// Where a file named by its tail alone (`mbap/tests.rs`, `kind.rs` tests) is looked
+/// for.
+const CODE: &[&str] = &["src", "tests", "benches", "fuzz"];
+
+/// Every file under `dir`, as paths from the checkout, folders with a trailing `/`.
+fn tree(dir: &Path, out: &mut Vec<String>) {
+    for e in std::fs::read_dir(dir).unwrap() {
+        let path = e.unwrap().path();
+        let rel = path.strip_prefix(repo()).unwrap().display().to_string();
+        if path.is_dir() {
+            out.push(format!("{rel}/"));
+            tree(&path, out);
+        } else {
+            out.push(rel);
+        }
+    }
+}
+
+/// The text of `md` outside fenced blocks, and the fenced blocks' text.
+fn prose_and_fences(md: &str) -> (String, String) {
+    let (mut prose, mut fences) = (String::new(), String::new());
+    let mut fenced = false;
+    for line in md.lines() {
+        if line.trim_start().starts_with("```") {
+            fenced = !fenced;
+            continue;
+        }
+        let to = if fenced { &mut fences } else { &mut prose };
+        to.push_str(line);
+        to.push('\n');
+    }
+    (prose, fences)
+}
+
+/// The inline code spans of `prose`.
+fn spans(prose: &str) -> Vec<String> {
+    prose
+        .split('`')
+        .skip(1)
+        .step_by(2)
+        .map(|s| s.split_whitespace().collect::<Vec<_>>().join(" "))
+        .collect()
+}
+
+fn is_path_char(c: char) -> bool {
+    c.is_ascii_alphanumeric() || "_./-".contains(c)
+}
+
+/// Does `name` (a path from the checkout, or the tail of one) name a file or folder?
+fn found(name: &str, files: &[String]) -> bool {
+    let bare = name.trim_end_matches('/');
+    let root = repo();
+    if root.join(bare).exists() || root.join("src").join(bare).exists() {
+        return true;
+    }
+    // A fuzz target by its name (`fuzz/pdu`).
+    if let Some(target) = bare.strip_prefix("fuzz/") {
+        if root.join(format!("fuzz/fuzz_targets/{target}.rs")).exists() {
+            return true;
+        }
+    }
+    if ROOTS.iter().any(|r| name.starts_with(r)) {
+        return false;
+    }
+    files.iter().any(|f| {
+        let f = f.trim_end_matches('/');
+        CODE.iter().any(|c| f.starts_with(&format!("{c}/"))) && f.ends_with(&format!("/{bare}"))
+    })
+}
+
+/// The paths `text` names: every `src/...`, and among `tokens` those that end in
+/// `.rs` or `/`, or start at a folder of the checkout.
+fn paths(text: &str, tokens: &[String]) -> Vec<String> {
+    let mut out = Vec::new();
+    let mut rest = text;
+    while let Some(at) = rest.find("src/") {
+        let before = rest[..at].chars().next_back();
+        let tail: String = rest[at..]
+            .chars()
+            .take_while(|&c| is_path_char(c))
+            .collect();
+        rest = &rest[at + 4..];
+        if before.is_some_and(|c| is_path_char(c) || c == '/') {
+            continue;
+        }
+        out.push(tail.trim_end_matches(['.', ',']).to_string());
+    }
+    for t in tokens {
+        let t = t
+            .trim_end_matches([',', ':', ';', ')'])
+            .trim_start_matches('(');
+        if t.is_empty()
+            || !t.chars().all(is_path_char)
+            || t.starts_with('/')
+            || t.starts_with("..")
+            || t.contains("//")
+        {
+            continue;
+        }
+        let file_like = t.ends_with(".rs") || (t.ends_with('/') && t.len() > 1);
+        if file_like || ROOTS.iter().any(|r| t.starts_with(r)) {
+            out.push(t.to_string());
+        }
+    }
+    out
+}
+
+/// The non-comment lines of a Rust file.
+fn code_of(path: &Path) -> String {
+    std::fs::read_to_string(path)
+        .unwrap_or_default()
+        .lines()
+        .filter(|l| {
+            let t = l.trim_start();
+            !(t.starts_with("//") || t.starts_with("#["))
+        })
+        .collect::<Vec<_>>()
+        .join("\n")
+}
+
+fn has_word(text: &str, word: &str) -> bool {
+    let ident = |c: char| c.is_ascii_alphanumeric() || c == '_';
+    text.match_indices(word).any(|(i, _)| {
+        !text[..i].chars().next_back().is_some_and(ident)
+            && !text[i + word.len()..].chars().next().is_some_and(ident)
+    })
+}
+
+/// Does the module whose code is `code` declare `item`, or bring it in with `use`?
+fn declares(code: &str, item: &str) -> bool {
+    const KEYWORDS: &[&str] = &[
+        "fn", "struct", "enum", "trait", "type", "const", "static", "mod", "union",
+    ];
+    if KEYWORDS
+        .iter()
+        .any(|k| has_word(code, &format!("{k} {item}")))
+        || has_word(code, &format!("macro_rules! {item}"))
+        || has_word(code, &format!("impl {item}"))
+        // An enum a declaring macro makes (`Framing { Mbap = "mbap", ... }`).
+        || code.lines().any(|l| l.trim() == format!("{item} {{"))
+    {
+        return true;
+    }
+    // `use a::{b, item}`, over several lines.
+    let mut rest = code;
+    while let Some(at) = rest.find("use ") {
+        let stmt = &rest[at..rest[at..].find(';').map_or(rest.len(), |e| at + e)];
+        if has_word(stmt, item) {
+            return true;
+        }
+        rest = &rest[at + 4..];
+    }
+    false
+}
+
+/// The files of module `segments` (`["relay", "line"]`): `src/relay/line.rs` or
+/// `src/relay/line/mod.rs`.
+fn module_file(segments: &[&str]) -> Option<PathBuf> {
+    let base = repo().join("src").join(segments.join("/"));
+    [base.with_extension("rs"), base.join("mod.rs")]
+        .into_iter()
+        .find(|p| p.is_file())
+}
+
+/// Why the module path `path` (`relay::inflight::InFlight`, `frame::pdu::check_request`)
+/// leads nowhere, if it does; `None` also when its first step is no room of the crate
+/// (`Framing::framer`: a type's own, checked with its type where a row names it).
+fn lost(path: &str, all_code: &str) -> Option<String> {
+    let path = path.trim_end_matches("()");
+    let segments: Vec<&str> = path
+        .strip_prefix("crate::")
+        .unwrap_or(path)
+        .split("::")
+        .collect();
+    let first = segments[0];
+    if !first.chars().all(|c| c.is_ascii_lowercase() || c == '_')
+        || matches!(first, "lib" | "main")
+        || module_file(&[first]).is_none()
+    {
+        return None;
+    }
+    let mut depth = 1;
+    while depth < segments.len() && module_file(&segments[..=depth]).is_some() {
+        depth += 1;
+    }
+    let module = module_file(&segments[..depth]).unwrap();
+    // A module alone is found.
+    let item = segments.get(depth)?;
+    if !declares(&code_of(&module), item) {
+        return Some(format!(
+            "`{path}`: {} declares no `{item}`",
+            module.strip_prefix(repo()).unwrap().display()
+        ));
+    }
+    // What follows the item (a method, a variant) is somewhere in the code.
+    for more in &segments[depth + 1..] {
+        if !has_word(all_code, more) {
+            return Some(format!("`{path}`: no `{more}` in src/"));
+        }
+    }
+    None
+}
+
+/// In a table row whose first cell names files of `src/`, every type or constant the
+/// row names in backticks is in one of those files.
+fn row_types(row: &str, files: &[String]) -> Vec<String> {
+    let cells: Vec<&str> = row.trim().trim_matches('|').split(" | ").collect();
+    let Some((first, rest)) = cells.split_first() else {
+        return Vec::new();
+    };
+    let named: Vec<String> = spans(first)
+        .into_iter()
+        .filter(|s| s.starts_with("src/") && files.iter().any(|f| f == s))
+        .collect();
+    let sources: Vec<String> = named
+        .iter()
+        .filter(|f| f.ends_with(".rs"))
+        .map(|f| code_of(&repo().join(f)))
+        .collect();
+    if sources.is_empty() {
+        return Vec::new();
+    }
+    let mut wrong = Vec::new();
+    for s in spans(&rest.join(" | ")) {
+        let is_type = s.starts_with(|c: char| c.is_ascii_uppercase())
+            && s.chars().all(|c| c.is_ascii_alphanumeric() || c == '_')
+            && s.chars().any(|c| c.is_ascii_lowercase() || c == '_');
+        if is_type && !sources.iter().any(|code| has_word(code, &s)) {
+            wrong.push(format!("`{s}`: not in {}", named.join(", ")));
+        }
+    }
+    wrong
+}
+
+/// docs/architecture.md and CONTRIBUTING.md name only what the tree has: every path of
+/// `src/` (and every `.rs` file or folder named by its tail, as the request's path
+/// does), every module path whose first step is a room of the crate
+/// (`relay::inflight::InFlight`: the module, then its item), and every type a file's
+/// row of a table names, in that file.
+#[test]
+fn the_map_names_only_what_the_code_has() {
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    for dir in ["tests", "benches", "fuzz/fuzz_targets"] {
+        tree(&repo().join(dir), &mut files);
+    }
+    let all_code: String = files
+        .iter()
+        .filter(|f| f.starts_with("src/") && f.ends_with(".rs"))
+        .map(|f| code_of(&repo().join(f)))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let mut wrong = Vec::new();
+    let mut checked = 0;
+    for page in PAGES {
+        let md = std::fs::read_to_string(repo().join(page)).unwrap();
+        let (prose, fences) = prose_and_fences(&md);
+        let spans = spans(&prose);
+        let words: Vec<String> = fences
+            .split(|c: char| c.is_whitespace() || "(),;:".contains(c))
+            .map(str::to_string)
+            .collect();
+        let mut named = paths(&prose, &spans);
+        named.extend(paths(&fences, &words));
+        named.sort();
+        named.dedup();
+        for p in &named {
+            checked += 1;
+            if !found(p, &files) {
+                wrong.push(format!("{page}: `{p}`: no such file or folder"));
+            }
+        }
+        for s in &spans {
+            if s.contains("::")
+                && s.chars()
+                    .all(|c| c.is_ascii_alphanumeric() || "_:()".contains(c))
+            {
+                checked += 1;
+                if let Some(why) = lost(s, &all_code) {
+                    wrong.push(format!("{page}: {why}"));
+                }
+            }
+        }
+        for row in prose.lines().filter(|l| l.starts_with("| `src/")) {
+            checked += 1;
+            wrong.extend(
+                row_types(row, &files)
+                    .into_iter()
+                    .map(|w| format!("{page}: {w}")),
+            );
+        }
+    }
+    assert!(
+        checked > 200,
+        "only {checked} names found: is the parsing right?"
+    );
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
+/// The files of `src/` a table row of `page` names: its first cell's paths, and every
+/// `.rs` or `.html` file another cell names from the row's folder (`mbap/tests.rs` in
+/// the row of `src/relay/line/mbap.rs`, `console.rs` in the row of `src/sim/`).
+fn rows_name(page: &str) -> Vec<String> {
+    let mut named = Vec::new();
+    for row in page.lines().filter(|l| l.starts_with("| `src/")) {
+        let first = row
+            .trim_start_matches('|')
+            .split(" | ")
+            .next()
+            .unwrap_or("");
+        let bases: Vec<String> = spans(first)
+            .into_iter()
+            .filter(|s| s.starts_with("src/"))
+            .map(|p| match p.ends_with('/') {
+                true => p,
+                false => p[..=p.rfind('/').unwrap()].to_string(),
+            })
+            .collect();
+        for s in spans(row) {
+            named.push(s.clone());
+            if s.ends_with(".rs") || s.ends_with(".html") {
+                named.extend(bases.iter().map(|b| format!("{b}{s}")));
+            }
+        }
+    }
+    named
+}
+
+/// docs/architecture.md is the map of every file: each source file of `src/` is named
+/// there, by its path or in its folder's row.
+#[test]
+fn every_source_file_is_on_the_map() {
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let page = std::fs::read_to_string(repo().join("docs/architecture.md")).unwrap();
+    let mut named = rows_name(&page);
+    named.extend(paths(&page, &[]));
+    let missing: Vec<&String> = files
+        .iter()
+        .filter(|f| f.ends_with(".rs") || f.ends_with(".html"))
+        .filter(|f| !named.contains(f))
+        .collect();
+    assert!(
+        missing.is_empty(),
+        "files of src/ docs/architecture.md does not name: {missing:?}"
+    );
+}
+
+/// The room of a source file: its first step under `src/` (`relay` for
+/// `src/relay/line/mod.rs` and `src/relay.rs`).
+fn room(file: &str) -> String {
+    let step = file["src/".len()..].split('/').next().unwrap();
+    step.trim_end_matches(".rs").to_string()
+}
+
+/// The production code of a source file: no comments, no test module.
+fn production(path: &Path) -> String {
+    let text = std::fs::read_to_string(path).unwrap();
+    let mut out = String::new();
+    let mut lines = text.lines().peekable();
+    while let Some(line) = lines.next() {
+        let t = line.trim_start();
+        if t == "#[cfg(test)]"
+            && lines
+                .peek()
+                .is_some_and(|n| n.trim_start().starts_with("mod "))
+        {
+            break;
+        }
+        out.push_str(line.split("//").next().unwrap());
+        out.push('\n');
+    }
+    out
+}
+
+/// The rooms' drawing of docs/architecture.md, "The rooms", holds: a room's
+/// production code names (`crate::room`, or `mbgate::room` in main.rs) only rooms in
+/// rows below it, or to its right in its own row; and every room is drawn.
+#[test]
+fn every_import_points_down_the_rooms_drawing() {
+    let page = std::fs::read_to_string(repo().join("docs/architecture.md")).unwrap();
+    let after = &page[page.find("## The rooms").expect("the rooms section")..];
+    let start = after.find("```").unwrap() + 3;
+    let drawing = &after[start..start + after[start..].find("```").unwrap()];
+    // (row, place in the row) of each room drawn.
+    let mut place = std::collections::BTreeMap::new();
+    let mut row = 0;
+    for line in drawing.lines() {
+        let rooms: Vec<String> = line
+            .split_whitespace()
+            .filter(|w| {
+                (w.ends_with(".rs") || w.ends_with('/'))
+                    && w.chars()
+                        .all(|c| c.is_ascii_lowercase() || "_./".contains(c))
+            })
+            .map(|w| w.trim_end_matches('/').trim_end_matches(".rs").to_string())
+            .collect();
+        if rooms.is_empty() {
+            continue;
+        }
+        for (i, r) in rooms.into_iter().enumerate() {
+            place.insert(r, (row, i));
+        }
+        row += 1;
+    }
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let mut wrong = Vec::new();
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        let from = room(file);
+        if from == "lib" || file.ends_with("/tests.rs") || file.contains("/tests/") {
+            continue;
+        }
+        let Some(&at) = place.get(&from) else {
+            wrong.push(format!("{file}: room `{from}` is not drawn"));
+            continue;
+        };
+        let code = production(&repo().join(file));
+        let mut seen = std::collections::BTreeSet::new();
+        for prefix in ["crate::", "mbgate::"] {
+            for (i, _) in code.match_indices(prefix) {
+                let to: String = code[i + prefix.len()..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect();
+                if to == from || !seen.insert(to.clone()) {
+                    continue;
+                }
+                if let Some(&there) = place.get(&to) {
+                    if there <= at {
+                        wrong.push(format!(
+                            "{file}: `{from}` uses `{to}`, above it or to its left"
+                        ));
+                    }
+                }
+            }
+        }
+    }
+    assert!(
+        place.len() > 20,
+        "only {} rooms drawn: is the parsing right?",
+        place.len()
+    );
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
+/// The number of files in `src/` a new framing touches, as the pages state it
+/// ("13 in `src/` today"), is the number that name `Framing::Ascii` or `Codec::Ascii`.
+#[test]
+fn the_files_a_framing_touches_are_counted_right() {
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let count = files
+        .iter()
+        .filter(|f| f.ends_with(".rs"))
+        .filter(|f| {
+            let text = std::fs::read_to_string(repo().join(f)).unwrap();
+            has_word(&text, "Framing::Ascii") || has_word(&text, "Codec::Ascii")
+        })
+        .count();
+    let mut stated = Vec::new();
+    for page in PAGES {
+        let md = std::fs::read_to_string(repo().join(page)).unwrap();
+        let md = md.split_whitespace().collect::<Vec<_>>().join(" ");
+        for (i, _) in md.match_indices(" in `src/` today") {
+            let n = md[..i]
+                .split(|c: char| !c.is_ascii_digit())
+                .rfind(|w| !w.is_empty())
+                .and_then(|w| w.parse::<usize>().ok());
+            stated.push((page, n));
+        }
+    }
+    assert_eq!(stated.len(), 2, "both pages state the count: {stated:?}");
+    for (page, n) in stated {
+        assert_eq!(
+            n,
+            Some(count),
+            "{page}: the files naming Framing::Ascii or Codec::Ascii"
+        );
+    }
+}
