@@ -81,7 +81,7 @@ impl<const PORT: bool> Flags<PORT> {
                 let m = format!("the file describes the gateway as {tables} tables: set it there");
                 return Err(bad(key.flag, m));
             }
-            (key.set)(&mut c, value).map_err(|m| bad(key.flag, m))?;
+            (key.set)(&mut c, value).map_err(|e| bad(key.flag, e.into()))?;
         }
         // Flags that contradict each other, or the file: name the flag that was given
         // (the first key's when both were).
@@ -125,6 +125,7 @@ fn arg(key: &'static Key) -> Arg {
         Check::Range(min, max, None) => help += &format!(", {min}..={max}{unit}"),
         Check::Range(_, _, Some(said)) => help += &format!(", {said}"),
         Check::Any | Check::NonEmpty(_) | Check::OneOf(_) | Check::SocketPath => {}
+        Check::Address(_) => {}
     }
     let default = (key.get)(&Config::default());
     let (section, name, default) = (key.section, key.name, default.trim_matches('"'));
@@ -142,13 +143,14 @@ fn arg(key: &'static Key) -> Arg {
             .require_equals(true)
             .default_missing_value("true"),
         // `--metrics-listen ""`: none, as in the file.
-        (Kind::Addr, _) if key.section == "metrics" => arg.value_parser(|s: &str| {
+        (Kind::Addr, Check::Address(METRICS_EXAMPLE)) => arg.value_parser(|s: &str| {
             parse_optional_address(s, METRICS_EXAMPLE).map(|_| s.to_owned())
         }),
         (Kind::Addr, _) => arg.value_parser(|s: &str| parse_listen(s).map(|_| s.to_owned())),
         (Kind::Choice(words), _) => arg.value_parser(words_parser(words)),
         (Kind::Str, Check::OneOf(words)) => arg.value_parser(PossibleValuesParser::new(words)),
         (Kind::Str, _) => arg,
+        (Kind::List, _) => unreachable!("no flag takes an array"),
     }
 }
 

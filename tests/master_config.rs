@@ -113,6 +113,14 @@ fn mistakes_are_refused_naming_the_key() {
             "4:1: line[0].route[0].adress: unknown key; expected one of units, address, listen",
         ),
         (
+            format!("{line}relay = {{ retries = 2 }}\n[[line.route]]\naddress = \"h:1\"\n"),
+            "3:21: line[0].relay.retries: means nothing on a master line",
+        ),
+        (
+            format!("{line}[line.relay]\nframe_gap_ms = 20\nmax_in_flight = 2\n[[line.route]]\naddress = \"h:1\"\n"),
+            "5:17: line[0].relay.max_in_flight: means nothing on a master line (the device is the master: no request of a Modbus/TCP master is queued or timed on it); give max_in_flight in its [[line.route]] tables",
+        ),
+        (
             format!("{line}units = [1]\n[[line.route]]\naddress = \"h:1\"\n"),
             "3:9: line[0].units: a master line routes by the units of its [[line.route]] tables",
         ),

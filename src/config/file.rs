@@ -4,9 +4,10 @@
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
 use super::error::{line_col, syntax_error, ConfigError};
-use super::raw::{entries, raw_value as raw, suggest, Bad};
+use super::raw::{entries, place, raw_value as raw, suggest, Bad};
 use super::{
-    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units, KEYS,
+    Check, Config, Framing, HostPort, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units,
+    ValueError, KEYS,
 };
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
@@ -359,6 +360,16 @@ impl Reader<'_> {
         self.fail(b.at, &b.key, b.message)
     }
 
+    /// `read`, the value `v` at `key` read, or its error at the place it names.
+    fn value<T>(
+        &self,
+        v: &Spanned<DeValue>,
+        key: &str,
+        read: Result<T, ValueError>,
+    ) -> Result<T, ConfigError> {
+        read.or_else(|e| self.bad(place(v, key, &e)))
+    }
+
     fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {
         let DeValue::Table(table) = v.get_ref() else {
             let m = raw(v.get_ref()).invalid("a table ([[line]])");
@@ -385,18 +396,19 @@ impl Reader<'_> {
                     tcp = Some(address);
                     tcp_tls = tls;
                 }
-                "role" => match super::master::role(item, &full) {
-                    Ok(master) => role = Some((master, k.span().start)),
-                    Err(b) => bad(b)?,
-                },
+                "role" => {
+                    let master =
+                        self.value(item, &full, super::master::role(&raw(item.get_ref())))?;
+                    role = Some((master, k.span().start));
+                }
                 "unit" => match super::unit::tables(item, &full) {
                     Ok(t) => unit_tables = (t, Some(k.span().start)),
                     Err(b) => bad(b)?,
                 },
-                "route" => match super::master::routes(item, &full) {
-                    Ok(r) => routes = Some((r, k.span().start)),
-                    Err(b) => bad(b)?,
-                },
+                "route" => {
+                    let read = super::master::routes(&raw(item.get_ref()), &full);
+                    routes = Some((self.value(item, &full, read)?, k.span().start));
+                }
                 name @ ("serial" | "relay") => {
                     if name == "serial" {
                         serial_at = Some(k.span().start);
@@ -433,6 +445,7 @@ impl Reader<'_> {
                     let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
                     return self.fail(at, &format!("{path}.unit"), m);
                 }
+                self.master_relay(path)?;
                 master = Some(super::master::MasterLine { routes });
             }
             (Some((true, at)), None) => {
@@ -457,6 +470,34 @@ impl Reader<'_> {
         Ok((v.span().start, line, listed))
     }
 
+    /// A master line's `relay` table holds only the keys a master line uses (declared
+    /// `master` in `settings!`): the others (a response timeout, retries, the queue...)
+    /// are the relay's, which a master line has not, and a reload could not apply them.
+    fn master_relay(&self, path: &str) -> Result<(), ConfigError> {
+        let relay = KEYS.iter().filter(|k| k.section == "relay");
+        for key in relay.filter(|k| !k.master) {
+            let full = format!("{path}.relay.{}", key.name);
+            let Some(&at) = self.at.get(&full) else {
+                continue;
+            };
+            let mut m = "means nothing on a master line (the device is the master: no request \
+                         of a Modbus/TCP master is queued or timed on it)"
+                .to_owned();
+            if super::master::ROUTE_KEYS.iter().any(|k| k.name == key.name) {
+                m += &format!("; give {} in its [[line.route]] tables", key.name);
+            } else {
+                let used: Vec<&str> = KEYS
+                    .iter()
+                    .filter(|k| k.section == "relay" && k.master)
+                    .map(|k| k.name)
+                    .collect();
+                m += &format!("; its [line.relay] takes only {}", used.join(", "));
+            }
+            return self.fail(at, &full, m);
+        }
+        Ok(())
+    }
+
     /// A line's `tcp` table: `address = "host:port"` (required) and `framing`.
     fn line_tcp(
         &mut self,
@@ -477,13 +518,10 @@ impl Reader<'_> {
                     tls = Some(super::access::tls_device(item, &full).or_else(|b| self.bad(b))?)
                 }
                 "address" => {
-                    let s = String::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));
-                    let s = s.or_else(|m| self.fail(at, &full, m))?;
-                    if let Err(m) = parse_host_port(&s) {
-                        return self.fail(at, &full, m);
-                    }
+                    let s = HostPort::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));
+                    let s = self.value(item, &full, s)?;
                     self.at.insert(full, at);
-                    address = Some(s);
+                    address = Some(s.0);
                 }
                 "framing" => {
                     let f = Framing::read(&raw(item.get_ref()), &Check::Any);
@@ -587,15 +625,4 @@ fn unit_range(s: &str) -> Result<(u8, u8), String> {
         (Some(_), Some(_)) => Err(format!("the range {s:?} is empty")),
         _ => Err(bad()),
     }
-}
-
-/// Checks a device's `host:port` (a name or an address, and a port).
-pub(super) fn parse_host_port(s: &str) -> Result<(), String> {
-    let bad = || format!("expected host:port, like 192.168.1.20:502, got {s:?}");
-    let (host, port) = s.rsplit_once(':').ok_or_else(bad)?;
-    let port_ok = port.parse::<u16>().is_ok_and(|p| p > 0);
-    if host.trim().is_empty() || !port_ok {
-        return Err(bad());
-    }
-    Ok(())
 }

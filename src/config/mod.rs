@@ -24,13 +24,13 @@ pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
 pub(crate) fn effective_access(listen: &ListenConfig, roles: &[Role]) -> Vec<String> {
     access::effective(&listen.access, roles)
 }
-pub use error::ConfigError;
+pub use error::{ConfigError, Step, ValueError};
 pub use file::{load, parse};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;
-use Check::{Any, NonEmpty, OneOf, Range, SocketPath};
+use Check::{Address, Any, NonEmpty, OneOf, Range, SocketPath};
 
 /// Declares enums whose values are lower-case words in the file and on the command
 /// line; each variant's doc line is its help.
@@ -51,12 +51,12 @@ macro_rules! choices {
 
         impl Setting for $Enum {
             const KIND: Kind = Kind::Choice(&[$(($name, concat!("", $($vdoc),*))),*]);
-            fn read(raw: &Raw, _: &Check) -> Result<Self, String> {
+            fn read(raw: &Raw, _: &Check) -> Result<Self, ValueError> {
                 let names = [$($name),*].join(", ");
                 match raw {
                     $(Raw::Str(s) if s == $name => Ok(Self::$V),)*
-                    Raw::Str(s) => Err(format!("invalid value {s:?}; expected one of {names}")),
-                    _ => Err(format!("expected a string, one of {names}")),
+                    Raw::Str(s) => Err(format!("invalid value {s:?}; expected one of {names}").into()),
+                    _ => Err(format!("expected a string, one of {names}").into()),
                 }
             }
             fn print(&self) -> String {
@@ -146,13 +146,16 @@ impl Framing {
 pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
 
 /// Declares the sections and their settings: `key: type = default, check, "flag"
-/// "VALUE_NAME" [port] [, at_most other: "why"];` under the key's one line of help.
-/// `port` marks the serial port settings that `mbgate sim` and the client take as flags
-/// too; `at_most` refuses a value above that of another key of the section.
+/// "VALUE_NAME" [port] [master] [, at_most other: "why"];` under the key's one line of
+/// help. `port` marks the serial port settings that `mbgate sim` and the client take as
+/// flags too; `master` a `[relay]` key that a master line uses too (the others mean
+/// nothing there, and are refused on one); `at_most` refuses a value above that of
+/// another key of the section. The tables inside a line or a listener are declared
+/// the same way by [`table!`], beside what reads them (`master.rs`, `access.rs`).
 macro_rules! settings {
     ($($(#[doc = $sdoc:literal])* [$section:ident] $Struct:ident {$(
         $(#[doc = $doc:literal])*
-        $key:ident: $ty:ty = $default:expr, $check:expr, $flag:literal $vname:literal $($port:ident)?
+        $key:ident: $ty:ty = $default:expr, $check:expr, $flag:literal $vname:literal $($mark:ident)*
             $(, at_most $other:ident: $why:literal)?;
     )*})*) => {
         $(
@@ -193,7 +196,8 @@ macro_rules! settings {
             help: concat!("", $($doc),*),
             check: $check,
             kind: <$ty as Setting>::KIND,
-            port: settings!(@port $($port)?),
+            port: settings!(@port $($mark)*),
+            master: settings!(@master $($mark)*),
             at_most: settings!(@at_most $($other $why)?),
             set: |c, raw| {
                 c.$section.$key = Setting::read(raw, &$check)?;
@@ -203,10 +207,56 @@ macro_rules! settings {
         },)*)*];
     };
     (@port) => { false };
-    (@port port) => { true };
+    (@port port $($m:ident)*) => { true };
+    (@port $m:ident $($more:ident)*) => { settings!(@port $($more)*) };
+    (@master) => { false };
+    (@master master $($m:ident)*) => { true };
+    (@master $m:ident $($more:ident)*) => { settings!(@master $($more)*) };
     (@at_most) => { None };
     (@at_most $other:ident $why:literal) => { Some((stringify!($other), $why)) };
 }
+
+/// Declares a table inside a line or a listener (a `[[line.route]]`, a listener's
+/// `tls`...) as [`settings!`] declares a section: `key: type = default, check;` under
+/// the key's one line of help. From it come the table's struct and its default, and
+/// its [`Key`]s, by which `raw::read_table` reads such a table of the file and the
+/// tests hold docs/configuration.md to it.
+macro_rules! table {
+    ($(#[doc = $sdoc:literal])* [$path:literal] $Struct:ident $KEYS:ident {$(
+        $(#[doc = $doc:literal])*
+        $key:ident: $ty:ty = $default:expr, $check:expr;
+    )*}) => {
+        $(#[doc = $sdoc])*
+        #[derive(Debug, Clone, PartialEq)]
+        pub struct $Struct { $($(#[doc = $doc])* pub $key: $ty,)* }
+
+        impl Default for $Struct {
+            fn default() -> Self {
+                Self { $($key: $default,)* }
+            }
+        }
+
+        #[doc = concat!("The keys of `", $path, "`, in the order of docs/configuration.md.")]
+        pub static $KEYS: &[Key<$Struct>] = &[$(Key {
+            section: $path,
+            name: stringify!($key),
+            flag: "",
+            value_name: "",
+            help: concat!("", $($doc),*),
+            check: $check,
+            kind: <$ty as Setting>::KIND,
+            port: false,
+            master: false,
+            at_most: None,
+            set: |c, raw| {
+                c.$key = Setting::read(raw, &$check)?;
+                Ok(())
+            },
+            get: |c| c.$key.print(),
+        },)*];
+    };
+}
+pub(crate) use table;
 
 /// The fastest `serial.baud_rate` there is: what the demos set a pty to, since it
 /// passes bytes at once.
@@ -270,11 +320,11 @@ settings! {
     /// How requests are queued, sent and answered on the line.
     [relay] RelayConfig {
         /// Time to wait for the device's reply
-        response_timeout_ms: u64 = 1000, Range(1, 600_000, None), "response-timeout-ms" "MS";
+        response_timeout_ms: u64 = 1000, TIMEOUT_MS, "response-timeout-ms" "MS";
         /// Silence after which a partial serial frame is discarded (MBAP: and a held reply taken while other replies are due)
-        frame_gap_ms: u64 = 50, Range(1, 60_000, None), "frame-gap-ms" "MS";
+        frame_gap_ms: u64 = 50, Range(1, 60_000, None), "frame-gap-ms" "MS" master;
         /// Requests outstanding on the serial line at once
-        max_in_flight: usize = 1, Range(1, 255, None), "max-in-flight" "N";
+        max_in_flight: usize = 1, IN_FLIGHT, "max-in-flight" "N";
         /// Queued requests per master connection
         max_pending_per_connection: usize = 16, Range(1, 1024, None), "max-pending-per-connection" "N",
             at_most queue_depth: "one master could pipeline more than the whole queue holds";
@@ -302,7 +352,7 @@ settings! {
         /// Longest back-off interval
         unit_backoff_max_ms: u64 = 30_000, Range(1, 3_600_000, None), "unit-backoff-max-ms" "MS";
         /// RTU/ASCII: response timeout of a request probing a backed-off unit
-        probe_timeout_ms: u64 = 250, Range(1, 600_000, None), "probe-timeout-ms" "MS";
+        probe_timeout_ms: u64 = 250, TIMEOUT_MS, "probe-timeout-ms" "MS";
         /// RTU/ASCII: quiet time after a timeout, late replies discarded
         timeout_guard_ms: u64 = 100, Range(0, 60_000, None), "timeout-guard-ms" "MS";
         /// A read identical to one waiting for the line (unit, function, address, count) joins it: one transaction, each master answered
@@ -322,7 +372,7 @@ settings! {
     /// The metrics listener (docs/watching.md): off unless given an address.
     [metrics] MetricsConfig {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
-        listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
+        listen: Option<SocketAddr> = None, Address(METRICS_EXAMPLE), "metrics-listen" "ADDR";
     }
     /// The always-on capture (docs/capture.md): every packet into a ring of pcapng files.
     [capture] CaptureConfig {
@@ -340,14 +390,22 @@ settings! {
     }
 }
 
-/// One setting as declared in `settings!`.
+/// A response timeout in milliseconds: of a line, of a probe, of a master line's route.
+const TIMEOUT_MS: Check = Range(1, 600_000, None);
+/// Requests outstanding at once: on a line, on a master line's route.
+const IN_FLIGHT: Check = Range(1, 255, None);
+
+/// One setting as declared in `settings!` (`C` the configuration it sets), or in
+/// `table!` (`C` that table's struct).
 #[derive(Debug)]
-pub struct Key {
-    /// The section it is in: `serial` for `serial.baud_rate`.
+pub struct Key<C: 'static = Config> {
+    /// The section it is in: `serial` for `serial.baud_rate`; for a key of a table
+    /// inside a line or a listener, that table (`line.route`).
     pub section: &'static str,
     /// The key within its section: `baud_rate`.
     pub name: &'static str,
-    /// The long flag without its dashes: `baud` for `--baud`.
+    /// The long flag without its dashes: `baud` for `--baud`; "" for a key of a table
+    /// inside a line or a listener, which has none.
     pub flag: &'static str,
     pub(crate) value_name: &'static str,
     /// One line (with a leading space, as doc comments have it).
@@ -356,13 +414,15 @@ pub struct Key {
     pub(crate) kind: Kind,
     /// A serial port setting that `mbgate sim` and the client take as flags too.
     pub(crate) port: bool,
+    /// A `[relay]` key a master line uses too (the others are refused on one).
+    pub(crate) master: bool,
     /// The key of the section this one must not exceed, and why.
     pub(crate) at_most: Option<(&'static str, &'static str)>,
     /// Checks a value and sets this key in a configuration; the error says why,
     /// without the key.
-    pub(crate) set: fn(&mut Config, &Raw) -> Result<(), String>,
+    pub(crate) set: fn(&mut C, &Raw) -> Result<(), ValueError>,
     /// The value of this key in a configuration, as written in a TOML file.
-    pub get: fn(&Config) -> String,
+    pub get: fn(&C) -> String,
 }
 
 /// What a key's value is, for parsing flags and for messages.
@@ -375,6 +435,8 @@ pub(crate) enum Kind {
     Addr,
     /// One of these words, each with its help.
     Choice(&'static [(&'static str, &'static str)]),
+    /// An array, or a table (never a flag's value).
+    List,
 }
 
 /// What values a key accepts beyond its type.
@@ -390,26 +452,37 @@ pub(crate) enum Check {
     /// A path to create a socket at, or empty: its directory must exist (binding there
     /// would fail at start, leaving capture and reload unavailable).
     SocketPath,
+    /// An address to listen on, like this example in messages.
+    Address(&'static str),
 }
 
 impl Check {
-    fn int(&self, v: i128) -> Result<(), String> {
+    fn int(&self, v: i128) -> Result<(), ValueError> {
         match *self {
             Check::Range(min, max, said) if v < min || v > max => Err(match said {
                 Some(said) => format!("must be {said}, got {v}"),
                 None => format!("must be between {min} and {max}, got {v}"),
-            }),
+            }
+            .into()),
             _ => Ok(()),
         }
     }
 
-    fn str(&self, s: &str) -> Result<(), String> {
+    /// The example address messages show.
+    fn example(&self) -> &'static str {
+        match *self {
+            Check::Address(example) => example,
+            _ => LISTEN_EXAMPLE,
+        }
+    }
+
+    fn str(&self, s: &str) -> Result<(), ValueError> {
         match *self {
             Check::NonEmpty(what) if s.trim().is_empty() => {
-                Err(format!("must not be empty ({what})"))
+                Err(format!("must not be empty ({what})").into())
             }
             Check::OneOf(words) if !words.contains(&s) => {
-                Err(format!("must be one of {}, got {s:?}", words.join(", ")))
+                Err(format!("must be one of {}, got {s:?}", words.join(", ")).into())
             }
             Check::SocketPath if !s.is_empty() => {
                 let dir = match std::path::Path::new(s).parent() {
@@ -423,7 +496,8 @@ impl Check {
                         "the directory {} does not exist (make it, or leave the key empty \
                          under systemd: control.sock in the service's RuntimeDirectory)",
                         dir.display()
-                    ))
+                    )
+                    .into())
                 }
             }
             _ => Ok(()),
@@ -435,7 +509,7 @@ impl Check {
 pub(crate) trait Setting: Sized {
     const KIND: Kind;
     /// The value `raw` stands for, if it has the right type and passes `check`.
-    fn read(raw: &Raw, check: &Check) -> Result<Self, String>;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError>;
     /// As written in a TOML file.
     fn print(&self) -> String;
 }
@@ -445,14 +519,14 @@ macro_rules! setting {
     ($($t:ty),*: $kind:ident, |$raw:ident, $check:ident| $read:expr, |$v:ident| $print:expr) => {$(
         impl Setting for $t {
             const KIND: Kind = Kind::$kind;
-            fn read($raw: &Raw, $check: &Check) -> Result<Self, String> { $read }
+            fn read($raw: &Raw, $check: &Check) -> Result<Self, ValueError> { $read }
             fn print(&self) -> String { let $v = self; $print }
         }
     )*};
 }
 
 setting! { u8, u32, u64, usize: Int, |raw, check| match *raw {
-    Raw::Int(v) => check.int(v).and(Self::try_from(v).map_err(|_| format!("{v} is too large"))),
+    Raw::Int(v) => check.int(v).and(Self::try_from(v).map_err(|_| format!("{v} is too large").into())),
     _ => Err(raw.invalid("an integer")),
 }, |v| v.to_string() }
 setting! { bool: Bool, |raw, _check| match *raw {
@@ -463,15 +537,13 @@ setting! { String: Str, |raw, check| match raw {
     Raw::Str(s) => check.str(s).map(|()| s.clone()),
     _ => Err(raw.invalid("a string")),
 }, |v| toml::Value::String(v.clone()).to_string() }
-setting! { SocketAddr: Addr, |raw, _check| match raw {
-    Raw::Str(s) => parse_listen(s),
-    _ => Err(raw.invalid(&format!("an address like {LISTEN_EXAMPLE}"))),
+setting! { SocketAddr: Addr, |raw, check| match raw {
+    Raw::Str(s) => parse_address(s, check.example()),
+    _ => Err(raw.invalid(&format!("an address like {}", check.example()))),
 }, |v| format!("\"{v}\"") }
-
-// Only `metrics.listen` is an optional address: its example is the metrics port.
-setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
-    Raw::Str(s) => parse_optional_address(s, METRICS_EXAMPLE),
-    _ => Err(raw.invalid(&format!("an address like {METRICS_EXAMPLE}, or \"\" for none"))),
+setting! { Option<SocketAddr>: Addr, |raw, check| match raw {
+    Raw::Str(s) => parse_optional_address(s, check.example()),
+    _ => Err(raw.invalid(&format!("an address like {}, or \"\" for none", check.example()))),
 }, |v| v.map_or_else(|| "\"\"".to_owned(), |a| format!("\"{a}\"")) }
 
 /// What a Modbus listener's address looks like.
@@ -492,7 +564,7 @@ pub enum Floor {
 
 impl Setting for Floor {
     const KIND: Kind = Kind::Str;
-    fn read(raw: &Raw, check: &Check) -> Result<Self, String> {
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         const EXPECTED: &str = "\"auto\" or a number of milliseconds";
         let ms = match raw {
             Raw::Str(s) if s.trim() == "auto" => return Ok(Floor::Auto),
@@ -507,7 +579,7 @@ impl Setting for Floor {
         check.int(ms)?;
         u64::try_from(ms)
             .map(Floor::Ms)
-            .map_err(|_| format!("{ms} is too large"))
+            .map_err(|_| format!("{ms} is too large").into())
     }
     fn print(&self) -> String {
         match self {
@@ -531,12 +603,12 @@ pub enum GpioLine {
 
 impl Setting for GpioLine {
     const KIND: Kind = Kind::Str;
-    fn read(raw: &Raw, _check: &Check) -> Result<Self, String> {
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
         const EXPECTED: &str = "a line offset like 17 or a line name like \"GPIO17\"";
         let offset = |v: i128| {
             u32::try_from(v)
                 .map(GpioLine::Offset)
-                .map_err(|_| format!("{v} is no line offset; expected {EXPECTED}"))
+                .map_err(|_| format!("{v} is no line offset; expected {EXPECTED}").into())
         };
         match raw {
             Raw::Int(v) => offset(*v),
@@ -558,15 +630,37 @@ impl Setting for GpioLine {
     }
 }
 
+/// `host:port` of a device or a slave, the port a number: resolved when connecting,
+/// so a name works too; "": not given.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct HostPort(pub String);
+
+impl Setting for HostPort {
+    const KIND: Kind = Kind::Str;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        let s = String::read(raw, check)?;
+        let ok = s.rsplit_once(':').is_some_and(|(host, port)| {
+            !host.trim().is_empty() && port.parse::<u16>().is_ok_and(|p| p > 0)
+        });
+        match ok {
+            true => Ok(Self(s)),
+            false => Err(format!("expected host:port, like 192.168.1.20:502, got {s:?}").into()),
+        }
+    }
+    fn print(&self) -> String {
+        self.0.print()
+    }
+}
+
 /// Parses a `tcp.listen` / `--listen` value.
-pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
+pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, ValueError> {
     parse_address(s, LISTEN_EXAMPLE)
 }
 
 /// Parses an address to listen on, `example` showing what one looks like. A host
 /// name is refused with what to give instead: listening needs one of this machine's
 /// addresses, and a name could stand for several, or for another machine's.
-pub(crate) fn parse_address(s: &str, example: &str) -> Result<SocketAddr, String> {
+pub(crate) fn parse_address(s: &str, example: &str) -> Result<SocketAddr, ValueError> {
     s.trim().parse().map_err(|_| {
         let mut m = format!("expected an address like {example}, got {s:?}");
         let named = s.trim().rsplit_once(':').is_some_and(|(host, port)| {
@@ -578,12 +672,15 @@ pub(crate) fn parse_address(s: &str, example: &str) -> Result<SocketAddr, String
             m += ": a host name is not looked up here; give an IP address of this machine \
                   (127.0.0.1 for this machine only, 0.0.0.0 for every interface)";
         }
-        m
+        ValueError::new(m)
     })
 }
 
 /// [`parse_address`], or none for `""`.
-pub(crate) fn parse_optional_address(s: &str, example: &str) -> Result<Option<SocketAddr>, String> {
+pub(crate) fn parse_optional_address(
+    s: &str,
+    example: &str,
+) -> Result<Option<SocketAddr>, ValueError> {
     if s.trim().is_empty() {
         return Ok(None);
     }

@@ -14,7 +14,7 @@
 //! ```
 
 use super::raw::{bad, entries, raw_value, Bad};
-use super::{Check, RelayConfig, Setting};
+use super::{Check, RelayConfig, Setting, ValueError};
 use std::collections::BTreeSet;
 use std::time::Duration;
 use toml::de::{DeTable, DeValue};
@@ -272,7 +272,9 @@ fn table_at(table: &DeTable, start: usize, path: &str) -> Result<UnitTable, Bad>
         let raw = raw_value(v.get_ref());
         let ms = |max: i128| u64::read(&raw, &Check::Range(1, max, None));
         let checked = match k.get_ref().as_ref() {
-            "units" => ids_at(v, &key).map(|i| ids = Some(i)),
+            "units" => ids_at(v, &key)
+                .map(|i| ids = Some(i))
+                .map_err(ValueError::from),
             "response_timeout_ms" => match &raw {
                 Raw::Str(w) if w.trim() == "auto" => {
                     s.response_timeout = Some(UnitTimeout::Auto);
@@ -280,7 +282,8 @@ fn table_at(table: &DeTable, start: usize, path: &str) -> Result<UnitTable, Bad>
                 }
                 Raw::Str(w) => Err(format!(
                     "invalid value {w:?}; expected \"auto\" or a number of milliseconds"
-                )),
+                )
+                .into()),
                 _ => ms(600_000).map(|t| s.response_timeout = Some(UnitTimeout::Ms(t))),
             },
             "response_timeout_max_ms" => {
