@@ -4,7 +4,7 @@
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
 use super::error::{line_col, syntax_error, ConfigError};
-use super::raw::{entries, place, raw_value as raw, suggest, Bad};
+use super::raw::{entries, place, raw_value as raw, suggest, Bad, Raw};
 use super::{
     Check, Config, Framing, HostPort, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units,
     ValueError, KEYS,
@@ -143,11 +143,11 @@ impl Reader<'_> {
             let (name, at) = (k.get_ref().as_ref(), k.span().start);
             let replaced = match name {
                 "role" => {
-                    roles = super::access::roles(v, "role").or_else(|b| self.bad(b))?;
+                    roles = self.value(v, name, super::access::roles(&raw(v.get_ref()), name))?;
                     continue;
                 }
                 "tcp" => {
-                    super::access::not_in_tcp(v).or_else(|b| self.bad(b))?;
+                    self.not_in_tcp(v)?;
                     self.section(&mut cfg, name, v, name, &[], &[])?;
                     continue;
                 }
@@ -173,13 +173,16 @@ impl Reader<'_> {
                 if name == "line" {
                     lines.push(self.line(t, &path)?);
                 } else {
-                    listeners.push(self.listener(t, &path)?);
+                    listeners.push((t, self.listener(t, &path)?));
                 }
             }
         }
-        super::access::default_roles(&listeners, &roles).or_else(|b| self.bad(b))?;
-        cfg.roles = roles.into_iter().map(|(_, r)| r).collect();
-        let listeners: Vec<ListenConfig> = listeners.into_iter().map(|(_, l)| l).collect();
+        let (tables, listeners): (Vec<_>, Vec<ListenConfig>) = listeners.into_iter().unzip();
+        if let Err((i, m)) = super::access::default_roles(&listeners, &roles) {
+            let e = ValueError::new(m).value("default_role").value("tls");
+            return self.bad(place(tables[i], &format!("listen[{i}]"), &e));
+        }
+        cfg.roles = roles;
         match &listeners[..] {
             [] => {}
             // One Modbus/TCP listener open to all is the old form's [tcp].
@@ -324,36 +327,47 @@ impl Reader<'_> {
 
     /// A `[[listen]]`: the keys of `[tcp]` (`address` for `listen`), `framing`, and
     /// who may connect and what they may do (`src/config/access.rs`).
-    fn listener(
-        &mut self,
-        v: &Spanned<DeValue>,
-        path: &str,
-    ) -> Result<(usize, ListenConfig), ConfigError> {
+    fn listener(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<ListenConfig, ConfigError> {
         let mut listener = Config::default();
-        let skip = ["framing", "allow", "read_only", "write", "tls", "priority"];
-        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &skip)?;
-        let (mut framing, mut priority) = (ListenFraming::Mbap, 0);
-        let (mut access, mut at) = (super::ListenAccess::default(), v.span().start);
-        if let DeValue::Table(table) = v.get_ref() {
-            if let Some(f) = table.get("framing") {
-                framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
-                    .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
-            }
-            if let Some(p) = table.get("priority") {
-                let key = format!("{path}.priority");
-                priority = super::access::priority(p, &key).or_else(|b| self.bad(b))?;
-            }
-            let (read, role_at) = super::access::listen(table, path).or_else(|b| self.bad(b))?;
-            access = read;
-            at = role_at.unwrap_or(at);
+        let own: Vec<&str> = super::access::LISTEN_KEYS.iter().map(|k| k.name).collect();
+        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &own)?;
+        // The listener's own keys, read by their declarations.
+        let mut keys = Vec::new();
+        if let Raw::Table(all) = raw(v.get_ref()) {
+            keys = all
+                .into_iter()
+                .filter(|(k, _)| own.contains(&k.as_str()))
+                .collect();
         }
-        let listen = ListenConfig {
+        let read = super::access::listen(&Raw::Table(keys), path);
+        let (access, framing, priority) = self.value(v, path, read)?;
+        Ok(ListenConfig {
             tcp: listener.tcp,
             framing,
             access,
             priority,
+        })
+    }
+
+    /// `[tcp]` is the one listener open to all: the security keys belong in a
+    /// `[[listen]]` table, and the message says so rather than "unknown key".
+    fn not_in_tcp(&self, v: &Spanned<DeValue>) -> Result<(), ConfigError> {
+        let DeValue::Table(t) = v.get_ref() else {
+            return Ok(());
         };
-        Ok((at, listen))
+        let names = entries(t).into_iter().map(|(k, _)| k);
+        if let Some(k) = names
+            .into_iter()
+            .find(|k| super::access::is_access_key(k.get_ref()))
+        {
+            let name = k.get_ref();
+            let m = format!(
+                "{name} belongs in a [[listen]] table (write [[listen]] with address = \
+                 the listen address instead of [tcp]; docs/security.md)"
+            );
+            return self.fail(k.span().start, &format!("tcp.{name}"), m);
+        }
+        Ok(())
     }
 
     fn bad<T>(&self, b: Bad) -> Result<T, ConfigError> {
@@ -381,7 +395,6 @@ impl Reader<'_> {
         let mut unit_tables = (super::unit::UnitTables::default(), None);
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
-            let bad = |b: Bad| self.fail::<()>(b.at, &b.key, b.message);
             match k.get_ref().as_ref() {
                 "units" => {
                     units.ids = self.units(item, &full)?;
@@ -401,10 +414,10 @@ impl Reader<'_> {
                         self.value(item, &full, super::master::role(&raw(item.get_ref())))?;
                     role = Some((master, k.span().start));
                 }
-                "unit" => match super::unit::tables(item, &full) {
-                    Ok(t) => unit_tables = (t, Some(k.span().start)),
-                    Err(b) => bad(b)?,
-                },
+                "unit" => {
+                    let read = super::unit::tables(&raw(item.get_ref()), &full);
+                    unit_tables = (self.value(item, &full, read)?, Some(k.span().start));
+                }
                 "route" => {
                     let read = super::master::routes(&raw(item.get_ref()), &full);
                     routes = Some((self.value(item, &full, read)?, k.span().start));
@@ -515,7 +528,8 @@ impl Reader<'_> {
             let at = item.span().start;
             match k.get_ref().as_ref() {
                 "tls" => {
-                    tls = Some(super::access::tls_device(item, &full).or_else(|b| self.bad(b))?)
+                    let read = super::access::tls_device(&raw(item.get_ref()));
+                    tls = Some(self.value(item, &full, read)?);
                 }
                 "address" => {
                     let s = HostPort::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));

@@ -5,9 +5,11 @@
 //! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
 //! the tests holding docs/configuration.md and `config/mbgate.toml` to it all read. A value is
 //! checked the same way from the file or a flag. A new setting is one line here plus
-//! what it does.
+//! what it does. The keys of a table inside a line or a listener (`[[line.route]]`,
+//! `[[line.unit]]`, a listener's security keys...) are declared the same way, one line
+//! of [`table!`] each, beside what reads them; ranges two keys share are one [`Check`].
 
-mod access;
+pub mod access;
 pub mod describe;
 mod error;
 mod file;
@@ -30,6 +32,7 @@ pub(crate) use layout::{LineConfig, ListenConfig, Units};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;
+pub use unit::{UnitIds, UnitTableKeys, UNIT_KEYS};
 use Check::{Address, Any, NonEmpty, OneOf, Range, SocketPath};
 
 /// Declares enums whose values are lower-case words in the file and on the command
@@ -331,7 +334,7 @@ settings! {
         /// Total queued requests
         queue_depth: usize = 64, Range(1, 65_536, None), "queue-depth" "N";
         /// Resends after a timeout (reads only unless --retry-writes)
-        retries: u32 = 0, Range(0, 10, None), "retries" "N";
+        retries: u32 = 0, RETRIES, "retries" "N";
         /// Also resend writes after a timeout (a resent write may act twice)
         retry_writes: bool = false, Any, "retry-writes" "BOOL";
         /// What to do with device frames that answer no request
@@ -360,7 +363,7 @@ settings! {
         /// Answer a read from the reply to the identical read if younger than this; a write to the unit clears it; 0 = off
         cache_ms: u64 = 0, Range(0, 3_600_000, None), "cache-ms" "MS";
         /// Quiet time after each reply before the next request, for slow devices
-        request_pause_ms: u64 = 0, Range(0, 60_000, None), "request-pause-ms" "MS";
+        request_pause_ms: u64 = 0, PAUSE_MS, "request-pause-ms" "MS";
     }
     /// What is logged.
     [log] LogConfig {
@@ -390,10 +393,15 @@ settings! {
     }
 }
 
-/// A response timeout in milliseconds: of a line, of a probe, of a master line's route.
+/// A response timeout in milliseconds: of a line, of a probe, of a unit, of a master
+/// line's route.
 const TIMEOUT_MS: Check = Range(1, 600_000, None);
 /// Requests outstanding at once: on a line, on a master line's route.
 const IN_FLIGHT: Check = Range(1, 255, None);
+/// Quiet time before the next request: of a line, of a unit.
+const PAUSE_MS: Check = Range(0, 60_000, None);
+/// Resends after a timeout: of a line, of a unit.
+const RETRIES: Check = Range(0, 10, None);
 
 /// One setting as declared in `settings!` (`C` the configuration it sets), or in
 /// `table!` (`C` that table's struct).

@@ -125,15 +125,6 @@ pub(super) struct Bad {
     pub(super) message: String,
 }
 
-/// A [`Bad`] at byte `at`, for `key`.
-pub(super) fn bad<T>(at: usize, key: &str, message: impl Into<String>) -> Result<T, Bad> {
-    Err(Bad {
-        at,
-        key: key.to_owned(),
-        message: message.into(),
-    })
-}
-
 /// The expected name closest to a misspelt `name`, if one is close enough.
 pub(super) fn suggest<'a>(name: &str, expected: &[&'a str]) -> Option<&'a str> {
     let norm = |s: &str| -> String {

@@ -1,33 +1,20 @@
 //! The security keys as `mbgate check-config` prints them: TOML that reads back to the
 //! same configuration, and under each listener who may connect and what they may do.
 
-use super::{ListenAccess, Role, TlsDevice};
-use crate::access::{Policy, WriteRule};
-
-fn quoted(p: &std::path::Path) -> String {
-    toml::Value::String(p.display().to_string()).to_string()
-}
+use super::{quoted, ListenAccess, Role, TlsDevice, WriteRules};
+use crate::access::Policy;
+use crate::config::Setting;
 
 /// A listener's security keys as the `[[listen]]` form prints them, and two comment
 /// lines saying who may connect and what they may do (`mbgate check-config`).
 pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[Role]) -> String {
     let mut out = String::new();
-    if let Some(allow) = &a.allow {
-        let nets: Vec<String> = allow.nets().iter().map(|n| format!("\"{n}\"")).collect();
-        out += &format!("allow = [{}]\n", nets.join(", "));
+    if a.allow.is_some() {
+        out += &format!("allow = {}\n", a.allow.print());
     }
     out += &policy_to_toml(&a.policy);
-    if let Some(t) = &a.tls {
-        let mut parts = vec![
-            format!("cert = {}", quoted(&t.cert)),
-            format!("key = {}", quoted(&t.key)),
-            format!("client_ca = {}", quoted(&t.client_ca)),
-        ];
-        if let Some(r) = &t.default_role {
-            parts.push(format!("default_role = {}", toml::Value::String(r.clone())));
-        }
-        parts.push(format!("handshake_timeout_ms = {}", t.handshake_timeout_ms));
-        out += &format!("tls = {{ {} }}\n", parts.join(", "));
+    if a.tls.is_some() {
+        out += &format!("tls = {}\n", a.tls.print());
     }
     for line in effective(a, roles) {
         out += &format!("# {line}\n");
@@ -41,8 +28,7 @@ fn policy_to_toml(p: &Policy) -> String {
         out += "read_only = true\n";
     }
     if !p.write.is_empty() {
-        let rules: Vec<String> = p.write.iter().map(WriteRule::to_string).collect();
-        out += &format!("write = [{}]\n", rules.join(", "));
+        out += &format!("write = {}\n", WriteRules(p.write.clone()).print());
     }
     out
 }
