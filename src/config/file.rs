@@ -183,6 +183,7 @@ impl Reader<'_> {
             return self.bad(place(tables[i], &format!("listen[{i}]"), &e));
         }
         cfg.roles = roles;
+        self.no_listener_for_master_lines(root, &lines, &tables)?;
         match &listeners[..] {
             [] => {}
             // One Modbus/TCP listener open to all is the old form's [tcp].
@@ -249,6 +250,32 @@ impl Reader<'_> {
             cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
         }
         Ok(cfg)
+    }
+
+    /// When every line is a master line no Modbus/TCP master has a device to reach, so
+    /// the gateway binds no listener: a `[[listen]]` or `[tcp]` there would be
+    /// ignored, and is refused (a slave that connects in has its route's `listen`).
+    fn no_listener_for_master_lines(
+        &self,
+        root: &DeTable,
+        lines: &[Line],
+        listeners: &[&Spanned<DeValue>],
+    ) -> Result<(), ConfigError> {
+        if lines.is_empty() || lines.iter().any(|(_, l, _)| l.master.is_none()) {
+            return Ok(());
+        }
+        let (at, key) = match (listeners.first(), root.get_key_value("tcp")) {
+            (Some(t), _) => (t.span().start, "listen[0]"),
+            (None, Some((k, _))) => (k.span().start, "tcp"),
+            (None, None) => return Ok(()),
+        };
+        let table = if key == "tcp" { "[tcp]" } else { "[[listen]]" };
+        let m = format!(
+            "every line is a master line (role = \"master\"): no line has a device for \
+             Modbus/TCP masters to reach, so mbgate listens for none; remove {table}, or \
+             add a line of slaves (a slave that connects in to a route is its `listen`)"
+        );
+        self.fail(at, key, m)
     }
 
     /// A passive route binds its address as the gateway binds its listeners (only when

@@ -71,7 +71,12 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         let units = line.unit_tables.to_toml();
         out.push(head + &device + "\n" + &routes + &relay + &units);
     }
-    for listener in cfg.listeners() {
+    // With every line a master line no listener is bound, and none may be written.
+    let listeners = match cfg.serves_masters() {
+        true => cfg.listeners(),
+        false => Vec::new(),
+    };
+    for listener in listeners {
         let one = Config {
             tcp: listener.tcp.clone(),
             ..Config::default()
