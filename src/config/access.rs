@@ -210,7 +210,7 @@ impl Setting for Option<AllowList> {
         let mut nets = Vec::new();
         for (i, item) in items(raw, expected, empty)?.iter().enumerate() {
             let net = String::read(item, &Any)
-                .and_then(|s| s.parse::<Net>().map_err(ValueError::from))
+                .and_then(|s| s.parse::<Net>().map_err(|e| ValueError::new(e.to_string())))
                 .map_err(|e| e.item(i))?;
             if nets.contains(&net) {
                 return Err(ValueError::new(format!("{net} is listed twice")).item(i));

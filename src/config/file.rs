@@ -657,13 +657,13 @@ impl Reader<'_> {
 }
 
 /// `"10-20"`: the units 10 to 20.
-fn unit_range(s: &str) -> Result<(u8, u8), String> {
+fn unit_range(s: &str) -> Result<(u8, u8), ValueError> {
     let bad = || format!("expected a unit id or a range like \"10-20\", got {s:?}");
     let (a, b) = s.split_once('-').ok_or_else(bad)?;
     let unit = |x: &str| x.trim().parse::<u8>().ok().filter(|u| *u >= 1);
     match (unit(a), unit(b)) {
         (Some(a), Some(b)) if a <= b => Ok((a, b)),
-        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty")),
-        _ => Err(bad()),
+        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty").into()),
+        _ => Err(bad().into()),
     }
 }
