@@ -20,7 +20,7 @@
 //! ```
 
 use super::raw::read_table;
-use super::{table, Check, Key, Kind, ListenFraming, Raw, Setting, ValueError};
+use super::{table, Check, Key, ListenFraming, Raw, Setting, ValueError, ValueKind};
 use super::{Any, NonEmpty, Range};
 use crate::access::{AllowList, Net, Policy, UnitSet, WriteRule};
 use crate::frame::function::FunctionCode;
@@ -147,7 +147,7 @@ pub struct TlsListen {
 
 /// One `[[role]]`: a name a client certificate carries, and its policy.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Role {
+pub struct AccessRole {
     /// As in the certificate's Modbus role extension, compared exactly.
     pub name: String,
     /// What a master with this role may do.
@@ -202,7 +202,7 @@ fn items<'r>(raw: &'r Raw, expected: &str, empty: &str) -> Result<&'r [Raw], Val
 
 /// `allow = ["10.0.0.0/24", "::1"]`: at least one address or block, none twice.
 impl Setting for Option<AllowList> {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
         let expected =
             "expected an array of addresses and CIDR blocks, like [\"10.0.0.0/24\", \"::1\"]";
@@ -232,7 +232,7 @@ impl Setting for Option<AllowList> {
 pub struct WriteRules(pub Vec<WriteRule>);
 
 impl Setting for WriteRules {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
         let expected = "expected an array of rules, like [{ units = [1], functions = [6], addresses = \"0-99\" }]";
         let empty = "must list at least one rule (write = [] would be read_only = true)";
@@ -268,7 +268,7 @@ fn rule(raw: &Raw) -> Result<WriteRule, ValueError> {
 pub struct RuleUnits(pub UnitSet);
 
 impl Setting for RuleUnits {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         let expected = "expected an array of unit ids and ranges like \"10-20\"";
         let empty = "must list at least one unit id (leave units out for every unit)";
@@ -295,7 +295,7 @@ impl Setting for RuleUnits {
 pub struct Functions(pub Vec<u8>);
 
 impl Setting for Functions {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         let expected = "expected an array of function codes, like [6, 16]";
         let empty = "must list at least one function code (leave functions out for every write)";
@@ -324,7 +324,7 @@ impl Setting for Functions {
 pub struct Addresses(pub (u16, u16));
 
 impl Setting for Addresses {
-    const KIND: Kind = Kind::Str;
+    const KIND: ValueKind = ValueKind::Str;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         match raw {
             Raw::Str(s) => range(s, most(check) as u16).map(Self),
@@ -339,7 +339,7 @@ impl Setting for Addresses {
 /// A listener's `tls` table, read by [`LISTEN_TLS_KEYS`]: `cert`, `key` and
 /// `client_ca` required.
 impl Setting for Option<TlsListen> {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
         let not_table = "expected a table: { cert = ..., key = ..., client_ca = ... }";
         let (t, given) = read_table(raw, LISTEN_TLS_KEYS, not_table)?;
@@ -426,7 +426,7 @@ pub(super) fn is_access_key(name: &str) -> bool {
 /// does not, and why.
 pub(super) fn default_roles(
     listeners: &[super::ListenConfig],
-    roles: &[Role],
+    roles: &[AccessRole],
 ) -> Result<(), (usize, String)> {
     for (i, l) in listeners.iter().enumerate() {
         let Some(role) = l.access.tls.as_ref().and_then(|t| t.default_role.as_ref()) else {
@@ -450,14 +450,14 @@ pub(super) fn default_roles(
 
 /// The `[[role]]` tables, read by [`ROLE_KEYS`]: each with a unique, non-empty name;
 /// `path` is what messages call them (`role`).
-pub(super) fn roles(raw: &Raw, path: &str) -> Result<Vec<Role>, ValueError> {
+pub(super) fn roles(raw: &Raw, path: &str) -> Result<Vec<AccessRole>, ValueError> {
     let Raw::List(tables) = raw else {
         return Err("expected [[role]] tables".into());
     };
-    let mut out: Vec<Role> = Vec::new();
+    let mut out: Vec<AccessRole> = Vec::new();
     for (i, t) in tables.iter().enumerate() {
         let here = format!("{path}[{i}]");
-        let role = || -> Result<Role, ValueError> {
+        let role = || -> Result<AccessRole, ValueError> {
             let (t, given) = read_table(t, ROLE_KEYS, "expected a table ([[role]])")?;
             if !given.contains(&"name") {
                 let m = "missing: the role's name, as client certificates carry it";
@@ -467,7 +467,7 @@ pub(super) fn roles(raw: &Raw, path: &str) -> Result<Vec<Role>, ValueError> {
                 let m = format!("role {:?} is also {path}[{j}]", t.name);
                 return Err(ValueError::new(m).value("name"));
             }
-            Ok(Role {
+            Ok(AccessRole {
                 policy: policy(t.read_only, t.write, &here)?,
                 priority: given.contains(&"priority").then_some(t.priority),
                 name: t.name,

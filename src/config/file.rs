@@ -73,8 +73,9 @@ struct Reader<'t> {
     lines_form: bool,
 }
 
-/// One `[[line]]`: where it starts, the line, whether it lists units.
-type Line = (usize, LineConfig, bool);
+/// One `[[line]]` as read from the file: where it starts, the line, whether it lists
+/// units.
+type LineRead = (usize, LineConfig, bool);
 
 impl Reader<'_> {
     fn fail<T>(&self, at: usize, key: &str, message: impl Into<String>) -> Result<T, ConfigError> {
@@ -218,8 +219,7 @@ impl Reader<'_> {
             [..] => {
                 // A master line routes by its [[line.route]] tables: it serves no unit
                 // of the masters'.
-                let unlisted =
-                    |(_, l, units): &&(usize, LineConfig, bool)| l.master.is_none() && !units;
+                let unlisted = |(_, l, units): &&LineRead| l.master.is_none() && !units;
                 if let Some(i) = lines.iter().position(|l| unlisted(&l)) {
                     let m = "missing: with several lines, each says which unit ids it serves";
                     return self.fail(lines[i].0, &format!("line[{i}].units"), m);
@@ -258,7 +258,7 @@ impl Reader<'_> {
     fn no_listener_for_master_lines(
         &self,
         root: &DeTable,
-        lines: &[Line],
+        lines: &[LineRead],
         listeners: &[&Spanned<DeValue>],
     ) -> Result<(), ConfigError> {
         if lines.is_empty() || lines.iter().any(|(_, l, _)| l.master.is_none()) {
@@ -281,11 +281,7 @@ impl Reader<'_> {
     /// A passive route binds its address as the gateway binds its listeners (only when
     /// some line serves masters): two sockets cannot share one, so a route's `listen`
     /// on a listener's address or another route's is refused, naming the route.
-    fn sockets(
-        &self,
-        lines: &[(usize, LineConfig, bool)],
-        cfg: &Config,
-    ) -> Result<(), ConfigError> {
+    fn sockets(&self, lines: &[LineRead], cfg: &Config) -> Result<(), ConfigError> {
         let serving = lines.iter().any(|(_, l, _)| l.master.is_none());
         let listening: Vec<_> = match serving {
             true => cfg.listeners().iter().map(|l| l.tcp.listen).collect(),
@@ -411,7 +407,7 @@ impl Reader<'_> {
         read.or_else(|e| self.bad(place(v, key, &e)))
     }
 
-    fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {
+    fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<LineRead, ConfigError> {
         let DeValue::Table(table) = v.get_ref() else {
             let m = raw(v.get_ref()).invalid("a table ([[line]])");
             return self.fail(v.span().start, path, m);

@@ -18,7 +18,7 @@
 //! ```
 
 use super::raw::read_table;
-use super::{table, Check, HostPort, Key, Kind, Raw, RelayConfig, Setting, ValueError};
+use super::{table, Check, HostPort, Key, Raw, RelayConfig, Setting, ValueError, ValueKind};
 use super::{Any, NonEmpty, Range, IN_FLIGHT, TIMEOUT_MS};
 use std::net::SocketAddr;
 
@@ -45,7 +45,7 @@ table! {
 pub struct RouteUnits(pub Vec<u8>);
 
 impl Setting for RouteUnits {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         let Raw::List(ids) = raw else {
             return Err("expected an array of unit ids".into());

@@ -19,11 +19,11 @@ mod print;
 mod raw;
 pub(crate) mod unit;
 
-pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
+pub use access::{AccessRole, ListenAccess, TlsDevice, TlsListen};
 
 /// Who may connect to `listen` and what they may do, in words (the start-up log,
 /// `mbgate check-config`).
-pub(crate) fn effective_access(listen: &ListenConfig, roles: &[Role]) -> Vec<String> {
+pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> Vec<String> {
     access::effective(&listen.access, roles)
 }
 pub use error::{ConfigError, Step, ValueError};
@@ -53,7 +53,7 @@ macro_rules! choices {
         }
 
         impl Setting for $Enum {
-            const KIND: Kind = Kind::Choice(&[$(($name, concat!("", $($vdoc),*))),*]);
+            const KIND: ValueKind = ValueKind::Choice(&[$(($name, concat!("", $($vdoc),*))),*]);
             fn read(raw: &Raw, _: &Check) -> Result<Self, ValueError> {
                 let names = [$($name),*].join(", ");
                 match raw {
@@ -187,7 +187,7 @@ macro_rules! settings {
             pub listeners: Vec<ListenConfig>,
             /// The `[[role]]` tables: what a TLS master may do, by the role its
             /// certificate carries (docs/security.md).
-            pub roles: Vec<Role>,
+            pub roles: Vec<AccessRole>,
         }
 
         /// Every setting, in the order of the file.
@@ -419,7 +419,7 @@ pub struct Key<C: 'static = Config> {
     /// One line (with a leading space, as doc comments have it).
     pub help: &'static str,
     pub(crate) check: Check,
-    pub(crate) kind: Kind,
+    pub(crate) kind: ValueKind,
     /// A serial port setting that `mbgate sim` and the client take as flags too.
     pub(crate) port: bool,
     /// A `[relay]` key a master line uses too (the others are refused on one).
@@ -435,7 +435,7 @@ pub struct Key<C: 'static = Config> {
 
 /// What a key's value is, for parsing flags and for messages.
 #[derive(Debug, Clone, Copy)]
-pub(crate) enum Kind {
+pub(crate) enum ValueKind {
     Int,
     Bool,
     Str,
@@ -515,7 +515,7 @@ impl Check {
 
 /// A type a setting can have.
 pub(crate) trait Setting: Sized {
-    const KIND: Kind;
+    const KIND: ValueKind;
     /// The value `raw` stands for, if it has the right type and passes `check`.
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError>;
     /// As written in a TOML file.
@@ -526,7 +526,7 @@ pub(crate) trait Setting: Sized {
 macro_rules! setting {
     ($($t:ty),*: $kind:ident, |$raw:ident, $check:ident| $read:expr, |$v:ident| $print:expr) => {$(
         impl Setting for $t {
-            const KIND: Kind = Kind::$kind;
+            const KIND: ValueKind = ValueKind::$kind;
             fn read($raw: &Raw, $check: &Check) -> Result<Self, ValueError> { $read }
             fn print(&self) -> String { let $v = self; $print }
         }
@@ -571,7 +571,7 @@ pub enum Floor {
 }
 
 impl Setting for Floor {
-    const KIND: Kind = Kind::Str;
+    const KIND: ValueKind = ValueKind::Str;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         const EXPECTED: &str = "\"auto\" or a number of milliseconds";
         let ms = match raw {
@@ -610,7 +610,7 @@ pub enum GpioLine {
 }
 
 impl Setting for GpioLine {
-    const KIND: Kind = Kind::Str;
+    const KIND: ValueKind = ValueKind::Str;
     fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
         const EXPECTED: &str = "a line offset like 17 or a line name like \"GPIO17\"";
         let offset = |v: i128| {
@@ -644,7 +644,7 @@ impl Setting for GpioLine {
 pub struct HostPort(pub String);
 
 impl Setting for HostPort {
-    const KIND: Kind = Kind::Str;
+    const KIND: ValueKind = ValueKind::Str;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         let s = String::read(raw, check)?;
         let ok = s.rsplit_once(':').is_some_and(|(host, port)| {

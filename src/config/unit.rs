@@ -14,7 +14,7 @@
 //! ```
 
 use super::raw::{read_table, Raw};
-use super::{table, Check, Key, Kind, RelayConfig, Setting, ValueError};
+use super::{table, Check, Key, RelayConfig, Setting, ValueError, ValueKind};
 use super::{Any, Range, PAUSE_MS, RETRIES, TIMEOUT_MS};
 use std::collections::BTreeSet;
 use std::time::Duration;
@@ -55,7 +55,7 @@ pub enum UnitTimeout {
 }
 
 impl Setting for UnitTimeout {
-    const KIND: Kind = Kind::Str;
+    const KIND: ValueKind = ValueKind::Str;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         match raw {
             Raw::Str(w) if w.trim() == "auto" => Ok(UnitTimeout::Auto),
@@ -79,7 +79,7 @@ impl Setting for UnitTimeout {
 pub struct UnitIds(pub BTreeSet<u8>);
 
 impl Setting for UnitIds {
-    const KIND: Kind = Kind::List;
+    const KIND: ValueKind = ValueKind::List;
     fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
         let one = |v: &Raw| -> Result<(u8, u8), ValueError> {
             match v {

@@ -1,13 +1,13 @@
 //! The security keys as `mbgate check-config` prints them: TOML that reads back to the
 //! same configuration, and under each listener who may connect and what they may do.
 
-use super::{quoted, ListenAccess, Role, TlsDevice, WriteRules};
+use super::{quoted, AccessRole, ListenAccess, TlsDevice, WriteRules};
 use crate::access::Policy;
 use crate::config::Setting;
 
 /// A listener's security keys as the `[[listen]]` form prints them, and two comment
 /// lines saying who may connect and what they may do (`mbgate check-config`).
-pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[Role]) -> String {
+pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[AccessRole]) -> String {
     let mut out = String::new();
     if a.allow.is_some() {
         out += &format!("allow = {}\n", a.allow.print());
@@ -34,7 +34,7 @@ fn policy_to_toml(p: &Policy) -> String {
 }
 
 /// Who may connect to a listener, and what each may do, in words.
-pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
+pub(crate) fn effective(a: &ListenAccess, roles: &[AccessRole]) -> Vec<String> {
     let who = match &a.allow {
         None => "from everyone (no allow list)".to_owned(),
         Some(l) => format!("only from {l}"),
@@ -71,7 +71,7 @@ pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
 }
 
 /// The `[[role]]` tables as the file writes them.
-pub(crate) fn roles_to_toml(roles: &[Role]) -> String {
+pub(crate) fn roles_to_toml(roles: &[AccessRole]) -> String {
     let mut out = Vec::new();
     for r in roles {
         let priority = r
