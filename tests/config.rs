@@ -917,6 +917,7 @@ fn the_tables_inside_lines_and_listeners_follow_their_declarations() {
         ("in a listener's `tls`", declared(LISTEN_TLS_KEYS)),
         ("in a `[[role]]`", declared(ROLE_KEYS)),
         ("in a `write` rule", declared(RULE_KEYS)),
+        ("in a `[[line]]`'s `tcp`", declared(LINE_TCP_KEYS)),
         ("in a `[[line]]`'s `tcp.tls`", declared(DEVICE_TLS_KEYS)),
     ];
     for (header, keys) in tables {

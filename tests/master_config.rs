@@ -83,6 +83,10 @@ fn mistakes_are_refused_naming_the_key() {
             "4:11: line[0].route[0].address: expected host:port",
         ),
         (
+            route("listen = \"\""),
+            "4:10: line[0].route[0].listen: must not be empty (the address where mbgate listens for the slave)",
+        ),
+        (
             route("address = \"h:1\"\nlisten = \"0.0.0.0:5021\""),
             "5:10: line[0].route[0].listen: give address (connect) or listen, not both",
         ),

@@ -479,9 +479,31 @@ pub(super) fn roles(raw: &Raw, path: &str) -> Result<Vec<AccessRole>, ValueError
     Ok(out)
 }
 
+/// A TCP line's `tls` table ([`tls_device`]).
+impl Setting for Option<TlsDevice> {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
+        tls_device(raw).map(Some)
+    }
+    fn print(&self) -> String {
+        let Some(t) = self else {
+            return "{}".into();
+        };
+        let mut parts = vec![
+            format!("cert = {}", quoted(&t.cert)),
+            format!("key = {}", quoted(&t.key)),
+            format!("device_ca = {}", quoted(&t.device_ca)),
+        ];
+        if let Some(n) = &t.server_name {
+            parts.push(format!("server_name = {}", n.print()));
+        }
+        format!("{{ {} }}", parts.join(", "))
+    }
+}
+
 /// A TCP line's `tls` table, read by [`DEVICE_TLS_KEYS`]: `cert`, `key` and
 /// `device_ca` required, `server_name` a DNS name or an address.
-pub(super) fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
+fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
     let not_table = "expected a table: { cert = ..., key = ..., device_ca = ... }";
     let (t, given) = read_table(raw, DEVICE_TLS_KEYS, not_table)?;
     for (key, why) in [

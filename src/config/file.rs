@@ -4,11 +4,12 @@
 //! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
 
 use super::error::{line_col, syntax_error, ConfigError};
-use super::raw::{entries, place, raw_value as raw, suggest, Bad, Raw};
+use super::raw::{entries, place, raw_value as raw, read_table, suggest, Bad, Raw};
 use super::{
-    Check, Config, Framing, HostPort, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units,
-    ValueError, KEYS,
+    table, Check, Config, Framing, HostPort, Key, LineConfig, LineRole, ListenConfig,
+    ListenFraming, Setting, Step, TlsDevice, Units, ValueError, KEYS,
 };
+use super::{Any, NonEmpty};
 use std::borrow::Cow;
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::path::Path;
@@ -50,8 +51,17 @@ const TOP: [&str; 10] = [
 const LINE: [&str; 8] = [
     "units", "remap", "serial", "tcp", "relay", "role", "route", "unit",
 ];
-/// The keys of a line's `tcp` table: a device on the network.
-const LINE_TCP: [&str; 3] = ["address", "framing", "tls"];
+table! {
+    /// A line's `tcp` table: its device on the network (docs/network-devices.md).
+    ["line.tcp"] LineTcpTable LINE_TCP_KEYS {
+        /// "HOST:PORT" of the device (a Modbus/TCP slave, or a serial device server in raw TCP mode); required
+        address: HostPort = HostPort::default(), NonEmpty("host:port");
+        /// How frames are carried to it: mbap, rtu or ascii
+        framing: Framing = Framing::Mbap, Any;
+        /// The device speaks TLS: { cert, key, device_ca, server_name }
+        tls: Option<TlsDevice> = None, Any;
+    }
+}
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 
@@ -404,7 +414,19 @@ impl Reader<'_> {
         key: &str,
         read: Result<T, ValueError>,
     ) -> Result<T, ConfigError> {
-        read.or_else(|e| self.bad(place(v, key, &e)))
+        read.or_else(|e| {
+            let mut b = place(v, key, &e);
+            // An unknown key that is no misspelling of the table's own may be
+            // another table's.
+            if let Some(Step::Key(name)) = e.path.last() {
+                if !b.message.contains("did you mean") {
+                    if let Some(elsewhere) = self.belongs(name, &b.key) {
+                        b.message += &format!(" ({elsewhere})");
+                    }
+                }
+            }
+            self.bad(b)
+        })
     }
 
     fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<LineRead, ConfigError> {
@@ -433,8 +455,8 @@ impl Reader<'_> {
                     tcp_tls = tls;
                 }
                 "role" => {
-                    let master =
-                        self.value(item, &full, super::master::role(&raw(item.get_ref())))?;
+                    let read = LineRole::read(&raw(item.get_ref()), &Check::Any);
+                    let master = self.value(item, &full, read)? == LineRole::Master;
                     role = Some((master, k.span().start));
                 }
                 "unit" => {
@@ -534,47 +556,27 @@ impl Reader<'_> {
         Ok(())
     }
 
-    /// A line's `tcp` table: `address = "host:port"` (required) and `framing`.
+    /// A line's `tcp` table, read by [`LINE_TCP_KEYS`]: `address` required.
     fn line_tcp(
         &mut self,
         line: &mut Config,
         v: &Spanned<DeValue>,
         path: &str,
     ) -> Result<(String, Option<super::TlsDevice>), ConfigError> {
+        let value = raw(v.get_ref());
+        let not_table = value.invalid("a table (address, framing)").message;
+        let (t, given) = self.value(v, path, read_table(&value, LINE_TCP_KEYS, &not_table))?;
+        let address = format!("{path}.address");
         let DeValue::Table(table) = v.get_ref() else {
-            let m = raw(v.get_ref()).invalid("a table (address, framing)");
-            return self.fail(v.span().start, path, m);
+            unreachable!("read as a table")
         };
-        let (mut address, mut tls) = (None, None);
-        for (k, item) in entries(table) {
-            let full = format!("{path}.{}", k.get_ref());
-            let at = item.span().start;
-            match k.get_ref().as_ref() {
-                "tls" => {
-                    let read = super::access::tls_device(&raw(item.get_ref()));
-                    tls = Some(self.value(item, &full, read)?);
-                }
-                "address" => {
-                    let s = HostPort::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));
-                    let s = self.value(item, &full, s)?;
-                    self.at.insert(full, at);
-                    address = Some(s.0);
-                }
-                "framing" => {
-                    let f = Framing::read(&raw(item.get_ref()), &Check::Any);
-                    line.serial.framing = f.or_else(|m| self.fail(at, &full, m))?;
-                }
-                _ => return self.unknown(k, &full, &LINE_TCP),
-            }
-        }
-        match address {
-            Some(a) => Ok((a, tls)),
-            None => self.fail(
-                v.span().start,
-                &format!("{path}.address"),
-                "missing: the device's host:port",
-            ),
-        }
+        let Some(at) = table.get("address").filter(|_| given.contains(&"address")) else {
+            return self.fail(v.span().start, &address, "missing: the device's host:port");
+        };
+        // Where it is, for a second line on the same address.
+        self.at.insert(address, at.span().start);
+        line.serial.framing = t.framing;
+        Ok((t.address.0, t.tls))
     }
 
     /// `units = [1, 2, "10-20", ...]`: unit ids and ranges, each on one line only.

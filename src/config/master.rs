@@ -117,16 +117,6 @@ impl MasterLine {
     }
 }
 
-/// `role = "slave" | "master"`: true for a master line.
-pub(super) fn role(raw: &Raw) -> Result<bool, ValueError> {
-    match raw {
-        Raw::Str(s) if s == "master" => Ok(true),
-        Raw::Str(s) if s == "slave" => Ok(false),
-        Raw::Str(s) => Err(format!("invalid value {s:?}; expected one of slave, master").into()),
-        _ => Err("expected a string, one of slave, master".into()),
-    }
-}
-
 /// The `[[line.route]]` array `raw`; `path` is what messages call it (`line[0].route`).
 pub(super) fn routes(raw: &Raw, path: &str) -> Result<Vec<Route>, ValueError> {
     let Raw::List(tables) = raw else {
@@ -174,7 +164,7 @@ fn route(raw: &Raw) -> Result<Route, ValueError> {
         (["listen"], Some(addr)) => Peer::Listen(addr),
         // `listen = ""` is no address.
         (["listen"], None) => {
-            let m = "missing: address (host:port of the slave) or listen";
+            let m = "must not be empty (the address where mbgate listens for the slave)";
             return Err(ValueError::new(m).value("listen"));
         }
         _ => Peer::Connect(t.address.0),

@@ -28,7 +28,7 @@ pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> V
     access::effective(&listen.access, roles)
 }
 pub use error::{ConfigError, Step, ValueError};
-pub use file::{load, parse};
+pub use file::{load, parse, LineTcpTable, LINE_TCP_KEYS};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
@@ -127,6 +127,13 @@ choices! {
         Rts = "rts",
         /// The gateway drives a GPIO line while it sends (the GPIO character device): DE wired to a GPIO pin
         Gpio = "gpio",
+    }
+    /// Which end of a line the device is (docs/design.md §4.2).
+    LineRole {
+        /// The device answers: masters on TCP reach it through the line
+        Slave = "slave",
+        /// The device asks: its requests go out by the line's [[line.route]] tables
+        Master = "master",
     }
     /// How masters frame their requests on a listener (docs/design.md §4.1).
     ListenFraming {

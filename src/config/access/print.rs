@@ -1,7 +1,7 @@
 //! The security keys as `mbgate check-config` prints them: TOML that reads back to the
 //! same configuration, and under each listener who may connect and what they may do.
 
-use super::{quoted, AccessRole, ListenAccess, TlsDevice, WriteRules};
+use super::{AccessRole, ListenAccess, TlsDevice, WriteRules};
 use crate::access::Policy;
 use crate::config::Setting;
 
@@ -88,13 +88,5 @@ pub(crate) fn roles_to_toml(roles: &[AccessRole]) -> String {
 
 /// A TCP line's `tls` table as `[line.tcp]` prints it.
 pub(crate) fn device_to_toml(t: &TlsDevice) -> String {
-    let mut parts = vec![
-        format!("cert = {}", quoted(&t.cert)),
-        format!("key = {}", quoted(&t.key)),
-        format!("device_ca = {}", quoted(&t.device_ca)),
-    ];
-    if let Some(n) = &t.server_name {
-        parts.push(format!("server_name = {}", toml::Value::String(n.clone())));
-    }
-    format!("tls = {{ {} }}\n", parts.join(", "))
+    format!("tls = {}\n", Some(t.clone()).print())
 }
