@@ -896,6 +896,14 @@ fn the_reference_table_and_flag_list_follow_the_declarations() {
 
 /// The key names and defaults of a table inside a line or a listener, as declared.
 fn declared<C: Default>(keys: &[Key<C>]) -> Vec<(&'static str, String)> {
+    for k in keys {
+        assert!(
+            !k.help.trim().is_empty(),
+            "{}.{} has no help",
+            k.section,
+            k.name
+        );
+    }
     let defaults = C::default();
     keys.iter().map(|k| (k.name, (k.get)(&defaults))).collect()
 }
