@@ -5,8 +5,8 @@
 //! shows the key's range, name and default.
 
 use crate::config::{
-    parse_listen, parse_optional_address, Check, Config, ConfigError, Key, Kind, Raw, SerialConfig,
-    Setting, KEYS, METRICS_EXAMPLE,
+    parse_listen, parse_optional_address, Check, Config, ConfigError, Key, Raw, SerialConfig,
+    Setting, ValueKind, KEYS, METRICS_EXAMPLE,
 };
 use clap::builder::{PossibleValue, PossibleValuesParser, TypedValueParser};
 use clap::{Arg, ArgGroup, ArgMatches, Args, Command, FromArgMatches};
@@ -81,7 +81,7 @@ impl<const PORT: bool> Flags<PORT> {
                 let m = format!("the file describes the gateway as {tables} tables: set it there");
                 return Err(bad(key.flag, m));
             }
-            (key.set)(&mut c, value).map_err(|m| bad(key.flag, m))?;
+            (key.set)(&mut c, value).map_err(|e| bad(key.flag, e.into()))?;
         }
         // Flags that contradict each other, or the file: name the flag that was given
         // (the first key's when both were).
@@ -125,6 +125,7 @@ fn arg(key: &'static Key) -> Arg {
         Check::Range(min, max, None) => help += &format!(", {min}..={max}{unit}"),
         Check::Range(_, _, Some(said)) => help += &format!(", {said}"),
         Check::Any | Check::NonEmpty(_) | Check::OneOf(_) | Check::SocketPath => {}
+        Check::Address(_) => {}
     }
     let default = (key.get)(&Config::default());
     let (section, name, default) = (key.section, key.name, default.trim_matches('"'));
@@ -134,21 +135,22 @@ fn arg(key: &'static Key) -> Arg {
         .value_name(key.value_name)
         .help(help);
     match (key.kind, key.check) {
-        (Kind::Int, _) => arg.value_parser(|s: &str| s.parse::<i128>()),
+        (ValueKind::Int, _) => arg.value_parser(|s: &str| s.parse::<i128>()),
         // `--rs485` alone means true.
-        (Kind::Bool, _) => arg
+        (ValueKind::Bool, _) => arg
             .value_parser(clap::value_parser!(bool))
             .num_args(0..=1)
             .require_equals(true)
             .default_missing_value("true"),
         // `--metrics-listen ""`: none, as in the file.
-        (Kind::Addr, _) if key.section == "metrics" => arg.value_parser(|s: &str| {
+        (ValueKind::Addr, Check::Address(METRICS_EXAMPLE)) => arg.value_parser(|s: &str| {
             parse_optional_address(s, METRICS_EXAMPLE).map(|_| s.to_owned())
         }),
-        (Kind::Addr, _) => arg.value_parser(|s: &str| parse_listen(s).map(|_| s.to_owned())),
-        (Kind::Choice(words), _) => arg.value_parser(words_parser(words)),
-        (Kind::Str, Check::OneOf(words)) => arg.value_parser(PossibleValuesParser::new(words)),
-        (Kind::Str, _) => arg,
+        (ValueKind::Addr, _) => arg.value_parser(|s: &str| parse_listen(s).map(|_| s.to_owned())),
+        (ValueKind::Choice(words), _) => arg.value_parser(words_parser(words)),
+        (ValueKind::Str, Check::OneOf(words)) => arg.value_parser(PossibleValuesParser::new(words)),
+        (ValueKind::Str, _) => arg,
+        (ValueKind::List, _) => unreachable!("no flag takes an array"),
     }
 }
 
@@ -172,8 +174,8 @@ impl<const PORT: bool> FromArgMatches for Flags<PORT> {
     fn from_arg_matches(m: &ArgMatches) -> Result<Self, clap::Error> {
         let given = Self::keys().filter_map(|key| {
             let value = match key.kind {
-                Kind::Int => m.get_one::<i128>(key.flag).map(|v| Raw::Int(*v)),
-                Kind::Bool => m.get_one::<bool>(key.flag).map(|v| Raw::Bool(*v)),
+                ValueKind::Int => m.get_one::<i128>(key.flag).map(|v| Raw::Int(*v)),
+                ValueKind::Bool => m.get_one::<bool>(key.flag).map(|v| Raw::Bool(*v)),
                 _ => m.get_one::<String>(key.flag).map(|v| Raw::Str(v.clone())),
             };
             Some((key, value?))
@@ -202,7 +204,7 @@ fn words_parser(words: &'static [(&'static str, &'static str)]) -> PossibleValue
 pub(crate) fn choice<T: Setting + Clone + Send + Sync + 'static>(
 ) -> impl TypedValueParser<Value = T> {
     let words = match T::KIND {
-        Kind::Choice(words) => words,
+        ValueKind::Choice(words) => words,
         _ => &[],
     };
     words_parser(words).try_map(|word| T::read(&Raw::Str(word), &Check::Any))

@@ -61,6 +61,21 @@ fn bad_configuration_exits_2_naming_file_line_and_key() {
             ":2:10: tcp.listen: expected an address like 0.0.0.0:502",
         ),
         ("[modbus]\nunit = 1\n", ":1:2: modbus: unknown key"),
+        // Every line a master line: no listener is bound, so none may be written.
+        (
+            "[[line]]\nrole = \"master\"\n[[line.route]]\naddress = \"h:1\"\n\
+             [[listen]]\naddress = \"127.0.0.1:5502\"\n",
+            ":5:1: listen[0]: every line is a master line (role = \"master\"): no line has a device for Modbus/TCP masters to reach, so mbgate listens for none; remove [[listen]]",
+        ),
+        (
+            "[[line]]\nrole = \"master\"\n[[line.route]]\naddress = \"h:1\"\n[tcp]\nlisten = \"127.0.0.1:5502\"\n",
+            ":5:2: tcp: every line is a master line (role = \"master\"): no line has a device for Modbus/TCP masters to reach, so mbgate listens for none; remove [tcp]",
+        ),
+        // A relay key a master line does not use.
+        (
+            "[[line]]\nrole = \"master\"\nrelay = { response_timeout_ms = 300 }\n[[line.route]]\naddress = \"h:1\"\n",
+            ":3:33: line[0].relay.response_timeout_ms: means nothing on a master line",
+        ),
         ("[serial\n", ":1:8: TOML syntax error"),
     ];
     for (i, (text, want)) in cases.iter().enumerate() {

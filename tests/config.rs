@@ -894,6 +894,73 @@ fn the_reference_table_and_flag_list_follow_the_declarations() {
     }
 }
 
+/// The key names and defaults of a table inside a line or a listener, as declared.
+fn declared<C: Default>(keys: &[Key<C>]) -> Vec<(&'static str, String)> {
+    for k in keys {
+        assert!(
+            !k.help.trim().is_empty(),
+            "{}.{} has no help",
+            k.section,
+            k.name
+        );
+    }
+    let defaults = C::default();
+    keys.iter().map(|k| (k.name, (k.get)(&defaults))).collect()
+}
+
+/// Each table inside a line or a listener has its table in docs/configuration.md,
+/// headed `in a ...`: one row per declared key, in their order (a row may name
+/// several, `read_only`, `write`), and a default written as code is the declared one.
+/// A `[[listen]]`'s rows also name the keys of `[tcp]` it takes.
+#[test]
+fn the_tables_inside_lines_and_listeners_follow_their_declarations() {
+    use mbgate::config::access::*;
+    use mbgate::config::master::ROUTE_KEYS;
+    let doc = include_str!("../docs/configuration.md");
+    let tcp: Vec<&str> = ["address", "max_connections", "idle_timeout_ms"].to_vec();
+    let tables = [
+        ("in a `[[line.route]]`", declared(ROUTE_KEYS)),
+        ("in a `[[line.unit]]`", declared(UNIT_KEYS)),
+        ("in a `[[listen]]`", declared(LISTEN_KEYS)),
+        ("in a listener's `tls`", declared(LISTEN_TLS_KEYS)),
+        ("in a `[[role]]`", declared(ROLE_KEYS)),
+        ("in a `write` rule", declared(RULE_KEYS)),
+        ("in a `[[line]]`'s `tcp`", declared(LINE_TCP_KEYS)),
+        ("in a `[[line]]`'s `tcp.tls`", declared(DEVICE_TLS_KEYS)),
+    ];
+    for (header, keys) in tables {
+        let at = doc
+            .find(&format!("| {header} |"))
+            .unwrap_or_else(|| panic!("no table `{header}` in docs/configuration.md"));
+        let rows = doc[at..].lines().skip(2).take_while(|l| l.starts_with('|'));
+        let mut documented = Vec::new();
+        for row in rows {
+            let cells: Vec<&str> = row.split('|').map(str::trim).collect();
+            let default = cells
+                .get(2)
+                .and_then(|c| c.strip_prefix('`')?.strip_suffix('`'));
+            for name in cells[1].split(", ") {
+                let name = name.trim_matches('`');
+                if header == "in a `[[listen]]`" && tcp.contains(&name) {
+                    continue;
+                }
+                let declared = keys.iter().find(|(k, _)| *k == name);
+                let declared =
+                    declared.unwrap_or_else(|| panic!("{header}: `{name}` is not declared"));
+                if let (Some(doc), true) = (default, cells.len() > 4) {
+                    assert_eq!(doc, declared.1, "{header}: the default of `{name}`");
+                }
+                documented.push(name);
+            }
+        }
+        let names: Vec<&str> = keys.iter().map(|(k, _)| *k).collect();
+        assert_eq!(
+            documented, names,
+            "{header}: docs/configuration.md against the declarations"
+        );
+    }
+}
+
 #[test]
 fn every_key_has_its_own_flag_and_help() {
     for (i, key) in KEYS.iter().enumerate() {

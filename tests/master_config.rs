@@ -83,6 +83,10 @@ fn mistakes_are_refused_naming_the_key() {
             "4:11: line[0].route[0].address: expected host:port",
         ),
         (
+            route("listen = \"\""),
+            "4:10: line[0].route[0].listen: must not be empty (the address where mbgate listens for the slave)",
+        ),
+        (
             route("address = \"h:1\"\nlisten = \"0.0.0.0:5021\""),
             "5:10: line[0].route[0].listen: give address (connect) or listen, not both",
         ),
@@ -111,6 +115,14 @@ fn mistakes_are_refused_naming_the_key() {
         (
             route("adress = \"h:1\""),
             "4:1: line[0].route[0].adress: unknown key; expected one of units, address, listen",
+        ),
+        (
+            format!("{line}relay = {{ retries = 2 }}\n[[line.route]]\naddress = \"h:1\"\n"),
+            "3:21: line[0].relay.retries: means nothing on a master line",
+        ),
+        (
+            format!("{line}[line.relay]\nframe_gap_ms = 20\nmax_in_flight = 2\n[[line.route]]\naddress = \"h:1\"\n"),
+            "5:17: line[0].relay.max_in_flight: means nothing on a master line (the device is the master: no request of a Modbus/TCP master is queued or timed on it); give max_in_flight in its [[line.route]] tables",
         ),
         (
             format!("{line}units = [1]\n[[line.route]]\naddress = \"h:1\"\n"),

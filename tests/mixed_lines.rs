@@ -292,6 +292,29 @@ fn a_master_line_beside_a_bus_serves_both_counts_both_and_reloads_both() {
         sample(&metrics, "mbgate_line_timeouts", &master.gw),
         Some(2.0)
     );
+
+    // A relay key on the master line means nothing there (its timeouts are its
+    // routes'): the reload is refused naming file, line and key, and what runs stays.
+    let relay_on_master = config(&bus.gw, &master.gw, slaves, &socket, (300, 300)).replacen(
+        "role = \"master\"\n",
+        "role = \"master\"\nrelay = { response_timeout_ms = 5000 }\n",
+        1,
+    );
+    std::fs::write(&file, relay_on_master).unwrap();
+    let run = mbgate(&["reload", "--socket", socket.to_str().unwrap()]);
+    let said = run.stdout + &run.stderr;
+    assert_ne!(run.code, 0, "{said}");
+    let want = format!(
+        "{}:8:33: line[1].relay.response_timeout_ms: means nothing on a master line",
+        file.display()
+    );
+    assert!(said.contains(&want), "{want}:\n{said}");
+    let (result, seconds) = unanswered_behind_the_master_line(&master.dev);
+    assert_eq!(result, serde_json::json!({"exception": 11}));
+    assert!(
+        seconds < 2.5,
+        "still 300 ms on the master line: {seconds} s"
+    );
     let mut gw = gw;
     let counters = gw.stop();
     assert_eq!(counters["connections"], 1, "the master was never cut off");

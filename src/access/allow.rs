@@ -51,30 +51,53 @@ impl Net {
     }
 }
 
+/// Why a text is no address or block.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum NetError {
+    /// Neither an address nor an address and a prefix length.
+    #[error("expected an address or a CIDR block like 10.0.0.0/24 or 2001:db8::/32, got {0:?}")]
+    NotAnAddress(String),
+    /// The prefix length is past the address's bits.
+    #[error("{given:?}: the prefix length must be 0 to {max}")]
+    Prefix {
+        /// The text as given.
+        given: String,
+        /// The address's bits: 32 or 128.
+        max: u8,
+    },
+    /// The address has bits set past its prefix length: it names no block.
+    #[error("{given:?} has bits set past its prefix length: did you mean \"{block}\"?")]
+    HostBits {
+        /// The text as given.
+        given: String,
+        /// The block it would be, those bits cleared.
+        block: Net,
+    },
+}
+
 impl FromStr for Net {
-    type Err = String;
+    type Err = NetError;
 
     /// `10.0.0.0/24`, `2001:db8::/32`, `127.0.0.1`, `::1`. A block whose address has
     /// bits set past its prefix is refused (it names no block: `10.0.0.1/24` is
     /// `10.0.0.0/24` or a typo), with the block it would be.
-    fn from_str(s: &str) -> Result<Net, String> {
+    fn from_str(s: &str) -> Result<Net, NetError> {
         let t = s.trim();
         let (addr, prefix) = match t.split_once('/') {
             Some((a, p)) => (a, Some(p)),
             None => (t, None),
         };
-        let bad = || {
-            format!(
-                "expected an address or a CIDR block like 10.0.0.0/24 or 2001:db8::/32, got {s:?}"
-            )
-        };
+        let bad = || NetError::NotAnAddress(s.to_owned());
         let addr: IpAddr = addr.parse().map_err(|_| bad())?;
         let max = Net::max_prefix(addr);
         let prefix = match prefix {
             None => max,
             Some(p) => match p.parse::<u8>() {
                 Ok(p) if p <= max => p,
-                _ => return Err(format!("{s:?}: the prefix length must be 0 to {max}")),
+                _ => {
+                    let given = s.to_owned();
+                    return Err(NetError::Prefix { given, max });
+                }
             },
         };
         let mut net = Net { addr, prefix };
@@ -94,9 +117,10 @@ impl FromStr for Net {
             ..net
         };
         if masked != net {
-            return Err(format!(
-                "{s:?} has bits set past its prefix length: did you mean \"{masked}\"?"
-            ));
+            return Err(NetError::HostBits {
+                given: s.to_owned(),
+                block: masked,
+            });
         }
         Ok(net)
     }
@@ -305,11 +329,17 @@ mod tests {
     #[test]
     fn a_bad_entry_is_refused_saying_why() {
         let e = "10.0.0.1/24".parse::<Net>().unwrap_err();
-        assert!(e.contains("did you mean \"10.0.0.0/24\""), "{e}");
+        let block = "10.0.0.0/24".parse().unwrap();
+        assert!(matches!(&e, NetError::HostBits { block: b, .. } if *b == block));
+        assert!(
+            e.to_string().contains("did you mean \"10.0.0.0/24\""),
+            "{e}"
+        );
         let e = "10.0.0.0/33".parse::<Net>().unwrap_err();
-        assert!(e.contains("0 to 32"), "{e}");
+        assert!(matches!(e, NetError::Prefix { max: 32, .. }), "{e}");
+        assert!(e.to_string().contains("0 to 32"), "{e}");
         let e = "2001:db8::/129".parse::<Net>().unwrap_err();
-        assert!(e.contains("0 to 128"), "{e}");
+        assert!(e.to_string().contains("0 to 128"), "{e}");
         for bad in [
             "",
             "10.0.0",

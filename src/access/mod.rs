@@ -6,5 +6,5 @@
 pub mod allow;
 pub mod rules;
 
-pub use allow::{AllowList, Net};
+pub use allow::{AllowList, Net, NetError};
 pub use rules::{decide, Denied, Policy, UnitSet, Why, WriteRule};

@@ -19,33 +19,98 @@
 //! read_only = true
 //! ```
 
-use super::raw::{bad, entries, raw_value, suggest, Bad};
-use super::{Check, Setting};
+use super::raw::read_table;
+use super::{table, Check, Key, ListenFraming, Raw, Setting, ValueError, ValueKind};
+use super::{Any, NonEmpty, Range};
 use crate::access::{AllowList, Net, Policy, UnitSet, WriteRule};
 use crate::frame::function::FunctionCode;
 use std::path::PathBuf;
-use toml::de::{DeTable, DeValue};
-use toml::Spanned;
 
-/// The keys a `[[listen]]` has beyond those of `[tcp]` and `framing`.
-pub(super) const LISTEN_ACCESS: [&str; 4] = ["allow", "read_only", "write", "tls"];
-/// The keys of a listener's `tls` table.
-const LISTEN_TLS: [&str; 5] = [
-    "cert",
-    "key",
-    "client_ca",
-    "default_role",
-    "handshake_timeout_ms",
-];
-/// The keys of a `[[role]]`.
-const ROLE: [&str; 4] = ["name", "read_only", "write", "priority"];
-/// The keys of a `write` rule.
-const RULE: [&str; 3] = ["units", "functions", "addresses"];
-/// The keys of a TCP line's `tls` table.
-const LINE_TLS: [&str; 4] = ["cert", "key", "device_ca", "server_name"];
+/// The most priority classes there are: `priority` is 0 (the default, the lowest) to
+/// this.
+pub(crate) const PRIORITY_MAX: u8 = 7;
+/// A listener's or a role's `priority`.
+const PRIORITY: Check = Range(
+    0,
+    PRIORITY_MAX as i128,
+    Some("0 (the default, the lowest) to 7"),
+);
 
-/// The default `handshake_timeout_ms`.
-pub(crate) const HANDSHAKE_TIMEOUT_MS: u64 = 10_000;
+table! {
+    /// The keys a `[[listen]]` has beyond those of `[tcp]` (docs/configuration.md
+    /// "Several lines and listeners", docs/security.md).
+    ["listen"] ListenTable LISTEN_KEYS {
+        /// How its masters frame their requests: mbap (Modbus/TCP) or rtu (RTU over TCP)
+        framing: ListenFraming = ListenFraming::Mbap, Any;
+        /// The addresses and CIDR blocks whose masters are taken; none: everyone
+        allow: Option<AllowList> = None, Any;
+        /// Every request that may act on a device is answered 0x01
+        read_only: bool = false, Any;
+        /// Rules { units, functions, addresses }: only the writes one of them matches pass
+        write: WriteRules = WriteRules::default(), Any;
+        /// Modbus/TCP Security: { cert, key, client_ca, default_role, handshake_timeout_ms }
+        tls: Option<TlsListen> = None, Any;
+        /// Its masters' priority class on every line, 0 (the lowest) to 7
+        priority: u8 = 0, PRIORITY;
+    }
+}
+
+table! {
+    /// A listener's `tls` table (docs/security.md "Modbus/TCP Security").
+    ["listen.tls"] TlsListenTable LISTEN_TLS_KEYS {
+        /// The gateway's certificate chain (PEM), leaf first; required
+        cert: String = String::new(), NonEmpty("the gateway's certificate, PEM");
+        /// Its private key (PEM: PKCS#8, PKCS#1 or SEC1); required
+        key: String = String::new(), NonEmpty("the gateway's private key, PEM");
+        /// The CA certificates (PEM) a master's certificate must chain to; required
+        client_ca: String = String::new(), NonEmpty("the CA certificates masters' certificates chain to, PEM");
+        /// The role of a certificate that carries none; none: such a master is refused
+        default_role: String = String::new(), NonEmpty("a [[role]] name");
+        /// The most a TLS handshake may take, from the accept
+        handshake_timeout_ms: u64 = 10_000, Range(100, 600_000, None);
+    }
+}
+
+table! {
+    /// A `[[role]]` (docs/security.md "What a master may do").
+    ["role"] RoleTable ROLE_KEYS {
+        /// The role as a client certificate carries it (the Modbus role extension); required
+        name: String = String::new(), NonEmpty("the role's name");
+        /// A master with this role may not act on a device
+        read_only: bool = false, Any;
+        /// The writes a master with this role may make, as a listener's
+        write: WriteRules = WriteRules::default(), Any;
+        /// The priority class of a master with this role, over its listener's
+        priority: u8 = 0, PRIORITY;
+    }
+}
+
+table! {
+    /// One rule of a `write` list: the writes it permits; each key left out matches any.
+    ["write"] RuleTable RULE_KEYS {
+        /// The master's unit ids, 0 to 255, and ranges "A-B"
+        units: RuleUnits = RuleUnits::default(), Range(0, 255, None);
+        /// Function codes that write (5, 6, 15, 16, 22, 23...)
+        functions: Functions = Functions::default(), Range(1, 127, Some("a function code, 1 to 127"));
+        /// The first and last address, "A-B", or one address
+        addresses: Addresses = Addresses((0, 65535)), Range(0, 65535, None);
+    }
+}
+
+table! {
+    /// A TCP line's `tls` table: the gateway as a TLS client of the device
+    /// (docs/security.md "A device behind TLS").
+    ["line.tcp.tls"] TlsDeviceTable DEVICE_TLS_KEYS {
+        /// The gateway's client certificate chain (PEM), presented to the device; required
+        cert: String = String::new(), NonEmpty("the gateway's client certificate, PEM");
+        /// Its private key (PEM); required
+        key: String = String::new(), NonEmpty("the gateway's private key, PEM");
+        /// The CA certificates (PEM) the device's certificate must chain to; required
+        device_ca: String = String::new(), NonEmpty("the CA the device's certificate chains to, PEM");
+        /// The name the device's certificate must carry; none: the host of address
+        server_name: String = String::new(), NonEmpty("the name in the device's certificate");
+    }
+}
 
 /// Who may connect to a listener and what they may do (docs/security.md).
 #[derive(Debug, Clone, PartialEq, Default)]
@@ -82,7 +147,7 @@ pub struct TlsListen {
 
 /// One `[[role]]`: a name a client certificate carries, and its policy.
 #[derive(Debug, Clone, PartialEq)]
-pub struct Role {
+pub struct AccessRole {
     /// As in the certificate's Modbus role extension, compared exactly.
     pub name: String,
     /// What a master with this role may do.
@@ -105,276 +170,270 @@ pub struct TlsDevice {
     pub server_name: Option<String>,
 }
 
-/// A value as the checks see it.
-fn raw(v: &Spanned<DeValue>) -> super::Raw {
-    raw_value(v.get_ref())
-}
-
-fn unknown<T>(k: &Spanned<std::borrow::Cow<str>>, key: &str, expected: &[&str]) -> Result<T, Bad> {
-    let mut m = format!("unknown key; expected one of {}", expected.join(", "));
-    if let Some(s) = suggest(k.get_ref(), expected) {
-        m += &format!(" (did you mean `{s}`?)");
-    }
-    bad(k.span().start, key, m)
-}
-
-/// `allow = ["10.0.0.0/24", "::1"]`: at least one address or block.
-pub(super) fn allow(v: &Spanned<DeValue>, key: &str) -> Result<AllowList, Bad> {
-    let DeValue::Array(items) = v.get_ref() else {
-        return bad(
-            v.span().start,
-            key,
-            "expected an array of addresses and CIDR blocks, like [\"10.0.0.0/24\", \"::1\"]",
-        );
-    };
-    if items.is_empty() {
-        return bad(
-            v.span().start,
-            key,
-            "must list at least one address (leave allow out to take everyone)",
-        );
-    }
-    let mut nets = Vec::new();
-    for item in items.iter() {
-        let at = item.span().start;
-        let s = String::read(&raw(item), &Check::Any).or_else(|m| bad(at, key, m))?;
-        let net: Net = s.parse().or_else(|m| bad(at, key, m))?;
-        if nets.contains(&net) {
-            return bad(at, key, format!("{net} is listed twice"));
-        }
-        nets.push(net);
-    }
-    Ok(AllowList::new(nets))
-}
-
-/// The most priority classes there are: `priority` is 0 (the default, the lowest) to
-/// this.
-pub(crate) const PRIORITY_MAX: u8 = 7;
-
-/// `priority = N` of a listener or a role: a class from 0 to [`PRIORITY_MAX`].
-pub(super) fn priority(v: &Spanned<DeValue>, key: &str) -> Result<u8, Bad> {
-    let said = "0 (the default, the lowest) to 7";
-    u8::read(
-        &raw(v),
-        &Check::Range(0, i128::from(PRIORITY_MAX), Some(said)),
-    )
-    .or_else(|m| bad(v.span().start, key, m))
-}
-
-/// `read_only` and `write` of a listener or a role: `table` is where they are, `path`
-/// what messages call it.
-pub(super) fn policy(table: &DeTable, path: &str) -> Result<Policy, Bad> {
-    let mut p = Policy::default();
-    let mut read_only_at = None;
-    if let Some(v) = table.get("read_only") {
-        let key = format!("{path}.read_only");
-        p.read_only = bool::read(&raw(v), &Check::Any).or_else(|m| bad(v.span().start, &key, m))?;
-        read_only_at = Some(v.span().start);
-    }
-    if let Some(v) = table.get("write") {
-        let key = format!("{path}.write");
-        p.write = write_rules(v, &key)?;
-        if p.read_only {
-            let m = format!(
-                "read_only = true refuses every write: give {path}.read_only or {path}.write, not both"
-            );
-            return bad(
-                read_only_at.unwrap_or(v.span().start),
-                &format!("{path}.read_only"),
-                m,
-            );
-        }
-    }
-    Ok(p)
-}
-
-/// `write = [{ units = [1], functions = [6, 16], addresses = "100-199" }, ...]`.
-fn write_rules(v: &Spanned<DeValue>, key: &str) -> Result<Vec<WriteRule>, Bad> {
-    let DeValue::Array(items) = v.get_ref() else {
-        return bad(v.span().start, key, "expected an array of rules, like [{ units = [1], functions = [6], addresses = \"0-99\" }]");
-    };
-    if items.is_empty() {
-        return bad(
-            v.span().start,
-            key,
-            "must list at least one rule (write = [] would be read_only = true)",
-        );
-    }
-    let mut rules = Vec::new();
-    for (i, item) in items.iter().enumerate() {
-        let here = format!("{key}[{i}]");
-        let DeValue::Table(t) = item.get_ref() else {
-            return bad(
-                item.span().start,
-                &here,
-                "expected a rule: a table of units, functions, addresses",
-            );
-        };
-        let mut r = WriteRule::default();
-        for (k, v) in entries(t) {
-            let full = format!("{here}.{}", k.get_ref());
-            match k.get_ref().as_ref() {
-                "units" => r.units = Some(units(v, &full)?),
-                "functions" => r.functions = Some(functions(v, &full)?),
-                "addresses" => r.addresses = Some(addresses(v, &full)?),
-                _ => return unknown(k, &full, &RULE),
-            }
-        }
-        if r == WriteRule::default() {
-            let m = "an empty rule permits every write: name units, functions or addresses (or leave write out)";
-            return bad(item.span().start, &here, m);
-        }
-        rules.push(r);
-    }
-    Ok(rules)
-}
-
-/// `units = [0, 1, "10-20"]`: unit ids 0 to 255 as the master sends them.
-fn units(v: &Spanned<DeValue>, key: &str) -> Result<UnitSet, Bad> {
-    let DeValue::Array(ids) = v.get_ref() else {
-        return bad(
-            v.span().start,
-            key,
-            "expected an array of unit ids and ranges like \"10-20\"",
-        );
-    };
-    if ids.is_empty() {
-        return bad(
-            v.span().start,
-            key,
-            "must list at least one unit id (leave units out for every unit)",
-        );
-    }
-    let mut set = UnitSet::default();
-    for id in ids.iter() {
-        let at = id.span().start;
-        let (a, b) = match id.get_ref() {
-            DeValue::String(s) => range(s, 255).or_else(|m| bad(at, key, m))?,
-            _ => {
-                let u =
-                    u8::read(&raw(id), &Check::Range(0, 255, None)).or_else(|m| bad(at, key, m))?;
-                (u16::from(u), u16::from(u))
-            }
-        };
-        for u in a..=b {
-            set.insert(u as u8);
-        }
-    }
-    Ok(set)
-}
-
-/// `functions = [5, 6, 0x10]`: codes that may act on the device.
-fn functions(v: &Spanned<DeValue>, key: &str) -> Result<Vec<u8>, Bad> {
-    let DeValue::Array(codes) = v.get_ref() else {
-        return bad(
-            v.span().start,
-            key,
-            "expected an array of function codes, like [6, 16]",
-        );
-    };
-    if codes.is_empty() {
-        return bad(
-            v.span().start,
-            key,
-            "must list at least one function code (leave functions out for every write)",
-        );
-    }
-    let mut out = Vec::new();
-    for c in codes.iter() {
-        let at = c.span().start;
-        let fc = u8::read(
-            &raw(c),
-            &Check::Range(1, 127, Some("a function code, 1 to 127")),
-        )
-        .or_else(|m| bad(at, key, m))?;
-        if FunctionCode::new(fc).is_read() {
-            let m = format!("function {fc} only reads, and reads are always permitted: a write rule lists codes that write (5, 6, 15, 16, 22, 23, ...)");
-            return bad(at, key, m);
-        }
-        if out.contains(&fc) {
-            return bad(at, key, format!("function {fc} is listed twice"));
-        }
-        out.push(fc);
-    }
-    Ok(out)
-}
-
-/// `addresses = "100-199"` or one address `addresses = 100`.
-fn addresses(v: &Spanned<DeValue>, key: &str) -> Result<(u16, u16), Bad> {
-    let at = v.span().start;
-    match v.get_ref() {
-        DeValue::String(s) => {
-            let (a, b) = range(s, 65535).or_else(|m| bad(at, key, m))?;
-            Ok((a, b))
-        }
-        _ => {
-            let a =
-                u32::read(&raw(v), &Check::Range(0, 65535, None)).or_else(|m| bad(at, key, m))?;
-            Ok((a as u16, a as u16))
-        }
-    }
-}
-
 /// `"A-B"` with A <= B <= `max`.
-fn range(s: &str, max: u16) -> Result<(u16, u16), String> {
+fn range(s: &str, max: u16) -> Result<(u16, u16), ValueError> {
     let bad = || format!("expected a number or a range like \"10-20\" (0 to {max}), got {s:?}");
     let (a, b) = s.split_once('-').ok_or_else(bad)?;
     let n = |x: &str| x.trim().parse::<u16>().ok().filter(|v| *v <= max);
     match (n(a), n(b)) {
         (Some(a), Some(b)) if a <= b => Ok((a, b)),
-        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty")),
-        _ => Err(bad()),
+        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty").into()),
+        _ => Err(bad().into()),
     }
 }
 
-/// A `[[listen]]`'s security keys, from its `table`; `path` is `listen[0]`. Also where
-/// its `default_role` is, for [`default_roles`].
-pub(super) fn listen(table: &DeTable, path: &str) -> Result<(ListenAccess, Option<usize>), Bad> {
-    let allow = match table.get("allow") {
-        Some(a) => Some(allow(a, &format!("{path}.allow"))?),
-        None => None,
-    };
-    let (mut tls, mut role_at) = (None, None);
-    if let Some(t) = table.get("tls") {
-        tls = Some(tls_listen(t, &format!("{path}.tls"))?);
-        if let DeValue::Table(t) = t.get_ref() {
-            role_at = t.get("default_role").map(|r| r.span().start);
+/// The largest number `check` takes.
+fn most(check: &Check) -> i128 {
+    match *check {
+        Check::Range(_, max, _) => max,
+        _ => i128::MAX,
+    }
+}
+
+/// The items of an array, or what to say when `raw` is none; `empty`: what to say
+/// when it has no item.
+fn items<'r>(raw: &'r Raw, expected: &str, empty: &str) -> Result<&'r [Raw], ValueError> {
+    match raw {
+        Raw::List(items) if items.is_empty() => Err(empty.into()),
+        Raw::List(items) => Ok(items),
+        _ => Err(expected.into()),
+    }
+}
+
+/// `allow = ["10.0.0.0/24", "::1"]`: at least one address or block, none twice.
+impl Setting for Option<AllowList> {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
+        let expected =
+            "expected an array of addresses and CIDR blocks, like [\"10.0.0.0/24\", \"::1\"]";
+        let empty = "must list at least one address (leave allow out to take everyone)";
+        let mut nets = Vec::new();
+        for (i, item) in items(raw, expected, empty)?.iter().enumerate() {
+            let net = String::read(item, &Any)
+                .and_then(|s| s.parse::<Net>().map_err(|e| ValueError::new(e.to_string())))
+                .map_err(|e| e.item(i))?;
+            if nets.contains(&net) {
+                return Err(ValueError::new(format!("{net} is listed twice")).item(i));
+            }
+            nets.push(net);
         }
+        Ok(Some(AllowList::new(nets)))
     }
-    let policy = policy(table, path)?;
-    Ok((ListenAccess { allow, policy, tls }, role_at))
+    fn print(&self) -> String {
+        let nets = self.iter().flat_map(|a| a.nets().iter());
+        let nets: Vec<String> = nets.map(|n| format!("\"{n}\"")).collect();
+        format!("[{}]", nets.join(", "))
+    }
 }
 
-/// `[tcp]` is the one listener open to all: the security keys belong in a
-/// `[[listen]]` table, and the message says so rather than "unknown key".
-pub(super) fn not_in_tcp(v: &Spanned<DeValue>) -> Result<(), Bad> {
-    if let DeValue::Table(t) = v.get_ref() {
-        for (k, _) in entries(t) {
-            let name = k.get_ref().as_ref();
-            if LISTEN_ACCESS.contains(&name) {
-                let m = format!(
-                    "{name} belongs in a [[listen]] table (write [[listen]] with address = \
-                     the listen address instead of [tcp]; docs/security.md)"
-                );
-                return bad(k.span().start, &format!("tcp.{name}"), m);
+/// `write = [{ units = [1], functions = [6, 16], addresses = "100-199" }, ...]`: at
+/// least one rule, none empty.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct WriteRules(pub Vec<WriteRule>);
+
+impl Setting for WriteRules {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
+        let expected = "expected an array of rules, like [{ units = [1], functions = [6], addresses = \"0-99\" }]";
+        let empty = "must list at least one rule (write = [] would be read_only = true)";
+        let mut rules = Vec::new();
+        for (i, item) in items(raw, expected, empty)?.iter().enumerate() {
+            rules.push(rule(item).map_err(|e| e.item(i))?);
+        }
+        Ok(Self(rules))
+    }
+    fn print(&self) -> String {
+        let rules: Vec<String> = self.0.iter().map(WriteRule::to_string).collect();
+        format!("[{}]", rules.join(", "))
+    }
+}
+
+/// One `write` rule, read by [`RULE_KEYS`].
+fn rule(raw: &Raw) -> Result<WriteRule, ValueError> {
+    let not_table = "expected a rule: a table of units, functions, addresses";
+    let (t, given) = read_table(raw, RULE_KEYS, not_table)?;
+    let r = WriteRule {
+        units: given.contains(&"units").then_some(t.units.0),
+        functions: given.contains(&"functions").then_some(t.functions.0),
+        addresses: given.contains(&"addresses").then_some(t.addresses.0),
+    };
+    if r == WriteRule::default() {
+        return Err("an empty rule permits every write: name units, functions or addresses (or leave write out)".into());
+    }
+    Ok(r)
+}
+
+/// A rule's `units = [0, 1, "10-20"]`: unit ids as the master sends them.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct RuleUnits(pub UnitSet);
+
+impl Setting for RuleUnits {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        let expected = "expected an array of unit ids and ranges like \"10-20\"";
+        let empty = "must list at least one unit id (leave units out for every unit)";
+        let mut set = UnitSet::default();
+        for (i, id) in items(raw, expected, empty)?.iter().enumerate() {
+            let (a, b) = match id {
+                Raw::Str(s) => range(s, most(check) as u16),
+                _ => u8::read(id, check).map(|u| (u16::from(u), u16::from(u))),
+            }
+            .map_err(|e| e.item(i))?;
+            for u in a..=b {
+                set.insert(u as u8);
             }
         }
+        Ok(Self(set))
     }
-    Ok(())
+    fn print(&self) -> String {
+        self.0.to_string()
+    }
 }
 
-/// Each listener's `tls.default_role` names a `[[role]]`; `listeners` with where each
-/// one's `default_role` is.
+/// A rule's `functions = [5, 6, 0x10]`: codes that may act on the device, none twice.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct Functions(pub Vec<u8>);
+
+impl Setting for Functions {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        let expected = "expected an array of function codes, like [6, 16]";
+        let empty = "must list at least one function code (leave functions out for every write)";
+        let mut out = Vec::new();
+        for (i, c) in items(raw, expected, empty)?.iter().enumerate() {
+            let fc = u8::read(c, check).map_err(|e| e.item(i))?;
+            if FunctionCode::new(fc).is_read() {
+                let m = format!("function {fc} only reads, and reads are always permitted: a write rule lists codes that write (5, 6, 15, 16, 22, 23, ...)");
+                return Err(ValueError::new(m).item(i));
+            }
+            if out.contains(&fc) {
+                return Err(ValueError::new(format!("function {fc} is listed twice")).item(i));
+            }
+            out.push(fc);
+        }
+        Ok(Self(out))
+    }
+    fn print(&self) -> String {
+        let fcs: Vec<String> = self.0.iter().map(u8::to_string).collect();
+        format!("[{}]", fcs.join(", "))
+    }
+}
+
+/// A rule's `addresses = "100-199"`, or one address `addresses = 100`.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct Addresses(pub (u16, u16));
+
+impl Setting for Addresses {
+    const KIND: ValueKind = ValueKind::Str;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        match raw {
+            Raw::Str(s) => range(s, most(check) as u16).map(Self),
+            _ => u32::read(raw, check).map(|a| Self((a as u16, a as u16))),
+        }
+    }
+    fn print(&self) -> String {
+        format!("\"{}-{}\"", self.0 .0, self.0 .1)
+    }
+}
+
+/// A listener's `tls` table, read by [`LISTEN_TLS_KEYS`]: `cert`, `key` and
+/// `client_ca` required.
+impl Setting for Option<TlsListen> {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
+        let not_table = "expected a table: { cert = ..., key = ..., client_ca = ... }";
+        let (t, given) = read_table(raw, LISTEN_TLS_KEYS, not_table)?;
+        let missing = |key: &str, why: &str| ValueError::new(format!("missing: {why}")).value(key);
+        for (key, why) in [
+            ("cert", "the gateway's certificate (PEM)"),
+            ("key", "the gateway's private key (PEM)"),
+            ("client_ca", "the CA masters' certificates must chain to (PEM); Modbus/TCP Security requires client certificates"),
+        ] {
+            if !given.contains(&key) {
+                return Err(missing(key, why));
+            }
+        }
+        Ok(Some(TlsListen {
+            cert: t.cert.into(),
+            key: t.key.into(),
+            client_ca: t.client_ca.into(),
+            default_role: given.contains(&"default_role").then_some(t.default_role),
+            handshake_timeout_ms: t.handshake_timeout_ms,
+        }))
+    }
+    fn print(&self) -> String {
+        let Some(t) = self else {
+            return "{}".into();
+        };
+        let mut parts = vec![
+            format!("cert = {}", quoted(&t.cert)),
+            format!("key = {}", quoted(&t.key)),
+            format!("client_ca = {}", quoted(&t.client_ca)),
+        ];
+        if let Some(r) = &t.default_role {
+            parts.push(format!("default_role = {}", r.print()));
+        }
+        parts.push(format!("handshake_timeout_ms = {}", t.handshake_timeout_ms));
+        format!("{{ {} }}", parts.join(", "))
+    }
+}
+
+/// A path as the file writes it.
+pub(super) fn quoted(p: &std::path::Path) -> String {
+    p.display().to_string().print()
+}
+
+/// `read_only` and `write` of a listener or a role: both at once is refused, at
+/// `read_only`; `path` is what messages call the table.
+fn policy(read_only: bool, write: WriteRules, path: &str) -> Result<Policy, ValueError> {
+    if read_only && !write.0.is_empty() {
+        let m = format!(
+            "read_only = true refuses every write: give {path}.read_only or {path}.write, not both"
+        );
+        return Err(ValueError::new(m).value("read_only"));
+    }
+    Ok(Policy {
+        read_only,
+        write: write.0,
+    })
+}
+
+/// A `[[listen]]`'s own keys ([`LISTEN_KEYS`]) from `raw`, a table of them alone;
+/// `path` is what messages call it (`listen[0]`).
+pub(super) fn listen(
+    raw: &Raw,
+    path: &str,
+) -> Result<(ListenAccess, ListenFraming, u8), ValueError> {
+    let (t, _) = read_table(raw, LISTEN_KEYS, "expected a table ([[listen]])")?;
+    let policy = policy(t.read_only, t.write, path)?;
+    let access = ListenAccess {
+        allow: t.allow,
+        policy,
+        tls: t.tls,
+    };
+    Ok((access, t.framing, t.priority))
+}
+
+/// The keys of [`LISTEN_KEYS`] that say who may connect and what they may do: those
+/// in `[tcp]` are refused, saying they belong in a `[[listen]]`.
+pub(super) fn is_access_key(name: &str) -> bool {
+    LISTEN_KEYS
+        .iter()
+        .any(|k| k.name == name && !["framing", "priority"].contains(&k.name))
+}
+
+/// Each listener's `tls.default_role` names a `[[role]]`: the index of the first that
+/// does not, and why.
 pub(super) fn default_roles(
-    listeners: &[(usize, super::ListenConfig)],
-    roles: &[(usize, Role)],
-) -> Result<(), Bad> {
-    for (i, (at, l)) in listeners.iter().enumerate() {
+    listeners: &[super::ListenConfig],
+    roles: &[AccessRole],
+) -> Result<(), (usize, String)> {
+    for (i, l) in listeners.iter().enumerate() {
         let Some(role) = l.access.tls.as_ref().and_then(|t| t.default_role.as_ref()) else {
             continue;
         };
-        if !roles.iter().any(|(_, r)| &r.name == role) {
-            let names: Vec<&str> = roles.iter().map(|(_, r)| r.name.as_str()).collect();
+        if !roles.iter().any(|r| &r.name == role) {
+            let names: Vec<&str> = roles.iter().map(|r| r.name.as_str()).collect();
             let m = if names.is_empty() {
                 format!("no [[role]] is named {role:?} (there are no [[role]] tables)")
             } else {
@@ -383,198 +442,97 @@ pub(super) fn default_roles(
                     names.join(", ")
                 )
             };
-            return bad(*at, &format!("listen[{i}].tls.default_role"), m);
+            return Err((i, m));
         }
     }
     Ok(())
 }
 
-/// A path: a non-empty string.
-fn path(v: &Spanned<DeValue>, key: &str, what: &'static str) -> Result<PathBuf, Bad> {
-    let s =
-        String::read(&raw(v), &Check::NonEmpty(what)).or_else(|m| bad(v.span().start, key, m))?;
-    Ok(PathBuf::from(s))
-}
-
-/// A listener's `tls = { cert, key, client_ca, default_role, handshake_timeout_ms }`.
-pub(super) fn tls_listen(v: &Spanned<DeValue>, key: &str) -> Result<TlsListen, Bad> {
-    let DeValue::Table(t) = v.get_ref() else {
-        return bad(
-            v.span().start,
-            key,
-            "expected a table: { cert = ..., key = ..., client_ca = ... }",
-        );
+/// The `[[role]]` tables, read by [`ROLE_KEYS`]: each with a unique, non-empty name;
+/// `path` is what messages call them (`role`).
+pub(super) fn roles(raw: &Raw, path: &str) -> Result<Vec<AccessRole>, ValueError> {
+    let Raw::List(tables) = raw else {
+        return Err("expected [[role]] tables".into());
     };
-    let (mut cert, mut pkey, mut ca) = (None, None, None);
-    let mut tls = TlsListen {
-        cert: PathBuf::new(),
-        key: PathBuf::new(),
-        client_ca: PathBuf::new(),
-        default_role: None,
-        handshake_timeout_ms: HANDSHAKE_TIMEOUT_MS,
-    };
-    for (k, item) in entries(t) {
-        let full = format!("{key}.{}", k.get_ref());
-        let at = item.span().start;
-        match k.get_ref().as_ref() {
-            "cert" => cert = Some(path(item, &full, "the gateway's certificate, PEM")?),
-            "key" => pkey = Some(path(item, &full, "the gateway's private key, PEM")?),
-            "client_ca" => {
-                ca = Some(path(
-                    item,
-                    &full,
-                    "the CA certificates masters' certificates chain to, PEM",
-                )?)
-            }
-            "default_role" => {
-                let r = String::read(&raw(item), &Check::NonEmpty("a [[role]] name"))
-                    .or_else(|m| bad(at, &full, m))?;
-                tls.default_role = Some(r);
-            }
-            "handshake_timeout_ms" => {
-                tls.handshake_timeout_ms = u64::read(&raw(item), &Check::Range(100, 600_000, None))
-                    .or_else(|m| bad(at, &full, m))?;
-            }
-            _ => return unknown(k, &full, &LISTEN_TLS),
-        }
-    }
-    let missing = |what: &str, why: &str| {
-        bad(
-            v.span().start,
-            &format!("{key}.{what}"),
-            format!("missing: {why}"),
-        )
-    };
-    tls.cert = match cert {
-        Some(c) => c,
-        None => return missing("cert", "the gateway's certificate (PEM)"),
-    };
-    tls.key = match pkey {
-        Some(k) => k,
-        None => return missing("key", "the gateway's private key (PEM)"),
-    };
-    tls.client_ca = match ca {
-        Some(c) => c,
-        None => return missing("client_ca", "the CA masters' certificates must chain to (PEM); Modbus/TCP Security requires client certificates"),
-    };
-    Ok(tls)
-}
-
-/// The `[[role]]` tables: each with a unique, non-empty name.
-pub(super) fn roles(v: &Spanned<DeValue>, path: &str) -> Result<Vec<(usize, Role)>, Bad> {
-    let DeValue::Array(tables) = v.get_ref() else {
-        return bad(v.span().start, path, "expected [[role]] tables");
-    };
-    let mut out: Vec<(usize, Role)> = Vec::new();
+    let mut out: Vec<AccessRole> = Vec::new();
     for (i, t) in tables.iter().enumerate() {
         let here = format!("{path}[{i}]");
-        let DeValue::Table(table) = t.get_ref() else {
-            return bad(t.span().start, &here, "expected a table ([[role]])");
-        };
-        for (k, _) in entries(table) {
-            if !ROLE.contains(&k.get_ref().as_ref()) {
-                return unknown(k, &format!("{here}.{}", k.get_ref()), &ROLE);
+        let role = || -> Result<AccessRole, ValueError> {
+            let (t, given) = read_table(t, ROLE_KEYS, "expected a table ([[role]])")?;
+            if !given.contains(&"name") {
+                let m = "missing: the role's name, as client certificates carry it";
+                return Err(ValueError::new(m).value("name"));
             }
-        }
-        let Some(n) = table.get("name") else {
-            return bad(
-                t.span().start,
-                &format!("{here}.name"),
-                "missing: the role's name, as client certificates carry it",
-            );
+            if let Some(j) = out.iter().position(|r| r.name == t.name) {
+                let m = format!("role {:?} is also {path}[{j}]", t.name);
+                return Err(ValueError::new(m).value("name"));
+            }
+            Ok(AccessRole {
+                policy: policy(t.read_only, t.write, &here)?,
+                priority: given.contains(&"priority").then_some(t.priority),
+                name: t.name,
+            })
         };
-        let key = format!("{here}.name");
-        let name = String::read(&raw(n), &Check::NonEmpty("the role's name"))
-            .or_else(|m| bad(n.span().start, &key, m))?;
-        if let Some(j) = out.iter().position(|(_, r)| r.name == name) {
-            return bad(
-                n.span().start,
-                &key,
-                format!("role {name:?} is also {path}[{j}]"),
-            );
-        }
-        let policy = policy(table, &here)?;
-        let priority = match table.get("priority") {
-            Some(v) => Some(priority(v, &format!("{here}.priority"))?),
-            None => None,
-        };
-        let role = Role {
-            name,
-            policy,
-            priority,
-        };
-        out.push((t.span().start, role));
+        let role = role().map_err(|e| e.item(i))?;
+        out.push(role);
     }
     Ok(out)
 }
 
-/// A TCP line's `tls = { cert, key, device_ca, server_name }`.
-pub(super) fn tls_device(v: &Spanned<DeValue>, key: &str) -> Result<TlsDevice, Bad> {
-    let DeValue::Table(t) = v.get_ref() else {
-        return bad(
-            v.span().start,
-            key,
-            "expected a table: { cert = ..., key = ..., device_ca = ... }",
-        );
-    };
-    let (mut cert, mut pkey, mut ca, mut name) = (None, None, None, None);
-    for (k, item) in entries(t) {
-        let full = format!("{key}.{}", k.get_ref());
-        match k.get_ref().as_ref() {
-            "cert" => cert = Some(path(item, &full, "the gateway's client certificate, PEM")?),
-            "key" => pkey = Some(path(item, &full, "the gateway's private key, PEM")?),
-            "device_ca" => {
-                ca = Some(path(
-                    item,
-                    &full,
-                    "the CA the device's certificate chains to, PEM",
-                )?)
-            }
-            "server_name" => {
-                let s = String::read(
-                    &raw(item),
-                    &Check::NonEmpty("the name in the device's certificate"),
-                )
-                .or_else(|m| bad(item.span().start, &full, m))?;
-                if rustls::pki_types::ServerName::try_from(s.as_str()).is_err() {
-                    return bad(
-                        item.span().start,
-                        &full,
-                        format!("{s:?} is not a DNS name or an IP address"),
-                    );
-                }
-                name = Some(s);
-            }
-            _ => return unknown(k, &full, &LINE_TLS),
-        }
+/// A TCP line's `tls` table ([`tls_device`]).
+impl Setting for Option<TlsDevice> {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
+        tls_device(raw).map(Some)
     }
-    let missing = |what: &str, why: &str| {
-        bad(
-            v.span().start,
-            &format!("{key}.{what}"),
-            format!("missing: {why}"),
-        )
-    };
-    let Some(cert) = cert else {
-        return missing(
+    fn print(&self) -> String {
+        let Some(t) = self else {
+            return "{}".into();
+        };
+        let mut parts = vec![
+            format!("cert = {}", quoted(&t.cert)),
+            format!("key = {}", quoted(&t.key)),
+            format!("device_ca = {}", quoted(&t.device_ca)),
+        ];
+        if let Some(n) = &t.server_name {
+            parts.push(format!("server_name = {}", n.print()));
+        }
+        format!("{{ {} }}", parts.join(", "))
+    }
+}
+
+/// A TCP line's `tls` table, read by [`DEVICE_TLS_KEYS`]: `cert`, `key` and
+/// `device_ca` required, `server_name` a DNS name or an address.
+fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
+    let not_table = "expected a table: { cert = ..., key = ..., device_ca = ... }";
+    let (t, given) = read_table(raw, DEVICE_TLS_KEYS, not_table)?;
+    for (key, why) in [
+        (
             "cert",
             "the gateway's client certificate (PEM), presented to the device",
-        );
-    };
-    let Some(key_path) = pkey else {
-        return missing("key", "the gateway's private key (PEM)");
-    };
-    let Some(device_ca) = ca else {
-        return missing(
+        ),
+        ("key", "the gateway's private key (PEM)"),
+        (
             "device_ca",
             "the CA the device's certificate must chain to (PEM)",
-        );
-    };
+        ),
+    ] {
+        if !given.contains(&key) {
+            return Err(ValueError::new(format!("missing: {why}")).value(key));
+        }
+    }
+    let server_name = given.contains(&"server_name").then_some(t.server_name);
+    if let Some(s) = &server_name {
+        if rustls::pki_types::ServerName::try_from(s.as_str()).is_err() {
+            let m = format!("{s:?} is not a DNS name or an IP address");
+            return Err(ValueError::new(m).value("server_name"));
+        }
+    }
     Ok(TlsDevice {
-        cert,
-        key: key_path,
-        device_ca,
-        server_name: name,
+        cert: t.cert.into(),
+        key: t.key.into(),
+        device_ca: t.device_ca.into(),
+        server_name,
     })
 }
 

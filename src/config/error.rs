@@ -42,6 +42,76 @@ pub enum ConfigError {
     },
 }
 
+/// Why a value was refused, and where inside it when it is an array or a table: the
+/// file's reader turns it into a [`ConfigError::Invalid`] at that place ([`super::raw`]),
+/// a flag's into a [`ConfigError::Override`].
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{message}")]
+pub struct ValueError {
+    /// What is wrong, for the operator, without the key.
+    pub message: String,
+    /// From the value down to the part that is wrong, outermost first; empty: the
+    /// value itself.
+    pub path: Vec<Step>,
+}
+
+/// One step down into a value, to the part a [`ValueError`] is about.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Step {
+    /// The item of an array at this index.
+    Item(usize),
+    /// The value of this key of a table (the table itself when the key is missing).
+    Value(String),
+    /// This key of a table, not its value (an unknown key).
+    Key(String),
+}
+
+impl ValueError {
+    /// The value itself is wrong.
+    pub(crate) fn new(message: impl Into<String>) -> Self {
+        Self {
+            message: message.into(),
+            path: Vec::new(),
+        }
+    }
+
+    /// The error was found in the item `i` of an array.
+    pub(crate) fn item(mut self, i: usize) -> Self {
+        self.path.insert(0, Step::Item(i));
+        self
+    }
+
+    /// The error was found in the value of key `k` of a table.
+    pub(crate) fn value(mut self, k: &str) -> Self {
+        self.path.insert(0, Step::Value(k.to_owned()));
+        self
+    }
+
+    /// The key `k` of a table is the error itself (unknown).
+    pub(crate) fn key(mut self, k: &str) -> Self {
+        self.path.insert(0, Step::Key(k.to_owned()));
+        self
+    }
+}
+
+impl From<String> for ValueError {
+    fn from(message: String) -> Self {
+        Self::new(message)
+    }
+}
+
+impl From<ValueError> for String {
+    fn from(e: ValueError) -> Self {
+        e.message
+    }
+}
+
+impl From<&str> for ValueError {
+    fn from(message: &str) -> Self {
+        Self::new(message)
+    }
+}
+
 fn key_prefix(key: &Option<String>) -> String {
     key.as_ref().map(|k| format!("{k}: ")).unwrap_or_default()
 }

@@ -1,15 +1,14 @@
 //! Reading a configuration file: toml gives the position of every key and value
 //! (`DeTable`), each key is checked by its declaration in [`KEYS`], and every error
 //! names file, line, column and key: `x.toml:7:13: serial.baud_rate: must be between
-//! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read.
+//! 50 and 4000000, got 10`. Both forms of docs/design.md §4 and §4.1 are read; a
+//! `[[line]]` in `file/line.rs`.
 
 use super::error::{line_col, syntax_error, ConfigError};
-use super::raw::{entries, raw_value as raw, suggest, Bad};
-use super::{
-    Check, Config, Framing, Key, LineConfig, ListenConfig, ListenFraming, Setting, Units, KEYS,
-};
+use super::raw::{entries, place, raw_value as raw, suggest, Bad, Raw};
+use super::{Config, Key, LineConfig, ListenConfig, ListenFraming, Step, ValueError, KEYS};
 use std::borrow::Cow;
-use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::collections::HashMap;
 use std::path::Path;
 use toml::de::{DeTable, DeValue};
 use toml::Spanned;
@@ -45,12 +44,6 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 const TOP: [&str; 10] = [
     "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen", "role",
 ];
-/// The keys of a `[[line]]` table.
-const LINE: [&str; 8] = [
-    "units", "remap", "serial", "tcp", "relay", "role", "route", "unit",
-];
-/// The keys of a line's `tcp` table: a device on the network.
-const LINE_TCP: [&str; 3] = ["address", "framing", "tls"];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
 
@@ -72,8 +65,9 @@ struct Reader<'t> {
     lines_form: bool,
 }
 
-/// One `[[line]]`: where it starts, the line, whether it lists units.
-type Line = (usize, LineConfig, bool);
+/// One `[[line]]` as read from the file: where it starts, the line, whether it lists
+/// units.
+type LineRead = (usize, LineConfig, bool);
 
 impl Reader<'_> {
     fn fail<T>(&self, at: usize, key: &str, message: impl Into<String>) -> Result<T, ConfigError> {
@@ -142,11 +136,11 @@ impl Reader<'_> {
             let (name, at) = (k.get_ref().as_ref(), k.span().start);
             let replaced = match name {
                 "role" => {
-                    roles = super::access::roles(v, "role").or_else(|b| self.bad(b))?;
+                    roles = self.value(v, name, super::access::roles(&raw(v.get_ref()), name))?;
                     continue;
                 }
                 "tcp" => {
-                    super::access::not_in_tcp(v).or_else(|b| self.bad(b))?;
+                    self.not_in_tcp(v)?;
                     self.section(&mut cfg, name, v, name, &[], &[])?;
                     continue;
                 }
@@ -172,13 +166,17 @@ impl Reader<'_> {
                 if name == "line" {
                     lines.push(self.line(t, &path)?);
                 } else {
-                    listeners.push(self.listener(t, &path)?);
+                    listeners.push((t, self.listener(t, &path)?));
                 }
             }
         }
-        super::access::default_roles(&listeners, &roles).or_else(|b| self.bad(b))?;
-        cfg.roles = roles.into_iter().map(|(_, r)| r).collect();
-        let listeners: Vec<ListenConfig> = listeners.into_iter().map(|(_, l)| l).collect();
+        let (tables, listeners): (Vec<_>, Vec<ListenConfig>) = listeners.into_iter().unzip();
+        if let Err((i, m)) = super::access::default_roles(&listeners, &roles) {
+            let e = ValueError::new(m).value("default_role").value("tls");
+            return self.bad(place(tables[i], &format!("listen[{i}]"), &e));
+        }
+        cfg.roles = roles;
+        self.no_listener_for_master_lines(root, &lines, &tables)?;
         match &listeners[..] {
             [] => {}
             // One Modbus/TCP listener open to all is the old form's [tcp].
@@ -213,8 +211,7 @@ impl Reader<'_> {
             [..] => {
                 // A master line routes by its [[line.route]] tables: it serves no unit
                 // of the masters'.
-                let unlisted =
-                    |(_, l, units): &&(usize, LineConfig, bool)| l.master.is_none() && !units;
+                let unlisted = |(_, l, units): &&LineRead| l.master.is_none() && !units;
                 if let Some(i) = lines.iter().position(|l| unlisted(&l)) {
                     let m = "missing: with several lines, each says which unit ids it serves";
                     return self.fail(lines[i].0, &format!("line[{i}].units"), m);
@@ -247,14 +244,36 @@ impl Reader<'_> {
         Ok(cfg)
     }
 
+    /// When every line is a master line no Modbus/TCP master has a device to reach, so
+    /// the gateway binds no listener: a `[[listen]]` or `[tcp]` there would be
+    /// ignored, and is refused (a slave that connects in has its route's `listen`).
+    fn no_listener_for_master_lines(
+        &self,
+        root: &DeTable,
+        lines: &[LineRead],
+        listeners: &[&Spanned<DeValue>],
+    ) -> Result<(), ConfigError> {
+        if lines.is_empty() || lines.iter().any(|(_, l, _)| l.master.is_none()) {
+            return Ok(());
+        }
+        let (at, key) = match (listeners.first(), root.get_key_value("tcp")) {
+            (Some(t), _) => (t.span().start, "listen[0]"),
+            (None, Some((k, _))) => (k.span().start, "tcp"),
+            (None, None) => return Ok(()),
+        };
+        let table = if key == "tcp" { "[tcp]" } else { "[[listen]]" };
+        let m = format!(
+            "every line is a master line (role = \"master\"): no line has a device for \
+             Modbus/TCP masters to reach, so mbgate listens for none; remove {table}, or \
+             add a line of slaves (a slave that connects in to a route is its `listen`)"
+        );
+        self.fail(at, key, m)
+    }
+
     /// A passive route binds its address as the gateway binds its listeners (only when
     /// some line serves masters): two sockets cannot share one, so a route's `listen`
     /// on a listener's address or another route's is refused, naming the route.
-    fn sockets(
-        &self,
-        lines: &[(usize, LineConfig, bool)],
-        cfg: &Config,
-    ) -> Result<(), ConfigError> {
+    fn sockets(&self, lines: &[LineRead], cfg: &Config) -> Result<(), ConfigError> {
         let serving = lines.iter().any(|(_, l, _)| l.master.is_none());
         let listening: Vec<_> = match serving {
             true => cfg.listeners().iter().map(|l| l.tcp.listen).collect(),
@@ -323,243 +342,73 @@ impl Reader<'_> {
 
     /// A `[[listen]]`: the keys of `[tcp]` (`address` for `listen`), `framing`, and
     /// who may connect and what they may do (`src/config/access.rs`).
-    fn listener(
-        &mut self,
-        v: &Spanned<DeValue>,
-        path: &str,
-    ) -> Result<(usize, ListenConfig), ConfigError> {
+    fn listener(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<ListenConfig, ConfigError> {
         let mut listener = Config::default();
-        let skip = ["framing", "allow", "read_only", "write", "tls", "priority"];
-        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &skip)?;
-        let (mut framing, mut priority) = (ListenFraming::Mbap, 0);
-        let (mut access, mut at) = (super::ListenAccess::default(), v.span().start);
-        if let DeValue::Table(table) = v.get_ref() {
-            if let Some(f) = table.get("framing") {
-                framing = ListenFraming::read(&raw(f.get_ref()), &Check::Any)
-                    .or_else(|m| self.fail(f.span().start, &format!("{path}.framing"), m))?;
-            }
-            if let Some(p) = table.get("priority") {
-                let key = format!("{path}.priority");
-                priority = super::access::priority(p, &key).or_else(|b| self.bad(b))?;
-            }
-            let (read, role_at) = super::access::listen(table, path).or_else(|b| self.bad(b))?;
-            access = read;
-            at = role_at.unwrap_or(at);
+        let own: Vec<&str> = super::access::LISTEN_KEYS.iter().map(|k| k.name).collect();
+        self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &own)?;
+        // The listener's own keys, read by their declarations.
+        let mut keys = Vec::new();
+        if let Raw::Table(all) = raw(v.get_ref()) {
+            keys = all
+                .into_iter()
+                .filter(|(k, _)| own.contains(&k.as_str()))
+                .collect();
         }
-        let listen = ListenConfig {
+        let read = super::access::listen(&Raw::Table(keys), path);
+        let (access, framing, priority) = self.value(v, path, read)?;
+        Ok(ListenConfig {
             tcp: listener.tcp,
             framing,
             access,
             priority,
+        })
+    }
+
+    /// `[tcp]` is the one listener open to all: the security keys belong in a
+    /// `[[listen]]` table, and the message says so rather than "unknown key".
+    fn not_in_tcp(&self, v: &Spanned<DeValue>) -> Result<(), ConfigError> {
+        let DeValue::Table(t) = v.get_ref() else {
+            return Ok(());
         };
-        Ok((at, listen))
+        let names = entries(t).into_iter().map(|(k, _)| k);
+        if let Some(k) = names
+            .into_iter()
+            .find(|k| super::access::is_access_key(k.get_ref()))
+        {
+            let name = k.get_ref();
+            let m = format!(
+                "{name} belongs in a [[listen]] table (write [[listen]] with address = \
+                 the listen address instead of [tcp]; docs/security.md)"
+            );
+            return self.fail(k.span().start, &format!("tcp.{name}"), m);
+        }
+        Ok(())
     }
 
     fn bad<T>(&self, b: Bad) -> Result<T, ConfigError> {
         self.fail(b.at, &b.key, b.message)
     }
 
-    fn line(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<Line, ConfigError> {
-        let DeValue::Table(table) = v.get_ref() else {
-            let m = raw(v.get_ref()).invalid("a table ([[line]])");
-            return self.fail(v.span().start, path, m);
-        };
-        let (mut line, mut listed) = (Config::default(), false);
-        let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
-        let (mut role, mut routes, mut tcp_tls) = (None, None, None);
-        let mut unit_tables = (super::unit::UnitTables::default(), None);
-        for (k, item) in entries(table) {
-            let full = format!("{path}.{}", k.get_ref());
-            let bad = |b: Bad| self.fail::<()>(b.at, &b.key, b.message);
-            match k.get_ref().as_ref() {
-                "units" => {
-                    units.ids = self.units(item, &full)?;
-                    listed = true;
-                }
-                "remap" => {
-                    units.remap = self.remap(item, &full)?;
-                    listed = true;
-                }
-                "tcp" => {
-                    let (address, tls) = self.line_tcp(&mut line, item, &full)?;
-                    tcp = Some(address);
-                    tcp_tls = tls;
-                }
-                "role" => match super::master::role(item, &full) {
-                    Ok(master) => role = Some((master, k.span().start)),
-                    Err(b) => bad(b)?,
-                },
-                "unit" => match super::unit::tables(item, &full) {
-                    Ok(t) => unit_tables = (t, Some(k.span().start)),
-                    Err(b) => bad(b)?,
-                },
-                "route" => match super::master::routes(item, &full) {
-                    Ok(r) => routes = Some((r, k.span().start)),
-                    Err(b) => bad(b)?,
-                },
-                name @ ("serial" | "relay") => {
-                    if name == "serial" {
-                        serial_at = Some(k.span().start);
-                    }
-                    self.section(&mut line, name, item, &full, &[], &[])?
-                }
-                _ => return self.unknown(k, &full, &LINE),
-            }
-        }
-        if let (Some(_), Some(at)) = (&tcp, serial_at) {
-            let m = "a line's device is a serial port or a TCP address: give `serial` or `tcp`, not both";
-            return self.fail(at, &format!("{path}.serial"), m);
-        }
-        self.conflict(&line, &format!("{path}."))?;
-        let mut master = None;
-        match (role, routes) {
-            (Some((true, _)), Some((routes, _))) => {
-                if listed {
-                    let key = format!("{path}.units");
-                    let key = if self.at.contains_key(&key) {
-                        key
-                    } else {
-                        format!("{path}.remap")
-                    };
-                    let at = self.at.get(&key).copied().unwrap_or(v.span().start);
-                    let m = "a master line routes by the units of its [[line.route]] tables";
-                    return self.fail(at, &key, m);
-                }
-                if let Some(at) = tcp.as_ref().and(serial_at.or(Some(v.span().start))) {
-                    let m = "a master line's device is on a serial port, not on TCP";
-                    return self.fail(at, &format!("{path}.tcp"), m);
-                }
-                if let Some(at) = unit_tables.1 {
-                    let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
-                    return self.fail(at, &format!("{path}.unit"), m);
-                }
-                master = Some(super::master::MasterLine { routes });
-            }
-            (Some((true, at)), None) => {
-                let m = "a master line needs [[line.route]] tables (where its requests go)";
-                return self.fail(at, &format!("{path}.role"), m);
-            }
-            (_, Some((_, at))) => {
-                let m = "routes belong to a master line: add role = \"master\"";
-                return self.fail(at, &format!("{path}.route"), m);
-            }
-            (_, None) => {}
-        }
-        let line = LineConfig {
-            units,
-            serial: line.serial,
-            tcp,
-            tcp_tls,
-            relay: line.relay,
-            unit_tables: unit_tables.0,
-            master,
-        };
-        Ok((v.span().start, line, listed))
-    }
-
-    /// A line's `tcp` table: `address = "host:port"` (required) and `framing`.
-    fn line_tcp(
-        &mut self,
-        line: &mut Config,
+    /// `read`, the value `v` at `key` read, or its error at the place it names.
+    fn value<T>(
+        &self,
         v: &Spanned<DeValue>,
-        path: &str,
-    ) -> Result<(String, Option<super::TlsDevice>), ConfigError> {
-        let DeValue::Table(table) = v.get_ref() else {
-            let m = raw(v.get_ref()).invalid("a table (address, framing)");
-            return self.fail(v.span().start, path, m);
-        };
-        let (mut address, mut tls) = (None, None);
-        for (k, item) in entries(table) {
-            let full = format!("{path}.{}", k.get_ref());
-            let at = item.span().start;
-            match k.get_ref().as_ref() {
-                "tls" => {
-                    tls = Some(super::access::tls_device(item, &full).or_else(|b| self.bad(b))?)
-                }
-                "address" => {
-                    let s = String::read(&raw(item.get_ref()), &Check::NonEmpty("host:port"));
-                    let s = s.or_else(|m| self.fail(at, &full, m))?;
-                    if let Err(m) = parse_host_port(&s) {
-                        return self.fail(at, &full, m);
+        key: &str,
+        read: Result<T, ValueError>,
+    ) -> Result<T, ConfigError> {
+        read.or_else(|e| {
+            let mut b = place(v, key, &e);
+            // An unknown key that is no misspelling of the table's own may be
+            // another table's.
+            if let Some(Step::Key(name)) = e.path.last() {
+                if !b.message.contains("did you mean") {
+                    if let Some(elsewhere) = self.belongs(name, &b.key) {
+                        b.message += &format!(" ({elsewhere})");
                     }
-                    self.at.insert(full, at);
-                    address = Some(s);
                 }
-                "framing" => {
-                    let f = Framing::read(&raw(item.get_ref()), &Check::Any);
-                    line.serial.framing = f.or_else(|m| self.fail(at, &full, m))?;
-                }
-                _ => return self.unknown(k, &full, &LINE_TCP),
             }
-        }
-        match address {
-            Some(a) => Ok((a, tls)),
-            None => self.fail(
-                v.span().start,
-                &format!("{path}.address"),
-                "missing: the device's host:port",
-            ),
-        }
-    }
-
-    /// `units = [1, 2, "10-20", ...]`: unit ids and ranges, each on one line only.
-    fn units(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeSet<u8>, ConfigError> {
-        let at = v.span().start;
-        self.at.insert(path.to_owned(), at);
-        let ids = match v.get_ref() {
-            DeValue::Array(ids) if ids.is_empty() => {
-                return self.fail(at, path, "must list at least one unit id")
-            }
-            DeValue::Array(ids) => ids,
-            other => return self.fail(at, path, raw(other).invalid("an array of unit ids")),
-        };
-        let mut set = BTreeSet::new();
-        for id in ids.iter() {
-            let at = id.span().start;
-            let (first, last) = match id.get_ref() {
-                DeValue::String(range) => unit_range(range).or_else(|m| self.fail(at, path, m))?,
-                other => {
-                    let unit = u8::read(&raw(other), &Check::Range(1, 255, None));
-                    let unit = unit.or_else(|m| self.fail(at, path, m))?;
-                    (unit, unit)
-                }
-            };
-            for unit in first..=last {
-                self.claim(unit, at, path)?;
-                set.insert(unit);
-            }
-        }
-        Ok(set)
-    }
-
-    /// `remap = { 11 = 1 }`: the master's unit 11 is unit 1 on this line.
-    fn remap(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeMap<u8, u8>, ConfigError> {
-        let DeValue::Table(table) = v.get_ref() else {
-            let m = raw(v.get_ref()).invalid("a table of unit = unit on the line");
-            return self.fail(v.span().start, path, m);
-        };
-        let mut map = BTreeMap::new();
-        for (k, item) in entries(table) {
-            let at = k.span().start;
-            let unit = k.get_ref().parse::<u8>().ok().filter(|u| *u >= 1);
-            let Some(unit) = unit else {
-                let m = format!("{:?} is not a unit id (1 to 255)", k.get_ref());
-                return self.fail(at, path, m);
-            };
-            self.claim(unit, at, path)?;
-            let on_line = u8::read(&raw(item.get_ref()), &Check::Range(0, 255, None));
-            let on_line = on_line.or_else(|m| self.fail(item.span().start, path, m))?;
-            map.insert(unit, on_line);
-        }
-        Ok(map)
-    }
-
-    /// Gives `unit` to the line at `path`, unless another line (or this one) has it.
-    fn claim(&mut self, unit: u8, at: usize, path: &str) -> Result<(), ConfigError> {
-        if let Some(other) = self.units.insert(unit, path.to_owned()) {
-            return self.fail(at, path, format!("unit {unit} is also in {other}"));
-        }
-        Ok(())
+            self.bad(b)
+        })
     }
 
     /// Refuses two keys that contradict each other, at the value of the first if the
@@ -577,25 +426,5 @@ impl Reader<'_> {
     }
 }
 
-/// `"10-20"`: the units 10 to 20.
-fn unit_range(s: &str) -> Result<(u8, u8), String> {
-    let bad = || format!("expected a unit id or a range like \"10-20\", got {s:?}");
-    let (a, b) = s.split_once('-').ok_or_else(bad)?;
-    let unit = |x: &str| x.trim().parse::<u8>().ok().filter(|u| *u >= 1);
-    match (unit(a), unit(b)) {
-        (Some(a), Some(b)) if a <= b => Ok((a, b)),
-        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty")),
-        _ => Err(bad()),
-    }
-}
-
-/// Checks a device's `host:port` (a name or an address, and a port).
-pub(super) fn parse_host_port(s: &str) -> Result<(), String> {
-    let bad = || format!("expected host:port, like 192.168.1.20:502, got {s:?}");
-    let (host, port) = s.rsplit_once(':').ok_or_else(bad)?;
-    let port_ok = port.parse::<u16>().is_ok_and(|p| p > 0);
-    if host.trim().is_empty() || !port_ok {
-        return Err(bad());
-    }
-    Ok(())
-}
+mod line;
+pub use line::{LineTcpTable, LINE_TCP_KEYS};

@@ -17,20 +17,58 @@
 //! listen = "0.0.0.0:5021"     # passive: the slave connects in
 //! ```
 
-use super::raw::{bad, entries, raw_value, Bad};
-use super::{Check, Setting};
+use super::raw::read_table;
+use super::{table, Check, HostPort, Key, Raw, RelayConfig, Setting, ValueError, ValueKind};
+use super::{Any, NonEmpty, Range, IN_FLIGHT, TIMEOUT_MS};
 use std::net::SocketAddr;
-use toml::de::{DeTable, DeValue};
-use toml::Spanned;
 
-/// The keys of a `[[line.route]]` table.
-pub(crate) const ROUTE_KEYS: [&str; 5] = [
-    "units",
-    "address",
-    "listen",
-    "response_timeout_ms",
-    "max_in_flight",
-];
+table! {
+    /// One `[[line.route]]` as the file gives it (docs/configuration.md "The device as
+    /// master"); a [`Route`] once checked.
+    ["line.route"] RouteTable ROUTE_KEYS {
+        /// The unit ids sent to this slave, 1 to 255; none: every unit no other route takes
+        units: RouteUnits = RouteUnits::default(), Range(1, 255, None);
+        /// "HOST:PORT": mbgate connects, keeps the connection and reconnects (give address or listen)
+        address: HostPort = HostPort::default(), NonEmpty("host:port of the slave");
+        /// An address where mbgate listens and the slave connects in
+        listen: Option<SocketAddr> = None, Any;
+        /// From the request's arrival on the line to the slave's reply (also bounds a connection attempt); then 0x0B
+        response_timeout_ms: u64 = RelayConfig::default().response_timeout_ms, TIMEOUT_MS;
+        /// Requests outstanding on the slave's connection at once (pipelined by MBAP id)
+        max_in_flight: usize = RelayConfig::default().max_in_flight, IN_FLIGHT;
+    }
+}
+
+/// A route's `units = [1, 2]`: unit ids as `check` bounds them (0 is the broadcast,
+/// sent on every route), none twice; empty: not given.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct RouteUnits(pub Vec<u8>);
+
+impl Setting for RouteUnits {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        let Raw::List(ids) = raw else {
+            return Err("expected an array of unit ids".into());
+        };
+        if ids.is_empty() {
+            let m = "must list at least one unit id (leave units out for the default route)";
+            return Err(m.into());
+        }
+        let mut out = Vec::new();
+        for (i, id) in ids.iter().enumerate() {
+            let u = u8::read(id, check).map_err(|e| e.item(i))?;
+            if out.contains(&u) {
+                return Err(ValueError::new(format!("unit {u} is listed twice")).item(i));
+            }
+            out.push(u);
+        }
+        Ok(Self(out))
+    }
+    fn print(&self) -> String {
+        let units: Vec<String> = self.0.iter().map(u8::to_string).collect();
+        format!("[{}]", units.join(", "))
+    }
+}
 
 /// Where a route's slave is.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -79,176 +117,64 @@ impl MasterLine {
     }
 }
 
-/// `role = "slave" | "master"`: true for a master line.
-pub(super) fn role(v: &Spanned<DeValue>, key: &str) -> Result<bool, Bad> {
-    match v.get_ref() {
-        DeValue::String(s) if s == "master" => Ok(true),
-        DeValue::String(s) if s == "slave" => Ok(false),
-        DeValue::String(s) => bad(
-            v.span().start,
-            key,
-            format!(
-                "invalid value {:?}; expected one of slave, master",
-                s.as_ref()
-            ),
-        ),
-        _ => bad(
-            v.span().start,
-            key,
-            "expected a string, one of slave, master",
-        ),
-    }
-}
-
-/// The `[[line.route]]` array at `v`; `path` is `line[0].route`.
-pub(super) fn routes(v: &Spanned<DeValue>, path: &str) -> Result<Vec<Route>, Bad> {
-    let DeValue::Array(tables) = v.get_ref() else {
-        return bad(v.span().start, path, "expected [[line.route]] tables");
+/// The `[[line.route]]` array `raw`; `path` is what messages call it (`line[0].route`).
+pub(super) fn routes(raw: &Raw, path: &str) -> Result<Vec<Route>, ValueError> {
+    let Raw::List(tables) = raw else {
+        return Err("expected [[line.route]] tables".into());
     };
     let mut out: Vec<Route> = Vec::new();
     let mut default_at: Option<String> = None;
     for (i, t) in tables.iter().enumerate() {
         let here = format!("{path}[{i}]");
-        let DeValue::Table(table) = t.get_ref() else {
-            return bad(t.span().start, &here, "expected a table ([[line.route]])");
-        };
-        let r = route(table, t.span().start, &here)?;
+        let r = route(t).map_err(|e| e.item(i))?;
         for &u in &r.units {
             if let Some(j) = out.iter().position(|o| o.units.contains(&u)) {
-                let at = table
-                    .get("units")
-                    .map_or(t.span().start, |v| v.span().start);
-                return bad(
-                    at,
-                    &format!("{here}.units"),
-                    format!("unit {u} is also in {path}[{j}]"),
-                );
+                let m = format!("unit {u} is also in {path}[{j}]");
+                return Err(ValueError::new(m).value("units").item(i));
             }
         }
         if r.units.is_empty() {
             if let Some(first) = &default_at {
-                return bad(
-                    t.span().start,
-                    &here,
-                    format!("a second default route (no units); {first} is one"),
-                );
+                let m = format!("a second default route (no units); {first} is one");
+                return Err(ValueError::new(m).item(i));
             }
             default_at = Some(here.clone());
         }
         out.push(r);
     }
     if out.is_empty() {
-        return bad(
-            v.span().start,
-            path,
-            "a master line needs at least one route",
-        );
+        return Err("a master line needs at least one route".into());
     }
     Ok(out)
 }
 
-fn route(table: &DeTable, start: usize, path: &str) -> Result<Route, Bad> {
-    let mut r = Route {
-        units: Vec::new(),
-        peer: Peer::Connect(String::new()),
-        response_timeout_ms: 1000,
-        max_in_flight: 1,
-    };
-    let mut peer = None;
-    for (k, v) in entries(table) {
-        let key = format!("{path}.{}", k.get_ref());
-        let at = v.span().start;
-        let raw = || raw_value(v.get_ref());
-        let given = match k.get_ref().as_ref() {
-            "units" => {
-                r.units = units(v, &key)?;
-                None
-            }
-            "address" => {
-                let s = String::read(&raw(), &Check::NonEmpty("host:port of the slave"))
-                    .or_else(|m| bad(at, &key, m))?;
-                check_host_port(&s).or_else(|m| bad(at, &key, m))?;
-                Some(Peer::Connect(s))
-            }
-            "listen" => {
-                let a = SocketAddr::read(&raw(), &Check::Any).or_else(|m| bad(at, &key, m))?;
-                Some(Peer::Listen(a))
-            }
-            "response_timeout_ms" => {
-                r.response_timeout_ms = u64::read(&raw(), &Check::Range(1, 600_000, None))
-                    .or_else(|m| bad(at, &key, m))?;
-                None
-            }
-            "max_in_flight" => {
-                r.max_in_flight = usize::read(&raw(), &Check::Range(1, 255, None))
-                    .or_else(|m| bad(at, &key, m))?;
-                None
-            }
-            _ => {
-                return bad(
-                    k.span().start,
-                    &key,
-                    format!("unknown key; expected one of {}", ROUTE_KEYS.join(", ")),
-                )
-            }
-        };
-        if let Some(p) = given {
-            if peer.is_some() {
-                return bad(at, &key, "give address (connect) or listen, not both");
-            }
-            peer = Some(p);
+/// One `[[line.route]]`, read by [`ROUTE_KEYS`]: exactly one of `address` and `listen`.
+fn route(raw: &Raw) -> Result<Route, ValueError> {
+    let (t, given) = read_table(raw, ROUTE_KEYS, "expected a table ([[line.route]])")?;
+    let peers: Vec<&str> = given
+        .into_iter()
+        .filter(|k| ["address", "listen"].contains(k))
+        .collect();
+    let peer = match (peers.as_slice(), t.listen) {
+        ([], _) => return Err("missing: address (host:port of the slave) or listen".into()),
+        ([_, second, ..], _) => {
+            let m = "give address (connect) or listen, not both";
+            return Err(ValueError::new(m).value(second));
         }
-    }
-    r.peer = match peer {
-        Some(p) => p,
-        None => {
-            return bad(
-                start,
-                path,
-                "missing: address (host:port of the slave) or listen",
-            )
+        (["listen"], Some(addr)) => Peer::Listen(addr),
+        // `listen = ""` is no address.
+        (["listen"], None) => {
+            let m = "must not be empty (the address where mbgate listens for the slave)";
+            return Err(ValueError::new(m).value("listen"));
         }
+        _ => Peer::Connect(t.address.0),
     };
-    Ok(r)
-}
-
-/// `units = [1, 2]`: unit ids 1..=255 (0 is the broadcast, sent on every route).
-fn units(v: &Spanned<DeValue>, key: &str) -> Result<Vec<u8>, Bad> {
-    let DeValue::Array(ids) = v.get_ref() else {
-        return bad(v.span().start, key, "expected an array of unit ids");
-    };
-    if ids.is_empty() {
-        return bad(
-            v.span().start,
-            key,
-            "must list at least one unit id (leave units out for the default route)",
-        );
-    }
-    let mut out = Vec::new();
-    for id in ids.iter() {
-        let raw = raw_value(id.get_ref());
-        let u = u8::read(&raw, &Check::Range(1, 255, None))
-            .or_else(|m| bad(id.span().start, key, m))?;
-        if out.contains(&u) {
-            return bad(id.span().start, key, format!("unit {u} is listed twice"));
-        }
-        out.push(u);
-    }
-    Ok(out)
-}
-
-/// `host:port`, the port a number: resolved when connecting, so a name works too.
-fn check_host_port(s: &str) -> Result<(), String> {
-    let ok = s
-        .rsplit_once(':')
-        .is_some_and(|(host, port)| !host.is_empty() && port.parse::<u16>().is_ok_and(|p| p > 0));
-    if ok {
-        Ok(())
-    } else {
-        Err(format!(
-            "expected host:port, e.g. 192.168.0.20:502, got {s:?}"
-        ))
-    }
+    Ok(Route {
+        units: t.units.0,
+        peer,
+        response_timeout_ms: t.response_timeout_ms,
+        max_in_flight: t.max_in_flight,
+    })
 }
 
 /// The master line as the `[[line]]` form prints it (`mbgate check-config`), after
@@ -262,7 +188,7 @@ pub(crate) fn to_toml(m: &MasterLine) -> String {
             out += &format!("units = [{}]\n", units.join(", "));
         }
         match &r.peer {
-            Peer::Connect(a) => out += &format!("address = {}\n", a.print()),
+            Peer::Connect(a) => out += &format!("address = {}\n", HostPort(a.clone()).print()),
             Peer::Listen(a) => out += &format!("listen = {}\n", a.print()),
         }
         out += &format!("response_timeout_ms = {}\n", r.response_timeout_ms);
@@ -300,10 +226,11 @@ mod tests {
 
     #[test]
     fn host_port() {
-        assert!(check_host_port("plc.local:502").is_ok());
-        assert!(check_host_port("[::1]:502").is_ok());
-        assert!(check_host_port("plc.local").is_err());
-        assert!(check_host_port(":502").is_err());
-        assert!(check_host_port("h:0").is_err());
+        let read = |s: &str| HostPort::read(&Raw::Str(s.into()), &Check::Any);
+        assert!(read("plc.local:502").is_ok());
+        assert!(read("[::1]:502").is_ok());
+        assert!(read("plc.local").is_err());
+        assert!(read(":502").is_err());
+        assert!(read("h:0").is_err());
     }
 }

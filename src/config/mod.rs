@@ -5,9 +5,11 @@
 //! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
 //! the tests holding docs/configuration.md and `config/mbgate.toml` to it all read. A value is
 //! checked the same way from the file or a flag. A new setting is one line here plus
-//! what it does.
+//! what it does. The keys of a table inside a line or a listener (`[[line.route]]`,
+//! `[[line.unit]]`, a listener's security keys...) are declared the same way, one line
+//! of [`table!`] each, beside what reads them; ranges two keys share are one [`Check`].
 
-mod access;
+pub mod access;
 pub mod describe;
 mod error;
 mod file;
@@ -16,21 +18,27 @@ pub mod master;
 mod print;
 mod raw;
 pub(crate) mod unit;
+mod value;
 
-pub use access::{ListenAccess, Role, TlsDevice, TlsListen};
+pub use access::{AccessRole, ListenAccess, TlsDevice, TlsListen};
 
 /// Who may connect to `listen` and what they may do, in words (the start-up log,
 /// `mbgate check-config`).
-pub(crate) fn effective_access(listen: &ListenConfig, roles: &[Role]) -> Vec<String> {
+pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> Vec<String> {
     access::effective(&listen.access, roles)
 }
-pub use error::ConfigError;
-pub use file::{load, parse};
+pub use error::{ConfigError, Step, ValueError};
+pub use file::{load, parse, LineTcpTable, LINE_TCP_KEYS};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;
-use Check::{Any, NonEmpty, OneOf, Range, SocketPath};
+pub use unit::{UnitIds, UnitTableKeys, UNIT_KEYS};
+pub(crate) use value::{
+    parse_listen, parse_optional_address, Check, Setting, ValueKind, METRICS_EXAMPLE,
+};
+pub use value::{Floor, GpioLine, HostPort};
+use Check::{Address, Any, NonEmpty, OneOf, Range, SocketPath};
 
 /// Declares enums whose values are lower-case words in the file and on the command
 /// line; each variant's doc line is its help.
@@ -50,13 +58,13 @@ macro_rules! choices {
         }
 
         impl Setting for $Enum {
-            const KIND: Kind = Kind::Choice(&[$(($name, concat!("", $($vdoc),*))),*]);
-            fn read(raw: &Raw, _: &Check) -> Result<Self, String> {
+            const KIND: ValueKind = ValueKind::Choice(&[$(($name, concat!("", $($vdoc),*))),*]);
+            fn read(raw: &Raw, _: &Check) -> Result<Self, ValueError> {
                 let names = [$($name),*].join(", ");
                 match raw {
                     $(Raw::Str(s) if s == $name => Ok(Self::$V),)*
-                    Raw::Str(s) => Err(format!("invalid value {s:?}; expected one of {names}")),
-                    _ => Err(format!("expected a string, one of {names}")),
+                    Raw::Str(s) => Err(format!("invalid value {s:?}; expected one of {names}").into()),
+                    _ => Err(format!("expected a string, one of {names}").into()),
                 }
             }
             fn print(&self) -> String {
@@ -120,6 +128,13 @@ choices! {
         /// The gateway drives a GPIO line while it sends (the GPIO character device): DE wired to a GPIO pin
         Gpio = "gpio",
     }
+    /// Which end of a line the device is (docs/design.md §4.2).
+    LineRole {
+        /// The device answers: masters on TCP reach it through the line
+        Slave = "slave",
+        /// The device asks: its requests go out by the line's [[line.route]] tables
+        Master = "master",
+    }
     /// How masters frame their requests on a listener (docs/design.md §4.1).
     ListenFraming {
         /// Modbus/TCP: an MBAP header, many requests in flight
@@ -146,13 +161,16 @@ impl Framing {
 pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
 
 /// Declares the sections and their settings: `key: type = default, check, "flag"
-/// "VALUE_NAME" [port] [, at_most other: "why"];` under the key's one line of help.
-/// `port` marks the serial port settings that `mbgate sim` and the client take as flags
-/// too; `at_most` refuses a value above that of another key of the section.
+/// "VALUE_NAME" [port] [master] [, at_most other: "why"];` under the key's one line of
+/// help. `port` marks the serial port settings that `mbgate sim` and the client take as
+/// flags too; `master` a `[relay]` key that a master line uses too (the others mean
+/// nothing there, and are refused on one); `at_most` refuses a value above that of
+/// another key of the section. The tables inside a line or a listener are declared
+/// the same way by [`table!`], beside what reads them (`master.rs`, `access.rs`).
 macro_rules! settings {
     ($($(#[doc = $sdoc:literal])* [$section:ident] $Struct:ident {$(
         $(#[doc = $doc:literal])*
-        $key:ident: $ty:ty = $default:expr, $check:expr, $flag:literal $vname:literal $($port:ident)?
+        $key:ident: $ty:ty = $default:expr, $check:expr, $flag:literal $vname:literal $($mark:ident)*
             $(, at_most $other:ident: $why:literal)?;
     )*})*) => {
         $(
@@ -181,7 +199,7 @@ macro_rules! settings {
             pub listeners: Vec<ListenConfig>,
             /// The `[[role]]` tables: what a TLS master may do, by the role its
             /// certificate carries (docs/security.md).
-            pub roles: Vec<Role>,
+            pub roles: Vec<AccessRole>,
         }
 
         /// Every setting, in the order of the file.
@@ -193,7 +211,8 @@ macro_rules! settings {
             help: concat!("", $($doc),*),
             check: $check,
             kind: <$ty as Setting>::KIND,
-            port: settings!(@port $($port)?),
+            port: settings!(@port $($mark)*),
+            master: settings!(@master $($mark)*),
             at_most: settings!(@at_most $($other $why)?),
             set: |c, raw| {
                 c.$section.$key = Setting::read(raw, &$check)?;
@@ -203,10 +222,56 @@ macro_rules! settings {
         },)*)*];
     };
     (@port) => { false };
-    (@port port) => { true };
+    (@port port $($m:ident)*) => { true };
+    (@port $m:ident $($more:ident)*) => { settings!(@port $($more)*) };
+    (@master) => { false };
+    (@master master $($m:ident)*) => { true };
+    (@master $m:ident $($more:ident)*) => { settings!(@master $($more)*) };
     (@at_most) => { None };
     (@at_most $other:ident $why:literal) => { Some((stringify!($other), $why)) };
 }
+
+/// Declares a table inside a line or a listener (a `[[line.route]]`, a listener's
+/// `tls`...) as [`settings!`] declares a section: `key: type = default, check;` under
+/// the key's one line of help. From it come the table's struct and its default, and
+/// its [`Key`]s, by which `raw::read_table` reads such a table of the file and the
+/// tests hold docs/configuration.md to it.
+macro_rules! table {
+    ($(#[doc = $sdoc:literal])* [$path:literal] $Struct:ident $KEYS:ident {$(
+        $(#[doc = $doc:literal])*
+        $key:ident: $ty:ty = $default:expr, $check:expr;
+    )*}) => {
+        $(#[doc = $sdoc])*
+        #[derive(Debug, Clone, PartialEq)]
+        pub struct $Struct { $($(#[doc = $doc])* pub $key: $ty,)* }
+
+        impl Default for $Struct {
+            fn default() -> Self {
+                Self { $($key: $default,)* }
+            }
+        }
+
+        #[doc = concat!("The keys of `", $path, "`, in the order of docs/configuration.md.")]
+        pub static $KEYS: &[Key<$Struct>] = &[$(Key {
+            section: $path,
+            name: stringify!($key),
+            flag: "",
+            value_name: "",
+            help: concat!("", $($doc),*),
+            check: $check,
+            kind: <$ty as Setting>::KIND,
+            port: false,
+            master: false,
+            at_most: None,
+            set: |c, raw| {
+                c.$key = Setting::read(raw, &$check)?;
+                Ok(())
+            },
+            get: |c| c.$key.print(),
+        },)*];
+    };
+}
+pub(crate) use table;
 
 /// The fastest `serial.baud_rate` there is: what the demos set a pty to, since it
 /// passes bytes at once.
@@ -270,18 +335,18 @@ settings! {
     /// How requests are queued, sent and answered on the line.
     [relay] RelayConfig {
         /// Time to wait for the device's reply
-        response_timeout_ms: u64 = 1000, Range(1, 600_000, None), "response-timeout-ms" "MS";
+        response_timeout_ms: u64 = 1000, TIMEOUT_MS, "response-timeout-ms" "MS";
         /// Silence after which a partial serial frame is discarded (MBAP: and a held reply taken while other replies are due)
-        frame_gap_ms: u64 = 50, Range(1, 60_000, None), "frame-gap-ms" "MS";
+        frame_gap_ms: u64 = 50, Range(1, 60_000, None), "frame-gap-ms" "MS" master;
         /// Requests outstanding on the serial line at once
-        max_in_flight: usize = 1, Range(1, 255, None), "max-in-flight" "N";
+        max_in_flight: usize = 1, IN_FLIGHT, "max-in-flight" "N";
         /// Queued requests per master connection
         max_pending_per_connection: usize = 16, Range(1, 1024, None), "max-pending-per-connection" "N",
             at_most queue_depth: "one master could pipeline more than the whole queue holds";
         /// Total queued requests
         queue_depth: usize = 64, Range(1, 65_536, None), "queue-depth" "N";
         /// Resends after a timeout (reads only unless --retry-writes)
-        retries: u32 = 0, Range(0, 10, None), "retries" "N";
+        retries: u32 = 0, RETRIES, "retries" "N";
         /// Also resend writes after a timeout (a resent write may act twice)
         retry_writes: bool = false, Any, "retry-writes" "BOOL";
         /// What to do with device frames that answer no request
@@ -302,7 +367,7 @@ settings! {
         /// Longest back-off interval
         unit_backoff_max_ms: u64 = 30_000, Range(1, 3_600_000, None), "unit-backoff-max-ms" "MS";
         /// RTU/ASCII: response timeout of a request probing a backed-off unit
-        probe_timeout_ms: u64 = 250, Range(1, 600_000, None), "probe-timeout-ms" "MS";
+        probe_timeout_ms: u64 = 250, TIMEOUT_MS, "probe-timeout-ms" "MS";
         /// RTU/ASCII: quiet time after a timeout, late replies discarded
         timeout_guard_ms: u64 = 100, Range(0, 60_000, None), "timeout-guard-ms" "MS";
         /// A read identical to one waiting for the line (unit, function, address, count) joins it: one transaction, each master answered
@@ -310,7 +375,7 @@ settings! {
         /// Answer a read from the reply to the identical read if younger than this; a write to the unit clears it; 0 = off
         cache_ms: u64 = 0, Range(0, 3_600_000, None), "cache-ms" "MS";
         /// Quiet time after each reply before the next request, for slow devices
-        request_pause_ms: u64 = 0, Range(0, 60_000, None), "request-pause-ms" "MS";
+        request_pause_ms: u64 = 0, PAUSE_MS, "request-pause-ms" "MS";
     }
     /// What is logged.
     [log] LogConfig {
@@ -322,7 +387,7 @@ settings! {
     /// The metrics listener (docs/watching.md): off unless given an address.
     [metrics] MetricsConfig {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
-        listen: Option<SocketAddr> = None, Any, "metrics-listen" "ADDR";
+        listen: Option<SocketAddr> = None, Address(METRICS_EXAMPLE), "metrics-listen" "ADDR";
     }
     /// The always-on capture (docs/capture.md): every packet into a ring of pcapng files.
     [capture] CaptureConfig {
@@ -340,254 +405,44 @@ settings! {
     }
 }
 
-/// One setting as declared in `settings!`.
+/// A response timeout in milliseconds: of a line, of a probe, of a unit, of a master
+/// line's route.
+const TIMEOUT_MS: Check = Range(1, 600_000, None);
+/// Requests outstanding at once: on a line, on a master line's route.
+const IN_FLIGHT: Check = Range(1, 255, None);
+/// Quiet time before the next request: of a line, of a unit.
+const PAUSE_MS: Check = Range(0, 60_000, None);
+/// Resends after a timeout: of a line, of a unit.
+const RETRIES: Check = Range(0, 10, None);
+
+/// One setting as declared in `settings!` (`C` the configuration it sets), or in
+/// `table!` (`C` that table's struct).
 #[derive(Debug)]
-pub struct Key {
-    /// The section it is in: `serial` for `serial.baud_rate`.
+pub struct Key<C: 'static = Config> {
+    /// The section it is in: `serial` for `serial.baud_rate`; for a key of a table
+    /// inside a line or a listener, that table (`line.route`).
     pub section: &'static str,
     /// The key within its section: `baud_rate`.
     pub name: &'static str,
-    /// The long flag without its dashes: `baud` for `--baud`.
+    /// The long flag without its dashes: `baud` for `--baud`; "" for a key of a table
+    /// inside a line or a listener, which has none.
     pub flag: &'static str,
     pub(crate) value_name: &'static str,
     /// One line (with a leading space, as doc comments have it).
     pub help: &'static str,
     pub(crate) check: Check,
-    pub(crate) kind: Kind,
+    pub(crate) kind: ValueKind,
     /// A serial port setting that `mbgate sim` and the client take as flags too.
     pub(crate) port: bool,
+    /// A `[relay]` key a master line uses too (the others are refused on one).
+    pub(crate) master: bool,
     /// The key of the section this one must not exceed, and why.
     pub(crate) at_most: Option<(&'static str, &'static str)>,
     /// Checks a value and sets this key in a configuration; the error says why,
     /// without the key.
-    pub(crate) set: fn(&mut Config, &Raw) -> Result<(), String>,
+    pub(crate) set: fn(&mut C, &Raw) -> Result<(), ValueError>,
     /// The value of this key in a configuration, as written in a TOML file.
-    pub get: fn(&Config) -> String,
-}
-
-/// What a key's value is, for parsing flags and for messages.
-#[derive(Debug, Clone, Copy)]
-pub(crate) enum Kind {
-    Int,
-    Bool,
-    Str,
-    /// An address like 0.0.0.0:502.
-    Addr,
-    /// One of these words, each with its help.
-    Choice(&'static [(&'static str, &'static str)]),
-}
-
-/// What values a key accepts beyond its type.
-#[derive(Debug, Clone, Copy)]
-pub(crate) enum Check {
-    Any,
-    /// An inclusive integer range, and how to say it when not "between MIN and MAX".
-    Range(i128, i128, Option<&'static str>),
-    /// Not blank; the text says what belongs there.
-    NonEmpty(&'static str),
-    /// One of these words.
-    OneOf(&'static [&'static str]),
-    /// A path to create a socket at, or empty: its directory must exist (binding there
-    /// would fail at start, leaving capture and reload unavailable).
-    SocketPath,
-}
-
-impl Check {
-    fn int(&self, v: i128) -> Result<(), String> {
-        match *self {
-            Check::Range(min, max, said) if v < min || v > max => Err(match said {
-                Some(said) => format!("must be {said}, got {v}"),
-                None => format!("must be between {min} and {max}, got {v}"),
-            }),
-            _ => Ok(()),
-        }
-    }
-
-    fn str(&self, s: &str) -> Result<(), String> {
-        match *self {
-            Check::NonEmpty(what) if s.trim().is_empty() => {
-                Err(format!("must not be empty ({what})"))
-            }
-            Check::OneOf(words) if !words.contains(&s) => {
-                Err(format!("must be one of {}, got {s:?}", words.join(", ")))
-            }
-            Check::SocketPath if !s.is_empty() => {
-                let dir = match std::path::Path::new(s).parent() {
-                    Some(d) if !d.as_os_str().is_empty() => d,
-                    _ => std::path::Path::new("."),
-                };
-                if dir.is_dir() {
-                    Ok(())
-                } else {
-                    Err(format!(
-                        "the directory {} does not exist (make it, or leave the key empty \
-                         under systemd: control.sock in the service's RuntimeDirectory)",
-                        dir.display()
-                    ))
-                }
-            }
-            _ => Ok(()),
-        }
-    }
-}
-
-/// A type a setting can have.
-pub(crate) trait Setting: Sized {
-    const KIND: Kind;
-    /// The value `raw` stands for, if it has the right type and passes `check`.
-    fn read(raw: &Raw, check: &Check) -> Result<Self, String>;
-    /// As written in a TOML file.
-    fn print(&self) -> String;
-}
-
-/// `types: kind, |raw, check| read, |value| print` implements [`Setting`] for `types`.
-macro_rules! setting {
-    ($($t:ty),*: $kind:ident, |$raw:ident, $check:ident| $read:expr, |$v:ident| $print:expr) => {$(
-        impl Setting for $t {
-            const KIND: Kind = Kind::$kind;
-            fn read($raw: &Raw, $check: &Check) -> Result<Self, String> { $read }
-            fn print(&self) -> String { let $v = self; $print }
-        }
-    )*};
-}
-
-setting! { u8, u32, u64, usize: Int, |raw, check| match *raw {
-    Raw::Int(v) => check.int(v).and(Self::try_from(v).map_err(|_| format!("{v} is too large"))),
-    _ => Err(raw.invalid("an integer")),
-}, |v| v.to_string() }
-setting! { bool: Bool, |raw, _check| match *raw {
-    Raw::Bool(b) => Ok(b),
-    _ => Err(raw.invalid("a boolean")),
-}, |v| v.to_string() }
-setting! { String: Str, |raw, check| match raw {
-    Raw::Str(s) => check.str(s).map(|()| s.clone()),
-    _ => Err(raw.invalid("a string")),
-}, |v| toml::Value::String(v.clone()).to_string() }
-setting! { SocketAddr: Addr, |raw, _check| match raw {
-    Raw::Str(s) => parse_listen(s),
-    _ => Err(raw.invalid(&format!("an address like {LISTEN_EXAMPLE}"))),
-}, |v| format!("\"{v}\"") }
-
-// Only `metrics.listen` is an optional address: its example is the metrics port.
-setting! { Option<SocketAddr>: Addr, |raw, _check| match raw {
-    Raw::Str(s) => parse_optional_address(s, METRICS_EXAMPLE),
-    _ => Err(raw.invalid(&format!("an address like {METRICS_EXAMPLE}, or \"\" for none"))),
-}, |v| v.map_or_else(|| "\"\"".to_owned(), |a| format!("\"{a}\"")) }
-
-/// What a Modbus listener's address looks like.
-const LISTEN_EXAMPLE: &str = "0.0.0.0:502";
-/// What the metrics listener's address looks like (never the Modbus port).
-pub(crate) const METRICS_EXAMPLE: &str = "127.0.0.1:9502";
-
-/// `serial.silence_floor_ms`: the least silence that ends a frame, in milliseconds, or
-/// `"auto"`, from the port as it is found at each open (`crate::port::kind`).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Floor {
-    /// From the port: none on a pty, the receive FIFO on a native UART, the latency
-    /// timer on a USB adapter.
-    Auto,
-    /// This many milliseconds, whatever the port.
-    Ms(u64),
-}
-
-impl Setting for Floor {
-    const KIND: Kind = Kind::Str;
-    fn read(raw: &Raw, check: &Check) -> Result<Self, String> {
-        const EXPECTED: &str = "\"auto\" or a number of milliseconds";
-        let ms = match raw {
-            Raw::Str(s) if s.trim() == "auto" => return Ok(Floor::Auto),
-            Raw::Int(v) => *v,
-            // From a flag: the text as typed.
-            Raw::Str(s) => s
-                .trim()
-                .parse::<i128>()
-                .map_err(|_| format!("invalid value {s:?}; expected {EXPECTED}"))?,
-            _ => return Err(raw.invalid(EXPECTED)),
-        };
-        check.int(ms)?;
-        u64::try_from(ms)
-            .map(Floor::Ms)
-            .map_err(|_| format!("{ms} is too large"))
-    }
-    fn print(&self) -> String {
-        match self {
-            Floor::Auto => "\"auto\"".into(),
-            Floor::Ms(ms) => ms.to_string(),
-        }
-    }
-}
-
-/// `serial.direction_gpio_line`: the GPIO line that switches the transmitter, by its
-/// offset on its chip or by its name (docs/rs485.md).
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum GpioLine {
-    /// Not given: `direction = "gpio"` then refuses the file.
-    Unset,
-    /// The line at this offset on its chip.
-    Offset(u32),
-    /// The line of this name (`gpioinfo` lists them).
-    Name(String),
-}
-
-impl Setting for GpioLine {
-    const KIND: Kind = Kind::Str;
-    fn read(raw: &Raw, _check: &Check) -> Result<Self, String> {
-        const EXPECTED: &str = "a line offset like 17 or a line name like \"GPIO17\"";
-        let offset = |v: i128| {
-            u32::try_from(v)
-                .map(GpioLine::Offset)
-                .map_err(|_| format!("{v} is no line offset; expected {EXPECTED}"))
-        };
-        match raw {
-            Raw::Int(v) => offset(*v),
-            Raw::Str(s) if s.trim().is_empty() => Ok(GpioLine::Unset),
-            // From a flag, an offset is typed as text.
-            Raw::Str(s) => match s.trim().parse::<i128>() {
-                Ok(v) => offset(v),
-                Err(_) => Ok(GpioLine::Name(s.trim().to_owned())),
-            },
-            _ => Err(raw.invalid(EXPECTED)),
-        }
-    }
-    fn print(&self) -> String {
-        match self {
-            GpioLine::Unset => "\"\"".into(),
-            GpioLine::Offset(n) => n.to_string(),
-            GpioLine::Name(s) => toml::Value::String(s.clone()).to_string(),
-        }
-    }
-}
-
-/// Parses a `tcp.listen` / `--listen` value.
-pub(crate) fn parse_listen(s: &str) -> Result<SocketAddr, String> {
-    parse_address(s, LISTEN_EXAMPLE)
-}
-
-/// Parses an address to listen on, `example` showing what one looks like. A host
-/// name is refused with what to give instead: listening needs one of this machine's
-/// addresses, and a name could stand for several, or for another machine's.
-pub(crate) fn parse_address(s: &str, example: &str) -> Result<SocketAddr, String> {
-    s.trim().parse().map_err(|_| {
-        let mut m = format!("expected an address like {example}, got {s:?}");
-        let named = s.trim().rsplit_once(':').is_some_and(|(host, port)| {
-            port.parse::<u16>().is_ok()
-                && host.starts_with(|c: char| c.is_ascii_alphabetic())
-                && host.parse::<std::net::IpAddr>().is_err()
-        });
-        if named {
-            m += ": a host name is not looked up here; give an IP address of this machine \
-                  (127.0.0.1 for this machine only, 0.0.0.0 for every interface)";
-        }
-        m
-    })
-}
-
-/// [`parse_address`], or none for `""`.
-pub(crate) fn parse_optional_address(s: &str, example: &str) -> Result<Option<SocketAddr>, String> {
-    if s.trim().is_empty() {
-        return Ok(None);
-    }
-    parse_address(s, example).map(Some)
+    pub get: fn(&C) -> String,
 }
 
 /// Two keys whose values contradict each other: a key above the key it must not

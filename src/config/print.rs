@@ -1,7 +1,7 @@
 //! The configuration as TOML (`mbgate check-config`): either form of docs/design.md §4
 //! and §4.1, every key with its value, which `parse` reads back to the same.
 
-use super::{access, file, master, Config, Setting, KEYS};
+use super::{access, file, master, Config, Key, Setting, KEYS};
 
 /// The configuration as TOML, sections and keys in the order of docs/design.md §4
 /// (`mbgate check-config`); a configuration the old form cannot say (several lines or
@@ -63,11 +63,20 @@ pub fn to_toml_lines(cfg: &Config) -> String {
             Some(m) => master::to_toml(m).trim_start().to_owned() + "\n",
             None => String::new(),
         };
-        let relay = print(&one, &[("relay", "[line.relay]".into())]);
+        let relay = match line.master {
+            // A master line's relay table has only the keys a master line uses.
+            Some(_) => print_keys(&one, "[line.relay]", |k| k.section == "relay" && k.master),
+            None => print(&one, &[("relay", "[line.relay]".into())]),
+        };
         let units = line.unit_tables.to_toml();
         out.push(head + &device + "\n" + &routes + &relay + &units);
     }
-    for listener in cfg.listeners() {
+    // With every line a master line no listener is bound, and none may be written.
+    let listeners = match cfg.serves_masters() {
+        true => cfg.listeners(),
+        false => Vec::new(),
+    };
+    for listener in listeners {
         let one = Config {
             tcp: listener.tcp.clone(),
             ..Config::default()
@@ -109,4 +118,13 @@ fn print(cfg: &Config, tables: &[(&str, String)]) -> String {
         out.push(table);
     }
     out.join("\n")
+}
+
+/// `header`, then the keys of [`KEYS`] that `which` takes.
+fn print_keys(cfg: &Config, header: &str, which: impl Fn(&Key) -> bool) -> String {
+    let mut table = format!("{header}\n");
+    for key in KEYS.iter().filter(|k| which(k)) {
+        table += &format!("{} = {}\n", key.name, (key.get)(cfg));
+    }
+    table
 }

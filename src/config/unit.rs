@@ -13,23 +13,32 @@
 //! response_timeout_max_ms = 1000
 //! ```
 
-use super::raw::{bad, entries, raw_value, Bad};
-use super::{Check, RelayConfig, Setting};
+use super::raw::{read_table, Raw};
+use super::{table, Check, Key, RelayConfig, Setting, ValueError, ValueKind};
+use super::{Any, Range, PAUSE_MS, RETRIES, TIMEOUT_MS};
 use std::collections::BTreeSet;
 use std::time::Duration;
-use toml::de::{DeTable, DeValue};
-use toml::Spanned;
 
-/// The keys of a `[[line.unit]]` table.
-pub(crate) const UNIT_KEYS: [&str; 7] = [
-    "units",
-    "response_timeout_ms",
-    "response_timeout_max_ms",
-    "response_timeout_min_ms",
-    "request_pause_ms",
-    "retries",
-    "retry_writes",
-];
+table! {
+    /// One `[[line.unit]]` as the file gives it (docs/configuration.md "Per-unit
+    /// settings"); each key left out is the line's.
+    ["line.unit"] UnitTableKeys UNIT_KEYS {
+        /// A unit id, a range "A-B", or a list of both, 1 to 255; required
+        units: UnitIds = UnitIds::default(), Range(1, 255, None);
+        /// This unit's response timeout; or "auto": learned from its replies
+        response_timeout_ms: UnitTimeout = UnitTimeout::Auto, TIMEOUT_MS;
+        /// With "auto": the ceiling, where the learning starts (the line's response_timeout_ms when left out)
+        response_timeout_max_ms: u64 = 0, TIMEOUT_MS;
+        /// With "auto": the floor
+        response_timeout_min_ms: u64 = LEARNED_FLOOR_MS, TIMEOUT_MS;
+        /// Quiet time after a transaction with this unit before the next request
+        request_pause_ms: u64 = 0, PAUSE_MS;
+        /// Resends after a timeout or a bad reply
+        retries: u32 = 0, RETRIES;
+        /// Resend this unit's writes too
+        retry_writes: bool = false, Any;
+    }
+}
 
 /// A learned timeout never goes below this unless `response_timeout_min_ms` says
 /// otherwise: near it a USB adapter's latency timer (1 to 16 ms), the kernel's and
@@ -43,6 +52,64 @@ pub enum UnitTimeout {
     Ms(u64),
     /// `"auto"`: learned (docs/reliability.md "Learned timeouts").
     Auto,
+}
+
+impl Setting for UnitTimeout {
+    const KIND: ValueKind = ValueKind::Str;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        match raw {
+            Raw::Str(w) if w.trim() == "auto" => Ok(UnitTimeout::Auto),
+            Raw::Str(w) => Err(format!(
+                "invalid value {w:?}; expected \"auto\" or a number of milliseconds"
+            )
+            .into()),
+            _ => u64::read(raw, check).map(UnitTimeout::Ms),
+        }
+    }
+    fn print(&self) -> String {
+        match self {
+            UnitTimeout::Ms(ms) => ms.to_string(),
+            UnitTimeout::Auto => "\"auto\"".into(),
+        }
+    }
+}
+
+/// `units = 3`, `"1-5"` or `[1, "10-20"]`: unit ids as `check` bounds them, none twice.
+#[derive(Debug, Clone, PartialEq, Eq, Default)]
+pub struct UnitIds(pub BTreeSet<u8>);
+
+impl Setting for UnitIds {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, check: &Check) -> Result<Self, ValueError> {
+        let one = |v: &Raw| -> Result<(u8, u8), ValueError> {
+            match v {
+                Raw::Str(s) => range(s),
+                other => u8::read(other, check).map(|u| (u, u)),
+            }
+        };
+        let parts = match raw {
+            Raw::List(a) if a.is_empty() => return Err("must list at least one unit id".into()),
+            Raw::List(a) => a
+                .iter()
+                .enumerate()
+                .map(|(i, v)| one(v).map_err(|e| e.item(i)))
+                .collect::<Result<_, _>>()?,
+            other => vec![one(other)?],
+        };
+        let mut ids = BTreeSet::new();
+        for (first, last) in parts {
+            for u in first..=last {
+                if !ids.insert(u) {
+                    return Err(format!("unit {u} is listed twice").into());
+                }
+            }
+        }
+        Ok(Self(ids))
+    }
+    fn print(&self) -> String {
+        let ids: Vec<u8> = self.0.iter().copied().collect();
+        crate::number::id_list(&ids)
+    }
 }
 
 /// What one `[[line.unit]]` table says; `None`: the line's.
@@ -234,27 +301,21 @@ impl UnitTables {
     }
 }
 
-/// The `[[line.unit]]` array at `v`; `path` is `line[0].unit`.
-pub(super) fn tables(v: &Spanned<DeValue>, path: &str) -> Result<UnitTables, Bad> {
+/// The `[[line.unit]]` array `raw`; `path` is what messages call it (`line[0].unit`).
+pub(super) fn tables(raw: &Raw, path: &str) -> Result<UnitTables, ValueError> {
     // `unit = [1]` is most likely the line's `units` misspelt.
     let expected = "expected [[line.unit]] tables (the unit ids the line serves are its `units`)";
-    let DeValue::Array(tables) = v.get_ref() else {
-        return bad(v.span().start, path, expected);
+    let tables = match raw {
+        Raw::List(tables) if tables.iter().all(|t| matches!(t, Raw::Table(_))) => tables,
+        _ => return Err(expected.into()),
     };
     let mut out: Vec<UnitTable> = Vec::new();
     for (i, t) in tables.iter().enumerate() {
-        let here = format!("{path}[{i}]");
-        let DeValue::Table(table) = t.get_ref() else {
-            return bad(v.span().start, path, expected);
-        };
-        let u = table_at(table, t.span().start, &here)?;
+        let u = table(t, &format!("{path}[{i}]")).map_err(|e| e.item(i))?;
         for &id in &u.ids {
             if let Some(j) = out.iter().position(|o| o.ids.contains(&id)) {
-                let at = table
-                    .get("units")
-                    .map_or(t.span().start, |v| v.span().start);
                 let m = format!("unit {id} is also in {path}[{j}]");
-                return bad(at, &format!("{here}.units"), m);
+                return Err(ValueError::new(m).value("units").item(i));
             }
         }
         out.push(u);
@@ -262,119 +323,56 @@ pub(super) fn tables(v: &Spanned<DeValue>, path: &str) -> Result<UnitTables, Bad
     Ok(UnitTables(out))
 }
 
-fn table_at(table: &DeTable, start: usize, path: &str) -> Result<UnitTable, Bad> {
-    let mut s = UnitSettings::default();
-    let mut ids = None;
-    let mut max_at = None;
-    for (k, v) in entries(table) {
-        let key = format!("{path}.{}", k.get_ref());
-        let at = v.span().start;
-        let raw = raw_value(v.get_ref());
-        let ms = |max: i128| u64::read(&raw, &Check::Range(1, max, None));
-        let checked = match k.get_ref().as_ref() {
-            "units" => ids_at(v, &key).map(|i| ids = Some(i)),
-            "response_timeout_ms" => match &raw {
-                Raw::Str(w) if w.trim() == "auto" => {
-                    s.response_timeout = Some(UnitTimeout::Auto);
-                    Ok(())
-                }
-                Raw::Str(w) => Err(format!(
-                    "invalid value {w:?}; expected \"auto\" or a number of milliseconds"
-                )),
-                _ => ms(600_000).map(|t| s.response_timeout = Some(UnitTimeout::Ms(t))),
-            },
-            "response_timeout_max_ms" => {
-                max_at = Some((at, key.clone()));
-                ms(600_000).map(|t| s.response_timeout_max_ms = Some(t))
-            }
-            "response_timeout_min_ms" => ms(600_000).map(|t| s.response_timeout_min_ms = Some(t)),
-            "request_pause_ms" => u64::read(&raw, &Check::Range(0, 60_000, None))
-                .map(|t| s.request_pause_ms = Some(t)),
-            "retries" => u32::read(&raw, &Check::Range(0, 10, None)).map(|n| s.retries = Some(n)),
-            "retry_writes" => bool::read(&raw, &Check::Any).map(|b| s.retry_writes = Some(b)),
-            _ => {
-                let mut m = format!("unknown key; expected one of {}", UNIT_KEYS.join(", "));
-                if let Some(near) = super::raw::suggest(k.get_ref(), &UNIT_KEYS) {
-                    m += &format!(" (did you mean `{near}`?)");
-                }
-                return bad(k.span().start, &key, m);
-            }
-        };
-        if let Err(m) = checked {
-            return bad(at, &key, m);
-        }
-    }
-    if let (Some((at, key)), Some(min), Some(max)) = (
-        &max_at,
-        s.response_timeout_min_ms,
-        s.response_timeout_max_ms,
-    ) {
+/// One `[[line.unit]]`, read by [`UNIT_KEYS`]; `path` is what messages call it.
+fn table(raw: &Raw, path: &str) -> Result<UnitTable, ValueError> {
+    let (t, given) = read_table(raw, UNIT_KEYS, "expected a table ([[line.unit]])")?;
+    let has = |k: &str| given.contains(&k);
+    let s = UnitSettings {
+        response_timeout: has("response_timeout_ms").then_some(t.response_timeout_ms),
+        response_timeout_max_ms: has("response_timeout_max_ms")
+            .then_some(t.response_timeout_max_ms),
+        response_timeout_min_ms: has("response_timeout_min_ms")
+            .then_some(t.response_timeout_min_ms),
+        request_pause_ms: has("request_pause_ms").then_some(t.request_pause_ms),
+        retries: has("retries").then_some(t.retries),
+        retry_writes: has("retry_writes").then_some(t.retry_writes),
+    };
+    if let (Some(min), Some(max)) = (s.response_timeout_min_ms, s.response_timeout_max_ms) {
         if min > max {
             let m = format!("must not be below {path}.response_timeout_min_ms ({min}), got {max}");
-            return bad(*at, key, m);
+            return Err(ValueError::new(m).value("response_timeout_max_ms"));
         }
     }
     let learned_only = s.response_timeout_max_ms.is_some() || s.response_timeout_min_ms.is_some();
     if learned_only && s.response_timeout != Some(UnitTimeout::Auto) {
-        let (at, key) = max_at.unwrap_or((start, format!("{path}.response_timeout_min_ms")));
+        let key = match s.response_timeout_max_ms {
+            Some(_) => "response_timeout_max_ms",
+            None => "response_timeout_min_ms",
+        };
         let m = "bounds a learned timeout: give response_timeout_ms = \"auto\" with it";
-        return bad(at, &key, m);
+        return Err(ValueError::new(m).value(key));
     }
-    match ids {
-        Some(ids) => Ok(UnitTable { ids, settings: s }),
-        None => bad(
-            start,
-            &format!("{path}.units"),
-            "missing: the unit ids these settings are for, e.g. units = \"1-5\"",
-        ),
+    if !has("units") {
+        let m = "missing: the unit ids these settings are for, e.g. units = \"1-5\"";
+        return Err(ValueError::new(m).value("units"));
     }
-}
-
-use super::raw::Raw;
-
-/// `units = 3`, `"1-5"` or `[1, "10-20"]`: unit ids 1 to 255, none twice.
-fn ids_at(v: &Spanned<DeValue>, key: &str) -> Result<BTreeSet<u8>, String> {
-    let one = |v: &DeValue| -> Result<(u8, u8), String> {
-        match v {
-            DeValue::String(s) => range(s),
-            other => {
-                let u = u8::read(&raw_value(other), &Check::Range(1, 255, None))?;
-                Ok((u, u))
-            }
-        }
-    };
-    let parts = match v.get_ref() {
-        DeValue::Array(a) if a.is_empty() => {
-            return Err("must list at least one unit id".into());
-        }
-        DeValue::Array(a) => a
-            .iter()
-            .map(|i| one(i.get_ref()))
-            .collect::<Result<_, _>>()?,
-        other => vec![one(other)?],
-    };
-    let mut ids = BTreeSet::new();
-    for (first, last) in parts {
-        for u in first..=last {
-            if !ids.insert(u) {
-                return Err(format!("unit {u} is listed twice in {key}"));
-            }
-        }
-    }
-    Ok(ids)
+    Ok(UnitTable {
+        ids: t.units.0,
+        settings: s,
+    })
 }
 
 /// `"10-20"` (or `"7"`): the units 10 to 20.
-fn range(s: &str) -> Result<(u8, u8), String> {
+fn range(s: &str) -> Result<(u8, u8), ValueError> {
     let bad = || format!("expected a unit id or a range like \"1-5\", got {s:?}");
     let unit = |x: &str| x.trim().parse::<u8>().ok().filter(|u| *u >= 1);
     let Some((a, b)) = s.split_once('-') else {
-        return unit(s).map(|u| (u, u)).ok_or_else(bad);
+        return unit(s).map(|u| (u, u)).ok_or_else(|| bad().into());
     };
     match (unit(a), unit(b)) {
         (Some(a), Some(b)) if a <= b => Ok((a, b)),
-        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty")),
-        _ => Err(bad()),
+        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty").into()),
+        _ => Err(bad().into()),
     }
 }
 

@@ -13,7 +13,7 @@
 use super::role::{identity, RoleError};
 use super::{certified_key, provider, roots, TlsError, VERSIONS};
 use crate::access::Policy;
-use crate::config::{Role, TlsListen};
+use crate::config::{AccessRole, TlsListen};
 use rustls::client::danger::HandshakeSignatureValid;
 use rustls::crypto::CryptoProvider;
 use rustls::pki_types::{CertificateDer, UnixTime};
@@ -135,7 +135,11 @@ impl std::fmt::Display for Refused {
 }
 
 /// The role a certificate gets on a listener with `roles` and `default_role`.
-fn grant(der: &[u8], roles: &[Role], default_role: Option<&str>) -> Result<Grant, RoleRefused> {
+fn grant(
+    der: &[u8],
+    roles: &[AccessRole],
+    default_role: Option<&str>,
+) -> Result<Grant, RoleRefused> {
     let id = identity(der).map_err(RoleRefused::Malformed)?;
     let (name, defaulted) = match (id.role, default_role) {
         (Some(r), _) => (r, false),
@@ -165,7 +169,7 @@ fn grant(der: &[u8], roles: &[Role], default_role: Option<&str>) -> Result<Grant
 #[derive(Debug)]
 struct RoleCheck {
     inner: Arc<dyn ClientCertVerifier>,
-    roles: Arc<[Role]>,
+    roles: Arc<[AccessRole]>,
     default_role: Option<String>,
     outcome: Mutex<Option<Result<Grant, RoleRefused>>>,
 }
@@ -231,7 +235,7 @@ pub(crate) struct Acceptor {
     settings: TlsListen,
     /// What errors and the log call it: `listen[0].tls`.
     prefix: String,
-    roles: Arc<[Role]>,
+    roles: Arc<[AccessRole]>,
     material: RwLock<Arc<Material>>,
 }
 
@@ -240,7 +244,7 @@ impl Acceptor {
     pub(crate) fn new(
         settings: &TlsListen,
         prefix: &str,
-        roles: &[Role],
+        roles: &[AccessRole],
     ) -> Result<Acceptor, TlsError> {
         let material = Material::load(settings, prefix)?;
         Ok(Acceptor {
@@ -309,8 +313,8 @@ mod tests {
     const OPERATOR: &[u8] = include_bytes!("testdata/operator.der");
     const NO_ROLE: &[u8] = include_bytes!("testdata/no-role.der");
 
-    fn role(name: &str, read_only: bool) -> Role {
-        Role {
+    fn role(name: &str, read_only: bool) -> AccessRole {
+        AccessRole {
             name: name.into(),
             policy: Policy {
                 read_only,

@@ -1,33 +1,20 @@
 //! The security keys as `mbgate check-config` prints them: TOML that reads back to the
 //! same configuration, and under each listener who may connect and what they may do.
 
-use super::{ListenAccess, Role, TlsDevice};
-use crate::access::{Policy, WriteRule};
-
-fn quoted(p: &std::path::Path) -> String {
-    toml::Value::String(p.display().to_string()).to_string()
-}
+use super::{AccessRole, ListenAccess, TlsDevice, WriteRules};
+use crate::access::Policy;
+use crate::config::Setting;
 
 /// A listener's security keys as the `[[listen]]` form prints them, and two comment
 /// lines saying who may connect and what they may do (`mbgate check-config`).
-pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[Role]) -> String {
+pub(crate) fn listen_to_toml(a: &ListenAccess, roles: &[AccessRole]) -> String {
     let mut out = String::new();
-    if let Some(allow) = &a.allow {
-        let nets: Vec<String> = allow.nets().iter().map(|n| format!("\"{n}\"")).collect();
-        out += &format!("allow = [{}]\n", nets.join(", "));
+    if a.allow.is_some() {
+        out += &format!("allow = {}\n", a.allow.print());
     }
     out += &policy_to_toml(&a.policy);
-    if let Some(t) = &a.tls {
-        let mut parts = vec![
-            format!("cert = {}", quoted(&t.cert)),
-            format!("key = {}", quoted(&t.key)),
-            format!("client_ca = {}", quoted(&t.client_ca)),
-        ];
-        if let Some(r) = &t.default_role {
-            parts.push(format!("default_role = {}", toml::Value::String(r.clone())));
-        }
-        parts.push(format!("handshake_timeout_ms = {}", t.handshake_timeout_ms));
-        out += &format!("tls = {{ {} }}\n", parts.join(", "));
+    if a.tls.is_some() {
+        out += &format!("tls = {}\n", a.tls.print());
     }
     for line in effective(a, roles) {
         out += &format!("# {line}\n");
@@ -41,14 +28,13 @@ fn policy_to_toml(p: &Policy) -> String {
         out += "read_only = true\n";
     }
     if !p.write.is_empty() {
-        let rules: Vec<String> = p.write.iter().map(WriteRule::to_string).collect();
-        out += &format!("write = [{}]\n", rules.join(", "));
+        out += &format!("write = {}\n", WriteRules(p.write.clone()).print());
     }
     out
 }
 
 /// Who may connect to a listener, and what each may do, in words.
-pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
+pub(crate) fn effective(a: &ListenAccess, roles: &[AccessRole]) -> Vec<String> {
     let who = match &a.allow {
         None => "from everyone (no allow list)".to_owned(),
         Some(l) => format!("only from {l}"),
@@ -85,7 +71,7 @@ pub(crate) fn effective(a: &ListenAccess, roles: &[Role]) -> Vec<String> {
 }
 
 /// The `[[role]]` tables as the file writes them.
-pub(crate) fn roles_to_toml(roles: &[Role]) -> String {
+pub(crate) fn roles_to_toml(roles: &[AccessRole]) -> String {
     let mut out = Vec::new();
     for r in roles {
         let priority = r
@@ -102,13 +88,5 @@ pub(crate) fn roles_to_toml(roles: &[Role]) -> String {
 
 /// A TCP line's `tls` table as `[line.tcp]` prints it.
 pub(crate) fn device_to_toml(t: &TlsDevice) -> String {
-    let mut parts = vec![
-        format!("cert = {}", quoted(&t.cert)),
-        format!("key = {}", quoted(&t.key)),
-        format!("device_ca = {}", quoted(&t.device_ca)),
-    ];
-    if let Some(n) = &t.server_name {
-        parts.push(format!("server_name = {}", toml::Value::String(n.clone())));
-    }
-    format!("tls = {{ {} }}\n", parts.join(", "))
+    format!("tls = {}\n", Some(t.clone()).print())
 }

@@ -7,7 +7,7 @@ use crate::config::{parse, to_toml};
 fn ranges() {
     assert_eq!(range("10-20", 255), Ok((10, 20)));
     assert_eq!(range(" 0 - 65535 ", 65535), Ok((0, 65535)));
-    assert!(range("20-10", 255).unwrap_err().contains("empty"));
+    assert!(range("20-10", 255).unwrap_err().message.contains("empty"));
     assert!(range("0-256", 255).is_err());
     assert!(range("7", 255).is_err());
 }

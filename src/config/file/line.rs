@@ -1,0 +1,262 @@
+//! Reading a `[[line]]` of the file (docs/design.md §4.1, §4.2): its units and
+//! their remapping, each unit on one line only; its device on a serial port or at a
+//! TCP address; its role, and a master line's routes and the relay keys it refuses.
+
+use super::{raw, LineRead, Reader};
+use crate::config::raw::{entries, read_table};
+use crate::config::{
+    table, Check, Config, ConfigError, Framing, HostPort, Key, LineConfig, LineRole, Setting,
+    TlsDevice, Units, ValueError, KEYS,
+};
+use crate::config::{Any, NonEmpty};
+use std::collections::{BTreeMap, BTreeSet};
+use toml::de::DeValue;
+use toml::Spanned;
+
+/// The keys of a `[[line]]` table.
+const LINE: [&str; 8] = [
+    "units", "remap", "serial", "tcp", "relay", "role", "route", "unit",
+];
+table! {
+    /// A line's `tcp` table: its device on the network (docs/network-devices.md).
+    ["line.tcp"] LineTcpTable LINE_TCP_KEYS {
+        /// "HOST:PORT" of the device (a Modbus/TCP slave, or a serial device server in raw TCP mode); required
+        address: HostPort = HostPort::default(), NonEmpty("host:port");
+        /// How frames are carried to it: mbap, rtu or ascii
+        framing: Framing = Framing::Mbap, Any;
+        /// The device speaks TLS: { cert, key, device_ca, server_name }
+        tls: Option<TlsDevice> = None, Any;
+    }
+}
+
+impl Reader<'_> {
+    /// One `[[line]]` at `v`; `path` is what messages call it (`line[0]`).
+    pub(super) fn line(
+        &mut self,
+        v: &Spanned<DeValue>,
+        path: &str,
+    ) -> Result<LineRead, ConfigError> {
+        let DeValue::Table(table) = v.get_ref() else {
+            let m = raw(v.get_ref()).invalid("a table ([[line]])");
+            return self.fail(v.span().start, path, m);
+        };
+        let (mut line, mut listed) = (Config::default(), false);
+        let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
+        let (mut role, mut routes, mut tcp_tls) = (None, None, None);
+        let mut unit_tables = (crate::config::unit::UnitTables::default(), None);
+        for (k, item) in entries(table) {
+            let full = format!("{path}.{}", k.get_ref());
+            match k.get_ref().as_ref() {
+                "units" => {
+                    units.ids = self.units(item, &full)?;
+                    listed = true;
+                }
+                "remap" => {
+                    units.remap = self.remap(item, &full)?;
+                    listed = true;
+                }
+                "tcp" => {
+                    let (address, tls) = self.line_tcp(&mut line, item, &full)?;
+                    tcp = Some(address);
+                    tcp_tls = tls;
+                }
+                "role" => {
+                    let read = LineRole::read(&raw(item.get_ref()), &Check::Any);
+                    let master = self.value(item, &full, read)? == LineRole::Master;
+                    role = Some((master, k.span().start));
+                }
+                "unit" => {
+                    let read = crate::config::unit::tables(&raw(item.get_ref()), &full);
+                    unit_tables = (self.value(item, &full, read)?, Some(k.span().start));
+                }
+                "route" => {
+                    let read = crate::config::master::routes(&raw(item.get_ref()), &full);
+                    routes = Some((self.value(item, &full, read)?, k.span().start));
+                }
+                name @ ("serial" | "relay") => {
+                    if name == "serial" {
+                        serial_at = Some(k.span().start);
+                    }
+                    self.section(&mut line, name, item, &full, &[], &[])?
+                }
+                _ => return self.unknown(k, &full, &LINE),
+            }
+        }
+        if let (Some(_), Some(at)) = (&tcp, serial_at) {
+            let m = "a line's device is a serial port or a TCP address: give `serial` or `tcp`, not both";
+            return self.fail(at, &format!("{path}.serial"), m);
+        }
+        self.conflict(&line, &format!("{path}."))?;
+        let mut master = None;
+        match (role, routes) {
+            (Some((true, _)), Some((routes, _))) => {
+                if listed {
+                    let key = format!("{path}.units");
+                    let key = if self.at.contains_key(&key) {
+                        key
+                    } else {
+                        format!("{path}.remap")
+                    };
+                    let at = self.at.get(&key).copied().unwrap_or(v.span().start);
+                    let m = "a master line routes by the units of its [[line.route]] tables";
+                    return self.fail(at, &key, m);
+                }
+                if let Some(at) = tcp.as_ref().and(serial_at.or(Some(v.span().start))) {
+                    let m = "a master line's device is on a serial port, not on TCP";
+                    return self.fail(at, &format!("{path}.tcp"), m);
+                }
+                if let Some(at) = unit_tables.1 {
+                    let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
+                    return self.fail(at, &format!("{path}.unit"), m);
+                }
+                self.master_relay(path)?;
+                master = Some(crate::config::master::MasterLine { routes });
+            }
+            (Some((true, at)), None) => {
+                let m = "a master line needs [[line.route]] tables (where its requests go)";
+                return self.fail(at, &format!("{path}.role"), m);
+            }
+            (_, Some((_, at))) => {
+                let m = "routes belong to a master line: add role = \"master\"";
+                return self.fail(at, &format!("{path}.route"), m);
+            }
+            (_, None) => {}
+        }
+        let line = LineConfig {
+            units,
+            serial: line.serial,
+            tcp,
+            tcp_tls,
+            relay: line.relay,
+            unit_tables: unit_tables.0,
+            master,
+        };
+        Ok((v.span().start, line, listed))
+    }
+
+    /// A master line's `relay` table holds only the keys a master line uses (declared
+    /// `master` in `settings!`): the others (a response timeout, retries, the queue...)
+    /// are the relay's, which a master line has not, and a reload could not apply them.
+    fn master_relay(&self, path: &str) -> Result<(), ConfigError> {
+        let relay = KEYS.iter().filter(|k| k.section == "relay");
+        for key in relay.filter(|k| !k.master) {
+            let full = format!("{path}.relay.{}", key.name);
+            let Some(&at) = self.at.get(&full) else {
+                continue;
+            };
+            let mut m = "means nothing on a master line (the device is the master: no request \
+                         of a Modbus/TCP master is queued or timed on it)"
+                .to_owned();
+            if crate::config::master::ROUTE_KEYS
+                .iter()
+                .any(|k| k.name == key.name)
+            {
+                m += &format!("; give {} in its [[line.route]] tables", key.name);
+            } else {
+                let used: Vec<&str> = KEYS
+                    .iter()
+                    .filter(|k| k.section == "relay" && k.master)
+                    .map(|k| k.name)
+                    .collect();
+                m += &format!("; its [line.relay] takes only {}", used.join(", "));
+            }
+            return self.fail(at, &full, m);
+        }
+        Ok(())
+    }
+
+    /// A line's `tcp` table, read by [`LINE_TCP_KEYS`]: `address` required.
+    fn line_tcp(
+        &mut self,
+        line: &mut Config,
+        v: &Spanned<DeValue>,
+        path: &str,
+    ) -> Result<(String, Option<TlsDevice>), ConfigError> {
+        let value = raw(v.get_ref());
+        let not_table = value.invalid("a table (address, framing)").message;
+        let (t, given) = self.value(v, path, read_table(&value, LINE_TCP_KEYS, &not_table))?;
+        let address = format!("{path}.address");
+        let DeValue::Table(table) = v.get_ref() else {
+            unreachable!("read as a table")
+        };
+        let Some(at) = table.get("address").filter(|_| given.contains(&"address")) else {
+            return self.fail(v.span().start, &address, "missing: the device's host:port");
+        };
+        // Where it is, for a second line on the same address.
+        self.at.insert(address, at.span().start);
+        line.serial.framing = t.framing;
+        Ok((t.address.0, t.tls))
+    }
+
+    /// `units = [1, 2, "10-20", ...]`: unit ids and ranges, each on one line only.
+    fn units(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeSet<u8>, ConfigError> {
+        let at = v.span().start;
+        self.at.insert(path.to_owned(), at);
+        let ids = match v.get_ref() {
+            DeValue::Array(ids) if ids.is_empty() => {
+                return self.fail(at, path, "must list at least one unit id")
+            }
+            DeValue::Array(ids) => ids,
+            other => return self.fail(at, path, raw(other).invalid("an array of unit ids")),
+        };
+        let mut set = BTreeSet::new();
+        for id in ids.iter() {
+            let at = id.span().start;
+            let (first, last) = match id.get_ref() {
+                DeValue::String(range) => unit_range(range).or_else(|m| self.fail(at, path, m))?,
+                other => {
+                    let unit = u8::read(&raw(other), &Check::Range(1, 255, None));
+                    let unit = unit.or_else(|m| self.fail(at, path, m))?;
+                    (unit, unit)
+                }
+            };
+            for unit in first..=last {
+                self.claim(unit, at, path)?;
+                set.insert(unit);
+            }
+        }
+        Ok(set)
+    }
+
+    /// `remap = { 11 = 1 }`: the master's unit 11 is unit 1 on this line.
+    fn remap(&mut self, v: &Spanned<DeValue>, path: &str) -> Result<BTreeMap<u8, u8>, ConfigError> {
+        let DeValue::Table(table) = v.get_ref() else {
+            let m = raw(v.get_ref()).invalid("a table of unit = unit on the line");
+            return self.fail(v.span().start, path, m);
+        };
+        let mut map = BTreeMap::new();
+        for (k, item) in entries(table) {
+            let at = k.span().start;
+            let unit = k.get_ref().parse::<u8>().ok().filter(|u| *u >= 1);
+            let Some(unit) = unit else {
+                let m = format!("{:?} is not a unit id (1 to 255)", k.get_ref());
+                return self.fail(at, path, m);
+            };
+            self.claim(unit, at, path)?;
+            let on_line = u8::read(&raw(item.get_ref()), &Check::Range(0, 255, None));
+            let on_line = on_line.or_else(|m| self.fail(item.span().start, path, m))?;
+            map.insert(unit, on_line);
+        }
+        Ok(map)
+    }
+
+    /// Gives `unit` to the line at `path`, unless another line (or this one) has it.
+    fn claim(&mut self, unit: u8, at: usize, path: &str) -> Result<(), ConfigError> {
+        if let Some(other) = self.units.insert(unit, path.to_owned()) {
+            return self.fail(at, path, format!("unit {unit} is also in {other}"));
+        }
+        Ok(())
+    }
+}
+
+/// `"10-20"`: the units 10 to 20.
+fn unit_range(s: &str) -> Result<(u8, u8), ValueError> {
+    let bad = || format!("expected a unit id or a range like \"10-20\", got {s:?}");
+    let (a, b) = s.split_once('-').ok_or_else(bad)?;
+    let unit = |x: &str| x.trim().parse::<u8>().ok().filter(|u| *u >= 1);
+    match (unit(a), unit(b)) {
+        (Some(a), Some(b)) if a <= b => Ok((a, b)),
+        (Some(_), Some(_)) => Err(format!("the range {s:?} is empty").into()),
+        _ => Err(bad().into()),
+    }
+}
