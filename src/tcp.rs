@@ -1,6 +1,7 @@
 //! The TCP side (docs/design.md §1 steps 1-2, §4 `[tcp]`, §4.1 `[[listen]]`): each
 //! listener with its connection limit, and one task per master that reads strictly
-//! checked MBAP requests (or RTU-over-TCP ones, `tcp/rtu.rs`), hands them to the line
+//! checked MBAP requests (or RTU-over-TCP ones: the listener's codec, `tcp/codec.rs`,
+//! chosen once a connection), hands them to the line
 //! serving their unit ([`crate::router`]) and writes back their replies in the order of
 //! the requests, with the device's notifications (the path back is [`crate::outbox`]).
 //! Who gets in (the allow list, TLS and the master's role) is `tcp/admit.rs`; what a
@@ -8,11 +9,11 @@
 //! docs/security.md).
 
 use crate::access;
-use crate::capture::packet::{Dir, Ends, Packet, Part, Proto, Reason};
+use crate::capture::packet::{Dir, Ends, Packet, Part, Reason};
 use crate::capture::{Hub, Tap};
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::hex::Hex;
-use crate::frame::mbap::{decode_strict, MAX_ADU};
+use crate::frame::mbap::MAX_ADU;
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::metrics::{MasterSeen, Masters};
@@ -38,8 +39,11 @@ use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
 
 mod admit;
+mod codec;
 mod handshakes;
 mod rtu;
+
+use codec::MasterCodec;
 
 /// Binds the masters' listener. Every connection it accepts inherits its send buffer,
 /// capped here at room for all the replies mbgate can owe one master (the kernel
@@ -395,9 +399,16 @@ impl Connection {
         drop(slot);
     }
 
+    /// The listener's framing chosen once: the rest is written over its codec.
     async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
-        let rtu = self.listen.framing == ListenFraming::Rtu;
-        let framing = self.listen.framing.name();
+        match self.listen.framing {
+            ListenFraming::Mbap => self.serve::<codec::Mbap>(rd, wr).await,
+            ListenFraming::Rtu => self.serve::<codec::Rtu>(rd, wr).await,
+        }
+    }
+
+    async fn serve<C: MasterCodec>(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
+        let framing = C::NAME;
         // At debug: a SCADA that connects for each poll would fill the journal at info;
         // the connections are counted (mbgate_listener_connections_total) and the
         // masters connected now listed (mbgate status, the status page).
@@ -427,15 +438,15 @@ impl Connection {
                 .map(|g| (g.role.clone(), g.subject.clone())),
         });
         self.capture.connected(self.id, self.peer);
-        // RTU over TCP has no transaction id: one request at a time, and no
-        // notifications (nothing would tell them from a reply).
-        let pending = if rtu {
-            1
-        } else {
+        // A framing with no transaction id (RTU over TCP): one request at a time, and
+        // no notifications (nothing would tell them from a reply).
+        let pending = if C::IDS {
             self.cfg.max_pending_per_connection()
+        } else {
+            1
         };
         let (mut outbox, inbox) = Outbox::new(pending);
-        let attached = rtu || self.router.attach(self.id, &outbox.notifier());
+        let attached = !C::IDS || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's.
         let role = self.grant.as_ref().map(|g| g.role.as_str());
         let role = role.and_then(|name| self.cfg.roles.iter().find(|r| r.name == name));
@@ -444,10 +455,10 @@ impl Connection {
             .unwrap_or(self.listen.priority);
         self.router.classify(self.id, class);
         if attached {
-            let writer = self.write_loop(wr, inbox);
+            let writer = self.write_loop::<C>(wr, inbox);
             tokio::pin!(writer);
             let end = tokio::select! {
-                end = self.read_loop(rd, &mut outbox) => end,
+                end = self.read_loop::<C>(rd, &mut outbox) => end,
                 _ = &mut writer => End::Closed,
             };
             if let End::Finish = end {
@@ -472,7 +483,11 @@ impl Connection {
         debug!(conn = self.id, peer = %self.peer, "master disconnected");
     }
 
-    async fn read_loop(&self, mut rd: impl AsyncRead + Unpin, outbox: &mut Outbox) -> End {
+    async fn read_loop<C: MasterCodec>(
+        &self,
+        mut rd: impl AsyncRead + Unpin,
+        outbox: &mut Outbox,
+    ) -> End {
         let idle = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         let mut last_read = Instant::now();
         // One timer for the connection's life, moved only when it goes off (the idle
@@ -482,18 +497,9 @@ impl Connection {
         let idle_timer = tokio::time::sleep_until(last_read + idle);
         tokio::pin!(idle_timer);
         let mut buf = BytesMut::with_capacity(512);
-        let rtu = self.listen.framing == ListenFraming::Rtu;
-        // RTU: the ids the relay sees for this master's requests, and whether the
-        // master has paused (which ends a request of unknown shape).
-        let (mut tid, mut quiet) = (0u16, false);
+        let mut codec = C::default();
         loop {
-            let decoded = if rtu {
-                tid = tid.wrapping_add(1);
-                rtu::decode(&mut buf, std::mem::take(&mut quiet), tid).map_err(|e| e.to_string())
-            } else {
-                decode_strict(&mut buf).map_err(|e| e.to_string())
-            };
-            match decoded {
+            match codec.decode(&mut buf) {
                 Ok(Some(adu)) => {
                     // One pipelining slot per request: with none free, stop reading
                     // and let TCP push back on the master.
@@ -505,7 +511,7 @@ impl Connection {
                         debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
                     }
                     if self.tap.on() {
-                        self.captured(&adu, Dir::In, "master->gw");
+                        self.captured::<C>(&adu, Dir::In, "master->gw");
                     }
                     self.submit(adu, ticket);
                     continue;
@@ -513,6 +519,7 @@ impl Connection {
                 Ok(None) => {}
                 Err(e) => {
                     if self.tap.on() {
+                        // What a capture shows of them: a frame's worth, and a few more.
                         let end = buf.len().min(rtu::MAX_FRAME + 8);
                         let mut p =
                             Packet::dropped(None, Reason::Refused, buf[..end].to_vec(), false, "");
@@ -526,9 +533,9 @@ impl Connection {
                     return End::Closed;
                 }
             }
-            let pause = rtu && rtu::needs_silence(&buf);
+            let pause = codec.ended_by_pause(&buf);
             tokio::select! {
-                _ = tokio::time::sleep(rtu::SILENCE), if pause => quiet = true,
+                _ = tokio::time::sleep(pause.unwrap_or_default()), if pause.is_some() => codec.paused(),
                 r = rd.read_buf(&mut buf) => match r {
                     Ok(0) => {
                         // A shutdown of the master's sending side (`shutdown(SHUT_WR)`,
@@ -578,12 +585,8 @@ impl Connection {
 
     /// A frame to or from this master, for the capture: as the master framed it
     /// (MBAP with its own transaction id, or RTU with its CRC).
-    fn captured(&self, adu: &Adu, dir: Dir, label: &'static str) {
-        let (proto, bytes) = if self.listen.framing == ListenFraming::Rtu {
-            (Proto::Mbrtu, rtu::encode(adu))
-        } else {
-            (Proto::Mbtcp, adu.as_bytes().to_vec())
-        };
+    fn captured<C: MasterCodec>(&self, adu: &Adu, dir: Dir, label: &'static str) {
+        let (proto, bytes) = (C::PROTO, C::frame(adu).into_owned());
         let role = if dir == Dir::In {
             Part::Query
         } else {
@@ -637,34 +640,26 @@ impl Connection {
     /// Writes the master's replies in the order of its requests, and notifications as
     /// they come. A master that stops reading its replies for `idle_timeout_ms` is
     /// closed, so it cannot hold a connection slot for ever.
-    async fn write_loop(&self, mut wr: impl AsyncWrite + Unpin, mut inbox: Inbox) {
+    async fn write_loop<C: MasterCodec>(&self, mut wr: impl AsyncWrite + Unpin, mut inbox: Inbox) {
         let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
         while let Some(out) = inbox.next().await {
             if self.cfg.log.traffic {
                 debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
             }
             if self.tap.on() {
-                self.captured(&out.adu, Dir::Out, "gw->master");
+                self.captured::<C>(&out.adu, Dir::Out, "gw->master");
             }
-            let rtu_frame;
-            let bytes = if self.listen.framing == ListenFraming::Rtu {
-                if out.adu.unit() == 0 {
-                    // Unit 0 is a broadcast in RTU: its master awaits no answer, and
-                    // would take one for the answer to its next request.
-                    debug!(
-                        conn = self.id,
-                        "answer to a broadcast (unit 0): not written"
-                    );
-                    continue;
-                }
-                rtu_frame = rtu::encode(&out.adu);
-                &rtu_frame[..]
-            } else {
-                out.adu.as_bytes()
-            };
+            if !C::answers(&out.adu) {
+                debug!(
+                    conn = self.id,
+                    "answer to a broadcast (unit 0): not written"
+                );
+                continue;
+            }
+            let frame = C::frame(&out.adu);
             // Flushed: a TLS stream holds what it could not send at once until then.
             let write = async {
-                wr.write_all(bytes).await?;
+                wr.write_all(&frame).await?;
                 wr.flush().await
             };
             let result = if stall.is_zero() {
