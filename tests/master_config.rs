@@ -125,6 +125,14 @@ fn mistakes_are_refused_naming_the_key() {
             "5:17: line[0].relay.max_in_flight: means nothing on a master line (the device is the master: no request of a Modbus/TCP master is queued or timed on it); give max_in_flight in its [[line.route]] tables",
         ),
         (
+            format!("{line}serial = {{ path = \"/dev/ttyS0\", framing = \"rtu\", direction = \"rts\" }}\n[[line.route]]\naddress = \"h:1\"\n"),
+            "3:62: line[0].serial.direction: means nothing on a master line (the device is the master: the gateway only answers it, with no gap, echo or transmitter of its own to keep); for RS-485 let the adapter or the kernel switch it (rs485 = true)",
+        ),
+        (
+            format!("{line}[line.serial]\nrs485 = true\necho = true\n[[line.route]]\naddress = \"h:1\"\n"),
+            "5:8: line[0].serial.echo: means nothing on a master line (the device is the master: the gateway only answers it, with no gap, echo or transmitter of its own to keep); its [line.serial] takes only path, baud_rate, data_bits, parity, stop_bits, flow_control, framing, low_latency, silence_floor_ms, rs485, rs485_delay_before_send_ms, rs485_delay_after_send_ms",
+        ),
+        (
             format!("{line}units = [1]\n[[line.route]]\naddress = \"h:1\"\n"),
             "3:9: line[0].units: a master line routes by the units of its [[line.route]] tables",
         ),

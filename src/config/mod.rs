@@ -163,8 +163,8 @@ pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "err
 /// Declares the sections and their settings: `key: type = default, check, "flag"
 /// "VALUE_NAME" [port] [master] [, at_most other: "why"];` under the key's one line of
 /// help. `port` marks the serial port settings that `mbgate sim` and the client take as
-/// flags too; `master` a `[relay]` key that a master line uses too (the others mean
-/// nothing there, and are refused on one); `at_most` refuses a value above that of
+/// flags too; `master` a `[serial]` or `[relay]` key that a master line uses too (the
+/// others mean nothing there, and are refused on one); `at_most` refuses a value above that of
 /// another key of the section. The tables inside a line or a listener are declared
 /// the same way by [`table!`], beside what reads them (`master.rs`, `access.rs`).
 macro_rules! settings {
@@ -281,33 +281,33 @@ settings! {
     /// The serial line to the device.
     [serial] SerialConfig {
         /// Serial device of the Modbus device
-        path: String = "/dev/ttyUSB0".into(), NonEmpty("the serial device, e.g. /dev/ttyUSB0"), "serial" "PATH";
+        path: String = "/dev/ttyUSB0".into(), NonEmpty("the serial device, e.g. /dev/ttyUSB0"), "serial" "PATH" master;
         /// Serial speed in bit/s
-        baud_rate: u32 = 19_200, Range(50, FASTEST_BAUD as i128, None), "baud" "N" port;
+        baud_rate: u32 = 19_200, Range(50, FASTEST_BAUD as i128, None), "baud" "N" port master;
         /// Data bits
-        data_bits: u8 = 8, Range(7, 8, Some("7 or 8")), "data-bits" "N" port;
+        data_bits: u8 = 8, Range(7, 8, Some("7 or 8")), "data-bits" "N" port master;
         /// Parity
-        parity: Parity = Parity::None, Any, "parity" "PARITY" port;
+        parity: Parity = Parity::None, Any, "parity" "PARITY" port master;
         /// Stop bits
-        stop_bits: u8 = 1, Range(1, 2, Some("1 or 2")), "stop-bits" "N" port;
+        stop_bits: u8 = 1, Range(1, 2, Some("1 or 2")), "stop-bits" "N" port master;
         /// Serial flow control
-        flow_control: FlowControl = FlowControl::Hardware, Any, "flow-control" "FLOW_CONTROL" port;
+        flow_control: FlowControl = FlowControl::Hardware, Any, "flow-control" "FLOW_CONTROL" port master;
         /// Serial framing
-        framing: Framing = Framing::Mbap, Any, "framing" "FRAMING";
+        framing: Framing = Framing::Mbap, Any, "framing" "FRAMING" master;
         /// What the port is: auto (learnt at each open), pty (no wire) or wire (a wire at baud_rate)
         port_kind: PortKind = PortKind::Auto, Any, "port-kind" "PORT_KIND";
         /// Turn the driver's low latency on at each open (TIOCSSERIAL ASYNC_LOW_LATENCY, what setserial low_latency does; an FTDI adapter then hands bytes over every 1 ms)
-        low_latency: bool = true, Any, "low-latency" "BOOL";
+        low_latency: bool = true, Any, "low-latency" "BOOL" master;
         /// Least silence that ends a frame (RTU: a reply of unknown shape; MBAP: confirms a held reply); "auto": from the port (a pty 0, a UART its FIFO, a USB adapter its latency timer + 2)
-        silence_floor_ms: Floor = Floor::Auto, Range(0, 1000, Some("\"auto\" or 0 to 1000")), "silence-floor-ms" "MS";
+        silence_floor_ms: Floor = Floor::Auto, Range(0, 1000, Some("\"auto\" or 0 to 1000")), "silence-floor-ms" "MS" master;
         /// RTU/ASCII: silence before each request, in microseconds; 0 is the specification's (RTU: 3.5 characters, 1750 above 19 200 baud; ASCII: none after a whole reply)
         inter_frame_gap_us: u64 = 0, Range(0, 1_000_000, None), "inter-frame-gap-us" "US";
         /// Turn on the kernel's RS-485 mode (TIOCSRS485): RTS drives the transmitter
-        rs485: bool = false, Any, "rs485" "BOOL";
+        rs485: bool = false, Any, "rs485" "BOOL" master;
         /// RS-485: RTS delay before sending
-        rs485_delay_before_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-before-send-ms" "MS";
+        rs485_delay_before_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-before-send-ms" "MS" master;
         /// RS-485: RTS delay after sending
-        rs485_delay_after_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-after-send-ms" "MS";
+        rs485_delay_after_send_ms: u32 = 0, Range(0, 1000, None), "rs485-delay-after-send-ms" "MS" master;
         /// The adapter echoes what is sent: read it back and discard it
         echo: bool = false, Any, "echo" "BOOL";
         /// RS-485: who switches the transmitter: none (the adapter, or the kernel with rs485 = true), rts or gpio (the gateway; RTU/ASCII lines)
@@ -434,7 +434,8 @@ pub struct Key<C: 'static = Config> {
     pub(crate) kind: ValueKind,
     /// A serial port setting that `mbgate sim` and the client take as flags too.
     pub(crate) port: bool,
-    /// A `[relay]` key a master line uses too (the others are refused on one).
+    /// A `[serial]` or `[relay]` key a master line uses too (the others are refused on
+    /// one).
     pub(crate) master: bool,
     /// The key of the section this one must not exceed, and why.
     pub(crate) at_most: Option<(&'static str, &'static str)>,

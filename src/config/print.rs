@@ -57,6 +57,11 @@ pub fn to_toml_lines(cfg: &Config) -> String {
                     .map(access::device_to_toml)
                     .unwrap_or_default()
             ),
+            // A master line's serial table has only the keys a master line uses.
+            None if line.master.is_some() => format!(
+                "\n{}",
+                print_keys(&one, "[line.serial]", |k| k.section == "serial" && k.master)
+            ),
             None => format!("\n{}", print(&one, &[("serial", "[line.serial]".into())])),
         };
         let routes = match &line.master {

@@ -86,6 +86,11 @@ impl Reader<'_> {
             let m = "a line's device is a serial port or a TCP address: give `serial` or `tcp`, not both";
             return self.fail(at, &format!("{path}.serial"), m);
         }
+        // A key that means nothing on a master line is named as such, before what it
+        // would conflict with on a line of slaves.
+        if matches!(role, Some((true, _))) {
+            self.master_relay(path)?;
+        }
         self.conflict(&line, &format!("{path}."))?;
         let mut master = None;
         match (role, routes) {
@@ -109,7 +114,6 @@ impl Reader<'_> {
                     let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
                     return self.fail(at, &format!("{path}.unit"), m);
                 }
-                self.master_relay(path)?;
                 master = Some(crate::config::master::MasterLine { routes });
             }
             (Some((true, at)), None) => {
@@ -134,31 +138,46 @@ impl Reader<'_> {
         Ok((v.span().start, line, listed))
     }
 
-    /// A master line's `relay` table holds only the keys a master line uses (declared
-    /// `master` in `settings!`): the others (a response timeout, retries, the queue...)
-    /// are the relay's, which a master line has not, and a reload could not apply them.
+    /// A master line's `serial` and `relay` tables hold only the keys a master line
+    /// uses (declared `master` in `settings!`). The others are the relay's: a
+    /// response timeout, retries, the queue; the gap before a request, an echo to drop,
+    /// a transmitter the gateway switches. A master line has none of these, so such a
+    /// key would be silently ignored, and a reload could not apply it.
     fn master_relay(&self, path: &str) -> Result<(), ConfigError> {
-        let relay = KEYS.iter().filter(|k| k.section == "relay");
-        for key in relay.filter(|k| !k.master) {
-            let full = format!("{path}.relay.{}", key.name);
+        let tables = KEYS
+            .iter()
+            .filter(|k| matches!(k.section, "serial" | "relay"));
+        for key in tables.filter(|k| !k.master) {
+            let full = format!("{path}.{}.{}", key.section, key.name);
             let Some(&at) = self.at.get(&full) else {
                 continue;
             };
-            let mut m = "means nothing on a master line (the device is the master: no request \
-                         of a Modbus/TCP master is queued or timed on it)"
-                .to_owned();
+            let mut m = if key.section == "serial" {
+                "means nothing on a master line (the device is the master: the gateway \
+                 only answers it, with no gap, echo or transmitter of its own to keep)"
+            } else {
+                "means nothing on a master line (the device is the master: no request \
+                 of a Modbus/TCP master is queued or timed on it)"
+            }
+            .to_owned();
             if crate::config::master::ROUTE_KEYS
                 .iter()
                 .any(|k| k.name == key.name)
             {
                 m += &format!("; give {} in its [[line.route]] tables", key.name);
+            } else if key.name.starts_with("direction") {
+                m += "; for RS-485 let the adapter or the kernel switch it (rs485 = true)";
             } else {
                 let used: Vec<&str> = KEYS
                     .iter()
-                    .filter(|k| k.section == "relay" && k.master)
+                    .filter(|k| k.section == key.section && k.master)
                     .map(|k| k.name)
                     .collect();
-                m += &format!("; its [line.relay] takes only {}", used.join(", "));
+                m += &format!(
+                    "; its [line.{}] takes only {}",
+                    key.section,
+                    used.join(", ")
+                );
             }
             return self.fail(at, &full, m);
         }
