@@ -160,6 +160,25 @@ impl Framing {
 /// The values `log.level` accepts.
 pub(crate) const LOG_LEVELS: [&str; 5] = ["trace", "debug", "info", "warn", "error"];
 
+/// The struct of a section or a table as [`settings!`] and [`table!`] declare it: its
+/// keys as public fields, and its default from theirs.
+macro_rules! declared_struct {
+    ($(#[doc = $sdoc:literal])* $Struct:ident {$(
+        $(#[doc = $doc:literal])* $key:ident: $ty:ty = $default:expr;
+    )*}) => {
+        $(#[doc = $sdoc])*
+        #[derive(Debug, Clone, PartialEq)]
+        pub struct $Struct { $($(#[doc = $doc])* pub $key: $ty,)* }
+
+        impl Default for $Struct {
+            fn default() -> Self {
+                Self { $($key: $default,)* }
+            }
+        }
+    };
+}
+pub(crate) use declared_struct;
+
 /// Declares the sections and their settings: `key: type = default, check, "flag"
 /// "VALUE_NAME" [port] [master] [, at_most other: "why"];` under the key's one line of
 /// help. `port` marks the serial port settings that `mbgate sim` and the client take as
@@ -174,14 +193,8 @@ macro_rules! settings {
             $(, at_most $other:ident: $why:literal)?;
     )*})*) => {
         $(
-            $(#[doc = $sdoc])*
-            #[derive(Debug, Clone, PartialEq)]
-            pub struct $Struct { $($(#[doc = $doc])* pub $key: $ty,)* }
-
-            impl Default for $Struct {
-                fn default() -> Self {
-                    Self { $($key: $default,)* }
-                }
+            $crate::config::declared_struct! {
+                $(#[doc = $sdoc])* $Struct { $($(#[doc = $doc])* $key: $ty = $default;)* }
             }
         )*
 
@@ -241,14 +254,8 @@ macro_rules! table {
         $(#[doc = $doc:literal])*
         $key:ident: $ty:ty = $default:expr, $check:expr;
     )*}) => {
-        $(#[doc = $sdoc])*
-        #[derive(Debug, Clone, PartialEq)]
-        pub struct $Struct { $($(#[doc = $doc])* pub $key: $ty,)* }
-
-        impl Default for $Struct {
-            fn default() -> Self {
-                Self { $($key: $default,)* }
-            }
+        $crate::config::declared_struct! {
+            $(#[doc = $sdoc])* $Struct { $($(#[doc = $doc])* $key: $ty = $default;)* }
         }
 
         #[doc = concat!("The keys of `", $path, "`, in the order of docs/configuration.md.")]
