@@ -73,15 +73,23 @@ pub(crate) struct Recent {
     pub(crate) kept: VecDeque<Arc<Packet>>,
     /// Packets recorded in all while the page was open.
     pub(crate) total: u64,
-    /// The time of the last packet recorded here: times never go back.
+    /// The time of the last packet of this interface handed on, kept or not: one
+    /// interface's times never go back.
     last_us: u64,
 }
 
 impl Recent {
-    /// Keeps `p`, the oldest making room, its time never before the last one's.
-    fn record(&mut self, mut p: Packet) {
+    /// `p`'s time, never before the last packet's of this interface: a packet handed
+    /// on later than one stamped after it (a reply held for its confirmation while the
+    /// next request went out) takes that one's time.
+    fn stamp(&mut self, p: &mut Packet) {
         p.at_us = p.at_us.max(self.last_us);
         self.last_us = p.at_us;
+    }
+
+    /// Keeps `p`, the oldest making room, its time never before the last one's.
+    fn record(&mut self, mut p: Packet) {
+        self.stamp(&mut p);
         self.keep(Arc::new(p));
     }
 
@@ -109,7 +117,7 @@ struct Shared {
     active: AtomicUsize,
     /// Until when (on the capture's clock) the status page counts as open.
     page_until_us: AtomicU64,
-    subs: Mutex<Subs>,
+    subs: Mutex<Vec<Sub>>,
     /// Packets any subscriber lost because its channel was full, in all.
     lost: AtomicU64,
     /// Subscriptions not yet dropped, and the news that one was.
@@ -123,12 +131,6 @@ struct Shared {
     gone: Mutex<VecDeque<(u64, SocketAddr)>>,
     recent: Mutex<Vec<Recent>>,
     closed: CancellationToken,
-}
-
-/// The subscribers, and each interface's last time handed to them.
-struct Subs {
-    list: Vec<Sub>,
-    last_us: Vec<u64>,
 }
 
 /// The capture's centre: made once at start with its interfaces; cheap to clone.
@@ -155,10 +157,7 @@ impl Hub {
             lost: AtomicU64::new(0),
             alive: AtomicUsize::new(0),
             ended: tokio::sync::Notify::new(),
-            subs: Mutex::new(Subs {
-                list: Vec::new(),
-                last_us: vec![0; n],
-            }),
+            subs: Mutex::new(Vec::new()),
             next_id: AtomicU64::new(1),
             conns: Mutex::new(HashMap::new()),
             gone: Mutex::new(VecDeque::new()),
@@ -212,7 +211,7 @@ impl Hub {
         if self.0.closed.is_cancelled() {
             return Err("the gateway is stopping".into());
         }
-        subs.list.push(Sub {
+        subs.push(Sub {
             id,
             request,
             keep,
@@ -361,9 +360,9 @@ impl Subscription {
 impl Drop for Subscription {
     fn drop(&mut self) {
         let mut subs = self.hub.subs.lock().expect("not poisoned");
-        let before = subs.list.len();
-        subs.list.retain(|s| s.id != self.id);
-        if subs.list.len() < before {
+        let before = subs.len();
+        subs.retain(|s| s.id != self.id);
+        if subs.len() < before {
             self.hub.active.fetch_sub(1, Ordering::Relaxed);
         }
         drop(subs);
@@ -376,37 +375,33 @@ impl Drop for Subscription {
 async fn run(shared: Arc<Shared>) {
     shared.closed.cancelled().await;
     let mut subs = shared.subs.lock().expect("not poisoned");
-    shared.active.fetch_sub(subs.list.len(), Ordering::Relaxed);
-    subs.list.clear();
+    shared.active.fetch_sub(subs.len(), Ordering::Relaxed);
+    subs.clear();
 }
 
-/// `p` to the page, if open, and to each subscriber whose filter keeps it.
+/// `p` to the page, if open, and to each subscriber whose filter keeps it. Stamped
+/// while the subscribers are held, so that they get one interface's packets in the
+/// order of their times.
 fn hand_on(shared: &Shared, mut p: Packet) {
     let i = usize::from(p.iface);
-    let mut subs = shared.subs.lock().expect("not poisoned");
-    let Some(last) = subs.last_us.get_mut(i) else {
-        return;
-    };
-    // One interface's times never go back: a packet handed on later than one
-    // stamped after it (a reply held for its confirmation while the next request
-    // went out) takes that one's time.
-    p.at_us = p.at_us.max(*last);
-    *last = p.at_us;
-    let p = Arc::new(p);
-    let page = shared.page_until_us.load(Ordering::Relaxed);
-    if page != 0 && page > p.at_us {
+    let subs = shared.subs.lock().expect("not poisoned");
+    let p = {
         let mut recent = shared.recent.lock().expect("not poisoned");
-        let r = &mut recent[i];
-        r.last_us = r.last_us.max(p.at_us);
-        r.keep(p.clone());
-    }
-    if subs.list.is_empty() {
+        let Some(r) = recent.get_mut(i) else {
+            return;
+        };
+        r.stamp(&mut p);
+        let p = Arc::new(p);
+        let page = shared.page_until_us.load(Ordering::Relaxed);
+        if page != 0 && page > p.at_us {
+            r.keep(p.clone());
+        }
+        p
+    };
+    if subs.is_empty() {
         return;
     }
-    let master = match (
-        p.conn,
-        subs.list.iter().any(|s| !s.request.masters.is_empty()),
-    ) {
+    let master = match (p.conn, subs.iter().any(|s| !s.request.masters.is_empty())) {
         (Some(conn), true) => shared
             .conns
             .lock()
@@ -415,7 +410,7 @@ fn hand_on(shared: &Shared, mut p: Packet) {
             .copied(),
         _ => None,
     };
-    for s in subs.list.iter() {
+    for s in subs.iter() {
         if !s.keep[i] || !s.request.keeps(&p, master) {
             continue;
         }
