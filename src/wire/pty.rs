@@ -40,34 +40,8 @@ impl End {
     /// `link` pointing at its device. An existing symbolic link at `link` is replaced;
     /// anything else there is an error.
     pub(crate) fn open(link: &Path) -> io::Result<End> {
-        let (mut master, mut device): (RawFd, RawFd) = (-1, -1);
-        // SAFETY: the two out-pointers are valid for the call; the name, termios and
-        // window size are not asked for (null).
-        #[allow(unsafe_code)]
-        let r = unsafe {
-            libc::openpty(
-                &mut master,
-                &mut device,
-                std::ptr::null_mut(),
-                std::ptr::null(),
-                std::ptr::null(),
-            )
-        };
-        if r != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        // SAFETY: both descriptors were just made, are valid and belong to nothing else.
-        #[allow(unsafe_code)]
-        let (master, device) =
-            unsafe { (OwnedFd::from_raw_fd(master), OwnedFd::from_raw_fd(device)) };
-        for fd in [master.as_raw_fd(), device.as_raw_fd()] {
-            // SAFETY: plain fcntl calls on valid descriptors.
-            #[allow(unsafe_code)]
-            unsafe {
-                libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC);
-            }
-        }
-        // SAFETY: as above.
+        let (master, device) = pair()?;
+        // SAFETY: plain fcntl calls on a valid descriptor.
         #[allow(unsafe_code)]
         let flags = unsafe { libc::fcntl(master.as_raw_fd(), libc::F_GETFL) };
         // SAFETY: as above.
@@ -75,7 +49,6 @@ impl End {
         unsafe {
             libc::fcntl(master.as_raw_fd(), libc::F_SETFL, flags | libc::O_NONBLOCK)
         };
-        raw(device.as_raw_fd())?;
         let path = std::fs::read_link(format!("/proc/self/fd/{}", device.as_raw_fd()))?;
         match std::fs::symlink_metadata(link) {
             Ok(m) if m.file_type().is_symlink() => std::fs::remove_file(link)?,
@@ -176,6 +149,39 @@ impl Drop for End {
             let _ = std::fs::remove_file(&self.link);
         }
     }
+}
+
+/// A new pty pair, (master, device), both close-on-exec, the device raw (no echo, no
+/// line editing, until a program sets its own).
+pub(crate) fn pair() -> io::Result<(OwnedFd, OwnedFd)> {
+    let (mut master, mut device): (RawFd, RawFd) = (-1, -1);
+    // SAFETY: the two out-pointers are valid for the call; the name, termios and
+    // window size are not asked for (null).
+    #[allow(unsafe_code)]
+    let r = unsafe {
+        libc::openpty(
+            &mut master,
+            &mut device,
+            std::ptr::null_mut(),
+            std::ptr::null(),
+            std::ptr::null(),
+        )
+    };
+    if r != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    // SAFETY: both descriptors were just made, are valid and belong to nothing else.
+    #[allow(unsafe_code)]
+    let (master, device) = unsafe { (OwnedFd::from_raw_fd(master), OwnedFd::from_raw_fd(device)) };
+    for fd in [master.as_raw_fd(), device.as_raw_fd()] {
+        // SAFETY: plain fcntl calls on valid descriptors.
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::fcntl(fd, libc::F_SETFD, libc::FD_CLOEXEC);
+        }
+    }
+    raw(device.as_raw_fd())?;
+    Ok((master, device))
 }
 
 /// Raw mode on the device end (cfmakeraw), so nothing the line hands it is echoed back

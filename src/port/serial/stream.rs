@@ -186,38 +186,14 @@ mod tests {
     use super::*;
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
-    /// A pty pair: the device end as a `TTYPort`, the master as a file.
+    /// A pty pair (`wire::pty::pair`, the device raw): the device end as a `TTYPort`,
+    /// the master as a file.
     fn pty() -> (serialport::TTYPort, std::fs::File) {
-        let (mut master, mut device) = (-1, -1);
-        // SAFETY: the out-pointers are valid for the call; nothing else is asked for.
+        let (master, device) = crate::wire::pty::pair().unwrap();
+        // SAFETY: the descriptor is owned by `device`, given up here to the port.
         #[allow(unsafe_code)]
-        let r = unsafe {
-            libc::openpty(
-                &mut master,
-                &mut device,
-                std::ptr::null_mut(),
-                std::ptr::null(),
-                std::ptr::null(),
-            )
-        };
-        assert_eq!(r, 0);
-        // SAFETY: both were just made and belong to nothing else.
-        #[allow(unsafe_code)]
-        let (master, device) = unsafe {
-            (
-                std::fs::File::from_raw_fd(master),
-                serialport::TTYPort::from_raw_fd(device),
-            )
-        };
-        // SAFETY: a termios filled by tcgetattr, made raw, set back.
-        #[allow(unsafe_code)]
-        unsafe {
-            let mut t: libc::termios = std::mem::zeroed();
-            libc::tcgetattr(device.as_raw_fd(), &mut t);
-            libc::cfmakeraw(&mut t);
-            libc::tcsetattr(device.as_raw_fd(), libc::TCSANOW, &t);
-        }
-        (device, master)
+        let device = unsafe { serialport::TTYPort::from_raw_fd(device.into_raw_fd()) };
+        (device, std::fs::File::from(master))
     }
 
     /// Bytes cross both ways, in pieces as they come; a read after a short read waits
