@@ -89,7 +89,7 @@ impl Reader<'_> {
         // A key that means nothing on a master line is named as such, before what it
         // would conflict with on a line of slaves.
         if matches!(role, Some((true, _))) {
-            self.master_relay(path)?;
+            self.master_line_keys(path)?;
         }
         self.conflict(&line, &format!("{path}."))?;
         let mut master = None;
@@ -143,7 +143,7 @@ impl Reader<'_> {
     /// response timeout, retries, the queue; the gap before a request, an echo to drop,
     /// a transmitter the gateway switches. A master line has none of these, so such a
     /// key would be silently ignored, and a reload could not apply it.
-    fn master_relay(&self, path: &str) -> Result<(), ConfigError> {
+    fn master_line_keys(&self, path: &str) -> Result<(), ConfigError> {
         let tables = KEYS
             .iter()
             .filter(|k| matches!(k.section, "serial" | "relay"));
