@@ -268,12 +268,9 @@ fn a_scripted_session_through_both_lines_reads_back_in_tshark() {
     let file = dir.path().join("all.pcapng");
     let filtered = dir.path().join("b.pcapng");
     // The status page open before the session: it lists the lines' last frames.
-    gw.wait_log("metrics on http://", Duration::from_secs(5));
-    let log = gw.log();
-    let http = log.split("metrics on http://").nth(1).unwrap();
-    let http = http.split('/').next().unwrap().to_owned();
+    let http = gw.metrics_addr(Duration::from_secs(5));
     let status = || {
-        let mut s = TcpStream::connect(&http).unwrap();
+        let mut s = TcpStream::connect(http).unwrap();
         write!(s, "GET /status.json HTTP/1.1\r\n\r\n").unwrap();
         let mut json = String::new();
         s.read_to_string(&mut json).unwrap();

@@ -78,10 +78,7 @@ fn value(samples: &Samples, name: &str, labels: &[(&str, &str)]) -> f64 {
 
 /// The metrics listener's address, from the log.
 fn metrics_addr(gw: &Gateway) -> SocketAddr {
-    gw.wait_log("metrics on http://", Duration::from_secs(5));
-    let log = gw.log();
-    let rest = log.split("metrics on http://").nth(1).unwrap();
-    rest.split('/').next().unwrap().parse().unwrap()
+    gw.proc.metrics_addr(Duration::from_secs(5))
 }
 
 /// FC 03 of one register at `addr`, as a master sends it.

@@ -11,8 +11,8 @@
 mod common;
 use common::*;
 use mbgate::frame::Adu;
-use std::io::{Read, Write};
-use std::net::{SocketAddr, TcpStream};
+use std::io::Read;
+use std::net::TcpStream;
 use std::path::Path;
 use std::thread;
 use std::time::{Duration, Instant};
@@ -51,26 +51,7 @@ fn config(
 
 /// The gateway's /metrics, read now.
 fn scrape(gw: &Gateway) -> String {
-    get(gw, "/metrics")
-}
-
-/// The body of `path` on the gateway's metrics listener, read now.
-fn get(gw: &Gateway, path: &str) -> String {
-    gw.wait_log("metrics on http://", Duration::from_secs(10));
-    let log = gw.log();
-    let rest = log.split("metrics on http://").nth(1).unwrap();
-    let addr: SocketAddr = rest.split('/').next().unwrap().parse().unwrap();
-    let mut s = TcpStream::connect(addr).expect("connect to the metrics listener");
-    s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
-    write!(
-        s,
-        "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
-    )
-    .unwrap();
-    let mut all = String::new();
-    s.read_to_string(&mut all).unwrap();
-    let (_, body) = all.split_once("\r\n\r\n").expect("an HTTP reply");
-    body.to_owned()
+    gw.http_get("/metrics")
 }
 
 /// The value of `name` (a counter's `_total` sample included) on the line `line`;
@@ -235,7 +216,7 @@ fn a_master_line_beside_a_bus_serves_both_counts_both_and_reloads_both() {
     );
     assert!(metrics.contains(&unit), "{unit}:\n{metrics}");
     // And on the status page, beside the bus.
-    let page: serde_json::Value = serde_json::from_str(&get(&gw, "/status.json")).unwrap();
+    let page: serde_json::Value = serde_json::from_str(&gw.http_get("/status.json")).unwrap();
     let lines = page["lines"].as_array().unwrap();
     let named = |path: &Path| {
         let name = path.to_str().unwrap();

@@ -73,10 +73,7 @@ fn rig(extra: &[&str]) -> Rig {
     }
     let gw = Gateway::start(&cfg, dir.path());
     gw.wait_log("serial port open", Duration::from_secs(5));
-    gw.wait_log("metrics on http://", Duration::from_secs(5));
-    let log = gw.log();
-    let rest = log.split("metrics on http://").nth(1).unwrap();
-    let metrics = rest.split('/').next().unwrap().parse().unwrap();
+    let metrics = gw.proc.metrics_addr(Duration::from_secs(5));
     Rig {
         gw,
         dev,

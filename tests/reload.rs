@@ -113,10 +113,7 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     assert_eq!(reply, hex("00 02 00 00 00 03 01 83 0B"), "1.5 s now");
     assert!(took < Duration::from_millis(SLOW_MS), "{took:?}");
     // The metrics listener came up with the reload (its thread says where).
-    gw.wait_log("metrics on http://", Duration::from_secs(5));
-    let log = gw.log();
-    let rest = log.split("metrics on http://").nth(1).expect("metrics on");
-    let http = rest.split('/').next().unwrap();
+    let http = gw.proc.metrics_addr(Duration::from_secs(5));
     let mut s = std::net::TcpStream::connect(http).unwrap();
     write!(s, "GET /metrics HTTP/1.1\r\n\r\n").unwrap();
     let mut text = String::new();

@@ -543,6 +543,15 @@ impl Proc {
         }
     }
 
+    /// The `[metrics]` listener's address, from the log line that names it, once it
+    /// has shown within `within`.
+    pub(crate) fn metrics_addr(&self, within: Duration) -> SocketAddr {
+        self.wait_log("metrics on http://", within);
+        let log = self.log();
+        let rest = log.split("metrics on http://").nth(1).unwrap();
+        rest.split('/').next().unwrap().parse().unwrap()
+    }
+
     /// Sends the signal `name` (`kill -NAME`) and carries on.
     pub(crate) fn signal(&mut self, name: &str) {
         signal(&mut self.child, name);
@@ -631,23 +640,27 @@ impl Gateway {
         s
     }
 
-    /// The sum of every sample of the metric `name` (its `_total` included) on the
-    /// gateway's `[metrics]` listener (`listen = "127.0.0.1:0"`), read now: for a test
-    /// that waits until a count is reached instead of sleeping a guess.
-    pub(crate) fn metric(&self, name: &str) -> f64 {
-        self.wait_log("metrics on http://", Duration::from_secs(10));
-        let log = self.log();
-        let rest = log.split("metrics on http://").nth(1).unwrap();
-        let addr: SocketAddr = rest.split('/').next().unwrap().parse().unwrap();
+    /// The body of `path` on the gateway's `[metrics]` listener, read now.
+    pub(crate) fn http_get(&self, path: &str) -> String {
+        let addr = self.proc.metrics_addr(Duration::from_secs(10));
         let mut s = TcpStream::connect(addr).expect("connect to the metrics listener");
         s.set_read_timeout(Some(Duration::from_secs(10))).unwrap();
         write!(
             s,
-            "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
+            "GET {path} HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
         )
         .unwrap();
         let mut all = String::new();
         s.read_to_string(&mut all).unwrap();
+        let (_, body) = all.split_once("\r\n\r\n").expect("an HTTP reply");
+        body.to_owned()
+    }
+
+    /// The sum of every sample of the metric `name` (its `_total` included) on the
+    /// gateway's `[metrics]` listener (`listen = "127.0.0.1:0"`), read now: for a test
+    /// that waits until a count is reached instead of sleeping a guess.
+    pub(crate) fn metric(&self, name: &str) -> f64 {
+        let all = self.http_get("/metrics");
         all.lines()
             .filter(|l| {
                 l.strip_prefix(name)
