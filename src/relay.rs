@@ -273,11 +273,14 @@ impl Relay {
                             t.written(self.line.left_after(n, now).map_or(left, |a| a.max(left)));
                         }
                         // The transmitter switch the gateway drives waits for the
-                        // drain on any port; without one, no wire needs none.
+                        // drain on any port; without one, only a port that can hold
+                        // bytes back needs it.
                         if self.line.needs_drain() || self.turnaround.is_some() {
                             self.start_drain(now);
                         } else {
-                            // No wire: gone once written (`LineFraming::needs_drain`).
+                            // No wire, or none that holds bytes back: gone once
+                            // written, or their time on the wire after it
+                            // (`LineFraming::needs_drain`).
                             self.drained(now);
                         }
                     }

@@ -3,7 +3,7 @@
 //! pty pair and simulator of its own.
 
 use super::common::sim::RawLine;
-use super::common::{cpu_ns, Cfg, Gateway};
+use super::common::{cpu_ns, socat_pipe, Cfg, Gateway};
 use super::report::{diff_us, ms, pct, spread, us, Report};
 use super::shared::{serial_read, serial_reply_len, tcp_read, Line, MAX_TRANSACTIONS};
 use super::timer_floor::timer_floor;
@@ -426,7 +426,7 @@ pub(super) fn rtu_limit(r: &mut Report) {
     let _ = write!(t, "\n{unpaced}");
     // ASCII: its limit is the wire time alone (no gap between frames).
     let mut a = String::from(
-        "| baud | registers | direct tx/s (p50) | mbgate tx/s (p50) | mbgate / direct | mbgate CPU/tx |\n|---|---|---|---|---|---|\n",
+        "| baud | registers | direct tx/s (p50) | mbgate tx/s (p50) | mbgate / direct | mbgate CPU/tx | byte pipe tx/s (p50) | byte pipe / direct | mbgate / byte pipe | byte pipe CPU/tx |\n|---|---|---|---|---|---|---|---|---|---|\n",
     );
     for baud in [9600u32, 115_200] {
         let gw = mbgate_contender_in("ascii", "mbgate ascii", baud, &[]);
@@ -435,7 +435,19 @@ pub(super) fn rtu_limit(r: &mut Report) {
         eprintln!("rtu-limit: ASCII {baud} baud, FC 03 × {qty}");
         let req = serial_read("ascii", qty);
         let len = serial_reply_len("ascii", qty);
-        let (mut direct, mut via) = (LimitRow::default(), LimitRow::default());
+        // Any path over TCP costs the master a hop that a master on the pty does not
+        // make: a bare byte pipe (socat, TCP to the pty) carrying the same ASCII
+        // frames is what such a path reaches on this machine.
+        let pipe_line = serial_sim_line("ascii", baud);
+        let (mut pipe, pipe_addr) = socat_pipe(&pipe_line.socat.gw);
+        let mut ps = TcpStream::connect(pipe_addr).expect("connect to socat");
+        ps.set_nodelay(true).unwrap();
+        ps.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let (mut direct, mut via, mut piped) = (
+            LimitRow::default(),
+            LimitRow::default(),
+            LimitRow::default(),
+        );
         for _ in 0..ROUNDS {
             let mut m = direct_line.raw();
             direct
@@ -443,19 +455,37 @@ pub(super) fn rtu_limit(r: &mut Report) {
                 .extend(poll_direct(&mut m, &req, len, round, Duration::ZERO));
             drop(m);
             poll_through(&gw, qty, round, &mut via);
+            let cpu0 = cpu_ns(pipe.id());
+            piped.times.extend(poll_for(round, |_| {
+                use std::io::{Read as _, Write as _};
+                let t = Instant::now();
+                ps.write_all(&req).expect("send to socat");
+                let mut reply = vec![0; len];
+                ps.read_exact(&mut reply).expect("the reply through socat");
+                t.elapsed()
+            }));
+            piped.cpu_ns += cpu_ns(pipe.id()) - cpu0;
         }
+        drop(ps);
+        let _ = pipe.kill();
+        let _ = pipe.wait();
         let ratio = via.rate() / direct.rate();
+        let per_tx =
+            |p: &LimitRow| us(Duration::from_nanos(p.cpu_ns / p.times.len().max(1) as u64));
         let _ = writeln!(
             a,
-            "| {baud} | {qty} | {:.1} ({}) | {:.1} ({}) | **{}** | {} |",
+            "| {baud} | {qty} | {:.1} ({}) | {:.1} ({}) | **{}** | {} | {:.1} ({}) | {} | **{}** | {} |",
             direct.rate(),
             ms(spread(&direct.times).p50),
             via.rate(),
             ms(spread(&via.times).p50),
             pct(ratio),
-            us(Duration::from_nanos(
-                via.cpu_ns / via.times.len().max(1) as u64
-            )),
+            per_tx(&via),
+            piped.rate(),
+            ms(spread(&piped.times).p50),
+            pct(piped.rate() / direct.rate()),
+            pct(via.rate() / piped.rate()),
+            per_tx(&piped),
         );
         r.row(
             "rtu-limit",

@@ -196,13 +196,15 @@ impl LineFraming {
     }
 
     /// Must the relay wait for `tcdrain` before it times the reply (RTU/ASCII on a
-    /// wire)? Where there is no wire (a pty: docs/reliability.md "Knowing the wire")
-    /// the bytes are gone once written, and asking the drain thread would cost two
-    /// thread hand-offs a transaction for nothing.
+    /// wire whose port can hold the request back: `Serial::holds_bytes_back`)? Where
+    /// there is no wire (a pty: docs/reliability.md "Knowing the wire") the bytes are
+    /// gone once written, and on a plain wire they are gone their time on the wire
+    /// after it; asking the drain thread would cost two thread hand-offs a
+    /// transaction for nothing.
     pub(super) fn needs_drain(&self) -> bool {
         match &self.0 {
             FramingState::Mbap(_) => false,
-            FramingState::Serial(s) => s.has_wire(),
+            FramingState::Serial(s) => s.has_wire() && s.holds_bytes_back(),
         }
     }
 

@@ -6,7 +6,7 @@
 use super::Seen;
 use crate::capture::dropped::{Dropped, Tape};
 use crate::capture::packet::Reason;
-use crate::config::{RelayConfig, SerialConfig};
+use crate::config::{FlowControl, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::pdu;
 use crate::frame::serial::Codec;
@@ -181,6 +181,18 @@ impl Serial {
     /// time to leave, and `tcdrain` says when they have.
     pub(super) fn has_wire(&self) -> bool {
         self.wire && !self.stream
+    }
+
+    /// Can the port send a request's bytes later than their time on the wire after
+    /// the write says? Flow control holds them while the device says stop, and the
+    /// kernel's RS-485 mode (`rs485 = true`) keeps the transmitter on for its delays:
+    /// there only `tcdrain` knows when the request has left. Elsewhere the line was
+    /// silent before the request (the gap), so its last byte leaves its time on the
+    /// wire after the write, and asking the drain thread would cost two thread
+    /// hand-offs a transaction and tell nothing more (docs/reliability.md "RTU and
+    /// ASCII"; docs/performance.md "No drain where it tells nothing").
+    pub(super) fn holds_bytes_back(&self) -> bool {
+        self.port.flow_control != FlowControl::None || self.port.rs485
     }
 
     pub(super) fn allocate(&mut self) -> u16 {

@@ -242,3 +242,103 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
         assert!(line.has_room(0, false, later + partial), "{why}");
     }
 }
+
+/// `tcdrain` is asked for only where the port can send a request later than its time
+/// on the wire after the write: on a wire with flow control or in the kernel's RS-485
+/// mode. A plain wire and a pty are timed by the write and the wire's arithmetic.
+#[test]
+fn the_drain_is_asked_for_only_where_the_port_can_hold_bytes_back() {
+    use crate::config::FlowControl;
+    let uart = Medium::Uart {
+        driver: None,
+        trigger: Some(1),
+    };
+    let plain = SerialConfig {
+        framing: crate::config::Framing::Rtu,
+        flow_control: FlowControl::None,
+        ..SerialConfig::default()
+    };
+    let cases = [
+        (plain.clone(), Medium::Pty, false),
+        (plain.clone(), uart.clone(), false),
+        (
+            SerialConfig {
+                flow_control: FlowControl::Hardware,
+                ..plain.clone()
+            },
+            uart.clone(),
+            true,
+        ),
+        (
+            SerialConfig {
+                flow_control: FlowControl::Software,
+                ..plain.clone()
+            },
+            uart.clone(),
+            true,
+        ),
+        (
+            SerialConfig {
+                rs485: true,
+                ..plain.clone()
+            },
+            uart.clone(),
+            true,
+        ),
+        (
+            SerialConfig {
+                flow_control: FlowControl::Hardware,
+                ..plain.clone()
+            },
+            Medium::Pty,
+            false,
+        ),
+    ];
+    for (serial, medium, drains) in cases {
+        let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, Instant::now());
+        line.port_opened(&PortInfo::plain(medium.clone()));
+        assert_eq!(
+            line.needs_drain(),
+            drains,
+            "flow {:?}, rs485 {}, {medium:?}",
+            serial.flow_control,
+            serial.rs485
+        );
+    }
+}
+
+/// Without the drain, the reply timer starts when the request's last byte leaves by
+/// the wire's arithmetic (written at t0, 8 bytes at 9600 baud: 8.33 ms later), and a
+/// byte read before then is not the reply.
+#[test]
+fn without_the_drain_the_request_leaves_its_wire_time_after_the_write() {
+    let serial = SerialConfig {
+        baud_rate: 9600,
+        framing: crate::config::Framing::Rtu,
+        flow_control: crate::config::FlowControl::None,
+        ..SerialConfig::default()
+    };
+    let uart = Medium::Uart {
+        driver: None,
+        trigger: Some(1),
+    };
+    let stats = Stats::default();
+    let t0 = Instant::now();
+    let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
+    line.port_opened(&PortInfo::plain(uart));
+    assert!(!line.needs_drain());
+    let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+    let key = line.allocate(t0);
+    line.encode(&read, key, t0, &stats);
+    line.wrote(8, t0, t0);
+    // An echo of the first byte, read while the request is still on the wire.
+    line.received(&[0x01], t0 + 2 * MS, &stats);
+    let left = line.drained(t0, &stats);
+    assert_eq!((left - t0).as_micros(), 8 * 10 * 1_000_000 / 9600);
+    assert_eq!(
+        stats
+            .dropped_too_early
+            .load(std::sync::atomic::Ordering::Relaxed),
+        1
+    );
+}
