@@ -215,6 +215,10 @@ impl Relay {
         let mut timer = crate::port::serial::PreciseTimer::new()
             .inspect_err(|e| debug!("no timerfd ({e}): timers to the millisecond"))
             .ok();
+        // One wait for shutdown for the relay's life: made afresh each turn of the
+        // loop, it would register with the token and unregister again every event.
+        let shutdown = self.shutdown.clone().cancelled_owned();
+        tokio::pin!(shutdown);
         loop {
             let now = Instant::now();
             if let Some(w) = &mut self.watchdog {
@@ -237,7 +241,7 @@ impl Relay {
                 may_write: self.turnaround.as_ref().is_none_or(|t| t.may_write(now)),
                 wake,
                 timer: timer.as_mut(),
-                shutdown: (!self.draining).then_some(&self.shutdown),
+                shutdown: (!self.draining).then_some(shutdown.as_mut()),
             };
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();

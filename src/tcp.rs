@@ -498,6 +498,10 @@ impl Connection {
         tokio::pin!(idle_timer);
         let mut buf = BytesMut::with_capacity(512);
         let mut codec = C::default();
+        // One wait for shutdown for the connection's life, not one registered with
+        // the token and dropped again at every request.
+        let shutdown = self.shutdown.cancelled();
+        tokio::pin!(shutdown);
         loop {
             match codec.decode(&mut buf) {
                 Ok(Some(adu)) => {
@@ -505,7 +509,7 @@ impl Connection {
                     // and let TCP push back on the master.
                     let ticket = tokio::select! {
                         t = outbox.ticket() => t,
-                        _ = self.shutdown.cancelled() => return End::Finish,
+                        _ = &mut shutdown => return End::Finish,
                     };
                     if self.cfg.log.traffic {
                         debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
@@ -535,7 +539,9 @@ impl Connection {
             }
             let pause = codec.ended_by_pause(&buf);
             tokio::select! {
-                _ = tokio::time::sleep(pause.unwrap_or_default()), if pause.is_some() => codec.paused(),
+                // Made only when polled: a disabled branch's future is still made,
+                // and a sleep reads the clock.
+                _ = async { tokio::time::sleep(pause.unwrap_or_default()).await }, if pause.is_some() => codec.paused(),
                 r = rd.read_buf(&mut buf) => match r {
                     Ok(0) => {
                         // A shutdown of the master's sending side (`shutdown(SHUT_WR)`,
@@ -571,7 +577,7 @@ impl Connection {
                     };
                     idle_timer.as_mut().reset(wake);
                 }
-                _ = self.shutdown.cancelled() => return End::Finish,
+                _ = &mut shutdown => return End::Finish,
             }
         }
     }

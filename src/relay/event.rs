@@ -8,10 +8,11 @@ use super::Command;
 use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::serial::PreciseTimer;
 use crate::port::OpenPort;
+use std::pin::Pin;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
-use tokio_util::sync::CancellationToken;
+use tokio_util::sync::WaitForCancellationFutureOwned;
 
 pub(super) enum Event {
     Command(Option<Command>),
@@ -38,8 +39,8 @@ pub(super) struct Sources<'a> {
     /// Waits for `wake` to the microsecond; without it, tokio's timer does, to the
     /// millisecond.
     pub(super) timer: Option<&'a mut PreciseTimer>,
-    /// `None` once shutdown has been asked for.
-    pub(super) shutdown: Option<&'a CancellationToken>,
+    /// The relay's one wait for shutdown; `None` once shutdown has been asked for.
+    pub(super) shutdown: Option<Pin<&'a mut WaitForCancellationFutureOwned>>,
 }
 
 /// Waits for the next event; bytes read go into `rbuf`.
@@ -69,7 +70,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
     let has_commands = commands.is_some();
     let command = async { commands.as_mut().expect("guarded").recv().await };
     let has_shutdown = shutdown.is_some();
-    let shutdown = async { shutdown.expect("guarded").cancelled().await };
+    let shutdown = async { shutdown.expect("guarded").await };
     let drain = &mut port.drain;
     match &mut port.state {
         // Biased, bytes first: a timer that finds bytes waiting must not take the
