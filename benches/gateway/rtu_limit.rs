@@ -1,6 +1,6 @@
 //! `rtu-limit`: RTU (and ASCII) at the line's limit, side by side with mbusd: one
-//! master polling straight on the pty, through mbgate and through mbusd, each path on a
-//! pty pair and simulator of its own.
+//! master polling straight on the pty, through mbgate and through mbusd (ASCII: through
+//! mbgate and a bare byte pipe), each path on a pty pair and simulator of its own.
 
 use super::common::sim::RawLine;
 use super::common::{cpu_ns, socat_pipe, Cfg, Gateway};
