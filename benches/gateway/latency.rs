@@ -4,11 +4,10 @@
 //! p50 and 50 µs at p99, and no more CPU than socat).
 
 use super::common::sim::RawLine;
-use super::common::{cpu_ns, read_req, socat_pipe};
+use super::common::{cpu_ns, read_req};
 use super::report::{command, diff_us, spread, us, Report};
-use super::shared::{connect, reply_len, samples, tcp_read, Line};
+use super::shared::{byte_pipe, connect, reply_len, samples, tcp_read, Line};
 use std::fmt::Write as _;
-use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 /// One FC 03 round trip straight to the simulator on the pty.
@@ -43,10 +42,7 @@ pub(super) fn latency(r: &mut Report) {
         drop(m);
         let per_round = 2 * (WARM + N / ROUNDS);
         let mut via_pipe = || {
-            let (mut pipe, addr) = socat_pipe(&line.socat.gw);
-            let mut s = TcpStream::connect(addr).expect("connect to socat");
-            s.set_nodelay(true).unwrap();
-            s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+            let (mut pipe, mut s) = byte_pipe(&line);
             let cpu0 = cpu_ns(pipe.id());
             for (i, qty) in [1, 10].into_iter().enumerate() {
                 piped[i].extend(samples(WARM, N / ROUNDS, |tid| tcp_read(&mut s, tid, qty)));

@@ -3,9 +3,9 @@
 //! mbgate and a bare byte pipe), each path on a pty pair and simulator of its own.
 
 use super::common::sim::RawLine;
-use super::common::{cpu_ns, socat_pipe, Cfg, Gateway};
+use super::common::{cpu_ns, Cfg, Gateway};
 use super::report::{diff_us, ms, pct, spread, us, Report};
-use super::shared::{serial_read, serial_reply_len, tcp_read, Line, MAX_TRANSACTIONS};
+use super::shared::{byte_pipe, serial_read, serial_reply_len, tcp_read, Line, MAX_TRANSACTIONS};
 use super::timer_floor::timer_floor;
 use std::fmt::Write as _;
 use std::net::TcpStream;
@@ -109,7 +109,7 @@ fn rtu_unpaced(r: &mut Report, round: Duration, rounds: usize, mbusd: Option<&Pa
         us(bound),
         cell(&direct_gap),
         us(above(&direct_gap)),
-        us(Duration::from_nanos(g.cpu_ns / g.times.len().max(1) as u64)),
+        g.cpu_per_tx(),
         cell(&via[1]),
         us(above(&via[1])),
     )
@@ -321,6 +321,14 @@ impl LimitRow {
     fn rate(&self) -> f64 {
         self.times.len() as f64 / self.times.iter().sum::<Duration>().as_secs_f64()
     }
+
+    /// The CPU its process spent a transaction, as a cell. The warm-up transactions
+    /// are not in `times`: slightly high.
+    fn cpu_per_tx(&self) -> String {
+        us(Duration::from_nanos(
+            self.cpu_ns / self.times.len().max(1) as u64,
+        ))
+    }
 }
 
 /// The line's own limit, side by side: the simulator as a paced RTU device at 9600 to
@@ -383,10 +391,6 @@ pub(super) fn rtu_limit(r: &mut Report) {
             let per_direct = 1.0 / direct.rate();
             let limit = 1.0 / (per_direct + t35.as_secs_f64());
             let cell = |p: &LimitRow| format!("{:.1} ({})", p.rate(), ms(spread(&p.times).p50));
-            let cpu = |p: &LimitRow| {
-                // The warm-up transactions are not in `times`: slightly high.
-                us(Duration::from_nanos(p.cpu_ns / p.times.len().max(1) as u64))
-            };
             let g = &via[0];
             let gap = paths
                 .iter()
@@ -397,7 +401,7 @@ pub(super) fn rtu_limit(r: &mut Report) {
                 Some(i) => (
                     cell(&via[i]),
                     format!("**{:.2}**", g.rate() / via[i].rate()),
-                    cpu(&via[i]),
+                    via[i].cpu_per_tx(),
                 ),
                 None => ("(MBUSD not set)".into(), "-".into(), "-".into()),
             };
@@ -411,7 +415,7 @@ pub(super) fn rtu_limit(r: &mut Report) {
                 diff_us(d.p50 + t35, spread(&g.times).p50),
                 cell(&direct_gap),
                 pct(g.rate() / direct_gap.rate()),
-                cpu(g),
+                g.cpu_per_tx(),
             );
             r.row(
                 "rtu-limit",
@@ -439,10 +443,7 @@ pub(super) fn rtu_limit(r: &mut Report) {
         // make: a bare byte pipe (socat, TCP to the pty) carrying the same ASCII
         // frames is what such a path reaches on this machine.
         let pipe_line = serial_sim_line("ascii", baud);
-        let (mut pipe, pipe_addr) = socat_pipe(&pipe_line.socat.gw);
-        let mut ps = TcpStream::connect(pipe_addr).expect("connect to socat");
-        ps.set_nodelay(true).unwrap();
-        ps.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+        let (mut pipe, mut ps) = byte_pipe(&pipe_line);
         let (mut direct, mut via, mut piped) = (
             LimitRow::default(),
             LimitRow::default(),
@@ -470,8 +471,6 @@ pub(super) fn rtu_limit(r: &mut Report) {
         let _ = pipe.kill();
         let _ = pipe.wait();
         let ratio = via.rate() / direct.rate();
-        let per_tx =
-            |p: &LimitRow| us(Duration::from_nanos(p.cpu_ns / p.times.len().max(1) as u64));
         let _ = writeln!(
             a,
             "| {baud} | {qty} | {:.1} ({}) | {:.1} ({}) | **{}** | {} | {:.1} ({}) | {} | **{}** | {} |",
@@ -480,12 +479,12 @@ pub(super) fn rtu_limit(r: &mut Report) {
             via.rate(),
             ms(spread(&via.times).p50),
             pct(ratio),
-            per_tx(&via),
+            via.cpu_per_tx(),
             piped.rate(),
             ms(spread(&piped.times).p50),
             pct(piped.rate() / direct.rate()),
             pct(via.rate() / piped.rate()),
-            per_tx(&piped),
+            piped.cpu_per_tx(),
         );
         r.row(
             "rtu-limit",

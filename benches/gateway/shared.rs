@@ -3,7 +3,7 @@
 //! from /proc.
 
 use super::common::sim::RawLine;
-use super::common::{read_frame, read_req, tempdir, Cfg, Gateway, Proc, Py, Socat};
+use super::common::{read_frame, read_req, socat_pipe, tempdir, Cfg, Gateway, Proc, Py, Socat};
 use super::report::Report;
 use std::io::Write as _;
 use std::net::TcpStream;
@@ -117,6 +117,16 @@ impl Line {
         }
         Gateway::start(&cfg, self.dir.path())
     }
+}
+
+/// A bare byte pipe in front of `line` (`socat TCP-LISTEN:0 FILE:pty`), and a master's
+/// connection to it: what any path from a socket to the port costs, without framing.
+pub(super) fn byte_pipe(line: &Line) -> (std::process::Child, TcpStream) {
+    let (pipe, addr) = socat_pipe(&line.socat.gw);
+    let s = TcpStream::connect(addr).expect("connect to socat");
+    s.set_nodelay(true).unwrap();
+    s.set_read_timeout(Some(Duration::from_secs(5))).unwrap();
+    (pipe, s)
 }
 
 pub(super) fn connect(gw: &Gateway) -> TcpStream {
