@@ -248,51 +248,24 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
 /// mode. A plain wire and a pty are timed by the write and the wire's arithmetic.
 #[test]
 fn the_drain_is_asked_for_only_where_the_port_can_hold_bytes_back() {
-    use crate::config::FlowControl;
+    use crate::config::FlowControl::{Hardware, None as Free, Software};
     let uart = Medium::Uart {
         driver: None,
         trigger: Some(1),
     };
-    let plain = SerialConfig {
+    let port = |flow_control, rs485| SerialConfig {
         framing: crate::config::Framing::Rtu,
-        flow_control: FlowControl::None,
+        flow_control,
+        rs485,
         ..SerialConfig::default()
     };
     let cases = [
-        (plain.clone(), Medium::Pty, false),
-        (plain.clone(), uart.clone(), false),
-        (
-            SerialConfig {
-                flow_control: FlowControl::Hardware,
-                ..plain.clone()
-            },
-            uart.clone(),
-            true,
-        ),
-        (
-            SerialConfig {
-                flow_control: FlowControl::Software,
-                ..plain.clone()
-            },
-            uart.clone(),
-            true,
-        ),
-        (
-            SerialConfig {
-                rs485: true,
-                ..plain.clone()
-            },
-            uart.clone(),
-            true,
-        ),
-        (
-            SerialConfig {
-                flow_control: FlowControl::Hardware,
-                ..plain.clone()
-            },
-            Medium::Pty,
-            false,
-        ),
+        (port(Free, false), Medium::Pty, false),
+        (port(Free, false), uart.clone(), false),
+        (port(Hardware, false), uart.clone(), true),
+        (port(Software, false), uart.clone(), true),
+        (port(Free, true), uart.clone(), true),
+        (port(Hardware, false), Medium::Pty, false),
     ];
     for (serial, medium, drains) in cases {
         let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, Instant::now());
