@@ -16,6 +16,7 @@ mod cache;
 mod command;
 mod event;
 mod failures;
+mod ids;
 mod inflight;
 mod learn;
 mod line;

@@ -4,6 +4,7 @@
 //! comes and again when it is sent, and a reply to a read that came before either is
 //! not kept. Exception replies are never kept. Plain data: the loop passes the time in.
 
+use super::ids::IdMap;
 use super::scheduler::ReadKey;
 use crate::frame::Adu;
 use std::collections::HashMap;
@@ -19,7 +20,7 @@ pub(super) struct Cache {
     ttl: Duration,
     entries: HashMap<ReadKey, (Instant, Adu)>,
     /// Requests that acted on each unit (came or were sent), and on unit 0.
-    generations: HashMap<u8, u64>,
+    generations: IdMap<u8, u64>,
     broadcasts: u64,
 }
 
@@ -28,7 +29,7 @@ impl Cache {
         Self {
             ttl,
             entries: HashMap::new(),
-            generations: HashMap::new(),
+            generations: IdMap::default(),
             broadcasts: 0,
         }
     }

@@ -4,11 +4,12 @@
 //! off); per-unit backoff; and the pacing of the 0x0B answers for backed-off units.
 //! Plain data: no I/O, no clock (the loop passes the time in).
 
+use super::ids::IdMap;
 use super::learn::Learned;
 use crate::config::unit::{Timeout, UnitPolicy, UnitTables};
 use crate::config::RelayConfig;
 use crate::frame::Adu;
-use std::collections::{HashMap, VecDeque};
+use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -78,7 +79,7 @@ pub(super) struct InFlight<R> {
     /// table's, else the line's.
     policies: Box<[UnitPolicy]>,
     /// The learned timeouts of the units that have one, once they had a request.
-    learned: HashMap<u8, Learned>,
+    learned: IdMap<u8, Learned>,
     units: Units,
 }
 
@@ -89,7 +90,7 @@ impl<R: Asked> InFlight<R> {
             entries: Vec::new(),
             probe_timeout: Duration::ZERO,
             policies: Box::default(),
-            learned: HashMap::new(),
+            learned: IdMap::default(),
             units: Units::new(cfg, unit_backoff),
         };
         t.retune(cfg, tables);
@@ -266,7 +267,7 @@ struct Units {
     after: u32,
     min: Duration,
     max: Duration,
-    health: HashMap<u8, Health>,
+    health: IdMap<u8, Health>,
 }
 
 #[derive(Debug, Default)]
@@ -286,7 +287,7 @@ impl Units {
             after: cfg.unit_backoff_after,
             min: Duration::from_millis(cfg.unit_backoff_ms).min(max),
             max,
-            health: HashMap::new(),
+            health: IdMap::default(),
         }
     }
 

@@ -1,24 +1,24 @@
 //! The masters attached to the relay and the fan-out of device notifications to them:
 //! dropped or broadcast (`notifications`), a master not reading missing them (counted).
 
+use super::ids::IdMap;
 use super::ConnId;
 use crate::config::Notifications;
 use crate::frame::Adu;
 use crate::outbox::Notifier;
 use crate::stats::Stats;
-use std::collections::HashMap;
 use tracing::debug;
 
 /// The masters attached to the relay, and what becomes of a notification.
 pub(super) struct Masters {
-    conns: HashMap<ConnId, Notifier>,
+    conns: IdMap<ConnId, Notifier>,
     policy: Notifications,
 }
 
 impl Masters {
     pub(super) fn new(policy: Notifications) -> Self {
         Self {
-            conns: HashMap::new(),
+            conns: IdMap::default(),
             policy,
         }
     }

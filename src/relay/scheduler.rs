@@ -27,6 +27,7 @@
 //! however busy the higher one. Which request is ready is the same rule as without
 //! classes (the front of every queue it is in), so each master's order holds.
 
+use super::ids::IdMap;
 use super::ConnId;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
@@ -100,7 +101,7 @@ pub(super) struct Scheduler<R> {
     /// Each master's waiting requests, its own and those it joined, as numbers in the
     /// order it sent them (ascending): a request goes on the line only from the front
     /// of the queue of every master it answers.
-    queues: HashMap<ConnId, VecDeque<u64>>,
+    queues: IdMap<ConnId, VecDeque<u64>>,
     /// Connections with queued requests, in round-robin order.
     ring: VecDeque<ConnId>,
     /// The connection whose request went on the line last: a connection that starts
@@ -109,22 +110,22 @@ pub(super) struct Scheduler<R> {
     /// Requests waiting, each counted once for every master it serves.
     queued: usize,
     /// Each master's part of `queued`: its share of the queue.
-    held: HashMap<ConnId, usize>,
+    held: IdMap<ConnId, usize>,
     /// The newest joinable read of each key, by number (a hint, checked).
     joinable: HashMap<ReadKey, u64>,
     /// Requests that act, queued so far: per unit, and to unit 0.
-    epochs: HashMap<u8, u64>,
+    epochs: IdMap<u8, u64>,
     broadcast_epoch: u64,
     /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
     retry: VecDeque<R>,
     /// Requests handed to the line so far (each a turn), and for each master the turns
     /// that last put one of its requests on the line.
     turns: u64,
-    last_out: HashMap<ConnId, LastOut>,
+    last_out: IdMap<ConnId, LastOut>,
     /// Requests that joined another so far.
     joins: u64,
     /// Each master's priority class, if not 0.
-    classes: HashMap<ConnId, u8>,
+    classes: IdMap<ConnId, u8>,
     /// Requests of a higher class taken in a row while one serving a lower class was
     /// ready.
     streak: u32,
@@ -161,19 +162,19 @@ impl<R: Queued> Scheduler<R> {
             coalesce,
             waiting: BTreeMap::new(),
             next_number: 0,
-            queues: HashMap::new(),
+            queues: IdMap::default(),
             ring: VecDeque::new(),
             last_served: None,
             queued: 0,
-            held: HashMap::new(),
+            held: IdMap::default(),
             joinable: HashMap::new(),
-            epochs: HashMap::new(),
+            epochs: IdMap::default(),
             broadcast_epoch: 0,
             retry: VecDeque::new(),
             turns: 0,
-            last_out: HashMap::new(),
+            last_out: IdMap::default(),
             joins: 0,
-            classes: HashMap::new(),
+            classes: IdMap::default(),
             streak: 0,
         }
     }
@@ -618,8 +619,8 @@ impl<R: Queued> Scheduler<R> {
     /// holding exactly the masters with a queue.
     #[cfg(test)]
     fn audit(&self) {
-        let mut held: HashMap<ConnId, usize> = HashMap::new();
-        let mut listed: HashMap<ConnId, Vec<u64>> = HashMap::new();
+        let mut held: IdMap<ConnId, usize> = IdMap::default();
+        let mut listed: IdMap<ConnId, Vec<u64>> = IdMap::default();
         for (&n, e) in &self.waiting {
             for c in e.req.masters() {
                 *held.entry(c).or_default() += 1;
@@ -631,7 +632,7 @@ impl<R: Queued> Scheduler<R> {
         }
         assert_eq!(held, self.held, "shares");
         assert_eq!(held.values().sum::<usize>(), self.queued, "queued");
-        let queues: HashMap<ConnId, Vec<u64>> = self
+        let queues: IdMap<ConnId, Vec<u64>> = self
             .queues
             .iter()
             .map(|(&c, q)| (c, q.iter().copied().collect()))
