@@ -32,7 +32,7 @@ use crate::config::{LineConfig, RelayConfig, SerialConfig};
 use crate::frame::Adu;
 use crate::metrics::LineMetrics;
 use crate::outbox::{Refusal, Ticket};
-use crate::port::lifecycle::Lifecycle;
+use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::{self, OpenPort};
 use crate::stats::Stats;
 use cache::Cache;
@@ -221,7 +221,7 @@ impl Relay {
         let shutdown = self.shutdown.clone().cancelled_owned();
         tokio::pin!(shutdown);
         loop {
-            let now = Instant::now();
+            let mut now = Instant::now();
             if let Some(w) = &mut self.watchdog {
                 w.pet(now);
             }
@@ -229,6 +229,12 @@ impl Relay {
             self.line.set_tape(self.telemetry.capturing());
             self.open_if_due(now);
             self.dispatch(now);
+            // What was dispatched is written in this turn when the port takes it at
+            // once, not in a turn of its own: one pass of the loop less a transaction.
+            while let Some(after) = self.write_now(now) {
+                now = after;
+                self.dispatch(now);
+            }
             if self.draining && self.in_flight.is_empty() {
                 break;
             }
@@ -262,34 +268,7 @@ impl Relay {
                     self.line.received(&rbuf[..n], now, &self.stats);
                 }
                 Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
-                Event::Wrote(Ok(n)) => {
-                    self.stats.add(&self.stats.serial_bytes_out, n as u64);
-                    self.line.wrote(n, polled, now);
-                    self.out.advance(n);
-                    if self.out.is_empty() && self.line.is_serial() {
-                        if let Some(t) = &mut self.turnaround {
-                            // The line times the frame from before the write (`polled`,
-                            // a lower bound for judging the reply); the transmitter goes
-                            // off no sooner than the last bytes' time on the wire after
-                            // the write returned, so a pause of this thread between the
-                            // two (a busy machine) cannot cut the request's tail where
-                            // the port cannot say it is empty.
-                            let left = self.line.leaves_at().unwrap_or(now);
-                            t.written(self.line.left_after(n, now).map_or(left, |a| a.max(left)));
-                        }
-                        // The transmitter switch the gateway drives waits for the
-                        // drain on any port; without one, only a port that can hold
-                        // bytes back needs it.
-                        if self.line.needs_drain() || self.turnaround.is_some() {
-                            self.start_drain(now);
-                        } else {
-                            // No wire, or none that holds bytes back: gone once
-                            // written, or their time on the wire after it
-                            // (`LineFraming::needs_drain`).
-                            self.drained(now);
-                        }
-                    }
-                }
+                Event::Wrote(Ok(n)) => self.wrote(n, polled, now),
                 Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
                 Event::Opened(r) => self.opened(r, now),
                 Event::Drained(r) => {
@@ -320,6 +299,67 @@ impl Relay {
                 .turn(now, queued, in_flight, self.port.is_open());
         }
         debug!("relay stopped");
+    }
+
+    /// Writes what waits to go out if the port takes it without waiting (the loop's
+    /// wait would find it ready at once): the instant after the write, or `None` when
+    /// nothing was written (nothing waits, the transmitter may not start yet, the port
+    /// is full or closed, or the write failed and the port was lost). A port that is
+    /// full keeps no waker from this try: the loop's wait polls the write again and
+    /// registers its own.
+    fn write_now(&mut self, now: Instant) -> Option<Instant> {
+        if self.out.is_empty() || !self.turnaround.as_ref().is_none_or(|t| t.may_write(now)) {
+            return None;
+        }
+        let State::Open(open) = &mut self.port.state else {
+            return None;
+        };
+        let mut cx = std::task::Context::from_waker(std::task::Waker::noop());
+        match tokio::io::AsyncWrite::poll_write(
+            std::pin::Pin::new(&mut open.writer),
+            &mut cx,
+            self.out.pending(),
+        ) {
+            std::task::Poll::Pending => None,
+            std::task::Poll::Ready(Ok(0)) => None,
+            std::task::Poll::Ready(Ok(n)) => {
+                let after = Instant::now();
+                self.wrote(n, now, after);
+                Some(after)
+            }
+            std::task::Poll::Ready(Err(e)) => {
+                self.port_lost(&format!("write failed: {e}"), Instant::now());
+                None
+            }
+        }
+    }
+
+    /// `n` bytes of what waited went out, by a write begun at `polled` that returned
+    /// at `now`.
+    fn wrote(&mut self, n: usize, polled: Instant, now: Instant) {
+        self.stats.add(&self.stats.serial_bytes_out, n as u64);
+        self.line.wrote(n, polled, now);
+        self.out.advance(n);
+        if self.out.is_empty() && self.line.is_serial() {
+            if let Some(t) = &mut self.turnaround {
+                // The line times the frame from before the write (`polled`, a lower
+                // bound for judging the reply); the transmitter goes off no sooner than
+                // the last bytes' time on the wire after the write returned, so a pause
+                // of this thread between the two (a busy machine) cannot cut the
+                // request's tail where the port cannot say it is empty.
+                let left = self.line.leaves_at().unwrap_or(now);
+                t.written(self.line.left_after(n, now).map_or(left, |a| a.max(left)));
+            }
+            // The transmitter switch the gateway drives waits for the drain on any
+            // port; without one, only a port that can hold bytes back needs it.
+            if self.line.needs_drain() || self.turnaround.is_some() {
+                self.start_drain(now);
+            } else {
+                // No wire, or none that holds bytes back: gone once written, or their
+                // time on the wire after it (`LineFraming::needs_drain`).
+                self.drained(now);
+            }
+        }
     }
 
     /// The nearest instant anything needs the loop: a deadline, the line's gaps, a
