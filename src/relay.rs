@@ -231,9 +231,15 @@ impl Relay {
             self.dispatch(now);
             // What was dispatched is written in this turn when the port takes it at
             // once, not in a turn of its own: one pass of the loop less a transaction.
+            let mut wrote = false;
             while let Some(after) = self.write_now(now) {
-                now = after;
+                (now, wrote) = (after, true);
                 self.dispatch(now);
+            }
+            if wrote {
+                // As the turn of a write would have: the gauges, and the line busy
+                // from now.
+                self.tell(now);
             }
             if self.draining && self.in_flight.is_empty() {
                 break;
@@ -291,14 +297,20 @@ impl Relay {
             self.take_frames(now);
             self.expire(now);
             self.answer_paced(now);
-            for dropped in self.line.take_drops() {
-                self.telemetry.dropped(dropped, now);
-            }
-            let (queued, in_flight) = (self.sched.queued(), self.in_flight.len());
-            self.telemetry
-                .turn(now, queued, in_flight, self.port.is_open());
+            self.tell(now);
         }
         debug!("relay stopped");
+    }
+
+    /// The end of a turn, for whoever looks: the bytes the line dropped, the gauges,
+    /// the line's busy time.
+    fn tell(&mut self, now: Instant) {
+        for dropped in self.line.take_drops() {
+            self.telemetry.dropped(dropped, now);
+        }
+        let (queued, in_flight) = (self.sched.queued(), self.in_flight.len());
+        self.telemetry
+            .turn(now, queued, in_flight, self.port.is_open());
     }
 
     /// Writes what waits to go out if the port takes it without waiting (the loop's
