@@ -1,0 +1,61 @@
+#!/usr/bin/env python3
+# One Modbus/TCP master polling FC 03 × 1 of unit 1 back to back, each reply checked
+# (its transaction id and function code): the master of the measuring scripts
+# (scripts/syscalls, scripts/cpu-ab).
+# Usage: python3 scripts/poll.py PORT N [PID]
+#   PID: after 1000 warm-up transactions, poll N more on the same connection and print
+#   PID's CPU time a transaction in µs (/proc/PID/task/*/schedstat, every thread).
+import os
+import socket
+import struct
+import sys
+import time
+
+
+def cpu_ns(pid):
+    return sum(
+        int(open(f"/proc/{pid}/task/{t}/schedstat").read().split()[0])
+        for t in os.listdir(f"/proc/{pid}/task")
+    )
+
+
+def main():
+    port, n = int(sys.argv[1]), int(sys.argv[2])
+    pid = int(sys.argv[3]) if len(sys.argv) > 3 else None
+    for _ in range(100):
+        try:
+            s = socket.create_connection(("127.0.0.1", port))
+            break
+        except OSError:
+            time.sleep(0.05)
+    else:
+        raise SystemExit(f"nothing listens on {port}")
+    s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+
+    def rd(k):
+        b = b""
+        while len(b) < k:
+            c = s.recv(k - len(b))
+            if not c:
+                raise SystemExit("closed")
+            b += c
+        return b
+
+    def run(k):
+        for i in range(k):
+            tid = i & 0xFFFF
+            s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, 0, 1))
+            h = rd(7)
+            body = rd(struct.unpack(">H", h[4:6])[0] - 1)
+            assert struct.unpack(">H", h[:2])[0] == tid and body[0] == 3, (h, body)
+
+    if pid is None:
+        run(n)
+        return
+    run(1000)
+    c0 = cpu_ns(pid)
+    run(n)
+    print(f"{(cpu_ns(pid) - c0) / n / 1000:.1f}")
+
+
+main()
