@@ -248,10 +248,11 @@ impl Relay {
             let wake = self.next_wake(now);
             // Anything written below is written after this.
             let polled = now;
+            let may_write = self.may_write(now);
             let sources = event::Sources {
                 commands: self.commands_open.then_some(&mut self.rx),
                 out: &self.out,
-                may_write: self.turnaround.as_ref().is_none_or(|t| t.may_write(now)),
+                may_write,
                 wake,
                 timer: timer.as_mut(),
                 shutdown: (!self.draining).then_some(shutdown.as_mut()),
@@ -313,6 +314,12 @@ impl Relay {
             .turn(now, queued, in_flight, self.port.is_open());
     }
 
+    /// May bytes be written now: always, unless the gateway switches the transmitter
+    /// itself and it is not yet on with its delay before passed.
+    fn may_write(&self, now: Instant) -> bool {
+        self.turnaround.as_ref().is_none_or(|t| t.may_write(now))
+    }
+
     /// Writes what waits to go out if the port takes it without waiting (the loop's
     /// wait would find it ready at once): the instant after the write, or `None` when
     /// nothing was written (nothing waits, the transmitter may not start yet, the port
@@ -320,7 +327,7 @@ impl Relay {
     /// full keeps no waker from this try: the loop's wait polls the write again and
     /// registers its own.
     fn write_now(&mut self, now: Instant) -> Option<Instant> {
-        if self.out.is_empty() || !self.turnaround.as_ref().is_none_or(|t| t.may_write(now)) {
+        if self.out.is_empty() || !self.may_write(now) {
             return None;
         }
         let State::Open(open) = &mut self.port.state else {
