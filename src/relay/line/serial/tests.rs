@@ -7,6 +7,14 @@ use crate::port::kind::Medium;
 
 const MS: Duration = Duration::from_millis(1);
 
+/// A wire: a UART that tells when a byte came within a character (FIFO trigger 1).
+fn uart() -> Medium {
+    Medium::Uart {
+        driver: None,
+        trigger: Some(1),
+    }
+}
+
 /// A reply whose bytes come 5 ms apart at 115 200 baud (43 character times): on a
 /// pty a partial reply of known length waits for the frame gap, so it is taken
 /// whole; on a wire 3.5 characters of silence end it, and it fails its CRC.
@@ -18,11 +26,7 @@ fn an_rtu_reply_with_pauses_inside_is_taken_where_there_is_no_wire() {
         framing: crate::config::Framing::Rtu,
         ..SerialConfig::default()
     };
-    let uart = Medium::Uart {
-        driver: None,
-        trigger: Some(1),
-    };
-    for (kind, taken) in [(Medium::Pty, true), (uart, false)] {
+    for (kind, taken) in [(Medium::Pty, true), (uart(), false)] {
         let stats = Stats::default();
         let t0 = Instant::now();
         let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
@@ -190,13 +194,9 @@ fn the_gap_after_a_reply_is_asked_to_the_microsecond() {
 fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
     let us = Duration::from_micros;
     let stats = Stats::default();
-    let uart = Medium::Uart {
-        driver: None,
-        trigger: Some(1),
-    };
     for (kind, gap_us, gap) in [
         (Medium::Pty, 0, Duration::ZERO),
-        (uart, 0, us(1750)),
+        (uart(), 0, us(1750)),
         (Medium::Pty, 400, us(400)),
     ] {
         let serial = SerialConfig {
@@ -249,10 +249,6 @@ fn no_gap_after_a_whole_reply_where_there_is_no_wire() {
 #[test]
 fn the_drain_is_asked_for_only_where_the_port_can_hold_bytes_back() {
     use crate::config::FlowControl::{Hardware, None as Free, Software};
-    let uart = Medium::Uart {
-        driver: None,
-        trigger: Some(1),
-    };
     let port = |flow_control, rs485| SerialConfig {
         framing: crate::config::Framing::Rtu,
         flow_control,
@@ -261,10 +257,10 @@ fn the_drain_is_asked_for_only_where_the_port_can_hold_bytes_back() {
     };
     let cases = [
         (port(Free, false), Medium::Pty, false),
-        (port(Free, false), uart.clone(), false),
-        (port(Hardware, false), uart.clone(), true),
-        (port(Software, false), uart.clone(), true),
-        (port(Free, true), uart.clone(), true),
+        (port(Free, false), uart(), false),
+        (port(Hardware, false), uart(), true),
+        (port(Software, false), uart(), true),
+        (port(Free, true), uart(), true),
         (port(Hardware, false), Medium::Pty, false),
     ];
     for (serial, medium, drains) in cases {
@@ -291,14 +287,10 @@ fn without_the_drain_the_request_leaves_its_wire_time_after_the_write() {
         flow_control: crate::config::FlowControl::None,
         ..SerialConfig::default()
     };
-    let uart = Medium::Uart {
-        driver: None,
-        trigger: Some(1),
-    };
     let stats = Stats::default();
     let t0 = Instant::now();
     let mut line = LineFraming::new(&RelayConfig::default(), &serial, false, t0);
-    line.port_opened(&PortInfo::plain(uart));
+    line.port_opened(&PortInfo::plain(uart()));
     assert!(!line.needs_drain());
     let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
     let key = line.allocate(t0);
