@@ -332,24 +332,29 @@ impl Inbox {
     /// come. Cancel-safe.
     pub async fn next(&mut self) -> Option<Delivery> {
         loop {
-            if let Some((adu, slot)) = self.held.remove(&self.next) {
-                self.next += 1;
-                match adu {
-                    Some(adu) => {
-                        return Some(Delivery {
-                            adu,
-                            _slot: Some(slot),
-                        })
+            let (adu, slot) = match self.held.remove(&self.next) {
+                Some(held) => held,
+                None => match self.rx.recv().await? {
+                    Message::Notification(adu) => return Some(Delivery { adu, _slot: None }),
+                    // Its turn (nearly always: a master waits for each reply): out at
+                    // once, without a stay among those held.
+                    Message::Reply { seq, adu, slot } if seq == self.next => (adu, slot),
+                    Message::Reply { seq, adu, slot } => {
+                        self.held.insert(seq, (adu, slot));
+                        continue;
                     }
-                    // No reply to write: the slot is free now.
-                    None => continue,
+                },
+            };
+            self.next += 1;
+            match adu {
+                Some(adu) => {
+                    return Some(Delivery {
+                        adu,
+                        _slot: Some(slot),
+                    })
                 }
-            }
-            match self.rx.recv().await? {
-                Message::Notification(adu) => return Some(Delivery { adu, _slot: None }),
-                Message::Reply { seq, adu, slot } => {
-                    self.held.insert(seq, (adu, slot));
-                }
+                // No reply to write: the slot is free now.
+                None => continue,
             }
         }
     }

@@ -65,6 +65,9 @@ pub struct Relay {
     /// The requests on the line: deadlines, retries, unit backoff.
     in_flight: InFlight<Pending>,
     line: LineFraming,
+    /// What the line made of the bytes read in a turn: kept from turn to turn, so a
+    /// reply allocates no list to come in.
+    seen: Vec<Seen>,
     /// Replies that may answer identical reads (`cache_ms`; empty when off).
     cache: Cache,
     /// 0x0B answers for backed-off units, at the line's pace.
@@ -161,6 +164,7 @@ impl Relay {
             rx,
             in_flight,
             line,
+            seen: Vec::new(),
             paced: Paced::new(now),
             port,
             out: Outgoing::default(),
@@ -260,7 +264,7 @@ impl Relay {
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();
             match event {
-                Event::Command(Some(cmd)) => self.on_command(cmd),
+                Event::Command(Some(cmd)) => self.on_command(cmd, now),
                 Event::Command(None) => {
                     self.commands_open = false;
                     self.start_draining();
@@ -460,7 +464,8 @@ impl Relay {
         }
     }
 
-    fn on_command(&mut self, cmd: Command) {
+    /// `cmd`, received at `now`.
+    fn on_command(&mut self, cmd: Command, now: Instant) {
         match cmd {
             Command::Attach { conn, notifier } => {
                 self.masters.attach(conn, notifier);
@@ -481,17 +486,16 @@ impl Relay {
                 self.telemetry.set_traffic(traffic);
                 self.cfg = *relay;
             }
-            Command::Request { conn, adu, ticket } => self.on_request(conn, adu, ticket),
+            Command::Request { conn, adu, ticket } => self.on_request(conn, adu, ticket, now),
         }
     }
 
     /// A master's request: answered at once (a broadcast that cannot be one, no path,
     /// a backed-off unit, a reply in the cache), joined to an identical read waiting
     /// for the line, or queued.
-    fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket) {
+    fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket, now: Instant) {
         self.stats.add(&self.stats.requests, 1);
         self.telemetry.request(adu.unit());
-        let now = Instant::now();
         let mut req = Pending::new(conn, adu, ticket);
         let unit = req.adu.unit();
         if self.line.not_broadcast(&req.adu) {
@@ -699,7 +703,10 @@ impl Relay {
     }
 
     fn take_frames(&mut self, now: Instant) {
-        for seen in self.line.frames(self.in_flight.entries(), now, &self.stats) {
+        let mut all = std::mem::take(&mut self.seen);
+        self.line
+            .frames_into(self.in_flight.entries(), now, &self.stats, &mut all);
+        for seen in all.drain(..) {
             match seen {
                 Seen::Frame(frame, at) => self.on_frame(frame, at, now),
                 Seen::Corrupt(tid) => {
@@ -715,6 +722,7 @@ impl Relay {
                 }
             }
         }
+        self.seen = all;
     }
 
     /// `frame`, taken off the line at `at` (its last byte read), handled `now`.

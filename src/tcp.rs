@@ -26,9 +26,11 @@ use crate::tls::server::{Acceptor, Grant};
 use bytes::BytesMut;
 use handshakes::Handshakes;
 use std::collections::HashMap;
+use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
+use std::task::Poll;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpSocket, TcpStream};
@@ -668,16 +670,20 @@ impl Connection {
                 wr.write_all(&frame).await?;
                 wr.flush().await
             };
-            let result = if stall.is_zero() {
-                write.await
-            } else {
-                match tokio::time::timeout(stall, write).await {
+            let mut write = std::pin::pin!(write);
+            // Nearly every reply goes out at once, and needs no timer (each would read
+            // the clock): the stall's timer starts only for one the socket cannot take.
+            let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
+            let result = match first {
+                Poll::Ready(r) => r,
+                Poll::Pending if stall.is_zero() => write.await,
+                Poll::Pending => match tokio::time::timeout(stall, write).await {
                     Ok(r) => r,
                     Err(_) => {
                         info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
                         return;
                     }
-                }
+                },
             };
             if let Err(e) = result {
                 debug!(conn = self.id, "write failed: {e}");

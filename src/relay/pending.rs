@@ -20,12 +20,92 @@ struct Asker {
     ticket: Ticket,
 }
 
+/// The masters a request answers, never none: the first held in place, so a request
+/// of one master (nearly all of them) allocates nothing for its list.
+struct Askers {
+    first: Asker,
+    /// Those whose identical reads joined it, in the order they asked.
+    more: Vec<Asker>,
+}
+
+impl Askers {
+    fn one(first: Asker) -> Self {
+        Askers {
+            first,
+            more: Vec::new(),
+        }
+    }
+
+    /// Takes out those `gone` picks, in their order, unless that is none of them or
+    /// all of them (a list is never empty): `None` then, and the list as it was.
+    fn split_off(&mut self, gone: impl Fn(&Asker) -> bool) -> Option<Askers> {
+        if self.iter().all(&gone) || !self.iter().any(&gone) {
+            return None;
+        }
+        let (out, mut kept): (Vec<Asker>, Vec<Asker>) =
+            std::mem::take(&mut self.more).into_iter().partition(&gone);
+        let mut out = out.into_iter();
+        let out = if gone(&self.first) {
+            // Someone is kept, and it is not the first: the earliest kept leads now.
+            let lead = kept.remove(0);
+            let first = std::mem::replace(&mut self.first, lead);
+            Askers {
+                first,
+                more: out.collect(),
+            }
+        } else {
+            let first = out.next().expect("one is gone");
+            Askers {
+                first,
+                more: out.collect(),
+            }
+        };
+        self.more = kept;
+        Some(out)
+    }
+
+    /// Takes out the last asker of `conn`, unless it is the only one left (or there
+    /// is none).
+    fn remove_last_of(&mut self, conn: ConnId) -> Option<Asker> {
+        if self.more.is_empty() {
+            return None;
+        }
+        if let Some(i) = self.more.iter().rposition(|a| a.conn == conn) {
+            return Some(self.more.remove(i));
+        }
+        if self.first.conn != conn {
+            return None;
+        }
+        let lead = self.more.remove(0);
+        Some(std::mem::replace(&mut self.first, lead))
+    }
+
+    fn len(&self) -> usize {
+        1 + self.more.len()
+    }
+
+    fn iter(&self) -> impl Iterator<Item = &Asker> {
+        std::iter::once(&self.first).chain(&self.more)
+    }
+
+    fn extend(&mut self, other: Askers) {
+        self.more.push(other.first);
+        self.more.extend(other.more);
+    }
+
+    /// Every one, in order, leaving this list as it is no more (it is replaced or
+    /// dropped by the caller).
+    fn take(self) -> impl Iterator<Item = Asker> {
+        std::iter::once(self.first).chain(self.more)
+    }
+}
+
 pub(super) struct Pending {
     /// The request as the first master sent it (its transaction id is that master's).
     pub(super) adu: Adu,
     /// The masters it answers: the one it is queued for first, then those whose
-    /// identical read joined it, in the order they asked. Never empty.
-    askers: Vec<Asker>,
+    /// identical read joined it, in the order they asked.
+    askers: Askers,
     pub(super) attempts: u32,
     /// The scheduler's turn that last put it on the line (a resend is checked
     /// against it, `scheduler.rs`).
@@ -55,22 +135,12 @@ impl Queued for Pending {
         self.askers.extend(other.askers);
     }
     fn leave(&mut self, conn: ConnId) -> Option<Self> {
-        if self.askers.iter().all(|a| a.conn == conn) {
-            return None;
-        }
-        let (gone, kept): (Vec<Asker>, Vec<Asker>) =
-            self.askers.drain(..).partition(|a| a.conn == conn);
-        self.askers = kept;
-        gone.first()?;
+        let gone = self.askers.split_off(|a| a.conn == conn)?;
         Some(self.part(gone))
     }
     fn leave_one(&mut self, conn: ConnId) -> Option<Self> {
-        let i = self.askers.iter().rposition(|a| a.conn == conn)?;
-        if self.askers.len() == 1 {
-            return None;
-        }
-        let one = self.askers.remove(i);
-        Some(self.part(vec![one]))
+        let one = self.askers.remove_last_of(conn)?;
+        Some(self.part(Askers::one(one)))
     }
     fn turn(&self) -> u64 {
         self.turn
@@ -112,11 +182,11 @@ impl Pending {
     /// A request just received, never sent.
     pub(super) fn new(conn: ConnId, adu: Adu, ticket: Ticket) -> Self {
         Self {
-            askers: vec![Asker {
+            askers: Askers::one(Asker {
                 conn,
                 tid: adu.tid(),
                 ticket,
-            }],
+            }),
             adu,
             attempts: 0,
             turn: 0,
@@ -125,9 +195,9 @@ impl Pending {
     }
 
     /// `askers`, taken out of this request, as a request of their own.
-    fn part(&self, askers: Vec<Asker>) -> Self {
+    fn part(&self, askers: Askers) -> Self {
         Pending {
-            adu: self.adu.with_tid(askers[0].tid),
+            adu: self.adu.with_tid(askers.first.tid),
             askers,
             attempts: self.attempts,
             turn: self.turn,
@@ -137,7 +207,7 @@ impl Pending {
 
     /// The master it is queued for.
     pub(super) fn conn(&self) -> ConnId {
-        self.askers[0].conn
+        self.askers.first.conn
     }
 
     /// How many masters' requests it answers.
@@ -148,7 +218,7 @@ impl Pending {
     /// `reply` (any transaction id) to every master it serves, each with its own
     /// transaction id, after that master's answers to its earlier requests.
     pub(super) fn deliver(self, reply: &Adu) {
-        for a in self.askers {
+        for a in self.askers.take() {
             a.ticket.answer(reply.with_tid(a.tid));
         }
     }
@@ -156,7 +226,7 @@ impl Pending {
     /// Answers every master it serves with the gateway's own exception for `why`,
     /// each with its own transaction id, counted once for each.
     pub(super) fn answer_exception(self, why: Refusal, stats: &Stats) {
-        for a in self.askers {
+        for a in self.askers.take() {
             a.ticket.refuse(&self.adu.with_tid(a.tid), why, stats);
         }
     }
@@ -181,5 +251,64 @@ impl Pending {
                 self.deliver(&adu);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::outbox::Outbox;
+
+    /// Askers of connections `conns`, in order, each with transaction id its index.
+    async fn askers(outbox: &mut Outbox, conns: &[ConnId]) -> Askers {
+        let mut all = Vec::new();
+        for (i, &conn) in conns.iter().enumerate() {
+            let ticket = outbox.ticket().await;
+            all.push(Asker {
+                conn,
+                tid: i as u16,
+                ticket,
+            });
+        }
+        let mut all = all.into_iter();
+        let mut a = Askers::one(all.next().unwrap());
+        for more in all {
+            a.extend(Askers::one(more));
+        }
+        a
+    }
+
+    fn order(a: &Askers) -> Vec<(ConnId, u16)> {
+        a.iter().map(|a| (a.conn, a.tid)).collect()
+    }
+
+    /// Taking masters out keeps everyone's order, on both sides, and never leaves a
+    /// list empty, whether the first is among those taken or not.
+    #[tokio::test]
+    async fn askers_split_and_keep_their_order() {
+        let (mut outbox, _inbox) = Outbox::new(32);
+        let mut a = askers(&mut outbox, &[1, 2, 1, 3, 1]).await;
+        assert_eq!(a.len(), 5);
+        let gone = a.split_off(|x| x.conn == 1).unwrap();
+        assert_eq!(order(&gone), [(1, 0), (1, 2), (1, 4)]);
+        assert_eq!(order(&a), [(2, 1), (3, 3)]);
+        let gone = a.split_off(|x| x.conn == 3).unwrap();
+        assert_eq!(order(&gone), [(3, 3)]);
+        assert_eq!(order(&a), [(2, 1)]);
+        assert!(a.split_off(|x| x.conn == 2).is_none(), "all of them");
+        assert!(a.split_off(|x| x.conn == 9).is_none(), "none of them");
+        assert_eq!(order(&a), [(2, 1)]);
+
+        let mut a = askers(&mut outbox, &[1, 2, 1, 3]).await;
+        assert_eq!(a.remove_last_of(1).map(|x| x.tid), Some(2));
+        assert_eq!(order(&a), [(1, 0), (2, 1), (3, 3)]);
+        assert_eq!(a.remove_last_of(1).map(|x| x.tid), Some(0), "the first");
+        assert_eq!(order(&a), [(2, 1), (3, 3)]);
+        assert!(a.remove_last_of(9).is_none());
+        assert_eq!(a.remove_last_of(3).map(|x| x.tid), Some(3));
+        assert!(a.remove_last_of(2).is_none(), "the only one left");
+        assert_eq!(order(&a), [(2, 1)]);
+        let served: Vec<u16> = a.take().map(|x| x.tid).collect();
+        assert_eq!(served, [1]);
     }
 }

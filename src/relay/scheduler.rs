@@ -31,6 +31,10 @@ use super::ids::IdMap;
 use super::ConnId;
 use std::collections::{BTreeMap, HashMap, VecDeque};
 
+/// How many emptied queues the scheduler keeps for reuse: enough for the masters that
+/// take turns on a busy line, few enough to hold no memory worth counting.
+const SPARE_QUEUES: usize = 16;
+
 /// When a lower class waits, at least one request in this many taken from the queues
 /// serves it (the module notes).
 pub(crate) const LOWER_EVERY: u32 = 8;
@@ -102,6 +106,10 @@ pub(super) struct Scheduler<R> {
     /// order it sent them (ascending): a request goes on the line only from the front
     /// of the queue of every master it answers.
     queues: IdMap<ConnId, VecDeque<u64>>,
+    /// Queues emptied, kept for the next master that starts waiting: a master that
+    /// waits for each reply empties its queue every request, and a queue made afresh
+    /// each time would be an allocation each time.
+    spare: Vec<VecDeque<u64>>,
     /// Connections with queued requests, in round-robin order.
     ring: VecDeque<ConnId>,
     /// The connection whose request went on the line last: a connection that starts
@@ -163,6 +171,7 @@ impl<R: Queued> Scheduler<R> {
             waiting: BTreeMap::new(),
             next_number: 0,
             queues: IdMap::default(),
+            spare: Vec::new(),
             ring: VecDeque::new(),
             last_served: None,
             queued: 0,
@@ -326,7 +335,11 @@ impl<R: Queued> Scheduler<R> {
     /// arrival: a master that starts waiting goes behind every connection still
     /// waiting for a turn, ahead of the one just served.
     fn enlist(&mut self, conn: ConnId, number: u64) {
-        let q = self.queues.entry(conn).or_default();
+        let spare = &mut self.spare;
+        let q = self
+            .queues
+            .entry(conn)
+            .or_insert_with(|| spare.pop().unwrap_or_default());
         if q.is_empty() {
             match self.ring.back() {
                 Some(&back) if Some(back) == self.last_served => {
@@ -388,8 +401,17 @@ impl<R: Queued> Scheduler<R> {
         if let Some(q) = self.queues.get_mut(&conn) {
             q.retain(|&n| n != number);
             if q.is_empty() {
-                self.queues.remove(&conn);
+                self.drop_queue(conn);
                 self.ring.retain(|&c| c != conn);
+            }
+        }
+    }
+
+    /// `conn` has no queue any more; its empty one is kept for another (a few of them).
+    fn drop_queue(&mut self, conn: ConnId) {
+        if let Some(q) = self.queues.remove(&conn) {
+            if q.is_empty() && self.spare.len() < SPARE_QUEUES {
+                self.spare.push(q);
             }
         }
     }
@@ -524,7 +546,7 @@ impl<R: Queued> Scheduler<R> {
                     q.pop_front();
                 }
                 if q.is_empty() {
-                    self.queues.remove(&c);
+                    self.drop_queue(c);
                     if c != conn {
                         self.ring.retain(|&r| r != c);
                     }

@@ -381,18 +381,18 @@ impl Mbap {
         );
     }
 
-    pub(super) fn frames<R: Asked>(
+    pub(super) fn frames_into<R: Asked>(
         &mut self,
         in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
-    ) -> Vec<Seen> {
+        seen: &mut Vec<Seen>,
+    ) {
         let idle = now.saturating_duration_since(self.last_byte);
         if idle >= self.pause {
             self.decoder.pause();
         }
         let quiet = idle >= self.gap;
-        let mut seen = Vec::new();
         loop {
             let judge = RelayJudge {
                 in_flight,
@@ -476,7 +476,6 @@ impl Mbap {
         // whatever the framing.
         stats.add(&stats.dropped_bytes, self.decoder.take_dropped());
         stats.add(&stats.refuted_frames, self.decoder.take_refuted());
-        seen
     }
 }
 

@@ -265,16 +265,32 @@ impl LineFraming {
         }
     }
 
-    /// Frames the bytes received so far make, given what is in flight.
+    /// Frames the bytes received so far make, given what is in flight, pushed onto
+    /// `seen`: the relay's own vector, kept from turn to turn, so that a reply costs
+    /// no allocation for the list it comes in.
+    /// The frames in the bytes received so far, for the tests.
+    #[cfg(test)]
     pub(super) fn frames<R: Asked>(
         &mut self,
         in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
     ) -> Vec<Seen> {
+        let mut seen = Vec::new();
+        self.frames_into(in_flight, now, stats, &mut seen);
+        seen
+    }
+
+    pub(super) fn frames_into<R: Asked>(
+        &mut self,
+        in_flight: &[OnLine<R>],
+        now: Instant,
+        stats: &Stats,
+        seen: &mut Vec<Seen>,
+    ) {
         match &mut self.0 {
-            FramingState::Mbap(m) => m.frames(in_flight, now, stats),
-            FramingState::Serial(s) => s.frames(in_flight, now, stats),
+            FramingState::Mbap(m) => m.frames_into(in_flight, now, stats, seen),
+            FramingState::Serial(s) => s.frames_into(in_flight, now, stats, seen),
         }
     }
 

@@ -469,12 +469,24 @@ impl Serial {
         &[]
     }
 
-    pub(super) fn frames<R: Asked>(
+    /// The frame the bytes received so far make, given what is in flight (one at a
+    /// time on a serial line), pushed onto `seen`.
+    pub(super) fn frames_into<R: Asked>(
         &mut self,
         in_flight: &[OnLine<R>],
         now: Instant,
         stats: &Stats,
-    ) -> Vec<Seen> {
+        seen: &mut Vec<Seen>,
+    ) {
+        seen.extend(self.next_seen(in_flight, now, stats));
+    }
+
+    fn next_seen<R: Asked>(
+        &mut self,
+        in_flight: &[OnLine<R>],
+        now: Instant,
+        stats: &Stats,
+    ) -> Option<Seen> {
         let asked = in_flight.first().map(|f| f.req.adu().pdu());
         if self.asked.as_deref() != asked {
             self.asked = asked.map(<[u8]>::to_vec);
@@ -495,7 +507,7 @@ impl Serial {
                 stats.add(&stats.dropped_stale, n as u64);
                 self.count_dropped(0, stats);
             }
-            return Vec::new();
+            return None;
         };
         let request = f.req.adu().pdu();
         let next = self.decoder.next_frame(&ReplyFor(request), quiet);
@@ -503,7 +515,7 @@ impl Serial {
         // failed, the framer has dropped.
         self.count_dropped(0, stats);
         match next {
-            None => Vec::new(),
+            None => None,
             Some(Framed::Frame(frame)) => {
                 let at = self.last_rx.min(now);
                 let end = self.decoder.consumed();
@@ -520,7 +532,7 @@ impl Serial {
                             "a reply of another shape than its request's, passed on"
                         );
                     }
-                    vec![Seen::Frame(frame.with_tid(f.tid), at)]
+                    Some(Seen::Frame(frame.with_tid(f.tid), at))
                 } else {
                     debug!(unit, "a frame that does not answer the request on the line");
                     self.tape.dropped_aside(|| Dropped {
@@ -531,7 +543,7 @@ impl Serial {
                         detail: "a frame from another unit than the request's",
                     });
                     stats.add(&stats.bad_frames, 1);
-                    vec![Seen::Corrupt(f.tid)]
+                    Some(Seen::Corrupt(f.tid))
                 }
             }
             Some(Framed::Corrupt(n)) => {
@@ -542,7 +554,7 @@ impl Serial {
                 let why = "a reply whose check failed, or cut short";
                 self.tape.dropped_frame(end, n, at, check, why);
                 stats.add(&stats.bad_frames, 1);
-                vec![Seen::Corrupt(f.tid)]
+                Some(Seen::Corrupt(f.tid))
             }
         }
     }
