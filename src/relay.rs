@@ -660,6 +660,9 @@ impl Relay {
                         self.port_lost(&why, now);
                         return;
                     }
+                    if on {
+                        t.switched_on(Instant::now());
+                    }
                     match late {
                         Some(late) if !on => tracing::trace!(
                             us = late.as_micros() as u64,

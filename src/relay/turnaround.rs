@@ -88,6 +88,15 @@ impl Turnaround {
         }
     }
 
+    /// The switch asked for by [`Turnaround::begin`] returned at `at`: the delay
+    /// before the first byte counts from then, not from the instant the loop decided
+    /// (the switch itself, an ioctl or a GPIO write, takes time of its own).
+    pub(super) fn switched_on(&mut self, at: Instant) {
+        if let Phase::Sending { ready_at } = &mut self.phase {
+            *ready_at = (*ready_at).max(at + self.before);
+        }
+    }
+
     /// May bytes be written now: on, and the delay before them passed.
     pub(super) fn may_write(&self, now: Instant) -> bool {
         matches!(self.phase, Phase::Sending { ready_at } if now >= ready_at)
@@ -285,6 +294,19 @@ mod tests {
                 false
             }
         }
+    }
+
+    /// A switch that takes time: the delay before counts from its return.
+    #[test]
+    fn the_delay_before_counts_from_the_switch_done() {
+        let mut t = Turnaround::new(us(300), us(200), us(87));
+        let t0 = Instant::now();
+        assert_eq!(t.begin(t0), Some(Act::On));
+        t.switched_on(t0 + us(40));
+        assert!(!t.may_write(t0 + us(300)), "300 µs after the decision only");
+        assert!(!t.may_write(t0 + us(339)));
+        assert!(t.may_write(t0 + us(340)));
+        assert_eq!(t.wake(t0), Some(t0 + us(340)));
     }
 
     /// One request: on, the delay before, written, off only once the transmitter is
