@@ -42,26 +42,16 @@ impl Askers {
         if self.iter().all(&gone) || !self.iter().any(&gone) {
             return None;
         }
-        let (out, mut kept): (Vec<Asker>, Vec<Asker>) =
+        let (mut out, mut kept): (Vec<Asker>, Vec<Asker>) =
             std::mem::take(&mut self.more).into_iter().partition(&gone);
-        let mut out = out.into_iter();
-        let out = if gone(&self.first) {
+        let first = if gone(&self.first) {
             // Someone is kept, and it is not the first: the earliest kept leads now.
-            let lead = kept.remove(0);
-            let first = std::mem::replace(&mut self.first, lead);
-            Askers {
-                first,
-                more: out.collect(),
-            }
+            std::mem::replace(&mut self.first, kept.remove(0))
         } else {
-            let first = out.next().expect("one is gone");
-            Askers {
-                first,
-                more: out.collect(),
-            }
+            out.remove(0)
         };
         self.more = kept;
-        Some(out)
+        Some(Askers { first, more: out })
     }
 
     /// Takes out the last asker of `conn`, unless it is the only one left (or there
@@ -92,10 +82,14 @@ impl Askers {
         self.more.push(other.first);
         self.more.extend(other.more);
     }
+}
 
-    /// Every one, in order, leaving this list as it is no more (it is replaced or
-    /// dropped by the caller).
-    fn take(self) -> impl Iterator<Item = Asker> {
+/// Every one, in order.
+impl IntoIterator for Askers {
+    type Item = Asker;
+    type IntoIter = std::iter::Chain<std::iter::Once<Asker>, std::vec::IntoIter<Asker>>;
+
+    fn into_iter(self) -> Self::IntoIter {
         std::iter::once(self.first).chain(self.more)
     }
 }
@@ -218,7 +212,7 @@ impl Pending {
     /// `reply` (any transaction id) to every master it serves, each with its own
     /// transaction id, after that master's answers to its earlier requests.
     pub(super) fn deliver(self, reply: &Adu) {
-        for a in self.askers.take() {
+        for a in self.askers {
             a.ticket.answer(reply.with_tid(a.tid));
         }
     }
@@ -226,7 +220,7 @@ impl Pending {
     /// Answers every master it serves with the gateway's own exception for `why`,
     /// each with its own transaction id, counted once for each.
     pub(super) fn answer_exception(self, why: Refusal, stats: &Stats) {
-        for a in self.askers.take() {
+        for a in self.askers {
             a.ticket.refuse(&self.adu.with_tid(a.tid), why, stats);
         }
     }
@@ -308,7 +302,7 @@ mod tests {
         assert_eq!(a.remove_last_of(3).map(|x| x.tid), Some(3));
         assert!(a.remove_last_of(2).is_none(), "the only one left");
         assert_eq!(order(&a), [(2, 1)]);
-        let served: Vec<u16> = a.take().map(|x| x.tid).collect();
+        let served: Vec<u16> = a.into_iter().map(|x| x.tid).collect();
         assert_eq!(served, [1]);
     }
 }

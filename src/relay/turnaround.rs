@@ -93,7 +93,7 @@ impl Turnaround {
     /// (the switch itself, an ioctl or a GPIO write, takes time of its own).
     pub(super) fn switched_on(&mut self, at: Instant) {
         if let Phase::Sending { ready_at } = &mut self.phase {
-            *ready_at = (*ready_at).max(at + self.before);
+            *ready_at = at + self.before;
         }
     }
 

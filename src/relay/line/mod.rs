@@ -265,9 +265,6 @@ impl LineFraming {
         }
     }
 
-    /// Frames the bytes received so far make, given what is in flight, pushed onto
-    /// `seen`: the relay's own vector, kept from turn to turn, so that a reply costs
-    /// no allocation for the list it comes in.
     /// The frames in the bytes received so far, for the tests.
     #[cfg(test)]
     pub(super) fn frames<R: Asked>(
@@ -281,6 +278,9 @@ impl LineFraming {
         seen
     }
 
+    /// Frames the bytes received so far make, given what is in flight, pushed onto
+    /// `seen`: the relay's own vector, kept from turn to turn, so that a reply costs
+    /// no allocation for the list it comes in.
     pub(super) fn frames_into<R: Asked>(
         &mut self,
         in_flight: &[OnLine<R>],
