@@ -1,6 +1,7 @@
-# Shared by scripts/systemd-check and scripts/pi-check (sourced, not run): the cache
-# directory, Debian packages and the pinned cargo-deb, the runner baked into each test
-# system, and reading the result lines of scripts/service-checks.
+# Shared by the scripts that build, package and check mbgate (sourced, not run): the
+# cache directory, Debian packages and the pinned cargo-deb, a free local port, the
+# runner baked into each test system, and reading the result lines of
+# scripts/service-checks.
 
 # Downloads and built base systems, reused by the next run.
 cache=${XDG_CACHE_HOME:-$HOME/.cache}/mbgate-pi
@@ -54,6 +55,9 @@ ensure_packages() {
     apt-get update -qq
     apt-get install -y -qq --no-install-recommends "${missing[@]}" >&2
 }
+
+# A TCP port on 127.0.0.1 that nothing listens on now.
+free_port() { python3 -c 'import socket; s = socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])'; }
 
 # cargo-deb at the version .ci/run pins.
 ensure_cargo_deb() {
