@@ -4,10 +4,9 @@
 //! comes and again when it is sent, and a reply to a read that came before either is
 //! not kept. Exception replies are never kept. Plain data: the loop passes the time in.
 
-use super::ids::IdMap;
+use super::ids::{IdMap, KeyMap};
 use super::scheduler::ReadKey;
 use crate::frame::Adu;
-use std::collections::HashMap;
 use std::time::Duration;
 use tokio::time::Instant;
 
@@ -18,7 +17,7 @@ const MAX_ENTRIES: usize = 4096;
 pub(super) struct Cache {
     /// How long a reply may answer identical reads; zero: never (off).
     ttl: Duration,
-    entries: HashMap<ReadKey, (Instant, Adu)>,
+    entries: KeyMap<ReadKey, (Instant, Adu)>,
     /// Requests that acted on each unit (came or were sent), and on unit 0.
     generations: IdMap<u8, u64>,
     broadcasts: u64,
@@ -28,7 +27,7 @@ impl Cache {
     pub(super) fn new(ttl: Duration) -> Self {
         Self {
             ttl,
-            entries: HashMap::new(),
+            entries: KeyMap::default(),
             generations: IdMap::default(),
             broadcasts: 0,
         }

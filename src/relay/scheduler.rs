@@ -27,9 +27,12 @@
 //! however busy the higher one. Which request is ready is the same rule as without
 //! classes (the front of every queue it is in), so each master's order holds.
 
-use super::ids::IdMap;
+use super::ids::{IdMap, KeyMap};
 use super::ConnId;
-use std::collections::{BTreeMap, HashMap, VecDeque};
+use std::collections::VecDeque;
+use waiting::Waiting;
+
+mod waiting;
 
 /// How many emptied queues the scheduler keeps for reuse: enough for the masters that
 /// take turns on a busy line, few enough to hold no memory worth counting.
@@ -42,10 +45,18 @@ pub(crate) const LOWER_EVERY: u32 = 8;
 /// What makes two reads the same read: the unit and the PDU (function code 01-04,
 /// address, count). Two requests with the same key get the same reply from the device
 /// if nothing acted on it in between.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(super) struct ReadKey {
     pub(super) unit: u8,
     pub(super) pdu: [u8; 5],
+}
+
+impl std::hash::Hash for ReadKey {
+    /// As one word: one step of the hasher, not one for each field and byte.
+    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
+        let [f, a0, a1, c0, c1] = self.pdu;
+        state.write_u64(u64::from_le_bytes([self.unit, f, a0, a1, c0, c1, 0, 0]));
+    }
 }
 
 /// What the scheduler needs to know of a request.
@@ -99,7 +110,7 @@ pub(super) struct Scheduler<R> {
     /// Whether an identical read may join one waiting (`coalesce`).
     coalesce: bool,
     /// The requests waiting, by number (the order they were queued in).
-    waiting: BTreeMap<u64, Entry<R>>,
+    waiting: Waiting<Entry<R>>,
     /// The number the next request queued gets.
     next_number: u64,
     /// Each master's waiting requests, its own and those it joined, as numbers in the
@@ -120,7 +131,7 @@ pub(super) struct Scheduler<R> {
     /// Each master's part of `queued`: its share of the queue.
     held: IdMap<ConnId, usize>,
     /// The newest joinable read of each key, by number (a hint, checked).
-    joinable: HashMap<ReadKey, u64>,
+    joinable: KeyMap<ReadKey, u64>,
     /// Requests that act, queued so far: per unit, and to unit 0.
     epochs: IdMap<u8, u64>,
     broadcast_epoch: u64,
@@ -168,7 +179,7 @@ impl<R: Queued> Scheduler<R> {
         Self {
             depth,
             coalesce,
-            waiting: BTreeMap::new(),
+            waiting: Waiting::default(),
             next_number: 0,
             queues: IdMap::default(),
             spare: Vec::new(),
@@ -176,7 +187,7 @@ impl<R: Queued> Scheduler<R> {
             last_served: None,
             queued: 0,
             held: IdMap::default(),
-            joinable: HashMap::new(),
+            joinable: KeyMap::default(),
             epochs: IdMap::default(),
             broadcast_epoch: 0,
             retry: VecDeque::new(),
@@ -229,7 +240,7 @@ impl<R: Queued> Scheduler<R> {
         let acts_on = |r: &R| r.acts() && (r.unit() == unit || r.unit() == 0);
         self.queues.get(&conn).is_some_and(|q| {
             q.iter()
-                .any(|n| self.waiting.get(n).is_some_and(|e| acts_on(&e.req)))
+                .any(|&n| self.waiting.get(n).is_some_and(|e| acts_on(&e.req)))
         }) || self
             .retry
             .iter()
@@ -267,7 +278,7 @@ impl<R: Queued> Scheduler<R> {
                     self.joinable.insert(key, number);
                 }
                 let epoch = self.epoch(req.unit());
-                self.waiting.insert(number, Entry { req, epoch });
+                self.waiting.push(number, Entry { req, epoch });
                 self.enlist(conn, number);
                 Admitted::Queued
             }
@@ -318,7 +329,7 @@ impl<R: Queued> Scheduler<R> {
             return Err(req);
         }
         let epoch = self.epoch(key.unit);
-        match self.waiting.get_mut(&number) {
+        match self.waiting.get_mut(number) {
             Some(e) if e.epoch == epoch && e.req.read_key() == Some(key) => {
                 e.req.join(req);
                 self.joins += 1;
@@ -378,7 +389,7 @@ impl<R: Queued> Scheduler<R> {
     /// is for the rest.
     fn evict(&mut self, conn: ConnId) -> Option<R> {
         let number = *self.queues.get(&conn)?.back()?;
-        let e = self.waiting.get_mut(&number)?;
+        let e = self.waiting.get_mut(number)?;
         let gone = match e.req.leave_one(conn) {
             Some(part) => {
                 if !e.req.masters().any(|c| c == conn) {
@@ -418,7 +429,7 @@ impl<R: Queued> Scheduler<R> {
 
     /// Takes request `number` out of the waiting ones (not out of the queues).
     fn remove(&mut self, number: u64) -> Option<R> {
-        let e = self.waiting.remove(&number)?;
+        let e = self.waiting.remove(number)?;
         if let Some(key) = e.req.read_key() {
             if self.joinable.get(&key) == Some(&number) {
                 self.joinable.remove(&key);
@@ -475,7 +486,7 @@ impl<R: Queued> Scheduler<R> {
 
     fn next_queued(&mut self) -> Option<R> {
         let ready = |s: &Self, number: u64| {
-            s.waiting.get(&number).is_some_and(|e| {
+            s.waiting.get(number).is_some_and(|e| {
                 e.req
                     .masters()
                     .all(|c| s.queues.get(&c).and_then(|q| q.front()) == Some(&number))
@@ -498,7 +509,7 @@ impl<R: Queued> Scheduler<R> {
             .enumerate()
             .filter_map(|(i, c)| {
                 let &n = self.queues.get(c)?.front()?;
-                let e = self.waiting.get(&n)?;
+                let e = self.waiting.get(n)?;
                 ready(self, n).then(|| (i, n, self.classes_of(&e.req)))
             })
             .collect();
@@ -533,7 +544,7 @@ impl<R: Queued> Scheduler<R> {
             }
             // Never: the lowest number is at the front of all its masters' queues.
             None => {
-                let (&number, e) = self.waiting.first_key_value()?;
+                let (number, e) = self.waiting.first()?;
                 let conn = e.req.conn();
                 self.ring.retain(|&c| c != conn);
                 (conn, number)
@@ -578,7 +589,7 @@ impl<R: Queued> Scheduler<R> {
         };
         self.ring.retain(|&c| c != conn);
         for number in q {
-            let Some(e) = self.waiting.get_mut(&number) else {
+            let Some(e) = self.waiting.get_mut(number) else {
                 continue;
             };
             let gone = match e.req.leave(conn) {
@@ -600,11 +611,7 @@ impl<R: Queued> Scheduler<R> {
         self.held.clear();
         self.joinable.clear();
         let mut all: Vec<R> = std::mem::take(&mut self.retry).into();
-        all.extend(
-            std::mem::take(&mut self.waiting)
-                .into_values()
-                .map(|e| e.req),
-        );
+        all.extend(self.waiting.drain().map(|e| e.req));
         all
     }
 
@@ -614,7 +621,7 @@ impl<R: Queued> Scheduler<R> {
             .waiting
             .iter()
             .filter(|(_, e)| e.req.unit() == unit)
-            .map(|(&n, _)| n)
+            .map(|(n, _)| n)
             .collect();
         let mut swept = Vec::new();
         for number in numbers {
@@ -643,7 +650,7 @@ impl<R: Queued> Scheduler<R> {
     fn audit(&self) {
         let mut held: IdMap<ConnId, usize> = IdMap::default();
         let mut listed: IdMap<ConnId, Vec<u64>> = IdMap::default();
-        for (&n, e) in &self.waiting {
+        for (n, e) in self.waiting.iter() {
             for c in e.req.masters() {
                 *held.entry(c).or_default() += 1;
                 let l = listed.entry(c).or_default();

@@ -3,6 +3,7 @@
 
 use super::*;
 use proptest::prelude::*;
+use std::collections::HashMap;
 
 /// A request: each master it serves with a label, its unit, the register it reads
 /// (`None`: it acts, like a write), and the turn that last put it on the line.
@@ -703,7 +704,7 @@ fn a_higher_class_goes_first_and_a_lower_one_gets_one_in_n() {
                     // master they serve (a joined read waits for each of its masters'
                     // earlier requests), with the lowest and highest class they serve.
                     let span = |n: u64| {
-                        let r = &s.waiting[&n].req;
+                        let r = &s.waiting.get(n).unwrap().req;
                         r.askers.iter().fold((u8::MAX, 0), |(lo, hi), (c, _)| {
                             (lo.min(class(*c)), hi.max(class(*c)))
                         })
@@ -713,7 +714,7 @@ fn a_higher_class_goes_first_and_a_lower_one_gets_one_in_n() {
                         .values()
                         .filter_map(|q| q.front().copied())
                         .filter(|n| {
-                            s.waiting[n].req.askers.iter().all(|(c, _)| s.queues[c].front() == Some(n))
+                            s.waiting.get(*n).unwrap().req.askers.iter().all(|(c, _)| s.queues[c].front() == Some(n))
                         })
                         .map(span)
                         .collect();
