@@ -35,3 +35,4 @@ pub(crate) mod tcp;
 pub(crate) mod tids;
 pub mod tls;
 pub mod wire;
+pub(crate) mod woken;

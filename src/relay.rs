@@ -52,6 +52,7 @@ use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
+use crate::woken::Woken;
 use watchdog::Watchdog;
 
 /// The task that owns one serial line and everything on it (the module notes): built
@@ -221,9 +222,9 @@ impl Relay {
             .inspect_err(|e| debug!("no timerfd ({e}): timers to the millisecond"))
             .ok();
         // One wait for shutdown for the relay's life: made afresh each turn of the
-        // loop, it would register with the token and unregister again every event.
-        let shutdown = self.shutdown.clone().cancelled_owned();
-        tokio::pin!(shutdown);
+        // loop, it would register with the token and unregister again every event;
+        // and polled only once the token woke it (`crate::woken`).
+        let mut shutdown = Woken::new(self.shutdown.clone().cancelled_owned());
         loop {
             let mut now = Instant::now();
             if let Some(w) = &mut self.watchdog {
@@ -259,7 +260,7 @@ impl Relay {
                 may_write,
                 wake,
                 timer: timer.as_mut(),
-                shutdown: (!self.draining).then_some(shutdown.as_mut()),
+                shutdown: (!self.draining).then_some(&mut shutdown),
             };
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();

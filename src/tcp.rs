@@ -23,6 +23,7 @@ use crate::relay::ConnId;
 use crate::router::{Router, Unrouted};
 use crate::stats::Stats;
 use crate::tls::server::{Acceptor, Grant};
+use crate::woken::Woken;
 use bytes::BytesMut;
 use handshakes::Handshakes;
 use std::collections::HashMap;
@@ -496,14 +497,13 @@ impl Connection {
         // clock is read then): a timer made afresh each turn of the loop would be
         // registered with tokio's timer once a request, and each registration wakes
         // the reactor (a system call; docs/performance.md "What a transaction costs").
-        let idle_timer = tokio::time::sleep_until(last_read + idle);
-        tokio::pin!(idle_timer);
+        // Polled only once it went off (`crate::woken`), like the wait for shutdown.
+        let mut idle_timer = Woken::new(tokio::time::sleep_until(last_read + idle));
         let mut buf = BytesMut::with_capacity(512);
         let mut codec = C::default();
         // One wait for shutdown for the connection's life, not one registered with
         // the token and dropped again at every request.
-        let shutdown = self.shutdown.cancelled();
-        tokio::pin!(shutdown);
+        let mut shutdown = Woken::new(self.shutdown.cancelled());
         loop {
             match codec.decode(&mut buf) {
                 Ok(Some(adu)) => {
@@ -577,7 +577,7 @@ impl Connection {
                         }
                         Some(at) => at,
                     };
-                    idle_timer.as_mut().reset(wake);
+                    idle_timer.inner().reset(wake);
                 }
                 _ = &mut shutdown => return End::Finish,
             }

@@ -8,7 +8,7 @@ use super::Command;
 use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::serial::PreciseTimer;
 use crate::port::OpenPort;
-use std::pin::Pin;
+use crate::woken::Woken;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::sync::mpsc;
 use tokio::time::Instant;
@@ -40,7 +40,7 @@ pub(super) struct Sources<'a> {
     /// millisecond.
     pub(super) timer: Option<&'a mut PreciseTimer>,
     /// The relay's one wait for shutdown; `None` once shutdown has been asked for.
-    pub(super) shutdown: Option<Pin<&'a mut WaitForCancellationFutureOwned>>,
+    pub(super) shutdown: Option<&'a mut Woken<WaitForCancellationFutureOwned>>,
 }
 
 /// Waits for the next event; bytes read go into `rbuf`.
