@@ -36,6 +36,9 @@ use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::{self, OpenPort};
 use crate::stats::Stats;
 use cache::Cache;
+#[cfg(test)]
+pub(crate) use command::channel;
+use command::Commands;
 pub use command::{Command, ConnId, RelayHandle};
 use event::Event;
 use inflight::{Failure, InFlight, Paced};
@@ -48,7 +51,6 @@ use std::sync::Arc;
 use std::time::Duration;
 pub(crate) use telemetry::span;
 use telemetry::Telemetry;
-use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
@@ -59,7 +61,7 @@ use watchdog::Watchdog;
 /// with [`Relay::new`], driven by [`Relay::run`].
 pub struct Relay {
     cfg: RelayConfig,
-    rx: mpsc::UnboundedReceiver<Command>,
+    rx: Commands,
     masters: Masters,
     /// The requests waiting for the line, and which goes next.
     sched: Scheduler<Pending>,
@@ -136,7 +138,7 @@ impl Relay {
         stats: Arc<Stats>,
         shutdown: CancellationToken,
     ) -> (Self, RelayHandle) {
-        let (tx, rx) = mpsc::unbounded_channel();
+        let (handle, rx) = command::channel();
         let now = Instant::now();
         let line = LineFraming::new(&cfg, &serial, stream, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
@@ -177,7 +179,7 @@ impl Relay {
             telemetry: Telemetry::new(metrics, traffic, serial.framing, baud),
             turnaround,
         };
-        (relay, RelayHandle::new(tx))
+        (relay, handle)
     }
 
     /// Runs the line over `transport` instead of the `[serial]` port (a device behind

@@ -4,13 +4,13 @@
 //! self-wake of tokio's reactor for each new deadline), or shutdown. The waiting only: the loop decides what each event means.
 
 use super::outgoing::Outgoing;
+use super::command::Commands;
 use super::Command;
 use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::serial::PreciseTimer;
 use crate::port::OpenPort;
 use crate::woken::Woken;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
-use tokio::sync::mpsc;
 use tokio::time::Instant;
 use tokio_util::sync::WaitForCancellationFutureOwned;
 
@@ -28,7 +28,7 @@ pub(super) enum Event {
 /// Everything besides the port the loop may wake for.
 pub(super) struct Sources<'a> {
     /// `None` once every handle is gone: `recv` would return at once forever.
-    pub(super) commands: Option<&'a mut mpsc::UnboundedReceiver<Command>>,
+    pub(super) commands: Option<&'a mut Commands>,
     /// Written while it holds bytes.
     pub(super) out: &'a Outgoing,
     /// The transmitter is on and its delay before has passed (always, where the
