@@ -121,9 +121,35 @@ impl Adu {
     /// The same frame with another transaction id (the relay's id rewriting, docs/design.md
     /// §1 step 3).
     pub fn with_tid(&self, tid: u16) -> Self {
-        let mut b = BytesMut::from(&self.0[..]);
-        b[..2].copy_from_slice(&tid.to_be_bytes());
-        Adu(b.freeze())
+        let src = &self.0[..];
+        if src.len() > MAX_ADU {
+            // Never from a decoder; a frame built longer still gets its id.
+            let mut b = BytesMut::from(src);
+            b[..2].copy_from_slice(&tid.to_be_bytes());
+            return Adu(b.freeze());
+        }
+        let mut frame = Owned {
+            len: src.len(),
+            buf: [0; MAX_ADU],
+        };
+        frame.buf[..src.len()].copy_from_slice(src);
+        frame.buf[..2].copy_from_slice(&tid.to_be_bytes());
+        Adu(Bytes::from_owner(frame))
+    }
+}
+
+/// A frame's bytes in one allocation with the count of their owners: a copy of the
+/// frame (the line keeps one of each request it sends, to know its echo) is a count
+/// more, where a `Bytes` made from a `Vec` allocates again on its first copy
+/// (docs/performance.md "What a transaction costs").
+struct Owned {
+    len: usize,
+    buf: [u8; MAX_ADU],
+}
+
+impl AsRef<[u8]> for Owned {
+    fn as_ref(&self) -> &[u8] {
+        &self.buf[..self.len]
     }
 }
 
