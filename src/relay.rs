@@ -227,8 +227,16 @@ impl Relay {
         // loop, it would register with the token and unregister again every event;
         // and polled only once the token woke it (`crate::woken`).
         let mut shutdown = Woken::new(self.shutdown.clone().cancelled_owned());
+        // The clock as the last turn ended. On a line of MBAP frames, which keeps no
+        // gap and times nothing before a write to the microsecond, the next turn starts
+        // from it (its work since is a few microseconds of ours): a clock read less
+        // each turn. RTU and ASCII read it afresh for their gaps.
+        let mut ended: Option<Instant> = None;
         loop {
-            let mut now = Instant::now();
+            let mut now = match ended.take() {
+                Some(at) if !self.line.is_serial() => at,
+                _ => Instant::now(),
+            };
             if let Some(w) = &mut self.watchdog {
                 w.pet(now);
             }
@@ -306,6 +314,7 @@ impl Relay {
             self.expire(now);
             self.answer_paced(now);
             self.tell(now);
+            ended = Some(now);
         }
         debug!("relay stopped");
     }
