@@ -128,26 +128,42 @@ impl Adu {
             b[..2].copy_from_slice(&tid.to_be_bytes());
             return Adu(b.freeze());
         }
-        let mut frame = Owned {
-            len: src.len(),
-            buf: [0; MAX_ADU],
-        };
-        frame.buf[..src.len()].copy_from_slice(src);
-        frame.buf[..2].copy_from_slice(&tid.to_be_bytes());
-        Adu(Bytes::from_owner(frame))
+        // Most requests and many replies are short: a small box for them.
+        if src.len() <= SHORT {
+            Adu(Bytes::from_owner(Owned::<SHORT>::with_tid(src, tid)))
+        } else {
+            Adu(Bytes::from_owner(Owned::<MAX_ADU>::with_tid(src, tid)))
+        }
     }
 }
+
+/// Frames up to this long (an FC 03 request, a reply of up to 12 registers) are held
+/// in a box of this size.
+const SHORT: usize = 32;
 
 /// A frame's bytes in one allocation with the count of their owners: a copy of the
 /// frame (the line keeps one of each request it sends, to know its echo) is a count
 /// more, where a `Bytes` made from a `Vec` allocates again on its first copy
 /// (docs/performance.md "What a transaction costs").
-struct Owned {
+struct Owned<const N: usize> {
     len: usize,
-    buf: [u8; MAX_ADU],
+    buf: [u8; N],
 }
 
-impl AsRef<[u8]> for Owned {
+impl<const N: usize> Owned<N> {
+    /// `src` (at most `N` bytes) with transaction id `tid`.
+    fn with_tid(src: &[u8], tid: u16) -> Self {
+        let mut frame = Owned {
+            len: src.len(),
+            buf: [0; N],
+        };
+        frame.buf[..src.len()].copy_from_slice(src);
+        frame.buf[..2].copy_from_slice(&tid.to_be_bytes());
+        frame
+    }
+}
+
+impl<const N: usize> AsRef<[u8]> for Owned<N> {
     fn as_ref(&self) -> &[u8] {
         &self.buf[..self.len]
     }
