@@ -35,8 +35,8 @@
 //! its tickets, the relay's notifier and the writer: each step of a transaction (a
 //! ticket, its answer, the writer taking it, the slot freed) is one uncontended lock.
 //! (A tokio channel and semaphore did the same in about 1 500 instructions a
-//! transaction, a tenth of the gateway's: callgrind, docs/performance.md "What a
-//! transaction costs".)
+//! transaction, a tenth of the gateway's: callgrind, docs/performance.md
+//! "Instructions a transaction, counted".)
 
 use crate::frame::{Adu, ExceptionCode};
 use crate::stats::Stats;
@@ -317,7 +317,6 @@ impl Refusal {
         }
     }
 }
-
 
 /// One request's claim on its master's way back. Answer it once; dropping it
 /// unanswered says "no reply" so the requests behind it are not held up.

@@ -35,6 +35,7 @@ use crate::outbox::{Refusal, Ticket};
 use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::{self, OpenPort};
 use crate::stats::Stats;
+use crate::woken::Woken;
 use cache::Cache;
 #[cfg(test)]
 pub(crate) use command::channel;
@@ -54,7 +55,6 @@ use telemetry::Telemetry;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
-use crate::woken::Woken;
 use watchdog::Watchdog;
 
 /// The task that owns one serial line and everything on it (the module notes): built

@@ -6,8 +6,8 @@
 //! read, a command). `select!` polls every branch that is not ready each time the task
 //! runs, and polling tokio-util's wait for cancellation locks a mutex, and a tokio
 //! `Sleep` goes through the timer's state: together about 4 % of the gateway's
-//! instructions a transaction (callgrind, docs/performance.md "What a transaction
-//! costs"). Wrapped in [`Woken`], the inner future is given a waker of its own; the
+//! instructions a transaction (callgrind, docs/performance.md "Instructions a
+//! transaction, counted"). Wrapped in [`Woken`], the inner future is given a waker of its own; the
 //! wrapper polls it again only after that waker fired, and otherwise returns
 //! `Pending` after comparing the task's waker with the one it passed on.
 
@@ -151,7 +151,11 @@ mod tests {
         for _ in 0..100 {
             assert!(Pin::new(&mut w).poll(&mut cx).is_pending());
         }
-        assert_eq!(gate.polls.load(Ordering::Relaxed), 1, "polled past its first");
+        assert_eq!(
+            gate.polls.load(Ordering::Relaxed),
+            1,
+            "polled past its first"
+        );
         gate.open();
         assert_eq!(wakes.0.load(Ordering::Relaxed), 1, "the task was not woken");
         assert!(Pin::new(&mut w).poll(&mut cx).is_ready());

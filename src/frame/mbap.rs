@@ -144,7 +144,7 @@ const SHORT: usize = 32;
 /// A frame's bytes in one allocation with the count of their owners: a copy of the
 /// frame (the line keeps one of each request it sends, to know its echo) is a count
 /// more, where a `Bytes` made from a `Vec` allocates again on its first copy
-/// (docs/performance.md "What a transaction costs").
+/// (docs/performance.md "Instructions a transaction, counted").
 struct Owned<const N: usize> {
     len: usize,
     buf: [u8; N],

@@ -1,7 +1,7 @@
 //! What connections tell the relay, and the channel they tell it through: a queue
 //! under a mutex with the relay's waker beside it, one uncontended lock a command
 //! (tokio's unbounded channel took about 400 instructions a transaction for the
-//! same: callgrind, docs/performance.md "What a transaction costs").
+//! same: callgrind, docs/performance.md "Instructions a transaction, counted").
 
 use crate::config::RelayConfig;
 use crate::frame::Adu;

@@ -3,8 +3,8 @@
 //! timer (to the microsecond, on a timerfd set only when the next wake moves: no
 //! self-wake of tokio's reactor for each new deadline), or shutdown. The waiting only: the loop decides what each event means.
 
-use super::outgoing::Outgoing;
 use super::command::Commands;
+use super::outgoing::Outgoing;
 use super::Command;
 use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::serial::PreciseTimer;

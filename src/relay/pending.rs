@@ -98,7 +98,7 @@ impl IntoIterator for Askers {
 /// from the connection, into the queue, onto the line, back with its reply), and a
 /// pointer moves for nothing where the whole of it went through `memcpy` each time,
 /// about 4 % of the gateway's instructions a transaction for one allocation
-/// (callgrind, docs/performance.md "What a transaction costs").
+/// (callgrind, docs/performance.md "Instructions a transaction, counted").
 pub(super) struct Pending(Box<Parts>);
 
 impl std::ops::Deref for Pending {
