@@ -230,11 +230,13 @@ impl Relay {
         // The clock as the last turn ended. On a line of MBAP frames, which keeps no
         // gap and times nothing before a write to the microsecond, the next turn starts
         // from it (its work since is a few microseconds of ours): a clock read less
-        // each turn. RTU and ASCII read it afresh for their gaps.
+        // each turn. RTU and ASCII read it afresh for their gaps, and so does a line
+        // whose RS-485 transmitter the gateway switches, for its delays.
+        let carry = !self.line.is_serial() && self.turnaround.is_none();
         let mut ended: Option<Instant> = None;
         loop {
             let mut now = match ended.take() {
-                Some(at) if !self.line.is_serial() => at,
+                Some(at) if carry => at,
                 _ => Instant::now(),
             };
             if let Some(w) = &mut self.watchdog {
