@@ -40,6 +40,7 @@
 
 use crate::frame::{Adu, ExceptionCode};
 use crate::stats::Stats;
+use crate::woken::keep;
 use std::collections::{BTreeMap, VecDeque};
 use std::fmt;
 use std::future::poll_fn;
@@ -144,13 +145,6 @@ struct State {
     settled: Instant,
 }
 
-/// Keeps `waker` in `slot` unless the one there wakes the same task.
-fn register(slot: &mut Option<Waker>, waker: &Waker) {
-    if !slot.as_ref().is_some_and(|w| w.will_wake(waker)) {
-        *slot = Some(waker.clone());
-    }
-}
-
 /// The connection's side: hands out tickets in read order.
 pub struct Outbox {
     shared: Arc<Shared>,
@@ -203,7 +197,7 @@ impl Outbox {
                 s.senders += 1;
                 Poll::Ready(())
             } else {
-                register(&mut s.outbox, cx.waker());
+                keep(&mut s.outbox, cx.waker());
                 Poll::Pending
             }
         })
@@ -253,7 +247,7 @@ impl Outbox {
             if s.used == 0 {
                 Poll::Ready(())
             } else {
-                register(&mut s.outbox, cx.waker());
+                keep(&mut s.outbox, cx.waker());
                 Poll::Pending
             }
         })
@@ -514,7 +508,7 @@ impl Inbox {
             if s.senders == 0 {
                 return Poll::Ready(None);
             }
-            register(&mut s.writer, cx.waker());
+            keep(&mut s.writer, cx.waker());
             Poll::Pending
         })
         .await

@@ -1,5 +1,7 @@
 //! A future that a busy loop's `select!` can poll at every turn for almost nothing: it
-//! is polled itself only when it has woken the task (or is new, or was changed).
+//! is polled itself only when it has woken the task (or is new, or was changed). And
+//! the one rule for keeping a task's waker ([`keep`]) that it and the gateway's own
+//! channels (`crate::outbox`, the relay's commands) share.
 //!
 //! The relay's and each connection's loop wait on a few futures that seldom finish
 //! (shutdown, the idle timer) beside the ones that finish every transaction (bytes
@@ -7,15 +9,25 @@
 //! runs, and polling tokio-util's wait for cancellation locks a mutex, and a tokio
 //! `Sleep` goes through the timer's state: together about 4 % of the gateway's
 //! instructions a transaction (callgrind, docs/performance.md "Instructions a
-//! transaction, counted"). Wrapped in [`Woken`], the inner future is given a waker of its own; the
-//! wrapper polls it again only after that waker fired, and otherwise returns
-//! `Pending` after comparing the task's waker with the one it passed on.
+//! transaction, counted"). Wrapped in [`Woken`], the inner future is given a waker of
+//! its own; the wrapper polls it again only after that waker fired, and otherwise
+//! returns `Pending` after comparing the task's waker with the one it passed on.
 
 use std::future::Future;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, Mutex};
 use std::task::{Context, Poll, Wake, Waker};
+
+/// Keeps `waker` in `slot` unless the one there wakes the same task (a clone, and
+/// the store, only when the task's waker changed); true if it was kept anew.
+pub(crate) fn keep(slot: &mut Option<Waker>, waker: &Waker) -> bool {
+    if slot.as_ref().is_some_and(|w| w.will_wake(waker)) {
+        return false;
+    }
+    *slot = Some(waker.clone());
+    true
+}
 
 /// `F`, polled only after it woke the task (see the module notes).
 pub(crate) struct Woken<F> {
@@ -81,10 +93,8 @@ impl<F: Future> Future for Woken<F> {
     fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<F::Output> {
         // Unpin: the inner future is boxed.
         let this = self.get_mut();
-        if !this.task.as_ref().is_some_and(|w| w.will_wake(cx.waker())) {
-            let w = cx.waker().clone();
-            *this.signal.task.lock().unwrap_or_else(|e| e.into_inner()) = Some(w.clone());
-            this.task = Some(w);
+        if keep(&mut this.task, cx.waker()) {
+            *this.signal.task.lock().unwrap_or_else(|e| e.into_inner()) = this.task.clone();
         }
         let woken = this.signal.woken.swap(false, Ordering::AcqRel);
         if !(woken || std::mem::take(&mut this.fresh)) {

@@ -6,6 +6,7 @@
 use crate::config::RelayConfig;
 use crate::frame::Adu;
 use crate::outbox::{Notifier, Ticket};
+use crate::woken::keep;
 use std::collections::VecDeque;
 use std::future::poll_fn;
 use std::sync::{Arc, Mutex, MutexGuard};
@@ -170,9 +171,7 @@ impl Commands {
             if s.senders == 0 {
                 return Poll::Ready(None);
             }
-            if !s.relay.as_ref().is_some_and(|w| w.will_wake(cx.waker())) {
-                s.relay = Some(cx.waker().clone());
-            }
+            keep(&mut s.relay, cx.waker());
             Poll::Pending
         })
         .await

@@ -8,10 +8,11 @@
 //! gateway's instructions a transaction for the reads' map alone (callgrind,
 //! docs/performance.md "Instructions a transaction, counted"). A unit id is one of
 //! 256 values and a connection id is a counter the gateway hands out, so neither an
-//! attacker's nor anyone's choice: those are hashed plainly. A read's key is a master's choice, so
-//! its maps mix in a secret seed of their own before the multiplication; and such a
-//! map holds at most the queue's depth (the waiting reads) or the cache's bound of
-//! entries, so even keys that collided would cost a scan of that many, no more.
+//! attacker's nor anyone's choice: those are hashed plainly. A read's key is a
+//! master's choice, so its maps mix in a secret seed of their own before the
+//! multiplication; and such a map holds at most the queue's depth (the waiting reads)
+//! or the cache's bound of entries, so even keys that collided would cost a scan of
+//! that many, no more.
 
 use std::collections::HashMap;
 use std::hash::{BuildHasher, BuildHasherDefault, Hasher, RandomState};
