@@ -318,16 +318,29 @@ impl Serial {
         }
     }
 
+    /// The earliest instant the line needs the loop. Each instant counts on its own,
+    /// and one that has passed never hides a later one: the turn that reads stray
+    /// bytes after a timeout may end past the silence that ends them (a busy machine),
+    /// and the end of the guard must still wake the request waiting for it.
     pub(super) fn next_wake(&self, now: Instant, waiting: bool) -> Option<Instant> {
-        let mut wake: Option<Instant> = None;
-        if self.decoder.buffered() > 0 {
-            wake = Some(self.last_rx + self.quiet_after());
-        }
-        if waiting {
-            let free = self.free_at();
-            wake = Some(wake.map_or(free, |w| w.min(free)));
-        }
-        wake.filter(|&w| w > now)
+        // The silence that ends what is buffered. Passed already, it wakes the loop at
+        // once where looking again ends something (RTU cuts a frame at silence, and
+        // bytes nothing asked for are dropped), and not where it would not (an ASCII
+        // frame in flight waits for its CR LF): the loop would spin.
+        let silence = (self.decoder.buffered() > 0)
+            .then(|| self.last_rx + self.quiet_after())
+            .filter(|&at| at > now || self.silence_ends_frame());
+        // The line free for the next request. Passed, it is dispatch's, which ran this
+        // turn and found something else in the way (a request in flight or being
+        // written, bytes not yet read), each of which wakes the loop when it changes.
+        let free = waiting.then(|| self.free_at()).filter(|&at| at > now);
+        silence.into_iter().chain(free).min()
+    }
+
+    /// Does the silence after what is buffered end it, whatever it holds? RTU: a
+    /// frame of unknown shape ends there; with nothing asked, anything is dropped.
+    fn silence_ends_frame(&self) -> bool {
+        self.asked.is_none() || self.port.framing == crate::config::Framing::Rtu
     }
 
     pub(super) fn clear(&mut self, stats: &Stats) {

@@ -307,3 +307,118 @@ fn without_the_drain_the_request_leaves_its_wire_time_after_the_write() {
         1
     );
 }
+
+/// A request waits for the guard after a timeout; the late reply comes within the
+/// guard, and the turn that read it ends after the silence that ends it (a busy
+/// machine). The loop is woken at once to drop it, then at the guard's end: never
+/// left asleep with a request waiting (docs/reliability.md "RTU and ASCII").
+#[test]
+fn a_request_waiting_for_the_guard_is_woken_when_stray_bytes_ended_before_the_turn() {
+    use crate::relay::inflight::OnLine;
+    let guard = 1500 * MS;
+    let relay = RelayConfig {
+        timeout_guard_ms: 1500,
+        ..RelayConfig::default()
+    };
+    let none: &[OnLine<(Adu, u32)>] = &[];
+    for framing in [crate::config::Framing::Rtu, crate::config::Framing::Ascii] {
+        let serial = SerialConfig {
+            framing,
+            ..SerialConfig::default()
+        };
+        for kind in [Medium::Pty, uart()] {
+            let why = format!("{framing:?} on {kind:?}");
+            let stats = Stats::default();
+            let t0 = Instant::now();
+            let mut line = LineFraming::new(&relay, &serial, false, t0);
+            line.port_opened(&PortInfo::plain(kind));
+            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+            let key = line.allocate(t0);
+            let bytes = line.encode(&read, key, t0, &stats);
+            line.wrote(bytes.len(), t0, t0);
+            line.drained(t0, &stats);
+            let t1 = t0 + 1000 * MS;
+            line.timed_out(t1, Duration::ZERO, &stats);
+            let late = t1 + 300 * MS;
+            let reply = match framing {
+                crate::config::Framing::Rtu => Codec::Rtu.encode(1, &[3, 2, 0, 7]),
+                _ => Codec::Ascii.encode(1, &[3, 2, 0, 7]),
+            };
+            line.received(&reply, late, &stats);
+            // The turn that read it ends well past the silence that ends it (1.82 ms
+            // on a pty at 19 200 baud; a UART's floor is a few ms more).
+            let now = late + 100 * MS;
+            let wake = line.next_wake(now, true);
+            assert!(wake.is_some_and(|w| w <= now), "{why}: {wake:?}");
+            assert!(line.frames(none, now, &stats).is_empty(), "{why}");
+            assert_eq!(line.next_wake(now, true), Some(t1 + guard), "{why}");
+            assert!(!line.has_room(0, false, t1 + guard - MS), "{why}");
+            assert!(line.has_room(0, false, t1 + guard), "{why}");
+        }
+    }
+}
+
+proptest::proptest! {
+    #![proptest_config(proptest::test_runner::Config {
+        failure_persistence: None,
+        ..Default::default()
+    })]
+
+    /// The loop's invariant on a line with nothing in flight and a request waiting:
+    /// until the line has room, `next_wake` gives an instant, and waking there (or at
+    /// once, for one that has passed) and looking at the line moves it on; within a few
+    /// wakes the request may go. Stray bytes of any content in any chunks, at any time
+    /// after a timeout, looked at any time later; RTU and ASCII, pty and wire.
+    #[test]
+    fn a_waiting_request_always_has_a_wake_and_the_line_frees(
+        rtu in proptest::bool::ANY,
+        wire in proptest::bool::ANY,
+        guard_ms in 0u64..3000,
+        pause_ms in 0u64..50,
+        chunks in proptest::collection::vec(
+            (0u64..4000, proptest::collection::vec(proptest::num::u8::ANY, 1..12)),
+            0..5,
+        ),
+        late_us in 0u64..10_000,
+    ) {
+        use crate::relay::inflight::OnLine;
+        let none: &[OnLine<(Adu, u32)>] = &[];
+        let framing = if rtu {
+            crate::config::Framing::Rtu
+        } else {
+            crate::config::Framing::Ascii
+        };
+        let relay = RelayConfig {
+            timeout_guard_ms: guard_ms,
+            request_pause_ms: pause_ms,
+            ..RelayConfig::default()
+        };
+        let serial = SerialConfig { framing, ..SerialConfig::default() };
+        let stats = Stats::default();
+        let t0 = Instant::now();
+        let mut line = LineFraming::new(&relay, &serial, false, t0);
+        line.port_opened(&PortInfo::plain(if wire { uart() } else { Medium::Pty }));
+        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+        let key = line.allocate(t0);
+        let bytes = line.encode(&read, key, t0, &stats);
+        line.wrote(bytes.len(), t0, t0);
+        line.drained(t0, &stats);
+        let t1 = t0 + 1000 * MS;
+        line.timed_out(t1, Duration::ZERO, &stats);
+        let mut at = t1;
+        for (after_us, bytes) in &chunks {
+            at += Duration::from_micros(*after_us);
+            line.received(bytes, at, &stats);
+        }
+        let mut now = at + Duration::from_micros(late_us);
+        let mut wakes = 0;
+        while !line.has_room(0, false, now) {
+            let wake = line.next_wake(now, true);
+            proptest::prop_assert!(wake.is_some(), "asleep with a request waiting at {:?}", now - t1);
+            wakes += 1;
+            proptest::prop_assert!(wakes <= 4, "still no room after {} wakes", wakes);
+            now = now.max(wake.unwrap());
+            line.frames(none, now, &stats);
+        }
+    }
+}
