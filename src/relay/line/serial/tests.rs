@@ -1,5 +1,6 @@
 //! The RTU and ASCII line's tests: a reply with pauses inside on a pty and on a wire,
-//! the gap after a reply (over TCP, to the microsecond, `request_pause_ms`, a unit's own).
+//! the gap after a reply (over TCP, to the microsecond, `request_pause_ms`, a unit's own),
+//! the drain, and the loop's wakes while a request waits after a timeout.
 
 use super::super::{LineFraming, Seen};
 use super::*;
@@ -308,6 +309,27 @@ fn without_the_drain_the_request_leaves_its_wire_time_after_the_write() {
     );
 }
 
+/// A line on a port of `kind` whose read, sent at once, timed out 1 s later: the line,
+/// and the instant it timed out.
+fn timed_out(
+    relay: &RelayConfig,
+    serial: &SerialConfig,
+    kind: Medium,
+    stats: &Stats,
+) -> (LineFraming, Instant) {
+    let t0 = Instant::now();
+    let mut line = LineFraming::new(relay, serial, false, t0);
+    line.port_opened(&PortInfo::plain(kind));
+    let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
+    let key = line.allocate(t0);
+    let bytes = line.encode(&read, key, t0, stats);
+    line.wrote(bytes.len(), t0, t0);
+    line.drained(t0, stats);
+    let t1 = t0 + 1000 * MS;
+    line.timed_out(t1, Duration::ZERO, stats);
+    (line, t1)
+}
+
 /// A request waits for the guard after a timeout; the late reply comes within the
 /// guard, and the turn that read it ends after the silence that ends it (a busy
 /// machine). The loop is woken at once to drop it, then at the guard's end: never
@@ -329,16 +351,7 @@ fn a_request_waiting_for_the_guard_is_woken_when_stray_bytes_ended_before_the_tu
         for kind in [Medium::Pty, uart()] {
             let why = format!("{framing:?} on {kind:?}");
             let stats = Stats::default();
-            let t0 = Instant::now();
-            let mut line = LineFraming::new(&relay, &serial, false, t0);
-            line.port_opened(&PortInfo::plain(kind));
-            let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
-            let key = line.allocate(t0);
-            let bytes = line.encode(&read, key, t0, &stats);
-            line.wrote(bytes.len(), t0, t0);
-            line.drained(t0, &stats);
-            let t1 = t0 + 1000 * MS;
-            line.timed_out(t1, Duration::ZERO, &stats);
+            let (mut line, t1) = timed_out(&relay, &serial, kind, &stats);
             let late = t1 + 300 * MS;
             let reply = match framing {
                 crate::config::Framing::Rtu => Codec::Rtu.encode(1, &[3, 2, 0, 7]),
@@ -395,16 +408,8 @@ proptest::proptest! {
         };
         let serial = SerialConfig { framing, ..SerialConfig::default() };
         let stats = Stats::default();
-        let t0 = Instant::now();
-        let mut line = LineFraming::new(&relay, &serial, false, t0);
-        line.port_opened(&PortInfo::plain(if wire { uart() } else { Medium::Pty }));
-        let read = Adu::build(1, 1, &[3, 0, 0, 0, 1]);
-        let key = line.allocate(t0);
-        let bytes = line.encode(&read, key, t0, &stats);
-        line.wrote(bytes.len(), t0, t0);
-        line.drained(t0, &stats);
-        let t1 = t0 + 1000 * MS;
-        line.timed_out(t1, Duration::ZERO, &stats);
+        let kind = if wire { uart() } else { Medium::Pty };
+        let (mut line, t1) = timed_out(&relay, &serial, kind, &stats);
         let mut at = t1;
         for (after_us, bytes) in &chunks {
             at += Duration::from_micros(*after_us);
