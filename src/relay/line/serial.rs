@@ -337,10 +337,11 @@ impl Serial {
         silence.into_iter().chain(free).min()
     }
 
-    /// Does the silence after what is buffered end it, whatever it holds? RTU: a
-    /// frame of unknown shape ends there; with nothing asked, anything is dropped.
+    /// Does the silence after what is buffered end it, whatever it holds? RTU: the
+    /// framer cuts a frame of unknown shape there; with nothing asked, anything is
+    /// dropped.
     fn silence_ends_frame(&self) -> bool {
-        self.asked.is_none() || self.port.framing == crate::config::Framing::Rtu
+        self.asked.is_none() || self.decoder.codec() == Some(Codec::Rtu)
     }
 
     pub(super) fn clear(&mut self, stats: &Stats) {

@@ -343,7 +343,10 @@ fn a_request_waiting_for_the_guard_is_woken_when_stray_bytes_ended_before_the_tu
         ..RelayConfig::default()
     };
     let none: &[OnLine<(Adu, u32)>] = &[];
-    for framing in [crate::config::Framing::Rtu, crate::config::Framing::Ascii] {
+    for (framing, codec) in [
+        (crate::config::Framing::Rtu, Codec::Rtu),
+        (crate::config::Framing::Ascii, Codec::Ascii),
+    ] {
         let serial = SerialConfig {
             framing,
             ..SerialConfig::default()
@@ -353,11 +356,7 @@ fn a_request_waiting_for_the_guard_is_woken_when_stray_bytes_ended_before_the_tu
             let stats = Stats::default();
             let (mut line, t1) = timed_out(&relay, &serial, kind, &stats);
             let late = t1 + 300 * MS;
-            let reply = match framing {
-                crate::config::Framing::Rtu => Codec::Rtu.encode(1, &[3, 2, 0, 7]),
-                _ => Codec::Ascii.encode(1, &[3, 2, 0, 7]),
-            };
-            line.received(&reply, late, &stats);
+            line.received(&codec.encode(1, &[3, 2, 0, 7]), late, &stats);
             // The turn that read it ends well past the silence that ends it (1.82 ms
             // on a pty at 19 200 baud; a UART's floor is a few ms more).
             let now = late + 100 * MS;
