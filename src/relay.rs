@@ -765,7 +765,7 @@ impl Relay {
                 self.telemetry.taken(conn, asked, &frame, wire, at);
             }
             self.telemetry
-                .replied(conn, asked, &frame, wire, (left, now));
+                .replied(conn, asked, &frame, wire.as_deref(), (left, now));
             self.tell_learned(asked.unit());
             f.req.deliver(&frame);
             return;

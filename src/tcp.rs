@@ -594,20 +594,21 @@ impl Connection {
     /// A frame to or from this master, for the capture: as the master framed it
     /// (MBAP with its own transaction id, or RTU with its CRC).
     fn captured<C: MasterCodec>(&self, adu: &Adu, dir: Dir, label: &'static str) {
-        let (proto, bytes) = (C::PROTO, C::frame(adu).into_owned());
         let role = if dir == Dir::In {
             Part::Query
         } else {
             Part::Reply
         };
-        let mut p = Packet::new(dir, role, proto, bytes);
-        p.ends = Some(self.ends());
-        p.conn = Some(self.id);
-        p.unit = Some(adu.unit());
-        p.function = Some(adu.function());
-        p.span = crate::relay::span(adu.pdu());
-        p.label = label;
-        self.tap.send(p, Instant::now());
+        self.tap.send_with((dir, role), Instant::now(), |p| {
+            p.proto = C::PROTO;
+            p.bytes.extend_from_slice(&C::frame(adu));
+            p.ends = Some(self.ends());
+            p.conn = Some(self.id);
+            p.unit = Some(adu.unit());
+            p.function = Some(adu.function());
+            p.span = crate::relay::span(adu.pdu());
+            p.label = label;
+        });
     }
 
     /// Hands a request to the relay, or answers it here when it cannot go on the line.

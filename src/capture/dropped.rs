@@ -72,6 +72,19 @@ impl Tape {
         self.bytes.drain(..n).collect()
     }
 
+    /// The bytes up to offset `to` accounted for (a frame the capture has as a
+    /// frame), taken off the tape without a copy.
+    fn skip_to(&mut self, to: u64) {
+        if to <= self.start {
+            return;
+        }
+        let n = usize::try_from(to - self.start)
+            .unwrap_or(usize::MAX)
+            .min(self.bytes.len());
+        self.start = to;
+        self.bytes.drain(..n);
+    }
+
     /// The framer yielded a frame of `len` bytes, ending at offset `end` (its
     /// `consumed()` now): bytes before it since the last account were dropped for
     /// `reason`.
@@ -81,7 +94,7 @@ impl Tape {
         }
         let begin = end.saturating_sub(len as u64);
         self.dropped_to(begin, at, reason, "bytes that start no frame");
-        self.take_to(end);
+        self.skip_to(end);
     }
 
     /// The framer was cleared (the port opened or lost): everything up to `to` not

@@ -9,10 +9,12 @@
 //! its own for each packet (docs/performance.md "What a capture costs"). The hub's
 //! task only ends every subscription when the hub closes.
 //!
-//! With no subscriber and the status page closed, a tap is one atomic load: the
-//! relay builds no packet.
+//! With no subscriber and the status page closed, a tap is two atomic loads and no
+//! clock: the relay builds no packet. With only the page open, a packet is filled in
+//! place of the line's oldest (docs/performance.md "What the status page costs,
+//! counted").
 
-use super::packet::Packet;
+use super::packet::{Dir, Packet, Part, Proto};
 use super::request::Request;
 use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
@@ -91,6 +93,34 @@ impl Recent {
     fn record(&mut self, mut p: Packet) {
         self.stamp(&mut p);
         self.keep(Arc::new(p));
+    }
+
+    /// Keeps the packet `build` makes (see [`Tap::send_with`]) on interface `iface`
+    /// at `at_us`, in the place of the oldest when there is no room, and in its
+    /// memory when nothing else holds it (a page being written may).
+    fn record_with(
+        &mut self,
+        iface: u16,
+        at_us: u64,
+        (dir, part): (Dir, Part),
+        build: impl FnOnce(&mut Packet),
+    ) {
+        let oldest = if self.kept.len() == RECENT {
+            self.kept.pop_front()
+        } else {
+            None
+        };
+        let fresh = || Arc::new(Packet::new(dir, part, Proto::Data, Vec::new()));
+        let mut slot = oldest.unwrap_or_else(fresh);
+        if Arc::get_mut(&mut slot).is_none() {
+            slot = fresh();
+        }
+        let p = Arc::get_mut(&mut slot).expect("made here, held here only");
+        p.clear(dir, part);
+        build(p);
+        (p.iface, p.at_us) = (iface, at_us);
+        self.stamp(p);
+        self.keep(slot);
     }
 
     fn keep(&mut self, p: Arc<Packet>) {
@@ -300,18 +330,14 @@ impl Tap {
         Tap::default()
     }
 
-    /// Is anyone capturing, or is the status page open? One atomic load while a
-    /// capture runs; when none does, a second, and a clock reading while the page
-    /// was opened in the last few seconds.
+    /// Is anyone capturing, or is the status page open? One or two atomic loads, and
+    /// no clock: the page's window is closed by the first packet made after it
+    /// ended (see [`Tap::send`]), so one packet is made for nothing then.
     pub(crate) fn on(&self) -> bool {
         let Some(h) = &self.hub else {
             return false;
         };
-        if h.active.load(Ordering::Relaxed) > 0 {
-            return true;
-        }
-        let until = h.page_until_us.load(Ordering::Relaxed);
-        until != 0 && until > unix_us(Instant::now())
+        h.active.load(Ordering::Relaxed) > 0 || h.page_until_us.load(Ordering::Relaxed) != 0
     }
 
     /// Hands `p` on, stamped with this tap's interface and the time `at`; never
@@ -326,7 +352,7 @@ impl Tap {
         p.iface = self.iface;
         p.at_us = unix_us(at);
         if h.active.load(Ordering::Relaxed) == 0 {
-            if h.page_until_us.load(Ordering::Relaxed) <= p.at_us {
+            if !page_open(h, p.at_us) {
                 return;
             }
             let mut recent = h.recent.lock().expect("not poisoned");
@@ -337,6 +363,52 @@ impl Tap {
         }
         hand_on(h, p);
     }
+
+    /// As [`Tap::send`], the packet made by `build` from one emptied by
+    /// [`Packet::clear`] (`dir`, `part` set). With only the status page open, `build`
+    /// fills the oldest of the line's last packets in place where no page holds it
+    /// any more: no allocation a frame (docs/performance.md "What the status page
+    /// costs, counted").
+    pub(crate) fn send_with(
+        &self,
+        (dir, part): (Dir, Part),
+        at: Instant,
+        build: impl FnOnce(&mut Packet),
+    ) {
+        let Some(h) = &self.hub else {
+            return;
+        };
+        if h.active.load(Ordering::Relaxed) > 0 {
+            let mut p = Packet::new(dir, part, Proto::Data, Vec::new());
+            build(&mut p);
+            self.send(p, at);
+            return;
+        }
+        let at_us = unix_us(at);
+        if !page_open(h, at_us) {
+            return;
+        }
+        let mut recent = h.recent.lock().expect("not poisoned");
+        if let Some(r) = recent.get_mut(usize::from(self.iface)) {
+            r.record_with(self.iface, at_us, (dir, part), build);
+        }
+    }
+}
+
+/// Is the status page open at `at_us`? Past its window, closes it (unless the page
+/// was asked for again meanwhile), so that [`Tap::on`] needs no clock.
+fn page_open(h: &Shared, at_us: u64) -> bool {
+    let until = h.page_until_us.load(Ordering::Relaxed);
+    if until == 0 {
+        return false;
+    }
+    if until <= at_us {
+        let _ = h
+            .page_until_us
+            .compare_exchange(until, 0, Ordering::Relaxed, Ordering::Relaxed);
+        return false;
+    }
+    true
 }
 
 /// One subscriber's packets, until it is dropped (or the hub closes).
@@ -423,7 +495,6 @@ fn hand_on(shared: &Shared, mut p: Packet) {
 
 #[cfg(test)]
 mod tests {
-    use super::super::packet::{Dir, Part, Proto};
     use super::*;
 
     fn hub() -> Hub {
@@ -465,6 +536,80 @@ mod tests {
         let want: Vec<_> = (2..RECENT as u8 + 2).map(Some).collect();
         assert_eq!(units, want, "the last RECENT, oldest first");
         assert!(hub.page()[0].kept.is_empty());
+    }
+
+    /// The page's packets are filled in place only where nothing else holds them:
+    /// a page being written keeps what it took, unchanged, while the line goes on.
+    #[tokio::test]
+    async fn a_packet_the_page_holds_is_never_filled_again_and_one_it_let_go_is() {
+        let (hub, _task) = Hub::new(vec![
+            Interface {
+                name: "tcp".into(),
+                description: String::new(),
+            },
+            Interface {
+                name: "/dev/ttyX".into(),
+                description: String::new(),
+            },
+        ]);
+        let tap = hub.tap(1);
+        let t0 = Instant::now();
+        let fill = |unit: u8| {
+            tap.send_with((Dir::Out, Part::Query), t0, |p| {
+                p.bytes.extend_from_slice(&[unit; 8]);
+                p.unit = Some(unit);
+            })
+        };
+        hub.page();
+        for unit in 0..RECENT as u8 {
+            fill(unit);
+        }
+        let held = hub.page();
+        let oldest = Arc::as_ptr(&held[1].kept[0]);
+        fill(200);
+        let recent = hub.page();
+        let newest = recent[1].kept.back().unwrap();
+        assert_ne!(
+            Arc::as_ptr(newest),
+            oldest,
+            "the held page's packet is not reused"
+        );
+        assert_eq!(held[1].kept[0].unit, Some(0));
+        assert_eq!(
+            held[1].kept[0].bytes, [0; 8],
+            "what the page holds is unchanged"
+        );
+        assert_eq!((newest.unit, &newest.bytes[..]), (Some(200), &[200; 8][..]));
+        assert_eq!(recent[1].kept[0].unit, Some(1));
+        drop((held, recent));
+        let second = Arc::as_ptr(&hub.page()[1].kept[0]);
+        fill(201);
+        let recent = hub.page();
+        let newest = recent[1].kept.back().unwrap();
+        assert_eq!(Arc::as_ptr(newest), second, "let go: filled again in place");
+        let mut want = Packet::new(Dir::Out, Part::Query, Proto::Data, vec![201; 8]);
+        (want.iface, want.at_us, want.unit) = (1, unix_us(t0), Some(201));
+        assert_eq!(**newest, want, "nothing left of the packet it was");
+        assert_eq!(recent[1].total, RECENT as u64 + 2);
+    }
+
+    /// A tap asks no clock whether the page is open: the first packet made after the
+    /// page's window closes it; the page asked for again opens it.
+    #[tokio::test]
+    async fn the_page_s_window_is_closed_by_the_first_packet_after_it() {
+        let hub = hub();
+        let tap = hub.tap(1);
+        assert!(!tap.on());
+        hub.page();
+        assert!(tap.on());
+        let late = Instant::now() + PAGE_OPEN_FOR + Duration::from_secs(1);
+        assert!(tap.on(), "no packet made since the window ended");
+        tap.send_with((Dir::In, Part::Reply), late, |p| p.unit = Some(1));
+        assert!(!tap.on(), "closed by the packet after the window");
+        assert_eq!(hub.page()[1].total, 0, "and that packet is not kept");
+        assert!(tap.on(), "asked for again");
+        tap.send(frame(2), Instant::now());
+        assert_eq!(hub.page()[1].kept.back().map(|p| p.unit), Some(Some(2)));
     }
 
     #[tokio::test]

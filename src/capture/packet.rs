@@ -164,20 +164,62 @@ impl Packet {
         dir: Dir,
         part: Part,
     ) -> Packet {
-        let (proto, bytes, note) = match framing {
-            Framing::Mbap => (Proto::Mbtcp, wire.to_vec(), None),
-            Framing::Rtu => (Proto::Mbrtu, wire.to_vec(), None),
-            Framing::Ascii => (
-                Proto::Mbrtu,
-                rtu::encode(adu.unit(), adu.pdu()),
-                Some(format!("ASCII on the wire: {}", ascii_text(wire))),
-            ),
-        };
-        let mut p = Packet::new(dir, part, proto, bytes);
-        p.unit = Some(adu.unit());
-        p.function = Some(adu.function());
-        p.note = note;
+        let mut p = Packet::new(dir, part, Proto::Data, Vec::new());
+        p.set_line_frame(framing, adu, wire);
         p
+    }
+
+    /// Makes this packet (new or [`Packet::clear`]ed: its direction and part set)
+    /// the frame `adu` as a line of `framing` carries it, as [`Packet::line_frame`]
+    /// does, in the room its bytes already have.
+    pub(crate) fn set_line_frame(&mut self, framing: Framing, adu: &Adu, wire: &[u8]) {
+        match framing {
+            Framing::Mbap | Framing::Rtu => {
+                self.proto = if framing == Framing::Mbap {
+                    Proto::Mbtcp
+                } else {
+                    Proto::Mbrtu
+                };
+                self.bytes.extend_from_slice(wire);
+            }
+            Framing::Ascii => {
+                self.proto = Proto::Mbrtu;
+                self.bytes = rtu::encode(adu.unit(), adu.pdu());
+                self.note = Some(format!("ASCII on the wire: {}", ascii_text(wire)));
+            }
+        }
+        self.unit = Some(adu.unit());
+        self.function = Some(adu.function());
+    }
+
+    /// The packet emptied to what [`Packet::new`] makes, `dir` and `part` set, its
+    /// bytes' room kept: the status page's last packets are filled again in place
+    /// rather than allocated for each frame (docs/performance.md "What the status page
+    /// costs, counted").
+    pub(crate) fn clear(&mut self, dir: Dir, part: Part) {
+        // Every field named, so that a field added later is not left over from the
+        // packet this one was.
+        let Packet {
+            at_us,
+            iface,
+            dir: d,
+            part: pt,
+            proto,
+            bytes,
+            ends,
+            conn,
+            unit,
+            function,
+            span,
+            dropped,
+            note,
+            label,
+        } = self;
+        (*at_us, *iface, *d, *pt, *proto) = (0, 0, dir, part, Proto::Data);
+        bytes.clear();
+        (*ends, *conn, *unit, *function, *span, *dropped) = (None, None, None, None, None, None);
+        *note = None;
+        *label = "";
     }
 
     /// Bytes dropped for `reason` (`detail` says more): as a frame of `framing` if
@@ -327,6 +369,43 @@ mod tests {
             (p.proto, &p.bytes, &p.note),
             (Proto::Mbrtu, &rtu_wire, &None)
         );
+    }
+
+    /// A packet filled again in place (the status page's) keeps nothing of the frame
+    /// it was but its bytes' room, and filled as a frame equals one made afresh.
+    #[test]
+    fn a_cleared_packet_is_a_new_one_with_room_and_fills_as_one() {
+        let adu = Adu::build(0, 1, &[3, 0, 0, 0, 10]);
+        let wire = ascii::encode(1, adu.pdu());
+        let mut p = Packet::line_frame(Framing::Ascii, &adu, &wire, Dir::Out, Part::Query);
+        let addr: std::net::SocketAddr = "10.0.0.1:40000".parse().unwrap();
+        (p.at_us, p.iface, p.conn, p.span) = (7, 2, Some(9), Some((1, 2)));
+        p.ends = Some(Ends {
+            client: addr,
+            server: addr,
+        });
+        (p.dropped, p.label) = (Some(Reason::Crc), "gw->serial");
+        p.bytes.reserve(64);
+        let room = p.bytes.capacity();
+        p.clear(Dir::In, Part::Reply);
+        assert_eq!(
+            p,
+            Packet::new(Dir::In, Part::Reply, Proto::Data, Vec::new())
+        );
+        assert_eq!(p.bytes.capacity(), room, "the room is kept");
+        for (framing, wire) in [
+            (Framing::Mbap, adu.as_bytes().to_vec()),
+            (Framing::Rtu, rtu::encode(1, adu.pdu())),
+            (Framing::Ascii, wire.clone()),
+        ] {
+            p.clear(Dir::In, Part::Reply);
+            p.set_line_frame(framing, &adu, &wire);
+            assert_eq!(
+                p,
+                Packet::line_frame(framing, &adu, &wire, Dir::In, Part::Reply),
+                "{framing:?}"
+            );
+        }
     }
 
     /// A query goes to port 502 and a reply comes from it, on the line (no addresses,

@@ -194,11 +194,12 @@ impl Telemetry {
     pub(super) fn sent(&mut self, conn: u64, adu: &Adu, tid: u16, bytes: &[u8], now: Instant) {
         self.spells[usize::from(adu.unit())].sent_drops = Some(Drops::of(&self.metrics.stats));
         if self.tap.on() {
-            let mut p = Packet::line_frame(self.framing, adu, bytes, Dir::Out, Part::Query);
-            p.conn = Some(conn);
-            p.span = span(adu.pdu());
-            p.label = "gw->serial";
-            self.tap.send(p, now);
+            self.tap.send_with((Dir::Out, Part::Query), now, |p| {
+                p.set_line_frame(self.framing, adu, bytes);
+                p.conn = Some(conn);
+                p.span = span(adu.pdu());
+                p.label = "gw->serial";
+            });
         }
         if self.traffic {
             let (addr, count) = span(adu.pdu()).unzip();
@@ -226,11 +227,12 @@ impl Telemetry {
     /// was on the wire (`wire`), taken off the line at `at`: for the capture.
     pub(super) fn taken(&self, conn: u64, asked: &Adu, frame: &Adu, wire: &[u8], at: Instant) {
         if self.tap.on() {
-            let mut p = Packet::line_frame(self.framing, frame, wire, Dir::In, Part::Reply);
-            p.conn = Some(conn);
-            p.span = span(asked.pdu());
-            p.label = "serial->gw";
-            self.tap.send(p, at);
+            self.tap.send_with((Dir::In, Part::Reply), at, |p| {
+                p.set_line_frame(self.framing, frame, wire);
+                p.conn = Some(conn);
+                p.span = span(asked.pdu());
+                p.label = "serial->gw";
+            });
         }
     }
 
@@ -255,7 +257,7 @@ impl Telemetry {
         conn: u64,
         asked: &Adu,
         frame: &Adu,
-        wire: Option<Vec<u8>>,
+        wire: Option<&[u8]>,
         (left, now): (Instant, Instant),
     ) {
         let unit = asked.unit();
@@ -283,7 +285,7 @@ impl Telemetry {
                 count,
                 exception = exception.flatten(),
                 "{}",
-                Hex(&wire)
+                Hex(wire)
             );
         }
         let spell = std::mem::take(&mut self.spells[usize::from(unit)]);

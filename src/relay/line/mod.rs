@@ -295,10 +295,10 @@ impl LineFraming {
     }
 
     /// `frame` as it was on the wire (its CRC or LRC was checked), for the traffic log.
-    pub(super) fn on_wire(&self, frame: &Adu) -> Vec<u8> {
+    pub(super) fn on_wire<'a>(&self, frame: &'a Adu) -> std::borrow::Cow<'a, [u8]> {
         match &self.0 {
-            FramingState::Mbap(_) => frame.as_bytes().to_vec(),
-            FramingState::Serial(s) => s.on_wire(frame),
+            FramingState::Mbap(_) => std::borrow::Cow::Borrowed(frame.as_bytes()),
+            FramingState::Serial(s) => std::borrow::Cow::Owned(s.on_wire(frame)),
         }
     }
 
