@@ -4,7 +4,9 @@
 # (scripts/syscalls, scripts/cpu-ab).
 # Usage: python3 scripts/poll.py PORT N [PID]
 #   PID: after 1000 warm-up transactions, poll N more on the same connection and print
-#   PID's CPU time a transaction in µs (/proc/PID/task/*/schedstat, every thread).
+#   PID's CPU time a transaction in µs (/proc/PID/task/*/schedstat, every thread),
+#   then its user and kernel time a transaction in µs (/proc/PID/stat utime and
+#   stime, in clock ticks: exact over many transactions only).
 import os
 import socket
 import struct
@@ -17,6 +19,12 @@ def cpu_ns(pid):
         int(open(f"/proc/{pid}/task/{t}/schedstat").read().split()[0])
         for t in os.listdir(f"/proc/{pid}/task")
     )
+
+
+def times(pid):
+    """PID's user and kernel time (utime, stime) in clock ticks."""
+    fields = open(f"/proc/{pid}/stat").read().rsplit(")", 1)[1].split()
+    return int(fields[11]), int(fields[12])
 
 
 def main():
@@ -53,9 +61,12 @@ def main():
         run(n)
         return
     run(1000)
-    c0 = cpu_ns(pid)
+    c0, t0 = cpu_ns(pid), times(pid)
     run(n)
-    print(f"{(cpu_ns(pid) - c0) / n / 1000:.1f}")
+    c1, t1 = cpu_ns(pid), times(pid)
+    tick_us = 1e6 / os.sysconf("SC_CLK_TCK")
+    user, kernel = ((b - a) * tick_us / n for a, b in zip(t0, t1))
+    print(f"{(c1 - c0) / n / 1000:.1f} {user:.2f} {kernel:.2f}")
 
 
 main()
