@@ -60,29 +60,17 @@ impl Tape {
         }
     }
 
-    /// The bytes from what is accounted for up to offset `to`, taken off the tape.
-    fn take_to(&mut self, to: u64) -> Vec<u8> {
+    /// The bytes from what is accounted for up to offset `to`, taken off the tape:
+    /// collected where they were dropped, let go where a frame took them.
+    fn drain_to(&mut self, to: u64) -> std::collections::vec_deque::Drain<'_, u8> {
         if to <= self.start {
-            return Vec::new();
+            return self.bytes.drain(..0);
         }
         let n = usize::try_from(to - self.start)
             .unwrap_or(usize::MAX)
             .min(self.bytes.len());
         self.start = to;
-        self.bytes.drain(..n).collect()
-    }
-
-    /// The bytes up to offset `to` accounted for (a frame the capture has as a
-    /// frame), taken off the tape without a copy.
-    fn skip_to(&mut self, to: u64) {
-        if to <= self.start {
-            return;
-        }
-        let n = usize::try_from(to - self.start)
-            .unwrap_or(usize::MAX)
-            .min(self.bytes.len());
-        self.start = to;
-        self.bytes.drain(..n);
+        self.bytes.drain(..n)
     }
 
     /// The framer yielded a frame of `len` bytes, ending at offset `end` (its
@@ -94,7 +82,7 @@ impl Tape {
         }
         let begin = end.saturating_sub(len as u64);
         self.dropped_to(begin, at, reason, "bytes that start no frame");
-        self.skip_to(end);
+        self.drain_to(end);
     }
 
     /// The framer was cleared (the port opened or lost): everything up to `to` not
@@ -120,7 +108,7 @@ impl Tape {
         if !self.on {
             return;
         }
-        let bytes = self.take_to(to);
+        let bytes: Vec<u8> = self.drain_to(to).collect();
         if !bytes.is_empty() {
             self.found.push(Dropped {
                 at,
@@ -152,7 +140,7 @@ impl Tape {
             before,
             "bytes that start no frame",
         );
-        let bytes = self.take_to(end);
+        let bytes: Vec<u8> = self.drain_to(end).collect();
         if !bytes.is_empty() {
             self.found.push(Dropped {
                 at,

@@ -174,12 +174,12 @@ impl Packet {
     /// does, in the room its bytes already have.
     pub(crate) fn set_line_frame(&mut self, framing: Framing, adu: &Adu, wire: &[u8]) {
         match framing {
-            Framing::Mbap | Framing::Rtu => {
-                self.proto = if framing == Framing::Mbap {
-                    Proto::Mbtcp
-                } else {
-                    Proto::Mbrtu
-                };
+            Framing::Mbap => {
+                self.proto = Proto::Mbtcp;
+                self.bytes.extend_from_slice(wire);
+            }
+            Framing::Rtu => {
+                self.proto = Proto::Mbrtu;
                 self.bytes.extend_from_slice(wire);
             }
             Framing::Ascii => {
@@ -197,29 +197,9 @@ impl Packet {
     /// rather than allocated for each frame (docs/performance.md "What the status page
     /// costs, counted").
     pub(crate) fn clear(&mut self, dir: Dir, part: Part) {
-        // Every field named, so that a field added later is not left over from the
-        // packet this one was.
-        let Packet {
-            at_us,
-            iface,
-            dir: d,
-            part: pt,
-            proto,
-            bytes,
-            ends,
-            conn,
-            unit,
-            function,
-            span,
-            dropped,
-            note,
-            label,
-        } = self;
-        (*at_us, *iface, *d, *pt, *proto) = (0, 0, dir, part, Proto::Data);
+        let mut bytes = std::mem::take(&mut self.bytes);
         bytes.clear();
-        (*ends, *conn, *unit, *function, *span, *dropped) = (None, None, None, None, None, None);
-        *note = None;
-        *label = "";
+        *self = Packet::new(dir, part, Proto::Data, bytes);
     }
 
     /// Bytes dropped for `reason` (`detail` says more): as a frame of `framing` if
