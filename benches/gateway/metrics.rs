@@ -39,8 +39,8 @@ fn main_thread_cpu_ns(pid: u32) -> u64 {
 /// take turns; CPU per transaction (the whole process, and the relay's thread alone)
 /// and round trips, each against off. The CPU is judged by the median of the rounds'
 /// own ratios (each case against off in the same round, the cases' order turned every
-/// other round), which a slow spell of the machine moves far less than the sums do. The counters themselves are kept in every
-/// case.
+/// other round), which a slow spell of the machine moves far less than the sums do.
+/// The counters themselves are kept in every case.
 pub(super) fn metrics_cost(r: &mut Report) {
     eprintln!("metrics: the same polling with the metrics listener off and on");
     const WARM: usize = 200;
