@@ -635,4 +635,76 @@ mod tests {
         );
         drop(fixed);
     }
+
+    proptest::proptest! {
+        #![proptest_config(proptest::test_runner::Config {
+            failure_persistence: None,
+            ..Default::default()
+        })]
+
+        /// The invariant of a timeout on an RTU or ASCII line, learned or fixed: the
+        /// line stays quiet at least until the ceiling and the guard after it have
+        /// passed since the request left (what a fixed timeout at the ceiling keeps),
+        /// and frees then (or after `request_pause_ms`, if later). Any floor,
+        /// ceiling, guard, pause and learned pace; the in-flight table's hold and the
+        /// line's timer together, as the loop drives them.
+        #[test]
+        fn a_learned_timeout_keeps_the_guard_after_its_ceiling(
+            floor_ms in 1u64..200,
+            above_ms in 0u64..2000,
+            guard_ms in 0u64..500,
+            pause_ms in 0u64..300,
+            reply_ms in 1u64..1000,
+            replies in 0usize..40,
+        ) {
+            use crate::port::kind::{Medium, PortInfo};
+            use crate::relay::line::LineFraming;
+            use crate::stats::Stats;
+            let ceiling_ms = floor_ms + above_ms;
+            let text = format!(
+                "[[line]]\nserial = {{ path = \"/dev/x\", framing = \"rtu\" }}\n\
+                 relay = {{ response_timeout_ms = {ceiling_ms}, timeout_guard_ms = {guard_ms}, \
+                 request_pause_ms = {pause_ms} }}\n\
+                 [[line.unit]]\nunits = 6\nresponse_timeout_ms = \"auto\"\n\
+                 response_timeout_min_ms = {floor_ms}\nresponse_timeout_max_ms = {ceiling_ms}\n"
+            );
+            let cfg = crate::config::parse(&text, "t").unwrap();
+            let line_cfg = &cfg.lines()[0];
+            let stats = Stats::default();
+            let t0 = Instant::now();
+            let ms = Duration::from_millis;
+            let (ceiling, guard) = (ms(ceiling_ms), ms(guard_ms));
+            for unit in [6u8, 1] {
+                let mut t = InFlight::new(&line_cfg.relay, &line_cfg.unit_tables, false);
+                for _ in 0..replies {
+                    t.start(1, read(unit, 0), t0, Duration::ZERO);
+                    let at = t0 + ms(reply_ms).min(t.next_deadline().unwrap() - t0);
+                    t.answered(1, at);
+                }
+                let mut line =
+                    LineFraming::new(&line_cfg.relay, &line_cfg.serial, false, t0);
+                line.port_opened(&PortInfo::plain(Medium::Pty));
+                let req = read(unit, 0);
+                let key = line.allocate(t0);
+                let bytes = line.encode(&req.0, key, t0, &stats);
+                line.wrote(bytes.len(), t0, t0);
+                let left = line.drained(t0, &stats);
+                t.start(key, req, left, Duration::ZERO);
+                let deadline = t.next_deadline().unwrap();
+                proptest::prop_assert!(deadline <= left + ceiling);
+                let f = t.take_expired(deadline).pop().unwrap();
+                line.timed_out(deadline, t.hold_after_timeout(&f), &stats);
+                let guarded = left + ceiling + guard;
+                let us = Duration::from_micros(1);
+                proptest::prop_assert!(
+                    !line.has_room(0, false, guarded - us),
+                    "unit {}: free before the ceiling and the guard ({:?} learned)",
+                    unit,
+                    deadline - left
+                );
+                let free = guarded.max(deadline + ms(pause_ms));
+                proptest::prop_assert!(line.has_room(0, false, free), "unit {}", unit);
+            }
+        }
+    }
 }

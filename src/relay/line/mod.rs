@@ -245,8 +245,8 @@ impl LineFraming {
 
     /// A request timed out: its reply may still come (MBAP recognises it by its id, and
     /// holds replies for confirmation for the guard time, as the late one may follow).
-    /// RTU/ASCII: a partial reply is discarded, and the line is left quiet for the
-    /// guard time, or `hold` if longer (a learned timeout's way to its ceiling), so a
+    /// RTU/ASCII: a partial reply is discarded, and the line is left quiet for `hold`
+    /// (a learned timeout's way to its ceiling) and the guard time after it, so a
     /// reply that comes just too late is dropped rather than taken for the next
     /// request's.
     pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {

@@ -367,7 +367,11 @@ impl Serial {
         self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
-        let quiet = self.guard.max(self.request_pause).max(hold);
+        // The guard counts from the end of `hold` (a learned timeout's way to its
+        // ceiling): a reply later than the ceiling is dropped for the guard's length,
+        // as it would be after a fixed timeout at the ceiling (docs/reliability.md
+        // "Learned timeouts").
+        let quiet = (hold + self.guard).max(self.request_pause);
         self.ready_at = self.ready_at.max(now + quiet);
     }
 
@@ -536,25 +540,26 @@ impl Serial {
                 let len = self.decoder.encoded_len(frame.pdu().len());
                 self.tape.frame(end, len, Some(at), Reason::LostSync);
                 let (unit, pdu) = (frame.unit(), frame.pdu());
-                if unit == f.req.adu().unit() {
-                    // The CRC or LRC proves these are the unit's own bytes: a reply of
-                    // another shape than the request's goes to the master unchanged, to
-                    // judge, as a transparent gateway passes it.
-                    if !pdu::reply_matches(request, pdu) {
-                        debug!(
-                            unit,
-                            "a reply of another shape than its request's, passed on"
-                        );
-                    }
+                if unit == f.req.adu().unit() && pdu::reply_matches(request, pdu) {
                     Some(Seen::Frame(frame.with_tid(f.tid), at))
                 } else {
-                    debug!(unit, "a frame that does not answer the request on the line");
+                    // The CRC or LRC proves only that these bytes are a frame: one of
+                    // another unit, of another function than the request's (or its
+                    // exception), or of another shape answers something else (a stray
+                    // frame, a device's backlog), and the master is told 0x0B at once,
+                    // as on MBAP (docs/reliability.md "RTU and ASCII").
+                    let detail = if unit == f.req.adu().unit() {
+                        "a frame of the request's unit that does not answer it (another function or shape)"
+                    } else {
+                        "a frame from another unit than the request's"
+                    };
+                    debug!(unit, "{detail}");
                     self.tape.dropped_aside(|| Dropped {
                         at: Some(at),
                         reason: Reason::Stale,
                         bytes: self.decoder.encode(&frame),
                         whole: true,
-                        detail: "a frame from another unit than the request's",
+                        detail,
                     });
                     stats.add(&stats.bad_frames, 1);
                     Some(Seen::Corrupt(f.tid))
