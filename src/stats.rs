@@ -67,6 +67,7 @@ counters! {
     dropped_echo: "Of dropped_bytes: MBAP copies of a request that began before it could have left the wire at baud_rate: its echo (a wire only).",
     dropped_stale: "Of dropped_bytes: there before their request was sent (a late reply, a frame begun earlier), or answering no request.",
     unasked_bytes: "MBAP: bytes from the device while nothing was asked and no late reply could come.",
+    withdrawn_bytes: "RTU/ASCII: bytes of a request that timed out still in the port's output queue (flow control held them, or the adapter stopped sending), withdrawn (TCOFLUSH): the device never gets a request its master was told failed (docs/reliability.md \"RTU and ASCII\").",
     refuted_frames: "Replies that what followed them showed to have lost bytes: dropped.",
     bad_frames: "RTU/ASCII replies whose CRC or LRC failed, or that came from another unit than the one asked; MBAP replies with a request's id and unit that did not fit it.",
     backed_off: "Requests answered 0x0B at once: their unit was backed off (RTU/ASCII).",

@@ -139,6 +139,7 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
         per_line(lines, ("mbgate_line_unasked_bytes", "MBAP: bytes from the device while nothing was asked and no late reply could come.", C), s(|s| &s.unasked_bytes)),
         per_line(lines, ("mbgate_line_notifications_dropped", "Frames answering no request, dropped.", C), s(|s| &s.notifications_dropped)),
         per_line(lines, ("mbgate_line_notifications_broadcast", "Frames answering no request, sent to every master.", C), s(|s| &s.notifications_broadcast)),
+        per_line(lines, ("mbgate_line_withdrawn_bytes", "RTU/ASCII: bytes of requests that timed out before leaving the port, withdrawn from its output queue.", C), s(|s| &s.withdrawn_bytes)),
         per_line(lines, ("mbgate_line_opens", "Times the port was opened (the first open, then each reopen or reconnect).", C), s(|s| &s.serial_opens)),
         per_line(lines, ("mbgate_line_received_bytes", "Bytes read from the port.", C), s(|s| &s.serial_bytes_in)),
         per_line(lines, ("mbgate_line_sent_bytes", "Bytes written to the port.", C), s(|s| &s.serial_bytes_out)),

@@ -155,6 +155,15 @@ impl Lifecycle {
         }
     }
 
+    /// Withdraws what the port has not sent yet (a serial port's output queue), and
+    /// says how many bytes; none where it is not open or cannot tell.
+    pub(crate) fn withdraw_output(&self) -> std::io::Result<usize> {
+        match &self.state {
+            State::Open(link) => link.control.withdraw_output(),
+            _ => Ok(0),
+        }
+    }
+
     /// Switches the RS-485 transmitter on or off (where the gateway drives it).
     pub(crate) fn transmit(&mut self, on: bool) -> std::io::Result<()> {
         match &mut self.state {

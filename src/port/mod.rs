@@ -63,6 +63,13 @@ pub(crate) trait Control: Send {
         false
     }
 
+    /// Withdraws what was written and has not left the port yet (a serial port's
+    /// output queue: TIOCOUTQ, then TCOFLUSH), and says how many bytes that was. A
+    /// transport that cannot take bytes back withdraws none.
+    fn withdraw_output(&self) -> io::Result<usize> {
+        Ok(0)
+    }
+
     /// Switches the RS-485 transmitter on (to send) or off (to receive), where the
     /// gateway drives it (`serial.direction`); elsewhere nothing to do.
     fn transmit(&mut self, _on: bool) -> io::Result<()> {

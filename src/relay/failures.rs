@@ -19,6 +19,7 @@ impl Relay {
             self.switch_off(now);
             let hold = self.in_flight.hold_after_timeout(&f);
             self.line.timed_out(now, hold, &self.stats);
+            self.line.unanswered(f.req.adu.unit());
             self.telemetry.timed_out(f.req.conn(), &f.req.adu, now);
             if self.out.withdraw(f.tid) {
                 // Flow control held it back (CTS low) the whole time: it never left,
@@ -28,7 +29,31 @@ impl Relay {
                     "request could not be written in time (is CTS held low?)"
                 );
             }
+            self.withdraw_output();
             self.failed(f, Failure::Timeout, now);
+        }
+    }
+
+    /// RTU/ASCII, after a timeout: what of the request is still in the port's output
+    /// queue (flow control held it, or the adapter stopped sending) is withdrawn, so
+    /// the device never reads a request its master was told failed, and never answers
+    /// it later in place of the next (docs/reliability.md "RTU and ASCII", 6). Not on
+    /// MBAP, where a frame cut in two would put the device's parser out of step, and
+    /// a late answer is known by its id anyway.
+    fn withdraw_output(&mut self) {
+        if !self.line.is_serial() {
+            return;
+        }
+        match self.port.withdraw_output() {
+            Ok(0) => {}
+            Ok(n) => {
+                self.stats.add(&self.stats.withdrawn_bytes, n as u64);
+                warn!(
+                    bytes = n,
+                    "a request that timed out had not left the port: withdrawn from its output queue (is CTS held low, or the adapter stalled?)"
+                );
+            }
+            Err(e) => debug!("the port's output queue could not be asked: {e}"),
         }
     }
 

@@ -1,6 +1,7 @@
 //! What the line's timing asks of the port's descriptor: a thread of the port's own
-//! that waits until everything written has left it (`tcdrain`), and the bytes received
-//! and not yet read (FIONREAD).
+//! that waits until everything written has left it (`tcdrain`), the bytes received
+//! and not yet read (FIONREAD), and the bytes written and not yet sent, withdrawn
+//! (TIOCOUTQ, TCOFLUSH).
 
 use std::os::fd::{AsRawFd, BorrowedFd, RawFd};
 
@@ -70,4 +71,29 @@ pub(crate) fn input_waiting(fd: RawFd) -> std::io::Result<usize> {
     } else {
         Err(std::io::Error::last_os_error())
     }
+}
+
+/// Withdraws the bytes written to the port `fd` that have not left it (its output
+/// queue: the tty's and the driver's, a USB adapter's included), and says how many
+/// there were. Asked only after a request went unanswered, so it costs nothing while
+/// the device answers. A pty's queue always reads empty (the bytes are already on
+/// the other side), so there it withdraws nothing.
+pub(crate) fn withdraw_output(fd: RawFd) -> std::io::Result<usize> {
+    let mut n: libc::c_int = 0;
+    // SAFETY: TIOCOUTQ writes one int, which `n` is, for the duration of the call.
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::ioctl(fd, libc::TIOCOUTQ as _, &mut n as *mut libc::c_int) };
+    if r != 0 {
+        return Err(std::io::Error::last_os_error());
+    }
+    let n = usize::try_from(n).unwrap_or(0);
+    if n > 0 {
+        // SAFETY: a plain call on the open port's descriptor; no memory is passed.
+        #[allow(unsafe_code)]
+        let r = unsafe { libc::tcflush(fd, libc::TCOFLUSH) };
+        if r != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+    }
+    Ok(n)
 }

@@ -106,6 +106,10 @@ impl Control for Tty {
         drain::input_waiting(self.fd).is_ok_and(|n| n > 0)
     }
 
+    fn withdraw_output(&self) -> io::Result<usize> {
+        drain::withdraw_output(self.fd)
+    }
+
     fn transmit(&mut self, on: bool) -> io::Result<()> {
         match &mut self.transmitter {
             Some(t) => t.set(on),

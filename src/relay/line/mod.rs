@@ -256,6 +256,15 @@ impl LineFraming {
         }
     }
 
+    /// A request to `unit` got no answer in time: the device may hold it and answer
+    /// it later. RTU/ASCII: until a reply of that unit is confirmed, each is taken
+    /// only once the line stays quiet after it (MBAP knows a late answer by its id).
+    pub(super) fn unanswered(&mut self, unit: u8) {
+        if let FramingState::Serial(s) = &mut self.0 {
+            s.unanswered(unit);
+        }
+    }
+
     /// The shortest time the line could take to serve `adu`: the request and an
     /// exception reply on the wire, each after its 3.5-character gap. Zero for MBAP.
     pub(super) fn shortest_transaction(&self, adu: &Adu) -> Duration {

@@ -79,6 +79,32 @@ pub(super) struct Serial {
     /// `inter_frame_gap_us = 0`: the gap is the line's (3.5 character times at
     /// `baud_rate`), so it is kept only where there is a wire.
     auto_gap: bool,
+    /// The units a request timed out to, which may still hold it and answer it later
+    /// (a device that stalled, then answers its backlog): until one of their replies
+    /// has been confirmed, each is taken only once the line stays quiet after it.
+    may_owe: Units,
+    /// A reply from such a unit, held until the line has been quiet for the guard
+    /// after it; with its key (the in-flight request's) and when its last byte came.
+    unconfirmed: Option<(Adu, Instant)>,
+}
+
+/// A set of unit ids.
+#[derive(Default, Clone, Copy)]
+struct Units([u64; 4]);
+
+impl Units {
+    fn contains(&self, unit: u8) -> bool {
+        self.0[usize::from(unit / 64)] >> (unit % 64) & 1 == 1
+    }
+
+    fn set(&mut self, unit: u8, on: bool) {
+        let (word, bit) = (&mut self.0[usize::from(unit / 64)], 1u64 << (unit % 64));
+        if on {
+            *word |= bit;
+        } else {
+            *word &= !bit;
+        }
+    }
 }
 
 impl Serial {
@@ -133,6 +159,8 @@ impl Serial {
             },
             wire_gaps: (gap, gap_after_frame),
             auto_gap: serial.inter_frame_gap_us == 0,
+            may_owe: Units::default(),
+            unconfirmed: None,
         }
     }
 
@@ -334,7 +362,9 @@ impl Serial {
         // turn and found something else in the way (a request in flight or being
         // written, bytes not yet read), each of which wakes the loop when it changes.
         let free = waiting.then(|| self.free_at()).filter(|&at| at > now);
-        silence.into_iter().chain(free).min()
+        // A reply held for confirmation: taken once the line was quiet for the guard.
+        let confirm = self.unconfirmed.as_ref().map(|_| self.last_rx + self.guard);
+        silence.into_iter().chain(free).chain(confirm).min()
     }
 
     /// Does the silence after what is buffered end it, whatever it holds? RTU: the
@@ -345,6 +375,7 @@ impl Serial {
     }
 
     pub(super) fn clear(&mut self, stats: &Stats) {
+        self.unconfirmed = None;
         self.decoder.clear();
         let to = self.decoder.consumed();
         self.tape.stale_to(to);
@@ -358,7 +389,17 @@ impl Serial {
         self.broadcast_on_wire = false;
     }
 
+    /// A request to `unit` got no answer in time: the device may have read it and
+    /// answer it later, with any it holds after it (docs/reliability.md "RTU and
+    /// ASCII", 6).
+    pub(super) fn unanswered(&mut self, unit: u8) {
+        self.may_owe.set(unit, unit != 0);
+    }
+
     pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
+        if let Some((reply, _)) = self.unconfirmed.take() {
+            self.drop_backlog(&reply, now, stats);
+        }
         let held = self.drop_held(now, "a partial reply when its request timed out");
         self.decoder.clear();
         let to = self.decoder.consumed();
@@ -528,54 +569,121 @@ impl Serial {
             return None;
         };
         let request = f.req.adu().pdu();
-        let next = self.decoder.next_frame(&ReplyFor(request), quiet);
-        // Noise before a frame (ASCII: before its colon), and a frame whose check
-        // failed, the framer has dropped.
-        self.count_dropped(0, stats);
-        match next {
-            None => None,
-            Some(Framed::Frame(frame)) => {
-                let at = self.last_rx.min(now);
-                let end = self.decoder.consumed();
-                let len = self.decoder.encoded_len(frame.pdu().len());
-                self.tape.frame(end, len, Some(at), Reason::LostSync);
-                let (unit, pdu) = (frame.unit(), frame.pdu());
-                if unit == f.req.adu().unit() && pdu::reply_matches(request, pdu) {
-                    Some(Seen::Frame(frame.with_tid(f.tid), at))
-                } else {
-                    // The CRC or LRC proves only that these bytes are a frame: one of
-                    // another unit, of another function than the request's (or its
-                    // exception), or of another shape answers something else (a stray
-                    // frame, a device's backlog), and the master is told 0x0B at once,
-                    // as on MBAP (docs/reliability.md "RTU and ASCII").
-                    let detail = if unit == f.req.adu().unit() {
-                        "a frame of the request's unit that does not answer it (another function or shape)"
-                    } else {
-                        "a frame from another unit than the request's"
-                    };
-                    debug!(unit, "{detail}");
-                    self.tape.dropped_aside(|| Dropped {
-                        at: Some(at),
-                        reason: Reason::Stale,
-                        bytes: self.decoder.encode(&frame),
-                        whole: true,
-                        detail,
-                    });
-                    stats.add(&stats.bad_frames, 1);
-                    Some(Seen::Corrupt(f.tid))
-                }
-            }
-            Some(Framed::Corrupt(n)) => {
-                debug!(bytes = n, "a reply whose check failed");
-                let end = self.decoder.consumed();
-                let at = Some(self.last_rx.min(now));
-                let check = (Reason::LostSync, self.check);
-                let why = "a reply whose check failed, or cut short";
-                self.tape.dropped_frame(end, n, at, check, why);
-                stats.add(&stats.bad_frames, 1);
-                Some(Seen::Corrupt(f.tid))
+        if self
+            .unconfirmed
+            .as_ref()
+            .is_some_and(|(reply, _)| reply.tid() != f.tid)
+        {
+            // Held for a request no longer on the line.
+            if let Some((reply, _)) = self.unconfirmed.take() {
+                self.drop_backlog(&reply, now, stats);
             }
         }
+        loop {
+            let next = self.decoder.next_frame(&ReplyFor(request), quiet);
+            // Noise before a frame (ASCII: before its colon), and a frame whose check
+            // failed, the framer has dropped.
+            self.count_dropped(0, stats);
+            let frame = match next {
+                None => return self.confirmed(now),
+                Some(Framed::Frame(frame)) => frame,
+                Some(Framed::Corrupt(n)) => return self.corrupt(f.tid, n, now, stats),
+            };
+            let at = self.last_rx.min(now);
+            let end = self.decoder.consumed();
+            let len = self.decoder.encoded_len(frame.pdu().len());
+            self.tape.frame(end, len, Some(at), Reason::LostSync);
+            let (unit, pdu) = (frame.unit(), frame.pdu());
+            // Another frame came before the line was quiet after the one held: that
+            // one was an answer the device held to an earlier request.
+            if let Some((reply, _)) = self.unconfirmed.take() {
+                self.drop_backlog(&reply, now, stats);
+            }
+            let answers = unit == f.req.adu().unit() && pdu::reply_matches(request, pdu);
+            if self.may_owe.contains(unit) {
+                // A unit that may still answer requests that timed out: a frame from
+                // it is the answer only if the line stays quiet after it; one that
+                // does not fit is its backlog, dropped (docs/reliability.md "RTU and
+                // ASCII", 6).
+                if answers {
+                    self.unconfirmed = Some((frame.with_tid(f.tid), at));
+                } else {
+                    self.drop_backlog(&frame, now, stats);
+                }
+                continue;
+            }
+            if answers {
+                return Some(Seen::Frame(frame.with_tid(f.tid), at));
+            }
+            // The CRC or LRC proves only that these bytes are a frame: one of another
+            // unit, of another function than the request's (or its exception), or of
+            // another shape answers something else (a stray frame, another request's
+            // answer), and the master is told 0x0B at once, as on MBAP
+            // (docs/reliability.md "RTU and ASCII", 5).
+            let detail = if unit == f.req.adu().unit() {
+                "a frame of the request's unit that does not answer it (another function or shape)"
+            } else {
+                "a frame from another unit than the request's"
+            };
+            debug!(unit, "{detail}");
+            self.tape.dropped_aside(|| Dropped {
+                at: Some(at),
+                reason: Reason::Stale,
+                bytes: self.decoder.encode(&frame),
+                whole: true,
+                detail,
+            });
+            stats.add(&stats.bad_frames, 1);
+            return Some(Seen::Corrupt(f.tid));
+        }
+    }
+
+    /// The reply held for confirmation, once the line has been quiet for the guard
+    /// after it with nothing begun since: the answer, and its unit owes no more.
+    fn confirmed(&mut self, now: Instant) -> Option<Seen> {
+        let (_, at) = self.unconfirmed.as_ref()?;
+        if self.decoder.buffered() > 0 || now < self.last_rx.max(*at) + self.guard {
+            return None;
+        }
+        let (reply, at) = self.unconfirmed.take()?;
+        self.may_owe.set(reply.unit(), false);
+        Some(Seen::Frame(reply, at))
+    }
+
+    /// A frame from a unit's backlog (the answer to a request that timed out),
+    /// dropped and counted as a late reply.
+    fn drop_backlog(&mut self, frame: &Adu, now: Instant, stats: &Stats) {
+        debug!(
+            unit = frame.unit(),
+            "a frame the device held for a request that timed out, dropped"
+        );
+        let bytes = self.decoder.encode(frame);
+        stats.add(&stats.late_replies, 1);
+        stats.add(&stats.dropped_stale, bytes.len() as u64);
+        stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        self.tape.dropped_aside(|| Dropped {
+            at: Some(self.last_rx.min(now)),
+            reason: Reason::Stale,
+            bytes,
+            whole: true,
+            detail: "an answer the device held to a request that timed out (its backlog)",
+        });
+    }
+
+    /// A reply whose check failed (or cut short) for the request `tid`: with a reply
+    /// held for confirmation, that one was not followed by quiet, and goes too.
+    fn corrupt(&mut self, tid: u16, n: usize, now: Instant, stats: &Stats) -> Option<Seen> {
+        if let Some((reply, _)) = self.unconfirmed.take() {
+            self.drop_backlog(&reply, now, stats);
+        }
+        debug!(bytes = n, "a reply whose check failed");
+        let end = self.decoder.consumed();
+        let at = Some(self.last_rx.min(now));
+        let check = (Reason::LostSync, self.check);
+        let why = "a reply whose check failed, or cut short";
+        self.tape.dropped_frame(end, n, at, check, why);
+        stats.add(&stats.bad_frames, 1);
+        Some(Seen::Corrupt(tid))
     }
 }
 

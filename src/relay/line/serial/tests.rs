@@ -426,3 +426,76 @@ proptest::proptest! {
         }
     }
 }
+
+/// A device that stalled answers its backlog when it resumes: after a request to unit
+/// 1 timed out, the frames that come back to back for the next read (an FC 16 echo,
+/// then a read's answer with another value, then the read's own) are the answers the
+/// device held; only the last one, followed by the guard's silence, is taken, and the
+/// first reply after that is taken at once again (docs/reliability.md "RTU and
+/// ASCII", 6).
+#[test]
+fn a_stalled_devices_backlog_never_answers_the_request_on_the_line() {
+    use crate::relay::inflight::OnLine;
+    let relay = RelayConfig {
+        timeout_guard_ms: 100,
+        ..RelayConfig::default()
+    };
+    for (framing, codec) in [
+        (crate::config::Framing::Rtu, Codec::Rtu),
+        (crate::config::Framing::Ascii, Codec::Ascii),
+    ] {
+        let serial = SerialConfig {
+            framing,
+            ..SerialConfig::default()
+        };
+        let stats = Stats::default();
+        let (mut line, t1) = timed_out(&relay, &serial, Medium::Pty, &stats);
+        line.unanswered(1);
+        let ask = |line: &mut LineFraming, at: Instant| {
+            let read = Adu::build(1, 1, &[3, 0, 5, 0, 1]);
+            let key = line.allocate(at);
+            let bytes = line.encode(&read, key, at, &stats);
+            line.wrote(bytes.len(), at, at);
+            line.drained(at, &stats);
+            [OnLine {
+                tid: key,
+                deadline: at + Duration::from_secs(1),
+                timeout: Duration::from_secs(1),
+                req: (read, 0u32),
+            }]
+        };
+        let t2 = t1 + 200 * MS;
+        let f = ask(&mut line, t2);
+        let backlog = [
+            codec.encode(1, &[0x10, 0, 9, 0, 1]),
+            codec.encode(1, &[3, 2, 0, 9]),
+            codec.encode(1, &[3, 2, 0, 5]),
+        ];
+        for (i, frame) in backlog.iter().enumerate() {
+            let at = t2 + (10 + 5 * i as u32) * MS;
+            line.received(frame, at, &stats);
+            let seen = line.frames(&f, at + MS, &stats);
+            assert!(
+                seen.is_empty(),
+                "{framing:?}: frame {i} taken before the quiet"
+            );
+        }
+        let last = t2 + 20 * MS;
+        assert_eq!(line.next_wake(last + MS, false), Some(last + 100 * MS));
+        assert!(line.frames(&f, last + 99 * MS, &stats).is_empty());
+        match line.frames(&f, last + 100 * MS, &stats).as_slice() {
+            [Seen::Frame(frame, at)] => {
+                assert_eq!(frame.pdu(), [3, 2, 0, 5], "{framing:?}");
+                assert_eq!(*at, last);
+            }
+            _ => panic!("{framing:?}: the read's own answer not taken"),
+        }
+        assert_eq!(stats.get(&stats.late_replies), 2, "{framing:?}");
+        assert_eq!(stats.get(&stats.bad_frames), 0, "{framing:?}");
+        // Confirmed: the unit owes nothing, and its next reply is taken at once.
+        let t3 = last + 200 * MS;
+        let f = ask(&mut line, t3);
+        line.received(&codec.encode(1, &[3, 2, 0, 5]), t3 + MS, &stats);
+        assert_eq!(line.frames(&f, t3 + MS, &stats).len(), 1, "{framing:?}");
+    }
+}
