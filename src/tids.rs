@@ -17,11 +17,6 @@
 //! counted up along with them (a notification carrying a count of changes, polled
 //! once per request) would match them far more often than 1 in 65 536
 //! (docs/reliability.md).
-//!
-//! On a line with XON/XOFF flow control no id carries 0x11 or 0x13 while another can
-//! be found: the port's line discipline takes those bytes out of what it receives, so
-//! a reply echoing such an id would arrive a byte short (docs/configuration.md,
-//! `serial.flow_control`).
 
 use std::collections::VecDeque;
 use std::time::{Duration, Instant};
@@ -39,13 +34,7 @@ pub(crate) struct Tids {
     retired: VecDeque<(u16, Instant)>,
     /// Ids in flight by low byte.
     live_low: Box<[u8; 256]>,
-    /// Bytes no id carries while another id can be found.
-    avoid: &'static [u8],
 }
-
-/// The bytes a port with XON/XOFF flow control takes out of what it receives (START
-/// and STOP, termios(3)).
-pub(crate) const XON_XOFF: &[u8] = &[0x11, 0x13];
 
 impl Default for Tids {
     fn default() -> Self {
@@ -62,17 +51,11 @@ fn step(x: u16) -> u16 {
 
 impl Tids {
     pub(crate) fn new() -> Self {
-        Self::avoiding(&[])
-    }
-
-    /// Ids that carry none of `avoid` as either byte, while one can be found.
-    pub(crate) fn avoiding(avoid: &'static [u8]) -> Self {
         Self {
             next: fastrand::u16(..),
             reserved: Box::new([0; 1024]),
             retired: VecDeque::new(),
             live_low: Box::new([0; 256]),
-            avoid,
         }
     }
 
@@ -102,24 +85,19 @@ impl Tids {
     /// A fresh id: not in flight, not retired, no low byte shared with an id in flight,
     /// and never a low byte of 0 (so never 0x0000, the id the CIE-M10's notifications
     /// may carry, nor a shifted copy of one). At most 255 are in flight and
-    /// [`RETIRED_MAX`] retired, so one is always found; the bytes to avoid are given up
-    /// only after a whole period found no id without them (more in flight than the
-    /// other low bytes).
+    /// [`RETIRED_MAX`] retired, so one is always found.
     pub(crate) fn allocate(&mut self, now: Instant) -> u16 {
         self.expire(now);
-        for tried in 0u32.. {
+        loop {
             let tid = self.next;
             self.next = step(self.next);
             let low = tid & 0xFF;
-            let clean = tried > u32::from(u16::MAX)
-                || !tid.to_be_bytes().iter().any(|b| self.avoid.contains(b));
-            if low != 0 && clean && !self.is_reserved(tid) && self.live_low[usize::from(low)] == 0 {
+            if low != 0 && !self.is_reserved(tid) && self.live_low[usize::from(low)] == 0 {
                 self.set(tid, true);
                 self.live_low[usize::from(tid & 0xFF)] += 1;
                 return tid;
             }
         }
-        unreachable!("an id is found within two periods")
     }
 
     /// The request is finished (answered, timed out or abandoned): an answer with this
@@ -141,31 +119,6 @@ impl Tids {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    /// XON/XOFF: no id carries 0x11 or 0x13 while the in-flight ids leave another;
-    /// with every other low byte in flight, one still is given.
-    #[test]
-    fn ids_avoid_xon_and_xoff_while_they_can() {
-        let now = Instant::now();
-        let mut t = Tids::avoiding(XON_XOFF);
-        let mut held = Vec::new();
-        for _ in 0..70_000u32 {
-            let tid = t.allocate(now);
-            let [hi, lo] = tid.to_be_bytes();
-            assert!(
-                !XON_XOFF.contains(&hi) && !XON_XOFF.contains(&lo),
-                "{tid:#06x}"
-            );
-            held.push(tid);
-            if held.len() > 200 {
-                t.retire(held.remove(0), now);
-            }
-        }
-        let mut t = Tids::avoiding(XON_XOFF);
-        let all: Vec<u16> = (0..254).map(|_| t.allocate(now)).collect();
-        let lows: std::collections::HashSet<u16> = all.iter().map(|t| t & 0xFF).collect();
-        assert_eq!(lows.len(), 254, "254 in flight, each its own low byte");
-    }
 
     #[test]
     fn never_zero_never_reused_while_reserved() {

@@ -127,34 +127,52 @@ fn serial_end_disappears_and_comes_back() {
 
 /// The port disappears under requests (docs/masters.md, the exceptions mbgate answers itself):
 /// the one whose bytes went out gets 0x0B, as for a timeout (it may have acted on the
-/// device); the one flow control held back and the one still queued get 0x0A (no
-/// path, and they cannot have acted).
+/// device); one flow control held back and one still queued get 0x0A (no path, and
+/// they cannot have acted). An ASCII line, whose frames XON/XOFF flow control (which a
+/// pty honours) cannot cut: the device's end is played byte by byte.
 #[test]
 fn port_lost_answers_0x0b_for_a_request_sent_0x0a_for_the_rest() {
-    let mut r = rig(|c| {
-        c.serial("flow_control = \"software\"")
-            .relay("max_in_flight = 2")
+    let ascii = |c: Cfg| {
+        c.serial("framing = \"ascii\"")
+            .serial("flow_control = \"software\"")
             .relay("response_timeout_ms = 5000")
-    });
-    let mut dev = RawDevice::start(&r.socat.dev, Box::new(|_| vec![]));
-    let (mut sent, mut held, mut queued) = (r.gw.connect(), r.gw.connect(), r.gw.connect());
+    };
+    // Sent, with one queued behind it.
+    let mut r = rig(ascii);
+    let mut dev = common::sim::RawLine::open(&r.socat.dev);
+    let (mut sent, mut queued) = (r.gw.connect(), r.gw.connect());
     sent.write_all(&read_req(1, 1, 0, 1)).unwrap();
-    wait_for("the request on the wire", Duration::from_secs(2), || {
-        dev.requests().len() == 1
-    });
-    dev.inject(&[0x13]); // XOFF: nothing more leaves
-    std::thread::sleep(Duration::from_millis(100));
-    held.write_all(&read_req(2, 1, 0, 1)).unwrap();
-    std::thread::sleep(Duration::from_millis(100));
+    let asked = mbgate::frame::ascii::encode(1, &[3, 0, 0, 0, 1]);
+    assert_eq!(dev.recv(asked.len(), Duration::from_secs(5)), asked);
     queued.write_all(&read_req(3, 1, 0, 1)).unwrap();
     std::thread::sleep(Duration::from_millis(100));
     r.socat.stop();
     let start = Instant::now();
     assert_eq!(read_frame(&mut sent), exception(1, 1, 3, 0x0B));
+    assert_eq!(read_frame(&mut queued), exception(3, 1, 3, 0x0A));
+    assert!(start.elapsed() < Duration::from_secs(2), "not prompt");
+
+    // Held back by XOFF, with one queued behind it: neither ever reaches the device.
+    let mut r = rig(ascii);
+    let mut dev = common::sim::RawLine::open(&r.socat.dev);
+    dev.send(&[0x13]); // XOFF: nothing leaves
+    std::thread::sleep(Duration::from_millis(100));
+    let (mut held, mut queued) = (r.gw.connect(), r.gw.connect());
+    held.write_all(&read_req(2, 1, 0, 1)).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    queued.write_all(&read_req(3, 1, 0, 1)).unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    let got = dev.recv_until_quiet(Duration::from_millis(200), Duration::from_secs(1));
+    r.socat.stop();
+    let start = Instant::now();
     assert_eq!(read_frame(&mut held), exception(2, 1, 3, 0x0A));
     assert_eq!(read_frame(&mut queued), exception(3, 1, 3, 0x0A));
     assert!(start.elapsed() < Duration::from_secs(2), "not prompt");
-    assert_eq!(dev.requests().len(), 1, "the held request never left");
+    assert!(
+        got.is_empty(),
+        "the held request never left: {}",
+        hexs(&got)
+    );
 }
 
 /// A serial port that does not exist at start is not fatal: 0x0A at once, and service
@@ -579,42 +597,73 @@ fn sigterm_with_a_silent_device_exits_0_within_the_response_timeout() {
     assert_eq!(read_frame(&mut m), exception(5, 1, 3, 0x0B));
 }
 
-/// Flow control holds a request back past its timeout (here XOFF with
-/// `flow_control = "software"`, which a pty honours; RTS/CTS behaves the same on real
-/// ports): the master gets 0x0B, and the request is withdrawn, so it never reaches the
-/// device after the master was told it failed. Service resumes on XON.
+/// XON/XOFF on an ASCII line (the one framing whose frames can never hold 0x11 or
+/// 0x13): XOFF from the device holds the gateway's next request back past its timeout
+/// (a pty honours it; RTS/CTS behaves the same on real ports): the master gets 0x0B,
+/// and the request is withdrawn, so it never reaches the device after the master was
+/// told it failed. XON releases the line: the next request is the first bytes the
+/// device reads after it.
 #[test]
 fn request_held_back_by_flow_control_is_withdrawn_on_timeout() {
     let r = rig(|c| {
-        c.serial("flow_control = \"software\"")
+        c.serial("framing = \"ascii\"")
+            .serial("flow_control = \"software\"")
             .relay("response_timeout_ms = 300")
     });
-    let mut dev = RawDevice::start(&r.socat.dev, register_device(&[1], Duration::ZERO));
+    let mut dev = common::sim::RawLine::open(&r.socat.dev);
     let mut m = r.gw.connect();
-    assert_eq!(
-        transact(&mut m, &read_req(1, 1, 1, 1)),
-        read_reply(1, 1, &[1])
-    );
+    let ascii = mbgate::frame::ascii::encode;
+    let answer = |dev: &mut common::sim::RawLine, pdu: &[u8], reply: &[u8]| {
+        let asked = ascii(1, pdu);
+        assert_eq!(dev.recv(asked.len(), Duration::from_secs(5)), asked);
+        dev.send(&ascii(1, reply));
+    };
+    m.write_all(&read_req(1, 1, 1, 1)).unwrap();
+    answer(&mut dev, &[3, 0, 1, 0, 1], &[3, 2, 0, 1]);
+    assert_eq!(read_frame(&mut m), read_reply(1, 1, &[1]));
 
-    dev.inject(&[0x13]); // XOFF
+    dev.send(&[0x13]); // XOFF
     std::thread::sleep(Duration::from_millis(100));
     assert_eq!(
         transact(&mut m, &write_req(2, 1, 7, &[0xDEAD])),
         exception(2, 1, 0x10, 0x0B)
     );
     r.gw.wait_log("could not be written in time", Duration::from_secs(2));
-    dev.inject(&[0x11]); // XON
-    assert_eq!(
-        transact(&mut m, &read_req(3, 1, 7, 1)),
-        read_reply(3, 1, &[7])
-    );
-    let seen = dev.requests();
-    assert_eq!(
-        seen.len(),
-        2,
-        "the withdrawn write never reached the device: {seen:?}"
-    );
-    assert!(seen.iter().all(|r| r.function() == 0x03));
+    dev.send(&[0x11]); // XON
+    m.write_all(&read_req(3, 1, 7, 1)).unwrap();
+    // The withdrawn write never reached the device: the read is the next it hears.
+    answer(&mut dev, &[3, 0, 7, 0, 1], &[3, 2, 0, 7]);
+    assert_eq!(read_frame(&mut m), read_reply(3, 1, &[7]));
+}
+
+/// XON/XOFF flow control is refused on the binary framings, where any byte of a frame
+/// may be 0x11 or 0x13, naming the key and why; allowed on ASCII.
+#[test]
+fn software_flow_control_is_refused_on_binary_framings() {
+    let dir = tempdir();
+    for framing in ["rtu", "mbap", "ascii"] {
+        let path = dir.path().join(format!("{framing}.toml"));
+        std::fs::write(
+            &path,
+            format!(
+                "[serial]\npath = \"/dev/ttyUSB0\"\nframing = \"{framing}\"\nflow_control = \"software\"\n"
+            ),
+        )
+        .unwrap();
+        let run = mbgate(&["check-config", path.to_str().unwrap()]);
+        if framing == "ascii" {
+            assert_eq!(run.code, 0, "{}", run.stderr);
+        } else {
+            assert_eq!(run.code, 2, "{framing}: {}", run.stderr);
+            assert!(
+                run.stderr.contains(&format!(
+                    "{framing}.toml:4:16: serial.flow_control: cannot go with serial.framing = \"{framing}\": software flow control takes the bytes 0x11 and 0x13"
+                )),
+                "{}",
+                run.stderr
+            );
+        }
+    }
 }
 
 /// Pipelining past `max_pending_per_connection` is held back by TCP, not refused: every

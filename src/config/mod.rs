@@ -511,7 +511,29 @@ impl Config {
             };
             (value > limit).then_some(c)
         });
-        exceeds.or_else(|| self.direction_conflict())
+        exceeds
+            .or_else(|| self.direction_conflict())
+            .or_else(|| self.flow_conflict())
+    }
+
+    /// XON/XOFF flow control on a binary framing: on RTU and MBAP lines any byte of a
+    /// frame may be 0x11 or 0x13 (a length, a register value, a CRC), which the
+    /// kernel would take for XON and XOFF, drop from the frame, and stop or start the
+    /// gateway's output by; ASCII frames carry only printable characters, CR and LF
+    /// (docs/rtu-ascii.md).
+    fn flow_conflict(&self) -> Option<Conflict> {
+        let s = &self.serial;
+        (s.flow_control == FlowControl::Software && s.framing != Framing::Ascii).then(|| Conflict {
+            key: key("serial", "flow_control"),
+            other: key("serial", "framing"),
+            clash: Clash::Excludes(format!(
+                " = {:?}: software flow control takes the bytes 0x11 and 0x13 for XON \
+                     and XOFF, and any byte of a binary frame may be one (a length, a \
+                     value, a CRC); use flow_control = \"hardware\" or \"none\", or \
+                     framing = \"ascii\"",
+                s.framing.name()
+            )),
+        })
     }
 
     /// `serial.direction` against the keys it cannot go with (docs/rs485.md).

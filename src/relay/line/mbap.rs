@@ -10,7 +10,7 @@ mod usable;
 use super::{Seen, Unsolicited};
 use crate::capture::dropped::Tape;
 use crate::capture::packet::Reason;
-use crate::config::{FlowControl, Notifications, RelayConfig, SerialConfig};
+use crate::config::{Notifications, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::pdu;
 use crate::frame::Adu;
@@ -105,10 +105,7 @@ impl Mbap {
     ) -> Mbap {
         let gap = Duration::from_millis(relay.frame_gap_ms);
         let mut line = Mbap {
-            tids: match serial.flow_control {
-                FlowControl::Software => Tids::avoiding(crate::tids::XON_XOFF),
-                _ => Tids::new(),
-            },
+            tids: Tids::new(),
             decoder: Framer::mbap(),
             last_byte: now,
             serial: serial.clone(),
