@@ -227,6 +227,7 @@ async fn start(
     if let (Some((hup, load)), Some(asked)) = (hup, asked) {
         let reloadable = reload::Reloadable {
             running: running.clone(),
+            masters: board.masters.clone(),
             load,
             lines: lines.handles,
             metrics: http,
@@ -388,6 +389,7 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
     let tracker = TaskTracker::new();
     let shared = tcp::Shared {
         cfg: started.cfg.clone(),
+        running: started.running.clone(),
         router: started.router.clone(),
         stats: Arc::default(),
         shutdown: shutdown.clone(),

@@ -282,6 +282,8 @@ pub(crate) struct MasterSeen {
     pub(crate) conn: u64,
     /// The listener's address (the `listener` label).
     pub(crate) listener: String,
+    /// The listener's address as configured (what a reload finds it by).
+    pub(crate) listen_at: std::net::SocketAddr,
     pub(crate) peer: std::net::SocketAddr,
     /// When it connected, seconds since the Unix epoch.
     pub(crate) since: f64,

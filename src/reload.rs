@@ -151,6 +151,8 @@ impl LineHandle {
 /// moves, and the TLS listeners whose certificates it reads again.
 pub(crate) struct Reloadable {
     pub(crate) running: Arc<Mutex<Config>>,
+    /// The masters connected now, whose priority classes a reload may change.
+    pub(crate) masters: Arc<crate::metrics::Masters>,
     pub(crate) load: Loader,
     pub(crate) lines: Vec<LineHandle>,
     pub(crate) metrics: MetricsListener,
@@ -178,7 +180,7 @@ pub(crate) async fn on_sighup(
             }
         };
         let certificates = reload_certificates(&it.acceptors);
-        let Some(outcome) = reload(&it.running, &it.load, &it.lines, &mut it.metrics) else {
+        let Some(outcome) = reload(&mut it) else {
             return; // a relay has stopped: shutting down
         };
         outcome.log();
@@ -223,40 +225,56 @@ fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
 /// One reload: the file read, its lines matched to the running ones, what a reload
 /// applies applied (the relays' timeouts and retries, the log, the metrics listener).
 /// `None` when a relay has stopped.
-fn reload(
-    running: &Mutex<Config>,
-    load: &Loader,
-    lines: &[LineHandle],
-    metrics: &mut MetricsListener,
-) -> Option<Outcome> {
-    let read = match load() {
+fn reload(it: &mut Reloadable) -> Option<Outcome> {
+    let read = match (it.load)() {
         Ok(read) => read,
         Err(e) => return Some(Outcome::Refused(e.to_string())),
     };
-    let old = running.lock().expect("not poisoned").clone();
+    let old = it.running.lock().expect("not poisoned").clone();
     let matched = match changes::match_lines(&old.lines(), &read.lines()) {
         Ok(m) => m,
         Err(why) => return Some(Outcome::Refused(why)),
     };
     let mut new = changes::merged(&old, &read, &matched);
-    if let Err(e) = metrics.set(new.metrics.listen) {
+    if let Err(e) = it.metrics.set(new.metrics.listen) {
         error!("reload: {e}; the metrics listener stays as it was");
         new.metrics = old.metrics.clone();
     }
     crate::logging::reload(&new.log);
-    for (handle, line) in lines.iter().zip(new.lines()) {
+    for (handle, line) in it.lines.iter().zip(new.lines()) {
         handle.retune(line, new.log.traffic)?;
     }
     let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {
         let changes = changes::changes(a, b, matched);
         changes.into_iter().map(|c| c.said).collect()
     };
-    // `new` keeps the running lines' order; the file may have another.
     let same: Vec<usize> = (0..matched.len()).collect();
     let applied = said(&old, &new, &same);
     let restart = said(&new, &read, &matched);
-    *running.lock().expect("not poisoned") = new;
+    let mut running = it.running.lock().expect("not poisoned");
+    *running = new;
+    reclassify(&running, &it.masters, &it.lines);
     Some(Outcome::Done { applied, restart })
+}
+
+/// Tells every line each connected master's priority class under `running`, the
+/// configuration as it runs from now on (docs/masters.md "Priority"). Called under
+/// `running`'s lock, which a connection holds too while it tells its class at
+/// connect: a master that connects meanwhile tells either its old class before
+/// this, or its new one.
+fn reclassify(running: &Config, masters: &crate::metrics::Masters, lines: &[LineHandle]) {
+    for m in masters.list() {
+        let role = m.tls.as_ref().map(|(role, _)| role.as_str());
+        let class = running.priority_of(m.listen_at, role);
+        for line in lines {
+            if let LineHandle::Relay(relay) = line {
+                let _ = relay.send(Command::Priority {
+                    conn: m.conn,
+                    class,
+                });
+            }
+        }
+    }
 }
 
 #[cfg(test)]

@@ -75,6 +75,8 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
 #[derive(Clone)]
 pub(crate) struct Shared {
     pub(crate) cfg: Arc<Config>,
+    /// The configuration as it runs now (a reload changes it): the priority classes.
+    pub(crate) running: Arc<std::sync::Mutex<Config>>,
     pub(crate) router: Arc<Router>,
     pub(crate) stats: Arc<Stats>,
     pub(crate) shutdown: CancellationToken,
@@ -104,6 +106,7 @@ pub(crate) struct Listening {
 pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, shared: Shared) {
     let Shared {
         cfg,
+        running,
         router,
         stats,
         shutdown,
@@ -165,6 +168,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             id: ids.fetch_add(1, Ordering::Relaxed) + 1,
             peer,
             cfg: cfg.clone(),
+            running: running.clone(),
             listen: listen.clone(),
             router: router.clone(),
             stats: stats.clone(),
@@ -339,6 +343,7 @@ struct Connection {
     id: ConnId,
     peer: SocketAddr,
     cfg: Arc<Config>,
+    running: Arc<std::sync::Mutex<Config>>,
     listen: Arc<ListenConfig>,
     router: Arc<Router>,
     stats: Arc<Stats>,
@@ -430,6 +435,7 @@ impl Connection {
         self.masters.add(MasterSeen {
             conn: self.id,
             listener: self.local.to_string(),
+            listen_at: self.listen.tcp.listen,
             peer: self.peer,
             since: std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
@@ -450,13 +456,15 @@ impl Connection {
         };
         let (mut outbox, inbox) = Outbox::new(pending);
         let attached = !C::IDS || self.router.attach(self.id, &outbox.notifier());
-        // Its role's priority class, else its listener's.
-        let role = self.grant.as_ref().map(|g| g.role.as_str());
-        let role = role.and_then(|name| self.cfg.roles.iter().find(|r| r.name == name));
-        let class = role
-            .and_then(|r| r.priority)
-            .unwrap_or(self.listen.priority);
-        self.router.classify(self.id, class);
+        // Its role's priority class, else its listener's, as the configuration runs
+        // now; told under its lock, so a reload's new classes never arrive before
+        // the old one (src/reload.rs `reclassify`).
+        {
+            let running = self.running.lock().expect("not poisoned");
+            let role = self.grant.as_ref().map(|g| g.role.as_str());
+            let class = running.priority_of(self.listen.tcp.listen, role);
+            self.router.classify(self.id, class);
+        }
         if attached {
             let writer = self.write_loop::<C>(wr, inbox);
             tokio::pin!(writer);

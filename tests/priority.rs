@@ -186,3 +186,66 @@ fn a_busy_high_class_leaves_the_low_class_its_share() {
     assert!(h > 2 * l, "the high class first: {h} against {l}");
     gw.stop();
 }
+
+/// A reload that raises a listener's priority applies it to the masters already
+/// connected, and names it: four masters on each of two listeners (classes 1 and 0)
+/// read back to back; SIGHUP with the second at 7, and from then on its masters get
+/// most of the line (they got the low class's share before), the log saying
+/// `priority = 7` was applied.
+#[test]
+fn a_reload_that_changes_a_priority_applies_it_to_connected_masters() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let delays = dir.path().join("delays");
+    std::fs::write(&delays, "1=0.01\n").unwrap();
+    let (dev, file) = (socat.dev.to_str().unwrap(), delays.to_str().unwrap());
+    let _device = Py::start("paced_units.py", &["--port", dev, "--delays", file]);
+    let (a, b) = (free_port(), free_port());
+    let text = |b_class: u8| {
+        format!(
+            "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", baud_rate = 4000000, flow_control = \"none\" }}\n\
+             [[listen]]\naddress = \"127.0.0.1:{a}\"\npriority = 1\n\
+             [[listen]]\naddress = \"127.0.0.1:{b}\"\npriority = {b_class}\n",
+            socat.gw.display().to_string()
+        )
+    };
+    let mut gw = Gateway::launch_text(&text(0), dir.path(), Launch::default());
+    let (high, low): (SocketAddr, SocketAddr) = (
+        format!("127.0.0.1:{a}").parse().unwrap(),
+        format!("127.0.0.1:{b}").parse().unwrap(),
+    );
+    let stop = Arc::new(AtomicBool::new(false));
+    let (mut threads, a_done) = saturate(high, (4, 1, Registers::Own), 4000, &stop);
+    let (more, b_done) = saturate(low, (4, 100, Registers::Own), 4000, &stop);
+    threads.extend(more);
+    let counts = || {
+        (
+            a_done.load(Ordering::Relaxed),
+            b_done.load(Ordering::Relaxed),
+        )
+    };
+    thread::sleep(Duration::from_secs(2));
+    let (a0, b0) = counts();
+    std::fs::write(dir.path().join("mbgate.toml"), text(7)).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("reloaded:", Duration::from_secs(10));
+    let (a1, b1) = counts();
+    thread::sleep(Duration::from_secs(2));
+    let (a2, b2) = counts();
+    stop.store(true, Ordering::Relaxed);
+    for t in threads {
+        t.join().unwrap();
+    }
+    let log = gw.log();
+    let (before, after) = ((a0, b0), (a2 - a1, b2 - b1));
+    eprintln!("before the reload (A, B): {before:?}; after: {after:?}");
+    assert!(
+        log.contains(&format!("listen \"127.0.0.1:{b}\" priority = 7")),
+        "the change named: {log}"
+    );
+    assert!(!log.contains("applied only by a restart"), "{log}");
+    assert!(a0 > 2 * b0, "A first before: {before:?}");
+    assert!(after.0 + after.1 > 40, "the line served: {after:?}");
+    assert!(after.1 > 2 * after.0, "B first after the reload: {after:?}");
+    gw.stop();
+}

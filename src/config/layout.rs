@@ -118,6 +118,17 @@ impl Config {
         }]
     }
 
+    /// The priority class of a master of the listener configured at `listen`, with a
+    /// TLS role of `role` if any: the role's, else the listener's (docs/masters.md
+    /// "Priority"); 0 for a listener not in this configuration.
+    pub(crate) fn priority_of(&self, listen: std::net::SocketAddr, role: Option<&str>) -> u8 {
+        let role = role.and_then(|name| self.roles.iter().find(|r| r.name == name));
+        role.and_then(|r| r.priority).unwrap_or_else(|| {
+            let listener = self.listeners.iter().find(|l| l.tcp.listen == listen);
+            listener.map_or(0, |l| l.priority)
+        })
+    }
+
     /// The most requests any line lets one master pipeline: the room each master's
     /// connection keeps for replies.
     pub(crate) fn max_pending_per_connection(&self) -> usize {

@@ -8,7 +8,9 @@ use crate::config::master::{MasterLine, Route};
 use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, KEYS};
 
 /// The keys a reload applies while the gateway runs: of each line (`[relay]` or
-/// `[line.relay]`), and of the gateway.
+/// `[line.relay]`), and of the gateway. Beside them a reload applies each
+/// `[[line.unit]]` table, a master line's route timeouts, and the `priority` of each
+/// `[[listen]]` and `[[role]]`.
 pub(crate) const LINE_RELOADABLE: [&str; 4] = [
     "relay.response_timeout_ms",
     "relay.retries",
@@ -95,6 +97,25 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     }
     c.log = read.log.clone();
     c.metrics = read.metrics.clone();
+    // Priority classes: each listener's (matched by its address), and the roles' when
+    // nothing else of them changed.
+    // (One open listener of class 0 is kept in the old form's [tcp]: spelt out as a
+    // listener once its class changes.)
+    let (mut listeners, read_listeners) = (c.listeners(), read.listeners());
+    let mut reclassed = false;
+    for l in &mut listeners {
+        let read = read_listeners.iter().find(|m| m.tcp.listen == l.tcp.listen);
+        if let Some(m) = read.filter(|m| m.priority != l.priority) {
+            l.priority = m.priority;
+            reclassed = true;
+        }
+    }
+    if reclassed {
+        c.listeners = listeners;
+    }
+    if same_roles_but_priority(running, read) {
+        c.roles = read.roles.clone();
+    }
     c
 }
 
@@ -217,13 +238,38 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
         }
     }
     out.extend(listener_changes(a, b));
-    if a.roles != b.roles {
+    if !same_roles_but_priority(a, b) {
         out.push(Change {
             said: "the [[role]] tables".into(),
             reloadable: false,
         });
+    } else {
+        for (ra, rb) in a.roles.iter().zip(&b.roles) {
+            if ra.priority != rb.priority {
+                let class = rb
+                    .priority
+                    .map_or("(the listener's)".into(), |p| p.to_string());
+                out.push(Change {
+                    said: format!("role {:?} priority = {class}", rb.name),
+                    reloadable: true,
+                });
+            }
+        }
     }
     out
+}
+
+/// Do the two configurations' `[[role]]` tables differ in their `priority` alone?
+/// That a reload applies; any other change to them waits for a restart.
+fn same_roles_but_priority(a: &Config, b: &Config) -> bool {
+    a.roles.len() == b.roles.len()
+        && a.roles.iter().zip(&b.roles).all(|(x, y)| {
+            let x = crate::config::AccessRole {
+                priority: y.priority,
+                ..x.clone()
+            };
+            x == *y
+        })
 }
 
 /// A line's settings as a configuration of the old form, to read its keys by [`KEYS`].
@@ -273,6 +319,12 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
                 if l.framing != m.framing {
                     let said = format!("listen \"{}\" framing = {}", at(l), m.framing.print());
                     out.push(restart(said));
+                }
+                if l.priority != m.priority {
+                    out.push(Change {
+                        said: format!("listen \"{}\" priority = {}", at(l), m.priority),
+                        reloadable: true,
+                    });
                 }
                 // Who may connect and what they may do (docs/security.md); the
                 // certificate files themselves are read again by every reload.
@@ -476,5 +528,96 @@ mod tests {
         // Back to the line's settings.
         let back = merged(&new, &running, &matched);
         assert!(back.lines()[0].unit_tables.is_empty());
+    }
+
+    /// Every key a `[[listen]]` or a `[[role]]` declares (their own and `[tcp]`'s,
+    /// read from the declarations, so a key added later without a value here fails):
+    /// changed alone in the file, a reload names it, and one it says it applies is
+    /// in the running configuration after it, none left to name; one it does not
+    /// apply is named as waiting for a restart.
+    #[test]
+    fn every_listener_and_role_key_changed_is_applied_or_named() {
+        use crate::config::access::{LISTEN_KEYS, ROLE_KEYS};
+        // A value other than the default for each key.
+        let listen_value = |key: &str| -> Option<&str> {
+            Some(match key {
+                "framing" => "\"rtu\"",
+                "allow" => "[\"10.0.0.0/8\"]",
+                "read_only" => "true",
+                "write" => "[{ units = [1] }]",
+                "tls" => "{ cert = \"c.pem\", key = \"k.pem\", client_ca = \"ca.pem\" }",
+                "priority" => "3",
+                "max_connections" => "9",
+                "idle_timeout_ms" => "77",
+                _ => return None,
+            })
+        };
+        let role_value = |key: &str| -> Option<&str> {
+            Some(match key {
+                "read_only" => "true",
+                "write" => "[{ units = [1] }]",
+                "priority" => "5",
+                _ => return None,
+            })
+        };
+        let file = |listen: &str, role: &str| {
+            let text = format!(
+                "[[line]]\nserial = {{ path = \"/dev/a\" }}\n\
+                 [[listen]]\naddress = \"127.0.0.1:5020\"\n{listen}\n\
+                 [[role]]\nname = \"r\"\n{role}\n"
+            );
+            crate::config::parse(&text, "t").unwrap_or_else(|e| panic!("{text}: {e}"))
+        };
+        let running = file("", "");
+        let mut keys: Vec<(&str, String, bool)> = Vec::new();
+        let tcp = KEYS
+            .iter()
+            .filter(|k| k.section == "tcp" && k.name != "listen");
+        for name in LISTEN_KEYS
+            .iter()
+            .map(|k| k.name)
+            .chain(tcp.map(|k| k.name))
+        {
+            let v = listen_value(name).unwrap_or_else(|| panic!("no value for listen.{name}"));
+            keys.push((name, format!("{name} = {v}"), true));
+        }
+        for name in ROLE_KEYS.iter().map(|k| k.name).filter(|&n| n != "name") {
+            let v = role_value(name).unwrap_or_else(|| panic!("no value for role.{name}"));
+            keys.push((name, format!("{name} = {v}"), false));
+        }
+        for (name, line, listener) in keys {
+            let read = if listener {
+                file(&line, "")
+            } else {
+                file("", &line)
+            };
+            let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+            let all = changes(&running, &read, &matched);
+            assert!(!all.is_empty(), "{line}: not named by a reload");
+            let new = merged(&running, &read, &matched);
+            let left = changes(&new, &read, &matched);
+            for c in &all {
+                if c.reloadable {
+                    assert!(
+                        !left.iter().any(|l| l.said == c.said),
+                        "{line}: said applied ({}), not applied",
+                        c.said
+                    );
+                } else {
+                    assert!(
+                        left.contains(c),
+                        "{line}: {} not waiting for a restart",
+                        c.said
+                    );
+                }
+            }
+            if name == "priority" {
+                assert!(all.iter().all(|c| c.reloadable), "{line}: {all:?}");
+                let class = new.priority_of("127.0.0.1:5020".parse().unwrap(), Some("r"));
+                assert_eq!(class, if listener { 3 } else { 5 }, "{line}");
+                let class = new.priority_of("127.0.0.1:5020".parse().unwrap(), None);
+                assert_eq!(class, if listener { 3 } else { 0 }, "{line}");
+            }
+        }
     }
 }
