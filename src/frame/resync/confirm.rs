@@ -23,7 +23,8 @@
 //!   lost bytes as long as that frame would make exactly this (the reply's lost tail
 //!   filled by a whole frame that followed it), and it cannot be told apart;
 //! - a held frame followed by another with its transaction id but other bytes is
-//!   refuted: one of them took its id from somewhere else.
+//!   refuted: one of them took its id from somewhere else (not id 0, which every
+//!   device notification carries).
 //!
 
 use super::{candidate, Candidate, Judge, Resync};
@@ -72,8 +73,11 @@ impl Resync {
             Candidate::Complete(n) => {
                 let follower = FrameRef::new(&rest[..n]);
                 // The same id with other bytes: one of the two is not what it claims
-                // (a duplicate reply is the same bytes).
-                let contradicts = follower.tid() == frame.tid() && follower != frame;
+                // (a duplicate reply is the same bytes). Not id 0: every notification
+                // of the device carries it (docs/protocol.md), and no request's id is
+                // 0 or has a low byte of 0, so no reply that lost bytes reads as one.
+                let contradicts =
+                    follower.tid() == frame.tid() && frame.tid() != 0 && follower != frame;
                 if self.pause_within(total, total + n)
                     || contradicts
                     || !judge.accept(follower)

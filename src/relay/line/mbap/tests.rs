@@ -442,3 +442,24 @@ fn over_tcp_a_whole_reply_is_taken_at_once_and_the_pause_kept() {
     assert_eq!(line.next_wake(at, true), Some(at + 30 * MS));
     assert!(line.has_room(1, false, at + 30 * MS));
 }
+
+/// Two device notifications (id 0) back to back, with nothing in flight: both are
+/// frames of the line, neither lost.
+#[test]
+fn two_notifications_back_to_back_are_both_seen() {
+    let relay = RelayConfig {
+        device_notifications: true,
+        ..RelayConfig::default()
+    };
+    let t0 = Instant::now();
+    let mut line = LineFraming::new(&relay, &SerialConfig::default(), false, t0);
+    let one = bytes("00 00 00 00 00 05 01 03 02 00 0F");
+    let two = bytes("00 00 00 00 00 05 01 03 02 00 10");
+    let at = t0 + 30 * MS;
+    line.received(&[one.clone(), two.clone()].concat(), at, &Stats::default());
+    let mut got = Vec::new();
+    for after in [0, 20, 50, 100] {
+        got.extend(frames(&mut line, &[], at + after * MS));
+    }
+    assert_eq!(got, vec![one, two]);
+}
