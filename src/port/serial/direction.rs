@@ -170,12 +170,18 @@ pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, Direct
                 lines: Tty(fd),
                 invert: cfg.direction_invert,
             };
-            Transmitter::new(Box::new(rts)).map(Some).map_err(|source| {
-                DirectionError::NoModemLines {
-                    path: cfg.path.clone(),
-                    source,
-                }
-            })
+            let no_lines = |source| DirectionError::NoModemLines {
+                path: cfg.path.clone(),
+                source,
+            };
+            let transmitter = Transmitter::new(Box::new(rts)).map_err(no_lines)?;
+            if cfg.direction_invert {
+                // Released RTS is "send" to an inverted transmitter: the kernel must
+                // not release it when the port closes (at a stop, a lost port, a
+                // restart), where the gateway left it asserted, off.
+                keep_modem_lines_on_close(fd).map_err(no_lines)?;
+            }
+            Ok(Some(transmitter))
         }
         Direction::Gpio => {
             let line = request_line(cfg)?;
@@ -215,6 +221,51 @@ impl ModemLines for Tty {
         } else {
             Err(io::Error::last_os_error())
         }
+    }
+}
+
+/// Clears HUPCL on the open port `fd`: its last close leaves the modem lines as they
+/// are instead of lowering DTR and RTS (termios(3), "HUPCL"). Through termios2, as
+/// the port was set; classic termios where the kernel has none
+/// (`classic::termios2_missing`).
+pub(crate) fn keep_modem_lines_on_close(fd: RawFd) -> io::Result<()> {
+    let mut t = std::mem::MaybeUninit::<libc::termios2>::zeroed();
+    // SAFETY: TCGETS2 writes at most one `struct termios2` into `t`, which is that
+    // size, for the duration of the call.
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t.as_mut_ptr()) };
+    let r = if r == 0 {
+        // SAFETY: zeroed, then filled by a TCGETS2 that succeeded.
+        #[allow(unsafe_code)]
+        let mut t = unsafe { t.assume_init() };
+        t.c_cflag &= !libc::HUPCL;
+        // SAFETY: TCSETS2 reads one `struct termios2`, which `t` is.
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::ioctl(fd, libc::TCSETS2 as _, &t as *const libc::termios2)
+        }
+    } else {
+        let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
+        // SAFETY: tcgetattr fills the `struct termios` it is given; `fd` is open.
+        #[allow(unsafe_code)]
+        let r = unsafe { libc::tcgetattr(fd, t.as_mut_ptr()) };
+        if r != 0 {
+            return Err(io::Error::last_os_error());
+        }
+        // SAFETY: zeroed, then filled by a tcgetattr that succeeded.
+        #[allow(unsafe_code)]
+        let mut t = unsafe { t.assume_init() };
+        t.c_cflag &= !libc::HUPCL;
+        // SAFETY: `t` is a whole `struct termios`, read for the call.
+        #[allow(unsafe_code)]
+        unsafe {
+            libc::tcsetattr(fd, libc::TCSANOW, &t)
+        }
+    };
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(io::Error::last_os_error())
     }
 }
 
@@ -571,5 +622,61 @@ mod tests {
             .unwrap()
             .to_string();
         assert!(e.contains("serial.direction_gpio_chip"), "{e}");
+    }
+
+    /// The port's last close keeps its modem lines where an inverted RTS transmitter
+    /// is used: HUPCL is cleared, through termios2, and the rest of the settings stay.
+    #[test]
+    fn hupcl_is_cleared_and_nothing_else() {
+        use std::os::fd::AsRawFd;
+        let pty = pty_slave();
+        let fd = pty.as_raw_fd();
+        let cflag = || {
+            let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
+            // SAFETY: tcgetattr fills the `struct termios` it is given.
+            #[allow(unsafe_code)]
+            let r = unsafe { libc::tcgetattr(fd, t.as_mut_ptr()) };
+            assert_eq!(r, 0);
+            // SAFETY: filled by the tcgetattr above.
+            #[allow(unsafe_code)]
+            unsafe { t.assume_init() }.c_cflag
+        };
+        let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
+        // SAFETY: tcgetattr fills `t`; tcsetattr reads the whole `struct termios`.
+        #[allow(unsafe_code)]
+        unsafe {
+            assert_eq!(libc::tcgetattr(fd, t.as_mut_ptr()), 0);
+            let mut t = t.assume_init();
+            t.c_cflag |= libc::HUPCL;
+            assert_eq!(libc::tcsetattr(fd, libc::TCSANOW, &t), 0);
+        }
+        let before = cflag();
+        assert_ne!(before & libc::HUPCL, 0, "the port hangs up on close");
+        keep_modem_lines_on_close(fd).unwrap();
+        assert_eq!(cflag(), before & !libc::HUPCL);
+    }
+
+    /// A pty's slave end, opened (its master kept open with it).
+    fn pty_slave() -> std::fs::File {
+        // SAFETY: posix_openpt returns a new descriptor or -1.
+        #[allow(unsafe_code)]
+        let master = unsafe { libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY) };
+        assert!(master >= 0);
+        // SAFETY: `master` is the open master just made.
+        #[allow(unsafe_code)]
+        let name = unsafe {
+            assert_eq!(libc::grantpt(master), 0);
+            assert_eq!(libc::unlockpt(master), 0);
+            std::ffi::CStr::from_ptr(libc::ptsname(master))
+                .to_string_lossy()
+                .into_owned()
+        };
+        // Leaked: the slave keeps its settings only while the master is open.
+        std::mem::forget(master);
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(name)
+            .unwrap()
     }
 }
