@@ -671,8 +671,8 @@ mod tests {
                 .to_string_lossy()
                 .into_owned()
         };
-        // Leaked: the slave keeps its settings only while the master is open.
-        std::mem::forget(master);
+        // `master` is left open (a bare descriptor): the slave keeps its settings
+        // only while the master is open.
         std::fs::OpenOptions::new()
             .read(true)
             .write(true)
