@@ -83,9 +83,11 @@ pub(super) struct Serial {
     /// (a device that stalled, then answers its backlog): until one of their replies
     /// has been confirmed, each is taken only once the line stays quiet after it.
     may_owe: Units,
-    /// A reply from such a unit, held until the line has been quiet for the guard
-    /// after it; with its key (the in-flight request's) and when its last byte came.
-    unconfirmed: Option<(Adu, Instant)>,
+    /// A reply from such a unit, held until the line has been quiet after it for the
+    /// guard, or half its request's response timeout if shorter (so a reply in the
+    /// first half of it is confirmed before its deadline); with its key (the
+    /// in-flight request's), when its last byte came, and that quiet.
+    unconfirmed: Option<(Adu, Instant, Duration)>,
 }
 
 /// A set of unit ids.
@@ -363,7 +365,10 @@ impl Serial {
         // written, bytes not yet read), each of which wakes the loop when it changes.
         let free = waiting.then(|| self.free_at()).filter(|&at| at > now);
         // A reply held for confirmation: taken once the line was quiet for the guard.
-        let confirm = self.unconfirmed.as_ref().map(|_| self.last_rx + self.guard);
+        let confirm = self
+            .unconfirmed
+            .as_ref()
+            .map(|&(_, _, quiet)| self.last_rx + quiet);
         silence.into_iter().chain(free).chain(confirm).min()
     }
 
@@ -397,7 +402,7 @@ impl Serial {
     }
 
     pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
-        if let Some((reply, _)) = self.unconfirmed.take() {
+        if let Some((reply, ..)) = self.unconfirmed.take() {
             self.drop_backlog(&reply, now, stats);
         }
         let held = self.drop_held(now, "a partial reply when its request timed out");
@@ -572,10 +577,10 @@ impl Serial {
         if self
             .unconfirmed
             .as_ref()
-            .is_some_and(|(reply, _)| reply.tid() != f.tid)
+            .is_some_and(|(reply, ..)| reply.tid() != f.tid)
         {
             // Held for a request no longer on the line.
-            if let Some((reply, _)) = self.unconfirmed.take() {
+            if let Some((reply, ..)) = self.unconfirmed.take() {
                 self.drop_backlog(&reply, now, stats);
             }
         }
@@ -596,7 +601,7 @@ impl Serial {
             let (unit, pdu) = (frame.unit(), frame.pdu());
             // Another frame came before the line was quiet after the one held: that
             // one was an answer the device held to an earlier request.
-            if let Some((reply, _)) = self.unconfirmed.take() {
+            if let Some((reply, ..)) = self.unconfirmed.take() {
                 self.drop_backlog(&reply, now, stats);
             }
             let answers = unit == f.req.adu().unit() && pdu::reply_matches(request, pdu);
@@ -606,7 +611,8 @@ impl Serial {
                 // does not fit is its backlog, dropped (docs/reliability.md "RTU and
                 // ASCII", 6).
                 if answers {
-                    self.unconfirmed = Some((frame.with_tid(f.tid), at));
+                    let quiet = self.guard.min(f.timeout / 2);
+                    self.unconfirmed = Some((frame.with_tid(f.tid), at, quiet));
                 } else {
                     self.drop_backlog(&frame, now, stats);
                 }
@@ -638,14 +644,14 @@ impl Serial {
         }
     }
 
-    /// The reply held for confirmation, once the line has been quiet for the guard
-    /// after it with nothing begun since: the answer, and its unit owes no more.
+    /// The reply held for confirmation, once the line has been quiet after it for its
+    /// time with nothing begun since: the answer, and its unit owes no more.
     fn confirmed(&mut self, now: Instant) -> Option<Seen> {
-        let (_, at) = self.unconfirmed.as_ref()?;
-        if self.decoder.buffered() > 0 || now < self.last_rx.max(*at) + self.guard {
+        let &(_, at, quiet) = self.unconfirmed.as_ref()?;
+        if self.decoder.buffered() > 0 || now < self.last_rx.max(at) + quiet {
             return None;
         }
-        let (reply, at) = self.unconfirmed.take()?;
+        let (reply, at, _) = self.unconfirmed.take()?;
         self.may_owe.set(reply.unit(), false);
         Some(Seen::Frame(reply, at))
     }
@@ -673,7 +679,7 @@ impl Serial {
     /// A reply whose check failed (or cut short) for the request `tid`: with a reply
     /// held for confirmation, that one was not followed by quiet, and goes too.
     fn corrupt(&mut self, tid: u16, n: usize, now: Instant, stats: &Stats) -> Option<Seen> {
-        if let Some((reply, _)) = self.unconfirmed.take() {
+        if let Some((reply, ..)) = self.unconfirmed.take() {
             self.drop_backlog(&reply, now, stats);
         }
         debug!(bytes = n, "a reply whose check failed");
