@@ -547,16 +547,25 @@ fn dashboard_queries_answer(prom: &Prometheus, instance: &str) {
                 .replace("$instance", instance)
                 .replace("$line", ".*")
                 .replace("$__rate_interval", "15s");
-            let body = prom
-                .get(&format!("/api/v1/query?query={}", url_encoded(&query)))
-                .expect("Prometheus answers");
-            let v: serde_json::Value = serde_json::from_str(&body).expect("JSON");
-            assert_eq!(v["status"], "success", "{title}: {query}: {body}");
-            let empty = v["data"]["result"].as_array().is_none_or(|r| r.is_empty());
-            assert!(
-                !empty || may_be_empty.contains(&title),
-                "{title}: {query} has no series: {body}"
-            );
+            // A rate needs two scrapes of a series: asked again (bounded) until it
+            // has them.
+            let start = std::time::Instant::now();
+            loop {
+                let body = prom
+                    .get(&format!("/api/v1/query?query={}", url_encoded(&query)))
+                    .expect("Prometheus answers");
+                let v: serde_json::Value = serde_json::from_str(&body).expect("JSON");
+                assert_eq!(v["status"], "success", "{title}: {query}: {body}");
+                let empty = v["data"]["result"].as_array().is_none_or(|r| r.is_empty());
+                if !empty || may_be_empty.contains(&title) {
+                    break;
+                }
+                assert!(
+                    start.elapsed() < std::time::Duration::from_secs(30),
+                    "{title}: {query} has no series: {body}"
+                );
+                std::thread::sleep(std::time::Duration::from_millis(250));
+            }
             asked += 1;
         }
     }
