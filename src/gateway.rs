@@ -203,6 +203,7 @@ async fn start(
     let cfg = Arc::new(cfg);
     let board = Arc::new(Board::default());
     let _ = board.capture.set(capture.hub().clone());
+    board.reloads.started(std::time::SystemTime::now());
     let lines = start_lines(&cfg, &capture, &board, shutdown).await?;
     // Each listener's counters (connections, refusals, requests it answered itself);
     // each line keeps its own (its metrics are per line), and the totals add them up.
@@ -234,6 +235,7 @@ async fn start(
             // Their certificates are read again by every reload, whatever becomes of
             // the rest of it.
             acceptors: bound.iter().filter_map(|(_, l)| l.tls.clone()).collect(),
+            counted: board.reloads.clone(),
         };
         tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
     }

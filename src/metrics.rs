@@ -54,11 +54,8 @@ pub(crate) struct UnitMetrics {
     pub(crate) not_answering: AtomicU64,
     /// When its last timeout came, in microseconds after the line's start; 0 for none.
     last_timeout_us: AtomicU64,
-    /// Reply times, from the request on the line to its reply: one count per bucket
-    /// of [`REPLY_BUCKETS`] (not cumulative), the last for those above every bound.
-    buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],
-    /// Their sum, in microseconds.
-    sum_us: AtomicU64,
+    /// Reply times, from the request on the line to its reply.
+    reply: Histogram,
     /// Its learned response timeout in microseconds (`response_timeout_ms = "auto"`);
     /// 0 for a fixed one.
     learned_us: AtomicU64,
@@ -71,8 +68,17 @@ pub(crate) struct UnitMetrics {
 /// "Learned timeouts"): the `why` label.
 pub(crate) const LEARNED_WHY: [&str; 5] = ["start", "timeout", "learned", "floor", "ceiling"];
 
-impl UnitMetrics {
-    /// A reply came `took` after its request went on the line.
+/// Durations counted in the buckets of [`REPLY_BUCKETS`]: one count per bucket (not
+/// cumulative), the last for those above every bound, and their sum.
+#[derive(Debug, Default)]
+pub(crate) struct Histogram {
+    buckets: [AtomicU64; REPLY_BUCKETS.len() + 1],
+    /// Their sum, in microseconds.
+    sum_us: AtomicU64,
+}
+
+impl Histogram {
+    /// One more duration.
     pub(crate) fn observe(&self, took: Duration) {
         let s = took.as_secs_f64();
         let i = REPLY_BUCKETS
@@ -81,6 +87,46 @@ impl UnitMetrics {
             .unwrap_or(REPLY_BUCKETS.len());
         add(&self.buckets[i], 1);
         add(&self.sum_us, took.as_micros() as u64);
+    }
+
+    /// The upper bound of the bucket that holds the `q` quantile (0 < q ≤ 1), in
+    /// seconds; `None` without a count, infinity above 10 s.
+    pub(crate) fn quantile_bound(&self, q: f64) -> Option<f64> {
+        let (_, count, each) = self.get();
+        if count == 0 {
+            return None;
+        }
+        let want = (q * count as f64).ceil() as u64;
+        let mut seen = 0;
+        each.iter().find_map(|&(bound, n)| {
+            seen += n;
+            (seen >= want).then_some(bound)
+        })
+    }
+
+    /// Sum in seconds, count, and the count in each bucket by its upper bound (the
+    /// last +Inf), not cumulative: the encoder adds them up.
+    pub(crate) fn get(&self) -> (f64, u64, Vec<(f64, u64)>) {
+        let mut total = 0;
+        let mut each = Vec::with_capacity(self.buckets.len());
+        for (i, b) in self.buckets.iter().enumerate() {
+            total += load(b);
+            let bound = REPLY_BUCKETS.get(i).copied().unwrap_or(f64::INFINITY);
+            each.push((bound, load(b)));
+        }
+        (load(&self.sum_us) as f64 / 1e6, total, each)
+    }
+
+    /// How many durations it has counted.
+    pub(crate) fn count(&self) -> u64 {
+        self.buckets.iter().map(load).sum()
+    }
+}
+
+impl UnitMetrics {
+    /// A reply came `took` after its request went on the line.
+    pub(crate) fn observe(&self, took: Duration) {
+        self.reply.observe(took);
     }
 
     /// The unit's learned timeout is now `timeout`, for the reason at `why` in
@@ -101,29 +147,12 @@ impl UnitMetrics {
     /// The upper bound of the bucket that holds the `q` quantile of the reply times
     /// (0 < q ≤ 1), in seconds; `None` without replies, infinity above 10 s.
     pub(crate) fn quantile_bound(&self, q: f64) -> Option<f64> {
-        let (_, count, each) = self.histogram();
-        if count == 0 {
-            return None;
-        }
-        let want = (q * count as f64).ceil() as u64;
-        let mut seen = 0;
-        each.iter().find_map(|&(bound, n)| {
-            seen += n;
-            (seen >= want).then_some(bound)
-        })
+        self.reply.quantile_bound(q)
     }
 
-    /// The histogram: sum in seconds, count, and the count in each bucket by its
-    /// upper bound (the last +Inf), not cumulative: the encoder adds them up.
+    /// The reply-time histogram ([`Histogram::get`]).
     pub(crate) fn histogram(&self) -> (f64, u64, Vec<(f64, u64)>) {
-        let mut total = 0;
-        let mut each = Vec::with_capacity(self.buckets.len());
-        for (i, b) in self.buckets.iter().enumerate() {
-            total += load(b);
-            let bound = REPLY_BUCKETS.get(i).copied().unwrap_or(f64::INFINITY);
-            each.push((bound, load(b)));
-        }
-        (load(&self.sum_us) as f64 / 1e6, total, each)
+        self.reply.get()
     }
 }
 
@@ -148,11 +177,18 @@ pub(crate) struct LineMetrics {
     pub(crate) last_reply_us: AtomicU64,
     /// Whether the port is open (1) or not (0).
     pub(crate) port_open: AtomicU64,
+    /// How long requests waited in the queue before they went on the line, by
+    /// priority class (docs/masters.md "Priority"): from the relay taking a request
+    /// to its first sending.
+    pub(crate) queue_wait: [Histogram; QUEUE_CLASSES],
     started: Instant,
     /// Who switches the line's RS-485 transmitter, in words; empty where nobody is
     /// asked to (`crate::config::describe::direction`).
     direction: std::sync::Mutex<String>,
 }
+
+/// The priority classes a queue wait is counted by: 0 to `priority`'s highest.
+pub(crate) const QUEUE_CLASSES: usize = crate::config::access::PRIORITY_MAX as usize + 1;
 
 /// A unit not answering counts as failing (the gateway not healthy) until it answers
 /// again, or until this long has passed since its last timeout: a unit nobody asks
@@ -174,6 +210,7 @@ impl LineMetrics {
             busy_us: AtomicU64::new(0),
             last_reply_us: AtomicU64::new(0),
             port_open: AtomicU64::new(0),
+            queue_wait: Default::default(),
             started: Instant::now(),
             direction: std::sync::Mutex::new(String::new()),
         }
@@ -316,6 +353,44 @@ impl Masters {
     }
 }
 
+/// The configuration's reloads (docs/configuration.md "Reload"): how many took the
+/// file and how many refused it, and how the last went, which the alert on a refused
+/// reload watches (docs/mbgate-alerts.yml).
+#[derive(Debug, Default)]
+pub(crate) struct Reloads {
+    pub(crate) taken: AtomicU64,
+    pub(crate) refused: AtomicU64,
+    /// 1 while the last reload refused the file.
+    pub(crate) last_refused: AtomicU64,
+    /// When the file was last taken, at start or by a reload: Unix time in
+    /// microseconds.
+    pub(crate) last_taken_us: AtomicU64,
+}
+
+impl Reloads {
+    /// The file was taken at start, at `now`.
+    pub(crate) fn started(&self, now: std::time::SystemTime) {
+        self.last_taken_us.store(unix_us(now), Ordering::Relaxed);
+    }
+
+    /// A reload at `now` took the file, or refused it.
+    pub(crate) fn reloaded(&self, taken: bool, now: std::time::SystemTime) {
+        if taken {
+            add(&self.taken, 1);
+            self.last_taken_us.store(unix_us(now), Ordering::Relaxed);
+        } else {
+            add(&self.refused, 1);
+        }
+        self.last_refused
+            .store(u64::from(!taken), Ordering::Relaxed);
+    }
+}
+
+fn unix_us(t: std::time::SystemTime) -> u64 {
+    let since = t.duration_since(std::time::SystemTime::UNIX_EPOCH);
+    since.unwrap_or_default().as_micros() as u64
+}
+
 /// Everything the gateway shows: its lines and listeners, in the order they started.
 #[derive(Debug, Default)]
 pub(crate) struct Board {
@@ -328,6 +403,8 @@ pub(crate) struct Board {
     pub(crate) history: Mutex<std::collections::HashMap<String, page::History>>,
     /// The capture, whose packets the status page lists (each line's last frames).
     pub(crate) capture: std::sync::OnceLock<crate::capture::Hub>,
+    /// The configuration's reloads.
+    pub(crate) reloads: Arc<Reloads>,
 }
 
 impl Board {

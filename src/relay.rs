@@ -510,7 +510,7 @@ impl Relay {
     fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket, now: Instant) {
         self.stats.add(&self.stats.requests, 1);
         self.telemetry.request(adu.unit());
-        let mut req = Pending::new(conn, adu, ticket);
+        let mut req = Pending::new(conn, adu, ticket, now);
         let unit = req.adu.unit();
         if self.line.not_broadcast(&req.adu) {
             debug!(
@@ -590,6 +590,11 @@ impl Relay {
             let Some(req) = self.sched.next() else {
                 break;
             };
+            if req.attempts == 0 {
+                let class = self.sched.class_of(&req);
+                self.telemetry
+                    .waited(class, now.saturating_duration_since(req.came));
+            }
             if self.in_flight.backed_off(req.adu.unit(), now) {
                 self.pace_backed_off(req);
                 continue;

@@ -157,6 +157,8 @@ pub(crate) struct Reloadable {
     pub(crate) lines: Vec<LineHandle>,
     pub(crate) metrics: MetricsListener,
     pub(crate) acceptors: Vec<Arc<Acceptor>>,
+    /// Where the metrics count the reloads and say how the last went.
+    pub(crate) counted: Arc<crate::metrics::Reloads>,
 }
 
 /// Reloads on each SIGHUP, and on each request of `mbgate reload` (`asked`), until
@@ -184,6 +186,8 @@ pub(crate) async fn on_sighup(
             return; // a relay has stopped: shutting down
         };
         outcome.log();
+        it.counted
+            .reloaded(outcome.taken(), std::time::SystemTime::now());
         if let Some(a) = answer {
             let _ = a.send(Answer {
                 outcome,

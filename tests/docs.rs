@@ -68,6 +68,8 @@ const PROGRAMS: &[&str] = &[
     "sed",
     "tee",
     "docker",
+    // docs/watching.md: the alert rules checked and tested, as tests/alerts.rs does.
+    "promtool",
 ];
 
 /// The README, CONTRIBUTING.md and every page of docs/.

@@ -266,6 +266,15 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
         ("mbgate_unit_timeouts_total", &u, 2.0),
         ("mbgate_unit_backed_off", &u, 0.0),
         ("mbgate_unit_reply_seconds_count", &u, 4.0),
+        // Each of the six went on the line once, as priority class 0.
+        (
+            "mbgate_line_queue_wait_seconds_count",
+            &[("line", line), ("class", "0")],
+            6.0,
+        ),
+        ("mbgate_config_last_reload_successful", &[], 1.0),
+        ("mbgate_config_reloads_total", &[("result", "refused")], 0.0),
+        ("mbgate_capture_dropped_packets_total", &[], 0.0),
     ];
     for (name, labels, v) in want {
         assert_eq!(value(&s, name, labels), *v, "{name} {labels:?}\n{body}");
@@ -305,16 +314,30 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
         0.0
     );
 
-    // Every metric the Grafana dashboard and the scrape docs name is one the gateway
+    // Every metric the Grafana dashboard and the alert rules name is one the gateway
     // exports.
-    let names: std::collections::BTreeSet<&str> = s.keys().map(|(n, _)| n.as_str()).collect();
-    let dashboard = include_str!("../docs/grafana-dashboard.json");
-    for word in dashboard.split(|c: char| !(c.is_ascii_alphanumeric() || c == '_')) {
-        if word.starts_with("mbgate_") {
-            assert!(
-                names.contains(word),
-                "docs/grafana-dashboard.json names {word}"
-            );
+    // (A family without a sample now, such as the learned timeouts of a line with a
+    // fixed one, is named by its TYPE line.)
+    let mut names: std::collections::BTreeSet<&str> = s.keys().map(|(n, _)| n.as_str()).collect();
+    names.extend(
+        body.lines()
+            .filter_map(|l| l.strip_prefix("# TYPE ")?.split(' ').next()),
+    );
+    let named = [
+        (
+            "docs/grafana-dashboard.json",
+            include_str!("../docs/grafana-dashboard.json"),
+        ),
+        (
+            "docs/mbgate-alerts.yml",
+            include_str!("../docs/mbgate-alerts.yml"),
+        ),
+    ];
+    for (file, text) in named {
+        for word in text.split(|c: char| !(c.is_ascii_alphanumeric() || c == '_')) {
+            if word.starts_with("mbgate_") {
+                assert!(names.contains(word), "{file} names {word}");
+            }
         }
     }
 

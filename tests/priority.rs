@@ -37,7 +37,8 @@ fn start(dir: &std::path::Path) -> (Socat, Py, Gateway, SocketAddr, SocketAddr) 
     let text = format!(
         "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", baud_rate = 4000000, flow_control = \"none\" }}\n\
          [[listen]]\naddress = \"127.0.0.1:0\"\npriority = 1\n\
-         [[listen]]\naddress = \"127.0.0.1:0\"\nmax_connections = 64\n",
+         [[listen]]\naddress = \"127.0.0.1:0\"\nmax_connections = 64\n\
+         [metrics]\nlisten = \"127.0.0.1:0\"\n",
         socat.gw.display().to_string()
     );
     let gw = Gateway::launch_text(&text, dir, Launch::default());
@@ -151,6 +152,27 @@ fn a_high_class_master_is_served_first_beside_fifty_low_ones() {
     let max = waits[waits.len() - 1];
     assert!(max < one * 50, "max {max:?}, a transaction alone {one:?}");
     assert!(low > 30, "the low class was served: {low}");
+    // The queue wait is counted by the class each request went as: the high master's
+    // 40 as class 1 (none joined a low-class read: other registers), the low ones'
+    // as class 0.
+    let scrape = gw.http_get("/metrics");
+    let wait = |class: &str, what: &str| -> f64 {
+        let line = scrape
+            .lines()
+            .find(|l| {
+                l.starts_with(&format!("mbgate_line_queue_wait_seconds_{what}{{"))
+                    && l.contains(&format!("class=\"{class}\""))
+            })
+            .unwrap_or_else(|| panic!("class {class} {what}:\n{scrape}"));
+        line.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    assert_eq!(wait("1", "count"), 40.0, "{scrape}");
+    assert!(wait("0", "count") > 0.0, "{scrape}");
+    eprintln!(
+        "queue wait, mean: class 1 {:.1} ms, class 0 {:.1} ms",
+        wait("1", "sum") / wait("1", "count") * 1e3,
+        wait("0", "sum") / wait("0", "count") * 1e3
+    );
     gw.stop();
 }
 

@@ -279,6 +279,46 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
         "{said}"
     );
     assert_eq!(slow(&mut m, 7, 2), timed_out(7, 2), "line b: still 200 ms");
+    // The metrics say the last reload was refused (what the alert on it watches,
+    // docs/mbgate-alerts.yml), and count them: 2 taken, 2 refused.
+    let http = gw.proc.metrics_addr(Duration::from_secs(5));
+    let scrape = || {
+        let mut s = std::net::TcpStream::connect(http).unwrap();
+        write!(s, "GET /metrics HTTP/1.1\r\n\r\n").unwrap();
+        let mut text = String::new();
+        s.read_to_string(&mut text).unwrap();
+        text
+    };
+    let text = scrape();
+    for line in [
+        "mbgate_config_last_reload_successful 0.0\n",
+        "mbgate_config_reloads_total{result=\"taken\"} 2\n",
+        "mbgate_config_reloads_total{result=\"refused\"} 2\n",
+    ] {
+        assert!(text.contains(line), "{line}{text}");
+    }
+    let taken_at = |text: &str| -> f64 {
+        let line = text
+            .lines()
+            .find(|l| l.starts_with("mbgate_config_last_reload_success_timestamp_seconds "))
+            .expect("the time the file was last taken");
+        line.rsplit(' ').next().unwrap().parse().unwrap()
+    };
+    let before = taken_at(&text);
+    // The file mended: taken, and the metrics say so.
+    std::fs::write(&file, two_lines(&sa.gw, &sb.gw, true, 200)).unwrap();
+    let (code, said) = mbgate_reload(&control_socket(&sa.gw));
+    assert_eq!(code, 0, "{said}");
+    let text = scrape();
+    assert!(
+        text.contains("mbgate_config_last_reload_successful 1.0\n"),
+        "{text}"
+    );
+    assert!(
+        text.contains("mbgate_config_reloads_total{result=\"taken\"} 3\n"),
+        "{text}"
+    );
+    assert!(taken_at(&text) > before, "{text}");
     let counters = gw.stop();
     assert_eq!(counters["connections"], 1, "no master reconnected");
 }

@@ -65,17 +65,24 @@ impl Family {
 
     fn encode(&self, e: &mut DescriptorEncoder) -> std::fmt::Result {
         let mut m = e.encode_descriptor(self.name, self.help, self.unit.as_ref(), self.kind)?;
-        for (labels, v) in &self.values {
-            let fam = m.encode_family(labels)?;
-            match self.kind {
-                MetricType::Counter if v.fract() == 0.0 => {
-                    ConstCounter::new(*v as u64).encode(fam)?
-                }
-                MetricType::Counter => ConstCounter::new(*v).encode(fam)?,
-                _ => ConstGauge::new(*v).encode(fam)?,
+        if let [(labels, v)] = &self.values[..] {
+            if labels.is_empty() {
+                // The gateway's own: `name value`, not `name{} value`.
+                return self.value(*v, m);
             }
         }
+        for (labels, v) in &self.values {
+            self.value(*v, m.encode_family(labels)?)?;
+        }
         Ok(())
+    }
+
+    fn value(&self, v: f64, m: prometheus_client::encoding::MetricEncoder) -> std::fmt::Result {
+        match self.kind {
+            MetricType::Counter if v.fract() == 0.0 => ConstCounter::new(v as u64).encode(m),
+            MetricType::Counter => ConstCounter::new(v).encode(m),
+            _ => ConstGauge::new(v).encode(m),
+        }
     }
 }
 
@@ -101,8 +108,81 @@ impl Collector for Scrape {
             f.encode(&mut e)?;
         }
         masters(&self.0.masters.list()).encode(&mut e)?;
+        queue_wait(&lines, &mut e)?;
+        for f in gateway_families(&self.0) {
+            f.encode(&mut e)?;
+        }
         Ok(())
     }
+}
+
+/// How long requests waited for the line, by line and priority class (`class`, 0 to
+/// 7, docs/masters.md "Priority"), for the classes that have had a request: the
+/// alert on a saturated line watches its 99th percentile.
+fn queue_wait(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::fmt::Result {
+    let mut m = e.encode_descriptor(
+        "mbgate_line_queue_wait",
+        "Time a request waited in the line's queue, from the relay taking it to its first sending, by the priority class it went as.",
+        Some(&Unit::Seconds),
+        MetricType::Histogram,
+    )?;
+    for l in lines {
+        for (class, h) in l.queue_wait.iter().enumerate() {
+            if h.count() == 0 {
+                continue;
+            }
+            let labels = vec![("line", l.name.clone()), ("class", class.to_string())];
+            let (sum, count, buckets) = h.get();
+            let mut fam = m.encode_family(&labels)?;
+            fam.encode_histogram::<Labels>(sum, count, &buckets, None)?;
+        }
+    }
+    Ok(())
+}
+
+/// The gateway's own: its reloads (docs/configuration.md "Reload") and the packets
+/// its captures lost (docs/capture.md).
+fn gateway_families(board: &Board) -> Vec<Family> {
+    use std::sync::atomic::Ordering::Relaxed;
+    let r = &board.reloads;
+    let one = |name, help, kind, v: f64| {
+        let mut f = Family::new(name, help, kind);
+        f.values.push((Vec::new(), v));
+        f
+    };
+    let mut reloads = Family::new(
+        "mbgate_config_reloads",
+        "Reloads of the configuration, by result: taken (applied, or nothing to apply) or refused (the running configuration stays).",
+        C,
+    );
+    for (result, n) in [("taken", &r.taken), ("refused", &r.refused)] {
+        reloads
+            .values
+            .push((vec![("result", result.into())], n.load(Relaxed) as f64));
+    }
+    let dropped = board.capture.get().map_or(0, |h| h.dropped());
+    vec![
+        reloads,
+        one(
+            "mbgate_config_last_reload_successful",
+            "0 while the last reload refused the file, else 1 (no reload yet: 1).",
+            G,
+            f64::from(u8::from(r.last_refused.load(Relaxed) == 0)),
+        ),
+        one(
+            "mbgate_config_last_reload_success_timestamp",
+            "When the configuration file was last taken, at start or by a reload (Unix time).",
+            G,
+            r.last_taken_us.load(Relaxed) as f64 / 1e6,
+        )
+        .seconds(),
+        one(
+            "mbgate_capture_dropped_packets",
+            "Packets the captures (mbgate capture, and the always-on ring) lost because they fell behind: their records have holes.",
+            C,
+            dropped as f64,
+        ),
+    ]
 }
 
 /// A counter or gauge per line, read by `get`.

@@ -12,6 +12,7 @@ use crate::frame::Adu;
 use crate::frame::{pdu, FunctionCode};
 use crate::outbox::{Refusal, Ticket};
 use crate::stats::Stats;
+use tokio::time::Instant;
 
 /// One master's request: who asked, under which transaction id, and the way back.
 struct Asker {
@@ -128,6 +129,8 @@ pub(super) struct Parts {
     /// The cache's generation for its unit when it came (`cache.rs`): its reply is
     /// kept only if nothing acted on the unit since.
     pub(super) cache_stamp: u64,
+    /// When the relay took it: its wait in the queue counts from here.
+    pub(super) came: Instant,
 }
 
 impl Queued for Pending {
@@ -194,8 +197,8 @@ impl Asked for Pending {
 }
 
 impl Pending {
-    /// A request just received, never sent.
-    pub(super) fn new(conn: ConnId, adu: Adu, ticket: Ticket) -> Self {
+    /// A request just received at `came`, never sent.
+    pub(super) fn new(conn: ConnId, adu: Adu, ticket: Ticket, came: Instant) -> Self {
         Pending(Box::new(Parts {
             askers: Askers::one(Asker {
                 conn,
@@ -206,6 +209,7 @@ impl Pending {
             attempts: 0,
             turn: 0,
             cache_stamp: 0,
+            came,
         }))
     }
 
@@ -217,6 +221,7 @@ impl Pending {
             attempts: self.attempts,
             turn: self.turn,
             cache_stamp: self.cache_stamp,
+            came: self.came,
         }))
     }
 

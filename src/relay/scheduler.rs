@@ -208,6 +208,14 @@ impl<R: Queued> Scheduler<R> {
         }
     }
 
+    /// The class `req` goes as: the highest of the masters it serves.
+    pub(super) fn class_of(&self, req: &R) -> u8 {
+        if self.classes.is_empty() {
+            return 0;
+        }
+        self.classes_of(req).1
+    }
+
     /// The lowest and the highest class of the masters `req` serves.
     fn classes_of(&self, req: &R) -> (u8, u8) {
         let each = req

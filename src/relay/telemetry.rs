@@ -175,6 +175,13 @@ impl Telemetry {
         }
     }
 
+    /// A request of priority class `class` waited `took` in the queue before its first
+    /// sending.
+    pub(super) fn waited(&self, class: u8, took: std::time::Duration) {
+        let classes = &self.metrics.queue_wait;
+        classes[usize::from(class).min(classes.len() - 1)].observe(took);
+    }
+
     /// Masters attached to the line now.
     pub(super) fn masters(&self, n: usize) {
         self.metrics.masters.store(n as u64, Ordering::Relaxed);
