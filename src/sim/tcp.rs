@@ -35,6 +35,8 @@ pub async fn run(
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> std::io::Result<()> {
+    let mut device = device;
+    super::replay::announce(&mut device);
     let device = Arc::new(Mutex::new(device));
     let room = Arc::new(tokio::sync::Semaphore::new(connections));
     loop {
