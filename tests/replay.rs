@@ -221,7 +221,10 @@ fn a_recorded_device_replays_byte_for_byte_through_the_gateway() {
     // 1. Record the real (pymodbus) device through the gateway.
     let live = {
         let line = pty_pair(dir.path(), "live");
-        let _device = Py::start("replay_device.py", &["--port", line.dev.to_str().unwrap()]);
+        // A device that takes 5 ms over a request, as a real one does (a PLC's
+        // scan): its reply time is its own, not the pty's.
+        let dev = line.dev.to_str().unwrap();
+        let _device = Py::start("replay_device.py", &["--port", dev, "--delay-ms", "5"]);
         let (mut gw, sock) = gateway(dir.path(), "gw-live", &line);
         let cap = capture(&sock, &recorded);
         let counted = counter(&gw, 15);

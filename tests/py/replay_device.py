@@ -2,7 +2,7 @@
 """A pymodbus RTU server with several units, the device tests/replay.rs records through
 the gateway and then replays (mbgate sim --replay).
 
-    replay_device.py --port PATH [--baud 19200]
+    replay_device.py --port PATH [--baud 19200] [--delay-ms MS]
 
 Units (PDU addresses, 0-based; any address past a table is exception 02, pymodbus'
 own answer; a unit id not listed gets no answer):
@@ -12,6 +12,8 @@ own answer; a unit id not listed gets no answer):
      registers 0-19 (4000 + i);
   3: input register 0 a counter: tenths of a second since the server started, as
      read; input register 1 and holding registers 0-3 zero.
+--delay-ms: units 1 and 2 take this long over each request, as a device's own
+processing does (a PLC's scan, a meter's), on top of pymodbus' own time.
 Prints READY on stdout once serving, then serves until SIGTERM or SIGINT.
 """
 
@@ -33,6 +35,7 @@ from pymodbus.server import ModbusSerialServer
 import serving
 
 STARTED = time.monotonic()
+DELAY_S = 0.0
 
 
 async def counter(function_code, start_address, address, count, registers, values):
@@ -41,6 +44,13 @@ async def counter(function_code, start_address, address, count, registers, value
         at = 0 - start_address
         if 0 <= at < len(registers):
             registers[at] = int((time.monotonic() - STARTED) * 10) & 0xFFFF
+    return None
+
+
+async def slow(function_code, start_address, address, count, registers, values):
+    """Units 1 and 2's processing time (--delay-ms)."""
+    if DELAY_S:
+        await asyncio.sleep(DELAY_S)
     return None
 
 
@@ -68,6 +78,8 @@ def context() -> ModbusServerContext:
         hr=block([0] * 4),
         ir=block([0, 0]),
     )
+    one.simdevice.action = slow
+    two.simdevice.action = slow
     three.simdevice.action = counter
     return ModbusServerContext(devices={1: one, 2: two, 3: three}, single=False)
 
@@ -76,7 +88,10 @@ async def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--port", required=True)
     ap.add_argument("--baud", type=int, default=19200)
+    ap.add_argument("--delay-ms", type=float, default=0.0)
     args = ap.parse_args()
+    global DELAY_S
+    DELAY_S = args.delay_ms / 1000
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     server = ModbusSerialServer(

@@ -69,7 +69,9 @@ impl Model {
         match function {
             // 2. A read: the values, if every address asked was seen.
             1..=4 => {
-                if pdu.len() != 5 || word(pdu, 3) == 0 || word(pdu, 3) > 2000 {
+                // The quantities the Modbus application protocol allows a read.
+                let most = if function <= 2 { 2000 } else { 125 };
+                if pdu.len() != 5 || word(pdu, 3) == 0 || word(pdu, 3) > most {
                     return exception(ILLEGAL_DATA_VALUE);
                 }
                 let (addr, n) = (word(pdu, 1), word(pdu, 3));

@@ -79,10 +79,15 @@ impl Replay {
             self.model.start_us.unwrap_or(0).saturating_add(elapsed)
         });
         let reply = self.model.answer(unit, pdu, moment, &self.choices);
-        let delay = match (&reply, self.model.units.get(&unit)) {
-            (Some(_), Some(u)) if !u.turnarounds_us.is_empty() => {
-                let i = self.rng.usize(..u.turnarounds_us.len());
-                Some(Duration::from_micros(u.turnarounds_us[i]))
+        // The times this very request took, else any of the unit's.
+        let times = self.model.units.get(&unit).map(|u| {
+            u.turnarounds_by_request
+                .get(pdu)
+                .map_or(&u.turnarounds_us[..], |t| &t[..])
+        });
+        let delay = match (&reply, times) {
+            (Some(_), Some(t)) if !t.is_empty() => {
+                Some(Duration::from_micros(t[self.rng.usize(..t.len())]))
             }
             _ => None,
         };

@@ -70,6 +70,8 @@ pub(crate) struct Unit {
     pub(crate) write_exception: Option<(u64, u8)>,
     /// Request out to reply in, µs, sorted.
     pub(crate) turnarounds_us: Vec<u64>,
+    /// The same, request by request (a device takes longer for some).
+    pub(crate) turnarounds_by_request: HashMap<Vec<u8>, Vec<u64>>,
     /// How its line carried it.
     pub(crate) framing: Option<Framing>,
 }
@@ -222,6 +224,10 @@ impl Model {
         if let Some(t) = o.turnaround_us {
             let n = unit.turnarounds_us.partition_point(|&x| x <= t);
             unit.turnarounds_us.insert(n, t);
+            unit.turnarounds_by_request
+                .entry(o.request.clone())
+                .or_default()
+                .push(t);
         }
         match unit.outcomes.get(&o.request) {
             Some((at, _)) if *at > o.at_us => {}
