@@ -126,20 +126,8 @@ fn replay(files: &[&Path], dev: &Path, extra: &[&str]) -> Proc {
 }
 
 fn mbpoll(port: u16, unit: u8, kind: u8, first: u16, count: u16) -> String {
-    let out = Command::new("mbpoll")
-        .args([
-            "-m",
-            "tcp",
-            "-p",
-            &port.to_string(),
-            "-a",
-            &unit.to_string(),
-        ])
-        .args(["-0", "-1", "-o", "3", "-t", &kind.to_string()])
-        .args(["-r", &first.to_string(), "-c", &count.to_string()])
-        .arg("127.0.0.1")
-        .output()
-        .expect("mbpoll");
+    let (kind, first, count) = (kind.to_string(), first.to_string(), count.to_string());
+    let out = mbpoll_run(port, unit, &["-t", &kind, "-r", &first, "-c", &count], &[]);
     let text =
         String::from_utf8_lossy(&out.stdout).into_owned() + &String::from_utf8_lossy(&out.stderr);
     // The values and errors, not the banner (which names the port).

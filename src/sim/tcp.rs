@@ -86,6 +86,10 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
             let Some(pdu) = answer.reply else {
                 continue;
             };
+            if let Some(delay) = answer.delay {
+                // A replayed device's own reply time (`--replay`).
+                tokio::time::sleep(delay).await;
+            }
             let reply = Adu::build(req.tid(), req.unit(), &pdu);
             info!(target: "mbgate::sim::packets", "tx {} (reply)", Hex(reply.as_bytes()));
             device.lock().expect("not poisoned").log.record(

@@ -241,4 +241,64 @@ mod tests {
         );
         assert!(got.iter().all(|o| o.framing == Framing::Rtu));
     }
+
+    /// An MBAP line's replies are found by their transaction id, an ASCII line's
+    /// frames by the text in their comment.
+    #[test]
+    fn mbap_replies_by_transaction_id_and_ascii_by_its_comment() {
+        let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
+        let mbap = |tid: u16, pdu: &[u8]| crate::frame::Adu::build(tid, 4, pdu).as_bytes().to_vec();
+        let mut f = pcapng::section_header("t");
+        f.extend(pcapng::interface("192.168.1.20:502", ""));
+        f.extend(pcapng::interface("/dev/ttyS1", ""));
+        f.extend(packet(0, 10, "mbtcp", &mbap(1, &[3, 0, 0, 0, 1]), out, ""));
+        f.extend(packet(0, 20, "mbtcp", &mbap(2, &[3, 0, 1, 0, 1]), out, ""));
+        f.extend(packet(0, 30, "mbtcp", &mbap(2, &[3, 2, 0, 2]), inb, ""));
+        f.extend(packet(0, 40, "mbtcp", &mbap(1, &[3, 2, 0, 1]), inb, ""));
+        let ascii = "ASCII on the wire: :070300000001F5\\r\\n";
+        f.extend(packet(
+            1,
+            50,
+            "mbrtu",
+            &rtu::encode(7, &[3, 0, 0, 0, 1]),
+            out,
+            ascii,
+        ));
+        f.extend(packet(
+            1,
+            60,
+            "mbrtu",
+            &rtu::encode(7, &[3, 2, 0, 9]),
+            inb,
+            ascii,
+        ));
+        let got = observations(&read(&f).unwrap());
+        let brief: Vec<_> = got
+            .iter()
+            .map(|o| (o.unit, o.request[2..].to_vec(), o.seen.clone(), o.framing))
+            .collect();
+        assert_eq!(
+            brief,
+            [
+                (
+                    4,
+                    vec![1, 0, 1],
+                    Seen::Reply(vec![3, 2, 0, 2]),
+                    Framing::Mbap
+                ),
+                (
+                    4,
+                    vec![0, 0, 1],
+                    Seen::Reply(vec![3, 2, 0, 1]),
+                    Framing::Mbap
+                ),
+                (
+                    7,
+                    vec![0, 0, 1],
+                    Seen::Reply(vec![3, 2, 0, 9]),
+                    Framing::Ascii
+                ),
+            ]
+        );
+    }
 }
