@@ -44,3 +44,58 @@ impl ReplayArgs {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use crate::sim::options::SimArgs;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct S {
+        #[command(flatten)]
+        s: SimArgs,
+    }
+
+    fn parse(args: &[&str]) -> Result<SimArgs, String> {
+        S::try_parse_from(std::iter::once("t").chain(args.iter().copied()))
+            .map(|s| s.s)
+            .map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn the_replay_flags_go_with_replay_and_the_summary_needs_no_port() {
+        let s = parse(&["--replay", "a.pcapng", "--replay", "b.pcapng", "--summary"]).unwrap();
+        assert_eq!(s.replay.replay.len(), 2);
+        let c = s.replay.choices();
+        assert_eq!((c.unknown, c.read_only, c.timeline), (2, false, false));
+        let s = parse(&[
+            "--replay",
+            "a.pcapng",
+            "--serial",
+            "/dev/ttyS0",
+            "--timeline",
+            "--read-only",
+            "--unknown-exception",
+            "11",
+        ])
+        .unwrap();
+        let c = s.replay.choices();
+        assert_eq!((c.unknown, c.read_only, c.timeline), (11, true, true));
+        for alone in ["--timeline", "--read-only", "--summary"] {
+            let e = parse(&["--serial", "/dev/ttyS0", alone]).unwrap_err();
+            assert!(e.contains("--replay"), "{alone}: {e}");
+        }
+        let e = parse(&["--replay", "a", "--summary", "--unknown-exception", "0"]).unwrap_err();
+        assert!(e.contains("0 is not in 1..=255"), "{e}");
+        // A file that is not there: the flag and the file named.
+        let e = parse(&["--replay", "/nonexistent/a.pcapng", "--summary"])
+            .unwrap()
+            .settings()
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.starts_with("--replay /nonexistent/a.pcapng: No such file"),
+            "{e}"
+        );
+    }
+}
