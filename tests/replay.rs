@@ -4,7 +4,8 @@
 //! `mbgate capture` records; then the capture replayed on a pty with a gateway on the
 //! other end, polled by the same masters: every answer byte for byte the device's,
 //! exceptions included. Writes, `--read-only`, `--timeline` on a counter, several
-//! files merged, a file rewritten by tshark, and damaged or foreign files.
+//! files merged, a file rewritten by tshark, ASCII and MBAP lines replayed in their
+//! own framing, and damaged or foreign files.
 
 mod common;
 
@@ -79,12 +80,16 @@ fn pty_pair(dir: &Path, name: &str) -> Socat {
 /// The gateway on `socat`'s gateway end: RTU at pty speed, a control socket in its
 /// own directory (`dir/name`).
 fn gateway(dir: &Path, name: &str, socat: &Socat) -> (Gateway, PathBuf) {
+    gateway_framed(dir, name, socat, "rtu")
+}
+
+fn gateway_framed(dir: &Path, name: &str, socat: &Socat, framing: &str) -> (Gateway, PathBuf) {
     let d = dir.join(name);
     std::fs::create_dir_all(&d).unwrap();
     let sock = d.join("control.sock");
     let cfg = Cfg::new(&socat.gw)
         .pty_line()
-        .serial("framing = \"rtu\"")
+        .serial(&format!("framing = {framing:?}"))
         .serial("flow_control = \"none\"")
         .relay("response_timeout_ms = 1000")
         .control(&format!("socket = {:?}", sock.display().to_string()));
@@ -106,6 +111,22 @@ fn capture(sock: &Path, file: &Path) -> Proc {
         ],
         "capturing to",
     )
+}
+
+/// Waits until `file` holds at least `n` packets on its lines (the capture writes
+/// what gathered every 10 ms), so stopping it loses none of the session.
+fn settle(file: &Path, n: usize) {
+    use mbgate::capture::pcapng_read::read;
+    wait_for("the capture's packets", Duration::from_secs(10), || {
+        let bytes = std::fs::read(file).unwrap_or_default();
+        read(&bytes).is_ok_and(|r| {
+            let lines = r.packets.iter();
+            lines
+                .filter(|p| r.interfaces[p.interface].name != "tcp")
+                .count()
+                >= n
+        })
+    });
 }
 
 fn stop_capture(mut c: Proc) {
@@ -221,6 +242,8 @@ fn a_recorded_device_replays_byte_for_byte_through_the_gateway() {
         for _ in 0..4 {
             assert_eq!(poll(&gw).raw, polled.raw, "the device answers the same");
         }
+        // Each raw request and its reply, five rounds, at least.
+        settle(&recorded, 2 * 5 * REQUESTS.len());
         stop_capture(cap);
         gw.stop();
         (polled, counted)
@@ -309,7 +332,13 @@ fn a_recorded_device_replays_byte_for_byte_through_the_gateway() {
         Adu::exception(6, 1, 3, 2).as_bytes()
     );
     drop(m);
-    // The replay's own capture ends here, its write in it.
+    // The replay's own capture ends here, its write in it: five rounds of every
+    // master's requests and the six above, each with its reply.
+    let steps = PYMODBUS_STEPS.matches("[\"").count();
+    settle(
+        &replayed_file,
+        2 * (5 * (REQUESTS.len() + steps + MBPOLL.len()) + 6),
+    );
     stop_capture(cap);
     let log = sim.log();
     assert!(log.contains("replaying 4 units from 1 file"), "{log}");
@@ -496,4 +525,52 @@ fn damaged_and_foreign_files_are_loaded_up_to_the_damage_or_refused() {
         "{}",
         run.stderr
     );
+}
+
+/// An ASCII line and an MBAP line (pymodbus' ASCII and socket framers on the serial
+/// port): each replayed in the framing it was recorded in, with no `--framing`, and
+/// every answer the same.
+#[test]
+fn ascii_and_mbap_lines_replay_in_their_own_framing() {
+    let dir = tempdir();
+    for (framer, framing) in [("ascii", "ascii"), ("socket", "mbap")] {
+        let recorded = dir.path().join(format!("{framing}.pcapng"));
+        let live = {
+            let line = pty_pair(dir.path(), &format!("live-{framing}"));
+            let dev = line.dev.to_str().unwrap();
+            let _device = Py::start("replay_device.py", &["--port", dev, "--framer", framer]);
+            let (mut gw, sock) =
+                gateway_framed(dir.path(), &format!("gw-live-{framing}"), &line, framing);
+            let cap = capture(&sock, &recorded);
+            let mut m = gw.connect();
+            let live: Vec<Vec<u8>> = REQUESTS
+                .iter()
+                .enumerate()
+                .map(|(i, (unit, pdu))| {
+                    transact(&mut m, Adu::build(i as u16 + 1, *unit, pdu).as_bytes())
+                })
+                .collect();
+            settle(&recorded, 2 * REQUESTS.len());
+            stop_capture(cap);
+            gw.stop();
+            live
+        };
+        let sum = summary(&[&recorded]);
+        assert!(
+            sum.stdout
+                .contains(&format!("unit 1 ({framing}): coils 0-15")),
+            "{}",
+            sum.stdout
+        );
+        let line = pty_pair(dir.path(), &format!("replay-{framing}"));
+        let _sim = replay(&[&recorded], &line.dev, &[]);
+        let (mut gw, _) =
+            gateway_framed(dir.path(), &format!("gw-replay-{framing}"), &line, framing);
+        let mut m = gw.connect();
+        for (i, ((unit, pdu), want)) in REQUESTS.iter().zip(&live).enumerate() {
+            let got = transact(&mut m, Adu::build(i as u16 + 1, *unit, pdu).as_bytes());
+            assert_eq!(hexs(&got), hexs(want), "{framing}: request {i}");
+        }
+        gw.stop();
+    }
 }

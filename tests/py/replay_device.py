@@ -2,7 +2,7 @@
 """A pymodbus RTU server with several units, the device tests/replay.rs records through
 the gateway and then replays (mbgate sim --replay).
 
-    replay_device.py --port PATH [--baud 19200] [--delay-ms MS]
+    replay_device.py --port PATH [--baud 19200] [--delay-ms MS] [--framer rtu|ascii|socket]
 
 Units (PDU addresses, 0-based; any address past a table is exception 02, pymodbus'
 own answer; a unit id not listed gets no answer):
@@ -12,6 +12,7 @@ own answer; a unit id not listed gets no answer):
      registers 0-19 (4000 + i);
   3: input register 0 a counter: tenths of a second since the server started, as
      read; input register 1 and holding registers 0-3 zero.
+--framer: RTU (the default), ASCII, or MBAP on the serial line (socket).
 --delay-ms: units 1 and 2 take this long over each request, as a device's own
 processing does (a PLC's scan, a meter's), on top of pymodbus' own time.
 Prints READY on stdout once serving, then serves until SIGTERM or SIGINT.
@@ -89,13 +90,17 @@ async def main() -> int:
     ap.add_argument("--port", required=True)
     ap.add_argument("--baud", type=int, default=19200)
     ap.add_argument("--delay-ms", type=float, default=0.0)
+    ap.add_argument("--framer", choices=["rtu", "ascii", "socket"], default="rtu")
     args = ap.parse_args()
     global DELAY_S
     DELAY_S = args.delay_ms / 1000
     logging.basicConfig(level=logging.ERROR, stream=sys.stderr)
     logging.getLogger("pymodbus").setLevel(logging.CRITICAL)
     server = ModbusSerialServer(
-        context(), framer=FramerType.RTU, port=args.port, baudrate=args.baud
+        context(),
+        framer={"rtu": FramerType.RTU, "ascii": FramerType.ASCII, "socket": FramerType.SOCKET}[args.framer],
+        port=args.port,
+        baudrate=args.baud,
     )
     return await serving.until_signalled(server)
 
