@@ -267,7 +267,7 @@ random\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l chunk-gap-ms -d 'The gap between pieces: exactly this one byte at a time, between half of it and all of it in random bursts' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l frame-gap-ms -d 'A partial request is discarded after this much silence' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l log-level -d 'Log level (RUST_LOG overrides). Each packet is logged at info' -r
-complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l replay -d 'Replay the devices a capture of `mbgate capture` (or its `[capture] file` ring) recorded on the gateway\'s lines, instead of a profile. Repeat for several files (a ring, several days): where they disagree, the latest wins' -r -F
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l replay -d 'Replay the devices a capture of `mbgate capture` (or its `[capture] file` ring) recorded on the gateway\'s lines, instead of a profile. Repeat for several files (a ring, several days): where they disagree, the latest wins. The profiles\' flags do not apply' -r -F
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l unknown-exception -d 'The exception for an address the capture never saw read (02, illegal data address, by default)' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l role -d 'slave answers requests; master sends, every --poll-ms, FC 03 for the slave\'s input port register and FC 16 with its own inputs to the slave\'s output port register (the --input-address and --output-address), and sets its outputs from what it read' -r -f -a "slave\t'It answers requests (the default)'
 master\t'It sends the CIE-M10 master\'s queries every --poll-ms (cie-m10 profile)'"

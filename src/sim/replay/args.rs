@@ -8,7 +8,16 @@ pub struct ReplayArgs {
     /// Replay the devices a capture of `mbgate capture` (or its `[capture] file`
     /// ring) recorded on the gateway's lines, instead of a profile. Repeat for
     /// several files (a ring, several days): where they disagree, the latest wins.
-    #[arg(long, value_name = "FILE.pcapng", help_heading = "replay")]
+    /// The profiles' flags do not apply.
+    #[arg(
+        long,
+        value_name = "FILE.pcapng",
+        help_heading = "replay",
+        conflicts_with_all = [
+            "profile", "unit", "input_address", "output_address", "loopback", "notify",
+            "toggle_ms", "units", "fill", "coils", "registers", "role",
+        ]
+    )]
     pub replay: Vec<PathBuf>,
     /// Play the values back over time as they were recorded (from the capture's
     /// start, at its pace; the last value after its end), rather than the last seen.
@@ -87,6 +96,8 @@ mod tests {
         }
         let e = parse(&["--replay", "a", "--summary", "--unknown-exception", "0"]).unwrap_err();
         assert!(e.contains("0 is not in 1..=255"), "{e}");
+        let e = parse(&["--replay", "a", "--summary", "--profile", "generic"]).unwrap_err();
+        assert!(e.contains("cannot be used with"), "{e}");
         // A file that is not there: the flag and the file named.
         let e = parse(&["--replay", "/nonexistent/a.pcapng", "--summary"])
             .unwrap()
