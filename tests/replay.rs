@@ -425,40 +425,108 @@ fn a_recorded_device_replays_byte_for_byte_through_the_gateway() {
     assert_eq!(summary(&[&other]).stdout, sum.stdout);
 }
 
-/// A damaged file is read up to its damage, with a warning naming the byte; a file
-/// that is no pcapng is refused (exit 2) naming it and the reason; nothing panics.
-#[test]
-fn damaged_and_foreign_files_are_loaded_up_to_the_damage_or_refused() {
-    let dir = tempdir();
-    // A small capture made by the writer, with a reply to read.
+/// A unit, its request, and its reply (`None`: it timed out).
+type Exchange<'a> = (u8, &'a [u8], Option<&'a [u8]>);
+
+/// A capture as the writer makes it: on line `/dev/ttyS0`, each (unit, request, reply
+/// or `None` for a timeout), 2 ms apart.
+fn synthetic(exchanges: &[Exchange<'_>]) -> Vec<u8> {
     use mbgate::capture::pcapng;
     let mut file = pcapng::section_header("test");
     file.extend(pcapng::interface("tcp", ""));
     file.extend(pcapng::interface("/dev/ttyS0", ""));
     let mut at = 1_000_000;
-    for value in 0..20u16 {
-        for (pdu, flags) in [
-            (vec![3, 0, 0, 0, 1], pcapng::OUTBOUND),
-            (
-                [vec![3, 2], value.to_be_bytes().to_vec()].concat(),
+    let mut packet = |dissector: &str, bytes: &[u8], flags: u32, comment: Option<&str>| {
+        let mut data = pcapng::exported_pdu(&pcapng::Exported {
+            dissector,
+            ..Default::default()
+        });
+        data.extend(bytes);
+        at += 2000;
+        pcapng::packet(&pcapng::Packet {
+            interface: 1,
+            at_us: at,
+            data: &data,
+            comment,
+            flags,
+        })
+    };
+    for &(unit, request, reply) in exchanges {
+        let q = mbgate::frame::rtu::encode(unit, request);
+        file.extend(packet("mbrtu", &q, pcapng::OUTBOUND, None));
+        file.extend(match reply {
+            Some(r) => packet(
+                "mbrtu",
+                &mbgate::frame::rtu::encode(unit, r),
                 pcapng::INBOUND,
+                None,
             ),
-        ] {
-            let mut data = pcapng::exported_pdu(&pcapng::Exported {
-                dissector: "mbrtu",
-                ..Default::default()
-            });
-            data.extend(mbgate::frame::rtu::encode(5, &pdu));
-            file.extend(pcapng::packet(&pcapng::Packet {
-                interface: 1,
-                at_us: at,
-                data: &data,
-                comment: None,
-                flags,
-            }));
-            at += 2000;
-        }
+            None => {
+                let note = format!(
+                    "timeout: no reply from unit {unit} to function {} in time",
+                    request[0]
+                );
+                packet("data", &[], 0, Some(&note))
+            }
+        });
     }
+    file
+}
+
+/// A unit that let the gateway time out stays silent in the replay (the gateway's
+/// 0x0B), and so does a unit never seen; the unit that answered answers.
+#[test]
+fn a_silent_unit_stays_silent_behind_the_gateway() {
+    let dir = tempdir();
+    let file = dir.path().join("silent.pcapng");
+    std::fs::write(
+        &file,
+        synthetic(&[
+            (5, &[3, 0, 0, 0, 1], Some(&[3, 2, 0x12, 0x34])),
+            (6, &[3, 0, 0, 0, 1], None),
+            (6, &[4, 0, 0, 0, 1], None),
+        ]),
+    )
+    .unwrap();
+    let line = pty_pair(dir.path(), "line");
+    let _sim = replay(&[&file], &line.dev, &[]);
+    let (mut gw, _) = gateway(dir.path(), "gw", &line);
+    let mut m = gw.connect();
+    assert_eq!(
+        transact(&mut m, &read_req(1, 5, 0, 1)),
+        read_reply(1, 5, &[0x1234])
+    );
+    for (tid, unit, pdu) in [
+        (2, 6, [3, 0, 0, 0, 1]),
+        (3, 6, [3, 0, 9, 0, 1]),
+        (4, 7, [3, 0, 0, 0, 1]),
+    ] {
+        assert_eq!(
+            transact(&mut m, Adu::build(tid, unit, &pdu).as_bytes()),
+            Adu::exception(tid, unit, 3, 0x0B).as_bytes(),
+            "unit {unit}: no reply"
+        );
+    }
+    gw.stop();
+}
+
+/// A damaged file is read up to its damage, with a warning naming the byte; a file
+/// that is no pcapng is refused (exit 2) naming it and the reason; nothing panics.
+#[test]
+fn damaged_and_foreign_files_are_loaded_up_to_the_damage_or_refused() {
+    let dir = tempdir();
+    // A small capture made by the writer: twenty reads of one register.
+    let replies: Vec<[u8; 4]> = (0..20u16)
+        .map(|v| {
+            let [hi, lo] = v.to_be_bytes();
+            [3, 2, hi, lo]
+        })
+        .collect();
+    let reads: Vec<Exchange<'_>> = replies
+        .iter()
+        .map(|r| (5, &[3u8, 0, 0, 0, 1][..], Some(&r[..])))
+        .collect();
+    let file = synthetic(&reads);
     let whole = dir.path().join("whole.pcapng");
     std::fs::write(&whole, &file).unwrap();
     let run = summary(&[&whole]);
@@ -510,7 +578,7 @@ fn damaged_and_foreign_files_are_loaded_up_to_the_damage_or_refused() {
         run.stderr
     );
     let empty = dir.path().join("empty.pcapng");
-    std::fs::write(&empty, pcapng::section_header("x")).unwrap();
+    std::fs::write(&empty, mbgate::capture::pcapng::section_header("x")).unwrap();
     let run = summary(&[&empty]);
     assert_eq!(run.code, 2);
     assert!(
