@@ -278,18 +278,37 @@ fn sim(args: mbgate::sim::options::SimArgs) -> ExitCode {
     use mbgate::sim::serve::{self, Port};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
-    let cie_m10 = args.device.profile == mbgate::sim::options::ProfileName::CieM10;
+    let cie_m10 = args.device.profile == mbgate::sim::options::ProfileName::CieM10
+        && args.replay.replay.is_empty();
     let polling = args.role.polling(cie_m10, args.listen.is_some());
     let many = (args.connections > 1).then_some(args.connections);
     let settings = args
         .settings()
         .and_then(|s| polling.clone().map(|_| s))
         .and_then(|s| match many {
-            Some(_) if args.framing != mbgate::config::Framing::Mbap => {
+            Some(_) if s.framing() != mbgate::config::Framing::Mbap => {
                 Err("--connections above 1 is a Modbus/TCP slave's: --framing mbap".into())
             }
             _ => Ok(s),
         });
+    if args.replay.summary {
+        // `--replay FILE --summary`: what the files hold, and no more.
+        return match settings {
+            Ok(s) => {
+                if let mbgate::sim::Profile::Replay(r) = &s.device.profile {
+                    for w in &r.warnings {
+                        eprintln!("mbgate: warning: {w}");
+                    }
+                    println!("{}", r.summary);
+                }
+                ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("mbgate: {e}");
+                ExitCode::from(EXIT_CONFIG)
+            }
+        };
+    }
     let listen = args.listen;
     simulate(
         &args.device,
@@ -352,7 +371,9 @@ fn master_demo(args: mbgate::demo::DemoArgs) -> ExitCode {
     let (banner_shown, after_banner) = std::sync::mpsc::channel();
     let settings = args.settings().and_then(|s| match s.device.profile {
         mbgate::sim::Profile::CieM10(_) => Ok(s),
-        mbgate::sim::Profile::Generic(_) => Err("--master is the cie-m10 profile's".into()),
+        mbgate::sim::Profile::Generic(_) | mbgate::sim::Profile::Replay(_) => {
+            Err("--master is the cie-m10 profile's".into())
+        }
     });
     simulate(
         &device,

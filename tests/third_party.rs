@@ -14,7 +14,6 @@
 
 mod common;
 use common::*;
-use std::process::Command;
 use std::time::Duration;
 
 /// The nine lines: framing as pymodbus and mbgate call it, baud, the master's unit.
@@ -33,21 +32,7 @@ const LINES: [(&str, &str, u32, u8); 9] = [
 /// `mbpoll -m tcp -p PORT -a UNIT -0 -1 -o 3 ARGS 127.0.0.1 VALUES`: stdout, and
 /// whether it exited 0.
 fn mbpoll(port: u16, unit: u8, args: &[&str], values: &[&str]) -> (bool, String) {
-    let out = Command::new("mbpoll")
-        .args([
-            "-m",
-            "tcp",
-            "-p",
-            &port.to_string(),
-            "-a",
-            &unit.to_string(),
-        ])
-        .args(["-0", "-1", "-o", "3"])
-        .args(args)
-        .arg("127.0.0.1")
-        .args(values)
-        .output()
-        .expect("mbpoll (apt-get install mbpoll; scripts/test does)");
+    let out = mbpoll_run(port, unit, args, values);
     let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     (out.status.success(), stdout)
 }

@@ -267,6 +267,8 @@ random\t''"
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l chunk-gap-ms -d 'The gap between pieces: exactly this one byte at a time, between half of it and all of it in random bursts' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l frame-gap-ms -d 'A partial request is discarded after this much silence' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l log-level -d 'Log level (RUST_LOG overrides). Each packet is logged at info' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l replay -d 'Replay the devices a capture of `mbgate capture` (or its `[capture] file` ring) recorded on the gateway\'s lines, instead of a profile. Repeat for several files (a ring, several days): where they disagree, the latest wins. The profiles\' flags do not apply' -r -F
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l unknown-exception -d 'The exception for an address the capture never saw read (02, illegal data address, by default)' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l role -d 'slave answers requests; master sends, every --poll-ms, FC 03 for the slave\'s input port register and FC 16 with its own inputs to the slave\'s output port register (the --input-address and --output-address), and sets its outputs from what it read' -r -f -a "slave\t'It answers requests (the default)'
 master\t'It sends the CIE-M10 master\'s queries every --poll-ms (cie-m10 profile)'"
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l poll-ms -d 'master: the communication period, in ms' -r
@@ -280,7 +282,7 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l stop-bits -d 'Stop
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l flow-control -d 'Serial flow control [serial.flow_control] [default: hardware]' -r -f -a "hardware\t'RTS/CTS, as the device manual advises'
 software\t'XON/XOFF'
 none\t''"
-complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l framing -d 'How frames are carried: mbap (the CIE-M10\'s serial Modbus/TCP), or rtu or ascii (generic profile only)' -r -f -a "mbap\t'CIE-M10 serial Modbus/TCP: whole MBAP frames on the line (docs/protocol.md §3)'
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l framing -d 'How frames are carried: mbap (the CIE-M10\'s serial Modbus/TCP), or rtu or ascii (generic profile and --replay only) [default: mbap; with --replay, as recorded]' -r -f -a "mbap\t'CIE-M10 serial Modbus/TCP: whole MBAP frames on the line (docs/protocol.md §3)'
 rtu\t'Modbus RTU: unit, PDU, CRC-16; one transaction at a time'
 ascii\t'Modbus ASCII: `:`, hex, LRC, CR LF; one transaction at a time'"
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l loopback -d 'cie-m10: wire each output to its input, so inputs follow the outputs'
@@ -288,6 +290,9 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l notify -d 'Input p
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l pipeline -d 'Answer requests that arrive back to back (pipelined) in turn; without it, a request that arrives while the device is busy is ignored, as on the real device'
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l confirm-requests -d 'Hold each request until the bytes after it start another, or the line goes quiet, so a request that lost a byte is never executed with the next one\'s first byte. Costs up to --frame-gap-ms whenever the gateway pauses its pipeline'
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l headless -d 'No console even when stdin is a terminal'
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l timeline -d 'Play the values back over time as they were recorded (from the capture\'s start, at its pace; the last value after its end), rather than the last seen'
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l read-only -d 'Refuse every write, with the exception the device gave to a write if the capture has one, else 01 (illegal function). Without it, writes change the replayed values'
+complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -l summary -d 'Say what the files hold, unit by unit, and exit'
 complete -c mbgate -n "__fish_mbgate_using_subcommand sim" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l tcp -d 'Scan a Modbus/TCP device or gateway at HOST:PORT instead: unit ids only' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l baud -d 'The baud rates to try, in order [default: 19200,9600,115200,38400,57600,4800,2400,1200]' -r

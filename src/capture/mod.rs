@@ -5,6 +5,7 @@
 //! microseconds from one clock.
 //!
 //! - `pcapng`: the file format (pure);
+//! - `pcapng_read`: reading it back, from any writer (pure);
 //! - `packet`: what a packet holds, and its block (pure);
 //! - `tape`: which bytes a framer dropped (pure);
 //! - `request`: what a capture asks for, and which packets it keeps (pure);
@@ -18,6 +19,7 @@ pub(crate) mod dropped;
 pub(crate) mod hub;
 pub(crate) mod packet;
 pub mod pcapng;
+pub mod pcapng_read;
 pub(crate) mod request;
 pub(crate) mod ring;
 

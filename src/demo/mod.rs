@@ -47,6 +47,7 @@ fn device_units(settings: &Settings) -> Vec<u8> {
     match &settings.device.profile {
         Profile::CieM10(d) => vec![d.unit],
         Profile::Generic(g) => g.units.keys().copied().collect(),
+        Profile::Replay(r) => r.units(),
     }
 }
 
@@ -146,6 +147,7 @@ fn instructions(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> Str
                  write a coil:            {me} write --tcp {at}{unit} coils 0 on\n",
             )
         }
+        Profile::Replay(_) => format!("a replayed capture on {pty}\n"),
     };
     format!("mbgate demo: {device}\nAny Modbus/TCP master can connect to {at}. Ctrl-C stops.\n")
 }
@@ -162,7 +164,7 @@ fn second_line(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> Stri
     let unit = first + SECOND_LINE_OFFSET;
     let (table, at_reg, count) = match &settings.device.profile {
         Profile::CieM10(d) => ("holding-registers", d.input_address, 1),
-        Profile::Generic(_) => ("holding-registers", 0, 10),
+        Profile::Generic(_) | Profile::Replay(_) => ("holding-registers", 0, 10),
     };
     format!(
         "\nand the same device on a second line, {pty}: the gateway routes unit {unit} there as unit {first}\n\n\

@@ -75,6 +75,7 @@ impl CieM10 {
                     return Answer {
                         reply: Some(echo),
                         notification: changed.then(|| self.notification()).flatten(),
+                        delay: None,
                     };
                 }
             }

@@ -116,7 +116,7 @@ fn span(start: usize, quantity: usize, len: usize) -> Option<std::ops::Range<usi
     (start + quantity <= len).then_some(start..start + quantity)
 }
 
-fn pack(bits: &[bool]) -> Vec<u8> {
+pub(crate) fn pack(bits: &[bool]) -> Vec<u8> {
     let mut out = vec![0u8; bits.len().div_ceil(8)];
     for (i, &b) in bits.iter().enumerate() {
         if b {
@@ -126,7 +126,7 @@ fn pack(bits: &[bool]) -> Vec<u8> {
     out
 }
 
-fn registers(values: &[u16]) -> Vec<u8> {
+pub(crate) fn registers(values: &[u16]) -> Vec<u8> {
     values.iter().flat_map(|v| v.to_be_bytes()).collect()
 }
 

@@ -125,7 +125,9 @@ impl Master {
     fn cie(&mut self) -> &mut super::cie_m10::CieM10 {
         match &mut self.device.profile {
             Profile::CieM10(d) => d,
-            Profile::Generic(_) => unreachable!("--role master is checked to be a cie-m10"),
+            Profile::Generic(_) | Profile::Replay(_) => {
+                unreachable!("--role master is checked to be a cie-m10")
+            }
         }
     }
 

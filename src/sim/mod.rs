@@ -6,6 +6,7 @@
 //! - `line` is the line model: seeded loss and noise, and a UART's pace;
 //! - `console` parses the console's commands, `packets` keeps the packet log;
 //! - [`serve`] is the task that owns the port, [`terminal`] the console's thread;
+//! - [`replay`] is a device played back from a capture;
 //! - [`options`] is the command line.
 
 pub(crate) mod cie_m10;
@@ -15,6 +16,7 @@ pub mod line;
 pub mod master;
 pub mod options;
 pub(crate) mod packets;
+pub mod replay;
 pub(crate) mod role;
 pub mod serve;
 pub mod tcp;
@@ -30,6 +32,8 @@ use packets::PacketLog;
 pub(crate) struct Answer {
     pub(crate) reply: Option<Vec<u8>>,
     pub(crate) notification: Option<Vec<u8>>,
+    /// How long this reply takes, beyond `--delay-ms` (a replayed device's own).
+    pub(crate) delay: Option<std::time::Duration>,
 }
 
 impl Answer {
@@ -40,7 +44,7 @@ impl Answer {
     pub(crate) fn reply(pdu: Vec<u8>) -> Self {
         Self {
             reply: Some(pdu),
-            notification: None,
+            ..Self::default()
         }
     }
 }
@@ -57,6 +61,8 @@ pub enum Profile {
     CieM10(cie_m10::CieM10),
     /// Any number of plain Modbus devices, each with its own tables.
     Generic(generic::Generic),
+    /// Devices played back from a capture (`--replay`).
+    Replay(Box<replay::Replay>),
 }
 
 /// The simulated device: its profile's state, the packet log, and what it needs to
@@ -168,6 +174,7 @@ impl Device {
         match &mut self.profile {
             Profile::CieM10(d) => d.answer(unit, pdu),
             Profile::Generic(g) => g.answer(unit, pdu),
+            Profile::Replay(r) => r.answer(unit, pdu),
         }
     }
 
@@ -185,6 +192,7 @@ impl Device {
                     g.answer(unit, pdu);
                 }
             }
+            Profile::Replay(r) => r.broadcast(pdu),
         }
     }
 
@@ -193,7 +201,7 @@ impl Device {
         match &self.profile {
             Profile::CieM10(d) => Some(d.unit),
             Profile::Generic(g) if self.generic_notify => g.units.keys().next().copied(),
-            Profile::Generic(_) => None,
+            Profile::Generic(_) | Profile::Replay(_) => None,
         }
     }
 
@@ -212,6 +220,7 @@ impl Device {
                 let [hi, lo] = self.ticks.to_be_bytes();
                 self.generic_notify.then(|| vec![3, 2, hi, lo])
             }
+            Profile::Replay(_) => None,
         }
     }
 
@@ -245,6 +254,7 @@ impl Device {
                     None => Outcome::text(format!("no unit {unit}")),
                 },
                 Profile::CieM10(_) => Outcome::text("the cie-m10 profile is one device"),
+                Profile::Replay(_) => Outcome::text("a replay has the units it recorded"),
             },
             Command::Input { port, on } => self.cie_inputs(|inputs| {
                 if on {
@@ -344,6 +354,7 @@ impl Device {
                 .map(|(unit, bank)| format!("unit {unit}: {bank}"))
                 .collect::<Vec<_>>()
                 .join("\n"),
+            Profile::Replay(r) => r.summary.clone(),
         }
     }
 }

@@ -182,7 +182,7 @@ pub struct DeviceArgs {
 #[derive(Debug, Clone, clap::Args)]
 pub struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH", required_unless_present = "listen")]
+    #[arg(long, value_name = "PATH", required_unless_present_any = ["listen", "summary"])]
     pub(crate) serial: Option<PathBuf>,
     /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
     /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
@@ -204,6 +204,9 @@ pub struct SimArgs {
     /// The device simulated.
     #[command(flatten)]
     pub device: DeviceArgs,
+    /// A recorded device instead (src/sim/replay/args.rs).
+    #[command(flatten)]
+    pub replay: super::replay::args::ReplayArgs,
     /// The role it plays and where (src/sim/role.rs).
     #[command(flatten)]
     pub role: super::role::RoleArgs,
@@ -213,9 +216,9 @@ pub struct SimArgs {
     #[command(flatten, next_help_heading = "serial port")]
     pub(crate) port: PortFlags,
     /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
-    /// (generic profile only).
-    #[arg(long, value_parser = choice::<Framing>(), default_value = "mbap", help_heading = "serial port")]
-    pub framing: Framing,
+    /// (generic profile and --replay only) [default: mbap; with --replay, as recorded].
+    #[arg(long, value_parser = choice::<Framing>(), help_heading = "serial port")]
+    pub framing: Option<Framing>,
 }
 
 /// Simulator or demo flags that cannot be used: a value out of range, or flags that
@@ -240,7 +243,9 @@ impl SimArgs {
     /// The device and line settings, with this port's framing and, when given, its
     /// speed as the pace.
     pub fn settings(&self) -> Result<Settings, BadFlags> {
-        if self.framing != Framing::Mbap && self.device.profile == ProfileName::CieM10 {
+        let replaying = !self.replay.replay.is_empty();
+        let framing = self.framing.unwrap_or(Framing::Mbap);
+        if framing != Framing::Mbap && self.device.profile == ProfileName::CieM10 && !replaying {
             return Err(
                 "--framing rtu and ascii need --profile generic (the CIE-M10's serial \
                  Modbus/TCP mode carries MBAP frames)"
@@ -249,7 +254,13 @@ impl SimArgs {
         }
         let port = self.serial_config()?;
         let mut s = self.device.settings()?;
-        s.framing = self.framing;
+        s.framing = framing;
+        if replaying {
+            let r = super::replay::load(&self.replay.replay, self.replay.choices(), s.seed)
+                .map_err(|e| e.to_string())?;
+            s.framing = self.framing.or(r.framing()).unwrap_or(Framing::Mbap);
+            s.device = Device::new(Profile::Replay(Box::new(r)), s.seed);
+        }
         s.baud = self.port.given("baud").then_some(port.baud_rate);
         Ok(s)
     }
@@ -261,7 +272,7 @@ impl SimArgs {
                 .serial
                 .as_deref()
                 .map_or_else(String::new, |p| p.to_string_lossy().into_owned()),
-            framing: self.framing,
+            framing: self.framing.unwrap_or(Framing::Mbap),
             ..SerialConfig::default()
         };
         self.port
@@ -288,6 +299,13 @@ pub struct Settings {
     pub(crate) frame_gap: Duration,
     pub(crate) toggle: Option<Duration>,
     pub(crate) chunker: Chunker,
+}
+
+impl Settings {
+    /// How frames are carried: as asked, else as recorded (`--replay`), else MBAP.
+    pub fn framing(&self) -> Framing {
+        self.framing
+    }
 }
 
 /// Options that belong to the other profile are refused rather than ignored.

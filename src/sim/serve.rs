@@ -142,8 +142,10 @@ pub async fn run(
         Port::Listen(_) => false,
     };
     let baud = paced.then(|| pty_pace(settings.baud)).flatten();
+    let mut device = settings.device;
+    super::replay::announce(&mut device);
     let mut sim = Sim {
-        device: settings.device,
+        device,
         delay: settings.delay,
         pipeline: settings.pipeline,
         confirm_requests: settings.confirm_requests,
@@ -245,6 +247,10 @@ impl Sim {
                     [one] => format!("a generic device (unit {one})"),
                     many => format!("generic devices (units {})", many.join(", ")),
                 }
+            }
+            Profile::Replay(r) => {
+                let units: Vec<String> = r.units().iter().map(u8::to_string).collect();
+                format!("a replayed capture (units {})", units.join(", "))
             }
         };
         let pace = if self.tx_pace.char_time().is_zero() {
@@ -376,7 +382,8 @@ impl Sim {
         self.device.log.record(Direction::Rx, &wire, note);
         if let Some(pdu) = answer.reply {
             let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
-            let done = self.queue(arrived + self.delay, reply, "reply");
+            let delay = self.delay + answer.delay.unwrap_or_default();
+            let done = self.queue(arrived + delay, reply, "reply");
             self.busy_until = Some(done);
         }
         if let Some(pdu) = answer.notification {

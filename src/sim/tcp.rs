@@ -35,6 +35,8 @@ pub async fn run(
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> std::io::Result<()> {
+    let mut device = device;
+    super::replay::announce(&mut device);
     let device = Arc::new(Mutex::new(device));
     let room = Arc::new(tokio::sync::Semaphore::new(connections));
     loop {
@@ -84,6 +86,10 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
             let Some(pdu) = answer.reply else {
                 continue;
             };
+            if let Some(delay) = answer.delay {
+                // A replayed device's own reply time (`--replay`).
+                tokio::time::sleep(delay).await;
+            }
             let reply = Adu::build(req.tid(), req.unit(), &pdu);
             info!(target: "mbgate::sim::packets", "tx {} (reply)", Hex(reply.as_bytes()));
             device.lock().expect("not poisoned").log.record(

@@ -1211,3 +1211,27 @@ pub(crate) fn rtu_register_device(units: &[u8]) -> RtuHandler {
         _ => vec![],
     })
 }
+
+/// `mbpoll -m tcp -p PORT -a UNIT -0 -1 -o 3 ARGS 127.0.0.1 VALUES`, run to its end.
+pub(crate) fn mbpoll_run(
+    port: u16,
+    unit: u8,
+    args: &[&str],
+    values: &[&str],
+) -> std::process::Output {
+    Command::new("mbpoll")
+        .args([
+            "-m",
+            "tcp",
+            "-p",
+            &port.to_string(),
+            "-a",
+            &unit.to_string(),
+        ])
+        .args(["-0", "-1", "-o", "3"])
+        .args(args)
+        .arg("127.0.0.1")
+        .args(values)
+        .output()
+        .expect("mbpoll (apt-get install mbpoll; scripts/test does)")
+}
