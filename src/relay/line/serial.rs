@@ -604,18 +604,14 @@ impl Serial {
             if let Some((reply, ..)) = self.unconfirmed.take() {
                 self.drop_backlog(&reply, now, stats);
             }
-            let answers = unit == f.req.adu().unit() && pdu::reply_matches(request, pdu);
-            if self.may_owe.contains(unit) {
-                // A unit that may still answer requests that timed out: a frame from
-                // it is the answer only if the line stays quiet after it; one that
-                // does not fit is its backlog, dropped (docs/reliability.md "RTU and
-                // ASCII", 6).
-                if answers {
-                    let quiet = self.guard.min(f.timeout / 2);
-                    self.unconfirmed = Some((frame.with_tid(f.tid), at, quiet));
-                } else {
-                    self.drop_backlog(&frame, now, stats);
-                }
+            let asked = unit == f.req.adu().unit();
+            let answers = asked && pdu::reply_matches(request, pdu);
+            if answers && self.may_owe.contains(unit) {
+                // The unit asked may still answer requests of its that timed out: its
+                // reply is the answer only if the line stays quiet after it
+                // (docs/reliability.md "RTU and ASCII", 6).
+                let quiet = self.guard.min(f.timeout / 2);
+                self.unconfirmed = Some((frame.with_tid(f.tid), at, quiet));
                 continue;
             }
             if answers {
@@ -626,7 +622,7 @@ impl Serial {
             // another shape answers something else (a stray frame, another request's
             // answer), and the master is told 0x0B at once, as on MBAP
             // (docs/reliability.md "RTU and ASCII", 5).
-            let detail = if unit == f.req.adu().unit() {
+            let detail = if asked {
                 "a frame of the request's unit that does not answer it (another function or shape)"
             } else {
                 "a frame from another unit than the request's"

@@ -428,11 +428,11 @@ proptest::proptest! {
 }
 
 /// A device that stalled answers its backlog when it resumes: after a request to unit
-/// 1 timed out, the frames that come back to back for the next read (an FC 16 echo,
-/// then a read's answer with another value, then the read's own) are the answers the
-/// device held; only the last one, followed by the guard's silence, is taken, and the
-/// first reply after that is taken at once again (docs/reliability.md "RTU and
-/// ASCII", 6).
+/// 1 timed out, the reads' answers that come back to back for the next read (two of
+/// other registers, then the read's own) are the answers the device held; only the
+/// last one, followed by the guard's silence, is taken, and the first reply after that
+/// is taken at once again. A frame that does not fit the request (an FC 16 echo) is
+/// refused at once, as ever (docs/reliability.md "RTU and ASCII", 5 and 6).
 #[test]
 fn a_stalled_devices_backlog_never_answers_the_request_on_the_line() {
     use crate::relay::inflight::OnLine;
@@ -467,7 +467,7 @@ fn a_stalled_devices_backlog_never_answers_the_request_on_the_line() {
         let t2 = t1 + 200 * MS;
         let f = ask(&mut line, t2);
         let backlog = [
-            codec.encode(1, &[0x10, 0, 9, 0, 1]),
+            codec.encode(1, &[3, 2, 0, 8]),
             codec.encode(1, &[3, 2, 0, 9]),
             codec.encode(1, &[3, 2, 0, 5]),
         ];
@@ -497,5 +497,19 @@ fn a_stalled_devices_backlog_never_answers_the_request_on_the_line() {
         let f = ask(&mut line, t3);
         line.received(&codec.encode(1, &[3, 2, 0, 5]), t3 + MS, &stats);
         assert_eq!(line.frames(&f, t3 + MS, &stats).len(), 1, "{framing:?}");
+        // Owing again, a reply held, then a frame that fits no read: both go, the
+        // request refused at once.
+        line.unanswered(1);
+        let t4 = t3 + 200 * MS;
+        let f = ask(&mut line, t4);
+        line.received(&codec.encode(1, &[3, 2, 0, 8]), t4 + MS, &stats);
+        assert!(line.frames(&f, t4 + MS, &stats).is_empty());
+        line.received(&codec.encode(1, &[0x10, 0, 9, 0, 1]), t4 + 2 * MS, &stats);
+        let seen = line.frames(&f, t4 + 2 * MS, &stats);
+        assert!(
+            matches!(seen.as_slice(), [Seen::Corrupt(k)] if *k == f[0].tid),
+            "{framing:?}"
+        );
+        assert_eq!(stats.get(&stats.late_replies), 3, "{framing:?}");
     }
 }
