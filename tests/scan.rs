@@ -438,3 +438,41 @@ fn a_port_a_gateway_holds_is_refused() {
         run.stderr
     );
 }
+
+/// A process that holds the port open without locking it (`exec 3<>PORT`, as a
+/// script or a terminal program does) is named, and the port refused, by `scan` and
+/// by `run`: both would otherwise read part of each other's bytes. socat, the pty's
+/// far side, holds it too and is not named.
+#[test]
+fn a_port_an_unlocked_process_holds_is_refused_naming_it() {
+    let dir = tempdir();
+    let cable = Socat::start(dir.path());
+    let port = cable.gw.to_str().unwrap().to_string();
+    let mut holder = std::process::Command::new("sh")
+        .args(["-c", &format!("exec 3<>{port}; exec sleep 60")])
+        .spawn()
+        .unwrap();
+    let pid = holder.id();
+    wait_for("the holder", Duration::from_secs(5), || {
+        std::fs::read_to_string(format!("/proc/{pid}/comm")).is_ok_and(|c| c.trim() == "sleep")
+    });
+    let named = format!("held by process {pid} (sleep)");
+    let run = mbgate(&["scan", &port, "--baud", "9600", "--units", "1-3"]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stderr.contains("another process has the port open") && run.stderr.contains(&named),
+        "{}",
+        run.stderr
+    );
+    assert!(!run.stdout.contains("nothing found"), "{}", run.stdout);
+    let cfg = Cfg::new(&cable.gw)
+        .serial("framing = \"rtu\"")
+        .serial("flow_control = \"none\"");
+    let gw = Gateway::start(&cfg, dir.path());
+    gw.wait_log(&named, Duration::from_secs(10));
+    assert!(!gw.log().contains("serial port open"), "{}", gw.log());
+    let _ = holder.kill();
+    let _ = holder.wait();
+    // Once the holder lets go, the gateway takes the port.
+    gw.wait_log("serial port open", Duration::from_secs(10));
+}
