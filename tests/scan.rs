@@ -476,3 +476,94 @@ fn a_port_an_unlocked_process_holds_is_refused_naming_it() {
     // Once the holder lets go, the gateway takes the port.
     gw.wait_log("serial port open", Duration::from_secs(10));
 }
+
+/// A device that answers every request with one fixed frame of another function
+/// (a raw pyserial device, `01 06 00 00 00 2A`): the frames' checks are good, so
+/// "nothing found" says frames came that answered no request, with the first one's
+/// unit and function, not "no frame with a good check".
+#[test]
+fn frames_that_answer_no_request_are_named_as_such() {
+    let line = Line::start("8N1");
+    let fixed = mbgate::frame::rtu::encode(1, &[0x06, 0x00, 0x00, 0x00, 0x2A]);
+    let hex: String = fixed.iter().map(|b| format!("{b:02X}")).collect();
+    let _device = Py::start(
+        "lone_device.py",
+        &[
+            "--port",
+            line.b.to_str().unwrap(),
+            "--baud",
+            "9600",
+            "--unit",
+            "1",
+            "--fixed",
+            &hex,
+        ],
+    );
+    let args = [
+        "scan",
+        line.a.to_str().unwrap(),
+        "--baud",
+        "9600",
+        "--format",
+        "8N1",
+        "--framing",
+        "rtu",
+        "--units",
+        "1-3",
+        "--timeout-ms",
+        "400",
+    ];
+    let run = mbgate(&args);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout.contains(
+            "frames with a good check came back at 9600 8N1 rtu but answered no request \
+             (the first: unit 1, FC 06)"
+        ),
+        "{}",
+        run.stdout
+    );
+    assert!(
+        !run.stdout.contains("no frame with a good check"),
+        "{}",
+        run.stdout
+    );
+    let mut json = args.to_vec();
+    json.push("--json");
+    let run = mbgate(&json);
+    let v: serde_json::Value = serde_json::from_str(run.stdout.trim()).unwrap();
+    assert_eq!(v["unanswering"][0]["function"], 6, "{}", run.stdout);
+    assert_eq!(v["garbage"].as_array().unwrap().len(), 0, "{}", run.stdout);
+}
+
+/// A Modbus/TCP peer that accepts each connection and closes it at once: the scan
+/// says the connection was closed, and stops instead of opening one for each unit.
+#[test]
+fn tcp_says_when_the_peer_closes_the_connection() {
+    let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = listener.local_addr().unwrap().to_string();
+    let accepted = std::sync::Arc::new(std::sync::atomic::AtomicUsize::new(0));
+    let count = accepted.clone();
+    std::thread::spawn(move || {
+        for s in listener.incoming().take(50) {
+            count.fetch_add(1, std::sync::atomic::Ordering::SeqCst);
+            drop(s);
+        }
+    });
+    let run = mbgate(&["scan", "--tcp", &addr, "--units", "1-20"]);
+    assert_eq!(run.code, 1, "{}{}", run.stdout, run.stderr);
+    assert!(
+        run.stdout.starts_with("nothing found on "),
+        "{}",
+        run.stdout
+    );
+    assert!(
+        run.stdout.contains(&format!(
+            "{addr} closed the connection without a reply 3 times in a row"
+        )),
+        "{}",
+        run.stdout
+    );
+    assert!(run.stdout.contains("closes them at once"), "{}", run.stdout);
+    assert!(accepted.load(std::sync::atomic::Ordering::SeqCst) <= 4);
+}

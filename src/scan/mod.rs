@@ -73,6 +73,9 @@ pub enum ScanError {
     Io(#[from] std::io::Error),
 }
 
+/// A baud rate, format and framing.
+pub type SerialSetting = (u32, Format, Framing);
+
 /// A unit that answered.
 #[derive(Debug, Clone)]
 pub struct Found {
@@ -95,6 +98,11 @@ pub struct Report {
     pub found: Vec<Found>,
     /// Settings where bytes came but no frame with a good check.
     pub garbage: Vec<(u32, Format, Framing)>,
+    /// Settings where whole frames with a good check came that answered no request:
+    /// the first one's unit and function code.
+    pub unanswering: Vec<(SerialSetting, (u8, u8))>,
+    /// What ended a `--tcp` scan's connection, when the peer closed it.
+    pub closed: Option<String>,
     /// Ctrl-C ended it early.
     pub interrupted: bool,
     /// How long it took.
@@ -308,7 +316,27 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
                 fr.name()
             );
         }
-        let hint = if tcp {
+        for ((b, f, fr), (unit, function)) in &report.unanswering {
+            let _ = writeln!(
+                s,
+                "frames with a good check came back at {b} {f} {} but answered no request \
+                 (the first: unit {unit}, FC {function:02})",
+                fr.name()
+            );
+        }
+        if let Some(closed) = &report.closed {
+            let _ = writeln!(s, "{closed}");
+        }
+        let hint = if report.closed.is_some() {
+            "hint: the peer accepts connections and closes them at once: is it a \
+             Modbus/TCP server, does it allow this address (an allow list, a connection \
+             limit already reached)?"
+        } else if !report.unanswering.is_empty() {
+            "hint: a device is there at that setting but answers a read of register 0 \
+             with another function's frame (a device that answers every request alike, \
+             or another master talking on the bus): give that setting with --baud, \
+             --format and --framing and --units to look further"
+        } else if tcp {
             "hint: is it a Modbus/TCP device (port 502)? Try more --units, a longer --timeout-ms"
         } else if report.garbage.is_empty() {
             "hint: nothing at all came back: check the wiring (RS-485 A and B swapped? \
@@ -444,11 +472,24 @@ pub fn json(report: &Report, target: &str, tcp: bool) -> String {
             )
         })
         .collect();
+    let unanswering: Vec<String> = report
+        .unanswering
+        .iter()
+        .map(|((b, f, fr), (unit, function))| {
+            format!(
+                "{{\"baud\":{b},\"format\":{},\"framing\":{},\"unit\":{unit},\"function\":{function}}}",
+                js(&f.to_string()),
+                js(fr.name())
+            )
+        })
+        .collect();
+    let closed = report.closed.as_deref().map_or("null".into(), js);
     format!(
-        "{{\"target\":{},\"tcp\":{tcp},\"found\":[{}],\"garbage\":[{}],\"interrupted\":{},\"elapsed_s\":{:.3},\"tries\":{}}}",
+        "{{\"target\":{},\"tcp\":{tcp},\"found\":[{}],\"garbage\":[{}],\"unanswering\":[{}],\"closed\":{closed},\"interrupted\":{},\"elapsed_s\":{:.3},\"tries\":{}}}",
         js(target),
         found.join(","),
         garbage.join(","),
+        unanswering.join(","),
         report.interrupted,
         report.elapsed.as_secs_f64(),
         report.tries

@@ -108,6 +108,15 @@ pub enum Heard {
     Nothing,
     /// Bytes, but no frame with a good check for this request.
     Garbage(usize),
+    /// A whole frame with a good check that does not answer the request: another
+    /// function's (a device that answers everything with one frame, another master's
+    /// traffic). It proves nothing about the unit asked.
+    Unanswering {
+        /// The unit it is from.
+        unit: u8,
+        /// Its function code.
+        function: u8,
+    },
     /// A frame with a good check whose function is the request's (or its exception).
     Frame {
         /// The unit that answered.
@@ -151,20 +160,35 @@ pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> He
                     }
                 }
             }
+            // Only the whole of what came, as one frame: a search of every start and
+            // length for any function would find a good CRC in garbage by chance.
+            if let Some((unit, pdu)) = rtu::decode(bytes) {
+                if let Some(&function) = pdu.first() {
+                    return Heard::Unanswering { unit, function };
+                }
+            }
         }
         Framing::Ascii => {
             let mut start = 0;
+            let mut other = None;
             while let Some(colon) = bytes[start..].iter().position(|&b| b == b':') {
                 let from = start + colon;
                 let Some(lf) = bytes[from..].iter().position(|&b| b == b'\n') else {
                     break;
                 };
                 if let Some((unit, pdu)) = ascii::decode(&bytes[from..=from + lf]) {
-                    if pdu.first().is_some_and(|&fc| answers(fc)) {
-                        return Heard::Frame { unit, pdu };
+                    match pdu.first() {
+                        Some(&fc) if answers(fc) => return Heard::Frame { unit, pdu },
+                        Some(&function) => {
+                            other = other.or(Some(Heard::Unanswering { unit, function }))
+                        }
+                        None => {}
                     }
                 }
                 start = from + 1;
+            }
+            if let Some(other) = other {
+                return other;
             }
         }
     }
@@ -267,6 +291,9 @@ pub struct AtSetting {
     pub proven: bool,
     /// Some try got bytes without a frame.
     pub garbage: bool,
+    /// The first whole frame with a good check that answered no request, as
+    /// `(unit, function)`.
+    pub unanswering: Option<(u8, u8)>,
 }
 
 impl AtSetting {
@@ -278,6 +305,7 @@ impl AtSetting {
             give_up,
             proven: false,
             garbage: false,
+            unanswering: None,
         }
     }
 
@@ -295,6 +323,9 @@ impl AtSetting {
         match heard {
             Heard::Frame { .. } => self.proven = true,
             Heard::Garbage(_) => self.garbage = true,
+            Heard::Unanswering { unit, function } => {
+                self.unanswering = self.unanswering.or(Some((*unit, *function)))
+            }
             Heard::Nothing => {}
         }
     }
@@ -411,7 +442,19 @@ mod tests {
         bad[3] ^= 1;
         assert_eq!(judge(Framing::Rtu, &req, 3, &bad), Heard::Garbage(7));
         let other = rtu::encode(5, &[0x11, 0x02, 0x00, 0xFF]);
-        assert_eq!(judge(Framing::Rtu, &req, 3, &other), Heard::Garbage(7));
+        assert_eq!(
+            judge(Framing::Rtu, &req, 3, &other),
+            Heard::Unanswering {
+                unit: 5,
+                function: 0x11
+            }
+        );
+        let mut other_noisy = other.clone();
+        other_noisy.push(0x77);
+        assert_eq!(
+            judge(Framing::Rtu, &req, 3, &other_noisy),
+            Heard::Garbage(8)
+        );
         // FC 03's late reply while FC 04 is asked is a reply.
         let late = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
         let req4 = rtu::encode(5, &read_one(4));
@@ -435,6 +478,14 @@ mod tests {
             Heard::Garbage(_)
         ));
         assert_eq!(judge(Framing::Ascii, &req, 4, b""), Heard::Nothing);
+        let other = ascii::encode(7, &[0x06, 0x00, 0x00, 0x00, 0x2A]);
+        assert_eq!(
+            judge(Framing::Ascii, &req, 4, &other),
+            Heard::Unanswering {
+                unit: 7,
+                function: 6
+            }
+        );
     }
 
     #[test]

@@ -203,7 +203,11 @@ pub(super) async fn scan(
                     }
                 }
             }
-            if at.garbage && !at.proven {
+            if let (Some(first), false) = (at.unanswering, at.proven) {
+                report
+                    .unanswering
+                    .push(((s.baud, s.format, framing), first));
+            } else if at.garbage && !at.proven {
                 report.garbage.push((s.baud, s.format, framing));
             }
             for f in &mut found_here {
