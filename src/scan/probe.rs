@@ -42,6 +42,20 @@ pub const DEFAULT_BAUDS: [u32; 8] = [19200, 9600, 115200, 38400, 57600, 4800, 24
 /// practice (8N1), the specification's no-parity form (8N2), odd parity.
 pub const DEFAULT_FORMATS: [&str; 4] = ["8E1", "8N1", "8N2", "8O1"];
 
+/// The settings at which every unit id is tried, in this order (docs/scan.md, "What
+/// it tries"): RTU then ASCII at 19 200 and 9600 baud, 8E1 and 8N1, most buses' settings.
+/// Elsewhere a setting is left after `--give-up` silent units.
+pub const WIDE: [(u32, &str, Framing); 8] = [
+    (19200, "8E1", Framing::Rtu),
+    (9600, "8N1", Framing::Rtu),
+    (19200, "8N1", Framing::Rtu),
+    (9600, "8E1", Framing::Rtu),
+    (19200, "8E1", Framing::Ascii),
+    (9600, "8N1", Framing::Ascii),
+    (19200, "8N1", Framing::Ascii),
+    (9600, "8E1", Framing::Ascii),
+];
+
 /// One setting of the port, with the framings tried on it while it is open.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Setting {

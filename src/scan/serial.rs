@@ -4,7 +4,7 @@
 //! awaited for its time on the wire plus the timeout.
 
 use super::probe::{self, AtSetting, Framing, Heard, Setting};
-use super::{Found, Progress, Report, ScanError};
+use super::{Found, Progress, Report, ScanError, SerialSetting};
 use crate::config::{FlowControl, Parity as CfgParity, SerialConfig};
 use crate::port::serial::PreciseTimer;
 use crate::wire::uart::Parity;
@@ -25,6 +25,8 @@ struct OpenSetting<'a> {
     /// When the line last carried a byte: the gap before a request counts from it.
     last: Instant,
     timeout: Duration,
+    /// How long after the request had left the last frame that answered came.
+    replied: Duration,
 }
 
 impl OpenSetting<'_> {
@@ -70,6 +72,7 @@ impl OpenSetting<'_> {
         self.last = written + on_wire;
         let mut got = Vec::new();
         let mut chunk = [0u8; 512];
+        let mut first_byte = None;
         loop {
             tokio::select! {
                 r = self.port.read(&mut chunk) => {
@@ -78,9 +81,20 @@ impl OpenSetting<'_> {
                         break;
                     }
                     got.extend_from_slice(&chunk[..n]);
+                    // The reply's first byte, past the request's own echo if the
+                    // line echoes.
+                    let echo = request.len().min(got.len());
+                    if first_byte.is_none()
+                        && (got[..echo] != request[..echo] || got.len() > request.len())
+                    {
+                        first_byte = Some(Instant::now());
+                    }
                     self.last = self.last.max(Instant::now());
                     let heard = probe::judge(framing, &request, pdu[0], &got);
                     if matches!(heard, Heard::Frame { .. }) {
+                        self.replied = first_byte
+                            .unwrap_or_else(Instant::now)
+                            .saturating_duration_since(written + on_wire);
                         return Ok(heard);
                     }
                 }
@@ -92,11 +106,27 @@ impl OpenSetting<'_> {
         }
         Ok(probe::judge(framing, &request, pdu[0], &got))
     }
+
+    /// Brings a device's receiver back to idle before the first request at a
+    /// setting, whatever garbage the tries at other settings left in it
+    /// (docs/scan.md): RTU, a silence of 3.5 characters (from now: the open has
+    /// just cleared what was queued), which ends any frame; ASCII, CR LF, which ends
+    /// whatever a ':' of garbage began, so the device drops it as a bad frame and
+    /// hears the next ':' afresh.
+    async fn clear_receiver(&mut self, framing: Framing) -> Result<(), ScanError> {
+        if framing == Framing::Ascii {
+            self.port.write_all(b"\r\n").await?;
+            self.last = Instant::now() + self.char_time() * 2;
+        } else {
+            self.last = self.last.max(Instant::now());
+        }
+        Ok(())
+    }
 }
 
 /// The port's configuration at `s`: no flow control (a scan needs none, and a bus
 /// adapter wires none).
-fn config(path: &str, s: &Setting) -> SerialConfig {
+pub(super) fn config(path: &str, s: &Setting) -> SerialConfig {
     SerialConfig {
         path: path.to_string(),
         baud_rate: s.baud,
@@ -119,6 +149,7 @@ pub(super) async fn scan(
     settings: &[Setting],
     units: &[u8],
     give_up: usize,
+    wide: &[SerialSetting],
     timeout: Duration,
     all: bool,
     stop: &CancellationToken,
@@ -126,10 +157,17 @@ pub(super) async fn scan(
 ) -> Result<Report, ScanError> {
     let mut report = Report::default();
     let mut timer = PreciseTimer::new()?;
-    let per_setting = give_up.min(units.len());
+    // Every unit at a wide setting; the first `give_up` elsewhere, until proven.
+    let limit = |s: &Setting, f: Framing| {
+        if wide.contains(&(s.baud, s.format, f)) {
+            units.len()
+        } else {
+            give_up.min(units.len())
+        }
+    };
     let mut total: usize = settings
         .iter()
-        .map(|s| s.framings.len() * per_setting)
+        .flat_map(|s| s.framings.iter().map(move |&f| limit(s, f)))
         .sum();
     let mut done = 0;
     'settings: for (i, s) in settings.iter().enumerate() {
@@ -147,9 +185,12 @@ pub(super) async fn scan(
             setting: s,
             last: Instant::now(),
             timeout,
+            replied: Duration::ZERO,
         };
         for (k, &framing) in s.framings.iter().enumerate() {
-            let mut at = AtSetting::new(units.to_vec(), give_up);
+            let per_setting = limit(s, framing);
+            let mut at = AtSetting::new(units.to_vec(), per_setting);
+            line.clear_receiver(framing).await?;
             let mut found_here = Vec::new();
             let what = format!("{} {} {}", s.baud, s.format, framing.name());
             while let Some(unit) = at.next_unit() {
@@ -165,10 +206,7 @@ pub(super) async fn scan(
                         let skip = if j == 0 { k + 1 } else { 0 };
                         t.framings.iter().skip(skip).map(move |&f| (t, f))
                     })
-                    .map(|(t, f)| {
-                        let probe = OpenSetting::cost(t, f, timeout);
-                        probe * per_setting as u32
-                    })
+                    .map(|(t, f)| OpenSetting::cost(t, f, timeout) * limit(t, f) as u32)
                     .sum();
                 let left = line.read_cost(framing) * at.left() as u32 + later;
                 progress.show(done, total, left, &format!("{what} unit {unit}"));
@@ -180,6 +218,7 @@ pub(super) async fn scan(
                     heard = line.ask(framing, unit, &probe::read_one(4)).await?;
                     report.tries += 1;
                 }
+                let replied = line.replied;
                 let was_proven = at.proven;
                 at.record(&heard);
                 done += 1;
@@ -199,6 +238,10 @@ pub(super) async fn scan(
                             answered: probe::describe(pdu),
                             device_id: Err(probe::NoIdentity::NotAsked),
                             server_id: Err(probe::NoIdentity::NotAsked),
+                            // A late reply's time is not known: it answered a request
+                            // before this one.
+                            replies: if late { Vec::new() } else { vec![replied] },
+                            after: progress.started.elapsed(),
                         });
                     }
                 }
@@ -222,11 +265,19 @@ pub(super) async fn scan(
                     device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
                     report.tries += 1;
                 }
+                f.timed(&device, line.replied);
                 let mut server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
                 report.tries += 1;
                 if server == Heard::Nothing {
                     server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
                     report.tries += 1;
+                }
+                f.timed(&server, line.replied);
+                // A few more reads, for a reply time worth a median.
+                for _ in 0..super::TIMED_READS {
+                    let heard = line.ask(framing, f.unit, &probe::read_one(3)).await?;
+                    report.tries += 1;
+                    f.timed(&heard, line.replied);
                 }
                 super::identified(f, &device, &server);
             }

@@ -142,6 +142,8 @@ pub(super) async fn scan(
             answered: probe::describe(&pdu),
             device_id: Err(probe::NoIdentity::NotAsked),
             server_id: Err(probe::NoIdentity::NotAsked),
+            replies: Vec::new(),
+            after: progress.started.elapsed(),
         };
         let device = conn.ask(unit, &probe::DEVICE_ID).await?;
         let server = conn.ask(unit, &probe::SERVER_ID).await?;
