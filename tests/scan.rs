@@ -842,3 +842,70 @@ fn the_time_to_find_a_lone_device() {
     }
     eprintln!("{}", rows.join("\n"));
 }
+
+/// A slow lone device (a raw one answering 600 ms after each request): the fast pass
+/// finds it by its late reply, its identity and timed reads wait the gateway's default
+/// timeout, so its reply times are known (p50 600 ms and more), and the table gives
+/// a `[[line.unit]]` block with a `response_timeout_ms` above its longest reply
+/// (the line's default, 1000 ms, would cut it short at twice that).
+#[test]
+fn a_slow_unit_gets_its_reply_time_and_a_unit_block() {
+    let line = Line::start("8N1");
+    let _device = Py::start(
+        "lone_device.py",
+        &[
+            "--port",
+            line.b.to_str().unwrap(),
+            "--baud",
+            "9600",
+            "--unit",
+            "9",
+            "--delay",
+            "0.6",
+        ],
+    );
+    let (code, stdout, _) = scan_long(
+        &[
+            line.a.to_str().unwrap(),
+            "--baud",
+            "9600",
+            "--format",
+            "8N1",
+            "--framing",
+            "rtu",
+            "--units",
+            "1-30",
+        ],
+        Duration::from_secs(60),
+    );
+    assert_eq!(code, 0, "{stdout}");
+    let row = stdout
+        .lines()
+        .find(|l| l.starts_with("9 "))
+        .unwrap_or_else(|| panic!("{stdout}"));
+    let times: Vec<u64> = row
+        .split_whitespace()
+        .find(|w| w.contains('/'))
+        .unwrap()
+        .split('/')
+        .map(|t| t.parse().unwrap())
+        .collect();
+    assert!(times[0] >= 600 && times[1] >= times[0], "{stdout}");
+    let block = "[[line.unit]]";
+    let at = stdout.find(block).unwrap_or_else(|| panic!("{stdout}"));
+    let rest = &stdout[at..];
+    assert!(
+        rest.contains("units = [9]\nresponse_timeout_ms = "),
+        "{stdout}"
+    );
+    let timeout: u64 = rest
+        .split("response_timeout_ms = ")
+        .nth(1)
+        .unwrap()
+        .lines()
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!(timeout >= 2 * times[1], "{stdout}");
+}

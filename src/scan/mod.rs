@@ -112,9 +112,11 @@ pub(crate) const TIMED_READS: usize = 3;
 
 impl Found {
     /// Keeps the reply time of `heard` when it is this unit's frame.
-    pub(crate) fn timed(&mut self, heard: &Heard, replied: Duration) {
-        if matches!(heard, Heard::Frame { unit, .. } if *unit == self.unit) {
-            self.replies.push(replied);
+    pub(crate) fn timed(&mut self, heard: &Heard, replied: Option<Duration>) {
+        if let (Heard::Frame { unit, .. }, Some(t)) = (heard, replied) {
+            if *unit == self.unit {
+                self.replies.push(t);
+            }
         }
     }
 
@@ -449,8 +451,9 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
         } else if report.garbage.is_empty() {
             "hint: nothing at all came back: check the wiring (RS-485 A and B swapped? \
              the bus terminated?), the device's power, and that it is a Modbus device; \
-             a unit id above --give-up at a setting not proven is not tried: give the \
-             setting you suspect with --baud, --format, --framing and --give-up 247"
+             every unit id was tried at 19200 and 9600 baud, 8E1 and 8N1, but only the \
+             first --give-up ids elsewhere: give the setting you suspect with --baud, \
+             --format, --framing and --give-up 247"
         } else {
             "hint: bytes came back without a good frame: a device is there at another \
              setting (try --all, or other --baud and --format), or the line is noisy"
@@ -524,11 +527,11 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
             .iter()
             .filter(|f| f.serial == setting)
             .collect();
-        for (f, timeout) in slow_units(&here) {
+        for (f, timeout, why) in slow_units(&here) {
             let (p50, max) = f.reply_time().unwrap_or_default();
             let _ = writeln!(
                 s,
-                "[[line.unit]]    # replies in {} ms, at most {} ms: slower than the rest\n\
+                "[[line.unit]]    # replies in {} ms, at most {} ms: {why}\n\
                  units = [{}]\nresponse_timeout_ms = {timeout}\n",
                 ms(p50),
                 ms(max),
@@ -550,7 +553,7 @@ fn ms(d: Duration) -> u128 {
 /// least 50. Slower is a longest reply over 3 times the line's typical reply (the
 /// median of its units' medians) and over 50 ms, or one the line's default timeout
 /// would cut short; so a lone device is named only in the second case.
-fn slow_units<'a>(found: &[&'a Found]) -> Vec<(&'a Found, u64)> {
+fn slow_units<'a>(found: &[&'a Found]) -> Vec<(&'a Found, u64, &'static str)> {
     let mut medians: Vec<Duration> = found
         .iter()
         .filter_map(|f| Some(f.reply_time()?.0))
@@ -567,7 +570,12 @@ fn slow_units<'a>(found: &[&'a Found]) -> Vec<(&'a Found, u64)> {
             let (_, max) = f.reply_time()?;
             let slower = found.len() > 1 && max > typical * 3 && max > Duration::from_millis(50);
             let timeout = ((max.as_millis() as u64 * 2).div_ceil(10) * 10).max(50);
-            (slower || max * 2 > line_default).then_some((f, timeout))
+            let why = if slower {
+                "slower than the rest"
+            } else {
+                "the default response_timeout_ms would cut it short"
+            };
+            (slower || max * 2 > line_default).then_some((f, timeout, why))
         })
         .collect()
 }

@@ -25,8 +25,9 @@ struct OpenSetting<'a> {
     /// When the line last carried a byte: the gap before a request counts from it.
     last: Instant,
     timeout: Duration,
-    /// How long after the request had left the last frame that answered came.
-    replied: Duration,
+    /// How long after the request had left the last frame that answered came (none
+    /// when it was a late reply to an earlier request).
+    replied: Option<Duration>,
 }
 
 impl OpenSetting<'_> {
@@ -54,7 +55,16 @@ impl OpenSetting<'_> {
             self.setting.format.bits(),
         ));
         self.timer.until(self.last + gap).await?;
-        // Whatever a slow device sent since is not this request's reply.
+        // What came since the last window is not this request's reply, but may be a
+        // slow unit's late one to an earlier request: kept aside, and judged alone
+        // when this request gets no reply of its own.
+        let mut early = Vec::new();
+        let waiting = self.port.bytes_to_read().unwrap_or(0) as usize;
+        if waiting > 0 {
+            let mut buf = vec![0u8; waiting.min(4096)];
+            let n = self.port.read(&mut buf).await?;
+            early.extend_from_slice(&buf[..n]);
+        }
         let _ = self.port.clear(ClearBuffer::Input);
         let request = framing.codec().encode(unit, pdu);
         self.port.write_all(&request).await?;
@@ -92,9 +102,11 @@ impl OpenSetting<'_> {
                     self.last = self.last.max(Instant::now());
                     let heard = probe::judge(framing, &request, pdu[0], &got);
                     if matches!(heard, Heard::Frame { .. }) {
-                        self.replied = first_byte
-                            .unwrap_or_else(Instant::now)
-                            .saturating_duration_since(written + on_wire);
+                        self.replied = Some(
+                            first_byte
+                                .unwrap_or_else(Instant::now)
+                                .saturating_duration_since(written + on_wire),
+                        );
                         return Ok(heard);
                     }
                 }
@@ -104,7 +116,14 @@ impl OpenSetting<'_> {
                 }
             }
         }
-        Ok(probe::judge(framing, &request, pdu[0], &got))
+        let heard = probe::judge(framing, &request, pdu[0], &got);
+        if !matches!(heard, Heard::Frame { .. }) {
+            if let late @ Heard::Frame { .. } = probe::judge(framing, &[], pdu[0], &early) {
+                self.replied = None;
+                return Ok(late);
+            }
+        }
+        Ok(heard)
     }
 
     /// Brings a device's receiver back to idle before the first request at a
@@ -185,7 +204,7 @@ pub(super) async fn scan(
             setting: s,
             last: Instant::now(),
             timeout,
-            replied: Duration::ZERO,
+            replied: None,
         };
         for (k, &framing) in s.framings.iter().enumerate() {
             let per_setting = limit(s, framing);
@@ -240,7 +259,11 @@ pub(super) async fn scan(
                             server_id: Err(probe::NoIdentity::NotAsked),
                             // A late reply's time is not known: it answered a request
                             // before this one.
-                            replies: if late { Vec::new() } else { vec![replied] },
+                            replies: if late {
+                                Vec::new()
+                            } else {
+                                replied.into_iter().collect()
+                            },
                             after: progress.started.elapsed(),
                         });
                     }
@@ -253,6 +276,13 @@ pub(super) async fn scan(
             } else if at.garbage && !at.proven {
                 report.garbage.push((s.baud, s.format, framing));
             }
+            // A unit found is known to be there: its identity and timed reads get the
+            // gateway's own default timeout, so a slow unit's reply times are had, not
+            // only the fast pass's window.
+            let window = line.timeout;
+            line.timeout = window.max(Duration::from_millis(
+                crate::config::RelayConfig::default().response_timeout_ms,
+            ));
             for f in &mut found_here {
                 if stop.is_cancelled() {
                     break;
@@ -281,6 +311,7 @@ pub(super) async fn scan(
                 }
                 super::identified(f, &device, &server);
             }
+            line.timeout = window;
             // In the order of their ids, late replies included.
             found_here.sort_by_key(|f| f.unit);
             report.found.extend(found_here);
