@@ -283,6 +283,21 @@ fn scan_long(args: &[&str], bound: Duration) -> (i32, String, Duration) {
     (status.code().unwrap_or(-1), stdout, took)
 }
 
+/// tests/py/lone_device.py on the device's end of `line`: unit `unit` alone, at
+/// `baud` (given as the flag's text), with `extra` flags.
+fn lone_device(line: &Line, baud: &str, unit: &str, extra: &[&str]) -> Py {
+    let mut args = vec![
+        "--port",
+        line.b.to_str().unwrap(),
+        "--baud",
+        baud,
+        "--unit",
+        unit,
+    ];
+    args.extend_from_slice(extra);
+    Py::start("lone_device.py", &args)
+}
+
 fn long() -> bool {
     std::env::var_os("MBGATE_LONG").is_some_and(|v| v == "1")
 }
@@ -308,6 +323,36 @@ fn the_default_scan_of_an_empty_line() {
     assert_eq!(v["tries"], 8 * 247 + 56 * 3);
 }
 
+/// Our simulator as a second peer (the proof is the raw device above): one generic
+/// device at a unit id drawn from 4-247 and a common setting, found by the default
+/// scan.
+#[test]
+fn a_default_scan_finds_the_simulator_at_any_id() {
+    let mut rng = fastrand::Rng::with_seed(seed() + 3);
+    let unit = rng.u8(4..=247).to_string();
+    let baud = ["19200", "9600"][rng.usize(..2)];
+    let (format, parity) = [("8E1", "even"), ("8N1", "none")][rng.usize(..2)];
+    eprintln!("simulator: unit {unit} at {baud} {format} rtu");
+    let line = Line::start(format);
+    let mut flags = common::sim::generic_flags("rtu", &unit, baud);
+    flags.extend_from_slice(&["--parity", parity]);
+    let _sim = common::sim::sim(&line.b, &flags);
+    let (code, stdout, _) = scan_long(
+        &[line.a.to_str().unwrap(), "--json"],
+        Duration::from_secs(240),
+    );
+    assert_eq!(code, 0, "{stdout}");
+    assert_eq!(
+        found(&stdout),
+        vec![(
+            unit.parse().unwrap(),
+            Some(baud.parse().unwrap()),
+            Some(format.to_string()),
+            "rtu".to_string()
+        )]
+    );
+}
+
 /// A lone device, a raw pyserial one silent for every other unit id, at an id drawn
 /// from 4-247 and a common setting (19200 or 9600, 8E1 or 8N1, RTU) from the seed:
 /// the default scan, with no option but --json, finds it at that setting, and gives
@@ -320,17 +365,7 @@ fn a_default_scan_finds_a_lone_device_at_any_id() {
     let format = ["8E1", "8N1"][rng.usize(..2)];
     eprintln!("lone device: unit {unit} at {baud} {format} rtu");
     let line = Line::start(format);
-    let _device = Py::start(
-        "lone_device.py",
-        &[
-            "--port",
-            line.b.to_str().unwrap(),
-            "--baud",
-            &baud.to_string(),
-            "--unit",
-            &unit.to_string(),
-        ],
-    );
+    let _device = lone_device(&line, &baud.to_string(), &unit.to_string(), &[]);
     let (code, stdout, took) = scan_long(
         &[line.a.to_str().unwrap(), "--json"],
         Duration::from_secs(240),
@@ -556,19 +591,7 @@ fn frames_that_answer_no_request_are_named_as_such() {
     let line = Line::start("8N1");
     let fixed = mbgate::frame::rtu::encode(1, &[0x06, 0x00, 0x00, 0x00, 0x2A]);
     let hex: String = fixed.iter().map(|b| format!("{b:02X}")).collect();
-    let _device = Py::start(
-        "lone_device.py",
-        &[
-            "--port",
-            line.b.to_str().unwrap(),
-            "--baud",
-            "9600",
-            "--unit",
-            "1",
-            "--fixed",
-            &hex,
-        ],
-    );
+    let _device = lone_device(&line, "9600", "1", &["--fixed", &hex]);
     let args = [
         "scan",
         line.a.to_str().unwrap(),
@@ -813,17 +836,7 @@ fn the_time_to_find_a_lone_device() {
     for baud in [9600u32, 19200] {
         for unit in [7u8, 100, 247] {
             let line = Line::start("8N1");
-            let _device = Py::start(
-                "lone_device.py",
-                &[
-                    "--port",
-                    line.b.to_str().unwrap(),
-                    "--baud",
-                    &baud.to_string(),
-                    "--unit",
-                    &unit.to_string(),
-                ],
-            );
+            let _device = lone_device(&line, &baud.to_string(), &unit.to_string(), &[]);
             let (code, stdout, took) = scan_long(
                 &[line.a.to_str().unwrap(), "--json"],
                 Duration::from_secs(300),
@@ -851,19 +864,7 @@ fn the_time_to_find_a_lone_device() {
 #[test]
 fn a_slow_unit_gets_its_reply_time_and_a_unit_block() {
     let line = Line::start("8N1");
-    let _device = Py::start(
-        "lone_device.py",
-        &[
-            "--port",
-            line.b.to_str().unwrap(),
-            "--baud",
-            "9600",
-            "--unit",
-            "9",
-            "--delay",
-            "0.6",
-        ],
-    );
+    let _device = lone_device(&line, "9600", "9", &["--delay", "0.6"]);
     let (code, stdout, _) = scan_long(
         &[
             line.a.to_str().unwrap(),

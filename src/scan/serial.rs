@@ -14,6 +14,10 @@ use tokio::time::Instant;
 use tokio_serial::{ClearBuffer, SerialPort, SerialStream};
 use tokio_util::sync::CancellationToken;
 
+/// How long the line is listened to after the last unit of a wide setting, for a
+/// slow unit's late reply (docs/scan.md).
+const LINGER: Duration = Duration::from_millis(500);
+
 /// The longest reply awaited to an identity request (a PDU of 253 bytes).
 const LONGEST_PDU: usize = 253;
 
@@ -126,6 +130,35 @@ impl OpenSetting<'_> {
         Ok(heard)
     }
 
+    /// Reads for `how_long` without asking, and judges what came as a late reply
+    /// to a read.
+    async fn linger(&mut self, framing: Framing, how_long: Duration) -> Result<Heard, ScanError> {
+        let deadline = Instant::now() + how_long;
+        let mut got = Vec::new();
+        let mut chunk = [0u8; 512];
+        loop {
+            tokio::select! {
+                r = self.port.read(&mut chunk) => {
+                    let n = r?;
+                    if n == 0 {
+                        break;
+                    }
+                    got.extend_from_slice(&chunk[..n]);
+                    self.last = self.last.max(Instant::now());
+                    let heard = probe::judge(framing, &[], 3, &got);
+                    if matches!(heard, Heard::Frame { .. }) {
+                        return Ok(heard);
+                    }
+                }
+                r = self.timer.until(deadline) => {
+                    r?;
+                    break;
+                }
+            }
+        }
+        Ok(probe::judge(framing, &[], 3, &got))
+    }
+
     /// Brings a device's receiver back to idle before the first request at a
     /// setting, whatever garbage the tries at other settings left in it
     /// (docs/scan.md): RTU, a silence of 3.5 characters (from now: the open has
@@ -212,62 +245,85 @@ pub(super) async fn scan(
             line.clear_receiver(framing).await?;
             let mut found_here = Vec::new();
             let what = format!("{} {} {}", s.baud, s.format, framing.name());
-            while let Some(unit) = at.next_unit() {
-                if stop.is_cancelled() {
-                    // What was found so far is kept (and reported) below.
-                    break;
-                }
-                // The time left: this setting's tries, then every later one's.
-                let later: Duration = settings[i..]
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(j, t)| {
-                        let skip = if j == 0 { k + 1 } else { 0 };
-                        t.framings.iter().skip(skip).map(move |&f| (t, f))
-                    })
-                    .map(|(t, f)| OpenSetting::cost(t, f, timeout) * limit(t, f) as u32)
-                    .sum();
-                let left = line.read_cost(framing) * at.left() as u32 + later;
-                progress.show(done, total, left, &format!("{what} unit {unit}"));
-                let mut heard = line.ask(framing, unit, &probe::read_one(3)).await?;
-                report.tries += 1;
-                if heard == Heard::Nothing && at.proven {
-                    // No answer at all to FC 03 where a device is known to be: some
-                    // devices keep silent for a function they lack; FC 04 too.
-                    heard = line.ask(framing, unit, &probe::read_one(4)).await?;
+            'units: loop {
+                while let Some(unit) = at.next_unit() {
+                    if stop.is_cancelled() {
+                        // What was found so far is kept (and reported) below.
+                        break;
+                    }
+                    // The time left: this setting's tries, then every later one's.
+                    let later: Duration = settings[i..]
+                        .iter()
+                        .enumerate()
+                        .flat_map(|(j, t)| {
+                            let skip = if j == 0 { k + 1 } else { 0 };
+                            t.framings.iter().skip(skip).map(move |&f| (t, f))
+                        })
+                        .map(|(t, f)| OpenSetting::cost(t, f, timeout) * limit(t, f) as u32)
+                        .sum();
+                    let left = line.read_cost(framing) * at.left() as u32 + later;
+                    progress.show(done, total, left, &format!("{what} unit {unit}"));
+                    let mut heard = line.ask(framing, unit, &probe::read_one(3)).await?;
                     report.tries += 1;
-                }
-                let replied = line.replied;
-                let was_proven = at.proven;
-                at.record(&heard);
-                done += 1;
-                if at.proven && !was_proven {
-                    total += units.len().saturating_sub(per_setting);
-                }
-                if let Heard::Frame { unit: from, pdu } = &heard {
-                    // A frame from a unit asked before is its late reply: each unit is
-                    // asked once, so it can be no other's.
-                    let late = *from != unit
-                        && units.contains(from)
-                        && !found_here.iter().any(|f: &Found| f.unit == *from);
-                    if *from == unit || late {
-                        found_here.push(Found {
-                            unit: *from,
-                            serial: Some((s.baud, s.format, framing)),
-                            answered: probe::describe(pdu),
-                            device_id: Err(probe::NoIdentity::NotAsked),
-                            server_id: Err(probe::NoIdentity::NotAsked),
-                            // A late reply's time is not known: it answered a request
-                            // before this one.
-                            replies: if late {
-                                Vec::new()
-                            } else {
-                                replied.into_iter().collect()
-                            },
-                            after: progress.started.elapsed(),
-                        });
+                    if heard == Heard::Nothing && at.proven {
+                        // No answer at all to FC 03 where a device is known to be: some
+                        // devices keep silent for a function they lack; FC 04 too.
+                        heard = line.ask(framing, unit, &probe::read_one(4)).await?;
+                        report.tries += 1;
+                    }
+                    let replied = line.replied;
+                    let was_proven = at.proven;
+                    at.record(&heard);
+                    done += 1;
+                    if at.proven && !was_proven {
+                        total += units.len().saturating_sub(per_setting);
+                    }
+                    if let Heard::Frame { unit: from, pdu } = &heard {
+                        // A frame from a unit asked before is its late reply: each unit is
+                        // asked once, so it can be no other's.
+                        let late = *from != unit
+                            && units.contains(from)
+                            && !found_here.iter().any(|f: &Found| f.unit == *from);
+                        if *from == unit || late {
+                            found_here.push(Found {
+                                unit: *from,
+                                serial: Some((s.baud, s.format, framing)),
+                                answered: probe::describe(pdu),
+                                device_id: Err(probe::NoIdentity::NotAsked),
+                                server_id: Err(probe::NoIdentity::NotAsked),
+                                // A late reply's time is not known: it answered a request
+                                // before this one.
+                                replies: if late {
+                                    Vec::new()
+                                } else {
+                                    replied.into_iter().collect()
+                                },
+                                after: progress.started.elapsed(),
+                            });
+                        }
                     }
                 }
+                if stop.is_cancelled() || at.proven || per_setting < units.len() {
+                    break;
+                }
+                // The last units of a wide setting have no later window for a slow
+                // reply to come in: the line is listened to a while before it is left.
+                if let Heard::Frame { unit: from, pdu } = line.linger(framing, LINGER).await? {
+                    if units.contains(&from) {
+                        at.proven = true;
+                        found_here.push(Found {
+                            unit: from,
+                            serial: Some((s.baud, s.format, framing)),
+                            answered: probe::describe(&pdu),
+                            device_id: Err(probe::NoIdentity::NotAsked),
+                            server_id: Err(probe::NoIdentity::NotAsked),
+                            replies: Vec::new(),
+                            after: progress.started.elapsed(),
+                        });
+                        continue 'units;
+                    }
+                }
+                break;
             }
             if let (Some(first), false) = (at.unanswering, at.proven) {
                 report
