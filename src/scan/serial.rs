@@ -84,6 +84,32 @@ impl OpenSetting<'_> {
             + self.char_time() * framing.codec().encoded_len(reply_pdu) as u32
             + self.timeout;
         self.last = written + on_wire;
+        let (heard, first_byte) = self.hear(framing, &request, pdu[0], deadline).await?;
+        if matches!(heard, Heard::Frame { .. }) {
+            self.replied = Some(
+                first_byte
+                    .unwrap_or_else(Instant::now)
+                    .saturating_duration_since(written + on_wire),
+            );
+            return Ok(heard);
+        }
+        if let late @ Heard::Frame { .. } = probe::judge(framing, &[], pdu[0], &early) {
+            self.replied = None;
+            return Ok(late);
+        }
+        Ok(heard)
+    }
+
+    /// Reads until a frame with a good check answers `function` (after `request`'s
+    /// echo, if the line echoes), or until `deadline`: what was heard, and when the
+    /// first byte past the echo came.
+    async fn hear(
+        &mut self,
+        framing: Framing,
+        request: &[u8],
+        function: u8,
+        deadline: Instant,
+    ) -> Result<(Heard, Option<Instant>), ScanError> {
         let mut got = Vec::new();
         let mut chunk = [0u8; 512];
         let mut first_byte = None;
@@ -95,8 +121,6 @@ impl OpenSetting<'_> {
                         break;
                     }
                     got.extend_from_slice(&chunk[..n]);
-                    // The reply's first byte, past the request's own echo if the
-                    // line echoes.
                     let echo = request.len().min(got.len());
                     if first_byte.is_none()
                         && (got[..echo] != request[..echo] || got.len() > request.len())
@@ -104,14 +128,9 @@ impl OpenSetting<'_> {
                         first_byte = Some(Instant::now());
                     }
                     self.last = self.last.max(Instant::now());
-                    let heard = probe::judge(framing, &request, pdu[0], &got);
+                    let heard = probe::judge(framing, request, function, &got);
                     if matches!(heard, Heard::Frame { .. }) {
-                        self.replied = Some(
-                            first_byte
-                                .unwrap_or_else(Instant::now)
-                                .saturating_duration_since(written + on_wire),
-                        );
-                        return Ok(heard);
+                        return Ok((heard, first_byte));
                     }
                 }
                 r = self.timer.until(deadline) => {
@@ -120,43 +139,14 @@ impl OpenSetting<'_> {
                 }
             }
         }
-        let heard = probe::judge(framing, &request, pdu[0], &got);
-        if !matches!(heard, Heard::Frame { .. }) {
-            if let late @ Heard::Frame { .. } = probe::judge(framing, &[], pdu[0], &early) {
-                self.replied = None;
-                return Ok(late);
-            }
-        }
-        Ok(heard)
+        Ok((probe::judge(framing, request, function, &got), first_byte))
     }
 
     /// Reads for `how_long` without asking, and judges what came as a late reply
     /// to a read.
     async fn linger(&mut self, framing: Framing, how_long: Duration) -> Result<Heard, ScanError> {
         let deadline = Instant::now() + how_long;
-        let mut got = Vec::new();
-        let mut chunk = [0u8; 512];
-        loop {
-            tokio::select! {
-                r = self.port.read(&mut chunk) => {
-                    let n = r?;
-                    if n == 0 {
-                        break;
-                    }
-                    got.extend_from_slice(&chunk[..n]);
-                    self.last = self.last.max(Instant::now());
-                    let heard = probe::judge(framing, &[], 3, &got);
-                    if matches!(heard, Heard::Frame { .. }) {
-                        return Ok(heard);
-                    }
-                }
-                r = self.timer.until(deadline) => {
-                    r?;
-                    break;
-                }
-            }
-        }
-        Ok(probe::judge(framing, &[], 3, &got))
+        Ok(self.hear(framing, &[], 3, deadline).await?.0)
     }
 
     /// Brings a device's receiver back to idle before the first request at a
