@@ -1161,7 +1161,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__scan)
-            opts="-h --tcp --baud --format --framing --units --timeout-ms --give-up --all --json --help"
+            opts="-h --tcp --baud --format --framing --units --timeout-ms --give-up --all --listen --listen-secs --json --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -1192,6 +1192,10 @@ _mbgate() {
                     return 0
                     ;;
                 --give-up)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --listen-secs)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;

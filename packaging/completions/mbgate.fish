@@ -300,9 +300,11 @@ complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l format -d 'The fo
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l framing -d 'The framings to try, in order [default: rtu,ascii]' -r -f -a "rtu\t'Modbus RTU: binary, CRC-16'
 ascii\t'Modbus ASCII: hex between `:` and CR LF, LRC'"
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l units -d 'The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`' -r
-complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l timeout-ms -d 'How long a device may take to answer, beyond the request\'s and the reply\'s own time on the wire' -r
-complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l give-up -d 'Leave a setting after this many units got no frame with a good CRC or LRC (a setting that got one is scanned to the last unit)' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l timeout-ms -d 'How long a device may take to answer, beyond the request\'s and the reply\'s own time on the wire (a later reply still counts, in the next units\' time)' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l give-up -d 'Leave a setting after this many units got no frame with a good CRC or LRC (a setting that got one is scanned to the last unit; so are 19200 and 9600 baud, 8E1 and 8N1, RTU and ASCII, the settings most buses use)' -r
+complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l listen-secs -d 'With --listen: how long to listen at each setting' -r
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l all -d 'Go on to the other settings after one is found (a bus has one setting, so by default the scan ends with the first that answers)'
+complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l listen -d 'Send nothing: listen to a live bus at each setting in turn and report the setting, units, function codes, request rate and reply times heard'
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -l json -d 'Print the result as JSON instead of a table'
 complete -c mbgate -n "__fish_mbgate_using_subcommand scan" -s h -l help -d 'Print help (see more with \'--help\')'
 complete -c mbgate -n "__fish_mbgate_using_subcommand wire" -l format -d 'Both ends\' format, FORMAT or BAUD,FORMAT: 8N1, 8E1, 8O1, 8N2, 7E1...; or `auto`: the parity and stop bits the program set, where a pty still shows them (PARODD: odd; INPCK without it: even, as serialport and so mbgate set it; pyserial\'s even parity reads as none). A baud rate given here is used whatever the program sets; otherwise each end\'s speed is the one its program set' -r

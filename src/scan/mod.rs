@@ -4,8 +4,10 @@
 //! `probe.rs`'s (pure); the port's side `serial.rs`'s and `tcp.rs`'s; here the
 //! options, the loop over settings and the report.
 
+mod listen;
 pub mod probe;
 mod serial;
+pub mod sniff;
 mod tcp;
 
 use probe::{Framing, Heard, Units};
@@ -38,17 +40,25 @@ pub struct ScanArgs {
     #[arg(long, default_value = "1-247", value_name = "IDS")]
     pub units: Units,
     /// How long a device may take to answer, beyond the request's and the reply's own
-    /// time on the wire.
-    #[arg(long, default_value_t = 100, value_name = "MS")]
+    /// time on the wire (a later reply still counts, in the next units' time).
+    #[arg(long, default_value_t = 50, value_name = "MS")]
     pub timeout_ms: u64,
     /// Leave a setting after this many units got no frame with a good CRC or LRC (a
-    /// setting that got one is scanned to the last unit).
+    /// setting that got one is scanned to the last unit; so are 19200 and 9600 baud,
+    /// 8E1 and 8N1, RTU and ASCII, the settings most buses use).
     #[arg(long, default_value_t = 3, value_name = "N")]
     pub give_up: usize,
     /// Go on to the other settings after one is found (a bus has one setting, so by
     /// default the scan ends with the first that answers).
     #[arg(long)]
     pub all: bool,
+    /// Send nothing: listen to a live bus at each setting in turn and report the
+    /// setting, units, function codes, request rate and reply times heard.
+    #[arg(long, conflicts_with = "tcp")]
+    pub listen: bool,
+    /// With --listen: how long to listen at each setting.
+    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
+    pub listen_secs: f64,
     /// Print the result as JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -73,6 +83,9 @@ pub enum ScanError {
     Io(#[from] std::io::Error),
 }
 
+/// A baud rate, format and framing.
+pub type SerialSetting = (u32, Format, Framing);
+
 /// A unit that answered.
 #[derive(Debug, Clone)]
 pub struct Found {
@@ -86,6 +99,33 @@ pub struct Found {
     pub device_id: Result<Vec<(u8, String)>, probe::NoIdentity>,
     /// Its report server id data, or why none.
     pub server_id: Result<Vec<u8>, probe::NoIdentity>,
+    /// Its reply times: from the request's last byte on the line to the reply's
+    /// first, each reply of its own that came in its window.
+    pub replies: Vec<Duration>,
+    /// How long into the scan it was found.
+    pub after: Duration,
+}
+
+/// Reads of one register asked of each unit found, besides the first and its two
+/// identity requests, so that its reply time has a median of at least a few.
+pub(crate) const TIMED_READS: usize = 3;
+
+impl Found {
+    /// Keeps the reply time of `heard` when it is this unit's frame.
+    pub(crate) fn timed(&mut self, heard: &Heard, replied: Option<Duration>) {
+        if let (Heard::Frame { unit, .. }, Some(t)) = (heard, replied) {
+            if *unit == self.unit {
+                self.replies.push(t);
+            }
+        }
+    }
+
+    /// The median and the longest of its reply times, if any came.
+    pub fn reply_time(&self) -> Option<(Duration, Duration)> {
+        let mut t = self.replies.clone();
+        t.sort();
+        Some((*t.get(t.len() / 2)?, *t.last()?))
+    }
 }
 
 /// What a scan found, and how it went.
@@ -95,6 +135,11 @@ pub struct Report {
     pub found: Vec<Found>,
     /// Settings where bytes came but no frame with a good check.
     pub garbage: Vec<(u32, Format, Framing)>,
+    /// Settings where whole frames with a good check came that answered no request:
+    /// the first one's unit and function code.
+    pub unanswering: Vec<(SerialSetting, (u8, u8))>,
+    /// What ended a `--tcp` scan's connection, when the peer closed it.
+    pub closed: Option<String>,
     /// Ctrl-C ended it early.
     pub interrupted: bool,
     /// How long it took.
@@ -119,8 +164,30 @@ pub fn main(args: ScanArgs) -> ExitCode {
             }
         });
         let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
-        run(&args, stop, progress).await
+        if args.listen {
+            return Err(Listened(listening(&args, stop, progress).await));
+        }
+        run(&args, stop, progress)
+            .await
+            .map_err(|e| Listened(Err(e)))
     });
+    let result = match result {
+        Err(Listened(Ok(heard))) => {
+            let target = args.port.clone().unwrap_or_default();
+            if args.json {
+                println!("{}", listen::json(&heard, &target));
+            } else {
+                print!("{}", listen::table(&heard, &target));
+            }
+            return if heard.at.is_some() {
+                ExitCode::SUCCESS
+            } else {
+                ExitCode::FAILURE
+            };
+        }
+        Err(Listened(Err(e))) => Err(e),
+        Ok(r) => Ok(r),
+    };
     let report = match result {
         Ok(r) => r,
         Err(ScanError::Option(e)) => {
@@ -145,6 +212,82 @@ pub fn main(args: ScanArgs) -> ExitCode {
     }
 }
 
+/// `--listen`'s result, or any error, carried out of the runtime beside a scan's.
+struct Listened(Result<listen::Heard, ScanError>);
+
+/// The settings `--listen` tries: each baud rate and format once (the wide ones
+/// first), every framing judged on what came.
+fn settings_of(args: &ScanArgs) -> Result<(Vec<probe::Setting>, Vec<SerialSetting>), ScanError> {
+    let bauds = if args.baud.is_empty() {
+        probe::DEFAULT_BAUDS.to_vec()
+    } else {
+        args.baud.clone()
+    };
+    if let Some(b) = bauds.iter().find(|&&b| !(50..=4_000_000).contains(&b)) {
+        return Err(ScanError::Option(format!("--baud {b}: 50 to 4000000")));
+    }
+    let formats: Vec<Format> = if args.format.is_empty() {
+        probe::DEFAULT_FORMATS
+            .iter()
+            .filter_map(|s| s.parse().ok())
+            .collect()
+    } else {
+        args.format.clone()
+    };
+    if let Some(f) = formats.iter().find(|f| f.data_bits < 7) {
+        return Err(ScanError::Option(format!("--format {f}: 7 or 8 data bits")));
+    }
+    let framings = if args.framing.is_empty() {
+        vec![Framing::Rtu, Framing::Ascii]
+    } else {
+        args.framing.clone()
+    };
+    let wide: Vec<SerialSetting> = probe::WIDE
+        .iter()
+        .map(|&(b, f, fr)| (b, f.parse().expect("a format"), fr))
+        .filter(|(b, f, fr)| bauds.contains(b) && formats.contains(f) && framings.contains(fr))
+        .collect();
+    Ok((probe::order(&bauds, &formats, &framings, &wide), wide))
+}
+
+async fn listening(
+    args: &ScanArgs,
+    stop: CancellationToken,
+    mut progress: Progress,
+) -> Result<listen::Heard, ScanError> {
+    if !(0.1..=3600.0).contains(&args.listen_secs) {
+        return Err(ScanError::Option(format!(
+            "--listen-secs {}: 0.1 to 3600",
+            args.listen_secs
+        )));
+    }
+    let (settings, _) = settings_of(args)?;
+    let framings = settings
+        .iter()
+        .flat_map(|s| s.framings.clone())
+        .fold(Vec::new(), |mut v, f| {
+            if !v.contains(&f) {
+                v.push(f);
+            }
+            v
+        });
+    let mut once: Vec<probe::Setting> = Vec::new();
+    for s in settings {
+        if !once
+            .iter()
+            .any(|o| o.baud == s.baud && o.format == s.format)
+        {
+            once.push(probe::Setting {
+                framings: framings.clone(),
+                ..s
+            });
+        }
+    }
+    let path = args.port.clone().unwrap_or_default();
+    let window = Duration::from_secs_f64(args.listen_secs);
+    listen::listen(&path, &once, window, &stop, &mut progress).await
+}
+
 /// The scan itself, until done or `stop`.
 pub async fn run(
     args: &ScanArgs,
@@ -158,38 +301,13 @@ pub async fn run(
         tcp::scan(addr, &units, timeout, &stop, &mut progress).await?
     } else {
         let path = args.port.clone().unwrap_or_default();
-        let bauds = if args.baud.is_empty() {
-            probe::DEFAULT_BAUDS.to_vec()
-        } else {
-            args.baud.clone()
-        };
-        if let Some(b) = bauds.iter().find(|&&b| !(50..=4_000_000).contains(&b)) {
-            return Err(ScanError::Option(format!("--baud {b}: 50 to 4000000")));
-        }
-        let formats: Vec<Format> = if args.format.is_empty() {
-            probe::DEFAULT_FORMATS
-                .iter()
-                .filter_map(|s| s.parse().ok())
-                .collect()
-        } else {
-            args.format.clone()
-        };
-        if let Some(f) = formats.iter().find(|f| f.data_bits < 7) {
-            return Err(ScanError::Option(format!("--format {f}: 7 or 8 data bits")));
-        }
-        let framings = if args.framing.is_empty() {
-            vec![Framing::Rtu, Framing::Ascii]
-        } else {
-            args.framing.clone()
-        };
-        let e1: Format = "8E1".parse().expect("a format");
-        let first = [(19200, e1, Framing::Rtu), (9600, Format::N81, Framing::Rtu)];
-        let settings = probe::order(&bauds, &formats, &framings, &first);
+        let (settings, wide) = settings_of(args)?;
         serial::scan(
             &path,
             &settings,
             &units,
             args.give_up,
+            &wide,
             timeout,
             args.all,
             &stop,
@@ -308,13 +426,34 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
                 fr.name()
             );
         }
-        let hint = if tcp {
+        for ((b, f, fr), (unit, function)) in &report.unanswering {
+            let _ = writeln!(
+                s,
+                "frames with a good check came back at {b} {f} {} but answered no request \
+                 (the first: unit {unit}, FC {function:02})",
+                fr.name()
+            );
+        }
+        if let Some(closed) = &report.closed {
+            let _ = writeln!(s, "{closed}");
+        }
+        let hint = if report.closed.is_some() {
+            "hint: the peer accepts connections and closes them at once: is it a \
+             Modbus/TCP server, does it allow this address (an allow list, a connection \
+             limit already reached)?"
+        } else if !report.unanswering.is_empty() {
+            "hint: a device is there at that setting but answers a read of register 0 \
+             with another function's frame (a device that answers every request alike, \
+             or another master talking on the bus): give that setting with --baud, \
+             --format and --framing and --units to look further"
+        } else if tcp {
             "hint: is it a Modbus/TCP device (port 502)? Try more --units, a longer --timeout-ms"
         } else if report.garbage.is_empty() {
             "hint: nothing at all came back: check the wiring (RS-485 A and B swapped? \
              the bus terminated?), the device's power, and that it is a Modbus device; \
-             a unit id above --give-up at a setting not proven is not tried: give the \
-             setting you suspect with --baud, --format, --framing and --give-up 247"
+             every unit id was tried at 19200 and 9600 baud, 8E1 and 8N1, but only the \
+             first --give-up ids elsewhere: give the setting you suspect with --baud, \
+             --format, --framing and --give-up 247"
         } else {
             "hint: bytes came back without a good frame: a device is there at another \
              setting (try --all, or other --baud and --format), or the line is noisy"
@@ -325,22 +464,27 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
     let _ = writeln!(s, "found on {target} ({took}):");
     let _ = writeln!(
         s,
-        "{:<5} {:<7} {:<6} {:<8} {:<24} identity",
-        "unit", "baud", "format", "framing", "answered"
+        "{:<5} {:<7} {:<6} {:<8} {:<24} {:<14} identity",
+        "unit", "baud", "format", "framing", "answered", "reply p50/max"
     );
     for f in &report.found {
         let (b, fmt, fr) = match f.serial {
             Some((b, fmt, fr)) => (b.to_string(), fmt.to_string(), fr.name()),
             None => ("-".into(), "-".into(), "mbap"),
         };
+        let replies = match f.reply_time() {
+            Some((p50, max)) => format!("{}/{} ms", ms(p50), ms(max)),
+            None => "-".into(),
+        };
         let _ = writeln!(
             s,
-            "{:<5} {:<7} {:<6} {:<8} {:<24} {}",
+            "{:<5} {:<7} {:<6} {:<8} {:<24} {:<14} {}",
             f.unit,
             b,
             fmt,
             fr,
             f.answered,
+            replies,
             identity(f)
         );
     }
@@ -378,9 +522,62 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
                 );
             }
         }
+        let here: Vec<&Found> = report
+            .found
+            .iter()
+            .filter(|f| f.serial == setting)
+            .collect();
+        for (f, timeout, why) in slow_units(&here) {
+            let (p50, max) = f.reply_time().unwrap_or_default();
+            let _ = writeln!(
+                s,
+                "[[line.unit]]    # replies in {} ms, at most {} ms: {why}\n\
+                 units = [{}]\nresponse_timeout_ms = {timeout}\n",
+                ms(p50),
+                ms(max),
+                f.unit
+            );
+        }
     }
     let _ = args;
     s
+}
+
+/// Milliseconds, whole.
+fn ms(d: Duration) -> u128 {
+    d.as_millis()
+}
+
+/// The units of one line much slower than the rest, each with a
+/// `response_timeout_ms` for it: twice its longest reply, rounded up to 10 ms, at
+/// least 50. Slower is a longest reply over 3 times the line's typical reply (the
+/// median of its units' medians) and over 50 ms, or one the line's default timeout
+/// would cut short; so a lone device is named only in the second case.
+fn slow_units<'a>(found: &[&'a Found]) -> Vec<(&'a Found, u64, &'static str)> {
+    let mut medians: Vec<Duration> = found
+        .iter()
+        .filter_map(|f| Some(f.reply_time()?.0))
+        .collect();
+    medians.sort();
+    let Some(&typical) = medians.get(medians.len() / 2) else {
+        return Vec::new();
+    };
+    let line_default =
+        Duration::from_millis(crate::config::RelayConfig::default().response_timeout_ms);
+    found
+        .iter()
+        .filter_map(|&f| {
+            let (_, max) = f.reply_time()?;
+            let slower = found.len() > 1 && max > typical * 3 && max > Duration::from_millis(50);
+            let timeout = ((max.as_millis() as u64 * 2).div_ceil(10) * 10).max(50);
+            let why = if slower {
+                "slower than the rest"
+            } else {
+                "the default response_timeout_ms would cut it short"
+            };
+            (slower || max * 2 > line_default).then_some((f, timeout, why))
+        })
+        .collect()
 }
 
 /// A string as JSON.
@@ -426,10 +623,20 @@ pub fn json(report: &Report, target: &str, tcp: bool) -> String {
                 Ok(d) => js(&d.iter().map(|b| format!("{b:02X}")).collect::<String>()),
                 Err(_) => "null".into(),
             };
+            let replies = match f.reply_time() {
+                Some((p50, max)) => format!(
+                    "\"reply_ms_p50\":{},\"reply_ms_max\":{},\"replies\":{}",
+                    ms(p50),
+                    ms(max),
+                    f.replies.len()
+                ),
+                None => "\"reply_ms_p50\":null,\"reply_ms_max\":null,\"replies\":0".into(),
+            };
             format!(
-                "{{\"unit\":{},{setting},\"answered\":{},\"device_id\":{device_id},\"server_id\":{server_id}}}",
+                "{{\"unit\":{},{setting},\"answered\":{},\"device_id\":{device_id},\"server_id\":{server_id},{replies},\"found_s\":{:.1}}}",
                 f.unit,
-                js(&f.answered)
+                js(&f.answered),
+                f.after.as_secs_f64()
             )
         })
         .collect();
@@ -444,13 +651,66 @@ pub fn json(report: &Report, target: &str, tcp: bool) -> String {
             )
         })
         .collect();
+    let unanswering: Vec<String> = report
+        .unanswering
+        .iter()
+        .map(|((b, f, fr), (unit, function))| {
+            format!(
+                "{{\"baud\":{b},\"format\":{},\"framing\":{},\"unit\":{unit},\"function\":{function}}}",
+                js(&f.to_string()),
+                js(fr.name())
+            )
+        })
+        .collect();
+    let closed = report.closed.as_deref().map_or("null".into(), js);
     format!(
-        "{{\"target\":{},\"tcp\":{tcp},\"found\":[{}],\"garbage\":[{}],\"interrupted\":{},\"elapsed_s\":{:.3},\"tries\":{}}}",
+        "{{\"target\":{},\"tcp\":{tcp},\"found\":[{}],\"garbage\":[{}],\"unanswering\":[{}],\"closed\":{closed},\"interrupted\":{},\"elapsed_s\":{:.3},\"tries\":{}}}",
         js(target),
         found.join(","),
         garbage.join(","),
+        unanswering.join(","),
         report.interrupted,
         report.elapsed.as_secs_f64(),
         report.tries
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn unit(id: u8, ms: &[u64]) -> Found {
+        Found {
+            unit: id,
+            serial: None,
+            answered: String::new(),
+            device_id: Err(probe::NoIdentity::NotAsked),
+            server_id: Err(probe::NoIdentity::NotAsked),
+            replies: ms.iter().map(|&m| Duration::from_millis(m)).collect(),
+            after: Duration::ZERO,
+        }
+    }
+
+    #[test]
+    fn a_unit_much_slower_than_the_rest_gets_a_timeout_of_its_own() {
+        let (a, b, c) = (
+            unit(1, &[10, 12, 9]),
+            unit(2, &[11, 14]),
+            unit(3, &[200, 260]),
+        );
+        assert_eq!(
+            c.reply_time(),
+            Some((Duration::from_millis(260), Duration::from_millis(260)))
+        );
+        let slow = slow_units(&[&a, &b, &c]);
+        assert_eq!(slow.len(), 1);
+        assert_eq!((slow[0].0.unit, slow[0].1), (3, 520));
+        // A lone unit is named only when the default timeout would cut it short.
+        assert!(slow_units(&[&c]).is_empty());
+        let lone = unit(4, &[600]);
+        assert_eq!(slow_units(&[&lone])[0].1, 1200);
+        // None without reply times.
+        assert!(slow_units(&[&unit(5, &[])]).is_empty());
+        assert_eq!(unit(5, &[]).reply_time(), None);
+    }
 }

@@ -42,6 +42,20 @@ pub const DEFAULT_BAUDS: [u32; 8] = [19200, 9600, 115200, 38400, 57600, 4800, 24
 /// practice (8N1), the specification's no-parity form (8N2), odd parity.
 pub const DEFAULT_FORMATS: [&str; 4] = ["8E1", "8N1", "8N2", "8O1"];
 
+/// The settings at which every unit id is tried, in this order (docs/scan.md, "What
+/// it tries"): RTU then ASCII at 19 200 and 9600 baud, 8E1 and 8N1, most buses' settings.
+/// Elsewhere a setting is left after `--give-up` silent units.
+pub const WIDE: [(u32, &str, Framing); 8] = [
+    (19200, "8E1", Framing::Rtu),
+    (9600, "8N1", Framing::Rtu),
+    (19200, "8N1", Framing::Rtu),
+    (9600, "8E1", Framing::Rtu),
+    (19200, "8E1", Framing::Ascii),
+    (9600, "8N1", Framing::Ascii),
+    (19200, "8N1", Framing::Ascii),
+    (9600, "8E1", Framing::Ascii),
+];
+
 /// One setting of the port, with the framings tried on it while it is open.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Setting {
@@ -108,6 +122,15 @@ pub enum Heard {
     Nothing,
     /// Bytes, but no frame with a good check for this request.
     Garbage(usize),
+    /// A whole frame with a good check that does not answer the request: another
+    /// function's (a device that answers everything with one frame, another master's
+    /// traffic). It proves nothing about the unit asked.
+    Unanswering {
+        /// The unit it is from.
+        unit: u8,
+        /// Its function code.
+        function: u8,
+    },
     /// A frame with a good check whose function is the request's (or its exception).
     Frame {
         /// The unit that answered.
@@ -151,20 +174,35 @@ pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> He
                     }
                 }
             }
+            // Only the whole of what came, as one frame: a search of every start and
+            // length for any function would find a good CRC in garbage by chance.
+            if let Some((unit, pdu)) = rtu::decode(bytes) {
+                if let Some(&function) = pdu.first() {
+                    return Heard::Unanswering { unit, function };
+                }
+            }
         }
         Framing::Ascii => {
             let mut start = 0;
+            let mut other = None;
             while let Some(colon) = bytes[start..].iter().position(|&b| b == b':') {
                 let from = start + colon;
                 let Some(lf) = bytes[from..].iter().position(|&b| b == b'\n') else {
                     break;
                 };
                 if let Some((unit, pdu)) = ascii::decode(&bytes[from..=from + lf]) {
-                    if pdu.first().is_some_and(|&fc| answers(fc)) {
-                        return Heard::Frame { unit, pdu };
+                    match pdu.first() {
+                        Some(&fc) if answers(fc) => return Heard::Frame { unit, pdu },
+                        Some(&function) => {
+                            other = other.or(Some(Heard::Unanswering { unit, function }))
+                        }
+                        None => {}
                     }
                 }
                 start = from + 1;
+            }
+            if let Some(other) = other {
+                return other;
             }
         }
     }
@@ -267,6 +305,9 @@ pub struct AtSetting {
     pub proven: bool,
     /// Some try got bytes without a frame.
     pub garbage: bool,
+    /// The first whole frame with a good check that answered no request, as
+    /// `(unit, function)`.
+    pub unanswering: Option<(u8, u8)>,
 }
 
 impl AtSetting {
@@ -278,6 +319,7 @@ impl AtSetting {
             give_up,
             proven: false,
             garbage: false,
+            unanswering: None,
         }
     }
 
@@ -295,6 +337,9 @@ impl AtSetting {
         match heard {
             Heard::Frame { .. } => self.proven = true,
             Heard::Garbage(_) => self.garbage = true,
+            Heard::Unanswering { unit, function } => {
+                self.unanswering = self.unanswering.or(Some((*unit, *function)))
+            }
             Heard::Nothing => {}
         }
     }
@@ -411,7 +456,19 @@ mod tests {
         bad[3] ^= 1;
         assert_eq!(judge(Framing::Rtu, &req, 3, &bad), Heard::Garbage(7));
         let other = rtu::encode(5, &[0x11, 0x02, 0x00, 0xFF]);
-        assert_eq!(judge(Framing::Rtu, &req, 3, &other), Heard::Garbage(7));
+        assert_eq!(
+            judge(Framing::Rtu, &req, 3, &other),
+            Heard::Unanswering {
+                unit: 5,
+                function: 0x11
+            }
+        );
+        let mut other_noisy = other.clone();
+        other_noisy.push(0x77);
+        assert_eq!(
+            judge(Framing::Rtu, &req, 3, &other_noisy),
+            Heard::Garbage(8)
+        );
         // FC 03's late reply while FC 04 is asked is a reply.
         let late = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
         let req4 = rtu::encode(5, &read_one(4));
@@ -435,6 +492,14 @@ mod tests {
             Heard::Garbage(_)
         ));
         assert_eq!(judge(Framing::Ascii, &req, 4, b""), Heard::Nothing);
+        let other = ascii::encode(7, &[0x06, 0x00, 0x00, 0x00, 0x2A]);
+        assert_eq!(
+            judge(Framing::Ascii, &req, 4, &other),
+            Heard::Unanswering {
+                unit: 7,
+                function: 6
+            }
+        );
     }
 
     #[test]

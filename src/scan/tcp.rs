@@ -11,6 +11,10 @@ use tokio::net::TcpStream;
 use tokio::time::{timeout_at, Instant};
 use tokio_util::sync::CancellationToken;
 
+/// A peer that closes this many connections in a row without replying is not asked
+/// further.
+const CLOSED_IN_A_ROW: usize = 3;
+
 /// How long a connection may take.
 const CONNECT: Duration = Duration::from_secs(5);
 
@@ -19,6 +23,8 @@ struct Conn {
     stream: Option<TcpStream>,
     tid: u16,
     timeout: Duration,
+    /// Connections the peer closed before replying, in a row.
+    closed: usize,
 }
 
 impl Conn {
@@ -56,6 +62,7 @@ impl Conn {
         let stream = self.connect().await?;
         if stream.write_all(&frame).await.is_err() {
             self.stream = None;
+            self.closed += 1;
             return Ok(Heard::Nothing);
         }
         let mut got = Vec::new();
@@ -68,6 +75,7 @@ impl Conn {
                 }
                 let adu: Vec<u8> = got.drain(..6 + len).collect();
                 if adu[..2] == tid.to_be_bytes() && len >= 2 {
+                    self.closed = 0;
                     return Ok(Heard::Frame {
                         unit: adu[6],
                         pdu: adu[7..].to_vec(),
@@ -78,6 +86,7 @@ impl Conn {
                 Ok(Ok(n)) if n > 0 => got.extend_from_slice(&chunk[..n]),
                 Ok(_) => {
                     self.stream = None;
+                    self.closed += 1;
                     return Ok(Heard::Nothing);
                 }
                 Err(_) => return Ok(Heard::Nothing),
@@ -100,6 +109,7 @@ pub(super) async fn scan(
         stream: None,
         tid: 0,
         timeout,
+        closed: 0,
     };
     conn.connect().await?;
     for (i, &unit) in units.iter().enumerate() {
@@ -110,6 +120,15 @@ pub(super) async fn scan(
         progress.show(i, units.len(), left, &format!("{addr} unit {unit}"));
         let heard = conn.ask(unit, &probe::read_one(3)).await?;
         report.tries += 1;
+        if conn.closed >= CLOSED_IN_A_ROW {
+            // Each unit would only open and lose another connection.
+            report.closed = Some(format!(
+                "{addr} closed the connection without a reply {} times in a row \
+                 (after unit {unit}): the scan stopped there",
+                conn.closed
+            ));
+            break;
+        }
         let Heard::Frame { pdu, .. } = heard else {
             continue;
         };
@@ -123,6 +142,8 @@ pub(super) async fn scan(
             answered: probe::describe(&pdu),
             device_id: Err(probe::NoIdentity::NotAsked),
             server_id: Err(probe::NoIdentity::NotAsked),
+            replies: Vec::new(),
+            after: progress.started.elapsed(),
         };
         let device = conn.ask(unit, &probe::DEVICE_ID).await?;
         let server = conn.ask(unit, &probe::SERVER_ID).await?;

@@ -46,11 +46,18 @@ pub(crate) fn line_settings(
 
 /// The processes other than this one that have `path` open, as `PID (name)`, found
 /// the way `fuser` finds them: through the links in `/proc/*/fd`. Processes of other
-/// users are invisible without privilege, so an empty list proves nothing.
+/// users are invisible without privilege, so an empty list proves nothing. On a pty
+/// (`/dev/pts/N`), a process that also holds its master (a `ptmx` descriptor whose
+/// `fdinfo` says `tty-index: N`) is the line's far side (socat, `mbgate wire`), which
+/// keeps the device open so that its settings stay between programs: not a holder.
 pub(crate) fn holders(path: &str) -> Vec<String> {
     let Ok(target) = std::fs::canonicalize(path) else {
         return Vec::new();
     };
+    let pty_index = target
+        .strip_prefix("/dev/pts")
+        .ok()
+        .and_then(|n| n.to_str()?.parse::<u32>().ok());
     let me = std::process::id().to_string();
     let Ok(procs) = std::fs::read_dir("/proc") else {
         return Vec::new();
@@ -64,15 +71,36 @@ pub(crate) fn holders(path: &str) -> Vec<String> {
         let Ok(fds) = std::fs::read_dir(entry.path().join("fd")) else {
             continue;
         };
-        let holds = fds
+        let links: Vec<(std::ffi::OsString, std::path::PathBuf)> = fds
             .flatten()
-            .any(|fd| std::fs::read_link(fd.path()).is_ok_and(|l| l == target));
-        if holds {
+            .filter_map(|fd| Some((fd.file_name(), std::fs::read_link(fd.path()).ok()?)))
+            .collect();
+        if !links.iter().any(|(_, l)| *l == target) {
+            continue;
+        }
+        let far_side = pty_index.is_some_and(|n| {
+            links.iter().any(|(fd, l)| {
+                l.file_name().is_some_and(|f| f == "ptmx")
+                    && pty_master_of(&entry.path().join("fdinfo").join(fd)) == Some(n)
+            })
+        });
+        if !far_side {
             let name = std::fs::read_to_string(entry.path().join("comm")).unwrap_or_default();
             found.push(format!("{pid} ({})", name.trim()));
         }
     }
     found
+}
+
+/// The pty index a master descriptor serves, from its `/proc/PID/fdinfo/FD`.
+fn pty_master_of(fdinfo: &std::path::Path) -> Option<u32> {
+    std::fs::read_to_string(fdinfo)
+        .ok()?
+        .lines()
+        .find_map(|l| l.strip_prefix("tty-index:"))?
+        .trim()
+        .parse()
+        .ok()
 }
 
 /// Who holds a port, for the user, when someone visible does: ` (held by process 123
@@ -112,6 +140,19 @@ pub(crate) fn open_tty(cfg: &SerialConfig) -> Result<TTYPort, tokio_serial::Erro
         }
         Err(e) => return Err(held_elsewhere(e, &cfg.path)),
     };
+    // Opened exclusively from here on; a process that had it open before keeps it,
+    // and would read part of every reply (docs/troubleshooting.md).
+    let others = holders(&cfg.path);
+    if !others.is_empty() {
+        return Err(tokio_serial::Error::new(
+            tokio_serial::ErrorKind::Io(std::io::ErrorKind::ResourceBusy),
+            format!(
+                "another process has the port open (held by process {}): two programs \
+                 on one port each read part of the other's bytes; stop it first",
+                others.join(", ")
+            ),
+        ));
+    }
     if let Err(e) = port.clear(ClearBuffer::All) {
         tracing::debug!(path = %cfg.path, "could not clear stale bytes: {e}");
     }
