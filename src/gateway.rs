@@ -2,20 +2,21 @@
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see `crate::notify`).
 
-use crate::config::{Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications};
+use crate::config::{
+    Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications, Transport,
+};
 use crate::metrics::{self, Board, ListenerMetrics};
 use crate::notify;
 use crate::relay::{Relay, RelayHandle};
 use crate::reload;
 use crate::router::Router;
 use crate::stats::Stats;
-use crate::tcp;
+use crate::tcp::{self, Socket};
 use crate::tls::server::Acceptor;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::net::TcpListener;
 use tokio::signal::unix::SignalKind;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
@@ -91,7 +92,7 @@ pub async fn run_reloading(
 
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
-pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+pub(crate) async fn bind(cfg: &Config) -> Result<Vec<Socket>, GatewayError> {
     if !cfg.serves_masters() {
         // Every line's device is a master: nothing for a Modbus/TCP master to reach.
         return Ok(Vec::new());
@@ -99,7 +100,11 @@ pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError>
     let max_pending = cfg.max_pending_per_connection();
     let bind = |l: ListenConfig| {
         let addr = l.tcp.listen;
-        tcp::listen(addr, max_pending).map_err(|error| GatewayError::Bind { addr, error })
+        let bound = match l.transport {
+            Transport::Tcp => tcp::listen(addr, max_pending).map(Socket::Tcp),
+            Transport::Udp => tcp::udp::bind(addr).map(Socket::Udp),
+        };
+        bound.map_err(|error| GatewayError::Bind { addr, error })
     };
     cfg.listeners().into_iter().map(bind).collect()
 }
@@ -107,7 +112,7 @@ pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError>
 /// [`run`] on listeners already bound (`mbgate demo` prints their addresses first),
 /// one for each of `cfg.listeners()`.
 pub(crate) async fn serve(
-    listeners: Vec<TcpListener>,
+    listeners: Vec<Socket>,
     cfg: Config,
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
@@ -118,7 +123,7 @@ pub(crate) async fn serve(
 /// the lines and everything beside them started ([`start`]), the masters served until
 /// shutdown ([`accept`]), and the drain ([`drain`]).
 async fn serve_with(
-    listeners: Vec<TcpListener>,
+    listeners: Vec<Socket>,
     cfg: Config,
     load: Option<reload::Loader>,
     shutdown: CancellationToken,
@@ -131,11 +136,11 @@ async fn serve_with(
 }
 
 /// A listener bound, and what its accept loop is told about it.
-type Bound = (TcpListener, tcp::Listening);
+type Bound = (Socket, tcp::Listening);
 
 /// Bind, second half: each bound listener with its name in the file, its real address
 /// (port 0 is a real port by now) and its TLS acceptor, whose files are read here.
-fn listening(listeners: Vec<TcpListener>, cfg: &Config) -> Result<Vec<Bound>, GatewayError> {
+fn listening(listeners: Vec<Socket>, cfg: &Config) -> Result<Vec<Bound>, GatewayError> {
     let mut bound = Vec::new();
     for (i, (listener, listen)) in listeners.into_iter().zip(cfg.listeners()).enumerate() {
         let local = listener.local_addr().map_err(|error| GatewayError::Bind {
@@ -173,6 +178,8 @@ struct Started {
     router: Arc<Router>,
     /// Each listener's counters, in the order of `bound`.
     listener_stats: Vec<Arc<Stats>>,
+    /// Each dial's counters, in the order of `cfg.dials`.
+    dial_stats: Vec<Arc<Stats>>,
     /// Every listener's and line's counters: the totals add them up.
     counted: Vec<Arc<Stats>>,
     /// The lines' tasks, running.
@@ -213,7 +220,16 @@ async fn start(
             stats: stats.clone(),
         }));
     }
+    // Each dial's, as a listener's: its connections and what they refused.
+    let dial_stats: Vec<Arc<Stats>> = cfg.dials.iter().map(|_| Arc::default()).collect();
+    for (d, stats) in cfg.dials.iter().zip(&dial_stats) {
+        board.add_listener(Arc::new(ListenerMetrics {
+            name: format!("dial {}", d.address),
+            stats: stats.clone(),
+        }));
+    }
     let mut counted = listener_stats.clone();
+    counted.extend(dial_stats.iter().cloned());
     counted.extend(lines.stats);
     let http = start_metrics(&cfg, &board, shutdown)?;
     let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
@@ -250,6 +266,7 @@ async fn start(
         board,
         router,
         listener_stats,
+        dial_stats,
         counted,
         line_tasks,
     })
@@ -369,11 +386,17 @@ fn announce(cfg: &Config, bound: &[Bound]) {
         info!("line {}", crate::config::describe::line(line));
     }
     for (_, l) in bound {
-        let masters = crate::config::describe::masters(l.listen.framing);
+        let masters = match l.listen.transport {
+            Transport::Tcp => crate::config::describe::masters(l.listen.framing),
+            Transport::Udp => "Modbus/UDP masters (UDP)",
+        };
         info!(serial = %devices, "listening on {} for {masters}", l.local);
         for said in crate::config::effective_access(&l.listen, &cfg.roles) {
             info!("{}: {said}", l.name);
         }
+    }
+    for (i, d) in cfg.dials.iter().enumerate() {
+        info!("dial[{i}]: {}", crate::config::dial::describe(d));
     }
     let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
     notify::ready(&match addrs.is_empty() {
@@ -404,9 +427,31 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
                 stats: stats.clone(),
                 ..shared.clone()
             };
-            tokio::spawn(tcp::accept_loop(listener, listening, shared))
+            match listener {
+                Socket::Tcp(l) => tokio::spawn(tcp::accept_loop(l, listening, shared)),
+                Socket::Udp(u) => tokio::spawn(tcp::udp::datagram_loop(u, listening, shared)),
+            }
         })
         .collect();
+    // The dials run beside the listeners, on the tracker: the drain waits for the
+    // replies their connections owe.
+    for (i, (dial, stats)) in started
+        .cfg
+        .dials
+        .iter()
+        .zip(&started.dial_stats)
+        .enumerate()
+    {
+        let shared = tcp::Shared {
+            stats: stats.clone(),
+            ..shared.clone()
+        };
+        tracker.spawn(tcp::dial::dial_loop(
+            format!("dial[{i}]"),
+            dial.clone(),
+            shared,
+        ));
+    }
     for accept in accepting {
         let _ = accept.await;
     }

@@ -43,8 +43,11 @@ use tracing::{debug, info, warn};
 
 mod admit;
 mod codec;
+pub(crate) mod dial;
+mod echo;
 mod handshakes;
 mod rtu;
+pub(crate) mod udp;
 
 use codec::MasterCodec;
 
@@ -67,6 +70,22 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
     socket.set_send_buffer_size(u32::try_from(room).unwrap_or(u32::MAX))?;
     socket.bind(addr)?;
     socket.listen(1024)
+}
+
+/// A listener's socket: TCP, or UDP (`tcp/udp.rs`).
+pub(crate) enum Socket {
+    Tcp(TcpListener),
+    Udp(tokio::net::UdpSocket),
+}
+
+impl Socket {
+    /// The address it is bound to (port 0 is a real port by now).
+    pub(crate) fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        match self {
+            Socket::Tcp(l) => l.local_addr(),
+            Socket::Udp(u) => u.local_addr(),
+        }
+    }
 }
 
 /// What every listener's connections share: the configuration, the lines, the
@@ -174,6 +193,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             grant: None,
             capture: capture.clone(),
             tap: capture.tap(0),
+            dialed: None,
         };
         let closed = stats.clone();
         match (&tls, slot) {
@@ -351,13 +371,24 @@ struct Connection {
     capture: Hub,
     /// The TCP side's tap.
     tap: Tap,
+    /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
+    /// its identity the server may send back (docs/dialing.md).
+    dialed: Option<Dialed>,
+}
+
+/// What a dialed connection sends of its own, and the echoes it may get back.
+struct Dialed {
+    /// Sent after `every` without a reply written; empty: never.
+    heartbeat: Vec<u8>,
+    every: Duration,
+    echoes: Mutex<echo::Echoes>,
 }
 
 /// Why a connection's reader stopped.
 enum End {
-    /// The socket failed, the master broke the protocol, or it was idle too long:
-    /// close now.
-    Closed,
+    /// The socket failed, the master broke the protocol, or it was idle too long
+    /// (said in the words given): close now.
+    Closed(String),
     /// No more requests will be read (the master shut down its sending side, or the
     /// gateway is shutting down): write the replies still owed, then close.
     Finish,
@@ -402,15 +433,20 @@ impl Connection {
         drop(slot);
     }
 
-    /// The listener's framing chosen once: the rest is written over its codec.
-    async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
+    /// The listener's framing chosen once: the rest is written over its codec. Why
+    /// the connection ended, in words.
+    async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) -> String {
         match self.listen.framing {
             ListenFraming::Mbap => self.serve::<codec::Mbap>(rd, wr).await,
             ListenFraming::Rtu => self.serve::<codec::Rtu>(rd, wr).await,
         }
     }
 
-    async fn serve<C: MasterCodec>(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
+    async fn serve<C: MasterCodec>(
+        self,
+        rd: impl AsyncRead + Unpin,
+        wr: impl AsyncWrite + Unpin,
+    ) -> String {
         let framing = C::NAME;
         // At debug: a SCADA that connects for each poll would fill the journal at info;
         // the connections are counted (mbgate_listener_connections_total) and the
@@ -457,12 +493,17 @@ impl Connection {
             .and_then(|r| r.priority)
             .unwrap_or(self.listen.priority);
         self.router.classify(self.id, class);
+        let mut why = "notifications have no way to this master".to_owned();
         if attached {
             let writer = self.write_loop::<C>(wr, inbox);
             tokio::pin!(writer);
             let end = tokio::select! {
                 end = self.read_loop::<C>(rd, &mut outbox) => end,
-                _ = &mut writer => End::Closed,
+                w = &mut writer => End::Closed(w),
+            };
+            why = match &end {
+                End::Closed(w) => w.clone(),
+                End::Finish => "the master closed its side (or mbgate is stopping)".to_owned(),
             };
             if let End::Finish = end {
                 // The relay answers every request it was given: at once when the
@@ -484,6 +525,7 @@ impl Connection {
         self.masters.remove(self.id);
         self.capture.forget(self.id);
         debug!(conn = self.id, peer = %self.peer, "master disconnected");
+        why
     }
 
     async fn read_loop<C: MasterCodec>(
@@ -505,7 +547,12 @@ impl Connection {
         // the token and dropped again at every request.
         let mut shutdown = Woken::new(self.shutdown.cancelled());
         loop {
-            match codec.decode(&mut buf) {
+            let decoded = match self.echo_in(&mut buf) {
+                echo::Strip::Took => continue,
+                echo::Strip::Wait => Ok(None),
+                echo::Strip::Not => codec.decode(&mut buf),
+            };
+            match decoded {
                 Ok(Some(adu)) => {
                     // One pipelining slot per request: with none free, stop reading
                     // and let TCP push back on the master.
@@ -536,7 +583,7 @@ impl Connection {
                     }
                     self.stats.add(&self.stats.protocol_violations, 1);
                     warn!(conn = self.id, peer = %self.peer, "protocol violation: {e}; closing the connection");
-                    return End::Closed;
+                    return End::Closed(format!("protocol violation: {e}"));
                 }
             }
             let pause = codec.ended_by_pause(&buf);
@@ -559,7 +606,7 @@ impl Connection {
                     Ok(_) => last_read = Instant::now(),
                     Err(e) => {
                         debug!(conn = self.id, "read failed: {e}");
-                        return End::Closed;
+                        return End::Closed(format!("read failed: {e}"));
                     }
                 },
                 _ = &mut idle_timer, if !idle.is_zero() => {
@@ -573,7 +620,7 @@ impl Connection {
                         None => now + idle,
                         Some(at) if now >= at => {
                             info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
-                            return End::Closed;
+                            return End::Closed(format!("no request for {} ms (idle_timeout_ms)", idle.as_millis()));
                         }
                         Some(at) => at,
                     };
@@ -646,52 +693,121 @@ impl Connection {
         }
     }
 
-    /// Writes the master's replies in the order of its requests, and notifications as
-    /// they come. A master that stops reading its replies for `idle_timeout_ms` is
-    /// closed, so it cannot hold a connection slot for ever.
-    async fn write_loop<C: MasterCodec>(&self, mut wr: impl AsyncWrite + Unpin, mut inbox: Inbox) {
-        let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
-        while let Some(out) = inbox.next().await {
-            if self.cfg.log.traffic {
-                debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
-            }
-            if self.tap.on() {
-                self.captured::<C>(&out.adu, Dir::Out, "gw->master");
-            }
-            if !C::answers(&out.adu) {
-                debug!(
-                    conn = self.id,
-                    "answer to a broadcast (unit 0): not written"
-                );
-                continue;
-            }
-            let frame = C::frame(&out.adu);
-            // Flushed: a TLS stream holds what it could not send at once until then.
-            let write = async {
-                wr.write_all(&frame).await?;
-                wr.flush().await
-            };
-            let mut write = std::pin::pin!(write);
-            // Nearly every reply goes out at once, and needs no timer (each would read
-            // the clock): the stall's timer starts only for one the socket cannot take.
-            let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
-            let result = match first {
-                Poll::Ready(r) => r,
-                Poll::Pending if stall.is_zero() => write.await,
-                Poll::Pending => match tokio::time::timeout(stall, write).await {
-                    Ok(r) => r,
-                    Err(_) => {
-                        info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
-                        return;
-                    }
-                },
-            };
-            if let Err(e) = result {
-                debug!(conn = self.id, "write failed: {e}");
-                return;
-            }
-            // `out` drops here: a reply's pipelining slot is free again, and the idle
-            // clock starts from now.
+    /// A dialed connection's echoes at the front of `buf` (docs/dialing.md).
+    fn echo_in(&self, buf: &mut BytesMut) -> echo::Strip {
+        let Some(d) = &self.dialed else {
+            return echo::Strip::Not;
+        };
+        let strip = d.echoes.lock().expect("not poisoned").strip(buf);
+        if let echo::Strip::Took = strip {
+            debug!(
+                conn = self.id,
+                "the server echoed a heartbeat or the identity: dropped"
+            );
         }
+        strip
+    }
+
+    /// Writes the master's replies in the order of its requests, and notifications as
+    /// they come; on a dialed connection with a heartbeat, the heartbeat whenever no
+    /// reply was written for its interval. A master that stops reading its replies
+    /// for `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
+    /// Why it stopped, in words.
+    async fn write_loop<C: MasterCodec>(
+        &self,
+        mut wr: impl AsyncWrite + Unpin,
+        mut inbox: Inbox,
+    ) -> String {
+        let beat = self.dialed.as_ref().filter(|d| !d.heartbeat.is_empty());
+        let Some(beat) = beat else {
+            while let Some(out) = inbox.next().await {
+                if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                    return why;
+                }
+                // `out` drops here: a reply's pipelining slot is free again, and the
+                // idle clock starts from now.
+            }
+            return "the connection's replies ended".to_owned();
+        };
+        // One timer for the connection's life, moved at each reply and each beat.
+        let timer = tokio::time::sleep(beat.every);
+        tokio::pin!(timer);
+        loop {
+            tokio::select! {
+                out = inbox.next() => {
+                    let Some(out) = out else {
+                        return "the connection's replies ended".to_owned();
+                    };
+                    if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                        return why;
+                    }
+                }
+                _ = &mut timer => {
+                    beat.echoes.lock().expect("not poisoned").beat();
+                    debug!(conn = self.id, "heartbeat");
+                    if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat).await {
+                        return why;
+                    }
+                }
+            }
+            timer.as_mut().reset(Instant::now() + beat.every);
+        }
+    }
+
+    /// One reply or notification written (logged and captured first); `Err`: why the
+    /// connection must close.
+    async fn write_reply<C: MasterCodec>(
+        &self,
+        wr: &mut (impl AsyncWrite + Unpin),
+        adu: &Adu,
+    ) -> Result<(), String> {
+        if self.cfg.log.traffic {
+            debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(adu.as_bytes()));
+        }
+        if self.tap.on() {
+            self.captured::<C>(adu, Dir::Out, "gw->master");
+        }
+        if !C::answers(adu) {
+            debug!(
+                conn = self.id,
+                "answer to a broadcast (unit 0): not written"
+            );
+            return Ok(());
+        }
+        self.write_bytes(wr, &C::frame(adu)).await
+    }
+
+    /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take
+    /// it at once.
+    async fn write_bytes(
+        &self,
+        wr: &mut (impl AsyncWrite + Unpin),
+        frame: &[u8],
+    ) -> Result<(), String> {
+        let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
+        // Flushed: a TLS stream holds what it could not send at once until then.
+        let write = async {
+            wr.write_all(frame).await?;
+            wr.flush().await
+        };
+        let mut write = std::pin::pin!(write);
+        // Nearly every reply goes out at once, and needs no timer (each would read
+        // the clock): the stall's timer starts only for one the socket cannot take.
+        let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
+        let result = match first {
+            Poll::Ready(r) => r,
+            Poll::Pending if stall.is_zero() => write.await,
+            Poll::Pending => match tokio::time::timeout(stall, write).await {
+                Ok(r) => r,
+                Err(_) => {
+                    info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
+                    return Err("the master stopped reading its replies".to_owned());
+                }
+            },
+        };
+        result.map_err(|e| {
+            debug!(conn = self.id, "write failed: {e}");
+            format!("write failed: {e}")
+        })
     }
 }

@@ -41,8 +41,9 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 }
 
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
-const TOP: [&str; 10] = [
+const TOP: [&str; 11] = [
     "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen", "role",
+    "dial",
 ];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
@@ -139,6 +140,10 @@ impl Reader<'_> {
                     roles = self.value(v, name, super::access::roles(&raw(v.get_ref()), name))?;
                     continue;
                 }
+                "dial" => {
+                    cfg.dials = self.value(v, name, super::dial::dials(&raw(v.get_ref()), name))?;
+                    continue;
+                }
                 "tcp" => {
                     self.not_in_tcp(v)?;
                     self.section(&mut cfg, name, v, name, &[], &[])?;
@@ -182,6 +187,7 @@ impl Reader<'_> {
             // One Modbus/TCP listener open to all is the old form's [tcp].
             [one]
                 if one.framing == ListenFraming::Mbap
+                    && one.transport == super::Transport::Tcp
                     && one.access.is_open()
                     && one.priority == 0 =>
             {
@@ -355,12 +361,13 @@ impl Reader<'_> {
                 .collect();
         }
         let read = super::access::listen(&Raw::Table(keys), path);
-        let (access, framing, priority) = self.value(v, path, read)?;
+        let (access, framing, priority, transport) = self.value(v, path, read)?;
         Ok(ListenConfig {
             tcp: listener.tcp,
             framing,
             access,
             priority,
+            transport,
         })
     }
 

@@ -84,6 +84,8 @@ pub struct ListenConfig {
     /// Its masters' priority class on the lines (docs/masters.md "Priority"); a
     /// role's, if it has one, stands for it.
     pub(crate) priority: u8,
+    /// TCP connections, or UDP datagrams (docs/dialing.md "Modbus over UDP").
+    pub(crate) transport: super::Transport,
 }
 
 impl Config {
@@ -115,6 +117,7 @@ impl Config {
             framing: ListenFraming::Mbap,
             access: super::ListenAccess::default(),
             priority: 0,
+            transport: super::Transport::Tcp,
         }]
     }
 

@@ -1,0 +1,180 @@
+//! The gateway dials its master (`[[dial]]`, docs/dialing.md): the real binary, a
+//! pymodbus RTU server on a socat pty pair as the device, and tests/py/dial_server.py
+//! as the SCADA server: it listens, takes mbgate's connection, reads the identity and
+//! sends requests framed by pymodbus, checking every reply by value. The server is
+//! late (mbgate is refused first), closes at once, sends garbage, closes before a
+//! reply, echoes the identity and the heartbeat: mbgate dials again each time, the
+//! echoes are never taken for requests, and the log says the outage once. Modbus over
+//! UDP (`transport = "udp"`) with pymodbus' UDP clients as masters, malformed
+//! datagrams counted, and a flood from one source beside a polite master.
+
+mod common;
+use common::*;
+use std::time::Duration;
+
+/// socat, pymodbus' RTU server on the device end, and the gateway's configuration
+/// for the other end (to which a test adds its `[[dial]]` or `[[listen]]` tables).
+struct Bench {
+    dir: tempfile::TempDir,
+    _socat: Socat,
+    _device: Py,
+    cfg: String,
+}
+
+fn bench() -> Bench {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let args = ["--port", socat.dev.to_str().unwrap(), "--framer", "rtu"];
+    let device = Py::start("stock_server.py", &args);
+    let cfg = format!(
+        "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", flow_control = \"none\", baud_rate = 4000000 }}\n\
+         relay = {{ response_timeout_ms = 5000 }}\n\
+         [[listen]]\naddress = \"127.0.0.1:0\"\n\
+         [log]\nlevel = \"debug\"\n",
+        socat.gw.to_str().unwrap()
+    );
+    Bench {
+        dir,
+        _socat: socat,
+        _device: device,
+        cfg,
+    }
+}
+
+/// The dial table every dial test uses, to `port`: short backoff bounds so the
+/// rounds follow each other within seconds.
+fn dial(port: u16, extra: &str) -> String {
+    format!(
+        "[[dial]]\naddress = \"127.0.0.1:{port}\"\nidentity = \"site-17\"\n\
+         backoff_min_ms = 100\nbackoff_max_ms = 400\n{extra}"
+    )
+}
+
+/// The server is not there yet (refused), then comes; it closes at once, sends
+/// garbage, closes before a reply, and at last serves: every reply it gets is right,
+/// the log warns of the outage once and says once that the dial is back.
+#[test]
+fn a_dialed_master_is_served_through_refusals_garbage_and_hangups() {
+    let b = bench();
+    let port = free_port();
+    let text = format!("{}{}", b.cfg, dial(port, ""));
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    gw.wait_log("dial[0] (127.0.0.1:", Duration::from_secs(10));
+    assert!(
+        gw.log().contains("Connection refused"),
+        "nobody listens yet: {}",
+        gw.log()
+    );
+    let listen = format!("127.0.0.1:{port}");
+    let rounds = ["close", "garbage", "halfway", "serve"];
+    let mut args = vec!["--listen", &listen, "--identity", "site-17"];
+    for r in rounds {
+        args.extend(["--round", r]);
+    }
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    assert!(out.contains("serve ok 10") && out.contains("DONE"), "{out}");
+    let log = gw.log();
+    // The outage from the refusal to the served round, said once; back, said once.
+    let warned = log.matches("dialing again with backoff").count();
+    let back = log.matches("connected to 127.0.0.1:").count();
+    assert_eq!((warned, back), (2, 1), "{log}");
+    assert!(log.contains("protocol violation"), "the garbage: {log}");
+    let counters = gw.stop();
+    assert!(counters["connections"] >= 4, "{counters:?}");
+    assert!(counters["requests"] >= 11, "{counters:?}");
+}
+
+/// A server that echoes the identity and the heartbeat: the echoes are dropped, the
+/// requests after them answered by value; the heartbeat came while no request did.
+#[test]
+fn echoes_of_the_identity_and_the_heartbeat_are_not_requests() {
+    let b = bench();
+    let port = free_port();
+    let hb = "heartbeat = \"hex:ff fe 00 01\"\nheartbeat_ms = 300\n";
+    let text = format!("{}{}", b.cfg, dial(port, hb));
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let listen = format!("127.0.0.1:{port}");
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--heartbeat",
+        "fffe0001",
+        "--round",
+        "echo",
+    ];
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    assert!(out.contains("echo ok 10"), "{out}");
+    let log = gw.log();
+    assert!(!log.contains("protocol violation"), "{log}");
+    assert!(
+        log.contains("the server echoed a heartbeat or the identity"),
+        "{log}"
+    );
+    let counters = gw.stop();
+    assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+}
+
+/// `[[listen]]` with `transport = "udp"` and pymodbus' sync and async UDP clients as
+/// masters: every value right; malformed datagrams dropped and counted, exactly.
+#[test]
+fn udp_masters_are_answered_and_malformed_datagrams_counted() {
+    let b = bench();
+    let text = format!(
+        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n",
+        b.cfg
+    );
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let udp = udp_addr(&gw);
+    let port = udp.port().to_string();
+    let (status, out) = Py::run("udp_master.py", &["--port", &port, "--malformed", "5"]);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    assert!(out.contains("sync ok") && out.contains("async ok"), "{out}");
+    let counters = gw.stop();
+    assert_eq!(counters["datagrams_dropped"], 5, "{counters:?}");
+    assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+}
+
+/// 10 000 datagrams from one source beside a polite master: the polite master's
+/// every request is answered by value; the flood gets no more than its share, the
+/// rest dropped and counted.
+#[test]
+fn a_udp_flood_from_one_source_leaves_a_polite_master_its_share() {
+    let b = bench();
+    let text = format!(
+        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n",
+        b.cfg
+    );
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let port = udp_addr(&gw).port().to_string();
+    let (status, out) = Py::run("udp_master.py", &["--port", &port, "--flood", "10000"]);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    assert!(out.contains("polite ok 40"), "{out}");
+    let flood_replies: u64 = out
+        .lines()
+        .find_map(|l| l.strip_prefix("flood replies "))
+        .and_then(|n| n.trim().parse().ok())
+        .unwrap_or_else(|| panic!("{out}"));
+    let counters = gw.stop();
+    assert!(counters["datagrams_dropped"] > 0, "{counters:?}");
+    assert!(flood_replies < 10_000, "{flood_replies}");
+    // What reached the line: the polite master's 40 and the flood's replies at most.
+    assert!(
+        counters["requests"] <= 40 + 10_000 - counters["datagrams_dropped"],
+        "{counters:?}"
+    );
+}
+
+/// The UDP listener's address, as the log says it.
+fn udp_addr(gw: &Gateway) -> std::net::SocketAddr {
+    let log = gw.log();
+    log.lines()
+        .find(|l| l.contains("for Modbus/UDP masters"))
+        .and_then(|l| l.split("listening on ").nth(1))
+        .and_then(|r| r.split_whitespace().next())
+        .and_then(|a| a.parse().ok())
+        .unwrap_or_else(|| panic!("no UDP listener in the log:\n{log}"))
+}
