@@ -174,12 +174,12 @@ struct Started {
     running: Arc<Mutex<Config>>,
     cfg: Arc<Config>,
     capture: crate::capture::Capture,
-    board: Arc<Board>,
-    router: Arc<Router>,
     /// Each listener's counters, in the order of `bound`.
     listener_stats: Vec<Arc<Stats>>,
-    /// Each dial's counters, in the order of `cfg.dials`.
-    dial_stats: Vec<Arc<Stats>>,
+    /// What every master's connection shares (its tracker the drain waits on).
+    shared: tcp::Shared,
+    /// The dials running (a reload changes them).
+    dials: Arc<Mutex<tcp::dial::Dials>>,
     /// Every listener's and line's counters: the totals add them up.
     counted: Vec<Arc<Stats>>,
     /// The lines' tasks, running.
@@ -220,19 +220,27 @@ async fn start(
             stats: stats.clone(),
         }));
     }
-    // Each dial's, as a listener's: its connections and what they refused.
-    let dial_stats: Vec<Arc<Stats>> = cfg.dials.iter().map(|_| Arc::default()).collect();
-    for (d, stats) in cfg.dials.iter().zip(&dial_stats) {
-        board.add_listener(Arc::new(ListenerMetrics {
-            name: format!("dial {}", d.address),
-            stats: stats.clone(),
-        }));
-    }
     let mut counted = listener_stats.clone();
-    counted.extend(dial_stats.iter().cloned());
     counted.extend(lines.stats);
     let http = start_metrics(&cfg, &board, shutdown)?;
     let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
+    // What every master's connection shares, and the tracker the drain waits on.
+    let tracker = TaskTracker::new();
+    let shared = tcp::Shared {
+        cfg: cfg.clone(),
+        router: router.clone(),
+        stats: Arc::default(),
+        shutdown: shutdown.clone(),
+        tracker: tracker.clone(),
+        ids: Arc::new(AtomicU64::new(0)),
+        masters: board.masters.clone(),
+        capture: capture.hub().clone(),
+    };
+    // The dials start with the listeners ([`accept`]); a reload changes them.
+    let dials = Arc::new(Mutex::new(tcp::dial::Dials::new(
+        shared.clone(),
+        board.clone(),
+    )));
     // Before "listening on", as the other handlers: a reload asked for at once finds
     // its handler, never SIGHUP's default action (the end of the process).
     let hup = load.and_then(hangup);
@@ -249,6 +257,10 @@ async fn start(
             // Their certificates are read again by every reload, whatever becomes of
             // the rest of it.
             acceptors: bound.iter().filter_map(|(_, l)| l.tls.clone()).collect(),
+            dials: {
+                let dials = dials.clone();
+                Box::new(move |d| dials.lock().expect("not poisoned").apply(d))
+            },
         };
         tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
     }
@@ -263,12 +275,11 @@ async fn start(
         running,
         cfg,
         capture,
-        board,
-        router,
         listener_stats,
-        dial_stats,
         counted,
         line_tasks,
+        shared,
+        dials,
     })
 }
 
@@ -408,17 +419,8 @@ fn announce(cfg: &Config, bound: &[Bound]) {
 /// Serve: every listener's accept loop (there may be none) until shutdown; the
 /// connections they started are on the tracker returned.
 async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTracker {
-    let tracker = TaskTracker::new();
-    let shared = tcp::Shared {
-        cfg: started.cfg.clone(),
-        router: started.router.clone(),
-        stats: Arc::default(),
-        shutdown: shutdown.clone(),
-        tracker: tracker.clone(),
-        ids: Arc::new(AtomicU64::new(0)),
-        masters: started.board.masters.clone(),
-        capture: started.capture.hub().clone(),
-    };
+    let shared = started.shared.clone();
+    let tracker = shared.tracker.clone();
     let accepting: Vec<_> = std::mem::take(&mut started.bound)
         .into_iter()
         .zip(&started.listener_stats)
@@ -435,23 +437,13 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
         .collect();
     // The dials run beside the listeners, on the tracker: the drain waits for the
     // replies their connections owe.
-    for (i, (dial, stats)) in started
-        .cfg
-        .dials
-        .iter()
-        .zip(&started.dial_stats)
-        .enumerate()
-    {
-        let shared = tcp::Shared {
-            stats: stats.clone(),
-            ..shared.clone()
-        };
-        tracker.spawn(tcp::dial::dial_loop(
-            format!("dial[{i}]"),
-            dial.clone(),
-            shared,
-        ));
-    }
+    let dialing = {
+        let mut dials = started.dials.lock().expect("not poisoned");
+        dials.apply(&started.cfg.dials);
+        dials.stats()
+    };
+    // Their counters in the totals (a dial a reload adds later is on the metrics).
+    started.counted.extend(dialing);
     for accept in accepting {
         let _ = accept.await;
     }

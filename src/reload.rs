@@ -19,6 +19,9 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
+/// Runs the dials of a configuration (`[[dial]]`), as the masters' side does it.
+pub(crate) type RunDials = Box<dyn Fn(&[crate::config::dial::DialConfig]) + Send + Sync>;
+
 /// Reads the configuration again, as at start (the file, then the flags on top).
 pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 
@@ -155,6 +158,9 @@ pub(crate) struct Reloadable {
     pub(crate) lines: Vec<LineHandle>,
     pub(crate) metrics: MetricsListener,
     pub(crate) acceptors: Vec<Arc<Acceptor>>,
+    /// Runs the dials of the configuration reloaded: adds, removes and changes them
+    /// (the masters' side does it; the gateway hands it over).
+    pub(crate) dials: RunDials,
 }
 
 /// Reloads on each SIGHUP, and on each request of `mbgate reload` (`asked`), until
@@ -178,7 +184,7 @@ pub(crate) async fn on_sighup(
             }
         };
         let certificates = reload_certificates(&it.acceptors);
-        let Some(outcome) = reload(&it.running, &it.load, &it.lines, &mut it.metrics) else {
+        let Some(outcome) = reload(&mut it) else {
             return; // a relay has stopped: shutting down
         };
         outcome.log();
@@ -223,12 +229,8 @@ fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
 /// One reload: the file read, its lines matched to the running ones, what a reload
 /// applies applied (the relays' timeouts and retries, the log, the metrics listener).
 /// `None` when a relay has stopped.
-fn reload(
-    running: &Mutex<Config>,
-    load: &Loader,
-    lines: &[LineHandle],
-    metrics: &mut MetricsListener,
-) -> Option<Outcome> {
+fn reload(it: &mut Reloadable) -> Option<Outcome> {
+    let (running, load, lines, metrics) = (&it.running, &it.load, &it.lines, &mut it.metrics);
     let read = match load() {
         Ok(read) => read,
         Err(e) => return Some(Outcome::Refused(e.to_string())),
@@ -247,6 +249,7 @@ fn reload(
     for (handle, line) in lines.iter().zip(new.lines()) {
         handle.retune(line, new.log.traffic)?;
     }
+    (it.dials)(&new.dials);
     let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {
         let changes = changes::changes(a, b, matched);
         changes.into_iter().map(|c| c.said).collect()

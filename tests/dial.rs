@@ -178,3 +178,108 @@ fn udp_addr(gw: &Gateway) -> std::net::SocketAddr {
         .and_then(|a| a.parse().ok())
         .unwrap_or_else(|| panic!("no UDP listener in the log:\n{log}"))
 }
+
+/// tests/py/dial_server.py as a child whose stdout lines come through a channel and
+/// whose stdin the test writes (the `keep` round waits for a line).
+struct Server {
+    child: std::process::Child,
+    lines: std::sync::mpsc::Receiver<String>,
+    said: Vec<String>,
+}
+
+impl Server {
+    fn start(args: &[&str]) -> Server {
+        use std::io::BufRead;
+        use std::process::{Command, Stdio};
+        let mut child = Command::new(python())
+            .arg(repo().join("tests/py/dial_server.py"))
+            .args(args)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::inherit())
+            .spawn()
+            .expect("start python");
+        let out = std::io::BufReader::new(child.stdout.take().unwrap());
+        let (tx, lines) = std::sync::mpsc::channel();
+        std::thread::spawn(move || {
+            for l in out.lines().map_while(Result::ok) {
+                let _ = tx.send(l);
+            }
+        });
+        let mut s = Server {
+            child,
+            lines,
+            said: Vec::new(),
+        };
+        s.expect("READY");
+        s
+    }
+
+    /// Waits (bounded) for a line that starts with `what`.
+    fn expect(&mut self, what: &str) -> String {
+        let until = std::time::Instant::now() + Duration::from_secs(30);
+        while let Some(left) = until.checked_duration_since(std::time::Instant::now()) {
+            match self.lines.recv_timeout(left) {
+                Ok(l) if l.starts_with(what) => return l,
+                Ok(l) => self.said.push(l),
+                Err(_) => break,
+            }
+        }
+        panic!("no {what:?} from dial_server.py; it said {:?}", self.said);
+    }
+
+    fn go_on(&mut self) {
+        use std::io::Write;
+        let stdin = self.child.stdin.as_mut().unwrap();
+        stdin.write_all(b"go\n").unwrap();
+        stdin.flush().unwrap();
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A reload adds a dial while the one unchanged keeps its connection (the server
+/// checks replies on it before and after), then changes it (it dials again with its
+/// new identity) and removes the other.
+#[test]
+fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
+    let b = bench();
+    let (p1, p2) = (free_port(), free_port());
+    let (a1, a2) = (format!("127.0.0.1:{p1}"), format!("127.0.0.1:{p2}"));
+    let file = b.dir.path().join("mbgate.toml");
+    let mut first = Server::start(&["--listen", &a1, "--identity", "site-17", "--round", "keep"]);
+    let mut gw = Gateway::launch_text(
+        &format!("{}{}", b.cfg, dial(p1, "")),
+        b.dir.path(),
+        Launch::default(),
+    );
+    first.expect("kept 10");
+    // Add a dial; the first is unchanged.
+    let mut second = Server::start(&["--listen", &a2, "--identity", "site-17", "--round", "serve"]);
+    std::fs::write(&file, format!("{}{}{}", b.cfg, dial(p1, ""), dial(p2, ""))).unwrap();
+    gw.proc.signal("HUP");
+    second.expect("serve ok 10");
+    first.go_on();
+    first.expect("keep ok 20");
+    let log = gw.log();
+    assert!(log.contains(&format!("dial \"{a2}\" added")), "{log}");
+    // Change the first (its identity), remove the second.
+    let mut third = Server::start(&["--listen", &a1, "--identity", "site-18", "--round", "serve"]);
+    let changed = dial(p1, "").replace("site-17", "site-18");
+    std::fs::write(&file, format!("{}{changed}", b.cfg)).unwrap();
+    gw.proc.signal("HUP");
+    third.expect("serve ok 10");
+    let log = gw.log();
+    assert!(
+        log.contains(&format!("dial \"{a1}\" changed (dialing again)")),
+        "{log}"
+    );
+    assert!(log.contains(&format!("dial \"{a2}\" removed")), "{log}");
+    let counters = gw.stop();
+    assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+}

@@ -95,6 +95,7 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     }
     c.log = read.log.clone();
     c.metrics = read.metrics.clone();
+    c.dials = read.dials.clone();
     c
 }
 
@@ -217,11 +218,40 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
         }
     }
     out.extend(listener_changes(a, b));
+    out.extend(dial_changes(a, b));
     if a.roles != b.roles {
         out.push(Change {
             said: "the [[role]] tables".into(),
             reloadable: false,
         });
+    }
+    out
+}
+
+/// The dials' differences, each applied (docs/dialing.md "Reload"): matched by their
+/// address, one gone stops, one new starts, one changed dials again.
+fn dial_changes(a: &Config, b: &Config) -> Vec<Change> {
+    let applied = |said: String| Change {
+        said,
+        reloadable: true,
+    };
+    let mut out = Vec::new();
+    for d in &a.dials {
+        match b.dials.iter().find(|e| e.address == d.address) {
+            None => out.push(applied(format!("dial \"{}\" removed", d.address))),
+            Some(e) if e != d => out.push(applied(format!(
+                "dial \"{}\" changed (dialing again)",
+                d.address
+            ))),
+            Some(_) => {}
+        }
+    }
+    for e in b
+        .dials
+        .iter()
+        .filter(|e| !a.dials.iter().any(|d| d.address == e.address))
+    {
+        out.push(applied(format!("dial \"{}\" added", e.address)));
     }
     out
 }
@@ -251,13 +281,14 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
     }
     let (la, lb) = (a.listeners(), b.listeners());
     let at = |l: &ListenConfig| l.tcp.listen;
+    let same = |l: &ListenConfig, m: &ListenConfig| at(l) == at(m) && l.transport == m.transport;
     let as_config = |l: &ListenConfig| Config {
         tcp: l.tcp.clone(),
         ..Config::default()
     };
     let mut out = Vec::new();
     for l in &la {
-        match lb.iter().find(|m| at(m) == at(l)) {
+        match lb.iter().find(|m| same(l, m)) {
             None => out.push(restart(format!(
                 "listen \"{}\" (gone from the file)",
                 at(l)
@@ -286,7 +317,7 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
             }
         }
     }
-    for m in lb.iter().filter(|m| !la.iter().any(|l| at(l) == at(m))) {
+    for m in lb.iter().filter(|m| !la.iter().any(|l| same(l, m))) {
         out.push(restart(format!("listen \"{}\" (new in the file)", at(m))));
     }
     out

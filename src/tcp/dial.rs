@@ -245,3 +245,78 @@ impl Outage {
         self.ever = true;
     }
 }
+
+/// The dials running, as a reload finds them: each its configuration, the token that
+/// stops it and its counters.
+pub(crate) struct Dials {
+    shared: Shared,
+    board: Arc<crate::metrics::Board>,
+    running: Vec<Running>,
+}
+
+struct Running {
+    dial: DialConfig,
+    stop: tokio_util::sync::CancellationToken,
+    stats: Arc<crate::stats::Stats>,
+}
+
+impl Dials {
+    /// None running yet; each dial started by [`Dials::apply`] runs on `shared`'s
+    /// tracker, its counters on `board` as a listener's.
+    pub(crate) fn new(shared: Shared, board: Arc<crate::metrics::Board>) -> Dials {
+        Dials {
+            shared,
+            board,
+            running: Vec::new(),
+        }
+    }
+
+    /// The dials of `dials` running, and no other: one unchanged keeps its
+    /// connection, a new one starts, one gone or changed stops (its connection writes
+    /// the replies it owes and closes; a changed one dials again at once as new).
+    /// A dial to an address already dialed keeps its counters.
+    pub(crate) fn apply(&mut self, dials: &[DialConfig]) {
+        let mut old = std::mem::take(&mut self.running);
+        for (i, d) in dials.iter().enumerate() {
+            if let Some(p) = old.iter().position(|r| r.dial == *d) {
+                self.running.push(old.remove(p));
+                continue;
+            }
+            let kept = old.iter().find(|r| r.dial.address == d.address);
+            let stats = match kept {
+                Some(r) => r.stats.clone(),
+                None => {
+                    let stats = Arc::<crate::stats::Stats>::default();
+                    self.board
+                        .add_listener(Arc::new(crate::metrics::ListenerMetrics {
+                            name: format!("dial {}", d.address),
+                            stats: stats.clone(),
+                        }));
+                    stats
+                }
+            };
+            let stop = self.shared.shutdown.child_token();
+            let shared = Shared {
+                stats: stats.clone(),
+                shutdown: stop.clone(),
+                ..self.shared.clone()
+            };
+            self.shared
+                .tracker
+                .spawn(dial_loop(format!("dial[{i}]"), d.clone(), shared));
+            self.running.push(Running {
+                dial: d.clone(),
+                stop,
+                stats,
+            });
+        }
+        for r in old {
+            r.stop.cancel();
+        }
+    }
+
+    /// Every running dial's counters, for the totals.
+    pub(crate) fn stats(&self) -> Vec<Arc<crate::stats::Stats>> {
+        self.running.iter().map(|r| r.stats.clone()).collect()
+    }
+}

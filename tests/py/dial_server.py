@@ -15,6 +15,8 @@ Rounds, each one accepted connection:
            connection 1.5 s and close
   echo     read the identity and echo it back, wait for a heartbeat and echo it,
            then as serve (the echoes must not be taken for requests)
+  keep     read the identity, check, print "kept", wait for a line on stdin, then
+           check again on the same connection (it outlived whatever happened between)
 
 Prints READY once listening, a line per round ("serve ok 12"), and exits 0 when
 every round passed; any failure prints "FAIL ..." and exits 1.
@@ -163,6 +165,14 @@ def main() -> int:
             if beat != heartbeat:
                 fail(f"heartbeat {beat!r}, expected {heartbeat!r}")
             conn.sendall(heartbeat)
+        elif name == "keep":
+            n = master.checks()
+            print(f"kept {n}", flush=True)
+            sys.stdin.readline()
+            n += master.checks()
+            conn.close()
+            print(f"keep ok {n}", flush=True)
+            continue
         elif name != "serve":
             fail(f"unknown round {name}")
         n = master.checks()
