@@ -283,3 +283,68 @@ fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
     let counters = gw.stop();
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
+
+/// Modbus/TCP Security with mbgate as the client: a server whose certificate chains
+/// to another CA is refused (and dialed again, the outage said once); the right one
+/// is served, its role (`viewer`, read only) taken from its certificate: reads
+/// answered by value, a write answered 0x01.
+#[test]
+fn a_tls_dial_checks_the_server_and_takes_its_role_from_its_certificate() {
+    if !peer("openssl", "openssl") {
+        return;
+    }
+    let b = bench();
+    let pki = common::pki::Pki::new(&b.dir.path().join("pki"));
+    let san = "subjectAltName=IP:127.0.0.1,DNS:localhost\n";
+    let role = format!("{san}{}viewer\n", common::pki::ROLE_EXT);
+    pki.sign("scada", "ca", "/CN=scada", &role, 30);
+    pki.ca("other");
+    pki.sign("stranger", "other", "/CN=stranger", &role, 30);
+    let port = free_port();
+    let tls = format!(
+        "tls = {{ cert = {:?}, key = {:?}, server_ca = {:?} }}\n",
+        pki.pem("gateway"),
+        pki.key("gateway"),
+        pki.pem("ca")
+    );
+    let text = format!(
+        "{}{}[[role]]\nname = \"viewer\"\nread_only = true\n",
+        b.cfg,
+        dial(port, &tls)
+    );
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let listen = format!("127.0.0.1:{port}");
+    let right = format!(
+        "{}:{}:{}",
+        pki.pem("scada"),
+        pki.key("scada"),
+        pki.pem("ca")
+    );
+    let wrong = format!("{}:{}", pki.pem("stranger"), pki.key("stranger"));
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--tls",
+        &right,
+        "--wrong",
+        &wrong,
+        "--round",
+        "refused",
+        "--round",
+        "readonly",
+    ];
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    assert!(
+        out.contains("refused ok") && out.contains("readonly ok 6"),
+        "{out}"
+    );
+    let log = gw.log();
+    assert!(log.contains("TLS handshake failed"), "{log}");
+    assert_eq!(log.matches("connected to 127.0.0.1:").count(), 1, "{log}");
+    let counters = gw.stop();
+    assert_eq!(counters["tls_failed"], 1, "{counters:?}");
+    assert_eq!(counters["denied"], 1, "{counters:?}");
+}

@@ -46,6 +46,91 @@ table! {
         connect_timeout_ms: u64 = 10_000, Range(100, 600_000, None);
         /// Close the connection and dial again when no request came this long; 0: never
         idle_timeout_ms: u64 = 0, Range(0, u64::MAX as i128, Some("0 (never) or a number of milliseconds"));
+        /// Modbus/TCP Security with mbgate as the client: { cert, key, server_ca, server_name, default_role }
+        tls: Option<TlsDial> = None, Any;
+    }
+}
+
+table! {
+    /// A dial's `tls` table (docs/dialing.md "TLS").
+    ["dial.tls"] TlsDialTable DIAL_TLS_KEYS {
+        /// The gateway's client certificate chain (PEM), presented to the server; required
+        cert: String = String::new(), NonEmpty("the gateway's client certificate, PEM");
+        /// Its private key (PEM); required
+        key: String = String::new(), NonEmpty("the gateway's private key, PEM");
+        /// The CA certificates (PEM) the server's certificate must chain to; required
+        server_ca: String = String::new(), NonEmpty("the CA the server's certificate chains to, PEM");
+        /// The name the server's certificate must carry; none: the host of address
+        server_name: String = String::new(), NonEmpty("the name in the server's certificate");
+        /// The role of a server certificate that carries none; none: such a server is refused
+        default_role: String = String::new(), NonEmpty("a [[role]] name");
+    }
+}
+
+/// A dial's `tls` table: mbgate verifies the server, presents its own certificate,
+/// and takes the role for the access rules from the server's certificate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TlsDial {
+    /// The client side as a TLS device's: `device_ca` is the dial's `server_ca`.
+    pub(crate) client: super::TlsDevice,
+    /// The role of a server certificate that carries none; `None`: refused.
+    pub(crate) default_role: Option<String>,
+}
+
+impl Setting for Option<TlsDial> {
+    const KIND: ValueKind = ValueKind::List;
+    fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
+        let not_table = "expected a table: { cert = ..., key = ..., server_ca = ... }";
+        let (t, given) = read_table(raw, DIAL_TLS_KEYS, not_table)?;
+        for (key, why) in [
+            (
+                "cert",
+                "the gateway's client certificate (PEM), presented to the server",
+            ),
+            ("key", "the gateway's private key (PEM)"),
+            (
+                "server_ca",
+                "the CA the server's certificate must chain to (PEM)",
+            ),
+        ] {
+            if !given.contains(&key) {
+                return Err(ValueError::new(format!("missing: {why}")).value(key));
+            }
+        }
+        let server_name = given.contains(&"server_name").then_some(t.server_name);
+        if let Some(s) = &server_name {
+            if rustls::pki_types::ServerName::try_from(s.as_str()).is_err() {
+                let m = format!("{s:?} is not a DNS name or an IP address");
+                return Err(ValueError::new(m).value("server_name"));
+            }
+        }
+        Ok(Some(TlsDial {
+            client: super::TlsDevice {
+                cert: t.cert.into(),
+                key: t.key.into(),
+                device_ca: t.server_ca.into(),
+                server_name,
+            },
+            default_role: given.contains(&"default_role").then_some(t.default_role),
+        }))
+    }
+    fn print(&self) -> String {
+        let Some(t) = self else {
+            return "{}".into();
+        };
+        let q = super::access::quoted;
+        let mut parts = vec![
+            format!("cert = {}", q(&t.client.cert)),
+            format!("key = {}", q(&t.client.key)),
+            format!("server_ca = {}", q(&t.client.device_ca)),
+        ];
+        if let Some(n) = &t.client.server_name {
+            parts.push(format!("server_name = {}", n.print()));
+        }
+        if let Some(r) = &t.default_role {
+            parts.push(format!("default_role = {}", r.print()));
+        }
+        format!("{{ {} }}", parts.join(", "))
     }
 }
 
@@ -119,6 +204,8 @@ pub struct DialConfig {
     pub(crate) backoff_max_ms: u64,
     pub(crate) connect_timeout_ms: u64,
     pub(crate) idle_timeout_ms: u64,
+    /// Modbus/TCP Security, mbgate the client.
+    pub(crate) tls: Option<TlsDial>,
 }
 
 impl DialConfig {
@@ -158,6 +245,7 @@ impl DialConfig {
             backoff_max_ms: self.backoff_max_ms,
             connect_timeout_ms: self.connect_timeout_ms,
             idle_timeout_ms: self.idle_timeout_ms,
+            tls: self.tls.clone(),
         }
     }
 }
@@ -196,6 +284,7 @@ pub(super) fn dials(raw: &Raw, path: &str) -> Result<Vec<DialConfig>, ValueError
                 backoff_max_ms: t.backoff_max_ms,
                 connect_timeout_ms: t.connect_timeout_ms,
                 idle_timeout_ms: t.idle_timeout_ms,
+                tls: t.tls,
             })
         };
         out.push(one().map_err(|e| e.item(i))?);
@@ -239,6 +328,12 @@ pub(crate) fn describe(d: &DialConfig) -> String {
             d.heartbeat_ms
         );
     }
+    if let Some(t) = &d.tls {
+        s += ", over TLS";
+        if let Some(r) = &t.default_role {
+            s += &format!(" (default role {r:?})");
+        }
+    }
     if d.priority != 0 {
         s += &format!(", priority class {}", d.priority);
     }
@@ -258,7 +353,9 @@ mod tests {
     fn a_dial_is_read_checked_and_printed_back() {
         let cfg = parse(
             "[[dial]]\naddress = \"scada.example.net:502\"\nidentity = \"site-17\"\n\
-             heartbeat = \"hex:ff fe 00\"\nread_only = true\nbackoff_max_ms = 5000\n",
+             heartbeat = \"hex:ff fe 00\"\nread_only = true\nbackoff_max_ms = 5000\n\
+             tls = { cert = \"g.pem\", key = \"g.key\", server_ca = \"ca.pem\", default_role = \"viewer\" }\n\
+             [[role]]\nname = \"viewer\"\nread_only = true\n",
             "t.toml",
         )
         .unwrap();
@@ -294,6 +391,15 @@ mod tests {
             ),
             ("[[dial]]\naddress = \"h:1\"\nretry = 1\n", "dial[0].retry"),
             ("[[dial]]\naddress = \"nohost\"\n", "dial[0].address"),
+            (
+                "[[dial]]\naddress = \"h:1\"\ntls = { cert = \"a\", key = \"b\" }\n",
+                "dial[0].tls.server_ca",
+            ),
+            (
+                "[[dial]]\naddress = \"h:1\"\n\
+                 tls = { cert = \"a\", key = \"b\", server_ca = \"c\", default_role = \"x\" }\n",
+                "dial[0].tls.default_role",
+            ),
         ];
         for (text, key) in bad {
             let e = parse(text, "t.toml").unwrap_err().to_string();

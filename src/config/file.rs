@@ -133,6 +133,7 @@ impl Reader<'_> {
         let mut cfg = Config::default();
         let (mut lines, mut listeners) = (Vec::new(), Vec::new());
         let mut roles = Vec::new();
+        let mut dial_at = 0;
         for (k, v) in entries(root) {
             let (name, at) = (k.get_ref().as_ref(), k.span().start);
             let replaced = match name {
@@ -141,6 +142,7 @@ impl Reader<'_> {
                     continue;
                 }
                 "dial" => {
+                    dial_at = v.span().start;
                     cfg.dials = self.value(v, name, super::dial::dials(&raw(v.get_ref()), name))?;
                     continue;
                 }
@@ -179,6 +181,13 @@ impl Reader<'_> {
         if let Err((i, m)) = super::access::default_roles(&listeners, &roles) {
             let e = ValueError::new(m).value("default_role").value("tls");
             return self.bad(place(tables[i], &format!("listen[{i}]"), &e));
+        }
+        for (i, d) in cfg.dials.iter().enumerate() {
+            let named = d.tls.as_ref().and_then(|t| t.default_role.as_ref());
+            if let Some(role) = named.filter(|r| !roles.iter().any(|x| &x.name == *r)) {
+                let m = format!("no [[role]] is named {role:?}");
+                return self.fail(dial_at, &format!("dial[{i}].tls.default_role"), m);
+            }
         }
         cfg.roles = roles;
         self.no_listener_for_master_lines(root, &lines, &tables)?;

@@ -7,16 +7,19 @@
 //! once when it is right again ([`Outage`]).
 
 use super::{echo, Connection, Dialed, Shared};
-use crate::config::dial::DialConfig;
+use crate::config::dial::{DialConfig, TlsDial};
 use crate::port::Backoff;
+use crate::tls::client::Connector;
+use crate::tls::server::{grant, Grant};
 use socket2::{SockRef, TcpKeepalive};
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::io::AsyncWriteExt;
+use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::Instant;
+use tokio_rustls::client::TlsStream;
 use tracing::{debug, info, warn};
 
 /// Keepalive: the first probe after this much silence, then every `KEEPALIVE_EVERY`,
@@ -50,11 +53,19 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
         match attempt {
             Err(why) => outage.failed(&why),
             Ok((stream, peer)) => {
-                let conn = connection(&shared, &listen, &dial, &stream, peer);
+                let mut conn = connection(&shared, &listen, &dial, &stream, peer);
                 shared.stats.add(&shared.stats.connections, 1);
                 let began = Instant::now();
-                let served = serve(conn, stream, &dial, &mut outage, settle);
-                let why = served.await;
+                let why = match &dial.tls {
+                    None => serve(conn, stream, &dial, &mut outage, settle).await,
+                    Some(t) => match secure(t, &dial, stream, &shared).await {
+                        Ok((tls, grant)) => {
+                            conn.grant = Some(grant);
+                            serve(conn, tls, &dial, &mut outage, settle).await
+                        }
+                        Err(why) => why,
+                    },
+                };
                 shared.stats.add(&shared.stats.connections_closed, 1);
                 if began.elapsed() >= settle {
                     backoff.reset();
@@ -151,11 +162,51 @@ fn connection(
     }
 }
 
+/// The TLS handshake with the server within `connect_timeout_ms` (the files read
+/// again at each attempt, so a renewed certificate is used from the next one on), and
+/// the role its certificate carries (docs/security.md "What a master may do"), as a
+/// listener takes a master's; a refusal is counted as a listener's and said as why
+/// the attempt failed.
+async fn secure(
+    t: &TlsDial,
+    dial: &DialConfig,
+    stream: TcpStream,
+    shared: &Shared,
+) -> Result<(TlsStream<TcpStream>, Grant), String> {
+    let stats = &shared.stats;
+    let connector =
+        Connector::load(&t.client, &dial.address, "dial.tls").map_err(|e| format!("TLS: {e}"))?;
+    let within = Duration::from_millis(dial.connect_timeout_ms);
+    let tls = match tokio::time::timeout(within, connector.connect(stream)).await {
+        Ok(Ok(tls)) => tls,
+        Ok(Err(e)) => {
+            stats.add(&stats.tls_failed, 1);
+            return Err(format!("TLS handshake failed: {e}"));
+        }
+        Err(_) => {
+            stats.add(&stats.tls_failed, 1);
+            return Err(format!("no TLS handshake within {within:?}"));
+        }
+    };
+    let der = tls.get_ref().1.peer_certificates().and_then(|c| c.first());
+    let Some(der) = der else {
+        stats.add(&stats.tls_refused, 1);
+        return Err("the server presented no certificate".to_owned());
+    };
+    match grant(der, &shared.cfg.roles, t.default_role.as_deref()) {
+        Ok(g) => Ok((tls, g)),
+        Err(refused) => {
+            stats.add(&stats.tls_refused, 1);
+            Err(format!("the server is refused: {refused}"))
+        }
+    }
+}
+
 /// The identity sent, then the connection served until it ends; once it has stayed
 /// up for `settle`, the outage (if any) is over. Why it ended, in words.
-async fn serve(
+async fn serve<S: Halves>(
     conn: Connection,
-    mut stream: TcpStream,
+    mut stream: S,
     dial: &DialConfig,
     outage: &mut Outage,
     settle: Duration,
@@ -163,14 +214,19 @@ async fn serve(
     let peer = conn.peer;
     if !dial.identity.is_empty() {
         let within = Duration::from_millis(dial.connect_timeout_ms);
-        match tokio::time::timeout(within, stream.write_all(&dial.identity)).await {
+        // Flushed: a TLS stream holds what it could not send at once until then.
+        let send = async {
+            stream.write_all(&dial.identity).await?;
+            stream.flush().await
+        };
+        match tokio::time::timeout(within, send).await {
             Ok(Ok(())) => {}
             Ok(Err(e)) => return format!("the identity could not be sent: {e}"),
             Err(_) => return format!("the identity could not be sent within {within:?}"),
         }
     }
     outage.connected(peer);
-    let (rd, wr) = stream.into_split();
+    let (rd, wr) = stream.halves();
     let served = conn.run(rd, wr);
     tokio::pin!(served);
     tokio::select! {
@@ -178,6 +234,30 @@ async fn serve(
         _ = tokio::time::sleep(settle) => outage.settled(peer),
     }
     served.await
+}
+
+/// A dialed stream cut in its reading and writing halves: a plain socket's own
+/// halves (no lock between them, as an accepted connection's), a TLS stream's shared.
+trait Halves: AsyncRead + AsyncWrite + Unpin {
+    type Rd: AsyncRead + Unpin;
+    type Wr: AsyncWrite + Unpin;
+    fn halves(self) -> (Self::Rd, Self::Wr);
+}
+
+impl Halves for TcpStream {
+    type Rd = tokio::net::tcp::OwnedReadHalf;
+    type Wr = tokio::net::tcp::OwnedWriteHalf;
+    fn halves(self) -> (Self::Rd, Self::Wr) {
+        self.into_split()
+    }
+}
+
+impl Halves for TlsStream<TcpStream> {
+    type Rd = tokio::io::ReadHalf<Self>;
+    type Wr = tokio::io::WriteHalf<Self>;
+    fn halves(self) -> (Self::Rd, Self::Wr) {
+        tokio::io::split(self)
+    }
 }
 
 /// What the log says of one dial: at the first failure what is wrong (a warning), the

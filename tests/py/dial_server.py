@@ -5,7 +5,10 @@ built and replies decoded by pymodbus' own socket (MBAP) framer, and every reply
 checked by value against stock_server.py's device (unit 1) behind the gateway.
 
     dial_server.py --listen HOST:PORT --identity TEXT [--heartbeat HEX]
-                   --round ROUND [--round ...]
+                   [--tls CERT:KEY:CA [--wrong CERT:KEY]] --round ROUND [--round ...]
+
+--tls: every connection is TLS, the server presenting CERT and requiring a client
+certificate chained to CA (Modbus/TCP Security with mbgate as the client).
 
 Rounds, each one accepted connection:
   close    accept and close at once
@@ -15,6 +18,8 @@ Rounds, each one accepted connection:
            connection 1.5 s and close
   echo     read the identity and echo it back, wait for a heartbeat and echo it,
            then as serve (the echoes must not be taken for requests)
+  refused  (TLS) present --wrong's certificate: mbgate must refuse it
+  readonly read the identity, check the reads; a write must be answered 0x01
   keep     read the identity, check, print "kept", wait for a line on stdin, then
            check again on the same connection (it outlived whatever happened between)
 
@@ -26,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import socket
+import ssl
 import sys
 import time
 
@@ -85,6 +91,31 @@ class Master:
                 fail(f"closed while waiting for the reply to {request}")
             self.buf += chunk
 
+    def refused_write(self) -> None:
+        """A write the access rules deny: exception 0x01, never reaching the line."""
+        self.tid += 1
+        request = WriteSingleRegisterRequest(address=100, registers=[1], dev_id=1, transaction_id=self.tid)
+        self.conn.sendall(self.framer.buildFrame(request))
+        while True:
+            used, pdu = self.framer.handleFrame(self.buf, 0, 0)
+            if pdu is not None:
+                self.buf = self.buf[used:]
+                if not pdu.isError() or pdu.exception_code != 1:
+                    fail(f"a denied write answered {pdu}")
+                return
+            chunk = self.conn.recv(512)
+            if not chunk:
+                fail("closed while waiting for the denied write's reply")
+            self.buf += chunk
+
+    def reads(self) -> int:
+        for address in (1, 5, 40):
+            r = self.ask(ReadHoldingRegistersRequest(address=address, count=3))
+            want = [1000 + address + i for i in range(3)]
+            if list(r.registers) != want:
+                fail(f"holding {address}: {list(r.registers)} != {want}")
+        return 3
+
     def checks(self) -> int:
         """Reads and writes, each reply checked by value; how many were asked."""
         n = 0
@@ -122,7 +153,18 @@ def main() -> int:
     ap.add_argument("--identity", required=True)
     ap.add_argument("--heartbeat", default="")
     ap.add_argument("--round", action="append", required=True)
+    ap.add_argument("--tls", default="")
+    ap.add_argument("--wrong", default="")
     args = ap.parse_args()
+    contexts = {}
+    if args.tls:
+        cert, key, ca = args.tls.split(":")
+        for which, (c, k) in (("right", (cert, key)), ("wrong", tuple(args.wrong.split(":")) if args.wrong else (cert, key))):
+            ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            ctx.load_cert_chain(c, k)
+            ctx.verify_mode = ssl.CERT_REQUIRED
+            ctx.load_verify_locations(ca)
+            contexts[which] = ctx
     host, port = args.listen.rsplit(":", 1)
     identity = args.identity.encode()
     heartbeat = bytes.fromhex(args.heartbeat)
@@ -138,6 +180,21 @@ def main() -> int:
         except socket.timeout:
             fail(f"{name}: mbgate did not dial in {TIMEOUT} s")
         conn.settimeout(TIMEOUT)
+        if contexts:
+            ctx = contexts["wrong" if name == "refused" else "right"]
+            try:
+                conn = ctx.wrap_socket(conn, server_side=True)
+                if name == "refused":
+                    # TLS 1.3: the client's verdict comes after the server's handshake.
+                    if conn.recv(512):
+                        fail("refused: mbgate sent bytes over a certificate it must refuse")
+            except (ssl.SSLError, OSError) as e:
+                if name != "refused":
+                    fail(f"{name}: TLS handshake: {e}")
+            if name == "refused":
+                conn.close()
+                print("refused ok", flush=True)
+                continue
         if name == "close":
             conn.close()
             print("close ok", flush=True)
@@ -165,6 +222,14 @@ def main() -> int:
             if beat != heartbeat:
                 fail(f"heartbeat {beat!r}, expected {heartbeat!r}")
             conn.sendall(heartbeat)
+        elif name == "readonly":
+            n = master.reads()
+            master.refused_write()
+            n += master.reads()
+            time.sleep(1.5)
+            conn.close()
+            print(f"readonly ok {n}", flush=True)
+            continue
         elif name == "keep":
             n = master.checks()
             print(f"kept {n}", flush=True)
