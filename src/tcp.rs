@@ -122,15 +122,11 @@ pub(crate) struct Listening {
 /// logged at most once a minute per source and reason, with counts ([`admit::Refusals`]).
 pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, shared: Shared) {
     let Shared {
-        cfg,
-        router,
         stats,
         shutdown,
         tracker,
-        ids,
-        masters,
-        capture,
-    } = shared;
+        ..
+    } = shared.clone();
     let Listening {
         listen,
         name,
@@ -180,21 +176,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             debug!(%peer, "TCP_NODELAY: {e}");
         }
         stats.add(&stats.connections, 1);
-        let conn = Connection {
-            id: ids.fetch_add(1, Ordering::Relaxed) + 1,
-            peer,
-            cfg: cfg.clone(),
-            listen: listen.clone(),
-            router: router.clone(),
-            stats: stats.clone(),
-            shutdown: shutdown.clone(),
-            masters: masters.clone(),
-            local,
-            grant: None,
-            capture: capture.clone(),
-            tap: capture.tap(0),
-            dialed: None,
-        };
+        let conn = Connection::new(&shared, listen.clone(), peer, local);
         let closed = stats.clone();
         match (&tls, slot) {
             (Some(acceptor), _) => {
@@ -395,6 +377,31 @@ enum End {
 }
 
 impl Connection {
+    /// A master's connection from any source (accepted, dialed, a UDP source), with
+    /// a new id: `listen` says what its requests may do, `local` is our end.
+    fn new(
+        shared: &Shared,
+        listen: Arc<ListenConfig>,
+        peer: SocketAddr,
+        local: SocketAddr,
+    ) -> Connection {
+        Connection {
+            id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
+            peer,
+            cfg: shared.cfg.clone(),
+            listen,
+            router: shared.router.clone(),
+            stats: shared.stats.clone(),
+            shutdown: shared.shutdown.clone(),
+            masters: shared.masters.clone(),
+            local,
+            grant: None,
+            capture: shared.capture.clone(),
+            tap: shared.capture.tap(0),
+            dialed: None,
+        }
+    }
+
     /// The TLS handshake within its `turn` of the listener's budget, then, with a
     /// connection slot (taken only now: a peer that never authenticates never holds
     /// one), the master served. A handshake that must make room for a newer one ends

@@ -159,6 +159,10 @@ fn a_udp_flood_from_one_source_leaves_a_polite_master_its_share() {
         .and_then(|n| n.trim().parse().ok())
         .unwrap_or_else(|| panic!("{out}"));
     let counters = gw.stop();
+    eprintln!(
+        "flood: {flood_replies} replies to the flood, datagrams_dropped={}, requests={}",
+        counters["datagrams_dropped"], counters["requests"]
+    );
     assert!(counters["datagrams_dropped"] > 0, "{counters:?}");
     assert!(flood_replies < 10_000, "{flood_replies}");
     // What reached the line: the polite master's 40 and the flood's replies at most.

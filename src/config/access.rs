@@ -502,16 +502,22 @@ impl Setting for Option<TlsDevice> {
         let Some(t) = self else {
             return "{}".into();
         };
-        let mut parts = vec![
-            format!("cert = {}", quoted(&t.cert)),
-            format!("key = {}", quoted(&t.key)),
-            format!("device_ca = {}", quoted(&t.device_ca)),
-        ];
-        if let Some(n) = &t.server_name {
-            parts.push(format!("server_name = {}", n.print()));
-        }
-        format!("{{ {} }}", parts.join(", "))
+        format!("{{ {} }}", client_parts(t, "device_ca").join(", "))
     }
+}
+
+/// The keys of mbgate's side of a TLS client table as the file writes them, the CA
+/// under `ca` (a TCP line's `device_ca`, a dial's `server_ca`).
+pub(super) fn client_parts(t: &TlsDevice, ca: &str) -> Vec<String> {
+    let mut parts = vec![
+        format!("cert = {}", quoted(&t.cert)),
+        format!("key = {}", quoted(&t.key)),
+        format!("{ca} = {}", quoted(&t.device_ca)),
+    ];
+    if let Some(n) = &t.server_name {
+        parts.push(format!("server_name = {}", n.print()));
+    }
+    parts
 }
 
 /// A TCP line's `tls` table, read by [`DEVICE_TLS_KEYS`]: `cert`, `key` and
@@ -519,22 +525,35 @@ impl Setting for Option<TlsDevice> {
 fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
     let not_table = "expected a table: { cert = ..., key = ..., device_ca = ... }";
     let (t, given) = read_table(raw, DEVICE_TLS_KEYS, not_table)?;
-    for (key, why) in [
-        (
-            "cert",
-            "the gateway's client certificate (PEM), presented to the device",
-        ),
+    let ca = (
+        "device_ca",
+        "the CA the device's certificate must chain to (PEM)",
+    );
+    let files = (t.cert, t.key, t.device_ca);
+    tls_client(&given, "device", ca, files, t.server_name)
+}
+
+/// mbgate's side of a TLS client table (a TCP line's, a dial's): `cert`, `key` and
+/// the CA (`ca`: its key and what it is) required, `server_name` a DNS name or an
+/// address; `peer` is what the far end is called.
+pub(super) fn tls_client(
+    given: &[&str],
+    peer: &str,
+    ca: (&str, &str),
+    (cert, key, ca_file): (String, String, String),
+    server_name: String,
+) -> Result<TlsDevice, ValueError> {
+    let cert_why = format!("the gateway's client certificate (PEM), presented to the {peer}");
+    for (k, why) in [
+        ("cert", cert_why.as_str()),
         ("key", "the gateway's private key (PEM)"),
-        (
-            "device_ca",
-            "the CA the device's certificate must chain to (PEM)",
-        ),
+        ca,
     ] {
-        if !given.contains(&key) {
-            return Err(ValueError::new(format!("missing: {why}")).value(key));
+        if !given.contains(&k) {
+            return Err(ValueError::new(format!("missing: {why}")).value(k));
         }
     }
-    let server_name = given.contains(&"server_name").then_some(t.server_name);
+    let server_name = given.contains(&"server_name").then_some(server_name);
     if let Some(s) = &server_name {
         if rustls::pki_types::ServerName::try_from(s.as_str()).is_err() {
             let m = format!("{s:?} is not a DNS name or an IP address");
@@ -542,9 +561,9 @@ fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
         }
     }
     Ok(TlsDevice {
-        cert: t.cert.into(),
-        key: t.key.into(),
-        device_ca: t.device_ca.into(),
+        cert: cert.into(),
+        key: key.into(),
+        device_ca: ca_file.into(),
         server_name,
     })
 }

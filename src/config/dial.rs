@@ -82,35 +82,13 @@ impl Setting for Option<TlsDial> {
     fn read(raw: &Raw, _check: &Check) -> Result<Self, ValueError> {
         let not_table = "expected a table: { cert = ..., key = ..., server_ca = ... }";
         let (t, given) = read_table(raw, DIAL_TLS_KEYS, not_table)?;
-        for (key, why) in [
-            (
-                "cert",
-                "the gateway's client certificate (PEM), presented to the server",
-            ),
-            ("key", "the gateway's private key (PEM)"),
-            (
-                "server_ca",
-                "the CA the server's certificate must chain to (PEM)",
-            ),
-        ] {
-            if !given.contains(&key) {
-                return Err(ValueError::new(format!("missing: {why}")).value(key));
-            }
-        }
-        let server_name = given.contains(&"server_name").then_some(t.server_name);
-        if let Some(s) = &server_name {
-            if rustls::pki_types::ServerName::try_from(s.as_str()).is_err() {
-                let m = format!("{s:?} is not a DNS name or an IP address");
-                return Err(ValueError::new(m).value("server_name"));
-            }
-        }
+        let ca = (
+            "server_ca",
+            "the CA the server's certificate must chain to (PEM)",
+        );
+        let files = (t.cert, t.key, t.server_ca);
         Ok(Some(TlsDial {
-            client: super::TlsDevice {
-                cert: t.cert.into(),
-                key: t.key.into(),
-                device_ca: t.server_ca.into(),
-                server_name,
-            },
+            client: super::access::tls_client(&given, "server", ca, files, t.server_name)?,
             default_role: given.contains(&"default_role").then_some(t.default_role),
         }))
     }
@@ -118,15 +96,7 @@ impl Setting for Option<TlsDial> {
         let Some(t) = self else {
             return "{}".into();
         };
-        let q = super::access::quoted;
-        let mut parts = vec![
-            format!("cert = {}", q(&t.client.cert)),
-            format!("key = {}", q(&t.client.key)),
-            format!("server_ca = {}", q(&t.client.device_ca)),
-        ];
-        if let Some(n) = &t.client.server_name {
-            parts.push(format!("server_name = {}", n.print()));
-        }
+        let mut parts = super::access::client_parts(&t.client, "server_ca");
         if let Some(r) = &t.default_role {
             parts.push(format!("default_role = {}", r.print()));
         }

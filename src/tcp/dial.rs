@@ -13,7 +13,6 @@ use crate::tls::client::Connector;
 use crate::tls::server::{grant, Grant};
 use socket2::{SockRef, TcpKeepalive};
 use std::net::SocketAddr;
-use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
@@ -139,18 +138,6 @@ fn connection(
         .local_addr()
         .unwrap_or(SocketAddr::from(([0, 0, 0, 0], 0)));
     Connection {
-        id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
-        peer,
-        cfg: shared.cfg.clone(),
-        listen: listen.clone(),
-        router: shared.router.clone(),
-        stats: shared.stats.clone(),
-        shutdown: shared.shutdown.clone(),
-        masters: shared.masters.clone(),
-        local,
-        grant: None,
-        capture: shared.capture.clone(),
-        tap: shared.capture.tap(0),
         dialed: Some(Dialed {
             heartbeat: dial.heartbeat.clone(),
             every: Duration::from_millis(dial.heartbeat_ms),
@@ -159,6 +146,7 @@ fn connection(
                 dial.heartbeat.clone(),
             )),
         }),
+        ..Connection::new(shared, listen.clone(), peer, local)
     }
 }
 

@@ -15,7 +15,6 @@ use std::collections::HashMap;
 use std::io;
 use std::net::SocketAddr;
 use std::pin::Pin;
-use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::task::{Context, Poll};
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
@@ -103,21 +102,7 @@ pub(crate) async fn datagram_loop(socket: UdpSocket, listening: Listening, share
         let _ = tx.try_send(datagram);
         sources.insert(peer, tx);
         stats.add(&stats.connections, 1);
-        let conn = Connection {
-            id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
-            peer,
-            cfg: shared.cfg.clone(),
-            listen: listen.clone(),
-            router: shared.router.clone(),
-            stats: stats.clone(),
-            shutdown: shared.shutdown.clone(),
-            masters: shared.masters.clone(),
-            local,
-            grant: None,
-            capture: shared.capture.clone(),
-            tap: shared.capture.tap(0),
-            dialed: None,
-        };
+        let conn = Connection::new(&shared, listen.clone(), peer, local);
         let reader = Datagrams {
             rx,
             left: Bytes::new(),
