@@ -66,8 +66,7 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
     };
     // As `TcpListener::bind` does.
     socket.set_reuseaddr(true)?;
-    let room = outbox::capacity(max_pending) * MAX_ADU;
-    socket.set_send_buffer_size(u32::try_from(room).unwrap_or(u32::MAX))?;
+    socket.set_send_buffer_size(send_buffer(max_pending))?;
     socket.bind(addr)?;
     socket.listen(1024)
 }
@@ -86,6 +85,13 @@ impl Socket {
             Socket::Udp(u) => u.local_addr(),
         }
     }
+}
+
+/// The send buffer of a master's socket: room for every reply it can be owed
+/// ([`listen`] says why no more).
+pub(crate) fn send_buffer(max_pending: usize) -> u32 {
+    let room = outbox::capacity(max_pending) * MAX_ADU;
+    u32::try_from(room).unwrap_or(u32::MAX)
 }
 
 /// What every listener's connections share: the configuration, the lines, the
@@ -364,6 +370,9 @@ struct Dialed {
     heartbeat: Vec<u8>,
     every: Duration,
     echoes: Mutex<echo::Echoes>,
+    /// How long the server may leave a reply unread before the connection is closed
+    /// (and dialed again): never for ever, since mbgate has no other way to it.
+    stall: Duration,
 }
 
 /// Why a connection's reader stopped.
@@ -791,7 +800,10 @@ impl Connection {
         wr: &mut (impl AsyncWrite + Unpin),
         frame: &[u8],
     ) -> Result<(), String> {
-        let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
+        let stall = match &self.dialed {
+            Some(d) => d.stall,
+            None => Duration::from_millis(self.listen.tcp.idle_timeout_ms),
+        };
         // Flushed: a TLS stream holds what it could not send at once until then.
         let write = async {
             wr.write_all(frame).await?;

@@ -352,3 +352,39 @@ fn a_tls_dial_checks_the_server_and_takes_its_role_from_its_certificate() {
     assert_eq!(counters["tls_failed"], 1, "{counters:?}");
     assert_eq!(counters["denied"], 1, "{counters:?}");
 }
+
+/// A server that sends requests and never reads the replies: once mbgate's socket can
+/// take no more, the connection is closed after `connect_timeout_ms` (a dial's
+/// `idle_timeout_ms` being 0), never held for ever, and dialed again.
+#[test]
+fn a_server_that_never_reads_is_given_up_and_dialed_again() {
+    let b = bench();
+    let port = free_port();
+    let listen = format!("127.0.0.1:{port}");
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--rcvbuf",
+        "4096",
+        "--round",
+        "deaf",
+        "--round",
+        "serve",
+    ];
+    let mut server = Server::start(&args);
+    let text = format!("{}{}", b.cfg, dial(port, "connect_timeout_ms = 1000\n"));
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    server.expect("deaf sent");
+    gw.wait_log("stopped reading its replies", Duration::from_secs(60));
+    server.go_on();
+    server.expect("deaf ok");
+    server.expect("serve ok 10");
+    let log = gw.log();
+    assert!(
+        log.contains("ended: the master stopped reading its replies"),
+        "{log}"
+    );
+    gw.stop();
+}

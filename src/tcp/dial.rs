@@ -47,7 +47,7 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
     loop {
         let attempt = tokio::select! {
             _ = shutdown.cancelled() => break,
-            a = connect(&dial) => a,
+            a = connect(&dial, shared.cfg.max_pending_per_connection()) => a,
         };
         match attempt {
             Err(why) => outage.failed(&why),
@@ -93,8 +93,9 @@ fn jittered(delay: Duration) -> Duration {
 }
 
 /// One attempt: the name resolved now, each of its addresses tried in turn within
-/// `connect_timeout_ms` in all, keepalive and Nagle set.
-async fn connect(dial: &DialConfig) -> Result<(TcpStream, SocketAddr), String> {
+/// `connect_timeout_ms` in all, keepalive and Nagle set, the send buffer capped as an
+/// accepted master's (`tcp::listen`).
+async fn connect(dial: &DialConfig, max_pending: usize) -> Result<(TcpStream, SocketAddr), String> {
     let within = Duration::from_millis(dial.connect_timeout_ms);
     let deadline = Instant::now() + within;
     let resolved = tokio::time::timeout_at(deadline, tokio::net::lookup_host(&dial.address));
@@ -105,7 +106,17 @@ async fn connect(dial: &DialConfig) -> Result<(TcpStream, SocketAddr), String> {
     };
     let mut last = format!("{} resolves to no address", dial.address);
     for addr in addrs {
-        match tokio::time::timeout_at(deadline, TcpStream::connect(addr)).await {
+        let socket = match addr {
+            SocketAddr::V4(_) => tokio::net::TcpSocket::new_v4(),
+            SocketAddr::V6(_) => tokio::net::TcpSocket::new_v6(),
+        };
+        let socket = socket
+            .and_then(|s| {
+                s.set_send_buffer_size(super::send_buffer(max_pending))
+                    .map(|()| s)
+            })
+            .map_err(|e| format!("cannot make a socket: {e}"))?;
+        match tokio::time::timeout_at(deadline, socket.connect(addr)).await {
             Ok(Ok(stream)) => {
                 let _ = stream.set_nodelay(true);
                 let keepalive = TcpKeepalive::new()
@@ -145,6 +156,10 @@ fn connection(
                 dial.identity.clone(),
                 dial.heartbeat.clone(),
             )),
+            stall: Duration::from_millis(match dial.idle_timeout_ms {
+                0 => dial.connect_timeout_ms,
+                idle => idle,
+            }),
         }),
         ..Connection::new(shared, listen.clone(), peer, local)
     }

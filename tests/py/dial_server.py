@@ -20,6 +20,9 @@ Rounds, each one accepted connection:
            then as serve (the echoes must not be taken for requests)
   refused  (TLS) present --wrong's certificate: mbgate must refuse it
   readonly read the identity, check the reads; a write must be answered 0x01
+  deaf     read the identity, send 400 reads of 125 registers and read no reply;
+           print "deaf sent", wait for a line on stdin, then read until mbgate
+           closes (it must have given up on the unread replies)
   keep     read the identity, check, print "kept", wait for a line on stdin, then
            check again on the same connection (it outlived whatever happened between)
 
@@ -153,6 +156,7 @@ def main() -> int:
     ap.add_argument("--identity", required=True)
     ap.add_argument("--heartbeat", default="")
     ap.add_argument("--round", action="append", required=True)
+    ap.add_argument("--rcvbuf", type=int, default=0)
     ap.add_argument("--tls", default="")
     ap.add_argument("--wrong", default="")
     args = ap.parse_args()
@@ -170,6 +174,9 @@ def main() -> int:
     heartbeat = bytes.fromhex(args.heartbeat)
     server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
     server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+    if args.rcvbuf:
+        # Inherited by the connections accepted: unread replies fill it soon.
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, args.rcvbuf)
     server.bind((host, int(port)))
     server.listen(1)
     server.settimeout(TIMEOUT)
@@ -229,6 +236,21 @@ def main() -> int:
             time.sleep(1.5)
             conn.close()
             print(f"readonly ok {n}", flush=True)
+            continue
+        elif name == "deaf":
+            for i in range(400):
+                conn.sendall(master.framer.buildFrame(ReadHoldingRegistersRequest(address=0, count=125, dev_id=1, transaction_id=i + 1)))
+            print("deaf sent", flush=True)
+            sys.stdin.readline()
+            try:
+                while conn.recv(65536):
+                    pass
+            except ConnectionResetError:
+                pass
+            except socket.timeout:
+                fail("deaf: mbgate kept the connection")
+            conn.close()
+            print("deaf ok", flush=True)
             continue
         elif name == "keep":
             n = master.checks()
