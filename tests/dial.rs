@@ -388,3 +388,87 @@ fn a_server_that_never_reads_is_given_up_and_dialed_again() {
     );
     gw.stop();
 }
+
+/// The server killed and started again 50 times while another master keeps the line
+/// busy: every reply either master got is right, the gateway holds as many file
+/// descriptors after as before (and about the memory), and the log says each outage
+/// once and each return once.
+#[test]
+fn fifty_server_restarts_under_load_leave_nothing_behind() {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    let b = bench();
+    let port = free_port();
+    let listen = format!("127.0.0.1:{port}");
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--restarts",
+        "50",
+    ];
+    let mut server = Server::start(&args);
+    let text = format!(
+        "{}[[dial]]\naddress = \"{listen}\"\nidentity = \"site-17\"\n\
+         backoff_min_ms = 20\nbackoff_max_ms = 200\n",
+        b.cfg
+    );
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    // The accepted master: reads throughout, each checked by value.
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let mut m = gw.connect();
+    let busy = {
+        let stop = stop.clone();
+        std::thread::spawn(move || {
+            let mut n = 0u16;
+            while !stop.load(Ordering::Relaxed) {
+                let addr = 1 + n % 50;
+                let got = transact(&mut m, &read_req(n, 1, addr, 1));
+                assert_eq!(got, read_reply(n, 1, &[1000 + addr]), "read {n}");
+                n = n.wrapping_add(1);
+            }
+            n
+        })
+    };
+    let fds = |gw: &Gateway| {
+        std::fs::read_dir(format!("/proc/{}/fd", gw.proc.pid()))
+            .unwrap()
+            .count()
+    };
+    server.expect("held");
+    let (fds_before, mem_before) = (fds(&gw), mem(&gw));
+    server.go_on();
+    server.expect("held");
+    // The last connection held, and said so: each of the 50 restarts and the first
+    // connection's end was an outage, each over once the next connection held.
+    let count = |gw: &Gateway, what: &str| gw.log().matches(what).count();
+    wait_for("51 returns", Duration::from_secs(20), || {
+        count(&gw, "again, after") >= 51
+    });
+    let (fds_after, mem_after) = (fds(&gw), mem(&gw));
+    server.go_on();
+    server.expect("restarts ok 50");
+    wait_for("the last outage", Duration::from_secs(20), || {
+        count(&gw, "dialing again with backoff") >= 52
+    });
+    stop.store(true, Ordering::Relaxed);
+    let polled = busy
+        .join()
+        .expect("every read of the accepted master right");
+    let log = gw.log();
+    let outages = log.matches("dialing again with backoff").count();
+    let back = log.matches("again, after").count();
+    let counters = gw.stop();
+    eprintln!(
+        "restarts: {polled} reads beside; fds {fds_before} -> {fds_after}; RSS {} -> {} KiB",
+        mem_before.rss_kib, mem_after.rss_kib
+    );
+    assert_eq!(fds_after, fds_before);
+    assert!(
+        mem_after.rss_kib < mem_before.rss_kib + 2048,
+        "{mem_before:?} -> {mem_after:?}"
+    );
+    // 52 connections, each ended: each end said once, each return once.
+    assert_eq!((outages, back), (52, 51), "{log}");
+    assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+}

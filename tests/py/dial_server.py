@@ -26,6 +26,12 @@ Rounds, each one accepted connection:
   keep     read the identity, check, print "kept", wait for a line on stdin, then
            check again on the same connection (it outlived whatever happened between)
 
+--restarts N: instead of rounds, the server restarts N times: each time it listens
+anew, takes mbgate's connection, reads the identity, checks two reads, holds the
+connection --hold seconds and closes it and its listening socket. Before the first
+restart and after the last it serves a connection that waits for a line on stdin
+(prints "held"), so the test can look at the gateway then. Prints "restarts ok N".
+
 Prints READY once listening, a line per round ("serve ok 12"), and exits 0 when
 every round passed; any failure prints "FAIL ..." and exits 1.
 """
@@ -150,12 +156,49 @@ class Master:
         return n + 4
 
 
+def take(server: socket.socket, identity: bytes) -> Master:
+    try:
+        conn, _ = server.accept()
+    except socket.timeout:
+        fail(f"mbgate did not dial in {TIMEOUT} s")
+    conn.settimeout(TIMEOUT)
+    got = read_exact(conn, len(identity))
+    if got != identity:
+        fail(f"identity {got!r}, expected {identity!r}")
+    return Master(conn)
+
+
+def restarts(server: socket.socket, at, identity: bytes, n: int, hold: float) -> int:
+    """The server killed and started again n times (see the module's doc)."""
+    for i in range(n + 2):
+        if i > 0:
+            server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+            server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            server.bind(at)
+            server.listen(1)
+            server.settimeout(TIMEOUT)
+        master = take(server, identity)
+        if i == 0 or i == n + 1:
+            master.checks()
+            print("held", flush=True)
+            sys.stdin.readline()
+        else:
+            master.reads()
+            time.sleep(hold)
+        master.conn.close()
+        server.close()
+    print(f"restarts ok {n}", flush=True)
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("--listen", required=True)
     ap.add_argument("--identity", required=True)
     ap.add_argument("--heartbeat", default="")
-    ap.add_argument("--round", action="append", required=True)
+    ap.add_argument("--round", action="append", default=[])
+    ap.add_argument("--restarts", type=int, default=0)
+    ap.add_argument("--hold", type=float, default=0.3)
     ap.add_argument("--rcvbuf", type=int, default=0)
     ap.add_argument("--tls", default="")
     ap.add_argument("--wrong", default="")
@@ -181,6 +224,8 @@ def main() -> int:
     server.listen(1)
     server.settimeout(TIMEOUT)
     print("READY", flush=True)
+    if args.restarts:
+        return restarts(server, (host, int(port)), identity, args.restarts, args.hold)
     for name in args.round:
         try:
             conn, _ = server.accept()
