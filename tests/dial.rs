@@ -472,3 +472,29 @@ fn fifty_server_restarts_under_load_leave_nothing_behind() {
     assert_eq!((outages, back), (52, 51), "{log}");
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
+
+/// `framing = "rtu"` on a dial: the server sends RTU over TCP (pymodbus' RTU framer),
+/// every reply checked by value.
+#[test]
+fn a_dial_speaks_rtu_over_tcp() {
+    let b = bench();
+    let port = free_port();
+    let text = format!("{}{}", b.cfg, dial(port, "framing = \"rtu\"\n"));
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let listen = format!("127.0.0.1:{port}");
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--framer",
+        "rtu",
+        "--round",
+        "serve",
+    ];
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    assert!(out.contains("serve ok 10"), "{out}");
+    let counters = gw.stop();
+    assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+}

@@ -4,7 +4,7 @@ mbgate's connections one after another, and in each plays one round; requests ar
 built and replies decoded by pymodbus' own socket (MBAP) framer, and every reply is
 checked by value against stock_server.py's device (unit 1) behind the gateway.
 
-    dial_server.py --listen HOST:PORT --identity TEXT [--heartbeat HEX]
+    dial_server.py --listen HOST:PORT --identity TEXT [--heartbeat HEX] [--framer rtu]
                    [--tls CERT:KEY:CA [--wrong CERT:KEY]] --round ROUND [--round ...]
 
 --tls: every connection is TLS, the server presenting CERT and requiring a client
@@ -44,7 +44,7 @@ import ssl
 import sys
 import time
 
-from pymodbus.framer import FramerSocket
+from pymodbus.framer import FramerRTU, FramerSocket
 from pymodbus.pdu import DecodePDU
 from pymodbus.pdu.bit_message import ReadCoilsRequest, ReadDiscreteInputsRequest
 from pymodbus.pdu.register_message import (
@@ -75,9 +75,12 @@ def read_exact(conn: socket.socket, n: int) -> bytes:
 class Master:
     """Requests over one accepted connection, pymodbus framing them."""
 
+    # The framing of every connection: socket (MBAP) or, with --framer rtu, RTU over TCP.
+    FRAMER = FramerSocket
+
     def __init__(self, conn: socket.socket) -> None:
         self.conn = conn
-        self.framer = FramerSocket(DecodePDU(is_server=False))
+        self.framer = self.FRAMER(DecodePDU(is_server=False))
         self.tid = 0
         self.buf = b""
 
@@ -90,7 +93,7 @@ class Master:
             used, pdu = self.framer.handleFrame(self.buf, 0, 0)
             if pdu is not None:
                 self.buf = self.buf[used:]
-                if pdu.transaction_id != self.tid:
+                if self.FRAMER is FramerSocket and pdu.transaction_id != self.tid:
                     fail(f"reply id {pdu.transaction_id}, asked {self.tid}")
                 if pdu.isError():
                     fail(f"exception reply {pdu} to {request}")
@@ -200,9 +203,12 @@ def main() -> int:
     ap.add_argument("--restarts", type=int, default=0)
     ap.add_argument("--hold", type=float, default=0.3)
     ap.add_argument("--rcvbuf", type=int, default=0)
+    ap.add_argument("--framer", choices=["socket", "rtu"], default="socket")
     ap.add_argument("--tls", default="")
     ap.add_argument("--wrong", default="")
     args = ap.parse_args()
+    if args.framer == "rtu":
+        Master.FRAMER = FramerRTU
     contexts = {}
     if args.tls:
         cert, key, ca = args.tls.split(":")
