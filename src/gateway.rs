@@ -180,6 +180,8 @@ struct Started {
     shared: tcp::Shared,
     /// The dials running (a reload changes them).
     dials: Arc<Mutex<tcp::dial::Dials>>,
+    /// The UDP listeners running (a reload changes them).
+    udps: Arc<Mutex<tcp::udp::Udps>>,
     /// Every listener's and line's counters: the totals add them up.
     counted: Vec<Arc<Stats>>,
     /// The lines' tasks, running.
@@ -236,6 +238,10 @@ async fn start(
         masters: board.masters.clone(),
         capture: capture.hub().clone(),
     };
+    let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
+        shared.clone(),
+        board.clone(),
+    )));
     // The dials start with the listeners ([`accept`]); a reload changes them.
     let dials = Arc::new(Mutex::new(tcp::dial::Dials::new(
         shared.clone(),
@@ -261,6 +267,10 @@ async fn start(
                 let dials = dials.clone();
                 Box::new(move |d| dials.lock().expect("not poisoned").apply(d))
             },
+            udps: {
+                let udps = udps.clone();
+                Box::new(move |l| udps.lock().expect("not poisoned").apply(l))
+            },
         };
         tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
     }
@@ -280,6 +290,7 @@ async fn start(
         line_tasks,
         shared,
         dials,
+        udps,
     })
 }
 
@@ -421,20 +432,22 @@ fn announce(cfg: &Config, bound: &[Bound]) {
 async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTracker {
     let shared = started.shared.clone();
     let tracker = shared.tracker.clone();
-    let accepting: Vec<_> = std::mem::take(&mut started.bound)
-        .into_iter()
-        .zip(&started.listener_stats)
-        .map(|((listener, listening), stats)| {
-            let shared = tcp::Shared {
-                stats: stats.clone(),
-                ..shared.clone()
-            };
-            match listener {
-                Socket::Tcp(l) => tokio::spawn(tcp::accept_loop(l, listening, shared)),
-                Socket::Udp(u) => tokio::spawn(tcp::udp::datagram_loop(u, listening, shared)),
+    let mut accepting = Vec::new();
+    let bound = std::mem::take(&mut started.bound);
+    for ((listener, listening), stats) in bound.into_iter().zip(&started.listener_stats) {
+        let shared = tcp::Shared {
+            stats: stats.clone(),
+            ..shared.clone()
+        };
+        match listener {
+            Socket::Tcp(l) => accepting.push(tokio::spawn(tcp::accept_loop(l, listening, shared))),
+            // On the tracker, each with its own stop: a reload changes them.
+            Socket::Udp(u) => {
+                let mut udps = started.udps.lock().expect("not poisoned");
+                udps.adopt(u, listening, stats.clone());
             }
-        })
-        .collect();
+        }
+    }
     // The dials run beside the listeners, on the tracker: the drain waits for the
     // replies their connections owe.
     let dialing = {

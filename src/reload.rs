@@ -22,6 +22,9 @@ use tracing::{error, info, warn};
 /// Runs the dials of a configuration (`[[dial]]`), as the masters' side does it.
 pub(crate) type RunDials = Box<dyn Fn(&[crate::config::dial::DialConfig]) + Send + Sync>;
 
+/// Runs the UDP listeners of a configuration (`[[listen]]` with `transport = "udp"`).
+pub(crate) type RunUdps = Box<dyn Fn(&[crate::config::ListenConfig]) -> Vec<String> + Send + Sync>;
+
 /// Reads the configuration again, as at start (the file, then the flags on top).
 pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 
@@ -161,6 +164,9 @@ pub(crate) struct Reloadable {
     /// Runs the dials of the configuration reloaded: adds, removes and changes them
     /// (the masters' side does it; the gateway hands it over).
     pub(crate) dials: RunDials,
+    /// Runs the UDP listeners of the configuration reloaded, and says what it could
+    /// not bind.
+    pub(crate) udps: RunUdps,
 }
 
 /// Reloads on each SIGHUP, and on each request of `mbgate reload` (`asked`), until
@@ -250,6 +256,9 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
         handle.retune(line, new.log.traffic)?;
     }
     (it.dials)(&new.dials);
+    for unbound in (it.udps)(&new.listeners()) {
+        error!("reload: {unbound}");
+    }
     let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {
         let changes = changes::changes(a, b, matched);
         changes.into_iter().map(|c| c.said).collect()

@@ -498,3 +498,88 @@ fn a_dial_speaks_rtu_over_tcp() {
     let counters = gw.stop();
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
+
+/// One datagram to `to` from a socket connected to it, and its reply; `Err` when
+/// nobody listens there (the ICMP port unreachable the kernel turns into
+/// ConnectionRefused).
+fn udp_transact(to: &str, req: &[u8]) -> std::io::Result<Vec<u8>> {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    s.connect(to)?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    s.send(req)?;
+    let mut buf = [0u8; 300];
+    let n = s.recv(&mut buf)?;
+    Ok(buf[..n].to_vec())
+}
+
+/// A port no UDP socket holds now.
+fn free_udp_port() -> u16 {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.local_addr().unwrap().port()
+}
+
+/// A reload changes a UDP listener (now read only), adds one and then removes one;
+/// the TCP listener is untouched throughout (its master keeps its connection).
+#[test]
+fn a_reload_adds_changes_and_removes_udp_listeners() {
+    let b = bench();
+    let (p1, p2) = (free_udp_port(), free_udp_port());
+    let (u1, u2) = (format!("127.0.0.1:{p1}"), format!("127.0.0.1:{p2}"));
+    let udp = |addr: &str, extra: &str| {
+        format!("[[listen]]\naddress = {addr:?}\ntransport = \"udp\"\n{extra}")
+    };
+    let file = b.dir.path().join("mbgate.toml");
+    let text = format!("{}{}", b.cfg, udp(&u1, ""));
+    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let mut m = gw.connect();
+    let write = write_req(7, 1, 150, &[42]);
+    let written = udp_transact(&u1, &write).unwrap();
+    assert_eq!(written[7], 0x10, "the write passes: {written:02X?}");
+    // u1 read only, u2 new.
+    std::fs::write(
+        &file,
+        format!(
+            "{}{}{}",
+            b.cfg,
+            udp(&u1, "read_only = true\n"),
+            udp(&u2, "")
+        ),
+    )
+    .unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log(
+        &format!("listen \"{u2} (UDP)\" (new in the file)"),
+        Duration::from_secs(10),
+    );
+    let denied = udp_transact(&u1, &write).unwrap();
+    assert_eq!(&denied[7..], [0x90, 0x01], "read only now: {denied:02X?}");
+    for to in [&u1, &u2] {
+        assert_eq!(
+            udp_transact(to, &read_req(3, 1, 150, 1)).unwrap(),
+            read_reply(3, 1, &[42])
+        );
+    }
+    assert!(gw
+        .log()
+        .contains(&format!("listen \"{u1} (UDP)\" changed (started again)")));
+    // u1 gone.
+    std::fs::write(&file, format!("{}{}", b.cfg, udp(&u2, ""))).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log(
+        &format!("listen \"{u1} (UDP)\" (gone from the file)"),
+        Duration::from_secs(10),
+    );
+    wait_for("u1 closed", Duration::from_secs(10), || {
+        udp_transact(&u1, &read_req(4, 1, 150, 1)).is_err()
+    });
+    assert_eq!(
+        udp_transact(&u2, &read_req(5, 1, 150, 1)).unwrap(),
+        read_reply(5, 1, &[42])
+    );
+    // The TCP master's connection went through both reloads.
+    assert_eq!(
+        transact(&mut m, &read_req(6, 1, 150, 1)),
+        read_reply(6, 1, &[42])
+    );
+    gw.stop();
+}

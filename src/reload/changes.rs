@@ -5,7 +5,7 @@
 //! `mbgate reload` say it. Plain data: nothing here touches the gateway.
 
 use crate::config::master::{MasterLine, Route};
-use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, KEYS};
+use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, Transport, KEYS};
 
 /// The keys a reload applies while the gateway runs: of each line (`[relay]` or
 /// `[line.relay]`), and of the gateway.
@@ -96,6 +96,15 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     c.log = read.log.clone();
     c.metrics = read.metrics.clone();
     c.dials = read.dials.clone();
+    // The UDP listeners are the file's; the TCP ones stay as they run.
+    let udp = |l: &ListenConfig| l.transport == Transport::Udp;
+    let read_udp: Vec<ListenConfig> = read.listeners().into_iter().filter(udp).collect();
+    if !(c.listeners.is_empty() && read_udp.is_empty()) {
+        let mut listeners: Vec<ListenConfig> =
+            c.listeners().into_iter().filter(|l| !udp(l)).collect();
+        listeners.extend(read_udp);
+        c.listeners = listeners;
+    }
     c
 }
 
@@ -287,12 +296,23 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
         ..Config::default()
     };
     let mut out = Vec::new();
+    // A UDP listener is added, removed or changed by a reload (docs/dialing.md).
+    let named = |l: &ListenConfig| match l.transport {
+        Transport::Udp => format!("{} (UDP)", at(l)),
+        Transport::Tcp => at(l).to_string(),
+    };
+    let said = |l: &ListenConfig, what: String| Change {
+        said: format!("listen \"{}\" {what}", named(l)),
+        reloadable: l.transport == Transport::Udp,
+    };
     for l in &la {
         match lb.iter().find(|m| same(l, m)) {
-            None => out.push(restart(format!(
-                "listen \"{}\" (gone from the file)",
-                at(l)
-            ))),
+            None => out.push(said(l, "(gone from the file)".into())),
+            Some(m) if l.transport == Transport::Udp => {
+                if l != m {
+                    out.push(said(m, "changed (started again)".into()));
+                }
+            }
             Some(m) => {
                 let (ca, cb) = (as_config(l), as_config(m));
                 for k in keys().filter(|k| k.name != "listen") {
@@ -318,7 +338,7 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
         }
     }
     for m in lb.iter().filter(|m| !la.iter().any(|l| same(l, m))) {
-        out.push(restart(format!("listen \"{}\" (new in the file)", at(m))));
+        out.push(said(m, "(new in the file)".into()));
     }
     out
 }

@@ -9,6 +9,7 @@
 //! sources at once; one quiet for `idle_timeout_ms` is forgotten.
 
 use super::{admit, Connection, Listening, Shared};
+use crate::config::{ListenConfig, Transport};
 use crate::frame::mbap::{decode_strict, MAX_ADU};
 use bytes::{Bytes, BytesMut};
 use std::collections::HashMap;
@@ -39,8 +40,7 @@ fn one_request(d: &[u8]) -> bool {
 }
 
 /// Takes datagrams on `socket` until shutdown.
-pub(crate) async fn datagram_loop(socket: UdpSocket, listening: Listening, shared: Shared) {
-    let socket = Arc::new(socket);
+pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, shared: Shared) {
     let Listening {
         listen,
         name,
@@ -118,6 +118,126 @@ pub(crate) async fn datagram_loop(socket: UdpSocket, listening: Listening, share
         });
     }
     debug!(%local, "UDP listener closed");
+}
+
+/// The UDP listeners running, as a reload finds them (docs/dialing.md "Reload"):
+/// each its configuration, its socket, the token that stops it and its counters.
+pub(crate) struct Udps {
+    shared: Shared,
+    board: Arc<crate::metrics::Board>,
+    running: Vec<RunningUdp>,
+}
+
+struct RunningUdp {
+    listen: ListenConfig,
+    socket: Arc<UdpSocket>,
+    stop: tokio_util::sync::CancellationToken,
+    stats: Arc<crate::stats::Stats>,
+}
+
+impl Udps {
+    pub(crate) fn new(shared: Shared, board: Arc<crate::metrics::Board>) -> Udps {
+        Udps {
+            shared,
+            board,
+            running: Vec::new(),
+        }
+    }
+
+    /// A UDP listener bound at start, served from now on with its counters `stats`.
+    pub(crate) fn adopt(
+        &mut self,
+        socket: UdpSocket,
+        listening: Listening,
+        stats: Arc<crate::stats::Stats>,
+    ) {
+        let listen = listening.listen.clone();
+        let socket = Arc::new(socket);
+        let stop = self.start(socket.clone(), listening, stats.clone());
+        self.running.push(RunningUdp {
+            listen,
+            socket,
+            stop,
+            stats,
+        });
+    }
+
+    fn start(
+        &self,
+        socket: Arc<UdpSocket>,
+        listening: Listening,
+        stats: Arc<crate::stats::Stats>,
+    ) -> tokio_util::sync::CancellationToken {
+        let stop = self.shared.shutdown.child_token();
+        let shared = Shared {
+            stats,
+            shutdown: stop.clone(),
+            ..self.shared.clone()
+        };
+        self.shared
+            .tracker
+            .spawn(datagram_loop(socket, listening, shared));
+        stop
+    }
+
+    /// The UDP listeners of `listeners` running, and no other: one unchanged keeps
+    /// its sources, one new is bound and started, one gone stops, one changed starts
+    /// again with its new settings on the same socket (its sources begin anew). What
+    /// it did, in words (a listener that cannot be bound is said and left out).
+    pub(crate) fn apply(&mut self, listeners: &[ListenConfig]) -> Vec<String> {
+        let mut said = Vec::new();
+        let mut old = std::mem::take(&mut self.running);
+        let udp = listeners.iter().filter(|l| l.transport == Transport::Udp);
+        for (i, l) in udp.enumerate() {
+            if let Some(p) = old.iter().position(|r| r.listen == *l) {
+                self.running.push(old.remove(p));
+                continue;
+            }
+            let name = format!("udp[{i}]");
+            let same_address = old.iter().position(|r| r.listen.tcp.listen == l.tcp.listen);
+            let (socket, stats) = match same_address {
+                Some(p) => {
+                    let r = old.remove(p);
+                    r.stop.cancel();
+                    (r.socket, r.stats)
+                }
+                None => match bind(l.tcp.listen) {
+                    Ok(s) => {
+                        let stats = Arc::<crate::stats::Stats>::default();
+                        self.board
+                            .add_listener(Arc::new(crate::metrics::ListenerMetrics {
+                                name: l.tcp.listen.to_string(),
+                                stats: stats.clone(),
+                            }));
+                        (Arc::new(s), stats)
+                    }
+                    Err(e) => {
+                        said.push(format!("cannot listen on {} (UDP): {e}", l.tcp.listen));
+                        continue;
+                    }
+                },
+            };
+            let local = socket.local_addr().unwrap_or(l.tcp.listen);
+            tracing::info!("listening on {local} (UDP) for Modbus/UDP masters");
+            let listening = Listening {
+                listen: l.clone(),
+                name,
+                local,
+                tls: None,
+            };
+            let stop = self.start(socket.clone(), listening, stats.clone());
+            self.running.push(RunningUdp {
+                listen: l.clone(),
+                socket,
+                stop,
+                stats,
+            });
+        }
+        for r in old {
+            r.stop.cancel();
+        }
+        said
+    }
 }
 
 /// A source's datagrams as the byte stream a connection reads: one datagram per read
