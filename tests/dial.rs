@@ -50,6 +50,22 @@ fn dial(port: u16, extra: &str) -> String {
     )
 }
 
+/// A gateway dialing a dial_server.py on a free port (the dial's extra keys
+/// `extra`), the server run to its end with `server` arguments beside `--listen` and
+/// `--identity`: the bench (kept alive), the gateway and what the server printed.
+fn dialed(extra: &str, server: &[&str]) -> (Bench, Gateway, String) {
+    let b = bench();
+    let port = free_port();
+    let text = format!("{}{}", b.cfg, dial(port, extra));
+    let gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let listen = format!("127.0.0.1:{port}");
+    let mut args = vec!["--listen", &listen, "--identity", "site-17"];
+    args.extend_from_slice(server);
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    (b, gw, out)
+}
+
 /// The server is not there yet (refused), then comes; it closes at once, sends
 /// garbage, closes before a reply, and at last serves: every reply it gets is right,
 /// the log warns of the outage once and says once that the dial is back.
@@ -89,24 +105,9 @@ fn a_dialed_master_is_served_through_refusals_garbage_and_hangups() {
 /// requests after them answered by value; the heartbeat came while no request did.
 #[test]
 fn echoes_of_the_identity_and_the_heartbeat_are_not_requests() {
-    let b = bench();
-    let port = free_port();
     let hb = "heartbeat = \"hex:ff fe 00 01\"\nheartbeat_ms = 300\n";
-    let text = format!("{}{}", b.cfg, dial(port, hb));
-    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
-    let listen = format!("127.0.0.1:{port}");
-    let args = [
-        "--listen",
-        &listen,
-        "--identity",
-        "site-17",
-        "--heartbeat",
-        "fffe0001",
-        "--round",
-        "echo",
-    ];
-    let (status, out) = Py::run("dial_server.py", &args);
-    assert!(status.success(), "{out}\n{}", gw.log());
+    let server = ["--heartbeat", "fffe0001", "--round", "echo"];
+    let (_b, mut gw, out) = dialed(hb, &server);
     assert!(out.contains("echo ok 10"), "{out}");
     let log = gw.log();
     assert!(!log.contains("protocol violation"), "{log}");
@@ -122,16 +123,7 @@ fn echoes_of_the_identity_and_the_heartbeat_are_not_requests() {
 /// masters: every value right; malformed datagrams dropped and counted, exactly.
 #[test]
 fn udp_masters_are_answered_and_malformed_datagrams_counted() {
-    let b = bench();
-    let text = format!(
-        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n",
-        b.cfg
-    );
-    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
-    let udp = udp_addr(&gw);
-    let port = udp.port().to_string();
-    let (status, out) = Py::run("udp_master.py", &["--port", &port, "--malformed", "5"]);
-    assert!(status.success(), "{out}\n{}", gw.log());
+    let (_b, mut gw, out) = udp_masters(&["--malformed", "5"]);
     assert!(out.contains("sync ok") && out.contains("async ok"), "{out}");
     let counters = gw.stop();
     assert_eq!(counters["datagrams_dropped"], 5, "{counters:?}");
@@ -143,15 +135,7 @@ fn udp_masters_are_answered_and_malformed_datagrams_counted() {
 /// rest dropped and counted.
 #[test]
 fn a_udp_flood_from_one_source_leaves_a_polite_master_its_share() {
-    let b = bench();
-    let text = format!(
-        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n",
-        b.cfg
-    );
-    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
-    let port = udp_addr(&gw).port().to_string();
-    let (status, out) = Py::run("udp_master.py", &["--port", &port, "--flood", "10000"]);
-    assert!(status.success(), "{out}\n{}", gw.log());
+    let (_b, mut gw, out) = udp_masters(&["--flood", "10000"]);
     assert!(out.contains("polite ok 40"), "{out}");
     let flood_replies: u64 = out
         .lines()
@@ -170,6 +154,23 @@ fn a_udp_flood_from_one_source_leaves_a_polite_master_its_share() {
         counters["requests"] <= 40 + 10_000 - counters["datagrams_dropped"],
         "{counters:?}"
     );
+}
+
+/// A gateway with a UDP listener, and tests/py/udp_master.py run against it to its end
+/// with `args`: the bench (kept alive), the gateway and what the masters printed.
+fn udp_masters(args: &[&str]) -> (Bench, Gateway, String) {
+    let b = bench();
+    let text = format!(
+        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n",
+        b.cfg
+    );
+    let gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
+    let port = udp_addr(&gw).port().to_string();
+    let mut all = vec!["--port", &port];
+    all.extend_from_slice(args);
+    let (status, out) = Py::run("udp_master.py", &all);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    (b, gw, out)
 }
 
 /// The UDP listener's address, as the log says it.
@@ -230,6 +231,14 @@ impl Server {
             }
         }
         panic!("no {what:?} from dial_server.py; it said {:?}", self.said);
+    }
+
+    /// On 127.0.0.1:`port`, the identity `site-17`, and `args`.
+    fn at(port: u16, args: &[&str]) -> Server {
+        let listen = format!("127.0.0.1:{port}");
+        let mut all = vec!["--listen", &listen, "--identity", "site-17"];
+        all.extend_from_slice(args);
+        Server::start(&all)
     }
 
     fn go_on(&mut self) {
@@ -360,20 +369,8 @@ fn a_tls_dial_checks_the_server_and_takes_its_role_from_its_certificate() {
 fn a_server_that_never_reads_is_given_up_and_dialed_again() {
     let b = bench();
     let port = free_port();
-    let listen = format!("127.0.0.1:{port}");
-    let args = [
-        "--listen",
-        &listen,
-        "--identity",
-        "site-17",
-        "--rcvbuf",
-        "4096",
-        "--round",
-        "deaf",
-        "--round",
-        "serve",
-    ];
-    let mut server = Server::start(&args);
+    let args = ["--rcvbuf", "4096", "--round", "deaf", "--round", "serve"];
+    let mut server = Server::at(port, &args);
     let text = format!("{}{}", b.cfg, dial(port, "connect_timeout_ms = 1000\n"));
     let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
     server.expect("deaf sent");
@@ -399,15 +396,7 @@ fn fifty_server_restarts_under_load_leave_nothing_behind() {
     let b = bench();
     let port = free_port();
     let listen = format!("127.0.0.1:{port}");
-    let args = [
-        "--listen",
-        &listen,
-        "--identity",
-        "site-17",
-        "--restarts",
-        "50",
-    ];
-    let mut server = Server::start(&args);
+    let mut server = Server::at(port, &["--restarts", "50"]);
     let text = format!(
         "{}[[dial]]\naddress = \"{listen}\"\nidentity = \"site-17\"\n\
          backoff_min_ms = 20\nbackoff_max_ms = 200\n",
@@ -477,23 +466,8 @@ fn fifty_server_restarts_under_load_leave_nothing_behind() {
 /// every reply checked by value.
 #[test]
 fn a_dial_speaks_rtu_over_tcp() {
-    let b = bench();
-    let port = free_port();
-    let text = format!("{}{}", b.cfg, dial(port, "framing = \"rtu\"\n"));
-    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
-    let listen = format!("127.0.0.1:{port}");
-    let args = [
-        "--listen",
-        &listen,
-        "--identity",
-        "site-17",
-        "--framer",
-        "rtu",
-        "--round",
-        "serve",
-    ];
-    let (status, out) = Py::run("dial_server.py", &args);
-    assert!(status.success(), "{out}\n{}", gw.log());
+    let server = ["--framer", "rtu", "--round", "serve"];
+    let (_b, mut gw, out) = dialed("framing = \"rtu\"\n", &server);
     assert!(out.contains("serve ok 10"), "{out}");
     let counters = gw.stop();
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
