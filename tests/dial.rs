@@ -30,7 +30,7 @@ fn bench() -> Bench {
         "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", flow_control = \"none\", baud_rate = 4000000 }}\n\
          relay = {{ response_timeout_ms = 5000 }}\n\
          [[listen]]\naddress = \"127.0.0.1:0\"\n\
-         [log]\nlevel = \"debug\"\n",
+         [log]\nlevel = \"debug\"\n[metrics]\nlisten = \"127.0.0.1:0\"\n",
         socat.gw.to_str().unwrap()
     );
     Bench {
@@ -426,6 +426,11 @@ fn fifty_server_restarts_under_load_leave_nothing_behind() {
     };
     server.expect("held");
     let (fds_before, mem_before) = (fds(&gw), mem(&gw));
+    // The dialed master on the metrics as a listener's, beside the accepted one.
+    let metrics = gw.http_get("/metrics");
+    let dialed = format!("mbgate_listener_masters{{listener=\"dial {listen}\"}} 1");
+    assert!(metrics.contains(&dialed), "{metrics}");
+    assert_eq!(gw.metric("mbgate_listener_masters"), 2.0, "{metrics}");
     server.go_on();
     server.expect("held");
     // The last connection held, and said so: each of the 50 restarts and the first
