@@ -4,7 +4,7 @@
 //!
 //! `cargo bench --bench gateway [-- SCENARIO...]`, SCENARIO one of `latency`, `wire`,
 //! `fairness`, `footprint`, `rtu`, `rtu-backoff`, `rtu-limit`, `coalesce`, `tcp-line`,
-//! `rtu-listener`, `metrics`, `tls`, `capture`, `scale`, `units` (all when none is named). `rtu-limit`
+//! `rtu-listener`, `dial`, `metrics`, `tls`, `capture`, `scale`, `units` (all when none is named). `rtu-limit`
 //! compares with mbusd given `MBUSD=/path/to/mbusd`; `MBGATE_BENCH_BASELINE=PATH` names
 //! another mbgate build (e.g. the commit before a change) that `coalesce` measures
 //! beside this one. `scripts/bench` runs this and
@@ -32,6 +32,8 @@ mod shared;
 mod capture;
 #[path = "gateway/coalesce.rs"]
 mod coalesce;
+#[path = "gateway/dial.rs"]
+mod dial;
 #[path = "gateway/fairness.rs"]
 mod fairness;
 #[path = "gateway/footprint.rs"]
@@ -70,7 +72,7 @@ fn main() {
         .filter(|a| a != "--bench")
         .collect();
     // Each scenario by the name that picks it, in the order they run.
-    let all: [(&str, Scenario); 15] = [
+    let all: [(&str, Scenario); 16] = [
         ("latency", latency::latency),
         ("wire", wire::wire),
         ("fairness", fairness::fairness),
@@ -81,6 +83,7 @@ fn main() {
         ("coalesce", coalesce::coalesce),
         ("tcp-line", tcp_line::tcp_line),
         ("rtu-listener", rtu_listener::rtu_listener),
+        ("dial", dial::dial),
         ("metrics", metrics::metrics_cost),
         ("tls", tls::tls),
         ("capture", capture::capture_cost),

@@ -2,20 +2,21 @@
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see `crate::notify`).
 
-use crate::config::{Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications};
+use crate::config::{
+    Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications, Transport,
+};
 use crate::metrics::{self, Board, ListenerMetrics};
 use crate::notify;
 use crate::relay::{Relay, RelayHandle};
 use crate::reload;
 use crate::router::Router;
 use crate::stats::Stats;
-use crate::tcp;
+use crate::tcp::{self, Socket};
 use crate::tls::server::Acceptor;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
-use tokio::net::TcpListener;
 use tokio::signal::unix::SignalKind;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
@@ -91,7 +92,7 @@ pub async fn run_reloading(
 
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
-pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError> {
+pub(crate) async fn bind(cfg: &Config) -> Result<Vec<Socket>, GatewayError> {
     if !cfg.serves_masters() {
         // Every line's device is a master: nothing for a Modbus/TCP master to reach.
         return Ok(Vec::new());
@@ -99,7 +100,11 @@ pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError>
     let max_pending = cfg.max_pending_per_connection();
     let bind = |l: ListenConfig| {
         let addr = l.tcp.listen;
-        tcp::listen(addr, max_pending).map_err(|error| GatewayError::Bind { addr, error })
+        let bound = match l.transport {
+            Transport::Tcp => tcp::listen(addr, max_pending).map(Socket::Tcp),
+            Transport::Udp => tcp::udp::bind(addr).map(Socket::Udp),
+        };
+        bound.map_err(|error| GatewayError::Bind { addr, error })
     };
     cfg.listeners().into_iter().map(bind).collect()
 }
@@ -107,7 +112,7 @@ pub(crate) async fn bind(cfg: &Config) -> Result<Vec<TcpListener>, GatewayError>
 /// [`run`] on listeners already bound (`mbgate demo` prints their addresses first),
 /// one for each of `cfg.listeners()`.
 pub(crate) async fn serve(
-    listeners: Vec<TcpListener>,
+    listeners: Vec<Socket>,
     cfg: Config,
     shutdown: CancellationToken,
 ) -> Result<Arc<Stats>, GatewayError> {
@@ -118,7 +123,7 @@ pub(crate) async fn serve(
 /// the lines and everything beside them started ([`start`]), the masters served until
 /// shutdown ([`accept`]), and the drain ([`drain`]).
 async fn serve_with(
-    listeners: Vec<TcpListener>,
+    listeners: Vec<Socket>,
     cfg: Config,
     load: Option<reload::Loader>,
     shutdown: CancellationToken,
@@ -131,11 +136,11 @@ async fn serve_with(
 }
 
 /// A listener bound, and what its accept loop is told about it.
-type Bound = (TcpListener, tcp::Listening);
+type Bound = (Socket, tcp::Listening);
 
 /// Bind, second half: each bound listener with its name in the file, its real address
 /// (port 0 is a real port by now) and its TLS acceptor, whose files are read here.
-fn listening(listeners: Vec<TcpListener>, cfg: &Config) -> Result<Vec<Bound>, GatewayError> {
+fn listening(listeners: Vec<Socket>, cfg: &Config) -> Result<Vec<Bound>, GatewayError> {
     let mut bound = Vec::new();
     for (i, (listener, listen)) in listeners.into_iter().zip(cfg.listeners()).enumerate() {
         let local = listener.local_addr().map_err(|error| GatewayError::Bind {
@@ -169,10 +174,14 @@ struct Started {
     running: Arc<Mutex<Config>>,
     cfg: Arc<Config>,
     capture: crate::capture::Capture,
-    board: Arc<Board>,
-    router: Arc<Router>,
     /// Each listener's counters, in the order of `bound`.
     listener_stats: Vec<Arc<Stats>>,
+    /// What every master's connection shares (its tracker the drain waits on).
+    shared: tcp::Shared,
+    /// The dials running (a reload changes them).
+    dials: Arc<Mutex<tcp::dial::Dials>>,
+    /// The UDP listeners running (a reload changes them).
+    udps: Arc<Mutex<tcp::udp::Udps>>,
     /// Every listener's and line's counters: the totals add them up.
     counted: Vec<Arc<Stats>>,
     /// The lines' tasks, running.
@@ -218,6 +227,28 @@ async fn start(
     counted.extend(lines.stats);
     let http = start_metrics(&cfg, &board, shutdown)?;
     let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
+    // What every master's connection shares, and the tracker the drain waits on.
+    let tracker = TaskTracker::new();
+    let shared = tcp::Shared {
+        cfg: cfg.clone(),
+        running: running.clone(),
+        router: router.clone(),
+        stats: Arc::default(),
+        shutdown: shutdown.clone(),
+        tracker: tracker.clone(),
+        ids: Arc::new(AtomicU64::new(0)),
+        masters: board.masters.clone(),
+        capture: capture.hub().clone(),
+    };
+    let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
+        shared.clone(),
+        board.clone(),
+    )));
+    // The dials start with the listeners ([`accept`]); a reload changes them.
+    let dials = Arc::new(Mutex::new(tcp::dial::Dials::new(
+        shared.clone(),
+        board.clone(),
+    )));
     // Before "listening on", as the other handlers: a reload asked for at once finds
     // its handler, never SIGHUP's default action (the end of the process).
     let hup = load.and_then(hangup);
@@ -236,6 +267,14 @@ async fn start(
             // the rest of it.
             acceptors: bound.iter().filter_map(|(_, l)| l.tls.clone()).collect(),
             counted: board.reloads.clone(),
+            dials: {
+                let dials = dials.clone();
+                Box::new(move |d| dials.lock().expect("not poisoned").apply(d))
+            },
+            udps: {
+                let udps = udps.clone();
+                Box::new(move |l| udps.lock().expect("not poisoned").apply(l))
+            },
         };
         tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
     }
@@ -250,11 +289,12 @@ async fn start(
         running,
         cfg,
         capture,
-        board,
-        router,
         listener_stats,
         counted,
         line_tasks,
+        shared,
+        dials,
+        udps,
     })
 }
 
@@ -372,11 +412,17 @@ fn announce(cfg: &Config, bound: &[Bound]) {
         info!("line {}", crate::config::describe::line(line));
     }
     for (_, l) in bound {
-        let masters = crate::config::describe::masters(l.listen.framing);
+        let masters = match l.listen.transport {
+            Transport::Tcp => crate::config::describe::masters(l.listen.framing),
+            Transport::Udp => "Modbus/UDP masters (UDP)",
+        };
         info!(serial = %devices, "listening on {} for {masters}", l.local);
         for said in crate::config::effective_access(&l.listen, &cfg.roles) {
             info!("{}: {said}", l.name);
         }
+    }
+    for (i, d) in cfg.dials.iter().enumerate() {
+        info!("dial[{i}]: {}", crate::config::dial::describe(d));
     }
     let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
     notify::ready(&match addrs.is_empty() {
@@ -388,29 +434,33 @@ fn announce(cfg: &Config, bound: &[Bound]) {
 /// Serve: every listener's accept loop (there may be none) until shutdown; the
 /// connections they started are on the tracker returned.
 async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTracker {
-    let tracker = TaskTracker::new();
-    let shared = tcp::Shared {
-        cfg: started.cfg.clone(),
-        running: started.running.clone(),
-        router: started.router.clone(),
-        stats: Arc::default(),
-        shutdown: shutdown.clone(),
-        tracker: tracker.clone(),
-        ids: Arc::new(AtomicU64::new(0)),
-        masters: started.board.masters.clone(),
-        capture: started.capture.hub().clone(),
+    let shared = started.shared.clone();
+    let tracker = shared.tracker.clone();
+    let mut accepting = Vec::new();
+    let bound = std::mem::take(&mut started.bound);
+    for ((listener, listening), stats) in bound.into_iter().zip(&started.listener_stats) {
+        let shared = tcp::Shared {
+            stats: stats.clone(),
+            ..shared.clone()
+        };
+        match listener {
+            Socket::Tcp(l) => accepting.push(tokio::spawn(tcp::accept_loop(l, listening, shared))),
+            // On the tracker, each with its own stop: a reload changes them.
+            Socket::Udp(u) => {
+                let mut udps = started.udps.lock().expect("not poisoned");
+                udps.adopt(u, listening, stats.clone());
+            }
+        }
+    }
+    // The dials run beside the listeners, on the tracker: the drain waits for the
+    // replies their connections owe.
+    let dialing = {
+        let mut dials = started.dials.lock().expect("not poisoned");
+        dials.apply(&started.cfg.dials);
+        dials.stats()
     };
-    let accepting: Vec<_> = std::mem::take(&mut started.bound)
-        .into_iter()
-        .zip(&started.listener_stats)
-        .map(|((listener, listening), stats)| {
-            let shared = tcp::Shared {
-                stats: stats.clone(),
-                ..shared.clone()
-            };
-            tokio::spawn(tcp::accept_loop(listener, listening, shared))
-        })
-        .collect();
+    // Their counters in the totals (a dial a reload adds later is on the metrics).
+    started.counted.extend(dialing);
     for accept in accepting {
         let _ = accept.await;
     }

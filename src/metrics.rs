@@ -319,8 +319,9 @@ pub(crate) struct MasterSeen {
     pub(crate) conn: u64,
     /// The listener's address (the `listener` label).
     pub(crate) listener: String,
-    /// The listener's address as configured (what a reload finds it by).
-    pub(crate) listen_at: std::net::SocketAddr,
+    /// What it came by, as configured: an accepted connection's or a UDP source's
+    /// listener, or a dial (what a reload finds its priority class by).
+    pub(crate) source: std::sync::Arc<crate::config::ListenConfig>,
     pub(crate) peer: std::net::SocketAddr,
     /// When it connected, seconds since the Unix epoch.
     pub(crate) since: f64,

@@ -19,6 +19,12 @@ use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
+/// Runs the dials of a configuration (`[[dial]]`), as the masters' side does it.
+pub(crate) type RunDials = Box<dyn Fn(&[crate::config::dial::DialConfig]) + Send + Sync>;
+
+/// Runs the UDP listeners of a configuration (`[[listen]]` with `transport = "udp"`).
+pub(crate) type RunUdps = Box<dyn Fn(&[crate::config::ListenConfig]) -> Vec<String> + Send + Sync>;
+
 /// Reads the configuration again, as at start (the file, then the flags on top).
 pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 
@@ -159,6 +165,12 @@ pub(crate) struct Reloadable {
     pub(crate) acceptors: Vec<Arc<Acceptor>>,
     /// Where the metrics count the reloads and say how the last went.
     pub(crate) counted: Arc<crate::metrics::Reloads>,
+    /// Runs the dials of the configuration reloaded: adds, removes and changes them
+    /// (the masters' side does it; the gateway hands it over).
+    pub(crate) dials: RunDials,
+    /// Runs the UDP listeners of the configuration reloaded, and says what it could
+    /// not bind.
+    pub(crate) udps: RunUdps,
 }
 
 /// Reloads on each SIGHUP, and on each request of `mbgate reload` (`asked`), until
@@ -248,6 +260,10 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
     for (handle, line) in it.lines.iter().zip(new.lines()) {
         handle.retune(line, new.log.traffic)?;
     }
+    (it.dials)(&new.dials);
+    for unbound in (it.udps)(&new.listeners()) {
+        error!("reload: {unbound}");
+    }
     let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {
         let changes = changes::changes(a, b, matched);
         changes.into_iter().map(|c| c.said).collect()
@@ -269,7 +285,7 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
 fn reclassify(running: &Config, masters: &crate::metrics::Masters, lines: &[LineHandle]) {
     for m in masters.list() {
         let role = m.tls.as_ref().map(|(role, _)| role.as_str());
-        let class = running.priority_of(m.listen_at, role);
+        let class = running.priority_of(&m.source, role);
         for line in lines {
             if let LineHandle::Relay(relay) = line {
                 let _ = relay.send(Command::Priority {

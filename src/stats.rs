@@ -49,6 +49,7 @@ counters! {
     tls_refused: "TLS masters closed after the handshake: their certificate carried no role (and the listener has no `default_role`), a role no `[[role]]` names, or a malformed role.",
     denied: "Requests answered 0x01 without reaching the line: the listener's or the master's role's access rules do not permit them.",
     protocol_violations: "Connections closed for a frame that failed the strict MBAP checks.",
+    datagrams_dropped: "UDP datagrams dropped: not exactly one MBAP request, beyond their source's share, or from a source past `max_connections`.",
     requests: "Requests handed to the relay.",
     replies: "Device replies delivered to masters (one reply to reads joined together counts once for each master).",
     coalesced: "Reads that joined an identical read waiting for the line (`coalesce`): answered by its transaction.",

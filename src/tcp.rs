@@ -43,8 +43,11 @@ use tracing::{debug, info, warn};
 
 mod admit;
 mod codec;
+pub(crate) mod dial;
+mod echo;
 mod handshakes;
 mod rtu;
+pub(crate) mod udp;
 
 use codec::MasterCodec;
 
@@ -63,10 +66,32 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
     };
     // As `TcpListener::bind` does.
     socket.set_reuseaddr(true)?;
-    let room = outbox::capacity(max_pending) * MAX_ADU;
-    socket.set_send_buffer_size(u32::try_from(room).unwrap_or(u32::MAX))?;
+    socket.set_send_buffer_size(send_buffer(max_pending))?;
     socket.bind(addr)?;
     socket.listen(1024)
+}
+
+/// A listener's socket: TCP, or UDP (`tcp/udp.rs`).
+pub(crate) enum Socket {
+    Tcp(TcpListener),
+    Udp(tokio::net::UdpSocket),
+}
+
+impl Socket {
+    /// The address it is bound to (port 0 is a real port by now).
+    pub(crate) fn local_addr(&self) -> std::io::Result<SocketAddr> {
+        match self {
+            Socket::Tcp(l) => l.local_addr(),
+            Socket::Udp(u) => u.local_addr(),
+        }
+    }
+}
+
+/// The send buffer of a master's socket: room for every reply it can be owed
+/// ([`listen`] says why no more).
+pub(crate) fn send_buffer(max_pending: usize) -> u32 {
+    let room = outbox::capacity(max_pending) * MAX_ADU;
+    u32::try_from(room).unwrap_or(u32::MAX)
 }
 
 /// What every listener's connections share: the configuration, the lines, the
@@ -105,16 +130,11 @@ pub(crate) struct Listening {
 /// logged at most once a minute per source and reason, with counts ([`admit::Refusals`]).
 pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, shared: Shared) {
     let Shared {
-        cfg,
-        running,
-        router,
         stats,
         shutdown,
         tracker,
-        ids,
-        masters,
-        capture,
-    } = shared;
+        ..
+    } = shared.clone();
     let Listening {
         listen,
         name,
@@ -164,21 +184,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             debug!(%peer, "TCP_NODELAY: {e}");
         }
         stats.add(&stats.connections, 1);
-        let conn = Connection {
-            id: ids.fetch_add(1, Ordering::Relaxed) + 1,
-            peer,
-            cfg: cfg.clone(),
-            running: running.clone(),
-            listen: listen.clone(),
-            router: router.clone(),
-            stats: stats.clone(),
-            shutdown: shutdown.clone(),
-            masters: masters.clone(),
-            local,
-            grant: None,
-            capture: capture.clone(),
-            tap: capture.tap(0),
-        };
+        let conn = Connection::new(&shared, listen.clone(), peer, local);
         let closed = stats.clone();
         match (&tls, slot) {
             (Some(acceptor), _) => {
@@ -356,19 +362,59 @@ struct Connection {
     capture: Hub,
     /// The TCP side's tap.
     tap: Tap,
+    /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
+    /// its identity the server may send back (docs/dialing.md).
+    dialed: Option<Dialed>,
+}
+
+/// What a dialed connection sends of its own, and the echoes it may get back.
+struct Dialed {
+    /// Sent after `every` without a reply written; empty: never.
+    heartbeat: Vec<u8>,
+    every: Duration,
+    echoes: Mutex<echo::Echoes>,
+    /// How long the server may leave a reply unread before the connection is closed
+    /// (and dialed again): never for ever, since mbgate has no other way to it.
+    stall: Duration,
 }
 
 /// Why a connection's reader stopped.
 enum End {
-    /// The socket failed, the master broke the protocol, or it was idle too long:
-    /// close now.
-    Closed,
+    /// The socket failed, the master broke the protocol, or it was idle too long
+    /// (said in the words given): close now.
+    Closed(String),
     /// No more requests will be read (the master shut down its sending side, or the
     /// gateway is shutting down): write the replies still owed, then close.
     Finish,
 }
 
 impl Connection {
+    /// A master's connection from any source (accepted, dialed, a UDP source), with
+    /// a new id: `listen` says what its requests may do, `local` is our end.
+    fn new(
+        shared: &Shared,
+        listen: Arc<ListenConfig>,
+        peer: SocketAddr,
+        local: SocketAddr,
+    ) -> Connection {
+        Connection {
+            id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
+            peer,
+            cfg: shared.cfg.clone(),
+            running: shared.running.clone(),
+            listen,
+            router: shared.router.clone(),
+            stats: shared.stats.clone(),
+            shutdown: shared.shutdown.clone(),
+            masters: shared.masters.clone(),
+            local,
+            grant: None,
+            capture: shared.capture.clone(),
+            tap: shared.capture.tap(0),
+            dialed: None,
+        }
+    }
+
     /// The TLS handshake within its `turn` of the listener's budget, then, with a
     /// connection slot (taken only now: a peer that never authenticates never holds
     /// one), the master served. A handshake that must make room for a newer one ends
@@ -407,15 +453,20 @@ impl Connection {
         drop(slot);
     }
 
-    /// The listener's framing chosen once: the rest is written over its codec.
-    async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
+    /// The listener's framing chosen once: the rest is written over its codec. Why
+    /// the connection ended, in words.
+    async fn run(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) -> String {
         match self.listen.framing {
             ListenFraming::Mbap => self.serve::<codec::Mbap>(rd, wr).await,
             ListenFraming::Rtu => self.serve::<codec::Rtu>(rd, wr).await,
         }
     }
 
-    async fn serve<C: MasterCodec>(self, rd: impl AsyncRead + Unpin, wr: impl AsyncWrite + Unpin) {
+    async fn serve<C: MasterCodec>(
+        self,
+        rd: impl AsyncRead + Unpin,
+        wr: impl AsyncWrite + Unpin,
+    ) -> String {
         let framing = C::NAME;
         // At debug: a SCADA that connects for each poll would fill the journal at info;
         // the connections are counted (mbgate_listener_connections_total) and the
@@ -435,7 +486,7 @@ impl Connection {
         self.masters.add(MasterSeen {
             conn: self.id,
             listener: self.local.to_string(),
-            listen_at: self.listen.tcp.listen,
+            source: self.listen.clone(),
             peer: self.peer,
             since: std::time::SystemTime::now()
                 .duration_since(std::time::UNIX_EPOCH)
@@ -462,15 +513,20 @@ impl Connection {
         {
             let running = self.running.lock().expect("not poisoned");
             let role = self.grant.as_ref().map(|g| g.role.as_str());
-            let class = running.priority_of(self.listen.tcp.listen, role);
+            let class = running.priority_of(&self.listen, role);
             self.router.classify(self.id, class);
         }
+        let mut why = "notifications have no way to this master".to_owned();
         if attached {
             let writer = self.write_loop::<C>(wr, inbox);
             tokio::pin!(writer);
             let end = tokio::select! {
                 end = self.read_loop::<C>(rd, &mut outbox) => end,
-                _ = &mut writer => End::Closed,
+                w = &mut writer => End::Closed(w),
+            };
+            why = match &end {
+                End::Closed(w) => w.clone(),
+                End::Finish => "the master closed its side (or mbgate is stopping)".to_owned(),
             };
             if let End::Finish = end {
                 // The relay answers every request it was given: at once when the
@@ -492,6 +548,7 @@ impl Connection {
         self.masters.remove(self.id);
         self.capture.forget(self.id);
         debug!(conn = self.id, peer = %self.peer, "master disconnected");
+        why
     }
 
     async fn read_loop<C: MasterCodec>(
@@ -513,7 +570,12 @@ impl Connection {
         // the token and dropped again at every request.
         let mut shutdown = Woken::new(self.shutdown.cancelled());
         loop {
-            match codec.decode(&mut buf) {
+            let decoded = match self.echo_in(&mut buf) {
+                echo::Strip::Took => continue,
+                echo::Strip::Wait => Ok(None),
+                echo::Strip::Not => codec.decode(&mut buf),
+            };
+            match decoded {
                 Ok(Some(adu)) => {
                     // One pipelining slot per request: with none free, stop reading
                     // and let TCP push back on the master.
@@ -544,7 +606,7 @@ impl Connection {
                     }
                     self.stats.add(&self.stats.protocol_violations, 1);
                     warn!(conn = self.id, peer = %self.peer, "protocol violation: {e}; closing the connection");
-                    return End::Closed;
+                    return End::Closed(format!("protocol violation: {e}"));
                 }
             }
             let pause = codec.ended_by_pause(&buf);
@@ -567,7 +629,7 @@ impl Connection {
                     Ok(_) => last_read = Instant::now(),
                     Err(e) => {
                         debug!(conn = self.id, "read failed: {e}");
-                        return End::Closed;
+                        return End::Closed(format!("read failed: {e}"));
                     }
                 },
                 _ = &mut idle_timer, if !idle.is_zero() => {
@@ -581,7 +643,7 @@ impl Connection {
                         None => now + idle,
                         Some(at) if now >= at => {
                             info!(conn = self.id, peer = %self.peer, "idle timeout; closing the connection");
-                            return End::Closed;
+                            return End::Closed(format!("no request for {} ms (idle_timeout_ms)", idle.as_millis()));
                         }
                         Some(at) => at,
                     };
@@ -654,52 +716,124 @@ impl Connection {
         }
     }
 
-    /// Writes the master's replies in the order of its requests, and notifications as
-    /// they come. A master that stops reading its replies for `idle_timeout_ms` is
-    /// closed, so it cannot hold a connection slot for ever.
-    async fn write_loop<C: MasterCodec>(&self, mut wr: impl AsyncWrite + Unpin, mut inbox: Inbox) {
-        let stall = Duration::from_millis(self.listen.tcp.idle_timeout_ms);
-        while let Some(out) = inbox.next().await {
-            if self.cfg.log.traffic {
-                debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu.as_bytes()));
-            }
-            if self.tap.on() {
-                self.captured::<C>(&out.adu, Dir::Out, "gw->master");
-            }
-            if !C::answers(&out.adu) {
-                debug!(
-                    conn = self.id,
-                    "answer to a broadcast (unit 0): not written"
-                );
-                continue;
-            }
-            let frame = C::frame(&out.adu);
-            // Flushed: a TLS stream holds what it could not send at once until then.
-            let write = async {
-                wr.write_all(&frame).await?;
-                wr.flush().await
-            };
-            let mut write = std::pin::pin!(write);
-            // Nearly every reply goes out at once, and needs no timer (each would read
-            // the clock): the stall's timer starts only for one the socket cannot take.
-            let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
-            let result = match first {
-                Poll::Ready(r) => r,
-                Poll::Pending if stall.is_zero() => write.await,
-                Poll::Pending => match tokio::time::timeout(stall, write).await {
-                    Ok(r) => r,
-                    Err(_) => {
-                        info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
-                        return;
-                    }
-                },
-            };
-            if let Err(e) = result {
-                debug!(conn = self.id, "write failed: {e}");
-                return;
-            }
-            // `out` drops here: a reply's pipelining slot is free again, and the idle
-            // clock starts from now.
+    /// A dialed connection's echoes at the front of `buf` (docs/dialing.md).
+    fn echo_in(&self, buf: &mut BytesMut) -> echo::Strip {
+        let Some(d) = &self.dialed else {
+            return echo::Strip::Not;
+        };
+        let strip = d.echoes.lock().expect("not poisoned").strip(buf);
+        if let echo::Strip::Took = strip {
+            debug!(
+                conn = self.id,
+                "the server echoed a heartbeat or the identity: dropped"
+            );
         }
+        strip
+    }
+
+    /// Writes the master's replies in the order of its requests, and notifications as
+    /// they come; on a dialed connection with a heartbeat, the heartbeat whenever no
+    /// reply was written for its interval. A master that stops reading its replies
+    /// for `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
+    /// Why it stopped, in words.
+    async fn write_loop<C: MasterCodec>(
+        &self,
+        mut wr: impl AsyncWrite + Unpin,
+        mut inbox: Inbox,
+    ) -> String {
+        let beat = self.dialed.as_ref().filter(|d| !d.heartbeat.is_empty());
+        let Some(beat) = beat else {
+            while let Some(out) = inbox.next().await {
+                if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                    return why;
+                }
+                // `out` drops here: a reply's pipelining slot is free again, and the
+                // idle clock starts from now.
+            }
+            return "the connection's replies ended".to_owned();
+        };
+        // One timer for the connection's life, moved at each reply and each beat.
+        let timer = tokio::time::sleep(beat.every);
+        tokio::pin!(timer);
+        loop {
+            tokio::select! {
+                out = inbox.next() => {
+                    let Some(out) = out else {
+                        return "the connection's replies ended".to_owned();
+                    };
+                    if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                        return why;
+                    }
+                }
+                _ = &mut timer => {
+                    beat.echoes.lock().expect("not poisoned").beat();
+                    debug!(conn = self.id, "heartbeat");
+                    if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat).await {
+                        return why;
+                    }
+                }
+            }
+            timer.as_mut().reset(Instant::now() + beat.every);
+        }
+    }
+
+    /// One reply or notification written (logged and captured first); `Err`: why the
+    /// connection must close.
+    async fn write_reply<C: MasterCodec>(
+        &self,
+        wr: &mut (impl AsyncWrite + Unpin),
+        adu: &Adu,
+    ) -> Result<(), String> {
+        if self.cfg.log.traffic {
+            debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(adu.as_bytes()));
+        }
+        if self.tap.on() {
+            self.captured::<C>(adu, Dir::Out, "gw->master");
+        }
+        if !C::answers(adu) {
+            debug!(
+                conn = self.id,
+                "answer to a broadcast (unit 0): not written"
+            );
+            return Ok(());
+        }
+        self.write_bytes(wr, &C::frame(adu)).await
+    }
+
+    /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take
+    /// it at once.
+    async fn write_bytes(
+        &self,
+        wr: &mut (impl AsyncWrite + Unpin),
+        frame: &[u8],
+    ) -> Result<(), String> {
+        let stall = match &self.dialed {
+            Some(d) => d.stall,
+            None => Duration::from_millis(self.listen.tcp.idle_timeout_ms),
+        };
+        // Flushed: a TLS stream holds what it could not send at once until then.
+        let write = async {
+            wr.write_all(frame).await?;
+            wr.flush().await
+        };
+        let mut write = std::pin::pin!(write);
+        // Nearly every reply goes out at once, and needs no timer (each would read
+        // the clock): the stall's timer starts only for one the socket cannot take.
+        let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
+        let result = match first {
+            Poll::Ready(r) => r,
+            Poll::Pending if stall.is_zero() => write.await,
+            Poll::Pending => match tokio::time::timeout(stall, write).await {
+                Ok(r) => r,
+                Err(_) => {
+                    info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
+                    return Err("the master stopped reading its replies".to_owned());
+                }
+            },
+        };
+        result.map_err(|e| {
+            debug!(conn = self.id, "write failed: {e}");
+            format!("write failed: {e}")
+        })
     }
 }

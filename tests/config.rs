@@ -922,6 +922,11 @@ fn the_tables_inside_lines_and_listeners_follow_their_declarations() {
         ("in a `[[line.route]]`", declared(ROUTE_KEYS)),
         ("in a `[[line.unit]]`", declared(UNIT_KEYS)),
         ("in a `[[listen]]`", declared(LISTEN_KEYS)),
+        ("in a `[[dial]]`", declared(mbgate::config::dial::DIAL_KEYS)),
+        (
+            "in a `[[dial]]`'s `tls`",
+            declared(mbgate::config::dial::DIAL_TLS_KEYS),
+        ),
         ("in a listener's `tls`", declared(LISTEN_TLS_KEYS)),
         ("in a `[[role]]`", declared(ROLE_KEYS)),
         ("in a `write` rule", declared(RULE_KEYS)),

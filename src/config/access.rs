@@ -20,7 +20,7 @@
 //! ```
 
 use super::raw::read_table;
-use super::{table, Check, Key, ListenFraming, Raw, Setting, ValueError, ValueKind};
+use super::{table, Check, Key, ListenFraming, Raw, Setting, Transport, ValueError, ValueKind};
 use super::{Any, NonEmpty, Range};
 use crate::access::{AllowList, Net, Policy, UnitSet, WriteRule};
 use crate::frame::function::FunctionCode;
@@ -30,7 +30,7 @@ use std::path::PathBuf;
 /// this.
 pub(crate) const PRIORITY_MAX: u8 = 7;
 /// A listener's or a role's `priority`.
-const PRIORITY: Check = Range(
+pub(super) const PRIORITY: Check = Range(
     0,
     PRIORITY_MAX as i128,
     Some("0 (the default, the lowest) to 7"),
@@ -42,6 +42,8 @@ table! {
     ["listen"] ListenTable LISTEN_KEYS {
         /// How its masters frame their requests: mbap (Modbus/TCP) or rtu (RTU over TCP)
         framing: ListenFraming = ListenFraming::Mbap, Any;
+        /// tcp (connections), or udp (one MBAP request a datagram, answered to its source)
+        transport: Transport = Transport::Tcp, Any;
         /// The addresses and CIDR blocks whose masters are taken; none: everyone
         allow: Option<AllowList> = None, Any;
         /// Every request that may act on a device is answered 0x01
@@ -385,7 +387,7 @@ pub(super) fn quoted(p: &std::path::Path) -> String {
 
 /// `read_only` and `write` of a listener or a role: both at once is refused, at
 /// `read_only`; `path` is what messages call the table.
-fn policy(read_only: bool, write: WriteRules, path: &str) -> Result<Policy, ValueError> {
+pub(super) fn policy(read_only: bool, write: WriteRules, path: &str) -> Result<Policy, ValueError> {
     if read_only && !write.0.is_empty() {
         let m = format!(
             "read_only = true refuses every write: give {path}.read_only or {path}.write, not both"
@@ -403,15 +405,26 @@ fn policy(read_only: bool, write: WriteRules, path: &str) -> Result<Policy, Valu
 pub(super) fn listen(
     raw: &Raw,
     path: &str,
-) -> Result<(ListenAccess, ListenFraming, u8), ValueError> {
+) -> Result<(ListenAccess, ListenFraming, u8, Transport), ValueError> {
     let (t, _) = read_table(raw, LISTEN_KEYS, "expected a table ([[listen]])")?;
     let policy = policy(t.read_only, t.write, path)?;
+    if t.transport == Transport::Udp {
+        // A datagram is one whole request: RTU's CRC and TLS's stream have no place.
+        if t.framing != ListenFraming::Mbap {
+            let m = "transport = \"udp\" carries one MBAP request a datagram: framing must be mbap";
+            return Err(ValueError::new(m).value("framing"));
+        }
+        if t.tls.is_some() {
+            let m = "transport = \"udp\" has no TLS (Modbus/TCP Security is over TCP): remove tls or the transport";
+            return Err(ValueError::new(m).value("tls"));
+        }
+    }
     let access = ListenAccess {
         allow: t.allow,
         policy,
         tls: t.tls,
     };
-    Ok((access, t.framing, t.priority))
+    Ok((access, t.framing, t.priority, t.transport))
 }
 
 /// The keys of [`LISTEN_KEYS`] that say who may connect and what they may do: those
@@ -419,7 +432,7 @@ pub(super) fn listen(
 pub(super) fn is_access_key(name: &str) -> bool {
     LISTEN_KEYS
         .iter()
-        .any(|k| k.name == name && !["framing", "priority"].contains(&k.name))
+        .any(|k| k.name == name && !["framing", "priority", "transport"].contains(&k.name))
 }
 
 /// Each listener's `tls.default_role` names a `[[role]]`: the index of the first that
@@ -489,16 +502,22 @@ impl Setting for Option<TlsDevice> {
         let Some(t) = self else {
             return "{}".into();
         };
-        let mut parts = vec![
-            format!("cert = {}", quoted(&t.cert)),
-            format!("key = {}", quoted(&t.key)),
-            format!("device_ca = {}", quoted(&t.device_ca)),
-        ];
-        if let Some(n) = &t.server_name {
-            parts.push(format!("server_name = {}", n.print()));
-        }
-        format!("{{ {} }}", parts.join(", "))
+        format!("{{ {} }}", client_parts(t, "device_ca").join(", "))
     }
+}
+
+/// The keys of mbgate's side of a TLS client table as the file writes them, the CA
+/// under `ca` (a TCP line's `device_ca`, a dial's `server_ca`).
+pub(super) fn client_parts(t: &TlsDevice, ca: &str) -> Vec<String> {
+    let mut parts = vec![
+        format!("cert = {}", quoted(&t.cert)),
+        format!("key = {}", quoted(&t.key)),
+        format!("{ca} = {}", quoted(&t.device_ca)),
+    ];
+    if let Some(n) = &t.server_name {
+        parts.push(format!("server_name = {}", n.print()));
+    }
+    parts
 }
 
 /// A TCP line's `tls` table, read by [`DEVICE_TLS_KEYS`]: `cert`, `key` and
@@ -506,22 +525,35 @@ impl Setting for Option<TlsDevice> {
 fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
     let not_table = "expected a table: { cert = ..., key = ..., device_ca = ... }";
     let (t, given) = read_table(raw, DEVICE_TLS_KEYS, not_table)?;
-    for (key, why) in [
-        (
-            "cert",
-            "the gateway's client certificate (PEM), presented to the device",
-        ),
+    let ca = (
+        "device_ca",
+        "the CA the device's certificate must chain to (PEM)",
+    );
+    let files = (t.cert, t.key, t.device_ca);
+    tls_client(&given, "device", ca, files, t.server_name)
+}
+
+/// mbgate's side of a TLS client table (a TCP line's, a dial's): `cert`, `key` and
+/// the CA (`ca`: its key and what it is) required, `server_name` a DNS name or an
+/// address; `peer` is what the far end is called.
+pub(super) fn tls_client(
+    given: &[&str],
+    peer: &str,
+    ca: (&str, &str),
+    (cert, key, ca_file): (String, String, String),
+    server_name: String,
+) -> Result<TlsDevice, ValueError> {
+    let cert_why = format!("the gateway's client certificate (PEM), presented to the {peer}");
+    for (k, why) in [
+        ("cert", cert_why.as_str()),
         ("key", "the gateway's private key (PEM)"),
-        (
-            "device_ca",
-            "the CA the device's certificate must chain to (PEM)",
-        ),
+        ca,
     ] {
-        if !given.contains(&key) {
-            return Err(ValueError::new(format!("missing: {why}")).value(key));
+        if !given.contains(&k) {
+            return Err(ValueError::new(format!("missing: {why}")).value(k));
         }
     }
-    let server_name = given.contains(&"server_name").then_some(t.server_name);
+    let server_name = given.contains(&"server_name").then_some(server_name);
     if let Some(s) = &server_name {
         if rustls::pki_types::ServerName::try_from(s.as_str()).is_err() {
             let m = format!("{s:?} is not a DNS name or an IP address");
@@ -529,9 +561,9 @@ fn tls_device(raw: &Raw) -> Result<TlsDevice, ValueError> {
         }
     }
     Ok(TlsDevice {
-        cert: t.cert.into(),
-        key: t.key.into(),
-        device_ca: t.device_ca.into(),
+        cert: cert.into(),
+        key: key.into(),
+        device_ca: ca_file.into(),
         server_name,
     })
 }

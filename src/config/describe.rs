@@ -72,7 +72,10 @@ pub(crate) fn line(line: &LineConfig) -> String {
 
 /// `127.0.0.1:5502 for Modbus/TCP masters`.
 pub(crate) fn listener(l: &ListenConfig) -> String {
-    format!("{} for {}", l.tcp.listen, masters(l.framing))
+    match l.transport {
+        super::Transport::Udp => format!("{} (UDP) for Modbus/UDP masters", l.tcp.listen),
+        super::Transport::Tcp => format!("{} for {}", l.tcp.listen, masters(l.framing)),
+    }
 }
 
 /// Who connects to a listener of this framing.
@@ -189,6 +192,9 @@ pub fn summary(cfg: &Config) -> String {
         for said in super::effective_access(&l, &cfg.roles) {
             out += &format!("  # {said}\n");
         }
+    }
+    for d in &cfg.dials {
+        out += &format!("{}\n", super::dial::describe(d));
     }
     out += &match cfg.metrics.listen {
         Some(a) => format!(

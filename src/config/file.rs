@@ -41,8 +41,9 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
 }
 
 /// The top-level tables; `line` and `listen` are arrays of tables (docs/design.md §4.1).
-const TOP: [&str; 10] = [
+const TOP: [&str; 11] = [
     "serial", "tcp", "relay", "log", "metrics", "capture", "control", "line", "listen", "role",
+    "dial",
 ];
 /// In a `[[listen]]` table, the `[tcp]` key `listen` is called `address`.
 pub(super) const LISTEN_RENAMED: &[(&str, &str)] = &[("address", "listen")];
@@ -132,11 +133,17 @@ impl Reader<'_> {
         let mut cfg = Config::default();
         let (mut lines, mut listeners) = (Vec::new(), Vec::new());
         let mut roles = Vec::new();
+        let mut dial_at = 0;
         for (k, v) in entries(root) {
             let (name, at) = (k.get_ref().as_ref(), k.span().start);
             let replaced = match name {
                 "role" => {
                     roles = self.value(v, name, super::access::roles(&raw(v.get_ref()), name))?;
+                    continue;
+                }
+                "dial" => {
+                    dial_at = v.span().start;
+                    cfg.dials = self.value(v, name, super::dial::dials(&raw(v.get_ref()), name))?;
                     continue;
                 }
                 "tcp" => {
@@ -175,6 +182,13 @@ impl Reader<'_> {
             let e = ValueError::new(m).value("default_role").value("tls");
             return self.bad(place(tables[i], &format!("listen[{i}]"), &e));
         }
+        for (i, d) in cfg.dials.iter().enumerate() {
+            let named = d.tls.as_ref().and_then(|t| t.default_role.as_ref());
+            if let Some(role) = named.filter(|r| !roles.iter().any(|x| &x.name == *r)) {
+                let m = format!("no [[role]] is named {role:?}");
+                return self.fail(dial_at, &format!("dial[{i}].tls.default_role"), m);
+            }
+        }
         cfg.roles = roles;
         self.no_listener_for_master_lines(root, &lines, &tables)?;
         match &listeners[..] {
@@ -182,6 +196,7 @@ impl Reader<'_> {
             // One Modbus/TCP listener open to all is the old form's [tcp].
             [one]
                 if one.framing == ListenFraming::Mbap
+                    && one.transport == super::Transport::Tcp
                     && one.access.is_open()
                     && one.priority == 0 =>
             {
@@ -355,12 +370,13 @@ impl Reader<'_> {
                 .collect();
         }
         let read = super::access::listen(&Raw::Table(keys), path);
-        let (access, framing, priority) = self.value(v, path, read)?;
+        let (access, framing, priority, transport) = self.value(v, path, read)?;
         Ok(ListenConfig {
             tcp: listener.tcp,
             framing,
             access,
             priority,
+            transport,
         })
     }
 

@@ -84,6 +84,8 @@ pub struct ListenConfig {
     /// Its masters' priority class on the lines (docs/masters.md "Priority"); a
     /// role's, if it has one, stands for it.
     pub(crate) priority: u8,
+    /// TCP connections, or UDP datagrams (docs/dialing.md "Modbus over UDP").
+    pub(crate) transport: super::Transport,
 }
 
 impl Config {
@@ -115,17 +117,21 @@ impl Config {
             framing: ListenFraming::Mbap,
             access: super::ListenAccess::default(),
             priority: 0,
+            transport: super::Transport::Tcp,
         }]
     }
 
-    /// The priority class of a master of the listener configured at `listen`, with a
-    /// TLS role of `role` if any: the role's, else the listener's (docs/masters.md
-    /// "Priority"); 0 for a listener not in this configuration.
-    pub(crate) fn priority_of(&self, listen: std::net::SocketAddr, role: Option<&str>) -> u8 {
+    /// The priority class of a master that came by `source` (a listener, or a dial),
+    /// with a TLS role of `role` if any: the role's, else that of the listener of
+    /// this configuration at `source`'s address and transport, else `source`'s own (a
+    /// dial: a changed one dials again) (docs/masters.md "Priority").
+    pub(crate) fn priority_of(&self, source: &ListenConfig, role: Option<&str>) -> u8 {
         let role = role.and_then(|name| self.roles.iter().find(|r| r.name == name));
         role.and_then(|r| r.priority).unwrap_or_else(|| {
-            let listener = self.listeners.iter().find(|l| l.tcp.listen == listen);
-            listener.map_or(0, |l| l.priority)
+            let listener = self.listeners.iter().find(|l| {
+                l.tcp.listen == source.tcp.listen && l.transport == source.transport
+            });
+            listener.map_or(source.priority, |l| l.priority)
         })
     }
 

@@ -11,6 +11,7 @@
 
 pub mod access;
 pub mod describe;
+pub mod dial;
 mod error;
 mod file;
 mod layout;
@@ -25,7 +26,15 @@ pub use access::{AccessRole, ListenAccess, TlsDevice, TlsListen};
 /// Who may connect to `listen` and what they may do, in words (the start-up log,
 /// `mbgate check-config`).
 pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> Vec<String> {
-    access::effective(&listen.access, roles)
+    let said = access::effective(&listen.access, roles);
+    match listen.transport {
+        Transport::Tcp => said,
+        // A datagram's source is whatever its sender wrote (docs/security.md).
+        Transport::Udp => said
+            .into_iter()
+            .map(|s| s.replace("plain TCP", "UDP, source addresses unauthenticated"))
+            .collect(),
+    }
 }
 pub use error::{ConfigError, Step, ValueError};
 pub use file::{load, parse, LineTcpTable, LINE_TCP_KEYS};
@@ -142,6 +151,13 @@ choices! {
         /// RTU over TCP: unit, PDU, CRC-16, one request at a time
         Rtu = "rtu",
     }
+    /// How a listener's masters reach it (docs/dialing.md "Modbus over UDP").
+    Transport {
+        /// TCP connections, one master each
+        Tcp = "tcp",
+        /// UDP datagrams, one MBAP request each, answered to their source
+        Udp = "udp",
+    }
 }
 
 impl Framing {
@@ -213,6 +229,8 @@ macro_rules! settings {
             /// The `[[role]]` tables: what a TLS master may do, by the role its
             /// certificate carries (docs/security.md).
             pub roles: Vec<AccessRole>,
+            /// The `[[dial]]` tables: masters mbgate connects to (docs/dialing.md).
+            pub dials: Vec<dial::DialConfig>,
         }
 
         /// Every setting, in the order of the file.

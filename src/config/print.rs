@@ -18,8 +18,9 @@ pub fn to_toml(cfg: &Config) -> String {
     with_roles(print(cfg, &old), cfg)
 }
 
-/// `text` and then the `[[role]]` tables, if any.
+/// `text` and then the `[[role]]` and `[[dial]]` tables, if any.
 fn with_roles(text: String, cfg: &Config) -> String {
+    let text = text + &super::dial::to_toml(&cfg.dials);
     if cfg.roles.is_empty() {
         return text;
     }
@@ -88,10 +89,13 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         };
         let table = print(&one, &[("tcp", "[[listen]]".into())]);
         let access = access::listen_to_toml(&listener.access, &cfg.roles);
-        let priority = match listener.priority {
+        let mut priority = match listener.priority {
             0 => String::new(),
             p => format!("priority = {p}\n"),
         };
+        if listener.transport != super::Transport::Tcp {
+            priority += &format!("transport = {}\n", listener.transport.print());
+        }
         out.push(
             table + &format!("framing = {}\n", listener.framing.print()) + &priority + &access,
         );

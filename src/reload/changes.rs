@@ -5,7 +5,7 @@
 //! `mbgate reload` say it. Plain data: nothing here touches the gateway.
 
 use crate::config::master::{MasterLine, Route};
-use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, KEYS};
+use crate::config::{Config, LineConfig, ListenConfig, RelayConfig, Setting, Transport, KEYS};
 
 /// The keys a reload applies while the gateway runs: of each line (`[relay]` or
 /// `[line.relay]`), and of the gateway. Beside them a reload applies each
@@ -97,6 +97,16 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     }
     c.log = read.log.clone();
     c.metrics = read.metrics.clone();
+    c.dials = read.dials.clone();
+    // The UDP listeners are the file's; the TCP ones stay as they run.
+    let udp = |l: &ListenConfig| l.transport == Transport::Udp;
+    let read_udp: Vec<ListenConfig> = read.listeners().into_iter().filter(udp).collect();
+    if !(c.listeners.is_empty() && read_udp.is_empty()) {
+        let mut listeners: Vec<ListenConfig> =
+            c.listeners().into_iter().filter(|l| !udp(l)).collect();
+        listeners.extend(read_udp);
+        c.listeners = listeners;
+    }
     // Priority classes: each listener's (matched by its address), and the roles' when
     // nothing else of them changed.
     // (One open listener of class 0 is kept in the old form's [tcp]: spelt out as a
@@ -104,7 +114,9 @@ pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Conf
     let (mut listeners, read_listeners) = (c.listeners(), read.listeners());
     let mut reclassed = false;
     for l in &mut listeners {
-        let read = read_listeners.iter().find(|m| m.tcp.listen == l.tcp.listen);
+        let read = read_listeners
+            .iter()
+            .find(|m| m.tcp.listen == l.tcp.listen && m.transport == l.transport);
         if let Some(m) = read.filter(|m| m.priority != l.priority) {
             l.priority = m.priority;
             reclassed = true;
@@ -238,6 +250,7 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
         }
     }
     out.extend(listener_changes(a, b));
+    out.extend(dial_changes(a, b));
     if !same_roles_but_priority(a, b) {
         out.push(Change {
             said: "the [[role]] tables".into(),
@@ -272,6 +285,34 @@ fn same_roles_but_priority(a: &Config, b: &Config) -> bool {
         })
 }
 
+/// The dials' differences, each applied (docs/dialing.md "Reload"): matched by their
+/// address, one gone stops, one new starts, one changed dials again.
+fn dial_changes(a: &Config, b: &Config) -> Vec<Change> {
+    let applied = |said: String| Change {
+        said,
+        reloadable: true,
+    };
+    let mut out = Vec::new();
+    for d in &a.dials {
+        match b.dials.iter().find(|e| e.address == d.address) {
+            None => out.push(applied(format!("dial \"{}\" removed", d.address))),
+            Some(e) if e != d => out.push(applied(format!(
+                "dial \"{}\" changed (dialing again)",
+                d.address
+            ))),
+            Some(_) => {}
+        }
+    }
+    for e in b
+        .dials
+        .iter()
+        .filter(|e| !a.dials.iter().any(|d| d.address == e.address))
+    {
+        out.push(applied(format!("dial \"{}\" added", e.address)));
+    }
+    out
+}
+
 /// A line's settings as a configuration of the old form, to read its keys by [`KEYS`].
 fn line_as_config(line: &LineConfig) -> Config {
     Config {
@@ -297,17 +338,29 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
     }
     let (la, lb) = (a.listeners(), b.listeners());
     let at = |l: &ListenConfig| l.tcp.listen;
+    let same = |l: &ListenConfig, m: &ListenConfig| at(l) == at(m) && l.transport == m.transport;
     let as_config = |l: &ListenConfig| Config {
         tcp: l.tcp.clone(),
         ..Config::default()
     };
     let mut out = Vec::new();
+    // A UDP listener is added, removed or changed by a reload (docs/dialing.md).
+    let named = |l: &ListenConfig| match l.transport {
+        Transport::Udp => format!("{} (UDP)", at(l)),
+        Transport::Tcp => at(l).to_string(),
+    };
+    let said = |l: &ListenConfig, what: String| Change {
+        said: format!("listen \"{}\" {what}", named(l)),
+        reloadable: l.transport == Transport::Udp,
+    };
     for l in &la {
-        match lb.iter().find(|m| at(m) == at(l)) {
-            None => out.push(restart(format!(
-                "listen \"{}\" (gone from the file)",
-                at(l)
-            ))),
+        match lb.iter().find(|m| same(l, m)) {
+            None => out.push(said(l, "(gone from the file)".into())),
+            Some(m) if l.transport == Transport::Udp => {
+                if l != m {
+                    out.push(said(m, "changed (started again)".into()));
+                }
+            }
             Some(m) => {
                 let (ca, cb) = (as_config(l), as_config(m));
                 for k in keys().filter(|k| k.name != "listen") {
@@ -338,8 +391,8 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
             }
         }
     }
-    for m in lb.iter().filter(|m| !la.iter().any(|l| at(l) == at(m))) {
-        out.push(restart(format!("listen \"{}\" (new in the file)", at(m))));
+    for m in lb.iter().filter(|m| !la.iter().any(|l| same(l, m))) {
+        out.push(said(m, "(new in the file)".into()));
     }
     out
 }
@@ -547,6 +600,7 @@ mod tests {
                 "write" => "[{ units = [1] }]",
                 "tls" => "{ cert = \"c.pem\", key = \"k.pem\", client_ca = \"ca.pem\" }",
                 "priority" => "3",
+                "transport" => "\"udp\"",
                 "max_connections" => "9",
                 "idle_timeout_ms" => "77",
                 _ => return None,
@@ -613,9 +667,10 @@ mod tests {
             }
             if name == "priority" {
                 assert!(all.iter().all(|c| c.reloadable), "{line}: {all:?}");
-                let class = new.priority_of("127.0.0.1:5020".parse().unwrap(), Some("r"));
+                let source = &running.listeners()[0];
+                let class = new.priority_of(source, Some("r"));
                 assert_eq!(class, if listener { 3 } else { 5 }, "{line}");
-                let class = new.priority_of("127.0.0.1:5020".parse().unwrap(), None);
+                let class = new.priority_of(source, None);
                 assert_eq!(class, if listener { 3 } else { 0 }, "{line}");
             }
         }

@@ -127,6 +127,11 @@ pub fn check(cfg: &crate::config::Config) -> Result<(), TlsError> {
             server::Material::load(t, &format!("listen[{i}].tls"))?;
         }
     }
+    for (i, d) in cfg.dials.iter().enumerate() {
+        if let Some(t) = &d.tls {
+            client::Connector::load(&t.client, &d.address, &format!("dial[{i}].tls"))?;
+        }
+    }
     for (i, line) in cfg.lines.iter().enumerate() {
         if let (Some(address), Some(t)) = (&line.tcp, &line.tcp_tls) {
             client::Connector::load(t, address, &format!("line[{i}].tcp.tls"))?;

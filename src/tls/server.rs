@@ -134,8 +134,9 @@ impl std::fmt::Display for Refused {
     }
 }
 
-/// The role a certificate gets on a listener with `roles` and `default_role`.
-fn grant(
+/// The role a certificate gets on a listener (or a dial) with `roles` and
+/// `default_role`.
+pub(crate) fn grant(
     der: &[u8],
     roles: &[AccessRole],
     default_role: Option<&str>,
