@@ -564,8 +564,9 @@ fn non_default() -> Config {
             data_bits: 7,
             parity: Parity::Odd,
             stop_bits: 2,
+            // XON/XOFF goes with ASCII only.
             flow_control: FlowControl::Software,
-            framing: Framing::Rtu,
+            framing: Framing::Ascii,
             port_kind: PortKind::Wire,
             low_latency: false,
             silence_floor_ms: Floor::Ms(0),
