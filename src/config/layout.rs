@@ -128,8 +128,12 @@ impl Config {
     pub(crate) fn priority_of(&self, source: &ListenConfig, role: Option<&str>) -> u8 {
         let role = role.and_then(|name| self.roles.iter().find(|r| r.name == name));
         role.and_then(|r| r.priority).unwrap_or_else(|| {
-            let listener = self.listeners.iter().find(|l| {
-                l.tcp.listen == source.tcp.listen && l.transport == source.transport
+            // The same listener as configured (two may share an address, on port 0),
+            // else the one at its address and transport (a reload changed it).
+            let listener = self.listeners.iter().find(|l| *l == source).or_else(|| {
+                self.listeners
+                    .iter()
+                    .find(|l| l.tcp.listen == source.tcp.listen && l.transport == source.transport)
             });
             listener.map_or(source.priority, |l| l.priority)
         })
