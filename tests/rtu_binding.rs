@@ -83,6 +83,9 @@ fn sim_bench(framing: &str, sim_args: &[&str], relay: &[&str], metrics: &[&str])
         cfg = cfg.metrics(line);
     }
     let gw = Gateway::start(&cfg, dir.path());
+    // The port opens after the listener: bytes the device's side writes before it are
+    // cleared by the open (stale), so a test that writes onto the line waits for it.
+    gw.wait_log("serial port open", Duration::from_secs(20));
     SimBench {
         _dir: dir,
         socat,
