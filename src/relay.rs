@@ -151,14 +151,14 @@ impl Relay {
         let port = Lifecycle::new(transport, baud, now);
         metrics.set_direction(crate::config::describe::direction(&serial));
         // Over TCP the device server has the wire: nothing to switch here.
-        let turnaround =
-            (serial.direction != crate::config::Direction::None && !stream).then(|| {
-                turnaround::Turnaround::new(
-                    Duration::from_micros(serial.direction_delay_before_us.into()),
-                    Duration::from_micros(serial.direction_delay_after_us.into()),
-                    crate::port::kind::wire_time(&serial, 1),
-                )
-            });
+        let switches = port::serial::direction::gateway_switches(&serial);
+        let turnaround = (switches && !stream).then(|| {
+            turnaround::Turnaround::new(
+                Duration::from_micros(serial.direction_delay_before_us.into()),
+                Duration::from_micros(serial.direction_delay_after_us.into()),
+                crate::port::kind::wire_time(&serial, 1),
+            )
+        });
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth, cfg.coalesce),
             cache: Cache::new(Duration::from_millis(cfg.cache_ms)),
