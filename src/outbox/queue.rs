@@ -250,6 +250,8 @@ mod tests {
         // Sent while the receiver waits, by a sender that leaves with it: it is woken
         // for it, and then hears the end once the other is dropped.
         second.send_and_leave(3, |_| {}).unwrap();
+        tokio::task::yield_now().await;
+        // The receiver took it and waits again: the last sender's drop wakes it.
         drop(first);
         let got = tokio::time::timeout(Duration::from_secs(1), receiver)
             .await
