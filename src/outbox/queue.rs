@@ -82,6 +82,23 @@ impl<T, X> State<T, X> {
     pub(crate) fn len(&self) -> usize {
         self.items.len()
     }
+
+    /// Queues `item` unless the receiver is gone: the receiver's waker, to wake once
+    /// the lock is released.
+    fn push(&mut self, item: T) -> Result<Option<Waker>, T> {
+        if !self.open {
+            return Err(item);
+        }
+        self.items.push_back(item);
+        Ok(self.receiver.take())
+    }
+}
+
+/// Wakes `waker`, if any (after the lock).
+fn wake(waker: Option<Waker>) {
+    if let Some(w) = waker {
+        w.wake();
+    }
 }
 
 /// One end that may send. Dropping it is its leaving.
@@ -110,15 +127,12 @@ impl<T, X> Sender<T, X> {
     ) -> Result<(), T> {
         let receiver = {
             let mut s = self.lock();
-            if !s.open || !room(&s) {
+            if !room(&s) {
                 return Err(item);
             }
-            s.items.push_back(item);
-            s.receiver.take()
+            s.push(item)?
         };
-        if let Some(w) = receiver {
-            w.wake();
-        }
+        wake(receiver);
         Ok(())
     }
 
@@ -130,15 +144,9 @@ impl<T, X> Sender<T, X> {
             let mut s = shared.lock();
             also(&mut s.more);
             s.senders -= 1;
-            if !s.open {
-                return Err(item);
-            }
-            s.items.push_back(item);
-            s.receiver.take()
+            s.push(item)?
         };
-        if let Some(w) = receiver {
-            w.wake();
-        }
+        wake(receiver);
         Ok(())
     }
 
@@ -171,9 +179,7 @@ impl<T, X> Drop for Sender<T, X> {
                 _ => None,
             }
         };
-        if let Some(w) = receiver {
-            w.wake();
-        }
+        wake(receiver);
     }
 }
 
@@ -192,9 +198,7 @@ impl<T, X: Beside> Receiver<T, X> {
             if let Some(item) = s.items.pop_front() {
                 let waiting = s.more.room();
                 drop(s);
-                if let Some(w) = waiting {
-                    w.wake();
-                }
+                wake(waiting);
                 return Poll::Ready(Some(item));
             }
             if s.senders == 0 {
@@ -222,9 +226,7 @@ impl<T, X: Beside> Drop for Receiver<T, X> {
         };
         // Outside the lock: an item may lock it as it drops.
         drop(unsent);
-        if let Some(w) = waiting {
-            w.wake();
-        }
+        wake(waiting);
     }
 }
 
