@@ -284,42 +284,7 @@ impl Relay {
             };
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();
-            match event {
-                Event::Command(Some(cmd)) => self.on_command(cmd, now),
-                Event::Command(None) => {
-                    self.commands_open = false;
-                    self.start_draining();
-                }
-                Event::Shutdown => self.start_draining(),
-                Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
-                Event::Read(Ok(n)) => {
-                    self.stats.add(&self.stats.serial_bytes_in, n as u64);
-                    // A capture begun while the loop waited has these bytes too.
-                    self.line.set_tape(self.telemetry.capturing());
-                    self.line.heard(n, self.in_flight.len(), now, &self.stats);
-                    self.line.received(&rbuf[..n], now, &self.stats);
-                }
-                Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
-                Event::Wrote(Ok(n)) => self.wrote(n, polled, now),
-                Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
-                Event::Opened(r) => self.opened(r, now),
-                Event::Drained(r) => {
-                    self.port.drain = None;
-                    let left = match r {
-                        // Not later than now: the two clocks are the same one.
-                        Ok(at) => Instant::from_std(at).min(now),
-                        Err(e) => {
-                            debug!("tcdrain: {e}");
-                            now
-                        }
-                    };
-                    if let Some(t) = &mut self.turnaround {
-                        t.drained(now);
-                    }
-                    self.drained(left);
-                }
-                Event::Timer => {}
-            }
+            self.on_event(event, &rbuf, polled, now);
             self.take_frames(now);
             self.expire(now);
             self.answer_paced(now);
@@ -327,6 +292,47 @@ impl Relay {
             ended = Some(now);
         }
         debug!("relay stopped");
+    }
+
+    /// What the turn's wait brought, handled `now`: `rbuf` holds the bytes read, and
+    /// `polled` is when a write's wait began.
+    fn on_event(&mut self, event: Event, rbuf: &[u8], polled: Instant, now: Instant) {
+        match event {
+            Event::Command(Some(cmd)) => self.on_command(cmd, now),
+            Event::Command(None) => {
+                self.commands_open = false;
+                self.start_draining();
+            }
+            Event::Shutdown => self.start_draining(),
+            Event::Read(Ok(0)) => self.port_lost("end of file (the far end went away)", now),
+            Event::Read(Ok(n)) => {
+                self.stats.add(&self.stats.serial_bytes_in, n as u64);
+                // A capture begun while the loop waited has these bytes too.
+                self.line.set_tape(self.telemetry.capturing());
+                self.line.heard(n, self.in_flight.len(), now, &self.stats);
+                self.line.received(&rbuf[..n], now, &self.stats);
+            }
+            Event::Read(Err(e)) => self.port_lost(&format!("read failed: {e}"), now),
+            Event::Wrote(Ok(n)) => self.wrote(n, polled, now),
+            Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
+            Event::Opened(r) => self.opened(r, now),
+            Event::Drained(r) => {
+                self.port.drain = None;
+                let left = match r {
+                    // Not later than now: the two clocks are the same one.
+                    Ok(at) => Instant::from_std(at).min(now),
+                    Err(e) => {
+                        debug!("tcdrain: {e}");
+                        now
+                    }
+                };
+                if let Some(t) = &mut self.turnaround {
+                    t.drained(now);
+                }
+                self.drained(left);
+            }
+            Event::Timer => {}
+        }
     }
 
     /// The end of a turn, for whoever looks: the bytes the line dropped, the gauges,
