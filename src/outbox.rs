@@ -421,8 +421,8 @@ impl Inbox {
 
     /// The next message sent, in the order sent; `None` once none is left and nothing
     /// can send any more. Cancel-safe: nothing is taken unless returned.
-    async fn recv(&mut self) -> Option<Message> {
-        self.receiver.recv().await
+    fn recv(&mut self) -> impl std::future::Future<Output = Option<Message>> + '_ {
+        self.receiver.recv()
     }
 }
 

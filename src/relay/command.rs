@@ -86,8 +86,8 @@ pub(crate) struct Commands(Receiver<Command, ()>);
 impl Commands {
     /// The next command, in the order sent; `None` once none is left and every
     /// handle is gone. Cancel-safe: nothing is taken unless returned.
-    pub(crate) async fn recv(&mut self) -> Option<Command> {
-        self.0.recv().await
+    pub(crate) fn recv(&mut self) -> impl std::future::Future<Output = Option<Command>> + '_ {
+        self.0.recv()
     }
 
     /// The next command if one is waiting (tests).
