@@ -344,13 +344,17 @@ async fn start_lines(
             let timing = crate::bridge::Timing::of_line(&line.serial, &line.relay);
             let metrics = Arc::new(metrics::LineMetrics::new(line.name(), line_stats));
             board.add_line(metrics.clone());
-            let (task, handle) = crate::bridge::start(
-                Box::new(port),
-                (line.serial.framing, timing, master.clone()),
-                (cfg.log.traffic, (tap, capture.hub().tap(0))),
+            let (task, handle) = crate::bridge::start(crate::bridge::MasterLineParts {
+                port: Box::new(port),
+                framing: line.serial.framing,
+                timing,
+                master: master.clone(),
+                traffic: cfg.log.traffic,
+                line_tap: tap,
+                tcp_tap: capture.hub().tap(0),
                 metrics,
                 watchdog,
-            )
+            })
             .await?;
             lines.handles.push(reload::LineHandle::Master(handle));
             let shutdown = shutdown.clone();

@@ -31,7 +31,8 @@
 //!   spare room, so a master that does not read misses them (counted by the relay) and
 //!   never loses a reply for them.
 //!
-//! All of it is one small state under one mutex per master, shared by the connection,
+//! All of it is one small state under one mutex per master (the channel of
+//! `outbox/queue.rs`, the slots beside its queue), shared by the connection,
 //! its tickets, the relay's notifier and the writer: each step of a transaction (a
 //! ticket, its answer, the writer taking it, the slot freed) is one uncontended lock.
 //! (A tokio channel and semaphore did the same in about 1 500 instructions a
@@ -41,14 +42,17 @@
 use crate::frame::{Adu, ExceptionCode};
 use crate::stats::Stats;
 use crate::woken::keep;
-use std::collections::{BTreeMap, VecDeque};
+use queue::{Beside, Receiver, Sender};
+use std::collections::BTreeMap;
 use std::fmt;
 use std::future::poll_fn;
 use std::sync::atomic::AtomicU64;
-use std::sync::{Arc, Mutex, MutexGuard};
+use std::sync::Arc;
 use std::task::{Poll, Waker};
 use std::time::Duration;
 use tokio::time::Instant;
+
+pub(crate) mod queue;
 
 /// Room in each connection's channel for notifications, beyond its replies.
 const NOTIFICATION_SLACK: usize = 16;
@@ -73,7 +77,7 @@ enum Message {
 /// A pipelining slot in use. Dropping it frees the slot and restarts the idle clock.
 /// Never dropped while the state is locked (it locks it).
 struct Slot {
-    shared: Arc<Shared>,
+    shared: Arc<queue::Shared<Message, Slots>>,
 }
 
 impl Drop for Slot {
@@ -81,9 +85,9 @@ impl Drop for Slot {
         let now = Instant::now();
         let waiting = {
             let mut s = self.shared.lock();
-            s.used -= 1;
-            s.settled = now;
-            s.outbox.take()
+            s.more.used -= 1;
+            s.more.settled = now;
+            s.more.outbox.take()
         };
         if let Some(w) = waiting {
             w.wake();
@@ -91,63 +95,35 @@ impl Drop for Slot {
     }
 }
 
-struct Shared {
-    state: Mutex<State>,
-    max_pending: usize,
-    /// The most messages sent to the writer and not yet taken, with those promised.
-    capacity: usize,
-}
-
-impl Shared {
-    fn lock(&self) -> MutexGuard<'_, State> {
-        // Nothing panics while holding it; if something did, the counts are still
-        // whole (each change is one statement).
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
-    }
-
-    /// One of the ends that may send is gone: the writer learns there is nothing more
-    /// once the last is.
-    fn sender_gone(&self) {
-        let writer = {
-            let mut s = self.lock();
-            s.senders -= 1;
-            if s.senders == 0 {
-                s.writer.take()
-            } else {
-                None
-            }
-        };
-        if let Some(w) = writer {
-            w.wake();
-        }
-    }
-}
-
-struct State {
+/// What the channel to the writer (`queue.rs`) keeps beside its messages: the
+/// pipelining slots and the room promised. Its senders are the outbox, each notifier,
+/// each ticket not yet answered: none left and the queue empty, the writer is done.
+struct Slots {
     /// Pipelining slots in use: tickets handed out whose reply is not yet written.
     used: usize,
-    /// Places in `queue` promised to tickets not yet answered: a reply never waits
+    /// Places in the queue promised to tickets not yet answered: a reply never waits
     /// for room.
     reserved: usize,
-    /// What was sent to the writer and it has not taken yet, in the order sent.
-    queue: VecDeque<Message>,
-    /// The ends that may still send: the outbox, each notifier, each ticket not yet
-    /// answered. None left and the queue empty: the writer is done.
-    senders: usize,
-    /// The writer's inbox is still there; once it is gone, what is sent is dropped.
-    open: bool,
-    /// The writer, waiting for a message.
-    writer: Option<Waker>,
     /// The connection, waiting for a slot or room (`ticket`), or for every slot to
     /// be free (`settled`).
     outbox: Option<Waker>,
     /// When a slot was last freed: a reply written, or a request finished without one.
     settled: Instant,
+    max_pending: usize,
+    /// The most messages sent to the writer and not yet taken, with those promised.
+    capacity: usize,
+}
+
+impl Beside for Slots {
+    /// The writer took a message, or went: room for a connection waiting for it.
+    fn room(&mut self) -> Option<Waker> {
+        self.outbox.take()
+    }
 }
 
 /// The connection's side: hands out tickets in read order.
 pub struct Outbox {
-    shared: Arc<Shared>,
+    sender: Sender<Message, Slots>,
     next_seq: u64,
 }
 
@@ -155,26 +131,20 @@ impl Outbox {
     /// An outbox for a master that may pipeline `max_pending` requests, and the inbox
     /// its writer reads.
     pub fn new(max_pending: usize) -> (Outbox, Inbox) {
-        let shared = Arc::new(Shared {
-            state: Mutex::new(State {
-                used: 0,
-                reserved: 0,
-                queue: VecDeque::new(),
-                senders: 1,
-                open: true,
-                writer: None,
-                outbox: None,
-                settled: Instant::now(),
-            }),
+        let (sender, receiver) = queue::channel(Slots {
+            used: 0,
+            reserved: 0,
+            outbox: None,
+            settled: Instant::now(),
             max_pending,
             capacity: capacity(max_pending),
         });
         let outbox = Outbox {
-            shared: shared.clone(),
+            sender,
             next_seq: 0,
         };
         let inbox = Inbox {
-            shared,
+            receiver,
             next: 0,
             held: BTreeMap::new(),
         };
@@ -184,20 +154,19 @@ impl Outbox {
     /// A ticket for the next request read, once the master has a pipelining slot free.
     /// Cancel-safe: a ticket not handed out takes no sequence number.
     pub async fn ticket(&mut self) -> Ticket {
-        let shared = &self.shared;
-        poll_fn(|cx| {
-            let mut s = shared.lock();
+        let sender = &self.sender;
+        let theirs = poll_fn(|cx| {
+            let mut s = sender.lock();
             // Reserved replies never exceed `max_pending` and notifications take only
             // what is free, so the room is short only while the writer is behind on
             // notifications.
-            let room = s.queue.len() + s.reserved < shared.capacity;
-            if s.used < shared.max_pending && room {
-                s.used += 1;
-                s.reserved += 1;
-                s.senders += 1;
-                Poll::Ready(())
+            let room = s.len() + s.more.reserved < s.more.capacity;
+            if s.more.used < s.more.max_pending && room {
+                s.more.used += 1;
+                s.more.reserved += 1;
+                Poll::Ready(sender.clone_locked(&mut s))
             } else {
-                keep(&mut s.outbox, cx.waker());
+                keep(&mut s.more.outbox, cx.waker());
                 Poll::Pending
             }
         })
@@ -207,28 +176,27 @@ impl Outbox {
         Ticket {
             seq,
             unit: None,
-            shared: Some(self.shared.clone()),
+            sender: Some(theirs),
         }
     }
 
     /// What the relay uses to send this master notifications.
     pub fn notifier(&self) -> Notifier {
-        self.shared.lock().senders += 1;
         Notifier {
-            shared: self.shared.clone(),
+            sender: self.sender.clone(),
         }
     }
 
     /// Some request of this master is not yet answered (or its reply not yet written).
     pub(crate) fn owed(&self) -> bool {
-        self.shared.lock().used > 0
+        self.sender.lock().more.used > 0
     }
 
     /// When the master was last answered: its last reply written, or its last request
     /// finished without one. The start of the connection if neither yet.
     #[cfg(test)]
     pub(crate) fn last_settled(&self) -> Instant {
-        self.shared.lock().settled
+        self.sender.lock().more.settled
     }
 
     /// When a master whose last byte came at `last_read` is idle for `idle`: that long
@@ -236,28 +204,22 @@ impl Outbox {
     /// owed a reply (or one is waiting to be written): a master waiting for a slow
     /// device is not idle.
     pub(crate) fn idle_at(&self, last_read: Instant, idle: Duration) -> Option<Instant> {
-        let s = self.shared.lock();
-        (s.used == 0).then(|| last_read.max(s.settled) + idle)
+        let s = self.sender.lock();
+        (s.more.used == 0).then(|| last_read.max(s.more.settled) + idle)
     }
 
     /// Returns once every ticket handed out has been answered and its reply written.
     pub(crate) async fn settled(&self) {
         poll_fn(|cx| {
-            let mut s = self.shared.lock();
-            if s.used == 0 {
+            let mut s = self.sender.lock();
+            if s.more.used == 0 {
                 Poll::Ready(())
             } else {
-                keep(&mut s.outbox, cx.waker());
+                keep(&mut s.more.outbox, cx.waker());
                 Poll::Pending
             }
         })
         .await
-    }
-}
-
-impl Drop for Outbox {
-    fn drop(&mut self) {
-        self.shared.sender_gone();
     }
 }
 
@@ -319,7 +281,7 @@ pub struct Ticket {
     /// The master's own unit id, put back into the answer (a remapped unit).
     unit: Option<u8>,
     /// Its slot and its place in the writer's queue, until answered.
-    shared: Option<Arc<Shared>>,
+    sender: Option<Sender<Message, Slots>>,
 }
 
 impl Ticket {
@@ -355,33 +317,19 @@ impl Ticket {
     }
 
     fn send(&mut self, adu: Option<Adu>) {
-        let Some(shared) = self.shared.take() else {
+        let Some(sender) = self.sender.take() else {
             return;
         };
         let slot = Slot {
-            shared: shared.clone(),
+            shared: sender.shared().clone(),
         };
         let message = Message::Reply {
             seq: self.seq,
             adu,
             slot,
         };
-        let (writer, unsent) = {
-            let mut s = shared.lock();
-            s.reserved -= 1;
-            s.senders -= 1;
-            if s.open {
-                s.queue.push_back(message);
-                (s.writer.take(), None)
-            } else {
-                (None, Some(message))
-            }
-        };
         // The writer is gone: the slot is freed here, outside the lock.
-        drop(unsent);
-        if let Some(w) = writer {
-            w.wake();
-        }
+        drop(sender.send_and_leave(message, |m| m.reserved -= 1));
     }
 }
 
@@ -398,41 +346,19 @@ impl fmt::Debug for Ticket {
 }
 
 /// The relay's handle for one master's notifications.
+#[derive(Clone)]
 pub struct Notifier {
-    shared: Arc<Shared>,
+    sender: Sender<Message, Slots>,
 }
 
 impl Notifier {
     /// Queues a notification for the master, unless its spare room is used up (it is
     /// not reading) or it is gone: then false, and it misses this one.
     pub(crate) fn notify(&self, adu: Adu) -> bool {
-        let writer = {
-            let mut s = self.shared.lock();
-            if !s.open || s.queue.len() + s.reserved >= self.shared.capacity {
-                return false;
-            }
-            s.queue.push_back(Message::Notification(adu));
-            s.writer.take()
-        };
-        if let Some(w) = writer {
-            w.wake();
-        }
-        true
-    }
-}
-
-impl Clone for Notifier {
-    fn clone(&self) -> Self {
-        self.shared.lock().senders += 1;
-        Notifier {
-            shared: self.shared.clone(),
-        }
-    }
-}
-
-impl Drop for Notifier {
-    fn drop(&mut self) {
-        self.shared.sender_gone();
+        let message = Message::Notification(adu);
+        self.sender
+            .send_if(message, |s| s.len() + s.more.reserved < s.more.capacity)
+            .is_ok()
     }
 }
 
@@ -444,7 +370,9 @@ impl fmt::Debug for Notifier {
 
 /// The writer's side: frames in the order they must go out.
 pub struct Inbox {
-    shared: Arc<Shared>,
+    /// Dropped first: the channel closes, its messages freed outside its lock, then
+    /// those held (a slot locks it).
+    receiver: Receiver<Message, Slots>,
     /// The sequence number of the next reply to write.
     next: u64,
     /// Replies that came before their turn.
@@ -493,41 +421,8 @@ impl Inbox {
 
     /// The next message sent, in the order sent; `None` once none is left and nothing
     /// can send any more. Cancel-safe: nothing is taken unless returned.
-    async fn recv(&mut self) -> Option<Message> {
-        poll_fn(|cx| {
-            let mut s = self.shared.lock();
-            if let Some(m) = s.queue.pop_front() {
-                // Room in the queue, for a connection waiting for it.
-                let waiting = s.outbox.take();
-                drop(s);
-                if let Some(w) = waiting {
-                    w.wake();
-                }
-                return Poll::Ready(Some(m));
-            }
-            if s.senders == 0 {
-                return Poll::Ready(None);
-            }
-            keep(&mut s.writer, cx.waker());
-            Poll::Pending
-        })
-        .await
-    }
-}
-
-impl Drop for Inbox {
-    fn drop(&mut self) {
-        let (unsent, waiting) = {
-            let mut s = self.shared.lock();
-            s.open = false;
-            (std::mem::take(&mut s.queue), s.outbox.take())
-        };
-        // Their slots are freed outside the lock (a slot locks it); those held, as
-        // the fields drop after this.
-        drop(unsent);
-        if let Some(w) = waiting {
-            w.wake();
-        }
+    fn recv(&mut self) -> impl std::future::Future<Output = Option<Message>> + '_ {
+        self.receiver.recv()
     }
 }
 

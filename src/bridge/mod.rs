@@ -96,17 +96,44 @@ pub(crate) struct MasterLineTask {
     tracker: tokio_util::task::TaskTracker,
 }
 
-/// Makes the master line on `port`: binds its passive routes (a taken address is an
+/// What a master line is made of (`start`).
+pub(crate) struct MasterLineParts {
+    /// The serial port the master is on.
+    pub(crate) port: Box<dyn Port>,
+    /// Its framing and its timing (`Timing::of_line`).
+    pub(crate) framing: Framing,
+    pub(crate) timing: Timing,
+    /// The routes to the slaves.
+    pub(crate) master: MasterLine,
+    /// Log every frame as hex (`log.traffic`).
+    pub(crate) traffic: bool,
+    /// The capture's taps: the serial line's, and the slaves' TCP side's.
+    pub(crate) line_tap: Tap,
+    pub(crate) tcp_tap: Tap,
+    /// Where its counts go.
+    pub(crate) metrics: Arc<LineMetrics>,
+    /// systemd's interval, when this line pets it (the gateway's first line does; the
+    /// gateway says READY=1 and STOPPING=1).
+    pub(crate) watchdog: Option<Duration>,
+}
+
+/// Makes the master line of `parts`: binds its passive routes (a taken address is an
 /// error now, not later), starts a task for each route's connection, and puts its
-/// counts on `metrics`. `watchdog`: systemd's interval, when this line pets it (the
-/// gateway's first line does; the gateway says READY=1 and STOPPING=1).
+/// counts on its metrics.
 pub(crate) async fn start(
-    port: Box<dyn Port>,
-    (framing, timing, master): (Framing, Timing, MasterLine),
-    (traffic, (line_tap, tcp_tap)): (bool, (Tap, Tap)),
-    metrics: Arc<LineMetrics>,
-    watchdog: Option<Duration>,
+    parts: MasterLineParts,
 ) -> Result<(MasterLineTask, MasterHandle), BridgeError> {
+    let MasterLineParts {
+        port,
+        framing,
+        timing,
+        master,
+        traffic,
+        line_tap,
+        tcp_tap,
+        metrics,
+        watchdog,
+    } = parts;
     let (events_tx, events) = mpsc::unbounded_channel();
     let mut to_slaves = Vec::new();
     // Stopped once the line has drained at shutdown: the replies still due come

@@ -19,6 +19,14 @@ use super::{Any, Range, PAUSE_MS, RETRIES, TIMEOUT_MS};
 use std::collections::BTreeSet;
 use std::time::Duration;
 
+impl RelayConfig {
+    /// The longest the relay takes to answer a request that is on the line: the
+    /// response timeout of every attempt (docs/design.md §1 step 5).
+    pub fn answer_within(&self) -> Duration {
+        Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
+    }
+}
+
 table! {
     /// One `[[line.unit]]` as the file gives it (docs/configuration.md "Per-unit
     /// settings"); each key left out is the line's.

@@ -1,16 +1,12 @@
-//! What connections tell the relay, and the channel they tell it through: a queue
-//! under a mutex with the relay's waker beside it, one uncontended lock a command
-//! (tokio's unbounded channel took about 400 instructions a transaction for the
-//! same: callgrind, docs/performance.md "Instructions a transaction, counted").
+//! What connections tell the relay, and the channel they tell it through
+//! (`outbox/queue.rs`: one uncontended lock a command; tokio's unbounded channel took
+//! about 400 instructions a transaction for the same: callgrind, docs/performance.md
+//! "Instructions a transaction, counted").
 
 use crate::config::RelayConfig;
 use crate::frame::Adu;
+use crate::outbox::queue::{self, Receiver, Sender};
 use crate::outbox::{Notifier, Ticket};
-use crate::woken::keep;
-use std::collections::VecDeque;
-use std::future::poll_fn;
-use std::sync::{Arc, Mutex, MutexGuard};
-use std::task::{Poll, Waker};
 
 /// Identifies one master's TCP connection.
 pub type ConnId = u64;
@@ -62,89 +58,18 @@ pub enum Command {
 
 /// The relay's channel: the handle connections send through, and the relay's end.
 pub(crate) fn channel() -> (RelayHandle, Commands) {
-    let shared = Arc::new(Channel {
-        state: Mutex::new(State {
-            queue: VecDeque::new(),
-            senders: 1,
-            open: true,
-            relay: None,
-        }),
-    });
-    (
-        RelayHandle {
-            shared: shared.clone(),
-        },
-        Commands { shared },
-    )
-}
-
-struct Channel {
-    state: Mutex<State>,
-}
-
-struct State {
-    queue: VecDeque<Command>,
-    /// Handles alive: none left and the queue empty, the relay hears nothing more.
-    senders: usize,
-    /// The relay's end is still there.
-    open: bool,
-    /// The relay, waiting for a command.
-    relay: Option<Waker>,
-}
-
-impl Channel {
-    fn lock(&self) -> MutexGuard<'_, State> {
-        // Nothing panics while holding it.
-        self.state.lock().unwrap_or_else(|e| e.into_inner())
-    }
+    let (tx, rx) = queue::channel(());
+    (RelayHandle(tx), Commands(rx))
 }
 
 /// The connections' side of the relay's channel.
-pub struct RelayHandle {
-    shared: Arc<Channel>,
-}
+#[derive(Clone)]
+pub struct RelayHandle(Sender<Command, ()>);
 
 impl RelayHandle {
     /// Sends a command; gives it back if the relay has stopped.
     pub fn send(&self, cmd: Command) -> Result<(), Command> {
-        let relay = {
-            let mut s = self.shared.lock();
-            if !s.open {
-                return Err(cmd);
-            }
-            s.queue.push_back(cmd);
-            s.relay.take()
-        };
-        if let Some(w) = relay {
-            w.wake();
-        }
-        Ok(())
-    }
-}
-
-impl Clone for RelayHandle {
-    fn clone(&self) -> Self {
-        self.shared.lock().senders += 1;
-        RelayHandle {
-            shared: self.shared.clone(),
-        }
-    }
-}
-
-impl Drop for RelayHandle {
-    fn drop(&mut self) {
-        let relay = {
-            let mut s = self.shared.lock();
-            s.senders -= 1;
-            if s.senders == 0 {
-                s.relay.take()
-            } else {
-                None
-            }
-        };
-        if let Some(w) = relay {
-            w.wake();
-        }
+        self.0.send_if(cmd, |_| true)
     }
 }
 
@@ -154,45 +79,21 @@ impl std::fmt::Debug for RelayHandle {
     }
 }
 
-/// The relay's end of its channel.
-pub(crate) struct Commands {
-    shared: Arc<Channel>,
-}
+/// The relay's end of its channel. Dropped, it drops the commands left: their
+/// tickets answer "no reply" as they drop.
+pub(crate) struct Commands(Receiver<Command, ()>);
 
 impl Commands {
     /// The next command, in the order sent; `None` once none is left and every
     /// handle is gone. Cancel-safe: nothing is taken unless returned.
-    pub(crate) async fn recv(&mut self) -> Option<Command> {
-        poll_fn(|cx| {
-            let mut s = self.shared.lock();
-            if let Some(cmd) = s.queue.pop_front() {
-                return Poll::Ready(Some(cmd));
-            }
-            if s.senders == 0 {
-                return Poll::Ready(None);
-            }
-            keep(&mut s.relay, cx.waker());
-            Poll::Pending
-        })
-        .await
+    pub(crate) fn recv(&mut self) -> impl std::future::Future<Output = Option<Command>> + '_ {
+        self.0.recv()
     }
 
     /// The next command if one is waiting (tests).
     #[cfg(test)]
     pub(crate) fn try_recv(&mut self) -> Option<Command> {
-        self.shared.lock().queue.pop_front()
-    }
-}
-
-impl Drop for Commands {
-    fn drop(&mut self) {
-        let unsent = {
-            let mut s = self.shared.lock();
-            s.open = false;
-            std::mem::take(&mut s.queue)
-        };
-        // Their tickets answer "no reply" as they drop, outside the lock.
-        drop(unsent);
+        self.0.try_recv()
     }
 }
 

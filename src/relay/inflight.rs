@@ -377,14 +377,6 @@ impl<R> Paced<R> {
     }
 }
 
-impl RelayConfig {
-    /// The longest the relay takes to answer a request that is on the line: the
-    /// response timeout of every attempt (docs/design.md §1 step 5).
-    pub fn answer_within(&self) -> Duration {
-        Duration::from_millis(self.response_timeout_ms * u64::from(self.retries + 1))
-    }
-}
-
 /// A request in tests: the ADU and how many times it was resent.
 #[cfg(test)]
 impl Asked for (Adu, u32) {

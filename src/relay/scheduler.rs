@@ -26,12 +26,19 @@
 //! gets at least one transaction in [`LOWER_EVERY`] of those taken from the queues,
 //! however busy the higher one. Which request is ready is the same rule as without
 //! classes (the front of every queue it is in), so each master's order holds.
+//!
+//! The queues, the order and the choice of the next request are here; the classes
+//! (`scheduler/classes.rs`), the joining of reads (`scheduler/joins.rs`) and each
+//! master's share of a full queue (`scheduler/shares.rs`) in files of their own.
 
 use super::ids::{IdMap, KeyMap};
 use super::ConnId;
 use std::collections::VecDeque;
 use waiting::Waiting;
 
+mod classes;
+mod joins;
+mod shares;
 mod waiting;
 
 /// How many emptied queues the scheduler keeps for reuse: enough for the masters that
@@ -199,37 +206,6 @@ impl<R: Queued> Scheduler<R> {
         }
     }
 
-    /// `conn`'s priority class from now on (0, the lowest, unless set).
-    pub(super) fn set_class(&mut self, conn: ConnId, class: u8) {
-        if class == 0 {
-            self.classes.remove(&conn);
-        } else {
-            self.classes.insert(conn, class);
-        }
-    }
-
-    /// The class `req` goes as: the highest of the masters it serves.
-    pub(super) fn class_of(&self, req: &R) -> u8 {
-        if self.classes.is_empty() {
-            return 0;
-        }
-        self.classes_of(req).1
-    }
-
-    /// The lowest and the highest class of the masters `req` serves.
-    fn classes_of(&self, req: &R) -> (u8, u8) {
-        let each = req
-            .masters()
-            .map(|c| self.classes.get(&c).copied().unwrap_or(0));
-        each.fold((u8::MAX, 0), |(lo, hi), c| (lo.min(c), hi.max(c)))
-    }
-
-    /// Requests that joined an identical read so far (`Joined`, or `Displaced` with
-    /// the request joined).
-    pub(super) fn joins(&self) -> u64 {
-        self.joins
-    }
-
     /// Requests queued, each once for every master it serves (resends not counted).
     pub(super) fn queued(&self) -> usize {
         self.queued
@@ -238,21 +214,6 @@ impl<R: Queued> Scheduler<R> {
     /// Are requests waiting for the line (queued, or to be resent)?
     pub(super) fn has_waiting(&self) -> bool {
         !self.waiting.is_empty() || !self.retry.is_empty()
-    }
-
-    /// Has `conn` a request that acts on `unit` still waiting for the line (queued, or
-    /// to be resent)? Its own reads behind it must not be answered with what the
-    /// device said before it acted: they neither join a read queued by another master
-    /// nor take a cached reply.
-    pub(super) fn acts_waiting(&self, conn: ConnId, unit: u8) -> bool {
-        let acts_on = |r: &R| r.acts() && (r.unit() == unit || r.unit() == 0);
-        self.queues.get(&conn).is_some_and(|q| {
-            q.iter()
-                .any(|&n| self.waiting.get(n).is_some_and(|e| acts_on(&e.req)))
-        }) || self
-            .retry
-            .iter()
-            .any(|r| acts_on(r) && r.masters().any(|c| c == conn))
     }
 
     /// Queues `req` behind its master's earlier ones, or joins it to an identical read
@@ -297,59 +258,6 @@ impl<R: Queued> Scheduler<R> {
         }
     }
 
-    /// The write epoch of `unit`: it moves on with every request queued that acts on it.
-    fn epoch(&self, unit: u8) -> (u64, u64) {
-        (
-            self.broadcast_epoch,
-            self.epochs.get(&unit).copied().unwrap_or(0),
-        )
-    }
-
-    /// A request that acts on `unit` was queued: no read queued before it is joined
-    /// by one queued after it.
-    fn acted_on(&mut self, unit: u8) {
-        if unit == 0 {
-            self.broadcast_epoch += 1;
-            self.joinable.clear();
-        } else {
-            *self.epochs.entry(unit).or_default() += 1;
-            self.joinable.retain(|k, _| k.unit != unit);
-        }
-    }
-
-    /// Joins `req` to the newest identical read queued since the last request that
-    /// acted on its unit, if there is one, `req`'s master has nothing that acts on the
-    /// unit waiting before it, and that read is not ahead of anything the master
-    /// already waits for (its order); else gives it back.
-    fn try_join(&mut self, req: R) -> Result<(), R> {
-        let Some(key) = req.read_key().filter(|_| self.coalesce) else {
-            return Err(req);
-        };
-        let conn = req.conn();
-        if self.acts_waiting(conn, key.unit) {
-            return Err(req);
-        }
-        let Some(&number) = self.joinable.get(&key) else {
-            return Err(req);
-        };
-        let last = self.queues.get(&conn).and_then(|q| q.back().copied());
-        if last.is_some_and(|last| last > number) {
-            return Err(req);
-        }
-        let epoch = self.epoch(key.unit);
-        match self.waiting.get_mut(number) {
-            Some(e) if e.epoch == epoch && e.req.read_key() == Some(key) => {
-                e.req.join(req);
-                self.joins += 1;
-                if last != Some(number) {
-                    self.enlist(conn, number);
-                }
-                Ok(())
-            }
-            _ => Err(req),
-        }
-    }
-
     /// Request `number` goes at the back of `conn`'s queue. Round-robin from its
     /// arrival: a master that starts waiting goes behind every connection still
     /// waiting for a turn, ahead of the one just served.
@@ -368,51 +276,6 @@ impl<R: Queued> Scheduler<R> {
             }
         }
         q.push_back(number);
-    }
-
-    /// `req` waits: it counts for each master it serves.
-    fn count(&mut self, req: &R) {
-        for c in req.masters() {
-            *self.held.entry(c).or_default() += 1;
-            self.queued += 1;
-        }
-    }
-
-    /// `req` waits no more.
-    fn uncount(&mut self, req: &R) {
-        for c in req.masters() {
-            if let Some(n) = self.held.get_mut(&c) {
-                *n -= 1;
-                if *n == 0 {
-                    self.held.remove(&c);
-                }
-            }
-            self.queued -= 1;
-        }
-    }
-
-    /// Takes out one request of `conn`, its newest, to be answered 0x06: the last of
-    /// its queue. Of a read that also answers others (or `conn`'s own earlier
-    /// identical reads) only that one request is taken, and the read stays where it
-    /// is for the rest.
-    fn evict(&mut self, conn: ConnId) -> Option<R> {
-        let number = *self.queues.get(&conn)?.back()?;
-        let e = self.waiting.get_mut(number)?;
-        let gone = match e.req.leave_one(conn) {
-            Some(part) => {
-                if !e.req.masters().any(|c| c == conn) {
-                    self.unlist(conn, number);
-                }
-                part
-            }
-            None => {
-                let whole = self.remove(number)?;
-                self.unlist(conn, number);
-                whole
-            }
-        };
-        self.uncount(&gone);
-        Some(gone)
     }
 
     /// Request `number` is no longer in `conn`'s queue.

@@ -502,3 +502,125 @@ fn the_files_a_framing_touches_are_counted_right() {
         );
     }
 }
+
+/// The type an `impl` header names (`crate::config::RelayConfig`, `Clone for
+/// Sender<T>`): its last path step, without generics, and the room its path names.
+fn impl_target(header: &str) -> (String, Option<String>) {
+    let t = header.trim().trim_start_matches('&').trim();
+    let t = t.strip_prefix("dyn ").unwrap_or(t);
+    let base = t.split('<').next().unwrap_or("").trim();
+    let room = base
+        .strip_prefix("crate::")
+        .and_then(|p| p.split("::").next())
+        .map(str::to_string);
+    (base.rsplit("::").next().unwrap_or("").to_string(), room)
+}
+
+/// The rooms that define each type (`struct`, `enum`, `union`, `trait`, `type`, or a
+/// declaring macro's `[relay] RelayConfig {` and `Framing {`), from the source.
+fn type_rooms(files: &[String]) -> std::collections::BTreeMap<String, Vec<String>> {
+    let mut rooms = std::collections::BTreeMap::<String, Vec<String>>::new();
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        for line in production(&repo().join(file)).lines() {
+            let mut t = line.trim();
+            if t.starts_with("pub") {
+                t = t[t.find([' ']).unwrap_or(t.len())..].trim_start();
+            }
+            let word = |s: &str| -> String {
+                s.chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect()
+            };
+            let keyword = ["struct ", "enum ", "union ", "trait ", "type "]
+                .iter()
+                .find_map(|k| t.strip_prefix(k).map(word));
+            // A declaring macro: `[relay] RelayConfig {`, `Framing {`.
+            let declared = || {
+                let rest = match t.strip_prefix('[') {
+                    Some(r) => r[r.find(']')? + 1..].trim_start(),
+                    None => t,
+                };
+                let name = word(rest);
+                let tail = rest[name.len()..].trim();
+                let tail = tail.trim_start_matches(|c: char| c.is_ascii_alphanumeric() || c == '_');
+                (tail.trim() == "{").then_some(name)
+            };
+            if let Some(name) = keyword.or_else(declared) {
+                if name.starts_with(|c: char| c.is_ascii_uppercase()) {
+                    let entry = rooms.entry(name).or_default();
+                    entry.push(room(file));
+                }
+            }
+        }
+    }
+    rooms
+}
+
+/// Each policy lives in the room that owns its type (docs/architecture.md "The
+/// rooms"): an `impl` block names a type its own room defines, or implements a trait
+/// its own room defines; a type's methods written in another room are a tie the
+/// drawing does not show.
+#[test]
+fn every_impl_is_in_the_room_of_its_type() {
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let rooms = type_rooms(&files);
+    let mut wrong = Vec::new();
+    let mut checked = 0;
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        let here = room(file);
+        for line in production(&repo().join(file)).lines() {
+            let t = line.trim_start();
+            let Some(mut header) = t.strip_prefix("impl") else {
+                continue;
+            };
+            if header.starts_with('<') {
+                // Skip the generics, nested `<>` included.
+                let mut depth = 0;
+                let end = header.char_indices().find(|&(_, c)| {
+                    depth += match c {
+                        '<' => 1,
+                        '>' => -1,
+                        _ => 0,
+                    };
+                    depth == 0
+                });
+                header = &header[end.map_or(header.len(), |(i, _)| i + 1)..];
+            } else if !header.starts_with(' ') {
+                continue;
+            }
+            let header = header.split(['{']).next().unwrap_or("");
+            let header = header.split(" where").next().unwrap_or("");
+            let ty = match header.split_once(" for ") {
+                Some((tr, ty)) => {
+                    let (name, room_named) = impl_target(tr);
+                    let owned = room_named.as_ref() == Some(&here)
+                        || rooms.get(&name).is_some_and(|r| r.contains(&here));
+                    if owned {
+                        continue;
+                    }
+                    ty
+                }
+                None => header,
+            };
+            let (name, room_named) = impl_target(ty);
+            let owners = match room_named {
+                Some(r) => vec![r],
+                None => rooms.get(&name).cloned().unwrap_or_default(),
+            };
+            checked += 1;
+            if !owners.is_empty() && !owners.contains(&here) {
+                wrong.push(format!(
+                    "{file}: `impl {}` of a type of `{}`",
+                    header.trim(),
+                    owners.join("`, `")
+                ));
+            }
+        }
+    }
+    assert!(
+        checked > 100,
+        "only {checked} impl blocks found: is the parsing right?"
+    );
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}

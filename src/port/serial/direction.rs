@@ -160,10 +160,22 @@ pub enum DirectionError {
     },
 }
 
+/// Does the gateway switch the RS-485 transmitter of a serial port `cfg` describes:
+/// the one place this is decided, for the port that takes the switch at each open
+/// (`take`) and the relay that times its delays (docs/rs485.md). `None`: the
+/// transceiver switches itself, or the kernel does (RS-485 mode).
+pub fn gateway_switches(cfg: &SerialConfig) -> bool {
+    cfg.direction != Direction::None
+}
+
 /// The transmitter's switch `cfg` asks for on the open port `fd`, switched off; none
 /// where the gateway switches nothing.
 pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, DirectionError> {
+    if !gateway_switches(cfg) {
+        return Ok(None);
+    }
     match cfg.direction {
+        // Decided above.
         Direction::None => Ok(None),
         Direction::Rts => {
             let rts = Rts {

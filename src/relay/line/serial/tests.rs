@@ -5,6 +5,7 @@
 use super::super::{LineFraming, Seen};
 use super::*;
 use crate::port::kind::Medium;
+use crate::relay::inflight::OnLine;
 
 const MS: Duration = Duration::from_millis(1);
 
