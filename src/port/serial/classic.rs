@@ -94,12 +94,7 @@ pub(crate) fn open(cfg: &SerialConfig) -> Result<serialport::TTYPort, tokio_seri
     let fd = file.as_raw_fd();
     let mut t = get(fd)?;
     configure(&mut t, cfg, rate);
-    // SAFETY: `t` is a whole `struct termios`, read for the call; `fd` is open.
-    #[allow(unsafe_code)]
-    let r = unsafe { libc::tcsetattr(fd, libc::TCSANOW, &t) };
-    if r != 0 {
-        return Err(io::Error::last_os_error().into());
-    }
+    set(fd, &t)?;
     // SAFETY: the descriptor is open and given up by `file`, so the port is its one owner.
     #[allow(unsafe_code)]
     Ok(unsafe { serialport::TTYPort::from_raw_fd(file.into_raw_fd()) })
@@ -171,8 +166,20 @@ fn open_nonblocking(path: &str) -> io::Result<File> {
         .open(path)
 }
 
+/// TCSETS at once, through the C library's tcsetattr.
+pub(crate) fn set(fd: RawFd, t: &libc::termios) -> io::Result<()> {
+    // SAFETY: `t` is a whole `struct termios`, read for the call; `fd` is open.
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::tcsetattr(fd, libc::TCSANOW, t) };
+    if r == 0 {
+        Ok(())
+    } else {
+        Err(io::Error::last_os_error())
+    }
+}
+
 /// TCGETS, through the C library's tcgetattr.
-fn get(fd: RawFd) -> io::Result<libc::termios> {
+pub(crate) fn get(fd: RawFd) -> io::Result<libc::termios> {
     let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
     // SAFETY: tcgetattr fills the `struct termios` it is given; `fd` is open.
     #[allow(unsafe_code)]
@@ -186,13 +193,13 @@ fn get(fd: RawFd) -> io::Result<libc::termios> {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use std::io::{Read, Write};
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
 
     /// A pty pair: the master as a file, the slave's path.
-    fn pty() -> (File, String) {
+    pub(crate) fn pty() -> (File, String) {
         // SAFETY: posix_openpt returns a new descriptor or -1; on success it is owned by
         // the File below, and ptsname's string is copied before anything else runs.
         #[allow(unsafe_code)]

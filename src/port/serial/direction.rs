@@ -245,35 +245,18 @@ pub(crate) fn keep_modem_lines_on_close(fd: RawFd) -> io::Result<()> {
     // SAFETY: TCGETS2 writes at most one `struct termios2` into `t`, which is that
     // size, for the duration of the call.
     #[allow(unsafe_code)]
-    let r = unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t.as_mut_ptr()) };
-    let r = if r == 0 {
-        // SAFETY: zeroed, then filled by a TCGETS2 that succeeded.
-        #[allow(unsafe_code)]
-        let mut t = unsafe { t.assume_init() };
+    if unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t.as_mut_ptr()) } != 0 {
+        let mut t = super::classic::get(fd)?;
         t.c_cflag &= !libc::HUPCL;
-        // SAFETY: TCSETS2 reads one `struct termios2`, which `t` is.
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::ioctl(fd, libc::TCSETS2 as _, &t as *const libc::termios2)
-        }
-    } else {
-        let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
-        // SAFETY: tcgetattr fills the `struct termios` it is given; `fd` is open.
-        #[allow(unsafe_code)]
-        let r = unsafe { libc::tcgetattr(fd, t.as_mut_ptr()) };
-        if r != 0 {
-            return Err(io::Error::last_os_error());
-        }
-        // SAFETY: zeroed, then filled by a tcgetattr that succeeded.
-        #[allow(unsafe_code)]
-        let mut t = unsafe { t.assume_init() };
-        t.c_cflag &= !libc::HUPCL;
-        // SAFETY: `t` is a whole `struct termios`, read for the call.
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::tcsetattr(fd, libc::TCSANOW, &t)
-        }
-    };
+        return super::classic::set(fd, &t);
+    }
+    // SAFETY: zeroed, then filled by a TCGETS2 that succeeded.
+    #[allow(unsafe_code)]
+    let mut t = unsafe { t.assume_init() };
+    t.c_cflag &= !libc::HUPCL;
+    // SAFETY: TCSETS2 reads one `struct termios2`, which `t` is.
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::ioctl(fd, libc::TCSETS2 as _, &t as *const libc::termios2) };
     if r == 0 {
         Ok(())
     } else {
@@ -640,55 +623,21 @@ mod tests {
     /// is used: HUPCL is cleared, through termios2, and the rest of the settings stay.
     #[test]
     fn hupcl_is_cleared_and_nothing_else() {
+        use super::super::classic::{get, set, tests::pty};
         use std::os::fd::AsRawFd;
-        let pty = pty_slave();
-        let fd = pty.as_raw_fd();
-        let cflag = || {
-            let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
-            // SAFETY: tcgetattr fills the `struct termios` it is given.
-            #[allow(unsafe_code)]
-            let r = unsafe { libc::tcgetattr(fd, t.as_mut_ptr()) };
-            assert_eq!(r, 0);
-            // SAFETY: filled by the tcgetattr above.
-            #[allow(unsafe_code)]
-            unsafe { t.assume_init() }.c_cflag
-        };
-        let mut t = std::mem::MaybeUninit::<libc::termios>::zeroed();
-        // SAFETY: tcgetattr fills `t`; tcsetattr reads the whole `struct termios`.
-        #[allow(unsafe_code)]
-        unsafe {
-            assert_eq!(libc::tcgetattr(fd, t.as_mut_ptr()), 0);
-            let mut t = t.assume_init();
-            t.c_cflag |= libc::HUPCL;
-            assert_eq!(libc::tcsetattr(fd, libc::TCSANOW, &t), 0);
-        }
-        let before = cflag();
-        assert_ne!(before & libc::HUPCL, 0, "the port hangs up on close");
-        keep_modem_lines_on_close(fd).unwrap();
-        assert_eq!(cflag(), before & !libc::HUPCL);
-    }
-
-    /// A pty's slave end, opened (its master kept open with it).
-    fn pty_slave() -> std::fs::File {
-        // SAFETY: posix_openpt returns a new descriptor or -1.
-        #[allow(unsafe_code)]
-        let master = unsafe { libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY) };
-        assert!(master >= 0);
-        // SAFETY: `master` is the open master just made.
-        #[allow(unsafe_code)]
-        let name = unsafe {
-            assert_eq!(libc::grantpt(master), 0);
-            assert_eq!(libc::unlockpt(master), 0);
-            std::ffi::CStr::from_ptr(libc::ptsname(master))
-                .to_string_lossy()
-                .into_owned()
-        };
-        // `master` is left open (a bare descriptor): the slave keeps its settings
-        // only while the master is open.
-        std::fs::OpenOptions::new()
+        let (_master, slave) = pty();
+        let port = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
-            .open(name)
-            .unwrap()
+            .open(slave)
+            .unwrap();
+        let fd = port.as_raw_fd();
+        let mut t = get(fd).unwrap();
+        t.c_cflag |= libc::HUPCL;
+        set(fd, &t).unwrap();
+        let before = get(fd).unwrap().c_cflag;
+        assert_ne!(before & libc::HUPCL, 0, "the port hangs up on close");
+        keep_modem_lines_on_close(fd).unwrap();
+        assert_eq!(get(fd).unwrap().c_cflag, before & !libc::HUPCL);
     }
 }

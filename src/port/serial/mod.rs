@@ -8,7 +8,7 @@
 //! drives it (`direction.rs`). The simulator and the client open their ports with the same
 //! [`open`]; how long bytes take at `baud_rate` is `port/kind.rs`'s.
 
-mod classic;
+pub(crate) mod classic;
 mod detect;
 pub mod direction;
 mod drain;
