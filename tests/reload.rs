@@ -98,6 +98,8 @@ fn reload_under_load_applies_the_new_timeout_and_refuses_a_broken_file() {
     std::fs::write(&file, new.render()).unwrap();
     gw.proc.signal("HUP");
     gw.wait_log("reloaded: ", Duration::from_secs(5));
+    // The warning is the line after: read once it has come too.
+    gw.wait_log("applied only by a restart", Duration::from_secs(5));
     let log = gw.log();
     assert!(
         log.contains(
