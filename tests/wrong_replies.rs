@@ -131,6 +131,17 @@ impl Tally {
         }
     }
 
+    /// Panics, listing them and the gateway's log, if any answer was wrong.
+    fn assert_none_wrong(&self, gw: &Gateway) {
+        assert!(
+            self.wrong.is_empty(),
+            "{} wrong: {:#?}\n{}",
+            self.wrong.len(),
+            self.wrong,
+            gw.log()
+        );
+    }
+
     fn add(&mut self, other: Tally) {
         self.right += other.right;
         self.failed += other.failed;
@@ -200,13 +211,7 @@ fn a_stalled_devices_backlog_never_answers_new_requests() {
     let tally = two_masters(&gw, 30);
     let counters = gw.stop();
     eprintln!("{tally:?} {counters:?}");
-    assert!(
-        tally.wrong.is_empty(),
-        "{} wrong: {:#?}\n{}",
-        tally.wrong.len(),
-        tally.wrong,
-        gw.log()
-    );
+    tally.assert_none_wrong(&gw);
     assert!(tally.failed >= 3, "the stall timed requests out: {tally:?}");
     assert!(tally.right >= 20, "{tally:?}");
     assert!(
@@ -245,12 +250,6 @@ fn a_late_reply_after_a_learned_timeout_answers_nothing() {
     let tally = master(&gw, 0, 95, false);
     let counters = gw.stop();
     eprintln!("{tally:?} {counters:?}");
-    assert!(
-        tally.wrong.is_empty(),
-        "{} wrong: {:#?}\n{}",
-        tally.wrong.len(),
-        tally.wrong,
-        gw.log()
-    );
+    tally.assert_none_wrong(&gw);
     assert!(tally.right >= 60, "{tally:?}");
 }

@@ -27,15 +27,7 @@ import sys
 import time
 
 import serial
-
-
-def crc16(data: bytes) -> bytes:
-    crc = 0xFFFF
-    for b in data:
-        crc ^= b
-        for _ in range(8):
-            crc = (crc >> 1) ^ 0xA001 if crc & 1 else crc >> 1
-    return crc.to_bytes(2, "little")
+from raw_device import crc16
 
 
 def lrc(data: bytes) -> int:
