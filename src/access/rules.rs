@@ -22,6 +22,11 @@ impl UnitSet {
         self.0[usize::from(unit / 64)] |= 1 << (unit % 64);
     }
 
+    /// Takes `unit` out.
+    pub fn remove(&mut self, unit: u8) {
+        self.0[usize::from(unit / 64)] &= !(1 << (unit % 64));
+    }
+
     /// Is `unit` in the set?
     pub fn contains(&self, unit: u8) -> bool {
         self.0[usize::from(unit / 64)] & (1 << (unit % 64)) != 0

@@ -5,6 +5,7 @@
 //! seen) is `serial/receive.rs`; the line's state, the way out and its timers are
 //! here.
 
+use crate::access::UnitSet;
 use crate::capture::dropped::{Dropped, Tape};
 use crate::capture::packet::Reason;
 use crate::config::{FlowControl, RelayConfig, SerialConfig};
@@ -81,31 +82,12 @@ pub(super) struct Serial {
     /// The units a request timed out to, which may still hold it and answer it later
     /// (a device that stalled, then answers its backlog): until one of their replies
     /// has been confirmed, each is taken only once the line stays quiet after it.
-    may_owe: Units,
+    may_owe: UnitSet,
     /// A reply from such a unit, held until the line has been quiet after it for the
     /// guard, or half its request's response timeout if shorter (so a reply in the
     /// first half of it is confirmed before its deadline); with its key (the
     /// in-flight request's), when its last byte came, and that quiet.
     unconfirmed: Option<(Adu, Instant, Duration)>,
-}
-
-/// A set of unit ids.
-#[derive(Default, Clone, Copy)]
-struct Units([u64; 4]);
-
-impl Units {
-    fn contains(&self, unit: u8) -> bool {
-        self.0[usize::from(unit / 64)] >> (unit % 64) & 1 == 1
-    }
-
-    fn set(&mut self, unit: u8, on: bool) {
-        let (word, bit) = (&mut self.0[usize::from(unit / 64)], 1u64 << (unit % 64));
-        if on {
-            *word |= bit;
-        } else {
-            *word &= !bit;
-        }
-    }
 }
 
 impl Serial {
@@ -160,7 +142,7 @@ impl Serial {
             },
             wire_gaps: (gap, gap_after_frame),
             auto_gap: serial.inter_frame_gap_us == 0,
-            may_owe: Units::default(),
+            may_owe: UnitSet::default(),
             unconfirmed: None,
         }
     }
@@ -366,7 +348,10 @@ impl Serial {
     /// answer it later, with any it holds after it (docs/reliability.md "RTU and
     /// ASCII", 6).
     pub(super) fn unanswered(&mut self, unit: u8) {
-        self.may_owe.set(unit, unit != 0);
+        // A broadcast is answered by nobody.
+        if unit != 0 {
+            self.may_owe.insert(unit);
+        }
     }
 
     pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {

@@ -227,7 +227,7 @@ impl Serial {
             return None;
         }
         let (reply, at, _) = self.unconfirmed.take()?;
-        self.may_owe.set(reply.unit(), false);
+        self.may_owe.remove(reply.unit());
         Some(Seen::Frame(reply, at))
     }
 
