@@ -239,8 +239,9 @@ fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
 }
 
 /// One reload: the file read, its lines matched to the running ones, what a reload
-/// applies applied (the relays' timeouts and retries, the log, the metrics listener).
-/// `None` when a relay has stopped.
+/// applies applied (the relays' timeouts and retries, the log, the metrics listener,
+/// the dials and UDP listeners, the masters' priority classes). `None` when a relay
+/// has stopped.
 fn reload(it: &mut Reloadable) -> Option<Outcome> {
     let read = match (it.load)() {
         Ok(read) => read,
