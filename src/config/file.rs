@@ -196,8 +196,8 @@ impl Reader<'_> {
             cfg.listeners = listeners;
         }
         match &lines[..] {
+            // Each [[line]]'s keys were checked as it was read.
             [] => self.conflict(&cfg, "")?,
-            // One line, whose settings alone its table gives; or several.
             [_] => {}
             [..] => {
                 // A master line routes by its [[line.route]] tables: it serves no unit

@@ -509,7 +509,9 @@ pub struct Key<C: 'static = Config> {
     /// Checks a value and sets this key in a configuration; the error says why,
     /// without the key.
     pub(crate) set: fn(&mut C, &Raw) -> Result<(), ValueError>,
-    /// The value of this key in a configuration, as written in a TOML file.
+    /// The value of this key in a configuration, as written in a TOML file (a
+    /// `[serial]` or `[relay]` key: the first line's; a `[tcp]` key: the first
+    /// listener's).
     pub get: fn(&C) -> String,
 }
 
