@@ -1244,3 +1244,40 @@ fn flags_for_a_line_are_refused_when_the_file_has_several() {
     assert!(printed.contains("\n[[line]]\nunits = [2]\n"), "{printed}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// One shape whichever form the file is in (docs/architecture.md "One shape of the
+/// configuration"): `[serial]`, `[relay]` and `[tcp]` read into the same lines and
+/// listeners as the `[[line]]` and `[[listen]]` tables that say the same, and a flag
+/// sets the one line's value itself, whichever form it came in; with several lines a
+/// flag is refused rather than set on one.
+#[test]
+fn both_forms_read_into_one_shape_and_the_flags_set_the_line() {
+    let single = "[serial]\npath = \"/dev/ttyS2\"\nframing = \"rtu\"\nflow_control = \"none\"\n\
+                  [relay]\nresponse_timeout_ms = 300\n[tcp]\nlisten = \"127.0.0.1:1502\"\n";
+    let tables = "[[line]]\nserial = { path = \"/dev/ttyS2\", framing = \"rtu\", flow_control = \"none\" }\n\
+                  relay = { response_timeout_ms = 300 }\n\
+                  [[listen]]\naddress = \"127.0.0.1:1502\"\n";
+    let (a, b) = (parse(single, F).unwrap(), parse(tables, F).unwrap());
+    assert_eq!(a, b);
+    assert_eq!((a.lines.len(), a.listeners.len()), (1, 1));
+    assert_eq!(a.lines[0].relay.response_timeout_ms, 300);
+    assert_eq!(a.listeners[0].tcp.listen, "127.0.0.1:1502".parse().unwrap());
+
+    let flags = cli(&["--response-timeout-ms", "700", "--listen", "127.0.0.1:1503"]).unwrap();
+    for mut cfg in [a, b] {
+        flags.apply(&mut cfg).unwrap();
+        assert_eq!(cfg.lines[0].relay.response_timeout_ms, 700);
+        assert_eq!(
+            cfg.listeners[0].tcp.listen,
+            "127.0.0.1:1503".parse().unwrap()
+        );
+        assert_eq!((cfg.lines.len(), cfg.listeners.len()), (1, 1));
+    }
+
+    let two = format!("{tables}[[line]]\nunits = [2]\nserial = {{ path = \"/dev/ttyS3\" }}\n")
+        .replacen("[[line]]\n", "[[line]]\nunits = [1]\n", 1);
+    let mut cfg = parse(&two, F).unwrap();
+    let e = flags.apply(&mut cfg).unwrap_err().to_string();
+    assert!(e.contains("[[line]] tables"), "{e}");
+    assert_eq!(cfg, parse(&two, F).unwrap(), "left as it was");
+}
