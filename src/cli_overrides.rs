@@ -73,8 +73,8 @@ impl<const PORT: bool> Flags<PORT> {
         for (key, value) in &self.given {
             // With several lines (or listeners) a flag could mean any of them.
             let tables = match key.section {
-                "serial" | "relay" if !cfg.lines.is_empty() => Some("[[line]]"),
-                "tcp" if !cfg.listeners.is_empty() => Some("[[listen]]"),
+                "serial" | "relay" if !cfg.single_line() => Some("[[line]]"),
+                "tcp" if !cfg.single_listener() => Some("[[listen]]"),
                 _ => None,
             };
             if let Some(tables) = tables {
@@ -106,12 +106,10 @@ impl<const PORT: bool> Flags<PORT> {
 
     /// [`Flags::apply`] to serial port settings alone.
     pub(crate) fn apply_serial(&self, serial: &mut SerialConfig) -> Result<(), ConfigError> {
-        let mut cfg = Config {
-            serial: serial.clone(),
-            ..Config::default()
-        };
+        let mut cfg = Config::default();
+        cfg.lines[0].serial = serial.clone();
         self.apply(&mut cfg)?;
-        *serial = cfg.serial;
+        *serial = cfg.lines.swap_remove(0).serial;
         Ok(())
     }
 }

@@ -98,7 +98,7 @@ pub(crate) async fn bind(cfg: &Config) -> Result<Vec<Socket>, GatewayError> {
         return Ok(Vec::new());
     }
     let max_pending = cfg.max_pending_per_connection();
-    let bind = |l: ListenConfig| {
+    let bind = |l: &ListenConfig| {
         let addr = l.tcp.listen;
         let bound = match l.transport {
             Transport::Tcp => tcp::listen(addr, max_pending).map(Socket::Tcp),
@@ -106,11 +106,11 @@ pub(crate) async fn bind(cfg: &Config) -> Result<Vec<Socket>, GatewayError> {
         };
         bound.map_err(|error| GatewayError::Bind { addr, error })
     };
-    cfg.listeners().into_iter().map(bind).collect()
+    cfg.listeners.iter().map(bind).collect()
 }
 
 /// [`run`] on listeners already bound (`mbgate demo` prints their addresses first),
-/// one for each of `cfg.listeners()`.
+/// one for each of `cfg.listeners`.
 pub(crate) async fn serve(
     listeners: Vec<Socket>,
     cfg: Config,
@@ -142,7 +142,7 @@ type Bound = (Socket, tcp::Listening);
 /// (port 0 is a real port by now) and its TLS acceptor, whose files are read here.
 fn listening(listeners: Vec<Socket>, cfg: &Config) -> Result<Vec<Bound>, GatewayError> {
     let mut bound = Vec::new();
-    for (i, (listener, listen)) in listeners.into_iter().zip(cfg.listeners()).enumerate() {
+    for (i, (listener, listen)) in listeners.into_iter().zip(&cfg.listeners).enumerate() {
         let local = listener.local_addr().map_err(|error| GatewayError::Bind {
             addr: listen.tcp.listen,
             error,
@@ -157,7 +157,7 @@ fn listening(listeners: Vec<Socket>, cfg: &Config) -> Result<Vec<Bound>, Gateway
             None => None,
         };
         let listening = tcp::Listening {
-            listen,
+            listen: listen.clone(),
             name,
             local,
             tls,
@@ -328,7 +328,7 @@ async fn start_lines(
         slaves: Vec::new(),
         relays: Vec::new(),
     };
-    for (i, line) in cfg.lines().iter().enumerate() {
+    for (i, line) in cfg.lines.iter().enumerate() {
         let line_stats = Arc::new(Stats::default());
         lines.stats.push(line_stats.clone());
         // One watchdog for the gateway: every line runs on the one thread, so one
@@ -409,10 +409,10 @@ fn hangup(load: reload::Loader) -> Option<(tokio::signal::unix::Signal, reload::
 /// serial port); then READY=1, before the lines first run, so it precedes the first
 /// WATCHDOG=1.
 fn announce(cfg: &Config, bound: &[Bound]) {
-    let lines = cfg.lines();
+    let lines = &cfg.lines;
     let devices: Vec<&str> = lines.iter().map(LineConfig::name).collect();
     let devices = devices.join(", ");
-    for line in &lines {
+    for line in lines {
         info!("line {}", crate::config::describe::line(line));
     }
     for (_, l) in bound {
@@ -556,7 +556,7 @@ fn warn_inapplicable(cfg: &Config) {
 /// check-config`), not refused, so a file written for MBAP keeps working when only the
 /// framing changes. With several lines each is named (`line[1]: ...`).
 pub fn warnings(cfg: &Config) -> Vec<String> {
-    let lines = cfg.lines();
+    let lines = &cfg.lines;
     let mut said = Vec::new();
     for (i, line) in lines.iter().enumerate() {
         let name = if lines.len() > 1 {

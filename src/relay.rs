@@ -107,7 +107,12 @@ impl Relay {
         shutdown: CancellationToken,
     ) -> (Self, RelayHandle) {
         let port = Box::new(port::serial::SerialPort::new(serial.clone()));
-        Self::build(cfg, serial, port, false, traffic, stats, shutdown)
+        let line = LineConfig {
+            serial,
+            relay: cfg,
+            ..LineConfig::default()
+        };
+        Self::build(&line, port, false, traffic, stats, shutdown)
     }
 
     /// A relay for a line of docs/design.md §4.1: on its serial port, or on a TCP
@@ -119,27 +124,20 @@ impl Relay {
         stats: Arc<Stats>,
         shutdown: CancellationToken,
     ) -> (Self, RelayHandle) {
-        let (cfg, serial) = (line.relay.clone(), line.serial.clone());
-        let (relay, handle) = match &line.tcp {
+        let port: Box<dyn port::Port> = match &line.tcp {
             Some(addr) => {
                 let port = port::tcp::TcpPort::new(addr.clone()).with_tls(line.tcp_tls.clone());
-                let port = Box::new(port);
-                Self::build(cfg, serial, port, true, traffic, stats, shutdown)
+                Box::new(port)
             }
-            None => Self::new(cfg, serial, traffic, stats, shutdown),
+            None => Box::new(port::serial::SerialPort::new(line.serial.clone())),
         };
-        (relay.with_units(&line.unit_tables), handle)
+        let stream = line.tcp.is_some();
+        Self::build(line, port, stream, traffic, stats, shutdown)
     }
 
-    /// Units with settings of their own (`[[line.unit]]`).
-    pub(crate) fn with_units(mut self, units: &crate::config::unit::UnitTables) -> Self {
-        self.in_flight.retune(&self.cfg, units);
-        self
-    }
-
+    /// The relay of `line` (its units with settings of their own resolved once, here).
     fn build(
-        cfg: RelayConfig,
-        serial: SerialConfig,
+        config: &LineConfig,
         transport: Box<dyn port::Port>,
         stream: bool,
         traffic: bool,
@@ -148,11 +146,15 @@ impl Relay {
     ) -> (Self, RelayHandle) {
         let (handle, rx) = command::channel();
         let now = Instant::now();
+        let (cfg, serial, units) = (
+            config.relay.clone(),
+            config.serial.clone(),
+            &config.unit_tables,
+        );
         let line = LineFraming::new(&cfg, &serial, stream, now);
         // Only on a bus of units (RTU/ASCII): backing off the CIE-M10, the one unit of
         // an MBAP line, would gain the others nothing.
-        let units = crate::config::unit::UnitTables::default();
-        let in_flight = InFlight::new(&cfg, &units, cfg.unit_backoff && line.is_serial());
+        let in_flight = InFlight::new(&cfg, units, cfg.unit_backoff && line.is_serial());
         let baud = serial.baud_rate;
         // The line is known by its transport's name (the metrics' `line` label).
         let metrics = Arc::new(LineMetrics::new(transport.name(), stats.clone()));

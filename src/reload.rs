@@ -248,7 +248,7 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
         Err(e) => return Some(Outcome::Refused(e.to_string())),
     };
     let old = it.running.lock().expect("not poisoned").clone();
-    let matched = match changes::match_lines(&old.lines(), &read.lines()) {
+    let matched = match changes::match_lines(&old.lines, &read.lines) {
         Ok(m) => m,
         Err(why) => return Some(Outcome::Refused(why)),
     };
@@ -258,11 +258,11 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
         new.metrics = old.metrics.clone();
     }
     crate::logging::reload(&new.log);
-    for (handle, line) in it.lines.iter().zip(new.lines()) {
+    for (handle, line) in it.lines.iter().zip(new.lines.clone()) {
         handle.retune(line, new.log.traffic)?;
     }
     (it.dials)(&new.dials);
-    for unbound in (it.udps)(&new.listeners()) {
+    for unbound in (it.udps)(&new.listeners) {
         error!("reload: {unbound}");
     }
     let said = |a: &Config, b: &Config, matched: &[usize]| -> Vec<String> {

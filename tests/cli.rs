@@ -31,13 +31,13 @@ fn check_config_prints_the_effective_configuration() {
     ]);
     assert!((o.code == 0), "{}", o.stderr);
     let cfg = mbgate::config::parse(&o.stdout, "stdout").unwrap();
-    assert_eq!(cfg.serial.baud_rate, 9600);
-    assert_eq!(cfg.serial.path, "/dev/ttyAMA0");
+    assert_eq!(cfg.lines[0].serial.baud_rate, 9600);
+    assert_eq!(cfg.lines[0].serial.path, "/dev/ttyAMA0");
     assert_eq!(
-        cfg.relay.notifications,
+        cfg.lines[0].relay.notifications,
         mbgate::config::Notifications::Broadcast
     );
-    assert_eq!(cfg.relay.max_in_flight, 4);
+    assert_eq!(cfg.lines[0].relay.max_in_flight, 4);
 }
 
 #[test]

@@ -26,38 +26,44 @@ fn assert_err(text: &str, line: usize, key: &str, contains: &str) {
 #[test]
 fn defaults_are_the_documented_ones() {
     let c = Config::default();
-    assert_eq!(c.serial.path, "/dev/ttyUSB0");
-    assert_eq!(c.serial.baud_rate, 19200);
-    assert_eq!(c.serial.data_bits, 8);
-    assert_eq!(c.serial.parity, Parity::None);
-    assert_eq!(c.serial.stop_bits, 1);
-    assert_eq!(c.serial.flow_control, FlowControl::Hardware);
-    assert_eq!(c.serial.framing, Framing::Mbap);
-    assert_eq!(c.tcp.listen, "0.0.0.0:502".parse().unwrap());
-    assert_eq!(c.tcp.max_connections, 32);
-    assert_eq!(c.tcp.idle_timeout_ms, 60_000);
-    assert_eq!(c.relay.response_timeout_ms, 1000);
-    assert_eq!(c.relay.frame_gap_ms, 50);
-    assert_eq!(c.relay.max_in_flight, 1);
-    assert_eq!(c.relay.max_pending_per_connection, 16);
-    assert_eq!(c.relay.queue_depth, 64);
-    assert_eq!(c.relay.retries, 0);
-    assert!(!c.relay.retry_writes);
-    assert_eq!(c.relay.notifications, Notifications::Drop);
-    assert_eq!(c.serial.silence_floor_ms, Floor::Auto);
-    assert_eq!(c.serial.port_kind, PortKind::Auto);
-    assert!(c.serial.low_latency && !c.relay.device_notifications);
-    assert!(!c.serial.rs485 && !c.serial.echo);
-    assert_eq!(c.relay.broadcast_delay_ms, 100);
-    assert_eq!(c.relay.broadcast_reply, BroadcastReply::None);
-    assert!(c.relay.unit_backoff);
-    assert_eq!(c.relay.unit_backoff_after, 3);
+    assert_eq!(c.lines[0].serial.path, "/dev/ttyUSB0");
+    assert_eq!(c.lines[0].serial.baud_rate, 19200);
+    assert_eq!(c.lines[0].serial.data_bits, 8);
+    assert_eq!(c.lines[0].serial.parity, Parity::None);
+    assert_eq!(c.lines[0].serial.stop_bits, 1);
+    assert_eq!(c.lines[0].serial.flow_control, FlowControl::Hardware);
+    assert_eq!(c.lines[0].serial.framing, Framing::Mbap);
+    assert_eq!(c.listeners[0].tcp.listen, "0.0.0.0:502".parse().unwrap());
+    assert_eq!(c.listeners[0].tcp.max_connections, 32);
+    assert_eq!(c.listeners[0].tcp.idle_timeout_ms, 60_000);
+    assert_eq!(c.lines[0].relay.response_timeout_ms, 1000);
+    assert_eq!(c.lines[0].relay.frame_gap_ms, 50);
+    assert_eq!(c.lines[0].relay.max_in_flight, 1);
+    assert_eq!(c.lines[0].relay.max_pending_per_connection, 16);
+    assert_eq!(c.lines[0].relay.queue_depth, 64);
+    assert_eq!(c.lines[0].relay.retries, 0);
+    assert!(!c.lines[0].relay.retry_writes);
+    assert_eq!(c.lines[0].relay.notifications, Notifications::Drop);
+    assert_eq!(c.lines[0].serial.silence_floor_ms, Floor::Auto);
+    assert_eq!(c.lines[0].serial.port_kind, PortKind::Auto);
+    assert!(c.lines[0].serial.low_latency && !c.lines[0].relay.device_notifications);
+    assert!(!c.lines[0].serial.rs485 && !c.lines[0].serial.echo);
+    assert_eq!(c.lines[0].relay.broadcast_delay_ms, 100);
+    assert_eq!(c.lines[0].relay.broadcast_reply, BroadcastReply::None);
+    assert!(c.lines[0].relay.unit_backoff);
+    assert_eq!(c.lines[0].relay.unit_backoff_after, 3);
     assert_eq!(
-        (c.relay.unit_backoff_ms, c.relay.unit_backoff_max_ms),
+        (
+            c.lines[0].relay.unit_backoff_ms,
+            c.lines[0].relay.unit_backoff_max_ms
+        ),
         (1000, 30_000)
     );
     assert_eq!(
-        (c.relay.probe_timeout_ms, c.relay.timeout_guard_ms),
+        (
+            c.lines[0].relay.probe_timeout_ms,
+            c.lines[0].relay.timeout_guard_ms
+        ),
         (250, 100)
     );
     assert_eq!(c.log.level, "info");
@@ -100,9 +106,9 @@ fn partial_section_keeps_other_defaults() {
     )
     .unwrap();
     let mut want = Config::default();
-    want.serial.baud_rate = 9600;
-    want.serial.parity = Parity::Even;
-    want.relay.notifications = Notifications::Broadcast;
+    want.lines[0].serial.baud_rate = 9600;
+    want.lines[0].serial.parity = Parity::Even;
+    want.lines[0].relay.notifications = Notifications::Broadcast;
     assert_eq!(c, want);
 }
 
@@ -113,8 +119,8 @@ fn dotted_keys_and_inline_tables_work() {
         F,
     )
     .unwrap();
-    assert_eq!(c.serial.baud_rate, 9600);
-    assert_eq!(c.tcp.max_connections, 4);
+    assert_eq!(c.lines[0].serial.baud_rate, 9600);
+    assert_eq!(c.listeners[0].tcp.max_connections, 4);
 }
 
 #[test]
@@ -431,13 +437,12 @@ fn range_edges_are_accepted() {
                 max_pending_per_connection = 1024\nqueue_depth = 65536\nretries = 10\n\
                 [log]\nlevel = \"trace\"\n";
     let c = parse(text, F).unwrap();
-    assert_eq!(c.serial.baud_rate, 50);
-    assert_eq!(c.tcp.listen, "[::1]:1502".parse().unwrap());
-    assert_eq!(c.relay.queue_depth, 65536);
-    assert_eq!(c.relay.retries, 10);
+    assert_eq!(c.lines[0].serial.baud_rate, 50);
+    assert_eq!(c.listeners[0].tcp.listen, "[::1]:1502".parse().unwrap());
+    assert_eq!(c.lines[0].relay.queue_depth, 65536);
+    assert_eq!(c.lines[0].relay.retries, 10);
     assert_eq!(
-        parse("[serial]\nbaud_rate = 4000000\n", F)
-            .unwrap()
+        parse("[serial]\nbaud_rate = 4000000\n", F).unwrap().lines[0]
             .serial
             .baud_rate,
         4_000_000
@@ -482,7 +487,10 @@ fn contradictory_keys_are_refused_naming_both() {
         F,
     )
     .unwrap();
-    assert_eq!(c.relay.max_pending_per_connection, c.relay.queue_depth);
+    assert_eq!(
+        c.lines[0].relay.max_pending_per_connection,
+        c.lines[0].relay.queue_depth
+    );
 
     // A flag that makes the contradiction is named, with both keys.
     let cases: [(&[&str], &str); 4] = [
@@ -524,7 +532,7 @@ fn contradictory_keys_are_refused_naming_both() {
     .unwrap()
     .apply(&mut cfg)
     .unwrap();
-    assert_eq!(cfg.relay.queue_depth, 100);
+    assert_eq!(cfg.lines[0].relay.queue_depth, 100);
 }
 
 #[test]
@@ -542,7 +550,7 @@ fn load_reads_file_and_reports_its_name() {
     std::fs::create_dir_all(&dir).unwrap();
     let good = dir.join("good.toml");
     std::fs::write(&good, "[serial]\npath = \"/dev/ttyAMA0\"\n").unwrap();
-    assert_eq!(load(&good).unwrap().serial.path, "/dev/ttyAMA0");
+    assert_eq!(load(&good).unwrap().lines[0].serial.path, "/dev/ttyAMA0");
     let bad = dir.join("bad.toml");
     std::fs::write(&bad, "[serial]\n\n\n\n\n\nbaud_rate = 10\n").unwrap();
     let msg = load(&bad).unwrap_err().to_string();
@@ -557,69 +565,68 @@ fn load_reads_file_and_reports_its_name() {
 }
 
 fn non_default() -> Config {
-    Config {
-        serial: SerialConfig {
-            path: "/dev/serial/by-id/usb-FTDI \"quoted\" \\ name".into(),
-            baud_rate: 115_200,
-            data_bits: 7,
-            parity: Parity::Odd,
-            stop_bits: 2,
-            // XON/XOFF goes with ASCII only.
-            flow_control: FlowControl::Software,
-            framing: Framing::Ascii,
-            port_kind: PortKind::Wire,
-            low_latency: false,
-            silence_floor_ms: Floor::Ms(0),
-            inter_frame_gap_us: 1_000_000,
-            rs485: true,
-            rs485_delay_before_send_ms: 2,
-            rs485_delay_after_send_ms: 1000,
-            echo: true,
-            // Not "gpio" with rs485 = true: the two contradict each other (its keys
-            // apart from it are set, and `direction_round_trip` sets it).
-            direction: Direction::None,
-            direction_invert: true,
-            direction_gpio_chip: "pinctrl-bcm2711".into(),
-            direction_gpio_line: GpioLine::Name("GPIO17 \"DE\"".into()),
-            direction_delay_before_us: 1_000_000,
-            direction_delay_after_us: 1,
-        },
-        tcp: TcpConfig {
-            listen: "[::]:1502".parse().unwrap(),
-            max_connections: 4096,
-            idle_timeout_ms: 0,
-        },
-        relay: RelayConfig {
-            response_timeout_ms: 600_000,
-            frame_gap_ms: 1,
-            max_in_flight: 255,
-            max_pending_per_connection: 1,
-            queue_depth: 65_536,
-            retries: 10,
-            retry_writes: true,
-            notifications: Notifications::Broadcast,
-            device_notifications: true,
-            broadcast_delay_ms: 0,
-            broadcast_reply: BroadcastReply::Echo,
-            unit_backoff: false,
-            unit_backoff_after: 100,
-            unit_backoff_ms: 1,
-            unit_backoff_max_ms: 3_600_000,
-            probe_timeout_ms: 1,
-            timeout_guard_ms: 60_000,
-            coalesce: false,
-            cache_ms: 3_600_000,
-            request_pause_ms: 60_000,
-        },
-        log: LogConfig {
-            level: "trace".into(),
-            traffic: true,
-        },
-        metrics: MetricsConfig {
-            listen: Some("127.0.0.1:9502".parse().unwrap()),
-        },
-        ..Config::default()
-    }
+    let mut c = Config::default();
+    c.lines[0].serial = SerialConfig {
+        path: "/dev/serial/by-id/usb-FTDI \"quoted\" \\ name".into(),
+        baud_rate: 115_200,
+        data_bits: 7,
+        parity: Parity::Odd,
+        stop_bits: 2,
+        // XON/XOFF goes with ASCII only.
+        flow_control: FlowControl::Software,
+        framing: Framing::Ascii,
+        port_kind: PortKind::Wire,
+        low_latency: false,
+        silence_floor_ms: Floor::Ms(0),
+        inter_frame_gap_us: 1_000_000,
+        rs485: true,
+        rs485_delay_before_send_ms: 2,
+        rs485_delay_after_send_ms: 1000,
+        echo: true,
+        // Not "gpio" with rs485 = true: the two contradict each other (its keys
+        // apart from it are set, and `direction_round_trip` sets it).
+        direction: Direction::None,
+        direction_invert: true,
+        direction_gpio_chip: "pinctrl-bcm2711".into(),
+        direction_gpio_line: GpioLine::Name("GPIO17 \"DE\"".into()),
+        direction_delay_before_us: 1_000_000,
+        direction_delay_after_us: 1,
+    };
+    c.listeners[0].tcp = TcpConfig {
+        listen: "[::]:1502".parse().unwrap(),
+        max_connections: 4096,
+        idle_timeout_ms: 0,
+    };
+    c.lines[0].relay = RelayConfig {
+        response_timeout_ms: 600_000,
+        frame_gap_ms: 1,
+        max_in_flight: 255,
+        max_pending_per_connection: 1,
+        queue_depth: 65_536,
+        retries: 10,
+        retry_writes: true,
+        notifications: Notifications::Broadcast,
+        device_notifications: true,
+        broadcast_delay_ms: 0,
+        broadcast_reply: BroadcastReply::Echo,
+        unit_backoff: false,
+        unit_backoff_after: 100,
+        unit_backoff_ms: 1,
+        unit_backoff_max_ms: 3_600_000,
+        probe_timeout_ms: 1,
+        timeout_guard_ms: 60_000,
+        coalesce: false,
+        cache_ms: 3_600_000,
+        request_pause_ms: 60_000,
+    };
+    c.log = LogConfig {
+        level: "trace".into(),
+        traffic: true,
+    };
+    c.metrics = MetricsConfig {
+        listen: Some("127.0.0.1:9502".parse().unwrap()),
+    };
+    c
 }
 
 #[test]
@@ -635,10 +642,10 @@ fn round_trip() {
 fn direction_round_trip() {
     for line in [GpioLine::Offset(17), GpioLine::Name("GPIO17".into())] {
         let mut cfg = non_default();
-        cfg.serial.rs485 = false;
-        cfg.serial.flow_control = FlowControl::None;
-        cfg.serial.direction = Direction::Gpio;
-        cfg.serial.direction_gpio_line = line;
+        cfg.lines[0].serial.rs485 = false;
+        cfg.lines[0].serial.flow_control = FlowControl::None;
+        cfg.lines[0].serial.direction = Direction::Gpio;
+        cfg.lines[0].serial.direction_gpio_line = line;
         let text = to_toml(&cfg);
         assert_eq!(parse(&text, "printed").unwrap(), cfg, "{text}");
     }
@@ -810,30 +817,39 @@ fn command_line_flags_parse() {
     .unwrap();
     let mut cfg = Config::default();
     o.apply(&mut cfg).unwrap();
-    assert_eq!(cfg.serial.path, "/dev/ttyS1");
-    assert_eq!(cfg.tcp.listen, "127.0.0.1:1502".parse().unwrap());
-    assert_eq!(cfg.serial.parity, Parity::Even);
-    assert_eq!(cfg.serial.flow_control, FlowControl::None);
-    assert_eq!(cfg.serial.framing, Framing::Rtu);
-    assert_eq!((cfg.serial.rs485, cfg.serial.echo), (true, false));
-    assert_eq!(cfg.relay.broadcast_reply, BroadcastReply::Echo);
-    assert_eq!(cfg.relay.unit_backoff_after, 5);
-    assert_eq!(cfg.relay.notifications, Notifications::Broadcast);
-    assert!(cfg.relay.retry_writes);
+    assert_eq!(cfg.lines[0].serial.path, "/dev/ttyS1");
+    assert_eq!(
+        cfg.listeners[0].tcp.listen,
+        "127.0.0.1:1502".parse().unwrap()
+    );
+    assert_eq!(cfg.lines[0].serial.parity, Parity::Even);
+    assert_eq!(cfg.lines[0].serial.flow_control, FlowControl::None);
+    assert_eq!(cfg.lines[0].serial.framing, Framing::Rtu);
+    assert_eq!(
+        (cfg.lines[0].serial.rs485, cfg.lines[0].serial.echo),
+        (true, false)
+    );
+    assert_eq!(cfg.lines[0].relay.broadcast_reply, BroadcastReply::Echo);
+    assert_eq!(cfg.lines[0].relay.unit_backoff_after, 5);
+    assert_eq!(cfg.lines[0].relay.notifications, Notifications::Broadcast);
+    assert!(cfg.lines[0].relay.retry_writes);
     assert!(cfg.log.traffic);
     assert_eq!(cfg.log.level, "debug");
-    assert_eq!(cfg.serial.baud_rate, 9600);
-    assert_eq!(cfg.relay.max_pending_per_connection, 4);
-    assert_eq!(cfg.tcp.idle_timeout_ms, 0);
+    assert_eq!(cfg.lines[0].serial.baud_rate, 9600);
+    assert_eq!(cfg.lines[0].relay.max_pending_per_connection, 4);
+    assert_eq!(cfg.listeners[0].tcp.idle_timeout_ms, 0);
 
     assert_eq!(cli(&[]).unwrap(), Overrides::default());
     let o = cli(&["--traffic=false", "--retry-writes=false"]).unwrap();
     assert!(o.given("traffic") && o.given("retry-writes"));
     let mut cfg = Config::default();
     cfg.log.traffic = true;
-    cfg.relay.retry_writes = true;
+    cfg.lines[0].relay.retry_writes = true;
     o.apply(&mut cfg).unwrap();
-    assert_eq!((cfg.log.traffic, cfg.relay.retry_writes), (false, false));
+    assert_eq!(
+        (cfg.log.traffic, cfg.lines[0].relay.retry_writes),
+        (false, false)
+    );
 }
 
 #[test]
@@ -997,7 +1013,13 @@ fn the_lines_form_means_the_same() {
         F,
     )
     .unwrap();
-    assert_eq!((c.tcp.max_connections, c.serial.baud_rate), (3, 9600));
+    assert_eq!(
+        (
+            c.listeners[0].tcp.max_connections,
+            c.lines[0].serial.baud_rate
+        ),
+        (3, 9600)
+    );
     let printed = to_toml_lines(&Config::default());
     assert!(
         printed.starts_with("[[line]]\n\n[line.serial]\npath = "),
@@ -1148,7 +1170,7 @@ fn the_documented_example_of_several_lines_is_read_as_written() {
     let example = &example[example.find("```toml\n").unwrap() + 8..];
     let example = &example[..example.find("```").unwrap()];
     let cfg = parse(example, "docs/design.md").unwrap();
-    let lines = cfg.lines();
+    let lines = &cfg.lines;
     assert_eq!(lines.len(), 3);
     assert_eq!(
         (lines[0].serial.framing, lines[0].relay.response_timeout_ms),
@@ -1160,8 +1182,7 @@ fn the_documented_example_of_several_lines_is_read_as_written() {
     );
     assert_eq!(lines[1].units.remap.get(&11), Some(&1));
     assert_eq!(lines[2].tcp.as_deref(), Some("192.168.1.20:502"));
-    let listeners = cfg.listeners();
-    assert_eq!(listeners.len(), 2);
+    assert_eq!(cfg.listeners.len(), 2);
     // Printed back, it reads the same.
     assert_eq!(
         parse(&to_toml(&cfg), "printed").unwrap(),
@@ -1169,13 +1190,17 @@ fn the_documented_example_of_several_lines_is_read_as_written() {
         "{}",
         to_toml(&cfg)
     );
-    // With one line and no units, it is the old form.
+    // With one line and no units, it is the single-line form's one line serving every unit.
     let one = &example[..example.find("[[line]]\nunits = [10").unwrap()];
     let one = one.replace("units = [1, 2, 3]", "");
     let cfg = parse(&one, "docs/design.md").unwrap();
-    assert!(cfg.lines.is_empty());
+    assert_eq!(cfg.lines.len(), 1);
+    assert_eq!(cfg.lines[0].units, Default::default());
     assert_eq!(
-        (cfg.serial.framing, cfg.relay.response_timeout_ms),
+        (
+            cfg.lines[0].serial.framing,
+            cfg.lines[0].relay.response_timeout_ms
+        ),
         (Framing::Rtu, 500)
     );
 }
@@ -1218,4 +1243,41 @@ fn flags_for_a_line_are_refused_when_the_file_has_several() {
     );
     assert!(printed.contains("\n[[line]]\nunits = [2]\n"), "{printed}");
     std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// One shape whichever form the file is in (docs/architecture.md "One shape of the
+/// configuration"): `[serial]`, `[relay]` and `[tcp]` read into the same lines and
+/// listeners as the `[[line]]` and `[[listen]]` tables that say the same, and a flag
+/// sets the one line's value itself, whichever form it came in; with several lines a
+/// flag is refused rather than set on one.
+#[test]
+fn both_forms_read_into_one_shape_and_the_flags_set_the_line() {
+    let single = "[serial]\npath = \"/dev/ttyS2\"\nframing = \"rtu\"\nflow_control = \"none\"\n\
+                  [relay]\nresponse_timeout_ms = 300\n[tcp]\nlisten = \"127.0.0.1:1502\"\n";
+    let tables = "[[line]]\nserial = { path = \"/dev/ttyS2\", framing = \"rtu\", flow_control = \"none\" }\n\
+                  relay = { response_timeout_ms = 300 }\n\
+                  [[listen]]\naddress = \"127.0.0.1:1502\"\n";
+    let (a, b) = (parse(single, F).unwrap(), parse(tables, F).unwrap());
+    assert_eq!(a, b);
+    assert_eq!((a.lines.len(), a.listeners.len()), (1, 1));
+    assert_eq!(a.lines[0].relay.response_timeout_ms, 300);
+    assert_eq!(a.listeners[0].tcp.listen, "127.0.0.1:1502".parse().unwrap());
+
+    let flags = cli(&["--response-timeout-ms", "700", "--listen", "127.0.0.1:1503"]).unwrap();
+    for mut cfg in [a, b] {
+        flags.apply(&mut cfg).unwrap();
+        assert_eq!(cfg.lines[0].relay.response_timeout_ms, 700);
+        assert_eq!(
+            cfg.listeners[0].tcp.listen,
+            "127.0.0.1:1503".parse().unwrap()
+        );
+        assert_eq!((cfg.lines.len(), cfg.listeners.len()), (1, 1));
+    }
+
+    let two = format!("{tables}[[line]]\nunits = [2]\nserial = {{ path = \"/dev/ttyS3\" }}\n")
+        .replacen("[[line]]\n", "[[line]]\nunits = [1]\n", 1);
+    let mut cfg = parse(&two, F).unwrap();
+    let e = flags.apply(&mut cfg).unwrap_err().to_string();
+    assert!(e.contains("[[line]] tables"), "{e}");
+    assert_eq!(cfg, parse(&two, F).unwrap(), "left as it was");
 }

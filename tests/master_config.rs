@@ -25,8 +25,8 @@ response_timeout_ms = 250
 #[test]
 fn the_example_reads_and_prints_back_the_same() {
     let cfg = parse(EXAMPLE, F).unwrap();
-    assert_eq!(cfg.serial.path, "/dev/ttyS1");
-    assert_eq!(cfg.serial.framing, Framing::Rtu);
+    assert_eq!(cfg.lines[0].serial.path, "/dev/ttyS1");
+    assert_eq!(cfg.lines[0].serial.framing, Framing::Rtu);
     let want = MasterLine {
         routes: vec![
             Route {
@@ -43,7 +43,7 @@ fn the_example_reads_and_prints_back_the_same() {
             },
         ],
     };
-    assert_eq!(cfg.master.as_ref(), Some(&want));
+    assert_eq!(cfg.lines[0].master.as_ref(), Some(&want));
     assert_eq!(want.route_for(2), Some(0));
     assert_eq!(want.route_for(7), Some(1));
     let printed = to_toml(&cfg);
@@ -158,7 +158,7 @@ fn the_shipped_example_is_valid() {
         .map(|l| format!("{}\n", l.trim_start_matches('#').trim_start()))
         .collect();
     let cfg = parse(&example, F).unwrap_or_else(|e| panic!("{e}\n{example}"));
-    assert_eq!(cfg.master.unwrap().routes.len(), 2);
+    assert_eq!(cfg.lines[0].master.as_ref().unwrap().routes.len(), 2);
 }
 
 /// A master line beside a line of slaves: both read, the master line needing no
@@ -175,9 +175,11 @@ fn a_master_line_stands_beside_other_lines() {
     };
     let text = format!("{master}{}", slaves("/dev/ttyS2", "units = [1, 2]\n"));
     let cfg = parse(&text, F).unwrap();
-    let lines = cfg.lines();
-    assert_eq!(lines.len(), 2);
-    assert!(cfg.master.is_none(), "not the old form's one master line");
+    assert_eq!(cfg.lines.len(), 2);
+    assert!(
+        cfg.lines[0].master.is_some(),
+        "the master line, as written first"
+    );
     let printed = to_toml_lines(&cfg);
     assert_eq!(parse(&printed, F).unwrap(), cfg, "{printed}");
 

@@ -33,7 +33,7 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
     let mut said = Vec::new();
     if cfg.serves_masters() {
         let listeners: Vec<String> = cfg
-            .listeners()
+            .listeners
             .iter()
             .map(|l| match l.framing {
                 ListenFraming::Mbap => l.tcp.listen.to_string(),
@@ -42,8 +42,7 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
             .collect();
         said.push(format!("Modbus/TCP masters on {}", listeners.join(", ")));
     }
-    let lines = cfg.lines();
-    let routes = lines.iter().filter_map(|l| l.master.as_ref());
+    let routes = cfg.lines.iter().filter_map(|l| l.master.as_ref());
     let routes: Vec<String> = routes
         .flat_map(|m| m.routes.iter().map(|r| r.peer.to_string()))
         .collect();
@@ -57,7 +56,7 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
         name: "tcp".into(),
         description: said.join("; "),
     });
-    for (i, line) in cfg.lines().iter().enumerate() {
+    for (i, line) in cfg.lines.iter().enumerate() {
         let device = match &line.tcp {
             Some(addr) => format!("device at {addr}"),
             None => format!("{} baud", line.serial.baud_rate),

@@ -166,30 +166,29 @@ fn list(ids: &[u8]) -> String {
 /// listener (a master line has neither).
 pub fn summary(cfg: &Config) -> String {
     let mut out = String::new();
-    let lines = cfg.lines();
-    for l in &lines {
+    for l in &cfg.lines {
         out += &format!("line {}\n", line(l));
         for unit in l.unit_tables.describe(&l.relay) {
             out += &format!("  {unit}\n");
         }
     }
-    if cfg.master.is_some() {
-        // A master line listens for no masters and has no metrics listener.
+    if !cfg.serves_masters() {
+        // Master lines listen for no masters and have no metrics listener.
         return out;
     }
-    for l in cfg.listeners() {
+    for l in &cfg.listeners {
         let priority = match l.priority {
             0 => String::new(),
             p => format!(", priority class {p}"),
         };
         out += &format!(
             "listening on {}, at most {} at once{priority}\n",
-            listener(&l),
+            listener(l),
             l.tcp.max_connections
         );
         // Who may connect and what they may do: TLS, the allow list, the roles
         // (docs/security.md shows these lines).
-        for said in super::effective_access(&l, &cfg.roles) {
+        for said in super::effective_access(l, &cfg.roles) {
             out += &format!("  # {said}\n");
         }
     }
@@ -245,7 +244,7 @@ mod tests {
                 "[serial]\npath = \"/dev/ttyAMA0\"\nframing = \"rtu\"\nflow_control = \"none\"\n{extra}"
             );
             let cfg = parse(&text, "t.toml").unwrap();
-            direction(&cfg.serial)
+            direction(&cfg.lines[0].serial)
         };
         assert_eq!(said(""), None);
         assert_eq!(

@@ -6,7 +6,7 @@
 
 use super::error::{line_col, syntax_error, ConfigError};
 use super::raw::{entries, place, raw_value as raw, suggest, Bad, Raw};
-use super::{Config, Key, LineConfig, ListenConfig, ListenFraming, Step, ValueError, KEYS};
+use super::{Config, Key, LineConfig, ListenConfig, Step, ValueError, KEYS};
 use std::borrow::Cow;
 use std::collections::HashMap;
 use std::path::Path;
@@ -191,38 +191,14 @@ impl Reader<'_> {
         }
         cfg.roles = roles;
         self.no_listener_for_master_lines(root, &lines, &tables)?;
-        match &listeners[..] {
-            [] => {}
-            // One Modbus/TCP listener open to all is the old form's [tcp].
-            [one]
-                if one.framing == ListenFraming::Mbap
-                    && one.transport == super::Transport::Tcp
-                    && one.access.is_open()
-                    && one.priority == 0 =>
-            {
-                cfg.tcp = one.tcp.clone()
-            }
-            [first, ..] => {
-                cfg.tcp = first.tcp.clone();
-                cfg.listeners = listeners;
-            }
+        // The single-line form's listener (`[tcp]`, or none given) is already in place.
+        if !listeners.is_empty() {
+            cfg.listeners = listeners;
         }
-        let old_form = match &lines[..] {
-            [] => {
-                self.conflict(&cfg, "")?;
-                true
-            }
-            // One serial line serving every unit is the old form's [serial] and [relay],
-            // unless its units have settings of their own, which only a [[line]] says;
-            // so is a master line (its routes say where each unit goes).
-            [(_, line, _)]
-                if line.tcp.is_none() && line.units.every() && line.unit_tables.is_empty() =>
-            {
-                (cfg.serial, cfg.relay) = (line.serial.clone(), line.relay.clone());
-                cfg.master = line.master.clone();
-                true
-            }
-            [_] => false,
+        match &lines[..] {
+            // Each [[line]]'s keys were checked as it was read.
+            [] => self.conflict(&cfg, "")?,
+            [_] => {}
             [..] => {
                 // A master line routes by its [[line.route]] tables: it serves no unit
                 // of the masters'.
@@ -247,13 +223,10 @@ impl Reader<'_> {
                         return self.fail(at, &key, m);
                     }
                 }
-                false
             }
-        };
+        }
         self.sockets(&lines, &cfg)?;
-        if !old_form {
-            // The first line's settings stand for the gateway's where one is asked for.
-            (cfg.serial, cfg.relay) = (lines[0].1.serial.clone(), lines[0].1.relay.clone());
+        if !lines.is_empty() {
             cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
         }
         Ok(cfg)
@@ -291,7 +264,7 @@ impl Reader<'_> {
     fn sockets(&self, lines: &[LineRead], cfg: &Config) -> Result<(), ConfigError> {
         let serving = lines.iter().any(|(_, l, _)| l.master.is_none());
         let listening: Vec<_> = match serving {
-            true => cfg.listeners().iter().map(|l| l.tcp.listen).collect(),
+            true => cfg.listeners.iter().map(|l| l.tcp.listen).collect(),
             false => Vec::new(),
         };
         let mut passive = Vec::new();
@@ -361,6 +334,7 @@ impl Reader<'_> {
         let mut listener = Config::default();
         let own: Vec<&str> = super::access::LISTEN_KEYS.iter().map(|k| k.name).collect();
         self.section(&mut listener, "tcp", v, path, LISTEN_RENAMED, &own)?;
+        let tcp = listener.listeners.swap_remove(0).tcp;
         // The listener's own keys, read by their declarations.
         let mut keys = Vec::new();
         if let Raw::Table(all) = raw(v.get_ref()) {
@@ -372,7 +346,7 @@ impl Reader<'_> {
         let read = super::access::listen(&Raw::Table(keys), path);
         let (access, framing, priority, transport) = self.value(v, path, read)?;
         Ok(ListenConfig {
-            tcp: listener.tcp,
+            tcp,
             framing,
             access,
             priority,

@@ -1,9 +1,10 @@
 //! The gateway as lines and listeners (docs/design.md §4.1): which units each line
 //! serves and what it calls them, where its device is (a serial port or a TCP
-//! address), and the listeners with their framing. The old form (`[serial]`,
-//! `[relay]`, `[tcp]`) is one line serving every unit and one Modbus/TCP listener.
+//! address), and the listeners with their framing. The single-line form (`[serial]`,
+//! `[relay]`, `[tcp]`) is one line serving every unit and one Modbus/TCP listener,
+//! read into the same shape.
 
-use super::{Config, ListenFraming, RelayConfig, SerialConfig, TcpConfig};
+use super::{Config, ListenFraming, RelayConfig, SerialConfig, TcpConfig, Transport};
 use std::collections::{BTreeMap, BTreeSet};
 
 /// Which unit ids a line serves (the master's ids), and the id each has on the line.
@@ -64,7 +65,7 @@ pub struct LineConfig {
     /// What units of the line have of their own (`[[line.unit]]`).
     pub unit_tables: super::unit::UnitTables,
     /// The line's device is the master: where its requests go (docs/design.md §4.2).
-    pub(crate) master: Option<super::master::MasterLine>,
+    pub master: Option<super::master::MasterLine>,
 }
 
 impl LineConfig {
@@ -72,12 +73,18 @@ impl LineConfig {
     pub(crate) fn name(&self) -> &str {
         self.tcp.as_deref().unwrap_or(&self.serial.path)
     }
+
+    /// Does `[serial]` and `[relay]` say all of this line (a serial port, every unit,
+    /// none with settings of its own)? A master line's routes are its own tables.
+    fn single(&self) -> bool {
+        self.tcp.is_none() && self.units.every() && self.unit_tables.is_empty()
+    }
 }
 
 /// One listening address and how its masters frame their requests.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ListenConfig {
-    pub(crate) tcp: TcpConfig,
+    pub tcp: TcpConfig,
     pub(crate) framing: ListenFraming,
     /// Who may connect and what they may do (docs/security.md).
     pub(crate) access: super::ListenAccess,
@@ -88,37 +95,46 @@ pub struct ListenConfig {
     pub(crate) transport: super::Transport,
 }
 
-impl Config {
-    /// The lines mbgate runs: the `[[line]]` tables, or the one line of `[serial]` and
-    /// `[relay]` that serves every unit.
-    pub fn lines(&self) -> Vec<LineConfig> {
-        if !self.lines.is_empty() {
-            return self.lines.clone();
-        }
-        vec![LineConfig {
-            units: Units::default(),
-            serial: self.serial.clone(),
-            tcp: None,
-            tcp_tls: None,
-            relay: self.relay.clone(),
-            unit_tables: Default::default(),
-            master: self.master.clone(),
-        }]
-    }
-
-    /// The listeners mbgate runs: the `[[listen]]` tables, or the one Modbus/TCP
-    /// listener of `[tcp]`.
-    pub fn listeners(&self) -> Vec<ListenConfig> {
-        if !self.listeners.is_empty() {
-            return self.listeners.clone();
-        }
-        vec![ListenConfig {
-            tcp: self.tcp.clone(),
+/// The listener of `[tcp]`: Modbus/TCP, open to all, of class 0.
+impl Default for ListenConfig {
+    fn default() -> Self {
+        ListenConfig {
+            tcp: TcpConfig::default(),
             framing: ListenFraming::Mbap,
             access: super::ListenAccess::default(),
             priority: 0,
-            transport: super::Transport::Tcp,
-        }]
+            transport: Transport::Tcp,
+        }
+    }
+}
+
+impl ListenConfig {
+    /// Does `[tcp]` say all of this listener?
+    fn single(&self) -> bool {
+        self.framing == ListenFraming::Mbap
+            && self.transport == Transport::Tcp
+            && self.access.is_open()
+            && self.priority == 0
+    }
+}
+
+impl Config {
+    /// Is the gateway one line that `[serial]` and `[relay]` say all of (the
+    /// single-line form)? Their keys then name its settings: a flag sets them, a
+    /// reload names a change by them; with `[[line]]` tables a flag could mean any.
+    pub(crate) fn single_line(&self) -> bool {
+        matches!(&self.lines[..], [one] if one.single())
+    }
+
+    /// Is the gateway one listener that `[tcp]` says all of?
+    pub(crate) fn single_listener(&self) -> bool {
+        matches!(&self.listeners[..], [one] if one.single())
+    }
+
+    /// Can the single-line form say the whole gateway (`mbgate check-config` prints
+    /// it so)? A master line's routes are `[[line.route]]` tables.
+    pub(crate) fn single_form(&self) -> bool {
+        self.single_line() && self.single_listener() && self.lines[0].master.is_none()
     }
 
     /// The priority class of a master that came by `source` (a listener, or a dial),
@@ -142,16 +158,17 @@ impl Config {
     /// The most requests any line lets one master pipeline: the room each master's
     /// connection keeps for replies.
     pub(crate) fn max_pending_per_connection(&self) -> usize {
-        let lines = self.lines();
-        let most = lines.iter().map(|l| l.relay.max_pending_per_connection);
-        most.max().unwrap_or(self.relay.max_pending_per_connection)
+        let most = self
+            .lines
+            .iter()
+            .map(|l| l.relay.max_pending_per_connection);
+        most.max().unwrap_or_default()
     }
 
     /// The longest any line takes to answer a request it holds (its timeouts and
     /// retries): the bound of the shutdown drain.
     pub(crate) fn answer_within(&self) -> std::time::Duration {
-        let lines = self.lines();
-        let longest = lines.iter().map(|l| match &l.master {
+        let longest = self.lines.iter().map(|l| match &l.master {
             // A master line's requests wait for their route's slave.
             Some(m) => m
                 .routes
@@ -167,6 +184,6 @@ impl Config {
     /// Is any line's device a slave, for Modbus/TCP masters to reach? Not when every
     /// line is a master line: then no listener is bound.
     pub(crate) fn serves_masters(&self) -> bool {
-        self.lines().iter().any(|l| l.master.is_none())
+        self.lines.iter().any(|l| l.master.is_none())
     }
 }

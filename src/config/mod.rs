@@ -195,6 +195,67 @@ macro_rules! declared_struct {
 }
 pub(crate) use declared_struct;
 
+/// Where a section's keys are in a [`Config`]: `[serial]` and `[relay]` are the one
+/// line's (the first line's, of a configuration of several), `[tcp]` the one
+/// listener's; the others are the gateway's own.
+macro_rules! section {
+    ($c:expr, serial) => {
+        $c.lines[0].serial
+    };
+    ($c:expr, relay) => {
+        $c.lines[0].relay
+    };
+    ($c:expr, tcp) => {
+        $c.listeners[0].tcp
+    };
+    ($c:expr, $section:ident) => {
+        $c.$section
+    };
+}
+
+/// The gateway as it runs (docs/design.md §4, §4.1): its lines and its listeners,
+/// whichever form the file wrote them in, and the gateway's own sections. The
+/// single-line form (`[serial]`, `[relay]`, `[tcp]`) is one line serving every unit
+/// and one Modbus/TCP listener open to all, from the moment the file is read: no
+/// setting is kept twice, and every reader reads `lines` and `listeners`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Config {
+    /// Never empty: one line serving every unit when the file says no `[[line]]`.
+    pub lines: Vec<LineConfig>,
+    /// Never empty: the one Modbus/TCP listener of `[tcp]` when the file says no
+    /// `[[listen]]` (bound only if some line serves masters).
+    pub listeners: Vec<ListenConfig>,
+    /// The `[[role]]` tables: what a TLS master may do, by the role its
+    /// certificate carries (docs/security.md).
+    pub roles: Vec<AccessRole>,
+    /// The `[[dial]]` tables: masters mbgate connects to (docs/dialing.md).
+    pub dials: Vec<dial::DialConfig>,
+    /// What is logged.
+    pub log: LogConfig,
+    /// The metrics listener (docs/watching.md).
+    pub metrics: MetricsConfig,
+    /// The always-on capture (docs/capture.md).
+    pub capture: CaptureConfig,
+    /// The control socket (docs/capture.md).
+    pub control: ControlConfig,
+}
+
+/// The file with no key: one line and one listener, every setting its default.
+impl Default for Config {
+    fn default() -> Self {
+        Config {
+            lines: vec![LineConfig::default()],
+            listeners: vec![ListenConfig::default()],
+            roles: Vec::new(),
+            dials: Vec::new(),
+            log: LogConfig::default(),
+            metrics: MetricsConfig::default(),
+            capture: CaptureConfig::default(),
+            control: ControlConfig::default(),
+        }
+    }
+}
+
 /// Declares the sections and their settings: `key: type = default, check, "flag"
 /// "VALUE_NAME" [port] [master] [, at_most other: "why"];` under the key's one line of
 /// help. `port` marks the serial port settings that `mbgate sim` and the client take as
@@ -214,25 +275,6 @@ macro_rules! settings {
             }
         )*
 
-        /// The whole file (docs/design.md §4): every section and key is optional.
-        #[derive(Debug, Clone, PartialEq, Default)]
-        pub struct Config {
-            $($(#[doc = $sdoc])* pub $section: $Struct,)*
-            /// The line's device is the master: its routes (docs/design.md §4.2).
-            pub master: Option<master::MasterLine>,
-            /// The `[[line]]` tables when the file needs them (several lines, units,
-            /// a device on TCP); empty: one line of `[serial]` and `[relay]`.
-            pub lines: Vec<LineConfig>,
-            /// The `[[listen]]` tables when the file needs them (several, RTU over
-            /// TCP, or access rules); empty: one Modbus/TCP listener of `[tcp]`.
-            pub listeners: Vec<ListenConfig>,
-            /// The `[[role]]` tables: what a TLS master may do, by the role its
-            /// certificate carries (docs/security.md).
-            pub roles: Vec<AccessRole>,
-            /// The `[[dial]]` tables: masters mbgate connects to (docs/dialing.md).
-            pub dials: Vec<dial::DialConfig>,
-        }
-
         /// Every setting, in the order of the file.
         pub static KEYS: &[Key] = &[$($(Key {
             section: stringify!($section),
@@ -246,10 +288,10 @@ macro_rules! settings {
             master: settings!(@master $($mark)*),
             at_most: settings!(@at_most $($other $why)?),
             set: |c, raw| {
-                c.$section.$key = Setting::read(raw, &$check)?;
+                section!(c, $section).$key = Setting::read(raw, &$check)?;
                 Ok(())
             },
-            get: |c| c.$section.$key.print(),
+            get: |c| section!(c, $section).$key.print(),
         },)*)*];
     };
     (@port) => { false };
@@ -467,7 +509,9 @@ pub struct Key<C: 'static = Config> {
     /// Checks a value and sets this key in a configuration; the error says why,
     /// without the key.
     pub(crate) set: fn(&mut C, &Raw) -> Result<(), ValueError>,
-    /// The value of this key in a configuration, as written in a TOML file.
+    /// The value of this key in a configuration, as written in a TOML file (a
+    /// `[serial]` or `[relay]` key: the first line's; a `[tcp]` key: the first
+    /// listener's).
     pub get: fn(&C) -> String,
 }
 
@@ -511,8 +555,9 @@ fn key(section: &str, name: &str) -> &'static Key {
 }
 
 impl Config {
-    /// The first pair of keys whose values contradict each other, if any. Refused
-    /// rather than one silently capped: the operator meant one of them and mbgate
+    /// The first pair of keys whose values contradict each other, if any (the
+    /// keys of [`KEYS`]: of the first line, the first listener and the gateway; the
+    /// file reader asks each line's in turn). Refused rather than one silently capped: the operator meant one of them and mbgate
     /// cannot tell which.
     pub(crate) fn conflict(&self) -> Option<Conflict> {
         let exceeds = KEYS.iter().find_map(|key| {
@@ -540,7 +585,7 @@ impl Config {
     /// gateway's output by; ASCII frames carry only printable characters, CR and LF
     /// (docs/rtu-ascii.md).
     fn flow_conflict(&self) -> Option<Conflict> {
-        let s = &self.serial;
+        let s = &self.lines[0].serial;
         (s.flow_control == FlowControl::Software && s.framing != Framing::Ascii).then(|| Conflict {
             key: key("serial", "flow_control"),
             other: key("serial", "framing"),
@@ -556,7 +601,7 @@ impl Config {
 
     /// `serial.direction` against the keys it cannot go with (docs/rs485.md).
     fn direction_conflict(&self) -> Option<Conflict> {
-        let s = &self.serial;
+        let s = &self.lines[0].serial;
         let excludes = |name: &str, other: &str, why: String| Conflict {
             key: key("serial", name),
             other: key("serial", other),

@@ -8,7 +8,7 @@ use super::{access, file, master, Config, Key, Setting, KEYS};
 /// listeners, units, a device on TCP) in the form of §4.1. `parse(&to_toml(cfg), ..)`
 /// gives back `cfg`.
 pub fn to_toml(cfg: &Config) -> String {
-    if cfg.master.is_some() || !cfg.lines.is_empty() || !cfg.listeners.is_empty() {
+    if !cfg.single_form() {
         return to_toml_lines(cfg);
     }
     let old = [
@@ -32,7 +32,7 @@ fn with_roles(text: String, cfg: &Config) -> String {
 /// for each listener.
 pub fn to_toml_lines(cfg: &Config) -> String {
     let mut out = Vec::new();
-    for line in cfg.lines() {
+    for line in &cfg.lines {
         let mut head = "[[line]]\n".to_owned();
         if line.master.is_some() {
             head += "role = \"master\"\n";
@@ -44,8 +44,7 @@ pub fn to_toml_lines(cfg: &Config) -> String {
             head += &format!("remap = {}\n", line.units.print_remap());
         }
         let one = Config {
-            serial: line.serial.clone(),
-            relay: line.relay.clone(),
+            lines: vec![line.clone()],
             ..Config::default()
         };
         let device = match &line.tcp {
@@ -69,7 +68,7 @@ pub fn to_toml_lines(cfg: &Config) -> String {
             Some(m) => master::to_toml(m).trim_start().to_owned() + "\n",
             None => String::new(),
         };
-        let relay = match line.master {
+        let relay = match &line.master {
             // A master line's relay table has only the keys a master line uses.
             Some(_) => print_keys(&one, "[line.relay]", |k| k.section == "relay" && k.master),
             None => print(&one, &[("relay", "[line.relay]".into())]),
@@ -79,12 +78,12 @@ pub fn to_toml_lines(cfg: &Config) -> String {
     }
     // With every line a master line no listener is bound, and none may be written.
     let listeners = match cfg.serves_masters() {
-        true => cfg.listeners(),
-        false => Vec::new(),
+        true => &cfg.listeners[..],
+        false => &[],
     };
     for listener in listeners {
         let one = Config {
-            tcp: listener.tcp.clone(),
+            listeners: vec![listener.clone()],
             ..Config::default()
         };
         let table = print(&one, &[("tcp", "[[listen]]".into())]);

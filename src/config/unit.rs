@@ -403,7 +403,7 @@ mod tests {
             "t.toml",
         )
         .unwrap();
-        let line = &cfg.lines()[0];
+        let line = &cfg.lines[0];
         let ms = Duration::from_millis;
         let p = |u| line.unit_tables.policy(&line.relay, u);
         assert_eq!(p(2).timeout, Timeout::Fixed(ms(100)));
@@ -423,7 +423,7 @@ mod tests {
         assert_eq!(p(4).timeout, Timeout::Fixed(ms(400)));
         // Printed and read back the same.
         let again = parse(&crate::config::to_toml(&cfg), "again").unwrap();
-        assert_eq!(again.lines()[0].unit_tables, line.unit_tables);
+        assert_eq!(again.lines[0].unit_tables, line.unit_tables);
         let said = line.unit_tables.describe(&line.relay);
         assert_eq!(
             said[0],

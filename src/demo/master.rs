@@ -43,11 +43,11 @@ pub enum MasterDemoError {
 /// the slave.
 fn line_config(pty: String, slave: SocketAddr, traffic: bool) -> Config {
     let mut cfg = Config::default();
-    cfg.serial.path = pty;
-    cfg.serial.baud_rate = crate::config::FASTEST_BAUD;
-    cfg.serial.flow_control = FlowControl::None;
+    cfg.lines[0].serial.path = pty;
+    cfg.lines[0].serial.baud_rate = crate::config::FASTEST_BAUD;
+    cfg.lines[0].serial.flow_control = FlowControl::None;
     cfg.log.traffic = traffic;
-    cfg.master = Some(MasterLine {
+    cfg.lines[0].master = Some(MasterLine {
         routes: vec![Route {
             units: Vec::new(),
             peer: Peer::Connect(slave.to_string()),

@@ -5,9 +5,7 @@
 mod args;
 pub mod master;
 
-use crate::config::{
-    Config, FlowControl, LineConfig, Notifications, SerialConfig, Units, FASTEST_BAUD,
-};
+use crate::config::{Config, FlowControl, Notifications, Units, FASTEST_BAUD};
 use crate::gateway::{self, GatewayError};
 use crate::sim::options::Settings;
 use crate::sim::serve::{self, ConsoleRequest, Port, SimError};
@@ -54,17 +52,11 @@ fn device_units(settings: &Settings) -> Vec<u8> {
 /// The gateway of `cfg` with two lines: the first on its pty serving the device's
 /// units as they are, the second on `second_pty` serving them as unit + 100.
 fn two_lines(cfg: &mut Config, units: &[u8], second_pty: String) {
-    let line = |path: String, units: Units| LineConfig {
-        units,
-        serial: SerialConfig {
-            path,
-            ..cfg.serial.clone()
-        },
-        tcp: None,
-        tcp_tls: None,
-        relay: cfg.relay.clone(),
-        unit_tables: Default::default(),
-        master: None,
+    let first = cfg.lines[0].clone();
+    let line = |path: String, units: Units| {
+        let mut line = first.clone();
+        (line.serial.path, line.units) = (path, units);
+        line
     };
     let as_they_are = Units {
         ids: units.iter().copied().collect(),
@@ -79,7 +71,7 @@ fn two_lines(cfg: &mut Config, units: &[u8], second_pty: String) {
         ..Units::default()
     };
     cfg.lines = vec![
-        line(cfg.serial.path.clone(), as_they_are),
+        line(first.serial.path.clone(), as_they_are),
         line(second_pty, plus_100),
     ];
 }
@@ -91,13 +83,13 @@ impl DemoArgs {
     /// unpaced; the gateway finds the port a pty (no wire, no latency to wait out).
     pub(crate) fn gateway_config(&self, pty: String) -> Config {
         let mut cfg = Config::default();
-        cfg.serial.path = pty;
-        cfg.serial.baud_rate = self.baud.unwrap_or(FASTEST_BAUD);
-        cfg.serial.flow_control = FlowControl::None;
-        cfg.tcp.listen = self.listen.unwrap_or(DEFAULT_LISTEN);
+        cfg.lines[0].serial.path = pty;
+        cfg.lines[0].serial.baud_rate = self.baud.unwrap_or(FASTEST_BAUD);
+        cfg.lines[0].serial.flow_control = FlowControl::None;
+        cfg.listeners[0].tcp.listen = self.listen.unwrap_or(DEFAULT_LISTEN);
         cfg.log.traffic = self.traffic;
         if self.device.notify {
-            cfg.relay.notifications = Notifications::Broadcast;
+            cfg.lines[0].relay.notifications = Notifications::Broadcast;
         }
         cfg
     }
@@ -197,7 +189,7 @@ pub async fn run(
         Err(GatewayError::Bind { error, .. })
             if args.listen.is_none() && error.kind() == std::io::ErrorKind::AddrInUse =>
         {
-            cfg.tcp.listen = SocketAddr::new(DEFAULT_LISTEN.ip(), 0);
+            cfg.listeners[0].tcp.listen = SocketAddr::new(DEFAULT_LISTEN.ip(), 0);
             let listener = gateway::bind(&cfg).await?;
             println!(
                 "mbgate demo: another program holds {DEFAULT_LISTEN}; using a free port instead"
@@ -209,7 +201,7 @@ pub async fn run(
     let at = listener[0]
         .local_addr()
         .map_err(|error| GatewayError::Bind {
-            addr: cfg.tcp.listen,
+            addr: cfg.listeners[0].tcp.listen,
             error,
         })?;
     let me = crate::invocation::command();

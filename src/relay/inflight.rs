@@ -569,7 +569,7 @@ mod tests {
                     [[line.unit]]\nunits = 5\nretries = 2\nretry_writes = true\nrequest_pause_ms = 30\n\
                     [[line.unit]]\nunits = 6\nresponse_timeout_ms = \"auto\"\nresponse_timeout_max_ms = 800\n";
         let cfg = crate::config::parse(text, "t").unwrap();
-        let line = &cfg.lines()[0];
+        let line = &cfg.lines[0];
         let mut t = InFlight::new(&line.relay, &line.unit_tables, false);
         let t0 = Instant::now();
         assert_eq!(
@@ -661,7 +661,7 @@ mod tests {
                  response_timeout_min_ms = {floor_ms}\nresponse_timeout_max_ms = {ceiling_ms}\n"
             );
             let cfg = crate::config::parse(&text, "t").unwrap();
-            let line_cfg = &cfg.lines()[0];
+            let line_cfg = &cfg.lines[0];
             let stats = Stats::default();
             let t0 = Instant::now();
             let ms = Duration::from_millis;

@@ -67,63 +67,34 @@ pub(crate) fn match_lines(
 /// metrics listener. The rest stays as it runs.
 pub(crate) fn merged(running: &Config, read: &Config, matched: &[usize]) -> Config {
     let mut c = running.clone();
-    let read_lines = read.lines();
-    if c.lines.is_empty() {
-        retune(&mut c.relay, &read_lines[matched[0]].relay);
-        if let (Some(m), Some(read)) = (&mut c.master, &read_lines[matched[0]].master) {
+    for (line, &j) in c.lines.iter_mut().zip(matched) {
+        let read = &read.lines[j];
+        retune(&mut line.relay, &read.relay);
+        line.unit_tables = read.unit_tables.clone();
+        if let (Some(m), Some(read)) = (&mut line.master, &read.master) {
             if timeouts_only(m, read) {
                 *m = read.clone();
             }
         }
-        let units = &read_lines[matched[0]].unit_tables;
-        if !units.is_empty() {
-            // Units with settings of their own: only a [[line]] says them.
-            let mut line = c.lines().remove(0);
-            line.unit_tables = units.clone();
-            c.lines = vec![line];
-        }
-    } else {
-        for (line, &j) in c.lines.iter_mut().zip(matched) {
-            retune(&mut line.relay, &read_lines[j].relay);
-            line.unit_tables = read_lines[j].unit_tables.clone();
-            if let (Some(m), Some(read)) = (&mut line.master, &read_lines[j].master) {
-                if timeouts_only(m, read) {
-                    *m = read.clone();
-                }
-            }
-        }
-        // The first line's settings stand for the gateway's, as when the file is read.
-        c.relay = c.lines[0].relay.clone();
     }
     c.log = read.log.clone();
     c.metrics = read.metrics.clone();
     c.dials = read.dials.clone();
     // The UDP listeners are the file's; the TCP ones stay as they run.
-    let udp = |l: &ListenConfig| l.transport == Transport::Udp;
-    let read_udp: Vec<ListenConfig> = read.listeners().into_iter().filter(udp).collect();
-    if !(c.listeners.is_empty() && read_udp.is_empty()) {
-        let mut listeners: Vec<ListenConfig> =
-            c.listeners().into_iter().filter(|l| !udp(l)).collect();
-        listeners.extend(read_udp);
-        c.listeners = listeners;
-    }
+    let udp = |l: &&ListenConfig| l.transport == Transport::Udp;
+    c.listeners.retain(|l| !udp(&l));
+    c.listeners
+        .extend(read.listeners.iter().filter(udp).cloned());
     // Priority classes: each listener's (matched by its address), and the roles' when
     // nothing else of them changed.
-    // (One open listener of class 0 is kept in the old form's [tcp]: spelt out as a
-    // listener once its class changes.)
-    let (mut listeners, read_listeners) = (c.listeners(), read.listeners());
-    let mut reclassed = false;
-    for l in &mut listeners {
-        let read = read_listeners
+    for l in &mut c.listeners {
+        let read = read
+            .listeners
             .iter()
             .find(|m| m.tcp.listen == l.tcp.listen && m.transport == l.transport);
-        if let Some(m) = read.filter(|m| m.priority != l.priority) {
+        if let Some(m) = read {
             l.priority = m.priority;
-            reclassed = true;
         }
-    }
-    if reclassed {
-        c.listeners = listeners;
     }
     if same_roles_but_priority(running, read) {
         c.roles = read.roles.clone();
@@ -166,8 +137,8 @@ pub(crate) struct Change {
 /// keys are named with the line (`line "/dev/ttyUSB1" relay.retries = 2`); in the
 /// old form, the one line's are the `[serial]` and `[relay]` keys as they are.
 pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> {
-    let (a_lines, b_lines) = (a.lines(), b.lines());
-    let named = !a.lines.is_empty() || !b.lines.is_empty();
+    let (a_lines, b_lines) = (&a.lines, &b.lines);
+    let named = !(a.single_line() && b.single_line());
     let mut out = Vec::new();
     for (la, &j) in a_lines.iter().zip(matched) {
         let lb = &b_lines[j];
@@ -313,11 +284,11 @@ fn dial_changes(a: &Config, b: &Config) -> Vec<Change> {
     out
 }
 
-/// A line's settings as a configuration of the old form, to read its keys by [`KEYS`].
+/// A line's settings as a configuration of the single-line form, to read its keys by
+/// [`KEYS`].
 fn line_as_config(line: &LineConfig) -> Config {
     Config {
-        serial: line.serial.clone(),
-        relay: line.relay.clone(),
+        lines: vec![line.clone()],
         ..Config::default()
     }
 }
@@ -330,17 +301,17 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
         reloadable: false,
     };
     let keys = || KEYS.iter().filter(|k| k.section == "tcp");
-    if a.listeners.is_empty() && b.listeners.is_empty() {
+    if a.single_listener() && b.single_listener() {
         return keys()
             .filter(|k| (k.get)(a) != (k.get)(b))
             .map(|k| restart(format!("tcp.{} = {}", k.name, (k.get)(b))))
             .collect();
     }
-    let (la, lb) = (a.listeners(), b.listeners());
+    let (la, lb) = (&a.listeners, &b.listeners);
     let at = |l: &ListenConfig| l.tcp.listen;
     let same = |l: &ListenConfig, m: &ListenConfig| at(l) == at(m) && l.transport == m.transport;
     let as_config = |l: &ListenConfig| Config {
-        tcp: l.tcp.clone(),
+        listeners: vec![l.clone()],
         ..Config::default()
     };
     let mut out = Vec::new();
@@ -353,7 +324,7 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
         said: format!("listen \"{}\" {what}", named(l)),
         reloadable: l.transport == Transport::Udp,
     };
-    for l in &la {
+    for l in la {
         match lb.iter().find(|m| same(l, m)) {
             None => out.push(said(l, "(gone from the file)".into())),
             Some(m) if l.transport == Transport::Udp => {
@@ -499,8 +470,8 @@ mod tests {
             crate::config::parse(&text, "t").unwrap()
         };
         let (running, read) = (file(300), file(900));
-        assert!(running.lines.is_empty(), "the old form");
-        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        assert!(running.single_line(), "the single-line form");
+        let matched = match_lines(&running.lines, &read.lines).unwrap();
         let new = merged(&running, &read, &matched);
         assert_eq!(new, read);
         let said: Vec<String> = changes(&running, &new, &matched)
@@ -527,8 +498,8 @@ mod tests {
     fn a_reload_takes_exactly_the_reloadable_keys() {
         let read = super::super::tests::all_changed();
         let mut running = Config::default();
-        running.serial.path = read.serial.path.clone();
-        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        running.lines[0].serial.path = read.lines[0].serial.path.clone();
+        let matched = match_lines(&running.lines, &read.lines).unwrap();
         let all = changes(&running, &read, &matched);
         assert_eq!(
             all.len(),
@@ -560,11 +531,11 @@ mod tests {
             crate::config::parse(&text, "t").unwrap()
         };
         let running = file("");
-        assert!(running.lines.is_empty(), "the old form");
+        assert!(running.single_line(), "the single-line form");
         let read = file("[[line.unit]]\nunits = \"1-2\"\nresponse_timeout_ms = 100\n");
-        let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+        let matched = match_lines(&running.lines, &read.lines).unwrap();
         let new = merged(&running, &read, &matched);
-        assert_eq!(new.lines()[0].unit_tables, read.lines()[0].unit_tables);
+        assert_eq!(new.lines[0].unit_tables, read.lines[0].unit_tables);
         let said: Vec<(String, bool)> = changes(&running, &new, &[0])
             .into_iter()
             .map(|c| (c.said, c.reloadable))
@@ -580,7 +551,7 @@ mod tests {
         );
         // Back to the line's settings.
         let back = merged(&new, &running, &matched);
-        assert!(back.lines()[0].unit_tables.is_empty());
+        assert!(back.lines[0].unit_tables.is_empty());
     }
 
     /// Every key a `[[listen]]` or a `[[role]]` declares (their own and `[tcp]`'s,
@@ -645,7 +616,7 @@ mod tests {
             } else {
                 file("", &line)
             };
-            let matched = match_lines(&running.lines(), &read.lines()).unwrap();
+            let matched = match_lines(&running.lines, &read.lines).unwrap();
             let all = changes(&running, &read, &matched);
             assert!(!all.is_empty(), "{line}: not named by a reload");
             let new = merged(&running, &read, &matched);
@@ -667,7 +638,7 @@ mod tests {
             }
             if name == "priority" {
                 assert!(all.iter().all(|c| c.reloadable), "{line}: {all:?}");
-                let source = &running.listeners()[0];
+                let source = &running.listeners[0];
                 let class = new.priority_of(source, Some("r"));
                 assert_eq!(class, if listener { 3 } else { 5 }, "{line}");
                 let class = new.priority_of(source, None);

@@ -91,7 +91,7 @@ fn priority_classes_of_listeners_and_roles() {
                 [[listen]]\naddress = \"127.0.0.1:1503\"\n\
                 [[role]]\nname = \"scada\"\npriority = 5\n";
     let cfg = parse(text, "t.toml").unwrap();
-    let classes: Vec<u8> = cfg.listeners().iter().map(|l| l.priority).collect();
+    let classes: Vec<u8> = cfg.listeners.iter().map(|l| l.priority).collect();
     assert_eq!(classes, [2, 0]);
     assert_eq!(cfg.roles[0].priority, Some(5));
     assert!(crate::config::describe::summary(&cfg)

@@ -128,12 +128,11 @@ impl Reader<'_> {
         }
         let line = LineConfig {
             units,
-            serial: line.serial,
             tcp,
             tcp_tls,
-            relay: line.relay,
             unit_tables: unit_tables.0,
             master,
+            ..line.lines.swap_remove(0)
         };
         Ok((v.span().start, line, listed))
     }
@@ -203,7 +202,7 @@ impl Reader<'_> {
         };
         // Where it is, for a second line on the same address.
         self.at.insert(address, at.span().start);
-        line.serial.framing = t.framing;
+        line.lines[0].serial.framing = t.framing;
         Ok((t.address.0, t.tls))
     }
 
