@@ -34,6 +34,7 @@ const BYTE_ORDER_MAGIC: u32 = 0x1A2B_3C4D;
 const OPT_END: u16 = 0;
 const OPT_COMMENT: u16 = 1;
 const IF_NAME: u16 = 2;
+const IF_DESCRIPTION: u16 = 3;
 const IF_TSRESOL: u16 = 9;
 const IF_TSOFFSET: u16 = 14;
 const EPB_FLAGS: u16 = 2;
@@ -93,6 +94,9 @@ pub struct Interface {
     pub link_type: u16,
     /// `if_name`, empty if none.
     pub name: String,
+    /// `if_description`, empty if none (mbgate's says a line's baud rate:
+    /// `line 0: RTU, 19200 baud`).
+    pub description: String,
     /// The section it belongs to, from 0: interfaces are numbered anew in each.
     pub section: usize,
     /// Ticks a second (`if_tsresol`; 10^6 by default).
@@ -293,6 +297,7 @@ fn interface(order: Order, body: &[u8], section: usize) -> Result<Interface, Rea
     let mut i = Interface {
         link_type,
         name: String::new(),
+        description: String::new(),
         section,
         resolution: Resolution::Decimal(6),
         offset_s: 0,
@@ -300,6 +305,7 @@ fn interface(order: Order, body: &[u8], section: usize) -> Result<Interface, Rea
     for (code, value) in options(order, &body[8..]).ok_or(Reason::BadOptions)? {
         match code {
             IF_NAME => i.name = String::from_utf8_lossy(value).into_owned(),
+            IF_DESCRIPTION => i.description = String::from_utf8_lossy(value).into_owned(),
             IF_TSRESOL => {
                 if let Some(&r) = value.first() {
                     i.resolution = if r & 0x80 == 0 {

@@ -85,7 +85,7 @@ struct InTransit {
 /// polls. Where there is no timerfd, tokio's timer wakes the simulator a millisecond
 /// early and a blocking-pool thread sleeps the rest. A `due` already past returns at
 /// once.
-async fn until_precisely(timer: Option<&mut PreciseTimer>, due: Instant) {
+pub(crate) async fn until_precisely(timer: Option<&mut PreciseTimer>, due: Instant) {
     if let Some(timer) = timer {
         if timer.until(due).await.is_ok() {
             return;
@@ -419,19 +419,25 @@ impl Sim {
         due
     }
 
-    /// Writes every frame whose time has come, through the line model.
+    /// Writes every frame whose time has come, through the line model, then logs
+    /// them: the log's formatting and writing come after the frame's time, not
+    /// before it (a replayed device's reply time is the device's, to the tenth of a
+    /// millisecond: docs/simulator.md "Replaying a device").
     async fn send_due<P: AsyncWriteExt + Unpin>(&mut self, port: &mut P) -> std::io::Result<()> {
         let now = Instant::now();
         let mut bytes = Vec::new();
+        let mut sent = Vec::new();
         while self.out.front().is_some_and(|o| o.due <= now) {
             let o = self.out.pop_front().expect("checked");
-            if let Some((frame, note)) = o.frame {
-                info!(target: "mbgate::sim::packets", "tx {} ({note})", Hex(&frame));
-                self.device.log.record(Direction::Tx, &frame, note);
-            }
+            sent.extend(o.frame);
             self.tx_faults.apply(&o.bytes, &mut bytes);
         }
-        AsyncWriteExt::write_all(port, &bytes).await
+        let written = AsyncWriteExt::write_all(port, &bytes).await;
+        for (frame, note) in sent {
+            info!(target: "mbgate::sim::packets", "tx {} ({note})", Hex(&frame));
+            self.device.log.record(Direction::Tx, &frame, note);
+        }
+        written
     }
 
     /// A frame as this line carries it: MBAP as is, RTU or ASCII from its unit and PDU.

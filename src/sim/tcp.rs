@@ -68,11 +68,14 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
     let _ = stream.set_nodelay(true);
     let (mut rd, mut wr) = stream.into_split();
     let mut buf = bytes::BytesMut::with_capacity(512);
+    let mut timer = crate::port::serial::PreciseTimer::new().ok();
     loop {
         let n = tokio::select! {
             _ = shutdown.cancelled() => return,
             r = rd.read_buf(&mut buf) => r,
         };
+        // A replayed device's delay counts from here, the request's last byte in.
+        let arrived = tokio::time::Instant::now();
         if !matches!(n, Ok(n) if n > 0) {
             return;
         }
@@ -87,8 +90,9 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
                 continue;
             };
             if let Some(delay) = answer.delay {
-                // A replayed device's own reply time (`--replay`).
-                tokio::time::sleep(delay).await;
+                // A replayed device's own reply time (`--replay`), to the microsecond:
+                // tokio's timer would round it up to the next millisecond.
+                super::serve::until_precisely(timer.as_mut(), arrived + delay).await;
             }
             let reply = Adu::build(req.tid(), req.unit(), &pdu);
             info!(target: "mbgate::sim::packets", "tx {} (reply)", Hex(reply.as_bytes()));

@@ -144,6 +144,7 @@ mod tests {
                 request: q.to_vec(),
                 seen: r.map_or(Seen::Silent, |r| Seen::Reply(r.to_vec())),
                 turnaround_us: r.map(|_| 1000),
+                own_us: r.map(|_| 1000),
                 framing: Framing::Rtu,
             });
         }

@@ -65,10 +65,8 @@ mod tests {
         s: SimArgs,
     }
 
-    fn parse(args: &[&str]) -> Result<SimArgs, String> {
-        S::try_parse_from(std::iter::once("t").chain(args.iter().copied()))
-            .map(|s| s.s)
-            .map_err(|e| e.to_string())
+    fn parse(args: &[&str]) -> Result<SimArgs, clap::Error> {
+        S::try_parse_from(std::iter::once("t").chain(args.iter().copied())).map(|s| s.s)
     }
 
     #[test]
@@ -91,12 +89,18 @@ mod tests {
         let c = s.replay.choices();
         assert_eq!((c.unknown, c.read_only, c.timeline), (11, true, true));
         for alone in ["--timeline", "--read-only", "--summary"] {
-            let e = parse(&["--serial", "/dev/ttyS0", alone]).unwrap_err();
+            let e = parse(&["--serial", "/dev/ttyS0", alone])
+                .unwrap_err()
+                .to_string();
             assert!(e.contains("--replay"), "{alone}: {e}");
         }
-        let e = parse(&["--replay", "a", "--summary", "--unknown-exception", "0"]).unwrap_err();
+        let e = parse(&["--replay", "a", "--summary", "--unknown-exception", "0"])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("0 is not in 1..=255"), "{e}");
-        let e = parse(&["--replay", "a", "--summary", "--profile", "generic"]).unwrap_err();
+        let e = parse(&["--replay", "a", "--summary", "--profile", "generic"])
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("cannot be used with"), "{e}");
         // A file that is not there: the flag and the file named.
         let e = parse(&["--replay", "/nonexistent/a.pcapng", "--summary"])

@@ -33,6 +33,9 @@ pub(crate) struct Observation {
     pub(crate) seen: Seen,
     /// Request out to reply in, for a reply.
     pub(crate) turnaround_us: Option<u64>,
+    /// Of that, the device's own time: less the time the request and the reply took
+    /// on the line's wire at its recorded speed, where there was one ([`own_times`]).
+    pub(crate) own_us: Option<u64>,
     /// How the line carried it.
     pub(crate) framing: Framing,
 }
@@ -69,6 +72,13 @@ struct Waiting {
 /// Every request of every line of `capture` and what came of it, in the order the
 /// requests went out on each line (lines one after the other).
 pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
+    let bauds: Vec<Option<u32>> = capture
+        .interfaces
+        .iter()
+        .map(|i| baud(&i.description))
+        .collect();
+    // (index into `out`, line, wire time) of each reply.
+    let mut timed: Vec<(usize, usize, u64)> = Vec::new();
     let mut waiting: Vec<Waiting> = capture
         .interfaces
         .iter()
@@ -97,6 +107,7 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
                     request,
                     seen: Seen::Silent,
                     turnaround_us: None,
+                    own_us: None,
                     framing,
                 });
             }
@@ -131,17 +142,98 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
         });
         if let Some(i) = found {
             let (at_us, framing, _, unit, request) = w.queries.remove(i);
+            let wire = bauds[p.interface].map_or(0, |b| wire_us(b, framing, &request, &pdu));
+            timed.push((out.len(), p.interface, wire));
             out.push(Observation {
                 at_us,
                 unit,
                 request,
                 seen: Seen::Reply(pdu),
                 turnaround_us: Some(p.at_us.saturating_sub(at_us)),
+                own_us: None,
                 framing,
             });
         }
     }
+    // Each reply's own time, judged line by line.
+    let recorded: Vec<Recorded> = timed
+        .iter()
+        .map(|&(i, line, wire_us)| Recorded {
+            line,
+            turnaround_us: out[i].turnaround_us.unwrap_or(0),
+            wire_us,
+        })
+        .collect();
+    for (&(i, ..), own) in timed.iter().zip(own_times(&recorded)) {
+        out[i].own_us = Some(own);
+    }
     out
+}
+
+/// One recorded reply's times, for [`own_times`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Recorded {
+    /// The capture's interface (the line).
+    pub(crate) line: usize,
+    /// Request out to reply in, as the capture timed them.
+    pub(crate) turnaround_us: u64,
+    /// The time the request's and the reply's bytes take on a wire at the line's
+    /// recorded speed ([`wire_us`]).
+    pub(crate) wire_us: u64,
+}
+
+/// The device's own time in each recorded reply: what a replay waits between the
+/// request's last byte in and the reply's first byte out.
+///
+/// The capture times a request when mbgate hands it to the port, before its first
+/// byte leaves, and a reply when its last byte is read (docs/capture.md "What a
+/// packet holds"). On a wire the turnaround so holds the request's and the reply's
+/// time on it at the line's speed; the replay's own port (a UART, or a pty paced
+/// with `--baud`) takes them again, so they are taken out here. On a pty there is
+/// no wire and nothing is taken out. The capture does not say which the port was;
+/// the replies do: no device answers before its request could have crossed the
+/// wire and its reply come back, so a line where any reply came sooner than that
+/// had no wire (the gateway's own rule: docs/reliability.md "Knowing the wire").
+pub(crate) fn own_times(recorded: &[Recorded]) -> Vec<u64> {
+    let no_wire: std::collections::BTreeSet<usize> = recorded
+        .iter()
+        .filter(|r| r.turnaround_us < r.wire_us)
+        .map(|r| r.line)
+        .collect();
+    recorded
+        .iter()
+        .map(|r| {
+            if no_wire.contains(&r.line) {
+                r.turnaround_us
+            } else {
+                r.turnaround_us - r.wire_us
+            }
+        })
+        .collect()
+}
+
+/// The baud rate an mbgate capture's line description gives (`line 0: RTU, 19200
+/// baud`), none for a device on the network or another writer's interface.
+pub(crate) fn baud(description: &str) -> Option<u32> {
+    let before = &description[..description.find(" baud")?];
+    let digits = before.rsplit(' ').next()?;
+    digits.parse().ok().filter(|&b| b > 0)
+}
+
+/// The time `request` and `reply` (PDUs) take on a wire at `baud` in `framing`, µs.
+/// Ten bits a character: start, eight data bits (seven and parity for ASCII), stop
+/// (the capture does not say the parity; an 8E1 line's eleventh bit is left out).
+pub(crate) fn wire_us(baud: u32, framing: Framing, request: &[u8], reply: &[u8]) -> u64 {
+    let bytes = |pdu: &[u8]| match framing {
+        // Unit and CRC.
+        Framing::Rtu => pdu.len() + 3,
+        // Colon, unit, PDU and LRC as two hex digits each, CR LF.
+        Framing::Ascii => 1 + 2 * (pdu.len() + 2) + 2,
+        // The MBAP header with the unit.
+        Framing::Mbap => pdu.len() + 7,
+    };
+    let chars = (bytes(request) + bytes(reply)) as u64;
+    chars * 10 * 1_000_000 / u64::from(baud)
 }
 
 #[cfg(test)]
@@ -240,6 +332,74 @@ mod tests {
             ]
         );
         assert!(got.iter().all(|o| o.framing == Framing::Rtu));
+    }
+
+    /// A reply's own time: the wire's time at the line's speed taken out, except on a
+    /// line where a reply came sooner than its bytes could have crossed (a pty).
+    #[test]
+    fn the_device_s_own_time_is_the_turnaround_less_the_wire_where_there_was_one() {
+        // 8 request bytes and 7 reply bytes (RTU, FC 03, one register) at 19 200
+        // baud: 150 bits, 7812 µs; ASCII: 17 + 15 characters; MBAP: 12 + 11 bytes.
+        let (q, r) = ([3, 0, 0, 0, 1], [3, 2, 0, 7]);
+        assert_eq!(wire_us(19_200, Framing::Rtu, &q, &r), 7812);
+        assert_eq!(wire_us(9_600, Framing::Ascii, &q, &r), 33_333);
+        assert_eq!(wire_us(4_000_000, Framing::Mbap, &q, &r), 57);
+        assert_eq!(baud("line 0: RTU, 19200 baud"), Some(19_200));
+        assert_eq!(
+            baud("line 1: ASCII, 9600 baud, the device is the master"),
+            Some(9_600)
+        );
+        assert_eq!(baud("line 2: MBAP, device at 10.0.0.5:502"), None);
+        assert_eq!(baud("line 0: RTU, 0 baud"), None);
+        assert_eq!(baud(""), None);
+        let rec = |line, turnaround_us, wire_us| Recorded {
+            line,
+            turnaround_us,
+            wire_us,
+        };
+        let got = own_times(&[
+            // Line 0, a wire: every reply took at least its bytes' time.
+            rec(0, 12_812, 7_812),
+            rec(0, 7_812, 7_812),
+            // Line 1, a pty recorded at 19 200: one reply came in 0.5 ms, so none of
+            // its replies crossed a wire and none loses anything.
+            rec(1, 9_000, 7_812),
+            rec(1, 500, 7_812),
+            // Line 2, a device on the network: no wire.
+            rec(2, 3_000, 0),
+        ]);
+        assert_eq!(got, [5_000, 0, 9_000, 500, 3_000]);
+    }
+
+    /// The capture's line description gives the speed the wire's time is taken at.
+    #[test]
+    fn a_line_s_recorded_speed_takes_the_wire_out_of_its_replies() {
+        let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
+        let mut f = pcapng::section_header("t");
+        f.extend(pcapng::interface("/dev/ttyS0", "line 0: RTU, 9600 baud"));
+        f.extend(pcapng::interface("/dev/pts/3", "line 1: RTU, 9600 baud"));
+        let q = rtu::encode(1, &[3, 0, 0, 0, 1]);
+        let r = rtu::encode(1, &[3, 2, 0, 7]);
+        // 15 bytes at 9600 baud: 15 625 µs on a wire; 20 ms recorded on line 0.
+        f.extend(packet(0, 1_000, "mbrtu", &q, out, ""));
+        f.extend(packet(0, 21_000, "mbrtu", &r, inb, ""));
+        // Line 1 answered in 0.4 ms: no wire, its 20 ms reply kept whole.
+        f.extend(packet(1, 30_000, "mbrtu", &q, out, ""));
+        f.extend(packet(1, 30_400, "mbrtu", &r, inb, ""));
+        f.extend(packet(1, 40_000, "mbrtu", &q, out, ""));
+        f.extend(packet(1, 60_000, "mbrtu", &r, inb, ""));
+        let got: Vec<_> = observations(&read(&f).unwrap())
+            .iter()
+            .map(|o| (o.turnaround_us, o.own_us))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (Some(20_000), Some(4_375)),
+                (Some(400), Some(400)),
+                (Some(20_000), Some(20_000))
+            ]
+        );
     }
 
     /// An MBAP line's replies are found by their transaction id, an ASCII line's

@@ -72,19 +72,21 @@ impl Replay {
         self.started = Instant::now();
     }
 
-    /// Answers one request as the device did, after a delay drawn from its own.
+    /// Answers one request as the device did, after a delay drawn from its own times
+    /// (`learn::own_times`).
     pub(crate) fn answer(&mut self, unit: u8, pdu: &[u8]) -> Answer {
         let moment = self.choices.timeline.then(|| {
             let elapsed = self.started.elapsed().as_micros() as u64;
             self.model.start_us.unwrap_or(0).saturating_add(elapsed)
         });
         let reply = self.model.answer(unit, pdu, moment, &self.choices);
-        // The times this very request took, else any of the unit's.
-        let times = self.model.units.get(&unit).map(|u| {
-            u.turnarounds_by_request
-                .get(pdu)
-                .map_or(&u.turnarounds_us[..], |t| &t[..])
-        });
+        // The device's own times for this very request, else any of the unit's: the
+        // simulator counts the delay from the request's last byte in (src/sim/serve.rs).
+        let times = self
+            .model
+            .units
+            .get(&unit)
+            .map(|u| u.own_by_request.get(pdu).map_or(&u.own_us[..], |t| &t[..]));
         let delay = match (&reply, times) {
             (Some(_), Some(t)) if !t.is_empty() => {
                 Some(Duration::from_micros(t[self.rng.usize(..t.len())]))

@@ -68,10 +68,13 @@ pub(crate) struct Unit {
     pub(crate) outcomes: HashMap<Vec<u8>, (u64, Outcome)>,
     /// The latest exception it gave to a write (FC 05, 06, 0F, 10, 16, 17), and when.
     pub(crate) write_exception: Option<(u64, u8)>,
-    /// Request out to reply in, µs, sorted.
+    /// Request out to reply in, µs, sorted (as recorded, for the summary).
     pub(crate) turnarounds_us: Vec<u64>,
+    /// The device's own times of those (less the wire's: `learn::own_times`), µs,
+    /// in the order recorded: the replay's delays are drawn from them.
+    pub(crate) own_us: Vec<u64>,
     /// The same, request by request (a device takes longer for some).
-    pub(crate) turnarounds_by_request: HashMap<Vec<u8>, Vec<u64>>,
+    pub(crate) own_by_request: HashMap<Vec<u8>, Vec<u64>>,
     /// How its line carried it.
     pub(crate) framing: Option<Framing>,
 }
@@ -224,10 +227,12 @@ impl Model {
         if let Some(t) = o.turnaround_us {
             let n = unit.turnarounds_us.partition_point(|&x| x <= t);
             unit.turnarounds_us.insert(n, t);
-            unit.turnarounds_by_request
+            let own = o.own_us.unwrap_or(t);
+            unit.own_us.push(own);
+            unit.own_by_request
                 .entry(o.request.clone())
                 .or_default()
-                .push(t);
+                .push(own);
         }
         match unit.outcomes.get(&o.request) {
             Some((at, _)) if *at > o.at_us => {}
@@ -249,6 +254,7 @@ mod tests {
             request: request.to_vec(),
             seen: reply.map_or(Seen::Silent, |r| Seen::Reply(r.to_vec())),
             turnaround_us: reply.map(|_| at_us % 1000),
+            own_us: reply.map(|_| at_us % 1000),
             framing: Framing::Rtu,
         }
     }
@@ -287,5 +293,25 @@ mod tests {
         assert_eq!(u.known(), ["coils 0-9 (10)", "holding registers 10-11 (2)"]);
         assert_eq!(u.turnarounds_us, [0, 0, 0, 0, 0]);
         assert_eq!((m.start_us, m.end_us), (Some(1000), Some(6000)));
+    }
+
+    /// The summary tells the reply times as recorded; the delays are drawn from the
+    /// device's own (the wire's time taken out), request by request.
+    #[test]
+    fn reply_times_as_recorded_delays_from_the_device_s_own() {
+        let mut m = Model::default();
+        let (a, b): (&[u8], &[u8]) = (&[3, 0, 0, 0, 1], &[3, 0, 5, 0, 1]);
+        for (at, q, turnaround, own) in [(1, a, 9000, 1200), (2, b, 8000, 200), (3, a, 9500, 1700)]
+        {
+            let mut o = seen(at, 1, q, Some(&[3, 2, 0, 0]));
+            (o.turnaround_us, o.own_us) = (Some(turnaround), Some(own));
+            m.apply(&o);
+        }
+        let u = &m.units[&1];
+        assert_eq!(u.turnarounds_us, [8000, 9000, 9500]);
+        assert_eq!(u.quantile_us(0.5), Some(9000));
+        assert_eq!(u.own_us, [1200, 200, 1700]);
+        assert_eq!(u.own_by_request[a], [1200, 1700]);
+        assert_eq!(u.own_by_request[b], [200]);
     }
 }
