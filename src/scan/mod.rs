@@ -12,7 +12,6 @@ mod tcp;
 
 use probe::{Framing, Heard, Units};
 use std::io::IsTerminal;
-use std::process::ExitCode;
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 
@@ -148,72 +147,47 @@ pub struct Report {
     pub tries: usize,
 }
 
-/// Runs `mbgate scan`: exit code 0 something answered, 1 nothing did or the port could
-/// not be used, 2 bad options.
-pub fn main(args: ScanArgs) -> ExitCode {
-    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
-        Ok(rt) => rt,
-        Err(code) => return code,
-    };
-    let stop = CancellationToken::new();
-    let result = rt.block_on(async {
-        let cancel = stop.clone();
-        tokio::spawn(async move {
-            if tokio::signal::ctrl_c().await.is_ok() {
-                cancel.cancel();
-            }
-        });
-        let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
-        if args.listen {
-            return Err(Listened(listening(&args, stop, progress).await));
-        }
-        run(&args, stop, progress)
-            .await
-            .map_err(|e| Listened(Err(e)))
-    });
-    let result = match result {
-        Err(Listened(Ok(heard))) => {
-            let target = args.port.clone().unwrap_or_default();
-            if args.json {
-                println!("{}", listen::json(&heard, &target));
-            } else {
-                print!("{}", listen::table(&heard, &target));
-            }
-            return if heard.at.is_some() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::FAILURE
-            };
-        }
-        Err(Listened(Err(e))) => Err(e),
-        Ok(r) => Ok(r),
-    };
-    let report = match result {
-        Ok(r) => r,
-        Err(ScanError::Option(e)) => {
-            eprintln!("mbgate: {e}");
-            return ExitCode::from(2);
-        }
-        Err(e) => {
-            eprintln!("mbgate: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let target = args.tcp.clone().or(args.port.clone()).unwrap_or_default();
-    if args.json {
-        println!("{}", json(&report, &target, args.tcp.is_some()));
-    } else {
-        print!("{}", table(&report, &target, args.tcp.is_some(), &args));
-    }
-    if report.found.is_empty() {
-        ExitCode::FAILURE
-    } else {
-        ExitCode::SUCCESS
-    }
+/// What a scan found: with `--listen`, what was heard; else the report.
+pub(crate) enum Scanned {
+    Heard(listen::Heard),
+    Report(Report),
 }
 
-/// `--listen`'s result, or any error, carried out of the runtime beside a scan's.
-struct Listened(Result<listen::Heard, ScanError>);
+/// `mbgate scan`, until done or `stop` (Ctrl-C: what was found so far).
+pub(crate) async fn scan(args: &ScanArgs, stop: CancellationToken) -> Result<Scanned, ScanError> {
+    let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
+    if args.listen {
+        return listening(args, stop, progress).await.map(Scanned::Heard);
+    }
+    run(args, stop, progress).await.map(Scanned::Report)
+}
+
+impl Scanned {
+    /// What is printed (a table, or JSON with `--json`), and whether anything answered.
+    pub(crate) fn said(&self, args: &ScanArgs) -> (String, bool) {
+        match self {
+            Scanned::Heard(heard) => {
+                let target = args.port.clone().unwrap_or_default();
+                let text = if args.json {
+                    format!("{}\n", listen::json(heard, &target))
+                } else {
+                    listen::table(heard, &target)
+                };
+                (text, heard.at.is_some())
+            }
+            Scanned::Report(report) => {
+                let target = args.tcp.clone().or(args.port.clone()).unwrap_or_default();
+                let tcp = args.tcp.is_some();
+                let text = if args.json {
+                    format!("{}\n", json(report, &target, tcp))
+                } else {
+                    table(report, &target, tcp, args)
+                };
+                (text, !report.found.is_empty())
+            }
+        }
+    }
+}
 
 /// The settings `--listen` tries: each baud rate and format once (the wide ones
 /// first), every framing judged on what came.

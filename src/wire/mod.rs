@@ -9,7 +9,6 @@ pub mod uart;
 use crate::port::serial::PreciseTimer;
 use pty::End;
 use std::path::PathBuf;
-use std::process::ExitCode;
 use std::time::Duration;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -105,44 +104,6 @@ pub enum WireError {
     /// Reading or writing a pty failed.
     #[error("{0}")]
     Io(#[from] std::io::Error),
-}
-
-/// `mbgate wire`: exit code 0 when stopped by a signal, 1 when it failed, 2 bad options.
-pub fn main(args: WireArgs) -> ExitCode {
-    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
-        Ok(rt) => rt,
-        Err(code) => return code,
-    };
-    let shutdown = CancellationToken::new();
-    let r = rt.block_on(async {
-        let stop = shutdown.clone();
-        tokio::spawn(async move {
-            use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut term), Ok(mut int)) = (
-                signal(SignalKind::terminate()),
-                signal(SignalKind::interrupt()),
-            ) else {
-                return;
-            };
-            tokio::select! {
-                _ = term.recv() => {}
-                _ = int.recv() => {}
-            }
-            stop.cancel();
-        });
-        run(&args, shutdown).await
-    });
-    match r {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(WireError::Option(e)) => {
-            eprintln!("mbgate: {e}");
-            ExitCode::from(2)
-        }
-        Err(e) => {
-            eprintln!("mbgate: {e}");
-            ExitCode::FAILURE
-        }
-    }
 }
 
 /// Counts of one direction, said at the end.
