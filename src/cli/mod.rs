@@ -12,7 +12,7 @@ mod gateway;
 mod reload;
 mod scan;
 mod signals;
-mod sim;
+pub(crate) mod sim;
 mod status;
 mod wire;
 

@@ -8,7 +8,123 @@ use anyhow::Context as _;
 use std::process::ExitCode;
 use tokio_util::sync::CancellationToken;
 
-pub(crate) use crate::sim::options::SimArgs;
+use crate::cli_overrides::{choice, PortFlags};
+use crate::config::{Framing, SerialConfig};
+use crate::sim::options::{self, BadFlags, DeviceArgs, Settings};
+use crate::sim::replay::args::ReplayArgs;
+use crate::sim::role::{self, Role};
+use std::path::PathBuf;
+
+/// `mbgate sim`: the device options and the serial port.
+#[derive(Debug, Clone, clap::Args)]
+pub(crate) struct SimArgs {
+    /// The serial port or pty (e.g. one end of a socat pair).
+    #[arg(long, value_name = "PATH", required_unless_present_any = ["listen", "summary"])]
+    serial: Option<PathBuf>,
+    /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
+    /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
+    /// device server in raw TCP mode (--framing rtu or ascii).
+    #[arg(long, value_name = "ADDR", conflicts_with = "serial")]
+    pub(crate) listen: Option<std::net::SocketAddr>,
+    /// With --listen: how many connections are served at once. 1 (the default): a
+    /// second is closed at once, as a device server or a single-connection PLC does;
+    /// more: a Modbus/TCP slave that several masters reach at once (--framing mbap).
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 1,
+        requires = "listen",
+        value_parser = clap::value_parser!(u16).range(1..=256)
+    )]
+    pub(crate) connections: u16,
+    // Before the port's flags: their heading would carry over onto these.
+    /// The device simulated.
+    #[command(flatten)]
+    pub(crate) device: DeviceArgs,
+    /// A recorded device instead (src/sim/replay/args.rs).
+    #[command(flatten)]
+    pub(crate) replay: ReplayArgs,
+    /// The role it plays and where.
+    #[command(flatten)]
+    pub(crate) role: RoleArgs,
+    /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
+    /// output as a UART would (10 bits a byte), and without it the simulator answers
+    /// at once; on a real port the UART does.
+    #[command(flatten, next_help_heading = "serial port")]
+    port: PortFlags,
+    /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
+    /// (generic profile and --replay only) [default: mbap; with --replay, as recorded].
+    #[arg(long, value_parser = choice::<Framing>(), help_heading = "serial port")]
+    pub(crate) framing: Option<Framing>,
+}
+
+impl SimArgs {
+    /// The device and line settings, with this port's framing and, when given, its
+    /// speed as the pace.
+    pub(crate) fn settings(&self) -> Result<Settings, BadFlags> {
+        options::framing_fits(&self.device, &self.replay, self.framing)?;
+        let port = self.serial_config()?;
+        let pace = self.port.given("baud").then_some(port.baud_rate);
+        options::settings(&self.device, &self.replay, self.framing, pace)
+    }
+
+    /// The port settings: the defaults of `[serial]` and the flags given.
+    pub(crate) fn serial_config(&self) -> Result<SerialConfig, BadFlags> {
+        let mut cfg = SerialConfig {
+            path: self
+                .serial
+                .as_deref()
+                .map_or_else(String::new, |p| p.to_string_lossy().into_owned()),
+            framing: self.framing.unwrap_or(Framing::Mbap),
+            ..SerialConfig::default()
+        };
+        self.port
+            .apply_serial(&mut cfg)
+            .map_err(|e| e.to_string())?;
+        Ok(cfg)
+    }
+}
+
+/// Which side of the conversation the simulated device is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub(crate) enum Side {
+    /// It answers requests (the default).
+    Slave,
+    /// It sends the CIE-M10 master's queries every --poll-ms (cie-m10 profile).
+    Master,
+}
+
+/// `mbgate sim`'s role flags: the CIE-M10 as the master of docs/protocol.md §3
+/// (`--role master --poll-ms`); a slave (the default) answers requests.
+#[derive(Debug, Clone, clap::Args)]
+pub(crate) struct RoleArgs {
+    /// slave answers requests; master sends, every --poll-ms, FC 03 for the slave's
+    /// input port register and FC 16 with its own inputs to the slave's output port
+    /// register (the --input-address and --output-address), and sets its outputs from
+    /// what it read.
+    #[arg(long, value_enum, default_value_t = Side::Slave, help_heading = "role")]
+    role: Side,
+    /// master: the communication period, in ms.
+    #[arg(long, default_value_t = 1000, value_name = "MS", help_heading = "role")]
+    poll_ms: u64,
+    /// master: how long it waits for each reply, in ms [default: the period, at most 1000].
+    #[arg(long, value_name = "MS", help_heading = "role")]
+    timeout_ms: Option<u64>,
+}
+
+impl RoleArgs {
+    /// The role as the simulator takes it.
+    pub(crate) fn role(&self) -> Role {
+        Role {
+            side: match self.role {
+                Side::Slave => role::Side::Slave,
+                Side::Master => role::Side::Master,
+            },
+            poll_ms: self.poll_ms,
+            timeout_ms: self.timeout_ms,
+        }
+    }
+}
 
 /// The simulator's log level: as asked, else `info` headless and `warn` under the
 /// console, so packets do not scroll over the prompt.
@@ -22,13 +138,13 @@ fn sim_level(device: &crate::sim::options::DeviceArgs) -> (String, bool) {
 }
 
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
-pub(crate) fn sim(args: crate::sim::options::SimArgs) -> ExitCode {
+pub(crate) fn sim(args: SimArgs) -> ExitCode {
     use crate::sim::serve::{self, Port};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
     let cie_m10 = args.device.profile == crate::sim::options::ProfileName::CieM10
         && args.replay.replay.is_empty();
-    let polling = args.role.polling(cie_m10, args.listen.is_some());
+    let polling = args.role.role().polling(cie_m10, args.listen.is_some());
     let many = (args.connections > 1).then_some(args.connections);
     let settings = args
         .settings()
@@ -186,5 +302,46 @@ fn finish(result: anyhow::Result<()>) -> ExitCode {
     match result {
         Ok(()) => exit::code(exit::OK),
         Err(e) => exit::failed(format_args!("{e:#}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::config::Parity;
+    use clap::Parser;
+
+    /// The port takes `mbgate run`'s flags, ranges and defaults; `--baud` also paces.
+    #[test]
+    fn the_port_takes_run_s_flags() {
+        #[derive(Parser)]
+        struct S {
+            #[command(flatten)]
+            s: SimArgs,
+        }
+        let sim = |args: &[&str]| {
+            let line = ["t", "--serial", "/dev/ttyS9", "--profile", "generic"];
+            S::try_parse_from(line.iter().chain(args)).unwrap().s
+        };
+        let s = sim(&["--baud", "9600", "--parity", "even", "--framing", "rtu"]);
+        let port = s.serial_config().unwrap();
+        assert_eq!((port.path.as_str(), port.baud_rate), ("/dev/ttyS9", 9600));
+        assert_eq!((port.parity, port.framing), (Parity::Even, Framing::Rtu));
+        assert_eq!(s.settings().unwrap().baud, Some(9600));
+        let s = sim(&[]);
+        assert_eq!(
+            s.serial_config().unwrap(),
+            SerialConfig {
+                path: "/dev/ttyS9".into(),
+                ..SerialConfig::default()
+            }
+        );
+        assert_eq!(
+            s.settings().unwrap().baud,
+            None,
+            "no --baud given: on a pty nothing paces it (serve.rs)"
+        );
+        let bad = sim(&["--data-bits", "9"]).settings().unwrap_err();
+        assert_eq!(bad.to_string(), "--data-bits: must be 7 or 8, got 9");
     }
 }

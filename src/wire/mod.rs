@@ -24,10 +24,21 @@ pub struct EndSpec {
     pub format: Option<Format>,
 }
 
-impl std::str::FromStr for EndSpec {
-    type Err = String;
+/// An end's spec that is not `[BAUD,]FORMAT` or `auto`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BadSpec {
+    /// The baud rate.
+    #[error("{0:?}: a baud rate is a number above 0")]
+    Baud(String),
+    /// The format.
+    #[error(transparent)]
+    Format(#[from] uart::BadFormat),
+}
 
-    fn from_str(s: &str) -> Result<EndSpec, String> {
+impl std::str::FromStr for EndSpec {
+    type Err = BadSpec;
+
+    fn from_str(s: &str) -> Result<EndSpec, BadSpec> {
         let (baud, format) = match s.split_once(',') {
             Some((b, f)) => (Some(b), f),
             None if s.bytes().all(|c| c.is_ascii_digit()) => (Some(s), ""),
@@ -36,7 +47,7 @@ impl std::str::FromStr for EndSpec {
         let baud = baud
             .map(|b| match b.parse::<u32>() {
                 Ok(n) if n > 0 => Ok(n),
-                _ => Err(format!("{b:?}: a baud rate is a number above 0")),
+                _ => Err(BadSpec::Baud(b.to_owned())),
             })
             .transpose()?;
         let format = match format {
