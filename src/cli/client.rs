@@ -3,13 +3,31 @@
 //! port missing, a reply that answers something else), 2 on bad arguments. With
 //! `--poll`, Ctrl-C ends the session with its summary; the code is the last request's.
 
+use super::client_args::{BadValue, CommonArgs};
 use super::exit;
 use super::signals::{self, Stops};
-use crate::client::{prepare, session, CommonArgs, Outcome};
-use crate::frame::request::Request;
+use crate::client::{session, Outcome, Transport};
+use crate::frame::request::{Request, RequestError};
 use std::process::ExitCode;
 
-pub(crate) use crate::client::{ReadArgs, WriteArgs};
+pub(crate) use super::client_args::{ReadArgs, WriteArgs};
+
+/// Why a request cannot be sent: the message names the value or flag.
+#[derive(Debug, thiserror::Error)]
+enum Unsendable {
+    /// A value or flag combination of the command line.
+    #[error(transparent)]
+    Args(#[from] BadValue),
+    /// A request the protocol does not allow (a quantity out of range...).
+    #[error(transparent)]
+    Request(#[from] RequestError),
+}
+
+/// The request's PDU and the transport to send it on, or why they cannot be had.
+fn prepare(common: &CommonArgs, request: &Request) -> Result<(Transport, Vec<u8>), Unsendable> {
+    let pdu = request.pdu()?;
+    Ok((common.transport()?, pdu))
+}
 
 /// `mbgate read`.
 pub(crate) fn read(args: ReadArgs) -> ExitCode {
@@ -40,7 +58,7 @@ fn run(common: &CommonArgs, request: &Request) -> ExitCode {
             Some(_) => signals::stop_on(Stops::Interrupt),
             None => tokio_util::sync::CancellationToken::new(),
         };
-        session(common, transport, &pdu, stop).await
+        session(&common.session(), transport, &pdu, stop).await
     });
     exit::code(match outcome {
         Outcome::Reply => exit::OK,

@@ -7,6 +7,7 @@
 
 mod capture;
 mod client;
+mod client_args;
 pub mod exit;
 mod gateway;
 mod reload;

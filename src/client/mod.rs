@@ -16,14 +16,12 @@
 //!
 //! How it ended ([`Outcome`]) is `crate::cli`'s to make an exit code of.
 
-mod args;
 mod transport;
 
-pub use args::{BadValue, CommonArgs, ReadArgs, ReadTable, WriteArgs, WriteTable};
 pub(crate) use transport::{Master, Transport};
 
 use crate::frame::hex::Hex;
-use crate::frame::request::{exception_name, Reply, Request};
+use crate::frame::request::{exception_name, Reply};
 use crate::frame::Adu;
 use std::io;
 use std::time::{Duration, SystemTime};
@@ -39,24 +37,19 @@ pub enum Outcome {
     Exception,
 }
 
-/// Why a request cannot be sent: the message names the value or flag.
-#[derive(Debug, thiserror::Error)]
-pub enum BadRequest {
-    /// A value or flag combination of the command line.
-    #[error(transparent)]
-    Args(#[from] args::BadValue),
-    /// A request the protocol does not allow (a quantity out of range...).
-    #[error(transparent)]
-    Request(#[from] crate::frame::request::RequestError),
-}
-
-/// The request's PDU and the transport to send it on, or why they cannot be had.
-pub(crate) fn prepare(
-    common: &CommonArgs,
-    request: &Request,
-) -> Result<(Transport, Vec<u8>), BadRequest> {
-    let pdu = request.pdu()?;
-    Ok((common.transport()?, pdu))
+/// A session's options (`mbgate read` and `write`'s flags, `crate::cli`'s).
+#[derive(Debug, Clone)]
+pub struct Session {
+    /// The unit id asked.
+    pub unit: u8,
+    /// How long each request waits for its reply, in ms.
+    pub timeout_ms: u64,
+    /// Poll every this many ms (none: once).
+    pub poll: Option<u64>,
+    /// Stop polling after this many requests.
+    pub count: Option<u64>,
+    /// Print both frames as hex.
+    pub verbose: bool,
 }
 
 /// A line on stdout; a closed stdout (`| head`) is not an error worth a panic.
@@ -117,7 +110,7 @@ fn millis(d: Duration) -> String {
 /// One request, or one per `--poll` period until `--count` or `stop`. Returns how the
 /// last request ended.
 pub(crate) async fn session(
-    common: &CommonArgs,
+    common: &Session,
     transport: Transport,
     pdu: &[u8],
     stop: tokio_util::sync::CancellationToken,
@@ -155,7 +148,7 @@ pub(crate) async fn session(
 /// trip, if answered.
 async fn once(
     master: &mut Master,
-    common: &CommonArgs,
+    common: &Session,
     pdu: &[u8],
     stamp: Option<SystemTime>,
 ) -> (Outcome, Option<Duration>) {

@@ -59,42 +59,20 @@ impl std::str::FromStr for EndSpec {
     }
 }
 
-/// `mbgate wire`'s options.
-#[derive(Debug, clap::Args)]
-pub struct WireArgs {
-    /// End A: the path to make (a symbolic link to its pty, removed at exit).
-    #[arg(value_name = "A")]
-    pub a_path: PathBuf,
-    /// End B: likewise.
-    #[arg(value_name = "B")]
-    pub b_path: PathBuf,
-    /// Both ends' format, FORMAT or BAUD,FORMAT: 8N1, 8E1, 8O1, 8N2, 7E1...; or
-    /// `auto`: the parity and stop bits the program set, where a pty still shows them
-    /// (PARODD: odd; INPCK without it: even, as serialport and so mbgate set it;
-    /// pyserial's even parity reads as none). A baud rate given here is used whatever
-    /// the program sets; otherwise each end's speed is the one its program set.
-    #[arg(long, value_name = "[BAUD,]FORMAT", default_value = "8N1")]
-    pub format: EndSpec,
-    /// End A's format, as --format (which it overrides).
-    #[arg(long = "a", value_name = "[BAUD,]FORMAT")]
-    pub a_spec: Option<EndSpec>,
-    /// End B's format, as --format (which it overrides).
-    #[arg(long = "b", value_name = "[BAUD,]FORMAT")]
-    pub b_spec: Option<EndSpec>,
-    /// The share of characters lost on the wire, 0 to 1 (the receiver hears an idle
-    /// line for them).
-    #[arg(long, default_value_t = 0.0, value_name = "P")]
+/// `mbgate wire`'s options (its flags are `crate::cli`'s).
+#[derive(Debug, Clone)]
+pub struct WireOptions {
+    /// The paths to make for the ends (symbolic links to their ptys, removed at exit).
+    pub paths: [PathBuf; 2],
+    /// Each end's format.
+    pub specs: [EndSpec; 2],
+    /// The share of characters lost on the wire, 0 to 1.
     pub loss: f64,
-    /// The share of characters with one bit flipped on the wire, 0 to 1 (any bit:
-    /// a data bit, the parity bit, the start or a stop bit).
-    #[arg(long, default_value_t = 0.0, value_name = "P")]
+    /// The share of characters with one bit flipped on the wire, 0 to 1.
     pub noise: f64,
-    /// RS-232 echo: each end hears what it sends too (as it left, before loss and
-    /// noise), as a 2-wire RS-485 transceiver or a loopback adapter does.
-    #[arg(long)]
+    /// RS-232 echo: each end hears what it sends too.
     pub echo: bool,
-    /// The seed of loss and noise: the same seed, the same faults for the same bytes.
-    #[arg(long, default_value_t = 1)]
+    /// The seed of loss and noise.
     pub seed: u64,
 }
 
@@ -128,7 +106,7 @@ struct Counts {
 }
 
 /// Runs the line until `shutdown`.
-pub async fn run(args: &WireArgs, shutdown: CancellationToken) -> Result<(), WireError> {
+pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), WireError> {
     for (name, p) in [("--loss", args.loss), ("--noise", args.noise)] {
         if !(0.0..=1.0).contains(&p) {
             return Err(WireError::Option(format!(
@@ -136,11 +114,8 @@ pub async fn run(args: &WireArgs, shutdown: CancellationToken) -> Result<(), Wir
             )));
         }
     }
-    let specs = [
-        args.a_spec.unwrap_or(args.format),
-        args.b_spec.unwrap_or(args.format),
-    ];
-    let paths = [&args.a_path, &args.b_path];
+    let specs = [args.specs[0], args.specs[1]];
+    let paths = [&args.paths[0], &args.paths[1]];
     let mut ends = Vec::new();
     for p in paths {
         ends.push(End::open(p).map_err(|source| WireError::Make {

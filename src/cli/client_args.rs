@@ -1,14 +1,14 @@
-//! The master's command line: where requests go and what they ask, as the
-//! request PDUs of docs/protocol.md §1.
+//! `mbgate read` and `mbgate write`'s flags: where requests go and what they ask, as
+//! the request PDUs of docs/protocol.md §1, and the session's options.
 
-use super::transport::Transport;
 use crate::cli_overrides::{choice, PortFlags, PORT_GROUP};
+use crate::client::{Session, Transport};
 use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
 
 /// A value or a flag combination `read` and `write` refuse; the message names it.
 #[derive(Debug, thiserror::Error)]
-pub enum BadValue {
+pub(crate) enum BadValue {
     /// `--poll`.
     #[error("'{0}' is not a poll interval: give milliseconds, at least 1 (e.g. --poll 1000 for once a second)")]
     Poll(String),
@@ -32,7 +32,7 @@ pub enum BadValue {
 /// Where requests go, and how they are sent (shared by `read` and `write`).
 #[derive(Debug, Clone, clap::Args)]
 #[command(mut_group(PORT_GROUP, |g| g.requires("serial")))]
-pub struct CommonArgs {
+pub(crate) struct CommonArgs {
     /// Gateway or Modbus/TCP device, HOST[:PORT] (port 502 if left out)
     /// [default: 127.0.0.1:502]
     #[arg(long, value_name = "HOST:PORT", conflicts_with = "serial")]
@@ -73,7 +73,7 @@ pub struct CommonArgs {
 
 /// The tables a master reads (docs/protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum ReadTable {
+pub(crate) enum ReadTable {
     /// FC 01 read coils (also: coil)
     #[value(alias = "coil")]
     Coils,
@@ -90,7 +90,7 @@ pub enum ReadTable {
 
 /// `mbgate read`: FC 01, 02, 03 or 04.
 #[derive(Debug, Clone, clap::Args)]
-pub struct ReadArgs {
+pub(crate) struct ReadArgs {
     #[command(flatten)]
     pub(crate) common: CommonArgs,
     /// What to read
@@ -107,7 +107,7 @@ pub struct ReadArgs {
 
 /// The tables a master writes (docs/protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum WriteTable {
+pub(crate) enum WriteTable {
     /// FC 05 for one value, FC 0F for several (also: coil)
     #[value(alias = "coil")]
     Coils,
@@ -125,7 +125,7 @@ pub enum WriteTable {
 
 /// `mbgate write`: FC 05, 06, 0F, 10 or 17.
 #[derive(Debug, Clone, clap::Args)]
-pub struct WriteArgs {
+pub(crate) struct WriteArgs {
     #[command(flatten)]
     pub(crate) common: CommonArgs,
     /// What to write
@@ -245,6 +245,17 @@ impl WriteArgs {
 }
 
 impl CommonArgs {
+    /// The session's options: the unit, the timeout, the polling and `-v`.
+    pub(crate) fn session(&self) -> Session {
+        Session {
+            unit: self.unit,
+            timeout_ms: self.timeout_ms,
+            poll: self.poll,
+            count: self.count,
+            verbose: self.verbose,
+        }
+    }
+
     /// The transport these arguments name: `--serial` if given, else `--tcp` (default
     /// 127.0.0.1:502); or why the serial port's settings are refused.
     pub(crate) fn transport(&self) -> Result<Transport, BadValue> {
