@@ -7,6 +7,9 @@ use std::process::ExitCode;
 use tokio::runtime::Runtime;
 use tokio_util::sync::CancellationToken;
 
+/// The log target of these lines: the program's, as when `main.rs` logged them.
+const TARGET: &str = "mbgate";
+
 /// The runtime; when it cannot be had, says so on stderr and gives exit code
 /// `failed`, the subcommand's for a failure of its own.
 pub(crate) fn runtime(failed: u8) -> Result<Runtime, ExitCode> {
@@ -44,11 +47,11 @@ pub(crate) fn watch(
     );
     async move {
         let (term, Ok(mut int)) = (handlers.0.transpose(), handlers.1) else {
-            tracing::error!("cannot install signal handlers");
+            tracing::error!(target: TARGET, "cannot install signal handlers");
             return;
         };
         let Ok(mut term) = term else {
-            tracing::error!("cannot install signal handlers");
+            tracing::error!(target: TARGET, "cannot install signal handlers");
             return;
         };
         let mut hup = handlers.2.and_then(Result::ok);
@@ -65,9 +68,9 @@ pub(crate) fn watch(
             }
         };
         tokio::select! {
-            _ = terminated => tracing::info!("SIGTERM received"),
-            _ = int.recv() => tracing::info!("SIGINT received"),
-            _ = hung_up => tracing::info!("SIGHUP received; stopping"),
+            _ = terminated => tracing::info!(target: TARGET, "SIGTERM received"),
+            _ = int.recv() => tracing::info!(target: TARGET, "SIGINT received"),
+            _ = hung_up => tracing::info!(target: TARGET, "SIGHUP received; stopping"),
         }
         shutdown.cancel();
     }

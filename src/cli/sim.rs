@@ -4,7 +4,6 @@
 
 use super::exit;
 use super::signals::{self, Stops};
-use anyhow::Context as _;
 use std::process::ExitCode;
 use tokio_util::sync::CancellationToken;
 
@@ -183,16 +182,16 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
             if let (Some(addr), Some(n)) = (listen, many) {
                 let listener = crate::sim::tcp::bind(addr)
                     .await
-                    .with_context(|| format!("cannot listen on {addr}"))?;
+                    .map_err(|source| Failed::Listen { addr, source })?;
                 let n = usize::from(n);
                 crate::sim::tcp::run(settings.device, listener, n, commands, shutdown).await?;
                 return Ok(());
             }
             let port = match listen {
                 Some(addr) => Port::Listen(addr),
-                None => Port::Path(port.map_err(anyhow::Error::msg)?),
+                None => Port::Path(port?),
             };
-            match polling.map_err(anyhow::Error::msg)? {
+            match polling? {
                 Some(p) => {
                     crate::sim::master::run(settings, p, port, commands, shutdown).await?;
                 }
@@ -266,7 +265,7 @@ where
         tokio::sync::mpsc::Receiver<crate::sim::serve::ConsoleRequest>,
         CancellationToken,
     ) -> Fut,
-    Fut: std::future::Future<Output = anyhow::Result<()>>,
+    Fut: std::future::Future<Output = Result<(), Failed>>,
 {
     let settings = match settings {
         Ok(s) => s,
@@ -297,11 +296,31 @@ where
     }))
 }
 
-/// The end of a simulator's run: 0, or the error and 1.
-fn finish(result: anyhow::Result<()>) -> ExitCode {
+/// Why a simulator or a demo stopped on an error (exit 1).
+#[derive(Debug, thiserror::Error)]
+enum Failed {
+    #[error("cannot listen on {addr}")]
+    Listen {
+        addr: std::net::SocketAddr,
+        source: std::io::Error,
+    },
+    #[error(transparent)]
+    Io(#[from] std::io::Error),
+    #[error(transparent)]
+    Flags(#[from] BadFlags),
+    #[error(transparent)]
+    Sim(#[from] crate::sim::serve::SimError),
+    #[error(transparent)]
+    Demo(#[from] crate::demo::DemoError),
+    #[error(transparent)]
+    Master(#[from] crate::demo::master::MasterDemoError),
+}
+
+/// The end of a simulator's run: 0, or the error (and its sources) and 1.
+fn finish(result: Result<(), Failed>) -> ExitCode {
     match result {
         Ok(()) => exit::code(exit::OK),
-        Err(e) => exit::failed(format_args!("{e:#}")),
+        Err(e) => exit::failed(exit::said(&e)),
     }
 }
 
