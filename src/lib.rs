@@ -9,6 +9,7 @@
 pub mod access;
 pub mod bridge;
 pub mod capture;
+pub mod cli;
 pub mod cli_overrides;
 pub mod client;
 pub mod config;

@@ -2,7 +2,6 @@
 //! bottleneck, and a single-threaded runtime has the smallest footprint and no
 //! cross-thread wake-ups on the reply path (docs/architecture.md).
 
-use std::process::ExitCode;
 use tokio::runtime::Runtime;
 
 /// A single-threaded runtime with its I/O and timers on.
@@ -10,13 +9,4 @@ pub fn new() -> std::io::Result<Runtime> {
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-}
-
-/// [`new`] for a subcommand: when it cannot be had, says so on stderr and gives the
-/// exit code `failed`, the subcommand's for a failure of its own.
-pub(crate) fn for_command(failed: ExitCode) -> Result<Runtime, ExitCode> {
-    new().map_err(|e| {
-        eprintln!("mbgate: starting the runtime: {e}");
-        failed
-    })
 }

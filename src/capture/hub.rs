@@ -174,6 +174,17 @@ pub(crate) struct Tap {
     iface: u16,
 }
 
+/// Why a capture is not started.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum Refused {
+    /// It names a line that is not there.
+    #[error(transparent)]
+    Request(#[from] super::request::BadRequest),
+    /// The gateway is stopping.
+    #[error("the gateway is stopping")]
+    Stopping,
+}
+
 impl Hub {
     /// A hub for these interfaces (0: the TCP side, then each line), and its task.
     pub(crate) fn new(interfaces: Vec<Interface>) -> (Hub, impl std::future::Future<Output = ()>) {
@@ -231,7 +242,7 @@ impl Hub {
 
     /// Packets of every interface from now on that `request` keeps (it names only
     /// interfaces there are: see [`Request::interfaces`]).
-    pub(crate) fn subscribe(&self, request: Request) -> Result<Subscription, String> {
+    pub(crate) fn subscribe(&self, request: Request) -> Result<Subscription, Refused> {
         let names: Vec<String> = self.0.interfaces.iter().map(|i| i.name.clone()).collect();
         let keep = request.interfaces(&names)?;
         let (tx, rx) = mpsc::channel(PER_SUBSCRIBER);
@@ -239,7 +250,7 @@ impl Hub {
         let dropped: Arc<[AtomicU64]> = (0..names.len()).map(|_| AtomicU64::new(0)).collect();
         let mut subs = self.0.subs.lock().expect("not poisoned");
         if self.0.closed.is_cancelled() {
-            return Err("the gateway is stopping".into());
+            return Err(Refused::Stopping);
         }
         subs.push(Sub {
             id,

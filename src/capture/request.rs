@@ -16,6 +16,62 @@ use std::net::{IpAddr, SocketAddr};
 /// The longest request line the gateway reads.
 pub(crate) const MAX_LINE: usize = 4096;
 
+/// Why a request line, or one of its words, is refused: the message names it.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub(crate) enum BadRequest {
+    /// No words.
+    #[error("empty request")]
+    Empty,
+    /// The first word is not a request.
+    #[error("unknown request {0:?} (expected capture or reload)")]
+    Unknown(String),
+    /// A word without `=`.
+    #[error("{0:?}: expected key=value")]
+    NotKeyValue(String),
+    /// A key this request does not have.
+    #[error("unknown key {key:?} in {word:?}")]
+    UnknownKey {
+        /// The key.
+        key: String,
+        /// The word it is in.
+        word: String,
+    },
+    /// A master that is not an address.
+    #[error(
+        "master {0:?}: expected an address (10.0.0.5) or an address and port (10.0.0.5:40000)"
+    )]
+    Master(String),
+    /// A number that is not one, or out of its type's range.
+    #[error("{key}={value}: not a number in range")]
+    Number {
+        /// The key.
+        key: String,
+        /// The value given.
+        value: String,
+    },
+    /// A limit above its most.
+    #[error("{key}={value}: at most {max}")]
+    TooMuch {
+        /// The key.
+        key: String,
+        /// The value given.
+        value: String,
+        /// The most.
+        max: u64,
+    },
+    /// A function code out of 1..=127.
+    #[error("function={0}: a function code is 1 to 127")]
+    Function(String),
+    /// A line the gateway does not have.
+    #[error("no line {line:?}: the lines are {lines}, and tcp for the TCP side")]
+    NoLine {
+        /// The line asked for.
+        line: String,
+        /// The lines there are, `0 (/dev/ttyUSB0), 1 (...)`.
+        lines: String,
+    },
+}
+
 /// A TCP peer to keep: its address, and its port if given.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Peer {
@@ -24,14 +80,14 @@ pub(crate) enum Peer {
 }
 
 impl Peer {
-    pub(crate) fn parse(s: &str) -> Result<Peer, String> {
+    pub(crate) fn parse(s: &str) -> Result<Peer, BadRequest> {
         if let Ok(a) = s.parse::<SocketAddr>() {
             return Ok(Peer::Addr(a));
         }
         let bare = s.trim_start_matches('[').trim_end_matches(']');
-        bare.parse::<IpAddr>().map(Peer::Ip).map_err(|_| {
-            format!("master {s:?}: expected an address (10.0.0.5) or an address and port (10.0.0.5:40000)")
-        })
+        bare.parse::<IpAddr>()
+            .map(Peer::Ip)
+            .map_err(|_| BadRequest::Master(s.to_owned()))
     }
 
     fn matches(&self, a: SocketAddr) -> bool {
@@ -77,42 +133,45 @@ pub(crate) const MAX_SECONDS: u64 = 366 * 24 * 3600;
 pub(crate) const MAX_COUNT: u64 = 1_000_000_000_000;
 
 /// A number of `key=` from 1 to `max`; 0 means none (no limit).
-fn limit(key: &str, v: &str, max: u64) -> Result<Option<u64>, String> {
+fn limit(key: &str, v: &str, max: u64) -> Result<Option<u64>, BadRequest> {
     let n: u64 = number(key, v)?;
     if n > max {
-        return Err(format!("{key}={v}: at most {max}"));
+        return Err(BadRequest::TooMuch {
+            key: key.to_owned(),
+            value: v.to_owned(),
+            max,
+        });
     }
     Ok(Some(n).filter(|&n| n > 0))
 }
 
 /// A number in decimal or, with `0x`, in hex.
-fn number<T: TryFrom<u64>>(key: &str, v: &str) -> Result<T, String> {
+fn number<T: TryFrom<u64>>(key: &str, v: &str) -> Result<T, BadRequest> {
     let n = match v.strip_prefix("0x").or_else(|| v.strip_prefix("0X")) {
         Some(hex) => u64::from_str_radix(hex, 16),
         None => v.parse::<u64>(),
     };
     n.ok()
         .and_then(|n| T::try_from(n).ok())
-        .ok_or_else(|| format!("{key}={v}: not a number in range"))
+        .ok_or_else(|| BadRequest::Number {
+            key: key.to_owned(),
+            value: v.to_owned(),
+        })
 }
 
 impl Request {
     /// Reads a request line (without its newline).
-    pub(crate) fn parse(line: &str) -> Result<Request, String> {
+    pub(crate) fn parse(line: &str) -> Result<Request, BadRequest> {
         let mut words = line.split_ascii_whitespace();
         match words.next() {
             Some("capture") => {}
-            Some(w) => {
-                return Err(format!(
-                    "unknown request {w:?} (expected capture or reload)"
-                ))
-            }
-            None => return Err("empty request".into()),
+            Some(w) => return Err(BadRequest::Unknown(w.to_owned())),
+            None => return Err(BadRequest::Empty),
         }
         let mut r = Request::default();
         for w in words {
             let Some((key, value)) = w.split_once('=') else {
-                return Err(format!("{w:?}: expected key=value"));
+                return Err(BadRequest::NotKeyValue(w.to_owned()));
             };
             match key {
                 "line" if !value.is_empty() => r.lines.push(value.to_owned()),
@@ -121,13 +180,18 @@ impl Request {
                 "function" => {
                     let fc: u8 = number(key, value)?;
                     if fc == 0 || fc >= 0x80 {
-                        return Err(format!("function={value}: a function code is 1 to 127"));
+                        return Err(BadRequest::Function(value.to_owned()));
                     }
                     r.functions.push(fc);
                 }
                 "count" => r.count = limit(key, value, MAX_COUNT)?,
                 "seconds" => r.seconds = limit(key, value, MAX_SECONDS)?,
-                _ => return Err(format!("unknown key {key:?} in {w:?}")),
+                _ => {
+                    return Err(BadRequest::UnknownKey {
+                        key: key.to_owned(),
+                        word: w.to_owned(),
+                    })
+                }
             }
         }
         Ok(r)
@@ -135,7 +199,7 @@ impl Request {
 
     /// The interfaces this request keeps, among `names` (0: the TCP side, then each
     /// line); an error names a line that is not there.
-    pub(crate) fn interfaces(&self, names: &[String]) -> Result<Vec<bool>, String> {
+    pub(crate) fn interfaces(&self, names: &[String]) -> Result<Vec<bool>, BadRequest> {
         if self.lines.is_empty() {
             return Ok(vec![true; names.len()]);
         }
@@ -155,10 +219,10 @@ impl Request {
                     .enumerate()
                     .map(|(i, n)| format!("{i} ({n})"))
                     .collect();
-                return Err(format!(
-                    "no line {l:?}: the lines are {}, and tcp for the TCP side",
-                    lines.join(", ")
-                ));
+                return Err(BadRequest::NoLine {
+                    line: l.clone(),
+                    lines: lines.join(", "),
+                });
             };
             keep[at] = true;
         }
@@ -249,7 +313,7 @@ mod tests {
             ("capture count=1000000000001", "at most 1000000000000"),
             ("capture count=-1", "not a number"),
         ] {
-            let e = Request::parse(line).unwrap_err();
+            let e = Request::parse(line).unwrap_err().to_string();
             assert!(e.contains(says), "{line}: {e}");
         }
     }
@@ -298,7 +362,7 @@ mod tests {
         assert_eq!(pick(&[]), Ok(vec![true, true, true]));
         assert_eq!(pick(&["1"]), Ok(vec![false, false, true]));
         assert_eq!(pick(&["tcp", "/dev/ttyUSB0"]), Ok(vec![true, true, false]));
-        let e = pick(&["2"]).unwrap_err();
+        let e = pick(&["2"]).unwrap_err().to_string();
         assert!(e.contains("0 (/dev/ttyUSB0), 1 (10.0.0.9:502)"), "{e}");
     }
 

@@ -14,65 +14,42 @@
 //!   to the outstanding request: its transaction id, its unit id and the shape the
 //!   request calls for.
 //!
-//! Exit codes, for scripts: 0 a normal response, 3 an exception response, 1 no answer
-//! (timeout, connection refused, port missing, a reply that answers something else),
-//! 2 bad arguments.
+//! How it ended ([`Outcome`]) is `crate::cli`'s to make an exit code of.
 
-mod args;
 mod transport;
 
-pub use args::{CommonArgs, ReadArgs, ReadTable, WriteArgs, WriteTable};
 pub(crate) use transport::{Master, Transport};
 
 use crate::frame::hex::Hex;
-use crate::frame::request::{exception_name, Reply, Request};
+use crate::frame::request::{exception_name, Reply};
 use crate::frame::Adu;
 use std::io;
-use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
 
-/// A normal response.
-pub(crate) const EXIT_OK: u8 = 0;
-/// No answer: timeout, connection refused, port missing, or no valid reply.
-pub(crate) const EXIT_NO_ANSWER: u8 = 1;
-/// Bad arguments (clap uses 2 too).
-pub(crate) const EXIT_USAGE: u8 = 2;
-/// The device (or the gateway) answered with an exception.
-pub(crate) const EXIT_EXCEPTION: u8 = 3;
-
-/// `mbgate read`: exit code 0, 1, 2 or 3 (module docs).
-pub fn read_main(args: ReadArgs) -> ExitCode {
-    let request = args.request();
-    run(&args.common, request)
+/// How a request ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Outcome {
+    /// A normal response.
+    Reply,
+    /// No answer: timeout, connection refused, port missing, or no valid reply.
+    NoAnswer,
+    /// The device (or the gateway) answered with an exception.
+    Exception,
 }
 
-/// `mbgate write`: exit code 0, 1, 2 or 3 (module docs).
-pub fn write_main(args: WriteArgs) -> ExitCode {
-    match args.request() {
-        Ok(request) => run(&args.common, request),
-        Err(e) => usage(&e),
-    }
-}
-
-fn usage(message: &str) -> ExitCode {
-    eprintln!("mbgate: {message}");
-    ExitCode::from(EXIT_USAGE)
-}
-
-fn run(common: &CommonArgs, request: Request) -> ExitCode {
-    let pdu = match request.pdu() {
-        Ok(pdu) => pdu,
-        Err(e) => return usage(&e.to_string()),
-    };
-    let transport = match common.transport() {
-        Ok(transport) => transport,
-        Err(e) => return usage(&e),
-    };
-    let rt = match crate::runtime::for_command(ExitCode::from(EXIT_NO_ANSWER)) {
-        Ok(rt) => rt,
-        Err(code) => return code,
-    };
-    ExitCode::from(rt.block_on(session(common, transport, &pdu)))
+/// A session's options (`mbgate read` and `write`'s flags, `crate::cli`'s).
+#[derive(Debug, Clone)]
+pub struct Session {
+    /// The unit id asked.
+    pub unit: u8,
+    /// How long each request waits for its reply, in ms.
+    pub timeout_ms: u64,
+    /// Poll every this many ms (none: once).
+    pub poll: Option<u64>,
+    /// Stop polling after this many requests.
+    pub count: Option<u64>,
+    /// Print both frames as hex.
+    pub verbose: bool,
 }
 
 /// A line on stdout; a closed stdout (`| head`) is not an error worth a panic.
@@ -94,11 +71,11 @@ struct Tally {
 }
 
 impl Tally {
-    fn add(&mut self, code: u8, rtt: Option<Duration>) {
+    fn add(&mut self, code: Outcome, rtt: Option<Duration>) {
         self.polls += 1;
         match code {
-            EXIT_OK => self.replies += 1,
-            EXIT_EXCEPTION => self.exceptions += 1,
+            Outcome::Reply => self.replies += 1,
+            Outcome::Exception => self.exceptions += 1,
             _ => self.failures += 1,
         }
         if let Some(rtt) = rtt {
@@ -130,19 +107,24 @@ fn millis(d: Duration) -> String {
     format!("{:.1}", d.as_secs_f64() * 1000.0)
 }
 
-/// One request, or one per `--poll` period until `--count` or Ctrl-C. Returns the exit
-/// code of the last request.
-async fn session(common: &CommonArgs, transport: Transport, pdu: &[u8]) -> u8 {
+/// One request, or one per `--poll` period until `--count` or `stop`. Returns how the
+/// last request ended.
+pub(crate) async fn session(
+    common: &Session,
+    transport: Transport,
+    pdu: &[u8],
+    stop: tokio_util::sync::CancellationToken,
+) -> Outcome {
     let mut master = Master::new(transport, Duration::from_millis(common.timeout_ms));
     let Some(period) = common.poll else {
         return once(&mut master, common, pdu, None).await.0;
     };
     let mut ticker = tokio::time::interval(Duration::from_millis(period));
     ticker.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
-    let ctrl_c = tokio::signal::ctrl_c();
+    let ctrl_c = stop.cancelled();
     tokio::pin!(ctrl_c);
     let mut tally = Tally::default();
-    let mut last = EXIT_NO_ANSWER;
+    let mut last = Outcome::NoAnswer;
     while common.count.is_none_or(|n| tally.polls < n) {
         tokio::select! {
             _ = ticker.tick() => {}
@@ -162,14 +144,14 @@ async fn session(common: &CommonArgs, transport: Transport, pdu: &[u8]) -> u8 {
 }
 
 /// Sends one request and prints the outcome: with `-v` both frames, then a status line
-/// (timestamped when polling), then the values. Returns the exit code and the round
+/// (timestamped when polling), then the values. Returns how it ended and the round
 /// trip, if answered.
 async fn once(
     master: &mut Master,
-    common: &CommonArgs,
+    common: &Session,
     pdu: &[u8],
     stamp: Option<SystemTime>,
-) -> (u8, Option<Duration>) {
+) -> (Outcome, Option<Duration>) {
     let request = Adu::build(master.next_tid(), common.unit, pdu);
     let outcome = master.transact(&request).await;
     let prefix = stamp
@@ -192,7 +174,7 @@ async fn once(
                 eprintln!("mbgate: {e}");
             }
             tx();
-            return (EXIT_NO_ANSWER, None);
+            return (Outcome::NoAnswer, None);
         }
     };
     let rtt = millis(x.round_trip);
@@ -204,11 +186,11 @@ async fn once(
                 exception_name(code.get()),
                 function.get()
             ));
-            EXIT_EXCEPTION
+            Outcome::Exception
         }
         _ => {
             say(format_args!("{prefix}reply in {rtt} ms"));
-            EXIT_OK
+            Outcome::Reply
         }
     };
     tx();

@@ -4,132 +4,59 @@
 //! that went away), it tells the gateway to stop and reads the capture's end, so the
 //! summary on standard error always says how many packets the gateway dropped.
 
-use super::{connect_error, control_socket, peer_uid, trust_server, DATA, END};
-use crate::capture::request::{Peer, Request};
-use std::io::IsTerminal;
-use std::path::{Path, PathBuf};
-use std::process::ExitCode;
+use super::{peer_uid, trust_server, AskError, DATA, END};
+use crate::capture::request::Request;
+use std::path::Path;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::UnixStream;
 
-/// Capture a running gateway's traffic to pcapng, for Wireshark.
-#[derive(Debug, clap::Args)]
-pub struct CaptureArgs {
-    /// Where to write: a file, or - for standard output (`-o - | wireshark -k -i -`)
-    #[arg(long, short = 'o', value_name = "FILE")]
-    pub output: PathBuf,
-    /// The gateway's control socket [default: from the configuration file]
-    #[arg(long, value_name = "PATH")]
-    pub socket: Option<PathBuf>,
-    /// The gateway's configuration file, to find its control socket (control.socket;
-    /// empty: the packaged unit's runtime directory for this file)
-    /// [default: /etc/mbgate/mbgate.toml]
-    #[arg(long, short = 'c', value_name = "FILE")]
-    pub config: Option<PathBuf>,
-    /// Only this line: its index (0 is the first [[line]]), its name (/dev/ttyUSB0,
-    /// host:port), or tcp for the masters' side; repeat for several
-    #[arg(long, value_name = "LINE")]
-    pub line: Vec<String>,
-    /// Only this unit id (dropped bytes, which have none, are kept); repeat for several
-    #[arg(long, value_name = "ID")]
-    pub unit: Vec<String>,
-    /// Only this master's packets, by its address (10.0.0.5) or address and port
-    /// (10.0.0.5:40000), and the line's frames for its requests; repeat for several
-    #[arg(long, value_name = "ADDR")]
-    pub master: Vec<String>,
-    /// Only this function code (decimal or 0x10; its exceptions too); repeat for several
-    #[arg(long, value_name = "FC")]
-    pub function: Vec<String>,
-    /// Stop after this many packets
-    #[arg(long, value_name = "N")]
-    pub count: Option<u64>,
-    /// Stop after this many seconds
-    #[arg(long, value_name = "S")]
-    pub seconds: Option<u64>,
-}
-
-/// Exit codes: 0 the capture ended as asked, 1 it could not run or its output
-/// failed, 2 bad arguments.
-const EXIT_FAILED: u8 = 1;
-const EXIT_USAGE: u8 = 2;
-
-impl CaptureArgs {
-    /// The request line these arguments ask for.
-    fn request(&self) -> Result<Request, String> {
-        let mut words = vec!["capture".to_owned()];
-        for l in &self.line {
-            if l.is_empty() || l.contains(char::is_whitespace) {
-                return Err(format!(
-                    "--line {l:?}: a line's index or name, without spaces"
-                ));
-            }
-            words.push(format!("line={l}"));
-        }
-        for u in &self.unit {
-            words.push(format!("unit={u}"));
-        }
-        for m in &self.master {
-            Peer::parse(m).map_err(|e| format!("--master: {e}"))?;
-            words.push(format!("master={m}"));
-        }
-        for f in &self.function {
-            words.push(format!("function={f}"));
-        }
-        if let Some(n) = self.count {
-            words.push(format!("count={n}"));
-        }
-        if let Some(s) = self.seconds {
-            words.push(format!("seconds={s}"));
-        }
-        Request::parse(&words.join(" ")).map_err(|e| {
-            e.replace("unit=", "--unit ")
-                .replace("function=", "--function ")
-        })
-    }
-}
-
-/// `mbgate capture`.
-pub fn main(args: CaptureArgs) -> ExitCode {
-    let request = match args.request() {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("mbgate capture: {e}");
-            return ExitCode::from(EXIT_USAGE);
-        }
-    };
-    let to_stdout = args.output.as_os_str() == "-";
-    if to_stdout && std::io::stdout().is_terminal() {
-        eprintln!(
-            "mbgate capture: pcapng is binary: give -o FILE, or pipe it (-o - | wireshark -k -i -)"
-        );
-        return ExitCode::from(EXIT_USAGE);
-    }
-    let socket = match control_socket(args.socket.as_deref(), args.config.as_deref()) {
-        Ok(s) => s,
-        Err(e) => {
-            eprintln!("mbgate capture: {e}");
-            return ExitCode::from(EXIT_USAGE);
-        }
-    };
-    let rt = match crate::runtime::new() {
-        Ok(rt) => rt,
-        Err(e) => {
-            eprintln!("mbgate capture: {e}");
-            return ExitCode::from(EXIT_FAILED);
-        }
-    };
-    let shown = if to_stdout {
-        "standard output".to_owned()
-    } else {
-        args.output.display().to_string()
-    };
-    match rt.block_on(capture(&socket, &request, &args.output, &shown)) {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("mbgate capture: {e}");
-            ExitCode::from(EXIT_FAILED)
-        }
-    }
+/// Why a capture could not run, or its output failed.
+#[derive(Debug, thiserror::Error)]
+pub enum CaptureError {
+    /// The socket could not be reached or trusted.
+    #[error(transparent)]
+    Ask(#[from] AskError),
+    /// The gateway closed the socket before it answered the request.
+    #[error("the gateway closed the control socket: {0}")]
+    Closed(std::io::Error),
+    /// The gateway closed the socket without a word.
+    #[error("the gateway closed the control socket without an answer")]
+    Silent,
+    /// The gateway refused the capture: why.
+    #[error("{0}")]
+    Refused(String),
+    /// The output could not be opened.
+    #[error("cannot write {shown}: {source}")]
+    Output {
+        /// The output, as said to the user.
+        shown: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The signal handlers could not be installed.
+    #[error("{0}")]
+    Signals(std::io::Error),
+    /// Reading the socket failed.
+    #[error("control socket: {0}")]
+    Socket(std::io::Error),
+    /// A second Ctrl-C.
+    #[error("interrupted twice: stopped at once")]
+    Interrupted,
+    /// The gateway closed the socket before the capture's end.
+    #[error("the gateway closed the control socket before the capture's end")]
+    Cut,
+    /// Writing the output failed: the capture stopped, the gateway goes on.
+    #[error("cannot write {shown}: {source}; the capture stopped after {packets} packets from the gateway, {dropped} (the gateway goes on)")]
+    Failed {
+        /// The output, as said to the user.
+        shown: String,
+        /// Why.
+        source: std::io::Error,
+        /// Packets the gateway sent.
+        packets: u64,
+        /// What it dropped, said.
+        dropped: String,
+    },
 }
 
 /// The end of a capture, as the gateway tells it.
@@ -175,17 +102,20 @@ async fn open_output(path: &Path) -> std::io::Result<Box<dyn AsyncWrite + Unpin>
     }
 }
 
-async fn capture(
+/// Captures what `request` asks for from the gateway at `socket` into `output` (`-`:
+/// standard output, `shown` as said), until its end or SIGINT/SIGTERM (which ask the
+/// gateway to stop; a second SIGINT gives up at once), and says on stderr how many
+/// packets and drops.
+pub(crate) async fn capture(
     socket: &Path,
     request: &Request,
     output: &Path,
     shown: &str,
-) -> Result<(), String> {
+) -> Result<(), CaptureError> {
     let stream = UnixStream::connect(socket)
         .await
-        .map_err(|e| connect_error(socket, &e))?;
-    let uid = peer_uid(&stream)
-        .map_err(|e| format!("cannot tell who serves {}: {e}", socket.display()))?;
+        .map_err(AskError::connect(socket))?;
+    let uid = peer_uid(&stream).map_err(AskError::who(socket))?;
     trust_server(uid, socket)?;
     let (rd, mut wr) = stream.into_split();
     let mut rd = tokio::io::BufReader::new(rd);
@@ -196,30 +126,35 @@ async fn capture(
     let read = tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut answer).await;
     match (answer.trim_end(), sent, read) {
         ("ok", Ok(()), _) => {}
-        ("" | "ok", Err(e), _) | ("", _, Err(e)) => {
-            return Err(format!("the gateway closed the control socket: {e}"))
+        ("" | "ok", Err(e), _) | ("", _, Err(e)) => return Err(CaptureError::Closed(e)),
+        ("", _, _) => return Err(CaptureError::Silent),
+        (a, _, _) => {
+            return Err(CaptureError::Refused(
+                a.strip_prefix("error: ").unwrap_or(a).to_owned(),
+            ))
         }
-        ("", _, _) => return Err("the gateway closed the control socket without an answer".into()),
-        (a, _, _) => return Err(a.strip_prefix("error: ").unwrap_or(a).to_owned()),
     }
     let mut out = open_output(output)
         .await
-        .map_err(|e| format!("cannot write {shown}: {e}"))?;
+        .map_err(|source| CaptureError::Output {
+            shown: shown.to_owned(),
+            source,
+        })?;
     eprintln!("mbgate capture: capturing to {shown} (Ctrl-C to stop)");
     let mut interrupt = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
-        .map_err(|e| e.to_string())?;
+        .map_err(CaptureError::Signals)?;
     let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(|e| e.to_string())?;
+        .map_err(CaptureError::Signals)?;
     // Once stop is sent: the rest is read to its end (and written, unless the
     // output failed).
     let mut stopping = false;
-    let mut failed: Option<String> = None;
+    let mut failed: Option<std::io::Error> = None;
     let end = loop {
         let msg = tokio::select! {
-            m = read_message(&mut rd) => m.map_err(|e| format!("control socket: {e}"))?,
+            m = read_message(&mut rd) => m.map_err(CaptureError::Socket)?,
             _ = interrupt.recv() => {
                 if stopping {
-                    return Err("interrupted twice: stopped at once".into());
+                    return Err(CaptureError::Interrupted);
                 }
                 stopping = true;
                 let _ = wr.write_all(b"stop\n").await;
@@ -232,9 +167,7 @@ async fn capture(
             }
         };
         match msg {
-            None => {
-                return Err("the gateway closed the control socket before the capture's end".into())
-            }
+            None => return Err(CaptureError::Cut),
             Some((END, text)) => break parse_end(&String::from_utf8_lossy(&text)),
             Some((DATA, bytes)) if failed.is_none() => {
                 let mut write = std::pin::pin!(async {
@@ -248,7 +181,7 @@ async fn capture(
                         r = &mut write => break r,
                         _ = interrupt.recv() => {
                             if stopping {
-                                return Err("interrupted twice: stopped at once".into());
+                                return Err(CaptureError::Interrupted);
                             }
                             stopping = true;
                             let _ = wr.write_all(b"stop\n").await;
@@ -256,7 +189,7 @@ async fn capture(
                     }
                 };
                 if let Err(e) = written {
-                    failed = Some(format!("cannot write {shown}: {e}"));
+                    failed = Some(e);
                     if !stopping {
                         stopping = true;
                         let _ = wr.write_all(b"stop\n").await;
@@ -277,10 +210,12 @@ async fn capture(
         w => w,
     };
     match failed {
-        Some(e) => Err(format!(
-            "{e}; the capture stopped after {} packets from the gateway, {dropped} (the gateway goes on)",
-            end.packets
-        )),
+        Some(source) => Err(CaptureError::Failed {
+            shown: shown.to_owned(),
+            source,
+            packets: end.packets,
+            dropped,
+        }),
         None => {
             eprintln!(
                 "mbgate capture: {} packets to {shown}, {dropped} ({why})",

@@ -87,6 +87,58 @@ pub(crate) const SOCKET_NAME: &str = "control.sock";
 /// The configuration file of `mbgate.service`.
 const PACKAGED_CONFIG: &str = "/etc/mbgate/mbgate.toml";
 
+/// Why `mbgate capture` or `mbgate reload` could not ask the gateway, or would not
+/// believe it.
+#[derive(Debug, thiserror::Error)]
+pub enum AskError {
+    /// The configuration file, read for its `control.socket`.
+    #[error("{}: {source}", file.display())]
+    ConfigFile {
+        /// The file.
+        file: PathBuf,
+        /// Why it could not be read.
+        source: std::io::Error,
+    },
+    /// Connecting to the socket failed (said for a user by [`connect_error`]).
+    #[error("{}", connect_error(socket, source))]
+    Connect {
+        /// The socket.
+        socket: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Who serves the socket could not be told.
+    #[error("cannot tell who serves {}: {source}", socket.display())]
+    Who {
+        /// The socket.
+        socket: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// Whoever serves the socket is not to be trusted as the gateway ([`trust_server`]).
+    #[error("{0}")]
+    Untrusted(String),
+    /// The socket failed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}
+
+impl AskError {
+    fn connect(socket: &Path) -> impl FnOnce(std::io::Error) -> AskError + '_ {
+        |source| AskError::Connect {
+            socket: socket.to_owned(),
+            source,
+        }
+    }
+
+    fn who(socket: &Path) -> impl FnOnce(std::io::Error) -> AskError + '_ {
+        |source| AskError::Who {
+            socket: socket.to_owned(),
+            source,
+        }
+    }
+}
+
 /// The control socket: `socket` (`--socket`), else the `control.socket` of `config`
 /// (`--config`, by default the packaged unit's file), else the packaged unit's for
 /// that file. For `mbgate capture` and `mbgate reload`.
@@ -94,10 +146,7 @@ const PACKAGED_CONFIG: &str = "/etc/mbgate/mbgate.toml";
 /// Only `control.socket` is read from the file, and leniently: a file with a mistake
 /// elsewhere (just edited, about to be reloaded and refused with the precise error)
 /// still names the socket of the gateway running with the file as it was.
-pub(crate) fn control_socket(
-    socket: Option<&Path>,
-    config: Option<&Path>,
-) -> Result<PathBuf, String> {
+pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<PathBuf, AskError> {
     if let Some(s) = socket {
         return Ok(s.to_owned());
     }
@@ -106,7 +155,10 @@ pub(crate) fn control_socket(
         None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
         None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
     };
-    let text = std::fs::read_to_string(&file).map_err(|e| format!("{}: {e}", file.display()))?;
+    let text = match std::fs::read_to_string(&file) {
+        Ok(text) => text,
+        Err(source) => return Err(AskError::ConfigFile { file, source }),
+    };
     let set = text
         .parse::<toml::Table>()
         .ok()
@@ -126,7 +178,7 @@ pub(crate) fn control_socket(
 /// may write (systemd's RuntimeDirectory, owned by the service's user): there no one
 /// else can have put a socket. Anyone else is an impostor: a socket planted in a
 /// directory others may write.
-pub(crate) fn trust_server(peer_uid: u32, socket: &Path) -> Result<(), String> {
+pub(crate) fn trust_server(peer_uid: u32, socket: &Path) -> Result<(), AskError> {
     use std::os::unix::fs::MetadataExt;
     #[allow(unsafe_code)]
     // SAFETY: geteuid(2) has no preconditions and cannot fail.
@@ -141,15 +193,15 @@ pub(crate) fn trust_server(peer_uid: u32, socket: &Path) -> Result<(), String> {
     let s = socket.display();
     match std::fs::metadata(dir) {
         Ok(m) if m.uid() == peer_uid && m.mode() & 0o022 == 0 => Ok(()),
-        Ok(m) => Err(format!(
+        Ok(m) => Err(AskError::Untrusted(format!(
             "{s} is served by user {peer_uid}, who is neither root, you, nor the owner of {} (owned by user {}, mode {:04o}): not the gateway; its answer is not trusted (a socket another user put there?)",
             dir.display(),
             m.uid(),
             m.mode() & 0o7777
-        )),
-        Err(e) => Err(format!(
+        ))),
+        Err(e) => Err(AskError::Untrusted(format!(
             "{s} is served by user {peer_uid}, neither root nor you, and its directory cannot be read ({e}): its answer is not trusted"
-        )),
+        ))),
     }
 }
 

@@ -84,7 +84,7 @@ pub(crate) enum BindError {
     #[error("{0} is in use by another running mbgate (give each its own control.socket)")]
     InUse(PathBuf),
     #[error("control socket {path}: refused: {why}")]
-    Unsafe { path: PathBuf, why: String },
+    Unsafe { path: PathBuf, why: NotOurs },
     #[error("cannot make the control socket {path}: {error}")]
     Io {
         path: PathBuf,
@@ -144,32 +144,48 @@ pub(crate) fn bind(path: &Path) -> Result<Control, BindError> {
     })
 }
 
+/// Why the control socket's directory is not one only the gateway may write.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum NotOurs {
+    #[error("its directory {}: {source}", dir.display())]
+    Unreadable {
+        dir: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("its directory {} is writable by {} (mode {mode:04o}): another user could put a socket of their own there; use a directory only the gateway's user may write (mode 0755 or 0750, like systemd's RuntimeDirectory)", dir.display(), if mode & 0o002 != 0 { "everyone" } else { "its group" })]
+    Writable { dir: PathBuf, mode: u32 },
+    #[error("its directory {} belongs to user {owner}, not to the gateway's user ({uid}) or root", dir.display())]
+    Owner { dir: PathBuf, owner: u32, uid: u32 },
+}
+
 /// Is the directory of `path` one only the gateway may write: its own (or root's,
 /// for a gateway run as root), not writable by its group or others? Elsewhere another
 /// user could put a socket of their own at the path before the gateway starts, or
 /// replace the gateway's after, and `mbgate reload` run by root would talk to it.
-fn directory_is_ours(path: &Path) -> Result<(), String> {
+fn directory_is_ours(path: &Path) -> Result<(), NotOurs> {
     use std::os::unix::fs::MetadataExt;
     let dir = match path.parent() {
         Some(d) if !d.as_os_str().is_empty() => d,
         _ => Path::new("."),
     };
-    let m = std::fs::metadata(dir).map_err(|e| format!("its directory {}: {e}", dir.display()))?;
+    let m = std::fs::metadata(dir).map_err(|source| NotOurs::Unreadable {
+        dir: dir.to_owned(),
+        source,
+    })?;
     let (uid, _) = own_ids();
     let mode = m.mode() & 0o7777;
     if mode & 0o022 != 0 {
-        return Err(format!(
-            "its directory {} is writable by {} (mode {mode:04o}): another user could put a socket of their own there; use a directory only the gateway's user may write (mode 0755 or 0750, like systemd's RuntimeDirectory)",
-            dir.display(),
-            if mode & 0o002 != 0 { "everyone" } else { "its group" },
-        ));
+        return Err(NotOurs::Writable {
+            dir: dir.to_owned(),
+            mode,
+        });
     }
     if m.uid() != uid && m.uid() != 0 {
-        return Err(format!(
-            "its directory {} belongs to user {}, not to the gateway's user ({uid}) or root",
-            dir.display(),
-            m.uid()
-        ));
+        return Err(NotOurs::Owner {
+            dir: dir.to_owned(),
+            owner: m.uid(),
+            uid,
+        });
     }
     Ok(())
 }
@@ -218,9 +234,7 @@ pub(crate) async fn serve(
             Some(_) => None,
         };
         let Some(slot) = slot else {
-            let why = refusal.unwrap_or_else(|| {
-                format!("{MAX_WAITING} clients are waiting to be served already")
-            });
+            let why = refusal.unwrap_or(Refusal::Busy);
             // Told in a task of its own (at most MAX_REFUSING at once): the accept
             // loop never waits on a client.
             if let Some(r) = refusing.take() {
@@ -263,26 +277,45 @@ fn groups_of(pid: Option<i32>) -> Vec<u32> {
         .unwrap_or_default()
 }
 
+/// Why a client of the control socket is refused, or its request.
+#[derive(Debug, thiserror::Error)]
+enum Refusal {
+    #[error("cannot tell who connected ({0})")]
+    Who(std::io::Error),
+    #[error("user {peer_uid} may not use the control socket: root, or the gateway's user ({uid}) or group ({gid}) only")]
+    Stranger { peer_uid: u32, uid: u32, gid: u32 },
+    #[error("{MAX_WAITING} clients are waiting to be served already")]
+    Busy,
+    #[error("{0}")]
+    Read(std::io::Error),
+    #[error("closed before its request")]
+    Closed,
+    #[error("a request longer than {MAX_LINE} bytes")]
+    TooLong,
+    #[error("no request within {} s", REQUEST_WITHIN.as_secs())]
+    Slow,
+    #[error("a request that is not text")]
+    NotText,
+    #[error(transparent)]
+    Request(#[from] crate::capture::request::BadRequest),
+}
+
 /// May the peer capture? Root, the gateway's own user, or its group (primary or
 /// supplementary). The file's mode lets only those connect; this holds even if the
 /// mode was loosened by hand.
-fn allowed(stream: &UnixStream) -> Result<(), String> {
-    let cred = stream
-        .peer_cred()
-        .map_err(|e| format!("cannot tell who connected ({e})"))?;
+fn allowed(stream: &UnixStream) -> Result<(), Refusal> {
+    let cred = stream.peer_cred().map_err(Refusal::Who)?;
     let (uid, gid) = own_ids();
     let (peer_uid, peer_gid) = (cred.uid(), cred.gid());
     if peer_uid == 0 || peer_uid == uid || peer_gid == gid || groups_of(cred.pid()).contains(&gid) {
         return Ok(());
     }
-    Err(format!(
-        "user {peer_uid} may not use the control socket: root, or the gateway's user ({uid}) or group ({gid}) only"
-    ))
+    Err(Refusal::Stranger { peer_uid, uid, gid })
 }
 
 /// Tells a client it is refused: reads what it sent first (within a moment), so that
 /// closing does not reset the connection and lose the answer, then writes `error: why`.
-async fn refuse(stream: UnixStream, why: &str) {
+async fn refuse(stream: UnixStream, why: &Refusal) {
     let (mut rd, mut wr) = stream.into_split();
     let _ = tokio::time::timeout(Duration::from_millis(500), request_line(&mut rd)).await;
     let _ = tokio::time::timeout(
@@ -305,14 +338,14 @@ async fn write_within(
 }
 
 /// Reads the request line: at most [`MAX_LINE`] bytes, within [`REQUEST_WITHIN`].
-async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String, String> {
+async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String, Refusal> {
     let mut line = Vec::new();
     let read = async {
         let mut byte = [0u8; 256];
         loop {
-            let n = rd.read(&mut byte).await.map_err(|e| e.to_string())?;
+            let n = rd.read(&mut byte).await.map_err(Refusal::Read)?;
             if n == 0 {
-                return Err("closed before its request".to_string());
+                return Err(Refusal::Closed);
             }
             line.extend_from_slice(&byte[..n]);
             if let Some(end) = line.iter().position(|&b| b == b'\n') {
@@ -320,15 +353,15 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
                 return Ok(());
             }
             if line.len() > MAX_LINE {
-                return Err(format!("a request longer than {MAX_LINE} bytes"));
+                return Err(Refusal::TooLong);
             }
         }
     };
     match tokio::time::timeout(REQUEST_WITHIN, read).await {
-        Err(_) => return Err(format!("no request within {} s", REQUEST_WITHIN.as_secs())),
+        Err(_) => return Err(Refusal::Slow),
         Ok(r) => r?,
     }
-    String::from_utf8(line).map_err(|_| "a request that is not text".into())
+    String::from_utf8(line).map_err(|_| Refusal::NotText)
 }
 
 /// One client, holding `waiting` until its request is read: a reload, or a capture
@@ -356,7 +389,7 @@ async fn client(
         let _ = write_within(&mut wr, answer.as_bytes()).await;
         return;
     }
-    let request = match line.and_then(|l| Request::parse(l.trim_end_matches('\r'))) {
+    let request = match line.and_then(|l| Ok(Request::parse(l.trim_end_matches('\r'))?)) {
         Ok(r) => r,
         Err(why) => {
             debug!("control socket: bad request: {why}");

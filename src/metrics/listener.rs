@@ -7,6 +7,14 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
 
+/// A new metrics address that could not be bound (the old listener runs on).
+#[derive(Debug, thiserror::Error)]
+#[error("cannot listen for metrics on {addr}: {source}")]
+pub(crate) struct Unbound {
+    addr: SocketAddr,
+    source: std::io::Error,
+}
+
 /// The metrics listener as it runs, moved or stopped by a reload.
 pub(crate) struct MetricsListener {
     board: Arc<Board>,
@@ -33,14 +41,14 @@ impl MetricsListener {
 
     /// Listens on `want` (none: not at all). A new address that cannot be bound
     /// leaves the old listener running, and says so.
-    pub(crate) fn set(&mut self, want: Option<SocketAddr>) -> Result<(), String> {
+    pub(crate) fn set(&mut self, want: Option<SocketAddr>) -> Result<(), Unbound> {
         if self.running.as_ref().map(|(a, _)| *a) == want {
             return Ok(());
         }
         let bound = match want {
             Some(addr) => match http::bind(addr) {
                 Ok(l) => Some((addr, l)),
-                Err(e) => return Err(format!("cannot listen for metrics on {addr}: {e}")),
+                Err(source) => return Err(Unbound { addr, source }),
             },
             None => None,
         };

@@ -1,48 +1,39 @@
-//! `mbgate status`: asks a running gateway's metrics listener (`[metrics] listen`) and
-//! prints a short summary per line, unit and listener. The exit code serves a
-//! monitoring check: 0 healthy, 1 not (a line's port is not open, or a unit is not
-//! answering), 3 the gateway could not be asked (2: bad arguments, as everywhere).
+//! `mbgate status`'s work: asks a running gateway's metrics listener (`[metrics]
+//! listen`) and makes a short summary per line, unit and listener, and whether it is
+//! healthy (the flags and the exit code are `crate::cli`'s).
 
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{TcpStream, ToSocketAddrs};
-use std::process::ExitCode;
 use std::time::{Duration, SystemTime};
 
-/// `mbgate status`'s flags.
-#[derive(Debug, clap::Args)]
-pub struct StatusArgs {
-    /// The gateway's metrics listener (its `metrics.listen`)
-    #[arg(long, value_name = "ADDR", default_value = "127.0.0.1:9502")]
-    pub(crate) metrics: String,
+/// Why the gateway could not be asked.
+#[derive(Debug, thiserror::Error)]
+pub enum Unreachable {
+    /// The address, the connection, or the exchange failed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    /// The address names no address.
+    #[error("no address")]
+    NoAddress,
+    /// What answered did not speak HTTP.
+    #[error("not an HTTP response")]
+    NotHttp,
+    /// It answered, but not with 200.
+    #[error("{0} (is it mbgate's metrics listener?)")]
+    Status(String),
 }
 
-const EXIT_UNHEALTHY: u8 = 1;
-const EXIT_UNREACHABLE: u8 = 3;
-
-/// `mbgate status`.
-pub fn main(args: StatusArgs) -> ExitCode {
-    let text = match scrape(&args.metrics) {
-        Ok(text) => text,
-        Err(e) => {
-            eprintln!("mbgate: cannot ask the gateway at {}: {e}", args.metrics);
-            eprint!("{}", turn_on(&args.metrics));
-            return ExitCode::from(EXIT_UNREACHABLE);
-        }
-    };
-    let samples = parse(&text);
-    let (report, healthy) = summary(&samples, SystemTime::now());
-    print!("{report}");
-    if healthy {
-        ExitCode::SUCCESS
-    } else {
-        ExitCode::from(EXIT_UNHEALTHY)
-    }
+/// How the gateway at `addr` (its metrics listener) is: the report, and whether it
+/// is healthy (every line open, every unit answering).
+pub fn ask(addr: &str) -> Result<(String, bool), Unreachable> {
+    let text = scrape(addr)?;
+    Ok(summary(&parse(&text), SystemTime::now()))
 }
 
 /// What to do when nothing answers at `addr`: the metrics listener is off unless the
 /// configuration gives it an address.
-fn turn_on(addr: &str) -> String {
+pub fn turn_on(addr: &str) -> String {
     format!(
         "mbgate: the gateway answers `mbgate status` on its metrics listener, which is off \
          unless its configuration names an address:\n\
@@ -53,27 +44,24 @@ fn turn_on(addr: &str) -> String {
 }
 
 /// GET /metrics from `addr`, within a few seconds.
-fn scrape(addr: &str) -> Result<String, String> {
+fn scrape(addr: &str) -> Result<String, Unreachable> {
     let within = Duration::from_secs(3);
     let to = addr
-        .to_socket_addrs()
-        .map_err(|e| e.to_string())?
+        .to_socket_addrs()?
         .next()
-        .ok_or("no address")?;
-    let mut s = TcpStream::connect_timeout(&to, within).map_err(|e| e.to_string())?;
-    s.set_read_timeout(Some(within))
-        .map_err(|e| e.to_string())?;
+        .ok_or(Unreachable::NoAddress)?;
+    let mut s = TcpStream::connect_timeout(&to, within)?;
+    s.set_read_timeout(Some(within))?;
     write!(
         s,
         "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
-    )
-    .map_err(|e| e.to_string())?;
+    )?;
     let mut all = String::new();
-    s.read_to_string(&mut all).map_err(|e| e.to_string())?;
-    let (head, body) = all.split_once("\r\n\r\n").ok_or("not an HTTP response")?;
+    s.read_to_string(&mut all)?;
+    let (head, body) = all.split_once("\r\n\r\n").ok_or(Unreachable::NotHttp)?;
     let status = head.lines().next().unwrap_or("");
     if !status.contains(" 200 ") {
-        return Err(format!("{status} (is it mbgate's metrics listener?)"));
+        return Err(Unreachable::Status(status.to_owned()));
     }
     Ok(body.to_owned())
 }

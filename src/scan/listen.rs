@@ -13,7 +13,7 @@ use tokio_util::sync::CancellationToken;
 
 /// What listening found.
 #[derive(Debug, Default)]
-pub(super) struct Heard {
+pub(crate) struct Heard {
     /// The bus's setting and what it carried, when one was heard.
     pub(super) at: Option<((u32, Format, Framing), Traffic)>,
     /// How long it listened at that setting.

@@ -12,55 +12,42 @@ mod tcp;
 
 use probe::{Framing, Heard, Units};
 use std::io::IsTerminal;
-use std::process::ExitCode;
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
 
 use crate::wire::uart::{Format, Parity};
 
-/// `mbgate scan`'s options.
-#[derive(Debug, clap::Args)]
-pub struct ScanArgs {
+/// `mbgate scan`'s options (its flags are `crate::cli`'s).
+#[derive(Debug, Clone)]
+pub struct ScanOptions {
     /// The serial port (or a virtual line's end) to scan.
-    #[arg(value_name = "PORT", required_unless_present = "tcp")]
     pub port: Option<String>,
     /// Scan a Modbus/TCP device or gateway at HOST:PORT instead: unit ids only.
-    #[arg(long, value_name = "HOST:PORT", conflicts_with = "port")]
     pub tcp: Option<String>,
     /// The baud rates to try, in order [default: 19200,9600,115200,38400,57600,4800,2400,1200]
-    #[arg(long, value_delimiter = ',', value_name = "BAUD,...")]
     pub baud: Vec<u32>,
     /// The formats to try, in order [default: 8E1,8N1,8N2,8O1]
-    #[arg(long, value_delimiter = ',', value_name = "FORMAT,...")]
     pub format: Vec<Format>,
     /// The framings to try, in order [default: rtu,ascii]
-    #[arg(long, value_delimiter = ',', value_name = "FRAMING,...")]
     pub framing: Vec<Framing>,
     /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
-    #[arg(long, default_value = "1-247", value_name = "IDS")]
     pub units: Units,
     /// How long a device may take to answer, beyond the request's and the reply's own
     /// time on the wire (a later reply still counts, in the next units' time).
-    #[arg(long, default_value_t = 50, value_name = "MS")]
     pub timeout_ms: u64,
     /// Leave a setting after this many units got no frame with a good CRC or LRC (a
     /// setting that got one is scanned to the last unit; so are 19200 and 9600 baud,
     /// 8E1 and 8N1, RTU and ASCII, the settings most buses use).
-    #[arg(long, default_value_t = 3, value_name = "N")]
     pub give_up: usize,
     /// Go on to the other settings after one is found (a bus has one setting, so by
     /// default the scan ends with the first that answers).
-    #[arg(long)]
     pub all: bool,
     /// Send nothing: listen to a live bus at each setting in turn and report the
     /// setting, units, function codes, request rate and reply times heard.
-    #[arg(long, conflicts_with = "tcp")]
     pub listen: bool,
     /// With --listen: how long to listen at each setting.
-    #[arg(long, default_value_t = 3.0, value_name = "SECONDS")]
     pub listen_secs: f64,
     /// Print the result as JSON instead of a table.
-    #[arg(long)]
     pub json: bool,
 }
 
@@ -148,76 +135,54 @@ pub struct Report {
     pub tries: usize,
 }
 
-/// Runs `mbgate scan`: exit code 0 something answered, 1 nothing did or the port could
-/// not be used, 2 bad options.
-pub fn main(args: ScanArgs) -> ExitCode {
-    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
-        Ok(rt) => rt,
-        Err(code) => return code,
-    };
-    let stop = CancellationToken::new();
-    let result = rt.block_on(async {
-        let cancel = stop.clone();
-        tokio::spawn(async move {
-            if tokio::signal::ctrl_c().await.is_ok() {
-                cancel.cancel();
-            }
-        });
-        let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
-        if args.listen {
-            return Err(Listened(listening(&args, stop, progress).await));
-        }
-        run(&args, stop, progress)
-            .await
-            .map_err(|e| Listened(Err(e)))
-    });
-    let result = match result {
-        Err(Listened(Ok(heard))) => {
-            let target = args.port.clone().unwrap_or_default();
-            if args.json {
-                println!("{}", listen::json(&heard, &target));
-            } else {
-                print!("{}", listen::table(&heard, &target));
-            }
-            return if heard.at.is_some() {
-                ExitCode::SUCCESS
-            } else {
-                ExitCode::FAILURE
-            };
-        }
-        Err(Listened(Err(e))) => Err(e),
-        Ok(r) => Ok(r),
-    };
-    let report = match result {
-        Ok(r) => r,
-        Err(ScanError::Option(e)) => {
-            eprintln!("mbgate: {e}");
-            return ExitCode::from(2);
-        }
-        Err(e) => {
-            eprintln!("mbgate: {e}");
-            return ExitCode::FAILURE;
-        }
-    };
-    let target = args.tcp.clone().or(args.port.clone()).unwrap_or_default();
-    if args.json {
-        println!("{}", json(&report, &target, args.tcp.is_some()));
-    } else {
-        print!("{}", table(&report, &target, args.tcp.is_some(), &args));
+/// What a scan found: with `--listen`, what was heard; else the report.
+pub(crate) enum Scanned {
+    Heard(listen::Heard),
+    Report(Report),
+}
+
+/// `mbgate scan`, until done or `stop` (Ctrl-C: what was found so far).
+pub(crate) async fn scan(
+    args: &ScanOptions,
+    stop: CancellationToken,
+) -> Result<Scanned, ScanError> {
+    let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
+    if args.listen {
+        return listening(args, stop, progress).await.map(Scanned::Heard);
     }
-    if report.found.is_empty() {
-        ExitCode::FAILURE
-    } else {
-        ExitCode::SUCCESS
+    run(args, stop, progress).await.map(Scanned::Report)
+}
+
+impl Scanned {
+    /// What is printed (a table, or JSON with `--json`), and whether anything answered.
+    pub(crate) fn said(&self, args: &ScanOptions) -> (String, bool) {
+        match self {
+            Scanned::Heard(heard) => {
+                let target = args.port.clone().unwrap_or_default();
+                let text = if args.json {
+                    format!("{}\n", listen::json(heard, &target))
+                } else {
+                    listen::table(heard, &target)
+                };
+                (text, heard.at.is_some())
+            }
+            Scanned::Report(report) => {
+                let target = args.tcp.clone().or(args.port.clone()).unwrap_or_default();
+                let tcp = args.tcp.is_some();
+                let text = if args.json {
+                    format!("{}\n", json(report, &target, tcp))
+                } else {
+                    table(report, &target, tcp, args)
+                };
+                (text, !report.found.is_empty())
+            }
+        }
     }
 }
 
-/// `--listen`'s result, or any error, carried out of the runtime beside a scan's.
-struct Listened(Result<listen::Heard, ScanError>);
-
 /// The settings `--listen` tries: each baud rate and format once (the wide ones
 /// first), every framing judged on what came.
-fn settings_of(args: &ScanArgs) -> Result<(Vec<probe::Setting>, Vec<SerialSetting>), ScanError> {
+fn settings_of(args: &ScanOptions) -> Result<(Vec<probe::Setting>, Vec<SerialSetting>), ScanError> {
     let bauds = if args.baud.is_empty() {
         probe::DEFAULT_BAUDS.to_vec()
     } else {
@@ -251,7 +216,7 @@ fn settings_of(args: &ScanArgs) -> Result<(Vec<probe::Setting>, Vec<SerialSettin
 }
 
 async fn listening(
-    args: &ScanArgs,
+    args: &ScanOptions,
     stop: CancellationToken,
     mut progress: Progress,
 ) -> Result<listen::Heard, ScanError> {
@@ -290,7 +255,7 @@ async fn listening(
 
 /// The scan itself, until done or `stop`.
 pub async fn run(
-    args: &ScanArgs,
+    args: &ScanOptions,
     stop: CancellationToken,
     mut progress: Progress,
 ) -> Result<Report, ScanError> {
@@ -404,7 +369,7 @@ fn identity(f: &Found) -> String {
 }
 
 /// The report as a table and a `[[line]]` block; or "nothing found" and a hint.
-pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> String {
+pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanOptions) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let took = format!(

@@ -355,17 +355,22 @@ impl AtSetting {
     }
 }
 
+/// A part of a unit list that is not a unit id or a range.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0:?}: a unit id is 1 to 247, a range A-B")]
+pub struct BadUnits(String);
+
 /// A list of unit ids: `1-247`, `1,2,10-20`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct Units(pub Vec<u8>);
 
 impl std::str::FromStr for Units {
-    type Err = String;
+    type Err = BadUnits;
 
-    fn from_str(s: &str) -> Result<Units, String> {
+    fn from_str(s: &str) -> Result<Units, BadUnits> {
         let mut out = Vec::new();
         for part in s.split(',') {
-            let bad = || format!("{part:?}: a unit id is 1 to 247, a range A-B");
+            let bad = || BadUnits(part.to_owned());
             let id = |x: &str| match x.trim().parse::<u8>() {
                 Ok(n @ 1..=247) => Ok(n),
                 _ => Err(bad()),

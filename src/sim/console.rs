@@ -4,6 +4,25 @@
 
 use std::fmt;
 
+/// A console line that is not a command; the message says what is wrong.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub(crate) enum BadCommand {
+    #[error("unknown table `{0}`: coils, discrete, holding or input")]
+    Table(String),
+    #[error("not a number: `{0}`")]
+    NotANumber(String),
+    #[error("{what} out of range: {given}")]
+    OutOfRange { what: String, given: String },
+    #[error("port out of range: {0} (0..7)")]
+    Port(u8),
+    #[error("expected on or off, not `{0}`")]
+    OnOff(String),
+    #[error("usage: {0}")]
+    Usage(&'static str),
+    #[error("unknown command `{0}`; `help` lists them")]
+    Unknown(String),
+}
+
 /// A table of the generic profile's devices.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Table {
@@ -14,17 +33,13 @@ pub(crate) enum Table {
 }
 
 impl Table {
-    fn parse(s: &str) -> Result<Self, String> {
+    fn parse(s: &str) -> Result<Self, BadCommand> {
         Ok(match s {
             "coil" | "coils" | "co" => Table::Coils,
             "discrete" | "di" => Table::Discrete,
             "holding" | "hr" => Table::Holding,
             "input" | "ir" => Table::Input,
-            _ => {
-                return Err(format!(
-                    "unknown table `{s}`: coils, discrete, holding or input"
-                ))
-            }
+            _ => return Err(BadCommand::Table(s.to_owned())),
         })
     }
 }
@@ -81,31 +96,34 @@ commands:
   slave COMMAND                 mbgate demo --master: a command for the slave, e.g.
                                 `slave input 3 on`";
 
-fn bounded<T: TryFrom<i64>>(s: &str, what: &str) -> Result<T, String> {
-    let n = crate::number::parse(s).ok_or_else(|| format!("not a number: `{s}`"))?;
-    T::try_from(n).map_err(|_| format!("{what} out of range: {s}"))
+fn bounded<T: TryFrom<i64>>(s: &str, what: &str) -> Result<T, BadCommand> {
+    let n = crate::number::parse(s).ok_or_else(|| BadCommand::NotANumber(s.to_owned()))?;
+    T::try_from(n).map_err(|_| BadCommand::OutOfRange {
+        what: what.to_owned(),
+        given: s.to_owned(),
+    })
 }
 
-fn on_off(s: &str) -> Result<bool, String> {
+fn on_off(s: &str) -> Result<bool, BadCommand> {
     match s {
         "on" | "1" | "true" => Ok(true),
         "off" | "0" | "false" => Ok(false),
-        _ => Err(format!("expected on or off, not `{s}`")),
+        _ => Err(BadCommand::OnOff(s.to_owned())),
     }
 }
 
 impl Command {
     /// One console line; `Ok(None)` for an empty line.
-    pub(crate) fn parse(line: &str) -> Result<Option<Command>, String> {
+    pub(crate) fn parse(line: &str) -> Result<Option<Command>, BadCommand> {
         let words: Vec<&str> = line.split_whitespace().collect();
         let Some((&first, args)) = words.split_first() else {
             return Ok(None);
         };
-        let want = |n: std::ops::RangeInclusive<usize>, usage: &str| {
+        let want = |n: std::ops::RangeInclusive<usize>, usage: &'static str| {
             if n.contains(&args.len()) {
                 Ok(())
             } else {
-                Err(format!("usage: {usage}"))
+                Err(BadCommand::Usage(usage))
             }
         };
         let cmd = match first.to_ascii_lowercase().as_str() {
@@ -129,7 +147,7 @@ impl Command {
                 want(2..=2, "input PORT on|off")?;
                 let port: u8 = bounded(args[0], "port")?;
                 if port > 7 {
-                    return Err(format!("port out of range: {port} (0..7)"));
+                    return Err(BadCommand::Port(port));
                 }
                 Command::Input {
                     port,
@@ -164,12 +182,13 @@ impl Command {
             "slave" => {
                 let rest = line.trim_start()[first.len()..].trim();
                 match Command::parse(rest)? {
-                    Some(Command::Slave(_)) => return Err("usage: slave COMMAND".into()),
+                    Some(Command::Slave(_)) | None => {
+                        return Err(BadCommand::Usage("slave COMMAND"))
+                    }
                     Some(inner) => Command::Slave(Box::new(inner)),
-                    None => return Err("usage: slave COMMAND".into()),
                 }
             }
-            other => return Err(format!("unknown command `{other}`; `help` lists them")),
+            other => return Err(BadCommand::Unknown(other.to_owned())),
         };
         Ok(Some(cmd))
     }
@@ -242,7 +261,7 @@ mod tests {
 
     #[test]
     fn errors_say_what_is_wrong() {
-        let e = |s| Command::parse(s).unwrap_err();
+        let e = |s| Command::parse(s).unwrap_err().to_string();
         assert_eq!(e("add"), "usage: add UNIT [COILS [REGISTERS]]");
         assert_eq!(e("add 300"), "unit out of range: 300");
         assert_eq!(e("input 8 on"), "port out of range: 8 (0..7)");
@@ -269,11 +288,9 @@ mod tests {
                 on: true
             }))))
         );
-        assert_eq!(p("slave"), Err("usage: slave COMMAND".into()));
-        assert_eq!(p("slave slave list"), Err("usage: slave COMMAND".into()));
-        assert_eq!(
-            p("slave input 9 on"),
-            Err("port out of range: 9 (0..7)".into())
-        );
+        let e = |s| p(s).unwrap_err().to_string();
+        assert_eq!(e("slave"), "usage: slave COMMAND");
+        assert_eq!(e("slave slave list"), "usage: slave COMMAND");
+        assert_eq!(e("slave input 9 on"), "port out of range: 9 (0..7)");
     }
 }

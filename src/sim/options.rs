@@ -1,12 +1,11 @@
-//! The simulator's command line (`mbgate sim`, shared with `mbgate demo`) and
-//! its validation into [`Settings`].
+//! The simulated device's flags (shared by `mbgate sim` and `mbgate demo`) and their
+//! validation into [`Settings`]; `mbgate sim`'s own flags are `crate::cli`'s.
 
 use super::cie_m10::CieM10;
 use super::line::{ChunkMode, Chunker, Faults};
+use super::replay::args::ReplayArgs;
 use super::{generic, Device, Profile};
-use crate::cli_overrides::{choice, PortFlags};
-use crate::config::{Framing, SerialConfig};
-use std::path::PathBuf;
+use crate::config::Framing;
 use std::time::Duration;
 
 /// The device `mbgate sim --profile` simulates.
@@ -178,49 +177,6 @@ pub struct DeviceArgs {
     pub headless: bool,
 }
 
-/// `mbgate sim`: the device options and the serial port.
-#[derive(Debug, Clone, clap::Args)]
-pub struct SimArgs {
-    /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH", required_unless_present_any = ["listen", "summary"])]
-    pub(crate) serial: Option<PathBuf>,
-    /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
-    /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
-    /// device server in raw TCP mode (--framing rtu or ascii).
-    #[arg(long, value_name = "ADDR", conflicts_with = "serial")]
-    pub listen: Option<std::net::SocketAddr>,
-    /// With --listen: how many connections are served at once. 1 (the default): a
-    /// second is closed at once, as a device server or a single-connection PLC does;
-    /// more: a Modbus/TCP slave that several masters reach at once (--framing mbap).
-    #[arg(
-        long,
-        value_name = "N",
-        default_value_t = 1,
-        requires = "listen",
-        value_parser = clap::value_parser!(u16).range(1..=256)
-    )]
-    pub connections: u16,
-    // Before the port's flags: their heading would carry over onto these.
-    /// The device simulated.
-    #[command(flatten)]
-    pub device: DeviceArgs,
-    /// A recorded device instead (src/sim/replay/args.rs).
-    #[command(flatten)]
-    pub replay: super::replay::args::ReplayArgs,
-    /// The role it plays and where (src/sim/role.rs).
-    #[command(flatten)]
-    pub role: super::role::RoleArgs,
-    /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
-    /// output as a UART would (10 bits a byte), and without it the simulator answers
-    /// at once; on a real port the UART does.
-    #[command(flatten, next_help_heading = "serial port")]
-    pub(crate) port: PortFlags,
-    /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
-    /// (generic profile and --replay only) [default: mbap; with --replay, as recorded].
-    #[arg(long, value_parser = choice::<Framing>(), help_heading = "serial port")]
-    pub framing: Option<Framing>,
-}
-
 /// Simulator or demo flags that cannot be used: a value out of range, or flags that
 /// do not go together. The message names the flag; `mbgate` exits 2 on it.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -239,47 +195,44 @@ impl From<&str> for BadFlags {
     }
 }
 
-impl SimArgs {
-    /// The device and line settings, with this port's framing and, when given, its
-    /// speed as the pace.
-    pub fn settings(&self) -> Result<Settings, BadFlags> {
-        let replaying = !self.replay.replay.is_empty();
-        let framing = self.framing.unwrap_or(Framing::Mbap);
-        if framing != Framing::Mbap && self.device.profile == ProfileName::CieM10 && !replaying {
-            return Err(
-                "--framing rtu and ascii need --profile generic (the CIE-M10's serial \
-                 Modbus/TCP mode carries MBAP frames)"
-                    .into(),
-            );
-        }
-        let port = self.serial_config()?;
-        let mut s = self.device.settings()?;
-        s.framing = framing;
-        if replaying {
-            let r = super::replay::load(&self.replay.replay, self.replay.choices(), s.seed)
-                .map_err(|e| e.to_string())?;
-            s.framing = self.framing.or(r.framing()).unwrap_or(Framing::Mbap);
-            s.device = Device::new(Profile::Replay(Box::new(r)), s.seed);
-        }
-        s.baud = self.port.given("baud").then_some(port.baud_rate);
-        Ok(s)
-    }
-
-    /// The port settings: the defaults of `[serial]` and the flags given.
-    pub fn serial_config(&self) -> Result<SerialConfig, BadFlags> {
-        let mut cfg = SerialConfig {
-            path: self
-                .serial
-                .as_deref()
-                .map_or_else(String::new, |p| p.to_string_lossy().into_owned()),
-            framing: self.framing.unwrap_or(Framing::Mbap),
-            ..SerialConfig::default()
-        };
-        self.port
-            .apply_serial(&mut cfg)
+/// `mbgate sim`'s settings: the device's (`device`), carrying frames as `framing`
+/// asks (MBAP unless told), or a recorded device (`replay`), and paced at `pace` bits
+/// a second when given. `framing` fits the profile: see [`framing_fits`].
+pub fn settings(
+    device: &DeviceArgs,
+    replay: &ReplayArgs,
+    framing: Option<Framing>,
+    pace: Option<u32>,
+) -> Result<Settings, BadFlags> {
+    let mut s = device.settings()?;
+    s.framing = framing.unwrap_or(Framing::Mbap);
+    if !replay.replay.is_empty() {
+        let r = super::replay::load(&replay.replay, replay.choices(), s.seed)
             .map_err(|e| e.to_string())?;
-        Ok(cfg)
+        s.framing = framing.or(r.framing()).unwrap_or(Framing::Mbap);
+        s.device = Device::new(Profile::Replay(Box::new(r)), s.seed);
     }
+    s.baud = pace;
+    Ok(s)
+}
+
+/// Whether frames may be carried as `framing` for this device: RTU and ASCII need
+/// the generic profile or a recorded device.
+pub fn framing_fits(
+    device: &DeviceArgs,
+    replay: &ReplayArgs,
+    framing: Option<Framing>,
+) -> Result<(), BadFlags> {
+    let framing = framing.unwrap_or(Framing::Mbap);
+    if framing != Framing::Mbap && device.profile == ProfileName::CieM10 && replay.replay.is_empty()
+    {
+        return Err(
+            "--framing rtu and ascii need --profile generic (the CIE-M10's serial \
+             Modbus/TCP mode carries MBAP frames)"
+                .into(),
+        );
+    }
+    Ok(())
 }
 
 /// Validated simulator settings.
@@ -309,22 +262,22 @@ impl Settings {
 }
 
 /// Options that belong to the other profile are refused rather than ignored.
-fn only_for(profile: &str, set: &[(&str, bool)]) -> Result<(), String> {
+fn only_for(profile: &str, set: &[(&str, bool)]) -> Result<(), BadFlags> {
     match set.iter().find(|(_, given)| *given) {
-        Some((flag, _)) => Err(format!("{flag} applies to the {profile} profile only")),
+        Some((flag, _)) => Err(format!("{flag} applies to the {profile} profile only").into()),
         None => Ok(()),
     }
 }
 
 impl DeviceArgs {
-    pub(crate) fn settings(&self) -> Result<Settings, String> {
+    pub(crate) fn settings(&self) -> Result<Settings, BadFlags> {
         for (flag, p) in [
             ("--drop", self.drop),
             ("--noise", self.noise),
             ("--corrupt", self.corrupt),
         ] {
             if !(0.0..=1.0).contains(&p) {
-                return Err(format!("{flag} is a probability, 0 to 1; not {p}"));
+                return Err(format!("{flag} is a probability, 0 to 1; not {p}").into());
             }
         }
         if self.frame_gap_ms == 0 {
@@ -353,7 +306,8 @@ impl DeviceArgs {
                     return Err(format!(
                         "--input-address and --output-address are both {}",
                         self.input_address
-                    ));
+                    )
+                    .into());
                 }
                 Device::new(
                     Profile::CieM10(CieM10 {
@@ -378,7 +332,7 @@ impl DeviceArgs {
                     ],
                 )?;
                 if let Some(u) = self.units.iter().find(|u| !(1..=247).contains(*u)) {
-                    return Err(format!("--units: unit ids are 1..247, not {u}"));
+                    return Err(format!("--units: unit ids are 1..247, not {u}").into());
                 }
                 for (flag, n) in [("--coils", self.coils), ("--registers", self.registers)] {
                     if !(generic::MIN_SIZE..=generic::MAX_SIZE).contains(&n) {
@@ -386,7 +340,8 @@ impl DeviceArgs {
                             "{flag} must be {}..{}, not {n}",
                             generic::MIN_SIZE,
                             generic::MAX_SIZE
-                        ));
+                        )
+                        .into());
                     }
                 }
                 let mut d = Device::generic(
@@ -440,7 +395,6 @@ impl DeviceArgs {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::Parity;
     use clap::Parser;
 
     #[derive(Parser)]
@@ -449,9 +403,9 @@ mod tests {
         d: DeviceArgs,
     }
 
-    fn settings(args: &[&str]) -> Result<Settings, String> {
+    fn settings(args: &[&str]) -> Result<Settings, BadFlags> {
         T::try_parse_from(std::iter::once("t").chain(args.iter().copied()))
-            .map_err(|e| e.to_string())?
+            .map_err(|e| BadFlags::from(e.to_string()))?
             .d
             .settings()
     }
@@ -459,23 +413,29 @@ mod tests {
     #[test]
     fn refuses_what_does_not_apply() {
         assert_eq!(
-            settings(&["--units", "1,2"]).unwrap_err(),
+            settings(&["--units", "1,2"]).unwrap_err().to_string(),
             "--units applies to the generic profile only"
         );
         assert_eq!(
-            settings(&["--profile", "generic", "--loopback"]).unwrap_err(),
+            settings(&["--profile", "generic", "--loopback"])
+                .unwrap_err()
+                .to_string(),
             "--loopback applies to the cie-m10 profile only"
         );
         assert_eq!(
-            settings(&["--drop", "1.5"]).unwrap_err(),
+            settings(&["--drop", "1.5"]).unwrap_err().to_string(),
             "--drop is a probability, 0 to 1; not 1.5"
         );
         assert_eq!(
-            settings(&["--profile", "generic", "--coils", "9"]).unwrap_err(),
+            settings(&["--profile", "generic", "--coils", "9"])
+                .unwrap_err()
+                .to_string(),
             "--coils must be 10..65536, not 9"
         );
         assert_eq!(
-            settings(&["--output-address", "0"]).unwrap_err(),
+            settings(&["--output-address", "0"])
+                .unwrap_err()
+                .to_string(),
             "--input-address and --output-address are both 0"
         );
         assert!(settings(&[
@@ -487,40 +447,6 @@ mod tests {
             "100"
         ])
         .is_ok());
-    }
-
-    /// The port takes `mbgate run`'s flags, ranges and defaults; `--baud` also paces.
-    #[test]
-    fn the_port_takes_run_s_flags() {
-        #[derive(Parser)]
-        struct S {
-            #[command(flatten)]
-            s: SimArgs,
-        }
-        let sim = |args: &[&str]| {
-            let line = ["t", "--serial", "/dev/ttyS9", "--profile", "generic"];
-            S::try_parse_from(line.iter().chain(args)).unwrap().s
-        };
-        let s = sim(&["--baud", "9600", "--parity", "even", "--framing", "rtu"]);
-        let port = s.serial_config().unwrap();
-        assert_eq!((port.path.as_str(), port.baud_rate), ("/dev/ttyS9", 9600));
-        assert_eq!((port.parity, port.framing), (Parity::Even, Framing::Rtu));
-        assert_eq!(s.settings().unwrap().baud, Some(9600));
-        let s = sim(&[]);
-        assert_eq!(
-            s.serial_config().unwrap(),
-            SerialConfig {
-                path: "/dev/ttyS9".into(),
-                ..SerialConfig::default()
-            }
-        );
-        assert_eq!(
-            s.settings().unwrap().baud,
-            None,
-            "no --baud given: on a pty nothing paces it (serve.rs)"
-        );
-        let bad = sim(&["--data-bits", "9"]).settings().unwrap_err();
-        assert_eq!(bad.to_string(), "--data-bits: must be 7 or 8, got 9");
     }
 
     #[test]

@@ -1,30 +1,28 @@
-//! `mbgate sim`'s role flags: the CIE-M10 as the master of docs/protocol.md §3
-//! (`--role master --poll-ms`); a slave (the default) answers requests.
+//! The simulated device's role: the CIE-M10 as the master of docs/protocol.md §3
+//! (`--role master --poll-ms`), or a slave (the default) that answers requests; the
+//! master's timing, checked (the flags are `crate::cli`'s).
 
+use super::options::BadFlags;
 use std::time::Duration;
 
 /// Which side of the conversation the simulated device is.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) enum Side {
     /// It answers requests (the default).
     Slave,
-    /// It sends the CIE-M10 master's queries every --poll-ms (cie-m10 profile).
+    /// It sends the CIE-M10 master's queries every period (cie-m10 profile).
     Master,
 }
 
-#[derive(Debug, Clone, clap::Args)]
-pub struct RoleArgs {
-    /// slave answers requests; master sends, every --poll-ms, FC 03 for the slave's
-    /// input port register and FC 16 with its own inputs to the slave's output port
-    /// register (the --input-address and --output-address), and sets its outputs from
-    /// what it read.
-    #[arg(long, value_enum, default_value_t = Side::Slave, help_heading = "role")]
-    pub(crate) role: Side,
-    /// master: the communication period, in ms.
-    #[arg(long, default_value_t = 1000, value_name = "MS", help_heading = "role")]
+/// The role as asked: the side, and the master's period and reply timeout in ms.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Role {
+    /// Which side.
+    pub(crate) side: Side,
+    /// The master's communication period, in ms (1000 unless asked).
     pub(crate) poll_ms: u64,
-    /// master: how long it waits for each reply, in ms [default: the period, at most 1000].
-    #[arg(long, value_name = "MS", help_heading = "role")]
+    /// How long the master waits for each reply, in ms [default: the period, at most
+    /// 1000].
     pub(crate) timeout_ms: Option<u64>,
 }
 
@@ -35,15 +33,11 @@ pub struct Polling {
     pub(crate) timeout: Duration,
 }
 
-impl RoleArgs {
-    /// The master's timing, or why the flags do not fit together (`listen`: the
-    /// device is on the network, `--listen`).
-    pub fn polling(
-        &self,
-        cie_m10: bool,
-        listen: bool,
-    ) -> Result<Option<Polling>, super::options::BadFlags> {
-        if self.role == Side::Slave {
+impl Role {
+    /// The master's timing, or why the flags do not fit together (`cie_m10`: the
+    /// profile is the CIE-M10's; `listen`: the device is on the network, `--listen`).
+    pub(crate) fn polling(&self, cie_m10: bool, listen: bool) -> Result<Option<Polling>, BadFlags> {
+        if self.side == Side::Slave {
             if self.timeout_ms.is_some() || self.poll_ms != 1000 {
                 return Err("--poll-ms and --timeout-ms apply to --role master".into());
             }

@@ -9,7 +9,6 @@ pub mod uart;
 use crate::port::serial::PreciseTimer;
 use pty::End;
 use std::path::PathBuf;
-use std::process::ExitCode;
 use std::time::Duration;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
@@ -25,10 +24,21 @@ pub struct EndSpec {
     pub format: Option<Format>,
 }
 
-impl std::str::FromStr for EndSpec {
-    type Err = String;
+/// An end's spec that is not `[BAUD,]FORMAT` or `auto`.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum BadSpec {
+    /// The baud rate.
+    #[error("{0:?}: a baud rate is a number above 0")]
+    Baud(String),
+    /// The format.
+    #[error(transparent)]
+    Format(#[from] uart::BadFormat),
+}
 
-    fn from_str(s: &str) -> Result<EndSpec, String> {
+impl std::str::FromStr for EndSpec {
+    type Err = BadSpec;
+
+    fn from_str(s: &str) -> Result<EndSpec, BadSpec> {
         let (baud, format) = match s.split_once(',') {
             Some((b, f)) => (Some(b), f),
             None if s.bytes().all(|c| c.is_ascii_digit()) => (Some(s), ""),
@@ -37,7 +47,7 @@ impl std::str::FromStr for EndSpec {
         let baud = baud
             .map(|b| match b.parse::<u32>() {
                 Ok(n) if n > 0 => Ok(n),
-                _ => Err(format!("{b:?}: a baud rate is a number above 0")),
+                _ => Err(BadSpec::Baud(b.to_owned())),
             })
             .transpose()?;
         let format = match format {
@@ -49,42 +59,20 @@ impl std::str::FromStr for EndSpec {
     }
 }
 
-/// `mbgate wire`'s options.
-#[derive(Debug, clap::Args)]
-pub struct WireArgs {
-    /// End A: the path to make (a symbolic link to its pty, removed at exit).
-    #[arg(value_name = "A")]
-    pub a_path: PathBuf,
-    /// End B: likewise.
-    #[arg(value_name = "B")]
-    pub b_path: PathBuf,
-    /// Both ends' format, FORMAT or BAUD,FORMAT: 8N1, 8E1, 8O1, 8N2, 7E1...; or
-    /// `auto`: the parity and stop bits the program set, where a pty still shows them
-    /// (PARODD: odd; INPCK without it: even, as serialport and so mbgate set it;
-    /// pyserial's even parity reads as none). A baud rate given here is used whatever
-    /// the program sets; otherwise each end's speed is the one its program set.
-    #[arg(long, value_name = "[BAUD,]FORMAT", default_value = "8N1")]
-    pub format: EndSpec,
-    /// End A's format, as --format (which it overrides).
-    #[arg(long = "a", value_name = "[BAUD,]FORMAT")]
-    pub a_spec: Option<EndSpec>,
-    /// End B's format, as --format (which it overrides).
-    #[arg(long = "b", value_name = "[BAUD,]FORMAT")]
-    pub b_spec: Option<EndSpec>,
-    /// The share of characters lost on the wire, 0 to 1 (the receiver hears an idle
-    /// line for them).
-    #[arg(long, default_value_t = 0.0, value_name = "P")]
+/// `mbgate wire`'s options (its flags are `crate::cli`'s).
+#[derive(Debug, Clone)]
+pub struct WireOptions {
+    /// The paths to make for the ends (symbolic links to their ptys, removed at exit).
+    pub paths: [PathBuf; 2],
+    /// Each end's format.
+    pub specs: [EndSpec; 2],
+    /// The share of characters lost on the wire, 0 to 1.
     pub loss: f64,
-    /// The share of characters with one bit flipped on the wire, 0 to 1 (any bit:
-    /// a data bit, the parity bit, the start or a stop bit).
-    #[arg(long, default_value_t = 0.0, value_name = "P")]
+    /// The share of characters with one bit flipped on the wire, 0 to 1.
     pub noise: f64,
-    /// RS-232 echo: each end hears what it sends too (as it left, before loss and
-    /// noise), as a 2-wire RS-485 transceiver or a loopback adapter does.
-    #[arg(long)]
+    /// RS-232 echo: each end hears what it sends too.
     pub echo: bool,
-    /// The seed of loss and noise: the same seed, the same faults for the same bytes.
-    #[arg(long, default_value_t = 1)]
+    /// The seed of loss and noise.
     pub seed: u64,
 }
 
@@ -107,44 +95,6 @@ pub enum WireError {
     Io(#[from] std::io::Error),
 }
 
-/// `mbgate wire`: exit code 0 when stopped by a signal, 1 when it failed, 2 bad options.
-pub fn main(args: WireArgs) -> ExitCode {
-    let rt = match crate::runtime::for_command(ExitCode::FAILURE) {
-        Ok(rt) => rt,
-        Err(code) => return code,
-    };
-    let shutdown = CancellationToken::new();
-    let r = rt.block_on(async {
-        let stop = shutdown.clone();
-        tokio::spawn(async move {
-            use tokio::signal::unix::{signal, SignalKind};
-            let (Ok(mut term), Ok(mut int)) = (
-                signal(SignalKind::terminate()),
-                signal(SignalKind::interrupt()),
-            ) else {
-                return;
-            };
-            tokio::select! {
-                _ = term.recv() => {}
-                _ = int.recv() => {}
-            }
-            stop.cancel();
-        });
-        run(&args, shutdown).await
-    });
-    match r {
-        Ok(()) => ExitCode::SUCCESS,
-        Err(WireError::Option(e)) => {
-            eprintln!("mbgate: {e}");
-            ExitCode::from(2)
-        }
-        Err(e) => {
-            eprintln!("mbgate: {e}");
-            ExitCode::FAILURE
-        }
-    }
-}
-
 /// Counts of one direction, said at the end.
 #[derive(Debug, Default, Clone, Copy)]
 struct Counts {
@@ -156,7 +106,7 @@ struct Counts {
 }
 
 /// Runs the line until `shutdown`.
-pub async fn run(args: &WireArgs, shutdown: CancellationToken) -> Result<(), WireError> {
+pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), WireError> {
     for (name, p) in [("--loss", args.loss), ("--noise", args.noise)] {
         if !(0.0..=1.0).contains(&p) {
             return Err(WireError::Option(format!(
@@ -164,11 +114,8 @@ pub async fn run(args: &WireArgs, shutdown: CancellationToken) -> Result<(), Wir
             )));
         }
     }
-    let specs = [
-        args.a_spec.unwrap_or(args.format),
-        args.b_spec.unwrap_or(args.format),
-    ];
-    let paths = [&args.a_path, &args.b_path];
+    let specs = [args.specs[0], args.specs[1]];
+    let paths = [&args.paths[0], &args.paths[1]];
     let mut ends = Vec::new();
     for p in paths {
         ends.push(End::open(p).map_err(|source| WireError::Make {

@@ -49,12 +49,17 @@ impl Format {
     }
 }
 
+/// A character format that is not one.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0:?}: expected a format like 8N1, 8E1, 8O1 or 8N2")]
+pub struct BadFormat(String);
+
 impl std::str::FromStr for Format {
-    type Err = String;
+    type Err = BadFormat;
 
     /// `8N1`, `8E1`, `7O2`...: data bits 5 to 8, parity N, E or O, stop bits 1 or 2.
-    fn from_str(s: &str) -> Result<Format, String> {
-        let bad = || format!("{s:?}: expected a format like 8N1, 8E1, 8O1 or 8N2");
+    fn from_str(s: &str) -> Result<Format, BadFormat> {
+        let bad = || BadFormat(s.to_owned());
         let b = s.as_bytes();
         if b.len() != 3 {
             return Err(bad());

@@ -56,7 +56,7 @@ impl ReplayArgs {
 
 #[cfg(test)]
 mod tests {
-    use crate::sim::options::SimArgs;
+    use crate::cli::sim::SimArgs;
     use clap::Parser;
 
     #[derive(Parser)]

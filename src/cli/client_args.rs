@@ -1,15 +1,38 @@
-//! The master's command line: where requests go and what they ask, as the
-//! request PDUs of docs/protocol.md §1.
+//! `mbgate read` and `mbgate write`'s flags: where requests go and what they ask, as
+//! the request PDUs of docs/protocol.md §1, and the session's options.
 
-use super::transport::Transport;
 use crate::cli_overrides::{choice, PortFlags, PORT_GROUP};
+use crate::client::{Session, Transport};
 use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
+
+/// A value or a flag combination `read` and `write` refuse; the message names it.
+#[derive(Debug, thiserror::Error)]
+pub(crate) enum BadValue {
+    /// `--poll`.
+    #[error("'{0}' is not a poll interval: give milliseconds, at least 1 (e.g. --poll 1000 for once a second)")]
+    Poll(String),
+    /// An address or count.
+    #[error("expected 0..=65535, decimal or 0x hex, got '{0}'")]
+    Number(String),
+    /// A register value.
+    #[error("register value '{0}': expected 0..=65535 (decimal or 0x hex) or -32768..=-1")]
+    Register(String),
+    /// A coil value.
+    #[error("coil value '{0}': expected 1, 0, on, off, true or false")]
+    Coil(String),
+    /// `--read` with coils.
+    #[error("--read (FC 17) works with registers only")]
+    ReadCoils,
+    /// The serial port's flags.
+    #[error("{0}")]
+    Port(#[from] crate::config::ConfigError),
+}
 
 /// Where requests go, and how they are sent (shared by `read` and `write`).
 #[derive(Debug, Clone, clap::Args)]
 #[command(mut_group(PORT_GROUP, |g| g.requires("serial")))]
-pub struct CommonArgs {
+pub(crate) struct CommonArgs {
     /// Gateway or Modbus/TCP device, HOST[:PORT] (port 502 if left out)
     /// [default: 127.0.0.1:502]
     #[arg(long, value_name = "HOST:PORT", conflicts_with = "serial")]
@@ -50,7 +73,7 @@ pub struct CommonArgs {
 
 /// The tables a master reads (docs/protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum ReadTable {
+pub(crate) enum ReadTable {
     /// FC 01 read coils (also: coil)
     #[value(alias = "coil")]
     Coils,
@@ -67,7 +90,7 @@ pub enum ReadTable {
 
 /// `mbgate read`: FC 01, 02, 03 or 04.
 #[derive(Debug, Clone, clap::Args)]
-pub struct ReadArgs {
+pub(crate) struct ReadArgs {
     #[command(flatten)]
     pub(crate) common: CommonArgs,
     /// What to read
@@ -84,7 +107,7 @@ pub struct ReadArgs {
 
 /// The tables a master writes (docs/protocol.md §1).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum WriteTable {
+pub(crate) enum WriteTable {
     /// FC 05 for one value, FC 0F for several (also: coil)
     #[value(alias = "coil")]
     Coils,
@@ -102,7 +125,7 @@ pub enum WriteTable {
 
 /// `mbgate write`: FC 05, 06, 0F, 10 or 17.
 #[derive(Debug, Clone, clap::Args)]
-pub struct WriteArgs {
+pub(crate) struct WriteArgs {
     #[command(flatten)]
     pub(crate) common: CommonArgs,
     /// What to write
@@ -127,41 +150,35 @@ pub struct WriteArgs {
 
 /// A poll interval: at least 1 ms; a line answers in milliseconds, so 100..=1000 is
 /// what polling usually wants.
-fn parse_poll(s: &str) -> Result<u64, String> {
+fn parse_poll(s: &str) -> Result<u64, BadValue> {
     match s.parse::<u64>() {
         Ok(ms) if ms >= 1 => Ok(ms),
-        _ => Err(format!(
-            "'{s}' is not a poll interval: give milliseconds, at least 1 (e.g. --poll 1000 for once a second)"
-        )),
+        _ => Err(BadValue::Poll(s.to_owned())),
     }
 }
 
 /// `123` or `0x7B`.
-fn parse_u16(s: &str) -> Result<u16, String> {
+fn parse_u16(s: &str) -> Result<u16, BadValue> {
     match crate::number::parse(s) {
         Some(v) if (0..=0xFFFF).contains(&v) => Ok(v as u16),
-        _ => Err(format!("expected 0..=65535, decimal or 0x hex, got '{s}'")),
+        _ => Err(BadValue::Number(s.to_owned())),
     }
 }
 
 /// A register value: 0..=65535, or -32768..=-1 as its two's complement.
-fn parse_register(s: &str) -> Result<u16, String> {
+fn parse_register(s: &str) -> Result<u16, BadValue> {
     match crate::number::parse(s) {
         Some(v) if (0..=0xFFFF).contains(&v) => Ok(v as u16),
         Some(v) if (-0x8000..0).contains(&v) => Ok(v as i16 as u16),
-        _ => Err(format!(
-            "register value '{s}': expected 0..=65535 (decimal or 0x hex) or -32768..=-1"
-        )),
+        _ => Err(BadValue::Register(s.to_owned())),
     }
 }
 
-fn parse_coil(s: &str) -> Result<bool, String> {
+fn parse_coil(s: &str) -> Result<bool, BadValue> {
     match s.to_ascii_lowercase().as_str() {
         "1" | "on" | "true" => Ok(true),
         "0" | "off" | "false" => Ok(false),
-        _ => Err(format!(
-            "coil value '{s}': expected 1, 0, on, off, true or false"
-        )),
+        _ => Err(BadValue::Coil(s.to_owned())),
     }
 }
 
@@ -181,13 +198,13 @@ impl ReadArgs {
 impl WriteArgs {
     /// The request these arguments ask for (docs/protocol.md §1 table, FC 05, 06, 0F, 10,
     /// 17), or why there is none.
-    pub(crate) fn request(&self) -> Result<Request, String> {
+    pub(crate) fn request(&self) -> Result<Request, BadValue> {
         let addr = self.addr;
         let single = self.values.len() == 1 && !self.multiple;
         match self.table {
             WriteTable::Coils => {
                 if self.read.is_some() {
-                    return Err("--read (FC 17) works with registers only".into());
+                    return Err(BadValue::ReadCoils);
                 }
                 let values = self
                     .values
@@ -228,9 +245,20 @@ impl WriteArgs {
 }
 
 impl CommonArgs {
+    /// The session's options: the unit, the timeout, the polling and `-v`.
+    pub(crate) fn session(&self) -> Session {
+        Session {
+            unit: self.unit,
+            timeout_ms: self.timeout_ms,
+            poll: self.poll,
+            count: self.count,
+            verbose: self.verbose,
+        }
+    }
+
     /// The transport these arguments name: `--serial` if given, else `--tcp` (default
     /// 127.0.0.1:502); or why the serial port's settings are refused.
-    pub(crate) fn transport(&self) -> Result<Transport, String> {
+    pub(crate) fn transport(&self) -> Result<Transport, BadValue> {
         let Some(path) = &self.serial else {
             let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
             return Ok(Transport::tcp_framed(addr, self.framing));
@@ -240,9 +268,7 @@ impl CommonArgs {
             framing: self.framing,
             ..SerialConfig::default()
         };
-        self.port
-            .apply_serial(&mut cfg)
-            .map_err(|e| e.to_string())?;
+        self.port.apply_serial(&mut cfg)?;
         Ok(Transport::serial(cfg))
     }
 }
@@ -320,48 +346,48 @@ mod tests {
 
         let w = parse_write(&["write", "registers", "20", "7", "8", "-1"]).unwrap();
         assert_eq!(
-            w.request(),
-            Ok(Request::WriteMultipleRegisters {
+            w.request().ok(),
+            Some(Request::WriteMultipleRegisters {
                 addr: 20,
                 values: vec![7, 8, 0xFFFF]
             })
         );
         let w = parse_write(&["write", "register", "8", "0x11"]).unwrap();
         assert_eq!(
-            w.request(),
-            Ok(Request::WriteSingleRegister {
+            w.request().ok(),
+            Some(Request::WriteSingleRegister {
                 addr: 8,
                 value: 0x11
             })
         );
         let w = parse_write(&["write", "register", "8", "0x11", "--multiple"]).unwrap();
         assert_eq!(
-            w.request(),
-            Ok(Request::WriteMultipleRegisters {
+            w.request().ok(),
+            Some(Request::WriteMultipleRegisters {
                 addr: 8,
                 values: vec![0x11]
             })
         );
         let w = parse_write(&["write", "coil", "5", "on"]).unwrap();
         assert_eq!(
-            w.request(),
-            Ok(Request::WriteSingleCoil {
+            w.request().ok(),
+            Some(Request::WriteSingleCoil {
                 addr: 5,
                 value: true
             })
         );
         let w = parse_write(&["write", "coils", "10", "1", "off", "true"]).unwrap();
         assert_eq!(
-            w.request(),
-            Ok(Request::WriteMultipleCoils {
+            w.request().ok(),
+            Some(Request::WriteMultipleCoils {
                 addr: 10,
                 values: vec![true, false, true]
             })
         );
         let w = parse_write(&["write", "registers", "40", "1", "2", "--read", "39", "4"]).unwrap();
         assert_eq!(
-            w.request(),
-            Ok(Request::ReadWriteMultipleRegisters {
+            w.request().ok(),
+            Some(Request::ReadWriteMultipleRegisters {
                 read_addr: 39,
                 read_qty: 4,
                 write_addr: 40,
@@ -408,7 +434,7 @@ mod tests {
             (FlowControl::None, 19_200)
         );
         let bad = common(&["--stop-bits", "3"]).transport().unwrap_err();
-        assert_eq!(bad, "--stop-bits: must be 1 or 2, got 3");
+        assert_eq!(bad.to_string(), "--stop-bits: must be 1 or 2, got 3");
         let line = ["read", "holding", "0", "--parity", "odd"];
         assert!(
             cmd.clone().try_get_matches_from(line).is_err(),
@@ -418,21 +444,21 @@ mod tests {
 
     #[test]
     fn numbers() {
-        assert_eq!(parse_u16("107"), Ok(107));
-        assert_eq!(parse_u16("0x6B"), Ok(107));
-        assert_eq!(parse_u16("0XFFFF"), Ok(0xFFFF));
+        assert_eq!(parse_u16("107").ok(), Some(107));
+        assert_eq!(parse_u16("0x6B").ok(), Some(107));
+        assert_eq!(parse_u16("0XFFFF").ok(), Some(0xFFFF));
         assert!(parse_u16("65536").is_err());
         assert!(parse_u16("-1").is_err());
         assert!(parse_u16("1e3").is_err());
         assert!(parse_u16("").is_err());
-        assert_eq!(parse_register("-1"), Ok(0xFFFF));
-        assert_eq!(parse_register("-32768"), Ok(0x8000));
+        assert_eq!(parse_register("-1").ok(), Some(0xFFFF));
+        assert_eq!(parse_register("-32768").ok(), Some(0x8000));
         assert!(parse_register("-32769").is_err());
-        assert_eq!(parse_register("0x0011"), Ok(0x11));
-        assert_eq!(parse_register("65535"), Ok(0xFFFF));
+        assert_eq!(parse_register("0x0011").ok(), Some(0x11));
+        assert_eq!(parse_register("65535").ok(), Some(0xFFFF));
         assert!(parse_register("+5").is_err());
-        assert_eq!(parse_coil("ON"), Ok(true));
-        assert_eq!(parse_coil("false"), Ok(false));
+        assert_eq!(parse_coil("ON").ok(), Some(true));
+        assert_eq!(parse_coil("false").ok(), Some(false));
         assert!(parse_coil("2").is_err());
     }
 
