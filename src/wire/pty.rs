@@ -3,6 +3,7 @@
 //! and the termios hints of its parity) read from the master side.
 
 use super::uart::{ErrorHandling, Format, Parity};
+use crate::port::fd::ReactorFd;
 use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::path::{Path, PathBuf};
@@ -11,8 +12,8 @@ use std::path::{Path, PathBuf};
 /// it hears), its device held open too, and the link to it.
 #[derive(Debug)]
 pub(crate) struct End {
-    /// The master, non-blocking, on tokio's reactor.
-    pub(crate) master: tokio::io::unix::AsyncFd<OwnedFd>,
+    /// The master, non-blocking, on tokio's reactor (registered for reading).
+    pub(crate) master: ReactorFd,
     /// The device end, held open by the line so that the master never reads EIO while
     /// no program has the device open, and its settings stay between programs.
     _device: OwnedFd,
@@ -41,14 +42,7 @@ impl End {
     /// anything else there is an error.
     pub(crate) fn open(link: &Path) -> io::Result<End> {
         let (master, device) = pair()?;
-        // SAFETY: plain fcntl calls on a valid descriptor.
-        #[allow(unsafe_code)]
-        let flags = unsafe { libc::fcntl(master.as_raw_fd(), libc::F_GETFL) };
-        // SAFETY: as above.
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::fcntl(master.as_raw_fd(), libc::F_SETFL, flags | libc::O_NONBLOCK)
-        };
+        let master = ReactorFd::new(master, tokio::io::Interest::READABLE)?;
         let path = std::fs::read_link(format!("/proc/self/fd/{}", device.as_raw_fd()))?;
         match std::fs::symlink_metadata(link) {
             Ok(m) if m.file_type().is_symlink() => std::fs::remove_file(link)?,
@@ -61,12 +55,6 @@ impl End {
             Err(_) => {}
         }
         std::os::unix::fs::symlink(&path, link)?;
-        // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
-        // which is when the `AsyncFd` holding it does.
-        #[allow(unsafe_code)]
-        let master = unsafe {
-            tokio::io::unix::AsyncFd::register_with_interest(master, tokio::io::Interest::READABLE)
-        }?;
         Ok(End {
             master,
             _device: device,
@@ -112,33 +100,21 @@ impl End {
 
     /// Reads what the program wrote, without blocking: `Ok(0)` when there is nothing.
     pub(crate) fn read(&self, buf: &mut [u8]) -> io::Result<usize> {
-        // SAFETY: `buf` is valid for `buf.len()` bytes for the call.
-        #[allow(unsafe_code)]
-        let n = unsafe { libc::read(self.master.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
-        if n < 0 {
-            let e = io::Error::last_os_error();
-            return match e.kind() {
-                io::ErrorKind::WouldBlock => Ok(0),
-                _ => Err(e),
-            };
-        }
-        Ok(n as usize)
+        zero_if_would_block(self.master.read(buf))
     }
 
     /// Hands bytes to the program, without blocking; how many the pty took (a program
     /// that does not read fills its buffer, and the rest are lost, as on a wire).
     pub(crate) fn write(&self, bytes: &[u8]) -> io::Result<usize> {
-        // SAFETY: `bytes` is valid for its length for the call.
-        #[allow(unsafe_code)]
-        let n = unsafe { libc::write(self.master.as_raw_fd(), bytes.as_ptr().cast(), bytes.len()) };
-        if n < 0 {
-            let e = io::Error::last_os_error();
-            return match e.kind() {
-                io::ErrorKind::WouldBlock => Ok(0),
-                _ => Err(e),
-            };
-        }
-        Ok(n as usize)
+        zero_if_would_block(self.master.write(bytes))
+    }
+}
+
+/// A read or write that would block moved no bytes: 0, not an error.
+fn zero_if_would_block(r: io::Result<usize>) -> io::Result<usize> {
+    match r {
+        Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(0),
+        r => r,
     }
 }
 
