@@ -74,8 +74,10 @@ struct Held {
     deadline: Instant,
 }
 
+/// One route's live state: its connection to the slave, and the requests sent on it
+/// and waiting for it.
 #[derive(Debug)]
-struct Route {
+struct RouteState {
     conn: Connection,
     timeout: Duration,
     max_in_flight: usize,
@@ -88,7 +90,7 @@ struct Route {
 #[derive(Debug)]
 pub(crate) struct Routing {
     line: MasterLine,
-    routes: Vec<Route>,
+    routes: Vec<RouteState>,
     /// Unit 0 is a broadcast (RTU, ASCII), not on MBAP.
     serial_bus: bool,
     /// Shutting down: new requests get 0x0A, those held are answered or time out.
@@ -110,7 +112,7 @@ impl Routing {
         let routes = line
             .routes
             .iter()
-            .map(|r| Route {
+            .map(|r| RouteState {
                 conn: Connection::Connecting,
                 timeout: Duration::from_millis(r.response_timeout_ms),
                 max_in_flight: r.max_in_flight,
@@ -403,12 +405,12 @@ impl Routing {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::master::{Peer, Route as RouteCfg};
+    use crate::config::master::{Peer, Route};
 
     const READ: [u8; 5] = [3, 0, 0, 0, 1];
 
     fn line(max_in_flight: usize) -> MasterLine {
-        let route = |units: &[u8]| RouteCfg {
+        let route = |units: &[u8]| Route {
             units: units.to_vec(),
             peer: Peer::Connect("h:1".into()),
             response_timeout_ms: 100,

@@ -5,7 +5,7 @@
 //! summary on standard error always says how many packets the gateway dropped.
 
 use super::{connect_error, control_socket, peer_uid, trust_server, DATA, END};
-use crate::capture::request::{Peer, Request};
+use crate::capture::request::{CaptureRequest, MasterMatch};
 use std::io::IsTerminal;
 use std::path::{Path, PathBuf};
 use std::process::ExitCode;
@@ -55,7 +55,7 @@ const EXIT_USAGE: u8 = 2;
 
 impl CaptureArgs {
     /// The request line these arguments ask for.
-    fn request(&self) -> Result<Request, String> {
+    fn request(&self) -> Result<CaptureRequest, String> {
         let mut words = vec!["capture".to_owned()];
         for l in &self.line {
             if l.is_empty() || l.contains(char::is_whitespace) {
@@ -69,7 +69,7 @@ impl CaptureArgs {
             words.push(format!("unit={u}"));
         }
         for m in &self.master {
-            Peer::parse(m).map_err(|e| format!("--master: {e}"))?;
+            MasterMatch::parse(m).map_err(|e| format!("--master: {e}"))?;
             words.push(format!("master={m}"));
         }
         for f in &self.function {
@@ -81,7 +81,7 @@ impl CaptureArgs {
         if let Some(s) = self.seconds {
             words.push(format!("seconds={s}"));
         }
-        Request::parse(&words.join(" ")).map_err(|e| {
+        CaptureRequest::parse(&words.join(" ")).map_err(|e| {
             e.replace("unit=", "--unit ")
                 .replace("function=", "--function ")
         })
@@ -177,7 +177,7 @@ async fn open_output(path: &Path) -> std::io::Result<Box<dyn AsyncWrite + Unpin>
 
 async fn capture(
     socket: &Path,
-    request: &Request,
+    request: &CaptureRequest,
     output: &Path,
     shown: &str,
 ) -> Result<(), String> {

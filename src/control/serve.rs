@@ -9,7 +9,7 @@
 use super::{message, DATA, END, RELOAD};
 use crate::capture::hub::{unix_us, Hub, Subscription, GATHER};
 use crate::capture::pcapng;
-use crate::capture::request::{Request, MAX_LINE};
+use crate::capture::request::{CaptureRequest, MAX_LINE};
 use crate::reload::ReloadHandle;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -356,7 +356,7 @@ async fn client(
         let _ = write_within(&mut wr, answer.as_bytes()).await;
         return;
     }
-    let request = match line.and_then(|l| Request::parse(l.trim_end_matches('\r'))) {
+    let request = match line.and_then(|l| CaptureRequest::parse(l.trim_end_matches('\r'))) {
         Ok(r) => r,
         Err(why) => {
             debug!("control socket: bad request: {why}");
@@ -417,7 +417,7 @@ async fn reloaded(reload: Option<ReloadHandle>) -> String {
 
 struct Run {
     sub: Subscription,
-    request: Request,
+    request: CaptureRequest,
     packets: u64,
     /// Packets written, by interface.
     written: Vec<u64>,

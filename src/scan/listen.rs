@@ -3,7 +3,7 @@
 //! frames in what came; the first setting where most of it is whole frames is the
 //! bus's, reported with its units, function codes, request rate and reply times.
 
-use super::probe::{Framing, Setting};
+use super::probe::{SerialFraming, Setting};
 use super::sniff::{self, Traffic};
 use super::{Progress, ScanError};
 use crate::wire::uart::Format;
@@ -15,7 +15,7 @@ use tokio_util::sync::CancellationToken;
 #[derive(Debug, Default)]
 pub(super) struct Heard {
     /// The bus's setting and what it carried, when one was heard.
-    pub(super) at: Option<((u32, Format, Framing), Traffic)>,
+    pub(super) at: Option<((u32, Format, SerialFraming), Traffic)>,
     /// How long it listened at that setting.
     pub(super) listened: Duration,
     /// Settings listened at.

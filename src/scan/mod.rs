@@ -10,7 +10,7 @@ mod serial;
 pub mod sniff;
 mod tcp;
 
-use probe::{Framing, Heard, Units};
+use probe::{Heard, SerialFraming, UnitList};
 use std::io::IsTerminal;
 use std::process::ExitCode;
 use std::time::{Duration, Instant};
@@ -35,10 +35,10 @@ pub struct ScanArgs {
     pub format: Vec<Format>,
     /// The framings to try, in order [default: rtu,ascii]
     #[arg(long, value_delimiter = ',', value_name = "FRAMING,...")]
-    pub framing: Vec<Framing>,
+    pub framing: Vec<SerialFraming>,
     /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
     #[arg(long, default_value = "1-247", value_name = "IDS")]
-    pub units: Units,
+    pub units: UnitList,
     /// How long a device may take to answer, beyond the request's and the reply's own
     /// time on the wire (a later reply still counts, in the next units' time).
     #[arg(long, default_value_t = 50, value_name = "MS")]
@@ -84,7 +84,7 @@ pub enum ScanError {
 }
 
 /// A baud rate, format and framing.
-pub type SerialSetting = (u32, Format, Framing);
+pub type SerialSetting = (u32, Format, SerialFraming);
 
 /// A unit that answered.
 #[derive(Debug, Clone)]
@@ -92,7 +92,7 @@ pub struct Found {
     /// Its id.
     pub unit: u8,
     /// Its setting (none on TCP).
-    pub serial: Option<(u32, Format, Framing)>,
+    pub serial: Option<(u32, Format, SerialFraming)>,
     /// What it answered to the read.
     pub answered: String,
     /// Its read device identification objects, or why none.
@@ -134,7 +134,7 @@ pub struct Report {
     /// The units that answered.
     pub found: Vec<Found>,
     /// Settings where bytes came but no frame with a good check.
-    pub garbage: Vec<(u32, Format, Framing)>,
+    pub garbage: Vec<(u32, Format, SerialFraming)>,
     /// Settings where whole frames with a good check came that answered no request:
     /// the first one's unit and function code.
     pub unanswering: Vec<(SerialSetting, (u8, u8))>,
@@ -238,7 +238,7 @@ fn settings_of(args: &ScanArgs) -> Result<(Vec<probe::Setting>, Vec<SerialSettin
         return Err(ScanError::Option(format!("--format {f}: 7 or 8 data bits")));
     }
     let framings = if args.framing.is_empty() {
-        vec![Framing::Rtu, Framing::Ascii]
+        vec![SerialFraming::Rtu, SerialFraming::Ascii]
     } else {
         args.framing.clone()
     };
@@ -489,7 +489,7 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanArgs) -> Strin
         );
     }
     let _ = writeln!(s, "\nFor mbgate.toml:\n");
-    let mut settings: Vec<Option<(u32, Format, Framing)>> = Vec::new();
+    let mut settings: Vec<Option<(u32, Format, SerialFraming)>> = Vec::new();
     for f in &report.found {
         if !settings.contains(&f.serial) {
             settings.push(f.serial);

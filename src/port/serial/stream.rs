@@ -23,9 +23,9 @@ use tokio::io::{AsyncRead, AsyncWrite, Interest, ReadBuf};
 /// gateway (a pty whose far end lives on) would refuse the next start of the service
 /// with EBUSY.
 #[derive(Debug)]
-struct Held(ReactorFd);
+struct HeldPort(ReactorFd);
 
-impl Drop for Held {
+impl Drop for HeldPort {
     fn drop(&mut self) {
         // SAFETY: TIOCNXCL takes no argument; the descriptor is open until `self.0`
         // drops, after this. Best effort: a port gone has nothing to give back.
@@ -38,14 +38,14 @@ impl Drop for Held {
 
 /// The read half: owns the descriptor's registration; the write half shares it.
 #[derive(Debug)]
-pub(crate) struct Reader {
-    fd: Arc<Held>,
+pub(crate) struct PortReader {
+    fd: Arc<HeldPort>,
 }
 
 /// The write half.
 #[derive(Debug)]
-pub(crate) struct Writer {
-    fd: Arc<Held>,
+pub(crate) struct PortWriter {
+    fd: Arc<HeldPort>,
     /// While the port has no room: a duplicate of its descriptor, registered for
     /// writing, to wait on.
     waiting: Option<ReactorFd>,
@@ -54,15 +54,18 @@ pub(crate) struct Writer {
 /// The two halves of the port opened as `port` (its settings made, held exclusively):
 /// its descriptor is taken from it, set non-blocking and put on the current runtime's
 /// reactor.
-pub(crate) fn split(port: serialport::TTYPort) -> io::Result<(Reader, Writer)> {
+pub(crate) fn split(port: serialport::TTYPort) -> io::Result<(PortReader, PortWriter)> {
     // SAFETY: `into_raw_fd` gives up the descriptor, open, with nothing else owning it.
     #[allow(unsafe_code)]
     let fd = unsafe { OwnedFd::from_raw_fd(port.into_raw_fd()) };
-    let fd = Arc::new(Held(ReactorFd::new(fd, Interest::READABLE)?));
-    Ok((Reader { fd: fd.clone() }, Writer { fd, waiting: None }))
+    let fd = Arc::new(HeldPort(ReactorFd::new(fd, Interest::READABLE)?));
+    Ok((
+        PortReader { fd: fd.clone() },
+        PortWriter { fd, waiting: None },
+    ))
 }
 
-impl AsyncRead for Reader {
+impl AsyncRead for PortReader {
     fn poll_read(
         self: Pin<&mut Self>,
         cx: &mut Context<'_>,
@@ -92,7 +95,7 @@ impl AsyncRead for Reader {
     }
 }
 
-impl AsyncWrite for Writer {
+impl AsyncWrite for PortWriter {
     fn poll_write(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
