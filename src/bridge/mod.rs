@@ -23,7 +23,7 @@ use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::{OpenPort, Port};
 use crate::relay::watchdog::Watchdog;
 use requests::{encode_reply, Requests};
-use routing::{Action, Counts, Routing, Tally};
+use routing::{Action, Routing, RoutingCounts, UnitTally};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -208,7 +208,7 @@ impl MasterLineTask {
     /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
     /// when it is lost, as every line does (`crate::port::lifecycle`); at shutdown
     /// answers what it holds first. The counts at the end.
-    pub(crate) async fn run(self, shutdown: CancellationToken) -> Counts {
+    pub(crate) async fn run(self, shutdown: CancellationToken) -> RoutingCounts {
         let MasterLineTask {
             port,
             mut line,
@@ -281,7 +281,7 @@ enum Waited {
 /// What of the routing's counts is on the metrics board already.
 #[derive(Debug, Default)]
 struct Published {
-    counts: Counts,
+    counts: RoutingCounts,
     dropped: u64,
 }
 
@@ -413,9 +413,9 @@ impl Bridge {
         for (unit, tally) in self.routing.take_tallies() {
             let u = self.metrics.unit(unit);
             match tally {
-                Tally::Request => s.add(&u.requests, 1),
-                Tally::Reply => s.add(&u.replies, 1),
-                Tally::Timeout => self.metrics.timed_out(unit, at),
+                UnitTally::Request => s.add(&u.requests, 1),
+                UnitTally::Reply => s.add(&u.replies, 1),
+                UnitTally::Timeout => self.metrics.timed_out(unit, at),
             }
         }
         let dropped = self.requests.dropped();

@@ -22,7 +22,7 @@ pub(crate) enum Action {
 
 /// What became of a request, by its unit, for the unit's metrics.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Tally {
+pub(crate) enum UnitTally {
     /// Taken off the line.
     Request,
     /// Its slave's reply passed on.
@@ -33,7 +33,7 @@ pub(crate) enum Tally {
 
 /// A slave connection as the routing sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Connection {
+pub(crate) enum SlaveConnection {
     /// Being made (or, passive, awaited for the first time): requests wait.
     Connecting,
     Up,
@@ -43,7 +43,7 @@ pub(crate) enum Connection {
 
 /// Running totals.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct Counts {
+pub(crate) struct RoutingCounts {
     /// Requests taken off the serial line.
     pub(crate) requests: u64,
     /// Frames written to slaves.
@@ -78,7 +78,7 @@ struct Held {
 /// and waiting for it.
 #[derive(Debug)]
 struct RouteState {
-    conn: Connection,
+    conn: SlaveConnection,
     timeout: Duration,
     max_in_flight: usize,
     next_tid: u16,
@@ -95,10 +95,10 @@ pub(crate) struct Routing {
     serial_bus: bool,
     /// Shutting down: new requests get 0x0A, those held are answered or time out.
     closing: bool,
-    pub(crate) counts: Counts,
+    pub(crate) counts: RoutingCounts,
     /// Each unit's requests, replies and timeouts since the loop last took them
     /// ([`Routing::take_tallies`]).
-    tallies: Vec<(u8, Tally)>,
+    tallies: Vec<(u8, UnitTally)>,
 }
 
 fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
@@ -113,7 +113,7 @@ impl Routing {
             .routes
             .iter()
             .map(|r| RouteState {
-                conn: Connection::Connecting,
+                conn: SlaveConnection::Connecting,
                 timeout: Duration::from_millis(r.response_timeout_ms),
                 max_in_flight: r.max_in_flight,
                 next_tid: 1,
@@ -126,7 +126,7 @@ impl Routing {
             routes,
             serial_bus,
             closing: false,
-            counts: Counts::default(),
+            counts: RoutingCounts::default(),
             tallies: Vec::new(),
         }
     }
@@ -143,7 +143,7 @@ impl Routing {
     }
 
     /// Each unit's requests, replies and timeouts since the last call, in order.
-    pub(crate) fn take_tallies(&mut self) -> Vec<(u8, Tally)> {
+    pub(crate) fn take_tallies(&mut self) -> Vec<(u8, UnitTally)> {
         std::mem::take(&mut self.tallies)
     }
 
@@ -163,7 +163,7 @@ impl Routing {
     fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: ExceptionCode) {
         if code == ExceptionCode::GATEWAY_TARGET_FAILED {
             self.counts.timeouts += 1;
-            self.tallies.push((held.request.unit, Tally::Timeout));
+            self.tallies.push((held.request.unit, UnitTally::Timeout));
         } else {
             self.counts.unavailable += 1;
         }
@@ -180,7 +180,7 @@ impl Routing {
     pub(crate) fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
         let mut out = Vec::new();
         self.counts.requests += 1;
-        self.tallies.push((request.unit, Tally::Request));
+        self.tallies.push((request.unit, UnitTally::Request));
         let broadcast = self.serial_bus && request.unit == 0;
         if let Err(code) = pdu::check_request(&request.pdu) {
             self.counts.refused += 1;
@@ -218,7 +218,7 @@ impl Routing {
             // dropped as late.
             self.counts.broadcasts += 1;
             for i in 0..self.routes.len() {
-                if self.routes[i].conn == Connection::Up {
+                if self.routes[i].conn == SlaveConnection::Up {
                     let tid = self.allocate(i);
                     let adu = Adu::build(tid, 0, &request.pdu);
                     self.counts.forwarded += 1;
@@ -240,7 +240,7 @@ impl Routing {
             deadline: now + self.routes[i].timeout,
             ..held
         };
-        if self.routes[i].conn == Connection::Down {
+        if self.routes[i].conn == SlaveConnection::Down {
             self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
             return out;
         }
@@ -264,7 +264,7 @@ impl Routing {
 
     /// Sends what waits on route `i` while its connection is up and has room.
     fn pump(&mut self, i: usize, out: &mut Vec<Action>) {
-        while self.routes[i].conn == Connection::Up
+        while self.routes[i].conn == SlaveConnection::Up
             && self.routes[i].in_flight.len() < self.routes[i].max_in_flight
         {
             let Some(held) = self.routes[i].waiting.pop_front() else {
@@ -280,13 +280,13 @@ impl Routing {
 
     /// Route `i`'s connection is being made.
     pub(crate) fn connecting(&mut self, i: usize) {
-        self.routes[i].conn = Connection::Connecting;
+        self.routes[i].conn = SlaveConnection::Connecting;
     }
 
     /// Route `i`'s connection is up: what waited is sent.
     pub(crate) fn up(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
-        self.routes[i].conn = Connection::Up;
+        self.routes[i].conn = SlaveConnection::Up;
         self.pump(i, &mut out);
         out
     }
@@ -295,7 +295,7 @@ impl Routing {
     /// 0x0B (the slave may have acted on them), those not sent 0x0A.
     pub(crate) fn down(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
-        self.routes[i].conn = Connection::Down;
+        self.routes[i].conn = SlaveConnection::Down;
         for (_, held) in std::mem::take(&mut self.routes[i].in_flight) {
             self.answer(&mut out, held, ExceptionCode::GATEWAY_TARGET_FAILED);
         }
@@ -324,7 +324,7 @@ impl Routing {
                 let (_, held) = r.in_flight.remove(at);
                 if held.answer {
                     self.counts.replies += 1;
-                    self.tallies.push((held.request.unit, Tally::Reply));
+                    self.tallies.push((held.request.unit, UnitTally::Reply));
                     out.push(Action::Answer {
                         request: held.request,
                         pdu: adu.pdu().to_vec(),
@@ -353,7 +353,7 @@ impl Routing {
                 .into_iter()
                 .partition(|h| h.deadline <= now);
             r.waiting = waiting;
-            let code = if r.conn == Connection::Up {
+            let code = if r.conn == SlaveConnection::Up {
                 ExceptionCode::GATEWAY_TARGET_FAILED
             } else {
                 ExceptionCode::GATEWAY_PATH_UNAVAILABLE
@@ -467,7 +467,7 @@ mod tests {
         assert_eq!(answers(&t.expire(at(400))), []);
         assert_eq!(answers(&t.expire(at(600))), [(Some(2), timed_out)]);
         assert_eq!(t.counts.timeouts, 2);
-        let (r, to) = (Tally::Request, Tally::Timeout);
+        let (r, to) = (UnitTally::Request, UnitTally::Timeout);
         assert_eq!(t.take_tallies(), [(9, r), (9, r), (9, to), (9, to)]);
         assert_eq!(t.take_tallies(), []);
     }

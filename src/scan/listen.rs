@@ -13,7 +13,7 @@ use tokio_util::sync::CancellationToken;
 
 /// What listening found.
 #[derive(Debug, Default)]
-pub(super) struct Heard {
+pub(super) struct Overheard {
     /// The bus's setting and what it carried, when one was heard.
     pub(super) at: Option<((u32, Format, SerialFraming), Traffic)>,
     /// How long it listened at that setting.
@@ -34,9 +34,9 @@ pub(super) async fn listen(
     window: Duration,
     stop: &CancellationToken,
     progress: &mut Progress,
-) -> Result<Heard, ScanError> {
+) -> Result<Overheard, ScanError> {
     let started = Instant::now();
-    let mut heard = Heard::default();
+    let mut heard = Overheard::default();
     for (i, s) in settings.iter().enumerate() {
         if stop.is_cancelled() {
             break;
@@ -103,7 +103,7 @@ fn p50_max(times: &[Duration]) -> Option<(u128, u128)> {
 }
 
 /// The report as a table and a `[[line]]` block; or "nothing heard" and a hint.
-pub(super) fn table(h: &Heard, target: &str) -> String {
+pub(super) fn table(h: &Overheard, target: &str) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let Some(((baud, format, framing), t)) = &h.at else {
@@ -173,7 +173,7 @@ pub(super) fn table(h: &Heard, target: &str) -> String {
 }
 
 /// The report as one JSON object.
-pub(super) fn json(h: &Heard, target: &str) -> String {
+pub(super) fn json(h: &Overheard, target: &str) -> String {
     let (setting, units, rate, frames) = match &h.at {
         None => ("null".to_string(), String::new(), 0.0, 0),
         Some(((baud, format, framing), t)) => {

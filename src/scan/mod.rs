@@ -213,7 +213,7 @@ pub fn main(args: ScanArgs) -> ExitCode {
 }
 
 /// `--listen`'s result, or any error, carried out of the runtime beside a scan's.
-struct Listened(Result<listen::Heard, ScanError>);
+struct Listened(Result<listen::Overheard, ScanError>);
 
 /// The settings `--listen` tries: each baud rate and format once (the wide ones
 /// first), every framing judged on what came.
@@ -254,7 +254,7 @@ async fn listening(
     args: &ScanArgs,
     stop: CancellationToken,
     mut progress: Progress,
-) -> Result<listen::Heard, ScanError> {
+) -> Result<listen::Overheard, ScanError> {
     if !(0.1..=3600.0).contains(&args.listen_secs) {
         return Err(ScanError::Option(format!(
             "--listen-secs {}: 0.1 to 3600",

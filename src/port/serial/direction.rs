@@ -179,7 +179,7 @@ pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, Direct
         Direction::None => Ok(None),
         Direction::Rts => {
             let rts = Rts {
-                lines: Tty(fd),
+                lines: RtsLine(fd),
                 invert: cfg.direction_invert,
             };
             let no_lines = |source| DirectionError::NoModemLines {
@@ -214,9 +214,9 @@ pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, Direct
 }
 
 /// RTS of the open port.
-struct Tty(RawFd);
+struct RtsLine(RawFd);
 
-impl ModemLines for Tty {
+impl ModemLines for RtsLine {
     fn rts(&mut self, asserted: bool) -> io::Result<()> {
         let bits: libc::c_int = libc::TIOCM_RTS;
         let op = if asserted {
