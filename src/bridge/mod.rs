@@ -90,7 +90,7 @@ impl MasterHandle {
 pub(crate) struct MasterLineTask {
     port: Box<dyn Port>,
     line: Bridge,
-    events: mpsc::UnboundedReceiver<slave::Event>,
+    events: mpsc::UnboundedReceiver<slave::SlaveEvent>,
     retunes: mpsc::UnboundedReceiver<MasterLine>,
     slaves_stop: CancellationToken,
     tracker: tokio_util::task::TaskTracker,
@@ -310,7 +310,7 @@ impl Bridge {
         &mut self,
         link: &mut OpenPort,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
@@ -443,7 +443,7 @@ impl Bridge {
         &mut self,
         state: &mut State,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
@@ -538,15 +538,15 @@ impl Bridge {
         self.tap.send(p, at);
     }
 
-    fn event(&mut self, ev: slave::Event) -> Vec<Action> {
+    fn event(&mut self, ev: slave::SlaveEvent) -> Vec<Action> {
         match ev {
-            slave::Event::Connecting(i) => {
+            slave::SlaveEvent::Connecting(i) => {
                 self.routing.connecting(i);
                 Vec::new()
             }
-            slave::Event::Up(i) => self.routing.up(i),
-            slave::Event::Down(i) => self.routing.down(i),
-            slave::Event::Frame(i, adu) => {
+            slave::SlaveEvent::Up(i) => self.routing.up(i),
+            slave::SlaveEvent::Down(i) => self.routing.down(i),
+            slave::SlaveEvent::Frame(i, adu) => {
                 if self.traffic {
                     debug!(route = i, "slave rx {}", Hex(adu.as_bytes()));
                 }

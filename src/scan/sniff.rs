@@ -11,7 +11,7 @@ use std::time::Duration;
 
 /// A frame seen on the bus, with the times its first and last bytes came.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Seen {
+pub struct SniffedFrame {
     /// The unit in it.
     pub unit: u8,
     /// Its function code (with the exception bit when it is one).
@@ -101,7 +101,7 @@ fn rtu_lengths(b: &[u8]) -> Vec<usize> {
 
 /// The frames with a good check in `chunks` (each the bytes of one read and when it
 /// came), in order.
-pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
+pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<SniffedFrame> {
     let mut bytes = Vec::new();
     let mut times = Vec::new();
     for (t, c) in chunks {
@@ -120,7 +120,7 @@ pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<See
                 });
                 match found {
                     Some((unit, function, len)) => {
-                        out.push(Seen {
+                        out.push(SniffedFrame {
                             unit,
                             function,
                             start: times[i],
@@ -147,7 +147,7 @@ pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<See
                     .map_or(from, |k| from + k);
                 if let Some((unit, pdu)) = ascii::decode(&bytes[start..=to]) {
                     if let Some(&function) = pdu.first() {
-                        out.push(Seen {
+                        out.push(SniffedFrame {
                             unit,
                             function,
                             start: times[start],
@@ -174,7 +174,7 @@ pub fn traffic(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Traffi
         framed: seen.iter().map(|f| f.len).sum(),
         units: BTreeMap::new(),
     };
-    let mut pending: Option<&Seen> = None;
+    let mut pending: Option<&SniffedFrame> = None;
     for f in &seen {
         let unit = t.units.entry(f.unit).or_default();
         match pending {

@@ -11,7 +11,7 @@ use std::path::{Path, PathBuf};
 /// One end: the pty's master (the line reads what the program writes, and writes what
 /// it hears), its device held open too, and the link to it.
 #[derive(Debug)]
-pub(crate) struct End {
+pub(crate) struct PtyEnd {
     /// The master, non-blocking, on tokio's reactor (registered for reading).
     pub(crate) master: ReactorFd,
     /// The device end, held open by the line so that the master never reads EIO while
@@ -25,7 +25,7 @@ pub(crate) struct End {
 
 /// What the program on an end has set, as its master reads it back.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct Seen {
+pub(crate) struct ProgramSettings {
     /// The output speed (termios2 `c_ospeed`).
     pub(crate) baud: u32,
     /// The parity and stop bits the termios still shows: a pty clears PARENB and
@@ -36,11 +36,11 @@ pub(crate) struct Seen {
     pub(crate) handling: ErrorHandling,
 }
 
-impl End {
+impl PtyEnd {
     /// A new pty, raw (no echo, no line editing, until a program sets its own), with
     /// `link` pointing at its device. An existing symbolic link at `link` is replaced;
     /// anything else there is an error.
-    pub(crate) fn open(link: &Path) -> io::Result<End> {
+    pub(crate) fn open(link: &Path) -> io::Result<PtyEnd> {
         let (master, device) = pair()?;
         let master = ReactorFd::new(master, tokio::io::Interest::READABLE)?;
         let path = std::fs::read_link(format!("/proc/self/fd/{}", device.as_raw_fd()))?;
@@ -55,7 +55,7 @@ impl End {
             Err(_) => {}
         }
         std::os::unix::fs::symlink(&path, link)?;
-        Ok(End {
+        Ok(PtyEnd {
             master,
             _device: device,
             device: path,
@@ -64,7 +64,7 @@ impl End {
     }
 
     /// What the program on this end has set.
-    pub(crate) fn seen(&self) -> io::Result<Seen> {
+    pub(crate) fn seen(&self) -> io::Result<ProgramSettings> {
         // SAFETY: termios2 is plain data; zeroed is a valid value to be overwritten.
         #[allow(unsafe_code)]
         let mut t: libc::termios2 = unsafe { std::mem::zeroed() };
@@ -82,7 +82,7 @@ impl End {
         } else {
             Parity::None
         };
-        Ok(Seen {
+        Ok(ProgramSettings {
             baud: t.c_ospeed,
             hinted: Format {
                 data_bits: 8,
@@ -118,7 +118,7 @@ fn zero_if_would_block(r: io::Result<usize>) -> io::Result<usize> {
     }
 }
 
-impl Drop for End {
+impl Drop for PtyEnd {
     fn drop(&mut self) {
         // Only our own link: a program may have put something else there since.
         if std::fs::read_link(&self.link).is_ok_and(|to| to == self.device) {
