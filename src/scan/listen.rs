@@ -3,7 +3,7 @@
 //! frames in what came; the first setting where most of it is whole frames is the
 //! bus's, reported with its units, function codes, request rate and reply times.
 
-use super::probe::{SerialFraming, Setting};
+use super::probe::{ProbeSetting, SerialFraming};
 use super::sniff::{self, Traffic};
 use super::{Progress, ScanError};
 use crate::wire::uart::Format;
@@ -30,7 +30,7 @@ pub(super) struct Overheard {
 /// setting, with `all` false or not: a bus has one setting). Never writes.
 pub(super) async fn listen(
     path: &str,
-    settings: &[Setting],
+    settings: &[ProbeSetting],
     window: Duration,
     stop: &CancellationToken,
     progress: &mut Progress,

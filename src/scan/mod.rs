@@ -217,7 +217,9 @@ struct Listened(Result<listen::Overheard, ScanError>);
 
 /// The settings `--listen` tries: each baud rate and format once (the wide ones
 /// first), every framing judged on what came.
-fn settings_of(args: &ScanArgs) -> Result<(Vec<probe::Setting>, Vec<SerialSetting>), ScanError> {
+fn settings_of(
+    args: &ScanArgs,
+) -> Result<(Vec<probe::ProbeSetting>, Vec<SerialSetting>), ScanError> {
     let bauds = if args.baud.is_empty() {
         probe::DEFAULT_BAUDS.to_vec()
     } else {
@@ -271,13 +273,13 @@ async fn listening(
             }
             v
         });
-    let mut once: Vec<probe::Setting> = Vec::new();
+    let mut once: Vec<probe::ProbeSetting> = Vec::new();
     for s in settings {
         if !once
             .iter()
             .any(|o| o.baud == s.baud && o.format == s.format)
         {
-            once.push(probe::Setting {
+            once.push(probe::ProbeSetting {
                 framings: framings.clone(),
                 ..s
             });

@@ -58,7 +58,7 @@ pub const WIDE: [(u32, &str, SerialFraming); 8] = [
 
 /// One setting of the port, with the framings tried on it while it is open.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Setting {
+pub struct ProbeSetting {
     /// Bits per second.
     pub baud: u32,
     /// Data bits, parity, stop bits.
@@ -76,7 +76,7 @@ pub fn order(
     formats: &[Format],
     framings: &[SerialFraming],
     first: &[(u32, Format, SerialFraming)],
-) -> Vec<Setting> {
+) -> Vec<ProbeSetting> {
     let wanted = |&(b, f, fr): &(u32, Format, SerialFraming)| {
         bauds.contains(&b) && formats.contains(&f) && framings.contains(&fr)
     };
@@ -91,11 +91,11 @@ pub fn order(
             }
         }
     }
-    let mut out: Vec<Setting> = Vec::new();
+    let mut out: Vec<ProbeSetting> = Vec::new();
     for (baud, format, framing) in triples {
         match out.last_mut() {
             Some(s) if s.baud == baud && s.format == format => s.framings.push(framing),
-            _ => out.push(Setting {
+            _ => out.push(ProbeSetting {
                 baud,
                 format,
                 framings: vec![framing],

@@ -3,7 +3,7 @@
 //! 3.5-character gap before it, kept with the line's microsecond timer, and a reply
 //! awaited for its time on the wire plus the timeout.
 
-use super::probe::{self, AtSetting, Heard, SerialFraming, Setting};
+use super::probe::{self, AtSetting, Heard, ProbeSetting, SerialFraming};
 use super::{Found, Progress, Report, ScanError, SerialSetting};
 use crate::config::{FlowControl, Parity as CfgParity, SerialConfig};
 use crate::port::serial::PreciseTimer;
@@ -25,7 +25,7 @@ const LONGEST_PDU: usize = 253;
 struct OpenSetting<'a> {
     port: SerialStream,
     timer: &'a mut PreciseTimer,
-    setting: &'a Setting,
+    setting: &'a ProbeSetting,
     /// When the line last carried a byte: the gap before a request counts from it.
     last: Instant,
     timeout: Duration,
@@ -177,7 +177,7 @@ impl OpenSetting<'_> {
 
 /// The port's configuration at `s`: no flow control (a scan needs none, and a bus
 /// adapter wires none).
-pub(super) fn config(path: &str, s: &Setting) -> SerialConfig {
+pub(super) fn config(path: &str, s: &ProbeSetting) -> SerialConfig {
     SerialConfig {
         path: path.to_string(),
         baud_rate: s.baud,
@@ -197,7 +197,7 @@ pub(super) fn config(path: &str, s: &Setting) -> SerialConfig {
 #[allow(clippy::too_many_arguments)]
 pub(super) async fn scan(
     path: &str,
-    settings: &[Setting],
+    settings: &[ProbeSetting],
     units: &[u8],
     give_up: usize,
     wide: &[SerialSetting],
@@ -209,7 +209,7 @@ pub(super) async fn scan(
     let mut report = Report::default();
     let mut timer = PreciseTimer::new()?;
     // Every unit at a wide setting; the first `give_up` elsewhere, until proven.
-    let limit = |s: &Setting, f: SerialFraming| {
+    let limit = |s: &ProbeSetting, f: SerialFraming| {
         if wide.contains(&(s.baud, s.format, f)) {
             units.len()
         } else {
@@ -380,7 +380,7 @@ pub(super) async fn scan(
 
 impl OpenSetting<'_> {
     /// [`OpenSetting::read_cost`] of a setting not open yet.
-    fn cost(s: &Setting, framing: SerialFraming, timeout: Duration) -> Duration {
+    fn cost(s: &ProbeSetting, framing: SerialFraming, timeout: Duration) -> Duration {
         let char_time = Duration::from_nanos(
             (u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)),
         );
