@@ -65,16 +65,9 @@ impl PtyEnd {
 
     /// What the program on this end has set.
     pub(crate) fn seen(&self) -> io::Result<ProgramSettings> {
-        // SAFETY: termios2 is plain data; zeroed is a valid value to be overwritten.
-        #[allow(unsafe_code)]
-        let mut t: libc::termios2 = unsafe { std::mem::zeroed() };
-        // SAFETY: TCGETS2 writes one termios2, which `t` is; on a master it reads the
-        // device end's settings (the kernel's tty_mode_ioctl takes the linked tty).
-        #[allow(unsafe_code)]
-        let r = unsafe { libc::ioctl(self.master.as_raw_fd(), libc::TCGETS2 as _, &mut t) };
-        if r != 0 {
-            return Err(io::Error::last_os_error());
-        }
+        // On a master, TCGETS2 reads the device end's settings (the kernel's
+        // tty_mode_ioctl takes the linked tty).
+        let t = crate::port::serial::classic::get2(self.master.as_raw_fd())?;
         let parity = if t.c_cflag & libc::PARODD != 0 {
             Parity::Odd
         } else if t.c_iflag & libc::INPCK != 0 {

@@ -241,18 +241,11 @@ impl ModemLines for RtsLine {
 /// the port was set; classic termios where the kernel has none
 /// (`classic::termios2_missing`).
 pub(crate) fn keep_modem_lines_on_close(fd: RawFd) -> io::Result<()> {
-    let mut t = std::mem::MaybeUninit::<libc::termios2>::zeroed();
-    // SAFETY: TCGETS2 writes at most one `struct termios2` into `t`, which is that
-    // size, for the duration of the call.
-    #[allow(unsafe_code)]
-    if unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t.as_mut_ptr()) } != 0 {
+    let Ok(mut t) = super::classic::get2(fd) else {
         let mut t = super::classic::get(fd)?;
         t.c_cflag &= !libc::HUPCL;
         return super::classic::set(fd, &t);
-    }
-    // SAFETY: zeroed, then filled by a TCGETS2 that succeeded.
-    #[allow(unsafe_code)]
-    let mut t = unsafe { t.assume_init() };
+    };
     t.c_cflag &= !libc::HUPCL;
     // SAFETY: TCSETS2 reads one `struct termios2`, which `t` is.
     #[allow(unsafe_code)]
