@@ -367,12 +367,19 @@ pub(crate) mod tests {
     }
 
     /// TCGETS2 reads a terminal's speed as a number, the same through the pty's master
-    /// as through its device (`wire::pty::pair` sets 50 baud); a pipe is no terminal.
+    /// as through its device (a new pty's 38400 baud, the kernel's `tty_std_termios`);
+    /// a pipe is no terminal.
     #[test]
     fn termios2_is_read_from_either_end_and_refused_off_a_tty() {
-        let (master, device) = crate::wire::pty::pair().unwrap();
-        assert_eq!(get2(device.as_raw_fd()).unwrap().c_ospeed, 50);
-        assert_eq!(get2(master.as_raw_fd()).unwrap().c_ospeed, 50);
+        let (master, path) = pty();
+        let device = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOCTTY)
+            .open(&path)
+            .unwrap();
+        assert_eq!(get2(device.as_raw_fd()).unwrap().c_ospeed, 38400);
+        assert_eq!(get2(master.as_raw_fd()).unwrap().c_ospeed, 38400);
         let (r, _w) = std::io::pipe().unwrap();
         let e = get2(r.as_raw_fd()).unwrap_err();
         assert_eq!(e.raw_os_error(), Some(libc::ENOTTY), "{e}");
