@@ -150,12 +150,19 @@ mod tests {
     #[tokio::test]
     async fn a_read_end_waits_for_bytes_and_never_blocks() {
         let (r, w) = pipe();
-        let r = ReactorFd::new(r, Interest::READABLE).unwrap();
+        let r = std::sync::Arc::new(ReactorFd::new(r, Interest::READABLE).unwrap());
+        // On a thread, so that a read that blocks fails the test instead of hanging it.
+        let (tx, rx) = std::sync::mpsc::channel();
+        let reader = r.clone();
+        std::thread::spawn(move || tx.send(reader.read(&mut [0u8; 8]).map_err(|e| e.kind())));
+        let first = rx.recv_timeout(Duration::from_secs(5));
+        assert_eq!(
+            first,
+            Ok(Err(io::ErrorKind::WouldBlock)),
+            "the read blocked"
+        );
         let mut buf = [0u8; 8];
-        let e = r.read(&mut buf).unwrap_err();
-        assert_eq!(e.kind(), io::ErrorKind::WouldBlock);
 
-        let r = std::sync::Arc::new(r);
         let waiting = {
             let r = r.clone();
             tokio::spawn(async move {
@@ -187,17 +194,27 @@ mod tests {
         let (r, w) = pipe();
         // Registered for reading only, as the serial port's writer is
         // (`serial/stream.rs`): writes go straight to it.
-        let w = ReactorFd::new(w, Interest::READABLE).unwrap();
-        let chunk = [7u8; 4096];
-        let mut written = 0usize;
-        let full = loop {
-            match w.write(&chunk) {
-                Ok(n) => written += n,
-                Err(e) => break e,
-            }
-            assert!(written < 16 << 20, "a pipe that never fills");
-        };
-        assert_eq!(full.kind(), io::ErrorKind::WouldBlock);
+        let w = std::sync::Arc::new(ReactorFd::new(w, Interest::READABLE).unwrap());
+        // Filled on a thread, so that a write that blocks fails the test instead of
+        // hanging it.
+        let (tx, rx) = std::sync::mpsc::channel();
+        let filler = w.clone();
+        std::thread::spawn(move || {
+            let chunk = [7u8; 4096];
+            let mut written = 0usize;
+            let full = loop {
+                match filler.write(&chunk) {
+                    Ok(n) => written += n,
+                    Err(e) => break e.kind(),
+                }
+                assert!(written < 16 << 20, "a pipe that never fills");
+            };
+            tx.send((written, full))
+        });
+        let (written, full) = rx
+            .recv_timeout(Duration::from_secs(10))
+            .expect("the write blocked");
+        assert_eq!(full, io::ErrorKind::WouldBlock);
 
         let dup = w.duplicate(Interest::WRITABLE).unwrap();
         assert_ne!(dup.as_raw_fd(), w.as_raw_fd());
