@@ -77,7 +77,7 @@ enum Message {
 /// A pipelining slot in use. Dropping it frees the slot and restarts the idle clock.
 /// Never dropped while the state is locked (it locks it).
 struct Slot {
-    shared: Arc<queue::Shared<Message, Slots>>,
+    shared: Arc<queue::SharedQueue<Message, Slots>>,
 }
 
 impl Drop for Slot {

@@ -190,14 +190,14 @@ impl fmt::Display for AllowList {
 /// reason).
 #[derive(Debug)]
 pub(crate) struct RefusedLog<K = IpAddr> {
-    sources: HashMap<K, Seen>,
+    sources: HashMap<K, RefusedSource>,
     /// Refusals from sources not remembered (the table full), since last told.
     others: u64,
     others_told: Option<Instant>,
 }
 
 #[derive(Debug)]
-struct Seen {
+struct RefusedSource {
     told: Instant,
     /// Refusals since it was last told.
     since: u64,
@@ -236,7 +236,7 @@ impl<K: std::hash::Hash + Eq> RefusedLog<K> {
         if let Some(seen) = self.sources.get_mut(&ip) {
             if due(seen.told) {
                 let more = seen.since;
-                *seen = Seen {
+                *seen = RefusedSource {
                     told: now,
                     since: 0,
                 };
@@ -259,7 +259,7 @@ impl<K: std::hash::Hash + Eq> RefusedLog<K> {
             }
             return Tell::Quiet;
         }
-        let seen = Seen {
+        let seen = RefusedSource {
             told: now,
             since: 0,
         };

@@ -23,7 +23,7 @@ use crate::port::lifecycle::{Lifecycle, State};
 use crate::port::{OpenPort, Port};
 use crate::relay::watchdog::Watchdog;
 use requests::{encode_reply, Requests};
-use routing::{Action, Counts, Routing, Tally};
+use routing::{Action, Routing, RoutingCounts, UnitTally};
 use std::sync::atomic::Ordering;
 use std::sync::Arc;
 use std::time::Duration;
@@ -90,7 +90,7 @@ impl MasterHandle {
 pub(crate) struct MasterLineTask {
     port: Box<dyn Port>,
     line: Bridge,
-    events: mpsc::UnboundedReceiver<slave::Event>,
+    events: mpsc::UnboundedReceiver<slave::SlaveEvent>,
     retunes: mpsc::UnboundedReceiver<MasterLine>,
     slaves_stop: CancellationToken,
     tracker: tokio_util::task::TaskTracker,
@@ -208,7 +208,7 @@ impl MasterLineTask {
     /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
     /// when it is lost, as every line does (`crate::port::lifecycle`); at shutdown
     /// answers what it holds first. The counts at the end.
-    pub(crate) async fn run(self, shutdown: CancellationToken) -> Counts {
+    pub(crate) async fn run(self, shutdown: CancellationToken) -> RoutingCounts {
         let MasterLineTask {
             port,
             mut line,
@@ -281,7 +281,7 @@ enum Waited {
 /// What of the routing's counts is on the metrics board already.
 #[derive(Debug, Default)]
 struct Published {
-    counts: Counts,
+    counts: RoutingCounts,
     dropped: u64,
 }
 
@@ -310,7 +310,7 @@ impl Bridge {
         &mut self,
         link: &mut OpenPort,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
@@ -413,9 +413,9 @@ impl Bridge {
         for (unit, tally) in self.routing.take_tallies() {
             let u = self.metrics.unit(unit);
             match tally {
-                Tally::Request => s.add(&u.requests, 1),
-                Tally::Reply => s.add(&u.replies, 1),
-                Tally::Timeout => self.metrics.timed_out(unit, at),
+                UnitTally::Request => s.add(&u.requests, 1),
+                UnitTally::Reply => s.add(&u.replies, 1),
+                UnitTally::Timeout => self.metrics.timed_out(unit, at),
             }
         }
         let dropped = self.requests.dropped();
@@ -443,7 +443,7 @@ impl Bridge {
         &mut self,
         state: &mut State,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::Event>,
+            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
@@ -538,15 +538,15 @@ impl Bridge {
         self.tap.send(p, at);
     }
 
-    fn event(&mut self, ev: slave::Event) -> Vec<Action> {
+    fn event(&mut self, ev: slave::SlaveEvent) -> Vec<Action> {
         match ev {
-            slave::Event::Connecting(i) => {
+            slave::SlaveEvent::Connecting(i) => {
                 self.routing.connecting(i);
                 Vec::new()
             }
-            slave::Event::Up(i) => self.routing.up(i),
-            slave::Event::Down(i) => self.routing.down(i),
-            slave::Event::Frame(i, adu) => {
+            slave::SlaveEvent::Up(i) => self.routing.up(i),
+            slave::SlaveEvent::Down(i) => self.routing.down(i),
+            slave::SlaveEvent::Frame(i, adu) => {
                 if self.traffic {
                     debug!(route = i, "slave rx {}", Hex(adu.as_bytes()));
                 }

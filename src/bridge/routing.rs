@@ -22,7 +22,7 @@ pub(crate) enum Action {
 
 /// What became of a request, by its unit, for the unit's metrics.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Tally {
+pub(crate) enum UnitTally {
     /// Taken off the line.
     Request,
     /// Its slave's reply passed on.
@@ -33,7 +33,7 @@ pub(crate) enum Tally {
 
 /// A slave connection as the routing sees it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Connection {
+pub(crate) enum SlaveConnection {
     /// Being made (or, passive, awaited for the first time): requests wait.
     Connecting,
     Up,
@@ -43,7 +43,7 @@ pub(crate) enum Connection {
 
 /// Running totals.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct Counts {
+pub(crate) struct RoutingCounts {
     /// Requests taken off the serial line.
     pub(crate) requests: u64,
     /// Frames written to slaves.
@@ -74,9 +74,11 @@ struct Held {
     deadline: Instant,
 }
 
+/// One route's live state: its connection to the slave, and the requests sent on it
+/// and waiting for it.
 #[derive(Debug)]
-struct Route {
-    conn: Connection,
+struct RouteState {
+    conn: SlaveConnection,
     timeout: Duration,
     max_in_flight: usize,
     next_tid: u16,
@@ -88,15 +90,15 @@ struct Route {
 #[derive(Debug)]
 pub(crate) struct Routing {
     line: MasterLine,
-    routes: Vec<Route>,
+    routes: Vec<RouteState>,
     /// Unit 0 is a broadcast (RTU, ASCII), not on MBAP.
     serial_bus: bool,
     /// Shutting down: new requests get 0x0A, those held are answered or time out.
     closing: bool,
-    pub(crate) counts: Counts,
+    pub(crate) counts: RoutingCounts,
     /// Each unit's requests, replies and timeouts since the loop last took them
     /// ([`Routing::take_tallies`]).
-    tallies: Vec<(u8, Tally)>,
+    tallies: Vec<(u8, UnitTally)>,
 }
 
 fn exception_pdu(request: &[u8], code: ExceptionCode) -> Vec<u8> {
@@ -110,8 +112,8 @@ impl Routing {
         let routes = line
             .routes
             .iter()
-            .map(|r| Route {
-                conn: Connection::Connecting,
+            .map(|r| RouteState {
+                conn: SlaveConnection::Connecting,
                 timeout: Duration::from_millis(r.response_timeout_ms),
                 max_in_flight: r.max_in_flight,
                 next_tid: 1,
@@ -124,7 +126,7 @@ impl Routing {
             routes,
             serial_bus,
             closing: false,
-            counts: Counts::default(),
+            counts: RoutingCounts::default(),
             tallies: Vec::new(),
         }
     }
@@ -141,7 +143,7 @@ impl Routing {
     }
 
     /// Each unit's requests, replies and timeouts since the last call, in order.
-    pub(crate) fn take_tallies(&mut self) -> Vec<(u8, Tally)> {
+    pub(crate) fn take_tallies(&mut self) -> Vec<(u8, UnitTally)> {
         std::mem::take(&mut self.tallies)
     }
 
@@ -161,7 +163,7 @@ impl Routing {
     fn answer(&mut self, out: &mut Vec<Action>, held: Held, code: ExceptionCode) {
         if code == ExceptionCode::GATEWAY_TARGET_FAILED {
             self.counts.timeouts += 1;
-            self.tallies.push((held.request.unit, Tally::Timeout));
+            self.tallies.push((held.request.unit, UnitTally::Timeout));
         } else {
             self.counts.unavailable += 1;
         }
@@ -178,7 +180,7 @@ impl Routing {
     pub(crate) fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
         let mut out = Vec::new();
         self.counts.requests += 1;
-        self.tallies.push((request.unit, Tally::Request));
+        self.tallies.push((request.unit, UnitTally::Request));
         let broadcast = self.serial_bus && request.unit == 0;
         if let Err(code) = pdu::check_request(&request.pdu) {
             self.counts.refused += 1;
@@ -216,7 +218,7 @@ impl Routing {
             // dropped as late.
             self.counts.broadcasts += 1;
             for i in 0..self.routes.len() {
-                if self.routes[i].conn == Connection::Up {
+                if self.routes[i].conn == SlaveConnection::Up {
                     let tid = self.allocate(i);
                     let adu = Adu::build(tid, 0, &request.pdu);
                     self.counts.forwarded += 1;
@@ -238,7 +240,7 @@ impl Routing {
             deadline: now + self.routes[i].timeout,
             ..held
         };
-        if self.routes[i].conn == Connection::Down {
+        if self.routes[i].conn == SlaveConnection::Down {
             self.answer(&mut out, held, ExceptionCode::GATEWAY_PATH_UNAVAILABLE);
             return out;
         }
@@ -262,7 +264,7 @@ impl Routing {
 
     /// Sends what waits on route `i` while its connection is up and has room.
     fn pump(&mut self, i: usize, out: &mut Vec<Action>) {
-        while self.routes[i].conn == Connection::Up
+        while self.routes[i].conn == SlaveConnection::Up
             && self.routes[i].in_flight.len() < self.routes[i].max_in_flight
         {
             let Some(held) = self.routes[i].waiting.pop_front() else {
@@ -278,13 +280,13 @@ impl Routing {
 
     /// Route `i`'s connection is being made.
     pub(crate) fn connecting(&mut self, i: usize) {
-        self.routes[i].conn = Connection::Connecting;
+        self.routes[i].conn = SlaveConnection::Connecting;
     }
 
     /// Route `i`'s connection is up: what waited is sent.
     pub(crate) fn up(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
-        self.routes[i].conn = Connection::Up;
+        self.routes[i].conn = SlaveConnection::Up;
         self.pump(i, &mut out);
         out
     }
@@ -293,7 +295,7 @@ impl Routing {
     /// 0x0B (the slave may have acted on them), those not sent 0x0A.
     pub(crate) fn down(&mut self, i: usize) -> Vec<Action> {
         let mut out = Vec::new();
-        self.routes[i].conn = Connection::Down;
+        self.routes[i].conn = SlaveConnection::Down;
         for (_, held) in std::mem::take(&mut self.routes[i].in_flight) {
             self.answer(&mut out, held, ExceptionCode::GATEWAY_TARGET_FAILED);
         }
@@ -322,7 +324,7 @@ impl Routing {
                 let (_, held) = r.in_flight.remove(at);
                 if held.answer {
                     self.counts.replies += 1;
-                    self.tallies.push((held.request.unit, Tally::Reply));
+                    self.tallies.push((held.request.unit, UnitTally::Reply));
                     out.push(Action::Answer {
                         request: held.request,
                         pdu: adu.pdu().to_vec(),
@@ -351,7 +353,7 @@ impl Routing {
                 .into_iter()
                 .partition(|h| h.deadline <= now);
             r.waiting = waiting;
-            let code = if r.conn == Connection::Up {
+            let code = if r.conn == SlaveConnection::Up {
                 ExceptionCode::GATEWAY_TARGET_FAILED
             } else {
                 ExceptionCode::GATEWAY_PATH_UNAVAILABLE
@@ -403,12 +405,12 @@ impl Routing {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::master::{Peer, Route as RouteCfg};
+    use crate::config::master::{Peer, Route};
 
     const READ: [u8; 5] = [3, 0, 0, 0, 1];
 
     fn line(max_in_flight: usize) -> MasterLine {
-        let route = |units: &[u8]| RouteCfg {
+        let route = |units: &[u8]| Route {
             units: units.to_vec(),
             peer: Peer::Connect("h:1".into()),
             response_timeout_ms: 100,
@@ -465,7 +467,7 @@ mod tests {
         assert_eq!(answers(&t.expire(at(400))), []);
         assert_eq!(answers(&t.expire(at(600))), [(Some(2), timed_out)]);
         assert_eq!(t.counts.timeouts, 2);
-        let (r, to) = (Tally::Request, Tally::Timeout);
+        let (r, to) = (UnitTally::Request, UnitTally::Timeout);
         assert_eq!(t.take_tallies(), [(9, r), (9, r), (9, to), (9, to)]);
         assert_eq!(t.take_tallies(), []);
     }

@@ -19,7 +19,7 @@ use tracing::{debug, info, warn};
 
 /// What a connection task tells the loop, with its route's index.
 #[derive(Debug)]
-pub(crate) enum Event {
+pub(crate) enum SlaveEvent {
     Connecting(usize),
     Up(usize),
     Down(usize),
@@ -60,7 +60,7 @@ pub(crate) async fn run(
     route: Route,
     listener: Option<TcpListener>,
     mut frames: mpsc::UnboundedReceiver<Adu>,
-    events: mpsc::UnboundedSender<Event>,
+    events: mpsc::UnboundedSender<SlaveEvent>,
     (tap, shutdown): (Tap, CancellationToken),
 ) {
     let mut backoff = Backoff::new(RECONNECT_MIN, RECONNECT_MAX);
@@ -69,7 +69,7 @@ pub(crate) async fn run(
     let mut next: Option<TcpStream> = None;
     if listener.is_some() {
         // No slave until one connects in: requests get 0x0A at once meanwhile.
-        let _ = events.send(Event::Down(i));
+        let _ = events.send(SlaveEvent::Down(i));
     }
     loop {
         let stream = match (&listener, &route.peer) {
@@ -91,7 +91,7 @@ pub(crate) async fn run(
                 },
             },
             (None, Peer::Connect(addr)) => {
-                let _ = events.send(Event::Connecting(i));
+                let _ = events.send(SlaveEvent::Connecting(i));
                 let attempt = tokio::time::timeout(timeout, TcpStream::connect(addr.as_str()));
                 let made = tokio::select! {
                     _ = shutdown.cancelled() => return,
@@ -112,7 +112,7 @@ pub(crate) async fn run(
                             );
                             reported = true;
                         }
-                        let _ = events.send(Event::Down(i));
+                        let _ = events.send(SlaveEvent::Down(i));
                         let wait = backoff.next_delay();
                         tokio::select! {
                             _ = shutdown.cancelled() => return,
@@ -126,7 +126,7 @@ pub(crate) async fn run(
         tune(&stream);
         // Frames given for a connection that is gone were answered when it went.
         while frames.try_recv().is_ok() {}
-        let _ = events.send(Event::Up(i));
+        let _ = events.send(SlaveEvent::Up(i));
         let end = session(
             i,
             stream,
@@ -136,11 +136,11 @@ pub(crate) async fn run(
             &shutdown,
         )
         .await;
-        let _ = events.send(Event::Down(i));
+        let _ = events.send(SlaveEvent::Down(i));
         match end {
-            End::Shutdown => return,
-            End::Replaced(s) => next = Some(s),
-            End::Lost(why) => {
+            SlaveEnd::Shutdown => return,
+            SlaveEnd::Replaced(s) => next = Some(s),
+            SlaveEnd::Lost(why) => {
                 warn!(route = i, "slave connection lost ({why})");
                 if listener.is_none() {
                     tokio::select! {
@@ -153,7 +153,7 @@ pub(crate) async fn run(
     }
 }
 
-enum End {
+enum SlaveEnd {
     Shutdown,
     Lost(String),
     /// A passive route's slave connected again: the new connection replaces this one.
@@ -184,11 +184,11 @@ async fn session(
     listener: Option<&TcpListener>,
     (frames, events): (
         &mut mpsc::UnboundedReceiver<Adu>,
-        &mpsc::UnboundedSender<Event>,
+        &mpsc::UnboundedSender<SlaveEvent>,
     ),
     tap: &Tap,
     shutdown: &CancellationToken,
-) -> End {
+) -> SlaveEnd {
     let ends = match (stream.local_addr(), stream.peer_addr()) {
         (Ok(client), Ok(server)) => Some(Ends { client, server }),
         _ => None,
@@ -197,31 +197,31 @@ async fn session(
     let mut buf = bytes::BytesMut::with_capacity(1024);
     loop {
         tokio::select! {
-            _ = shutdown.cancelled() => return End::Shutdown,
+            _ = shutdown.cancelled() => return SlaveEnd::Shutdown,
             r = rd.read_buf(&mut buf) => match r {
-                Ok(0) => return End::Lost("closed by the slave".into()),
+                Ok(0) => return SlaveEnd::Lost("closed by the slave".into()),
                 Ok(_) => loop {
                     match decode_strict(&mut buf) {
                         Ok(Some(adu)) => {
                             captured(tap, ends, &adu, Dir::In);
-                            let _ = events.send(Event::Frame(i, adu));
+                            let _ = events.send(SlaveEvent::Frame(i, adu));
                         }
                         Ok(None) => break,
-                        Err(e) => return End::Lost(format!("not Modbus/TCP: {e}")),
+                        Err(e) => return SlaveEnd::Lost(format!("not Modbus/TCP: {e}")),
                     }
                 },
-                Err(e) => return End::Lost(e.to_string()),
+                Err(e) => return SlaveEnd::Lost(e.to_string()),
             },
             Some(adu) = frames.recv() => {
                 captured(tap, ends, &adu, Dir::Out);
                 if let Err(e) = wr.write_all(adu.as_bytes()).await {
-                    return End::Lost(e.to_string());
+                    return SlaveEnd::Lost(e.to_string());
                 }
             }
             r = async { listener.expect("guarded").accept().await }, if listener.is_some() => {
                 if let Ok((s, from)) = r {
                     info!(route = i, "slave connected again from {from}; the new connection replaces the old");
-                    return End::Replaced(s);
+                    return SlaveEnd::Replaced(s);
                 }
             }
         }

@@ -15,7 +15,7 @@
 //! counted").
 
 use super::packet::{Dir, Packet, Part, Proto};
-use super::request::Request;
+use super::request::CaptureRequest;
 use std::collections::{HashMap, VecDeque};
 use std::net::SocketAddr;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
@@ -134,7 +134,7 @@ impl Recent {
 
 struct Sub {
     id: u64,
-    request: Request,
+    request: CaptureRequest,
     keep: Vec<bool>,
     tx: mpsc::Sender<Arc<Packet>>,
     /// Packets this subscriber's full channel dropped, by interface.
@@ -241,8 +241,8 @@ impl Hub {
     }
 
     /// Packets of every interface from now on that `request` keeps (it names only
-    /// interfaces there are: see [`Request::interfaces`]).
-    pub(crate) fn subscribe(&self, request: Request) -> Result<Subscription, Refused> {
+    /// interfaces there are: see [`CaptureRequest::interfaces`]).
+    pub(crate) fn subscribe(&self, request: CaptureRequest) -> Result<Subscription, Refused> {
         let names: Vec<String> = self.0.interfaces.iter().map(|i| i.name.clone()).collect();
         let keep = request.interfaces(&names)?;
         let (tx, rx) = mpsc::channel(PER_SUBSCRIBER);
@@ -629,7 +629,7 @@ mod tests {
         let tap = hub.tap(1);
         assert!(!tap.on());
         let mut sub = hub
-            .subscribe(Request::parse("capture unit=1").unwrap())
+            .subscribe(CaptureRequest::parse("capture unit=1").unwrap())
             .unwrap();
         assert!(tap.on());
         let t0 = Instant::now();
@@ -653,7 +653,7 @@ mod tests {
     #[tokio::test]
     async fn times_on_an_interface_never_go_back_and_closing_ends_subscriptions() {
         let hub = hub();
-        let mut sub = hub.subscribe(Request::default()).unwrap();
+        let mut sub = hub.subscribe(CaptureRequest::default()).unwrap();
         let tap = hub.tap(1);
         let t0 = Instant::now();
         tap.send(frame(1), t0 + Duration::from_millis(5));
@@ -666,7 +666,7 @@ mod tests {
         assert_eq!(c.at_us, unix_us(t0), "another interface keeps its own time");
         hub.close();
         assert!(sub.rx.recv().await.is_none());
-        assert!(hub.subscribe(Request::default()).is_err());
+        assert!(hub.subscribe(CaptureRequest::default()).is_err());
     }
 
     /// A stopping gateway waits for its captures to end, and not for ever.
@@ -674,7 +674,7 @@ mod tests {
     async fn the_hub_has_ended_once_every_subscription_is_dropped() {
         let hub = hub();
         assert!(hub.ended(Duration::ZERO).await, "none to wait for");
-        let mut sub = hub.subscribe(Request::default()).unwrap();
+        let mut sub = hub.subscribe(CaptureRequest::default()).unwrap();
         hub.tap(1).send(frame(1), Instant::now());
         hub.close();
         assert!(

@@ -47,12 +47,12 @@ pub struct Damage {
     /// Bytes from the start of the file.
     pub offset: usize,
     /// What was wrong there.
-    pub reason: Reason,
+    pub reason: Unreadable,
 }
 
 /// Why a file could not be read (further).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Reason {
+pub enum Unreadable {
     /// The file does not start with a pcapng Section Header Block: another format (a
     /// classic pcap file, text), or not a capture at all.
     NotPcapng,
@@ -73,23 +73,27 @@ pub enum Reason {
     BadPacketLength,
 }
 
-impl fmt::Display for Reason {
+impl fmt::Display for Unreadable {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Reason::NotPcapng => f.write_str("not a pcapng file (no section header block)"),
-            Reason::Truncated => f.write_str("the file ends inside a block (cut short)"),
-            Reason::BadLength => f.write_str("a block length that cannot be (corrupt)"),
-            Reason::BadSection => f.write_str("a section header of unknown byte order or version"),
-            Reason::BadOptions => f.write_str("options that run past their block (corrupt)"),
-            Reason::UnknownInterface(i) => write!(f, "a packet on interface {i}, never declared"),
-            Reason::BadPacketLength => f.write_str("a packet longer than its block (corrupt)"),
+            Unreadable::NotPcapng => f.write_str("not a pcapng file (no section header block)"),
+            Unreadable::Truncated => f.write_str("the file ends inside a block (cut short)"),
+            Unreadable::BadLength => f.write_str("a block length that cannot be (corrupt)"),
+            Unreadable::BadSection => {
+                f.write_str("a section header of unknown byte order or version")
+            }
+            Unreadable::BadOptions => f.write_str("options that run past their block (corrupt)"),
+            Unreadable::UnknownInterface(i) => {
+                write!(f, "a packet on interface {i}, never declared")
+            }
+            Unreadable::BadPacketLength => f.write_str("a packet longer than its block (corrupt)"),
         }
     }
 }
 
 /// An interface of the file (its description block).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Interface {
+pub struct FileInterface {
     /// The link type (252: exported PDUs, as mbgate writes them).
     pub link_type: u16,
     /// `if_name`, empty if none.
@@ -111,7 +115,7 @@ enum Resolution {
     Binary(u8),
 }
 
-impl Interface {
+impl FileInterface {
     /// A timestamp of `ticks` on this interface, in microseconds since the epoch
     /// (saturating: a timestamp beyond 2^64 µs is no real one).
     fn micros(&self, ticks: u64) -> u64 {
@@ -148,7 +152,7 @@ pub struct Record<'a> {
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
 pub struct Read<'a> {
     /// The interfaces of every section, in the order of their blocks.
-    pub interfaces: Vec<Interface>,
+    pub interfaces: Vec<FileInterface>,
     /// The packets, in the order of the file.
     pub packets: Vec<Record<'a>>,
     /// Where reading stopped before the end, if it did.
@@ -217,14 +221,14 @@ pub fn read(file: &[u8]) -> Result<Read<'_>, Damage> {
     let mut order = Order { big: false };
     let mut at = 0usize;
     while at < file.len() {
-        let damage = |offset: usize, reason: Reason| Damage { offset, reason };
+        let damage = |offset: usize, reason: Unreadable| Damage { offset, reason };
         let rest = &file[at..];
         let kind = LE.u32(rest, 0);
         if at == 0 && kind != Some(SECTION_HEADER) {
-            return Err(damage(0, Reason::NotPcapng));
+            return Err(damage(0, Unreadable::NotPcapng));
         }
         if rest.len() < 12 {
-            out.damage = Some(damage(at, Reason::Truncated));
+            out.damage = Some(damage(at, Unreadable::Truncated));
             break;
         }
         if kind == Some(SECTION_HEADER) {
@@ -232,7 +236,7 @@ pub fn read(file: &[u8]) -> Result<Read<'_>, Damage> {
                 Some(BYTE_ORDER_MAGIC) => LE,
                 Some(0x4D3C_2B1A) => Order { big: true },
                 _ => {
-                    let d = damage(at, Reason::BadSection);
+                    let d = damage(at, Unreadable::BadSection);
                     if at == 0 {
                         return Err(d);
                     }
@@ -244,22 +248,22 @@ pub fn read(file: &[u8]) -> Result<Read<'_>, Damage> {
         let kind = order.u32(rest, 0).unwrap_or(0);
         let total = order.u32(rest, 4).map_or(0, |t| t as usize);
         if total < 12 || !total.is_multiple_of(4) {
-            out.damage = Some(damage(at, Reason::BadLength));
+            out.damage = Some(damage(at, Unreadable::BadLength));
             break;
         }
         if total > rest.len() {
-            out.damage = Some(damage(at, Reason::Truncated));
+            out.damage = Some(damage(at, Unreadable::Truncated));
             break;
         }
         if order.u32(rest, total - 4).map(|t| t as usize) != Some(total) {
-            out.damage = Some(damage(at, Reason::BadLength));
+            out.damage = Some(damage(at, Unreadable::BadLength));
             break;
         }
         let body = &rest[8..total - 4];
         let result = match kind {
             SECTION_HEADER => {
                 if order.u16(body, 4) != Some(1) {
-                    Err(Reason::BadSection)
+                    Err(Unreadable::BadSection)
                 } else {
                     section.clear();
                     sections += 1;
@@ -289,12 +293,12 @@ pub fn read(file: &[u8]) -> Result<Read<'_>, Damage> {
     Ok(out)
 }
 
-fn interface(order: Order, body: &[u8], section: usize) -> Result<Interface, Reason> {
-    let link_type = order.u16(body, 0).ok_or(Reason::BadLength)?;
+fn interface(order: Order, body: &[u8], section: usize) -> Result<FileInterface, Unreadable> {
+    let link_type = order.u16(body, 0).ok_or(Unreadable::BadLength)?;
     if body.len() < 8 {
-        return Err(Reason::BadLength);
+        return Err(Unreadable::BadLength);
     }
-    let mut i = Interface {
+    let mut i = FileInterface {
         link_type,
         name: String::new(),
         description: String::new(),
@@ -302,7 +306,7 @@ fn interface(order: Order, body: &[u8], section: usize) -> Result<Interface, Rea
         resolution: Resolution::Decimal(6),
         offset_s: 0,
     };
-    for (code, value) in options(order, &body[8..]).ok_or(Reason::BadOptions)? {
+    for (code, value) in options(order, &body[8..]).ok_or(Unreadable::BadOptions)? {
         match code {
             IF_NAME => i.name = String::from_utf8_lossy(value).into_owned(),
             IF_DESCRIPTION => i.description = String::from_utf8_lossy(value).into_owned(),
@@ -330,19 +334,19 @@ fn packet<'a>(
     order: Order,
     body: &'a [u8],
     section: &[usize],
-    interfaces: &[Interface],
-) -> Result<Record<'a>, Reason> {
-    let word = |at| order.u32(body, at).ok_or(Reason::BadLength);
+    interfaces: &[FileInterface],
+) -> Result<Record<'a>, Unreadable> {
+    let word = |at| order.u32(body, at).ok_or(Unreadable::BadLength);
     let id = word(0)?;
     let index = *section
         .get(id as usize)
-        .ok_or(Reason::UnknownInterface(id))?;
+        .ok_or(Unreadable::UnknownInterface(id))?;
     let ticks = (u64::from(word(4)?) << 32) | u64::from(word(8)?);
     let captured = word(12)? as usize;
     let end = 20usize
         .checked_add(captured)
         .filter(|&e| e <= body.len())
-        .ok_or(Reason::BadPacketLength)?;
+        .ok_or(Unreadable::BadPacketLength)?;
     let data = &body[20..end];
     let padded = (end + 3) & !3;
     let mut record = Record {
@@ -353,7 +357,7 @@ fn packet<'a>(
         comment: None,
     };
     let opts = body.get(padded..).unwrap_or(&[]);
-    for (code, value) in options(order, opts).ok_or(Reason::BadOptions)? {
+    for (code, value) in options(order, opts).ok_or(Unreadable::BadOptions)? {
         match code {
             OPT_COMMENT if record.comment.is_none() => {
                 record.comment = Some(String::from_utf8_lossy(value).into_owned());
@@ -471,7 +475,7 @@ mod tests {
             cut.damage,
             Some(Damage {
                 offset: blocks[5],
-                reason: Reason::Truncated
+                reason: Unreadable::Truncated
             })
         );
         // A block's length broken: the packets before it.
@@ -480,7 +484,7 @@ mod tests {
         let r = read(&bad).unwrap();
         assert_eq!(r.packets.len(), 1);
         let d = r.damage.unwrap();
-        assert_eq!((d.offset, d.reason), (blocks[4], Reason::BadLength));
+        assert_eq!((d.offset, d.reason), (blocks[4], Unreadable::BadLength));
         assert_eq!(
             d.to_string(),
             format!(
@@ -494,14 +498,14 @@ mod tests {
         let d = read(&bad).unwrap().damage.unwrap();
         assert_eq!(
             (d.offset, d.reason),
-            (blocks[3], Reason::UnknownInterface(9))
+            (blocks[3], Unreadable::UnknownInterface(9))
         );
         // Not pcapng at all.
         assert_eq!(
             read(b"\xd4\xc3\xb2\xa1 classic pcap").unwrap_err(),
             Damage {
                 offset: 0,
-                reason: Reason::NotPcapng
+                reason: Unreadable::NotPcapng
             }
         );
         assert_eq!(read(b"").unwrap().packets.len(), 0);

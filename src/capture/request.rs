@@ -74,19 +74,19 @@ pub(crate) enum BadRequest {
 
 /// A TCP peer to keep: its address, and its port if given.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Peer {
+pub(crate) enum MasterMatch {
     Ip(IpAddr),
     Addr(SocketAddr),
 }
 
-impl Peer {
-    pub(crate) fn parse(s: &str) -> Result<Peer, BadRequest> {
+impl MasterMatch {
+    pub(crate) fn parse(s: &str) -> Result<MasterMatch, BadRequest> {
         if let Ok(a) = s.parse::<SocketAddr>() {
-            return Ok(Peer::Addr(a));
+            return Ok(MasterMatch::Addr(a));
         }
         let bare = s.trim_start_matches('[').trim_end_matches(']');
         bare.parse::<IpAddr>()
-            .map(Peer::Ip)
+            .map(MasterMatch::Ip)
             .map_err(|_| BadRequest::Master(s.to_owned()))
     }
 
@@ -96,29 +96,29 @@ impl Peer {
             v4 => v4,
         };
         match *self {
-            Peer::Ip(want) => ip == want,
-            Peer::Addr(want) => ip == want.ip() && a.port() == want.port(),
+            MasterMatch::Ip(want) => ip == want,
+            MasterMatch::Addr(want) => ip == want.ip() && a.port() == want.port(),
         }
     }
 }
 
-impl fmt::Display for Peer {
+impl fmt::Display for MasterMatch {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
-            Peer::Ip(ip) => write!(f, "{ip}"),
-            Peer::Addr(a) => write!(f, "{a}"),
+            MasterMatch::Ip(ip) => write!(f, "{ip}"),
+            MasterMatch::Addr(a) => write!(f, "{a}"),
         }
     }
 }
 
 /// A capture as asked for: which packets, and when to stop.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub(crate) struct Request {
+pub(crate) struct CaptureRequest {
     /// Interfaces to keep, as given: a line's index (`0`), its name (`/dev/ttyUSB0`),
     /// or `tcp` for the TCP side. None: all.
     pub(crate) lines: Vec<String>,
     pub(crate) units: Vec<u8>,
-    pub(crate) masters: Vec<Peer>,
+    pub(crate) masters: Vec<MasterMatch>,
     pub(crate) functions: Vec<u8>,
     /// Stop after this many packets.
     pub(crate) count: Option<u64>,
@@ -159,16 +159,16 @@ fn number<T: TryFrom<u64>>(key: &str, v: &str) -> Result<T, BadRequest> {
         })
 }
 
-impl Request {
+impl CaptureRequest {
     /// Reads a request line (without its newline).
-    pub(crate) fn parse(line: &str) -> Result<Request, BadRequest> {
+    pub(crate) fn parse(line: &str) -> Result<CaptureRequest, BadRequest> {
         let mut words = line.split_ascii_whitespace();
         match words.next() {
             Some("capture") => {}
             Some(w) => return Err(BadRequest::Unknown(w.to_owned())),
             None => return Err(BadRequest::Empty),
         }
-        let mut r = Request::default();
+        let mut r = CaptureRequest::default();
         for w in words {
             let Some((key, value)) = w.split_once('=') else {
                 return Err(BadRequest::NotKeyValue(w.to_owned()));
@@ -176,7 +176,7 @@ impl Request {
             match key {
                 "line" if !value.is_empty() => r.lines.push(value.to_owned()),
                 "unit" => r.units.push(number(key, value)?),
-                "master" => r.masters.push(Peer::parse(value)?),
+                "master" => r.masters.push(MasterMatch::parse(value)?),
                 "function" => {
                     let fc: u8 = number(key, value)?;
                     if fc == 0 || fc >= 0x80 {
@@ -248,7 +248,7 @@ impl Request {
     }
 }
 
-impl fmt::Display for Request {
+impl fmt::Display for CaptureRequest {
     /// The request line, as `parse` reads it.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str("capture")?;
@@ -281,15 +281,18 @@ mod tests {
 
     #[test]
     fn a_request_reads_back_what_it_prints() {
-        let r = Request::parse(
+        let r = CaptureRequest::parse(
             "capture line=0 line=tcp unit=3 unit=0x11 master=10.0.0.5 master=[::1]:502 function=0x10 count=5 seconds=9",
         )
         .unwrap();
         assert_eq!(r.units, [3, 17]);
         assert_eq!(r.functions, [16]);
         assert_eq!((r.count, r.seconds), (Some(5), Some(9)));
-        assert_eq!(Request::parse(&r.to_string()).unwrap(), r);
-        assert_eq!(Request::parse("capture").unwrap(), Request::default());
+        assert_eq!(CaptureRequest::parse(&r.to_string()).unwrap(), r);
+        assert_eq!(
+            CaptureRequest::parse("capture").unwrap(),
+            CaptureRequest::default()
+        );
     }
 
     #[test]
@@ -313,7 +316,7 @@ mod tests {
             ("capture count=1000000000001", "at most 1000000000000"),
             ("capture count=-1", "not a number"),
         ] {
-            let e = Request::parse(line).unwrap_err().to_string();
+            let e = CaptureRequest::parse(line).unwrap_err().to_string();
             assert!(e.contains(says), "{line}: {e}");
         }
     }
@@ -325,7 +328,7 @@ mod tests {
         /// never panics (one client's malformed request closes that client only).
         #[test]
         fn any_line_is_a_request_or_an_error(line in ".{0,200}") {
-            let _ = Request::parse(&line);
+            let _ = CaptureRequest::parse(&line);
         }
 
         /// Every request a client can ask for reads back as itself.
@@ -338,12 +341,12 @@ mod tests {
             port in proptest::option::of(proptest::num::u16::ANY),
         ) {
             let masters = port
-                .map(|p| Peer::Addr(SocketAddr::from(([10, 0, 0, 5], p))))
+                .map(|p| MasterMatch::Addr(SocketAddr::from(([10, 0, 0, 5], p))))
                 .into_iter()
-                .chain([Peer::Ip([10, 0, 0, 6].into())])
+                .chain([MasterMatch::Ip([10, 0, 0, 6].into())])
                 .collect();
-            let r = Request { lines: vec!["tcp".into(), "0".into()], units, masters, functions, count, seconds };
-            proptest::prop_assert_eq!(Request::parse(&r.to_string()), Ok(r));
+            let r = CaptureRequest { lines: vec!["tcp".into(), "0".into()], units, masters, functions, count, seconds };
+            proptest::prop_assert_eq!(CaptureRequest::parse(&r.to_string()), Ok(r));
         }
     }
 
@@ -353,9 +356,9 @@ mod tests {
             .map(String::from)
             .into();
         let pick = |l: &[&str]| {
-            let r = Request {
+            let r = CaptureRequest {
                 lines: l.iter().map(|s| s.to_string()).collect(),
-                ..Request::default()
+                ..CaptureRequest::default()
             };
             r.interfaces(&names)
         };
@@ -375,7 +378,7 @@ mod tests {
             client: "10.0.0.5:40000".parse().unwrap(),
             server: "10.0.0.1:502".parse().unwrap(),
         });
-        let only = |s: &str| Request::parse(&format!("capture {s}")).unwrap();
+        let only = |s: &str| CaptureRequest::parse(&format!("capture {s}")).unwrap();
         assert!(
             only("unit=3 function=3").keeps(&tcp, None),
             "an exception is its function's"

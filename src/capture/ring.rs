@@ -11,7 +11,7 @@
 
 use super::hub::{Hub, Subscription, GATHER};
 use super::pcapng;
-use super::request::Request;
+use super::request::CaptureRequest;
 use crate::config::CaptureConfig;
 use std::fs::File;
 use std::io::{BufWriter, Write};
@@ -92,7 +92,7 @@ pub(crate) fn start(cfg: &CaptureConfig, hub: &Hub) -> Option<std::thread::JoinH
     if cfg.file.trim().is_empty() {
         return None;
     }
-    let sub = match hub.subscribe(Request::default()) {
+    let sub = match hub.subscribe(CaptureRequest::default()) {
         Ok(s) => s,
         Err(e) => {
             warn!("capture.file: {e}");

@@ -5,7 +5,7 @@
 
 use super::exit;
 use super::signals;
-use crate::capture::request::{BadRequest, Peer, Request};
+use crate::capture::request::{BadRequest, CaptureRequest, MasterMatch};
 use crate::control::capture::capture;
 use crate::control::control_socket;
 use std::io::IsTerminal;
@@ -62,7 +62,7 @@ pub(crate) struct CaptureArgs {
 
 impl CaptureArgs {
     /// The request line these arguments ask for.
-    fn request(&self) -> Result<Request, BadArgs> {
+    fn request(&self) -> Result<CaptureRequest, BadArgs> {
         let mut words = vec!["capture".to_owned()];
         for l in &self.line {
             if l.is_empty() || l.contains(char::is_whitespace) {
@@ -74,7 +74,7 @@ impl CaptureArgs {
             words.push(format!("unit={u}"));
         }
         for m in &self.master {
-            Peer::parse(m).map_err(BadArgs::Master)?;
+            MasterMatch::parse(m).map_err(BadArgs::Master)?;
             words.push(format!("master={m}"));
         }
         for f in &self.function {
@@ -86,7 +86,7 @@ impl CaptureArgs {
         if let Some(s) = self.seconds {
             words.push(format!("seconds={s}"));
         }
-        Request::parse(&words.join(" ")).map_err(BadArgs::Request)
+        CaptureRequest::parse(&words.join(" ")).map_err(BadArgs::Request)
     }
 }
 

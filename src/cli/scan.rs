@@ -4,7 +4,7 @@
 
 use super::exit;
 use super::signals::{self, Stops};
-use crate::scan::probe::{Framing, Units};
+use crate::scan::probe::{SerialFraming, UnitList};
 use crate::scan::{scan, ScanError, ScanOptions};
 use crate::wire::uart::Format;
 use std::process::ExitCode;
@@ -26,10 +26,10 @@ pub(crate) struct ScanArgs {
     format: Vec<Format>,
     /// The framings to try, in order [default: rtu,ascii]
     #[arg(long, value_delimiter = ',', value_name = "FRAMING,...")]
-    framing: Vec<Framing>,
+    framing: Vec<SerialFraming>,
     /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
     #[arg(long, default_value = "1-247", value_name = "IDS")]
-    units: Units,
+    units: UnitList,
     /// How long a device may take to answer, beyond the request's and the reply's own
     /// time on the wire (a later reply still counts, in the next units' time).
     #[arg(long, default_value_t = 50, value_name = "MS")]

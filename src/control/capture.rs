@@ -5,7 +5,7 @@
 //! summary on standard error always says how many packets the gateway dropped.
 
 use super::{peer_uid, trust_server, AskError, DATA, END};
-use crate::capture::request::Request;
+use crate::capture::request::CaptureRequest;
 use std::path::Path;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::UnixStream;
@@ -108,7 +108,7 @@ async fn open_output(path: &Path) -> std::io::Result<Box<dyn AsyncWrite + Unpin>
 /// packets and drops.
 pub(crate) async fn capture(
     socket: &Path,
-    request: &Request,
+    request: &CaptureRequest,
     output: &Path,
     shown: &str,
 ) -> Result<(), CaptureError> {

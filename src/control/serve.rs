@@ -9,7 +9,7 @@
 use super::{message, DATA, END, RELOAD};
 use crate::capture::hub::{unix_us, Hub, Subscription, GATHER};
 use crate::capture::pcapng;
-use crate::capture::request::{Request, MAX_LINE};
+use crate::capture::request::{CaptureRequest, MAX_LINE};
 use crate::reload::ReloadHandle;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -38,9 +38,9 @@ const WRITE_WITHIN: Duration = Duration::from_secs(5);
 /// The longest a reload is waited for.
 const RELOAD_WITHIN: Duration = Duration::from_secs(30);
 
-/// Slots of one kind: a [`Slot`] taken while one is free, given back when dropped.
+/// Slots of one kind: a [`TaskSlot`] taken while one is free, given back when dropped.
 #[derive(Debug)]
-struct Slots {
+struct TaskSlots {
     taken: AtomicUsize,
     max: usize,
 }
@@ -48,23 +48,23 @@ struct Slots {
 /// A slot taken; dropping it (the task ending, by any path, a panic included) gives it
 /// back.
 #[derive(Debug)]
-struct Slot(Arc<Slots>);
+struct TaskSlot(Arc<TaskSlots>);
 
-impl Slots {
-    fn new(max: usize) -> Arc<Slots> {
-        Arc::new(Slots {
+impl TaskSlots {
+    fn new(max: usize) -> Arc<TaskSlots> {
+        Arc::new(TaskSlots {
             taken: AtomicUsize::new(0),
             max,
         })
     }
 
-    fn take(self: &Arc<Self>) -> Option<Slot> {
+    fn take(self: &Arc<Self>) -> Option<TaskSlot> {
         self.taken
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| {
                 (n < self.max).then_some(n + 1)
             })
             .ok()
-            .map(|_| Slot(self.clone()))
+            .map(|_| TaskSlot(self.clone()))
     }
 
     fn taken(&self) -> usize {
@@ -72,7 +72,7 @@ impl Slots {
     }
 }
 
-impl Drop for Slot {
+impl Drop for TaskSlot {
     fn drop(&mut self) {
         self.0.taken.fetch_sub(1, Ordering::AcqRel);
     }
@@ -93,7 +93,7 @@ pub(crate) enum BindError {
 }
 
 /// The socket, bound: removed again when dropped.
-pub(crate) struct Control {
+pub(crate) struct ControlSocket {
     listener: UnixListener,
     path: PathBuf,
 }
@@ -102,7 +102,7 @@ pub(crate) struct Control {
 /// temporary name, given its mode, then renamed into place, so it is never
 /// reachable with a looser mode. A socket left there by a gateway that stopped is
 /// replaced; one a running gateway answers on is not.
-pub(crate) fn bind(path: &Path) -> Result<Control, BindError> {
+pub(crate) fn bind(path: &Path) -> Result<ControlSocket, BindError> {
     let io = |error| BindError::Io {
         path: path.to_owned(),
         error,
@@ -138,7 +138,7 @@ pub(crate) fn bind(path: &Path) -> Result<Control, BindError> {
         let _ = std::fs::remove_file(&tmp);
         return Err(io(e));
     }
-    Ok(Control {
+    Ok(ControlSocket {
         listener,
         path: path.to_owned(),
     })
@@ -190,7 +190,7 @@ fn directory_is_ours(path: &Path) -> Result<(), NotOurs> {
     Ok(())
 }
 
-impl Drop for Control {
+impl Drop for ControlSocket {
     fn drop(&mut self) {
         let _ = std::fs::remove_file(&self.path);
     }
@@ -198,7 +198,7 @@ impl Drop for Control {
 
 /// Serves captures on `control` until `shutdown`; the socket is removed then.
 pub(crate) async fn serve(
-    control: Control,
+    control: ControlSocket,
     hub: Hub,
     reload: Option<ReloadHandle>,
     shutdown: CancellationToken,
@@ -207,9 +207,9 @@ pub(crate) async fn serve(
         "control socket {} (mbgate capture, mbgate reload)",
         control.path.display()
     );
-    let waiting = Slots::new(MAX_WAITING);
-    let captures = Slots::new(MAX_CLIENTS);
-    let refusing = Slots::new(MAX_REFUSING);
+    let waiting = TaskSlots::new(MAX_WAITING);
+    let captures = TaskSlots::new(MAX_CLIENTS);
+    let refusing = TaskSlots::new(MAX_REFUSING);
     loop {
         let (stream, _) = tokio::select! {
             _ = shutdown.cancelled() => break,
@@ -370,8 +370,8 @@ async fn client(
     stream: UnixStream,
     hub: Hub,
     reload: Option<ReloadHandle>,
-    waiting: Slot,
-    captures: Arc<Slots>,
+    waiting: TaskSlot,
+    captures: Arc<TaskSlots>,
 ) {
     let (mut rd, mut wr) = stream.into_split();
     let line = request_line(&mut rd).await;
@@ -389,7 +389,7 @@ async fn client(
         let _ = write_within(&mut wr, answer.as_bytes()).await;
         return;
     }
-    let request = match line.and_then(|l| Ok(Request::parse(l.trim_end_matches('\r'))?)) {
+    let request = match line.and_then(|l| Ok(CaptureRequest::parse(l.trim_end_matches('\r'))?)) {
         Ok(r) => r,
         Err(why) => {
             debug!("control socket: bad request: {why}");
@@ -415,7 +415,7 @@ async fn client(
         }
     };
     info!("capture started: {request}");
-    let mut run = Run {
+    let mut run = CaptureRun {
         sub,
         request,
         packets: 0,
@@ -448,16 +448,16 @@ async fn reloaded(reload: Option<ReloadHandle>) -> String {
     }
 }
 
-struct Run {
+struct CaptureRun {
     sub: Subscription,
-    request: Request,
+    request: CaptureRequest,
     packets: u64,
     /// Packets written, by interface.
     written: Vec<u64>,
     start_us: u64,
 }
 
-impl Run {
+impl CaptureRun {
     /// Streams the capture to `wr`; returns why it ended.
     async fn stream(
         &mut self,
@@ -589,7 +589,7 @@ mod tests {
     /// A slot is given back however its holder ends: dropped, or its task panicking.
     #[tokio::test]
     async fn slots_are_given_back_on_every_path() {
-        let slots = Slots::new(2);
+        let slots = TaskSlots::new(2);
         let a = slots.take().unwrap();
         let b = slots.take().unwrap();
         assert!(slots.take().is_none());

@@ -35,8 +35,8 @@ impl Beside for () {}
 
 /// A channel: its first sender, and its receiver; `more` kept beside the queue.
 pub(crate) fn channel<T, X: Beside>(more: X) -> (Sender<T, X>, Receiver<T, X>) {
-    let shared = Arc::new(Shared {
-        state: Mutex::new(State {
+    let shared = Arc::new(SharedQueue {
+        state: Mutex::new(QueueState {
             items: VecDeque::new(),
             senders: 1,
             open: true,
@@ -51,20 +51,20 @@ pub(crate) fn channel<T, X: Beside>(more: X) -> (Sender<T, X>, Receiver<T, X>) {
 }
 
 /// The state both ends share.
-pub(crate) struct Shared<T, X> {
-    state: Mutex<State<T, X>>,
+pub(crate) struct SharedQueue<T, X> {
+    state: Mutex<QueueState<T, X>>,
 }
 
-impl<T, X> Shared<T, X> {
+impl<T, X> SharedQueue<T, X> {
     /// The state, locked.
-    pub(crate) fn lock(&self) -> MutexGuard<'_, State<T, X>> {
+    pub(crate) fn lock(&self) -> MutexGuard<'_, QueueState<T, X>> {
         // Nothing panics while holding it (the module notes).
         self.state.lock().unwrap_or_else(|e| e.into_inner())
     }
 }
 
 /// The queue, its counts, and what its user keeps beside it.
-pub(crate) struct State<T, X> {
+pub(crate) struct QueueState<T, X> {
     /// Sent and not yet taken, in the order sent.
     items: VecDeque<T>,
     /// Senders alive (the module notes).
@@ -77,7 +77,7 @@ pub(crate) struct State<T, X> {
     pub(crate) more: X,
 }
 
-impl<T, X> State<T, X> {
+impl<T, X> QueueState<T, X> {
     /// Items sent and not yet taken.
     pub(crate) fn len(&self) -> usize {
         self.items.len()
@@ -104,17 +104,17 @@ fn wake(waker: Option<Waker>) {
 /// One end that may send. Dropping it is its leaving.
 pub(crate) struct Sender<T, X> {
     /// Always there but in `send_and_leave`, which leaves the count as it goes.
-    shared: Option<Arc<Shared<T, X>>>,
+    shared: Option<Arc<SharedQueue<T, X>>>,
 }
 
 impl<T, X> Sender<T, X> {
     /// The state both ends share (a reply's slot keeps it).
-    pub(crate) fn shared(&self) -> &Arc<Shared<T, X>> {
+    pub(crate) fn shared(&self) -> &Arc<SharedQueue<T, X>> {
         self.shared.as_ref().expect("there until it leaves")
     }
 
     /// The state, locked.
-    pub(crate) fn lock(&self) -> MutexGuard<'_, State<T, X>> {
+    pub(crate) fn lock(&self) -> MutexGuard<'_, QueueState<T, X>> {
         self.shared().lock()
     }
 
@@ -123,7 +123,7 @@ impl<T, X> Sender<T, X> {
     pub(crate) fn send_if(
         &self,
         item: T,
-        room: impl FnOnce(&State<T, X>) -> bool,
+        room: impl FnOnce(&QueueState<T, X>) -> bool,
     ) -> Result<(), T> {
         let receiver = {
             let mut s = self.lock();
@@ -152,7 +152,7 @@ impl<T, X> Sender<T, X> {
 
     /// Another sender, counted under the lock `s` its caller holds: `s` must be this
     /// channel's.
-    pub(crate) fn clone_locked(&self, s: &mut State<T, X>) -> Self {
+    pub(crate) fn clone_locked(&self, s: &mut QueueState<T, X>) -> Self {
         s.senders += 1;
         Sender {
             shared: self.shared.clone(),
@@ -186,7 +186,7 @@ impl<T, X> Drop for Sender<T, X> {
 /// The receiving end. Dropping it closes the channel: what was sent and not taken is
 /// dropped, and nothing more is queued.
 pub(crate) struct Receiver<T, X: Beside> {
-    shared: Arc<Shared<T, X>>,
+    shared: Arc<SharedQueue<T, X>>,
 }
 
 impl<T, X: Beside> Receiver<T, X> {
@@ -286,7 +286,7 @@ mod tests {
     }
 
     /// An item that locks the state as it drops, as a reply's slot does.
-    struct Locks(Arc<Shared<Locks, Rooms>>);
+    struct Locks(Arc<SharedQueue<Locks, Rooms>>);
 
     impl Drop for Locks {
         fn drop(&mut self) {

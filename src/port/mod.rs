@@ -7,6 +7,7 @@
 //! `Box<dyn Port>`: one indirect call per read or write, next to a system call each.
 
 pub mod duplex;
+pub(crate) mod fd;
 pub mod kind;
 pub(crate) mod lifecycle;
 pub mod serial;

@@ -80,7 +80,7 @@ pub(super) struct InFlight<R> {
     policies: Box<[UnitPolicy]>,
     /// The learned timeouts of the units that have one, once they had a request.
     learned: IdMap<u8, Learned>,
-    units: Units,
+    units: UnitHealth,
 }
 
 impl<R: Asked> InFlight<R> {
@@ -91,7 +91,7 @@ impl<R: Asked> InFlight<R> {
             probe_timeout: Duration::ZERO,
             policies: Box::default(),
             learned: IdMap::default(),
-            units: Units::new(cfg, unit_backoff),
+            units: UnitHealth::new(cfg, unit_backoff),
         };
         t.retune(cfg, tables);
         t
@@ -262,7 +262,7 @@ impl<R: Asked> InFlight<R> {
 /// Per-unit health on an RTU/ASCII bus: a unit that timed out `after` times in a row
 /// is backed off for an interval that doubles (from `min` up to `max`) each time a
 /// probe fails; a reply forgets it all.
-struct Units {
+struct UnitHealth {
     enabled: bool,
     after: u32,
     min: Duration,
@@ -279,7 +279,7 @@ struct Health {
     until: Option<Instant>,
 }
 
-impl Units {
+impl UnitHealth {
     fn new(cfg: &RelayConfig, enabled: bool) -> Self {
         let max = Duration::from_millis(cfg.unit_backoff_max_ms);
         Self {
@@ -410,7 +410,7 @@ mod tests {
             unit_backoff_max_ms: 300,
             ..RelayConfig::default()
         };
-        let mut u = Units::new(&cfg, true);
+        let mut u = UnitHealth::new(&cfg, true);
         let t0 = Instant::now();
         assert_eq!(u.timed_out(5, t0), None);
         assert!(!u.backed_off(5, t0));
@@ -435,7 +435,7 @@ mod tests {
         assert_eq!(u.timed_out(5, t0), None);
         // Broadcasts and a disabled backoff never back off.
         assert_eq!(u.timed_out(0, t0), None);
-        let mut off = Units::new(&cfg, false);
+        let mut off = UnitHealth::new(&cfg, false);
         assert_eq!((off.timed_out(5, t0), off.timed_out(5, t0)), (None, None));
     }
 

@@ -3,7 +3,7 @@
 //! frames in what came; the first setting where most of it is whole frames is the
 //! bus's, reported with its units, function codes, request rate and reply times.
 
-use super::probe::{Framing, Setting};
+use super::probe::{ProbeSetting, SerialFraming};
 use super::sniff::{self, Traffic};
 use super::{Progress, ScanError};
 use crate::wire::uart::Format;
@@ -13,9 +13,9 @@ use tokio_util::sync::CancellationToken;
 
 /// What listening found.
 #[derive(Debug, Default)]
-pub(crate) struct Heard {
+pub(crate) struct Overheard {
     /// The bus's setting and what it carried, when one was heard.
-    pub(super) at: Option<((u32, Format, Framing), Traffic)>,
+    pub(super) at: Option<((u32, Format, SerialFraming), Traffic)>,
     /// How long it listened at that setting.
     pub(super) listened: Duration,
     /// Settings listened at.
@@ -30,13 +30,13 @@ pub(crate) struct Heard {
 /// setting, with `all` false or not: a bus has one setting). Never writes.
 pub(super) async fn listen(
     path: &str,
-    settings: &[Setting],
+    settings: &[ProbeSetting],
     window: Duration,
     stop: &CancellationToken,
     progress: &mut Progress,
-) -> Result<Heard, ScanError> {
+) -> Result<Overheard, ScanError> {
     let started = Instant::now();
-    let mut heard = Heard::default();
+    let mut heard = Overheard::default();
     for (i, s) in settings.iter().enumerate() {
         if stop.is_cancelled() {
             break;
@@ -103,7 +103,7 @@ fn p50_max(times: &[Duration]) -> Option<(u128, u128)> {
 }
 
 /// The report as a table and a `[[line]]` block; or "nothing heard" and a hint.
-pub(super) fn table(h: &Heard, target: &str) -> String {
+pub(super) fn table(h: &Overheard, target: &str) -> String {
     use std::fmt::Write as _;
     let mut s = String::new();
     let Some(((baud, format, framing), t)) = &h.at else {
@@ -173,7 +173,7 @@ pub(super) fn table(h: &Heard, target: &str) -> String {
 }
 
 /// The report as one JSON object.
-pub(super) fn json(h: &Heard, target: &str) -> String {
+pub(super) fn json(h: &Overheard, target: &str) -> String {
     let (setting, units, rate, frames) = match &h.at {
         None => ("null".to_string(), String::new(), 0.0, 0),
         Some(((baud, format, framing), t)) => {

@@ -10,7 +10,7 @@ mod serial;
 pub mod sniff;
 mod tcp;
 
-use probe::{Framing, Heard, Units};
+use probe::{Heard, SerialFraming, UnitList};
 use std::io::IsTerminal;
 use std::time::{Duration, Instant};
 use tokio_util::sync::CancellationToken;
@@ -29,9 +29,9 @@ pub struct ScanOptions {
     /// The formats to try, in order [default: 8E1,8N1,8N2,8O1]
     pub format: Vec<Format>,
     /// The framings to try, in order [default: rtu,ascii]
-    pub framing: Vec<Framing>,
+    pub framing: Vec<SerialFraming>,
     /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
-    pub units: Units,
+    pub units: UnitList,
     /// How long a device may take to answer, beyond the request's and the reply's own
     /// time on the wire (a later reply still counts, in the next units' time).
     pub timeout_ms: u64,
@@ -71,7 +71,7 @@ pub enum ScanError {
 }
 
 /// A baud rate, format and framing.
-pub type SerialSetting = (u32, Format, Framing);
+pub type SerialSetting = (u32, Format, SerialFraming);
 
 /// A unit that answered.
 #[derive(Debug, Clone)]
@@ -79,7 +79,7 @@ pub struct Found {
     /// Its id.
     pub unit: u8,
     /// Its setting (none on TCP).
-    pub serial: Option<(u32, Format, Framing)>,
+    pub serial: Option<(u32, Format, SerialFraming)>,
     /// What it answered to the read.
     pub answered: String,
     /// Its read device identification objects, or why none.
@@ -121,7 +121,7 @@ pub struct Report {
     /// The units that answered.
     pub found: Vec<Found>,
     /// Settings where bytes came but no frame with a good check.
-    pub garbage: Vec<(u32, Format, Framing)>,
+    pub garbage: Vec<(u32, Format, SerialFraming)>,
     /// Settings where whole frames with a good check came that answered no request:
     /// the first one's unit and function code.
     pub unanswering: Vec<(SerialSetting, (u8, u8))>,
@@ -137,7 +137,7 @@ pub struct Report {
 
 /// What a scan found: with `--listen`, what was heard; else the report.
 pub(crate) enum Scanned {
-    Heard(listen::Heard),
+    Heard(listen::Overheard),
     Report(Report),
 }
 
@@ -182,7 +182,7 @@ impl Scanned {
 
 /// The settings `--listen` tries: each baud rate and format once (the wide ones
 /// first), every framing judged on what came.
-fn settings_of(args: &ScanOptions) -> Result<(Vec<probe::Setting>, Vec<SerialSetting>), ScanError> {
+fn settings_of(args: &ScanOptions) -> Result<(Vec<probe::ProbeSetting>, Vec<SerialSetting>), ScanError> {
     let bauds = if args.baud.is_empty() {
         probe::DEFAULT_BAUDS.to_vec()
     } else {
@@ -203,7 +203,7 @@ fn settings_of(args: &ScanOptions) -> Result<(Vec<probe::Setting>, Vec<SerialSet
         return Err(ScanError::Option(format!("--format {f}: 7 or 8 data bits")));
     }
     let framings = if args.framing.is_empty() {
-        vec![Framing::Rtu, Framing::Ascii]
+        vec![SerialFraming::Rtu, SerialFraming::Ascii]
     } else {
         args.framing.clone()
     };
@@ -219,7 +219,7 @@ async fn listening(
     args: &ScanOptions,
     stop: CancellationToken,
     mut progress: Progress,
-) -> Result<listen::Heard, ScanError> {
+) -> Result<listen::Overheard, ScanError> {
     if !(0.1..=3600.0).contains(&args.listen_secs) {
         return Err(ScanError::Option(format!(
             "--listen-secs {}: 0.1 to 3600",
@@ -236,13 +236,13 @@ async fn listening(
             }
             v
         });
-    let mut once: Vec<probe::Setting> = Vec::new();
+    let mut once: Vec<probe::ProbeSetting> = Vec::new();
     for s in settings {
         if !once
             .iter()
             .any(|o| o.baud == s.baud && o.format == s.format)
         {
-            once.push(probe::Setting {
+            once.push(probe::ProbeSetting {
                 framings: framings.clone(),
                 ..s
             });
@@ -454,7 +454,7 @@ pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanOptions) -> St
         );
     }
     let _ = writeln!(s, "\nFor mbgate.toml:\n");
-    let mut settings: Vec<Option<(u32, Format, Framing)>> = Vec::new();
+    let mut settings: Vec<Option<(u32, Format, SerialFraming)>> = Vec::new();
     for f in &report.found {
         if !settings.contains(&f.serial) {
             settings.push(f.serial);

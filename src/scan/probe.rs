@@ -9,19 +9,19 @@ use crate::wire::uart::Format;
 
 /// A serial framing the scan tries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum Framing {
+pub enum SerialFraming {
     /// Modbus RTU: binary, CRC-16.
     Rtu,
     /// Modbus ASCII: hex between `:` and CR LF, LRC.
     Ascii,
 }
 
-impl Framing {
+impl SerialFraming {
     /// As the configuration spells it.
     pub fn name(self) -> &'static str {
         match self {
-            Framing::Rtu => "rtu",
-            Framing::Ascii => "ascii",
+            SerialFraming::Rtu => "rtu",
+            SerialFraming::Ascii => "ascii",
         }
     }
 
@@ -29,8 +29,8 @@ impl Framing {
     /// this enum is only the flag's values, which the pure frame code stays free of.
     pub fn codec(self) -> Codec {
         match self {
-            Framing::Rtu => Codec::Rtu,
-            Framing::Ascii => Codec::Ascii,
+            SerialFraming::Rtu => Codec::Rtu,
+            SerialFraming::Ascii => Codec::Ascii,
         }
     }
 }
@@ -45,26 +45,26 @@ pub const DEFAULT_FORMATS: [&str; 4] = ["8E1", "8N1", "8N2", "8O1"];
 /// The settings at which every unit id is tried, in this order (docs/scan.md, "What
 /// it tries"): RTU then ASCII at 19 200 and 9600 baud, 8E1 and 8N1, most buses' settings.
 /// Elsewhere a setting is left after `--give-up` silent units.
-pub const WIDE: [(u32, &str, Framing); 8] = [
-    (19200, "8E1", Framing::Rtu),
-    (9600, "8N1", Framing::Rtu),
-    (19200, "8N1", Framing::Rtu),
-    (9600, "8E1", Framing::Rtu),
-    (19200, "8E1", Framing::Ascii),
-    (9600, "8N1", Framing::Ascii),
-    (19200, "8N1", Framing::Ascii),
-    (9600, "8E1", Framing::Ascii),
+pub const WIDE: [(u32, &str, SerialFraming); 8] = [
+    (19200, "8E1", SerialFraming::Rtu),
+    (9600, "8N1", SerialFraming::Rtu),
+    (19200, "8N1", SerialFraming::Rtu),
+    (9600, "8E1", SerialFraming::Rtu),
+    (19200, "8E1", SerialFraming::Ascii),
+    (9600, "8N1", SerialFraming::Ascii),
+    (19200, "8N1", SerialFraming::Ascii),
+    (9600, "8E1", SerialFraming::Ascii),
 ];
 
 /// One setting of the port, with the framings tried on it while it is open.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Setting {
+pub struct ProbeSetting {
     /// Bits per second.
     pub baud: u32,
     /// Data bits, parity, stop bits.
     pub format: Format,
     /// Tried in this order.
-    pub framings: Vec<Framing>,
+    pub framings: Vec<SerialFraming>,
 }
 
 /// Every combination of `bauds` × `formats` × `framings`, in that order of importance,
@@ -74,13 +74,14 @@ pub struct Setting {
 pub fn order(
     bauds: &[u32],
     formats: &[Format],
-    framings: &[Framing],
-    first: &[(u32, Format, Framing)],
-) -> Vec<Setting> {
-    let wanted = |&(b, f, fr): &(u32, Format, Framing)| {
+    framings: &[SerialFraming],
+    first: &[(u32, Format, SerialFraming)],
+) -> Vec<ProbeSetting> {
+    let wanted = |&(b, f, fr): &(u32, Format, SerialFraming)| {
         bauds.contains(&b) && formats.contains(&f) && framings.contains(&fr)
     };
-    let mut triples: Vec<(u32, Format, Framing)> = first.iter().copied().filter(wanted).collect();
+    let mut triples: Vec<(u32, Format, SerialFraming)> =
+        first.iter().copied().filter(wanted).collect();
     for &b in bauds {
         for &f in formats {
             for &fr in framings {
@@ -90,11 +91,11 @@ pub fn order(
             }
         }
     }
-    let mut out: Vec<Setting> = Vec::new();
+    let mut out: Vec<ProbeSetting> = Vec::new();
     for (baud, format, framing) in triples {
         match out.last_mut() {
             Some(s) if s.baud == baud && s.format == format => s.framings.push(framing),
-            _ => out.push(Setting {
+            _ => out.push(ProbeSetting {
                 baud,
                 format,
                 framings: vec![framing],
@@ -149,7 +150,7 @@ const SEARCH_LIMIT: usize = 600;
 /// read). The request's own echo
 /// at the front (an RS-232 loopback, a 2-wire RS-485 adapter) is skipped. Any start
 /// and length is tried, so garbage before or after a reply does not hide it.
-pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> Heard {
+pub fn judge(framing: SerialFraming, request: &[u8], function: u8, bytes: &[u8]) -> Heard {
     let bytes = bytes.strip_prefix(request).unwrap_or(bytes);
     let bytes = &bytes[..bytes.len().min(SEARCH_LIMIT)];
     if bytes.is_empty() {
@@ -160,7 +161,7 @@ pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> He
     let reads = |f: u8| f == 3 || f == 4;
     let answers = |fc: u8| fc & 0x7F == function || (reads(function) && reads(fc & 0x7F));
     match framing {
-        Framing::Rtu => {
+        SerialFraming::Rtu => {
             for i in 0..bytes.len() {
                 if bytes.len() - i < 4 || !answers(bytes[i + 1]) {
                     continue;
@@ -182,7 +183,7 @@ pub fn judge(framing: Framing, request: &[u8], function: u8, bytes: &[u8]) -> He
                 }
             }
         }
-        Framing::Ascii => {
+        SerialFraming::Ascii => {
             let mut start = 0;
             let mut other = None;
             while let Some(colon) = bytes[start..].iter().position(|&b| b == b':') {
@@ -362,12 +363,12 @@ pub struct BadUnits(String);
 
 /// A list of unit ids: `1-247`, `1,2,10-20`.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Units(pub Vec<u8>);
+pub struct UnitList(pub Vec<u8>);
 
-impl std::str::FromStr for Units {
+impl std::str::FromStr for UnitList {
     type Err = BadUnits;
 
-    fn from_str(s: &str) -> Result<Units, BadUnits> {
+    fn from_str(s: &str) -> Result<UnitList, BadUnits> {
         let mut out = Vec::new();
         for part in s.split(',') {
             let bad = || BadUnits(part.to_owned());
@@ -387,7 +388,7 @@ impl std::str::FromStr for Units {
             }
         }
         out.dedup();
-        Ok(Units(out))
+        Ok(UnitList(out))
     }
 }
 
@@ -403,29 +404,29 @@ mod tests {
     fn the_likeliest_settings_come_first_and_share_an_open() {
         let formats: Vec<Format> = DEFAULT_FORMATS.iter().map(|s| f(s)).collect();
         let first = [
-            (19200, f("8E1"), Framing::Rtu),
-            (9600, f("8N1"), Framing::Rtu),
+            (19200, f("8E1"), SerialFraming::Rtu),
+            (9600, f("8N1"), SerialFraming::Rtu),
         ];
         let o = order(
             &DEFAULT_BAUDS,
             &formats,
-            &[Framing::Rtu, Framing::Ascii],
+            &[SerialFraming::Rtu, SerialFraming::Ascii],
             &first,
         );
         assert_eq!(o[0].baud, 19200);
         assert_eq!(o[0].format, f("8E1"));
-        assert_eq!(o[0].framings, vec![Framing::Rtu]);
+        assert_eq!(o[0].framings, vec![SerialFraming::Rtu]);
         assert_eq!((o[1].baud, o[1].format), (9600, f("8N1")));
         // Every combination once: 8 × 4 × 2.
         let tries: usize = o.iter().map(|s| s.framings.len()).sum();
         assert_eq!(tries, 64);
         // 19200 8E1 ASCII comes later, in its own open.
         assert_eq!(o[2].baud, 19200);
-        assert_eq!(o[2].framings, vec![Framing::Ascii]);
+        assert_eq!(o[2].framings, vec![SerialFraming::Ascii]);
         // A first setting not asked for is not tried.
-        let o = order(&[1200], &[f("8N1")], &[Framing::Ascii], &first);
+        let o = order(&[1200], &[f("8N1")], &[SerialFraming::Ascii], &first);
         assert_eq!(o.len(), 1);
-        assert_eq!(o[0].framings, vec![Framing::Ascii]);
+        assert_eq!(o[0].framings, vec![SerialFraming::Ascii]);
     }
 
     #[test]
@@ -433,7 +434,7 @@ mod tests {
         let req = rtu::encode(5, &read_one(3));
         let reply = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
         assert_eq!(
-            judge(Framing::Rtu, &req, 3, &reply),
+            judge(SerialFraming::Rtu, &req, 3, &reply),
             Heard::Frame {
                 unit: 5,
                 pdu: vec![0x03, 0x02, 0x00, 0xFF]
@@ -445,24 +446,24 @@ mod tests {
         noisy.extend(&reply);
         noisy.push(0x77);
         assert!(matches!(
-            judge(Framing::Rtu, &req, 3, &noisy),
+            judge(SerialFraming::Rtu, &req, 3, &noisy),
             Heard::Frame { unit: 5, .. }
         ));
         // An exception is a reply.
         let exc = rtu::encode(5, &[0x83, 0x02]);
         assert!(matches!(
-            judge(Framing::Rtu, &req, 3, &exc),
+            judge(SerialFraming::Rtu, &req, 3, &exc),
             Heard::Frame { .. }
         ));
         // The echo alone is nothing; a bad CRC is garbage; a good frame of another
         // function is not this request's.
-        assert_eq!(judge(Framing::Rtu, &req, 3, &req), Heard::Nothing);
+        assert_eq!(judge(SerialFraming::Rtu, &req, 3, &req), Heard::Nothing);
         let mut bad = reply.clone();
         bad[3] ^= 1;
-        assert_eq!(judge(Framing::Rtu, &req, 3, &bad), Heard::Garbage(7));
+        assert_eq!(judge(SerialFraming::Rtu, &req, 3, &bad), Heard::Garbage(7));
         let other = rtu::encode(5, &[0x11, 0x02, 0x00, 0xFF]);
         assert_eq!(
-            judge(Framing::Rtu, &req, 3, &other),
+            judge(SerialFraming::Rtu, &req, 3, &other),
             Heard::Unanswering {
                 unit: 5,
                 function: 0x11
@@ -471,14 +472,14 @@ mod tests {
         let mut other_noisy = other.clone();
         other_noisy.push(0x77);
         assert_eq!(
-            judge(Framing::Rtu, &req, 3, &other_noisy),
+            judge(SerialFraming::Rtu, &req, 3, &other_noisy),
             Heard::Garbage(8)
         );
         // FC 03's late reply while FC 04 is asked is a reply.
         let late = rtu::encode(5, &[0x03, 0x02, 0x00, 0xFF]);
         let req4 = rtu::encode(5, &read_one(4));
         assert!(matches!(
-            judge(Framing::Rtu, &req4, 4, &late),
+            judge(SerialFraming::Rtu, &req4, 4, &late),
             Heard::Frame { .. }
         ));
         // ASCII: the LRC is checked.
@@ -487,19 +488,19 @@ mod tests {
         let mut noisy = b"\x00zz".to_vec();
         noisy.extend(&reply);
         assert!(matches!(
-            judge(Framing::Ascii, &req, 4, &noisy),
+            judge(SerialFraming::Ascii, &req, 4, &noisy),
             Heard::Frame { unit: 7, .. }
         ));
         let mut bad = reply.clone();
         bad[5] = b'F';
         assert!(matches!(
-            judge(Framing::Ascii, &req, 4, &bad),
+            judge(SerialFraming::Ascii, &req, 4, &bad),
             Heard::Garbage(_)
         ));
-        assert_eq!(judge(Framing::Ascii, &req, 4, b""), Heard::Nothing);
+        assert_eq!(judge(SerialFraming::Ascii, &req, 4, b""), Heard::Nothing);
         let other = ascii::encode(7, &[0x06, 0x00, 0x00, 0x00, 0x2A]);
         assert_eq!(
-            judge(Framing::Ascii, &req, 4, &other),
+            judge(SerialFraming::Ascii, &req, 4, &other),
             Heard::Unanswering {
                 unit: 7,
                 function: 6
@@ -574,11 +575,11 @@ mod tests {
 
     #[test]
     fn unit_lists_parse() {
-        assert_eq!("1-3,7".parse::<Units>().unwrap().0, vec![1, 2, 3, 7]);
-        assert_eq!("1-247".parse::<Units>().unwrap().0.len(), 247);
-        assert!("0".parse::<Units>().is_err());
-        assert!("248".parse::<Units>().is_err());
-        assert!("5-2".parse::<Units>().is_err());
+        assert_eq!("1-3,7".parse::<UnitList>().unwrap().0, vec![1, 2, 3, 7]);
+        assert_eq!("1-247".parse::<UnitList>().unwrap().0.len(), 247);
+        assert!("0".parse::<UnitList>().is_err());
+        assert!("248".parse::<UnitList>().is_err());
+        assert!("5-2".parse::<UnitList>().is_err());
     }
 
     mod props {

@@ -3,7 +3,7 @@
 //! 3.5-character gap before it, kept with the line's microsecond timer, and a reply
 //! awaited for its time on the wire plus the timeout.
 
-use super::probe::{self, AtSetting, Framing, Heard, Setting};
+use super::probe::{self, AtSetting, Heard, ProbeSetting, SerialFraming};
 use super::{Found, Progress, Report, ScanError, SerialSetting};
 use crate::config::{FlowControl, Parity as CfgParity, SerialConfig};
 use crate::port::serial::PreciseTimer;
@@ -25,7 +25,7 @@ const LONGEST_PDU: usize = 253;
 struct OpenSetting<'a> {
     port: SerialStream,
     timer: &'a mut PreciseTimer,
-    setting: &'a Setting,
+    setting: &'a ProbeSetting,
     /// When the line last carried a byte: the gap before a request counts from it.
     last: Instant,
     timeout: Duration,
@@ -45,7 +45,7 @@ impl OpenSetting<'_> {
 
     /// The longest a try at `framing` waits for a read's reply, the request's time
     /// included: the budget of the time left.
-    fn read_cost(&self, framing: Framing) -> Duration {
+    fn read_cost(&self, framing: SerialFraming) -> Duration {
         let chars = framing.codec().encoded_len(5) + framing.codec().encoded_len(4);
         self.char_time() * chars as u32 + self.timeout
     }
@@ -53,7 +53,12 @@ impl OpenSetting<'_> {
     /// Sends `pdu` to `unit` after the 3.5-character gap, and returns what came back:
     /// as soon as a frame with a good check answers it, else after the request's and
     /// the longest reply's time on the wire plus the timeout.
-    async fn ask(&mut self, framing: Framing, unit: u8, pdu: &[u8]) -> Result<Heard, ScanError> {
+    async fn ask(
+        &mut self,
+        framing: SerialFraming,
+        unit: u8,
+        pdu: &[u8],
+    ) -> Result<Heard, ScanError> {
         let gap = Duration::from_micros(crate::frame::rtu::t35_us(
             self.setting.baud,
             self.setting.format.bits(),
@@ -105,7 +110,7 @@ impl OpenSetting<'_> {
     /// first byte past the echo came.
     async fn hear(
         &mut self,
-        framing: Framing,
+        framing: SerialFraming,
         request: &[u8],
         function: u8,
         deadline: Instant,
@@ -144,7 +149,11 @@ impl OpenSetting<'_> {
 
     /// Reads for `how_long` without asking, and judges what came as a late reply
     /// to a read.
-    async fn linger(&mut self, framing: Framing, how_long: Duration) -> Result<Heard, ScanError> {
+    async fn linger(
+        &mut self,
+        framing: SerialFraming,
+        how_long: Duration,
+    ) -> Result<Heard, ScanError> {
         let deadline = Instant::now() + how_long;
         Ok(self.hear(framing, &[], 3, deadline).await?.0)
     }
@@ -155,8 +164,8 @@ impl OpenSetting<'_> {
     /// just cleared what was queued), which ends any frame; ASCII, CR LF, which ends
     /// whatever a ':' of garbage began, so the device drops it as a bad frame and
     /// hears the next ':' afresh.
-    async fn clear_receiver(&mut self, framing: Framing) -> Result<(), ScanError> {
-        if framing == Framing::Ascii {
+    async fn clear_receiver(&mut self, framing: SerialFraming) -> Result<(), ScanError> {
+        if framing == SerialFraming::Ascii {
             self.port.write_all(b"\r\n").await?;
             self.last = Instant::now() + self.char_time() * 2;
         } else {
@@ -168,7 +177,7 @@ impl OpenSetting<'_> {
 
 /// The port's configuration at `s`: no flow control (a scan needs none, and a bus
 /// adapter wires none).
-pub(super) fn config(path: &str, s: &Setting) -> SerialConfig {
+pub(super) fn config(path: &str, s: &ProbeSetting) -> SerialConfig {
     SerialConfig {
         path: path.to_string(),
         baud_rate: s.baud,
@@ -188,7 +197,7 @@ pub(super) fn config(path: &str, s: &Setting) -> SerialConfig {
 #[allow(clippy::too_many_arguments)]
 pub(super) async fn scan(
     path: &str,
-    settings: &[Setting],
+    settings: &[ProbeSetting],
     units: &[u8],
     give_up: usize,
     wide: &[SerialSetting],
@@ -200,7 +209,7 @@ pub(super) async fn scan(
     let mut report = Report::default();
     let mut timer = PreciseTimer::new()?;
     // Every unit at a wide setting; the first `give_up` elsewhere, until proven.
-    let limit = |s: &Setting, f: Framing| {
+    let limit = |s: &ProbeSetting, f: SerialFraming| {
         if wide.contains(&(s.baud, s.format, f)) {
             units.len()
         } else {
@@ -371,7 +380,7 @@ pub(super) async fn scan(
 
 impl OpenSetting<'_> {
     /// [`OpenSetting::read_cost`] of a setting not open yet.
-    fn cost(s: &Setting, framing: Framing, timeout: Duration) -> Duration {
+    fn cost(s: &ProbeSetting, framing: SerialFraming, timeout: Duration) -> Duration {
         let char_time = Duration::from_nanos(
             (u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)),
         );

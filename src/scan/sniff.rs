@@ -4,14 +4,14 @@
 //! (same unit, same function or its exception), and per unit the function codes, the
 //! counts and the reply times (Modbus Application Protocol V1.1b3 §6 for the shapes).
 
-use super::probe::Framing;
+use super::probe::SerialFraming;
 use crate::frame::{ascii, rtu};
 use std::collections::{BTreeMap, BTreeSet};
 use std::time::Duration;
 
 /// A frame seen on the bus, with the times its first and last bytes came.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Seen {
+pub struct SniffedFrame {
     /// The unit in it.
     pub unit: u8,
     /// Its function code (with the exception bit when it is one).
@@ -101,7 +101,7 @@ fn rtu_lengths(b: &[u8]) -> Vec<usize> {
 
 /// The frames with a good check in `chunks` (each the bytes of one read and when it
 /// came), in order.
-pub fn frames(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
+pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<SniffedFrame> {
     let mut bytes = Vec::new();
     let mut times = Vec::new();
     for (t, c) in chunks {
@@ -111,7 +111,7 @@ pub fn frames(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
     let mut out = Vec::new();
     let mut i = 0;
     match framing {
-        Framing::Rtu => {
+        SerialFraming::Rtu => {
             while i + 4 <= bytes.len() {
                 let found = rtu_lengths(&bytes[i..]).into_iter().find_map(|len| {
                     let frame = bytes.get(i..i + len)?;
@@ -120,7 +120,7 @@ pub fn frames(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
                 });
                 match found {
                     Some((unit, function, len)) => {
-                        out.push(Seen {
+                        out.push(SniffedFrame {
                             unit,
                             function,
                             start: times[i],
@@ -133,7 +133,7 @@ pub fn frames(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
                 }
             }
         }
-        Framing::Ascii => {
+        SerialFraming::Ascii => {
             while let Some(colon) = bytes[i..].iter().position(|&b| b == b':') {
                 let from = i + colon;
                 let Some(lf) = bytes[from..].iter().position(|&b| b == b'\n') else {
@@ -147,7 +147,7 @@ pub fn frames(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
                     .map_or(from, |k| from + k);
                 if let Some((unit, pdu)) = ascii::decode(&bytes[start..=to]) {
                     if let Some(&function) = pdu.first() {
-                        out.push(Seen {
+                        out.push(SniffedFrame {
                             unit,
                             function,
                             start: times[start],
@@ -166,7 +166,7 @@ pub fn frames(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Vec<Seen> {
 /// The traffic in `chunks`: each frame that follows a request to the same unit with
 /// its function (or the exception form), and comes after it, is its reply; any other
 /// frame is a request.
-pub fn traffic(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Traffic {
+pub fn traffic(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Traffic {
     let seen = frames(framing, chunks);
     let mut t = Traffic {
         frames: seen.len(),
@@ -174,7 +174,7 @@ pub fn traffic(framing: Framing, chunks: &[(Duration, Vec<u8>)]) -> Traffic {
         framed: seen.iter().map(|f| f.len).sum(),
         units: BTreeMap::new(),
     };
-    let mut pending: Option<&Seen> = None;
+    let mut pending: Option<&SniffedFrame> = None;
     for f in &seen {
         let unit = t.units.entry(f.unit).or_default();
         match pending {
@@ -223,7 +223,7 @@ mod tests {
             (ms(300), req),
             (ms(318), rep),
         ];
-        let t = traffic(Framing::Rtu, &chunks);
+        let t = traffic(SerialFraming::Rtu, &chunks);
         assert_eq!(t.frames, 6);
         assert!(t.heard());
         assert_eq!(t.requests(), 3);
@@ -242,8 +242,8 @@ mod tests {
         let chunks: Vec<(Duration, Vec<u8>)> = (0..50)
             .map(|i| (ms(i), (0..20).map(|_| rng.u8(..)).collect()))
             .collect();
-        assert!(!traffic(Framing::Rtu, &chunks).heard());
-        assert!(!traffic(Framing::Ascii, &chunks).heard());
+        assert!(!traffic(SerialFraming::Rtu, &chunks).heard());
+        assert!(!traffic(SerialFraming::Ascii, &chunks).heard());
     }
 
     #[test]
@@ -258,7 +258,7 @@ mod tests {
             (ms(40), req),
             (ms(50), rep),
         ];
-        let t = traffic(Framing::Ascii, &chunks);
+        let t = traffic(SerialFraming::Ascii, &chunks);
         assert_eq!(t.frames, 4);
         assert_eq!(t.units[&12].replies, 2);
         assert_eq!(t.units[&12].times, vec![ms(20), ms(10)]);

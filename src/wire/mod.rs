@@ -7,12 +7,12 @@ pub(crate) mod pty;
 pub mod uart;
 
 use crate::port::serial::PreciseTimer;
-use pty::End;
+use pty::PtyEnd;
 use std::path::PathBuf;
 use std::time::Duration;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
-use uart::{Char, Format, Receiver, Setting, Transmitter};
+use uart::{Char, Format, UartReceiver, UartSetting, UartTransmitter};
 
 /// How one end's characters are framed and how fast: `[BAUD,]FORMAT`, FORMAT `8N1`,
 /// `8E1`... or `auto`.
@@ -118,7 +118,7 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
     let paths = [&args.paths[0], &args.paths[1]];
     let mut ends = Vec::new();
     for p in paths {
-        ends.push(End::open(p).map_err(|source| WireError::Make {
+        ends.push(PtyEnd::open(p).map_err(|source| WireError::Make {
             path: p.clone(),
             source,
         })?);
@@ -152,14 +152,15 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
     );
     let base = Instant::now();
     let ns = |t: Instant| (t - base).as_nanos() as u64;
-    let setting = |i: usize, ends: &[End]| -> std::io::Result<(Setting, uart::ErrorHandling)> {
-        let seen = ends[i].seen()?;
-        let baud = specs[i].baud.unwrap_or(seen.baud).max(1);
-        let format = specs[i].format.unwrap_or(seen.hinted);
-        Ok((Setting { baud, format }, seen.handling))
-    };
-    let mut tx = [Transmitter::default(), Transmitter::default()];
-    let mut rx = [Receiver::new(), Receiver::new()];
+    let setting =
+        |i: usize, ends: &[PtyEnd]| -> std::io::Result<(UartSetting, uart::ErrorHandling)> {
+            let seen = ends[i].seen()?;
+            let baud = specs[i].baud.unwrap_or(seen.baud).max(1);
+            let format = specs[i].format.unwrap_or(seen.hinted);
+            Ok((UartSetting { baud, format }, seen.handling))
+        };
+    let mut tx = [UartTransmitter::default(), UartTransmitter::default()];
+    let mut rx = [UartReceiver::new(), UartReceiver::new()];
     let mut counts = [Counts::default(), Counts::default()];
     let mut rng = fastrand::Rng::with_seed(args.seed);
     let mut timer = PreciseTimer::new()?;

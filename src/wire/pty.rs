@@ -3,6 +3,7 @@
 //! and the termios hints of its parity) read from the master side.
 
 use super::uart::{ErrorHandling, Format, Parity};
+use crate::port::fd::ReactorFd;
 use std::io;
 use std::os::fd::{AsRawFd, FromRawFd, OwnedFd, RawFd};
 use std::path::{Path, PathBuf};
@@ -10,9 +11,9 @@ use std::path::{Path, PathBuf};
 /// One end: the pty's master (the line reads what the program writes, and writes what
 /// it hears), its device held open too, and the link to it.
 #[derive(Debug)]
-pub(crate) struct End {
-    /// The master, non-blocking, on tokio's reactor.
-    pub(crate) master: tokio::io::unix::AsyncFd<OwnedFd>,
+pub(crate) struct PtyEnd {
+    /// The master, non-blocking, on tokio's reactor (registered for reading).
+    pub(crate) master: ReactorFd,
     /// The device end, held open by the line so that the master never reads EIO while
     /// no program has the device open, and its settings stay between programs.
     _device: OwnedFd,
@@ -24,7 +25,7 @@ pub(crate) struct End {
 
 /// What the program on an end has set, as its master reads it back.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) struct Seen {
+pub(crate) struct ProgramSettings {
     /// The output speed (termios2 `c_ospeed`).
     pub(crate) baud: u32,
     /// The parity and stop bits the termios still shows: a pty clears PARENB and
@@ -35,20 +36,13 @@ pub(crate) struct Seen {
     pub(crate) handling: ErrorHandling,
 }
 
-impl End {
+impl PtyEnd {
     /// A new pty, raw (no echo, no line editing, until a program sets its own), with
     /// `link` pointing at its device. An existing symbolic link at `link` is replaced;
     /// anything else there is an error.
-    pub(crate) fn open(link: &Path) -> io::Result<End> {
+    pub(crate) fn open(link: &Path) -> io::Result<PtyEnd> {
         let (master, device) = pair()?;
-        // SAFETY: plain fcntl calls on a valid descriptor.
-        #[allow(unsafe_code)]
-        let flags = unsafe { libc::fcntl(master.as_raw_fd(), libc::F_GETFL) };
-        // SAFETY: as above.
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::fcntl(master.as_raw_fd(), libc::F_SETFL, flags | libc::O_NONBLOCK)
-        };
+        let master = ReactorFd::new(master, tokio::io::Interest::READABLE)?;
         let path = std::fs::read_link(format!("/proc/self/fd/{}", device.as_raw_fd()))?;
         match std::fs::symlink_metadata(link) {
             Ok(m) if m.file_type().is_symlink() => std::fs::remove_file(link)?,
@@ -61,13 +55,7 @@ impl End {
             Err(_) => {}
         }
         std::os::unix::fs::symlink(&path, link)?;
-        // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
-        // which is when the `AsyncFd` holding it does.
-        #[allow(unsafe_code)]
-        let master = unsafe {
-            tokio::io::unix::AsyncFd::register_with_interest(master, tokio::io::Interest::READABLE)
-        }?;
-        Ok(End {
+        Ok(PtyEnd {
             master,
             _device: device,
             device: path,
@@ -76,17 +64,10 @@ impl End {
     }
 
     /// What the program on this end has set.
-    pub(crate) fn seen(&self) -> io::Result<Seen> {
-        // SAFETY: termios2 is plain data; zeroed is a valid value to be overwritten.
-        #[allow(unsafe_code)]
-        let mut t: libc::termios2 = unsafe { std::mem::zeroed() };
-        // SAFETY: TCGETS2 writes one termios2, which `t` is; on a master it reads the
-        // device end's settings (the kernel's tty_mode_ioctl takes the linked tty).
-        #[allow(unsafe_code)]
-        let r = unsafe { libc::ioctl(self.master.as_raw_fd(), libc::TCGETS2 as _, &mut t) };
-        if r != 0 {
-            return Err(io::Error::last_os_error());
-        }
+    pub(crate) fn seen(&self) -> io::Result<ProgramSettings> {
+        // On a master, TCGETS2 reads the device end's settings (the kernel's
+        // tty_mode_ioctl takes the linked tty).
+        let t = crate::port::serial::classic::get2(self.master.as_raw_fd())?;
         let parity = if t.c_cflag & libc::PARODD != 0 {
             Parity::Odd
         } else if t.c_iflag & libc::INPCK != 0 {
@@ -94,7 +75,7 @@ impl End {
         } else {
             Parity::None
         };
-        Ok(Seen {
+        Ok(ProgramSettings {
             baud: t.c_ospeed,
             hinted: Format {
                 data_bits: 8,
@@ -112,37 +93,25 @@ impl End {
 
     /// Reads what the program wrote, without blocking: `Ok(0)` when there is nothing.
     pub(crate) fn read(&self, buf: &mut [u8]) -> io::Result<usize> {
-        // SAFETY: `buf` is valid for `buf.len()` bytes for the call.
-        #[allow(unsafe_code)]
-        let n = unsafe { libc::read(self.master.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
-        if n < 0 {
-            let e = io::Error::last_os_error();
-            return match e.kind() {
-                io::ErrorKind::WouldBlock => Ok(0),
-                _ => Err(e),
-            };
-        }
-        Ok(n as usize)
+        zero_if_would_block(self.master.read(buf))
     }
 
     /// Hands bytes to the program, without blocking; how many the pty took (a program
     /// that does not read fills its buffer, and the rest are lost, as on a wire).
     pub(crate) fn write(&self, bytes: &[u8]) -> io::Result<usize> {
-        // SAFETY: `bytes` is valid for its length for the call.
-        #[allow(unsafe_code)]
-        let n = unsafe { libc::write(self.master.as_raw_fd(), bytes.as_ptr().cast(), bytes.len()) };
-        if n < 0 {
-            let e = io::Error::last_os_error();
-            return match e.kind() {
-                io::ErrorKind::WouldBlock => Ok(0),
-                _ => Err(e),
-            };
-        }
-        Ok(n as usize)
+        zero_if_would_block(self.master.write(bytes))
     }
 }
 
-impl Drop for End {
+/// A read or write that would block moved no bytes: 0, not an error.
+fn zero_if_would_block(r: io::Result<usize>) -> io::Result<usize> {
+    match r {
+        Err(e) if e.kind() == io::ErrorKind::WouldBlock => Ok(0),
+        r => r,
+    }
+}
+
+impl Drop for PtyEnd {
     fn drop(&mut self) {
         // Only our own link: a program may have put something else there since.
         if std::fs::read_link(&self.link).is_ok_and(|to| to == self.device) {

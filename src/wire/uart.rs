@@ -100,14 +100,14 @@ impl std::fmt::Display for Format {
 
 /// One end's UART: its baud rate and format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Setting {
+pub struct UartSetting {
     /// Bits per second (above 0).
     pub baud: u32,
     /// How it frames a character.
     pub format: Format,
 }
 
-impl Setting {
+impl UartSetting {
     /// A character's time on the wire, in nanoseconds, rounded up.
     pub fn char_ns(self) -> u64 {
         after_bits(self.format.bits(), self.baud)
@@ -162,7 +162,7 @@ pub struct Char {
 
 impl Char {
     /// `byte` sent at `setting` from `start`.
-    pub fn new(start: u64, byte: u8, setting: Setting) -> Char {
+    pub fn new(start: u64, byte: u8, setting: UartSetting) -> Char {
         Char {
             start,
             baud: setting.baud,
@@ -202,7 +202,7 @@ impl Char {
 
 /// What a UART made of a character it sampled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Received {
+pub enum Sampled {
     /// A good character.
     Byte(u8),
     /// Its parity bit was wrong: the data bits as sampled.
@@ -230,10 +230,10 @@ pub struct ErrorHandling {
 
 impl ErrorHandling {
     /// The bytes the program reads for `r`.
-    pub fn deliver(self, r: Received, out: &mut Vec<u8>) {
+    pub fn deliver(self, r: Sampled, out: &mut Vec<u8>) {
         match r {
-            Received::Byte(b) => out.push(b),
-            Received::Parity(b) | Received::Framing(b) => {
+            Sampled::Byte(b) => out.push(b),
+            Sampled::Parity(b) | Sampled::Framing(b) => {
                 if self.ignore {
                 } else if self.check && self.mark {
                     out.extend_from_slice(&[0xFF, 0x00, b]);
@@ -243,7 +243,7 @@ impl ErrorHandling {
                     out.push(b);
                 }
             }
-            Received::Break => {
+            Sampled::Break => {
                 if self.ignore_break {
                 } else if self.mark {
                     out.extend_from_slice(&[0xFF, 0x00, 0x00]);
@@ -261,7 +261,7 @@ impl ErrorHandling {
 /// bit found where the line is low (checked again half a bit later), each further bit
 /// sampled in its middle, the next start searched from the middle of the stop bit.
 #[derive(Debug, Default)]
-pub struct Receiver {
+pub struct UartReceiver {
     /// Characters on the line, ordered by start.
     chars: VecDeque<Char>,
     /// Where the search for the next start bit begins.
@@ -274,13 +274,13 @@ pub struct Arrival {
     /// When the receiver had the character: the end of its own last stop bit.
     pub at: u64,
     /// What it made of it.
-    pub what: Received,
+    pub what: Sampled,
 }
 
-impl Receiver {
+impl UartReceiver {
     /// A receiver on an idle line.
-    pub fn new() -> Receiver {
-        Receiver::default()
+    pub fn new() -> UartReceiver {
+        UartReceiver::default()
     }
 
     /// A character put on the line. Characters come in order of start, each starting
@@ -316,7 +316,7 @@ impl Receiver {
 
     /// The characters the receiver has taken by `now`, in order, and when the next
     /// may be due (none while the line stays idle). `now` must not go back.
-    pub fn poll(&mut self, now: u64, setting: Setting) -> (Vec<Arrival>, Option<u64>) {
+    pub fn poll(&mut self, now: u64, setting: UartSetting) -> (Vec<Arrival>, Option<u64>) {
         let mut out = Vec::new();
         let f = setting.format;
         let baud = setting.baud;
@@ -357,13 +357,13 @@ impl Receiver {
             }
             let stop = self.level(mid(t0, next));
             let what = if !stop && data == 0 && !parity_bit {
-                Received::Break
+                Sampled::Break
             } else if !stop {
-                Received::Framing(data)
+                Sampled::Framing(data)
             } else if !parity_ok {
-                Received::Parity(data)
+                Sampled::Parity(data)
             } else {
-                Received::Byte(data)
+                Sampled::Byte(data)
             };
             out.push(Arrival { at: done, what });
             self.cursor = mid(t0, next);
@@ -384,13 +384,13 @@ impl Receiver {
 /// One end's transmitter: characters go back to back while it has them, each after the
 /// one before, never before it was written.
 #[derive(Debug, Default)]
-pub struct Transmitter {
+pub struct UartTransmitter {
     free_at: u64,
 }
 
-impl Transmitter {
+impl UartTransmitter {
     /// When the characters of `count` bytes written at `now` start, at `setting`.
-    pub fn schedule(&mut self, now: u64, count: usize, setting: Setting) -> Vec<u64> {
+    pub fn schedule(&mut self, now: u64, count: usize, setting: UartSetting) -> Vec<u64> {
         let first = now.max(self.free_at);
         let starts: Vec<u64> = (0..count as u64)
             .map(|i| first + after_bits((i as u32) * setting.format.bits(), setting.baud))
@@ -423,8 +423,8 @@ pub fn disturb(c: Char, loss: f64, noise: f64, rng: &mut fastrand::Rng) -> Optio
 mod tests {
     use super::*;
 
-    fn s(baud: u32, f: &str) -> Setting {
-        Setting {
+    fn s(baud: u32, f: &str) -> UartSetting {
+        UartSetting {
             baud,
             format: f.parse().unwrap(),
         }
@@ -432,9 +432,9 @@ mod tests {
 
     /// Sends `bytes` back to back from 0 at `tx` and returns what a receiver at `rx`
     /// makes of them once all is over.
-    fn across(bytes: &[u8], tx: Setting, rx: Setting) -> Vec<Received> {
-        let mut t = Transmitter::default();
-        let mut r = Receiver::new();
+    fn across(bytes: &[u8], tx: UartSetting, rx: UartSetting) -> Vec<Sampled> {
+        let mut t = UartTransmitter::default();
+        let mut r = UartReceiver::new();
         for (b, start) in bytes.iter().zip(t.schedule(0, bytes.len(), tx)) {
             r.push(Char::new(start, *b, tx));
         }
@@ -471,7 +471,7 @@ mod tests {
         assert_eq!(s(9600, "8N1").char_ns(), 1_041_667);
         assert_eq!(s(19200, "8E1").char_ns(), 572_917);
         // 1000 bytes back to back: 1.0417 s, no rounding added per byte.
-        let mut t = Transmitter::default();
+        let mut t = UartTransmitter::default();
         let starts = t.schedule(0, 1000, s(9600, "8N1"));
         assert_eq!(starts[1], 1_041_667);
         assert_eq!(t.free_at(), 1_041_666_667);
@@ -497,10 +497,10 @@ mod tests {
                 })
                 .collect();
             let got = across(&bytes, set, set);
-            let want: Vec<Received> = bytes.iter().map(|&b| Received::Byte(b)).collect();
+            let want: Vec<Sampled> = bytes.iter().map(|&b| Sampled::Byte(b)).collect();
             assert_eq!(got, want, "{f}");
         }
-        let mut r = Receiver::new();
+        let mut r = UartReceiver::new();
         r.push(Char::new(0, 0x55, s(9600, "8N1")));
         // Not before its last stop bit has ended.
         let (early, wake) = r.poll(1_041_666, s(9600, "8N1"));
@@ -511,7 +511,7 @@ mod tests {
             got,
             vec![Arrival {
                 at: 1_041_667,
-                what: Received::Byte(0x55)
+                what: Sampled::Byte(0x55)
             }]
         );
         assert_eq!(wake, None);
@@ -524,7 +524,7 @@ mod tests {
         let req = [0x01, 0x03, 0x00, 0x00, 0x00, 0x01, 0x84, 0x0A];
         for (tx, rx) in [(19200, 9600), (9600, 19200), (9600, 115200), (115200, 9600)] {
             let got = across(&req, s(tx, "8N1"), s(rx, "8N1"));
-            let clean: Vec<Received> = req.iter().map(|&b| Received::Byte(b)).collect();
+            let clean: Vec<Sampled> = req.iter().map(|&b| Sampled::Byte(b)).collect();
             assert_ne!(got, clean, "{tx} -> {rx}");
         }
         // Twice as slow a receiver hears a 0x00 at 19200 as 4.5 of its bits low (start
@@ -532,24 +532,24 @@ mod tests {
         // bits, low, bit 3 (at 4.5, where the stop bit begins) and on high: 0xF8.
         assert_eq!(
             across(&[0x00], s(19200, "8N1"), s(9600, "8N1")),
-            vec![Received::Byte(0xF8)]
+            vec![Sampled::Byte(0xF8)]
         );
         // A much slower sender's 0x00 holds the line low past the faster receiver's
         // stop bit: a break.
         assert_eq!(
             across(&[0x00], s(1200, "8N1"), s(9600, "8N1"))[0],
-            Received::Break
+            Sampled::Break
         );
         // Same baud, the receiver expecting a parity bit where a stop bit comes: a
         // lone 0x00 has its stop bit read as a parity 1 (odd count: wrong); back to
         // back, the next start bit lands on its stop bit, a framing error.
         assert_eq!(
             across(&[0x00], s(9600, "8N1"), s(9600, "8E1")),
-            vec![Received::Parity(0x00)]
+            vec![Sampled::Parity(0x00)]
         );
         assert_eq!(
             across(&[0x00, 0x00], s(9600, "8N1"), s(9600, "8E1"))[0],
-            Received::Framing(0x00)
+            Sampled::Framing(0x00)
         );
     }
 
@@ -557,26 +557,26 @@ mod tests {
     fn collisions_and_echo_share_the_line() {
         // Two senders at once: the lows win, the receiver gets the AND.
         let set = s(9600, "8N1");
-        let mut r = Receiver::new();
+        let mut r = UartReceiver::new();
         r.push(Char::new(0, 0xF0, set));
         r.push(Char::new(0, 0x0F, set));
         let (got, _) = r.poll(u64::MAX / 2, set);
-        assert_eq!(got[0].what, Received::Byte(0x00));
+        assert_eq!(got[0].what, Sampled::Byte(0x00));
     }
 
     #[test]
     fn error_handling_follows_termios() {
         let mut out = Vec::new();
         let raw = ErrorHandling::default();
-        raw.deliver(Received::Parity(0x41), &mut out);
-        raw.deliver(Received::Break, &mut out);
+        raw.deliver(Sampled::Parity(0x41), &mut out);
+        raw.deliver(Sampled::Break, &mut out);
         assert_eq!(out, vec![0x41, 0x00]);
         out.clear();
         let checked = ErrorHandling {
             check: true,
             ..ErrorHandling::default()
         };
-        checked.deliver(Received::Framing(0x41), &mut out);
+        checked.deliver(Sampled::Framing(0x41), &mut out);
         assert_eq!(out, vec![0x00]);
         out.clear();
         let ignored = ErrorHandling {
@@ -584,9 +584,9 @@ mod tests {
             ignore_break: true,
             ..ErrorHandling::default()
         };
-        ignored.deliver(Received::Parity(0x41), &mut out);
-        ignored.deliver(Received::Break, &mut out);
-        ignored.deliver(Received::Byte(0x42), &mut out);
+        ignored.deliver(Sampled::Parity(0x41), &mut out);
+        ignored.deliver(Sampled::Break, &mut out);
+        ignored.deliver(Sampled::Byte(0x42), &mut out);
         assert_eq!(out, vec![0x42]);
         out.clear();
         let marked = ErrorHandling {
@@ -594,7 +594,7 @@ mod tests {
             mark: true,
             ..ErrorHandling::default()
         };
-        marked.deliver(Received::Parity(0x41), &mut out);
+        marked.deliver(Sampled::Parity(0x41), &mut out);
         assert_eq!(out, vec![0xFF, 0x00, 0x41]);
     }
 
@@ -627,10 +627,10 @@ mod tests {
         let set = s(9600, "8E1");
         let mut c = Char::new(0, 0x55, set);
         c.bits ^= 1 << 3; // a data bit: parity catches it
-        let mut r = Receiver::new();
+        let mut r = UartReceiver::new();
         r.push(c);
         let (got, _) = r.poll(u64::MAX / 2, set);
-        assert_eq!(got[0].what, Received::Parity(0x55 ^ 0x04));
+        assert_eq!(got[0].what, Sampled::Parity(0x55 ^ 0x04));
     }
 
     mod props {
@@ -663,10 +663,10 @@ mod tests {
                 f in format(),
                 polls in prop::collection::vec(0u64..3_000_000, 0..20),
             ) {
-                let set = Setting { baud, format: f };
+                let set = UartSetting { baud, format: f };
                 let mask = if f.data_bits == 7 { 0x7F } else { 0xFF };
-                let mut t = Transmitter::default();
-                let mut r = Receiver::new();
+                let mut t = UartTransmitter::default();
+                let mut r = UartReceiver::new();
                 let mut now = 0;
                 let mut sent = Vec::new();
                 let mut ends = Vec::new();
@@ -686,7 +686,7 @@ mod tests {
                     }
                 }
                 got.extend(r.poll(u64::MAX / 2, set).0);
-                let bytes: Vec<Received> = sent.iter().map(|&b| Received::Byte(b)).collect();
+                let bytes: Vec<Sampled> = sent.iter().map(|&b| Sampled::Byte(b)).collect();
                 prop_assert_eq!(got.iter().map(|a| a.what).collect::<Vec<_>>(), bytes);
                 for (a, end) in got.iter().zip(ends) {
                     prop_assert_eq!(a.at, end);
@@ -705,10 +705,10 @@ mod tests {
                 tx_f in format(),
                 rx_f in format(),
             ) {
-                let tx = Setting { baud: tx_baud, format: tx_f };
-                let rx = Setting { baud: rx_baud, format: rx_f };
-                let mut t = Transmitter::default();
-                let mut r = Receiver::new();
+                let tx = UartSetting { baud: tx_baud, format: tx_f };
+                let rx = UartSetting { baud: rx_baud, format: rx_f };
+                let mut t = UartTransmitter::default();
+                let mut r = UartReceiver::new();
                 for (b, start) in bytes.iter().zip(t.schedule(0, bytes.len(), tx)) {
                     r.push(Char::new(start, *b, tx));
                 }

@@ -31,7 +31,7 @@ use super::{candidate, Candidate, Judge, Resync};
 use crate::frame::mbap::{FrameRef, MIN_LENGTH, PREFIX_LEN};
 
 /// What is to become of a held frame.
-pub(super) enum Verdict {
+pub(super) enum HeldFate {
     /// Hand it on.
     Confirmed,
     /// Wait for more bytes, or for the line to go quiet.
@@ -43,33 +43,33 @@ pub(super) enum Verdict {
 impl Resync {
     /// What is to become of the held frame of `total` bytes at the front, given what
     /// follows it. `quiet`: the frame gap has passed.
-    pub(super) fn verdict(&self, total: usize, judge: &impl Judge, quiet: bool) -> Verdict {
+    pub(super) fn verdict(&self, total: usize, judge: &impl Judge, quiet: bool) -> HeldFate {
         let frame = FrameRef::new(&self.buf[..total]);
         let straddles = self.pause_within(0, total);
         let rest = &self.buf[total..];
         let quiet_now = quiet || self.paused();
         if rest.is_empty() {
             return if !quiet_now {
-                Verdict::Wait
+                HeldFate::Wait
             } else if straddles {
                 // Completed after a silence by bytes nothing confirms.
-                Verdict::Refuted
+                HeldFate::Refuted
             } else if !quiet && !judge.pause_confirms(frame) {
-                Verdict::Wait
+                HeldFate::Wait
             } else if ends_with_a_frame(&self.buf[..total], judge) {
-                Verdict::Refuted
+                HeldFate::Refuted
             } else {
-                Verdict::Confirmed
+                HeldFate::Confirmed
             };
         }
         match candidate(rest, judge) {
-            Candidate::Implausible => Verdict::Refuted,
+            Candidate::Implausible => HeldFate::Refuted,
             // A frame does not stop half way: one that pauses is the tail of a frame
             // that gained bytes or the start of one that lost some.
             Candidate::Incomplete if quiet_now || self.pause_within(total, self.buf.len()) => {
-                Verdict::Refuted
+                HeldFate::Refuted
             }
-            Candidate::Incomplete => Verdict::Wait,
+            Candidate::Incomplete => HeldFate::Wait,
             Candidate::Complete(n) => {
                 let follower = FrameRef::new(&rest[..n]);
                 // The same id with other bytes: one of the two is not what it claims
@@ -83,9 +83,9 @@ impl Resync {
                     || !judge.accept(follower)
                     || ends_with_a_frame(&self.buf[..total], judge)
                 {
-                    Verdict::Refuted
+                    HeldFate::Refuted
                 } else {
-                    Verdict::Confirmed
+                    HeldFate::Confirmed
                 }
             }
         }

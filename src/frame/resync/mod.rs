@@ -54,7 +54,7 @@ pub use judge::{Confirmed, Judge, ReplyJudge, RequestJudge};
 use super::function::FunctionCode;
 use super::mbap::{self, Adu, FrameRef, MAX_LENGTH, MIN_LENGTH, PREFIX_LEN};
 use bytes::BytesMut;
-use confirm::Verdict;
+use confirm::HeldFate;
 
 /// What the decoder has done so far.
 #[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
@@ -223,14 +223,14 @@ impl Resync {
                         && judge.alone(frame, self.pause_within(0, total));
                     if !accepted || (judge.confirm(frame) && !alone) {
                         match self.verdict(total, judge, quiet) {
-                            Verdict::Confirmed => {}
-                            Verdict::Wait => return None,
-                            Verdict::Refuted if !accepted => {
+                            HeldFate::Confirmed => {}
+                            HeldFate::Wait => return None,
+                            HeldFate::Refuted if !accepted => {
                                 // Refused in the first place: rescanned as before.
                                 self.drop_one();
                                 continue;
                             }
-                            Verdict::Refuted => {
+                            HeldFate::Refuted => {
                                 // Skipped whole: a frame found inside it could only be
                                 // a shifted copy of what follows. Unless the judge
                                 // looks for the frame it borrowed from.

@@ -24,16 +24,11 @@ pub(crate) fn termios2_missing(path: &str) -> bool {
         return false;
     };
     let fd = file.as_raw_fd();
-    let mut t2 = std::mem::MaybeUninit::<libc::termios2>::zeroed();
-    // SAFETY: TCGETS2 writes at most one `struct termios2` into `t2`, which is that size
-    // and lives for the call; `fd` is open.
-    #[allow(unsafe_code)]
-    let r = unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t2.as_mut_ptr()) };
-    if r == 0 {
+    let Err(e) = get2(fd) else {
         return false;
-    }
+    };
     let refused = matches!(
-        io::Error::last_os_error().raw_os_error(),
+        e.raw_os_error(),
         Some(libc::ENOTTY | libc::ENOSYS | libc::EINVAL)
     );
     refused && get(fd).is_ok()
@@ -176,6 +171,24 @@ pub(crate) fn set(fd: RawFd, t: &libc::termios) -> io::Result<()> {
     } else {
         Err(io::Error::last_os_error())
     }
+}
+
+/// TCGETS2: the terminal's settings as termios2 has them (speeds as numbers); on a
+/// pty's master, its device end's. The one reader of termios2 (the RS-485 switch and
+/// the virtual wire's ptys call it too); an error where the kernel has none.
+pub(crate) fn get2(fd: RawFd) -> io::Result<libc::termios2> {
+    let mut t = std::mem::MaybeUninit::<libc::termios2>::zeroed();
+    // SAFETY: TCGETS2 writes at most one `struct termios2` into `t`, which is that size
+    // and lives for the call.
+    #[allow(unsafe_code)]
+    let r = unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t.as_mut_ptr()) };
+    if r != 0 {
+        return Err(io::Error::last_os_error());
+    }
+    // SAFETY: zeroed, then filled by a TCGETS2 that succeeded (and a zeroed termios2,
+    // integers only, is a valid one anyway).
+    #[allow(unsafe_code)]
+    Ok(unsafe { t.assume_init() })
 }
 
 /// TCGETS, through the C library's tcgetattr.
@@ -351,5 +364,24 @@ pub(crate) mod tests {
             e.description.contains("baud rate 250000 needs termios2"),
             "{e}"
         );
+    }
+
+    /// TCGETS2 reads a terminal's speed as a number, the same through the pty's master
+    /// as through its device (a new pty's 38400 baud, the kernel's `tty_std_termios`);
+    /// a pipe is no terminal.
+    #[test]
+    fn termios2_is_read_from_either_end_and_refused_off_a_tty() {
+        let (master, path) = pty();
+        let device = OpenOptions::new()
+            .read(true)
+            .write(true)
+            .custom_flags(libc::O_NOCTTY)
+            .open(&path)
+            .unwrap();
+        assert_eq!(get2(device.as_raw_fd()).unwrap().c_ospeed, 38400);
+        assert_eq!(get2(master.as_raw_fd()).unwrap().c_ospeed, 38400);
+        let (r, _w) = std::io::pipe().unwrap();
+        let e = get2(r.as_raw_fd()).unwrap_err();
+        assert_eq!(e.raw_os_error(), Some(libc::ENOTTY), "{e}");
     }
 }

@@ -179,7 +179,7 @@ pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, Direct
         Direction::None => Ok(None),
         Direction::Rts => {
             let rts = Rts {
-                lines: Tty(fd),
+                lines: RtsLine(fd),
                 invert: cfg.direction_invert,
             };
             let no_lines = |source| DirectionError::NoModemLines {
@@ -214,9 +214,9 @@ pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, Direct
 }
 
 /// RTS of the open port.
-struct Tty(RawFd);
+struct RtsLine(RawFd);
 
-impl ModemLines for Tty {
+impl ModemLines for RtsLine {
     fn rts(&mut self, asserted: bool) -> io::Result<()> {
         let bits: libc::c_int = libc::TIOCM_RTS;
         let op = if asserted {
@@ -241,18 +241,11 @@ impl ModemLines for Tty {
 /// the port was set; classic termios where the kernel has none
 /// (`classic::termios2_missing`).
 pub(crate) fn keep_modem_lines_on_close(fd: RawFd) -> io::Result<()> {
-    let mut t = std::mem::MaybeUninit::<libc::termios2>::zeroed();
-    // SAFETY: TCGETS2 writes at most one `struct termios2` into `t`, which is that
-    // size, for the duration of the call.
-    #[allow(unsafe_code)]
-    if unsafe { libc::ioctl(fd, libc::TCGETS2 as _, t.as_mut_ptr()) } != 0 {
+    let Ok(mut t) = super::classic::get2(fd) else {
         let mut t = super::classic::get(fd)?;
         t.c_cflag &= !libc::HUPCL;
         return super::classic::set(fd, &t);
-    }
-    // SAFETY: zeroed, then filled by a TCGETS2 that succeeded.
-    #[allow(unsafe_code)]
-    let mut t = unsafe { t.assume_init() };
+    };
     t.c_cflag &= !libc::HUPCL;
     // SAFETY: TCSETS2 reads one `struct termios2`, which `t` is.
     #[allow(unsafe_code)]

@@ -9,28 +9,23 @@
 //! no room for (flow control holding it back) registers a duplicate of the descriptor
 //! for writing until a write goes through.
 
+use crate::port::fd::{self, ReactorFd};
 use std::io;
 use std::os::fd::{AsFd, AsRawFd, FromRawFd, IntoRawFd, OwnedFd};
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{ready, Context, Poll};
-use tokio::io::unix::AsyncFd;
 use tokio::io::{AsyncRead, AsyncWrite, Interest, ReadBuf};
 
-/// The port's descriptor. Its exclusive hold (TIOCEXCL, taken at open) is given back
-/// before it closes, as the serial crate's own close does: the flag is the tty's, not
-/// the descriptor's, and a tty that outlives the gateway (a pty whose far end lives
-/// on) would refuse the next start of the service with EBUSY.
+/// The port's descriptor on the reactor (`port/fd.rs`). Its exclusive hold (TIOCEXCL,
+/// taken at open) is given back before it closes, as the serial crate's own close
+/// does: the flag is the tty's, not the descriptor's, and a tty that outlives the
+/// gateway (a pty whose far end lives on) would refuse the next start of the service
+/// with EBUSY.
 #[derive(Debug)]
-struct Held(OwnedFd);
+struct HeldPort(ReactorFd);
 
-impl AsRawFd for Held {
-    fn as_raw_fd(&self) -> std::os::fd::RawFd {
-        self.0.as_raw_fd()
-    }
-}
-
-impl Drop for Held {
+impl Drop for HeldPort {
     fn drop(&mut self) {
         // SAFETY: TIOCNXCL takes no argument; the descriptor is open until `self.0`
         // drops, after this. Best effort: a port gone has nothing to give back.
@@ -43,83 +38,44 @@ impl Drop for Held {
 
 /// The read half: owns the descriptor's registration; the write half shares it.
 #[derive(Debug)]
-pub(crate) struct Reader {
-    fd: Arc<AsyncFd<Held>>,
+pub(crate) struct PortReader {
+    fd: Arc<HeldPort>,
 }
 
 /// The write half.
 #[derive(Debug)]
-pub(crate) struct Writer {
-    fd: Arc<AsyncFd<Held>>,
+pub(crate) struct PortWriter {
+    fd: Arc<HeldPort>,
     /// While the port has no room: a duplicate of its descriptor, registered for
     /// writing, to wait on.
-    waiting: Option<AsyncFd<OwnedFd>>,
+    waiting: Option<ReactorFd>,
 }
 
 /// The two halves of the port opened as `port` (its settings made, held exclusively):
 /// its descriptor is taken from it, set non-blocking and put on the current runtime's
 /// reactor.
-pub(crate) fn split(port: serialport::TTYPort) -> io::Result<(Reader, Writer)> {
+pub(crate) fn split(port: serialport::TTYPort) -> io::Result<(PortReader, PortWriter)> {
     // SAFETY: `into_raw_fd` gives up the descriptor, open, with nothing else owning it.
     #[allow(unsafe_code)]
     let fd = unsafe { OwnedFd::from_raw_fd(port.into_raw_fd()) };
-    set_nonblocking(&fd)?;
-    // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
-    // which is when the `AsyncFd` holding it does.
-    #[allow(unsafe_code)]
-    let fd = Arc::new(unsafe { AsyncFd::register_with_interest(Held(fd), Interest::READABLE) }?);
-    Ok((Reader { fd: fd.clone() }, Writer { fd, waiting: None }))
+    let fd = Arc::new(HeldPort(ReactorFd::new(fd, Interest::READABLE)?));
+    Ok((
+        PortReader { fd: fd.clone() },
+        PortWriter { fd, waiting: None },
+    ))
 }
 
-fn set_nonblocking(fd: &impl AsRawFd) -> io::Result<()> {
-    let fd = fd.as_raw_fd();
-    // SAFETY: plain fcntl calls on an open descriptor.
-    #[allow(unsafe_code)]
-    let r = unsafe {
-        let flags = libc::fcntl(fd, libc::F_GETFL);
-        if flags < 0 {
-            -1
-        } else {
-            libc::fcntl(fd, libc::F_SETFL, flags | libc::O_NONBLOCK)
-        }
-    };
-    if r < 0 {
-        return Err(io::Error::last_os_error());
-    }
-    Ok(())
-}
-
-fn read(fd: &impl AsRawFd, buf: &mut [u8]) -> io::Result<usize> {
-    // SAFETY: `buf` is valid for writes of its length for the call.
-    #[allow(unsafe_code)]
-    let n = unsafe { libc::read(fd.as_raw_fd(), buf.as_mut_ptr().cast(), buf.len()) };
-    if n < 0 {
-        return Err(io::Error::last_os_error());
-    }
-    Ok(n as usize)
-}
-
-fn write(fd: &impl AsRawFd, buf: &[u8]) -> io::Result<usize> {
-    // SAFETY: `buf` is valid for reads of its length for the call.
-    #[allow(unsafe_code)]
-    let n = unsafe { libc::write(fd.as_raw_fd(), buf.as_ptr().cast(), buf.len()) };
-    if n < 0 {
-        return Err(io::Error::last_os_error());
-    }
-    Ok(n as usize)
-}
-
-impl AsyncRead for Reader {
+impl AsyncRead for PortReader {
     fn poll_read(
         self: Pin<&mut Self>,
         cx: &mut Context<'_>,
         buf: &mut ReadBuf<'_>,
     ) -> Poll<io::Result<()>> {
         loop {
-            let mut ready = ready!(self.fd.poll_read_ready(cx))?;
+            let mut ready = ready!(self.fd.0.poll_read_ready(cx))?;
             let unfilled = buf.initialize_unfilled();
             let asked = unfilled.len();
-            match ready.try_io(|fd| read(fd, unfilled)) {
+            match ready.try_io(|fd| fd::read(fd.as_fd(), unfilled)) {
                 Ok(Ok(n)) => {
                     // Less than asked: the port held no more. Waiting for the next
                     // edge is cheaper than a read that says EAGAIN; an edge that
@@ -139,7 +95,7 @@ impl AsyncRead for Reader {
     }
 }
 
-impl AsyncWrite for Writer {
+impl AsyncWrite for PortWriter {
     fn poll_write(
         mut self: Pin<&mut Self>,
         cx: &mut Context<'_>,
@@ -148,7 +104,7 @@ impl AsyncWrite for Writer {
         loop {
             if let Some(waiting) = &self.waiting {
                 let mut ready = ready!(waiting.poll_write_ready(cx))?;
-                match ready.try_io(|fd| write(fd, buf)) {
+                match ready.try_io(|fd| fd::write(fd.as_fd(), buf)) {
                     Ok(Ok(n)) => {
                         self.waiting = None;
                         return Poll::Ready(Ok(n));
@@ -157,14 +113,9 @@ impl AsyncWrite for Writer {
                     Err(_would_block) => continue,
                 }
             }
-            match write(self.fd.get_ref(), buf) {
+            match self.fd.0.write(buf) {
                 Err(e) if e.kind() == io::ErrorKind::WouldBlock => {
-                    let dup = self.fd.get_ref().0.as_fd().try_clone_to_owned()?;
-                    // SAFETY: as the reader's: the duplicate is owned by its `AsyncFd`.
-                    #[allow(unsafe_code)]
-                    let waiting =
-                        unsafe { AsyncFd::register_with_interest(dup, Interest::WRITABLE) }?;
-                    self.waiting = Some(waiting);
+                    self.waiting = Some(self.fd.0.duplicate(Interest::WRITABLE)?);
                 }
                 done => return Poll::Ready(done),
             }

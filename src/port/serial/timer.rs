@@ -2,6 +2,7 @@
 //! timerfd on tokio's reactor): the relay's loop, the simulator and the benches wait
 //! on it.
 
+use crate::port::fd::ReactorFd;
 use std::os::fd::{AsRawFd, FromRawFd};
 
 /// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
@@ -11,7 +12,7 @@ use std::os::fd::{AsRawFd, FromRawFd};
 /// at the instant it is set to.
 #[derive(Debug)]
 pub struct PreciseTimer {
-    fd: tokio::io::unix::AsyncFd<std::os::fd::OwnedFd>,
+    fd: ReactorFd,
     /// The instant it is set to go off.
     armed: Option<tokio::time::Instant>,
     /// How late its last wakes came, after the instant it was set to.
@@ -69,14 +70,8 @@ impl PreciseTimer {
         // SAFETY: `fd` was just made, is valid and belongs to nothing else.
         #[allow(unsafe_code)]
         let owned = unsafe { std::os::fd::OwnedFd::from_raw_fd(fd) };
-        // SAFETY: an `OwnedFd` keeps its descriptor open, and the same, until it drops,
-        // which is when the `AsyncFd` holding it does.
-        #[allow(unsafe_code)]
-        let fd = unsafe {
-            tokio::io::unix::AsyncFd::register_with_interest(owned, tokio::io::Interest::READABLE)
-        }?;
         Ok(PreciseTimer {
-            fd,
+            fd: ReactorFd::new(owned, tokio::io::Interest::READABLE)?,
             armed: None,
             late: Lateness::default(),
         })

@@ -25,7 +25,7 @@ use tokio::time::Instant;
 use tracing::{debug, info, warn};
 use usable::RelayJudge;
 
-pub(super) struct Mbap {
+pub(super) struct MbapLine {
     tids: Tids,
     decoder: Framer,
     last_byte: Instant,
@@ -96,15 +96,15 @@ struct Sent {
     unwritten: usize,
 }
 
-impl Mbap {
+impl MbapLine {
     pub(super) fn new(
         relay: &RelayConfig,
         serial: &SerialConfig,
         stream: bool,
         now: Instant,
-    ) -> Mbap {
+    ) -> MbapLine {
         let gap = Duration::from_millis(relay.frame_gap_ms);
-        let mut line = Mbap {
+        let mut line = MbapLine {
             tids: Tids::new(),
             decoder: Framer::mbap(),
             last_byte: now,

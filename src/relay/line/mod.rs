@@ -27,7 +27,7 @@ use crate::frame::{Adu, FunctionCode};
 use crate::port::kind::PortInfo;
 use crate::stats::Stats;
 use bytes::Bytes;
-use mbap::Mbap;
+use mbap::MbapLine;
 use serial::Serial;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -58,7 +58,7 @@ pub(super) struct LineFraming(FramingState);
 
 /// What one framing keeps: MBAP's ids, decoder and timing, or RTU/ASCII's.
 enum FramingState {
-    Mbap(Mbap),
+    Mbap(MbapLine),
     Serial(Serial),
 }
 
@@ -74,7 +74,9 @@ impl LineFraming {
     ) -> LineFraming {
         let codec = match serial.framing {
             Framing::Mbap => {
-                return LineFraming(FramingState::Mbap(Mbap::new(relay, serial, stream, now)))
+                return LineFraming(FramingState::Mbap(MbapLine::new(
+                    relay, serial, stream, now,
+                )))
             }
             Framing::Rtu => Codec::Rtu,
             Framing::Ascii => Codec::Ascii,
