@@ -22,7 +22,6 @@ pub mod logging;
 pub mod manual;
 pub mod metrics;
 pub(crate) mod notify;
-pub(crate) mod number;
 pub mod outbox;
 pub mod port;
 pub mod relay;

@@ -57,8 +57,28 @@ impl fmt::Display for UnitSet {
     /// As the file writes it: `[1, "10-20"]`, runs of three or more as ranges.
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let ids: Vec<u8> = self.ids().collect();
-        f.write_str(&crate::number::id_list(&ids))
+        f.write_str(&id_list(&ids))
     }
+}
+
+/// Unit ids (sorted, distinct) as the configuration file writes a list of them:
+/// `[1, "10-20"]`, runs of three or more as `"A-B"` strings.
+pub(crate) fn id_list(ids: &[u8]) -> String {
+    let mut parts = Vec::new();
+    let mut i = 0;
+    while i < ids.len() {
+        let mut j = i;
+        while j + 1 < ids.len() && ids[j + 1] == ids[j] + 1 {
+            j += 1;
+        }
+        if j >= i + 2 {
+            parts.push(format!("\"{}-{}\"", ids[i], ids[j]));
+        } else {
+            parts.extend(ids[i..=j].iter().map(u8::to_string));
+        }
+        i = j + 1;
+    }
+    format!("[{}]", parts.join(", "))
 }
 
 /// One `write` rule: the writes it permits. Each part left out matches anything.
@@ -212,6 +232,16 @@ pub fn decide<'a>(
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    #[test]
+    fn id_lists_write_runs_of_three_or_more_as_ranges() {
+        assert_eq!(id_list(&[]), "[]");
+        assert_eq!(
+            id_list(&[1, 2, 5, 10, 11, 12, 20]),
+            r#"[1, 2, 5, "10-12", 20]"#
+        );
+        assert_eq!(id_list(&[0, 1, 2, 3, 255]), r#"["0-3", 255]"#);
+    }
 
     const WRITES: [&[u8]; 6] = [
         &[0x05, 0, 10, 0xFF, 0],

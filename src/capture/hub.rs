@@ -176,7 +176,7 @@ pub(crate) struct Tap {
 
 /// Why a capture is not started.
 #[derive(Debug, thiserror::Error)]
-pub(crate) enum Refused {
+pub(crate) enum CaptureRefusal {
     /// It names a line that is not there.
     #[error(transparent)]
     Request(#[from] super::request::BadRequest),
@@ -242,7 +242,10 @@ impl Hub {
 
     /// Packets of every interface from now on that `request` keeps (it names only
     /// interfaces there are: see [`CaptureRequest::interfaces`]).
-    pub(crate) fn subscribe(&self, request: CaptureRequest) -> Result<Subscription, Refused> {
+    pub(crate) fn subscribe(
+        &self,
+        request: CaptureRequest,
+    ) -> Result<Subscription, CaptureRefusal> {
         let names: Vec<String> = self.0.interfaces.iter().map(|i| i.name.clone()).collect();
         let keep = request.interfaces(&names)?;
         let (tx, rx) = mpsc::channel(PER_SUBSCRIBER);
@@ -250,7 +253,7 @@ impl Hub {
         let dropped: Arc<[AtomicU64]> = (0..names.len()).map(|_| AtomicU64::new(0)).collect();
         let mut subs = self.0.subs.lock().expect("not poisoned");
         if self.0.closed.is_cancelled() {
-            return Err(Refused::Stopping);
+            return Err(CaptureRefusal::Stopping);
         }
         subs.push(Sub {
             id,

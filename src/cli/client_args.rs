@@ -159,7 +159,7 @@ fn parse_poll(s: &str) -> Result<u64, BadValue> {
 
 /// `123` or `0x7B`.
 fn parse_u16(s: &str) -> Result<u16, BadValue> {
-    match crate::number::parse(s) {
+    match crate::config::number::parse(s) {
         Some(v) if (0..=0xFFFF).contains(&v) => Ok(v as u16),
         _ => Err(BadValue::Number(s.to_owned())),
     }
@@ -167,7 +167,7 @@ fn parse_u16(s: &str) -> Result<u16, BadValue> {
 
 /// A register value: 0..=65535, or -32768..=-1 as its two's complement.
 fn parse_register(s: &str) -> Result<u16, BadValue> {
-    match crate::number::parse(s) {
+    match crate::config::number::parse(s) {
         Some(v) if (0..=0xFFFF).contains(&v) => Ok(v as u16),
         Some(v) if (-0x8000..0).contains(&v) => Ok(v as i16 as u16),
         _ => Err(BadValue::Register(s.to_owned())),

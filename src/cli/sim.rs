@@ -86,7 +86,7 @@ impl SimArgs {
 
 /// Which side of the conversation the simulated device is.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub(crate) enum Side {
+pub(crate) enum RoleSide {
     /// It answers requests (the default).
     Slave,
     /// It sends the CIE-M10 master's queries every --poll-ms (cie-m10 profile).
@@ -101,8 +101,8 @@ pub(crate) struct RoleArgs {
     /// input port register and FC 16 with its own inputs to the slave's output port
     /// register (the --input-address and --output-address), and sets its outputs from
     /// what it read.
-    #[arg(long, value_enum, default_value_t = Side::Slave, help_heading = "role")]
-    role: Side,
+    #[arg(long, value_enum, default_value_t = RoleSide::Slave, help_heading = "role")]
+    role: RoleSide,
     /// master: the communication period, in ms.
     #[arg(long, default_value_t = 1000, value_name = "MS", help_heading = "role")]
     poll_ms: u64,
@@ -116,8 +116,8 @@ impl RoleArgs {
     pub(crate) fn role(&self) -> Role {
         Role {
             side: match self.role {
-                Side::Slave => role::Side::Slave,
-                Side::Master => role::Side::Master,
+                RoleSide::Slave => role::Side::Slave,
+                RoleSide::Master => role::Side::Master,
             },
             poll_ms: self.poll_ms,
             timeout_ms: self.timeout_ms,

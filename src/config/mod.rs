@@ -16,6 +16,7 @@ mod error;
 mod file;
 mod layout;
 pub mod master;
+pub(crate) mod number;
 mod print;
 mod raw;
 pub(crate) mod unit;

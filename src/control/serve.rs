@@ -234,7 +234,7 @@ pub(crate) async fn serve(
             Some(_) => None,
         };
         let Some(slot) = slot else {
-            let why = refusal.unwrap_or(Refusal::Busy);
+            let why = refusal.unwrap_or(ControlRefusal::Busy);
             // Told in a task of its own (at most MAX_REFUSING at once): the accept
             // loop never waits on a client.
             if let Some(r) = refusing.take() {
@@ -279,7 +279,7 @@ fn groups_of(pid: Option<i32>) -> Vec<u32> {
 
 /// Why a client of the control socket is refused, or its request.
 #[derive(Debug, thiserror::Error)]
-enum Refusal {
+enum ControlRefusal {
     #[error("cannot tell who connected ({0})")]
     Who(std::io::Error),
     #[error("user {peer_uid} may not use the control socket: root, or the gateway's user ({uid}) or group ({gid}) only")]
@@ -303,19 +303,19 @@ enum Refusal {
 /// May the peer capture? Root, the gateway's own user, or its group (primary or
 /// supplementary). The file's mode lets only those connect; this holds even if the
 /// mode was loosened by hand.
-fn allowed(stream: &UnixStream) -> Result<(), Refusal> {
-    let cred = stream.peer_cred().map_err(Refusal::Who)?;
+fn allowed(stream: &UnixStream) -> Result<(), ControlRefusal> {
+    let cred = stream.peer_cred().map_err(ControlRefusal::Who)?;
     let (uid, gid) = own_ids();
     let (peer_uid, peer_gid) = (cred.uid(), cred.gid());
     if peer_uid == 0 || peer_uid == uid || peer_gid == gid || groups_of(cred.pid()).contains(&gid) {
         return Ok(());
     }
-    Err(Refusal::Stranger { peer_uid, uid, gid })
+    Err(ControlRefusal::Stranger { peer_uid, uid, gid })
 }
 
 /// Tells a client it is refused: reads what it sent first (within a moment), so that
 /// closing does not reset the connection and lose the answer, then writes `error: why`.
-async fn refuse(stream: UnixStream, why: &Refusal) {
+async fn refuse(stream: UnixStream, why: &ControlRefusal) {
     let (mut rd, mut wr) = stream.into_split();
     let _ = tokio::time::timeout(Duration::from_millis(500), request_line(&mut rd)).await;
     let _ = tokio::time::timeout(
@@ -338,14 +338,14 @@ async fn write_within(
 }
 
 /// Reads the request line: at most [`MAX_LINE`] bytes, within [`REQUEST_WITHIN`].
-async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String, Refusal> {
+async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String, ControlRefusal> {
     let mut line = Vec::new();
     let read = async {
         let mut byte = [0u8; 256];
         loop {
-            let n = rd.read(&mut byte).await.map_err(Refusal::Read)?;
+            let n = rd.read(&mut byte).await.map_err(ControlRefusal::Read)?;
             if n == 0 {
-                return Err(Refusal::Closed);
+                return Err(ControlRefusal::Closed);
             }
             line.extend_from_slice(&byte[..n]);
             if let Some(end) = line.iter().position(|&b| b == b'\n') {
@@ -353,15 +353,15 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
                 return Ok(());
             }
             if line.len() > MAX_LINE {
-                return Err(Refusal::TooLong);
+                return Err(ControlRefusal::TooLong);
             }
         }
     };
     match tokio::time::timeout(REQUEST_WITHIN, read).await {
-        Err(_) => return Err(Refusal::Slow),
+        Err(_) => return Err(ControlRefusal::Slow),
         Ok(r) => r?,
     }
-    String::from_utf8(line).map_err(|_| Refusal::NotText)
+    String::from_utf8(line).map_err(|_| ControlRefusal::NotText)
 }
 
 /// One client, holding `waiting` until its request is read: a reload, or a capture

@@ -39,7 +39,9 @@ pub(crate) fn bind(addr: SocketAddr) -> std::io::Result<std::net::TcpListener> {
 /// runtime has one thread.
 pub(crate) fn spawn(listener: std::net::TcpListener, board: Arc<Board>, stop: CancellationToken) {
     let run = move || {
-        let rt = crate::runtime::new()?;
+        let rt = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()?;
         rt.block_on(async {
             let listener = TcpListener::from_std(listener)?;
             serve(listener, board, stop).await;

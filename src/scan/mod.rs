@@ -182,7 +182,9 @@ impl Scanned {
 
 /// The settings `--listen` tries: each baud rate and format once (the wide ones
 /// first), every framing judged on what came.
-fn settings_of(args: &ScanOptions) -> Result<(Vec<probe::ProbeSetting>, Vec<SerialSetting>), ScanError> {
+fn settings_of(
+    args: &ScanOptions,
+) -> Result<(Vec<probe::ProbeSetting>, Vec<SerialSetting>), ScanError> {
     let bauds = if args.baud.is_empty() {
         probe::DEFAULT_BAUDS.to_vec()
     } else {

@@ -97,7 +97,7 @@ commands:
                                 `slave input 3 on`";
 
 fn bounded<T: TryFrom<i64>>(s: &str, what: &str) -> Result<T, BadCommand> {
-    let n = crate::number::parse(s).ok_or_else(|| BadCommand::NotANumber(s.to_owned()))?;
+    let n = crate::config::number::parse(s).ok_or_else(|| BadCommand::NotANumber(s.to_owned()))?;
     T::try_from(n).map_err(|_| BadCommand::OutOfRange {
         what: what.to_owned(),
         given: s.to_owned(),

@@ -1,6 +1,5 @@
 //! Numbers as people type them on the command line and the simulator's console:
-//! decimal, `0x` hex or `0b` binary, with an optional minus sign; and lists of unit
-//! ids as the configuration file writes them.
+//! decimal, `0x` hex or `0b` binary, with an optional minus sign.
 
 /// `123`, `0x7B`, `0b1111011`, `-5`; `None` for anything else.
 pub(crate) fn parse(s: &str) -> Option<i64> {
@@ -29,29 +28,9 @@ pub(crate) fn parse(s: &str) -> Option<i64> {
     Some(if negative { -v } else { v })
 }
 
-/// Unit ids (sorted, distinct) as the configuration file writes a list of them:
-/// `[1, "10-20"]`, runs of three or more as `"A-B"` strings.
-pub(crate) fn id_list(ids: &[u8]) -> String {
-    let mut parts = Vec::new();
-    let mut i = 0;
-    while i < ids.len() {
-        let mut j = i;
-        while j + 1 < ids.len() && ids[j + 1] == ids[j] + 1 {
-            j += 1;
-        }
-        if j >= i + 2 {
-            parts.push(format!("\"{}-{}\"", ids[i], ids[j]));
-        } else {
-            parts.extend(ids[i..=j].iter().map(u8::to_string));
-        }
-        i = j + 1;
-    }
-    format!("[{}]", parts.join(", "))
-}
-
 #[cfg(test)]
 mod tests {
-    use super::{id_list, parse};
+    use super::parse;
 
     #[test]
     fn forms() {
@@ -64,15 +43,5 @@ mod tests {
         for bad in ["", "-", "0x", "+5", "--5", "0x-5", "12a", "0b12", " 1"] {
             assert_eq!(parse(bad), None, "{bad:?}");
         }
-    }
-
-    #[test]
-    fn id_lists_write_runs_of_three_or_more_as_ranges() {
-        assert_eq!(id_list(&[]), "[]");
-        assert_eq!(
-            id_list(&[1, 2, 5, 10, 11, 12, 20]),
-            r#"[1, 2, 5, "10-12", 20]"#
-        );
-        assert_eq!(id_list(&[0, 1, 2, 3, 255]), r#"["0-3", 255]"#);
     }
 }
