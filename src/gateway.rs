@@ -1,18 +1,18 @@
 //! The gateway as a whole: bind the listeners, start a relay for each line, and shut down
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
-//! systemd when it is ready and when it stops (see `crate::notify`).
+//! systemd when it is ready and when it stops (see `crate::ops::notify`).
 
 use crate::config::{
     Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications, Transport,
 };
-use crate::metrics::{self, Board, ListenerMetrics};
-use crate::notify;
-use crate::relay::{Relay, RelayHandle};
-use crate::reload;
-use crate::router::Router;
-use crate::stats::Stats;
-use crate::tcp::{self, Socket};
-use crate::tls::server::Acceptor;
+use crate::line::relay::{Relay, RelayHandle};
+use crate::masters::router::Router;
+use crate::masters::tcp::{self, Socket};
+use crate::masters::tls::server::Acceptor;
+use crate::ops::metrics::{self, Board, ListenerMetrics};
+use crate::ops::notify;
+use crate::ops::reload;
+use crate::ops::stats::Stats;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
@@ -38,10 +38,10 @@ pub enum GatewayError {
     },
     /// A TLS file could not be used (read, parsed, or its key does not fit).
     #[error("{0}")]
-    Tls(#[from] crate::tls::TlsError),
+    Tls(#[from] crate::masters::tls::TlsError),
     /// A master line could not start (a passive route's address).
     #[error("{0}")]
-    MasterLine(#[from] crate::bridge::BridgeError),
+    MasterLine(#[from] crate::line::bridge::BridgeError),
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
@@ -80,7 +80,7 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
 }
 
 /// [`run`], and on each SIGHUP `load` reads the configuration again and what can
-/// change while running is applied ([`crate::reload`]).
+/// change while running is applied ([`crate::ops::reload`]).
 pub async fn run_reloading(
     cfg: Config,
     load: reload::Loader,
@@ -173,7 +173,7 @@ struct Started {
     /// The configuration as it runs now (a reload changes it).
     running: Arc<Mutex<Config>>,
     cfg: Arc<Config>,
-    capture: crate::capture::Capture,
+    capture: crate::ops::capture::Capture,
     /// Each listener's counters, in the order of `bound`.
     listener_stats: Vec<Arc<Stats>>,
     /// What every master's connection shares (its tracker the drain waits on).
@@ -206,8 +206,8 @@ async fn start(
         None => (None, None),
     };
     // Before the lines: the always-on ring has their first frames.
-    let capture = crate::capture::Capture::start(&cfg);
-    crate::control::start(&cfg, capture.hub(), reload_handle, shutdown);
+    let capture = crate::ops::capture::Capture::start(&cfg);
+    crate::ops::control::start(&cfg, capture.hub(), reload_handle, shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     let board = Arc::new(Board::default());
@@ -317,7 +317,7 @@ struct Lines {
 /// or dead line never holds up another; its capture tap and its metrics on the board.
 async fn start_lines(
     cfg: &Config,
-    capture: &crate::capture::Capture,
+    capture: &crate::ops::capture::Capture,
     board: &Board,
     shutdown: &CancellationToken,
 ) -> Result<Lines, GatewayError> {
@@ -340,11 +340,11 @@ async fn start_lines(
         };
         let tap = capture.hub().tap(i as u16 + 1);
         if let Some(master) = &line.master {
-            let port = crate::port::serial::SerialPort::new(line.serial.clone());
-            let timing = crate::bridge::Timing::of_line(&line.serial, &line.relay);
+            let port = crate::line::port::serial::SerialPort::new(line.serial.clone());
+            let timing = crate::line::bridge::Timing::of_line(&line.serial, &line.relay);
             let metrics = Arc::new(metrics::LineMetrics::new(line.name(), line_stats));
             board.add_line(metrics.clone());
-            let (task, handle) = crate::bridge::start(crate::bridge::MasterLineParts {
+            let (task, handle) = crate::line::bridge::start(crate::line::bridge::MasterLineParts {
                 port: Box::new(port),
                 framing: line.serial.framing,
                 timing,
@@ -382,8 +382,9 @@ fn start_metrics(
     cfg: &Config,
     board: &Arc<Board>,
     shutdown: &CancellationToken,
-) -> Result<crate::metrics::listener::MetricsListener, GatewayError> {
-    let mut http = crate::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
+) -> Result<crate::ops::metrics::listener::MetricsListener, GatewayError> {
+    let mut http =
+        crate::ops::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
     if let Some(addr) = cfg.metrics.listen {
         let listener =
             metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;

@@ -3,7 +3,7 @@
 //! docs/configuration.md's table and config/mbgate.toml held to the declarations.
 
 use clap::Parser;
-use mbgate::cli_overrides::Overrides;
+use mbgate::cli::overrides::Overrides;
 use mbgate::config::*;
 use std::path::Path;
 

@@ -905,16 +905,16 @@ fn every_count_of_tests_is_near_the_count() {
 }
 
 /// What the docs say of the status page's frame list holds: it shows as many frames
-/// as the gateway keeps (src/capture/hub.rs, `RECENT`).
+/// as the gateway keeps (src/ops/capture/hub.rs, `RECENT`).
 #[test]
 fn the_status_page_frames_the_docs_state_are_the_ones_kept() {
-    let hub = std::fs::read_to_string(repo().join("src/capture/hub.rs")).unwrap();
+    let hub = std::fs::read_to_string(repo().join("src/ops/capture/hub.rs")).unwrap();
     let kept: usize = hub
         .split("pub(crate) const RECENT: usize = ")
         .nth(1)
         .and_then(|r| r.split(';').next())
         .and_then(|n| n.parse().ok())
-        .expect("RECENT in src/capture/hub.rs");
+        .expect("RECENT in src/ops/capture/hub.rs");
     let mut seen = 0;
     for page in pages() {
         let md = std::fs::read_to_string(&page).unwrap().replace('\n', " ");

@@ -288,7 +288,7 @@ fn table_names_agree_between_help_and_the_guide() {
         }
     }
     // The demo's banner names tables the same way (checked where it prints them).
-    let banner = std::fs::read_to_string(common::repo().join("src/demo/mod.rs")).unwrap();
+    let banner = std::fs::read_to_string(common::repo().join("src/tools/demo/mod.rs")).unwrap();
     for used in ["holding-registers", "coils"] {
         assert!(
             banner.contains(&format!(" {used} ")),

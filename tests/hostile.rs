@@ -313,7 +313,7 @@ fn malformed_and_random_mbap_closes_only_that_connection_at_once() {
 /// stalled masters are closed after about 1 s. (Before this test the gateway never
 /// closed a master with a partial frame in its buffer, so one that vanished mid-frame,
 /// by a crash or a pulled cable, held its connection slot for ever; fixed in
-/// src/tcp.rs.)
+/// src/masters/tcp/mod.rs.)
 /// A frame that keeps growing is not idle: every trickled request is answered
 /// correctly, and the well-behaved master is served meanwhile.
 ///
@@ -560,7 +560,7 @@ fn resets_mid_request_leak_nothing() {
 /// buffer shrunk. Once the replies fill the sockets' buffers, the gateway's writer
 /// stalls, its reader stops taking requests (TCP pushes back), and after the idle
 /// timeout the master is closed: within 5 s of its first request. That needs the
-/// gateway's send buffer capped (src/tcp.rs `listen`): Linux grew it to 4 MiB, and
+/// gateway's send buffer capped (src/masters/tcp/mod.rs `listen`): Linux grew it to 4 MiB, and
 /// after 10 s and 20 000 requests the master had 1.7 MB of replies queued in the
 /// gateway's kernel and was still connected. It never stalls the relay: the
 /// well-behaved master is served throughout, promptly, and a new master after.

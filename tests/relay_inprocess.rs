@@ -1,15 +1,15 @@
 //! The relay in process: masters as outboxes on its channel, a device written in Rust on
-//! the far end of an in-memory pipe (src/port/duplex.rs). No socat, no Python, no
-//! sockets: every assertion is on bytes and on the relay's own counters (src/stats.rs).
+//! the far end of an in-memory pipe (src/line/port/duplex.rs). No socat, no Python, no
+//! sockets: every assertion is on bytes and on the relay's own counters (src/ops/stats.rs).
 //! The socat/pymodbus tests stay as the outer ring (docs/architecture.md).
 
 use mbgate::config::{Framing, Notifications, RelayConfig, SerialConfig};
 use mbgate::frame::serial::Codec;
 use mbgate::frame::Adu;
-use mbgate::outbox::{Inbox, Outbox};
-use mbgate::port::duplex::{self, DeviceEnd};
-use mbgate::relay::{Command, ConnId, Relay, RelayHandle};
-use mbgate::stats::Stats;
+use mbgate::line::outbox::{Inbox, Outbox};
+use mbgate::line::port::duplex::{self, DeviceEnd};
+use mbgate::line::relay::{Command, ConnId, Relay, RelayHandle};
+use mbgate::ops::stats::Stats;
 use std::sync::atomic::AtomicU64;
 use std::sync::Arc;
 use std::time::Duration;
@@ -1184,7 +1184,7 @@ struct FakeSwitch {
     broken: Arc<std::sync::atomic::AtomicBool>,
 }
 
-impl mbgate::port::serial::direction::Switch for FakeSwitch {
+impl mbgate::line::port::serial::direction::Switch for FakeSwitch {
     fn set(&mut self, transmit: bool) -> std::io::Result<()> {
         use std::sync::atomic::Ordering::SeqCst;
         if transmit && self.broken.load(SeqCst) {
@@ -1206,7 +1206,7 @@ impl mbgate::port::serial::direction::Switch for FakeSwitch {
 #[tokio::test]
 async fn direction_on_for_each_request_off_before_its_reply() {
     use mbgate::config::{Direction, FlowControl};
-    use mbgate::port::duplex::Bus;
+    use mbgate::line::port::duplex::Bus;
     use std::sync::atomic::Ordering::SeqCst;
     let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let log = Arc::new(std::sync::Mutex::new(Vec::new()));
@@ -1240,7 +1240,7 @@ async fn direction_on_for_each_request_off_before_its_reply() {
     let mut gw = Gw {
         handle,
         stats,
-        device: mbgate::port::duplex::pair(1, CHAR).1,
+        device: mbgate::line::port::duplex::pair(1, CHAR).1,
         shutdown,
         task,
         next_conn: 1,
@@ -1323,7 +1323,7 @@ async fn direction_on_for_each_request_off_before_its_reply() {
 #[tokio::test]
 async fn direction_with_echo_drops_the_request_read_back() {
     use mbgate::config::{Direction, FlowControl};
-    use mbgate::port::duplex::Bus;
+    use mbgate::line::port::duplex::Bus;
     use std::sync::atomic::Ordering::SeqCst;
     for direction in [Direction::Rts, Direction::Gpio] {
         let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
@@ -1404,7 +1404,7 @@ async fn direction_with_echo_drops_the_request_read_back() {
 #[tokio::test]
 async fn direction_a_request_that_times_out_stuck_leaves_the_transmitter_off() {
     use mbgate::config::{Direction, FlowControl};
-    use mbgate::port::duplex::Bus;
+    use mbgate::line::port::duplex::Bus;
     use std::sync::atomic::Ordering::SeqCst;
     let on = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let log = Arc::new(std::sync::Mutex::new(Vec::new()));

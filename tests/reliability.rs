@@ -11,7 +11,7 @@
 mod common;
 use common::sim::sim;
 use common::*;
-use mbgate::sim::line::Faults;
+use mbgate::tools::sim::line::Faults;
 use std::collections::HashMap;
 use std::fmt;
 use std::io::{ErrorKind, Read, Write};
@@ -46,7 +46,7 @@ const SIM_DEVICE: &[&str] = &[
     "--fill",
     "address",
     "--log-level",
-    "info,mbgate::sim::packets=off",
+    "info,mbgate::tools::sim::packets=off",
 ];
 
 /// The same device with holding registers that look like pieces of MBAP headers
@@ -59,7 +59,7 @@ const SIM_HEADER_DEVICE: &[&str] = &[
     "--fill",
     "header",
     "--log-level",
-    "info,mbgate::sim::packets=off",
+    "info,mbgate::tools::sim::packets=off",
 ];
 
 fn long() -> bool {
@@ -82,7 +82,7 @@ impl Device {
     fn holding(self, addr: u16) -> u16 {
         match self {
             Device::Sim => addr,
-            Device::SimHeader => mbgate::sim::generic::header_fill(usize::from(addr)),
+            Device::SimHeader => mbgate::tools::sim::generic::header_fill(usize::from(addr)),
             Device::Pymodbus if addr == 0 => 0xFF,
             Device::Pymodbus => 1000 + addr,
         }
@@ -205,7 +205,7 @@ impl Outcome {
 }
 
 /// A lossy serial cable between the gateway's pty pair and the device's, with the
-/// simulator's seeded line model (`mbgate::sim::line::Faults`) on the way back.
+/// simulator's seeded line model (`mbgate::tools::sim::line::Faults`) on the way back.
 struct LossyLink {
     stop: Arc<AtomicBool>,
 }

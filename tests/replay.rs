@@ -116,7 +116,7 @@ fn capture(sock: &Path, file: &Path) -> Proc {
 /// Waits until `file` holds at least `n` packets on its lines (the capture writes
 /// what gathered every 10 ms), so stopping it loses none of the session.
 fn settle(file: &Path, n: usize) {
-    use mbgate::capture::pcapng_read::read;
+    use mbgate::ops::capture::pcapng_read::read;
     wait_for("the capture's packets", Duration::from_secs(10), || {
         let bytes = std::fs::read(file).unwrap_or_default();
         read(&bytes).is_ok_and(|r| {
@@ -433,7 +433,7 @@ type Exchange<'a> = (u8, &'a [u8], Option<&'a [u8]>);
 /// A capture as the writer makes it: on line `/dev/ttyS0`, each (unit, request, reply
 /// or `None` for a timeout), 2 ms apart.
 fn synthetic(exchanges: &[Exchange<'_>]) -> Vec<u8> {
-    use mbgate::capture::pcapng;
+    use mbgate::ops::capture::pcapng;
     let mut file = pcapng::section_header("test");
     file.extend(pcapng::interface("tcp", ""));
     file.extend(pcapng::interface("/dev/ttyS0", ""));
@@ -580,7 +580,7 @@ fn damaged_and_foreign_files_are_loaded_up_to_the_damage_or_refused() {
         run.stderr
     );
     let empty = dir.path().join("empty.pcapng");
-    std::fs::write(&empty, mbgate::capture::pcapng::section_header("x")).unwrap();
+    std::fs::write(&empty, mbgate::ops::capture::pcapng::section_header("x")).unwrap();
     let run = summary(&[&empty]);
     assert_eq!(run.code, 2);
     assert!(

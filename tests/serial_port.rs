@@ -56,7 +56,7 @@ fn settings_reach_termios() {
             flow_control: flow,
             ..SerialConfig::default()
         };
-        let port = mbgate::port::serial::open(&cfg).expect("open pty");
+        let port = mbgate::line::port::serial::open(&cfg).expect("open pty");
         let t = termios(port.as_raw_fd());
         let what = format!("{baud} {data_bits} {parity:?} {stop_bits} {flow:?}");
         assert_eq!(speed(port.as_raw_fd()), baud, "{what}");
@@ -96,7 +96,7 @@ fn stale_bytes_are_cleared_on_open() {
         ..SerialConfig::default()
     };
     // Open once so the pty is configured raw, then leave bytes waiting on it.
-    let first = mbgate::port::serial::open(&cfg).expect("open pty");
+    let first = mbgate::line::port::serial::open(&cfg).expect("open pty");
     let mut dev = std::fs::OpenOptions::new()
         .read(true)
         .write(true)
@@ -110,7 +110,7 @@ fn stale_bytes_are_cleared_on_open() {
         std::thread::sleep(std::time::Duration::from_millis(10));
     }
     drop(first);
-    let port = mbgate::port::serial::open(&cfg).expect("reopen pty");
+    let port = mbgate::line::port::serial::open(&cfg).expect("reopen pty");
     assert_eq!(
         bytes_waiting(port.as_raw_fd()),
         0,

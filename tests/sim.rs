@@ -117,8 +117,8 @@ fn generic_profile_serves_pymodbus_through_the_gateway() {
     );
 
     // The simulator's random discrete inputs come from its seed: the same seed here.
-    let expected = mbgate::sim::Device::generic(&[1, 2], 20, 20, 1 + 2);
-    let mbgate::sim::Profile::Generic(g) = &expected.profile else {
+    let expected = mbgate::tools::sim::Device::generic(&[1, 2], 20, 20, 1 + 2);
+    let mbgate::tools::sim::Profile::Generic(g) = &expected.profile else {
         unreachable!()
     };
     let discrete: Vec<String> = g.units[&1]

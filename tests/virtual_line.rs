@@ -350,7 +350,7 @@ fn stock(addr: u16) -> u16 {
 /// have: its own (right), exception 0x0B (no reply in time: allowed, counted), or
 /// anything else (wrong, kept to be shown), a frame of another function code included:
 /// the gateway refuses a reply that does not answer its request
-/// (src/relay/line/serial.rs). Every test here asserts `wrong` empty.
+/// (src/line/relay/line/serial/mod.rs). Every test here asserts `wrong` empty.
 #[derive(Debug, Default)]
 struct Tally {
     right: u32,

@@ -1,5 +1,5 @@
 //! What the relay says about its line (docs/watching.md), in process: the relay
-//! over an in-memory pipe (src/port/duplex.rs) with a device written here, its log
+//! over an in-memory pipe (src/line/port/duplex.rs) with a device written here, its log
 //! captured. A unit that stops answering is warned about once and its return said
 //! once, on MBAP and on RTU (and when its answers were being dropped, why, naming the
 //! setting); the cost of MBAP confirmation is said once; the traffic log shows whole
@@ -8,10 +8,10 @@
 use mbgate::config::{Framing, RelayConfig, SerialConfig};
 use mbgate::frame::serial::Codec;
 use mbgate::frame::Adu;
-use mbgate::outbox::{Inbox, Outbox};
-use mbgate::port::duplex;
-use mbgate::relay::{Command, Relay, RelayHandle};
-use mbgate::stats::Stats;
+use mbgate::line::outbox::{Inbox, Outbox};
+use mbgate::line::port::duplex;
+use mbgate::line::relay::{Command, Relay, RelayHandle};
+use mbgate::ops::stats::Stats;
 use std::io::Write;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

@@ -1,10 +1,10 @@
-//! The pcapng reader (src/capture/pcapng_read.rs) on arbitrary files: it never panics,
+//! The pcapng reader (src/ops/capture/pcapng_read.rs) on arbitrary files: it never panics,
 //! stops at damage inside the file, and every packet it gives lies within the file and
 //! names an interface it gave.
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use mbgate::capture::pcapng_read::{exported, read};
+use mbgate::ops::capture::pcapng_read::{exported, read};
 
 fuzz_target!(|file: &[u8]| {
     match read(file) {

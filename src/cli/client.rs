@@ -6,8 +6,8 @@
 use super::client_args::{BadValue, CommonArgs};
 use super::exit;
 use super::signals::{self, Stops};
-use crate::client::{session, Outcome, Transport};
 use crate::frame::request::{Request, RequestError};
+use crate::tools::client::{session, Outcome, Transport};
 use std::process::ExitCode;
 
 pub(crate) use super::client_args::{ReadArgs, WriteArgs};

@@ -1,10 +1,10 @@
 //! `mbgate read` and `mbgate write`'s flags: where requests go and what they ask, as
 //! the request PDUs of docs/protocol.md §1, and the session's options.
 
-use crate::cli_overrides::{choice, PortFlags, PORT_GROUP};
-use crate::client::{Session, Transport};
+use crate::cli::overrides::{choice, PortFlags, PORT_GROUP};
 use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
+use crate::tools::client::{Session, Transport};
 
 /// A value or a flag combination `read` and `write` refuse; the message names it.
 #[derive(Debug, thiserror::Error)]

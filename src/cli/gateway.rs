@@ -3,7 +3,7 @@
 
 use super::exit;
 use super::signals::{self, Stops};
-use crate::cli_overrides::Overrides;
+use crate::cli::overrides::Overrides;
 use crate::config::{self, Config};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -16,7 +16,7 @@ pub(crate) enum Unusable {
     Config(#[from] config::ConfigError),
     /// A certificate or key that cannot be used (docs/security.md).
     #[error("{0}")]
-    Tls(#[from] crate::tls::TlsError),
+    Tls(#[from] crate::masters::tls::TlsError),
 }
 
 /// `mbgate check-config`: exit 0 valid, 2 not.
@@ -49,7 +49,7 @@ pub(crate) fn check_config(
 /// stopped by SIGTERM or SIGINT.
 pub(crate) fn run(file: Option<PathBuf>, overrides: Overrides) -> ExitCode {
     // Under journald these lines get the error priority too.
-    let prefix = crate::logging::error_prefix();
+    let prefix = crate::ops::logging::error_prefix();
     let cfg = match checked(file.clone(), &overrides) {
         Ok(cfg) => cfg,
         Err(e) => {
@@ -59,7 +59,7 @@ pub(crate) fn run(file: Option<PathBuf>, overrides: Overrides) -> ExitCode {
     };
     // A reload reads the file again and puts the same flags on top.
     let load = Box::new(move || effective(file.clone(), &overrides));
-    crate::logging::init(&cfg.log);
+    crate::ops::logging::init(&cfg.log);
     let rt = match signals::runtime(exit::FAILED) {
         Ok(rt) => rt,
         Err(code) => return code,
@@ -93,6 +93,6 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
 /// be used is a bad configuration too (docs/security.md).
 fn checked(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, Unusable> {
     let cfg = effective(file, overrides)?;
-    crate::tls::check(&cfg)?;
+    crate::masters::tls::check(&cfg)?;
     Ok(cfg)
 }

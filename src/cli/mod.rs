@@ -1,6 +1,6 @@
 //! The command line, once for every subcommand (docs/design.md §3): the argument
 //! types (`Cli` and each subcommand's flags, which the man pages and completions are
-//! generated from, `crate::manual`), the runtime and signals (`signals.rs`) and the
+//! generated from, `crate::cli::manual`), the runtime and signals (`signals.rs`) and the
 //! exit codes (`exit.rs`). Each subcommand's file turns its flags into the plain
 //! options of the room that does the work, runs it, and turns its typed outcome or
 //! error into a message and an exit code. `src/main.rs` only calls [`main`].
@@ -10,14 +10,17 @@ mod client;
 mod client_args;
 pub mod exit;
 mod gateway;
+pub mod manual;
+pub mod overrides;
 mod reload;
+pub mod runtime;
 mod scan;
 mod signals;
 pub(crate) mod sim;
 mod status;
 mod wire;
 
-use crate::cli_overrides::Overrides;
+use crate::cli::overrides::Overrides;
 use clap::{CommandFactory as _, Parser, Subcommand};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -105,7 +108,7 @@ enum Command {
     /// until Ctrl-C or SIGTERM (docs/simulator.md, "A virtual line").
     Wire(wire::WireArgs),
     /// No hardware: a pty pair, a simulated CIE-M10 and the gateway, in one process.
-    Demo(crate::demo::DemoArgs),
+    Demo(crate::tools::demo::DemoArgs),
     /// Ask a running gateway how its lines are: a summary per line and unit.
     ///
     /// From its metrics listener (`[metrics] listen`, off unless given an address).
@@ -189,13 +192,13 @@ pub fn command() -> clap::Command {
 /// stdout.
 fn generate(what: Generate) -> ExitCode {
     let written = match what {
-        Generate::Man { dir } => crate::manual::man_pages(command(), &dir).map(|files| {
+        Generate::Man { dir } => crate::cli::manual::man_pages(command(), &dir).map(|files| {
             for f in files {
                 println!("{}", f.display());
             }
         }),
         Generate::Completions { shell } => {
-            crate::manual::completion(command(), shell, &mut std::io::stdout())
+            crate::cli::manual::completion(command(), shell, &mut std::io::stdout())
         }
     };
     match written {
@@ -205,48 +208,4 @@ fn generate(what: Generate) -> ExitCode {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// clap's own checks of every subcommand's flags (conflicts, requires and groups
-    /// that name flags there are, no two flags of one name).
-    #[test]
-    fn the_command_line_is_consistent() {
-        command().debug_assert();
-    }
-
-    /// Each subcommand parses to its own variant, its flags to their fields' types.
-    #[test]
-    fn each_subcommand_parses() {
-        let parse = |line: &[&str]| Cli::try_parse_from(line).map(|c| c.command);
-        assert!(matches!(
-            parse(&["mbgate", "read", "holding", "0x6B", "3"]),
-            Ok(Command::Read(_))
-        ));
-        assert!(matches!(
-            parse(&["mbgate", "status", "--metrics", "127.0.0.1:9"]),
-            Ok(Command::Status(_))
-        ));
-        assert!(matches!(
-            parse(&[
-                "mbgate",
-                "sim",
-                "--serial",
-                "/dev/ttyS9",
-                "--role",
-                "master"
-            ]),
-            Ok(Command::Sim(_))
-        ));
-        assert!(matches!(
-            parse(&["mbgate", "wire", "a", "b", "--a", "9600,8E1"]),
-            Ok(Command::Wire(_))
-        ));
-        let refused = parse(&["mbgate", "wire", "a", "b", "--format", "9N1"]).unwrap_err();
-        assert_eq!(refused.exit_code(), i32::from(exit::USAGE));
-        assert!(
-            refused.to_string().contains("expected a format like 8N1"),
-            "{refused}"
-        );
-    }
-}
+mod tests;

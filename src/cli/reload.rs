@@ -2,8 +2,8 @@
 //! gateway could not be asked, 2 bad arguments.
 
 use super::exit;
-use crate::control::control_socket;
-use crate::control::reload::{reload, Answer};
+use crate::ops::control::control_socket;
+use crate::ops::control::reload::{reload, Answer};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

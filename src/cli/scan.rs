@@ -4,9 +4,9 @@
 
 use super::exit;
 use super::signals::{self, Stops};
-use crate::scan::probe::{SerialFraming, UnitList};
-use crate::scan::{scan, ScanError, ScanOptions};
-use crate::wire::uart::Format;
+use crate::tools::scan::probe::{SerialFraming, UnitList};
+use crate::tools::scan::{scan, ScanError, ScanOptions};
+use crate::tools::wire::uart::Format;
 use std::process::ExitCode;
 
 /// `mbgate scan`'s flags.

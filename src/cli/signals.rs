@@ -1,5 +1,5 @@
 //! The runtime every subcommand runs on and the signals that stop it, set up here
-//! once: the one-thread runtime (`crate::runtime`), and which of SIGINT (Ctrl-C),
+//! once: the one-thread runtime (`crate::cli::runtime`), and which of SIGINT (Ctrl-C),
 //! SIGTERM (systemd stop) and SIGHUP start a graceful stop.
 
 use super::exit;
@@ -13,7 +13,7 @@ const TARGET: &str = "mbgate";
 /// The runtime; when it cannot be had, says so on stderr and gives exit code
 /// `failed`, the subcommand's for a failure of its own.
 pub(crate) fn runtime(failed: u8) -> Result<Runtime, ExitCode> {
-    crate::runtime::new().map_err(|e| {
+    crate::cli::runtime::new().map_err(|e| {
         eprintln!("mbgate: starting the runtime: {e}");
         exit::code(failed)
     })
@@ -25,7 +25,7 @@ pub(crate) enum Stops {
     /// SIGINT only: `scan`, `read --poll` (a SIGTERM ends them at once).
     Interrupt,
     /// SIGTERM and SIGINT: `run` (whose SIGHUP is a reload, handled by the gateway,
-    /// `crate::reload`), `wire`.
+    /// `crate::ops::reload`), `wire`.
     TermInt,
     /// SIGTERM, SIGINT and SIGHUP: `sim`, `demo`: a closed terminal stops them,
     /// gracefully (SIGHUP's default action would end the process at once).

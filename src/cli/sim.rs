@@ -1,17 +1,17 @@
 //! `mbgate sim` and `mbgate demo`: the simulator's flags checked (exit 2 when bad),
 //! tracing, the runtime, the signals (SIGHUP stops them too) and the console, then the
-//! simulator (`crate::sim`) or the demo (`crate::demo`).
+//! simulator (`crate::tools::sim`) or the demo (`crate::tools::demo`).
 
 use super::exit;
 use super::signals::{self, Stops};
 use std::process::ExitCode;
 use tokio_util::sync::CancellationToken;
 
-use crate::cli_overrides::{choice, PortFlags};
+use crate::cli::overrides::{choice, PortFlags};
 use crate::config::{Framing, SerialConfig};
-use crate::sim::options::{self, BadFlags, DeviceArgs, Settings};
-use crate::sim::replay::args::ReplayArgs;
-use crate::sim::role::{self, Role};
+use crate::tools::sim::options::{self, BadFlags, DeviceArgs, Settings};
+use crate::tools::sim::replay::args::ReplayArgs;
+use crate::tools::sim::role::{self, Role};
 use std::path::PathBuf;
 
 /// `mbgate sim`: the device options and the serial port.
@@ -40,7 +40,7 @@ pub(crate) struct SimArgs {
     /// The device simulated.
     #[command(flatten)]
     pub(crate) device: DeviceArgs,
-    /// A recorded device instead (src/sim/replay/args.rs).
+    /// A recorded device instead (src/tools/sim/replay/args.rs).
     #[command(flatten)]
     pub(crate) replay: ReplayArgs,
     /// The role it plays and where.
@@ -127,7 +127,7 @@ impl RoleArgs {
 
 /// The simulator's log level: as asked, else `info` headless and `warn` under the
 /// console, so packets do not scroll over the prompt.
-fn sim_level(device: &crate::sim::options::DeviceArgs) -> (String, bool) {
+fn sim_level(device: &crate::tools::sim::options::DeviceArgs) -> (String, bool) {
     let console = !device.headless && std::io::IsTerminal::is_terminal(&std::io::stdin());
     let level = device
         .log_level
@@ -138,10 +138,10 @@ fn sim_level(device: &crate::sim::options::DeviceArgs) -> (String, bool) {
 
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
 pub(crate) fn sim(args: SimArgs) -> ExitCode {
-    use crate::sim::serve::{self, Port};
+    use crate::tools::sim::serve::{self, Port};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
-    let cie_m10 = args.device.profile == crate::sim::options::ProfileName::CieM10
+    let cie_m10 = args.device.profile == crate::tools::sim::options::ProfileName::CieM10
         && args.replay.replay.is_empty();
     let polling = args.role.role().polling(cie_m10, args.listen.is_some());
     let many = (args.connections > 1).then_some(args.connections);
@@ -158,7 +158,7 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
         // `--replay FILE --summary`: what the files hold, and no more.
         return match settings {
             Ok(s) => {
-                if let crate::sim::Profile::Replay(r) = &s.device.profile {
+                if let crate::tools::sim::Profile::Replay(r) = &s.device.profile {
                     for w in &r.warnings {
                         eprintln!("mbgate: warning: {w}");
                     }
@@ -180,11 +180,12 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
         None,
         |settings, commands, shutdown| async move {
             if let (Some(addr), Some(n)) = (listen, many) {
-                let listener = crate::sim::tcp::bind(addr)
+                let listener = crate::tools::sim::tcp::bind(addr)
                     .await
                     .map_err(|source| Failed::Listen { addr, source })?;
                 let n = usize::from(n);
-                crate::sim::tcp::run(settings.device, listener, n, commands, shutdown).await?;
+                crate::tools::sim::tcp::run(settings.device, listener, n, commands, shutdown)
+                    .await?;
                 return Ok(());
             }
             let port = match listen {
@@ -193,7 +194,7 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
             };
             match polling? {
                 Some(p) => {
-                    crate::sim::master::run(settings, p, port, commands, shutdown).await?;
+                    crate::tools::sim::master::run(settings, p, port, commands, shutdown).await?;
                 }
                 None => serve::run(settings, port, commands, shutdown).await?,
             }
@@ -203,7 +204,7 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
 }
 
 /// `mbgate demo`.
-pub(crate) fn demo(args: crate::demo::DemoArgs) -> ExitCode {
+pub(crate) fn demo(args: crate::tools::demo::DemoArgs) -> ExitCode {
     if args.master.master {
         return master_demo(args);
     }
@@ -216,7 +217,8 @@ pub(crate) fn demo(args: crate::demo::DemoArgs) -> ExitCode {
         args.traffic,
         Some(after_banner),
         |settings, commands, shutdown| async move {
-            let stats = crate::demo::run(&args, settings, commands, shutdown, banner_shown).await?;
+            let stats =
+                crate::tools::demo::run(&args, settings, commands, shutdown, banner_shown).await?;
             // Under the console the log shows warnings only: the counters the log
             // gives at every stop are printed here instead.
             if console {
@@ -228,12 +230,12 @@ pub(crate) fn demo(args: crate::demo::DemoArgs) -> ExitCode {
 }
 
 /// `mbgate demo --master`: the simulated master takes the device flags.
-fn master_demo(args: crate::demo::DemoArgs) -> ExitCode {
+fn master_demo(args: crate::tools::demo::DemoArgs) -> ExitCode {
     let device = args.device.clone();
     let (banner_shown, after_banner) = std::sync::mpsc::channel();
     let settings = args.settings().and_then(|s| match s.device.profile {
-        crate::sim::Profile::CieM10(_) => Ok(s),
-        crate::sim::Profile::Generic(_) | crate::sim::Profile::Replay(_) => {
+        crate::tools::sim::Profile::CieM10(_) => Ok(s),
+        crate::tools::sim::Profile::Generic(_) | crate::tools::sim::Profile::Replay(_) => {
             Err("--master is the cie-m10 profile's".into())
         }
     });
@@ -243,7 +245,8 @@ fn master_demo(args: crate::demo::DemoArgs) -> ExitCode {
         args.traffic,
         Some(after_banner),
         |settings, commands, shutdown| async move {
-            crate::demo::master::run(&args, settings, commands, shutdown, banner_shown).await?;
+            crate::tools::demo::master::run(&args, settings, commands, shutdown, banner_shown)
+                .await?;
             Ok(())
         },
     )
@@ -253,16 +256,16 @@ fn master_demo(args: crate::demo::DemoArgs) -> ExitCode {
 /// runtime, the signals and the console (shown once `console_after` says so, if given);
 /// `body` runs the simulator.
 fn simulate<F, Fut>(
-    device: &crate::sim::options::DeviceArgs,
-    settings: Result<crate::sim::options::Settings, crate::sim::options::BadFlags>,
+    device: &crate::tools::sim::options::DeviceArgs,
+    settings: Result<crate::tools::sim::options::Settings, crate::tools::sim::options::BadFlags>,
     traffic: bool,
     console_after: Option<std::sync::mpsc::Receiver<()>>,
     body: F,
 ) -> ExitCode
 where
     F: FnOnce(
-        crate::sim::options::Settings,
-        tokio::sync::mpsc::Receiver<crate::sim::serve::ConsoleRequest>,
+        crate::tools::sim::options::Settings,
+        tokio::sync::mpsc::Receiver<crate::tools::sim::serve::ConsoleRequest>,
         CancellationToken,
     ) -> Fut,
     Fut: std::future::Future<Output = Result<(), Failed>>,
@@ -275,14 +278,14 @@ where
         }
     };
     let (level, console) = sim_level(device);
-    crate::logging::init(&crate::config::LogConfig { level, traffic });
+    crate::ops::logging::init(&crate::config::LogConfig { level, traffic });
     let rt = match signals::runtime(exit::FAILED) {
         Ok(rt) => rt,
         Err(code) => return code,
     };
     finish(rt.block_on(async {
         let shutdown = signals::stop_on(Stops::TermIntHup);
-        let commands = crate::sim::terminal::start(console, shutdown.clone(), console_after);
+        let commands = crate::tools::sim::terminal::start(console, shutdown.clone(), console_after);
         if console {
             // Ctrl-C leaves the cursor after `sim> `: end that line, so what
             // follows (and the shell's prompt) starts on its own.
@@ -309,11 +312,11 @@ enum Failed {
     #[error(transparent)]
     Flags(#[from] BadFlags),
     #[error(transparent)]
-    Sim(#[from] crate::sim::serve::SimError),
+    Sim(#[from] crate::tools::sim::serve::SimError),
     #[error(transparent)]
-    Demo(#[from] crate::demo::DemoError),
+    Demo(#[from] crate::tools::demo::DemoError),
     #[error(transparent)]
-    Master(#[from] crate::demo::master::MasterDemoError),
+    Master(#[from] crate::tools::demo::master::MasterDemoError),
 }
 
 /// The end of a simulator's run: 0, or the error (and its sources) and 1.

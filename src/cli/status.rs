@@ -2,7 +2,7 @@
 //! answering), 3 the gateway could not be asked, 2 bad arguments.
 
 use super::exit;
-use crate::metrics::status_command::{ask, turn_on};
+use crate::ops::metrics::status_command::{ask, turn_on};
 use std::process::ExitCode;
 
 /// `mbgate status`'s flags.

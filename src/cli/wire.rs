@@ -3,7 +3,7 @@
 
 use super::exit;
 use super::signals::{self, Stops};
-use crate::wire::{run, EndSpec, WireError, WireOptions};
+use crate::tools::wire::{run, EndSpec, WireError, WireOptions};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

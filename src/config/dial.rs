@@ -16,7 +16,7 @@ use super::access::{policy, WriteRules, PRIORITY};
 use super::raw::read_table;
 use super::{table, Check, HostPort, Key, ListenConfig, ListenFraming, Raw, Setting, TcpConfig};
 use super::{Any, NonEmpty, Range, ValueError, ValueKind};
-use crate::access::Policy;
+use crate::masters::access::Policy;
 use std::net::SocketAddr;
 
 table! {
@@ -180,7 +180,7 @@ pub struct DialConfig {
 
 impl DialConfig {
     /// Its requests as a listener's masters' are taken (the one connection type of
-    /// `crate::tcp`): the framing, what they may do, the priority class and the idle
+    /// `crate::masters::tcp`): the framing, what they may do, the priority class and the idle
     /// timeout; a dialed connection has no allow list (mbgate chose the peer).
     pub(crate) fn masters(&self) -> ListenConfig {
         ListenConfig {

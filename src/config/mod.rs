@@ -2,7 +2,7 @@
 //!
 //! Each setting is one line of `settings!`: key, type, default, allowed values, flag
 //! and help. From it come the section structs and their defaults, and [`KEYS`], which
-//! the file reader ([`file`]), `check-config`, the flags (`crate::cli_overrides`) and
+//! the file reader ([`file`]), `check-config`, the flags (`crate::cli::overrides`) and
 //! the tests holding docs/configuration.md and `config/mbgate.toml` to it all read. A value is
 //! checked the same way from the file or a flag. A new setting is one line here plus
 //! what it does. The keys of a table inside a line or a listener (`[[line.route]]`,

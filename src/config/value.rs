@@ -133,7 +133,7 @@ const LISTEN_EXAMPLE: &str = "0.0.0.0:502";
 pub(crate) const METRICS_EXAMPLE: &str = "127.0.0.1:9502";
 
 /// `serial.silence_floor_ms`: the least silence that ends a frame, in milliseconds, or
-/// `"auto"`, from the port as it is found at each open (`crate::port::kind`).
+/// `"auto"`, from the port as it is found at each open (`crate::line::port::kind`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Floor {
     /// From the port: none on a pty, the receive FIFO on a native UART, the latency

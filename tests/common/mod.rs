@@ -780,7 +780,7 @@ pub(crate) fn open_pty(path: &Path) -> std::fs::File {
         .custom_flags(libc::O_NONBLOCK | libc::O_NOCTTY)
         .open(path)
         .unwrap_or_else(|e| {
-            let held = mbgate::port::serial::held_by(&path.to_string_lossy());
+            let held = mbgate::line::port::serial::held_by(&path.to_string_lossy());
             panic!("open pty {}: {e}{held}", path.display())
         })
 }

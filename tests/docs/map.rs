@@ -176,8 +176,8 @@ fn declares(code: &str, item: &str) -> bool {
     false
 }
 
-/// The files of module `segments` (`["relay", "line"]`): `src/relay/line.rs` or
-/// `src/relay/line/mod.rs`.
+/// The files of module `segments` (`["relay", "line"]`): `src/line/relay/line.rs` or
+/// `src/line/relay/line/mod.rs`.
 fn module_file(segments: &[&str]) -> Option<PathBuf> {
     let base = repo().join("src").join(segments.join("/"));
     [base.with_extension("rs"), base.join("mod.rs")]
@@ -322,7 +322,7 @@ fn the_map_names_only_what_the_code_has() {
 
 /// The files of `src/` a table row of `page` names: its first cell's paths, and every
 /// `.rs` or `.html` file another cell names from the row's folder (`mbap/tests.rs` in
-/// the row of `src/relay/line/mbap.rs`, `console.rs` in the row of `src/sim/`).
+/// the row of `src/line/relay/line/mbap/mod.rs`, `console.rs` in the row of `src/tools/sim/`).
 fn rows_name(page: &str) -> Vec<String> {
     let mut named = Vec::new();
     for row in page.lines().filter(|l| l.starts_with("| `src/")) {
@@ -362,6 +362,13 @@ fn every_source_file_is_on_the_map() {
         .iter()
         .filter(|f| f.ends_with(".rs") || f.ends_with(".html"))
         .filter(|f| !named.contains(f))
+        // A folder module's tests sit in `tests.rs` beside its `mod.rs` (the
+        // convention of "The wings"): its module's row names them.
+        .filter(|f| {
+            let module = f.strip_suffix("/tests.rs").map(|m| format!("{m}/mod.rs"));
+            !module
+                .is_some_and(|m| named.contains(&m) || named.contains(&m.replace("/mod.rs", "/")))
+        })
         .collect();
     assert!(
         missing.is_empty(),
@@ -369,11 +376,61 @@ fn every_source_file_is_on_the_map() {
     );
 }
 
-/// The room of a source file: its first step under `src/` (`relay` for
-/// `src/relay/line/mod.rs` and `src/relay.rs`).
+/// The wings of `src/`: folders that hold rooms and nothing else (docs/architecture.md
+/// "The rooms"). A room in a wing is named by both steps (`line/relay`).
+const WINGS: &[&str] = &["masters", "line", "ops", "tools"];
+
+/// The room of a source file: its first step under `src/` (`config` for
+/// `src/config/file/mod.rs`), or its first two when the first is a wing
+/// (`line/relay` for `src/line/relay/line/mod.rs`).
 fn room(file: &str) -> String {
-    let step = file["src/".len()..].split('/').next().unwrap();
-    step.trim_end_matches(".rs").to_string()
+    let steps: Vec<&str> = file["src/".len()..]
+        .split('/')
+        .map(|s| s.trim_end_matches(".rs"))
+        .collect();
+    match steps.as_slice() {
+        [wing, room, ..] if WINGS.contains(wing) => format!("{wing}/{room}"),
+        [first, ..] => first.to_string(),
+        [] => String::new(),
+    }
+}
+
+/// The room a Rust path names after `crate::` (`line::relay::Relay` → `line/relay`).
+fn room_of_path(path: &str) -> String {
+    let steps: Vec<String> = path
+        .split("::")
+        .map(|s| {
+            s.chars()
+                .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                .collect()
+        })
+        .take(2)
+        .collect();
+    match steps.as_slice() {
+        [wing, room] if WINGS.contains(&wing.as_str()) && !room.is_empty() => {
+            format!("{wing}/{room}")
+        }
+        [first, ..] => first.clone(),
+        [] => String::new(),
+    }
+}
+
+/// A wing holds rooms and nothing else: its `mod.rs` is its doc and the rooms it
+/// declares, so a room's code never sits between the rooms.
+#[test]
+fn a_wing_holds_only_rooms() {
+    for wing in WINGS {
+        let code = production(&repo().join(format!("src/{wing}/mod.rs")));
+        for line in code.lines().map(str::trim).filter(|l| !l.is_empty()) {
+            let decl = line
+                .trim_start_matches("pub(crate) ")
+                .trim_start_matches("pub ");
+            assert!(
+                decl.starts_with("mod ") && decl.ends_with(';'),
+                "src/{wing}/mod.rs: `{line}` is not a room's declaration"
+            );
+        }
+    }
 }
 
 /// The production code of a source file: no comments, no test module.
@@ -431,7 +488,8 @@ fn every_import_points_down_the_rooms_drawing() {
     let mut wrong = Vec::new();
     for file in files.iter().filter(|f| f.ends_with(".rs")) {
         let from = room(file);
-        if from == "lib" || file.ends_with("/tests.rs") || file.contains("/tests/") {
+        let wing_index = WINGS.iter().any(|w| *file == format!("src/{w}/mod.rs"));
+        if from == "lib" || wing_index || file.ends_with("/tests.rs") || file.contains("/tests/") {
             continue;
         }
         let Some(&at) = place.get(&from) else {
@@ -442,10 +500,7 @@ fn every_import_points_down_the_rooms_drawing() {
         let mut seen = std::collections::BTreeSet::new();
         for prefix in ["crate::", "mbgate::"] {
             for (i, _) in code.match_indices(prefix) {
-                let to: String = code[i + prefix.len()..]
-                    .chars()
-                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
-                    .collect();
+                let to = room_of_path(&code[i + prefix.len()..]);
                 if to == from || !seen.insert(to.clone()) {
                     continue;
                 }
@@ -512,10 +567,7 @@ fn impl_target(header: &str) -> (String, Option<String>) {
     let t = header.trim().trim_start_matches('&').trim();
     let t = t.strip_prefix("dyn ").unwrap_or(t);
     let base = t.split('<').next().unwrap_or("").trim();
-    let room = base
-        .strip_prefix("crate::")
-        .and_then(|p| p.split("::").next())
-        .map(str::to_string);
+    let room = base.strip_prefix("crate::").map(room_of_path);
     (base.rsplit("::").next().unwrap_or("").to_string(), room)
 }
 
@@ -764,4 +816,35 @@ fn no_two_types_share_a_name() {
         paid.is_empty(),
         "no longer shared, take them off SHARED_NAMES_OWED: {paid:?}"
     );
+}
+
+/// The frame code is pure (docs/architecture.md "The wings"): its production code names
+/// no tokio, no I/O, no clock and no other room, so every decoder can be fuzzed alone.
+#[test]
+fn the_frame_code_is_pure() {
+    let mut files = Vec::new();
+    tree(&repo().join("src/frame"), &mut files);
+    let mut wrong = Vec::new();
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        let code = production(&repo().join(file));
+        for word in [
+            "tokio",
+            "std::io",
+            "std::net",
+            "std::fs",
+            "Instant",
+            "SystemTime",
+            "crate::",
+        ] {
+            let outside = word == "crate::"
+                && code
+                    .match_indices(word)
+                    .any(|(i, _)| !code[i..].starts_with("crate::frame"));
+            if (word != "crate::" && code.contains(word)) || outside {
+                wrong.push(format!("{file}: names `{word}`"));
+            }
+        }
+    }
+    assert!(files.len() > 10, "only {} files in src/frame/", files.len());
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }

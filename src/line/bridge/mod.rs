@@ -1,0 +1,590 @@
+//! The line whose device is the master (docs/design.md §4.2): requests that a serial
+//! master (a CIE-M10 in master mode, an RTU PLC or HMI) puts on the line go to the
+//! Modbus/TCP slave their unit routes to, and the replies come back on the line.
+//!
+//! - `requests`: the requests off the lossy line, the replies in its framing (pure);
+//! - `routing`: routes, ids, what is outstanding, deadlines, answers (plain data, time
+//!   passed in);
+//! - `slave`: one task per route holding its TCP connection;
+//! - this file: the loop that owns the serial port and wires them.
+
+pub(crate) mod requests;
+pub(crate) mod routing;
+pub(crate) mod slave;
+
+use crate::config::master::MasterLine;
+use crate::config::{Framing, RelayConfig, SerialConfig};
+use crate::frame::hex::Hex;
+use crate::frame::Adu;
+use crate::line::port::lifecycle::{Lifecycle, State};
+use crate::line::port::{OpenPort, Port};
+use crate::line::relay::watchdog::Watchdog;
+use crate::ops::capture::packet::{Dir, Packet, Part};
+use crate::ops::capture::Tap;
+use crate::ops::metrics::LineMetrics;
+use requests::{encode_reply, Requests};
+use routing::{Action, Routing, RoutingCounts, UnitTally};
+use std::sync::atomic::Ordering;
+use std::sync::Arc;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::sync::mpsc;
+use tokio::time::{sleep_until, Instant};
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info};
+
+/// Why the master line could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum BridgeError {
+    /// A passive route's listening address could not be bound.
+    #[error("cannot listen for the slave of route {route} on {addr}: {error}")]
+    Bind {
+        /// The route's index, in the order of the file.
+        route: usize,
+        /// The address as configured.
+        addr: String,
+        /// What the system said.
+        error: std::io::Error,
+    },
+}
+
+/// The line's timing: the pause that ends a frame, and the gap after which a partial
+/// one is dropped.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Timing {
+    /// Silence that ends a frame: 3.5 characters (at least the adapter's latency).
+    pub(crate) pause: Duration,
+    /// MBAP: silence after which a partial frame is discarded.
+    pub(crate) frame_gap: Duration,
+    /// The line's speed, for the log.
+    pub(crate) baud: u32,
+}
+
+impl Timing {
+    /// A line's timing from its `serial` and `relay` tables.
+    pub(crate) fn of_line(serial: &SerialConfig, relay: &RelayConfig) -> Self {
+        // Taken before the port opens: its kind from the path (its device number).
+        let kind = crate::line::port::serial::of_path(&serial.path);
+        let port = crate::line::port::kind::PortInfo::plain(kind);
+        Self {
+            pause: crate::line::port::kind::silence(serial, &port),
+            frame_gap: Duration::from_millis(relay.frame_gap_ms),
+            baud: serial.baud_rate,
+        }
+    }
+}
+
+/// How a reload reaches a running master line.
+#[derive(Debug, Clone)]
+pub(crate) struct MasterHandle(mpsc::UnboundedSender<MasterLine>);
+
+impl MasterHandle {
+    /// The routes' timeouts as `line` gives them now; `Err` when the line has stopped.
+    pub(crate) fn retune(&self, line: MasterLine) -> Result<(), ()> {
+        self.0.send(line).map_err(|_| ())
+    }
+}
+
+/// A master line ready to run: its routes' connections started (a passive route's
+/// address bound), its serial port not yet open.
+pub(crate) struct MasterLineTask {
+    port: Box<dyn Port>,
+    line: Bridge,
+    events: mpsc::UnboundedReceiver<slave::SlaveEvent>,
+    retunes: mpsc::UnboundedReceiver<MasterLine>,
+    slaves_stop: CancellationToken,
+    tracker: tokio_util::task::TaskTracker,
+}
+
+/// What a master line is made of (`start`).
+pub(crate) struct MasterLineParts {
+    /// The serial port the master is on.
+    pub(crate) port: Box<dyn Port>,
+    /// Its framing and its timing (`Timing::of_line`).
+    pub(crate) framing: Framing,
+    pub(crate) timing: Timing,
+    /// The routes to the slaves.
+    pub(crate) master: MasterLine,
+    /// Log every frame as hex (`log.traffic`).
+    pub(crate) traffic: bool,
+    /// The capture's taps: the serial line's, and the slaves' TCP side's.
+    pub(crate) line_tap: Tap,
+    pub(crate) tcp_tap: Tap,
+    /// Where its counts go.
+    pub(crate) metrics: Arc<LineMetrics>,
+    /// systemd's interval, when this line pets it (the gateway's first line does; the
+    /// gateway says READY=1 and STOPPING=1).
+    pub(crate) watchdog: Option<Duration>,
+}
+
+/// Makes the master line of `parts`: binds its passive routes (a taken address is an
+/// error now, not later), starts a task for each route's connection, and puts its
+/// counts on its metrics.
+pub(crate) async fn start(
+    parts: MasterLineParts,
+) -> Result<(MasterLineTask, MasterHandle), BridgeError> {
+    let MasterLineParts {
+        port,
+        framing,
+        timing,
+        master,
+        traffic,
+        line_tap,
+        tcp_tap,
+        metrics,
+        watchdog,
+    } = parts;
+    let (events_tx, events) = mpsc::unbounded_channel();
+    let mut to_slaves = Vec::new();
+    // Stopped once the line has drained at shutdown: the replies still due come
+    // through these connections.
+    let slaves_stop = CancellationToken::new();
+    let tracker = tokio_util::task::TaskTracker::new();
+    for (i, route) in master.routes.iter().enumerate() {
+        let listener = slave::bind(route)
+            .await
+            .map_err(|error| BridgeError::Bind {
+                route: i,
+                addr: route.peer.to_string(),
+                error,
+            })?;
+        if let Some(l) = &listener {
+            if let Ok(a) = l.local_addr() {
+                info!(route = i, "waiting for the slave to connect to {a}");
+            }
+        }
+        let (tx, rx) = mpsc::unbounded_channel();
+        to_slaves.push(tx);
+        tracker.spawn(slave::run(
+            i,
+            route.clone(),
+            listener,
+            rx,
+            events_tx.clone(),
+            (tcp_tap.clone(), slaves_stop.clone()),
+        ));
+    }
+    drop(events_tx);
+    let routes: Vec<String> = master
+        .routes
+        .iter()
+        .map(|r| match r.units.as_slice() {
+            [] => format!("other units -> {}", r.peer),
+            u => format!("units {u:?} -> {}", r.peer),
+        })
+        .collect();
+    info!(
+        serial = port.name(),
+        "master line on {} ({}): {}",
+        port.name(),
+        framing.name(),
+        routes.join("; ")
+    );
+    let line = Bridge {
+        requests: Requests::new(framing),
+        routing: Routing::new(master, framing != Framing::Mbap),
+        timing,
+        traffic,
+        framing,
+        tap: line_tap,
+        to_slaves,
+        watchdog: watchdog.map(|every| Watchdog::new(every, Instant::now())),
+        metrics,
+        published: Published::default(),
+    };
+    let (retune, retunes) = mpsc::unbounded_channel();
+    let task = MasterLineTask {
+        port,
+        line,
+        events,
+        retunes,
+        slaves_stop,
+        tracker,
+    };
+    Ok((task, MasterHandle(retune)))
+}
+
+impl MasterLineTask {
+    /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
+    /// when it is lost, as every line does (`crate::line::port::lifecycle`); at shutdown
+    /// answers what it holds first. The counts at the end.
+    pub(crate) async fn run(self, shutdown: CancellationToken) -> RoutingCounts {
+        let MasterLineTask {
+            port,
+            mut line,
+            mut events,
+            mut retunes,
+            slaves_stop,
+            tracker,
+        } = self;
+        let mut port = Lifecycle::new(port, line.timing.baud, Instant::now())
+            .meanwhile("the serial master is not heard meanwhile");
+        loop {
+            let now = Instant::now();
+            if let Some(opened) = port.open_if_due(now) {
+                line.opened(&mut port, opened, now);
+            }
+            let State::Open(link) = &mut port.state else {
+                match line
+                    .wait_for_port(&mut port.state, (&mut events, &mut retunes), &shutdown)
+                    .await
+                {
+                    Waited::Stop => break,
+                    Waited::Opened(opened) => line.opened(&mut port, opened, Instant::now()),
+                    Waited::Due => {}
+                }
+                continue;
+            };
+            match line
+                .serve(link, (&mut events, &mut retunes), &shutdown)
+                .await
+            {
+                Ok(()) => break,
+                Err(e) => {
+                    port.lost(&e.to_string(), Instant::now());
+                    line.closed();
+                }
+            }
+        }
+        slaves_stop.cancel();
+        tracker.close();
+        tracker.wait().await;
+        line.publish();
+        let c = line.routing.counts;
+        info!(
+            requests = c.requests,
+            forwarded = c.forwarded,
+            replies = c.replies,
+            timeouts = c.timeouts,
+            unavailable = c.unavailable,
+            late = c.late,
+            broadcasts = c.broadcasts,
+            broadcasts_refused = c.broadcasts_refused,
+            refused = c.refused,
+            dropped_bytes = line.requests.dropped(),
+            "master line stopped"
+        );
+        c
+    }
+}
+
+/// How a wait for the port ended.
+enum Waited {
+    /// Shutdown.
+    Stop,
+    /// The open under way finished.
+    Opened(std::io::Result<OpenPort>),
+    /// The next attempt is due.
+    Due,
+}
+
+/// What of the routing's counts is on the metrics board already.
+#[derive(Debug, Default)]
+struct Published {
+    counts: RoutingCounts,
+    dropped: u64,
+}
+
+struct Bridge {
+    requests: Requests,
+    routing: Routing,
+    timing: Timing,
+    traffic: bool,
+    framing: Framing,
+    /// The line's packets, for the capture.
+    tap: Tap,
+    to_slaves: Vec<mpsc::UnboundedSender<Adu>>,
+    /// systemd's watchdog, when this line pets it.
+    watchdog: Option<Watchdog>,
+    /// The line's numbers on the metrics board (docs/watching.md), and how far
+    /// they are published.
+    metrics: Arc<LineMetrics>,
+    published: Published,
+}
+
+impl Bridge {
+    /// Serves the open port until shutdown (`Ok`) or its loss (`Err`). At shutdown
+    /// the requests held are answered first (their replies, or 0x0B at their
+    /// deadlines; new ones get 0x0A), so the serial master is not cut off mid-request.
+    async fn serve(
+        &mut self,
+        link: &mut OpenPort,
+        (events, retunes): (
+            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
+            &mut mpsc::UnboundedReceiver<MasterLine>,
+        ),
+        shutdown: &CancellationToken,
+    ) -> std::io::Result<()> {
+        let mut buf = vec![0u8; 1024];
+        let mut last_rx = Instant::now();
+        let mut paused = true;
+        let mut draining = false;
+        loop {
+            if draining && self.routing.idle() {
+                return Ok(());
+            }
+            self.requests.set_tape(self.tap.on());
+            let partial = self.requests.buffered() > 0;
+            let deadline = self.routing.next_deadline().map(Instant::from_std);
+            let pet_at = self.watchdog.as_ref().map(Watchdog::next);
+            let actions = tokio::select! {
+                _ = shutdown.cancelled(), if !draining => {
+                    draining = true;
+                    self.routing.close();
+                    if !self.routing.idle() {
+                        debug!("stopping: answering the requests held first");
+                    }
+                    Vec::new()
+                }
+                r = link.reader.read(&mut buf) => match r {
+                    Ok(0) => return Err(std::io::ErrorKind::UnexpectedEof.into()),
+                    Ok(n) => {
+                        if self.traffic {
+                            debug!("serial rx {}", Hex(&buf[..n]));
+                        }
+                        self.metrics.stats.add(&self.metrics.stats.serial_bytes_in, n as u64);
+                        last_rx = Instant::now();
+                        paused = false;
+                        // A capture begun while the loop waited has these bytes too.
+                        self.requests.set_tape(self.tap.on());
+                        self.requests.push(&buf[..n]);
+                        self.take(false)
+                    }
+                    Err(e) => return Err(e),
+                },
+                _ = sleep_until(last_rx + self.timing.pause), if partial && !paused => {
+                    paused = true;
+                    self.requests.pause();
+                    // RTU: 3.5 characters of silence end the frame.
+                    self.take(self.requests.codec().is_some())
+                }
+                _ = sleep_until(last_rx + self.timing.frame_gap), if partial && paused => {
+                    let before = self.requests.dropped();
+                    let actions = self.take(true);
+                    let n = self.requests.dropped() - before;
+                    if n > 0 {
+                        debug!("discarded {n} bytes that made no request");
+                    }
+                    actions
+                }
+                _ = sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
+                    self.routing.expire(std::time::Instant::now())
+                }
+                Some(ev) = events.recv() => self.event(ev),
+                Some(routes) = retunes.recv() => {
+                    self.routing.retune(&routes);
+                    Vec::new()
+                }
+                _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => {
+                    self.pet();
+                    Vec::new()
+                }
+            };
+            self.act(actions, Some(&mut link.writer)).await?;
+            self.publish();
+        }
+    }
+
+    /// The routing's counts since the last call onto the metrics board, each under the
+    /// name a relay's line uses for the same thing (docs/watching.md).
+    fn publish(&mut self) {
+        let (now, was) = (self.routing.counts, self.published.counts);
+        let s = &self.metrics.stats;
+        let pairs = [
+            (&s.requests, now.requests - was.requests),
+            (&s.replies, now.replies - was.replies),
+            (&s.timeouts, now.timeouts - was.timeouts),
+            (&s.unavailable, now.unavailable - was.unavailable),
+            (&s.late_replies, now.late - was.late),
+            (&s.broadcasts, now.broadcasts - was.broadcasts),
+            (
+                &s.broadcasts_refused,
+                now.broadcasts_refused - was.broadcasts_refused,
+            ),
+            (&s.bad_requests, now.refused - was.refused),
+        ];
+        for (counter, n) in pairs {
+            s.add(counter, n);
+        }
+        let at = Instant::now();
+        if now.replies > was.replies {
+            self.metrics.replied_at(at);
+        }
+        for (unit, tally) in self.routing.take_tallies() {
+            let u = self.metrics.unit(unit);
+            match tally {
+                UnitTally::Request => s.add(&u.requests, 1),
+                UnitTally::Reply => s.add(&u.replies, 1),
+                UnitTally::Timeout => self.metrics.timed_out(unit, at),
+            }
+        }
+        let dropped = self.requests.dropped();
+        s.add(
+            &s.dropped_bytes,
+            dropped.saturating_sub(self.published.dropped),
+        );
+        self.published = Published {
+            counts: now,
+            dropped,
+        };
+    }
+
+    /// WATCHDOG=1 if it is due.
+    fn pet(&mut self) {
+        if let Some(w) = &mut self.watchdog {
+            w.pet(Instant::now());
+        }
+    }
+
+    /// While the port is closed (until its next attempt) or opening: follows the
+    /// slaves (no port to answer on, but the routing still tracks them), the watchdog
+    /// and a reload's timeouts, until the open ends, the attempt is due or shutdown.
+    async fn wait_for_port(
+        &mut self,
+        state: &mut State,
+        (events, retunes): (
+            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
+            &mut mpsc::UnboundedReceiver<MasterLine>,
+        ),
+        shutdown: &CancellationToken,
+    ) -> Waited {
+        let retry_at = match state {
+            State::Closed { retry_at } => Some(*retry_at),
+            _ => None,
+        };
+        let mut opening = match state {
+            State::Opening(o) => Some(o),
+            _ => None,
+        };
+        loop {
+            let pet_at = self.watchdog.as_ref().map(Watchdog::next);
+            let open = async {
+                match opening.as_mut() {
+                    Some(o) => o.await,
+                    None => std::future::pending().await,
+                }
+            };
+            tokio::select! {
+                _ = shutdown.cancelled() => return Waited::Stop,
+                r = open => return Waited::Opened(r),
+                _ = sleep_until(retry_at.unwrap_or_else(Instant::now)), if retry_at.is_some() => return Waited::Due,
+                _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => self.pet(),
+                Some(ev) = events.recv() => {
+                    let actions = self.event(ev);
+                    let _ = self.act(actions, None).await;
+                    self.publish();
+                }
+                Some(routes) = retunes.recv() => self.routing.retune(&routes),
+            }
+        }
+    }
+
+    /// An open finished at `now`: open, the line starts afresh and says so; or not,
+    /// and the next attempt is due later.
+    fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<OpenPort>, now: Instant) {
+        if let Some(info) = port.opened(opened, now) {
+            port.tell_open(&info, "the device is the master");
+            let m = &self.metrics;
+            m.port_open.store(1, Ordering::Relaxed);
+            m.stats.add(&m.stats.serial_opens, 1);
+        }
+    }
+
+    /// The port was lost: what was read of a request is dropped, and what was held
+    /// for the serial master is never answered (it gave up on it).
+    fn closed(&mut self) {
+        self.metrics.port_open.store(0, Ordering::Relaxed);
+        self.requests.clear();
+        self.routing.serial_lost();
+        self.publish();
+    }
+
+    /// Every whole request decoded so far, into the routing.
+    fn take(&mut self, quiet: bool) -> Vec<Action> {
+        let mut out = Vec::new();
+        let now = Instant::now();
+        while let Some(req) = self.requests.next(quiet) {
+            debug!(
+                unit = req.unit,
+                "request from the serial master: {}",
+                Hex(&req.pdu)
+            );
+            if self.tap.on() {
+                self.capture(&req, &req.pdu, Dir::In, now);
+            }
+            out.extend(self.routing.request(req, std::time::Instant::now()));
+        }
+        for d in self.requests.take_drops() {
+            let p = Packet::dropped(Some(self.framing), d.reason, d.bytes, d.whole, d.detail);
+            // What comes off a master's line is a request.
+            let p = p.shown_as(Part::Query);
+            self.tap.send(p, d.at.unwrap_or(now));
+        }
+        out
+    }
+
+    /// A request from the serial master (`Dir::In`) or the reply to it (`pdu`,
+    /// `Dir::Out`) as the line carries it, for the capture.
+    fn capture(&self, req: &requests::Incoming, pdu: &[u8], dir: Dir, at: Instant) {
+        let wire = encode_reply(self.requests.codec(), req, pdu);
+        let adu = Adu::build(req.tid.unwrap_or(0), req.unit, pdu);
+        let (role, label) = match dir {
+            Dir::In => (Part::Query, "serial->gw"),
+            _ => (Part::Reply, "gw->serial"),
+        };
+        let mut p = Packet::line_frame(self.framing, &adu, &wire, dir, role);
+        p.span = crate::line::relay::span(&req.pdu);
+        p.label = label;
+        self.tap.send(p, at);
+    }
+
+    fn event(&mut self, ev: slave::SlaveEvent) -> Vec<Action> {
+        match ev {
+            slave::SlaveEvent::Connecting(i) => {
+                self.routing.connecting(i);
+                Vec::new()
+            }
+            slave::SlaveEvent::Up(i) => self.routing.up(i),
+            slave::SlaveEvent::Down(i) => self.routing.down(i),
+            slave::SlaveEvent::Frame(i, adu) => {
+                if self.traffic {
+                    debug!(route = i, "slave rx {}", Hex(adu.as_bytes()));
+                }
+                self.routing.reply(i, &adu)
+            }
+        }
+    }
+
+    async fn act(
+        &mut self,
+        actions: Vec<Action>,
+        mut writer: Option<&mut crate::line::port::Writer>,
+    ) -> std::io::Result<()> {
+        for a in actions {
+            match a {
+                Action::Send { route, adu } => {
+                    if self.traffic {
+                        debug!(route, "slave tx {}", Hex(adu.as_bytes()));
+                    }
+                    let _ = self.to_slaves[route].send(adu);
+                }
+                Action::Answer { request, pdu } => {
+                    if self.tap.on() {
+                        self.capture(&request, &pdu, Dir::Out, Instant::now());
+                    }
+                    let bytes = encode_reply(self.requests.codec(), &request, &pdu);
+                    if self.traffic {
+                        debug!("serial tx {}", Hex(&bytes));
+                    }
+                    if let Some(w) = writer.as_mut() {
+                        w.write_all(&bytes).await?;
+                        w.flush().await?;
+                        let s = &self.metrics.stats;
+                        s.add(&s.serial_bytes_out, bytes.len() as u64);
+                    }
+                }
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,229 @@
+//! One route's connection to its Modbus/TCP slave, as a task: made by mbgate and
+//! remade with backoff when lost (active), or awaited on a listening socket (passive,
+//! the slave connects in; a newer connection replaces an older one). TCP keepalive on,
+//! Nagle off. It tells the loop when the connection is up or down and hands it each
+//! MBAP frame the slave sends; it writes what the loop gives it.
+
+use crate::config::master::{Peer, Route};
+use crate::frame::mbap::decode_strict;
+use crate::frame::Adu;
+use crate::line::port::Backoff;
+use crate::ops::capture::packet::{Dir, Ends, Packet, Part, Proto};
+use crate::ops::capture::Tap;
+use std::time::Duration;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+use tokio::sync::mpsc;
+use tokio_util::sync::CancellationToken;
+use tracing::{debug, info, warn};
+
+/// What a connection task tells the loop, with its route's index.
+#[derive(Debug)]
+pub(crate) enum SlaveEvent {
+    Connecting(usize),
+    Up(usize),
+    Down(usize),
+    Frame(usize, Adu),
+}
+
+/// Keepalive probes after this much idleness, then every few seconds: a slave that
+/// vanished without a word (power cut, cable) is noticed without a request.
+const KEEPALIVE_IDLE: Duration = Duration::from_secs(10);
+const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(5);
+/// Reconnection delays: from this, doubling, up to the longest.
+const RECONNECT_MIN: Duration = Duration::from_millis(100);
+const RECONNECT_MAX: Duration = Duration::from_secs(2);
+
+fn tune(stream: &TcpStream) {
+    let _ = stream.set_nodelay(true);
+    let keepalive = socket2::TcpKeepalive::new()
+        .with_time(KEEPALIVE_IDLE)
+        .with_interval(KEEPALIVE_INTERVAL);
+    if let Err(e) = socket2::SockRef::from(stream).set_tcp_keepalive(&keepalive) {
+        debug!("cannot set TCP keepalive: {e}");
+    }
+}
+
+/// Binds a passive route's address (before the line starts, so a taken port is an
+/// error at start).
+pub(crate) async fn bind(route: &Route) -> std::io::Result<Option<TcpListener>> {
+    match &route.peer {
+        Peer::Listen(addr) => TcpListener::bind(addr).await.map(Some),
+        Peer::Connect(_) => Ok(None),
+    }
+}
+
+/// Runs route `i`'s connection until `shutdown`: frames to write come on `frames`,
+/// events go to `events`; both go to `tap` for the capture.
+pub(crate) async fn run(
+    i: usize,
+    route: Route,
+    listener: Option<TcpListener>,
+    mut frames: mpsc::UnboundedReceiver<Adu>,
+    events: mpsc::UnboundedSender<SlaveEvent>,
+    (tap, shutdown): (Tap, CancellationToken),
+) {
+    let mut backoff = Backoff::new(RECONNECT_MIN, RECONNECT_MAX);
+    let timeout = Duration::from_millis(route.response_timeout_ms);
+    let mut reported = false;
+    let mut next: Option<TcpStream> = None;
+    if listener.is_some() {
+        // No slave until one connects in: requests get 0x0A at once meanwhile.
+        let _ = events.send(SlaveEvent::Down(i));
+    }
+    loop {
+        let stream = match (&listener, &route.peer) {
+            (Some(l), _) => match next.take() {
+                Some(s) => s,
+                None => tokio::select! {
+                    _ = shutdown.cancelled() => return,
+                    r = l.accept() => match r {
+                        Ok((s, from)) => {
+                            info!(route = i, "slave connected from {from}");
+                            s
+                        }
+                        Err(e) => {
+                            warn!(route = i, "accept: {e}");
+                            tokio::time::sleep(RECONNECT_MIN).await;
+                            continue;
+                        }
+                    },
+                },
+            },
+            (None, Peer::Connect(addr)) => {
+                let _ = events.send(SlaveEvent::Connecting(i));
+                let attempt = tokio::time::timeout(timeout, TcpStream::connect(addr.as_str()));
+                let made = tokio::select! {
+                    _ = shutdown.cancelled() => return,
+                    r = attempt => r.unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into())),
+                };
+                match made {
+                    Ok(s) => {
+                        backoff.reset();
+                        reported = false;
+                        info!(route = i, "connected to the slave at {addr}");
+                        s
+                    }
+                    Err(e) => {
+                        if !reported {
+                            warn!(
+                                route = i,
+                                "cannot reach the slave at {addr} ({e}); retrying"
+                            );
+                            reported = true;
+                        }
+                        let _ = events.send(SlaveEvent::Down(i));
+                        let wait = backoff.next_delay();
+                        tokio::select! {
+                            _ = shutdown.cancelled() => return,
+                            _ = tokio::time::sleep(wait) => continue,
+                        }
+                    }
+                }
+            }
+            (None, Peer::Listen(_)) => unreachable!("a passive route is bound before it runs"),
+        };
+        tune(&stream);
+        // Frames given for a connection that is gone were answered when it went.
+        while frames.try_recv().is_ok() {}
+        let _ = events.send(SlaveEvent::Up(i));
+        let end = session(
+            i,
+            stream,
+            listener.as_ref(),
+            (&mut frames, &events),
+            &tap,
+            &shutdown,
+        )
+        .await;
+        let _ = events.send(SlaveEvent::Down(i));
+        match end {
+            SlaveEnd::Shutdown => return,
+            SlaveEnd::Replaced(s) => next = Some(s),
+            SlaveEnd::Lost(why) => {
+                warn!(route = i, "slave connection lost ({why})");
+                if listener.is_none() {
+                    tokio::select! {
+                        _ = shutdown.cancelled() => return,
+                        _ = tokio::time::sleep(backoff.next_delay()) => {}
+                    }
+                }
+            }
+        }
+    }
+}
+
+enum SlaveEnd {
+    Shutdown,
+    Lost(String),
+    /// A passive route's slave connected again: the new connection replaces this one.
+    Replaced(TcpStream),
+}
+
+/// A frame to or from the slave (mbgate is the client), for the capture.
+fn captured(tap: &Tap, ends: Option<Ends>, adu: &Adu, dir: Dir) {
+    if !tap.on() {
+        return;
+    }
+    let (role, label) = match dir {
+        Dir::Out => (Part::Query, "gw->slave"),
+        _ => (Part::Reply, "slave->gw"),
+    };
+    let mut p = Packet::new(dir, role, Proto::Mbtcp, adu.as_bytes().to_vec());
+    p.ends = ends;
+    p.unit = Some(adu.unit());
+    p.function = Some(adu.function());
+    p.span = crate::line::relay::span(adu.pdu());
+    p.label = label;
+    tap.send(p, tokio::time::Instant::now());
+}
+
+async fn session(
+    i: usize,
+    stream: TcpStream,
+    listener: Option<&TcpListener>,
+    (frames, events): (
+        &mut mpsc::UnboundedReceiver<Adu>,
+        &mpsc::UnboundedSender<SlaveEvent>,
+    ),
+    tap: &Tap,
+    shutdown: &CancellationToken,
+) -> SlaveEnd {
+    let ends = match (stream.local_addr(), stream.peer_addr()) {
+        (Ok(client), Ok(server)) => Some(Ends { client, server }),
+        _ => None,
+    };
+    let (mut rd, mut wr) = stream.into_split();
+    let mut buf = bytes::BytesMut::with_capacity(1024);
+    loop {
+        tokio::select! {
+            _ = shutdown.cancelled() => return SlaveEnd::Shutdown,
+            r = rd.read_buf(&mut buf) => match r {
+                Ok(0) => return SlaveEnd::Lost("closed by the slave".into()),
+                Ok(_) => loop {
+                    match decode_strict(&mut buf) {
+                        Ok(Some(adu)) => {
+                            captured(tap, ends, &adu, Dir::In);
+                            let _ = events.send(SlaveEvent::Frame(i, adu));
+                        }
+                        Ok(None) => break,
+                        Err(e) => return SlaveEnd::Lost(format!("not Modbus/TCP: {e}")),
+                    }
+                },
+                Err(e) => return SlaveEnd::Lost(e.to_string()),
+            },
+            Some(adu) = frames.recv() => {
+                captured(tap, ends, &adu, Dir::Out);
+                if let Err(e) = wr.write_all(adu.as_bytes()).await {
+                    return SlaveEnd::Lost(e.to_string());
+                }
+            }
+            r = async { listener.expect("guarded").accept().await }, if listener.is_some() => {
+                if let Ok((s, from)) = r {
+                    info!(route = i, "slave connected again from {from}; the new connection replaces the old");
+                    return SlaveEnd::Replaced(s);
+                }
+            }
+        }
+    }
+}

@@ -1,0 +1,225 @@
+//! A timer finer than tokio's millisecond, for the line's gaps and turnarounds (a
+//! timerfd on tokio's reactor): the relay's loop, the simulator and the benches wait
+//! on it.
+
+use crate::line::port::fd::ReactorFd;
+use std::os::fd::{AsRawFd, FromRawFd};
+
+/// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
+/// counts whole milliseconds and rounds a deadline up, which turns the 1750 µs gap
+/// before an RTU request into 2 to 3 ms (docs/performance.md, "RTU at the line's
+/// limit"). No thread and no spinning: the timerfd wakes the reactor's `epoll_wait`
+/// at the instant it is set to.
+#[derive(Debug)]
+pub struct PreciseTimer {
+    fd: ReactorFd,
+    /// The instant it is set to go off.
+    armed: Option<tokio::time::Instant>,
+    /// How late its last wakes came, after the instant it was set to.
+    late: Lateness,
+}
+
+/// A thread that sleeps wakes some tens of microseconds after its timer (the CPU's
+/// wake from idle; docs/performance.md "What the limit is on this machine"): the
+/// least of the last [`Lateness::KEPT`] such delays is how much earlier the timerfd
+/// is set, so that the wake lands at the instant asked for rather than one wake-up
+/// after it. A wake that still comes early is not returned: the timerfd is set again
+/// for the instant itself, so [`PreciseTimer::until`] never returns before it.
+#[derive(Debug, Default)]
+struct Lateness {
+    last: [u32; Lateness::KEPT],
+    next: usize,
+    seen: usize,
+}
+
+impl Lateness {
+    const KEPT: usize = 16;
+    /// Never earlier than this, whatever the wakes measured.
+    const MOST: u32 = 200;
+
+    fn record(&mut self, late_us: u32) {
+        self.last[self.next] = late_us.min(Self::MOST);
+        self.next = (self.next + 1) % Self::KEPT;
+        self.seen += 1;
+    }
+
+    /// How much earlier to set the timer: nothing until it has seen a few wakes.
+    fn lead(&self) -> std::time::Duration {
+        if self.seen < Self::KEPT {
+            return std::time::Duration::ZERO;
+        }
+        let least = self.last.iter().copied().min().unwrap_or(0);
+        std::time::Duration::from_micros(u64::from(least))
+    }
+}
+
+impl PreciseTimer {
+    /// A timer on the current runtime's reactor; an error where there is no timerfd.
+    pub fn new() -> std::io::Result<PreciseTimer> {
+        // SAFETY: no pointers; the descriptor returned is checked and then owned.
+        #[allow(unsafe_code)]
+        let fd = unsafe {
+            libc::timerfd_create(
+                libc::CLOCK_MONOTONIC,
+                libc::TFD_NONBLOCK | libc::TFD_CLOEXEC,
+            )
+        };
+        if fd < 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        // SAFETY: `fd` was just made, is valid and belongs to nothing else.
+        #[allow(unsafe_code)]
+        let owned = unsafe { std::os::fd::OwnedFd::from_raw_fd(fd) };
+        Ok(PreciseTimer {
+            fd: ReactorFd::new(owned, tokio::io::Interest::READABLE)?,
+            armed: None,
+            late: Lateness::default(),
+        })
+    }
+
+    /// Returns at `at`, or at once if it has passed; never before it. Sets the timerfd
+    /// only when it is not already set to go off by `at` and after now: a loop that
+    /// waits for a later instant each time (a new response deadline each transaction)
+    /// leaves the earlier setting, is woken by it once, and only then sets the timerfd
+    /// again, so a line polled without pause makes one system call for it each
+    /// timeout's worth of transactions, not one each (docs/performance.md "What a
+    /// transaction costs"). The timerfd is set earlier than `at` by the wake-up time
+    /// its last wakes measured ([`Lateness`]).
+    pub async fn until(&mut self, at: tokio::time::Instant) -> std::io::Result<()> {
+        let now = tokio::time::Instant::now();
+        if at <= now {
+            return Ok(());
+        }
+        if !self.armed.is_some_and(|a| a > now && a <= at) {
+            // Not so early that it is now: a timerfd set to zero is disarmed.
+            let early = at.checked_sub(self.late.lead()).filter(|&e| e > now);
+            self.arm(early.unwrap_or(at), now)?;
+        }
+        loop {
+            let mut ready = self.fd.readable().await?;
+            // Readiness left over from an earlier setting says nothing about this one:
+            // each expiry wakes the reactor anew (edge-triggered), so clearing it and
+            // waiting again loses nothing.
+            ready.clear_ready();
+            let now = tokio::time::Instant::now();
+            if let Some(armed) = self.armed.filter(|&a| a <= now) {
+                self.late
+                    .record((now - armed).as_micros().min(u128::from(u32::MAX)) as u32);
+            }
+            if now >= at {
+                return Ok(());
+            }
+            // Woken by an earlier setting left in place, or early: now for `at` itself.
+            if self.armed.is_none_or(|a| a <= now) {
+                self.arm(at, now)?;
+            }
+        }
+    }
+
+    /// Sets the timerfd to go off at `at`, `now` being before it.
+    fn arm(&mut self, at: tokio::time::Instant, now: tokio::time::Instant) -> std::io::Result<()> {
+        // Relative to a `now` read before the call: the kernel's clock has moved on
+        // since, so it goes off at `at` or after, never before. (Setting it also zeroes
+        // its count of expirations, so it is never read.)
+        let rest = at - now;
+        let spec = libc::itimerspec {
+            it_interval: libc::timespec {
+                tv_sec: 0,
+                tv_nsec: 0,
+            },
+            it_value: libc::timespec {
+                tv_sec: rest.as_secs() as libc::time_t,
+                tv_nsec: libc::c_long::from(rest.subsec_nanos() as i32),
+            },
+        };
+        // SAFETY: `spec` is a valid itimerspec for the duration of the call; the old
+        // value is not asked for (null).
+        #[allow(unsafe_code)]
+        let r =
+            unsafe { libc::timerfd_settime(self.fd.as_raw_fd(), 0, &spec, std::ptr::null_mut()) };
+        if r != 0 {
+            return Err(std::io::Error::last_os_error());
+        }
+        self.armed = Some(at);
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    /// The timerfd is set early by the least of the last wakes' lateness, only once it
+    /// has seen enough of them, and never by more than its bound.
+    #[test]
+    fn the_lead_is_the_least_recent_lateness() {
+        let mut l = Lateness::default();
+        for us in 0..Lateness::KEPT as u32 - 1 {
+            l.record(40 + us);
+        }
+        assert_eq!(l.lead(), Duration::ZERO, "not enough wakes seen");
+        l.record(90);
+        assert_eq!(l.lead(), Duration::from_micros(40));
+        for _ in 0..Lateness::KEPT {
+            l.record(10_000);
+        }
+        assert_eq!(
+            l.lead(),
+            Duration::from_micros(u64::from(Lateness::MOST)),
+            "the old ones forgotten, the bound kept"
+        );
+        l.record(7);
+        assert_eq!(l.lead(), Duration::from_micros(7));
+    }
+
+    /// The timer goes off at its instant, not before and not a millisecond after (the
+    /// bound is loose for a loaded machine; tokio's timer alone would take the 1750 µs
+    /// to 2 or 3 ms, and the median of these is checked against 700 µs); an expiry
+    /// nobody waited for does not end a later wait early.
+    #[tokio::test]
+    async fn precise_timer_is_neither_early_nor_a_tick_late() {
+        use tokio::time::Instant;
+        let mut timer = PreciseTimer::new().unwrap();
+        let mut late = Vec::new();
+        // Enough waits that the later ones are set early by what the first measured.
+        for _ in 0..60 {
+            let at = Instant::now() + Duration::from_micros(1750);
+            timer.until(at).await.unwrap();
+            let now = Instant::now();
+            assert!(now >= at, "{:?} early", at - now);
+            late.push(now - at);
+        }
+        late.sort();
+        assert!(
+            late[30] < Duration::from_micros(700),
+            "median {:?} late",
+            late[30]
+        );
+
+        // Set for 1 ms and dropped unwaited: it goes off while the reactor waits for
+        // something else; a later, longer wait must not end with that expiry.
+        let first = Instant::now() + Duration::from_millis(1);
+        let _ = tokio::time::timeout(Duration::ZERO, timer.until(first)).await;
+        tokio::time::sleep(Duration::from_millis(4)).await;
+        let second = Instant::now() + Duration::from_millis(5);
+        timer.until(second).await.unwrap();
+        assert!(Instant::now() >= second, "woken by the earlier expiry");
+        // An instant already past returns at once.
+        timer.until(first).await.unwrap();
+
+        // An instant nearer than the lead: the timerfd is set for it, not for now
+        // (zero would disarm it, and the wait would never end).
+        for _ in 0..Lateness::KEPT {
+            timer.late.record(Lateness::MOST);
+        }
+        for _ in 0..5 {
+            let at = Instant::now() + Duration::from_micros(50);
+            tokio::time::timeout(Duration::from_secs(5), timer.until(at))
+                .await
+                .expect("a wait nearer than the lead ends")
+                .unwrap();
+            assert!(Instant::now() >= at);
+        }
+    }
+}

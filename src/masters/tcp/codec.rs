@@ -1,0 +1,154 @@
+//! How a master's connection frames its requests and replies: one codec for each
+//! framing a listener may have (docs/design.md §4.1, `framing` on a `[[listen]]`),
+//! chosen once when the connection starts, as tokio-modbus does with its TCP and RTU
+//! codecs. The connection's loops are written once over [`MasterCodec`].
+
+use super::rtu;
+use crate::frame::mbap::{decode_strict, StrictError};
+use crate::frame::Adu;
+use crate::ops::capture::packet::Proto;
+use bytes::BytesMut;
+use std::borrow::Cow;
+use std::time::Duration;
+
+/// Why a master's bytes are not a request: the connection is closed.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub(super) enum FrameError {
+    #[error(transparent)]
+    Mbap(#[from] StrictError),
+    #[error(transparent)]
+    Rtu(#[from] rtu::RtuError),
+}
+
+/// A master's framing on the socket: requests decoded from the bytes read, replies
+/// encoded for writing. State of one connection (an RTU master's request count).
+pub(super) trait MasterCodec: Default + Send {
+    /// As `framing` is written in the configuration.
+    const NAME: &'static str;
+    /// Do its frames carry a transaction id? Without one a master has one request
+    /// outstanding at a time, and gets no notifications (nothing would tell them from
+    /// a reply).
+    const IDS: bool;
+    /// How a capture names its frames.
+    const PROTO: Proto;
+    /// The request at the front of `buf`, if whole; `Err`: not a request.
+    fn decode(&mut self, buf: &mut BytesMut) -> Result<Option<Adu>, FrameError>;
+    /// How long a pause of the master's ends what is buffered, if only a pause can.
+    fn ended_by_pause(&self, _buf: &BytesMut) -> Option<Duration> {
+        None
+    }
+    /// The master paused as long as `ended_by_pause` said.
+    fn paused(&mut self) {}
+    /// `adu` as the master sees it on its socket.
+    fn frame(adu: &Adu) -> Cow<'_, [u8]>;
+    /// Is a reply to `adu` written to the master at all?
+    fn answers(_adu: &Adu) -> bool {
+        true
+    }
+}
+
+/// Modbus/TCP: MBAP header and PDU, strictly checked (docs/protocol.md).
+#[derive(Default)]
+pub(super) struct Mbap;
+
+impl MasterCodec for Mbap {
+    const NAME: &'static str = "mbap";
+    const IDS: bool = true;
+    const PROTO: Proto = Proto::Mbtcp;
+
+    fn decode(&mut self, buf: &mut BytesMut) -> Result<Option<Adu>, FrameError> {
+        Ok(decode_strict(buf)?)
+    }
+
+    fn frame(adu: &Adu) -> Cow<'_, [u8]> {
+        Cow::Borrowed(adu.as_bytes())
+    }
+}
+
+/// RTU over TCP (`tcp/rtu.rs`): unit, PDU and CRC, no header.
+#[derive(Default)]
+pub(super) struct Rtu {
+    /// The id the relay sees for the next request (the line gives it its own).
+    tid: u16,
+    /// The master has paused: that ends a request of unknown shape.
+    quiet: bool,
+}
+
+impl MasterCodec for Rtu {
+    const NAME: &'static str = "rtu";
+    const IDS: bool = false;
+    const PROTO: Proto = Proto::Mbrtu;
+
+    fn decode(&mut self, buf: &mut BytesMut) -> Result<Option<Adu>, FrameError> {
+        let tid = self.tid.wrapping_add(1);
+        let adu = rtu::decode(buf, std::mem::take(&mut self.quiet), tid)?;
+        if adu.is_some() {
+            self.tid = tid;
+        }
+        Ok(adu)
+    }
+
+    fn ended_by_pause(&self, buf: &BytesMut) -> Option<Duration> {
+        rtu::needs_silence(buf).then_some(rtu::SILENCE)
+    }
+
+    fn paused(&mut self) {
+        self.quiet = true;
+    }
+
+    fn frame(adu: &Adu) -> Cow<'_, [u8]> {
+        Cow::Owned(rtu::encode(adu))
+    }
+
+    /// Unit 0 is a broadcast in RTU: its master awaits no answer, and would take one
+    /// for the answer to its next request.
+    fn answers(adu: &Adu) -> bool {
+        adu.unit() != 0
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::rtu as serial;
+
+    /// The same read as each framing writes it decodes to the same unit and PDU, and
+    /// its reply is framed back the same way; only RTU leaves a broadcast unanswered.
+    #[test]
+    fn each_codec_reads_and_writes_its_own_framing() {
+        let pdu = [3, 0, 1, 0, 2];
+        let mut mbap = BytesMut::from(&[0, 9, 0, 0, 0, 6, 7, 3, 0, 1, 0, 2][..]);
+        let a = Mbap.decode(&mut mbap).unwrap().unwrap();
+        assert_eq!((a.tid(), a.unit(), a.pdu()), (9, 7, &pdu[..]));
+        assert_eq!(&Mbap::frame(&a)[..], a.as_bytes());
+
+        let mut codec = Rtu::default();
+        let wire = serial::encode(7, &pdu);
+        let mut rtu = BytesMut::from(&wire[..]);
+        let r = codec.decode(&mut rtu).unwrap().unwrap();
+        assert_eq!((r.unit(), r.pdu()), (7, &pdu[..]));
+        assert_eq!(&Rtu::frame(&r)[..], &wire[..]);
+        let mut next = BytesMut::from(&wire[..]);
+        let r2 = codec.decode(&mut next).unwrap().unwrap();
+        assert_ne!(r.tid(), r2.tid(), "each request its own id on the line");
+
+        let broadcast = Adu::build(1, 0, &[6, 0, 1, 0, 1]);
+        assert!(Mbap::answers(&broadcast));
+        assert!(!Rtu::answers(&broadcast));
+        assert!(Rtu::answers(&r));
+    }
+
+    /// A function of unknown shape waits for the master's pause, then ends there.
+    #[test]
+    fn an_rtu_request_of_unknown_shape_ends_at_the_pause() {
+        let mut codec = Rtu::default();
+        let odd = serial::encode(1, &[0x41, 1, 2, 3]);
+        let mut b = BytesMut::from(&odd[..]);
+        assert_eq!(codec.ended_by_pause(&b), Some(rtu::SILENCE));
+        assert_eq!(codec.decode(&mut b), Ok(None));
+        codec.paused();
+        let adu = codec.decode(&mut b).unwrap().unwrap();
+        assert_eq!(adu.pdu(), &[0x41, 1, 2, 3]);
+        assert_eq!(Mbap.ended_by_pause(&BytesMut::from(&[0u8, 1][..])), None);
+    }
+}

@@ -1,0 +1,405 @@
+//! A master mbgate dials (`[[dial]]`, docs/dialing.md): connect out to the server,
+//! send the identity, then serve the connection as an accepted one is served (the
+//! one connection type of `crate::masters::tcp`: codec, access, per-master order, metrics);
+//! when it ends or cannot be made, dial again, for ever, after an exponential backoff
+//! with jitter within the dial's bounds. The name is resolved again at each attempt,
+//! TCP keepalive finds a peer that vanished, and the log says once what is wrong and
+//! once when it is right again ([`Outage`]).
+
+use super::{echo, Connection, Dialed, Shared};
+use crate::config::dial::{DialConfig, TlsDial};
+use crate::line::port::Backoff;
+use crate::masters::tls::client::Connector;
+use crate::masters::tls::server::{grant, Grant};
+use socket2::{SockRef, TcpKeepalive};
+use std::net::SocketAddr;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio::time::Instant;
+use tokio_rustls::client::TlsStream;
+use tracing::{debug, info, warn};
+
+/// Keepalive: the first probe after this much silence, then every `KEEPALIVE_EVERY`,
+/// the connection dropped after `KEEPALIVE_PROBES` unanswered (about 25 s in all, as
+/// a device's socket, `port/tcp.rs`): a server gone without a word behind a NAT is
+/// noticed and dialed again.
+const KEEPALIVE_IDLE: Duration = Duration::from_secs(10);
+const KEEPALIVE_EVERY: Duration = Duration::from_secs(5);
+const KEEPALIVE_PROBES: u32 = 3;
+
+/// A connection that stayed up this long (or `backoff_max_ms`, if shorter) was a good
+/// one: the backoff starts over and the log says the dial is back. A server that
+/// accepts and closes at once is an outage like one that refuses.
+const SETTLE: Duration = Duration::from_secs(5);
+
+/// Dials `dial` (`name`: `dial[0]`) until shutdown; its counters are `shared.stats`.
+pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
+    let listen = Arc::new(dial.masters());
+    let mut backoff = Backoff::new(
+        Duration::from_millis(dial.backoff_min_ms),
+        Duration::from_millis(dial.backoff_max_ms),
+    );
+    let settle = SETTLE.min(Duration::from_millis(dial.backoff_max_ms));
+    let mut outage = Outage::new(&name, &dial);
+    let shutdown = shared.shutdown.clone();
+    loop {
+        let attempt = tokio::select! {
+            _ = shutdown.cancelled() => break,
+            a = connect(&dial, shared.cfg.max_pending_per_connection()) => a,
+        };
+        match attempt {
+            Err(why) => outage.failed(&why),
+            Ok((stream, peer)) => {
+                let mut conn = connection(&shared, &listen, &dial, &stream, peer);
+                shared.stats.add(&shared.stats.connections, 1);
+                let began = Instant::now();
+                let why = match &dial.tls {
+                    None => serve(conn, stream, &dial, &mut outage, settle).await,
+                    Some(t) => match secure(t, &dial, stream, &shared).await {
+                        Ok((tls, grant)) => {
+                            conn.grant = Some(grant);
+                            serve(conn, tls, &dial, &mut outage, settle).await
+                        }
+                        Err(why) => why,
+                    },
+                };
+                shared.stats.add(&shared.stats.connections_closed, 1);
+                if began.elapsed() >= settle {
+                    backoff.reset();
+                }
+                if shutdown.is_cancelled() {
+                    break;
+                }
+                outage.failed(&format!("the connection to {peer} ended: {why}"));
+            }
+        }
+        let delay = jittered(backoff.next_delay());
+        debug!(dial = %name, "dialing again in {} ms", delay.as_millis());
+        tokio::select! {
+            _ = shutdown.cancelled() => break,
+            _ = tokio::time::sleep(delay) => {}
+        }
+    }
+    debug!(dial = %name, "dial stopped");
+}
+
+/// The wait before the next attempt: between half of `delay` and all of it, so many
+/// gateways cut off at once (a server restarted) do not all dial again at once.
+fn jittered(delay: Duration) -> Duration {
+    let ms = u64::try_from(delay.as_millis()).unwrap_or(u64::MAX);
+    Duration::from_millis(fastrand::u64(ms / 2..=ms))
+}
+
+/// One attempt: the name resolved now, each of its addresses tried in turn within
+/// `connect_timeout_ms` in all, keepalive and Nagle set, the send buffer capped as an
+/// accepted master's (`tcp::listen`).
+async fn connect(dial: &DialConfig, max_pending: usize) -> Result<(TcpStream, SocketAddr), String> {
+    let within = Duration::from_millis(dial.connect_timeout_ms);
+    let deadline = Instant::now() + within;
+    let resolved = tokio::time::timeout_at(deadline, tokio::net::lookup_host(&dial.address));
+    let addrs: Vec<SocketAddr> = match resolved.await {
+        Ok(Ok(addrs)) => addrs.collect(),
+        Ok(Err(e)) => return Err(format!("cannot resolve {}: {e}", dial.address)),
+        Err(_) => return Err(format!("cannot resolve {} within {within:?}", dial.address)),
+    };
+    let mut last = format!("{} resolves to no address", dial.address);
+    for addr in addrs {
+        let socket = match addr {
+            SocketAddr::V4(_) => tokio::net::TcpSocket::new_v4(),
+            SocketAddr::V6(_) => tokio::net::TcpSocket::new_v6(),
+        };
+        let socket = socket
+            .and_then(|s| {
+                s.set_send_buffer_size(super::send_buffer(max_pending))
+                    .map(|()| s)
+            })
+            .map_err(|e| format!("cannot make a socket: {e}"))?;
+        match tokio::time::timeout_at(deadline, socket.connect(addr)).await {
+            Ok(Ok(stream)) => {
+                let _ = stream.set_nodelay(true);
+                let keepalive = TcpKeepalive::new()
+                    .with_time(KEEPALIVE_IDLE)
+                    .with_interval(KEEPALIVE_EVERY)
+                    .with_retries(KEEPALIVE_PROBES);
+                if let Err(e) = SockRef::from(&stream).set_tcp_keepalive(&keepalive) {
+                    debug!(%addr, "TCP keepalive: {e}");
+                }
+                return Ok((stream, addr));
+            }
+            Ok(Err(e)) => last = format!("cannot connect to {addr}: {e}"),
+            Err(_) => {
+                return Err(format!("no connection to {addr} within {within:?}"));
+            }
+        }
+    }
+    Err(last)
+}
+
+/// The connection as an accepted one is made, with the dial's own bytes.
+fn connection(
+    shared: &Shared,
+    listen: &Arc<crate::config::ListenConfig>,
+    dial: &DialConfig,
+    stream: &TcpStream,
+    peer: SocketAddr,
+) -> Connection {
+    let local = stream
+        .local_addr()
+        .unwrap_or(SocketAddr::from(([0, 0, 0, 0], 0)));
+    Connection {
+        dialed: Some(Dialed {
+            heartbeat: dial.heartbeat.clone(),
+            every: Duration::from_millis(dial.heartbeat_ms),
+            echoes: Mutex::new(echo::Echoes::new(
+                dial.identity.clone(),
+                dial.heartbeat.clone(),
+            )),
+            stall: Duration::from_millis(match dial.idle_timeout_ms {
+                0 => dial.connect_timeout_ms,
+                idle => idle,
+            }),
+        }),
+        ..Connection::new(shared, listen.clone(), peer, local)
+    }
+}
+
+/// The TLS handshake with the server within `connect_timeout_ms` (the files read
+/// again at each attempt, so a renewed certificate is used from the next one on), and
+/// the role its certificate carries (docs/security.md "What a master may do"), as a
+/// listener takes a master's; a refusal is counted as a listener's and said as why
+/// the attempt failed.
+async fn secure(
+    t: &TlsDial,
+    dial: &DialConfig,
+    stream: TcpStream,
+    shared: &Shared,
+) -> Result<(TlsStream<TcpStream>, Grant), String> {
+    let stats = &shared.stats;
+    let connector =
+        Connector::load(&t.client, &dial.address, "dial.tls").map_err(|e| format!("TLS: {e}"))?;
+    let within = Duration::from_millis(dial.connect_timeout_ms);
+    let tls = match tokio::time::timeout(within, connector.connect(stream)).await {
+        Ok(Ok(tls)) => tls,
+        Ok(Err(e)) => {
+            stats.add(&stats.tls_failed, 1);
+            return Err(format!("TLS handshake failed: {e}"));
+        }
+        Err(_) => {
+            stats.add(&stats.tls_failed, 1);
+            return Err(format!("no TLS handshake within {within:?}"));
+        }
+    };
+    let der = tls.get_ref().1.peer_certificates().and_then(|c| c.first());
+    let Some(der) = der else {
+        stats.add(&stats.tls_refused, 1);
+        return Err("the server presented no certificate".to_owned());
+    };
+    match grant(der, &shared.cfg.roles, t.default_role.as_deref()) {
+        Ok(g) => Ok((tls, g)),
+        Err(refused) => {
+            stats.add(&stats.tls_refused, 1);
+            Err(format!("the server is refused: {refused}"))
+        }
+    }
+}
+
+/// The identity sent, then the connection served until it ends; once it has stayed
+/// up for `settle`, the outage (if any) is over. Why it ended, in words.
+async fn serve<S: Halves>(
+    conn: Connection,
+    mut stream: S,
+    dial: &DialConfig,
+    outage: &mut Outage,
+    settle: Duration,
+) -> String {
+    let peer = conn.peer;
+    if !dial.identity.is_empty() {
+        let within = Duration::from_millis(dial.connect_timeout_ms);
+        // Flushed: a TLS stream holds what it could not send at once until then.
+        let send = async {
+            stream.write_all(&dial.identity).await?;
+            stream.flush().await
+        };
+        match tokio::time::timeout(within, send).await {
+            Ok(Ok(())) => {}
+            Ok(Err(e)) => return format!("the identity could not be sent: {e}"),
+            Err(_) => return format!("the identity could not be sent within {within:?}"),
+        }
+    }
+    outage.connected(peer);
+    let (rd, wr) = stream.halves();
+    let served = conn.run(rd, wr);
+    tokio::pin!(served);
+    tokio::select! {
+        why = &mut served => return why,
+        _ = tokio::time::sleep(settle) => outage.settled(peer),
+    }
+    served.await
+}
+
+/// A dialed stream cut in its reading and writing halves: a plain socket's own
+/// halves (no lock between them, as an accepted connection's), a TLS stream's shared.
+trait Halves: AsyncRead + AsyncWrite + Unpin {
+    type Rd: AsyncRead + Unpin;
+    type Wr: AsyncWrite + Unpin;
+    fn halves(self) -> (Self::Rd, Self::Wr);
+}
+
+impl Halves for TcpStream {
+    type Rd = tokio::net::tcp::OwnedReadHalf;
+    type Wr = tokio::net::tcp::OwnedWriteHalf;
+    fn halves(self) -> (Self::Rd, Self::Wr) {
+        self.into_split()
+    }
+}
+
+impl Halves for TlsStream<TcpStream> {
+    type Rd = tokio::io::ReadHalf<Self>;
+    type Wr = tokio::io::WriteHalf<Self>;
+    fn halves(self) -> (Self::Rd, Self::Wr) {
+        tokio::io::split(self)
+    }
+}
+
+/// What the log says of one dial: at the first failure what is wrong (a warning), the
+/// failures after it at debug, and when a connection has held again, that it is back
+/// (with how many attempts failed between), as a serial port's lifecycle does.
+struct Outage {
+    name: String,
+    address: String,
+    bounds: String,
+    /// Failed attempts since the dial was last up; `None`: up (or never tried).
+    failing: Option<(u64, Instant)>,
+    /// It was ever up: the first connection says "connected", later ones "back".
+    ever: bool,
+}
+
+impl Outage {
+    fn new(name: &str, dial: &DialConfig) -> Outage {
+        Outage {
+            name: name.to_owned(),
+            address: dial.address.clone(),
+            bounds: format!("{} ms to {} ms", dial.backoff_min_ms, dial.backoff_max_ms),
+            failing: None,
+            ever: false,
+        }
+    }
+
+    fn failed(&mut self, why: &str) {
+        match &mut self.failing {
+            Some((n, _)) => {
+                *n += 1;
+                debug!(dial = %self.name, failures = *n, "still failing: {why}");
+            }
+            None => {
+                warn!(
+                    dial = %self.name,
+                    "{} ({}): {why}; dialing again with backoff ({}), said again when it is back",
+                    self.name, self.address, self.bounds
+                );
+                self.failing = Some((1, Instant::now()));
+            }
+        }
+    }
+
+    /// Connected to `peer`: said at once the first time the dial is up.
+    fn connected(&mut self, peer: SocketAddr) {
+        if self.ever || self.failing.is_some() {
+            debug!(dial = %self.name, %peer, "connected");
+            return;
+        }
+        info!(dial = %self.name, "{} ({}): connected to {peer}", self.name, self.address);
+        self.ever = true;
+    }
+
+    /// A connection to `peer` has held for the settle time.
+    fn settled(&mut self, peer: SocketAddr) {
+        if let Some((n, since)) = self.failing.take() {
+            info!(
+                dial = %self.name,
+                "{} ({}): connected to {peer} again, after {n} failed attempts over {} s",
+                self.name,
+                self.address,
+                since.elapsed().as_secs()
+            );
+        }
+        self.ever = true;
+    }
+}
+
+/// The dials running, as a reload finds them: each its configuration, the token that
+/// stops it and its counters.
+pub(crate) struct Dials {
+    shared: Shared,
+    board: Arc<crate::ops::metrics::Board>,
+    running: Vec<Running>,
+}
+
+struct Running {
+    dial: DialConfig,
+    stop: tokio_util::sync::CancellationToken,
+    stats: Arc<crate::ops::stats::Stats>,
+}
+
+impl Dials {
+    /// None running yet; each dial started by [`Dials::apply`] runs on `shared`'s
+    /// tracker, its counters on `board` as a listener's.
+    pub(crate) fn new(shared: Shared, board: Arc<crate::ops::metrics::Board>) -> Dials {
+        Dials {
+            shared,
+            board,
+            running: Vec::new(),
+        }
+    }
+
+    /// The dials of `dials` running, and no other: one unchanged keeps its
+    /// connection, a new one starts, one gone or changed stops (its connection writes
+    /// the replies it owes and closes; a changed one dials again at once as new).
+    /// A dial to an address already dialed keeps its counters.
+    pub(crate) fn apply(&mut self, dials: &[DialConfig]) {
+        let mut old = std::mem::take(&mut self.running);
+        for (i, d) in dials.iter().enumerate() {
+            if let Some(p) = old.iter().position(|r| r.dial == *d) {
+                self.running.push(old.remove(p));
+                continue;
+            }
+            let kept = old.iter().find(|r| r.dial.address == d.address);
+            let stats = match kept {
+                Some(r) => r.stats.clone(),
+                None => {
+                    let stats = Arc::<crate::ops::stats::Stats>::default();
+                    self.board
+                        .add_listener(Arc::new(crate::ops::metrics::ListenerMetrics {
+                            name: format!("dial {}", d.address),
+                            stats: stats.clone(),
+                        }));
+                    stats
+                }
+            };
+            let stop = self.shared.shutdown.child_token();
+            let shared = Shared {
+                stats: stats.clone(),
+                shutdown: stop.clone(),
+                ..self.shared.clone()
+            };
+            self.shared
+                .tracker
+                .spawn(dial_loop(format!("dial[{i}]"), d.clone(), shared));
+            self.running.push(Running {
+                dial: d.clone(),
+                stop,
+                stats,
+            });
+        }
+        for r in old {
+            r.stop.cancel();
+        }
+    }
+
+    /// Every running dial's counters, for the totals.
+    pub(crate) fn stats(&self) -> Vec<Arc<crate::ops::stats::Stats>> {
+        self.running.iter().map(|r| r.stats.clone()).collect()
+    }
+}

@@ -1,0 +1,241 @@
+//! `mbgate capture` (docs/capture.md): asks a running gateway for a capture over its
+//! control socket and writes it to a file or to standard output, until `--count`,
+//! `--seconds` or Ctrl-C. On Ctrl-C, or when the output fails (a full disk, a reader
+//! that went away), it tells the gateway to stop and reads the capture's end, so the
+//! summary on standard error always says how many packets the gateway dropped.
+
+use super::{peer_uid, trust_server, AskError, DATA, END};
+use crate::ops::capture::request::CaptureRequest;
+use std::path::Path;
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::UnixStream;
+
+/// Why a capture could not run, or its output failed.
+#[derive(Debug, thiserror::Error)]
+pub enum CaptureError {
+    /// The socket could not be reached or trusted.
+    #[error(transparent)]
+    Ask(#[from] AskError),
+    /// The gateway closed the socket before it answered the request.
+    #[error("the gateway closed the control socket: {0}")]
+    Closed(std::io::Error),
+    /// The gateway closed the socket without a word.
+    #[error("the gateway closed the control socket without an answer")]
+    Silent,
+    /// The gateway refused the capture: why.
+    #[error("{0}")]
+    Refused(String),
+    /// The output could not be opened.
+    #[error("cannot write {shown}: {source}")]
+    Output {
+        /// The output, as said to the user.
+        shown: String,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// The signal handlers could not be installed.
+    #[error("{0}")]
+    Signals(std::io::Error),
+    /// Reading the socket failed.
+    #[error("control socket: {0}")]
+    Socket(std::io::Error),
+    /// A second Ctrl-C.
+    #[error("interrupted twice: stopped at once")]
+    Interrupted,
+    /// The gateway closed the socket before the capture's end.
+    #[error("the gateway closed the control socket before the capture's end")]
+    Cut,
+    /// Writing the output failed: the capture stopped, the gateway goes on.
+    #[error("cannot write {shown}: {source}; the capture stopped after {packets} packets from the gateway, {dropped} (the gateway goes on)")]
+    Failed {
+        /// The output, as said to the user.
+        shown: String,
+        /// Why.
+        source: std::io::Error,
+        /// Packets the gateway sent.
+        packets: u64,
+        /// What it dropped, said.
+        dropped: String,
+    },
+}
+
+/// The end of a capture, as the gateway tells it.
+#[derive(Debug, Default)]
+struct End {
+    packets: u64,
+    dropped: u64,
+    why: String,
+}
+
+fn parse_end(text: &str) -> End {
+    let mut end = End::default();
+    for word in text.split_whitespace() {
+        match word.split_once('=') {
+            Some(("packets", n)) => end.packets = n.parse().unwrap_or(0),
+            Some(("dropped", n)) => end.dropped = n.parse().unwrap_or(0),
+            Some(("why", w)) => end.why = w.replace('_', " "),
+            _ => {}
+        }
+    }
+    end
+}
+
+/// Reads one message: its tag and payload; `None` at the end of the stream.
+async fn read_message(rd: &mut (impl AsyncRead + Unpin)) -> std::io::Result<Option<(u8, Vec<u8>)>> {
+    let mut head = [0u8; 5];
+    match rd.read_exact(&mut head).await {
+        Ok(_) => {}
+        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
+        Err(e) => return Err(e),
+    }
+    let len = u32::from_be_bytes([head[1], head[2], head[3], head[4]]) as usize;
+    let mut payload = vec![0u8; len];
+    rd.read_exact(&mut payload).await?;
+    Ok(Some((head[0], payload)))
+}
+
+async fn open_output(path: &Path) -> std::io::Result<Box<dyn AsyncWrite + Unpin>> {
+    if path.as_os_str() == "-" {
+        Ok(Box::new(tokio::io::stdout()))
+    } else {
+        Ok(Box::new(tokio::fs::File::create(path).await?))
+    }
+}
+
+/// Captures what `request` asks for from the gateway at `socket` into `output` (`-`:
+/// standard output, `shown` as said), until its end or SIGINT/SIGTERM (which ask the
+/// gateway to stop; a second SIGINT gives up at once), and says on stderr how many
+/// packets and drops.
+pub(crate) async fn capture(
+    socket: &Path,
+    request: &CaptureRequest,
+    output: &Path,
+    shown: &str,
+) -> Result<(), CaptureError> {
+    let stream = UnixStream::connect(socket)
+        .await
+        .map_err(AskError::connect(socket))?;
+    let uid = peer_uid(&stream).map_err(AskError::who(socket))?;
+    trust_server(uid, socket)?;
+    let (rd, mut wr) = stream.into_split();
+    let mut rd = tokio::io::BufReader::new(rd);
+    // A gateway that refuses may close before it has read the request: its answer
+    // is read even when the request could not be written.
+    let sent = wr.write_all(format!("{request}\n").as_bytes()).await;
+    let mut answer = String::new();
+    let read = tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut answer).await;
+    match (answer.trim_end(), sent, read) {
+        ("ok", Ok(()), _) => {}
+        ("" | "ok", Err(e), _) | ("", _, Err(e)) => return Err(CaptureError::Closed(e)),
+        ("", _, _) => return Err(CaptureError::Silent),
+        (a, _, _) => {
+            return Err(CaptureError::Refused(
+                a.strip_prefix("error: ").unwrap_or(a).to_owned(),
+            ))
+        }
+    }
+    let mut out = open_output(output)
+        .await
+        .map_err(|source| CaptureError::Output {
+            shown: shown.to_owned(),
+            source,
+        })?;
+    eprintln!("mbgate capture: capturing to {shown} (Ctrl-C to stop)");
+    let mut interrupt = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
+        .map_err(CaptureError::Signals)?;
+    let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(CaptureError::Signals)?;
+    // Once stop is sent: the rest is read to its end (and written, unless the
+    // output failed).
+    let mut stopping = false;
+    let mut failed: Option<std::io::Error> = None;
+    let end = loop {
+        let msg = tokio::select! {
+            m = read_message(&mut rd) => m.map_err(CaptureError::Socket)?,
+            _ = interrupt.recv() => {
+                if stopping {
+                    return Err(CaptureError::Interrupted);
+                }
+                stopping = true;
+                let _ = wr.write_all(b"stop\n").await;
+                continue;
+            }
+            _ = terminate.recv(), if !stopping => {
+                stopping = true;
+                let _ = wr.write_all(b"stop\n").await;
+                continue;
+            }
+        };
+        match msg {
+            None => return Err(CaptureError::Cut),
+            Some((END, text)) => break parse_end(&String::from_utf8_lossy(&text)),
+            Some((DATA, bytes)) if failed.is_none() => {
+                let mut write = std::pin::pin!(async {
+                    out.write_all(&bytes).await?;
+                    out.flush().await
+                });
+                // Ctrl-C while the output is slow: the capture stops once this is
+                // written; a second one gives up on it (a reader that never reads).
+                let written = loop {
+                    tokio::select! {
+                        r = &mut write => break r,
+                        _ = interrupt.recv() => {
+                            if stopping {
+                                return Err(CaptureError::Interrupted);
+                            }
+                            stopping = true;
+                            let _ = wr.write_all(b"stop\n").await;
+                        }
+                    }
+                };
+                if let Err(e) = written {
+                    failed = Some(e);
+                    if !stopping {
+                        stopping = true;
+                        let _ = wr.write_all(b"stop\n").await;
+                    }
+                }
+            }
+            Some(_) => {}
+        }
+    };
+    let dropped = match end.dropped {
+        0 => "none dropped".to_owned(),
+        n => format!("{n} dropped (the reader did not keep up; the gateway was not slowed)"),
+    };
+    let why = match end.why.as_str() {
+        "count" => "the count was reached",
+        "seconds" => "the time was up",
+        "stopped" => "stopped",
+        w => w,
+    };
+    match failed {
+        Some(source) => Err(CaptureError::Failed {
+            shown: shown.to_owned(),
+            source,
+            packets: end.packets,
+            dropped,
+        }),
+        None => {
+            eprintln!(
+                "mbgate capture: {} packets to {shown}, {dropped} ({why})",
+                end.packets
+            );
+            Ok(())
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_end_reads_back() {
+        let e = parse_end("packets=12 dropped=3 why=the_gateway_stopped");
+        assert_eq!(
+            (e.packets, e.dropped, e.why.as_str()),
+            (12, 3, "the gateway stopped")
+        );
+    }
+}

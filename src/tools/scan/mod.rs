@@ -1,0 +1,646 @@
+//! `mbgate scan` (docs/scan.md): what is on a bus. Tries baud rates, formats, framings
+//! and unit ids on a serial port, or unit ids on a Modbus/TCP address, with reads only,
+//! and says what answered, with a ready `[[line]]` block. What is sent and judged is
+//! `probe.rs`'s (pure); the port's side `serial.rs`'s and `tcp.rs`'s; here the
+//! options, the loop over settings and the report.
+
+mod listen;
+pub mod probe;
+mod serial;
+pub mod sniff;
+mod tcp;
+
+use probe::{Heard, SerialFraming, UnitList};
+use std::io::IsTerminal;
+use std::time::{Duration, Instant};
+use tokio_util::sync::CancellationToken;
+
+use crate::tools::wire::uart::{Format, Parity};
+
+/// `mbgate scan`'s options (its flags are `crate::cli`'s).
+#[derive(Debug, Clone)]
+pub struct ScanOptions {
+    /// The serial port (or a virtual line's end) to scan.
+    pub port: Option<String>,
+    /// Scan a Modbus/TCP device or gateway at HOST:PORT instead: unit ids only.
+    pub tcp: Option<String>,
+    /// The baud rates to try, in order [default: 19200,9600,115200,38400,57600,4800,2400,1200]
+    pub baud: Vec<u32>,
+    /// The formats to try, in order [default: 8E1,8N1,8N2,8O1]
+    pub format: Vec<Format>,
+    /// The framings to try, in order [default: rtu,ascii]
+    pub framing: Vec<SerialFraming>,
+    /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
+    pub units: UnitList,
+    /// How long a device may take to answer, beyond the request's and the reply's own
+    /// time on the wire (a later reply still counts, in the next units' time).
+    pub timeout_ms: u64,
+    /// Leave a setting after this many units got no frame with a good CRC or LRC (a
+    /// setting that got one is scanned to the last unit; so are 19200 and 9600 baud,
+    /// 8E1 and 8N1, RTU and ASCII, the settings most buses use).
+    pub give_up: usize,
+    /// Go on to the other settings after one is found (a bus has one setting, so by
+    /// default the scan ends with the first that answers).
+    pub all: bool,
+    /// Send nothing: listen to a live bus at each setting in turn and report the
+    /// setting, units, function codes, request rate and reply times heard.
+    pub listen: bool,
+    /// With --listen: how long to listen at each setting.
+    pub listen_secs: f64,
+    /// Print the result as JSON instead of a table.
+    pub json: bool,
+}
+
+/// Why a scan could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ScanError {
+    /// A bad option.
+    #[error("{0}")]
+    Option(String),
+    /// The port could not be opened (held by a gateway, absent...).
+    #[error("cannot open {path}: {source}")]
+    Open {
+        /// The port.
+        path: String,
+        /// Why: names the process that holds it, when one does.
+        source: tokio_serial::Error,
+    },
+    /// Reading or writing failed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+}
+
+/// A baud rate, format and framing.
+pub type SerialSetting = (u32, Format, SerialFraming);
+
+/// A unit that answered.
+#[derive(Debug, Clone)]
+pub struct Found {
+    /// Its id.
+    pub unit: u8,
+    /// Its setting (none on TCP).
+    pub serial: Option<(u32, Format, SerialFraming)>,
+    /// What it answered to the read.
+    pub answered: String,
+    /// Its read device identification objects, or why none.
+    pub device_id: Result<Vec<(u8, String)>, probe::NoIdentity>,
+    /// Its report server id data, or why none.
+    pub server_id: Result<Vec<u8>, probe::NoIdentity>,
+    /// Its reply times: from the request's last byte on the line to the reply's
+    /// first, each reply of its own that came in its window.
+    pub replies: Vec<Duration>,
+    /// How long into the scan it was found.
+    pub after: Duration,
+}
+
+/// Reads of one register asked of each unit found, besides the first and its two
+/// identity requests, so that its reply time has a median of at least a few.
+pub(crate) const TIMED_READS: usize = 3;
+
+impl Found {
+    /// Keeps the reply time of `heard` when it is this unit's frame.
+    pub(crate) fn timed(&mut self, heard: &Heard, replied: Option<Duration>) {
+        if let (Heard::Frame { unit, .. }, Some(t)) = (heard, replied) {
+            if *unit == self.unit {
+                self.replies.push(t);
+            }
+        }
+    }
+
+    /// The median and the longest of its reply times, if any came.
+    pub fn reply_time(&self) -> Option<(Duration, Duration)> {
+        let mut t = self.replies.clone();
+        t.sort();
+        Some((*t.get(t.len() / 2)?, *t.last()?))
+    }
+}
+
+/// What a scan found, and how it went.
+#[derive(Debug, Default)]
+pub struct Report {
+    /// The units that answered.
+    pub found: Vec<Found>,
+    /// Settings where bytes came but no frame with a good check.
+    pub garbage: Vec<(u32, Format, SerialFraming)>,
+    /// Settings where whole frames with a good check came that answered no request:
+    /// the first one's unit and function code.
+    pub unanswering: Vec<(SerialSetting, (u8, u8))>,
+    /// What ended a `--tcp` scan's connection, when the peer closed it.
+    pub closed: Option<String>,
+    /// Ctrl-C ended it early.
+    pub interrupted: bool,
+    /// How long it took.
+    pub elapsed: Duration,
+    /// Tries made.
+    pub tries: usize,
+}
+
+/// What a scan found: with `--listen`, what was heard; else the report.
+pub(crate) enum Scanned {
+    Heard(listen::Overheard),
+    Report(Report),
+}
+
+/// `mbgate scan`, until done or `stop` (Ctrl-C: what was found so far).
+pub(crate) async fn scan(
+    args: &ScanOptions,
+    stop: CancellationToken,
+) -> Result<Scanned, ScanError> {
+    let progress = Progress::new(std::io::stderr().is_terminal() && !args.json);
+    if args.listen {
+        return listening(args, stop, progress).await.map(Scanned::Heard);
+    }
+    run(args, stop, progress).await.map(Scanned::Report)
+}
+
+impl Scanned {
+    /// What is printed (a table, or JSON with `--json`), and whether anything answered.
+    pub(crate) fn said(&self, args: &ScanOptions) -> (String, bool) {
+        match self {
+            Scanned::Heard(heard) => {
+                let target = args.port.clone().unwrap_or_default();
+                let text = if args.json {
+                    format!("{}\n", listen::json(heard, &target))
+                } else {
+                    listen::table(heard, &target)
+                };
+                (text, heard.at.is_some())
+            }
+            Scanned::Report(report) => {
+                let target = args.tcp.clone().or(args.port.clone()).unwrap_or_default();
+                let tcp = args.tcp.is_some();
+                let text = if args.json {
+                    format!("{}\n", json(report, &target, tcp))
+                } else {
+                    table(report, &target, tcp, args)
+                };
+                (text, !report.found.is_empty())
+            }
+        }
+    }
+}
+
+/// The settings `--listen` tries: each baud rate and format once (the wide ones
+/// first), every framing judged on what came.
+fn settings_of(
+    args: &ScanOptions,
+) -> Result<(Vec<probe::ProbeSetting>, Vec<SerialSetting>), ScanError> {
+    let bauds = if args.baud.is_empty() {
+        probe::DEFAULT_BAUDS.to_vec()
+    } else {
+        args.baud.clone()
+    };
+    if let Some(b) = bauds.iter().find(|&&b| !(50..=4_000_000).contains(&b)) {
+        return Err(ScanError::Option(format!("--baud {b}: 50 to 4000000")));
+    }
+    let formats: Vec<Format> = if args.format.is_empty() {
+        probe::DEFAULT_FORMATS
+            .iter()
+            .filter_map(|s| s.parse().ok())
+            .collect()
+    } else {
+        args.format.clone()
+    };
+    if let Some(f) = formats.iter().find(|f| f.data_bits < 7) {
+        return Err(ScanError::Option(format!("--format {f}: 7 or 8 data bits")));
+    }
+    let framings = if args.framing.is_empty() {
+        vec![SerialFraming::Rtu, SerialFraming::Ascii]
+    } else {
+        args.framing.clone()
+    };
+    let wide: Vec<SerialSetting> = probe::WIDE
+        .iter()
+        .map(|&(b, f, fr)| (b, f.parse().expect("a format"), fr))
+        .filter(|(b, f, fr)| bauds.contains(b) && formats.contains(f) && framings.contains(fr))
+        .collect();
+    Ok((probe::order(&bauds, &formats, &framings, &wide), wide))
+}
+
+async fn listening(
+    args: &ScanOptions,
+    stop: CancellationToken,
+    mut progress: Progress,
+) -> Result<listen::Overheard, ScanError> {
+    if !(0.1..=3600.0).contains(&args.listen_secs) {
+        return Err(ScanError::Option(format!(
+            "--listen-secs {}: 0.1 to 3600",
+            args.listen_secs
+        )));
+    }
+    let (settings, _) = settings_of(args)?;
+    let framings = settings
+        .iter()
+        .flat_map(|s| s.framings.clone())
+        .fold(Vec::new(), |mut v, f| {
+            if !v.contains(&f) {
+                v.push(f);
+            }
+            v
+        });
+    let mut once: Vec<probe::ProbeSetting> = Vec::new();
+    for s in settings {
+        if !once
+            .iter()
+            .any(|o| o.baud == s.baud && o.format == s.format)
+        {
+            once.push(probe::ProbeSetting {
+                framings: framings.clone(),
+                ..s
+            });
+        }
+    }
+    let path = args.port.clone().unwrap_or_default();
+    let window = Duration::from_secs_f64(args.listen_secs);
+    listen::listen(&path, &once, window, &stop, &mut progress).await
+}
+
+/// The scan itself, until done or `stop`.
+pub async fn run(
+    args: &ScanOptions,
+    stop: CancellationToken,
+    mut progress: Progress,
+) -> Result<Report, ScanError> {
+    let started = Instant::now();
+    let timeout = Duration::from_millis(args.timeout_ms);
+    let units = args.units.0.clone();
+    let mut report = if let Some(addr) = &args.tcp {
+        tcp::scan(addr, &units, timeout, &stop, &mut progress).await?
+    } else {
+        let path = args.port.clone().unwrap_or_default();
+        let (settings, wide) = settings_of(args)?;
+        serial::scan(
+            &path,
+            &settings,
+            &units,
+            args.give_up,
+            &wide,
+            timeout,
+            args.all,
+            &stop,
+            &mut progress,
+        )
+        .await?
+    };
+    progress.done();
+    report.interrupted = stop.is_cancelled();
+    report.elapsed = started.elapsed();
+    Ok(report)
+}
+
+/// A unit's identity from the replies to FC 43/14 and FC 17 (either may be nothing).
+pub(crate) fn identified(found: &mut Found, device: &Heard, server: &Heard) {
+    found.device_id = match device {
+        Heard::Frame { pdu, .. } => probe::device_id(pdu),
+        _ => Err(probe::NoIdentity::NoAnswer),
+    };
+    found.server_id = match server {
+        Heard::Frame { pdu, .. } => probe::server_id(pdu),
+        _ => Err(probe::NoIdentity::NoAnswer),
+    };
+}
+
+/// The progress bar on stderr, when it is a terminal: tries made and the time left at
+/// most, from the tries the give-up rule still allows.
+#[derive(Debug)]
+pub struct Progress {
+    on: bool,
+    started: Instant,
+    drawn: bool,
+}
+
+impl Progress {
+    /// Draws only when `on`.
+    pub fn new(on: bool) -> Progress {
+        Progress {
+            on,
+            started: Instant::now(),
+            drawn: false,
+        }
+    }
+
+    /// `done` tries made of at most `total`, the rest costing `left` at most; `what`
+    /// is being tried.
+    pub(crate) fn show(&mut self, done: usize, total: usize, left: Duration, what: &str) {
+        if !self.on {
+            return;
+        }
+        let width = 30;
+        let filled = (done * width).checked_div(total).unwrap_or(0).min(width);
+        eprint!(
+            "\r[{}{}] {done}/{total} tries, {:.0} s, at most {:.0} s left: {what}\x1b[K",
+            "#".repeat(filled),
+            " ".repeat(width - filled),
+            self.started.elapsed().as_secs_f64(),
+            left.as_secs_f64(),
+        );
+        self.drawn = true;
+    }
+
+    fn done(&mut self) {
+        if self.drawn {
+            eprint!("\r\x1b[K");
+        }
+    }
+}
+
+fn parity_name(p: Parity) -> &'static str {
+    match p {
+        Parity::None => "none",
+        Parity::Even => "even",
+        Parity::Odd => "odd",
+    }
+}
+
+fn identity(f: &Found) -> String {
+    let mut parts = Vec::new();
+    if let Ok(objects) = &f.device_id {
+        let text: Vec<&str> = objects.iter().map(|(_, v)| v.as_str()).collect();
+        if !text.is_empty() {
+            parts.push(text.join(" "));
+        }
+    }
+    if let Ok(data) = &f.server_id {
+        parts.push(format!("server id {}", probe::server_id_text(data)));
+    }
+    if parts.is_empty() {
+        "-".into()
+    } else {
+        parts.join("; ")
+    }
+}
+
+/// The report as a table and a `[[line]]` block; or "nothing found" and a hint.
+pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanOptions) -> String {
+    use std::fmt::Write as _;
+    let mut s = String::new();
+    let took = format!(
+        "{:.1} s, {} tries{}",
+        report.elapsed.as_secs_f64(),
+        report.tries,
+        if report.interrupted {
+            ", interrupted"
+        } else {
+            ""
+        }
+    );
+    if report.found.is_empty() {
+        let _ = writeln!(s, "nothing found on {target} ({took})");
+        for (b, f, fr) in &report.garbage {
+            let _ = writeln!(
+                s,
+                "bytes came back at {b} {f} {} but no frame with a good check",
+                fr.name()
+            );
+        }
+        for ((b, f, fr), (unit, function)) in &report.unanswering {
+            let _ = writeln!(
+                s,
+                "frames with a good check came back at {b} {f} {} but answered no request \
+                 (the first: unit {unit}, FC {function:02})",
+                fr.name()
+            );
+        }
+        if let Some(closed) = &report.closed {
+            let _ = writeln!(s, "{closed}");
+        }
+        let hint = if report.closed.is_some() {
+            "hint: the peer accepts connections and closes them at once: is it a \
+             Modbus/TCP server, does it allow this address (an allow list, a connection \
+             limit already reached)?"
+        } else if !report.unanswering.is_empty() {
+            "hint: a device is there at that setting but answers a read of register 0 \
+             with another function's frame (a device that answers every request alike, \
+             or another master talking on the bus): give that setting with --baud, \
+             --format and --framing and --units to look further"
+        } else if tcp {
+            "hint: is it a Modbus/TCP device (port 502)? Try more --units, a longer --timeout-ms"
+        } else if report.garbage.is_empty() {
+            "hint: nothing at all came back: check the wiring (RS-485 A and B swapped? \
+             the bus terminated?), the device's power, and that it is a Modbus device; \
+             every unit id was tried at 19200 and 9600 baud, 8E1 and 8N1, but only the \
+             first --give-up ids elsewhere: give the setting you suspect with --baud, \
+             --format, --framing and --give-up 247"
+        } else {
+            "hint: bytes came back without a good frame: a device is there at another \
+             setting (try --all, or other --baud and --format), or the line is noisy"
+        };
+        let _ = writeln!(s, "{hint}");
+        return s;
+    }
+    let _ = writeln!(s, "found on {target} ({took}):");
+    let _ = writeln!(
+        s,
+        "{:<5} {:<7} {:<6} {:<8} {:<24} {:<14} identity",
+        "unit", "baud", "format", "framing", "answered", "reply p50/max"
+    );
+    for f in &report.found {
+        let (b, fmt, fr) = match f.serial {
+            Some((b, fmt, fr)) => (b.to_string(), fmt.to_string(), fr.name()),
+            None => ("-".into(), "-".into(), "mbap"),
+        };
+        let replies = match f.reply_time() {
+            Some((p50, max)) => format!("{}/{} ms", ms(p50), ms(max)),
+            None => "-".into(),
+        };
+        let _ = writeln!(
+            s,
+            "{:<5} {:<7} {:<6} {:<8} {:<24} {:<14} {}",
+            f.unit,
+            b,
+            fmt,
+            fr,
+            f.answered,
+            replies,
+            identity(f)
+        );
+    }
+    let _ = writeln!(s, "\nFor mbgate.toml:\n");
+    let mut settings: Vec<Option<(u32, Format, SerialFraming)>> = Vec::new();
+    for f in &report.found {
+        if !settings.contains(&f.serial) {
+            settings.push(f.serial);
+        }
+    }
+    for setting in settings {
+        let units: Vec<String> = report
+            .found
+            .iter()
+            .filter(|f| f.serial == setting)
+            .map(|f| f.unit.to_string())
+            .collect();
+        let _ = writeln!(s, "[[line]]\nunits = [{}]", units.join(", "));
+        match setting {
+            None => {
+                let _ = writeln!(
+                    s,
+                    "tcp = {{ address = \"{target}\", framing = \"mbap\" }}\n"
+                );
+            }
+            Some((b, f, fr)) => {
+                let _ = writeln!(
+                    s,
+                    "serial = {{ path = \"{target}\", baud_rate = {b}, data_bits = {}, \
+                     parity = \"{}\", stop_bits = {}, framing = \"{}\", flow_control = \"none\" }}\n",
+                    f.data_bits,
+                    parity_name(f.parity),
+                    f.stop_bits,
+                    fr.name()
+                );
+            }
+        }
+        let here: Vec<&Found> = report
+            .found
+            .iter()
+            .filter(|f| f.serial == setting)
+            .collect();
+        for (f, timeout, why) in slow_units(&here) {
+            let (p50, max) = f.reply_time().unwrap_or_default();
+            let _ = writeln!(
+                s,
+                "[[line.unit]]    # replies in {} ms, at most {} ms: {why}\n\
+                 units = [{}]\nresponse_timeout_ms = {timeout}\n",
+                ms(p50),
+                ms(max),
+                f.unit
+            );
+        }
+    }
+    let _ = args;
+    s
+}
+
+/// Milliseconds, whole.
+fn ms(d: Duration) -> u128 {
+    d.as_millis()
+}
+
+/// The units of one line much slower than the rest, each with a
+/// `response_timeout_ms` for it: twice its longest reply, rounded up to 10 ms, at
+/// least 50. Slower is a longest reply over 3 times the line's typical reply (the
+/// median of its units' medians) and over 50 ms, or one the line's default timeout
+/// would cut short; so a lone device is named only in the second case.
+fn slow_units<'a>(found: &[&'a Found]) -> Vec<(&'a Found, u64, &'static str)> {
+    let mut medians: Vec<Duration> = found
+        .iter()
+        .filter_map(|f| Some(f.reply_time()?.0))
+        .collect();
+    medians.sort();
+    let Some(&typical) = medians.get(medians.len() / 2) else {
+        return Vec::new();
+    };
+    let line_default =
+        Duration::from_millis(crate::config::RelayConfig::default().response_timeout_ms);
+    found
+        .iter()
+        .filter_map(|&f| {
+            let (_, max) = f.reply_time()?;
+            let slower = found.len() > 1 && max > typical * 3 && max > Duration::from_millis(50);
+            let timeout = ((max.as_millis() as u64 * 2).div_ceil(10) * 10).max(50);
+            let why = if slower {
+                "slower than the rest"
+            } else {
+                "the default response_timeout_ms would cut it short"
+            };
+            (slower || max * 2 > line_default).then_some((f, timeout, why))
+        })
+        .collect()
+}
+
+/// A string as JSON.
+fn js(s: &str) -> String {
+    let mut out = String::from("\"");
+    for c in s.chars() {
+        match c {
+            '"' => out.push_str("\\\""),
+            '\\' => out.push_str("\\\\"),
+            c if (c as u32) < 0x20 => out.push_str(&format!("\\u{:04x}", c as u32)),
+            c => out.push(c),
+        }
+    }
+    out.push('"');
+    out
+}
+
+/// The report as one JSON object.
+pub fn json(report: &Report, target: &str, tcp: bool) -> String {
+    let found: Vec<String> = report
+        .found
+        .iter()
+        .map(|f| {
+            let setting = match f.serial {
+                Some((b, fmt, fr)) => format!(
+                    "\"baud\":{b},\"format\":{},\"framing\":{}",
+                    js(&fmt.to_string()),
+                    js(fr.name())
+                ),
+                None => "\"framing\":\"mbap\"".into(),
+            };
+            let device_id = match &f.device_id {
+                Ok(objects) => {
+                    let o: Vec<String> = objects
+                        .iter()
+                        .map(|(id, v)| format!("{}:{}", js(&id.to_string()), js(v)))
+                        .collect();
+                    format!("{{{}}}", o.join(","))
+                }
+                Err(_) => "null".into(),
+            };
+            let server_id = match &f.server_id {
+                Ok(d) => js(&d.iter().map(|b| format!("{b:02X}")).collect::<String>()),
+                Err(_) => "null".into(),
+            };
+            let replies = match f.reply_time() {
+                Some((p50, max)) => format!(
+                    "\"reply_ms_p50\":{},\"reply_ms_max\":{},\"replies\":{}",
+                    ms(p50),
+                    ms(max),
+                    f.replies.len()
+                ),
+                None => "\"reply_ms_p50\":null,\"reply_ms_max\":null,\"replies\":0".into(),
+            };
+            format!(
+                "{{\"unit\":{},{setting},\"answered\":{},\"device_id\":{device_id},\"server_id\":{server_id},{replies},\"found_s\":{:.1}}}",
+                f.unit,
+                js(&f.answered),
+                f.after.as_secs_f64()
+            )
+        })
+        .collect();
+    let garbage: Vec<String> = report
+        .garbage
+        .iter()
+        .map(|(b, f, fr)| {
+            format!(
+                "{{\"baud\":{b},\"format\":{},\"framing\":{}}}",
+                js(&f.to_string()),
+                js(fr.name())
+            )
+        })
+        .collect();
+    let unanswering: Vec<String> = report
+        .unanswering
+        .iter()
+        .map(|((b, f, fr), (unit, function))| {
+            format!(
+                "{{\"baud\":{b},\"format\":{},\"framing\":{},\"unit\":{unit},\"function\":{function}}}",
+                js(&f.to_string()),
+                js(fr.name())
+            )
+        })
+        .collect();
+    let closed = report.closed.as_deref().map_or("null".into(), js);
+    format!(
+        "{{\"target\":{},\"tcp\":{tcp},\"found\":[{}],\"garbage\":[{}],\"unanswering\":[{}],\"closed\":{closed},\"interrupted\":{},\"elapsed_s\":{:.3},\"tries\":{}}}",
+        js(target),
+        found.join(","),
+        garbage.join(","),
+        unanswering.join(","),
+        report.interrupted,
+        report.elapsed.as_secs_f64(),
+        report.tries
+    )
+}
+
+#[cfg(test)]
+mod tests;

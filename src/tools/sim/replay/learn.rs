@@ -1,0 +1,464 @@
+//! From a capture's packets to what each device did (pure): every request mbgate put
+//! on a line paired with the reply it got, or with the timeout it recorded, and the
+//! time between them (docs/capture.md "What a packet holds"; docs/simulator.md
+//! "Replaying a device").
+//!
+//! Only the lines' interfaces are read (every interface but the one named `tcp`):
+//! they hold the device's own frames, in the line's framing, timed where they left
+//! and arrived. Dropped bytes (their comment starts `dropped (`) and frames that
+//! answered no request are not the device's answers and are passed over.
+
+use crate::config::Framing;
+use crate::frame::rtu;
+use crate::ops::capture::pcapng;
+use crate::ops::capture::pcapng_read::{exported, Read};
+
+/// What the device did with one request.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) enum Seen {
+    /// It answered with this PDU (an exception response too).
+    Reply(Vec<u8>),
+    /// It said nothing before the gateway's timeout.
+    Silent,
+}
+
+/// One request on a line and what came of it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub(crate) struct Observation {
+    /// When the request went out, microseconds since the epoch.
+    pub(crate) at_us: u64,
+    pub(crate) unit: u8,
+    /// The request PDU.
+    pub(crate) request: Vec<u8>,
+    pub(crate) seen: Seen,
+    /// Request out to reply in, for a reply.
+    pub(crate) turnaround_us: Option<u64>,
+    /// Of that, the device's own time: less the time the request and the reply took
+    /// on the line's wire at its recorded speed, where there was one ([`own_times`]).
+    pub(crate) own_us: Option<u64>,
+    /// How the line carried it.
+    pub(crate) framing: Framing,
+}
+
+/// A frame off a packet: (framing, transaction id for MBAP, unit, PDU).
+fn frame(dissector: &str, payload: &[u8], ascii: bool) -> Option<(Framing, u16, u8, Vec<u8>)> {
+    match dissector {
+        "mbrtu" => {
+            let (unit, pdu) = rtu::decode(payload)?;
+            let framing = if ascii { Framing::Ascii } else { Framing::Rtu };
+            Some((framing, 0, unit, pdu.to_vec()))
+        }
+        "mbtcp" => {
+            if payload.len() < 8 {
+                return None;
+            }
+            let tid = u16::from_be_bytes([payload[0], payload[1]]);
+            let len = usize::from(u16::from_be_bytes([payload[4], payload[5]]));
+            if payload[2..4] != [0, 0] || len < 2 || payload.len() != 6 + len {
+                return None;
+            }
+            Some((Framing::Mbap, tid, payload[6], payload[7..].to_vec()))
+        }
+        _ => None,
+    }
+}
+
+/// The requests still waiting for their answer on one line.
+#[derive(Debug, Default)]
+struct Waiting {
+    queries: Vec<(u64, Framing, u16, u8, Vec<u8>)>,
+}
+
+/// Every request of every line of `capture` and what came of it, in the order the
+/// requests went out on each line (lines one after the other).
+pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
+    let bauds: Vec<Option<u32>> = capture
+        .interfaces
+        .iter()
+        .map(|i| baud(&i.description))
+        .collect();
+    // (index into `out`, line, wire time) of each reply.
+    let mut timed: Vec<(usize, usize, u64)> = Vec::new();
+    let mut waiting: Vec<Waiting> = capture
+        .interfaces
+        .iter()
+        .map(|_| Waiting::default())
+        .collect();
+    let mut out = Vec::new();
+    for p in &capture.packets {
+        let iface = &capture.interfaces[p.interface];
+        if iface.name == "tcp" || iface.link_type != pcapng::LINKTYPE_WIRESHARK_UPPER_PDU {
+            continue;
+        }
+        let comment = p.comment.as_deref().unwrap_or("");
+        if comment.starts_with("dropped (") || comment.starts_with("a frame that answers") {
+            continue;
+        }
+        let Some(e) = exported(p.data) else { continue };
+        let w = &mut waiting[p.interface];
+        if comment.starts_with("timeout: no reply from unit ") {
+            // The oldest request still waiting gets the timeout (one at a time on a
+            // serial bus; an MBAP line's in order).
+            if !w.queries.is_empty() {
+                let (at_us, framing, _, unit, request) = w.queries.remove(0);
+                out.push(Observation {
+                    at_us,
+                    unit,
+                    request,
+                    seen: Seen::Silent,
+                    turnaround_us: None,
+                    own_us: None,
+                    framing,
+                });
+            }
+            continue;
+        }
+        let ascii = comment.starts_with("ASCII on the wire");
+        let Some((framing, tid, unit, pdu)) = frame(&e.dissector, e.payload, ascii) else {
+            continue;
+        };
+        // The direction flag, or (a writer that left it out) the ports: a query goes
+        // to 502.
+        let outbound = match p.flags & 0b11 {
+            0b10 => true,
+            0b01 => false,
+            _ => e.ports.is_some_and(|(_, dst)| dst == 502),
+        };
+        if outbound {
+            if unit == 0 && framing != Framing::Mbap {
+                // A broadcast: no device answers it.
+                continue;
+            }
+            if framing != Framing::Mbap {
+                // One request at a time on a bus: a new one ends the wait of any before.
+                w.queries.clear();
+            }
+            w.queries.push((p.at_us, framing, tid, unit, pdu));
+            continue;
+        }
+        let Some(fc) = pdu.first() else { continue };
+        let found = w.queries.iter().position(|(_, f, t, u, q)| {
+            *u == unit && q.first() == Some(&(fc & 0x7F)) && (*f != Framing::Mbap || *t == tid)
+        });
+        if let Some(i) = found {
+            let (at_us, framing, _, unit, request) = w.queries.remove(i);
+            let wire = bauds[p.interface].map_or(0, |b| wire_us(b, framing, &request, &pdu));
+            timed.push((out.len(), p.interface, wire));
+            out.push(Observation {
+                at_us,
+                unit,
+                request,
+                seen: Seen::Reply(pdu),
+                turnaround_us: Some(p.at_us.saturating_sub(at_us)),
+                own_us: None,
+                framing,
+            });
+        }
+    }
+    // Each reply's own time, judged line by line.
+    let recorded: Vec<Recorded> = timed
+        .iter()
+        .map(|&(i, line, wire_us)| Recorded {
+            line,
+            turnaround_us: out[i].turnaround_us.unwrap_or(0),
+            wire_us,
+        })
+        .collect();
+    for (&(i, ..), own) in timed.iter().zip(own_times(&recorded)) {
+        out[i].own_us = Some(own);
+    }
+    out
+}
+
+/// One recorded reply's times, for [`own_times`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Recorded {
+    /// The capture's interface (the line).
+    pub(crate) line: usize,
+    /// Request out to reply in, as the capture timed them.
+    pub(crate) turnaround_us: u64,
+    /// The time the request's and the reply's bytes take on a wire at the line's
+    /// recorded speed ([`wire_us`]).
+    pub(crate) wire_us: u64,
+}
+
+/// The device's own time in each recorded reply: what a replay waits between the
+/// request's last byte in and the reply's first byte out.
+///
+/// The capture times a request when mbgate hands it to the port, before its first
+/// byte leaves, and a reply when its last byte is read (docs/capture.md "What a
+/// packet holds"). On a wire the turnaround so holds the request's and the reply's
+/// time on it at the line's speed; the replay's own port (a UART, or a pty paced
+/// with `--baud`) takes them again, so they are taken out here. On a pty there is
+/// no wire and nothing is taken out. The capture does not say which the port was;
+/// the replies do: no device answers before its request could have crossed the
+/// wire and its reply come back, so a line where any reply came sooner than that
+/// had no wire (the gateway's own rule: docs/reliability.md "Knowing the wire").
+pub(crate) fn own_times(recorded: &[Recorded]) -> Vec<u64> {
+    let no_wire: std::collections::BTreeSet<usize> = recorded
+        .iter()
+        .filter(|r| r.turnaround_us < r.wire_us)
+        .map(|r| r.line)
+        .collect();
+    recorded
+        .iter()
+        .map(|r| {
+            if no_wire.contains(&r.line) {
+                r.turnaround_us
+            } else {
+                r.turnaround_us - r.wire_us
+            }
+        })
+        .collect()
+}
+
+/// The baud rate an mbgate capture's line description gives (`line 0: RTU, 19200
+/// baud`), none for a device on the network or another writer's interface.
+pub(crate) fn baud(description: &str) -> Option<u32> {
+    let before = &description[..description.find(" baud")?];
+    let digits = before.rsplit(' ').next()?;
+    digits.parse().ok().filter(|&b| b > 0)
+}
+
+/// The time `request` and `reply` (PDUs) take on a wire at `baud` in `framing`, µs.
+/// Ten bits a character: start, eight data bits (seven and parity for ASCII), stop
+/// (the capture does not say the parity; an 8E1 line's eleventh bit is left out).
+pub(crate) fn wire_us(baud: u32, framing: Framing, request: &[u8], reply: &[u8]) -> u64 {
+    let bytes = |pdu: &[u8]| match framing {
+        // Unit and CRC.
+        Framing::Rtu => pdu.len() + 3,
+        // Colon, unit, PDU and LRC as two hex digits each, CR LF.
+        Framing::Ascii => 1 + 2 * (pdu.len() + 2) + 2,
+        // The MBAP header with the unit.
+        Framing::Mbap => pdu.len() + 7,
+    };
+    let chars = (bytes(request) + bytes(reply)) as u64;
+    chars * 10 * 1_000_000 / u64::from(baud)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ops::capture::pcapng_read::read;
+
+    fn packet(
+        iface: u32,
+        at_us: u64,
+        dissector: &str,
+        bytes: &[u8],
+        flags: u32,
+        note: &str,
+    ) -> Vec<u8> {
+        let mut data = pcapng::exported_pdu(&pcapng::Exported {
+            dissector,
+            ..Default::default()
+        });
+        data.extend(bytes);
+        pcapng::packet(&pcapng::Packet {
+            interface: iface,
+            at_us,
+            data: &data,
+            comment: Some(note),
+            flags,
+        })
+    }
+
+    #[test]
+    fn pairs_requests_with_replies_and_timeouts_on_the_lines_only() {
+        let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
+        let mut f = pcapng::section_header("t");
+        f.extend(pcapng::interface("tcp", ""));
+        f.extend(pcapng::interface("/dev/ttyS0", ""));
+        let q = rtu::encode(1, &[3, 0, 0, 0, 1]);
+        let r = rtu::encode(1, &[3, 2, 0, 7]);
+        let x = rtu::encode(2, &[0x83, 2]);
+        // The TCP side: passed over.
+        f.extend(packet(0, 5, "mbrtu", &q, out, ""));
+        f.extend(packet(1, 100, "mbrtu", &q, out, ""));
+        f.extend(packet(
+            1,
+            90,
+            "mbrtu",
+            &r,
+            inb,
+            "dropped (stale): a reply (7 bytes)",
+        ));
+        f.extend(packet(1, 1600, "mbrtu", &r, inb, ""));
+        f.extend(packet(
+            1,
+            2000,
+            "mbrtu",
+            &rtu::encode(2, &[3, 0, 9, 0, 1]),
+            out,
+            "",
+        ));
+        f.extend(packet(1, 2500, "mbrtu", &x, inb, ""));
+        f.extend(packet(
+            1,
+            3000,
+            "mbrtu",
+            &rtu::encode(3, &[4, 0, 0, 0, 1]),
+            out,
+            "",
+        ));
+        f.extend(packet(
+            1,
+            9000,
+            "data",
+            &[],
+            0,
+            "timeout: no reply from unit 3 to function 4 in time",
+        ));
+        f.extend(packet(
+            1,
+            9100,
+            "mbrtu",
+            &rtu::encode(0, &[6, 0, 0, 0, 1]),
+            out,
+            "",
+        ));
+        let capture = read(&f).unwrap();
+        let got = observations(&capture);
+        let brief: Vec<_> = got
+            .iter()
+            .map(|o| (o.at_us, o.unit, o.seen.clone(), o.turnaround_us))
+            .collect();
+        assert_eq!(
+            brief,
+            [
+                (100, 1, Seen::Reply(vec![3, 2, 0, 7]), Some(1500)),
+                (2000, 2, Seen::Reply(vec![0x83, 2]), Some(500)),
+                (3000, 3, Seen::Silent, None),
+            ]
+        );
+        assert!(got.iter().all(|o| o.framing == Framing::Rtu));
+    }
+
+    /// A reply's own time: the wire's time at the line's speed taken out, except on a
+    /// line where a reply came sooner than its bytes could have crossed (a pty).
+    #[test]
+    fn the_device_s_own_time_is_the_turnaround_less_the_wire_where_there_was_one() {
+        // 8 request bytes and 7 reply bytes (RTU, FC 03, one register) at 19 200
+        // baud: 150 bits, 7812 µs; ASCII: 17 + 15 characters; MBAP: 12 + 11 bytes.
+        let (q, r) = ([3, 0, 0, 0, 1], [3, 2, 0, 7]);
+        assert_eq!(wire_us(19_200, Framing::Rtu, &q, &r), 7812);
+        assert_eq!(wire_us(9_600, Framing::Ascii, &q, &r), 33_333);
+        assert_eq!(wire_us(4_000_000, Framing::Mbap, &q, &r), 57);
+        assert_eq!(baud("line 0: RTU, 19200 baud"), Some(19_200));
+        assert_eq!(
+            baud("line 1: ASCII, 9600 baud, the device is the master"),
+            Some(9_600)
+        );
+        assert_eq!(baud("line 2: MBAP, device at 10.0.0.5:502"), None);
+        assert_eq!(baud("line 0: RTU, 0 baud"), None);
+        assert_eq!(baud(""), None);
+        let rec = |line, turnaround_us, wire_us| Recorded {
+            line,
+            turnaround_us,
+            wire_us,
+        };
+        let got = own_times(&[
+            // Line 0, a wire: every reply took at least its bytes' time.
+            rec(0, 12_812, 7_812),
+            rec(0, 7_812, 7_812),
+            // Line 1, a pty recorded at 19 200: one reply came in 0.5 ms, so none of
+            // its replies crossed a wire and none loses anything.
+            rec(1, 9_000, 7_812),
+            rec(1, 500, 7_812),
+            // Line 2, a device on the network: no wire.
+            rec(2, 3_000, 0),
+        ]);
+        assert_eq!(got, [5_000, 0, 9_000, 500, 3_000]);
+    }
+
+    /// The capture's line description gives the speed the wire's time is taken at.
+    #[test]
+    fn a_line_s_recorded_speed_takes_the_wire_out_of_its_replies() {
+        let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
+        let mut f = pcapng::section_header("t");
+        f.extend(pcapng::interface("/dev/ttyS0", "line 0: RTU, 9600 baud"));
+        f.extend(pcapng::interface("/dev/pts/3", "line 1: RTU, 9600 baud"));
+        let q = rtu::encode(1, &[3, 0, 0, 0, 1]);
+        let r = rtu::encode(1, &[3, 2, 0, 7]);
+        // 15 bytes at 9600 baud: 15 625 µs on a wire; 20 ms recorded on line 0.
+        f.extend(packet(0, 1_000, "mbrtu", &q, out, ""));
+        f.extend(packet(0, 21_000, "mbrtu", &r, inb, ""));
+        // Line 1 answered in 0.4 ms: no wire, its 20 ms reply kept whole.
+        f.extend(packet(1, 30_000, "mbrtu", &q, out, ""));
+        f.extend(packet(1, 30_400, "mbrtu", &r, inb, ""));
+        f.extend(packet(1, 40_000, "mbrtu", &q, out, ""));
+        f.extend(packet(1, 60_000, "mbrtu", &r, inb, ""));
+        let got: Vec<_> = observations(&read(&f).unwrap())
+            .iter()
+            .map(|o| (o.turnaround_us, o.own_us))
+            .collect();
+        assert_eq!(
+            got,
+            [
+                (Some(20_000), Some(4_375)),
+                (Some(400), Some(400)),
+                (Some(20_000), Some(20_000))
+            ]
+        );
+    }
+
+    /// An MBAP line's replies are found by their transaction id, an ASCII line's
+    /// frames by the text in their comment.
+    #[test]
+    fn mbap_replies_by_transaction_id_and_ascii_by_its_comment() {
+        let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
+        let mbap = |tid: u16, pdu: &[u8]| crate::frame::Adu::build(tid, 4, pdu).as_bytes().to_vec();
+        let mut f = pcapng::section_header("t");
+        f.extend(pcapng::interface("192.168.1.20:502", ""));
+        f.extend(pcapng::interface("/dev/ttyS1", ""));
+        f.extend(packet(0, 10, "mbtcp", &mbap(1, &[3, 0, 0, 0, 1]), out, ""));
+        f.extend(packet(0, 20, "mbtcp", &mbap(2, &[3, 0, 1, 0, 1]), out, ""));
+        f.extend(packet(0, 30, "mbtcp", &mbap(2, &[3, 2, 0, 2]), inb, ""));
+        f.extend(packet(0, 40, "mbtcp", &mbap(1, &[3, 2, 0, 1]), inb, ""));
+        let ascii = "ASCII on the wire: :070300000001F5\\r\\n";
+        f.extend(packet(
+            1,
+            50,
+            "mbrtu",
+            &rtu::encode(7, &[3, 0, 0, 0, 1]),
+            out,
+            ascii,
+        ));
+        f.extend(packet(
+            1,
+            60,
+            "mbrtu",
+            &rtu::encode(7, &[3, 2, 0, 9]),
+            inb,
+            ascii,
+        ));
+        let got = observations(&read(&f).unwrap());
+        let brief: Vec<_> = got
+            .iter()
+            .map(|o| (o.unit, o.request[2..].to_vec(), o.seen.clone(), o.framing))
+            .collect();
+        assert_eq!(
+            brief,
+            [
+                (
+                    4,
+                    vec![1, 0, 1],
+                    Seen::Reply(vec![3, 2, 0, 2]),
+                    Framing::Mbap
+                ),
+                (
+                    4,
+                    vec![0, 0, 1],
+                    Seen::Reply(vec![3, 2, 0, 1]),
+                    Framing::Mbap
+                ),
+                (
+                    7,
+                    vec![0, 0, 1],
+                    Seen::Reply(vec![3, 2, 0, 9]),
+                    Framing::Ascii
+                ),
+            ]
+        );
+    }
+}
