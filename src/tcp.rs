@@ -593,6 +593,7 @@ impl Connection {
                     continue;
                 }
                 Ok(None) => {}
+                Err(e) if self.answer_in(&mut buf, &e) => continue,
                 Err(e) => {
                     if self.tap.on() {
                         // What a capture shows of them: a frame's worth, and a few more.
@@ -729,6 +730,25 @@ impl Connection {
             );
         }
         strip
+    }
+
+    /// Bytes the framing refused (`e`) that are the server's own answer to the
+    /// identity or a heartbeat (docs/dialing.md "What the server must do"): dropped
+    /// and counted, the connection kept. `false`: they break the protocol.
+    fn answer_in(&self, buf: &mut BytesMut, e: &codec::FrameError) -> bool {
+        let Some(d) = &self.dialed else {
+            return false;
+        };
+        let Some(n) = d.echoes.lock().expect("not poisoned").answer(buf) else {
+            return false;
+        };
+        self.stats.add(&self.stats.dial_answers, 1);
+        debug!(
+            conn = self.id,
+            bytes = n,
+            "the server answered the identity or a heartbeat ({e}): dropped"
+        );
+        true
     }
 
     /// Writes the master's replies in the order of its requests, and notifications as
