@@ -47,6 +47,7 @@ pub(crate) mod dial;
 mod echo;
 mod handshakes;
 mod rtu;
+pub(crate) mod tally;
 pub(crate) mod udp;
 
 use codec::MasterCodec;

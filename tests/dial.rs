@@ -283,6 +283,15 @@ fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
     first.expect("keep ok 20");
     let log = gw.log();
     assert!(log.contains(&format!("dial \"{a2}\" added")), "{log}");
+    // SIGUSR1's counters count the dial the reload added: 20 requests and 10.
+    gw.proc.signal("USR1");
+    gw.wait_log("counters (SIGUSR1)", Duration::from_secs(10));
+    let log = gw.log();
+    let usr1 = log
+        .lines()
+        .find(|l| l.contains("counters (SIGUSR1)"))
+        .unwrap();
+    assert!(usr1.contains(" requests=30 "), "{usr1}");
     // Change the first (its identity), remove the second.
     let mut third = Server::start(&["--listen", &a1, "--identity", "site-18", "--round", "serve"]);
     let changed = dial(p1, "").replace("site-17", "site-18");
@@ -295,7 +304,13 @@ fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
         "{log}"
     );
     assert!(log.contains(&format!("dial \"{a2}\" removed")), "{log}");
+    // The removed dial is off the metrics, the changed one (same address) on them.
+    let metrics = gw.http_get("/metrics");
+    assert!(!metrics.contains(&format!("\"dial {a2}\"")), "{metrics}");
+    assert!(metrics.contains(&format!("\"dial {a1}\"")), "{metrics}");
+    // The totals at the stop count every dial that ran: the removed one's 10 too.
     let counters = gw.stop();
+    assert_eq!(counters["requests"], 40, "{counters:?}");
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
 
@@ -629,9 +644,16 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
         &format!("listen \"{u1} (UDP)\" (gone from the file)"),
         Duration::from_secs(10),
     );
+    // Requests served while u1 closes (one more may reach the line unanswered).
+    let mut served = 0;
     wait_for("u1 closed", Duration::from_secs(10), || {
-        udp_transact(&u1, &read_req(4, 1, 150, 1)).is_err()
+        let closed = udp_transact(&u1, &read_req(4, 1, 150, 1)).is_err();
+        served += u64::from(!closed);
+        closed
     });
+    let metrics = gw.http_get("/metrics");
+    assert!(!metrics.contains(&format!("\"{u1}\"")), "u1 off: {metrics}");
+    assert!(metrics.contains(&format!("\"{u2}\"")), "{metrics}");
     assert_eq!(
         udp_transact(&u2, &read_req(5, 1, 150, 1)).unwrap(),
         read_reply(5, 1, &[42])
@@ -641,5 +663,11 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
         transact(&mut m, &read_req(6, 1, 150, 1)),
         read_reply(6, 1, &[42])
     );
-    gw.stop();
+    // The totals count u2, added by a reload (2 requests), and u1, removed by one.
+    let counters = gw.stop();
+    let requests = counters["requests"];
+    assert!(
+        (5 + served..=6 + served).contains(&requests),
+        "{served} served while closing: {counters:?}"
+    );
 }

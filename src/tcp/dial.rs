@@ -6,6 +6,7 @@
 //! TCP keepalive finds a peer that vanished, and the log says once what is wrong and
 //! once when it is right again ([`Outage`]).
 
+use super::tally::Tally;
 use super::{echo, Connection, Dialed, Shared};
 use crate::config::dial::{DialConfig, TlsDial};
 use crate::port::Backoff;
@@ -333,7 +334,7 @@ impl Outage {
 /// stops it and its counters.
 pub(crate) struct Dials {
     shared: Shared,
-    board: Arc<crate::metrics::Board>,
+    tally: Arc<Tally>,
     running: Vec<Running>,
 }
 
@@ -345,11 +346,11 @@ struct Running {
 
 impl Dials {
     /// None running yet; each dial started by [`Dials::apply`] runs on `shared`'s
-    /// tracker, its counters on `board` as a listener's.
-    pub(crate) fn new(shared: Shared, board: Arc<crate::metrics::Board>) -> Dials {
+    /// tracker, its counters in `tally` (on the metrics as a listener's).
+    pub(crate) fn new(shared: Shared, tally: Arc<Tally>) -> Dials {
         Dials {
             shared,
-            board,
+            tally,
             running: Vec::new(),
         }
     }
@@ -357,9 +358,11 @@ impl Dials {
     /// The dials of `dials` running, and no other: one unchanged keeps its
     /// connection, a new one starts, one gone or changed stops (its connection writes
     /// the replies it owes and closes; a changed one dials again at once as new).
-    /// A dial to an address already dialed keeps its counters.
+    /// A dial to an address already dialed keeps its counters; one gone leaves the
+    /// metrics, its counts staying in the totals.
     pub(crate) fn apply(&mut self, dials: &[DialConfig]) {
         let mut old = std::mem::take(&mut self.running);
+        let mut kept_stats = Vec::new();
         for (i, d) in dials.iter().enumerate() {
             if let Some(p) = old.iter().position(|r| r.dial == *d) {
                 self.running.push(old.remove(p));
@@ -367,16 +370,11 @@ impl Dials {
             }
             let kept = old.iter().find(|r| r.dial.address == d.address);
             let stats = match kept {
-                Some(r) => r.stats.clone(),
-                None => {
-                    let stats = Arc::<crate::stats::Stats>::default();
-                    self.board
-                        .add_listener(Arc::new(crate::metrics::ListenerMetrics {
-                            name: format!("dial {}", d.address),
-                            stats: stats.clone(),
-                        }));
-                    stats
+                Some(r) => {
+                    kept_stats.push(r.stats.clone());
+                    r.stats.clone()
                 }
+                None => self.tally.open(format!("dial {}", d.address)),
             };
             let stop = self.shared.shutdown.child_token();
             let shared = Shared {
@@ -395,11 +393,9 @@ impl Dials {
         }
         for r in old {
             r.stop.cancel();
+            if !kept_stats.iter().any(|k| Arc::ptr_eq(k, &r.stats)) {
+                self.tally.close(&r.stats);
+            }
         }
-    }
-
-    /// Every running dial's counters, for the totals.
-    pub(crate) fn stats(&self) -> Vec<Arc<crate::stats::Stats>> {
-        self.running.iter().map(|r| r.stats.clone()).collect()
     }
 }

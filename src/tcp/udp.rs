@@ -8,6 +8,7 @@
 //! request is dropped and counted, and closes nothing. At most `max_connections`
 //! sources at once; one quiet for `idle_timeout_ms` is forgotten.
 
+use super::tally::Tally;
 use super::{admit, Connection, Listening, Shared};
 use crate::config::{ListenConfig, Transport};
 use crate::frame::mbap::{decode_strict, MAX_ADU};
@@ -124,7 +125,7 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
 /// each its configuration, its socket, the token that stops it and its counters.
 pub(crate) struct Udps {
     shared: Shared,
-    board: Arc<crate::metrics::Board>,
+    tally: Arc<Tally>,
     running: Vec<RunningUdp>,
 }
 
@@ -136,10 +137,10 @@ struct RunningUdp {
 }
 
 impl Udps {
-    pub(crate) fn new(shared: Shared, board: Arc<crate::metrics::Board>) -> Udps {
+    pub(crate) fn new(shared: Shared, tally: Arc<Tally>) -> Udps {
         Udps {
             shared,
-            board,
+            tally,
             running: Vec::new(),
         }
     }
@@ -182,8 +183,8 @@ impl Udps {
 
     /// The UDP listeners of `listeners` running, and no other: one unchanged keeps
     /// its sources, one new is bound and started, one gone stops, one changed starts
-    /// again with its new settings on the same socket (its sources begin anew). What
-    /// it did, in words (a listener that cannot be bound is said and left out).
+    /// again with its new settings on the same socket (its sources begin anew). One
+    /// gone leaves the metrics, its counts staying in the totals. What it did, in words (a listener that cannot be bound is said and left out).
     pub(crate) fn apply(&mut self, listeners: &[ListenConfig]) -> Vec<String> {
         let mut said = Vec::new();
         let mut old = std::mem::take(&mut self.running);
@@ -202,15 +203,7 @@ impl Udps {
                     (r.socket, r.stats)
                 }
                 None => match bind(l.tcp.listen) {
-                    Ok(s) => {
-                        let stats = Arc::<crate::stats::Stats>::default();
-                        self.board
-                            .add_listener(Arc::new(crate::metrics::ListenerMetrics {
-                                name: l.tcp.listen.to_string(),
-                                stats: stats.clone(),
-                            }));
-                        (Arc::new(s), stats)
-                    }
+                    Ok(s) => (Arc::new(s), self.tally.open(l.tcp.listen.to_string())),
                     Err(e) => {
                         said.push(format!("cannot listen on {} (UDP): {e}", l.tcp.listen));
                         continue;
@@ -235,6 +228,7 @@ impl Udps {
         }
         for r in old {
             r.stop.cancel();
+            self.tally.close(&r.stats);
         }
         said
     }
