@@ -11,7 +11,7 @@ use crate::capture::{Hub, Tap};
 use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::Adu;
 use crate::metrics::{MasterSeen, Masters};
-use crate::outbox::Outbox;
+use crate::outbox::{Inbox, Outbox};
 use crate::relay::ConnId;
 use crate::router::Router;
 use crate::stats::Stats;
@@ -135,6 +135,45 @@ impl Connection {
         rd: impl AsyncRead + Unpin,
         wr: impl AsyncWrite + Unpin,
     ) -> Ended {
+        let mut why = Ended::Unattached;
+        if let Some((mut outbox, inbox)) = self.begin::<C>() {
+            let writer = self.write_loop::<C>(wr, inbox);
+            tokio::pin!(writer);
+            let end = tokio::select! {
+                end = self.read_loop::<C>(rd, &mut outbox) => end,
+                w = &mut writer => End::Closed(w),
+            };
+            let finish = matches!(end, End::Finish);
+            why = match end {
+                End::Closed(w) => w,
+                End::Finish => Ended::Finished,
+            };
+            if finish {
+                // The relay answers every request it was given: at once when the
+                // gateway shuts down (what is on the line within the response timeout
+                // and its retries), else in its turn. Only shutdown bounds the wait
+                // here; a master that stops reading meanwhile is closed by the writer.
+                let bound = self.cfg.answer_within() + Duration::from_secs(1);
+                tokio::select! {
+                    _ = outbox.settled() => {}
+                    _ = &mut writer => {}
+                    _ = async {
+                        self.shutdown.cancelled().await;
+                        tokio::time::sleep(bound).await;
+                    } => {}
+                }
+            }
+        }
+        self.end();
+        why
+    }
+
+    /// The master arrived: said, listed among the masters connected, its outbox made
+    /// and attached to the lines (for notifications) with its priority class. The
+    /// outbox its reader takes tickets from and the inbox its writer reads; `None`:
+    /// it could not be attached (the gateway is stopping), and [`Connection::end`]
+    /// is all that is left.
+    pub(super) fn begin<C: MasterCodec>(&self) -> Option<(Outbox, Inbox)> {
         let framing = C::NAME;
         // At debug: a SCADA that connects for each poll would fill the journal at info;
         // the connections are counted (mbgate_listener_connections_total) and the
@@ -173,7 +212,7 @@ impl Connection {
         } else {
             1
         };
-        let (mut outbox, inbox) = Outbox::new(pending);
+        let (outbox, inbox) = Outbox::new(pending);
         let attached = !C::IDS || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs
         // now; told under its lock, so a reload's new classes never arrive before
@@ -184,40 +223,15 @@ impl Connection {
             let class = running.priority_of(&self.listen, role);
             self.router.classify(self.id, class);
         }
-        let mut why = Ended::Unattached;
-        if attached {
-            let writer = self.write_loop::<C>(wr, inbox);
-            tokio::pin!(writer);
-            let end = tokio::select! {
-                end = self.read_loop::<C>(rd, &mut outbox) => end,
-                w = &mut writer => End::Closed(w),
-            };
-            let finish = matches!(end, End::Finish);
-            why = match end {
-                End::Closed(w) => w,
-                End::Finish => Ended::Finished,
-            };
-            if finish {
-                // The relay answers every request it was given: at once when the
-                // gateway shuts down (what is on the line within the response timeout
-                // and its retries), else in its turn. Only shutdown bounds the wait
-                // here; a master that stops reading meanwhile is closed by the writer.
-                let bound = self.cfg.answer_within() + Duration::from_secs(1);
-                tokio::select! {
-                    _ = outbox.settled() => {}
-                    _ = &mut writer => {}
-                    _ = async {
-                        self.shutdown.cancelled().await;
-                        tokio::time::sleep(bound).await;
-                    } => {}
-                }
-            }
-        }
+        attached.then_some((outbox, inbox))
+    }
+
+    /// The master gone: off the lines, the masters connected and the capture.
+    pub(super) fn end(&self) {
         self.router.detach(self.id);
         self.masters.remove(self.id);
         self.capture.forget(self.id);
         debug!(conn = self.id, peer = %self.peer, "master disconnected");
-        why
     }
 
     pub(super) fn ends(&self) -> Ends {

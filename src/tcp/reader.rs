@@ -54,13 +54,7 @@ impl Connection {
                         t = outbox.ticket() => t,
                         _ = &mut shutdown => return End::Finish,
                     };
-                    if self.cfg.log.traffic {
-                        debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
-                    }
-                    if self.tap.on() {
-                        self.captured::<C>(&adu, Dir::In, "master->gw");
-                    }
-                    self.submit(adu, ticket);
+                    self.take::<C>(adu, ticket);
                     continue;
                 }
                 Ok(None) => {}
@@ -124,6 +118,17 @@ impl Connection {
                 _ = &mut shutdown => return End::Finish,
             }
         }
+    }
+
+    /// A request read, with its ticket: logged and captured, then submitted.
+    pub(super) fn take<C: MasterCodec>(&self, adu: Adu, ticket: Ticket) {
+        if self.cfg.log.traffic {
+            debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
+        }
+        if self.tap.on() {
+            self.captured::<C>(&adu, Dir::In, "master->gw");
+        }
+        self.submit(adu, ticket);
     }
 
     /// Hands a request to the relay, or answers it here when it cannot go on the line.
