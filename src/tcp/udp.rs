@@ -13,6 +13,7 @@ use super::tally::Tally;
 use super::{admit, Connection, Listening, Shared};
 use crate::config::{ListenConfig, Transport};
 use crate::frame::mbap::{decode_strict, MAX_ADU};
+use crate::frame::Adu;
 use crate::outbox::Outbox;
 use bytes::BytesMut;
 use std::collections::HashMap;
@@ -36,10 +37,13 @@ pub(crate) fn bind(addr: SocketAddr) -> io::Result<UdpSocket> {
     UdpSocket::from_std(socket)
 }
 
-/// Is `d` exactly one MBAP request, strictly checked?
-fn one_request(d: &[u8]) -> bool {
+/// `d` as one MBAP request, strictly checked; `None` unless it is exactly one.
+fn one_request(d: &[u8]) -> Option<Adu> {
     let mut buf = BytesMut::from(d);
-    matches!(decode_strict(&mut buf), Ok(Some(_))) && buf.is_empty()
+    match decode_strict(&mut buf) {
+        Ok(Some(adu)) if buf.is_empty() => Some(adu),
+        _ => None,
+    }
 }
 
 /// One source: its connection, the outbox its requests take tickets from (here, in
@@ -81,17 +85,12 @@ impl Source {
         })
     }
 
-    /// `datagram` (one request, checked) taken if the source has a pipelining slot
+    /// `adu` (a datagram's one request) taken if the source has a pipelining slot
     /// free at once; `false`: dropped, the source has its share in flight.
-    fn take(&mut self, datagram: &[u8]) -> bool {
+    fn take(&mut self, adu: Adu) -> bool {
         let mut ticket = std::pin::pin!(self.outbox.ticket());
         let mut cx = Context::from_waker(Waker::noop());
         let Poll::Ready(ticket) = ticket.as_mut().poll(&mut cx) else {
-            return false;
-        };
-        let mut buf = BytesMut::from(datagram);
-        let Ok(Some(adu)) = decode_strict(&mut buf) else {
-            // Checked by `one_request` before: not reached; the ticket answers 0x0A.
             return false;
         };
         self.last = Instant::now();
@@ -156,12 +155,11 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
         if !gate.admits(peer, &stats) {
             continue;
         }
-        let datagram = &buf[..n];
-        if !one_request(datagram) {
+        let Some(adu) = one_request(&buf[..n]) else {
             stats.add(&stats.datagrams_dropped, 1);
             debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
             continue;
-        }
+        };
         // Its writer ended (a send failed): a new connection.
         if sources.get(&peer).is_some_and(|s| s.gone.is_cancelled()) {
             forget_where(&mut sources, |s| s.conn.peer == peer);
@@ -188,7 +186,7 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
             sources.insert(peer, source);
         }
         let source = sources.get_mut(&peer).expect("inserted above");
-        if !source.take(datagram) {
+        if !source.take(adu) {
             stats.add(&stats.datagrams_dropped, 1);
         }
     }
@@ -353,14 +351,15 @@ mod tests {
     #[test]
     fn a_datagram_is_one_whole_request_or_nothing() {
         let read: &[u8] = &[0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 1];
-        assert!(one_request(read));
-        assert!(!one_request(&read[..11]), "short");
+        let adu = one_request(read).expect("one request");
+        assert_eq!(adu.as_bytes(), read);
+        assert!(one_request(&read[..11]).is_none(), "short");
         let mut two = read.to_vec();
         two.extend_from_slice(read);
-        assert!(!one_request(&two), "two requests in one datagram");
+        assert!(one_request(&two).is_none(), "two requests in one datagram");
         let mut bad = read.to_vec();
         bad[2] = 1;
-        assert!(!one_request(&bad), "protocol id");
-        assert!(!one_request(b"hello"), "garbage");
+        assert!(one_request(&bad).is_none(), "protocol id");
+        assert!(one_request(b"hello").is_none(), "garbage");
     }
 }
