@@ -160,35 +160,41 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
             debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
             continue;
         };
-        // Its writer ended (a send failed): a new connection.
-        if sources.get(&peer).is_some_and(|s| s.gone.is_cancelled()) {
-            forget_where(&mut sources, |s| s.conn.peer == peer);
-        }
-        if !sources.contains_key(&peer) {
-            if sources.len() >= max_sources {
-                let now = Instant::now();
-                forget_where(&mut sources, |s| {
-                    s.gone.is_cancelled() || (!idle.is_zero() && s.idle(idle, now))
-                });
-            }
-            if sources.len() >= max_sources {
-                stats.add(&stats.datagrams_dropped, 1);
-                stats.add(&stats.connections_refused, 1);
-                debug!(%peer, "max_connections ({max_sources}) sources: datagram dropped");
+        // A source known and served: one look-up (each hashes the address).
+        if let Some(source) = sources.get_mut(&peer) {
+            if !source.gone.is_cancelled() {
+                if !source.take(adu) {
+                    stats.add(&stats.datagrams_dropped, 1);
+                }
                 continue;
             }
-            stats.add(&stats.connections, 1);
-            let conn = Connection::new(&shared, listen.clone(), peer, local);
-            let Some(source) = Source::start(conn, &socket, &shared) else {
-                stats.add(&stats.connections_closed, 1);
-                continue;
-            };
-            sources.insert(peer, source);
+            // Its writer ended (a send failed): a new connection.
+            if let Some(s) = sources.remove(&peer) {
+                s.forget();
+            }
         }
-        let source = sources.get_mut(&peer).expect("inserted above");
+        if sources.len() >= max_sources {
+            let now = Instant::now();
+            forget_where(&mut sources, |s| {
+                s.gone.is_cancelled() || (!idle.is_zero() && s.idle(idle, now))
+            });
+        }
+        if sources.len() >= max_sources {
+            stats.add(&stats.datagrams_dropped, 1);
+            stats.add(&stats.connections_refused, 1);
+            debug!(%peer, "max_connections ({max_sources}) sources: datagram dropped");
+            continue;
+        }
+        stats.add(&stats.connections, 1);
+        let conn = Connection::new(&shared, listen.clone(), peer, local);
+        let Some(mut source) = Source::start(conn, &socket, &shared) else {
+            stats.add(&stats.connections_closed, 1);
+            continue;
+        };
         if !source.take(adu) {
             stats.add(&stats.datagrams_dropped, 1);
         }
+        sources.insert(peer, source);
     }
     for (_, s) in sources.drain() {
         s.forget();
