@@ -2,7 +2,9 @@
 # One Modbus/TCP master polling FC 03 × 1 of unit 1 back to back, each reply checked
 # (its transaction id and function code): the master of the measuring scripts
 # (scripts/syscalls, scripts/cpu-ab).
-# Usage: python3 scripts/poll.py PORT N [PID]
+# Usage: python3 scripts/poll.py [--udp] PORT N [PID]
+#   --udp: the master sends each request as a datagram to a Modbus/UDP listener
+#   (`transport = "udp"`) and reads its reply datagram.
 #   PID: after 1000 warm-up transactions, poll N more on the same connection and print
 #   PID's CPU time a transaction in µs (/proc/PID/task/*/schedstat, every thread),
 #   then its user and kernel time a transaction in µs (/proc/PID/stat utime and
@@ -28,17 +30,27 @@ def times(pid):
 
 
 def main():
-    port, n = int(sys.argv[1]), int(sys.argv[2])
-    pid = int(sys.argv[3]) if len(sys.argv) > 3 else None
-    for _ in range(100):
+    args = sys.argv[1:]
+    udp = args[:1] == ["--udp"]
+    if udp:
+        args = args[1:]
+    port, n = int(args[0]), int(args[1])
+    pid = int(args[2]) if len(args) > 2 else None
+    if udp:
+        s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        s.connect(("127.0.0.1", port))
+        s.settimeout(10)
+    for _ in range(0 if udp else 100):
         try:
             s = socket.create_connection(("127.0.0.1", port))
             break
         except OSError:
             time.sleep(0.05)
     else:
-        raise SystemExit(f"nothing listens on {port}")
-    s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        if not udp:
+            raise SystemExit(f"nothing listens on {port}")
+    if not udp:
+        s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
 
     def rd(k):
         b = b""
@@ -49,9 +61,24 @@ def main():
             b += c
         return b
 
+    def ask(tid):
+        """One datagram out, one back (retried while the listener is not up yet)."""
+        req = struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, 0, 1)
+        for _ in range(100):
+            try:
+                s.send(req)
+                return s.recv(300)
+            except (ConnectionRefusedError, socket.timeout):
+                time.sleep(0.05)
+        raise SystemExit(f"no reply on UDP port {port}")
+
     def run(k):
         for i in range(k):
             tid = i & 0xFFFF
+            if udp:
+                d = ask(tid)
+                assert struct.unpack(">H", d[:2])[0] == tid and d[7] == 3, d
+                continue
             s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, 0, 1))
             h = rd(7)
             body = rd(struct.unpack(">H", h[4:6])[0] - 1)

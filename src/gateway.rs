@@ -182,8 +182,10 @@ struct Started {
     dials: Arc<Mutex<tcp::dial::Dials>>,
     /// The UDP listeners running (a reload changes them).
     udps: Arc<Mutex<tcp::udp::Udps>>,
-    /// Every listener's and line's counters: the totals add them up.
+    /// Every listener's and line's counters, with `tally`'s: the totals add them up.
     counted: Vec<Arc<Stats>>,
+    /// The counters of the dials and the UDP listeners a reload adds and removes.
+    tally: Arc<tcp::tally::Tally>,
     /// The lines' tasks, running.
     line_tasks: Vec<tokio::task::JoinHandle<()>>,
 }
@@ -240,14 +242,15 @@ async fn start(
         masters: board.masters.clone(),
         capture: capture.hub().clone(),
     };
+    let tally = Arc::new(tcp::tally::Tally::new(board.clone()));
     let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
         shared.clone(),
-        board.clone(),
+        tally.clone(),
     )));
     // The dials start with the listeners ([`accept`]); a reload changes them.
     let dials = Arc::new(Mutex::new(tcp::dial::Dials::new(
         shared.clone(),
-        board.clone(),
+        tally.clone(),
     )));
     // Before "listening on", as the other handlers: a reload asked for at once finds
     // its handler, never SIGHUP's default action (the end of the process).
@@ -282,7 +285,8 @@ async fn start(
         tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
     }
     if let Some(signals) = signals {
-        tokio::spawn(report_on_signal(signals, counted.clone(), shutdown.clone()));
+        let counted = (counted.clone(), tally.clone());
+        tokio::spawn(report_on_signal(signals, counted, shutdown.clone()));
     }
     Ok(Started {
         bound,
@@ -291,6 +295,7 @@ async fn start(
         capture,
         listener_stats,
         counted,
+        tally,
         line_tasks,
         shared,
         dials,
@@ -459,13 +464,13 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
     }
     // The dials run beside the listeners, on the tracker: the drain waits for the
     // replies their connections owe.
-    let dialing = {
-        let mut dials = started.dials.lock().expect("not poisoned");
-        dials.apply(&started.cfg.dials);
-        dials.stats()
-    };
-    // Their counters in the totals (a dial a reload adds later is on the metrics).
-    started.counted.extend(dialing);
+    // Their counters in the totals through the tally, as those a reload adds.
+    let cfg = started.cfg.clone();
+    started
+        .dials
+        .lock()
+        .expect("not poisoned")
+        .apply(&cfg.dials);
     for accept in accepting {
         let _ = accept.await;
     }
@@ -503,9 +508,16 @@ async fn drain(started: Started, tracker: TaskTracker) -> Arc<Stats> {
     }
     // Every capture gets its end, the ring its last packets.
     started.capture.finish().await;
-    let totals = Arc::new(Stats::total(started.counted.iter().map(|s| &**s)));
+    let totals = Arc::new(totals(&started.counted, &started.tally));
     info!(stats = %totals, "stopped");
     totals
+}
+
+/// The gateway's totals: the listeners' and lines' counters, and those of every dial
+/// and UDP listener that ran, a reload's among them.
+fn totals(counted: &[Arc<Stats>], tally: &tcp::tally::Tally) -> Stats {
+    let sources = tally.total();
+    Stats::total(counted.iter().map(|s| &**s).chain([&sources]))
 }
 
 type UserSignals = (tokio::signal::unix::Signal, tokio::signal::unix::Signal);
@@ -531,13 +543,13 @@ fn user_signals() -> Option<UserSignals> {
 /// SIGUSR2 is ignored.
 async fn report_on_signal(
     (mut usr1, mut usr2): UserSignals,
-    counted: Vec<Arc<Stats>>,
+    (counted, tally): (Vec<Arc<Stats>>, Arc<tcp::tally::Tally>),
     shutdown: CancellationToken,
 ) {
     loop {
         tokio::select! {
             _ = usr1.recv() => {
-                let stats = Stats::total(counted.iter().map(|s| &**s));
+                let stats = totals(&counted, &tally);
                 info!(%stats, "counters (SIGUSR1)");
             }
             _ = usr2.recv() => debug!("SIGUSR2 ignored"),

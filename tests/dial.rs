@@ -97,6 +97,8 @@ fn a_dialed_master_is_served_through_refusals_garbage_and_hangups() {
     assert_eq!((warned, back), (2, 1), "{log}");
     assert!(log.contains("protocol violation"), "the garbage: {log}");
     let counters = gw.stop();
+    // The garbage's first bytes were taken for the identity's answer, the next not.
+    assert_eq!(counters["dial_answers"], 1, "{counters:?}");
     assert!(counters["connections"] >= 4, "{counters:?}");
     assert!(counters["requests"] >= 11, "{counters:?}");
 }
@@ -281,6 +283,15 @@ fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
     first.expect("keep ok 20");
     let log = gw.log();
     assert!(log.contains(&format!("dial \"{a2}\" added")), "{log}");
+    // SIGUSR1's counters count the dial the reload added: 20 requests and 10.
+    gw.proc.signal("USR1");
+    gw.wait_log("counters (SIGUSR1)", Duration::from_secs(10));
+    let log = gw.log();
+    let usr1 = log
+        .lines()
+        .find(|l| l.contains("counters (SIGUSR1)"))
+        .unwrap();
+    assert!(usr1.contains(" requests=30 "), "{usr1}");
     // Change the first (its identity), remove the second.
     let mut third = Server::start(&["--listen", &a1, "--identity", "site-18", "--round", "serve"]);
     let changed = dial(p1, "").replace("site-17", "site-18");
@@ -293,7 +304,13 @@ fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
         "{log}"
     );
     assert!(log.contains(&format!("dial \"{a2}\" removed")), "{log}");
+    // The removed dial is off the metrics, the changed one (same address) on them.
+    let metrics = gw.http_get("/metrics");
+    assert!(!metrics.contains(&format!("\"dial {a2}\"")), "{metrics}");
+    assert!(metrics.contains(&format!("\"dial {a1}\"")), "{metrics}");
+    // The totals at the stop count every dial that ran: the removed one's 10 too.
     let counters = gw.stop();
+    assert_eq!(counters["requests"], 40, "{counters:?}");
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
 
@@ -386,17 +403,31 @@ fn a_server_that_never_reads_is_given_up_and_dialed_again() {
     gw.stop();
 }
 
-/// The server killed and started again 50 times while another master keeps the line
-/// busy: every reply either master got is right, the gateway holds as many file
-/// descriptors after as before (and about the memory), and the log says each outage
-/// once and each return once.
-#[test]
-fn fifty_server_restarts_under_load_leave_nothing_behind() {
+/// What a run of server restarts left: the log, the counters at the stop, what the
+/// server printed at its end, the accepted master's reads, and the gateway's file
+/// descriptors and memory before and after.
+struct Restarted {
+    log: String,
+    counters: std::collections::HashMap<String, u64>,
+    said: String,
+    polled: u16,
+    fds: (usize, usize),
+    rss_kib: (u64, u64),
+}
+
+/// The server killed and started again `n` times (dial_server.py `--restarts`, with
+/// `args` beside) while an accepted master keeps the line busy, each of its reads
+/// checked by value: the first and the last connection held while the test looks at
+/// the gateway's file descriptors and memory.
+fn restarts(n: usize, args: &[&str]) -> Restarted {
     use std::sync::atomic::{AtomicBool, Ordering};
     let b = bench();
     let port = free_port();
     let listen = format!("127.0.0.1:{port}");
-    let mut server = Server::at(port, &["--restarts", "50"]);
+    let times = n.to_string();
+    let mut all = vec!["--restarts", &times];
+    all.extend_from_slice(args);
+    let mut server = Server::at(port, &all);
     let text = format!(
         "{}[[dial]]\naddress = \"{listen}\"\nidentity = \"site-17\"\n\
          backoff_min_ms = 20\nbackoff_max_ms = 200\n",
@@ -433,38 +464,103 @@ fn fifty_server_restarts_under_load_leave_nothing_behind() {
     assert_eq!(gw.metric("mbgate_listener_masters"), 2.0, "{metrics}");
     server.go_on();
     server.expect("held");
-    // The last connection held, and said so: each of the 50 restarts and the first
+    // The last connection held, and said so: each of the restarts and the first
     // connection's end was an outage, each over once the next connection held.
     let count = |gw: &Gateway, what: &str| gw.log().matches(what).count();
-    wait_for("51 returns", Duration::from_secs(20), || {
-        count(&gw, "again, after") >= 51
+    wait_for("every return", Duration::from_secs(20), || {
+        count(&gw, "again, after") > n
     });
     let (fds_after, mem_after) = (fds(&gw), mem(&gw));
     server.go_on();
-    server.expect("restarts ok 50");
+    let said = server.expect(&format!("restarts ok {n}"));
     wait_for("the last outage", Duration::from_secs(20), || {
-        count(&gw, "dialing again with backoff") >= 52
+        count(&gw, "dialing again with backoff") >= n + 2
     });
     stop.store(true, Ordering::Relaxed);
     let polled = busy
         .join()
         .expect("every read of the accepted master right");
     let log = gw.log();
-    let outages = log.matches("dialing again with backoff").count();
-    let back = log.matches("again, after").count();
     let counters = gw.stop();
+    Restarted {
+        log,
+        counters,
+        said,
+        polled,
+        fds: (fds_before, fds_after),
+        rss_kib: (mem_before.rss_kib, mem_after.rss_kib),
+    }
+}
+
+/// The server killed and started again 50 times while another master keeps the line
+/// busy: every reply either master got is right, the gateway holds as many file
+/// descriptors after as before (and about the memory), and the log says each outage
+/// once and each return once.
+#[test]
+fn fifty_server_restarts_under_load_leave_nothing_behind() {
+    let r = restarts(50, &[]);
     eprintln!(
-        "restarts: {polled} reads beside; fds {fds_before} -> {fds_after}; RSS {} -> {} KiB",
-        mem_before.rss_kib, mem_after.rss_kib
+        "restarts: {} reads beside; fds {:?}; RSS {:?} KiB",
+        r.polled, r.fds, r.rss_kib
     );
-    assert_eq!(fds_after, fds_before);
-    assert!(
-        mem_after.rss_kib < mem_before.rss_kib + 2048,
-        "{mem_before:?} -> {mem_after:?}"
-    );
+    assert_eq!(r.fds.1, r.fds.0);
+    assert!(r.rss_kib.1 < r.rss_kib.0 + 2048, "RSS {:?} KiB", r.rss_kib);
     // 52 connections, each ended: each end said once, each return once.
-    assert_eq!((outages, back), (52, 51), "{log}");
+    let outages = r.log.matches("dialing again with backoff").count();
+    let back = r.log.matches("again, after").count();
+    assert_eq!((outages, back), (52, 51), "{}", r.log);
+    assert_eq!(r.counters["protocol_violations"], 0, "{:?}", r.counters);
+}
+
+/// The server restarts every second, busy to its end: for a second it sends reads
+/// and checks every reply by value, then sends one more and is gone before its reply.
+/// The gateway dials again each time, the log says each outage once and each return
+/// once, nothing is left behind, and no reply was wrong on either master.
+#[test]
+fn a_server_restarting_every_second_under_load_is_dialed_again_each_time() {
+    let r = restarts(10, &["--busy", "--hold", "1.0"]);
+    let replies: u64 = r
+        .said
+        .rsplit(' ')
+        .next()
+        .and_then(|n| n.parse().ok())
+        .unwrap_or_else(|| panic!("{}", r.said));
+    eprintln!(
+        "busy restarts: {replies} replies checked by the server, {} reads beside; fds {:?}",
+        r.polled, r.fds
+    );
+    // Each restart's second was served (the device answers in a few ms).
+    assert!(replies >= 10 * 3, "{}", r.said);
+    assert_eq!(r.fds.1, r.fds.0);
+    let outages = r.log.matches("dialing again with backoff").count();
+    let back = r.log.matches("again, after").count();
+    assert_eq!((outages, back), (12, 11), "{}", r.log);
+    assert_eq!(r.counters["protocol_violations"], 0, "{:?}", r.counters);
+    // Every request of the server's reached the line once: its checked replies, the
+    // last read of each restart (at most), the first and last connections' checks,
+    // and the accepted master's reads.
+    let asked = replies + 10 + 2 * 10 + u64::from(r.polled);
+    assert!(r.counters["requests"] <= asked + 1, "{:?}", r.counters);
+}
+
+/// A server that answers the identity and two heartbeats with bytes of its own
+/// ("ACK", "HB-ACK"): each answer is dropped and counted, the connection kept, no
+/// answer reaches the line (the requests the line got are exactly the server's), and
+/// every request after them is answered by value.
+#[test]
+fn a_server_answering_the_heartbeat_is_tolerated_and_never_relayed() {
+    let hb = "heartbeat = \"hex:ff fe 00 01\"\nheartbeat_ms = 1000\n";
+    let server = ["--heartbeat", "fffe0001", "--round", "ack"];
+    let (_b, mut gw, out) = dialed(hb, &server);
+    assert!(out.contains("ack ok 30"), "{out}");
+    let log = gw.log();
+    assert!(!log.contains("protocol violation"), "{log}");
+    let counters = gw.stop();
+    assert_eq!(counters["dial_answers"], 3, "{counters:?}");
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+    assert_eq!(counters["connections"], 1, "{counters:?}");
+    assert_eq!(counters["requests"], 30, "{counters:?}");
+    assert_eq!(counters["bad_requests"], 0, "{counters:?}");
 }
 
 /// `framing = "rtu"` on a dial: the server sends RTU over TCP (pymodbus' RTU framer),
@@ -548,9 +644,16 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
         &format!("listen \"{u1} (UDP)\" (gone from the file)"),
         Duration::from_secs(10),
     );
+    // Requests served while u1 closes (one more may reach the line unanswered).
+    let mut served = 0;
     wait_for("u1 closed", Duration::from_secs(10), || {
-        udp_transact(&u1, &read_req(4, 1, 150, 1)).is_err()
+        let closed = udp_transact(&u1, &read_req(4, 1, 150, 1)).is_err();
+        served += u64::from(!closed);
+        closed
     });
+    let metrics = gw.http_get("/metrics");
+    assert!(!metrics.contains(&format!("\"{u1}\"")), "u1 off: {metrics}");
+    assert!(metrics.contains(&format!("\"{u2}\"")), "{metrics}");
     assert_eq!(
         udp_transact(&u2, &read_req(5, 1, 150, 1)).unwrap(),
         read_reply(5, 1, &[42])
@@ -560,5 +663,11 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
         transact(&mut m, &read_req(6, 1, 150, 1)),
         read_reply(6, 1, &[42])
     );
-    gw.stop();
+    // The totals count u2, added by a reload (2 requests), and u1, removed by one.
+    let counters = gw.stop();
+    let requests = counters["requests"];
+    assert!(
+        (5 + served..=6 + served).contains(&requests),
+        "{served} served while closing: {counters:?}"
+    );
 }

@@ -12,12 +12,15 @@ certificate chained to CA (Modbus/TCP Security with mbgate as the client).
 
 Rounds, each one accepted connection:
   close    accept and close at once
-  garbage  accept, send bytes that are no Modbus request, wait for mbgate to close
+  garbage  accept, send bytes that are no Modbus request (taken for the identity's
+           answer), then more, and wait for mbgate to close
   halfway  accept, read the identity, send a request, close before the reply
   serve    read the identity, send requests and check every reply, then hold the
            connection 1.5 s and close
   echo     read the identity and echo it back, wait for a heartbeat and echo it,
            then as serve (the echoes must not be taken for requests)
+  ack      read the identity and answer it "ACK\\r\\n", check; twice: wait for a
+           heartbeat, answer it "HB-ACK\\r\\n", check (the answers are no requests)
   refused  (TLS) present --wrong's certificate: mbgate must refuse it
   readonly read the identity, check the reads; a write must be answered 0x01
   deaf     read the identity, send 400 reads of 125 registers and read no reply;
@@ -28,9 +31,12 @@ Rounds, each one accepted connection:
 
 --restarts N: instead of rounds, the server restarts N times: each time it listens
 anew, takes mbgate's connection, reads the identity, checks two reads, holds the
-connection --hold seconds and closes it and its listening socket. Before the first
+connection --hold seconds and closes it and its listening socket (with --busy: sends
+reads and checks their replies throughout the --hold seconds, then one more read, and
+closes before its reply). Before the first
 restart and after the last it serves a connection that waits for a line on stdin
-(prints "held"), so the test can look at the gateway then. Prints "restarts ok N".
+(prints "held"), so the test can look at the gateway then. Prints "restarts ok N
+replies M" (M: the replies checked in the restarts).
 
 Prints READY once listening, a line per round ("serve ok 12"), and exits 0 when
 every round passed; any failure prints "FAIL ..." and exits 1.
@@ -171,8 +177,9 @@ def take(server: socket.socket, identity: bytes) -> Master:
     return Master(conn)
 
 
-def restarts(server: socket.socket, at, identity: bytes, n: int, hold: float) -> int:
+def restarts(server: socket.socket, at, identity: bytes, n: int, hold: float, busy: bool) -> int:
     """The server killed and started again n times (see the module's doc)."""
+    replies = 0
     for i in range(n + 2):
         if i > 0:
             server = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
@@ -185,12 +192,19 @@ def restarts(server: socket.socket, at, identity: bytes, n: int, hold: float) ->
             master.checks()
             print("held", flush=True)
             sys.stdin.readline()
+        elif busy:
+            # Under load to the end: reads checked for `hold` seconds, then one more
+            # sent and the server gone before its reply.
+            until = time.monotonic() + hold
+            while time.monotonic() < until:
+                replies += master.reads()
+            master.conn.sendall(master.framer.buildFrame(ReadHoldingRegistersRequest(address=1, count=1, dev_id=1, transaction_id=0)))
         else:
-            master.reads()
+            replies += master.reads()
             time.sleep(hold)
         master.conn.close()
         server.close()
-    print(f"restarts ok {n}", flush=True)
+    print(f"restarts ok {n} replies {replies}", flush=True)
     return 0
 
 
@@ -202,6 +216,7 @@ def main() -> int:
     ap.add_argument("--round", action="append", default=[])
     ap.add_argument("--restarts", type=int, default=0)
     ap.add_argument("--hold", type=float, default=0.3)
+    ap.add_argument("--busy", action="store_true")
     ap.add_argument("--rcvbuf", type=int, default=0)
     ap.add_argument("--framer", choices=["socket", "rtu"], default="socket")
     ap.add_argument("--tls", default="")
@@ -231,7 +246,7 @@ def main() -> int:
     server.settimeout(TIMEOUT)
     print("READY", flush=True)
     if args.restarts:
-        return restarts(server, (host, int(port)), identity, args.restarts, args.hold)
+        return restarts(server, (host, int(port)), identity, args.restarts, args.hold, args.busy)
     for name in args.round:
         try:
             conn, _ = server.accept()
@@ -258,7 +273,11 @@ def main() -> int:
             print("close ok", flush=True)
             continue
         if name == "garbage":
+            # The first bytes may be the identity's answer (dropped, the connection
+            # kept: docs/dialing.md); the second break the protocol.
             conn.sendall(b"hello, this is not Modbus\r\n")
+            time.sleep(0.3)
+            conn.sendall(b"hello again\r\n")
             # mbgate closes at once: the read ends.
             while conn.recv(512):
                 pass
@@ -280,6 +299,23 @@ def main() -> int:
             if beat != heartbeat:
                 fail(f"heartbeat {beat!r}, expected {heartbeat!r}")
             conn.sendall(heartbeat)
+        elif name == "ack":
+            # Answers of the server's own to the identity and to two heartbeats, each
+            # on its own (a request on an answer's heels would be lost with it).
+            conn.sendall(b"ACK\r\n")
+            time.sleep(0.3)
+            n = master.checks()
+            for _ in range(2):
+                beat = read_exact(conn, len(heartbeat))
+                if beat != heartbeat:
+                    fail(f"heartbeat {beat!r}, expected {heartbeat!r}")
+                conn.sendall(b"HB-ACK\r\n")
+                time.sleep(0.3)
+                n += master.checks()
+            time.sleep(0.3)
+            conn.close()
+            print(f"ack ok {n}", flush=True)
+            continue
         elif name == "readonly":
             n = master.reads()
             master.refused_write()

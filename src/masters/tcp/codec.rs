@@ -57,6 +57,13 @@ impl MasterCodec for Mbap {
     const PROTO: Proto = Proto::Mbtcp;
 
     fn decode(&mut self, buf: &mut BytesMut) -> Result<Option<Adu>, FrameError> {
+        // A protocol id byte that is not 0 is refused at once, not once the whole
+        // header has come: a dialed server's short acknowledgement ("ACK") is known
+        // for what it is without waiting for bytes that may never come.
+        if let Some(&b) = buf.get(2).filter(|&&b| b != 0) {
+            let low = buf.get(3).copied().unwrap_or(0);
+            return Err(StrictError::ProtocolId(u16::from_be_bytes([b, low])).into());
+        }
         Ok(decode_strict(buf)?)
     }
 

@@ -6,11 +6,14 @@
 //! TCP keepalive finds a peer that vanished, and the log says once what is wrong and
 //! once when it is right again ([`Outage`]).
 
+use super::connection::Ended;
+use super::tally::Tally;
 use super::{echo, Connection, Dialed, Shared};
 use crate::config::dial::{DialConfig, TlsDial};
 use crate::line::port::Backoff;
 use crate::masters::tls::client::Connector;
-use crate::masters::tls::server::{grant, Grant};
+use crate::masters::tls::server::{grant, Grant, RoleRefused};
+use crate::masters::tls::TlsError;
 use socket2::{SockRef, TcpKeepalive};
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -33,6 +36,46 @@ const KEEPALIVE_PROBES: u32 = 3;
 /// one: the backoff starts over and the log says the dial is back. A server that
 /// accepts and closes at once is an outage like one that refuses.
 const SETTLE: Duration = Duration::from_secs(5);
+
+/// Why an attempt to dial failed, or why its connection ended: said once by the
+/// outage's warning, then at debug.
+#[derive(Debug, thiserror::Error)]
+pub(super) enum DialError {
+    #[error("cannot resolve {address}: {source}")]
+    Resolve {
+        address: String,
+        source: std::io::Error,
+    },
+    #[error("cannot resolve {address} within {within:?}")]
+    ResolveTimeout { address: String, within: Duration },
+    #[error("{0} resolves to no address")]
+    NoAddress(String),
+    #[error("cannot make a socket: {0}")]
+    Socket(std::io::Error),
+    #[error("cannot connect to {addr}: {source}")]
+    Connect {
+        addr: SocketAddr,
+        source: std::io::Error,
+    },
+    #[error("no connection to {addr} within {within:?}")]
+    ConnectTimeout { addr: SocketAddr, within: Duration },
+    #[error("TLS: {0}")]
+    TlsFiles(#[from] TlsError),
+    #[error("TLS handshake failed: {0}")]
+    Handshake(std::io::Error),
+    #[error("no TLS handshake within {0:?}")]
+    HandshakeTimeout(Duration),
+    #[error("the server presented no certificate")]
+    NoCertificate,
+    #[error("the server is refused: {0}")]
+    Refused(RoleRefused),
+    #[error("the identity could not be sent: {0}")]
+    Identity(std::io::Error),
+    #[error("the identity could not be sent within {0:?}")]
+    IdentityTimeout(Duration),
+    #[error("the connection to {peer} ended: {why}")]
+    Ended { peer: SocketAddr, why: Ended },
+}
 
 /// Dials `dial` (`name`: `dial[0]`) until shutdown; its counters are `shared.stats`.
 pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
@@ -62,7 +105,7 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
                             conn.grant = Some(grant);
                             serve(conn, tls, &dial, &mut outage, settle).await
                         }
-                        Err(why) => why,
+                        Err(why) => Err(why),
                     },
                 };
                 shared.stats.add(&shared.stats.connections_closed, 1);
@@ -72,7 +115,11 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
                 if shutdown.is_cancelled() {
                     break;
                 }
-                outage.failed(&format!("the connection to {peer} ended: {why}"));
+                outage.failed(&match why {
+                    // Why the attempt failed after the connect (TLS, the identity).
+                    Err(e) => e,
+                    Ok(why) => DialError::Ended { peer, why },
+                });
             }
         }
         let delay = jittered(backoff.next_delay());
@@ -95,16 +142,25 @@ fn jittered(delay: Duration) -> Duration {
 /// One attempt: the name resolved now, each of its addresses tried in turn within
 /// `connect_timeout_ms` in all, keepalive and Nagle set, the send buffer capped as an
 /// accepted master's (`tcp::listen`).
-async fn connect(dial: &DialConfig, max_pending: usize) -> Result<(TcpStream, SocketAddr), String> {
+async fn connect(
+    dial: &DialConfig,
+    max_pending: usize,
+) -> Result<(TcpStream, SocketAddr), DialError> {
     let within = Duration::from_millis(dial.connect_timeout_ms);
     let deadline = Instant::now() + within;
     let resolved = tokio::time::timeout_at(deadline, tokio::net::lookup_host(&dial.address));
     let addrs: Vec<SocketAddr> = match resolved.await {
         Ok(Ok(addrs)) => addrs.collect(),
-        Ok(Err(e)) => return Err(format!("cannot resolve {}: {e}", dial.address)),
-        Err(_) => return Err(format!("cannot resolve {} within {within:?}", dial.address)),
+        Ok(Err(source)) => {
+            let address = dial.address.clone();
+            return Err(DialError::Resolve { address, source });
+        }
+        Err(_) => {
+            let address = dial.address.clone();
+            return Err(DialError::ResolveTimeout { address, within });
+        }
     };
-    let mut last = format!("{} resolves to no address", dial.address);
+    let mut last = DialError::NoAddress(dial.address.clone());
     for addr in addrs {
         let socket = match addr {
             SocketAddr::V4(_) => tokio::net::TcpSocket::new_v4(),
@@ -115,7 +171,7 @@ async fn connect(dial: &DialConfig, max_pending: usize) -> Result<(TcpStream, So
                 s.set_send_buffer_size(super::send_buffer(max_pending))
                     .map(|()| s)
             })
-            .map_err(|e| format!("cannot make a socket: {e}"))?;
+            .map_err(DialError::Socket)?;
         match tokio::time::timeout_at(deadline, socket.connect(addr)).await {
             Ok(Ok(stream)) => {
                 let _ = stream.set_nodelay(true);
@@ -128,10 +184,8 @@ async fn connect(dial: &DialConfig, max_pending: usize) -> Result<(TcpStream, So
                 }
                 return Ok((stream, addr));
             }
-            Ok(Err(e)) => last = format!("cannot connect to {addr}: {e}"),
-            Err(_) => {
-                return Err(format!("no connection to {addr} within {within:?}"));
-            }
+            Ok(Err(source)) => last = DialError::Connect { addr, source },
+            Err(_) => return Err(DialError::ConnectTimeout { addr, within }),
         }
     }
     Err(last)
@@ -175,45 +229,45 @@ async fn secure(
     dial: &DialConfig,
     stream: TcpStream,
     shared: &Shared,
-) -> Result<(TlsStream<TcpStream>, Grant), String> {
+) -> Result<(TlsStream<TcpStream>, Grant), DialError> {
     let stats = &shared.stats;
-    let connector =
-        Connector::load(&t.client, &dial.address, "dial.tls").map_err(|e| format!("TLS: {e}"))?;
+    let connector = Connector::load(&t.client, &dial.address, "dial.tls")?;
     let within = Duration::from_millis(dial.connect_timeout_ms);
     let tls = match tokio::time::timeout(within, connector.connect(stream)).await {
         Ok(Ok(tls)) => tls,
         Ok(Err(e)) => {
             stats.add(&stats.tls_failed, 1);
-            return Err(format!("TLS handshake failed: {e}"));
+            return Err(DialError::Handshake(e));
         }
         Err(_) => {
             stats.add(&stats.tls_failed, 1);
-            return Err(format!("no TLS handshake within {within:?}"));
+            return Err(DialError::HandshakeTimeout(within));
         }
     };
     let der = tls.get_ref().1.peer_certificates().and_then(|c| c.first());
     let Some(der) = der else {
         stats.add(&stats.tls_refused, 1);
-        return Err("the server presented no certificate".to_owned());
+        return Err(DialError::NoCertificate);
     };
     match grant(der, &shared.cfg.roles, t.default_role.as_deref()) {
         Ok(g) => Ok((tls, g)),
         Err(refused) => {
             stats.add(&stats.tls_refused, 1);
-            Err(format!("the server is refused: {refused}"))
+            Err(DialError::Refused(refused))
         }
     }
 }
 
 /// The identity sent, then the connection served until it ends; once it has stayed
-/// up for `settle`, the outage (if any) is over. Why it ended, in words.
+/// up for `settle`, the outage (if any) is over. Why it ended; `Err`: the identity
+/// could not be sent.
 async fn serve<S: Halves>(
     conn: Connection,
     mut stream: S,
     dial: &DialConfig,
     outage: &mut Outage,
     settle: Duration,
-) -> String {
+) -> Result<Ended, DialError> {
     let peer = conn.peer;
     if !dial.identity.is_empty() {
         let within = Duration::from_millis(dial.connect_timeout_ms);
@@ -224,8 +278,8 @@ async fn serve<S: Halves>(
         };
         match tokio::time::timeout(within, send).await {
             Ok(Ok(())) => {}
-            Ok(Err(e)) => return format!("the identity could not be sent: {e}"),
-            Err(_) => return format!("the identity could not be sent within {within:?}"),
+            Ok(Err(e)) => return Err(DialError::Identity(e)),
+            Err(_) => return Err(DialError::IdentityTimeout(within)),
         }
     }
     outage.connected(peer);
@@ -233,10 +287,10 @@ async fn serve<S: Halves>(
     let served = conn.run(rd, wr);
     tokio::pin!(served);
     tokio::select! {
-        why = &mut served => return why,
+        why = &mut served => return Ok(why),
         _ = tokio::time::sleep(settle) => outage.settled(peer),
     }
-    served.await
+    Ok(served.await)
 }
 
 /// A dialed stream cut in its reading and writing halves: a plain socket's own
@@ -287,7 +341,7 @@ impl Outage {
         }
     }
 
-    fn failed(&mut self, why: &str) {
+    fn failed(&mut self, why: &DialError) {
         match &mut self.failing {
             Some((n, _)) => {
                 *n += 1;
@@ -333,7 +387,7 @@ impl Outage {
 /// stops it and its counters.
 pub(crate) struct Dials {
     shared: Shared,
-    board: Arc<crate::ops::metrics::Board>,
+    tally: Arc<Tally>,
     running: Vec<Running>,
 }
 
@@ -345,11 +399,11 @@ struct Running {
 
 impl Dials {
     /// None running yet; each dial started by [`Dials::apply`] runs on `shared`'s
-    /// tracker, its counters on `board` as a listener's.
-    pub(crate) fn new(shared: Shared, board: Arc<crate::ops::metrics::Board>) -> Dials {
+    /// tracker, its counters in `tally` (on the metrics as a listener's).
+    pub(crate) fn new(shared: Shared, tally: Arc<Tally>) -> Dials {
         Dials {
             shared,
-            board,
+            tally,
             running: Vec::new(),
         }
     }
@@ -357,9 +411,11 @@ impl Dials {
     /// The dials of `dials` running, and no other: one unchanged keeps its
     /// connection, a new one starts, one gone or changed stops (its connection writes
     /// the replies it owes and closes; a changed one dials again at once as new).
-    /// A dial to an address already dialed keeps its counters.
+    /// A dial to an address already dialed keeps its counters; one gone leaves the
+    /// metrics, its counts staying in the totals.
     pub(crate) fn apply(&mut self, dials: &[DialConfig]) {
         let mut old = std::mem::take(&mut self.running);
+        let mut kept_stats = Vec::new();
         for (i, d) in dials.iter().enumerate() {
             if let Some(p) = old.iter().position(|r| r.dial == *d) {
                 self.running.push(old.remove(p));
@@ -367,16 +423,11 @@ impl Dials {
             }
             let kept = old.iter().find(|r| r.dial.address == d.address);
             let stats = match kept {
-                Some(r) => r.stats.clone(),
-                None => {
-                    let stats = Arc::<crate::ops::stats::Stats>::default();
-                    self.board
-                        .add_listener(Arc::new(crate::ops::metrics::ListenerMetrics {
-                            name: format!("dial {}", d.address),
-                            stats: stats.clone(),
-                        }));
-                    stats
+                Some(r) => {
+                    kept_stats.push(r.stats.clone());
+                    r.stats.clone()
                 }
+                None => self.tally.open(format!("dial {}", d.address)),
             };
             let stop = self.shared.shutdown.child_token();
             let shared = Shared {
@@ -395,11 +446,9 @@ impl Dials {
         }
         for r in old {
             r.stop.cancel();
+            if !kept_stats.iter().any(|k| Arc::ptr_eq(k, &r.stats)) {
+                self.tally.close(&r.stats);
+            }
         }
-    }
-
-    /// Every running dial's counters, for the totals.
-    pub(crate) fn stats(&self) -> Vec<Arc<crate::ops::stats::Stats>> {
-        self.running.iter().map(|r| r.stats.clone()).collect()
     }
 }

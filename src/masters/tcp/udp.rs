@@ -1,30 +1,34 @@
 //! Modbus over UDP (`[[listen]]` with `transport = "udp"`, docs/dialing.md "Modbus
 //! over UDP"): each datagram one MBAP request, its reply sent to the datagram's
-//! source. Each source is a master of the one connection type of `crate::masters::tcp` (codec,
-//! access, per-master order, metrics), fed its datagrams through a small queue: a
-//! source whose requests and queue are full has its next datagrams dropped, so a flood
-//! from one address takes no more of the line than one master's share
-//! (`max_pending_per_connection`). A datagram that is not exactly one well-formed MBAP
+//! source. Each source is a master of the one connection type (`tcp/connection.rs`:
+//! access, per-master order, metrics), its requests handed to the line by the receive
+//! loop itself and its replies sent by its writer: a source whose pipelining slots
+//! are all in use has its next datagrams dropped, so a flood from one address takes no
+//! more of the line than one master's share (`max_pending_per_connection`). A datagram that is not exactly one well-formed MBAP
 //! request is dropped and counted, and closes nothing. At most `max_connections`
 //! sources at once; one quiet for `idle_timeout_ms` is forgotten.
 
+use super::codec::Mbap;
+use super::tally::Tally;
 use super::{admit, Connection, Listening, Shared};
 use crate::config::{ListenConfig, Transport};
 use crate::frame::mbap::{decode_strict, MAX_ADU};
-use bytes::{Bytes, BytesMut};
+use crate::frame::Adu;
+use crate::line::outbox::Outbox;
+use bytes::BytesMut;
 use std::collections::HashMap;
+use std::future::Future;
 use std::io;
 use std::net::SocketAddr;
 use std::pin::Pin;
 use std::sync::Arc;
-use std::task::{Context, Poll};
-use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
+use std::task::{Context, Poll, Waker};
+use std::time::Duration;
+use tokio::io::AsyncWrite;
 use tokio::net::UdpSocket;
-use tokio::sync::mpsc;
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
 use tracing::debug;
-
-/// Datagrams a source may have waiting beyond the requests its connection holds.
-const WAITING: usize = 4;
 
 /// Binds a UDP listener.
 pub(crate) fn bind(addr: SocketAddr) -> io::Result<UdpSocket> {
@@ -33,13 +37,85 @@ pub(crate) fn bind(addr: SocketAddr) -> io::Result<UdpSocket> {
     UdpSocket::from_std(socket)
 }
 
-/// Is `d` exactly one MBAP request, strictly checked?
-fn one_request(d: &[u8]) -> bool {
+/// `d` as one MBAP request, strictly checked; `None` unless it is exactly one.
+fn one_request(d: &[u8]) -> Option<Adu> {
     let mut buf = BytesMut::from(d);
-    matches!(decode_strict(&mut buf), Ok(Some(_))) && buf.is_empty()
+    match decode_strict(&mut buf) {
+        Ok(Some(adu)) if buf.is_empty() => Some(adu),
+        _ => None,
+    }
 }
 
-/// Takes datagrams on `socket` until shutdown.
+/// One source: its connection, the outbox its requests take tickets from (here, in
+/// the receive loop: no task between a datagram and the line), when it last sent,
+/// and whether its writer has ended.
+struct Source {
+    conn: Arc<Connection>,
+    outbox: Outbox,
+    last: Instant,
+    gone: CancellationToken,
+}
+
+impl Source {
+    /// Its connection begun and its writer running on the tracker; `None`: the
+    /// gateway is stopping.
+    fn start(conn: Connection, socket: &Arc<UdpSocket>, shared: &Shared) -> Option<Source> {
+        let conn = Arc::new(conn);
+        let Some((outbox, inbox)) = conn.begin::<Mbap>() else {
+            conn.end();
+            return None;
+        };
+        let gone = CancellationToken::new();
+        let writer = Replies {
+            socket: socket.clone(),
+            peer: conn.peer,
+        };
+        let (c, g, stats) = (conn.clone(), gone.clone(), shared.stats.clone());
+        shared.tracker.spawn(async move {
+            c.write_loop::<Mbap>(writer, inbox).await;
+            g.cancel();
+            c.end();
+            stats.add(&stats.connections_closed, 1);
+        });
+        Some(Source {
+            conn,
+            outbox,
+            last: Instant::now(),
+            gone,
+        })
+    }
+
+    /// `adu` (a datagram's one request) taken if the source has a pipelining slot
+    /// free at once; `false`: dropped, the source has its share in flight.
+    fn take(&mut self, adu: Adu) -> bool {
+        let mut ticket = std::pin::pin!(self.outbox.ticket());
+        let mut cx = Context::from_waker(Waker::noop());
+        let Poll::Ready(ticket) = ticket.as_mut().poll(&mut cx) else {
+            return false;
+        };
+        self.last = Instant::now();
+        self.conn.take::<Mbap>(adu, ticket);
+        true
+    }
+
+    /// Quiet for `idle` with nothing owed at `now`.
+    fn idle(&self, idle: Duration, now: Instant) -> bool {
+        self.outbox
+            .idle_at(self.last, idle)
+            .is_some_and(|at| at <= now)
+    }
+
+    /// Forgotten: off the lines, so its writer ends once the replies owed are written.
+    fn forget(self) {
+        self.conn.router.detach(self.conn.id);
+    }
+}
+
+/// Takes datagrams on `socket` until shutdown. Each is handed to the line from this
+/// loop, through its source's outbox (per-source order: the order received); a
+/// source with no pipelining slot free has its datagram dropped, so a flood from one
+/// address takes no more of the line than one master's share. Sources quiet for
+/// `idle_timeout_ms` are forgotten (looked for at most once a second).
 pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, shared: Shared) {
     let Listening {
         listen,
@@ -49,15 +125,25 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
     } = listening;
     let mut gate = admit::Gate::new(name, listen.access.allow.clone());
     let max_sources = listen.tcp.max_connections;
+    let idle = Duration::from_millis(listen.tcp.idle_timeout_ms);
     let listen = Arc::new(listen);
     let stats = shared.stats.clone();
-    let mut sources: HashMap<SocketAddr, mpsc::Sender<Bytes>> = HashMap::new();
+    let mut sources: HashMap<SocketAddr, Source> = HashMap::new();
+    // One timer for the loop's life, moved at each sweep for idle sources.
+    let sweep = tokio::time::sleep(SWEEP);
+    tokio::pin!(sweep);
     // Room for a datagram one byte too long to be a request: it is seen as such.
     let mut buf = vec![0u8; MAX_ADU + 1];
     loop {
         let received = tokio::select! {
             _ = shared.shutdown.cancelled() => break,
             r = socket.recv_from(&mut buf) => r,
+            _ = &mut sweep, if !idle.is_zero() && !sources.is_empty() => {
+                let now = Instant::now();
+                forget_where(&mut sources, |s| s.idle(idle, now));
+                sweep.as_mut().reset(now + SWEEP);
+                continue;
+            }
         };
         let (n, peer) = match received {
             Ok(r) => r,
@@ -69,62 +155,75 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
         if !gate.admits(peer, &stats) {
             continue;
         }
-        if !one_request(&buf[..n]) {
+        let Some(adu) = one_request(&buf[..n]) else {
             stats.add(&stats.datagrams_dropped, 1);
             debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
             continue;
-        }
-        let mut datagram = Bytes::copy_from_slice(&buf[..n]);
-        if let Some(tx) = sources.get(&peer) {
-            match tx.try_send(datagram) {
-                Ok(()) => continue,
-                Err(mpsc::error::TrySendError::Full(_)) => {
+        };
+        // A source known and served: one look-up (each hashes the address).
+        if let Some(source) = sources.get_mut(&peer) {
+            if !source.gone.is_cancelled() {
+                if !source.take(adu) {
                     stats.add(&stats.datagrams_dropped, 1);
-                    continue;
                 }
-                // Its connection ended (quiet too long): a new one.
-                Err(mpsc::error::TrySendError::Closed(d)) => {
-                    sources.remove(&peer);
-                    datagram = d;
-                }
+                continue;
+            }
+            // Its writer ended (a send failed): a new connection.
+            if let Some(s) = sources.remove(&peer) {
+                s.forget();
             }
         }
         if sources.len() >= max_sources {
-            sources.retain(|_, tx| !tx.is_closed());
-            if sources.len() >= max_sources {
-                stats.add(&stats.datagrams_dropped, 1);
-                stats.add(&stats.connections_refused, 1);
-                debug!(%peer, "max_connections ({max_sources}) sources: datagram dropped");
-                continue;
-            }
+            let now = Instant::now();
+            forget_where(&mut sources, |s| {
+                s.gone.is_cancelled() || (!idle.is_zero() && s.idle(idle, now))
+            });
         }
-        let (tx, rx) = mpsc::channel(WAITING);
-        let _ = tx.try_send(datagram);
-        sources.insert(peer, tx);
+        if sources.len() >= max_sources {
+            stats.add(&stats.datagrams_dropped, 1);
+            stats.add(&stats.connections_refused, 1);
+            debug!(%peer, "max_connections ({max_sources}) sources: datagram dropped");
+            continue;
+        }
         stats.add(&stats.connections, 1);
         let conn = Connection::new(&shared, listen.clone(), peer, local);
-        let reader = Datagrams {
-            rx,
-            left: Bytes::new(),
+        let Some(mut source) = Source::start(conn, &socket, &shared) else {
+            stats.add(&stats.connections_closed, 1);
+            continue;
         };
-        let writer = Replies {
-            socket: socket.clone(),
-            peer,
-        };
-        let closed = stats.clone();
-        shared.tracker.spawn(async move {
-            conn.run(reader, writer).await;
-            closed.add(&closed.connections_closed, 1);
-        });
+        if !source.take(adu) {
+            stats.add(&stats.datagrams_dropped, 1);
+        }
+        sources.insert(peer, source);
+    }
+    for (_, s) in sources.drain() {
+        s.forget();
     }
     debug!(%local, "UDP listener closed");
+}
+
+/// How often the receive loop looks for sources quiet for `idle_timeout_ms`.
+const SWEEP: Duration = Duration::from_secs(1);
+
+/// The sources for which `which` holds forgotten.
+fn forget_where(sources: &mut HashMap<SocketAddr, Source>, which: impl Fn(&Source) -> bool) {
+    let gone: Vec<SocketAddr> = sources
+        .keys()
+        .filter(|p| which(&sources[*p]))
+        .copied()
+        .collect();
+    for p in gone {
+        if let Some(s) = sources.remove(&p) {
+            s.forget();
+        }
+    }
 }
 
 /// The UDP listeners running, as a reload finds them (docs/dialing.md "Reload"):
 /// each its configuration, its socket, the token that stops it and its counters.
 pub(crate) struct Udps {
     shared: Shared,
-    board: Arc<crate::ops::metrics::Board>,
+    tally: Arc<Tally>,
     running: Vec<RunningUdp>,
 }
 
@@ -136,10 +235,10 @@ struct RunningUdp {
 }
 
 impl Udps {
-    pub(crate) fn new(shared: Shared, board: Arc<crate::ops::metrics::Board>) -> Udps {
+    pub(crate) fn new(shared: Shared, tally: Arc<Tally>) -> Udps {
         Udps {
             shared,
-            board,
+            tally,
             running: Vec::new(),
         }
     }
@@ -182,8 +281,8 @@ impl Udps {
 
     /// The UDP listeners of `listeners` running, and no other: one unchanged keeps
     /// its sources, one new is bound and started, one gone stops, one changed starts
-    /// again with its new settings on the same socket (its sources begin anew). What
-    /// it did, in words (a listener that cannot be bound is said and left out).
+    /// again with its new settings on the same socket (its sources begin anew). One
+    /// gone leaves the metrics, its counts staying in the totals. What it did, in words (a listener that cannot be bound is said and left out).
     pub(crate) fn apply(&mut self, listeners: &[ListenConfig]) -> Vec<String> {
         let mut said = Vec::new();
         let mut old = std::mem::take(&mut self.running);
@@ -202,15 +301,7 @@ impl Udps {
                     (r.socket, r.stats)
                 }
                 None => match bind(l.tcp.listen) {
-                    Ok(s) => {
-                        let stats = Arc::<crate::ops::stats::Stats>::default();
-                        self.board
-                            .add_listener(Arc::new(crate::ops::metrics::ListenerMetrics {
-                                name: l.tcp.listen.to_string(),
-                                stats: stats.clone(),
-                            }));
-                        (Arc::new(s), stats)
-                    }
+                    Ok(s) => (Arc::new(s), self.tally.open(l.tcp.listen.to_string())),
                     Err(e) => {
                         said.push(format!("cannot listen on {} (UDP): {e}", l.tcp.listen));
                         continue;
@@ -235,36 +326,9 @@ impl Udps {
         }
         for r in old {
             r.stop.cancel();
+            self.tally.close(&r.stats);
         }
         said
-    }
-}
-
-/// A source's datagrams as the byte stream a connection reads: one datagram per read
-/// (each a whole request); the end when the listener stops.
-struct Datagrams {
-    rx: mpsc::Receiver<Bytes>,
-    /// What a read had no room for.
-    left: Bytes,
-}
-
-impl AsyncRead for Datagrams {
-    fn poll_read(
-        mut self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        out: &mut ReadBuf<'_>,
-    ) -> Poll<io::Result<()>> {
-        if self.left.is_empty() {
-            match self.rx.poll_recv(cx) {
-                Poll::Ready(Some(d)) => self.left = d,
-                Poll::Ready(None) => return Poll::Ready(Ok(())),
-                Poll::Pending => return Poll::Pending,
-            }
-        }
-        let n = self.left.len().min(out.remaining());
-        let taken = self.left.split_to(n);
-        out.put_slice(&taken);
-        Poll::Ready(Ok(()))
     }
 }
 
@@ -293,14 +357,15 @@ mod tests {
     #[test]
     fn a_datagram_is_one_whole_request_or_nothing() {
         let read: &[u8] = &[0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 1];
-        assert!(one_request(read));
-        assert!(!one_request(&read[..11]), "short");
+        let adu = one_request(read).expect("one request");
+        assert_eq!(adu.as_bytes(), read);
+        assert!(one_request(&read[..11]).is_none(), "short");
         let mut two = read.to_vec();
         two.extend_from_slice(read);
-        assert!(!one_request(&two), "two requests in one datagram");
+        assert!(one_request(&two).is_none(), "two requests in one datagram");
         let mut bad = read.to_vec();
         bad[2] = 1;
-        assert!(!one_request(&bad), "protocol id");
-        assert!(!one_request(b"hello"), "garbage");
+        assert!(one_request(&bad).is_none(), "protocol id");
+        assert!(one_request(b"hello").is_none(), "garbage");
     }
 }

@@ -417,6 +417,12 @@ impl Board {
         self.listeners.lock().expect("not poisoned").push(listener);
     }
 
+    /// The listener (a dial, a UDP listener) counting in `stats` is gone (a reload).
+    pub(crate) fn remove_listener(&self, stats: &Arc<crate::ops::stats::Stats>) {
+        let mut listeners = self.listeners.lock().expect("not poisoned");
+        listeners.retain(|l| !Arc::ptr_eq(&l.stats, stats));
+    }
+
     pub(crate) fn lines(&self) -> Vec<Arc<LineMetrics>> {
         self.lines.lock().expect("not poisoned").clone()
     }

@@ -1,0 +1,263 @@
+//! The one connection type every master comes through, whatever its source (accepted
+//! by `tcp/accept.rs`, dialed by `tcp/dial.rs`, a UDP source of `tcp/udp.rs`): what it
+//! is, its life from the master's arrival to its end (the codec chosen once, the
+//! router attached, its priority class, the reader and the writer run together, the
+//! replies owed written at the end), why it ended, and how a capture shows its frames.
+
+use super::codec::{self, MasterCodec};
+use super::{echo, Shared};
+use crate::config::{Config, ListenConfig, ListenFraming};
+use crate::frame::Adu;
+use crate::line::outbox::{Inbox, Outbox};
+use crate::line::relay::ConnId;
+use crate::masters::router::Router;
+use crate::masters::tls::server::Grant;
+use crate::ops::capture::packet::{Dir, Ends, Part};
+use crate::ops::capture::{Hub, Tap};
+use crate::ops::metrics::{MasterSeen, Masters};
+use crate::ops::stats::Stats;
+use std::net::SocketAddr;
+use std::sync::atomic::Ordering;
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+use tokio::io::{AsyncRead, AsyncWrite};
+use tokio::time::Instant;
+use tokio_util::sync::CancellationToken;
+use tracing::debug;
+
+/// A master's connection.
+pub(super) struct Connection {
+    pub(super) id: ConnId,
+    pub(super) peer: SocketAddr,
+    pub(super) cfg: Arc<Config>,
+    pub(super) running: Arc<std::sync::Mutex<Config>>,
+    pub(super) listen: Arc<ListenConfig>,
+    pub(super) router: Arc<Router>,
+    pub(super) stats: Arc<Stats>,
+    pub(super) shutdown: CancellationToken,
+    pub(super) masters: Arc<Masters>,
+    /// The listener's own address.
+    pub(super) local: SocketAddr,
+    /// A TLS master's role, and what it may do.
+    pub(super) grant: Option<Grant>,
+    pub(super) capture: Hub,
+    /// The TCP side's tap.
+    pub(super) tap: Tap,
+    /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
+    /// its identity the server may send back (docs/dialing.md).
+    pub(super) dialed: Option<Dialed>,
+}
+
+/// What a dialed connection sends of its own, and the echoes it may get back.
+pub(super) struct Dialed {
+    /// Sent after `every` without a reply written; empty: never.
+    pub(super) heartbeat: Vec<u8>,
+    pub(super) every: Duration,
+    pub(super) echoes: Mutex<echo::Echoes>,
+    /// How long the server may leave a reply unread before the connection is closed
+    /// (and dialed again): never for ever, since mbgate has no other way to it.
+    pub(super) stall: Duration,
+}
+
+/// Why a connection's reader stopped.
+pub(super) enum End {
+    /// The socket failed, the master broke the protocol, or it was idle too long:
+    /// close now.
+    Closed(Ended),
+    /// No more requests will be read (the master shut down its sending side, or the
+    /// gateway is shutting down): write the replies still owed, then close.
+    Finish,
+}
+
+/// Why a connection ended (the log and a dial's outage say it).
+#[derive(Debug, thiserror::Error)]
+pub(super) enum Ended {
+    #[error("protocol violation: {0}")]
+    Violation(#[from] codec::FrameError),
+    #[error("read failed: {0}")]
+    Read(std::io::Error),
+    #[error("write failed: {0}")]
+    Write(std::io::Error),
+    #[error("no request for {0} ms (idle_timeout_ms)")]
+    Idle(u128),
+    #[error("the master stopped reading its replies")]
+    Stalled,
+    #[error("the connection's replies ended")]
+    NoMoreReplies,
+    #[error("notifications have no way to this master")]
+    Unattached,
+    #[error("the master closed its side (or mbgate is stopping)")]
+    Finished,
+}
+
+impl Connection {
+    /// A master's connection from any source (accepted, dialed, a UDP source), with
+    /// a new id: `listen` says what its requests may do, `local` is our end.
+    pub(super) fn new(
+        shared: &Shared,
+        listen: Arc<ListenConfig>,
+        peer: SocketAddr,
+        local: SocketAddr,
+    ) -> Connection {
+        Connection {
+            id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
+            peer,
+            cfg: shared.cfg.clone(),
+            running: shared.running.clone(),
+            listen,
+            router: shared.router.clone(),
+            stats: shared.stats.clone(),
+            shutdown: shared.shutdown.clone(),
+            masters: shared.masters.clone(),
+            local,
+            grant: None,
+            capture: shared.capture.clone(),
+            tap: shared.capture.tap(0),
+            dialed: None,
+        }
+    }
+
+    /// The listener's framing chosen once: the rest is written over its codec. Why
+    /// the connection ended, in words.
+    pub(super) async fn run(
+        self,
+        rd: impl AsyncRead + Unpin,
+        wr: impl AsyncWrite + Unpin,
+    ) -> Ended {
+        match self.listen.framing {
+            ListenFraming::Mbap => self.serve::<codec::Mbap>(rd, wr).await,
+            ListenFraming::Rtu => self.serve::<codec::Rtu>(rd, wr).await,
+        }
+    }
+
+    async fn serve<C: MasterCodec>(
+        self,
+        rd: impl AsyncRead + Unpin,
+        wr: impl AsyncWrite + Unpin,
+    ) -> Ended {
+        let mut why = Ended::Unattached;
+        if let Some((mut outbox, inbox)) = self.begin::<C>() {
+            let writer = self.write_loop::<C>(wr, inbox);
+            tokio::pin!(writer);
+            let end = tokio::select! {
+                end = self.read_loop::<C>(rd, &mut outbox) => end,
+                w = &mut writer => End::Closed(w),
+            };
+            let finish = matches!(end, End::Finish);
+            why = match end {
+                End::Closed(w) => w,
+                End::Finish => Ended::Finished,
+            };
+            if finish {
+                // The relay answers every request it was given: at once when the
+                // gateway shuts down (what is on the line within the response timeout
+                // and its retries), else in its turn. Only shutdown bounds the wait
+                // here; a master that stops reading meanwhile is closed by the writer.
+                let bound = self.cfg.answer_within() + Duration::from_secs(1);
+                tokio::select! {
+                    _ = outbox.settled() => {}
+                    _ = &mut writer => {}
+                    _ = async {
+                        self.shutdown.cancelled().await;
+                        tokio::time::sleep(bound).await;
+                    } => {}
+                }
+            }
+        }
+        self.end();
+        why
+    }
+
+    /// The master arrived: said, listed among the masters connected, its outbox made
+    /// and attached to the lines (for notifications) with its priority class. The
+    /// outbox its reader takes tickets from and the inbox its writer reads; `None`:
+    /// it could not be attached (the gateway is stopping), and [`Connection::end`]
+    /// is all that is left.
+    pub(super) fn begin<C: MasterCodec>(&self) -> Option<(Outbox, Inbox)> {
+        let framing = C::NAME;
+        // At debug: a SCADA that connects for each poll would fill the journal at info;
+        // the connections are counted (mbgate_listener_connections_total) and the
+        // masters connected now listed (mbgate status, the status page).
+        match &self.grant {
+            None => debug!(conn = self.id, peer = %self.peer, framing, "master connected"),
+            Some(g) => debug!(
+                conn = self.id,
+                peer = %self.peer,
+                framing,
+                role = %g.role,
+                subject = %g.subject,
+                "master connected over TLS{}",
+                if g.defaulted { " (no role in its certificate: the default role)" } else { "" }
+            ),
+        }
+        self.masters.add(MasterSeen {
+            conn: self.id,
+            listener: self.local.to_string(),
+            source: self.listen.clone(),
+            peer: self.peer,
+            since: std::time::SystemTime::now()
+                .duration_since(std::time::UNIX_EPOCH)
+                .unwrap_or_default()
+                .as_secs_f64(),
+            tls: self
+                .grant
+                .as_ref()
+                .map(|g| (g.role.clone(), g.subject.clone())),
+        });
+        self.capture.connected(self.id, self.peer);
+        // A framing with no transaction id (RTU over TCP): one request at a time, and
+        // no notifications (nothing would tell them from a reply).
+        let pending = if C::IDS {
+            self.cfg.max_pending_per_connection()
+        } else {
+            1
+        };
+        let (outbox, inbox) = Outbox::new(pending);
+        let attached = !C::IDS || self.router.attach(self.id, &outbox.notifier());
+        // Its role's priority class, else its listener's, as the configuration runs
+        // now; told under its lock, so a reload's new classes never arrive before
+        // the old one (src/ops/reload/mod.rs `reclassify`).
+        {
+            let running = self.running.lock().expect("not poisoned");
+            let role = self.grant.as_ref().map(|g| g.role.as_str());
+            let class = running.priority_of(&self.listen, role);
+            self.router.classify(self.id, class);
+        }
+        attached.then_some((outbox, inbox))
+    }
+
+    /// The master gone: off the lines, the masters connected and the capture.
+    pub(super) fn end(&self) {
+        self.router.detach(self.id);
+        self.masters.remove(self.id);
+        self.capture.forget(self.id);
+        debug!(conn = self.id, peer = %self.peer, "master disconnected");
+    }
+
+    pub(super) fn ends(&self) -> Ends {
+        Ends {
+            client: self.peer,
+            server: self.local,
+        }
+    }
+
+    /// A frame to or from this master, for the capture: as the master framed it
+    /// (MBAP with its own transaction id, or RTU with its CRC).
+    pub(super) fn captured<C: MasterCodec>(&self, adu: &Adu, dir: Dir, label: &'static str) {
+        let role = if dir == Dir::In {
+            Part::Query
+        } else {
+            Part::Reply
+        };
+        self.tap.send_with((dir, role), Instant::now(), |p| {
+            p.proto = C::PROTO;
+            p.bytes.extend_from_slice(&C::frame(adu));
+            p.ends = Some(self.ends());
+            p.conn = Some(self.id);
+            p.unit = Some(adu.unit());
+            p.function = Some(adu.function());
+            p.span = crate::line::relay::span(adu.pdu());
+            p.label = label;
+        });
+    }
+}

@@ -1,0 +1,125 @@
+//! A master's connection writing: its replies in the order of its requests and the
+//! device's notifications as they come, each logged and captured first; a dialed
+//! connection's heartbeat on a quiet connection; a master that stops reading its
+//! replies closed, never held for ever.
+
+use super::codec::MasterCodec;
+use super::connection::{Connection, Ended};
+use crate::frame::hex::Hex;
+use crate::frame::Adu;
+use crate::line::outbox::Inbox;
+use crate::ops::capture::packet::Dir;
+use std::future::Future;
+use std::task::Poll;
+use std::time::Duration;
+use tokio::io::{AsyncWrite, AsyncWriteExt};
+use tokio::time::Instant;
+use tracing::{debug, info};
+
+impl Connection {
+    /// Writes the master's replies in the order of its requests, and notifications as
+    /// they come; on a dialed connection with a heartbeat, the heartbeat whenever no
+    /// reply was written for its interval. A master that stops reading its replies
+    /// for `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
+    /// Why it stopped.
+    pub(super) async fn write_loop<C: MasterCodec>(
+        &self,
+        mut wr: impl AsyncWrite + Unpin,
+        mut inbox: Inbox,
+    ) -> Ended {
+        let beat = self.dialed.as_ref().filter(|d| !d.heartbeat.is_empty());
+        let Some(beat) = beat else {
+            while let Some(out) = inbox.next().await {
+                if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                    return why;
+                }
+                // `out` drops here: a reply's pipelining slot is free again, and the
+                // idle clock starts from now.
+            }
+            return Ended::NoMoreReplies;
+        };
+        // One timer for the connection's life, moved at each reply and each beat.
+        let timer = tokio::time::sleep(beat.every);
+        tokio::pin!(timer);
+        loop {
+            tokio::select! {
+                out = inbox.next() => {
+                    let Some(out) = out else {
+                        return Ended::NoMoreReplies;
+                    };
+                    if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                        return why;
+                    }
+                }
+                _ = &mut timer => {
+                    beat.echoes.lock().expect("not poisoned").beat();
+                    debug!(conn = self.id, "heartbeat");
+                    if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat).await {
+                        return why;
+                    }
+                }
+            }
+            timer.as_mut().reset(Instant::now() + beat.every);
+        }
+    }
+
+    /// One reply or notification written (logged and captured first); `Err`: why the
+    /// connection must close.
+    async fn write_reply<C: MasterCodec>(
+        &self,
+        wr: &mut (impl AsyncWrite + Unpin),
+        adu: &Adu,
+    ) -> Result<(), Ended> {
+        if self.cfg.log.traffic {
+            debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(adu.as_bytes()));
+        }
+        if self.tap.on() {
+            self.captured::<C>(adu, Dir::Out, "gw->master");
+        }
+        if !C::answers(adu) {
+            debug!(
+                conn = self.id,
+                "answer to a broadcast (unit 0): not written"
+            );
+            return Ok(());
+        }
+        self.write_bytes(wr, &C::frame(adu)).await
+    }
+
+    /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take
+    /// it at once.
+    async fn write_bytes(
+        &self,
+        wr: &mut (impl AsyncWrite + Unpin),
+        frame: &[u8],
+    ) -> Result<(), Ended> {
+        let stall = match &self.dialed {
+            Some(d) => d.stall,
+            None => Duration::from_millis(self.listen.tcp.idle_timeout_ms),
+        };
+        // Flushed: a TLS stream holds what it could not send at once until then.
+        let write = async {
+            wr.write_all(frame).await?;
+            wr.flush().await
+        };
+        let mut write = std::pin::pin!(write);
+        // Nearly every reply goes out at once, and needs no timer (each would read
+        // the clock): the stall's timer starts only for one the socket cannot take.
+        let first = std::future::poll_fn(|cx| Poll::Ready(write.as_mut().poll(cx))).await;
+        let result = match first {
+            Poll::Ready(r) => r,
+            Poll::Pending if stall.is_zero() => write.await,
+            Poll::Pending => match tokio::time::timeout(stall, write).await {
+                Ok(r) => r,
+                Err(_) => {
+                    info!(conn = self.id, peer = %self.peer, "master stopped reading its replies; closing the connection");
+                    return Err(Ended::Stalled);
+                }
+            },
+        };
+        result.map_err(|e| {
+            debug!(conn = self.id, "write failed: {e}");
+            Ended::Write(e)
+        })
+    }
+}
