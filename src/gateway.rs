@@ -185,7 +185,7 @@ struct Started {
     /// Every listener's and line's counters, with `tally`'s: the totals add them up.
     counted: Vec<Arc<Stats>>,
     /// The counters of the dials and the UDP listeners a reload adds and removes.
-    tally: Arc<tcp::tally::Tally>,
+    tally: Arc<tcp::tally::SourceTally>,
     /// The lines' tasks, running.
     line_tasks: Vec<tokio::task::JoinHandle<()>>,
 }
@@ -242,7 +242,7 @@ async fn start(
         masters: board.masters.clone(),
         capture: capture.hub().clone(),
     };
-    let tally = Arc::new(tcp::tally::Tally::new(board.clone()));
+    let tally = Arc::new(tcp::tally::SourceTally::new(board.clone()));
     let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
         shared.clone(),
         tally.clone(),
@@ -515,7 +515,7 @@ async fn drain(started: Started, tracker: TaskTracker) -> Arc<Stats> {
 
 /// The gateway's totals: the listeners' and lines' counters, and those of every dial
 /// and UDP listener that ran, a reload's among them.
-fn totals(counted: &[Arc<Stats>], tally: &tcp::tally::Tally) -> Stats {
+fn totals(counted: &[Arc<Stats>], tally: &tcp::tally::SourceTally) -> Stats {
     let sources = tally.total();
     Stats::total(counted.iter().map(|s| &**s).chain([&sources]))
 }
@@ -543,7 +543,7 @@ fn user_signals() -> Option<UserSignals> {
 /// SIGUSR2 is ignored.
 async fn report_on_signal(
     (mut usr1, mut usr2): UserSignals,
-    (counted, tally): (Vec<Arc<Stats>>, Arc<tcp::tally::Tally>),
+    (counted, tally): (Vec<Arc<Stats>>, Arc<tcp::tally::SourceTally>),
     shutdown: CancellationToken,
 ) {
     loop {

@@ -7,7 +7,7 @@
 //! once when it is right again ([`Outage`]).
 
 use super::connection::Ended;
-use super::tally::Tally;
+use super::tally::SourceTally;
 use super::{echo, Connection, Dialed, Shared};
 use crate::config::dial::{DialConfig, TlsDial};
 use crate::line::port::Backoff;
@@ -387,7 +387,7 @@ impl Outage {
 /// stops it and its counters.
 pub(crate) struct Dials {
     shared: Shared,
-    tally: Arc<Tally>,
+    tally: Arc<SourceTally>,
     running: Vec<Running>,
 }
 
@@ -400,7 +400,7 @@ struct Running {
 impl Dials {
     /// None running yet; each dial started by [`Dials::apply`] runs on `shared`'s
     /// tracker, its counters in `tally` (on the metrics as a listener's).
-    pub(crate) fn new(shared: Shared, tally: Arc<Tally>) -> Dials {
+    pub(crate) fn new(shared: Shared, tally: Arc<SourceTally>) -> Dials {
         Dials {
             shared,
             tally,

@@ -9,13 +9,13 @@ use std::sync::{Arc, Mutex};
 
 /// The sources' counters, shared by the dials and the UDP listeners and read by the
 /// totals.
-pub(crate) struct Tally {
+pub(crate) struct SourceTally {
     board: Arc<Board>,
-    state: Mutex<State>,
+    state: Mutex<SourceCounts>,
 }
 
 #[derive(Default)]
-struct State {
+struct SourceCounts {
     /// Counters this tally made, of sources running now.
     live: Vec<Arc<Stats>>,
     /// Counters of sources removed whose tasks may still add to them (a connection
@@ -26,9 +26,9 @@ struct State {
     folded: Stats,
 }
 
-impl Tally {
-    pub(crate) fn new(board: Arc<Board>) -> Tally {
-        Tally {
+impl SourceTally {
+    pub(crate) fn new(board: Arc<Board>) -> SourceTally {
+        SourceTally {
             board,
             state: Mutex::default(),
         }
@@ -66,16 +66,16 @@ impl Tally {
         Stats::total(parts.chain([&state.folded]))
     }
 
-    fn lock(&self) -> std::sync::MutexGuard<'_, State> {
+    fn lock(&self) -> std::sync::MutexGuard<'_, SourceCounts> {
         self.state.lock().expect("not poisoned")
     }
 }
 
-impl State {
+impl SourceCounts {
     /// The removed sources' counters that nothing but this list holds (nothing adds
     /// to them any more) folded into one.
     fn compact(&mut self) {
-        let State {
+        let SourceCounts {
             retired, folded, ..
         } = self;
         retired.retain(|s| {
@@ -98,7 +98,7 @@ mod tests {
     #[test]
     fn a_removed_source_leaves_the_metrics_and_stays_in_the_totals() {
         let board = Arc::new(Board::default());
-        let tally = Tally::new(board.clone());
+        let tally = SourceTally::new(board.clone());
         let a = tally.open("dial a:502".into());
         let b = tally.open("dial b:502".into());
         a.add(&a.requests, 3);

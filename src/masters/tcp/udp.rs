@@ -9,7 +9,7 @@
 //! sources at once; one quiet for `idle_timeout_ms` is forgotten.
 
 use super::codec::Mbap;
-use super::tally::Tally;
+use super::tally::SourceTally;
 use super::{admit, Connection, Listening, Shared};
 use crate::config::{ListenConfig, Transport};
 use crate::frame::mbap::{decode_strict, MAX_ADU};
@@ -223,7 +223,7 @@ fn forget_where(sources: &mut HashMap<SocketAddr, Source>, which: impl Fn(&Sourc
 /// each its configuration, its socket, the token that stops it and its counters.
 pub(crate) struct Udps {
     shared: Shared,
-    tally: Arc<Tally>,
+    tally: Arc<SourceTally>,
     running: Vec<RunningUdp>,
 }
 
@@ -235,7 +235,7 @@ struct RunningUdp {
 }
 
 impl Udps {
-    pub(crate) fn new(shared: Shared, tally: Arc<Tally>) -> Udps {
+    pub(crate) fn new(shared: Shared, tally: Arc<SourceTally>) -> Udps {
         Udps {
             shared,
             tally,
