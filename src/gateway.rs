@@ -432,7 +432,7 @@ fn announce(cfg: &Config, bound: &[Bound]) {
         }
     }
     for (i, d) in cfg.dials.iter().enumerate() {
-        info!("dial[{i}]: {}", crate::config::dial::describe(d));
+        info!("dial[{i}]: {}", crate::config::describe::dial(d));
     }
     let addrs: Vec<String> = bound.iter().map(|(_, l)| l.local.to_string()).collect();
     notify::ready(&match addrs.is_empty() {

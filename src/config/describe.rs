@@ -86,6 +86,42 @@ pub(crate) fn masters(framing: ListenFraming) -> &'static str {
     }
 }
 
+/// Each dial in a line (`mbgate check-config`, the start-up log).
+pub(crate) fn dial(d: &super::dial::DialConfig) -> String {
+    let mut s = format!(
+        "dialing {} for {}, backoff {} to {} ms",
+        d.address,
+        masters(d.framing),
+        d.backoff_min_ms,
+        d.backoff_max_ms
+    );
+    if !d.identity.is_empty() {
+        s += &format!(", identity of {} bytes", d.identity.len());
+    }
+    if !d.heartbeat.is_empty() {
+        s += &format!(
+            ", heartbeat of {} bytes after {} ms quiet",
+            d.heartbeat.len(),
+            d.heartbeat_ms
+        );
+    }
+    if let Some(t) = &d.tls {
+        s += ", over TLS";
+        if let Some(r) = &t.default_role {
+            s += &format!(" (default role {r:?})");
+        }
+    }
+    if d.priority != 0 {
+        s += &format!(", priority class {}", d.priority);
+    }
+    if d.policy.read_only {
+        s += ", read only";
+    } else if !d.policy.write.is_empty() {
+        s += &format!(", {} write rules", d.policy.write.len());
+    }
+    s
+}
+
 /// Who switches the line's RS-485 transmitter, in words (`check-config`, the start-up
 /// log, the status page); `None` when nobody is asked to: the adapter does it by itself,
 /// or the line is no RS-485 bus.
@@ -193,7 +229,7 @@ pub fn summary(cfg: &Config) -> String {
         }
     }
     for d in &cfg.dials {
-        out += &format!("{}\n", super::dial::describe(d));
+        out += &format!("{}\n", dial(d));
     }
     out += &match cfg.metrics.listen {
         Some(a) => format!(

@@ -279,42 +279,6 @@ pub(super) fn to_toml(dials: &[DialConfig]) -> String {
     out
 }
 
-/// Each dial in a line (`mbgate check-config`, the start-up log).
-pub(crate) fn describe(d: &DialConfig) -> String {
-    let mut s = format!(
-        "dialing {} for {}, backoff {} to {} ms",
-        d.address,
-        super::describe::masters(d.framing),
-        d.backoff_min_ms,
-        d.backoff_max_ms
-    );
-    if !d.identity.is_empty() {
-        s += &format!(", identity of {} bytes", d.identity.len());
-    }
-    if !d.heartbeat.is_empty() {
-        s += &format!(
-            ", heartbeat of {} bytes after {} ms quiet",
-            d.heartbeat.len(),
-            d.heartbeat_ms
-        );
-    }
-    if let Some(t) = &d.tls {
-        s += ", over TLS";
-        if let Some(r) = &t.default_role {
-            s += &format!(" (default role {r:?})");
-        }
-    }
-    if d.priority != 0 {
-        s += &format!(", priority class {}", d.priority);
-    }
-    if d.policy.read_only {
-        s += ", read only";
-    } else if !d.policy.write.is_empty() {
-        s += &format!(", {} write rules", d.policy.write.len());
-    }
-    s
-}
-
 #[cfg(test)]
 mod tests {
     use crate::config::parse;
