@@ -220,6 +220,19 @@ pub(super) async fn scan(
         .iter()
         .flat_map(|s| s.framings.iter().map(move |&f| limit(s, f)))
         .sum();
+    // The time the tries after setting `i`'s framing `k` take: the rest of that
+    // setting's, then every later one's.
+    let later = |i: usize, k: usize| -> Duration {
+        settings[i..]
+            .iter()
+            .enumerate()
+            .flat_map(|(j, t)| {
+                let skip = if j == 0 { k + 1 } else { 0 };
+                t.framings.iter().skip(skip).map(move |&f| (t, f))
+            })
+            .map(|(t, f)| OpenSetting::cost(t, f, timeout) * limit(t, f) as u32)
+            .sum()
+    };
     let mut done = 0;
     'settings: for (i, s) in settings.iter().enumerate() {
         if stop.is_cancelled() {
@@ -252,16 +265,7 @@ pub(super) async fn scan(
                         break;
                     }
                     // The time left: this setting's tries, then every later one's.
-                    let later: Duration = settings[i..]
-                        .iter()
-                        .enumerate()
-                        .flat_map(|(j, t)| {
-                            let skip = if j == 0 { k + 1 } else { 0 };
-                            t.framings.iter().skip(skip).map(move |&f| (t, f))
-                        })
-                        .map(|(t, f)| OpenSetting::cost(t, f, timeout) * limit(t, f) as u32)
-                        .sum();
-                    let left = line.read_cost(framing) * at.left() as u32 + later;
+                    let left = line.read_cost(framing) * at.left() as u32 + later(i, k);
                     progress.show(done, total, left, &format!("{what} unit {unit}"));
                     let mut heard = line.ask(framing, unit, &probe::read_one(3)).await?;
                     report.tries += 1;
@@ -285,21 +289,11 @@ pub(super) async fn scan(
                             && units.contains(from)
                             && !found_here.iter().any(|f: &Found| f.unit == *from);
                         if *from == unit || late {
-                            found_here.push(Found {
-                                unit: *from,
-                                serial: Some((s.baud, s.format, framing)),
-                                answered: probe::describe(pdu),
-                                device_id: Err(probe::NoIdentity::NotAsked),
-                                server_id: Err(probe::NoIdentity::NotAsked),
-                                // A late reply's time is not known: it answered a request
-                                // before this one.
-                                replies: if late {
-                                    Vec::new()
-                                } else {
-                                    replied.into_iter().collect()
-                                },
-                                after: progress.started.elapsed(),
-                            });
+                            // A late reply's time is not known: it answered a request
+                            // before this one.
+                            let replied = if late { None } else { replied };
+                            let after = progress.started.elapsed();
+                            found_here.push(heard_at(*from, s, framing, pdu, replied, after));
                         }
                     }
                 }
@@ -311,15 +305,8 @@ pub(super) async fn scan(
                 if let Heard::Frame { unit: from, pdu } = line.linger(framing, LINGER).await? {
                     if units.contains(&from) {
                         at.proven = true;
-                        found_here.push(Found {
-                            unit: from,
-                            serial: Some((s.baud, s.format, framing)),
-                            answered: probe::describe(&pdu),
-                            device_id: Err(probe::NoIdentity::NotAsked),
-                            server_id: Err(probe::NoIdentity::NotAsked),
-                            replies: Vec::new(),
-                            after: progress.started.elapsed(),
-                        });
+                        let after = progress.started.elapsed();
+                        found_here.push(heard_at(from, s, framing, &pdu, None, after));
                         continue 'units;
                     }
                 }
@@ -332,42 +319,8 @@ pub(super) async fn scan(
             } else if at.garbage && !at.proven {
                 report.garbage.push((s.baud, s.format, framing));
             }
-            // A unit found is known to be there: its identity and timed reads get the
-            // gateway's own default timeout, so a slow unit's reply times are had, not
-            // only the fast pass's window.
-            let window = line.timeout;
-            line.timeout = window.max(Duration::from_millis(
-                crate::config::RelayConfig::default().response_timeout_ms,
-            ));
-            for f in &mut found_here {
-                if stop.is_cancelled() {
-                    break;
-                }
-                // Each asked again once when nothing came: a device busy with
-                // something else may miss one request.
-                let mut device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
-                report.tries += 1;
-                if device == Heard::Nothing {
-                    device = line.ask(framing, f.unit, &probe::DEVICE_ID).await?;
-                    report.tries += 1;
-                }
-                f.timed(&device, line.replied);
-                let mut server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
-                report.tries += 1;
-                if server == Heard::Nothing {
-                    server = line.ask(framing, f.unit, &probe::SERVER_ID).await?;
-                    report.tries += 1;
-                }
-                f.timed(&server, line.replied);
-                // A few more reads, for a reply time worth a median.
-                for _ in 0..super::TIMED_READS {
-                    let heard = line.ask(framing, f.unit, &probe::read_one(3)).await?;
-                    report.tries += 1;
-                    f.timed(&heard, line.replied);
-                }
-                super::identified(f, &device, &server);
-            }
-            line.timeout = window;
+            line.identify(framing, &mut found_here, &mut report.tries, stop)
+                .await?;
             // In the order of their ids, late replies included.
             found_here.sort_by_key(|f| f.unit);
             report.found.extend(found_here);
@@ -379,7 +332,83 @@ pub(super) async fn scan(
     Ok(report)
 }
 
+/// A unit heard at setting `s` in `framing`, its identities not asked yet.
+fn heard_at(
+    unit: u8,
+    s: &ProbeSetting,
+    framing: SerialFraming,
+    pdu: &[u8],
+    replied: Option<Duration>,
+    after: Duration,
+) -> Found {
+    Found {
+        unit,
+        serial: Some((s.baud, s.format, framing)),
+        answered: probe::describe(pdu),
+        device_id: Err(probe::NoIdentity::NotAsked),
+        server_id: Err(probe::NoIdentity::NotAsked),
+        replies: replied.into_iter().collect(),
+        after,
+    }
+}
+
 impl OpenSetting<'_> {
+    /// Asks `pdu` of `unit` as [`OpenSetting::ask`] does, once more when nothing came:
+    /// a device busy with something else may miss one request.
+    async fn ask_twice(
+        &mut self,
+        framing: SerialFraming,
+        unit: u8,
+        pdu: &[u8],
+        tries: &mut usize,
+    ) -> Result<Heard, ScanError> {
+        let mut heard = self.ask(framing, unit, pdu).await?;
+        *tries += 1;
+        if heard == Heard::Nothing {
+            heard = self.ask(framing, unit, pdu).await?;
+            *tries += 1;
+        }
+        Ok(heard)
+    }
+
+    /// The units found at this setting: their identities and a few timed reads. A
+    /// unit found is known to be there, so these get the gateway's own default
+    /// timeout: a slow unit's reply times are had, not only the fast pass's window.
+    async fn identify(
+        &mut self,
+        framing: SerialFraming,
+        found: &mut [Found],
+        tries: &mut usize,
+        stop: &CancellationToken,
+    ) -> Result<(), ScanError> {
+        let window = self.timeout;
+        self.timeout = window.max(Duration::from_millis(
+            crate::config::RelayConfig::default().response_timeout_ms,
+        ));
+        for f in found.iter_mut() {
+            if stop.is_cancelled() {
+                break;
+            }
+            let device = self
+                .ask_twice(framing, f.unit, &probe::DEVICE_ID, tries)
+                .await?;
+            f.timed(&device, self.replied);
+            let server = self
+                .ask_twice(framing, f.unit, &probe::SERVER_ID, tries)
+                .await?;
+            f.timed(&server, self.replied);
+            // A few more reads, for a reply time worth a median.
+            for _ in 0..super::TIMED_READS {
+                let heard = self.ask(framing, f.unit, &probe::read_one(3)).await?;
+                *tries += 1;
+                f.timed(&heard, self.replied);
+            }
+            super::identified(f, &device, &server);
+        }
+        self.timeout = window;
+        Ok(())
+    }
+
     /// [`OpenSetting::read_cost`] of a setting not open yet.
     fn cost(s: &ProbeSetting, framing: SerialFraming, timeout: Duration) -> Duration {
         let char_time = Duration::from_nanos(
