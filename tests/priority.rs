@@ -42,7 +42,10 @@ fn start(dir: &std::path::Path) -> (Socat, Py, Gateway, SocketAddr, SocketAddr) 
         socat.gw.display().to_string()
     );
     let gw = Gateway::launch_text(&text, dir, Launch::default());
-    gw.wait_log("listening on ", Duration::from_secs(5));
+    // Both listeners' lines: the second may come a moment after the first.
+    wait_for("both listeners", Duration::from_secs(5), || {
+        gw.log().matches("listening on ").count() >= 2
+    });
     let log = gw.log();
     let addrs: Vec<SocketAddr> = log
         .split("listening on ")
