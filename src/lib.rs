@@ -1,9 +1,10 @@
 //! mbgate: a Modbus/TCP gateway to serial devices (docs/design.md).
 
 // Unsafe only where a SAFETY comment says why it is sound, each block allowed on its
-// own (src/line/port/serial/: the ioctls, tcdrain, the descriptor's reads and writes and
-// the timerfd; src/ops/control/: the peer's credentials and our effective user and group;
-// src/tools/wire/pty.rs: the pty pair and its descriptors' flags).
+// own: src/line/port/fd.rs (a descriptor on the reactor, its reads and writes, once for
+// every user), src/line/port/serial/ (the ioctls, tcdrain, the timerfd, the tty's
+// termios), src/ops/control/mod.rs (our effective user and group) and
+// src/tools/wire/pty.rs (the pty pair).
 #![deny(unsafe_code)]
 
 pub mod cli;

@@ -171,6 +171,16 @@ pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<Pa
     }
 }
 
+/// This process's effective user and group: the gateway's own at its end of the
+/// socket, the user's at `mbgate capture`'s and `mbgate reload`'s.
+pub(crate) fn own_ids() -> (u32, u32) {
+    #[allow(unsafe_code)]
+    // SAFETY: geteuid(2) and getegid(2) have no preconditions and cannot fail.
+    unsafe {
+        (libc::geteuid(), libc::getegid())
+    }
+}
+
 /// Is whoever serves the control socket at `socket` (its process runs as `peer_uid`,
 /// from the kernel's `SO_PEERCRED`) to be trusted as the gateway, before `mbgate
 /// reload` or `mbgate capture` believes a word of it? Root, the user running the
@@ -180,9 +190,7 @@ pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<Pa
 /// directory others may write.
 pub(crate) fn trust_server(peer_uid: u32, socket: &Path) -> Result<(), AskError> {
     use std::os::unix::fs::MetadataExt;
-    #[allow(unsafe_code)]
-    // SAFETY: geteuid(2) has no preconditions and cannot fail.
-    let me = unsafe { libc::geteuid() };
+    let (me, _) = own_ids();
     if peer_uid == 0 || peer_uid == me {
         return Ok(());
     }

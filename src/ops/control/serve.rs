@@ -6,7 +6,7 @@
 //! holds a slot (waiting for its request, or capturing) that a guard gives back
 //! however its task ends.
 
-use super::{message, DATA, END, RELOAD};
+use super::{message, own_ids, DATA, END, RELOAD};
 use crate::ops::capture::hub::{unix_us, Hub, Subscription, GATHER};
 use crate::ops::capture::pcapng;
 use crate::ops::capture::request::{CaptureRequest, MAX_LINE};
@@ -249,15 +249,6 @@ pub(crate) async fn serve(
         tokio::spawn(client(stream, hub, reload, slot, captures));
     }
     drop(control);
-}
-
-/// The gateway's own user and group.
-fn own_ids() -> (u32, u32) {
-    #[allow(unsafe_code)]
-    // SAFETY: geteuid(2) and getegid(2) have no preconditions and cannot fail.
-    unsafe {
-        (libc::geteuid(), libc::getegid())
-    }
 }
 
 /// The supplementary groups of process `pid`, from /proc (none if it cannot be read).
