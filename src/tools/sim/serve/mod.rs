@@ -3,7 +3,7 @@
 //! and sends replies and notifications through the line model. The console talks to
 //! it over a channel.
 
-use super::console::Command;
+use super::console::ConsoleCommand;
 use super::line::{Chunker, Faults, Pacer};
 use super::options::Settings;
 use super::packets::Direction;
@@ -29,7 +29,7 @@ mod tcp;
 /// A console command and where its answer goes.
 #[derive(Debug)]
 pub struct ConsoleRequest {
-    pub(crate) command: Command,
+    pub(crate) command: ConsoleCommand,
     pub(crate) reply: oneshot::Sender<String>,
 }
 
