@@ -120,7 +120,7 @@ impl Model {
 mod tests {
     use super::*;
     use crate::config::Framing;
-    use crate::tools::sim::replay::learn::{Observation, Seen};
+    use crate::tools::sim::replay::learn::{Observation, RecordedReply};
 
     fn model() -> Model {
         let mut m = Model::default();
@@ -142,7 +142,7 @@ mod tests {
                 at_us: at,
                 unit,
                 request: q.to_vec(),
-                seen: r.map_or(Seen::Silent, |r| Seen::Reply(r.to_vec())),
+                seen: r.map_or(RecordedReply::Silent, |r| RecordedReply::Reply(r.to_vec())),
                 turnaround_us: r.map(|_| 1000),
                 own_us: r.map(|_| 1000),
                 framing: Framing::Rtu,

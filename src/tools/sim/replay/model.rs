@@ -4,7 +4,7 @@
 //! (docs/simulator.md "Replaying a device"). Built by applying observations in time
 //! order, so where captures disagree the latest wins.
 
-use super::learn::{Observation, Seen};
+use super::learn::{Observation, RecordedReply};
 use crate::config::Framing;
 use std::collections::{BTreeMap, HashMap};
 
@@ -202,15 +202,15 @@ impl Model {
         let unit = self.units.entry(o.unit).or_default();
         unit.framing.get_or_insert(o.framing);
         let outcome = match &o.seen {
-            Seen::Silent => ReplayOutcome::Silent,
-            Seen::Reply(pdu) if pdu.first().is_some_and(|f| f & 0x80 != 0) => {
+            RecordedReply::Silent => ReplayOutcome::Silent,
+            RecordedReply::Reply(pdu) if pdu.first().is_some_and(|f| f & 0x80 != 0) => {
                 let code = pdu.get(1).copied().unwrap_or(0);
                 if is_write(function) {
                     unit.write_exception = Some((o.at_us, code));
                 }
                 ReplayOutcome::Exception(code)
             }
-            Seen::Reply(pdu) => {
+            RecordedReply::Reply(pdu) => {
                 match function {
                     1..=4 => unit.learn_read(o.at_us, &o.request, pdu),
                     _ => {
@@ -252,7 +252,7 @@ mod tests {
             at_us,
             unit,
             request: request.to_vec(),
-            seen: reply.map_or(Seen::Silent, |r| Seen::Reply(r.to_vec())),
+            seen: reply.map_or(RecordedReply::Silent, |r| RecordedReply::Reply(r.to_vec())),
             turnaround_us: reply.map(|_| at_us % 1000),
             own_us: reply.map(|_| at_us % 1000),
             framing: Framing::Rtu,

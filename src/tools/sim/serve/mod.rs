@@ -6,7 +6,7 @@
 use super::console::ConsoleCommand;
 use super::line::{Chunker, Faults, Pacer};
 use super::options::Settings;
-use super::packets::Direction;
+use super::packets::PacketDirection;
 use super::Device;
 use crate::config::SerialConfig;
 use crate::frame::framer::{Framed, Framer};
@@ -102,7 +102,7 @@ pub(crate) async fn until_precisely(timer: Option<&mut PreciseTimer>, due: Insta
 }
 
 /// How a session on one open port ended.
-enum End {
+enum SessionEnd {
     Shutdown,
     Lost(std::io::Error),
 }
@@ -186,8 +186,8 @@ pub async fn run(
                 .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
                 .await
             {
-                End::Shutdown => Ok(()),
-                End::Lost(e) => Err(SimError::Lost(e)),
+                SessionEnd::Shutdown => Ok(()),
+                SessionEnd::Lost(e) => Err(SimError::Lost(e)),
             }
         }
         Port::Path(cfg) => {
@@ -211,8 +211,8 @@ pub async fn run(
                             .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
                             .await
                         {
-                            End::Shutdown => return Ok(()),
-                            End::Lost(e) => {
+                            SessionEnd::Shutdown => return Ok(()),
+                            SessionEnd::Lost(e) => {
                                 warn!(serial = %cfg.path, "port lost ({e}); reopening");
                             }
                         }
@@ -270,7 +270,7 @@ impl Sim {
         commands: &mut mpsc::Receiver<ConsoleRequest>,
         mut ticks: Option<&mut tokio::time::Interval>,
         shutdown: &CancellationToken,
-    ) -> End {
+    ) -> SessionEnd {
         self.serving = true;
         let mut buf = vec![0u8; 4096];
         let mut timer = PreciseTimer::new()
@@ -282,16 +282,16 @@ impl Sim {
             let partial = self.decoder.buffered() > 0;
             tokio::select! {
                 biased;
-                _ = shutdown.cancelled() => break End::Shutdown,
+                _ = shutdown.cancelled() => break SessionEnd::Shutdown,
                 _ = until_precisely(timer.as_mut(), due.unwrap_or_else(Instant::now)), if due.is_some() => {
                     if let Err(e) = self.send_due(port).await {
-                        break End::Lost(e);
+                        break SessionEnd::Lost(e);
                     }
                 }
                 r = AsyncReadExt::read(port, &mut buf) => match r {
-                    Ok(0) => break End::Lost(std::io::ErrorKind::UnexpectedEof.into()),
+                    Ok(0) => break SessionEnd::Lost(std::io::ErrorKind::UnexpectedEof.into()),
                     Ok(n) => self.received(&buf[..n], Instant::now()),
-                    Err(e) => break End::Lost(e),
+                    Err(e) => break SessionEnd::Lost(e),
                 },
                 _ = sleep_until(gap_end), if partial => self.quiet(),
                 Some(req) = commands.recv() => self.command(req),
@@ -360,14 +360,16 @@ impl Sim {
             info!(target: "mbgate::tools::sim::packets", "rx {} (ignored: busy)", Hex(frame.as_bytes()));
             self.device
                 .log
-                .record(Direction::Rx, frame.as_bytes(), "ignored: busy");
+                .record(PacketDirection::Rx, frame.as_bytes(), "ignored: busy");
             return;
         }
         if frame.unit() == 0 && self.decoder.codec().is_some() {
             // A broadcast on an RTU/ASCII bus: every device acts, none answers.
             info!(target: "mbgate::tools::sim::packets", "rx {} (broadcast)", Hex(&self.wire(&frame)));
             let wire = self.wire(&frame);
-            self.device.log.record(Direction::Rx, &wire, "broadcast");
+            self.device
+                .log
+                .record(PacketDirection::Rx, &wire, "broadcast");
             self.device.broadcast(frame.pdu());
             return;
         }
@@ -379,7 +381,7 @@ impl Sim {
         };
         let wire = self.wire(&frame);
         info!(target: "mbgate::tools::sim::packets", "rx {} ({note})", Hex(&wire));
-        self.device.log.record(Direction::Rx, &wire, note);
+        self.device.log.record(PacketDirection::Rx, &wire, note);
         if let Some(pdu) = answer.reply {
             let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
             let delay = self.delay + answer.delay.unwrap_or_default();
@@ -435,7 +437,7 @@ impl Sim {
         let written = AsyncWriteExt::write_all(port, &bytes).await;
         for (frame, note) in sent {
             info!(target: "mbgate::tools::sim::packets", "tx {} ({note})", Hex(&frame));
-            self.device.log.record(Direction::Tx, &frame, note);
+            self.device.log.record(PacketDirection::Tx, &frame, note);
         }
         written
     }
