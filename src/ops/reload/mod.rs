@@ -158,7 +158,7 @@ impl LineHandle {
 pub(crate) struct Reloadable {
     pub(crate) running: Arc<Mutex<Config>>,
     /// The masters connected now, whose priority classes a reload may change.
-    pub(crate) masters: Arc<crate::ops::metrics::Masters>,
+    pub(crate) masters: Arc<crate::ops::metrics::ConnectedMasters>,
     pub(crate) load: Loader,
     pub(crate) lines: Vec<LineHandle>,
     pub(crate) metrics: MetricsListener,
@@ -283,7 +283,11 @@ fn reload(it: &mut Reloadable) -> Option<ReloadOutcome> {
 /// `running`'s lock, which a connection holds too while it tells its class at
 /// connect: a master that connects meanwhile tells either its old class before
 /// this, or its new one.
-fn reclassify(running: &Config, masters: &crate::ops::metrics::Masters, lines: &[LineHandle]) {
+fn reclassify(
+    running: &Config,
+    masters: &crate::ops::metrics::ConnectedMasters,
+    lines: &[LineHandle],
+) {
     for m in masters.list() {
         let role = m.tls.as_ref().map(|(role, _)| role.as_str());
         let class = running.priority_of(&m.source, role);

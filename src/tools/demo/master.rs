@@ -11,7 +11,7 @@ use crate::tools::sim::cie_m10::CieM10;
 use crate::tools::sim::console::ConsoleCommand;
 use crate::tools::sim::options::Settings;
 use crate::tools::sim::role::Polling;
-use crate::tools::sim::serve::{ConsoleRequest, Port};
+use crate::tools::sim::serve::{ConsoleRequest, SimPort};
 use crate::tools::sim::{Device, Profile};
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -145,7 +145,7 @@ pub async fn run(
     let master = crate::tools::sim::master::run(
         settings,
         polling,
-        Port::Stream(device_end),
+        SimPort::Stream(device_end),
         master_commands,
         shutdown.clone(),
     )

@@ -8,7 +8,7 @@ use super::line::Faults;
 use super::options::Settings;
 use super::packets::PacketDirection;
 use super::role::Polling;
-use super::serve::{ConsoleRequest, Port, SimError};
+use super::serve::{ConsoleRequest, SimError, SimPort};
 use super::{Device, Profile};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::hex::Hex;
@@ -63,7 +63,7 @@ struct SimulatedMaster {
 pub async fn run(
     settings: Settings,
     polling: Polling,
-    port: Port,
+    port: SimPort,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> Result<Totals, SimError> {
@@ -85,11 +85,11 @@ pub async fn run(
         totals: Totals::default(),
     };
     let result = match port {
-        Port::Stream(mut s) => m.serve(&mut s, &mut commands, &shutdown).await,
-        Port::Listen(addr) => Err(std::io::Error::other(format!(
+        SimPort::Stream(mut s) => m.serve(&mut s, &mut commands, &shutdown).await,
+        SimPort::Listen(addr) => Err(std::io::Error::other(format!(
             "--role master sends on a serial port (--serial), not --listen {addr}"
         ))),
-        Port::Path(cfg) => {
+        SimPort::Path(cfg) => {
             let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
             loop {
                 match serial::open(&cfg) {

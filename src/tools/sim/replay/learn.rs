@@ -254,7 +254,7 @@ mod tests {
             ..Default::default()
         });
         data.extend(bytes);
-        pcapng::packet(&pcapng::Packet {
+        pcapng::packet(&pcapng::EnhancedPacket {
             interface: iface,
             at_us,
             data: &data,

@@ -35,7 +35,7 @@ pub struct ConsoleRequest {
 
 /// Where the simulated device sits.
 #[derive(Debug)]
-pub enum Port {
+pub enum SimPort {
     /// A serial port or pty by path, reopened with backoff when it goes away.
     Path(SerialConfig),
     /// An open pty end (`mbgate demo`); losing it ends the simulator.
@@ -130,16 +130,16 @@ struct Sim {
 /// Runs the simulator until `shutdown` (or the console's `quit`).
 pub async fn run(
     settings: Settings,
-    port: Port,
+    port: SimPort,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> Result<(), SimError> {
     let paced = match &port {
         // Judged each time it opens (below): a pty may not exist yet.
-        Port::Path(_) => false,
-        Port::Stream(_) => true,
+        SimPort::Path(_) => false,
+        SimPort::Stream(_) => true,
         // A socket has no byte rate to model.
-        Port::Listen(_) => false,
+        SimPort::Listen(_) => false,
     };
     let baud = paced.then(|| pty_pace(settings.baud)).flatten();
     let mut device = settings.device;
@@ -179,8 +179,8 @@ pub async fn run(
     });
 
     match port {
-        Port::Listen(addr) => tcp::listen(&mut sim, addr, &mut commands, ticks, &shutdown).await,
-        Port::Stream(mut stream) => {
+        SimPort::Listen(addr) => tcp::listen(&mut sim, addr, &mut commands, ticks, &shutdown).await,
+        SimPort::Stream(mut stream) => {
             info!("simulating {} on a pty", sim.describe());
             match sim
                 .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
@@ -190,7 +190,7 @@ pub async fn run(
                 SessionEnd::Lost(e) => Err(SimError::Lost(e)),
             }
         }
-        Port::Path(cfg) => {
+        SimPort::Path(cfg) => {
             let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
             let mut reported = false;
             loop {
