@@ -445,7 +445,7 @@ fn synthetic(exchanges: &[Exchange<'_>]) -> Vec<u8> {
         });
         data.extend(bytes);
         at += 2000;
-        pcapng::packet(&pcapng::Packet {
+        pcapng::packet(&pcapng::EnhancedPacket {
             interface: 1,
             at_us: at,
             data: &data,

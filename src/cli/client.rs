@@ -7,7 +7,7 @@ use super::client_args::{BadValue, CommonArgs};
 use super::exit;
 use super::signals::{self, Stops};
 use crate::frame::request::{Request, RequestError};
-use crate::tools::client::{session, Outcome, Transport};
+use crate::tools::client::{session, ClientTransport, Outcome};
 use std::process::ExitCode;
 
 pub(crate) use super::client_args::{ReadArgs, WriteArgs};
@@ -24,7 +24,10 @@ enum Unsendable {
 }
 
 /// The request's PDU and the transport to send it on, or why they cannot be had.
-fn prepare(common: &CommonArgs, request: &Request) -> Result<(Transport, Vec<u8>), Unsendable> {
+fn prepare(
+    common: &CommonArgs,
+    request: &Request,
+) -> Result<(ClientTransport, Vec<u8>), Unsendable> {
     let pdu = request.pdu()?;
     Ok((common.transport()?, pdu))
 }

@@ -4,7 +4,7 @@
 use crate::cli::overrides::{choice, PortFlags, PORT_GROUP};
 use crate::config::{Framing, SerialConfig};
 use crate::frame::request::Request;
-use crate::tools::client::{Session, Transport};
+use crate::tools::client::{ClientTransport, Session};
 
 /// A value or a flag combination `read` and `write` refuse; the message names it.
 #[derive(Debug, thiserror::Error)]
@@ -258,10 +258,10 @@ impl CommonArgs {
 
     /// The transport these arguments name: `--serial` if given, else `--tcp` (default
     /// 127.0.0.1:502); or why the serial port's settings are refused.
-    pub(crate) fn transport(&self) -> Result<Transport, BadValue> {
+    pub(crate) fn transport(&self) -> Result<ClientTransport, BadValue> {
         let Some(path) = &self.serial else {
             let addr = self.tcp.as_deref().unwrap_or("127.0.0.1");
-            return Ok(Transport::tcp_framed(addr, self.framing));
+            return Ok(ClientTransport::tcp_framed(addr, self.framing));
         };
         let mut cfg = SerialConfig {
             path: path.clone(),
@@ -269,7 +269,7 @@ impl CommonArgs {
             ..SerialConfig::default()
         };
         self.port.apply_serial(&mut cfg)?;
-        Ok(Transport::serial(cfg))
+        Ok(ClientTransport::serial(cfg))
     }
 }
 
@@ -307,10 +307,10 @@ mod tests {
         .unwrap();
         assert_eq!(r.request(), Request::ReadCoils { addr: 5, qty: 1 });
         assert!(
-            matches!(r.common.transport().unwrap(), Transport::Serial { cfg, .. } if cfg.baud_rate == 9600)
+            matches!(r.common.transport().unwrap(), ClientTransport::Serial { cfg, .. } if cfg.baud_rate == 9600)
         );
         assert!(
-            matches!(r.common.transport().unwrap(), Transport::Serial { cfg, .. } if cfg.framing == Framing::Mbap)
+            matches!(r.common.transport().unwrap(), ClientTransport::Serial { cfg, .. } if cfg.framing == Framing::Mbap)
         );
         let r = parse_read(&[
             "read",
@@ -323,11 +323,11 @@ mod tests {
         ])
         .unwrap();
         assert!(
-            matches!(r.common.transport().unwrap(), Transport::Serial { cfg, .. } if cfg.framing == Framing::Ascii)
+            matches!(r.common.transport().unwrap(), ClientTransport::Serial { cfg, .. } if cfg.framing == Framing::Ascii)
         );
         let r = parse_read(&["read", "holding", "0", "--framing", "rtu"]).unwrap();
         assert!(
-            matches!(r.common.transport().unwrap(), Transport::TcpFramed { ref addr, .. } if addr == "127.0.0.1:502"),
+            matches!(r.common.transport().unwrap(), ClientTransport::TcpFramed { ref addr, .. } if addr == "127.0.0.1:502"),
             "RTU over TCP"
         );
         assert!(
@@ -425,7 +425,7 @@ mod tests {
             "--flow-control",
             "none",
         ];
-        let Ok(Transport::Serial { cfg, .. }) = common(&args).transport() else {
+        let Ok(ClientTransport::Serial { cfg, .. }) = common(&args).transport() else {
             panic!("a serial transport");
         };
         assert_eq!((cfg.parity, cfg.stop_bits), (Parity::Odd, 2));
@@ -464,7 +464,7 @@ mod tests {
 
     #[test]
     fn tcp_addresses_get_port_502() {
-        let name = |s: &str| Transport::tcp(s).name().to_string();
+        let name = |s: &str| ClientTransport::tcp(s).name().to_string();
         assert_eq!(name("10.0.0.5"), "10.0.0.5:502");
         assert_eq!(name("10.0.0.5:5020"), "10.0.0.5:5020");
         assert_eq!(name("plc.local"), "plc.local:502");

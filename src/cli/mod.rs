@@ -43,11 +43,11 @@ mbgate@NAME, which reads /etc/mbgate/NAME.toml. Ask a running gateway: mbgate st
 )]
 pub struct Cli {
     #[command(subcommand)]
-    command: Command,
+    command: CliCommand,
 }
 
 #[derive(Debug, Subcommand)]
-enum Command {
+enum CliCommand {
     /// Run the gateway in the foreground (systemd does this).
     Run {
         /// Configuration file (TOML, see config/mbgate.toml); without it, the defaults.
@@ -163,23 +163,23 @@ enum Generate {
 /// `mbgate`: parse the command line, run the subcommand, give its exit code.
 pub fn main() -> ExitCode {
     match Cli::parse().command {
-        Command::Read(args) => client::read(args),
-        Command::Write(args) => client::write(args),
-        Command::Sim(args) => sim::sim(args),
-        Command::Demo(args) => sim::demo(args),
-        Command::Wire(args) => wire::main(args),
-        Command::Scan(args) => scan::main(args),
-        Command::Status(args) => status::main(args),
-        Command::Generate(what) => generate(what),
-        Command::Reload(args) => reload::main(args),
-        Command::Capture(args) => capture::main(args),
-        Command::CheckConfig {
+        CliCommand::Read(args) => client::read(args),
+        CliCommand::Write(args) => client::write(args),
+        CliCommand::Sim(args) => sim::sim(args),
+        CliCommand::Demo(args) => sim::demo(args),
+        CliCommand::Wire(args) => wire::main(args),
+        CliCommand::Scan(args) => scan::main(args),
+        CliCommand::Status(args) => status::main(args),
+        CliCommand::Generate(what) => generate(what),
+        CliCommand::Reload(args) => reload::main(args),
+        CliCommand::Capture(args) => capture::main(args),
+        CliCommand::CheckConfig {
             file,
             print,
             lines,
             overrides,
         } => gateway::check_config(file, print, lines, &overrides),
-        Command::Run { config, overrides } => gateway::run(config, overrides),
+        CliCommand::Run { config, overrides } => gateway::run(config, overrides),
     }
 }
 

@@ -3,7 +3,7 @@
 
 use super::exit;
 use crate::ops::control::control_socket;
-use crate::ops::control::reload::{reload, Answer};
+use crate::ops::control::reload::{reload, ReloadAnswer};
 use std::path::PathBuf;
 use std::process::ExitCode;
 
@@ -30,15 +30,15 @@ pub(crate) fn main(args: ReloadArgs) -> ExitCode {
         }
     };
     match reload(&socket) {
-        Ok(Answer::Taken(said)) => {
+        Ok(ReloadAnswer::Taken(said)) => {
             print!("{said}");
             exit::code(exit::OK)
         }
-        Ok(Answer::Refused(said)) => {
+        Ok(ReloadAnswer::Refused(said)) => {
             eprint!("mbgate reload: {said}");
             exit::code(exit::FAILED)
         }
-        Ok(Answer::Failed(why)) => {
+        Ok(ReloadAnswer::Failed(why)) => {
             eprintln!("mbgate reload: {why}");
             exit::code(exit::OTHER)
         }

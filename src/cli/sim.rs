@@ -138,7 +138,7 @@ fn sim_level(device: &crate::tools::sim::options::DeviceArgs) -> (String, bool) 
 
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
 pub(crate) fn sim(args: SimArgs) -> ExitCode {
-    use crate::tools::sim::serve::{self, Port};
+    use crate::tools::sim::serve::{self, SimPort};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
     let cie_m10 = args.device.profile == crate::tools::sim::options::ProfileName::CieM10
@@ -189,8 +189,8 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
                 return Ok(());
             }
             let port = match listen {
-                Some(addr) => Port::Listen(addr),
-                None => Port::Path(port?),
+                Some(addr) => SimPort::Listen(addr),
+                None => SimPort::Path(port?),
             };
             match polling? {
                 Some(p) => {

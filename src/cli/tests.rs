@@ -15,11 +15,11 @@ fn each_subcommand_parses() {
     let parse = |line: &[&str]| Cli::try_parse_from(line).map(|c| c.command);
     assert!(matches!(
         parse(&["mbgate", "read", "holding", "0x6B", "3"]),
-        Ok(Command::Read(_))
+        Ok(CliCommand::Read(_))
     ));
     assert!(matches!(
         parse(&["mbgate", "status", "--metrics", "127.0.0.1:9"]),
-        Ok(Command::Status(_))
+        Ok(CliCommand::Status(_))
     ));
     assert!(matches!(
         parse(&[
@@ -30,11 +30,11 @@ fn each_subcommand_parses() {
             "--role",
             "master"
         ]),
-        Ok(Command::Sim(_))
+        Ok(CliCommand::Sim(_))
     ));
     assert!(matches!(
         parse(&["mbgate", "wire", "a", "b", "--a", "9600,8E1"]),
-        Ok(Command::Wire(_))
+        Ok(CliCommand::Wire(_))
     ));
     let refused = parse(&["mbgate", "wire", "a", "b", "--format", "9N1"]).unwrap_err();
     assert_eq!(refused.exit_code(), i32::from(exit::USAGE));

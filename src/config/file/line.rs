@@ -2,7 +2,7 @@
 //! their remapping, each unit on one line only; its device on a serial port or at a
 //! TCP address; its role, and a master line's routes and the relay keys it refuses.
 
-use super::{raw, LineRead, Reader};
+use super::{raw, FileReader, LineRead};
 use crate::config::raw::{entries, read_table};
 use crate::config::{
     table, Check, Config, ConfigError, Framing, HostPort, Key, LineConfig, LineRole, Setting,
@@ -29,7 +29,7 @@ table! {
     }
 }
 
-impl Reader<'_> {
+impl FileReader<'_> {
     /// One `[[line]]` at `v`; `path` is what messages call it (`line[0]`).
     pub(super) fn line(
         &mut self,

@@ -30,7 +30,7 @@ pub fn parse(text: &str, origin: &str) -> Result<Config, ConfigError> {
     let lines_form = ["line", "listen"]
         .iter()
         .any(|t| root.get_ref().get(*t).is_some());
-    Reader {
+    FileReader {
         text,
         origin,
         at: HashMap::new(),
@@ -55,7 +55,7 @@ pub(super) fn renamed<'a>(rename: &[(&'a str, &'a str)], name: &'a str) -> &'a s
     found.map_or(name, |(file, _)| file)
 }
 
-struct Reader<'t> {
+struct FileReader<'t> {
     text: &'t str,
     origin: &'t str,
     /// Where the value of each full key read so far starts.
@@ -70,7 +70,7 @@ struct Reader<'t> {
 /// units.
 type LineRead = (usize, LineConfig, bool);
 
-impl Reader<'_> {
+impl FileReader<'_> {
     fn fail<T>(&self, at: usize, key: &str, message: impl Into<String>) -> Result<T, ConfigError> {
         let (line, column) = line_col(self.text, at);
         Err(ConfigError::Invalid {

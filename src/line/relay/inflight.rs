@@ -615,7 +615,7 @@ mod tests {
         assert_eq!(t.next_deadline(), Some(t0 + 800 * MS), "the ceiling back");
         assert_eq!(
             t.learned(6).map(|l| l.why()),
-            Some(crate::line::relay::learn::Why::TimedOut)
+            Some(crate::line::relay::learn::TimeoutReason::TimedOut)
         );
         let fixed = t.take(2).unwrap();
         t.start(3, read(5, 0), t0, Duration::ZERO);

@@ -25,7 +25,7 @@ pub(crate) const MARGIN: u32 = 2;
 /// Why the timeout is what it is (the `why` label of /metrics, the status page,
 /// `mbgate status`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Why {
+pub(crate) enum TimeoutReason {
     /// At the ceiling: too few replies yet to learn from.
     Start,
     /// At the ceiling: a request timed out, and learning starts over.
@@ -38,14 +38,14 @@ pub(crate) enum Why {
     Ceiling,
 }
 
-impl Why {
+impl TimeoutReason {
     /// Every value, in the order of `crate::ops::metrics::LEARNED_WHY`.
-    pub(crate) const ALL: [Why; 5] = [
-        Why::Start,
-        Why::TimedOut,
-        Why::Learned,
-        Why::Floor,
-        Why::Ceiling,
+    pub(crate) const ALL: [TimeoutReason; 5] = [
+        TimeoutReason::Start,
+        TimeoutReason::TimedOut,
+        TimeoutReason::Learned,
+        TimeoutReason::Floor,
+        TimeoutReason::Ceiling,
     ];
 }
 
@@ -57,7 +57,7 @@ pub(crate) struct Learned {
     /// The latest response times, oldest first; at most [`WINDOW`].
     samples: VecDeque<Duration>,
     current: Duration,
-    why: Why,
+    why: TimeoutReason,
 }
 
 impl Learned {
@@ -68,7 +68,7 @@ impl Learned {
             ceiling,
             samples: VecDeque::with_capacity(WINDOW),
             current: ceiling,
-            why: Why::Start,
+            why: TimeoutReason::Start,
         }
     }
 
@@ -78,7 +78,7 @@ impl Learned {
     }
 
     /// Why it is what it is.
-    pub(crate) fn why(&self) -> Why {
+    pub(crate) fn why(&self) -> TimeoutReason {
         self.why
     }
 
@@ -98,11 +98,11 @@ impl Learned {
         }
         let wanted = p99(&self.samples).saturating_mul(MARGIN);
         (self.current, self.why) = if wanted < self.floor {
-            (self.floor, Why::Floor)
+            (self.floor, TimeoutReason::Floor)
         } else if wanted > self.ceiling {
-            (self.ceiling, Why::Ceiling)
+            (self.ceiling, TimeoutReason::Ceiling)
         } else {
-            (wanted, Why::Learned)
+            (wanted, TimeoutReason::Learned)
         };
     }
 
@@ -110,7 +110,7 @@ impl Learned {
     pub(crate) fn timed_out(&mut self) {
         self.samples.clear();
         self.current = self.ceiling;
-        self.why = Why::TimedOut;
+        self.why = TimeoutReason::TimedOut;
     }
 }
 
@@ -132,23 +132,23 @@ mod tests {
     #[test]
     fn a_fast_unit_settles_low_and_a_timeout_gives_the_ceiling_back() {
         let mut l = Learned::new(10 * MS, 1000 * MS);
-        assert_eq!((l.timeout(), l.why()), (1000 * MS, Why::Start));
+        assert_eq!((l.timeout(), l.why()), (1000 * MS, TimeoutReason::Start));
         for _ in 0..SETTLE_AFTER - 1 {
             l.replied(20 * MS);
         }
         assert_eq!(l.timeout(), 1000 * MS, "not settled before enough replies");
         l.replied(20 * MS);
-        assert_eq!((l.timeout(), l.why()), (40 * MS, Why::Learned));
+        assert_eq!((l.timeout(), l.why()), (40 * MS, TimeoutReason::Learned));
         l.timed_out();
-        assert_eq!((l.timeout(), l.why()), (1000 * MS, Why::TimedOut));
+        assert_eq!((l.timeout(), l.why()), (1000 * MS, TimeoutReason::TimedOut));
         for _ in 0..SETTLE_AFTER {
             l.replied(2 * MS);
         }
-        assert_eq!((l.timeout(), l.why()), (10 * MS, Why::Floor));
+        assert_eq!((l.timeout(), l.why()), (10 * MS, TimeoutReason::Floor));
         for _ in 0..WINDOW {
             l.replied(700 * MS);
         }
-        assert_eq!((l.timeout(), l.why()), (1000 * MS, Why::Ceiling));
+        assert_eq!((l.timeout(), l.why()), (1000 * MS, TimeoutReason::Ceiling));
     }
 
     /// What happens to a unit: a reply after this long, or a timeout.

@@ -89,7 +89,7 @@ impl Relay {
     /// `unit`'s learned timeout, if it has one, as it is now, for the metrics.
     pub(super) fn tell_learned(&self, unit: u8) {
         if let Some(l) = self.in_flight.learned(unit) {
-            let why = learn::Why::ALL.iter().position(|w| *w == l.why());
+            let why = learn::TimeoutReason::ALL.iter().position(|w| *w == l.why());
             let u = self.telemetry.metrics.unit(unit);
             u.set_learned(l.timeout(), why.unwrap_or(0));
         }

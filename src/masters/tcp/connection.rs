@@ -14,7 +14,7 @@ use crate::masters::router::Router;
 use crate::masters::tls::server::Grant;
 use crate::ops::capture::packet::{Dir, Ends, Part};
 use crate::ops::capture::{Hub, Tap};
-use crate::ops::metrics::{MasterSeen, Masters};
+use crate::ops::metrics::{ConnectedMasters, MasterSeen};
 use crate::ops::stats::Stats;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
@@ -35,7 +35,7 @@ pub(super) struct Connection {
     pub(super) router: Arc<Router>,
     pub(super) stats: Arc<Stats>,
     pub(super) shutdown: CancellationToken,
-    pub(super) masters: Arc<Masters>,
+    pub(super) masters: Arc<ConnectedMasters>,
     /// The listener's own address.
     pub(super) local: SocketAddr,
     /// A TLS master's role, and what it may do.

@@ -14,7 +14,7 @@ use crate::line::outbox;
 use crate::masters::router::Router;
 use crate::masters::tls::server::Acceptor;
 use crate::ops::capture::Hub;
-use crate::ops::metrics::Masters;
+use crate::ops::metrics::ConnectedMasters;
 use crate::ops::stats::Stats;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
@@ -95,7 +95,7 @@ pub(crate) struct Shared {
     pub(crate) shutdown: CancellationToken,
     pub(crate) tracker: TaskTracker,
     pub(crate) ids: Arc<AtomicU64>,
-    pub(crate) masters: Arc<Masters>,
+    pub(crate) masters: Arc<ConnectedMasters>,
     /// The capture (docs/capture.md): the TCP side is its interface 0.
     pub(crate) capture: Hub,
 }

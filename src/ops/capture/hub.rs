@@ -141,7 +141,7 @@ struct Sub {
     dropped: Arc<[AtomicU64]>,
 }
 
-struct Shared {
+struct HubState {
     interfaces: Vec<Interface>,
     /// Subscribers now: a tap builds packets only while there is one (or the page).
     active: AtomicUsize,
@@ -165,12 +165,12 @@ struct Shared {
 
 /// The capture's centre: made once at start with its interfaces; cheap to clone.
 #[derive(Clone)]
-pub(crate) struct Hub(Arc<Shared>);
+pub(crate) struct Hub(Arc<HubState>);
 
 /// Where one source (a line, the TCP side) hands its packets: cheap to clone.
 #[derive(Clone, Default)]
 pub(crate) struct Tap {
-    hub: Option<Arc<Shared>>,
+    hub: Option<Arc<HubState>>,
     iface: u16,
 }
 
@@ -190,7 +190,7 @@ impl Hub {
     pub(crate) fn new(interfaces: Vec<Interface>) -> (Hub, impl std::future::Future<Output = ()>) {
         anchor();
         let n = interfaces.len();
-        let shared = Arc::new(Shared {
+        let shared = Arc::new(HubState {
             recent: Mutex::new(vec![Recent::default(); n]),
             interfaces,
             active: AtomicUsize::new(0),
@@ -411,7 +411,7 @@ impl Tap {
 
 /// Is the status page open at `at_us`? Past its window, closes it (unless the page
 /// was asked for again meanwhile), so that [`Tap::on`] needs no clock.
-fn page_open(h: &Shared, at_us: u64) -> bool {
+fn page_open(h: &HubState, at_us: u64) -> bool {
     let until = h.page_until_us.load(Ordering::Relaxed);
     if until == 0 {
         return false;
@@ -429,7 +429,7 @@ fn page_open(h: &Shared, at_us: u64) -> bool {
 pub(crate) struct Subscription {
     pub(crate) rx: mpsc::Receiver<Arc<Packet>>,
     id: u64,
-    hub: Arc<Shared>,
+    hub: Arc<HubState>,
     dropped: Arc<[AtomicU64]>,
 }
 
@@ -458,7 +458,7 @@ impl Drop for Subscription {
 }
 
 /// The hub's task: when the hub closes, every subscription ends.
-async fn run(shared: Arc<Shared>) {
+async fn run(shared: Arc<HubState>) {
     shared.closed.cancelled().await;
     let mut subs = shared.subs.lock().expect("not poisoned");
     shared.active.fetch_sub(subs.len(), Ordering::Relaxed);
@@ -468,7 +468,7 @@ async fn run(shared: Arc<Shared>) {
 /// `p` to the page, if open, and to each subscriber whose filter keeps it. Stamped
 /// while the subscribers are held, so that they get one interface's packets in the
 /// order of their times.
-fn hand_on(shared: &Shared, mut p: Packet) {
+fn hand_on(shared: &HubState, mut p: Packet) {
     let i = usize::from(p.iface);
     let subs = shared.subs.lock().expect("not poisoned");
     let p = {

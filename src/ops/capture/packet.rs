@@ -283,7 +283,7 @@ impl Packet {
         if matches!(self.dropped, Some(Reason::Crc | Reason::Lrc)) {
             flags |= pcapng::CRC_ERROR;
         }
-        pcapng::packet(&pcapng::Packet {
+        pcapng::packet(&pcapng::EnhancedPacket {
             interface: iface,
             at_us: self.at_us,
             data: &data,

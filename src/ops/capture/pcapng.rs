@@ -15,7 +15,7 @@
 //! file.extend(pcapng::interface("/dev/ttyUSB0", "line 0"));
 //! let mut data = pcapng::exported_pdu(&pcapng::Exported { dissector: "mbrtu", ..Default::default() });
 //! data.extend([0x11, 0x03, 0x00, 0x6B, 0x00, 0x03, 0x76, 0x87]);
-//! file.extend(pcapng::packet(&pcapng::Packet { data: &data, ..Default::default() }));
+//! file.extend(pcapng::packet(&pcapng::EnhancedPacket { data: &data, ..Default::default() }));
 //! assert_eq!(file.len() % 4, 0);
 //! ```
 
@@ -121,7 +121,7 @@ pub fn interface(name: &str, description: &str) -> Vec<u8> {
 
 /// One packet (an Enhanced Packet Block).
 #[derive(Debug, Default, Clone, Copy)]
-pub struct Packet<'a> {
+pub struct EnhancedPacket<'a> {
     /// The interface, by its place among the Interface Description Blocks.
     pub interface: u32,
     /// Microseconds since the Unix epoch.
@@ -135,7 +135,7 @@ pub struct Packet<'a> {
 }
 
 /// The Enhanced Packet Block of `p`.
-pub fn packet(p: &Packet<'_>) -> Vec<u8> {
+pub fn packet(p: &EnhancedPacket<'_>) -> Vec<u8> {
     let mut body = Vec::with_capacity(20 + p.data.len() + 8);
     body.extend(p.interface.to_le_bytes());
     body.extend(((p.at_us >> 32) as u32).to_le_bytes());
@@ -314,7 +314,7 @@ mod tests {
     fn a_packet_carries_its_time_in_microseconds_its_data_padded_and_its_options() {
         let at_us = 1_700_000_000_123_456u64;
         let data = [1u8, 2, 3, 4, 5];
-        let epb = packet(&Packet {
+        let epb = packet(&EnhancedPacket {
             interface: 2,
             at_us,
             data: &data,
@@ -340,9 +340,9 @@ mod tests {
             ]
         );
         // No options at all: the block ends with the data.
-        let bare = packet(&Packet {
+        let bare = packet(&EnhancedPacket {
             data: &data[..4],
-            ..Packet::default()
+            ..EnhancedPacket::default()
         });
         assert_eq!(blocks(&bare)[0].1.len(), 24);
     }

@@ -15,7 +15,7 @@
 //! file.extend(pcapng::interface("/dev/ttyUSB0", ""));
 //! let mut data = pcapng::exported_pdu(&pcapng::Exported { dissector: "mbrtu", ..Default::default() });
 //! data.extend([0x11, 0x03, 0x00, 0x6B, 0x00, 0x03, 0x76, 0x87]);
-//! file.extend(pcapng::packet(&pcapng::Packet { data: &data, at_us: 7, flags: pcapng::OUTBOUND, ..Default::default() }));
+//! file.extend(pcapng::packet(&pcapng::EnhancedPacket { data: &data, at_us: 7, flags: pcapng::OUTBOUND, ..Default::default() }));
 //! let read = pcapng_read::read(&file).unwrap();
 //! assert_eq!((read.packets.len(), read.damage), (1, None));
 //! let p = &read.packets[0];
@@ -432,7 +432,7 @@ mod tests {
                 ..Default::default()
             });
             data.extend([1, 3, 0, 0, 0, 1, 0x84, 0x0A]);
-            f.extend(pcapng::packet(&pcapng::Packet {
+            f.extend(pcapng::packet(&pcapng::EnhancedPacket {
                 interface: i,
                 at_us: at,
                 data: &data,

@@ -61,14 +61,14 @@ pub enum CaptureError {
 
 /// The end of a capture, as the gateway tells it.
 #[derive(Debug, Default)]
-struct End {
+struct CaptureEnd {
     packets: u64,
     dropped: u64,
     why: String,
 }
 
-fn parse_end(text: &str) -> End {
-    let mut end = End::default();
+fn parse_end(text: &str) -> CaptureEnd {
+    let mut end = CaptureEnd::default();
     for word in text.split_whitespace() {
         match word.split_once('=') {
             Some(("packets", n)) => end.packets = n.parse().unwrap_or(0),

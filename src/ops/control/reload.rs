@@ -13,7 +13,7 @@ use std::time::Duration;
 
 /// What the gateway answered.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Answer {
+pub enum ReloadAnswer {
     /// Taken: what its log says of it (each change applied, what waits for a restart).
     Taken(String),
     /// Refused (the file does not load, or adds or removes a line): why.
@@ -43,13 +43,13 @@ fn because(e: &Option<std::io::Error>) -> String {
 }
 
 /// Asks the gateway serving the control socket at `socket` to reload.
-pub fn reload(socket: &Path) -> Result<Answer, ReloadError> {
+pub fn reload(socket: &Path) -> Result<ReloadAnswer, ReloadError> {
     let answer = ask(socket)?;
     let (head, said) = answer.split_once('\n').unwrap_or((answer.as_str(), ""));
     Ok(match head {
-        "ok" => Answer::Taken(said.to_owned()),
-        "refused" => Answer::Refused(said.to_owned()),
-        other => Answer::Failed(other.strip_prefix("error: ").unwrap_or(other).to_owned()),
+        "ok" => ReloadAnswer::Taken(said.to_owned()),
+        "refused" => ReloadAnswer::Refused(said.to_owned()),
+        other => ReloadAnswer::Failed(other.strip_prefix("error: ").unwrap_or(other).to_owned()),
     })
 }
 

@@ -544,7 +544,7 @@ impl CaptureRun {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ops::reload::{Answer, Outcome};
+    use crate::ops::reload::{ReloadOutcome, ReloadReport};
 
     /// `reload` is answered `ok` or `refused`, then the lines the log says (the
     /// certificates last); `error:` from a gateway that does not reload.
@@ -556,14 +556,14 @@ mod tests {
         );
         for (outcome, head) in [
             (
-                Outcome::Done {
+                ReloadOutcome::Done {
                     applied: vec!["log.level = \"debug\"".into()],
                     restart: vec![],
                 },
                 "ok\nreloaded: log.level = \"debug\"\nlisten[0].tls: read again\n",
             ),
             (
-                Outcome::Refused("mbgate.toml:1:1: bogus: unknown key".into()),
+                ReloadOutcome::Refused("mbgate.toml:1:1: bogus: unknown key".into()),
                 "refused\nreload refused: mbgate.toml:1:1: bogus: unknown key; the running configuration stays\nlisten[0].tls: read again\n",
             ),
         ] {
@@ -571,7 +571,7 @@ mod tests {
             tokio::spawn(async move {
                 let a = asked.recv().await.unwrap();
                 let certificates = vec!["listen[0].tls: read again".into()];
-                a.send(Answer { outcome, certificates }).unwrap();
+                a.send(ReloadReport { outcome, certificates }).unwrap();
             });
             assert_eq!(reloaded(Some(handle)).await, head);
         }

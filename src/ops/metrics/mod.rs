@@ -332,9 +332,9 @@ pub(crate) struct MasterSeen {
 /// The masters connected now: the connections add and remove themselves (a lock taken
 /// once at each end of a connection, never by the relay).
 #[derive(Debug, Default)]
-pub(crate) struct Masters(Mutex<std::collections::BTreeMap<u64, MasterSeen>>);
+pub(crate) struct ConnectedMasters(Mutex<std::collections::BTreeMap<u64, MasterSeen>>);
 
-impl Masters {
+impl ConnectedMasters {
     pub(crate) fn add(&self, m: MasterSeen) {
         self.0.lock().expect("not poisoned").insert(m.conn, m);
     }
@@ -398,7 +398,7 @@ pub(crate) struct Board {
     pub(crate) lines: Mutex<Vec<Arc<LineMetrics>>>,
     pub(crate) listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
     /// The masters connected now.
-    pub(crate) masters: Arc<Masters>,
+    pub(crate) masters: Arc<ConnectedMasters>,
     /// Each line's last minute, a point a second, by line name, while the metrics
     /// listener runs (`page::sample`).
     pub(crate) history: Mutex<std::collections::HashMap<String, page::History>>,

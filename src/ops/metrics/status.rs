@@ -23,7 +23,7 @@ pub(crate) struct StatusLine {
 }
 
 /// Totals over every line and listener at one instant.
-struct Totals {
+struct StatusTotals {
     masters: u64,
     requests: u64,
     timeouts: u64,
@@ -31,10 +31,10 @@ struct Totals {
     closed: Vec<String>,
 }
 
-fn totals(board: &Board, now: Instant) -> Totals {
+fn totals(board: &Board, now: Instant) -> StatusTotals {
     let lines = board.lines();
     let get = |a: &std::sync::atomic::AtomicU64| a.load(std::sync::atomic::Ordering::Relaxed);
-    Totals {
+    StatusTotals {
         masters: board.listeners().iter().map(|l| l.connected()).sum(),
         requests: lines.iter().map(|l| get(&l.stats.requests)).sum(),
         timeouts: lines

@@ -31,7 +31,7 @@ pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 /// What a reload did: refused (why), or done (what it applied, and what changed in the
 /// file but waits for a restart).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub(crate) enum Outcome {
+pub(crate) enum ReloadOutcome {
     Refused(String),
     Done {
         applied: Vec<String>,
@@ -39,17 +39,17 @@ pub(crate) enum Outcome {
     },
 }
 
-impl Outcome {
+impl ReloadOutcome {
     /// What the log says, and `mbgate reload` prints: one line, and a second for what
     /// waits for a restart.
     pub(crate) fn lines(&self) -> Vec<String> {
         match self {
-            Outcome::Refused(why) => {
+            ReloadOutcome::Refused(why) => {
                 vec![format!(
                     "reload refused: {why}; the running configuration stays"
                 )]
             }
-            Outcome::Done { applied, restart } => {
+            ReloadOutcome::Done { applied, restart } => {
                 let mut out = vec![match (applied.is_empty(), restart.is_empty()) {
                     (false, _) => format!("reloaded: {}", applied.join(", ")),
                     (true, true) => "reloaded: nothing to change".to_owned(),
@@ -68,14 +68,14 @@ impl Outcome {
 
     /// Was the file taken (applied, or with nothing to apply)?
     pub(crate) fn taken(&self) -> bool {
-        matches!(self, Outcome::Done { .. })
+        matches!(self, ReloadOutcome::Done { .. })
     }
 
     fn log(&self) {
         let lines = self.lines();
         match self {
-            Outcome::Refused(_) => error!("{}", lines[0]),
-            Outcome::Done { .. } => {
+            ReloadOutcome::Refused(_) => error!("{}", lines[0]),
+            ReloadOutcome::Done { .. } => {
                 info!("{}", lines[0]);
                 if let Some(restart) = lines.get(1) {
                     warn!("{restart}");
@@ -88,12 +88,12 @@ impl Outcome {
 /// What `mbgate reload` is told: the outcome, then what became of each TLS
 /// listener's certificate.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub(crate) struct Answer {
-    pub(crate) outcome: Outcome,
+pub(crate) struct ReloadReport {
+    pub(crate) outcome: ReloadOutcome,
     pub(crate) certificates: Vec<String>,
 }
 
-impl Answer {
+impl ReloadReport {
     /// The lines `mbgate reload` prints, as the log says them.
     pub(crate) fn lines(&self) -> Vec<String> {
         let mut lines = self.outcome.lines();
@@ -104,21 +104,21 @@ impl Answer {
 
 /// A request for a reload from `mbgate reload` (over the control socket), answered
 /// with its outcome.
-pub(crate) type Asked = oneshot::Sender<Answer>;
+pub(crate) type ReloadAsked = oneshot::Sender<ReloadReport>;
 
 /// The way to ask the running gateway for a reload.
 #[derive(Debug, Clone)]
-pub(crate) struct ReloadHandle(mpsc::UnboundedSender<Asked>);
+pub(crate) struct ReloadHandle(mpsc::UnboundedSender<ReloadAsked>);
 
 impl ReloadHandle {
     /// A handle, and what [`on_sighup`] takes the requests from.
-    pub(crate) fn new() -> (Self, mpsc::UnboundedReceiver<Asked>) {
+    pub(crate) fn new() -> (Self, mpsc::UnboundedReceiver<ReloadAsked>) {
         let (tx, rx) = mpsc::unbounded_channel();
         (Self(tx), rx)
     }
 
     /// Reloads and says how it went; `None` if the gateway is stopping.
-    pub(crate) async fn reload(&self) -> Option<Answer> {
+    pub(crate) async fn reload(&self) -> Option<ReloadReport> {
         let (tx, rx) = oneshot::channel();
         self.0.send(tx).ok()?;
         rx.await.ok()
@@ -158,7 +158,7 @@ impl LineHandle {
 pub(crate) struct Reloadable {
     pub(crate) running: Arc<Mutex<Config>>,
     /// The masters connected now, whose priority classes a reload may change.
-    pub(crate) masters: Arc<crate::ops::metrics::Masters>,
+    pub(crate) masters: Arc<crate::ops::metrics::ConnectedMasters>,
     pub(crate) load: Loader,
     pub(crate) lines: Vec<LineHandle>,
     pub(crate) metrics: MetricsListener,
@@ -177,7 +177,7 @@ pub(crate) struct Reloadable {
 /// shutdown.
 pub(crate) async fn on_sighup(
     mut hup: tokio::signal::unix::Signal,
-    mut asked: mpsc::UnboundedReceiver<Asked>,
+    mut asked: mpsc::UnboundedReceiver<ReloadAsked>,
     mut it: Reloadable,
     shutdown: CancellationToken,
 ) {
@@ -201,7 +201,7 @@ pub(crate) async fn on_sighup(
         it.counted
             .reloaded(outcome.taken(), std::time::SystemTime::now());
         if let Some(a) = answer {
-            let _ = a.send(Answer {
+            let _ = a.send(ReloadReport {
                 outcome,
                 certificates,
             });
@@ -242,15 +242,15 @@ fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
 /// applies applied (the relays' timeouts and retries, the log, the metrics listener,
 /// the dials and UDP listeners, the masters' priority classes). `None` when a relay
 /// has stopped.
-fn reload(it: &mut Reloadable) -> Option<Outcome> {
+fn reload(it: &mut Reloadable) -> Option<ReloadOutcome> {
     let read = match (it.load)() {
         Ok(read) => read,
-        Err(e) => return Some(Outcome::Refused(e.to_string())),
+        Err(e) => return Some(ReloadOutcome::Refused(e.to_string())),
     };
     let old = it.running.lock().expect("not poisoned").clone();
     let matched = match changes::match_lines(&old.lines, &read.lines) {
         Ok(m) => m,
-        Err(why) => return Some(Outcome::Refused(why)),
+        Err(why) => return Some(ReloadOutcome::Refused(why)),
     };
     let mut new = changes::merged(&old, &read, &matched);
     if let Err(e) = it.metrics.set(new.metrics.listen) {
@@ -275,7 +275,7 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
     let mut running = it.running.lock().expect("not poisoned");
     *running = new;
     reclassify(&running, &it.masters, &it.lines);
-    Some(Outcome::Done { applied, restart })
+    Some(ReloadOutcome::Done { applied, restart })
 }
 
 /// Tells every line each connected master's priority class under `running`, the
@@ -283,7 +283,11 @@ fn reload(it: &mut Reloadable) -> Option<Outcome> {
 /// `running`'s lock, which a connection holds too while it tells its class at
 /// connect: a master that connects meanwhile tells either its old class before
 /// this, or its new one.
-fn reclassify(running: &Config, masters: &crate::ops::metrics::Masters, lines: &[LineHandle]) {
+fn reclassify(
+    running: &Config,
+    masters: &crate::ops::metrics::ConnectedMasters,
+    lines: &[LineHandle],
+) {
     for m in masters.list() {
         let role = m.tls.as_ref().map(|(role, _)| role.as_str());
         let class = running.priority_of(&m.source, role);

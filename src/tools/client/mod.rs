@@ -18,7 +18,7 @@
 
 mod transport;
 
-pub(crate) use transport::{Master, Transport};
+pub(crate) use transport::{ClientTransport, Master};
 
 use crate::frame::hex::Hex;
 use crate::frame::request::{exception_name, Reply};
@@ -111,7 +111,7 @@ fn millis(d: Duration) -> String {
 /// last request ended.
 pub(crate) async fn session(
     common: &Session,
-    transport: Transport,
+    transport: ClientTransport,
     pdu: &[u8],
     stop: tokio_util::sync::CancellationToken,
 ) -> Outcome {

@@ -8,10 +8,10 @@ use super::args::{DemoArgs, DEFAULT_LISTEN};
 use crate::config::master::{MasterLine, Peer, Route};
 use crate::config::{Config, FlowControl};
 use crate::tools::sim::cie_m10::CieM10;
-use crate::tools::sim::console::Command;
+use crate::tools::sim::console::ConsoleCommand;
 use crate::tools::sim::options::Settings;
 use crate::tools::sim::role::Polling;
-use crate::tools::sim::serve::{ConsoleRequest, Port};
+use crate::tools::sim::serve::{ConsoleRequest, SimPort};
 use crate::tools::sim::{Device, Profile};
 use std::net::SocketAddr;
 use std::time::Duration;
@@ -117,7 +117,7 @@ pub async fn run(
         while let Some(req) = commands.recv().await {
             let ConsoleRequest { command, reply } = req;
             let (to, command) = match command {
-                Command::Slave(inner) => (&to_slave, *inner),
+                ConsoleCommand::Slave(inner) => (&to_slave, *inner),
                 other => (&to_master, other),
             };
             if to.send(ConsoleRequest { command, reply }).await.is_err() {
@@ -145,7 +145,7 @@ pub async fn run(
     let master = crate::tools::sim::master::run(
         settings,
         polling,
-        Port::Stream(device_end),
+        SimPort::Stream(device_end),
         master_commands,
         shutdown.clone(),
     )

@@ -9,7 +9,7 @@ pub mod master;
 use crate::config::{Config, FlowControl, Notifications, Units, FASTEST_BAUD};
 use crate::gateway::{self, GatewayError};
 use crate::tools::sim::options::Settings;
-use crate::tools::sim::serve::{self, ConsoleRequest, Port, SimError};
+use crate::tools::sim::serve::{self, ConsoleRequest, SimError, SimPort};
 use crate::tools::sim::Profile;
 use args::DEFAULT_LISTEN;
 pub use args::{DemoArgs, MasterDemoArgs};
@@ -216,7 +216,7 @@ pub async fn run(
     let second = second.map(|(device_end, gateway_end, _, settings)| {
         let sim = serve::run(
             settings,
-            Port::Stream(device_end),
+            SimPort::Stream(device_end),
             no_commands,
             shutdown.clone(),
         );
@@ -224,7 +224,7 @@ pub async fn run(
     });
     let sim = tokio::spawn(serve::run(
         settings,
-        Port::Stream(device_end),
+        SimPort::Stream(device_end),
         commands,
         shutdown.clone(),
     ));

@@ -45,7 +45,7 @@ impl Table {
 }
 
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub(crate) enum Command {
+pub(crate) enum ConsoleCommand {
     Help,
     /// List the devices and their state.
     List,
@@ -78,7 +78,7 @@ pub(crate) enum Command {
     ClearScreen,
     Quit,
     /// `slave COMMAND`: for the simulated slave of `mbgate demo --master`.
-    Slave(Box<Command>),
+    Slave(Box<ConsoleCommand>),
 }
 
 pub(crate) const HELP: &str = "\
@@ -112,9 +112,9 @@ fn on_off(s: &str) -> Result<bool, BadCommand> {
     }
 }
 
-impl Command {
+impl ConsoleCommand {
     /// One console line; `Ok(None)` for an empty line.
-    pub(crate) fn parse(line: &str) -> Result<Option<Command>, BadCommand> {
+    pub(crate) fn parse(line: &str) -> Result<Option<ConsoleCommand>, BadCommand> {
         let words: Vec<&str> = line.split_whitespace().collect();
         let Some((&first, args)) = words.split_first() else {
             return Ok(None);
@@ -127,11 +127,11 @@ impl Command {
             }
         };
         let cmd = match first.to_ascii_lowercase().as_str() {
-            "help" | "h" | "?" => Command::Help,
-            "list" | "ls" | "l" => Command::List,
+            "help" | "h" | "?" => ConsoleCommand::Help,
+            "list" | "ls" | "l" => ConsoleCommand::List,
             "add" => {
                 want(1..=3, "add UNIT [COILS [REGISTERS]]")?;
-                Command::Add {
+                ConsoleCommand::Add {
                     unit: bounded(args[0], "unit")?,
                     bits: args.get(1).map(|s| bounded(s, "coils")).transpose()?,
                     registers: args.get(2).map(|s| bounded(s, "registers")).transpose()?,
@@ -139,7 +139,7 @@ impl Command {
             }
             "remove" | "rm" => {
                 want(1..=1, "remove UNIT")?;
-                Command::Remove {
+                ConsoleCommand::Remove {
                     unit: bounded(args[0], "unit")?,
                 }
             }
@@ -149,14 +149,14 @@ impl Command {
                 if port > 7 {
                     return Err(BadCommand::Port(port));
                 }
-                Command::Input {
+                ConsoleCommand::Input {
                     port,
                     on: on_off(args[1])?,
                 }
             }
             "inputs" => {
                 want(1..=1, "inputs VALUE")?;
-                Command::Inputs(bounded(args[0], "inputs")?)
+                ConsoleCommand::Inputs(bounded(args[0], "inputs")?)
             }
             "set" => {
                 want(4..=4, "set UNIT TABLE ADDR VALUE")?;
@@ -165,7 +165,7 @@ impl Command {
                     Table::Coils | Table::Discrete => u16::from(on_off(args[3])?),
                     _ => bounded(args[3], "value")?,
                 };
-                Command::Set {
+                ConsoleCommand::Set {
                     unit: bounded(args[0], "unit")?,
                     table,
                     address: bounded(args[2], "address")?,
@@ -174,18 +174,18 @@ impl Command {
             }
             "log" => {
                 want(0..=1, "log [N]")?;
-                Command::Log(args.first().map(|s| bounded(s, "count")).transpose()?)
+                ConsoleCommand::Log(args.first().map(|s| bounded(s, "count")).transpose()?)
             }
-            "clear-log" | "clearlog" => Command::ClearLog,
-            "clear" | "cls" => Command::ClearScreen,
-            "quit" | "q" | "exit" => Command::Quit,
+            "clear-log" | "clearlog" => ConsoleCommand::ClearLog,
+            "clear" | "cls" => ConsoleCommand::ClearScreen,
+            "quit" | "q" | "exit" => ConsoleCommand::Quit,
             "slave" => {
                 let rest = line.trim_start()[first.len()..].trim();
-                match Command::parse(rest)? {
-                    Some(Command::Slave(_)) | None => {
+                match ConsoleCommand::parse(rest)? {
+                    Some(ConsoleCommand::Slave(_)) | None => {
                         return Err(BadCommand::Usage("slave COMMAND"))
                     }
-                    Some(inner) => Command::Slave(Box::new(inner)),
+                    Some(inner) => ConsoleCommand::Slave(Box::new(inner)),
                 }
             }
             other => return Err(BadCommand::Unknown(other.to_owned())),
@@ -211,10 +211,10 @@ mod tests {
 
     #[test]
     fn the_seed_menu_as_commands() {
-        let p = |s| Command::parse(s).unwrap().unwrap();
+        let p = |s| ConsoleCommand::parse(s).unwrap().unwrap();
         assert_eq!(
             p("add 2 10 10"),
-            Command::Add {
+            ConsoleCommand::Add {
                 unit: 2,
                 bits: Some(10),
                 registers: Some(10)
@@ -222,25 +222,25 @@ mod tests {
         );
         assert_eq!(
             p("add 3"),
-            Command::Add {
+            ConsoleCommand::Add {
                 unit: 3,
                 bits: None,
                 registers: None
             }
         );
-        assert_eq!(p("remove 2"), Command::Remove { unit: 2 });
-        assert_eq!(p("list"), Command::List);
-        assert_eq!(p("log"), Command::Log(None));
-        assert_eq!(p("log 5"), Command::Log(Some(5)));
-        assert_eq!(p("clear-log"), Command::ClearLog);
-        assert_eq!(p("Clear"), Command::ClearScreen);
-        assert_eq!(p("Q"), Command::Quit);
-        assert_eq!(p("input 4 on"), Command::Input { port: 4, on: true });
-        assert_eq!(p("inputs 0b00010001"), Command::Inputs(0x11));
-        assert_eq!(p("inputs 0xFF"), Command::Inputs(0xFF));
+        assert_eq!(p("remove 2"), ConsoleCommand::Remove { unit: 2 });
+        assert_eq!(p("list"), ConsoleCommand::List);
+        assert_eq!(p("log"), ConsoleCommand::Log(None));
+        assert_eq!(p("log 5"), ConsoleCommand::Log(Some(5)));
+        assert_eq!(p("clear-log"), ConsoleCommand::ClearLog);
+        assert_eq!(p("Clear"), ConsoleCommand::ClearScreen);
+        assert_eq!(p("Q"), ConsoleCommand::Quit);
+        assert_eq!(p("input 4 on"), ConsoleCommand::Input { port: 4, on: true });
+        assert_eq!(p("inputs 0b00010001"), ConsoleCommand::Inputs(0x11));
+        assert_eq!(p("inputs 0xFF"), ConsoleCommand::Inputs(0xFF));
         assert_eq!(
             p("set 1 holding 0x10 65535"),
-            Command::Set {
+            ConsoleCommand::Set {
                 unit: 1,
                 table: Table::Holding,
                 address: 16,
@@ -249,19 +249,19 @@ mod tests {
         );
         assert_eq!(
             p("set 1 coils 3 on"),
-            Command::Set {
+            ConsoleCommand::Set {
                 unit: 1,
                 table: Table::Coils,
                 address: 3,
                 value: 1
             }
         );
-        assert_eq!(Command::parse("   ").unwrap(), None);
+        assert_eq!(ConsoleCommand::parse("   ").unwrap(), None);
     }
 
     #[test]
     fn errors_say_what_is_wrong() {
-        let e = |s| Command::parse(s).unwrap_err().to_string();
+        let e = |s| ConsoleCommand::parse(s).unwrap_err().to_string();
         assert_eq!(e("add"), "usage: add UNIT [COILS [REGISTERS]]");
         assert_eq!(e("add 300"), "unit out of range: 300");
         assert_eq!(e("input 8 on"), "port out of range: 8 (0..7)");
@@ -280,13 +280,12 @@ mod tests {
 
     #[test]
     fn slave_prefix_wraps_one_command() {
-        let p = |s| Command::parse(s);
+        let p = |s| ConsoleCommand::parse(s);
         assert_eq!(
             p("slave input 3 on"),
-            Ok(Some(Command::Slave(Box::new(Command::Input {
-                port: 3,
-                on: true
-            }))))
+            Ok(Some(ConsoleCommand::Slave(Box::new(
+                ConsoleCommand::Input { port: 3, on: true }
+            ))))
         );
         let e = |s| p(s).unwrap_err().to_string();
         assert_eq!(e("slave"), "usage: slave COMMAND");

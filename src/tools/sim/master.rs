@@ -6,9 +6,9 @@
 
 use super::line::Faults;
 use super::options::Settings;
-use super::packets::Direction;
+use super::packets::PacketDirection;
 use super::role::Polling;
-use super::serve::{ConsoleRequest, Port, SimError};
+use super::serve::{ConsoleRequest, SimError, SimPort};
 use super::{Device, Profile};
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::hex::Hex;
@@ -25,7 +25,7 @@ use tracing::{info, warn};
 
 /// What the master waits for.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-enum Step {
+enum Awaited {
     /// The next period.
     Idle,
     /// The reply to the read of the slave's inputs.
@@ -43,13 +43,13 @@ pub struct Totals {
     pub(crate) timeouts: u64,
 }
 
-struct Master {
+struct SimulatedMaster {
     device: Device,
     polling: Polling,
     rx_faults: Faults,
     tx_faults: Faults,
     decoder: Framer,
-    step: Step,
+    step: Awaited,
     tid: u16,
     /// The request awaiting its reply, and when the master gives up on it.
     asked: Option<(Adu, Instant)>,
@@ -63,17 +63,17 @@ struct Master {
 pub async fn run(
     settings: Settings,
     polling: Polling,
-    port: Port,
+    port: SimPort,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> Result<Totals, SimError> {
-    let mut m = Master {
+    let mut m = SimulatedMaster {
         device: settings.device,
         polling,
         rx_faults: settings.rx_faults,
         tx_faults: settings.tx_faults,
         decoder: Framer::mbap(),
-        step: Step::Idle,
+        step: Awaited::Idle,
         tid: 0,
         asked: None,
         next_poll: Instant::now(),
@@ -85,11 +85,11 @@ pub async fn run(
         totals: Totals::default(),
     };
     let result = match port {
-        Port::Stream(mut s) => m.serve(&mut s, &mut commands, &shutdown).await,
-        Port::Listen(addr) => Err(std::io::Error::other(format!(
+        SimPort::Stream(mut s) => m.serve(&mut s, &mut commands, &shutdown).await,
+        SimPort::Listen(addr) => Err(std::io::Error::other(format!(
             "--role master sends on a serial port (--serial), not --listen {addr}"
         ))),
-        Port::Path(cfg) => {
+        SimPort::Path(cfg) => {
             let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
             loop {
                 match serial::open(&cfg) {
@@ -121,7 +121,7 @@ pub async fn run(
     result.map(|()| t).map_err(SimError::Lost)
 }
 
-impl Master {
+impl SimulatedMaster {
     fn cie(&mut self) -> &mut super::cie_m10::CieM10 {
         match &mut self.device.profile {
             Profile::CieM10(d) => d,
@@ -168,7 +168,7 @@ impl Master {
                     } else {
                         self.next_poll += self.polling.period;
                         self.next_poll = self.next_poll.max(Instant::now());
-                        self.step = Step::Read;
+                        self.step = Awaited::Read;
                     }
                 }
                 Some(req) = commands.recv() => self.command(req),
@@ -177,7 +177,7 @@ impl Master {
                     d.inputs = d.inputs.wrapping_add(1);
                 }
             }
-            if self.asked.is_none() && self.step != Step::Idle {
+            if self.asked.is_none() && self.step != Awaited::Idle {
                 self.ask(port).await?;
             }
         }
@@ -186,8 +186,8 @@ impl Master {
     /// The next query of the period, or rest until the next period.
     fn advance(&mut self) {
         self.step = match self.step {
-            Step::Read => Step::Write,
-            Step::Write | Step::Idle => Step::Idle,
+            Awaited::Read => Awaited::Write,
+            Awaited::Write | Awaited::Idle => Awaited::Idle,
         };
     }
 
@@ -198,22 +198,22 @@ impl Master {
             (d.unit, d.input_address, d.output_address, d.inputs)
         };
         let pdu = match self.step {
-            Step::Read => {
+            Awaited::Read => {
                 let [a, b] = input.to_be_bytes();
                 vec![0x03, a, b, 0, 1]
             }
-            Step::Write => {
+            Awaited::Write => {
                 let [a, b] = output.to_be_bytes();
                 vec![0x10, a, b, 0, 1, 2, 0, inputs]
             }
-            Step::Idle => return Ok(()),
+            Awaited::Idle => return Ok(()),
         };
         let adu = Adu::build(self.tid, unit, &pdu);
         self.tid = self.tid.wrapping_add(1);
         info!(target: "mbgate::tools::sim::packets", "tx {} (request)", Hex(adu.as_bytes()));
         self.device
             .log
-            .record(Direction::Tx, adu.as_bytes(), "request");
+            .record(PacketDirection::Tx, adu.as_bytes(), "request");
         let mut bytes = Vec::new();
         self.tx_faults.apply(adu.as_bytes(), &mut bytes);
         self.totals.sent += 1;
@@ -232,7 +232,7 @@ impl Master {
             info!(target: "mbgate::tools::sim::packets", "rx {} (ignored: answers nothing asked)", Hex(frame.as_bytes()));
             self.device
                 .log
-                .record(Direction::Rx, frame.as_bytes(), "ignored");
+                .record(PacketDirection::Rx, frame.as_bytes(), "ignored");
             return;
         }
         self.asked = None;
@@ -247,8 +247,8 @@ impl Master {
         info!(target: "mbgate::tools::sim::packets", "rx {} ({note})", Hex(frame.as_bytes()));
         self.device
             .log
-            .record(Direction::Rx, frame.as_bytes(), note);
-        if self.step == Step::Read && pdu.len() == 4 && pdu[..2] == [0x03, 2] {
+            .record(PacketDirection::Rx, frame.as_bytes(), note);
+        if self.step == Awaited::Read && pdu.len() == 4 && pdu[..2] == [0x03, 2] {
             let read = pdu[3];
             let d = self.cie();
             if d.outputs != read {

@@ -23,7 +23,7 @@ pub mod tcp;
 pub mod terminal;
 
 use crate::frame::function::{ExceptionCode, FunctionCode};
-use console::{Command, Table};
+use console::{ConsoleCommand, Table};
 use packets::PacketLog;
 
 /// What a device does with one request: a reply PDU (or silence, for a unit id that is
@@ -87,18 +87,18 @@ pub struct Device {
 
 /// What a console command produced.
 #[derive(Debug, Default)]
-pub(crate) struct Outcome {
+pub(crate) struct ConsoleOutcome {
     /// Text for the console.
     pub(crate) text: String,
     /// A notification PDU to send (the inputs changed).
     pub(crate) notification: Option<Vec<u8>>,
     /// The console asked to stop; only the unit tests read it (the terminal stops
-    /// on `Command::Quit` itself, src/tools/sim/terminal.rs).
+    /// on `ConsoleCommand::Quit` itself, src/tools/sim/terminal.rs).
     #[allow(dead_code)]
     pub(crate) quit: bool,
 }
 
-impl Outcome {
+impl ConsoleOutcome {
     fn text(text: impl Into<String>) -> Self {
         Self {
             text: text.into(),
@@ -225,46 +225,48 @@ impl Device {
     }
 
     /// Carries out a console command.
-    pub(crate) fn execute(&mut self, cmd: Command) -> Outcome {
+    pub(crate) fn execute(&mut self, cmd: ConsoleCommand) -> ConsoleOutcome {
         match cmd {
-            Command::Help => Outcome::text(console::HELP),
-            Command::Slave(_) => {
-                Outcome::text("`slave` commands are for the slave of mbgate demo --master")
+            ConsoleCommand::Help => ConsoleOutcome::text(console::HELP),
+            ConsoleCommand::Slave(_) => {
+                ConsoleOutcome::text("`slave` commands are for the slave of mbgate demo --master")
             }
-            Command::List => Outcome::text(self.list()),
-            Command::Log(n) => Outcome::text(self.log.render(n).trim_end().to_string()),
-            Command::ClearLog => {
+            ConsoleCommand::List => ConsoleOutcome::text(self.list()),
+            ConsoleCommand::Log(n) => {
+                ConsoleOutcome::text(self.log.render(n).trim_end().to_string())
+            }
+            ConsoleCommand::ClearLog => {
                 let n = self.log.len();
                 self.log.clear();
-                Outcome::text(format!("cleared {n} packets"))
+                ConsoleOutcome::text(format!("cleared {n} packets"))
             }
-            Command::ClearScreen => Outcome::text("\x1b[2J\x1b[H"),
-            Command::Quit => Outcome {
+            ConsoleCommand::ClearScreen => ConsoleOutcome::text("\x1b[2J\x1b[H"),
+            ConsoleCommand::Quit => ConsoleOutcome {
                 quit: true,
-                ..Outcome::text("bye")
+                ..ConsoleOutcome::text("bye")
             },
-            Command::Add {
+            ConsoleCommand::Add {
                 unit,
                 bits,
                 registers,
             } => self.console_add(unit, bits, registers),
-            Command::Remove { unit } => match &mut self.profile {
+            ConsoleCommand::Remove { unit } => match &mut self.profile {
                 Profile::Generic(g) => match g.units.remove(&unit) {
-                    Some(_) => Outcome::text(format!("removed unit {unit}")),
-                    None => Outcome::text(format!("no unit {unit}")),
+                    Some(_) => ConsoleOutcome::text(format!("removed unit {unit}")),
+                    None => ConsoleOutcome::text(format!("no unit {unit}")),
                 },
-                Profile::CieM10(_) => Outcome::text("the cie-m10 profile is one device"),
-                Profile::Replay(_) => Outcome::text("a replay has the units it recorded"),
+                Profile::CieM10(_) => ConsoleOutcome::text("the cie-m10 profile is one device"),
+                Profile::Replay(_) => ConsoleOutcome::text("a replay has the units it recorded"),
             },
-            Command::Input { port, on } => self.cie_inputs(|inputs| {
+            ConsoleCommand::Input { port, on } => self.cie_inputs(|inputs| {
                 if on {
                     inputs | 1 << port
                 } else {
                     inputs & !(1 << port)
                 }
             }),
-            Command::Inputs(v) => self.cie_inputs(|_| v),
-            Command::Set {
+            ConsoleCommand::Inputs(v) => self.cie_inputs(|_| v),
+            ConsoleCommand::Set {
                 unit,
                 table,
                 address,
@@ -273,52 +275,59 @@ impl Device {
         }
     }
 
-    fn console_add(&mut self, unit: u8, bits: Option<usize>, registers: Option<usize>) -> Outcome {
+    fn console_add(
+        &mut self,
+        unit: u8,
+        bits: Option<usize>,
+        registers: Option<usize>,
+    ) -> ConsoleOutcome {
         let Profile::Generic(g) = &self.profile else {
-            return Outcome::text("the cie-m10 profile is one device; use --profile generic");
+            return ConsoleOutcome::text(
+                "the cie-m10 profile is one device; use --profile generic",
+            );
         };
         let bits = bits.unwrap_or(self.default_bits);
         let registers = registers.unwrap_or(self.default_registers);
         let sizes = generic::MIN_SIZE..=generic::MAX_SIZE;
         if !(1..=247).contains(&unit) {
-            return Outcome::text(format!("unit must be 1..247, not {unit}"));
+            return ConsoleOutcome::text(format!("unit must be 1..247, not {unit}"));
         }
         if !sizes.contains(&bits) || !sizes.contains(&registers) {
-            return Outcome::text(format!(
+            return ConsoleOutcome::text(format!(
                 "coils and registers must be {}..{}",
                 generic::MIN_SIZE,
                 generic::MAX_SIZE
             ));
         }
         if g.units.contains_key(&unit) {
-            return Outcome::text(format!("unit {unit} exists; remove it first"));
+            return ConsoleOutcome::text(format!("unit {unit} exists; remove it first"));
         }
         self.add(unit, bits, registers);
-        Outcome::text(format!(
+        ConsoleOutcome::text(format!(
             "added unit {unit}: {bits} coils, {registers} registers"
         ))
     }
 
-    fn cie_inputs(&mut self, f: impl FnOnce(u8) -> u8) -> Outcome {
+    fn cie_inputs(&mut self, f: impl FnOnce(u8) -> u8) -> ConsoleOutcome {
         let Profile::CieM10(d) = &mut self.profile else {
-            return Outcome::text(
+            return ConsoleOutcome::text(
                 "inputs are the cie-m10 profile's; use `set` for generic devices",
             );
         };
         let changed = d.set_inputs(f(d.inputs));
-        Outcome {
+        ConsoleOutcome {
             text: format!("inputs {:08b}", d.inputs),
             notification: changed.then(|| d.notification()).flatten(),
             quit: false,
         }
     }
 
-    fn set(&mut self, unit: u8, table: Table, address: u16, value: u16) -> Outcome {
+    fn set(&mut self, unit: u8, table: Table, address: u16, value: u16) -> ConsoleOutcome {
         let Profile::Generic(g) = &mut self.profile else {
-            return Outcome::text("`set` is for generic devices; use `input` or `inputs`");
+            return ConsoleOutcome::text("`set` is for generic devices; use `input` or `inputs`");
         };
         let Some(bank) = g.units.get_mut(&unit) else {
-            return Outcome::text(format!("no unit {unit}"));
+            return ConsoleOutcome::text(format!("no unit {unit}"));
         };
         let a = usize::from(address);
         let ok = match table {
@@ -328,8 +337,8 @@ impl Device {
             Table::Input => bank.input.get_mut(a).map(|s| *s = value),
         };
         match ok {
-            Some(()) => Outcome::text(format!("unit {unit} {table} {address} = {value}")),
-            None => Outcome::text(format!("unit {unit} has no {table} {address}")),
+            Some(()) => ConsoleOutcome::text(format!("unit {unit} {table} {address} = {value}")),
+            None => ConsoleOutcome::text(format!("unit {unit} has no {table} {address}")),
         }
     }
 

@@ -10,7 +10,7 @@ use std::time::Instant;
 pub(crate) const CAPACITY: usize = 1000;
 
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(crate) enum Direction {
+pub(crate) enum PacketDirection {
     /// A request the simulator received.
     Rx,
     /// A reply or notification it sent.
@@ -18,9 +18,9 @@ pub(crate) enum Direction {
 }
 
 #[derive(Debug, Clone)]
-pub(crate) struct Entry {
+pub(crate) struct PacketEntry {
     pub(crate) at: Instant,
-    pub(crate) direction: Direction,
+    pub(crate) direction: PacketDirection,
     pub(crate) bytes: Vec<u8>,
     /// What happened to it: "reply", "ignored: busy", "notification", ...
     pub(crate) note: &'static str,
@@ -29,7 +29,7 @@ pub(crate) struct Entry {
 #[derive(Debug)]
 pub(crate) struct PacketLog {
     start: Instant,
-    entries: VecDeque<Entry>,
+    entries: VecDeque<PacketEntry>,
     /// Entries ever recorded, including forgotten ones.
     pub(crate) total: u64,
 }
@@ -45,11 +45,11 @@ impl Default for PacketLog {
 }
 
 impl PacketLog {
-    pub(crate) fn record(&mut self, direction: Direction, bytes: &[u8], note: &'static str) {
+    pub(crate) fn record(&mut self, direction: PacketDirection, bytes: &[u8], note: &'static str) {
         if self.entries.len() == CAPACITY {
             self.entries.pop_front();
         }
-        self.entries.push_back(Entry {
+        self.entries.push_back(PacketEntry {
             at: Instant::now(),
             direction,
             bytes: bytes.to_vec(),
@@ -87,15 +87,15 @@ impl PacketLog {
 
 /// One entry of the log as a line of text: its time since the log began, its way,
 /// its bytes.
-struct LogLine<'a>(Instant, &'a Entry);
+struct LogLine<'a>(Instant, &'a PacketEntry);
 
 impl fmt::Display for LogLine<'_> {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         let LogLine(start, e) = self;
         let t = e.at.saturating_duration_since(*start).as_secs_f64();
         let dir = match e.direction {
-            Direction::Rx => "rx",
-            Direction::Tx => "tx",
+            PacketDirection::Rx => "rx",
+            PacketDirection::Tx => "tx",
         };
         write!(f, "{t:10.3} {dir} {} ({})", Hex(&e.bytes), e.note)
     }
@@ -110,7 +110,7 @@ mod tests {
         let mut log = PacketLog::default();
         assert_eq!(log.render(None), "(no packets)\n");
         for i in 0..(CAPACITY + 5) {
-            log.record(Direction::Rx, &[i as u8], "request");
+            log.record(PacketDirection::Rx, &[i as u8], "request");
         }
         assert_eq!((log.len(), log.total), (CAPACITY, CAPACITY as u64 + 5));
         let last = log.render(Some(2));

@@ -4,7 +4,7 @@
 //! `mbgate demo --master` (where the user's own reads reach it too). One connection at
 //! a time, in any framing, is `serve/tcp.rs`.
 
-use super::packets::Direction;
+use super::packets::PacketDirection;
 use super::serve::ConsoleRequest;
 use super::Device;
 use crate::frame::hex::Hex;
@@ -82,7 +82,7 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
         while let Ok(Some(req)) = decode_strict(&mut buf) {
             let answer = {
                 let mut d = device.lock().expect("not poisoned");
-                d.log.record(Direction::Rx, req.as_bytes(), "request");
+                d.log.record(PacketDirection::Rx, req.as_bytes(), "request");
                 d.answer(req.unit(), req.pdu())
             };
             info!(target: "mbgate::tools::sim::packets", "rx {} (request)", Hex(req.as_bytes()));
@@ -97,7 +97,7 @@ async fn connection(stream: TcpStream, device: Arc<Mutex<Device>>, shutdown: Can
             let reply = Adu::build(req.tid(), req.unit(), &pdu);
             info!(target: "mbgate::tools::sim::packets", "tx {} (reply)", Hex(reply.as_bytes()));
             device.lock().expect("not poisoned").log.record(
-                Direction::Tx,
+                PacketDirection::Tx,
                 reply.as_bytes(),
                 "reply",
             );

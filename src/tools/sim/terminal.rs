@@ -3,7 +3,7 @@
 //! thread, not a tokio task, because a blocking read of stdin cannot be cancelled and
 //! would hold up the runtime's shutdown.
 
-use super::console::Command;
+use super::console::ConsoleCommand;
 use super::serve::ConsoleRequest;
 use std::io::{BufRead, Write};
 use tokio::sync::{mpsc, oneshot};
@@ -45,10 +45,10 @@ fn read_lines(tx: mpsc::Sender<ConsoleRequest>) {
     let stdin = std::io::stdin();
     for line in stdin.lock().lines() {
         let Ok(line) = line else { break };
-        match Command::parse(&line) {
+        match ConsoleCommand::parse(&line) {
             Ok(None) => {}
             Ok(Some(command)) => {
-                let quit = command == Command::Quit;
+                let quit = command == ConsoleCommand::Quit;
                 let (reply, answer) = oneshot::channel();
                 if tx.blocking_send(ConsoleRequest { command, reply }).is_err() {
                     return;

@@ -2,8 +2,8 @@
 
 use super::*;
 
-fn run(d: &mut Device, line: &str) -> Outcome {
-    d.execute(Command::parse(line).unwrap().unwrap())
+fn run(d: &mut Device, line: &str) -> ConsoleOutcome {
+    d.execute(ConsoleCommand::parse(line).unwrap().unwrap())
 }
 
 #[test]

@@ -105,7 +105,7 @@ pub(super) trait Queued: Sized {
 /// A queued request, and the write epoch of its unit when it was queued: it may be
 /// joined only while no request that acts on its unit has been queued since.
 #[derive(Debug)]
-struct Entry<R> {
+struct QueuedRequest<R> {
     req: R,
     epoch: (u64, u64),
 }
@@ -117,7 +117,7 @@ pub(super) struct Scheduler<R> {
     /// Whether an identical read may join one waiting (`coalesce`).
     coalesce: bool,
     /// The requests waiting, by number (the order they were queued in).
-    waiting: Waiting<Entry<R>>,
+    waiting: Waiting<QueuedRequest<R>>,
     /// The number the next request queued gets.
     next_number: u64,
     /// Each master's waiting requests, its own and those it joined, as numbers in the
@@ -247,7 +247,7 @@ impl<R: Queued> Scheduler<R> {
                     self.joinable.insert(key, number);
                 }
                 let epoch = self.epoch(req.unit());
-                self.waiting.push(number, Entry { req, epoch });
+                self.waiting.push(number, QueuedRequest { req, epoch });
                 self.enlist(conn, number);
                 Admitted::Queued
             }

@@ -64,7 +64,7 @@ pub(crate) enum ClientError {
 /// The way to the device: a TCP connection (opened on first use, reopened after an
 /// error) or a serial port (likewise).
 #[derive(Debug)]
-pub(crate) enum Transport {
+pub(crate) enum ClientTransport {
     Tcp {
         addr: String,
         stream: Option<TcpStream>,
@@ -86,9 +86,9 @@ pub(crate) enum Transport {
     },
 }
 
-impl Transport {
+impl ClientTransport {
     /// `HOST[:PORT]`; port 502 if left out.
-    pub(crate) fn tcp(addr: &str) -> Transport {
+    pub(crate) fn tcp(addr: &str) -> ClientTransport {
         let has_port = addr.parse::<std::net::SocketAddr>().is_ok()
             || addr.rsplit_once(':').is_some_and(|(host, port)| {
                 !host.is_empty() && !host.ends_with(':') && port.parse::<u16>().is_ok()
@@ -100,32 +100,32 @@ impl Transport {
         } else {
             format!("{addr}:{MODBUS_PORT}")
         };
-        Transport::Tcp {
+        ClientTransport::Tcp {
             addr,
             stream: None,
             buf: BytesMut::new(),
         }
     }
 
-    /// `HOST[:PORT]` as [`Transport::tcp`], its frames in `framing` (MBAP: [`Transport::tcp`]).
-    pub(crate) fn tcp_framed(addr: &str, framing: Framing) -> Transport {
+    /// `HOST[:PORT]` as [`ClientTransport::tcp`], its frames in `framing` (MBAP: [`ClientTransport::tcp`]).
+    pub(crate) fn tcp_framed(addr: &str, framing: Framing) -> ClientTransport {
         let codec = match framing {
-            Framing::Mbap => return Transport::tcp(addr),
+            Framing::Mbap => return ClientTransport::tcp(addr),
             Framing::Rtu => crate::frame::serial::Codec::Rtu,
             Framing::Ascii => crate::frame::serial::Codec::Ascii,
         };
-        let Transport::Tcp { addr, .. } = Transport::tcp(addr) else {
-            unreachable!("Transport::tcp gives a Tcp transport")
+        let ClientTransport::Tcp { addr, .. } = ClientTransport::tcp(addr) else {
+            unreachable!("ClientTransport::tcp gives a Tcp transport")
         };
-        Transport::TcpFramed {
+        ClientTransport::TcpFramed {
             addr,
             stream: None,
             decoder: Framer::serial(codec),
         }
     }
 
-    pub(crate) fn serial(cfg: SerialConfig) -> Transport {
-        Transport::Serial {
+    pub(crate) fn serial(cfg: SerialConfig) -> ClientTransport {
+        ClientTransport::Serial {
             decoder: cfg.framing.framer(),
             cfg,
             port: None,
@@ -136,33 +136,32 @@ impl Transport {
     /// unit and PDU in that framing, check included.
     pub(crate) fn wire(&self, adu: &Adu) -> Vec<u8> {
         match self {
-            Transport::Serial { decoder, .. } | Transport::TcpFramed { decoder, .. } => {
-                decoder.encode(adu)
-            }
-            Transport::Tcp { .. } => adu.as_bytes().to_vec(),
+            ClientTransport::Serial { decoder, .. }
+            | ClientTransport::TcpFramed { decoder, .. } => decoder.encode(adu),
+            ClientTransport::Tcp { .. } => adu.as_bytes().to_vec(),
         }
     }
 
     /// What error messages call it: the address or the port's path.
     pub(crate) fn name(&self) -> &str {
         match self {
-            Transport::Tcp { addr, .. } | Transport::TcpFramed { addr, .. } => addr,
-            Transport::Serial { cfg, .. } => &cfg.path,
+            ClientTransport::Tcp { addr, .. } | ClientTransport::TcpFramed { addr, .. } => addr,
+            ClientTransport::Serial { cfg, .. } => &cfg.path,
         }
     }
 
     /// Forgets the connection or port; the next request opens it again.
     fn close(&mut self) {
         match self {
-            Transport::Tcp { stream, buf, .. } => {
+            ClientTransport::Tcp { stream, buf, .. } => {
                 *stream = None;
                 buf.clear();
             }
-            Transport::Serial { port, decoder, .. } => {
+            ClientTransport::Serial { port, decoder, .. } => {
                 *port = None;
                 decoder.clear();
             }
-            Transport::TcpFramed {
+            ClientTransport::TcpFramed {
                 stream, decoder, ..
             } => {
                 *stream = None;
@@ -208,7 +207,7 @@ pub(crate) struct Exchange {
 }
 
 /// What a transport hands back before decoding.
-struct Received {
+struct TransportReply {
     reply: Adu,
     round_trip: Duration,
     ignored: Vec<Adu>,
@@ -220,13 +219,13 @@ struct Received {
 /// step 3) and waits for each answer, bounded by the timeout.
 #[derive(Debug)]
 pub(crate) struct Master {
-    transport: Transport,
+    transport: ClientTransport,
     timeout: Duration,
     next_tid: u16,
 }
 
 impl Master {
-    pub(crate) fn new(transport: Transport, timeout: Duration) -> Master {
+    pub(crate) fn new(transport: ClientTransport, timeout: Duration) -> Master {
         Master {
             transport,
             timeout,
@@ -234,7 +233,7 @@ impl Master {
         }
     }
 
-    pub(crate) fn transport(&self) -> &Transport {
+    pub(crate) fn transport(&self) -> &ClientTransport {
         &self.transport
     }
 
@@ -253,13 +252,13 @@ impl Master {
         let deadline = Instant::now() + self.timeout;
         let ms = self.timeout.as_millis() as u64;
         let received = match &mut self.transport {
-            Transport::Tcp { addr, stream, buf } => {
+            ClientTransport::Tcp { addr, stream, buf } => {
                 tcp_exchange(addr, stream, buf, request, deadline, ms).await
             }
-            Transport::Serial { cfg, port, decoder } => {
+            ClientTransport::Serial { cfg, port, decoder } => {
                 serial_exchange(cfg, port, decoder, request, deadline, ms).await
             }
-            Transport::TcpFramed {
+            ClientTransport::TcpFramed {
                 addr,
                 stream,
                 decoder,
@@ -330,7 +329,7 @@ async fn tcp_exchange(
     request: &Adu,
     deadline: Instant,
     ms: u64,
-) -> Result<Received, ClientError> {
+) -> Result<TransportReply, ClientError> {
     let target = || addr.to_string();
     let s = connected(addr, stream, deadline, ms, || buf.clear()).await?;
     let start = Instant::now();
@@ -390,7 +389,7 @@ async fn serial_exchange(
     request: &Adu,
     deadline: Instant,
     ms: u64,
-) -> Result<Received, ClientError> {
+) -> Result<TransportReply, ClientError> {
     let target = || cfg.path.clone();
     let fresh = port.is_none();
     let p = open_port(cfg, port)?;
@@ -507,13 +506,13 @@ fn received(
     start: Instant,
     ignored: Vec<Adu>,
     dropped_bytes: u64,
-) -> Result<Received, ClientError> {
+) -> Result<TransportReply, ClientError> {
     match result {
         Err(_) => Err(ClientError::Timeout {
             target: target(),
             ms,
         }),
-        Ok(result) => result.map(|reply| Received {
+        Ok(result) => result.map(|reply| TransportReply {
             reply,
             round_trip: start.elapsed(),
             ignored,

@@ -3,7 +3,7 @@
 //! and no MBAP header; the reply is the first frame from the unit asked whose check
 //! holds, ended by its length (or, for a reply of unknown shape, a pause).
 
-use super::{connected, received, ClientError, Received};
+use super::{connected, received, ClientError, TransportReply};
 use crate::frame::framer::{Framed, Framer, ReplyFor};
 use crate::frame::Adu;
 use std::time::Duration;
@@ -22,7 +22,7 @@ pub(super) async fn exchange(
     request: &Adu,
     deadline: Instant,
     ms: u64,
-) -> Result<Received, ClientError> {
+) -> Result<TransportReply, ClientError> {
     let target = || addr.to_string();
     let s = connected(addr, stream, deadline, ms, || {
         decoder.clear();

@@ -4,7 +4,7 @@ use super::*;
 
 #[test]
 fn transaction_ids_skip_zero() {
-    let mut m = Master::new(Transport::tcp("127.0.0.1"), Duration::from_secs(1));
+    let mut m = Master::new(ClientTransport::tcp("127.0.0.1"), Duration::from_secs(1));
     assert_eq!(m.next_tid(), 1);
     assert_eq!(m.next_tid(), 2);
     m.next_tid = 0xFFFF;

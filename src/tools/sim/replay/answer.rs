@@ -2,7 +2,7 @@
 //! passed in): as the device answered it, or as it would have from what it was seen
 //! to hold (docs/simulator.md "Replaying a device", the rules in order).
 
-use super::model::{is_write, Model, Outcome, Unit};
+use super::model::{is_write, Model, ReplayOutcome, Unit};
 use crate::tools::sim::generic::{pack, registers};
 
 /// What the user chose for what the capture does not say.
@@ -56,14 +56,14 @@ impl Model {
         }
         // 1. This very request was seen: an exception or silence as then.
         match u.outcomes.get(pdu) {
-            Some((_, Outcome::Exception(c))) => return exception(*c),
-            Some((_, Outcome::Silent)) => return None,
+            Some((_, ReplayOutcome::Exception(c))) => return exception(*c),
+            Some((_, ReplayOutcome::Silent)) => return None,
             _ => {}
         }
         // Every request of this function went unanswered: it is not answered now.
         let mut of_function = u.outcomes.iter().filter(|(q, _)| q[0] == function);
         let seen_function = of_function.clone().next().is_some();
-        if seen_function && of_function.all(|(_, (_, o))| *o == Outcome::Silent) {
+        if seen_function && of_function.all(|(_, (_, o))| *o == ReplayOutcome::Silent) {
             return None;
         }
         match function {
@@ -108,7 +108,7 @@ impl Model {
             }
             // 4. Anything else: its recorded reply, else an exception.
             _ => match u.outcomes.get(pdu) {
-                Some((_, Outcome::Reply(r))) => Some(r.clone()),
+                Some((_, ReplayOutcome::Reply(r))) => Some(r.clone()),
                 _ if seen_function => exception(choices.unknown),
                 _ => exception(ILLEGAL_FUNCTION),
             },
@@ -120,7 +120,7 @@ impl Model {
 mod tests {
     use super::*;
     use crate::config::Framing;
-    use crate::tools::sim::replay::learn::{Observation, Seen};
+    use crate::tools::sim::replay::learn::{Observation, RecordedReply};
 
     fn model() -> Model {
         let mut m = Model::default();
@@ -142,7 +142,7 @@ mod tests {
                 at_us: at,
                 unit,
                 request: q.to_vec(),
-                seen: r.map_or(Seen::Silent, |r| Seen::Reply(r.to_vec())),
+                seen: r.map_or(RecordedReply::Silent, |r| RecordedReply::Reply(r.to_vec())),
                 turnaround_us: r.map(|_| 1000),
                 own_us: r.map(|_| 1000),
                 framing: Framing::Rtu,

@@ -15,7 +15,7 @@ use crate::ops::capture::pcapng_read::{exported, Read};
 
 /// What the device did with one request.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub(crate) enum Seen {
+pub(crate) enum RecordedReply {
     /// It answered with this PDU (an exception response too).
     Reply(Vec<u8>),
     /// It said nothing before the gateway's timeout.
@@ -30,7 +30,7 @@ pub(crate) struct Observation {
     pub(crate) unit: u8,
     /// The request PDU.
     pub(crate) request: Vec<u8>,
-    pub(crate) seen: Seen,
+    pub(crate) seen: RecordedReply,
     /// Request out to reply in, for a reply.
     pub(crate) turnaround_us: Option<u64>,
     /// Of that, the device's own time: less the time the request and the reply took
@@ -65,7 +65,7 @@ fn frame(dissector: &str, payload: &[u8], ascii: bool) -> Option<(Framing, u16, 
 
 /// The requests still waiting for their answer on one line.
 #[derive(Debug, Default)]
-struct Waiting {
+struct Unanswered {
     queries: Vec<(u64, Framing, u16, u8, Vec<u8>)>,
 }
 
@@ -79,10 +79,10 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
         .collect();
     // (index into `out`, line, wire time) of each reply.
     let mut timed: Vec<(usize, usize, u64)> = Vec::new();
-    let mut waiting: Vec<Waiting> = capture
+    let mut waiting: Vec<Unanswered> = capture
         .interfaces
         .iter()
-        .map(|_| Waiting::default())
+        .map(|_| Unanswered::default())
         .collect();
     let mut out = Vec::new();
     for p in &capture.packets {
@@ -105,7 +105,7 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
                     at_us,
                     unit,
                     request,
-                    seen: Seen::Silent,
+                    seen: RecordedReply::Silent,
                     turnaround_us: None,
                     own_us: None,
                     framing,
@@ -148,7 +148,7 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
                 at_us,
                 unit,
                 request,
-                seen: Seen::Reply(pdu),
+                seen: RecordedReply::Reply(pdu),
                 turnaround_us: Some(p.at_us.saturating_sub(at_us)),
                 own_us: None,
                 framing,
@@ -254,7 +254,7 @@ mod tests {
             ..Default::default()
         });
         data.extend(bytes);
-        pcapng::packet(&pcapng::Packet {
+        pcapng::packet(&pcapng::EnhancedPacket {
             interface: iface,
             at_us,
             data: &data,
@@ -326,9 +326,9 @@ mod tests {
         assert_eq!(
             brief,
             [
-                (100, 1, Seen::Reply(vec![3, 2, 0, 7]), Some(1500)),
-                (2000, 2, Seen::Reply(vec![0x83, 2]), Some(500)),
-                (3000, 3, Seen::Silent, None),
+                (100, 1, RecordedReply::Reply(vec![3, 2, 0, 7]), Some(1500)),
+                (2000, 2, RecordedReply::Reply(vec![0x83, 2]), Some(500)),
+                (3000, 3, RecordedReply::Silent, None),
             ]
         );
         assert!(got.iter().all(|o| o.framing == Framing::Rtu));
@@ -443,19 +443,19 @@ mod tests {
                 (
                     4,
                     vec![1, 0, 1],
-                    Seen::Reply(vec![3, 2, 0, 2]),
+                    RecordedReply::Reply(vec![3, 2, 0, 2]),
                     Framing::Mbap
                 ),
                 (
                     4,
                     vec![0, 0, 1],
-                    Seen::Reply(vec![3, 2, 0, 1]),
+                    RecordedReply::Reply(vec![3, 2, 0, 1]),
                     Framing::Mbap
                 ),
                 (
                     7,
                     vec![0, 0, 1],
-                    Seen::Reply(vec![3, 2, 0, 9]),
+                    RecordedReply::Reply(vec![3, 2, 0, 9]),
                     Framing::Ascii
                 ),
             ]

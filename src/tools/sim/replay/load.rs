@@ -4,7 +4,7 @@
 //! (docs/simulator.md "Replaying a device").
 
 use super::learn::{observations, Observation};
-use super::model::{Model, Outcome};
+use super::model::{Model, ReplayOutcome};
 use super::{Choices, Replay};
 use crate::ops::capture::pcapng_read;
 use std::fmt::Write as _;
@@ -110,9 +110,10 @@ fn summary(m: &Model, files: usize, requests: usize, c: &Choices) -> String {
         } else {
             known.join(", ")
         };
-        let count = |f: fn(&Outcome) -> bool| u.outcomes.values().filter(|(_, o)| f(o)).count();
-        let exceptions = count(|o| matches!(o, Outcome::Exception(_)));
-        let silent = count(|o| *o == Outcome::Silent);
+        let count =
+            |f: fn(&ReplayOutcome) -> bool| u.outcomes.values().filter(|(_, o)| f(o)).count();
+        let exceptions = count(|o| matches!(o, ReplayOutcome::Exception(_)));
+        let silent = count(|o| *o == ReplayOutcome::Silent);
         let framing = u.framing.map_or("?", |f| f.name());
         let _ = write!(
             s,

@@ -4,7 +4,7 @@
 //! (docs/simulator.md "Replaying a device"). Built by applying observations in time
 //! order, so where captures disagree the latest wins.
 
-use super::learn::{Observation, Seen};
+use super::learn::{Observation, RecordedReply};
 use crate::config::Framing;
 use std::collections::{BTreeMap, HashMap};
 
@@ -50,7 +50,7 @@ impl Cell {
 
 /// What a unit did with one distinct request PDU, the latest time it was asked.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub(crate) enum Outcome {
+pub(crate) enum ReplayOutcome {
     /// Its reply (a normal response).
     Reply(Vec<u8>),
     /// An exception response with this code.
@@ -65,7 +65,7 @@ pub(crate) struct Unit {
     /// Coils, discrete inputs, holding and input registers, by address.
     pub(crate) tables: [BTreeMap<u16, Cell>; 4],
     /// By request PDU: (when, what came of it).
-    pub(crate) outcomes: HashMap<Vec<u8>, (u64, Outcome)>,
+    pub(crate) outcomes: HashMap<Vec<u8>, (u64, ReplayOutcome)>,
     /// The latest exception it gave to a write (FC 05, 06, 0F, 10, 16, 17), and when.
     pub(crate) write_exception: Option<(u64, u8)>,
     /// Request out to reply in, µs, sorted (as recorded, for the summary).
@@ -202,15 +202,15 @@ impl Model {
         let unit = self.units.entry(o.unit).or_default();
         unit.framing.get_or_insert(o.framing);
         let outcome = match &o.seen {
-            Seen::Silent => Outcome::Silent,
-            Seen::Reply(pdu) if pdu.first().is_some_and(|f| f & 0x80 != 0) => {
+            RecordedReply::Silent => ReplayOutcome::Silent,
+            RecordedReply::Reply(pdu) if pdu.first().is_some_and(|f| f & 0x80 != 0) => {
                 let code = pdu.get(1).copied().unwrap_or(0);
                 if is_write(function) {
                     unit.write_exception = Some((o.at_us, code));
                 }
-                Outcome::Exception(code)
+                ReplayOutcome::Exception(code)
             }
-            Seen::Reply(pdu) => {
+            RecordedReply::Reply(pdu) => {
                 match function {
                     1..=4 => unit.learn_read(o.at_us, &o.request, pdu),
                     _ => {
@@ -221,7 +221,7 @@ impl Model {
                         }
                     }
                 }
-                Outcome::Reply(pdu.clone())
+                ReplayOutcome::Reply(pdu.clone())
             }
         };
         if let Some(t) = o.turnaround_us {
@@ -252,7 +252,7 @@ mod tests {
             at_us,
             unit,
             request: request.to_vec(),
-            seen: reply.map_or(Seen::Silent, |r| Seen::Reply(r.to_vec())),
+            seen: reply.map_or(RecordedReply::Silent, |r| RecordedReply::Reply(r.to_vec())),
             turnaround_us: reply.map(|_| at_us % 1000),
             own_us: reply.map(|_| at_us % 1000),
             framing: Framing::Rtu,
@@ -285,10 +285,13 @@ mod tests {
             .collect();
         assert_eq!(coils, [1, 0, 1, 0, 0, 0, 0, 0, 0, 1]);
         assert_eq!(u.write_exception, Some((5000, 2)));
-        assert_eq!(u.outcomes[&vec![6, 0, 99, 0, 9]].1, Outcome::Exception(2));
+        assert_eq!(
+            u.outcomes[&vec![6, 0, 99, 0, 9]].1,
+            ReplayOutcome::Exception(2)
+        );
         assert_eq!(
             m.units[&2].outcomes[&vec![4, 0, 0, 0, 1]].1,
-            Outcome::Silent
+            ReplayOutcome::Silent
         );
         assert_eq!(u.known(), ["coils 0-9 (10)", "holding registers 10-11 (2)"]);
         assert_eq!(u.turnarounds_us, [0, 0, 0, 0, 0]);

@@ -3,10 +3,10 @@
 //! and sends replies and notifications through the line model. The console talks to
 //! it over a channel.
 
-use super::console::Command;
+use super::console::ConsoleCommand;
 use super::line::{Chunker, Faults, Pacer};
 use super::options::Settings;
-use super::packets::Direction;
+use super::packets::PacketDirection;
 use super::Device;
 use crate::config::SerialConfig;
 use crate::frame::framer::{Framed, Framer};
@@ -29,13 +29,13 @@ mod tcp;
 /// A console command and where its answer goes.
 #[derive(Debug)]
 pub struct ConsoleRequest {
-    pub(crate) command: Command,
+    pub(crate) command: ConsoleCommand,
     pub(crate) reply: oneshot::Sender<String>,
 }
 
 /// Where the simulated device sits.
 #[derive(Debug)]
-pub enum Port {
+pub enum SimPort {
     /// A serial port or pty by path, reopened with backoff when it goes away.
     Path(SerialConfig),
     /// An open pty end (`mbgate demo`); losing it ends the simulator.
@@ -102,7 +102,7 @@ pub(crate) async fn until_precisely(timer: Option<&mut PreciseTimer>, due: Insta
 }
 
 /// How a session on one open port ended.
-enum End {
+enum SessionEnd {
     Shutdown,
     Lost(std::io::Error),
 }
@@ -130,16 +130,16 @@ struct Sim {
 /// Runs the simulator until `shutdown` (or the console's `quit`).
 pub async fn run(
     settings: Settings,
-    port: Port,
+    port: SimPort,
     mut commands: mpsc::Receiver<ConsoleRequest>,
     shutdown: CancellationToken,
 ) -> Result<(), SimError> {
     let paced = match &port {
         // Judged each time it opens (below): a pty may not exist yet.
-        Port::Path(_) => false,
-        Port::Stream(_) => true,
+        SimPort::Path(_) => false,
+        SimPort::Stream(_) => true,
         // A socket has no byte rate to model.
-        Port::Listen(_) => false,
+        SimPort::Listen(_) => false,
     };
     let baud = paced.then(|| pty_pace(settings.baud)).flatten();
     let mut device = settings.device;
@@ -179,18 +179,18 @@ pub async fn run(
     });
 
     match port {
-        Port::Listen(addr) => tcp::listen(&mut sim, addr, &mut commands, ticks, &shutdown).await,
-        Port::Stream(mut stream) => {
+        SimPort::Listen(addr) => tcp::listen(&mut sim, addr, &mut commands, ticks, &shutdown).await,
+        SimPort::Stream(mut stream) => {
             info!("simulating {} on a pty", sim.describe());
             match sim
                 .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
                 .await
             {
-                End::Shutdown => Ok(()),
-                End::Lost(e) => Err(SimError::Lost(e)),
+                SessionEnd::Shutdown => Ok(()),
+                SessionEnd::Lost(e) => Err(SimError::Lost(e)),
             }
         }
-        Port::Path(cfg) => {
+        SimPort::Path(cfg) => {
             let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
             let mut reported = false;
             loop {
@@ -211,8 +211,8 @@ pub async fn run(
                             .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
                             .await
                         {
-                            End::Shutdown => return Ok(()),
-                            End::Lost(e) => {
+                            SessionEnd::Shutdown => return Ok(()),
+                            SessionEnd::Lost(e) => {
                                 warn!(serial = %cfg.path, "port lost ({e}); reopening");
                             }
                         }
@@ -270,7 +270,7 @@ impl Sim {
         commands: &mut mpsc::Receiver<ConsoleRequest>,
         mut ticks: Option<&mut tokio::time::Interval>,
         shutdown: &CancellationToken,
-    ) -> End {
+    ) -> SessionEnd {
         self.serving = true;
         let mut buf = vec![0u8; 4096];
         let mut timer = PreciseTimer::new()
@@ -282,16 +282,16 @@ impl Sim {
             let partial = self.decoder.buffered() > 0;
             tokio::select! {
                 biased;
-                _ = shutdown.cancelled() => break End::Shutdown,
+                _ = shutdown.cancelled() => break SessionEnd::Shutdown,
                 _ = until_precisely(timer.as_mut(), due.unwrap_or_else(Instant::now)), if due.is_some() => {
                     if let Err(e) = self.send_due(port).await {
-                        break End::Lost(e);
+                        break SessionEnd::Lost(e);
                     }
                 }
                 r = AsyncReadExt::read(port, &mut buf) => match r {
-                    Ok(0) => break End::Lost(std::io::ErrorKind::UnexpectedEof.into()),
+                    Ok(0) => break SessionEnd::Lost(std::io::ErrorKind::UnexpectedEof.into()),
                     Ok(n) => self.received(&buf[..n], Instant::now()),
-                    Err(e) => break End::Lost(e),
+                    Err(e) => break SessionEnd::Lost(e),
                 },
                 _ = sleep_until(gap_end), if partial => self.quiet(),
                 Some(req) = commands.recv() => self.command(req),
@@ -360,14 +360,16 @@ impl Sim {
             info!(target: "mbgate::tools::sim::packets", "rx {} (ignored: busy)", Hex(frame.as_bytes()));
             self.device
                 .log
-                .record(Direction::Rx, frame.as_bytes(), "ignored: busy");
+                .record(PacketDirection::Rx, frame.as_bytes(), "ignored: busy");
             return;
         }
         if frame.unit() == 0 && self.decoder.codec().is_some() {
             // A broadcast on an RTU/ASCII bus: every device acts, none answers.
             info!(target: "mbgate::tools::sim::packets", "rx {} (broadcast)", Hex(&self.wire(&frame)));
             let wire = self.wire(&frame);
-            self.device.log.record(Direction::Rx, &wire, "broadcast");
+            self.device
+                .log
+                .record(PacketDirection::Rx, &wire, "broadcast");
             self.device.broadcast(frame.pdu());
             return;
         }
@@ -379,7 +381,7 @@ impl Sim {
         };
         let wire = self.wire(&frame);
         info!(target: "mbgate::tools::sim::packets", "rx {} ({note})", Hex(&wire));
-        self.device.log.record(Direction::Rx, &wire, note);
+        self.device.log.record(PacketDirection::Rx, &wire, note);
         if let Some(pdu) = answer.reply {
             let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
             let delay = self.delay + answer.delay.unwrap_or_default();
@@ -435,7 +437,7 @@ impl Sim {
         let written = AsyncWriteExt::write_all(port, &bytes).await;
         for (frame, note) in sent {
             info!(target: "mbgate::tools::sim::packets", "tx {} ({note})", Hex(&frame));
-            self.device.log.record(Direction::Tx, &frame, note);
+            self.device.log.record(PacketDirection::Tx, &frame, note);
         }
         written
     }

@@ -4,7 +4,7 @@
 //! serves one connection at a time. A second connection while one is served is
 //! accepted and closed at once, as such devices do.
 
-use super::{ConsoleRequest, End, Sim, SimError};
+use super::{ConsoleRequest, SessionEnd, Sim, SimError};
 use std::net::SocketAddr;
 use tokio::net::TcpListener;
 use tokio::sync::mpsc;
@@ -56,8 +56,10 @@ pub(super) async fn listen(
             }
         };
         match end {
-            End::Shutdown => return Ok(()),
-            End::Lost(e) => info!(%peer, "disconnected ({e}); waiting for the next connection"),
+            SessionEnd::Shutdown => return Ok(()),
+            SessionEnd::Lost(e) => {
+                info!(%peer, "disconnected ({e}); waiting for the next connection")
+            }
         }
     }
 }
