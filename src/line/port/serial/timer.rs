@@ -128,7 +128,9 @@ impl PreciseTimer {
                 tv_nsec: 0,
             },
             it_value: libc::timespec {
-                tv_sec: rest.as_secs() as libc::time_t,
+                // `time_t` is 32 bits on some 32-bit targets: a wait that long is
+                // capped at 68 years rather than wrapped.
+                tv_sec: rest.as_secs().try_into().unwrap_or(i32::MAX.into()),
                 tv_nsec: libc::c_long::from(rest.subsec_nanos() as i32),
             },
         };
