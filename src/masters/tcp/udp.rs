@@ -132,12 +132,23 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
     // One timer for the loop's life, moved at each sweep for idle sources.
     let sweep = tokio::time::sleep(SWEEP);
     tokio::pin!(sweep);
+    // Made once, as the timer is: a cancellation future made again at each pass
+    // registers and drops a waiter for each datagram (docs/performance.md "Dialed and
+    // UDP masters").
+    let stopped = shared.shutdown.cancelled();
+    tokio::pin!(stopped);
     // Room for a datagram one byte too long to be a request: it is seen as such.
     let mut buf = vec![0u8; MAX_ADU + 1];
     loop {
         let received = tokio::select! {
-            _ = shared.shutdown.cancelled() => break,
-            r = socket.recv_from(&mut buf) => r,
+            _ = &mut stopped => break,
+            // Polled for readiness as a TCP stream is read, not awaited: `recv_from`
+            // would queue and drop a waiter of its own for each datagram.
+            r = std::future::poll_fn(|cx| {
+                let mut filled = tokio::io::ReadBuf::new(&mut buf);
+                let peer = std::task::ready!(socket.poll_recv_from(cx, &mut filled));
+                std::task::Poll::Ready(peer.map(|p| (filled.filled().len(), p)))
+            }) => r,
             _ = &mut sweep, if !idle.is_zero() && !sources.is_empty() => {
                 let now = Instant::now();
                 forget_where(&mut sources, |s| s.idle(idle, now));
