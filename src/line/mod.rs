@@ -1,4 +1,5 @@
-//! The line: the loop that owns a device's line (relay), the master line (bridge), the ports it is attached to, and a master's way back (outbox).
+//! The line: the loop that owns a device's line (relay), the master line (bridge), the
+//! ports it is attached to, and a master's way back (outbox).
 
 pub mod bridge;
 pub mod outbox;

@@ -1,4 +1,5 @@
-//! The masters' side: where requests come from (listeners, dials, UDP, TLS), who may send them (access) and which line serves them (router).
+//! The masters' side: where requests come from (listeners, dials, UDP, TLS), who may
+//! send them (access) and which line serves them (router).
 
 pub mod access;
 pub(crate) mod router;

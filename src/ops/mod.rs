@@ -1,4 +1,5 @@
-//! Operations: the numbers (metrics, stats), capture, the control socket, reload, logging and systemd's notify.
+//! Operations: the numbers (metrics, stats), capture, the control socket, reload,
+//! logging and systemd's notify.
 
 pub mod capture;
 pub mod control;

@@ -1,4 +1,5 @@
-//! The tools beside the gateway: the simulator, the master client, the bus scan, the virtual wire and the demo.
+//! The tools beside the gateway: the simulator, the master client, the bus scan, the
+//! virtual wire and the demo.
 
 pub mod client;
 pub mod demo;

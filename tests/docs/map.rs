@@ -384,15 +384,7 @@ const WINGS: &[&str] = &["masters", "line", "ops", "tools"];
 /// `src/config/file/mod.rs`), or its first two when the first is a wing
 /// (`line/relay` for `src/line/relay/line/mod.rs`).
 fn room(file: &str) -> String {
-    let steps: Vec<&str> = file["src/".len()..]
-        .split('/')
-        .map(|s| s.trim_end_matches(".rs"))
-        .collect();
-    match steps.as_slice() {
-        [wing, room, ..] if WINGS.contains(wing) => format!("{wing}/{room}"),
-        [first, ..] => first.to_string(),
-        [] => String::new(),
-    }
+    room_of_path(&file["src/".len()..].replace('/', "::"))
 }
 
 /// The room a Rust path names after `crate::` (`line::relay::Relay` → `line/relay`).

@@ -34,20 +34,21 @@ struct OpenSetting<'a> {
     replied: Option<Duration>,
 }
 
+/// A character's time at setting `s`.
+fn char_time_at(s: &ProbeSetting) -> Duration {
+    Duration::from_nanos((u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)))
+}
+
 impl OpenSetting<'_> {
     /// A character's time on this line.
     fn char_time(&self) -> Duration {
-        Duration::from_nanos(
-            (u64::from(self.setting.format.bits()) * 1_000_000_000)
-                .div_ceil(u64::from(self.setting.baud)),
-        )
+        char_time_at(self.setting)
     }
 
     /// The longest a try at `framing` waits for a read's reply, the request's time
     /// included: the budget of the time left.
     fn read_cost(&self, framing: SerialFraming) -> Duration {
-        let chars = framing.codec().encoded_len(5) + framing.codec().encoded_len(4);
-        self.char_time() * chars as u32 + self.timeout
+        OpenSetting::cost(self.setting, framing, self.timeout)
     }
 
     /// Sends `pdu` to `unit` after the 3.5-character gap, and returns what came back:
@@ -409,12 +410,9 @@ impl OpenSetting<'_> {
         Ok(())
     }
 
-    /// [`OpenSetting::read_cost`] of a setting not open yet.
+    /// [`OpenSetting::read_cost`] at setting `s`, open or not yet.
     fn cost(s: &ProbeSetting, framing: SerialFraming, timeout: Duration) -> Duration {
-        let char_time = Duration::from_nanos(
-            (u64::from(s.format.bits()) * 1_000_000_000).div_ceil(u64::from(s.baud)),
-        );
         let chars = framing.codec().encoded_len(5) + framing.codec().encoded_len(4);
-        char_time * chars as u32 + timeout
+        char_time_at(s) * chars as u32 + timeout
     }
 }
