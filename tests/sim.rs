@@ -467,3 +467,69 @@ fn a_pty_that_appears_after_the_start_is_paced() {
     assert_eq!(reply, want, "{took:?}");
     assert!(took >= Duration::from_micros(17_700), "unpaced: {took:?}");
 }
+
+/// `--pty LINK` replaces only a link (a stale one, from a run that was killed): a file
+/// there is the user's, refused by name and left as it was; `--pty` and `--serial`
+/// together are a usage error.
+#[test]
+fn a_pty_link_never_replaces_a_file() {
+    let dir = tempdir();
+    let file = dir.path().join("notes");
+    std::fs::write(&file, b"mine").unwrap();
+    let f = file.to_str().unwrap();
+    let out = mbgate(&["sim", "--headless", "--pty", f]);
+    assert_eq!(out.code, 1, "{}", out.stderr);
+    assert!(
+        out.stderr
+            .contains(&format!("{f} exists and is not a link: not replaced")),
+        "{}",
+        out.stderr
+    );
+    assert_eq!(std::fs::read(&file).unwrap(), b"mine");
+    let out = mbgate(&["sim", "--pty", f, "--serial", "/dev/null"]);
+    assert_eq!(out.code, 2, "{}", out.stderr);
+    assert!(out.stderr.contains("cannot be used with"), "{}", out.stderr);
+}
+
+/// A simulator whose port nobody reads fills it, and its write waits: SIGTERM still
+/// stops it at once (it waited for ever), and its pty's link goes with it. Here the
+/// CIE-M10's input change notifications every millisecond fill a pty it made.
+#[test]
+fn a_port_nobody_reads_does_not_hold_a_stop() {
+    let dir = tempdir();
+    let link = dir.path().join("plc");
+    let l = link.to_str().unwrap();
+    let mut s = Proc::start(
+        &[
+            "sim",
+            "--headless",
+            "--notify",
+            "--toggle-ms",
+            "1",
+            "--pty",
+            l,
+        ],
+        "made a pty",
+    );
+    // Until the notifications stop: the pty is full (bounded: it fills in seconds).
+    let count = |s: &Proc| s.log().matches("(notification)").count();
+    let start = Instant::now();
+    let mut last = (count(&s), Instant::now());
+    while last.1.elapsed() < Duration::from_millis(500) {
+        assert!(
+            start.elapsed() < Duration::from_secs(60),
+            "the pty never filled"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+        let n = count(&s);
+        if n != last.0 {
+            last = (n, Instant::now());
+        }
+    }
+    assert!(last.0 > 100, "notifications were sent: {}", last.0);
+    assert!(s.terminate(Duration::from_secs(5)).success());
+    assert!(
+        std::fs::symlink_metadata(&link).is_err(),
+        "the link is gone"
+    );
+}

@@ -1207,13 +1207,17 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__sim)
-            opts="-h --serial --listen --connections --profile --unit --input-address --output-address --loopback --notify --toggle-ms --units --fill --coils --registers --delay-ms --drop --noise --corrupt --faults --seed --pipeline --confirm-requests --chunks --chunk-gap-ms --frame-gap-ms --log-level --headless --replay --timeline --unknown-exception --read-only --summary --role --poll-ms --timeout-ms --baud --data-bits --parity --stop-bits --flow-control --framing --help"
+            opts="-h --serial --pty --listen --connections --profile --unit --input-address --output-address --loopback --notify --toggle-ms --units --fill --coils --registers --delay-ms --drop --noise --corrupt --faults --seed --pipeline --confirm-requests --chunks --chunk-gap-ms --frame-gap-ms --log-level --headless --replay --timeline --unknown-exception --read-only --summary --role --poll-ms --timeout-ms --baud --data-bits --parity --stop-bits --flow-control --framing --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
             fi
             case "${prev}" in
                 --serial)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --pty)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;

@@ -18,8 +18,18 @@ use std::path::PathBuf;
 #[derive(Debug, Clone, clap::Args)]
 pub(crate) struct SimArgs {
     /// The serial port or pty (e.g. one end of a socat pair).
-    #[arg(long, value_name = "PATH", required_unless_present_any = ["listen", "summary"])]
+    #[arg(
+        long,
+        value_name = "PATH",
+        required_unless_present_any = ["listen", "summary", "pty"]
+    )]
     serial: Option<PathBuf>,
+    /// Make a pty instead, linked at PATH (as socat's `link=`), and serve on it: point
+    /// the gateway's serial port at PATH. No relay process sits between the two ends,
+    /// so a replayed device's reply time is not lengthened by one
+    /// (docs/simulator.md "Replaying a device").
+    #[arg(long, value_name = "PATH", conflicts_with_all = ["serial", "listen"])]
+    pty: Option<PathBuf>,
     /// A device on the network instead: listen here (e.g. 127.0.0.1:1502) and serve
     /// one connection at a time, as a Modbus/TCP slave (--framing mbap) or a serial
     /// device server in raw TCP mode (--framing rtu or ascii).
@@ -138,6 +148,7 @@ fn sim_level(device: &crate::tools::sim::options::DeviceArgs) -> (String, bool) 
 
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
 pub(crate) fn sim(args: SimArgs) -> ExitCode {
+    use crate::tools::sim::pty::OwnPty;
     use crate::tools::sim::serve::{self, SimPort};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
@@ -173,12 +184,13 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
         };
     }
     let listen = args.listen;
+    let pty = args.pty.clone();
     simulate(
         &args.device,
         settings,
         false,
         None,
-        |settings, commands, shutdown| async move {
+        |mut settings, commands, shutdown| async move {
             if let (Some(addr), Some(n)) = (listen, many) {
                 let listener = crate::tools::sim::tcp::bind(addr)
                     .await
@@ -188,9 +200,23 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
                     .await?;
                 return Ok(());
             }
-            let port = match listen {
-                Some(addr) => SimPort::Listen(addr),
-                None => SimPort::Path(port?),
+            // Held until the simulator stops: the pty and its link go with it.
+            let mut own = None;
+            let port = match (listen, pty) {
+                (Some(addr), _) => SimPort::Listen(addr),
+                (None, Some(link)) => {
+                    let (master, made) = OwnPty::make(&link).await?;
+                    tracing::info!(
+                        "made a pty: {} is {} (round trip {} µs); point the gateway's serial port there",
+                        link.display(),
+                        made.slave(),
+                        made.round_trip().as_micros()
+                    );
+                    settings.medium = made.round_trip();
+                    own = Some(made);
+                    SimPort::Stream(master)
+                }
+                (None, None) => SimPort::Path(port?),
             };
             match polling? {
                 Some(p) => {
@@ -198,6 +224,7 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
                 }
                 None => serve::run(settings, port, commands, shutdown).await?,
             }
+            drop(own);
             Ok(())
         },
     )
@@ -313,6 +340,8 @@ enum Failed {
     Flags(#[from] BadFlags),
     #[error(transparent)]
     Sim(#[from] crate::tools::sim::serve::SimError),
+    #[error(transparent)]
+    Pty(#[from] crate::tools::sim::pty::PtyError),
     #[error(transparent)]
     Demo(#[from] crate::tools::demo::DemoError),
     #[error(transparent)]

@@ -7,6 +7,7 @@
 //! - `console` parses the console's commands, `packets` keeps the packet log;
 //! - [`serve`] is the task that owns the port, [`terminal`] the console's thread;
 //! - [`replay`] is a device played back from a capture;
+//! - [`pty`] is the pty it makes itself (`--pty`);
 //! - [`options`] is the command line.
 
 pub(crate) mod cie_m10;
@@ -16,6 +17,7 @@ pub mod line;
 pub mod master;
 pub mod options;
 pub(crate) mod packets;
+pub mod pty;
 pub mod replay;
 pub(crate) mod role;
 pub mod serve;

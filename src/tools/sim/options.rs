@@ -252,6 +252,10 @@ pub struct Settings {
     pub(crate) frame_gap: Duration,
     pub(crate) toggle: Option<Duration>,
     pub(crate) chunker: Chunker,
+    /// What the simulator's own port adds to every reply's time, where it was measured
+    /// (`--pty`: the pty's round trip). A replayed device's time already holds the path
+    /// it was recorded through, so this much is taken off it.
+    pub(crate) medium: Duration,
 }
 
 impl Settings {
@@ -388,6 +392,7 @@ impl DeviceArgs {
                 Duration::from_millis(self.chunk_gap_ms),
                 seed ^ 0x5EED,
             ),
+            medium: Duration::ZERO,
         })
     }
 }

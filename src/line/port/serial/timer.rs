@@ -25,8 +25,9 @@ pub struct PreciseTimer {
 /// is set, so that the wake lands at the instant asked for rather than one wake-up
 /// after it. A wake that still comes early is not returned: the timerfd is set again
 /// for the instant itself, so [`PreciseTimer::until`] never returns before it.
+/// The simulator keeps one too, for its replies' write after their instant.
 #[derive(Debug, Default)]
-struct Lateness {
+pub struct Lateness {
     last: [u32; Lateness::KEPT],
     next: usize,
     seen: usize,
@@ -37,14 +38,15 @@ impl Lateness {
     /// Never earlier than this, whatever the wakes measured.
     const MOST: u32 = 200;
 
-    fn record(&mut self, late_us: u32) {
+    /// A wake (or a write) `late_us` microseconds after its instant.
+    pub fn record(&mut self, late_us: u32) {
         self.last[self.next] = late_us.min(Self::MOST);
         self.next = (self.next + 1) % Self::KEPT;
         self.seen += 1;
     }
 
     /// How much earlier to set the timer: nothing until it has seen a few wakes.
-    fn lead(&self) -> std::time::Duration {
+    pub fn lead(&self) -> std::time::Duration {
         if self.seen < Self::KEPT {
             return std::time::Duration::ZERO;
         }

@@ -12,7 +12,7 @@ use crate::config::SerialConfig;
 use crate::frame::framer::{Framed, Framer};
 use crate::frame::hex::Hex;
 use crate::frame::{Adu, RequestJudge};
-use crate::line::port::serial::{self, PreciseTimer};
+use crate::line::port::serial::{self, Lateness, PreciseTimer};
 use crate::line::port::Backoff;
 use std::collections::VecDeque;
 use std::path::Path;
@@ -110,6 +110,11 @@ enum SessionEnd {
 struct Sim {
     device: Device,
     delay: Duration,
+    /// What the port adds to each reply, taken off a replayed device's time.
+    medium: Duration,
+    /// How long after their instant replies have been written (the timer's wake, the
+    /// write): taken off a replayed device's time too, so the reply leaves on time.
+    behind: Lateness,
     pipeline: bool,
     confirm_requests: bool,
     frame_gap: Duration,
@@ -147,6 +152,8 @@ pub async fn run(
     let mut sim = Sim {
         device,
         delay: settings.delay,
+        medium: settings.medium,
+        behind: Lateness::default(),
         pipeline: settings.pipeline,
         confirm_requests: settings.confirm_requests,
         frame_gap: settings.frame_gap,
@@ -284,8 +291,12 @@ impl Sim {
                 biased;
                 _ = shutdown.cancelled() => break SessionEnd::Shutdown,
                 _ = until_precisely(timer.as_mut(), due.unwrap_or_else(Instant::now)), if due.is_some() => {
-                    if let Err(e) = self.send_due(port).await {
-                        break SessionEnd::Lost(e);
+                    // A port nobody reads fills up and the write waits: a stop still stops.
+                    tokio::select! {
+                        written = self.send_due(port) => if let Err(e) = written {
+                            break SessionEnd::Lost(e);
+                        },
+                        _ = shutdown.cancelled() => break SessionEnd::Shutdown,
                     }
                 }
                 r = AsyncReadExt::read(port, &mut buf) => match r {
@@ -384,7 +395,12 @@ impl Sim {
         self.device.log.record(PacketDirection::Rx, &wire, note);
         if let Some(pdu) = answer.reply {
             let reply = Adu::build(frame.tid(), frame.unit(), &pdu);
-            let delay = self.delay + answer.delay.unwrap_or_default();
+            // A replayed device's time less what this port adds back (the recorded
+            // time held the recording's path already); `--delay-ms` as given.
+            let own = answer
+                .delay
+                .map(|d| d.saturating_sub(self.medium + self.behind.lead()));
+            let delay = self.delay + own.unwrap_or_default();
             let done = self.queue(arrived + delay, reply, "reply");
             self.busy_until = Some(done);
         }
@@ -429,12 +445,21 @@ impl Sim {
         let now = Instant::now();
         let mut bytes = Vec::new();
         let mut sent = Vec::new();
+        let mut dues = Vec::new();
         while self.out.front().is_some_and(|o| o.due <= now) {
             let o = self.out.pop_front().expect("checked");
+            if o.frame.is_some() {
+                dues.push(o.due);
+            }
             sent.extend(o.frame);
             self.tx_faults.apply(&o.bytes, &mut bytes);
         }
         let written = AsyncWriteExt::write_all(port, &bytes).await;
+        let after = Instant::now();
+        for due in dues {
+            let late = after.saturating_duration_since(due).as_micros();
+            self.behind.record(late.min(u128::from(u32::MAX)) as u32);
+        }
         for (frame, note) in sent {
             info!(target: "mbgate::tools::sim::packets", "tx {} ({note})", Hex(&frame));
             self.device.log.record(PacketDirection::Tx, &frame, note);
