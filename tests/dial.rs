@@ -555,6 +555,8 @@ fn a_server_answering_the_heartbeat_is_tolerated_and_never_relayed() {
     assert!(out.contains("ack ok 30"), "{out}");
     let log = gw.log();
     assert!(!log.contains("protocol violation"), "{log}");
+    // On /metrics too, as the dial's (a listener's) counter.
+    assert_eq!(gw.metric("mbgate_listener_dial_answers"), 3.0);
     let counters = gw.stop();
     assert_eq!(counters["dial_answers"], 3, "{counters:?}");
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");

@@ -426,6 +426,7 @@ fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
         per(("mbgate_listener_connections", "Connections accepted.", C), &|l| l.stats.get(&l.stats.connections)),
         per(("mbgate_listener_refused_connections", "Connections closed at once: max_connections reached (on TLS, once authenticated).", C), &|l| l.stats.get(&l.stats.connections_refused)),
         per(("mbgate_listener_protocol_violations", "Connections closed for a frame that broke the MBAP rules.", C), &|l| l.stats.get(&l.stats.protocol_violations)),
+        per(("mbgate_listener_dial_answers", "Answers of a dialed server to mbgate's identity or heartbeat (bytes that are no request, one each at most): dropped, never relayed.", C), &|l| l.stats.get(&l.stats.dial_answers)),
         per(("mbgate_listener_dropped_datagrams", "UDP datagrams dropped: not exactly one MBAP request, beyond their source's share, or from a source past max_connections.", C), &|l| l.stats.get(&l.stats.datagrams_dropped)),
         per(("mbgate_listener_bad_requests", "Requests answered by mbgate with an exception: their PDU broke the protocol's limits.", C), &|l| l.stats.get(&l.stats.bad_requests)),
         per(("mbgate_listener_denied_connections", "Connections closed before any byte was read: the source is not in the listener's allow list.", C), &|l| l.stats.get(&l.stats.connections_denied)),
