@@ -477,6 +477,9 @@ fn rtu_request_waits_for_silence_before_going_on_the_line() {
             .relay("response_timeout_ms = 5000")
             .metrics("listen = \"127.0.0.1:0\"");
         let mut gw = Gateway::start(&cfg, dir.path());
+        // The port is cleared as it opens: a byte of the talker's before that would be
+        // gone uncounted (under load the open can come after the listener is up).
+        gw.wait_log("serial port open", Duration::from_secs(10));
         let mut m = gw.connect();
         gw.metric("mbgate_line_received_bytes");
         let log = gw.log();
