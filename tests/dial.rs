@@ -565,6 +565,32 @@ fn a_server_answering_the_heartbeat_is_tolerated_and_never_relayed() {
     assert_eq!(counters["bad_requests"], 0, "{counters:?}");
 }
 
+/// The same on a dial with `framing = "rtu"`: the server's answers to the identity and
+/// to two heartbeats ("ACK", "HB-ACK") are no RTU request (their CRC fails): each is
+/// dropped and counted, the connection kept, and every request after them, framed by
+/// pymodbus' RTU framer, answered by value.
+#[test]
+fn an_rtu_dial_tolerates_answers_to_its_heartbeat() {
+    let hb = "framing = \"rtu\"\nheartbeat = \"hex:ff fe 00 01\"\nheartbeat_ms = 1000\n";
+    let server = [
+        "--framer",
+        "rtu",
+        "--heartbeat",
+        "fffe0001",
+        "--round",
+        "ack",
+    ];
+    let (_b, mut gw, out) = dialed(hb, &server);
+    assert!(out.contains("ack ok 30"), "{out}");
+    let log = gw.log();
+    assert!(!log.contains("protocol violation"), "{log}");
+    let counters = gw.stop();
+    assert_eq!(counters["dial_answers"], 3, "{counters:?}");
+    assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
+    assert_eq!(counters["connections"], 1, "{counters:?}");
+    assert_eq!(counters["requests"], 30, "{counters:?}");
+}
+
 /// `framing = "rtu"` on a dial: the server sends RTU over TCP (pymodbus' RTU framer),
 /// every reply checked by value.
 #[test]
