@@ -57,8 +57,8 @@ pub(crate) struct SimArgs {
     #[command(flatten)]
     pub(crate) role: RoleArgs,
     /// The port's settings, as `mbgate run` takes them. On a pty, `--baud` paces the
-    /// output as a UART would (10 bits a byte), and without it the simulator answers
-    /// at once; on a real port the UART does.
+    /// output as a UART would (the format's bits a byte: 10 for 8N1, 11 for 8E1), and
+    /// without it the simulator answers at once; on a real port the UART does.
     #[command(flatten, next_help_heading = "serial port")]
     port: PortFlags,
     /// How frames are carried: mbap (the CIE-M10's serial Modbus/TCP), or rtu or ascii
@@ -74,7 +74,10 @@ impl SimArgs {
         options::framing_fits(&self.device, &self.replay, self.framing)?;
         let port = self.serial_config()?;
         let pace = self.port.given("baud").then_some(port.baud_rate);
-        options::settings(&self.device, &self.replay, self.framing, pace)
+        let mut s = options::settings(&self.device, &self.replay, self.framing, pace)?;
+        // Paced as the port's format: an 8E1 character is 11 bits on a wire.
+        s.char_bits = crate::line::port::kind::bits_per_char(&port);
+        Ok(s)
     }
 
     /// The port settings: the defaults of `[serial]` and the flags given.
@@ -379,7 +382,10 @@ mod tests {
         assert_eq!((port.path.as_str(), port.baud_rate), ("/dev/ttyS9", 9600));
         assert_eq!((port.parity, port.framing), (Parity::Even, Framing::Rtu));
         assert_eq!(s.settings().unwrap().baud, Some(9600));
+        // Paced as the format is: 8E1 is 11 bits a character, 8N1 10.
+        assert_eq!(s.settings().unwrap().char_bits, 11);
         let s = sim(&[]);
+        assert_eq!(s.settings().unwrap().char_bits, 10);
         assert_eq!(
             s.serial_config().unwrap(),
             SerialConfig {

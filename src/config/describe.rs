@@ -22,11 +22,6 @@ pub(crate) fn line(line: &LineConfig) -> String {
             format!("{address} (a device on the network): {framing}")
         }
         None => {
-            let parity = match s.parity {
-                Parity::None => 'N',
-                Parity::Even => 'E',
-                Parity::Odd => 'O',
-            };
             let flow = match s.flow_control {
                 FlowControl::None => "no flow control",
                 FlowControl::Hardware => "RTS/CTS flow control",
@@ -37,8 +32,10 @@ pub(crate) fn line(line: &LineConfig) -> String {
                 None => String::new(),
             };
             format!(
-                "{}: {framing}, {} baud {}{parity}{}, {flow}{direction}",
-                s.path, s.baud_rate, s.data_bits, s.stop_bits
+                "{}: {framing}, {} baud {}, {flow}{direction}",
+                s.path,
+                s.baud_rate,
+                char_format(s)
             )
         }
     };
@@ -239,6 +236,18 @@ pub fn summary(cfg: &Config) -> String {
             .to_owned(),
     };
     out
+}
+
+/// A character's format as a port's settings are written: data bits, parity, stop
+/// bits (`8N1`, `8E1`, `7O2`). The capture's line description carries it too, for a
+/// replay's time on the wire (docs/capture.md).
+pub(crate) fn char_format(s: &SerialConfig) -> String {
+    let parity = match s.parity {
+        Parity::None => 'N',
+        Parity::Even => 'E',
+        Parity::Odd => 'O',
+    };
+    format!("{}{parity}{}", s.data_bits, s.stop_bits)
 }
 
 #[cfg(test)]

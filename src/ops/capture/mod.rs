@@ -59,7 +59,11 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
     for (i, line) in cfg.lines.iter().enumerate() {
         let device = match &line.tcp {
             Some(addr) => format!("device at {addr}"),
-            None => format!("{} baud", line.serial.baud_rate),
+            None => format!(
+                "{} baud {}",
+                line.serial.baud_rate,
+                crate::config::describe::char_format(&line.serial)
+            ),
         };
         let role = if line.master.is_some() {
             ", the device is the master"
@@ -108,5 +112,34 @@ impl Capture {
         if let Some(ring) = self.ring {
             let _ = tokio::task::spawn_blocking(move || ring.join()).await;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A line's interface names its framing, speed and character format (a replay
+    /// takes the wire's time at it: docs/simulator.md "Replaying a device"); a device
+    /// on the network, its address.
+    #[test]
+    fn a_line_s_interface_says_its_speed_and_character_format() {
+        let text = "[[line]]\nunits = [1]\nserial = { path = \"/dev/ttyUSB0\", framing = \"rtu\", baud_rate = 19200, parity = \"even\" }\n\
+                    [[line]]\nunits = [2]\nserial = { path = \"/dev/ttyUSB1\", framing = \"ascii\", baud_rate = 9600, data_bits = 7, stop_bits = 2 }\n\
+                    [[line]]\ntcp = { address = \"10.0.0.5:502\" }\nunits = [9]\n";
+        let cfg = crate::config::parse(text, "test.toml").unwrap();
+        let said: Vec<String> = interfaces(&cfg)
+            .into_iter()
+            .skip(1)
+            .map(|i| i.description)
+            .collect();
+        assert_eq!(
+            said,
+            [
+                "line 0: rtu, 19200 baud 8E1",
+                "line 1: ascii, 9600 baud 7N2",
+                "line 2: mbap, device at 10.0.0.5:502"
+            ]
+        );
     }
 }

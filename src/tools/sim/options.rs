@@ -243,6 +243,9 @@ pub struct Settings {
     /// How frames are carried: MBAP unless `mbgate sim --framing` says otherwise.
     pub(crate) framing: Framing,
     pub(crate) baud: Option<u32>,
+    /// The bits of a character at that pace: start, data, parity, stop (the port's
+    /// format; 10 for 8N1).
+    pub(crate) char_bits: u32,
     pub(crate) delay: Duration,
     pub(crate) rx_faults: Faults,
     pub(crate) tx_faults: Faults,
@@ -376,6 +379,7 @@ impl DeviceArgs {
             device,
             framing: Framing::Mbap,
             baud: None,
+            char_bits: 10,
             delay: Duration::from_millis(self.delay_ms),
             rx_faults: faulty(self.faults != FaultDirection::FromDevice, 0),
             tx_faults: faulty(

@@ -72,10 +72,10 @@ struct Unanswered {
 /// Every request of every line of `capture` and what came of it, in the order the
 /// requests went out on each line (lines one after the other).
 pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
-    let bauds: Vec<Option<u32>> = capture
+    let speeds: Vec<Option<Speed>> = capture
         .interfaces
         .iter()
-        .map(|i| baud(&i.description))
+        .map(|i| speed(&i.description))
         .collect();
     // (index into `out`, line, wire time) of each reply.
     let mut timed: Vec<(usize, usize, u64)> = Vec::new();
@@ -142,7 +142,7 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
         });
         if let Some(i) = found {
             let (at_us, framing, _, unit, request) = w.queries.remove(i);
-            let wire = bauds[p.interface].map_or(0, |b| wire_us(b, framing, &request, &pdu));
+            let wire = speeds[p.interface].map_or(0, |sp| wire_us(sp, framing, &request, &pdu));
             timed.push((out.len(), p.interface, wire));
             out.push(Observation {
                 at_us,
@@ -212,18 +212,56 @@ pub(crate) fn own_times(recorded: &[Recorded]) -> Vec<u64> {
         .collect()
 }
 
-/// The baud rate an mbgate capture's line description gives (`line 0: RTU, 19200
-/// baud`), none for a device on the network or another writer's interface.
-pub(crate) fn baud(description: &str) -> Option<u32> {
-    let before = &description[..description.find(" baud")?];
-    let digits = before.rsplit(' ').next()?;
-    digits.parse().ok().filter(|&b| b > 0)
+/// A line's speed as its capture says it: bits a second, and bits a character.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) struct Speed {
+    pub(crate) baud: u32,
+    /// Start, data, parity and stop bits.
+    pub(crate) bits: u32,
 }
 
-/// The time `request` and `reply` (PDUs) take on a wire at `baud` in `framing`, µs.
-/// Ten bits a character: start, eight data bits (seven and parity for ASCII), stop
-/// (the capture does not say the parity; an 8E1 line's eleventh bit is left out).
-pub(crate) fn wire_us(baud: u32, framing: Framing, request: &[u8], reply: &[u8]) -> u64 {
+/// The speed an mbgate capture's line description gives (`line 0: rtu, 19200 baud
+/// 8E1`), none for a device on the network or another writer's interface. The
+/// character's format is in captures made since it was added; without it (an older
+/// capture), ten bits a character: start, eight data bits (seven and parity for
+/// ASCII), stop.
+pub(crate) fn speed(description: &str) -> Option<Speed> {
+    let at = description.find(" baud")?;
+    let digits = description[..at].rsplit(' ').next()?;
+    let baud = digits.parse().ok().filter(|&b| b > 0)?;
+    let format = description[at + " baud".len()..]
+        .strip_prefix(' ')
+        .and_then(|rest| rest.split([',', ' ']).next());
+    let bits = format.and_then(char_bits).unwrap_or(10);
+    Some(Speed { baud, bits })
+}
+
+/// The bits of a character of format `8E1` (data bits 7 or 8, parity N, E or O, stop
+/// bits 1 or 2), with its start bit: 11.
+fn char_bits(format: &str) -> Option<u32> {
+    let &[data, parity, stop] = format.as_bytes() else {
+        return None;
+    };
+    let data = match data {
+        b'7' => 7,
+        b'8' => 8,
+        _ => return None,
+    };
+    let parity = match parity {
+        b'N' => 0,
+        b'E' | b'O' => 1,
+        _ => return None,
+    };
+    let stop = match stop {
+        b'1' => 1,
+        b'2' => 2,
+        _ => return None,
+    };
+    Some(1 + data + parity + stop)
+}
+
+/// The time `request` and `reply` (PDUs) take on a wire at `speed` in `framing`, µs.
+pub(crate) fn wire_us(speed: Speed, framing: Framing, request: &[u8], reply: &[u8]) -> u64 {
     let bytes = |pdu: &[u8]| match framing {
         // Unit and CRC.
         Framing::Rtu => pdu.len() + 3,
@@ -233,7 +271,7 @@ pub(crate) fn wire_us(baud: u32, framing: Framing, request: &[u8], reply: &[u8])
         Framing::Mbap => pdu.len() + 7,
     };
     let chars = (bytes(request) + bytes(reply)) as u64;
-    chars * 10 * 1_000_000 / u64::from(baud)
+    chars * u64::from(speed.bits) * 1_000_000 / u64::from(speed.baud)
 }
 
 #[cfg(test)]
@@ -341,17 +379,29 @@ mod tests {
         // 8 request bytes and 7 reply bytes (RTU, FC 03, one register) at 19 200
         // baud: 150 bits, 7812 µs; ASCII: 17 + 15 characters; MBAP: 12 + 11 bytes.
         let (q, r) = ([3, 0, 0, 0, 1], [3, 2, 0, 7]);
-        assert_eq!(wire_us(19_200, Framing::Rtu, &q, &r), 7812);
-        assert_eq!(wire_us(9_600, Framing::Ascii, &q, &r), 33_333);
-        assert_eq!(wire_us(4_000_000, Framing::Mbap, &q, &r), 57);
-        assert_eq!(baud("line 0: RTU, 19200 baud"), Some(19_200));
+        let at = |baud, bits| Speed { baud, bits };
+        assert_eq!(wire_us(at(19_200, 10), Framing::Rtu, &q, &r), 7812);
+        // 8E1: eleven bits a character.
+        assert_eq!(wire_us(at(19_200, 11), Framing::Rtu, &q, &r), 8593);
+        assert_eq!(wire_us(at(9_600, 10), Framing::Ascii, &q, &r), 33_333);
+        assert_eq!(wire_us(at(4_000_000, 10), Framing::Mbap, &q, &r), 57);
+        // Captures made before the format was written: ten bits.
+        assert_eq!(speed("line 0: rtu, 19200 baud"), Some(at(19_200, 10)));
         assert_eq!(
-            baud("line 1: ASCII, 9600 baud, the device is the master"),
-            Some(9_600)
+            speed("line 1: ascii, 9600 baud, the device is the master"),
+            Some(at(9_600, 10))
         );
-        assert_eq!(baud("line 2: MBAP, device at 10.0.0.5:502"), None);
-        assert_eq!(baud("line 0: RTU, 0 baud"), None);
-        assert_eq!(baud(""), None);
+        assert_eq!(speed("line 0: rtu, 19200 baud 8E1"), Some(at(19_200, 11)));
+        assert_eq!(speed("line 0: rtu, 9600 baud 8N2"), Some(at(9_600, 11)));
+        assert_eq!(speed("line 0: rtu, 9600 baud 8N1"), Some(at(9_600, 10)));
+        assert_eq!(
+            speed("line 1: ascii, 9600 baud 7E1, the device is the master"),
+            Some(at(9_600, 10))
+        );
+        assert_eq!(speed("line 0: rtu, 9600 baud 9X3"), Some(at(9_600, 10)));
+        assert_eq!(speed("line 2: mbap, device at 10.0.0.5:502"), None);
+        assert_eq!(speed("line 0: rtu, 0 baud"), None);
+        assert_eq!(speed(""), None);
         let rec = |line, turnaround_us, wire_us| Recorded {
             line,
             turnaround_us,
@@ -376,8 +426,8 @@ mod tests {
     fn a_line_s_recorded_speed_takes_the_wire_out_of_its_replies() {
         let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
         let mut f = pcapng::section_header("t");
-        f.extend(pcapng::interface("/dev/ttyS0", "line 0: RTU, 9600 baud"));
-        f.extend(pcapng::interface("/dev/pts/3", "line 1: RTU, 9600 baud"));
+        f.extend(pcapng::interface("/dev/ttyS0", "line 0: rtu, 9600 baud"));
+        f.extend(pcapng::interface("/dev/pts/3", "line 1: rtu, 9600 baud"));
         let q = rtu::encode(1, &[3, 0, 0, 0, 1]);
         let r = rtu::encode(1, &[3, 2, 0, 7]);
         // 15 bytes at 9600 baud: 15 625 µs on a wire; 20 ms recorded on line 0.

@@ -159,8 +159,8 @@ pub async fn run(
         frame_gap: settings.frame_gap,
         rx_faults: settings.rx_faults,
         tx_faults: settings.tx_faults,
-        rx_pace: Pacer::new(baud, 10),
-        tx_pace: Pacer::new(baud, 10),
+        rx_pace: Pacer::new(baud, settings.char_bits),
+        tx_pace: Pacer::new(baud, settings.char_bits),
         chunker: settings.chunker,
         decoder: settings.framing.framer(),
         out: VecDeque::new(),
@@ -212,7 +212,9 @@ pub async fn run(
                             debug!("a real serial port: the UART paces the bytes");
                         }
                         let baud = pty.then(|| pty_pace(settings.baud)).flatten();
-                        (sim.rx_pace, sim.tx_pace) = (Pacer::new(baud, 10), Pacer::new(baud, 10));
+                        let bits = settings.char_bits;
+                        (sim.rx_pace, sim.tx_pace) =
+                            (Pacer::new(baud, bits), Pacer::new(baud, bits));
                         info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
                         match sim
                             .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
