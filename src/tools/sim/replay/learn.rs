@@ -12,6 +12,7 @@ use crate::config::Framing;
 use crate::frame::rtu;
 use crate::ops::capture::pcapng;
 use crate::ops::capture::pcapng_read::{exported, Read};
+use crate::tools::wire::uart::Format;
 
 /// What the device did with one request.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -231,33 +232,12 @@ pub(crate) fn speed(description: &str) -> Option<Speed> {
     let baud = digits.parse().ok().filter(|&b| b > 0)?;
     let format = description[at + " baud".len()..]
         .strip_prefix(' ')
-        .and_then(|rest| rest.split([',', ' ']).next());
-    let bits = format.and_then(char_bits).unwrap_or(10);
-    Some(Speed { baud, bits })
-}
-
-/// The bits of a character of format `8E1` (data bits 7 or 8, parity N, E or O, stop
-/// bits 1 or 2), with its start bit: 11.
-fn char_bits(format: &str) -> Option<u32> {
-    let &[data, parity, stop] = format.as_bytes() else {
-        return None;
-    };
-    let data = match data {
-        b'7' => 7,
-        b'8' => 8,
-        _ => return None,
-    };
-    let parity = match parity {
-        b'N' => 0,
-        b'E' | b'O' => 1,
-        _ => return None,
-    };
-    let stop = match stop {
-        b'1' => 1,
-        b'2' => 2,
-        _ => return None,
-    };
-    Some(1 + data + parity + stop)
+        .and_then(|rest| rest.split([',', ' ']).next())
+        .and_then(|f| f.parse::<Format>().ok());
+    Some(Speed {
+        baud,
+        bits: format.map_or(10, Format::bits),
+    })
 }
 
 /// The time `request` and `reply` (PDUs) take on a wire at `speed` in `framing`, µs.
