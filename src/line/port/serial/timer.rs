@@ -38,9 +38,10 @@ impl Lateness {
     /// Never earlier than this, whatever the wakes measured.
     const MOST: u32 = 200;
 
-    /// A wake (or a write) `late_us` microseconds after its instant.
-    pub fn record(&mut self, late_us: u32) {
-        self.last[self.next] = late_us.min(Self::MOST);
+    /// A wake (or a write) `late` after its instant.
+    pub fn record(&mut self, late: std::time::Duration) {
+        let late_us = late.as_micros().min(u128::from(Self::MOST)) as u32;
+        self.last[self.next] = late_us;
         self.next = (self.next + 1) % Self::KEPT;
         self.seen += 1;
     }
@@ -105,8 +106,7 @@ impl PreciseTimer {
             ready.clear_ready();
             let now = tokio::time::Instant::now();
             if let Some(armed) = self.armed.filter(|&a| a <= now) {
-                self.late
-                    .record((now - armed).as_micros().min(u128::from(u32::MAX)) as u32);
+                self.late.record(now - armed);
             }
             if now >= at {
                 return Ok(());
@@ -160,20 +160,20 @@ mod tests {
     fn the_lead_is_the_least_recent_lateness() {
         let mut l = Lateness::default();
         for us in 0..Lateness::KEPT as u32 - 1 {
-            l.record(40 + us);
+            l.record(Duration::from_micros(u64::from(40 + us)));
         }
         assert_eq!(l.lead(), Duration::ZERO, "not enough wakes seen");
-        l.record(90);
+        l.record(Duration::from_micros(90));
         assert_eq!(l.lead(), Duration::from_micros(40));
         for _ in 0..Lateness::KEPT {
-            l.record(10_000);
+            l.record(Duration::from_micros(10_000));
         }
         assert_eq!(
             l.lead(),
             Duration::from_micros(u64::from(Lateness::MOST)),
             "the old ones forgotten, the bound kept"
         );
-        l.record(7);
+        l.record(Duration::from_micros(7));
         assert_eq!(l.lead(), Duration::from_micros(7));
     }
 
@@ -215,7 +215,9 @@ mod tests {
         // An instant nearer than the lead: the timerfd is set for it, not for now
         // (zero would disarm it, and the wait would never end).
         for _ in 0..Lateness::KEPT {
-            timer.late.record(Lateness::MOST);
+            timer
+                .late
+                .record(Duration::from_micros(Lateness::MOST.into()));
         }
         for _ in 0..5 {
             let at = Instant::now() + Duration::from_micros(50);

@@ -447,22 +447,15 @@ impl Sim {
         let now = Instant::now();
         let mut bytes = Vec::new();
         let mut sent = Vec::new();
-        let mut dues = Vec::new();
         while self.out.front().is_some_and(|o| o.due <= now) {
             let o = self.out.pop_front().expect("checked");
-            if o.frame.is_some() {
-                dues.push(o.due);
-            }
-            sent.extend(o.frame);
+            sent.extend(o.frame.map(|(frame, note)| (frame, note, o.due)));
             self.tx_faults.apply(&o.bytes, &mut bytes);
         }
         let written = AsyncWriteExt::write_all(port, &bytes).await;
         let after = Instant::now();
-        for due in dues {
-            let late = after.saturating_duration_since(due).as_micros();
-            self.behind.record(late.min(u128::from(u32::MAX)) as u32);
-        }
-        for (frame, note) in sent {
+        for (frame, note, due) in sent {
+            self.behind.record(after.saturating_duration_since(due));
             info!(target: "mbgate::tools::sim::packets", "tx {} ({note})", Hex(&frame));
             self.device.log.record(PacketDirection::Tx, &frame, note);
         }
