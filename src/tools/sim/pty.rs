@@ -2,10 +2,11 @@
 //! master, a link at LINK to its slave for the gateway to open, and no socat between.
 //!
 //! A socat pair puts a relay process between the two ends: each byte crosses two ptys
-//! and waits for socat's wake-up on the way, about 0.15 ms each way on a desk machine
-//! (docs/performance.md "A replayed device's reply time"). A replayed device's reply
-//! time already holds the path it was recorded through, so a replay served through a
-//! second socat pair counts that path twice; on its own pty it counts it once.
+//! and waits for socat's wake-up on the way (a device that answers at once is seen at
+//! 0.39 to 0.45 ms through one, 0.29 to 0.36 ms on a pty of its own: docs/performance.md
+//! "A replayed device's reply time"). A replayed device's reply time already holds the
+//! path it was recorded through, so a replay served through a second socat pair counts
+//! that path twice; on its own pty it counts it once, less the round trip measured.
 //!
 //! The simulator keeps the slave open itself, so the gateway may close and reopen it
 //! (a reload, a lost line) without the master reading a hang-up.
