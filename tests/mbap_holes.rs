@@ -529,33 +529,10 @@ struct Loopback {
 impl Loopback {
     fn start() -> Loopback {
         use std::io::Read;
-        use std::os::fd::FromRawFd;
-        let (mut master, mut device): (libc::c_int, libc::c_int) = (-1, -1);
-        // SAFETY: the out-pointers are valid for the call; nothing else is asked for.
-        let r = unsafe {
-            libc::openpty(
-                &mut master,
-                &mut device,
-                std::ptr::null_mut(),
-                std::ptr::null(),
-                std::ptr::null(),
-            )
-        };
-        assert_eq!(r, 0, "openpty: {}", std::io::Error::last_os_error());
-        // SAFETY: both descriptors were just made and belong to nothing else.
-        let (master, device) = unsafe {
-            (
-                std::fs::File::from_raw_fd(master),
-                std::fs::File::from_raw_fd(device),
-            )
-        };
-        // SAFETY: a termios filled by tcgetattr, made raw, set back on a valid fd.
-        unsafe {
-            let mut t: libc::termios = std::mem::zeroed();
-            libc::tcgetattr(device.as_raw_fd(), &mut t);
-            libc::cfmakeraw(&mut t);
-            libc::tcsetattr(device.as_raw_fd(), libc::TCSANOW, &t);
-        }
+        // The wire tool's pair: the device end raw, as a program on a serial port
+        // expects it.
+        let (master, device) = mbgate::tools::wire::pty::pair().expect("a pty pair");
+        let (master, device) = (std::fs::File::from(master), std::fs::File::from(device));
         let path =
             std::fs::read_link(format!("/proc/self/fd/{}", device.as_raw_fd())).expect("pts");
         let stop = Arc::new(AtomicBool::new(false));

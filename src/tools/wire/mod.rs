@@ -3,7 +3,7 @@
 //! baud rate and arrives as the receiver's UART would take it. The bits and their
 //! timing are `uart.rs`'s (pure); the ptys `pty.rs`'s; here the thin loop between them.
 
-pub(crate) mod pty;
+pub mod pty;
 pub mod uart;
 
 use crate::line::port::serial::PreciseTimer;

@@ -122,7 +122,7 @@ impl Drop for PtyEnd {
 
 /// A new pty pair, (master, device), both close-on-exec, the device raw (no echo, no
 /// line editing, until a program sets its own).
-pub(crate) fn pair() -> io::Result<(OwnedFd, OwnedFd)> {
+pub fn pair() -> io::Result<(OwnedFd, OwnedFd)> {
     let (mut master, mut device): (RawFd, RawFd) = (-1, -1);
     // SAFETY: the two out-pointers are valid for the call; the name, termios and
     // window size are not asked for (null).
