@@ -395,18 +395,7 @@ mod tests {
     /// A pty, opened: found by its device number; it has no low latency to set.
     #[test]
     fn a_pty_is_found_and_has_no_low_latency() {
-        // SAFETY: posix_openpt returns a new descriptor or -1, owned below.
-        #[allow(unsafe_code)]
-        let master = unsafe { libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY) };
-        assert!(master >= 0);
-        #[allow(unsafe_code)]
-        let name = unsafe {
-            libc::grantpt(master);
-            libc::unlockpt(master);
-            std::ffi::CStr::from_ptr(libc::ptsname(master))
-                .to_string_lossy()
-                .into_owned()
-        };
+        let (_master, name) = crate::line::port::serial::classic::tests::pty();
         let slave = std::fs::OpenOptions::new()
             .read(true)
             .write(true)
@@ -418,10 +407,6 @@ mod tests {
         assert_eq!(info.low_latency, LowLatency::Unsupported);
         assert_eq!(of_path(&name), Medium::Pty);
         assert_eq!(info.to_string(), "a pseudo-terminal (no wire)");
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::close(master);
-        }
     }
 
     /// On a machine with a real UART to spare: `MBGATE_TEST_UART=/dev/ttyS1 cargo test

@@ -539,10 +539,9 @@ mod tests {
     /// "still sending".
     #[test]
     fn a_pty_has_no_rts_to_switch() {
-        // SAFETY: no pointers; the descriptor is checked and closed below.
-        #[allow(unsafe_code)]
-        let fd = unsafe { libc::posix_openpt(libc::O_RDWR | libc::O_NOCTTY) };
-        assert!(fd >= 0);
+        use std::os::fd::AsRawFd;
+        let (master, _) = crate::line::port::serial::classic::tests::pty();
+        let fd = master.as_raw_fd();
         let cfg = SerialConfig {
             path: "/dev/ptmx".into(),
             direction: Direction::Rts,
@@ -555,11 +554,6 @@ mod tests {
         );
         assert!(e.contains("Inappropriate ioctl"), "{e}");
         assert!(transmitter_empty(fd).is_err(), "a pty has no LSR");
-        // SAFETY: ours, closed once.
-        #[allow(unsafe_code)]
-        unsafe {
-            libc::close(fd)
-        };
     }
 
     /// A chip that is not there, by name or path, names the setting and the chips
