@@ -18,13 +18,13 @@ impl<R: Queued> Scheduler<R> {
     /// nor take a cached reply.
     pub(in crate::line::relay) fn acts_waiting(&self, conn: ConnId, unit: u8) -> bool {
         let acts_on = |r: &R| r.acts() && (r.unit() == unit || r.unit() == 0);
-        self.queues.get(&conn).is_some_and(|q| {
-            q.iter()
-                .any(|&n| self.waiting.get(n).is_some_and(|e| acts_on(&e.req)))
-        }) || self
-            .retry
-            .iter()
-            .any(|r| acts_on(r) && r.masters().any(|c| c == conn))
+        let mine = |r: &R| acts_on(r) && r.masters().any(|c| c == conn);
+        self.lone.as_ref().is_some_and(mine)
+            || self.queues.get(&conn).is_some_and(|q| {
+                q.iter()
+                    .any(|&n| self.waiting.get(n).is_some_and(|e| acts_on(&e.req)))
+            })
+            || self.retry.iter().any(mine)
     }
 
     /// The write epoch of `unit`: it moves on with every request queued that acts on it.

@@ -27,6 +27,13 @@
 //! however busy the higher one. Which request is ready is the same rule as without
 //! classes (the front of every queue it is in), so each master's order holds.
 //!
+//! A request that finds nothing waiting (no queue, nothing to resend) goes next
+//! whatever comes after it, so it is held alone (`lone`), without the numbers, queues
+//! and shares above: on a line with one master polling, every request. It joins the
+//! queues, as the first, as soon as anything else is asked of the scheduler (another
+//! request, a master leaving, a unit backed off), before that is done (`settle`); so
+//! every rule above holds as if it had been queued.
+//!
 //! The queues, the order and the choice of the next request are here; the classes
 //! (`scheduler/classes.rs`), the joining of reads (`scheduler/joins.rs`) and each
 //! master's share of a full queue (`scheduler/shares.rs`) in files of their own.
@@ -144,6 +151,9 @@ pub(super) struct Scheduler<R> {
     broadcast_epoch: u64,
     /// Requests to resend (reads after a timeout or a bad reply): ahead of the queues.
     retry: VecDeque<R>,
+    /// The one request waiting, when it found nothing else waiting (the module notes):
+    /// outside `waiting`, the queues, the ring and the shares until `settle`.
+    lone: Option<R>,
     /// Requests handed to the line so far (each a turn), and for each master the turns
     /// that last put one of its requests on the line.
     turns: u64,
@@ -198,6 +208,7 @@ impl<R: Queued> Scheduler<R> {
             epochs: IdMap::default(),
             broadcast_epoch: 0,
             retry: VecDeque::new(),
+            lone: None,
             turns: 0,
             last_out: IdMap::default(),
             joins: 0,
@@ -208,12 +219,26 @@ impl<R: Queued> Scheduler<R> {
 
     /// Requests queued, each once for every master it serves (resends not counted).
     pub(super) fn queued(&self) -> usize {
-        self.queued
+        self.queued + self.lone.as_ref().map_or(0, R::served)
     }
 
     /// Are requests waiting for the line (queued, or to be resent)?
     pub(super) fn has_waiting(&self) -> bool {
-        !self.waiting.is_empty() || !self.retry.is_empty()
+        !self.waiting.is_empty() || !self.retry.is_empty() || self.lone.is_some()
+    }
+
+    /// The request held alone, if any, joins the queues as `push` would have queued
+    /// it (its unit's epoch was moved then): before anything else is asked of them.
+    fn settle(&mut self) {
+        if let Some(req) = self.lone.take() {
+            let conn = req.conn();
+            self.count(&req);
+            let admitted = self.queue(conn, req);
+            debug_assert!(
+                matches!(admitted, Admitted::Queued),
+                "nothing waited to be joined"
+            );
+        }
     }
 
     /// Queues `req` behind its master's earlier ones, or joins it to an identical read
@@ -225,6 +250,15 @@ impl<R: Queued> Scheduler<R> {
     /// the others resend. A joined request counts for its master like any other.
     pub(super) fn push(&mut self, req: R) -> Admitted<R> {
         let conn = req.conn();
+        let alone = self.lone.is_none() && self.waiting.is_empty() && self.retry.is_empty();
+        if alone && req.served() <= self.depth {
+            if req.acts() {
+                self.acted_on(req.unit());
+            }
+            self.lone = Some(req);
+            return Admitted::Queued;
+        }
+        self.settle();
         let mut displaced = None;
         if self.queued + req.served() > self.depth {
             let mine = self.held.get(&conn).copied().unwrap_or(0);
@@ -238,7 +272,16 @@ impl<R: Queued> Scheduler<R> {
             self.acted_on(req.unit());
         }
         self.count(&req);
-        let admitted = match self.try_join(req) {
+        let admitted = self.queue(conn, req);
+        match displaced {
+            Some(d) => Admitted::Displaced(d),
+            None => admitted,
+        }
+    }
+
+    /// `req` of `conn`, counted, joins an identical read or is queued.
+    fn queue(&mut self, conn: ConnId, req: R) -> Admitted<R> {
+        match self.try_join(req) {
             Ok(()) => Admitted::Joined,
             Err(req) => {
                 let number = self.next_number;
@@ -251,10 +294,6 @@ impl<R: Queued> Scheduler<R> {
                 self.enlist(conn, number);
                 Admitted::Queued
             }
-        };
-        match displaced {
-            Some(d) => Admitted::Displaced(d),
-            None => admitted,
         }
     }
 
@@ -337,9 +376,20 @@ impl<R: Queued> Scheduler<R> {
     /// The next request to put on the line: a resend first, then round-robin across
     /// connections, the first whose next request is next for every master it answers.
     pub(super) fn next(&mut self) -> Option<R> {
-        let mut req = match self.retry.pop_front() {
-            Some(req) => req,
-            None => self.next_queued()?,
+        let mut req = match (self.retry.pop_front(), self.lone.take()) {
+            (Some(req), lone) => {
+                self.lone = lone;
+                req
+            }
+            // Alone, it is the one ready: as `take_queued` would leave things.
+            (None, Some(req)) => {
+                if !self.classes.is_empty() {
+                    self.streak = 0;
+                }
+                self.last_served = Some(req.conn());
+                req
+            }
+            (None, None) => self.next_queued()?,
         };
         self.turns += 1;
         let turn = self.turns;
@@ -446,6 +496,7 @@ impl<R: Queued> Scheduler<R> {
     /// The master went away: its waiting requests are dropped (their tickets with them).
     /// A read it shared with others stays for them, where it was.
     pub(super) fn detach(&mut self, conn: ConnId) {
+        self.settle();
         self.last_out.remove(&conn);
         self.classes.remove(&conn);
         self.retry.retain_mut(|r| {
@@ -476,6 +527,7 @@ impl<R: Queued> Scheduler<R> {
 
     /// Takes every waiting request out: resends first, then the queues.
     pub(super) fn drain_all(&mut self) -> Vec<R> {
+        self.settle();
         self.ring.clear();
         self.queues.clear();
         self.queued = 0;
@@ -488,6 +540,7 @@ impl<R: Queued> Scheduler<R> {
 
     /// Takes out every waiting request for `unit` (it was just backed off).
     pub(super) fn take_unit(&mut self, unit: u8) -> Vec<R> {
+        self.settle();
         let numbers: Vec<u64> = self
             .waiting
             .iter()
@@ -519,6 +572,13 @@ impl<R: Queued> Scheduler<R> {
     /// holding exactly the masters with a queue.
     #[cfg(test)]
     fn audit(&self) {
+        if self.lone.is_some() {
+            // Alone: nothing else queued (a resend may wait), and nothing counted in
+            // the queues.
+            assert!(self.waiting.is_empty(), "alone");
+            assert!(self.held.is_empty() && self.queued == 0 && self.ring.is_empty());
+            return;
+        }
         let mut held: IdMap<ConnId, usize> = IdMap::default();
         let mut listed: IdMap<ConnId, Vec<u64>> = IdMap::default();
         for (n, e) in self.waiting.iter() {

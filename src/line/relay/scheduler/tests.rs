@@ -709,16 +709,24 @@ fn a_higher_class_goes_first_and_a_lower_one_gets_one_in_n() {
                             (lo.min(class(*c)), hi.max(class(*c)))
                         })
                     };
-                    let ready: Vec<(u8, u8)> = s
-                        .queues
-                        .values()
-                        .filter_map(|q| q.front().copied())
-                        .filter(|n| {
-                            s.waiting.get(*n).unwrap().req.askers.iter().all(|(c, _)| s.queues[c].front() == Some(n))
-                        })
-                        .map(span)
-                        .collect();
-                    let waiting: Vec<u8> = s.queues.keys().map(|&c| class(c)).collect();
+                    let of = |r: &Req| r.askers.iter().fold((u8::MAX, 0), |(lo, hi), (c, _)| {
+                        (lo.min(class(*c)), hi.max(class(*c)))
+                    });
+                    // Held alone, it is the one ready.
+                    let ready: Vec<(u8, u8)> = match &s.lone {
+                        Some(r) => vec![of(r)],
+                        None => s
+                            .queues
+                            .values()
+                            .filter_map(|q| q.front().copied())
+                            .filter(|n| {
+                                s.waiting.get(*n).unwrap().req.askers.iter().all(|(c, _)| s.queues[c].front() == Some(n))
+                            })
+                            .map(span)
+                            .collect(),
+                    };
+                    let mut waiting: Vec<u8> = s.queues.keys().map(|&c| class(c)).collect();
+                    waiting.extend(s.lone.iter().map(|r| of(r).1));
                     let Some(r) = s.next() else {
                         prop_assert!(waiting.is_empty());
                         continue;
