@@ -139,12 +139,12 @@ impl Master {
             .await
             .expect("an answer in time")
             .expect("open")
-            .adu
+            .adu()
     }
 
     async fn nothing_for(&mut self, d: Duration) {
         if let Ok(got) = timeout(d, self.inbox.next()).await {
-            panic!("expected nothing, got {:?}", got.map(|o| o.adu));
+            panic!("expected nothing, got {:?}", got.map(|o| o.adu()));
         }
     }
 }

@@ -113,7 +113,7 @@ impl Gw {
         };
         self.handle.send(cmd).unwrap();
         let out = timeout(3 * SEC, self.inbox.next()).await.expect("in time");
-        out.expect("open").adu
+        out.expect("open").adu()
     }
 
     async fn stop(self) {

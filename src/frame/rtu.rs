@@ -31,11 +31,18 @@ pub(crate) fn crc16(bytes: &[u8]) -> u16 {
 /// `unit | pdu | CRC`.
 pub fn encode(unit: u8, pdu: &[u8]) -> Vec<u8> {
     let mut v = Vec::with_capacity(pdu.len() + 3);
-    v.push(unit);
-    v.extend_from_slice(pdu);
-    let crc = crc16(&v);
-    v.extend_from_slice(&crc.to_le_bytes());
+    encode_into(unit, pdu, &mut v);
     v
+}
+
+/// [`encode`], appended to `out` (a buffer kept for the next frame: nothing allocated
+/// once it has room).
+pub fn encode_into(unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
+    let start = out.len();
+    out.push(unit);
+    out.extend_from_slice(pdu);
+    let crc = crc16(&out[start..]);
+    out.extend_from_slice(&crc.to_le_bytes());
 }
 
 /// The address and PDU of a whole frame whose CRC is right; `None` otherwise (or when

@@ -153,12 +153,12 @@ mod tests {
         ticket.answer(Adu::build(2, 1, &[3, 2, 0, 7]));
         let second = inbox.next().await.unwrap();
         assert_eq!(
-            second.adu.as_bytes(),
+            second.adu().as_bytes(),
             Adu::build(2, 11, &[3, 2, 0, 7]).as_bytes()
         );
         let third = inbox.next().await.unwrap();
         assert_eq!(
-            third.adu.as_bytes(),
+            third.adu().as_bytes(),
             Adu::exception(3, 4, 3, 0x0A).as_bytes()
         );
         assert!(rx0.try_recv().is_none() && rx1.try_recv().is_none());

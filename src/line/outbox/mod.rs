@@ -68,10 +68,31 @@ enum Message {
     /// The answer to request `seq`, or `None` when it has none (e.g. a broadcast).
     Reply {
         seq: u64,
-        adu: Option<Adu>,
+        adu: Option<Answer>,
         slot: Slot,
     },
     Notification(Adu),
+}
+
+/// A frame for the master, and the transaction id and unit id it goes out with: the
+/// master's own, which a reply from the line carries only once the writer frames it
+/// (`Delivery::adu`), so that no frame is made for it in between (docs/performance.md
+/// "A transaction on a quiet line").
+struct Answer {
+    frame: Adu,
+    tid: u16,
+    unit: u8,
+}
+
+impl Answer {
+    /// `adu` as it is.
+    fn of(adu: Adu) -> Answer {
+        Answer {
+            tid: adu.tid(),
+            unit: adu.unit(),
+            frame: adu,
+        }
+    }
 }
 
 /// A pipelining slot in use. Dropping it frees the slot and restarts the idle clock.
@@ -288,12 +309,21 @@ impl Ticket {
     /// Sends the reply to this request; it is written after the replies to every
     /// earlier request of the same master. Never waits and never fails: the room was
     /// reserved with the ticket (a master already gone simply never sees it).
-    pub(crate) fn answer(mut self, adu: Adu) {
-        let adu = match self.unit {
-            Some(unit) if unit != adu.unit() => Adu::build(adu.tid(), unit, adu.pdu()),
-            _ => adu,
-        };
-        self.send(Some(adu));
+    pub(crate) fn answer(self, adu: Adu) {
+        let tid = adu.tid();
+        self.answer_as(&adu, tid);
+    }
+
+    /// Sends `reply` (with any transaction id: the line's) as the reply to this
+    /// request, written with transaction id `tid` (the master's), as [`Ticket::answer`]
+    /// does: the frame is shared, not copied.
+    pub(crate) fn answer_as(mut self, reply: &Adu, tid: u16) {
+        let unit = self.unit.unwrap_or(reply.unit());
+        self.send(Some(Answer {
+            frame: reply.clone(),
+            tid,
+            unit,
+        }));
     }
 
     /// Answers `request` (the master's own) with the gateway's exception for `why`,
@@ -316,7 +346,7 @@ impl Ticket {
         self
     }
 
-    fn send(&mut self, adu: Option<Adu>) {
+    fn send(&mut self, adu: Option<Answer>) {
         let Some(sender) = self.sender.take() else {
             return;
         };
@@ -376,14 +406,42 @@ pub struct Inbox {
     /// The sequence number of the next reply to write.
     next: u64,
     /// Replies that came before their turn.
-    held: BTreeMap<u64, (Option<Adu>, Slot)>,
+    held: BTreeMap<u64, (Option<Answer>, Slot)>,
 }
 
 /// A frame to deliver to the master. Drop it once written: a reply's pipelining slot is freed then.
 pub struct Delivery {
-    /// The frame to write to the master: a reply, or a notification.
-    pub adu: Adu,
+    /// The frame to write to the master (a reply, or a notification), and its ids.
+    answer: Answer,
     _slot: Option<Slot>,
+}
+
+impl Delivery {
+    /// The frame as the master gets it: with its own transaction id and unit id
+    /// (made here when they are not the frame's: for a capture, the log, a test).
+    pub fn adu(&self) -> Adu {
+        let Answer { frame, tid, unit } = &self.answer;
+        if (frame.tid(), frame.unit()) == (*tid, *unit) {
+            frame.clone()
+        } else {
+            Adu::build(*tid, *unit, frame.pdu())
+        }
+    }
+
+    /// The frame as it came (a reply: with the line's transaction id and unit id).
+    pub fn frame(&self) -> &Adu {
+        &self.answer.frame
+    }
+
+    /// The transaction id it goes out with: the master's.
+    pub fn tid(&self) -> u16 {
+        self.answer.tid
+    }
+
+    /// The unit id it goes out with: the one the master asked.
+    pub fn unit(&self) -> u8 {
+        self.answer.unit
+    }
 }
 
 impl Inbox {
@@ -395,7 +453,12 @@ impl Inbox {
             let (adu, slot) = match self.held.remove(&self.next) {
                 Some(held) => held,
                 None => match self.recv().await? {
-                    Message::Notification(adu) => return Some(Delivery { adu, _slot: None }),
+                    Message::Notification(adu) => {
+                        return Some(Delivery {
+                            answer: Answer::of(adu),
+                            _slot: None,
+                        })
+                    }
                     // Its turn (nearly always: a master waits for each reply): out at
                     // once, without a stay among those held.
                     Message::Reply { seq, adu, slot } if seq == self.next => (adu, slot),
@@ -407,9 +470,9 @@ impl Inbox {
             };
             self.next += 1;
             match adu {
-                Some(adu) => {
+                Some(answer) => {
                     return Some(Delivery {
-                        adu,
+                        answer,
                         _slot: Some(slot),
                     })
                 }

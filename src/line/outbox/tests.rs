@@ -12,7 +12,7 @@ async fn next_tid(inbox: &mut Inbox) -> u16 {
         .await
         .expect("a frame")
         .expect("open");
-    out.adu.tid()
+    out.adu().tid()
 }
 
 #[tokio::test]
@@ -156,7 +156,7 @@ async fn every_refusal_answers_its_code_and_counts_it_once() {
         outbox.ticket().await.refuse(&request, why, &stats);
         let out = inbox.next().await.expect("the answer");
         assert_eq!(
-            out.adu.as_bytes(),
+            out.adu().as_bytes(),
             Adu::build(0x1234, 7, &[0x83, code]).as_bytes()
         );
         let counted = [

@@ -239,7 +239,7 @@ impl Pending {
     /// transaction id, after that master's answers to its earlier requests.
     pub(super) fn deliver(self, reply: &Adu) {
         for a in self.0.askers {
-            a.ticket.answer(reply.with_tid(a.tid));
+            a.ticket.answer_as(reply, a.tid);
         }
     }
 

@@ -41,8 +41,12 @@ pub(super) trait MasterCodec: Default + Send {
     fn paused(&mut self) {}
     /// `adu` as the master sees it on its socket.
     fn frame(adu: &Adu) -> Cow<'_, [u8]>;
-    /// Is a reply to `adu` written to the master at all?
-    fn answers(_adu: &Adu) -> bool {
+    /// `frame` as the master sees it on its socket with transaction id `tid` and unit
+    /// id `unit` (its own), appended to `out`: a reply from the line is framed for the
+    /// master here, once, not copied for it before.
+    fn frame_into(frame: &Adu, tid: u16, unit: u8, out: &mut Vec<u8>);
+    /// Is an answer going out as unit `unit` written to the master at all?
+    fn answers(_unit: u8) -> bool {
         true
     }
 }
@@ -69,6 +73,15 @@ impl MasterCodec for Mbap {
 
     fn frame(adu: &Adu) -> Cow<'_, [u8]> {
         Cow::Borrowed(adu.as_bytes())
+    }
+
+    fn frame_into(frame: &Adu, tid: u16, unit: u8, out: &mut Vec<u8>) {
+        let b = frame.as_bytes();
+        out.extend_from_slice(&tid.to_be_bytes());
+        // Protocol id and length, as they are: the PDU is the frame's.
+        out.extend_from_slice(&b[2..6]);
+        out.push(unit);
+        out.extend_from_slice(frame.pdu());
     }
 }
 
@@ -107,10 +120,14 @@ impl MasterCodec for Rtu {
         Cow::Owned(rtu::encode(adu))
     }
 
+    fn frame_into(frame: &Adu, _tid: u16, unit: u8, out: &mut Vec<u8>) {
+        crate::frame::rtu::encode_into(unit, frame.pdu(), out);
+    }
+
     /// Unit 0 is a broadcast in RTU: its master awaits no answer, and would take one
     /// for the answer to its next request.
-    fn answers(adu: &Adu) -> bool {
-        adu.unit() != 0
+    fn answers(unit: u8) -> bool {
+        unit != 0
     }
 }
 
@@ -139,10 +156,18 @@ mod tests {
         let r2 = codec.decode(&mut next).unwrap().unwrap();
         assert_ne!(r.tid(), r2.tid(), "each request its own id on the line");
 
-        let broadcast = Adu::build(1, 0, &[6, 0, 1, 0, 1]);
-        assert!(Mbap::answers(&broadcast));
-        assert!(!Rtu::answers(&broadcast));
-        assert!(Rtu::answers(&r));
+        assert!(Mbap::answers(0));
+        assert!(!Rtu::answers(0), "a broadcast");
+        assert!(Rtu::answers(r.unit()));
+
+        // A reply from the line (its id and unit the line's) framed for the master.
+        let line = Adu::build(0x4321, 3, &[3, 2, 0, 7]);
+        let mut out = Vec::new();
+        Mbap::frame_into(&line, 9, 7, &mut out);
+        assert_eq!(out, Adu::build(9, 7, &[3, 2, 0, 7]).as_bytes());
+        out.clear();
+        Rtu::frame_into(&line, 9, 7, &mut out);
+        assert_eq!(out, serial::encode(7, &[3, 2, 0, 7]));
     }
 
     /// A function of unknown shape waits for the master's pause, then ends there.

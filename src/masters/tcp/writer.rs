@@ -6,8 +6,7 @@
 use super::codec::MasterCodec;
 use super::connection::{Connection, Ended};
 use crate::frame::hex::Hex;
-use crate::frame::Adu;
-use crate::line::outbox::Inbox;
+use crate::line::outbox::{Delivery, Inbox};
 use crate::ops::capture::packet::Dir;
 use std::future::Future;
 use std::task::Poll;
@@ -15,6 +14,10 @@ use std::time::Duration;
 use tokio::io::{AsyncWrite, AsyncWriteExt};
 use tokio::time::Instant;
 use tracing::{debug, info};
+
+/// Room for the longest frame either framing writes (an MBAP frame of 260 bytes, an
+/// RTU one of 256).
+const FRAME_ROOM: usize = 260;
 
 impl Connection {
     /// Writes the master's replies in the order of its requests, and notifications as
@@ -28,9 +31,11 @@ impl Connection {
         mut inbox: Inbox,
     ) -> Ended {
         let beat = self.dialed.as_ref().filter(|d| !d.heartbeat.is_empty());
+        // Each frame is framed for the master here, in a buffer kept for the next.
+        let mut buf = Vec::with_capacity(FRAME_ROOM);
         let Some(beat) = beat else {
             while let Some(out) = inbox.next().await {
-                if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf).await {
                     return why;
                 }
                 // `out` drops here: a reply's pipelining slot is free again, and the
@@ -47,7 +52,7 @@ impl Connection {
                     let Some(out) = out else {
                         return Ended::NoMoreReplies;
                     };
-                    if let Err(why) = self.write_reply::<C>(&mut wr, &out.adu).await {
+                    if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf).await {
                         return why;
                     }
                 }
@@ -63,27 +68,30 @@ impl Connection {
         }
     }
 
-    /// One reply or notification written (logged and captured first); `Err`: why the
-    /// connection must close.
+    /// One reply or notification written (logged and captured first), framed in
+    /// `buf`; `Err`: why the connection must close.
     async fn write_reply<C: MasterCodec>(
         &self,
         wr: &mut (impl AsyncWrite + Unpin),
-        adu: &Adu,
+        out: &Delivery,
+        buf: &mut Vec<u8>,
     ) -> Result<(), Ended> {
         if self.cfg.log.traffic {
-            debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(adu.as_bytes()));
+            debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu().as_bytes()));
         }
         if self.tap.on() {
-            self.captured::<C>(adu, Dir::Out, "gw->master");
+            self.captured::<C>(&out.adu(), Dir::Out, "gw->master");
         }
-        if !C::answers(adu) {
+        if !C::answers(out.unit()) {
             debug!(
                 conn = self.id,
                 "answer to a broadcast (unit 0): not written"
             );
             return Ok(());
         }
-        self.write_bytes(wr, &C::frame(adu)).await
+        buf.clear();
+        C::frame_into(out.frame(), out.tid(), out.unit(), buf);
+        self.write_bytes(wr, buf).await
     }
 
     /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take
