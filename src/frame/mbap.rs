@@ -114,10 +114,6 @@ impl Adu {
         &self.0
     }
 
-    pub(crate) fn into_bytes(self) -> Bytes {
-        self.0
-    }
-
     /// The same frame with another transaction id (the relay's id rewriting, docs/design.md
     /// §1 step 3).
     pub fn with_tid(&self, tid: u16) -> Self {

@@ -45,7 +45,7 @@ impl Relay {
     pub(super) fn on_request(&mut self, conn: ConnId, adu: Adu, ticket: Ticket, now: Instant) {
         self.stats.add(&self.stats.requests, 1);
         self.telemetry.request(adu.unit());
-        let mut req = Pending::new(conn, adu, ticket, now);
+        let mut req = Pending::new(conn, adu, ticket, now, &mut self.spare);
         let unit = req.adu.unit();
         if self.line.not_broadcast(&req.adu) {
             debug!(
@@ -65,7 +65,8 @@ impl Relay {
         }
         if let Some(reply) = self.cached(&req, now) {
             self.stats.add(&self.stats.served_from_cache, 1);
-            req.deliver(&reply);
+            let emptied = req.deliver(&reply);
+            self.spare.keep(emptied);
             return;
         }
         if self.in_flight.backed_off(unit, now) {

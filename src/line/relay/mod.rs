@@ -55,7 +55,7 @@ use inflight::{InFlight, Paced};
 use line::{LineFraming, Seen};
 use masters::Masters;
 use outgoing::Outgoing;
-use pending::Pending;
+use pending::{Pending, Spare};
 use scheduler::Scheduler;
 use std::sync::Arc;
 use std::time::Duration;
@@ -82,6 +82,8 @@ pub struct Relay {
     seen: Vec<Seen>,
     /// Replies that may answer identical reads (`cache_ms`; empty when off).
     cache: Cache,
+    /// The boxes of requests answered, for the next requests.
+    spare: Spare,
     /// 0x0B answers for backed-off units, at the line's pace.
     paced: Paced<Pending>,
     port: Lifecycle,
@@ -173,6 +175,7 @@ impl Relay {
         let relay = Relay {
             sched: Scheduler::new(cfg.queue_depth, cfg.coalesce),
             cache: Cache::new(Duration::from_millis(cfg.cache_ms)),
+            spare: Spare::default(),
             masters: Masters::new(cfg.notifications),
             cfg,
             rx,

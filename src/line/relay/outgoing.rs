@@ -2,23 +2,30 @@
 //! possibly part written, and a frame not yet begun withdrawn when flow control held
 //! it back past its deadline. Plain data: the loop writes what `pending` gives.
 
-use bytes::Bytes;
 use std::collections::VecDeque;
 
 /// Frames waiting to be written to the port, in order. A frame not yet begun can be
 /// withdrawn; one partly written is finished, so the device's parser stays in step.
+/// Their bytes are encoded straight into a buffer kept from frame to frame: no
+/// allocation a request (docs/performance.md "A transaction on a quiet line").
 #[derive(Debug, Default)]
 pub(super) struct Outgoing {
-    frames: VecDeque<(u16, Bytes)>,
+    /// Each frame's request id and length, in order.
+    frames: VecDeque<(u16, usize)>,
+    /// Their bytes, back to back, the front frame's from `front`.
+    bytes: Vec<u8>,
+    front: usize,
     /// Bytes of the front frame already written.
     written: usize,
-    len: usize,
 }
 
 impl Outgoing {
-    pub(super) fn push(&mut self, tid: u16, frame: Bytes) {
-        self.len += frame.len();
-        self.frames.push_back((tid, frame));
+    /// Queues the frame `encode` appends to the buffer, for request `tid`; its bytes.
+    pub(super) fn push_with(&mut self, tid: u16, encode: impl FnOnce(&mut Vec<u8>)) -> &[u8] {
+        let start = self.bytes.len();
+        encode(&mut self.bytes);
+        self.frames.push_back((tid, self.bytes.len() - start));
+        &self.bytes[start..]
     }
 
     pub(super) fn is_empty(&self) -> bool {
@@ -27,24 +34,27 @@ impl Outgoing {
 
     /// Bytes still to write.
     pub(super) fn len(&self) -> usize {
-        self.len
+        self.bytes.len() - self.front - self.written
     }
 
     /// The unwritten rest of the front frame.
     pub(super) fn pending(&self) -> &[u8] {
-        self.frames
-            .front()
-            .map_or(&[][..], |(_, f)| &f[self.written..])
+        self.frames.front().map_or(&[][..], |&(_, len)| {
+            &self.bytes[self.front + self.written..self.front + len]
+        })
     }
 
     pub(super) fn advance(&mut self, n: usize) {
         self.written += n;
-        self.len -= n;
-        if let Some((_, f)) = self.frames.front() {
-            if self.written >= f.len() {
+        if let Some(&(_, len)) = self.frames.front() {
+            if self.written >= len {
                 self.frames.pop_front();
+                self.front += len;
                 self.written = 0;
             }
+        }
+        if self.frames.is_empty() {
+            self.clear();
         }
     }
 
@@ -56,29 +66,42 @@ impl Outgoing {
         if i == 0 && self.written > 0 {
             return false;
         }
-        let (_, f) = self.frames.remove(i).expect("index found above");
-        self.len -= f.len();
+        let at = self.front
+            + self
+                .frames
+                .iter()
+                .take(i)
+                .map(|&(_, len)| len)
+                .sum::<usize>();
+        let (_, len) = self.frames.remove(i).expect("index found above");
+        self.bytes.drain(at..at + len);
+        if self.frames.is_empty() {
+            self.clear();
+        }
         true
     }
 
     pub(super) fn clear(&mut self) {
         self.frames.clear();
+        self.bytes.clear();
+        self.front = 0;
         self.written = 0;
-        self.len = 0;
     }
 }
 
 #[cfg(test)]
 mod tests {
     use super::Outgoing;
-    use bytes::Bytes;
 
     #[test]
     fn outgoing_writes_in_order_and_withdraws_only_unstarted_frames() {
         let mut o = Outgoing::default();
-        o.push(1, Bytes::from_static(b"abc"));
-        o.push(2, Bytes::from_static(b"de"));
-        o.push(3, Bytes::from_static(b"f"));
+        let mut push = |tid, bytes: &[u8]| {
+            assert_eq!(o.push_with(tid, |b| b.extend_from_slice(bytes)), bytes);
+        };
+        push(1, b"abc");
+        push(2, b"de");
+        push(3, b"f");
         assert_eq!(o.len(), 6);
         o.advance(2);
         assert_eq!(o.pending(), b"c");
@@ -91,5 +114,8 @@ mod tests {
         assert!(o.is_empty());
         assert_eq!(o.len(), 0);
         assert!(!o.withdraw(3));
+        // The buffer starts again from its beginning, its room kept.
+        assert_eq!(o.push_with(4, |b| b.extend_from_slice(b"gh")), b"gh");
+        assert!(o.withdraw(4) && o.is_empty() && o.pending().is_empty());
     }
 }

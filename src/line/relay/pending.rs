@@ -98,22 +98,62 @@ impl IntoIterator for Askers {
 /// A request as the relay holds it, boxed: it moves a dozen times a transaction (in
 /// from the connection, into the queue, onto the line, back with its reply), and a
 /// pointer moves for nothing where the whole of it went through `memcpy` each time,
-/// about 4 % of the gateway's instructions a transaction for one allocation
-/// (callgrind, docs/performance.md "Instructions a transaction, counted").
-pub(super) struct Pending(Box<Parts>);
+/// about 4 % of the gateway's instructions a transaction (callgrind,
+/// docs/performance.md "Instructions a transaction, counted"). The box of a request
+/// answered by the line is kept for the next one ([`Spare`]): no allocation a
+/// transaction for it.
+pub(super) struct Pending(Box<Option<Parts>>);
 
 impl std::ops::Deref for Pending {
     type Target = Parts;
     fn deref(&self) -> &Parts {
-        &self.0
+        // Empty only once delivered, and then it is no `Pending` any more.
+        (*self.0)
+            .as_ref()
+            .expect("a pending request holds its parts")
     }
 }
 
 impl std::ops::DerefMut for Pending {
     fn deref_mut(&mut self) -> &mut Parts {
-        &mut self.0
+        (*self.0)
+            .as_mut()
+            .expect("a pending request holds its parts")
     }
 }
+
+/// Boxes of requests answered, emptied, for the next requests.
+#[derive(Default)]
+// The boxes themselves are what is kept: each becomes a `Pending` again as it is.
+#[allow(clippy::vec_box)]
+pub(super) struct Spare(Vec<Box<Option<Parts>>>);
+
+impl Spare {
+    /// Enough for the requests a line turns round between two of its reads.
+    const KEPT: usize = 8;
+
+    /// A box for `parts`: a spare one if there is one.
+    fn boxed(&mut self, parts: Parts) -> Box<Option<Parts>> {
+        match self.0.pop() {
+            Some(mut b) => {
+                *b = Some(parts);
+                b
+            }
+            None => Box::new(Some(parts)),
+        }
+    }
+
+    /// Keeps `emptied` (a request's box, answered) for the next request, a few.
+    pub(super) fn keep(&mut self, emptied: Emptied) {
+        debug_assert!(emptied.0.is_none());
+        if self.0.len() < Self::KEPT {
+            self.0.push(emptied.0);
+        }
+    }
+}
+
+/// The box of a request answered, empty: for [`Spare::keep`], or dropped.
+pub(super) struct Emptied(Box<Option<Parts>>);
 
 /// What a [`Pending`] holds.
 pub(super) struct Parts {
@@ -149,8 +189,9 @@ impl Queued for Pending {
     fn masters(&self) -> impl Iterator<Item = ConnId> + '_ {
         self.askers.iter().map(|a| a.conn)
     }
-    fn join(&mut self, other: Self) {
-        self.askers.extend(other.0.askers);
+    fn join(&mut self, mut other: Self) {
+        let parts = other.0.take().expect("a pending request holds its parts");
+        self.askers.extend(parts.askers);
     }
     fn leave(&mut self, conn: ConnId) -> Option<Self> {
         let gone = self.askers.split_off(|a| a.conn == conn)?;
@@ -197,9 +238,15 @@ impl Asked for Pending {
 }
 
 impl Pending {
-    /// A request just received at `came`, never sent.
-    pub(super) fn new(conn: ConnId, adu: Adu, ticket: Ticket, came: Instant) -> Self {
-        Pending(Box::new(Parts {
+    /// A request just received at `came`, never sent, in a box from `spare`.
+    pub(super) fn new(
+        conn: ConnId,
+        adu: Adu,
+        ticket: Ticket,
+        came: Instant,
+        spare: &mut Spare,
+    ) -> Self {
+        Pending(spare.boxed(Parts {
             askers: Askers::one(Asker {
                 conn,
                 tid: adu.tid(),
@@ -213,16 +260,21 @@ impl Pending {
         }))
     }
 
+    /// A request made of `parts`.
+    fn of(parts: Parts) -> Self {
+        Pending(Box::new(Some(parts)))
+    }
+
     /// `askers`, taken out of this request, as a request of their own.
     fn part(&self, askers: Askers) -> Self {
-        Pending(Box::new(Parts {
+        Pending::of(Parts {
             adu: self.adu.with_tid(askers.first.tid),
             askers,
             attempts: self.attempts,
             turn: self.turn,
             cache_stamp: self.cache_stamp,
             came: self.came,
-        }))
+        })
     }
 
     /// The master it is queued for.
@@ -236,17 +288,20 @@ impl Pending {
     }
 
     /// `reply` (any transaction id) to every master it serves, each with its own
-    /// transaction id, after that master's answers to its earlier requests.
-    pub(super) fn deliver(self, reply: &Adu) {
-        for a in self.0.askers {
+    /// transaction id, after that master's answers to its earlier requests. Its box,
+    /// emptied, for the next request.
+    pub(super) fn deliver(mut self, reply: &Adu) -> Emptied {
+        let parts = self.0.take().expect("a pending request holds its parts");
+        for a in parts.askers {
             a.ticket.answer_as(reply, a.tid);
         }
+        Emptied(self.0)
     }
 
     /// Answers every master it serves with the gateway's own exception for `why`,
     /// each with its own transaction id, counted once for each.
-    pub(super) fn answer_exception(self, why: Refusal, stats: &Stats) {
-        let Parts { adu, askers, .. } = *self.0;
+    pub(super) fn answer_exception(mut self, why: Refusal, stats: &Stats) {
+        let Parts { adu, askers, .. } = self.0.take().expect("a pending request holds its parts");
         for a in askers {
             a.ticket.refuse(&adu.with_tid(a.tid), why, stats);
         }
@@ -269,7 +324,7 @@ impl Pending {
             BroadcastReply::None => drop(self),
             BroadcastReply::Echo => {
                 let adu = Adu::build(self.adu.tid(), 0, &pdu::write_echo(self.adu.pdu()));
-                self.deliver(&adu);
+                drop(self.deliver(&adu));
             }
         }
     }

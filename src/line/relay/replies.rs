@@ -59,7 +59,8 @@ impl Relay {
             self.telemetry
                 .replied(conn, asked, &frame, wire.as_deref(), (left, now));
             self.tell_learned(asked.unit());
-            f.req.deliver(&frame);
+            let emptied = f.req.deliver(&frame);
+            self.spare.keep(emptied);
             return;
         }
         let unsolicited = self.line.unsolicited(tid);

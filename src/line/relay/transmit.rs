@@ -94,9 +94,11 @@ impl Relay {
         let tid = self.line.allocate(now);
         let pause = self.in_flight.policy(req.adu.unit()).pause;
         self.line.pause_after(pause);
-        let bytes = self.line.encode(&req.adu, tid, now, &self.stats);
-        self.telemetry.sent(req.conn(), &req.adu, tid, &bytes, now);
-        self.out.push(tid, bytes);
+        let (line, stats) = (&mut self.line, &self.stats);
+        let bytes = self
+            .out
+            .push_with(tid, |out| line.encode_into(&req.adu, tid, now, stats, out));
+        self.telemetry.sent(req.conn(), &req.adu, tid, bytes, now);
         if req.acts() {
             // Reads sent before it may be answered after it was sent: not kept.
             self.cache.acted_on(req.adu.unit());

@@ -26,7 +26,6 @@ use crate::frame::{Adu, FunctionCode};
 use crate::line::port::kind::PortInfo;
 use crate::ops::capture::dropped::Dropped;
 use crate::ops::stats::Stats;
-use bytes::Bytes;
 use mbap::MbapLine;
 use serial::Serial;
 use std::time::Duration;
@@ -151,12 +150,34 @@ impl LineFraming {
         }
     }
 
-    /// The bytes that put `adu` on the line as request `tid`, about to be written.
-    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, stats: &Stats) -> Bytes {
+    /// Appends to `out` the bytes that put `adu` on the line as request `tid`, about
+    /// to be written.
+    pub(super) fn encode_into(
+        &mut self,
+        adu: &Adu,
+        tid: u16,
+        now: Instant,
+        stats: &Stats,
+        out: &mut Vec<u8>,
+    ) {
         match &mut self.0 {
-            FramingState::Mbap(m) => m.encode(adu, tid, now),
-            FramingState::Serial(s) => s.encode(adu, now, stats),
+            FramingState::Mbap(m) => m.encode(adu, tid, now, out),
+            FramingState::Serial(s) => out.extend_from_slice(&s.encode(adu, now, stats)),
         }
+    }
+
+    /// [`LineFraming::encode_into`], the bytes on their own.
+    #[cfg(test)]
+    pub(super) fn encode(
+        &mut self,
+        adu: &Adu,
+        tid: u16,
+        now: Instant,
+        stats: &Stats,
+    ) -> bytes::Bytes {
+        let mut out = Vec::new();
+        self.encode_into(adu, tid, now, stats, &mut out);
+        bytes::Bytes::from(out)
     }
 
     /// May another request go on the line now? `in_flight` are outstanding; `busy`

@@ -10,6 +10,7 @@ mod usable;
 use super::{Seen, Unsolicited};
 use crate::config::{Notifications, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framed, Framer};
+use crate::frame::mbap::MAX_ADU;
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::line::port::kind::{self, PortInfo};
@@ -18,7 +19,6 @@ use crate::line::relay::tids::Tids;
 use crate::ops::capture::dropped::Tape;
 use crate::ops::capture::packet::Reason;
 use crate::ops::stats::Stats;
-use bytes::Bytes;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -85,7 +85,8 @@ enum Early {
 /// A request as it went on the line.
 struct Sent {
     tid: u16,
-    bytes: Bytes,
+    /// Its bytes, kept here (to know its echo): no allocation a request.
+    bytes: SentBytes,
     /// When it was handed to the port: nothing read before then answers it.
     handed: Instant,
     /// The earliest instant its last byte can have left at the configured speed: a
@@ -94,6 +95,30 @@ struct Sent {
     left: Instant,
     /// Its bytes not yet handed to the port by a write that returned.
     unwritten: usize,
+}
+
+/// A copy of a request's bytes, in place.
+struct SentBytes {
+    len: usize,
+    buf: [u8; MAX_ADU],
+}
+
+impl SentBytes {
+    fn of(bytes: &[u8]) -> SentBytes {
+        let mut s = SentBytes {
+            len: bytes.len(),
+            buf: [0; MAX_ADU],
+        };
+        s.buf[..bytes.len()].copy_from_slice(bytes);
+        s
+    }
+}
+
+impl std::ops::Deref for SentBytes {
+    type Target = [u8];
+    fn deref(&self) -> &[u8] {
+        &self.buf[..self.len]
+    }
 }
 
 impl MbapLine {
@@ -226,10 +251,12 @@ impl MbapLine {
         self.sent.retain(|s| s.tid != tid);
     }
 
-    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant) -> Bytes {
-        let bytes = adu.with_tid(tid).into_bytes();
-        self.sent(tid, &bytes, now);
-        bytes
+    /// Appends `adu` as request `tid` to `out`.
+    pub(super) fn encode(&mut self, adu: &Adu, tid: u16, now: Instant, out: &mut Vec<u8>) {
+        let start = out.len();
+        out.extend_from_slice(&tid.to_be_bytes());
+        out.extend_from_slice(&adu.as_bytes()[2..]);
+        self.sent(tid, &out[start..], now);
     }
 
     pub(super) fn has_room(&self, in_flight: usize, now: Instant) -> bool {
@@ -281,12 +308,12 @@ impl MbapLine {
 
     /// Request `tid` goes on the line now as `bytes`, behind whatever is still being
     /// written.
-    fn sent(&mut self, tid: u16, bytes: &Bytes, now: Instant) {
+    fn sent(&mut self, tid: u16, bytes: &[u8], now: Instant) {
         let left = self.tx_clear.max(now) + self.char_time * bytes.len() as u32;
         self.tx_clear = left;
         self.sent.push(Sent {
             tid,
-            bytes: bytes.clone(),
+            bytes: SentBytes::of(bytes),
             handed: now,
             left,
             unwritten: bytes.len(),
