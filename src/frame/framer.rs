@@ -31,6 +31,7 @@ use super::mbap::{FrameRef, HEADER_LEN};
 use super::resync::{Judge, Resync};
 use super::serial::{Codec, Decoded, Decoder, Expect};
 use super::{pdu, Adu, FunctionCode};
+use bytes::BytesMut;
 
 /// Any well-formed reply (as [`ReplyJudge`](super::ReplyJudge)), and on an RTU or ASCII
 /// line the reply to this request PDU, whose shape gives the reply's length.
@@ -74,6 +75,9 @@ enum Decoding {
 #[derive(Debug)]
 pub struct Framer {
     decoding: Decoding,
+    /// RTU/ASCII: where the frames decoded are built as MBAP frames
+    /// ([`Adu::build_in`]): no allocation a frame once warm.
+    arena: BytesMut,
     /// RTU/ASCII: bytes dropped (noise, failed checks, cleared). MBAP: bytes cleared
     /// are the decoder's own count.
     line_dropped: u64,
@@ -99,6 +103,7 @@ impl Framer {
     fn with(decoding: Decoding) -> Self {
         Self {
             decoding,
+            arena: BytesMut::new(),
             line_dropped: 0,
             line_consumed: 0,
             dropped_taken: 0,
@@ -120,6 +125,14 @@ impl Framer {
         match self.codec() {
             None => adu.as_bytes().to_vec(),
             Some(codec) => codec.encode(adu.unit(), adu.pdu()),
+        }
+    }
+
+    /// [`Framer::encode`], appended to `out`.
+    pub(crate) fn encode_into(&self, adu: &Adu, out: &mut Vec<u8>) {
+        match self.codec() {
+            None => out.extend_from_slice(adu.as_bytes()),
+            Some(codec) => codec.encode_into(adu.unit(), adu.pdu(), out),
         }
     }
 
@@ -169,6 +182,17 @@ impl Framer {
     /// Bytes that make no frame (noise before an ASCII colon, MBAP garbage) are
     /// dropped and counted, not returned.
     pub fn next_frame(&mut self, judge: &impl Judge, quiet: bool) -> Option<Framed> {
+        self.next_frame_as(judge, quiet, 0)
+    }
+
+    /// [`Framer::next_frame`]; an RTU or ASCII frame (which carries no transaction id)
+    /// made with `tid`, the key of the request it is judged against.
+    pub(crate) fn next_frame_as(
+        &mut self,
+        judge: &impl Judge,
+        quiet: bool,
+        tid: u16,
+    ) -> Option<Framed> {
         match &mut self.decoding {
             Decoding::Mbap(d) => d.next_frame(judge, quiet).map(Framed::Frame),
             Decoding::Serial(d) => loop {
@@ -176,7 +200,9 @@ impl Framer {
                     // A CRC or LRC frame holds 1..=253 PDU bytes (its size limits).
                     Decoded::Frame { unit, pdu } => {
                         self.line_consumed += d.codec().encoded_len(pdu.len()) as u64;
-                        return Some(Framed::Frame(Adu::build(0, unit, &pdu)));
+                        let adu = Adu::build_in(&mut self.arena, tid, unit, &pdu);
+                        d.recycle(pdu);
+                        return Some(Framed::Frame(adu));
                     }
                     Decoded::Corrupt(n) => {
                         self.line_dropped += n as u64;

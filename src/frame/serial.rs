@@ -33,6 +33,14 @@ impl Codec {
         }
     }
 
+    /// [`Codec::encode`], appended to `out`.
+    pub(crate) fn encode_into(self, unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
+        match self {
+            Codec::Rtu => rtu::encode_into(unit, pdu, out),
+            Codec::Ascii => out.extend_from_slice(&ascii::encode(unit, pdu)),
+        }
+    }
+
     /// The length of that frame for a PDU of `pdu_len` bytes: address and CRC (RTU);
     /// colon, each byte as two hex digits with the LRC, CR LF (ASCII).
     pub(crate) fn encoded_len(self, pdu_len: usize) -> usize {
@@ -70,6 +78,9 @@ pub(crate) enum Decoded {
 pub(crate) struct Decoder {
     codec: Codec,
     buf: Vec<u8>,
+    /// The room of the last frame's PDU, given back ([`Decoder::recycle`]) for the
+    /// next: an RTU frame is decoded without an allocation.
+    spare: Vec<u8>,
 }
 
 impl Decoder {
@@ -77,7 +88,13 @@ impl Decoder {
         Self {
             codec,
             buf: Vec::new(),
+            spare: Vec::new(),
         }
+    }
+
+    /// The PDU of a frame decoded, no longer needed: its room serves the next frame.
+    pub(crate) fn recycle(&mut self, pdu: Vec<u8>) {
+        self.spare = pdu;
     }
 
     pub(crate) fn codec(&self) -> Codec {
@@ -109,9 +126,11 @@ impl Decoder {
         self.codec == Codec::Rtu && !matches!(length, rtu::Length::Silence)
     }
 
-    /// Forgets every buffered byte; returns how many.
+    /// Forgets every buffered byte (keeping the room); returns how many.
     pub(crate) fn clear(&mut self) -> usize {
-        std::mem::take(&mut self.buf).len()
+        let n = self.buf.len();
+        self.buf.clear();
+        n
     }
 
     /// The next frame, if the bytes (and, for RTU, a `quiet` line) delimit one.
@@ -135,14 +154,18 @@ impl Decoder {
             _ if quiet => self.buf.len(),
             _ => return None,
         };
-        let frame: Vec<u8> = self.buf.drain(..n).collect();
-        Some(match rtu::decode(&frame) {
-            Some((unit, pdu)) => Decoded::Frame {
-                unit,
-                pdu: pdu.to_vec(),
-            },
+        // Decoded where it lies, its PDU copied into the room of the last one.
+        let decoded = match rtu::decode(&self.buf[..n]) {
+            Some((unit, pdu)) => {
+                let mut room = std::mem::take(&mut self.spare);
+                room.clear();
+                room.extend_from_slice(pdu);
+                Decoded::Frame { unit, pdu: room }
+            }
             None => Decoded::Corrupt(n),
-        })
+        };
+        self.buf.drain(..n);
+        Some(decoded)
     }
 
     fn next_ascii(&mut self) -> Option<Decoded> {

@@ -162,7 +162,7 @@ impl LineFraming {
     ) {
         match &mut self.0 {
             FramingState::Mbap(m) => m.encode(adu, tid, now, out),
-            FramingState::Serial(s) => out.extend_from_slice(&s.encode(adu, now, stats)),
+            FramingState::Serial(s) => s.encode(adu, now, stats, out),
         }
     }
 

@@ -14,7 +14,6 @@ use crate::masters::access::UnitSet;
 use crate::ops::capture::dropped::{Dropped, Tape};
 use crate::ops::capture::packet::Reason;
 use crate::ops::stats::Stats;
-use bytes::Bytes;
 use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -42,6 +41,8 @@ pub(super) struct Serial {
     frame_gap: Duration,
     /// The request on the line, for the length of its reply.
     asked: Option<Vec<u8>>,
+    /// The room `asked` had, while nothing is asked.
+    asked_room: Vec<u8>,
     broadcast_delay: Duration,
     /// The line stays quiet this long after a timeout (`timeout_guard_ms`).
     guard: Duration,
@@ -121,6 +122,7 @@ impl Serial {
             silence: kind::silence(serial, &PortInfo::unknown()),
             frame_gap: Duration::from_millis(relay.frame_gap_ms),
             asked: None,
+            asked_room: Vec::new(),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
             last_rx: now,
@@ -216,7 +218,8 @@ impl Serial {
         self.decoder.encode(frame)
     }
 
-    pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats) -> Bytes {
+    /// Appends `adu` as the line carries it to `out`.
+    pub(super) fn encode(&mut self, adu: &Adu, now: Instant, stats: &Stats, out: &mut Vec<u8>) {
         // Nothing received before a request is written can be its reply.
         let held = self.drop_held(now, "received before the request was sent");
         let stale = self.decoder.clear() + held;
@@ -232,18 +235,19 @@ impl Serial {
             stats.add(&stats.dropped_stale, stale as u64);
         }
         self.count_dropped(held, stats);
-        let bytes = self.decoder.encode(adu);
+        let start = out.len();
+        self.decoder.encode_into(adu, out);
+        let bytes = &out[start..];
         if let Some(echo) = &mut self.echo {
             // Any echo still awaited belongs to an earlier request, long done.
             echo.clear();
-            echo.extend(&bytes);
+            echo.extend(bytes);
         }
         self.broadcast_on_wire = adu.unit() == 0;
         // Written from now on: its last byte cannot leave before its time on the wire
         // has passed.
         self.tx = Some(now + self.wire_time(bytes.len()));
         self.unwritten = bytes.len();
-        Bytes::from(bytes)
     }
 
     pub(super) fn has_room(&self, in_flight: usize, busy: bool, now: Instant) -> bool {

@@ -137,7 +137,17 @@ impl Serial {
     ) -> Option<Seen> {
         let asked = in_flight.first().map(|f| f.req.adu().pdu());
         if self.asked.as_deref() != asked {
-            self.asked = asked.map(<[u8]>::to_vec);
+            // Kept in the room of the last one: no allocation a request.
+            let mut room =
+                (self.asked.take()).unwrap_or_else(|| std::mem::take(&mut self.asked_room));
+            room.clear();
+            match asked {
+                Some(asked) => {
+                    room.extend_from_slice(asked);
+                    self.asked = Some(room);
+                }
+                None => self.asked_room = room,
+            }
         }
         let quiet = now >= self.last_rx + self.quiet_after();
         let Some(f) = in_flight.first() else {
@@ -169,7 +179,7 @@ impl Serial {
             }
         }
         loop {
-            let next = self.decoder.next_frame(&ReplyFor(request), quiet);
+            let next = self.decoder.next_frame_as(&ReplyFor(request), quiet, f.tid);
             // Noise before a frame (ASCII: before its colon), and a frame whose check
             // failed, the framer has dropped.
             self.count_dropped(0, stats);
@@ -195,11 +205,11 @@ impl Serial {
                 // reply is the answer only if the line stays quiet after it
                 // (docs/reliability.md "RTU and ASCII", 6).
                 let quiet = self.guard.min(f.timeout / 2);
-                self.unconfirmed = Some((frame.with_tid(f.tid), at, quiet));
+                self.unconfirmed = Some((frame, at, quiet));
                 continue;
             }
             if answers {
-                return Some(Seen::Frame(frame.with_tid(f.tid), at));
+                return Some(Seen::Frame(frame, at));
             }
             // The CRC or LRC proves only that these bytes are a frame: one of another
             // unit, of another function than the request's (or its exception), or of
