@@ -36,6 +36,8 @@ pub(super) struct Sources<'a> {
     pub(super) may_write: bool,
     /// The next timer, if any.
     pub(super) wake: Option<Instant>,
+    /// The clock as the loop last read it, before this wait.
+    pub(super) now: Instant,
     /// Waits for `wake` to the microsecond; without it, tokio's timer does, to the
     /// millisecond.
     pub(super) timer: Option<&'a mut PreciseTimer>,
@@ -50,6 +52,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
         out,
         may_write,
         wake,
+        now,
         timer,
         shutdown,
     } = src;
@@ -58,7 +61,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
         let at = wake.expect("guarded");
         match timer {
             Some(t) => {
-                if let Err(e) = t.until(at).await {
+                if let Err(e) = t.until_from(at, now).await {
                     // Never seen: then tokio's timer.
                     tracing::debug!("timerfd: {e}");
                     tokio::time::sleep_until(at).await;

@@ -285,6 +285,7 @@ impl Relay {
                 out: &self.out,
                 may_write,
                 wake,
+                now: polled,
                 timer: timer.as_mut(),
                 shutdown: (!self.draining).then_some(&mut shutdown),
             };

@@ -31,6 +31,8 @@ pub(crate) struct Tids {
     next: u16,
     /// One bit per id: in flight or retired.
     reserved: Box<[u64; 1024]>,
+    /// Each retired id with the instant it is forgotten (its retirement plus
+    /// [`RETIRED_FOR`]): compared with the clock, not subtracted from it.
     retired: VecDeque<(u16, Instant)>,
     /// Ids in flight by low byte.
     live_low: Box<[u8; 256]>,
@@ -73,8 +75,8 @@ impl Tids {
     }
 
     fn expire(&mut self, now: Instant) {
-        while let Some(&(tid, at)) = self.retired.front() {
-            if self.retired.len() <= RETIRED_MAX && now.duration_since(at) < RETIRED_FOR {
+        while let Some(&(tid, until)) = self.retired.front() {
+            if self.retired.len() <= RETIRED_MAX && now < until {
                 break;
             }
             self.retired.pop_front();
@@ -105,7 +107,7 @@ impl Tids {
     pub(crate) fn retire(&mut self, tid: u16, now: Instant) {
         let live = &mut self.live_low[usize::from(tid & 0xFF)];
         *live = live.saturating_sub(1);
-        self.retired.push_back((tid, now));
+        self.retired.push_back((tid, now + RETIRED_FOR));
         self.expire(now);
     }
 

@@ -40,6 +40,13 @@ impl Connection {
         // One wait for shutdown for the connection's life, not one registered with
         // the token and dropped again at every request.
         let mut shutdown = Woken::new(self.shutdown.cancelled());
+        // Bytes were read since the clock was last read for them. The idle clock runs
+        // from the master's last byte or its last reply, whichever is later, and a
+        // request read is always followed by its reply (or by its end without one,
+        // which counts as a reply): the time of a read is needed only when it leaves
+        // bytes that are no whole request yet, or on a dialed connection, whose echoes
+        // get no reply. A clock reading less a transaction.
+        let mut unread_clock = false;
         loop {
             let decoded = match self.echo_in(&mut buf) {
                 echo::Strip::Took => continue,
@@ -75,6 +82,9 @@ impl Connection {
                     return End::Closed(Ended::Violation(e));
                 }
             }
+            if std::mem::take(&mut unread_clock) && (!buf.is_empty() || self.dialed.is_some()) {
+                last_read = Instant::now();
+            }
             let pause = codec.ended_by_pause(&buf);
             tokio::select! {
                 // Made only when polled: a disabled branch's future is still made,
@@ -92,7 +102,7 @@ impl Connection {
                         );
                         return End::Finish;
                     }
-                    Ok(_) => last_read = Instant::now(),
+                    Ok(_) => unread_clock = true,
                     Err(e) => {
                         debug!(conn = self.id, "read failed: {e}");
                         return End::Closed(Ended::Read(e));

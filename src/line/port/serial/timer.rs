@@ -89,7 +89,18 @@ impl PreciseTimer {
     /// transaction costs"). The timerfd is set earlier than `at` by the wake-up time
     /// its last wakes measured ([`Lateness`]).
     pub async fn until(&mut self, at: tokio::time::Instant) -> std::io::Result<()> {
-        let now = tokio::time::Instant::now();
+        self.until_from(at, tokio::time::Instant::now()).await
+    }
+
+    /// [`PreciseTimer::until`], `now` being a reading of the clock taken before this
+    /// call (a loop's own, which it has already read): one reading less a wait, and
+    /// the timerfd, set relative to an earlier instant, still goes off no sooner than
+    /// `at`.
+    pub async fn until_from(
+        &mut self,
+        at: tokio::time::Instant,
+        now: tokio::time::Instant,
+    ) -> std::io::Result<()> {
         if at <= now {
             return Ok(());
         }
