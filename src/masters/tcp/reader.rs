@@ -11,6 +11,7 @@ use crate::frame::hex::Hex;
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::line::outbox::{Outbox, Refusal, Ticket};
+use crate::line::port::serial::Deadline;
 use crate::line::woken::Woken;
 use crate::masters::access;
 use crate::masters::router::Unrouted;
@@ -33,8 +34,10 @@ impl Connection {
         // clock is read then): a timer made afresh each turn of the loop would be
         // registered with tokio's timer once a request, and each registration wakes
         // the reactor (a system call; docs/performance.md "What a transaction costs").
+        // On a timerfd of its own, not in tokio's timer, which every wait of the
+        // runtime would consult (`Deadline`); none when there is no idle timeout.
         // Polled only once it went off (`crate::line::woken`), like the wait for shutdown.
-        let mut idle_timer = Woken::new(tokio::time::sleep_until(last_read + idle));
+        let mut idle_timer = (!idle.is_zero()).then(|| Woken::new(Deadline::new(last_read + idle)));
         let mut buf = BytesMut::with_capacity(512);
         let mut codec = C::default();
         // One wait for shutdown for the connection's life, not one registered with
@@ -108,7 +111,7 @@ impl Connection {
                         return End::Closed(Ended::Read(e));
                     }
                 },
-                _ = &mut idle_timer, if !idle.is_zero() => {
+                _ = async { idle_timer.as_mut().expect("guarded").await }, if idle_timer.is_some() => {
                     // Idle means the master owes nothing and is owed nothing: the clock
                     // runs from its last byte or its last reply, whichever is later,
                     // and only while no request of its is unanswered. A partial frame
@@ -123,7 +126,9 @@ impl Connection {
                         }
                         Some(at) => at,
                     };
-                    idle_timer.inner().reset(wake);
+                    if let Some(t) = &mut idle_timer {
+                        t.inner().get_mut().reset(wake);
+                    }
                 }
                 _ = &mut shutdown => return End::Finish,
             }

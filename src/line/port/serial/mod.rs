@@ -18,7 +18,7 @@ mod timer;
 
 pub(crate) use detect::of_path;
 pub use open::{held_by, open};
-pub use timer::{Lateness, PreciseTimer};
+pub use timer::{Deadline, Lateness, PreciseTimer};
 
 use super::{Control, Drain, OpenPort, Opening, Port};
 use crate::config::SerialConfig;

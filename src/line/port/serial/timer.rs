@@ -1,9 +1,13 @@
 //! A timer finer than tokio's millisecond, for the line's gaps and turnarounds (a
 //! timerfd on tokio's reactor): the relay's loop, the simulator and the benches wait
-//! on it.
+//! on it; and a deadline on one ([`Deadline`]) for a wait that is seldom moved (a
+//! connection's idle timeout), kept out of tokio's timer.
 
 use crate::line::port::fd::ReactorFd;
+use std::future::Future;
 use std::os::fd::{AsRawFd, FromRawFd};
+use std::pin::Pin;
+use std::task::{ready, Context, Poll};
 
 /// A timer as precise as the kernel's (a timerfd on tokio's reactor): tokio's own
 /// counts whole milliseconds and rounds a deadline up, which turns the 1750 µs gap
@@ -129,6 +133,35 @@ impl PreciseTimer {
         }
     }
 
+    /// [`PreciseTimer::until`] as a poll: ready once `at` has passed (read from the
+    /// clock at each poll, so poll it only when woken, e.g. under
+    /// `crate::line::woken::Woken`); an error where the timerfd cannot be set.
+    pub fn poll_until(
+        &mut self,
+        cx: &mut Context<'_>,
+        at: tokio::time::Instant,
+    ) -> Poll<std::io::Result<()>> {
+        let mut now = tokio::time::Instant::now();
+        loop {
+            if now >= at {
+                return Poll::Ready(Ok(()));
+            }
+            // Set for `at` unless set already for it, or earlier and still to come
+            // (that wakes this poll, which sets it again then).
+            if !self.armed.is_some_and(|a| a > now && a <= at) {
+                self.arm(at, now)?;
+            }
+            let mut ready = ready!(self.fd.poll_read_ready(cx))?;
+            // As in `until_from`: readiness says only that some setting went off.
+            ready.clear_ready();
+            now = tokio::time::Instant::now();
+            if let Some(armed) = self.armed.filter(|&a| a <= now) {
+                self.late.record(now - armed);
+                self.armed = None;
+            }
+        }
+    }
+
     /// Sets the timerfd to go off at `at`, `now` being before it.
     fn arm(&mut self, at: tokio::time::Instant, now: tokio::time::Instant) -> std::io::Result<()> {
         // Relative to a `now` read before the call: the kernel's clock has moved on
@@ -157,6 +190,69 @@ impl PreciseTimer {
         }
         self.armed = Some(at);
         Ok(())
+    }
+}
+
+/// A wait for an instant that moves seldom and late (a connection's idle timeout: set
+/// again only when it goes off), on a timerfd of its own. Where a tokio `Sleep` would
+/// sit in tokio's timer, which every wait of the runtime's thread then consults (in
+/// each `epoll_wait` of a transaction, about 450 instructions: callgrind,
+/// docs/performance.md "A transaction on a quiet line"), this costs nothing until it
+/// goes off. Made where there is no timerfd, it is tokio's `Sleep` after all.
+#[derive(Debug)]
+pub struct Deadline {
+    at: tokio::time::Instant,
+    on: DeadlineOn,
+}
+
+#[derive(Debug)]
+enum DeadlineOn {
+    Timerfd(PreciseTimer),
+    Tokio(Pin<Box<tokio::time::Sleep>>),
+}
+
+impl Deadline {
+    /// Goes off at `at`.
+    pub fn new(at: tokio::time::Instant) -> Deadline {
+        let on = match PreciseTimer::new() {
+            Ok(t) => DeadlineOn::Timerfd(t),
+            Err(e) => {
+                tracing::debug!("no timerfd ({e}): tokio's timer");
+                DeadlineOn::Tokio(Box::pin(tokio::time::sleep_until(at)))
+            }
+        };
+        Deadline { at, on }
+    }
+
+    /// Goes off at `at` instead.
+    pub fn reset(&mut self, at: tokio::time::Instant) {
+        self.at = at;
+        if let DeadlineOn::Tokio(sleep) = &mut self.on {
+            sleep.as_mut().reset(at);
+        }
+    }
+}
+
+impl Future for Deadline {
+    type Output = ();
+
+    fn poll(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<()> {
+        let this = self.get_mut();
+        let at = this.at;
+        match &mut this.on {
+            DeadlineOn::Timerfd(t) => match ready!(t.poll_until(cx, at)) {
+                Ok(()) => Poll::Ready(()),
+                Err(e) => {
+                    // Never seen: tokio's timer from now on.
+                    tracing::debug!("timerfd: {e}");
+                    let mut sleep = Box::pin(tokio::time::sleep_until(at));
+                    let polled = sleep.as_mut().poll(cx);
+                    this.on = DeadlineOn::Tokio(sleep);
+                    polled
+                }
+            },
+            DeadlineOn::Tokio(sleep) => sleep.as_mut().poll(cx),
+        }
     }
 }
 
@@ -238,5 +334,39 @@ mod tests {
                 .unwrap();
             assert!(Instant::now() >= at);
         }
+    }
+
+    /// A deadline goes off at its instant, not before; moved later before it went
+    /// off (its timerfd set for the earlier one), it goes off at the later one, and
+    /// moved earlier, at the earlier one.
+    #[tokio::test]
+    async fn a_deadline_goes_off_at_its_instant_wherever_it_was_moved() {
+        use tokio::time::Instant;
+        let ms = Duration::from_millis;
+        let start = Instant::now();
+        let mut d = Deadline::new(start + ms(30));
+        assert!(
+            matches!(d.on, DeadlineOn::Timerfd(_)),
+            "this machine has timerfd"
+        );
+        // Polled once (the timerfd set for 30 ms), then moved to 150 ms.
+        assert!(tokio::time::timeout(ms(5), &mut d).await.is_err());
+        d.reset(start + ms(150));
+        (&mut d).await;
+        let late = Instant::now();
+        assert!(
+            late >= start + ms(150),
+            "{:?} early",
+            start + ms(150) - late
+        );
+        // Moved to well before what it is set for: it goes off then.
+        let now = Instant::now();
+        d.reset(now + ms(600));
+        assert!(tokio::time::timeout(ms(5), &mut d).await.is_err());
+        d.reset(now + ms(40));
+        tokio::time::timeout(ms(500), &mut d)
+            .await
+            .expect("moved earlier, it goes off then");
+        assert!(Instant::now() >= now + ms(40));
     }
 }
