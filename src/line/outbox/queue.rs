@@ -20,7 +20,7 @@ use crate::line::woken::keep;
 use std::collections::VecDeque;
 use std::future::{poll_fn, Future};
 use std::sync::{Arc, Mutex, MutexGuard};
-use std::task::{Poll, Waker};
+use std::task::{Context, Poll, Waker};
 
 /// What a user of the channel keeps beside the queue, under the same lock.
 pub(crate) trait Beside {
@@ -196,20 +196,23 @@ impl<T, X: Beside> Receiver<T, X> {
     /// wrapped around another is polled on the way to the lock (with them, about 90
     /// instructions more a transaction, `scripts/instructions`).
     pub(crate) fn recv(&mut self) -> impl Future<Output = Option<T>> + '_ {
-        poll_fn(|cx| {
-            let mut s = self.shared.lock();
-            if let Some(item) = s.items.pop_front() {
-                let waiting = s.more.room();
-                drop(s);
-                wake(waiting);
-                return Poll::Ready(Some(item));
-            }
-            if s.senders == 0 {
-                return Poll::Ready(None);
-            }
-            keep(&mut s.receiver, cx.waker());
-            Poll::Pending
-        })
+        poll_fn(|cx| self.poll_recv(cx))
+    }
+
+    /// [`Receiver::recv`] as a poll, for a loop that polls its sources itself.
+    pub(crate) fn poll_recv(&mut self, cx: &mut Context<'_>) -> Poll<Option<T>> {
+        let mut s = self.shared.lock();
+        if let Some(item) = s.items.pop_front() {
+            let waiting = s.more.room();
+            drop(s);
+            wake(waiting);
+            return Poll::Ready(Some(item));
+        }
+        if s.senders == 0 {
+            return Poll::Ready(None);
+        }
+        keep(&mut s.receiver, cx.waker());
+        Poll::Pending
     }
 
     /// The next item if one is waiting (tests).

@@ -85,9 +85,19 @@ pub(crate) struct Commands(Receiver<Command, ()>);
 
 impl Commands {
     /// The next command, in the order sent; `None` once none is left and every
-    /// handle is gone. Cancel-safe: nothing is taken unless returned.
+    /// handle is gone. Cancel-safe: nothing is taken unless returned. (Tests: the
+    /// relay polls, [`Commands::poll_recv`].)
+    #[cfg(test)]
     pub(crate) fn recv(&mut self) -> impl std::future::Future<Output = Option<Command>> + '_ {
         self.0.recv()
+    }
+
+    /// [`Commands::recv`] as a poll (the relay's wait, `event.rs`).
+    pub(crate) fn poll_recv(
+        &mut self,
+        cx: &mut std::task::Context<'_>,
+    ) -> std::task::Poll<Option<Command>> {
+        self.0.poll_recv(cx)
     }
 
     /// The next command if one is waiting (tests).

@@ -10,7 +10,10 @@ use crate::line::port::lifecycle::{Lifecycle, State};
 use crate::line::port::serial::PreciseTimer;
 use crate::line::port::OpenPort;
 use crate::line::woken::Woken;
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use std::future::{poll_fn, Future};
+use std::pin::Pin;
+use std::task::{Context, Poll};
+use tokio::io::ReadBuf;
 use tokio::time::Instant;
 use tokio_util::sync::WaitForCancellationFutureOwned;
 
@@ -45,7 +48,10 @@ pub(super) struct Sources<'a> {
     pub(super) shutdown: Option<&'a mut Woken<WaitForCancellationFutureOwned>>,
 }
 
-/// Waits for the next event; bytes read go into `rbuf`.
+/// Waits for the next event; bytes read go into `rbuf`. One poll of each source in
+/// turn, bytes first, made by hand: no future made, moved and dropped for each
+/// source at each wait (with `select!` over async blocks, about 600 instructions a
+/// transaction more: callgrind, docs/performance.md "A transaction on a quiet line").
 pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]) -> Event {
     let Sources {
         mut commands,
@@ -53,54 +59,95 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
         may_write,
         wake,
         now,
-        timer,
-        shutdown,
+        mut timer,
+        mut shutdown,
     } = src;
-    let has_wake = wake.is_some();
-    let timer = async {
-        let at = wake.expect("guarded");
-        match timer {
-            Some(t) => {
-                if let Err(e) = t.until_from(at, now).await {
-                    // Never seen: then tokio's timer.
-                    tracing::debug!("timerfd: {e}");
-                    tokio::time::sleep_until(at).await;
-                }
-            }
-            None => tokio::time::sleep_until(at).await,
-        }
-    };
-    let has_commands = commands.is_some();
-    let command = async { commands.as_mut().expect("guarded").recv().await };
-    let has_shutdown = shutdown.is_some();
-    let shutdown = async { shutdown.expect("guarded").await };
-    let drain = &mut port.drain;
-    match &mut port.state {
+    // Tokio's timer, where there is no timerfd (or it failed): made when first needed.
+    let mut sleep: Option<Pin<Box<tokio::time::Sleep>>> = None;
+    let Lifecycle { state, drain, .. } = port;
+    poll_fn(move |cx| {
         // Biased, bytes first: a timer that finds bytes waiting must not take the
         // line for quiet (a held reply would be refuted, a frame cut).
-        State::Open(OpenPort {
-            reader: rd,
-            writer: wr,
-            ..
-        }) => tokio::select! {
-            biased;
-            r = rd.read(rbuf) => Event::Read(r),
-            cmd = command, if has_commands => Event::Command(cmd),
-            w = wr.write(out.pending()), if !out.is_empty() && may_write => Event::Wrote(w),
-            d = async { drain.as_mut().expect("guarded").await }, if drain.is_some() => Event::Drained(d),
-            _ = timer, if has_wake => Event::Timer,
-            _ = shutdown, if has_shutdown => Event::Shutdown,
-        },
-        State::Opening(opening) => tokio::select! {
-            opened = opening => Event::Opened(opened),
-            cmd = command, if has_commands => Event::Command(cmd),
-            _ = timer, if has_wake => Event::Timer,
-            _ = shutdown, if has_shutdown => Event::Shutdown,
-        },
-        State::Closed { .. } => tokio::select! {
-            cmd = command, if has_commands => Event::Command(cmd),
-            _ = timer, if has_wake => Event::Timer,
-            _ = shutdown, if has_shutdown => Event::Shutdown,
-        },
+        match &mut *state {
+            State::Open(OpenPort { reader, writer, .. }) => {
+                let mut buf = ReadBuf::new(rbuf);
+                if let Poll::Ready(r) = Pin::new(&mut **reader).poll_read(cx, &mut buf) {
+                    return Poll::Ready(Event::Read(r.map(|()| buf.filled().len())));
+                }
+                if let Some(event) = poll_command(cx, &mut commands) {
+                    return Poll::Ready(event);
+                }
+                if !out.is_empty() && may_write {
+                    if let Poll::Ready(w) = Pin::new(&mut **writer).poll_write(cx, out.pending()) {
+                        return Poll::Ready(Event::Wrote(w));
+                    }
+                }
+                if let Some(d) = drain {
+                    if let Poll::Ready(r) = d.as_mut().poll(cx) {
+                        return Poll::Ready(Event::Drained(r));
+                    }
+                }
+            }
+            State::Opening(opening) => {
+                if let Poll::Ready(opened) = opening.as_mut().poll(cx) {
+                    return Poll::Ready(Event::Opened(opened));
+                }
+                if let Some(event) = poll_command(cx, &mut commands) {
+                    return Poll::Ready(event);
+                }
+            }
+            State::Closed { .. } => {
+                if let Some(event) = poll_command(cx, &mut commands) {
+                    return Poll::Ready(event);
+                }
+            }
+        }
+        if let Some(at) = wake {
+            if poll_timer(cx, at, now, &mut timer, &mut sleep).is_ready() {
+                return Poll::Ready(Event::Timer);
+            }
+        }
+        if let Some(s) = &mut shutdown {
+            if Pin::new(&mut **s).poll(cx).is_ready() {
+                return Poll::Ready(Event::Shutdown);
+            }
+        }
+        Poll::Pending
+    })
+    .await
+}
+
+/// A command, if one came (or the end of them).
+fn poll_command(cx: &mut Context<'_>, commands: &mut Option<&mut Commands>) -> Option<Event> {
+    match commands.as_mut()?.poll_recv(cx) {
+        Poll::Ready(cmd) => Some(Event::Command(cmd)),
+        Poll::Pending => None,
     }
+}
+
+/// Ready once `at` has passed: to the microsecond on the timerfd, else (none, or it
+/// failed) on tokio's timer, to the millisecond.
+fn poll_timer(
+    cx: &mut Context<'_>,
+    at: Instant,
+    now: Instant,
+    timer: &mut Option<&mut PreciseTimer>,
+    sleep: &mut Option<Pin<Box<tokio::time::Sleep>>>,
+) -> Poll<()> {
+    if sleep.is_none() {
+        match timer.as_mut().map(|t| t.poll_until_from(cx, at, now)) {
+            Some(Poll::Ready(Ok(()))) => return Poll::Ready(()),
+            Some(Poll::Pending) => return Poll::Pending,
+            Some(Poll::Ready(Err(e))) => {
+                // Never seen: then tokio's timer.
+                tracing::debug!("timerfd: {e}");
+                *timer = None;
+            }
+            None => {}
+        }
+    }
+    sleep
+        .get_or_insert_with(|| Box::pin(tokio::time::sleep_until(at)))
+        .as_mut()
+        .poll(cx)
 }

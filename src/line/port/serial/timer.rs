@@ -105,8 +105,21 @@ impl PreciseTimer {
         at: tokio::time::Instant,
         now: tokio::time::Instant,
     ) -> std::io::Result<()> {
+        std::future::poll_fn(|cx| self.poll_until_from(cx, at, now)).await
+    }
+
+    /// [`PreciseTimer::until_from`] as a poll, for a loop that polls its sources
+    /// itself (the relay's wait): ready once `at` has passed, never before. Each poll
+    /// sets the timerfd only if it is not set already for `at` or for an earlier
+    /// instant still to come, and reads the clock only once the timerfd went off.
+    pub fn poll_until_from(
+        &mut self,
+        cx: &mut Context<'_>,
+        at: tokio::time::Instant,
+        now: tokio::time::Instant,
+    ) -> Poll<std::io::Result<()>> {
         if at <= now {
-            return Ok(());
+            return Poll::Ready(Ok(()));
         }
         if !self.armed.is_some_and(|a| a > now && a <= at) {
             // Not so early that it is now: a timerfd set to zero is disarmed.
@@ -114,7 +127,7 @@ impl PreciseTimer {
             self.arm(early.unwrap_or(at), now)?;
         }
         loop {
-            let mut ready = self.fd.readable().await?;
+            let mut ready = ready!(self.fd.poll_read_ready(cx))?;
             // Readiness left over from an earlier setting says nothing about this one:
             // each expiry wakes the reactor anew (edge-triggered), so clearing it and
             // waiting again loses nothing.
@@ -124,7 +137,7 @@ impl PreciseTimer {
                 self.late.record(now - armed);
             }
             if now >= at {
-                return Ok(());
+                return Poll::Ready(Ok(()));
             }
             // Woken by an earlier setting left in place, or early: now for `at` itself.
             if self.armed.is_none_or(|a| a <= now) {
@@ -133,33 +146,14 @@ impl PreciseTimer {
         }
     }
 
-    /// [`PreciseTimer::until`] as a poll: ready once `at` has passed (read from the
-    /// clock at each poll, so poll it only when woken, e.g. under
-    /// `crate::line::woken::Woken`); an error where the timerfd cannot be set.
+    /// [`PreciseTimer::poll_until_from`], reading the clock first (a wait polled only
+    /// when woken, [`Deadline`]).
     pub fn poll_until(
         &mut self,
         cx: &mut Context<'_>,
         at: tokio::time::Instant,
     ) -> Poll<std::io::Result<()>> {
-        let mut now = tokio::time::Instant::now();
-        loop {
-            if now >= at {
-                return Poll::Ready(Ok(()));
-            }
-            // Set for `at` unless set already for it, or earlier and still to come
-            // (that wakes this poll, which sets it again then).
-            if !self.armed.is_some_and(|a| a > now && a <= at) {
-                self.arm(at, now)?;
-            }
-            let mut ready = ready!(self.fd.poll_read_ready(cx))?;
-            // As in `until_from`: readiness says only that some setting went off.
-            ready.clear_ready();
-            now = tokio::time::Instant::now();
-            if let Some(armed) = self.armed.filter(|&a| a <= now) {
-                self.late.record(now - armed);
-                self.armed = None;
-            }
-        }
+        self.poll_until_from(cx, at, tokio::time::Instant::now())
     }
 
     /// Sets the timerfd to go off at `at`, `now` being before it.
