@@ -313,6 +313,17 @@ impl LineFraming {
     /// Frames the bytes received so far make, given what is in flight, pushed onto
     /// `seen`: the relay's own vector, kept from turn to turn, so that a reply costs
     /// no allocation for the list it comes in.
+    /// May [`LineFraming::frames_into`] find anything without new bytes? MBAP: only
+    /// while its decoder holds bytes (a frame a pause or what follows it confirms, a
+    /// partial frame the gap ends); RTU/ASCII always look (a reply held for
+    /// confirmation, the request judged against).
+    pub(super) fn may_frame(&self) -> bool {
+        match &self.0 {
+            FramingState::Mbap(m) => m.buffered() > 0,
+            FramingState::Serial(_) => true,
+        }
+    }
+
     pub(super) fn frames_into<R: Asked>(
         &mut self,
         in_flight: &[OnLine<R>],

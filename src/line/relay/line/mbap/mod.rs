@@ -270,6 +270,11 @@ impl MbapLine {
         pausing.then(|| self.last_byte + self.request_pause)
     }
 
+    /// Bytes the decoder holds, not yet a frame.
+    pub(super) fn buffered(&self) -> usize {
+        self.decoder.buffered()
+    }
+
     pub(super) fn received(&mut self, bytes: &[u8], now: Instant) {
         self.chunks.push_back((self.received, now));
         self.received += bytes.len() as u64;
