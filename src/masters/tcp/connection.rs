@@ -10,6 +10,7 @@ use crate::config::{Config, ListenConfig, ListenFraming};
 use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::line::relay::ConnId;
+use crate::line::woken::Woken;
 use crate::masters::router::Router;
 use crate::masters::tls::server::Grant;
 use crate::ops::capture::packet::{Dir, Ends, Part};
@@ -137,12 +138,18 @@ impl Connection {
     ) -> Ended {
         let mut why = Ended::Unattached;
         if let Some((mut outbox, inbox)) = self.begin::<C>() {
-            let writer = self.write_loop::<C>(wr, inbox);
-            tokio::pin!(writer);
+            // Each half polled only when something it waits on woke the task
+            // (`crate::line::woken`): a reply wakes the writer alone, a request the
+            // reader alone, where the task's every wake polled both (the reader's
+            // socket, idle timer and shutdown for each reply: about 400 instructions a
+            // transaction, docs/performance.md "A transaction on a quiet line").
+            let mut writer = Woken::new(self.write_loop::<C>(wr, inbox));
+            let mut reader = Woken::new(self.read_loop::<C>(rd, &mut outbox));
             let end = tokio::select! {
-                end = self.read_loop::<C>(rd, &mut outbox) => end,
+                end = &mut reader => end,
                 w = &mut writer => End::Closed(w),
             };
+            drop(reader);
             let finish = matches!(end, End::Finish);
             why = match end {
                 End::Closed(w) => w,
