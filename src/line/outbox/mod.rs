@@ -68,7 +68,7 @@ enum Message {
     /// The answer to request `seq`, or `None` when it has none (e.g. a broadcast).
     Reply {
         seq: u64,
-        adu: Option<Answer>,
+        adu: Option<Addressed>,
         slot: Slot,
     },
     Notification(Adu),
@@ -78,16 +78,16 @@ enum Message {
 /// master's own, which a reply from the line carries only once the writer frames it
 /// (`Delivery::adu`), so that no frame is made for it in between (docs/performance.md
 /// "A transaction on a quiet line").
-struct Answer {
+struct Addressed {
     frame: Adu,
     tid: u16,
     unit: u8,
 }
 
-impl Answer {
+impl Addressed {
     /// `adu` as it is.
-    fn of(adu: Adu) -> Answer {
-        Answer {
+    fn of(adu: Adu) -> Addressed {
+        Addressed {
             tid: adu.tid(),
             unit: adu.unit(),
             frame: adu,
@@ -319,7 +319,7 @@ impl Ticket {
     /// does: the frame is shared, not copied.
     pub(crate) fn answer_as(mut self, reply: &Adu, tid: u16) {
         let unit = self.unit.unwrap_or(reply.unit());
-        self.send(Some(Answer {
+        self.send(Some(Addressed {
             frame: reply.clone(),
             tid,
             unit,
@@ -346,7 +346,7 @@ impl Ticket {
         self
     }
 
-    fn send(&mut self, adu: Option<Answer>) {
+    fn send(&mut self, adu: Option<Addressed>) {
         let Some(sender) = self.sender.take() else {
             return;
         };
@@ -406,13 +406,13 @@ pub struct Inbox {
     /// The sequence number of the next reply to write.
     next: u64,
     /// Replies that came before their turn.
-    held: BTreeMap<u64, (Option<Answer>, Slot)>,
+    held: BTreeMap<u64, (Option<Addressed>, Slot)>,
 }
 
 /// A frame to deliver to the master. Drop it once written: a reply's pipelining slot is freed then.
 pub struct Delivery {
     /// The frame to write to the master (a reply, or a notification), and its ids.
-    answer: Answer,
+    answer: Addressed,
     _slot: Option<Slot>,
 }
 
@@ -420,7 +420,7 @@ impl Delivery {
     /// The frame as the master gets it: with its own transaction id and unit id
     /// (made here when they are not the frame's: for a capture, the log, a test).
     pub fn adu(&self) -> Adu {
-        let Answer { frame, tid, unit } = &self.answer;
+        let Addressed { frame, tid, unit } = &self.answer;
         if (frame.tid(), frame.unit()) == (*tid, *unit) {
             frame.clone()
         } else {
@@ -455,7 +455,7 @@ impl Inbox {
                 None => match self.recv().await? {
                     Message::Notification(adu) => {
                         return Some(Delivery {
-                            answer: Answer::of(adu),
+                            answer: Addressed::of(adu),
                             _slot: None,
                         })
                     }
