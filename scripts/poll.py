@@ -2,9 +2,12 @@
 # One Modbus/TCP master polling FC 03 × 1 of unit 1 back to back, each reply checked
 # (its transaction id and function code): the master of the measuring scripts
 # (scripts/syscalls, scripts/cpu-ab).
-# Usage: python3 scripts/poll.py [--udp] PORT N [PID]
+# Usage: python3 scripts/poll.py [--udp | --listen] [--addr A] PORT N [PID]
 #   --udp: the master sends each request as a datagram to a Modbus/UDP listener
 #   (`transport = "udp"`) and reads its reply datagram.
+#   --listen: the master is dialed (a `[[dial]]` of the gateway): it listens on PORT
+#   and polls over the connection the gateway makes.
+#   --addr A: reads holding register A (default 0).
 #   PID: after 1000 warm-up transactions, poll N more on the same connection and print
 #   PID's CPU time a transaction in µs (/proc/PID/task/*/schedstat, every thread),
 #   then its user and kernel time a transaction in µs (/proc/PID/stat utime and
@@ -31,8 +34,16 @@ def times(pid):
 
 def main():
     args = sys.argv[1:]
-    udp = args[:1] == ["--udp"]
-    if udp:
+    udp = listen = False
+    addr = 0
+    while args and args[0].startswith("--"):
+        if args[0] == "--udp":
+            udp = True
+        elif args[0] == "--listen":
+            listen = True
+        elif args[0] == "--addr":
+            addr = int(args[1])
+            args = args[1:]
         args = args[1:]
     port, n = int(args[0]), int(args[1])
     pid = int(args[2]) if len(args) > 2 else None
@@ -40,14 +51,21 @@ def main():
         s = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
         s.connect(("127.0.0.1", port))
         s.settimeout(10)
-    for _ in range(0 if udp else 100):
+    if listen:
+        server = socket.socket()
+        server.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        server.bind(("127.0.0.1", port))
+        server.listen(1)
+        server.settimeout(60)
+        s, _ = server.accept()
+    for _ in range(0 if udp or listen else 100):
         try:
             s = socket.create_connection(("127.0.0.1", port))
             break
         except OSError:
             time.sleep(0.05)
     else:
-        if not udp:
+        if not (udp or listen):
             raise SystemExit(f"nothing listens on {port}")
     if not udp:
         s.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
@@ -63,7 +81,7 @@ def main():
 
     def ask(tid):
         """One datagram out, one back (retried while the listener is not up yet)."""
-        req = struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, 0, 1)
+        req = struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, addr, 1)
         for _ in range(100):
             try:
                 s.send(req)
@@ -79,7 +97,7 @@ def main():
                 d = ask(tid)
                 assert struct.unpack(">H", d[:2])[0] == tid and d[7] == 3, d
                 continue
-            s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, 0, 1))
+            s.sendall(struct.pack(">HHHBBHH", tid, 0, 6, 1, 3, addr, 1))
             h = rd(7)
             body = rd(struct.unpack(">H", h[4:6])[0] - 1)
             assert struct.unpack(">H", h[:2])[0] == tid and body[0] == 3, (h, body)
