@@ -3,6 +3,7 @@
 //! own framing and port settings, each listener the masters it takes, so a listener's
 //! framing is never read as the line's.
 
+use super::master::Peer;
 use super::{
     Config, Direction, FlowControl, Framing, GpioLine, LineConfig, ListenConfig, ListenFraming,
     Parity, SerialConfig,
@@ -43,9 +44,16 @@ pub(crate) fn line(line: &LineConfig) -> String {
         let routes: Vec<String> = master
             .routes
             .iter()
-            .map(|r| match r.units.as_slice() {
-                [] => format!("other units -> {}", r.peer),
-                u => format!("units {} -> {}", list(u), r.peer),
+            .map(|r| {
+                let from = match (&r.peer, &r.allow) {
+                    (Peer::Listen(_), Some(allow)) => format!(" from {allow}"),
+                    (Peer::Listen(_), None) => " from anywhere (no allow list)".to_owned(),
+                    (Peer::Connect(_), _) => String::new(),
+                };
+                match r.units.as_slice() {
+                    [] => format!("other units -> {}{from}", r.peer),
+                    u => format!("units {} -> {}{from}", list(u), r.peer),
+                }
             })
             .collect();
         return format!("{device}; the device is the master: {}", routes.join("; "));

@@ -90,7 +90,7 @@ impl MasterHandle {
 pub(crate) struct MasterLineTask {
     port: Box<dyn Port>,
     line: Bridge,
-    events: mpsc::UnboundedReceiver<slave::SlaveEvent>,
+    events: mpsc::Receiver<slave::SlaveEvent>,
     retunes: mpsc::UnboundedReceiver<MasterLine>,
     slaves_stop: CancellationToken,
     tracker: tokio_util::task::TaskTracker,
@@ -134,7 +134,7 @@ pub(crate) async fn start(
         metrics,
         watchdog,
     } = parts;
-    let (events_tx, events) = mpsc::unbounded_channel();
+    let (events_tx, events) = mpsc::channel(slave::EVENTS);
     let mut to_slaves = Vec::new();
     // Stopped once the line has drained at shutdown: the replies still due come
     // through these connections.
@@ -258,6 +258,7 @@ impl MasterLineTask {
             timeouts = c.timeouts,
             unavailable = c.unavailable,
             late = c.late,
+            bad_replies = c.bad_replies,
             broadcasts = c.broadcasts,
             broadcasts_refused = c.broadcasts_refused,
             refused = c.refused,
@@ -310,7 +311,7 @@ impl Bridge {
         &mut self,
         link: &mut OpenPort,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
+            &mut mpsc::Receiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
@@ -396,6 +397,7 @@ impl Bridge {
             (&s.timeouts, now.timeouts - was.timeouts),
             (&s.unavailable, now.unavailable - was.unavailable),
             (&s.late_replies, now.late - was.late),
+            (&s.bad_frames, now.bad_replies - was.bad_replies),
             (&s.broadcasts, now.broadcasts - was.broadcasts),
             (
                 &s.broadcasts_refused,
@@ -443,7 +445,7 @@ impl Bridge {
         &mut self,
         state: &mut State,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
+            &mut mpsc::Receiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
