@@ -38,7 +38,7 @@ pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> V
     }
 }
 pub use error::{ConfigError, Step, ValueError};
-pub use file::{load, parse, LineTcpTable, LINE_TCP_KEYS};
+pub use file::{load, parse, read_text, LineTcpTable, LINE_TCP_KEYS, MAX_FILE};
 pub(crate) use layout::{LineConfig, ListenConfig, Units};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;

@@ -155,7 +155,7 @@ pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<Pa
         None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
         None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
     };
-    let text = match std::fs::read_to_string(&file) {
+    let text = match crate::config::read_text(&file, crate::config::MAX_FILE) {
         Ok(text) => text,
         Err(source) => return Err(AskError::ConfigFile { file, source }),
     };
