@@ -51,6 +51,7 @@ counters! {
     protocol_violations: "Connections closed for a frame that failed the strict MBAP checks.",
     dial_answers: "Answers of a dialed server to mbgate's identity or heartbeat (bytes that are no request, one answer each at most): dropped, never relayed (docs/dialing.md).",
     datagrams_dropped: "UDP datagrams dropped: not exactly one MBAP request, beyond their source's share, or from a source past `max_connections`.",
+    not_requests: "Frames from masters that are no request but an answer (an exception, a reply's shape): dropped, never answered (docs/security.md \"Threat model\").",
     requests: "Requests handed to the relay.",
     replies: "Device replies delivered to masters (one reply to reads joined together counts once for each master).",
     coalesced: "Reads that joined an identical read waiting for the line (`coalesce`): answered by its transaction.",

@@ -46,6 +46,8 @@ pub(super) struct Connection {
     /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
     /// its identity the server may send back (docs/dialing.md).
     pub(super) dialed: Option<Dialed>,
+    /// Where answers it sends instead of requests are said.
+    pub(super) unasked: Arc<super::unasked::UnaskedLog>,
 }
 
 /// What a dialed connection sends of its own, and the echoes it may get back.
@@ -114,6 +116,7 @@ impl Connection {
             capture: shared.capture.clone(),
             tap: shared.capture.tap(0),
             dialed: None,
+            unasked: shared.unasked.clone(),
         }
     }
 

@@ -428,6 +428,7 @@ fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
         per(("mbgate_listener_protocol_violations", "Connections closed for a frame that broke the MBAP rules.", C), &|l| l.stats.get(&l.stats.protocol_violations)),
         per(("mbgate_listener_dial_answers", "Answers of a dialed server to mbgate's identity or heartbeat (bytes that are no request, one each at most): dropped, never relayed.", C), &|l| l.stats.get(&l.stats.dial_answers)),
         per(("mbgate_listener_dropped_datagrams", "UDP datagrams dropped: not exactly one MBAP request, beyond their source's share, or from a source past max_connections.", C), &|l| l.stats.get(&l.stats.datagrams_dropped)),
+        per(("mbgate_listener_not_requests", "Frames from masters that are no request but an answer (an exception, a reply's shape): dropped, never answered.", C), &|l| l.stats.get(&l.stats.not_requests)),
         per(("mbgate_listener_bad_requests", "Requests answered by mbgate with an exception: their PDU broke the protocol's limits.", C), &|l| l.stats.get(&l.stats.bad_requests)),
         per(("mbgate_listener_denied_connections", "Connections closed before any byte was read: the source is not in the listener's allow list.", C), &|l| l.stats.get(&l.stats.connections_denied)),
         per(("mbgate_listener_tls_failed", "TLS handshakes that failed, timed out or gave way to newer ones (no or a bad client certificate, an old protocol, the handshake budget full).", C), &|l| l.stats.get(&l.stats.tls_failed)),
