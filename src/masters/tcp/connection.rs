@@ -6,7 +6,7 @@
 
 use super::codec::{self, MasterCodec};
 use super::{echo, Shared};
-use crate::config::{Config, ListenConfig, ListenFraming};
+use crate::config::{Config, ListenConfig, ListenFraming, Transport};
 use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::line::relay::ConnId;
@@ -216,7 +216,9 @@ impl Connection {
             1
         };
         let (outbox, inbox) = Outbox::new(pending);
-        let attached = !C::IDS || self.router.attach(self.id, &outbox.notifier());
+        // A UDP source gets them through an outbox of its own, if at all (`tcp/udp.rs`).
+        let notified = C::IDS && self.listen.transport != Transport::Udp;
+        let attached = !notified || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs
         // now; told under its lock, so a reload's new classes never arrive before
         // the old one (src/ops/reload/mod.rs `reclassify`).

@@ -1,9 +1,10 @@
 //! What a master sends that is no request but an answer (`frame::pdu::not_a_request`:
-//! an exception, a reply's shape): never answered, since an answer to an answer is how
-//! two peers that answer everything loop for ever (docs/security.md "Threat model").
-//! Each is counted on its listener and logged the first time of each kind on that
-//! listener, then at most once a minute with the count in between, as the allow list's
-//! refusals are.
+//! an exception, a reply's shape; on UDP the gateway's own reply sent back), and the
+//! exception replies a UDP source is owed past its budget: never answered or sent,
+//! since an answer to an answer is how two peers that answer everything loop for ever
+//! (docs/security.md "Threat model"). Each is counted on its listener and logged the
+//! first time of each kind on that listener, then at most once a minute with the count
+//! in between, as the allow list's refusals are.
 
 use super::connection::Connection;
 use crate::frame::hex::Hex;
@@ -16,11 +17,16 @@ use std::sync::{Arc, Mutex};
 use std::time::Instant;
 use tracing::warn;
 
-/// What was not answered.
+/// What was not answered, or not sent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
 pub(crate) enum Unasked {
     /// A frame that is no request (`not_requests`).
     Answer(NotRequest),
+    /// A UDP datagram that is the very reply its source was just sent, come back: a
+    /// reflection, or a loop with another server (`not_requests`).
+    Reflected,
+    /// An exception reply to a UDP source past its budget (`exceptions_limited`).
+    ExceptionLimited,
 }
 
 impl Unasked {
@@ -31,6 +37,12 @@ impl Unasked {
             }
             Unasked::Answer(NotRequest::ReplyShape) => {
                 "a reply came where a request belongs (a reply's shape): dropped, never answered"
+            }
+            Unasked::Reflected => {
+                "a UDP source sent back the very reply it was just sent (a reflection, or a loop with another server): dropped, never answered"
+            }
+            Unasked::ExceptionLimited => {
+                "a UDP source was owed more exception replies than its budget: those past it not sent"
             }
         }
     }
@@ -45,8 +57,8 @@ pub(crate) struct UnaskedLog {
 }
 
 impl UnaskedLog {
-    /// `frame`, from `peer` on the listener counting in `stats` (at `local`), was not
-    /// answered for `what`: counted, and said if due.
+    /// `frame`, from or to `peer` on the listener counting in `stats` (at `local`),
+    /// was not answered (or not sent) for `what`: counted, and said if due.
     pub(crate) fn note(
         &self,
         what: Unasked,
@@ -55,7 +67,11 @@ impl UnaskedLog {
         local: SocketAddr,
         frame: &[u8],
     ) {
-        stats.add(&stats.not_requests, 1);
+        let counter = match what {
+            Unasked::ExceptionLimited => &stats.exceptions_limited,
+            _ => &stats.not_requests,
+        };
+        stats.add(counter, 1);
         let listener = Arc::as_ptr(stats) as usize;
         let tell = self
             .log
