@@ -241,6 +241,7 @@ async fn start(
         ids: Arc::new(AtomicU64::new(0)),
         masters: board.masters.clone(),
         capture: capture.hub().clone(),
+        unasked: Arc::default(),
     };
     let tally = Arc::new(tcp::tally::SourceTally::new(board.clone()));
     let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(

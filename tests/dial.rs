@@ -591,25 +591,6 @@ fn a_dial_speaks_rtu_over_tcp() {
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
 
-/// One datagram to `to` from a socket connected to it, and its reply; `Err` when
-/// nobody listens there (the ICMP port unreachable the kernel turns into
-/// ConnectionRefused).
-fn udp_transact(to: &str, req: &[u8]) -> std::io::Result<Vec<u8>> {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
-    s.connect(to)?;
-    s.set_read_timeout(Some(Duration::from_secs(10)))?;
-    s.send(req)?;
-    let mut buf = [0u8; 300];
-    let n = s.recv(&mut buf)?;
-    Ok(buf[..n].to_vec())
-}
-
-/// A port no UDP socket holds now.
-fn free_udp_port() -> u16 {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
-    s.local_addr().unwrap().port()
-}
-
 /// A reload changes a UDP listener (now read only), adds one and then removes one;
 /// the TCP listener is untouched throughout (its master keeps its connection).
 #[test]
@@ -686,89 +667,5 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
     assert!(
         (5 + served..=6 + served).contains(&requests),
         "{served} served while closing: {counters:?}"
-    );
-}
-
-/// A UDP listener keeps `max_connections` sources at once: while two are known a
-/// third source's datagrams are dropped and counted, unanswered; the source that goes
-/// quiet is forgotten once it has been so for `idle_timeout_ms`, and the third takes
-/// its place, while the one that keeps talking is kept and answered throughout.
-#[test]
-fn a_quiet_udp_source_is_forgotten_and_its_place_taken() {
-    use std::net::UdpSocket;
-    use std::time::Instant;
-    const IDLE: Duration = Duration::from_millis(1500);
-    let b = bench();
-    let text = format!(
-        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n\
-         max_connections = 2\nidle_timeout_ms = {}\n",
-        b.cfg,
-        IDLE.as_millis()
-    );
-    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
-    let to = udp_addr(&gw);
-    let mut m = gw.connect();
-    transact(&mut m, &write_req(1, 1, 150, &[42]));
-    let source = || {
-        let s = UdpSocket::bind("127.0.0.1:0").unwrap();
-        s.connect(to).unwrap();
-        s.set_read_timeout(Some(Duration::from_millis(500)))
-            .unwrap();
-        s
-    };
-    // A read, and its reply if one comes within the socket's timeout (late replies
-    // to earlier tries are passed over by their id).
-    let ask = |s: &UdpSocket, tid: u16| -> Option<Vec<u8>> {
-        s.send(&read_req(tid, 1, 150, 1)).unwrap();
-        let mut buf = [0u8; 300];
-        loop {
-            let n = s.recv(&mut buf).ok()?;
-            if buf[..2] == tid.to_be_bytes() {
-                return Some(buf[..n].to_vec());
-            }
-        }
-    };
-    let (talker, quiet, third) = (source(), source(), source());
-    assert_eq!(ask(&talker, 1), Some(read_reply(1, 1, &[42])));
-    assert_eq!(ask(&quiet, 2), Some(read_reply(2, 1, &[42])));
-    let quiet_since = Instant::now();
-    let mut tid = 3;
-    let mut refused = 0;
-    let taken_at = loop {
-        assert!(
-            quiet_since.elapsed() < Duration::from_secs(20),
-            "the quiet source was never forgotten:\n{}",
-            gw.log()
-        );
-        tid += 1;
-        assert_eq!(
-            ask(&talker, tid),
-            Some(read_reply(tid, 1, &[42])),
-            "the talking source is kept"
-        );
-        tid += 1;
-        match ask(&third, tid) {
-            Some(reply) => {
-                assert_eq!(reply, read_reply(tid, 1, &[42]));
-                break quiet_since.elapsed();
-            }
-            None => refused += 1,
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    };
-    assert!(
-        taken_at >= IDLE,
-        "forgotten after {taken_at:?}, sooner than {IDLE:?}"
-    );
-    assert!(
-        refused > 0,
-        "the third source was refused while two were known"
-    );
-    let counters = gw.stop();
-    // Every unanswered try of the third's was a datagram dropped (a late reply would
-    // have been one answered, not dropped: at least as many).
-    assert!(
-        counters["datagrams_dropped"] >= 1 && counters["datagrams_dropped"] <= refused,
-        "{refused} refused: {counters:?}"
     );
 }

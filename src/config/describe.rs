@@ -232,6 +232,18 @@ pub fn summary(cfg: &Config) -> String {
         for said in super::effective_access(l, &cfg.roles) {
             out += &format!("  # {said}\n");
         }
+        if l.transport == super::Transport::Udp {
+            let after = super::NOTIFIED_FOR.as_millis();
+            out += &match l.notifications {
+                true => format!(
+                    "  # notifications: to each source for {after} ms after its last request\n"
+                ),
+                false => {
+                    "  # notifications: none to its sources (notifications = true sends them)\n"
+                        .into()
+                }
+            };
+        }
     }
     for d in &cfg.dials {
         out += &format!("{}\n", dial(d));

@@ -197,6 +197,7 @@ impl DialConfig {
             },
             priority: self.priority,
             transport: super::Transport::Tcp,
+            notifications: false,
         }
     }
 

@@ -39,7 +39,7 @@ pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> V
 }
 pub use error::{ConfigError, Step, ValueError};
 pub use file::{load, parse, read_text, LineTcpTable, LINE_TCP_KEYS, MAX_FILE};
-pub(crate) use layout::{LineConfig, ListenConfig, Units};
+pub(crate) use layout::{LineConfig, ListenConfig, Units, NOTIFIED_FOR};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;

@@ -95,6 +95,9 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         if listener.transport != super::Transport::Tcp {
             priority += &format!("transport = {}\n", listener.transport.print());
         }
+        if listener.notifications {
+            priority += "notifications = true\n";
+        }
         out.push(
             table + &format!("framing = {}\n", listener.framing.print()) + &priority + &access,
         );

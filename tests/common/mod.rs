@@ -2,6 +2,7 @@
 //! processes, a scriptable raw device on a pty, and a raw TCP master.
 #![allow(dead_code)]
 
+pub(crate) mod forge;
 pub(crate) mod pki;
 pub(crate) mod sim;
 
@@ -66,6 +67,25 @@ pub(crate) fn gateway_from_file(
     (proc, addrs)
 }
 
+/// A UDP port no socket holds now.
+pub(crate) fn free_udp_port() -> u16 {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.local_addr().unwrap().port()
+}
+
+/// One datagram to `to` from a new socket connected to it, and its reply within 10 s;
+/// `Err` when none comes, or when nobody listens there (the ICMP port unreachable the
+/// kernel turns into ConnectionRefused).
+pub(crate) fn udp_transact(to: &str, req: &[u8]) -> std::io::Result<Vec<u8>> {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    s.connect(to)?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    s.send(req)?;
+    let mut buf = [0u8; 300];
+    let n = s.recv(&mut buf)?;
+    Ok(buf[..n].to_vec())
+}
+
 /// `"00 01 FF"` → bytes.
 pub(crate) fn hex(s: &str) -> Vec<u8> {
     let s: String = s.split_whitespace().collect();
@@ -103,8 +123,15 @@ pub(crate) fn peer(command: &str, package: &str) -> bool {
         "{command} is missing in CI, where scripts/test installs every Debian package \
          (this one: {package})"
     );
+    skipped(&format!("needs {command} (Debian package {package})"));
+    false
+}
+
+/// The calling test skips, for `why`: said on stderr and added to `$MBGATE_SKIPS`,
+/// which scripts/test counts in its summary.
+pub(crate) fn skipped(why: &str) {
     let test = std::thread::current().name().unwrap_or("?").to_owned();
-    let line = format!("{test}: needs {command} (Debian package {package})");
+    let line = format!("{test}: {why}");
     eprintln!("skipped: {line}");
     if let Some(file) = std::env::var_os("MBGATE_SKIPS") {
         let mut f = std::fs::OpenOptions::new()
@@ -114,7 +141,6 @@ pub(crate) fn peer(command: &str, package: &str) -> bool {
             .expect("open $MBGATE_SKIPS");
         writeln!(f, "{}: {line}", env!("CARGO_CRATE_NAME")).unwrap();
     }
-    false
 }
 
 /// Polls `ok` every 10 ms until it holds; fails the test after `timeout`.

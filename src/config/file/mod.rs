@@ -366,13 +366,14 @@ impl FileReader<'_> {
                 .collect();
         }
         let read = super::access::listen(&Raw::Table(keys), path);
-        let (access, framing, priority, transport) = self.value(v, path, read)?;
+        let own = self.value(v, path, read)?;
         Ok(ListenConfig {
             tcp,
-            framing,
-            access,
-            priority,
-            transport,
+            framing: own.framing,
+            access: own.access,
+            priority: own.priority,
+            transport: own.transport,
+            notifications: own.notifications,
         })
     }
 

@@ -135,6 +135,13 @@ impl Connection {
     /// Either way the answer goes through its ticket, so it keeps its place in the
     /// master's order.
     fn submit(&self, adu: Adu, ticket: Ticket) {
+        // An answer is never answered: two peers that answer everything would loop
+        // (docs/security.md "Threat model"). Its ticket goes unanswered.
+        if let Some(what) = pdu::not_a_request(adu.pdu()) {
+            self.unasked(what, &adu);
+            drop(ticket);
+            return;
+        }
         if let Err(code) = pdu::check_request(adu.pdu()) {
             debug!(
                 conn = self.id,

@@ -572,6 +572,8 @@ mod tests {
                 "tls" => "{ cert = \"c.pem\", key = \"k.pem\", client_ca = \"ca.pem\" }",
                 "priority" => "3",
                 "transport" => "\"udp\"",
+                // A UDP listener's only.
+                "notifications" => "true\ntransport = \"udp\"",
                 "max_connections" => "9",
                 "idle_timeout_ms" => "77",
                 _ => return None,
