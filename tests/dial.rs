@@ -114,7 +114,7 @@ fn echoes_of_the_identity_and_the_heartbeat_are_not_requests() {
     let log = gw.log();
     assert!(!log.contains("protocol violation"), "{log}");
     assert!(
-        log.contains("the server echoed a heartbeat or the identity"),
+        log.contains("the server echoed the identity or a heartbeat"),
         "{log}"
     );
     let counters = gw.stop();

@@ -206,9 +206,13 @@ fn connection(
         dialed: Some(Dialed {
             heartbeat: dial.heartbeat.clone(),
             every: Duration::from_millis(dial.heartbeat_ms),
+            // An answer to the identity or a heartbeat is owed until the server
+            // answered, or for as long as the dial waits for any of its answers.
             echoes: Mutex::new(echo::Echoes::new(
                 dial.identity.clone(),
                 dial.heartbeat.clone(),
+                Duration::from_millis(dial.connect_timeout_ms),
+                Instant::now(),
             )),
             stall: Duration::from_millis(match dial.idle_timeout_ms {
                 0 => dial.connect_timeout_ms,

@@ -1,10 +1,11 @@
 //! A master's connection reading its requests: the bytes read decoded by its codec
-//! (strictly checked; a dialed server's echoes and answers taken off first,
-//! `tcp/echo.rs`), one pipelining slot per request, the idle timeout, and each
-//! request checked against the access rules (docs/security.md) before it goes to the
-//! line serving its unit ([`crate::masters::router`]).
+//! (strictly checked; on a dialed connection, the server's echoes and answers told
+//! apart from its requests first, `tcp/echo.rs`), one pipelining slot per request,
+//! the idle timeout, and each request checked against the access rules
+//! (docs/security.md) before it goes to the line serving its unit
+//! ([`crate::masters::router`]).
 
-use super::codec::{self, MasterCodec};
+use super::codec::MasterCodec;
 use super::connection::{Connection, End, Ended};
 use super::{echo, rtu};
 use crate::frame::hex::Hex;
@@ -40,11 +41,15 @@ impl Connection {
         // One wait for shutdown for the connection's life, not one registered with
         // the token and dropped again at every request.
         let mut shutdown = Woken::new(self.shutdown.cancelled());
+        // The master closed its sending side once already.
+        let mut ended = false;
         loop {
-            let decoded = match self.echo_in(&mut buf) {
-                echo::Strip::Took => continue,
-                echo::Strip::Wait => Ok(None),
-                echo::Strip::Not => codec.decode(&mut buf),
+            // `held`: bytes a dialed server sent are held until `pause` (if any).
+            let (decoded, held, pause) = match self.dialed_turn(&mut buf, &mut codec) {
+                None => (codec.decode(&mut buf), false, None),
+                Some(echo::Turn::Dropped(_)) => continue,
+                Some(echo::Turn::Wait(at)) => (Ok(None), true, at),
+                Some(echo::Turn::Decoded(d)) => (d, false, None),
             };
             match decoded {
                 Ok(Some(adu)) => {
@@ -58,7 +63,6 @@ impl Connection {
                     continue;
                 }
                 Ok(None) => {}
-                Err(e) if self.answer_in(&mut buf, &e) => continue,
                 Err(e) => {
                     if self.tap.on() {
                         // What a capture shows of them: a frame's worth, and a few more.
@@ -75,12 +79,21 @@ impl Connection {
                     return End::Closed(Ended::Violation(e));
                 }
             }
-            let pause = codec.ended_by_pause(&buf);
+            let ends = if held {
+                None
+            } else {
+                codec.ended_by_pause(&buf)
+            };
             tokio::select! {
-                // Made only when polled: a disabled branch's future is still made,
-                // and a sleep reads the clock.
-                _ = async { tokio::time::sleep(pause.unwrap_or_default()).await }, if pause.is_some() => codec.paused(),
+                // Shutdown, then bytes: a pause is only ever one where no byte came.
+                biased;
+                _ = &mut shutdown => return End::Finish,
                 r = rd.read_buf(&mut buf) => match r {
+                    Ok(0) if !ended && self.ended_dialed(&buf) => {
+                        // What a dialed server sent last is judged first: no byte
+                        // will join it.
+                        ended = true;
+                    }
                     Ok(0) => {
                         // A shutdown of the master's sending side (`shutdown(SHUT_WR)`,
                         // `nc -N`): no more requests, but it still awaits its replies.
@@ -92,12 +105,24 @@ impl Connection {
                         );
                         return End::Finish;
                     }
-                    Ok(_) => last_read = Instant::now(),
+                    Ok(_) => match &self.dialed {
+                        None => last_read = Instant::now(),
+                        Some(d) => {
+                            last_read = Instant::now();
+                            d.echoes.lock().expect("not poisoned").came(last_read);
+                        }
+                    },
                     Err(e) => {
                         debug!(conn = self.id, "read failed: {e}");
                         return End::Closed(Ended::Read(e));
                     }
                 },
+                // Made only when polled: a disabled branch's future is still made,
+                // and a sleep reads the clock.
+                _ = async { tokio::time::sleep(ends.unwrap_or_default()).await }, if ends.is_some() => codec.paused(),
+                _ = async { tokio::time::sleep_until(pause.unwrap_or_else(Instant::now)).await }, if pause.is_some() => {
+                    self.paused_dialed();
+                }
                 _ = &mut idle_timer, if !idle.is_zero() => {
                     // Idle means the master owes nothing and is owed nothing: the clock
                     // runs from its last byte or its last reply, whichever is later,
@@ -115,7 +140,6 @@ impl Connection {
                     };
                     idle_timer.inner().reset(wake);
                 }
-                _ = &mut shutdown => return End::Finish,
             }
         }
     }
@@ -166,37 +190,50 @@ impl Connection {
         }
     }
 
-    /// A dialed connection's echoes at the front of `buf` (docs/dialing.md).
-    fn echo_in(&self, buf: &mut BytesMut) -> echo::Strip {
-        let Some(d) = &self.dialed else {
-            return echo::Strip::Not;
-        };
-        let strip = d.echoes.lock().expect("not poisoned").strip(buf);
-        if let echo::Strip::Took = strip {
-            debug!(
-                conn = self.id,
-                "the server echoed a heartbeat or the identity: dropped"
-            );
+    /// On a dialed connection, what the front of `buf` is (`tcp/echo.rs`): the
+    /// server's echo or answer taken off (counted, said once a connection at info,
+    /// then at debug), bytes held until a pause, or the codec's request. `None`: not
+    /// dialed, the codec alone decides.
+    fn dialed_turn<C: MasterCodec>(&self, buf: &mut BytesMut, codec: &mut C) -> Option<echo::Turn> {
+        let d = self.dialed.as_ref()?;
+        let mut echoes = d.echoes.lock().expect("not poisoned");
+        let turn = echoes.next(buf, codec);
+        if let echo::Turn::Dropped(dropped) = turn {
+            self.stats.add(&self.stats.dial_answers, 1);
+            let first = echoes.first(dropped);
+            drop(echoes);
+            let (what, n) = match dropped {
+                echo::Dropped::Echo(n) => ("echoed the identity or a heartbeat", n),
+                echo::Dropped::Answer(n) => ("answered the identity or a heartbeat", n),
+            };
+            if first {
+                info!(conn = self.id, peer = %self.peer, "the server {what} ({n} bytes): dropped, never relayed (said once a connection; counted in dial_answers)");
+            } else {
+                debug!(conn = self.id, bytes = n, "the server {what}: dropped");
+            }
         }
-        strip
+        Some(turn)
     }
 
-    /// Bytes the framing refused (`e`) that are the server's own answer to the
-    /// identity or a heartbeat (docs/dialing.md "What the server must do"): dropped
-    /// and counted, the connection kept. `false`: they break the protocol.
-    fn answer_in(&self, buf: &mut BytesMut, e: &codec::FrameError) -> bool {
-        let Some(d) = &self.dialed else {
-            return false;
-        };
-        let Some(n) = d.echoes.lock().expect("not poisoned").answer(buf) else {
-            return false;
-        };
-        self.stats.add(&self.stats.dial_answers, 1);
-        debug!(
-            conn = self.id,
-            bytes = n,
-            "the server answered the identity or a heartbeat ({e}): dropped"
-        );
-        true
+    /// A dialed server closed its sending side with bytes held (`buf`): true if they
+    /// are to be judged before the reader ends.
+    fn ended_dialed(&self, buf: &BytesMut) -> bool {
+        match &self.dialed {
+            Some(d) if !buf.is_empty() => {
+                d.echoes.lock().expect("not poisoned").ended();
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// A dialed connection's reader waited for a pause and no byte came.
+    fn paused_dialed(&self) {
+        if let Some(d) = &self.dialed {
+            d.echoes
+                .lock()
+                .expect("not poisoned")
+                .paused(Instant::now());
+        }
     }
 }
