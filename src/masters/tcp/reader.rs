@@ -41,6 +41,9 @@ impl Connection {
         // One wait for shutdown for the connection's life, not one registered with
         // the token and dropped again at every request.
         let mut shutdown = Woken::new(self.shutdown.cancelled());
+        // A dialed connection: when its server's last bytes came (its idle clock runs
+        // from its last request, not from bytes that answer mbgate's own).
+        let mut came = last_read;
         // The master closed its sending side once already.
         let mut ended = false;
         loop {
@@ -49,7 +52,12 @@ impl Connection {
                 None => (codec.decode(&mut buf), false, None),
                 Some(echo::Turn::Dropped(_)) => continue,
                 Some(echo::Turn::Wait(at)) => (Ok(None), true, at),
-                Some(echo::Turn::Decoded(d)) => (d, false, None),
+                Some(echo::Turn::Decoded(d)) => {
+                    if matches!(d, Ok(Some(_))) {
+                        last_read = came;
+                    }
+                    (d, false, None)
+                }
             };
             match decoded {
                 Ok(Some(adu)) => {
@@ -108,8 +116,8 @@ impl Connection {
                     Ok(_) => match &self.dialed {
                         None => last_read = Instant::now(),
                         Some(d) => {
-                            last_read = Instant::now();
-                            d.echoes.lock().expect("not poisoned").came(last_read);
+                            came = Instant::now();
+                            d.echoes.lock().expect("not poisoned").came(came);
                         }
                     },
                     Err(e) => {
@@ -125,10 +133,11 @@ impl Connection {
                 }
                 _ = &mut idle_timer, if !idle.is_zero() => {
                     // Idle means the master owes nothing and is owed nothing: the clock
-                    // runs from its last byte or its last reply, whichever is later,
-                    // and only while no request of its is unanswered. A partial frame
-                    // that stopped growing is idle too: a master gone mid-frame must
-                    // not hold its connection slot for ever.
+                    // runs from its last byte (a dialed server's: its last request;
+                    // echoes and answers of heartbeats are none) or its last reply,
+                    // whichever is later, and only while no request of its is
+                    // unanswered. A partial frame that stopped growing is idle too: a
+                    // master gone mid-frame must not hold its connection slot for ever.
                     let now = Instant::now();
                     let wake = match outbox.idle_at(last_read, idle) {
                         None => now + idle,
