@@ -862,3 +862,62 @@ fn a_file_that_only_dials_opens_no_port() {
     assert_eq!(listening(gw.pid()).len(), 1, "{}", gw.log());
     assert!(gw.terminate(Duration::from_secs(10)).success());
 }
+
+/// A server whose certificate chains to the dial's CA but carries no role, on a dial
+/// with no `tls.default_role`: refused after the handshake, counted, and the log says
+/// it in a dial's words (before: "the listener has no default_role").
+#[test]
+fn a_tls_dial_refuses_a_server_without_a_role_in_its_own_words() {
+    if !peer("openssl", "openssl") {
+        return;
+    }
+    let b = bench();
+    let pki = common::pki::Pki::new(&b.dir.path().join("pki"));
+    pki.sign(
+        "norole",
+        "ca",
+        "/CN=scada",
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\n",
+        30,
+    );
+    let port = free_port();
+    let tls = format!(
+        "tls = {{ cert = {:?}, key = {:?}, server_ca = {:?} }}\n",
+        pki.pem("gateway"),
+        pki.key("gateway"),
+        pki.pem("ca")
+    );
+    let mut gw = Gateway::launch_text(
+        &format!("{}{}", b.cfg, dial(port, &tls)),
+        b.dir.path(),
+        Launch::default(),
+    );
+    let listen = format!("127.0.0.1:{port}");
+    let cert = format!(
+        "{}:{}:{}",
+        pki.pem("norole"),
+        pki.key("norole"),
+        pki.pem("ca")
+    );
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--tls",
+        &cert,
+        "--round",
+        "refused",
+    ];
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    gw.wait_log("dial has no tls.default_role", Duration::from_secs(10));
+    let log = gw.log();
+    assert!(
+        log.contains("carries no Modbus role and the dial has no tls.default_role"),
+        "{log}"
+    );
+    assert!(!log.contains("the listener has no default_role"), "{log}");
+    let counters = gw.stop();
+    assert_eq!(counters["tls_refused"], 1, "{counters:?}");
+}
