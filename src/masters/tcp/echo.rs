@@ -63,11 +63,11 @@ pub(super) struct Echoes {
 
 /// What the front of the bytes read is, for the reader.
 #[derive(Debug)]
-pub(super) enum Turn {
+pub(super) enum Front {
     /// What the codec made of them: a request, more bytes needed, or a violation.
     Decoded(Result<Option<Adu>, FrameError>),
     /// Bytes of the server's that answer mbgate's own, taken off.
-    Dropped(Dropped),
+    Answered(Answered),
     /// Held: decode nothing until more bytes come, or until this instant (a pause
     /// then ends what is held; tell [`Echoes::paused`]).
     Wait(Option<Instant>),
@@ -75,7 +75,7 @@ pub(super) enum Turn {
 
 /// What was taken off, and how many bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Dropped {
+pub(super) enum Answered {
     /// The very bytes of the identity or of a heartbeat.
     Echo(usize),
     /// Bytes of the server's own, up to a pause: its answer.
@@ -128,7 +128,7 @@ impl Echoes {
         self.quiet = false;
     }
 
-    /// The reader waited until `now` (the instant of [`Turn::Wait`]) and no byte came.
+    /// The reader waited until `now` (the instant of [`Front::Wait`]) and no byte came.
     pub(super) fn paused(&mut self, now: Instant) {
         if self.heard.is_some_and(|h| now >= h + PAUSE) {
             self.quiet = true;
@@ -142,8 +142,8 @@ impl Echoes {
     }
 
     /// Is this the first of its kind dropped on the connection?
-    pub(super) fn first(&mut self, dropped: Dropped) -> bool {
-        let i = usize::from(matches!(dropped, Dropped::Answer(_)));
+    pub(super) fn first(&mut self, answered: Answered) -> bool {
+        let i = usize::from(matches!(answered, Answered::Answer(_)));
         !std::mem::replace(&mut self.told[i], true)
     }
 
@@ -154,7 +154,7 @@ impl Echoes {
 
     /// The next thing at the front of `buf`, where a request would begin: an echo or
     /// an answer taken off, bytes held, or the codec's request.
-    pub(super) fn next<C: MasterCodec>(&mut self, buf: &mut BytesMut, codec: &mut C) -> Turn {
+    pub(super) fn next<C: MasterCodec>(&mut self, buf: &mut BytesMut, codec: &mut C) -> Front {
         if self.owes() && self.heard.is_some_and(|h| h >= self.earned + self.lapse) {
             // Later than any answer may come: what comes now is owed nothing.
             self.answers_owed = 0;
@@ -165,33 +165,33 @@ impl Echoes {
             return match self.strip(buf) {
                 Strip::Took(n) => {
                     self.judged = self.judged.saturating_sub(n);
-                    Turn::Dropped(Dropped::Echo(n))
+                    Front::Answered(Answered::Echo(n))
                 }
-                _ => Turn::Decoded(self.decode_judged(buf, codec)),
+                _ => Front::Decoded(self.decode_judged(buf, codec)),
             };
         }
         match self.strip(buf) {
-            Strip::Took(n) => return Turn::Dropped(Dropped::Echo(n)),
+            Strip::Took(n) => return Front::Answered(Answered::Echo(n)),
             // The start of an echo waits for the rest, until a pause.
-            Strip::Wait if !self.quiet => return Turn::Wait(self.heard.map(|h| h + PAUSE)),
+            Strip::Wait if !self.quiet => return Front::Wait(self.heard.map(|h| h + PAUSE)),
             _ => {}
         }
         if self.answers_owed == 0 || buf.is_empty() {
-            return Turn::Decoded(codec.decode(buf));
+            return Front::Decoded(codec.decode(buf));
         }
         if !self.quiet {
-            return Turn::Wait(self.heard.map(|h| h + PAUSE));
+            return Front::Wait(self.heard.map(|h| h + PAUSE));
         }
         // A pause ended what came: echoes and whole requests are taken as they are;
         // anything else, all of it, is the answer.
         if self.whole::<C>(buf) {
             self.judged = buf.len();
-            return Turn::Decoded(self.decode_judged(buf, codec));
+            return Front::Decoded(self.decode_judged(buf, codec));
         }
         self.answers_owed -= 1;
         let n = buf.len();
         buf.clear();
-        Turn::Dropped(Dropped::Answer(n))
+        Front::Answered(Answered::Answer(n))
     }
 
     /// The request at the front of the judged bytes, decoded from them alone (bytes
@@ -334,7 +334,7 @@ mod tests {
         /// The pause the reader waits for, if any.
         pause: Option<Instant>,
         handed: Vec<(Vec<u8>, Vec<Tag>)>,
-        dropped: Vec<(Dropped, Vec<Tag>)>,
+        dropped: Vec<(Answered, Vec<Tag>)>,
         /// The codec refused what came: the connection is closed.
         refused: bool,
     }
@@ -396,11 +396,11 @@ mod tests {
                 let turn = self.echoes.next(&mut self.buf, &mut self.codec);
                 let taken: Vec<Tag> = self.tags.drain(..before - self.buf.len()).collect();
                 match turn {
-                    Turn::Decoded(Ok(Some(adu))) => {
+                    Front::Decoded(Ok(Some(adu))) => {
                         self.handed.push((C::frame(&adu).to_vec(), taken));
                     }
-                    Turn::Dropped(d) => self.dropped.push((d, taken)),
-                    Turn::Decoded(Ok(None)) => {
+                    Front::Answered(d) => self.dropped.push((d, taken)),
+                    Front::Decoded(Ok(None)) => {
                         // As the reader: an RTU request of unknown shape ends at the
                         // codec's own pause (no byte comes in these scripts by then).
                         if self.codec.ended_by_pause(&self.buf).is_some() {
@@ -409,11 +409,11 @@ mod tests {
                         }
                         return;
                     }
-                    Turn::Decoded(Err(_)) => {
+                    Front::Decoded(Err(_)) => {
                         self.refused = true;
                         return;
                     }
-                    Turn::Wait(at) => {
+                    Front::Wait(at) => {
                         assert!(taken.is_empty());
                         self.pause = at;
                         return;
@@ -464,7 +464,7 @@ mod tests {
             ],
         ));
         assert_eq!(r.requests(), vec![read3(7)]);
-        assert_eq!(r.dropped[1].0, Dropped::Answer(6));
+        assert_eq!(r.dropped[1].0, Answered::Answer(6));
         assert!(!r.refused);
     }
 
@@ -513,7 +513,7 @@ mod tests {
             ],
         ));
         assert_eq!(r.requests(), vec![read.clone()]);
-        assert_eq!(r.dropped[0].0, Dropped::Answer(1 + read.len()));
+        assert_eq!(r.dropped[0].0, Answered::Answer(1 + read.len()));
         assert!(!r.refused);
     }
 
@@ -538,10 +538,10 @@ mod tests {
             ],
         ));
         assert_eq!(r.requests(), vec![read3(1), read3(2)]);
-        let echoes: Vec<Dropped> = r.dropped.iter().map(|d| d.0).collect();
+        let echoes: Vec<Answered> = r.dropped.iter().map(|d| d.0).collect();
         assert_eq!(
             echoes,
-            [Dropped::Echo(7), Dropped::Echo(4), Dropped::Echo(4)]
+            [Answered::Echo(7), Answered::Echo(4), Answered::Echo(4)]
         );
     }
 
@@ -578,24 +578,24 @@ mod tests {
         e.came(t0);
         assert!(matches!(
             e.next(&mut buf, &mut codec),
-            Turn::Decoded(Ok(Some(_)))
+            Front::Decoded(Ok(Some(_)))
         ));
         e.beat(t0);
         buf.extend_from_slice(&read3(2));
         e.came(t0 + ms(1));
         match e.next(&mut buf, &mut codec) {
-            Turn::Wait(Some(at)) => assert_eq!(at, t0 + ms(1) + PAUSE),
+            Front::Wait(Some(at)) => assert_eq!(at, t0 + ms(1) + PAUSE),
             other => panic!("{other:?}"),
         }
         e.paused(t0 + ms(5));
         assert!(
-            matches!(e.next(&mut buf, &mut codec), Turn::Wait(Some(_))),
+            matches!(e.next(&mut buf, &mut codec), Front::Wait(Some(_))),
             "no pause yet"
         );
         e.paused(t0 + ms(1) + PAUSE);
         assert!(matches!(
             e.next(&mut buf, &mut codec),
-            Turn::Decoded(Ok(Some(_)))
+            Front::Decoded(Ok(Some(_)))
         ));
     }
 
@@ -607,11 +607,11 @@ mod tests {
         let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), LONG, t0);
         let mut buf = BytesMut::from(&read3(1)[..]);
         e.came(t0);
-        assert!(matches!(e.next(&mut buf, &mut Mbap), Turn::Wait(Some(_))));
+        assert!(matches!(e.next(&mut buf, &mut Mbap), Front::Wait(Some(_))));
         e.ended();
         assert!(matches!(
             e.next(&mut buf, &mut Mbap),
-            Turn::Decoded(Ok(Some(_)))
+            Front::Decoded(Ok(Some(_)))
         ));
     }
 
@@ -639,7 +639,7 @@ mod tests {
         e.came(t0 + ms(1000));
         assert!(matches!(
             e.next(&mut buf, &mut Mbap),
-            Turn::Decoded(Ok(Some(_)))
+            Front::Decoded(Ok(Some(_)))
         ));
     }
 
@@ -898,8 +898,8 @@ mod tests {
             }
             proptest::prop_assert_eq!(r.requests(), requests);
             let dropped: Vec<usize> = r.dropped.iter().filter_map(|(d, tags)| match d {
-                Dropped::Answer(_) => match tags.first() { Some(Tag::Answer(n)) if tags.iter().all(|t| t == &Tag::Answer(*n)) => Some(*n), _ => None },
-                Dropped::Echo(_) => None,
+                Answered::Answer(_) => match tags.first() { Some(Tag::Answer(n)) if tags.iter().all(|t| t == &Tag::Answer(*n)) => Some(*n), _ => None },
+                Answered::Echo(_) => None,
             }).collect();
             proptest::prop_assert_eq!(dropped, (0..answers).collect::<Vec<_>>(), "{:?}", r.dropped);
         }
@@ -934,7 +934,7 @@ mod tests {
             proptest::prop_assert!(!r.refused, "{:?}", r.dropped);
             let clear: Vec<Vec<u8>> = s.requests.iter().zip(&s.heels).filter(|(_, h)| !**h).map(|(r, _)| r.clone()).collect();
             proptest::prop_assert_eq!(r.requests(), clear);
-            let answers = r.dropped.iter().filter(|(d, _)| matches!(d, Dropped::Answer(_))).count();
+            let answers = r.dropped.iter().filter(|(d, _)| matches!(d, Answered::Answer(_))).count();
             proptest::prop_assert_eq!(answers, s.answers);
         }
     }

@@ -48,11 +48,11 @@ impl Connection {
         let mut ended = false;
         loop {
             // `held`: bytes a dialed server sent are held until `pause` (if any).
-            let (decoded, held, pause) = match self.dialed_turn(&mut buf, &mut codec) {
+            let (decoded, held, pause) = match self.dialed_front(&mut buf, &mut codec) {
                 None => (codec.decode(&mut buf), false, None),
-                Some(echo::Turn::Dropped(_)) => continue,
-                Some(echo::Turn::Wait(at)) => (Ok(None), true, at),
-                Some(echo::Turn::Decoded(d)) => {
+                Some(echo::Front::Answered(_)) => continue,
+                Some(echo::Front::Wait(at)) => (Ok(None), true, at),
+                Some(echo::Front::Decoded(d)) => {
                     if matches!(d, Ok(Some(_))) {
                         last_read = came;
                     }
@@ -203,17 +203,21 @@ impl Connection {
     /// server's echo or answer taken off (counted, said once a connection at info,
     /// then at debug), bytes held until a pause, or the codec's request. `None`: not
     /// dialed, the codec alone decides.
-    fn dialed_turn<C: MasterCodec>(&self, buf: &mut BytesMut, codec: &mut C) -> Option<echo::Turn> {
+    fn dialed_front<C: MasterCodec>(
+        &self,
+        buf: &mut BytesMut,
+        codec: &mut C,
+    ) -> Option<echo::Front> {
         let d = self.dialed.as_ref()?;
         let mut echoes = d.echoes.lock().expect("not poisoned");
-        let turn = echoes.next(buf, codec);
-        if let echo::Turn::Dropped(dropped) = turn {
+        let front = echoes.next(buf, codec);
+        if let echo::Front::Answered(answered) = front {
             self.stats.add(&self.stats.dial_answers, 1);
-            let first = echoes.first(dropped);
+            let first = echoes.first(answered);
             drop(echoes);
-            let (what, n) = match dropped {
-                echo::Dropped::Echo(n) => ("echoed the identity or a heartbeat", n),
-                echo::Dropped::Answer(n) => ("answered the identity or a heartbeat", n),
+            let (what, n) = match answered {
+                echo::Answered::Echo(n) => ("echoed the identity or a heartbeat", n),
+                echo::Answered::Answer(n) => ("answered the identity or a heartbeat", n),
             };
             if first {
                 info!(conn = self.id, peer = %self.peer, "the server {what} ({n} bytes): dropped, never relayed (said once a connection; counted in dial_answers)");
@@ -221,7 +225,7 @@ impl Connection {
                 debug!(conn = self.id, bytes = n, "the server {what}: dropped");
             }
         }
-        Some(turn)
+        Some(front)
     }
 
     /// A dialed server closed its sending side with bytes held (`buf`): true if they
