@@ -218,11 +218,13 @@ fn connection(
             heartbeat: dial.heartbeat.clone(),
             every: Duration::from_millis(dial.heartbeat_ms),
             // An answer to the identity or a heartbeat is owed until the server
-            // answered, or for as long as the dial waits for any of its answers.
+            // answered, or for as long as the dial waits for any of its answers; no
+            // more bytes are held for it than the replies the connection can be owed.
             echoes: Mutex::new(echo::Echoes::new(
                 dial.identity.clone(),
                 dial.heartbeat.clone(),
                 Duration::from_millis(dial.connect_timeout_ms),
+                super::send_buffer(shared.cfg.max_pending_per_connection()) as usize,
                 Instant::now(),
             )),
             stall: Duration::from_millis(match dial.idle_timeout_ms {

@@ -49,6 +49,10 @@ pub(super) struct Echoes {
     lapse: Duration,
     /// When the identity or the last heartbeat went out.
     earned: Instant,
+    /// The most bytes held for a pause: more are judged at once. No answer and no
+    /// burst of requests is longer than the replies a connection can be owed, so a
+    /// server that never pauses holds no more memory than that.
+    hold: usize,
     /// When the server's last bytes came.
     heard: Option<Instant>,
     /// No byte came for [`PAUSE`] after `heard`.
@@ -93,11 +97,12 @@ enum Strip {
 
 impl Echoes {
     /// The identity (empty: none) goes out now; `heartbeat` will. What is owed lapses
-    /// `lapse` after it was earned.
+    /// `lapse` after it was earned; at most `hold` bytes are held for a pause.
     pub(super) fn new(
         identity: Vec<u8>,
         heartbeat: Vec<u8>,
         lapse: Duration,
+        hold: usize,
         now: Instant,
     ) -> Echoes {
         Echoes {
@@ -108,6 +113,7 @@ impl Echoes {
             heartbeats_owed: 0,
             lapse,
             earned: now,
+            hold,
             heard: None,
             quiet: false,
             judged: 0,
@@ -179,10 +185,10 @@ impl Echoes {
         if self.answers_owed == 0 || buf.is_empty() {
             return Front::Decoded(codec.decode(buf));
         }
-        if !self.quiet {
+        if !self.quiet && buf.len() < self.hold {
             return Front::Wait(self.heard.map(|h| h + PAUSE));
         }
-        // A pause ended what came: echoes and whole requests are taken as they are;
+        // A pause (or as much as is ever held) ended what came: echoes and whole requests are taken as they are;
         // anything else, all of it, is the answer.
         if self.whole::<C>(buf) {
             self.judged = buf.len();
@@ -297,6 +303,8 @@ mod tests {
     const HEARTBEAT: &[u8] = &[0xff, 0xfe, 0x00, 0x01];
     /// Longer than any script here: nothing lapses unless a test says so.
     const LONG: Duration = Duration::from_secs(3600);
+    /// More than any script here sends without a pause.
+    const HOLD: usize = 1 << 20;
 
     fn ms(n: u64) -> Duration {
         Duration::from_millis(n)
@@ -342,7 +350,7 @@ mod tests {
     impl<C: MasterCodec> Reader<C> {
         fn new(lapse: Duration, t0: Instant) -> Self {
             Reader {
-                echoes: Echoes::new(IDENTITY.to_vec(), HEARTBEAT.to_vec(), lapse, t0),
+                echoes: Echoes::new(IDENTITY.to_vec(), HEARTBEAT.to_vec(), lapse, HOLD, t0),
                 codec: C::default(),
                 buf: BytesMut::new(),
                 tags: VecDeque::new(),
@@ -572,7 +580,7 @@ mod tests {
     #[test]
     fn a_request_waits_for_a_pause_only_while_an_answer_is_owed() {
         let t0 = Instant::now();
-        let mut e = Echoes::new(Vec::new(), HEARTBEAT.to_vec(), LONG, t0);
+        let mut e = Echoes::new(Vec::new(), HEARTBEAT.to_vec(), LONG, HOLD, t0);
         let mut codec = Mbap;
         let mut buf = BytesMut::from(&read3(1)[..]);
         e.came(t0);
@@ -604,7 +612,7 @@ mod tests {
     #[test]
     fn the_end_of_the_bytes_ends_what_is_held() {
         let t0 = Instant::now();
-        let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), LONG, t0);
+        let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), LONG, HOLD, t0);
         let mut buf = BytesMut::from(&read3(1)[..]);
         e.came(t0);
         assert!(matches!(e.next(&mut buf, &mut Mbap), Front::Wait(Some(_))));
@@ -613,6 +621,45 @@ mod tests {
             e.next(&mut buf, &mut Mbap),
             Front::Decoded(Ok(Some(_)))
         ));
+    }
+
+    /// A server that never pauses while an answer is owed holds no more than `hold`
+    /// bytes: they are judged once that many came. Requests streamed are taken in
+    /// turn; an answer glued to a stream of requests is dropped with what came with it.
+    #[test]
+    fn no_more_than_hold_bytes_are_held() {
+        let t0 = Instant::now();
+        let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), LONG, 100, t0);
+        let mut buf = BytesMut::new();
+        let mut taken = 0;
+        for i in 0..20u16 {
+            buf.extend_from_slice(&read3(i));
+            e.came(t0 + ms(u64::from(i)));
+            loop {
+                match e.next(&mut buf, &mut Mbap) {
+                    Front::Decoded(Ok(Some(_))) => taken += 1,
+                    Front::Wait(_) | Front::Decoded(Ok(None)) => break,
+                    other => panic!("{other:?}"),
+                }
+            }
+            assert!(buf.len() < 100 + 12, "{} bytes held", buf.len());
+        }
+        assert!(taken >= 16, "{taken} taken");
+        let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), LONG, 100, t0);
+        let mut buf = BytesMut::from(&b"\x06"[..]);
+        for i in 0..20u16 {
+            buf.extend_from_slice(&read3(i));
+            e.came(t0 + ms(u64::from(i)));
+            match e.next(&mut buf, &mut Mbap) {
+                Front::Wait(_) => {}
+                Front::Answered(Answered::Answer(n)) => {
+                    assert!(n >= 100 && buf.is_empty());
+                    return;
+                }
+                other => panic!("{other:?}"),
+            }
+        }
+        panic!("never judged");
     }
 
     /// What is owed lapses `lapse` after the identity or the last heartbeat: an
@@ -634,7 +681,7 @@ mod tests {
         ));
         assert!(!beat.refused, "the heartbeat's answer is owed anew");
         // A request after the lapse is not held.
-        let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), ms(1000), t0);
+        let mut e = Echoes::new(IDENTITY.to_vec(), Vec::new(), ms(1000), HOLD, t0);
         let mut buf = BytesMut::from(&read3(1)[..]);
         e.came(t0 + ms(1000));
         assert!(matches!(

@@ -6,7 +6,7 @@
 //! ([`crate::masters::router`]).
 
 use super::codec::MasterCodec;
-use super::connection::{Connection, End, Ended};
+use super::connection::{Connection, Dialed, End, Ended};
 use super::{echo, rtu};
 use crate::frame::hex::Hex;
 use crate::frame::pdu;
@@ -21,6 +21,14 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
+
+/// What ends a wait for bytes besides them: the codec's pause (a request of unknown
+/// shape), or the instant a dialed server's held bytes are judged.
+#[derive(Clone, Copy)]
+enum Wake {
+    After(Duration),
+    At(Instant),
+}
 
 impl Connection {
     pub(super) async fn read_loop<C: MasterCodec>(
@@ -47,17 +55,19 @@ impl Connection {
         // The master closed its sending side once already.
         let mut ended = false;
         loop {
-            // `held`: bytes a dialed server sent are held until `pause` (if any).
-            let (decoded, held, pause) = match self.dialed_front(&mut buf, &mut codec) {
-                None => (codec.decode(&mut buf), false, None),
-                Some(echo::Front::Answered(_)) => continue,
-                Some(echo::Front::Wait(at)) => (Ok(None), true, at),
-                Some(echo::Front::Decoded(d)) => {
-                    if matches!(d, Ok(Some(_))) {
-                        last_read = came;
+            // `held`: what a dialed server sent is held, until that instant if any.
+            let (decoded, held) = match &self.dialed {
+                None => (codec.decode(&mut buf), None),
+                Some(d) => match self.dialed_front(d, &mut buf, &mut codec) {
+                    echo::Front::Answered(_) => continue,
+                    echo::Front::Wait(at) => (Ok(None), Some(at.map(Wake::At))),
+                    echo::Front::Decoded(d) => {
+                        if matches!(d, Ok(Some(_))) {
+                            last_read = came;
+                        }
+                        (d, None)
                     }
-                    (d, false, None)
-                }
+                },
             };
             match decoded {
                 Ok(Some(adu)) => {
@@ -87,15 +97,13 @@ impl Connection {
                     return End::Closed(Ended::Violation(e));
                 }
             }
-            let ends = if held {
-                None
-            } else {
-                codec.ended_by_pause(&buf)
+            let wake = match held {
+                Some(held) => held,
+                None => codec.ended_by_pause(&buf).map(Wake::After),
             };
             tokio::select! {
-                // Shutdown, then bytes: a pause is only ever one where no byte came.
+                // Bytes first: a pause is only ever one where no byte came.
                 biased;
-                _ = &mut shutdown => return End::Finish,
                 r = rd.read_buf(&mut buf) => match r {
                     Ok(0) if !ended && self.ended_dialed(&buf) => {
                         // What a dialed server sent last is judged first: no byte
@@ -127,10 +135,16 @@ impl Connection {
                 },
                 // Made only when polled: a disabled branch's future is still made,
                 // and a sleep reads the clock.
-                _ = async { tokio::time::sleep(ends.unwrap_or_default()).await }, if ends.is_some() => codec.paused(),
-                _ = async { tokio::time::sleep_until(pause.unwrap_or_else(Instant::now)).await }, if pause.is_some() => {
-                    self.paused_dialed();
-                }
+                _ = async {
+                    match wake {
+                        Some(Wake::After(d)) => tokio::time::sleep(d).await,
+                        Some(Wake::At(at)) => tokio::time::sleep_until(at).await,
+                        None => {}
+                    }
+                }, if wake.is_some() => match wake {
+                    Some(Wake::At(_)) => self.paused_dialed(),
+                    _ => codec.paused(),
+                },
                 _ = &mut idle_timer, if !idle.is_zero() => {
                     // Idle means the master owes nothing and is owed nothing: the clock
                     // runs from its last byte (a dialed server's: its last request;
@@ -149,6 +163,7 @@ impl Connection {
                     };
                     idle_timer.inner().reset(wake);
                 }
+                _ = &mut shutdown => return End::Finish,
             }
         }
     }
@@ -201,14 +216,13 @@ impl Connection {
 
     /// On a dialed connection, what the front of `buf` is (`tcp/echo.rs`): the
     /// server's echo or answer taken off (counted, said once a connection at info,
-    /// then at debug), bytes held until a pause, or the codec's request. `None`: not
-    /// dialed, the codec alone decides.
+    /// then at debug), bytes held until a pause, or the codec's request.
     fn dialed_front<C: MasterCodec>(
         &self,
+        d: &Dialed,
         buf: &mut BytesMut,
         codec: &mut C,
-    ) -> Option<echo::Front> {
-        let d = self.dialed.as_ref()?;
+    ) -> echo::Front {
         let mut echoes = d.echoes.lock().expect("not poisoned");
         let front = echoes.next(buf, codec);
         if let echo::Front::Answered(answered) = front {
@@ -225,7 +239,7 @@ impl Connection {
                 debug!(conn = self.id, bytes = n, "the server {what}: dropped");
             }
         }
-        Some(front)
+        front
     }
 
     /// A dialed server closed its sending side with bytes held (`buf`): true if they
