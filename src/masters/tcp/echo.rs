@@ -161,12 +161,6 @@ impl Echoes {
     /// The next thing at the front of `buf`, where a request would begin: an echo or
     /// an answer taken off, bytes held, or the codec's request.
     pub(super) fn next<C: MasterCodec>(&mut self, buf: &mut BytesMut, codec: &mut C) -> Front {
-        if self.owes() && self.heard.is_some_and(|h| h >= self.earned + self.lapse) {
-            // Later than any answer may come: what comes now is owed nothing.
-            self.answers_owed = 0;
-            self.identity_owed = false;
-            self.heartbeats_owed = 0;
-        }
         if self.judged > 0 {
             return match self.strip(buf) {
                 Strip::Took(n) => {
@@ -175,6 +169,12 @@ impl Echoes {
                 }
                 _ => Front::Decoded(self.decode_judged(buf, codec)),
             };
+        }
+        if self.owes() && self.heard.is_some_and(|h| h >= self.earned + self.lapse) {
+            // Later than any answer may come: what comes now is owed nothing.
+            self.answers_owed = 0;
+            self.identity_owed = false;
+            self.heartbeats_owed = 0;
         }
         match self.strip(buf) {
             Strip::Took(n) => return Front::Answered(Answered::Echo(n)),
@@ -188,8 +188,8 @@ impl Echoes {
         if !self.quiet && buf.len() < self.hold {
             return Front::Wait(self.heard.map(|h| h + PAUSE));
         }
-        // A pause (or as much as is ever held) ended what came: echoes and whole requests are taken as they are;
-        // anything else, all of it, is the answer.
+        // A pause (or as much as is ever held) ended what came: echoes and whole
+        // requests are taken as they are; anything else, all of it, is the answer.
         if self.whole::<C>(buf) {
             self.judged = buf.len();
             return Front::Decoded(self.decode_judged(buf, codec));
