@@ -93,8 +93,9 @@ pub async fn run_reloading(
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
 pub(crate) async fn bind(cfg: &Config) -> Result<Vec<Socket>, GatewayError> {
-    if !cfg.serves_masters() {
-        // Every line's device is a master: nothing for a Modbus/TCP master to reach.
+    if !cfg.listens() {
+        // Every line's device is a master: nothing for a Modbus/TCP master to reach;
+        // or the file only dials its masters: no port is opened for them.
         return Ok(Vec::new());
     }
     let max_pending = cfg.max_pending_per_connection();
@@ -431,6 +432,9 @@ fn announce(cfg: &Config, bound: &[Bound]) {
         for said in crate::config::effective_access(&l.listen, &cfg.roles) {
             info!("{}: {said}", l.name);
         }
+    }
+    if cfg.dial_only {
+        info!("no listener: the file only dials its masters and opens no port");
     }
     for (i, d) in cfg.dials.iter().enumerate() {
         info!("dial[{i}]: {}", crate::config::describe::dial(d));

@@ -114,7 +114,7 @@ fn echoes_of_the_identity_and_the_heartbeat_are_not_requests() {
     let log = gw.log();
     assert!(!log.contains("protocol violation"), "{log}");
     assert!(
-        log.contains("the server echoed a heartbeat or the identity"),
+        log.contains("the server echoed the identity or a heartbeat"),
         "{log}"
     );
     let counters = gw.stop();
@@ -668,4 +668,153 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
         (5 + served..=6 + served).contains(&requests),
         "{served} served while closing: {counters:?}"
     );
+}
+
+/// The sockets `pid` listens on (TCP, IPv4 and IPv6): its socket inodes found in
+/// /proc/net/tcp and tcp6 in the LISTEN state, as `ADDR:PORT` in the kernel's hex.
+fn listening(pid: u32) -> Vec<String> {
+    let inodes: Vec<String> = std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .unwrap()
+        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+        .filter_map(|l| {
+            let l = l.to_string_lossy().into_owned();
+            Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_owned())
+        })
+        .collect();
+    let mut out = Vec::new();
+    for table in ["/proc/net/tcp", "/proc/net/tcp6"] {
+        let text = std::fs::read_to_string(table).unwrap_or_default();
+        for row in text.lines().skip(1) {
+            let f: Vec<&str> = row.split_whitespace().collect();
+            // local_address, state (0A: LISTEN), inode.
+            if f.len() > 9 && f[3] == "0A" && inodes.iter().any(|i| i == f[9]) {
+                out.push(f[1].to_owned());
+            }
+        }
+    }
+    out
+}
+
+/// A file of `[[line]]` and `[[dial]]` alone (docs/dialing.md's Raspberry Pi) opens
+/// no port: `check-config` says so, and the running gateway listens on nothing
+/// (before: 0.0.0.0:502, read and write for anyone). `--listen` opens one; the
+/// listener's other flags alone are refused, naming what to give.
+#[test]
+fn a_file_that_only_dials_opens_no_port() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let file = dir.path().join("mbgate.toml");
+    std::fs::write(
+        &file,
+        format!(
+            "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", flow_control = \"none\" }}\n\n\
+             [[dial]]\naddress = \"127.0.0.1:{}\"\nheartbeat = \"hex:ff fe 00 01\"\n\
+             [log]\nlevel = \"debug\"\n",
+            socat.gw.to_str().unwrap(),
+            free_port()
+        ),
+    )
+    .unwrap();
+    let path = file.to_str().unwrap();
+    let checked = mbgate(&["check-config", path]);
+    assert_eq!(checked.code, 0, "{}", checked.stderr);
+    assert!(
+        checked.stdout.contains(
+            "no listener: the file only dials its masters and opens no port (add [[listen]]"
+        ) && !checked.stdout.contains("listening on"),
+        "{}",
+        checked.stdout
+    );
+    let refused = mbgate(&["check-config", path, "--max-connections", "5"]);
+    assert_ne!(refused.code, 0);
+    assert!(refused.stderr.contains("--max-connections: the file only dials its masters and opens no listener: give --listen ADDR too"), "{}", refused.stderr);
+    let opened = mbgate(&["check-config", path, "--listen", "127.0.0.1:0"]);
+    assert!(
+        opened
+            .stdout
+            .contains("listening on 127.0.0.1:0 for Modbus/TCP masters"),
+        "{}",
+        opened.stdout
+    );
+    // Nobody else listens on 502 here (else the connect below proves nothing of ours).
+    let others = std::net::TcpStream::connect("127.0.0.1:502").is_ok();
+    let mut gw = Proc::start(&["run", "--config", path], "dial[0]: dialing");
+    assert!(
+        gw.log()
+            .contains("no listener: the file only dials its masters and opens no port"),
+        "{}",
+        gw.log()
+    );
+    assert_eq!(listening(gw.pid()), Vec::<String>::new(), "{}", gw.log());
+    if !others {
+        assert!(std::net::TcpStream::connect("127.0.0.1:502").is_err());
+    }
+    assert!(!gw.log().contains("listening on"), "{}", gw.log());
+    assert!(gw.terminate(Duration::from_secs(10)).success());
+    // With --listen, the one named.
+    let mut gw = Proc::start(
+        &["run", "--config", path, "--listen", "127.0.0.1:0"],
+        "listening on 127.0.0.1:",
+    );
+    assert_eq!(listening(gw.pid()).len(), 1, "{}", gw.log());
+    assert!(gw.terminate(Duration::from_secs(10)).success());
+}
+
+/// A server whose certificate chains to the dial's CA but carries no role, on a dial
+/// with no `tls.default_role`: refused after the handshake, counted, and the log says
+/// it in a dial's words (before: "the listener has no default_role").
+#[test]
+fn a_tls_dial_refuses_a_server_without_a_role_in_its_own_words() {
+    if !peer("openssl", "openssl") {
+        return;
+    }
+    let b = bench();
+    let pki = common::pki::Pki::new(&b.dir.path().join("pki"));
+    pki.sign(
+        "norole",
+        "ca",
+        "/CN=scada",
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\n",
+        30,
+    );
+    let port = free_port();
+    let tls = format!(
+        "tls = {{ cert = {:?}, key = {:?}, server_ca = {:?} }}\n",
+        pki.pem("gateway"),
+        pki.key("gateway"),
+        pki.pem("ca")
+    );
+    let mut gw = Gateway::launch_text(
+        &format!("{}{}", b.cfg, dial(port, &tls)),
+        b.dir.path(),
+        Launch::default(),
+    );
+    let listen = format!("127.0.0.1:{port}");
+    let cert = format!(
+        "{}:{}:{}",
+        pki.pem("norole"),
+        pki.key("norole"),
+        pki.pem("ca")
+    );
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--tls",
+        &cert,
+        "--round",
+        "refused",
+    ];
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    gw.wait_log("dial has no tls.default_role", Duration::from_secs(10));
+    let log = gw.log();
+    assert!(
+        log.contains("carries no Modbus role and the dial has no tls.default_role"),
+        "{log}"
+    );
+    assert!(!log.contains("the listener has no default_role"), "{log}");
+    let counters = gw.stop();
+    assert_eq!(counters["tls_refused"], 1, "{counters:?}");
 }

@@ -217,7 +217,10 @@ pub fn summary(cfg: &Config) -> String {
         // Master lines listen for no masters and have no metrics listener.
         return out;
     }
-    for l in &cfg.listeners {
+    if cfg.dial_only {
+        out += "no listener: the file only dials its masters and opens no port (add [[listen]] or [tcp] listen = \"ADDR\" for masters to connect in)\n";
+    }
+    for l in cfg.listeners.iter().filter(|_| !cfg.dial_only) {
         let priority = match l.priority {
             0 => String::new(),
             p => format!(", priority class {p}"),
@@ -299,6 +302,44 @@ mod tests {
              \x20 # what: read and write\n\
              no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
         );
+    }
+
+    /// A file that dials its masters and names no listener opens none, and says so;
+    /// one that names a listener (`[tcp]` or `[[listen]]`) beside its dials listens.
+    /// Printed and read back, each stays as it was.
+    #[test]
+    fn a_file_that_only_dials_opens_no_listener() {
+        let dial = "[[dial]]\naddress = \"scada.example.net:502\"\n";
+        let line = "[[line]]\nserial = { path = \"/dev/ttyUSB0\", framing = \"rtu\", flow_control = \"none\" }\n";
+        let read = |text: String| parse(&text, "t.toml").unwrap();
+        for only in [
+            read(format!("[serial]\npath = \"/dev/ttyUSB0\"\n{dial}")),
+            read(format!("{line}{dial}")),
+        ] {
+            assert!(only.dial_only && !only.listens());
+            let said = summary(&only);
+            assert!(
+                said.contains("no listener: the file only dials its masters and opens no port")
+                    && !said.contains("listening on"),
+                "{said}"
+            );
+            assert!(said.contains("dialing scada.example.net:502"), "{said}");
+            let printed = crate::config::to_toml(&only);
+            assert_eq!(parse(&printed, "printed").unwrap(), only, "{printed}");
+        }
+        for listening in [
+            read(format!("[tcp]\nlisten = \"0.0.0.0:502\"\n{dial}")),
+            read(format!(
+                "{line}[[listen]]\naddress = \"127.0.0.1:502\"\n{dial}"
+            )),
+            read("[serial]\npath = \"/dev/ttyUSB0\"\n".into()),
+        ] {
+            assert!(!listening.dial_only && listening.listens());
+            let said = summary(&listening);
+            assert!(said.contains("listening on"), "{said}");
+            let printed = crate::config::to_toml(&listening);
+            assert_eq!(parse(&printed, "printed").unwrap(), listening, "{printed}");
+        }
     }
 
     /// Each way of switching the transmitter says itself, with its polarity and delays.

@@ -196,4 +196,10 @@ impl Config {
     pub(crate) fn serves_masters(&self) -> bool {
         self.lines.iter().any(|l| l.master.is_none())
     }
+
+    /// Are the listeners bound? Not when no line serves masters, nor when the file
+    /// only dials its masters ([`Config::dial_only`]).
+    pub(crate) fn listens(&self) -> bool {
+        self.serves_masters() && !self.dial_only
+    }
 }

@@ -224,13 +224,18 @@ pub struct Config {
     /// Never empty: one line serving every unit when the file says no `[[line]]`.
     pub lines: Vec<LineConfig>,
     /// Never empty: the one Modbus/TCP listener of `[tcp]` when the file says no
-    /// `[[listen]]` (bound only if some line serves masters).
+    /// `[[listen]]` (bound only if some line serves masters, and the file is not
+    /// [`Config::dial_only`]).
     pub listeners: Vec<ListenConfig>,
     /// The `[[role]]` tables: what a TLS master may do, by the role its
     /// certificate carries (docs/security.md).
     pub roles: Vec<AccessRole>,
     /// The `[[dial]]` tables: masters mbgate connects to (docs/dialing.md).
     pub dials: Vec<dial::DialConfig>,
+    /// The file dials its masters and says no `[tcp]` nor `[[listen]]` (nor does a
+    /// `--listen` flag): no listener is bound, so a gateway that reaches its SCADA
+    /// server by dialing opens no port (docs/dialing.md "No listener").
+    pub dial_only: bool,
     /// What is logged.
     pub log: LogConfig,
     /// The metrics listener (docs/watching.md).
@@ -249,6 +254,7 @@ impl Default for Config {
             listeners: vec![ListenConfig::default()],
             roles: Vec::new(),
             dials: Vec::new(),
+            dial_only: false,
             log: LogConfig::default(),
             metrics: MetricsConfig::default(),
             capture: CaptureConfig::default(),

@@ -49,7 +49,7 @@ counters! {
     tls_refused: "TLS masters closed after the handshake: their certificate carried no role (and the listener has no `default_role`), a role no `[[role]]` names, or a malformed role.",
     denied: "Requests answered 0x01 without reaching the line: the listener's or the master's role's access rules do not permit them.",
     protocol_violations: "Connections closed for a frame that failed the strict MBAP checks.",
-    dial_answers: "Answers of a dialed server to mbgate's identity or heartbeat (bytes that are no request, one answer each at most): dropped, never relayed (docs/dialing.md).",
+    dial_answers: "Answers of a dialed server to mbgate's identity or heartbeat (their echoes, or bytes that are no request, one answer each at most): dropped, never relayed (docs/dialing.md).",
     datagrams_dropped: "UDP datagrams dropped: not exactly one MBAP request, or beyond their source's share.",
     not_requests: "Frames from masters that are no request but an answer (an exception, a reply's shape, or on UDP the gateway's own reply sent back): dropped, never answered (docs/security.md \"Threat model\").",
     exceptions_limited: "Exception replies not sent to a UDP source past its budget of them (docs/dialing.md \"Modbus over UDP\").",

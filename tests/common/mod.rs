@@ -790,11 +790,13 @@ impl Drop for Py {
 pub(crate) type Handler = Box<dyn FnMut(&Adu) -> Vec<u8> + Send>;
 
 /// A device on the `dev` end of a socat pair that decodes MBAP requests and writes
-/// whatever the handler returns (nothing = no answer). Every request is recorded.
+/// whatever the handler returns (nothing = no answer). Every request is recorded, and
+/// every byte the line brought, whatever it was.
 pub(crate) struct RawDevice {
     stop: Arc<AtomicBool>,
     file: std::fs::File,
     pub(crate) seen: Arc<Mutex<Vec<Adu>>>,
+    got: Arc<Mutex<Vec<u8>>>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -869,8 +871,11 @@ impl RawDevice {
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
         let seen2 = seen.clone();
+        let got = Arc::new(Mutex::new(Vec::new()));
+        let got2 = got.clone();
         let mut buf = bytes::BytesMut::new();
         let thread = pump(&file, stop.clone(), move |chunk, _, wr| {
+            got2.lock().unwrap().extend_from_slice(chunk);
             buf.extend_from_slice(chunk);
             while let Ok(Some(req)) = decode_strict(&mut buf) {
                 let read = Instant::now();
@@ -890,6 +895,7 @@ impl RawDevice {
             stop,
             file,
             seen,
+            got,
             thread: Some(thread),
         }
     }
@@ -901,6 +907,11 @@ impl RawDevice {
 
     pub(crate) fn requests(&self) -> Vec<Adu> {
         self.seen.lock().unwrap().clone()
+    }
+
+    /// Every byte the line brought so far, requests or not.
+    pub(crate) fn bytes(&self) -> Vec<u8> {
+        self.got.lock().unwrap().clone()
     }
 }
 

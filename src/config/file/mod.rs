@@ -214,6 +214,9 @@ impl FileReader<'_> {
         cfg.roles = roles;
         self.no_listener_for_master_lines(root, &lines, &tables)?;
         // The single-line form's listener (`[tcp]`, or none given) is already in place.
+        // A file that dials its masters and names no listener opens none: the
+        // default, 0.0.0.0:502 read and write for anyone, is not what it asked for.
+        cfg.dial_only = !cfg.dials.is_empty() && listeners.is_empty() && root.get("tcp").is_none();
         if !listeners.is_empty() {
             cfg.listeners = listeners;
         }

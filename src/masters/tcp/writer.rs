@@ -52,7 +52,7 @@ impl Connection {
                     }
                 }
                 _ = &mut timer => {
-                    beat.echoes.lock().expect("not poisoned").beat();
+                    beat.echoes.lock().expect("not poisoned").beat(Instant::now());
                     debug!(conn = self.id, "heartbeat");
                     if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat).await {
                         return why;
