@@ -175,8 +175,10 @@ fn udp_masters(args: &[&str]) -> (Bench, Gateway, String) {
     (b, gw, out)
 }
 
-/// The UDP listener's address, as the log says it.
+/// The UDP listener's address, as the log says it (a line after the one the launch
+/// waited for: waited for too).
 fn udp_addr(gw: &Gateway) -> std::net::SocketAddr {
+    gw.wait_log("for Modbus/UDP masters", Duration::from_secs(10));
     let log = gw.log();
     log.lines()
         .find(|l| l.contains("for Modbus/UDP masters"))

@@ -56,6 +56,9 @@ pub(super) struct Dialed {
     pub(super) heartbeat: Vec<u8>,
     pub(super) every: Duration,
     pub(super) echoes: Mutex<echo::Echoes>,
+    /// The last reply written that reads as a request (a write's): its echo is no
+    /// request (`tcp/reflect.rs`).
+    pub(super) replied: Mutex<super::reflect::Loops>,
     /// How long the server may leave a reply unread before the connection is closed
     /// (and dialed again): never for ever, since mbgate has no other way to it.
     pub(super) stall: Duration,

@@ -227,6 +227,7 @@ fn connection(
                 super::send_buffer(shared.cfg.max_pending_per_connection()) as usize,
                 Instant::now(),
             )),
+            replied: Mutex::new(super::reflect::Loops::new(Instant::now())),
             stall: Duration::from_millis(match dial.idle_timeout_ms {
                 0 => dial.connect_timeout_ms,
                 idle => idle,

@@ -61,11 +61,14 @@ impl Connection {
                 Some(d) => match self.dialed_front(d, &mut buf, &mut codec) {
                     echo::Front::Answered(_) => continue,
                     echo::Front::Wait(at) => (Ok(None), Some(at.map(Wake::At))),
-                    echo::Front::Decoded(d) => {
-                        if matches!(d, Ok(Some(_))) {
+                    echo::Front::Decoded(decoded) => {
+                        if let Ok(Some(adu)) = &decoded {
+                            if self.came_back::<C>(d, adu) {
+                                continue;
+                            }
                             last_read = came;
                         }
-                        (d, None)
+                        (decoded, None)
                     }
                 },
             };
@@ -247,6 +250,22 @@ impl Connection {
             }
         }
         front
+    }
+
+    /// Is `adu`, from a dialed server, the very reply last written to it come back
+    /// (a server that echoes every byte sends a write's reply back, and it reads as
+    /// the write)? Counted and said as an answer not answered; its bytes are gone.
+    fn came_back<C: MasterCodec>(&self, d: &Dialed, adu: &Adu) -> bool {
+        let frame = C::frame(adu);
+        let replied = d.replied.lock().expect("not poisoned");
+        if !replied.came_back(&frame, Instant::now()) {
+            return false;
+        }
+        drop(replied);
+        let what = super::unasked::Unasked::Reflected;
+        self.unasked
+            .note(what, &self.stats, self.peer, self.local, adu.as_bytes());
+        true
     }
 
     /// A dialed server closed its sending side with bytes held (`buf`): true if they

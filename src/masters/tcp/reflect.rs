@@ -1,5 +1,5 @@
-//! A Modbus/UDP source's loop guards (docs/dialing.md "Modbus over UDP"): the last frame
-//! it was sent that reads as a request (a write's reply repeats the write), so that the
+//! A Modbus/UDP source's loop guards (docs/dialing.md "Modbus over UDP"), and a dialed
+//! connection's: the last frame it was sent that reads as a request (a write's reply repeats the write), so that the
 //! very same bytes coming back from it at once are known for that frame reflected, not a
 //! request; its budget of exception replies; and when it last asked, for its
 //! notifications. [`Loops`] is plain data with the time passed in; [`Guard`] holds it
@@ -81,6 +81,28 @@ impl Loops {
                 true
             }
         }
+    }
+
+    /// `frame` (as the peer reads it; `pdu` its PDU) was just written on a dialed
+    /// connection at `now`: remembered if it reads as a request (a write's reply), else
+    /// the last one forgotten. No budget: a dial's exceptions go to the one server.
+    pub(crate) fn remember(&mut self, frame: &[u8], pdu: &[u8], now: Instant) {
+        if request_well_formed(pdu) {
+            self.echo.clear();
+            self.echo.extend_from_slice(frame);
+            self.echo_at = Some(now);
+        } else {
+            self.echo_at = None;
+        }
+    }
+
+    /// Is `frame`, come on a dialed connection at `now`, the very frame last written
+    /// there, within [`REFLECT_MIN`]? (A server that echoes every byte sends a write's
+    /// reply straight back, and it reads as the write again.)
+    pub(crate) fn came_back(&self, frame: &[u8], now: Instant) -> bool {
+        self.echo_at
+            .is_some_and(|at| now.saturating_duration_since(at) < REFLECT_MIN)
+            && frame == self.echo
     }
 
     /// Is `datagram`, come at `now` from a source whose last request came at `asked`,
@@ -248,6 +270,25 @@ mod tests {
         assert!(l.sent(&adu(&[0x86, 2]), t0 + ms(50)));
         assert!(!l.reflected(&write, t0, t0 + ms(60)));
         assert!(!l.remembering(t0, t0 + ms(60)));
+    }
+
+    /// A dialed server that echoes a write's reply: the echo is known for it within
+    /// the window, and only the frame last written.
+    #[test]
+    fn a_dials_write_reply_echoed_is_known() {
+        let t0 = Instant::now();
+        let ms = Duration::from_millis;
+        let write = adu(&[6, 0, 1, 0, 3]);
+        let mut l = Loops::new(t0);
+        l.remember(&write, &write[HEADER_LEN..], t0);
+        assert!(l.came_back(&write, t0 + ms(5)));
+        assert!(!l.came_back(&write, t0 + REFLECT_MIN), "past the window");
+        assert!(!l.came_back(&adu(&[6, 0, 1, 0, 4]), t0 + ms(5)));
+        // A read's reply written since: the write's is forgotten.
+        let read = adu(&[3, 2, 0, 9]);
+        l.remember(&read, &read[HEADER_LEN..], t0 + ms(6));
+        assert!(!l.came_back(&write, t0 + ms(7)));
+        assert!(!l.came_back(&read, t0 + ms(7)));
     }
 
     /// Two gateways answering each other's frame: the frame comes back to one of them

@@ -22,8 +22,8 @@ use tracing::warn;
 pub(crate) enum Unasked {
     /// A frame that is no request (`not_requests`).
     Answer(NotRequest),
-    /// A UDP datagram that is the very reply its source was just sent, come back: a
-    /// reflection, or a loop with another server (`not_requests`).
+    /// The very reply a peer was just sent, come back: on UDP a reflection or a loop
+    /// with another server, on a dial a server that echoes (`not_requests`).
     Reflected,
     /// An exception reply to a UDP source past its budget (`exceptions_limited`).
     ExceptionLimited,
@@ -39,7 +39,7 @@ impl Unasked {
                 "a reply came where a request belongs (a reply's shape): dropped, never answered"
             }
             Unasked::Reflected => {
-                "a UDP source sent back the very reply it was just sent (a reflection, or a loop with another server): dropped, never answered"
+                "a peer sent back the very reply it was just sent (a UDP source's reflection, a loop with another server, a dialed server that echoes): dropped, never answered"
             }
             Unasked::ExceptionLimited => {
                 "a UDP source was owed more exception replies than its budget: those past it not sent"

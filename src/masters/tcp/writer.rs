@@ -83,7 +83,14 @@ impl Connection {
             );
             return Ok(());
         }
-        self.write_bytes(wr, &C::frame(adu)).await
+        let frame = C::frame(adu);
+        self.write_bytes(wr, &frame).await?;
+        if let Some(d) = &self.dialed {
+            let now = Instant::now();
+            let mut replied = d.replied.lock().expect("not poisoned");
+            replied.remember(&frame, adu.pdu(), now);
+        }
+        Ok(())
     }
 
     /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take
