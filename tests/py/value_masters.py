@@ -19,7 +19,7 @@ or 0x0B; anything else is "wrong". A request with no answer within --timeout is
 again, a pipelined one too).
 
 Each answer that is not a right value, and the first right one after any that was
-not, goes to FILE as a JSON line {"t": sent, "at": answered (time.monotonic(),
+not, goes to FILE (an answer that comes after its request was counted lost is "late") as a JSON line {"t": sent, "at": answered (time.monotonic(),
 CLOCK_MONOTONIC), "m": master, "kind": "x0a"|"x0b"|"wrong"|"lost"|"closed"|"ok"};
 at the end (SIGTERM or SIGINT) a last line {"summary": {...counts by kind, "max_s":
 the longest answer}}. Prints READY once every master has connected.
@@ -160,7 +160,11 @@ async def pipelined_master(a, n: int, rec: Record, stop: asyncio.Event, ready: l
             t, _, length, unit = struct.unpack(">HHHB", head)
             pdu = await reader.readexactly(length - 1)
             at = time.monotonic()
-            sent, want = waiting.pop(t, (at, b""))
+            if t not in waiting:
+                # The answer to a request already counted lost: late, not wrong.
+                rec.add(name, "late", at, at)
+                continue
+            sent, want = waiting.pop(t)
             got = struct.pack(">B", unit) + pdu
             if got == want:
                 kind = "ok"
