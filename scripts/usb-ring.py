@@ -23,7 +23,9 @@ The guest asks, one line each way on the control port:
   WINDOW NAME      the masters' answers since the last WINDOW (or since they started);
                    also writes a result line NAME-masters: every answer a right value
                    or 0x0A/0x0B within the masters' timeout, no connection closed
-  CYCLES NAME N    N outages at random instants, the adapter away 0.2 to 10 s each,
+  SKIP             the next window starts now (the one before is not judged)
+  CYCLES NAME N    N outages at random instants, each once the gateway serves again
+                   (a master's right answer) and 1 to 4 s more, the adapter away 0.2 to 10 s each,
                    some while a request is on the wire (unplugged as it arrives) or a
                    reply half sent, every fourth plugged back on the other port; the
                    adapter is in when it ends; "DONE" and the figures
@@ -243,7 +245,7 @@ class Ring:
         self.masters = await asyncio.create_subprocess_exec(
             self.a.python, f"{self.a.tests}/value_masters.py", "--port", str(self.a.modbus),
             "--pymodbus", "2", "--pipelined", "2", "--depth", "2", "--lone", "17",
-            "--every", "0.2", "--timeout", str(self.a.timeout), "--out", self.masters_out,
+            "--every", "0.2", "--timeout", str(self.a.timeout), "--out", self.masters_out, "--all",
             stdout=asyncio.subprocess.PIPE,
         )
         line = await asyncio.wait_for(self.masters.stdout.readline(), 60)
@@ -252,13 +254,20 @@ class Ring:
         self.outages: list[tuple[float, float]] = []
 
     def events(self, since: float, until: float) -> list[dict]:
-        out = []
+        """The masters' answers from `since` to `until` (their file read as it grows)."""
+        if not hasattr(self, "_ev"):
+            self._ev, self._pos = [], 0
         with open(self.masters_out, encoding="ascii") as f:
-            for line in f:
+            f.seek(self._pos)
+            while True:
+                line = f.readline()
+                if not line.endswith("\n"):
+                    break
+                self._pos += len(line)
                 e = json.loads(line)
-                if "summary" not in e and e["kind"] != "late" and since <= e["at"] < until:
-                    out.append(e)
-        return out
+                if "summary" not in e and e["kind"] != "late":
+                    self._ev.append(e)
+        return [e for e in self._ev if since <= e["at"] < until]
 
     def window(self, name: str) -> str:
         now = time.monotonic()
@@ -279,6 +288,10 @@ class Ring:
         away = []
         ports = []
         for i in range(1, n + 1):
+            # Served for 1 to 4 s from the first right answer after the plug: under
+            # emulation the guest's udev may take seconds to make the node and link,
+            # and an unplug before the gateway had the port again is no outage of its.
+            await self.served_since(time.monotonic() if i == 1 else back, 120)
             await asyncio.sleep(rnd.uniform(1.0, 4.0))
             how = {3: "request", 1: "reply"}.get(i % 4)
             if how:
@@ -298,7 +311,8 @@ class Ring:
             away.append(back - pulled)
             ports.append(port)
             self.outages.append((pulled, back))
-        await asyncio.sleep(3.0)
+        await self.served_since(back, 120)
+        await asyncio.sleep(1.0)
         # Answers lost to each outage: the exceptions from its pull until the next pull.
         ends = [p for p, _ in self.outages[-n:]][1:] + [time.monotonic()]
         for (pulled, _), end in zip(self.outages[-n:], ends):
@@ -311,6 +325,14 @@ class Ring:
         )
         self.result("FIGURE", f"{name}-lost-per-outage", figure)
         return f"away_total={sum(away):.3f} " + figure
+
+    async def served_since(self, since: float, within: float) -> None:
+        """Waits until a master got a right answer sent after `since`."""
+        end = time.monotonic() + within
+        while time.monotonic() < end:
+            if any(e["kind"] == "ok" and e["t"] >= since for e in self.events(since, time.monotonic() + 1)):
+                return
+            await asyncio.sleep(0.1)
 
     def metrics(self) -> str:
         body = urllib.request.urlopen(f"http://127.0.0.1:{self.a.metrics}/metrics", timeout=10).read().decode()
@@ -353,6 +375,11 @@ class Ring:
                     reply = "OK"
                 elif cmd == "WINDOW":
                     reply = "OK " + self.window(words[1])
+                elif cmd == "SKIP":
+                    # A window not judged (the service restarted: its connections
+                    # closed, as a restart does).
+                    self.window_from = time.monotonic()
+                    reply = "OK"
                 elif cmd == "CYCLES":
                     reply = "DONE " + await self.cycles(words[1], int(words[2]))
                 elif cmd == "METRICS":

@@ -19,7 +19,7 @@ or 0x0B; anything else is "wrong". A request with no answer within --timeout is
 again, a pipelined one too).
 
 Each answer that is not a right value, and the first right one after any that was
-not, goes to FILE (an answer that comes after its request was counted lost is "late") as a JSON line {"t": sent, "at": answered (time.monotonic(),
+not (with --all, every answer), goes to FILE (an answer that comes after its request was counted lost is "late") as a JSON line {"t": sent, "at": answered (time.monotonic(),
 CLOCK_MONOTONIC), "m": master, "kind": "x0a"|"x0b"|"wrong"|"lost"|"closed"|"ok"};
 at the end (SIGTERM or SIGINT) a last line {"summary": {...counts by kind, "max_s":
 the longest answer}}. Prints READY once every master has connected.
@@ -53,12 +53,13 @@ class Record:
         self.counts: dict[str, int] = {}
         self.max_s = 0.0
         self.bad_before: set[str] = set()
+        self.all = False
 
     def add(self, master: str, kind: str, sent: float, at: float) -> None:
         with self.lock:
             self.counts[kind] = self.counts.get(kind, 0) + 1
             self.max_s = max(self.max_s, at - sent)
-            if kind != "ok" or master in self.bad_before:
+            if kind != "ok" or master in self.bad_before or self.all:
                 self.f.write(json.dumps({"t": round(sent, 6), "at": round(at, 6), "m": master, "kind": kind}) + "\n")
                 self.f.flush()
             if kind == "ok":
@@ -118,8 +119,23 @@ def mbap(tid: int, unit: int, pdu: bytes) -> bytes:
 async def pipelined_master(a, n: int, rec: Record, stop: asyncio.Event, ready: list) -> None:
     name = f"pipelined-{n}"
     rnd = random.Random(1000 + n)
-    reader, writer = await asyncio.open_connection(a.host, a.port)
-    ready.append(n)
+    first = True
+    while not stop.is_set():
+        try:
+            reader, writer = await asyncio.open_connection(a.host, a.port)
+        except OSError:
+            await asyncio.sleep(0.5)
+            continue
+        if first:
+            ready.append(n)
+            first = False
+        await pipelined_connection(a, name, rnd, rec, stop, reader, writer)
+        # Closed by the gateway (counted): connect again, as a master does.
+        await asyncio.sleep(0.5)
+
+
+async def pipelined_connection(a, name, rnd, rec, stop, reader, writer) -> None:
+    n = int(name.rsplit("-", 1)[1])
     tid = 0
     waiting: dict[int, tuple[float, bytes]] = {}
     room = asyncio.Semaphore(a.depth)
@@ -179,7 +195,7 @@ async def pipelined_master(a, n: int, rec: Record, stop: asyncio.Event, ready: l
     receiver = asyncio.ensure_future(receive())
     while not stop.is_set():
         if receiver.done():
-            # The gateway closed it: every request waiting is lost with it.
+            # The gateway closed it.
             now = time.monotonic()
             rec.add(name, "closed", now, now)
             break
@@ -193,6 +209,9 @@ async def pipelined_master(a, n: int, rec: Record, stop: asyncio.Event, ready: l
     sender.cancel()
     receiver.cancel()
     writer.close()
+    for sent, _ in waiting.values():
+        # Never answered before the connection went.
+        rec.add(name, "lost", sent, time.monotonic())
 
 
 async def main() -> int:
@@ -207,8 +226,10 @@ async def main() -> int:
     ap.add_argument("--every", type=float, default=0.02)
     ap.add_argument("--timeout", type=float, default=5.0)
     ap.add_argument("--out", required=True)
+    ap.add_argument("--all", action="store_true", help="every answer to FILE, right ones too")
     a = ap.parse_args()
     rec = Record(a.out)
+    rec.all = a.all
     stop_threads = threading.Event()
     stop = asyncio.Event()
     loop = asyncio.get_running_loop()
