@@ -1,5 +1,6 @@
 //! What the relay's loop waits on, as one [`Event`]: a command from a connection, bytes
-//! from the port, room to write, the end of a drain, an open that finished, the next
+//! from the port, room to write, the end of a drain, an open that finished, the closed
+//! port's device node back, the next
 //! timer (to the microsecond, on a timerfd set only when the next wake moves: no
 //! self-wake of tokio's reactor for each new deadline), or shutdown. The waiting only: the loop decides what each event means.
 
@@ -8,6 +9,7 @@ use super::outgoing::Outgoing;
 use super::Command;
 use crate::line::port::lifecycle::{Lifecycle, State};
 use crate::line::port::serial::PreciseTimer;
+use crate::line::port::watch;
 use crate::line::port::OpenPort;
 use crate::line::woken::Woken;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
@@ -21,6 +23,8 @@ pub(super) enum Event {
     /// When the last byte left (the drain thread's clock), or why it cannot tell.
     Drained(std::io::Result<std::time::Instant>),
     Opened(std::io::Result<OpenPort>),
+    /// The closed port's device node may be back (`crate::line::port::watch`).
+    NodeChanged,
     Timer,
     Shutdown,
 }
@@ -72,6 +76,7 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
     let has_shutdown = shutdown.is_some();
     let shutdown = async { shutdown.expect("guarded").await };
     let drain = &mut port.drain;
+    let watch = &mut port.watch;
     match &mut port.state {
         // Biased, bytes first: a timer that finds bytes waiting must not take the
         // line for quiet (a held reply would be refuted, a frame cut).
@@ -94,8 +99,10 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
             _ = timer, if has_wake => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,
         },
+        // Until the next attempt, or the node back, whichever comes first.
         State::Closed { .. } => tokio::select! {
             cmd = command, if has_commands => Event::Command(cmd),
+            _ = watch::changed(watch), if watch.is_some() => Event::NodeChanged,
             _ = timer, if has_wake => Event::Timer,
             _ = shutdown, if has_shutdown => Event::Shutdown,
         },

@@ -228,6 +228,8 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
         per_line(lines, ("mbgate_line_in_flight", "Requests on the line, awaiting their reply.", G), |l| l.get(&l.in_flight) as f64),
         per_line(lines, ("mbgate_line_masters", "Masters attached to the line.", G), |l| l.get(&l.masters) as f64),
         per_line(lines, ("mbgate_line_port_open", "1 while the port is open, else 0.", G), |l| l.get(&l.port_open) as f64),
+        per_line(lines, ("mbgate_line_outages", "Outages of the port: times it was lost (an adapter pulled out, a device server gone) or could not be opened at start, each once however many attempts it took to open it again (the reopenings: mbgate_line_opens_total).", C), |l| l.get(&l.outages) as f64),
+        per_line(lines, ("mbgate_line_outage", "Time the port was not open after it was lost or could not be opened, the outage under way included.", C), |l| l.outage_time(now).as_secs_f64()).seconds(),
     ];
     let mut last = Family::new(
         "mbgate_line_last_reply_timestamp",

@@ -177,6 +177,15 @@ pub(crate) struct LineMetrics {
     pub(crate) last_reply_us: AtomicU64,
     /// Whether the port is open (1) or not (0).
     pub(crate) port_open: AtomicU64,
+    /// Outages of the port: lost, or not opened at start; each once, however many
+    /// attempts it took to open it again.
+    pub(crate) outages: AtomicU64,
+    /// The time the port was down, in one word so a scrape never reads half a change:
+    /// while it is open, the total of the outages that ended, in microseconds; while
+    /// it is down ([`DOWN`] set), when the outage began (microseconds after `started`)
+    /// less that total, so the total now is the time since. Written by the line's
+    /// task only.
+    outage_clock: AtomicU64,
     /// How long requests waited in the queue before they went on the line, by
     /// priority class (docs/masters.md "Priority"): from the relay taking a request
     /// to its first sending.
@@ -186,6 +195,9 @@ pub(crate) struct LineMetrics {
     /// asked to (`crate::config::describe::direction`).
     direction: std::sync::Mutex<String>,
 }
+
+/// The top bit of [`LineMetrics`]' outage clock: the port is down.
+const DOWN: u64 = 1 << 63;
 
 /// The priority classes a queue wait is counted by: 0 to `priority`'s highest.
 pub(crate) const QUEUE_CLASSES: usize = crate::config::access::PRIORITY_MAX as usize + 1;
@@ -210,6 +222,8 @@ impl LineMetrics {
             busy_us: AtomicU64::new(0),
             last_reply_us: AtomicU64::new(0),
             port_open: AtomicU64::new(0),
+            outages: AtomicU64::new(0),
+            outage_clock: AtomicU64::new(0),
             queue_wait: Default::default(),
             started: Instant::now(),
             direction: std::sync::Mutex::new(String::new()),
@@ -251,6 +265,42 @@ impl LineMetrics {
         all.map(|(c, n)| (c as u8, load(n)))
             .filter(|(_, n)| *n > 0)
             .collect()
+    }
+
+    /// The port went down at `since` (lost, or its first open failed): an outage
+    /// begins, unless one is under way.
+    pub(crate) fn port_down(&self, since: Instant) {
+        let clock = self.outage_clock.load(Ordering::Relaxed);
+        if clock & DOWN != 0 {
+            return;
+        }
+        let at = since.saturating_duration_since(self.started).as_micros() as u64;
+        add(&self.outages, 1);
+        self.outage_clock
+            .store(DOWN | at.saturating_sub(clock), Ordering::Relaxed);
+    }
+
+    /// The port is open again at `now`: the outage under way, if any, ends.
+    pub(crate) fn port_up(&self, now: Instant) {
+        let clock = self.outage_clock.load(Ordering::Relaxed);
+        if clock & DOWN == 0 {
+            return;
+        }
+        let at = now.saturating_duration_since(self.started).as_micros() as u64;
+        self.outage_clock
+            .store(at.saturating_sub(clock & !DOWN), Ordering::Relaxed);
+    }
+
+    /// The time the port was down up to `now`, the outage under way included.
+    pub(crate) fn outage_time(&self, now: Instant) -> Duration {
+        let clock = self.outage_clock.load(Ordering::Relaxed);
+        let us = if clock & DOWN == 0 {
+            clock
+        } else {
+            let at = now.saturating_duration_since(self.started).as_micros() as u64;
+            at.saturating_sub(clock & !DOWN)
+        };
+        Duration::from_micros(us)
     }
 
     /// A reply came at `now`.
@@ -429,5 +479,38 @@ impl Board {
 
     pub(crate) fn listeners(&self) -> Vec<Arc<ListenerMetrics>> {
         self.listeners.lock().expect("not poisoned").clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each outage counted once, however often it is said; its time counted while it
+    /// lasts and kept once it ended, never going back (a counter); and the port open
+    /// at start with no outage counts none.
+    #[test]
+    fn outages_are_counted_once_and_their_time_only_grows() {
+        let m = LineMetrics::new("/dev/ttyUSB0", Arc::new(Stats::default()));
+        let t0 = m.started;
+        let at = |ms: u64| t0 + Duration::from_millis(ms);
+        m.port_up(at(5));
+        assert_eq!(
+            (load(&m.outages), m.outage_time(at(10))),
+            (0, Duration::ZERO)
+        );
+        m.port_down(at(100));
+        m.port_down(at(150));
+        assert_eq!(load(&m.outages), 1, "one outage, said twice");
+        assert_eq!(m.outage_time(at(400)), Duration::from_millis(300));
+        m.port_up(at(600));
+        assert_eq!(m.outage_time(at(400)), Duration::from_millis(500));
+        assert_eq!(m.outage_time(at(5000)), Duration::from_millis(500));
+        m.port_up(at(700));
+        m.port_down(at(1000));
+        assert_eq!(load(&m.outages), 2);
+        assert_eq!(m.outage_time(at(1250)), Duration::from_millis(750));
+        m.port_up(at(2000));
+        assert_eq!(m.outage_time(at(9000)), Duration::from_millis(1500));
     }
 }
