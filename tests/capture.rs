@@ -1223,3 +1223,59 @@ fn ascii_frames_decode_as_rtu_with_their_text_in_the_comment() {
     let _ = device.join();
     gw.terminate(Duration::from_secs(10));
 }
+
+/// A capture stopped by Ctrl-C the moment traffic ends keeps all of it: 60 reads
+/// through an MBAP line make 240 packets (each request and reply on the TCP side and
+/// on the line, every one handed to the capture before the master reads its reply),
+/// and SIGINT comes as soon as the last reply is read. The file holds the 240, read
+/// back by tshark and by the project's reader, and the summary says so: five times
+/// over, since where a packet waits when the stop comes is a matter of timing.
+#[test]
+fn a_capture_stopped_by_ctrl_c_right_after_traffic_keeps_its_tail() {
+    if !peer("tshark", "tshark") {
+        return;
+    }
+    let dir = tempdir();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let lines = session_lines(dir.path());
+    let (mut gw, addrs) = session_gateway(dir.path(), &lines.a, &lines.b, "");
+    let sock = dir.path().join("control.sock");
+    let mut m = master_from("127.0.0.1:0", addrs[0]);
+    for round in 0..5u16 {
+        let file = dir.path().join(format!("tail-{round}.pcapng"));
+        let mut cap = capture(&[
+            "capture",
+            "--socket",
+            sock.to_str().unwrap(),
+            "-o",
+            file.to_str().unwrap(),
+        ]);
+        for i in 0..60u16 {
+            let tid = round * 100 + i;
+            assert_eq!(
+                transact(&mut m, &read_req(tid, 2, i, 1)),
+                read_reply(tid, 2, &[i])
+            );
+        }
+        let st = cap.stop_with("INT", Duration::from_secs(10));
+        assert!(st.success(), "{}", cap.log());
+        assert!(
+            cap.log().contains("240 packets to ") && cap.log().contains("none dropped (stopped)"),
+            "round {round}: {}",
+            cap.log()
+        );
+        let bytes = std::fs::read(&file).unwrap();
+        let read = mbgate::ops::capture::pcapng_read::read(&bytes).unwrap();
+        assert_eq!(read.damage, None, "round {round}");
+        assert_eq!(read.packets.len(), 240, "round {round}");
+        let rows = tshark(&file, &["mbtcp.trans_id"]);
+        assert_eq!(rows.len(), 240, "round {round}");
+        // The last reply to the master is the file's last packet of the TCP side.
+        let last = (round * 100 + 59).to_string();
+        assert!(
+            rows.iter().filter(|r| r[0] == last).count() >= 2,
+            "round {round}"
+        );
+    }
+    gw.terminate(Duration::from_secs(10));
+}
