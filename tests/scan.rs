@@ -1028,3 +1028,62 @@ fn listen_never_takes_a_retried_request_for_a_reply() {
         assert_eq!(bus.sent()[2], 0, "the scan's end wrote onto the bus");
     }
 }
+
+/// A port with no wire (a pty) that gives bytes as fast as they are written: the
+/// listen at a setting takes what a wire at that setting carries in the window (9600
+/// baud 8N1, 60 s: 57.6 kB) and judges it then, never holding what a flood of a
+/// minute would be. The bus is heard, in a few seconds, not the minute asked.
+#[test]
+fn listen_on_a_flooding_port_takes_what_a_wire_carries() {
+    let dir = tempdir();
+    let pty = Socat::start(dir.path());
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flooding = {
+        let stop = stop.clone();
+        let mut dev = open_pty(&pty.dev);
+        std::thread::spawn(move || {
+            use std::io::Write;
+            let mut exchange = mbgate::frame::rtu::encode(5, &[3, 0, 0, 0, 1]);
+            exchange.extend(mbgate::frame::rtu::encode(5, &[3, 2, 0, 7]));
+            let burst = exchange.repeat(256);
+            let mut written = 0usize;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                match dev.write(&burst) {
+                    Ok(n) => written += n,
+                    Err(_) => std::thread::sleep(Duration::from_millis(1)),
+                }
+            }
+            written
+        })
+    };
+    let (code, stdout, took) = scan_long(
+        &[
+            pty.gw.to_str().unwrap(),
+            "--listen",
+            "--listen-secs",
+            "60",
+            "--baud",
+            "9600",
+            "--format",
+            "8N1",
+            "--framing",
+            "rtu",
+            "--json",
+        ],
+        Duration::from_secs(90),
+    );
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let written = flooding.join().unwrap();
+    assert_eq!(code, 0, "{stdout}");
+    assert!(took < Duration::from_secs(30), "listened {took:?} of 60 s");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(v["units"][0]["unit"], 5, "{stdout}");
+    // At most 57 600 bytes, the bound's slack of a read (1024) and the last read
+    // (1024) were judged: two frames in 15 bytes.
+    let frames = v["frames"].as_u64().unwrap();
+    assert!(
+        frames > 1000 && frames <= 2 * (57_600 + 2048) / 15,
+        "{stdout}"
+    );
+    eprintln!("{written} bytes written");
+}

@@ -74,6 +74,52 @@ impl Traffic {
 /// Fewer frames than this prove no setting.
 pub const MIN_FRAMES: usize = 3;
 
+/// What came at one setting: every byte, and where each read began and when. One
+/// buffer and one entry a read, so an hour of a bus takes its bytes' room and little
+/// more.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct Heard {
+    bytes: Vec<u8>,
+    /// (the read's first byte in `bytes`, when it came), in order.
+    reads: Vec<(usize, Duration)>,
+}
+
+impl Heard {
+    /// `bytes` read at `at` (from the start of listening).
+    pub fn push(&mut self, at: Duration, bytes: &[u8]) {
+        if bytes.is_empty() {
+            return;
+        }
+        self.reads.push((self.bytes.len(), at));
+        self.bytes.extend_from_slice(bytes);
+    }
+
+    /// Bytes heard in all.
+    pub fn len(&self) -> usize {
+        self.bytes.len()
+    }
+
+    /// Nothing heard.
+    pub fn is_empty(&self) -> bool {
+        self.bytes.is_empty()
+    }
+
+    /// When byte `i` came: the time of the read that brought it.
+    fn time_of(&self, i: usize) -> Duration {
+        let n = self.reads.partition_point(|&(first, _)| first <= i);
+        self.reads[n.saturating_sub(1)].1
+    }
+
+    /// The reads of `chunks` (each the bytes of one read and when it came), in order.
+    pub fn of(chunks: &[(Duration, Vec<u8>)]) -> Heard {
+        let mut h = Heard::default();
+        for (at, c) in chunks {
+            h.push(*at, c);
+        }
+        h
+    }
+}
+
 /// The lengths an RTU frame starting `unit fc b2 .. b6` can have: a request's or a
 /// reply's, by the function's shape; the CRC decides which, if any.
 fn rtu_lengths(b: &[u8]) -> Vec<usize> {
@@ -104,15 +150,9 @@ fn rtu_lengths(b: &[u8]) -> Vec<usize> {
     out
 }
 
-/// The frames with a good check in `chunks` (each the bytes of one read and when it
-/// came), in order.
-pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<SniffedFrame> {
-    let mut bytes = Vec::new();
-    let mut times = Vec::new();
-    for (t, c) in chunks {
-        bytes.extend_from_slice(c);
-        times.extend(std::iter::repeat_n(*t, c.len()));
-    }
+/// The frames with a good check in what was `heard`, in order.
+pub fn frames(framing: SerialFraming, heard: &Heard) -> Vec<SniffedFrame> {
+    let bytes = &heard.bytes;
     let mut out = Vec::new();
     let mut i = 0;
     match framing {
@@ -128,8 +168,8 @@ pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<Sni
                         out.push(SniffedFrame {
                             unit,
                             function: pdu[0],
-                            start: times[i],
-                            end: times[i + len - 1],
+                            start: heard.time_of(i),
+                            end: heard.time_of(i + len - 1),
                             len,
                             pdu,
                         });
@@ -156,8 +196,8 @@ pub fn frames(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Vec<Sni
                         out.push(SniffedFrame {
                             unit,
                             function,
-                            start: times[start],
-                            end: times[to],
+                            start: heard.time_of(start),
+                            end: heard.time_of(to),
                             len: to + 1 - start,
                             pdu: pdu.to_vec(),
                         });
@@ -203,12 +243,12 @@ fn retry_gap(seen: &[SniffedFrame]) -> Option<Duration> {
 /// A frame that answers no request heard (the listening began after its request) is
 /// its unit's reply, without a time; one that can be neither is counted only among
 /// the frames. Anything else, and everything to unit 0, is a request.
-pub fn traffic(framing: SerialFraming, chunks: &[(Duration, Vec<u8>)]) -> Traffic {
-    let seen = frames(framing, chunks);
+pub fn traffic(framing: SerialFraming, heard: &Heard) -> Traffic {
+    let seen = frames(framing, heard);
     let window = retry_gap(&seen).map(|g| g / 2);
     let mut t = Traffic {
         frames: seen.len(),
-        bytes: chunks.iter().map(|(_, c)| c.len()).sum(),
+        bytes: heard.len(),
         framed: seen.iter().map(|f| f.len).sum(),
         units: BTreeMap::new(),
     };
@@ -270,7 +310,7 @@ mod tests {
             (ms(300), req),
             (ms(318), rep),
         ];
-        let t = traffic(SerialFraming::Rtu, &chunks);
+        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks));
         assert_eq!(t.frames, 6);
         assert!(t.heard());
         assert_eq!(t.requests(), 3);
@@ -289,8 +329,8 @@ mod tests {
         let chunks: Vec<(Duration, Vec<u8>)> = (0..50)
             .map(|i| (ms(i), (0..20).map(|_| rng.u8(..)).collect()))
             .collect();
-        assert!(!traffic(SerialFraming::Rtu, &chunks).heard());
-        assert!(!traffic(SerialFraming::Ascii, &chunks).heard());
+        assert!(!traffic(SerialFraming::Rtu, &Heard::of(&chunks)).heard());
+        assert!(!traffic(SerialFraming::Ascii, &Heard::of(&chunks)).heard());
     }
 
     #[test]
@@ -305,7 +345,7 @@ mod tests {
             (ms(40), req),
             (ms(50), rep),
         ];
-        let t = traffic(SerialFraming::Ascii, &chunks);
+        let t = traffic(SerialFraming::Ascii, &Heard::of(&chunks));
         assert_eq!(t.frames, 4);
         assert_eq!(t.units[&12].replies, 2);
         assert_eq!(t.units[&12].times, vec![ms(20), ms(10)]);
@@ -352,7 +392,7 @@ mod tests {
                 chunks.push((ms(k * 258), req.clone()));
                 chunks.push((ms(k * 258 + 8), rep.clone()));
             }
-            let t = traffic(framing, &chunks);
+            let t = traffic(framing, &Heard::of(&chunks));
             assert_eq!(t.units.keys().collect::<Vec<_>>(), vec![&5]);
             assert_eq!(
                 t.units[&5].times,
@@ -366,7 +406,7 @@ mod tests {
     #[test]
     fn a_retried_request_is_never_its_own_reply() {
         for framing in [SerialFraming::Rtu, SerialFraming::Ascii] {
-            let t = traffic(framing, &retried_poll(framing));
+            let t = traffic(framing, &Heard::of(&retried_poll(framing)));
             let u5 = &t.units[&5];
             // The first reply's request was not heard: a reply without a time.
             assert_eq!(u5.times, vec![ms(8); 4], "{framing:?}: not the poll gap");
@@ -396,13 +436,13 @@ mod tests {
             chunks.push((ms(2000 + k * 300), write5.clone()));
             chunks.push((ms(2020 + k * 300), write5.clone()));
         }
-        let t = traffic(SerialFraming::Rtu, &chunks);
+        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks));
         assert_eq!((t.units[&7].requests, t.units[&7].replies), (5, 0));
         assert_eq!((t.units[&5].requests, t.units[&5].replies), (3, 3));
         assert_eq!(t.units[&5].times, vec![ms(20); 3]);
         // Without a repetition the shape proves, an echo right after its write is
         // taken as its reply: nothing on the bus tells it from a retry.
-        let t = traffic(SerialFraming::Rtu, &chunks[2..]);
+        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks[2..]));
         assert_eq!(t.units[&7].replies, 1);
     }
 
@@ -410,7 +450,7 @@ mod tests {
     fn a_broadcast_is_never_answered() {
         let write0 = rtu::encode(0, &[6, 0, 1, 0, 7]);
         let chunks = vec![(ms(0), write0.clone()), (ms(5), write0.clone())];
-        let t = traffic(SerialFraming::Rtu, &chunks);
+        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks));
         assert_eq!((t.units[&0].requests, t.units[&0].replies), (2, 0));
     }
 }
