@@ -715,6 +715,30 @@ mod tests {
         assert_eq!(first.payload, [1, 3, 0, 0]);
     }
 
+    /// A reload the gateway never answers is given up after its 30 s: the client is
+    /// told so and its slot given back (the clock paused, so the test takes no 30 s).
+    #[tokio::test(start_paused = true)]
+    async fn a_reload_never_answered_is_given_up_after_its_time() {
+        let (hub, task) = Hub::new(Vec::new());
+        tokio::spawn(task);
+        let (handle, _never_answered) = ReloadHandle::new();
+        let (gw_end, mut client_end) = UnixStream::pair().unwrap();
+        client_end.write_all(b"reload\n").await.unwrap();
+        let waiting = TaskSlots::new(1);
+        let slot = waiting.take().unwrap();
+        let started = Instant::now();
+        let served = tokio::spawn(client(gw_end, hub, Some(handle), slot, TaskSlots::new(1)));
+        let mut answer = String::new();
+        client_end.read_to_string(&mut answer).await.unwrap();
+        assert_eq!(
+            answer,
+            "error: no answer from the gateway's reload within 30 s\n"
+        );
+        assert!(started.elapsed() >= RELOAD_WITHIN);
+        served.await.unwrap();
+        assert_eq!(waiting.taken(), 0);
+    }
+
     /// A slot is given back however its holder ends: dropped, or its task panicking.
     #[tokio::test]
     async fn slots_are_given_back_on_every_path() {
