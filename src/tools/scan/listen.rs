@@ -4,7 +4,7 @@
 //! bus's, reported with its units, function codes, request rate and reply times.
 
 use super::probe::{ProbeSetting, SerialFraming};
-use super::sniff::{self, Heard, Traffic};
+use super::sniff::{self, Listened, Traffic};
 use super::{Progress, ScanError};
 use crate::tools::wire::uart::Format;
 use std::time::{Duration, Instant};
@@ -57,7 +57,7 @@ pub(super) async fn listen(
             })?;
         heard.settings += 1;
         let opened = Instant::now();
-        let mut bytes = Heard::default();
+        let mut bytes = Listened::default();
         let most = most_bytes(s, window);
         let mut buf = [0u8; 1024];
         // Until the window ends, or more came than a wire at this setting carries

@@ -78,13 +78,13 @@ pub const MIN_FRAMES: usize = 3;
 /// buffer and one entry a read, so an hour of a bus takes its bytes' room and little
 /// more.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Heard {
+pub struct Listened {
     bytes: Vec<u8>,
     /// (the read's first byte in `bytes`, when it came), in order.
     reads: Vec<(usize, Duration)>,
 }
 
-impl Heard {
+impl Listened {
     /// `bytes` read at `at` (from the start of listening).
     pub fn push(&mut self, at: Duration, bytes: &[u8]) {
         if bytes.is_empty() {
@@ -111,8 +111,8 @@ impl Heard {
     }
 
     /// The reads of `chunks` (each the bytes of one read and when it came), in order.
-    pub fn of(chunks: &[(Duration, Vec<u8>)]) -> Heard {
-        let mut h = Heard::default();
+    pub fn of(chunks: &[(Duration, Vec<u8>)]) -> Listened {
+        let mut h = Listened::default();
         for (at, c) in chunks {
             h.push(*at, c);
         }
@@ -151,7 +151,7 @@ fn rtu_lengths(b: &[u8]) -> Vec<usize> {
 }
 
 /// The frames with a good check in what was `heard`, in order.
-pub fn frames(framing: SerialFraming, heard: &Heard) -> Vec<SniffedFrame> {
+pub fn frames(framing: SerialFraming, heard: &Listened) -> Vec<SniffedFrame> {
     let bytes = &heard.bytes;
     let mut out = Vec::new();
     let mut i = 0;
@@ -243,7 +243,7 @@ fn retry_gap(seen: &[SniffedFrame]) -> Option<Duration> {
 /// A frame that answers no request heard (the listening began after its request) is
 /// its unit's reply, without a time; one that can be neither is counted only among
 /// the frames. Anything else, and everything to unit 0, is a request.
-pub fn traffic(framing: SerialFraming, heard: &Heard) -> Traffic {
+pub fn traffic(framing: SerialFraming, heard: &Listened) -> Traffic {
     let seen = frames(framing, heard);
     let window = retry_gap(&seen).map(|g| g / 2);
     let mut t = Traffic {
@@ -310,7 +310,7 @@ mod tests {
             (ms(300), req),
             (ms(318), rep),
         ];
-        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks));
+        let t = traffic(SerialFraming::Rtu, &Listened::of(&chunks));
         assert_eq!(t.frames, 6);
         assert!(t.heard());
         assert_eq!(t.requests(), 3);
@@ -329,8 +329,8 @@ mod tests {
         let chunks: Vec<(Duration, Vec<u8>)> = (0..50)
             .map(|i| (ms(i), (0..20).map(|_| rng.u8(..)).collect()))
             .collect();
-        assert!(!traffic(SerialFraming::Rtu, &Heard::of(&chunks)).heard());
-        assert!(!traffic(SerialFraming::Ascii, &Heard::of(&chunks)).heard());
+        assert!(!traffic(SerialFraming::Rtu, &Listened::of(&chunks)).heard());
+        assert!(!traffic(SerialFraming::Ascii, &Listened::of(&chunks)).heard());
     }
 
     #[test]
@@ -345,7 +345,7 @@ mod tests {
             (ms(40), req),
             (ms(50), rep),
         ];
-        let t = traffic(SerialFraming::Ascii, &Heard::of(&chunks));
+        let t = traffic(SerialFraming::Ascii, &Listened::of(&chunks));
         assert_eq!(t.frames, 4);
         assert_eq!(t.units[&12].replies, 2);
         assert_eq!(t.units[&12].times, vec![ms(20), ms(10)]);
@@ -392,7 +392,7 @@ mod tests {
                 chunks.push((ms(k * 258), req.clone()));
                 chunks.push((ms(k * 258 + 8), rep.clone()));
             }
-            let t = traffic(framing, &Heard::of(&chunks));
+            let t = traffic(framing, &Listened::of(&chunks));
             assert_eq!(t.units.keys().collect::<Vec<_>>(), vec![&5]);
             assert_eq!(
                 t.units[&5].times,
@@ -406,7 +406,7 @@ mod tests {
     #[test]
     fn a_retried_request_is_never_its_own_reply() {
         for framing in [SerialFraming::Rtu, SerialFraming::Ascii] {
-            let t = traffic(framing, &Heard::of(&retried_poll(framing)));
+            let t = traffic(framing, &Listened::of(&retried_poll(framing)));
             let u5 = &t.units[&5];
             // The first reply's request was not heard: a reply without a time.
             assert_eq!(u5.times, vec![ms(8); 4], "{framing:?}: not the poll gap");
@@ -436,13 +436,13 @@ mod tests {
             chunks.push((ms(2000 + k * 300), write5.clone()));
             chunks.push((ms(2020 + k * 300), write5.clone()));
         }
-        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks));
+        let t = traffic(SerialFraming::Rtu, &Listened::of(&chunks));
         assert_eq!((t.units[&7].requests, t.units[&7].replies), (5, 0));
         assert_eq!((t.units[&5].requests, t.units[&5].replies), (3, 3));
         assert_eq!(t.units[&5].times, vec![ms(20); 3]);
         // Without a repetition the shape proves, an echo right after its write is
         // taken as its reply: nothing on the bus tells it from a retry.
-        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks[2..]));
+        let t = traffic(SerialFraming::Rtu, &Listened::of(&chunks[2..]));
         assert_eq!(t.units[&7].replies, 1);
     }
 
@@ -450,7 +450,7 @@ mod tests {
     fn a_broadcast_is_never_answered() {
         let write0 = rtu::encode(0, &[6, 0, 1, 0, 7]);
         let chunks = vec![(ms(0), write0.clone()), (ms(5), write0.clone())];
-        let t = traffic(SerialFraming::Rtu, &Heard::of(&chunks));
+        let t = traffic(SerialFraming::Rtu, &Listened::of(&chunks));
         assert_eq!((t.units[&0].requests, t.units[&0].replies), (2, 0));
     }
 }
