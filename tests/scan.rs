@@ -936,13 +936,14 @@ fn a_slow_unit_gets_its_reply_time_and_a_unit_block() {
 }
 
 /// A master that retries a unit no device answers: a pymodbus master polls unit 5 (a
-/// pymodbus device answering in about 8 ms, silent for other ids) with FC 03 and unit
-/// 7 (nobody) with FC 03 and FC 06, one every 0.3 s, and sends each unanswered request
-/// twice more, 0.6 s apart, byte for byte (a round of the three in 4.5 s; the listen
-/// takes 10 s). The listen lists unit 5 alone, with its
-/// replies' time (tens of ms), never the master's retry as unit 7's reply (the read's
-/// by its shape, the write's, which its echo would look like, by its time) nor the
-/// poll gap as unit 5's reply time: RTU and ASCII.
+/// pymodbus device answering in about 8 ms, silent for other ids) and unit 7
+/// (nobody), FC 03 of two registers, one every 0.6 s, and sends each unanswered
+/// request twice more, 0.6 s apart, byte for byte (a round in 3 s; the listen takes
+/// 10 s). The listen lists unit 5 alone, with its replies' time (tens of ms), never
+/// the master's retry as unit 7's reply (its shape is a request's) nor the poll gap
+/// as unit 5's reply time: RTU and ASCII. (A write's retry, which only its time tells
+/// from its echo, is `sniff.rs`'s `a_write_echoed_is_its_reply_and_repeated_is_a_retry`:
+/// times as heard on a machine too busy to read the port in time are no premise.)
 #[test]
 fn listen_never_takes_a_retried_request_for_a_reply() {
     for framer in ["rtu", "ascii"] {
@@ -952,11 +953,11 @@ fn listen_never_takes_a_retried_request_for_a_reply() {
                 "--framer",
                 framer,
                 "--units",
-                "5,7,7",
+                "5,7",
                 "--functions",
-                "3,3,6",
+                "3,3",
                 "--every",
-                "0.3",
+                "0.6",
                 "--timeout",
                 "0.6",
                 "--retries",
@@ -994,7 +995,7 @@ fn listen_never_takes_a_retried_request_for_a_reply() {
         assert_eq!(u7["replies"], 0, "{framer}: {stdout}");
         assert_eq!(
             u7["functions"],
-            serde_json::json!([3, 6]),
+            serde_json::json!([3]),
             "{framer}: {stdout}"
         );
         assert!(u7["requests"].as_u64().unwrap() >= 3, "{framer}: {stdout}");
@@ -1004,10 +1005,10 @@ fn listen_never_takes_a_retried_request_for_a_reply() {
         // (One more when the listening began between a request and its reply.)
         assert!(replies <= u5["requests"].as_u64().unwrap() + 1, "{stdout}");
         // The device answers in 8 ms and its reply takes some 10 ms (RTU) or 20 ms
-        // (ASCII) at 9600; the master's next request comes 300 ms after a reply, its
+        // (ASCII) at 9600; the master's next request comes 600 ms after a reply, its
         // retry 600 ms after a request.
         let p50 = u5["reply_ms_p50"].as_u64().unwrap();
-        assert!(p50 < 250, "{framer}: reply p50 {p50} ms: {stdout}");
+        assert!(p50 < 300, "{framer}: reply p50 {p50} ms: {stdout}");
         // The table's block lists unit 5 alone.
         let (_, table, _) = scan_long(
             &[
