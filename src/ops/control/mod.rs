@@ -13,7 +13,9 @@
 //! Then messages, each a tag byte and a 32-bit big-endian length: `D` pcapng bytes
 //! (the section and interface headers first, then packets), `E` the end, a line of
 //! `key=value` words (`packets`, `dropped`, `why`). The client may write `stop` at
-//! any time; the gateway then ends the capture as for `--count`.
+//! any time; the gateway then takes no more packets, writes those it had taken for
+//! the capture before it, and the end. A message is at most about a MiB of packets
+//! (`serve.rs` `MESSAGE_SOFT`); the client refuses one past 64 MiB.
 //!
 //! Access is the file's mode (0660: its owner and group), checked again on each
 //! connection by the peer's credentials (`SO_PEERCRED`): root, the gateway's own
