@@ -9,7 +9,7 @@ use crate::line::relay::{Relay, RelayHandle};
 use crate::masters::router::Router;
 use crate::masters::tcp::{self, Socket};
 use crate::masters::tls::server::Acceptor;
-use crate::ops::metrics::{self, Board, ListenerMetrics};
+use crate::ops::metrics::{self, Board, ListenerMetrics, ListenerTransport};
 use crate::ops::notify;
 use crate::ops::reload;
 use crate::ops::stats::Stats;
@@ -219,11 +219,16 @@ async fn start(
     // Each listener's counters (connections, refusals, requests it answered itself);
     // each line keeps its own (its metrics are per line), and the totals add them up.
     let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
-    for ((_, l), stats) in bound.iter().zip(&listener_stats) {
-        board.add_listener(Arc::new(ListenerMetrics {
+    for ((socket, l), stats) in bound.iter().zip(&listener_stats) {
+        let transport = match socket {
+            Socket::Tcp(_) => ListenerTransport::Tcp,
+            Socket::Udp(_) => ListenerTransport::Udp,
+        };
+        let metrics = Arc::new(ListenerMetrics {
             name: l.local.to_string(),
             stats: stats.clone(),
-        }));
+        });
+        board.add_listener_on(metrics, transport);
     }
     let mut counted = listener_stats.clone();
     counted.extend(lines.stats);

@@ -135,6 +135,25 @@ fn get(s: &Samples, name: &str, with: &[(&str, &str)]) -> f64 {
         .map_or(0.0, |(_, v)| *v)
 }
 
+/// Each listener once, with its transport (`tcp`, `udp`; none from a gateway older
+/// than the label), in order: a TCP and a UDP listener on one address are two.
+fn listeners(s: &Samples) -> Vec<(String, Option<String>)> {
+    let mut seen = Vec::new();
+    for (l, _) in s
+        .get("mbgate_listener_connections_total")
+        .into_iter()
+        .flatten()
+    {
+        if let Some(name) = l.get("listener") {
+            let one = (name.clone(), l.get("transport").cloned());
+            if !seen.contains(&one) {
+                seen.push(one);
+            }
+        }
+    }
+    seen
+}
+
 /// Each distinct value of label `key` among the samples of `name`, in order.
 fn values_of(s: &Samples, name: &str, key: &str) -> Vec<String> {
     let mut seen: Vec<String> = Vec::new();
@@ -253,10 +272,23 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
             );
         }
     }
-    for listener in values_of(s, "mbgate_listener_connections_total", "listener") {
-        let l = [("listener", listener.as_str())];
+    let mut listed = Vec::new();
+    for (listener, transport) in listeners(s) {
+        // A gateway older than the `transport` label has none.
+        let mut l = vec![("listener", listener.as_str())];
+        let said = match transport.as_deref() {
+            Some(t) => {
+                l.push(("transport", t));
+                if t == "tcp" {
+                    String::new()
+                } else {
+                    format!(" ({})", t.to_uppercase())
+                }
+            }
+            None => String::new(),
+        };
         out += &format!(
-            "listener {listener}: {} masters, {} connections, {} refused, {} protocol violations\n",
+            "listener {listener}{said}: {} masters, {} connections, {} refused, {} protocol violations\n",
             n(get(s, "mbgate_listener_masters", &l)),
             n(get(s, "mbgate_listener_connections_total", &l)),
             n(get(s, "mbgate_listener_refused_connections_total", &l)),
@@ -283,7 +315,11 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
         if !said.is_empty() {
             out += &format!("  {}\n", said.join(", "));
         }
-        out += &masters(s, &listener, unix);
+        // The masters carry the address, not the transport: listed once.
+        if !listed.contains(&listener) {
+            out += &masters(s, &listener, unix);
+            listed.push(listener);
+        }
     }
     let healthy = problems.is_empty();
     let head = if healthy {
@@ -303,6 +339,31 @@ mod tests {
         let l = labels(r#"line="/dev/a \"b\"",unit="1""#);
         assert_eq!(l["line"], "/dev/a \"b\"");
         assert_eq!(l["unit"], "1");
+    }
+
+    /// A TCP and a UDP listener on one address: two lines, the UDP one said so; a
+    /// gateway older than the `transport` label still gets its line.
+    #[test]
+    fn listeners_on_one_address_by_transport() {
+        let text = "\
+mbgate_listener_connections_total{listener=\"127.0.0.1:5502\",transport=\"tcp\"} 3
+mbgate_listener_masters{listener=\"127.0.0.1:5502\",transport=\"tcp\"} 1
+mbgate_listener_connections_total{listener=\"127.0.0.1:5502\",transport=\"udp\"} 2
+mbgate_listener_masters{listener=\"127.0.0.1:5502\",transport=\"udp\"} 2
+";
+        let (report, _) = summary(&parse(text), SystemTime::now());
+        assert_eq!(
+            report,
+            "healthy\n\
+             listener 127.0.0.1:5502: 1 masters, 3 connections, 0 refused, 0 protocol violations\n\
+             listener 127.0.0.1:5502 (UDP): 2 masters, 2 connections, 0 refused, 0 protocol violations\n"
+        );
+        let old = "mbgate_listener_connections_total{listener=\"0.0.0.0:502\"} 4\n";
+        let (report, _) = summary(&parse(old), SystemTime::now());
+        assert!(
+            report.ends_with("listener 0.0.0.0:502: 0 masters, 4 connections, 0 refused, 0 protocol violations\n"),
+            "{report}"
+        );
     }
 
     #[test]
