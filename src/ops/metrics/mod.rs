@@ -15,6 +15,7 @@ pub(crate) mod listener;
 pub(crate) mod page;
 pub(crate) mod status;
 pub mod status_command;
+pub mod web;
 
 use crate::ops::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};
