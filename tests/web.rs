@@ -815,3 +815,247 @@ fn ten_thousand_wrong_logins_from_one_source_are_bounded() {
         read_reply(1, 1, &[9])
     );
 }
+
+/// A TCP connection to `to` from the loopback address `from` (127.0.0.2...: Linux
+/// answers on all of 127/8), as another machine would connect.
+fn connect_from(from: &str, to: SocketAddr) -> TcpStream {
+    let s = socket2::Socket::new(socket2::Domain::IPV4, socket2::Type::STREAM, None).unwrap();
+    let from: SocketAddr = format!("{from}:0").parse().unwrap();
+    s.bind(&from.into()).unwrap();
+    s.connect(&to.into()).unwrap();
+    let s: TcpStream = s.into();
+    s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
+    s
+}
+
+/// GET /metrics with `authorization` from `from`: the status code (0: closed
+/// without an answer).
+fn login_from(from: &str, addr: SocketAddr, authorization: &str) -> u16 {
+    let mut s = connect_from(from, addr);
+    let _ = write!(
+        s,
+        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nAuthorization: {authorization}\r\n\r\n"
+    );
+    let mut head = [0u8; 12];
+    match s.read_exact(&mut head) {
+        Ok(()) => std::str::from_utf8(&head[9..12])
+            .ok()
+            .and_then(|c| c.parse().ok())
+            .unwrap_or(0),
+        Err(_) => 0,
+    }
+}
+
+/// `Basic` credentials of `user:password`.
+fn basic(user: &str, password: &str) -> String {
+    use base64::Engine as _;
+    let b = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"));
+    format!("Basic {b}")
+}
+
+/// A wrong password of a user who exists and any password of one who does not cost
+/// the gateway the same: a bcrypt check of the users' cost each (here 10). Measured
+/// as the gateway's CPU time for three of each, from two sources (each within its
+/// budget of five); printed, and held within a factor of two of each other (a check
+/// skipped for an unknown user would cost a hundredth).
+#[test]
+fn a_failed_login_costs_the_same_whether_the_user_exists_or_not() {
+    let dir = tempdir();
+    let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
+        .args(["hash-password", "--user", "operator"])
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .spawn()
+        .unwrap();
+    writeln!(child.stdin.take().unwrap(), "the right one").unwrap();
+    let user = String::from_utf8(child.wait_with_output().unwrap().stdout).unwrap();
+    let site = Site::start(dir.path(), &format!("basic_auth_users:\n  {user}"), &[]);
+    let pid = site.gw.proc.pid();
+    let cost = |from: &str, who: &str| {
+        let before = cpu_ns(pid);
+        let t = Instant::now();
+        for _ in 0..3 {
+            assert_eq!(
+                login_from(from, site.metrics, &basic(who, "a wrong one")),
+                401
+            );
+        }
+        (
+            Duration::from_nanos(cpu_ns(pid) - before) / 3,
+            t.elapsed() / 3,
+        )
+    };
+    let (known, known_wall) = cost("127.0.0.2", "operator");
+    let (unknown, unknown_wall) = cost("127.0.0.3", "nobody");
+    eprintln!(
+        "a failed login: known user {known:?} CPU ({known_wall:?} wall), unknown user {unknown:?} CPU ({unknown_wall:?} wall)"
+    );
+    assert!(known > Duration::from_millis(10) && unknown > Duration::from_millis(10));
+    let ratio = known.as_secs_f64() / unknown.as_secs_f64();
+    assert!((0.5..2.0).contains(&ratio), "{known:?} against {unknown:?}");
+    assert_eq!(
+        login_from(
+            "127.0.0.4",
+            site.metrics,
+            &basic("operator", "the right one")
+        ),
+        200
+    );
+}
+
+/// Peers that connect and say nothing hold at most 8 of the listener's 16
+/// connections from one source, and each for the 5 s a TLS handshake (or a head) is
+/// given: another source is served meanwhile, and the silent ones are closed. Bytes
+/// that are no TLS handshake get nothing back; a request head past 8 KiB gets 400.
+#[test]
+fn silent_peers_hold_half_the_listener_at_most_and_seconds_only() {
+    let dir = tempdir();
+    let pki = Pki::new(&dir.path().join("pki"));
+    let site = Site::start(dir.path(), &web_yml(&pki, "", &[("u", &hash("p"))]), &[]);
+    let silent: Vec<TcpStream> = (0..8)
+        .map(|_| connect_from("127.0.0.2", site.metrics))
+        .collect();
+    // The ninth from that source is closed at once, before any byte.
+    let mut ninth = connect_from("127.0.0.2", site.metrics);
+    ninth
+        .set_read_timeout(Some(Duration::from_secs(3)))
+        .unwrap();
+    let t = Instant::now();
+    assert_eq!(ninth.read(&mut [0u8; 16]).unwrap_or(0), 0);
+    assert!(t.elapsed() < Duration::from_secs(3), "closed at once");
+    // Another source is served meanwhile (curl from 127.0.0.3).
+    if peer("curl", "curl") {
+        let c = curl(&[
+            "--interface",
+            "127.0.0.3",
+            "--cacert",
+            &pki.pem("ca"),
+            "-u",
+            "u:p",
+            &format!("https://127.0.0.1:{}/metrics", site.metrics.port()),
+        ]);
+        assert_eq!(c.status(), "HTTP/1.1 200 OK", "{}", c.err);
+    }
+    // Bytes that are no TLS handshake: nothing of HTTP back, and closed.
+    let mut junk = connect_from("127.0.0.4", site.metrics);
+    let _ = junk.write_all(b"GET /metrics HTTP/1.1\r\n\r\n");
+    let mut answer = Vec::new();
+    let _ = junk.read_to_end(&mut answer);
+    assert!(
+        !answer.starts_with(b"HTTP"),
+        "{}",
+        String::from_utf8_lossy(&answer)
+    );
+    // A request head past 8 KiB, over TLS with the right user: 400.
+    if peer("curl", "curl") {
+        let big = format!("X-Big: {}", "a".repeat(9000));
+        let c = curl(&[
+            "--interface",
+            "127.0.0.4",
+            "--cacert",
+            &pki.pem("ca"),
+            "-u",
+            "u:p",
+            "-H",
+            &big,
+            &format!("https://127.0.0.1:{}/metrics", site.metrics.port()),
+        ]);
+        assert_eq!(c.status(), "HTTP/1.1 400 Bad Request", "{}", c.err);
+    }
+    // The silent ones are closed after their 5 s (within 15, on a busy machine).
+    let t = Instant::now();
+    for mut s in silent {
+        s.set_read_timeout(Some(Duration::from_secs(15))).unwrap();
+        assert_eq!(s.read(&mut [0u8; 16]).unwrap_or(0), 0);
+    }
+    let waited = t.elapsed();
+    assert!(
+        waited > Duration::from_secs(3) && waited < Duration::from_secs(15),
+        "{waited:?}"
+    );
+}
+
+/// docs/watching.md "Behind TLS and a password" as a user runs it: its commands (in a
+/// folder of ours instead of /etc/mbgate, this build's mbgate) make a certificate, a
+/// password and the web configuration file; `check-config` takes it, and curl, which
+/// knows the gateway by the certificate's name, logs in with the password made.
+#[test]
+fn the_recipe_of_the_docs_makes_a_listener_that_takes_its_password() {
+    if !peer("curl", "curl") || !peer("openssl", "openssl") {
+        return;
+    }
+    let page = std::fs::read_to_string(repo().join("docs/watching.md")).unwrap();
+    let section = &page[page.find("\n## Behind TLS and a password").unwrap()..];
+    let block = section.split("```sh\n").nth(1).unwrap();
+    let block = &block[..block.find("```").unwrap()];
+    // docs/security.md shows the same commands.
+    let security = std::fs::read_to_string(repo().join("docs/security.md")).unwrap();
+    assert!(
+        security.contains(&format!("```sh\n{block}```")),
+        "docs/security.md has the recipe of docs/watching.md"
+    );
+    let dir = tempdir();
+    let home = dir.path().join("home");
+    std::fs::create_dir_all(&home).unwrap();
+    let etc = dir.path().join("etc");
+    std::fs::create_dir_all(&etc).unwrap();
+    let mut script = String::from("set -euo pipefail\n");
+    for line in block.lines().filter(|l| !l.starts_with('#')) {
+        let line = line
+            .replace("cd /etc/mbgate", &format!("cd {}", etc.display()))
+            .replace("sudo ", "")
+            .replace("~/", &format!("{}/", home.display()))
+            .replace("| mbgate ", &format!("| {} ", env!("CARGO_BIN_EXE_mbgate")));
+        let line = match line.strip_prefix("mbgate ") {
+            Some(rest) => format!("{} {rest}", env!("CARGO_BIN_EXE_mbgate")),
+            None => line,
+        };
+        script += &line;
+        script.push('\n');
+    }
+    let out = Command::new("bash")
+        .arg("-c")
+        .arg(&script)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{script}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let web = std::fs::read_to_string(etc.join("web.yml")).unwrap();
+    assert!(
+        web.contains("basic_auth_users:\n  prometheus: $2y$10$"),
+        "{web}"
+    );
+    let password = std::fs::read_to_string(home.join("prometheus.password")).unwrap();
+    let site = Site::start(
+        dir.path(),
+        &web.replace("web.pem", &etc.join("web.pem").display().to_string())
+            .replace("web.key", &etc.join("web.key").display().to_string()),
+        &[],
+    );
+    let name = "gw-hall-1.plant-a.example";
+    let port = site.metrics.port();
+    let c = curl(&[
+        "--resolve",
+        &format!("{name}:{port}:127.0.0.1"),
+        "--cacert",
+        etc.join("web.pem").to_str().unwrap(),
+        "-u",
+        &format!("prometheus:{}", password.trim()),
+        &format!("https://{name}:{port}/metrics"),
+    ]);
+    assert_eq!(c.status(), "HTTP/1.1 200 OK", "{}", c.err);
+    // The file as the page shows it: its paths relative to its own folder.
+    let cfg = dir.path().join("check.toml");
+    std::fs::write(&cfg, format!("[serial]\npath = \"/dev/null-mbgate\"\n[metrics]\nlisten = \"127.0.0.1:0\"\nweb_config = {:?}\n", etc.join("web.yml").display().to_string())).unwrap();
+    let run = mbgate(&["check-config", cfg.to_str().unwrap()]);
+    assert_eq!(run.code, 0, "{}", run.stderr);
+    assert!(
+        run.stdout
+            .ends_with("  # who: TLS 1.2/1.3, 1 user (Basic authentication)\n"),
+        "{}",
+        run.stdout
+    );
+}

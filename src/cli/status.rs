@@ -68,6 +68,8 @@ pub(crate) fn main(args: StatusArgs) -> ExitCode {
         Err(e) => return exit::usage(e),
     };
     let named_socket = args.socket.is_some() || args.config.is_some();
+    // Why the control socket, tried first, was passed over for the metrics listener.
+    let mut passed_over = None;
     if args.metrics.is_none() {
         let socket = match control_socket(args.socket.as_deref(), args.config.as_deref()) {
             Ok(s) => s,
@@ -75,21 +77,24 @@ pub(crate) fn main(args: StatusArgs) -> ExitCode {
         };
         // Named, or there: asked over it. Else the metrics listener's usual address.
         if named_socket || socket.exists() {
-            return match crate::ops::control::status::metrics(&socket) {
+            match crate::ops::control::status::metrics(&socket) {
                 Ok(Ok(text)) => {
                     let (report, healthy) = summarize(&text);
                     print!("{report}");
-                    exit::ok_if(healthy)
+                    return exit::ok_if(healthy);
                 }
                 Ok(Err(why)) => {
                     eprintln!("mbgate status: {why}");
-                    exit::code(exit::OTHER)
+                    return exit::code(exit::OTHER);
                 }
+                // Not ours to use (not root, nor the service's user or group) and not
+                // asked for by name: the metrics listener, as before the socket.
+                Err(e) if !named_socket => passed_over = Some(e.to_string()),
                 Err(e) => {
                     eprintln!("mbgate status: {e}; or ask its metrics listener: mbgate status --metrics ADDR");
-                    exit::code(exit::OTHER)
+                    return exit::code(exit::OTHER);
                 }
-            };
+            }
         }
     }
     let url = args.metrics.unwrap_or_else(|| DEFAULT_METRICS.to_owned());
@@ -105,6 +110,9 @@ pub(crate) fn main(args: StatusArgs) -> ExitCode {
             exit::ok_if(healthy)
         }
         Err(e) => {
+            if let Some(why) = passed_over {
+                eprintln!("mbgate: not asked over the control socket: {why}");
+            }
             eprintln!("mbgate: cannot ask the gateway at {url}: {e}");
             if matches!(e, crate::ops::metrics::status_command::Unreachable::Io(_)) {
                 eprint!("{}", turn_on(&url));

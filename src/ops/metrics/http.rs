@@ -15,7 +15,7 @@
 //! its own at a lower priority ([`spawn`]), so the relay's loop never waits for a
 //! scrape to be rendered, a handshake or a password checked. A TLS handshake and
 //! then a request head larger than 8 KiB, or slower than 5 s each, are refused; at
-//! most 16 connections at once, the others closed at once.
+//! most 16 connections at once, 8 of them from one source, the others closed at once.
 
 use super::web::login::{Login, Logins};
 use super::web::WebAccess;
@@ -32,6 +32,9 @@ use tracing::{debug, info, warn};
 const MAX_HEAD: usize = 8 * 1024;
 const HEAD_WITHIN: Duration = Duration::from_secs(5);
 const MAX_CONNECTIONS: usize = 16;
+/// Of them, from one source (an IPv4 address, or an IPv6 /64): a peer that holds its
+/// connections open without a word leaves the others half the listener.
+const PER_SOURCE: usize = 8;
 /// The listener's threads' nice value: under load the masters' side, at 0, gets about
 /// ten times their share of a core (Linux's CFS weights 1024 against 110).
 const NICE: i32 = 10;
@@ -164,6 +167,7 @@ async fn serve(
         announce(local, &web.access());
     }
     let limit = Arc::new(Semaphore::new(MAX_CONNECTIONS));
+    let sources = Arc::new(SourceSlots::default());
     tokio::spawn(page::sample(board.clone(), stop.clone()));
     loop {
         let accepted = tokio::select! {
@@ -175,6 +179,10 @@ async fn serve(
             tokio::time::sleep(Duration::from_millis(100)).await;
             continue;
         };
+        let Some(own) = sources.take(peer.ip()) else {
+            debug!(%peer, "metrics: {PER_SOURCE} connections from this source already, closed");
+            continue;
+        };
         let Ok(slot) = limit.clone().try_acquire_owned() else {
             debug!(%peer, "metrics: too many connections, closed");
             continue;
@@ -184,8 +192,40 @@ async fn serve(
             if let Err(e) = answer(stream, peer, &board, &web).await {
                 debug!(%peer, "metrics: {e}");
             }
-            drop(slot);
+            drop((slot, own));
         });
+    }
+}
+
+/// The connections open from each source.
+#[derive(Debug, Default)]
+struct SourceSlots(std::sync::Mutex<std::collections::HashMap<IpAddr, usize>>);
+
+/// A connection of a source, given back when dropped.
+struct SourceSlot(Arc<SourceSlots>, IpAddr);
+
+impl SourceSlots {
+    fn take(self: &Arc<Self>, ip: IpAddr) -> Option<SourceSlot> {
+        let source = crate::masters::access::source_of(ip);
+        let mut open = self.0.lock().expect("not poisoned");
+        let n = open.entry(source).or_default();
+        if *n >= PER_SOURCE {
+            return None;
+        }
+        *n += 1;
+        Some(SourceSlot(self.clone(), source))
+    }
+}
+
+impl Drop for SourceSlot {
+    fn drop(&mut self) {
+        let mut open = self.0 .0.lock().expect("not poisoned");
+        if let Some(n) = open.get_mut(&self.1) {
+            *n -= 1;
+            if *n == 0 {
+                open.remove(&self.1);
+            }
+        }
     }
 }
 
