@@ -260,6 +260,26 @@ mod tests {
         assert_eq!(basic("Basic YWxpY2U="), None, "no colon");
     }
 
+    proptest::proptest! {
+        /// Whatever a peer puts in the header, reading it is an answer, never a panic;
+        /// credentials a client encodes read back as they were (the password may hold
+        /// colons, the user not).
+        #[test]
+        fn any_header_reads_and_credentials_round_trip(
+            junk in ".{0,200}",
+            user in "[^:]{0,20}",
+            password in proptest::collection::vec(proptest::num::u8::ANY, 0..80),
+        ) {
+            let _ = basic(&junk);
+            let _ = basic(&format!("Basic {junk}"));
+            let mut raw = user.as_bytes().to_vec();
+            raw.push(b':');
+            raw.extend(&password);
+            let value = format!("Basic {}", base64::engine::general_purpose::STANDARD.encode(&raw));
+            proptest::prop_assert_eq!(basic(&value), Some((user.into_bytes(), password)));
+        }
+    }
+
     #[tokio::test]
     async fn right_wrong_unknown_and_remembered() {
         let (u, logins) = (users(), Logins::default());
