@@ -585,7 +585,7 @@ fn the_control_socket_refuses_strangers_and_a_bad_request_closes_only_its_client
     // Malformed requests: an error and the end of that client, nothing more.
     for bad in [
         &b"capture unit=300\n"[..],
-        b"status\n",
+        b"stats\n",
         b"capture line=9\n",
         &[0xFF; 5000],
     ] {

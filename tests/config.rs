@@ -625,6 +625,7 @@ fn non_default() -> Config {
     };
     c.metrics = MetricsConfig {
         listen: Some("127.0.0.1:9502".parse().unwrap()),
+        web_config: "/etc/mbgate/web.yml".into(),
     };
     c
 }

@@ -461,7 +461,8 @@ fn restarts(n: usize, args: &[&str]) -> Restarted {
     let (fds_before, mem_before) = (fds(&gw), mem(&gw));
     // The dialed master on the metrics as a listener's, beside the accepted one.
     let metrics = gw.http_get("/metrics");
-    let dialed = format!("mbgate_listener_masters{{listener=\"dial {listen}\"}} 1");
+    let dialed =
+        format!("mbgate_listener_masters{{listener=\"dial {listen}\",transport=\"tcp\"}} 1");
     assert!(metrics.contains(&dialed), "{metrics}");
     assert_eq!(gw.metric("mbgate_listener_masters"), 2.0, "{metrics}");
     server.go_on();

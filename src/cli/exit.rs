@@ -14,6 +14,7 @@
 //! | `capture` | ended as asked | could not run, or its output failed | bad arguments | |
 //! | `reload` | taken | refused | bad arguments | the gateway could not be asked |
 //! | `generate` | written | could not write | bad arguments | |
+//! | `hash-password` | printed | the passwords differ, or none | bad arguments | |
 //!
 //! clap exits 2 on arguments it refuses itself, so every "bad arguments" is 2.
 

@@ -251,9 +251,14 @@ pub fn summary(cfg: &Config) -> String {
     for d in &cfg.dials {
         out += &format!("{}\n", dial(d));
     }
+    let web = cfg.metrics.web_config.trim();
     out += &match cfg.metrics.listen {
-        Some(a) => format!(
+        Some(a) if web.is_empty() => format!(
             "status page on http://{a}/, metrics on http://{a}/metrics (mbgate status --metrics {a})\n"
+        ),
+        // `mbgate check-config` adds who may read it, from the file.
+        Some(a) => format!(
+            "status page on {a}/, metrics on {a}/metrics, as {web} says\n"
         ),
         None => "no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
             .to_owned(),

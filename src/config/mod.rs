@@ -462,6 +462,8 @@ settings! {
     [metrics] MetricsConfig {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
         listen: Option<SocketAddr> = None, Address(METRICS_EXAMPLE), "metrics-listen" "ADDR";
+        /// The metrics listener's web configuration file, in the format of Prometheus' exporter-toolkit (TLS, client certificates, users with bcrypt hashes: docs/watching.md); "" (the default): plain HTTP, no users
+        web_config: String = String::new(), Any, "metrics-web-config" "FILE";
     }
     /// The always-on capture (docs/capture.md): every packet into a ring of pcapng files.
     [capture] CaptureConfig {

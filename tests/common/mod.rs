@@ -569,12 +569,13 @@ impl Proc {
         }
     }
 
-    /// The `[metrics]` listener's address, from the log line that names it, once it
-    /// has shown within `within`.
+    /// The `[metrics]` listener's address, from the log line that names it (http or
+    /// https), once it has shown within `within`.
     pub(crate) fn metrics_addr(&self, within: Duration) -> SocketAddr {
-        self.wait_log("metrics on http://", within);
+        self.wait_log("metrics on http", within);
         let log = self.log();
-        let rest = log.split("metrics on http://").nth(1).unwrap();
+        let rest = log.split("metrics on http").nth(1).unwrap();
+        let rest = rest.trim_start_matches('s').trim_start_matches("://");
         rest.split('/').next().unwrap().parse().unwrap()
     }
 

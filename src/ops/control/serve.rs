@@ -6,7 +6,7 @@
 //! holds a slot (waiting for its request, or capturing) that a guard gives back
 //! however its task ends.
 
-use super::{message, own_ids, DATA, END, RELOAD};
+use super::{message, own_ids, DATA, END, RELOAD, STATUS};
 use crate::ops::capture::hub::{unix_us, Hub, Subscription, GATHER};
 use crate::ops::capture::packet::Packet;
 use crate::ops::capture::pcapng;
@@ -204,12 +204,11 @@ impl Drop for ControlSocket {
 /// Serves captures on `control` until `shutdown`; the socket is removed then.
 pub(crate) async fn serve(
     control: ControlSocket,
-    hub: Hub,
-    reload: Option<ReloadHandle>,
+    asked: ControlServed,
     shutdown: CancellationToken,
 ) {
     info!(
-        "control socket {} (mbgate capture, mbgate reload)",
+        "control socket {} (mbgate capture, mbgate reload, mbgate status)",
         control.path.display()
     );
     let waiting = TaskSlots::new(MAX_WAITING);
@@ -250,8 +249,7 @@ pub(crate) async fn serve(
             }
             continue;
         };
-        let (hub, captures, reload) = (hub.clone(), captures.clone(), reload.clone());
-        tokio::spawn(client(stream, hub, reload, slot, captures));
+        tokio::spawn(client(stream, asked.clone(), slot, captures.clone()));
     }
     drop(control);
 }
@@ -360,17 +358,38 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
     String::from_utf8(line).map_err(|_| ControlRefusal::NotText)
 }
 
-/// One client, holding `waiting` until its request is read: a reload, or a capture
-/// (its request, then packets until a stop condition) in one of `captures`.
+/// What the socket's clients ask of: the capture's hub, the reload (none: the gateway
+/// has no file to read again), the numbers a status is made of.
+#[derive(Clone)]
+pub(crate) struct ControlServed {
+    pub(crate) hub: Hub,
+    pub(crate) reload: Option<ReloadHandle>,
+    pub(crate) board: Arc<crate::ops::metrics::Board>,
+}
+
+/// One client, holding `waiting` until its request is read: a reload, a status, or a
+/// capture (its request, then packets until a stop condition) in one of `captures`.
 async fn client(
     stream: UnixStream,
-    hub: Hub,
-    reload: Option<ReloadHandle>,
+    asked: ControlServed,
     waiting: TaskSlot,
     captures: Arc<TaskSlots>,
 ) {
+    let ControlServed { hub, reload, board } = asked;
     let (mut rd, mut wr) = stream.into_split();
     let line = request_line(&mut rd).await;
+    if line
+        .as_deref()
+        .is_ok_and(|l| l.trim_end_matches('\r') == STATUS)
+    {
+        // Rendered beside the runtime's one thread, as the metrics listener renders it
+        // on a thread of its own: the lines' loops do not wait for it.
+        let text = tokio::task::spawn_blocking(move || crate::ops::metrics::expose::render(&board))
+            .await
+            .unwrap_or_default();
+        let _ = write_within(&mut wr, format!("ok\n{text}").as_bytes()).await;
+        return;
+    }
     if line
         .as_deref()
         .is_ok_and(|l| l.trim_end_matches('\r') == RELOAD)
@@ -727,7 +746,12 @@ mod tests {
         let waiting = TaskSlots::new(1);
         let slot = waiting.take().unwrap();
         let started = Instant::now();
-        let served = tokio::spawn(client(gw_end, hub, Some(handle), slot, TaskSlots::new(1)));
+        let asked = ControlServed {
+            hub,
+            reload: Some(handle),
+            board: Arc::default(),
+        };
+        let served = tokio::spawn(client(gw_end, asked, slot, TaskSlots::new(1)));
         let mut answer = String::new();
         client_end.read_to_string(&mut answer).await.unwrap();
         assert_eq!(

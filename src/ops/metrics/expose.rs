@@ -4,11 +4,12 @@
 //! thing counted, `_total` on counters, base units (`_seconds`, `_bytes`).
 //!
 //! Labels: `line` (the serial port's path, or host:port of a device server) on every
-//! line's and unit's metric, `unit` on a unit's, `listener` (its address) on a
-//! listener's; exceptions also by `source` (`device`: the device sent it; `gateway`:
+//! line's and unit's metric, `unit` on a unit's, `listener` (its address, or `dial
+//! HOST:PORT`) and `transport` (`tcp`, `udp`) on a listener's, so a TCP and a UDP
+//! listener on one address are two series, never one printed twice; exceptions also by `source` (`device`: the device sent it; `gateway`:
 //! mbgate answered it itself) and `code` (`0x0B`).
 
-use super::{Board, LineMetrics, ListenerMetrics};
+use super::{Board, LineMetrics, ListenerMetrics, ListenerTransport};
 use crate::frame::ExceptionCode;
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
@@ -98,7 +99,7 @@ fn code(c: u8) -> String {
 impl Collector for Scrape {
     fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
         let lines = self.0.lines();
-        let listeners = self.0.listeners();
+        let listeners = self.0.listeners_on();
         let now = Instant::now();
         for f in line_families(&lines, now) {
             f.encode(&mut e)?;
@@ -413,13 +414,19 @@ fn unit_families(
     Ok(())
 }
 
-fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
+fn listener_families(listeners: &[(Arc<ListenerMetrics>, ListenerTransport)]) -> Vec<Family> {
     let per = |(name, help, kind): (&'static str, &'static str, MetricType),
                get: &dyn Fn(&ListenerMetrics) -> u64| {
         let mut f = Family::new(name, help, kind);
         f.values = listeners
             .iter()
-            .map(|l| (vec![("listener", l.name.clone())], get(l) as f64))
+            .map(|(l, t)| {
+                let labels = vec![
+                    ("listener", l.name.clone()),
+                    ("transport", t.label().into()),
+                ];
+                (labels, get(l) as f64)
+            })
             .collect();
         f
     };

@@ -15,6 +15,7 @@ pub(crate) mod listener;
 pub(crate) mod page;
 pub(crate) mod status;
 pub mod status_command;
+pub mod web;
 
 use crate::ops::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -442,11 +443,32 @@ fn unix_us(t: std::time::SystemTime) -> u64 {
     since.unwrap_or_default().as_micros() as u64
 }
 
+/// How a listener's masters reach it: the `transport` label, which keeps a TCP and a
+/// UDP listener on one address (docs/dialing.md "Modbus over UDP") two series apart.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum ListenerTransport {
+    /// TCP connections: an accepted master's, or a dial's (`dial HOST:PORT`).
+    Tcp,
+    /// UDP datagrams.
+    Udp,
+}
+
+impl ListenerTransport {
+    /// The label's value.
+    pub(crate) fn label(self) -> &'static str {
+        match self {
+            ListenerTransport::Tcp => "tcp",
+            ListenerTransport::Udp => "udp",
+        }
+    }
+}
+
 /// Everything the gateway shows: its lines and listeners, in the order they started.
 #[derive(Debug, Default)]
 pub(crate) struct Board {
     pub(crate) lines: Mutex<Vec<Arc<LineMetrics>>>,
-    pub(crate) listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
+    /// Each listener with how its masters reach it.
+    listeners: Mutex<Vec<(Arc<ListenerMetrics>, ListenerTransport)>>,
     /// The masters connected now.
     pub(crate) masters: Arc<ConnectedMasters>,
     /// Each line's last minute, a point a second, by line name, while the metrics
@@ -463,14 +485,31 @@ impl Board {
         self.lines.lock().expect("not poisoned").push(line);
     }
 
+    /// A listener bound at start, reached by `transport`.
+    pub(crate) fn add_listener_on(
+        &self,
+        listener: Arc<ListenerMetrics>,
+        transport: ListenerTransport,
+    ) {
+        let mut listeners = self.listeners.lock().expect("not poisoned");
+        listeners.push((listener, transport));
+    }
+
+    /// A source the masters' side adds while it runs (`tcp/tally.rs`): a dial, named
+    /// `dial HOST:PORT`, over TCP; else a UDP listener, named by its address.
     pub(crate) fn add_listener(&self, listener: Arc<ListenerMetrics>) {
-        self.listeners.lock().expect("not poisoned").push(listener);
+        let transport = if listener.name.starts_with("dial ") {
+            ListenerTransport::Tcp
+        } else {
+            ListenerTransport::Udp
+        };
+        self.add_listener_on(listener, transport);
     }
 
     /// The listener (a dial, a UDP listener) counting in `stats` is gone (a reload).
     pub(crate) fn remove_listener(&self, stats: &Arc<crate::ops::stats::Stats>) {
         let mut listeners = self.listeners.lock().expect("not poisoned");
-        listeners.retain(|l| !Arc::ptr_eq(&l.stats, stats));
+        listeners.retain(|(l, _)| !Arc::ptr_eq(&l.stats, stats));
     }
 
     pub(crate) fn lines(&self) -> Vec<Arc<LineMetrics>> {
@@ -478,6 +517,12 @@ impl Board {
     }
 
     pub(crate) fn listeners(&self) -> Vec<Arc<ListenerMetrics>> {
+        let listeners = self.listeners.lock().expect("not poisoned");
+        listeners.iter().map(|(l, _)| l.clone()).collect()
+    }
+
+    /// Each listener with how its masters reach it.
+    pub(crate) fn listeners_on(&self) -> Vec<(Arc<ListenerMetrics>, ListenerTransport)> {
         self.listeners.lock().expect("not poisoned").clone()
     }
 }

@@ -17,7 +17,12 @@ pub(crate) const LINE_RELOADABLE: [&str; 4] = [
     "relay.retry_writes",
     "relay.probe_timeout_ms",
 ];
-const GATEWAY_RELOADABLE: [&str; 3] = ["log.level", "log.traffic", "metrics.listen"];
+const GATEWAY_RELOADABLE: [&str; 4] = [
+    "log.level",
+    "log.traffic",
+    "metrics.listen",
+    "metrics.web_config",
+];
 
 /// What identifies a line across a reload: its serial port, or its device's address.
 /// Two lines on one port or address are refused when the file is read.
