@@ -1299,3 +1299,47 @@ fn an_endless_file_is_refused_not_read() {
         "{err}"
     );
 }
+
+/// `relay.timeout_guard_ms = 0` is refused on an RTU or ASCII line, naming the file,
+/// the line, the key and why (a device that drops requests while busy has its late
+/// answer kept off the next request by the guard alone), in either form of the file
+/// and as a flag; an MBAP line takes it (a late answer is known by its id there)
+/// (docs/reliability.md "RTU and ASCII", 3).
+#[test]
+fn no_guard_is_refused_on_rtu_and_ascii_lines() {
+    let why = "a late answer from a device that dropped the next request while busy is \
+               kept off that request only by the guard; set 1 or more (100 by default)";
+    for framing in ["rtu", "ascii"] {
+        let tables = format!(
+            "[[line]]\nserial = {{ path = \"/dev/ttyUSB0\", framing = \"{framing}\" }}\n\
+             relay = {{ timeout_guard_ms = 0 }}\n"
+        );
+        let want = format!(
+            "{F}:3:30: line[0].relay.timeout_guard_ms: cannot go with \
+             line[0].serial.framing = \"{framing}\": {why}"
+        );
+        assert_eq!(err(&tables), want);
+        let single = format!(
+            "[serial]\npath = \"/dev/ttyUSB0\"\nframing = \"{framing}\"\n\
+             [relay]\ntimeout_guard_ms = 0\n"
+        );
+        let want = format!(
+            "{F}:5:20: relay.timeout_guard_ms: cannot go with serial.framing = \
+             \"{framing}\": {why}"
+        );
+        assert_eq!(err(&single), want);
+        let mut cfg = parse(&single.replace("timeout_guard_ms = 0", ""), F).unwrap();
+        let flags = cli(&["--timeout-guard-ms", "0"]).unwrap();
+        let e = flags.apply(&mut cfg).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!(
+                "--timeout-guard-ms: relay.timeout_guard_ms cannot go with serial.framing = \
+                 \"{framing}\""
+            )),
+            "{e}"
+        );
+    }
+    let mbap =
+        "[serial]\npath = \"/dev/ttyUSB0\"\nframing = \"mbap\"\n[relay]\ntimeout_guard_ms = 0\n";
+    assert_eq!(parse(mbap, F).unwrap().lines[0].relay.timeout_guard_ms, 0);
+}

@@ -101,11 +101,11 @@ impl<const PORT: bool> Flags<PORT> {
             } else {
                 first
             };
-            let section = format!("{}.", conflict.key.section);
             let message = format!(
-                "{section}{} {}",
+                "{}.{} {}",
+                conflict.key.section,
                 conflict.key.name,
-                conflict.message(&section)
+                conflict.message("")
             );
             return Err(bad(named, message));
         }

@@ -544,14 +544,16 @@ enum Clash {
 }
 
 impl Conflict {
-    /// The message, with the section's keys under `prefix` (`relay.`).
-    pub(crate) fn message(&self, prefix: &str) -> String {
-        let other = self.other.name;
+    /// The message, with the keys under `table` (`line[0].`, or none): the other key
+    /// named with its section.
+    pub(crate) fn message(&self, table: &str) -> String {
+        let (section, name) = (self.other.section, self.other.name);
+        let other = format!("{table}{section}.{name}");
         match &self.clash {
             Clash::Exceeds { value, limit, why } => {
-                format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
+                format!("must not exceed {other} ({limit}), got {value}: {why}")
             }
-            Clash::Excludes(why) => format!("cannot go with {prefix}{other}{why}"),
+            Clash::Excludes(why) => format!("cannot go with {other}{why}"),
         }
     }
 }
@@ -586,6 +588,30 @@ impl Config {
         exceeds
             .or_else(|| self.direction_conflict())
             .or_else(|| self.flow_conflict())
+            .or_else(|| self.guard_conflict())
+    }
+
+    /// `relay.timeout_guard_ms = 0` on an RTU or ASCII line. A device that drops the
+    /// requests it gets while busy answers a request that timed out late, in the
+    /// window of the next one, which it never read; nothing in an RTU or ASCII frame
+    /// tells that late answer from the next request's: only the guard, the quiet after
+    /// a timeout, keeps it off (docs/reliability.md "RTU and ASCII", 3). A device that
+    /// answers what it holds in order needs no guard (each request that timed out is
+    /// owed, and its late answer pays it); 0 would turn the defence against the other
+    /// kind off.
+    fn guard_conflict(&self) -> Option<Conflict> {
+        let line = &self.lines[0];
+        let serial = matches!(line.serial.framing, Framing::Rtu | Framing::Ascii);
+        (serial && line.relay.timeout_guard_ms == 0).then(|| Conflict {
+            key: key("relay", "timeout_guard_ms"),
+            other: key("serial", "framing"),
+            clash: Clash::Excludes(format!(
+                " = {:?}: a late answer from a device that dropped the next request while \
+                 busy is kept off that request only by the guard; set 1 or more (100 by \
+                 default)",
+                line.serial.framing.name()
+            )),
+        })
     }
 
     /// XON/XOFF flow control on a binary framing: on RTU and MBAP lines any byte of a

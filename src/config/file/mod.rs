@@ -433,12 +433,11 @@ impl FileReader<'_> {
         let Some(c) = cfg.conflict() else {
             return Ok(());
         };
-        let prefix = format!("{table}{}.", c.key.section);
-        let key = format!("{prefix}{}", c.key.name);
-        let other = format!("{prefix}{}", c.other.name);
+        let key = format!("{table}{}.{}", c.key.section, c.key.name);
+        let other = format!("{table}{}.{}", c.other.section, c.other.name);
         // One of them is in the file: the defaults never contradict each other.
         let at = self.at.get(&key).or(self.at.get(&other)).copied();
-        self.fail(at.unwrap_or(0), &key, c.message(&prefix))
+        self.fail(at.unwrap_or(0), &key, c.message(table))
     }
 }
 
