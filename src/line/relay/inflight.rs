@@ -672,7 +672,7 @@ mod tests {
         fn a_learned_timeout_keeps_the_guard_after_its_ceiling(
             floor_ms in 1u64..200,
             above_ms in 0u64..2000,
-            guard_ms in 0u64..500,
+            guard_ms in 1u64..500,
             pause_ms in 0u64..300,
             reply_ms in 1u64..1000,
             replies in 0usize..40,
