@@ -21,7 +21,7 @@ again, a pipelined one too).
 Each answer that is not a right value, and the first right one after any that was
 not (with --all, every answer), goes to FILE (an answer that comes after its request was counted lost is "late") as a JSON line {"t": sent, "at": answered (time.monotonic(),
 CLOCK_MONOTONIC), "m": master, "kind": "x0a"|"x0b"|"wrong"|"lost"|"closed"|"ok"};
-at the end (SIGTERM or SIGINT) a last line {"summary": {...counts by kind, "max_s":
+at the end (SIGTERM or SIGINT: no new request, those on their way awaited up to 2 s) a last line {"summary": {...counts by kind, "max_s":
 the longest answer}}. Prints READY once every master has connected.
 """
 
@@ -207,6 +207,11 @@ async def pipelined_connection(a, name, rnd, rec, stop, reader, writer) -> None:
                 room.release()
         await asyncio.sleep(0.05)
     sender.cancel()
+    # Stopped: what is on its way is awaited up to 2 s (the caller's grace before a
+    # kill is 3 s); a request sent just before the stop is not lost for being cut off.
+    end = time.monotonic() + min(a.timeout, 2.0)
+    while waiting and not receiver.done() and time.monotonic() < end:
+        await asyncio.sleep(0.01)
     receiver.cancel()
     writer.close()
     for sent, _ in waiting.values():
