@@ -9,7 +9,7 @@ use crate::line::relay::{Relay, RelayHandle};
 use crate::masters::router::Router;
 use crate::masters::tcp::{self, Socket};
 use crate::masters::tls::server::Acceptor;
-use crate::ops::metrics::{self, Board, ListenerMetrics};
+use crate::ops::metrics::{self, Board, ListenerMetrics, ListenerTransport};
 use crate::ops::notify;
 use crate::ops::reload;
 use crate::ops::stats::Stats;
@@ -42,6 +42,9 @@ pub enum GatewayError {
     /// A master line could not start (a passive route's address).
     #[error("{0}")]
     MasterLine(#[from] crate::line::bridge::BridgeError),
+    /// The metrics listener's web configuration file could not be used.
+    #[error("{0}")]
+    Web(#[from] crate::ops::metrics::web::WebConfigError),
     /// `metrics.listen` could not be bound.
     #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
     MetricsBind {
@@ -93,8 +96,9 @@ pub async fn run_reloading(
 /// Binds every listener's address, in the order of the configuration (see
 /// [`tcp::listen`]).
 pub(crate) async fn bind(cfg: &Config) -> Result<Vec<Socket>, GatewayError> {
-    if !cfg.serves_masters() {
-        // Every line's device is a master: nothing for a Modbus/TCP master to reach.
+    if !cfg.listens() {
+        // Every line's device is a master: nothing for a Modbus/TCP master to reach;
+        // or the file only dials its masters: no port is opened for them.
         return Ok(Vec::new());
     }
     let max_pending = cfg.max_pending_per_connection();
@@ -209,21 +213,26 @@ async fn start(
     };
     // Before the lines: the always-on ring has their first frames.
     let capture = crate::ops::capture::Capture::start(&cfg);
-    crate::ops::control::start(&cfg, capture.hub(), reload_handle, shutdown);
+    let board = Arc::new(Board::default());
+    crate::ops::control::start(&cfg, capture.hub(), reload_handle, board.clone(), shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
-    let board = Arc::new(Board::default());
     let _ = board.capture.set(capture.hub().clone());
     board.reloads.started(std::time::SystemTime::now());
     let lines = start_lines(&cfg, &capture, &board, shutdown).await?;
     // Each listener's counters (connections, refusals, requests it answered itself);
     // each line keeps its own (its metrics are per line), and the totals add them up.
     let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
-    for ((_, l), stats) in bound.iter().zip(&listener_stats) {
-        board.add_listener(Arc::new(ListenerMetrics {
+    for ((socket, l), stats) in bound.iter().zip(&listener_stats) {
+        let transport = match socket {
+            Socket::Tcp(_) => ListenerTransport::Tcp,
+            Socket::Udp(_) => ListenerTransport::Udp,
+        };
+        let metrics = Arc::new(ListenerMetrics {
             name: l.local.to_string(),
             stats: stats.clone(),
-        }));
+        });
+        board.add_listener_on(metrics, transport);
     }
     let mut counted = listener_stats.clone();
     counted.extend(lines.stats);
@@ -241,6 +250,7 @@ async fn start(
         ids: Arc::new(AtomicU64::new(0)),
         masters: board.masters.clone(),
         capture: capture.hub().clone(),
+        unasked: Arc::default(),
     };
     let tally = Arc::new(tcp::tally::SourceTally::new(board.clone()));
     let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
@@ -388,8 +398,12 @@ fn start_metrics(
     board: &Arc<Board>,
     shutdown: &CancellationToken,
 ) -> Result<crate::ops::metrics::listener::MetricsListener, GatewayError> {
-    let mut http =
-        crate::ops::metrics::listener::MetricsListener::new(board.clone(), shutdown.clone());
+    let access = crate::ops::metrics::web::WebAccess::load(&cfg.metrics.web_config)?;
+    let mut http = crate::ops::metrics::listener::MetricsListener::new(
+        board.clone(),
+        access,
+        shutdown.clone(),
+    );
     if let Some(addr) = cfg.metrics.listen {
         let listener =
             metrics::http::bind(addr).map_err(|error| GatewayError::MetricsBind { addr, error })?;
@@ -430,6 +444,9 @@ fn announce(cfg: &Config, bound: &[Bound]) {
         for said in crate::config::effective_access(&l.listen, &cfg.roles) {
             info!("{}: {said}", l.name);
         }
+    }
+    if cfg.dial_only {
+        info!("no listener: the file only dials its masters and opens no port");
     }
     for (i, d) in cfg.dials.iter().enumerate() {
         info!("dial[{i}]: {}", crate::config::describe::dial(d));

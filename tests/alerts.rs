@@ -174,10 +174,12 @@ struct Cabinet {
     gw: Option<common::Gateway>,
     _master: common::Py,
     metrics: String,
+    /// Its web configuration file (`metrics.web_config`), if any.
+    web: Option<std::path::PathBuf>,
 }
 
 impl Cabinet {
-    fn start() -> Cabinet {
+    fn start(web: Option<std::path::PathBuf>) -> Cabinet {
         let dir = common::tempdir();
         let socat = common::Socat::start(dir.path());
         let (listen, metrics) = (common::free_port(), common::free_port());
@@ -199,6 +201,7 @@ impl Cabinet {
             metrics,
             socat,
             dir,
+            web,
         };
         std::fs::write(c.dir.path().join("listen"), listen.to_string()).unwrap();
         c.start_device();
@@ -218,6 +221,9 @@ impl Cabinet {
     /// death and return show within seconds (the rules' `for:` is shortened too).
     fn start_gateway(&mut self) {
         let listen = std::fs::read_to_string(self.dir.path().join("listen")).unwrap();
+        let web = self.web.as_ref().map_or_else(String::new, |w| {
+            format!("web_config = {:?}", w.display().to_string())
+        });
         let text = common::Cfg::new(&self.socat.gw)
             .pty_line()
             .serial("framing = \"rtu\"")
@@ -227,6 +233,7 @@ impl Cabinet {
             .relay("unit_backoff_max_ms = 600")
             .log_level("info")
             .metrics(&format!("listen = \"{}\"", self.metrics))
+            .metrics(&web)
             .render()
             .replace(
                 "listen = \"127.0.0.1:0\"",
@@ -256,8 +263,89 @@ struct Prometheus {
     _dir: tempfile::TempDir,
 }
 
+/// Two gateways behind TLS and a password, as docs/watching.md "Behind TLS and a
+/// password" makes them: a CA and the gateways' certificate (openssl), a client
+/// certificate for Prometheus, a user whose hash `mbgate hash-password` made, and two
+/// web configuration files: A's asks for a client certificate, B's does not.
+struct Behind {
+    dir: tempfile::TempDir,
+    pki: common::pki::Pki,
+}
+
+impl Behind {
+    fn new() -> Behind {
+        let dir = common::tempdir();
+        let pki = common::pki::Pki::new(&dir.path().join("pki"));
+        pki.master("prometheus", "ca", None, 30);
+        let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
+            .args(["hash-password", "--user", "prometheus"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        use std::io::Write;
+        writeln!(child.stdin.take().unwrap(), "scrape it").unwrap();
+        let user = String::from_utf8(child.wait_with_output().unwrap().stdout).unwrap();
+        let tls = format!(
+            "tls_server_config:\n  cert_file: {}\n  key_file: {}\n",
+            pki.pem("gateway"),
+            pki.key("gateway")
+        );
+        let required = format!(
+            "  client_auth_type: RequireAndVerifyClientCert\n  client_ca_file: {}\n",
+            pki.pem("ca")
+        );
+        let a = format!("{tls}{required}basic_auth_users:\n  {user}");
+        let b = format!("{tls}basic_auth_users:\n  {user}");
+        std::fs::write(dir.path().join("web-a.yml"), a).unwrap();
+        std::fs::write(dir.path().join("web-b.yml"), b).unwrap();
+        std::fs::write(dir.path().join("password"), "scrape it\n").unwrap();
+        std::fs::write(dir.path().join("wrong"), "scrape it not\n").unwrap();
+        Behind { dir, pki }
+    }
+
+    fn web(&self, which: &str) -> std::path::PathBuf {
+        self.dir.path().join(format!("web-{which}.yml"))
+    }
+
+    /// The shipped scrape config's lines for https, uncommented and given this
+    /// folder's files: the password file `password`.
+    fn lines(&self, head: &str, password: &str) -> String {
+        let mut out = String::new();
+        let mut on = false;
+        for line in head.lines() {
+            on = on || line.trim() == "# scheme: https";
+            let line = match line.strip_prefix("    # ") {
+                Some(rest) if on => format!("    {rest}"),
+                _ => line.to_owned(),
+            };
+            let line = line
+                .replace("/etc/prometheus/mbgate-ca.pem", &self.pki.pem("ca"))
+                .replace(
+                    "/etc/prometheus/mbgate-client.pem",
+                    &self.pki.pem("prometheus"),
+                )
+                .replace(
+                    "/etc/prometheus/mbgate-client.key",
+                    &self.pki.key("prometheus"),
+                )
+                .replace(
+                    "/etc/prometheus/mbgate.password",
+                    &self.dir.path().join(password).display().to_string(),
+                );
+            out += &line;
+            out.push('\n');
+        }
+        out
+    }
+}
+
 impl Prometheus {
-    fn start(targets: &[(&str, &str, &str)]) -> Prometheus {
+    /// A Prometheus from the Debian package scraping `targets` (address, site,
+    /// bus), the gateways behind `behind`'s TLS and user (the
+    /// shipped config's lines for it uncommented), and a job `wrong-password` that
+    /// scrapes the first gateway with a wrong password.
+    fn start(targets: &[(&str, &str, &str)], behind: Option<&Behind>) -> Prometheus {
         let dir = common::tempdir();
         // The shipped scrape config, its targets ours, scraped and evaluated every
         // second.
@@ -275,13 +363,30 @@ impl Prometheus {
             );
         }
         assert!(head.contains("scrape_interval: 15s"), "{head}");
-        let config = "global:\n  evaluation_interval: 1s\n".to_owned()
-            + &head.replace(
+        let quick = |head: &str| {
+            head.replace(
                 "scrape_interval: 15s",
                 "scrape_interval: 1s\n    scrape_timeout: 1s",
             )
-            + &statics
-            + tail;
+        };
+        let shipped = head;
+        let head = match behind {
+            Some(b) => b.lines(shipped, "password"),
+            None => shipped.to_owned(),
+        };
+        let mut config =
+            "global:\n  evaluation_interval: 1s\n".to_owned() + &quick(&head) + &statics + tail;
+        if let Some(b) = behind {
+            // The same job with the wrong password, on the first gateway: a job the
+            // rules do not watch (its name does not start with mbgate).
+            let job = &shipped[shipped.find("  - job_name: mbgate").unwrap()..];
+            let job = b.lines(job, "wrong");
+            config += &quick(&job).replace("job_name: mbgate", "job_name: wrong-password");
+            config += &format!(
+                "    static_configs:\n      - targets: [\"{}\"]\n",
+                targets[0].0
+            );
+        }
         std::fs::write(dir.path().join("prometheus.yml"), config).unwrap();
         std::fs::write(dir.path().join("mbgate-alerts.yml"), quick_rules()).unwrap();
         let addr = format!("127.0.0.1:{}", common::free_port());
@@ -356,7 +461,8 @@ impl Prometheus {
 
     /// Whether every target is up now.
     fn all_up(&self, n: usize) -> bool {
-        let Some(body) = self.get("/api/v1/query?query=up") else {
+        let query = url_encoded("up{job=~\"mbgate.*\"}");
+        let Some(body) = self.get(&format!("/api/v1/query?query={query}")) else {
             return false;
         };
         let v: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
@@ -452,8 +558,10 @@ fn wait_for_alerts(
 }
 
 /// The whole chain, live: two gateways, each with a pymodbus device on a socat pty
-/// and a pymodbus master polling it, scraped by a real Prometheus with the shipped
-/// config and rules (quickened); one device killed, then one gateway's port, then a
+/// and a pymodbus master polling it, each behind TLS and a password (A asking for a
+/// client certificate too), scraped over https by a real Prometheus with the shipped
+/// config (its lines for https uncommented) and rules (quickened), and by a job with a
+/// wrong password, which is down and says why; one device killed, then one gateway's port, then a
 /// whole gateway: Prometheus' API says exactly the expected alert fires, for the
 /// right gateway, line and unit, and that it resolves once the fault is undone.
 /// About two minutes: MBGATE_LONG=1.
@@ -466,14 +574,16 @@ fn live_prometheus_fires_exactly_the_expected_alerts_and_resolves_them() {
     if !peer("prometheus", "prometheus") || !peer("socat", "socat") {
         return;
     }
-    let mut a = Cabinet::start();
-    let mut b = Cabinet::start();
+    // Both gateways behind TLS and a password, A asking for a client certificate too.
+    let behind = Behind::new();
+    let mut a = Cabinet::start(Some(behind.web("a")));
+    let mut b = Cabinet::start(Some(behind.web("b")));
     let (ia, ib) = (a.metrics.clone(), b.metrics.clone());
     let sites = [
         (ia.as_str(), "plant-a", "hall-1"),
         (ib.as_str(), "plant-a", "hall-2"),
     ];
-    let prom = Prometheus::start(&sites);
+    let prom = Prometheus::start(&sites, Some(&behind));
     let logs =
         |a: &Cabinet, b: &Cabinet| format!("gateway A:\n{}\ngateway B:\n{}", a.log(), b.log());
     common::wait_for(
@@ -496,6 +606,13 @@ fn live_prometheus_fires_exactly_the_expected_alerts_and_resolves_them() {
     wait_for_alerts(&prom, &[], &sites, "all well", &|| logs(&a, &b));
 
     dashboard_queries_answer(&prom, &ia);
+    wrong_password_is_down_and_says_why(&prom, &ia);
+    assert!(
+        a.log()
+            .contains("login from 127.0.0.1 refused: wrong user or password"),
+        "{}",
+        a.log()
+    );
 
     // Gateway A's device dies: its unit 1 is not answering, and nothing else.
     a.device = None;
@@ -521,6 +638,50 @@ fn live_prometheus_fires_exactly_the_expected_alerts_and_resolves_them() {
     wait_for_alerts(&prom, &want, &sites, "A down", &|| logs(&a, &b));
     a.start_gateway();
     wait_for_alerts(&prom, &[], &sites, "A back", &|| logs(&a, &b));
+}
+
+/// The job with the wrong password: its target is down, and Prometheus' scrape error
+/// says the gateway answered 401 (or 429, the source past its budget of checks).
+fn wrong_password_is_down_and_says_why(prom: &Prometheus, instance: &str) {
+    let start = std::time::Instant::now();
+    let down = || -> (bool, String) {
+        let body = prom.get("/api/v1/targets").unwrap_or_default();
+        let v: serde_json::Value = serde_json::from_str(&body).unwrap_or_default();
+        let targets = v["data"]["activeTargets"]
+            .as_array()
+            .cloned()
+            .unwrap_or_default();
+        let wrong = targets
+            .iter()
+            .find(|t| t["labels"]["job"] == "wrong-password");
+        let said = format!("{wrong:?}");
+        let down = wrong.is_some_and(|t| {
+            t["health"] == "down"
+                && t["labels"]["instance"] == instance
+                && t["lastError"].as_str().is_some_and(|e| {
+                    // 401; or, scraped every second here, past the source's five
+                    // checks and one every 5 s, 429 (every 15 s it stays 401).
+                    e.contains("server returned HTTP status 401 Unauthorized")
+                        || e.contains("server returned HTTP status 429 Too Many Requests")
+                })
+        });
+        (down, said)
+    };
+    loop {
+        let (down, said) = down();
+        if down {
+            eprintln!("wrong password: {said}");
+            break;
+        }
+        assert!(
+            start.elapsed() < std::time::Duration::from_secs(30),
+            "the wrong password's target down, with its error: {said}"
+        );
+        std::thread::sleep(std::time::Duration::from_millis(250));
+    }
+    let query = url_encoded("up{job=\"wrong-password\"}");
+    let body = prom.get(&format!("/api/v1/query?query={query}")).unwrap();
+    assert!(body.contains("\"0\"]"), "{body}");
 }
 
 /// Every query of the Grafana dashboard (docs/grafana-dashboard.json), its variables

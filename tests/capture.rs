@@ -585,7 +585,7 @@ fn the_control_socket_refuses_strangers_and_a_bad_request_closes_only_its_client
     // Malformed requests: an error and the end of that client, nothing more.
     for bad in [
         &b"capture unit=300\n"[..],
-        b"status\n",
+        b"stats\n",
         b"capture line=9\n",
         &[0xFF; 5000],
     ] {
@@ -1221,5 +1221,118 @@ fn ascii_frames_decode_as_rtu_with_their_text_in_the_comment() {
     assert_eq!(rows[1][4], "ASCII on the wire: :010302000AF0\\r\\n");
     stop.store(true, std::sync::atomic::Ordering::Relaxed);
     let _ = device.join();
+    gw.terminate(Duration::from_secs(10));
+}
+
+/// A capture stopped by Ctrl-C the moment traffic ends keeps all of it: 60 reads
+/// through an MBAP line make 240 packets (each request and reply on the TCP side and
+/// on the line, every one handed to the capture before the master reads its reply),
+/// and SIGINT comes as soon as the last reply is read. The file holds the 240, read
+/// back by tshark and by the project's reader, and the summary says so: five times
+/// over, since where a packet waits when the stop comes is a matter of timing.
+#[test]
+fn a_capture_stopped_by_ctrl_c_right_after_traffic_keeps_its_tail() {
+    if !peer("tshark", "tshark") {
+        return;
+    }
+    let dir = tempdir();
+    std::fs::set_permissions(dir.path(), std::fs::Permissions::from_mode(0o755)).unwrap();
+    let lines = session_lines(dir.path());
+    let (mut gw, addrs) = session_gateway(dir.path(), &lines.a, &lines.b, "");
+    let sock = dir.path().join("control.sock");
+    let mut m = master_from("127.0.0.1:0", addrs[0]);
+    for round in 0..5u16 {
+        let file = dir.path().join(format!("tail-{round}.pcapng"));
+        let mut cap = capture(&[
+            "capture",
+            "--socket",
+            sock.to_str().unwrap(),
+            "-o",
+            file.to_str().unwrap(),
+        ]);
+        for i in 0..60u16 {
+            let tid = round * 100 + i;
+            assert_eq!(
+                transact(&mut m, &read_req(tid, 2, i, 1)),
+                read_reply(tid, 2, &[i])
+            );
+        }
+        let st = cap.stop_with("INT", Duration::from_secs(10));
+        assert!(st.success(), "{}", cap.log());
+        assert!(
+            cap.log().contains("240 packets to ") && cap.log().contains("none dropped (stopped)"),
+            "round {round}: {}",
+            cap.log()
+        );
+        let bytes = std::fs::read(&file).unwrap();
+        let read = mbgate::ops::capture::pcapng_read::read(&bytes).unwrap();
+        assert_eq!(read.damage, None, "round {round}");
+        assert_eq!(read.packets.len(), 240, "round {round}");
+        let rows = tshark(&file, &["mbtcp.trans_id"]);
+        assert_eq!(rows.len(), 240, "round {round}");
+        // The last reply to the master is the file's last packet of the TCP side.
+        let last = (round * 100 + 59).to_string();
+        assert!(
+            rows.iter().filter(|r| r[0] == last).count() >= 2,
+            "round {round}"
+        );
+    }
+    gw.terminate(Duration::from_secs(10));
+}
+
+/// The control socket's slots, each at its bound: eight captures run and a ninth is
+/// told so; sixteen clients may wait for their request to be read and the
+/// seventeenth is told so; thirty-two at most are being told they were refused, and
+/// past them a client is closed at once, unanswered, so no number of connections
+/// makes the gateway hold more. The waiting clients' slots come back after their 2 s.
+#[test]
+fn the_control_socket_s_slots_hold_their_bounds() {
+    let dir = tempdir();
+    let lines = session_lines(dir.path());
+    let (mut gw, _) = session_gateway(dir.path(), &lines.a, &lines.b, "");
+    let socket = dir.path().join("control.sock");
+    let sock = socket.to_str().unwrap();
+    let answer = |mut c: std::os::unix::net::UnixStream| {
+        let mut text = String::new();
+        let _ = c.read_to_string(&mut text);
+        text
+    };
+
+    let captures: Vec<_> = (0..8)
+        .map(|_| {
+            let mut c = control_client(&socket, b"capture\n");
+            let mut ok = [0u8; 3];
+            c.read_exact(&mut ok).unwrap();
+            assert_eq!(&ok, b"ok\n");
+            c
+        })
+        .collect();
+    assert_eq!(
+        answer(control_client(&socket, b"capture\n")),
+        "error: 8 captures are running already\n"
+    );
+
+    // Sixteen clients that say nothing hold every waiting slot for their 2 s.
+    let waiting: Vec<_> = (0..16).map(|_| control_client(&socket, b"")).collect();
+    let busy = "error: 16 clients are waiting to be served already\n";
+    // Forty more at once, saying nothing: each refusal waits 0.5 s for what the
+    // client sends, so all forty come while thirty-two are being told.
+    let more: Vec<_> = (0..40).map(|_| control_client(&socket, b"")).collect();
+    let answers: Vec<String> = more.into_iter().map(answer).collect();
+    let told = answers.iter().filter(|a| *a == busy).count();
+    let unanswered = answers.iter().filter(|a| a.is_empty()).count();
+    assert_eq!(told + unanswered, 40, "{answers:?}");
+    assert!(
+        (32..40).contains(&told),
+        "{told} told, {unanswered} closed unanswered"
+    );
+
+    // The waiting clients are closed after their 2 s, and their slots given back.
+    for c in waiting {
+        assert!(answer(c).contains("no request within 2 s"));
+    }
+    let run = mbgate(&["reload", "--socket", sock]);
+    assert_eq!(run.code, 0, "{}{}", run.stdout, run.stderr);
+    drop(captures);
     gw.terminate(Duration::from_secs(10));
 }

@@ -625,6 +625,7 @@ fn non_default() -> Config {
     };
     c.metrics = MetricsConfig {
         listen: Some("127.0.0.1:9502".parse().unwrap()),
+        web_config: "/etc/mbgate/web.yml".into(),
     };
     c
 }
@@ -1280,4 +1281,65 @@ fn both_forms_read_into_one_shape_and_the_flags_set_the_line() {
     let e = flags.apply(&mut cfg).unwrap_err().to_string();
     assert!(e.contains("[[line]] tables"), "{e}");
     assert_eq!(cfg, parse(&two, F).unwrap(), "left as it was");
+}
+
+/// A configuration path that names something endless (`/dev/zero`) is refused once it
+/// passes the most a configuration holds, with the file named and exit 2, not read
+/// until memory runs out (before: 2.8 GB of RSS in 5 s, and on).
+#[test]
+fn an_endless_file_is_refused_not_read() {
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_mbgate"))
+        .args(["check-config", "/dev/zero"])
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "{err}");
+    assert!(
+        err.contains("/dev/zero: cannot read the configuration file: larger than 1048576 bytes"),
+        "{err}"
+    );
+}
+
+/// `relay.timeout_guard_ms = 0` is refused on an RTU or ASCII line, naming the file,
+/// the line, the key and why (a device that drops requests while busy has its late
+/// answer kept off the next request by the guard alone), in either form of the file
+/// and as a flag; an MBAP line takes it (a late answer is known by its id there)
+/// (docs/reliability.md "RTU and ASCII", 3).
+#[test]
+fn no_guard_is_refused_on_rtu_and_ascii_lines() {
+    let why = "a late answer from a device that dropped the next request while busy is \
+               kept off that request only by the guard; set 1 or more (100 by default)";
+    for framing in ["rtu", "ascii"] {
+        let tables = format!(
+            "[[line]]\nserial = {{ path = \"/dev/ttyUSB0\", framing = \"{framing}\" }}\n\
+             relay = {{ timeout_guard_ms = 0 }}\n"
+        );
+        let want = format!(
+            "{F}:3:30: line[0].relay.timeout_guard_ms: cannot go with \
+             line[0].serial.framing = \"{framing}\": {why}"
+        );
+        assert_eq!(err(&tables), want);
+        let single = format!(
+            "[serial]\npath = \"/dev/ttyUSB0\"\nframing = \"{framing}\"\n\
+             [relay]\ntimeout_guard_ms = 0\n"
+        );
+        let want = format!(
+            "{F}:5:20: relay.timeout_guard_ms: cannot go with serial.framing = \
+             \"{framing}\": {why}"
+        );
+        assert_eq!(err(&single), want);
+        let mut cfg = parse(&single.replace("timeout_guard_ms = 0", ""), F).unwrap();
+        let flags = cli(&["--timeout-guard-ms", "0"]).unwrap();
+        let e = flags.apply(&mut cfg).unwrap_err().to_string();
+        assert!(
+            e.contains(&format!(
+                "--timeout-guard-ms: relay.timeout_guard_ms cannot go with serial.framing = \
+                 \"{framing}\""
+            )),
+            "{e}"
+        );
+    }
+    let mbap =
+        "[serial]\npath = \"/dev/ttyUSB0\"\nframing = \"mbap\"\n[relay]\ntimeout_guard_ms = 0\n";
+    assert_eq!(parse(mbap, F).unwrap().lines[0].relay.timeout_guard_ms, 0);
 }

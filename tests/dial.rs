@@ -114,7 +114,7 @@ fn echoes_of_the_identity_and_the_heartbeat_are_not_requests() {
     let log = gw.log();
     assert!(!log.contains("protocol violation"), "{log}");
     assert!(
-        log.contains("the server echoed a heartbeat or the identity"),
+        log.contains("the server echoed the identity or a heartbeat"),
         "{log}"
     );
     let counters = gw.stop();
@@ -175,8 +175,10 @@ fn udp_masters(args: &[&str]) -> (Bench, Gateway, String) {
     (b, gw, out)
 }
 
-/// The UDP listener's address, as the log says it.
+/// The UDP listener's address, as the log says it (a line after the one the launch
+/// waited for: waited for too).
 fn udp_addr(gw: &Gateway) -> std::net::SocketAddr {
+    gw.wait_log("for Modbus/UDP masters", Duration::from_secs(10));
     let log = gw.log();
     log.lines()
         .find(|l| l.contains("for Modbus/UDP masters"))
@@ -459,7 +461,8 @@ fn restarts(n: usize, args: &[&str]) -> Restarted {
     let (fds_before, mem_before) = (fds(&gw), mem(&gw));
     // The dialed master on the metrics as a listener's, beside the accepted one.
     let metrics = gw.http_get("/metrics");
-    let dialed = format!("mbgate_listener_masters{{listener=\"dial {listen}\"}} 1");
+    let dialed =
+        format!("mbgate_listener_masters{{listener=\"dial {listen}\",transport=\"tcp\"}} 1");
     assert!(metrics.contains(&dialed), "{metrics}");
     assert_eq!(gw.metric("mbgate_listener_masters"), 2.0, "{metrics}");
     server.go_on();
@@ -591,25 +594,6 @@ fn a_dial_speaks_rtu_over_tcp() {
     assert_eq!(counters["protocol_violations"], 0, "{counters:?}");
 }
 
-/// One datagram to `to` from a socket connected to it, and its reply; `Err` when
-/// nobody listens there (the ICMP port unreachable the kernel turns into
-/// ConnectionRefused).
-fn udp_transact(to: &str, req: &[u8]) -> std::io::Result<Vec<u8>> {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
-    s.connect(to)?;
-    s.set_read_timeout(Some(Duration::from_secs(10)))?;
-    s.send(req)?;
-    let mut buf = [0u8; 300];
-    let n = s.recv(&mut buf)?;
-    Ok(buf[..n].to_vec())
-}
-
-/// A port no UDP socket holds now.
-fn free_udp_port() -> u16 {
-    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
-    s.local_addr().unwrap().port()
-}
-
 /// A reload changes a UDP listener (now read only), adds one and then removes one;
 /// the TCP listener is untouched throughout (its master keeps its connection).
 #[test]
@@ -689,86 +673,151 @@ fn a_reload_adds_changes_and_removes_udp_listeners() {
     );
 }
 
-/// A UDP listener keeps `max_connections` sources at once: while two are known a
-/// third source's datagrams are dropped and counted, unanswered; the source that goes
-/// quiet is forgotten once it has been so for `idle_timeout_ms`, and the third takes
-/// its place, while the one that keeps talking is kept and answered throughout.
+/// The sockets `pid` listens on (TCP, IPv4 and IPv6): its socket inodes found in
+/// /proc/net/tcp and tcp6 in the LISTEN state, as `ADDR:PORT` in the kernel's hex.
+fn listening(pid: u32) -> Vec<String> {
+    let inodes: Vec<String> = std::fs::read_dir(format!("/proc/{pid}/fd"))
+        .unwrap()
+        .filter_map(|e| std::fs::read_link(e.ok()?.path()).ok())
+        .filter_map(|l| {
+            let l = l.to_string_lossy().into_owned();
+            Some(l.strip_prefix("socket:[")?.strip_suffix(']')?.to_owned())
+        })
+        .collect();
+    let mut out = Vec::new();
+    for table in ["/proc/net/tcp", "/proc/net/tcp6"] {
+        let text = std::fs::read_to_string(table).unwrap_or_default();
+        for row in text.lines().skip(1) {
+            let f: Vec<&str> = row.split_whitespace().collect();
+            // local_address, state (0A: LISTEN), inode.
+            if f.len() > 9 && f[3] == "0A" && inodes.iter().any(|i| i == f[9]) {
+                out.push(f[1].to_owned());
+            }
+        }
+    }
+    out
+}
+
+/// A file of `[[line]]` and `[[dial]]` alone (docs/dialing.md's Raspberry Pi) opens
+/// no port: `check-config` says so, and the running gateway listens on nothing
+/// (before: 0.0.0.0:502, read and write for anyone). `--listen` opens one; the
+/// listener's other flags alone are refused, naming what to give.
 #[test]
-fn a_quiet_udp_source_is_forgotten_and_its_place_taken() {
-    use std::net::UdpSocket;
-    use std::time::Instant;
-    const IDLE: Duration = Duration::from_millis(1500);
+fn a_file_that_only_dials_opens_no_port() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let file = dir.path().join("mbgate.toml");
+    std::fs::write(
+        &file,
+        format!(
+            "[[line]]\nserial = {{ path = {:?}, framing = \"rtu\", flow_control = \"none\" }}\n\n\
+             [[dial]]\naddress = \"127.0.0.1:{}\"\nheartbeat = \"hex:ff fe 00 01\"\n\
+             [log]\nlevel = \"debug\"\n",
+            socat.gw.to_str().unwrap(),
+            free_port()
+        ),
+    )
+    .unwrap();
+    let path = file.to_str().unwrap();
+    let checked = mbgate(&["check-config", path]);
+    assert_eq!(checked.code, 0, "{}", checked.stderr);
+    assert!(
+        checked.stdout.contains(
+            "no listener: the file only dials its masters and opens no port (add [[listen]]"
+        ) && !checked.stdout.contains("listening on"),
+        "{}",
+        checked.stdout
+    );
+    let refused = mbgate(&["check-config", path, "--max-connections", "5"]);
+    assert_ne!(refused.code, 0);
+    assert!(refused.stderr.contains("--max-connections: the file only dials its masters and opens no listener: give --listen ADDR too"), "{}", refused.stderr);
+    let opened = mbgate(&["check-config", path, "--listen", "127.0.0.1:0"]);
+    assert!(
+        opened
+            .stdout
+            .contains("listening on 127.0.0.1:0 for Modbus/TCP masters"),
+        "{}",
+        opened.stdout
+    );
+    // Nobody else listens on 502 here (else the connect below proves nothing of ours).
+    let others = std::net::TcpStream::connect("127.0.0.1:502").is_ok();
+    let mut gw = Proc::start(&["run", "--config", path], "dial[0]: dialing");
+    assert!(
+        gw.log()
+            .contains("no listener: the file only dials its masters and opens no port"),
+        "{}",
+        gw.log()
+    );
+    assert_eq!(listening(gw.pid()), Vec::<String>::new(), "{}", gw.log());
+    if !others {
+        assert!(std::net::TcpStream::connect("127.0.0.1:502").is_err());
+    }
+    assert!(!gw.log().contains("listening on"), "{}", gw.log());
+    assert!(gw.terminate(Duration::from_secs(10)).success());
+    // With --listen, the one named.
+    let mut gw = Proc::start(
+        &["run", "--config", path, "--listen", "127.0.0.1:0"],
+        "listening on 127.0.0.1:",
+    );
+    assert_eq!(listening(gw.pid()).len(), 1, "{}", gw.log());
+    assert!(gw.terminate(Duration::from_secs(10)).success());
+}
+
+/// A server whose certificate chains to the dial's CA but carries no role, on a dial
+/// with no `tls.default_role`: refused after the handshake, counted, and the log says
+/// it in a dial's words (before: "the listener has no default_role").
+#[test]
+fn a_tls_dial_refuses_a_server_without_a_role_in_its_own_words() {
+    if !peer("openssl", "openssl") {
+        return;
+    }
     let b = bench();
-    let text = format!(
-        "{}[[listen]]\naddress = \"127.0.0.1:0\"\ntransport = \"udp\"\n\
-         max_connections = 2\nidle_timeout_ms = {}\n",
-        b.cfg,
-        IDLE.as_millis()
+    let pki = common::pki::Pki::new(&b.dir.path().join("pki"));
+    pki.sign(
+        "norole",
+        "ca",
+        "/CN=scada",
+        "subjectAltName=IP:127.0.0.1,DNS:localhost\n",
+        30,
     );
-    let mut gw = Gateway::launch_text(&text, b.dir.path(), Launch::default());
-    let to = udp_addr(&gw);
-    let mut m = gw.connect();
-    transact(&mut m, &write_req(1, 1, 150, &[42]));
-    let source = || {
-        let s = UdpSocket::bind("127.0.0.1:0").unwrap();
-        s.connect(to).unwrap();
-        s.set_read_timeout(Some(Duration::from_millis(500)))
-            .unwrap();
-        s
-    };
-    // A read, and its reply if one comes within the socket's timeout (late replies
-    // to earlier tries are passed over by their id).
-    let ask = |s: &UdpSocket, tid: u16| -> Option<Vec<u8>> {
-        s.send(&read_req(tid, 1, 150, 1)).unwrap();
-        let mut buf = [0u8; 300];
-        loop {
-            let n = s.recv(&mut buf).ok()?;
-            if buf[..2] == tid.to_be_bytes() {
-                return Some(buf[..n].to_vec());
-            }
-        }
-    };
-    let (talker, quiet, third) = (source(), source(), source());
-    assert_eq!(ask(&talker, 1), Some(read_reply(1, 1, &[42])));
-    assert_eq!(ask(&quiet, 2), Some(read_reply(2, 1, &[42])));
-    let quiet_since = Instant::now();
-    let mut tid = 3;
-    let mut refused = 0;
-    let taken_at = loop {
-        assert!(
-            quiet_since.elapsed() < Duration::from_secs(20),
-            "the quiet source was never forgotten:\n{}",
-            gw.log()
-        );
-        tid += 1;
-        assert_eq!(
-            ask(&talker, tid),
-            Some(read_reply(tid, 1, &[42])),
-            "the talking source is kept"
-        );
-        tid += 1;
-        match ask(&third, tid) {
-            Some(reply) => {
-                assert_eq!(reply, read_reply(tid, 1, &[42]));
-                break quiet_since.elapsed();
-            }
-            None => refused += 1,
-        }
-        std::thread::sleep(Duration::from_millis(200));
-    };
+    let port = free_port();
+    let tls = format!(
+        "tls = {{ cert = {:?}, key = {:?}, server_ca = {:?} }}\n",
+        pki.pem("gateway"),
+        pki.key("gateway"),
+        pki.pem("ca")
+    );
+    let mut gw = Gateway::launch_text(
+        &format!("{}{}", b.cfg, dial(port, &tls)),
+        b.dir.path(),
+        Launch::default(),
+    );
+    let listen = format!("127.0.0.1:{port}");
+    let cert = format!(
+        "{}:{}:{}",
+        pki.pem("norole"),
+        pki.key("norole"),
+        pki.pem("ca")
+    );
+    let args = [
+        "--listen",
+        &listen,
+        "--identity",
+        "site-17",
+        "--tls",
+        &cert,
+        "--round",
+        "refused",
+    ];
+    let (status, out) = Py::run("dial_server.py", &args);
+    assert!(status.success(), "{out}\n{}", gw.log());
+    gw.wait_log("dial has no tls.default_role", Duration::from_secs(10));
+    let log = gw.log();
     assert!(
-        taken_at >= IDLE,
-        "forgotten after {taken_at:?}, sooner than {IDLE:?}"
+        log.contains("carries no Modbus role and the dial has no tls.default_role"),
+        "{log}"
     );
-    assert!(
-        refused > 0,
-        "the third source was refused while two were known"
-    );
+    assert!(!log.contains("the listener has no default_role"), "{log}");
     let counters = gw.stop();
-    // Every unanswered try of the third's was a datagram dropped (a late reply would
-    // have been one answered, not dropped: at least as many).
-    assert!(
-        counters["datagrams_dropped"] >= 1 && counters["datagrams_dropped"] <= refused,
-        "{refused} refused: {counters:?}"
-    );
+    assert_eq!(counters["tls_refused"], 1, "{counters:?}");
 }

@@ -34,12 +34,14 @@ fn the_example_reads_and_prints_back_the_same() {
                 peer: Peer::Connect("plc.local:502".into()),
                 response_timeout_ms: 1000,
                 max_in_flight: 4,
+                allow: None,
             },
             Route {
                 units: vec![],
                 peer: Peer::Listen("127.0.0.1:5021".parse().unwrap()),
                 response_timeout_ms: 250,
                 max_in_flight: 1,
+                allow: None,
             },
         ],
     };

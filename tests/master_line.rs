@@ -96,6 +96,8 @@ enum Behaviour {
     Hang,
     /// Reads and never answers.
     Silent,
+    /// Writes every request back as it came (a peer that mirrors what it gets).
+    Mirror,
 }
 
 /// A Modbus/TCP slave written here: one connection at a time, every request recorded.
@@ -151,6 +153,11 @@ impl Slave {
                             }
                             Behaviour::Hang => break 'conn,
                             Behaviour::Silent => {}
+                            Behaviour::Mirror => {
+                                if s.write_all(req.as_bytes()).is_err() {
+                                    break 'conn;
+                                }
+                            }
                         }
                     }
                 }
@@ -753,4 +760,139 @@ fn shutdown_answers_the_request_in_flight_first() {
     let status = gw.stop_with("TERM", Duration::from_secs(5));
     assert!(status.success(), "{status:?}:\n{}", gw.log());
     assert!(gw.log().contains("replies=1"), "{}", gw.log());
+}
+
+/// A slave that mirrors every request back: a read's mirror has the request's id and
+/// unit but not a reply's shape, so the serial master never gets its own request as
+/// the answer (before, it got `03 00 07 00 01` back as the reply); it gets 0x0B at the
+/// route's timeout, and the frame is counted as bad.
+#[test]
+fn a_slave_mirroring_requests_never_answers_with_them() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let slave = Slave::start(Behaviour::Mirror);
+    let extra = "response_timeout_ms = 300";
+    let file = config(dir.path(), &socat.gw, "rtu", &[("", slave.port, extra)]);
+    let mut gw = gateway(&file);
+    gw.wait_log("connected to the slave", Duration::from_secs(5));
+    let mut line = RawLine::open(&socat.dev);
+    let read = [3, 0, 7, 0, 1];
+    // Room for a mirrored request (8 bytes) as well as an exception (5).
+    line.send(&rtu::encode(5, &read));
+    let got = line.recv(8, Duration::from_secs(2));
+    assert_eq!(
+        hexs(&got),
+        hexs(&rtu::encode(5, &[0x83, 0x0B])),
+        "{}",
+        gw.log()
+    );
+    assert_eq!(slave.requests().len(), 1);
+    let status = gw.stop_with("TERM", Duration::from_secs(5));
+    assert!(status.success(), "{status:?}");
+    assert!(gw.log().contains("bad_replies=1"), "{}", gw.log());
+}
+
+/// A slave connecting from `ip` to `port` (a passive route) that answers as a register
+/// map whose every register holds `mark`, until `stop`.
+fn slave_from(ip: &str, port: u16, mark: u16, stop: Arc<AtomicBool>) -> thread::JoinHandle<()> {
+    use socket2::{Domain, Socket, Type};
+    let sock = Socket::new(Domain::IPV4, Type::STREAM, None).unwrap();
+    sock.bind(
+        &format!("{ip}:0")
+            .parse::<std::net::SocketAddr>()
+            .unwrap()
+            .into(),
+    )
+    .unwrap();
+    sock.connect(
+        &format!("127.0.0.1:{port}")
+            .parse::<std::net::SocketAddr>()
+            .unwrap()
+            .into(),
+    )
+    .unwrap();
+    let mut s: TcpStream = sock.into();
+    thread::spawn(move || {
+        s.set_read_timeout(Some(Duration::from_millis(20))).unwrap();
+        let mut buf = bytes::BytesMut::new();
+        let mut chunk = [0u8; 512];
+        while !stop.load(Ordering::Relaxed) {
+            match s.read(&mut chunk) {
+                Ok(0) => return,
+                Ok(n) => buf.extend_from_slice(&chunk[..n]),
+                Err(_) => continue,
+            }
+            while let Ok(Some(req)) = decode_strict(&mut buf) {
+                let [hi, lo] = mark.to_be_bytes();
+                let reply = Adu::build(req.tid(), req.unit(), &[3, 2, hi, lo]);
+                if s.write_all(reply.as_bytes()).is_err() {
+                    return;
+                }
+            }
+        }
+    })
+}
+
+/// A passive route with `allow`: a peer from outside the list neither becomes the
+/// route's slave (its connection is closed unread, the serial master keeps getting
+/// 0x0A) nor replaces the slave that is allowed (before, any peer that connected took
+/// the route and answered the serial master's requests).
+#[test]
+fn a_passive_route_takes_only_allowed_slaves() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let port = free_port();
+    let mut text = std::fs::read_to_string(config(dir.path(), &socat.gw, "rtu", &[])).unwrap();
+    text = text.replace(
+        "\n[log]",
+        &format!(
+            "\n[[line.route]]\nlisten = \"127.0.0.1:{port}\"\nallow = [\"127.0.0.2\"]\n\n[log]"
+        ),
+    );
+    let file = dir.path().join("passive.toml");
+    std::fs::write(&file, text).unwrap();
+    let gw = gateway(file.to_str().unwrap());
+    gw.wait_log(
+        "waiting for the slave to connect to",
+        Duration::from_secs(5),
+    );
+    let mut line = RawLine::open(&socat.dev);
+    let read = [3, 0, 7, 0, 1];
+    let second = Duration::from_secs(1);
+
+    let stop = Arc::new(AtomicBool::new(false));
+    let _intruder = slave_from("127.0.0.1", port, 666, stop.clone());
+    gw.wait_log(
+        "slave connection refused: 127.0.0.1",
+        Duration::from_secs(5),
+    );
+    assert_eq!(
+        ask(&mut line, 5, &read, 2, second),
+        rtu::encode(5, &[0x83, 0x0A])
+    );
+
+    let _allowed = slave_from("127.0.0.2", port, 7, stop.clone());
+    gw.wait_log("slave connected from 127.0.0.2", Duration::from_secs(5));
+    assert_eq!(
+        ask(&mut line, 5, &read, 4, second),
+        rtu::encode(5, &[3, 2, 0, 7])
+    );
+
+    // The intruder again, while the allowed slave is connected: it replaces nothing.
+    let _again = slave_from("127.0.0.1", port, 666, stop.clone());
+    thread::sleep(Duration::from_millis(300));
+    for _ in 0..3 {
+        assert_eq!(
+            ask(&mut line, 5, &read, 4, second),
+            rtu::encode(5, &[3, 2, 0, 7])
+        );
+    }
+    assert!(!gw.log().contains("slave connected again"), "{}", gw.log());
+    assert_eq!(
+        gw.log().matches("slave connection refused").count(),
+        1,
+        "said once a minute per source:\n{}",
+        gw.log()
+    );
+    stop.store(true, Ordering::Relaxed);
 }

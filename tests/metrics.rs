@@ -302,7 +302,7 @@ fn metrics_count_known_traffic_exactly_and_parse_as_openmetrics() {
         "two timeouts of 0.2 s at least: {busy}"
     );
     let listener = gw.addr.to_string();
-    let li = [("listener", listener.as_str())];
+    let li = [("listener", listener.as_str()), ("transport", "tcp")];
     assert_eq!(value(&s, "mbgate_listener_masters", &li), 1.0);
     assert_eq!(value(&s, "mbgate_listener_connections_total", &li), 1.0);
     assert_eq!(
@@ -479,4 +479,102 @@ fn status_prints_a_summary_and_its_exit_code_says_healthy_or_not() {
         "{}",
         run.stderr
     );
+}
+
+/// Every example configuration (config/examples/*.toml) run as it ships, its
+/// addresses moved to free ports on 127.0.0.1 (an address two listeners share stays
+/// shared) and its serial ports to paths where nothing is: one scrape of /metrics
+/// prints each series (name and labels) once. A TCP and a UDP listener on one
+/// address (dial-out.toml) are told apart by their `transport` label; printed twice
+/// with the same labels, Prometheus keeps one and drops the other as a duplicate.
+#[test]
+fn every_example_configuration_prints_each_series_once() {
+    let dir = tempdir();
+    let mut examples: Vec<_> = std::fs::read_dir(repo().join("config/examples"))
+        .unwrap()
+        .map(|e| e.unwrap().path())
+        .filter(|p| p.extension().is_some_and(|x| x == "toml"))
+        .collect();
+    examples.sort();
+    assert!(examples.len() >= 8, "{examples:?}");
+    let mut checked = Vec::new();
+    for (n, example) in examples.iter().enumerate() {
+        let name = example.file_name().unwrap().to_str().unwrap().to_owned();
+        let text = local(&std::fs::read_to_string(example).unwrap(), dir.path(), n);
+        let run = dir.path().join(format!("run{n}"));
+        std::fs::create_dir_all(&run).unwrap();
+        let file = run.join(&name);
+        std::fs::write(&file, &text).unwrap();
+        let gw = Proc::start(
+            &["run", "--config", file.to_str().unwrap()],
+            "metrics on http",
+        );
+        let http = gw.metrics_addr(Duration::from_secs(10));
+        // The dials join the metrics once the gateway accepts masters.
+        let dials = text.matches("[[dial]]").count();
+        let mut body = String::new();
+        wait_for(
+            &format!("{name}: its dials on /metrics"),
+            Duration::from_secs(10),
+            || {
+                body = get(http, "/metrics").1;
+                body.matches("mbgate_listener_connections_total{listener=\"dial ")
+                    .count()
+                    == dials
+            },
+        );
+        let mut seen = std::collections::BTreeMap::<&str, usize>::new();
+        for line in body
+            .lines()
+            .filter(|l| !l.starts_with('#') && !l.is_empty())
+        {
+            let series = line.rsplit_once(' ').map_or(line, |(s, _)| s);
+            *seen.entry(series).or_default() += 1;
+        }
+        let twice: Vec<_> = seen.iter().filter(|(_, n)| **n > 1).collect();
+        assert!(
+            twice.is_empty(),
+            "{name}: series printed more than once: {twice:?}\n{text}\n{body}"
+        );
+        assert!(seen.len() > 20, "{name}: {body}");
+        checked.push(name);
+    }
+    eprintln!("each series once: {checked:?}");
+}
+
+/// `text` (an example configuration) made to run here: every address on 0.0.0.0 or
+/// 127.0.0.1 a free port of 127.0.0.1 (one address, one port), every `path` a file in
+/// `dir` that does not exist, and the metrics listener on.
+fn local(text: &str, dir: &std::path::Path, n: usize) -> String {
+    let mut ports = std::collections::HashMap::<String, u16>::new();
+    let mut out = String::new();
+    let mut rest = text;
+    while let Some(at) = rest.find('"') {
+        out += &rest[..=at];
+        rest = &rest[at + 1..];
+        let end = rest.find('"').expect("a closing quote");
+        let quoted = &rest[..end];
+        let local = quoted
+            .strip_prefix("0.0.0.0:")
+            .or_else(|| quoted.strip_prefix("127.0.0.1:"))
+            .filter(|p| p.parse::<u16>().is_ok());
+        if local.is_some() {
+            let port = *ports.entry(quoted.to_owned()).or_insert_with(free_port);
+            out += &format!("127.0.0.1:{port}");
+        } else if out.trim_end_matches('"').trim_end().ends_with("path =") {
+            out += &dir
+                .join(format!("absent{n}-{}", out.len()))
+                .display()
+                .to_string();
+        } else {
+            out += quoted;
+        }
+        out.push('"');
+        rest = &rest[end + 1..];
+    }
+    out += rest;
+    if !out.contains("[metrics]") {
+        out += "\n[metrics]\nlisten = \"127.0.0.1:0\"\n";
+    }
+    out
 }

@@ -610,6 +610,43 @@ fn damaged_and_foreign_files_are_loaded_up_to_the_damage_or_refused() {
         "{}",
         run.stderr
     );
+    // Damaged before its first packet (the first interface's length broken): no
+    // request, and the refusal says where the file was damaged, not only that it
+    // held no request.
+    let mut early = file.clone();
+    let shb = u32::from_le_bytes(early[4..8].try_into().unwrap()) as usize;
+    early[shb + 4] = 3;
+    let early_path = dir.path().join("early.pcapng");
+    std::fs::write(&early_path, &early).unwrap();
+    let run = summary(&[&early_path]);
+    assert_eq!(run.code, 2);
+    assert!(
+        run.stderr.contains("no Modbus request on any line")
+            && run.stderr.contains(&format!(
+                "early.pcapng: read up to byte {shb} of {} and no further: a block length that cannot be (corrupt)",
+                early.len()
+            )),
+        "{}",
+        run.stderr
+    );
+    // A block that claims 4 GiB: read as far as the file goes (the replay streams
+    // its files and never takes a length on trust), cut short there.
+    let mut claims = mbgate::ops::capture::pcapng::section_header("x");
+    let at = claims.len();
+    claims.extend([1, 0, 0, 0, 0xF0, 0xFF, 0xFF, 0xFF]);
+    claims.extend([0; 64]);
+    let claims_path = dir.path().join("claims.pcapng");
+    std::fs::write(&claims_path, &claims).unwrap();
+    let run = summary(&[&claims_path]);
+    assert_eq!(run.code, 2);
+    assert!(
+        run.stderr.contains(&format!(
+            "claims.pcapng: read up to byte {at} of {} and no further: the file ends inside a block (cut short)",
+            claims.len()
+        )),
+        "{}",
+        run.stderr
+    );
     let run = summary(&[&dir.path().join("missing.pcapng")]);
     assert_eq!(run.code, 2);
     assert!(

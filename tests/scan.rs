@@ -714,6 +714,68 @@ fn an_ascii_device_holding_garbage_is_found() {
     }
 }
 
+/// A live bus of three ends (tests/py/bus3.py): a pymodbus serial device, a pymodbus
+/// master polling it, and the scanner's end behind the virtual line (8N1). Held for
+/// the test's length; `counts` is where the bus counts each end's bytes.
+struct LiveBus {
+    // Dropped in this order: the peers, the bus, its ptys, the virtual line.
+    _procs: Vec<Py>,
+    _ptys: (Socat, Socat),
+    line: Line,
+    counts: PathBuf,
+    _dirs: (tempfile::TempDir, tempfile::TempDir),
+}
+
+impl LiveBus {
+    fn start(device: &[&str], master: &[&str]) -> LiveBus {
+        let line = Line::start("8N1");
+        let (d1, d2) = (tempdir(), tempdir());
+        let server = Socat::start(d1.path());
+        let client = Socat::start(d2.path());
+        let counts = d1.path().join("counts");
+        let ends = format!(
+            "{},{},{}",
+            server.gw.display(),
+            client.gw.display(),
+            line.b.display()
+        );
+        let bus = Py::start(
+            "bus3.py",
+            &[
+                "--ends",
+                &ends,
+                "--baud",
+                "9600",
+                "--counts",
+                counts.to_str().unwrap(),
+            ],
+        );
+        let mut args = vec!["--port", server.dev.to_str().unwrap(), "--baud", "9600"];
+        args.extend_from_slice(device);
+        let device = Py::start("serial_device.py", &args);
+        let mut args = vec!["--port", client.dev.to_str().unwrap(), "--baud", "9600"];
+        args.extend_from_slice(master);
+        let master = Py::start("rtu_poller.py", &args);
+        LiveBus {
+            line,
+            counts,
+            _procs: vec![master, device, bus],
+            _ptys: (server, client),
+            _dirs: (d1, d2),
+        }
+    }
+
+    /// The bytes each end has sent onto the bus: the device's, the master's, the
+    /// scanner's.
+    fn sent(&self) -> Vec<u64> {
+        std::fs::read_to_string(&self.counts)
+            .unwrap()
+            .lines()
+            .map(|l| l.split_whitespace().nth(1).unwrap().parse().unwrap())
+            .collect()
+    }
+}
+
 /// Sniffing a live bus: a pymodbus RTU server (units 5 and 9) and a pymodbus client
 /// polling it (FC 03 of unit 5, FC 04 of unit 9) on a bus of three ends
 /// (tests/py/bus3.py), the third behind the virtual line, at 9600 8N1, where the scan
@@ -721,52 +783,8 @@ fn an_ascii_device_holding_garbage_is_found() {
 /// counted no byte from the scan's end.
 #[test]
 fn listen_names_the_setting_units_and_functions_and_sends_nothing() {
-    let line = Line::start("8N1");
-    let (d1, d2) = (tempdir(), tempdir());
-    let server = Socat::start(d1.path());
-    let client = Socat::start(d2.path());
-    let counts = d1.path().join("counts");
-    let ends = format!(
-        "{},{},{}",
-        server.gw.display(),
-        client.gw.display(),
-        line.b.display()
-    );
-    let _bus = Py::start(
-        "bus3.py",
-        &[
-            "--ends",
-            &ends,
-            "--baud",
-            "9600",
-            "--counts",
-            counts.to_str().unwrap(),
-        ],
-    );
-    let _device = Py::start(
-        "serial_device.py",
-        &[
-            "--port",
-            server.dev.to_str().unwrap(),
-            "--baud",
-            "9600",
-            "--units",
-            "5,9",
-        ],
-    );
-    let _master = Py::start(
-        "rtu_poller.py",
-        &[
-            "--port",
-            client.dev.to_str().unwrap(),
-            "--baud",
-            "9600",
-            "--units",
-            "5,9",
-            "--every",
-            "0.05",
-        ],
-    );
+    let bus = LiveBus::start(&["--units", "5,9"], &["--units", "5,9", "--every", "0.05"]);
+    let line = &bus.line;
     let (code, stdout, _) = scan_long(
         &[
             line.a.to_str().unwrap(),
@@ -805,13 +823,9 @@ fn listen_names_the_setting_units_and_functions_and_sends_nothing() {
     }
     assert!(v["requests_per_s"].as_f64().unwrap() > 0.0, "{stdout}");
     // The third end sent nothing onto the bus, while the other two did.
-    let counted = std::fs::read_to_string(&counts).unwrap();
-    let sent: Vec<u64> = counted
-        .lines()
-        .map(|l| l.split_whitespace().nth(1).unwrap().parse().unwrap())
-        .collect();
-    assert!(sent[0] > 0 && sent[1] > 0, "{counted}");
-    assert_eq!(sent[2], 0, "the scan's end wrote onto the bus: {counted}");
+    let sent = bus.sent();
+    assert!(sent[0] > 0 && sent[1] > 0, "{sent:?}");
+    assert_eq!(sent[2], 0, "the scan's end wrote onto the bus: {sent:?}");
     // The table form names them too.
     let (_, table, _) = scan_long(
         &[
@@ -919,4 +933,158 @@ fn a_slow_unit_gets_its_reply_time_and_a_unit_block() {
         .parse()
         .unwrap();
     assert!(timeout >= 2 * times[1], "{stdout}");
+}
+
+/// A master that retries a unit no device answers: a pymodbus master polls unit 5 (a
+/// pymodbus device answering in about 8 ms, silent for other ids) and unit 7
+/// (nobody), FC 03 of two registers, one every 0.6 s, and sends each unanswered
+/// request twice more, 0.6 s apart, byte for byte (a round in 3 s; the listen takes
+/// 10 s). The listen lists unit 5 alone, with its replies' time (tens of ms), never
+/// the master's retry as unit 7's reply (its shape is a request's) nor the poll gap
+/// as unit 5's reply time: RTU and ASCII. (A write's retry, which only its time tells
+/// from its echo, is `sniff.rs`'s `a_write_echoed_is_its_reply_and_repeated_is_a_retry`:
+/// times as heard on a machine too busy to read the port in time are no premise.)
+#[test]
+fn listen_never_takes_a_retried_request_for_a_reply() {
+    for framer in ["rtu", "ascii"] {
+        let bus = LiveBus::start(
+            &["--framer", framer, "--units", "5", "--delay", "0.008"],
+            &[
+                "--framer",
+                framer,
+                "--units",
+                "5,7",
+                "--functions",
+                "3,3",
+                "--every",
+                "0.6",
+                "--timeout",
+                "0.6",
+                "--retries",
+                "2",
+            ],
+        );
+        let (code, stdout, _) = scan_long(
+            &[
+                bus.line.a.to_str().unwrap(),
+                "--listen",
+                "--listen-secs",
+                "10",
+                "--baud",
+                "9600",
+                "--format",
+                "8N1",
+                "--framing",
+                framer,
+                "--json",
+            ],
+            Duration::from_secs(60),
+        );
+        assert_eq!(code, 0, "{framer}: {stdout}");
+        let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+        assert_eq!(v["setting"]["framing"], framer, "{stdout}");
+        let unit = |n: u64| {
+            v["units"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .find(|u| u["unit"] == n)
+                .unwrap_or_else(|| panic!("{framer}: no unit {n}: {stdout}"))
+        };
+        let (u5, u7) = (unit(5), unit(7));
+        assert_eq!(u7["replies"], 0, "{framer}: {stdout}");
+        assert_eq!(
+            u7["functions"],
+            serde_json::json!([3]),
+            "{framer}: {stdout}"
+        );
+        assert!(u7["requests"].as_u64().unwrap() >= 3, "{framer}: {stdout}");
+        assert!(u7["reply_ms_p50"].is_null(), "{framer}: {stdout}");
+        let replies = u5["replies"].as_u64().unwrap();
+        assert!(replies >= 1, "{framer}: {stdout}");
+        // (One more when the listening began between a request and its reply.)
+        assert!(replies <= u5["requests"].as_u64().unwrap() + 1, "{stdout}");
+        // The device answers in 8 ms and its reply takes some 10 ms (RTU) or 20 ms
+        // (ASCII) at 9600; the master's next request comes 600 ms after a reply, its
+        // retry 600 ms after a request.
+        let p50 = u5["reply_ms_p50"].as_u64().unwrap();
+        assert!(p50 < 300, "{framer}: reply p50 {p50} ms: {stdout}");
+        // The table's block lists unit 5 alone.
+        let (_, table, _) = scan_long(
+            &[
+                bus.line.a.to_str().unwrap(),
+                "--listen",
+                "--listen-secs",
+                "10",
+                "--baud",
+                "9600",
+                "--format",
+                "8N1",
+                "--framing",
+                framer,
+            ],
+            Duration::from_secs(60),
+        );
+        assert!(table.contains("units = [5]\n"), "{framer}: {table}");
+        assert_eq!(bus.sent()[2], 0, "the scan's end wrote onto the bus");
+    }
+}
+
+/// A port with no wire (a pty) that gives bytes as fast as they are written: the
+/// listen at a setting takes what a wire at that setting carries in the window (9600
+/// baud 8N1, 60 s: 57.6 kB) and judges it then, never holding what a flood of a
+/// minute would be. The bus is heard, in a few seconds, not the minute asked.
+#[test]
+fn listen_on_a_flooding_port_takes_what_a_wire_carries() {
+    let dir = tempdir();
+    let pty = Socat::start(dir.path());
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flooding = {
+        let stop = stop.clone();
+        let mut dev = open_pty(&pty.dev);
+        std::thread::spawn(move || {
+            use std::io::Write;
+            let mut exchange = mbgate::frame::rtu::encode(5, &[3, 0, 0, 0, 1]);
+            exchange.extend(mbgate::frame::rtu::encode(5, &[3, 2, 0, 7]));
+            let burst = exchange.repeat(256);
+            let mut written = 0usize;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                match dev.write(&burst) {
+                    Ok(n) => written += n,
+                    Err(_) => std::thread::sleep(Duration::from_millis(1)),
+                }
+            }
+            written
+        })
+    };
+    let (code, stdout, took) = scan_long(
+        &[
+            pty.gw.to_str().unwrap(),
+            "--listen",
+            "--listen-secs",
+            "60",
+            "--baud",
+            "9600",
+            "--format",
+            "8N1",
+            "--framing",
+            "rtu",
+            "--json",
+        ],
+        Duration::from_secs(90),
+    );
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let written = flooding.join().unwrap();
+    assert_eq!(code, 0, "{stdout}");
+    assert!(took < Duration::from_secs(30), "listened {took:?} of 60 s");
+    let v: serde_json::Value = serde_json::from_str(stdout.trim()).unwrap();
+    assert_eq!(v["units"][0]["unit"], 5, "{stdout}");
+    // At most 57 600 bytes, the bound's slack of a read (1024) and the last read
+    // (1024) were judged: two frames in 15 bytes.
+    let frames = v["frames"].as_u64().unwrap();
+    assert!(
+        frames > 1000 && frames <= 2 * (57_600 + 2048) / 15,
+        "{stdout}"
+    );
+    eprintln!("{written} bytes written");
 }

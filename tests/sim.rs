@@ -489,6 +489,25 @@ fn a_pty_link_never_replaces_a_file() {
     let out = mbgate(&["sim", "--pty", f, "--serial", "/dev/null"]);
     assert_eq!(out.code, 2, "{}", out.stderr);
     assert!(out.stderr.contains("cannot be used with"), "{}", out.stderr);
+    // A folder that is not there: the link and the system's reason, said once.
+    let missing = dir.path().join("missing/x");
+    let m = missing.to_str().unwrap();
+    let out = mbgate(&["sim", "--headless", "--pty", m]);
+    assert_eq!(out.code, 1, "{}", out.stderr);
+    let line = out
+        .stderr
+        .lines()
+        .find(|l| l.starts_with("mbgate: cannot link "))
+        .unwrap_or_else(|| panic!("{}", out.stderr));
+    assert!(
+        line.starts_with(&format!("mbgate: cannot link {m} to /dev/pts/")),
+        "{line}"
+    );
+    assert!(
+        line.ends_with(": No such file or directory (os error 2)"),
+        "{line}"
+    );
+    assert_eq!(line.matches("No such file").count(), 1, "{line}");
 }
 
 /// A simulator whose port nobody reads fills it, and its write waits: SIGTERM still

@@ -249,3 +249,123 @@ fn the_status_page_shows_live_rates_and_decoded_frames_in_a_browser() {
     master.join().expect("the master was answered throughout");
     gw.stop();
 }
+
+/// The page behind TLS and a password (docs/watching.md "Behind TLS and a password"):
+/// Chromium opens `https://user:password@host/` (the gateway's certificate trusted by
+/// its public key's hash, as a CA installed in the browser would) and shows the line
+/// and its frames, polling `/status.json` with the credentials it was given; without
+/// them it gets 401, shows nothing of the plant, and the body's bytes say nothing but
+/// that a user and password are needed.
+#[test]
+fn the_status_page_over_https_with_a_password_in_a_browser() {
+    let Some(browser) = chromium() else {
+        assert!(!peer("chromium", "chromium"));
+        return;
+    };
+    if !peer("curl", "curl") || !peer("openssl", "openssl") {
+        return;
+    }
+    let dir = tempdir();
+    let pki = common::pki::Pki::new(&dir.path().join("pki"));
+    let socat = Socat::start(dir.path());
+    let _dev = RawDevice::start(&socat.dev, register_device(&[1], Duration::ZERO));
+    let hash = {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_mbgate"))
+            .args(["hash-password", "--cost", "4"])
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        writeln!(child.stdin.take().unwrap(), "look at the plant").unwrap();
+        let out = child.wait_with_output().unwrap();
+        String::from_utf8(out.stdout).unwrap().trim().to_owned()
+    };
+    let web = dir.path().join("web.yml");
+    std::fs::write(
+        &web,
+        format!(
+            "tls_server_config:\n  cert_file: {}\n  key_file: {}\nbasic_auth_users:\n  operator: {hash}\n",
+            pki.pem("gateway"),
+            pki.key("gateway")
+        ),
+    )
+    .unwrap();
+    let cfg = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"")
+        .relay("response_timeout_ms = 5000")
+        .metrics("listen = \"127.0.0.1:0\"")
+        .metrics(&format!("web_config = {:?}", web.display().to_string()));
+    let mut gw = Gateway::start(&cfg, dir.path());
+    let port = gw.proc.metrics_addr(Duration::from_secs(10)).port();
+    let line = socat.gw.display().to_string();
+    let stop = Arc::new(AtomicBool::new(false));
+    let mut m = gw.connect();
+    let polling = stop.clone();
+    let master = thread::spawn(move || {
+        let mut tid = 0u16;
+        while !polling.load(Ordering::Relaxed) {
+            assert_eq!(
+                transact(&mut m, &read_req(tid, 1, 7, 3)),
+                read_reply(tid, 1, &[7, 8, 9])
+            );
+            tid = tid.wrapping_add(1);
+            thread::sleep(Duration::from_millis(20));
+        }
+    });
+    // The browser trusts the gateway's key (its SubjectPublicKeyInfo's SHA-256).
+    let spki = Command::new("sh")
+        .arg("-c")
+        .arg(format!(
+            "openssl x509 -in {} -pubkey -noout | openssl pkey -pubin -outform der | openssl dgst -sha256 -binary | base64",
+            pki.pem("gateway")
+        ))
+        .output()
+        .unwrap();
+    let spki = String::from_utf8(spki.stdout).unwrap().trim().to_owned();
+    assert_eq!(spki.len(), 44, "{spki}");
+    let trust = format!("--ignore-certificate-errors-spki-list={spki}");
+    let profile = |n: &str| format!("--user-data-dir={}", dir.path().join(n).display());
+    // The page is opened once first, so frames are recorded (while it is watched).
+    let url = format!("https://operator:look%20at%20the%20plant@127.0.0.1:{port}/");
+    browse(browser, &url, &[&trust, &profile("first"), "--dump-dom"]);
+    let dom = browse(browser, &url, &[&trust, &profile("second"), "--dump-dom"]);
+    let updates: u32 = text_after(&dom, "(update ").parse().unwrap();
+    assert!(updates >= 2, "{updates} updates:\n{dom}");
+    assert!(dom.contains(&format!("<h2>Line {line}")), "{dom}");
+    assert!(
+        dom.contains("00 00 00 06 01 03 00 07 00 03"),
+        "a request's bytes: {dom}"
+    );
+    // Without credentials: nothing of the plant in the page, nor in the bytes.
+    let plain = format!("https://127.0.0.1:{port}/");
+    let dom = browse(
+        browser,
+        &plain,
+        &[&trust, &profile("stranger"), "--dump-dom"],
+    );
+    for word in [line.as_str(), "Line ", "frames", "01 03"] {
+        assert!(!dom.contains(word), "{word:?} without credentials:\n{dom}");
+    }
+    for path in ["/", "/status.json"] {
+        let out = Command::new("curl")
+            .args(["-sS", "-i", "--cacert", &pki.pem("ca")])
+            .arg(format!("https://127.0.0.1:{port}{path}"))
+            .output()
+            .unwrap();
+        let text = out.stdout;
+        let at = text.windows(4).position(|w| w == b"\r\n\r\n").unwrap();
+        assert!(
+            text.starts_with(b"HTTP/1.1 401 Unauthorized\r\n"),
+            "{}",
+            String::from_utf8_lossy(&text)
+        );
+        assert_eq!(
+            &text[at + 4..],
+            b"401 Unauthorized: a user and password are needed here\n"
+        );
+    }
+    stop.store(true, Ordering::Relaxed);
+    master.join().expect("the master was answered throughout");
+    gw.stop();
+}

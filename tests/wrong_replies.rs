@@ -253,3 +253,222 @@ fn a_late_reply_after_a_learned_timeout_answers_nothing() {
     tally.assert_none_wrong(&gw);
     assert!(tally.right >= 60, "{tally:?}");
 }
+
+/// A device that stalls 2.5 s after its fifth answer while two masters go on (each
+/// request meanwhile times out after the default 1 s and waits in the device), then
+/// answers that backlog one frame every `pace_ms`, and what came meanwhile after it.
+/// Every answer is the request's own or 0x0B, whatever the pace: a unit owes an answer
+/// for each request that timed out until it has paid it or been quiet for its whole
+/// response timeout after its last frame (docs/reliability.md "RTU and ASCII", 6).
+fn backlog_drained_every(pace_ms: u64) {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let dev = socat.dev.to_str().unwrap();
+    let pace = format!("{}", pace_ms as f64 / 1000.0);
+    let _device = Py::start(
+        "raw_device.py",
+        &[
+            "--port",
+            dev,
+            "registers",
+            "--stall-after",
+            "5",
+            "--stall-for",
+            "2.5",
+            "--drain",
+            &pace,
+        ],
+    );
+    let mut gw = gateway(dir.path(), &socat.gw, "", ", retries = 0", "");
+    let tally = two_masters(&gw, 16);
+    let counters = gw.stop();
+    eprintln!("drained every {pace_ms} ms: {tally:?} {counters:?}");
+    tally.assert_none_wrong(&gw);
+    assert!(tally.failed >= 2, "the stall timed requests out: {tally:?}");
+    assert!(tally.right >= 20, "{tally:?}");
+    assert!(
+        counters["late_replies"] >= 2,
+        "the backlog came and was dropped: {counters:?}"
+    );
+}
+
+#[test]
+fn a_backlog_drained_every_40_ms_never_answers_new_requests() {
+    backlog_drained_every(40);
+}
+
+#[test]
+fn a_backlog_drained_every_90_ms_never_answers_new_requests() {
+    backlog_drained_every(90);
+}
+
+#[test]
+fn a_backlog_drained_every_120_ms_never_answers_new_requests() {
+    backlog_drained_every(120);
+}
+
+#[test]
+fn a_backlog_drained_every_250_ms_never_answers_new_requests() {
+    backlog_drained_every(250);
+}
+
+#[test]
+fn a_backlog_drained_every_500_ms_never_answers_new_requests() {
+    backlog_drained_every(500);
+}
+
+/// `n` reads by pymodbus' `ModbusTcpClient` (tests/py/master.py), one register each
+/// at `base` + 0..7 in turn, each answer judged: the register's address plus 1000
+/// (raw_device.py's), or 0x0B.
+fn pymodbus_master(gw: &Gateway, base: u16, n: u16) -> Tally {
+    let steps: Vec<serde_json::Value> = (0..n)
+        .map(|i| {
+            serde_json::json!(["read_holding_registers", [base + i % 7], {"count": 1, "device_id": 1}])
+        })
+        .collect();
+    let steps = serde_json::Value::Array(steps).to_string();
+    let port = gw.addr.port().to_string();
+    let (status, out) = Py::run("master.py", &["--port", &port, "--timeout", "10", &steps]);
+    assert!(status.success(), "{out}");
+    let got: Vec<serde_json::Value> = serde_json::from_str(out.trim()).expect("master.py's JSON");
+    assert_eq!(got.len(), usize::from(n), "{out}");
+    let mut tally = Tally::default();
+    for (i, answer) in (0..n).zip(got) {
+        let addr = base + i % 7;
+        if answer == serde_json::json!({"registers": [addr + 1000]}) {
+            tally.right += 1;
+        } else if answer == serde_json::json!({"exception": 11}) {
+            tally.failed += 1;
+        } else {
+            tally.wrong.push(format!("read of {addr}: {answer}"));
+        }
+    }
+    tally
+}
+
+/// A device on a pty that answers every read 20 ms after it came, and every third
+/// answer with one frame too many, a reply of the same shape for the address before,
+/// 2 ms `before` or `after` its real one. pymodbus reads 30 registers in turn: every
+/// answer is the read's own or 0x0B, never either frame handed to the wrong request:
+/// a reply is taken only once the line has been quiet after it for the confirmation
+/// quiet (here `silence_floor_ms = 200`, so the 2 ms gap stays inside it on a busy
+/// machine), and a second frame within it refutes both (docs/reliability.md "RTU and
+/// ASCII", 7).
+fn one_frame_too_many(mode: &str) {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let dev = socat.dev.to_str().unwrap();
+    let _device = Py::start(
+        "raw_device.py",
+        &[
+            "--port",
+            dev,
+            "registers",
+            "--fast",
+            "0.02",
+            "--extra-every",
+            "3",
+            "--extra",
+            mode,
+            "--extra-gap",
+            "0.002",
+        ],
+    );
+    let serial = ", silence_floor_ms = 200";
+    let mut gw = gateway(dir.path(), &socat.gw, serial, ", retries = 0", "");
+    let tally = pymodbus_master(&gw, 0, 30);
+    let counters = gw.stop();
+    eprintln!("extra frame {mode}: {tally:?} {counters:?}");
+    tally.assert_none_wrong(&gw);
+    assert!(
+        tally.failed >= 5,
+        "the extra frames refuted replies: {tally:?}"
+    );
+    assert!(tally.right >= 15, "{tally:?}");
+    assert!(counters["refuted_frames"] >= 5, "{counters:?}");
+}
+
+#[test]
+fn an_extra_frame_before_the_reply_is_never_taken() {
+    one_frame_too_many("before");
+}
+
+#[test]
+fn an_extra_frame_after_the_reply_is_never_taken() {
+    one_frame_too_many("after");
+}
+
+/// The extra frame later, 150 ms after the real reply, with the defaults of a pty:
+/// the reply is taken once the line has been quiet for 10 ms, the master's next read
+/// goes on the line at once, and the extra frame comes in its window, long before
+/// the device (answering in 600 ms) could have answered it. Once the unit's fastest
+/// reply is known (its first 8 taken, no extra frame among them), such a frame is
+/// dropped (sooner than half its fastest reply), and the read gets its own answer
+/// (docs/reliability.md "RTU and ASCII", 7).
+#[test]
+fn an_extra_frame_sooner_than_the_device_answers_never_answers_the_next_read() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let dev = socat.dev.to_str().unwrap();
+    let _device = Py::start(
+        "raw_device.py",
+        &[
+            "--port",
+            dev,
+            "registers",
+            "--fast",
+            "0.6",
+            "--extra-every",
+            "3",
+            "--extra",
+            "after",
+            "--extra-gap",
+            "0.15",
+            "--extra-from",
+            "9",
+        ],
+    );
+    let relay = ", retries = 0, response_timeout_ms = 2000";
+    let mut gw = gateway(dir.path(), &socat.gw, "", relay, "");
+    let tally = master(&gw, 0, 17, false);
+    let counters = gw.stop();
+    eprintln!("{tally:?} {counters:?}");
+    tally.assert_none_wrong(&gw);
+    assert!(tally.right >= 14, "{tally:?}");
+}
+
+/// A device that answers every request in 5 ms, and every seventh in 450 ms: 150 ms
+/// after its 300 ms timeout, in the window of the next request, which goes 1 ms after
+/// the timeout (`timeout_guard_ms = 1`, the least an RTU line takes). The device reads
+/// that request and answers it after the late one; the late reply pays the answer its
+/// unit owes, and the request gets its own: with next to no guard, not one wrong
+/// value (docs/reliability.md "RTU and ASCII", 3 and 6).
+#[test]
+fn with_next_to_no_guard_a_late_reply_never_answers_the_next_request() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let dev = socat.dev.to_str().unwrap();
+    let _device = Py::start(
+        "raw_device.py",
+        &[
+            "--port",
+            dev,
+            "registers",
+            "--fast",
+            "0.005",
+            "--slow-every",
+            "7",
+            "--slow",
+            "0.45",
+        ],
+    );
+    let relay = ", response_timeout_ms = 300, timeout_guard_ms = 1, retries = 0";
+    let mut gw = gateway(dir.path(), &socat.gw, "", relay, "");
+    let tally = master(&gw, 0, 70, false);
+    let counters = gw.stop();
+    eprintln!("{tally:?} {counters:?}");
+    tally.assert_none_wrong(&gw);
+    assert!(tally.failed >= 5, "the slow answers timed out: {tally:?}");
+    assert!(tally.right >= 50, "{tally:?}");
+    assert!(counters["late_replies"] >= 5, "{counters:?}");
+}

@@ -28,6 +28,9 @@ _mbgate() {
             mbgate,generate)
                 cmd="mbgate__subcmd__generate"
                 ;;
+            mbgate,hash-password)
+                cmd="mbgate__subcmd__hash__subcmd__password"
+                ;;
             mbgate,help)
                 cmd="mbgate__subcmd__help"
                 ;;
@@ -85,6 +88,9 @@ _mbgate() {
             mbgate__subcmd__help,generate)
                 cmd="mbgate__subcmd__help__subcmd__generate"
                 ;;
+            mbgate__subcmd__help,hash-password)
+                cmd="mbgate__subcmd__help__subcmd__hash__subcmd__password"
+                ;;
             mbgate__subcmd__help,help)
                 cmd="mbgate__subcmd__help__subcmd__help"
                 ;;
@@ -125,7 +131,7 @@ _mbgate() {
 
     case "${cmd}" in
         mbgate)
-            opts="-h -V --help --version run check-config read write sim scan wire demo status capture generate reload help"
+            opts="-h -V --help --version run check-config read write sim scan wire demo status hash-password capture generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 1 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -197,7 +203,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__check__subcmd__config)
-            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --direction --direction-invert --direction-gpio-chip --direction-gpio-line --direction-delay-before-us --direction-delay-after-us --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
+            opts="-h --print --lines --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --direction --direction-invert --direction-gpio-chip --direction-gpio-line --direction-delay-before-us --direction-delay-after-us --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --metrics-web-config --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -388,6 +394,10 @@ _mbgate() {
                     return 0
                     ;;
                 --metrics-listen)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --metrics-web-config)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;
@@ -618,8 +628,30 @@ _mbgate() {
             COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
             return 0
             ;;
+        mbgate__subcmd__hash__subcmd__password)
+            opts="-h --cost --user --help"
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                --cost)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --user)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
         mbgate__subcmd__help)
-            opts="run check-config read write sim scan wire demo status capture generate reload help"
+            opts="run check-config read write sim scan wire demo status hash-password capture generate reload help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -705,6 +737,20 @@ _mbgate() {
         mbgate__subcmd__help__subcmd__generate__subcmd__man)
             opts=""
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 4 ]] ; then
+                COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+                return 0
+            fi
+            case "${prev}" in
+                *)
+                    COMPREPLY=()
+                    ;;
+            esac
+            COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
+            return 0
+            ;;
+        mbgate__subcmd__help__subcmd__hash__subcmd__password)
+            opts=""
+            if [[ ${cur} == -* || ${COMP_CWORD} -eq 3 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
             fi
@@ -935,7 +981,7 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__run)
-            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --direction --direction-invert --direction-gpio-chip --direction-gpio-line --direction-delay-before-us --direction-delay-after-us --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --capture-file --capture-files --capture-file-size-kb --control-socket --help"
+            opts="-c -h --config --serial --baud --data-bits --parity --stop-bits --flow-control --framing --port-kind --low-latency --silence-floor-ms --inter-frame-gap-us --rs485 --rs485-delay-before-send-ms --rs485-delay-after-send-ms --echo --direction --direction-invert --direction-gpio-chip --direction-gpio-line --direction-delay-before-us --direction-delay-after-us --listen --max-connections --idle-timeout-ms --response-timeout-ms --frame-gap-ms --max-in-flight --max-pending-per-connection --queue-depth --retries --retry-writes --notifications --device-notifications --broadcast-delay-ms --broadcast-reply --unit-backoff --unit-backoff-after --unit-backoff-ms --unit-backoff-max-ms --probe-timeout-ms --timeout-guard-ms --coalesce --cache-ms --request-pause-ms --log-level --traffic --metrics-listen --metrics-web-config --capture-file --capture-files --capture-file-size-kb --control-socket --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
@@ -1134,6 +1180,10 @@ _mbgate() {
                     return 0
                     ;;
                 --metrics-listen)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --metrics-web-config)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;
@@ -1357,13 +1407,45 @@ _mbgate() {
             return 0
             ;;
         mbgate__subcmd__status)
-            opts="-h --metrics --help"
+            opts="-c -h --metrics --ca --cert --key --user --password-file --socket --config --help"
             if [[ ${cur} == -* || ${COMP_CWORD} -eq 2 ]] ; then
                 COMPREPLY=( $(compgen -W "${opts}" -- "${cur}") )
                 return 0
             fi
             case "${prev}" in
                 --metrics)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --ca)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --cert)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --key)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --user)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --password-file)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --socket)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                --config)
+                    COMPREPLY=($(compgen -f "${cur}"))
+                    return 0
+                    ;;
+                -c)
                     COMPREPLY=($(compgen -f "${cur}"))
                     return 0
                     ;;

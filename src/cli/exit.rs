@@ -14,6 +14,7 @@
 //! | `capture` | ended as asked | could not run, or its output failed | bad arguments | |
 //! | `reload` | taken | refused | bad arguments | the gateway could not be asked |
 //! | `generate` | written | could not write | bad arguments | |
+//! | `hash-password` | printed | the passwords differ, or none | bad arguments | |
 //!
 //! clap exits 2 on arguments it refuses itself, so every "bad arguments" is 2.
 
@@ -52,13 +53,51 @@ pub(crate) fn ok_if(yes: bool) -> ExitCode {
     code(if yes { OK } else { FAILED })
 }
 
-/// An error and each of its sources, `outer: inner: ...`, as a one-line message.
+/// An error and each of its sources, `outer: inner: ...`, as a one-line message. A
+/// source the message says already (an error whose text has its `{source}` in it, as
+/// thiserror lets it) is not said again.
 pub(crate) fn said(e: &(dyn std::error::Error + 'static)) -> String {
     let mut out = e.to_string();
     let mut source = e.source();
     while let Some(s) = source {
-        out += &format!(": {s}");
+        let text = s.to_string();
+        if !out.contains(&text) {
+            out += ": ";
+            out += &text;
+        }
         source = s.source();
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot link x: {source}")]
+    struct Says {
+        source: std::io::Error,
+    }
+
+    #[derive(Debug, thiserror::Error)]
+    #[error("cannot listen")]
+    struct Leaves {
+        source: std::io::Error,
+    }
+
+    /// Each source once: after a message that leaves it out, and never twice after
+    /// one that says it.
+    #[test]
+    fn each_source_is_said_once() {
+        let gone = || std::io::Error::from(std::io::ErrorKind::NotFound);
+        assert_eq!(
+            said(&Says { source: gone() }),
+            "cannot link x: entity not found"
+        );
+        assert_eq!(
+            said(&Leaves { source: gone() }),
+            "cannot listen: entity not found"
+        );
+    }
 }

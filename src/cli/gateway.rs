@@ -17,6 +17,9 @@ pub(crate) enum Unusable {
     /// A certificate or key that cannot be used (docs/security.md).
     #[error("{0}")]
     Tls(#[from] crate::masters::tls::TlsError),
+    /// The metrics listener's web configuration file (docs/watching.md).
+    #[error("{0}")]
+    Web(#[from] crate::ops::metrics::web::WebConfigError),
 }
 
 /// `mbgate check-config`: exit 0 valid, 2 not.
@@ -35,6 +38,14 @@ pub(crate) fn check_config(
             } else {
                 println!("OK: {}", file.display());
                 print!("{}", config::describe::summary(&cfg));
+                if let (Some(_), Ok(web)) = (
+                    cfg.metrics.listen,
+                    crate::ops::metrics::web::WebAccess::load(&cfg.metrics.web_config),
+                ) {
+                    if web.file.is_some() {
+                        println!("  # who: {}", web.said());
+                    }
+                }
             }
             for warning in crate::gateway::warnings(&cfg) {
                 eprintln!("mbgate: warning: {warning}");
@@ -89,10 +100,12 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
     Ok(cfg)
 }
 
-/// [`effective`], and every TLS file it names loaded: a certificate or key that cannot
-/// be used is a bad configuration too (docs/security.md).
+/// [`effective`], and every TLS file it names loaded, the metrics listener's web
+/// configuration too: a certificate, key or password hash that cannot be used is a bad
+/// configuration too (docs/security.md, docs/watching.md).
 fn checked(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, Unusable> {
     let cfg = effective(file, overrides)?;
     crate::masters::tls::check(&cfg)?;
+    crate::ops::metrics::web::check(&cfg)?;
     Ok(cfg)
 }

@@ -12,6 +12,7 @@ pub mod exit;
 mod gateway;
 pub mod manual;
 pub mod overrides;
+mod password;
 mod reload;
 pub mod runtime;
 mod scan;
@@ -111,11 +112,21 @@ enum CliCommand {
     Demo(crate::tools::demo::DemoArgs),
     /// Ask a running gateway how its lines are: a summary per line and unit.
     ///
-    /// From its metrics listener (`[metrics] listen`, off unless given an address).
+    /// Over its control socket when there is one (root, or the service's user or
+    /// group: no password), else from its metrics listener (`[metrics] listen`, off
+    /// unless given an address; https and a user where its web configuration asks).
     /// Exit code 0 healthy, 1 not (a line's port not open, or a unit not answering:
     /// three timeouts in a row, no reply since, the last timeout within a minute), 3
     /// the gateway could not be asked, 2 bad arguments.
     Status(status::StatusArgs),
+    /// Make a bcrypt hash of a password, for the metrics listener's users.
+    ///
+    /// Reads the password from the terminal (twice, not shown) or the first line of
+    /// standard input, never from the command line; prints the hash, or with --user a
+    /// line for `basic_auth_users` in the web configuration file (docs/watching.md).
+    /// Exit code 0 printed, 1 the two passwords differ or none was read, 2 bad
+    /// arguments.
+    HashPassword(password::HashArgs),
     /// Capture a running gateway's frames to pcapng, for Wireshark (docs/capture.md).
     ///
     /// Every frame each master sent and received, every frame on each line, and the
@@ -170,6 +181,7 @@ pub fn main() -> ExitCode {
         CliCommand::Wire(args) => wire::main(args),
         CliCommand::Scan(args) => scan::main(args),
         CliCommand::Status(args) => status::main(args),
+        CliCommand::HashPassword(args) => password::main(args),
         CliCommand::Generate(what) => generate(what),
         CliCommand::Reload(args) => reload::main(args),
         CliCommand::Capture(args) => capture::main(args),

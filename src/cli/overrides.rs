@@ -81,6 +81,15 @@ impl<const PORT: bool> Flags<PORT> {
                 let m = format!("the file describes the gateway as {tables} tables: set it there");
                 return Err(bad(key.flag, m));
             }
+            // A file that only dials its masters opens no listener: --listen opens
+            // one, and the listener's other flags mean nothing without it.
+            if key.section == "tcp" && c.dial_only {
+                if key.name != "listen" && !self.given("listen") {
+                    let m = "the file only dials its masters and opens no listener: give --listen ADDR too, or write [tcp] or [[listen]]".to_owned();
+                    return Err(bad(key.flag, m));
+                }
+                c.dial_only = false;
+            }
             (key.set)(&mut c, value).map_err(|e| bad(key.flag, e.into()))?;
         }
         // Flags that contradict each other, or the file: name the flag that was given
@@ -92,11 +101,11 @@ impl<const PORT: bool> Flags<PORT> {
             } else {
                 first
             };
-            let section = format!("{}.", conflict.key.section);
             let message = format!(
-                "{section}{} {}",
+                "{}.{} {}",
+                conflict.key.section,
                 conflict.key.name,
-                conflict.message(&section)
+                conflict.message("")
             );
             return Err(bad(named, message));
         }

@@ -3,6 +3,7 @@
 //! own framing and port settings, each listener the masters it takes, so a listener's
 //! framing is never read as the line's.
 
+use super::master::Peer;
 use super::{
     Config, Direction, FlowControl, Framing, GpioLine, LineConfig, ListenConfig, ListenFraming,
     Parity, SerialConfig,
@@ -43,9 +44,16 @@ pub(crate) fn line(line: &LineConfig) -> String {
         let routes: Vec<String> = master
             .routes
             .iter()
-            .map(|r| match r.units.as_slice() {
-                [] => format!("other units -> {}", r.peer),
-                u => format!("units {} -> {}", list(u), r.peer),
+            .map(|r| {
+                let from = match (&r.peer, &r.allow) {
+                    (Peer::Listen(_), Some(allow)) => format!(" from {allow}"),
+                    (Peer::Listen(_), None) => " from anywhere (no allow list)".to_owned(),
+                    (Peer::Connect(_), _) => String::new(),
+                };
+                match r.units.as_slice() {
+                    [] => format!("other units -> {}{from}", r.peer),
+                    u => format!("units {} -> {}{from}", list(u), r.peer),
+                }
             })
             .collect();
         return format!("{device}; the device is the master: {}", routes.join("; "));
@@ -209,7 +217,10 @@ pub fn summary(cfg: &Config) -> String {
         // Master lines listen for no masters and have no metrics listener.
         return out;
     }
-    for l in &cfg.listeners {
+    if cfg.dial_only {
+        out += "no listener: the file only dials its masters and opens no port (add [[listen]] or [tcp] listen = \"ADDR\" for masters to connect in)\n";
+    }
+    for l in cfg.listeners.iter().filter(|_| !cfg.dial_only) {
         let priority = match l.priority {
             0 => String::new(),
             p => format!(", priority class {p}"),
@@ -224,13 +235,30 @@ pub fn summary(cfg: &Config) -> String {
         for said in super::effective_access(l, &cfg.roles) {
             out += &format!("  # {said}\n");
         }
+        if l.transport == super::Transport::Udp {
+            let after = super::NOTIFIED_FOR.as_millis();
+            out += &match l.notifications {
+                true => format!(
+                    "  # notifications: to each source for {after} ms after its last request\n"
+                ),
+                false => {
+                    "  # notifications: none to its sources (notifications = true sends them)\n"
+                        .into()
+                }
+            };
+        }
     }
     for d in &cfg.dials {
         out += &format!("{}\n", dial(d));
     }
+    let web = cfg.metrics.web_config.trim();
     out += &match cfg.metrics.listen {
-        Some(a) => format!(
+        Some(a) if web.is_empty() => format!(
             "status page on http://{a}/, metrics on http://{a}/metrics (mbgate status --metrics {a})\n"
+        ),
+        // `mbgate check-config` adds who may read it, from the file.
+        Some(a) => format!(
+            "status page on {a}/, metrics on {a}/metrics, as {web} says\n"
         ),
         None => "no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
             .to_owned(),
@@ -279,6 +307,44 @@ mod tests {
              \x20 # what: read and write\n\
              no metrics listener (set [metrics] listen = \"127.0.0.1:9502\" for the status page and mbgate status)\n"
         );
+    }
+
+    /// A file that dials its masters and names no listener opens none, and says so;
+    /// one that names a listener (`[tcp]` or `[[listen]]`) beside its dials listens.
+    /// Printed and read back, each stays as it was.
+    #[test]
+    fn a_file_that_only_dials_opens_no_listener() {
+        let dial = "[[dial]]\naddress = \"scada.example.net:502\"\n";
+        let line = "[[line]]\nserial = { path = \"/dev/ttyUSB0\", framing = \"rtu\", flow_control = \"none\" }\n";
+        let read = |text: String| parse(&text, "t.toml").unwrap();
+        for only in [
+            read(format!("[serial]\npath = \"/dev/ttyUSB0\"\n{dial}")),
+            read(format!("{line}{dial}")),
+        ] {
+            assert!(only.dial_only && !only.listens());
+            let said = summary(&only);
+            assert!(
+                said.contains("no listener: the file only dials its masters and opens no port")
+                    && !said.contains("listening on"),
+                "{said}"
+            );
+            assert!(said.contains("dialing scada.example.net:502"), "{said}");
+            let printed = crate::config::to_toml(&only);
+            assert_eq!(parse(&printed, "printed").unwrap(), only, "{printed}");
+        }
+        for listening in [
+            read(format!("[tcp]\nlisten = \"0.0.0.0:502\"\n{dial}")),
+            read(format!(
+                "{line}[[listen]]\naddress = \"127.0.0.1:502\"\n{dial}"
+            )),
+            read("[serial]\npath = \"/dev/ttyUSB0\"\n".into()),
+        ] {
+            assert!(!listening.dial_only && listening.listens());
+            let said = summary(&listening);
+            assert!(said.contains("listening on"), "{said}");
+            let printed = crate::config::to_toml(&listening);
+            assert_eq!(parse(&printed, "printed").unwrap(), listening, "{printed}");
+        }
     }
 
     /// Each way of switching the transmitter says itself, with its polarity and delays.

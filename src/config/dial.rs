@@ -42,9 +42,9 @@ table! {
         backoff_min_ms: u64 = 1_000, Range(10, 3_600_000, None);
         /// Longest wait before dialing again
         backoff_max_ms: u64 = 60_000, Range(10, 3_600_000, None);
-        /// The most a connect (and a TLS handshake) may take
+        /// The most a connect (and a TLS handshake) may take; an answer to the identity or a heartbeat is owed this long
         connect_timeout_ms: u64 = 10_000, Range(100, 600_000, None);
-        /// Close the connection and dial again when no request came this long; 0: never
+        /// Close the connection and dial again when no request came and no reply went out this long (heartbeats and their answers are none); 0: never
         idle_timeout_ms: u64 = 0, Range(0, u64::MAX as i128, Some("0 (never) or a number of milliseconds"));
         /// Modbus/TCP Security with mbgate as the client: { cert, key, server_ca, server_name, default_role }
         tls: Option<TlsDial> = None, Any;
@@ -197,6 +197,7 @@ impl DialConfig {
             },
             priority: self.priority,
             transport: super::Transport::Tcp,
+            notifications: false,
         }
     }
 

@@ -93,7 +93,16 @@ pub struct ListenConfig {
     pub(crate) priority: u8,
     /// TCP connections, or UDP datagrams (docs/dialing.md "Modbus over UDP").
     pub(crate) transport: super::Transport,
+    /// UDP: its sources get the lines' notifications, each for [`NOTIFIED_FOR`] after
+    /// its last request (docs/dialing.md "Modbus over UDP").
+    pub(crate) notifications: bool,
 }
+
+/// How long after its last request a UDP source of a listener with `notifications =
+/// true` gets the lines' notifications: a master that polls at least once a second
+/// gets every one, and a forged datagram earns a second's worth, not a minute's
+/// (docs/dialing.md "Modbus over UDP").
+pub(crate) const NOTIFIED_FOR: std::time::Duration = std::time::Duration::from_secs(1);
 
 /// The listener of `[tcp]`: Modbus/TCP, open to all, of class 0.
 impl Default for ListenConfig {
@@ -104,6 +113,7 @@ impl Default for ListenConfig {
             access: super::ListenAccess::default(),
             priority: 0,
             transport: Transport::Tcp,
+            notifications: false,
         }
     }
 }
@@ -185,5 +195,11 @@ impl Config {
     /// line is a master line: then no listener is bound.
     pub(crate) fn serves_masters(&self) -> bool {
         self.lines.iter().any(|l| l.master.is_none())
+    }
+
+    /// Are the listeners bound? Not when no line serves masters, nor when the file
+    /// only dials its masters ([`Config::dial_only`]).
+    pub(crate) fn listens(&self) -> bool {
+        self.serves_masters() && !self.dial_only
     }
 }

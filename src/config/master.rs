@@ -20,6 +20,7 @@
 use super::raw::read_table;
 use super::{table, Check, HostPort, Key, Raw, RelayConfig, Setting, ValueError, ValueKind};
 use super::{Any, NonEmpty, Range, IN_FLIGHT, TIMEOUT_MS};
+use crate::masters::access::AllowList;
 use std::net::SocketAddr;
 
 table! {
@@ -32,6 +33,8 @@ table! {
         address: HostPort = HostPort::default(), NonEmpty("host:port of the slave");
         /// An address where mbgate listens and the slave connects in
         listen: Option<SocketAddr> = None, Any;
+        /// With listen: the addresses and CIDR blocks a slave may connect from; others are closed before a byte is read (default: everyone)
+        allow: Option<AllowList> = None, Any;
         /// From the request's arrival on the line to the slave's reply (also bounds a connection attempt); then 0x0B
         response_timeout_ms: u64 = RelayConfig::default().response_timeout_ms, TIMEOUT_MS;
         /// Requests outstanding on the slave's connection at once (pipelined by MBAP id)
@@ -100,6 +103,9 @@ pub struct Route {
     pub response_timeout_ms: u64,
     /// Requests outstanding on the slave's connection at once (pipelined by MBAP id).
     pub max_in_flight: usize,
+    /// A passive route's allow list: where its slave may connect from; `None`:
+    /// anywhere.
+    pub allow: Option<AllowList>,
 }
 
 /// What a master line adds to the line: its routes, in the order of the file.
@@ -151,6 +157,10 @@ pub(super) fn routes(raw: &Raw, path: &str) -> Result<Vec<Route>, ValueError> {
 /// One `[[line.route]]`, read by [`ROUTE_KEYS`]: exactly one of `address` and `listen`.
 fn route(raw: &Raw) -> Result<Route, ValueError> {
     let (t, given) = read_table(raw, ROUTE_KEYS, "expected a table ([[line.route]])")?;
+    if given.contains(&"allow") && !given.contains(&"listen") {
+        let m = "only a passive route (listen) takes connections to allow; this one connects to its address";
+        return Err(ValueError::new(m).value("allow"));
+    }
     let peers: Vec<&str> = given
         .into_iter()
         .filter(|k| ["address", "listen"].contains(k))
@@ -174,6 +184,7 @@ fn route(raw: &Raw) -> Result<Route, ValueError> {
         peer,
         response_timeout_ms: t.response_timeout_ms,
         max_in_flight: t.max_in_flight,
+        allow: t.allow,
     })
 }
 
@@ -191,6 +202,9 @@ pub(crate) fn to_toml(m: &MasterLine) -> String {
             Peer::Connect(a) => out += &format!("address = {}\n", HostPort(a.clone()).print()),
             Peer::Listen(a) => out += &format!("listen = {}\n", a.print()),
         }
+        if r.allow.is_some() {
+            out += &format!("allow = {}\n", r.allow.print());
+        }
         out += &format!("response_timeout_ms = {}\n", r.response_timeout_ms);
         out += &format!("max_in_flight = {}\n", r.max_in_flight);
     }
@@ -207,6 +221,7 @@ mod tests {
             peer: Peer::Connect("h:1".into()),
             response_timeout_ms: 1000,
             max_in_flight: 1,
+            allow: None,
         }
     }
 

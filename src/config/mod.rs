@@ -38,8 +38,8 @@ pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> V
     }
 }
 pub use error::{ConfigError, Step, ValueError};
-pub use file::{load, parse, LineTcpTable, LINE_TCP_KEYS};
-pub(crate) use layout::{LineConfig, ListenConfig, Units};
+pub use file::{load, parse, read_text, LineTcpTable, LINE_TCP_KEYS, MAX_FILE};
+pub(crate) use layout::{LineConfig, ListenConfig, Units, NOTIFIED_FOR};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;
@@ -224,13 +224,18 @@ pub struct Config {
     /// Never empty: one line serving every unit when the file says no `[[line]]`.
     pub lines: Vec<LineConfig>,
     /// Never empty: the one Modbus/TCP listener of `[tcp]` when the file says no
-    /// `[[listen]]` (bound only if some line serves masters).
+    /// `[[listen]]` (bound only if some line serves masters, and the file is not
+    /// [`Config::dial_only`]).
     pub listeners: Vec<ListenConfig>,
     /// The `[[role]]` tables: what a TLS master may do, by the role its
     /// certificate carries (docs/security.md).
     pub roles: Vec<AccessRole>,
     /// The `[[dial]]` tables: masters mbgate connects to (docs/dialing.md).
     pub dials: Vec<dial::DialConfig>,
+    /// The file dials its masters and says no `[tcp]` nor `[[listen]]` (nor does a
+    /// `--listen` flag): no listener is bound, so a gateway that reaches its SCADA
+    /// server by dialing opens no port (docs/dialing.md "No listener").
+    pub dial_only: bool,
     /// What is logged.
     pub log: LogConfig,
     /// The metrics listener (docs/watching.md).
@@ -249,6 +254,7 @@ impl Default for Config {
             listeners: vec![ListenConfig::default()],
             roles: Vec::new(),
             dials: Vec::new(),
+            dial_only: false,
             log: LogConfig::default(),
             metrics: MetricsConfig::default(),
             capture: CaptureConfig::default(),
@@ -456,6 +462,8 @@ settings! {
     [metrics] MetricsConfig {
         /// Address for Prometheus metrics (/metrics) and the status page; "" (the default): none
         listen: Option<SocketAddr> = None, Address(METRICS_EXAMPLE), "metrics-listen" "ADDR";
+        /// The metrics listener's web configuration file, in the format of Prometheus' exporter-toolkit (TLS, client certificates, users with bcrypt hashes: docs/watching.md); "" (the default): plain HTTP, no users
+        web_config: String = String::new(), Any, "metrics-web-config" "FILE";
     }
     /// The always-on capture (docs/capture.md): every packet into a ring of pcapng files.
     [capture] CaptureConfig {
@@ -536,14 +544,16 @@ enum Clash {
 }
 
 impl Conflict {
-    /// The message, with the section's keys under `prefix` (`relay.`).
-    pub(crate) fn message(&self, prefix: &str) -> String {
-        let other = self.other.name;
+    /// The message, with the keys under `table` (`line[0].`, or none): the other key
+    /// named with its section.
+    pub(crate) fn message(&self, table: &str) -> String {
+        let (section, name) = (self.other.section, self.other.name);
+        let other = format!("{table}{section}.{name}");
         match &self.clash {
             Clash::Exceeds { value, limit, why } => {
-                format!("must not exceed {prefix}{other} ({limit}), got {value}: {why}")
+                format!("must not exceed {other} ({limit}), got {value}: {why}")
             }
-            Clash::Excludes(why) => format!("cannot go with {prefix}{other}{why}"),
+            Clash::Excludes(why) => format!("cannot go with {other}{why}"),
         }
     }
 }
@@ -578,6 +588,30 @@ impl Config {
         exceeds
             .or_else(|| self.direction_conflict())
             .or_else(|| self.flow_conflict())
+            .or_else(|| self.guard_conflict())
+    }
+
+    /// `relay.timeout_guard_ms = 0` on an RTU or ASCII line. A device that drops the
+    /// requests it gets while busy answers a request that timed out late, in the
+    /// window of the next one, which it never read; nothing in an RTU or ASCII frame
+    /// tells that late answer from the next request's: only the guard, the quiet after
+    /// a timeout, keeps it off (docs/reliability.md "RTU and ASCII", 3). A device that
+    /// answers what it holds in order needs no guard (each request that timed out is
+    /// owed, and its late answer pays it); 0 would turn the defence against the other
+    /// kind off.
+    fn guard_conflict(&self) -> Option<Conflict> {
+        let line = &self.lines[0];
+        let serial = matches!(line.serial.framing, Framing::Rtu | Framing::Ascii);
+        (serial && line.relay.timeout_guard_ms == 0).then(|| Conflict {
+            key: key("relay", "timeout_guard_ms"),
+            other: key("serial", "framing"),
+            clash: Clash::Excludes(format!(
+                " = {:?}: a late answer from a device that dropped the next request while \
+                 busy is kept off that request only by the guard; set 1 or more (100 by \
+                 default)",
+                line.serial.framing.name()
+            )),
+        })
     }
 
     /// XON/XOFF flow control on a binary framing: on RTU and MBAP lines any byte of a

@@ -11,10 +11,14 @@ pub fn to_toml(cfg: &Config) -> String {
     if !cfg.single_form() {
         return to_toml_lines(cfg);
     }
-    let old = [
+    let old: Vec<(&str, String)> = [
         "serial", "tcp", "relay", "log", "metrics", "capture", "control",
     ]
-    .map(|s| (s, format!("[{s}]")));
+    .into_iter()
+    // A file that only dials its masters writes no [tcp]: none is bound.
+    .filter(|s| *s != "tcp" || !cfg.dial_only)
+    .map(|s| (s, format!("[{s}]")))
+    .collect();
     with_roles(print(cfg, &old), cfg)
 }
 
@@ -76,8 +80,9 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         let units = line.unit_tables.to_toml();
         out.push(head + &device + "\n" + &routes + &relay + &units);
     }
-    // With every line a master line no listener is bound, and none may be written.
-    let listeners = match cfg.serves_masters() {
+    // With every line a master line no listener is bound, and none may be written;
+    // a file that only dials its masters writes none.
+    let listeners = match cfg.listens() {
         true => &cfg.listeners[..],
         false => &[],
     };
@@ -94,6 +99,9 @@ pub fn to_toml_lines(cfg: &Config) -> String {
         };
         if listener.transport != super::Transport::Tcp {
             priority += &format!("transport = {}\n", listener.transport.print());
+        }
+        if listener.notifications {
+            priority += "notifications = true\n";
         }
         out.push(
             table + &format!("framing = {}\n", listener.framing.print()) + &priority + &access,

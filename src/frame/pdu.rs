@@ -67,6 +67,34 @@ pub fn request_well_formed(pdu: &[u8]) -> bool {
     request_row(pdu).is_some_and(|(_, fits)| fits)
 }
 
+/// What a frame that came where a request belongs is, when it cannot be one: an answer
+/// of some device or gateway. Answering an answer is how two peers that answer
+/// everything loop for ever (docs/security.md "Threat model"), so the masters' side
+/// never answers one: it drops it and counts it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash)]
+pub enum NotRequest {
+    /// Its function code has the high bit set: an exception reply (V1.1b3 §7).
+    Exception,
+    /// It has the shape of its function code's normal reply and not of its request
+    /// (`03 02 00 FF`: a byte count and 2N data bytes).
+    ReplyShape,
+}
+
+/// `None` for a PDU that may be a request (well formed or not: a malformed request is
+/// answered 0x01 or 0x03 by [`check_request`]); else what it is. A PDU that has the
+/// shape of both its request and its reply (`01 03 CD 6B 05`, five bytes of FC 01)
+/// may be a request; and so may one of a code whose reply repeats its request (FC 05,
+/// 06, 08, 22: only the time it comes can tell those apart, docs/dialing.md "Modbus
+/// over UDP") or whose shape is unknown.
+pub fn not_a_request(pdu: &[u8]) -> Option<NotRequest> {
+    let code = FunctionCode::new(*pdu.first()?);
+    if code.is_exception() {
+        return Some(NotRequest::Exception);
+    }
+    let spec = code.spec()?;
+    (!spec.request.fits(pdu) && reply_well_formed(pdu)).then_some(NotRequest::ReplyShape)
+}
+
 /// A reply whose byte-count field is its second byte and covers the rest.
 fn counted(reply: &[u8]) -> Option<usize> {
     let count = usize::from(*reply.get(1)?);
@@ -265,6 +293,46 @@ mod tests {
         assert!(request_well_formed(&[0x41, 1, 2, 3]));
         assert!(!request_well_formed(&[0x83, 2]));
         assert!(!request_well_formed(&[]));
+    }
+
+    /// Exceptions and replies of a shape no request has are not requests; a request,
+    /// malformed or not, and a PDU of both shapes are left to the request checks.
+    #[test]
+    fn answers_are_not_requests() {
+        use NotRequest::{Exception, ReplyShape};
+        for (pdu, want) in [
+            (&[0x83, 0x02][..], Some(Exception)),
+            (&[0x80, 0x01], Some(Exception)),
+            (&[0xFF], Some(Exception)),
+            (&[0x83], Some(Exception)),
+            (&[3, 2, 0, 0xFF], Some(ReplyShape)),
+            (&[3, 4, 0, 1, 0, 2], Some(ReplyShape)),
+            (&[4, 2, 0, 0x0A], Some(ReplyShape)),
+            (&[1, 1, 5], Some(ReplyShape)),
+            (&[0x10, 0, 8, 0, 1], Some(ReplyShape)),
+            (&[0x0F, 0, 0x13, 0, 0x0A], Some(ReplyShape)),
+            (&[7, 0x6D], Some(ReplyShape)),
+            (&[0x11, 3, 0x2A, 0xFF, 1], Some(ReplyShape)),
+            (&[0x17, 2, 0, 0xFE], Some(ReplyShape)),
+            (&[3, 0, 1, 0, 2], None),
+            // Of both shapes (an FC 01 request for coils at 0x03CD): a request.
+            (&[1, 3, 0xCD, 0x6B, 0x05], None),
+            // A reply that repeats its request.
+            (&[6, 0, 1, 0, 3], None),
+            (&[5, 0, 0xAC, 0xFF, 0], None),
+            (&[8, 0, 0, 0xA5, 0x37], None),
+            (&[0x16, 0, 4, 0, 0xF2, 0, 0x25], None),
+            // Malformed, but no reply either: answered 0x03 by the request checks.
+            (&[3, 0], None),
+            (&[3, 2, 0], None),
+            (&[0x10, 0, 8, 0], None),
+            (&[0], None),
+            (&[0x41, 1, 2], None),
+            (&[0x2B, 0x0E, 1, 0], None),
+            (&[], None),
+        ] {
+            assert_eq!(not_a_request(pdu), want, "{pdu:02X?}");
+        }
     }
 
     #[test]

@@ -152,6 +152,9 @@ impl Decoder {
         let n = match length {
             rtu::Length::Exactly(n) if self.buf.len() >= n => n,
             _ if quiet => self.buf.len(),
+            // Longer than any frame and not ended: no frame, whatever comes next. Cut
+            // here, so a device that never pauses holds no more than a frame of memory.
+            _ if self.buf.len() > rtu::MAX_FRAME => self.buf.len(),
             _ => return None,
         };
         // Decoded where it lies, its PDU copied into the room of the last one.
@@ -246,6 +249,32 @@ mod tests {
             d.next(Expect::Reply(&[0x41]), true),
             frame(1, &[0x41, 1, 2, 3])
         );
+    }
+
+    /// Bytes of a frame of unknown shape (function 0x41) that never pause: cut and
+    /// dropped as soon as they run past the longest RTU frame, never buffered without
+    /// end; ASCII drops a colon's bytes past its longest frame likewise.
+    #[test]
+    fn a_stream_without_a_pause_is_cut_at_the_longest_frame() {
+        let mut d = Decoder::new(Codec::Rtu);
+        let mut dropped = 0;
+        for _ in 0..1000 {
+            d.push(&[1, 0x41, 0, 0]);
+            while let Some(next) = d.next(Expect::Reply(&[0x41]), false) {
+                let Decoded::Corrupt(n) = next else {
+                    panic!("{next:?}")
+                };
+                dropped += n;
+            }
+            assert!(d.buffered() <= rtu::MAX_FRAME + 4, "{}", d.buffered());
+        }
+        assert_eq!(dropped + d.buffered(), 4000);
+        let mut d = Decoder::new(Codec::Ascii);
+        for _ in 0..1000 {
+            d.push(b":0141");
+            while d.next(Expect::Request, false).is_some() {}
+            assert!(d.buffered() <= ascii::MAX_FRAME + 5, "{}", d.buffered());
+        }
     }
 
     #[test]

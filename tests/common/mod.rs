@@ -2,6 +2,7 @@
 //! processes, a scriptable raw device on a pty, and a raw TCP master.
 #![allow(dead_code)]
 
+pub(crate) mod forge;
 pub(crate) mod pki;
 pub(crate) mod sim;
 
@@ -66,6 +67,25 @@ pub(crate) fn gateway_from_file(
     (proc, addrs)
 }
 
+/// A UDP port no socket holds now.
+pub(crate) fn free_udp_port() -> u16 {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0").unwrap();
+    s.local_addr().unwrap().port()
+}
+
+/// One datagram to `to` from a new socket connected to it, and its reply within 10 s;
+/// `Err` when none comes, or when nobody listens there (the ICMP port unreachable the
+/// kernel turns into ConnectionRefused).
+pub(crate) fn udp_transact(to: &str, req: &[u8]) -> std::io::Result<Vec<u8>> {
+    let s = std::net::UdpSocket::bind("127.0.0.1:0")?;
+    s.connect(to)?;
+    s.set_read_timeout(Some(Duration::from_secs(10)))?;
+    s.send(req)?;
+    let mut buf = [0u8; 300];
+    let n = s.recv(&mut buf)?;
+    Ok(buf[..n].to_vec())
+}
+
 /// `"00 01 FF"` → bytes.
 pub(crate) fn hex(s: &str) -> Vec<u8> {
     let s: String = s.split_whitespace().collect();
@@ -103,8 +123,15 @@ pub(crate) fn peer(command: &str, package: &str) -> bool {
         "{command} is missing in CI, where scripts/test installs every Debian package \
          (this one: {package})"
     );
+    skipped(&format!("needs {command} (Debian package {package})"));
+    false
+}
+
+/// The calling test skips, for `why`: said on stderr and added to `$MBGATE_SKIPS`,
+/// which scripts/test counts in its summary.
+pub(crate) fn skipped(why: &str) {
     let test = std::thread::current().name().unwrap_or("?").to_owned();
-    let line = format!("{test}: needs {command} (Debian package {package})");
+    let line = format!("{test}: {why}");
     eprintln!("skipped: {line}");
     if let Some(file) = std::env::var_os("MBGATE_SKIPS") {
         let mut f = std::fs::OpenOptions::new()
@@ -114,7 +141,6 @@ pub(crate) fn peer(command: &str, package: &str) -> bool {
             .expect("open $MBGATE_SKIPS");
         writeln!(f, "{}: {line}", env!("CARGO_CRATE_NAME")).unwrap();
     }
-    false
 }
 
 /// Polls `ok` every 10 ms until it holds; fails the test after `timeout`.
@@ -543,12 +569,13 @@ impl Proc {
         }
     }
 
-    /// The `[metrics]` listener's address, from the log line that names it, once it
-    /// has shown within `within`.
+    /// The `[metrics]` listener's address, from the log line that names it (http or
+    /// https), once it has shown within `within`.
     pub(crate) fn metrics_addr(&self, within: Duration) -> SocketAddr {
-        self.wait_log("metrics on http://", within);
+        self.wait_log("metrics on http", within);
         let log = self.log();
-        let rest = log.split("metrics on http://").nth(1).unwrap();
+        let rest = log.split("metrics on http").nth(1).unwrap();
+        let rest = rest.trim_start_matches('s').trim_start_matches("://");
         rest.split('/').next().unwrap().parse().unwrap()
     }
 
@@ -764,11 +791,13 @@ impl Drop for Py {
 pub(crate) type Handler = Box<dyn FnMut(&Adu) -> Vec<u8> + Send>;
 
 /// A device on the `dev` end of a socat pair that decodes MBAP requests and writes
-/// whatever the handler returns (nothing = no answer). Every request is recorded.
+/// whatever the handler returns (nothing = no answer). Every request is recorded, and
+/// every byte the line brought, whatever it was.
 pub(crate) struct RawDevice {
     stop: Arc<AtomicBool>,
     file: std::fs::File,
     pub(crate) seen: Arc<Mutex<Vec<Adu>>>,
+    got: Arc<Mutex<Vec<u8>>>,
     thread: Option<JoinHandle<()>>,
 }
 
@@ -843,8 +872,11 @@ impl RawDevice {
         let stop = Arc::new(AtomicBool::new(false));
         let seen = Arc::new(Mutex::new(Vec::new()));
         let seen2 = seen.clone();
+        let got = Arc::new(Mutex::new(Vec::new()));
+        let got2 = got.clone();
         let mut buf = bytes::BytesMut::new();
         let thread = pump(&file, stop.clone(), move |chunk, _, wr| {
+            got2.lock().unwrap().extend_from_slice(chunk);
             buf.extend_from_slice(chunk);
             while let Ok(Some(req)) = decode_strict(&mut buf) {
                 let read = Instant::now();
@@ -864,6 +896,7 @@ impl RawDevice {
             stop,
             file,
             seen,
+            got,
             thread: Some(thread),
         }
     }
@@ -875,6 +908,11 @@ impl RawDevice {
 
     pub(crate) fn requests(&self) -> Vec<Adu> {
         self.seen.lock().unwrap().clone()
+    }
+
+    /// Every byte the line brought so far, requests or not.
+    pub(crate) fn bytes(&self) -> Vec<u8> {
+        self.got.lock().unwrap().clone()
     }
 }
 

@@ -54,6 +54,8 @@ table! {
         tls: Option<TlsListen> = None, Any;
         /// Its masters' priority class on every line, 0 (the lowest) to 7
         priority: u8 = 0, PRIORITY;
+        /// UDP only: its sources get the lines' notifications, each for 1 s after its last request
+        notifications: bool = false, Any;
     }
 }
 
@@ -402,10 +404,7 @@ pub(super) fn policy(read_only: bool, write: WriteRules, path: &str) -> Result<P
 
 /// A `[[listen]]`'s own keys ([`LISTEN_KEYS`]) from `raw`, a table of them alone;
 /// `path` is what messages call it (`listen[0]`).
-pub(super) fn listen(
-    raw: &Raw,
-    path: &str,
-) -> Result<(ListenAccess, ListenFraming, u8, Transport), ValueError> {
+pub(super) fn listen(raw: &Raw, path: &str) -> Result<ListenKeys, ValueError> {
     let (t, _) = read_table(raw, LISTEN_KEYS, "expected a table ([[listen]])")?;
     let policy = policy(t.read_only, t.write, path)?;
     if t.transport == Transport::Udp {
@@ -418,21 +417,41 @@ pub(super) fn listen(
             let m = "transport = \"udp\" has no TLS (Modbus/TCP Security is over TCP): remove tls or the transport";
             return Err(ValueError::new(m).value("tls"));
         }
+    } else if t.notifications {
+        // A TCP master's connection is its own: it gets the notifications whenever
+        // its line broadcasts them.
+        let m = "notifications is a UDP listener's (transport = \"udp\"): a TCP master gets a line's notifications whenever the line broadcasts them (notifications = \"broadcast\" in its relay table)";
+        return Err(ValueError::new(m).value("notifications"));
     }
     let access = ListenAccess {
         allow: t.allow,
         policy,
         tls: t.tls,
     };
-    Ok((access, t.framing, t.priority, t.transport))
+    Ok(ListenKeys {
+        access,
+        framing: t.framing,
+        priority: t.priority,
+        transport: t.transport,
+        notifications: t.notifications,
+    })
+}
+
+/// A `[[listen]]`'s own keys, read.
+pub(super) struct ListenKeys {
+    pub(super) access: ListenAccess,
+    pub(super) framing: ListenFraming,
+    pub(super) priority: u8,
+    pub(super) transport: Transport,
+    pub(super) notifications: bool,
 }
 
 /// The keys of [`LISTEN_KEYS`] that say who may connect and what they may do: those
 /// in `[tcp]` are refused, saying they belong in a `[[listen]]`.
 pub(super) fn is_access_key(name: &str) -> bool {
-    LISTEN_KEYS
-        .iter()
-        .any(|k| k.name == name && !["framing", "priority", "transport"].contains(&k.name))
+    LISTEN_KEYS.iter().any(|k| {
+        k.name == name && !["framing", "priority", "transport", "notifications"].contains(&k.name)
+    })
 }
 
 /// Each listener's `tls.default_role` names a `[[role]]`: the index of the first that

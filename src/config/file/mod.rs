@@ -16,11 +16,33 @@ use toml::Spanned;
 /// Read and validate the configuration file at `path`. Error messages use `path` as
 /// given (relative paths stay relative).
 pub fn load(path: &Path) -> Result<Config, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+    let text = read_text(path, MAX_FILE).map_err(|source| ConfigError::Read {
         path: path.to_path_buf(),
         source,
     })?;
     parse(&text, &path.display().to_string())
+}
+
+/// The most a configuration file may hold: a hundred times the commented one, and
+/// still a small part of a Pi Zero's memory. A path that names something endless
+/// (`/dev/zero`, a FIFO a program keeps writing) is refused when it passes this,
+/// not read until memory runs out.
+pub const MAX_FILE: u64 = 1 << 20;
+
+/// The text of the file at `path`, refused past `max` bytes (an `InvalidData` error
+/// that says so): every file mbgate reads whose size it does not choose goes through
+/// here or through a reader bounded as it is.
+pub fn read_text(path: &Path, max: u64) -> std::io::Result<String> {
+    use std::io::Read;
+    let mut text = String::new();
+    std::fs::File::open(path)?
+        .take(max + 1)
+        .read_to_string(&mut text)?;
+    if text.len() as u64 > max {
+        let m = format!("larger than {max} bytes, more than such a file ever holds");
+        return Err(std::io::Error::new(std::io::ErrorKind::InvalidData, m));
+    }
+    Ok(text)
 }
 
 /// Parse and validate configuration text. `origin` names the text in error messages
@@ -192,6 +214,9 @@ impl FileReader<'_> {
         cfg.roles = roles;
         self.no_listener_for_master_lines(root, &lines, &tables)?;
         // The single-line form's listener (`[tcp]`, or none given) is already in place.
+        // A file that dials its masters and names no listener opens none: the
+        // default, 0.0.0.0:502 read and write for anyone, is not what it asked for.
+        cfg.dial_only = !cfg.dials.is_empty() && listeners.is_empty() && root.get("tcp").is_none();
         if !listeners.is_empty() {
             cfg.listeners = listeners;
         }
@@ -344,13 +369,14 @@ impl FileReader<'_> {
                 .collect();
         }
         let read = super::access::listen(&Raw::Table(keys), path);
-        let (access, framing, priority, transport) = self.value(v, path, read)?;
+        let own = self.value(v, path, read)?;
         Ok(ListenConfig {
             tcp,
-            framing,
-            access,
-            priority,
-            transport,
+            framing: own.framing,
+            access: own.access,
+            priority: own.priority,
+            transport: own.transport,
+            notifications: own.notifications,
         })
     }
 
@@ -407,12 +433,11 @@ impl FileReader<'_> {
         let Some(c) = cfg.conflict() else {
             return Ok(());
         };
-        let prefix = format!("{table}{}.", c.key.section);
-        let key = format!("{prefix}{}", c.key.name);
-        let other = format!("{prefix}{}", c.other.name);
+        let key = format!("{table}{}.{}", c.key.section, c.key.name);
+        let other = format!("{table}{}.{}", c.other.section, c.other.name);
         // One of them is in the file: the defaults never contradict each other.
         let at = self.at.get(&key).or(self.at.get(&other)).copied();
-        self.fail(at.unwrap_or(0), &key, c.message(&prefix))
+        self.fail(at.unwrap_or(0), &key, c.message(table))
     }
 }
 

@@ -365,3 +365,47 @@ fn written_ranges_and_reads_follow_the_specification_examples() {
     assert_eq!(written(&[]), None);
     assert_eq!(written(&[0x10, 0]), None, "too short to say");
 }
+
+/// Of the specification's frames, every request may be one, and every reply is known
+/// for an answer but where its request has the same shape (the writes that repeat
+/// their request, FC 08, the file records, 0x2B's shapes of its own, and FC 01's
+/// example, whose five bytes read as a request for coils too); every exception is one.
+#[test]
+fn no_request_of_the_specification_is_taken_for_an_answer() {
+    for spec in TABLE {
+        let code = spec.code;
+        let (req, rep) = spec_example(code);
+        let (req, rep) = (bytes(req), bytes(rep));
+        assert_eq!(pdu::not_a_request(&req), None, "{code} request");
+        let answer = pdu::not_a_request(&rep);
+        assert_eq!(
+            answer.is_some(),
+            !spec.request.fits(&rep),
+            "{code} reply {answer:?}"
+        );
+        let exception = [code.exception().get(), 0x02];
+        assert_eq!(
+            pdu::not_a_request(&exception),
+            Some(pdu::NotRequest::Exception),
+            "{code}"
+        );
+    }
+    // Every code with its high bit set is an exception; a request within the limits
+    // is never taken for an answer.
+    for code in 0..=255u8 {
+        for tail in [
+            &[][..],
+            &[0, 1, 0, 1],
+            &[2, 0, 0xFF],
+            &[0, 1, 0, 1, 2, 0, 7],
+        ] {
+            let p: Vec<u8> = std::iter::once(code).chain(tail.iter().copied()).collect();
+            let kind = pdu::not_a_request(&p);
+            if code >= 0x80 {
+                assert_eq!(kind, Some(pdu::NotRequest::Exception), "{p:02X?}");
+            } else if pdu::check_request(&p).is_ok() {
+                assert_eq!(kind, None, "{p:02X?}");
+            }
+        }
+    }
+}

@@ -17,7 +17,7 @@ use crate::config::{Framing, RelayConfig, SerialConfig};
 use crate::frame::hex::Hex;
 use crate::frame::Adu;
 use crate::line::port::lifecycle::{Lifecycle, State};
-use crate::line::port::{OpenPort, Port};
+use crate::line::port::{watch, OpenPort, Port};
 use crate::line::relay::watchdog::Watchdog;
 use crate::ops::capture::packet::{Dir, Packet, Part};
 use crate::ops::capture::Tap;
@@ -90,7 +90,7 @@ impl MasterHandle {
 pub(crate) struct MasterLineTask {
     port: Box<dyn Port>,
     line: Bridge,
-    events: mpsc::UnboundedReceiver<slave::SlaveEvent>,
+    events: mpsc::Receiver<slave::SlaveEvent>,
     retunes: mpsc::UnboundedReceiver<MasterLine>,
     slaves_stop: CancellationToken,
     tracker: tokio_util::task::TaskTracker,
@@ -134,7 +134,7 @@ pub(crate) async fn start(
         metrics,
         watchdog,
     } = parts;
-    let (events_tx, events) = mpsc::unbounded_channel();
+    let (events_tx, events) = mpsc::channel(slave::EVENTS);
     let mut to_slaves = Vec::new();
     // Stopped once the line has drained at shutdown: the replies still due come
     // through these connections.
@@ -226,12 +226,13 @@ impl MasterLineTask {
             }
             let State::Open(link) = &mut port.state else {
                 match line
-                    .wait_for_port(&mut port.state, (&mut events, &mut retunes), &shutdown)
+                    .wait_for_port(&mut port, (&mut events, &mut retunes), &shutdown)
                     .await
                 {
                     Waited::Stop => break,
                     Waited::Opened(opened) => line.opened(&mut port, opened, Instant::now()),
                     Waited::Due => {}
+                    Waited::NodeChanged => port.retry_now(Instant::now()),
                 }
                 continue;
             };
@@ -241,8 +242,9 @@ impl MasterLineTask {
             {
                 Ok(()) => break,
                 Err(e) => {
-                    port.lost(&e.to_string(), Instant::now());
-                    line.closed();
+                    let now = Instant::now();
+                    port.lost(&e.to_string(), now);
+                    line.closed(now);
                 }
             }
         }
@@ -258,6 +260,7 @@ impl MasterLineTask {
             timeouts = c.timeouts,
             unavailable = c.unavailable,
             late = c.late,
+            bad_replies = c.bad_replies,
             broadcasts = c.broadcasts,
             broadcasts_refused = c.broadcasts_refused,
             refused = c.refused,
@@ -276,6 +279,8 @@ enum Waited {
     Opened(std::io::Result<OpenPort>),
     /// The next attempt is due.
     Due,
+    /// The port's device node may be back.
+    NodeChanged,
 }
 
 /// What of the routing's counts is on the metrics board already.
@@ -310,7 +315,7 @@ impl Bridge {
         &mut self,
         link: &mut OpenPort,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
+            &mut mpsc::Receiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
@@ -396,6 +401,7 @@ impl Bridge {
             (&s.timeouts, now.timeouts - was.timeouts),
             (&s.unavailable, now.unavailable - was.unavailable),
             (&s.late_replies, now.late - was.late),
+            (&s.bad_frames, now.bad_replies - was.bad_replies),
             (&s.broadcasts, now.broadcasts - was.broadcasts),
             (
                 &s.broadcasts_refused,
@@ -438,21 +444,23 @@ impl Bridge {
 
     /// While the port is closed (until its next attempt) or opening: follows the
     /// slaves (no port to answer on, but the routing still tracks them), the watchdog
-    /// and a reload's timeouts, until the open ends, the attempt is due or shutdown.
+    /// and a reload's timeouts, until the open ends, the attempt is due (or the port's
+    /// node is back: then it is due now) or shutdown.
     async fn wait_for_port(
         &mut self,
-        state: &mut State,
+        port: &mut Lifecycle,
         (events, retunes): (
-            &mut mpsc::UnboundedReceiver<slave::SlaveEvent>,
+            &mut mpsc::Receiver<slave::SlaveEvent>,
             &mut mpsc::UnboundedReceiver<MasterLine>,
         ),
         shutdown: &CancellationToken,
     ) -> Waited {
-        let retry_at = match state {
+        let watch = &mut port.watch;
+        let retry_at = match &port.state {
             State::Closed { retry_at } => Some(*retry_at),
             _ => None,
         };
-        let mut opening = match state {
+        let mut opening = match &mut port.state {
             State::Opening(o) => Some(o),
             _ => None,
         };
@@ -468,6 +476,7 @@ impl Bridge {
                 _ = shutdown.cancelled() => return Waited::Stop,
                 r = open => return Waited::Opened(r),
                 _ = sleep_until(retry_at.unwrap_or_else(Instant::now)), if retry_at.is_some() => return Waited::Due,
+                _ = watch::changed(watch), if retry_at.is_some() && watch.is_some() => return Waited::NodeChanged,
                 _ = sleep_until(pet_at.unwrap_or_else(Instant::now)), if pet_at.is_some() => self.pet(),
                 Some(ev) = events.recv() => {
                     let actions = self.event(ev);
@@ -482,18 +491,22 @@ impl Bridge {
     /// An open finished at `now`: open, the line starts afresh and says so; or not,
     /// and the next attempt is due later.
     fn opened(&mut self, port: &mut Lifecycle, opened: std::io::Result<OpenPort>, now: Instant) {
+        let m = &self.metrics;
         if let Some(info) = port.opened(opened, now) {
             port.tell_open(&info, "the device is the master");
-            let m = &self.metrics;
             m.port_open.store(1, Ordering::Relaxed);
+            m.port_up(now);
             m.stats.add(&m.stats.serial_opens, 1);
+        } else if let Some(since) = port.down_since() {
+            m.port_down(since);
         }
     }
 
     /// The port was lost: what was read of a request is dropped, and what was held
     /// for the serial master is never answered (it gave up on it).
-    fn closed(&mut self) {
+    fn closed(&mut self, now: Instant) {
         self.metrics.port_open.store(0, Ordering::Relaxed);
+        self.metrics.port_down(now);
         self.requests.clear();
         self.routing.serial_lost();
         self.publish();

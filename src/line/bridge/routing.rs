@@ -56,6 +56,10 @@ pub(crate) struct RoutingCounts {
     pub(crate) unavailable: u64,
     /// Replies that matched nothing outstanding (late, or for a broadcast), dropped.
     pub(crate) late: u64,
+    /// Frames with an outstanding request's id and unit that are no answer to it (a
+    /// request echoed back, another function, a wrong byte count): dropped, the request
+    /// left to its slave's real reply or its timeout.
+    pub(crate) bad_replies: u64,
     /// Broadcasts (unit 0 on RTU/ASCII) sent to every route, unanswered.
     pub(crate) broadcasts: u64,
     /// Requests outside the protocol's limits, answered by mbgate.
@@ -305,8 +309,12 @@ impl Routing {
         out
     }
 
-    /// A frame from route `i`'s slave: the reply to the request with its id, unit and
-    /// function code (or its exception), else dropped.
+    /// A frame from route `i`'s slave: the reply to the request with its id and unit,
+    /// if it is an answer to that request (its function code or its exception, in the
+    /// shape the request calls for: `pdu::reply_matches`), else dropped. A frame that
+    /// only looks like the answer (the request echoed back by a slave that mirrors what
+    /// it gets, a read's reply with the wrong byte count) never reaches the serial
+    /// master: the request waits for its real reply, or its timeout (0x0B).
     pub(crate) fn reply(&mut self, i: usize, adu: &Adu) -> Vec<Action> {
         let mut out = Vec::new();
         let r = &mut self.routes[i];
@@ -314,11 +322,16 @@ impl Routing {
         // may ignore the unit id and answer with either (TCP/IP Implementation Guide
         // §4.4.2). The id is mbgate's own on this connection, so nothing else matches.
         let unit_ok = |asked: u8| adu.unit() == asked || adu.unit() == 0 || adu.unit() == 0xFF;
-        let found = r.in_flight.iter().position(|(tid, h)| {
-            *tid == adu.tid()
-                && unit_ok(h.request.unit)
-                && adu.function() & 0x7F == h.request.pdu[0]
-        });
+        let found = r
+            .in_flight
+            .iter()
+            .position(|(tid, h)| *tid == adu.tid() && unit_ok(h.request.unit));
+        if let Some(at) = found {
+            if !pdu::reply_matches(&r.in_flight[at].1.request.pdu, adu.pdu()) {
+                self.counts.bad_replies += 1;
+                return out;
+            }
+        }
         match found {
             Some(at) => {
                 let (_, held) = r.in_flight.remove(at);
@@ -415,6 +428,7 @@ mod tests {
             peer: Peer::Connect("h:1".into()),
             response_timeout_ms: 100,
             max_in_flight,
+            allow: None,
         };
         MasterLine {
             routes: vec![route(&[1]), route(&[])],
@@ -508,6 +522,26 @@ mod tests {
         assert_eq!(answers(&a), [(Some(7), vec![0x83, 2])]);
         assert_eq!(t.reply(0, &Adu::build(1, 1, &[0x83, 2])), []);
         assert_eq!(t.counts.late, 2);
+    }
+
+    /// A slave that mirrors what it gets (or answers another shape) never has the
+    /// mirror taken for the answer: the request waits for the real reply.
+    #[test]
+    fn a_request_echoed_back_is_no_reply() {
+        let t0 = Instant::now();
+        let mut t = Routing::new(line(1), false);
+        t.up(0);
+        assert_eq!(sent(&t.request(req(7, 1), t0)), [(0, 1, 1)]);
+        // The read itself, mirrored; a reply of 2 registers to a read of 1; another
+        // function; an exception code no server sends.
+        for pdu in [&READ[..], &[3, 4, 0, 1, 0, 2], &[4, 2, 0, 5], &[0x83, 0x55]] {
+            assert_eq!(t.reply(0, &Adu::build(1, 1, pdu)), [], "{pdu:?}");
+        }
+        assert_eq!((t.counts.bad_replies, t.counts.replies), (4, 0));
+        assert_eq!(t.held(0), 1, "still waiting for its reply");
+        let a = t.reply(0, &Adu::build(1, 1, &[3, 2, 0, 5]));
+        assert_eq!(answers(&a), [(Some(7), vec![3, 2, 0, 5])]);
+        assert_eq!((t.counts.bad_replies, t.counts.replies), (4, 1));
     }
 
     #[test]
@@ -630,7 +664,9 @@ mod tests {
             let a = t.reply(0, &Adu::build(tid, as_unit, &[3, 2, 0, 9]));
             assert_eq!(answers(&a), [(Some(7 + tid), vec![3, 2, 0, 9])]);
         }
-        assert_eq!(t.counts.late, 4);
+        // Another unit matches nothing (late); the request's id and unit with another
+        // function is no answer to it.
+        assert_eq!((t.counts.late, t.counts.bad_replies), (2, 2));
     }
 
     /// Shutting down: what is held is still answered (its reply, or 0x0B at its

@@ -8,9 +8,11 @@ use crate::config::master::{Peer, Route};
 use crate::frame::mbap::decode_strict;
 use crate::frame::Adu;
 use crate::line::port::Backoff;
+use crate::masters::access::allow::{RefusedLog, Tell};
 use crate::ops::capture::packet::{Dir, Ends, Packet, Part, Proto};
 use crate::ops::capture::Tap;
-use std::time::Duration;
+use std::net::SocketAddr;
+use std::time::{Duration, Instant};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
@@ -33,6 +35,35 @@ const KEEPALIVE_INTERVAL: Duration = Duration::from_secs(5);
 /// Reconnection delays: from this, doubling, up to the longest.
 const RECONNECT_MIN: Duration = Duration::from_millis(100);
 const RECONNECT_MAX: Duration = Duration::from_secs(2);
+/// Events the routes' tasks may have waiting for the line's loop, all routes
+/// together: past it a slave's frames wait in its socket (TCP pushes back).
+pub(crate) const EVENTS: usize = 64;
+
+/// A passive route's gate: is the slave connecting from `from` taken? One from
+/// outside the route's `allow` list is closed before a byte of it is read (so it can
+/// neither answer the serial master's requests nor replace the slave connected),
+/// and said at most once a minute per source, with the count in between.
+fn admitted(route: &Route, i: usize, from: SocketAddr, refused: &mut RefusedLog) -> bool {
+    let Some(allow) = &route.allow else {
+        return true;
+    };
+    let ip = from.ip().to_canonical();
+    if allow.allows(ip) {
+        return true;
+    }
+    match refused.refused(ip, Instant::now()) {
+        Tell::Quiet => {}
+        Tell::Source { more } => warn!(
+            route = i,
+            "slave connection refused: {ip} is not in the route's allow list ({more} more from it since last said)"
+        ),
+        Tell::Others { count } => warn!(
+            route = i,
+            "slave connections refused from {count} sources not in the route's allow list"
+        ),
+    }
+    false
+}
 
 fn tune(stream: &TcpStream) {
     let _ = stream.set_nodelay(true);
@@ -60,16 +91,17 @@ pub(crate) async fn run(
     route: Route,
     listener: Option<TcpListener>,
     mut frames: mpsc::UnboundedReceiver<Adu>,
-    events: mpsc::UnboundedSender<SlaveEvent>,
+    events: mpsc::Sender<SlaveEvent>,
     (tap, shutdown): (Tap, CancellationToken),
 ) {
     let mut backoff = Backoff::new(RECONNECT_MIN, RECONNECT_MAX);
     let timeout = Duration::from_millis(route.response_timeout_ms);
     let mut reported = false;
     let mut next: Option<TcpStream> = None;
+    let mut refused = RefusedLog::default();
     if listener.is_some() {
         // No slave until one connects in: requests get 0x0A at once meanwhile.
-        let _ = events.send(SlaveEvent::Down(i));
+        let _ = events.send(SlaveEvent::Down(i)).await;
     }
     loop {
         let stream = match (&listener, &route.peer) {
@@ -78,6 +110,7 @@ pub(crate) async fn run(
                 None => tokio::select! {
                     _ = shutdown.cancelled() => return,
                     r = l.accept() => match r {
+                        Ok((_, from)) if !admitted(&route, i, from, &mut refused) => continue,
                         Ok((s, from)) => {
                             info!(route = i, "slave connected from {from}");
                             s
@@ -91,7 +124,7 @@ pub(crate) async fn run(
                 },
             },
             (None, Peer::Connect(addr)) => {
-                let _ = events.send(SlaveEvent::Connecting(i));
+                let _ = events.send(SlaveEvent::Connecting(i)).await;
                 let attempt = tokio::time::timeout(timeout, TcpStream::connect(addr.as_str()));
                 let made = tokio::select! {
                     _ = shutdown.cancelled() => return,
@@ -112,7 +145,7 @@ pub(crate) async fn run(
                             );
                             reported = true;
                         }
-                        let _ = events.send(SlaveEvent::Down(i));
+                        let _ = events.send(SlaveEvent::Down(i)).await;
                         let wait = backoff.next_delay();
                         tokio::select! {
                             _ = shutdown.cancelled() => return,
@@ -126,17 +159,17 @@ pub(crate) async fn run(
         tune(&stream);
         // Frames given for a connection that is gone were answered when it went.
         while frames.try_recv().is_ok() {}
-        let _ = events.send(SlaveEvent::Up(i));
+        let _ = events.send(SlaveEvent::Up(i)).await;
         let end = session(
             i,
             stream,
-            listener.as_ref(),
+            listener.as_ref().map(|l| (l, &route, &mut refused)),
             (&mut frames, &events),
             &tap,
             &shutdown,
         )
         .await;
-        let _ = events.send(SlaveEvent::Down(i));
+        let _ = events.send(SlaveEvent::Down(i)).await;
         match end {
             SlaveEnd::Shutdown => return,
             SlaveEnd::Replaced(s) => next = Some(s),
@@ -181,11 +214,8 @@ fn captured(tap: &Tap, ends: Option<Ends>, adu: &Adu, dir: Dir) {
 async fn session(
     i: usize,
     stream: TcpStream,
-    listener: Option<&TcpListener>,
-    (frames, events): (
-        &mut mpsc::UnboundedReceiver<Adu>,
-        &mpsc::UnboundedSender<SlaveEvent>,
-    ),
+    mut listener: Option<(&TcpListener, &Route, &mut RefusedLog)>,
+    (frames, events): (&mut mpsc::UnboundedReceiver<Adu>, &mpsc::Sender<SlaveEvent>),
     tap: &Tap,
     shutdown: &CancellationToken,
 ) -> SlaveEnd {
@@ -204,7 +234,10 @@ async fn session(
                     match decode_strict(&mut buf) {
                         Ok(Some(adu)) => {
                             captured(tap, ends, &adu, Dir::In);
-                            let _ = events.send(SlaveEvent::Frame(i, adu));
+                            // Awaited: a slave that sends faster than the loop takes
+                            // its frames (the serial port held by flow control) is
+                            // pushed back on TCP, never queued without bound.
+                            let _ = events.send(SlaveEvent::Frame(i, adu)).await;
                         }
                         Ok(None) => break,
                         Err(e) => return SlaveEnd::Lost(format!("not Modbus/TCP: {e}")),
@@ -218,10 +251,13 @@ async fn session(
                     return SlaveEnd::Lost(e.to_string());
                 }
             }
-            r = async { listener.expect("guarded").accept().await }, if listener.is_some() => {
+            r = async { listener.as_ref().expect("guarded").0.accept().await }, if listener.is_some() => {
+                let Some((_, route, refused)) = listener.as_mut() else { continue };
                 if let Ok((s, from)) = r {
-                    info!(route = i, "slave connected again from {from}; the new connection replaces the old");
-                    return SlaveEnd::Replaced(s);
+                    if admitted(route, i, from, refused) {
+                        info!(route = i, "slave connected again from {from}; the new connection replaces the old");
+                        return SlaveEnd::Replaced(s);
+                    }
                 }
             }
         }

@@ -1,9 +1,12 @@
 //! A line's port through its life, the same for every line (the relay's, the master
 //! line's): closed until the next attempt, opening, open; opened and reopened with
-//! backoff, lost; and what the loop asks of an open port (bytes waiting to be read,
-//! the wait until written bytes have left).
+//! backoff, and at once when its device node comes back (`watch.rs`); lost; each
+//! outage said once when it begins and once, with its length, when it ends; and what
+//! the loop asks of an open port (bytes waiting to be read, the wait until written
+//! bytes have left).
 
 use crate::line::port::kind::PortInfo;
+use crate::line::port::watch::NodeWatch;
 use crate::line::port::{self, Backoff, OpenPort, Opening};
 use std::time::Duration;
 use tokio::time::Instant;
@@ -33,7 +36,29 @@ pub(crate) struct Lifecycle {
     baud: u32,
     /// What the log says happens while the port cannot be opened.
     meanwhile: &'static str,
+    /// While closed, a port with a device node: the watch for it to come back
+    /// (waited on with `watch::changed`, then [`Lifecycle::retry_now`]).
+    pub(crate) watch: Option<NodeWatch>,
+    /// When the outage under way began: the port was lost, or its first open failed.
+    down_since: Option<Instant>,
+    /// How long the outage that the last open ended lasted, for its log line.
+    back_after: Option<Duration>,
+    /// When the port last opened: one lost soon after is retried no sooner than the
+    /// backoff says (a node that opens and fails at once is not hammered).
+    opened_at: Option<Instant>,
+    /// When the last open was tried: a wake of the watch brings the next no sooner
+    /// than [`WAKE_GAP`] after it.
+    tried_at: Option<Instant>,
 }
+
+/// The least time between two attempts to open that the watch's wakes bring: a
+/// process that makes and removes the awaited name in a loop (where it may write that
+/// directory) costs at most 50 attempts a second.
+const WAKE_GAP: Duration = Duration::from_millis(20);
+
+/// A port lost after being open this long is retried at once; one lost sooner goes on
+/// with the backoff where it was.
+const STEADY: Duration = Duration::from_secs(1);
 
 impl Lifecycle {
     /// Closed, its first open due at `now`.
@@ -46,6 +71,11 @@ impl Lifecycle {
             warned: false,
             baud,
             meanwhile: "answering 0x0A meanwhile",
+            watch: None,
+            down_since: None,
+            back_after: None,
+            opened_at: None,
+            tried_at: None,
         }
     }
 
@@ -79,6 +109,7 @@ impl Lifecycle {
         if now < retry_at {
             return None;
         }
+        self.tried_at = Some(now);
         match port::open_now(self.transport.open()) {
             Ok(opened) => Some(opened),
             Err(opening) => {
@@ -101,11 +132,18 @@ impl Lifecycle {
             Ok(link) => {
                 let info = link.info.clone();
                 self.state = State::Open(link);
-                self.backoff.reset();
                 self.warned = false;
+                self.watch = None;
+                self.back_after = self
+                    .down_since
+                    .take()
+                    .map(|s| now.saturating_duration_since(s));
+                self.opened_at = Some(now);
                 Some(info)
             }
             Err(e) => {
+                self.down_since.get_or_insert(now);
+                self.watch_for_node();
                 let delay = self.backoff.next_delay();
                 if self.warned {
                     debug!(path = %self.transport.name(), "{kind} still unavailable: {e}");
@@ -125,26 +163,71 @@ impl Lifecycle {
         }
     }
 
-    /// Says the port is open: what it turned out to be (`info`) and how the line
-    /// times it (`timing`).
+    /// Says the port is open: what it turned out to be (`info`), how the line times
+    /// it (`timing`) and, when this open ended an outage, how long that lasted.
     pub(crate) fn tell_open(&self, info: &PortInfo, timing: &str) {
         let kind = self.transport.kind();
-        info!(
-            path = %self.transport.name(),
-            baud = self.baud,
-            "{kind} open: {info}; {timing}"
-        );
+        match self.back_after {
+            Some(d) => info!(
+                path = %self.transport.name(),
+                baud = self.baud,
+                outage_ms = d.as_millis() as u64,
+                "{kind} open: {info}; {timing}; back after an outage of {:.3} s",
+                d.as_secs_f64()
+            ),
+            None => info!(
+                path = %self.transport.name(),
+                baud = self.baud,
+                "{kind} open: {info}; {timing}"
+            ),
+        }
     }
 
-    /// The port failed or its far end went away: closed, reopened with backoff.
+    /// The port failed or its far end went away: closed at once (its descriptor with
+    /// it, so the kernel may give a USB adapter plugged back in its old name), reopened
+    /// with backoff, or as soon as its node is back.
     pub(crate) fn lost(&mut self, why: &str, now: Instant) {
         let kind = self.transport.kind();
-        warn!(path = %self.transport.name(), "{kind} lost: {why}; reopening with backoff");
+        warn!(
+            path = %self.transport.name(),
+            "{kind} lost: {why}; reopening with backoff, {}",
+            self.meanwhile
+        );
+        if self
+            .opened_at
+            .is_some_and(|at| now.saturating_duration_since(at) >= STEADY)
+        {
+            self.backoff.reset();
+        }
         self.state = State::Closed {
             retry_at: now + self.backoff.next_delay(),
         };
         self.warned = true;
         self.drain = None;
+        self.down_since = Some(now);
+        self.watch_for_node();
+    }
+
+    /// When the outage under way began, if the port is in one.
+    pub(crate) fn down_since(&self) -> Option<Instant> {
+        self.down_since
+    }
+
+    /// Watches for the port's device node to come back, where it has one (a serial
+    /// port: the path as configured, links followed anew each time).
+    fn watch_for_node(&mut self) {
+        match &mut self.watch {
+            Some(w) => w.rearm(),
+            None => self.watch = self.transport.node().and_then(NodeWatch::new),
+        }
+    }
+
+    /// The node may be back: the next open is due now, or [`WAKE_GAP`] after the last.
+    pub(crate) fn retry_now(&mut self, now: Instant) {
+        let soonest = self.tried_at.map_or(now, |t| now.max(t + WAKE_GAP));
+        if let State::Closed { retry_at } = &mut self.state {
+            *retry_at = soonest.min(*retry_at);
+        }
     }
 
     /// Has the port received bytes the relay has not read yet?
@@ -192,5 +275,55 @@ impl Lifecycle {
     /// How long `bytes` take on the wire.
     pub(crate) fn wire_time(&self, bytes: usize) -> Duration {
         self.transport.wire_time(bytes)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A port that is never there.
+    struct Missing;
+
+    impl port::Port for Missing {
+        fn kind(&self) -> &'static str {
+            "serial port"
+        }
+        fn name(&self) -> &str {
+            "/nonexistent/ttyUSB0"
+        }
+        fn open(&mut self) -> Opening {
+            Box::pin(async { Err(std::io::Error::from(std::io::ErrorKind::NotFound)) })
+        }
+        fn wire_time(&self, _: usize) -> Duration {
+            Duration::ZERO
+        }
+    }
+
+    /// A wake of the watch makes the next attempt due at once, but never sooner than
+    /// WAKE_GAP after the last (a name made and removed in a loop is not a loop of
+    /// opens), and never later than the backoff had it.
+    #[test]
+    fn a_wake_brings_the_next_attempt_forward_no_closer_than_the_gap() {
+        let t0 = Instant::now();
+        let mut port = Lifecycle::new(Box::new(Missing), 9600, t0);
+        let failed = port.open_if_due(t0).expect("due at once");
+        assert!(port.opened(failed, t0).is_none());
+        assert_eq!(port.down_since(), Some(t0));
+        assert_eq!(port.retry_at(), Some(t0 + Duration::from_millis(100)));
+        port.retry_now(t0 + Duration::from_millis(5));
+        assert_eq!(port.retry_at(), Some(t0 + WAKE_GAP));
+        port.retry_now(t0 + Duration::from_millis(50));
+        assert_eq!(
+            port.retry_at(),
+            Some(t0 + WAKE_GAP),
+            "not later than it was"
+        );
+        let at = t0 + Duration::from_millis(60);
+        let failed = port.open_if_due(at).expect("due");
+        port.opened(failed, at);
+        assert_eq!(port.down_since(), Some(t0), "the same outage");
+        port.retry_now(at);
+        assert_eq!(port.retry_at(), Some(at + WAKE_GAP));
     }
 }

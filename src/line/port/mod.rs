@@ -12,6 +12,7 @@ pub mod kind;
 pub(crate) mod lifecycle;
 pub mod serial;
 pub(crate) mod tcp;
+pub(crate) mod watch;
 
 use std::future::Future;
 use std::io;
@@ -98,6 +99,11 @@ pub trait Port: Send {
     fn open(&mut self) -> Opening;
     /// How long `bytes` take on the wire; zero for a transport with no line speed.
     fn wire_time(&self, bytes: usize) -> Duration;
+    /// The device node it opens, watched while it is missing so that it is reopened
+    /// as soon as it is back (`watch.rs`); none for a transport without one.
+    fn node(&self) -> Option<&std::path::Path> {
+        None
+    }
 }
 
 /// Delays between attempts to (re)open a port: doubling from `min` up to `max`.

@@ -1,5 +1,6 @@
 //! What the relay's loop waits on, as one [`Event`]: a command from a connection, bytes
-//! from the port, room to write, the end of a drain, an open that finished, the next
+//! from the port, room to write, the end of a drain, an open that finished, the closed
+//! port's device node back, the next
 //! timer (to the microsecond, on a timerfd set only when the next wake moves: no
 //! self-wake of tokio's reactor for each new deadline), or shutdown. The waiting only: the loop decides what each event means.
 
@@ -24,6 +25,8 @@ pub(super) enum Event {
     /// When the last byte left (the drain thread's clock), or why it cannot tell.
     Drained(std::io::Result<std::time::Instant>),
     Opened(std::io::Result<OpenPort>),
+    /// The closed port's device node may be back (`crate::line::port::watch`).
+    NodeChanged,
     Timer,
     Shutdown,
 }
@@ -64,7 +67,12 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
     } = src;
     // Tokio's timer, where there is no timerfd (or it failed): made when first needed.
     let mut sleep: Option<Pin<Box<tokio::time::Sleep>>> = None;
-    let Lifecycle { state, drain, .. } = port;
+    let Lifecycle {
+        state,
+        drain,
+        watch,
+        ..
+    } = port;
     poll_fn(move |cx| {
         // Biased, bytes first: a timer that finds bytes waiting must not take the
         // line for quiet (a held reply would be refuted, a frame cut).
@@ -96,9 +104,15 @@ pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]
                     return Poll::Ready(event);
                 }
             }
+            // Until the next attempt, or the node back, whichever comes first.
             State::Closed { .. } => {
                 if let Some(event) = poll_command(cx, &mut commands) {
                     return Poll::Ready(event);
+                }
+                if let Some(w) = watch {
+                    if w.poll_changed(cx).is_ready() {
+                        return Poll::Ready(Event::NodeChanged);
+                    }
                 }
             }
         }

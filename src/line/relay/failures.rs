@@ -11,17 +11,21 @@ use tokio::time::Instant;
 use tracing::{debug, info, warn};
 
 impl Relay {
-    /// Requests past their deadline fail.
+    /// Requests past their deadline fail; one whose reply came in time and is held
+    /// until the line has been quiet after it (RTU/ASCII) waits for that.
     pub(super) fn expire(&mut self, now: Instant) {
+        if let Some((tid, until)) = self.line.confirming() {
+            self.in_flight.hold_until(tid, until);
+        }
         for f in self.in_flight.take_expired(now) {
             // A request timed out with the transmitter still on (its bytes held back,
             // or a UART that never says it is empty): off, so the bus is not held.
             self.switch_off(now);
             let hold = self.in_flight.hold_after_timeout(&f);
             self.line.timed_out(now, hold, &self.stats);
-            self.line.unanswered(f.req.adu.unit());
             self.telemetry.timed_out(f.req.conn(), &f.req.adu, now);
-            if self.out.withdraw(f.tid) {
+            let never_left = self.out.withdraw(f.tid);
+            if never_left {
                 // Flow control held it back (CTS low) the whole time: it never left,
                 // and must not act on the device after the master was told 0x0B.
                 warn!(
@@ -29,7 +33,15 @@ impl Relay {
                     "request could not be written in time (is CTS held low?)"
                 );
             }
-            self.withdraw_output();
+            if self.withdraw_output() == 0 && !never_left {
+                // The device may have read it whole, and answer it after any it
+                // holds: its unit owes that answer (docs/reliability.md "RTU and
+                // ASCII", 6).
+                let unit = f.req.adu.unit();
+                let left = f.deadline.checked_sub(f.timeout).unwrap_or(now);
+                let whole = self.in_flight.whole_timeout(unit).max(f.timeout);
+                self.line.unanswered(unit, left, whole, now);
+            }
             self.failed(f, Failure::Timeout, now);
         }
     }
@@ -40,20 +52,26 @@ impl Relay {
     /// it later in place of the next (docs/reliability.md "RTU and ASCII", 6). Not on
     /// MBAP, where a frame cut in two would put the device's parser out of step, and
     /// a late answer is known by its id anyway.
-    fn withdraw_output(&mut self) {
+    /// Returns how many bytes were withdrawn: any, and the device never read the
+    /// request whole.
+    fn withdraw_output(&mut self) -> usize {
         if !self.line.is_serial() {
-            return;
+            return 0;
         }
         match self.port.withdraw_output() {
-            Ok(0) => {}
+            Ok(0) => 0,
             Ok(n) => {
                 self.stats.add(&self.stats.withdrawn_bytes, n as u64);
                 warn!(
                     bytes = n,
                     "a request that timed out had not left the port: withdrawn from its output queue (is CTS held low, or the adapter stalled?)"
                 );
+                n
             }
-            Err(e) => debug!("the port's output queue could not be asked: {e}"),
+            Err(e) => {
+                debug!("the port's output queue could not be asked: {e}");
+                0
+            }
         }
     }
 

@@ -132,6 +132,15 @@ impl<R: Asked> InFlight<R> {
         }
     }
 
+    /// `unit`'s whole response timeout: the fixed one, or a learned one's ceiling
+    /// (the longest its replies may take).
+    pub(super) fn whole_timeout(&self, unit: u8) -> Duration {
+        match self.policy(unit).timeout {
+            Timeout::Fixed(t) => t,
+            Timeout::Learned { ceiling, .. } => ceiling,
+        }
+    }
+
     /// `unit`'s response timeout now: fixed, or as learned so far.
     fn response_timeout(&mut self, unit: u8) -> Duration {
         match self.policies[usize::from(unit)].timeout {
@@ -183,6 +192,25 @@ impl<R: Asked> InFlight<R> {
         for f in &mut self.entries {
             f.deadline = left + f.timeout;
         }
+    }
+
+    /// Request `tid` got its reply in time, held until `until` (RTU/ASCII: the quiet
+    /// after it confirms it): it stays on the line until then. Its response time
+    /// stretches with its deadline, so the instant it left (the deadline less the
+    /// response time) stays what it was.
+    pub(super) fn hold_until(&mut self, tid: u16, until: Instant) {
+        if let Some(f) = self.entries.iter_mut().find(|f| f.tid == tid) {
+            if until > f.deadline {
+                f.timeout += until - f.deadline;
+                f.deadline = until;
+            }
+        }
+    }
+
+    /// `unit` was heard (RTU/ASCII: a frame that paid an answer it owed): it is
+    /// alive, and no longer counted as not answering.
+    pub(super) fn heard(&mut self, unit: u8) {
+        self.units.answered(unit);
     }
 
     /// Takes request `tid` off the line (its reply failed), if it is on it.
@@ -644,7 +672,7 @@ mod tests {
         fn a_learned_timeout_keeps_the_guard_after_its_ceiling(
             floor_ms in 1u64..200,
             above_ms in 0u64..2000,
-            guard_ms in 0u64..500,
+            guard_ms in 1u64..500,
             pause_ms in 0u64..300,
             reply_ms in 1u64..1000,
             replies in 0usize..40,

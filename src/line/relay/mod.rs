@@ -335,6 +335,7 @@ impl Relay {
             Event::Wrote(Ok(n)) => self.wrote(n, polled, now),
             Event::Wrote(Err(e)) => self.port_lost(&format!("write failed: {e}"), now),
             Event::Opened(r) => self.opened(r, now),
+            Event::NodeChanged => self.port.retry_now(now),
             Event::Drained(r) => {
                 self.port.drain = None;
                 let left = match r {

@@ -1,6 +1,7 @@
 //! The loop's side of the port's life: opened (the line starts afresh), lost (what
-//! waited on it answered 0x0A or 0x0B, reopened with backoff), and the drain at
-//! shutdown (the queue answered 0x0A, the requests on the line let finish).
+//! waited on it answered 0x0A or 0x0B, reopened with backoff or when its node is
+//! back), each outage counted on the metrics board, and the drain at shutdown (the
+//! queue answered 0x0A, the requests on the line let finish).
 
 use super::Relay;
 use crate::line::outbox::Refusal;
@@ -20,16 +21,21 @@ impl Relay {
 
     /// An open finished: the line starts afresh, or the next attempt is due later.
     pub(super) fn opened(&mut self, opened: std::io::Result<OpenPort>, now: Instant) {
-        if let Some(info) = self.port.opened(opened, now) {
-            self.line.clear(&self.stats);
-            if let Some(t) = &mut self.turnaround {
-                // The switch was taken off with the port.
-                t.reset();
+        let Some(info) = self.port.opened(opened, now) else {
+            if let Some(since) = self.port.down_since() {
+                self.telemetry.metrics.port_down(since);
             }
-            let timing = self.line.port_opened(&info);
-            self.port.tell_open(&info, &timing);
-            self.stats.add(&self.stats.serial_opens, 1);
+            return;
+        };
+        self.telemetry.metrics.port_up(now);
+        self.line.clear(&self.stats);
+        if let Some(t) = &mut self.turnaround {
+            // The switch was taken off with the port.
+            t.reset();
         }
+        let timing = self.line.port_opened(&info);
+        self.port.tell_open(&info, &timing);
+        self.stats.add(&self.stats.serial_opens, 1);
     }
 
     /// The port failed or its far end went away: answer everything waiting on it, and
@@ -43,6 +49,7 @@ impl Relay {
             t.abort();
         }
         self.port.lost(why, now);
+        self.telemetry.metrics.port_down(now);
         self.line.clear(&self.stats);
         for f in self.in_flight.take_all() {
             self.line.retire(f.tid, now);

@@ -29,6 +29,8 @@ impl Relay {
                         self.failed(f, Failure::Corrupt, now);
                     }
                 }
+                // A late answer: its unit is alive, whatever it answered.
+                Seen::Heard(unit) => self.in_flight.heard(unit),
             }
         }
         self.seen = all;

@@ -9,6 +9,15 @@ use std::net::IpAddr;
 use std::str::FromStr;
 use std::time::{Duration, Instant};
 
+/// The source a budget or a log counts by: an IPv4 address (an IPv4-mapped one as the
+/// IPv4 address it is), or an IPv6 /64, which one host is commonly given whole.
+pub(crate) fn source_of(ip: IpAddr) -> IpAddr {
+    match ip.to_canonical() {
+        IpAddr::V6(v6) => IpAddr::V6((u128::from(v6) & !u128::from(u64::MAX)).into()),
+        v4 => v4,
+    }
+}
+
 /// One entry of an allow list: an address and how many of its leading bits must match
 /// (32 or 128 for a single address). Held in canonical form: an IPv4-mapped IPv6 block
 /// (`::ffff:10.0.0.0/104`) is stored as the IPv4 block it covers (`10.0.0.0/8`).

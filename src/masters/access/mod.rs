@@ -6,5 +6,6 @@
 pub mod allow;
 pub mod rules;
 
+pub(crate) use allow::source_of;
 pub use allow::{AllowList, Net, NetError};
 pub use rules::{decide, Denied, Policy, UnitSet, Why, WriteRule};

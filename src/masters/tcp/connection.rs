@@ -6,7 +6,7 @@
 
 use super::codec::{self, MasterCodec};
 use super::{echo, Shared};
-use crate::config::{Config, ListenConfig, ListenFraming};
+use crate::config::{Config, ListenConfig, ListenFraming, Transport};
 use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::line::relay::ConnId;
@@ -47,6 +47,8 @@ pub(super) struct Connection {
     /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
     /// its identity the server may send back (docs/dialing.md).
     pub(super) dialed: Option<Dialed>,
+    /// Where answers it sends instead of requests are said.
+    pub(super) unasked: Arc<super::unasked::UnaskedLog>,
 }
 
 /// What a dialed connection sends of its own, and the echoes it may get back.
@@ -55,6 +57,9 @@ pub(super) struct Dialed {
     pub(super) heartbeat: Vec<u8>,
     pub(super) every: Duration,
     pub(super) echoes: Mutex<echo::Echoes>,
+    /// The last reply written that reads as a request (a write's): its echo is no
+    /// request (`tcp/reflect.rs`).
+    pub(super) replied: Mutex<super::reflect::Loops>,
     /// How long the server may leave a reply unread before the connection is closed
     /// (and dialed again): never for ever, since mbgate has no other way to it.
     pub(super) stall: Duration,
@@ -115,6 +120,7 @@ impl Connection {
             capture: shared.capture.clone(),
             tap: shared.capture.tap(0),
             dialed: None,
+            unasked: shared.unasked.clone(),
         }
     }
 
@@ -220,7 +226,9 @@ impl Connection {
             1
         };
         let (outbox, inbox) = Outbox::new(pending);
-        let attached = !C::IDS || self.router.attach(self.id, &outbox.notifier());
+        // A UDP source gets them through an outbox of its own, if at all (`tcp/udp.rs`).
+        let notified = C::IDS && self.listen.transport != Transport::Udp;
+        let attached = !notified || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs
         // now; told under its lock, so a reload's new classes never arrive before
         // the old one (src/ops/reload/mod.rs `reclassify`).

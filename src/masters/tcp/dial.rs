@@ -67,7 +67,7 @@ pub(super) enum DialError {
     HandshakeTimeout(Duration),
     #[error("the server presented no certificate")]
     NoCertificate,
-    #[error("the server is refused: {0}")]
+    #[error("the server is refused: {}", refused(.0))]
     Refused(RoleRefused),
     #[error("the identity could not be sent: {0}")]
     Identity(std::io::Error),
@@ -75,6 +75,17 @@ pub(super) enum DialError {
     IdentityTimeout(Duration),
     #[error("the connection to {peer} ended: {why}")]
     Ended { peer: SocketAddr, why: Ended },
+}
+
+/// Why a server's certificate is refused, in a dial's words: the role a certificate
+/// without one takes is the dial's own `tls.default_role`, not a listener's.
+fn refused(why: &RoleRefused) -> String {
+    match why {
+        RoleRefused::NoRole { subject } => format!(
+            "the certificate of {subject:?} carries no Modbus role and the dial has no tls.default_role"
+        ),
+        other => other.to_string(),
+    }
 }
 
 /// Dials `dial` (`name`: `dial[0]`) until shutdown; its counters are `shared.stats`.
@@ -206,10 +217,17 @@ fn connection(
         dialed: Some(Dialed {
             heartbeat: dial.heartbeat.clone(),
             every: Duration::from_millis(dial.heartbeat_ms),
+            // An answer to the identity or a heartbeat is owed until the server
+            // answered, or for as long as the dial waits for any of its answers; no
+            // more bytes are held for it than the replies the connection can be owed.
             echoes: Mutex::new(echo::Echoes::new(
                 dial.identity.clone(),
                 dial.heartbeat.clone(),
+                Duration::from_millis(dial.connect_timeout_ms),
+                super::send_buffer(shared.cfg.max_pending_per_connection()) as usize,
+                Instant::now(),
             )),
+            replied: Mutex::new(super::reflect::Loops::new(Instant::now())),
             stall: Duration::from_millis(match dial.idle_timeout_ms {
                 0 => dial.connect_timeout_ms,
                 idle => idle,
@@ -450,5 +468,29 @@ impl Dials {
                 self.tally.close(&r.stats);
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A server refused for want of a role is told in a dial's words: the dial's
+    /// `tls.default_role`, not a listener's.
+    #[test]
+    fn a_server_without_a_role_is_refused_in_a_dials_words() {
+        let no_role = DialError::Refused(RoleRefused::NoRole {
+            subject: "CN=scada".into(),
+        });
+        assert_eq!(
+            no_role.to_string(),
+            "the server is refused: the certificate of \"CN=scada\" carries no Modbus role \
+             and the dial has no tls.default_role"
+        );
+        let unknown = DialError::Refused(RoleRefused::Unknown {
+            subject: "CN=scada".into(),
+            role: "boss".into(),
+        });
+        assert!(unknown.to_string().contains("which no [[role]] names"));
     }
 }

@@ -31,9 +31,12 @@ pub(crate) mod dial;
 mod echo;
 mod handshakes;
 mod reader;
+mod reflect;
 mod rtu;
+mod sources;
 pub(crate) mod tally;
 pub(crate) mod udp;
+pub(crate) mod unasked;
 mod writer;
 
 pub(crate) use accept::accept_loop;
@@ -98,6 +101,8 @@ pub(crate) struct Shared {
     pub(crate) masters: Arc<ConnectedMasters>,
     /// The capture (docs/capture.md): the TCP side is its interface 0.
     pub(crate) capture: Hub,
+    /// Answers masters sent where requests belong, said once a minute per listener.
+    pub(crate) unasked: Arc<unasked::UnaskedLog>,
 }
 
 /// One listener as the accept loop runs it: its configuration, its name in the file

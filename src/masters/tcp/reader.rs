@@ -1,11 +1,12 @@
 //! A master's connection reading its requests: the bytes read decoded by its codec
-//! (strictly checked; a dialed server's echoes and answers taken off first,
-//! `tcp/echo.rs`), one pipelining slot per request, the idle timeout, and each
-//! request checked against the access rules (docs/security.md) before it goes to the
-//! line serving its unit ([`crate::masters::router`]).
+//! (strictly checked; on a dialed connection, the server's echoes and answers told
+//! apart from its requests first, `tcp/echo.rs`), one pipelining slot per request,
+//! the idle timeout, and each request checked against the access rules
+//! (docs/security.md) before it goes to the line serving its unit
+//! ([`crate::masters::router`]).
 
-use super::codec::{self, MasterCodec};
-use super::connection::{Connection, End, Ended};
+use super::codec::MasterCodec;
+use super::connection::{Connection, Dialed, End, Ended};
 use super::{echo, rtu};
 use crate::frame::hex::Hex;
 use crate::frame::pdu;
@@ -21,6 +22,14 @@ use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncReadExt};
 use tokio::time::Instant;
 use tracing::{debug, info, warn};
+
+/// What ends a wait for bytes besides them: the codec's pause (a request of unknown
+/// shape), or the instant a dialed server's held bytes are judged.
+#[derive(Clone, Copy)]
+enum Wake {
+    After(Duration),
+    At(Instant),
+}
 
 impl Connection {
     pub(super) async fn read_loop<C: MasterCodec>(
@@ -46,15 +55,33 @@ impl Connection {
         // Bytes were read since the clock was last read for them. The idle clock runs
         // from the master's last byte or its last reply, whichever is later, and a
         // request read is always followed by its reply (or by its end without one,
-        // which counts as a reply): the time of a read is needed only when it leaves
-        // bytes that are no whole request yet, or on a dialed connection, whose echoes
-        // get no reply. A clock reading less a transaction.
+        // which counts as a reply, an answer dropped unanswered too): the time of a
+        // read is needed only when it leaves bytes that are no whole request yet. A
+        // clock reading less a transaction. (A dialed connection reads it at each
+        // read: its echoes get no reply, and its pauses are judged from it.)
         let mut unread_clock = false;
+        // A dialed connection: when its server's last bytes came (its idle clock runs
+        // from its last request, not from bytes that answer mbgate's own).
+        let mut came = last_read;
+        // The master closed its sending side once already.
+        let mut ended = false;
         loop {
-            let decoded = match self.echo_in(&mut buf) {
-                echo::Strip::Took => continue,
-                echo::Strip::Wait => Ok(None),
-                echo::Strip::Not => codec.decode(&mut buf),
+            // `held`: what a dialed server sent is held, until that instant if any.
+            let (decoded, held) = match &self.dialed {
+                None => (codec.decode(&mut buf), None),
+                Some(d) => match self.dialed_front(d, &mut buf, &mut codec) {
+                    echo::Front::Answered(_) => continue,
+                    echo::Front::Wait(at) => (Ok(None), Some(at.map(Wake::At))),
+                    echo::Front::Decoded(decoded) => {
+                        if let Ok(Some(adu)) = &decoded {
+                            if self.came_back::<C>(d, adu) {
+                                continue;
+                            }
+                            last_read = came;
+                        }
+                        (decoded, None)
+                    }
+                },
             };
             match decoded {
                 Ok(Some(adu)) => {
@@ -68,7 +95,6 @@ impl Connection {
                     continue;
                 }
                 Ok(None) => {}
-                Err(e) if self.answer_in(&mut buf, &e) => continue,
                 Err(e) => {
                     if self.tap.on() {
                         // What a capture shows of them: a frame's worth, and a few more.
@@ -85,15 +111,22 @@ impl Connection {
                     return End::Closed(Ended::Violation(e));
                 }
             }
-            if std::mem::take(&mut unread_clock) && (!buf.is_empty() || self.dialed.is_some()) {
+            if std::mem::take(&mut unread_clock) && !buf.is_empty() {
                 last_read = Instant::now();
             }
-            let pause = codec.ended_by_pause(&buf);
+            let wake = match held {
+                Some(held) => held,
+                None => codec.ended_by_pause(&buf).map(Wake::After),
+            };
             tokio::select! {
-                // Made only when polled: a disabled branch's future is still made,
-                // and a sleep reads the clock.
-                _ = async { tokio::time::sleep(pause.unwrap_or_default()).await }, if pause.is_some() => codec.paused(),
+                // Bytes first: a pause is only ever one where no byte came.
+                biased;
                 r = rd.read_buf(&mut buf) => match r {
+                    Ok(0) if !ended && self.ended_dialed(&buf) => {
+                        // What a dialed server sent last is judged first: no byte
+                        // will join it.
+                        ended = true;
+                    }
                     Ok(0) => {
                         // A shutdown of the master's sending side (`shutdown(SHUT_WR)`,
                         // `nc -N`): no more requests, but it still awaits its replies.
@@ -105,18 +138,37 @@ impl Connection {
                         );
                         return End::Finish;
                     }
-                    Ok(_) => unread_clock = true,
+                    Ok(_) => match &self.dialed {
+                        None => unread_clock = true,
+                        Some(d) => {
+                            came = Instant::now();
+                            d.echoes.lock().expect("not poisoned").came(came);
+                        }
+                    },
                     Err(e) => {
                         debug!(conn = self.id, "read failed: {e}");
                         return End::Closed(Ended::Read(e));
                     }
                 },
+                // Made only when polled: a disabled branch's future is still made,
+                // and a sleep reads the clock.
+                _ = async {
+                    match wake {
+                        Some(Wake::After(d)) => tokio::time::sleep(d).await,
+                        Some(Wake::At(at)) => tokio::time::sleep_until(at).await,
+                        None => {}
+                    }
+                }, if wake.is_some() => match wake {
+                    Some(Wake::At(_)) => self.paused_dialed(),
+                    _ => codec.paused(),
+                },
                 _ = async { idle_timer.as_mut().expect("guarded").await }, if idle_timer.is_some() => {
                     // Idle means the master owes nothing and is owed nothing: the clock
-                    // runs from its last byte or its last reply, whichever is later,
-                    // and only while no request of its is unanswered. A partial frame
-                    // that stopped growing is idle too: a master gone mid-frame must
-                    // not hold its connection slot for ever.
+                    // runs from its last byte (a dialed server's: its last request;
+                    // echoes and answers of heartbeats are none) or its last reply,
+                    // whichever is later, and only while no request of its is
+                    // unanswered. A partial frame that stopped growing is idle too: a
+                    // master gone mid-frame must not hold its connection slot for ever.
                     let now = Instant::now();
                     let wake = match outbox.idle_at(last_read, idle) {
                         None => now + idle,
@@ -150,6 +202,13 @@ impl Connection {
     /// Either way the answer goes through its ticket, so it keeps its place in the
     /// master's order.
     fn submit(&self, adu: Adu, ticket: Ticket) {
+        // An answer is never answered: two peers that answer everything would loop
+        // (docs/security.md "Threat model"). Its ticket goes unanswered.
+        if let Some(what) = pdu::not_a_request(adu.pdu()) {
+            self.unasked(what, &adu);
+            drop(ticket);
+            return;
+        }
         if let Err(code) = pdu::check_request(adu.pdu()) {
             debug!(
                 conn = self.id,
@@ -181,37 +240,69 @@ impl Connection {
         }
     }
 
-    /// A dialed connection's echoes at the front of `buf` (docs/dialing.md).
-    fn echo_in(&self, buf: &mut BytesMut) -> echo::Strip {
-        let Some(d) = &self.dialed else {
-            return echo::Strip::Not;
-        };
-        let strip = d.echoes.lock().expect("not poisoned").strip(buf);
-        if let echo::Strip::Took = strip {
-            debug!(
-                conn = self.id,
-                "the server echoed a heartbeat or the identity: dropped"
-            );
+    /// On a dialed connection, what the front of `buf` is (`tcp/echo.rs`): the
+    /// server's echo or answer taken off (counted, said once a connection at info,
+    /// then at debug), bytes held until a pause, or the codec's request.
+    fn dialed_front<C: MasterCodec>(
+        &self,
+        d: &Dialed,
+        buf: &mut BytesMut,
+        codec: &mut C,
+    ) -> echo::Front {
+        let mut echoes = d.echoes.lock().expect("not poisoned");
+        let front = echoes.next(buf, codec);
+        if let echo::Front::Answered(answered) = front {
+            self.stats.add(&self.stats.dial_answers, 1);
+            let first = echoes.first(answered);
+            drop(echoes);
+            let (what, n) = match answered {
+                echo::Answered::Echo(n) => ("echoed the identity or a heartbeat", n),
+                echo::Answered::Answer(n) => ("answered the identity or a heartbeat", n),
+            };
+            if first {
+                info!(conn = self.id, peer = %self.peer, "the server {what} ({n} bytes): dropped, never relayed (said once a connection; counted in dial_answers)");
+            } else {
+                debug!(conn = self.id, bytes = n, "the server {what}: dropped");
+            }
         }
-        strip
+        front
     }
 
-    /// Bytes the framing refused (`e`) that are the server's own answer to the
-    /// identity or a heartbeat (docs/dialing.md "What the server must do"): dropped
-    /// and counted, the connection kept. `false`: they break the protocol.
-    fn answer_in(&self, buf: &mut BytesMut, e: &codec::FrameError) -> bool {
-        let Some(d) = &self.dialed else {
+    /// Is `adu`, from a dialed server, the very reply last written to it come back
+    /// (a server that echoes every byte sends a write's reply back, and it reads as
+    /// the write)? Counted and said as an answer not answered; its bytes are gone.
+    fn came_back<C: MasterCodec>(&self, d: &Dialed, adu: &Adu) -> bool {
+        let frame = C::frame(adu);
+        let replied = d.replied.lock().expect("not poisoned");
+        if !replied.came_back(&frame, Instant::now()) {
             return false;
-        };
-        let Some(n) = d.echoes.lock().expect("not poisoned").answer(buf) else {
-            return false;
-        };
-        self.stats.add(&self.stats.dial_answers, 1);
-        debug!(
-            conn = self.id,
-            bytes = n,
-            "the server answered the identity or a heartbeat ({e}): dropped"
-        );
+        }
+        drop(replied);
+        let what = super::unasked::Unasked::Reflected;
+        self.unasked
+            .note(what, &self.stats, self.peer, self.local, adu.as_bytes());
         true
+    }
+
+    /// A dialed server closed its sending side with bytes held (`buf`): true if they
+    /// are to be judged before the reader ends.
+    fn ended_dialed(&self, buf: &BytesMut) -> bool {
+        match &self.dialed {
+            Some(d) if !buf.is_empty() => {
+                d.echoes.lock().expect("not poisoned").ended();
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// A dialed connection's reader waited for a pause and no byte came.
+    fn paused_dialed(&self) {
+        if let Some(d) = &self.dialed {
+            d.echoes
+                .lock()
+                .expect("not poisoned")
+                .paused(Instant::now());
+        }
     }
 }

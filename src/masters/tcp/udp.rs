@@ -4,19 +4,31 @@
 //! access, per-master order, metrics), its requests handed to the line by the receive
 //! loop itself and its replies sent by its writer: a source whose pipelining slots
 //! are all in use has its next datagrams dropped, so a flood from one address takes no
-//! more of the line than one master's share (`max_pending_per_connection`). A datagram that is not exactly one well-formed MBAP
-//! request is dropped and counted, and closes nothing. At most `max_connections`
-//! sources at once; one quiet for `idle_timeout_ms` is forgotten.
+//! more of the line than one master's share (`max_pending_per_connection`). A datagram
+//! that is not exactly one well-formed MBAP request is dropped and counted, and closes
+//! nothing; one that is an answer (an exception, a reply's shape, or the very reply
+//! its source was just sent, come back) is never answered (`tcp/unasked.rs`), and a
+//! source's exception replies have a budget (`tcp/reflect.rs`), so no loop with
+//! another server lasts. At most `max_connections` sources at once, the quietest owed
+//! nothing forgotten for a new one (`tcp/sources.rs`); one quiet for `idle_timeout_ms`
+//! is forgotten; the lines' notifications reach a source only with `notifications =
+//! true`, and only for [`NOTIFIED_FOR`] after its last request. A listener stopped
+//! (a reload, shutdown) writes the replies its sources are owed first.
 
 use super::codec::Mbap;
+use super::reflect::Guard;
+use super::sources::{SourceTable, TableSource};
 use super::tally::SourceTally;
+use super::unasked::Unasked;
 use super::{admit, Connection, Listening, Shared};
-use crate::config::{ListenConfig, Transport};
+use crate::config::{ListenConfig, Transport, NOTIFIED_FOR};
+use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
+use crate::frame::pdu::{not_a_request, NotRequest};
 use crate::frame::Adu;
-use crate::line::outbox::Outbox;
+use crate::line::outbox::{Inbox, Outbox};
+use crate::ops::capture::packet::Dir;
 use bytes::BytesMut;
-use std::collections::HashMap;
 use std::future::Future;
 use std::io;
 use std::net::SocketAddr;
@@ -28,6 +40,7 @@ use tokio::io::AsyncWrite;
 use tokio::net::UdpSocket;
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
+use tokio_util::task::TaskTracker;
 use tracing::debug;
 
 /// Binds a UDP listener.
@@ -37,42 +50,95 @@ pub(crate) fn bind(addr: SocketAddr) -> io::Result<UdpSocket> {
     UdpSocket::from_std(socket)
 }
 
-/// `d` as one MBAP request, strictly checked; `None` unless it is exactly one.
-fn one_request(d: &[u8]) -> Option<Adu> {
+/// Why a datagram is not taken as a request.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Unfit {
+    /// Not exactly one well-formed MBAP frame (`datagrams_dropped`).
+    Malformed,
+    /// An answer, never answered (`not_requests`).
+    Answer(NotRequest),
+}
+
+/// `d` as one MBAP request, strictly checked, and no answer (the rule every listener
+/// and dial drops answers by, `frame::pdu::not_a_request`).
+fn one_request(d: &[u8]) -> Result<Adu, Unfit> {
     let mut buf = BytesMut::from(d);
     match decode_strict(&mut buf) {
-        Ok(Some(adu)) if buf.is_empty() => Some(adu),
-        _ => None,
+        Ok(Some(adu)) if buf.is_empty() => match not_a_request(adu.pdu()) {
+            None => Ok(adu),
+            Some(what) => Err(Unfit::Answer(what)),
+        },
+        _ => Err(Unfit::Malformed),
     }
 }
 
 /// One source: its connection, the outbox its requests take tickets from (here, in
-/// the receive loop: no task between a datagram and the line), when it last sent,
-/// and whether its writer has ended.
+/// the receive loop: no task between a datagram and the line), the outbox the lines
+/// send it notifications through (`notifications = true`), when it last sent, whether
+/// its writer has ended, and its loop guards.
 struct Source {
     conn: Arc<Connection>,
     outbox: Outbox,
+    notes: Option<Outbox>,
     last: Instant,
     gone: CancellationToken,
+    guard: Arc<Guard>,
 }
 
 impl Source {
-    /// Its connection begun and its writer running on the tracker; `None`: the
-    /// gateway is stopping.
-    fn start(conn: Connection, socket: &Arc<UdpSocket>, shared: &Shared) -> Option<Source> {
+    /// Its connection begun and its writer running on the tracker, with notifications
+    /// if `notified`; `None`: the gateway is stopping.
+    fn start(
+        conn: Connection,
+        socket: &Arc<UdpSocket>,
+        shared: &Shared,
+        notified: bool,
+    ) -> Option<Source> {
         let conn = Arc::new(conn);
         let Some((outbox, inbox)) = conn.begin::<Mbap>() else {
             conn.end();
             return None;
         };
+        let now = Instant::now();
+        let guard = Arc::new(Guard::new(now));
+        // The lines' notifications come through an outbox of their own, with no
+        // pipelining slot: its writer knows them from replies, and sends them only to
+        // a source that asked lately.
+        let (notes, notes_in) = match notified {
+            true => {
+                let (notes, notes_in) = Outbox::new(0);
+                if !conn.router.attach(conn.id, &notes.notifier()) {
+                    conn.end();
+                    return None;
+                }
+                (Some(notes), Some(notes_in))
+            }
+            false => (None, None),
+        };
         let gone = CancellationToken::new();
         let writer = Replies {
             socket: socket.clone(),
-            peer: conn.peer,
+            conn: conn.clone(),
+            guard: guard.clone(),
+            deciding: None,
         };
         let (c, g, stats) = (conn.clone(), gone.clone(), shared.stats.clone());
+        let (socket, guarded) = (socket.clone(), guard.clone());
         shared.tracker.spawn(async move {
-            c.write_loop::<Mbap>(writer, inbox).await;
+            let writing = c.write_loop::<Mbap>(writer, inbox);
+            match notes_in {
+                None => drop(writing.await),
+                Some(notes_in) => {
+                    let forwarding = async {
+                        notify(&c, &socket, &guarded, notes_in).await;
+                        std::future::pending::<()>().await
+                    };
+                    tokio::select! {
+                        _ = writing => {}
+                        _ = forwarding => {}
+                    }
+                }
+            }
             g.cancel();
             c.end();
             stats.add(&stats.connections_closed, 1);
@@ -80,8 +146,10 @@ impl Source {
         Some(Source {
             conn,
             outbox,
-            last: Instant::now(),
+            notes,
+            last: now,
             gone,
+            guard,
         })
     }
 
@@ -94,6 +162,9 @@ impl Source {
             return false;
         };
         self.last = Instant::now();
+        if self.notes.is_some() {
+            self.guard.asked(self.last);
+        }
         self.conn.take::<Mbap>(adu, ticket);
         true
     }
@@ -103,20 +174,88 @@ impl Source {
         self.outbox
             .idle_at(self.last, idle)
             .is_some_and(|at| at <= now)
+            && !self.guard.remembering(self.last, now)
     }
 
     /// Forgotten: off the lines, so its writer ends once the replies owed are written.
     fn forget(self) {
         self.conn.router.detach(self.conn.id);
     }
+
+    /// Forgotten once the replies it is owed are written (its requests still queued
+    /// on the lines among them): the listener stops, or it makes room for a new
+    /// source. At shutdown the wait is bounded by `bound`.
+    fn finish(self, tracker: &TaskTracker, shutdown: CancellationToken, bound: Duration) {
+        if !self.outbox.owed() {
+            return self.forget();
+        }
+        tracker.spawn(async move {
+            tokio::select! {
+                _ = self.outbox.settled() => {}
+                _ = async {
+                    shutdown.cancelled().await;
+                    tokio::time::sleep(bound).await;
+                } => {}
+            }
+            self.forget();
+        });
+    }
 }
 
-/// Takes datagrams on `socket` until shutdown. Each is handed to the line from this
+impl TableSource for Source {
+    fn heard(&self) -> Instant {
+        self.last
+    }
+
+    /// A reply, or the reply it was just sent if that may yet come back (so its
+    /// reflection is known); a source whose writer has ended is owed nothing.
+    fn owed(&self, now: Instant) -> bool {
+        !self.gone.is_cancelled() && (self.outbox.owed() || self.guard.remembering(self.last, now))
+    }
+}
+
+/// Sends a source the lines' notifications that come within [`NOTIFIED_FOR`] of its
+/// last request, as they come, until there are no more; an exception past its budget
+/// is not sent. Best effort, as to a TCP master: one the socket cannot take at once is
+/// missed.
+async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes: Inbox) {
+    while let Some(d) = notes.next().await {
+        if !guard.asked_within(Instant::now(), NOTIFIED_FOR) {
+            continue;
+        }
+        let adu = d.adu();
+        let frame = adu.as_bytes();
+        if !guard.sent(frame) {
+            let limited = Unasked::ExceptionLimited;
+            conn.unasked
+                .note(limited, &conn.stats, conn.peer, conn.local, frame);
+            continue;
+        }
+        if conn.cfg.log.traffic {
+            debug!(target: "mbgate::traffic", dir = "gw->master", conn = conn.id, "{}", Hex(frame));
+        }
+        if conn.tap.on() {
+            conn.captured::<Mbap>(&adu, Dir::Out, "gw->master");
+        }
+        if let Err(e) = socket.try_send_to(frame, conn.peer) {
+            debug!(conn = conn.id, "notification not sent: {e}");
+        }
+    }
+}
+
+/// Takes datagrams on `socket` until `stop`. Each is handed to the line from this
 /// loop, through its source's outbox (per-source order: the order received); a
 /// source with no pipelining slot free has its datagram dropped, so a flood from one
-/// address takes no more of the line than one master's share. Sources quiet for
-/// `idle_timeout_ms` are forgotten (looked for at most once a second).
-pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, shared: Shared) {
+/// address takes no more of the line than one master's share. SourceTable quiet for
+/// `idle_timeout_ms` are forgotten (looked for at most once a second; with 0, never
+/// for being quiet, only to make room). When it stops, each source is forgotten once
+/// it has been written the replies it is owed.
+pub(crate) async fn datagram_loop(
+    socket: Arc<UdpSocket>,
+    listening: Listening,
+    shared: Shared,
+    stop: CancellationToken,
+) {
     let Listening {
         listen,
         name,
@@ -126,16 +265,19 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
     let mut gate = admit::Gate::new(name, listen.access.allow.clone());
     let max_sources = listen.tcp.max_connections;
     let idle = Duration::from_millis(listen.tcp.idle_timeout_ms);
+    let notified = listen.notifications;
     let listen = Arc::new(listen);
     let stats = shared.stats.clone();
-    let mut sources: HashMap<SocketAddr, Source> = HashMap::new();
+    let mut sources: SourceTable<Source> = SourceTable::new(max_sources);
+    // How long a source forgotten with replies owed may wait for them at shutdown.
+    let bound = shared.cfg.answer_within() + Duration::from_secs(1);
     // One timer for the loop's life, moved at each sweep for idle sources.
     let sweep = tokio::time::sleep(SWEEP);
     tokio::pin!(sweep);
     // Made once, as the timer is: a cancellation future made again at each pass
     // registers and drops a waiter for each datagram (docs/performance.md "Dialed and
     // UDP masters").
-    let stopped = shared.shutdown.cancelled();
+    let stopped = stop.cancelled();
     tokio::pin!(stopped);
     // Room for a datagram one byte too long to be a request: it is seen as such.
     let mut buf = vec![0u8; MAX_ADU + 1];
@@ -151,7 +293,9 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
             }) => r,
             _ = &mut sweep, if !idle.is_zero() && !sources.is_empty() => {
                 let now = Instant::now();
-                forget_where(&mut sources, |s| s.idle(idle, now));
+                for s in sources.forget_where(|s| s.idle(idle, now)) {
+                    s.forget();
+                }
                 sweep.as_mut().reset(now + SWEEP);
                 continue;
             }
@@ -166,15 +310,27 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
         if !gate.admits(peer, &stats) {
             continue;
         }
-        let Some(adu) = one_request(&buf[..n]) else {
-            stats.add(&stats.datagrams_dropped, 1);
-            debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
-            continue;
+        let datagram = &buf[..n];
+        let adu = match one_request(datagram) {
+            Ok(adu) => adu,
+            Err(Unfit::Malformed) => {
+                stats.add(&stats.datagrams_dropped, 1);
+                debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
+                continue;
+            }
+            Err(Unfit::Answer(what)) => {
+                let what = Unasked::Answer(what);
+                shared.unasked.note(what, &stats, peer, local, datagram);
+                continue;
+            }
         };
         // A source known and served: one look-up (each hashes the address).
         if let Some(source) = sources.get_mut(&peer) {
             if !source.gone.is_cancelled() {
-                if !source.take(adu) {
+                if source.guard.reflected(datagram, source.last) {
+                    let what = Unasked::Reflected;
+                    shared.unasked.note(what, &stats, peer, local, datagram);
+                } else if !source.take(adu) {
                     stats.add(&stats.datagrams_dropped, 1);
                 }
                 continue;
@@ -184,21 +340,13 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
                 s.forget();
             }
         }
-        if sources.len() >= max_sources {
-            let now = Instant::now();
-            forget_where(&mut sources, |s| {
-                s.gone.is_cancelled() || (!idle.is_zero() && s.idle(idle, now))
-            });
-        }
-        if sources.len() >= max_sources {
-            stats.add(&stats.datagrams_dropped, 1);
-            stats.add(&stats.connections_refused, 1);
-            debug!(%peer, "max_connections ({max_sources}) sources: datagram dropped");
-            continue;
+        if let Some(quietest) = sources.room(Instant::now()) {
+            debug!(%peer, forgotten = %quietest.conn.peer, "max_connections ({max_sources}) sources: the quietest forgotten");
+            quietest.finish(&shared.tracker, shared.shutdown.clone(), bound);
         }
         stats.add(&stats.connections, 1);
         let conn = Connection::new(&shared, listen.clone(), peer, local);
-        let Some(mut source) = Source::start(conn, &socket, &shared) else {
+        let Some(mut source) = Source::start(conn, &socket, &shared, notified) else {
             stats.add(&stats.connections_closed, 1);
             continue;
         };
@@ -207,28 +355,14 @@ pub(crate) async fn datagram_loop(socket: Arc<UdpSocket>, listening: Listening, 
         }
         sources.insert(peer, source);
     }
-    for (_, s) in sources.drain() {
-        s.forget();
+    for s in sources.drain() {
+        s.finish(&shared.tracker, shared.shutdown.clone(), bound);
     }
     debug!(%local, "UDP listener closed");
 }
 
 /// How often the receive loop looks for sources quiet for `idle_timeout_ms`.
 const SWEEP: Duration = Duration::from_secs(1);
-
-/// The sources for which `which` holds forgotten.
-fn forget_where(sources: &mut HashMap<SocketAddr, Source>, which: impl Fn(&Source) -> bool) {
-    let gone: Vec<SocketAddr> = sources
-        .keys()
-        .filter(|p| which(&sources[*p]))
-        .copied()
-        .collect();
-    for p in gone {
-        if let Some(s) = sources.remove(&p) {
-            s.forget();
-        }
-    }
-}
 
 /// The UDP listeners running, as a reload finds them (docs/dialing.md "Reload"):
 /// each its configuration, its socket, the token that stops it and its counters.
@@ -278,15 +412,15 @@ impl Udps {
         listening: Listening,
         stats: Arc<crate::ops::stats::Stats>,
     ) -> tokio_util::sync::CancellationToken {
+        // Its own stop, for a reload; its sources' writers see the gateway's shutdown.
         let stop = self.shared.shutdown.child_token();
         let shared = Shared {
             stats,
-            shutdown: stop.clone(),
             ..self.shared.clone()
         };
         self.shared
             .tracker
-            .spawn(datagram_loop(socket, listening, shared));
+            .spawn(datagram_loop(socket, listening, shared, stop.clone()));
         stop
     }
 
@@ -343,15 +477,31 @@ impl Udps {
     }
 }
 
-/// A source's replies, each written whole, each one datagram to the source.
+/// A source's replies, each written whole, each one datagram to the source; an
+/// exception past the source's budget is not sent (`tcp/reflect.rs`).
 struct Replies {
     socket: Arc<UdpSocket>,
-    peer: SocketAddr,
+    conn: Arc<Connection>,
+    guard: Arc<Guard>,
+    /// Whether the frame being written goes out, decided at its first try (a frame
+    /// the socket could not take at once is tried again with the same bytes).
+    deciding: Option<bool>,
 }
 
 impl AsyncWrite for Replies {
     fn poll_write(self: Pin<&mut Self>, cx: &mut Context<'_>, b: &[u8]) -> Poll<io::Result<usize>> {
-        self.socket.poll_send_to(cx, b, self.peer)
+        let this = self.get_mut();
+        let guard = &this.guard;
+        if !*this.deciding.get_or_insert_with(|| guard.sent(b)) {
+            this.deciding = None;
+            let c = &this.conn;
+            c.unasked
+                .note(Unasked::ExceptionLimited, &c.stats, c.peer, c.local, b);
+            return Poll::Ready(Ok(b.len()));
+        }
+        let sent = std::task::ready!(this.socket.poll_send_to(cx, b, this.conn.peer));
+        this.deciding = None;
+        Poll::Ready(sent)
     }
     fn poll_flush(self: Pin<&mut Self>, _: &mut Context<'_>) -> Poll<io::Result<()>> {
         Poll::Ready(Ok(()))
@@ -363,20 +513,37 @@ impl AsyncWrite for Replies {
 
 #[cfg(test)]
 mod tests {
-    use super::one_request;
+    use super::*;
 
     #[test]
     fn a_datagram_is_one_whole_request_or_nothing() {
         let read: &[u8] = &[0, 1, 0, 0, 0, 6, 1, 3, 0, 0, 0, 1];
         let adu = one_request(read).expect("one request");
         assert_eq!(adu.as_bytes(), read);
-        assert!(one_request(&read[..11]).is_none(), "short");
+        let malformed = Err(Unfit::Malformed);
+        assert_eq!(one_request(&read[..11]).map(|_| ()), malformed, "short");
         let mut two = read.to_vec();
         two.extend_from_slice(read);
-        assert!(one_request(&two).is_none(), "two requests in one datagram");
+        assert_eq!(
+            one_request(&two).map(|_| ()),
+            malformed,
+            "two requests in one"
+        );
         let mut bad = read.to_vec();
         bad[2] = 1;
-        assert!(one_request(&bad).is_none(), "protocol id");
-        assert!(one_request(b"hello").is_none(), "garbage");
+        assert_eq!(one_request(&bad).map(|_| ()), malformed, "protocol id");
+        assert_eq!(one_request(b"hello").map(|_| ()), malformed, "garbage");
+        // Answers: an exception, a read's reply.
+        let exception: &[u8] = &[0, 1, 0, 0, 0, 3, 1, 0x83, 0x0A];
+        let answer = |w| Err(Unfit::Answer(w));
+        assert_eq!(
+            one_request(exception).map(|_| ()),
+            answer(NotRequest::Exception)
+        );
+        let reply: &[u8] = &[0, 1, 0, 0, 0, 5, 1, 3, 2, 0, 0xFF];
+        assert_eq!(
+            one_request(reply).map(|_| ()),
+            answer(NotRequest::ReplyShape)
+        );
     }
 }

@@ -57,7 +57,7 @@ impl Connection {
                     }
                 }
                 _ = &mut timer => {
-                    beat.echoes.lock().expect("not poisoned").beat();
+                    beat.echoes.lock().expect("not poisoned").beat(Instant::now());
                     debug!(conn = self.id, "heartbeat");
                     if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat).await {
                         return why;
@@ -91,7 +91,15 @@ impl Connection {
         }
         buf.clear();
         C::frame_into(out.frame(), out.tid(), out.unit(), buf);
-        self.write_bytes(wr, buf).await
+        self.write_bytes(wr, buf).await?;
+        if let Some(d) = &self.dialed {
+            // A write's reply reads as the write: a server echoing it straight back
+            // must not have it run again (`reflect::Loops::came_back`).
+            let now = Instant::now();
+            let mut replied = d.replied.lock().expect("not poisoned");
+            replied.remember(buf, out.frame().pdu(), now);
+        }
+        Ok(())
     }
 
     /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take

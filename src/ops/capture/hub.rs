@@ -443,15 +443,24 @@ impl Subscription {
     }
 }
 
-impl Drop for Subscription {
-    fn drop(&mut self) {
+impl Subscription {
+    /// Takes no more packets from now on: the hub forgets this subscriber (its
+    /// sender with it), so `rx` gives what was handed to it before, then `None`, and
+    /// the counts of [`Subscription::dropped`] are final. A capture stopped by its
+    /// client drains that much and no more (docs/capture.md "Stopping a capture").
+    pub(crate) fn detach(&mut self) {
         let mut subs = self.hub.subs.lock().expect("not poisoned");
         let before = subs.len();
         subs.retain(|s| s.id != self.id);
         if subs.len() < before {
             self.hub.active.fetch_sub(1, Ordering::Relaxed);
         }
-        drop(subs);
+    }
+}
+
+impl Drop for Subscription {
+    fn drop(&mut self) {
+        self.detach();
         self.hub.alive.fetch_sub(1, Ordering::Release);
         self.hub.ended.notify_waiters();
     }

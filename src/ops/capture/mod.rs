@@ -31,7 +31,7 @@ pub(crate) fn interfaces(cfg: &Config) -> Vec<Interface> {
     let mut v = Vec::new();
     // The TCP side: the masters' listeners, and the slaves of each master line.
     let mut said = Vec::new();
-    if cfg.serves_masters() {
+    if cfg.listens() {
         let listeners: Vec<String> = cfg
             .listeners
             .iter()

@@ -5,6 +5,9 @@
 //! and says where and why, with everything before it kept (docs/simulator.md
 //! "Replaying a device").
 //!
+//! [`Blocks`] reads one block at a time, so a caller may hold one block of a file of
+//! any size (the replay streams its files); [`read`] reads a file held whole.
+//!
 //! The block layouts are those of the pcapng specification (IETF draft
 //! draft-ietf-opsawg-pcapng, sections 3 and 4); the exported-PDU tags those of
 //! Wireshark's `epan/exported_pdu.h`, as in `pcapng.rs`.
@@ -39,6 +42,11 @@ const IF_TSRESOL: u16 = 9;
 const IF_TSOFFSET: u16 = 14;
 const EPB_FLAGS: u16 = 2;
 
+/// The most interfaces a file may declare, over all its sections. mbgate's capture has
+/// one for the TCP side and one a line; every one takes memory to read the file, so a
+/// file declaring more is damaged there, not read into memory without end.
+pub const MAX_INTERFACES: usize = 4096;
+
 /// Where reading stopped, and why: the byte offset in the file of the block (or the
 /// part of it) that could not be read.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
@@ -71,6 +79,8 @@ pub enum Unreadable {
     UnknownInterface(u32),
     /// A packet's captured length runs past its block.
     BadPacketLength,
+    /// More than [`MAX_INTERFACES`] interface description blocks.
+    TooManyInterfaces,
 }
 
 impl fmt::Display for Unreadable {
@@ -87,6 +97,12 @@ impl fmt::Display for Unreadable {
                 write!(f, "a packet on interface {i}, never declared")
             }
             Unreadable::BadPacketLength => f.write_str("a packet longer than its block (corrupt)"),
+            Unreadable::TooManyInterfaces => {
+                write!(
+                    f,
+                    "more than {MAX_INTERFACES} interfaces (no capture has so many)"
+                )
+            }
         }
     }
 }
@@ -159,7 +175,7 @@ pub struct Read<'a> {
     pub damage: Option<Damage>,
 }
 
-#[derive(Clone, Copy)]
+#[derive(Debug, Clone, Copy)]
 struct Order {
     big: bool,
 }
@@ -210,87 +226,149 @@ fn options(order: Order, mut b: &[u8]) -> Option<Vec<(u16, &[u8])>> {
     Some(out)
 }
 
-/// Reads a whole file. `Err` when it is no pcapng file at all (its first block is no
-/// section header); otherwise everything up to the end, or up to the damage, which
-/// [`Read::damage`] names.
-pub fn read(file: &[u8]) -> Result<Read<'_>, Damage> {
-    let mut out = Read::default();
-    // The interfaces of the current section: their index in `out.interfaces`.
-    let mut section: Vec<usize> = Vec::new();
-    let mut sections = 0usize;
-    let mut order = Order { big: false };
-    let mut at = 0usize;
-    while at < file.len() {
-        let damage = |offset: usize, reason: Unreadable| Damage { offset, reason };
-        let rest = &file[at..];
-        let kind = LE.u32(rest, 0);
-        if at == 0 && kind != Some(SECTION_HEADER) {
-            return Err(damage(0, Unreadable::NotPcapng));
+/// The reader between two blocks: where it is in the file, the byte order of the
+/// section, and the interfaces declared so far. Feed it each block in turn: the first
+/// bytes to [`Blocks::length`], then the whole block to [`Blocks::block`].
+#[derive(Debug, Clone)]
+pub struct Blocks {
+    /// The interfaces of every section, in the order of their blocks.
+    pub interfaces: Vec<FileInterface>,
+    /// The interfaces of the current section: their index in `interfaces`.
+    section: Vec<usize>,
+    sections: usize,
+    order: Order,
+    /// The offset in the file of the block to come.
+    at: usize,
+}
+
+impl Default for Blocks {
+    fn default() -> Self {
+        Blocks {
+            interfaces: Vec::new(),
+            section: Vec::new(),
+            sections: 0,
+            order: LE,
+            at: 0,
         }
-        if rest.len() < 12 {
-            out.damage = Some(damage(at, Unreadable::Truncated));
-            break;
+    }
+}
+
+/// The bytes [`Blocks::length`] reads of a block: its type and its length (and for a
+/// section header, its byte-order magic).
+pub const BLOCK_HEAD: usize = 12;
+
+impl Blocks {
+    /// Damage at the block to come.
+    pub fn damage(&self, reason: Unreadable) -> Damage {
+        Damage {
+            offset: self.at,
+            reason,
+        }
+    }
+
+    /// Is `d` a refusal of the whole file rather than damage after a good start? Only
+    /// what its first block says refuses: it is no pcapng file, or of no version read
+    /// here; a first block cut short or of an impossible length is damage like any.
+    pub fn refuses(d: &Damage) -> bool {
+        d.offset == 0 && !matches!(d.reason, Unreadable::Truncated | Unreadable::BadLength)
+    }
+
+    /// The length of the block to come, from its first bytes (`head`: the next
+    /// [`BLOCK_HEAD`] of the file, fewer at its end): at least 12 and a multiple of 4.
+    /// A section header sets the byte order from here on.
+    pub fn length(&mut self, head: &[u8]) -> Result<usize, Damage> {
+        let kind = LE.u32(head, 0);
+        if self.at == 0 && kind != Some(SECTION_HEADER) {
+            return Err(self.damage(Unreadable::NotPcapng));
+        }
+        if head.len() < BLOCK_HEAD {
+            return Err(self.damage(Unreadable::Truncated));
         }
         if kind == Some(SECTION_HEADER) {
-            order = match LE.u32(rest, 8) {
+            self.order = match LE.u32(head, 8) {
                 Some(BYTE_ORDER_MAGIC) => LE,
                 Some(0x4D3C_2B1A) => Order { big: true },
-                _ => {
-                    let d = damage(at, Unreadable::BadSection);
-                    if at == 0 {
-                        return Err(d);
-                    }
-                    out.damage = Some(d);
-                    break;
-                }
+                _ => return Err(self.damage(Unreadable::BadSection)),
             };
         }
-        let kind = order.u32(rest, 0).unwrap_or(0);
-        let total = order.u32(rest, 4).map_or(0, |t| t as usize);
+        let total = self.order.u32(head, 4).map_or(0, |t| t as usize);
         if total < 12 || !total.is_multiple_of(4) {
-            out.damage = Some(damage(at, Unreadable::BadLength));
-            break;
+            return Err(self.damage(Unreadable::BadLength));
         }
-        if total > rest.len() {
-            out.damage = Some(damage(at, Unreadable::Truncated));
-            break;
+        Ok(total)
+    }
+
+    /// Reads the whole block `block` (its length as [`Blocks::length`] gave): a
+    /// packet, or `None` for a block that is none (a section, an interface, a block a
+    /// replay does not need). Moves on to the next block.
+    pub fn block<'a>(&mut self, block: &'a [u8]) -> Result<Option<Record<'a>>, Damage> {
+        let total = block.len();
+        let order = self.order;
+        if total < 12 || order.u32(block, total - 4).map(|t| t as usize) != Some(total) {
+            return Err(self.damage(Unreadable::BadLength));
         }
-        if order.u32(rest, total - 4).map(|t| t as usize) != Some(total) {
-            out.damage = Some(damage(at, Unreadable::BadLength));
-            break;
-        }
-        let body = &rest[8..total - 4];
+        let kind = order.u32(block, 0).unwrap_or(0);
+        let body = &block[8..total - 4];
         let result = match kind {
             SECTION_HEADER => {
                 if order.u16(body, 4) != Some(1) {
                     Err(Unreadable::BadSection)
                 } else {
-                    section.clear();
-                    sections += 1;
-                    Ok(())
+                    self.section.clear();
+                    self.sections += 1;
+                    Ok(None)
                 }
             }
-            INTERFACE_DESCRIPTION => interface(order, body, sections.saturating_sub(1)).map(|i| {
-                section.push(out.interfaces.len());
-                out.interfaces.push(i);
-            }),
-            ENHANCED_PACKET => packet(order, body, &section, &out.interfaces).map(|p| {
-                out.packets.push(p);
-            }),
+            INTERFACE_DESCRIPTION if self.interfaces.len() >= MAX_INTERFACES => {
+                Err(Unreadable::TooManyInterfaces)
+            }
+            INTERFACE_DESCRIPTION => {
+                interface(order, body, self.sections.saturating_sub(1)).map(|i| {
+                    self.section.push(self.interfaces.len());
+                    self.interfaces.push(i);
+                    None
+                })
+            }
+            ENHANCED_PACKET => packet(order, body, &self.section, &self.interfaces).map(Some),
             // Statistics, name resolution, simple packets (no interface, no time),
             // custom blocks: nothing a replay needs.
-            _ => Ok(()),
+            _ => Ok(None),
         };
-        if let Err(reason) = result {
-            if at == 0 {
-                return Err(damage(at, reason));
-            }
-            out.damage = Some(damage(at, reason));
-            break;
-        }
-        at += total;
+        let record = result.map_err(|reason| self.damage(reason))?;
+        self.at += total;
+        Ok(record)
     }
-    Ok(out)
+}
+
+/// Reads a whole file. `Err` when it is no pcapng file at all (its first block is no
+/// section header, [`Blocks::refuses`]); otherwise everything up to the end, or up to
+/// the damage, which [`Read::damage`] names.
+pub fn read(file: &[u8]) -> Result<Read<'_>, Damage> {
+    let mut blocks = Blocks::default();
+    let mut packets = Vec::new();
+    let mut damage = None;
+    while blocks.at < file.len() {
+        let rest = &file[blocks.at..];
+        let step = blocks
+            .length(&rest[..rest.len().min(BLOCK_HEAD)])
+            .and_then(|total| match rest.get(..total) {
+                Some(block) => blocks.block(block),
+                None => Err(blocks.damage(Unreadable::Truncated)),
+            });
+        match step {
+            Ok(p) => packets.extend(p),
+            Err(d) if Blocks::refuses(&d) => return Err(d),
+            Err(d) => {
+                damage = Some(d);
+                break;
+            }
+        }
+    }
+    Ok(Read {
+        interfaces: blocks.interfaces,
+        packets,
+        damage,
+    })
 }
 
 fn interface(order: Order, body: &[u8], section: usize) -> Result<FileInterface, Unreadable> {
@@ -594,6 +672,53 @@ mod tests {
             }
             check(&g);
         }
+    }
+
+    /// Interfaces take memory to read a file: past [`MAX_INTERFACES`] they are damage,
+    /// the packets before kept.
+    #[test]
+    fn more_interfaces_than_any_capture_has_are_damage() {
+        let mut f = file();
+        let before = read(&f).unwrap().packets.len();
+        let at = f.len();
+        for _ in 0..MAX_INTERFACES {
+            f.extend(pcapng::interface("x", ""));
+        }
+        let r = read(&f).unwrap();
+        assert_eq!(r.interfaces.len(), MAX_INTERFACES);
+        assert_eq!(r.packets.len(), before);
+        let d = r.damage.unwrap();
+        assert_eq!(d.reason, Unreadable::TooManyInterfaces);
+        assert_eq!(
+            d.offset,
+            at + (MAX_INTERFACES - 2) * pcapng::interface("x", "").len()
+        );
+    }
+
+    /// Read one block at a time, a file gives what it gives read whole, and a block
+    /// whose length claims more than the file holds is cut short, not waited for.
+    #[test]
+    fn blocks_one_at_a_time_read_as_the_whole() {
+        let f = file();
+        let mut blocks = Blocks::default();
+        let mut packets = Vec::new();
+        let mut at = 0;
+        while at < f.len() {
+            let total = blocks
+                .length(&f[at..(at + BLOCK_HEAD).min(f.len())])
+                .unwrap();
+            packets.extend(blocks.block(&f[at..at + total]).unwrap());
+            at += total;
+        }
+        let whole = read(&f).unwrap();
+        assert_eq!(
+            (packets, blocks.interfaces),
+            (whole.packets, whole.interfaces)
+        );
+        let mut claims = pcapng::section_header("x");
+        claims.extend([1, 0, 0, 0, 0xF0, 0xFF, 0xFF, 0xFF, 0, 0, 0, 0]);
+        let d = read(&claims).unwrap().damage.unwrap();
+        assert_eq!(d.reason, Unreadable::Truncated);
     }
 
     #[test]

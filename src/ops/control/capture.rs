@@ -80,18 +80,56 @@ fn parse_end(text: &str) -> CaptureEnd {
     end
 }
 
-/// Reads one message: its tag and payload; `None` at the end of the stream.
-async fn read_message(rd: &mut (impl AsyncRead + Unpin)) -> std::io::Result<Option<(u8, Vec<u8>)>> {
-    let mut head = [0u8; 5];
-    match rd.read_exact(&mut head).await {
-        Ok(_) => {}
-        Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof => return Ok(None),
-        Err(e) => return Err(e),
+/// The longest message taken from the gateway: far above any it sends (its packets go
+/// in messages of about a MiB, `serve.rs` `MESSAGE_SOFT`). A longer length is no
+/// gateway's: refused, never allocated.
+const MAX_MESSAGE: usize = 64 << 20;
+
+/// The gateway's messages as they come off the socket. Cancel-safe: what was read
+/// stays in `buf` when Ctrl-C wins the `select!`, and the message half read is
+/// finished by the next call, never lost (nor the stream's framing with it).
+struct Messages<R> {
+    rd: R,
+    buf: bytes::BytesMut,
+}
+
+impl<R: AsyncRead + Unpin> Messages<R> {
+    fn new(rd: R) -> Self {
+        Messages {
+            rd,
+            buf: bytes::BytesMut::new(),
+        }
     }
-    let len = u32::from_be_bytes([head[1], head[2], head[3], head[4]]) as usize;
-    let mut payload = vec![0u8; len];
-    rd.read_exact(&mut payload).await?;
-    Ok(Some((head[0], payload)))
+
+    /// The next message: its tag and payload; `None` at the end of the stream.
+    async fn next(&mut self) -> std::io::Result<Option<(u8, Vec<u8>)>> {
+        use std::io::{Error, ErrorKind};
+        loop {
+            if let Some(head) = self.buf.get(..5) {
+                let len = u32::from_be_bytes([head[1], head[2], head[3], head[4]]) as usize;
+                if len > MAX_MESSAGE {
+                    return Err(Error::new(
+                        ErrorKind::InvalidData,
+                        format!("a message of {len} bytes, over {MAX_MESSAGE}: not the gateway's"),
+                    ));
+                }
+                if self.buf.len() >= 5 + len {
+                    let msg = self.buf.split_to(5 + len);
+                    return Ok(Some((msg[0], msg[5..].to_vec())));
+                }
+                self.buf.reserve(5 + len - self.buf.len());
+            }
+            if self.rd.read_buf(&mut self.buf).await? == 0 {
+                return match self.buf.is_empty() {
+                    true => Ok(None),
+                    false => Err(Error::new(
+                        ErrorKind::UnexpectedEof,
+                        "the gateway closed the socket inside a message",
+                    )),
+                };
+            }
+        }
+    }
 }
 
 async fn open_output(path: &Path) -> std::io::Result<Box<dyn AsyncWrite + Unpin>> {
@@ -141,6 +179,7 @@ pub(crate) async fn capture(
             source,
         })?;
     eprintln!("mbgate capture: capturing to {shown} (Ctrl-C to stop)");
+    let mut messages = Messages::new(rd);
     let mut interrupt = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
         .map_err(CaptureError::Signals)?;
     let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
@@ -151,7 +190,7 @@ pub(crate) async fn capture(
     let mut failed: Option<std::io::Error> = None;
     let end = loop {
         let msg = tokio::select! {
-            m = read_message(&mut rd) => m.map_err(CaptureError::Socket)?,
+            m = messages.next() => m.map_err(CaptureError::Socket)?,
             _ = interrupt.recv() => {
                 if stopping {
                     return Err(CaptureError::Interrupted);
@@ -229,6 +268,41 @@ pub(crate) async fn capture(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// A message half read when Ctrl-C wins the `select!` is finished by the next
+    /// read: nothing of it is lost, and the one after it is read whole.
+    #[tokio::test]
+    async fn a_message_half_read_when_interrupted_is_read_whole_after() {
+        use tokio::io::AsyncWriteExt;
+        let (mut gw, client) = tokio::io::duplex(64);
+        let mut messages = Messages::new(client);
+        let mut first = Vec::new();
+        crate::ops::control::message(&mut first, DATA, &[7; 40]);
+        gw.write_all(&first[..20]).await.unwrap();
+        let cut = tokio::time::timeout(std::time::Duration::from_millis(50), messages.next());
+        assert!(cut.await.is_err(), "no whole message yet");
+        gw.write_all(&first[20..]).await.unwrap();
+        let mut second = Vec::new();
+        crate::ops::control::message(&mut second, END, b"packets=1 dropped=0 why=stopped");
+        gw.write_all(&second).await.unwrap();
+        drop(gw);
+        assert_eq!(messages.next().await.unwrap(), Some((DATA, vec![7; 40])));
+        let end = messages.next().await.unwrap().unwrap();
+        assert_eq!((end.0, end.1.len()), (END, 31));
+        assert_eq!(messages.next().await.unwrap(), None);
+    }
+
+    /// A length no gateway sends is refused before anything is allocated for it; a
+    /// stream cut inside a message says so.
+    #[tokio::test]
+    async fn a_huge_or_cut_message_is_an_error() {
+        let huge = [DATA, 0xFF, 0xFF, 0xFF, 0xFF];
+        let e = Messages::new(&huge[..]).next().await.unwrap_err();
+        assert!(e.to_string().contains("not the gateway's"), "{e}");
+        let cut = [DATA, 0, 0, 0, 9, 1, 2];
+        let e = Messages::new(&cut[..]).next().await.unwrap_err();
+        assert_eq!(e.kind(), std::io::ErrorKind::UnexpectedEof);
+    }
 
     #[test]
     fn the_end_reads_back() {

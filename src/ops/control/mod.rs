@@ -8,12 +8,18 @@
 //! `refused`, then the lines its log says of it, and closes (`error: why` when the
 //! gateway does not reload).
 //!
+//! A status: the client writes `status`; the gateway answers `ok`, then its metrics as
+//! the metrics listener's `/metrics` has them, and closes: `mbgate status` on the
+//! gateway's own machine needs neither the listener nor a password.
+//!
 //! A capture: the client writes one request line (`capture/request.rs`); the gateway
 //! answers `ok` or `error: why` on a line of its own (and closes, for an error).
 //! Then messages, each a tag byte and a 32-bit big-endian length: `D` pcapng bytes
 //! (the section and interface headers first, then packets), `E` the end, a line of
 //! `key=value` words (`packets`, `dropped`, `why`). The client may write `stop` at
-//! any time; the gateway then ends the capture as for `--count`.
+//! any time; the gateway then takes no more packets, writes those it had taken for
+//! the capture before it, and the end. A message is at most about a MiB of packets
+//! (`serve.rs` `MESSAGE_SOFT`); the client refuses one past 64 MiB.
 //!
 //! Access is the file's mode (0660: its owner and group), checked again on each
 //! connection by the peer's credentials (`SO_PEERCRED`): root, the gateway's own
@@ -22,14 +28,15 @@
 //! write, and the two commands believe only a socket served by root, their own user,
 //! or that directory's owner ([`trust_server`]; docs/capture.md).
 //!
-//! Both ends live here: the gateway's (`serve.rs`, started by `start`) and the two
-//! commands that ask it, `mbgate capture` (`capture.rs`) and `mbgate reload`
-//! (`reload.rs`); this file holds what both ends read: the words and messages, and
-//! where the socket is.
+//! Both ends live here: the gateway's (`serve.rs`, started by `start`) and the
+//! commands that ask it, `mbgate capture` (`capture.rs`), `mbgate reload`
+//! (`reload.rs`) and `mbgate status` (`status.rs`); this file holds what both ends
+//! read: the words and messages, where the socket is, and the asking of one word.
 
 pub mod capture;
 pub mod reload;
 mod serve;
+pub mod status;
 
 use crate::config::Config;
 use crate::ops::capture::Hub;
@@ -51,6 +58,10 @@ pub(crate) fn message(out: &mut Vec<u8>, tag: u8, payload: &[u8]) {
 
 /// The request line of `mbgate reload`.
 pub(crate) const RELOAD: &str = "reload";
+
+/// The request line of `mbgate status`: the gateway answers `ok`, then its metrics as
+/// `/metrics` has them (docs/watching.md), so a local check needs no password.
+pub(crate) const STATUS: &str = "status";
 
 /// Where the control socket goes: `control.socket`, else `control.sock` in the
 /// runtime directory systemd made for the service (`RUNTIME_DIRECTORY`), else none.
@@ -155,7 +166,7 @@ pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<Pa
         None if Path::new(PACKAGED_CONFIG).exists() => PathBuf::from(PACKAGED_CONFIG),
         None => return Ok(packaged_socket(Path::new(PACKAGED_CONFIG))),
     };
-    let text = match std::fs::read_to_string(&file) {
+    let text = match crate::config::read_text(&file, crate::config::MAX_FILE) {
         Ok(text) => text,
         Err(source) => return Err(AskError::ConfigFile { file, source }),
     };
@@ -168,6 +179,58 @@ pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<Pa
         Ok(packaged_socket(&file))
     } else {
         Ok(PathBuf::from(set))
+    }
+}
+
+/// Why a gateway asked over its control socket gave no answer.
+#[derive(Debug, thiserror::Error)]
+pub enum NoAnswer {
+    /// The socket could not be found, reached or trusted.
+    #[error(transparent)]
+    Ask(#[from] AskError),
+    /// It closed without an answer.
+    #[error("{} closed without an answer{}", socket.display(), because(.source))]
+    Closed {
+        /// The socket.
+        socket: PathBuf,
+        /// The write or read that failed, if one did.
+        source: Option<std::io::Error>,
+    },
+}
+
+fn because(e: &Option<std::io::Error>) -> String {
+    e.as_ref().map_or_else(String::new, |e| format!(": {e}"))
+}
+
+/// `request` on the control socket at `socket`, answered within `within`: the whole
+/// answer, from a gateway [`trust_server`] believes.
+pub(crate) fn ask(
+    socket: &Path,
+    request: &str,
+    within: std::time::Duration,
+) -> Result<String, NoAnswer> {
+    use std::io::{Read, Write};
+    let mut s =
+        std::os::unix::net::UnixStream::connect(socket).map_err(AskError::connect(socket))?;
+    let uid = peer_uid(&s).map_err(AskError::who(socket))?;
+    trust_server(uid, socket)?;
+    s.set_read_timeout(Some(within)).map_err(AskError::Io)?;
+    // A gateway that refuses may close before it has read the request: its answer is
+    // read even when the request could not be written.
+    let sent = s.write_all(format!("{request}\n").as_bytes());
+    let mut all = Vec::new();
+    let read = s.read_to_end(&mut all);
+    let all = String::from_utf8_lossy(&all).into_owned();
+    match (all.is_empty(), sent, read) {
+        (false, _, _) => Ok(all),
+        (true, Err(e), _) | (true, _, Err(e)) => Err(NoAnswer::Closed {
+            socket: socket.to_owned(),
+            source: Some(e),
+        }),
+        (true, Ok(()), Ok(_)) => Err(NoAnswer::Closed {
+            socket: socket.to_owned(),
+            source: None,
+        }),
     }
 }
 
@@ -262,19 +325,27 @@ pub(crate) fn connect_error(socket: &Path, e: &std::io::Error) -> String {
 /// Makes the control socket of a gateway of `cfg` and serves it until `shutdown`, if it
 /// has a place; one that cannot be made is warned about, and the gateway goes on
 /// without. `hub` is where captures come from; `reload` is where reloads go, none if
-/// the gateway has no file to read again.
+/// the gateway has no file to read again; `board` the numbers a status is made of.
 pub(crate) fn start(
     cfg: &Config,
     hub: &Hub,
     reload: Option<ReloadHandle>,
+    board: std::sync::Arc<crate::ops::metrics::Board>,
     shutdown: &CancellationToken,
 ) {
     match socket_path(cfg) {
         Some(path) => match serve::bind(&path) {
             Ok(c) => {
-                tokio::spawn(serve::serve(c, hub.clone(), reload, shutdown.clone()));
+                let asked = serve::ControlServed {
+                    hub: hub.clone(),
+                    reload,
+                    board,
+                };
+                tokio::spawn(serve::serve(c, asked, shutdown.clone()));
             }
-            Err(e) => warn!("{e}; mbgate capture and mbgate reload are not available"),
+            Err(e) => warn!(
+                "{e}; mbgate capture and mbgate reload are not available (nor mbgate status over it)"
+            ),
         },
         None => debug!("no control socket (control.socket is empty, and not under systemd)"),
     }

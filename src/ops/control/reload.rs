@@ -5,10 +5,8 @@
 //! key, what waits for a restart, or why the file was refused (the flags, the printing
 //! and the exit code are `crate::cli`'s).
 
-use super::{peer_uid, trust_server, AskError, RELOAD};
-use std::io::{Read, Write};
-use std::os::unix::net::UnixStream;
-use std::path::{Path, PathBuf};
+use super::{ask, NoAnswer, RELOAD};
+use std::path::Path;
 use std::time::Duration;
 
 /// What the gateway answered.
@@ -23,59 +21,16 @@ pub enum ReloadAnswer {
 }
 
 /// Why the gateway could not be asked.
-#[derive(Debug, thiserror::Error)]
-pub enum ReloadError {
-    /// The socket could not be found, reached or trusted.
-    #[error(transparent)]
-    Ask(#[from] AskError),
-    /// It closed without an answer.
-    #[error("{} closed without an answer{}", socket.display(), because(.source))]
-    Closed {
-        /// The socket.
-        socket: PathBuf,
-        /// The write or read that failed, if one did.
-        source: Option<std::io::Error>,
-    },
-}
-
-fn because(e: &Option<std::io::Error>) -> String {
-    e.as_ref().map_or_else(String::new, |e| format!(": {e}"))
-}
+pub type ReloadError = NoAnswer;
 
 /// Asks the gateway serving the control socket at `socket` to reload.
 pub fn reload(socket: &Path) -> Result<ReloadAnswer, ReloadError> {
-    let answer = ask(socket)?;
+    // Reading a file and applying it takes little, but the gateway may be busy.
+    let answer = ask(socket, RELOAD, Duration::from_secs(35))?;
     let (head, said) = answer.split_once('\n').unwrap_or((answer.as_str(), ""));
     Ok(match head {
         "ok" => ReloadAnswer::Taken(said.to_owned()),
         "refused" => ReloadAnswer::Refused(said.to_owned()),
         other => ReloadAnswer::Failed(other.strip_prefix("error: ").unwrap_or(other).to_owned()),
     })
-}
-
-/// `reload` on the control socket at `socket`: the whole answer.
-fn ask(socket: &Path) -> Result<String, ReloadError> {
-    let mut s = UnixStream::connect(socket).map_err(AskError::connect(socket))?;
-    let uid = peer_uid(&s).map_err(AskError::who(socket))?;
-    trust_server(uid, socket)?;
-    // Reading a file and applying it takes little, but the gateway may be busy.
-    s.set_read_timeout(Some(Duration::from_secs(35)))
-        .map_err(AskError::Io)?;
-    // A gateway that refuses may close before it has read the request: its answer is
-    // read even when the request could not be written.
-    let sent = s.write_all(format!("{RELOAD}\n").as_bytes());
-    let mut all = Vec::new();
-    let read = s.read_to_end(&mut all);
-    let all = String::from_utf8_lossy(&all).into_owned();
-    match (all.is_empty(), sent, read) {
-        (false, _, _) => Ok(all),
-        (true, Err(e), _) | (true, _, Err(e)) => Err(ReloadError::Closed {
-            socket: socket.to_owned(),
-            source: Some(e),
-        }),
-        (true, Ok(()), Ok(_)) => Err(ReloadError::Closed {
-            socket: socket.to_owned(),
-            source: None,
-        }),
-    }
 }

@@ -6,8 +6,9 @@
 //! holds a slot (waiting for its request, or capturing) that a guard gives back
 //! however its task ends.
 
-use super::{message, own_ids, DATA, END, RELOAD};
+use super::{message, own_ids, DATA, END, RELOAD, STATUS};
 use crate::ops::capture::hub::{unix_us, Hub, Subscription, GATHER};
+use crate::ops::capture::packet::Packet;
 use crate::ops::capture::pcapng;
 use crate::ops::capture::request::{CaptureRequest, MAX_LINE};
 use crate::ops::reload::ReloadHandle;
@@ -37,6 +38,10 @@ const REQUEST_WITHIN: Duration = Duration::from_secs(2);
 const WRITE_WITHIN: Duration = Duration::from_secs(5);
 /// The longest a reload is waited for.
 const RELOAD_WITHIN: Duration = Duration::from_secs(30);
+/// A capture's message of packets is sent once it holds this many bytes (and at each
+/// gathering): a message is never much longer, so the client's bound on one
+/// (`capture.rs` `MAX_MESSAGE`) is far above any the gateway sends.
+const MESSAGE_SOFT: usize = 1 << 20;
 
 /// Slots of one kind: a [`TaskSlot`] taken while one is free, given back when dropped.
 #[derive(Debug)]
@@ -199,12 +204,11 @@ impl Drop for ControlSocket {
 /// Serves captures on `control` until `shutdown`; the socket is removed then.
 pub(crate) async fn serve(
     control: ControlSocket,
-    hub: Hub,
-    reload: Option<ReloadHandle>,
+    asked: ControlServed,
     shutdown: CancellationToken,
 ) {
     info!(
-        "control socket {} (mbgate capture, mbgate reload)",
+        "control socket {} (mbgate capture, mbgate reload, mbgate status)",
         control.path.display()
     );
     let waiting = TaskSlots::new(MAX_WAITING);
@@ -245,8 +249,7 @@ pub(crate) async fn serve(
             }
             continue;
         };
-        let (hub, captures, reload) = (hub.clone(), captures.clone(), reload.clone());
-        tokio::spawn(client(stream, hub, reload, slot, captures));
+        tokio::spawn(client(stream, asked.clone(), slot, captures.clone()));
     }
     drop(control);
 }
@@ -355,17 +358,38 @@ async fn request_line(rd: &mut tokio::net::unix::OwnedReadHalf) -> Result<String
     String::from_utf8(line).map_err(|_| ControlRefusal::NotText)
 }
 
-/// One client, holding `waiting` until its request is read: a reload, or a capture
-/// (its request, then packets until a stop condition) in one of `captures`.
+/// What the socket's clients ask of: the capture's hub, the reload (none: the gateway
+/// has no file to read again), the numbers a status is made of.
+#[derive(Clone)]
+pub(crate) struct ControlServed {
+    pub(crate) hub: Hub,
+    pub(crate) reload: Option<ReloadHandle>,
+    pub(crate) board: Arc<crate::ops::metrics::Board>,
+}
+
+/// One client, holding `waiting` until its request is read: a reload, a status, or a
+/// capture (its request, then packets until a stop condition) in one of `captures`.
 async fn client(
     stream: UnixStream,
-    hub: Hub,
-    reload: Option<ReloadHandle>,
+    asked: ControlServed,
     waiting: TaskSlot,
     captures: Arc<TaskSlots>,
 ) {
+    let ControlServed { hub, reload, board } = asked;
     let (mut rd, mut wr) = stream.into_split();
     let line = request_line(&mut rd).await;
+    if line
+        .as_deref()
+        .is_ok_and(|l| l.trim_end_matches('\r') == STATUS)
+    {
+        // Rendered beside the runtime's one thread, as the metrics listener renders it
+        // on a thread of its own: the lines' loops do not wait for it.
+        let text = tokio::task::spawn_blocking(move || crate::ops::metrics::expose::render(&board))
+            .await
+            .unwrap_or_default();
+        let _ = write_within(&mut wr, format!("ok\n{text}").as_bytes()).await;
+        return;
+    }
     if line
         .as_deref()
         .is_ok_and(|l| l.trim_end_matches('\r') == RELOAD)
@@ -449,6 +473,37 @@ struct CaptureRun {
 }
 
 impl CaptureRun {
+    /// Adds `p` to `blocks`, unless the count is reached already: whether it did.
+    fn take(&mut self, p: &Packet, blocks: &mut Vec<u8>) -> bool {
+        if self.counted() {
+            return false;
+        }
+        self.written[usize::from(p.iface)] += 1;
+        self.packets += 1;
+        blocks.extend(p.block(u32::from(p.iface)));
+        true
+    }
+
+    /// Has the capture its `--count`?
+    fn counted(&self) -> bool {
+        self.request.count.is_some_and(|n| self.packets >= n)
+    }
+
+    /// `blocks` as one message to `wr` (none when empty), emptied.
+    async fn send(
+        &self,
+        wr: &mut tokio::net::unix::OwnedWriteHalf,
+        blocks: &mut Vec<u8>,
+    ) -> Result<(), &'static str> {
+        if blocks.is_empty() {
+            return Ok(());
+        }
+        let mut msg = Vec::with_capacity(blocks.len() + 5);
+        message(&mut msg, DATA, blocks);
+        blocks.clear();
+        write_within(wr, &msg).await
+    }
+
     /// Streams the capture to `wr`; returns why it ended.
     async fn stream(
         &mut self,
@@ -473,40 +528,63 @@ impl CaptureRun {
         let mut cmd = [0u8; 64];
         let why = loop {
             let mut blocks = Vec::new();
-            tokio::select! {
+            let ended = tokio::select! {
                 p = self.sub.rx.recv() => match p {
-                    None => break "the gateway stopped",
+                    None => Some("the gateway stopped"),
                     Some(p) => {
-                        let mut next = Some(p);
-                        // Whatever else is waiting goes in the same message.
-                        while let Some(p) = next {
-                            self.written[usize::from(p.iface)] += 1;
-                            self.packets += 1;
-                            blocks.extend(p.block(u32::from(p.iface)));
-                            if self.request.count.is_some_and(|n| self.packets >= n) {
-                                break;
-                            }
-                            next = self.sub.rx.try_recv().ok();
-                        }
+                        self.take(&p, &mut blocks);
+                        None
                     }
                 },
                 r = rd.read(&mut cmd) => match r {
                     Ok(0) | Err(_) => return "the client went away",
                     // `stop`, or anything else: the client wants no more.
-                    Ok(_) => break "stopped",
+                    Ok(_) => Some("stopped"),
                 },
                 _ = async { tokio::time::sleep_until(until.expect("guarded")).await }, if until.is_some() => {
-                    break "seconds";
+                    Some("seconds")
+                }
+            };
+            if let Some(why) = ended {
+                // Stopped, or the time is up: what the gateway handed to this capture
+                // before then is written too, and nothing after it; the drops
+                // counted so far are the final count.
+                self.sub.detach();
+                while !self.counted() {
+                    let Some(p) = self.sub.rx.recv().await else {
+                        break;
+                    };
+                    self.take(&p, &mut blocks);
+                    if blocks.len() >= MESSAGE_SOFT {
+                        if let Err(why) = self.send(wr, &mut blocks).await {
+                            return why;
+                        }
+                    }
+                }
+                if let Err(why) = self.send(wr, &mut blocks).await {
+                    return why;
+                }
+                break why;
+            }
+            // Whatever else is waiting goes in the same message (or a few, past
+            // MESSAGE_SOFT). A gateway that stops ends the capture when its last
+            // packet (the drain's answers included) has gone out: the hub closes,
+            // `recv` gives `None`.
+            while !self.counted() {
+                let Ok(p) = self.sub.rx.try_recv() else {
+                    break;
+                };
+                self.take(&p, &mut blocks);
+                if blocks.len() >= MESSAGE_SOFT {
+                    if let Err(why) = self.send(wr, &mut blocks).await {
+                        return why;
+                    }
                 }
             }
-            // A gateway that stops ends the capture when its last packet (the drain's
-            // answers included) has gone out: the hub closes, `recv` gives `None`.
-            let mut msg = Vec::with_capacity(blocks.len() + 5);
-            message(&mut msg, DATA, &blocks);
-            if let Err(why) = write_within(wr, &msg).await {
+            if let Err(why) = self.send(wr, &mut blocks).await {
                 return why;
             }
-            if self.request.count.is_some_and(|n| self.packets >= n) {
+            if self.counted() {
                 break "count";
             }
             // Packets gather meanwhile: one wake and one write for many.
@@ -575,6 +653,114 @@ mod tests {
             });
             assert_eq!(reloaded(Some(handle)).await, head);
         }
+    }
+
+    /// Stopped with more waiting than its channel holds: every packet handed to the
+    /// capture before the stop is written, and the ones its full channel dropped are
+    /// counted, so the two make up all that was sent; the file's statistics say the
+    /// same.
+    #[tokio::test]
+    async fn a_stop_drains_what_waits_and_counts_what_was_dropped_exactly() {
+        use crate::ops::capture::hub::{Interface, PER_SUBSCRIBER};
+        use crate::ops::capture::packet::{Dir, Part, Proto};
+        use crate::ops::capture::pcapng_read;
+        let iface = |n: &str| Interface {
+            name: n.into(),
+            description: String::new(),
+        };
+        let (hub, task) = Hub::new(vec![iface("tcp"), iface("/dev/ttyX")]);
+        tokio::spawn(task);
+        let (gw_end, client_end) = UnixStream::pair().unwrap();
+        let request = CaptureRequest::parse("capture").unwrap();
+        let mut run = CaptureRun {
+            sub: hub.subscribe(request.clone()).unwrap(),
+            request,
+            packets: 0,
+            written: vec![0; 2],
+            start_us: unix_us(Instant::now()),
+        };
+        let server = {
+            let hub = hub.clone();
+            tokio::spawn(async move {
+                let (mut rd, mut wr) = gw_end.into_split();
+                let why = run.stream(&mut rd, &mut wr, &hub).await;
+                (why, run.packets, run.sub.dropped())
+            })
+        };
+        let (rd, mut wr) = client_end.into_split();
+        let mut rd = tokio::io::BufReader::new(rd);
+        let mut ok = String::new();
+        tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut ok)
+            .await
+            .unwrap();
+        assert_eq!(ok, "ok\n");
+        // More than the channel holds, with no await between: the capture takes
+        // none of them until the stop is written.
+        let sent = PER_SUBSCRIBER + 904;
+        let tap = hub.tap(1);
+        for i in 0..sent {
+            let bytes = vec![1, 3, (i >> 8) as u8, i as u8];
+            tap.send(
+                Packet::new(Dir::Out, Part::Query, Proto::Mbrtu, bytes),
+                Instant::now(),
+            );
+        }
+        wr.write_all(b"stop\n").await.unwrap();
+        let mut file = Vec::new();
+        let end = loop {
+            let mut head = [0u8; 5];
+            rd.read_exact(&mut head).await.unwrap();
+            let len = u32::from_be_bytes([head[1], head[2], head[3], head[4]]) as usize;
+            let mut payload = vec![0u8; len];
+            rd.read_exact(&mut payload).await.unwrap();
+            if head[0] == END {
+                break String::from_utf8(payload).unwrap();
+            }
+            file.extend(payload);
+        };
+        let (why, packets, dropped) = server.await.unwrap();
+        assert_eq!(why, "stopped");
+        assert_eq!(dropped, vec![0, 904]);
+        assert_eq!(packets as usize, PER_SUBSCRIBER);
+        assert_eq!(
+            end,
+            format!("packets={PER_SUBSCRIBER} dropped=904 why=stopped")
+        );
+        let read = pcapng_read::read(&file).unwrap();
+        assert_eq!((read.packets.len(), read.damage), (PER_SUBSCRIBER, None));
+        // The first packet handed on is the file's first: nothing before the
+        // channel filled was lost.
+        let first = pcapng_read::exported(read.packets[0].data).unwrap();
+        assert_eq!(first.payload, [1, 3, 0, 0]);
+    }
+
+    /// A reload the gateway never answers is given up after its 30 s: the client is
+    /// told so and its slot given back (the clock paused, so the test takes no 30 s).
+    #[tokio::test(start_paused = true)]
+    async fn a_reload_never_answered_is_given_up_after_its_time() {
+        let (hub, task) = Hub::new(Vec::new());
+        tokio::spawn(task);
+        let (handle, _never_answered) = ReloadHandle::new();
+        let (gw_end, mut client_end) = UnixStream::pair().unwrap();
+        client_end.write_all(b"reload\n").await.unwrap();
+        let waiting = TaskSlots::new(1);
+        let slot = waiting.take().unwrap();
+        let started = Instant::now();
+        let asked = ControlServed {
+            hub,
+            reload: Some(handle),
+            board: Arc::default(),
+        };
+        let served = tokio::spawn(client(gw_end, asked, slot, TaskSlots::new(1)));
+        let mut answer = String::new();
+        client_end.read_to_string(&mut answer).await.unwrap();
+        assert_eq!(
+            answer,
+            "error: no answer from the gateway's reload within 30 s\n"
+        );
+        assert!(started.elapsed() >= RELOAD_WITHIN);
+        served.await.unwrap();
+        assert_eq!(waiting.taken(), 0);
     }
 
     /// A slot is given back however its holder ends: dropped, or its task panicking.

@@ -4,11 +4,12 @@
 //! thing counted, `_total` on counters, base units (`_seconds`, `_bytes`).
 //!
 //! Labels: `line` (the serial port's path, or host:port of a device server) on every
-//! line's and unit's metric, `unit` on a unit's, `listener` (its address) on a
-//! listener's; exceptions also by `source` (`device`: the device sent it; `gateway`:
+//! line's and unit's metric, `unit` on a unit's, `listener` (its address, or `dial
+//! HOST:PORT`) and `transport` (`tcp`, `udp`) on a listener's, so a TCP and a UDP
+//! listener on one address are two series, never one printed twice; exceptions also by `source` (`device`: the device sent it; `gateway`:
 //! mbgate answered it itself) and `code` (`0x0B`).
 
-use super::{Board, LineMetrics, ListenerMetrics};
+use super::{Board, LineMetrics, ListenerMetrics, ListenerTransport};
 use crate::frame::ExceptionCode;
 use prometheus_client::collector::Collector;
 use prometheus_client::encoding::{DescriptorEncoder, EncodeMetric};
@@ -98,7 +99,7 @@ fn code(c: u8) -> String {
 impl Collector for Scrape {
     fn encode(&self, mut e: DescriptorEncoder) -> std::fmt::Result {
         let lines = self.0.lines();
-        let listeners = self.0.listeners();
+        let listeners = self.0.listeners_on();
         let now = Instant::now();
         for f in line_families(&lines, now) {
             f.encode(&mut e)?;
@@ -228,6 +229,8 @@ fn line_families(lines: &[Arc<LineMetrics>], now: Instant) -> Vec<Family> {
         per_line(lines, ("mbgate_line_in_flight", "Requests on the line, awaiting their reply.", G), |l| l.get(&l.in_flight) as f64),
         per_line(lines, ("mbgate_line_masters", "Masters attached to the line.", G), |l| l.get(&l.masters) as f64),
         per_line(lines, ("mbgate_line_port_open", "1 while the port is open, else 0.", G), |l| l.get(&l.port_open) as f64),
+        per_line(lines, ("mbgate_line_outages", "Outages of the port: times it was lost (an adapter pulled out, a device server gone) or could not be opened at start, each once however many attempts it took to open it again (the reopenings: mbgate_line_opens_total).", C), |l| l.get(&l.outages) as f64),
+        per_line(lines, ("mbgate_line_outage", "Time the port was not open after it was lost or could not be opened, the outage under way included.", C), |l| l.outage_time(now).as_secs_f64()).seconds(),
     ];
     let mut last = Family::new(
         "mbgate_line_last_reply_timestamp",
@@ -411,13 +414,19 @@ fn unit_families(
     Ok(())
 }
 
-fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
+fn listener_families(listeners: &[(Arc<ListenerMetrics>, ListenerTransport)]) -> Vec<Family> {
     let per = |(name, help, kind): (&'static str, &'static str, MetricType),
                get: &dyn Fn(&ListenerMetrics) -> u64| {
         let mut f = Family::new(name, help, kind);
         f.values = listeners
             .iter()
-            .map(|l| (vec![("listener", l.name.clone())], get(l) as f64))
+            .map(|(l, t)| {
+                let labels = vec![
+                    ("listener", l.name.clone()),
+                    ("transport", t.label().into()),
+                ];
+                (labels, get(l) as f64)
+            })
             .collect();
         f
     };
@@ -427,7 +436,9 @@ fn listener_families(listeners: &[Arc<ListenerMetrics>]) -> Vec<Family> {
         per(("mbgate_listener_refused_connections", "Connections closed at once: max_connections reached (on TLS, once authenticated).", C), &|l| l.stats.get(&l.stats.connections_refused)),
         per(("mbgate_listener_protocol_violations", "Connections closed for a frame that broke the MBAP rules.", C), &|l| l.stats.get(&l.stats.protocol_violations)),
         per(("mbgate_listener_dial_answers", "Answers of a dialed server to mbgate's identity or heartbeat (bytes that are no request, one each at most): dropped, never relayed.", C), &|l| l.stats.get(&l.stats.dial_answers)),
-        per(("mbgate_listener_dropped_datagrams", "UDP datagrams dropped: not exactly one MBAP request, beyond their source's share, or from a source past max_connections.", C), &|l| l.stats.get(&l.stats.datagrams_dropped)),
+        per(("mbgate_listener_dropped_datagrams", "UDP datagrams dropped: not exactly one MBAP request, or beyond their source's share.", C), &|l| l.stats.get(&l.stats.datagrams_dropped)),
+        per(("mbgate_listener_not_requests", "Frames from masters that are no request but an answer (an exception, a reply's shape, or on UDP the gateway's own reply sent back): dropped, never answered.", C), &|l| l.stats.get(&l.stats.not_requests)),
+        per(("mbgate_listener_limited_exceptions", "Exception replies not sent to a UDP source past its budget of them.", C), &|l| l.stats.get(&l.stats.exceptions_limited)),
         per(("mbgate_listener_bad_requests", "Requests answered by mbgate with an exception: their PDU broke the protocol's limits.", C), &|l| l.stats.get(&l.stats.bad_requests)),
         per(("mbgate_listener_denied_connections", "Connections closed before any byte was read: the source is not in the listener's allow list.", C), &|l| l.stats.get(&l.stats.connections_denied)),
         per(("mbgate_listener_tls_failed", "TLS handshakes that failed, timed out or gave way to newer ones (no or a bad client certificate, an old protocol, the handshake budget full).", C), &|l| l.stats.get(&l.stats.tls_failed)),

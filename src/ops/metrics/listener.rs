@@ -1,8 +1,12 @@
 //! The metrics listener's lifecycle (docs/watching.md): started at start on the
 //! address bound then, moved or stopped by a reload (`metrics.listen`), the old one
-//! running until the new address is bound. What it serves is `http.rs`.
+//! running until the new address is bound; its web configuration file
+//! (`metrics.web_config`: TLS, users) read again by every reload, new connections
+//! served with what it says now. What it serves is `http.rs`.
 
-use super::{http, Board};
+use super::http::{self, WebState};
+use super::web::{WebAccess, WebConfigError};
+use super::Board;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use tokio_util::sync::CancellationToken;
@@ -18,15 +22,17 @@ pub(crate) struct Unbound {
 /// The metrics listener as it runs, moved or stopped by a reload.
 pub(crate) struct MetricsListener {
     board: Arc<Board>,
+    web: Arc<WebState>,
     running: Option<(SocketAddr, CancellationToken)>,
     shutdown: CancellationToken,
 }
 
 impl MetricsListener {
-    /// Not listening yet; stopped at `shutdown`.
-    pub(crate) fn new(board: Arc<Board>, shutdown: CancellationToken) -> Self {
+    /// Not listening yet, to serve with `access`; stopped at `shutdown`.
+    pub(crate) fn new(board: Arc<Board>, access: WebAccess, shutdown: CancellationToken) -> Self {
         Self {
             board,
+            web: Arc::new(WebState::new(access)),
             running: None,
             shutdown,
         }
@@ -35,7 +41,7 @@ impl MetricsListener {
     /// Serves on `listener` (bound at start, so a bad address fails the start).
     pub(crate) fn start(&mut self, addr: SocketAddr, listener: std::net::TcpListener) {
         let stop = self.shutdown.child_token();
-        http::spawn(listener, self.board.clone(), stop.clone());
+        http::spawn(listener, self.board.clone(), self.web.clone(), stop.clone());
         self.running = Some((addr, stop));
     }
 
@@ -59,5 +65,22 @@ impl MetricsListener {
             self.start(addr, listener);
         }
         Ok(())
+    }
+
+    /// Does it serve with a web configuration file now?
+    pub(crate) fn has_web_file(&self) -> bool {
+        self.web.access.read().expect("not poisoned").file.is_some()
+    }
+
+    /// Reads the web configuration file `path` again (`metrics.web_config`; empty:
+    /// none), its certificates and keys with it: new connections are served with it,
+    /// those open finish as they began, the source's login budgets stay. A file that
+    /// does not load leaves the one in use, and the error says why. What it serves
+    /// with now, in words.
+    pub(crate) fn reload_web(&self, path: &str) -> Result<String, WebConfigError> {
+        let access = WebAccess::load(path)?;
+        let said = access.said();
+        *self.web.access.write().expect("not poisoned") = Arc::new(access);
+        Ok(said)
     }
 }

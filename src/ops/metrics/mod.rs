@@ -15,6 +15,7 @@ pub(crate) mod listener;
 pub(crate) mod page;
 pub(crate) mod status;
 pub mod status_command;
+pub mod web;
 
 use crate::ops::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -177,6 +178,15 @@ pub(crate) struct LineMetrics {
     pub(crate) last_reply_us: AtomicU64,
     /// Whether the port is open (1) or not (0).
     pub(crate) port_open: AtomicU64,
+    /// Outages of the port: lost, or not opened at start; each once, however many
+    /// attempts it took to open it again.
+    pub(crate) outages: AtomicU64,
+    /// The time the port was down, in one word so a scrape never reads half a change:
+    /// while it is open, the total of the outages that ended, in microseconds; while
+    /// it is down ([`DOWN`] set), when the outage began (microseconds after `started`)
+    /// less that total, so the total now is the time since. Written by the line's
+    /// task only.
+    outage_clock: AtomicU64,
     /// How long requests waited in the queue before they went on the line, by
     /// priority class (docs/masters.md "Priority"): from the relay taking a request
     /// to its first sending.
@@ -186,6 +196,9 @@ pub(crate) struct LineMetrics {
     /// asked to (`crate::config::describe::direction`).
     direction: std::sync::Mutex<String>,
 }
+
+/// The top bit of [`LineMetrics`]' outage clock: the port is down.
+const DOWN: u64 = 1 << 63;
 
 /// The priority classes a queue wait is counted by: 0 to `priority`'s highest.
 pub(crate) const QUEUE_CLASSES: usize = crate::config::access::PRIORITY_MAX as usize + 1;
@@ -210,6 +223,8 @@ impl LineMetrics {
             busy_us: AtomicU64::new(0),
             last_reply_us: AtomicU64::new(0),
             port_open: AtomicU64::new(0),
+            outages: AtomicU64::new(0),
+            outage_clock: AtomicU64::new(0),
             queue_wait: Default::default(),
             started: Instant::now(),
             direction: std::sync::Mutex::new(String::new()),
@@ -251,6 +266,42 @@ impl LineMetrics {
         all.map(|(c, n)| (c as u8, load(n)))
             .filter(|(_, n)| *n > 0)
             .collect()
+    }
+
+    /// The port went down at `since` (lost, or its first open failed): an outage
+    /// begins, unless one is under way.
+    pub(crate) fn port_down(&self, since: Instant) {
+        let clock = self.outage_clock.load(Ordering::Relaxed);
+        if clock & DOWN != 0 {
+            return;
+        }
+        let at = since.saturating_duration_since(self.started).as_micros() as u64;
+        add(&self.outages, 1);
+        self.outage_clock
+            .store(DOWN | at.saturating_sub(clock), Ordering::Relaxed);
+    }
+
+    /// The port is open again at `now`: the outage under way, if any, ends.
+    pub(crate) fn port_up(&self, now: Instant) {
+        let clock = self.outage_clock.load(Ordering::Relaxed);
+        if clock & DOWN == 0 {
+            return;
+        }
+        let at = now.saturating_duration_since(self.started).as_micros() as u64;
+        self.outage_clock
+            .store(at.saturating_sub(clock & !DOWN), Ordering::Relaxed);
+    }
+
+    /// The time the port was down up to `now`, the outage under way included.
+    pub(crate) fn outage_time(&self, now: Instant) -> Duration {
+        let clock = self.outage_clock.load(Ordering::Relaxed);
+        let us = if clock & DOWN == 0 {
+            clock
+        } else {
+            let at = now.saturating_duration_since(self.started).as_micros() as u64;
+            at.saturating_sub(clock & !DOWN)
+        };
+        Duration::from_micros(us)
     }
 
     /// A reply came at `now`.
@@ -392,11 +443,32 @@ fn unix_us(t: std::time::SystemTime) -> u64 {
     since.unwrap_or_default().as_micros() as u64
 }
 
+/// How a listener's masters reach it: the `transport` label, which keeps a TCP and a
+/// UDP listener on one address (docs/dialing.md "Modbus over UDP") two series apart.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum ListenerTransport {
+    /// TCP connections: an accepted master's, or a dial's (`dial HOST:PORT`).
+    Tcp,
+    /// UDP datagrams.
+    Udp,
+}
+
+impl ListenerTransport {
+    /// The label's value.
+    pub(crate) fn label(self) -> &'static str {
+        match self {
+            ListenerTransport::Tcp => "tcp",
+            ListenerTransport::Udp => "udp",
+        }
+    }
+}
+
 /// Everything the gateway shows: its lines and listeners, in the order they started.
 #[derive(Debug, Default)]
 pub(crate) struct Board {
     pub(crate) lines: Mutex<Vec<Arc<LineMetrics>>>,
-    pub(crate) listeners: Mutex<Vec<Arc<ListenerMetrics>>>,
+    /// Each listener with how its masters reach it.
+    listeners: Mutex<Vec<(Arc<ListenerMetrics>, ListenerTransport)>>,
     /// The masters connected now.
     pub(crate) masters: Arc<ConnectedMasters>,
     /// Each line's last minute, a point a second, by line name, while the metrics
@@ -413,14 +485,31 @@ impl Board {
         self.lines.lock().expect("not poisoned").push(line);
     }
 
+    /// A listener bound at start, reached by `transport`.
+    pub(crate) fn add_listener_on(
+        &self,
+        listener: Arc<ListenerMetrics>,
+        transport: ListenerTransport,
+    ) {
+        let mut listeners = self.listeners.lock().expect("not poisoned");
+        listeners.push((listener, transport));
+    }
+
+    /// A source the masters' side adds while it runs (`tcp/tally.rs`): a dial, named
+    /// `dial HOST:PORT`, over TCP; else a UDP listener, named by its address.
     pub(crate) fn add_listener(&self, listener: Arc<ListenerMetrics>) {
-        self.listeners.lock().expect("not poisoned").push(listener);
+        let transport = if listener.name.starts_with("dial ") {
+            ListenerTransport::Tcp
+        } else {
+            ListenerTransport::Udp
+        };
+        self.add_listener_on(listener, transport);
     }
 
     /// The listener (a dial, a UDP listener) counting in `stats` is gone (a reload).
     pub(crate) fn remove_listener(&self, stats: &Arc<crate::ops::stats::Stats>) {
         let mut listeners = self.listeners.lock().expect("not poisoned");
-        listeners.retain(|l| !Arc::ptr_eq(&l.stats, stats));
+        listeners.retain(|(l, _)| !Arc::ptr_eq(&l.stats, stats));
     }
 
     pub(crate) fn lines(&self) -> Vec<Arc<LineMetrics>> {
@@ -428,6 +517,45 @@ impl Board {
     }
 
     pub(crate) fn listeners(&self) -> Vec<Arc<ListenerMetrics>> {
+        let listeners = self.listeners.lock().expect("not poisoned");
+        listeners.iter().map(|(l, _)| l.clone()).collect()
+    }
+
+    /// Each listener with how its masters reach it.
+    pub(crate) fn listeners_on(&self) -> Vec<(Arc<ListenerMetrics>, ListenerTransport)> {
         self.listeners.lock().expect("not poisoned").clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Each outage counted once, however often it is said; its time counted while it
+    /// lasts and kept once it ended, never going back (a counter); and the port open
+    /// at start with no outage counts none.
+    #[test]
+    fn outages_are_counted_once_and_their_time_only_grows() {
+        let m = LineMetrics::new("/dev/ttyUSB0", Arc::new(Stats::default()));
+        let t0 = m.started;
+        let at = |ms: u64| t0 + Duration::from_millis(ms);
+        m.port_up(at(5));
+        assert_eq!(
+            (load(&m.outages), m.outage_time(at(10))),
+            (0, Duration::ZERO)
+        );
+        m.port_down(at(100));
+        m.port_down(at(150));
+        assert_eq!(load(&m.outages), 1, "one outage, said twice");
+        assert_eq!(m.outage_time(at(400)), Duration::from_millis(300));
+        m.port_up(at(600));
+        assert_eq!(m.outage_time(at(400)), Duration::from_millis(500));
+        assert_eq!(m.outage_time(at(5000)), Duration::from_millis(500));
+        m.port_up(at(700));
+        m.port_down(at(1000));
+        assert_eq!(load(&m.outages), 2);
+        assert_eq!(m.outage_time(at(1250)), Duration::from_millis(750));
+        m.port_up(at(2000));
+        assert_eq!(m.outage_time(at(9000)), Duration::from_millis(1500));
     }
 }

@@ -222,13 +222,14 @@ pub(crate) fn json(board: &Board) -> String {
         .map(|(i, l)| line(board, l, recent.get(i + 1), now))
         .collect();
     let listeners: Vec<String> = board
-        .listeners()
+        .listeners_on()
         .iter()
-        .map(|l| {
+        .map(|(l, transport)| {
             let s = &l.stats;
             format!(
-                "{{\"name\":{},\"masters\":{},\"connections\":{},\"refused\":{},\"violations\":{},\"denied_connections\":{},\"tls_failed\":{},\"tls_refused\":{},\"denied_requests\":{}}}",
+                "{{\"name\":{},\"transport\":\"{}\",\"masters\":{},\"connections\":{},\"refused\":{},\"violations\":{},\"denied_connections\":{},\"tls_failed\":{},\"tls_refused\":{},\"denied_requests\":{}}}",
                 string(&l.name),
+                transport.label(),
                 l.connected(),
                 s.get(&s.connections),
                 s.get(&s.connections_refused),

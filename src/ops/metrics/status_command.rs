@@ -1,10 +1,16 @@
-//! `mbgate status`'s work: asks a running gateway's metrics listener (`[metrics]
-//! listen`) and makes a short summary per line, unit and listener, and whether it is
-//! healthy (the flags and the exit code are `crate::cli`'s).
+//! `mbgate status`'s work: asks a running gateway for its metrics, at its metrics
+//! listener (`[metrics] listen`: over http, or https with a CA, a client certificate
+//! and a user where its web configuration asks for them) or over its control socket
+//! (`crate::ops::control::status`), and makes a short summary per line, unit and
+//! listener, and whether it is healthy (the flags and the exit code are
+//! `crate::cli`'s).
 
+use base64::Engine as _;
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
 use std::net::{TcpStream, ToSocketAddrs};
+use std::path::PathBuf;
+use std::sync::Arc;
 use std::time::{Duration, SystemTime};
 
 /// Why the gateway could not be asked.
@@ -22,13 +28,53 @@ pub enum Unreachable {
     /// It answered, but not with 200.
     #[error("{0} (is it mbgate's metrics listener?)")]
     Status(String),
+    /// It asks for a user and password, and none were given.
+    #[error("{0}: the metrics listener asks for a user and password: --user NAME, the password in MBGATE_PASSWORD or --password-file FILE (or, on the gateway's machine, `sudo mbgate status` asks over the control socket)")]
+    Unauthorized(String),
+    /// The user and password given were refused.
+    #[error("{0}: the user or the password is wrong")]
+    Refused(String),
+    /// Too many logins from here lately.
+    #[error("{0}")]
+    TooMany(String),
+    /// A CA, certificate or key file given for https.
+    #[error("{0}")]
+    Tls(#[from] crate::masters::tls::TlsError),
+    /// https without a CA to check the gateway against.
+    #[error("https needs the CA that signed the gateway's certificate: --ca FILE")]
+    NoCa,
+    /// The TLS handshake failed.
+    #[error("TLS: {0}")]
+    Handshake(String),
 }
 
-/// How the gateway at `addr` (its metrics listener) is: the report, and whether it
-/// is healthy (every line open, every unit answering).
-pub fn ask(addr: &str) -> Result<(String, bool), Unreachable> {
-    let text = scrape(addr)?;
-    Ok(summary(&parse(&text), SystemTime::now()))
+/// Where `mbgate status` asks a gateway's metrics listener, and with what.
+#[derive(Debug, Clone, Default)]
+pub struct Asking {
+    /// `ADDR`, `http://ADDR` or `https://ADDR`.
+    pub url: String,
+    /// https: the CA file the gateway's certificate must chain to.
+    pub ca: Option<PathBuf>,
+    /// https: a client certificate and its key.
+    pub cert: Option<(PathBuf, PathBuf)>,
+    /// A user and password.
+    pub login: Option<(String, String)>,
+}
+
+/// The CA bundle of a Debian system, taken for https when no `--ca` is given.
+pub const SYSTEM_CAS: &str = "/etc/ssl/certs/ca-certificates.crt";
+
+/// How the gateway whose metrics listener `asking` names is: the report, and whether
+/// it is healthy (every line open, every unit answering).
+pub fn ask(asking: &Asking) -> Result<(String, bool), Unreachable> {
+    let text = scrape(asking)?;
+    Ok(summarize(&text))
+}
+
+/// The report of the metrics `text` (an exposition), and whether the gateway is
+/// healthy.
+pub fn summarize(text: &str) -> (String, bool) {
+    summary(&parse(text), SystemTime::now())
 }
 
 /// What to do when nothing answers at `addr`: the metrics listener is off unless the
@@ -39,27 +85,101 @@ pub fn turn_on(addr: &str) -> String {
          unless its configuration names an address:\n\
          \n    [metrics]\n    listen = \"{addr}\"\n\n\
          then `systemctl reload` the service (or start `mbgate run` with --metrics-listen {addr}); \
-         for a listener at another address, `mbgate status --metrics ADDR`\n"
+         for a listener at another address, `mbgate status --metrics ADDR`; on the gateway's \
+         machine, `sudo mbgate status --config FILE` asks over its control socket\n"
     )
 }
 
-/// GET /metrics from `addr`, within a few seconds.
-fn scrape(addr: &str) -> Result<String, Unreachable> {
+/// The host of `host:port` (`[::1]:9502` gives `::1`).
+fn host(address: &str) -> &str {
+    let h = address.rsplit_once(':').map_or(address, |(h, _)| h);
+    h.strip_prefix('[')
+        .and_then(|h| h.strip_suffix(']'))
+        .unwrap_or(h)
+}
+
+/// The client's TLS for `asking`, and the name the gateway's certificate must carry.
+fn client_tls(asking: &Asking, addr: &str) -> Result<rustls::ClientConnection, Unreachable> {
+    use crate::masters::tls::{certificates, private_key, provider, roots, VERSIONS};
+    let ca = match &asking.ca {
+        Some(ca) => ca.clone(),
+        None if std::path::Path::new(SYSTEM_CAS).exists() => PathBuf::from(SYSTEM_CAS),
+        None => return Err(Unreachable::NoCa),
+    };
+    let roots = roots("--ca", &ca)?;
+    let builder = rustls::ClientConfig::builder_with_provider(provider())
+        .with_protocol_versions(VERSIONS)
+        .expect("the ring provider speaks TLS 1.2 and 1.3")
+        .with_root_certificates(roots);
+    let mut config = match &asking.cert {
+        Some((cert, key)) => {
+            let chain = certificates("--cert", cert)?;
+            let key = private_key("--key", key)?;
+            builder
+                .with_client_auth_cert(chain, key)
+                .map_err(|e| Unreachable::Handshake(format!("--cert and --key: {e}")))?
+        }
+        None => builder.with_no_client_auth(),
+    };
+    config.alpn_protocols = vec![b"http/1.1".to_vec()];
+    let name = rustls::pki_types::ServerName::try_from(host(addr).to_owned())
+        .map_err(|_| Unreachable::NoAddress)?;
+    rustls::ClientConnection::new(Arc::new(config), name)
+        .map_err(|e| Unreachable::Handshake(e.to_string()))
+}
+
+/// GET /metrics as `asking` says, within a few seconds.
+fn scrape(asking: &Asking) -> Result<String, Unreachable> {
     let within = Duration::from_secs(3);
+    let url = asking.url.trim_end_matches('/');
+    let (https, addr) = match url.split_once("://") {
+        Some(("https", a)) => (true, a),
+        Some(("http", a)) => (false, a),
+        Some(_) => return Err(Unreachable::NoAddress),
+        None => (false, url),
+    };
     let to = addr
         .to_socket_addrs()?
         .next()
         .ok_or(Unreachable::NoAddress)?;
-    let mut s = TcpStream::connect_timeout(&to, within)?;
+    let s = TcpStream::connect_timeout(&to, within)?;
     s.set_read_timeout(Some(within))?;
-    write!(
-        s,
-        "GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n\r\n"
-    )?;
-    let mut all = String::new();
-    s.read_to_string(&mut all)?;
+    let mut request = format!("GET /metrics HTTP/1.1\r\nHost: {addr}\r\nConnection: close\r\n");
+    if let Some((user, password)) = &asking.login {
+        let b = base64::engine::general_purpose::STANDARD.encode(format!("{user}:{password}"));
+        request += &format!("Authorization: Basic {b}\r\n");
+    }
+    request += "\r\n";
+    let all = if https {
+        let mut tls = rustls::StreamOwned::new(client_tls(asking, addr)?, s);
+        tls.write_all(request.as_bytes())
+            .map_err(|e| Unreachable::Handshake(e.to_string()))?;
+        let mut all = Vec::new();
+        // A server that closes without TLS's close_notify ends the text all the same.
+        match tls.read_to_end(&mut all) {
+            Ok(_) => {}
+            Err(e) if e.kind() == std::io::ErrorKind::UnexpectedEof && !all.is_empty() => {}
+            Err(e) => return Err(Unreachable::Handshake(e.to_string())),
+        }
+        String::from_utf8_lossy(&all).into_owned()
+    } else {
+        let mut s = s;
+        s.write_all(request.as_bytes())?;
+        let mut all = String::new();
+        s.read_to_string(&mut all)?;
+        all
+    };
     let (head, body) = all.split_once("\r\n\r\n").ok_or(Unreachable::NotHttp)?;
     let status = head.lines().next().unwrap_or("");
+    if status.contains(" 401 ") && asking.login.is_some() {
+        return Err(Unreachable::Refused(status.to_owned()));
+    }
+    if status.contains(" 401 ") {
+        return Err(Unreachable::Unauthorized(status.to_owned()));
+    }
+    if status.contains(" 429 ") {
+        return Err(Unreachable::TooMany(format!("{status}: {}", body.trim())));
+    }
     if !status.contains(" 200 ") {
         return Err(Unreachable::Status(status.to_owned()));
     }
@@ -133,6 +253,25 @@ fn get(s: &Samples, name: &str, with: &[(&str, &str)]) -> f64 {
                 .all(|(k, v)| l.get(*k).map(String::as_str) == Some(*v))
         })
         .map_or(0.0, |(_, v)| *v)
+}
+
+/// Each listener once, with its transport (`tcp`, `udp`; none from a gateway older
+/// than the label), in order: a TCP and a UDP listener on one address are two.
+fn listeners(s: &Samples) -> Vec<(String, Option<String>)> {
+    let mut seen = Vec::new();
+    for (l, _) in s
+        .get("mbgate_listener_connections_total")
+        .into_iter()
+        .flatten()
+    {
+        if let Some(name) = l.get("listener") {
+            let one = (name.clone(), l.get("transport").cloned());
+            if !seen.contains(&one) {
+                seen.push(one);
+            }
+        }
+    }
+    seen
 }
 
 /// Each distinct value of label `key` among the samples of `name`, in order.
@@ -253,10 +392,23 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
             );
         }
     }
-    for listener in values_of(s, "mbgate_listener_connections_total", "listener") {
-        let l = [("listener", listener.as_str())];
+    let mut listed = Vec::new();
+    for (listener, transport) in listeners(s) {
+        // A gateway older than the `transport` label has none.
+        let mut l = vec![("listener", listener.as_str())];
+        let said = match transport.as_deref() {
+            Some(t) => {
+                l.push(("transport", t));
+                if t == "tcp" {
+                    String::new()
+                } else {
+                    format!(" ({})", t.to_uppercase())
+                }
+            }
+            None => String::new(),
+        };
         out += &format!(
-            "listener {listener}: {} masters, {} connections, {} refused, {} protocol violations\n",
+            "listener {listener}{said}: {} masters, {} connections, {} refused, {} protocol violations\n",
             n(get(s, "mbgate_listener_masters", &l)),
             n(get(s, "mbgate_listener_connections_total", &l)),
             n(get(s, "mbgate_listener_refused_connections_total", &l)),
@@ -283,7 +435,11 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
         if !said.is_empty() {
             out += &format!("  {}\n", said.join(", "));
         }
-        out += &masters(s, &listener, unix);
+        // The masters carry the address, not the transport: listed once.
+        if !listed.contains(&listener) {
+            out += &masters(s, &listener, unix);
+            listed.push(listener);
+        }
     }
     let healthy = problems.is_empty();
     let head = if healthy {
@@ -303,6 +459,31 @@ mod tests {
         let l = labels(r#"line="/dev/a \"b\"",unit="1""#);
         assert_eq!(l["line"], "/dev/a \"b\"");
         assert_eq!(l["unit"], "1");
+    }
+
+    /// A TCP and a UDP listener on one address: two lines, the UDP one said so; a
+    /// gateway older than the `transport` label still gets its line.
+    #[test]
+    fn listeners_on_one_address_by_transport() {
+        let text = "\
+mbgate_listener_connections_total{listener=\"127.0.0.1:5502\",transport=\"tcp\"} 3
+mbgate_listener_masters{listener=\"127.0.0.1:5502\",transport=\"tcp\"} 1
+mbgate_listener_connections_total{listener=\"127.0.0.1:5502\",transport=\"udp\"} 2
+mbgate_listener_masters{listener=\"127.0.0.1:5502\",transport=\"udp\"} 2
+";
+        let (report, _) = summary(&parse(text), SystemTime::now());
+        assert_eq!(
+            report,
+            "healthy\n\
+             listener 127.0.0.1:5502: 1 masters, 3 connections, 0 refused, 0 protocol violations\n\
+             listener 127.0.0.1:5502 (UDP): 2 masters, 2 connections, 0 refused, 0 protocol violations\n"
+        );
+        let old = "mbgate_listener_connections_total{listener=\"0.0.0.0:502\"} 4\n";
+        let (report, _) = summary(&parse(old), SystemTime::now());
+        assert!(
+            report.ends_with("listener 0.0.0.0:502: 0 masters, 4 connections, 0 refused, 0 protocol violations\n"),
+            "{report}"
+        );
     }
 
     #[test]

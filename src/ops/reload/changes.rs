@@ -17,7 +17,12 @@ pub(crate) const LINE_RELOADABLE: [&str; 4] = [
     "relay.retry_writes",
     "relay.probe_timeout_ms",
 ];
-const GATEWAY_RELOADABLE: [&str; 3] = ["log.level", "log.traffic", "metrics.listen"];
+const GATEWAY_RELOADABLE: [&str; 4] = [
+    "log.level",
+    "log.traffic",
+    "metrics.listen",
+    "metrics.web_config",
+];
 
 /// What identifies a line across a reload: its serial port, or its device's address.
 /// Two lines on one port or address are refused when the file is read.
@@ -301,11 +306,21 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
         reloadable: false,
     };
     let keys = || KEYS.iter().filter(|k| k.section == "tcp");
+    let mut out = Vec::new();
+    // A file that only dials its masters binds no listener (docs/dialing.md).
+    if a.dial_only != b.dial_only {
+        out.push(restart(match b.dial_only {
+            true => "no listener: the file only dials its masters".into(),
+            false => "a listener: the file names one".into(),
+        }));
+    }
     if a.single_listener() && b.single_listener() {
-        return keys()
-            .filter(|k| (k.get)(a) != (k.get)(b))
-            .map(|k| restart(format!("tcp.{} = {}", k.name, (k.get)(b))))
-            .collect();
+        out.extend(
+            keys()
+                .filter(|k| (k.get)(a) != (k.get)(b))
+                .map(|k| restart(format!("tcp.{} = {}", k.name, (k.get)(b)))),
+        );
+        return out;
     }
     let (la, lb) = (&a.listeners, &b.listeners);
     let at = |l: &ListenConfig| l.tcp.listen;
@@ -314,7 +329,6 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
         listeners: vec![l.clone()],
         ..Config::default()
     };
-    let mut out = Vec::new();
     // A UDP listener is added, removed or changed by a reload (docs/dialing.md).
     let named = |l: &ListenConfig| match l.transport {
         Transport::Udp => format!("{} (UDP)", at(l)),
@@ -572,6 +586,8 @@ mod tests {
                 "tls" => "{ cert = \"c.pem\", key = \"k.pem\", client_ca = \"ca.pem\" }",
                 "priority" => "3",
                 "transport" => "\"udp\"",
+                // A UDP listener's only.
+                "notifications" => "true\ntransport = \"udp\"",
                 "max_connections" => "9",
                 "idle_timeout_ms" => "77",
                 _ => return None,
@@ -644,6 +660,39 @@ mod tests {
                 let class = new.priority_of(source, None);
                 assert_eq!(class, if listener { 3 } else { 0 }, "{line}");
             }
+        }
+    }
+
+    /// A file that only dials its masters binds no listener: one that names a
+    /// listener after it, or stops naming one, waits for a restart, and says so.
+    #[test]
+    fn a_listener_opened_or_closed_beside_the_dials_waits_for_a_restart() {
+        let dial = "[[dial]]\naddress = \"scada.example.net:502\"\n";
+        let only =
+            crate::config::parse(&format!("[serial]\npath = \"/dev/a\"\n{dial}"), "t").unwrap();
+        let named = crate::config::parse(
+            &format!("[serial]\npath = \"/dev/a\"\n[tcp]\nlisten = \"0.0.0.0:502\"\n{dial}"),
+            "t",
+        )
+        .unwrap();
+        for (a, b, said) in [
+            (&only, &named, "a listener: the file names one"),
+            (
+                &named,
+                &only,
+                "no listener: the file only dials its masters",
+            ),
+        ] {
+            let all = changes(a, b, &[0]);
+            assert_eq!(
+                all,
+                vec![Change {
+                    said: said.into(),
+                    reloadable: false
+                }]
+            );
+            let new = merged(a, b, &[0]);
+            assert_eq!(new.dial_only, a.dial_only, "as it runs");
         }
     }
 }

@@ -6,7 +6,9 @@
 //! refused with the reason, and the running configuration stays. Every change applied
 //! is named, line by line and key by key, in the log and in `mbgate reload`'s answer.
 //! Every reload also reads the certificates of the TLS listeners again
-//! (docs/security.md "Renewing certificates"), whatever becomes of the file.
+//! (docs/security.md "Renewing certificates"), and the metrics listener's web
+//! configuration file with its certificates and users (docs/watching.md), whatever
+//! becomes of the file.
 
 mod changes;
 
@@ -193,10 +195,19 @@ pub(crate) async fn on_sighup(
                 Some(a)
             }
         };
-        let certificates = reload_certificates(&it.acceptors);
+        let mut certificates = reload_certificates(&it.acceptors);
         let Some(outcome) = reload(&mut it) else {
             return; // a relay has stopped: shutting down
         };
+        // With the file as it runs now: the new one if taken, else the old.
+        let web = it
+            .running
+            .lock()
+            .expect("not poisoned")
+            .metrics
+            .web_config
+            .clone();
+        certificates.extend(reload_web(&it.metrics, &web));
         outcome.log();
         it.counted
             .reloaded(outcome.taken(), std::time::SystemTime::now());
@@ -236,6 +247,31 @@ fn reload_certificates(acceptors: &[Arc<Acceptor>]) -> Vec<String> {
         }
     }
     said
+}
+
+/// The metrics listener's web configuration file read again, its certificates and
+/// users with it (docs/watching.md "Behind TLS and a password"): new connections are
+/// served with it. A file that does not load leaves the one in use, and says why.
+/// What was said, a line (none without a file, before or now).
+fn reload_web(metrics: &MetricsListener, path: &str) -> Vec<String> {
+    let had = metrics.has_web_file();
+    match metrics.reload_web(path) {
+        Ok(_) if path.trim().is_empty() && !had => Vec::new(),
+        Ok(said) => {
+            let line = if path.trim().is_empty() {
+                format!("metrics.web_config: none now: {said}")
+            } else {
+                format!("metrics.web_config: {} read again: {said}", path.trim())
+            };
+            info!("{line}");
+            vec![line]
+        }
+        Err(e) => {
+            let line = format!("metrics.web_config: not reloaded, the one in use stays: {e}");
+            warn!("{line}");
+            vec![line]
+        }
+    }
 }
 
 /// One reload: the file read, its lines matched to the running ones, what a reload
@@ -323,7 +359,7 @@ pub(crate) mod tests {
             unit_backoff = false\nunit_backoff_after = 9\nunit_backoff_ms = 9\nunit_backoff_max_ms = 99\n\
             probe_timeout_ms = 9\ntimeout_guard_ms = 9\ncoalesce = false\ncache_ms = 9\n\
             request_pause_ms = 9\n\
-            [log]\nlevel = \"debug\"\ntraffic = true\n[metrics]\nlisten = \"127.0.0.1:9502\"\n\
+            [log]\nlevel = \"debug\"\ntraffic = true\n[metrics]\nlisten = \"127.0.0.1:9502\"\nweb_config = \"/w.yml\"\n\
             [capture]\nfile = \"/x\"\nfiles = 3\nfile_size_kb = 99\n[control]\nsocket = \"/y\"\n";
         crate::config::parse(text, "t").unwrap()
     }

@@ -53,6 +53,7 @@ fn line_config(pty: String, slave: SocketAddr, traffic: bool) -> Config {
             peer: Peer::Connect(slave.to_string()),
             response_timeout_ms: 1000,
             max_in_flight: 1,
+            allow: None,
         }],
     });
     cfg

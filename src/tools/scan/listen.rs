@@ -4,7 +4,7 @@
 //! bus's, reported with its units, function codes, request rate and reply times.
 
 use super::probe::{ProbeSetting, SerialFraming};
-use super::sniff::{self, Traffic};
+use super::sniff::{self, Listened, Traffic};
 use super::{Progress, ScanError};
 use crate::tools::wire::uart::Format;
 use std::time::{Duration, Instant};
@@ -57,9 +57,13 @@ pub(super) async fn listen(
             })?;
         heard.settings += 1;
         let opened = Instant::now();
-        let mut chunks: Vec<(Duration, Vec<u8>)> = Vec::new();
+        let mut bytes = Listened::default();
+        let most = most_bytes(s, window);
         let mut buf = [0u8; 1024];
-        loop {
+        // Until the window ends, or more came than a wire at this setting carries
+        // in it (a port with no wire, a pty, may give any amount): what came is
+        // judged then.
+        while bytes.len() < most {
             let until = (opened + window).saturating_duration_since(Instant::now());
             if until.is_zero() {
                 break;
@@ -70,7 +74,7 @@ pub(super) async fn listen(
                     if n == 0 {
                         break;
                     }
-                    chunks.push((opened.elapsed(), buf[..n].to_vec()));
+                    bytes.push(opened.elapsed(), &buf[..n]);
                 }
                 _ = tokio::time::sleep(until) => break,
                 _ = stop.cancelled() => break,
@@ -79,7 +83,7 @@ pub(super) async fn listen(
         let best = s
             .framings
             .iter()
-            .map(|&f| (f, sniff::traffic(f, &chunks)))
+            .map(|&f| (f, sniff::traffic(f, &bytes)))
             .max_by_key(|(_, t)| t.framed);
         if let Some((framing, traffic)) = best {
             if traffic.heard() {
@@ -93,6 +97,14 @@ pub(super) async fn listen(
     heard.interrupted = stop.is_cancelled();
     heard.elapsed = started.elapsed();
     Ok(heard)
+}
+
+/// The most bytes listened to at setting `s` for `window`: what its wire carries in
+/// that time, and a read's worth more. A live bus at that setting never brings more;
+/// a port without a wire (a pty) may bring any amount, and is read no further then.
+fn most_bytes(s: &ProbeSetting, window: Duration) -> usize {
+    let per_s = f64::from(s.baud) / f64::from(s.format.bits());
+    (per_s * window.as_secs_f64()) as usize + 1024
 }
 
 /// A duration's median and longest, in whole milliseconds.
@@ -214,4 +226,28 @@ pub(super) fn json(h: &Overheard, target: &str) -> String {
         h.interrupted,
         h.elapsed.as_secs_f64()
     )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// What a wire carries: 9600 baud at 8N1 is 960 bytes a second; 3 s of it and a
+    /// read's worth more. An hour at 115 200 baud 8E1: 37.7 MB.
+    #[test]
+    fn a_setting_is_listened_to_for_what_its_wire_carries() {
+        let at = |baud, format: &str| ProbeSetting {
+            baud,
+            format: format.parse().unwrap(),
+            framings: vec![SerialFraming::Rtu],
+        };
+        assert_eq!(
+            most_bytes(&at(9600, "8N1"), Duration::from_secs(3)),
+            2880 + 1024
+        );
+        assert_eq!(
+            most_bytes(&at(115_200, "8E1"), Duration::from_secs(3600)),
+            37_701_818 + 1024
+        );
+    }
 }

@@ -81,6 +81,10 @@ impl Port for SerialPort {
     fn wire_time(&self, bytes: usize) -> Duration {
         super::kind::wire_time(&self.cfg, bytes)
     }
+
+    fn node(&self) -> Option<&std::path::Path> {
+        Some(std::path::Path::new(&self.cfg.path))
+    }
 }
 
 /// The port's descriptor, valid while the two halves of its [`OpenPort`] live (the relay

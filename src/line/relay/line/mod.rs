@@ -40,8 +40,11 @@ pub(super) enum Seen {
     /// The answer to the request with this key (RTU/ASCII) or id (MBAP) failed its
     /// CRC or LRC, or did not match the request: the request failed (retried if it may
     /// be). MBAP: a confirmed frame with the request's id and unit whose shape fits no
-    /// reply to it.
+    /// reply to it. RTU/ASCII: also a reply followed within its quiet by another frame.
     Corrupt(u16),
+    /// RTU/ASCII: a frame of this unit paid an answer it owed (a request that timed
+    /// out): the unit is alive, though the frame answers nothing on the line now.
+    Heard(u8),
 }
 
 /// An MBAP frame that answers nothing in flight.
@@ -279,12 +282,24 @@ impl LineFraming {
         }
     }
 
-    /// A request to `unit` got no answer in time: the device may hold it and answer
-    /// it later. RTU/ASCII: until a reply of that unit is confirmed, each is taken
-    /// only once the line stays quiet after it (MBAP knows a late answer by its id).
-    pub(super) fn unanswered(&mut self, unit: u8) {
+    /// A request to `unit` that left at `left` got no answer in time: the device may
+    /// hold it and answer it later. RTU/ASCII: the unit owes that answer, and none of
+    /// its frames answers the request on the line until it has paid what it owes or
+    /// been quiet for `whole`, its whole response timeout, after a frame (MBAP knows
+    /// a late answer by its id).
+    pub(super) fn unanswered(&mut self, unit: u8, left: Instant, whole: Duration, now: Instant) {
         if let FramingState::Serial(s) = &mut self.0 {
-            s.unanswered(unit);
+            s.unanswered(unit, left, whole, now);
+        }
+    }
+
+    /// RTU/ASCII: the reply held until the line has been quiet after it, as the key
+    /// of its request and the instant that quiet ends. The request stays on the line
+    /// until then, past its deadline if need be.
+    pub(super) fn confirming(&self) -> Option<(u16, Instant)> {
+        match &self.0 {
+            FramingState::Mbap(_) => None,
+            FramingState::Serial(s) => s.confirming(),
         }
     }
 

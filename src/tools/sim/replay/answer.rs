@@ -61,9 +61,9 @@ impl Model {
             _ => {}
         }
         // Every request of this function went unanswered: it is not answered now.
-        let mut of_function = u.outcomes.iter().filter(|(q, _)| q[0] == function);
-        let seen_function = of_function.clone().next().is_some();
-        if seen_function && of_function.all(|(_, (_, o))| *o == ReplayOutcome::Silent) {
+        let answered = u.functions.get(&function).copied();
+        let seen_function = answered.is_some();
+        if answered == Some(0) {
             return None;
         }
         match function {
@@ -144,10 +144,12 @@ mod tests {
                 request: q.to_vec(),
                 seen: r.map_or(RecordedReply::Silent, |r| RecordedReply::Reply(r.to_vec())),
                 turnaround_us: r.map(|_| 1000),
-                own_us: r.map(|_| 1000),
+                wire_us: 0,
+                line: 0,
                 framing: Framing::Rtu,
             });
         }
+        m.finish();
         m
     }
 

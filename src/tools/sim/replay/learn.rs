@@ -7,12 +7,17 @@
 //! they hold the device's own frames, in the line's framing, timed where they left
 //! and arrived. Dropped bytes (their comment starts `dropped (`) and frames that
 //! answered no request are not the device's answers and are passed over.
+//!
+//! [`Learner`] takes the packets one at a time, as the file is read: what it holds
+//! between them is the requests still waiting on each line, at most
+//! [`MAX_WAITING`] a line.
 
 use crate::config::Framing;
 use crate::frame::rtu;
 use crate::ops::capture::pcapng;
-use crate::ops::capture::pcapng_read::{exported, Read};
+use crate::ops::capture::pcapng_read::{exported, FileInterface, Record};
 use crate::tools::wire::uart::Format;
+use std::collections::VecDeque;
 
 /// What the device did with one request.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -34,9 +39,13 @@ pub(crate) struct Observation {
     pub(crate) seen: RecordedReply,
     /// Request out to reply in, for a reply.
     pub(crate) turnaround_us: Option<u64>,
-    /// Of that, the device's own time: less the time the request and the reply took
-    /// on the line's wire at its recorded speed, where there was one ([`own_times`]).
-    pub(crate) own_us: Option<u64>,
+    /// The time the request's and the reply's bytes take on a wire at the line's
+    /// recorded speed (0 where none is recorded): taken out of the turnaround for the
+    /// device's own time, unless the line had no wire (`Wires`).
+    pub(crate) wire_us: u64,
+    /// The line, numbered over every file read (each file's interfaces after the
+    /// last file's).
+    pub(crate) line: usize,
     /// How the line carried it.
     pub(crate) framing: Framing,
 }
@@ -64,60 +73,73 @@ fn frame(dissector: &str, payload: &[u8], ascii: bool) -> Option<(Framing, u16, 
     }
 }
 
-/// The requests still waiting for their answer on one line.
+/// The most requests a line may have waiting for their answer: the most a gateway
+/// keeps in flight on a line (`max_in_flight`, 1 to 255). A file with more (no
+/// capture of mbgate's) forgets the oldest, which would have timed out.
+pub(crate) const MAX_WAITING: usize = 256;
+
+/// A request waiting for its answer: (sent at, framing, transaction id, unit, PDU).
+type Waiting = (u64, Framing, u16, u8, Vec<u8>);
+
+/// What the capture said so far: each line's speed and the requests still waiting
+/// for their answer.
 #[derive(Debug, Default)]
-struct Unanswered {
-    queries: Vec<(u64, Framing, u16, u8, Vec<u8>)>,
+pub(crate) struct Learner {
+    /// The number of this file's first interface among every file's lines.
+    first_line: usize,
+    speeds: Vec<Option<Speed>>,
+    waiting: Vec<VecDeque<Waiting>>,
 }
 
-/// Every request of every line of `capture` and what came of it, in the order the
-/// requests went out on each line (lines one after the other).
-pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
-    let speeds: Vec<Option<Speed>> = capture
-        .interfaces
-        .iter()
-        .map(|i| speed(&i.description))
-        .collect();
-    // (index into `out`, line, wire time) of each reply.
-    let mut timed: Vec<(usize, usize, u64)> = Vec::new();
-    let mut waiting: Vec<Unanswered> = capture
-        .interfaces
-        .iter()
-        .map(|_| Unanswered::default())
-        .collect();
-    let mut out = Vec::new();
-    for p in &capture.packets {
-        let iface = &capture.interfaces[p.interface];
+impl Learner {
+    /// A learner for a file whose interfaces are numbered from `first_line` on.
+    pub(crate) fn new(first_line: usize) -> Learner {
+        Learner {
+            first_line,
+            ..Learner::default()
+        }
+    }
+
+    /// What packet `p` (of a file whose interfaces so far are `interfaces`) shows: a
+    /// request's reply or timeout, or nothing yet.
+    pub(crate) fn packet(
+        &mut self,
+        interfaces: &[FileInterface],
+        p: &Record<'_>,
+    ) -> Option<Observation> {
+        let iface = &interfaces[p.interface];
         if iface.name == "tcp" || iface.link_type != pcapng::LINKTYPE_WIRESHARK_UPPER_PDU {
-            continue;
+            return None;
+        }
+        while self.speeds.len() < interfaces.len() {
+            self.speeds
+                .push(speed(&interfaces[self.speeds.len()].description));
+            self.waiting.push(VecDeque::new());
         }
         let comment = p.comment.as_deref().unwrap_or("");
         if comment.starts_with("dropped (") || comment.starts_with("a frame that answers") {
-            continue;
+            return None;
         }
-        let Some(e) = exported(p.data) else { continue };
-        let w = &mut waiting[p.interface];
+        let e = exported(p.data)?;
+        let line = self.first_line + p.interface;
+        let w = &mut self.waiting[p.interface];
         if comment.starts_with("timeout: no reply from unit ") {
             // The oldest request still waiting gets the timeout (one at a time on a
             // serial bus; an MBAP line's in order).
-            if !w.queries.is_empty() {
-                let (at_us, framing, _, unit, request) = w.queries.remove(0);
-                out.push(Observation {
-                    at_us,
-                    unit,
-                    request,
-                    seen: RecordedReply::Silent,
-                    turnaround_us: None,
-                    own_us: None,
-                    framing,
-                });
-            }
-            continue;
+            let (at_us, framing, _, unit, request) = w.pop_front()?;
+            return Some(Observation {
+                at_us,
+                unit,
+                request,
+                seen: RecordedReply::Silent,
+                turnaround_us: None,
+                wire_us: 0,
+                line,
+                framing,
+            });
         }
         let ascii = comment.starts_with("ASCII on the wire");
-        let Some((framing, tid, unit, pdu)) = frame(&e.dissector, e.payload, ascii) else {
-            continue;
-        };
+        let (framing, tid, unit, pdu) = frame(&e.dissector, e.payload, ascii)?;
         // The direction flag, or (a writer that left it out) the ports: a query goes
         // to 502.
         let outbound = match p.flags & 0b11 {
@@ -128,50 +150,52 @@ pub(crate) fn observations(capture: &Read<'_>) -> Vec<Observation> {
         if outbound {
             if unit == 0 && framing != Framing::Mbap {
                 // A broadcast: no device answers it.
-                continue;
+                return None;
             }
             if framing != Framing::Mbap {
                 // One request at a time on a bus: a new one ends the wait of any before.
-                w.queries.clear();
+                w.clear();
             }
-            w.queries.push((p.at_us, framing, tid, unit, pdu));
-            continue;
+            if w.len() == MAX_WAITING {
+                w.pop_front();
+            }
+            w.push_back((p.at_us, framing, tid, unit, pdu));
+            return None;
         }
-        let Some(fc) = pdu.first() else { continue };
-        let found = w.queries.iter().position(|(_, f, t, u, q)| {
+        let fc = *pdu.first()?;
+        let found = w.iter().position(|(_, f, t, u, q)| {
             *u == unit && q.first() == Some(&(fc & 0x7F)) && (*f != Framing::Mbap || *t == tid)
-        });
-        if let Some(i) = found {
-            let (at_us, framing, _, unit, request) = w.queries.remove(i);
-            let wire = speeds[p.interface].map_or(0, |sp| wire_us(sp, framing, &request, &pdu));
-            timed.push((out.len(), p.interface, wire));
-            out.push(Observation {
-                at_us,
-                unit,
-                request,
-                seen: RecordedReply::Reply(pdu),
-                turnaround_us: Some(p.at_us.saturating_sub(at_us)),
-                own_us: None,
-                framing,
-            });
-        }
-    }
-    // Each reply's own time, judged line by line.
-    let recorded: Vec<Recorded> = timed
-        .iter()
-        .map(|&(i, line, wire_us)| Recorded {
+        })?;
+        let (at_us, framing, _, unit, request) = w.remove(found)?;
+        let wire = self.speeds[p.interface].map_or(0, |sp| wire_us(sp, framing, &request, &pdu));
+        Some(Observation {
+            at_us,
+            unit,
+            request,
+            seen: RecordedReply::Reply(pdu),
+            turnaround_us: Some(p.at_us.saturating_sub(at_us)),
+            wire_us: wire,
             line,
-            turnaround_us: out[i].turnaround_us.unwrap_or(0),
-            wire_us,
+            framing,
         })
-        .collect();
-    for (&(i, ..), own) in timed.iter().zip(own_times(&recorded)) {
-        out[i].own_us = Some(own);
     }
-    out
 }
 
-/// One recorded reply's times, for [`own_times`].
+/// Every request of every line of `capture` and what came of it, in the order the
+/// answers came.
+#[cfg(test)]
+pub(crate) fn observations(
+    capture: &crate::ops::capture::pcapng_read::Read<'_>,
+) -> Vec<Observation> {
+    let mut learner = Learner::new(0);
+    capture
+        .packets
+        .iter()
+        .filter_map(|p| learner.packet(&capture.interfaces, p))
+        .collect()
+}
+
+/// One recorded reply's times, for [`Wires`].
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub(crate) struct Recorded {
     /// The capture's interface (the line).
@@ -183,34 +207,51 @@ pub(crate) struct Recorded {
     pub(crate) wire_us: u64,
 }
 
-/// The device's own time in each recorded reply: what a replay waits between the
+/// Which lines had no wire, from the replies recorded on them: the rule that makes
+/// each recorded reply's time the device's own, what a replay waits between the
 /// request's last byte in and the reply's first byte out.
 ///
 /// The capture times a request when mbgate hands it to the port, before its first
 /// byte leaves, and a reply when its last byte is read (docs/capture.md "What a
 /// packet holds"). On a wire the turnaround so holds the request's and the reply's
 /// time on it at the line's speed; the replay's own port (a UART, or a pty paced
-/// with `--baud`) takes them again, so they are taken out here. On a pty there is
+/// with `--baud`) takes them again, so they are taken out. On a pty there is
 /// no wire and nothing is taken out. The capture does not say which the port was;
 /// the replies do: no device answers before its request could have crossed the
 /// wire and its reply come back, so a line where any reply came sooner than that
 /// had no wire (the gateway's own rule: docs/reliability.md "Knowing the wire").
+/// Known only once every reply is read: [`Wires::saw`] each, then [`Wires::own`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub(crate) struct Wires {
+    none: std::collections::BTreeSet<usize>,
+}
+
+impl Wires {
+    /// A reply recorded.
+    pub(crate) fn saw(&mut self, r: Recorded) {
+        if r.turnaround_us < r.wire_us {
+            self.none.insert(r.line);
+        }
+    }
+
+    /// The device's own time in `r`, once every reply was seen.
+    pub(crate) fn own(&self, r: Recorded) -> u64 {
+        if self.none.contains(&r.line) {
+            r.turnaround_us
+        } else {
+            r.turnaround_us.saturating_sub(r.wire_us)
+        }
+    }
+}
+
+/// The device's own time in each of `recorded` ([`Wires`]).
+#[cfg(test)]
 pub(crate) fn own_times(recorded: &[Recorded]) -> Vec<u64> {
-    let no_wire: std::collections::BTreeSet<usize> = recorded
-        .iter()
-        .filter(|r| r.turnaround_us < r.wire_us)
-        .map(|r| r.line)
-        .collect();
-    recorded
-        .iter()
-        .map(|r| {
-            if no_wire.contains(&r.line) {
-                r.turnaround_us
-            } else {
-                r.turnaround_us - r.wire_us
-            }
-        })
-        .collect()
+    let mut wires = Wires::default();
+    for r in recorded {
+        wires.saw(*r);
+    }
+    recorded.iter().map(|r| wires.own(*r)).collect()
 }
 
 /// A line's speed as its capture says it: bits a second, and bits a character.
@@ -418,18 +459,52 @@ mod tests {
         f.extend(packet(1, 30_400, "mbrtu", &r, inb, ""));
         f.extend(packet(1, 40_000, "mbrtu", &q, out, ""));
         f.extend(packet(1, 60_000, "mbrtu", &r, inb, ""));
-        let got: Vec<_> = observations(&read(&f).unwrap())
+        let seen = observations(&read(&f).unwrap());
+        let recorded: Vec<Recorded> = seen
             .iter()
-            .map(|o| (o.turnaround_us, o.own_us))
+            .map(|o| Recorded {
+                line: o.line,
+                turnaround_us: o.turnaround_us.unwrap(),
+                wire_us: o.wire_us,
+            })
             .collect();
-        assert_eq!(
-            got,
-            [
-                (Some(20_000), Some(4_375)),
-                (Some(400), Some(400)),
-                (Some(20_000), Some(20_000))
-            ]
-        );
+        let got: Vec<_> = seen.iter().map(|o| o.turnaround_us).collect();
+        assert_eq!(got, [Some(20_000), Some(400), Some(20_000)]);
+        assert_eq!(own_times(&recorded), [4_375, 400, 20_000]);
+    }
+
+    /// A line holds at most [`MAX_WAITING`] requests waiting for their answer (a
+    /// gateway keeps 255 in flight at most): a file of requests never answered takes
+    /// no more memory, and a reply is looked for among those only.
+    #[test]
+    fn a_line_keeps_the_last_requests_waiting_and_no_more() {
+        let (out, inb) = (pcapng::OUTBOUND, pcapng::INBOUND);
+        let mbap = |tid: u16, pdu: &[u8]| crate::frame::Adu::build(tid, 4, pdu).as_bytes().to_vec();
+        let mut f = pcapng::section_header("t");
+        f.extend(pcapng::interface("192.168.1.20:502", ""));
+        for tid in 1..=1000u16 {
+            f.extend(packet(
+                0,
+                10,
+                "mbtcp",
+                &mbap(tid, &[3, 0, 0, 0, 1]),
+                out,
+                "",
+            ));
+        }
+        // The first request's reply: forgotten with it. The last one's: found.
+        f.extend(packet(0, 20, "mbtcp", &mbap(1, &[3, 2, 0, 1]), inb, ""));
+        f.extend(packet(0, 30, "mbtcp", &mbap(1000, &[3, 2, 0, 9]), inb, ""));
+        let capture = read(&f).unwrap();
+        let mut learner = Learner::new(0);
+        let mut seen = Vec::new();
+        for p in &capture.packets {
+            seen.extend(learner.packet(&capture.interfaces, p));
+            assert!(learner.waiting.iter().all(|w| w.len() <= MAX_WAITING));
+        }
+        assert_eq!(seen.len(), 1);
+        assert_eq!(seen[0].seen, RecordedReply::Reply(vec![3, 2, 0, 9]));
+        assert_eq!(learner.waiting[0].len(), MAX_WAITING - 1);
     }
 
     /// An MBAP line's replies are found by their transaction id, an ASCII line's

@@ -1,13 +1,16 @@
-//! Reading capture files into a [`Replay`]: each file read whole (a damaged one up to
-//! its damage, with a warning), the requests of all of them applied in time order so
-//! the latest wins, and the summary of what each unit's map is known to hold
-//! (docs/simulator.md "Replaying a device").
+//! Reading capture files into a [`Replay`]: each file streamed one block at a time (a
+//! damaged one up to its damage, with a warning), each request applied to the model
+//! as it comes (the model keeps what it saw with its time, so the latest wins
+//! whatever the order), and the summary of what each unit's map is known to hold
+//! (docs/simulator.md "Replaying a device"). A file of any size takes the memory of
+//! its largest block and of the model, never of the file.
 
-use super::learn::{observations, Observation};
+use super::learn::Learner;
 use super::model::{Model, ReplayOutcome};
 use super::{Choices, Replay};
-use crate::ops::capture::pcapng_read;
+use crate::ops::capture::pcapng_read::{self, Blocks, Unreadable, BLOCK_HEAD};
 use std::fmt::Write as _;
+use std::io::Read as _;
 use std::path::{Path, PathBuf};
 
 /// A file that cannot be replayed.
@@ -29,57 +32,111 @@ pub enum LoadError {
         /// Where and why.
         damage: pcapng_read::Damage,
     },
-    /// The files hold no request a device answered or let time out on a line.
+    /// The files hold no request a device answered or let time out on a line; where
+    /// a file was damaged, why it was read no further.
     #[error(
-        "--replay {0}: no Modbus request on any line (a capture of `mbgate capture` \
-         or `[capture] file` holds the lines' frames)"
+        "--replay {files}: no Modbus request on any line (a capture of `mbgate capture` \
+         or `[capture] file` holds the lines' frames){}",
+        damage.iter().map(|d| format!("; {d}")).collect::<String>()
     )]
-    Empty(String),
+    Empty {
+        /// The files, as named.
+        files: String,
+        /// Each damaged file's warning.
+        damage: Vec<String>,
+    },
 }
 
-/// What one file adds: its requests, and a warning if it was read only in part.
-fn file(path: &Path) -> Result<(Vec<Observation>, Option<String>), LoadError> {
-    let bytes = std::fs::read(path).map_err(|error| LoadError::Io {
+/// Applies what one file holds to `model`, its lines numbered from `*lines` on (which
+/// moves past them): how many requests it held, and a warning if it was read only in
+/// part. Read one block at a time.
+fn file(
+    path: &Path,
+    model: &mut Model,
+    lines: &mut usize,
+) -> Result<(usize, Option<String>), LoadError> {
+    let io = |error| LoadError::Io {
         path: path.to_owned(),
         error,
-    })?;
-    let read = pcapng_read::read(&bytes).map_err(|damage| LoadError::Refused {
-        path: path.to_owned(),
-        damage,
-    })?;
-    let warning = read.damage.as_ref().map(|d| {
+    };
+    let f = std::fs::File::open(path).map_err(io)?;
+    let size = f.metadata().map_err(io)?.len();
+    let mut rd = std::io::BufReader::with_capacity(1 << 16, f);
+    let mut blocks = Blocks::default();
+    let mut learner = Learner::new(*lines);
+    let mut block = Vec::new();
+    let (mut packets, mut requests) = (0usize, 0usize);
+    let damage = loop {
+        block.clear();
+        // The block's head, then the rest of it as long as the file has it: a length
+        // a damaged file claims is never allocated before its bytes are there.
+        (&mut rd)
+            .take(BLOCK_HEAD as u64)
+            .read_to_end(&mut block)
+            .map_err(io)?;
+        if block.is_empty() {
+            break None;
+        }
+        let total = match blocks.length(&block) {
+            Ok(total) => total,
+            Err(d) => break Some(d),
+        };
+        (&mut rd)
+            .take((total - block.len()) as u64)
+            .read_to_end(&mut block)
+            .map_err(io)?;
+        if block.len() < total {
+            break Some(blocks.damage(Unreadable::Truncated));
+        }
+        match blocks.block(&block) {
+            Ok(None) => {}
+            Ok(Some(p)) => {
+                packets += 1;
+                if let Some(o) = learner.packet(&blocks.interfaces, &p) {
+                    model.apply(&o);
+                    requests += 1;
+                }
+            }
+            Err(d) => break Some(d),
+        }
+    };
+    *lines += blocks.interfaces.len();
+    if let Some(d) = damage.as_ref().filter(|d| Blocks::refuses(d)) {
+        return Err(LoadError::Refused {
+            path: path.to_owned(),
+            damage: d.clone(),
+        });
+    }
+    let warning = damage.map(|d| {
         format!(
-            "--replay {}: read up to byte {} of {} and no further: {} ({} packets before it used)",
+            "--replay {}: read up to byte {} of {size} and no further: {} ({packets} packets before it used)",
             path.display(),
             d.offset,
-            bytes.len(),
             d.reason,
-            read.packets.len()
         )
     });
-    Ok((observations(&read), warning))
+    Ok((requests, warning))
 }
 
 /// Reads `paths` into a replay with `choices`; `seed` seeds the delays' draw.
 pub fn load(paths: &[PathBuf], choices: Choices, seed: u64) -> Result<Replay, LoadError> {
-    let mut all = Vec::new();
+    let mut model = Model::new(choices.timeline);
     let mut warnings = Vec::new();
+    let (mut requests, mut lines) = (0, 0);
     for path in paths {
-        let (seen, warning) = file(path)?;
-        all.extend(seen);
+        let (n, warning) = file(path, &mut model, &mut lines)?;
+        requests += n;
         warnings.extend(warning);
-    }
-    // Stable: within one moment, the order of the files and lines.
-    all.sort_by_key(|o| o.at_us);
-    let mut model = Model::default();
-    for o in &all {
-        model.apply(o);
     }
     if model.units.is_empty() {
         let names: Vec<String> = paths.iter().map(|p| p.display().to_string()).collect();
-        return Err(LoadError::Empty(names.join(", ")));
+        return Err(LoadError::Empty {
+            files: names.join(", "),
+            damage: warnings,
+        });
     }
-    let summary = summary(&model, paths.len(), all.len(), &choices);
+    model.finish();
+    let summary = summary(&model, paths.len(), requests, &choices);
     Ok(Replay {
         model,
         choices,

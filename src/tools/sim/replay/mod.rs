@@ -88,9 +88,9 @@ impl Replay {
             .get(&unit)
             .map(|u| u.own_by_request.get(pdu).map_or(&u.own_us[..], |t| &t[..]));
         let delay = match (&reply, times) {
-            (Some(_), Some(t)) if !t.is_empty() => {
-                Some(Duration::from_micros(t[self.rng.usize(..t.len())]))
-            }
+            (Some(_), Some(t)) if !t.is_empty() => Some(Duration::from_micros(u64::from(
+                t[self.rng.usize(..t.len())],
+            ))),
             _ => None,
         };
         Answer {

@@ -1,10 +1,15 @@
 //! The replayed devices' model (pure): for each unit, every register and bit it was
 //! seen to hold and when, the latest outcome of each distinct request (a reply, an
 //! exception, silence), the exception it gave to writes, and its reply times
-//! (docs/simulator.md "Replaying a device"). Built by applying observations in time
-//! order, so where captures disagree the latest wins.
+//! (docs/simulator.md "Replaying a device"). Built by applying observations as the
+//! files are read, in any order: each thing kept says when it was seen, so where
+//! captures disagree the latest wins; [`Model::finish`] then makes the reply times.
+//!
+//! Compact, so a capture of any length replays in little memory: a value is kept
+//! again only when it changed (and only the latest unless `--timeline`), a reply's
+//! times as 32-bit microseconds.
 
-use super::learn::{Observation, RecordedReply};
+use super::learn::{Observation, Recorded, RecordedReply, Wires};
 use crate::config::Framing;
 use std::collections::{BTreeMap, HashMap};
 
@@ -19,8 +24,11 @@ pub(crate) const TABLES: [&str; 4] = [
 /// One address's values over the capture, and what a master wrote during the replay.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
 pub(crate) struct Cell {
-    /// (when, value), in time order.
+    /// (when, value) each time it changed, in time order: a value seen again
+    /// unchanged only moves `last_at`.
     pub(crate) history: Vec<(u64, u16)>,
+    /// When the last value of `history` was last seen.
+    last_at: u64,
     /// Written during the replay: wins over the history from then on.
     pub(crate) written: Option<u16>,
 }
@@ -41,10 +49,36 @@ impl Cell {
         }
     }
 
-    fn record(&mut self, at: u64, value: u16) {
-        // Observations come in time order; one from another file may be older.
+    /// `value` seen at `at`; with `latest_only`, only the latest value is kept.
+    fn record(&mut self, at: u64, value: u16, latest_only: bool) {
+        let Some(&(_, last)) = self.history.last() else {
+            self.history.push((at, value));
+            self.last_at = at;
+            return;
+        };
+        if at >= self.last_at {
+            // In time order, as nearly every observation comes.
+            if value != last {
+                if latest_only {
+                    self.history.clear();
+                }
+                self.history.push((at, value));
+            }
+            self.last_at = at;
+            return;
+        }
+        if latest_only {
+            return;
+        }
+        // Older than the latest seen (another file, a pipelined reply): in its place.
         let n = self.history.partition_point(|&(t, _)| t <= at);
+        let after_last_change = n == self.history.len();
         self.history.insert(n, (at, value));
+        if after_last_change && value != last {
+            // The last value was seen again after it (at `last_at`): it holds from
+            // then on.
+            self.history.push((self.last_at, last));
+        }
     }
 }
 
@@ -66,17 +100,40 @@ pub(crate) struct Unit {
     pub(crate) tables: [BTreeMap<u16, Cell>; 4],
     /// By request PDU: (when, what came of it).
     pub(crate) outcomes: HashMap<Vec<u8>, (u64, ReplayOutcome)>,
+    /// By function code seen: how many of its distinct requests got an answer (a
+    /// reply or an exception) the latest time, so an answer need not look through
+    /// every request of the unit.
+    pub(crate) functions: BTreeMap<u8, usize>,
     /// The latest exception it gave to a write (FC 05, 06, 0F, 10, 16, 17), and when.
     pub(crate) write_exception: Option<(u64, u8)>,
-    /// Request out to reply in, µs, sorted (as recorded, for the summary).
-    pub(crate) turnarounds_us: Vec<u64>,
-    /// The device's own times of those (less the wire's: `learn::own_times`), µs,
-    /// in the order recorded: the replay's delays are drawn from them.
-    pub(crate) own_us: Vec<u64>,
-    /// The same, request by request (a device takes longer for some).
-    pub(crate) own_by_request: HashMap<Vec<u8>, Vec<u64>>,
+    /// Request out to reply in, µs, sorted (as recorded, for the summary); made by
+    /// [`Model::finish`].
+    pub(crate) turnarounds_us: Vec<u32>,
+    /// The device's own times of those (less the wire's: `learn::Wires`), µs, in the
+    /// order recorded: the replay's delays are drawn from them. Made by
+    /// [`Model::finish`].
+    pub(crate) own_us: Vec<u32>,
+    /// The same, request by request (a device takes longer for some). While the
+    /// files are read: indices into `replies`.
+    pub(crate) own_by_request: HashMap<Vec<u8>, Vec<u32>>,
+    /// Each reply's times as recorded, until [`Model::finish`] knows which lines had
+    /// a wire and makes the device's own of them.
+    replies: Vec<ReplyTimes>,
     /// How its line carried it.
     pub(crate) framing: Option<Framing>,
+}
+
+/// One reply's times as recorded, 32-bit microseconds (71 minutes: far past any
+/// reply a gateway waits for; longer is kept as that).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct ReplyTimes {
+    turnaround_us: u32,
+    wire_us: u32,
+    line: u32,
+}
+
+fn us32(us: u64) -> u32 {
+    u32::try_from(us).unwrap_or(u32::MAX)
 }
 
 /// Every replayed unit, and the capture's first moment (the timeline's start).
@@ -85,6 +142,11 @@ pub(crate) struct Model {
     pub(crate) units: BTreeMap<u8, Unit>,
     pub(crate) start_us: Option<u64>,
     pub(crate) end_us: Option<u64>,
+    /// Keep each value's latest only: a replay that is not `--timeline` never asks
+    /// for another.
+    pub(crate) latest_only: bool,
+    /// Which lines had a wire, from the replies seen so far.
+    wires: Wires,
 }
 
 fn word(pdu: &[u8], at: usize) -> Option<u16> {
@@ -133,7 +195,7 @@ impl Unit {
     }
 
     /// What a normal reply to a read says about the table it read.
-    fn learn_read(&mut self, at: u64, request: &[u8], reply: &[u8]) {
+    fn learn_read(&mut self, at: u64, request: &[u8], reply: &[u8], latest_only: bool) {
         let (Some(addr), Some(n)) = (word(request, 1), word(request, 3)) else {
             return;
         };
@@ -149,7 +211,10 @@ impl Unit {
         };
         for (i, v) in values.into_iter().enumerate() {
             let a = addr.wrapping_add(i as u16);
-            self.tables[table].entry(a).or_default().record(at, v);
+            self.tables[table]
+                .entry(a)
+                .or_default()
+                .record(at, v, latest_only);
         }
     }
 
@@ -186,37 +251,50 @@ impl Unit {
     pub(crate) fn quantile_us(&self, q: f64) -> Option<u64> {
         let n = self.turnarounds_us.len();
         let i = ((n as f64 - 1.0) * q).round() as usize;
-        self.turnarounds_us.get(i).copied()
+        self.turnarounds_us.get(i).map(|&t| u64::from(t))
     }
 }
 
 impl Model {
-    /// Applies what one request showed. Observations are applied in time order (of
-    /// every file together), so the latest wins.
+    /// A model for a replay: with `timeline`, every value over time; else the latest.
+    pub(crate) fn new(timeline: bool) -> Model {
+        Model {
+            latest_only: !timeline,
+            ..Model::default()
+        }
+    }
+
+    /// Applies what one request showed, in any order: what is kept says when it was
+    /// seen, so the latest wins.
     pub(crate) fn apply(&mut self, o: &Observation) {
         let Some(&function) = o.request.first() else {
             return;
         };
         self.start_us = Some(self.start_us.map_or(o.at_us, |s| s.min(o.at_us)));
         self.end_us = Some(self.end_us.map_or(o.at_us, |e| e.max(o.at_us)));
+        let latest_only = self.latest_only;
         let unit = self.units.entry(o.unit).or_default();
         unit.framing.get_or_insert(o.framing);
         let outcome = match &o.seen {
             RecordedReply::Silent => ReplayOutcome::Silent,
             RecordedReply::Reply(pdu) if pdu.first().is_some_and(|f| f & 0x80 != 0) => {
                 let code = pdu.get(1).copied().unwrap_or(0);
-                if is_write(function) {
+                if is_write(function) && unit.write_exception.is_none_or(|(t, _)| t <= o.at_us) {
                     unit.write_exception = Some((o.at_us, code));
                 }
                 ReplayOutcome::Exception(code)
             }
             RecordedReply::Reply(pdu) => {
                 match function {
-                    1..=4 => unit.learn_read(o.at_us, &o.request, pdu),
+                    1..=4 => unit.learn_read(o.at_us, &o.request, pdu, latest_only),
                     _ => {
                         if let Some((table, values)) = Unit::written_by(&o.request) {
                             for (a, v) in values {
-                                unit.tables[table].entry(a).or_default().record(o.at_us, v);
+                                unit.tables[table].entry(a).or_default().record(
+                                    o.at_us,
+                                    v,
+                                    latest_only,
+                                );
                             }
                         }
                     }
@@ -225,20 +303,66 @@ impl Model {
             }
         };
         if let Some(t) = o.turnaround_us {
-            let n = unit.turnarounds_us.partition_point(|&x| x <= t);
-            unit.turnarounds_us.insert(n, t);
-            let own = o.own_us.unwrap_or(t);
-            unit.own_us.push(own);
-            unit.own_by_request
-                .entry(o.request.clone())
-                .or_default()
-                .push(own);
+            let recorded = Recorded {
+                line: o.line,
+                turnaround_us: t,
+                wire_us: o.wire_us,
+            };
+            self.wires.saw(recorded);
+            let index = us32(unit.replies.len() as u64);
+            unit.replies.push(ReplyTimes {
+                turnaround_us: us32(t),
+                wire_us: us32(o.wire_us),
+                line: us32(o.line as u64),
+            });
+            match unit.own_by_request.get_mut(&o.request) {
+                Some(v) => v.push(index),
+                None => {
+                    unit.own_by_request.insert(o.request.clone(), vec![index]);
+                }
+            }
         }
-        match unit.outcomes.get(&o.request) {
+        let answered = unit.functions.entry(function).or_insert(0);
+        let silent = outcome == ReplayOutcome::Silent;
+        match unit.outcomes.get_mut(&o.request) {
             Some((at, _)) if *at > o.at_us => {}
-            _ => {
+            Some(kept) => {
+                match (kept.1 == ReplayOutcome::Silent, silent) {
+                    (true, false) => *answered += 1,
+                    (false, true) => *answered -= 1,
+                    _ => {}
+                }
+                *kept = (o.at_us, outcome);
+            }
+            None => {
+                *answered += usize::from(!silent);
                 unit.outcomes.insert(o.request.clone(), (o.at_us, outcome));
             }
+        }
+    }
+
+    /// Every file read: each reply's own time, now that it is known which lines had
+    /// a wire, and the reply times sorted for the summary.
+    pub(crate) fn finish(&mut self) {
+        for unit in self.units.values_mut() {
+            let replies = std::mem::take(&mut unit.replies);
+            unit.own_us = replies
+                .iter()
+                .map(|r| {
+                    us32(self.wires.own(Recorded {
+                        line: r.line as usize,
+                        turnaround_us: u64::from(r.turnaround_us),
+                        wire_us: u64::from(r.wire_us),
+                    }))
+                })
+                .collect();
+            for times in unit.own_by_request.values_mut() {
+                for t in times.iter_mut() {
+                    *t = unit.own_us[*t as usize];
+                }
+            }
+            unit.turnarounds_us = replies.iter().map(|r| r.turnaround_us).collect();
+            unit.turnarounds_us.sort_unstable();
         }
     }
 }
@@ -254,7 +378,8 @@ mod tests {
             request: request.to_vec(),
             seen: reply.map_or(RecordedReply::Silent, |r| RecordedReply::Reply(r.to_vec())),
             turnaround_us: reply.map(|_| at_us % 1000),
-            own_us: reply.map(|_| at_us % 1000),
+            wire_us: 0,
+            line: 0,
             framing: Framing::Rtu,
         }
     }
@@ -274,6 +399,7 @@ mod tests {
         m.apply(&seen(4000, 1, &[6, 0, 11, 0, 9], Some(&[6, 0, 11, 0, 9])));
         m.apply(&seen(5000, 1, &[6, 0, 99, 0, 9], Some(&[0x86, 2])));
         m.apply(&seen(6000, 2, &[4, 0, 0, 0, 1], None));
+        m.finish();
         let u = &m.units[&1];
         let holding = &u.tables[2];
         assert_eq!(holding[&10].value(None), Some(7));
@@ -307,14 +433,86 @@ mod tests {
         for (at, q, turnaround, own) in [(1, a, 9000, 1200), (2, b, 8000, 200), (3, a, 9500, 1700)]
         {
             let mut o = seen(at, 1, q, Some(&[3, 2, 0, 0]));
-            (o.turnaround_us, o.own_us) = (Some(turnaround), Some(own));
+            (o.turnaround_us, o.wire_us) = (Some(turnaround), turnaround - own);
             m.apply(&o);
         }
+        m.finish();
         let u = &m.units[&1];
         assert_eq!(u.turnarounds_us, [8000, 9000, 9500]);
         assert_eq!(u.quantile_us(0.5), Some(9000));
         assert_eq!(u.own_us, [1200, 200, 1700]);
         assert_eq!(u.own_by_request[a], [1200, 1700]);
         assert_eq!(u.own_by_request[b], [200]);
+    }
+
+    /// A value kept again only when it changed, and the latest only unless the replay
+    /// is `--timeline`: a million reads of one register that changes ten times keep
+    /// ten values, or one; the value at any moment is the same as with every read
+    /// kept, whatever order the reads came in.
+    #[test]
+    fn values_are_kept_at_their_changes_only() {
+        let reads: Vec<(u64, u16)> = (0..1_000_000u64)
+            .map(|i| (i, (i / 100_000) as u16))
+            .collect();
+        for latest_only in [false, true] {
+            let mut cell = Cell::default();
+            for &(at, v) in &reads {
+                cell.record(at, v, latest_only);
+            }
+            assert_eq!(cell.history.len(), if latest_only { 1 } else { 10 });
+            assert_eq!(cell.value(None), Some(9));
+            if !latest_only {
+                for t in [0, 99_999, 100_000, 512_345, 999_999, 5_000_000] {
+                    assert_eq!(cell.value(Some(t)), Some((t.min(999_999) / 100_000) as u16));
+                }
+            }
+        }
+        // Out of order (a second file, a pipelined reply): the latest still wins,
+        // and a value older than the last seen one takes its place in time.
+        let mut cell = Cell::default();
+        for (at, v) in [(10, 1), (20, 1), (30, 1), (25, 2), (5, 3), (40, 1)] {
+            cell.record(at, v, false);
+        }
+        let at = |t| cell.value(Some(t));
+        assert_eq!(
+            (at(5), at(10), at(25), at(30), at(40)),
+            (Some(3), Some(1), Some(2), Some(1), Some(1))
+        );
+        let mut latest = Cell::default();
+        for (at, v) in [(10, 1), (30, 4), (20, 2)] {
+            latest.record(at, v, true);
+        }
+        assert_eq!(latest.history, [(30, 4)]);
+    }
+
+    /// Applied in any order, the model is the same: a write's exception and a
+    /// request's outcome are the latest by time, not the last applied.
+    #[test]
+    fn the_order_observations_come_in_changes_nothing() {
+        let all = [
+            seen(1000, 1, &[6, 0, 1, 0, 1], Some(&[0x86, 2])),
+            seen(3000, 1, &[6, 0, 1, 0, 1], Some(&[0x86, 4])),
+            seen(2000, 1, &[3, 0, 1, 0, 1], Some(&[3, 2, 0, 7])),
+            seen(4000, 1, &[3, 0, 1, 0, 1], None),
+        ];
+        let mut forward = Model::new(true);
+        let mut backward = Model::new(true);
+        for o in &all {
+            forward.apply(o);
+        }
+        for o in all.iter().rev() {
+            backward.apply(o);
+        }
+        forward.finish();
+        backward.finish();
+        let (f, b) = (&forward.units[&1], &backward.units[&1]);
+        assert_eq!(f.write_exception, Some((3000, 4)));
+        assert_eq!(b.write_exception, Some((3000, 4)));
+        assert_eq!(f.outcomes, b.outcomes);
+        // FC 06 answered (with exceptions); FC 03 silent the latest time it was asked.
+        assert_eq!(f.functions, BTreeMap::from([(3, 0), (6, 1)]));
+        assert_eq!(b.functions, f.functions);
+        assert_eq!(f.tables, b.tables);
+        assert_eq!(f.turnarounds_us, b.turnarounds_us);
     }
 }

@@ -44,7 +44,7 @@ fn frames(line: &mut LineFraming, in_flight: &[OnLine<Req>], now: Instant) -> Ve
         .into_iter()
         .map(|s| match s {
             Seen::Frame(f, _) => f.as_bytes().to_vec(),
-            Seen::Corrupt(_) => panic!("corrupt on an MBAP line"),
+            Seen::Corrupt(_) | Seen::Heard(_) => panic!("corrupt on an MBAP line"),
         })
         .collect()
 }

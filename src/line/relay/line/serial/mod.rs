@@ -1,16 +1,16 @@
 //! The RTU and ASCII line: one request at a time, tied to its reply by time alone
 //! (bytes before the request left are not its reply: on a wire, its time at
-//! `baud_rate` counts), the inter-frame gap, CRC/LRC, the guard after a timeout,
-//! broadcasts with their turnaround, local echo. The way in (bytes read to frames
-//! seen) is `serial/receive.rs`; the line's state, the way out and its timers are
-//! here.
+//! `baud_rate` counts; a reply is taken once the line has been quiet after it), the
+//! inter-frame gap, CRC/LRC, the guard after a timeout, broadcasts with their
+//! turnaround, local echo. The way in (bytes read to frames seen) is
+//! `serial/receive.rs`; what each unit still owes and how soon it answers,
+//! `serial/owed.rs`; the line's state, the way out and its timers are here.
 
 use crate::config::{FlowControl, RelayConfig, SerialConfig};
 use crate::frame::framer::{Framer, ReplyFor};
 use crate::frame::serial::Codec;
 use crate::frame::{rtu, Adu};
 use crate::line::port::kind::{self, PortInfo};
-use crate::masters::access::UnitSet;
 use crate::ops::capture::dropped::{Dropped, Tape};
 use crate::ops::capture::packet::Reason;
 use crate::ops::stats::Stats;
@@ -18,6 +18,26 @@ use std::collections::VecDeque;
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::debug;
+
+/// The least quiet that confirms a reply where there is no wire (a pty): a device
+/// program that writes one frame too many, a few milliseconds before or after its
+/// reply, is caught by it (docs/reliability.md "RTU and ASCII", 7, which gives the
+/// measure behind it and its cost).
+const PTY_QUIET: Duration = Duration::from_millis(10);
+
+/// A reply to the request on the line, held until the line has been quiet after it.
+struct HeldReply {
+    /// The reply, with the request's key.
+    reply: Adu,
+    /// When its last byte came.
+    at: Instant,
+    /// How long after the request left.
+    took: Duration,
+    /// The quiet after it that confirms it.
+    quiet: Duration,
+    /// Its unit owes answers: it is held for the unit's whole response timeout.
+    owed: bool,
+}
 
 pub(super) struct Serial {
     /// Its settings: the time bytes take on the wire.
@@ -39,10 +59,9 @@ pub(super) struct Serial {
     /// discarded after this much silence rather than `silence` (a program on a pty
     /// may pause inside a frame; nothing there is lost or added).
     frame_gap: Duration,
-    /// The request on the line, for the length of its reply.
-    asked: Option<Vec<u8>>,
-    /// The room `asked` had, while nothing is asked.
-    asked_room: Vec<u8>,
+    /// The PDU of the request on the line, for the length of its reply; empty while
+    /// nothing is asked (a PDU never is). Kept in its room: no allocation a request.
+    asked: Vec<u8>,
     broadcast_delay: Duration,
     /// The line stays quiet this long after a timeout (`timeout_guard_ms`).
     guard: Duration,
@@ -80,15 +99,19 @@ pub(super) struct Serial {
     /// `inter_frame_gap_us = 0`: the gap is the line's (3.5 character times at
     /// `baud_rate`), so it is kept only where there is a wire.
     auto_gap: bool,
-    /// The units a request timed out to, which may still hold it and answer it later
-    /// (a device that stalled, then answers its backlog): until one of their replies
-    /// has been confirmed, each is taken only once the line stays quiet after it.
-    may_owe: UnitSet,
-    /// A reply from such a unit, held until the line has been quiet after it for the
-    /// guard, or half its request's response timeout if shorter (so a reply in the
-    /// first half of it is confirmed before its deadline); with its key (the
-    /// in-flight request's), when its last byte came, and that quiet.
-    unconfirmed: Option<(Adu, Instant, Duration)>,
+    /// What each unit still owes (an answer for each of its requests that timed
+    /// out, which it may yet send: a device that stalled, then answers its backlog)
+    /// and its fastest reply (`serial/owed.rs`).
+    owed: owed::Owed,
+    /// The reply to the request on the line, held until the line has been quiet
+    /// after it for `confirm`: a frame that follows sooner refutes it.
+    candidate: Option<HeldReply>,
+    /// The quiet that confirms a reply: none over TCP, the silence that ends a frame
+    /// on a wire, and on a pty that or [`PTY_QUIET`], the longer.
+    confirm: Duration,
+    /// The request (its key) a reply was held for its unit's whole response timeout:
+    /// once a request, so it stays on the line no longer than that past its deadline.
+    held_once: Option<u16>,
 }
 
 impl Serial {
@@ -114,15 +137,15 @@ impl Serial {
             (0, Codec::Ascii) => Duration::ZERO,
             _ => gap,
         };
+        let silence = kind::silence(serial, &PortInfo::unknown());
         Serial {
             port: serial.clone(),
             decoder: Framer::serial(codec),
             gap,
             gap_after_frame,
-            silence: kind::silence(serial, &PortInfo::unknown()),
+            silence,
             frame_gap: Duration::from_millis(relay.frame_gap_ms),
-            asked: None,
-            asked_room: Vec::new(),
+            asked: Vec::new(),
             broadcast_delay: Duration::from_millis(relay.broadcast_delay_ms),
             guard: Duration::from_millis(relay.timeout_guard_ms),
             last_rx: now,
@@ -144,8 +167,10 @@ impl Serial {
             },
             wire_gaps: (gap, gap_after_frame),
             auto_gap: serial.inter_frame_gap_us == 0,
-            may_owe: UnitSet::default(),
-            unconfirmed: None,
+            owed: owed::Owed::default(),
+            candidate: None,
+            confirm: if stream { Duration::ZERO } else { silence },
+            held_once: None,
         }
     }
 
@@ -167,6 +192,15 @@ impl Serial {
         }
         self.wire = kind::wire(&self.port, info);
         self.silence = kind::silence(&self.port, info);
+        // A reply is confirmed by the quiet after it: on a wire the silence that ends
+        // a frame; on a pty, where the next request follows a reply at once, long
+        // enough for a device program's second write (docs/reliability.md "RTU and
+        // ASCII", 7).
+        self.confirm = if self.wire {
+            self.silence
+        } else {
+            self.silence.max(PTY_QUIET)
+        };
         (self.gap, self.gap_after_frame) = self.wire_gaps;
         if !self.wire && self.auto_gap {
             // Nothing can collide where there is no wire: the device has sent its
@@ -181,12 +215,14 @@ impl Serial {
         let wire = if self.wire {
             "a wire at serial.baud_rate: a reply must begin after its request has left"
         } else {
-            "no wire: a reply is taken however soon it comes, and a request follows a \
-             whole reply at once"
+            "no wire: a reply may come however soon after its request, and a request \
+             follows a whole reply at once"
         };
         format!(
-            "{wire}; {:.2} ms of silence ends a frame of unknown shape",
-            self.silence.as_secs_f64() * 1000.0
+            "{wire}; {:.2} ms of silence ends a frame of unknown shape, {:.2} ms of quiet \
+             after a reply confirms it",
+            self.silence.as_secs_f64() * 1000.0,
+            self.confirm.as_secs_f64() * 1000.0
         )
     }
 
@@ -235,6 +271,8 @@ impl Serial {
             stats.add(&stats.dropped_stale, stale as u64);
         }
         self.count_dropped(held, stats);
+        self.candidate = None;
+        self.held_once = None;
         let start = out.len();
         self.decoder.encode_into(adu, out);
         let bytes = &out[start..];
@@ -291,10 +329,7 @@ impl Serial {
     /// discarded: `silence`, or where there is no wire and the partial frame's length
     /// is known, the frame gap.
     fn quiet_after(&self) -> Duration {
-        let known = self
-            .asked
-            .as_deref()
-            .is_some_and(|asked| self.decoder.length_known(&ReplyFor(asked)));
+        let known = !self.asked.is_empty() && self.decoder.length_known(&ReplyFor(&self.asked));
         if !self.wire && !self.stream && known {
             self.frame_gap.max(self.silence)
         } else {
@@ -318,23 +353,28 @@ impl Serial {
         // turn and found something else in the way (a request in flight or being
         // written, bytes not yet read), each of which wakes the loop when it changes.
         let free = waiting.then(|| self.free_at()).filter(|&at| at > now);
-        // A reply held for confirmation: taken once the line was quiet for the guard.
-        let confirm = self
-            .unconfirmed
-            .as_ref()
-            .map(|&(_, _, quiet)| self.last_rx + quiet);
+        // A reply held for confirmation: taken once the line was quiet after it.
+        let confirm = self.confirming().map(|(_, at)| at);
         silence.into_iter().chain(free).chain(confirm).min()
+    }
+
+    /// The reply held for confirmation: the key of its request, and when the quiet
+    /// after it confirms it. Its request stays on the line until then, past its
+    /// deadline if need be: the reply came in time.
+    pub(super) fn confirming(&self) -> Option<(u16, Instant)> {
+        let c = self.candidate.as_ref()?;
+        Some((c.reply.tid(), c.at + c.quiet))
     }
 
     /// Does the silence after what is buffered end it, whatever it holds? RTU: the
     /// framer cuts a frame of unknown shape there; with nothing asked, anything is
     /// dropped.
     fn silence_ends_frame(&self) -> bool {
-        self.asked.is_none() || self.decoder.codec() == Some(Codec::Rtu)
+        self.asked.is_empty() || self.decoder.codec() == Some(Codec::Rtu)
     }
 
     pub(super) fn clear(&mut self, stats: &Stats) {
-        self.unconfirmed = None;
+        self.candidate = None;
         self.decoder.clear();
         let to = self.decoder.consumed();
         self.tape.stale_to(to);
@@ -348,25 +388,22 @@ impl Serial {
         self.broadcast_on_wire = false;
     }
 
-    /// A request to `unit` got no answer in time: the device may have read it and
-    /// answer it later, with any it holds after it (docs/reliability.md "RTU and
+    /// A request to `unit` that left at `left` got no answer in time: the device may
+    /// have read it and answer it later, after any it holds before it; the unit owes
+    /// that answer until it pays it, or has been quiet for `whole` (its whole response
+    /// timeout) after a frame sent after it was asked (docs/reliability.md "RTU and
     /// ASCII", 6).
-    pub(super) fn unanswered(&mut self, unit: u8) {
-        // A broadcast is answered by nobody.
-        if unit != 0 {
-            self.may_owe.insert(unit);
-        }
+    pub(super) fn unanswered(&mut self, unit: u8, left: Instant, whole: Duration, now: Instant) {
+        self.owed.unanswered(unit, left, whole, now);
     }
 
     pub(super) fn timed_out(&mut self, now: Instant, hold: Duration, stats: &Stats) {
-        if let Some((reply, ..)) = self.unconfirmed.take() {
-            self.drop_backlog(&reply, now, stats);
+        if let Some(c) = self.candidate.take() {
+            self.refuted(&c, stats);
         }
+        // A partial reply stays buffered: completed, it pays what its unit owes (a
+        // late answer), or is dropped as answering nothing.
         let held = self.drop_held(now, "a partial reply when its request timed out");
-        self.decoder.clear();
-        let to = self.decoder.consumed();
-        let why = "a partial reply when its request timed out";
-        self.tape.dropped_to(to, Some(now), Reason::Stale, why);
         self.count_dropped(held, stats);
         // Never written in time (CTS held low): nothing of it is on its way.
         self.tx = None;
@@ -431,6 +468,7 @@ impl Serial {
     }
 }
 
+mod owed;
 mod receive;
 
 #[cfg(test)]

@@ -1,7 +1,9 @@
 //! The RTU and ASCII line's way in: the bytes read, their local echo stripped, cut
 //! into frames by the gap and the CRC/LRC, each tied to the request just sent by time
-//! (bytes before it left are not its reply), held until confirmed, or dropped with
-//! their reason.
+//! (bytes before it left are not its reply, nor a frame sooner than its unit can
+//! answer), paying what its unit owes, held until the line has been quiet after it
+//! (for the unit's whole response timeout while it owes), or dropped with their
+//! reason (docs/reliability.md "RTU and ASCII", 5 to 7).
 
 use super::super::Seen;
 use super::Serial;
@@ -117,7 +119,7 @@ impl Serial {
         &[]
     }
 
-    /// The frame the bytes received so far make, given what is in flight (one at a
+    /// The frames the bytes received so far make, given what is in flight (one at a
     /// time on a serial line), pushed onto `seen`.
     pub(in crate::line::relay::line) fn frames_into<R: Asked>(
         &mut self,
@@ -126,91 +128,148 @@ impl Serial {
         stats: &Stats,
         seen: &mut Vec<Seen>,
     ) {
-        seen.extend(self.next_seen(in_flight, now, stats));
-    }
-
-    pub(super) fn next_seen<R: Asked>(
-        &mut self,
-        in_flight: &[OnLine<R>],
-        now: Instant,
-        stats: &Stats,
-    ) -> Option<Seen> {
-        let asked = in_flight.first().map(|f| f.req.adu().pdu());
-        if self.asked.as_deref() != asked {
-            // Kept in the room of the last one: no allocation a request.
-            let mut room =
-                (self.asked.take()).unwrap_or_else(|| std::mem::take(&mut self.asked_room));
-            room.clear();
-            match asked {
-                Some(asked) => {
-                    room.extend_from_slice(asked);
-                    self.asked = Some(room);
-                }
-                None => self.asked_room = room,
-            }
+        let asked = in_flight.first().map_or(&[][..], |f| f.req.adu().pdu());
+        if self.asked != asked {
+            self.asked.clear();
+            self.asked.extend_from_slice(asked);
         }
-        let quiet = now >= self.last_rx + self.quiet_after();
         let Some(f) = in_flight.first() else {
-            // Nothing asked: late answers or noise, dropped once the line is quiet.
-            if quiet && self.decoder.buffered() > 0 {
-                let n = self.decoder.clear();
-                let to = self.decoder.consumed();
-                self.tape.dropped_to(
-                    to,
-                    Some(self.last_rx),
-                    Reason::Stale,
-                    "bytes that answer no request",
-                );
-                debug!(bytes = n, "bytes that answer no request dropped");
-                stats.add(&stats.dropped_stale, n as u64);
-                self.count_dropped(0, stats);
+            if let Some(c) = self.candidate.take() {
+                self.refuted(&c, stats);
             }
-            return None;
+            self.unasked(now, stats, seen);
+            return;
         };
-        let request = f.req.adu().pdu();
         if self
-            .unconfirmed
+            .candidate
             .as_ref()
-            .is_some_and(|(reply, ..)| reply.tid() != f.tid)
+            .is_some_and(|c| c.reply.tid() != f.tid)
         {
             // Held for a request no longer on the line.
-            if let Some((reply, ..)) = self.unconfirmed.take() {
-                self.drop_backlog(&reply, now, stats);
+            if let Some(c) = self.candidate.take() {
+                self.refuted(&c, stats);
             }
         }
+        self.next_seen(f, now, stats, seen);
+    }
+
+    /// The frames for the request `f` on the line: its reply (held until the line has
+    /// been quiet after it), frames that pay what their unit owes, or what refutes
+    /// the reply or refuses the request.
+    fn next_seen<R: Asked>(
+        &mut self,
+        f: &OnLine<R>,
+        now: Instant,
+        stats: &Stats,
+        seen: &mut Vec<Seen>,
+    ) {
+        let request = f.req.adu().pdu();
+        let quiet = now >= self.last_rx + self.quiet_after();
         loop {
+            if self.candidate.as_ref().is_some_and(|c| !c.owed) && self.decoder.buffered() > 0 {
+                // Bytes came within the quiet after the reply held: one frame too
+                // many, and which of them answers nothing cannot be told. Both go;
+                // what follows is dropped as answering nothing (docs/reliability.md
+                // "RTU and ASCII", 7).
+                return seen.push(self.refute(f.tid, None, now, stats));
+            }
+            // Made with the request's key: a reply goes to its master as it is.
             let next = self.decoder.next_frame_as(&ReplyFor(request), quiet, f.tid);
             // Noise before a frame (ASCII: before its colon), and a frame whose check
             // failed, the framer has dropped.
             self.count_dropped(0, stats);
             let frame = match next {
-                None => return self.confirmed(now),
+                None => {
+                    seen.extend(self.confirmed(now));
+                    return;
+                }
                 Some(Framed::Frame(frame)) => frame,
-                Some(Framed::Corrupt(n)) => return self.corrupt(f.tid, n, now, stats),
+                Some(Framed::Corrupt(n)) => return seen.push(self.corrupt(f.tid, n, now, stats)),
             };
             let at = self.last_rx.min(now);
             let end = self.decoder.consumed();
             let len = self.decoder.encoded_len(frame.pdu().len());
             self.tape.frame(end, len, Some(at), Reason::LostSync);
-            let (unit, pdu) = (frame.unit(), frame.pdu());
-            // Another frame came before the line was quiet after the one held: that
-            // one was an answer the device held to an earlier request.
-            if let Some((reply, ..)) = self.unconfirmed.take() {
-                self.drop_backlog(&reply, now, stats);
+            let unit = frame.unit();
+            if let Some(c) = self.candidate.take() {
+                if c.owed && c.reply.unit() == unit {
+                    // Its unit sent more: the frame held was an answer it owed
+                    // (docs/reliability.md "RTU and ASCII", 6). This one is judged
+                    // afresh.
+                    self.owed.pay(unit, c.at);
+                    self.drop_backlog(&c.reply, now, stats);
+                    seen.push(Seen::Heard(unit));
+                } else {
+                    // Another frame within the quiet after the reply held refutes it
+                    // (and pays, if its unit owes).
+                    if self.owed.pay(unit, at) {
+                        self.drop_backlog(&frame, now, stats);
+                        seen.push(Seen::Heard(unit));
+                        self.candidate = Some(c);
+                        return seen.push(self.refute(f.tid, None, now, stats));
+                    }
+                    self.candidate = Some(c);
+                    return seen.push(self.refute(f.tid, Some(&frame), now, stats));
+                }
             }
             let asked = unit == f.req.adu().unit();
-            let answers = asked && pdu::reply_matches(request, pdu);
-            if answers && self.may_owe.contains(unit) {
-                // The unit asked may still answer requests of its that timed out: its
-                // reply is the answer only if the line stays quiet after it
-                // (docs/reliability.md "RTU and ASCII", 6).
-                let quiet = self.guard.min(f.timeout / 2);
-                self.unconfirmed = Some((frame, at, quiet));
+            let answers = asked && pdu::reply_matches(request, frame.pdu());
+            if self.owed.owes(unit, at) {
+                if answers && self.held_once != Some(f.tid) {
+                    // A unit that owes answers: its frame answers the request on the
+                    // line only if it is its last for the unit's whole response
+                    // timeout (it then held nothing more); a frame sooner after it
+                    // shows it was one owed. Held once for a request, so the request
+                    // stays on the line at most that long past its deadline.
+                    self.held_once = Some(f.tid);
+                    let took = at.saturating_duration_since(self.reply_from);
+                    let quiet = self.owed.whole(unit);
+                    let reply = frame;
+                    self.candidate = Some(super::HeldReply {
+                        reply,
+                        at,
+                        took,
+                        quiet,
+                        owed: true,
+                    });
+                    continue;
+                }
+                // An answer the unit held to a request that timed out: it answers
+                // nothing on the line now.
+                self.owed.pay(unit, at);
+                self.drop_backlog(&frame, now, stats);
+                seen.push(Seen::Heard(unit));
                 continue;
             }
             if answers {
-                return Some(Seen::Frame(frame, at));
+                let took = at.saturating_duration_since(self.reply_from);
+                if !self.owed.could_answer(unit, took) {
+                    // Sooner than the unit can answer: on its way before the unit
+                    // could have read the request (the tail of the last transaction).
+                    // Not counted as the unit heard: if it was the reply after all
+                    // (the device turned faster), the request times out and is owed,
+                    // and the next reply, held for the unit's whole response timeout,
+                    // teaches the new pace.
+                    self.drop_too_soon(&frame, at, stats);
+                    continue;
+                }
+                self.owed.heard(unit, at);
+                let reply = frame;
+                if self.confirm.is_zero() {
+                    self.owed.replied(unit, at, took);
+                    return seen.push(Seen::Frame(reply, at));
+                }
+                let quiet = self.confirm;
+                self.candidate = Some(super::HeldReply {
+                    reply,
+                    at,
+                    took,
+                    quiet,
+                    owed: false,
+                });
+                continue;
             }
+            self.owed.heard(unit, at);
             // The CRC or LRC proves only that these bytes are a frame: one of another
             // unit, of another function than the request's (or its exception), or of
             // another shape answers something else (a stray frame, another request's
@@ -230,20 +289,135 @@ impl Serial {
                 detail,
             });
             stats.add(&stats.bad_frames, 1);
-            return Some(Seen::Corrupt(f.tid));
+            return seen.push(Seen::Corrupt(f.tid));
         }
     }
 
-    /// The reply held for confirmation, once the line has been quiet after it for its
-    /// time with nothing begun since: the answer, and its unit owes no more.
+    /// Nothing asked: the frames received pay what their units owe (late answers),
+    /// or answer nothing; either way dropped. What makes no frame is dropped once the
+    /// line is quiet.
+    fn unasked(&mut self, now: Instant, stats: &Stats, seen: &mut Vec<Seen>) {
+        if self.decoder.buffered() == 0 {
+            return;
+        }
+        let quiet = now >= self.last_rx + self.quiet_after();
+        while let Some(next) = self.decoder.next_frame(&ReplyFor(&[]), quiet) {
+            let frame = match next {
+                Framed::Frame(frame) => frame,
+                Framed::Corrupt(n) => {
+                    let to = self.decoder.consumed();
+                    let why = "bytes that answer no request";
+                    self.tape
+                        .dropped_to(to, Some(self.last_rx), Reason::Stale, why);
+                    stats.add(&stats.dropped_stale, n as u64);
+                    continue;
+                }
+            };
+            let at = self.last_rx.min(now);
+            let end = self.decoder.consumed();
+            let len = self.decoder.encoded_len(frame.pdu().len());
+            self.tape.frame(end, len, Some(at), Reason::LostSync);
+            let unit = frame.unit();
+            if self.owed.pay(unit, at) {
+                self.drop_backlog(&frame, now, stats);
+                seen.push(Seen::Heard(unit));
+            } else {
+                debug!(unit, "a frame that answers no request dropped");
+                let bytes = self.decoder.encode(&frame);
+                stats.add(&stats.dropped_stale, bytes.len() as u64);
+                stats.add(&stats.dropped_bytes, bytes.len() as u64);
+                self.tape.dropped_aside(|| Dropped {
+                    at: Some(at),
+                    reason: Reason::Stale,
+                    bytes,
+                    whole: true,
+                    detail: "a frame that answers no request",
+                });
+            }
+        }
+        if quiet && self.decoder.buffered() > 0 {
+            // ASCII without its line feed: never a frame.
+            let n = self.decoder.clear();
+            let to = self.decoder.consumed();
+            self.tape.dropped_to(
+                to,
+                Some(self.last_rx),
+                Reason::Stale,
+                "bytes that answer no request",
+            );
+            debug!(bytes = n, "bytes that answer no request dropped");
+            stats.add(&stats.dropped_stale, n as u64);
+        }
+        // Corrupt frames and noise the framer dropped, and what was cleared.
+        self.count_dropped(0, stats);
+    }
+
+    /// The reply held for confirmation, once the line has been quiet after it for
+    /// `confirm` with nothing begun since: the answer.
     pub(super) fn confirmed(&mut self, now: Instant) -> Option<Seen> {
-        let &(_, at, quiet) = self.unconfirmed.as_ref()?;
-        if self.decoder.buffered() > 0 || now < self.last_rx.max(at) + quiet {
+        let c = self.candidate.as_ref()?;
+        if self.decoder.buffered() > 0 || now < c.at + c.quiet {
             return None;
         }
-        let (reply, at, _) = self.unconfirmed.take()?;
-        self.may_owe.remove(reply.unit());
-        Some(Seen::Frame(reply, at))
+        let c = self.candidate.take()?;
+        self.owed.replied(c.reply.unit(), c.at, c.took);
+        Some(Seen::Frame(c.reply, c.at))
+    }
+
+    /// The reply held for the request `tid` was followed within its quiet by bytes
+    /// (`frame`, when they made one already): both are dropped, and the request failed.
+    fn refute(&mut self, tid: u16, frame: Option<&Adu>, now: Instant, stats: &Stats) -> Seen {
+        if let Some(c) = self.candidate.take() {
+            self.refuted(&c, stats);
+        }
+        if let Some(frame) = frame {
+            let bytes = self.decoder.encode(frame);
+            stats.add(&stats.dropped_stale, bytes.len() as u64);
+            stats.add(&stats.dropped_bytes, bytes.len() as u64);
+            self.tape.dropped_aside(|| Dropped {
+                at: Some(self.last_rx.min(now)),
+                reason: Reason::Stale,
+                bytes,
+                whole: true,
+                detail: "a frame within the quiet after a reply: one frame too many",
+            });
+        }
+        debug!("a reply followed by another frame within its quiet: both dropped");
+        Seen::Corrupt(tid)
+    }
+
+    /// A reply held for confirmation dropped unconfirmed: something followed it
+    /// within its quiet, or its request is no longer on the line.
+    pub(super) fn refuted(&mut self, c: &super::HeldReply, stats: &Stats) {
+        let bytes = self.decoder.encode(&c.reply);
+        stats.add(&stats.refuted_frames, 1);
+        stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        self.tape.dropped_aside(|| Dropped {
+            at: Some(c.at),
+            reason: Reason::LostSync,
+            bytes,
+            whole: true,
+            detail: "a reply refuted: another frame followed it within its quiet",
+        });
+    }
+
+    /// A frame that fitted the request on the line, come sooner after it than its
+    /// unit can answer: dropped, the request still waits.
+    fn drop_too_soon(&mut self, frame: &Adu, at: Instant, stats: &Stats) {
+        debug!(
+            unit = frame.unit(),
+            "a frame sooner than its unit can answer (half its fastest reply) dropped"
+        );
+        let bytes = self.decoder.encode(frame);
+        stats.add(&stats.dropped_too_early, bytes.len() as u64);
+        stats.add(&stats.dropped_bytes, bytes.len() as u64);
+        self.tape.dropped_aside(|| Dropped {
+            at: Some(at),
+            reason: Reason::TooEarly,
+            bytes,
+            whole: true,
+            detail: "sooner after the request than its unit can answer (half its fastest reply)",
+        });
     }
 
     /// A frame from a unit's backlog (the answer to a request that timed out),
@@ -268,15 +442,9 @@ impl Serial {
 
     /// A reply whose check failed (or cut short) for the request `tid`: with a reply
     /// held for confirmation, that one was not followed by quiet, and goes too.
-    pub(super) fn corrupt(
-        &mut self,
-        tid: u16,
-        n: usize,
-        now: Instant,
-        stats: &Stats,
-    ) -> Option<Seen> {
-        if let Some((reply, ..)) = self.unconfirmed.take() {
-            self.drop_backlog(&reply, now, stats);
+    pub(super) fn corrupt(&mut self, tid: u16, n: usize, now: Instant, stats: &Stats) -> Seen {
+        if let Some(c) = self.candidate.take() {
+            self.refuted(&c, stats);
         }
         debug!(bytes = n, "a reply whose check failed");
         let end = self.decoder.consumed();
@@ -285,6 +453,6 @@ impl Serial {
         let why = "a reply whose check failed, or cut short";
         self.tape.dropped_frame(end, n, at, check, why);
         stats.add(&stats.bad_frames, 1);
-        Some(Seen::Corrupt(tid))
+        Seen::Corrupt(tid)
     }
 }
