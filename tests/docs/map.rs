@@ -26,7 +26,7 @@ const ROOTS: &[&str] = &[
 const CODE: &[&str] = &["src", "tests", "benches", "fuzz"];
 
 /// Every file under `dir`, as paths from the checkout, folders with a trailing `/`.
-fn tree(dir: &Path, out: &mut Vec<String>) {
+pub(super) fn tree(dir: &Path, out: &mut Vec<String>) {
     for e in std::fs::read_dir(dir).unwrap() {
         let path = e.unwrap().path();
         let rel = path.strip_prefix(repo()).unwrap().display().to_string();
@@ -426,7 +426,7 @@ fn a_wing_holds_only_rooms() {
 }
 
 /// The production code of a source file: no comments, no test module.
-fn production(path: &Path) -> String {
+pub(super) fn production(path: &Path) -> String {
     let text = std::fs::read_to_string(path).unwrap();
     let mut out = String::new();
     let mut lines = text.lines().peekable();
