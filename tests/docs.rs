@@ -22,11 +22,11 @@
 //! The examples listen on fixed ports (5502, 1502, ...), as a user's would: they run one
 //! at a time.
 
+#[path = "docs/claims.rs"]
+mod claims;
 mod common;
 #[path = "docs/map.rs"]
 mod map;
-#[path = "docs/claims.rs"]
-mod claims;
 
 use common::{peer, repo};
 use std::collections::{BTreeMap, BTreeSet};

@@ -49,12 +49,16 @@ fn check(what: &str, uses: &dyn Fn(&str) -> bool) {
     let mut wrong = Vec::new();
     for f in &found {
         if !names.iter().any(|n| covers(n, f)) {
-            wrong.push(format!("{f} has {what} but architecture.md does not name it"));
+            wrong.push(format!(
+                "{f} has {what} but architecture.md does not name it"
+            ));
         }
     }
     for n in &names {
         if !found.iter().any(|f| covers(n, f)) {
-            wrong.push(format!("architecture.md names {n} for {what}, which has none"));
+            wrong.push(format!(
+                "architecture.md names {n} for {what}, which has none"
+            ));
         }
     }
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
@@ -62,7 +66,9 @@ fn check(what: &str, uses: &dyn Fn(&str) -> bool) {
 
 #[test]
 fn the_files_that_use_clap_are_the_ones_named() {
-    check("clap", &|code| code.contains("clap::") || code.contains("use clap"));
+    check("clap", &|code| {
+        code.contains("clap::") || code.contains("use clap")
+    });
 }
 
 #[test]

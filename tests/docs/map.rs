@@ -514,6 +514,72 @@ fn every_import_points_down_the_rooms_drawing() {
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }
 
+/// The wings are layers (docs/architecture.md "The wings", its line "The order, top to
+/// bottom: ..."): the production code of each first-level entry of `src/` names
+/// (`crate::x`, or `mbgate::x` in main.rs) only entries below it in that order; every
+/// entry is in the order, and the order names only entries there are.
+#[test]
+fn every_wing_imports_only_the_wings_below_it() {
+    let page = std::fs::read_to_string(repo().join("docs/architecture.md")).unwrap();
+    let after = &page[page.find("## The wings").expect("the wings section")..];
+    let line = &after[after.find("The order, top to bottom:").expect("the order")..];
+    let line = &line[..line.find(".\n").expect("the order's end")];
+    let order: Vec<String> = line
+        .split('`')
+        .skip(1)
+        .step_by(2)
+        .map(str::to_string)
+        .collect();
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let entry = |file: &str| -> String {
+        let first = file["src/".len()..].split('/').next().unwrap();
+        match first.trim_end_matches(".rs") {
+            "main" => "cli".to_string(),
+            other => other.to_string(),
+        }
+    };
+    let mut wrong = Vec::new();
+    let mut seen = std::collections::BTreeSet::new();
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        let from = entry(file);
+        if from == "lib" || file.ends_with("/tests.rs") || file.contains("/tests/") {
+            continue;
+        }
+        seen.insert(from.clone());
+        let Some(at) = order.iter().position(|w| *w == from) else {
+            wrong.push(format!("{file}: `{from}` is not in the order"));
+            continue;
+        };
+        let code = production(&repo().join(file));
+        let mut named = std::collections::BTreeSet::new();
+        for prefix in ["crate::", "mbgate::"] {
+            for (i, _) in code.match_indices(prefix) {
+                let to: String = code[i + prefix.len()..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect();
+                if to == from || !named.insert(to.clone()) {
+                    continue;
+                }
+                match order.iter().position(|w| *w == to) {
+                    Some(there) if there < at => {
+                        wrong.push(format!("{file}: `{from}` uses `{to}`, a wing above it"))
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    for w in &order {
+        if !seen.contains(w) {
+            wrong.push(format!("the order names `{w}`, which src/ does not have"));
+        }
+    }
+    assert!(order.len() >= 8, "only {order:?}: is the parsing right?");
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
 /// The number of files in `src/` a new framing touches, as the pages state it
 /// ("13 in `src/` today"), is the number that name `Framing::Ascii`,
 /// `SerialFraming::Ascii` (the scan's) or `Codec::Ascii`.
