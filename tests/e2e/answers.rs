@@ -6,7 +6,7 @@
 //! TCP, Modbus/TCP Security (Python's ssl, that is OpenSSL, as the master) and a dial to
 //! a server that sends back every byte it gets. The device is pymodbus' RTU server on a
 //! socat pty (unit 1, holding register i = 1000 + i). The UDP listener's own hostile
-//! peers are tests/udp_hostile.rs.
+//! peers are tests/e2e/udp_hostile.rs.
 
 use crate::common;
 use common::pki::Pki;

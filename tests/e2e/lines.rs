@@ -1,6 +1,6 @@
 //! Several lines behind one address, a device on the network, RTU-over-TCP masters
 //! (docs/design.md §4.1; docs/several-buses.md, network-devices.md, rtu-over-tcp.md,
-//! whose commands tests/docs.rs runs), end to end: the mbgate binary, socat ptys with
+//! whose commands tests/packaging/docs.rs runs), end to end: the mbgate binary, socat ptys with
 //! raw devices, pymodbus' ModbusTcpServer as the device on TCP and pymodbus' RTU
 //! framer on a TCP client as a master.
 

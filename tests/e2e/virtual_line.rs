@@ -652,7 +652,7 @@ fn the_gap_before_each_request_holds_behind_the_line() {
 /// (docs/reliability.md, "RTU and ASCII": the guard after a timeout); most late ones
 /// are 0x0B (their own value only if the gateway's timer woke late), and every late
 /// reply is discarded whole. The guard is far beyond how late a loaded machine makes
-/// pymodbus (tests/rtu_binding.rs's `GUARD_MS` says why), `late_by` within it.
+/// pymodbus (tests/e2e/rtu_binding.rs's `GUARD_MS` says why), `late_by` within it.
 fn late_replies_behind_the_line(late_by: Duration) {
     const TIMEOUT: Duration = Duration::from_millis(400);
     const GUARD_MS: u64 = 1200;
@@ -894,8 +894,8 @@ fn a_frame_begun_while_the_request_leaves_is_never_its_reply_behind_the_line() {
 /// pymodbus on a loaded machine can miss a request), and when nothing timed out
 /// ([`NOT_COUNTED`]), no byte
 /// was dropped and no frame was bad. (A pseudo-terminal has no RTS and the machine no
-/// GPIO chip, so `serial.direction` cannot be set here, tests/rs485.rs: this is the
-/// wire port's drain and timing path; the switch itself is tests/relay_inprocess.rs's.)
+/// GPIO chip, so `serial.direction` cannot be set here, tests/e2e/rs485.rs: this is the
+/// wire port's drain and timing path; the switch itself is tests/inprocess/relay_inprocess.rs's.)
 #[test]
 fn a_reply_three_and_a_half_characters_after_the_request_keeps_its_first_byte() {
     for baud in [9600u32, 115_200] {

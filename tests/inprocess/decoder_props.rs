@@ -5,7 +5,7 @@
 //! frame's worth of bytes lost around it (docs/reliability.md, "The guarantee").
 //!
 //! 512 cases each by default; `PROPTEST_CASES=1000000 cargo test --release --test
-//! decoder_props` for the long run. Failures are not persisted (a test run writes no
+//! inprocess decoder_props::` for the long run. Failures are not persisted (a test run writes no
 //! file of the tree): a case proptest finds is kept by hand as a regression test below.
 
 use mbgate::frame::lossy::{self, Run, Talk};
@@ -333,8 +333,8 @@ fn regression_single_bytes_lost_among_long_and_short_frames() {
 /// in 10, a second one straight after it 1 time in 4 (two inputs changing at once).
 /// Prints the figures docs/reliability.md quotes (5 635 frames, none lost); the count is
 /// exactly what
-/// [`strict_keeps`] says. `cargo test --release --test decoder_props clean_losses --
-/// --nocapture`.
+/// [`strict_keeps`] says. `cargo test --release --test inprocess decoder_props::clean_losses
+/// -- --nocapture`.
 #[test]
 fn clean_losses_on_line_like_traffic() {
     let mut seed = 0x2545_F491_4F6C_DD1Du64;

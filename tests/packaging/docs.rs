@@ -67,7 +67,7 @@ const PROGRAMS: &[&str] = &[
     "sed",
     "tee",
     "docker",
-    // docs/watching.md: the alert rules checked and tested, as tests/alerts.rs does.
+    // docs/watching.md: the alert rules checked and tested, as tests/e2e/alerts.rs does.
     "promtool",
 ];
 
