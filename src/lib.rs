@@ -3,10 +3,15 @@
 // Unsafe only where a SAFETY comment says why it is sound, each block allowed on its
 // own: src/line/port/fd.rs (a descriptor on the reactor, its reads and writes, once for
 // every user), src/line/port/serial/ (the ioctls, tcdrain, the timerfd, the tty's
-// termios), src/ops/control/mod.rs (our effective user and group) and
-// src/tools/wire/pty.rs (the pty pair).
+// termios), src/gateway/control/mod.rs (our effective user and group) and
+// src/tools/wire/pty.rs (the pty pair); docs/architecture.md "Who does what" names
+// every file.
+//
+// The wings are layers, each importing only the wings after it here
+// (docs/architecture.md "The wings"; tests/packaging/docs/map.rs holds it).
 #![deny(unsafe_code)]
 
+pub mod access;
 pub mod cli;
 pub mod config;
 pub mod frame;
@@ -14,4 +19,5 @@ pub mod gateway;
 pub mod line;
 pub mod masters;
 pub mod ops;
+pub mod tls;
 pub mod tools;

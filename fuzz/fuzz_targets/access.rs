@@ -1,4 +1,4 @@
-//! The access rule matcher (src/masters/access/rules.rs) on hostile rules and requests: the
+//! The access rule matcher (src/access/rules.rs) on hostile rules and requests: the
 //! first bytes make a policy, the rest is the request PDU. Checked against a plain
 //! model: a read always passes, `read_only` refuses everything else, and otherwise a
 //! write passes exactly when some rule covers its unit, function and every address it
@@ -6,7 +6,7 @@
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use mbgate::masters::access::{Policy, UnitSet, WriteRule, Why};
+use mbgate::access::{Policy, UnitSet, WriteRule, Why};
 use mbgate::frame::function::{only_reads, written};
 
 fn rule(b: &[u8]) -> WriteRule {

@@ -1,10 +1,10 @@
-//! The Modbus role extension reader (src/masters/tls/role.rs) on hostile bytes: any input gives
+//! The Modbus role extension reader (src/tls/role.rs) on hostile bytes: any input gives
 //! an identity or an error, never a panic, and a role it returns is one mbgate will
 //! compare and log (not empty, not too long, no control characters).
 #![no_main]
 
 use libfuzzer_sys::fuzz_target;
-use mbgate::masters::tls::role::{identity, MAX_ROLE};
+use mbgate::tls::role::{identity, MAX_ROLE};
 
 fuzz_target!(|data: &[u8]| {
     if let Ok(id) = identity(data) {

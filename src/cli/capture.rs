@@ -1,13 +1,13 @@
 //! `mbgate capture` (docs/capture.md): the flags made a capture request, then the
-//! capture (`crate::ops::control::capture`). Exit 0 when it ended as asked (`--count`,
+//! capture (`crate::gateway::control::capture`). Exit 0 when it ended as asked (`--count`,
 //! `--seconds`, Ctrl-C), 1 when it could not run or its output failed, 2 bad
 //! arguments.
 
 use super::exit;
 use super::signals;
+use crate::gateway::control::capture::capture;
+use crate::gateway::control::control_socket;
 use crate::ops::capture::request::{BadRequest, CaptureRequest, MasterMatch};
-use crate::ops::control::capture::capture;
-use crate::ops::control::control_socket;
 use std::io::IsTerminal;
 use std::path::PathBuf;
 use std::process::ExitCode;

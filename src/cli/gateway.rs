@@ -16,7 +16,7 @@ pub(crate) enum Unusable {
     Config(#[from] config::ConfigError),
     /// A certificate or key that cannot be used (docs/security.md).
     #[error("{0}")]
-    Tls(#[from] crate::masters::tls::TlsError),
+    Tls(#[from] crate::tls::TlsError),
     /// The metrics listener's web configuration file (docs/watching.md).
     #[error("{0}")]
     Web(#[from] crate::ops::metrics::web::WebConfigError),
@@ -105,7 +105,7 @@ fn effective(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, con
 /// configuration too (docs/security.md, docs/watching.md).
 fn checked(file: Option<PathBuf>, overrides: &Overrides) -> Result<Config, Unusable> {
     let cfg = effective(file, overrides)?;
-    crate::masters::tls::check(&cfg)?;
+    crate::tls::check(&cfg)?;
     crate::ops::metrics::web::check(&cfg)?;
     Ok(cfg)
 }

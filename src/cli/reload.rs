@@ -2,8 +2,8 @@
 //! gateway could not be asked, 2 bad arguments.
 
 use super::exit;
-use crate::ops::control::control_socket;
-use crate::ops::control::reload::{reload, ReloadAnswer};
+use crate::gateway::control::control_socket;
+use crate::gateway::control::reload::{reload, ReloadAnswer};
 use std::path::PathBuf;
 use std::process::ExitCode;
 

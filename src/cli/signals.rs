@@ -25,7 +25,7 @@ pub(crate) enum Stops {
     /// SIGINT only: `scan`, `read --poll` (a SIGTERM ends them at once).
     Interrupt,
     /// SIGTERM and SIGINT: `run` (whose SIGHUP is a reload, handled by the gateway,
-    /// `crate::ops::reload`), `wire`.
+    /// `crate::gateway::reload`), `wire`.
     TermInt,
     /// SIGTERM, SIGINT and SIGHUP: `sim`, `demo`: a closed terminal stops them,
     /// gracefully (SIGHUP's default action would end the process at once).

@@ -3,7 +3,7 @@
 //! from the environment or a file, never from a flag, which `ps` would show anyone.
 
 use super::exit;
-use crate::ops::control::control_socket;
+use crate::gateway::control::control_socket;
 use crate::ops::metrics::status_command::{ask, summarize, turn_on, Asking};
 use std::path::PathBuf;
 use std::process::ExitCode;
@@ -77,7 +77,7 @@ pub(crate) fn main(args: StatusArgs) -> ExitCode {
         };
         // Named, or there: asked over it. Else the metrics listener's usual address.
         if named_socket || socket.exists() {
-            match crate::ops::control::status::metrics(&socket) {
+            match crate::gateway::control::status::metrics(&socket) {
                 Ok(Ok(text)) => {
                     let (report, healthy) = summarize(&text);
                     print!("{report}");

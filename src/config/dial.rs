@@ -16,7 +16,7 @@ use super::access::{policy, WriteRules, PRIORITY};
 use super::raw::read_table;
 use super::{table, Check, HostPort, Key, ListenConfig, ListenFraming, Raw, Setting, TcpConfig};
 use super::{Any, NonEmpty, Range, ValueError, ValueKind};
-use crate::masters::access::Policy;
+use crate::access::Policy;
 use std::net::SocketAddr;
 
 table! {

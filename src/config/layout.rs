@@ -33,7 +33,7 @@ impl Units {
     /// `ids` as the file writes them: runs of three or more as `"A-B"` strings.
     pub(crate) fn print_ids(&self) -> String {
         let ids: Vec<u8> = self.ids.iter().copied().collect();
-        crate::masters::access::rules::id_list(&ids)
+        crate::access::rules::id_list(&ids)
     }
 
     /// `remap` as the file writes it: `{ 11 = 1, 12 = 2 }`.

@@ -20,7 +20,7 @@
 use super::raw::read_table;
 use super::{table, Check, HostPort, Key, Raw, RelayConfig, Setting, ValueError, ValueKind};
 use super::{Any, NonEmpty, Range, IN_FLIGHT, TIMEOUT_MS};
-use crate::masters::access::AllowList;
+use crate::access::AllowList;
 use std::net::SocketAddr;
 
 table! {

@@ -116,7 +116,7 @@ impl Setting for UnitIds {
     }
     fn print(&self) -> String {
         let ids: Vec<u8> = self.0.iter().copied().collect();
-        crate::masters::access::rules::id_list(&ids)
+        crate::access::rules::id_list(&ids)
     }
 }
 
@@ -284,7 +284,7 @@ impl UnitTables {
             let ids: Vec<u8> = t.ids.iter().copied().collect();
             out += &format!(
                 "\n[[line.unit]]\nunits = {}\n",
-                crate::masters::access::rules::id_list(&ids)
+                crate::access::rules::id_list(&ids)
             );
             let s = &t.settings;
             match s.response_timeout {

@@ -1,7 +1,6 @@
-//! The masters' side: where requests come from (listeners, dials, UDP, TLS), who may
-//! send them (access) and which line serves them (router).
+//! The masters' side: where requests come from (listeners, dials, UDP, TLS) and which
+//! line serves them (router); who may send them is `crate::access`, the TLS of both
+//! sides `crate::tls`.
 
-pub mod access;
 pub(crate) mod router;
 pub(crate) mod tcp;
-pub mod tls;

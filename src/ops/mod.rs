@@ -1,10 +1,9 @@
-//! Operations: the numbers (metrics, stats), capture, the control socket, reload,
-//! logging and systemd's notify.
+//! Operations: the numbers (metrics, stats), capture, logging and systemd's notify
+//! (the control socket and reload, which steer the whole gateway, are its own:
+//! `crate::gateway`).
 
 pub mod capture;
-pub mod control;
 pub mod logging;
 pub mod metrics;
 pub(crate) mod notify;
-pub mod reload;
 pub mod stats;

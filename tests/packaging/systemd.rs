@@ -192,7 +192,7 @@ fn stop_timeout_covers_the_default_drain() {
         .expect("TimeoutStopSec")
         .parse()
         .expect("TimeoutStopSec in plain seconds");
-    // The gateway's own bound (src/gateway.rs): answer_within() + 2 s, and a second
+    // The gateway's own bound (src/gateway/mod.rs): answer_within() + 2 s, and a second
     // to exit; longer configurations extend it with EXTEND_TIMEOUT_USEC.
     let drain = mbgate::config::RelayConfig::default()
         .answer_within()

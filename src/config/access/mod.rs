@@ -22,8 +22,8 @@
 use super::raw::read_table;
 use super::{table, Check, Key, ListenFraming, Raw, Setting, Transport, ValueError, ValueKind};
 use super::{Any, NonEmpty, Range};
+use crate::access::{AllowList, Net, Policy, UnitSet, WriteRule};
 use crate::frame::function::FunctionCode;
-use crate::masters::access::{AllowList, Net, Policy, UnitSet, WriteRule};
 use std::path::PathBuf;
 
 /// The most priority classes there are: `priority` is 0 (the default, the lowest) to

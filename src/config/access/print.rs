@@ -2,8 +2,8 @@
 //! same configuration, and under each listener who may connect and what they may do.
 
 use super::{AccessRole, ListenAccess, TlsDevice, WriteRules};
+use crate::access::Policy;
 use crate::config::Setting;
-use crate::masters::access::Policy;
 
 /// A listener's security keys as the `[[listen]]` form prints them, and two comment
 /// lines saying who may connect and what they may do (`mbgate check-config`).

@@ -4,11 +4,11 @@
 //! Nagle off. It tells the loop when the connection is up or down and hands it each
 //! MBAP frame the slave sends; it writes what the loop gives it.
 
+use crate::access::allow::{RefusedLog, Tell};
 use crate::config::master::{Peer, Route};
 use crate::frame::mbap::decode_strict;
 use crate::frame::Adu;
 use crate::line::port::Backoff;
-use crate::masters::access::allow::{RefusedLog, Tell};
 use crate::ops::capture::packet::{Dir, Ends, Packet, Part, Proto};
 use crate::ops::capture::Tap;
 use std::net::SocketAddr;

@@ -8,7 +8,7 @@
 
 use super::{OpenPort, Opening, Port};
 use crate::config::TlsDevice;
-use crate::masters::tls::client::Connector;
+use crate::tls::client::Connector;
 use socket2::{SockRef, TcpKeepalive};
 use std::time::Duration;
 use tokio::io::AsyncWriteExt;

@@ -7,7 +7,7 @@
 use super::handshakes::Handshakes;
 use super::{admit, Connection, Listening, Shared};
 use crate::line::port::Backoff;
-use crate::masters::tls::server::Acceptor;
+use crate::tls::server::Acceptor;
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};

@@ -6,10 +6,10 @@
 //! is logged as the allow list's are: once a minute per source and reason, with the
 //! count of those not said ([`Refusals`]).
 
-use crate::masters::access::allow::{RefusedLog, Tell};
-use crate::masters::access::AllowList;
-use crate::masters::tls::server::{Acceptor, Grant, Refused};
+use crate::access::allow::{RefusedLog, Tell};
+use crate::access::AllowList;
 use crate::ops::stats::Stats;
+use crate::tls::server::{Acceptor, Grant, Refused};
 use std::net::{IpAddr, SocketAddr};
 use std::sync::Mutex;
 use std::time::Instant;

@@ -11,11 +11,11 @@ use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::line::relay::ConnId;
 use crate::masters::router::Router;
-use crate::masters::tls::server::Grant;
 use crate::ops::capture::packet::{Dir, Ends, Part};
 use crate::ops::capture::{Hub, Tap};
 use crate::ops::metrics::{ConnectedMasters, MasterSeen};
 use crate::ops::stats::Stats;
+use crate::tls::server::Grant;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
 use std::sync::{Arc, Mutex};
@@ -224,7 +224,7 @@ impl Connection {
         let attached = !notified || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs
         // now; told under its lock, so a reload's new classes never arrive before
-        // the old one (src/ops/reload/mod.rs `reclassify`).
+        // the old one (src/gateway/reload/mod.rs `reclassify`).
         {
             let running = self.running.lock().expect("not poisoned");
             let role = self.grant.as_ref().map(|g| g.role.as_str());

@@ -8,12 +8,12 @@
 use super::codec::MasterCodec;
 use super::connection::{Connection, Dialed, End, Ended};
 use super::{echo, rtu};
+use crate::access;
 use crate::frame::hex::Hex;
 use crate::frame::pdu;
 use crate::frame::Adu;
 use crate::line::outbox::{Outbox, Refusal, Ticket};
 use crate::line::woken::Woken;
-use crate::masters::access;
 use crate::masters::router::Unrouted;
 use crate::ops::capture::packet::{Dir, Packet, Reason};
 use bytes::BytesMut;

@@ -7,10 +7,10 @@
 //! in between, as the allow list's refusals are.
 
 use super::connection::Connection;
+use crate::access::allow::{RefusedLog, Tell};
 use crate::frame::hex::Hex;
 use crate::frame::pdu::NotRequest;
 use crate::frame::Adu;
-use crate::masters::access::allow::{RefusedLog, Tell};
 use crate::ops::stats::Stats;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};

@@ -12,7 +12,7 @@
 //! - `hub`: taps, the bounded channel and the task that hands packets on;
 //! - `ring`: the always-on ring of files (`[capture] file`).
 //!
-//! A capture is asked for over the control socket (`crate::ops::control`: the gateway's
+//! A capture is asked for over the control socket (`crate::gateway::control`: the gateway's
 //! end, and `mbgate capture`).
 
 pub(crate) mod dropped;
@@ -89,7 +89,7 @@ pub(crate) struct Capture {
 
 impl Capture {
     /// Starts the hub for `cfg`'s interfaces and the ring (if `capture.file` is set).
-    /// The control socket, where captures are asked for, is `crate::ops::control`'s.
+    /// The control socket, where captures are asked for, is `crate::gateway::control`'s.
     pub(crate) fn start(cfg: &Config) -> Capture {
         let (hub, task) = Hub::new(interfaces(cfg));
         tokio::spawn(task);

@@ -10,7 +10,7 @@
 //!
 //! Nothing here changes the gateway: whoever can reach the listener may read the
 //! numbers, never reconfigure it (`mbgate reload` asks over the control socket,
-//! `crate::ops::control`). With users, every path answers 401 to a request without
+//! `crate::gateway::control`). With users, every path answers 401 to a request without
 //! their credentials, with nothing of the gateway in its body. It runs on a thread of
 //! its own at a lower priority ([`spawn`]), so the relay's loop never waits for a
 //! scrape to be rendered, a handshake or a password checked. A TLS handshake and
@@ -206,7 +206,7 @@ struct SourceSlot(Arc<SourceSlots>, IpAddr);
 
 impl SourceSlots {
     fn take(self: &Arc<Self>, ip: IpAddr) -> Option<SourceSlot> {
-        let source = crate::masters::access::source_of(ip);
+        let source = crate::access::source_of(ip);
         let mut open = self.0.lock().expect("not poisoned");
         let n = open.entry(source).or_default();
         if *n >= PER_SOURCE {

@@ -1,7 +1,7 @@
 //! `mbgate status`'s work: asks a running gateway for its metrics, at its metrics
 //! listener (`[metrics] listen`: over http, or https with a CA, a client certificate
 //! and a user where its web configuration asks for them) or over its control socket
-//! (`crate::ops::control::status`), and makes a short summary per line, unit and
+//! (`crate::gateway::control::status`), and makes a short summary per line, unit and
 //! listener, and whether it is healthy (the flags and the exit code are
 //! `crate::cli`'s).
 
@@ -39,7 +39,7 @@ pub enum Unreachable {
     TooMany(String),
     /// A CA, certificate or key file given for https.
     #[error("{0}")]
-    Tls(#[from] crate::masters::tls::TlsError),
+    Tls(#[from] crate::tls::TlsError),
     /// https without a CA to check the gateway against.
     #[error("https needs the CA that signed the gateway's certificate: --ca FILE")]
     NoCa,
@@ -100,7 +100,7 @@ fn host(address: &str) -> &str {
 
 /// The client's TLS for `asking`, and the name the gateway's certificate must carry.
 fn client_tls(asking: &Asking, addr: &str) -> Result<rustls::ClientConnection, Unreachable> {
-    use crate::masters::tls::{certificates, private_key, provider, roots, VERSIONS};
+    use crate::tls::{certificates, private_key, provider, roots, VERSIONS};
     let ca = match &asking.ca {
         Some(ca) => ca.clone(),
         None if std::path::Path::new(SYSTEM_CAS).exists() => PathBuf::from(SYSTEM_CAS),

@@ -26,7 +26,7 @@ const ROOTS: &[&str] = &[
 const CODE: &[&str] = &["src", "tests", "benches", "fuzz"];
 
 /// Every file under `dir`, as paths from the checkout, folders with a trailing `/`.
-fn tree(dir: &Path, out: &mut Vec<String>) {
+pub(super) fn tree(dir: &Path, out: &mut Vec<String>) {
     for e in std::fs::read_dir(dir).unwrap() {
         let path = e.unwrap().path();
         let rel = path.strip_prefix(repo()).unwrap().display().to_string();
@@ -426,7 +426,7 @@ fn a_wing_holds_only_rooms() {
 }
 
 /// The production code of a source file: no comments, no test module.
-fn production(path: &Path) -> String {
+pub(super) fn production(path: &Path) -> String {
     let text = std::fs::read_to_string(path).unwrap();
     let mut out = String::new();
     let mut lines = text.lines().peekable();
@@ -511,6 +511,72 @@ fn every_import_points_down_the_rooms_drawing() {
         "only {} rooms drawn: is the parsing right?",
         place.len()
     );
+    assert!(wrong.is_empty(), "{}", wrong.join("\n"));
+}
+
+/// The wings are layers (docs/architecture.md "The wings", its line "The order, top to
+/// bottom: ..."): the production code of each first-level entry of `src/` names
+/// (`crate::x`, or `mbgate::x` in main.rs) only entries below it in that order; every
+/// entry is in the order, and the order names only entries there are.
+#[test]
+fn every_wing_imports_only_the_wings_below_it() {
+    let page = std::fs::read_to_string(repo().join("docs/architecture.md")).unwrap();
+    let after = &page[page.find("## The wings").expect("the wings section")..];
+    let line = &after[after.find("The order, top to bottom:").expect("the order")..];
+    let line = &line[..line.find(".\n").expect("the order's end")];
+    let order: Vec<String> = line
+        .split('`')
+        .skip(1)
+        .step_by(2)
+        .map(str::to_string)
+        .collect();
+    let mut files = Vec::new();
+    tree(&repo().join("src"), &mut files);
+    let entry = |file: &str| -> String {
+        let first = file["src/".len()..].split('/').next().unwrap();
+        match first.trim_end_matches(".rs") {
+            "main" => "cli".to_string(),
+            other => other.to_string(),
+        }
+    };
+    let mut wrong = Vec::new();
+    let mut seen = std::collections::BTreeSet::new();
+    for file in files.iter().filter(|f| f.ends_with(".rs")) {
+        let from = entry(file);
+        if from == "lib" || file.ends_with("/tests.rs") || file.contains("/tests/") {
+            continue;
+        }
+        seen.insert(from.clone());
+        let Some(at) = order.iter().position(|w| *w == from) else {
+            wrong.push(format!("{file}: `{from}` is not in the order"));
+            continue;
+        };
+        let code = production(&repo().join(file));
+        let mut named = std::collections::BTreeSet::new();
+        for prefix in ["crate::", "mbgate::"] {
+            for (i, _) in code.match_indices(prefix) {
+                let to: String = code[i + prefix.len()..]
+                    .chars()
+                    .take_while(|c| c.is_ascii_alphanumeric() || *c == '_')
+                    .collect();
+                if to == from || !named.insert(to.clone()) {
+                    continue;
+                }
+                match order.iter().position(|w| *w == to) {
+                    Some(there) if there < at => {
+                        wrong.push(format!("{file}: `{from}` uses `{to}`, a wing above it"))
+                    }
+                    _ => {}
+                }
+            }
+        }
+    }
+    for w in &order {
+        if !seen.contains(w) {
+            wrong.push(format!("the order names `{w}`, which src/ does not have"));
+        }
+    }
+    assert!(order.len() >= 8, "only {order:?}: is the parsing right?");
     assert!(wrong.is_empty(), "{}", wrong.join("\n"));
 }
 

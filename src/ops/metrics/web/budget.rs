@@ -8,7 +8,7 @@
 //! (`login.rs`) and need no check, so Prometheus, once in, spends none of it. Plain
 //! data, time passed in.
 
-use crate::masters::access::source_of;
+use crate::access::source_of;
 use std::collections::HashMap;
 use std::net::IpAddr;
 use std::time::Duration;

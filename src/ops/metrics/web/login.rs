@@ -14,7 +14,7 @@
 //!   login is logged once a minute per source with the count (`RefusedLog`).
 
 use super::budget::LoginBudget;
-use crate::masters::access::allow::{RefusedLog, Tell};
+use crate::access::allow::{RefusedLog, Tell};
 use base64::Engine as _;
 use ring::hmac;
 use std::net::IpAddr;

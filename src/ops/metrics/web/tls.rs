@@ -1,13 +1,13 @@
 //! The metrics listener's TLS (docs/watching.md "Behind TLS and a password"): the
 //! rustls server configuration a web configuration file's `tls_server_config` asks
-//! for, on the masters' side's `ring` provider and PEM readers (`crate::masters::tls`):
+//! for, on the masters' side's `ring` provider and PEM readers (`crate::tls`):
 //! its certificate and key, client certificates verified against `client_ca_file`
 //! when asked (`client_auth_type`), the TLS versions, and exporter-toolkit's
 //! `cipher_suites` and `curve_preferences` by their Go names.
 
 use super::file::{At, ClientAuth, Pem, TlsFile, Version};
 use super::WebConfigError;
-use crate::masters::tls::{certificates, private_key, provider, roots, TlsError};
+use crate::tls::{certificates, private_key, provider, roots, TlsError};
 use rustls::crypto::CryptoProvider;
 use rustls::pki_types::pem::PemObject;
 use rustls::pki_types::{CertificateDer, PrivateKeyDer};

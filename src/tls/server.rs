@@ -12,8 +12,8 @@
 
 use super::role::{identity, RoleError};
 use super::{certified_key, provider, roots, TlsError, VERSIONS};
+use crate::access::Policy;
 use crate::config::{AccessRole, TlsListen};
-use crate::masters::access::Policy;
 use rustls::client::danger::HandshakeSignatureValid;
 use rustls::crypto::CryptoProvider;
 use rustls::pki_types::{CertificateDer, UnixTime};

@@ -7,11 +7,11 @@
 //! however its task ends.
 
 use super::{message, own_ids, DATA, END, RELOAD, STATUS};
+use crate::gateway::reload::ReloadHandle;
 use crate::ops::capture::hub::{unix_us, Hub, Subscription, GATHER};
 use crate::ops::capture::packet::Packet;
 use crate::ops::capture::pcapng;
 use crate::ops::capture::request::{CaptureRequest, MAX_LINE};
-use crate::ops::reload::ReloadHandle;
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -622,7 +622,7 @@ impl CaptureRun {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::ops::reload::{ReloadOutcome, ReloadReport};
+    use crate::gateway::reload::{ReloadOutcome, ReloadReport};
 
     /// `reload` is answered `ok` or `refused`, then the lines the log says (the
     /// certificates last); `error:` from a gateway that does not reload.

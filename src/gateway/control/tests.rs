@@ -1,4 +1,4 @@
-//! Tests of ops::control.
+//! Tests of gateway::control.
 
 use super::*;
 

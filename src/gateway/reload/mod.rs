@@ -14,8 +14,8 @@ mod changes;
 
 use crate::config::{Config, ConfigError};
 use crate::line::relay::{Command, RelayHandle};
-use crate::masters::tls::server::Acceptor;
 use crate::ops::metrics::listener::MetricsListener;
+use crate::tls::server::Acceptor;
 use std::sync::{Arc, Mutex};
 use tokio::sync::{mpsc, oneshot};
 use tokio_util::sync::CancellationToken;

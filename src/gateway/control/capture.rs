@@ -277,13 +277,13 @@ mod tests {
         let (mut gw, client) = tokio::io::duplex(64);
         let mut messages = Messages::new(client);
         let mut first = Vec::new();
-        crate::ops::control::message(&mut first, DATA, &[7; 40]);
+        crate::gateway::control::message(&mut first, DATA, &[7; 40]);
         gw.write_all(&first[..20]).await.unwrap();
         let cut = tokio::time::timeout(std::time::Duration::from_millis(50), messages.next());
         assert!(cut.await.is_err(), "no whole message yet");
         gw.write_all(&first[20..]).await.unwrap();
         let mut second = Vec::new();
-        crate::ops::control::message(&mut second, END, b"packets=1 dropped=0 why=stopped");
+        crate::gateway::control::message(&mut second, END, b"packets=1 dropped=0 why=stopped");
         gw.write_all(&second).await.unwrap();
         drop(gw);
         assert_eq!(messages.next().await.unwrap(), Some((DATA, vec![7; 40])));

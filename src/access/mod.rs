@@ -1,7 +1,7 @@
 //! Who may talk to the device, and what they may do (docs/security.md): each
 //! listener's allow list of source addresses ([`allow`]), and the listener's and each
 //! role's policy for requests that may act on the device ([`rules`]). Plain data and
-//! pure; the connection (src/masters/tcp/mod.rs) applies them, TLS (src/masters/tls/) tells the role.
+//! pure; the connection (src/masters/tcp/mod.rs) applies them, TLS (src/tls/) tells the role.
 
 pub mod allow;
 pub mod rules;

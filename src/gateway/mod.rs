@@ -2,17 +2,19 @@
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see `crate::ops::notify`).
 
+pub mod control;
+pub mod reload;
+
 use crate::config::{
     Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications, Transport,
 };
 use crate::line::relay::{Relay, RelayHandle};
 use crate::masters::router::Router;
 use crate::masters::tcp::{self, Socket};
-use crate::masters::tls::server::Acceptor;
 use crate::ops::metrics::{self, Board, ListenerMetrics, ListenerTransport};
 use crate::ops::notify;
-use crate::ops::reload;
 use crate::ops::stats::Stats;
+use crate::tls::server::Acceptor;
 use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
@@ -38,7 +40,7 @@ pub enum GatewayError {
     },
     /// A TLS file could not be used (read, parsed, or its key does not fit).
     #[error("{0}")]
-    Tls(#[from] crate::masters::tls::TlsError),
+    Tls(#[from] crate::tls::TlsError),
     /// A master line could not start (a passive route's address).
     #[error("{0}")]
     MasterLine(#[from] crate::line::bridge::BridgeError),
@@ -83,7 +85,7 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
 }
 
 /// [`run`], and on each SIGHUP `load` reads the configuration again and what can
-/// change while running is applied ([`crate::ops::reload`]).
+/// change while running is applied ([`crate::gateway::reload`]).
 pub async fn run_reloading(
     cfg: Config,
     load: reload::Loader,
@@ -214,7 +216,7 @@ async fn start(
     // Before the lines: the always-on ring has their first frames.
     let capture = crate::ops::capture::Capture::start(&cfg);
     let board = Arc::new(Board::default());
-    crate::ops::control::start(&cfg, capture.hub(), reload_handle, board.clone(), shutdown);
+    crate::gateway::control::start(&cfg, capture.hub(), reload_handle, board.clone(), shutdown);
     let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
     let _ = board.capture.set(capture.hub().clone());

@@ -39,8 +39,8 @@ mod serve;
 pub mod status;
 
 use crate::config::Config;
+use crate::gateway::reload::ReloadHandle;
 use crate::ops::capture::Hub;
-use crate::ops::reload::ReloadHandle;
 use std::path::{Path, PathBuf};
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, warn};
