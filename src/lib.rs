@@ -8,7 +8,7 @@
 // every file.
 //
 // The wings are layers, each importing only the wings after it here
-// (docs/architecture.md "The wings"; tests/docs/map.rs holds it).
+// (docs/architecture.md "The wings"; tests/packaging/docs/map.rs holds it).
 #![deny(unsafe_code)]
 
 pub mod access;

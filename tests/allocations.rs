@@ -1,6 +1,7 @@
 //! No allocation a transaction: the gateway in this process, counted by a global
-//! allocator of the test's own, with one master polling through it (an MBAP line and an
-//! RTU line, each a simulated device on a pty of its own). Once warm (every buffer at
+//! allocator of the test's own (a binary of its own: one allocator a process), with
+//! one master polling through it (an MBAP line and an RTU line, each a simulated
+//! device on a pty of its own). Once warm (every buffer at
 //! the size it keeps, every table holding what it holds), a transaction allocates
 //! nothing: not its request's place in the queue, not the frame for the line, not the
 //! reply for the master (docs/performance.md "A transaction on a quiet line").

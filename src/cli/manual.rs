@@ -3,7 +3,7 @@
 //! completion scripts with clap_complete, and mbgate.toml(5) from the commented
 //! reference file `config/mbgate.toml` (its comments are the text of the page, so the
 //! page and the file installed as /etc/mbgate/mbgate.toml say the same). The .deb ships
-//! the output, kept in packaging/ and held to the command line by tests/docs.rs.
+//! the output, kept in packaging/ and held to the command line by tests/packaging/docs.rs.
 
 use clap_mangen::Man;
 use roff::{bold, italic, roman, Roff};

@@ -1,7 +1,7 @@
 //! A lossy MBAP line on paper, to hold the resynchronising decoder to the guarantee of
 //! docs/reliability.md: frames sent (replies to requests on the line, notifications),
 //! runs of lost bytes, pauses, any chunking; what the relay knows of them; and the
-//! check. The property tests (tests/decoder_props.rs) and the fuzz target
+//! check. The property tests (tests/inprocess/decoder_props.rs) and the fuzz target
 //! (fuzz/fuzz_targets/serial_decoder.rs) drive it.
 //!
 //! The check: every frame the decoder yields with a nonzero transaction id (a reply)

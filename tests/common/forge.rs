@@ -1,5 +1,5 @@
 //! Forged UDP datagrams, for the hostile peers of a Modbus/UDP listener
-//! (tests/udp_hostile.rs): raw IPv4 packets with any source address and port, as an
+//! (tests/e2e/udp_hostile.rs): raw IPv4 packets with any source address and port, as an
 //! attacker on a network that lets spoofed sources through writes them. A raw socket of
 //! protocol IPPROTO_RAW (which implies IP_HDRINCL) needs root or CAP_NET_RAW; without
 //! it the test skips, saying so.

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""The SCADA server a dialing mbgate connects to (tests/dial.rs): it listens, accepts
+"""The SCADA server a dialing mbgate connects to (tests/e2e/dial.rs): it listens, accepts
 mbgate's connections one after another, and in each plays one round; requests are
 built and replies decoded by pymodbus' own socket (MBAP) framer, and every reply is
 checked by value against stock_server.py's device (unit 1) behind the gateway.

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """pymodbus' ModbusSerialServer (RTU) answering several unit ids, each after its own
 delay: a bus of a fast device beside a slow one, for the per-unit and learned timeouts
-of tests/units.rs.
+of tests/e2e/units.rs.
 
     paced_units.py --port PATH --delays FILE [--baud 4000000]
 

@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""A pymodbus RTU server with several units, the device tests/replay.rs records through
+"""A pymodbus RTU server with several units, the device tests/e2e/replay.rs records through
 the gateway and then replays (mbgate sim --replay).
 
     replay_device.py --port PATH [--baud 19200] [--delay-ms MS] [--framer rtu|ascii|socket]

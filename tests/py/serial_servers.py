@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Several pymodbus ModbusSerialServers in one process, each stock_server.py's device
 (its data, unit 1) on its own serial port or pty, in its own framing, at its own
-baud rate: the third-party devices of tests/third_party.rs, started once for all.
+baud rate: the third-party devices of tests/e2e/third_party.rs, started once for all.
 
     serial_servers.py --serve FRAMER:PATH:BAUD [--serve ...] [--size 200]
 

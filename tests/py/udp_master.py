@@ -1,5 +1,5 @@
 #!/usr/bin/env python3
-"""Masters of mbgate's Modbus over UDP listener (tests/dial.rs), each reply checked by
+"""Masters of mbgate's Modbus over UDP listener (tests/e2e/dial.rs), each reply checked by
 value against stock_server.py's device (unit 1) behind the gateway.
 
     udp_master.py --port PORT [--malformed N] [--flood N]

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """pymodbus' own ModbusUdpServer, serving stock_server.py's device as unit 1 (holding
-register i = 1000 + i): the other end of the loops tests/udp_hostile.rs tries to start
+register i = 1000 + i): the other end of the loops tests/e2e/udp_hostile.rs tries to start
 between it and mbgate's UDP listener. pymodbus answers every datagram it can decode,
 even an answer: a reply with `80 01`, an exception with exception 04.
 

@@ -14,6 +14,7 @@ use crate::line::relay::inflight::{Asked, OnLine};
 use crate::ops::capture::dropped::Dropped;
 use crate::ops::capture::packet::Reason;
 use crate::ops::stats::Stats;
+use std::time::Duration;
 use tokio::time::Instant;
 use tracing::debug;
 
@@ -222,7 +223,7 @@ impl Serial {
                     // shows it was one owed. Held once for a request, so the request
                     // stays on the line at most that long past its deadline.
                     self.held_once = Some(f.tid);
-                    let took = at.saturating_duration_since(self.reply_from);
+                    let took = self.answered_in(len, at);
                     let quiet = self.owed.whole(unit);
                     let reply = frame;
                     self.candidate = Some(super::HeldReply {
@@ -242,7 +243,7 @@ impl Serial {
                 continue;
             }
             if answers {
-                let took = at.saturating_duration_since(self.reply_from);
+                let took = self.answered_in(len, at);
                 if !self.owed.could_answer(unit, took) {
                     // Sooner than the unit can answer: on its way before the unit
                     // could have read the request (the tail of the last transaction).
@@ -291,6 +292,17 @@ impl Serial {
             stats.add(&stats.bad_frames, 1);
             return seen.push(Seen::Corrupt(f.tid));
         }
+    }
+
+    /// How soon a unit answered with a frame of `bytes` whose last byte came at
+    /// `at`: from its request's last byte leaving to the frame's first byte, so that a
+    /// long reply's own time on the wire is no part of the unit's pace (a unit read
+    /// 100 registers, then one, answers both as soon; docs/reliability.md "RTU and
+    /// ASCII"). Where there is no wire the two are the same.
+    fn answered_in(&self, bytes: usize, at: Instant) -> Duration {
+        let own = self.wire_time(bytes);
+        at.saturating_duration_since(self.reply_from)
+            .saturating_sub(own)
     }
 
     /// Nothing asked: the frames received pay what their units owe (late answers),

@@ -748,6 +748,48 @@ fn a_frame_sooner_than_its_unit_can_answer_is_not_the_reply() {
     }
 }
 
+/// On a wire a reply's own time on it is no part of how soon its unit answers: a unit
+/// whose first replies were long reads (200 bytes of registers, over 200 ms at 9600
+/// baud) answers a one-register read 5 ms after the request too, and that reply, its
+/// 7 bytes on the wire after those 5 ms, is taken, not dropped as sooner than the
+/// unit can answer (its pace is the time from the request to the reply's first byte).
+#[test]
+fn a_short_reply_after_long_ones_is_judged_by_its_start_on_a_wire() {
+    for (framing, codec) in FRAMINGS {
+        let stats = Stats::default();
+        let (mut line, t0) = opened(framing, uart());
+        let cfg = SerialConfig {
+            framing,
+            ..SerialConfig::default()
+        };
+        let turnaround = 5 * MS;
+        let long = Adu::build(1, 1, &[3, 0, 0, 0, 100]);
+        let mut registers = vec![3, 200];
+        registers.extend((0..200).map(|i| i as u8));
+        let long_reply = codec.encode(1, &registers);
+        let mut at = t0;
+        for _ in 0..owed::SETTLE + 2 {
+            let f = ask(&mut line, &long, at, &stats);
+            let end = at + turnaround + kind::wire_time(&cfg, long_reply.len());
+            line.received(&long_reply, end, &stats);
+            assert_eq!(
+                seen(line.frames(&f, end + 50 * MS, &stats)).len(),
+                1,
+                "{framing:?}"
+            );
+            at = end + 100 * MS;
+        }
+        let short = Adu::build(1, 1, &[3, 0, 5, 0, 1]);
+        let short_reply = codec.encode(1, &[3, 2, 0, 5]);
+        let f = ask(&mut line, &short, at, &stats);
+        let end = at + turnaround + kind::wire_time(&cfg, short_reply.len());
+        line.received(&short_reply, end, &stats);
+        let got = seen(line.frames(&f, end + 50 * MS, &stats));
+        assert_eq!(got, ["frame 03 02 00 05"], "{framing:?}");
+        assert_eq!(stats.get(&stats.dropped_too_early), 0, "{framing:?}");
+    }
+}
+
 /// A device on an RTU line, as the property below draws it: it answers in order, each
 /// request it read once (a read of register `a` with `a + 1000`), after its own delay,
 /// one every `pace` after a stall, and some answers with one frame too many.
