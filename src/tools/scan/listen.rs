@@ -177,7 +177,7 @@ pub(super) fn table(h: &Overheard, target: &str) -> String {
          stop_bits = {}, framing = \"{}\", flow_control = \"none\" }}",
         answering.join(", "),
         format.data_bits,
-        super::parity_name(format.parity),
+        super::report::parity_name(format.parity),
         format.stop_bits,
         framing.name()
     );
@@ -221,7 +221,7 @@ pub(super) fn json(h: &Overheard, target: &str) -> String {
     };
     format!(
         "{{\"target\":{},\"listen\":true,\"setting\":{setting},\"units\":[{units}],\"frames\":{frames},\"requests_per_s\":{rate:.2},\"settings\":{},\"interrupted\":{},\"elapsed_s\":{:.3}}}",
-        super::js(target),
+        super::report::js(target),
         h.settings,
         h.interrupted,
         h.elapsed.as_secs_f64()
