@@ -150,21 +150,7 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
         }
         wake = wire.deliver()?;
     }
-    for (i, c) in wire.counts.iter().enumerate() {
-        eprintln!(
-            "mbgate wire: {} -> {}: {} bytes sent, {} lost, {} delivered{}",
-            paths[i].display(),
-            paths[1 - i].display(),
-            c.sent,
-            c.lost,
-            c.delivered,
-            if c.overflow > 0 {
-                format!(", {} not taken (its program did not read)", c.overflow)
-            } else {
-                String::new()
-            }
-        );
-    }
+    wire.say_counts();
     Ok(())
 }
 
@@ -213,6 +199,25 @@ struct Wire<'a> {
 }
 
 impl Wire<'_> {
+    /// Each direction's counts, said at the end.
+    fn say_counts(&self) {
+        for (i, c) in self.counts.iter().enumerate() {
+            eprintln!(
+                "mbgate wire: {} -> {}: {} bytes sent, {} lost, {} delivered{}",
+                self.args.paths[i].display(),
+                self.args.paths[1 - i].display(),
+                c.sent,
+                c.lost,
+                c.delivered,
+                if c.overflow > 0 {
+                    format!(", {} not taken (its program did not read)", c.overflow)
+                } else {
+                    String::new()
+                }
+            );
+        }
+    }
+
     fn ns(&self, t: Instant) -> u64 {
         (t - self.base).as_nanos() as u64
     }
