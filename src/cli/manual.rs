@@ -78,38 +78,7 @@ fn command_page(cmd: &clap::Command, name: &str, top: bool) -> io::Result<Vec<u8
     }
     let mut tail = Roff::new();
     if top {
-        tail.control("SH", ["EXIT STATUS"]);
-        for (code, what) in [
-            (
-                "0",
-                "a clean shutdown (SIGTERM or SIGINT: the requests on the line are answered first)",
-            ),
-            (
-                "1",
-                "any other failure at start, e.g. the listen address is in use",
-            ),
-            (
-                "2",
-                "a bad configuration or bad arguments; the message names the file, line and key",
-            ),
-        ] {
-            tail.control("TP", [])
-                .text([bold(code)])
-                .text([roman(what)]);
-        }
-        // A paragraph of its own: run on after the last entry, it read as part of it.
-        tail.control("PP", []);
-        tail.text([roman(
-            "The subcommands read, write and status have exit codes of their own: see their pages.",
-        )]);
-        tail.control("SH", ["SIGNALS"]);
-        for (signal, what) in [
-            ("SIGTERM, SIGINT", "stop accepting, answer queued requests with 0x0A, wait for the ones on the line, exit 0"),
-            ("SIGHUP", "reload the configuration file (mbgate run); the flags given at start stay on top"),
-            ("SIGUSR1", "log the counters now"),
-        ] {
-            tail.control("TP", []).text([bold(signal)]).text([roman(what)]);
-        }
+        exit_status_and_signals(&mut tail);
     }
     tail.control("SH", ["FILES"]);
     for (file, what) in [
@@ -133,6 +102,40 @@ fn command_page(cmd: &clap::Command, name: &str, top: bool) -> io::Result<Vec<u8
     see_also(&mut tail, name);
     tail.to_writer(&mut out)?;
     Ok(out)
+}
+
+/// The top page's exit codes and signals.
+fn exit_status_and_signals(r: &mut Roff) {
+    r.control("SH", ["EXIT STATUS"]);
+    for (code, what) in [
+        (
+            "0",
+            "a clean shutdown (SIGTERM or SIGINT: the requests on the line are answered first)",
+        ),
+        (
+            "1",
+            "any other failure at start, e.g. the listen address is in use",
+        ),
+        (
+            "2",
+            "a bad configuration or bad arguments; the message names the file, line and key",
+        ),
+    ] {
+        r.control("TP", []).text([bold(code)]).text([roman(what)]);
+    }
+    // A paragraph of its own: run on after the last entry, it read as part of it.
+    r.control("PP", []);
+    r.text([roman(
+        "The subcommands read, write and status have exit codes of their own: see their pages.",
+    )]);
+    r.control("SH", ["SIGNALS"]);
+    for (signal, what) in [
+        ("SIGTERM, SIGINT", "stop accepting, answer queued requests with 0x0A, wait for the ones on the line, exit 0"),
+        ("SIGHUP", "reload the configuration file (mbgate run); the flags given at start stay on top"),
+        ("SIGUSR1", "log the counters now"),
+    ] {
+        r.control("TP", []).text([bold(signal)]).text([roman(what)]);
+    }
 }
 
 /// One key of the reference file: its table, name, value and the comment above it.
@@ -246,23 +249,7 @@ pub fn config_page() -> String {
         _ => &intro[..],
     };
     comment(&mut r, intro);
-    let (mut table, mut described) = (String::new(), String::new());
-    for k in &keys {
-        if k.table != table {
-            table = k.table.clone();
-            let heading = format!("[{table}]");
-            r.control("SH", [heading.as_str()]);
-        }
-        r.control("TP", []);
-        r.text([bold(k.key.clone()), roman(format!(" = {}", k.value))]);
-        if k.comment.is_empty() {
-            // Keys described together with the one before them.
-            r.text([roman("See "), bold(described.clone()), roman(" above.")]);
-        } else {
-            comment(&mut r, &k.comment);
-            described = k.key.clone();
-        }
-    }
+    keys_described(&mut r, &keys);
     r.control("SH", ["SEVERAL LINES AND LISTENERS"]);
     r.text([roman(
         "The same gateway can be written as device lines and listeners: a [[line]] table for \
@@ -281,6 +268,35 @@ pub fn config_page() -> String {
     )]);
     r.control("SH", ["THE DEVICE AS MASTER"]);
     comment(&mut r, &outro);
+    example(&mut r);
+    see_also(&mut r, "mbgate.toml");
+    r.render()
+}
+
+/// Each key of the file under its table's heading, with its comment (keys described
+/// together with the one before them refer to it).
+fn keys_described(r: &mut Roff, keys: &[Documented]) {
+    let (mut table, mut described) = (String::new(), String::new());
+    for k in keys {
+        if k.table != table {
+            table = k.table.clone();
+            let heading = format!("[{table}]");
+            r.control("SH", [heading.as_str()]);
+        }
+        r.control("TP", []);
+        r.text([bold(k.key.clone()), roman(format!(" = {}", k.value))]);
+        if k.comment.is_empty() {
+            // Keys described together with the one before them.
+            r.text([roman("See "), bold(described.clone()), roman(" above.")]);
+        } else {
+            comment(r, &k.comment);
+            described = k.key.clone();
+        }
+    }
+}
+
+/// The page's example, and where the others are.
+fn example(r: &mut Roff) {
     r.control("SH", ["EXAMPLE"]);
     r.text([roman(
         "One RTU bus at 9600 baud, 8E1, behind Modbus/TCP port 502:",
@@ -305,8 +321,6 @@ pub fn config_page() -> String {
          check-config FILE: it prints OK and the setup in a few lines, or the file, line and \
          key of the first error.",
     )]);
-    see_also(&mut r, "mbgate.toml");
-    r.render()
 }
 
 /// The keys of a `[[line]]`, a `[[listen]]` and a `[[line.route]]` (docs/design.md §4.1,

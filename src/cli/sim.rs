@@ -149,9 +149,47 @@ fn sim_level(device: &crate::tools::sim::options::DeviceArgs) -> (String, bool) 
     (level, console)
 }
 
+/// `--pty LINK`: a pty made for the simulator, said in the log (its round trip is the
+/// medium's delay).
+async fn made_pty(
+    link: &std::path::Path,
+) -> Result<
+    (tokio_serial::SerialStream, crate::tools::sim::pty::OwnPty),
+    crate::tools::sim::pty::PtyError,
+> {
+    let (master, made) = crate::tools::sim::pty::OwnPty::make(link).await?;
+    tracing::info!(
+        "made a pty: {} is {} (round trip {} µs); point the gateway's serial port there",
+        link.display(),
+        made.slave(),
+        made.round_trip().as_micros()
+    );
+    Ok((master, made))
+}
+
+/// `--replay FILE --summary`: what the files hold, and no more.
+fn summary(
+    settings: Result<crate::tools::sim::options::Settings, crate::tools::sim::options::BadFlags>,
+) -> ExitCode {
+    match settings {
+        Ok(s) => {
+            if let crate::tools::sim::Profile::Replay(r) = &s.device.profile {
+                for w in &r.warnings {
+                    eprintln!("mbgate: warning: {w}");
+                }
+                println!("{}", r.summary);
+            }
+            exit::code(exit::OK)
+        }
+        Err(e) => {
+            eprintln!("mbgate: {e}");
+            exit::code(exit::USAGE)
+        }
+    }
+}
+
 /// `mbgate sim`: bad options exit 2, a lost port is reopened, SIGTERM stops.
 pub(crate) fn sim(args: SimArgs) -> ExitCode {
-    use crate::tools::sim::pty::OwnPty;
     use crate::tools::sim::serve::{self, SimPort};
     // Checked by `settings()` too, whose error is the one reported.
     let port = args.serial_config();
@@ -169,22 +207,7 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
             _ => Ok(s),
         });
     if args.replay.summary {
-        // `--replay FILE --summary`: what the files hold, and no more.
-        return match settings {
-            Ok(s) => {
-                if let crate::tools::sim::Profile::Replay(r) = &s.device.profile {
-                    for w in &r.warnings {
-                        eprintln!("mbgate: warning: {w}");
-                    }
-                    println!("{}", r.summary);
-                }
-                exit::code(exit::OK)
-            }
-            Err(e) => {
-                eprintln!("mbgate: {e}");
-                exit::code(exit::USAGE)
-            }
-        };
+        return summary(settings);
     }
     let listen = args.listen;
     let pty = args.pty.clone();
@@ -208,13 +231,7 @@ pub(crate) fn sim(args: SimArgs) -> ExitCode {
             let port = match (listen, pty) {
                 (Some(addr), _) => SimPort::Listen(addr),
                 (None, Some(link)) => {
-                    let (master, made) = OwnPty::make(&link).await?;
-                    tracing::info!(
-                        "made a pty: {} is {} (round trip {} µs); point the gateway's serial port there",
-                        link.display(),
-                        made.slave(),
-                        made.round_trip().as_micros()
-                    );
+                    let (master, made) = made_pty(&link).await?;
                     settings.medium = made.round_trip();
                     own = Some(made);
                     SimPort::Stream(master)

@@ -3,7 +3,7 @@
 //! own framing and port settings, each listener the masters it takes, so a listener's
 //! framing is never read as the line's.
 
-use super::master::Peer;
+use super::master::{MasterLine, Peer};
 use super::{
     Config, Direction, FlowControl, Framing, GpioLine, LineConfig, ListenConfig, ListenFraming,
     Parity, SerialConfig,
@@ -41,22 +41,7 @@ pub(crate) fn line(line: &LineConfig) -> String {
         }
     };
     if let Some(master) = &line.master {
-        let routes: Vec<String> = master
-            .routes
-            .iter()
-            .map(|r| {
-                let from = match (&r.peer, &r.allow) {
-                    (Peer::Listen(_), Some(allow)) => format!(" from {allow}"),
-                    (Peer::Listen(_), None) => " from anywhere (no allow list)".to_owned(),
-                    (Peer::Connect(_), _) => String::new(),
-                };
-                match r.units.as_slice() {
-                    [] => format!("other units -> {}{from}", r.peer),
-                    u => format!("units {} -> {}{from}", list(u), r.peer),
-                }
-            })
-            .collect();
-        return format!("{device}; the device is the master: {}", routes.join("; "));
+        return format!("{device}; the device is the master: {}", routes(master));
     }
     let units = &line.units;
     let served = if units.every() {
@@ -73,6 +58,26 @@ pub(crate) fn line(line: &LineConfig) -> String {
         parts.join(", ")
     };
     format!("{device}, {served}")
+}
+
+/// A master line's routes: `units 1-3 -> 10.0.0.5:502; other units -> ...`.
+fn routes(master: &MasterLine) -> String {
+    let routes: Vec<String> = master
+        .routes
+        .iter()
+        .map(|r| {
+            let from = match (&r.peer, &r.allow) {
+                (Peer::Listen(_), Some(allow)) => format!(" from {allow}"),
+                (Peer::Listen(_), None) => " from anywhere (no allow list)".to_owned(),
+                (Peer::Connect(_), _) => String::new(),
+            };
+            match r.units.as_slice() {
+                [] => format!("other units -> {}{from}", r.peer),
+                u => format!("units {} -> {}{from}", list(u), r.peer),
+            }
+        })
+        .collect();
+    routes.join("; ")
 }
 
 /// `127.0.0.1:5502 for Modbus/TCP masters`.

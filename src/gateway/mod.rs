@@ -3,11 +3,16 @@
 //! systemd when it is ready and when it stops (see `crate::ops::notify`).
 
 pub mod control;
+mod error;
 pub mod reload;
+mod warnings;
 
-use crate::config::{
-    Config, FlowControl, Framing, LineConfig, ListenConfig, Notifications, Transport,
-};
+pub use error::GatewayError;
+
+use warnings::warn_inapplicable;
+pub use warnings::warnings;
+
+use crate::config::{Config, LineConfig, ListenConfig, Transport};
 use crate::line::relay::{Relay, RelayHandle};
 use crate::masters::router::Router;
 use crate::masters::tcp::{self, Socket};
@@ -15,7 +20,6 @@ use crate::ops::metrics::{self, Board, ListenerMetrics, ListenerTransport};
 use crate::ops::notify;
 use crate::ops::stats::Stats;
 use crate::tls::server::Acceptor;
-use std::net::SocketAddr;
 use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -23,59 +27,6 @@ use tokio::signal::unix::SignalKind;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
-
-/// Why the gateway could not start.
-#[derive(Debug, thiserror::Error)]
-pub enum GatewayError {
-    /// A listener's address could not be bound.
-    ///
-    /// The cause is part of the message, with what to do about it, and deliberately
-    /// not a `source`: printed as a chain it would appear twice.
-    #[error("cannot listen on {addr}: {error}{}", bind_hint(.error, *.addr))]
-    Bind {
-        /// The listener's address (`tcp.listen` or a `[[listen]]`).
-        addr: SocketAddr,
-        /// What the system said.
-        error: std::io::Error,
-    },
-    /// A TLS file could not be used (read, parsed, or its key does not fit).
-    #[error("{0}")]
-    Tls(#[from] crate::tls::TlsError),
-    /// A master line could not start (a passive route's address).
-    #[error("{0}")]
-    MasterLine(#[from] crate::line::bridge::BridgeError),
-    /// The metrics listener's web configuration file could not be used.
-    #[error("{0}")]
-    Web(#[from] crate::ops::metrics::web::WebConfigError),
-    /// `metrics.listen` could not be bound.
-    #[error("cannot listen for metrics on {addr} (metrics.listen): {error}")]
-    MetricsBind {
-        /// The metrics address.
-        addr: SocketAddr,
-        /// What the system said.
-        error: std::io::Error,
-    },
-}
-
-/// What a user can do about a failed bind, for the two failures people meet first.
-fn bind_hint(error: &std::io::Error, addr: SocketAddr) -> String {
-    match error.kind() {
-        std::io::ErrorKind::AddrInUse => {
-            let other = SocketAddr::new(addr.ip(), addr.port().wrapping_add(1).max(1024));
-            format!(
-                " (another process holds port {}: stop it, or choose another port, \
-                 e.g. --listen {other})",
-                addr.port()
-            )
-        }
-        std::io::ErrorKind::PermissionDenied if addr.port() < 1024 => format!(
-            " (ports below 1024 need root or the CAP_NET_BIND_SERVICE capability, which the \
-             systemd units grant; or choose a port above 1023, e.g. --listen {})",
-            SocketAddr::new(addr.ip(), 5020)
-        ),
-        _ => String::new(),
-    }
-}
 
 /// Runs the gateway until `shutdown` is cancelled, then drains and returns the totals.
 /// Each bound address is logged as `listening on ADDR` (port 0 becomes a real port).
@@ -206,13 +157,7 @@ async fn start(
     shutdown: &CancellationToken,
 ) -> Result<Started, GatewayError> {
     // `mbgate reload` asks over the control socket, when there is a file to read again.
-    let (asked, reload_handle) = match load {
-        Some(_) => {
-            let (handle, asked) = reload::ReloadHandle::new();
-            (Some(asked), Some(handle))
-        }
-        None => (None, None),
-    };
+    let (reload_handle, asked) = load.as_ref().map(|_| reload::ReloadHandle::new()).unzip();
     // Before the lines: the always-on ring has their first frames.
     let capture = crate::ops::capture::Capture::start(&cfg);
     let board = Arc::new(Board::default());
@@ -222,38 +167,12 @@ async fn start(
     let _ = board.capture.set(capture.hub().clone());
     board.reloads.started(std::time::SystemTime::now());
     let lines = start_lines(&cfg, &capture, &board, shutdown).await?;
-    // Each listener's counters (connections, refusals, requests it answered itself);
-    // each line keeps its own (its metrics are per line), and the totals add them up.
-    let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
-    for ((socket, l), stats) in bound.iter().zip(&listener_stats) {
-        let transport = match socket {
-            Socket::Tcp(_) => ListenerTransport::Tcp,
-            Socket::Udp(_) => ListenerTransport::Udp,
-        };
-        let metrics = Arc::new(ListenerMetrics {
-            name: l.local.to_string(),
-            stats: stats.clone(),
-        });
-        board.add_listener_on(metrics, transport);
-    }
+    let listener_stats = listeners_on_board(&bound, &board);
     let mut counted = listener_stats.clone();
     counted.extend(lines.stats);
     let http = start_metrics(&cfg, &board, shutdown)?;
     let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
-    // What every master's connection shares, and the tracker the drain waits on.
-    let tracker = TaskTracker::new();
-    let shared = tcp::Shared {
-        cfg: cfg.clone(),
-        running: running.clone(),
-        router: router.clone(),
-        stats: Arc::default(),
-        shutdown: shutdown.clone(),
-        tracker: tracker.clone(),
-        ids: Arc::new(AtomicU64::new(0)),
-        masters: board.masters.clone(),
-        capture: capture.hub().clone(),
-        unasked: Arc::default(),
-    };
+    let shared = shared(&cfg, &running, router, &board, &capture, shutdown);
     let tally = Arc::new(tcp::tally::SourceTally::new(board.clone()));
     let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
         shared.clone(),
@@ -271,36 +190,7 @@ async fn start(
     let signals = user_signals();
     announce(&cfg, &bound);
     let line_tasks: Vec<_> = lines.tasks.into_iter().map(tokio::spawn).collect();
-    if let (Some((hup, load)), Some(asked)) = (hup, asked) {
-        let reloadable = reload::Reloadable {
-            running: running.clone(),
-            masters: board.masters.clone(),
-            load,
-            lines: lines.handles,
-            metrics: http,
-            // Their certificates are read again by every reload, whatever becomes of
-            // the rest of it.
-            acceptors: bound.iter().filter_map(|(_, l)| l.tls.clone()).collect(),
-            counted: board.reloads.clone(),
-            dials: {
-                let dials = dials.clone();
-                Box::new(move |d| dials.lock().expect("not poisoned").apply(d))
-            },
-            udps: {
-                let udps = udps.clone();
-                Box::new(move |l| udps.lock().expect("not poisoned").apply(l))
-            },
-        };
-        tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
-    }
-    if notify::under_systemd() {
-        tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
-    }
-    if let Some(signals) = signals {
-        let counted = (counted.clone(), tally.clone());
-        tokio::spawn(report_on_signal(signals, counted, shutdown.clone()));
-    }
-    Ok(Started {
+    let started = Started {
         bound,
         running,
         cfg,
@@ -312,7 +202,109 @@ async fn start(
         shared,
         dials,
         udps,
-    })
+    };
+    let reload = match (hup, asked) {
+        (Some((hup, load)), Some(asked)) => Some((hup, load, asked, lines.handles, http)),
+        _ => None,
+    };
+    watch(&started, &board, reload, signals, shutdown);
+    Ok(started)
+}
+
+/// Each listener's counters (connections, refusals, requests it answered itself), on
+/// the board; each line keeps its own (its metrics are per line), and the totals add
+/// them up.
+fn listeners_on_board(bound: &[Bound], board: &Board) -> Vec<Arc<Stats>> {
+    let listener_stats: Vec<Arc<Stats>> = bound.iter().map(|_| Arc::default()).collect();
+    for ((socket, l), stats) in bound.iter().zip(&listener_stats) {
+        let transport = match socket {
+            Socket::Tcp(_) => ListenerTransport::Tcp,
+            Socket::Udp(_) => ListenerTransport::Udp,
+        };
+        let metrics = Arc::new(ListenerMetrics {
+            name: l.local.to_string(),
+            stats: stats.clone(),
+        });
+        board.add_listener_on(metrics, transport);
+    }
+    listener_stats
+}
+
+/// What every master's connection shares, and the tracker the drain waits on.
+fn shared(
+    cfg: &Arc<Config>,
+    running: &Arc<Mutex<Config>>,
+    router: Arc<Router>,
+    board: &Board,
+    capture: &crate::ops::capture::Capture,
+    shutdown: &CancellationToken,
+) -> tcp::Shared {
+    tcp::Shared {
+        cfg: cfg.clone(),
+        running: running.clone(),
+        router,
+        stats: Arc::default(),
+        shutdown: shutdown.clone(),
+        tracker: TaskTracker::new(),
+        ids: Arc::new(AtomicU64::new(0)),
+        masters: board.masters.clone(),
+        capture: capture.hub().clone(),
+        unasked: Arc::default(),
+    }
+}
+
+/// What reload needs that the gateway has only at start: SIGHUP's handler and loader,
+/// `mbgate reload`'s requests, the lines' handles and the metrics listener.
+type ReloadStart = (
+    tokio::signal::unix::Signal,
+    reload::Loader,
+    tokio::sync::mpsc::UnboundedReceiver<reload::ReloadAsked>,
+    Vec<reload::LineHandle>,
+    crate::ops::metrics::listener::MetricsListener,
+);
+
+/// The tasks that watch the running gateway: reload (on SIGHUP and `mbgate reload`),
+/// the status systemd shows, and the counters' report on SIGUSR1 and SIGUSR2.
+fn watch(
+    started: &Started,
+    board: &Arc<Board>,
+    reload: Option<ReloadStart>,
+    signals: Option<UserSignals>,
+    shutdown: &CancellationToken,
+) {
+    if let Some((hup, load, asked, lines, http)) = reload {
+        let reloadable = reload::Reloadable {
+            running: started.running.clone(),
+            masters: board.masters.clone(),
+            load,
+            lines,
+            metrics: http,
+            // Their certificates are read again by every reload, whatever becomes of
+            // the rest of it.
+            acceptors: started
+                .bound
+                .iter()
+                .filter_map(|(_, l)| l.tls.clone())
+                .collect(),
+            counted: board.reloads.clone(),
+            dials: {
+                let dials = started.dials.clone();
+                Box::new(move |d| dials.lock().expect("not poisoned").apply(d))
+            },
+            udps: {
+                let udps = started.udps.clone();
+                Box::new(move |l| udps.lock().expect("not poisoned").apply(l))
+            },
+        };
+        tokio::spawn(reload::on_sighup(hup, asked, reloadable, shutdown.clone()));
+    }
+    if notify::under_systemd() {
+        tokio::spawn(metrics::status::refresh(board.clone(), shutdown.clone()));
+    }
+    if let Some(signals) = signals {
+        let counted = (started.counted.clone(), started.tally.clone());
+        tokio::spawn(report_on_signal(signals, counted, shutdown.clone()));
+    }
 }
 
 /// The lines, made and on the board, not yet running.
@@ -575,63 +567,4 @@ async fn report_on_signal(
             _ = shutdown.cancelled() => return,
         }
     }
-}
-
-/// What the configuration cannot honour on this line ([`warnings`]), said once at start.
-fn warn_inapplicable(cfg: &Config) {
-    for warning in warnings(cfg) {
-        warn!("{warning}");
-    }
-}
-
-/// Settings an RTU or ASCII line cannot honour: said at start (and by `mbgate
-/// check-config`), not refused, so a file written for MBAP keeps working when only the
-/// framing changes. With several lines each is named (`line[1]: ...`).
-pub fn warnings(cfg: &Config) -> Vec<String> {
-    let lines = &cfg.lines;
-    let mut said = Vec::new();
-    for (i, line) in lines.iter().enumerate() {
-        let name = if lines.len() > 1 {
-            format!("line[{i}]: ")
-        } else {
-            String::new()
-        };
-        said.extend(
-            line_warnings(line)
-                .into_iter()
-                .map(|w| format!("{name}{w}")),
-        );
-    }
-    said
-}
-
-fn line_warnings(line: &LineConfig) -> Vec<String> {
-    let framing = line.serial.framing.name();
-    let mut said = Vec::new();
-    if line.serial.framing == Framing::Mbap {
-        return said;
-    }
-    if line.relay.max_in_flight > 1 {
-        said.push(format!(
-            "framing = {framing} has no transaction id: one request at a time \
-             (max_in_flight = {} taken as 1)",
-            line.relay.max_in_flight
-        ));
-    }
-    if line.tcp.is_none() && line.serial.flow_control == FlowControl::Hardware {
-        said.push(format!(
-            "framing = {framing} with flow_control = hardware (the default, for the CIE-M10's \
-             RS-232 link): RS-485 adapters and most {} devices do not wire RTS/CTS, and an \
-             adapter whose CTS is never raised holds every request back (0x0B for each); \
-             set flow_control = \"none\" unless the cable carries RTS and CTS",
-            framing.to_uppercase()
-        ));
-    }
-    if line.relay.notifications == Notifications::Broadcast {
-        said.push(format!(
-            "framing = {framing}: a frame that answers no request is dropped; \
-             notifications = broadcast does not apply"
-        ));
-    }
-    said
 }

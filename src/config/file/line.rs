@@ -29,6 +29,26 @@ table! {
     }
 }
 
+/// A `[[line]]`'s keys as read, before they are checked together.
+#[derive(Default)]
+struct LineKeysRead {
+    /// Its `serial` and `relay` sections, as the single-line form's.
+    line: Config,
+    /// It gave `units` or `remap`.
+    listed: bool,
+    units: Units,
+    tcp: Option<String>,
+    tcp_tls: Option<TlsDevice>,
+    /// Where `serial` is.
+    serial_at: Option<usize>,
+    /// A master line, and where `role` is.
+    role: Option<(bool, usize)>,
+    /// The `[[line.route]]` tables, and where.
+    routes: Option<(Vec<crate::config::master::Route>, usize)>,
+    /// The `[[line.unit]]` tables, and where.
+    unit_tables: (crate::config::unit::UnitTables, Option<usize>),
+}
+
 impl FileReader<'_> {
     /// One `[[line]]` at `v`; `path` is what messages call it (`line[0]`).
     pub(super) fn line(
@@ -40,62 +60,91 @@ impl FileReader<'_> {
             let m = raw(v.get_ref()).invalid("a table ([[line]])");
             return self.fail(v.span().start, path, m);
         };
-        let (mut line, mut listed) = (Config::default(), false);
-        let (mut units, mut tcp, mut serial_at) = (Units::default(), None, None);
-        let (mut role, mut routes, mut tcp_tls) = (None, None, None);
-        let mut unit_tables = (crate::config::unit::UnitTables::default(), None);
+        let mut r = LineKeysRead::default();
         for (k, item) in entries(table) {
             let full = format!("{path}.{}", k.get_ref());
-            match k.get_ref().as_ref() {
-                "units" => {
-                    units.ids = self.units(item, &full)?;
-                    listed = true;
-                }
-                "remap" => {
-                    units.remap = self.remap(item, &full)?;
-                    listed = true;
-                }
-                "tcp" => {
-                    let (address, tls) = self.line_tcp(&mut line, item, &full)?;
-                    tcp = Some(address);
-                    tcp_tls = tls;
-                }
-                "role" => {
-                    let read = LineRole::read(&raw(item.get_ref()), &Check::Any);
-                    let master = self.value(item, &full, read)? == LineRole::Master;
-                    role = Some((master, k.span().start));
-                }
-                "unit" => {
-                    let read = crate::config::unit::tables(&raw(item.get_ref()), &full);
-                    unit_tables = (self.value(item, &full, read)?, Some(k.span().start));
-                }
-                "route" => {
-                    let read = crate::config::master::routes(&raw(item.get_ref()), &full);
-                    routes = Some((self.value(item, &full, read)?, k.span().start));
-                }
-                name @ ("serial" | "relay") => {
-                    if name == "serial" {
-                        serial_at = Some(k.span().start);
-                    }
-                    self.section(&mut line, name, item, &full, &[], &[])?
-                }
-                _ => return self.unknown(k, &full, &LINE),
-            }
+            self.line_key(&mut r, k, item, &full)?;
         }
-        if let (Some(_), Some(at)) = (&tcp, serial_at) {
+        if let (Some(_), Some(at)) = (&r.tcp, r.serial_at) {
             let m = "a line's device is a serial port or a TCP address: give `serial` or `tcp`, not both";
             return self.fail(at, &format!("{path}.serial"), m);
         }
         // A key that means nothing on a master line is named as such, before what it
         // would conflict with on a line of slaves.
-        if matches!(role, Some((true, _))) {
+        if matches!(r.role, Some((true, _))) {
             self.master_line_keys(path)?;
         }
-        self.conflict(&line, &format!("{path}."))?;
-        let mut master = None;
-        match (role, routes) {
+        self.conflict(&r.line, &format!("{path}."))?;
+        let master = self.master_line(&mut r, v, path)?;
+        let line = LineConfig {
+            units: r.units,
+            tcp: r.tcp,
+            tcp_tls: r.tcp_tls,
+            unit_tables: r.unit_tables.0,
+            master,
+            ..r.line.lines.swap_remove(0)
+        };
+        Ok((v.span().start, line, r.listed))
+    }
+
+    /// One key `k` of a `[[line]]` (`full`: its path) into `r`.
+    fn line_key(
+        &mut self,
+        r: &mut LineKeysRead,
+        k: &Spanned<std::borrow::Cow<str>>,
+        item: &Spanned<DeValue>,
+        full: &str,
+    ) -> Result<(), ConfigError> {
+        match k.get_ref().as_ref() {
+            "units" => {
+                r.units.ids = self.units(item, full)?;
+                r.listed = true;
+            }
+            "remap" => {
+                r.units.remap = self.remap(item, full)?;
+                r.listed = true;
+            }
+            "tcp" => {
+                let (address, tls) = self.line_tcp(&mut r.line, item, full)?;
+                r.tcp = Some(address);
+                r.tcp_tls = tls;
+            }
+            "role" => {
+                let read = LineRole::read(&raw(item.get_ref()), &Check::Any);
+                let master = self.value(item, full, read)? == LineRole::Master;
+                r.role = Some((master, k.span().start));
+            }
+            "unit" => {
+                let read = crate::config::unit::tables(&raw(item.get_ref()), full);
+                r.unit_tables = (self.value(item, full, read)?, Some(k.span().start));
+            }
+            "route" => {
+                let read = crate::config::master::routes(&raw(item.get_ref()), full);
+                r.routes = Some((self.value(item, full, read)?, k.span().start));
+            }
+            name @ ("serial" | "relay") => {
+                if name == "serial" {
+                    r.serial_at = Some(k.span().start);
+                }
+                self.section(&mut r.line, name, item, full, &[], &[])?
+            }
+            _ => return self.unknown(k, full, &LINE),
+        }
+        Ok(())
+    }
+
+    /// A line with `role = "master"` and its `[[line.route]]` tables: its routes, and
+    /// none of a line of slaves' keys (`units`, `remap`, `tcp`, `[[line.unit]]`); routes
+    /// without the role are refused.
+    fn master_line(
+        &self,
+        r: &mut LineKeysRead,
+        v: &Spanned<DeValue>,
+        path: &str,
+    ) -> Result<Option<crate::config::master::MasterLine>, ConfigError> {
+        match (r.role, r.routes.take()) {
             (Some((true, _)), Some((routes, _))) => {
-                if listed {
+                if r.listed {
                     let key = format!("{path}.units");
                     let key = if self.at.contains_key(&key) {
                         key
@@ -106,15 +155,15 @@ impl FileReader<'_> {
                     let m = "a master line routes by the units of its [[line.route]] tables";
                     return self.fail(at, &key, m);
                 }
-                if let Some(at) = tcp.as_ref().and(serial_at.or(Some(v.span().start))) {
+                if let Some(at) = r.tcp.as_ref().and(r.serial_at.or(Some(v.span().start))) {
                     let m = "a master line's device is on a serial port, not on TCP";
                     return self.fail(at, &format!("{path}.tcp"), m);
                 }
-                if let Some(at) = unit_tables.1 {
+                if let Some(at) = r.unit_tables.1 {
                     let m = "a master line has no units of its own: give timeouts in its [[line.route]] tables";
                     return self.fail(at, &format!("{path}.unit"), m);
                 }
-                master = Some(crate::config::master::MasterLine { routes });
+                return Ok(Some(crate::config::master::MasterLine { routes }));
             }
             (Some((true, at)), None) => {
                 let m = "a master line needs [[line.route]] tables (where its requests go)";
@@ -126,15 +175,7 @@ impl FileReader<'_> {
             }
             (_, None) => {}
         }
-        let line = LineConfig {
-            units,
-            tcp,
-            tcp_tls,
-            unit_tables: unit_tables.0,
-            master,
-            ..line.lines.swap_remove(0)
-        };
-        Ok((v.span().start, line, listed))
+        Ok(None)
     }
 
     /// A master line's `serial` and `relay` tables hold only the keys a master line

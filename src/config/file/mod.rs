@@ -168,49 +168,27 @@ impl FileReader<'_> {
                     cfg.dials = self.value(v, name, super::dial::dials(&raw(v.get_ref()), name))?;
                     continue;
                 }
-                "tcp" => {
-                    self.not_in_tcp(v)?;
-                    self.section(&mut cfg, name, v, name, &[], &[])?;
-                    continue;
-                }
                 "line" => ["serial", "relay"]
                     .into_iter()
                     .find(|s| root.get(*s).is_some()),
                 "listen" => root.get("tcp").map(|_| "tcp"),
-                _ if TOP.contains(&name) => {
+                _ if name == "tcp" || TOP.contains(&name) => {
+                    if name == "tcp" {
+                        self.not_in_tcp(v)?;
+                    }
                     self.section(&mut cfg, name, v, name, &[], &[])?;
                     continue;
                 }
                 _ => return self.unknown(k, name, &TOP),
             };
-            if let Some(old) = replaced {
-                let m = format!("[[{name}]] replaces [{old}]: write one form or the other");
-                return self.fail(at, name, m);
-            }
-            let DeValue::Array(tables) = v.get_ref() else {
-                return self.fail(v.span().start, name, format!("expected [[{name}]] tables"));
-            };
-            for (i, t) in tables.iter().enumerate() {
-                let path = format!("{name}[{i}]");
-                if name == "line" {
-                    lines.push(self.line(t, &path)?);
-                } else {
-                    listeners.push((t, self.listener(t, &path)?));
-                }
-            }
+            self.tables((name, at, v), replaced, (&mut lines, &mut listeners))?;
         }
         let (tables, listeners): (Vec<_>, Vec<ListenConfig>) = listeners.into_iter().unzip();
         if let Err((i, m)) = super::access::default_roles(&listeners, &roles) {
             let e = ValueError::new(m).value("default_role").value("tls");
             return self.bad(place(tables[i], &format!("listen[{i}]"), &e));
         }
-        for (i, d) in cfg.dials.iter().enumerate() {
-            let named = d.tls.as_ref().and_then(|t| t.default_role.as_ref());
-            if let Some(role) = named.filter(|r| !roles.iter().any(|x| &x.name == *r)) {
-                let m = format!("no [[role]] is named {role:?}");
-                return self.fail(dial_at, &format!("dial[{i}].tls.default_role"), m);
-            }
-        }
+        self.dial_roles(&cfg, &roles, dial_at)?;
         cfg.roles = roles;
         self.no_listener_for_master_lines(root, &lines, &tables)?;
         // The single-line form's listener (`[tcp]`, or none given) is already in place.
@@ -224,37 +202,89 @@ impl FileReader<'_> {
             // Each [[line]]'s keys were checked as it was read.
             [] => self.conflict(&cfg, "")?,
             [_] => {}
-            [..] => {
-                // A master line routes by its [[line.route]] tables: it serves no unit
-                // of the masters'.
-                let unlisted = |(_, l, units): &&LineRead| l.master.is_none() && !units;
-                if let Some(i) = lines.iter().position(|l| unlisted(&l)) {
-                    let m = "missing: with several lines, each says which unit ids it serves";
-                    return self.fail(lines[i].0, &format!("line[{i}].units"), m);
-                }
-                // A line is known by its port or address (a reload matches lines so).
-                for (i, (at, line, _)) in lines.iter().enumerate() {
-                    let first = lines.iter().position(|(_, l, _)| l.name() == line.name());
-                    if let Some(j) = first.filter(|&j| j < i) {
-                        let key = match line.tcp {
-                            Some(_) => format!("line[{i}].tcp.address"),
-                            None => format!("line[{i}].serial.path"),
-                        };
-                        let m = format!(
-                            "the same as line[{j}]'s ({:?}): each line has its own port or address",
-                            line.name()
-                        );
-                        let at = self.at.get(&key).copied().unwrap_or(*at);
-                        return self.fail(at, &key, m);
-                    }
-                }
-            }
+            [..] => self.several_lines(&lines)?,
         }
         self.sockets(&lines, &cfg)?;
         if !lines.is_empty() {
             cfg.lines = lines.into_iter().map(|(_, line, _)| line).collect();
         }
         Ok(cfg)
+    }
+
+    /// The `[[line]]` or `[[listen]]` tables (`name`, at `at`), read into `lines` or
+    /// `listeners`; refused beside the section of the single-line form they replace.
+    #[allow(clippy::type_complexity)]
+    fn tables<'r, 'i>(
+        &mut self,
+        (name, at, v): (&str, usize, &'r Spanned<DeValue<'i>>),
+        replaced: Option<&str>,
+        (lines, listeners): (
+            &mut Vec<LineRead>,
+            &mut Vec<(&'r Spanned<DeValue<'i>>, ListenConfig)>,
+        ),
+    ) -> Result<(), ConfigError> {
+        if let Some(old) = replaced {
+            let m = format!("[[{name}]] replaces [{old}]: write one form or the other");
+            return self.fail(at, name, m);
+        }
+        let DeValue::Array(tables) = v.get_ref() else {
+            return self.fail(v.span().start, name, format!("expected [[{name}]] tables"));
+        };
+        for (i, t) in tables.iter().enumerate() {
+            let path = format!("{name}[{i}]");
+            if name == "line" {
+                lines.push(self.line(t, &path)?);
+            } else {
+                listeners.push((t, self.listener(t, &path)?));
+            }
+        }
+        Ok(())
+    }
+
+    /// A dial's `tls.default_role` names a `[[role]]` (`dial_at`: where `[[dial]]` is).
+    fn dial_roles(
+        &self,
+        cfg: &Config,
+        roles: &[super::AccessRole],
+        dial_at: usize,
+    ) -> Result<(), ConfigError> {
+        for (i, d) in cfg.dials.iter().enumerate() {
+            let named = d.tls.as_ref().and_then(|t| t.default_role.as_ref());
+            if let Some(role) = named.filter(|r| !roles.iter().any(|x| &x.name == *r)) {
+                let m = format!("no [[role]] is named {role:?}");
+                return self.fail(dial_at, &format!("dial[{i}].tls.default_role"), m);
+            }
+        }
+        Ok(())
+    }
+
+    /// Several `[[line]]` tables: each but a master line lists its units, and each has
+    /// its own port or address.
+    fn several_lines(&self, lines: &[LineRead]) -> Result<(), ConfigError> {
+        // A master line routes by its [[line.route]] tables: it serves no unit
+        // of the masters'.
+        let unlisted = |(_, l, units): &&LineRead| l.master.is_none() && !units;
+        if let Some(i) = lines.iter().position(|l| unlisted(&l)) {
+            let m = "missing: with several lines, each says which unit ids it serves";
+            return self.fail(lines[i].0, &format!("line[{i}].units"), m);
+        }
+        // A line is known by its port or address (a reload matches lines so).
+        for (i, (at, line, _)) in lines.iter().enumerate() {
+            let first = lines.iter().position(|(_, l, _)| l.name() == line.name());
+            if let Some(j) = first.filter(|&j| j < i) {
+                let key = match line.tcp {
+                    Some(_) => format!("line[{i}].tcp.address"),
+                    None => format!("line[{i}].serial.path"),
+                };
+                let m = format!(
+                    "the same as line[{j}]'s ({:?}): each line has its own port or address",
+                    line.name()
+                );
+                let at = self.at.get(&key).copied().unwrap_or(*at);
+                return self.fail(at, &key, m);
+            }
+        }
+        Ok(())
     }
 
     /// When every line is a master line no Modbus/TCP master has a device to reach, so

@@ -8,6 +8,7 @@ use super::{peer_uid, trust_server, AskError, DATA, END};
 use crate::ops::capture::request::CaptureRequest;
 use std::path::Path;
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::net::unix::{OwnedReadHalf, OwnedWriteHalf};
 use tokio::net::UnixStream;
 
 /// Why a capture could not run, or its output failed.
@@ -150,28 +151,7 @@ pub(crate) async fn capture(
     output: &Path,
     shown: &str,
 ) -> Result<(), CaptureError> {
-    let stream = UnixStream::connect(socket)
-        .await
-        .map_err(AskError::connect(socket))?;
-    let uid = peer_uid(&stream).map_err(AskError::who(socket))?;
-    trust_server(uid, socket)?;
-    let (rd, mut wr) = stream.into_split();
-    let mut rd = tokio::io::BufReader::new(rd);
-    // A gateway that refuses may close before it has read the request: its answer
-    // is read even when the request could not be written.
-    let sent = wr.write_all(format!("{request}\n").as_bytes()).await;
-    let mut answer = String::new();
-    let read = tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut answer).await;
-    match (answer.trim_end(), sent, read) {
-        ("ok", Ok(()), _) => {}
-        ("" | "ok", Err(e), _) | ("", _, Err(e)) => return Err(CaptureError::Closed(e)),
-        ("", _, _) => return Err(CaptureError::Silent),
-        (a, _, _) => {
-            return Err(CaptureError::Refused(
-                a.strip_prefix("error: ").unwrap_or(a).to_owned(),
-            ))
-        }
-    }
+    let (rd, wr) = ask(socket, request).await?;
     let mut out = open_output(output)
         .await
         .map_err(|source| CaptureError::Output {
@@ -179,65 +159,11 @@ pub(crate) async fn capture(
             source,
         })?;
     eprintln!("mbgate capture: capturing to {shown} (Ctrl-C to stop)");
-    let mut messages = Messages::new(rd);
-    let mut interrupt = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
-        .map_err(CaptureError::Signals)?;
-    let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
-        .map_err(CaptureError::Signals)?;
-    // Once stop is sent: the rest is read to its end (and written, unless the
-    // output failed).
-    let mut stopping = false;
-    let mut failed: Option<std::io::Error> = None;
-    let end = loop {
-        let msg = tokio::select! {
-            m = messages.next() => m.map_err(CaptureError::Socket)?,
-            _ = interrupt.recv() => {
-                if stopping {
-                    return Err(CaptureError::Interrupted);
-                }
-                stopping = true;
-                let _ = wr.write_all(b"stop\n").await;
-                continue;
-            }
-            _ = terminate.recv(), if !stopping => {
-                stopping = true;
-                let _ = wr.write_all(b"stop\n").await;
-                continue;
-            }
-        };
-        match msg {
-            None => return Err(CaptureError::Cut),
-            Some((END, text)) => break parse_end(&String::from_utf8_lossy(&text)),
-            Some((DATA, bytes)) if failed.is_none() => {
-                let mut write = std::pin::pin!(async {
-                    out.write_all(&bytes).await?;
-                    out.flush().await
-                });
-                // Ctrl-C while the output is slow: the capture stops once this is
-                // written; a second one gives up on it (a reader that never reads).
-                let written = loop {
-                    tokio::select! {
-                        r = &mut write => break r,
-                        _ = interrupt.recv() => {
-                            if stopping {
-                                return Err(CaptureError::Interrupted);
-                            }
-                            stopping = true;
-                            let _ = wr.write_all(b"stop\n").await;
-                        }
-                    }
-                };
-                if let Err(e) = written {
-                    failed = Some(e);
-                    if !stopping {
-                        stopping = true;
-                        let _ = wr.write_all(b"stop\n").await;
-                    }
-                }
-            }
-            Some(_) => {}
-        }
+    let mut stop = Stop {
+        wr,
+        stopping: false,
     };
+    let (end, failed) = copy(Messages::new(rd), &mut *out, &mut stop).await?;
     let dropped = match end.dropped {
         0 => "none dropped".to_owned(),
         n => format!("{n} dropped (the reader did not keep up; the gateway was not slowed)"),
@@ -261,6 +187,108 @@ pub(crate) async fn capture(
                 end.packets
             );
             Ok(())
+        }
+    }
+}
+
+/// Sends `request` to the gateway at `socket` (trusted first): the socket's halves once
+/// the gateway said `ok`.
+async fn ask(
+    socket: &Path,
+    request: &CaptureRequest,
+) -> Result<(tokio::io::BufReader<OwnedReadHalf>, OwnedWriteHalf), CaptureError> {
+    let stream = UnixStream::connect(socket)
+        .await
+        .map_err(AskError::connect(socket))?;
+    let uid = peer_uid(&stream).map_err(AskError::who(socket))?;
+    trust_server(uid, socket)?;
+    let (rd, mut wr) = stream.into_split();
+    let mut rd = tokio::io::BufReader::new(rd);
+    // A gateway that refuses may close before it has read the request: its answer
+    // is read even when the request could not be written.
+    let sent = wr.write_all(format!("{request}\n").as_bytes()).await;
+    let mut answer = String::new();
+    let read = tokio::io::AsyncBufReadExt::read_line(&mut rd, &mut answer).await;
+    match (answer.trim_end(), sent, read) {
+        ("ok", Ok(()), _) => Ok((rd, wr)),
+        ("" | "ok", Err(e), _) | ("", _, Err(e)) => Err(CaptureError::Closed(e)),
+        ("", _, _) => Err(CaptureError::Silent),
+        (a, _, _) => Err(CaptureError::Refused(
+            a.strip_prefix("error: ").unwrap_or(a).to_owned(),
+        )),
+    }
+}
+
+/// The gateway asked to stop, once: the rest is read to its end (and written,
+/// unless the output failed).
+struct Stop {
+    wr: OwnedWriteHalf,
+    stopping: bool,
+}
+
+impl Stop {
+    async fn stop(&mut self) {
+        if !self.stopping {
+            self.stopping = true;
+            let _ = self.wr.write_all(b"stop\n").await;
+        }
+    }
+}
+
+/// Writes the capture's packets to `out` until its end: the end, and how the output
+/// failed if it did.
+async fn copy<R: AsyncRead + Unpin>(
+    mut messages: Messages<R>,
+    out: &mut (dyn AsyncWrite + Unpin),
+    stop: &mut Stop,
+) -> Result<(CaptureEnd, Option<std::io::Error>), CaptureError> {
+    let mut interrupt = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::interrupt())
+        .map_err(CaptureError::Signals)?;
+    let mut terminate = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate())
+        .map_err(CaptureError::Signals)?;
+    let mut failed: Option<std::io::Error> = None;
+    loop {
+        let msg = tokio::select! {
+            m = messages.next() => m.map_err(CaptureError::Socket)?,
+            _ = interrupt.recv() => {
+                if stop.stopping {
+                    return Err(CaptureError::Interrupted);
+                }
+                stop.stop().await;
+                continue;
+            }
+            _ = terminate.recv(), if !stop.stopping => {
+                stop.stop().await;
+                continue;
+            }
+        };
+        match msg {
+            None => return Err(CaptureError::Cut),
+            Some((END, text)) => return Ok((parse_end(&String::from_utf8_lossy(&text)), failed)),
+            Some((DATA, bytes)) if failed.is_none() => {
+                let mut write = std::pin::pin!(async {
+                    out.write_all(&bytes).await?;
+                    out.flush().await
+                });
+                // Ctrl-C while the output is slow: the capture stops once this is
+                // written; a second one gives up on it (a reader that never reads).
+                let written = loop {
+                    tokio::select! {
+                        r = &mut write => break r,
+                        _ = interrupt.recv() => {
+                            if stop.stopping {
+                                return Err(CaptureError::Interrupted);
+                            }
+                            stop.stop().await;
+                        }
+                    }
+                };
+                if let Err(e) = written {
+                    failed = Some(e);
+                    stop.stop().await;
+                }
+            }
+            Some(_) => {}
         }
     }
 }

@@ -37,6 +37,7 @@ pub mod capture;
 pub mod reload;
 mod serve;
 pub mod status;
+mod stream;
 
 use crate::config::Config;
 use crate::gateway::reload::ReloadHandle;

@@ -6,11 +6,10 @@
 //! holds a slot (waiting for its request, or capturing) that a guard gives back
 //! however its task ends.
 
-use super::{message, own_ids, DATA, END, RELOAD, STATUS};
+use super::stream::CaptureRun;
+use super::{own_ids, RELOAD, STATUS};
 use crate::gateway::reload::ReloadHandle;
-use crate::ops::capture::hub::{unix_us, Hub, Subscription, GATHER};
-use crate::ops::capture::packet::Packet;
-use crate::ops::capture::pcapng;
+use crate::ops::capture::hub::{unix_us, Hub};
 use crate::ops::capture::request::{CaptureRequest, MAX_LINE};
 use std::os::unix::fs::PermissionsExt;
 use std::path::{Path, PathBuf};
@@ -38,10 +37,6 @@ const REQUEST_WITHIN: Duration = Duration::from_secs(2);
 const WRITE_WITHIN: Duration = Duration::from_secs(5);
 /// The longest a reload is waited for.
 const RELOAD_WITHIN: Duration = Duration::from_secs(30);
-/// A capture's message of packets is sent once it holds this many bytes (and at each
-/// gathering): a message is never much longer, so the client's bound on one
-/// (`capture.rs` `MAX_MESSAGE`) is far above any the gateway sends.
-const MESSAGE_SOFT: usize = 1 << 20;
 
 /// Slots of one kind: a [`TaskSlot`] taken while one is free, given back when dropped.
 #[derive(Debug)]
@@ -320,7 +315,7 @@ async fn refuse(stream: UnixStream, why: &ControlRefusal) {
 }
 
 /// Writes `bytes` to a client that has [`WRITE_WITHIN`] to take them.
-async fn write_within(
+pub(super) async fn write_within(
     wr: &mut tokio::net::unix::OwnedWriteHalf,
     bytes: &[u8],
 ) -> Result<(), &'static str> {
@@ -378,31 +373,11 @@ async fn client(
     let ControlServed { hub, reload, board } = asked;
     let (mut rd, mut wr) = stream.into_split();
     let line = request_line(&mut rd).await;
-    if line
-        .as_deref()
-        .is_ok_and(|l| l.trim_end_matches('\r') == STATUS)
-    {
-        // Rendered beside the runtime's one thread, as the metrics listener renders it
-        // on a thread of its own: the lines' loops do not wait for it.
-        let text = tokio::task::spawn_blocking(move || crate::ops::metrics::expose::render(&board))
-            .await
-            .unwrap_or_default();
-        let _ = write_within(&mut wr, format!("ok\n{text}").as_bytes()).await;
-        return;
-    }
-    if line
-        .as_deref()
-        .is_ok_and(|l| l.trim_end_matches('\r') == RELOAD)
-    {
-        let answer = match tokio::time::timeout(RELOAD_WITHIN, reloaded(reload)).await {
-            Ok(a) => a,
-            Err(_) => format!(
-                "error: no answer from the gateway's reload within {} s\n",
-                RELOAD_WITHIN.as_secs()
-            ),
-        };
-        let _ = write_within(&mut wr, answer.as_bytes()).await;
-        return;
+    if let Ok(l) = &line {
+        if let Some(answer) = answer(l.trim_end_matches('\r'), reload, board).await {
+            let _ = write_within(&mut wr, answer.as_bytes()).await;
+            return;
+        }
     }
     let request = match line.and_then(|l| Ok(CaptureRequest::parse(l.trim_end_matches('\r'))?)) {
         Ok(r) => r,
@@ -443,6 +418,34 @@ async fn client(
     drop(slot);
 }
 
+/// The answer to a status or a reload; none for any other request (a capture).
+async fn answer(
+    line: &str,
+    reload: Option<ReloadHandle>,
+    board: Arc<crate::ops::metrics::Board>,
+) -> Option<String> {
+    if line == STATUS {
+        // Rendered beside the runtime's one thread, as the metrics listener renders it
+        // on a thread of its own: the lines' loops do not wait for it.
+        let text = tokio::task::spawn_blocking(move || crate::ops::metrics::expose::render(&board))
+            .await
+            .unwrap_or_default();
+        return Some(format!("ok\n{text}"));
+    }
+    if line == RELOAD {
+        return Some(
+            match tokio::time::timeout(RELOAD_WITHIN, reloaded(reload)).await {
+                Ok(a) => a,
+                Err(_) => format!(
+                    "error: no answer from the gateway's reload within {} s\n",
+                    RELOAD_WITHIN.as_secs()
+                ),
+            },
+        );
+    }
+    None
+}
+
 /// What a reload asked for over the socket is told: `ok` or `refused`, then what the
 /// log says of it.
 async fn reloaded(reload: Option<ReloadHandle>) -> String {
@@ -463,166 +466,12 @@ async fn reloaded(reload: Option<ReloadHandle>) -> String {
     }
 }
 
-struct CaptureRun {
-    sub: Subscription,
-    request: CaptureRequest,
-    packets: u64,
-    /// Packets written, by interface.
-    written: Vec<u64>,
-    start_us: u64,
-}
-
-impl CaptureRun {
-    /// Adds `p` to `blocks`, unless the count is reached already: whether it did.
-    fn take(&mut self, p: &Packet, blocks: &mut Vec<u8>) -> bool {
-        if self.counted() {
-            return false;
-        }
-        self.written[usize::from(p.iface)] += 1;
-        self.packets += 1;
-        blocks.extend(p.block(u32::from(p.iface)));
-        true
-    }
-
-    /// Has the capture its `--count`?
-    fn counted(&self) -> bool {
-        self.request.count.is_some_and(|n| self.packets >= n)
-    }
-
-    /// `blocks` as one message to `wr` (none when empty), emptied.
-    async fn send(
-        &self,
-        wr: &mut tokio::net::unix::OwnedWriteHalf,
-        blocks: &mut Vec<u8>,
-    ) -> Result<(), &'static str> {
-        if blocks.is_empty() {
-            return Ok(());
-        }
-        let mut msg = Vec::with_capacity(blocks.len() + 5);
-        message(&mut msg, DATA, blocks);
-        blocks.clear();
-        write_within(wr, &msg).await
-    }
-
-    /// Streams the capture to `wr`; returns why it ended.
-    async fn stream(
-        &mut self,
-        rd: &mut tokio::net::unix::OwnedReadHalf,
-        wr: &mut tokio::net::unix::OwnedWriteHalf,
-        hub: &Hub,
-    ) -> &'static str {
-        let mut head = pcapng::section_header(&format!("mbgate {}", env!("CARGO_PKG_VERSION")));
-        for i in hub.interfaces() {
-            head.extend(pcapng::interface(&i.name, &i.description));
-        }
-        let mut out = b"ok\n".to_vec();
-        message(&mut out, DATA, &head);
-        if let Err(why) = write_within(wr, &out).await {
-            return why;
-        }
-        // Bounded by the request's reader (a year at most); checked all the same.
-        let until = self
-            .request
-            .seconds
-            .and_then(|s| Instant::now().checked_add(Duration::from_secs(s)));
-        let mut cmd = [0u8; 64];
-        let why = loop {
-            let mut blocks = Vec::new();
-            let ended = tokio::select! {
-                p = self.sub.rx.recv() => match p {
-                    None => Some("the gateway stopped"),
-                    Some(p) => {
-                        self.take(&p, &mut blocks);
-                        None
-                    }
-                },
-                r = rd.read(&mut cmd) => match r {
-                    Ok(0) | Err(_) => return "the client went away",
-                    // `stop`, or anything else: the client wants no more.
-                    Ok(_) => Some("stopped"),
-                },
-                _ = async { tokio::time::sleep_until(until.expect("guarded")).await }, if until.is_some() => {
-                    Some("seconds")
-                }
-            };
-            if let Some(why) = ended {
-                // Stopped, or the time is up: what the gateway handed to this capture
-                // before then is written too, and nothing after it; the drops
-                // counted so far are the final count.
-                self.sub.detach();
-                while !self.counted() {
-                    let Some(p) = self.sub.rx.recv().await else {
-                        break;
-                    };
-                    self.take(&p, &mut blocks);
-                    if blocks.len() >= MESSAGE_SOFT {
-                        if let Err(why) = self.send(wr, &mut blocks).await {
-                            return why;
-                        }
-                    }
-                }
-                if let Err(why) = self.send(wr, &mut blocks).await {
-                    return why;
-                }
-                break why;
-            }
-            // Whatever else is waiting goes in the same message (or a few, past
-            // MESSAGE_SOFT). A gateway that stops ends the capture when its last
-            // packet (the drain's answers included) has gone out: the hub closes,
-            // `recv` gives `None`.
-            while !self.counted() {
-                let Ok(p) = self.sub.rx.try_recv() else {
-                    break;
-                };
-                self.take(&p, &mut blocks);
-                if blocks.len() >= MESSAGE_SOFT {
-                    if let Err(why) = self.send(wr, &mut blocks).await {
-                        return why;
-                    }
-                }
-            }
-            if let Err(why) = self.send(wr, &mut blocks).await {
-                return why;
-            }
-            if self.counted() {
-                break "count";
-            }
-            // Packets gather meanwhile: one wake and one write for many.
-            tokio::select! {
-                _ = tokio::time::sleep(GATHER) => {}
-                _ = hub.closed() => {}
-            }
-        };
-        let end_us = unix_us(Instant::now());
-        let dropped = self.sub.dropped();
-        let mut tail = Vec::new();
-        for (i, (&received, &dropped)) in self.written.iter().zip(&dropped).enumerate() {
-            tail.extend(pcapng::statistics(&pcapng::Statistics {
-                interface: i as u32,
-                start_us: self.start_us,
-                end_us,
-                received,
-                dropped,
-            }));
-        }
-        let total: u64 = dropped.iter().sum();
-        let mut msg = Vec::new();
-        message(&mut msg, DATA, &tail);
-        let end = format!(
-            "packets={} dropped={total} why={}",
-            self.packets,
-            why.replace(' ', "_")
-        );
-        message(&mut msg, END, end.as_bytes());
-        let _ = write_within(wr, &msg).await;
-        why
-    }
-}
-
 #[cfg(test)]
 mod tests {
+    use super::super::END;
     use super::*;
     use crate::gateway::reload::{ReloadOutcome, ReloadReport};
+    use crate::ops::capture::packet::Packet;
 
     /// `reload` is answered `ok` or `refused`, then the lines the log says (the
     /// certificates last); `error:` from a gateway that does not reload.

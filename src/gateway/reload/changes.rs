@@ -142,74 +142,15 @@ pub(crate) struct Change {
 /// keys are named with the line (`line "/dev/ttyUSB1" relay.retries = 2`); in the
 /// old form, the one line's are the `[serial]` and `[relay]` keys as they are.
 pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> {
-    let (a_lines, b_lines) = (&a.lines, &b.lines);
     let named = !(a.single_line() && b.single_line());
     let mut out = Vec::new();
-    for (la, &j) in a_lines.iter().zip(matched) {
-        let lb = &b_lines[j];
+    for (la, &j) in a.lines.iter().zip(matched) {
         let prefix = if named {
             format!("line {:?} ", identity(la))
         } else {
             String::new()
         };
-        let mut say = |key: &str, value: String, reloadable: bool| {
-            out.push(Change {
-                said: format!("{prefix}{key} = {value}"),
-                reloadable,
-            })
-        };
-        if la.units.ids != lb.units.ids {
-            say("units", lb.units.print_ids(), false);
-        }
-        if la.units.remap != lb.units.remap {
-            say("remap", lb.units.print_remap(), false);
-        }
-        let (ca, cb) = (line_as_config(la), line_as_config(lb));
-        for k in KEYS
-            .iter()
-            .filter(|k| ["serial", "relay"].contains(&k.section))
-        {
-            let (va, vb) = ((k.get)(&ca), (k.get)(&cb));
-            if va != vb {
-                let key = format!("{}.{}", k.section, k.name);
-                let reloadable = LINE_RELOADABLE.contains(&key.as_str());
-                say(&key, vb, reloadable);
-            }
-        }
-        // Each unit whose [[line.unit]] table changed, with its settings as they are
-        // now (a reload applies them).
-        let named = |l: &LineConfig| -> Vec<u8> {
-            l.unit_tables
-                .0
-                .iter()
-                .flat_map(|t| t.ids.iter().copied())
-                .collect()
-        };
-        let mut units = named(la);
-        units.extend(named(lb));
-        units.sort_unstable();
-        units.dedup();
-        for u in units {
-            if la.unit_tables.settings(u) != lb.unit_tables.settings(u) {
-                let now = lb.unit_tables.policy(&lb.relay, u).describe();
-                say(&format!("unit {u}"), now, true);
-            }
-        }
-        match (&la.master, &lb.master) {
-            (Some(a), Some(b)) if timeouts_only(a, b) => {
-                for (i, (ra, rb)) in a.routes.iter().zip(&b.routes).enumerate() {
-                    if ra.response_timeout_ms != rb.response_timeout_ms {
-                        let key = format!("route[{i}].response_timeout_ms");
-                        say(&key, rb.response_timeout_ms.to_string(), true);
-                    }
-                }
-            }
-            (a, b) if a != b => say("route", "(the [[line.route]] tables)".into(), false),
-            _ => {}
-        }
-        if la.tcp_tls != lb.tcp_tls {
-            say("tcp.tls", "(the device's TLS settings)".into(), false);
-        }
+        out.extend(line_changes(la, &b.lines[j], &prefix));
     }
     for k in KEYS
         .iter()
@@ -227,22 +168,97 @@ pub(crate) fn changes(a: &Config, b: &Config, matched: &[usize]) -> Vec<Change> 
     }
     out.extend(listener_changes(a, b));
     out.extend(dial_changes(a, b));
-    if !same_roles_but_priority(a, b) {
+    out.extend(role_changes(a, b));
+    out
+}
+
+/// One line's differences from `la` to `lb`, each said after `prefix`.
+fn line_changes(la: &LineConfig, lb: &LineConfig, prefix: &str) -> Vec<Change> {
+    let mut out = Vec::new();
+    let mut say = |key: &str, value: String, reloadable: bool| {
         out.push(Change {
+            said: format!("{prefix}{key} = {value}"),
+            reloadable,
+        })
+    };
+    if la.units.ids != lb.units.ids {
+        say("units", lb.units.print_ids(), false);
+    }
+    if la.units.remap != lb.units.remap {
+        say("remap", lb.units.print_remap(), false);
+    }
+    let (ca, cb) = (line_as_config(la), line_as_config(lb));
+    for k in KEYS
+        .iter()
+        .filter(|k| ["serial", "relay"].contains(&k.section))
+    {
+        let (va, vb) = ((k.get)(&ca), (k.get)(&cb));
+        if va != vb {
+            let key = format!("{}.{}", k.section, k.name);
+            let reloadable = LINE_RELOADABLE.contains(&key.as_str());
+            say(&key, vb, reloadable);
+        }
+    }
+    // Each unit whose [[line.unit]] table changed, with its settings as they are
+    // now (a reload applies them).
+    for u in unit_tables_changed(la, lb) {
+        let now = lb.unit_tables.policy(&lb.relay, u).describe();
+        say(&format!("unit {u}"), now, true);
+    }
+    match (&la.master, &lb.master) {
+        (Some(a), Some(b)) if timeouts_only(a, b) => {
+            for (i, (ra, rb)) in a.routes.iter().zip(&b.routes).enumerate() {
+                if ra.response_timeout_ms != rb.response_timeout_ms {
+                    let key = format!("route[{i}].response_timeout_ms");
+                    say(&key, rb.response_timeout_ms.to_string(), true);
+                }
+            }
+        }
+        (a, b) if a != b => say("route", "(the [[line.route]] tables)".into(), false),
+        _ => {}
+    }
+    if la.tcp_tls != lb.tcp_tls {
+        say("tcp.tls", "(the device's TLS settings)".into(), false);
+    }
+    out
+}
+
+/// The units, in order, whose `[[line.unit]]` settings differ from `la` to `lb`.
+fn unit_tables_changed(la: &LineConfig, lb: &LineConfig) -> Vec<u8> {
+    let named = |l: &LineConfig| -> Vec<u8> {
+        l.unit_tables
+            .0
+            .iter()
+            .flat_map(|t| t.ids.iter().copied())
+            .collect()
+    };
+    let mut units = named(la);
+    units.extend(named(lb));
+    units.sort_unstable();
+    units.dedup();
+    units.retain(|&u| la.unit_tables.settings(u) != lb.unit_tables.settings(u));
+    units
+}
+
+/// The `[[role]]` tables' differences: a priority is applied, anything else waits
+/// for a restart.
+fn role_changes(a: &Config, b: &Config) -> Vec<Change> {
+    if !same_roles_but_priority(a, b) {
+        return vec![Change {
             said: "the [[role]] tables".into(),
             reloadable: false,
-        });
-    } else {
-        for (ra, rb) in a.roles.iter().zip(&b.roles) {
-            if ra.priority != rb.priority {
-                let class = rb
-                    .priority
-                    .map_or("(the listener's)".into(), |p| p.to_string());
-                out.push(Change {
-                    said: format!("role {:?} priority = {class}", rb.name),
-                    reloadable: true,
-                });
-            }
+        }];
+    }
+    let mut out = Vec::new();
+    for (ra, rb) in a.roles.iter().zip(&b.roles) {
+        if ra.priority != rb.priority {
+            let class = rb
+                .priority
+                .map_or("(the listener's)".into(), |p| p.to_string());
+            out.push(Change {
+                said: format!("role {:?} priority = {class}", rb.name),
+                reloadable: true,
+            });
         }
     }
     out
@@ -325,10 +341,6 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
     let (la, lb) = (&a.listeners, &b.listeners);
     let at = |l: &ListenConfig| l.tcp.listen;
     let same = |l: &ListenConfig, m: &ListenConfig| at(l) == at(m) && l.transport == m.transport;
-    let as_config = |l: &ListenConfig| Config {
-        listeners: vec![l.clone()],
-        ..Config::default()
-    };
     // A UDP listener is added, removed or changed by a reload (docs/dialing.md).
     let named = |l: &ListenConfig| match l.transport {
         Transport::Udp => format!("{} (UDP)", at(l)),
@@ -346,38 +358,57 @@ fn listener_changes(a: &Config, b: &Config) -> Vec<Change> {
                     out.push(said(m, "changed (started again)".into()));
                 }
             }
-            Some(m) => {
-                let (ca, cb) = (as_config(l), as_config(m));
-                for k in keys().filter(|k| k.name != "listen") {
-                    if (k.get)(&ca) != (k.get)(&cb) {
-                        let said = format!("listen \"{}\" {} = {}", at(l), k.name, (k.get)(&cb));
-                        out.push(restart(said));
-                    }
-                }
-                if l.framing != m.framing {
-                    let said = format!("listen \"{}\" framing = {}", at(l), m.framing.print());
-                    out.push(restart(said));
-                }
-                if l.priority != m.priority {
-                    out.push(Change {
-                        said: format!("listen \"{}\" priority = {}", at(l), m.priority),
-                        reloadable: true,
-                    });
-                }
-                // Who may connect and what they may do (docs/security.md); the
-                // certificate files themselves are read again by every reload.
-                if l.access != m.access {
-                    let said = format!(
-                        "listen \"{}\" access (allow, read_only, write or tls)",
-                        at(l)
-                    );
-                    out.push(restart(said));
-                }
-            }
+            Some(m) => out.extend(tcp_listener_changes(l, m)),
         }
     }
     for m in lb.iter().filter(|m| !la.iter().any(|l| same(l, m))) {
         out.push(said(m, "(new in the file)".into()));
+    }
+    out
+}
+
+/// A TCP listener's differences, matched by its address: all wait for a restart
+/// but its priority.
+fn tcp_listener_changes(l: &ListenConfig, m: &ListenConfig) -> Vec<Change> {
+    let restart = |said: String| Change {
+        said,
+        reloadable: false,
+    };
+    let at = |l: &ListenConfig| l.tcp.listen;
+    let as_config = |l: &ListenConfig| Config {
+        listeners: vec![l.clone()],
+        ..Config::default()
+    };
+    let mut out = Vec::new();
+    let (ca, cb) = (as_config(l), as_config(m));
+    for k in KEYS
+        .iter()
+        .filter(|k| k.section == "tcp")
+        .filter(|k| k.name != "listen")
+    {
+        if (k.get)(&ca) != (k.get)(&cb) {
+            let said = format!("listen \"{}\" {} = {}", at(l), k.name, (k.get)(&cb));
+            out.push(restart(said));
+        }
+    }
+    if l.framing != m.framing {
+        let said = format!("listen \"{}\" framing = {}", at(l), m.framing.print());
+        out.push(restart(said));
+    }
+    if l.priority != m.priority {
+        out.push(Change {
+            said: format!("listen \"{}\" priority = {}", at(l), m.priority),
+            reloadable: true,
+        });
+    }
+    // Who may connect and what they may do (docs/security.md); the
+    // certificate files themselves are read again by every reload.
+    if l.access != m.access {
+        let said = format!(
+            "listen \"{}\" access (allow, read_only, write or tls)",
+            at(l)
+        );
+        out.push(restart(said));
     }
     out
 }

@@ -6,8 +6,10 @@
 //! - `routing`: routes, ids, what is outstanding, deadlines, answers (plain data, time
 //!   passed in);
 //! - `slave`: one task per route holding its TCP connection;
+//! - `make`: the line made from its configuration, its routes bound;
 //! - this file: the loop that owns the serial port and wires them.
 
+mod make;
 pub(crate) mod requests;
 pub(crate) mod routing;
 pub(crate) mod slave;
@@ -22,6 +24,7 @@ use crate::line::relay::watchdog::Watchdog;
 use crate::ops::capture::packet::{Dir, Packet, Part};
 use crate::ops::capture::Tap;
 use crate::ops::metrics::LineMetrics;
+pub(crate) use make::{start, MasterLineParts};
 use requests::{encode_reply, Requests};
 use routing::{Action, Routing, RoutingCounts, UnitTally};
 use std::sync::atomic::Ordering;
@@ -96,114 +99,6 @@ pub(crate) struct MasterLineTask {
     tracker: tokio_util::task::TaskTracker,
 }
 
-/// What a master line is made of (`start`).
-pub(crate) struct MasterLineParts {
-    /// The serial port the master is on.
-    pub(crate) port: Box<dyn Port>,
-    /// Its framing and its timing (`Timing::of_line`).
-    pub(crate) framing: Framing,
-    pub(crate) timing: Timing,
-    /// The routes to the slaves.
-    pub(crate) master: MasterLine,
-    /// Log every frame as hex (`log.traffic`).
-    pub(crate) traffic: bool,
-    /// The capture's taps: the serial line's, and the slaves' TCP side's.
-    pub(crate) line_tap: Tap,
-    pub(crate) tcp_tap: Tap,
-    /// Where its counts go.
-    pub(crate) metrics: Arc<LineMetrics>,
-    /// systemd's interval, when this line pets it (the gateway's first line does; the
-    /// gateway says READY=1 and STOPPING=1).
-    pub(crate) watchdog: Option<Duration>,
-}
-
-/// Makes the master line of `parts`: binds its passive routes (a taken address is an
-/// error now, not later), starts a task for each route's connection, and puts its
-/// counts on its metrics.
-pub(crate) async fn start(
-    parts: MasterLineParts,
-) -> Result<(MasterLineTask, MasterHandle), BridgeError> {
-    let MasterLineParts {
-        port,
-        framing,
-        timing,
-        master,
-        traffic,
-        line_tap,
-        tcp_tap,
-        metrics,
-        watchdog,
-    } = parts;
-    let (events_tx, events) = mpsc::channel(slave::EVENTS);
-    let mut to_slaves = Vec::new();
-    // Stopped once the line has drained at shutdown: the replies still due come
-    // through these connections.
-    let slaves_stop = CancellationToken::new();
-    let tracker = tokio_util::task::TaskTracker::new();
-    for (i, route) in master.routes.iter().enumerate() {
-        let listener = slave::bind(route)
-            .await
-            .map_err(|error| BridgeError::Bind {
-                route: i,
-                addr: route.peer.to_string(),
-                error,
-            })?;
-        if let Some(l) = &listener {
-            if let Ok(a) = l.local_addr() {
-                info!(route = i, "waiting for the slave to connect to {a}");
-            }
-        }
-        let (tx, rx) = mpsc::unbounded_channel();
-        to_slaves.push(tx);
-        tracker.spawn(slave::run(
-            i,
-            route.clone(),
-            listener,
-            rx,
-            events_tx.clone(),
-            (tcp_tap.clone(), slaves_stop.clone()),
-        ));
-    }
-    drop(events_tx);
-    let routes: Vec<String> = master
-        .routes
-        .iter()
-        .map(|r| match r.units.as_slice() {
-            [] => format!("other units -> {}", r.peer),
-            u => format!("units {u:?} -> {}", r.peer),
-        })
-        .collect();
-    info!(
-        serial = port.name(),
-        "master line on {} ({}): {}",
-        port.name(),
-        framing.name(),
-        routes.join("; ")
-    );
-    let line = Bridge {
-        requests: Requests::new(framing),
-        routing: Routing::new(master, framing != Framing::Mbap),
-        timing,
-        traffic,
-        framing,
-        tap: line_tap,
-        to_slaves,
-        watchdog: watchdog.map(|every| Watchdog::new(every, Instant::now())),
-        metrics,
-        published: Published::default(),
-    };
-    let (retune, retunes) = mpsc::unbounded_channel();
-    let task = MasterLineTask {
-        port,
-        line,
-        events,
-        retunes,
-        slaves_stop,
-        tracker,
-    };
-    Ok((task, MasterHandle(retune)))
-}
-
 impl MasterLineTask {
     /// Runs the line until `shutdown`: opens its port, and reopens it with backoff
     /// when it is lost, as every line does (`crate::line::port::lifecycle`); at shutdown
@@ -252,22 +147,7 @@ impl MasterLineTask {
         tracker.close();
         tracker.wait().await;
         line.publish();
-        let c = line.routing.counts;
-        info!(
-            requests = c.requests,
-            forwarded = c.forwarded,
-            replies = c.replies,
-            timeouts = c.timeouts,
-            unavailable = c.unavailable,
-            late = c.late,
-            bad_replies = c.bad_replies,
-            broadcasts = c.broadcasts,
-            broadcasts_refused = c.broadcasts_refused,
-            refused = c.refused,
-            dropped_bytes = line.requests.dropped(),
-            "master line stopped"
-        );
-        c
+        line.said_stopped()
     }
 }
 
@@ -308,6 +188,66 @@ struct Bridge {
 }
 
 impl Bridge {
+    /// The counts at the end, said in the log.
+    fn said_stopped(&self) -> RoutingCounts {
+        let c = self.routing.counts;
+        info!(
+            requests = c.requests,
+            forwarded = c.forwarded,
+            replies = c.replies,
+            timeouts = c.timeouts,
+            unavailable = c.unavailable,
+            late = c.late,
+            bad_replies = c.bad_replies,
+            broadcasts = c.broadcasts,
+            broadcasts_refused = c.broadcasts_refused,
+            refused = c.refused,
+            dropped_bytes = self.requests.dropped(),
+            "master line stopped"
+        );
+        c
+    }
+
+    /// Shutdown: no new request is taken; those held are answered first.
+    fn drain(&mut self) {
+        self.routing.close();
+        if !self.routing.idle() {
+            debug!("stopping: answering the requests held first");
+        }
+    }
+
+    /// Bytes read off the line: counted, taped, and what requests they complete.
+    fn heard(&mut self, bytes: &[u8]) -> Vec<Action> {
+        if self.traffic {
+            debug!("serial rx {}", Hex(bytes));
+        }
+        let n = bytes.len();
+        self.metrics
+            .stats
+            .add(&self.metrics.stats.serial_bytes_in, n as u64);
+        // A capture begun while the loop waited has these bytes too.
+        self.requests.set_tape(self.tap.on());
+        self.requests.push(bytes);
+        self.take(false)
+    }
+
+    /// A pause on the line: RTU's 3.5 characters of silence end the frame.
+    fn pause(&mut self) -> Vec<Action> {
+        self.requests.pause();
+        self.take(self.requests.codec().is_some())
+    }
+
+    /// The frame gap after a pause: what is buffered is a request or is dropped.
+    fn gap(&mut self) -> Vec<Action> {
+        let before = self.requests.dropped();
+        let actions = self.take(true);
+        let n = self.requests.dropped() - before;
+        if n > 0 {
+            debug!("discarded {n} bytes that made no request");
+        }
+        actions
+    }
+
     /// Serves the open port until shutdown (`Ok`) or its loss (`Err`). At shutdown
     /// the requests held are answered first (their replies, or 0x0B at their
     /// deadlines; new ones get 0x0A), so the serial master is not cut off mid-request.
@@ -335,42 +275,24 @@ impl Bridge {
             let actions = tokio::select! {
                 _ = shutdown.cancelled(), if !draining => {
                     draining = true;
-                    self.routing.close();
-                    if !self.routing.idle() {
-                        debug!("stopping: answering the requests held first");
-                    }
+                    self.drain();
                     Vec::new()
                 }
                 r = link.reader.read(&mut buf) => match r {
                     Ok(0) => return Err(std::io::ErrorKind::UnexpectedEof.into()),
                     Ok(n) => {
-                        if self.traffic {
-                            debug!("serial rx {}", Hex(&buf[..n]));
-                        }
-                        self.metrics.stats.add(&self.metrics.stats.serial_bytes_in, n as u64);
                         last_rx = Instant::now();
                         paused = false;
-                        // A capture begun while the loop waited has these bytes too.
-                        self.requests.set_tape(self.tap.on());
-                        self.requests.push(&buf[..n]);
-                        self.take(false)
+                        self.heard(&buf[..n])
                     }
                     Err(e) => return Err(e),
                 },
                 _ = sleep_until(last_rx + self.timing.pause), if partial && !paused => {
                     paused = true;
-                    self.requests.pause();
-                    // RTU: 3.5 characters of silence end the frame.
-                    self.take(self.requests.codec().is_some())
+                    self.pause()
                 }
                 _ = sleep_until(last_rx + self.timing.frame_gap), if partial && paused => {
-                    let before = self.requests.dropped();
-                    let actions = self.take(true);
-                    let n = self.requests.dropped() - before;
-                    if n > 0 {
-                        debug!("discarded {n} bytes that made no request");
-                    }
-                    actions
+                    self.gap()
                 }
                 _ = sleep_until(deadline.unwrap_or_else(Instant::now)), if deadline.is_some() => {
                     self.routing.expire(std::time::Instant::now())

@@ -180,6 +180,29 @@ impl Routing {
         }
     }
 
+    /// A master on a bus waits for one reply at a time: a new request means it gave up
+    /// on any earlier one, whose late reply must not reach it.
+    fn given_up(&mut self) {
+        for r in &mut self.routes {
+            r.in_flight.iter_mut().for_each(|(_, h)| h.answer = false);
+            r.waiting.iter_mut().for_each(|h| h.answer = false);
+        }
+    }
+
+    /// A broadcast: every slave gets it, at once, and nothing is awaited (a reply to it
+    /// is dropped as late).
+    fn broadcast(&mut self, request: &Incoming, out: &mut Vec<Action>) {
+        self.counts.broadcasts += 1;
+        for i in 0..self.routes.len() {
+            if self.routes[i].conn == SlaveConnection::Up {
+                let tid = self.allocate(i);
+                let adu = Adu::build(tid, 0, &request.pdu);
+                self.counts.forwarded += 1;
+                out.push(Action::Send { route: i, adu });
+            }
+        }
+    }
+
     /// A request from the serial master at `now`.
     pub(crate) fn request(&mut self, request: Incoming, now: Instant) -> Vec<Action> {
         let mut out = Vec::new();
@@ -195,12 +218,7 @@ impl Routing {
             return out;
         }
         if self.serial_bus {
-            // A master on a bus waits for one reply at a time: a new request means
-            // it gave up on any earlier one, whose late reply must not reach it.
-            for r in &mut self.routes {
-                r.in_flight.iter_mut().for_each(|(_, h)| h.answer = false);
-                r.waiting.iter_mut().for_each(|h| h.answer = false);
-            }
+            self.given_up();
         }
         if broadcast && !FunctionCode::new(request.pdu[0]).may_broadcast() {
             // No slave on a bus answers a broadcast, so it can only be a write: a
@@ -218,17 +236,7 @@ impl Routing {
             return out;
         }
         if broadcast {
-            // Every slave gets it, at once, and nothing is awaited: a reply to it is
-            // dropped as late.
-            self.counts.broadcasts += 1;
-            for i in 0..self.routes.len() {
-                if self.routes[i].conn == SlaveConnection::Up {
-                    let tid = self.allocate(i);
-                    let adu = Adu::build(tid, 0, &request.pdu);
-                    self.counts.forwarded += 1;
-                    out.push(Action::Send { route: i, adu });
-                }
-            }
+            self.broadcast(&request, &mut out);
             return out;
         }
         let held = Held {

@@ -104,62 +104,21 @@ pub(crate) async fn run(
         let _ = events.send(SlaveEvent::Down(i)).await;
     }
     loop {
-        let stream = match (&listener, &route.peer) {
-            (Some(l), _) => match next.take() {
-                Some(s) => s,
-                None => tokio::select! {
-                    _ = shutdown.cancelled() => return,
-                    r = l.accept() => match r {
-                        Ok((_, from)) if !admitted(&route, i, from, &mut refused) => continue,
-                        Ok((s, from)) => {
-                            info!(route = i, "slave connected from {from}");
-                            s
-                        }
-                        Err(e) => {
-                            warn!(route = i, "accept: {e}");
-                            tokio::time::sleep(RECONNECT_MIN).await;
-                            continue;
-                        }
-                    },
-                },
-            },
+        let got = match (&listener, &route.peer) {
+            (Some(_), _) if next.is_some() => SlaveConnect::Stream(next.take().expect("seen")),
+            (Some(l), _) => accept_slave(l, &route, i, &mut refused, &shutdown).await,
             (None, Peer::Connect(addr)) => {
-                let _ = events.send(SlaveEvent::Connecting(i)).await;
-                let attempt = tokio::time::timeout(timeout, TcpStream::connect(addr.as_str()));
-                let made = tokio::select! {
-                    _ = shutdown.cancelled() => return,
-                    r = attempt => r.unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into())),
-                };
-                match made {
-                    Ok(s) => {
-                        backoff.reset();
-                        reported = false;
-                        info!(route = i, "connected to the slave at {addr}");
-                        s
-                    }
-                    Err(e) => {
-                        if !reported {
-                            warn!(
-                                route = i,
-                                "cannot reach the slave at {addr} ({e}); retrying"
-                            );
-                            reported = true;
-                        }
-                        let _ = events.send(SlaveEvent::Down(i)).await;
-                        let wait = backoff.next_delay();
-                        tokio::select! {
-                            _ = shutdown.cancelled() => return,
-                            _ = tokio::time::sleep(wait) => continue,
-                        }
-                    }
-                }
+                let tries = (&mut backoff, &mut reported);
+                connect_slave(i, addr, timeout, tries, &events, &shutdown).await
             }
             (None, Peer::Listen(_)) => unreachable!("a passive route is bound before it runs"),
         };
-        tune(&stream);
-        // Frames given for a connection that is gone were answered when it went.
-        while frames.try_recv().is_ok() {}
-        let _ = events.send(SlaveEvent::Up(i)).await;
+        let stream = match got {
+            SlaveConnect::Stream(s) => s,
+            SlaveConnect::Again => continue,
+            SlaveConnect::Stop => return,
+        };
+        up(i, &stream, &mut frames, &events).await;
         let end = session(
             i,
             stream,
@@ -181,6 +140,95 @@ pub(crate) async fn run(
                         _ = tokio::time::sleep(backoff.next_delay()) => {}
                     }
                 }
+            }
+        }
+    }
+}
+
+/// The slave connected: the connection tuned, the route up.
+async fn up(
+    i: usize,
+    stream: &TcpStream,
+    frames: &mut mpsc::UnboundedReceiver<Adu>,
+    events: &mpsc::Sender<SlaveEvent>,
+) {
+    tune(stream);
+    // Frames given for a connection that is gone were answered when it went.
+    while frames.try_recv().is_ok() {}
+    let _ = events.send(SlaveEvent::Up(i)).await;
+}
+
+/// What a wait for the slave's connection gave.
+enum SlaveConnect {
+    Stream(TcpStream),
+    /// Nothing yet: wait again.
+    Again,
+    /// Shutdown.
+    Stop,
+}
+
+/// A passive route: the next slave that connects in and is admitted.
+async fn accept_slave(
+    l: &TcpListener,
+    route: &Route,
+    i: usize,
+    refused: &mut RefusedLog,
+    shutdown: &CancellationToken,
+) -> SlaveConnect {
+    tokio::select! {
+        _ = shutdown.cancelled() => SlaveConnect::Stop,
+        r = l.accept() => match r {
+            Ok((_, from)) if !admitted(route, i, from, refused) => SlaveConnect::Again,
+            Ok((s, from)) => {
+                info!(route = i, "slave connected from {from}");
+                SlaveConnect::Stream(s)
+            }
+            Err(e) => {
+                warn!(route = i, "accept: {e}");
+                tokio::time::sleep(RECONNECT_MIN).await;
+                SlaveConnect::Again
+            }
+        },
+    }
+}
+
+/// An active route: a connection to the slave at `addr`, within `timeout`; on failure
+/// the route is down until the backoff's next try (the first failure of a run said in
+/// the log, `reported`).
+async fn connect_slave(
+    i: usize,
+    addr: &str,
+    timeout: Duration,
+    (backoff, reported): (&mut Backoff, &mut bool),
+    events: &mpsc::Sender<SlaveEvent>,
+    shutdown: &CancellationToken,
+) -> SlaveConnect {
+    let _ = events.send(SlaveEvent::Connecting(i)).await;
+    let attempt = tokio::time::timeout(timeout, TcpStream::connect(addr));
+    let made = tokio::select! {
+        _ = shutdown.cancelled() => return SlaveConnect::Stop,
+        r = attempt => r.unwrap_or_else(|_| Err(std::io::ErrorKind::TimedOut.into())),
+    };
+    match made {
+        Ok(s) => {
+            backoff.reset();
+            *reported = false;
+            info!(route = i, "connected to the slave at {addr}");
+            SlaveConnect::Stream(s)
+        }
+        Err(e) => {
+            if !*reported {
+                warn!(
+                    route = i,
+                    "cannot reach the slave at {addr} ({e}); retrying"
+                );
+                *reported = true;
+            }
+            let _ = events.send(SlaveEvent::Down(i)).await;
+            let wait = backoff.next_delay();
+            tokio::select! {
+                _ = shutdown.cancelled() => SlaveConnect::Stop,
+                _ = tokio::time::sleep(wait) => SlaveConnect::Again,
             }
         }
     }

@@ -51,8 +51,9 @@ pub(super) struct Sources<'a> {
     pub(super) shutdown: Option<&'a mut Woken<WaitForCancellationFutureOwned>>,
 }
 
-/// Waits for the next event; bytes read go into `rbuf`. One poll of each source in
-/// turn, bytes first, made by hand: no future made, moved and dropped for each
+/// Long because it is the relay's one wait, every source polled in its turn in one
+/// place, as one `select!` would be. Waits for the next event; bytes read go into
+/// `rbuf`. One poll of each source in turn, bytes first, made by hand: no future made, moved and dropped for each
 /// source at each wait (with `select!` over async blocks, about 600 instructions a
 /// transaction more: callgrind, docs/performance.md "A transaction on a quiet line").
 pub(super) async fn next(port: &mut Lifecycle, src: Sources<'_>, rbuf: &mut [u8]) -> Event {

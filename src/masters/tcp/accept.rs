@@ -18,6 +18,10 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+/// Long because it is the listener's loop: each step of a connection's admission
+/// (accepted, allowed, a slot, its task) reads the state the listener's connections
+/// share (the allow list's gate, the slots, the refusals' log, the handshake budget).
+///
 /// Accepts masters on `listener` until shutdown. A source not in the allow list is
 /// closed at once, before any byte is read. On a plain listener a connection past
 /// `max_connections` is closed at once; the others each get a task on the tracker. On a

@@ -364,6 +364,16 @@ fn unit_families(
         }
         f.encode(e)?;
     }
+    unit_state_families(lines, now, e)?;
+    unit_reply_histogram(lines, e)
+}
+
+/// Whether each unit answers, and its learned response timeout.
+fn unit_state_families(
+    lines: &[Arc<LineMetrics>],
+    now: Instant,
+    e: &mut DescriptorEncoder,
+) -> std::fmt::Result {
     let mut f = Family::new(
         "mbgate_unit_not_answering",
         "1 from the unit's third timeout in a row until it answers again, or until a minute passes without a timeout (nobody asks it), else 0.",
@@ -396,6 +406,11 @@ fn unit_families(
         }
     }
     f.encode(e)?;
+    Ok(())
+}
+
+/// Each unit's reply times, a histogram.
+fn unit_reply_histogram(lines: &[Arc<LineMetrics>], e: &mut DescriptorEncoder) -> std::fmt::Result {
     let mut m = e.encode_descriptor(
         "mbgate_unit_reply",
         "Reply time, from the request leaving for the device to its reply confirmed.",

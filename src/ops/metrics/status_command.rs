@@ -326,115 +326,12 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
         .unwrap_or_default()
         .as_secs_f64();
     for line in values_of(s, "mbgate_line_requests_total", "line") {
-        let l = [("line", line.as_str())];
-        let open = get(s, "mbgate_line_port_open", &l) == 1.0;
-        if !open {
-            problems.push(format!("{line} not open"));
-        }
-        let last = match s
-            .get("mbgate_line_last_reply_timestamp_seconds")
-            .and_then(|all| all.iter().find(|(lb, _)| lb.get("line") == Some(&line)))
-        {
-            Some((_, at)) => format!("last reply {:.1} s ago", (unix - at).max(0.0)),
-            None => "no reply yet".into(),
-        };
-        out += &format!(
-            "line {line}: port {}, {} masters, {} requests, {} replies, {} timeouts, {} backed off, {} queued, {} in flight, {last}\n",
-            if open { "open" } else { "NOT OPEN" },
-            n(get(s, "mbgate_line_masters", &l)),
-            n(get(s, "mbgate_line_requests_total", &l)),
-            n(get(s, "mbgate_line_replies_total", &l)),
-            n(get(s, "mbgate_line_timeouts_total", &l)),
-            // Answered 0x0B at once, their unit backed off: neither a reply nor a
-            // timeout on the line.
-            n(get(s, "mbgate_line_backed_off_requests_total", &l)),
-            n(get(s, "mbgate_line_queued", &l)),
-            n(get(s, "mbgate_line_in_flight", &l)),
-        );
-        let units = s.get("mbgate_unit_requests_total").into_iter().flatten();
-        let units = units.filter(|(lb, _)| lb.get("line") == Some(&line));
-        for (lb, requests) in units {
-            let unit = lb.get("unit").cloned().unwrap_or_default();
-            let u = [("line", line.as_str()), ("unit", unit.as_str())];
-            let count = get(s, "mbgate_unit_reply_seconds_count", &u);
-            let avg = if count > 0.0 {
-                format!(
-                    ", replies in {:.1} ms on average",
-                    1000.0 * get(s, "mbgate_unit_reply_seconds_sum", &u) / count
-                )
-            } else {
-                String::new()
-            };
-            let mut state = String::new();
-            if get(s, "mbgate_unit_not_answering", &u) == 1.0 {
-                state += ", NOT ANSWERING";
-                problems.push(format!("unit {unit} on {line} not answering"));
-            }
-            if get(s, "mbgate_unit_backed_off", &u) == 1.0 {
-                state += ", backed off";
-            }
-            let learned = s
-                .get("mbgate_unit_response_timeout_seconds")
-                .and_then(|all| {
-                    all.iter().find(|(lb, _)| {
-                        lb.get("line") == Some(&line) && lb.get("unit") == Some(&unit)
-                    })
-                });
-            if let Some((lb, t)) = learned {
-                let why = lb.get("why").map_or("", String::as_str);
-                state += &format!(", timeout {:.1} ms learned ({why})", t * 1000.0);
-            }
-            out += &format!(
-                "  unit {unit}: {} requests, {} replies, {} timeouts{avg}{state}\n",
-                n(*requests),
-                n(get(s, "mbgate_unit_replies_total", &u)),
-                n(get(s, "mbgate_unit_timeouts_total", &u)),
-            );
-        }
+        out += &line_summary(s, &line, unix, &mut problems);
+        out += &units_summary(s, &line, &mut problems);
     }
     let mut listed = Vec::new();
     for (listener, transport) in listeners(s) {
-        // A gateway older than the `transport` label has none.
-        let mut l = vec![("listener", listener.as_str())];
-        let said = match transport.as_deref() {
-            Some(t) => {
-                l.push(("transport", t));
-                if t == "tcp" {
-                    String::new()
-                } else {
-                    format!(" ({})", t.to_uppercase())
-                }
-            }
-            None => String::new(),
-        };
-        out += &format!(
-            "listener {listener}{said}: {} masters, {} connections, {} refused, {} protocol violations\n",
-            n(get(s, "mbgate_listener_masters", &l)),
-            n(get(s, "mbgate_listener_connections_total", &l)),
-            n(get(s, "mbgate_listener_refused_connections_total", &l)),
-            n(get(s, "mbgate_listener_protocol_violations_total", &l)),
-        );
-        let access = [
-            (
-                "mbgate_listener_denied_connections_total",
-                "not in the allow list",
-            ),
-            ("mbgate_listener_tls_failed_total", "TLS handshakes failed"),
-            (
-                "mbgate_listener_tls_refused_total",
-                "TLS masters refused for their role",
-            ),
-            ("mbgate_listener_denied_requests_total", "requests denied"),
-        ];
-        let said: Vec<String> = access
-            .iter()
-            .map(|(name, what)| (get(s, name, &l), what))
-            .filter(|(v, _)| *v > 0.0)
-            .map(|(v, what)| format!("{} {what}", n(v)))
-            .collect();
-        if !said.is_empty() {
-            out += &format!("  {}\n", said.join(", "));
-        }
+        out += &listener_summary(s, &listener, transport.as_deref());
         // The masters carry the address, not the transport: listed once.
         if !listed.contains(&listener) {
             out += &masters(s, &listener, unix);
@@ -448,6 +345,132 @@ fn summary(s: &Samples, now: SystemTime) -> (String, bool) {
         format!("NOT HEALTHY: {}", problems.join("; "))
     };
     (format!("{head}\n{out}"), healthy)
+}
+
+/// A line's row: its port, its counts, its last reply; a port not open is a problem.
+fn line_summary(s: &Samples, line: &str, unix: f64, problems: &mut Vec<String>) -> String {
+    let mut out = String::new();
+    let l = [("line", line)];
+    let open = get(s, "mbgate_line_port_open", &l) == 1.0;
+    if !open {
+        problems.push(format!("{line} not open"));
+    }
+    let last = match s
+        .get("mbgate_line_last_reply_timestamp_seconds")
+        .and_then(|all| {
+            all.iter()
+                .find(|(lb, _)| lb.get("line").is_some_and(|l| l == line))
+        }) {
+        Some((_, at)) => format!("last reply {:.1} s ago", (unix - at).max(0.0)),
+        None => "no reply yet".into(),
+    };
+    out += &format!(
+        "line {line}: port {}, {} masters, {} requests, {} replies, {} timeouts, {} backed off, {} queued, {} in flight, {last}\n",
+        if open { "open" } else { "NOT OPEN" },
+        n(get(s, "mbgate_line_masters", &l)),
+        n(get(s, "mbgate_line_requests_total", &l)),
+        n(get(s, "mbgate_line_replies_total", &l)),
+        n(get(s, "mbgate_line_timeouts_total", &l)),
+        // Answered 0x0B at once, their unit backed off: neither a reply nor a
+        // timeout on the line.
+        n(get(s, "mbgate_line_backed_off_requests_total", &l)),
+        n(get(s, "mbgate_line_queued", &l)),
+        n(get(s, "mbgate_line_in_flight", &l)),
+    );
+    out
+}
+
+/// The rows of a line's units; a unit not answering is a problem.
+fn units_summary(s: &Samples, line: &str, problems: &mut Vec<String>) -> String {
+    let mut out = String::new();
+    let units = s.get("mbgate_unit_requests_total").into_iter().flatten();
+    let units = units.filter(|(lb, _)| lb.get("line").is_some_and(|l| l == line));
+    for (lb, requests) in units {
+        let unit = lb.get("unit").cloned().unwrap_or_default();
+        let u = [("line", line), ("unit", unit.as_str())];
+        let count = get(s, "mbgate_unit_reply_seconds_count", &u);
+        let avg = if count > 0.0 {
+            format!(
+                ", replies in {:.1} ms on average",
+                1000.0 * get(s, "mbgate_unit_reply_seconds_sum", &u) / count
+            )
+        } else {
+            String::new()
+        };
+        let mut state = String::new();
+        if get(s, "mbgate_unit_not_answering", &u) == 1.0 {
+            state += ", NOT ANSWERING";
+            problems.push(format!("unit {unit} on {line} not answering"));
+        }
+        if get(s, "mbgate_unit_backed_off", &u) == 1.0 {
+            state += ", backed off";
+        }
+        let learned = s
+            .get("mbgate_unit_response_timeout_seconds")
+            .and_then(|all| {
+                all.iter().find(|(lb, _)| {
+                    lb.get("line").is_some_and(|l| l == line) && lb.get("unit") == Some(&unit)
+                })
+            });
+        if let Some((lb, t)) = learned {
+            let why = lb.get("why").map_or("", String::as_str);
+            state += &format!(", timeout {:.1} ms learned ({why})", t * 1000.0);
+        }
+        out += &format!(
+            "  unit {unit}: {} requests, {} replies, {} timeouts{avg}{state}\n",
+            n(*requests),
+            n(get(s, "mbgate_unit_replies_total", &u)),
+            n(get(s, "mbgate_unit_timeouts_total", &u)),
+        );
+    }
+    out
+}
+
+/// A listener's rows: its counts and what its access rules refused.
+fn listener_summary(s: &Samples, listener: &str, transport: Option<&str>) -> String {
+    let mut out = String::new();
+    // A gateway older than the `transport` label has none.
+    let mut l = vec![("listener", listener)];
+    let said = match transport {
+        Some(t) => {
+            l.push(("transport", t));
+            if t == "tcp" {
+                String::new()
+            } else {
+                format!(" ({})", t.to_uppercase())
+            }
+        }
+        None => String::new(),
+    };
+    out += &format!(
+        "listener {listener}{said}: {} masters, {} connections, {} refused, {} protocol violations\n",
+        n(get(s, "mbgate_listener_masters", &l)),
+        n(get(s, "mbgate_listener_connections_total", &l)),
+        n(get(s, "mbgate_listener_refused_connections_total", &l)),
+        n(get(s, "mbgate_listener_protocol_violations_total", &l)),
+    );
+    let access = [
+        (
+            "mbgate_listener_denied_connections_total",
+            "not in the allow list",
+        ),
+        ("mbgate_listener_tls_failed_total", "TLS handshakes failed"),
+        (
+            "mbgate_listener_tls_refused_total",
+            "TLS masters refused for their role",
+        ),
+        ("mbgate_listener_denied_requests_total", "requests denied"),
+    ];
+    let said: Vec<String> = access
+        .iter()
+        .map(|(name, what)| (get(s, name, &l), what))
+        .filter(|(v, _)| *v > 0.0)
+        .map(|(v, what)| format!("{} {what}", n(v)))
+        .collect();
+    if !said.is_empty() {
+        out += &format!("  {}\n", said.join(", "));
+    }
+    out
 }
 
 #[cfg(test)]

@@ -18,6 +18,7 @@
 
 mod transport;
 
+use transport::Exchange;
 pub(crate) use transport::{ClientTransport, Master};
 
 use crate::frame::hex::Hex;
@@ -195,28 +196,33 @@ async fn once(
     };
     tx();
     if common.verbose {
-        for f in &x.ignored {
-            say(format_args!(
-                "rx {} (transaction id {:#06x} is not ours: ignored)",
-                Hex(f.as_bytes()),
-                f.tid()
-            ));
-        }
-        if x.dropped_bytes > 0 {
-            say(format_args!(
-                "rx skipped {} bytes that were not the reply",
-                x.dropped_bytes
-            ));
-        }
-        say(format_args!(
-            "rx {}",
-            Hex(&master.transport().wire(&x.reply))
-        ));
+        say_received(master, &x);
     }
     for line in value_lines(&x.decoded) {
         say(format_args!("{line}"));
     }
     (code, Some(x.round_trip))
+}
+
+/// With `-v`: the frames that were not the reply, the bytes skipped, and the reply.
+fn say_received(master: &Master, x: &Exchange) {
+    for f in &x.ignored {
+        say(format_args!(
+            "rx {} (transaction id {:#06x} is not ours: ignored)",
+            Hex(f.as_bytes()),
+            f.tid()
+        ));
+    }
+    if x.dropped_bytes > 0 {
+        say(format_args!(
+            "rx skipped {} bytes that were not the reply",
+            x.dropped_bytes
+        ));
+    }
+    say(format_args!(
+        "rx {}",
+        Hex(&master.transport().wire(&x.reply))
+    ));
 }
 
 /// `ADDR: VALUE (0xHEX)` for registers, `ADDR: 1` / `ADDR: 0` for bits, one a line.

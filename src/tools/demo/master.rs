@@ -91,27 +91,13 @@ async fn bind_slave(
     }
 }
 
-/// Runs the demo until `shutdown`. `settings` are the master's (the device flags of
-/// `mbgate demo`); the slave is a CIE-M10 with the manual's defaults.
-pub async fn run(
-    args: &DemoArgs,
-    settings: Settings,
+/// The console's commands split: `slave ...` to the slave, the rest to the master.
+fn split_console(
     mut commands: mpsc::Receiver<ConsoleRequest>,
-    shutdown: CancellationToken,
-    banner_shown: std::sync::mpsc::Sender<()>,
-) -> Result<(), MasterDemoError> {
-    let (device_end, gateway_end) = SerialStream::pair()?;
-    let pty = gateway_end.name().ok_or(MasterDemoError::Unnamed)?;
-    let listener = bind_slave(args.listen).await?;
-    let slave_at = listener
-        .local_addr()
-        .map_err(|e| MasterDemoError::Bind(args.listen.unwrap_or(DEFAULT_LISTEN), e))?;
-    let cfg = line_config(pty.clone(), slave_at, args.traffic);
-    let me = crate::tools::demo::invocation::command();
-    print!("{}", instructions(&pty, slave_at, args.master.poll_ms, &me));
-    let _ = banner_shown.send(());
-
-    // The console's commands: `slave ...` to the slave, the rest to the master.
+) -> (
+    mpsc::Receiver<ConsoleRequest>,
+    mpsc::Receiver<ConsoleRequest>,
+) {
     let (to_master, master_commands) = mpsc::channel(4);
     let (to_slave, slave_commands) = mpsc::channel(4);
     tokio::spawn(async move {
@@ -126,6 +112,30 @@ pub async fn run(
             }
         }
     });
+    (master_commands, slave_commands)
+}
+
+/// Runs the demo until `shutdown`. `settings` are the master's (the device flags of
+/// `mbgate demo`); the slave is a CIE-M10 with the manual's defaults.
+pub async fn run(
+    args: &DemoArgs,
+    settings: Settings,
+    commands: mpsc::Receiver<ConsoleRequest>,
+    shutdown: CancellationToken,
+    banner_shown: std::sync::mpsc::Sender<()>,
+) -> Result<(), MasterDemoError> {
+    let (device_end, gateway_end) = SerialStream::pair()?;
+    let pty = gateway_end.name().ok_or(MasterDemoError::Unnamed)?;
+    let listener = bind_slave(args.listen).await?;
+    let slave_at = listener
+        .local_addr()
+        .map_err(|e| MasterDemoError::Bind(args.listen.unwrap_or(DEFAULT_LISTEN), e))?;
+    let cfg = line_config(pty.clone(), slave_at, args.traffic);
+    let me = crate::tools::demo::invocation::command();
+    print!("{}", instructions(&pty, slave_at, args.master.poll_ms, &me));
+    let _ = banner_shown.send(());
+
+    let (master_commands, slave_commands) = split_console(commands);
     let slave = Device::new(Profile::CieM10(CieM10::default()), settings.seed);
     // The master line, and the user's own reads of the slave (the banner's).
     let slave = tokio::spawn(crate::tools::sim::tcp::run(

@@ -165,6 +165,34 @@ fn second_line(settings: &Settings, pty: &str, at: SocketAddr, me: &str) -> Stri
     )
 }
 
+/// The gateway's listeners bound, and the first one's address: the default port
+/// held by another program, a free one instead (unless `--listen` was given).
+async fn bind(
+    cfg: &mut crate::config::Config,
+    listen_given: bool,
+) -> Result<(Vec<crate::masters::tcp::Socket>, SocketAddr), DemoError> {
+    let listener = match gateway::bind(cfg).await {
+        Err(GatewayError::Bind { error, .. })
+            if !listen_given && error.kind() == std::io::ErrorKind::AddrInUse =>
+        {
+            cfg.listeners[0].tcp.listen = SocketAddr::new(DEFAULT_LISTEN.ip(), 0);
+            let listener = gateway::bind(cfg).await?;
+            println!(
+                "mbgate demo: another program holds {DEFAULT_LISTEN}; using a free port instead"
+            );
+            listener
+        }
+        bound => bound?,
+    };
+    let at = listener[0]
+        .local_addr()
+        .map_err(|error| GatewayError::Bind {
+            addr: cfg.listeners[0].tcp.listen,
+            error,
+        })?;
+    Ok((listener, at))
+}
+
 /// Runs the demo until `shutdown`; the gateway's counters at the end. `banner_shown`
 /// hears once the instructions are printed (the console waits for them).
 pub async fn run(
@@ -186,25 +214,7 @@ pub async fn run(
         let settings = args.settings()?;
         second = Some((device_end, gateway_end, pty, settings));
     }
-    let listener = match gateway::bind(&cfg).await {
-        Err(GatewayError::Bind { error, .. })
-            if args.listen.is_none() && error.kind() == std::io::ErrorKind::AddrInUse =>
-        {
-            cfg.listeners[0].tcp.listen = SocketAddr::new(DEFAULT_LISTEN.ip(), 0);
-            let listener = gateway::bind(&cfg).await?;
-            println!(
-                "mbgate demo: another program holds {DEFAULT_LISTEN}; using a free port instead"
-            );
-            listener
-        }
-        bound => bound?,
-    };
-    let at = listener[0]
-        .local_addr()
-        .map_err(|error| GatewayError::Bind {
-            addr: cfg.listeners[0].tcp.listen,
-            error,
-        })?;
+    let (listener, at) = bind(&mut cfg, args.listen.is_some()).await?;
     let me = crate::tools::demo::invocation::command();
     print!("{}", instructions(&settings, &pty, at, &me));
     if let Some((_, _, second_pty, _)) = &second {

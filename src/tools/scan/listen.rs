@@ -9,6 +9,7 @@ use super::{Progress, ScanError};
 use crate::tools::wire::uart::Format;
 use std::time::{Duration, Instant};
 use tokio::io::AsyncReadExt;
+use tokio_serial::SerialStream;
 use tokio_util::sync::CancellationToken;
 
 /// What listening found.
@@ -57,29 +58,7 @@ pub(super) async fn listen(
             })?;
         heard.settings += 1;
         let opened = Instant::now();
-        let mut bytes = Listened::default();
-        let most = most_bytes(s, window);
-        let mut buf = [0u8; 1024];
-        // Until the window ends, or more came than a wire at this setting carries
-        // in it (a port with no wire, a pty, may give any amount): what came is
-        // judged then.
-        while bytes.len() < most {
-            let until = (opened + window).saturating_duration_since(Instant::now());
-            if until.is_zero() {
-                break;
-            }
-            tokio::select! {
-                r = port.read(&mut buf) => {
-                    let n = r?;
-                    if n == 0 {
-                        break;
-                    }
-                    bytes.push(opened.elapsed(), &buf[..n]);
-                }
-                _ = tokio::time::sleep(until) => break,
-                _ = stop.cancelled() => break,
-            }
-        }
+        let bytes = overhear(&mut port, opened, most_bytes(s, window), window, stop).await?;
         let best = s
             .framings
             .iter()
@@ -97,6 +76,38 @@ pub(super) async fn listen(
     heard.interrupted = stop.is_cancelled();
     heard.elapsed = started.elapsed();
     Ok(heard)
+}
+
+/// What `port` (opened at `opened`) carries until the window ends, or more came than
+/// a wire at this setting carries in it (`most`; a port with no wire, a pty, may give
+/// any amount): what came is judged then.
+async fn overhear(
+    port: &mut SerialStream,
+    opened: Instant,
+    most: usize,
+    window: Duration,
+    stop: &CancellationToken,
+) -> Result<Listened, ScanError> {
+    let mut bytes = Listened::default();
+    let mut buf = [0u8; 1024];
+    while bytes.len() < most {
+        let until = (opened + window).saturating_duration_since(Instant::now());
+        if until.is_zero() {
+            break;
+        }
+        tokio::select! {
+            r = port.read(&mut buf) => {
+                let n = r?;
+                if n == 0 {
+                    break;
+                }
+                bytes.push(opened.elapsed(), &buf[..n]);
+            }
+            _ = tokio::time::sleep(until) => break,
+            _ = stop.cancelled() => break,
+        }
+    }
+    Ok(bytes)
 }
 
 /// The most bytes listened to at setting `s` for `window`: what its wire carries in
@@ -143,6 +154,31 @@ pub(super) fn table(h: &Overheard, target: &str) -> String {
         t.frames,
         t.requests() as f64 / secs
     );
+    units_table(&mut s, t);
+    let answering: Vec<String> = t
+        .units
+        .iter()
+        .filter(|(_, u)| u.replies > 0)
+        .map(|(unit, _)| unit.to_string())
+        .collect();
+    let _ = writeln!(
+        s,
+        "\nFor mbgate.toml (in place of the master heard):\n\n[[line]]\nunits = [{}]\n\
+         serial = {{ path = \"{target}\", baud_rate = {baud}, data_bits = {}, parity = \"{}\", \
+         stop_bits = {}, framing = \"{}\", flow_control = \"none\" }}",
+        answering.join(", "),
+        format.data_bits,
+        super::report::parity_name(format.parity),
+        format.stop_bits,
+        framing.name()
+    );
+    s
+}
+
+/// A row for each unit heard: its functions, requests, replies, exceptions and reply
+/// times.
+fn units_table(s: &mut String, t: &Traffic) {
+    use std::fmt::Write as _;
     let _ = writeln!(
         s,
         "{:<5} {:<12} {:<9} {:<8} {:<11} reply p50/max",
@@ -164,24 +200,6 @@ pub(super) fn table(h: &Overheard, target: &str) -> String {
             u.exceptions
         );
     }
-    let answering: Vec<String> = t
-        .units
-        .iter()
-        .filter(|(_, u)| u.replies > 0)
-        .map(|(unit, _)| unit.to_string())
-        .collect();
-    let _ = writeln!(
-        s,
-        "\nFor mbgate.toml (in place of the master heard):\n\n[[line]]\nunits = [{}]\n\
-         serial = {{ path = \"{target}\", baud_rate = {baud}, data_bits = {}, parity = \"{}\", \
-         stop_bits = {}, framing = \"{}\", flow_control = \"none\" }}",
-        answering.join(", "),
-        format.data_bits,
-        super::parity_name(format.parity),
-        format.stop_bits,
-        framing.name()
-    );
-    s
 }
 
 /// The report as one JSON object.
@@ -221,7 +239,7 @@ pub(super) fn json(h: &Overheard, target: &str) -> String {
     };
     format!(
         "{{\"target\":{},\"listen\":true,\"setting\":{setting},\"units\":[{units}],\"frames\":{frames},\"requests_per_s\":{rate:.2},\"settings\":{},\"interrupted\":{},\"elapsed_s\":{:.3}}}",
-        super::js(target),
+        super::report::js(target),
         h.settings,
         h.interrupted,
         h.elapsed.as_secs_f64()

@@ -207,34 +207,21 @@ pub(super) async fn scan(
     stop: &CancellationToken,
     progress: &mut Progress,
 ) -> Result<Report, ScanError> {
-    let mut report = Report::default();
+    let plan = ScanPlan {
+        settings,
+        units,
+        give_up,
+        wide,
+        timeout,
+        stop,
+    };
+    let mut tally = ScanTally {
+        report: Report::default(),
+        done: 0,
+        total: plan.total(),
+        progress,
+    };
     let mut timer = PreciseTimer::new()?;
-    // Every unit at a wide setting; the first `give_up` elsewhere, until proven.
-    let limit = |s: &ProbeSetting, f: SerialFraming| {
-        if wide.contains(&(s.baud, s.format, f)) {
-            units.len()
-        } else {
-            give_up.min(units.len())
-        }
-    };
-    let mut total: usize = settings
-        .iter()
-        .flat_map(|s| s.framings.iter().map(move |&f| limit(s, f)))
-        .sum();
-    // The time the tries after setting `i`'s framing `k` take: the rest of that
-    // setting's, then every later one's.
-    let later = |i: usize, k: usize| -> Duration {
-        settings[i..]
-            .iter()
-            .enumerate()
-            .flat_map(|(j, t)| {
-                let skip = if j == 0 { k + 1 } else { 0 };
-                t.framings.iter().skip(skip).map(move |&f| (t, f))
-            })
-            .map(|(t, f)| OpenSetting::cost(t, f, timeout) * limit(t, f) as u32)
-            .sum()
-    };
-    let mut done = 0;
     'settings: for (i, s) in settings.iter().enumerate() {
         if stop.is_cancelled() {
             break;
@@ -254,72 +241,8 @@ pub(super) async fn scan(
             replied: None,
         };
         for (k, &framing) in s.framings.iter().enumerate() {
-            let per_setting = limit(s, framing);
-            let mut at = AtSetting::new(units.to_vec(), per_setting);
-            line.clear_receiver(framing).await?;
-            let mut found_here = Vec::new();
-            let what = format!("{} {} {}", s.baud, s.format, framing.name());
-            'units: loop {
-                while let Some(unit) = at.next_unit() {
-                    if stop.is_cancelled() {
-                        // What was found so far is kept (and reported) below.
-                        break;
-                    }
-                    // The time left: this setting's tries, then every later one's.
-                    let left = line.read_cost(framing) * at.left() as u32 + later(i, k);
-                    progress.show(done, total, left, &format!("{what} unit {unit}"));
-                    let mut heard = line.ask(framing, unit, &probe::read_one(3)).await?;
-                    report.tries += 1;
-                    if heard == Heard::Nothing && at.proven {
-                        // No answer at all to FC 03 where a device is known to be: some
-                        // devices keep silent for a function they lack; FC 04 too.
-                        heard = line.ask(framing, unit, &probe::read_one(4)).await?;
-                        report.tries += 1;
-                    }
-                    let replied = line.replied;
-                    let was_proven = at.proven;
-                    at.record(&heard);
-                    done += 1;
-                    if at.proven && !was_proven {
-                        total += units.len().saturating_sub(per_setting);
-                    }
-                    if let Heard::Frame { unit: from, pdu } = &heard {
-                        // A frame from a unit asked before is its late reply: each unit is
-                        // asked once, so it can be no other's.
-                        let late = *from != unit
-                            && units.contains(from)
-                            && !found_here.iter().any(|f: &Found| f.unit == *from);
-                        if *from == unit || late {
-                            // A late reply's time is not known: it answered a request
-                            // before this one.
-                            let replied = if late { None } else { replied };
-                            let after = progress.started.elapsed();
-                            found_here.push(heard_at(*from, s, framing, pdu, replied, after));
-                        }
-                    }
-                }
-                if stop.is_cancelled() || at.proven || per_setting < units.len() {
-                    break;
-                }
-                // The last units of a wide setting have no later window for a slow
-                // reply to come in: the line is listened to a while before it is left.
-                if let Heard::Frame { unit: from, pdu } = line.linger(framing, LINGER).await? {
-                    if units.contains(&from) {
-                        at.proven = true;
-                        let after = progress.started.elapsed();
-                        found_here.push(heard_at(from, s, framing, &pdu, None, after));
-                        continue 'units;
-                    }
-                }
-                break;
-            }
-            if let (Some(first), false) = (at.unanswering, at.proven) {
-                report
-                    .unanswering
-                    .push(((s.baud, s.format, framing), first));
-            } else if at.garbage && !at.proven {
-                report.garbage.push((s.baud, s.format, framing));
-            }
+            let (at, mut found_here) = plan.framing(&mut line, i, k, framing, &mut tally).await?;
+            let report = &mut tally.report;
             line.identify(framing, &mut found_here, &mut report.tries, stop)
                 .await?;
             // In the order of their ids, late replies included.
@@ -330,7 +253,165 @@ pub(super) async fn scan(
             }
         }
     }
-    Ok(report)
+    Ok(tally.report)
+}
+
+/// What a serial scan tries: the settings, the units, and how far at each.
+struct ScanPlan<'a> {
+    settings: &'a [ProbeSetting],
+    units: &'a [u8],
+    give_up: usize,
+    wide: &'a [SerialSetting],
+    timeout: Duration,
+    stop: &'a CancellationToken,
+}
+
+/// How far a serial scan is: what it found and its tries, done of the total.
+struct ScanTally<'p> {
+    report: Report,
+    done: usize,
+    total: usize,
+    progress: &'p mut Progress,
+}
+
+impl ScanPlan<'_> {
+    /// Every unit at a wide setting; the first `give_up` elsewhere, until proven.
+    fn limit(&self, s: &ProbeSetting, f: SerialFraming) -> usize {
+        if self.wide.contains(&(s.baud, s.format, f)) {
+            self.units.len()
+        } else {
+            self.give_up.min(self.units.len())
+        }
+    }
+
+    /// The tries planned, before any setting is proven.
+    fn total(&self) -> usize {
+        self.settings
+            .iter()
+            .flat_map(|s| s.framings.iter().map(move |&f| self.limit(s, f)))
+            .sum()
+    }
+
+    /// The time the tries after setting `i`'s framing `k` take: the rest of that
+    /// setting's, then every later one's.
+    fn later(&self, i: usize, k: usize) -> Duration {
+        self.settings[i..]
+            .iter()
+            .enumerate()
+            .flat_map(|(j, t)| {
+                let skip = if j == 0 { k + 1 } else { 0 };
+                t.framings.iter().skip(skip).map(move |&f| (t, f))
+            })
+            .map(|(t, f)| OpenSetting::cost(t, f, self.timeout) * self.limit(t, f) as u32)
+            .sum()
+    }
+
+    /// Asks the units at setting `i` in its framing `k`, on `line`: how the setting
+    /// fared, and the units found there (identities not asked yet).
+    async fn framing(
+        &self,
+        line: &mut OpenSetting<'_>,
+        i: usize,
+        k: usize,
+        framing: SerialFraming,
+        tally: &mut ScanTally<'_>,
+    ) -> Result<(AtSetting, Vec<Found>), ScanError> {
+        let (s, units, stop) = (&self.settings[i], self.units, self.stop);
+        let per_setting = self.limit(s, framing);
+        let mut at = AtSetting::new(units.to_vec(), per_setting);
+        line.clear_receiver(framing).await?;
+        let mut found_here = Vec::new();
+        'units: loop {
+            self.ask_units(line, i, k, framing, &mut at, &mut found_here, tally)
+                .await?;
+            if stop.is_cancelled() || at.proven || per_setting < units.len() {
+                break;
+            }
+            // The last units of a wide setting have no later window for a slow
+            // reply to come in: the line is listened to a while before it is left.
+            if let Heard::Frame { unit: from, pdu } = line.linger(framing, LINGER).await? {
+                if units.contains(&from) {
+                    at.proven = true;
+                    let after = tally.progress.started.elapsed();
+                    found_here.push(heard_at(from, s, framing, &pdu, None, after));
+                    continue 'units;
+                }
+            }
+            break;
+        }
+        if let (Some(first), false) = (at.unanswering, at.proven) {
+            tally
+                .report
+                .unanswering
+                .push(((s.baud, s.format, framing), first));
+        } else if at.garbage && !at.proven {
+            tally.report.garbage.push((s.baud, s.format, framing));
+        }
+        Ok((at, found_here))
+    }
+
+    /// Asks each unit `at` has left at setting `i`'s framing `k` (until `stop`),
+    /// keeping in `found_here` the units that answered, late replies included.
+    #[allow(clippy::too_many_arguments)]
+    async fn ask_units(
+        &self,
+        line: &mut OpenSetting<'_>,
+        i: usize,
+        k: usize,
+        framing: SerialFraming,
+        at: &mut AtSetting,
+        found_here: &mut Vec<Found>,
+        tally: &mut ScanTally<'_>,
+    ) -> Result<(), ScanError> {
+        let (s, units, stop) = (&self.settings[i], self.units, self.stop);
+        let per_setting = self.limit(s, framing);
+        let what = format!("{} {} {}", s.baud, s.format, framing.name());
+        while let Some(unit) = at.next_unit() {
+            if stop.is_cancelled() {
+                // What was found so far is kept (and reported) by the caller.
+                break;
+            }
+            // The time left: this setting's tries, then every later one's.
+            let left = line.read_cost(framing) * at.left() as u32 + self.later(i, k);
+            let progress = &mut tally.progress;
+            progress.show(
+                tally.done,
+                tally.total,
+                left,
+                &format!("{what} unit {unit}"),
+            );
+            let mut heard = line.ask(framing, unit, &probe::read_one(3)).await?;
+            tally.report.tries += 1;
+            if heard == Heard::Nothing && at.proven {
+                // No answer at all to FC 03 where a device is known to be: some
+                // devices keep silent for a function they lack; FC 04 too.
+                heard = line.ask(framing, unit, &probe::read_one(4)).await?;
+                tally.report.tries += 1;
+            }
+            let replied = line.replied;
+            let was_proven = at.proven;
+            at.record(&heard);
+            tally.done += 1;
+            if at.proven && !was_proven {
+                tally.total += units.len().saturating_sub(per_setting);
+            }
+            if let Heard::Frame { unit: from, pdu } = &heard {
+                // A frame from a unit asked before is its late reply: each unit is
+                // asked once, so it can be no other's.
+                let late = *from != unit
+                    && units.contains(from)
+                    && !found_here.iter().any(|f: &Found| f.unit == *from);
+                if *from == unit || late {
+                    // A late reply's time is not known: it answered a request
+                    // before this one.
+                    let replied = if late { None } else { replied };
+                    let after = tally.progress.started.elapsed();
+                    found_here.push(heard_at(*from, s, framing, pdu, replied, after));
+                }
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A unit heard at setting `s` in `framing`, its identities not asked yet.

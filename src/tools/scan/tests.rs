@@ -1,5 +1,6 @@
 //! Tests of tools::scan.
 
+use super::report::slow_units;
 use super::*;
 
 fn unit(id: u8, ms: &[u64]) -> Found {

@@ -113,6 +113,9 @@ fn on_off(s: &str) -> Result<bool, BadCommand> {
 }
 
 impl ConsoleCommand {
+    /// Long because it is the console's table of commands: one arm each, its usage and
+    /// its arguments side by side (docs/simulator.md lists the same).
+    ///
     /// One console line; `Ok(None)` for an empty line.
     pub(crate) fn parse(line: &str) -> Result<Option<ConsoleCommand>, BadCommand> {
         let words: Vec<&str> = line.split_whitespace().collect();

@@ -144,6 +144,9 @@ impl Generic {
     }
 }
 
+/// Long because it is the table of function codes the device serves, one arm each,
+/// in the order of the Modbus application protocol.
+///
 /// The normal response PDU, or the exception code. Sizes, quantities and values are
 /// checked against the function code table as the gateway checks them
 /// ([`pdu::check_request`]: 03), before addresses (02).

@@ -299,74 +299,8 @@ impl DeviceArgs {
                 .map_or(1, |d| d.as_nanos() as u64)
         });
         let device = match self.profile {
-            ProfileName::CieM10 => {
-                only_for(
-                    "generic",
-                    &[
-                        ("--units", self.units != [1]),
-                        ("--coils", self.coils != generic::MIN_SIZE),
-                        ("--registers", self.registers != generic::MIN_SIZE),
-                        ("--fill", self.fill != Fill::Zero),
-                    ],
-                )?;
-                if self.input_address == self.output_address {
-                    return Err(format!(
-                        "--input-address and --output-address are both {}",
-                        self.input_address
-                    )
-                    .into());
-                }
-                Device::new(
-                    Profile::CieM10(CieM10 {
-                        unit: self.unit,
-                        input_address: self.input_address,
-                        output_address: self.output_address,
-                        loopback: self.loopback,
-                        notify: self.notify,
-                        ..CieM10::default()
-                    }),
-                    seed,
-                )
-            }
-            ProfileName::Generic => {
-                only_for(
-                    "cie-m10",
-                    &[
-                        ("--unit", self.unit != 1),
-                        ("--input-address", self.input_address != 0),
-                        ("--output-address", self.output_address != 8),
-                        ("--loopback", self.loopback),
-                    ],
-                )?;
-                if let Some(u) = self.units.iter().find(|u| !(1..=247).contains(*u)) {
-                    return Err(format!("--units: unit ids are 1..247, not {u}").into());
-                }
-                for (flag, n) in [("--coils", self.coils), ("--registers", self.registers)] {
-                    if !(generic::MIN_SIZE..=generic::MAX_SIZE).contains(&n) {
-                        return Err(format!(
-                            "{flag} must be {}..{}, not {n}",
-                            generic::MIN_SIZE,
-                            generic::MAX_SIZE
-                        )
-                        .into());
-                    }
-                }
-                let mut d = Device::generic(
-                    &self.units,
-                    self.coils,
-                    self.registers,
-                    seed.wrapping_add(2),
-                );
-                match self.fill {
-                    Fill::Zero => {}
-                    Fill::Address => d.fill_holding_with_addresses(),
-                    Fill::Header => d.fill_holding(generic::header_fill),
-                }
-                if self.notify {
-                    d.notify_generic();
-                }
-                d
-            }
+            ProfileName::CieM10 => self.cie_m10_device(seed)?,
+            ProfileName::Generic => self.generic_device(seed)?,
         };
         let faulty = |hit: bool, salt: u64| {
             if hit {
@@ -398,6 +332,78 @@ impl DeviceArgs {
             ),
             medium: Duration::ZERO,
         })
+    }
+
+    /// The CIE-M10 profile's device; the generic profile's flags refused.
+    fn cie_m10_device(&self, seed: u64) -> Result<Device, BadFlags> {
+        only_for(
+            "generic",
+            &[
+                ("--units", self.units != [1]),
+                ("--coils", self.coils != generic::MIN_SIZE),
+                ("--registers", self.registers != generic::MIN_SIZE),
+                ("--fill", self.fill != Fill::Zero),
+            ],
+        )?;
+        if self.input_address == self.output_address {
+            return Err(format!(
+                "--input-address and --output-address are both {}",
+                self.input_address
+            )
+            .into());
+        }
+        Ok(Device::new(
+            Profile::CieM10(CieM10 {
+                unit: self.unit,
+                input_address: self.input_address,
+                output_address: self.output_address,
+                loopback: self.loopback,
+                notify: self.notify,
+                ..CieM10::default()
+            }),
+            seed,
+        ))
+    }
+
+    /// The generic profile's device; the CIE-M10 profile's flags refused.
+    fn generic_device(&self, seed: u64) -> Result<Device, BadFlags> {
+        only_for(
+            "cie-m10",
+            &[
+                ("--unit", self.unit != 1),
+                ("--input-address", self.input_address != 0),
+                ("--output-address", self.output_address != 8),
+                ("--loopback", self.loopback),
+            ],
+        )?;
+        if let Some(u) = self.units.iter().find(|u| !(1..=247).contains(*u)) {
+            return Err(format!("--units: unit ids are 1..247, not {u}").into());
+        }
+        for (flag, n) in [("--coils", self.coils), ("--registers", self.registers)] {
+            if !(generic::MIN_SIZE..=generic::MAX_SIZE).contains(&n) {
+                return Err(format!(
+                    "{flag} must be {}..{}, not {n}",
+                    generic::MIN_SIZE,
+                    generic::MAX_SIZE
+                )
+                .into());
+            }
+        }
+        let mut d = Device::generic(
+            &self.units,
+            self.coils,
+            self.registers,
+            seed.wrapping_add(2),
+        );
+        match self.fill {
+            Fill::Zero => {}
+            Fill::Address => d.fill_holding_with_addresses(),
+            Fill::Header => d.fill_holding(generic::header_fill),
+        }
+        if self.notify {
+            d.notify_generic();
+        }
+        Ok(d)
     }
 }
 

@@ -114,7 +114,6 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
             )));
         }
     }
-    let specs = [args.specs[0], args.specs[1]];
     let paths = [&args.paths[0], &args.paths[1]];
     let mut ends = Vec::new();
     for p in paths {
@@ -123,6 +122,40 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
             source,
         })?);
     }
+    say_ready(args, &ends);
+    let base = Instant::now();
+    let mut wire = Wire {
+        args,
+        specs: [args.specs[0], args.specs[1]],
+        ends,
+        base,
+        tx: [UartTransmitter::default(), UartTransmitter::default()],
+        rx: [UartReceiver::new(), UartReceiver::new()],
+        counts: [Counts::default(), Counts::default()],
+        rng: fastrand::Rng::with_seed(args.seed),
+    };
+    let mut timer = PreciseTimer::new()?;
+    let mut wake: Option<u64> = None;
+    let mut buf = vec![0u8; 4096];
+    loop {
+        let deadline = wake.map(|w| base + Duration::from_nanos(w));
+        let from = tokio::select! {
+            _ = shutdown.cancelled() => break,
+            r = wire.ends[0].master.readable() => { r?.clear_ready(); Some(0) }
+            r = wire.ends[1].master.readable() => { r?.clear_ready(); Some(1) }
+            r = timer.until(deadline.unwrap_or(base)), if deadline.is_some() => { r?; None }
+        };
+        if let Some(i) = from {
+            wire.send(i, &mut buf)?;
+        }
+        wake = wire.deliver()?;
+    }
+    wire.say_counts();
+    Ok(())
+}
+
+/// The line's two ends and settings, as said when it is ready.
+fn say_ready(args: &WireOptions, ends: &[PtyEnd]) {
     let show = |s: EndSpec| {
         let f = s.format.map_or("auto".to_string(), |f| f.to_string());
         match s.baud {
@@ -132,12 +165,12 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
     };
     eprintln!(
         "mbgate wire: {} ({}, {}) <-> {} ({}, {}){}{}{}: ready",
-        paths[0].display(),
+        args.paths[0].display(),
         ends[0].device.display(),
-        show(specs[0]),
-        paths[1].display(),
+        show(args.specs[0]),
+        args.paths[1].display(),
         ends[1].device.display(),
-        show(specs[1]),
+        show(args.specs[1]),
         if args.loss > 0.0 {
             format!(", loss {}", args.loss)
         } else {
@@ -150,98 +183,110 @@ pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), 
         },
         if args.echo { ", echo" } else { "" },
     );
-    let base = Instant::now();
-    let ns = |t: Instant| (t - base).as_nanos() as u64;
-    let setting =
-        |i: usize, ends: &[PtyEnd]| -> std::io::Result<(UartSetting, uart::ErrorHandling)> {
-            let seen = ends[i].seen()?;
-            let baud = specs[i].baud.unwrap_or(seen.baud).max(1);
-            let format = specs[i].format.unwrap_or(seen.hinted);
-            Ok((UartSetting { baud, format }, seen.handling))
-        };
-    let mut tx = [UartTransmitter::default(), UartTransmitter::default()];
-    let mut rx = [UartReceiver::new(), UartReceiver::new()];
-    let mut counts = [Counts::default(), Counts::default()];
-    let mut rng = fastrand::Rng::with_seed(args.seed);
-    let mut timer = PreciseTimer::new()?;
-    let mut wake: Option<u64> = None;
-    let mut buf = vec![0u8; 4096];
-    loop {
-        let deadline = wake.map(|w| base + Duration::from_nanos(w));
-        let from = tokio::select! {
-            _ = shutdown.cancelled() => break,
-            r = ends[0].master.readable() => { r?.clear_ready(); Some(0) }
-            r = ends[1].master.readable() => { r?.clear_ready(); Some(1) }
-            r = timer.until(deadline.unwrap_or(base)), if deadline.is_some() => { r?; None }
-        };
-        if let Some(i) = from {
-            // Everything the program has written, up to the buffer; the next round
-            // reads the rest (readiness is cleared only after a short read).
-            loop {
-                let n = match ends[i].read(&mut buf) {
-                    Ok(n) => n,
-                    Err(e) if e.raw_os_error() == Some(libc::EIO) => 0,
-                    Err(e) => return Err(e.into()),
-                };
-                if n == 0 {
-                    break;
+}
+
+/// The line's state between its two ends: each direction's UARTs and counts.
+struct Wire<'a> {
+    args: &'a WireOptions,
+    specs: [EndSpec; 2],
+    ends: Vec<PtyEnd>,
+    /// Time zero of the UARTs' nanoseconds.
+    base: Instant,
+    tx: [UartTransmitter; 2],
+    rx: [UartReceiver; 2],
+    counts: [Counts; 2],
+    rng: fastrand::Rng,
+}
+
+impl Wire<'_> {
+    /// Each direction's counts, said at the end.
+    fn say_counts(&self) {
+        for (i, c) in self.counts.iter().enumerate() {
+            eprintln!(
+                "mbgate wire: {} -> {}: {} bytes sent, {} lost, {} delivered{}",
+                self.args.paths[i].display(),
+                self.args.paths[1 - i].display(),
+                c.sent,
+                c.lost,
+                c.delivered,
+                if c.overflow > 0 {
+                    format!(", {} not taken (its program did not read)", c.overflow)
+                } else {
+                    String::new()
                 }
-                let now = ns(Instant::now());
-                let (sent_at, _) = setting(i, &ends)?;
-                let starts = tx[i].schedule(now, n, sent_at);
-                for (&b, start) in buf[..n].iter().zip(starts) {
-                    let c = Char::new(start, b, sent_at);
-                    counts[i].sent += 1;
-                    match uart::disturb(c, args.loss, args.noise, &mut rng) {
-                        Some(d) => rx[1 - i].push(d),
-                        None => counts[i].lost += 1,
-                    }
-                    if args.echo {
-                        rx[i].push(c);
-                    }
+            );
+        }
+    }
+
+    fn ns(&self, t: Instant) -> u64 {
+        (t - self.base).as_nanos() as u64
+    }
+
+    /// End `i`'s setting: the spec's, else what its program set.
+    fn setting(&self, i: usize) -> std::io::Result<(UartSetting, uart::ErrorHandling)> {
+        let seen = self.ends[i].seen()?;
+        let baud = self.specs[i].baud.unwrap_or(seen.baud).max(1);
+        let format = self.specs[i].format.unwrap_or(seen.hinted);
+        Ok((UartSetting { baud, format }, seen.handling))
+    }
+
+    /// Puts on the wire everything end `i`'s program has written, up to the buffer;
+    /// the next round reads the rest (readiness is cleared only after a short read).
+    fn send(&mut self, i: usize, buf: &mut [u8]) -> Result<(), WireError> {
+        loop {
+            let n = match self.ends[i].read(buf) {
+                Ok(n) => n,
+                Err(e) if e.raw_os_error() == Some(libc::EIO) => 0,
+                Err(e) => return Err(e.into()),
+            };
+            if n == 0 {
+                break;
+            }
+            let now = self.ns(Instant::now());
+            let (sent_at, _) = self.setting(i)?;
+            let starts = self.tx[i].schedule(now, n, sent_at);
+            for (&b, start) in buf[..n].iter().zip(starts) {
+                let c = Char::new(start, b, sent_at);
+                self.counts[i].sent += 1;
+                match uart::disturb(c, self.args.loss, self.args.noise, &mut self.rng) {
+                    Some(d) => self.rx[1 - i].push(d),
+                    None => self.counts[i].lost += 1,
                 }
-                if n < buf.len() {
-                    break;
+                if self.args.echo {
+                    self.rx[i].push(c);
                 }
             }
+            if n < buf.len() {
+                break;
+            }
         }
-        let now = ns(Instant::now());
-        wake = None;
+        Ok(())
+    }
+
+    /// Hands each end what has arrived by now; when the next character arrives.
+    fn deliver(&mut self) -> Result<Option<u64>, WireError> {
+        let now = self.ns(Instant::now());
+        let mut wake: Option<u64> = None;
         for j in 0..2 {
-            let (heard_at, handling) = setting(j, &ends)?;
-            let (arrivals, next) = rx[j].poll(now, heard_at);
+            let (heard_at, handling) = self.setting(j)?;
+            let (arrivals, next) = self.rx[j].poll(now, heard_at);
             if !arrivals.is_empty() {
                 let mut out = Vec::with_capacity(arrivals.len());
                 for a in arrivals {
                     handling.deliver(a.what, &mut out);
                 }
-                let took = ends[j].write(&out).unwrap_or(0);
+                let took = self.ends[j].write(&out).unwrap_or(0);
                 // Counted against the other end, whose bytes these mostly are.
-                counts[1 - j].delivered += took as u64;
-                counts[1 - j].overflow += (out.len() - took) as u64;
+                self.counts[1 - j].delivered += took as u64;
+                self.counts[1 - j].overflow += (out.len() - took) as u64;
             }
             wake = match (wake, next) {
                 (Some(a), Some(b)) => Some(a.min(b)),
                 (a, b) => a.or(b),
             };
         }
+        Ok(wake)
     }
-    for (i, c) in counts.iter().enumerate() {
-        eprintln!(
-            "mbgate wire: {} -> {}: {} bytes sent, {} lost, {} delivered{}",
-            paths[i].display(),
-            paths[1 - i].display(),
-            c.sent,
-            c.lost,
-            c.delivered,
-            if c.overflow > 0 {
-                format!(", {} not taken (its program did not read)", c.overflow)
-            } else {
-                String::new()
-            }
-        );
-    }
-    Ok(())
 }
 
 #[cfg(test)]

@@ -314,11 +314,49 @@ impl UartReceiver {
         best
     }
 
+    /// The character whose start bit falls at `t0`, sampled at the middle of each bit;
+    /// and the middle of its stop bit, where the search for the next one starts.
+    fn sample(&self, t0: u64, setting: UartSetting) -> (Sampled, u64) {
+        let f = setting.format;
+        let baud = setting.baud;
+        let mid = |t0: u64, i: u32| t0 + (u64::from(2 * i + 1) * NS).div_ceil(2 * u64::from(baud));
+        let mut data = 0u8;
+        let mut ones = 0;
+        for i in 0..u32::from(f.data_bits) {
+            if self.level(mid(t0, 1 + i)) {
+                data |= 1 << i;
+                ones += 1;
+            }
+        }
+        let mut next = 1 + u32::from(f.data_bits);
+        let mut parity_ok = true;
+        let mut parity_bit = false;
+        if f.parity != Parity::None {
+            parity_bit = self.level(mid(t0, next));
+            let total = ones + u32::from(parity_bit);
+            parity_ok = match f.parity {
+                Parity::Even => total % 2 == 0,
+                _ => total % 2 == 1,
+            };
+            next += 1;
+        }
+        let stop = self.level(mid(t0, next));
+        let what = if !stop && data == 0 && !parity_bit {
+            Sampled::Break
+        } else if !stop {
+            Sampled::Framing(data)
+        } else if !parity_ok {
+            Sampled::Parity(data)
+        } else {
+            Sampled::Byte(data)
+        };
+        (what, mid(t0, next))
+    }
+
     /// The characters the receiver has taken by `now`, in order, and when the next
     /// may be due (none while the line stays idle). `now` must not go back.
     pub fn poll(&mut self, now: u64, setting: UartSetting) -> (Vec<Arrival>, Option<u64>) {
         let mut out = Vec::new();
-        let f = setting.format;
         let baud = setting.baud;
         // The middle of bit `i` of a character starting at `t0`.
         let mid = |t0: u64, i: u32| t0 + (u64::from(2 * i + 1) * NS).div_ceil(2 * u64::from(baud));
@@ -335,38 +373,9 @@ impl UartReceiver {
                 self.cursor = mid(t0, 0);
                 continue;
             }
-            let mut data = 0u8;
-            let mut ones = 0;
-            for i in 0..u32::from(f.data_bits) {
-                if self.level(mid(t0, 1 + i)) {
-                    data |= 1 << i;
-                    ones += 1;
-                }
-            }
-            let mut next = 1 + u32::from(f.data_bits);
-            let mut parity_ok = true;
-            let mut parity_bit = false;
-            if f.parity != Parity::None {
-                parity_bit = self.level(mid(t0, next));
-                let total = ones + u32::from(parity_bit);
-                parity_ok = match f.parity {
-                    Parity::Even => total % 2 == 0,
-                    _ => total % 2 == 1,
-                };
-                next += 1;
-            }
-            let stop = self.level(mid(t0, next));
-            let what = if !stop && data == 0 && !parity_bit {
-                Sampled::Break
-            } else if !stop {
-                Sampled::Framing(data)
-            } else if !parity_ok {
-                Sampled::Parity(data)
-            } else {
-                Sampled::Byte(data)
-            };
+            let (what, end) = self.sample(t0, setting);
             out.push(Arrival { at: done, what });
-            self.cursor = mid(t0, next);
+            self.cursor = end;
             let cursor = self.cursor;
             while self.chars.front().is_some_and(|c| c.end() <= cursor) {
                 self.chars.pop_front();

@@ -35,8 +35,9 @@
 //! every rule above holds as if it had been queued.
 //!
 //! The queues, the order and the choice of the next request are here; the classes
-//! (`scheduler/classes.rs`), the joining of reads (`scheduler/joins.rs`) and each
-//! master's share of a full queue (`scheduler/shares.rs`) in files of their own.
+//! (`scheduler/classes.rs`), the joining of reads (`scheduler/joins.rs`), each
+//! master's share of a full queue (`scheduler/shares.rs`) and what the scheduler asks
+//! of a request (`scheduler/queued.rs`) in files of their own.
 
 use super::ids::{IdMap, KeyMap};
 use super::ConnId;
@@ -45,8 +46,11 @@ use waiting::Waiting;
 
 mod classes;
 mod joins;
+mod queued;
 mod shares;
 mod waiting;
+
+pub(super) use queued::{Queued, ReadKey};
 
 /// How many emptied queues the scheduler keeps for reuse: enough for the masters that
 /// take turns on a busy line, few enough to hold no memory worth counting.
@@ -55,59 +59,6 @@ const SPARE_QUEUES: usize = 16;
 /// When a lower class waits, at least one request in this many taken from the queues
 /// serves it (the module notes).
 pub(crate) const LOWER_EVERY: u32 = 8;
-
-/// What makes two reads the same read: the unit and the PDU (function code 01-04,
-/// address, count). Two requests with the same key get the same reply from the device
-/// if nothing acted on it in between.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) struct ReadKey {
-    pub(super) unit: u8,
-    pub(super) pdu: [u8; 5],
-}
-
-impl std::hash::Hash for ReadKey {
-    /// As one word: one step of the hasher, not one for each field and byte.
-    fn hash<H: std::hash::Hasher>(&self, state: &mut H) {
-        let [f, a0, a1, c0, c1] = self.pdu;
-        state.write_u64(u64::from_le_bytes([self.unit, f, a0, a1, c0, c1, 0, 0]));
-    }
-}
-
-/// What the scheduler needs to know of a request.
-pub(super) trait Queued: Sized {
-    /// The master that sent it (the first of the masters it serves).
-    fn conn(&self) -> ConnId;
-    /// The unit it is for.
-    fn unit(&self) -> u8;
-    /// A read (FC 01-04 of one unit) that an identical read may join; `None` for
-    /// anything else.
-    fn read_key(&self) -> Option<ReadKey>;
-    /// May it act on its unit (anything but a read)? It ends the chance for reads
-    /// queued before it to be joined by reads that come after it; to unit 0, for every
-    /// unit (a broadcast on a bus).
-    fn acts(&self) -> bool;
-    /// The masters it serves, once for each of their requests it answers, in the
-    /// order they asked.
-    fn masters(&self) -> impl Iterator<Item = ConnId> + '_;
-    /// `other`, an identical read, is answered with this one.
-    fn join(&mut self, other: Self);
-    /// Takes out the requests of `conn` as a request of their own, leaving the others';
-    /// `None` when it serves no other master (then the whole request is `conn`'s) or
-    /// does not serve `conn`.
-    fn leave(&mut self, conn: ConnId) -> Option<Self>;
-    /// Takes out the newest request of `conn` alone, as [`Queued::leave`] does all of
-    /// them; `None` when it is the only request this one answers.
-    fn leave_one(&mut self, conn: ConnId) -> Option<Self>;
-    /// The turn that last put it on the line (`set_turn`): a resend is checked
-    /// against it.
-    fn turn(&self) -> u64;
-    fn set_turn(&mut self, turn: u64);
-
-    /// How many masters' requests it answers.
-    fn served(&self) -> usize {
-        self.masters().count()
-    }
-}
 
 /// A queued request, and the write epoch of its unit when it was queued: it may be
 /// joined only while no request that acts on its unit has been queued since.

@@ -106,6 +106,21 @@ const HEADERS: [(&str, &[&str]); 5] = [
 ];
 
 /// The file being read: its path (for errors and relative paths) and its text.
+/// `tls_server_config`'s keys as read, before they are checked together.
+struct TlsRead {
+    cert: Option<(Pem, At)>,
+    key: Option<(Pem, At)>,
+    client_ca: Option<(Pem, At)>,
+    client_auth: Option<(ClientAuth, At)>,
+    min_version: Version,
+    max_version: Version,
+    cipher_suites: Option<(Vec<String>, At)>,
+    curves: Option<(Vec<String>, At)>,
+    prefer_server_order: bool,
+    /// Where `min_version` and `max_version` were given.
+    versions: Vec<At>,
+}
+
 struct WebFileReader<'a> {
     path: &'a Path,
 }
@@ -219,6 +234,57 @@ impl WebFileReader<'_> {
         }
     }
 
+    /// `client_auth_type`, in exporter-toolkit's words; those that ask for a
+    /// certificate without verifying it are refused.
+    fn client_auth(&self, at: &At, v: &Node, vat: &At) -> Result<ClientAuth, WebConfigError> {
+        let s = self.string(at, v)?;
+        let auth = match s.as_str() {
+            "" | "NoClientCert" => ClientAuth::None,
+            "VerifyClientCertIfGiven" => ClientAuth::IfGiven,
+            "RequireAndVerifyClientCert" => ClientAuth::Required,
+            "RequestClientCert" | "RequireAnyClientCert" | "RequireClientCert" => {
+                return Err(self.error(
+                    vat,
+                    format!(
+                        "{s} asks for a certificate without verifying it, which proves nothing: \
+                         use RequireAndVerifyClientCert (or VerifyClientCertIfGiven) with client_ca_file"
+                    ),
+                ))
+            }
+            _ => {
+                return Err(self.error(
+                    vat,
+                    format!(
+                        "invalid value {s:?}; expected NoClientCert, VerifyClientCertIfGiven or RequireAndVerifyClientCert"
+                    ),
+                ))
+            }
+        };
+        Ok(auth)
+    }
+
+    /// `min_version` or `max_version`: TLS12 or TLS13.
+    fn version(&self, at: &At, v: &Node, vat: &At) -> Result<Version, WebConfigError> {
+        let s = self.string(at, v)?;
+        let version = match s.as_str() {
+            "TLS12" => Version::Tls12,
+            "TLS13" => Version::Tls13,
+            "TLS10" | "TLS11" => {
+                return Err(self.error(
+                    vat,
+                    format!("{s}: mbgate speaks TLS 1.2 and 1.3 only (rustls has no older version); write TLS12 or TLS13"),
+                ))
+            }
+            _ => {
+                return Err(self.error(
+                    vat,
+                    format!("invalid value {s:?}; expected TLS12 or TLS13"),
+                ))
+            }
+        };
+        Ok(version)
+    }
+
     fn tls(&self, node: &Node) -> Result<Option<TlsFile>, WebConfigError> {
         let mut cert = None;
         let mut key = None;
@@ -235,92 +301,17 @@ impl WebFileReader<'_> {
         for (name, at, v) in &entries {
             self.known(name, at, &TLS_KEYS)?;
             let vat = self.value_at(at, v);
-            let pem = |inline: bool| -> Result<Option<(Pem, At)>, WebConfigError> {
-                let s = self.string(at, v)?;
-                if s.trim().is_empty() {
-                    return Ok(None);
-                }
-                let p = if inline {
-                    Pem::Inline(s)
-                } else {
-                    Pem::File(self.file(&s))
-                };
-                Ok(Some((p, vat.clone())))
-            };
-            let both = |a: &Option<(Pem, At)>| -> Result<(), WebConfigError> {
-                match a {
-                    Some((_, other)) => {
-                        Err(self.error(&vat, format!("give {} or {}, not both", other.key, at.key)))
-                    }
-                    None => Ok(()),
-                }
-            };
             match name.as_str() {
-                "cert_file" | "cert" => {
-                    let p = pem(name == "cert")?;
-                    if p.is_some() {
-                        both(&cert)?;
-                        cert = p;
-                    }
-                }
-                "key_file" | "key" => {
-                    let p = pem(name == "key")?;
-                    if p.is_some() {
-                        both(&key)?;
-                        key = p;
-                    }
-                }
+                "cert_file" | "cert" => self.pem(&mut cert, name == "cert", at, v, &vat)?,
+                "key_file" | "key" => self.pem(&mut key, name == "key", at, v, &vat)?,
                 "client_ca_file" | "client_ca" => {
-                    let p = pem(name == "client_ca")?;
-                    if p.is_some() {
-                        both(&client_ca)?;
-                        client_ca = p;
-                    }
+                    self.pem(&mut client_ca, name == "client_ca", at, v, &vat)?
                 }
                 "client_auth_type" => {
-                    let s = self.string(at, v)?;
-                    let auth = match s.as_str() {
-                        "" | "NoClientCert" => ClientAuth::None,
-                        "VerifyClientCertIfGiven" => ClientAuth::IfGiven,
-                        "RequireAndVerifyClientCert" => ClientAuth::Required,
-                        "RequestClientCert" | "RequireAnyClientCert" | "RequireClientCert" => {
-                            return Err(self.error(
-                                &vat,
-                                format!(
-                                    "{s} asks for a certificate without verifying it, which proves nothing: \
-                                     use RequireAndVerifyClientCert (or VerifyClientCertIfGiven) with client_ca_file"
-                                ),
-                            ))
-                        }
-                        _ => {
-                            return Err(self.error(
-                                &vat,
-                                format!(
-                                    "invalid value {s:?}; expected NoClientCert, VerifyClientCertIfGiven or RequireAndVerifyClientCert"
-                                ),
-                            ))
-                        }
-                    };
-                    client_auth = Some((auth, vat.clone()));
+                    client_auth = Some((self.client_auth(at, v, &vat)?, vat.clone()));
                 }
                 "min_version" | "max_version" => {
-                    let s = self.string(at, v)?;
-                    let version = match s.as_str() {
-                        "TLS12" => Version::Tls12,
-                        "TLS13" => Version::Tls13,
-                        "TLS10" | "TLS11" => {
-                            return Err(self.error(
-                                &vat,
-                                format!("{s}: mbgate speaks TLS 1.2 and 1.3 only (rustls has no older version); write TLS12 or TLS13"),
-                            ))
-                        }
-                        _ => {
-                            return Err(self.error(
-                                &vat,
-                                format!("invalid value {s:?}; expected TLS12 or TLS13"),
-                            ))
-                        }
-                    };
+                    let version = self.version(at, v, &vat)?;
                     if name == "min_version" {
                         min_version = version;
                     } else {
@@ -340,6 +331,61 @@ impl WebFileReader<'_> {
                 _ => unreachable!("a known key"),
             }
         }
+        let read = TlsRead {
+            cert,
+            key,
+            client_ca,
+            client_auth,
+            min_version,
+            max_version,
+            cipher_suites,
+            curves,
+            prefer_server_order,
+            versions,
+        };
+        self.tls_file(read, whole)
+    }
+
+    /// A PEM key (`cert_file` or `cert`, inline when `inline`) into `slot`, unless
+    /// empty; given twice (a file and inline) is an error.
+    fn pem(
+        &self,
+        slot: &mut Option<(Pem, At)>,
+        inline: bool,
+        at: &At,
+        v: &Node,
+        vat: &At,
+    ) -> Result<(), WebConfigError> {
+        let s = self.string(at, v)?;
+        if s.trim().is_empty() {
+            return Ok(());
+        }
+        if let Some((_, other)) = slot {
+            return Err(self.error(vat, format!("give {} or {}, not both", other.key, at.key)));
+        }
+        let p = if inline {
+            Pem::Inline(s)
+        } else {
+            Pem::File(self.file(&s))
+        };
+        *slot = Some((p, vat.clone()));
+        Ok(())
+    }
+
+    /// The TLS keys as read, checked together: none at all is no TLS.
+    fn tls_file(&self, read: TlsRead, whole: At) -> Result<Option<TlsFile>, WebConfigError> {
+        let TlsRead {
+            cert,
+            key,
+            client_ca,
+            client_auth,
+            min_version,
+            max_version,
+            cipher_suites,
+            curves,
+            prefer_server_order,
+            versions,
+        } = read;
         if cert.is_none() && key.is_none() && client_ca.is_none() && client_auth.is_none() {
             // As exporter-toolkit: no TLS at all.
             return Ok(None);

@@ -97,77 +97,140 @@ fn narrowed(file: &Path, t: &TlsFile) -> Result<(CryptoProvider, bool), WebConfi
     let mut p = Arc::unwrap_or_clone(provider());
     let mut tls12 = true;
     if let Some((names, at)) = &t.cipher_suites {
-        let all = p.cipher_suites.clone();
-        let twelve: Vec<&str> = all
-            .iter()
-            .filter(|s| s.tls13().is_none())
-            .filter_map(|s| s.suite().as_str())
-            .collect();
-        let mut chosen = Vec::new();
-        for name in names {
-            // Go's name for the ChaCha20 suites leaves the hash off.
-            let full = match name.as_str() {
-                "TLS_ECDHE_RSA_WITH_CHACHA20_POLY1305"
-                | "TLS_ECDHE_ECDSA_WITH_CHACHA20_POLY1305" => {
-                    format!("{name}_SHA256")
-                }
-                _ => name.clone(),
-            };
-            // TLS 1.3's suites are not chosen by the file (as in Go): named, they are
-            // taken as they are.
-            if [
-                "TLS_AES_128_GCM_SHA256",
-                "TLS_AES_256_GCM_SHA384",
-                "TLS_CHACHA20_POLY1305_SHA256",
-            ]
-            .contains(&name.as_str())
-            {
-                continue;
-            }
-            match all.iter().find(|s| s.suite().as_str() == Some(full.as_str())) {
-                Some(s) => chosen.push(*s),
-                None => {
-                    return Err(at_error(
-                        file,
-                        at,
-                        format!(
-                            "{name}: not a TLS 1.2 suite mbgate offers (rustls offers only AEAD suites with forward secrecy); expected some of {}",
-                            twelve.join(", ")
-                        ),
-                    ))
-                }
-            }
-        }
-        tls12 = !chosen.is_empty();
-        chosen.extend(all.iter().filter(|s| s.tls13().is_some()).copied());
-        p.cipher_suites = chosen;
+        p.cipher_suites = suites(file, names, at, &p.cipher_suites)?;
+        tls12 = p.cipher_suites.iter().any(|s| s.tls13().is_none());
     }
     if let Some((names, at)) = &t.curves {
-        let all = p.kx_groups.clone();
-        let mut chosen = Vec::new();
-        for name in names {
-            let ours = match name.as_str() {
-                "X25519" => "X25519",
-                "CurveP256" => "secp256r1",
-                "CurveP384" => "secp384r1",
-                _ => "",
-            };
-            match all.iter().find(|g| g.name().as_str() == Some(ours)) {
-                Some(g) => chosen.push(*g),
-                None => {
-                    return Err(at_error(
-                        file,
-                        at,
-                        format!("{name}: not a curve mbgate offers; expected some of X25519, CurveP256, CurveP384"),
-                    ))
-                }
-            }
-        }
+        let chosen = curves(file, names, at, &p.kx_groups)?;
         if !chosen.is_empty() {
             p.kx_groups = chosen;
         }
     }
     Ok((p, tls12))
+}
+
+/// The TLS 1.2 suites `names` (at `at`) of the provider's `all`, in their order, then
+/// every TLS 1.3 suite (which the file does not choose).
+fn suites(
+    file: &Path,
+    names: &[String],
+    at: &At,
+    all: &[rustls::SupportedCipherSuite],
+) -> Result<Vec<rustls::SupportedCipherSuite>, WebConfigError> {
+    let twelve: Vec<&str> = all
+        .iter()
+        .filter(|s| s.tls13().is_none())
+        .filter_map(|s| s.suite().as_str())
+        .collect();
+    let mut chosen = Vec::new();
+    for name in names {
+        // Go's name for the ChaCha20 suites leaves the hash off.
+        let full = match name.as_str() {
+            "TLS_ECDHE_RSA_WITH_CHACHA20_POLY1305" | "TLS_ECDHE_ECDSA_WITH_CHACHA20_POLY1305" => {
+                format!("{name}_SHA256")
+            }
+            _ => name.clone(),
+        };
+        // TLS 1.3's suites are not chosen by the file (as in Go): named, they are
+        // taken as they are.
+        if [
+            "TLS_AES_128_GCM_SHA256",
+            "TLS_AES_256_GCM_SHA384",
+            "TLS_CHACHA20_POLY1305_SHA256",
+        ]
+        .contains(&name.as_str())
+        {
+            continue;
+        }
+        match all.iter().find(|s| s.suite().as_str() == Some(full.as_str())) {
+            Some(s) => chosen.push(*s),
+            None => {
+                return Err(at_error(
+                    file,
+                    at,
+                    format!(
+                        "{name}: not a TLS 1.2 suite mbgate offers (rustls offers only AEAD suites with forward secrecy); expected some of {}",
+                        twelve.join(", ")
+                    ),
+                ))
+            }
+        }
+    }
+    chosen.extend(all.iter().filter(|s| s.tls13().is_some()).copied());
+    Ok(chosen)
+}
+
+/// The key exchange groups `names` (at `at`, by Go's names) of the provider's `all`.
+fn curves(
+    file: &Path,
+    names: &[String],
+    at: &At,
+    all: &[&'static dyn rustls::crypto::SupportedKxGroup],
+) -> Result<Vec<&'static dyn rustls::crypto::SupportedKxGroup>, WebConfigError> {
+    let mut chosen = Vec::new();
+    for name in names {
+        let ours = match name.as_str() {
+            "X25519" => "X25519",
+            "CurveP256" => "secp256r1",
+            "CurveP384" => "secp384r1",
+            _ => "",
+        };
+        match all.iter().find(|g| g.name().as_str() == Some(ours)) {
+            Some(g) => chosen.push(*g),
+            None => {
+                return Err(at_error(
+                    file,
+                    at,
+                    format!("{name}: not a curve mbgate offers; expected some of X25519, CurveP256, CurveP384"),
+                ))
+            }
+        }
+    }
+    Ok(chosen)
+}
+
+/// How `t` treats client certificates: `builder` with its verifier (none without a
+/// client CA), and how the log says it.
+fn client_auth(
+    file: &Path,
+    t: &TlsFile,
+    builder: rustls::ConfigBuilder<ServerConfig, rustls::WantsVerifier>,
+    provider: &Arc<CryptoProvider>,
+) -> Result<
+    (
+        rustls::ConfigBuilder<ServerConfig, rustls::server::WantsServerCert>,
+        String,
+    ),
+    WebConfigError,
+> {
+    Ok(match (&t.client_ca, t.client_auth.0) {
+        (Some(pem), auth @ (ClientAuth::IfGiven | ClientAuth::Required)) => {
+            let roots = ca(file, pem)?;
+            let verifier = WebPkiClientVerifier::builder_with_provider(roots, provider.clone());
+            let verifier = if auth == ClientAuth::IfGiven {
+                verifier.allow_unauthenticated()
+            } else {
+                verifier
+            };
+            let verifier = verifier.build().map_err(|e| {
+                at_error(file, &pem.1, format!("cannot verify clients with it: {e}"))
+            })?;
+            let how = if auth == ClientAuth::Required {
+                "required"
+            } else {
+                "verified when given"
+            };
+            let ca = match &pem.0 {
+                Pem::File(p) => p.display().to_string(),
+                Pem::Inline(_) => "client_ca".into(),
+            };
+            (
+                builder.with_client_cert_verifier(verifier),
+                format!(", client certificates {how} (CA {ca})"),
+            )
+        }
+        _ => (builder.with_no_client_auth(), String::new()),
+    })
 }
 
 /// The server configuration of `t` (from the web configuration file `file`).
@@ -201,34 +264,7 @@ pub(crate) fn load(t: &TlsFile, file: &Path) -> Result<WebTls, WebConfigError> {
     let builder = ServerConfig::builder_with_provider(provider.clone())
         .with_protocol_versions(&versions)
         .map_err(|e| at_error(file, whole, format!("cannot serve TLS so: {e}")))?;
-    let (builder, clients) = match (&t.client_ca, t.client_auth.0) {
-        (Some(pem), auth @ (ClientAuth::IfGiven | ClientAuth::Required)) => {
-            let roots = ca(file, pem)?;
-            let verifier = WebPkiClientVerifier::builder_with_provider(roots, provider.clone());
-            let verifier = if auth == ClientAuth::IfGiven {
-                verifier.allow_unauthenticated()
-            } else {
-                verifier
-            };
-            let verifier = verifier.build().map_err(|e| {
-                at_error(file, &pem.1, format!("cannot verify clients with it: {e}"))
-            })?;
-            let how = if auth == ClientAuth::Required {
-                "required"
-            } else {
-                "verified when given"
-            };
-            let ca = match &pem.0 {
-                Pem::File(p) => p.display().to_string(),
-                Pem::Inline(_) => "client_ca".into(),
-            };
-            (
-                builder.with_client_cert_verifier(verifier),
-                format!(", client certificates {how} (CA {ca})"),
-            )
-        }
-        _ => (builder.with_no_client_auth(), String::new()),
-    };
+    let (builder, clients) = client_auth(file, t, builder, &provider)?;
     let mut config =
         builder.with_cert_resolver(Arc::new(SingleCertAndKey::from(Arc::new(certified))));
     config.alpn_protocols = vec![b"http/1.1".to_vec()];

@@ -405,17 +405,7 @@ async fn serial_exchange(
         what,
         source,
     };
-    // Silence after which a partial frame is discarded: on MBAP the gateway's default
-    // `relay.frame_gap_ms` (docs/design.md §2), on RTU 3.5 character times.
-    let silence = match decoder.codec() {
-        None => Duration::from_millis(RelayConfig::default().frame_gap_ms),
-        Some(_) => {
-            let port = crate::line::port::kind::PortInfo::plain(
-                crate::line::port::serial::of_path(&cfg.path),
-            );
-            crate::line::port::kind::silence(cfg, &port)
-        }
-    };
+    let silence = silence(cfg, decoder);
     let wait = async {
         if decoder.codec().is_some() {
             // Whatever came before the request answers nothing.
@@ -428,17 +418,8 @@ async fn serial_exchange(
         let mut last_byte = Instant::now();
         let mut quiet = false;
         loop {
-            while let Some(framed) = decoder.next_frame(&judge, quiet) {
-                match framed {
-                    // MBAP: the judge took only the answer; RTU/ASCII: from the unit.
-                    Framed::Frame(frame) if frame.unit() == request.unit() => {
-                        return Ok(frame.with_tid(request.tid()));
-                    }
-                    Framed::Frame(frame) => {
-                        skipped += decoder.encoded_len(frame.pdu().len()) as u64;
-                    }
-                    Framed::Corrupt(_) => {}
-                }
+            if let Some(reply) = answer_in(decoder, &judge, request, quiet, &mut skipped) {
+                return Ok(reply);
             }
             let quiet_at = (decoder.buffered() > 0 && decoder.silence_ends_frames())
                 .then(|| last_byte + silence);
@@ -456,6 +437,44 @@ async fn serial_exchange(
     let result = timeout_at(deadline, wait).await;
     let dropped_bytes = decoder.dropped() - dropped_before + skipped;
     received(result, target, ms, start, Vec::new(), dropped_bytes)
+}
+
+/// Silence after which a partial frame is discarded: on MBAP the gateway's default
+/// `relay.frame_gap_ms` (docs/design.md §2), on RTU 3.5 character times.
+fn silence(cfg: &SerialConfig, decoder: &Framer) -> Duration {
+    match decoder.codec() {
+        None => Duration::from_millis(RelayConfig::default().frame_gap_ms),
+        Some(_) => {
+            let port = crate::line::port::kind::PortInfo::plain(
+                crate::line::port::serial::of_path(&cfg.path),
+            );
+            crate::line::port::kind::silence(cfg, &port)
+        }
+    }
+}
+
+/// The answer to `request` among the frames `decoder` holds (`quiet`: the line has
+/// paused); frames from another unit counted in `skipped`.
+fn answer_in(
+    decoder: &mut Framer,
+    judge: &ReplyTo,
+    request: &Adu,
+    quiet: bool,
+    skipped: &mut u64,
+) -> Option<Adu> {
+    while let Some(framed) = decoder.next_frame(judge, quiet) {
+        match framed {
+            // MBAP: the judge took only the answer; RTU/ASCII: from the unit.
+            Framed::Frame(frame) if frame.unit() == request.unit() => {
+                return Some(frame.with_tid(request.tid()));
+            }
+            Framed::Frame(frame) => {
+                *skipped += decoder.encoded_len(frame.pdu().len()) as u64;
+            }
+            Framed::Corrupt(_) => {}
+        }
+    }
+    None
 }
 
 /// Opens the serial port if it is not open.

@@ -43,16 +43,8 @@ pub(super) async fn exchange(
         let mut chunk = [0u8; 512];
         let mut quiet = false;
         loop {
-            while let Some(framed) = decoder.next_frame(&ReplyFor(request.pdu()), quiet) {
-                match framed {
-                    Framed::Frame(reply) if reply.unit() == request.unit() => {
-                        return Ok(reply.with_tid(request.tid()));
-                    }
-                    Framed::Frame(other) => {
-                        dropped_bytes += decoder.encoded_len(other.pdu().len()) as u64;
-                    }
-                    Framed::Corrupt(n) => dropped_bytes += n as u64,
-                }
+            if let Some(reply) = reply_in(decoder, request, quiet, &mut dropped_bytes) {
+                return Ok(reply);
             }
             let pause = decoder.buffered() > 0 && decoder.silence_ends_frames();
             let read = if pause {
@@ -77,4 +69,26 @@ pub(super) async fn exchange(
     };
     let result = timeout_at(deadline, wait).await;
     received(result, target, ms, start, Vec::new(), dropped_bytes)
+}
+
+/// The reply to `request` among the frames `decoder` holds (`quiet`: the line has
+/// paused), the others counted in `dropped_bytes`.
+fn reply_in(
+    decoder: &mut Framer,
+    request: &Adu,
+    quiet: bool,
+    dropped_bytes: &mut u64,
+) -> Option<Adu> {
+    while let Some(framed) = decoder.next_frame(&ReplyFor(request.pdu()), quiet) {
+        match framed {
+            Framed::Frame(reply) if reply.unit() == request.unit() => {
+                return Some(reply.with_tid(request.tid()));
+            }
+            Framed::Frame(other) => {
+                *dropped_bytes += decoder.encoded_len(other.pdu().len()) as u64;
+            }
+            Framed::Corrupt(n) => *dropped_bytes += n as u64,
+        }
+    }
+    None
 }

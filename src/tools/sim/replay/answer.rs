@@ -37,6 +37,9 @@ fn word(pdu: &[u8], at: usize) -> u16 {
 }
 
 impl Model {
+    /// Long because it is the replay's rules in their order (numbered below), each an
+    /// early return on the same unit's model: apart, the order would be hidden.
+    ///
     /// The reply PDU `unit` gives to `pdu` (`None`: silence). `moment`: where in the
     /// capture's time a `--timeline` replay is (µs since the epoch), `None` for the
     /// latest values. A write changes the model unless refused.

@@ -124,19 +124,7 @@ impl Learner {
         let line = self.first_line + p.interface;
         let w = &mut self.waiting[p.interface];
         if comment.starts_with("timeout: no reply from unit ") {
-            // The oldest request still waiting gets the timeout (one at a time on a
-            // serial bus; an MBAP line's in order).
-            let (at_us, framing, _, unit, request) = w.pop_front()?;
-            return Some(Observation {
-                at_us,
-                unit,
-                request,
-                seen: RecordedReply::Silent,
-                turnaround_us: None,
-                wire_us: 0,
-                line,
-                framing,
-            });
+            return timed_out(w, line);
         }
         let ascii = comment.starts_with("ASCII on the wire");
         let (framing, tid, unit, pdu) = frame(&e.dissector, e.payload, ascii)?;
@@ -148,18 +136,7 @@ impl Learner {
             _ => e.ports.is_some_and(|(_, dst)| dst == 502),
         };
         if outbound {
-            if unit == 0 && framing != Framing::Mbap {
-                // A broadcast: no device answers it.
-                return None;
-            }
-            if framing != Framing::Mbap {
-                // One request at a time on a bus: a new one ends the wait of any before.
-                w.clear();
-            }
-            if w.len() == MAX_WAITING {
-                w.pop_front();
-            }
-            w.push_back((p.at_us, framing, tid, unit, pdu));
+            sent(w, (p.at_us, framing, tid, unit, pdu));
             return None;
         }
         let fc = *pdu.first()?;
@@ -179,6 +156,40 @@ impl Learner {
             framing,
         })
     }
+}
+
+/// A timeout on `line`: the oldest request still waiting gets it (one at a time on a
+/// serial bus; an MBAP line's in order).
+fn timed_out(w: &mut VecDeque<Waiting>, line: usize) -> Option<Observation> {
+    let (at_us, framing, _, unit, request) = w.pop_front()?;
+    Some(Observation {
+        at_us,
+        unit,
+        request,
+        seen: RecordedReply::Silent,
+        turnaround_us: None,
+        wire_us: 0,
+        line,
+        framing,
+    })
+}
+
+/// A request on its way to the device, waiting for its reply (a broadcast on a bus
+/// waits for none; on a bus a new request ends the wait of any before).
+fn sent(w: &mut VecDeque<Waiting>, request: Waiting) {
+    let (_, framing, _, unit, _) = &request;
+    if *unit == 0 && *framing != Framing::Mbap {
+        // A broadcast: no device answers it.
+        return;
+    }
+    if *framing != Framing::Mbap {
+        // One request at a time on a bus: a new one ends the wait of any before.
+        w.clear();
+    }
+    if w.len() == MAX_WAITING {
+        w.pop_front();
+    }
+    w.push_back(request);
 }
 
 /// Every request of every line of `capture` and what came of it, in the order the

@@ -67,26 +67,10 @@ fn file(
     let mut block = Vec::new();
     let (mut packets, mut requests) = (0usize, 0usize);
     let damage = loop {
-        block.clear();
-        // The block's head, then the rest of it as long as the file has it: a length
-        // a damaged file claims is never allocated before its bytes are there.
-        (&mut rd)
-            .take(BLOCK_HEAD as u64)
-            .read_to_end(&mut block)
-            .map_err(io)?;
-        if block.is_empty() {
-            break None;
-        }
-        let total = match blocks.length(&block) {
-            Ok(total) => total,
+        match next_block(&mut rd, &mut blocks, &mut block).map_err(io)? {
+            Ok(true) => {}
+            Ok(false) => break None,
             Err(d) => break Some(d),
-        };
-        (&mut rd)
-            .take((total - block.len()) as u64)
-            .read_to_end(&mut block)
-            .map_err(io)?;
-        if block.len() < total {
-            break Some(blocks.damage(Unreadable::Truncated));
         }
         match blocks.block(&block) {
             Ok(None) => {}
@@ -116,6 +100,33 @@ fn file(
         )
     });
     Ok((requests, warning))
+}
+
+/// The next block of `rd` into `block`: whether there was one (none at the file's
+/// end), or the damage that ends the reading.
+fn next_block(
+    rd: &mut impl std::io::Read,
+    blocks: &mut Blocks,
+    block: &mut Vec<u8>,
+) -> std::io::Result<Result<bool, pcapng_read::Damage>> {
+    block.clear();
+    // The block's head, then the rest of it as long as the file has it: a length
+    // a damaged file claims is never allocated before its bytes are there.
+    rd.by_ref().take(BLOCK_HEAD as u64).read_to_end(block)?;
+    if block.is_empty() {
+        return Ok(Ok(false));
+    }
+    let total = match blocks.length(block) {
+        Ok(total) => total,
+        Err(d) => return Ok(Err(d)),
+    };
+    rd.by_ref()
+        .take((total - block.len()) as u64)
+        .read_to_end(block)?;
+    if block.len() < total {
+        return Ok(Err(blocks.damage(Unreadable::Truncated)));
+    }
+    Ok(Ok(true))
 }
 
 /// Reads `paths` into a replay with `choices`; `seed` seeds the delays' draw.

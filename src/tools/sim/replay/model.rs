@@ -194,6 +194,34 @@ impl Unit {
         Some(values)
     }
 
+    /// The values a write `request` at `at` set, recorded.
+    fn learn_write(&mut self, at: u64, request: &[u8], latest_only: bool) {
+        if let Some((table, values)) = Unit::written_by(request) {
+            for (a, v) in values {
+                self.tables[table]
+                    .entry(a)
+                    .or_default()
+                    .record(at, v, latest_only);
+            }
+        }
+    }
+
+    /// A reply's time, `t` after its request `o`, kept with the others of that request.
+    fn reply_time(&mut self, o: &Observation, t: u64) {
+        let index = us32(self.replies.len() as u64);
+        self.replies.push(ReplyTimes {
+            turnaround_us: us32(t),
+            wire_us: us32(o.wire_us),
+            line: us32(o.line as u64),
+        });
+        match self.own_by_request.get_mut(&o.request) {
+            Some(v) => v.push(index),
+            None => {
+                self.own_by_request.insert(o.request.clone(), vec![index]);
+            }
+        }
+    }
+
     /// What a normal reply to a read says about the table it read.
     fn learn_read(&mut self, at: u64, request: &[u8], reply: &[u8], latest_only: bool) {
         let (Some(addr), Some(n)) = (word(request, 1), word(request, 3)) else {
@@ -287,17 +315,7 @@ impl Model {
             RecordedReply::Reply(pdu) => {
                 match function {
                     1..=4 => unit.learn_read(o.at_us, &o.request, pdu, latest_only),
-                    _ => {
-                        if let Some((table, values)) = Unit::written_by(&o.request) {
-                            for (a, v) in values {
-                                unit.tables[table].entry(a).or_default().record(
-                                    o.at_us,
-                                    v,
-                                    latest_only,
-                                );
-                            }
-                        }
-                    }
+                    _ => unit.learn_write(o.at_us, &o.request, latest_only),
                 }
                 ReplayOutcome::Reply(pdu.clone())
             }
@@ -309,18 +327,7 @@ impl Model {
                 wire_us: o.wire_us,
             };
             self.wires.saw(recorded);
-            let index = us32(unit.replies.len() as u64);
-            unit.replies.push(ReplyTimes {
-                turnaround_us: us32(t),
-                wire_us: us32(o.wire_us),
-                line: us32(o.line as u64),
-            });
-            match unit.own_by_request.get_mut(&o.request) {
-                Some(v) => v.push(index),
-                None => {
-                    unit.own_by_request.insert(o.request.clone(), vec![index]);
-                }
-            }
+            unit.reply_time(o, t);
         }
         let answered = unit.functions.entry(function).or_insert(0);
         let silent = outcome == ReplayOutcome::Silent;

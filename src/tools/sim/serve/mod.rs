@@ -147,38 +147,10 @@ pub async fn run(
         SimPort::Listen(_) => false,
     };
     let baud = paced.then(|| pty_pace(settings.baud)).flatten();
-    let mut device = settings.device;
-    super::replay::announce(&mut device);
-    let mut sim = Sim {
-        device,
-        delay: settings.delay,
-        medium: settings.medium,
-        behind: Lateness::default(),
-        pipeline: settings.pipeline,
-        confirm_requests: settings.confirm_requests,
-        frame_gap: settings.frame_gap,
-        rx_faults: settings.rx_faults,
-        tx_faults: settings.tx_faults,
-        rx_pace: Pacer::new(baud, settings.char_bits),
-        tx_pace: Pacer::new(baud, settings.char_bits),
-        chunker: settings.chunker,
-        decoder: settings.framing.framer(),
-        out: VecDeque::new(),
-        busy_until: None,
-        last_rx: Instant::now(),
-        serving: false,
-    };
-    if sim.rx_faults.is_active() || sim.tx_faults.is_active() {
-        info!(
-            "line faults: drop {}, noise {}, to the device {}, from the device {}; --seed {} repeats them",
-            sim.rx_faults.drop.max(sim.tx_faults.drop),
-            sim.rx_faults.noise.max(sim.tx_faults.noise),
-            if sim.rx_faults.is_active() { "yes" } else { "no" },
-            if sim.tx_faults.is_active() { "yes" } else { "no" },
-            settings.seed
-        );
-    }
+    let (seed, given_baud, bits) = (settings.seed, settings.baud, settings.char_bits);
     let toggle = settings.toggle;
+    let mut sim = Sim::new(settings, baud);
+    sim.say_faults(seed);
     let mut ticks = toggle.map(|period| {
         let mut i = tokio::time::interval_at(Instant::now() + period, period);
         i.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
@@ -198,54 +170,106 @@ pub async fn run(
             }
         }
         SimPort::Path(cfg) => {
-            let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
-            let mut reported = false;
-            loop {
-                match serial::open(&cfg) {
-                    Ok(mut stream) => {
-                        backoff.reset();
-                        reported = false;
-                        // A pty made after the simulator started (socat in the
-                        // background) is only known to be one now.
-                        let pty = is_pty(Path::new(&cfg.path));
-                        if settings.baud.is_some() && !pty {
-                            debug!("a real serial port: the UART paces the bytes");
-                        }
-                        let baud = pty.then(|| pty_pace(settings.baud)).flatten();
-                        let bits = settings.char_bits;
-                        (sim.rx_pace, sim.tx_pace) =
-                            (Pacer::new(baud, bits), Pacer::new(baud, bits));
-                        info!(serial = %cfg.path, "simulating {} on {}", sim.describe(), cfg.path);
-                        match sim
-                            .serve(&mut stream, &mut commands, ticks.as_mut(), &shutdown)
-                            .await
-                        {
-                            SessionEnd::Shutdown => return Ok(()),
-                            SessionEnd::Lost(e) => {
-                                warn!(serial = %cfg.path, "port lost ({e}); reopening");
-                            }
-                        }
-                    }
-                    Err(e) if !reported => {
-                        warn!(serial = %cfg.path, "cannot open the port ({e}); retrying");
-                        reported = true;
-                    }
-                    Err(e) => debug!(serial = %cfg.path, "cannot open the port: {e}"),
-                }
-                let until = Instant::now() + backoff.next_delay();
-                loop {
-                    tokio::select! {
-                        _ = shutdown.cancelled() => return Ok(()),
-                        _ = sleep_until(until) => break,
-                        Some(req) = commands.recv() => sim.command(req),
-                    }
-                }
-            }
+            let pace = (given_baud, bits);
+            sim.serve_path(&cfg, pace, &mut commands, ticks.as_mut(), &shutdown)
+                .await
         }
     }
 }
 
 impl Sim {
+    /// The simulator of `settings`, its bytes paced at `baud` (none: not paced).
+    fn new(settings: Settings, baud: Option<u32>) -> Sim {
+        let mut device = settings.device;
+        super::replay::announce(&mut device);
+        Sim {
+            device,
+            delay: settings.delay,
+            medium: settings.medium,
+            behind: Lateness::default(),
+            pipeline: settings.pipeline,
+            confirm_requests: settings.confirm_requests,
+            frame_gap: settings.frame_gap,
+            rx_faults: settings.rx_faults,
+            tx_faults: settings.tx_faults,
+            rx_pace: Pacer::new(baud, settings.char_bits),
+            tx_pace: Pacer::new(baud, settings.char_bits),
+            chunker: settings.chunker,
+            decoder: settings.framing.framer(),
+            out: VecDeque::new(),
+            busy_until: None,
+            last_rx: Instant::now(),
+            serving: false,
+        }
+    }
+
+    /// The line faults, said once when there are any.
+    fn say_faults(&self, seed: u64) {
+        if self.rx_faults.is_active() || self.tx_faults.is_active() {
+            info!(
+                "line faults: drop {}, noise {}, to the device {}, from the device {}; --seed {} repeats them",
+                self.rx_faults.drop.max(self.tx_faults.drop),
+                self.rx_faults.noise.max(self.tx_faults.noise),
+                if self.rx_faults.is_active() { "yes" } else { "no" },
+                if self.tx_faults.is_active() { "yes" } else { "no" },
+                seed
+            );
+        }
+    }
+
+    /// Serves the port at `cfg`, reopened with backoff when it goes away, until
+    /// shutdown; a pty paced at the baud rate given (or none), `bits` a character.
+    async fn serve_path(
+        &mut self,
+        cfg: &SerialConfig,
+        (given_baud, bits): (Option<u32>, u32),
+        commands: &mut mpsc::Receiver<ConsoleRequest>,
+        mut ticks: Option<&mut tokio::time::Interval>,
+        shutdown: &CancellationToken,
+    ) -> Result<(), SimError> {
+        let mut backoff = Backoff::new(Duration::from_millis(100), Duration::from_secs(2));
+        let mut reported = false;
+        loop {
+            match serial::open(cfg) {
+                Ok(mut stream) => {
+                    backoff.reset();
+                    reported = false;
+                    // A pty made after the simulator started (socat in the
+                    // background) is only known to be one now.
+                    let pty = is_pty(Path::new(&cfg.path));
+                    if given_baud.is_some() && !pty {
+                        debug!("a real serial port: the UART paces the bytes");
+                    }
+                    let baud = pty.then(|| pty_pace(given_baud)).flatten();
+                    (self.rx_pace, self.tx_pace) = (Pacer::new(baud, bits), Pacer::new(baud, bits));
+                    info!(serial = %cfg.path, "simulating {} on {}", self.describe(), cfg.path);
+                    match self
+                        .serve(&mut stream, commands, ticks.as_deref_mut(), shutdown)
+                        .await
+                    {
+                        SessionEnd::Shutdown => return Ok(()),
+                        SessionEnd::Lost(e) => {
+                            warn!(serial = %cfg.path, "port lost ({e}); reopening");
+                        }
+                    }
+                }
+                Err(e) if !reported => {
+                    warn!(serial = %cfg.path, "cannot open the port ({e}); retrying");
+                    reported = true;
+                }
+                Err(e) => debug!(serial = %cfg.path, "cannot open the port: {e}"),
+            }
+            let until = Instant::now() + backoff.next_delay();
+            loop {
+                tokio::select! {
+                    _ = shutdown.cancelled() => return Ok(()),
+                    _ = sleep_until(until) => break,
+                    Some(req) = commands.recv() => self.command(req),
+                }
+            }
+        }
+    }
+
     fn describe(&self) -> String {
         use super::Profile;
         let profile = match &self.device.profile {
