@@ -1,4 +1,4 @@
-//! Issue 4: lossy line and hostile input. Masters poll through the gateway while the
+//! A lossy line and hostile input (docs/reliability.md). Masters poll through the gateway while the
 //! line loses bytes, gets noise, or delivers replies in pieces; every reply a master
 //! gets is checked against what the device holds. The guarantee: under loss, no master
 //! ever receives a wrong reply, and every request gets its reply or 0x0B in bounded
