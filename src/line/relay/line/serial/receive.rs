@@ -335,16 +335,8 @@ impl Serial {
                 seen.push(Seen::Heard(unit));
             } else {
                 debug!(unit, "a frame that answers no request dropped");
-                let bytes = self.decoder.encode(&frame);
-                stats.add(&stats.dropped_stale, bytes.len() as u64);
-                stats.add(&stats.dropped_bytes, bytes.len() as u64);
-                self.tape.dropped_aside(|| Dropped {
-                    at: Some(at),
-                    reason: Reason::Stale,
-                    bytes,
-                    whole: true,
-                    detail: "a frame that answers no request",
-                });
+                let detail = "a frame that answers no request";
+                self.drop_whole(&frame, at, Reason::Stale, detail, stats);
             }
         }
         if quiet && self.decoder.buffered() > 0 {
@@ -383,16 +375,9 @@ impl Serial {
             self.refuted(&c, stats);
         }
         if let Some(frame) = frame {
-            let bytes = self.decoder.encode(frame);
-            stats.add(&stats.dropped_stale, bytes.len() as u64);
-            stats.add(&stats.dropped_bytes, bytes.len() as u64);
-            self.tape.dropped_aside(|| Dropped {
-                at: Some(self.last_rx.min(now)),
-                reason: Reason::Stale,
-                bytes,
-                whole: true,
-                detail: "a frame within the quiet after a reply: one frame too many",
-            });
+            let detail = "a frame within the quiet after a reply: one frame too many";
+            let at = self.last_rx.min(now);
+            self.drop_whole(frame, at, Reason::Stale, detail, stats);
         }
         debug!("a reply followed by another frame within its quiet: both dropped");
         Seen::Corrupt(tid)
@@ -420,15 +405,33 @@ impl Serial {
             unit = frame.unit(),
             "a frame sooner than its unit can answer (half its fastest reply) dropped"
         );
+        let detail = "sooner after the request than its unit can answer (half its fastest reply)";
+        self.drop_whole(frame, at, Reason::TooEarly, detail, stats);
+    }
+
+    /// A whole frame dropped, its last byte read at `at`: counted (stale or too early,
+    /// and in the bytes dropped) and shown to a capture with why.
+    fn drop_whole(
+        &mut self,
+        frame: &Adu,
+        at: Instant,
+        reason: Reason,
+        detail: &'static str,
+        stats: &Stats,
+    ) {
         let bytes = self.decoder.encode(frame);
-        stats.add(&stats.dropped_too_early, bytes.len() as u64);
+        let counter = match reason {
+            Reason::TooEarly => &stats.dropped_too_early,
+            _ => &stats.dropped_stale,
+        };
+        stats.add(counter, bytes.len() as u64);
         stats.add(&stats.dropped_bytes, bytes.len() as u64);
         self.tape.dropped_aside(|| Dropped {
             at: Some(at),
-            reason: Reason::TooEarly,
+            reason,
             bytes,
             whole: true,
-            detail: "sooner after the request than its unit can answer (half its fastest reply)",
+            detail,
         });
     }
 
@@ -439,17 +442,10 @@ impl Serial {
             unit = frame.unit(),
             "a frame the device held for a request that timed out, dropped"
         );
-        let bytes = self.decoder.encode(frame);
         stats.add(&stats.late_replies, 1);
-        stats.add(&stats.dropped_stale, bytes.len() as u64);
-        stats.add(&stats.dropped_bytes, bytes.len() as u64);
-        self.tape.dropped_aside(|| Dropped {
-            at: Some(self.last_rx.min(now)),
-            reason: Reason::Stale,
-            bytes,
-            whole: true,
-            detail: "an answer the device held to a request that timed out (its backlog)",
-        });
+        let detail = "an answer the device held to a request that timed out (its backlog)";
+        let at = self.last_rx.min(now);
+        self.drop_whole(frame, at, Reason::Stale, detail, stats);
     }
 
     /// A reply whose check failed (or cut short) for the request `tid`: with a reply
