@@ -45,9 +45,10 @@ struct Account {
     last: Option<Instant>,
     /// Its whole response timeout: the fixed one, or a learned one's ceiling.
     whole: Duration,
-    /// Its fastest reply taken (from its request's last byte leaving to the reply's
-    /// last byte read), and how many were taken.
+    /// Its fastest and slowest replies taken (from its request's last byte leaving to
+    /// the reply's first byte), and how many were taken.
     fastest: Duration,
+    slowest: Duration,
     replies: u32,
 }
 
@@ -59,6 +60,7 @@ impl Default for Account {
             last: None,
             whole: Duration::ZERO,
             fastest: Duration::MAX,
+            slowest: Duration::ZERO,
             replies: 0,
         }
     }
@@ -160,18 +162,30 @@ impl Owed {
             self.owing -= 1;
         }
         u.fastest = u.fastest.min(took);
+        u.slowest = u.slowest.max(took);
         u.replies = u.replies.saturating_add(1);
         u.last = Some(u.last.map_or(at, |last| last.max(at)));
     }
 
-    /// Could `unit` have answered `took` after its request left? Not sooner than half
-    /// its fastest reply taken, once it has had [`SETTLE`] taken: such a frame was on
-    /// its way before the unit could have read the request (the tail of the last
-    /// transaction), and answers nothing now.
-    pub(super) fn could_answer(&self, unit: u8, took: Duration) -> bool {
-        self.units
-            .get(&unit)
-            .is_none_or(|u| u.replies < SETTLE || took >= u.fastest / 2)
+    /// Could `unit` have answered with a frame whose first byte came `took` after its
+    /// request left and whose bytes took `wire` on the line? Not if its last byte came
+    /// sooner than half what the unit's fastest reply would have taken with this
+    /// frame's length (its fastest turn plus `wire`), once it has had [`SETTLE`]
+    /// taken: such a frame was on its way before the unit could have read the request
+    /// (the tail of the last transaction), and answers nothing now. The frame's own
+    /// time is on both sides, so a long reply does not make a short one look too soon,
+    /// and a unit that turns in a fraction of its reply's time on a wire is not judged
+    /// by that fraction's jitter; where there is no wire, `wire` is zero and this is
+    /// half the fastest turn. Only a unit whose turns so far stay within a factor of
+    /// two is judged so: for one whose own turns spread wider (a device whose answers
+    /// take 1 to 4 ms), half its fastest is inside its own range and proves nothing,
+    /// and a genuine reply would be refused.
+    pub(super) fn could_answer(&self, unit: u8, took: Duration, wire: Duration) -> bool {
+        self.units.get(&unit).is_none_or(|u| {
+            u.replies < SETTLE
+                || u.slowest >= u.fastest.saturating_mul(2)
+                || (took + wire) * 2 >= u.fastest.saturating_add(wire)
+        })
     }
 
     /// What `unit` owes now (for the tests).
@@ -248,15 +262,38 @@ mod tests {
     fn a_frame_sooner_than_half_the_fastest_reply_could_not_answer() {
         let t0 = Instant::now();
         let mut o = Owed::default();
-        assert!(o.could_answer(1, Duration::ZERO), "nothing known");
+        assert!(
+            o.could_answer(1, Duration::ZERO, Duration::ZERO),
+            "nothing known"
+        );
         for i in 0..SETTLE {
-            assert!(o.could_answer(1, MS), "reply {i}: not yet settled");
+            assert!(
+                o.could_answer(1, MS, Duration::ZERO),
+                "reply {i}: not yet settled"
+            );
             o.replied(1, t0, (20 + i) * MS);
         }
-        assert!(!o.could_answer(1, 9 * MS));
-        assert!(o.could_answer(1, 10 * MS));
-        assert!(o.could_answer(2, Duration::ZERO), "another unit");
+        assert!(!o.could_answer(1, 9 * MS, Duration::ZERO));
+        assert!(o.could_answer(1, 10 * MS, Duration::ZERO));
+        // On a wire the frame's own time counts on both sides: a 10 ms frame whose
+        // first byte came 5 ms after the request ended 15 ms after it, half the 30 ms
+        // the fastest turn would have taken with it.
+        assert!(o.could_answer(1, 5 * MS, 10 * MS));
+        assert!(!o.could_answer(1, 4 * MS, 10 * MS));
+        assert!(
+            o.could_answer(2, Duration::ZERO, Duration::ZERO),
+            "another unit"
+        );
         o.replied(1, t0, 4 * MS);
-        assert!(o.could_answer(1, 2 * MS));
+        assert!(o.could_answer(1, 2 * MS, Duration::ZERO));
+        assert!(
+            o.could_answer(1, MS, Duration::ZERO),
+            "its turns now spread from 4 to 27 ms: half its fastest proves nothing"
+        );
+        let mut steady = Owed::default();
+        for _ in 0..SETTLE {
+            steady.replied(1, t0, 4 * MS);
+        }
+        assert!(!steady.could_answer(1, MS, Duration::ZERO));
     }
 }

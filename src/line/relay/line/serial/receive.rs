@@ -244,7 +244,7 @@ impl Serial {
             }
             if answers {
                 let took = self.answered_in(len, at);
-                if !self.owed.could_answer(unit, took) {
+                if !self.owed.could_answer(unit, took, self.wire_time(len)) {
                     // Sooner than the unit can answer: on its way before the unit
                     // could have read the request (the tail of the last transaction).
                     // Not counted as the unit heard: if it was the reply after all

@@ -836,9 +836,11 @@ struct Sim {
     /// Whether the unit owes nothing by what the gateway saw: no timeout since its
     /// last reply taken (extra frames only then: the premise below).
     clear: bool,
-    /// Replies taken so far, and the quickest of them (µs from its request leaving).
+    /// Replies taken so far, and the quickest and slowest of them (µs from its
+    /// request leaving).
     taken: u32,
     fastest: u64,
+    slowest: u64,
 }
 
 impl Sim {
@@ -881,7 +883,7 @@ impl Sim {
         // An answer in time, from a unit that owes nothing, and one the gateway can
         // take for a reply (no sooner than half the fastest it took, once it judges
         // by that): only such an answer goes with a frame too many.
-        let judged = self.taken >= owed::SETTLE;
+        let judged = self.taken >= owed::SETTLE && self.slowest < 2 * self.fastest;
         let reply = !judged || t - w > half;
         let at = match extra {
             Some(&(_, mode, gap))
@@ -999,6 +1001,7 @@ fn drive(
         clear: true,
         taken: 0,
         fastest: u64::MAX,
+        slowest: 0,
     };
     let n = 60;
     let (mut next, mut now, mut answered, mut failed) = (0usize, 0u64, 0, 0);
@@ -1076,7 +1079,9 @@ fn drive(
                     sim.clear = true;
                     sim.taken += 1;
                     let left = f.deadline - f.timeout;
-                    sim.fastest = sim.fastest.min((at - left).as_micros() as u64);
+                    let took = (at - left).as_micros() as u64;
+                    sim.fastest = sim.fastest.min(took);
+                    sim.slowest = sim.slowest.max(took);
                 }
                 Seen::Corrupt(tid) => {
                     if let Some(f) = in_flight.take(tid) {
