@@ -25,6 +25,12 @@ use tokio::time::Instant;
 /// later one sooner than half of those would be refused though genuine.
 pub(super) const SETTLE: u32 = 8;
 
+/// How much sooner than a unit's fastest turn a frame must come to be judged too
+/// soon, whatever the halves say: the host's scheduling (a busy machine, tokio's
+/// millisecond timer, a USB adapter's latency timer) moves when a reply is read by
+/// about that much, so a smaller difference proves nothing about the device.
+pub(super) const JITTER: Duration = Duration::from_millis(5);
+
 /// What each unit of one line owes, and its pace: an [`Account`] a unit.
 #[derive(Debug, Default)]
 pub(super) struct Owed {
@@ -179,12 +185,14 @@ impl Owed {
     /// half the fastest turn. Only a unit whose turns so far stay within a factor of
     /// two is judged so: for one whose own turns spread wider (a device whose answers
     /// take 1 to 4 ms), half its fastest is inside its own range and proves nothing,
-    /// and a genuine reply would be refused.
+    /// and a genuine reply would be refused. Nor is a frame less than [`JITTER`]
+    /// sooner than the fastest turn.
     pub(super) fn could_answer(&self, unit: u8, took: Duration, wire: Duration) -> bool {
         self.units.get(&unit).is_none_or(|u| {
             u.replies < SETTLE
                 || u.slowest >= u.fastest.saturating_mul(2)
                 || (took + wire) * 2 >= u.fastest.saturating_add(wire)
+                || took + JITTER >= u.fastest
         })
     }
 
@@ -292,8 +300,13 @@ mod tests {
         );
         let mut steady = Owed::default();
         for _ in 0..SETTLE {
-            steady.replied(1, t0, 4 * MS);
+            steady.replied(1, t0, 20 * MS);
+            steady.replied(2, t0, 4 * MS);
         }
         assert!(!steady.could_answer(1, MS, Duration::ZERO));
+        assert!(
+            steady.could_answer(2, MS, Duration::ZERO),
+            "3 ms sooner than its fastest: within the host's jitter"
+        );
     }
 }

@@ -897,7 +897,10 @@ impl Sim {
                     1 => Some(t + gap),
                     // Past the quiet, in the next request's window (written as the
                     // reply is taken), sooner than half the fastest reply taken.
-                    _ if judged && half > 500 && t - w >= half + 500 => {
+                    _ if judged
+                        && half > owed::JITTER.as_micros() as u64
+                        && t - w >= half + 500 =>
+                    {
                         Some(t + quiet + 100 + gap % (half - 500))
                     }
                     _ => None,
