@@ -249,29 +249,11 @@ impl Relay {
         let carry = !self.line.is_serial() && self.turnaround.is_none();
         let mut ended: Option<Instant> = None;
         loop {
-            let mut now = match ended.take() {
+            let now = match ended.take() {
                 Some(at) if carry => at,
                 _ => Instant::now(),
             };
-            if let Some(w) = &mut self.watchdog {
-                w.pet(now);
-            }
-            // The line keeps the bytes it drops only while a capture wants them.
-            self.line.set_tape(self.telemetry.capturing());
-            self.open_if_due(now);
-            self.dispatch(now);
-            // What was dispatched is written in this turn when the port takes it at
-            // once, not in a turn of its own: one pass of the loop less a transaction.
-            let mut wrote = false;
-            while let Some(after) = self.write_now(now) {
-                (now, wrote) = (after, true);
-                self.dispatch(now);
-            }
-            if wrote {
-                // As the turn of a write would have: the gauges, and the line busy
-                // from now.
-                self.tell(now);
-            }
+            let now = self.before_wait(now);
             if self.draining && self.in_flight.is_empty() {
                 break;
             }
@@ -291,26 +273,56 @@ impl Relay {
             };
             let event = event::next(&mut self.port, sources, &mut rbuf).await;
             let now = Instant::now();
-            let read = matches!(event, Event::Read(Ok(n)) if n > 0);
-            self.on_event(event, &rbuf, polled, now);
-            // Only what this event can have changed: frames only from bytes read or
-            // held (a command, a write or a timer adds none to an MBAP line's empty
-            // decoder), deadlines and paced answers only once due (about 300
-            // instructions a transaction: docs/performance.md "A transaction on a
-            // quiet line").
-            if read || self.line.may_frame() {
-                self.take_frames(now);
-            }
-            if self.in_flight.next_deadline().is_some_and(|d| d <= now) {
-                self.expire(now);
-            }
-            if self.paced.next_due().is_some_and(|d| d <= now) {
-                self.answer_paced(now);
-            }
-            self.tell(now);
+            self.after_event(event, &rbuf, polled, now);
             ended = Some(now);
         }
         debug!("relay stopped");
+    }
+
+    /// A turn's work before its wait, from `now`: the watchdog petted, the port
+    /// opened if due, requests dispatched and written while the port takes them at
+    /// once. The clock after the last write.
+    fn before_wait(&mut self, mut now: Instant) -> Instant {
+        if let Some(w) = &mut self.watchdog {
+            w.pet(now);
+        }
+        // The line keeps the bytes it drops only while a capture wants them.
+        self.line.set_tape(self.telemetry.capturing());
+        self.open_if_due(now);
+        self.dispatch(now);
+        // What was dispatched is written in this turn when the port takes it at once,
+        // not in a turn of its own: one pass of the loop less a transaction.
+        let mut wrote = false;
+        while let Some(after) = self.write_now(now) {
+            (now, wrote) = (after, true);
+            self.dispatch(now);
+        }
+        if wrote {
+            // As the turn of a write would have: the gauges, and the line busy from
+            // now.
+            self.tell(now);
+        }
+        now
+    }
+
+    /// The turn's event handled `now`, then only what it can have changed: frames
+    /// only from bytes read or held (a command, a write or a timer adds none to an
+    /// MBAP line's empty decoder), deadlines and paced answers only once due (about
+    /// 300 instructions a transaction: docs/performance.md "A transaction on a quiet
+    /// line").
+    fn after_event(&mut self, event: Event, rbuf: &[u8], polled: Instant, now: Instant) {
+        let read = matches!(event, Event::Read(Ok(n)) if n > 0);
+        self.on_event(event, rbuf, polled, now);
+        if read || self.line.may_frame() {
+            self.take_frames(now);
+        }
+        if self.in_flight.next_deadline().is_some_and(|d| d <= now) {
+            self.expire(now);
+        }
+        if self.paced.next_due().is_some_and(|d| d <= now) {
+            self.answer_paced(now);
+        }
+        self.tell(now);
     }
 
     /// What the turn's wait brought, handled `now`: `rbuf` holds the bytes read, and

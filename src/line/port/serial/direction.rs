@@ -352,57 +352,61 @@ fn find_chip(spec: &str) -> Result<PathBuf, DirectionError> {
         .ok_or_else(no_chip)
 }
 
-/// The line `cfg` names, found and requested as an output at the level that keeps
-/// the transmitter off.
-fn request_line(cfg: &SerialConfig) -> Result<Requested, DirectionError> {
+/// The chip and offset of the line `cfg` names: by its name on any chip, or on the
+/// chip named, by name or offset (within the chip's lines).
+fn find_line(cfg: &SerialConfig) -> Result<(PathBuf, u32), DirectionError> {
     let chip_spec = cfg.direction_gpio_chip.trim();
-    let (chip, offset) = match &cfg.direction_gpio_line {
+    let line = match &cfg.direction_gpio_line {
         GpioLine::Name(name) if chip_spec.is_empty() => {
             let found =
                 gpiocdev::find_named_line(name).ok_or_else(|| DirectionError::NoNamedLine {
                     name: name.clone(),
                     chip: format!("any chip ({})", chips_here()),
                 })?;
-            (found.chip, found.info.offset)
+            return Ok((found.chip, found.info.offset));
         }
-        line => {
-            let chip = find_chip(chip_spec)?;
-            let opened =
-                gpiocdev::Chip::from_path(&chip).map_err(|source| DirectionError::Gpio {
-                    offset: 0,
+        line => line,
+    };
+    let chip = find_chip(chip_spec)?;
+    let opened = gpiocdev::Chip::from_path(&chip).map_err(|source| DirectionError::Gpio {
+        offset: 0,
+        chip: chip.display().to_string(),
+        source,
+    })?;
+    let offset = match line {
+        GpioLine::Name(name) => {
+            opened
+                .find_line_info(name)
+                .ok_or_else(|| DirectionError::NoNamedLine {
+                    name: name.clone(),
                     chip: chip.display().to_string(),
-                    source,
-                })?;
-            let offset = match line {
-                GpioLine::Name(name) => {
-                    opened
-                        .find_line_info(name)
-                        .ok_or_else(|| DirectionError::NoNamedLine {
-                            name: name.clone(),
-                            chip: chip.display().to_string(),
-                        })?
-                        .offset
-                }
-                GpioLine::Offset(n) => *n,
-                GpioLine::Unset => {
-                    // The configuration refuses direction = "gpio" without a line.
-                    return Err(DirectionError::NoNamedLine {
-                        name: String::new(),
-                        chip: chip.display().to_string(),
-                    });
-                }
-            };
-            let lines = opened.info().map(|i| i.num_lines).unwrap_or(u32::MAX);
-            if offset >= lines {
-                return Err(DirectionError::NoLine {
-                    offset,
-                    chip: chip.display().to_string(),
-                    last: i64::from(lines) - 1,
-                });
-            }
-            (chip, offset)
+                })?
+                .offset
+        }
+        GpioLine::Offset(n) => *n,
+        GpioLine::Unset => {
+            // The configuration refuses direction = "gpio" without a line.
+            return Err(DirectionError::NoNamedLine {
+                name: String::new(),
+                chip: chip.display().to_string(),
+            });
         }
     };
+    let lines = opened.info().map(|i| i.num_lines).unwrap_or(u32::MAX);
+    if offset >= lines {
+        return Err(DirectionError::NoLine {
+            offset,
+            chip: chip.display().to_string(),
+            last: i64::from(lines) - 1,
+        });
+    }
+    Ok((chip, offset))
+}
+
+/// The line `cfg` names, found and requested as an output at the level that keeps
+/// the transmitter off.
+fn request_line(cfg: &SerialConfig) -> Result<Requested, DirectionError> {
+    let (chip, offset) = find_line(cfg)?;
     let chip_name = chip.display().to_string();
     if let Ok(info) = gpiocdev::Chip::from_path(&chip).and_then(|c| c.line_info(offset)) {
         if info.used {

@@ -410,6 +410,9 @@ impl MbapLine {
         );
     }
 
+    /// The whole frames read so far, each a reply to a request `in_flight`, one
+    /// dropped as read before its request left, or one refusing its request as a
+    /// misfit; what made no frame counted.
     pub(super) fn frames_into<R: Asked>(
         &mut self,
         in_flight: &[OnLine<R>],
@@ -441,41 +444,10 @@ impl MbapLine {
             let len = frame.as_bytes().len();
             let at = self.read_at(end - 1).unwrap_or(now);
             self.tape.frame(end, len, Some(at), Reason::LostSync);
-            if let Some(why) = self.too_early(&frame) {
-                let (what, counter, reason) = match why {
-                    Early::Stale => (
-                        "a frame read before its request was sent, dropped",
-                        &stats.dropped_stale,
-                        Reason::Stale,
-                    ),
-                    Early::Echo => (
-                        "a copy of the request that began before it had left: its echo, dropped",
-                        &stats.dropped_echo,
-                        Reason::Echo,
-                    ),
-                };
-                debug!(tid = frame.tid(), "{what}: {:?}", frame);
-                stats.add(&stats.dropped_bytes, len as u64);
-                stats.add(counter, len as u64);
-                self.tape
-                    .whole_frame(Some(at), reason, frame.as_bytes(), what);
+            if self.dropped_early(&frame, at, stats)
+                || self.misfit(in_flight, &frame, at, stats, seen)
+            {
                 continue;
-            }
-            if let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) {
-                let asked = f.req.adu();
-                if asked.unit() != frame.unit() || !pdu::reply_matches(asked.pdu(), frame.pdu()) {
-                    debug!(
-                        tid = frame.tid(),
-                        "a reply that does not fit its request: {:?}", frame
-                    );
-                    stats.add(&stats.bad_frames, 1);
-                    let why = "a reply with its request's id that does not fit the request";
-                    let bytes = frame.as_bytes();
-                    self.tape
-                        .whole_frame(Some(at), Reason::LostSync, bytes, why);
-                    seen.push(Seen::Corrupt(frame.tid()));
-                    continue;
-                }
             }
             let reply = in_flight.iter().any(|f| f.tid == frame.tid());
             if reply && idle >= self.pause && !self.told_pause {
@@ -483,6 +455,68 @@ impl MbapLine {
             }
             seen.push(Seen::Frame(frame, at));
         }
+        self.settle_turn(now, stats);
+    }
+
+    /// A frame read before its request left (stale, or its echo): dropped and
+    /// counted. `true`: it was.
+    fn dropped_early(&mut self, frame: &Adu, at: Instant, stats: &Stats) -> bool {
+        let Some(why) = self.too_early(frame) else {
+            return false;
+        };
+        let (what, counter, reason) = match why {
+            Early::Stale => (
+                "a frame read before its request was sent, dropped",
+                &stats.dropped_stale,
+                Reason::Stale,
+            ),
+            Early::Echo => (
+                "a copy of the request that began before it had left: its echo, dropped",
+                &stats.dropped_echo,
+                Reason::Echo,
+            ),
+        };
+        let len = frame.as_bytes().len() as u64;
+        debug!(tid = frame.tid(), "{what}: {:?}", frame);
+        stats.add(&stats.dropped_bytes, len);
+        stats.add(counter, len);
+        self.tape
+            .whole_frame(Some(at), reason, frame.as_bytes(), what);
+        true
+    }
+
+    /// A frame with a request's id that does not fit that request (another unit,
+    /// function or shape): the request refused. `true`: it was.
+    fn misfit<R: Asked>(
+        &mut self,
+        in_flight: &[OnLine<R>],
+        frame: &Adu,
+        at: Instant,
+        stats: &Stats,
+        seen: &mut Vec<Seen>,
+    ) -> bool {
+        let Some(f) = in_flight.iter().find(|f| f.tid == frame.tid()) else {
+            return false;
+        };
+        let asked = f.req.adu();
+        if asked.unit() == frame.unit() && pdu::reply_matches(asked.pdu(), frame.pdu()) {
+            return false;
+        }
+        debug!(
+            tid = frame.tid(),
+            "a reply that does not fit its request: {:?}", frame
+        );
+        stats.add(&stats.bad_frames, 1);
+        let why = "a reply with its request's id that does not fit the request";
+        self.tape
+            .whole_frame(Some(at), Reason::LostSync, frame.as_bytes(), why);
+        seen.push(Seen::Corrupt(frame.tid()));
+        true
+    }
+
+    /// The turn's end: the bytes that made no frame said, the chunks read wholly
+    /// forgotten, what the framer dropped counted.
+    fn settle_turn(&mut self, now: Instant, stats: &Stats) {
         // Bytes the decoder dropped after the last frame: garbage, a refuted frame, a
         // partial frame the frame gap ended.
         let consumed = self.decoder.consumed();

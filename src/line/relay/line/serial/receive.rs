@@ -14,9 +14,17 @@ use crate::line::relay::inflight::{Asked, OnLine};
 use crate::ops::capture::dropped::Dropped;
 use crate::ops::capture::packet::Reason;
 use crate::ops::stats::Stats;
+use std::ops::ControlFlow;
 use std::time::Duration;
 use tokio::time::Instant;
 use tracing::debug;
+
+/// A frame read off the line: its last byte's time and its length on the wire.
+struct Got {
+    frame: Adu,
+    at: Instant,
+    len: usize,
+}
 
 impl Serial {
     pub(in crate::line::relay::line) fn received(
@@ -191,107 +199,154 @@ impl Serial {
             let end = self.decoder.consumed();
             let len = self.decoder.encoded_len(frame.pdu().len());
             self.tape.frame(end, len, Some(at), Reason::LostSync);
-            let unit = frame.unit();
-            if let Some(c) = self.candidate.take() {
-                if c.owed && c.reply.unit() == unit {
-                    // Its unit sent more: the frame held was an answer it owed
-                    // (docs/reliability.md "RTU and ASCII", 6). This one is judged
-                    // afresh.
-                    self.owed.pay(unit, c.at);
-                    self.drop_backlog(&c.reply, now, stats);
-                    seen.push(Seen::Heard(unit));
-                } else {
-                    // Another frame within the quiet after the reply held refutes it
-                    // (and pays, if its unit owes).
-                    if self.owed.pay(unit, at) {
-                        self.drop_backlog(&frame, now, stats);
-                        seen.push(Seen::Heard(unit));
-                        self.candidate = Some(c);
-                        return seen.push(self.refute(f.tid, None, now, stats));
-                    }
-                    self.candidate = Some(c);
-                    return seen.push(self.refute(f.tid, Some(&frame), now, stats));
-                }
+            let got = Got { frame, at, len };
+            if self.after_held(f.tid, &got, now, stats, seen).is_break()
+                || self.judge(f, got, now, stats, seen).is_break()
+            {
+                return;
             }
-            let asked = unit == f.req.adu().unit();
-            let answers = asked && pdu::reply_matches(request, frame.pdu());
-            if self.owed.owes(unit, at) {
-                if answers && self.held_once != Some(f.tid) {
-                    // A unit that owes answers: its frame answers the request on the
-                    // line only if it is its last for the unit's whole response
-                    // timeout (it then held nothing more); a frame sooner after it
-                    // shows it was one owed. Held once for a request, so the request
-                    // stays on the line at most that long past its deadline.
-                    self.held_once = Some(f.tid);
-                    let took = self.answered_in(len, at);
-                    let quiet = self.owed.whole(unit);
-                    let reply = frame;
-                    self.candidate = Some(super::HeldReply {
-                        reply,
-                        at,
-                        took,
-                        quiet,
-                        owed: true,
-                    });
-                    continue;
-                }
-                // An answer the unit held to a request that timed out: it answers
-                // nothing on the line now.
-                self.owed.pay(unit, at);
-                self.drop_backlog(&frame, now, stats);
-                seen.push(Seen::Heard(unit));
-                continue;
-            }
-            if answers {
+        }
+    }
+
+    /// A frame `got` while a reply is held for the request `tid`: the held one was an
+    /// answer its unit owed if the same unit sent more (paid, and `got` is judged
+    /// afresh: `Continue`), else `got` refutes it (`Break`).
+    fn after_held(
+        &mut self,
+        tid: u16,
+        got: &Got,
+        now: Instant,
+        stats: &Stats,
+        seen: &mut Vec<Seen>,
+    ) -> ControlFlow<()> {
+        let Some(c) = self.candidate.take() else {
+            return ControlFlow::Continue(());
+        };
+        let unit = got.frame.unit();
+        if c.owed && c.reply.unit() == unit {
+            // Its unit sent more: the frame held was an answer it owed
+            // (docs/reliability.md "RTU and ASCII", 6). This one is judged afresh.
+            self.owed.pay(unit, c.at);
+            self.drop_backlog(&c.reply, now, stats);
+            seen.push(Seen::Heard(unit));
+            return ControlFlow::Continue(());
+        }
+        // Another frame within the quiet after the reply held refutes it (and pays,
+        // if its unit owes).
+        self.candidate = Some(c);
+        if self.owed.pay(unit, got.at) {
+            self.drop_backlog(&got.frame, now, stats);
+            seen.push(Seen::Heard(unit));
+            seen.push(self.refute(tid, None, now, stats));
+        } else {
+            seen.push(self.refute(tid, Some(&got.frame), now, stats));
+        }
+        ControlFlow::Break(())
+    }
+
+    /// A frame `got` with no reply held, for the request `f` on the line: an answer
+    /// its unit owed (dropped), the reply (held, or seen at once), one too soon
+    /// (dropped), or a frame that answers something else (the request refused).
+    /// `Continue`: read on.
+    fn judge<R: Asked>(
+        &mut self,
+        f: &OnLine<R>,
+        got: Got,
+        now: Instant,
+        stats: &Stats,
+        seen: &mut Vec<Seen>,
+    ) -> ControlFlow<()> {
+        let Got { frame, at, len } = got;
+        let unit = frame.unit();
+        let asked = unit == f.req.adu().unit();
+        let answers = asked && pdu::reply_matches(f.req.adu().pdu(), frame.pdu());
+        if self.owed.owes(unit, at) {
+            if answers && self.held_once != Some(f.tid) {
+                // A unit that owes answers: its frame answers the request on the line
+                // only if it is its last for the unit's whole response timeout (it
+                // then held nothing more); a frame sooner after it shows it was one
+                // owed. Held once for a request, so the request stays on the line at
+                // most that long past its deadline.
+                self.held_once = Some(f.tid);
                 let took = self.answered_in(len, at);
-                if !self.owed.could_answer(unit, took, self.wire_time(len)) {
-                    // Sooner than the unit can answer: on its way before the unit
-                    // could have read the request (the tail of the last transaction).
-                    // Not counted as the unit heard: if it was the reply after all
-                    // (the device turned faster), the request times out and is owed,
-                    // and the next reply, held for the unit's whole response timeout,
-                    // teaches the new pace.
-                    self.drop_too_soon(&frame, at, stats);
-                    continue;
-                }
-                self.owed.heard(unit, at);
-                let reply = frame;
-                if self.confirm.is_zero() {
-                    self.owed.replied(unit, at, took);
-                    return seen.push(Seen::Frame(reply, at));
-                }
-                let quiet = self.confirm;
-                self.candidate = Some(super::HeldReply {
-                    reply,
-                    at,
-                    took,
-                    quiet,
-                    owed: false,
-                });
-                continue;
+                let quiet = self.owed.whole(unit);
+                self.hold(frame, at, took, quiet, true);
+                return ControlFlow::Continue(());
+            }
+            // An answer the unit held to a request that timed out: it answers nothing
+            // on the line now.
+            self.owed.pay(unit, at);
+            self.drop_backlog(&frame, now, stats);
+            seen.push(Seen::Heard(unit));
+            return ControlFlow::Continue(());
+        }
+        if answers {
+            let took = self.answered_in(len, at);
+            if !self.owed.could_answer(unit, took, self.wire_time(len)) {
+                // Sooner than the unit can answer: on its way before the unit could
+                // have read the request (the tail of the last transaction). Not
+                // counted as the unit heard: if it was the reply after all (the device
+                // turned faster), the request times out and is owed, and the next
+                // reply, held for the unit's whole response timeout, teaches the new
+                // pace.
+                self.drop_too_soon(&frame, at, stats);
+                return ControlFlow::Continue(());
             }
             self.owed.heard(unit, at);
-            // The CRC or LRC proves only that these bytes are a frame: one of another
-            // unit, of another function than the request's (or its exception), or of
-            // another shape answers something else (a stray frame, another request's
-            // answer), and the master is told 0x0B at once, as on MBAP
-            // (docs/reliability.md "RTU and ASCII", 5).
-            let detail = if asked {
-                "a frame of the request's unit that does not answer it (another function or shape)"
-            } else {
-                "a frame from another unit than the request's"
-            };
-            debug!(unit, "{detail}");
-            self.tape.dropped_aside(|| Dropped {
-                at: Some(at),
-                reason: Reason::Stale,
-                bytes: self.decoder.encode(&frame),
-                whole: true,
-                detail,
-            });
-            stats.add(&stats.bad_frames, 1);
-            return seen.push(Seen::Corrupt(f.tid));
+            if self.confirm.is_zero() {
+                self.owed.replied(unit, at, took);
+                seen.push(Seen::Frame(frame, at));
+                return ControlFlow::Break(());
+            }
+            self.hold(frame, at, took, self.confirm, false);
+            return ControlFlow::Continue(());
         }
+        self.owed.heard(unit, at);
+        seen.push(self.answers_else(f.tid, asked, &frame, at, stats));
+        ControlFlow::Break(())
+    }
+
+    /// The reply held until the line has been quiet for `quiet` after it.
+    fn hold(&mut self, reply: Adu, at: Instant, took: Duration, quiet: Duration, owed: bool) {
+        self.candidate = Some(super::HeldReply {
+            reply,
+            at,
+            took,
+            quiet,
+            owed,
+        });
+    }
+
+    /// A frame of the request `tid`'s unit that answers another request, or of
+    /// another unit: the request refused.
+    fn answers_else(
+        &mut self,
+        tid: u16,
+        asked: bool,
+        frame: &Adu,
+        at: Instant,
+        stats: &Stats,
+    ) -> Seen {
+        // The CRC or LRC proves only that these bytes are a frame: one of another
+        // unit, of another function than the request's (or its exception), or of
+        // another shape answers something else (a stray frame, another request's
+        // answer), and the master is told 0x0B at once, as on MBAP
+        // (docs/reliability.md "RTU and ASCII", 5).
+        let detail = if asked {
+            "a frame of the request's unit that does not answer it (another function or shape)"
+        } else {
+            "a frame from another unit than the request's"
+        };
+        debug!(unit = frame.unit(), "{detail}");
+        self.tape.dropped_aside(|| Dropped {
+            at: Some(at),
+            reason: Reason::Stale,
+            bytes: self.decoder.encode(frame),
+            whole: true,
+            detail,
+        });
+        stats.add(&stats.bad_frames, 1);
+        Seen::Corrupt(tid)
     }
 
     /// How soon a unit answered with a frame of `bytes` whose last byte came at
