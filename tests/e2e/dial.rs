@@ -302,11 +302,18 @@ fn a_reload_adds_changes_and_removes_dials_and_leaves_the_others_be() {
         .find(|l| l.contains("counters (SIGUSR1)"))
         .unwrap();
     assert!(usr1.contains(" requests=30 "), "{usr1}");
-    // Change the first (its identity), remove the second.
-    let mut third = Server::start(&["--listen", &a1, "--identity", "site-18", "--round", "serve"]);
+    // Change the first (its identity), remove the second. The first server has
+    // ended its round and closed, so the dial as it was dials again meanwhile: the
+    // new server listens only once the reload has changed the dial, else the old
+    // dial's identity could reach it first (its own right, before the reload).
     let changed = dial(p1, "").replace("site-17", "site-18");
     std::fs::write(&file, format!("{}{changed}", b.cfg)).unwrap();
     gw.proc.signal("HUP");
+    gw.wait_log(
+        &format!("dial \"{a1}\" changed (dialing again)"),
+        Duration::from_secs(10),
+    );
+    let mut third = Server::start(&["--listen", &a1, "--identity", "site-18", "--round", "serve"]);
     third.expect("serve ok 10");
     let log = gw.log();
     assert!(
