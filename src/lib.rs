@@ -7,6 +7,10 @@
 // src/tools/wire/pty.rs (the pty pair); docs/architecture.md "Who does what" names
 // every file.
 //
+// `pub` is what the binary, tests/, benches/, the fuzz targets and the doc examples
+// name; the rest is `pub(crate)` (docs/architecture.md "House rules": `unreachable_pub`
+// and tests/packaging/docs/surface.rs hold it). `masters` is used only inside.
+//
 // The wings are layers, each importing only the wings after it here
 // (docs/architecture.md "The wings"; tests/packaging/docs/map.rs holds it).
 #![deny(unsafe_code)]
@@ -17,7 +21,7 @@ pub mod config;
 pub mod frame;
 pub mod gateway;
 pub mod line;
-pub mod masters;
+pub(crate) mod masters;
 pub mod ops;
 pub mod tls;
 pub mod tools;

@@ -22,7 +22,7 @@ pub(crate) fn source_of(ip: IpAddr) -> IpAddr {
 /// (32 or 128 for a single address). Held in canonical form: an IPv4-mapped IPv6 block
 /// (`::ffff:10.0.0.0/104`) is stored as the IPv4 block it covers (`10.0.0.0/8`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Net {
+pub(crate) struct Net {
     addr: IpAddr,
     prefix: u8,
 }
@@ -62,7 +62,7 @@ impl Net {
 
 /// Why a text is no address or block.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum NetError {
+pub(crate) enum NetError {
     /// Neither an address nor an address and a prefix length.
     #[error("expected an address or a CIDR block like 10.0.0.0/24 or 2001:db8::/32, got {0:?}")]
     NotAnAddress(String),
@@ -166,19 +166,19 @@ pub struct AllowList(Vec<Net>);
 
 impl AllowList {
     /// The list of `nets`, in the order given.
-    pub fn new(nets: Vec<Net>) -> AllowList {
+    pub(crate) fn new(nets: Vec<Net>) -> AllowList {
         AllowList(nets)
     }
 
     /// Is a master connecting from `ip` taken? An IPv4-mapped IPv6 source is judged as
     /// its IPv4 address.
-    pub fn allows(&self, ip: IpAddr) -> bool {
+    pub(crate) fn allows(&self, ip: IpAddr) -> bool {
         let ip = ip.to_canonical();
         self.0.iter().any(|n| n.contains(ip))
     }
 
     /// The entries, as the file writes them.
-    pub fn nets(&self) -> &[Net] {
+    pub(crate) fn nets(&self) -> &[Net] {
         &self.0
     }
 }

@@ -3,9 +3,10 @@
 //! role's policy for requests that may act on the device ([`rules`]). Plain data and
 //! pure; the connection (src/masters/tcp/mod.rs) applies them, TLS (src/tls/) tells the role.
 
-pub mod allow;
-pub mod rules;
+pub(crate) mod allow;
+pub(crate) mod rules;
 
 pub(crate) use allow::source_of;
-pub use allow::{AllowList, Net, NetError};
-pub use rules::{decide, Denied, Policy, UnitSet, Why, WriteRule};
+pub(crate) use allow::{AllowList, Net};
+pub(crate) use rules::decide;
+pub use rules::{Policy, UnitSet, Why, WriteRule};

@@ -18,13 +18,8 @@ pub struct UnitSet([u64; 4]);
 
 impl UnitSet {
     /// Adds `unit`.
-    pub fn insert(&mut self, unit: u8) {
+    pub(crate) fn insert(&mut self, unit: u8) {
         self.0[usize::from(unit / 64)] |= 1 << (unit % 64);
-    }
-
-    /// Takes `unit` out.
-    pub fn remove(&mut self, unit: u8) {
-        self.0[usize::from(unit / 64)] &= !(1 << (unit % 64));
     }
 
     /// Is `unit` in the set?
@@ -96,7 +91,7 @@ pub struct WriteRule {
 
 impl WriteRule {
     /// Does it permit this write to `unit`?
-    pub fn matches(&self, unit: u8, pdu: &[u8]) -> bool {
+    pub(crate) fn matches(&self, unit: u8, pdu: &[u8]) -> bool {
         let Some(&fc) = pdu.first() else {
             return false;
         };
@@ -168,13 +163,13 @@ impl Policy {
     }
 
     /// No restriction at all: reads and every write.
-    pub fn is_open(&self) -> bool {
+    pub(crate) fn is_open(&self) -> bool {
         !self.read_only && self.write.is_empty()
     }
 
     /// What it lets a master do, in a few words (`mbgate check-config`, the start-up
     /// log).
-    pub fn describe(&self) -> String {
+    pub(crate) fn describe(&self) -> String {
         if self.read_only {
             "read only".into()
         } else if self.write.is_empty() {
@@ -188,11 +183,11 @@ impl Policy {
 
 /// A request refused: by whose policy, and why.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Denied<'a> {
+pub(crate) struct Denied<'a> {
     /// `None`: the listener's policy; else the role's name.
-    pub role: Option<&'a str>,
+    pub(crate) role: Option<&'a str>,
     /// What it refused.
-    pub why: Why,
+    pub(crate) why: Why,
 }
 
 impl fmt::Display for Denied<'_> {
@@ -210,7 +205,7 @@ impl fmt::Display for Denied<'_> {
 
 /// The decision for one request to `unit`: the listener's policy, then the role's (a
 /// TLS master's), each must permit it.
-pub fn decide<'a>(
+pub(crate) fn decide<'a>(
     listener: &Policy,
     role: Option<(&'a str, &Policy)>,
     unit: u8,

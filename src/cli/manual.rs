@@ -39,7 +39,7 @@ fn see_also(roff: &mut Roff, page: &str) {
 
 /// Writes mbgate(1), mbgate-SUBCOMMAND(1) for each subcommand, and mbgate.toml(5)
 /// into `dir`; returns the files written.
-pub fn man_pages(cmd: clap::Command, dir: &Path) -> io::Result<Vec<PathBuf>> {
+pub(crate) fn man_pages(cmd: clap::Command, dir: &Path) -> io::Result<Vec<PathBuf>> {
     let mut cmd = cmd.disable_help_subcommand(true);
     cmd.build();
     let mut written = Vec::new();
@@ -223,7 +223,7 @@ fn comment(roff: &mut Roff, lines: &[String]) {
 }
 
 /// mbgate.toml(5): the file's own comments, a key at a time, and the `[[line]]` form.
-pub fn config_page() -> String {
+pub(crate) fn config_page() -> String {
     let (intro, keys, outro) = reference();
     let mut r = Roff::new();
     let source = source();
@@ -341,7 +341,7 @@ fn line_break() -> roff::Inline {
 }
 
 /// Writes the completion script for `shell` to `out`.
-pub fn completion(
+pub(crate) fn completion(
     mut cmd: clap::Command,
     shell: clap_complete::Shell,
     out: &mut dyn Write,

@@ -8,9 +8,9 @@
 mod capture;
 mod client;
 mod client_args;
-pub mod exit;
+pub(crate) mod exit;
 mod gateway;
-pub mod manual;
+pub(crate) mod manual;
 pub mod overrides;
 mod password;
 mod reload;
@@ -42,7 +42,7 @@ Try it without hardware: mbgate demo. Check a configuration: mbgate check-config
 (see mbgate.toml(5)). Run it: mbgate run --config FILE, or as the systemd service \
 mbgate@NAME, which reads /etc/mbgate/NAME.toml. Ask a running gateway: mbgate status."
 )]
-pub struct Cli {
+pub(crate) struct Cli {
     #[command(subcommand)]
     command: CliCommand,
 }
@@ -196,7 +196,7 @@ pub fn main() -> ExitCode {
 }
 
 /// The command line as clap sees it: what the man pages and completions are made of.
-pub fn command() -> clap::Command {
+pub(crate) fn command() -> clap::Command {
     Cli::command()
 }
 

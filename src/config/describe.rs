@@ -210,7 +210,7 @@ fn list(ids: &[u8]) -> String {
 
 /// The whole setup, a line each: the lines, then the listeners and the metrics
 /// listener (a master line has neither).
-pub fn summary(cfg: &Config) -> String {
+pub(crate) fn summary(cfg: &Config) -> String {
     let mut out = String::new();
     for l in &cfg.lines {
         out += &format!("line {}\n", line(l));

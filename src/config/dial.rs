@@ -107,7 +107,7 @@ impl Setting for Option<TlsDial> {
 /// Bytes a dial sends of its own: `"site-17"` (the text's UTF-8), or `"hex:53 31"`
 /// (hex digits, spaces between bytes allowed). Empty: none.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct Payload(pub Vec<u8>);
+pub struct Payload(pub(crate) Vec<u8>);
 
 /// The most bytes an identity or heartbeat may have: one TCP segment's worth, well
 /// inside what every server reads at once.
@@ -158,7 +158,7 @@ impl Setting for Payload {
 
 /// One master mbgate dials, checked.
 #[derive(Debug, Clone, PartialEq)]
-pub struct DialConfig {
+pub(crate) struct DialConfig {
     /// `host:port`, resolved at each attempt.
     pub(crate) address: String,
     pub(crate) framing: ListenFraming,

@@ -47,17 +47,17 @@ pub enum ConfigError {
 /// a flag's into a [`ConfigError::Override`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{message}")]
-pub struct ValueError {
+pub(crate) struct ValueError {
     /// What is wrong, for the operator, without the key.
-    pub message: String,
+    pub(crate) message: String,
     /// From the value down to the part that is wrong, outermost first; empty: the
     /// value itself.
-    pub path: Vec<Step>,
+    pub(crate) path: Vec<Step>,
 }
 
 /// One step down into a value, to the part a [`ValueError`] is about.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Step {
+pub(crate) enum Step {
     /// The item of an array at this index.
     Item(usize),
     /// The value of this key of a table (the table itself when the key is missing).

@@ -60,10 +60,10 @@ pub struct LineConfig {
     pub tcp: Option<String>,
     /// The device on `tcp` speaks TLS: verify it, present our certificate
     /// (docs/security.md "A device behind TLS").
-    pub tcp_tls: Option<super::TlsDevice>,
+    pub(crate) tcp_tls: Option<super::TlsDevice>,
     pub relay: RelayConfig,
     /// What units of the line have of their own (`[[line.unit]]`).
-    pub unit_tables: super::unit::UnitTables,
+    pub(crate) unit_tables: super::unit::UnitTables,
     /// The line's device is the master: where its requests go (docs/design.md §4.2).
     pub master: Option<super::master::MasterLine>,
 }

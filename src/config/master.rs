@@ -45,7 +45,7 @@ table! {
 /// A route's `units = [1, 2]`: unit ids as `check` bounds them (0 is the broadcast,
 /// sent on every route), none twice; empty: not given.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct RouteUnits(pub Vec<u8>);
+pub struct RouteUnits(pub(crate) Vec<u8>);
 
 impl Setting for RouteUnits {
     const KIND: ValueKind = ValueKind::List;

@@ -11,7 +11,7 @@
 
 pub mod access;
 mod conflict;
-pub mod describe;
+pub(crate) mod describe;
 pub mod dial;
 mod error;
 mod file;
@@ -23,7 +23,7 @@ mod raw;
 pub(crate) mod unit;
 mod value;
 
-pub use access::{AccessRole, ListenAccess, TlsDevice, TlsListen};
+pub(crate) use access::{AccessRole, ListenAccess, TlsDevice, TlsListen};
 
 /// Who may connect to `listen` and what they may do, in words (the start-up log,
 /// `mbgate check-config`).
@@ -38,17 +38,20 @@ pub(crate) fn effective_access(listen: &ListenConfig, roles: &[AccessRole]) -> V
             .collect(),
     }
 }
-pub use error::{ConfigError, Step, ValueError};
-pub use file::{load, parse, read_text, LineTcpTable, LINE_TCP_KEYS, MAX_FILE};
+pub use error::ConfigError;
+pub(crate) use error::{Step, ValueError};
+pub use file::{load, parse, LINE_TCP_KEYS};
+pub(crate) use file::{read_text, MAX_FILE};
 pub(crate) use layout::{LineConfig, ListenConfig, Units, NOTIFIED_FOR};
 pub use print::{to_toml, to_toml_lines};
 pub use raw::Raw;
 use std::net::SocketAddr;
-pub use unit::{UnitIds, UnitTableKeys, UNIT_KEYS};
+pub use unit::UNIT_KEYS;
+pub(crate) use value::HostPort;
 pub(crate) use value::{
     parse_listen, parse_optional_address, Check, Setting, ValueKind, METRICS_EXAMPLE,
 };
-pub use value::{Floor, GpioLine, HostPort};
+pub use value::{Floor, GpioLine};
 use Check::{Address, Any, NonEmpty, OneOf, Range, SocketPath};
 
 /// Declares enums whose values are lower-case words in the file and on the command
@@ -230,21 +233,21 @@ pub struct Config {
     pub listeners: Vec<ListenConfig>,
     /// The `[[role]]` tables: what a TLS master may do, by the role its
     /// certificate carries (docs/security.md).
-    pub roles: Vec<AccessRole>,
+    pub(crate) roles: Vec<AccessRole>,
     /// The `[[dial]]` tables: masters mbgate connects to (docs/dialing.md).
-    pub dials: Vec<dial::DialConfig>,
+    pub(crate) dials: Vec<dial::DialConfig>,
     /// The file dials its masters and says no `[tcp]` nor `[[listen]]` (nor does a
     /// `--listen` flag): no listener is bound, so a gateway that reaches its SCADA
     /// server by dialing opens no port (docs/dialing.md "No listener").
-    pub dial_only: bool,
+    pub(crate) dial_only: bool,
     /// What is logged.
     pub log: LogConfig,
     /// The metrics listener (docs/watching.md).
     pub metrics: MetricsConfig,
     /// The always-on capture (docs/capture.md).
-    pub capture: CaptureConfig,
+    pub(crate) capture: CaptureConfig,
     /// The control socket (docs/capture.md).
-    pub control: ControlConfig,
+    pub(crate) control: ControlConfig,
 }
 
 /// The file with no key: one line and one listener, every setting its default.
@@ -350,7 +353,7 @@ pub(crate) use table;
 
 /// The fastest `serial.baud_rate` there is: what the demos set a pty to, since it
 /// passes bytes at once.
-pub const FASTEST_BAUD: u32 = 4_000_000;
+pub(crate) const FASTEST_BAUD: u32 = 4_000_000;
 
 settings! {
     /// The serial line to the device.

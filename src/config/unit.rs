@@ -84,7 +84,7 @@ impl Setting for UnitTimeout {
 
 /// `units = 3`, `"1-5"` or `[1, "10-20"]`: unit ids as `check` bounds them, none twice.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct UnitIds(pub BTreeSet<u8>);
+pub struct UnitIds(pub(crate) BTreeSet<u8>);
 
 impl Setting for UnitIds {
     const KIND: ValueKind = ValueKind::List;
@@ -122,32 +122,32 @@ impl Setting for UnitIds {
 
 /// What one `[[line.unit]]` table says; `None`: the line's.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct UnitSettings {
-    pub response_timeout: Option<UnitTimeout>,
+pub(crate) struct UnitSettings {
+    pub(crate) response_timeout: Option<UnitTimeout>,
     /// With `"auto"`: the ceiling, where the learning starts (the line's
     /// `response_timeout_ms` when not given).
-    pub response_timeout_max_ms: Option<u64>,
+    pub(crate) response_timeout_max_ms: Option<u64>,
     /// With `"auto"`: the floor ([`LEARNED_FLOOR_MS`] when not given).
-    pub response_timeout_min_ms: Option<u64>,
-    pub request_pause_ms: Option<u64>,
-    pub retries: Option<u32>,
-    pub retry_writes: Option<bool>,
+    pub(crate) response_timeout_min_ms: Option<u64>,
+    pub(crate) request_pause_ms: Option<u64>,
+    pub(crate) retries: Option<u32>,
+    pub(crate) retry_writes: Option<bool>,
 }
 
 /// One `[[line.unit]]`: its unit ids (as the line knows them) and its settings.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct UnitTable {
-    pub ids: BTreeSet<u8>,
-    pub settings: UnitSettings,
+pub(crate) struct UnitTable {
+    pub(crate) ids: BTreeSet<u8>,
+    pub(crate) settings: UnitSettings,
 }
 
 /// A line's `[[line.unit]]` tables, in the order of the file; no unit in two.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct UnitTables(pub Vec<UnitTable>);
+pub struct UnitTables(pub(crate) Vec<UnitTable>);
 
 /// A unit's response timeout as the relay applies it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Timeout {
+pub(crate) enum Timeout {
     Fixed(Duration),
     /// Learned, within `[floor, ceiling]`, starting at the ceiling.
     Learned {
@@ -158,22 +158,22 @@ pub enum Timeout {
 
 /// A unit's effective settings: its table's, else the line's.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct UnitPolicy {
-    pub timeout: Timeout,
+pub(crate) struct UnitPolicy {
+    pub(crate) timeout: Timeout,
     /// Quiet time after a transaction with this unit, before the next request.
-    pub pause: Duration,
-    pub retries: u32,
-    pub retry_writes: bool,
+    pub(crate) pause: Duration,
+    pub(crate) retries: u32,
+    pub(crate) retry_writes: bool,
 }
 
 impl UnitPolicy {
     /// The line's own settings, for a unit no table names.
-    pub fn of_line(relay: &RelayConfig) -> Self {
+    pub(crate) fn of_line(relay: &RelayConfig) -> Self {
         UnitSettings::default().resolve(relay)
     }
 
     /// In a few words, for `mbgate check-config` and the log.
-    pub fn describe(&self) -> String {
+    pub(crate) fn describe(&self) -> String {
         let ms = |d: Duration| d.as_millis();
         let timeout = match self.timeout {
             Timeout::Fixed(d) => format!("response timeout {} ms", ms(d)),
@@ -198,7 +198,7 @@ impl UnitPolicy {
 
 impl UnitSettings {
     /// These settings over the line's.
-    pub fn resolve(&self, relay: &RelayConfig) -> UnitPolicy {
+    pub(crate) fn resolve(&self, relay: &RelayConfig) -> UnitPolicy {
         let ms = Duration::from_millis;
         let line = relay.response_timeout_ms;
         let timeout = match self.response_timeout {
@@ -223,12 +223,12 @@ impl UnitSettings {
 }
 
 impl UnitTables {
-    pub fn is_empty(&self) -> bool {
+    pub(crate) fn is_empty(&self) -> bool {
         self.0.is_empty()
     }
 
     /// The table that names `unit`, if one does.
-    pub fn settings(&self, unit: u8) -> Option<&UnitSettings> {
+    pub(crate) fn settings(&self, unit: u8) -> Option<&UnitSettings> {
         self.0
             .iter()
             .find(|t| t.ids.contains(&unit))
@@ -236,7 +236,7 @@ impl UnitTables {
     }
 
     /// `unit`'s effective settings on a line of `relay`.
-    pub fn policy(&self, relay: &RelayConfig, unit: u8) -> UnitPolicy {
+    pub(crate) fn policy(&self, relay: &RelayConfig, unit: u8) -> UnitPolicy {
         match self.settings(unit) {
             Some(s) => s.resolve(relay),
             None => UnitPolicy::of_line(relay),
@@ -245,7 +245,7 @@ impl UnitTables {
 
     /// Each named unit with its effective settings, a line each (`mbgate
     /// check-config`): `unit 1: response timeout 100 ms, ...`; then the others.
-    pub fn describe(&self, relay: &RelayConfig) -> Vec<String> {
+    pub(crate) fn describe(&self, relay: &RelayConfig) -> Vec<String> {
         let mut out = Vec::new();
         for t in &self.0 {
             for &u in &t.ids {
@@ -264,7 +264,7 @@ impl UnitTables {
 
     /// The longest the line takes to answer a request it holds: the longest timeout
     /// (a learned one's ceiling) of any unit, times its attempts.
-    pub fn answer_within(&self, relay: &RelayConfig) -> Duration {
+    pub(crate) fn answer_within(&self, relay: &RelayConfig) -> Duration {
         let each = self.0.iter().map(|t| {
             let p = t.settings.resolve(relay);
             let longest = match p.timeout {

@@ -214,7 +214,7 @@ impl Setting for GpioLine {
 /// `host:port` of a device or a slave, the port a number: resolved when connecting,
 /// so a name works too; "": not given.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct HostPort(pub String);
+pub struct HostPort(pub(crate) String);
 
 impl Setting for HostPort {
     const KIND: ValueKind = ValueKind::Str;

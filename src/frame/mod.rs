@@ -13,6 +13,6 @@ pub(crate) mod resync;
 pub mod rtu;
 pub mod serial;
 
-pub use function::{ExceptionCode, FunctionCode};
+pub(crate) use function::{ExceptionCode, FunctionCode};
 pub use mbap::{Adu, StrictError};
 pub use resync::{Confirmed, Judge, ReplyJudge, RequestJudge, Resync};

@@ -37,7 +37,7 @@ pub fn encode(unit: u8, pdu: &[u8]) -> Vec<u8> {
 
 /// [`encode`], appended to `out` (a buffer kept for the next frame: nothing allocated
 /// once it has room).
-pub fn encode_into(unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
+pub(crate) fn encode_into(unit: u8, pdu: &[u8], out: &mut Vec<u8>) {
     let start = out.len();
     out.push(unit);
     out.extend_from_slice(pdu);

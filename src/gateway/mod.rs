@@ -2,15 +2,15 @@
 //! cleanly (docs/design.md §3: SIGTERM and SIGINT drain in-flight requests, bounded), telling
 //! systemd when it is ready and when it stops (see `crate::ops::notify`).
 
-pub mod control;
+pub(crate) mod control;
 mod error;
-pub mod reload;
+pub(crate) mod reload;
 mod warnings;
 
 pub use error::GatewayError;
 
 use warnings::warn_inapplicable;
-pub use warnings::warnings;
+pub(crate) use warnings::warnings;
 
 use crate::config::{Config, LineConfig, ListenConfig, Transport};
 use crate::line::relay::{Relay, RelayHandle};
@@ -37,7 +37,7 @@ pub async fn run(cfg: Config, shutdown: CancellationToken) -> Result<Arc<Stats>,
 
 /// [`run`], and on each SIGHUP `load` reads the configuration again and what can
 /// change while running is applied ([`crate::gateway::reload`]).
-pub async fn run_reloading(
+pub(crate) async fn run_reloading(
     cfg: Config,
     load: reload::Loader,
     shutdown: CancellationToken,

@@ -15,7 +15,7 @@ pub(super) fn warn_inapplicable(cfg: &Config) {
 /// Settings an RTU or ASCII line cannot honour: said at start (and by `mbgate
 /// check-config`), not refused, so a file written for MBAP keeps working when only the
 /// framing changes. With several lines each is named (`line[1]: ...`).
-pub fn warnings(cfg: &Config) -> Vec<String> {
+pub(crate) fn warnings(cfg: &Config) -> Vec<String> {
     let lines = &cfg.lines;
     let mut said = Vec::new();
     for (i, line) in lines.iter().enumerate() {

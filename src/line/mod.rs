@@ -1,7 +1,7 @@
 //! The line: the loop that owns a device's line (relay), the master line (bridge), the
 //! ports it is attached to, and a master's way back (outbox).
 
-pub mod bridge;
+pub(crate) mod bridge;
 pub mod outbox;
 pub mod port;
 pub mod relay;

@@ -34,7 +34,7 @@ fn filter(cfg: &LogConfig) -> EnvFilter {
 
 /// Installs the global subscriber: `cfg.level` (or `RUST_LOG`), the traffic log if
 /// asked for, and the journald format when stderr is the journal.
-pub fn init(cfg: &LogConfig) {
+pub(crate) fn init(cfg: &LogConfig) {
     let (filter, handle) = reload::Layer::new(filter(cfg));
     let _ = FILTER.set(handle);
     let fmt = tracing_subscriber::fmt::layer().with_writer(std::io::stderr);
@@ -59,7 +59,7 @@ pub(crate) fn reload(cfg: &LogConfig) {
 
 /// `<3>` when stderr is the journal, else nothing: for the lines `main` writes itself
 /// (errors at start, before or instead of the subscriber).
-pub fn error_prefix() -> &'static str {
+pub(crate) fn error_prefix() -> &'static str {
     if stderr_is_journal() {
         "<3>"
     } else {

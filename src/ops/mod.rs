@@ -3,7 +3,7 @@
 //! `crate::gateway`).
 
 pub mod capture;
-pub mod logging;
-pub mod metrics;
+pub(crate) mod logging;
+pub(crate) mod metrics;
 pub(crate) mod notify;
 pub mod stats;

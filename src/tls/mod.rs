@@ -5,9 +5,9 @@
 //! and the role extension ([`role`]). Loading the PEM files is here, each error naming
 //! the key and the file.
 
-pub mod client;
+pub(crate) mod client;
 pub mod role;
-pub mod server;
+pub(crate) mod server;
 
 use rustls::crypto::CryptoProvider;
 use rustls::pki_types::pem::PemObject;
@@ -32,11 +32,11 @@ pub(crate) fn provider() -> Arc<CryptoProvider> {
 #[error("{key} = {}: {message}", path.display())]
 pub struct TlsError {
     /// The configuration key that names the file (`listen[0].tls.cert`).
-    pub key: String,
+    pub(crate) key: String,
     /// The file.
-    pub path: PathBuf,
+    pub(crate) path: PathBuf,
     /// What is wrong with it.
-    pub message: String,
+    pub(crate) message: String,
 }
 
 fn error(key: &str, path: &Path, message: impl Into<String>) -> TlsError {
@@ -121,7 +121,7 @@ pub(crate) fn certified_key(
 /// Loads every TLS file the configuration names, as the gateway would at start: for
 /// `mbgate check-config` and before `mbgate run` starts (a bad file is a bad
 /// configuration, exit 2).
-pub fn check(cfg: &crate::config::Config) -> Result<(), TlsError> {
+pub(crate) fn check(cfg: &crate::config::Config) -> Result<(), TlsError> {
     for (i, l) in cfg.listeners.iter().enumerate() {
         if let Some(t) = &l.access.tls {
             server::Material::load(t, &format!("listen[{i}].tls"))?;

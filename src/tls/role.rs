@@ -12,7 +12,8 @@ use x509_cert::der::Decode;
 use x509_cert::Certificate;
 
 /// The Modbus role extension (Modbus/TCP Security, "role-based client authorization").
-pub const ROLE_OID: ObjectIdentifier = ObjectIdentifier::new_unwrap("1.3.6.1.4.1.50316.802.1");
+pub(crate) const ROLE_OID: ObjectIdentifier =
+    ObjectIdentifier::new_unwrap("1.3.6.1.4.1.50316.802.1");
 
 /// The longest role accepted: roles are short names (`operator`); anything longer is
 /// refused rather than logged and compared at length.
@@ -23,7 +24,7 @@ pub const MAX_ROLE: usize = 128;
 pub struct Identity {
     /// The subject's distinguished name as RFC 4514 writes it, last part first
     /// (`O=Plant,CN=operator-1`, as `openssl x509 -subject -nameopt RFC2253` shows it).
-    pub subject: String,
+    pub(crate) subject: String,
     /// The Modbus role, if the certificate carries one.
     pub role: Option<String>,
 }

@@ -118,13 +118,13 @@ table! {
 
 /// Who may connect to a listener and what they may do (docs/security.md).
 #[derive(Debug, Clone, PartialEq, Default)]
-pub struct ListenAccess {
+pub(crate) struct ListenAccess {
     /// The source addresses taken; `None`: everyone.
-    pub allow: Option<AllowList>,
+    pub(crate) allow: Option<AllowList>,
     /// What every master of this listener may do.
-    pub policy: Policy,
+    pub(crate) policy: Policy,
     /// Modbus/TCP Security: TLS with client certificates and roles.
-    pub tls: Option<TlsListen>,
+    pub(crate) tls: Option<TlsListen>,
 }
 
 impl ListenAccess {
@@ -138,40 +138,40 @@ impl ListenAccess {
 #[derive(Debug, Clone, PartialEq)]
 pub struct TlsListen {
     /// The gateway's certificate chain (PEM), leaf first.
-    pub cert: PathBuf,
+    pub(crate) cert: PathBuf,
     /// Its private key (PEM: PKCS#8, PKCS#1 or SEC1).
-    pub key: PathBuf,
+    pub(crate) key: PathBuf,
     /// The CA certificates (PEM) a master's certificate must chain to.
-    pub client_ca: PathBuf,
+    pub(crate) client_ca: PathBuf,
     /// The role of a certificate that carries none; `None`: such a master is refused.
-    pub default_role: Option<String>,
+    pub(crate) default_role: Option<String>,
     /// The most a TLS handshake may take, from the accept.
-    pub handshake_timeout_ms: u64,
+    pub(crate) handshake_timeout_ms: u64,
 }
 
 /// One `[[role]]`: a name a client certificate carries, and its policy.
 #[derive(Debug, Clone, PartialEq)]
-pub struct AccessRole {
+pub(crate) struct AccessRole {
     /// As in the certificate's Modbus role extension, compared exactly.
-    pub name: String,
+    pub(crate) name: String,
     /// What a master with this role may do.
-    pub policy: Policy,
+    pub(crate) policy: Policy,
     /// Its masters' priority class on the lines (docs/masters.md "Priority"), over
     /// the listener's; `None`: the listener's.
-    pub priority: Option<u8>,
+    pub(crate) priority: Option<u8>,
 }
 
 /// A TCP line's `tls` table: the gateway as a TLS client of the device.
 #[derive(Debug, Clone, PartialEq)]
 pub struct TlsDevice {
     /// The gateway's client certificate chain (PEM), presented to the device.
-    pub cert: PathBuf,
+    pub(crate) cert: PathBuf,
     /// Its private key (PEM).
-    pub key: PathBuf,
+    pub(crate) key: PathBuf,
     /// The CA certificates (PEM) the device's certificate must chain to.
-    pub device_ca: PathBuf,
+    pub(crate) device_ca: PathBuf,
     /// The name the device's certificate must carry; `None`: the host of `address`.
-    pub server_name: Option<String>,
+    pub(crate) server_name: Option<String>,
 }
 
 /// `"A-B"` with A <= B <= `max`.
@@ -233,7 +233,7 @@ impl Setting for Option<AllowList> {
 /// `write = [{ units = [1], functions = [6, 16], addresses = "100-199" }, ...]`: at
 /// least one rule, none empty.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct WriteRules(pub Vec<WriteRule>);
+pub struct WriteRules(pub(crate) Vec<WriteRule>);
 
 impl Setting for WriteRules {
     const KIND: ValueKind = ValueKind::List;
@@ -269,7 +269,7 @@ fn rule(raw: &Raw) -> Result<WriteRule, ValueError> {
 
 /// A rule's `units = [0, 1, "10-20"]`: unit ids as the master sends them.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct RuleUnits(pub UnitSet);
+pub struct RuleUnits(pub(crate) UnitSet);
 
 impl Setting for RuleUnits {
     const KIND: ValueKind = ValueKind::List;
@@ -296,7 +296,7 @@ impl Setting for RuleUnits {
 
 /// A rule's `functions = [5, 6, 0x10]`: codes that may act on the device, none twice.
 #[derive(Debug, Clone, PartialEq, Eq, Default)]
-pub struct Functions(pub Vec<u8>);
+pub struct Functions(pub(crate) Vec<u8>);
 
 impl Setting for Functions {
     const KIND: ValueKind = ValueKind::List;
@@ -325,7 +325,7 @@ impl Setting for Functions {
 
 /// A rule's `addresses = "100-199"`, or one address `addresses = 100`.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct Addresses(pub (u16, u16));
+pub struct Addresses(pub(crate) (u16, u16));
 
 impl Setting for Addresses {
     const KIND: ValueKind = ValueKind::Str;

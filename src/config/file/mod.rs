@@ -27,12 +27,12 @@ pub fn load(path: &Path) -> Result<Config, ConfigError> {
 /// still a small part of a Pi Zero's memory. A path that names something endless
 /// (`/dev/zero`, a FIFO a program keeps writing) is refused when it passes this,
 /// not read until memory runs out.
-pub const MAX_FILE: u64 = 1 << 20;
+pub(crate) const MAX_FILE: u64 = 1 << 20;
 
 /// The text of the file at `path`, refused past `max` bytes (an `InvalidData` error
 /// that says so): every file mbgate reads whose size it does not choose goes through
 /// here or through a reader bounded as it is.
-pub fn read_text(path: &Path, max: u64) -> std::io::Result<String> {
+pub(crate) fn read_text(path: &Path, max: u64) -> std::io::Result<String> {
     use std::io::Read;
     let mut text = String::new();
     std::fs::File::open(path)?
@@ -472,4 +472,4 @@ impl FileReader<'_> {
 }
 
 mod line;
-pub use line::{LineTcpTable, LINE_TCP_KEYS};
+pub use line::LINE_TCP_KEYS;

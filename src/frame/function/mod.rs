@@ -21,7 +21,7 @@
 
 mod exception;
 
-pub use exception::ExceptionCode;
+pub(crate) use exception::ExceptionCode;
 use std::fmt;
 
 /// A function code as it is on the wire: a request's (1..=127), or a reply's, whose high

@@ -13,7 +13,7 @@ use tokio::net::UnixStream;
 
 /// Why a capture could not run, or its output failed.
 #[derive(Debug, thiserror::Error)]
-pub enum CaptureError {
+pub(crate) enum CaptureError {
     /// The socket could not be reached or trusted.
     #[error(transparent)]
     Ask(#[from] AskError),

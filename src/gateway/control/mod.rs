@@ -33,10 +33,10 @@
 //! (`reload.rs`) and `mbgate status` (`status.rs`); this file holds what both ends
 //! read: the words and messages, where the socket is, and the asking of one word.
 
-pub mod capture;
-pub mod reload;
+pub(crate) mod capture;
+pub(crate) mod reload;
 mod serve;
-pub mod status;
+pub(crate) mod status;
 mod stream;
 
 use crate::config::Config;
@@ -102,7 +102,7 @@ const PACKAGED_CONFIG: &str = "/etc/mbgate/mbgate.toml";
 /// Why `mbgate capture` or `mbgate reload` could not ask the gateway, or would not
 /// believe it.
 #[derive(Debug, thiserror::Error)]
-pub enum AskError {
+pub(crate) enum AskError {
     /// The configuration file, read for its `control.socket`.
     #[error("{}: {source}", file.display())]
     ConfigFile {
@@ -158,7 +158,10 @@ impl AskError {
 /// Only `control.socket` is read from the file, and leniently: a file with a mistake
 /// elsewhere (just edited, about to be reloaded and refused with the precise error)
 /// still names the socket of the gateway running with the file as it was.
-pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<PathBuf, AskError> {
+pub(crate) fn control_socket(
+    socket: Option<&Path>,
+    config: Option<&Path>,
+) -> Result<PathBuf, AskError> {
     if let Some(s) = socket {
         return Ok(s.to_owned());
     }
@@ -185,7 +188,7 @@ pub fn control_socket(socket: Option<&Path>, config: Option<&Path>) -> Result<Pa
 
 /// Why a gateway asked over its control socket gave no answer.
 #[derive(Debug, thiserror::Error)]
-pub enum NoAnswer {
+pub(crate) enum NoAnswer {
     /// The socket could not be found, reached or trusted.
     #[error(transparent)]
     Ask(#[from] AskError),

@@ -11,7 +11,7 @@ use std::time::Duration;
 
 /// What the gateway answered.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum ReloadAnswer {
+pub(crate) enum ReloadAnswer {
     /// Taken: what its log says of it (each change applied, what waits for a restart).
     Taken(String),
     /// Refused (the file does not load, or adds or removes a line): why.
@@ -21,10 +21,10 @@ pub enum ReloadAnswer {
 }
 
 /// Why the gateway could not be asked.
-pub type ReloadError = NoAnswer;
+pub(crate) type ReloadError = NoAnswer;
 
 /// Asks the gateway serving the control socket at `socket` to reload.
-pub fn reload(socket: &Path) -> Result<ReloadAnswer, ReloadError> {
+pub(crate) fn reload(socket: &Path) -> Result<ReloadAnswer, ReloadError> {
     // Reading a file and applying it takes little, but the gateway may be busy.
     let answer = ask(socket, RELOAD, Duration::from_secs(35))?;
     let (head, said) = answer.split_once('\n').unwrap_or((answer.as_str(), ""));

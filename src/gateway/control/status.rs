@@ -9,7 +9,7 @@ use std::time::Duration;
 
 /// The metrics of the gateway serving the control socket at `socket`, as its
 /// `/metrics` has them; `Err(why)` inside when it answered with an error.
-pub fn metrics(socket: &Path) -> Result<Result<String, String>, NoAnswer> {
+pub(crate) fn metrics(socket: &Path) -> Result<Result<String, String>, NoAnswer> {
     let answer = ask(socket, STATUS, Duration::from_secs(10))?;
     Ok(match answer.split_once('\n') {
         Some(("ok", text)) => Ok(text.to_owned()),

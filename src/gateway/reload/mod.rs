@@ -28,7 +28,7 @@ pub(crate) type RunDials = Box<dyn Fn(&[crate::config::dial::DialConfig]) + Send
 pub(crate) type RunUdps = Box<dyn Fn(&[crate::config::ListenConfig]) -> Vec<String> + Send + Sync>;
 
 /// Reads the configuration again, as at start (the file, then the flags on top).
-pub type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
+pub(crate) type Loader = Box<dyn Fn() -> Result<Config, ConfigError> + Send + Sync>;
 
 /// What a reload did: refused (why), or done (what it applied, and what changed in the
 /// file but waits for a restart).

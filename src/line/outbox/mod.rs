@@ -429,17 +429,17 @@ impl Delivery {
     }
 
     /// The frame as it came (a reply: with the line's transaction id and unit id).
-    pub fn frame(&self) -> &Adu {
+    pub(crate) fn frame(&self) -> &Adu {
         &self.answer.frame
     }
 
     /// The transaction id it goes out with: the master's.
-    pub fn tid(&self) -> u16 {
+    pub(crate) fn tid(&self) -> u16 {
         self.answer.tid
     }
 
     /// The unit id it goes out with: the one the master asked.
-    pub fn unit(&self) -> u8 {
+    pub(crate) fn unit(&self) -> u8 {
         self.answer.unit
     }
 }

@@ -17,7 +17,7 @@ use tokio::io::{AsyncWrite, DuplexStream};
 use tokio::sync::mpsc;
 
 /// Makes the transmitter's switch at each open.
-pub type SwitchMaker = Arc<dyn Fn() -> Box<dyn Switch> + Send + Sync>;
+pub(crate) type SwitchMaker = Arc<dyn Fn() -> Box<dyn Switch> + Send + Sync>;
 
 /// A switch of the in-memory bus: `on` is the transmitter, which its switch must set.
 pub struct Bus {

@@ -16,7 +16,7 @@ use std::time::Duration;
 /// What carries a line's bytes: a pty, a UART, a USB adapter, TCP or memory (what
 /// `port_kind = "auto"` finds at each open).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Medium {
+pub(crate) enum Medium {
     /// A pseudo-terminal: bytes cross at once whatever `baud_rate` says.
     Pty,
     /// A UART of the machine's own (ttyS*, ttyAMA*): its driver, and how many bytes
@@ -50,7 +50,7 @@ pub enum Medium {
 
 /// What became of the low latency asked for (`serial.low_latency`).
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum LowLatency {
+pub(crate) enum LowLatency {
     /// The driver took it (read back with TIOCGSERIAL).
     On,
     /// `serial.low_latency = false`.
@@ -65,16 +65,16 @@ pub enum LowLatency {
 
 /// A port as found at one open.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct PortInfo {
+pub(crate) struct PortInfo {
     /// What it is.
-    pub medium: Medium,
+    pub(crate) medium: Medium,
     /// What became of the low latency asked for.
-    pub low_latency: LowLatency,
+    pub(crate) low_latency: LowLatency,
 }
 
 impl PortInfo {
     /// A port with no tty behind it (TCP, the in-memory pipe).
-    pub fn plain(medium: Medium) -> PortInfo {
+    pub(crate) fn plain(medium: Medium) -> PortInfo {
         PortInfo {
             medium,
             low_latency: LowLatency::NotApplicable,
@@ -91,7 +91,7 @@ impl Medium {
     /// Is there a wire, whose bytes take their time at `baud_rate`, between the port
     /// and the device? Not on a pty, nor in memory (TCP has its own rules: no wire
     /// time, whole frames).
-    pub fn has_wire(&self) -> bool {
+    pub(crate) fn has_wire(&self) -> bool {
         !matches!(self, Medium::Pty | Medium::Memory | Medium::Tcp)
     }
 
@@ -110,7 +110,7 @@ impl Medium {
     ///   (the USB frame, a character or two): 3 ms at 1 ms, 18 ms at 16.
     /// - any other port, TCP (an RTU reply of unknown shape over a device server):
     ///   20 ms, the floor mbgate used before it knew the port.
-    pub fn auto_floor(&self, char_time: Duration) -> Duration {
+    pub(crate) fn auto_floor(&self, char_time: Duration) -> Duration {
         const MS: Duration = Duration::from_millis(1);
         match self {
             Medium::Pty | Medium::Memory => Duration::ZERO,

@@ -8,7 +8,7 @@
 
 pub mod duplex;
 pub(crate) mod fd;
-pub mod kind;
+pub(crate) mod kind;
 pub(crate) mod lifecycle;
 pub mod serial;
 pub(crate) mod tcp;

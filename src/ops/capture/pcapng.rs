@@ -22,7 +22,7 @@
 use std::net::IpAddr;
 
 /// `LINKTYPE_WIRESHARK_UPPER_PDU`: each packet starts with exported-PDU tags.
-pub const LINKTYPE_WIRESHARK_UPPER_PDU: u16 = 252;
+pub(crate) const LINKTYPE_WIRESHARK_UPPER_PDU: u16 = 252;
 
 const SECTION_HEADER: u32 = 0x0A0D_0D0A;
 const INTERFACE_DESCRIPTION: u32 = 1;
@@ -48,7 +48,7 @@ pub const INBOUND: u32 = 0b01;
 pub const OUTBOUND: u32 = 0b10;
 /// `epb_flags`: a link-layer CRC error (bit 24; on a serial line, a CRC or LRC that
 /// failed).
-pub const CRC_ERROR: u32 = 1 << 24;
+pub(crate) const CRC_ERROR: u32 = 1 << 24;
 
 const TAG_END: u16 = 0;
 const TAG_DISSECTOR_NAME: u16 = 12;
@@ -159,17 +159,17 @@ pub fn packet(p: &EnhancedPacket<'_>) -> Vec<u8> {
 
 /// What an interface saw over a capture, for its Interface Statistics Block.
 #[derive(Debug, Default, Clone, Copy)]
-pub struct Statistics {
+pub(crate) struct Statistics {
     /// The interface, by its place among the Interface Description Blocks.
-    pub interface: u32,
+    pub(crate) interface: u32,
     /// When the capture started and ended, in microseconds since the Unix epoch.
-    pub start_us: u64,
+    pub(crate) start_us: u64,
     /// See `start_us`; also the block's own timestamp.
-    pub end_us: u64,
+    pub(crate) end_us: u64,
     /// Packets written for this interface.
-    pub received: u64,
+    pub(crate) received: u64,
     /// Packets the capture had to drop for this interface (the reader was slow).
-    pub dropped: u64,
+    pub(crate) dropped: u64,
 }
 
 fn timestamp(us: u64) -> [u8; 8] {
@@ -180,7 +180,7 @@ fn timestamp(us: u64) -> [u8; 8] {
 }
 
 /// The Interface Statistics Block of `s`.
-pub fn statistics(s: &Statistics) -> Vec<u8> {
+pub(crate) fn statistics(s: &Statistics) -> Vec<u8> {
     let mut body = Vec::new();
     body.extend(s.interface.to_le_bytes());
     body.extend(timestamp(s.end_us));

@@ -45,7 +45,7 @@ const EPB_FLAGS: u16 = 2;
 /// The most interfaces a file may declare, over all its sections. mbgate's capture has
 /// one for the TCP side and one a line; every one takes memory to read the file, so a
 /// file declaring more is damaged there, not read into memory without end.
-pub const MAX_INTERFACES: usize = 4096;
+pub(crate) const MAX_INTERFACES: usize = 4096;
 
 /// Where reading stopped, and why: the byte offset in the file of the block (or the
 /// part of it) that could not be read.
@@ -55,12 +55,12 @@ pub struct Damage {
     /// Bytes from the start of the file.
     pub offset: usize,
     /// What was wrong there.
-    pub reason: Unreadable,
+    pub(crate) reason: Unreadable,
 }
 
 /// Why a file could not be read (further).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Unreadable {
+pub(crate) enum Unreadable {
     /// The file does not start with a pcapng Section Header Block: another format (a
     /// classic pcap file, text), or not a capture at all.
     NotPcapng,
@@ -111,14 +111,14 @@ impl fmt::Display for Unreadable {
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct FileInterface {
     /// The link type (252: exported PDUs, as mbgate writes them).
-    pub link_type: u16,
+    pub(crate) link_type: u16,
     /// `if_name`, empty if none.
     pub name: String,
     /// `if_description`, empty if none (mbgate's says a line's baud rate:
     /// `line 0: RTU, 19200 baud`).
-    pub description: String,
+    pub(crate) description: String,
     /// The section it belongs to, from 0: interfaces are numbered anew in each.
-    pub section: usize,
+    pub(crate) section: usize,
     /// Ticks a second (`if_tsresol`; 10^6 by default).
     resolution: Resolution,
     /// Seconds added to each timestamp (`if_tsoffset`).
@@ -161,7 +161,7 @@ pub struct Record<'a> {
     /// `epb_flags` (bit 0 inbound, bit 1 outbound), 0 when absent.
     pub flags: u32,
     /// `opt_comment`, the first if several.
-    pub comment: Option<String>,
+    pub(crate) comment: Option<String>,
 }
 
 /// What a file held, up to its end or its damage.
@@ -230,7 +230,7 @@ fn options(order: Order, mut b: &[u8]) -> Option<Vec<(u16, &[u8])>> {
 /// section, and the interfaces declared so far. Feed it each block in turn: the first
 /// bytes to [`Blocks::length`], then the whole block to [`Blocks::block`].
 #[derive(Debug, Clone)]
-pub struct Blocks {
+pub(crate) struct Blocks {
     /// The interfaces of every section, in the order of their blocks.
     pub interfaces: Vec<FileInterface>,
     /// The interfaces of the current section: their index in `interfaces`.
@@ -255,11 +255,11 @@ impl Default for Blocks {
 
 /// The bytes [`Blocks::length`] reads of a block: its type and its length (and for a
 /// section header, its byte-order magic).
-pub const BLOCK_HEAD: usize = 12;
+pub(crate) const BLOCK_HEAD: usize = 12;
 
 impl Blocks {
     /// Damage at the block to come.
-    pub fn damage(&self, reason: Unreadable) -> Damage {
+    pub(crate) fn damage(&self, reason: Unreadable) -> Damage {
         Damage {
             offset: self.at,
             reason,
@@ -269,14 +269,14 @@ impl Blocks {
     /// Is `d` a refusal of the whole file rather than damage after a good start? Only
     /// what its first block says refuses: it is no pcapng file, or of no version read
     /// here; a first block cut short or of an impossible length is damage like any.
-    pub fn refuses(d: &Damage) -> bool {
+    pub(crate) fn refuses(d: &Damage) -> bool {
         d.offset == 0 && !matches!(d.reason, Unreadable::Truncated | Unreadable::BadLength)
     }
 
     /// The length of the block to come, from its first bytes (`head`: the next
     /// [`BLOCK_HEAD`] of the file, fewer at its end): at least 12 and a multiple of 4.
     /// A section header sets the byte order from here on.
-    pub fn length(&mut self, head: &[u8]) -> Result<usize, Damage> {
+    pub(crate) fn length(&mut self, head: &[u8]) -> Result<usize, Damage> {
         let kind = LE.u32(head, 0);
         if self.at == 0 && kind != Some(SECTION_HEADER) {
             return Err(self.damage(Unreadable::NotPcapng));
@@ -301,7 +301,7 @@ impl Blocks {
     /// Reads the whole block `block` (its length as [`Blocks::length`] gave): a
     /// packet, or `None` for a block that is none (a section, an interface, a block a
     /// replay does not need). Moves on to the next block.
-    pub fn block<'a>(&mut self, block: &'a [u8]) -> Result<Option<Record<'a>>, Damage> {
+    pub(crate) fn block<'a>(&mut self, block: &'a [u8]) -> Result<Option<Record<'a>>, Damage> {
         let total = block.len();
         let order = self.order;
         if total < 12 || order.u32(block, total - 4).map(|t| t as usize) != Some(total) {
@@ -454,7 +454,7 @@ pub struct ExportedPdu<'a> {
     /// The dissector's name (`mbtcp`, `mbrtu`, `data`), its zero padding removed.
     pub dissector: String,
     /// Source and destination ports, where the tags give them.
-    pub ports: Option<(u32, u32)>,
+    pub(crate) ports: Option<(u32, u32)>,
     /// What follows the tags.
     pub payload: &'a [u8],
 }

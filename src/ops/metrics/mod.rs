@@ -14,8 +14,8 @@ pub(crate) mod http;
 pub(crate) mod listener;
 pub(crate) mod page;
 pub(crate) mod status;
-pub mod status_command;
-pub mod web;
+pub(crate) mod status_command;
+pub(crate) mod web;
 
 use crate::ops::stats::Stats;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -208,7 +208,7 @@ pub(crate) const QUEUE_CLASSES: usize = crate::config::access::PRIORITY_MAX as u
 /// any more (a mistyped unit id, asked once) is not failing. Longer than the longest
 /// default backoff (`unit_backoff_max_ms`, 30 s), so a dead unit that masters keep
 /// polling stays failing between its probes.
-pub const HEALTH_WINDOW: Duration = Duration::from_secs(60);
+pub(crate) const HEALTH_WINDOW: Duration = Duration::from_secs(60);
 
 impl LineMetrics {
     pub(crate) fn new(name: &str, stats: Arc<Stats>) -> Self {

@@ -15,7 +15,7 @@ use std::time::{Duration, SystemTime};
 
 /// Why the gateway could not be asked.
 #[derive(Debug, thiserror::Error)]
-pub enum Unreachable {
+pub(crate) enum Unreachable {
     /// The address, the connection, or the exchange failed.
     #[error("{0}")]
     Io(#[from] std::io::Error),
@@ -50,36 +50,36 @@ pub enum Unreachable {
 
 /// Where `mbgate status` asks a gateway's metrics listener, and with what.
 #[derive(Debug, Clone, Default)]
-pub struct Asking {
+pub(crate) struct Asking {
     /// `ADDR`, `http://ADDR` or `https://ADDR`.
-    pub url: String,
+    pub(crate) url: String,
     /// https: the CA file the gateway's certificate must chain to.
-    pub ca: Option<PathBuf>,
+    pub(crate) ca: Option<PathBuf>,
     /// https: a client certificate and its key.
-    pub cert: Option<(PathBuf, PathBuf)>,
+    pub(crate) cert: Option<(PathBuf, PathBuf)>,
     /// A user and password.
-    pub login: Option<(String, String)>,
+    pub(crate) login: Option<(String, String)>,
 }
 
 /// The CA bundle of a Debian system, taken for https when no `--ca` is given.
-pub const SYSTEM_CAS: &str = "/etc/ssl/certs/ca-certificates.crt";
+pub(crate) const SYSTEM_CAS: &str = "/etc/ssl/certs/ca-certificates.crt";
 
 /// How the gateway whose metrics listener `asking` names is: the report, and whether
 /// it is healthy (every line open, every unit answering).
-pub fn ask(asking: &Asking) -> Result<(String, bool), Unreachable> {
+pub(crate) fn ask(asking: &Asking) -> Result<(String, bool), Unreachable> {
     let text = scrape(asking)?;
     Ok(summarize(&text))
 }
 
 /// The report of the metrics `text` (an exposition), and whether the gateway is
 /// healthy.
-pub fn summarize(text: &str) -> (String, bool) {
+pub(crate) fn summarize(text: &str) -> (String, bool) {
     summary(&parse(text), SystemTime::now())
 }
 
 /// What to do when nothing answers at `addr`: the metrics listener is off unless the
 /// configuration gives it an address.
-pub fn turn_on(addr: &str) -> String {
+pub(crate) fn turn_on(addr: &str) -> String {
     format!(
         "mbgate: the gateway answers `mbgate status` on its metrics listener, which is off \
          unless its configuration names an address:\n\

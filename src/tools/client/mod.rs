@@ -29,7 +29,7 @@ use std::time::{Duration, SystemTime};
 
 /// How a request ended.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Outcome {
+pub(crate) enum Outcome {
     /// A normal response.
     Reply,
     /// No answer: timeout, connection refused, port missing, or no valid reply.
@@ -40,17 +40,17 @@ pub enum Outcome {
 
 /// A session's options (`mbgate read` and `write`'s flags, `crate::cli`'s).
 #[derive(Debug, Clone)]
-pub struct Session {
+pub(crate) struct Session {
     /// The unit id asked.
-    pub unit: u8,
+    pub(crate) unit: u8,
     /// How long each request waits for its reply, in ms.
-    pub timeout_ms: u64,
+    pub(crate) timeout_ms: u64,
     /// Poll every this many ms (none: once).
-    pub poll: Option<u64>,
+    pub(crate) poll: Option<u64>,
     /// Stop polling after this many requests.
-    pub count: Option<u64>,
+    pub(crate) count: Option<u64>,
     /// Print both frames as hex.
-    pub verbose: bool,
+    pub(crate) verbose: bool,
 }
 
 /// A line on stdout; a closed stdout (`| head`) is not an error worth a panic.

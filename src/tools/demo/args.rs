@@ -12,14 +12,14 @@ pub(crate) const DEFAULT_LISTEN: SocketAddr =
 
 /// `mbgate demo`'s flags.
 #[derive(Debug, Clone, clap::Args)]
-pub struct DemoArgs {
+pub(crate) struct DemoArgs {
     /// Where Modbus/TCP masters connect [default: 127.0.0.1:5020, or a free port when
     /// another program holds 5020]
     #[arg(long, value_name = "ADDR")]
     pub(crate) listen: Option<SocketAddr>,
     /// Log every frame the gateway relays, both directions, as hex.
     #[arg(long)]
-    pub traffic: bool,
+    pub(crate) traffic: bool,
     /// Pace the simulated device's output at this many bits a second (10 bits a byte),
     /// as a UART would.
     #[arg(long, value_name = "BAUD", help_heading = "line model")]
@@ -31,15 +31,15 @@ pub struct DemoArgs {
     pub(crate) lines: u8,
     /// The simulated device, as `mbgate sim` takes it.
     #[command(flatten)]
-    pub device: DeviceArgs,
+    pub(crate) device: DeviceArgs,
     /// The device as master instead (src/tools/demo/master.rs).
     #[command(flatten)]
-    pub master: MasterDemoArgs,
+    pub(crate) master: MasterDemoArgs,
 }
 
 impl DemoArgs {
     /// The simulated device's settings, paced at `--baud` if given.
-    pub fn settings(&self) -> Result<Settings, crate::tools::sim::options::BadFlags> {
+    pub(crate) fn settings(&self) -> Result<Settings, crate::tools::sim::options::BadFlags> {
         if self.baud == Some(0) {
             return Err("--baud must be positive".into());
         }
@@ -51,11 +51,11 @@ impl DemoArgs {
 
 /// `mbgate demo --master` and its flags.
 #[derive(Debug, Clone, clap::Args)]
-pub struct MasterDemoArgs {
+pub(crate) struct MasterDemoArgs {
     /// The device as master: a simulated CIE-M10 master, mbgate's master line and a
     /// simulated CIE-M10 slave on Modbus/TCP (at --listen).
     #[arg(long, help_heading = "the device as master")]
-    pub master: bool,
+    pub(crate) master: bool,
     /// --master: the master's communication period, in ms.
     #[arg(
         long,

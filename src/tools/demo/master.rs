@@ -21,7 +21,7 @@ use tokio_util::sync::CancellationToken;
 
 /// Why the master demo stopped early.
 #[derive(Debug, thiserror::Error)]
-pub enum MasterDemoError {
+pub(crate) enum MasterDemoError {
     /// The system gave no pseudo-terminal pair.
     #[error("cannot create a pty pair: {0}")]
     Pty(#[from] tokio_serial::Error),
@@ -117,7 +117,7 @@ fn split_console(
 
 /// Runs the demo until `shutdown`. `settings` are the master's (the device flags of
 /// `mbgate demo`); the slave is a CIE-M10 with the manual's defaults.
-pub async fn run(
+pub(crate) async fn run(
     args: &DemoArgs,
     settings: Settings,
     commands: mpsc::Receiver<ConsoleRequest>,

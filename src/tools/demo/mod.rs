@@ -4,15 +4,15 @@
 
 mod args;
 pub(crate) mod invocation;
-pub mod master;
+pub(crate) mod master;
 
 use crate::config::{Config, FlowControl, Notifications, Units, FASTEST_BAUD};
 use crate::gateway::{self, GatewayError};
 use crate::tools::sim::options::Settings;
 use crate::tools::sim::serve::{self, ConsoleRequest, SimError, SimPort};
 use crate::tools::sim::Profile;
+pub(crate) use args::DemoArgs;
 use args::DEFAULT_LISTEN;
-pub use args::{DemoArgs, MasterDemoArgs};
 use std::net::SocketAddr;
 use tokio::sync::mpsc;
 use tokio_serial::{SerialPort, SerialStream};
@@ -20,7 +20,7 @@ use tokio_util::sync::CancellationToken;
 
 /// Why the demo stopped early.
 #[derive(Debug, thiserror::Error)]
-pub enum DemoError {
+pub(crate) enum DemoError {
     /// The system gave no pseudo-terminal pair.
     #[error("cannot create a pty pair: {0}")]
     Pty(#[from] tokio_serial::Error),
@@ -195,7 +195,7 @@ async fn bind(
 
 /// Runs the demo until `shutdown`; the gateway's counters at the end. `banner_shown`
 /// hears once the instructions are printed (the console waits for them).
-pub async fn run(
+pub(crate) async fn run(
     args: &DemoArgs,
     settings: Settings,
     commands: mpsc::Receiver<ConsoleRequest>,

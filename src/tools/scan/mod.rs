@@ -5,13 +5,13 @@
 //! text `report.rs`'s; here the options and the loop over settings.
 
 mod listen;
-pub mod probe;
+pub(crate) mod probe;
 mod report;
 mod serial;
-pub mod sniff;
+pub(crate) mod sniff;
 mod tcp;
 
-pub use report::{json, table};
+pub(crate) use report::{json, table};
 
 use probe::{Heard, SerialFraming, UnitList};
 use std::io::IsTerminal;
@@ -22,41 +22,41 @@ use crate::tools::wire::uart::Format;
 
 /// `mbgate scan`'s options (its flags are `crate::cli`'s).
 #[derive(Debug, Clone)]
-pub struct ScanOptions {
+pub(crate) struct ScanOptions {
     /// The serial port (or a virtual line's end) to scan.
-    pub port: Option<String>,
+    pub(crate) port: Option<String>,
     /// Scan a Modbus/TCP device or gateway at HOST:PORT instead: unit ids only.
-    pub tcp: Option<String>,
+    pub(crate) tcp: Option<String>,
     /// The baud rates to try, in order [default: 19200,9600,115200,38400,57600,4800,2400,1200]
-    pub baud: Vec<u32>,
+    pub(crate) baud: Vec<u32>,
     /// The formats to try, in order [default: 8E1,8N1,8N2,8O1]
-    pub format: Vec<Format>,
+    pub(crate) format: Vec<Format>,
     /// The framings to try, in order [default: rtu,ascii]
-    pub framing: Vec<SerialFraming>,
+    pub(crate) framing: Vec<SerialFraming>,
     /// The unit ids to try: ids and ranges, `1-247`, `1,2,10-20`.
-    pub units: UnitList,
+    pub(crate) units: UnitList,
     /// How long a device may take to answer, beyond the request's and the reply's own
     /// time on the wire (a later reply still counts, in the next units' time).
-    pub timeout_ms: u64,
+    pub(crate) timeout_ms: u64,
     /// Leave a setting after this many units got no frame with a good CRC or LRC (a
     /// setting that got one is scanned to the last unit; so are 19200 and 9600 baud,
     /// 8E1 and 8N1, RTU and ASCII, the settings most buses use).
-    pub give_up: usize,
+    pub(crate) give_up: usize,
     /// Go on to the other settings after one is found (a bus has one setting, so by
     /// default the scan ends with the first that answers).
-    pub all: bool,
+    pub(crate) all: bool,
     /// Send nothing: listen to a live bus at each setting in turn and report the
     /// setting, units, function codes, request rate and reply times heard.
-    pub listen: bool,
+    pub(crate) listen: bool,
     /// With --listen: how long to listen at each setting.
-    pub listen_secs: f64,
+    pub(crate) listen_secs: f64,
     /// Print the result as JSON instead of a table.
-    pub json: bool,
+    pub(crate) json: bool,
 }
 
 /// Why a scan could not run.
 #[derive(Debug, thiserror::Error)]
-pub enum ScanError {
+pub(crate) enum ScanError {
     /// A bad option.
     #[error("{0}")]
     Option(String),
@@ -74,26 +74,26 @@ pub enum ScanError {
 }
 
 /// A baud rate, format and framing.
-pub type SerialSetting = (u32, Format, SerialFraming);
+pub(crate) type SerialSetting = (u32, Format, SerialFraming);
 
 /// A unit that answered.
 #[derive(Debug, Clone)]
-pub struct Found {
+pub(crate) struct Found {
     /// Its id.
-    pub unit: u8,
+    pub(crate) unit: u8,
     /// Its setting (none on TCP).
-    pub serial: Option<(u32, Format, SerialFraming)>,
+    pub(crate) serial: Option<(u32, Format, SerialFraming)>,
     /// What it answered to the read.
-    pub answered: String,
+    pub(crate) answered: String,
     /// Its read device identification objects, or why none.
-    pub device_id: Result<Vec<(u8, String)>, probe::NoIdentity>,
+    pub(crate) device_id: Result<Vec<(u8, String)>, probe::NoIdentity>,
     /// Its report server id data, or why none.
-    pub server_id: Result<Vec<u8>, probe::NoIdentity>,
+    pub(crate) server_id: Result<Vec<u8>, probe::NoIdentity>,
     /// Its reply times: from the request's last byte on the line to the reply's
     /// first, each reply of its own that came in its window.
-    pub replies: Vec<Duration>,
+    pub(crate) replies: Vec<Duration>,
     /// How long into the scan it was found.
-    pub after: Duration,
+    pub(crate) after: Duration,
 }
 
 /// Reads of one register asked of each unit found, besides the first and its two
@@ -111,7 +111,7 @@ impl Found {
     }
 
     /// The median and the longest of its reply times, if any came.
-    pub fn reply_time(&self) -> Option<(Duration, Duration)> {
+    pub(crate) fn reply_time(&self) -> Option<(Duration, Duration)> {
         let mut t = self.replies.clone();
         t.sort();
         Some((*t.get(t.len() / 2)?, *t.last()?))
@@ -120,22 +120,22 @@ impl Found {
 
 /// What a scan found, and how it went.
 #[derive(Debug, Default)]
-pub struct Report {
+pub(crate) struct Report {
     /// The units that answered.
-    pub found: Vec<Found>,
+    pub(crate) found: Vec<Found>,
     /// Settings where bytes came but no frame with a good check.
-    pub garbage: Vec<(u32, Format, SerialFraming)>,
+    pub(crate) garbage: Vec<(u32, Format, SerialFraming)>,
     /// Settings where whole frames with a good check came that answered no request:
     /// the first one's unit and function code.
-    pub unanswering: Vec<(SerialSetting, (u8, u8))>,
+    pub(crate) unanswering: Vec<(SerialSetting, (u8, u8))>,
     /// What ended a `--tcp` scan's connection, when the peer closed it.
-    pub closed: Option<String>,
+    pub(crate) closed: Option<String>,
     /// Ctrl-C ended it early.
-    pub interrupted: bool,
+    pub(crate) interrupted: bool,
     /// How long it took.
-    pub elapsed: Duration,
+    pub(crate) elapsed: Duration,
     /// Tries made.
-    pub tries: usize,
+    pub(crate) tries: usize,
 }
 
 /// What a scan found: with `--listen`, what was heard; else the report.
@@ -259,7 +259,7 @@ async fn listening(
 }
 
 /// The scan itself, until done or `stop`.
-pub async fn run(
+pub(crate) async fn run(
     args: &ScanOptions,
     stop: CancellationToken,
     mut progress: Progress,
@@ -306,7 +306,7 @@ pub(crate) fn identified(found: &mut Found, device: &Heard, server: &Heard) {
 /// The progress bar on stderr, when it is a terminal: tries made and the time left at
 /// most, from the tries the give-up rule still allows.
 #[derive(Debug)]
-pub struct Progress {
+pub(crate) struct Progress {
     on: bool,
     started: Instant,
     drawn: bool,
@@ -314,7 +314,7 @@ pub struct Progress {
 
 impl Progress {
     /// Draws only when `on`.
-    pub fn new(on: bool) -> Progress {
+    pub(crate) fn new(on: bool) -> Progress {
         Progress {
             on,
             started: Instant::now(),

@@ -9,7 +9,7 @@ use crate::tools::wire::uart::Format;
 
 /// A serial framing the scan tries.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum SerialFraming {
+pub(crate) enum SerialFraming {
     /// Modbus RTU: binary, CRC-16.
     Rtu,
     /// Modbus ASCII: hex between `:` and CR LF, LRC.
@@ -18,7 +18,7 @@ pub enum SerialFraming {
 
 impl SerialFraming {
     /// As the configuration spells it.
-    pub fn name(self) -> &'static str {
+    pub(crate) fn name(self) -> &'static str {
         match self {
             SerialFraming::Rtu => "rtu",
             SerialFraming::Ascii => "ascii",
@@ -27,7 +27,7 @@ impl SerialFraming {
 
     /// The framing itself, whose frames (and their lengths) `crate::frame` makes:
     /// this enum is only the flag's values, which the pure frame code stays free of.
-    pub fn codec(self) -> Codec {
+    pub(crate) fn codec(self) -> Codec {
         match self {
             SerialFraming::Rtu => Codec::Rtu,
             SerialFraming::Ascii => Codec::Ascii,
@@ -36,16 +36,16 @@ impl SerialFraming {
 }
 
 /// The baud rates tried by default, most used first.
-pub const DEFAULT_BAUDS: [u32; 8] = [19200, 9600, 115200, 38400, 57600, 4800, 2400, 1200];
+pub(crate) const DEFAULT_BAUDS: [u32; 8] = [19200, 9600, 115200, 38400, 57600, 4800, 2400, 1200];
 
 /// The formats tried by default: the specification's default (8E1), the most used in
 /// practice (8N1), the specification's no-parity form (8N2), odd parity.
-pub const DEFAULT_FORMATS: [&str; 4] = ["8E1", "8N1", "8N2", "8O1"];
+pub(crate) const DEFAULT_FORMATS: [&str; 4] = ["8E1", "8N1", "8N2", "8O1"];
 
 /// The settings at which every unit id is tried, in this order (docs/scan.md, "What
 /// it tries"): RTU then ASCII at 19 200 and 9600 baud, 8E1 and 8N1, most buses' settings.
 /// Elsewhere a setting is left after `--give-up` silent units.
-pub const WIDE: [(u32, &str, SerialFraming); 8] = [
+pub(crate) const WIDE: [(u32, &str, SerialFraming); 8] = [
     (19200, "8E1", SerialFraming::Rtu),
     (9600, "8N1", SerialFraming::Rtu),
     (19200, "8N1", SerialFraming::Rtu),
@@ -58,20 +58,20 @@ pub const WIDE: [(u32, &str, SerialFraming); 8] = [
 
 /// One setting of the port, with the framings tried on it while it is open.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct ProbeSetting {
+pub(crate) struct ProbeSetting {
     /// Bits per second.
-    pub baud: u32,
+    pub(crate) baud: u32,
     /// Data bits, parity, stop bits.
-    pub format: Format,
+    pub(crate) format: Format,
     /// Tried in this order.
-    pub framings: Vec<SerialFraming>,
+    pub(crate) framings: Vec<SerialFraming>,
 }
 
 /// Every combination of `bauds` × `formats` × `framings`, in that order of importance,
 /// except that `first` (the likeliest: 19200 8E1 RTU, the specification's default, and
 /// 9600 8N1 RTU, the most common) go before all. Consecutive tries at one baud rate and
 /// format share one open of the port.
-pub fn order(
+pub(crate) fn order(
     bauds: &[u32],
     formats: &[Format],
     framings: &[SerialFraming],
@@ -106,19 +106,19 @@ pub fn order(
 }
 
 /// The read a unit is asked first: FC 03 (or 04) of one register at address 0.
-pub fn read_one(function: u8) -> [u8; 5] {
+pub(crate) fn read_one(function: u8) -> [u8; 5] {
     [function, 0x00, 0x00, 0x00, 0x01]
 }
 
 /// FC 43 / MEI 14, read device identification, basic stream (01) from object 0.
-pub const DEVICE_ID: [u8; 4] = [0x2B, 0x0E, 0x01, 0x00];
+pub(crate) const DEVICE_ID: [u8; 4] = [0x2B, 0x0E, 0x01, 0x00];
 
 /// FC 17, report server id.
-pub const SERVER_ID: [u8; 1] = [0x11];
+pub(crate) const SERVER_ID: [u8; 1] = [0x11];
 
 /// What came back for a request.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub enum Heard {
+pub(crate) enum Heard {
     /// Nothing at all (or only the request's own echo).
     Nothing,
     /// Bytes, but no frame with a good check for this request.
@@ -150,7 +150,7 @@ const SEARCH_LIMIT: usize = 600;
 /// read). The request's own echo
 /// at the front (an RS-232 loopback, a 2-wire RS-485 adapter) is skipped. Any start
 /// and length is tried, so garbage before or after a reply does not hide it.
-pub fn judge(framing: SerialFraming, request: &[u8], function: u8, bytes: &[u8]) -> Heard {
+pub(crate) fn judge(framing: SerialFraming, request: &[u8], function: u8, bytes: &[u8]) -> Heard {
     let bytes = bytes.strip_prefix(request).unwrap_or(bytes);
     let bytes = &bytes[..bytes.len().min(SEARCH_LIMIT)];
     if bytes.is_empty() {
@@ -211,7 +211,7 @@ pub fn judge(framing: SerialFraming, request: &[u8], function: u8, bytes: &[u8])
 }
 
 /// A reply's PDU in a few words: the register read, or the exception.
-pub fn describe(pdu: &[u8]) -> String {
+pub(crate) fn describe(pdu: &[u8]) -> String {
     match pdu {
         [fc, code, ..] if fc & 0x80 != 0 => {
             format!("FC {:02}: exception {code:02X}", fc & 0x7F)
@@ -224,7 +224,7 @@ pub fn describe(pdu: &[u8]) -> String {
 
 /// Why a unit's identity (FC 43/14 or FC 17) is not known.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
-pub enum NoIdentity {
+pub(crate) enum NoIdentity {
     /// Not asked: the scan stopped first, or the unit was found some other way.
     #[error("not asked")]
     NotAsked,
@@ -240,7 +240,7 @@ pub enum NoIdentity {
 }
 
 /// The objects of a read device identification reply, `(id, value)`, or why not.
-pub fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, NoIdentity> {
+pub(crate) fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, NoIdentity> {
     if let [fc, code, ..] = pdu {
         if fc & 0x80 != 0 {
             return Err(NoIdentity::Exception(*code));
@@ -261,7 +261,7 @@ pub fn device_id(pdu: &[u8]) -> Result<Vec<(u8, String)>, NoIdentity> {
 }
 
 /// The data of a report server id reply, or why not.
-pub fn server_id(pdu: &[u8]) -> Result<Vec<u8>, NoIdentity> {
+pub(crate) fn server_id(pdu: &[u8]) -> Result<Vec<u8>, NoIdentity> {
     match pdu {
         [fc, code, ..] if fc & 0x80 != 0 => Err(NoIdentity::Exception(*code)),
         [0x11, count, data @ ..] => Ok(data[..usize::from(*count).min(data.len())].to_vec()),
@@ -270,7 +270,7 @@ pub fn server_id(pdu: &[u8]) -> Result<Vec<u8>, NoIdentity> {
 }
 
 /// Bytes shown as text where they are printable, else as hex.
-pub fn printable(data: &[u8]) -> String {
+pub(crate) fn printable(data: &[u8]) -> String {
     if !data.is_empty() && data.iter().all(|b| (0x20..0x7F).contains(b)) {
         String::from_utf8_lossy(data).into_owned()
     } else {
@@ -280,7 +280,7 @@ pub fn printable(data: &[u8]) -> String {
 
 /// A report server id's data for a person: the run indicator status (0x00 OFF, 0xFF
 /// ON), when it is the last byte after printable text, said as such.
-pub fn server_id_text(data: &[u8]) -> String {
+pub(crate) fn server_id_text(data: &[u8]) -> String {
     match data.split_last() {
         Some((&run @ (0x00 | 0xFF), text))
             if !text.is_empty() && text.iter().all(|b| (0x20..0x7F).contains(b)) =>
@@ -298,22 +298,22 @@ pub fn server_id_text(data: &[u8]) -> String {
 /// every further unit would cost a whole timeout for nothing). Once proven, every unit
 /// is tried.
 #[derive(Debug, Clone)]
-pub struct AtSetting {
+pub(crate) struct AtSetting {
     units: Vec<u8>,
     next: usize,
     give_up: usize,
     /// A frame with a good check came at this setting.
-    pub proven: bool,
+    pub(crate) proven: bool,
     /// Some try got bytes without a frame.
-    pub garbage: bool,
+    pub(crate) garbage: bool,
     /// The first whole frame with a good check that answered no request, as
     /// `(unit, function)`.
-    pub unanswering: Option<(u8, u8)>,
+    pub(crate) unanswering: Option<(u8, u8)>,
 }
 
 impl AtSetting {
     /// Starts on `units`.
-    pub fn new(units: Vec<u8>, give_up: usize) -> AtSetting {
+    pub(crate) fn new(units: Vec<u8>, give_up: usize) -> AtSetting {
         AtSetting {
             units,
             next: 0,
@@ -325,7 +325,7 @@ impl AtSetting {
     }
 
     /// The unit to try next, if the setting is not done with.
-    pub fn next_unit(&self) -> Option<u8> {
+    pub(crate) fn next_unit(&self) -> Option<u8> {
         if !self.proven && self.next >= self.give_up {
             return None;
         }
@@ -333,7 +333,7 @@ impl AtSetting {
     }
 
     /// What the unit last returned by [`next_unit`](Self::next_unit) got.
-    pub fn record(&mut self, heard: &Heard) {
+    pub(crate) fn record(&mut self, heard: &Heard) {
         self.next += 1;
         match heard {
             Heard::Frame { .. } => self.proven = true,
@@ -346,7 +346,7 @@ impl AtSetting {
     }
 
     /// Tries left at most, as things stand (for the time left).
-    pub fn left(&self) -> usize {
+    pub(crate) fn left(&self) -> usize {
         let end = if self.proven {
             self.units.len()
         } else {
@@ -359,11 +359,11 @@ impl AtSetting {
 /// A part of a unit list that is not a unit id or a range.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{0:?}: a unit id is 1 to 247, a range A-B")]
-pub struct BadUnits(String);
+pub(crate) struct BadUnits(String);
 
 /// A list of unit ids: `1-247`, `1,2,10-20`.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct UnitList(pub Vec<u8>);
+pub(crate) struct UnitList(pub(crate) Vec<u8>);
 
 impl std::str::FromStr for UnitList {
     type Err = BadUnits;

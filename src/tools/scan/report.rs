@@ -34,7 +34,7 @@ fn identity(f: &Found) -> String {
 }
 
 /// The report as a table and a `[[line]]` block; or "nothing found" and a hint.
-pub fn table(report: &Report, target: &str, tcp: bool, args: &ScanOptions) -> String {
+pub(crate) fn table(report: &Report, target: &str, tcp: bool, args: &ScanOptions) -> String {
     let took = format!(
         "{:.1} s, {} tries{}",
         report.elapsed.as_secs_f64(),
@@ -284,7 +284,7 @@ fn found_json(f: &Found) -> String {
 }
 
 /// The report as one JSON object.
-pub fn json(report: &Report, target: &str, tcp: bool) -> String {
+pub(crate) fn json(report: &Report, target: &str, tcp: bool) -> String {
     let found: Vec<String> = report.found.iter().map(found_json).collect();
     let garbage: Vec<String> = report
         .garbage

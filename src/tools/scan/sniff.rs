@@ -13,72 +13,72 @@ use std::time::Duration;
 
 /// A frame seen on the bus, with the times its first and last bytes came.
 #[derive(Debug, Clone, PartialEq, Eq)]
-pub struct SniffedFrame {
+pub(crate) struct SniffedFrame {
     /// The unit in it.
-    pub unit: u8,
+    pub(crate) unit: u8,
     /// Its function code (with the exception bit when it is one).
-    pub function: u8,
+    pub(crate) function: u8,
     /// When its first byte came, from the start of listening.
-    pub start: Duration,
+    pub(crate) start: Duration,
     /// When its last byte came.
-    pub end: Duration,
+    pub(crate) end: Duration,
     /// Its length in bytes.
-    pub len: usize,
+    pub(crate) len: usize,
     /// Its PDU: the function code and its data.
-    pub pdu: Vec<u8>,
+    pub(crate) pdu: Vec<u8>,
 }
 
 /// What one unit did on the bus.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct UnitSeen {
+pub(crate) struct UnitSeen {
     /// The function codes asked of it, or answered by it where its request was not
     /// heard (without the exception bit).
-    pub functions: BTreeSet<u8>,
+    pub(crate) functions: BTreeSet<u8>,
     /// Requests to it.
-    pub requests: usize,
+    pub(crate) requests: usize,
     /// Replies from it, exceptions included.
-    pub replies: usize,
+    pub(crate) replies: usize,
     /// Of those, exceptions.
-    pub exceptions: usize,
+    pub(crate) exceptions: usize,
     /// From each request's last byte to its reply's first.
-    pub times: Vec<Duration>,
+    pub(crate) times: Vec<Duration>,
 }
 
 /// What the bus carried at one setting.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Traffic {
+pub(crate) struct Traffic {
     /// The frames with a good check.
-    pub frames: usize,
+    pub(crate) frames: usize,
     /// Bytes heard in all.
-    pub bytes: usize,
+    pub(crate) bytes: usize,
     /// Bytes that were in a frame.
-    pub framed: usize,
+    pub(crate) framed: usize,
     /// By unit.
-    pub units: BTreeMap<u8, UnitSeen>,
+    pub(crate) units: BTreeMap<u8, UnitSeen>,
 }
 
 impl Traffic {
     /// Whether the bus is at this setting: at least `MIN_FRAMES` frames with a good
     /// check, and most of what came in them (at a wrong setting a good check comes
     /// only by chance, now and then).
-    pub fn heard(&self) -> bool {
+    pub(crate) fn heard(&self) -> bool {
         self.frames >= MIN_FRAMES && self.framed * 2 > self.bytes
     }
 
     /// Requests in all.
-    pub fn requests(&self) -> usize {
+    pub(crate) fn requests(&self) -> usize {
         self.units.values().map(|u| u.requests).sum()
     }
 }
 
 /// Fewer frames than this prove no setting.
-pub const MIN_FRAMES: usize = 3;
+pub(crate) const MIN_FRAMES: usize = 3;
 
 /// What came at one setting: every byte, and where each read began and when. One
 /// buffer and one entry a read, so an hour of a bus takes its bytes' room and little
 /// more.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
-pub struct Listened {
+pub(crate) struct Listened {
     bytes: Vec<u8>,
     /// (the read's first byte in `bytes`, when it came), in order.
     reads: Vec<(usize, Duration)>,
@@ -86,7 +86,7 @@ pub struct Listened {
 
 impl Listened {
     /// `bytes` read at `at` (from the start of listening).
-    pub fn push(&mut self, at: Duration, bytes: &[u8]) {
+    pub(crate) fn push(&mut self, at: Duration, bytes: &[u8]) {
         if bytes.is_empty() {
             return;
         }
@@ -95,13 +95,8 @@ impl Listened {
     }
 
     /// Bytes heard in all.
-    pub fn len(&self) -> usize {
+    pub(crate) fn len(&self) -> usize {
         self.bytes.len()
-    }
-
-    /// Nothing heard.
-    pub fn is_empty(&self) -> bool {
-        self.bytes.is_empty()
     }
 
     /// When byte `i` came: the time of the read that brought it.
@@ -111,7 +106,8 @@ impl Listened {
     }
 
     /// The reads of `chunks` (each the bytes of one read and when it came), in order.
-    pub fn of(chunks: &[(Duration, Vec<u8>)]) -> Listened {
+    #[cfg(test)]
+    pub(crate) fn of(chunks: &[(Duration, Vec<u8>)]) -> Listened {
         let mut h = Listened::default();
         for (at, c) in chunks {
             h.push(*at, c);
@@ -151,7 +147,7 @@ fn rtu_lengths(b: &[u8]) -> Vec<usize> {
 }
 
 /// The frames with a good check in what was `heard`, in order.
-pub fn frames(framing: SerialFraming, heard: &Listened) -> Vec<SniffedFrame> {
+pub(crate) fn frames(framing: SerialFraming, heard: &Listened) -> Vec<SniffedFrame> {
     let bytes = &heard.bytes;
     let mut out = Vec::new();
     let mut i = 0;
@@ -243,7 +239,7 @@ fn retry_gap(seen: &[SniffedFrame]) -> Option<Duration> {
 /// A frame that answers no request heard (the listening began after its request) is
 /// its unit's reply, without a time; one that can be neither is counted only among
 /// the frames. Anything else, and everything to unit 0, is a request.
-pub fn traffic(framing: SerialFraming, heard: &Listened) -> Traffic {
+pub(crate) fn traffic(framing: SerialFraming, heard: &Listened) -> Traffic {
     let seen = frames(framing, heard);
     let window = retry_gap(&seen).map(|g| g / 2);
     let mut t = Traffic {

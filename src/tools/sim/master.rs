@@ -36,7 +36,7 @@ enum Awaited {
 
 /// The master's totals, logged when it stops.
 #[derive(Debug, Default, Clone, Copy)]
-pub struct Totals {
+pub(crate) struct Totals {
     pub(crate) sent: u64,
     pub(crate) replies: u64,
     pub(crate) exceptions: u64,
@@ -60,7 +60,7 @@ struct SimulatedMaster {
 }
 
 /// Runs the master until `shutdown` (or the console's `quit`).
-pub async fn run(
+pub(crate) async fn run(
     settings: Settings,
     polling: Polling,
     port: SimPort,

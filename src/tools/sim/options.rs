@@ -10,7 +10,7 @@ use std::time::Duration;
 
 /// The device `mbgate sim --profile` simulates.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
-pub enum ProfileName {
+pub(crate) enum ProfileName {
     /// The Sollae CIE-M10/H10 of docs/protocol.md §3: 8 inputs, 8 outputs, FC 03 and 16.
     #[value(name = "cie-m10")]
     CieM10,
@@ -40,10 +40,10 @@ pub(crate) enum FaultDirection {
 
 /// The device and line options, common to `sim` and `demo`.
 #[derive(Debug, Clone, clap::Args)]
-pub struct DeviceArgs {
+pub(crate) struct DeviceArgs {
     /// The simulated device.
     #[arg(long, value_enum, default_value_t = ProfileName::CieM10)]
-    pub profile: ProfileName,
+    pub(crate) profile: ProfileName,
 
     /// cie-m10: the unit id it answers.
     #[arg(long, default_value_t = 1, help_heading = "cie-m10 profile")]
@@ -171,17 +171,17 @@ pub struct DeviceArgs {
 
     /// Log level (RUST_LOG overrides). Each packet is logged at info.
     #[arg(long, value_name = "LEVEL")]
-    pub log_level: Option<String>,
+    pub(crate) log_level: Option<String>,
     /// No console even when stdin is a terminal.
     #[arg(long)]
-    pub headless: bool,
+    pub(crate) headless: bool,
 }
 
 /// Simulator or demo flags that cannot be used: a value out of range, or flags that
 /// do not go together. The message names the flag; `mbgate` exits 2 on it.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{0}")]
-pub struct BadFlags(String);
+pub(crate) struct BadFlags(String);
 
 impl From<String> for BadFlags {
     fn from(said: String) -> Self {
@@ -198,7 +198,7 @@ impl From<&str> for BadFlags {
 /// `mbgate sim`'s settings: the device's (`device`), carrying frames as `framing`
 /// asks (MBAP unless told), or a recorded device (`replay`), and paced at `pace` bits
 /// a second when given. `framing` fits the profile: see [`framing_fits`].
-pub fn settings(
+pub(crate) fn settings(
     device: &DeviceArgs,
     replay: &ReplayArgs,
     framing: Option<Framing>,
@@ -218,7 +218,7 @@ pub fn settings(
 
 /// Whether frames may be carried as `framing` for this device: RTU and ASCII need
 /// the generic profile or a recorded device.
-pub fn framing_fits(
+pub(crate) fn framing_fits(
     device: &DeviceArgs,
     replay: &ReplayArgs,
     framing: Option<Framing>,
@@ -237,9 +237,9 @@ pub fn framing_fits(
 
 /// Validated simulator settings.
 #[derive(Debug)]
-pub struct Settings {
+pub(crate) struct Settings {
     /// The device, built from the profile flags.
-    pub device: Device,
+    pub(crate) device: Device,
     /// How frames are carried: MBAP unless `mbgate sim --framing` says otherwise.
     pub(crate) framing: Framing,
     pub(crate) baud: Option<u32>,
@@ -263,7 +263,7 @@ pub struct Settings {
 
 impl Settings {
     /// How frames are carried: as asked, else as recorded (`--replay`), else MBAP.
-    pub fn framing(&self) -> Framing {
+    pub(crate) fn framing(&self) -> Framing {
         self.framing
     }
 }

@@ -19,7 +19,7 @@ use tokio_serial::{SerialPort, SerialStream};
 
 /// Why the pty could not be made or named.
 #[derive(Debug, thiserror::Error)]
-pub enum PtyError {
+pub(crate) enum PtyError {
     /// The kernel gave no pty (none left, or no /dev/ptmx).
     #[error("cannot make a pty: {0}")]
     Make(std::io::Error),
@@ -43,7 +43,7 @@ pub enum PtyError {
 
 /// The pty's slave, held open, and the link to it, removed when dropped.
 #[derive(Debug)]
-pub struct OwnPty {
+pub(crate) struct OwnPty {
     link: PathBuf,
     slave: String,
     round_trip: Duration,
@@ -57,7 +57,7 @@ const ROUNDS: usize = 64;
 impl OwnPty {
     /// Makes the pty, measures its round trip, links `link` to its slave, and gives
     /// the master end to serve.
-    pub async fn make(link: &Path) -> Result<(SerialStream, OwnPty), PtyError> {
+    pub(crate) async fn make(link: &Path) -> Result<(SerialStream, OwnPty), PtyError> {
         let (mut master, held) = SerialStream::pair().map_err(|e| PtyError::Make(e.into()))?;
         let slave = held.name().ok_or(PtyError::Unnamed)?;
         // Before the link exists: nobody else is on the slave yet.
@@ -86,14 +86,14 @@ impl OwnPty {
     }
 
     /// The slave's own name (`/dev/pts/N`).
-    pub fn slave(&self) -> &str {
+    pub(crate) fn slave(&self) -> &str {
         &self.slave
     }
 
     /// The median time a byte took from the master to a program blocked on the slave
     /// and back, measured at start: what this pty and the two wake-ups on it add to
     /// any reply, whatever the device's own time.
-    pub fn round_trip(&self) -> Duration {
+    pub(crate) fn round_trip(&self) -> Duration {
         self.round_trip
     }
 }

@@ -28,7 +28,7 @@ pub(crate) struct Role {
 
 /// The master's timing, checked.
 #[derive(Debug, Clone, Copy)]
-pub struct Polling {
+pub(crate) struct Polling {
     pub(crate) period: Duration,
     pub(crate) timeout: Duration,
 }

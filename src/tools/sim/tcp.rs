@@ -20,7 +20,7 @@ use tracing::{debug, info};
 
 /// Binds `addr`; the address bound (port 0 becomes a real port) is logged as
 /// `serving Modbus/TCP on ADDR`.
-pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
+pub(crate) async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
     let l = TcpListener::bind(addr).await?;
     info!("serving Modbus/TCP on {}", l.local_addr()?);
     Ok(l)
@@ -28,7 +28,7 @@ pub async fn bind(addr: SocketAddr) -> std::io::Result<TcpListener> {
 
 /// Serves the device on `listener`, at most `connections` at once (a connection
 /// beyond them is closed at once), until `shutdown`.
-pub async fn run(
+pub(crate) async fn run(
     device: Device,
     listener: TcpListener,
     connections: usize,

@@ -13,7 +13,7 @@ use tokio_util::sync::CancellationToken;
 /// empty when there is no terminal). `quit`, or the end of input, cancels `shutdown`
 /// once the answer is printed. With `after`, the console shows itself only once that
 /// says so (or is dropped): the demo's banner comes first, not after a prompt.
-pub fn start(
+pub(crate) fn start(
     enabled: bool,
     shutdown: CancellationToken,
     after: Option<std::sync::mpsc::Receiver<()>>,

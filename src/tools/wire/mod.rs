@@ -4,7 +4,7 @@
 //! timing are `uart.rs`'s (pure); the ptys `pty.rs`'s; here the thin loop between them.
 
 pub mod pty;
-pub mod uart;
+pub(crate) mod uart;
 
 use crate::line::port::serial::PreciseTimer;
 use pty::PtyEnd;
@@ -17,16 +17,16 @@ use uart::{Char, Format, UartReceiver, UartSetting, UartTransmitter};
 /// How one end's characters are framed and how fast: `[BAUD,]FORMAT`, FORMAT `8N1`,
 /// `8E1`... or `auto`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct EndSpec {
+pub(crate) struct EndSpec {
     /// A baud rate fixed here, whatever the program on the end sets.
-    pub baud: Option<u32>,
+    pub(crate) baud: Option<u32>,
     /// The format; `None`: `auto`, from the termios hints.
-    pub format: Option<Format>,
+    pub(crate) format: Option<Format>,
 }
 
 /// An end's spec that is not `[BAUD,]FORMAT` or `auto`.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-pub enum BadSpec {
+pub(crate) enum BadSpec {
     /// The baud rate.
     #[error("{0:?}: a baud rate is a number above 0")]
     Baud(String),
@@ -61,24 +61,24 @@ impl std::str::FromStr for EndSpec {
 
 /// `mbgate wire`'s options (its flags are `crate::cli`'s).
 #[derive(Debug, Clone)]
-pub struct WireOptions {
+pub(crate) struct WireOptions {
     /// The paths to make for the ends (symbolic links to their ptys, removed at exit).
-    pub paths: [PathBuf; 2],
+    pub(crate) paths: [PathBuf; 2],
     /// Each end's format.
-    pub specs: [EndSpec; 2],
+    pub(crate) specs: [EndSpec; 2],
     /// The share of characters lost on the wire, 0 to 1.
-    pub loss: f64,
+    pub(crate) loss: f64,
     /// The share of characters with one bit flipped on the wire, 0 to 1.
-    pub noise: f64,
+    pub(crate) noise: f64,
     /// RS-232 echo: each end hears what it sends too.
-    pub echo: bool,
+    pub(crate) echo: bool,
     /// The seed of loss and noise.
-    pub seed: u64,
+    pub(crate) seed: u64,
 }
 
 /// Why the line could not run.
 #[derive(Debug, thiserror::Error)]
-pub enum WireError {
+pub(crate) enum WireError {
     /// A bad option.
     #[error("{0}")]
     Option(String),
@@ -106,7 +106,7 @@ struct Counts {
 }
 
 /// Runs the line until `shutdown`.
-pub async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), WireError> {
+pub(crate) async fn run(args: &WireOptions, shutdown: CancellationToken) -> Result<(), WireError> {
     for (name, p) in [("--loss", args.loss), ("--noise", args.noise)] {
         if !(0.0..=1.0).contains(&p) {
             return Err(WireError::Option(format!(

@@ -13,7 +13,7 @@ const NS: u64 = 1_000_000_000;
 /// A character's parity bit (Modbus over Serial Line V1.02 §2.5.1: even by default,
 /// none with two stop bits allowed).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Parity {
+pub(crate) enum Parity {
     /// No parity bit.
     None,
     /// The bit makes the count of ones even.
@@ -24,25 +24,25 @@ pub enum Parity {
 
 /// How a character is framed: data bits, parity, stop bits (`8E1`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Format {
+pub(crate) struct Format {
     /// 5 to 8.
-    pub data_bits: u8,
+    pub(crate) data_bits: u8,
     /// The parity bit, if any.
-    pub parity: Parity,
+    pub(crate) parity: Parity,
     /// 1 or 2.
-    pub stop_bits: u8,
+    pub(crate) stop_bits: u8,
 }
 
 impl Format {
     /// 8 data bits, no parity, 1 stop bit.
-    pub const N81: Format = Format {
+    pub(crate) const N81: Format = Format {
         data_bits: 8,
         parity: Parity::None,
         stop_bits: 1,
     };
 
     /// Bits on the wire per character: start, data, parity, stop.
-    pub fn bits(self) -> u32 {
+    pub(crate) fn bits(self) -> u32 {
         1 + u32::from(self.data_bits)
             + u32::from(self.parity != Parity::None)
             + u32::from(self.stop_bits)
@@ -52,7 +52,7 @@ impl Format {
 /// A character format that is not one.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("{0:?}: expected a format like 8N1, 8E1, 8O1 or 8N2")]
-pub struct BadFormat(String);
+pub(crate) struct BadFormat(String);
 
 impl std::str::FromStr for Format {
     type Err = BadFormat;
@@ -100,16 +100,16 @@ impl std::fmt::Display for Format {
 
 /// One end's UART: its baud rate and format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct UartSetting {
+pub(crate) struct UartSetting {
     /// Bits per second (above 0).
-    pub baud: u32,
+    pub(crate) baud: u32,
     /// How it frames a character.
-    pub format: Format,
+    pub(crate) format: Format,
 }
 
 impl UartSetting {
     /// A character's time on the wire, in nanoseconds, rounded up.
-    pub fn char_ns(self) -> u64 {
+    pub(crate) fn char_ns(self) -> u64 {
         after_bits(self.format.bits(), self.baud)
     }
 }
@@ -122,7 +122,7 @@ fn after_bits(i: u32, baud: u32) -> u64 {
 
 /// The levels of a character's bits as they go out, first bit in bit 0: the start bit
 /// (0), the data bits least significant first, the parity bit, the stop bits (1).
-pub fn frame(byte: u8, format: Format) -> u16 {
+pub(crate) fn frame(byte: u8, format: Format) -> u16 {
     let data_mask = (1u16 << format.data_bits) - 1;
     let data = u16::from(byte) & data_mask;
     let mut bits = data << 1;
@@ -149,20 +149,20 @@ pub fn frame(byte: u8, format: Format) -> u16 {
 /// A character on the line: when its start bit begins, how fast its bits go, their
 /// levels ([`frame`]) and how many there are.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Char {
+pub(crate) struct Char {
     /// When the start bit begins.
-    pub start: u64,
+    pub(crate) start: u64,
     /// The sender's baud rate.
-    pub baud: u32,
+    pub(crate) baud: u32,
     /// The levels, first bit in bit 0.
-    pub bits: u16,
+    pub(crate) bits: u16,
     /// How many bits.
-    pub len: u32,
+    pub(crate) len: u32,
 }
 
 impl Char {
     /// `byte` sent at `setting` from `start`.
-    pub fn new(start: u64, byte: u8, setting: UartSetting) -> Char {
+    pub(crate) fn new(start: u64, byte: u8, setting: UartSetting) -> Char {
         Char {
             start,
             baud: setting.baud,
@@ -172,7 +172,7 @@ impl Char {
     }
 
     /// When its last stop bit ends.
-    pub fn end(&self) -> u64 {
+    pub(crate) fn end(&self) -> u64 {
         self.start + after_bits(self.len, self.baud)
     }
 
@@ -202,7 +202,7 @@ impl Char {
 
 /// What a UART made of a character it sampled.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum Sampled {
+pub(crate) enum Sampled {
     /// A good character.
     Byte(u8),
     /// Its parity bit was wrong: the data bits as sampled.
@@ -217,20 +217,20 @@ pub enum Sampled {
 /// (termios(3): IGNPAR, INPCK, PARMRK; IGNBRK), as Linux's 8250 driver and line
 /// discipline do it.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
-pub struct ErrorHandling {
+pub(crate) struct ErrorHandling {
     /// IGNPAR: characters with parity or framing errors are dropped.
-    pub ignore: bool,
+    pub(crate) ignore: bool,
     /// INPCK: parity checked; a bad character reads as 0 (or marked, with PARMRK).
-    pub check: bool,
+    pub(crate) check: bool,
     /// PARMRK: a bad character reads as 0xFF 0x00 and itself.
-    pub mark: bool,
+    pub(crate) mark: bool,
     /// IGNBRK: a break is dropped.
-    pub ignore_break: bool,
+    pub(crate) ignore_break: bool,
 }
 
 impl ErrorHandling {
     /// The bytes the program reads for `r`.
-    pub fn deliver(self, r: Sampled, out: &mut Vec<u8>) {
+    pub(crate) fn deliver(self, r: Sampled, out: &mut Vec<u8>) {
         match r {
             Sampled::Byte(b) => out.push(b),
             Sampled::Parity(b) | Sampled::Framing(b) => {
@@ -261,7 +261,7 @@ impl ErrorHandling {
 /// bit found where the line is low (checked again half a bit later), each further bit
 /// sampled in its middle, the next start searched from the middle of the stop bit.
 #[derive(Debug, Default)]
-pub struct UartReceiver {
+pub(crate) struct UartReceiver {
     /// Characters on the line, ordered by start.
     chars: VecDeque<Char>,
     /// Where the search for the next start bit begins.
@@ -270,23 +270,23 @@ pub struct UartReceiver {
 
 /// What [`Receiver::poll`] found due.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Arrival {
+pub(crate) struct Arrival {
     /// When the receiver had the character: the end of its own last stop bit.
-    pub at: u64,
+    pub(crate) at: u64,
     /// What it made of it.
-    pub what: Sampled,
+    pub(crate) what: Sampled,
 }
 
 impl UartReceiver {
     /// A receiver on an idle line.
-    pub fn new() -> UartReceiver {
+    pub(crate) fn new() -> UartReceiver {
         UartReceiver::default()
     }
 
     /// A character put on the line. Characters come in order of start, each starting
     /// no earlier than the instant it is pushed at (the caller's "now"), which is what
     /// lets [`poll`](Self::poll) take the line as known up to now.
-    pub fn push(&mut self, c: Char) {
+    pub(crate) fn push(&mut self, c: Char) {
         let at = self.chars.partition_point(|k| k.start <= c.start);
         self.chars.insert(at, c);
     }
@@ -355,7 +355,7 @@ impl UartReceiver {
 
     /// The characters the receiver has taken by `now`, in order, and when the next
     /// may be due (none while the line stays idle). `now` must not go back.
-    pub fn poll(&mut self, now: u64, setting: UartSetting) -> (Vec<Arrival>, Option<u64>) {
+    pub(crate) fn poll(&mut self, now: u64, setting: UartSetting) -> (Vec<Arrival>, Option<u64>) {
         let mut out = Vec::new();
         let baud = setting.baud;
         // The middle of bit `i` of a character starting at `t0`.
@@ -393,13 +393,13 @@ impl UartReceiver {
 /// One end's transmitter: characters go back to back while it has them, each after the
 /// one before, never before it was written.
 #[derive(Debug, Default)]
-pub struct UartTransmitter {
+pub(crate) struct UartTransmitter {
     free_at: u64,
 }
 
 impl UartTransmitter {
     /// When the characters of `count` bytes written at `now` start, at `setting`.
-    pub fn schedule(&mut self, now: u64, count: usize, setting: UartSetting) -> Vec<u64> {
+    pub(crate) fn schedule(&mut self, now: u64, count: usize, setting: UartSetting) -> Vec<u64> {
         let first = now.max(self.free_at);
         let starts: Vec<u64> = (0..count as u64)
             .map(|i| first + after_bits((i as u32) * setting.format.bits(), setting.baud))
@@ -409,7 +409,8 @@ impl UartTransmitter {
     }
 
     /// When the last character written so far has left.
-    pub fn free_at(&self) -> u64 {
+    #[cfg(test)]
+    pub(crate) fn free_at(&self) -> u64 {
         self.free_at
     }
 }
@@ -417,7 +418,7 @@ impl UartTransmitter {
 /// What the line does to a character on its way: lost (the receiver hears an idle
 /// line), or one of its bits flipped (noise: any bit, the start and stop bits included),
 /// each with its probability, drawn from `rng` (seeded: a run can be repeated).
-pub fn disturb(c: Char, loss: f64, noise: f64, rng: &mut fastrand::Rng) -> Option<Char> {
+pub(crate) fn disturb(c: Char, loss: f64, noise: f64, rng: &mut fastrand::Rng) -> Option<Char> {
     if loss > 0.0 && rng.f64() < loss {
         return None;
     }

@@ -55,20 +55,20 @@ impl<L: OutputLine> Switch for Gpio<L> {
 /// The switch as an open port holds it: switched off when dropped, at shutdown or
 /// when the port is lost, before the line (a GPIO request) is released, so the
 /// transmitter is left off and the bus free.
-pub struct Transmitter {
+pub(crate) struct Transmitter {
     switch: Box<dyn Switch>,
 }
 
 impl Transmitter {
     /// Holds `switch`, switching it off first: a transmitter left on by a process
     /// before would hold the bus.
-    pub fn new(mut switch: Box<dyn Switch>) -> io::Result<Transmitter> {
+    pub(crate) fn new(mut switch: Box<dyn Switch>) -> io::Result<Transmitter> {
         switch.set(false)?;
         Ok(Transmitter { switch })
     }
 
     /// On to send, off to receive.
-    pub fn set(&mut self, transmit: bool) -> io::Result<()> {
+    pub(crate) fn set(&mut self, transmit: bool) -> io::Result<()> {
         self.switch.set(transmit)
     }
 }
@@ -83,7 +83,7 @@ impl Drop for Transmitter {
 
 /// Why the transmitter's switch could not be taken at an open: each names its setting.
 #[derive(Debug, thiserror::Error)]
-pub enum DirectionError {
+pub(crate) enum DirectionError {
     /// RTS cannot be switched: a pseudo-terminal, or a driver without modem lines.
     #[error(
         "serial.direction = \"rts\": {path} has no RTS to switch (a pseudo-terminal, or a \
@@ -164,13 +164,13 @@ pub enum DirectionError {
 /// the one place this is decided, for the port that takes the switch at each open
 /// (`take`) and the relay that times its delays (docs/rs485.md). `None`: the
 /// transceiver switches itself, or the kernel does (RS-485 mode).
-pub fn gateway_switches(cfg: &SerialConfig) -> bool {
+pub(crate) fn gateway_switches(cfg: &SerialConfig) -> bool {
     cfg.direction != Direction::None
 }
 
 /// The transmitter's switch `cfg` asks for on the open port `fd`, switched off; none
 /// where the gateway switches nothing.
-pub fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, DirectionError> {
+pub(crate) fn take(cfg: &SerialConfig, fd: RawFd) -> Result<Option<Transmitter>, DirectionError> {
     if !gateway_switches(cfg) {
         return Ok(None);
     }

@@ -18,7 +18,8 @@ mod timer;
 
 pub(crate) use detect::of_path;
 pub use open::{held_by, open};
-pub use timer::{Deadline, Lateness, PreciseTimer};
+pub use timer::PreciseTimer;
+pub(crate) use timer::{Deadline, Lateness};
 
 use super::{Control, Drain, OpenPort, Opening, Port};
 use crate::config::SerialConfig;

@@ -31,7 +31,7 @@ pub struct PreciseTimer {
 /// for the instant itself, so [`PreciseTimer::until`] never returns before it.
 /// The simulator keeps one too, for its replies' write after their instant.
 #[derive(Debug, Default)]
-pub struct Lateness {
+pub(crate) struct Lateness {
     last: [u32; Lateness::KEPT],
     next: usize,
     seen: usize,
@@ -43,7 +43,7 @@ impl Lateness {
     const MOST: u32 = 200;
 
     /// A wake (or a write) `late` after its instant.
-    pub fn record(&mut self, late: std::time::Duration) {
+    pub(crate) fn record(&mut self, late: std::time::Duration) {
         let late_us = late.as_micros().min(u128::from(Self::MOST)) as u32;
         self.last[self.next] = late_us;
         self.next = (self.next + 1) % Self::KEPT;
@@ -51,7 +51,7 @@ impl Lateness {
     }
 
     /// How much earlier to set the timer: nothing until it has seen a few wakes.
-    pub fn lead(&self) -> std::time::Duration {
+    pub(crate) fn lead(&self) -> std::time::Duration {
         if self.seen < Self::KEPT {
             return std::time::Duration::ZERO;
         }
@@ -100,7 +100,7 @@ impl PreciseTimer {
     /// call (a loop's own, which it has already read): one reading less a wait, and
     /// the timerfd, set relative to an earlier instant, still goes off no sooner than
     /// `at`.
-    pub async fn until_from(
+    pub(crate) async fn until_from(
         &mut self,
         at: tokio::time::Instant,
         now: tokio::time::Instant,
@@ -112,7 +112,7 @@ impl PreciseTimer {
     /// itself (the relay's wait): ready once `at` has passed, never before. Each poll
     /// sets the timerfd only if it is not set already for `at` or for an earlier
     /// instant still to come, and reads the clock only once the timerfd went off.
-    pub fn poll_until_from(
+    pub(crate) fn poll_until_from(
         &mut self,
         cx: &mut Context<'_>,
         at: tokio::time::Instant,
@@ -148,7 +148,7 @@ impl PreciseTimer {
 
     /// [`PreciseTimer::poll_until_from`], reading the clock first (a wait polled only
     /// when woken, [`Deadline`]).
-    pub fn poll_until(
+    pub(crate) fn poll_until(
         &mut self,
         cx: &mut Context<'_>,
         at: tokio::time::Instant,
@@ -194,7 +194,7 @@ impl PreciseTimer {
 /// docs/performance.md "A transaction on a quiet line"), this costs nothing until it
 /// goes off. Made where there is no timerfd, it is tokio's `Sleep` after all.
 #[derive(Debug)]
-pub struct Deadline {
+pub(crate) struct Deadline {
     at: tokio::time::Instant,
     on: DeadlineOn,
 }
@@ -207,7 +207,7 @@ enum DeadlineOn {
 
 impl Deadline {
     /// Goes off at `at`.
-    pub fn new(at: tokio::time::Instant) -> Deadline {
+    pub(crate) fn new(at: tokio::time::Instant) -> Deadline {
         let on = match PreciseTimer::new() {
             Ok(t) => DeadlineOn::Timerfd(t),
             Err(e) => {
@@ -219,7 +219,7 @@ impl Deadline {
     }
 
     /// Goes off at `at` instead.
-    pub fn reset(&mut self, at: tokio::time::Instant) {
+    pub(crate) fn reset(&mut self, at: tokio::time::Instant) {
         self.at = at;
         if let DeadlineOn::Tokio(sleep) = &mut self.on {
             sleep.as_mut().reset(at);

@@ -7,14 +7,14 @@ use crate::tools::sim::generic::{pack, registers};
 
 /// What the user chose for what the capture does not say.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub struct Choices {
+pub(crate) struct Choices {
     /// The exception for an address never read (02, illegal data address, unless
     /// `--unknown-exception` says otherwise).
-    pub unknown: u8,
+    pub(crate) unknown: u8,
     /// `--read-only`: refuse every write.
-    pub read_only: bool,
+    pub(crate) read_only: bool,
     /// `--timeline`: values as they were at the same time into the capture.
-    pub timeline: bool,
+    pub(crate) timeline: bool,
 }
 
 impl Default for Choices {

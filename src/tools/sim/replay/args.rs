@@ -4,7 +4,7 @@ use std::path::PathBuf;
 
 /// A recorded device instead of a profile.
 #[derive(Debug, Clone, Default, clap::Args)]
-pub struct ReplayArgs {
+pub(crate) struct ReplayArgs {
     /// Replay the devices a capture of `mbgate capture` (or its `[capture] file`
     /// ring) recorded on the gateway's lines, instead of a profile. Repeat for
     /// several files (a ring, several days): where they disagree, the latest wins.
@@ -18,11 +18,11 @@ pub struct ReplayArgs {
             "toggle_ms", "units", "fill", "coils", "registers", "role",
         ]
     )]
-    pub replay: Vec<PathBuf>,
+    pub(crate) replay: Vec<PathBuf>,
     /// Play the values back over time as they were recorded (from the capture's
     /// start, at its pace; the last value after its end), rather than the last seen.
     #[arg(long, requires = "replay", help_heading = "replay")]
-    pub timeline: bool,
+    pub(crate) timeline: bool,
     /// The exception for an address the capture never saw read (02, illegal data
     /// address, by default).
     #[arg(
@@ -32,20 +32,20 @@ pub struct ReplayArgs {
         value_parser = clap::value_parser!(u8).range(1..=255),
         help_heading = "replay"
     )]
-    pub unknown_exception: u8,
+    pub(crate) unknown_exception: u8,
     /// Refuse every write, with the exception the device gave to a write if the
     /// capture has one, else 01 (illegal function). Without it, writes change the
     /// replayed values.
     #[arg(long, requires = "replay", help_heading = "replay")]
-    pub read_only: bool,
+    pub(crate) read_only: bool,
     /// Say what the files hold, unit by unit, and exit.
     #[arg(long, requires = "replay", help_heading = "replay")]
-    pub summary: bool,
+    pub(crate) summary: bool,
 }
 
 impl ReplayArgs {
     /// The choices for what the capture does not say.
-    pub fn choices(&self) -> super::Choices {
+    pub(crate) fn choices(&self) -> super::Choices {
         super::Choices {
             unknown: self.unknown_exception,
             read_only: self.read_only,

@@ -15,7 +15,7 @@ use std::path::{Path, PathBuf};
 
 /// A file that cannot be replayed.
 #[derive(Debug, thiserror::Error)]
-pub enum LoadError {
+pub(crate) enum LoadError {
     /// It could not be read.
     #[error("--replay {path}: {error}")]
     Io {
@@ -130,7 +130,7 @@ fn next_block(
 }
 
 /// Reads `paths` into a replay with `choices`; `seed` seeds the delays' draw.
-pub fn load(paths: &[PathBuf], choices: Choices, seed: u64) -> Result<Replay, LoadError> {
+pub(crate) fn load(paths: &[PathBuf], choices: Choices, seed: u64) -> Result<Replay, LoadError> {
     let mut model = Model::new(choices.timeline);
     let mut warnings = Vec::new();
     let (mut requests, mut lines) = (0, 0);

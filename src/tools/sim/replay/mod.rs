@@ -8,13 +8,13 @@
 //! - [`args`] is the command line.
 
 mod answer;
-pub mod args;
+pub(crate) mod args;
 mod learn;
 mod load;
 mod model;
 
-pub use answer::Choices;
-pub use load::{load, LoadError};
+pub(crate) use answer::Choices;
+pub(crate) use load::load;
 
 use super::Answer;
 use std::time::{Duration, Instant};
@@ -43,9 +43,9 @@ pub struct Replay {
     /// Draws each reply's delay from the unit's recorded ones.
     rng: fastrand::Rng,
     /// What the files hold, unit by unit (`--summary`, the log at start, `list`).
-    pub summary: String,
+    pub(crate) summary: String,
     /// Files read only up to their damage, and why.
-    pub warnings: Vec<String>,
+    pub(crate) warnings: Vec<String>,
 }
 
 impl PartialEq for Replay {
@@ -58,12 +58,12 @@ impl Eq for Replay {}
 
 impl Replay {
     /// The unit ids replayed.
-    pub fn units(&self) -> Vec<u8> {
+    pub(crate) fn units(&self) -> Vec<u8> {
         self.model.units.keys().copied().collect()
     }
 
     /// How the first unit's line carried its frames, if the capture says.
-    pub fn framing(&self) -> Option<crate::config::Framing> {
+    pub(crate) fn framing(&self) -> Option<crate::config::Framing> {
         self.model.units.values().find_map(|u| u.framing)
     }
 

@@ -28,14 +28,14 @@ mod tcp;
 
 /// A console command and where its answer goes.
 #[derive(Debug)]
-pub struct ConsoleRequest {
+pub(crate) struct ConsoleRequest {
     pub(crate) command: ConsoleCommand,
     pub(crate) reply: oneshot::Sender<String>,
 }
 
 /// Where the simulated device sits.
 #[derive(Debug)]
-pub enum SimPort {
+pub(crate) enum SimPort {
     /// A serial port or pty by path, reopened with backoff when it goes away.
     Path(SerialConfig),
     /// An open pty end (`mbgate demo`); losing it ends the simulator.
@@ -47,7 +47,7 @@ pub enum SimPort {
 
 /// Why the simulator stopped.
 #[derive(Debug, thiserror::Error)]
-pub enum SimError {
+pub(crate) enum SimError {
     /// Reading or writing the serial port or connection failed.
     #[error("the simulator's port was lost: {0}")]
     Lost(std::io::Error),
@@ -133,7 +133,7 @@ struct Sim {
 }
 
 /// Runs the simulator until `shutdown` (or the console's `quit`).
-pub async fn run(
+pub(crate) async fn run(
     settings: Settings,
     port: SimPort,
     mut commands: mpsc::Receiver<ConsoleRequest>,
