@@ -11,8 +11,10 @@
 // name; the rest is `pub(crate)` (docs/architecture.md "House rules": `unreachable_pub`
 // and tests/packaging/docs/surface.rs hold it). `masters` is used only inside.
 //
-// The wings are layers, each importing only the wings after it here
-// (docs/architecture.md "The wings"; tests/packaging/docs/map.rs holds it).
+// The wings are layers, each importing only the wings below it: cli > tools > gateway >
+// masters > line > ops > tls > config > access > frame (docs/architecture.md "The
+// wings"; tests/packaging/docs/map.rs holds it). rustfmt keeps the lines below in
+// alphabetical order, so that order is not this one.
 #![deny(unsafe_code)]
 
 pub mod access;
