@@ -45,7 +45,7 @@ taken it off the bus (usb_serial_read, usb_wakeup: its bus is NULL). With a pty 
 and a reply on its way it came at the first pull. A closed socket line detaches the
 adapter first (usb-serial's CHR_EVENT_CLOSED) and takes the chardev's read watch away,
 so nothing reaches the adapter afterwards; device_del waits until QOM says
-`attached` is false.
+`attached` is false. scripts/usb-unplug-race plays the race both ways in seconds.
 """
 
 from __future__ import annotations
