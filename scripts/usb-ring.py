@@ -6,19 +6,22 @@ the gateway in the guest through its network, and the hand that pulls the adapte
 and puts it back (QMP device_del and device_add), as the guest's scripts/usb-check
 asks over a control port.
 
-    usb-ring.py --qmp SOCK --ctl SOCK --line PTY --modbus PORT --metrics PORT
+    usb-ring.py --qmp SOCK --ctl SOCK --line SOCK --modbus PORT --metrics PORT
                 --python VENV_PYTHON --tests DIR --work DIR --results FILE
 
-The adapter's line (the chardev's pty, --line) is routed, a whole RTU request at a
-time, to the device serving its unit: pymodbus' RTU server (tests/py/serial_device.py,
-unit 1) or a raw RTU device (tests/py/lone_device.py, unit 17), each on a socat pty
-pair, at 19200 8N1; a request to any other unit reaches nobody (silence, as on a bus).
-Their replies go back on the line. The masters are tests/py/value_masters.py (pymodbus'
-and pipelining ones, every reply checked by value).
+The adapter's line (the chardev `usbline`, a unix socket QEMU listens on: --line) is
+connected while the adapter is in and routed, a whole RTU request at a time, to the
+device serving its unit: pymodbus' RTU server (tests/py/serial_device.py, unit 1) or a
+raw RTU device (tests/py/lone_device.py, unit 17), each on a socat pty pair, at 19200
+8N1; a request to any other unit reaches nobody (silence, as on a bus). Their replies
+go back on the line while the adapter is in; one made while it is out goes nowhere, as
+on a bus whose adapter was pulled. The masters are tests/py/value_masters.py
+(pymodbus' and pipelining ones, every reply checked by value).
 
 The guest asks, one line each way on the control port:
-  PLUG PORT        device_add on xhci port PORT; "OK"
-  UNPLUG           device_del; "OK"
+  PLUG PORT        device_add on xhci port PORT, then the line connected (which
+                   attaches it); "OK"
+  UNPLUG           the line closed (which detaches it), then device_del; "OK"
   MASTERS          starts the masters (once); "OK"
   WINDOW NAME      the masters' answers since the last WINDOW (or since they started);
                    also writes a result line NAME-masters: every answer a right value
@@ -33,6 +36,16 @@ The guest asks, one line each way on the control port:
                    mbgate_line_outage_seconds_total, read from its /metrics
   END              stops everything; "OK"
 Result lines (PASS, FAIL, FIGURE) the host judges go to --results.
+
+Why the line is closed before device_del: QEMU 7.2 (bookworm's) dies of a SIGSEGV when
+bytes reach usb-serial's chardev in the main loop's turn that runs device_del. The
+chardev's read handler sizes its read before that turn's callbacks run, while the
+adapter is still attached, and hands the bytes to the adapter after device_del has
+taken it off the bus (usb_serial_read, usb_wakeup: its bus is NULL). With a pty line
+and a reply on its way it came at the first pull. A closed socket line detaches the
+adapter first (usb-serial's CHR_EVENT_CLOSED) and takes the chardev's read watch away,
+so nothing reaches the adapter afterwards; device_del waits until QOM says
+`attached` is false. scripts/usb-unplug-race plays the race both ways in seconds.
 """
 
 from __future__ import annotations
@@ -43,6 +56,7 @@ import json
 import math
 import os
 import random
+import socket
 import statistics
 import termios
 import time
@@ -163,19 +177,48 @@ class Ring:
             line = await asyncio.wait_for(dev.stdout.readline(), 30)
             assert line.strip() == b"READY", f"{script}: {line!r}"
             self.devices[unit] = raw_pty(near)
-        self.line = raw_pty(self.a.line)
         loop = asyncio.get_running_loop()
-        loop.add_reader(self.line, self.from_line)
         for unit, fd in self.devices.items():
             loop.add_reader(fd, self.from_device, unit)
         self.line_buf = b""
         self.dev_buf = {u: b"" for u in self.devices}
 
+    def connect_line(self) -> None:
+        """The adapter's line connected: QEMU's usb-serial attaches as it sees it."""
+        sock = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
+        sock.connect(self.a.line)
+        sock.setblocking(False)
+        self.line_sock = sock
+        self.line = sock.fileno()
+        self.line_buf = b""
+        asyncio.get_running_loop().add_reader(self.line, self.from_line)
+
+    def close_line(self) -> None:
+        """The adapter's line closed: QEMU's usb-serial detaches as it sees it; what was
+        on its way is lost, as with an adapter pulled out."""
+        if self.line < 0:
+            return
+        asyncio.get_running_loop().remove_reader(self.line)
+        self.line_sock.close()
+        self.line = -1
+
+    def to_line(self, data: bytes) -> None:
+        if self.line < 0:
+            return  # the adapter is out: to nowhere
+        try:
+            self.line_sock.send(data)
+        except (BlockingIOError, OSError):
+            pass
+
     def from_line(self) -> None:
         try:
-            self.line_buf += os.read(self.line, 4096)
+            got = os.read(self.line, 4096)
         except (BlockingIOError, OSError):
             return
+        if not got:
+            self.close_line()
+            return
+        self.line_buf += got
         while True:
             n = request_length(self.line_buf)
             if n is None or len(self.line_buf) < max(n, 1):
@@ -204,33 +247,48 @@ class Ring:
         if n is None or len(buf) < max(n, 1):
             return
         frame, self.dev_buf[unit] = (buf[:n], buf[n:]) if n else (buf, b"")
-        if self.arm == "reply" and len(frame) > 2:
+        if self.arm == "reply" and len(frame) > 2 and self.line >= 0:
             # Half a reply on the wire, then the adapter is gone.
-            os.write(self.line, frame[: len(frame) // 2])
+            self.to_line(frame[: len(frame) // 2])
             self.arm = None
             self.armed.set()
             return
-        os.write(self.line, frame)
+        self.to_line(frame)
+
+    async def attached(self) -> bool:
+        r = await self.qmp.call("qom-get", path="/machine/peripheral/adapter", property="attached")
+        return bool(r["return"])
+
+    async def until_attached(self, want: bool) -> None:
+        for _ in range(500):
+            if await self.attached() == want:
+                return
+            await asyncio.sleep(0.01)
+        raise RuntimeError(f"usb-serial never {'attached' if want else 'detached'} (5 s)")
 
     async def plug(self, port: int) -> None:
-        # always-plugged: attached as it is added, whatever QEMU makes of the pty's
-        # far side (it otherwise waits until it sees the chardev connected).
-        # The chardev of the adapter just removed is let go a moment after (the device
-        # is finalized later): "Device 'usbline' is in use" until then.
+        # Added without its line (not always-plugged), then attached as the line
+        # connects. The chardev of the adapter just removed is let go a moment after
+        # (the device is finalized later): "Device 'usbline' is in use" until then.
         for attempt in range(100):
             try:
                 await self.qmp.call(
                     "device_add", driver="usb-serial", id="adapter", chardev="usbline",
-                    bus="xhci.0", port=str(port), serial="A50285BI", **{"always-plugged": True},
+                    bus="xhci.0", port=str(port), serial="A50285BI",
                 )
                 break
             except RuntimeError as e:
                 if "in use" not in str(e) or attempt == 99:
                     raise
                 await asyncio.sleep(0.02)
+        self.connect_line()
+        await self.until_attached(True)
         self.port, self.plugged = port, True
 
     async def unplug(self) -> None:
+        # The line first (the module notes): detached, nothing more reaches it.
+        self.close_line()
+        await self.until_attached(False)
         await self.qmp.call("device_del", id="adapter")
         # The chardev is free again once the device is gone.
         for _ in range(200):
@@ -299,6 +357,10 @@ class Ring:
                 self.armed.clear()
                 try:
                     await asyncio.wait_for(self.armed.wait(), 10)
+                    if how == "reply":
+                        # The half reply let into the adapter first: the line's close
+                        # drops what QEMU has not read of it yet.
+                        await asyncio.sleep(0.02)
                 except asyncio.TimeoutError:
                     self.arm = None
             pulled = time.monotonic()

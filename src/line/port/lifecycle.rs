@@ -227,6 +227,12 @@ impl Lifecycle {
         let soonest = self.tried_at.map_or(now, |t| now.max(t + WAKE_GAP));
         if let State::Closed { retry_at } = &mut self.state {
             *retry_at = soonest.min(*retry_at);
+            debug!(
+                path = %self.transport.name(),
+                "{} may be back: next attempt in {} ms",
+                self.transport.kind(),
+                retry_at.saturating_duration_since(now).as_millis()
+            );
         }
     }
 

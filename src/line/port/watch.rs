@@ -126,6 +126,7 @@ impl NodeWatch {
                 tracing::debug!(path = %path.display(), dir = %watching.dir.display(), "no inotify watch: {e}")
             })
             .ok()?;
+        said_watching(path, &watching);
         let mut w = NodeWatch {
             path: path.to_owned(),
             fd,
@@ -148,6 +149,7 @@ impl NodeWatch {
         }
         match arm(&now) {
             Ok(fd) => {
+                said_watching(&self.path, &now);
                 self.fd = fd;
                 self.watching = now;
                 self.check_after_arming();
@@ -186,6 +188,17 @@ impl NodeWatch {
             }
         }
     }
+}
+
+/// Where the watch now waits, at debug level: with the attempts' errors, the story of
+/// an outage whose port came back later than its node.
+fn said_watching(path: &Path, at: &AwaitedPart) {
+    tracing::debug!(
+        path = %path.display(),
+        "watching {} for {:?}",
+        at.dir.display(),
+        at.name
+    );
 }
 
 /// Waits until `watch` says something changed; for ever where there is none.
