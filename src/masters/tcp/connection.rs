@@ -5,8 +5,9 @@
 //! replies owed written at the end), why it ended, and how a capture shows its frames.
 
 use super::codec::{self, MasterCodec};
+use super::live::Running;
 use super::{echo, Shared};
-use crate::config::{Config, ListenConfig, ListenFraming, Transport};
+use crate::config::{ListenConfig, ListenFraming, Transport};
 use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::line::relay::ConnId;
@@ -30,8 +31,9 @@ use tracing::debug;
 pub(super) struct Connection {
     pub(super) id: ConnId,
     pub(super) peer: SocketAddr,
-    pub(super) cfg: Arc<Config>,
-    pub(super) running: Arc<std::sync::Mutex<Config>>,
+    /// The configuration as it runs now (a reload changes it); each task reads it
+    /// through a [`super::live::Live`] of its own.
+    pub(super) running: Running,
     pub(super) listen: Arc<ListenConfig>,
     pub(super) router: Arc<Router>,
     pub(super) stats: Arc<Stats>,
@@ -108,7 +110,6 @@ impl Connection {
         Connection {
             id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
             peer,
-            cfg: shared.cfg.clone(),
             running: shared.running.clone(),
             listen,
             router: shared.router.clone(),
@@ -166,13 +167,15 @@ impl Connection {
                 // gateway shuts down (what is on the line within the response timeout
                 // and its retries), else in its turn. Only shutdown bounds the wait
                 // here; a master that stops reading meanwhile is closed by the writer.
-                let bound = self.cfg.answer_within() + Duration::from_secs(1);
                 tokio::select! {
                     _ = outbox.settled() => {}
                     _ = &mut writer => {}
                     _ = async {
                         self.shutdown.cancelled().await;
-                        tokio::time::sleep(bound).await;
+                        // The configuration's as it runs at shutdown, as the
+                        // gateway's own drain.
+                        let bound = self.running.borrow().answer_within();
+                        tokio::time::sleep(bound + Duration::from_secs(1)).await;
                     } => {}
                 }
             }
@@ -219,9 +222,10 @@ impl Connection {
         });
         self.capture.connected(self.id, self.peer);
         // A framing with no transaction id (RTU over TCP): one request at a time, and
-        // no notifications (nothing would tell them from a reply).
+        // no notifications (nothing would tell them from a reply). The outbox's size is
+        // fixed at connect (a reload does not change `max_pending_per_connection`).
         let pending = if C::IDS {
-            self.cfg.max_pending_per_connection()
+            self.running.borrow().max_pending_per_connection()
         } else {
             1
         };
@@ -230,10 +234,12 @@ impl Connection {
         let notified = C::IDS && self.listen.transport != Transport::Udp;
         let attached = !notified || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs
-        // now; told under its lock, so a reload's new classes never arrive before
-        // the old one (src/gateway/reload/mod.rs `reclassify`).
+        // now; told while the watch's value is borrowed (its read lock), and a reload
+        // publishes the new configuration and reclassifies the masters under its
+        // write lock (src/gateway/reload/mod.rs `reclassify`): so a reload's new
+        // class never arrives before the old one.
         {
-            let running = self.running.lock().expect("not poisoned");
+            let running = self.running.borrow();
             let role = self.grant.as_ref().map(|g| g.role.as_str());
             let class = running.priority_of(&self.listen, role);
             self.router.classify(self.id, class);

@@ -99,9 +99,11 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
     let mut outage = Outage::new(&name, &dial);
     let shutdown = shared.shutdown.clone();
     loop {
+        // As the configuration runs now (a reload does not change it).
+        let max_pending = shared.running.borrow().max_pending_per_connection();
         let attempt = tokio::select! {
             _ = shutdown.cancelled() => break,
-            a = connect(&dial, shared.cfg.max_pending_per_connection()) => a,
+            a = connect(&dial, max_pending) => a,
         };
         match attempt {
             Err(why) => outage.failed(&why),
@@ -224,7 +226,7 @@ fn connection(
                 dial.identity.clone(),
                 dial.heartbeat.clone(),
                 Duration::from_millis(dial.connect_timeout_ms),
-                super::send_buffer(shared.cfg.max_pending_per_connection()) as usize,
+                super::send_buffer(shared.running.borrow().max_pending_per_connection()) as usize,
                 Instant::now(),
             )),
             replied: Mutex::new(super::reflect::Loops::new(Instant::now())),
@@ -267,7 +269,13 @@ async fn secure(
         stats.add(&stats.tls_refused, 1);
         return Err(DialError::NoCertificate);
     };
-    match grant(der, &shared.cfg.roles, t.default_role.as_deref()) {
+    // The roles as the configuration runs now.
+    let granted = grant(
+        der,
+        &shared.running.borrow().roles,
+        t.default_role.as_deref(),
+    );
+    match granted {
         Ok(g) => Ok((tls, g)),
         Err(refused) => {
             stats.add(&stats.tls_refused, 1);

@@ -7,7 +7,6 @@
 //! the order of the requests (the path back is [`crate::line::outbox`]). Here: the
 //! listener's socket, and what every connection shares.
 
-use crate::config::Config;
 use crate::config::ListenConfig;
 use crate::frame::mbap::MAX_ADU;
 use crate::line::outbox;
@@ -30,6 +29,7 @@ mod connection;
 pub(crate) mod dial;
 mod echo;
 mod handshakes;
+pub(crate) mod live;
 mod reader;
 mod reflect;
 mod rtu;
@@ -85,14 +85,14 @@ pub(crate) fn send_buffer(max_pending: usize) -> u32 {
     u32::try_from(room).unwrap_or(u32::MAX)
 }
 
-/// What every listener's connections share: the configuration, the lines, the
-/// counters (each listener its own), connection ids (unique across listeners), the
-/// masters connected, shutdown and the task tracker.
+/// What every listener's connections share: the configuration as it runs, the lines,
+/// the counters (each listener its own), connection ids (unique across listeners),
+/// the masters connected, shutdown and the task tracker.
 #[derive(Clone)]
 pub(crate) struct Shared {
-    pub(crate) cfg: Arc<Config>,
-    /// The configuration as it runs now (a reload changes it): the priority classes.
-    pub(crate) running: Arc<std::sync::Mutex<Config>>,
+    /// The configuration as it runs now: the gateway's, a reload publishes the new
+    /// one through it (`tcp/live.rs`).
+    pub(crate) running: live::Running,
     pub(crate) router: Arc<Router>,
     pub(crate) stats: Arc<Stats>,
     pub(crate) shutdown: CancellationToken,

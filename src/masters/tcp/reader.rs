@@ -7,6 +7,7 @@
 
 use super::codec::MasterCodec;
 use super::connection::{Connection, Dialed, End, Ended};
+use super::live::Live;
 use super::{echo, rtu};
 use crate::access;
 use crate::frame::hex::Hex;
@@ -49,6 +50,7 @@ impl Connection {
         let mut idle_timer = (!idle.is_zero()).then(|| Woken::new(Deadline::new(last_read + idle)));
         let mut buf = BytesMut::with_capacity(512);
         let mut codec = C::default();
+        let mut live = Live::new(&self.running);
         // One wait for shutdown for the connection's life, not one registered with
         // the token and dropped again at every request.
         let mut shutdown = Woken::new(self.shutdown.cancelled());
@@ -91,7 +93,7 @@ impl Connection {
                         t = outbox.ticket() => t,
                         _ = &mut shutdown => return End::Finish,
                     };
-                    self.take::<C>(adu, ticket);
+                    self.take::<C>(&mut live, adu, ticket);
                     continue;
                 }
                 Ok(None) => {}
@@ -187,9 +189,10 @@ impl Connection {
         }
     }
 
-    /// A request read, with its ticket: logged and captured, then submitted.
-    pub(super) fn take<C: MasterCodec>(&self, adu: Adu, ticket: Ticket) {
-        if self.cfg.log.traffic {
+    /// A request read, with its ticket: logged (`log.traffic` as the configuration
+    /// runs now) and captured, then submitted.
+    pub(super) fn take<C: MasterCodec>(&self, live: &mut Live, adu: Adu, ticket: Ticket) {
+        if live.get().log.traffic {
             debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
         }
         if self.tap.on() {

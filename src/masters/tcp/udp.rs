@@ -16,6 +16,7 @@
 //! (a reload, shutdown) writes the replies its sources are owed first.
 
 use super::codec::Mbap;
+use super::live::Live;
 use super::reflect::Guard;
 use super::sources::{SourceTable, TableSource};
 use super::tally::SourceTally;
@@ -75,9 +76,11 @@ fn one_request(d: &[u8]) -> Result<Adu, Unfit> {
 /// One source: its connection, the outbox its requests take tickets from (here, in
 /// the receive loop: no task between a datagram and the line), the outbox the lines
 /// send it notifications through (`notifications = true`), when it last sent, whether
-/// its writer has ended, and its loop guards.
+/// its writer has ended, its loop guards, and the configuration as it runs (for its
+/// requests' log).
 struct Source {
     conn: Arc<Connection>,
+    live: Live,
     outbox: Outbox,
     notes: Option<Outbox>,
     last: Instant,
@@ -144,6 +147,7 @@ impl Source {
             stats.add(&stats.connections_closed, 1);
         });
         Some(Source {
+            live: Live::new(&conn.running),
             conn,
             outbox,
             notes,
@@ -165,7 +169,7 @@ impl Source {
         if self.notes.is_some() {
             self.guard.asked(self.last);
         }
-        self.conn.take::<Mbap>(adu, ticket);
+        self.conn.take::<Mbap>(&mut self.live, adu, ticket);
         true
     }
 
@@ -184,8 +188,9 @@ impl Source {
 
     /// Forgotten once the replies it is owed are written (its requests still queued
     /// on the lines among them): the listener stops, or it makes room for a new
-    /// source. At shutdown the wait is bounded by `bound`.
-    fn finish(self, tracker: &TaskTracker, shutdown: CancellationToken, bound: Duration) {
+    /// source. At shutdown the wait is bounded by the longest answer of the
+    /// configuration as it runs then, and a second more (as a connection's own).
+    fn finish(self, tracker: &TaskTracker, shutdown: CancellationToken) {
         if !self.outbox.owed() {
             return self.forget();
         }
@@ -194,7 +199,8 @@ impl Source {
                 _ = self.outbox.settled() => {}
                 _ = async {
                     shutdown.cancelled().await;
-                    tokio::time::sleep(bound).await;
+                    let bound = self.conn.running.borrow().answer_within();
+                    tokio::time::sleep(bound + Duration::from_secs(1)).await;
                 } => {}
             }
             self.forget();
@@ -219,6 +225,7 @@ impl TableSource for Source {
 /// is not sent. Best effort, as to a TCP master: one the socket cannot take at once is
 /// missed.
 async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes: Inbox) {
+    let mut live = Live::new(&conn.running);
     while let Some(d) = notes.next().await {
         if !guard.asked_within(Instant::now(), NOTIFIED_FOR) {
             continue;
@@ -231,7 +238,7 @@ async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes:
                 .note(limited, &conn.stats, conn.peer, conn.local, frame);
             continue;
         }
-        if conn.cfg.log.traffic {
+        if live.get().log.traffic {
             debug!(target: "mbgate::traffic", dir = "gw->master", conn = conn.id, "{}", Hex(frame));
         }
         if conn.tap.on() {
@@ -269,8 +276,6 @@ pub(crate) async fn datagram_loop(
     let listen = Arc::new(listen);
     let stats = shared.stats.clone();
     let mut sources: SourceTable<Source> = SourceTable::new(max_sources);
-    // How long a source forgotten with replies owed may wait for them at shutdown.
-    let bound = shared.cfg.answer_within() + Duration::from_secs(1);
     // One timer for the loop's life, moved at each sweep for idle sources.
     let sweep = tokio::time::sleep(SWEEP);
     tokio::pin!(sweep);
@@ -342,7 +347,7 @@ pub(crate) async fn datagram_loop(
         }
         if let Some(quietest) = sources.room(Instant::now()) {
             debug!(%peer, forgotten = %quietest.conn.peer, "max_connections ({max_sources}) sources: the quietest forgotten");
-            quietest.finish(&shared.tracker, shared.shutdown.clone(), bound);
+            quietest.finish(&shared.tracker, shared.shutdown.clone());
         }
         stats.add(&stats.connections, 1);
         let conn = Connection::new(&shared, listen.clone(), peer, local);
@@ -356,7 +361,7 @@ pub(crate) async fn datagram_loop(
         sources.insert(peer, source);
     }
     for s in sources.drain() {
-        s.finish(&shared.tracker, shared.shutdown.clone(), bound);
+        s.finish(&shared.tracker, shared.shutdown.clone());
     }
     debug!(%local, "UDP listener closed");
 }

@@ -5,6 +5,7 @@
 
 use super::codec::MasterCodec;
 use super::connection::{Connection, Ended};
+use super::live::Live;
 use crate::frame::hex::Hex;
 use crate::line::outbox::{Delivery, Inbox};
 use crate::ops::capture::packet::Dir;
@@ -33,9 +34,13 @@ impl Connection {
         let beat = self.dialed.as_ref().filter(|d| !d.heartbeat.is_empty());
         // Each frame is framed for the master here, in a buffer kept for the next.
         let mut buf = Vec::with_capacity(FRAME_ROOM);
+        let mut live = Live::new(&self.running);
         let Some(beat) = beat else {
             while let Some(out) = inbox.next().await {
-                if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf).await {
+                if let Err(why) = self
+                    .write_reply::<C>(&mut wr, &out, &mut buf, &mut live)
+                    .await
+                {
                     return why;
                 }
                 // `out` drops here: a reply's pipelining slot is free again, and the
@@ -52,7 +57,7 @@ impl Connection {
                     let Some(out) = out else {
                         return Ended::NoMoreReplies;
                     };
-                    if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf).await {
+                    if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf, &mut live).await {
                         return why;
                     }
                 }
@@ -68,15 +73,17 @@ impl Connection {
         }
     }
 
-    /// One reply or notification written (logged and captured first), framed in
-    /// `buf`; `Err`: why the connection must close.
+    /// One reply or notification written (logged, `log.traffic` as the configuration
+    /// runs now, and captured first), framed in `buf`; `Err`: why the connection must
+    /// close.
     async fn write_reply<C: MasterCodec>(
         &self,
         wr: &mut (impl AsyncWrite + Unpin),
         out: &Delivery,
         buf: &mut Vec<u8>,
+        live: &mut Live,
     ) -> Result<(), Ended> {
-        if self.cfg.log.traffic {
+        if live.get().log.traffic {
             debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu().as_bytes()));
         }
         if self.tap.on() {
