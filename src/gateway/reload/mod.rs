@@ -319,7 +319,7 @@ fn reload(it: &mut Reloadable) -> Option<ReloadOutcome> {
 /// configuration as it runs from now on (docs/masters.md "Priority"). Called under
 /// the running configuration's write lock (`watch::Sender::send_modify`), whose
 /// read lock a connection holds while it tells its class at connect
-/// (src/masters/tcp/connection.rs `begin`): a master that connects meanwhile tells
+/// (src/masters/tcp/connection/mod.rs `begin`): a master that connects meanwhile tells
 /// either its old class before this, or its new one.
 fn reclassify(
     running: &Config,

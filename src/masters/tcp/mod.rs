@@ -1,9 +1,9 @@
 //! The masters' side (docs/design.md §1 steps 1-2, §4 `[tcp]`, §4.1 `[[listen]]`):
 //! what its parts share. A master comes through one connection type
-//! (`tcp/connection.rs`) from any of three sources: accepted by a listener
-//! (`tcp/accept.rs`), dialed (`tcp/dial.rs`), or a UDP source (`tcp/udp.rs`); its
-//! reader (`tcp/reader.rs`) hands strictly checked requests to the line serving their
-//! unit ([`crate::masters::router`]), its writer (`tcp/writer.rs`) writes back their replies in
+//! (`tcp/connection/mod.rs`) from any of three sources: accepted by a listener
+//! (`tcp/accept/mod.rs`), dialed (`tcp/dial/mod.rs`), or a UDP source (`tcp/udp/mod.rs`); its
+//! reader (`tcp/connection/reader.rs`) hands strictly checked requests to the line serving their
+//! unit ([`crate::masters::router`]), its writer (`tcp/connection/writer.rs`) writes back their replies in
 //! the order of the requests (the path back is [`crate::line::outbox`]). Here: the
 //! listener's socket, and what every connection shares.
 
@@ -23,24 +23,15 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 mod accept;
-mod admit;
-mod codec;
 mod connection;
 pub(crate) mod dial;
-mod echo;
-mod handshakes;
 pub(crate) mod live;
-mod reader;
 mod reflect;
-mod rtu;
-mod sources;
 pub(crate) mod tally;
 pub(crate) mod udp;
-pub(crate) mod unasked;
-mod writer;
 
 pub(crate) use accept::accept_loop;
-use connection::{Connection, Dialed};
+use connection::{unasked, Connection};
 
 /// Binds the masters' listener. Every connection it accepts inherits its send buffer,
 /// capped here at room for all the replies mbgate can owe one master (the kernel
@@ -62,7 +53,7 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
     socket.listen(1024)
 }
 
-/// A listener's socket: TCP, or UDP (`tcp/udp.rs`).
+/// A listener's socket: TCP, or UDP (`tcp/udp/mod.rs`).
 pub(crate) enum Socket {
     Tcp(TcpListener),
     Udp(tokio::net::UdpSocket),

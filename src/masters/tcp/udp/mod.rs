@@ -1,27 +1,26 @@
 //! Modbus over UDP (`[[listen]]` with `transport = "udp"`, docs/dialing.md "Modbus
 //! over UDP"): each datagram one MBAP request, its reply sent to the datagram's
-//! source. Each source is a master of the one connection type (`tcp/connection.rs`:
+//! source. Each source is a master of the one connection type (`tcp/connection/mod.rs`:
 //! access, per-master order, metrics), its requests handed to the line by the receive
 //! loop itself and its replies sent by its writer: a source whose pipelining slots
 //! are all in use has its next datagrams dropped, so a flood from one address takes no
 //! more of the line than one master's share (`max_pending_per_connection`). A datagram
 //! that is not exactly one well-formed MBAP request is dropped and counted, and closes
 //! nothing; one that is an answer (an exception, a reply's shape, or the very reply
-//! its source was just sent, come back) is never answered (`tcp/unasked.rs`), and a
+//! its source was just sent, come back) is never answered (`tcp/connection/unasked.rs`), and a
 //! source's exception replies have a budget (`tcp/reflect.rs`), so no loop with
 //! another server lasts. At most `max_connections` sources at once, the quietest owed
-//! nothing forgotten for a new one (`tcp/sources.rs`); one quiet for `idle_timeout_ms`
+//! nothing forgotten for a new one (`tcp/udp/sources.rs`); one quiet for `idle_timeout_ms`
 //! is forgotten; the lines' notifications reach a source only with `notifications =
 //! true`, and only for [`NOTIFIED_FOR`] after its last request. A listener stopped
 //! (a reload, shutdown) writes the replies its sources are owed first.
 
-use super::codec::Mbap;
+use super::connection::codec::Mbap;
 use super::live::Live;
 use super::reflect::Guard;
-use super::sources::{SourceTable, TableSource};
 use super::tally::SourceTally;
 use super::unasked::Unasked;
-use super::{admit, Connection, Listening, Shared};
+use super::{accept::admit, Connection, Listening, Shared};
 use crate::config::{ListenConfig, Transport, NOTIFIED_FOR};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
@@ -30,6 +29,7 @@ use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::ops::capture::packet::Dir;
 use bytes::BytesMut;
+use sources::{SourceTable, TableSource};
 use std::future::Future;
 use std::io;
 use std::net::SocketAddr;
@@ -43,6 +43,8 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::debug;
+
+mod sources;
 
 /// Binds a UDP listener.
 pub(crate) fn bind(addr: SocketAddr) -> io::Result<UdpSocket> {

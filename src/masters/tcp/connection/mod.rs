@@ -1,12 +1,12 @@
 //! The one connection type every master comes through, whatever its source (accepted
-//! by `tcp/accept.rs`, dialed by `tcp/dial.rs`, a UDP source of `tcp/udp.rs`): what it
+//! by `tcp/accept/mod.rs`, dialed by `tcp/dial/mod.rs`, a UDP source of `tcp/udp/mod.rs`): what it
 //! is, its life from the master's arrival to its end (the codec chosen once, the
 //! router attached, its priority class, the reader and the writer run together, the
 //! replies owed written at the end), why it ended, and how a capture shows its frames.
 
-use super::codec::{self, MasterCodec};
+use super::dial::Dialed;
 use super::live::Running;
-use super::{echo, Shared};
+use super::Shared;
 use crate::config::{ListenConfig, ListenFraming, Transport};
 use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
@@ -18,14 +18,21 @@ use crate::ops::capture::{Hub, Tap};
 use crate::ops::metrics::{ConnectedMasters, MasterSeen};
 use crate::ops::stats::Stats;
 use crate::tls::server::Grant;
+use codec::MasterCodec;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
+
+pub(super) mod codec;
+mod reader;
+mod rtu;
+pub(super) mod unasked;
+mod writer;
 
 /// A master's connection.
 pub(super) struct Connection {
@@ -51,20 +58,6 @@ pub(super) struct Connection {
     pub(super) dialed: Option<Dialed>,
     /// Where answers it sends instead of requests are said.
     pub(super) unasked: Arc<super::unasked::UnaskedLog>,
-}
-
-/// What a dialed connection sends of its own, and the echoes it may get back.
-pub(super) struct Dialed {
-    /// Sent after `every` without a reply written; empty: never.
-    pub(super) heartbeat: Vec<u8>,
-    pub(super) every: Duration,
-    pub(super) echoes: Mutex<echo::Echoes>,
-    /// The last reply written that reads as a request (a write's): its echo is no
-    /// request (`tcp/reflect.rs`).
-    pub(super) replied: Mutex<super::reflect::Loops>,
-    /// How long the server may leave a reply unread before the connection is closed
-    /// (and dialed again): never for ever, since mbgate has no other way to it.
-    pub(super) stall: Duration,
 }
 
 /// Why a connection's reader stopped.
@@ -230,7 +223,7 @@ impl Connection {
             1
         };
         let (outbox, inbox) = Outbox::new(pending);
-        // A UDP source gets them through an outbox of its own, if at all (`tcp/udp.rs`).
+        // A UDP source gets them through an outbox of its own, if at all (`tcp/udp/mod.rs`).
         let notified = C::IDS && self.listen.transport != Transport::Udp;
         let attached = !notified || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs

@@ -8,7 +8,7 @@
 
 use super::connection::Ended;
 use super::tally::SourceTally;
-use super::{echo, Connection, Dialed, Shared};
+use super::{Connection, Shared};
 use crate::config::dial::{DialConfig, TlsDial};
 use crate::line::port::Backoff;
 use crate::tls::client::Connector;
@@ -23,6 +23,11 @@ use tokio::net::TcpStream;
 use tokio::time::Instant;
 use tokio_rustls::client::TlsStream;
 use tracing::{debug, info, warn};
+
+mod dialed;
+pub(super) mod echo;
+
+pub(super) use dialed::Dialed;
 
 /// Keepalive: the first probe after this much silence, then every `KEEPALIVE_EVERY`,
 /// the connection dropped after `KEEPALIVE_PROBES` unanswered (about 25 s in all, as
@@ -414,10 +419,10 @@ impl Outage {
 pub(crate) struct Dials {
     shared: Shared,
     tally: Arc<SourceTally>,
-    running: Vec<Running>,
+    running: Vec<RunningDial>,
 }
 
-struct Running {
+struct RunningDial {
     dial: DialConfig,
     stop: tokio_util::sync::CancellationToken,
     stats: Arc<crate::ops::stats::Stats>,
@@ -464,7 +469,7 @@ impl Dials {
             self.shared
                 .tracker
                 .spawn(dial_loop(format!("dial[{i}]"), d.clone(), shared));
-            self.running.push(Running {
+            self.running.push(RunningDial {
                 dial: d.clone(),
                 stop,
                 stats,

@@ -4,10 +4,10 @@
 //! replies closed, never held for ever.
 
 use super::codec::MasterCodec;
-use super::connection::{Connection, Ended};
-use super::live::Live;
+use super::{Connection, Ended};
 use crate::frame::hex::Hex;
 use crate::line::outbox::{Delivery, Inbox};
+use crate::masters::tcp::live::Live;
 use crate::ops::capture::packet::Dir;
 use std::future::Future;
 use std::task::Poll;
@@ -26,7 +26,7 @@ impl Connection {
     /// reply was written for its interval. A master that stops reading its replies
     /// for `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
     /// Why it stopped.
-    pub(super) async fn write_loop<C: MasterCodec>(
+    pub(in crate::masters::tcp) async fn write_loop<C: MasterCodec>(
         &self,
         mut wr: impl AsyncWrite + Unpin,
         mut inbox: Inbox,

@@ -1,14 +1,13 @@
 //! A master's connection reading its requests: the bytes read decoded by its codec
 //! (strictly checked; on a dialed connection, the server's echoes and answers told
-//! apart from its requests first, `tcp/echo.rs`), one pipelining slot per request,
+//! apart from its requests first, `tcp/dial/echo.rs`), one pipelining slot per request,
 //! the idle timeout, and each request checked against the access rules
 //! (docs/security.md) before it goes to the line serving its unit
 //! ([`crate::masters::router`]).
 
 use super::codec::MasterCodec;
-use super::connection::{Connection, Dialed, End, Ended};
-use super::live::Live;
-use super::{echo, rtu};
+use super::rtu;
+use super::{Connection, End, Ended};
 use crate::access;
 use crate::frame::hex::Hex;
 use crate::frame::pdu;
@@ -17,6 +16,8 @@ use crate::line::outbox::{Outbox, Refusal, Ticket};
 use crate::line::port::serial::Deadline;
 use crate::line::woken::Woken;
 use crate::masters::router::Unrouted;
+use crate::masters::tcp::dial::{echo, Dialed};
+use crate::masters::tcp::live::Live;
 use crate::ops::capture::packet::{Dir, Packet, Reason};
 use bytes::BytesMut;
 use std::time::Duration;
@@ -33,7 +34,7 @@ enum Wake {
 }
 
 impl Connection {
-    pub(super) async fn read_loop<C: MasterCodec>(
+    pub(in crate::masters::tcp) async fn read_loop<C: MasterCodec>(
         &self,
         mut rd: impl AsyncRead + Unpin,
         outbox: &mut Outbox,
@@ -191,7 +192,12 @@ impl Connection {
 
     /// A request read, with its ticket: logged (`log.traffic` as the configuration
     /// runs now) and captured, then submitted.
-    pub(super) fn take<C: MasterCodec>(&self, live: &mut Live, adu: Adu, ticket: Ticket) {
+    pub(in crate::masters::tcp) fn take<C: MasterCodec>(
+        &self,
+        live: &mut Live,
+        adu: Adu,
+        ticket: Ticket,
+    ) {
         if live.get().log.traffic {
             debug!(target: "mbgate::traffic", dir = "master->gw", conn = self.id, "{}", Hex(adu.as_bytes()));
         }
@@ -243,7 +249,7 @@ impl Connection {
         }
     }
 
-    /// On a dialed connection, what the front of `buf` is (`tcp/echo.rs`): the
+    /// On a dialed connection, what the front of `buf` is (`tcp/dial/echo.rs`): the
     /// server's echo or answer taken off (counted, said once a connection at info,
     /// then at debug), bytes held until a pause, or the codec's request.
     fn dialed_front<C: MasterCodec>(
