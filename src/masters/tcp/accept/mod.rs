@@ -4,6 +4,7 @@
 //! served by its connection (`tcp/connection/mod.rs`) on a task of its own; accept()
 //! failures backed off and said once a minute.
 
+use super::connection::Inbound;
 use super::{Connection, Listening, Shared};
 use crate::line::port::Backoff;
 use crate::tls::server::Acceptor;
@@ -103,7 +104,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             (None, slot) => {
                 tracker.spawn(async move {
                     let (rd, wr) = stream.into_split();
-                    conn.run(rd, wr).await;
+                    conn.run(Inbound, rd, wr).await;
                     closed.add(&closed.connections_closed, 1);
                     drop(slot);
                 });
@@ -281,6 +282,6 @@ async fn start_tls(
     };
     conn.grant = Some(grant);
     let (rd, wr) = tokio::io::split(stream);
-    conn.run(rd, wr).await;
+    conn.run(Inbound, rd, wr).await;
     drop(slot);
 }

@@ -53,11 +53,27 @@ pub(super) struct Connection {
     pub(super) capture: Hub,
     /// The TCP side's tap.
     pub(super) tap: Tap,
-    /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
-    /// its identity the server may send back (docs/dialing.md).
-    pub(super) dialed: Option<Dialed>,
     /// Where answers it sends instead of requests are said.
     pub(super) unasked: Arc<super::unasked::UnaskedLog>,
+}
+
+/// What a master's source adds of its own to its connection's reader and writer: a
+/// dial its heartbeat and the echoes of what it sent ([`Dialed`]); a master that came
+/// to a listener, TCP or UDP, nothing ([`Inbound`]). The reader and writer are made
+/// for each, so an accepted connection's carry no test for a dial's bytes.
+pub(in crate::masters::tcp) trait Origin: Sync {
+    /// A dialed connection's own state; `None` for any other.
+    fn dialed(&self) -> Option<&Dialed>;
+}
+
+/// A master that came to a listener (accepted, or a UDP source): nothing of its own.
+pub(in crate::masters::tcp) struct Inbound;
+
+impl Origin for Inbound {
+    #[inline(always)]
+    fn dialed(&self) -> Option<&Dialed> {
+        None
+    }
 }
 
 /// Why a connection's reader stopped.
@@ -113,26 +129,27 @@ impl Connection {
             grant: None,
             capture: shared.capture.clone(),
             tap: shared.capture.tap(0),
-            dialed: None,
             unasked: shared.unasked.clone(),
         }
     }
 
-    /// The listener's framing chosen once: the rest is written over its codec. Why
-    /// the connection ended, in words.
-    pub(super) async fn run(
+    /// The listener's framing chosen once: the rest is written over its codec, with
+    /// what the master's source adds (`origin`). Why the connection ended, in words.
+    pub(super) async fn run<O: Origin>(
         self,
+        origin: O,
         rd: impl AsyncRead + Unpin,
         wr: impl AsyncWrite + Unpin,
     ) -> Ended {
         match self.listen.framing {
-            ListenFraming::Mbap => self.serve::<codec::Mbap>(rd, wr).await,
-            ListenFraming::Rtu => self.serve::<codec::Rtu>(rd, wr).await,
+            ListenFraming::Mbap => self.serve::<codec::Mbap, O>(&origin, rd, wr).await,
+            ListenFraming::Rtu => self.serve::<codec::Rtu, O>(&origin, rd, wr).await,
         }
     }
 
-    async fn serve<C: MasterCodec>(
+    async fn serve<C: MasterCodec, O: Origin>(
         self,
+        origin: &O,
         rd: impl AsyncRead + Unpin,
         wr: impl AsyncWrite + Unpin,
     ) -> Ended {
@@ -143,8 +160,8 @@ impl Connection {
             // reader alone, where the task's every wake polled both (the reader's
             // socket, idle timer and shutdown for each reply: about 400 instructions a
             // transaction, docs/performance.md "A transaction on a quiet line").
-            let mut writer = Woken::new(self.write_loop::<C>(wr, inbox));
-            let mut reader = Woken::new(self.read_loop::<C>(rd, &mut outbox));
+            let mut writer = Woken::new(self.write_loop::<C, O>(origin, wr, inbox));
+            let mut reader = Woken::new(self.read_loop::<C, O>(origin, rd, &mut outbox));
             let end = tokio::select! {
                 end = &mut reader => end,
                 w = &mut writer => End::Closed(w),

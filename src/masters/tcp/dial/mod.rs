@@ -16,7 +16,7 @@ use crate::tls::server::{grant, Grant, RoleRefused};
 use crate::tls::TlsError;
 use socket2::{SockRef, TcpKeepalive};
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpStream;
@@ -113,15 +113,15 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
         match attempt {
             Err(why) => outage.failed(&why),
             Ok((stream, peer)) => {
-                let mut conn = connection(&shared, &listen, &dial, &stream, peer);
+                let (mut conn, dialed) = connection(&shared, &listen, &dial, &stream, peer);
                 shared.stats.add(&shared.stats.connections, 1);
                 let began = Instant::now();
                 let why = match &dial.tls {
-                    None => serve(conn, stream, &dial, &mut outage, settle).await,
+                    None => serve((conn, dialed), stream, &dial, &mut outage, settle).await,
                     Some(t) => match secure(t, &dial, stream, &shared).await {
                         Ok((tls, grant)) => {
                             conn.grant = Some(grant);
-                            serve(conn, tls, &dial, &mut outage, settle).await
+                            serve((conn, dialed), tls, &dial, &mut outage, settle).await
                         }
                         Err(why) => Err(why),
                     },
@@ -209,39 +209,21 @@ async fn connect(
     Err(last)
 }
 
-/// The connection as an accepted one is made, with the dial's own bytes.
+/// The connection as an accepted one is made, and the dial's own state beside it.
 fn connection(
     shared: &Shared,
     listen: &Arc<crate::config::ListenConfig>,
     dial: &DialConfig,
     stream: &TcpStream,
     peer: SocketAddr,
-) -> Connection {
+) -> (Connection, Dialed) {
     let local = stream
         .local_addr()
         .unwrap_or(SocketAddr::from(([0, 0, 0, 0], 0)));
-    Connection {
-        dialed: Some(Dialed {
-            heartbeat: dial.heartbeat.clone(),
-            every: Duration::from_millis(dial.heartbeat_ms),
-            // An answer to the identity or a heartbeat is owed until the server
-            // answered, or for as long as the dial waits for any of its answers; no
-            // more bytes are held for it than the replies the connection can be owed.
-            echoes: Mutex::new(echo::Echoes::new(
-                dial.identity.clone(),
-                dial.heartbeat.clone(),
-                Duration::from_millis(dial.connect_timeout_ms),
-                super::send_buffer(shared.running.borrow().max_pending_per_connection()) as usize,
-                Instant::now(),
-            )),
-            replied: Mutex::new(super::reflect::Loops::new(Instant::now())),
-            stall: Duration::from_millis(match dial.idle_timeout_ms {
-                0 => dial.connect_timeout_ms,
-                idle => idle,
-            }),
-        }),
-        ..Connection::new(shared, listen.clone(), peer, local)
-    }
+    // As the configuration runs now (a reload does not change it).
+    let max_pending = shared.running.borrow().max_pending_per_connection();
+    let dialed = Dialed::new(dial, super::send_buffer(max_pending) as usize);
+    (Connection::new(shared, listen.clone(), peer, local), dialed)
 }
 
 /// The TLS handshake with the server within `connect_timeout_ms` (the files read
@@ -293,7 +275,7 @@ async fn secure(
 /// up for `settle`, the outage (if any) is over. Why it ended; `Err`: the identity
 /// could not be sent.
 async fn serve<S: Halves>(
-    conn: Connection,
+    (conn, dialed): (Connection, Dialed),
     mut stream: S,
     dial: &DialConfig,
     outage: &mut Outage,
@@ -315,7 +297,7 @@ async fn serve<S: Halves>(
     }
     outage.connected(peer);
     let (rd, wr) = stream.halves();
-    let served = conn.run(rd, wr);
+    let served = conn.run(dialed, rd, wr);
     tokio::pin!(served);
     tokio::select! {
         why = &mut served => return Ok(why),

@@ -16,6 +16,7 @@
 //! (a reload, shutdown) writes the replies its sources are owed first.
 
 use super::connection::codec::Mbap;
+use super::connection::Inbound;
 use super::live::Live;
 use super::reflect::Guard;
 use super::tally::SourceTally;
@@ -130,7 +131,7 @@ impl Source {
         let (c, g, stats) = (conn.clone(), gone.clone(), shared.stats.clone());
         let (socket, guarded) = (socket.clone(), guard.clone());
         shared.tracker.spawn(async move {
-            let writing = c.write_loop::<Mbap>(writer, inbox);
+            let writing = c.write_loop::<Mbap, _>(&Inbound, writer, inbox);
             match notes_in {
                 None => drop(writing.await),
                 Some(notes_in) => {
