@@ -105,22 +105,12 @@ impl Source {
             conn.end();
             return None;
         };
+        let Some((notes, notes_in)) = notes(&conn, notified) else {
+            conn.end();
+            return None;
+        };
         let now = Instant::now();
         let guard = Arc::new(Guard::new(now));
-        // The lines' notifications come through an outbox of their own, with no
-        // pipelining slot: its writer knows them from replies, and sends them only to
-        // a source that asked lately.
-        let (notes, notes_in) = match notified {
-            true => {
-                let (notes, notes_in) = Outbox::new(0);
-                if !conn.router.attach(conn.id, &notes.notifier()) {
-                    conn.end();
-                    return None;
-                }
-                (Some(notes), Some(notes_in))
-            }
-            false => (None, None),
-        };
         let gone = CancellationToken::new();
         let writer = Replies {
             socket: socket.clone(),
@@ -128,25 +118,10 @@ impl Source {
             guard: guard.clone(),
             deciding: None,
         };
-        let (c, g, stats) = (conn.clone(), gone.clone(), shared.stats.clone());
-        let (socket, guarded) = (socket.clone(), guard.clone());
+        let writing = write(conn.clone(), writer, inbox, notes_in, gone.clone());
+        let stats = shared.stats.clone();
         shared.tracker.spawn(async move {
-            let writing = c.write_loop::<Mbap, _>(&Inbound, writer, inbox);
-            match notes_in {
-                None => drop(writing.await),
-                Some(notes_in) => {
-                    let forwarding = async {
-                        notify(&c, &socket, &guarded, notes_in).await;
-                        std::future::pending::<()>().await
-                    };
-                    tokio::select! {
-                        _ = writing => {}
-                        _ = forwarding => {}
-                    }
-                }
-            }
-            g.cancel();
-            c.end();
+            writing.await;
             stats.add(&stats.connections_closed, 1);
         });
         Some(Source {
@@ -223,6 +198,49 @@ impl TableSource for Source {
     }
 }
 
+/// The outbox the lines send a source their notifications through, if `notified`,
+/// and the inbox its writer takes them from: no pipelining slot in it, its writer
+/// knows them from replies and sends them only to a source that asked lately.
+/// `None`: it could not be attached (the gateway is stopping).
+fn notes(conn: &Connection, notified: bool) -> Option<(Option<Outbox>, Option<Inbox>)> {
+    if !notified {
+        return Some((None, None));
+    }
+    let (notes, notes_in) = Outbox::new(0);
+    if !conn.router.attach(conn.id, &notes.notifier()) {
+        return None;
+    }
+    Some((Some(notes), Some(notes_in)))
+}
+
+/// A source's writer: its replies written (`writer`), its notifications sent beside
+/// them if it has any, until either ends; then `gone`, and its connection ended.
+async fn write(
+    conn: Arc<Connection>,
+    writer: Replies,
+    inbox: Inbox,
+    notes: Option<Inbox>,
+    gone: CancellationToken,
+) {
+    let (socket, guard) = (writer.socket.clone(), writer.guard.clone());
+    let writing = conn.write_loop::<Mbap, _>(&Inbound, writer, inbox);
+    match notes {
+        None => drop(writing.await),
+        Some(notes) => {
+            let forwarding = async {
+                notify(&conn, &socket, &guard, notes).await;
+                std::future::pending::<()>().await
+            };
+            tokio::select! {
+                _ = writing => {}
+                _ = forwarding => {}
+            }
+        }
+    }
+    gone.cancel();
+    conn.end();
+}
+
 /// Sends a source the lines' notifications that come within [`NOTIFIED_FOR`] of its
 /// last request, as they come, until there are no more; an exception past its budget
 /// is not sent. Best effort, as to a TCP master: one the socket cannot take at once is
@@ -256,7 +274,7 @@ async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes:
 /// Takes datagrams on `socket` until `stop`. Each is handed to the line from this
 /// loop, through its source's outbox (per-source order: the order received); a
 /// source with no pipelining slot free has its datagram dropped, so a flood from one
-/// address takes no more of the line than one master's share. SourceTable quiet for
+/// address takes no more of the line than one master's share. Sources quiet for
 /// `idle_timeout_ms` are forgotten (looked for at most once a second; with 0, never
 /// for being quiet, only to make room). When it stops, each source is forgotten once
 /// it has been written the replies it is owed.
@@ -266,19 +284,7 @@ pub(crate) async fn datagram_loop(
     shared: Shared,
     stop: CancellationToken,
 ) {
-    let Listening {
-        listen,
-        name,
-        local,
-        ..
-    } = listening;
-    let mut gate = admit::Gate::new(name, listen.access.allow.clone());
-    let max_sources = listen.tcp.max_connections;
-    let idle = Duration::from_millis(listen.tcp.idle_timeout_ms);
-    let notified = listen.notifications;
-    let listen = Arc::new(listen);
-    let stats = shared.stats.clone();
-    let mut sources: SourceTable<Source> = SourceTable::new(max_sources);
+    let mut r = Receiving::new(socket, listening, shared);
     // One timer for the loop's life, moved at each sweep for idle sources.
     let sweep = tokio::time::sleep(SWEEP);
     tokio::pin!(sweep);
@@ -296,77 +302,139 @@ pub(crate) async fn datagram_loop(
             // would queue and drop a waiter of its own for each datagram.
             r = std::future::poll_fn(|cx| {
                 let mut filled = tokio::io::ReadBuf::new(&mut buf);
-                let peer = std::task::ready!(socket.poll_recv_from(cx, &mut filled));
+                let peer = std::task::ready!(r.socket.poll_recv_from(cx, &mut filled));
                 std::task::Poll::Ready(peer.map(|p| (filled.filled().len(), p)))
             }) => r,
-            _ = &mut sweep, if !idle.is_zero() && !sources.is_empty() => {
+            _ = &mut sweep, if !r.idle.is_zero() && !r.sources.is_empty() => {
                 let now = Instant::now();
-                for s in sources.forget_where(|s| s.idle(idle, now)) {
-                    s.forget();
-                }
+                r.sweep(now);
                 sweep.as_mut().reset(now + SWEEP);
                 continue;
             }
         };
-        let (n, peer) = match received {
-            Ok(r) => r,
-            Err(e) => {
-                debug!(%local, "UDP receive failed: {e}");
-                continue;
-            }
-        };
-        if !gate.admits(peer, &stats) {
-            continue;
+        match received {
+            Ok((n, peer)) => r.datagram(peer, &buf[..n]),
+            Err(e) => debug!(local = %r.local, "UDP receive failed: {e}"),
         }
-        let datagram = &buf[..n];
+    }
+    r.stopped();
+}
+
+/// A UDP listener's receive loop: its socket, its configuration, the allow list's
+/// gate, and the sources it knows.
+struct Receiving {
+    socket: Arc<UdpSocket>,
+    shared: Shared,
+    listen: Arc<ListenConfig>,
+    local: SocketAddr,
+    gate: admit::Gate,
+    sources: SourceTable<Source>,
+    /// `idle_timeout_ms`: a source quiet for this long is forgotten.
+    idle: Duration,
+}
+
+impl Receiving {
+    fn new(socket: Arc<UdpSocket>, listening: Listening, shared: Shared) -> Receiving {
+        let Listening {
+            listen,
+            name,
+            local,
+            ..
+        } = listening;
+        Receiving {
+            socket,
+            shared,
+            gate: admit::Gate::new(name, listen.access.allow.clone()),
+            sources: SourceTable::new(listen.tcp.max_connections),
+            idle: Duration::from_millis(listen.tcp.idle_timeout_ms),
+            listen: Arc::new(listen),
+            local,
+        }
+    }
+
+    /// A datagram from `peer`: dropped unless its source is allowed and it is one
+    /// request (an answer is never answered), then taken by its source, one made for
+    /// it if it is new.
+    fn datagram(&mut self, peer: SocketAddr, datagram: &[u8]) {
+        let stats = &self.shared.stats;
+        if !self.gate.admits(peer, stats) {
+            return;
+        }
         let adu = match one_request(datagram) {
             Ok(adu) => adu,
             Err(Unfit::Malformed) => {
                 stats.add(&stats.datagrams_dropped, 1);
+                let n = datagram.len();
                 debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
-                continue;
+                return;
             }
             Err(Unfit::Answer(what)) => {
                 let what = Unasked::Answer(what);
-                shared.unasked.note(what, &stats, peer, local, datagram);
-                continue;
+                self.shared
+                    .unasked
+                    .note(what, stats, peer, self.local, datagram);
+                return;
             }
         };
         // A source known and served: one look-up (each hashes the address).
-        if let Some(source) = sources.get_mut(&peer) {
+        if let Some(source) = self.sources.get_mut(&peer) {
             if !source.gone.is_cancelled() {
                 if source.guard.reflected(datagram, source.last) {
                     let what = Unasked::Reflected;
-                    shared.unasked.note(what, &stats, peer, local, datagram);
+                    self.shared
+                        .unasked
+                        .note(what, stats, peer, self.local, datagram);
                 } else if !source.take(adu) {
                     stats.add(&stats.datagrams_dropped, 1);
                 }
-                continue;
+                return;
             }
             // Its writer ended (a send failed): a new connection.
-            if let Some(s) = sources.remove(&peer) {
+            if let Some(s) = self.sources.remove(&peer) {
                 s.forget();
             }
         }
-        if let Some(quietest) = sources.room(Instant::now()) {
-            debug!(%peer, forgotten = %quietest.conn.peer, "max_connections ({max_sources}) sources: the quietest forgotten");
+        self.new_source(peer, adu);
+    }
+
+    /// A source not known: room made for it (the quietest forgotten, its replies
+    /// still written), its connection begun, and `adu`, its first request, taken.
+    fn new_source(&mut self, peer: SocketAddr, adu: Adu) {
+        let (shared, stats) = (&self.shared, &self.shared.stats);
+        if let Some(quietest) = self.sources.room(Instant::now()) {
+            let max = self.listen.tcp.max_connections;
+            debug!(%peer, forgotten = %quietest.conn.peer, "max_connections ({max}) sources: the quietest forgotten");
             quietest.finish(&shared.tracker, shared.shutdown.clone());
         }
         stats.add(&stats.connections, 1);
-        let conn = Connection::new(&shared, listen.clone(), peer, local);
-        let Some(mut source) = Source::start(conn, &socket, &shared, notified) else {
+        let conn = Connection::new(shared, self.listen.clone(), peer, self.local);
+        let notified = self.listen.notifications;
+        let Some(mut source) = Source::start(conn, &self.socket, shared, notified) else {
             stats.add(&stats.connections_closed, 1);
-            continue;
+            return;
         };
         if !source.take(adu) {
             stats.add(&stats.datagrams_dropped, 1);
         }
-        sources.insert(peer, source);
+        self.sources.insert(peer, source);
     }
-    for s in sources.drain() {
-        s.finish(&shared.tracker, shared.shutdown.clone());
+
+    /// The sources quiet for `idle_timeout_ms` at `now` forgotten.
+    fn sweep(&mut self, now: Instant) {
+        let idle = self.idle;
+        for s in self.sources.forget_where(|s| s.idle(idle, now)) {
+            s.forget();
+        }
     }
-    debug!(%local, "UDP listener closed");
+
+    /// The listener stopped: each source forgotten once it has been written the
+    /// replies it is owed.
+    fn stopped(mut self) {
+        for s in self.sources.drain() {
+            s.finish(&self.shared.tracker, self.shared.shutdown.clone());
+        }
+        debug!(local = %self.local, "UDP listener closed");
+    }
 }
 
 /// How often the receive loop looks for sources quiet for `idle_timeout_ms`.
