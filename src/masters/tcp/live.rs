@@ -38,3 +38,28 @@ impl Live {
         &self.seen
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A task's view follows what the gateway publishes, from a receiver made before
+    /// it or after; the last value stays once the gateway is gone.
+    #[test]
+    fn a_task_sees_each_configuration_published_and_keeps_the_last() {
+        let running = watch::Sender::new(Arc::new(Config::default()));
+        let before = running.subscribe();
+        let mut live = Live::new(&before);
+        assert!(!live.get().log.traffic);
+        running.send_modify(|c| {
+            let mut next = Config::clone(c);
+            next.log.traffic = true;
+            *c = Arc::new(next);
+        });
+        assert!(live.get().log.traffic, "published after the task began");
+        let mut late = Live::new(&before);
+        assert!(late.get().log.traffic, "a receiver made before the reload");
+        drop(running);
+        assert!(live.get().log.traffic, "the last value stays");
+    }
+}
