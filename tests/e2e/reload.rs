@@ -326,10 +326,10 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
 }
 
 /// `log.traffic` turned on by a reload logs the masters' frames (`master->gw`,
-/// `gw->master`) on a connection made before the reload as on one made after it: each
-/// connection reads the configuration as it runs, not as it was when the gateway
-/// started (before, both kept the start's `false`, and only the line's frames were
-/// logged).
+/// `gw->master`) on a connection made before the reload as on one made after it, and
+/// turned off again stops them: each connection reads the configuration as it runs,
+/// not as it was when the gateway started (before, both kept the start's `false`, and
+/// only the line's frames were logged).
 #[test]
 fn reload_turns_the_traffic_log_on_for_masters_connected_before_it() {
     let dir = tempdir();
@@ -350,7 +350,7 @@ fn reload_turns_the_traffic_log_on_for_masters_connected_before_it() {
     read(&mut before, 1, 7);
 
     let file = dir.path().join("mbgate.toml");
-    std::fs::write(&file, base.log("traffic = true").render()).unwrap();
+    std::fs::write(&file, base.clone().log("traffic = true").render()).unwrap();
     gw.proc.signal("HUP");
     gw.wait_log("reloaded: ", Duration::from_secs(5));
     assert!(gw.log().contains("log.traffic = true"), "{}", gw.log());
@@ -369,6 +369,21 @@ fn reload_turns_the_traffic_log_on_for_masters_connected_before_it() {
     let log = gw.log();
     assert!(
         !log.contains("00 01 00 00 00 06 01 03 00 07 00 01"),
+        "{log}"
+    );
+
+    // Off again: the connection made while it was on logs no more. SIGUSR1's counters
+    // are logged after the reply's line would have been (the traffic line of a frame
+    // precedes the frame, and the log is one stream).
+    std::fs::write(&file, base.render()).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("log.traffic = false", Duration::from_secs(5));
+    read(&mut after, 4, 8);
+    gw.proc.signal("USR1");
+    gw.wait_log("counters (SIGUSR1)", Duration::from_secs(5));
+    let log = gw.log();
+    assert!(
+        !log.contains("00 04 00 00 00 06 01 03 00 08 00 01"),
         "{log}"
     );
 }
