@@ -1,12 +1,13 @@
 //! The masters' side (docs/design.md §1 steps 1-2, §4 `[tcp]`, §4.1 `[[listen]]`):
 //! what its parts share. A master comes through one connection type
-//! (`tcp/connection/mod.rs`) from any of three sources: accepted by a listener
-//! (`tcp/accept/mod.rs`), dialed (`tcp/dial/mod.rs`), or a UDP source (`tcp/udp/mod.rs`); its
-//! reader (`tcp/connection/reader.rs`) hands strictly checked requests to the line serving their
-//! unit ([`crate::masters::router`]), its writer (`tcp/connection/writer.rs`) writes back their replies in
-//! the order of the requests (the path back is [`crate::line::outbox`]). Here: the
-//! listener's socket, and what every connection shares.
-
+//! (`tcp/connection/`) from any of three sources, each a folder apart from it:
+//! accepted by a listener (`tcp/accept/`), dialed (`tcp/dial/`), or a UDP source
+//! (`tcp/udp/`). Its reader (`tcp/connection/reader.rs`) hands strictly checked
+//! requests to the line serving their unit ([`crate::masters::router`]), its writer
+//! (`tcp/connection/writer.rs`) writes back their replies in the order of the
+//! requests (the path back is [`crate::line::outbox`]). Here: the listener's socket,
+//! and what every connection shares (the running configuration among it,
+//! `tcp/live.rs`).
 use crate::config::ListenConfig;
 use crate::frame::mbap::MAX_ADU;
 use crate::line::outbox;
