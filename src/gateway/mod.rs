@@ -24,6 +24,7 @@ use std::sync::atomic::AtomicU64;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 use tokio::signal::unix::SignalKind;
+use tokio::sync::watch;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::{debug, info, warn};
@@ -127,9 +128,9 @@ fn listening(listeners: Vec<Socket>, cfg: &Config) -> Result<Vec<Bound>, Gateway
 /// The gateway once started: what serving and draining need.
 struct Started {
     bound: Vec<Bound>,
-    /// The configuration as it runs now (a reload changes it).
-    running: Arc<Mutex<Config>>,
-    cfg: Arc<Config>,
+    /// The configuration as it runs now: a reload publishes the new one here, and
+    /// every master's connection reads it (`masters/tcp/live.rs`).
+    running: watch::Sender<Arc<Config>>,
     capture: crate::ops::capture::Capture,
     /// Each listener's counters, in the order of `bound`.
     listener_stats: Vec<Arc<Stats>>,
@@ -162,8 +163,8 @@ async fn start(
     let capture = crate::ops::capture::Capture::start(&cfg);
     let board = Arc::new(Board::default());
     crate::gateway::control::start(&cfg, capture.hub(), reload_handle, board.clone(), shutdown);
-    let running = Arc::new(Mutex::new(cfg.clone()));
     let cfg = Arc::new(cfg);
+    let running = watch::Sender::new(cfg.clone());
     let _ = board.capture.set(capture.hub().clone());
     board.reloads.started(std::time::SystemTime::now());
     let lines = start_lines(&cfg, &capture, &board, shutdown).await?;
@@ -172,7 +173,7 @@ async fn start(
     counted.extend(lines.stats);
     let http = start_metrics(&cfg, &board, shutdown)?;
     let router = Arc::new(Router::new(&lines.slaves, lines.relays.clone()));
-    let shared = shared(&cfg, &running, router, &board, &capture, shutdown);
+    let shared = shared(&running, router, &board, &capture, shutdown);
     let tally = Arc::new(tcp::tally::SourceTally::new(board.clone()));
     let udps = Arc::new(Mutex::new(tcp::udp::Udps::new(
         shared.clone(),
@@ -193,7 +194,6 @@ async fn start(
     let started = Started {
         bound,
         running,
-        cfg,
         capture,
         listener_stats,
         counted,
@@ -232,16 +232,14 @@ fn listeners_on_board(bound: &[Bound], board: &Board) -> Vec<Arc<Stats>> {
 
 /// What every master's connection shares, and the tracker the drain waits on.
 fn shared(
-    cfg: &Arc<Config>,
-    running: &Arc<Mutex<Config>>,
+    running: &watch::Sender<Arc<Config>>,
     router: Arc<Router>,
     board: &Board,
     capture: &crate::ops::capture::Capture,
     shutdown: &CancellationToken,
 ) -> tcp::Shared {
     tcp::Shared {
-        cfg: cfg.clone(),
-        running: running.clone(),
+        running: running.subscribe(),
         router,
         stats: Arc::default(),
         shutdown: shutdown.clone(),
@@ -475,13 +473,14 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
     }
     // The dials run beside the listeners, on the tracker: the drain waits for the
     // replies their connections owe.
-    // Their counters in the totals through the tally, as those a reload adds.
-    let cfg = started.cfg.clone();
+    // Their counters in the totals through the tally, as those a reload adds. As the
+    // configuration runs now: a reload may have come since start.
+    let running = started.running.borrow().clone();
     started
         .dials
         .lock()
         .expect("not poisoned")
-        .apply(&cfg.dials);
+        .apply(&running.dials);
     for accept in accepting {
         let _ = accept.await;
     }
@@ -496,11 +495,7 @@ async fn accept(started: &mut Started, shutdown: &CancellationToken) -> TaskTrac
 /// configuration allows as it runs now (a reload may have changed the timeouts) and
 /// two seconds more. Then the capture ends and the totals are logged.
 async fn drain(started: Started, tracker: TaskTracker) -> Arc<Stats> {
-    let answer_within = started
-        .running
-        .lock()
-        .expect("not poisoned")
-        .answer_within();
+    let answer_within = started.running.borrow().answer_within();
     let bound = answer_within + Duration::from_secs(2);
     info!("shutting down: draining in-flight requests");
     // systemd waits for the drain, and a second more for the exit itself.

@@ -4,7 +4,7 @@
 //! `[[role]]` (or the listener's `default_role` stands for a certificate without one),
 //! else the handshake fails with the alert `access_denied`. The handshake runs in the
 //! connection's own task, bounded by `handshake_timeout_ms` and by the listener's
-//! handshake budget (`tcp/handshakes.rs`): a peer that stalls holds no connection slot.
+//! handshake budget (`tcp/accept/handshakes.rs`): a peer that stalls holds no connection slot.
 //!
 //! The certificate and key (and the CA) are read again on SIGHUP: new connections get
 //! the new ones, connected masters keep their session. Sessions are never resumed, so

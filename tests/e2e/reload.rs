@@ -324,3 +324,66 @@ fn reload_matches_lines_by_their_port_and_names_each_change() {
     let counters = gw.stop();
     assert_eq!(counters["connections"], 1, "no master reconnected");
 }
+
+/// `log.traffic` turned on by a reload logs the masters' frames (`master->gw`,
+/// `gw->master`) on a connection made before the reload as on one made after it, and
+/// turned off again stops them: each connection reads the configuration as it runs,
+/// not as it was when the gateway started (before, both kept the start's `false`, and
+/// only the line's frames were logged).
+#[test]
+fn reload_turns_the_traffic_log_on_for_masters_connected_before_it() {
+    let dir = tempdir();
+    let socat = Socat::start(dir.path());
+    let _dev = device(&socat.dev, 0);
+    let base = Cfg::new(&socat.gw)
+        .pty_line()
+        .serial("flow_control = \"none\"");
+    let mut gw = Gateway::start(&base, dir.path());
+    gw.wait_log("serial port open", Duration::from_secs(5));
+    let mut before = gw.connect();
+    let read = |m: &mut std::net::TcpStream, tid: u16, addr: u16| {
+        assert_eq!(
+            transact(m, &read_req(tid, 1, addr, 1)),
+            read_reply(tid, 1, &[addr])
+        );
+    };
+    read(&mut before, 1, 7);
+
+    let file = dir.path().join("mbgate.toml");
+    std::fs::write(&file, base.clone().log("traffic = true").render()).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("reloaded: ", Duration::from_secs(5));
+    assert!(gw.log().contains("log.traffic = true"), "{}", gw.log());
+    read(&mut before, 2, 7);
+    let mut after = gw.connect();
+    read(&mut after, 3, 8);
+    for line in [
+        "00 02 00 00 00 06 01 03 00 07 00 01 dir=\"master->gw\" conn=1",
+        "00 02 00 00 00 05 01 03 02 00 07 dir=\"gw->master\" conn=1",
+        "00 03 00 00 00 06 01 03 00 08 00 01 dir=\"master->gw\" conn=2",
+        "00 03 00 00 00 05 01 03 02 00 08 dir=\"gw->master\" conn=2",
+    ] {
+        gw.wait_log(line, Duration::from_secs(5));
+    }
+    // Before the reload, nothing of the masters' was logged.
+    let log = gw.log();
+    assert!(
+        !log.contains("00 01 00 00 00 06 01 03 00 07 00 01"),
+        "{log}"
+    );
+
+    // Off again: the connection made while it was on logs no more. SIGUSR1's counters
+    // are logged after the reply's line would have been (the traffic line of a frame
+    // precedes the frame, and the log is one stream).
+    std::fs::write(&file, base.render()).unwrap();
+    gw.proc.signal("HUP");
+    gw.wait_log("log.traffic = false", Duration::from_secs(5));
+    read(&mut after, 4, 8);
+    gw.proc.signal("USR1");
+    gw.wait_log("counters (SIGUSR1)", Duration::from_secs(5));
+    let log = gw.log();
+    assert!(
+        !log.contains("00 04 00 00 00 06 01 03 00 08 00 01"),
+        "{log}"
+    );
+}

@@ -16,8 +16,8 @@ use crate::config::{Config, ConfigError};
 use crate::line::relay::{Command, RelayHandle};
 use crate::ops::metrics::listener::MetricsListener;
 use crate::tls::server::Acceptor;
-use std::sync::{Arc, Mutex};
-use tokio::sync::{mpsc, oneshot};
+use std::sync::Arc;
+use tokio::sync::{mpsc, oneshot, watch};
 use tokio_util::sync::CancellationToken;
 use tracing::{error, info, warn};
 
@@ -158,7 +158,9 @@ impl LineHandle {
 /// What a reload reloads: the file, the lines it retunes, the metrics listener it
 /// moves, and the TLS listeners whose certificates it reads again.
 pub(crate) struct Reloadable {
-    pub(crate) running: Arc<Mutex<Config>>,
+    /// The configuration as it runs: a reload publishes the merged one here, every
+    /// master's connection reads it.
+    pub(crate) running: watch::Sender<Arc<Config>>,
     /// The masters connected now, whose priority classes a reload may change.
     pub(crate) masters: Arc<crate::ops::metrics::ConnectedMasters>,
     pub(crate) load: Loader,
@@ -200,13 +202,7 @@ pub(crate) async fn on_sighup(
             return; // a relay has stopped: shutting down
         };
         // With the file as it runs now: the new one if taken, else the old.
-        let web = it
-            .running
-            .lock()
-            .expect("not poisoned")
-            .metrics
-            .web_config
-            .clone();
+        let web = it.running.borrow().metrics.web_config.clone();
         certificates.extend(reload_web(&it.metrics, &web));
         outcome.log();
         it.counted
@@ -283,7 +279,7 @@ fn reload(it: &mut Reloadable) -> Option<ReloadOutcome> {
         Ok(read) => read,
         Err(e) => return Some(ReloadOutcome::Refused(e.to_string())),
     };
-    let old = it.running.lock().expect("not poisoned").clone();
+    let old = Config::clone(&it.running.borrow());
     let matched = match changes::match_lines(&old.lines, &read.lines) {
         Ok(m) => m,
         Err(why) => return Some(ReloadOutcome::Refused(why)),
@@ -308,17 +304,23 @@ fn reload(it: &mut Reloadable) -> Option<ReloadOutcome> {
     let same: Vec<usize> = (0..matched.len()).collect();
     let applied = said(&old, &new, &same);
     let restart = said(&new, &read, &matched);
-    let mut running = it.running.lock().expect("not poisoned");
-    *running = new;
-    reclassify(&running, &it.masters, &it.lines);
+    // Published and the masters reclassified under the watch's write lock: a
+    // connection tells its class at connect while it borrows the watch (its read
+    // lock), so it tells either its old class before the reclassifying, or its new
+    // one after it.
+    it.running.send_modify(|running| {
+        *running = Arc::new(new);
+        reclassify(running, &it.masters, &it.lines);
+    });
     Some(ReloadOutcome::Done { applied, restart })
 }
 
 /// Tells every line each connected master's priority class under `running`, the
 /// configuration as it runs from now on (docs/masters.md "Priority"). Called under
-/// `running`'s lock, which a connection holds too while it tells its class at
-/// connect: a master that connects meanwhile tells either its old class before
-/// this, or its new one.
+/// the running configuration's write lock (`watch::Sender::send_modify`), whose
+/// read lock a connection holds while it tells its class at connect
+/// (src/masters/tcp/connection/mod.rs `begin`): a master that connects meanwhile tells
+/// either its old class before this, or its new one.
 fn reclassify(
     running: &Config,
     masters: &crate::ops::metrics::ConnectedMasters,

@@ -1,13 +1,13 @@
 //! The masters' side (docs/design.md §1 steps 1-2, §4 `[tcp]`, §4.1 `[[listen]]`):
 //! what its parts share. A master comes through one connection type
-//! (`tcp/connection.rs`) from any of three sources: accepted by a listener
-//! (`tcp/accept.rs`), dialed (`tcp/dial.rs`), or a UDP source (`tcp/udp.rs`); its
-//! reader (`tcp/reader.rs`) hands strictly checked requests to the line serving their
-//! unit ([`crate::masters::router`]), its writer (`tcp/writer.rs`) writes back their replies in
-//! the order of the requests (the path back is [`crate::line::outbox`]). Here: the
-//! listener's socket, and what every connection shares.
-
-use crate::config::Config;
+//! (`tcp/connection/`) from any of three sources, each a folder apart from it:
+//! accepted by a listener (`tcp/accept/`), dialed (`tcp/dial/`), or a UDP source
+//! (`tcp/udp/`). Its reader (`tcp/connection/reader.rs`) hands strictly checked
+//! requests to the line serving their unit ([`crate::masters::router`]), its writer
+//! (`tcp/connection/writer.rs`) writes back their replies in the order of the
+//! requests (the path back is [`crate::line::outbox`]). Here: the listener's socket,
+//! and what every connection shares (the running configuration among it,
+//! `tcp/live.rs`).
 use crate::config::ListenConfig;
 use crate::frame::mbap::MAX_ADU;
 use crate::line::outbox;
@@ -24,23 +24,15 @@ use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 
 mod accept;
-mod admit;
-mod codec;
 mod connection;
 pub(crate) mod dial;
-mod echo;
-mod handshakes;
-mod reader;
+pub(crate) mod live;
 mod reflect;
-mod rtu;
-mod sources;
 pub(crate) mod tally;
 pub(crate) mod udp;
-pub(crate) mod unasked;
-mod writer;
 
 pub(crate) use accept::accept_loop;
-use connection::{Connection, Dialed};
+use connection::{unasked, Connection};
 
 /// Binds the masters' listener. Every connection it accepts inherits its send buffer,
 /// capped here at room for all the replies mbgate can owe one master (the kernel
@@ -62,7 +54,7 @@ pub(crate) fn listen(addr: SocketAddr, max_pending: usize) -> std::io::Result<Tc
     socket.listen(1024)
 }
 
-/// A listener's socket: TCP, or UDP (`tcp/udp.rs`).
+/// A listener's socket: TCP, or UDP (`tcp/udp/mod.rs`).
 pub(crate) enum Socket {
     Tcp(TcpListener),
     Udp(tokio::net::UdpSocket),
@@ -85,14 +77,14 @@ pub(crate) fn send_buffer(max_pending: usize) -> u32 {
     u32::try_from(room).unwrap_or(u32::MAX)
 }
 
-/// What every listener's connections share: the configuration, the lines, the
-/// counters (each listener its own), connection ids (unique across listeners), the
-/// masters connected, shutdown and the task tracker.
+/// What every listener's connections share: the configuration as it runs, the lines,
+/// the counters (each listener its own), connection ids (unique across listeners),
+/// the masters connected, shutdown and the task tracker.
 #[derive(Clone)]
 pub(crate) struct Shared {
-    pub(crate) cfg: Arc<Config>,
-    /// The configuration as it runs now (a reload changes it): the priority classes.
-    pub(crate) running: Arc<std::sync::Mutex<Config>>,
+    /// The configuration as it runs now: the gateway's, a reload publishes the new
+    /// one through it (`tcp/live.rs`).
+    pub(crate) running: live::Running,
     pub(crate) router: Arc<Router>,
     pub(crate) stats: Arc<Stats>,
     pub(crate) shutdown: CancellationToken,

@@ -13,15 +13,6 @@ const FILE: usize = 600;
 /// What begins the first line of a long function's doc comment.
 const MARKER: &str = "Long because";
 
-/// Long functions still owed a split (`file:function`), in files being rewritten when
-/// this check came. The list only shrinks: an entry leaves it when its function is
-/// short or says why it is long (the test says so), and no entry joins it.
-const LONG_FUNCTIONS_OWED: &[&str] = &[
-    "src/masters/tcp/reader.rs:read_loop",
-    "src/masters/tcp/udp.rs:datagram_loop",
-    "src/masters/tcp/udp.rs:start",
-];
-
 /// A production function: where it is, how long, and its doc comment's first line.
 struct Function {
     file: String,
@@ -140,7 +131,7 @@ fn sources() -> Vec<(String, String)> {
 
 /// A production function over 60 lines begins its doc comment with `Long because`
 /// (a table of cases, a `select!` loop whose arms share state): anything else is split
-/// by what it does. The owed list only shrinks.
+/// by what it does.
 #[test]
 fn every_long_function_says_why_it_is_long() {
     let mut all = Vec::new();
@@ -153,8 +144,6 @@ fn every_long_function_says_why_it_is_long() {
         all.len()
     );
     let long: Vec<&Function> = all.iter().filter(|f| f.lines > FUNCTION).collect();
-    let owed =
-        |f: &Function| LONG_FUNCTIONS_OWED.contains(&format!("{}:{}", f.file, f.name).as_str());
     let unsaid: Vec<String> = long
         .iter()
         .filter(|f| {
@@ -162,7 +151,6 @@ fn every_long_function_says_why_it_is_long() {
                 .as_deref()
                 .is_some_and(|d| d.starts_with(MARKER))
         })
-        .filter(|f| !owed(f))
         .map(|f| format!("{}:{} {} ({} lines)", f.file, f.line, f.name, f.lines))
         .collect();
     assert!(
@@ -170,22 +158,6 @@ fn every_long_function_says_why_it_is_long() {
         "functions over {FUNCTION} lines: split them by what they do, or begin the doc \
          comment's first line with `{MARKER}` and say why:\n{}",
         unsaid.join("\n")
-    );
-    let paid: Vec<&&str> = LONG_FUNCTIONS_OWED
-        .iter()
-        .filter(|o| {
-            !long.iter().any(|f| {
-                format!("{}:{}", f.file, f.name) == **o
-                    && !f
-                        .first_doc
-                        .as_deref()
-                        .is_some_and(|d| d.starts_with(MARKER))
-            })
-        })
-        .collect();
-    assert!(
-        paid.is_empty(),
-        "no longer long, or now saying why: take them off LONG_FUNCTIONS_OWED: {paid:?}"
     );
 }
 

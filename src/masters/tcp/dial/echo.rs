@@ -7,10 +7,10 @@
 //! requests exactly, or else the server's answer, dropped whole. So no byte of an
 //! answer is ever part of a request, and a request never takes bytes from before a
 //! pause while an answer is owed. Plain data with time passed in; the connection's
-//! reader drives it (`tcp/reader.rs`), telling it when bytes came and when it waited.
+//! reader drives it (`tcp/connection/reader.rs`), telling it when bytes came and when it waited.
 
-use super::codec::{FrameError, MasterCodec};
 use crate::frame::Adu;
+use crate::masters::tcp::connection::codec::{FrameError, MasterCodec};
 use bytes::BytesMut;
 use std::time::Duration;
 use tokio::time::Instant;
@@ -24,7 +24,7 @@ use tokio::time::Instant;
 /// lose more requests sent on an answer's heels; shorter would cut the writes of a
 /// slow link in two. A pause is only ever seen where no byte came for this long (the
 /// reader reads before it waits), so two writes less than 10 ms apart are always one.
-pub(super) const PAUSE: Duration = Duration::from_millis(10);
+pub(in crate::masters::tcp) const PAUSE: Duration = Duration::from_millis(10);
 
 /// The most answers owed at once: a server that acknowledges only some heartbeats
 /// does not earn a licence for garbage by the hour.
@@ -33,7 +33,7 @@ const ANSWERS_OWED: u8 = 4;
 /// The identity and heartbeat sent on one connection, what the server owes back, and
 /// what it sent that is held for judging.
 #[derive(Debug)]
-pub(super) struct Echoes {
+pub(in crate::masters::tcp) struct Echoes {
     identity: Vec<u8>,
     heartbeat: Vec<u8>,
     /// The identity was sent and its echo not yet met.
@@ -67,7 +67,7 @@ pub(super) struct Echoes {
 
 /// What the front of the bytes read is, for the reader.
 #[derive(Debug)]
-pub(super) enum Front {
+pub(in crate::masters::tcp) enum Front {
     /// What the codec made of them: a request, more bytes needed, or a violation.
     Decoded(Result<Option<Adu>, FrameError>),
     /// Bytes of the server's that answer mbgate's own, taken off.
@@ -79,7 +79,7 @@ pub(super) enum Front {
 
 /// What was taken off, and how many bytes.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub(super) enum Answered {
+pub(in crate::masters::tcp) enum Answered {
     /// The very bytes of the identity or of a heartbeat.
     Echo(usize),
     /// Bytes of the server's own, up to a pause: its answer.
@@ -98,7 +98,7 @@ enum Strip {
 impl Echoes {
     /// The identity (empty: none) goes out now; `heartbeat` will. What is owed lapses
     /// `lapse` after it was earned; at most `hold` bytes are held for a pause.
-    pub(super) fn new(
+    pub(in crate::masters::tcp) fn new(
         identity: Vec<u8>,
         heartbeat: Vec<u8>,
         lapse: Duration,
@@ -122,20 +122,20 @@ impl Echoes {
     }
 
     /// A heartbeat went out at `now`.
-    pub(super) fn beat(&mut self, now: Instant) {
+    pub(in crate::masters::tcp) fn beat(&mut self, now: Instant) {
         self.heartbeats_owed = (self.heartbeats_owed + 1).min(ANSWERS_OWED);
         self.answers_owed = (self.answers_owed + 1).min(ANSWERS_OWED);
         self.earned = now;
     }
 
     /// Bytes of the server's came at `now`.
-    pub(super) fn came(&mut self, now: Instant) {
+    pub(in crate::masters::tcp) fn came(&mut self, now: Instant) {
         self.heard = Some(now);
         self.quiet = false;
     }
 
     /// The reader waited until `now` (the instant of [`Front::Wait`]) and no byte came.
-    pub(super) fn paused(&mut self, now: Instant) {
+    pub(in crate::masters::tcp) fn paused(&mut self, now: Instant) {
         if self.heard.is_some_and(|h| now >= h + PAUSE) {
             self.quiet = true;
         }
@@ -143,12 +143,12 @@ impl Echoes {
 
     /// The server closed its sending side: no byte will join what is held, which is
     /// judged as at a pause.
-    pub(super) fn ended(&mut self) {
+    pub(in crate::masters::tcp) fn ended(&mut self) {
         self.quiet = true;
     }
 
     /// Is this the first of its kind dropped on the connection?
-    pub(super) fn first(&mut self, answered: Answered) -> bool {
+    pub(in crate::masters::tcp) fn first(&mut self, answered: Answered) -> bool {
         let i = usize::from(matches!(answered, Answered::Answer(_)));
         !std::mem::replace(&mut self.told[i], true)
     }
@@ -160,7 +160,11 @@ impl Echoes {
 
     /// The next thing at the front of `buf`, where a request would begin: an echo or
     /// an answer taken off, bytes held, or the codec's request.
-    pub(super) fn next<C: MasterCodec>(&mut self, buf: &mut BytesMut, codec: &mut C) -> Front {
+    pub(in crate::masters::tcp) fn next<C: MasterCodec>(
+        &mut self,
+        buf: &mut BytesMut,
+        codec: &mut C,
+    ) -> Front {
         if self.judged > 0 {
             return match self.strip(buf) {
                 Strip::Took(n) => {
@@ -294,9 +298,9 @@ enum Which {
 
 #[cfg(test)]
 mod tests {
-    use super::super::codec::{Mbap, Rtu};
     use super::*;
     use crate::frame::mbap::decode_strict;
+    use crate::masters::tcp::connection::codec::{Mbap, Rtu};
     use std::collections::VecDeque;
 
     const IDENTITY: &[u8] = b"site-17";
@@ -329,7 +333,7 @@ mod tests {
         Beat,
     }
 
-    /// The reader of a dialed MBAP (or RTU) connection, as `tcp/reader.rs` drives the
+    /// The reader of a dialed MBAP (or RTU) connection, as `tcp/connection/reader.rs` drives the
     /// state: bytes appended as they are read, the turns taken until it waits, a pause
     /// told once its instant passed with no byte read before it (the reader reads
     /// before it waits). What it handed on and what it dropped, each byte with its

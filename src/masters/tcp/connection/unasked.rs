@@ -6,7 +6,7 @@
 //! first time of each kind on that listener, then at most once a minute with the count
 //! in between, as the allow list's refusals are.
 
-use super::connection::Connection;
+use super::Connection;
 use crate::access::allow::{RefusedLog, Tell};
 use crate::frame::hex::Hex;
 use crate::frame::pdu::NotRequest;
@@ -100,7 +100,7 @@ impl UnaskedLog {
 impl Connection {
     /// `adu`, read where a request belongs, is an answer: not answered, counted and
     /// said (its ticket, dropped by the caller, holds no later reply up).
-    pub(super) fn unasked(&self, what: NotRequest, adu: &Adu) {
+    pub(in crate::masters::tcp) fn unasked(&self, what: NotRequest, adu: &Adu) {
         let what = Unasked::Answer(what);
         self.unasked
             .note(what, &self.stats, self.peer, self.local, adu.as_bytes());

@@ -4,9 +4,10 @@
 //! replies closed, never held for ever.
 
 use super::codec::MasterCodec;
-use super::connection::{Connection, Ended};
+use super::{Connection, Ended, Origin};
 use crate::frame::hex::Hex;
 use crate::line::outbox::{Delivery, Inbox};
+use crate::masters::tcp::live::Live;
 use crate::ops::capture::packet::Dir;
 use std::future::Future;
 use std::task::Poll;
@@ -19,23 +20,41 @@ use tracing::{debug, info};
 /// RTU one of 256).
 const FRAME_ROOM: usize = 260;
 
+/// What a writer keeps from one frame to the next: the buffer each frame is framed in,
+/// the configuration as it runs, how long a frame may wait for the socket, and what
+/// the master's source adds (`origin`).
+struct Writing<'a, O> {
+    buf: Vec<u8>,
+    live: Live,
+    stall: Duration,
+    origin: &'a O,
+}
+
 impl Connection {
     /// Writes the master's replies in the order of its requests, and notifications as
     /// they come; on a dialed connection with a heartbeat, the heartbeat whenever no
     /// reply was written for its interval. A master that stops reading its replies
-    /// for `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever.
-    /// Why it stopped.
-    pub(super) async fn write_loop<C: MasterCodec>(
+    /// for `idle_timeout_ms` is closed, so it cannot hold a connection slot for ever
+    /// (a dialed server, for its dial's own bound). Why it stopped.
+    pub(in crate::masters::tcp) async fn write_loop<C: MasterCodec, O: Origin>(
         &self,
+        origin: &O,
         mut wr: impl AsyncWrite + Unpin,
         mut inbox: Inbox,
     ) -> Ended {
-        let beat = self.dialed.as_ref().filter(|d| !d.heartbeat.is_empty());
-        // Each frame is framed for the master here, in a buffer kept for the next.
-        let mut buf = Vec::with_capacity(FRAME_ROOM);
-        let Some(beat) = beat else {
+        let dialed = origin.dialed();
+        let mut w = Writing {
+            buf: Vec::with_capacity(FRAME_ROOM),
+            live: Live::new(&self.running),
+            stall: match dialed {
+                Some(d) => d.stall,
+                None => Duration::from_millis(self.listen.tcp.idle_timeout_ms),
+            },
+            origin,
+        };
+        let Some(beat) = dialed.filter(|d| !d.heartbeat.is_empty()) else {
             while let Some(out) = inbox.next().await {
-                if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf).await {
+                if let Err(why) = self.write_reply::<C, O>(&mut wr, &out, &mut w).await {
                     return why;
                 }
                 // `out` drops here: a reply's pipelining slot is free again, and the
@@ -52,14 +71,14 @@ impl Connection {
                     let Some(out) = out else {
                         return Ended::NoMoreReplies;
                     };
-                    if let Err(why) = self.write_reply::<C>(&mut wr, &out, &mut buf).await {
+                    if let Err(why) = self.write_reply::<C, O>(&mut wr, &out, &mut w).await {
                         return why;
                     }
                 }
                 _ = &mut timer => {
-                    beat.echoes.lock().expect("not poisoned").beat(Instant::now());
+                    beat.beat(Instant::now());
                     debug!(conn = self.id, "heartbeat");
-                    if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat).await {
+                    if let Err(why) = self.write_bytes(&mut wr, &beat.heartbeat, w.stall).await {
                         return why;
                     }
                 }
@@ -68,15 +87,16 @@ impl Connection {
         }
     }
 
-    /// One reply or notification written (logged and captured first), framed in
-    /// `buf`; `Err`: why the connection must close.
-    async fn write_reply<C: MasterCodec>(
+    /// One reply or notification written (logged, `log.traffic` as the configuration
+    /// runs now, and captured first), framed in the writer's buffer; `Err`: why the
+    /// connection must close.
+    async fn write_reply<C: MasterCodec, O: Origin>(
         &self,
         wr: &mut (impl AsyncWrite + Unpin),
         out: &Delivery,
-        buf: &mut Vec<u8>,
+        w: &mut Writing<'_, O>,
     ) -> Result<(), Ended> {
-        if self.cfg.log.traffic {
+        if w.live.get().log.traffic {
             debug!(target: "mbgate::traffic", dir = "gw->master", conn = self.id, "{}", Hex(out.adu().as_bytes()));
         }
         if self.tap.on() {
@@ -89,30 +109,25 @@ impl Connection {
             );
             return Ok(());
         }
-        buf.clear();
-        C::frame_into(out.frame(), out.tid(), out.unit(), buf);
-        self.write_bytes(wr, buf).await?;
-        if let Some(d) = &self.dialed {
+        w.buf.clear();
+        C::frame_into(out.frame(), out.tid(), out.unit(), &mut w.buf);
+        self.write_bytes(wr, &w.buf, w.stall).await?;
+        if let Some(d) = w.origin.dialed() {
             // A write's reply reads as the write: a server echoing it straight back
             // must not have it run again (`reflect::Loops::came_back`).
-            let now = Instant::now();
-            let mut replied = d.replied.lock().expect("not poisoned");
-            replied.remember(buf, out.frame().pdu(), now);
+            d.replied(&w.buf, out.frame().pdu(), Instant::now());
         }
         Ok(())
     }
 
-    /// `frame` written and flushed, within `idle_timeout_ms` if the socket cannot take
+    /// `frame` written and flushed, within `stall` (none: 0) if the socket cannot take
     /// it at once.
     async fn write_bytes(
         &self,
         wr: &mut (impl AsyncWrite + Unpin),
         frame: &[u8],
+        stall: Duration,
     ) -> Result<(), Ended> {
-        let stall = match &self.dialed {
-            Some(d) => d.stall,
-            None => Duration::from_millis(self.listen.tcp.idle_timeout_ms),
-        };
         // Flushed: a TLS stream holds what it could not send at once until then.
         let write = async {
             wr.write_all(frame).await?;

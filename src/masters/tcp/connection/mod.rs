@@ -1,12 +1,13 @@
 //! The one connection type every master comes through, whatever its source (accepted
-//! by `tcp/accept.rs`, dialed by `tcp/dial.rs`, a UDP source of `tcp/udp.rs`): what it
+//! by `tcp/accept/mod.rs`, dialed by `tcp/dial/mod.rs`, a UDP source of `tcp/udp/mod.rs`): what it
 //! is, its life from the master's arrival to its end (the codec chosen once, the
 //! router attached, its priority class, the reader and the writer run together, the
 //! replies owed written at the end), why it ended, and how a capture shows its frames.
 
-use super::codec::{self, MasterCodec};
-use super::{echo, Shared};
-use crate::config::{Config, ListenConfig, ListenFraming, Transport};
+use super::dial::Dialed;
+use super::live::Running;
+use super::Shared;
+use crate::config::{ListenConfig, ListenFraming, Transport};
 use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::line::relay::ConnId;
@@ -17,21 +18,29 @@ use crate::ops::capture::{Hub, Tap};
 use crate::ops::metrics::{ConnectedMasters, MasterSeen};
 use crate::ops::stats::Stats;
 use crate::tls::server::Grant;
+use codec::MasterCodec;
 use std::net::SocketAddr;
 use std::sync::atomic::Ordering;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite};
 use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::debug;
 
+pub(super) mod codec;
+mod reader;
+mod rtu;
+pub(super) mod unasked;
+mod writer;
+
 /// A master's connection.
 pub(super) struct Connection {
     pub(super) id: ConnId,
     pub(super) peer: SocketAddr,
-    pub(super) cfg: Arc<Config>,
-    pub(super) running: Arc<std::sync::Mutex<Config>>,
+    /// The configuration as it runs now (a reload changes it); each task reads it
+    /// through a [`super::live::Live`] of its own.
+    pub(super) running: Running,
     pub(super) listen: Arc<ListenConfig>,
     pub(super) router: Arc<Router>,
     pub(super) stats: Arc<Stats>,
@@ -44,25 +53,27 @@ pub(super) struct Connection {
     pub(super) capture: Hub,
     /// The TCP side's tap.
     pub(super) tap: Tap,
-    /// A dialed connection's own bytes: its heartbeat, and the echoes of them and of
-    /// its identity the server may send back (docs/dialing.md).
-    pub(super) dialed: Option<Dialed>,
     /// Where answers it sends instead of requests are said.
     pub(super) unasked: Arc<super::unasked::UnaskedLog>,
 }
 
-/// What a dialed connection sends of its own, and the echoes it may get back.
-pub(super) struct Dialed {
-    /// Sent after `every` without a reply written; empty: never.
-    pub(super) heartbeat: Vec<u8>,
-    pub(super) every: Duration,
-    pub(super) echoes: Mutex<echo::Echoes>,
-    /// The last reply written that reads as a request (a write's): its echo is no
-    /// request (`tcp/reflect.rs`).
-    pub(super) replied: Mutex<super::reflect::Loops>,
-    /// How long the server may leave a reply unread before the connection is closed
-    /// (and dialed again): never for ever, since mbgate has no other way to it.
-    pub(super) stall: Duration,
+/// What a master's source adds of its own to its connection's reader and writer: a
+/// dial its heartbeat and the echoes of what it sent ([`Dialed`]); a master that came
+/// to a listener, TCP or UDP, nothing ([`Inbound`]). The reader and writer are made
+/// for each, so an accepted connection's carry no test for a dial's bytes.
+pub(in crate::masters::tcp) trait Origin: Sync {
+    /// A dialed connection's own state; `None` for any other.
+    fn dialed(&self) -> Option<&Dialed>;
+}
+
+/// A master that came to a listener (accepted, or a UDP source): nothing of its own.
+pub(in crate::masters::tcp) struct Inbound;
+
+impl Origin for Inbound {
+    #[inline(always)]
+    fn dialed(&self) -> Option<&Dialed> {
+        None
+    }
 }
 
 /// Why a connection's reader stopped.
@@ -108,7 +119,6 @@ impl Connection {
         Connection {
             id: shared.ids.fetch_add(1, Ordering::Relaxed) + 1,
             peer,
-            cfg: shared.cfg.clone(),
             running: shared.running.clone(),
             listen,
             router: shared.router.clone(),
@@ -119,26 +129,27 @@ impl Connection {
             grant: None,
             capture: shared.capture.clone(),
             tap: shared.capture.tap(0),
-            dialed: None,
             unasked: shared.unasked.clone(),
         }
     }
 
-    /// The listener's framing chosen once: the rest is written over its codec. Why
-    /// the connection ended, in words.
-    pub(super) async fn run(
+    /// The listener's framing chosen once: the rest is written over its codec, with
+    /// what the master's source adds (`origin`). Why the connection ended, in words.
+    pub(super) async fn run<O: Origin>(
         self,
+        origin: O,
         rd: impl AsyncRead + Unpin,
         wr: impl AsyncWrite + Unpin,
     ) -> Ended {
         match self.listen.framing {
-            ListenFraming::Mbap => self.serve::<codec::Mbap>(rd, wr).await,
-            ListenFraming::Rtu => self.serve::<codec::Rtu>(rd, wr).await,
+            ListenFraming::Mbap => self.serve::<codec::Mbap, O>(&origin, rd, wr).await,
+            ListenFraming::Rtu => self.serve::<codec::Rtu, O>(&origin, rd, wr).await,
         }
     }
 
-    async fn serve<C: MasterCodec>(
+    async fn serve<C: MasterCodec, O: Origin>(
         self,
+        origin: &O,
         rd: impl AsyncRead + Unpin,
         wr: impl AsyncWrite + Unpin,
     ) -> Ended {
@@ -149,8 +160,8 @@ impl Connection {
             // reader alone, where the task's every wake polled both (the reader's
             // socket, idle timer and shutdown for each reply: about 400 instructions a
             // transaction, docs/performance.md "A transaction on a quiet line").
-            let mut writer = Woken::new(self.write_loop::<C>(wr, inbox));
-            let mut reader = Woken::new(self.read_loop::<C>(rd, &mut outbox));
+            let mut writer = Woken::new(self.write_loop::<C, O>(origin, wr, inbox));
+            let mut reader = Woken::new(self.read_loop::<C, O>(origin, rd, &mut outbox));
             let end = tokio::select! {
                 end = &mut reader => end,
                 w = &mut writer => End::Closed(w),
@@ -166,13 +177,15 @@ impl Connection {
                 // gateway shuts down (what is on the line within the response timeout
                 // and its retries), else in its turn. Only shutdown bounds the wait
                 // here; a master that stops reading meanwhile is closed by the writer.
-                let bound = self.cfg.answer_within() + Duration::from_secs(1);
                 tokio::select! {
                     _ = outbox.settled() => {}
                     _ = &mut writer => {}
                     _ = async {
                         self.shutdown.cancelled().await;
-                        tokio::time::sleep(bound).await;
+                        // The configuration's as it runs at shutdown, as the
+                        // gateway's own drain.
+                        let bound = self.running.borrow().answer_within();
+                        tokio::time::sleep(bound + Duration::from_secs(1)).await;
                     } => {}
                 }
             }
@@ -219,21 +232,24 @@ impl Connection {
         });
         self.capture.connected(self.id, self.peer);
         // A framing with no transaction id (RTU over TCP): one request at a time, and
-        // no notifications (nothing would tell them from a reply).
+        // no notifications (nothing would tell them from a reply). The outbox's size is
+        // fixed at connect (a reload does not change `max_pending_per_connection`).
         let pending = if C::IDS {
-            self.cfg.max_pending_per_connection()
+            self.running.borrow().max_pending_per_connection()
         } else {
             1
         };
         let (outbox, inbox) = Outbox::new(pending);
-        // A UDP source gets them through an outbox of its own, if at all (`tcp/udp.rs`).
+        // A UDP source gets them through an outbox of its own, if at all (`tcp/udp/mod.rs`).
         let notified = C::IDS && self.listen.transport != Transport::Udp;
         let attached = !notified || self.router.attach(self.id, &outbox.notifier());
         // Its role's priority class, else its listener's, as the configuration runs
-        // now; told under its lock, so a reload's new classes never arrive before
-        // the old one (src/gateway/reload/mod.rs `reclassify`).
+        // now; told while the watch's value is borrowed (its read lock), and a reload
+        // publishes the new configuration and reclassifies the masters under its
+        // write lock (src/gateway/reload/mod.rs `reclassify`): so a reload's new
+        // class never arrives before the old one.
         {
-            let running = self.running.lock().expect("not poisoned");
+            let running = self.running.borrow();
             let role = self.grant.as_ref().map(|g| g.role.as_str());
             let class = running.priority_of(&self.listen, role);
             self.router.classify(self.id, class);

@@ -13,7 +13,7 @@ use std::time::Duration;
 
 /// Why a master's bytes are not a request: the connection is closed.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
-pub(super) enum FrameError {
+pub(in crate::masters::tcp) enum FrameError {
     #[error(transparent)]
     Mbap(#[from] StrictError),
     #[error(transparent)]
@@ -22,7 +22,7 @@ pub(super) enum FrameError {
 
 /// A master's framing on the socket: requests decoded from the bytes read, replies
 /// encoded for writing. State of one connection (an RTU master's request count).
-pub(super) trait MasterCodec: Default + Send {
+pub(in crate::masters::tcp) trait MasterCodec: Default + Send {
     /// As `framing` is written in the configuration.
     const NAME: &'static str;
     /// Do its frames carry a transaction id? Without one a master has one request
@@ -53,7 +53,7 @@ pub(super) trait MasterCodec: Default + Send {
 
 /// Modbus/TCP: MBAP header and PDU, strictly checked (docs/protocol.md).
 #[derive(Default)]
-pub(super) struct Mbap;
+pub(in crate::masters::tcp) struct Mbap;
 
 impl MasterCodec for Mbap {
     const NAME: &'static str = "mbap";
@@ -85,9 +85,9 @@ impl MasterCodec for Mbap {
     }
 }
 
-/// RTU over TCP (`tcp/rtu.rs`): unit, PDU and CRC, no header.
+/// RTU over TCP (`tcp/connection/rtu.rs`): unit, PDU and CRC, no header.
 #[derive(Default)]
-pub(super) struct Rtu {
+pub(in crate::masters::tcp) struct Rtu {
     /// The id the relay sees for the next request (the line gives it its own).
     tid: u16,
     /// The master has paused: that ends a request of unknown shape.

@@ -12,15 +12,15 @@ use std::time::Duration;
 
 /// The longest RTU frame: address, 253 bytes of PDU, CRC (Modbus over Serial Line
 /// V1.02 §2.5.1.1).
-pub(super) const MAX_FRAME: usize = 256;
+pub(in crate::masters::tcp) const MAX_FRAME: usize = 256;
 
 /// A pause this long ends a request of unknown shape. A master writes its request in
 /// one go, so on a socket the pause is far longer than its bytes are ever apart.
-pub(super) const SILENCE: Duration = Duration::from_millis(50);
+pub(in crate::masters::tcp) const SILENCE: Duration = Duration::from_millis(50);
 
 /// Why an RTU master's connection is closed.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]
-pub(super) enum RtuError {
+pub(in crate::masters::tcp) enum RtuError {
     #[error("an RTU request whose CRC is wrong ({0} bytes)")]
     BadCrc(usize),
     #[error("more than {MAX_FRAME} bytes without an RTU request")]
@@ -30,7 +30,11 @@ pub(super) enum RtuError {
 /// The request at the front of `buf`, as an ADU with transaction id `tid` (the relay
 /// gives it its own id on the line); `None` while more bytes are needed. `quiet`: the
 /// master has paused for [`SILENCE`], which ends a request of unknown shape.
-pub(super) fn decode(buf: &mut BytesMut, quiet: bool, tid: u16) -> Result<Option<Adu>, RtuError> {
+pub(in crate::masters::tcp) fn decode(
+    buf: &mut BytesMut,
+    quiet: bool,
+    tid: u16,
+) -> Result<Option<Adu>, RtuError> {
     let n = match rtu::request_length(buf) {
         Length::Exactly(n) if buf.len() >= n => n,
         Length::Silence if quiet => buf.len(),
@@ -48,12 +52,12 @@ pub(super) fn decode(buf: &mut BytesMut, quiet: bool, tid: u16) -> Result<Option
 }
 
 /// Does what is buffered wait for a pause to end it (a function of unknown shape)?
-pub(super) fn needs_silence(buf: &BytesMut) -> bool {
+pub(in crate::masters::tcp) fn needs_silence(buf: &BytesMut) -> bool {
     !buf.is_empty() && rtu::request_length(buf) == Length::Silence
 }
 
 /// The reply as the master reads it: unit, PDU, CRC.
-pub(super) fn encode(adu: &Adu) -> Vec<u8> {
+pub(in crate::masters::tcp) fn encode(adu: &Adu) -> Vec<u8> {
     rtu::encode(adu.unit(), adu.pdu())
 }
 

@@ -8,7 +8,7 @@
 
 use super::connection::Ended;
 use super::tally::SourceTally;
-use super::{echo, Connection, Dialed, Shared};
+use super::{Connection, Shared};
 use crate::config::dial::{DialConfig, TlsDial};
 use crate::line::port::Backoff;
 use crate::tls::client::Connector;
@@ -16,13 +16,18 @@ use crate::tls::server::{grant, Grant, RoleRefused};
 use crate::tls::TlsError;
 use socket2::{SockRef, TcpKeepalive};
 use std::net::SocketAddr;
-use std::sync::{Arc, Mutex};
+use std::sync::Arc;
 use std::time::Duration;
 use tokio::io::{AsyncRead, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpStream;
 use tokio::time::Instant;
 use tokio_rustls::client::TlsStream;
 use tracing::{debug, info, warn};
+
+mod dialed;
+pub(super) mod echo;
+
+pub(super) use dialed::Dialed;
 
 /// Keepalive: the first probe after this much silence, then every `KEEPALIVE_EVERY`,
 /// the connection dropped after `KEEPALIVE_PROBES` unanswered (about 25 s in all, as
@@ -99,22 +104,24 @@ pub(crate) async fn dial_loop(name: String, dial: DialConfig, shared: Shared) {
     let mut outage = Outage::new(&name, &dial);
     let shutdown = shared.shutdown.clone();
     loop {
+        // As the configuration runs now (a reload does not change it).
+        let max_pending = shared.running.borrow().max_pending_per_connection();
         let attempt = tokio::select! {
             _ = shutdown.cancelled() => break,
-            a = connect(&dial, shared.cfg.max_pending_per_connection()) => a,
+            a = connect(&dial, max_pending) => a,
         };
         match attempt {
             Err(why) => outage.failed(&why),
             Ok((stream, peer)) => {
-                let mut conn = connection(&shared, &listen, &dial, &stream, peer);
+                let (mut conn, dialed) = connection(&shared, &listen, &dial, &stream, peer);
                 shared.stats.add(&shared.stats.connections, 1);
                 let began = Instant::now();
                 let why = match &dial.tls {
-                    None => serve(conn, stream, &dial, &mut outage, settle).await,
+                    None => serve((conn, dialed), stream, &dial, &mut outage, settle).await,
                     Some(t) => match secure(t, &dial, stream, &shared).await {
                         Ok((tls, grant)) => {
                             conn.grant = Some(grant);
-                            serve(conn, tls, &dial, &mut outage, settle).await
+                            serve((conn, dialed), tls, &dial, &mut outage, settle).await
                         }
                         Err(why) => Err(why),
                     },
@@ -202,39 +209,21 @@ async fn connect(
     Err(last)
 }
 
-/// The connection as an accepted one is made, with the dial's own bytes.
+/// The connection as an accepted one is made, and the dial's own state beside it.
 fn connection(
     shared: &Shared,
     listen: &Arc<crate::config::ListenConfig>,
     dial: &DialConfig,
     stream: &TcpStream,
     peer: SocketAddr,
-) -> Connection {
+) -> (Connection, Dialed) {
     let local = stream
         .local_addr()
         .unwrap_or(SocketAddr::from(([0, 0, 0, 0], 0)));
-    Connection {
-        dialed: Some(Dialed {
-            heartbeat: dial.heartbeat.clone(),
-            every: Duration::from_millis(dial.heartbeat_ms),
-            // An answer to the identity or a heartbeat is owed until the server
-            // answered, or for as long as the dial waits for any of its answers; no
-            // more bytes are held for it than the replies the connection can be owed.
-            echoes: Mutex::new(echo::Echoes::new(
-                dial.identity.clone(),
-                dial.heartbeat.clone(),
-                Duration::from_millis(dial.connect_timeout_ms),
-                super::send_buffer(shared.cfg.max_pending_per_connection()) as usize,
-                Instant::now(),
-            )),
-            replied: Mutex::new(super::reflect::Loops::new(Instant::now())),
-            stall: Duration::from_millis(match dial.idle_timeout_ms {
-                0 => dial.connect_timeout_ms,
-                idle => idle,
-            }),
-        }),
-        ..Connection::new(shared, listen.clone(), peer, local)
-    }
+    // As the configuration runs now (a reload does not change it).
+    let max_pending = shared.running.borrow().max_pending_per_connection();
+    let dialed = Dialed::new(dial, super::send_buffer(max_pending) as usize);
+    (Connection::new(shared, listen.clone(), peer, local), dialed)
 }
 
 /// The TLS handshake with the server within `connect_timeout_ms` (the files read
@@ -267,7 +256,13 @@ async fn secure(
         stats.add(&stats.tls_refused, 1);
         return Err(DialError::NoCertificate);
     };
-    match grant(der, &shared.cfg.roles, t.default_role.as_deref()) {
+    // The roles as the configuration runs now.
+    let granted = grant(
+        der,
+        &shared.running.borrow().roles,
+        t.default_role.as_deref(),
+    );
+    match granted {
         Ok(g) => Ok((tls, g)),
         Err(refused) => {
             stats.add(&stats.tls_refused, 1);
@@ -280,7 +275,7 @@ async fn secure(
 /// up for `settle`, the outage (if any) is over. Why it ended; `Err`: the identity
 /// could not be sent.
 async fn serve<S: Halves>(
-    conn: Connection,
+    (conn, dialed): (Connection, Dialed),
     mut stream: S,
     dial: &DialConfig,
     outage: &mut Outage,
@@ -302,7 +297,7 @@ async fn serve<S: Halves>(
     }
     outage.connected(peer);
     let (rd, wr) = stream.halves();
-    let served = conn.run(rd, wr);
+    let served = conn.run(dialed, rd, wr);
     tokio::pin!(served);
     tokio::select! {
         why = &mut served => return Ok(why),
@@ -406,10 +401,10 @@ impl Outage {
 pub(crate) struct Dials {
     shared: Shared,
     tally: Arc<SourceTally>,
-    running: Vec<Running>,
+    running: Vec<RunningDial>,
 }
 
-struct Running {
+struct RunningDial {
     dial: DialConfig,
     stop: tokio_util::sync::CancellationToken,
     stats: Arc<crate::ops::stats::Stats>,
@@ -456,7 +451,7 @@ impl Dials {
             self.shared
                 .tracker
                 .spawn(dial_loop(format!("dial[{i}]"), d.clone(), shared));
-            self.running.push(Running {
+            self.running.push(RunningDial {
                 dial: d.clone(),
                 stop,
                 stats,

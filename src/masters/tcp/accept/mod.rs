@@ -1,13 +1,14 @@
 //! The accept loop of a TCP listener (docs/design.md §4.1 `[[listen]]`): the allow
-//! list before a byte is read (`tcp/admit.rs`), the connection limit, the TLS
-//! handshake within the listener's budget (`tcp/handshakes.rs`), each master then
-//! served by its connection (`tcp/connection.rs`) on a task of its own; accept()
+//! list before a byte is read (`tcp/accept/admit.rs`), the connection limit, the TLS
+//! handshake within the listener's budget (`tcp/accept/handshakes.rs`), each master then
+//! served by its connection (`tcp/connection/mod.rs`) on a task of its own; accept()
 //! failures backed off and said once a minute.
 
-use super::handshakes::Handshakes;
-use super::{admit, Connection, Listening, Shared};
+use super::connection::Inbound;
+use super::{Connection, Listening, Shared};
 use crate::line::port::Backoff;
 use crate::tls::server::Acceptor;
+use handshakes::Handshakes;
 use std::collections::HashMap;
 use std::net::SocketAddr;
 use std::sync::{Arc, Mutex};
@@ -18,6 +19,9 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tracing::{debug, info, warn};
 
+pub(super) mod admit;
+mod handshakes;
+
 /// Long because it is the listener's loop: each step of a connection's admission
 /// (accepted, allowed, a slot, its task) reads the state the listener's connections
 /// share (the allow list's gate, the slots, the refusals' log, the handshake budget).
@@ -26,7 +30,7 @@ use tracing::{debug, info, warn};
 /// closed at once, before any byte is read. On a plain listener a connection past
 /// `max_connections` is closed at once; the others each get a task on the tracker. On a
 /// TLS listener the handshake runs in the connection's task within the listener's
-/// handshake budget (`tcp/handshakes.rs`), and a connection slot is taken only once
+/// handshake budget (`tcp/accept/handshakes.rs`), and a connection slot is taken only once
 /// the master has authenticated: peers that never do hold no slot. Refusals are
 /// logged at most once a minute per source and reason, with counts ([`admit::Refusals`]).
 pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, shared: Shared) {
@@ -100,7 +104,7 @@ pub(crate) async fn accept_loop(listener: TcpListener, listening: Listening, sha
             (None, slot) => {
                 tracker.spawn(async move {
                     let (rd, wr) = stream.into_split();
-                    conn.run(rd, wr).await;
+                    conn.run(Inbound, rd, wr).await;
                     closed.add(&closed.connections_closed, 1);
                     drop(slot);
                 });
@@ -278,6 +282,6 @@ async fn start_tls(
     };
     conn.grant = Some(grant);
     let (rd, wr) = tokio::io::split(stream);
-    conn.run(rd, wr).await;
+    conn.run(Inbound, rd, wr).await;
     drop(slot);
 }

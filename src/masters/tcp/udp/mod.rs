@@ -1,27 +1,27 @@
 //! Modbus over UDP (`[[listen]]` with `transport = "udp"`, docs/dialing.md "Modbus
 //! over UDP"): each datagram one MBAP request, its reply sent to the datagram's
-//! source. Each source is a master of the one connection type (`tcp/connection.rs`:
+//! source. Each source is a master of the one connection type (`tcp/connection/mod.rs`:
 //! access, per-master order, metrics), its requests handed to the line by the receive
 //! loop itself and its replies sent by its writer: a source whose pipelining slots
 //! are all in use has its next datagrams dropped, so a flood from one address takes no
 //! more of the line than one master's share (`max_pending_per_connection`). A datagram
 //! that is not exactly one well-formed MBAP request is dropped and counted, and closes
 //! nothing; one that is an answer (an exception, a reply's shape, or the very reply
-//! its source was just sent, come back) is never answered (`tcp/unasked.rs`), and a
+//! its source was just sent, come back) is never answered (`tcp/connection/unasked.rs`), and a
 //! source's exception replies have a budget (`tcp/reflect.rs`), so no loop with
 //! another server lasts. At most `max_connections` sources at once, the quietest owed
-//! nothing forgotten for a new one (`tcp/sources.rs`); one quiet for `idle_timeout_ms`
+//! nothing forgotten for a new one (`tcp/udp/sources.rs`); one quiet for `idle_timeout_ms`
 //! is forgotten; the lines' notifications reach a source only with `notifications =
 //! true`, and only for [`NOTIFIED_FOR`] after its last request. A listener stopped
 //! (a reload, shutdown) writes the replies its sources are owed first.
 
-use super::codec::Mbap;
+use super::connection::codec::Mbap;
+use super::connection::Inbound;
+use super::live::Live;
 use super::reflect::Guard;
-use super::sources::{SourceTable, TableSource};
-use super::tally::SourceTally;
 use super::unasked::Unasked;
-use super::{admit, Connection, Listening, Shared};
-use crate::config::{ListenConfig, Transport, NOTIFIED_FOR};
+use super::{accept::admit, Connection, Listening, Shared};
+use crate::config::{ListenConfig, NOTIFIED_FOR};
 use crate::frame::hex::Hex;
 use crate::frame::mbap::{decode_strict, MAX_ADU};
 use crate::frame::pdu::{not_a_request, NotRequest};
@@ -29,6 +29,7 @@ use crate::frame::Adu;
 use crate::line::outbox::{Inbox, Outbox};
 use crate::ops::capture::packet::Dir;
 use bytes::BytesMut;
+use sources::{SourceTable, TableSource};
 use std::future::Future;
 use std::io;
 use std::net::SocketAddr;
@@ -42,6 +43,11 @@ use tokio::time::Instant;
 use tokio_util::sync::CancellationToken;
 use tokio_util::task::TaskTracker;
 use tracing::debug;
+
+mod listeners;
+mod sources;
+
+pub(crate) use listeners::Udps;
 
 /// Binds a UDP listener.
 pub(crate) fn bind(addr: SocketAddr) -> io::Result<UdpSocket> {
@@ -75,9 +81,11 @@ fn one_request(d: &[u8]) -> Result<Adu, Unfit> {
 /// One source: its connection, the outbox its requests take tickets from (here, in
 /// the receive loop: no task between a datagram and the line), the outbox the lines
 /// send it notifications through (`notifications = true`), when it last sent, whether
-/// its writer has ended, and its loop guards.
+/// its writer has ended, its loop guards, and the configuration as it runs (for its
+/// requests' log).
 struct Source {
     conn: Arc<Connection>,
+    live: Live,
     outbox: Outbox,
     notes: Option<Outbox>,
     last: Instant,
@@ -99,22 +107,12 @@ impl Source {
             conn.end();
             return None;
         };
+        let Some((notes, notes_in)) = notes(&conn, notified) else {
+            conn.end();
+            return None;
+        };
         let now = Instant::now();
         let guard = Arc::new(Guard::new(now));
-        // The lines' notifications come through an outbox of their own, with no
-        // pipelining slot: its writer knows them from replies, and sends them only to
-        // a source that asked lately.
-        let (notes, notes_in) = match notified {
-            true => {
-                let (notes, notes_in) = Outbox::new(0);
-                if !conn.router.attach(conn.id, &notes.notifier()) {
-                    conn.end();
-                    return None;
-                }
-                (Some(notes), Some(notes_in))
-            }
-            false => (None, None),
-        };
         let gone = CancellationToken::new();
         let writer = Replies {
             socket: socket.clone(),
@@ -122,28 +120,14 @@ impl Source {
             guard: guard.clone(),
             deciding: None,
         };
-        let (c, g, stats) = (conn.clone(), gone.clone(), shared.stats.clone());
-        let (socket, guarded) = (socket.clone(), guard.clone());
+        let writing = write(conn.clone(), writer, inbox, notes_in, gone.clone());
+        let stats = shared.stats.clone();
         shared.tracker.spawn(async move {
-            let writing = c.write_loop::<Mbap>(writer, inbox);
-            match notes_in {
-                None => drop(writing.await),
-                Some(notes_in) => {
-                    let forwarding = async {
-                        notify(&c, &socket, &guarded, notes_in).await;
-                        std::future::pending::<()>().await
-                    };
-                    tokio::select! {
-                        _ = writing => {}
-                        _ = forwarding => {}
-                    }
-                }
-            }
-            g.cancel();
-            c.end();
+            writing.await;
             stats.add(&stats.connections_closed, 1);
         });
         Some(Source {
+            live: Live::new(&conn.running),
             conn,
             outbox,
             notes,
@@ -165,7 +149,7 @@ impl Source {
         if self.notes.is_some() {
             self.guard.asked(self.last);
         }
-        self.conn.take::<Mbap>(adu, ticket);
+        self.conn.take::<Mbap>(&mut self.live, adu, ticket);
         true
     }
 
@@ -184,8 +168,9 @@ impl Source {
 
     /// Forgotten once the replies it is owed are written (its requests still queued
     /// on the lines among them): the listener stops, or it makes room for a new
-    /// source. At shutdown the wait is bounded by `bound`.
-    fn finish(self, tracker: &TaskTracker, shutdown: CancellationToken, bound: Duration) {
+    /// source. At shutdown the wait is bounded by the longest answer of the
+    /// configuration as it runs then, and a second more (as a connection's own).
+    fn finish(self, tracker: &TaskTracker, shutdown: CancellationToken) {
         if !self.outbox.owed() {
             return self.forget();
         }
@@ -194,7 +179,8 @@ impl Source {
                 _ = self.outbox.settled() => {}
                 _ = async {
                     shutdown.cancelled().await;
-                    tokio::time::sleep(bound).await;
+                    let bound = self.conn.running.borrow().answer_within();
+                    tokio::time::sleep(bound + Duration::from_secs(1)).await;
                 } => {}
             }
             self.forget();
@@ -214,11 +200,55 @@ impl TableSource for Source {
     }
 }
 
+/// The outbox the lines send a source their notifications through, if `notified`,
+/// and the inbox its writer takes them from: no pipelining slot in it, its writer
+/// knows them from replies and sends them only to a source that asked lately.
+/// `None`: it could not be attached (the gateway is stopping).
+fn notes(conn: &Connection, notified: bool) -> Option<(Option<Outbox>, Option<Inbox>)> {
+    if !notified {
+        return Some((None, None));
+    }
+    let (notes, notes_in) = Outbox::new(0);
+    if !conn.router.attach(conn.id, &notes.notifier()) {
+        return None;
+    }
+    Some((Some(notes), Some(notes_in)))
+}
+
+/// A source's writer: its replies written (`writer`), its notifications sent beside
+/// them if it has any, until either ends; then `gone`, and its connection ended.
+async fn write(
+    conn: Arc<Connection>,
+    writer: Replies,
+    inbox: Inbox,
+    notes: Option<Inbox>,
+    gone: CancellationToken,
+) {
+    let (socket, guard) = (writer.socket.clone(), writer.guard.clone());
+    let writing = conn.write_loop::<Mbap, _>(&Inbound, writer, inbox);
+    match notes {
+        None => drop(writing.await),
+        Some(notes) => {
+            let forwarding = async {
+                notify(&conn, &socket, &guard, notes).await;
+                std::future::pending::<()>().await
+            };
+            tokio::select! {
+                _ = writing => {}
+                _ = forwarding => {}
+            }
+        }
+    }
+    gone.cancel();
+    conn.end();
+}
+
 /// Sends a source the lines' notifications that come within [`NOTIFIED_FOR`] of its
 /// last request, as they come, until there are no more; an exception past its budget
 /// is not sent. Best effort, as to a TCP master: one the socket cannot take at once is
 /// missed.
 async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes: Inbox) {
+    let mut live = Live::new(&conn.running);
     while let Some(d) = notes.next().await {
         if !guard.asked_within(Instant::now(), NOTIFIED_FOR) {
             continue;
@@ -231,7 +261,7 @@ async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes:
                 .note(limited, &conn.stats, conn.peer, conn.local, frame);
             continue;
         }
-        if conn.cfg.log.traffic {
+        if live.get().log.traffic {
             debug!(target: "mbgate::traffic", dir = "gw->master", conn = conn.id, "{}", Hex(frame));
         }
         if conn.tap.on() {
@@ -246,7 +276,7 @@ async fn notify(conn: &Connection, socket: &UdpSocket, guard: &Guard, mut notes:
 /// Takes datagrams on `socket` until `stop`. Each is handed to the line from this
 /// loop, through its source's outbox (per-source order: the order received); a
 /// source with no pipelining slot free has its datagram dropped, so a flood from one
-/// address takes no more of the line than one master's share. SourceTable quiet for
+/// address takes no more of the line than one master's share. Sources quiet for
 /// `idle_timeout_ms` are forgotten (looked for at most once a second; with 0, never
 /// for being quiet, only to make room). When it stops, each source is forgotten once
 /// it has been written the replies it is owed.
@@ -256,21 +286,7 @@ pub(crate) async fn datagram_loop(
     shared: Shared,
     stop: CancellationToken,
 ) {
-    let Listening {
-        listen,
-        name,
-        local,
-        ..
-    } = listening;
-    let mut gate = admit::Gate::new(name, listen.access.allow.clone());
-    let max_sources = listen.tcp.max_connections;
-    let idle = Duration::from_millis(listen.tcp.idle_timeout_ms);
-    let notified = listen.notifications;
-    let listen = Arc::new(listen);
-    let stats = shared.stats.clone();
-    let mut sources: SourceTable<Source> = SourceTable::new(max_sources);
-    // How long a source forgotten with replies owed may wait for them at shutdown.
-    let bound = shared.cfg.answer_within() + Duration::from_secs(1);
+    let mut r = Receiving::new(socket, listening, shared);
     // One timer for the loop's life, moved at each sweep for idle sources.
     let sweep = tokio::time::sleep(SWEEP);
     tokio::pin!(sweep);
@@ -288,194 +304,143 @@ pub(crate) async fn datagram_loop(
             // would queue and drop a waiter of its own for each datagram.
             r = std::future::poll_fn(|cx| {
                 let mut filled = tokio::io::ReadBuf::new(&mut buf);
-                let peer = std::task::ready!(socket.poll_recv_from(cx, &mut filled));
+                let peer = std::task::ready!(r.socket.poll_recv_from(cx, &mut filled));
                 std::task::Poll::Ready(peer.map(|p| (filled.filled().len(), p)))
             }) => r,
-            _ = &mut sweep, if !idle.is_zero() && !sources.is_empty() => {
+            _ = &mut sweep, if !r.idle.is_zero() && !r.sources.is_empty() => {
                 let now = Instant::now();
-                for s in sources.forget_where(|s| s.idle(idle, now)) {
-                    s.forget();
-                }
+                r.sweep(now);
                 sweep.as_mut().reset(now + SWEEP);
                 continue;
             }
         };
-        let (n, peer) = match received {
-            Ok(r) => r,
-            Err(e) => {
-                debug!(%local, "UDP receive failed: {e}");
-                continue;
-            }
-        };
-        if !gate.admits(peer, &stats) {
-            continue;
+        match received {
+            Ok((n, peer)) => r.datagram(peer, &buf[..n]),
+            Err(e) => debug!(local = %r.local, "UDP receive failed: {e}"),
         }
-        let datagram = &buf[..n];
+    }
+    r.stopped();
+}
+
+/// A UDP listener's receive loop: its socket, its configuration, the allow list's
+/// gate, and the sources it knows.
+struct Receiving {
+    socket: Arc<UdpSocket>,
+    shared: Shared,
+    listen: Arc<ListenConfig>,
+    local: SocketAddr,
+    gate: admit::Gate,
+    sources: SourceTable<Source>,
+    /// `idle_timeout_ms`: a source quiet for this long is forgotten.
+    idle: Duration,
+}
+
+impl Receiving {
+    fn new(socket: Arc<UdpSocket>, listening: Listening, shared: Shared) -> Receiving {
+        let Listening {
+            listen,
+            name,
+            local,
+            ..
+        } = listening;
+        Receiving {
+            socket,
+            shared,
+            gate: admit::Gate::new(name, listen.access.allow.clone()),
+            sources: SourceTable::new(listen.tcp.max_connections),
+            idle: Duration::from_millis(listen.tcp.idle_timeout_ms),
+            listen: Arc::new(listen),
+            local,
+        }
+    }
+
+    /// A datagram from `peer`: dropped unless its source is allowed and it is one
+    /// request (an answer is never answered), then taken by its source, one made for
+    /// it if it is new.
+    fn datagram(&mut self, peer: SocketAddr, datagram: &[u8]) {
+        let stats = &self.shared.stats;
+        if !self.gate.admits(peer, stats) {
+            return;
+        }
         let adu = match one_request(datagram) {
             Ok(adu) => adu,
             Err(Unfit::Malformed) => {
                 stats.add(&stats.datagrams_dropped, 1);
+                let n = datagram.len();
                 debug!(%peer, bytes = n, "a datagram that is not one MBAP request: dropped");
-                continue;
+                return;
             }
             Err(Unfit::Answer(what)) => {
                 let what = Unasked::Answer(what);
-                shared.unasked.note(what, &stats, peer, local, datagram);
-                continue;
+                self.shared
+                    .unasked
+                    .note(what, stats, peer, self.local, datagram);
+                return;
             }
         };
         // A source known and served: one look-up (each hashes the address).
-        if let Some(source) = sources.get_mut(&peer) {
+        if let Some(source) = self.sources.get_mut(&peer) {
             if !source.gone.is_cancelled() {
                 if source.guard.reflected(datagram, source.last) {
                     let what = Unasked::Reflected;
-                    shared.unasked.note(what, &stats, peer, local, datagram);
+                    self.shared
+                        .unasked
+                        .note(what, stats, peer, self.local, datagram);
                 } else if !source.take(adu) {
                     stats.add(&stats.datagrams_dropped, 1);
                 }
-                continue;
+                return;
             }
             // Its writer ended (a send failed): a new connection.
-            if let Some(s) = sources.remove(&peer) {
+            if let Some(s) = self.sources.remove(&peer) {
                 s.forget();
             }
         }
-        if let Some(quietest) = sources.room(Instant::now()) {
-            debug!(%peer, forgotten = %quietest.conn.peer, "max_connections ({max_sources}) sources: the quietest forgotten");
-            quietest.finish(&shared.tracker, shared.shutdown.clone(), bound);
+        self.new_source(peer, adu);
+    }
+
+    /// A source not known: room made for it (the quietest forgotten, its replies
+    /// still written), its connection begun, and `adu`, its first request, taken.
+    fn new_source(&mut self, peer: SocketAddr, adu: Adu) {
+        let (shared, stats) = (&self.shared, &self.shared.stats);
+        if let Some(quietest) = self.sources.room(Instant::now()) {
+            let max = self.listen.tcp.max_connections;
+            debug!(%peer, forgotten = %quietest.conn.peer, "max_connections ({max}) sources: the quietest forgotten");
+            quietest.finish(&shared.tracker, shared.shutdown.clone());
         }
         stats.add(&stats.connections, 1);
-        let conn = Connection::new(&shared, listen.clone(), peer, local);
-        let Some(mut source) = Source::start(conn, &socket, &shared, notified) else {
+        let conn = Connection::new(shared, self.listen.clone(), peer, self.local);
+        let notified = self.listen.notifications;
+        let Some(mut source) = Source::start(conn, &self.socket, shared, notified) else {
             stats.add(&stats.connections_closed, 1);
-            continue;
+            return;
         };
         if !source.take(adu) {
             stats.add(&stats.datagrams_dropped, 1);
         }
-        sources.insert(peer, source);
+        self.sources.insert(peer, source);
     }
-    for s in sources.drain() {
-        s.finish(&shared.tracker, shared.shutdown.clone(), bound);
+
+    /// The sources quiet for `idle_timeout_ms` at `now` forgotten.
+    fn sweep(&mut self, now: Instant) {
+        let idle = self.idle;
+        for s in self.sources.forget_where(|s| s.idle(idle, now)) {
+            s.forget();
+        }
     }
-    debug!(%local, "UDP listener closed");
+
+    /// The listener stopped: each source forgotten once it has been written the
+    /// replies it is owed.
+    fn stopped(mut self) {
+        for s in self.sources.drain() {
+            s.finish(&self.shared.tracker, self.shared.shutdown.clone());
+        }
+        debug!(local = %self.local, "UDP listener closed");
+    }
 }
 
 /// How often the receive loop looks for sources quiet for `idle_timeout_ms`.
 const SWEEP: Duration = Duration::from_secs(1);
-
-/// The UDP listeners running, as a reload finds them (docs/dialing.md "Reload"):
-/// each its configuration, its socket, the token that stops it and its counters.
-pub(crate) struct Udps {
-    shared: Shared,
-    tally: Arc<SourceTally>,
-    running: Vec<RunningUdp>,
-}
-
-struct RunningUdp {
-    listen: ListenConfig,
-    socket: Arc<UdpSocket>,
-    stop: tokio_util::sync::CancellationToken,
-    stats: Arc<crate::ops::stats::Stats>,
-}
-
-impl Udps {
-    pub(crate) fn new(shared: Shared, tally: Arc<SourceTally>) -> Udps {
-        Udps {
-            shared,
-            tally,
-            running: Vec::new(),
-        }
-    }
-
-    /// A UDP listener bound at start, served from now on with its counters `stats`.
-    pub(crate) fn adopt(
-        &mut self,
-        socket: UdpSocket,
-        listening: Listening,
-        stats: Arc<crate::ops::stats::Stats>,
-    ) {
-        let listen = listening.listen.clone();
-        let socket = Arc::new(socket);
-        let stop = self.start(socket.clone(), listening, stats.clone());
-        self.running.push(RunningUdp {
-            listen,
-            socket,
-            stop,
-            stats,
-        });
-    }
-
-    fn start(
-        &self,
-        socket: Arc<UdpSocket>,
-        listening: Listening,
-        stats: Arc<crate::ops::stats::Stats>,
-    ) -> tokio_util::sync::CancellationToken {
-        // Its own stop, for a reload; its sources' writers see the gateway's shutdown.
-        let stop = self.shared.shutdown.child_token();
-        let shared = Shared {
-            stats,
-            ..self.shared.clone()
-        };
-        self.shared
-            .tracker
-            .spawn(datagram_loop(socket, listening, shared, stop.clone()));
-        stop
-    }
-
-    /// The UDP listeners of `listeners` running, and no other: one unchanged keeps
-    /// its sources, one new is bound and started, one gone stops, one changed starts
-    /// again with its new settings on the same socket (its sources begin anew). One
-    /// gone leaves the metrics, its counts staying in the totals. What it did, in words (a listener that cannot be bound is said and left out).
-    pub(crate) fn apply(&mut self, listeners: &[ListenConfig]) -> Vec<String> {
-        let mut said = Vec::new();
-        let mut old = std::mem::take(&mut self.running);
-        let udp = listeners.iter().filter(|l| l.transport == Transport::Udp);
-        for (i, l) in udp.enumerate() {
-            if let Some(p) = old.iter().position(|r| r.listen == *l) {
-                self.running.push(old.remove(p));
-                continue;
-            }
-            let name = format!("udp[{i}]");
-            let same_address = old.iter().position(|r| r.listen.tcp.listen == l.tcp.listen);
-            let (socket, stats) = match same_address {
-                Some(p) => {
-                    let r = old.remove(p);
-                    r.stop.cancel();
-                    (r.socket, r.stats)
-                }
-                None => match bind(l.tcp.listen) {
-                    Ok(s) => (Arc::new(s), self.tally.open(l.tcp.listen.to_string())),
-                    Err(e) => {
-                        said.push(format!("cannot listen on {} (UDP): {e}", l.tcp.listen));
-                        continue;
-                    }
-                },
-            };
-            let local = socket.local_addr().unwrap_or(l.tcp.listen);
-            tracing::info!("listening on {local} (UDP) for Modbus/UDP masters");
-            let listening = Listening {
-                listen: l.clone(),
-                name,
-                local,
-                tls: None,
-            };
-            let stop = self.start(socket.clone(), listening, stats.clone());
-            self.running.push(RunningUdp {
-                listen: l.clone(),
-                socket,
-                stop,
-                stats,
-            });
-        }
-        for r in old {
-            r.stop.cancel();
-            self.tally.close(&r.stats);
-        }
-        said
-    }
-}
 
 /// A source's replies, each written whole, each one datagram to the source; an
 /// exception past the source's budget is not sent (`tcp/reflect.rs`).
