@@ -279,7 +279,7 @@ fn reload(it: &mut Reloadable) -> Option<ReloadOutcome> {
         Ok(read) => read,
         Err(e) => return Some(ReloadOutcome::Refused(e.to_string())),
     };
-    let old = Config::clone(&it.running.borrow());
+    let old = Arc::clone(&it.running.borrow());
     let matched = match changes::match_lines(&old.lines, &read.lines) {
         Ok(m) => m,
         Err(why) => return Some(ReloadOutcome::Refused(why)),

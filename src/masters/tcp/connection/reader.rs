@@ -43,6 +43,18 @@ impl Wake {
     }
 }
 
+/// What a dialed server's bytes give next.
+enum DialedNext {
+    /// An echo or answer was taken off, or the very reply last written came back:
+    /// there may be more.
+    Again,
+    /// As a master's bytes would: the codec's request, nothing whole yet, or why they
+    /// are no request.
+    Decoded(Result<Option<Adu>, FrameError>),
+    /// What the server sent is held, and judged at that instant if any.
+    Held(Option<Wake>),
+}
+
 /// A reader's clocks between two reads. The idle clock runs from the master's last
 /// byte or its last reply, whichever is later, and a request read is always followed
 /// by its reply (or by its end without one, which counts as a reply, an answer
@@ -109,8 +121,9 @@ impl Connection {
             let (decoded, held) = match origin.dialed() {
                 None => (codec.decode(&mut buf), None),
                 Some(d) => match self.dialed_next(d, &mut buf, &mut codec, &mut clocks) {
-                    Some(next) => next,
-                    None => continue,
+                    DialedNext::Again => continue,
+                    DialedNext::Decoded(decoded) => (decoded, None),
+                    DialedNext::Held(at) => (Ok(None), Some(at)),
                 },
             };
             match decoded {
@@ -240,30 +253,25 @@ impl Connection {
         End::Closed(Ended::Violation(e))
     }
 
-    /// On a dialed connection, what comes next in `buf` (`tcp/dial/echo.rs`): the
-    /// decoded request or nothing yet, and whether what the server sent is held
-    /// (until that instant, if any);
-    /// `None`: an echo or answer was taken off, or the very reply last written came
-    /// back, and there may be more.
-    #[allow(clippy::type_complexity)]
+    /// On a dialed connection, what comes next in `buf` (`tcp/dial/echo.rs`).
     fn dialed_next<C: MasterCodec>(
         &self,
         d: &Dialed,
         buf: &mut BytesMut,
         codec: &mut C,
         clocks: &mut Clocks,
-    ) -> Option<(Result<Option<Adu>, FrameError>, Option<Option<Wake>>)> {
+    ) -> DialedNext {
         match d.front(self, buf, codec) {
-            echo::Front::Answered(_) => None,
-            echo::Front::Wait(at) => Some((Ok(None), Some(at.map(Wake::At)))),
+            echo::Front::Answered(_) => DialedNext::Again,
+            echo::Front::Wait(at) => DialedNext::Held(at.map(Wake::At)),
             echo::Front::Decoded(decoded) => {
                 if let Ok(Some(adu)) = &decoded {
                     if d.came_back::<C>(self, adu) {
-                        return None;
+                        return DialedNext::Again;
                     }
                     clocks.last_read = clocks.came;
                 }
-                Some((decoded, None))
+                DialedNext::Decoded(decoded)
             }
         }
     }
