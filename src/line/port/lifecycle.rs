@@ -389,7 +389,7 @@ mod tests {
             tried = next;
         }
         assert_eq!(attempts, 20, "one attempt a step for SETTLING");
-        // The wake's time is over: the backoff again (2 s, give or take its jitter).
+        // The wake's time is over: the backoff again, at its ceiling (2 s).
         let failed = port.open_if_due(tried).expect("due");
         port.opened(failed, tried);
         let gap = port.retry_at().expect("closed") - tried;
